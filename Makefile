@@ -1,0 +1,43 @@
+# roomcap — the commands a newcomer needs. Everything runs inside $(VENV).
+VENV ?= .venv
+PY := $(VENV)/bin/python
+SHARED ?= $(abspath ../shared)
+export ROOMCAP_SHARED := $(SHARED)
+
+# `make calibrate` inputs (defaults: the caliscope ChArUco recording in ../shared)
+RECORDING ?= $(SHARED)/data/caliscope/charuco_calibration/calibration/extrinsic
+BOARD ?= $(SHARED)/data/caliscope/charuco_calibration/charuco.toml
+OUT ?= out/calibration/rig.toml
+# `make demo` input: the Pose2Sim multi-person demo
+DEMO ?= $(SHARED)/data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson
+DEMO_OUT ?= out/demo
+
+.PHONY: install test test-fast demo calibrate bench lint clean
+
+$(PY):
+	python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+
+install: $(PY)
+	$(PY) -m pip install -c constraints.txt -e '.[dev,cluster,bench]'
+
+test: $(PY)
+	$(PY) -m pytest -n 2 --dist loadgroup -q
+
+test-fast: $(PY)
+	$(PY) -m pytest -n 2 -q -m "not slow"
+
+demo: install
+	$(VENV)/bin/reprocess demo --recording $(DEMO) --out $(DEMO_OUT)
+
+calibrate: $(PY)
+	$(VENV)/bin/calibrate-run calibrate $(RECORDING) --board $(BOARD) --out $(OUT)
+
+bench: $(PY)
+	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+lint: $(PY)
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf out .pytest_cache

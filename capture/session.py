@@ -1,0 +1,119 @@
+"""The session folder layout (DESIGN.md), one place that knows where each file lives.
+
+::
+
+    <session>/
+      session.toml                 schema "session/1": cameras, fps, calibration pointer, sync offsets
+      raw/<cam>.mp4 | raw/<cam>/   video (or playable segments) per camera
+      raw/<cam>.frames.csv         per-frame timestamps: frame_index,t_ns,t_host_ns,sequence
+      calib/rig.toml               the rig (or ``calibration = "<path>"`` in session.toml)
+      keypoints/<cam>.npz          2D detections per camera
+      triangulate/poses3d.npz      per-frame 3D poses
+      track/tracks.npz             the track file
+      report/report.html           the session report
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from capture.fileio import FormatError, check_schema, load_toml
+
+SESSION_SCHEMA = "session"
+SESSION_VERSION = 1
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
+
+
+@dataclass(frozen=True)
+class SessionLayout:
+    root: Path
+
+    def __init__(self, root: str | os.PathLike):
+        object.__setattr__(self, "root", Path(root))
+
+    @property
+    def session_toml(self) -> Path:
+        return self.root / "session.toml"
+
+    @property
+    def raw_dir(self) -> Path:
+        return self.root / "raw"
+
+    def video(self, cam: str) -> Path:
+        """The camera's video: ``raw/<cam>.<ext>`` if present, else the segment folder ``raw/<cam>/``."""
+        for suffix in VIDEO_SUFFIXES:
+            p = self.raw_dir / f"{cam}{suffix}"
+            if p.exists():
+                return p
+        return self.raw_dir / cam
+
+    def frames_csv(self, cam: str) -> Path:
+        return self.raw_dir / f"{cam}.frames.csv"
+
+    @property
+    def calib_dir(self) -> Path:
+        return self.root / "calib"
+
+    @property
+    def rig_toml(self) -> Path:
+        """The rig this session uses: its own ``calib/rig.toml`` or the one session.toml points to."""
+        own = self.calib_dir / "rig.toml"
+        if own.exists() or not self.session_toml.exists():
+            return own
+        meta = self.read_meta()
+        pointer = meta.get("calibration")
+        if isinstance(pointer, dict):
+            pointer = pointer.get("rig")
+        if pointer:
+            p = Path(pointer)
+            return p if p.is_absolute() else (self.root / p)
+        return own
+
+    @property
+    def keypoints_dir(self) -> Path:
+        return self.root / "keypoints"
+
+    def detections(self, cam: str) -> Path:
+        return self.keypoints_dir / f"{cam}.npz"
+
+    @property
+    def poses3d(self) -> Path:
+        return self.root / "triangulate" / "poses3d.npz"
+
+    @property
+    def tracks(self) -> Path:
+        return self.root / "track" / "tracks.npz"
+
+    @property
+    def report_html(self) -> Path:
+        return self.root / "report" / "report.html"
+
+    def read_meta(self) -> dict:
+        meta = load_toml(self.session_toml)
+        check_schema(meta.get("schema"), SESSION_SCHEMA, (SESSION_VERSION,), self.session_toml)
+        return meta
+
+    def raw_cameras(self) -> list[str]:
+        """Camera names with a video under raw/ (sorted by name, never by file order)."""
+        if not self.raw_dir.is_dir():
+            return []
+        names = set()
+        for p in self.raw_dir.iterdir():
+            if p.suffix.lower() in VIDEO_SUFFIXES:
+                names.add(p.stem)
+            elif p.is_dir():
+                names.add(p.name)
+        return sorted(names)
+
+    def detection_cameras(self) -> list[str]:
+        if not self.keypoints_dir.is_dir():
+            return []
+        return sorted(p.stem for p in self.keypoints_dir.glob("*.npz") if not p.name.startswith("."))
+
+
+def require(path: Path, what: str, fix: str) -> Path:
+    if not path.exists():
+        raise FormatError(path, None, f"{what} is missing.", fix)
+    return path

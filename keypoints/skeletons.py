@@ -1,0 +1,213 @@
+"""Skeletons as data: joint names, parents, limbs, and mappings between layouts.
+
+Skeleton ids (DESIGN.md): ``coco17``, ``coco18`` (OpenPose COCO), ``body25``,
+``body25b`` (OpenPose BODY_25B, used by Pose2Sim's demo), ``blazepose33``,
+``halpe26``, ``smpl29`` (Humans-in-Kitchens: SMPL's 22 body joints + 7 head
+points) and the canonical ``body19`` (COCO-17 plus pelvis and neck) used for
+every 3D file. Joint names are lower snake case.
+
+``convert`` maps keypoints between layouts by joint name; joints the source
+lacks but can be derived (pelvis = mid-hips, neck = mid-shoulders) are
+computed, everything else is NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cache
+
+import numpy as np
+
+_COCO17 = (
+    "nose", "left_eye", "right_eye", "left_ear", "right_ear",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+    "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+)
+_BODY19 = _COCO17 + ("pelvis", "neck")
+_COCO18 = (
+    "nose", "neck", "right_shoulder", "right_elbow", "right_wrist", "left_shoulder", "left_elbow", "left_wrist",
+    "right_hip", "right_knee", "right_ankle", "left_hip", "left_knee", "left_ankle",
+    "right_eye", "left_eye", "right_ear", "left_ear",
+)
+_FEET = ("left_big_toe", "left_small_toe", "left_heel", "right_big_toe", "right_small_toe", "right_heel")
+_BODY25 = (
+    "nose", "neck", "right_shoulder", "right_elbow", "right_wrist", "left_shoulder", "left_elbow", "left_wrist",
+    "pelvis", "right_hip", "right_knee", "right_ankle", "left_hip", "left_knee", "left_ankle",
+    "right_eye", "left_eye", "right_ear", "left_ear",
+) + _FEET
+_BODY25B = _COCO17 + ("upper_neck", "head_top") + _FEET
+_HALPE26 = _COCO17 + (
+    "head", "neck", "pelvis", "left_big_toe", "right_big_toe", "left_small_toe", "right_small_toe",
+    "left_heel", "right_heel",
+)
+_BLAZEPOSE33 = (
+    "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye", "right_eye_outer",
+    "left_ear", "right_ear", "mouth_left", "mouth_right", "left_shoulder", "right_shoulder",
+    "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_pinky", "right_pinky",
+    "left_index", "right_index", "left_thumb", "right_thumb", "left_hip", "right_hip",
+    "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel", "right_heel",
+    "left_foot_index", "right_foot_index",
+)
+# Humans-in-Kitchens / SMPL order (forecast issue): 22 body joints, then 7 head points.
+_SMPL29 = (
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+    "head_point_0", "head_point_1", "head_point_2", "head_point_3", "head_point_4", "head_point_5", "head_point_6",
+)
+
+# Kinematic parent of every joint, by name (a joint absent from a layout is skipped
+# when walking up to the nearest present ancestor).
+_PARENT = {
+    "pelvis": None, "left_hip": "pelvis", "right_hip": "pelvis", "neck": "pelvis",
+    "left_knee": "left_hip", "right_knee": "right_hip", "left_ankle": "left_knee", "right_ankle": "right_knee",
+    "left_shoulder": "neck", "right_shoulder": "neck", "left_elbow": "left_shoulder",
+    "right_elbow": "right_shoulder", "left_wrist": "left_elbow", "right_wrist": "right_elbow",
+    "nose": "neck", "left_eye": "nose", "right_eye": "nose", "left_ear": "left_eye", "right_ear": "right_eye",
+    "upper_neck": "neck", "head_top": "upper_neck", "head": "neck",
+    "left_big_toe": "left_ankle", "left_small_toe": "left_ankle", "left_heel": "left_ankle",
+    "right_big_toe": "right_ankle", "right_small_toe": "right_ankle", "right_heel": "right_ankle",
+    "left_eye_inner": "nose", "left_eye_outer": "left_eye", "right_eye_inner": "nose",
+    "right_eye_outer": "right_eye", "mouth_left": "nose", "mouth_right": "nose",
+    "left_pinky": "left_wrist", "right_pinky": "right_wrist", "left_index": "left_wrist",
+    "right_index": "right_wrist", "left_thumb": "left_wrist", "right_thumb": "right_wrist",
+    "left_foot_index": "left_ankle", "right_foot_index": "right_ankle",
+    "spine1": "pelvis", "spine2": "spine1", "spine3": "spine2", "left_foot": "left_ankle",
+    "right_foot": "right_ankle", "left_collar": "spine3", "right_collar": "spine3",
+    **{f"head_point_{i}": "head" for i in range(7)},
+}
+# SMPL's tree differs from the COCO-style one above in the upper body.
+_PARENT_SMPL = {"neck": "spine3", "head": "neck", "left_shoulder": "left_collar",
+                "right_shoulder": "right_collar"}
+
+# Joints that can be derived as the midpoint of two others when a layout lacks them.
+DERIVED = {"pelvis": ("left_hip", "right_hip"), "neck": ("left_shoulder", "right_shoulder")}
+
+# The four limb pairs PCP scores (seed ch. 4.3; Shelf/Campus protocol), by name.
+PCP_LIMBS = {
+    "upper_arm": (("left_shoulder", "left_elbow"), ("right_shoulder", "right_elbow")),
+    "lower_arm": (("left_elbow", "left_wrist"), ("right_elbow", "right_wrist")),
+    "upper_leg": (("left_hip", "left_knee"), ("right_hip", "right_knee")),
+    "lower_leg": (("left_knee", "left_ankle"), ("right_knee", "right_ankle")),
+}
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """A keypoint layout. ``parents[j]`` is -1 for roots; ``limbs`` are (parent, child) index pairs."""
+
+    id: str
+    joint_names: tuple[str, ...]
+    parents: tuple[int, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        table = dict(_PARENT, **_PARENT_SMPL) if self.id == "smpl29" else _PARENT
+        idx = {n: i for i, n in enumerate(self.joint_names)}
+        parents = []
+        for name in self.joint_names:
+            p = table.get(name)
+            while p is not None and p not in idx:  # walk up to the nearest ancestor the layout has
+                p = table.get(p)
+            parents.append(-1 if p is None else idx[p])
+        object.__setattr__(self, "parents", tuple(parents))
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def limbs(self) -> tuple[tuple[int, int], ...]:
+        return tuple((p, c) for c, p in enumerate(self.parents) if p >= 0)
+
+    def index(self, name: str) -> int:
+        try:
+            return self.joint_names.index(name)
+        except ValueError:
+            raise KeyError(f"skeleton '{self.id}' has no joint '{name}'; joints: {list(self.joint_names)}") from None
+
+    @property
+    def flip_index(self) -> np.ndarray:
+        """Index permutation that swaps left and right joints."""
+        idx = {n: i for i, n in enumerate(self.joint_names)}
+        out = []
+        for n in self.joint_names:
+            m = n.replace("left_", "\0").replace("right_", "left_").replace("\0", "right_")
+            out.append(idx.get(m, idx[n]))
+        return np.asarray(out)
+
+    def pcp_limbs(self) -> dict[str, tuple[tuple[int, int], ...]]:
+        return {k: tuple((self.index(a), self.index(b)) for a, b in pairs) for k, pairs in PCP_LIMBS.items()}
+
+
+SKELETONS: dict[str, Skeleton] = {
+    s.id: s
+    for s in (
+        Skeleton("body19", _BODY19),
+        Skeleton("coco17", _COCO17),
+        Skeleton("coco18", _COCO18),
+        Skeleton("body25", _BODY25),
+        Skeleton("body25b", _BODY25B),
+        Skeleton("halpe26", _HALPE26),
+        Skeleton("blazepose33", _BLAZEPOSE33),
+        Skeleton("smpl29", _SMPL29),
+    )
+}
+CANONICAL = SKELETONS["body19"]
+
+
+def get_skeleton(skeleton: str | Skeleton) -> Skeleton:
+    if isinstance(skeleton, Skeleton):
+        return skeleton
+    try:
+        return SKELETONS[str(skeleton)]
+    except KeyError:
+        raise KeyError(f"unknown skeleton id '{skeleton}'; known: {sorted(SKELETONS)}") from None
+
+
+@cache
+def mapping(src: str, dst: str) -> tuple[np.ndarray, tuple[tuple[int, int, int], ...]]:
+    """Index map from ``src`` to ``dst`` layout.
+
+    Returns ``take`` (J_dst,) with the source index of each destination joint or -1,
+    and ``derived``: (dst_index, src_a, src_b) for joints computed as a midpoint.
+    """
+    s, d = get_skeleton(src), get_skeleton(dst)
+    src_idx = {n: i for i, n in enumerate(s.joint_names)}
+    take = np.full(d.n_joints, -1, dtype=np.int64)
+    derived = []
+    for j, name in enumerate(d.joint_names):
+        if name in src_idx:
+            take[j] = src_idx[name]
+        elif name in DERIVED and all(p in src_idx for p in DERIVED[name]):
+            a, b = DERIVED[name]
+            derived.append((j, src_idx[a], src_idx[b]))
+    return take, tuple(derived)
+
+
+def convert(xy: np.ndarray, score: np.ndarray | None, src: str, dst: str = "body19"):
+    """Map keypoints (..., J_src, D) and scores (..., J_src) to layout ``dst``.
+
+    Joints the source cannot provide are NaN with score 0. Derived joints are the
+    midpoint of their two sources (NaN if either is NaN), with the smaller score.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    s = get_skeleton(src)
+    if xy.shape[-2] != s.n_joints:
+        raise ValueError(f"convert: expected (..., {s.n_joints}, D) for '{src}', got {xy.shape}")
+    take, derived = mapping(s.id, get_skeleton(dst).id)
+    out_shape = xy.shape[:-2] + (len(take), xy.shape[-1])
+    out = np.full(out_shape, np.nan)
+    ok = take >= 0
+    out[..., ok, :] = xy[..., take[ok], :]
+    sc = None
+    if score is not None:
+        score = np.asarray(score, dtype=np.float64)
+        sc = np.zeros(out_shape[:-1])
+        sc[..., ok] = score[..., take[ok]]
+    for j, a, b in derived:
+        out[..., j, :] = 0.5 * (xy[..., a, :] + xy[..., b, :])
+        if sc is not None:
+            sc[..., j] = np.minimum(score[..., a], score[..., b])
+    if sc is not None:
+        sc = np.where(np.isnan(out[..., 0]), 0.0, sc)
+    return out, sc

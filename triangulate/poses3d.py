@@ -1,0 +1,68 @@
+"""The per-frame 3D poses file ``<session>/triangulate/poses3d.npz`` (no identity over time).
+
+Keys (T frames, P people per frame padded with NaN, J joints of ``body19``):
+``schema`` = ``"poses3d/1"``, ``fps``, ``frame_index (T,)``, ``t_ns (T,)``, ``joint_names (J,)``,
+``xyz_m (T,P,J,3)`` NaN = not triangulated, ``score (T,P,J)`` mean 2D confidence of the views used,
+``reproj_err_px (T,P,J)`` mean reprojection error, ``n_views (T,P,J)`` int, ``calibration_sha256``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_npz, schema_tag
+
+SCHEMA = "poses3d"
+VERSION = 1
+_KEYS = ("schema", "fps", "frame_index", "t_ns", "joint_names", "xyz_m", "score", "reproj_err_px", "n_views",
+         "calibration_sha256")
+
+
+@dataclass(frozen=True)
+class Poses3D:
+    fps: float
+    frame_index: np.ndarray  # (T,)
+    t_ns: np.ndarray  # (T,)
+    joint_names: tuple[str, ...]
+    xyz_m: np.ndarray  # (T,P,J,3)
+    score: np.ndarray  # (T,P,J)
+    reproj_err_px: np.ndarray  # (T,P,J)
+    n_views: np.ndarray  # (T,P,J)
+    calibration_sha256: str = ""
+
+    def __post_init__(self) -> None:
+        T, J = len(self.frame_index), len(self.joint_names)
+        P = np.shape(self.xyz_m)[1] if np.ndim(self.xyz_m) == 4 else -1
+        for name, shape in {"t_ns": (T,), "xyz_m": (T, P, J, 3), "score": (T, P, J),
+                            "reproj_err_px": (T, P, J), "n_views": (T, P, J)}.items():
+            if np.shape(getattr(self, name)) != shape:
+                raise FormatError(None, name, f"expected shape {shape}, got {np.shape(getattr(self, name))}.")
+        for name, dtype in {"frame_index": np.int64, "t_ns": np.int64, "xyz_m": np.float32, "score": np.float32,
+                            "reproj_err_px": np.float32, "n_views": np.int16}.items():
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dtype))
+        object.__setattr__(self, "joint_names", tuple(str(n) for n in self.joint_names))
+
+    def save(self, path: str | os.PathLike) -> None:
+        save_npz(path, {"schema": schema_tag(SCHEMA, VERSION), "fps": np.float64(self.fps),
+                        "frame_index": self.frame_index, "t_ns": self.t_ns,
+                        "joint_names": np.asarray(self.joint_names), "xyz_m": self.xyz_m, "score": self.score,
+                        "reproj_err_px": self.reproj_err_px, "n_views": self.n_views,
+                        "calibration_sha256": self.calibration_sha256})
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Poses3D:
+        path = Path(path)
+        data = load_npz(path, required=("schema",))
+        check_schema(data["schema"], SCHEMA, (VERSION,), path)
+        data = load_npz(path, required=_KEYS)
+        try:
+            return cls(fps=float(data["fps"]), frame_index=data["frame_index"], t_ns=data["t_ns"],
+                       joint_names=tuple(data["joint_names"].tolist()), xyz_m=data["xyz_m"], score=data["score"],
+                       reproj_err_px=data["reproj_err_px"], n_views=data["n_views"],
+                       calibration_sha256=npz_str(data, "calibration_sha256"))
+        except FormatError as e:
+            raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
