@@ -103,12 +103,15 @@ class Skeleton:
     def __post_init__(self) -> None:
         table = dict(_PARENT, **_PARENT_SMPL) if self.id == "smpl29" else _PARENT
         idx = {n: i for i, n in enumerate(self.joint_names)}
+        # One root: the first of these the layout has; joints whose ancestors are all
+        # missing (hips and shoulders of COCO-17, say) hang from it.
+        root = next(idx[n] for n in ("pelvis", "neck", "left_hip", *self.joint_names) if n in idx)
         parents = []
-        for name in self.joint_names:
+        for j, name in enumerate(self.joint_names):
             p = table.get(name)
             while p is not None and p not in idx:  # walk up to the nearest ancestor the layout has
                 p = table.get(p)
-            parents.append(-1 if p is None else idx[p])
+            parents.append(-1 if j == root else (root if p is None else idx[p]))
         object.__setattr__(self, "parents", tuple(parents))
 
     @property
