@@ -1,0 +1,494 @@
+"""BVH motion capture: reader, vectorised forward kinematics, and mapping to the canonical ``body19``.
+
+The reader follows the BVH format as written: ``HIERARCHY`` (ROOT/JOINT/End Site, OFFSET,
+CHANNELS with the Euler order *as written* per joint) then ``MOTION`` (Frames, Frame Time,
+one row of channel values per frame). Rotation channels compose left to right in the order
+they are listed (``Zrotation Yrotation Xrotation`` → ``R = Rz @ Ry @ Rx``), and a joint's
+world transform is ``parent_world @ [R | offset + translation]``.
+
+``load_bvh_body19(path, fps)`` returns ``(T, 19, 3)`` metres in the world frame used
+everywhere in roomcap (z up, floor at z = 0):
+
+- **joint mapping**: hips/knees/ankles/shoulders/elbows/wrists come from the named BVH
+  joints (CMU ASF names ``LeftUpLeg``/``LeftHip``…, and the iClone ``CC_Base_L_Thigh``…
+  rig of ``cmu-bvh-subjects01-07``); ``pelvis`` = mid-hips and ``neck`` = mid-shoulders,
+  the same definition :mod:`keypoints.skeletons` uses to derive them from COCO detectors.
+- **face points are approximations**: nose, eyes and ears are fixed offsets (see
+  ``FACE_OFFSETS_M``) in a head frame rigidly attached to the BVH head joint. The head
+  frame's forward/up axes are estimated once per clip as the average over frames of the
+  torso's forward and the neck→head direction expressed in the head joint's local frame,
+  so head turns relative to the torso are kept.
+- **units** are detected from the body height (m, cm, inches, or CMU's ASF unit of
+  1/0.45 in = 0.05644 m), or given. **Axes**: the vertical axis is detected from the
+  head-above-ankles direction and rotated (a proper rotation, handedness kept) to +z.
+- **floor**: the clip is shifted so the 5th percentile of its lowest foot point is z = 0
+  (ankles then sit ~5–10 cm above the floor). The horizontal root position is kept.
+- **prepended T-pose** (``cmu-bvh-subjects01-07``): the first frame is dropped when it is a
+  jump far larger than the clip's typical frame-to-frame motion.
+- **resampling** to ``fps`` is linear interpolation of joint positions.
+
+Parsed clips are cached in memory (``functools.lru_cache``) and on disk as ``.npz`` under
+``$ROOMCAP_CACHE`` or the system temp folder (keyed by path, size, mtime and reader version).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from capture.fileio import FormatError
+from keypoints.skeletons import CANONICAL
+
+log = logging.getLogger(__name__)
+
+_READER_VERSION = 2
+BODY19 = CANONICAL.joint_names
+
+# Candidate BVH joint names per body19 joint, first present wins (CMU ASF exports and iClone CC rig).
+_NAME_CANDIDATES: dict[str, tuple[str, ...]] = {
+    "left_hip": ("LeftUpLeg", "LeftHip", "CC_Base_L_Thigh", "LeftThigh", "L_Hip"),
+    "right_hip": ("RightUpLeg", "RightHip", "CC_Base_R_Thigh", "RightThigh", "R_Hip"),
+    "left_knee": ("LeftLeg", "LeftKnee", "CC_Base_L_Calf", "LeftShin", "L_Knee"),
+    "right_knee": ("RightLeg", "RightKnee", "CC_Base_R_Calf", "RightShin", "R_Knee"),
+    "left_ankle": ("LeftFoot", "LeftAnkle", "CC_Base_L_Foot", "L_Ankle"),
+    "right_ankle": ("RightFoot", "RightAnkle", "CC_Base_R_Foot", "R_Ankle"),
+    "left_shoulder": ("LeftArm", "LeftUpArm", "LeftShoulder", "CC_Base_L_Upperarm", "L_Shoulder"),
+    "right_shoulder": ("RightArm", "RightUpArm", "RightShoulder", "CC_Base_R_Upperarm", "R_Shoulder"),
+    "left_elbow": ("LeftForeArm", "LeftElbow", "CC_Base_L_Forearm", "LeftLowArm", "L_Elbow"),
+    "right_elbow": ("RightForeArm", "RightElbow", "CC_Base_R_Forearm", "RightLowArm", "R_Elbow"),
+    "left_wrist": ("LeftHand", "LeftWrist", "CC_Base_L_Hand", "L_Wrist"),
+    "right_wrist": ("RightHand", "RightWrist", "CC_Base_R_Hand", "R_Wrist"),
+    "head": ("Head", "CC_Base_Head", "head"),
+}
+_FOOT_CANDIDATES = ("LeftToeBase", "RightToeBase", "LeftToe", "RightToe", "CC_Base_L_ToeBase",
+                    "CC_Base_R_ToeBase")
+
+# Face points as offsets (forward, left, up) in metres from the BVH head joint (base of the
+# skull / top of the neck) in the head frame. Approximations of an adult head, not measured.
+FACE_OFFSETS_M: dict[str, tuple[float, float, float]] = {
+    "nose": (0.105, 0.0, 0.045),
+    "left_eye": (0.085, 0.032, 0.080),
+    "right_eye": (0.085, -0.032, 0.080),
+    "left_ear": (0.005, 0.075, 0.060),
+    "right_ear": (0.005, -0.075, 0.060),
+}
+
+# Scale candidates, metres per file unit.
+UNITS_M = {"m": 1.0, "cm": 0.01, "in": 0.0254, "cmu": 0.0254 / 0.45, "mm": 0.001}
+
+
+class BvhError(FormatError):
+    pass
+
+
+@dataclass(frozen=True)
+class Bvh:
+    """A parsed BVH file.
+
+    ``names (J,)``, ``parents (J,)`` (-1 root), ``offsets (J,3)`` file units; End Sites are
+    joints named ``<parent>_end`` without channels. ``channels[j]`` lists the channel names
+    as written; ``channel_start[j]`` is the column of its first channel in ``motion (F,C)``.
+    """
+
+    path: str
+    names: tuple[str, ...]
+    parents: np.ndarray
+    offsets: np.ndarray
+    channels: tuple[tuple[str, ...], ...]
+    channel_start: np.ndarray
+    motion: np.ndarray
+    frame_time_s: float
+
+    @property
+    def n_frames(self) -> int:
+        return self.motion.shape[0]
+
+    @property
+    def fps(self) -> float:
+        return 1.0 / self.frame_time_s
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"{self.path}: no joint '{name}'; joints: {list(self.names)}") from None
+
+    def ancestors(self, joints) -> np.ndarray:
+        """Sorted indices of ``joints`` and all their ancestors."""
+        keep = set()
+        for j in joints:
+            while j >= 0 and j not in keep:
+                keep.add(int(j))
+                j = int(self.parents[j])
+        return np.array(sorted(keep), dtype=np.int64)
+
+    def forward_kinematics(self, joints=None, frames=None) -> tuple[np.ndarray, np.ndarray]:
+        """World positions ``(F,K,3)`` (file units and axes) and rotations ``(F,K,3,3)`` of ``joints``.
+
+        ``joints``: indices (default all); only they and their ancestors are computed.
+        ``frames``: index array or slice into the motion (default all). Vectorised over frames;
+        one small loop over the needed joints in topological order (parents precede children).
+        """
+        motion = self.motion if frames is None else self.motion[frames]
+        F = motion.shape[0]
+        want = np.arange(len(self.names)) if joints is None else np.asarray(joints, dtype=np.int64)
+        need = self.ancestors(want)
+        pos: dict[int, np.ndarray] = {}
+        rot: dict[int, np.ndarray] = {}
+        for j in need:  # file order is topological: a parent is written before its children
+            local_t = np.broadcast_to(self.offsets[j], (F, 3)).copy()
+            R = None
+            c0 = int(self.channel_start[j])
+            for k, ch in enumerate(self.channels[j]):
+                v = motion[:, c0 + k]
+                axis = "XYZ".index(ch[0].upper())
+                if ch[1:].lower() == "position":
+                    local_t[:, axis] += v
+                else:
+                    Rk = _axis_rotation(axis, np.deg2rad(v))
+                    R = Rk if R is None else R @ Rk
+            p = int(self.parents[j])
+            if p < 0:
+                pos[j] = local_t
+                rot[j] = R if R is not None else np.broadcast_to(np.eye(3), (F, 3, 3))
+            else:
+                pos[j] = pos[p] + np.einsum("fab,fb->fa", rot[p], local_t)
+                rot[j] = rot[p] if R is None else rot[p] @ R
+        return np.stack([pos[int(j)] for j in want], 1), np.stack([rot[int(j)] for j in want], 1)
+
+
+def _axis_rotation(axis: int, a: np.ndarray) -> np.ndarray:
+    """Rotation matrices (F,3,3) about the x/y/z axis by angles ``a`` (F,) radians."""
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros(a.shape + (3, 3))
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R[..., axis, axis] = 1.0
+    R[..., i, i] = c
+    R[..., j, j] = c
+    R[..., i, j] = -s
+    R[..., j, i] = s
+    return R
+
+
+def read_bvh(path: str | os.PathLike) -> Bvh:
+    """Parse a BVH file (hierarchy + motion). Raises :class:`BvhError` naming the problem."""
+    path = Path(path)
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as e:
+        raise BvhError(path, None, f"cannot read: {e}", "Check the path and permissions.") from e
+    head, sep, motion_text = text.partition("MOTION")
+    if not sep:
+        raise BvhError(path, "MOTION", "no MOTION section.", "The file is truncated or not a BVH file.")
+    tok = head.split()
+    if not tok or tok[0] != "HIERARCHY":
+        raise BvhError(path, "HIERARCHY", "the file does not start with HIERARCHY.", "Is this a BVH file?")
+    names: list[str] = []
+    parents: list[int] = []
+    offsets: list[list[float]] = []
+    channels: list[tuple[str, ...]] = []
+    stack: list[int] = []
+    pending: int | None = None  # joint whose '{' is expected
+    i = 1
+    try:
+        while i < len(tok):
+            t = tok[i]
+            if t in ("ROOT", "JOINT"):
+                name = tok[i + 1]
+                names.append(name)
+                parents.append(stack[-1] if stack else -1)
+                offsets.append([0.0, 0.0, 0.0])
+                channels.append(())
+                pending = len(names) - 1
+                i += 2
+            elif t == "End":  # End Site
+                p = stack[-1]
+                names.append(f"{names[p]}_end")
+                parents.append(p)
+                offsets.append([0.0, 0.0, 0.0])
+                channels.append(())
+                pending = len(names) - 1
+                i += 2
+            elif t == "{":
+                if pending is None:
+                    raise ValueError("'{' without a joint")
+                stack.append(pending)
+                pending = None
+                i += 1
+            elif t == "}":
+                stack.pop()
+                i += 1
+            elif t == "OFFSET":
+                offsets[stack[-1]] = [float(v) for v in tok[i + 1:i + 4]]
+                i += 4
+            elif t == "CHANNELS":
+                n = int(tok[i + 1])
+                chans = tuple(tok[i + 2:i + 2 + n])
+                for c in chans:
+                    if c[0].upper() not in "XYZ" or c[1:].lower() not in ("position", "rotation"):
+                        raise ValueError(f"unknown channel '{c}'")
+                channels[stack[-1]] = chans
+                i += 2 + n
+            else:
+                raise ValueError(f"unexpected token '{t}'")
+    except (ValueError, IndexError) as e:
+        raise BvhError(path, "HIERARCHY", f"cannot parse near token {i}: {e}",
+                       "The hierarchy is malformed; re-export the file.") from e
+    # MOTION header
+    lines = motion_text.lstrip().split("\n", 2)
+    try:
+        n_frames = int(lines[0].split(":")[1])
+        frame_time_s = float(lines[1].split(":")[1])
+    except (IndexError, ValueError) as e:
+        raise BvhError(path, "MOTION", "cannot read 'Frames:' / 'Frame Time:'.", "Re-export the file.") from e
+    n_ch = sum(len(c) for c in channels)
+    values = np.array(lines[2].split(), dtype=np.float64) if len(lines) > 2 else np.zeros(0)
+    n_full = len(values) // n_ch if n_ch else 0
+    if n_full < n_frames:
+        log.warning("%s: header says %d frames, %d complete rows found; using those", path, n_frames, n_full)
+    if n_full == 0:
+        raise BvhError(path, "MOTION", f"no complete frame of {n_ch} channel values.",
+                       "The file is truncated.")
+    n_use = min(n_full, n_frames) if n_frames > 0 else n_full
+    motion = values[: n_use * n_ch].reshape(n_use, n_ch)
+    if not (frame_time_s > 0):
+        raise BvhError(path, "Frame Time", f"must be > 0, got {frame_time_s}.", "Fix the MOTION header.")
+    starts = np.cumsum([0] + [len(c) for c in channels[:-1]])
+    return Bvh(str(path), tuple(names), np.asarray(parents, dtype=np.int64),
+               np.asarray(offsets, dtype=np.float64), tuple(channels),
+               np.asarray(starts, dtype=np.int64), motion, frame_time_s)
+
+
+# ---------------------------------------------------------------------------------------------
+# body19 extraction
+
+
+def _pick(bvh: Bvh, candidates: tuple[str, ...]) -> int | None:
+    lower = {n.lower(): i for i, n in enumerate(bvh.names)}
+    for c in candidates:
+        if c in bvh.names:
+            return bvh.names.index(c)
+    for c in candidates:
+        if c.lower() in lower:
+            return lower[c.lower()]
+    return None
+
+
+def _up_rotation(up_axis: int, sign: float) -> np.ndarray:
+    """Proper rotation (det +1, axis permutation with signs) taking the file's up axis to +z."""
+    a = up_axis
+    b, c = (a + 1) % 3, (a + 2) % 3
+    M = np.zeros((3, 3))
+    M[0, b] = 1.0
+    M[1, c] = sign
+    M[2, a] = sign
+    return M
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+@dataclass(frozen=True)
+class MocapClip:
+    """A clip on the canonical skeleton: ``xyz_m (T,19,3)`` metres, z up, floor at 0, at ``fps``."""
+
+    name: str
+    xyz_m: np.ndarray
+    fps: float
+    unit: str
+    source: str
+
+    @property
+    def n_frames(self) -> int:
+        return self.xyz_m.shape[0]
+
+    @property
+    def duration_s(self) -> float:
+        return self.n_frames / self.fps
+
+    def resample(self, fps: float) -> MocapClip:
+        return MocapClip(self.name, resample(self.xyz_m, self.fps, fps), float(fps), self.unit, self.source)
+
+
+def resample(xyz: np.ndarray, fps_in: float, fps_out: float) -> np.ndarray:
+    """Linear resampling of ``(T,...)`` positions from ``fps_in`` to ``fps_out`` (same start time)."""
+    T = xyz.shape[0]
+    if abs(fps_in - fps_out) < 1e-9 or T < 2:
+        return xyz.copy()
+    t_out = np.arange(0.0, (T - 1) / fps_in + 1e-9, 1.0 / fps_out) * fps_in  # in input-frame units
+    i0 = np.clip(np.floor(t_out).astype(np.int64), 0, T - 2)
+    w = (t_out - i0).reshape((-1,) + (1,) * (xyz.ndim - 1))
+    return (1.0 - w) * xyz[i0] + w * xyz[i0 + 1]
+
+
+def bvh_to_body19(bvh: Bvh, unit_m: float | str | None = None, drop_tpose: bool | None = None
+                  ) -> tuple[np.ndarray, str]:
+    """Canonical ``(F,19,3)`` metres z-up at the file's frame rate, and the unit name used.
+
+    See the module docstring for the mapping, unit/axis detection and face approximation.
+    """
+    idx = {}
+    for name, cands in _NAME_CANDIDATES.items():
+        j = _pick(bvh, cands)
+        if j is None:
+            raise BvhError(bvh.path, name, f"no BVH joint for '{name}' (tried {list(cands)}).",
+                           "Add the rig's joint name to synthetic.bvh._NAME_CANDIDATES.")
+        idx[name] = j
+    head = idx["head"]
+    head_parent = int(bvh.parents[head])
+    feet = [j for j in (_pick(bvh, (c,)) for c in _FOOT_CANDIDATES) if j is not None]
+    feet += [i for i, n in enumerate(bvh.names) if n.endswith("_end") and bvh.parents[i] in feet]
+    order = [idx[n] for n in _NAME_CANDIDATES] + [head_parent] + feet
+    P, R = bvh.forward_kinematics(order)
+    body = {n: P[:, k] for k, n in enumerate(_NAME_CANDIDATES)}
+    neck_joint = P[:, len(_NAME_CANDIDATES)]
+    foot_pts = np.concatenate([P[:, len(_NAME_CANDIDATES) + 1:], P[:, [order.index(idx["left_ankle"]),
+                                                                     order.index(idx["right_ankle"])]]], 1)
+    R_head = R[:, list(_NAME_CANDIDATES).index("head")]
+
+    # Drop a prepended T-pose: frame 0 far from frame 1 compared with the clip's typical step.
+    if drop_tpose is None and bvh.n_frames > 3:
+        stack = np.stack(list(body.values()), 1)
+        rel = stack - stack[:, :1]
+        step = np.linalg.norm(np.diff(rel, axis=0), axis=-1).mean(-1)
+        drop_tpose = bool(step[0] > 10.0 * max(np.median(step[1:]), 1e-9))
+    if drop_tpose:
+        body = {k: v[1:] for k, v in body.items()}
+        neck_joint, foot_pts, R_head = neck_joint[1:], foot_pts[1:], R_head[1:]
+
+    # Up axis: the head-above-ankles direction.
+    mid_ankle = 0.5 * (body["left_ankle"] + body["right_ankle"])
+    vert = np.median(body["head"] - mid_ankle, axis=0)
+    up_axis = int(np.argmax(np.abs(vert)))
+    M = _up_rotation(up_axis, float(np.sign(vert[up_axis])))
+
+    # Units from height (head joint above the ankles, ~1.45-1.6 m for adults).
+    h = float(np.percentile(np.abs((body["head"] - mid_ankle)[:, up_axis]), 90))
+    if unit_m is None:
+        unit = min(UNITS_M, key=lambda u: abs(np.log(max(h, 1e-9) * UNITS_M[u] / 1.5)))
+        scale = UNITS_M[unit]
+    elif isinstance(unit_m, str):
+        unit, scale = unit_m, UNITS_M[unit_m]
+    else:
+        unit, scale = f"{unit_m:g} m", float(unit_m)
+
+    def to_world(x: np.ndarray) -> np.ndarray:
+        return scale * (x @ M.T)
+
+    out = np.full((len(next(iter(body.values()))), len(BODY19), 3), np.nan)
+    J = {n: i for i, n in enumerate(BODY19)}
+    for n in ("left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+              "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist"):
+        out[:, J[n]] = to_world(body[n])
+    out[:, J["pelvis"]] = 0.5 * (out[:, J["left_hip"]] + out[:, J["right_hip"]])
+    out[:, J["neck"]] = 0.5 * (out[:, J["left_shoulder"]] + out[:, J["right_shoulder"]])
+
+    # Head frame in head-joint-local coordinates, averaged over the clip.
+    head_w = to_world(body["head"])
+    Rh = np.einsum("ab,fbc->fac", M, R_head)  # head joint rotation, world axes
+    left_w = _normalize(out[:, J["left_shoulder"]] - out[:, J["right_shoulder"]]
+                        + out[:, J["left_hip"]] - out[:, J["right_hip"]])
+    up_w = _normalize(head_w - to_world(neck_joint))
+    fwd_w = _normalize(np.cross(left_w, up_w))  # facing direction (z up: forward = left x up)
+    up_l = _normalize(np.einsum("fba,fb->fa", Rh, up_w).mean(0))
+    fwd_l = np.einsum("fba,fb->fa", Rh, fwd_w).mean(0)
+    fwd_l = _normalize(fwd_l - up_l * (fwd_l @ up_l))
+    left_l = np.cross(up_l, fwd_l)
+    basis_l = np.stack([fwd_l, left_l, up_l], 1)  # columns: forward, left, up in head-local axes
+    for n, off in FACE_OFFSETS_M.items():
+        d_l = basis_l @ np.asarray(off)
+        out[:, J[n]] = head_w + np.einsum("fab,b->fa", Rh, d_l)
+
+    # Floor at z = 0: 5th percentile of the lowest foot point per frame.
+    feet_z = to_world(foot_pts)[..., 2].min(1)
+    out[..., 2] -= np.percentile(feet_z, 5)
+    return out, unit
+
+
+# ---------------------------------------------------------------------------------------------
+# loading with caches
+
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("ROOMCAP_CACHE", Path(tempfile.gettempdir()) / "roomcap-cache")) / "bvh"
+
+
+def _cache_key(path: Path, unit_m, drop_tpose) -> str:
+    st = path.stat()
+    key = f"{_READER_VERSION}|{path.resolve()}|{st.st_size}|{st.st_mtime_ns}|{unit_m}|{drop_tpose}"
+    return hashlib.sha1(key.encode()).hexdigest()[:20]
+
+
+@lru_cache(maxsize=256)
+def _load_native(path: str, unit_m, drop_tpose) -> tuple[np.ndarray, float, str]:
+    p = Path(path)
+    cache = _cache_dir() / f"{p.stem}-{_cache_key(p, unit_m, drop_tpose)}.npz"
+    if cache.exists():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                return z["xyz_m"], float(z["fps"]), str(z["unit"])
+        except (OSError, ValueError, KeyError):
+            log.warning("ignoring unreadable cache %s", cache)
+    bvh = read_bvh(p)
+    xyz, unit = bvh_to_body19(bvh, unit_m=unit_m, drop_tpose=drop_tpose)
+    try:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(cache.name + f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, xyz_m=xyz, fps=bvh.fps, unit=unit)
+        os.replace(tmp, cache)
+    except OSError as e:  # a cache is an optimisation only
+        log.debug("cannot write cache %s: %s", cache, e)
+    xyz.setflags(write=False)
+    return xyz, bvh.fps, unit
+
+
+def load_clip(path: str | os.PathLike, fps: float | None = None, unit_m: float | str | None = None,
+              drop_tpose: bool | None = None) -> MocapClip:
+    """Load a BVH file as a :class:`MocapClip` (body19, metres, z up), resampled to ``fps`` if given."""
+    path = Path(path)
+    xyz, native_fps, unit = _load_native(str(path.resolve()), unit_m, drop_tpose)
+    clip = MocapClip(path.stem, np.array(xyz), native_fps, unit, str(path))
+    return clip if fps is None else clip.resample(fps)
+
+
+def load_bvh_body19(path: str | os.PathLike, fps: float | None = None, unit_m: float | str | None = None,
+                    drop_tpose: bool | None = None) -> np.ndarray:
+    """``(T,19,3)`` metres, z up, floor at z = 0, at ``fps`` (default: the file's rate)."""
+    return load_clip(path, fps, unit_m, drop_tpose).xyz_m
+
+
+def mocap_root(root: str | os.PathLike | None = None) -> Path | None:
+    """The mocap folder: ``root``, else ``$ROOMCAP_MOCAP``, else ``$ROOMCAP_SHARED/data/motion``
+    (``ROOMCAP_SHARED`` defaults to ``../shared`` beside the repository). None when absent."""
+    if root is not None:
+        p = Path(root)
+    elif os.environ.get("ROOMCAP_MOCAP"):
+        p = Path(os.environ["ROOMCAP_MOCAP"])
+    else:
+        shared = os.environ.get("ROOMCAP_SHARED", Path(__file__).resolve().parents[2] / "shared")
+        p = Path(shared) / "data" / "motion"
+    return p if p.is_dir() else None
+
+
+def list_clips(root: str | os.PathLike | None = None, exclude_raw_duplicates: bool = True) -> list[Path]:
+    """Sorted BVH files under the mocap root (recursive); [] when the folder is absent.
+
+    With ``exclude_raw_duplicates``, a raw file with a ``scaled_`` twin beside it is left out
+    (``cmu-bvh-131`` ships both), so each motion appears once.
+    """
+    r = mocap_root(root)
+    if r is None:
+        return []
+    files = sorted(r.rglob("*.bvh"))
+    if exclude_raw_duplicates:
+        names = {f.parent / f.name for f in files}
+        files = [f for f in files if f.parent / f"scaled_{f.name}" not in names]
+    return files
