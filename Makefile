@@ -28,7 +28,7 @@ test-fast: $(PY)
 	$(PY) -m pytest -n 2 -q -m "not slow"
 
 demo: install
-	$(VENV)/bin/reprocess demo --recording $(DEMO) --out $(DEMO_OUT)
+	$(PY) -m pipeline.demo --recording $(DEMO) --out $(DEMO_OUT)
 
 calibrate: $(PY)
 	$(VENV)/bin/calibrate-run calibrate $(RECORDING) --board $(BOARD) --out $(OUT)

@@ -126,8 +126,17 @@ def save_npz(path: str | os.PathLike, arrays: Mapping[str, Any], compress: bool 
         if arr.dtype == object:
             raise TypeError(f"save_npz({path}): '{key}' is an object array; store strings or numbers only")
         clean[key] = arr
+    # Written by hand rather than np.savez: numpy stamps each member with the current
+    # time, and byte-identical reruns (pipeline caching, resume tests) need fixed stamps.
     buf = io.BytesIO()
-    (np.savez_compressed if compress else np.savez)(buf, **clean)
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(buf, "w", compression=method, allowZip64=True) as zf:
+        for key, arr in clean.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            info.external_attr = 0o644 << 16
+            with zf.open(info, "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, arr, allow_pickle=False)
     atomic_write_bytes(path, buf.getvalue())
 
 

@@ -153,3 +153,14 @@ def test_convert_nan_gives_zero_score():
     xy = np.full((17, 2), np.nan)
     out, sc = convert(xy, np.ones(17), "coco17")
     assert np.isnan(out).all() and (sc == 0).all()
+
+
+def test_save_npz_is_byte_identical_across_runs(tmp_path, rng):
+    import time
+
+    arrays = {"a": rng.normal(size=(10, 3)), "s": np.asarray("x")}
+    save_npz(tmp_path / "1.npz", arrays)
+    time.sleep(2.1)  # zip timestamps have 2 s resolution
+    save_npz(tmp_path / "2.npz", arrays)
+    assert (tmp_path / "1.npz").read_bytes() == (tmp_path / "2.npz").read_bytes()
+    np.testing.assert_array_equal(load_npz(tmp_path / "2.npz")["a"], arrays["a"])

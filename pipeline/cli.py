@@ -1,0 +1,104 @@
+"""``reprocess PATH...``: find sessions under folders and run the pipeline on each.
+
+Examples::
+
+    reprocess recordings/                       # every session under recordings/, all stages
+    reprocess S01 --stages triangulate,track --tracker greedy
+    reprocess day1/ day2/ --out results/ --executor ray --address auto
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from capture.fileio import FormatError, atomic_write_text
+from pipeline.config import STAGES, TRACKERS, PipelineConfig
+from pipeline.discover import SessionError, discover
+from pipeline.executors import EXECUTORS, run_sessions
+from pipeline.runner import SessionResult
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="reprocess", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("paths", nargs="+", help="session folders or folders containing sessions")
+    p.add_argument("--out", type=Path, help="write outputs to OUT/<session> (default: in place for roomcap "
+                   "sessions, <session>/roomcap for other layouts)")
+    p.add_argument("--stages", help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
+    p.add_argument("--tracker", choices=TRACKERS, help="track stage: greedy (ch. 4) or particle (ch. 5)")
+    p.add_argument("--config", type=Path, help="pipeline TOML (see pipeline/config.py)")
+    p.add_argument("--max-frames", type=int, help="keypoints: process only the first N frames of each video")
+    p.add_argument("--force", action="store_true", help="rerun stages even when their outputs are up to date")
+    p.add_argument("--executor", choices=EXECUTORS, default="local")
+    p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
+    p.add_argument("--workers", type=int, help="sessions processed at once (default: number of cores)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def make_config(args: argparse.Namespace) -> PipelineConfig:
+    cfg = PipelineConfig.load(args.config) if args.config else PipelineConfig()
+    if args.stages:
+        cfg = cfg.replace(stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()))
+    if args.tracker:
+        cfg = cfg.replace(track=type(cfg.track)(tracker=args.tracker, options=cfg.track.options))
+    if args.max_frames:
+        cfg = cfg.replace(keypoints=type(cfg.keypoints)(model_set=cfg.keypoints.model_set, max_frames=args.max_frames))
+    return cfg
+
+
+def format_table(results: list[SessionResult], stages: tuple[str, ...]) -> str:
+    head = ["session", "status", "cameras", "frames", "people", "tracks", *[f"{s}_s" for s in stages], "message"]
+    rows = [head]
+    for r in results:
+        rows.append([r.name, r.status, str(r.cameras), str(r.frames), str(r.people), str(r.tracks),
+                     *[f"{r.stage_s[s]:.2f}" if s in r.stage_s else "-" for s in stages], r.message[:160]])
+    widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        cfg = make_config(args)
+        sources = discover(args.paths)
+    except (FormatError, SessionError) as e:
+        print(f"reprocess: {e}", file=sys.stderr)
+        return 2
+    if not sources:
+        print(f"reprocess: no sessions found under {args.paths}. A session is a folder with raw/ videos or "
+              "keypoints/*.npz and calib/rig.toml, or a Pose2Sim trial (videos/ + calibration/).", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(sources), desc="sessions", unit="session", disable=None)
+
+    def done(r: SessionResult) -> None:
+        bar.update(1)
+        bar.set_postfix_str(f"{r.name}: {r.status}")
+
+    results = run_sessions(sources, args.out, cfg, force=args.force, executor=args.executor,
+                           workers=args.workers, address=args.address, on_result=done)
+    bar.close()
+    table = format_table(results, ("calibration", *cfg.stages) if "calibration" not in cfg.stages else cfg.stages)
+    print(table)
+    failed = [r for r in results if r.status != "ok"]
+    print(f"{len(results) - len(failed)} sessions ok, {len(failed)} failed in {time.perf_counter() - t0:.1f} s")
+    for r in failed:
+        print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
+    if args.out:
+        atomic_write_text(args.out / "reprocess_summary.json", json.dumps([r.to_dict() for r in results], indent=1))
+        atomic_write_text(args.out / "reprocess_summary.txt", table + "\n")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""The pipeline configuration: one TOML, loaded once into typed dataclasses.
+
+Each dataclass holds the only copy of its defaults; unknown keys are rejected
+with the list of valid ones. Example ``pipeline.toml``::
+
+    stages = ["keypoints", "triangulate", "track", "forecast", "report"]
+    [keypoints]
+    model_set = "default"
+    [track]
+    tracker = "greedy"      # or "particle"
+    [forecast]
+    horizon_s = 2.0
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from capture.fileio import FormatError, load_toml
+
+STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "report")
+TRACKERS = ("greedy", "particle")
+
+
+def _from_dict(cls, data: dict[str, Any], where: str):
+    valid = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - valid)
+    if unknown:
+        raise FormatError(None, where, f"unknown keys {unknown}; valid keys: {sorted(valid)}.")
+    return cls(**data)
+
+
+@dataclass(frozen=True)
+class KeypointsConfig:
+    model_set: str = "default"
+    max_frames: int | None = None  # process only the first N frames (demos, smoke tests)
+
+
+@dataclass(frozen=True)
+class TriangulateConfig:
+    options: dict[str, Any] = field(default_factory=dict)  # passed to triangulate's own config
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    tracker: str = "greedy"
+    options: dict[str, Any] = field(default_factory=dict)  # passed to the tracker's own config
+
+    def __post_init__(self) -> None:
+        if self.tracker not in TRACKERS:
+            raise FormatError(None, "track.tracker", f"'{self.tracker}' is not a tracker; valid: {list(TRACKERS)}.")
+
+
+@dataclass(frozen=True)
+class ForecastConfig:
+    horizon_s: float = 2.0
+    model: str = "default"
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    stages: tuple[str, ...] = STAGES
+    keypoints: KeypointsConfig = field(default_factory=KeypointsConfig)
+    triangulate: TriangulateConfig = field(default_factory=TriangulateConfig)
+    track: TrackConfig = field(default_factory=TrackConfig)
+    forecast: ForecastConfig = field(default_factory=ForecastConfig)
+
+    def __post_init__(self) -> None:
+        bad = [s for s in self.stages if s not in STAGES]
+        if bad:
+            raise FormatError(None, "stages", f"unknown stages {bad}; valid: {list(STAGES)}.")
+        object.__setattr__(self, "stages", tuple(s for s in STAGES if s in self.stages))  # graph order
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> PipelineConfig:
+        sections = {"keypoints": KeypointsConfig, "triangulate": TriangulateConfig, "track": TrackConfig,
+                    "forecast": ForecastConfig}
+        kw: dict[str, Any] = {}
+        for key, value in data.items():
+            if key in sections:
+                kw[key] = _from_dict(sections[key], value, key)
+            elif key == "stages":
+                kw[key] = tuple(value)
+            else:
+                raise FormatError(None, key, f"unknown key; valid: {['stages', *sections]}.")
+        return cls(**kw)
+
+    @classmethod
+    def load(cls, path: str | Path) -> PipelineConfig:
+        try:
+            return cls.from_dict(load_toml(path))
+        except FormatError as e:
+            raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
+
+    def replace(self, **kw) -> PipelineConfig:
+        return dataclasses.replace(self, **kw)

@@ -1,0 +1,44 @@
+"""``make demo``: the whole chain on a Pose2Sim-style recording (default: its multi-person demo).
+
+Imports the recording's calibration, extracts 2D keypoints, triangulates,
+tracks, previews forecasts and writes the HTML report::
+
+    python -m pipeline.demo --recording ../shared/data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson --out out/demo
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from pipeline.cli import main as reprocess_main
+
+
+def default_recording() -> Path:
+    shared = Path(os.environ.get("ROOMCAP_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
+    return shared / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_MultiPerson"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--recording", type=Path, default=default_recording(),
+                   help="a folder with videos/ and calibration/ (Pose2Sim layout) or a roomcap session")
+    p.add_argument("--out", type=Path, default=Path("out/demo"))
+    p.add_argument("--tracker", default="greedy", choices=("greedy", "particle"))
+    args = p.parse_args(argv)
+    if not args.recording.exists():
+        print(f"demo: recording {args.recording} not found. Set ROOMCAP_SHARED to the shared/ folder or pass "
+              "--recording.", file=sys.stderr)
+        return 2
+    rc = reprocess_main([str(args.recording), "--out", str(args.out), "--tracker", args.tracker, "--workers", "1"])
+    report = args.out / args.recording.name / "report" / "report.html"
+    if rc == 0 and report.exists():
+        print(f"report: {report.resolve()}")
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,90 @@
+"""Executors: the same per-session task on this machine's cores or on a Ray cluster.
+
+A session is the unit of work (its stages depend on each other); sessions are
+independent, so both executors map :func:`pipeline.runner.process_session`
+over them. Ray tasks ask for a GPU when onnxruntime on this machine offers CUDA
+and the keypoints stage is part of the run.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+from pipeline.config import PipelineConfig
+from pipeline.discover import SessionSource
+from pipeline.runner import SessionResult, process_session
+
+log = logging.getLogger(__name__)
+EXECUTORS = ("local", "ray")
+
+
+def _threads_per_worker(workers: int) -> int:
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def run_local(sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool,
+              workers: int) -> Iterator[SessionResult]:
+    if workers <= 1 or len(sources) <= 1:
+        for s in sources:
+            yield process_session(s, out, config, force)
+        return
+    threads = _threads_per_worker(workers)
+    # spawn, not fork: onnxruntime and torch thread pools do not survive a fork.
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = [pool.submit(process_session, s, out, config, force, threads) for s in sources]
+        for f in as_completed(futures):
+            yield f.result()
+
+
+def _cuda_available() -> bool:
+    try:
+        import onnxruntime as ort
+
+        return "CUDAExecutionProvider" in ort.get_available_providers()
+    except ImportError:
+        return False
+
+
+def run_ray(sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool, workers: int,
+            address: str | None) -> Iterator[SessionResult]:
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("the Ray executor needs ray: pip install 'roomcap[cluster]'") from None
+    started_here = not ray.is_initialized()
+    if started_here:
+        kw = {"address": address} if address else {"num_cpus": workers}
+        ray.init(include_dashboard=False, log_to_driver=False, **kw)
+    try:
+        gpus = 1 if ("keypoints" in config.stages and _cuda_available()) else 0
+        threads = _threads_per_worker(workers)
+        task = ray.remote(num_cpus=1, num_gpus=gpus)(process_session)
+        pending = [task.remote(s, out, config, force, threads) for s in sources]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def run_sessions(sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool = False,
+                 executor: str = "local", workers: int | None = None, address: str | None = None,
+                 on_result: Callable[[SessionResult], None] | None = None) -> list[SessionResult]:
+    """Process all sessions; results in the order of ``sources``."""
+    if executor not in EXECUTORS:
+        raise ValueError(f"unknown executor '{executor}'; valid: {list(EXECUTORS)}")
+    workers = workers or (os.cpu_count() or 1)
+    it = run_local(sources, out, config, force, workers) if executor == "local" else \
+        run_ray(sources, out, config, force, workers, address)
+    by_name = {}
+    for r in it:
+        by_name[r.name] = r
+        if on_result:
+            on_result(r)
+    return [by_name[s.name] for s in sources]
