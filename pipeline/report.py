@@ -262,12 +262,13 @@ function project(p){ // orbit camera looking at `center`, z up
 }
 function line(a, b, col, w){ const p = project(a), q = project(b); if (!p || !q) return;
   ctx.strokeStyle = col; ctx.lineWidth = w; ctx.beginPath(); ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]); ctx.stroke(); }
-function skeleton(pose, col, w, stdRow){
+function skeleton(pose, col, w, std_m){
   if (!pose) return;
+  const r = 2 + Math.min(8, (std_m || 0) * 200);  // joint marker grows with the track's uncertainty
   T.parents.forEach((p, j) => { if (p < 0) return; const a = pose[j], b = pose[p];
     if (a && b && a[0] !== null && b[0] !== null) line(a, b, col, w); });
   pose.forEach((j, i) => { if (!j || j[0] === null) return; const q = project(j); if (!q) return;
-    ctx.fillStyle = col; ctx.beginPath(); ctx.arc(q[0], q[1], 2.5, 0, 7); ctx.fill(); });
+    ctx.fillStyle = col; ctx.beginPath(); ctx.arc(q[0], q[1], r, 0, 7); ctx.fill(); });
 }
 function draw(){
   ctx.fillStyle = '#10141c'; ctx.fillRect(0, 0, cv.width, cv.height);
@@ -280,7 +281,7 @@ function draw(){
       ctx.font = '11px sans-serif'; ctx.fillText(k.name, q[0] + 5, q[1] - 5); } }
   if (T && nFrames) {
     const fr = T.xyz[frame];
-    fr.forEach((pose, k) => skeleton(pose, color(k), 3));
+    fr.forEach((pose, k) => skeleton(pose, color(k), 3, T.mean_std_m.length ? T.mean_std_m[k][frame] : 0));
     if (D.forecast && frame === nFrames - 1) D.forecast.xyz.forEach((traj, i) => {
       const k = T.track_id.indexOf(D.forecast.track_id[i]);
       for (let h = 4; h < traj.length; h += 5) { ctx.globalAlpha = 0.25; skeleton(traj[h], color(Math.max(k, 0)), 1.5); }
