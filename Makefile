@@ -14,29 +14,31 @@ DEMO_OUT ?= out/demo
 
 .PHONY: install test test-fast demo calibrate bench lint clean
 
-$(PY):
-	python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
+STAMP := $(VENV)/.installed
 
-install: $(PY)
-	$(PY) -m pip install -c constraints.txt -e '.[dev,cluster,bench]'
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q -c constraints.txt -e '.[dev,cluster,bench]'
+	touch $(STAMP)
 
-test: $(PY)
+install: $(STAMP)
+
+test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadgroup -q
 
-test-fast: $(PY)
+test-fast: $(STAMP)
 	$(PY) -m pytest -n 2 -q -m "not slow"
 
-demo: install
+demo: $(STAMP)
 	$(PY) -m pipeline.demo --recording $(DEMO) --out $(DEMO_OUT)
 
-calibrate: $(PY)
+calibrate: $(STAMP)
 	$(VENV)/bin/calibrate-run calibrate $(RECORDING) --board $(BOARD) --out $(OUT)
 
-bench: $(PY)
+bench: $(STAMP)
 	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
-lint: $(PY)
+lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
