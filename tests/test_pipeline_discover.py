@@ -1,0 +1,48 @@
+"""Session discovery over folders of recordings."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.config import PipelineConfig
+from pipeline.discover import discover
+from capture.fileio import FormatError
+
+
+def test_discovers_both_layouts_and_reports_missing_calibration(tmp_path):
+    # this project's layout
+    (tmp_path / "a" / "S1" / "keypoints").mkdir(parents=True)
+    (tmp_path / "a" / "S1" / "keypoints" / "cam1.npz").write_bytes(b"x")
+    (tmp_path / "a" / "S1" / "calib").mkdir()
+    (tmp_path / "a" / "S1" / "calib" / "rig.toml").write_text("")
+    # a Pose2Sim batch: two trials sharing the parent's calibration
+    for trial in ("Trial_1", "Trial_2"):
+        (tmp_path / "a" / "Batch" / trial / "videos").mkdir(parents=True)
+        for cam in ("cam02", "cam01"):
+            (tmp_path / "a" / "Batch" / trial / "videos" / f"{cam}.mp4").write_bytes(b"")
+    (tmp_path / "a" / "Batch" / "calibration").mkdir()
+    (tmp_path / "a" / "Batch" / "calibration" / "Calib.qca.txt").write_text("")
+    # a trial without calibration anywhere
+    (tmp_path / "a" / "Lost" / "videos").mkdir(parents=True)
+    (tmp_path / "a" / "Lost" / "videos" / "cam01.avi").write_bytes(b"")
+    found = {s.name: s for s in discover([tmp_path / "a"])}
+    assert sorted(found) == ["a/Batch/Trial_1", "a/Batch/Trial_2", "a/Lost", "a/S1"]
+    assert found["a/S1"].layout == "roomcap" and found["a/S1"].cameras == ["cam1"] and not found["a/S1"].problem
+    t1 = found["a/Batch/Trial_1"]
+    assert t1.layout == "pose2sim" and t1.cameras == ["cam01", "cam02"]
+    assert t1.calibration.name == "Calib.qca.txt"
+    assert "no calibration" in found["a/Lost"].problem
+
+
+def test_missing_path_is_a_failed_session(tmp_path):
+    (s,) = discover([tmp_path / "nope"])
+    assert "does not exist" in s.problem
+
+
+def test_config_rejects_unknown_keys_and_stages():
+    with pytest.raises(FormatError, match="valid keys"):
+        PipelineConfig.from_dict({"track": {"trackr": "greedy"}})
+    with pytest.raises(FormatError, match="unknown stages"):
+        PipelineConfig.from_dict({"stages": ["keypoints", "magic"]})
+    cfg = PipelineConfig.from_dict({"stages": ["track", "triangulate"]})
+    assert cfg.stages == ("triangulate", "track")
