@@ -1,0 +1,209 @@
+"""``capture-run``: record cameras into a session, synchronise recordings offline, repair after a kill.
+
+::
+
+    capture-run --cameras cams.yaml --out DIR [--duration S] [--live]    record (Ctrl-C stops cleanly)
+    capture-run check --cameras cams.yaml                                validate cams.yaml, open nothing
+    capture-run sync SESSION [--keypoints DIR] [--max-lag-s 2] [--drift]  offsets from 2D keypoint speeds
+    capture-run repair SESSION                                           after kill -9: fix timestamps
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+log = logging.getLogger("capture")
+
+_SUBCOMMANDS = ("record", "check", "sync", "repair")
+
+
+def _record_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="capture-run",
+        description="Record cameras from cams.yaml into a session folder (subcommands: check, sync, repair).",
+    )
+    p.add_argument("--cameras", required=True, help="cams.yaml (see capture/config.py for the schema)")
+    p.add_argument("--out", help="session folder to create (default: 'out' in cams.yaml)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="seconds to record (default: until Ctrl-C or until every file source ends)",
+    )
+    p.add_argument(
+        "--live", action="store_true", help="run keypoints/triangulation/tracking on every frame set"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def _record(argv: list[str]) -> int:
+    from capture.config import load_config
+    from capture.recorder import Recorder, redact_text
+
+    args = _record_parser().parse_args(argv)
+    cfg = load_config(args.cameras)
+    out = args.out or cfg.out
+    if not out:
+        print("capture-run: no output folder: pass --out DIR or set 'out' in cams.yaml.", file=sys.stderr)
+        return 2
+    if args.duration is not None and args.duration <= 0:
+        print(f"capture-run: --duration must be positive, got {args.duration}.", file=sys.stderr)
+        return 2
+    text = Path(args.cameras).read_text(encoding="utf-8")
+    live_on = args.live or cfg.live.enabled
+    live = None
+    if live_on:
+        from capture.live import LiveRunner
+
+        live = LiveRunner(cfg, out)
+    rec = Recorder(
+        cfg, out, duration_s=args.duration, frameset_sink=live.queue if live else None, cams_yaml_text=text
+    )
+    if live:
+        live.start()
+    bar = None
+    stop_bar = None
+    if not args.quiet and args.duration:
+        import threading
+
+        from tqdm import tqdm
+
+        bar = tqdm(total=round(args.duration), unit="s", desc=f"recording {len(cfg.cameras)} cameras")
+        stop_bar = threading.Event()
+
+        def tick():
+            t0 = time.monotonic()
+            while not stop_bar.wait(1.0):
+                bar.n = min(round(time.monotonic() - t0), bar.total)
+                bar.refresh()
+
+        threading.Thread(target=tick, daemon=True).start()
+    try:
+        summary = rec.run()
+    finally:
+        if stop_bar:
+            stop_bar.set()
+            bar.close()
+        if live:
+            live.stop()
+    print(f"session: {out} ({summary['status']}; {rec.stop_reason})")
+    for name, c in summary["cameras"].items():
+        gaps = c.get("gaps", [])
+        print(
+            f"  {name}: {c.get('frames_written', 0)} frames, dropped {c.get('dropped_queue', 0)} (queue) + "
+            f"{c.get('dropped_source', 0)} (source), {len(gaps)} gap(s), ended: {c.get('ended', '')}"
+        )
+    t = summary.get("timing", {})
+    if "skew_ms_median" in t:
+        print(
+            f"  skew between cameras: median {t['skew_ms_median']:.2f} ms, p95 {t['skew_ms_p95']:.2f} ms; "
+            f"{t['complete_sets']}/{t['sets']} complete frame sets"
+        )
+    if live:
+        print("  live: " + redact_text(live.summary_line()))
+    return 0
+
+
+def _check(argv: list[str]) -> int:
+    from capture.config import load_config
+
+    p = argparse.ArgumentParser(prog="capture-run check")
+    p.add_argument("--cameras", required=True)
+    args = p.parse_args(argv)
+    cfg = load_config(args.cameras)
+    for c in cfg.cameras:
+        print(f"{c.name}: {c.kind} {c.source_redacted} resolution={c.resolution} fps={c.fps} codec={c.codec}")
+    return 0
+
+
+def _sync(argv: list[str]) -> int:
+    from capture.offline_sync import sync_session
+
+    p = argparse.ArgumentParser(
+        prog="capture-run sync",
+        description="Estimate per-camera time offsets (and "
+        "drift) from 2D keypoint speeds and write them into session.toml [sync].",
+    )
+    p.add_argument("session", help="session folder (keypoints/<cam>.npz or --openpose folders)")
+    p.add_argument("--reference", help="camera the others are aligned to (default: the first by name)")
+    p.add_argument("--max-lag-s", type=float, default=2.0)
+    p.add_argument("--drift", action="store_true", help="also estimate a linear drift (long recordings)")
+    p.add_argument(
+        "--openpose",
+        nargs="*",
+        default=None,
+        metavar="CAM=DIR",
+        help="read OpenPose JSON folders instead of keypoints/<cam>.npz",
+    )
+    p.add_argument("--fps", type=float, default=None, help="frame rate when the session has none")
+    p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
+    args = p.parse_args(argv)
+    openpose = None
+    if args.openpose is not None:
+        openpose = {}
+        for item in args.openpose:
+            cam, _, d = item.partition("=")
+            if not d:
+                print(f"capture-run sync: --openpose expects CAM=DIR, got {item!r}", file=sys.stderr)
+                return 2
+            openpose[cam] = d
+    res = sync_session(
+        args.session,
+        reference=args.reference,
+        max_lag_s=args.max_lag_s,
+        drift=args.drift,
+        openpose_dirs=openpose,
+        fps=args.fps,
+        write=not args.dry_run,
+    )
+    for cam, r in res["cameras"].items():
+        print(
+            f"  {cam}: offset {r['offset_frames']:+.2f} frames ({r['offset_s'] * 1e3:+.1f} ms), "
+            f"drift {r.get('drift_ppm', 0.0):+.0f} ppm, correlation {r['correlation']:.2f}"
+        )
+    return 0
+
+
+def _repair(argv: list[str]) -> int:
+    from capture.recorder import repair_session
+
+    p = argparse.ArgumentParser(prog="capture-run repair")
+    p.add_argument("session")
+    args = p.parse_args(argv)
+    for cam, n in repair_session(args.session).items():
+        print(f"  {cam}: {n} frames")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from capture.config import ConfigError
+    from capture.fileio import FormatError
+    from capture.recorder import RecorderError, redact_text
+    from capture.sources import SourceError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    verbose = "-v" in argv or "--verbose" in argv
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    cmd = argv[0] if argv and argv[0] in _SUBCOMMANDS else "record"
+    rest = argv[1:] if argv and argv[0] in _SUBCOMMANDS else argv
+    try:
+        return {"record": _record, "check": _check, "sync": _sync, "repair": _repair}[cmd](rest)
+    except (ConfigError, FormatError, SourceError, RecorderError, ValueError) as e:
+        print(f"capture-run: error: {redact_text(str(e))}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("capture-run: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

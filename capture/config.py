@@ -1,0 +1,463 @@
+"""``cams.yaml``: the capture configuration, validated once into typed frozen dataclasses.
+
+The minimal file every script may rely on::
+
+    cameras:
+      - name: cam01
+        source: /path/to/cam01.mp4   # also usb:0, /dev/video0, rtsp://..., oak:<mxid>, synthetic:
+      - name: cam02
+        source: /path/to/cam02.mp4
+
+The full schema (every key optional except ``cameras[].name`` and ``cameras[].source``)::
+
+    schema: cams/1                 # optional tag
+    out: sessions/today            # output folder (``capture-run --out`` overrides it)
+    calibration: calib/rig.toml    # rig this session refers to (written into session.toml)
+    defaults:                      # per-camera keys applied where a camera leaves them out
+      fps: 30
+    cameras:
+      - name: cam01                # stable name: [A-Za-z0-9_-], unique; the file names use it
+        source: rtsp://user:pw@10.0.0.5/stream   # credentials are never logged or written
+        resolution: [1920, 1080]   # width, height in px (null = what the source gives)
+        fps: 30                    # requested frame rate (null = what the source gives)
+        exposure_us: null          # manual exposure in microseconds (null = auto)
+        codec: mp4v                # mp4v | mjpg | xvid (host encoders); h264 | h265 (on-device, OAK)
+        quality: 80                # encoder quality 1..100 (mjpg)
+        loop: false                # file replay: start again at the end
+        realtime: true             # file replay: pace frames by their timestamps
+    sync:
+      tolerance_ms: null           # frame-set tolerance (null = half a frame period)
+      max_wait_ms: 200             # emit an incomplete set after this long
+    recorder:
+      segment_s: 0.5               # video segment length: a kill loses at most this much
+      queue_frames: 64             # bounded per-camera queue (frames beyond it are dropped and counted)
+      min_free_mb: 500             # disk-space guard: stop cleanly below this much free space
+      reconnect_initial_s: 0.1     # reconnect backoff (doubles up to reconnect_max_s)
+      reconnect_max_s: 2.0
+      reconnect_give_up_s: 60      # stop retrying a camera after this long (0 = never give up)
+    live:
+      enabled: false               # same as --live
+      stages: [keypoints, triangulate, track]
+      every_n: 1                   # process every n-th frame set
+
+Sources: ``usb:<index>``, ``/dev/videoN``, ``rtsp://``/``rtsps://``/``http(s)://`` streams,
+``oak:`` (first OAK device) or ``oak:<mxid-or-serial>``, ``synthetic:`` (a generated test
+pattern; ``synthetic:?disconnect_at_s=1&disconnect_for_s=3`` simulates a cable pull), or a path
+to a video file (file replay at the file's own timestamps) or a recorded session's ``raw/<cam>``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import urllib.parse
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from capture.fileio import FormatError
+
+CAMS_SCHEMA = "cams"
+CAMS_VERSION = 1
+
+HOST_CODECS = ("mp4v", "mjpg", "xvid")
+DEVICE_CODECS = ("h264", "h265")
+CODECS = HOST_CODECS + DEVICE_CODECS
+SOURCE_KINDS = ("file", "usb", "device", "rtsp", "oak", "synthetic")
+LIVE_STAGES = ("keypoints", "triangulate", "track")
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_\-]{0,63}$")
+
+
+class ConfigError(FormatError):
+    """cams.yaml holds an unknown key or an impossible value."""
+
+
+# ----------------------------------------------------------------------------- credentials
+
+
+def redact_url(source: str) -> str:
+    """``rtsp://user:pw@host/x`` -> ``rtsp://***@host/x``; also hides ``password=``-like query values."""
+    if "://" not in source:
+        return source
+    try:
+        parts = urllib.parse.urlsplit(source)
+    except ValueError:
+        return re.sub(r"//[^/@]*@", "//***@", source)
+    netloc = parts.netloc
+    if "@" in netloc:
+        netloc = "***@" + netloc.rpartition("@")[2]
+    query = parts.query
+    if query:
+        pairs = urllib.parse.parse_qsl(query, keep_blank_values=True)
+        secret = re.compile(r"(pass|pwd|token|key|secret|auth|user)", re.I)
+        query = "&".join(f"{k}={'***' if secret.search(k) else v}" for k, v in pairs)
+    return urllib.parse.urlunsplit((parts.scheme, netloc, parts.path, query, parts.fragment))
+
+
+def source_kind(source: str) -> str:
+    """Classify a ``source`` string into one of SOURCE_KINDS (no I/O)."""
+    s = source.strip()
+    low = s.lower()
+    if low.startswith("usb:"):
+        return "usb"
+    if low.startswith("/dev/video"):
+        return "device"
+    if low.startswith(("rtsp://", "rtsps://", "http://", "https://", "rtmp://", "udp://", "tcp://")):
+        return "rtsp"
+    if low == "oak" or low.startswith("oak:"):
+        return "oak"
+    if low == "synthetic" or low.startswith("synthetic:"):
+        return "synthetic"
+    return "file"
+
+
+# ----------------------------------------------------------------------------- dataclasses
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    name: str
+    source: str = field(repr=False)  # may hold credentials: never print it, use .source_redacted
+    resolution: tuple[int, int] | None = None  # (width, height) px
+    fps: float | None = None
+    exposure_us: int | None = None
+    codec: str = "mp4v"
+    quality: int = 80
+    loop: bool = False
+    realtime: bool = True
+
+    @property
+    def kind(self) -> str:
+        return source_kind(self.source)
+
+    @property
+    def source_redacted(self) -> str:
+        return redact_url(self.source)
+
+    def __repr__(self) -> str:
+        return (
+            f"CameraConfig(name={self.name!r}, source={self.source_redacted!r}, resolution={self.resolution},"
+            f" fps={self.fps}, codec={self.codec!r})"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """For session.toml: credentials redacted, None left out."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["source"] = self.source_redacted
+        d["kind"] = self.kind
+        if d["resolution"] is not None:
+            d["resolution"] = list(d["resolution"])
+        return {k: v for k, v in d.items() if v is not None}
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    tolerance_ms: float | None = None  # None = half a frame period
+    max_wait_ms: float = 200.0
+
+    def tolerance_ns(self, fps: float) -> int:
+        if self.tolerance_ms is not None:
+            return int(round(self.tolerance_ms * 1e6))
+        return int(round(0.5e9 / fps))
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    segment_s: float = 0.5
+    queue_frames: int = 64
+    min_free_mb: float = 500.0
+    reconnect_initial_s: float = 0.1
+    reconnect_max_s: float = 2.0
+    reconnect_give_up_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    enabled: bool = False
+    stages: tuple[str, ...] = LIVE_STAGES
+    every_n: int = 1
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    cameras: tuple[CameraConfig, ...]
+    out: str | None = None
+    calibration: str | None = None
+    sync: SyncConfig = SyncConfig()
+    recorder: RecorderConfig = RecorderConfig()
+    live: LiveConfig = LiveConfig()
+    path: str | None = None  # where it was read from (not a yaml key)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.cameras)
+
+    def camera(self, name: str) -> CameraConfig:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise KeyError(f"no camera {name!r}; cameras are {list(self.names)}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The configuration as written into session.toml (credentials redacted)."""
+        out: dict[str, Any] = {
+            "schema": f"{CAMS_SCHEMA}/{CAMS_VERSION}",
+            "cameras": [c.to_dict() for c in self.cameras],
+        }
+        if self.out:
+            out["out"] = self.out
+        if self.calibration:
+            out["calibration"] = self.calibration
+        for name in ("sync", "recorder", "live"):
+            sub = getattr(self, name)
+            d = {f.name: getattr(sub, f.name) for f in fields(sub)}
+            out[name] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items() if v is not None}
+        return out
+
+
+# ----------------------------------------------------------------------------- parsing
+
+_TOP_KEYS = ("schema", "out", "calibration", "defaults", "cameras", "sync", "recorder", "live")
+_CAM_KEYS = tuple(f.name for f in fields(CameraConfig))
+
+
+def _reject_unknown(d: dict, valid: tuple[str, ...], where: str, path) -> None:
+    unknown = sorted(set(d) - set(valid))
+    if unknown:
+        raise ConfigError(path, where, f"unknown key(s) {unknown}.", f"Valid keys: {list(valid)}.")
+
+
+def _num(v: Any, where: str, path, lo: float, hi: float, integer: bool = False, allow_none: bool = False):
+    if v is None and allow_none:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(path, where, f"expected a number in [{lo}, {hi}], got {v!r}.")
+    if integer and int(v) != v:
+        raise ConfigError(path, where, f"expected an integer in [{lo}, {hi}], got {v!r}.")
+    if not (lo <= v <= hi):
+        raise ConfigError(path, where, f"{v!r} is outside the valid range [{lo}, {hi}].")
+    return int(v) if integer else float(v)
+
+
+def _bool(v: Any, where: str, path) -> bool:
+    if not isinstance(v, bool):
+        raise ConfigError(path, where, f"expected true or false, got {v!r}.")
+    return v
+
+
+def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
+    where = f"cameras[{i}]"
+    if not isinstance(raw, dict):
+        raise ConfigError(path, where, f"expected a mapping with name and source, got {type(raw).__name__}.")
+    _reject_unknown(raw, _CAM_KEYS, where, path)
+    d = {**defaults, **raw}
+    name = d.get("name")
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise ConfigError(
+            path,
+            f"{where}.name",
+            f"{name!r} is not a valid camera name.",
+            "Use 1-64 characters from A-Z a-z 0-9 _ - (it names the files), e.g. cam01.",
+        )
+    where = f"cameras[{i}] ({name})"
+    source = d.get("source")
+    if isinstance(source, int) and not isinstance(source, bool):
+        source = f"usb:{source}"
+    if not isinstance(source, str) or not source.strip():
+        raise ConfigError(
+            path,
+            f"{where}.source",
+            "missing or empty.",
+            "Give a video file, usb:<index>, /dev/videoN, rtsp://..., oak:<mxid> or synthetic:.",
+        )
+    source = source.strip()
+    kind = source_kind(source)
+    if kind == "usb" and not source[4:].strip().isdigit():
+        raise ConfigError(
+            path, f"{where}.source", f"{source!r}: usb:<index> needs a non-negative integer index."
+        )
+    if kind == "file":
+        p = Path(os.path.expanduser(source))
+        if not p.is_absolute() and path is not None:
+            p = Path(path).resolve().parent / p
+        source = str(p)
+    res = d.get("resolution")
+    if res is not None:
+        if isinstance(res, str) and re.fullmatch(r"\d+x\d+", res):
+            res = [int(x) for x in res.split("x")]
+        if not (isinstance(res, (list, tuple)) and len(res) == 2):
+            raise ConfigError(path, f"{where}.resolution", f"expected [width, height], got {res!r}.")
+        res = (
+            _num(res[0], f"{where}.resolution[0]", path, 16, 16384, True),
+            _num(res[1], f"{where}.resolution[1]", path, 16, 16384, True),
+        )
+    fps = _num(d.get("fps"), f"{where}.fps", path, 0.1, 1000.0, allow_none=True)
+    exposure = _num(d.get("exposure_us"), f"{where}.exposure_us", path, 1, 10_000_000, True, allow_none=True)
+    if exposure is not None and fps is not None and exposure > 1e6 / fps:
+        raise ConfigError(
+            path,
+            f"{where}.exposure_us",
+            f"{exposure} us is longer than one frame at {fps} fps ({1e6 / fps:.0f} us).",
+            "Shorten the exposure or lower the fps.",
+        )
+    codec = d.get("codec", "mp4v")
+    if not isinstance(codec, str) or codec.lower() not in CODECS:
+        raise ConfigError(
+            path, f"{where}.codec", f"unknown codec {codec!r}.", f"Valid codecs: {list(CODECS)}."
+        )
+    codec = codec.lower()
+    if codec in DEVICE_CODECS and kind != "oak":
+        raise ConfigError(
+            path,
+            f"{where}.codec",
+            f"{codec} is encoded on the device and only OAK cameras have an encoder.",
+            f"Use one of {list(HOST_CODECS)} for {kind} sources.",
+        )
+    quality = _num(d.get("quality", 80), f"{where}.quality", path, 1, 100, True)
+    return CameraConfig(
+        name=name,
+        source=source,
+        resolution=res,
+        fps=fps,
+        exposure_us=exposure,
+        codec=codec,
+        quality=quality,
+        loop=_bool(d.get("loop", False), f"{where}.loop", path),
+        realtime=_bool(d.get("realtime", True), f"{where}.realtime", path),
+    )
+
+
+def _section(raw: Any, cls, where: str, path, ranges: dict) -> Any:
+    if raw is None:
+        return cls()
+    if not isinstance(raw, dict):
+        raise ConfigError(path, where, f"expected a mapping, got {type(raw).__name__}.")
+    valid = tuple(f.name for f in fields(cls))
+    _reject_unknown(raw, valid, where, path)
+    kw = {}
+    for k, v in raw.items():
+        if k in ranges:
+            lo, hi, integer, allow_none = ranges[k]
+            kw[k] = _num(v, f"{where}.{k}", path, lo, hi, integer, allow_none)
+        elif isinstance(getattr(cls(), k), bool):
+            kw[k] = _bool(v, f"{where}.{k}", path)
+        else:
+            kw[k] = v
+    return cls(**kw)
+
+
+def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureConfig:
+    """Validate a parsed cams.yaml mapping into a CaptureConfig (raises ConfigError)."""
+    if not isinstance(data, dict):
+        raise ConfigError(
+            path,
+            None,
+            f"expected a mapping with a 'cameras' list, got {type(data).__name__}.",
+            "See capture/config.py for the schema.",
+        )
+    _reject_unknown(data, _TOP_KEYS, "<top level>", path)
+    if "schema" in data:
+        from capture.fileio import check_schema
+
+        check_schema(data["schema"], CAMS_SCHEMA, (CAMS_VERSION,), path)
+    defaults = data.get("defaults") or {}
+    if not isinstance(defaults, dict):
+        raise ConfigError(path, "defaults", "expected a mapping of per-camera keys.")
+    _reject_unknown(defaults, tuple(k for k in _CAM_KEYS if k not in ("name", "source")), "defaults", path)
+    cams_raw = data.get("cameras")
+    if not isinstance(cams_raw, list) or not cams_raw:
+        raise ConfigError(
+            path,
+            "cameras",
+            "missing or empty; at least one camera is needed.",
+            "Add a list of {name, source} entries.",
+        )
+    cams = tuple(_camera(c, i, defaults, path) for i, c in enumerate(cams_raw))
+    seen: dict[str, int] = {}
+    for i, c in enumerate(cams):
+        if c.name in seen:
+            raise ConfigError(
+                path,
+                f"cameras[{i}].name",
+                f"camera name {c.name!r} is used twice (cameras[{seen[c.name]}] and cameras[{i}]).",
+                "Give every camera a unique name.",
+            )
+        seen[c.name] = i
+    srcs: dict[str, str] = {}
+    for c in cams:
+        if c.kind in ("usb", "device", "oak") and c.source in srcs and c.source not in ("oak", "oak:"):
+            raise ConfigError(
+                path,
+                "cameras",
+                f"cameras {srcs[c.source]!r} and {c.name!r} both open "
+                f"{c.source_redacted!r}; a device can be opened once.",
+                "Give each camera its own source.",
+            )
+        srcs[c.source] = c.name
+    sync = _section(
+        data.get("sync"),
+        SyncConfig,
+        "sync",
+        path,
+        {"tolerance_ms": (0.01, 10_000, False, True), "max_wait_ms": (1, 60_000, False, False)},
+    )
+    rec = _section(
+        data.get("recorder"),
+        RecorderConfig,
+        "recorder",
+        path,
+        {
+            "segment_s": (0.1, 3600, False, False),
+            "queue_frames": (2, 100_000, True, False),
+            "min_free_mb": (0, 1e9, False, False),
+            "reconnect_initial_s": (0.001, 60, False, False),
+            "reconnect_max_s": (0.001, 600, False, False),
+            "reconnect_give_up_s": (0, 1e7, False, False),
+        },
+    )
+    live_raw = data.get("live")
+    if isinstance(live_raw, dict) and "stages" in live_raw:
+        stages = live_raw["stages"]
+        if not isinstance(stages, list) or any(s not in LIVE_STAGES for s in stages):
+            raise ConfigError(
+                path,
+                "live.stages",
+                f"{stages!r} is not a list of stages.",
+                f"Valid stages: {list(LIVE_STAGES)}.",
+            )
+        live_raw = {**live_raw, "stages": tuple(stages)}
+    live = _section(live_raw, LiveConfig, "live", path, {"every_n": (1, 10_000, True, False)})
+    for key in ("out", "calibration"):
+        if data.get(key) is not None and not isinstance(data[key], str):
+            raise ConfigError(path, key, f"expected a path string, got {data[key]!r}.")
+    return CaptureConfig(
+        cameras=cams,
+        out=data.get("out"),
+        calibration=data.get("calibration"),
+        sync=sync,
+        recorder=rec,
+        live=live,
+        path=None if path is None else str(path),
+    )
+
+
+def load_config(path: str | os.PathLike) -> CaptureConfig:
+    """Read and validate a cams.yaml."""
+    import yaml
+
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(
+            path, None, "file does not exist.", "Pass --cameras with the path of your cams.yaml."
+        )
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as e:
+        raise ConfigError(path, None, f"is not valid YAML ({redact_url(str(e))}).") from None
+    return parse_config(data, path)
+
+
+def with_camera(cfg: CaptureConfig, name: str, **changes) -> CaptureConfig:
+    """A copy of ``cfg`` with one camera's fields changed (tests, CLI overrides)."""
+    cams = tuple(replace(c, **changes) if c.name == name else c for c in cfg.cameras)
+    return replace(cfg, cameras=cams)

@@ -1,0 +1,388 @@
+"""Offline synchronisation of recordings made without a shared clock (``capture-run sync``).
+
+Each camera's time offset (and, for long recordings, its drift) against a reference camera from
+the cross-correlation of 2D keypoint speeds: people move at the same instants in every view, so
+the per-frame keypoint speed, summed over people and normalised, is a signal that all cameras
+share up to a time shift (the approach of Pose2Sim's ``synchronization`` step, made multi-person
+by matching people frame to frame). Audio is the alternative when videos carry a track
+(``audio_offset``; the seed's kitchen recordings were aligned by audio).
+
+Convention written into ``session.toml`` ``[sync.cameras.<cam>]``: camera frame ``i`` shows the
+instant of reference frame ``i + offset_frames``, i.e. ``t_ref_ns = t_cam_ns + offset_ns
+(+ drift_ppm * 1e-6 * (t_cam_ns - t_cam0_ns))``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from capture.fileio import FormatError, load_toml, save_toml
+from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------- keypoint input
+
+
+def read_openpose_folder(folder: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """OpenPose ``*.json`` frames in one folder -> xy (T,P,J,2) NaN-padded, score (T,P,J).
+
+    Frames are ordered by the last number in the file name (never by directory order).
+    """
+    folder = Path(folder)
+    files = [p for p in folder.glob("*.json")]
+    if not files:
+        raise FormatError(folder, None, "no OpenPose .json files in this folder.")
+
+    def frame_no(p: Path) -> int:
+        nums = re.findall(r"\d+", p.stem)
+        if not nums:
+            raise FormatError(p, None, "file name holds no frame number.")
+        return int(nums[-1])
+
+    files.sort(key=frame_no)
+    people_per_frame = []
+    J = 0
+    for p in files:
+        try:
+            data = json.loads(p.read_text())
+        except json.JSONDecodeError as e:
+            raise FormatError(p, None, f"is not valid JSON ({e}).") from None
+        pts = []
+        for person in data.get("people", []):
+            k = np.asarray(person.get("pose_keypoints_2d", []), np.float64).reshape(-1, 3)
+            J = max(J, len(k))
+            pts.append(k)
+        people_per_frame.append(pts)
+    T = len(files)
+    P = max(1, max(len(f) for f in people_per_frame))
+    xy = np.full((T, P, J, 2), np.nan)
+    score = np.zeros((T, P, J))
+    for t, pts in enumerate(people_per_frame):
+        for p, k in enumerate(pts):
+            valid = k[:, 2] > 0
+            xy[t, p, : len(k)][valid] = k[valid, :2]
+            score[t, p, : len(k)] = k[:, 2]
+    return xy, score
+
+
+def _match_people(prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """Reorder cur (P,J,2) so that person p continues prev's person p (Hungarian on mean joint distance)."""
+    from scipy.optimize import linear_sum_assignment
+
+    P = prev.shape[0]
+    d = np.full((P, P), 1e9)
+    for i in range(P):
+        for j in range(P):
+            diff = np.linalg.norm(prev[i] - cur[j], axis=-1)
+            if np.isfinite(diff).any():
+                d[i, j] = np.nanmean(diff)
+    rows, cols = linear_sum_assignment(d)
+    order = np.arange(P)
+    order[rows] = cols
+    return cur[order]
+
+
+def keypoint_speed(xy: np.ndarray, smooth_sigma: float = 1.0, per_joint: bool = True) -> np.ndarray:
+    """Per-frame motion signal from 2D keypoints. xy: (T,P,J,2) px, NaN = missing.
+
+    People are matched frame to frame (Hungarian on joint distance). ``per_joint``: returns (T,J),
+    each joint's speed (px/frame) summed over people, a signal that needs no identity across views;
+    else (T,) the sum over people of their median joint speed. NaN where unknown.
+    """
+    xy = np.asarray(xy, np.float64)
+    if xy.ndim != 4 or xy.shape[-1] != 2:
+        raise ValueError(f"keypoint_speed: expected xy (T,P,J,2), got {xy.shape}")
+    T = xy.shape[0]
+    tracked = xy.copy()
+    for t in range(1, T):
+        if xy.shape[1] > 1:
+            tracked[t] = _match_people(tracked[t - 1], xy[t])
+    v = np.linalg.norm(np.diff(tracked, axis=0), axis=-1)  # (T-1,P,J)
+    if per_joint:
+        sig = np.nansum(v, axis=1)
+        sig[np.all(np.isnan(v), axis=1)] = np.nan
+        sig = np.concatenate([np.full((1, v.shape[2]), np.nan), sig])
+        if smooth_sigma > 0:
+            sig = np.stack([_nan_gaussian(sig[:, j], smooth_sigma) for j in range(sig.shape[1])], axis=1)
+        return sig
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            per_person = np.nanmedian(v, axis=2)  # (T-1,P)
+            sig = np.nansum(per_person, axis=1)
+            sig[np.all(np.isnan(per_person), axis=1)] = np.nan
+    sig = np.concatenate([[np.nan], sig])
+    if smooth_sigma > 0:
+        sig = _nan_gaussian(sig, smooth_sigma)
+    return sig
+
+
+def _nan_gaussian(x: np.ndarray, sigma: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter1d
+
+    m = np.isfinite(x)
+    num = gaussian_filter1d(np.where(m, x, 0.0), sigma, mode="constant")
+    den = gaussian_filter1d(m.astype(float), sigma, mode="constant")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = num / den
+    out[den < 0.3] = np.nan
+    return out
+
+
+# ----------------------------------------------------------------------------- correlation
+
+
+def lagged_correlation(ref: np.ndarray, sig: np.ndarray, max_lag: int, min_overlap: int = 10) -> np.ndarray:
+    """Pearson correlation of ref[t + L] with sig[t], L in [-max_lag, max_lag] (NaN-aware) -> (2*max_lag+1,).
+
+    ref, sig: (T,) or (T,K) multichannel (e.g. per-joint speeds): the per-channel correlations are
+    averaged, weighted by their number of valid samples.
+    """
+    ref = np.asarray(ref, np.float64)
+    sig = np.asarray(sig, np.float64)
+    if ref.ndim == 2:
+        if sig.ndim != 2 or sig.shape[1] != ref.shape[1]:
+            raise ValueError(
+                f"lagged_correlation: ref {ref.shape} and sig {sig.shape} need the same channels K"
+            )
+        acc = np.zeros(2 * max_lag + 1)
+        wsum = np.zeros(2 * max_lag + 1)
+        for k in range(ref.shape[1]):
+            c = lagged_correlation(ref[:, k], sig[:, k], max_lag, min_overlap)
+            w = np.isfinite(c) * min(np.isfinite(ref[:, k]).sum(), np.isfinite(sig[:, k]).sum())
+            acc += np.where(np.isfinite(c), c, 0.0) * w
+            wsum += w
+        with np.errstate(invalid="ignore"):
+            return np.where(wsum > 0, acc / np.maximum(wsum, 1e-12), np.nan)
+    out = np.full(2 * max_lag + 1, np.nan)
+    for k, L in enumerate(range(-max_lag, max_lag + 1)):
+        # pairs (ref[t+L], sig[t]) for all t where both exist
+        t0 = max(0, -L)
+        t1 = min(len(sig), len(ref) - L)
+        if t1 - t0 < min_overlap:
+            continue
+        a = ref[t0 + L : t1 + L]
+        b = sig[t0:t1]
+        m = np.isfinite(a) & np.isfinite(b)
+        if m.sum() < min_overlap:
+            continue
+        a, b = a[m] - a[m].mean(), b[m] - b[m].mean()
+        den = np.sqrt((a * a).sum() * (b * b).sum())
+        if den > 0:
+            out[k] = (a * b).sum() / den
+    return out
+
+
+@dataclass(frozen=True)
+class LagEstimate:
+    offset_frames: float  # camera frame i shows reference frame i + offset_frames
+    correlation: float  # peak Pearson correlation
+    lag_int: int
+
+
+def estimate_lag(ref: np.ndarray, sig: np.ndarray, max_lag: int, subframe: bool = True) -> LagEstimate:
+    """Offset of ``sig`` against ``ref``: peak of their lagged correlation (parabolic sub-frame fit)."""
+    c = lagged_correlation(ref, sig, max_lag)
+    if not np.isfinite(c).any():
+        raise ValueError(
+            "no overlap with enough valid samples to correlate; lengthen the recording or the "
+            "keypoint tracks, or raise --max-lag-s"
+        )
+    k = int(np.nanargmax(c))
+    lag = k - max_lag
+    frac = 0.0
+    if subframe and 0 < k < len(c) - 1 and np.isfinite(c[k - 1]) and np.isfinite(c[k + 1]):
+        den = c[k - 1] - 2 * c[k] + c[k + 1]
+        if den < 0:
+            frac = float(np.clip(0.5 * (c[k - 1] - c[k + 1]) / den, -0.5, 0.5))
+    return LagEstimate(lag + frac, float(c[k]), lag)
+
+
+def estimate_offset_drift(
+    ref: np.ndarray, sig: np.ndarray, max_lag: int, window: int, step: int | None = None
+) -> tuple[float, float, float]:
+    """Offset and drift: windowed lags fitted as offset(t) = a + b t -> (a frames, b frames/frame, corr).
+
+    The global lag is found first; windows then search ±3 frames around it.
+    """
+    g = estimate_lag(ref, sig, max_lag)
+    step = step or max(1, window // 2)
+    ts, lags, ws = [], [], []
+    for s in range(0, max(1, len(sig) - window + 1), step):
+        seg = np.full_like(sig, np.nan)
+        seg[s : s + window] = sig[s : s + window]
+        c = lagged_correlation(ref, seg, max_lag, min_overlap=max(10, window // 2))
+        lo = max(0, g.lag_int + max_lag - 3)
+        hi = min(len(c), g.lag_int + max_lag + 4)
+        sub = c[lo:hi]
+        if not np.isfinite(sub).any():
+            continue
+        k = lo + int(np.nanargmax(sub))
+        frac = 0.0
+        if 0 < k < len(c) - 1 and np.isfinite(c[k - 1 : k + 2]).all():
+            den = c[k - 1] - 2 * c[k] + c[k + 1]
+            if den < 0:
+                frac = float(np.clip(0.5 * (c[k - 1] - c[k + 1]) / den, -0.5, 0.5))
+        ts.append(s + window / 2)
+        lags.append(k - max_lag + frac)
+        ws.append(max(c[k], 1e-3))
+    if len(ts) < 3:
+        return g.offset_frames, 0.0, g.correlation
+    b, a = np.polyfit(np.asarray(ts), np.asarray(lags), 1, w=np.asarray(ws))
+    return float(a), float(b), g.correlation
+
+
+# ----------------------------------------------------------------------------- audio
+
+
+def audio_offset(
+    ref_path: str | os.PathLike, path: str | os.PathLike, max_lag_s: float = 2.0
+) -> tuple[float, float]:
+    """Offset in seconds (t_ref = t_cam + offset) from the audio envelopes of two videos; (offset_s, corr).
+
+    Raises ValueError when a video has no audio track OpenCV can read.
+    """
+    env_r, rate = _audio_envelope(ref_path)
+    env_s, rate2 = _audio_envelope(path)
+    if rate != rate2:
+        raise ValueError(f"audio envelope rates differ ({rate} vs {rate2})")
+    est = estimate_lag(env_r, env_s, int(max_lag_s * rate))
+    return est.offset_frames / rate, est.correlation
+
+
+def _audio_envelope(path, env_rate: float = 1000.0) -> tuple[np.ndarray, float]:
+    import cv2
+
+    cap = cv2.VideoCapture(
+        str(path),
+        cv2.CAP_FFMPEG,
+        [
+            cv2.CAP_PROP_AUDIO_STREAM,
+            0,
+            cv2.CAP_PROP_VIDEO_STREAM,
+            -1,
+            cv2.CAP_PROP_AUDIO_DATA_DEPTH,
+            cv2.CV_32F,
+        ],
+    )
+    if not cap.isOpened() or cap.get(cv2.CAP_PROP_AUDIO_TOTAL_STREAMS) < 1:
+        cap.release()
+        raise ValueError(f"{path}: no audio track")
+    sr = cap.get(cv2.CAP_PROP_AUDIO_SAMPLES_PER_SECOND)
+    base = int(cap.get(cv2.CAP_PROP_AUDIO_BASE_INDEX))
+    chunks = []
+    while cap.grab():
+        a = cap.retrieve(flag=base)[1]
+        if a is not None:
+            chunks.append(np.asarray(a, np.float32).reshape(-1))
+    cap.release()
+    if not chunks or sr <= 0:
+        raise ValueError(f"{path}: audio track is empty")
+    x = np.abs(np.concatenate(chunks))
+    hop = max(1, int(sr / env_rate))
+    n = len(x) // hop
+    env = x[: n * hop].reshape(n, hop).mean(axis=1)
+    return env, sr / hop
+
+
+# ----------------------------------------------------------------------------- sessions
+
+
+def estimate_offsets(
+    signals: dict[str, np.ndarray],
+    fps: float,
+    reference: str | None = None,
+    max_lag_s: float = 2.0,
+    drift: bool = False,
+    window_s: float = 10.0,
+) -> dict:
+    """Offsets of every camera against ``reference`` from per-frame speed signals (cam -> (T_c,))."""
+    names = list(signals)
+    ref = reference or sorted(names)[0]
+    if ref not in signals:
+        raise ValueError(f"reference camera {ref!r} not in {names}")
+    max_lag = max(1, int(round(max_lag_s * fps)))
+    out = {"method": "keypoint-speed-xcorr", "reference": ref, "fps": fps, "cameras": {}}
+    for n in names:
+        if n == ref:
+            a, b, corr = 0.0, 0.0, 1.0
+        elif drift:
+            a, b, corr = estimate_offset_drift(signals[ref], signals[n], max_lag, int(window_s * fps))
+        else:
+            e = estimate_lag(signals[ref], signals[n], max_lag)
+            a, b, corr = e.offset_frames, 0.0, e.correlation
+        r = {
+            "offset_frames": a,
+            "offset_s": a / fps,
+            "offset_ns": int(round(a / fps * 1e9)),
+            "correlation": corr,
+        }
+        if drift:
+            r["drift_ppm"] = b * 1e6
+        if n != ref and corr < 0.3:
+            log.warning(
+                "%s: weak correlation %.2f with %s; the offset may be wrong (too little motion?)",
+                n,
+                corr,
+                ref,
+            )
+        out["cameras"][n] = r
+    return out
+
+
+def sync_session(
+    root: str | os.PathLike,
+    reference: str | None = None,
+    max_lag_s: float = 2.0,
+    drift: bool = False,
+    openpose_dirs: dict[str, str] | None = None,
+    fps: float | None = None,
+    write: bool = True,
+) -> dict:
+    """Estimate offsets for a session folder and write them into ``session.toml`` ``[sync]``."""
+    layout = SessionLayout(root)
+    meta = load_toml(layout.session_toml) if layout.session_toml.exists() else None
+    signals: dict[str, np.ndarray] = {}
+    if openpose_dirs:
+        for cam, d in openpose_dirs.items():
+            xy, _ = read_openpose_folder(d)
+            signals[cam] = keypoint_speed(xy)
+    else:
+        cams = layout.detection_cameras()
+        if len(cams) < 2:
+            raise FormatError(
+                layout.keypoints_dir,
+                None,
+                f"found {len(cams)} keypoints/<cam>.npz; sync needs two or more.",
+                "Run the keypoints stage first, or pass --openpose CAM=DIR ...",
+            )
+        from keypoints.detections import Detections
+
+        for cam in cams:
+            det = Detections.load(layout.detections(cam))
+            signals[cam] = keypoint_speed(det.xy_px)
+            if fps is None and len(det.t_ns) > 2:
+                fps = float(1e9 / np.median(np.diff(det.t_ns)))
+    if fps is None and meta is not None:
+        vals = [c.get("fps_nominal") for c in meta.get("cameras", {}).values() if c.get("fps_nominal")]
+        fps = float(vals[0]) if vals else None
+    if fps is None:
+        raise ValueError("frame rate unknown: pass --fps")
+    res = estimate_offsets(signals, fps, reference, max_lag_s, drift)
+    if write:
+        if meta is None:
+            meta = {"schema": f"{SESSION_SCHEMA}/{SESSION_VERSION}", "status": "imported"}
+        meta["sync"] = res
+        save_toml(layout.session_toml, meta)
+    return res

@@ -1,0 +1,618 @@
+"""Frame sources behind one small interface, and ``open_recording`` to read what the recorder wrote.
+
+``FrameSource``: ``open()``, ``read() -> Frame | None`` (None = end of stream; raises
+``SourceDisconnected`` when a live camera goes away), ``close()``, ``info``. Implementations:
+
+- ``OpenCVSource``: USB index, ``/dev/videoN``, RTSP/HTTP streams (short open/read timeouts);
+- ``FileReplaySource``: a video file, a segment folder or a recorded session's camera, played
+  back at its own timestamps (the test double of every camera);
+- ``SyntheticSource``: a generated moving texture with the sequence number stamped as a
+  barcode (``read_code``), an ideal device clock with optional offset/drift, and a simulated
+  disconnect;
+- OAK cameras live in ``capture.oak`` (the only module importing depthai).
+
+Timestamps are integers in ns on one host clock: ``host_now_ns()`` is CLOCK_MONOTONIC shifted
+by a fixed offset measured at import so the values read as UNIX time but never jump. Each frame
+carries ``t_ns`` (the device/source timestamp on that clock), ``t_host_ns`` (when the host
+received it) and ``sequence`` (the source's own frame counter; gaps = drops at the source).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import threading
+import time
+import urllib.parse
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from capture.config import CameraConfig, redact_url
+
+log = logging.getLogger(__name__)
+
+_MONO_TO_WALL_NS = time.time_ns() - time.monotonic_ns()
+
+
+def host_now_ns() -> int:
+    """Host clock in ns: monotonic, offset to read as UNIX time (fixed for the process)."""
+    return time.monotonic_ns() + _MONO_TO_WALL_NS
+
+
+def mono_to_host_ns(mono_ns: int) -> int:
+    """CLOCK_MONOTONIC / std::chrono::steady_clock ns (depthai's host-synced stamps) -> host_now_ns."""
+    return int(mono_ns) + _MONO_TO_WALL_NS
+
+
+class SourceError(RuntimeError):
+    """A source cannot be opened or delivers something impossible; the message says what to do."""
+
+
+class SourceDisconnected(SourceError):
+    """A live source stopped delivering frames (cable pulled, stream dropped); the grabber retries."""
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One frame. image: (H,W,3) uint8 BGR, or None when only ``encoded`` bytes exist (on-device codec)."""
+
+    image: np.ndarray | None
+    t_ns: int
+    t_host_ns: int
+    sequence: int
+    encoded: bytes | None = None  # on-device encoded packet (H.264/H.265 Annex B)
+    keyframe: bool = True  # for encoded packets: a segment may start here
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    width: int
+    height: int
+    fps: float
+    kind: str
+    description: str  # safe to log: no credentials
+
+
+class FrameSource(ABC):
+    """One camera. Not thread-safe: one grabbing thread owns it."""
+
+    name: str
+
+    @abstractmethod
+    def open(self) -> SourceInfo: ...
+
+    @abstractmethod
+    def read(self) -> Frame | None: ...
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    @property
+    def live(self) -> bool:
+        """A live source is retried after a disconnect; a file just ends."""
+        return True
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# ----------------------------------------------------------------------------- barcode
+
+
+def _block(width: int) -> int:
+    return int(max(4, min(24, width // 40)))
+
+
+def stamp_code(image: np.ndarray, value: int, bits: int = 32) -> None:
+    """Write ``value`` as ``bits`` black/white blocks into the top-left of (H,W,3) ``image``, in place."""
+    b = _block(image.shape[1])
+    for i in range(bits):
+        image[0:b, i * b : (i + 1) * b] = 255 if (value >> i) & 1 else 0
+
+
+def read_code(image: np.ndarray, bits: int = 32) -> int:
+    """Decode the value ``stamp_code`` wrote (robust to lossy compression: reads block centres)."""
+    b = _block(image.shape[1])
+    c0, c1 = b // 4, b - b // 4
+    value = 0
+    for i in range(bits):
+        if image[c0:c1, i * b + c0 : i * b + c1].mean() > 127:
+            value |= 1 << i
+    return value
+
+
+# ----------------------------------------------------------------------------- synthetic
+
+
+_TEXTURES: dict[tuple[int, int], np.ndarray] = {}
+_TEX_LOCK = threading.Lock()
+_TEX_STEP = 8
+_TEX_FRAMES = 32
+
+
+def _texture(w: int, h: int) -> np.ndarray:
+    """A smooth random texture (H, W + 32*8, 3) shared by all synthetic sources of that size."""
+    import cv2
+
+    with _TEX_LOCK:
+        tex = _TEXTURES.get((w, h))
+        if tex is None:
+            rng = np.random.default_rng(w * 7919 + h)
+            small = rng.integers(
+                0, 256, (max(2, h // 16), max(2, (w + _TEX_STEP * _TEX_FRAMES) // 16), 3), dtype=np.uint8
+            )
+            tex = cv2.resize(small, (w + _TEX_STEP * _TEX_FRAMES, h), interpolation=cv2.INTER_CUBIC)
+            _TEXTURES[(w, h)] = tex
+        return tex
+
+
+class SyntheticSource(FrameSource):
+    """A generated camera: moving texture, barcode = sequence number, ideal or drifting clock.
+
+    Options (``synthetic:?key=value&...`` in cams.yaml): ``offset_ms`` (device clock offset),
+    ``drift_ppm`` (device clock rate error), ``disconnect_at_s`` / ``disconnect_for_s`` (simulated
+    cable pull, seconds after open), ``frames`` (end after this many frames), ``drop_every``
+    (skip every n-th sequence number: a source-side drop).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        width: int = 640,
+        height: int = 480,
+        fps: float = 30.0,
+        realtime: bool = True,
+        epoch_ns: int | None = None,
+        offset_ms: float = 0.0,
+        drift_ppm: float = 0.0,
+        disconnect_at_s: float | None = None,
+        disconnect_for_s: float = 0.0,
+        frames: int | None = None,
+        drop_every: int = 0,
+    ):
+        if fps <= 0 or fps > 1000:
+            raise SourceError(f"{name}: synthetic fps {fps} is impossible; use 0 < fps <= 1000.")
+        self.name = name
+        self.w, self.h, self.fps = int(width), int(height), float(fps)
+        self.realtime = realtime
+        self.epoch_ns = epoch_ns
+        self.offset_ns = int(offset_ms * 1e6)
+        self.drift = drift_ppm * 1e-6
+        self.disconnect_at_s = disconnect_at_s
+        self.disconnect_for_s = disconnect_for_s
+        self.max_frames = frames
+        self.drop_every = int(drop_every)
+        self._seq = 0
+        self._start_mono: int | None = None
+        self._opened = False
+        self._disconnected_once = False
+
+    @classmethod
+    def from_config(cls, cam: CameraConfig, epoch_ns: int | None = None) -> SyntheticSource:
+        query = cam.source.partition("?")[2]
+        opts = dict(urllib.parse.parse_qsl(query))
+        valid = ("offset_ms", "drift_ppm", "disconnect_at_s", "disconnect_for_s", "frames", "drop_every")
+        bad = sorted(set(opts) - set(valid))
+        if bad:
+            raise SourceError(f"{cam.name}: unknown synthetic option(s) {bad}; valid: {list(valid)}.")
+        kw = {k: (int(v) if k in ("frames", "drop_every") else float(v)) for k, v in opts.items()}
+        w, h = cam.resolution or (640, 480)
+        return cls(cam.name, w, h, cam.fps or 30.0, realtime=cam.realtime, epoch_ns=epoch_ns, **kw)
+
+    def open(self) -> SourceInfo:
+        now = time.monotonic_ns()
+        if self._start_mono is None:
+            self._start_mono = now
+            if self.epoch_ns is None:
+                self.epoch_ns = host_now_ns()
+            _texture(self.w, self.h)
+        elif self._in_disconnect(now):
+            raise SourceDisconnected(f"{self.name}: synthetic camera is unplugged")
+        self._opened = True
+        return SourceInfo(self.w, self.h, self.fps, "synthetic", f"synthetic {self.w}x{self.h}@{self.fps:g}")
+
+    def _in_disconnect(self, now_mono: int) -> bool:
+        if self.disconnect_at_s is None or self._start_mono is None:
+            return False
+        t = (now_mono - self._start_mono) / 1e9
+        return self.disconnect_at_s <= t < self.disconnect_at_s + self.disconnect_for_s
+
+    def _frame_time_mono(self, seq: int) -> int:
+        return self._start_mono + int(round(seq * 1e9 / self.fps))
+
+    def read(self) -> Frame | None:
+        if not self._opened:
+            raise SourceError(f"{self.name}: read() before open()")
+        if self.max_frames is not None and self._seq >= self.max_frames:
+            return None
+        if self.realtime:
+            due = self._frame_time_mono(self._seq)
+            wait = due - time.monotonic_ns()
+            if wait > 0:
+                time.sleep(wait / 1e9)
+            now = time.monotonic_ns()
+            if self._in_disconnect(now):
+                self._opened = False
+                # the camera produced nothing while unplugged: skip those sequence numbers
+                end = self._start_mono + int((self.disconnect_at_s + self.disconnect_for_s) * 1e9)
+                self._seq = int(np.ceil((end - self._start_mono) * self.fps / 1e9))
+                raise SourceDisconnected(f"{self.name}: synthetic camera unplugged")
+            # a late reader (host slower than fps) still gets consecutive frames; the camera does not wait
+            late = (now - due) * self.fps / 1e9
+            if late > 2:
+                self._seq += int(late)  # frames the sensor produced while nobody read: dropped at the source
+        seq = self._seq
+        self._seq += 1
+        if self.drop_every and seq % self.drop_every == self.drop_every - 1:
+            seq = self._seq
+            self._seq += 1
+        ideal_ns = int(round(seq * 1e9 / self.fps))
+        t_ns = self.epoch_ns + self.offset_ns + int(round(ideal_ns * (1.0 + self.drift)))
+        tex = _texture(self.w, self.h)
+        k = seq % _TEX_FRAMES
+        img = np.ascontiguousarray(tex[:, k * _TEX_STEP : k * _TEX_STEP + self.w])
+        stamp_code(img, seq)
+        return Frame(img, t_ns, host_now_ns(), seq)
+
+    def close(self) -> None:
+        self._opened = False
+
+
+# ----------------------------------------------------------------------------- OpenCV devices and streams
+
+
+class OpenCVSource(FrameSource):
+    """USB camera (``usb:N``), V4L2 device path or network stream through cv2.VideoCapture."""
+
+    def __init__(self, cam: CameraConfig, open_timeout_s: float = 5.0, read_timeout_s: float = 5.0):
+        self.name = cam.name
+        self.cam = cam
+        self.open_timeout_s = open_timeout_s
+        self.read_timeout_s = read_timeout_s
+        self._cap = None
+        self._seq = 0
+        self._fps = 0.0
+
+    def _describe(self) -> str:
+        return f"{self.cam.kind} {self.cam.source_redacted}"
+
+    def open(self) -> SourceInfo:
+        import cv2
+
+        cam, kind = self.cam, self.cam.kind
+        if kind == "usb":
+            target: int | str = int(cam.source[4:])
+            params = []
+        else:
+            target = cam.source
+            params = [
+                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC,
+                int(self.open_timeout_s * 1000),
+                cv2.CAP_PROP_READ_TIMEOUT_MSEC,
+                int(self.read_timeout_s * 1000),
+            ]
+        if kind in ("usb", "device") and isinstance(target, str) and not os.path.exists(target):
+            raise SourceError(
+                f"{self.name}: device {target} does not exist. Plug the camera in or list devices "
+                "with `v4l2-ctl --list-devices`."
+            )
+        backend = cv2.CAP_FFMPEG if kind == "rtsp" else cv2.CAP_ANY
+        cap = cv2.VideoCapture(target, backend, params)
+        if not cap.isOpened():
+            cap.release()
+            if kind == "rtsp":
+                raise SourceDisconnected(
+                    f"{self.name}: cannot reach stream {self._describe()} within "
+                    f"{self.open_timeout_s:g} s. Check the address, port, credentials and "
+                    "network, and that the camera streams."
+                )
+            raise SourceError(
+                f"{self.name}: cannot open {self._describe()}: missing, busy (opened by another "
+                "program) or not a camera. Close other programs using it or pick another index."
+            )
+        if cam.resolution is not None:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, cam.resolution[0])
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, cam.resolution[1])
+        if cam.fps is not None:
+            cap.set(cv2.CAP_PROP_FPS, cam.fps)
+        if cam.exposure_us is not None:
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2: 1 = manual
+            cap.set(cv2.CAP_PROP_EXPOSURE, cam.exposure_us / 100.0)  # V4L2 units of 100 us
+        ok, img = cap.read()
+        if not ok or img is None:
+            cap.release()
+            raise SourceError(
+                f"{self.name}: {self._describe()} opened but delivers no frames (busy or not a video source)."
+            )
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        check_delivery(self.name, cam, w, h, fps)
+        self._cap = cap
+        self._fps = fps or (cam.fps or 30.0)
+        self._pending = img
+        return SourceInfo(w, h, self._fps, cam.kind, self._describe())
+
+    def read(self) -> Frame | None:
+        if self._cap is None:
+            raise SourceError(f"{self.name}: read() before open()")
+        img, self._pending = self._pending, None
+        if img is None:
+            ok, img = self._cap.read()
+            if not ok or img is None:
+                self.close()
+                raise SourceDisconnected(f"{self.name}: {self._describe()} stopped delivering frames")
+        now = host_now_ns()
+        # OpenCV exposes no device clock for V4L2/RTSP that is comparable across cameras: the host stamp
+        # at grab is the best estimate (latency is constant per camera and removed by offline sync).
+        seq = self._seq
+        self._seq += 1
+        return Frame(img, now, now, seq)
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+def check_delivery(name: str, cam: CameraConfig, w: int, h: int, fps: float) -> None:
+    """Reject a device that does not deliver the requested resolution/fps, listing what it gives."""
+    if cam.resolution is not None and (w, h) != tuple(cam.resolution):
+        raise SourceError(
+            f"{name}: requested {cam.resolution[0]}x{cam.resolution[1]} but the device delivers "
+            f"{w}x{h}. Set resolution: [{w}, {h}] (or null) in cams.yaml."
+        )
+    if cam.fps is not None and fps > 0 and abs(fps - cam.fps) > 0.01 * cam.fps + 0.5:
+        raise SourceError(
+            f"{name}: requested {cam.fps:g} fps but the device delivers {fps:g} fps at {w}x{h}. "
+            f"Set fps: {fps:g} (or null), or a resolution at which it reaches {cam.fps:g}."
+        )
+
+
+# ----------------------------------------------------------------------------- files and recordings
+
+
+SEGMENT_GLOB = "seg_*"
+
+
+def _segments(folder: Path) -> list[Path]:
+    from capture.session import VIDEO_SUFFIXES
+
+    ok = VIDEO_SUFFIXES + (".h264", ".h265")
+    return sorted(p for p in folder.glob(SEGMENT_GLOB) if p.suffix.lower() in ok)
+
+
+def read_frames_csv(path: str | os.PathLike) -> np.ndarray:
+    """``raw/<cam>.frames.csv`` -> (T,4) int64 array: frame_index, t_ns, t_host_ns, sequence."""
+    path = Path(path)
+    rows = []
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None:
+            return np.zeros((0, 4), np.int64)
+        if header[:4] != ["frame_index", "t_ns", "t_host_ns", "sequence"]:
+            from capture.fileio import FormatError
+
+            raise FormatError(path, "header", f"expected frame_index,t_ns,t_host_ns,sequence, got {header}.")
+        for r in reader:
+            if len(r) >= 4:
+                rows.append([int(x) for x in r[:4]])
+    return np.asarray(rows, np.int64).reshape(-1, 4)
+
+
+class Recording:
+    """Frames and timestamps of one recorded camera: a video file or a segment folder ``raw/<cam>/``.
+
+    ``for frame_index, t_ns, image in Recording(path)`` iterates every frame in order. Timestamps come
+    from ``raw/<cam>.frames.csv`` beside it when present (t_ns, the device clock), else from the
+    container (CAP_PROP_POS_MSEC, first frame = 0). ``Recording(SessionLayout(s).video(cam))``.
+    """
+
+    def __init__(self, path: str | os.PathLike, frames_csv: str | os.PathLike | None = None):
+        import cv2
+
+        self.path = Path(path)
+        if self.path.is_dir():
+            self.files = _segments(self.path)
+            if not self.files:
+                raise SourceError(f"{self.path}: no video segments (seg_*.mp4/.avi) in this folder.")
+            default_csv = self.path.parent / f"{self.path.name}.frames.csv"
+        elif self.path.exists():
+            self.files = [self.path]
+            default_csv = self.path.with_name(self.path.stem + ".frames.csv")
+        else:
+            raise SourceError(f"{self.path}: no such video file or segment folder.")
+        csv_path = Path(frames_csv) if frames_csv else default_csv
+        self.table = read_frames_csv(csv_path) if csv_path.exists() else None
+        cap = cv2.VideoCapture(str(self.files[0]))
+        if not cap.isOpened():
+            raise SourceError(
+                f"{self.files[0]}: not a video OpenCV can decode (wrong format or corrupt). "
+                "Pass a .mp4/.avi/.mkv video or a recorded session's raw/<cam>."
+            )
+        self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        self.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        cap.release()
+
+    def __len__(self) -> int:
+        if self.table is not None:
+            return len(self.table)
+        import cv2
+
+        n = 0
+        for f in self.files:
+            cap = cv2.VideoCapture(str(f))
+            n += int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+            cap.release()
+        return n
+
+    def timestamps_ns(self) -> np.ndarray | None:
+        """(T,) t_ns from frames.csv, or None when the recording has no timestamp file."""
+        return None if self.table is None else self.table[:, 1].copy()
+
+    def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
+        import cv2
+
+        i = 0
+        base_ms = 0.0
+        for f in self.files:
+            cap = cv2.VideoCapture(str(f))
+            if not cap.isOpened():
+                raise SourceError(f"{f}: cannot be decoded (corrupt segment?).")
+            last_ms = 0.0
+            try:
+                while True:
+                    ok, img = cap.read()
+                    if not ok:
+                        break
+                    if self.table is not None:
+                        if i >= len(self.table):
+                            log.warning(
+                                "%s: more frames than rows in the timestamp file; stopping at %d", f, i
+                            )
+                            return
+                        t_ns = int(self.table[i, 1])
+                    else:
+                        last_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+                        t_ns = int(round((base_ms + last_ms) * 1e6))
+                    yield i, t_ns, img
+                    i += 1
+            finally:
+                cap.release()
+            base_ms += last_ms + (1000.0 / self.fps if self.fps else 0.0)
+
+
+def open_recording(path: str | os.PathLike) -> Recording:
+    """Iterate ``(frame_index, t_ns, image)`` over a recorded video file or segment folder."""
+    return Recording(path)
+
+
+class FileReplaySource(FrameSource):
+    """A video (file or recorded segment folder) replayed as a camera at its own timestamps.
+
+    ``t_ns = epoch_ns + (file timestamp - first file timestamp)``; with ``loop`` the timestamps keep
+    increasing by one frame period across the wrap. ``realtime=False`` delivers frames as fast as
+    the reader takes them (tests, benchmarks) with the same timestamps.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        path: str | os.PathLike,
+        realtime: bool = True,
+        loop: bool = False,
+        epoch_ns: int | None = None,
+        fps: float | None = None,
+    ):
+        self.name = name
+        self.path = Path(path)
+        self.realtime = realtime
+        self.loop = loop
+        self.epoch_ns = epoch_ns
+        self.want_fps = fps
+        self._it: Iterator | None = None
+        self._rec: Recording | None = None
+        self._seq = 0
+        self._t0_file: int | None = None
+        self._wrap_ns = 0
+        self._last_rel = 0
+        self._start_mono = 0
+
+    @property
+    def live(self) -> bool:
+        return False
+
+    def open(self) -> SourceInfo:
+        if not self.path.exists():
+            raise SourceError(
+                f"{self.name}: video file {self.path} does not exist. Fix the source path in cams.yaml."
+            )
+        if self.path.is_file() and self.path.stat().st_size == 0:
+            raise SourceError(f"{self.name}: {self.path} is empty, not a video.")
+        rec = Recording(self.path)
+        it = iter(rec)
+        try:
+            first = next(it)
+        except StopIteration:
+            raise SourceError(
+                f"{self.name}: {self.path} holds no decodable frames (not a video, or corrupt)."
+            ) from None
+        if rec.fps <= 0 and rec.table is None:
+            raise SourceError(f"{self.name}: {self.path} has no frame rate or timestamps; cannot replay it.")
+        if (
+            self.want_fps is not None
+            and rec.fps > 0
+            and abs(rec.fps - self.want_fps) > 0.01 * self.want_fps + 0.5
+        ):
+            raise SourceError(
+                f"{self.name}: {self.path} is {rec.fps:g} fps but cams.yaml asks for "
+                f"{self.want_fps:g} fps. A file replays at its own rate: set fps: {rec.fps:g} or null."
+            )
+        self._rec, self._it, self._pending = rec, it, first
+        if self.epoch_ns is None:
+            self.epoch_ns = host_now_ns()
+        self._start_mono = time.monotonic_ns()
+        self._t0_file = first[1]
+        return SourceInfo(rec.width, rec.height, rec.fps or 0.0, "file", f"file {self.path.name}")
+
+    def read(self) -> Frame | None:
+        if self._it is None:
+            raise SourceError(f"{self.name}: read() before open()")
+        item, self._pending = self._pending, None
+        if item is None:
+            item = next(self._it, None)
+            if item is None:
+                if not self.loop:
+                    return None
+                period = int(round(1e9 / self._rec.fps)) if self._rec.fps else 0
+                self._wrap_ns = self._last_rel + period
+                self._it = iter(self._rec)
+                item = next(self._it, None)
+                if item is None:
+                    return None
+                self._t0_file = item[1] - 0
+        _, t_file, img = item
+        rel = self._wrap_ns + (t_file - self._t0_file)
+        self._last_rel = rel
+        if self.realtime:
+            wait = self._start_mono + rel - time.monotonic_ns()
+            if wait > 0:
+                time.sleep(wait / 1e9)
+        seq = self._seq
+        self._seq += 1
+        return Frame(img, self.epoch_ns + rel, host_now_ns(), seq)
+
+    def close(self) -> None:
+        self._it = None
+        self._rec = None
+
+
+# ----------------------------------------------------------------------------- factory
+
+
+def make_source(cam: CameraConfig, epoch_ns: int | None = None, timeout_s: float = 5.0) -> FrameSource:
+    """The FrameSource for one cams.yaml entry (nothing is opened yet)."""
+    kind = cam.kind
+    if kind == "synthetic":
+        return SyntheticSource.from_config(cam, epoch_ns)
+    if kind == "file":
+        return FileReplaySource(
+            cam.name, cam.source, realtime=cam.realtime, loop=cam.loop, epoch_ns=epoch_ns, fps=cam.fps
+        )
+    if kind == "oak":
+        from capture.oak import OakSource
+
+        return OakSource(cam)
+    if kind in ("usb", "device", "rtsp"):
+        return OpenCVSource(cam, open_timeout_s=timeout_s, read_timeout_s=timeout_s)
+    raise SourceError(f"{cam.name}: unknown source kind {kind!r} for {redact_url(cam.source)}")
