@@ -1,0 +1,160 @@
+"""``calibrate-run``: import/export calibrations (and, later, board calibration).
+
+    calibrate-run import FILE --out rig.toml [--format qualisys] [--scale-to-m 0.001] ...
+    calibrate-run export rig.toml --format aniposelib --out calibration.toml
+
+One small function per subcommand: ``_add_<name>(subparsers)`` registers its arguments and sets
+``func`` to ``_run_<name>(args) -> int``. To add a subcommand, write those two functions and append
+the registrar to ``SUBCOMMANDS``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from capture.fileio import FormatError
+
+log = logging.getLogger("calibrate")
+
+
+def _size_arg(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1080x1920, got {text!r}") from None
+    return w, h
+
+
+# ----------------------------------------------------------------------------- import
+
+
+def _add_import(sub: argparse._SubParsersAction) -> None:
+    from calibrate.formats import IMPORT_FORMATS
+
+    p = sub.add_parser(
+        "import",
+        help="convert a calibration file into rig.toml",
+        description="Read a calibration (format detected from the file or given with --format) "
+        "and write rig.toml (cam_from_world, metres, OpenCV pixels).",
+    )
+    p.add_argument(
+        "file", type=Path, help="calibration file (EasyMocap: intri.yml, extri.yml or their folder)"
+    )
+    p.add_argument("--out", type=Path, required=True, help="rig.toml to write")
+    p.add_argument("--format", choices=IMPORT_FORMATS, default=None, help="input format (default: detect)")
+    p.add_argument(
+        "--scale-to-m",
+        type=float,
+        default=1.0,
+        help="multiply translations by this to get metres (e.g. 0.001 for an aniposelib file in mm)",
+    )
+    p.add_argument(
+        "--image-size",
+        type=_size_arg,
+        default=None,
+        metavar="WxH",
+        help="Qualisys: the videos' size when it differs from the calibrated window (cropped or "
+        "padded at right/bottom); EasyMocap: the size when intri.yml lacks H_/W_",
+    )
+    p.add_argument(
+        "--distortion-scale",
+        type=float,
+        default=1.0,
+        help="Qualisys: multiply distortion coefficients (1/64 = 0.015625 reproduces Pose2Sim)",
+    )
+    p.add_argument(
+        "--view-rotation",
+        choices=("sensor", "apply"),
+        default="sensor",
+        help="Qualisys: keep the sensor orientation or apply each camera's viewrotation",
+    )
+    p.add_argument(
+        "--include-marker-cameras", action="store_true", help="Qualisys: import marker cameras too"
+    )
+    p.set_defaults(func=_run_import)
+
+
+def _run_import(args: argparse.Namespace) -> int:
+    from calibrate.formats import ImportOptions, detect_format, import_rig
+
+    fmt = args.format or detect_format(args.file)
+    opts = ImportOptions(
+        scale_to_m=args.scale_to_m,
+        image_size_wh=args.image_size,
+        distortion_scale=args.distortion_scale,
+        view_rotation=args.view_rotation,
+        include_marker_cameras=args.include_marker_cameras,
+    )
+    rig = import_rig(args.file, fmt, opts)
+    src = args.file
+    digest = hashlib.sha256(src.read_bytes()).hexdigest()[:16] if src.is_file() else "folder"
+    rig.save(args.out, source=f"calibrate-run import --format {fmt} {src.name} (sha256 {digest})")
+    print(f"{args.out}: {len(rig)} cameras {rig.names} from {fmt} file {src}")
+    for c in rig:
+        print(
+            f"  {c.name}: {c.size_wh[0]}x{c.size_wh[1]} {c.model} f=({c.K[0, 0]:.1f}, {c.K[1, 1]:.1f}) "
+            f"centre_m={[round(float(v), 3) for v in c.center]}"
+        )
+    return 0
+
+
+# ----------------------------------------------------------------------------- export
+
+
+def _add_export(sub: argparse._SubParsersAction) -> None:
+    from calibrate.formats import EXPORT_FORMATS
+
+    p = sub.add_parser(
+        "export",
+        help="write rig.toml in another tool's format",
+        description="Write a rig.toml as aniposelib/Pose2Sim TOML or EasyMocap intri.yml/extri.yml.",
+    )
+    p.add_argument("rig", type=Path, help="rig.toml")
+    p.add_argument("--format", choices=EXPORT_FORMATS, required=True)
+    p.add_argument("--out", type=Path, required=True, help="output file (easymocap: a folder)")
+    p.set_defaults(func=_run_export)
+
+
+def _run_export(args: argparse.Namespace) -> int:
+    from calibrate.camera import CameraRig
+    from calibrate.formats import export_rig
+
+    rig = CameraRig.load(args.rig)
+    written = export_rig(rig, args.out, args.format)
+    print(f"wrote {', '.join(str(p) for p in written)} ({args.format}, {len(rig)} cameras)")
+    return 0
+
+
+# ----------------------------------------------------------------------------- main
+
+SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, _add_export]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="calibrate-run", description=__doc__.split("\n")[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        return int(args.func(args) or 0)
+    except FormatError as e:
+        print(f"calibrate-run {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
