@@ -3,7 +3,8 @@
 Keys (T frames, P people per frame padded with NaN, J joints of ``body19``):
 ``schema`` = ``"poses3d/1"``, ``fps``, ``frame_index (T,)``, ``t_ns (T,)``, ``joint_names (J,)``,
 ``xyz_m (T,P,J,3)`` NaN = not triangulated, ``score (T,P,J)`` mean 2D confidence of the views used,
-``reproj_err_px (T,P,J)`` mean reprojection error, ``n_views (T,P,J)`` int, ``calibration_sha256``.
+``reproj_err_px (T,P,J)`` mean reprojection error, ``n_views (T,P,J)`` int, ``calibration_sha256``;
+optional ``std_m (T,P,J)`` positional std from the triangulation covariance (NaN = unknown).
 """
 
 from __future__ import annotations
@@ -33,16 +34,19 @@ class Poses3D:
     reproj_err_px: np.ndarray  # (T,P,J)
     n_views: np.ndarray  # (T,P,J)
     calibration_sha256: str = ""
+    std_m: np.ndarray | None = None  # (T,P,J) optional
 
     def __post_init__(self) -> None:
         T, J = len(self.frame_index), len(self.joint_names)
         P = np.shape(self.xyz_m)[1] if np.ndim(self.xyz_m) == 4 else -1
+        if self.std_m is None:
+            object.__setattr__(self, "std_m", np.full((T, max(P, 0), J), np.nan, np.float32))
         for name, shape in {"t_ns": (T,), "xyz_m": (T, P, J, 3), "score": (T, P, J),
-                            "reproj_err_px": (T, P, J), "n_views": (T, P, J)}.items():
+                            "reproj_err_px": (T, P, J), "n_views": (T, P, J), "std_m": (T, P, J)}.items():
             if np.shape(getattr(self, name)) != shape:
                 raise FormatError(None, name, f"expected shape {shape}, got {np.shape(getattr(self, name))}.")
         for name, dtype in {"frame_index": np.int64, "t_ns": np.int64, "xyz_m": np.float32, "score": np.float32,
-                            "reproj_err_px": np.float32, "n_views": np.int16}.items():
+                            "reproj_err_px": np.float32, "n_views": np.int16, "std_m": np.float32}.items():
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dtype))
         object.__setattr__(self, "joint_names", tuple(str(n) for n in self.joint_names))
 
@@ -51,7 +55,7 @@ class Poses3D:
                         "frame_index": self.frame_index, "t_ns": self.t_ns,
                         "joint_names": np.asarray(self.joint_names), "xyz_m": self.xyz_m, "score": self.score,
                         "reproj_err_px": self.reproj_err_px, "n_views": self.n_views,
-                        "calibration_sha256": self.calibration_sha256})
+                        "calibration_sha256": self.calibration_sha256, "std_m": self.std_m})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Poses3D:
@@ -63,6 +67,6 @@ class Poses3D:
             return cls(fps=float(data["fps"]), frame_index=data["frame_index"], t_ns=data["t_ns"],
                        joint_names=tuple(data["joint_names"].tolist()), xyz_m=data["xyz_m"], score=data["score"],
                        reproj_err_px=data["reproj_err_px"], n_views=data["n_views"],
-                       calibration_sha256=npz_str(data, "calibration_sha256"))
+                       calibration_sha256=npz_str(data, "calibration_sha256"), std_m=data.get("std_m"))
         except FormatError as e:
             raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e

@@ -1,0 +1,141 @@
+"""Iterative greedy matching of 2D poses across views (seed sec. 4.2.1, Algorithm 1, eq. 4.1-4.4).
+
+Cameras are visited in a given order. The first camera's 2D poses start the person hypotheses
+H; for each further camera i the cost of assigning pose h_{i,k} to hypothesis H_m is the average,
+over the poses already in H_m, of the average symmetric epipolar distance over the joints both
+poses see (eq. 4.2, 4.3). The assignment is solved as a bipartite matching (eq. 4.4, Hungarian via
+``scipy.optimize.linear_sum_assignment``); matched pairs below theta join the hypothesis, every
+other pose of camera i starts a new one. Hypotheses with a single pose are dropped at the end.
+
+Eq. 4.3 writes the algebraic residual ``|p_j^T F p_i|``; the text defines it as the distance
+between the joint and the epipolar line, which is what we compute (the residual divided by the
+norm of the line's normal, i.e. pixels), so theta is in pixels.
+
+The cost of *all* poses of camera i against *all* poses already placed is computed at once,
+vectorised over (cameras seen so far x poses x poses x joints); eq. 4.2's average over the
+hypothesis' members is then one matrix product with the membership matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from triangulate.dlt import _reject_unknown
+from triangulate.geometry import check_shape
+
+_BIG = 1e9
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Association settings.
+
+    theta_px: a pose joins a hypothesis when its mean symmetric epipolar distance (eq. 4.2) is below.
+    camera_order: camera names (or None = the rig's order) in which views are integrated.
+    min_score: 2D joints with lower confidence are ignored.
+    min_joints: 2D poses with fewer usable joints are ignored.
+    min_shared_joints: pairs of poses sharing fewer joints get no epipolar evidence.
+    """
+
+    theta_px: float = 40.0
+    camera_order: tuple[str, ...] | None = None
+    min_score: float = 0.05
+    min_joints: int = 4
+    min_shared_joints: int = 3
+
+    def __post_init__(self) -> None:
+        if self.theta_px <= 0:
+            raise ValueError(f"MatchConfig.theta_px must be positive, got {self.theta_px}.")
+        if self.camera_order is not None:
+            object.__setattr__(self, "camera_order", tuple(str(c) for c in self.camera_order))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MatchConfig:
+        return cls(**_reject_unknown(cls, d))
+
+
+def _usable(xy: np.ndarray, score: np.ndarray, cfg: MatchConfig) -> np.ndarray:
+    vis = np.isfinite(xy).all(-1) & (np.nan_to_num(score) >= cfg.min_score)
+    vis &= (vis.sum(-1) >= cfg.min_joints)[..., None]
+    return vis
+
+
+def pair_costs(xy: np.ndarray, vis: np.ndarray, F: np.ndarray, min_shared: int = 1
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean symmetric epipolar distance (eq. 4.3 averaged over shared joints) between all pose pairs.
+
+    xy (C,P,J,2) undistorted pixels, vis (C,P,J) usable joints, F (C,C,3,3) with x_b^T F[a,b] x_a = 0.
+    Returns cost (C,P,C,P) in pixels and ok (C,P,C,P), False where fewer than ``min_shared`` joints
+    are shared (or a == b). Unusable joints get a zero homogeneous vector, so they contribute
+    nothing to any sum and the whole computation is a handful of batched matrix products.
+    """
+    C, P, J = vis.shape
+    xs = np.empty((C, 3, J, P))  # homogeneous points, components first (contiguous matmuls below)
+    xs[:, :2] = np.where(vis[..., None], xy, 0.0).transpose(0, 3, 2, 1)
+    xs[:, 2] = vis.transpose(0, 2, 1)
+    # L[a,b,k,j,p] = (F[a,b] x_{a,p,j})_k: epipolar lines in camera b, scaled to a unit normal
+    L = np.matmul(F.reshape(C, C * 3, 3), xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)
+    nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
+    np.maximum(nrm, 1e-12, out=nrm)
+    L /= nrm[:, :, None]
+    d = np.matmul(L.transpose(0, 1, 3, 4, 2), xs.transpose(0, 2, 1, 3)[None])  # (a,b,J,Pa,Pb) distances in b
+    np.abs(d, out=d)
+    d = d.sum(2)  # (a,b,Pa,Pb)
+    d = d + d.transpose(1, 0, 3, 2)  # symmetric: distance in b plus distance in a (eq. 4.3)
+    v = vis.reshape(C * P, J).astype(np.float64)
+    n = (v @ v.T).reshape(C, P, C, P)
+    cost = d.transpose(0, 2, 1, 3) / np.maximum(n, 1)
+    ok = n >= max(min_shared, 1)
+    ok[np.arange(C), :, np.arange(C), :] = False
+    return cost, ok
+
+
+def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: MatchConfig | None = None,
+                order: np.ndarray | None = None) -> np.ndarray:
+    """Algorithm 1 for one frame.
+
+    xy_px: (C,P,J,2) undistorted pixels, NaN = missing (P = most poses in any camera, padded);
+    score: (C,P,J); F: (C,C,3,3) with ``x_j^T F[i,j] x_i = 0``; order: camera indices (C',) to visit
+    (default 0..C-1). Returns the hypotheses as (M,C) int: the pose index in each camera or -1;
+    every row has at least two poses.
+    """
+    cfg = config or MatchConfig()
+    xy = np.asarray(xy_px, dtype=np.float64)
+    check_shape("xy_px", xy, (None, None, None, 2))
+    C, P, J = xy.shape[:3]
+    check_shape("score", np.asarray(score), (C, P, J))
+    check_shape("F", np.asarray(F), (C, C, 3, 3))
+    order = np.arange(C) if order is None else np.asarray(order, dtype=np.int64)
+    vis = _usable(xy, np.asarray(score, dtype=np.float64), cfg)
+    present = vis.any(-1)  # (C,P)
+    cost_all, ok_all = pair_costs(xy, vis, np.asarray(F, dtype=np.float64), cfg.min_shared_joints)
+    cost_all = np.where(ok_all, cost_all, 0.0)
+    ok_all = ok_all.astype(np.float64)
+    cams = np.arange(C)[None, None, :]
+    H = np.full((0, C), -1, dtype=np.int64)  # hypotheses: pose index per camera, -1 = none
+    for i in order:
+        ks = np.flatnonzero(present[i])
+        if len(ks) == 0:
+            continue
+        if len(H):
+            # eq. 4.2: mean over the hypothesis' members (that share joints with the pose) of eq. 4.3
+            sel = (ks[:, None, None], cams, np.maximum(H, 0)[None])  # -> (K,M,C)
+            has = H >= 0
+            num = (cost_all[i][sel] * has).sum(-1)
+            den = (ok_all[i][sel] * has).sum(-1)
+            phi = np.where(den > 0, num / np.maximum(den, 1), _BIG)
+            rows, cols = linear_sum_assignment(phi)  # eq. 4.4
+            joined = phi[rows, cols] < cfg.theta_px
+            H[cols[joined], i] = ks[rows[joined]]
+            new = np.ones(len(ks), bool)
+            new[rows[joined]] = False
+        else:
+            new = np.ones(len(ks), bool)
+        if new.any():
+            Hn = np.full((int(new.sum()), C), -1, dtype=np.int64)
+            Hn[:, i] = ks[new]
+            H = np.concatenate([H, Hn], 0)
+    return H[(H >= 0).sum(1) >= 2]

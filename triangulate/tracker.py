@@ -1,0 +1,179 @@
+"""The chapter-4 tracker (seed sec. 4.2.2): greedy bipartite matching in time, gap filling, smoothing.
+
+Each frame's 3D poses are matched to the tracks alive at the previous frames by the Hungarian
+method; the cost is the mean Euclidean distance over the joints both poses have, or, when they
+share none, the distance of their mean joints projected on the ground plane (z up). A match
+below tau (200 mm) continues the track; every other pose starts a new one. A track that was not
+matched for ``max_gap`` frames ends; the allowed distance grows with the time since the track was
+last seen (``max_speed_m_s``), so a briefly lost person is picked up again. Missing joints inside a
+track are filled by linear interpolation in time (gaps up to ``max_gap`` frames) and every joint
+trajectory is smoothed by a Gaussian kernel of ``sigma`` frames (sigma = 2 as in sec. 4.3.4),
+NaN-aware (normalised convolution), so gaps are never bridged by more than ``max_gap`` frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.optimize import linear_sum_assignment
+
+from track.trackfile import INTERPOLATED, OBSERVED, SMOOTHED, TrackFile
+from triangulate.dlt import _reject_unknown
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """tau_m: match threshold (sec. 4.2.2: 200 mm); max_gap: frames a track may be unseen (and
+    the longest gap filled); max_speed_m_s: extra allowed distance per unseen second; sigma:
+    Gaussian smoothing in frames (0 = off); min_track_frames: shorter tracks are dropped;
+    min_joints: poses with fewer joints are ignored."""
+
+    tau_m: float = 0.2
+    max_gap: int = 10
+    max_speed_m_s: float = 1.5
+    sigma: float = 2.0
+    min_track_frames: int = 5
+    min_joints: int = 5
+
+    def __post_init__(self) -> None:
+        if self.tau_m <= 0 or self.max_gap < 0 or self.sigma < 0:
+            raise ValueError("TrackerConfig: tau_m must be positive, max_gap and sigma non-negative.")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrackerConfig:
+        return cls(**_reject_unknown(cls, d))
+
+
+def pose_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Sec. 4.2.2 cost between poses A (K,J,3) and B (P,J,3): mean distance over shared joints,
+    ground-plane distance of the mean joints where none is shared. Returns (K,P) metres."""
+    va, vb = np.isfinite(A).all(-1), np.isfinite(B).all(-1)
+    a, b = np.nan_to_num(A), np.nan_to_num(B)
+    d = np.linalg.norm(a[:, None] - b[None], axis=-1)  # (K,P,J)
+    shared = va[:, None] & vb[None]
+    n = shared.sum(-1)
+    mean = np.where(shared, d, 0).sum(-1) / np.maximum(n, 1)
+    ca = np.nanmean(np.where(va[..., None], A, np.nan), axis=1)[:, :2] if len(A) else np.zeros((0, 2))
+    cb = np.nanmean(np.where(vb[..., None], B, np.nan), axis=1)[:, :2] if len(B) else np.zeros((0, 2))
+    ground = np.linalg.norm(ca[:, None] - cb[None], axis=-1)
+    return np.where(n > 0, mean, np.nan_to_num(ground, nan=np.inf))
+
+
+def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0) -> np.ndarray:
+    """Greedy tracking. xyz_m: (T,P,J,3) per-frame poses (NaN padding). Returns track index (T,P) or -1."""
+    cfg = config or TrackerConfig()
+    T, P = xyz_m.shape[:2]
+    out = np.full((T, P), -1, dtype=np.int64)
+    last_pose: list[np.ndarray] = []
+    last_t: list[int] = []
+    for t in range(T):
+        ok = np.flatnonzero(np.isfinite(xyz_m[t]).all(-1).sum(-1) >= cfg.min_joints)
+        if len(ok) == 0:
+            continue
+        alive = [k for k in range(len(last_t)) if t - last_t[k] <= cfg.max_gap + 1]
+        assigned = np.zeros(len(ok), bool)
+        if alive:
+            cost = pose_distance(np.stack([last_pose[k] for k in alive]), xyz_m[t, ok])
+            gap_s = (t - np.asarray([last_t[k] for k in alive]) - 1) / fps
+            limit = cfg.tau_m + cfg.max_speed_m_s * gap_s
+            rows, cols = linear_sum_assignment(np.where(np.isfinite(cost), cost, 1e9))
+            for r, c in zip(rows, cols, strict=True):
+                if cost[r, c] < limit[r]:
+                    k = alive[r]
+                    out[t, ok[c]] = k
+                    # keep joints the track had but this frame lacks, so the next cost has them
+                    pose = xyz_m[t, ok[c]].copy()
+                    miss = ~np.isfinite(pose).all(-1)
+                    pose[miss] = last_pose[k][miss]
+                    last_pose[k], last_t[k] = pose, t
+                    assigned[c] = True
+        for c in np.flatnonzero(~assigned):
+            out[t, ok[c]] = len(last_t)
+            last_pose.append(xyz_m[t, ok[c]].copy())
+            last_t.append(t)
+    return out
+
+
+def _interp_gaps(x: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation over NaN runs of at most max_gap samples in x (T,D). Returns x, filled (T,)."""
+    valid = np.isfinite(x).all(-1)
+    filled = np.zeros(len(x), bool)
+    idx = np.flatnonzero(valid)
+    if len(idx) < 2 or max_gap <= 0:
+        return x, filled
+    gaps = np.diff(idx)
+    x = x.copy()
+    for g, i0 in zip(gaps, idx[:-1], strict=True):
+        if 1 < g <= max_gap + 1:
+            i1 = i0 + g
+            a = np.linspace(0, 1, g + 1)[1:-1, None]
+            x[i0 + 1:i1] = (1 - a) * x[i0] + a * x[i1]
+            filled[i0 + 1:i1] = True
+    return x, filled
+
+
+def _smooth(x: np.ndarray, sigma: float) -> np.ndarray:
+    """NaN-aware Gaussian smoothing along axis 0 of x (T,...)."""
+    if sigma <= 0 or len(x) < 2:
+        return x
+    valid = np.isfinite(x)
+    num = gaussian_filter1d(np.where(valid, x, 0.0), sigma, axis=0, mode="constant", truncate=3.0)
+    den = gaussian_filter1d(valid.astype(np.float64), sigma, axis=0, mode="constant", truncate=3.0)
+    return np.where(valid, num / np.maximum(den, 1e-12), np.nan)
+
+
+def build_tracks(xyz_m: np.ndarray, assign: np.ndarray, confidence: np.ndarray | None = None,
+                 std_m: np.ndarray | None = None, config: TrackerConfig | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Dense tracks from per-frame poses and assignments, with gap filling and smoothing.
+
+    xyz_m (T,P,J,3), assign (T,P) from :func:`associate`, confidence/std_m (T,P,J).
+    Returns track ids (K,), xyz (T,K,J,3), confidence (T,K,J), std (T,K,J), flags (T,K,J) uint8.
+    """
+    cfg = config or TrackerConfig()
+    T, P, J = xyz_m.shape[:3]
+    conf = np.ones((T, P, J)) if confidence is None else confidence
+    std = np.full((T, P, J), np.nan) if std_m is None else std_m
+    ids = np.unique(assign[assign >= 0])
+    counts = np.array([(assign == k).any(1).sum() for k in ids], dtype=np.int64)
+    ids = ids[counts >= cfg.min_track_frames]
+    K = len(ids)
+    X = np.full((T, K, J, 3), np.nan)
+    Cf = np.zeros((T, K, J))
+    S = np.full((T, K, J), np.nan)
+    Fl = np.zeros((T, K, J), np.uint8)
+    for n, k in enumerate(ids):
+        t, p = np.nonzero(assign == k)
+        X[t, n], Cf[t, n], S[t, n] = xyz_m[t, p], conf[t, p], std[t, p]
+        obs = np.isfinite(X[:, n]).all(-1)
+        Fl[:, n][obs] |= OBSERVED
+        for j in range(J):
+            x, filled = _interp_gaps(X[:, n, j], cfg.max_gap)
+            if filled.any():
+                X[filled, n, j] = x[filled]
+                s_f, _ = _interp_gaps(np.where(obs[:, j], S[:, n, j], np.nan)[:, None], cfg.max_gap)
+                c_f, _ = _interp_gaps(np.where(obs[:, j], Cf[:, n, j], np.nan)[:, None], cfg.max_gap)
+                S[filled, n, j] = s_f[filled, 0]
+                Cf[filled, n, j] = 0.5 * np.nan_to_num(c_f[filled, 0])
+                Fl[filled, n, j] |= INTERPOLATED
+        if cfg.sigma > 0:
+            have = np.isfinite(X[:, n]).all(-1)
+            X[:, n] = np.where(have[..., None], _smooth(X[:, n], cfg.sigma), np.nan)
+            Fl[:, n][have] |= SMOOTHED
+    return ids, X, Cf, S, Fl
+
+
+def track_poses(xyz_m: np.ndarray, frame_index: np.ndarray, t_ns: np.ndarray, fps: float,
+                joint_names: tuple[str, ...], parents: np.ndarray, confidence: np.ndarray | None = None,
+                std_m: np.ndarray | None = None, config: TrackerConfig | None = None,
+                calibration_sha256: str = "", source: str = "triangulate.tracker (greedy, ch. 4)"
+                ) -> TrackFile:
+    """Per-frame poses (T,P,J,3) -> :class:`TrackFile` (track ids 0..K-1 by first appearance)."""
+    cfg = config or TrackerConfig()
+    assign = associate(xyz_m, cfg, fps)
+    ids, X, Cf, S, Fl = build_tracks(xyz_m, assign, confidence, std_m, cfg)
+    return TrackFile(fps=fps, frame_index=frame_index, t_ns=t_ns, track_id=np.arange(len(ids)),
+                     joint_names=joint_names, parents=parents, xyz_m=X, confidence=np.clip(Cf, 0, 1), std_m=S,
+                     flags=Fl, calibration_sha256=calibration_sha256, source=source)
