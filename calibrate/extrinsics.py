@@ -1,0 +1,507 @@
+"""Extrinsics: board poses per camera, pairwise relative poses, a robust pose graph, then a global
+bundle adjustment over all cameras and board poses with pycolmap's Ceres bundle adjuster.
+
+The bundle adjustment is set up as a COLMAP *rig*: every camera is a sensor with ``cam_from_rig``
+(the rig frame is the reference camera's), every time instant is a frame whose ``rig_from_world``
+is the board pose (``ref_from_board``), and the board points are constant 3D points in the board
+frame. So the board stays rigid, its size fixes the scale, and the residuals are exactly
+``project_c(cam_from_ref_c @ ref_from_board_f @ X_k) - x_ckf``.
+
+Transforms are 4x4 matrices named ``a_from_b`` (``x_a = T @ x_b``); metres.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibrate.boards import Board, CalibrationError
+from calibrate.camera import Camera, CameraRig
+from calibrate.detect import CameraDetections
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ExtrinsicsConfig", "ExtrinsicsResult", "calibrate_extrinsics", "board_poses", "pairwise_links",
+           "initial_poses", "bundle_adjust", "LOSSES", "FLIP_BOARD_Z_UP"]
+
+LOSSES = ("trivial", "soft_l1", "cauchy", "huber")
+# board frame (x right, y down the print, z into the board) -> world with z up when the board lies face up
+FLIP_BOARD_Z_UP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True)
+class ExtrinsicsConfig:
+    loss: str = "soft_l1"              # robust loss of the bundle adjustment
+    loss_scale_px: float = 1.0
+    refine_intrinsics: str = "none"    # "none" | "focal_pp" | "all"
+    max_frames: int = 300              # time instants (seen by >= 2 cameras) given to the adjustment
+    min_points: int = 6
+    outlier_px: float = 4.0            # observations above max(outlier_px, 5 x median) are dropped, BA rerun
+    max_iterations: int = 100
+    world: str = ""                    # "" = first camera; "camera:NAME"; "board:FRAME" (board on the floor)
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss {self.loss!r} is not one of {list(LOSSES)}")
+        if self.refine_intrinsics not in ("none", "focal_pp", "all"):
+            raise ValueError(f"refine_intrinsics {self.refine_intrinsics!r} is not one of ['none','focal_pp','all']")
+        if self.world and not (self.world.startswith("camera:") or self.world.startswith("board:")):
+            raise ValueError(f"world {self.world!r} must be '', 'camera:NAME' or 'board:FRAME'")
+
+
+@dataclass(frozen=True)
+class ExtrinsicsResult:
+    """rig: calibrated cameras in the world frame. frames: (B,) time instants used; world_from_board: (B,4,4).
+    links: (C,C) number of frames both cameras saw the board (consistent ones, after outlier rejection).
+    per_camera_rms_px / per_camera_obs: (C,) after the adjustment."""
+
+    rig: CameraRig
+    frames: np.ndarray
+    world_from_board: np.ndarray
+    links: np.ndarray
+    per_camera_rms_px: np.ndarray
+    per_camera_obs: np.ndarray
+    per_camera_frames: np.ndarray
+    initial_rms_px: float
+    final_rms_px: float
+    ba_time_s: float
+    ba_iterations: int
+    n_outliers: int
+    world: str
+    residuals_px: dict = field(default_factory=dict, repr=False)  # camera -> (M,) final errors
+
+
+# ----------------------------------------------------------------------------- small geometry
+
+
+def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.ravel(t)
+    return T
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    R, t = T[:3, :3], T[:3, 3]
+    return _T(R.T, -R.T @ t)
+
+
+def _rot_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def _project_rot(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+# ----------------------------------------------------------------------------- per-camera board poses
+
+
+def board_poses(board: Board, cam: Camera, det: CameraDetections, min_points: int = 6
+                ) -> dict[int, tuple[np.ndarray, float, int]]:
+    """cam_from_board (4,4) of every frame with >= min_points points (PnP on undistorted points,
+    IPPE then Levenberg-Marquardt). Returns frame -> (T, rms_px, n_points)."""
+    import cv2
+
+    obj = board.object_points()
+    out = {}
+    for k, f in enumerate(det.frames):
+        seen = np.isfinite(det.xy_px[k, :, 0])
+        if seen.sum() < min_points:
+            continue
+        und = cam.undistort_px(det.xy_px[k, seen])
+        o = obj[seen].astype(np.float64)
+        ok, rv, tv = cv2.solvePnP(o, und, cam.K, None, flags=cv2.SOLVEPNP_IPPE)
+        if not ok:
+            continue
+        rv, tv = cv2.solvePnPRefineLM(o, und, cam.K, None, rv, tv)
+        R = cv2.Rodrigues(rv)[0]
+        if tv[2, 0] <= 0:
+            continue
+        T = _T(R, tv.ravel())
+        proj = cam.replace(R=R, t=tv.ravel()).project(o)
+        rms = float(np.sqrt(np.mean(np.sum((proj - det.xy_px[k, seen]) ** 2, 1))))
+        out[int(f)] = (T, rms, int(seen.sum()))
+    return out
+
+
+# ----------------------------------------------------------------------------- pose graph
+
+
+def _robust_mean(Ts: list[np.ndarray], rot_tol_deg: float = 5.0, rel_t_tol: float = 0.1
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Robust average of rigid transforms: the medoid (least summed rotation + translation distance),
+    then the mean of those within tolerance of it. Returns (T, inlier mask)."""
+    n = len(Ts)
+    R = np.stack([T[:3, :3] for T in Ts])
+    t = np.stack([T[:3, 3] for T in Ts])
+    scale = max(float(np.median(np.linalg.norm(t, axis=1))), 1e-3)
+    # pairwise chordal rotation distance and relative translation distance
+    dR = np.linalg.norm((R[:, None] - R[None]).reshape(n, n, 9), axis=2)
+    dt = np.linalg.norm(t[:, None] - t[None], axis=2) / scale
+    med = int(np.argmin((dR + dt).sum(1)))
+    ang = np.array([_rot_angle_deg(R[med].T @ R[i]) for i in range(n)])
+    inl = (ang < rot_tol_deg) & (np.linalg.norm(t - t[med], axis=1) < rel_t_tol * scale + 0.01)
+    Rm = _project_rot(R[inl].sum(0))
+    tm = t[inl].mean(0)
+    return _T(Rm, tm), inl
+
+
+def pairwise_links(poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200
+                   ) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
+    """Relative poses from frames where two cameras see the board at once.
+    Returns links (C,C): consistent frames per pair, and (i,j) -> cam_i_from_cam_j (4,4) for i<j."""
+    C = len(poses)
+    links = np.zeros((C, C), np.int64)
+    rel = {}
+    for i in range(C):
+        for j in range(i + 1, C):
+            common = sorted(set(poses[i]) & set(poses[j]))
+            if not common:
+                continue
+            if len(common) > max_per_pair:
+                common = [common[k] for k in np.linspace(0, len(common) - 1, max_per_pair).astype(int)]
+            Ts = [poses[i][f][0] @ _inv(poses[j][f][0]) for f in common]
+            T, inl = _robust_mean(Ts)
+            links[i, j] = links[j, i] = int(inl.sum())
+            rel[(i, j)] = T
+    return links, rel
+
+
+def _components(C: int, links: np.ndarray) -> list[list[int]]:
+    parent = list(range(C))
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for i in range(C):
+        for j in range(i + 1, C):
+            if links[i, j] > 0:
+                parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(C):
+        groups.setdefault(find(i), []).append(i)
+    return sorted(groups.values(), key=lambda g: (-len(g), g))
+
+
+def initial_poses(names: Sequence[str], links: np.ndarray, rel: Mapping[tuple[int, int], np.ndarray],
+                  n_seen: Sequence[int]) -> tuple[int, list[np.ndarray]]:
+    """cam_from_ref (4,4) per camera by composing relative poses along the maximum spanning tree of the
+    link graph (weights = consistent shared frames), rooted at the best-linked camera. Unlinked cameras
+    raise CalibrationError naming the groups and what to record."""
+    C = len(names)
+    groups = _components(C, links)
+    if len(groups) > 1:
+        never = [names[i] for i in range(C) if n_seen[i] == 0]
+        gtxt = "; ".join("[" + ", ".join(names[i] for i in g) + "]" for g in groups)
+        main = groups[0]
+        others = [names[i] for g in groups[1:] for i in g]
+        msg = (f"The cameras form {len(groups)} groups that never saw the board at the same time: {gtxt}. "
+               f"The extrinsics of {others} relative to {[names[i] for i in main]} cannot be found. ")
+        if never:
+            msg += (f"Cameras {never} never saw the board at all: check they point at the capture area and the "
+                    "board is large enough in their image (or pass --exclude to leave them out). ")
+        msg += ("Record a clip where the board is visible to a camera of each group at once (hold it where their "
+                "views overlap, turned towards both), then calibrate again with both recordings.")
+        raise CalibrationError(msg)
+    root = int(np.argmax(links.sum(1)))
+    cam_from_ref: list[np.ndarray | None] = [None] * C
+    cam_from_ref[root] = np.eye(4)
+    in_tree = {root}
+    while len(in_tree) < C:
+        best = None
+        for i in in_tree:
+            for j in range(C):
+                if j not in in_tree and links[i, j] > 0 and (best is None or links[i, j] > best[2]):
+                    best = (i, j, links[i, j])
+        assert best is not None
+        i, j, _ = best
+        i_from_j = rel[(i, j)] if i < j else _inv(rel[(j, i)])
+        cam_from_ref[j] = _inv(i_from_j) @ cam_from_ref[i]
+        in_tree.add(j)
+    return root, [T for T in cam_from_ref]  # type: ignore[misc]
+
+
+# ----------------------------------------------------------------------------- bundle adjustment
+
+
+def _colmap_camera(cam: Camera, camera_id: int):
+    import pycolmap
+
+    K, d = cam.K, cam.dist
+    f = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    if cam.model == "fisheye":
+        model, params = "OPENCV_FISHEYE", f + list(d)
+    elif d.size == 0:
+        model, params = "PINHOLE", f
+    elif d.size == 4:
+        model, params = "OPENCV", f + list(d)
+    elif d.size in (5, 8):
+        dd = np.zeros(8)
+        dd[: d.size] = d
+        model, params = "FULL_OPENCV", f + list(dd)
+    else:
+        raise CalibrationError(f"Camera '{cam.name}': {d.size} distortion coefficients (thin-prism/tilted) are not "
+                               "supported by the bundle adjustment; calibrate the intrinsics with --model pinhole "
+                               "or rational.")
+    return pycolmap.Camera(camera_id=camera_id, model=model, width=cam.size_wh[0], height=cam.size_wh[1],
+                           params=params)
+
+
+def _camera_from_colmap(cam: Camera, cc) -> Camera:
+    p = np.asarray(cc.params, float)
+    K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
+    d = p[4:]
+    if cam.model == "pinhole" and cam.dist.size == 5 and np.all(d[5:] == 0):
+        d = d[:5]
+    return cam.replace(K=K, dist=d)
+
+
+@dataclass
+class _Obs:
+    cam: int
+    frame: int
+    ids: np.ndarray      # (M,) board point ids
+    xy: np.ndarray       # (M,2)
+
+
+def bundle_adjust(board: Board, cams: Sequence[Camera], cam_from_ref: Sequence[np.ndarray],
+                  ref_index: int, frames: Sequence[int], ref_from_board: Mapping[int, np.ndarray],
+                  obs: Sequence[_Obs], cfg: ExtrinsicsConfig) -> tuple[list[Camera], list[np.ndarray],
+                                                                       dict[int, np.ndarray], dict]:
+    """One pycolmap/Ceres bundle adjustment (see module doc). Returns cameras (intrinsics possibly
+    refined), cam_from_ref, ref_from_board and a summary dict."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    rig = pycolmap.Rig()
+    rig.rig_id = 1
+    C = len(cams)
+    for c in range(C):
+        rec.add_camera(_colmap_camera(cams[c], c + 1))
+    sensor = [pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=c + 1) for c in range(C)]
+    rig.add_ref_sensor(sensor[ref_index])
+    for c in range(C):
+        if c != ref_index:
+            T = cam_from_ref[c]
+            rig.add_sensor(sensor[c], pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3]))
+    rec.add_rig(rig)
+    obj = board.object_points()
+    pids = [rec.add_point3D(o, pycolmap.Track()) for o in obj]
+    by_frame: dict[int, list[_Obs]] = {}
+    for o in obs:
+        by_frame.setdefault(o.frame, []).append(o)
+    image_id = 1
+    frame_ids = {}
+    for fi, f in enumerate(frames):
+        if f not in by_frame:
+            continue
+        T = ref_from_board[f]
+        fr = pycolmap.Frame()
+        fr.frame_id = fi + 1
+        fr.rig_id = 1
+        fr.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3])
+        images = []
+        for o in by_frame[f]:
+            im = pycolmap.Image(name=f"{o.cam}_{f}", keypoints=o.xy.astype(np.float64), camera_id=o.cam + 1,
+                                image_id=image_id)
+            im.frame_id = fi + 1
+            image_id += 1
+            fr.add_data_id(im.data_id)
+            images.append((im, o))
+        rec.add_frame(fr)
+        for im, o in images:
+            rec.add_image(im)
+            for k, pid in enumerate(o.ids):
+                rec.add_observation(pids[int(pid)], pycolmap.TrackElement(im.image_id, k))
+        rec.register_frame(fi + 1)
+        frame_ids[f] = fi + 1
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = cfg.refine_intrinsics != "none"
+    opts.refine_principal_point = cfg.refine_intrinsics != "none"
+    opts.refine_extra_params = cfg.refine_intrinsics == "all"
+    opts.refine_sensor_from_rig = True
+    opts.refine_rig_from_world = True
+    opts.print_summary = False
+    opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, cfg.loss.upper())
+    opts.ceres.loss_function_scale = cfg.loss_scale_px
+    opts.ceres.solver_options.max_num_iterations = cfg.max_iterations
+    ba_cfg = pycolmap.BundleAdjustmentConfig()
+    for iid in rec.reg_image_ids():
+        ba_cfg.add_image(iid)
+    for pid in pids:
+        if rec.point3D(pid).track.length() > 0:
+            ba_cfg.add_constant_point(pid)
+    t0 = time.perf_counter()
+    adj = pycolmap.create_default_bundle_adjuster(opts, ba_cfg, rec)
+    summary = adj.solve()
+    dt = time.perf_counter() - t0
+    cs = summary.ceres_summary if hasattr(summary, "ceres_summary") else summary
+    r = rec.rig(1)
+    new_cams = [_camera_from_colmap(cams[c], rec.camera(c + 1)) for c in range(C)]
+    new_cfr = []
+    for c in range(C):
+        if c == ref_index:
+            new_cfr.append(np.eye(4))
+        else:
+            s = r.sensor_from_rig(sensor[c])
+            new_cfr.append(_T(s.rotation.matrix(), s.translation))
+    new_rfb = {f: _T(rec.frame(fid).rig_from_world.rotation.matrix(), rec.frame(fid).rig_from_world.translation)
+               for f, fid in frame_ids.items()}
+    info = {"time_s": dt, "iterations": int(cs.num_successful_steps + cs.num_unsuccessful_steps),
+            "termination": str(cs.termination_type), "n_residuals": int(cs.num_residuals)}
+    return new_cams, new_cfr, new_rfb, info
+
+
+def _residuals(board: Board, cams, cam_from_ref, ref_from_board, obs: Sequence[_Obs]) -> list[np.ndarray]:
+    obj = board.object_points()
+    out = []
+    for o in obs:
+        T = cam_from_ref[o.cam] @ ref_from_board[o.frame]
+        p = cams[o.cam].replace(R=T[:3, :3], t=T[:3, 3]).project(obj[o.ids])
+        out.append(np.linalg.norm(p - o.xy, axis=1))
+    return out
+
+
+# ----------------------------------------------------------------------------- orchestration
+
+
+def _choose_frames(poses: Sequence[Mapping[int, tuple]], max_frames: int) -> list[int]:
+    """Time instants seen by >= 2 cameras; at most max_frames, keeping those seen by most cameras and
+    spreading the rest over the recording."""
+    count: dict[int, int] = {}
+    for p in poses:
+        for f in p:
+            count[f] = count.get(f, 0) + 1
+    multi = sorted(f for f, n in count.items() if n >= 2)
+    if len(multi) <= max_frames:
+        return multi
+    # every camera pair keeps a share of its frames (a weakly linked pair keeps all), the rest spread in time
+    C = len(poses)
+    pair_frames = [sorted(set(poses[i]) & set(poses[j])) for i in range(C) for j in range(i + 1, C)]
+    pair_frames = [pf for pf in pair_frames if pf]
+    share = max(1, max_frames // (2 * max(1, len(pair_frames))))
+    chosen: set[int] = set()
+    for pf in pair_frames:
+        chosen.update(pf[k] for k in np.unique(np.linspace(0, len(pf) - 1, min(share, len(pf))).astype(int)))
+    rest = [f for f in multi if f not in chosen]
+    n_more = max(0, max_frames - len(chosen))
+    if rest and n_more:
+        chosen.update(rest[k] for k in np.unique(np.linspace(0, len(rest) - 1, min(n_more, len(rest))).astype(int)))
+    return sorted(chosen)
+
+
+def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[str, CameraDetections],
+                         config: ExtrinsicsConfig | None = None, progress: Progress | None = None
+                         ) -> ExtrinsicsResult:
+    """Cameras (intrinsics known) + detections -> calibrated rig in the world frame (see module doc)."""
+    cfg = config or ExtrinsicsConfig()
+    names = [c.name for c in cameras]
+    C = len(cameras)
+    if C < 2:
+        raise CalibrationError(f"Extrinsics need at least 2 cameras, got {names}.")
+    step = [0]
+
+    def tick(what: str, total: int = 5) -> None:
+        step[0] += 1
+        log.info("extrinsics: %s", what)
+        if progress is not None:
+            progress(what, step[0], total)
+
+    poses = [board_poses(board, cameras[c], dets[names[c]], cfg.min_points) for c in range(C)]
+    tick("board poses per camera")
+    links, rel = pairwise_links(poses)
+    ref, cam_from_ref = initial_poses(names, links, rel, [len(p) for p in poses])
+    tick("pose graph")
+    frames = _choose_frames(poses, cfg.max_frames)
+    ref_from_board = {}
+    obs: list[_Obs] = []
+    for f in frames:
+        # initial board pose from the camera that sees it best (most points, then lowest PnP error)
+        best = min((c for c in range(C) if f in poses[c]), key=lambda c: (-poses[c][f][2], poses[c][f][1]))
+        ref_from_board[f] = _inv(cam_from_ref[best]) @ poses[best][f][0]
+        for c in range(C):
+            if f in poses[c]:
+                k = int(np.flatnonzero(dets[names[c]].frames == f)[0])
+                xy = dets[names[c]].xy_px[k]
+                ids = np.flatnonzero(np.isfinite(xy[:, 0]))
+                obs.append(_Obs(c, f, ids, xy[ids]))
+    cams = list(cameras)
+    r0 = np.concatenate(_residuals(board, cams, cam_from_ref, ref_from_board, obs))
+    initial_rms = float(np.sqrt(np.mean(r0 ** 2)))
+    cams, cam_from_ref, ref_from_board, info = bundle_adjust(board, cams, cam_from_ref, ref, frames,
+                                                             ref_from_board, obs, cfg)
+    tick("bundle adjustment")
+    res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    allr = np.concatenate(res)
+    thr = max(cfg.outlier_px, 5 * float(np.median(allr)))
+    n_out = int((allr > thr).sum())
+    if n_out:
+        log.info("extrinsics: dropping %d observation(s) above %.2f px and adjusting again", n_out, thr)
+        kept = []
+        for o, r in zip(obs, res, strict=False):
+            m = r <= thr
+            if m.sum() >= 4:
+                kept.append(_Obs(o.cam, o.frame, o.ids[m], o.xy[m]))
+        obs = kept
+        cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(board, cams, cam_from_ref, ref, frames,
+                                                                  ref_from_board, obs, cfg)
+        info["time_s"] += info2["time_s"]
+        info["iterations"] += info2["iterations"]
+        res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    tick("outlier rejection")
+    per_cam = [np.concatenate([r for o, r in zip(obs, res, strict=False) if o.cam == c] or [np.zeros(0)]) for c in range(C)]
+    final_rms = float(np.sqrt(np.mean(np.concatenate(res) ** 2)))
+    # world frame
+    world = cfg.world or f"camera:{names[0]}"
+    if world.startswith("camera:"):
+        wname = world.split(":", 1)[1]
+        if wname not in names:
+            raise CalibrationError(f"--world {world}: no camera named {wname!r}; cameras: {names}.")
+        ref_from_world = _inv(cam_from_ref[names.index(wname)])
+    else:
+        try:
+            wf = int(world.split(":", 1)[1])
+        except ValueError:
+            raise CalibrationError(f"--world {world}: give the frame number of a frame where the board lies on the "
+                                   "floor, e.g. board:0.") from None
+        if wf in ref_from_board:
+            rfb = ref_from_board[wf]
+        else:
+            seen = [c for c in range(C) if wf in poses[c]]
+            if not seen:
+                raise CalibrationError(f"--world {world}: no camera saw the board in frame {wf}. Pick a frame where "
+                                       "the board lies on the floor and at least one camera sees it.")
+            c = max(seen, key=lambda c: poses[c][wf][2])
+            rfb = _inv(cam_from_ref[c]) @ poses[c][wf][0]
+        ref_from_world = rfb @ FLIP_BOARD_Z_UP
+    out_cams = []
+    for c in range(C):
+        T = cam_from_ref[c] @ ref_from_world
+        out_cams.append(cams[c].replace(R=_project_rot(T[:3, :3]), t=T[:3, 3]))
+    world_from_ref = _inv(ref_from_world)
+    bf = np.array(sorted(ref_from_board))
+    wfb = np.stack([world_from_ref @ ref_from_board[f] for f in bf]) if len(bf) else np.zeros((0, 4, 4))
+    frames_per_cam = np.array([len({o.frame for o in obs if o.cam == c}) for c in range(C)])
+    tick("world frame")
+    return ExtrinsicsResult(
+        rig=CameraRig(tuple(out_cams)), frames=bf, world_from_board=wfb, links=links,
+        per_camera_rms_px=np.array([float(np.sqrt(np.mean(r ** 2))) if r.size else np.nan for r in per_cam]),
+        per_camera_obs=np.array([r.size for r in per_cam]), per_camera_frames=frames_per_cam,
+        initial_rms_px=initial_rms, final_rms_px=final_rms, ba_time_s=info["time_s"],
+        ba_iterations=info["iterations"], n_outliers=n_out, world=world,
+        residuals_px={names[c]: per_cam[c] for c in range(C)})
