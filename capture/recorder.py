@@ -100,9 +100,12 @@ class SegmentWriter:
             h, w = frame.image.shape[:2]
             self._final = self.dir / f"seg_{k:06d}{ext}"
             self._part = self.dir / f"{_PART_PREFIX}seg_{k:06d}{ext}"
-            params = [cv2.VIDEOWRITER_PROP_QUALITY, self.quality] if self.codec == "mjpg" else []
+            if self.codec == "mjpg":  # OpenCV's own MJPEG writer honours the quality setting
+                api, params = cv2.CAP_OPENCV_MJPEG, [cv2.VIDEOWRITER_PROP_QUALITY, self.quality]
+            else:
+                api, params = cv2.CAP_FFMPEG, []
             self._writer = cv2.VideoWriter(
-                str(self._part), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*fourcc), self.fps, (w, h), params
+                str(self._part), api, cv2.VideoWriter_fourcc(*fourcc), self.fps, (w, h), params
             )
             if not self._writer.isOpened():
                 raise SourceError(
