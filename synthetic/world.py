@@ -236,7 +236,7 @@ def procedural_walk(n_frames: int, fps: float, room: Room, rng: np.random.Genera
             heading += np.clip(dh, -3.0 * dt, 3.0 * dt)  # turn at most 3 rad/s
             pos = pos + v * dt * np.array([np.cos(heading), np.sin(heading)]) * max(np.cos(dh), 0.2)
         P[k], H[k], V[k] = pos, heading, v
-    V = np.convolve(V, np.ones(5) / 5, mode="same")
+    V = np.convolve(np.pad(V, 2, mode="edge"), np.ones(5) / 5, mode="valid")  # smooth, same length
     amp = np.clip(V / 1.0, 0, 1)
     phase = np.cumsum(2 * np.pi * 0.9 * amp * dt * np.maximum(V, 0.3) / 1.0)
     s = rng.uniform(0.92, 1.08)  # body scale
