@@ -255,6 +255,12 @@ def import_rig(
     return readers[fmt](Path(path), opts)
 
 
+def import_calibration(path: str | os.PathLike, fmt: str | None = None,
+                       options: ImportOptions | None = None) -> CameraRig:
+    """Alias of ``import_rig`` (the name ``pipeline.runner`` uses)."""
+    return import_rig(path, fmt, options)
+
+
 def export_rig(rig: CameraRig, path: str | os.PathLike, fmt: str) -> list[Path]:
     """Write ``rig`` in ``fmt``; returns the files written (EasyMocap: ``path`` is a folder)."""
     p = Path(path)
