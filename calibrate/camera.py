@@ -279,7 +279,11 @@ class Camera:
             und = cv2.fisheye.undistortPoints(src, self.K, self.dist, R=np.eye(3), P=self.K,
                                               criteria=_UNDISTORT_CRITERIA)
         else:
-            und = cv2.undistortPoints(src, self.K, self.dist, R=None, P=self.K, criteria=_UNDISTORT_CRITERIA)
+            if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x: the iterated variant has its own name
+                und = cv2.undistortPointsIter(src, self.K, self.dist, None, self.K, _UNDISTORT_CRITERIA)
+            else:  # OpenCV 5: undistortPoints takes the criteria
+                und = cv2.undistortPoints(src, self.K, self.dist, R=None, P=self.K,
+                                          criteria=_UNDISTORT_CRITERIA)
         res = out.reshape(-1, 2)
         res[ok] = und.reshape(-1, 2)
         return res.reshape(xy.shape)
