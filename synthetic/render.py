@@ -184,20 +184,27 @@ def people_hidden(xy: np.ndarray, depth: np.ndarray, f_px: float, radii_m: np.nd
     lq, hq = lo[t, q][:, None], hi[t, q][:, None]  # (M,1,2)
     with np.errstate(invalid="ignore"):
         inb = ((pts[..., 0] >= lq[..., 0]) & (pts[..., 0] <= hq[..., 0])
-               & (pts[..., 1] >= lq[..., 1]) & (pts[..., 1] <= hq[..., 1]))  # (M,J); NaN -> False
+               & (pts[..., 1] >= lq[..., 1]) & (pts[..., 1] <= hq[..., 1])
+               & (depth[t, p] > zmin[t, q][:, None] + margin_m))  # (M,J); NaN -> False
     m, j = np.nonzero(inb)
     if len(m) == 0:
         return hidden
     tm, pm, qm = t[m], p[m], q[m]
-    pt = xy[tm, pm, j][:, None, :]  # (N,1,2)
-    a, b = xy[tm, qm][:, _CAP_A], xy[tm, qm][:, _CAP_B]  # (N,L,2)
-    ab = b - a
-    u = np.clip(((pt - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-9), 0.0, 1.0)  # (N,L)
-    diff = pt - (a + u[..., None] * ab)
-    d2 = (diff * diff).sum(-1)
-    zseg = zA[tm, qm] + u * (zB[tm, qm] - zA[tm, qm])
-    with np.errstate(invalid="ignore"):
-        occ = ((d2 < r_px[tm, qm] ** 2) & (zseg < depth[tm, pm, j][:, None] - margin_m)).any(-1)
+    tq = tm * P + qm
+    # capsule end points per (frame, person) as (T*P, L) component arrays; explicit x/y arithmetic
+    # (numpy reductions over a trailing axis of size 2 are slow)
+    flat = xy.reshape(T * P, J, 2).astype(np.float32)
+    ax, ay = flat[:, _CAP_A, 0][tq], flat[:, _CAP_A, 1][tq]  # (N,L)
+    abx, aby = flat[:, _CAP_B, 0][tq] - ax, flat[:, _CAP_B, 1][tq] - ay
+    px, py = flat[tm * P + pm, j, 0][:, None], flat[tm * P + pm, j, 1][:, None]  # (N,1)
+    za = zA.reshape(T * P, -1)[tq]
+    dz = zB.reshape(T * P, -1)[tq] - za
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dx, dy = px - ax, py - ay
+        u = np.clip((dx * abx + dy * aby) / np.maximum(abx * abx + aby * aby, 1e-9), 0.0, 1.0)  # (N,L)
+        ex, ey = dx - u * abx, dy - u * aby
+        r2 = r_px.reshape(T * P, -1)[tq] ** 2
+        occ = ((ex * ex + ey * ey < r2) & (za + u * dz < depth[tm, pm, j][:, None] - margin_m)).any(-1)
     hidden[tm[occ], pm[occ], j[occ]] = True
     return hidden
 
@@ -226,15 +233,22 @@ def _camera_times(rig: CameraRig, cfg: RenderConfig,
     return off, drift
 
 
-def _project(cam: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (...,2) (NaN behind/outside the image) and depth (...,) of world points X (...,3)."""
-    flat = X.reshape(-1, 3)
-    xy = cam.project(flat)
-    depth = flat @ cam.R[2] + cam.t[2]
+def _clip_to_image(cam: Camera, xy: np.ndarray) -> np.ndarray:
+    """Copy of ``xy (...,2)`` with points outside the image set to NaN."""
     w, h = cam.size_wh
-    out = ~((xy[:, 0] >= -0.5) & (xy[:, 0] <= w - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= h - 0.5))
+    out = ~((xy[..., 0] >= -0.5) & (xy[..., 0] <= w - 0.5) & (xy[..., 1] >= -0.5) & (xy[..., 1] <= h - 0.5))
+    xy = xy.copy()
     xy[out] = np.nan
-    return xy.reshape(X.shape[:-1] + (2,)), depth.reshape(X.shape[:-1])
+    return xy
+
+
+def _project(cam: Camera, X: np.ndarray, clip: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (...,2) (NaN behind the camera, and outside the image with ``clip``) and depth (...,)
+    of world points X (...,3)."""
+    flat = X.reshape(-1, 3)
+    xy = cam.project(flat).reshape(X.shape[:-1] + (2,))
+    depth = (flat @ cam.R[2] + cam.t[2]).reshape(X.shape[:-1])
+    return (_clip_to_image(cam, xy) if clip else xy), depth
 
 
 def render_camera(scene: Scene, rig: CameraRig, c: int, cfg: RenderConfig, offset_frames: float,
@@ -246,7 +260,8 @@ def render_camera(scene: Scene, rig: CameraRig, c: int, cfg: RenderConfig, offse
     T, P = gt.shape[:2]
     s = np.arange(T) * (1.0 + drift_ppm * 1e-6) + offset_frames
     X = sample_times(gt, s) if (offset_frames or drift_ppm) else gt
-    xy, depth = _project(cam, X)  # (T,P,19,2), (T,P,19)
+    xy_all, depth = _project(cam, X, clip=False)  # (T,P,19,2), (T,P,19)
+    xy = _clip_to_image(cam, xy_all)
     seen = np.isfinite(xy[..., 0])
     hidden = np.zeros((T, P, 19), dtype=bool)
     if cfg.occlusion_furniture and scene.room.boxes:
@@ -254,7 +269,6 @@ def render_camera(scene: Scene, rig: CameraRig, c: int, cfg: RenderConfig, offse
         Xs = np.where(seen[..., None], X, np.nan).reshape(-1, 3)  # only joints in the image
         hidden |= furniture_hidden(cam.center, Xs, lo, hi).reshape(T, P, 19)
     if cfg.occlusion_people and P > 1:
-        xy_all, _ = _project_no_clip(cam, X)
         hidden |= people_hidden(xy_all, depth, float(cam.K[0, 0]), _capsule_radii(cfg))
     visible = seen & ~hidden
     gt_xy = xy
@@ -337,11 +351,6 @@ def render_camera(scene: Scene, rig: CameraRig, c: int, cfg: RenderConfig, offse
     return det, gt_index, visible, gt_xy
 
 
-def _project_no_clip(cam: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    flat = X.reshape(-1, 3)
-    return cam.project(flat).reshape(X.shape[:-1] + (2,)), None
-
-
 def render(scene: Scene, rig: CameraRig, config: RenderConfig | None = None, **overrides) -> Rendering:
     """Render ``scene`` into every camera of ``rig`` (see the module docstring); seeded by ``config.seed``."""
     cfg = config or RenderConfig()
@@ -358,3 +367,6 @@ def render(scene: Scene, rig: CameraRig, config: RenderConfig | None = None, **o
         vis.append(v)
         gxy.append(xy)
     return Rendering(tuple(dets), tuple(gidx), np.stack(vis), np.stack(gxy), off, drift, cfg)
+
+
+render_scene = render  # the name exported by the package (``synthetic.render`` is this module)
