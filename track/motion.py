@@ -1,0 +1,171 @@
+"""Motion priors p(z_t | z_{t-1}) for the particle filter (seed ch. 5.2.1, eq. 5.1).
+
+Every prior works on a flat batch of pose samples ``x (B,J,3)`` (world metres,
+B = tracks x samples) with a per-sample state (a dict of arrays whose first axis
+is B, so resampling is a gather along that axis):
+
+- :class:`ZeroVelocityPrior` (in :mod:`track.priors`, re-exported): x_t = x_{t-1} + N(0, sigma^2) (the seed's "w/o pose
+  prediction" ablation).
+- :class:`ConstantVelocityPrior`: x_t = x_{t-1} + a (x_{t-1} - x_{t-2}) + N(0, sigma^2).
+- :class:`GRUPrior`: eq. 5.1, ``z_t, h_t = GRU(z_{t-1}, h_{t-1})`` with one hidden state
+  per sample and dropout kept on at inference on the input of the final linear
+  layer (Bayesian approximation, the samples diverge). Poses are normalised
+  (eq. 5.2–5.5, :mod:`track.normalize`) before the network and restored after.
+  Besides the normalised pose the network also sees the sample's last
+  displacement in the same frame (our addition: the normalisation removes the
+  global motion, and the hidden state alone forgets it when the frame turns).
+
+This is the only module of ``track`` that imports torch.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from keypoints.skeletons import CANONICAL, Skeleton
+from track.normalize import hip_frame, normalize, rotate_vectors, unrotate_vectors
+from track.priors import (  # noqa: F401 - re-exported
+    ConstantVelocityPrior,
+    MotionPrior,
+    State,
+    ZeroVelocityPrior,
+    check_batch,
+    concat_states,
+    gather_state,
+)
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_SCHEMA = "motion_gru/1"
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "motion_gru.pt"
+
+
+
+class CheckpointMismatch(ValueError):
+    """The motion-model checkpoint does not fit the skeleton (or is not a motion checkpoint)."""
+
+
+class PoseGRU(nn.Module):
+    """GRU cell over [normalised pose, normalised last displacement] -> next displacement (eq. 5.1)."""
+
+    def __init__(self, n_joints: int, hidden: int, dropout: float):
+        super().__init__()
+        self.n_joints, self.hidden, self.dropout = n_joints, hidden, dropout
+        self.cell = nn.GRUCell(2 * n_joints * 3, hidden)
+        self.out = nn.Linear(hidden, n_joints * 3)
+
+    def step(self, x_hat: torch.Tensor, v_hat: torch.Tensor, h: torch.Tensor,
+             mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """x_hat, v_hat: (B,J*3) normalised; h: (B,H); mask: (B,H) dropout mask already scaled, or None."""
+        h = self.cell(torch.cat([x_hat, v_hat], -1), h)
+        hd = h if mask is None else h * mask
+        return self.out(hd), h
+
+    def forward_sequence(self, x_hat: torch.Tensor, v_hat: torch.Tensor) -> torch.Tensor:
+        """Training: x_hat, v_hat (B,T,J*3) each already in the frame of its own step -> deltas (B,T,J*3)."""
+        B, T, _ = x_hat.shape
+        h = x_hat.new_zeros(B, self.hidden)
+        outs = []
+        for t in range(T):
+            h = self.cell(torch.cat([x_hat[:, t], v_hat[:, t]], -1), h)
+            outs.append(self.out(nn.functional.dropout(h, self.dropout, self.training)))
+        return torch.stack(outs, 1)
+
+
+def step_inputs(x_prev: np.ndarray, x_prev2: np.ndarray, fps: float, model_fps: float,
+                skeleton: Skeleton = CANONICAL) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Network inputs for poses x_prev (t-1) and x_prev2 (t-2), (...,J,3) world metres.
+
+    Returns x_hat, v_hat (...,J*3) in the hip frame of x_prev (eq. 5.2), with the
+    displacement expressed per model frame, and the frame (origin, theta).
+    """
+    origin, theta = hip_frame(x_prev, skeleton)
+    x_hat = normalize(x_prev, origin, theta)
+    v_hat = rotate_vectors(x_prev - x_prev2, theta) * (fps / model_fps)
+    lead = x_prev.shape[:-2]
+    return (x_hat.reshape(*lead, -1), v_hat.reshape(*lead, -1), origin, theta)
+
+
+class GRUPrior:
+    """The learned prior of eq. 5.1. Load with :meth:`load`; ``dropout`` overrides the trained rate at inference."""
+
+    name = "gru"
+
+    def __init__(self, model: PoseGRU, model_fps: float, fps: float, skeleton: Skeleton = CANONICAL,
+                 dropout: float | None = None, sigma_m: float = 0.0, seed: int = 0):
+        self.model = model.eval()
+        self.model_fps, self.fps, self.skeleton = float(model_fps), float(fps), skeleton
+        self.dropout = model.dropout if dropout is None else float(dropout)
+        self.sigma_m = float(sigma_m)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    @classmethod
+    def load(cls, path: str | Path = DEFAULT_CHECKPOINT, fps: float = 25.0, skeleton: Skeleton = CANONICAL,
+             **kw) -> GRUPrior:
+        model, meta = load_checkpoint(path, skeleton)
+        return cls(model, meta["fps"], fps, skeleton, **kw)
+
+    def init_state(self, x: np.ndarray) -> State:
+        x = check_batch(x, self.skeleton.n_joints)
+        return {"prev": x.copy(), "h": np.zeros((len(x), self.model.hidden), np.float32)}
+
+    def predict(self, x, state, rng):
+        x = check_batch(x, self.skeleton.n_joints)
+        x_hat, v_hat, origin, theta = step_inputs(x, state["prev"], self.fps, self.model_fps, self.skeleton)
+        B, H = len(x), self.model.hidden
+        with torch.no_grad():
+            mask = None
+            if self.dropout > 0:
+                keep = 1.0 - self.dropout
+                mask = torch.empty(B, H).bernoulli_(keep, generator=self.generator).div_(keep)
+            delta, h = self.model.step(torch.from_numpy(np.ascontiguousarray(x_hat, np.float32)),
+                                       torch.from_numpy(np.ascontiguousarray(v_hat, np.float32)),
+                                       torch.from_numpy(state["h"]), mask)
+        delta = delta.numpy().reshape(B, -1, 3) * (self.model_fps / self.fps)
+        new = x + unrotate_vectors(delta, theta)
+        if self.sigma_m > 0:
+            new = new + rng.normal(0.0, self.sigma_m, new.shape).astype(np.float32)
+        return new.astype(np.float32), {"prev": x, "h": h.numpy()}
+
+
+def save_checkpoint(path: str | Path, model: PoseGRU, fps: float, skeleton: Skeleton, train_info: dict) -> None:
+    from capture.fileio import atomic_path
+
+    payload = {
+        "schema": CHECKPOINT_SCHEMA, "skeleton": skeleton.id, "joint_names": list(skeleton.joint_names),
+        "hidden": int(model.hidden), "dropout": float(model.dropout), "fps": float(fps),
+        "state_dict": {k: v.detach().clone().half() for k, v in model.state_dict().items()},
+        "train": {k: v for k, v in train_info.items() if isinstance(v, (int, float, str, list))},
+    }
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[PoseGRU, dict]:
+    """Load a motion checkpoint (weights_only=True) and check it matches ``skeleton``."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"motion checkpoint {path} not found; train one with "
+                                "`python -m track.train_motion --out track/checkpoints/motion_gru.pt` "
+                                "or use the constant-velocity prior (motion = 'constant_velocity').")
+    try:
+        meta = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unpickling failure means "not a checkpoint we can read"
+        raise CheckpointMismatch(f"{path} is not a readable motion checkpoint ({e}).") from e
+    if not isinstance(meta, dict) or meta.get("schema") != CHECKPOINT_SCHEMA:
+        got = meta.get("schema") if isinstance(meta, dict) else type(meta).__name__
+        raise CheckpointMismatch(f"{path}: expected a '{CHECKPOINT_SCHEMA}' checkpoint, got {got!r}.")
+    names = tuple(meta["joint_names"])
+    if names != tuple(skeleton.joint_names):
+        raise CheckpointMismatch(
+            f"{path} was trained for skeleton '{meta.get('skeleton')}' with {len(names)} joints {list(names)}, "
+            f"but the tracker uses '{skeleton.id}' with {skeleton.n_joints} joints {list(skeleton.joint_names)}. "
+            "Retrain with `python -m track.train_motion --skeleton <id>` or pick the matching checkpoint.")
+    model = PoseGRU(len(names), int(meta["hidden"]), float(meta["dropout"]))
+    model.load_state_dict({k: v.float() for k, v in meta["state_dict"].items()})
+    return model.eval(), meta

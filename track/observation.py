@@ -1,0 +1,358 @@
+"""Observation model p(o_t | z_t) and the update step's sampling (seed ch. 5.2.2, eq. 5.6–5.8). numpy only.
+
+Shapes: K tracks, N samples per track, J joints, L limbs, C cameras, V camera
+pairs, D detections per camera, M refinement candidates.
+
+The per-camera, per-limb score phi(c, l, s) of eq. 5.8 comes from one of two
+sources:
+
+- **keypoints + scores** (every 2D model): each track is associated with at
+  most one detection per camera (:func:`associate`); the joint's "confidence
+  map" is that detection's keypoint as a Gaussian peak,
+  ``conf = score * exp(-d^2 / 2 sigma^2)`` with ``sigma^2 = (sigma_m f / depth)^2
+  + sigma_px^2`` (a metric tolerance seen at the sample's depth plus detector
+  noise), and a limb's score is ``conf_a * conf_b``: both endpoints come from
+  one detection, which is the association the part affinity field provides.
+- **confidence maps + part affinity fields** (bottom-up models, eq. 5.8 as
+  written): :func:`heatmap_joint_scores` and :func:`paf_limb_scores` sample the
+  maps at the projected joints / along the projected limbs.
+
+Eq. 5.7 is evaluated in log space with the epsilon added per limb, so a limb
+that no camera of the pair sees contributes the same factor to every sample:
+``log Phi(v, s) = sum_l log(sqrt(sum_{c in v} phi(c,l,s)^2) + eps)``.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+
+def camera_pairs(n_cams: int) -> np.ndarray:
+    """All camera pairs (V,2); a single camera is its own 'pair' (1,2) = [[0,0]]."""
+    if n_cams < 1:
+        raise ValueError("need at least one camera")
+    if n_cams == 1:
+        return np.zeros((1, 2), np.int64)
+    return np.asarray(list(itertools.combinations(range(n_cams), 2)), np.int64)
+
+
+def project(P: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection on undistorted pixels. P: (C,3,4); X: (...,3) -> uv (C,...,2), depth (C,...)."""
+    P = np.asarray(P, np.float32)
+    X = np.asarray(X, np.float32)
+    h = np.tensordot(X, P[:, :, :3], axes=([-1], [2]))  # (...,C,3)
+    h = np.moveaxis(h, -2, 0) + P[:, :, 3].reshape((len(P),) + (1,) * (X.ndim - 1) + (3,))
+    z = h[..., 2]
+    zs = np.where(z > 1e-3, z, np.float32(1e-3))
+    return h[..., :2] / zs[..., None], z
+
+
+def camera_rays(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres (C,3) and the matrices (C,3,3) that turn undistorted pixels [u,v,1] into ray directions."""
+    P = np.asarray(P, np.float64)
+    M = P[:, :, :3]
+    Minv = np.linalg.inv(M)
+    centers = -np.einsum("cab,cb->ca", Minv, P[:, :, 3])
+    return centers.astype(np.float32), Minv.astype(np.float32)
+
+
+def ray_basis(Minv: np.ndarray, kp: np.ndarray) -> np.ndarray:
+    """Orthonormal frames of the keypoints' viewing rays. Minv: (C,3,3); kp: (K,C,J,2) undistorted px.
+
+    Returns B (K,J,3C,3): rows [u_0..u_{C-1}, w_0..w_{C-1}, r_0..r_{C-1}] with r_c the unit ray of the
+    keypoint in camera c and u_c, w_c spanning the plane perpendicular to it (NaN keypoints give any frame;
+    their score is 0).
+    """
+    h = np.concatenate([np.nan_to_num(kp), np.ones(kp.shape[:-1] + (1,), np.float32)], -1)
+    r = np.einsum("cab,kcjb->kjca", Minv, h)
+    r /= np.linalg.norm(r, axis=-1, keepdims=True)
+    helper = np.where(np.abs(r[..., 2:3]) < 0.9, np.float32([0, 0, 1]), np.float32([1, 0, 0]))
+    u = np.cross(r, helper)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    w = np.cross(r, u)
+    return np.concatenate([u, w, r], 2).astype(np.float32)
+
+
+def ray_coords(X: np.ndarray, centers: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Coordinates of sample joints in the ray frames. X: (K,N,J,3), centers (C,3), basis (K,J,3C,3) ->
+    Y (K,J,3C,N): rows :2C are the offsets from the rays (metres), rows 2C: the depth along them."""
+    xt = np.ascontiguousarray(X.transpose(0, 2, 3, 1))  # (K,J,3,N)
+    off = (basis * np.tile(centers, (3, 1))[None, None]).sum(-1)  # (K,J,3C): rows repeat the C centres
+    return np.matmul(basis, xt) - off[..., None]
+
+
+def _variance(along: np.ndarray, focal_px: np.ndarray, sigma_m: float, sigma_px: float) -> np.ndarray:
+    """Tolerance s^2 = sigma_m^2 + (sigma_px * depth / f)^2. along: (K,J,C,N...) depths."""
+    f = np.asarray(focal_px, np.float32).reshape((1, 1, -1) + (1,) * (along.ndim - 3))
+    return np.float32(sigma_m**2) + (np.float32(sigma_px) * along / f)**2
+
+
+def _kernel(q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Peak shape of a keypoint's 'confidence map' for squared normalised distance q = d^2 / s^2:
+    ``1 / (1 + q / 2)`` (Cauchy). Equal to the Gaussian's curvature at the peak, but with heavy tails, so a
+    sample that fell off a fast-moving joint still feels the detection (a Gaussian gives it nothing)."""
+    q = np.multiply(q, np.float32(0.5), out=out)
+    q += np.float32(1.0)
+    return np.reciprocal(q, out=q)
+
+
+def joint_scores(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray, focal_px: np.ndarray,
+                 sigma_m: float, sigma_px: float) -> np.ndarray:
+    """Keypoint 'confidence map' value of every sample joint in every camera.
+
+    X: (K,N,J,3) samples; centers: (C,3); basis: (K,J,3C,3) from :func:`ray_basis` for each track's
+    associated keypoints; sc: (K,C,J) their scores (0 = none); focal_px: (C,). Returns conf (K,C,J,N) in
+    [0, 1]: ``sc * exp(-d^2 / 2 s^2)`` with d the distance of the joint from the keypoint's viewing ray
+    (the image distance seen at the joint's depth) and ``s^2 = sigma_m^2 + (sigma_px * depth / f)^2``.
+    """
+    C = len(centers)
+    Y = ray_coords(X, centers, basis)
+    along = Y[:, :, 2 * C:]
+    d2 = Y[:, :, :C]**2 + Y[:, :, C:2 * C]**2  # (K,J,C,N)
+    conf = _kernel(d2 / _variance(along, focal_px, sigma_m, sigma_px))
+    conf *= np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))
+    return conf.transpose(0, 2, 1, 3)
+
+
+def limb_scores(conf: np.ndarray, limbs: np.ndarray, axis: int = -1) -> np.ndarray:
+    """phi(c, l, s) from joint confidences (keypoint evidence): conf_a * conf_b along the joint ``axis``
+    (J -> L); e.g. (K,C,J,N) with axis=2 -> (K,C,L,N)."""
+    return np.take(conf, limbs[:, 0], axis) * np.take(conf, limbs[:, 1], axis)
+
+
+def log_phi_pairs(phi: np.ndarray, pairs: np.ndarray, eps: float) -> np.ndarray:
+    """Eq. 5.7 in log space per camera pair. phi: (K,C,L,N) -> log Phi (K,V,N)."""
+    p2 = phi**2
+    distinct = (pairs[:, 0] != pairs[:, 1]).astype(np.float32)[None, :, None, None]
+    s = p2[:, pairs[:, 0]] + distinct * p2[:, pairs[:, 1]]
+    return np.log(np.sqrt(s) + np.float32(eps)).sum(2)
+
+
+def log_phi_all(phi: np.ndarray, eps: float) -> np.ndarray:
+    """Eq. 5.7 with v = all cameras (initial scoring and inference, sec. 5.2.3–5.2.4). (K,C,L,N) -> (K,N)."""
+    return np.log(np.sqrt((phi**2).sum(1)) + np.float32(eps)).sum(1)
+
+
+def normalized_weights(log_phi: np.ndarray) -> np.ndarray:
+    """Eq. 5.6: normalise over samples (last axis)."""
+    w = np.exp(log_phi - log_phi.max(-1, keepdims=True))
+    return w / w.sum(-1, keepdims=True)
+
+
+def pair_sizes(n_samples: int, n_pairs: int) -> np.ndarray:
+    """How many samples each camera pair draws, summing to n_samples."""
+    base = np.full(n_pairs, n_samples // n_pairs)
+    base[: n_samples - base.sum()] += 1
+    return base
+
+
+def stochastic_universal_indices(w: np.ndarray, counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Stochastic universal sampling for all rows at once.
+
+    w: (R,N) normalised weights per row (track x camera pair), counts: (R,) samples to draw per row.
+    Returns flat indices into N of length counts.sum(), grouped by row in order.
+    """
+    R, N = w.shape
+    cdf = np.cumsum(w, -1)
+    cdf /= cdf[:, -1:]
+    cdf[:, -1] = 1.0
+    rows = np.repeat(np.arange(R), counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    within = np.arange(counts.sum()) - np.repeat(starts, counts)
+    u = rng.random(R)
+    pos = (u[rows] + within) / np.maximum(counts[rows], 1)
+    flat = (cdf + np.arange(R)[:, None] * 2.0).ravel()  # rows separated by offsets of 2
+    idx = np.searchsorted(flat, pos + rows * 2.0, side="left") - rows * N
+    return np.clip(idx, 0, N - 1)
+
+
+def resample_pairs(log_phi_v: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Per-camera-pair resampling (fig. 5.2). log_phi_v: (K,V,N) -> indices (K,N) into each track's samples."""
+    K, V, N = log_phi_v.shape
+    w = normalized_weights(log_phi_v).reshape(K * V, N)
+    counts = np.tile(pair_sizes(N, V), K)
+    return stochastic_universal_indices(w, counts, rng).reshape(K, N)
+
+
+_BANK: dict[int, np.ndarray] = {}
+
+
+def _normal_bank(seed: int = 12345, size: int = 1 << 21) -> np.ndarray:
+    """A fixed block of standard normals; refinement draws contiguous slices at random offsets (drawing
+    fresh normals costs more than the rest of the refinement)."""
+    if seed not in _BANK:
+        _BANK[seed] = np.random.default_rng(seed).standard_normal(size, dtype=np.float32)
+    return _BANK[seed]
+
+
+def refine_scales(n_candidates: int, sigma_m: float) -> np.ndarray:
+    """Spread of each refinement candidate (M,): 0 for the current position, then sigma_m * (1/2, 1, 2, 4, ...)
+    cycling, so the search covers small corrections and fast motion alike."""
+    cyc = np.float32([0.5, 1.0, 2.0, 4.0])
+    s = np.zeros(n_candidates, np.float32)
+    s[1:] = cyc[np.arange(n_candidates - 1) % len(cyc)] * np.float32(sigma_m)
+    return s
+
+
+def guided_targets(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray,
+                   lam: float = 0.01) -> np.ndarray:
+    """Where the evidence puts each sample joint: argmin_x' sum_c s_c |x' - ray_c|^2 + lam |x' - x|^2.
+
+    With two or more views this is the joint triangulated from the track's detections; with one view it is
+    the sample's joint moved onto the viewing ray at its own depth; with none it stays. Closed form per
+    track and joint, one batched 3x3 product for all samples. X: (K,N,J,3) -> (K,J,3,N).
+    """
+    K, N, J, _ = X.shape
+    C = len(centers)
+    r = basis[:, :, 2 * C:]  # (K,J,C,3)
+    s = sc.transpose(0, 2, 1)[..., None, None]  # (K,J,C,1,1)
+    Q = np.eye(3, dtype=np.float32) - r[..., :, None] * r[..., None, :]  # (K,J,C,3,3)
+    A = (s * Q).sum(2) + np.float32(lam) * np.eye(3, dtype=np.float32)
+    b = (s[..., 0] * np.einsum("kjcab,cb->kjca", Q, centers)).sum(2)  # (K,J,3)
+    Ainv = np.linalg.inv(A)
+    xt = np.ascontiguousarray(X.transpose(0, 2, 3, 1))  # (K,J,3,N)
+    return np.matmul(Ainv, b[..., None] + np.float32(lam) * xt)
+
+
+def refine_joints(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray, focal_px: np.ndarray,
+                  sigma_m: float, sigma_px: float, n_candidates: int, sigma_refine_m: float,
+                  rng: np.random.Generator, n_guided: int = 0) -> np.ndarray:
+    """Joint refinement (sec. 5.2.2): per joint of every sample, draw M-1 positions around it and keep the one
+    with the highest confidence summed over cameras (the current position, candidate 0, wins ties).
+
+    With ``n_guided`` > 0, that many of the M candidates are drawn around :func:`guided_targets` (spread
+    sigma_refine_m / 2) instead of around the current position: a data-driven proposal that keeps up with
+    fast joints in one frame (our addition; the argmax over candidates is unchanged).
+
+    X: (K,N,J,3) -> (K,N,J,3); other arguments as :func:`joint_scores`. Candidates are scored in the
+    keypoints' ray frames: one batched product ``basis @ offsets`` per frame, no loop.
+    """
+    K, N, J, _ = X.shape
+    M = int(n_candidates)
+    if M <= 1 or K == 0:
+        return X
+    C = len(centers)
+    bank = _normal_bank()
+    n = K * J * 3 * N * M
+    if n > len(bank):
+        e = rng.standard_normal(n, dtype=np.float32)
+    else:
+        start = int(rng.integers(0, len(bank) - n + 1))
+        e = bank[start:start + n]
+    e = e.reshape(K, J, 3, N, M) * refine_scales(M, sigma_refine_m)
+    G = min(int(n_guided), M - 1)
+    if G > 0:
+        e[..., M - G:] *= np.float32(0.25)  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
+        xt = np.ascontiguousarray(X.transpose(0, 2, 3, 1))
+        e[..., M - G:] += (guided_targets(X, centers, basis, sc) - xt)[..., None]
+    Y = ray_coords(X, centers, basis)  # (K,J,3C,N)
+    var = _variance(Y[:, :, 2 * C:], focal_px, sigma_m, sigma_px)  # (K,J,C,N)
+    s = np.where(Y[:, :, 2 * C:] > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))  # (K,J,C,N)
+    D = np.matmul(basis[:, :, :2 * C], e.reshape(K, J, 3, N * M)).reshape(K, J, 2 * C, N, M)
+    D += Y[:, :, :2 * C, :, None]
+    D *= D
+    d2 = D[:, :, :C] + D[:, :, C:]  # (K,J,C,N,M)
+    d2 *= (1.0 / var)[..., None]
+    _kernel(d2, out=d2)
+    d2 *= s[..., None]
+    best = d2.sum(2).argmax(-1)  # (K,J,N)
+    e_best = np.take_along_axis(e, best[:, :, None, :, None], 4)[..., 0]  # (K,J,3,N)
+    return X + e_best.transpose(0, 3, 1, 2)
+
+
+def weighted_stats(X: np.ndarray, log_phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sec. 5.2.4: weighted mean pose and per-joint spread. X: (K,N,J,3), log_phi: (K,N) ->
+    mean (K,J,3), std_m (K,J) = sqrt(weighted mean squared distance to the mean / 3) (per-axis RMS)."""
+    w = normalized_weights(log_phi)
+    mean = np.einsum("kn,knja->kja", w, X)
+    d2 = ((X - mean[:, None])**2).sum(-1)
+    std = np.sqrt(np.einsum("kn,knj->kj", w, d2) / 3.0)
+    return mean, std
+
+
+def associate(mean_uv: np.ndarray, mean_depth: np.ndarray, det_kp: np.ndarray, det_sc: np.ndarray,
+              focal_px: np.ndarray, tol_m: float, gate: float, min_joints: int, min_score: float) -> np.ndarray:
+    """One detection per track and camera (Hungarian on the predicted mean pose).
+
+    mean_uv: (C,K,J,2), mean_depth: (C,K,J) projections of the tracks' predicted means;
+    det_kp: (C,D,J,2), det_sc: (C,D,J). The cost is the median joint distance in units of
+    ``tol_m`` seen at the joint's depth. Returns assignment (C,K): detection index or -1.
+    """
+    C, K = mean_uv.shape[:2]
+    D = det_kp.shape[1]
+    out = np.full((C, K), -1, np.int64)
+    if K == 0 or D == 0:
+        return out
+    ok_det = np.isfinite(det_kp).all(-1) & (det_sc >= min_score)  # (C,D,J)
+    d = np.linalg.norm(mean_uv[:, :, None] - det_kp[:, None], axis=-1)  # (C,K,D,J)
+    scale = np.asarray(focal_px, np.float64)[:, None, None, None] * tol_m / np.maximum(mean_depth[:, :, None], 0.1)
+    r = d / scale
+    both = ok_det[:, None] & np.isfinite(r) & (mean_depth[:, :, None] > 0.1)
+    r = np.where(both, r, np.nan)
+    n = both.sum(-1)
+    with np.errstate(all="ignore"):
+        cost = np.nanmedian(np.where(n[..., None] > 0, r, 0.0), -1)
+    cost = np.where(n >= min_joints, cost, np.inf)
+    for c in range(C):  # Hungarian per camera; C is small
+        cc = cost[c]
+        big = np.where(np.isfinite(cc) & (cc < gate), cc, 1e6)
+        rows, cols = linear_sum_assignment(big)
+        keep = big[rows, cols] < 1e6
+        out[c, rows[keep]] = cols[keep]
+    return out
+
+
+# --- confidence maps and part affinity fields (eq. 5.8 as written) ------------------------------------------------
+
+
+def _sample_map(maps: np.ndarray, uv_map: np.ndarray) -> np.ndarray:
+    """Bilinear lookup. maps: (Q,H,W); uv_map: (...,Q,2) in map pixels -> (...,Q); 0 outside."""
+    Q, H, W = maps.shape
+    u, v = uv_map[..., 0], uv_map[..., 1]
+    inside = (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1) & np.isfinite(u) & np.isfinite(v)
+    u = np.clip(np.nan_to_num(u), 0, W - 1.001)
+    v = np.clip(np.nan_to_num(v), 0, H - 1.001)
+    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    fu, fv = u - u0, v - v0
+    q = np.broadcast_to(np.arange(Q), u.shape)
+    val = (maps[q, v0, u0] * (1 - fu) * (1 - fv) + maps[q, v0, u0 + 1] * fu * (1 - fv)
+           + maps[q, v0 + 1, u0] * (1 - fu) * fv + maps[q, v0 + 1, u0 + 1] * fu * fv)
+    return np.where(inside, val, 0.0)
+
+
+def heatmap_joint_scores(uv_px: np.ndarray, heatmaps: np.ndarray, px_to_map: float) -> np.ndarray:
+    """conf_c(s, j) of eq. 5.8 for one camera. uv_px: (...,J,2) image px; heatmaps: (J,H,W) -> (...,J)."""
+    return _sample_map(np.asarray(heatmaps, np.float32), np.asarray(uv_px, np.float32) * px_to_map)
+
+
+def paf_limb_scores(uv_px: np.ndarray, pafs: np.ndarray, paf_limbs: np.ndarray, px_to_map: float,
+                    n_steps: int = 5) -> np.ndarray:
+    """Integral term of eq. 5.8 for one camera: mean over u of max(0, <paf(l, p(u)), unit(limb)>).
+
+    uv_px: (...,J,2); pafs: (L,2,H,W) (x and y components); paf_limbs: (L,2) joint index pairs -> (...,L).
+    """
+    a = uv_px[..., paf_limbs[:, 0], :] * px_to_map
+    b = uv_px[..., paf_limbs[:, 1], :] * px_to_map
+    d = b - a
+    unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-6)
+    total = 0.0
+    for u in np.linspace(0.0, 1.0, n_steps):  # loop over integration steps only
+        p = a + u * d
+        fx = _sample_map(pafs[:, 0], p)
+        fy = _sample_map(pafs[:, 1], p)
+        total = total + np.maximum(0.0, fx * unit[..., 0] + fy * unit[..., 1])
+    return total / n_steps
+
+
+def heatmap_limb_scores(uv_px: np.ndarray, heatmaps: np.ndarray, pafs: np.ndarray, limbs: np.ndarray,
+                        paf_limbs: np.ndarray, px_to_map: float) -> np.ndarray:
+    """Eq. 5.8 for one camera: phi(c,l,s) = PAF integral * conf(a) * conf(b). uv_px: (...,J,2) -> (...,L).
+
+    ``limbs`` (L,2) are the scored limbs; ``paf_limbs`` (L,2) the same limbs in the model's PAF order
+    (row l of both must describe the same limb).
+    """
+    conf = heatmap_joint_scores(uv_px, heatmaps, px_to_map)
+    return paf_limb_scores(uv_px, pafs, paf_limbs, px_to_map) * limb_scores(conf, limbs)

@@ -1,0 +1,556 @@
+"""The per-person recursive Bayesian filter of seed ch. 5 (Kwon, Tanke, Gall), one frame at a time.
+
+Each tracked person is a set of N 3D pose samples (``body19``, world metres). Per
+frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
+
+1. **predict** (sec. 5.2.1, eq. 5.1): the motion prior moves every sample
+   (GRU with dropout on, or constant/zero velocity), one state per sample;
+2. **associate**: every camera's detections are assigned to tracks (Hungarian on the
+   reprojected predicted mean); a track only scores against its own detection, so two
+   people close together do not pull on each other's samples (our addition: the seed
+   scores against the full confidence maps and separates people only at birth);
+3. **update** (sec. 5.2.2): importance weights per camera pair (eq. 5.6–5.7), stochastic
+   universal resampling of N/V samples per pair, then joint refinement (M candidate
+   positions per joint, the best-scoring kept);
+4. **inference** (sec. 5.2.4): weighted mean over all cameras, per-joint spread
+   ``std_m``, OBSERVED / PREDICTED flags from the number of cameras seeing each joint;
+5. **termination**: a track with no associated detection for ``end_after_s`` ends; its
+   identity is kept for re-identification for ``reid_max_gap_s``;
+6. **initialisation** (sec. 5.2.3): the detections no track explains are matched and
+   triangulated with the chapter-4 engine (:class:`triangulate.reconstruct.FrameReconstructor`);
+   each candidate (best first) either re-anchors a coasting track, revives a lost identity
+   (position, velocity, body proportions agree) or starts a new track. Samples are drawn
+   around the candidate; joints it lacks are filled from a mocap template (a stand-in for the
+   seed's dropout network g) with a larger spread.
+
+No Python loop runs over samples or joints; loops run over cameras (association) and
+over new candidates (initialisation) only.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from keypoints.skeletons import CANONICAL, Skeleton
+from track import observation as obs
+from track.normalize import denormalize, hip_frame
+from track.priors import (
+    TEMPLATE_BODY19_M,
+    ConstantVelocityPrior,
+    MotionPrior,
+    ZeroVelocityPrior,
+    concat_states,
+    gather_state,
+)
+from track.trackfile import OBSERVED, PREDICTED
+
+log = logging.getLogger(__name__)
+
+MOTIONS = ("gru", "constant_velocity", "zero_velocity")
+
+
+@dataclass(frozen=True)
+class ParticleConfig:
+    """Settings of the particle tracker (the only copy of each default).
+
+    n_samples: pose samples per person (seed: 300).
+    motion: 'gru' (eq. 5.1, the shipped checkpoint), 'constant_velocity' or 'zero_velocity'.
+    motion_checkpoint: path of a GRU checkpoint ('' = the shipped one).
+    motion_dropout: dropout at inference for the GRU (negative = the trained rate; 0 = the
+      "prior without dropout" ablation).
+    motion_sigma_m: per-frame Gaussian noise at 25 fps of the velocity priors (scaled by sqrt(25/fps)),
+      and added to the GRU's output (``gru_sigma_m``).
+    resample: per-camera-pair stochastic universal resampling (off = the "w/o resampling" ablation).
+    refine: joint refinement (off = the "w/o joint refinement" ablation); refine_candidates = M
+      positions per joint including the current one; refine_sigma_m their spread; refine_guided of them
+      are drawn around the point the track's detections put the joint at (0 = the seed's purely random
+      candidates).
+    obs_sigma_m / obs_sigma_px: keypoint likelihood tolerance (metres at the joint's depth, and pixels).
+    eps: epsilon of eq. 5.7 (per limb).
+    min_score: 2D joints below this score are ignored.
+    assoc_tol_m / assoc_gate / assoc_min_joints: track-detection association (median joint distance in
+      units of assoc_tol_m must stay below assoc_gate, on at least assoc_min_joints joints).
+    init_*: birth of tracks (at least init_min_joints triangulated joints seen by init_min_views
+      cameras; no live track's pelvis within init_exclusion_m); samples spread init_sigma_m around
+      the candidate and init_fill_sigma_m around template-filled joints.
+    end_after_s: a track without any associated detection for this long ends.
+    reid_*: a new candidate takes an ended identity when its pelvis lies within
+      reid_dist_m + reid_speed_mps * gap of the predicted one and the mean bone-length difference is
+      below reid_bone_tol_m, for gaps up to reid_max_gap_s.
+    min_track_s: shorter tracks are dropped from the output; trim_coast: frames after a track's last
+      evidence are dropped when it ends (offline output).
+    seed: random seed.
+    """
+
+    n_samples: int = 300
+    motion: str = "gru"
+    motion_checkpoint: str = ""
+    motion_dropout: float = -1.0
+    motion_sigma_m: float = 0.01
+    gru_sigma_m: float = 0.003
+    resample: bool = True
+    refine: bool = True
+    refine_candidates: int = 8
+    refine_sigma_m: float = 0.03
+    refine_guided: int = 3
+    obs_sigma_m: float = 0.05
+    obs_sigma_px: float = 3.0
+    eps: float = 0.01
+    min_score: float = 0.1
+    assoc_tol_m: float = 0.1
+    assoc_gate: float = 3.0
+    assoc_min_joints: int = 3
+    init_min_joints: int = 8
+    init_min_views: int = 2
+    init_exclusion_m: float = 0.5
+    init_sigma_m: float = 0.03
+    init_fill_sigma_m: float = 0.1
+    init_theta_px: float = 40.0
+    end_after_s: float = 1.0
+    reid_max_gap_s: float = 10.0
+    reid_dist_m: float = 0.5
+    reid_speed_mps: float = 1.0
+    reid_bone_tol_m: float = 0.05
+    min_track_s: float = 0.2
+    trim_coast: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.motion not in MOTIONS:
+            raise ValueError(f"ParticleConfig.motion must be one of {MOTIONS}, got {self.motion!r}.")
+        if self.n_samples < 1:
+            raise ValueError(f"ParticleConfig.n_samples must be >= 1, got {self.n_samples}.")
+        if self.refine_candidates < 1:
+            raise ValueError(f"ParticleConfig.refine_candidates must be >= 1, got {self.refine_candidates}.")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ParticleConfig:
+        valid = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - valid)
+        if unknown:
+            raise ValueError(f"ParticleConfig: unknown keys {unknown}; valid keys: {sorted(valid)}")
+        return cls(**d)
+
+
+def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICAL) -> MotionPrior:
+    """The motion prior named by ``config.motion`` (imports torch only for 'gru')."""
+    sigma = config.motion_sigma_m * float(np.sqrt(25.0 / fps))
+    if config.motion == "zero_velocity":
+        return ZeroVelocityPrior(sigma, skeleton.n_joints)
+    if config.motion == "constant_velocity":
+        return ConstantVelocityPrior(sigma, n_joints=skeleton.n_joints)
+    from track.motion import DEFAULT_CHECKPOINT, GRUPrior
+
+    path = config.motion_checkpoint or DEFAULT_CHECKPOINT
+    return GRUPrior.load(path, fps=fps, skeleton=skeleton,
+                         dropout=None if config.motion_dropout < 0 else config.motion_dropout,
+                         sigma_m=config.gru_sigma_m * float(np.sqrt(25.0 / fps)), seed=config.seed)
+
+
+@dataclass
+class FrameEstimate:
+    """Output of one frame for the K live tracks (sec. 5.2.4)."""
+
+    track_id: np.ndarray  # (K,)
+    xyz_m: np.ndarray  # (K,J,3)
+    std_m: np.ndarray  # (K,J)
+    confidence: np.ndarray  # (K,J)
+    n_views: np.ndarray  # (K,J)
+    flags: np.ndarray  # (K,J) uint8
+    evidence: np.ndarray  # (K,) bool: the track had an associated detection this frame
+
+
+@dataclass
+class _Track:
+    id: int
+    x: np.ndarray  # (N,J,3)
+    state: dict
+    born: int
+    last_seen: int
+    n_seen: int = 1
+    mean: np.ndarray | None = None  # (J,3) last estimate
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))  # pelvis m/s
+    bones: np.ndarray | None = None  # (L,) running mean bone lengths
+
+
+@dataclass
+class _Lost:
+    id: int
+    end: int
+    pelvis: np.ndarray
+    velocity: np.ndarray
+    bones: np.ndarray | None
+
+
+class ParticleTracker:
+    """The filter over a rig. P: (C,3,4) projection matrices (undistorted px); focal_px: (C,).
+
+    ``step(kp, sc, frame)`` takes one frame of undistorted detections ``kp (C,D,J,2)`` (NaN = missing)
+    and scores ``sc (C,D,J)`` and returns a :class:`FrameEstimate`.
+    """
+
+    def __init__(self, P: np.ndarray, focal_px: np.ndarray, fps: float, config: ParticleConfig | None = None,
+                 skeleton: Skeleton = CANONICAL, prior: MotionPrior | None = None):
+        self.config = cfg = config or ParticleConfig()
+        self.P = np.asarray(P, np.float32)
+        if self.P.ndim != 3 or self.P.shape[1:] != (3, 4):
+            raise ValueError(f"P must have shape (C,3,4), got {self.P.shape}")
+        C = len(self.P)
+        self.focal = np.asarray(focal_px, np.float32).reshape(C)
+        self.fps = float(fps)
+        self.skeleton = skeleton
+        self.limbs = np.asarray(skeleton.limbs, np.int64)
+        self.pairs = obs.camera_pairs(C)
+        self.centers, self.Minv = obs.camera_rays(self.P)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.prior = prior if prior is not None else make_prior(cfg, fps, skeleton)
+        self.tracks: list[_Track] = []
+        self.lost: list[_Lost] = []
+        self.ended: list[tuple[int, int, int]] = []  # (id, born, last_seen) of ended track segments
+        self.next_id = 0
+        self.end_after = max(1, int(round(cfg.end_after_s * fps)))
+        self.reconstructor = None
+        if C >= 2:
+            from triangulate.matching import MatchConfig
+            from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
+
+            tcfg = TriangulateConfig(match=MatchConfig(theta_px=cfg.init_theta_px, min_score=cfg.min_score),
+                                     min_joints_3d=cfg.init_min_joints)
+            self.reconstructor = FrameReconstructor(self.P.astype(np.float64), config=tcfg,
+                                                    joint_names=skeleton.joint_names)
+        else:
+            log.warning("a single camera cannot start tracks (sec. 5.2.3 triangulates); only existing tracks run")
+        self._tmpl = TEMPLATE_BODY19_M if skeleton.id == "body19" else None
+
+    # ------------------------------------------------------------------ helpers
+
+    def _check_frame(self, kp: np.ndarray, sc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        C, J = len(self.P), self.skeleton.n_joints
+        kp = np.asarray(kp, np.float32)
+        sc = np.asarray(sc, np.float32)
+        if kp.ndim != 4 or kp.shape[0] != C or kp.shape[2:] != (J, 2):
+            raise ValueError(f"kp must have shape (C={C},D,J={J},2), got {kp.shape}")
+        if sc.shape != kp.shape[:3]:
+            raise ValueError(f"sc must have shape {kp.shape[:3]} (C,D,J), got {sc.shape}")
+        bad = ~np.isfinite(kp).all(-1) | ~np.isfinite(sc) | (sc < self.config.min_score)
+        kp = np.where(bad[..., None], np.nan, kp)
+        sc = np.where(bad, 0.0, sc).astype(np.float32)
+        return kp, sc
+
+    def _bones(self, x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(x[..., self.limbs[:, 0], :] - x[..., self.limbs[:, 1], :], axis=-1)
+
+    def _pelvis(self, x: np.ndarray) -> np.ndarray:
+        origin, _ = hip_frame(x[None], self.skeleton)
+        return origin[0]
+
+    # ------------------------------------------------------------------ the step
+
+    def step(self, kp: np.ndarray, sc: np.ndarray, frame: int) -> FrameEstimate:
+        cfg = self.config
+        kp, sc = self._check_frame(kp, sc)
+        C, D, J = kp.shape[:3]
+        K, N = len(self.tracks), cfg.n_samples
+        ev_k = np.zeros(K, bool)
+        out = None
+        assigned = np.full((C, 0), -1, np.int64)
+        if K:
+            X = np.stack([t.x for t in self.tracks])  # (K,N,J,3)
+            state = concat_states([t.state for t in self.tracks])
+            # 1. prediction (eq. 5.1), all tracks and samples in one batch
+            Xf, state = self.prior.predict(X.reshape(K * N, J, 3), state, self.rng)
+            X = Xf.reshape(K, N, J, 3)
+            # 2. association on the predicted means
+            mean_pred = X.mean(1)
+            muv, mz = obs.project(self.P, mean_pred)  # (C,K,J,2), (C,K,J)
+            assigned = obs.associate(muv, mz, kp, sc, self.focal, cfg.assoc_tol_m, cfg.assoc_gate,
+                                     cfg.assoc_min_joints, cfg.min_score)  # (C,K)
+            has = assigned >= 0
+            sel = np.maximum(assigned, 0)
+            akp = np.where(has[..., None, None], kp[np.arange(C)[:, None], sel], np.nan)  # (C,K,J,2)
+            asc = np.where(has[..., None], sc[np.arange(C)[:, None], sel], 0.0)  # (C,K,J)
+            akp = np.ascontiguousarray(np.moveaxis(akp, 0, 1))  # (K,C,J,2)
+            asc = np.ascontiguousarray(np.moveaxis(asc, 0, 1)).astype(np.float32)  # (K,C,J)
+            ev_k = has.any(0)
+            rays = obs.ray_basis(self.Minv, akp)  # (K,J,3C,3)
+            # 3. update for the tracks with evidence
+            if ev_k.any():
+                u = np.flatnonzero(ev_k)
+                Xu, idx = self._update(X[u], rays[u], asc[u])
+                X[u] = Xu
+                flat = np.arange(K * N).reshape(K, N)
+                flat[u] = u[:, None] * N + idx
+                state = gather_state(state, flat.ravel())
+            # 4. inference (sec. 5.2.4): weighted mean over all cameras
+            conf = obs.joint_scores(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
+                                    cfg.obs_sigma_px)  # (K,C,J,N)
+            lp = obs.log_phi_all(obs.limb_scores(conf, self.limbs, 2), cfg.eps)
+            mean, std = obs.weighted_stats(X, lp)
+            n_views = (asc > 0).sum(1)  # (K,J)
+            conf_out = np.clip(asc.sum(1) / np.maximum(n_views, 1) * np.minimum(n_views, 2) / 2.0, 0, 1)
+            flags = np.where(n_views > 0, OBSERVED, PREDICTED).astype(np.uint8)
+            states = [gather_state(state, np.arange(k * N, (k + 1) * N)) for k in range(K)]
+            for k, t in enumerate(self.tracks):
+                t.x, t.state = X[k], states[k]
+                if t.mean is not None:
+                    v = (self._pelvis(mean[k]) - self._pelvis(t.mean)) * self.fps
+                    t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
+                t.mean = mean[k]
+                if ev_k[k]:
+                    t.last_seen = frame
+                    t.n_seen += 1
+                    b = np.where(n_views[k][self.limbs].min(1) > 0, self._bones(mean[k]), np.nan)
+                    t.bones = b if t.bones is None else np.where(np.isfinite(b), np.where(
+                        np.isfinite(t.bones), 0.9 * t.bones + 0.1 * b, b), t.bones)
+            out = FrameEstimate(np.array([t.id for t in self.tracks], np.int64), mean, std, conf_out, n_views,
+                                flags, ev_k)
+            # 5. termination
+            keep = []
+            for t in self.tracks:
+                if frame - t.last_seen >= self.end_after:
+                    self.ended.append((t.id, t.born, t.last_seen))
+                    self.lost.append(_Lost(t.id, t.last_seen, self._pelvis(t.mean), t.velocity.copy(), t.bones))
+                else:
+                    keep.append(t)
+            self.tracks = keep
+        # 6. initialisation from the detections no track explains
+        born = self._initialise(kp, sc, assigned, frame)
+        if born:
+            est = self._estimate_new(born)
+            out = est if out is None else _concat_estimates(out, est)
+        if out is None:
+            out = _empty_estimate(J)
+        return out
+
+    def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N)."""
+        cfg = self.config
+        K, N = X.shape[:2]
+        if cfg.resample:
+            conf = obs.joint_scores(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
+                                    cfg.obs_sigma_px)  # (K,C,J,N)
+            lpv = obs.log_phi_pairs(obs.limb_scores(conf, self.limbs, 2), self.pairs, cfg.eps)  # (K,V,N)
+            idx = obs.resample_pairs(lpv, self.rng)
+            X = np.take_along_axis(X, idx[:, :, None, None], 1)
+        else:
+            idx = np.broadcast_to(np.arange(N), (K, N))
+        if cfg.refine and cfg.refine_candidates > 1:
+            X = obs.refine_joints(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px,
+                                  cfg.refine_candidates, cfg.refine_sigma_m, self.rng, cfg.refine_guided)
+        return X, idx
+
+    # ------------------------------------------------------------------ birth
+
+    def _initialise(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray, frame: int) -> list[_Track]:
+        cfg = self.config
+        if self.reconstructor is None:
+            return []
+        C, D = kp.shape[:2]
+        free = np.ones((C, D), bool)
+        for c in range(C):
+            a = assigned[c][assigned[c] >= 0] if assigned.size else []
+            free[c, a] = False
+        free &= (sc > 0).sum(-1) >= cfg.assoc_min_joints
+        if (free.sum(1) > 0).sum() < cfg.init_min_views:
+            return []
+        kpf = np.where(free[..., None, None], kp, np.nan)
+        scf = np.where(free[..., None], sc, 0.0)
+        poses = self.reconstructor(kpf.astype(np.float64), scf)
+        if len(poses.xyz_m) == 0:
+            return []
+        good = (poses.n_views >= cfg.init_min_views) & np.isfinite(poses.xyz_m).all(-1)
+        n_good = good.sum(1)
+        order = np.argsort(-(n_good + poses.score.sum(1) * 1e-3))  # best candidate first
+        born: list[_Track] = []
+        live = [t for t in self.tracks if frame - t.last_seen == 0]
+        coasting = [t for t in self.tracks if frame - t.last_seen > 0]
+        for m in order:
+            if n_good[m] < cfg.init_min_joints:
+                continue
+            cand = np.where(good[m][:, None], poses.xyz_m[m], np.nan).astype(np.float32)
+            filled, missing = self._fill(cand)
+            if filled is None:
+                continue
+            pel = self._pelvis(filled)
+            if any(np.linalg.norm(pel[:2] - self._pelvis(t.mean)[:2]) < cfg.init_exclusion_m
+                   for t in live + born):
+                continue
+            samples = self._samples(filled, missing)
+            bones = np.where(np.isfinite(self._bones(cand)), self._bones(filled), np.nan)
+            # a coasting track of this person? re-anchor it (keeps the identity)
+            t = self._match_coasting(coasting, pel, bones, frame)
+            if t is not None:
+                coasting.remove(t)
+                t.x, t.state, t.last_seen = samples, self.prior.init_state(samples), frame
+                t.n_seen += 1
+                t.mean = filled
+                born.append(t)
+                continue
+            tid = self._reidentify(pel, bones, frame)
+            t = _Track(tid, samples, self.prior.init_state(samples), frame, frame, mean=filled, bones=bones)
+            self.tracks.append(t)
+            born.append(t)
+        return born
+
+    def _fill(self, cand: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """Fill joints the candidate lacks from the template aligned at the hips. cand: (J,3) NaN = missing."""
+        missing = ~np.isfinite(cand).all(-1)
+        if not missing.any():
+            return cand, missing
+        if self._tmpl is None:
+            return None, missing
+        ip, il, ir = (self.skeleton.index(n) for n in ("pelvis", "left_hip", "right_hip"))
+        if missing[[il, ir]].any() and missing[ip]:
+            return None, missing
+        origin, theta = hip_frame(cand[None], self.skeleton)
+        if missing[[il, ir]].any():  # no facing: use the shoulders, else the template's default
+            sh = [self.skeleton.index("left_shoulder"), self.skeleton.index("right_shoulder")]
+            d = cand[sh[1]] - cand[sh[0]]
+            theta = np.array([np.arctan2(d[1], d[0]) if np.isfinite(d).all() else 0.0])
+        tmpl = denormalize(self._tmpl[None], origin, theta)[0]
+        return np.where(missing[:, None], tmpl, cand).astype(np.float32), missing
+
+    def _samples(self, pose: np.ndarray, missing: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        sig = np.where(missing, cfg.init_fill_sigma_m, cfg.init_sigma_m).astype(np.float32)
+        noise = self.rng.normal(0.0, 1.0, (cfg.n_samples, len(pose), 3)).astype(np.float32) * sig[:, None]
+        noise[0] = 0.0
+        return pose[None] + noise
+
+    def _bone_diff(self, a: np.ndarray | None, b: np.ndarray | None) -> float:
+        if a is None or b is None:
+            return 0.0
+        ok = np.isfinite(a) & np.isfinite(b)
+        return float(np.abs(a[ok] - b[ok]).mean()) if ok.sum() >= 3 else 0.0
+
+    def _match_coasting(self, coasting: list[_Track], pel: np.ndarray, bones, frame: int) -> _Track | None:
+        cfg = self.config
+        best, best_d = None, np.inf
+        for t in coasting:
+            gap = (frame - t.last_seen) / self.fps
+            pred = self._pelvis(t.mean)
+            d = float(np.linalg.norm(pel[:2] - pred[:2]))
+            if d < cfg.reid_dist_m + cfg.reid_speed_mps * gap and \
+                    self._bone_diff(bones, t.bones) < cfg.reid_bone_tol_m and d < best_d:
+                best, best_d = t, d
+        return best
+
+    def _reidentify(self, pel: np.ndarray, bones, frame: int) -> int:
+        """An ended identity whose predicted position and body proportions agree, else a new id."""
+        cfg = self.config
+        self.lost = [lt for lt in self.lost if (frame - lt.end) / self.fps <= cfg.reid_max_gap_s]
+        best, best_cost = None, np.inf
+        for lt in self.lost:
+            gap = (frame - lt.end) / self.fps
+            v = lt.velocity[:2]
+            speed = float(np.linalg.norm(v))
+            if speed > 2.0:
+                v = v * (2.0 / speed)
+            pred = lt.pelvis[:2] + v * min(gap, 1.0)
+            d = float(np.linalg.norm(pel[:2] - pred))
+            bd = self._bone_diff(bones, lt.bones)
+            if d < cfg.reid_dist_m + cfg.reid_speed_mps * gap and bd < cfg.reid_bone_tol_m:
+                cost = d + 10.0 * bd
+                if cost < best_cost:
+                    best, best_cost = lt, cost
+        if best is not None:
+            self.lost.remove(best)
+            log.debug("re-identified track %d after %d frames", best.id, frame - best.end)
+            return best.id
+        tid = self.next_id
+        self.next_id += 1
+        return tid
+
+    def _estimate_new(self, born: list[_Track]) -> FrameEstimate:
+        J = self.skeleton.n_joints
+        X = np.stack([t.x for t in born])
+        mean, std = X.mean(1), np.sqrt(((X - X.mean(1, keepdims=True))**2).sum(-1).mean(1) / 3.0)
+        for t, m in zip(born, mean, strict=True):
+            t.mean = m
+        K = len(born)
+        return FrameEstimate(np.array([t.id for t in born], np.int64), mean, std, np.full((K, J), 0.5, np.float32),
+                             np.full((K, J), 2, np.int64), np.full((K, J), OBSERVED, np.uint8), np.ones(K, bool))
+
+
+def _empty_estimate(J: int) -> FrameEstimate:
+    return FrameEstimate(np.zeros(0, np.int64), np.zeros((0, J, 3), np.float32), np.zeros((0, J), np.float32),
+                         np.zeros((0, J), np.float32), np.zeros((0, J), np.int64), np.zeros((0, J), np.uint8),
+                         np.zeros(0, bool))
+
+
+def _concat_estimates(a: FrameEstimate, b: FrameEstimate) -> FrameEstimate:
+    """Concatenate, a re-anchored track in b replacing its entry in a."""
+    keep = ~np.isin(a.track_id, b.track_id)
+    return FrameEstimate(*(np.concatenate([getattr(a, f.name)[keep], getattr(b, f.name)])
+                           for f in fields(FrameEstimate)))
+
+
+@dataclass
+class TrackArrays:
+    """Dense output of a sequence: T frames, K tracks (columns sorted by id)."""
+
+    track_id: np.ndarray  # (K,)
+    xyz_m: np.ndarray  # (T,K,J,3) NaN where unknown
+    std_m: np.ndarray  # (T,K,J)
+    confidence: np.ndarray  # (T,K,J)
+    flags: np.ndarray  # (T,K,J) uint8
+    n_views: np.ndarray  # (T,K,J)
+    time_s: np.ndarray  # (T,) seconds spent in step() per frame
+
+
+def track_sequence(tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, frames: np.ndarray | None = None,
+                   progress=None) -> TrackArrays:
+    """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
+
+    Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
+    (``trim_coast``) and tracks with less evidence than ``min_track_s`` are removed.
+    """
+    import time
+
+    cfg = tracker.config
+    T = len(kp)
+    frames = np.arange(T) if frames is None else np.asarray(frames)
+    J = tracker.skeleton.n_joints
+    per_frame: list[FrameEstimate] = []
+    times = np.zeros(T)
+    it = range(T) if progress is None else progress(range(T))
+    for t in it:
+        t0 = time.perf_counter()
+        per_frame.append(tracker.step(kp[t], sc[t], t))
+        times[t] = time.perf_counter() - t0
+    ids = sorted({int(i) for e in per_frame for i in e.track_id})
+    col = {tid: k for k, tid in enumerate(ids)}
+    K = len(ids)
+    xyz = np.full((T, K, J, 3), np.nan, np.float32)
+    std = np.full((T, K, J), np.nan, np.float32)
+    conf = np.zeros((T, K, J), np.float32)
+    flags = np.zeros((T, K, J), np.uint8)
+    nv = np.zeros((T, K, J), np.int16)
+    seen = np.zeros((T, K), bool)
+    for t, e in enumerate(per_frame):
+        if len(e.track_id) == 0:
+            continue
+        ks = np.array([col[int(i)] for i in e.track_id])
+        xyz[t, ks], std[t, ks], conf[t, ks], flags[t, ks], nv[t, ks] = e.xyz_m, e.std_m, e.confidence, e.flags, \
+            e.n_views
+        seen[t, ks] = e.evidence
+    if cfg.trim_coast:
+        for k in range(K):  # drop every frame after the last evidence of each contiguous segment
+            alive = np.isfinite(xyz[:, k]).all(-1).any(-1)
+            t = 0
+            while t < T:
+                if not alive[t]:
+                    t += 1
+                    continue
+                s = t
+                while t < T and alive[t]:
+                    t += 1
+                ev = np.flatnonzero(seen[s:t, k])
+                cut = s + (ev[-1] + 1 if len(ev) else 0)
+                xyz[cut:t, k], std[cut:t, k], conf[cut:t, k], flags[cut:t, k] = np.nan, np.nan, 0, 0
+    keep = seen.sum(0) >= max(1, int(round(cfg.min_track_s * tracker.fps)))
+    return TrackArrays(np.asarray(ids, np.int64)[keep], xyz[:, keep], std[:, keep], conf[:, keep],
+                       flags[:, keep], nv[:, keep], times)
