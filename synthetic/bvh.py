@@ -492,3 +492,14 @@ def list_clips(root: str | os.PathLike | None = None, exclude_raw_duplicates: bo
         names = {f.parent / f.name for f in files}
         files = [f for f in files if f.parent / f"scaled_{f.name}" not in names]
     return files
+
+
+def load_clips(fps: float, root: str | os.PathLike | None = None, min_frames: int = 0) -> list[MocapClip]:
+    """Every clip under the mocap root (see :func:`list_clips`) at ``fps``, skipping clips shorter
+    than ``min_frames`` frames; [] when the folder is absent. Cached after the first call."""
+    out = []
+    for p in list_clips(root):
+        c = load_clip(p, fps)
+        if c.n_frames >= min_frames:
+            out.append(c)
+    return out
