@@ -22,12 +22,16 @@ from capture.fileio import FormatError
 log = logging.getLogger("calibrate")
 
 
-def _size_arg(text: str) -> tuple[int, int]:
+def _size_arg(text: str) -> tuple[str, tuple[int, int]]:
+    """``WxH`` (every camera) or ``NAME=WxH`` (one camera) -> (name or "*", (w, h))."""
+    name, _, size = text.rpartition("=")
     try:
-        w, h = (int(v) for v in text.lower().split("x"))
+        w, h = (int(v) for v in size.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1080x1920, got {text!r}") from None
-    return w, h
+        raise argparse.ArgumentTypeError(
+            f"expected WIDTHxHEIGHT or CAMERA=WIDTHxHEIGHT such as 1080x1920 or cam01=1080x1920, got {text!r}"
+        ) from None
+    return name or "*", (w, h)
 
 
 # ----------------------------------------------------------------------------- import
@@ -56,10 +60,11 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--image-size",
         type=_size_arg,
+        action="append",
         default=None,
-        metavar="WxH",
-        help="Qualisys: the videos' size when it differs from the calibrated window (cropped or "
-        "padded at right/bottom); EasyMocap: the size when intri.yml lacks H_/W_",
+        metavar="[CAM=]WxH",
+        help="video size, for all cameras or one (repeat). Qualisys: when it differs from the calibrated "
+        "window, the image is taken as cropped/padded at right/bottom; EasyMocap: when intri.yml lacks H_/W_",
     )
     p.add_argument(
         "--distortion-scale",
@@ -85,7 +90,7 @@ def _run_import(args: argparse.Namespace) -> int:
     fmt = args.format or detect_format(args.file)
     opts = ImportOptions(
         scale_to_m=args.scale_to_m,
-        image_size_wh=args.image_size,
+        image_size_wh=dict(args.image_size) if args.image_size else None,
         distortion_scale=args.distortion_scale,
         view_rotation=args.view_rotation,
         include_marker_cameras=args.include_marker_cameras,

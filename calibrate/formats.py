@@ -81,7 +81,8 @@ class ImportOptions:
     """Options for ``import_rig``; each applies to the formats named.
 
     scale_to_m: multiply translations by this (aniposelib/caliscope/easymocap in another unit).
-    image_size_wh: (width, height) of the videos the rig will be used with. Qualisys: when it
+    image_size_wh: (width, height) of the videos the rig will be used with, for every camera, or
+        a mapping ``{camera name: (width, height)}`` (``"*"`` = the others). Qualisys: when it
         differs from the calibrated field of view (1080 vs 1088 wide in Pose2Sim's demo) the image
         is taken as cropped/padded at the right/bottom (origin stays top-left, K unchanged) and a
         warning is logged. EasyMocap: the size when ``intri.yml`` has no ``H_``/``W_``.
@@ -92,7 +93,7 @@ class ImportOptions:
     """
 
     scale_to_m: float = 1.0
-    image_size_wh: tuple[int, int] | None = None
+    image_size_wh: tuple[int, int] | Mapping[str, tuple[int, int]] | None = None
     distortion_scale: float = 1.0
     view_rotation: str = "sensor"
     include_marker_cameras: bool = False
@@ -105,12 +106,22 @@ class ImportOptions:
                 f"ImportOptions.view_rotation must be 'sensor' or 'apply', got {self.view_rotation!r}"
             )
         if self.image_size_wh is not None:
-            wh = tuple(int(v) for v in self.image_size_wh)
-            if len(wh) != 2 or min(wh) <= 0:
-                raise ValueError(
-                    f"ImportOptions.image_size_wh must be (width, height), got {self.image_size_wh}"
-                )
-            object.__setattr__(self, "image_size_wh", wh)
+            sizes = self.image_size_wh
+            items = sizes.items() if isinstance(sizes, Mapping) else [("*", sizes)]
+            norm = {}
+            for name, size in items:
+                wh = tuple(int(v) for v in size)
+                if len(wh) != 2 or min(wh) <= 0:
+                    raise ValueError(f"ImportOptions.image_size_wh must be (width, height), got {size}")
+                norm[str(name)] = wh
+            object.__setattr__(self, "image_size_wh", norm["*"] if list(norm) == ["*"] else norm)
+
+    def size_for(self, camera: str) -> tuple[int, int] | None:
+        """The video size given for ``camera`` (or for all cameras), else None."""
+        s = self.image_size_wh
+        if s is None or not isinstance(s, Mapping):
+            return s
+        return s.get(camera, s.get("*"))
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> ImportOptions:
@@ -177,6 +188,20 @@ def _load_toml(path: Path) -> dict[str, Any]:
         raise FormatError(path, None, "file does not exist.") from None
     except tomllib.TOMLDecodeError as e:
         raise FormatError(path, None, f"is not valid TOML ({e}).", "Check the file is complete.") from None
+
+
+def _check_size_names(opts: ImportOptions, cams: list[Camera], path: Any) -> None:
+    sizes = opts.image_size_wh
+    if isinstance(sizes, Mapping):
+        unknown = sorted(set(sizes) - {"*"} - {c.name for c in cams})
+        if unknown:
+            raise FormatError(
+                path,
+                None,
+                f"image sizes were given for cameras {unknown}, which it does not have "
+                f"(cameras: {[c.name for c in cams]}).",
+                "Check the camera names.",
+            )
 
 
 def _nonempty(cams: list[Camera], path: Any, what: str) -> CameraRig:
@@ -255,8 +280,9 @@ def import_rig(
     return readers[fmt](Path(path), opts)
 
 
-def import_calibration(path: str | os.PathLike, fmt: str | None = None,
-                       options: ImportOptions | None = None) -> CameraRig:
+def import_calibration(
+    path: str | os.PathLike, fmt: str | None = None, options: ImportOptions | None = None
+) -> CameraRig:
     """Alias of ``import_rig`` (the name ``pipeline.runner`` uses)."""
     return import_rig(path, fmt, options)
 
@@ -483,17 +509,19 @@ def read_qualisys(path: Path, opts: ImportOptions = ImportOptions()) -> CameraRi
                 name,
                 vr,
             )
-        if opts.image_size_wh is not None and tuple(opts.image_size_wh) != cam.size_wh:
+        video_wh = opts.size_for(name)
+        if video_wh is not None and video_wh != cam.size_wh:
             log.warning(
                 "%s: camera %s is calibrated for %dx%d, videos are %dx%d: taking the image as "
                 "cropped/padded at the right/bottom (principal point unchanged)",
                 path,
                 name,
                 *cam.size_wh,
-                *opts.image_size_wh,
+                *video_wh,
             )
-            cam = cam.replace(size_wh=tuple(opts.image_size_wh))
+            cam = cam.replace(size_wh=video_wh)
         cams.append(cam)
+    _check_size_names(opts, cams, path)
     return _nonempty(cams, path, "no <cameras>/<camera> elements for video cameras")
 
 
@@ -632,8 +660,8 @@ def read_easymocap(path: Path, opts: ImportOptions = ImportOptions()) -> CameraR
             H, W = _fs_mat(fi, f"H_{n}", intri, False), _fs_mat(fi, f"W_{n}", intri, False)
             if H is not None and W is not None:
                 size = (int(W.item()), int(H.item()))
-            elif opts.image_size_wh is not None:
-                size = tuple(opts.image_size_wh)
+            elif opts.size_for(n) is not None:
+                size = opts.size_for(n)
             else:
                 size = (int(round(2 * K[0, 2])), int(round(2 * K[1, 2])))
                 log.warning(
@@ -673,6 +701,7 @@ def read_easymocap(path: Path, opts: ImportOptions = ImportOptions()) -> CameraR
     finally:
         fi.release()
         fe.release()
+    _check_size_names(opts, cams, intri)
     return _nonempty(cams, intri, "'names' is empty")
 
 

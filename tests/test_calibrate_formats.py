@@ -189,6 +189,10 @@ def test_qualisys_distortion_scale_and_video_size(tmp_path, rng):
     cropped = import_rig(p, options=ImportOptions(image_size_wh=(1272, 720)))
     assert cropped[0].size_wh == (1272, 720)
     np.testing.assert_array_equal(cropped[0].K, import_rig(p)[0].K)
+    per_cam = import_rig(p, options=ImportOptions(image_size_wh={"cam_1": (1272, 720)}))
+    assert [c.size_wh for c in per_cam] == [(1280, 720), (1272, 720)]
+    with pytest.raises(FormatError, match="cam_9"):
+        import_rig(p, options=ImportOptions(image_size_wh={"cam_9": (1272, 720)}))
 
 
 @pytest.mark.parametrize("quarter_turns", [1, 2, 3])
@@ -379,6 +383,13 @@ def test_cli_import_export(tmp_path, rng, capsys):
         == 0
     )
     assert main(["import", str(anip), "--out", str(tmp_path / "r3.toml"), "--image-size", "1280x720"]) == 0
+    args = ["--image-size", "1270x720", "--image-size", "cam_2=1272x720"]
+    assert main(["import", str(qca), "--out", str(tmp_path / "r4.toml"), *args]) == 0
+    assert [c.size_wh for c in CameraRig.load(tmp_path / "r4.toml")] == [
+        (1270, 720),
+        (1270, 720),
+        (1272, 720),
+    ]
     capsys.readouterr()
 
 
