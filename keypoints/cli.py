@@ -1,0 +1,142 @@
+"""``keypoints`` console script.
+
+keypoints list                              model descriptions, where each file is, model sets
+keypoints fetch NAME [--model-dir DIR]      download a model into the cache and check its sha256
+keypoints run SESSION                       raw/<cam>.* -> keypoints/<cam>.npz
+keypoints run VIDEO... --out DIR            explicit videos (camera name = file stem, or cam=path)
+keypoints run TRIAL/videos --out DIR        every video in a folder (Pose2Sim demo layout)
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from capture.fileio import FormatError
+from keypoints import registry
+from keypoints.registry import ModelError
+
+
+def _list(args) -> int:
+    specs = registry.list_specs(args.model_dir)
+    print(f"{'name':24s} {'role':9s} {'skeleton':12s} status")
+    for name, s in sorted(specs.items()):
+        try:
+            where = str(registry.resolve(s, args.model_dir, verify=False))
+        except ModelError:
+            where = "not downloaded" + (f" (keypoints fetch {name})" if s.urls else "")
+        print(f"{name:24s} {s.role:9s} {s.skeleton or '-':12s} {where}")
+    print("\nmodel sets:")
+    for name, ms in registry.model_sets().items():
+        print(f"  {name:14s} {ms.detector + ' + ' if ms.detector else ''}{ms.pose}  {ms.description}")
+    print(f"\nsearch path: {[str(d) for d in registry.model_dirs(args.model_dir)]}")
+    return 0
+
+
+def _fetch(args) -> int:
+    from tqdm import tqdm
+
+    bar = tqdm(unit="B", unit_scale=True, desc=args.name)
+
+    def progress(done, total):
+        bar.total = total or None
+        bar.n = done
+        bar.refresh()
+
+    try:
+        path = registry.fetch(args.name, args.model_dir, force=args.force, progress=progress)
+    finally:
+        bar.close()
+    print(f"{args.name}: {path} (sha256 {registry.sha256_file(path)})")
+    return 0
+
+
+def _parse_videos(items: list[str]) -> dict[str, Path]:
+    from keypoints.video import videos_in
+
+    out: dict[str, Path] = {}
+    for it in items:
+        if "=" in it and not Path(it).exists():
+            cam, p = it.split("=", 1)
+            out[cam] = Path(p)
+        elif Path(it).is_dir():
+            out.update(videos_in(it))
+        else:
+            out[Path(it).stem] = Path(it)
+    return out
+
+
+def _run(args) -> int:
+    from keypoints.pipeline import PipelineConfig
+    from keypoints.runtime import RuntimeConfig
+    from keypoints.video import run_session, run_videos
+
+    cfg = PipelineConfig(
+        model_set=args.models,
+        refine_passes=args.refine_passes,
+        runtime=RuntimeConfig(threads=args.threads, model_dir=args.model_dir or ""),
+    )
+    first = Path(args.inputs[0])
+    if len(args.inputs) == 1 and first.is_dir() and (first / "raw").is_dir():
+        paths = run_session(
+            first, cameras=args.cameras, config=cfg, progress=True, max_frames=args.max_frames
+        )
+    else:
+        if not args.out:
+            print("keypoints run: --out DIR is needed for explicit videos", file=sys.stderr)
+            return 2
+        videos = _parse_videos(args.inputs)
+        if args.cameras:
+            videos = {c: p for c, p in videos.items() if c in args.cameras}
+        rep = run_videos(videos, args.out, cfg, progress=True, max_frames=args.max_frames)
+        for c, (fi, msg) in rep.decode_errors.items():
+            print(f"WARNING camera {c}: {msg}; kept frames before {fi}", file=sys.stderr)
+        paths = rep.paths
+    for c, p in paths.items():
+        print(f"{c}: {p}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="keypoints", description="2D multi-person keypoints through ONNX models"
+    )
+    ap.add_argument(
+        "--model-dir", default=None, help="folder with model files / descriptions (also ROOMCAP_MODELS)"
+    )
+    ap.add_argument("-v", "--verbose", action="store_true")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    sub.add_parser("list", help="list model descriptions and sets")
+    f = sub.add_parser("fetch", help="download a model and check its sha256")
+    f.add_argument("name")
+    f.add_argument("--force", action="store_true")
+    r = sub.add_parser("run", help="detect keypoints in a session or in videos")
+    r.add_argument(
+        "inputs", nargs="+", help="a session folder, videos (cam=path allowed) or a folder of videos"
+    )
+    r.add_argument("--out", default=None, help="output folder for explicit videos")
+    r.add_argument("--models", default="default", help="model set (keypoints list) or 'detector+pose'")
+    r.add_argument("--cameras", nargs="*", default=None)
+    r.add_argument("--max-frames", type=int, default=None)
+    r.add_argument("--threads", type=int, default=0)
+    r.add_argument(
+        "--refine-passes",
+        type=int,
+        default=1,
+        help="top-down: extra pose passes on upright crops from the previous pass (0 = faster)",
+    )
+    args = ap.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
+    )
+    try:
+        return {"list": _list, "fetch": _fetch, "run": _run}[args.cmd](args)
+    except (ModelError, FormatError, FileNotFoundError, KeyError) as e:
+        print(f"keypoints {args.cmd}: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

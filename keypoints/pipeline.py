@@ -1,0 +1,417 @@
+"""Per-image multi-person 2D keypoints: top-down (detector -> crops -> pose model) and bottom-up.
+
+``KeypointPipeline(model_set)`` takes a list of BGR images (one per camera, any sizes) and returns one
+``FrameResult`` per image with boxes, keypoints in full-image pixels and scores, in the canonical
+``body19`` layout (``keypoints.skeletons.convert``; the 3D stages read body19). Images are processed
+as one batch: one detector run over all cameras, one pose run over every person crop of every camera
+(where the model's batch dimension is dynamic; see ``keypoints.runtime``).
+
+Top-down crops are square (or the model's aspect) around the detector box times ``box_padding``, cut
+by one affine warp (no rotation: the detectors give no orientation), so portrait 1080x1920 frames and
+people near the border are handled the same way (outside the image is filled with the pad value).
+``stage_s`` accumulates seconds per stage for the benchmark.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from keypoints import decoders as D
+from keypoints.registry import ModelSpec, get_model_set, get_spec
+from keypoints.runtime import OnnxModel, RuntimeConfig
+from keypoints.skeletons import convert, get_skeleton
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own)."""
+
+    model_set: str = "default"
+    skeleton: str = "body19"
+    max_people: int = 20
+    det_score: float = 0.0  # 0 = the detector description's threshold
+    min_box_px: float = 24.0  # ignore boxes smaller than this (height, image px)
+    box_padding: float = 0.0  # 0 = the pose description's value
+    pose_presence: float = 0.0  # drop BlazePose people whose person-present probability is below this
+    refine_passes: int = 1  # top-down: pose passes on the box the previous pass's keypoints span
+    rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
+    keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+
+
+@dataclass
+class FrameResult:
+    """One image: boxes (P,5) x0,y0,x1,y1,score; xy_px (P,J,2) NaN = missing; score (P,J).
+
+    For bottom-up models with ``keep_maps``: ``maps`` (H,W,C) float16 (confidence maps then PAF x/y pairs) and
+    ``maps_to_img`` (2,3) affine from map pixels to image pixels.
+    """
+
+    boxes: np.ndarray
+    xy_px: np.ndarray
+    score: np.ndarray
+    maps: np.ndarray | None = None
+    maps_to_img: np.ndarray | None = None
+
+
+# ----------------------------------------------------------------------------- preprocessing
+
+
+def to_tensor(batch: np.ndarray, spec: ModelSpec) -> np.ndarray:
+    """batch (B,H,W,3) uint8 BGR -> model input (B,3,H,W) | (B,H,W,3), the description's dtype/colour."""
+    s = spec.input
+    if batch.ndim != 4 or batch.shape[-1] != 3:
+        raise ValueError(f"to_tensor: expected (B,H,W,3) images, got {batch.shape}")
+    if s.color == "RGB":
+        batch = batch[..., ::-1]
+    if s.dtype == "uint8":
+        x = batch
+    else:
+        x = batch.astype(np.float32)
+        if s.scale != 1.0:
+            x *= np.float32(s.scale)
+        if any(s.mean):
+            x -= np.asarray(s.mean, np.float32)
+        if any(v != 1.0 for v in s.std):
+            x /= np.asarray(s.std, np.float32)
+    if s.layout == "NCHW":
+        x = x.transpose(0, 3, 1, 2)
+    return np.ascontiguousarray(x)
+
+
+def letterbox(img: np.ndarray, size_wh: tuple[int, int], pad_value: float, out: np.ndarray | None = None):
+    """Resize keeping aspect by r = min(W/w, H/h), paste at the top-left of a padded canvas (H,W,3).
+
+    Returns (canvas, r); image px = input px / r.
+    """
+    h, w = img.shape[:2]
+    W, H = size_wh
+    r = min(W / w, H / h)
+    nw, nh = max(1, int(round(w * r))), max(1, int(round(h * r)))
+    canvas = np.full((H, W, 3), pad_value, np.uint8) if out is None else out
+    if out is not None:
+        canvas[...] = pad_value
+    canvas[:nh, :nw] = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if r < 1 else cv2.INTER_LINEAR)
+    return canvas, r
+
+
+def crop_transform(
+    box: np.ndarray, size_wh: tuple[int, int], padding: float, angle_rad: float = 0.0
+) -> np.ndarray:
+    """(2,3) affine image px -> crop px for a box x0,y0,x1,y1 enlarged by ``padding`` to the crop's aspect.
+
+    ``angle_rad``: the body's tilt from the image's up direction (clockwise positive); the crop is rotated by
+    it so that the person stands upright in the crop (BlazePose's ROI alignment, mediapipe's pose landmark
+    graph). The box is then taken in that rotated frame.
+    """
+    W, H = size_wh
+    cx, cy = 0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3])
+    bw, bh = (box[2] - box[0]) * padding, (box[3] - box[1]) * padding
+    aspect = W / H
+    if bw / max(bh, 1e-6) > aspect:
+        bh = bw / aspect
+    else:
+        bw = bh * aspect
+    s = W / max(bw, 1e-6)
+    c, n = np.cos(angle_rad), np.sin(angle_rad)
+    A = s * np.array([[c, n], [-n, c]])  # rotate the image by -angle, then scale
+    return np.hstack([A, (np.array([W / 2, H / 2]) - A @ np.array([cx, cy]))[:, None]])
+
+
+def apply_inverse(M: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Crop px back to image px through the inverse of affines M (N,2,3); xy (N,J,2)."""
+    A, t = M[:, :, :2], M[:, :, 2]
+    Ainv = np.linalg.inv(A)  # (N,2,2)
+    return np.einsum("nij,nkj->nki", Ainv, xy - t[:, None, :])
+
+
+def upright_boxes(
+    xy: np.ndarray,
+    sc: np.ndarray,
+    skeleton: str,
+    det: np.ndarray,
+    min_score: float = 0.3,
+    margin: float = 0.1,
+):
+    """Boxes (M,4) and tilt angles (M,) from first-pass keypoints (M,J,2) image px, scores (M,J).
+
+    The tilt is the angle of the hips-centre -> shoulders-centre vector from the image's up direction; the
+    box is the extent of the confident keypoints in the frame rotated upright, grown by ``margin`` x its
+    size (keypoints are joint centres: head top and feet lie beyond them). Where fewer than 4 keypoints or
+    no hips/shoulders are confident, the detector's box and no tilt.
+    """
+    sk = get_skeleton(skeleton)
+    try:
+        idx = [sk.index(n) for n in ("left_hip", "right_hip", "left_shoulder", "right_shoulder")]
+    except KeyError:
+        idx = None
+    boxes = np.asarray(det[:, :4], np.float64).copy()
+    angles = np.zeros(len(det))
+    for i in range(len(det)):
+        ok = sc[i] >= min_score
+        if ok.sum() < 4:
+            continue
+        p = xy[i, ok].astype(np.float64)
+        a = 0.0
+        if idx is not None and (sc[i, idx] >= min_score).all():
+            hip = 0.5 * (xy[i, idx[0]] + xy[i, idx[1]])
+            sho = 0.5 * (xy[i, idx[2]] + xy[i, idx[3]])
+            up = sho - hip
+            a = float(np.arctan2(up[0], -up[1]))  # 0 = upright, clockwise positive
+        c, n = np.cos(a), np.sin(a)
+        R = np.array([[c, n], [-n, c]])
+        q = p @ R.T  # rotated frame
+        lo, hi = q.min(0), q.max(0)
+        m = margin * max(hi - lo)
+        lo, hi = lo - m, hi + m
+        ctr = R.T @ (0.5 * (lo + hi))  # back to image frame
+        half = 0.5 * (hi - lo)
+        boxes[i] = (ctr[0] - half[0], ctr[1] - half[1], ctr[0] + half[0], ctr[1] + half[1])
+        angles[i] = a
+    return boxes, angles
+
+
+# ----------------------------------------------------------------------------- the pipeline
+
+
+class KeypointPipeline:
+    def __init__(self, config: PipelineConfig | str = "default"):
+        if isinstance(config, str):
+            config = PipelineConfig(model_set=config)
+        self.config = config
+        self.model_set = get_model_set(config.model_set)
+        md = config.runtime.model_dir or None
+        self.pose_spec = get_spec(self.model_set.pose, md)
+        self.det_spec = get_spec(self.model_set.detector, md) if self.model_set.detector else None
+        if self.pose_spec.role == "pose" and self.det_spec is None:
+            raise ValueError(
+                f"model set '{config.model_set}': pose model '{self.pose_spec.name}' is top-down and "
+                "needs a detector ('detector+pose')."
+            )
+        if self.det_spec is not None and self.det_spec.role != "detector":
+            raise ValueError(f"model '{self.det_spec.name}' is a {self.det_spec.role}, not a detector.")
+        self.pose = OnnxModel(self.pose_spec, config.runtime)
+        self.detector = OnnxModel(self.det_spec, config.runtime) if self.det_spec else None
+        self.src_skeleton = self.pose_spec.skeleton
+        self.skeleton = self.src_skeleton if config.skeleton == "model" else config.skeleton
+        get_skeleton(self.skeleton)
+        self.stage_s: dict[str, float] = defaultdict(float)
+
+    # identity of what produced the keypoints (goes into the detections file)
+    @property
+    def model_id(self) -> str:
+        return "+".join(m.spec.name for m in (self.detector, self.pose) if m is not None)
+
+    @property
+    def model_sha256(self) -> str:
+        return "+".join(m.sha256 for m in (self.detector, self.pose) if m is not None)
+
+    @property
+    def models(self) -> list[OnnxModel]:
+        return [m for m in (self.detector, self.pose) if m is not None]
+
+    def model_run_s(self) -> float:
+        return sum(m.run_s for m in self.models)
+
+    def _tick(self, name: str, t0: float) -> float:
+        t = time.perf_counter()
+        self.stage_s[name] += t - t0
+        return t
+
+    def __call__(self, images: list[np.ndarray]) -> list[FrameResult]:
+        """images: list of (H,W,3) uint8 BGR (sizes may differ). Returns one FrameResult per image."""
+        for i, im in enumerate(images):
+            if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
+                raise ValueError(f"image {i}: expected (H,W,3) uint8 BGR, got {im.shape} {im.dtype}")
+        if not images:
+            return []
+        role = self.pose_spec.role
+        if role == "pose":
+            return self._top_down(images)
+        if role == "onestage":
+            return self._one_stage(images)
+        return self._bottom_up(images)
+
+    # ---- whole-image models: letterbox all images into one batch
+    def _letterbox_batch(self, images, spec: ModelSpec):
+        W, H = spec.input.size_wh
+        canv = np.empty((len(images), H, W, 3), np.uint8)
+        ratios = np.empty(len(images))
+        for i, im in enumerate(images):
+            _, ratios[i] = letterbox(im, (W, H), spec.input.pad_value, out=canv[i])
+        return to_tensor(canv, spec), ratios
+
+    def detect(self, images: list[np.ndarray]) -> list[np.ndarray]:
+        """Person boxes per image (M,5) in image px, best first, at most max_people."""
+        spec = self.det_spec
+        t = time.perf_counter()
+        x, ratios = self._letterbox_batch(images, spec)
+        t = self._tick("detect_pre", t)
+        outs = self.detector.run(x)
+        t = self._tick("detect", t)
+        d = spec.decoder
+        thr = self.config.det_score or d.score_threshold
+        if d.kind == "yolox":
+            boxes = D.decode_yolox(outs[0], spec.input.size_wh, d.strides, d.class_id, thr, d.nms_iou)
+        else:
+            boxes = D.decode_dets(outs[0], outs[1] if len(outs) > 1 else None, d.class_id, thr, d.nms_iou)
+        res = []
+        for b, r, im in zip(boxes, ratios, images, strict=True):
+            b = b.copy()
+            b[:, :4] /= r
+            h, w = im.shape[:2]
+            b[:, [0, 2]] = b[:, [0, 2]].clip(0, w)
+            b[:, [1, 3]] = b[:, [1, 3]].clip(0, h)
+            b = b[(b[:, 3] - b[:, 1]) >= self.config.min_box_px]
+            res.append(b[np.argsort(-b[:, 4])][: self.config.max_people])
+        self._tick("detect_post", t)
+        return res
+
+    def pose_on_boxes(
+        self, images: list[np.ndarray], boxes: list[np.ndarray], angles: list[np.ndarray] | None = None
+    ):
+        """Run the pose model on every box of every image as one batch.
+
+        Returns per image (xy (M,J,2) image px, score (M,J), person (M,)) in the model's skeleton.
+        """
+        spec = self.pose_spec
+        W, H = spec.input.size_wh
+        pad = self.config.box_padding or spec.input.box_padding
+        t = time.perf_counter()
+        n = sum(len(b) for b in boxes)
+        crops = np.empty((n, H, W, 3), np.uint8)
+        Ms = np.empty((n, 2, 3))
+        k = 0
+        for i, (im, bs) in enumerate(zip(images, boxes, strict=True)):
+            for j, b in enumerate(bs):
+                Ms[k] = crop_transform(b, (W, H), pad, 0.0 if angles is None else angles[i][j])
+                cv2.warpAffine(
+                    im,
+                    Ms[k],
+                    (W, H),
+                    dst=crops[k],
+                    flags=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=(spec.input.pad_value,) * 3,
+                )
+                k += 1
+        x = to_tensor(crops, spec) if n else None
+        t = self._tick("crop", t)
+        outs = self.pose.run(x) if n else None
+        t = self._tick("pose", t)
+        d = spec.decoder
+        J = get_skeleton(spec.skeleton).n_joints
+        if n == 0:
+            xy, sc, person = np.zeros((0, J, 2)), np.zeros((0, J)), np.zeros(0)
+        elif d.kind == "blazepose":
+            xy, sc, person = D.decode_blazepose(outs[0], outs[1], d.n_landmarks)
+        elif d.kind == "movenet":
+            xy, sc = D.decode_movenet(outs[0], (W, H))
+            person = sc.mean(1)
+        elif d.kind == "simcc":
+            xy, sc = D.decode_simcc(outs[0], outs[1], d.split_ratio)
+            person = sc.mean(1)
+        else:  # pragma: no cover - registry validates role/decoder pairs
+            raise ValueError(f"decoder {d.kind} is not a top-down pose decoder")
+        if n:
+            xy = apply_inverse(Ms, xy)
+        res, k = [], 0
+        for bs in boxes:
+            m = len(bs)
+            res.append((xy[k : k + m], sc[k : k + m], person[k : k + m]))
+            k += m
+        self._tick("pose_post", t)
+        return res
+
+    def _top_down(self, images):
+        boxes = self.detect(images)
+        res = self.pose_on_boxes(images, boxes)
+        for _ in range(self.config.refine_passes):
+            # again on the box the keypoints span, rotated upright: the detector's box is loose or cuts limbs,
+            # and models trained on aligned crops (BlazePose) lose leaning people in unrotated crops
+            t = time.perf_counter()
+            ba = [
+                upright_boxes(xy, sc, self.src_skeleton, b) for (xy, sc, _), b in zip(res, boxes, strict=True)
+            ]
+            self._tick("pose_post", t)
+            res = self.pose_on_boxes(
+                images, [b for b, _ in ba], [a if self.config.rotate else 0 * a for _, a in ba]
+            )
+        out = []
+        t = time.perf_counter()
+        for (xy, sc, person), b in zip(res, boxes, strict=True):
+            keep = person >= self.config.pose_presence
+            out.append(self._finish(b[keep], xy[keep], sc[keep]))
+        self._tick("pose_post", t)
+        return out
+
+    def _finish(self, boxes, xy, sc) -> FrameResult:
+        if self.skeleton != self.src_skeleton:
+            xy, sc = convert(xy, sc, self.src_skeleton, self.skeleton)
+        xy = np.asarray(xy, np.float32)
+        sc = np.asarray(sc, np.float32)
+        xy[sc <= 0] = np.nan
+        return FrameResult(np.asarray(boxes, np.float32), xy, sc)
+
+    def _one_stage(self, images):
+        spec = self.pose_spec
+        t = time.perf_counter()
+        x, ratios = self._letterbox_batch(images, spec)
+        t = self._tick("detect_pre", t)
+        outs = self.pose.run(x)
+        t = self._tick("pose", t)
+        d = spec.decoder
+        res = []
+        for (b, xy, sc), r in zip(
+            D.decode_rtmo(outs[0], outs[1], d.score_threshold, d.nms_iou), ratios, strict=True
+        ):
+            b = b.copy()
+            b[:, :4] /= r
+            order = np.argsort(-b[:, 4])[: self.config.max_people]
+            res.append(self._finish(b[order], xy[order] / r, sc[order]))
+        self._tick("pose_post", t)
+        return res
+
+    def _bottom_up(self, images):
+        spec = self.pose_spec
+        d = spec.decoder
+        t = time.perf_counter()
+        x, ratios = self._letterbox_batch(images, spec)
+        t = self._tick("detect_pre", t)
+        maps = self.pose.run(x)[0]  # (B,h,w,C) (NHWC) or (B,C,h,w)
+        if maps.shape[-1] != d.n_parts + 1 + 2 * len(D.OPENPOSE_LIMBS):
+            maps = maps.transpose(0, 2, 3, 1)
+        t = self._tick("pose", t)
+        res = []
+        for m, r in zip(maps, ratios, strict=True):
+            heat, paf = m[..., : d.n_parts], m[..., d.n_parts + 1 :]
+            if d.paf_channels:
+                paf = paf[..., [c for pair in d.paf_channels for c in pair]]
+            peaks = D.find_peaks(heat, d.peak_threshold)
+            xy, sc = D.group_paf(peaks, paf, D.OPENPOSE_LIMBS, d.paf_threshold)
+            # map px -> input px (pixel centres: (x + 0.5) * stride - 0.5) -> image px
+            s = d.stride
+            to_img = np.array([[s / r, 0, (0.5 * s - 0.5) / r], [0, s / r, (0.5 * s - 0.5) / r]])
+            xy = xy * (s / r) + (0.5 * s - 0.5) / r
+            boxes = np.full((len(xy), 5), np.nan, np.float32)
+            for p in range(len(xy)):
+                ok = ~np.isnan(xy[p, :, 0])
+                if ok.any():
+                    boxes[p, :2], boxes[p, 2:4] = xy[p, ok].min(0), xy[p, ok].max(0)
+                    boxes[p, 4] = sc[p, ok].mean()
+            fr = self._finish(
+                boxes[: self.config.max_people], xy[: self.config.max_people], sc[: self.config.max_people]
+            )
+            if self.config.keep_maps:
+                fr.maps, fr.maps_to_img = m.astype(np.float16), to_img
+            res.append(fr)
+        self._tick("pose_post", t)
+        return res

@@ -1,0 +1,454 @@
+"""2D keypoints over the videos of a session: threaded decoding, batched inference, resumable writing.
+
+``run_session(session_dir)`` reads ``raw/<cam>.*`` (``capture.session.SessionLayout``) and writes
+``keypoints/<cam>.npz`` (``keypoints.detections.Detections``, body19). ``run_videos({cam: path}, out_dir)``
+does the same for explicit videos, e.g. the Pose2Sim demo layout ``<trial>/videos/cam01.mp4`` (camera name
+= file stem, which matches the Qualisys ``serial`` names ``cam01``..).
+
+- one decoding thread per camera feeds a small queue (OpenCV releases the GIL while decoding);
+- each step takes the next frame of every camera and runs them as one batch through the pipeline (one
+  detector run over all cameras, one pose run over all person crops);
+- results are written every ``chunk_frames`` frames to ``keypoints/.<cam>.parts/NNNNNNNN.npz`` (atomic);
+  a killed run resumes after the last complete chunk (same model set and sha256, else it starts over);
+  at the end the chunks are merged into ``<cam>.npz`` and removed;
+- a video that stops decoding before its announced frame count keeps the frames done; the frame that
+  failed is logged, returned in ``RunReport.decode_errors`` and saved as ``decode_error_frame``;
+- a video whose size differs from the calibration's: a difference of at most 16 px (codec padding,
+  e.g. 1080 vs 1088) is logged, anything else (or width and height swapped: a rotated video) raises.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import queue
+import shutil
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from capture.fileio import FormatError, load_npz, save_npz
+from capture.session import VIDEO_SUFFIXES, SessionLayout
+from keypoints.detections import Detections
+from keypoints.pipeline import FrameResult, KeypointPipeline, PipelineConfig
+from keypoints.skeletons import get_skeleton
+
+log = logging.getLogger(__name__)
+
+SIZE_TOLERANCE_PX = 16
+_END = object()
+
+
+@dataclass
+class RunReport:
+    paths: dict[str, Path] = field(default_factory=dict)
+    frames: dict[str, int] = field(default_factory=dict)
+    decode_errors: dict[str, tuple[int, str]] = field(default_factory=dict)
+    resumed_from: dict[str, int] = field(default_factory=dict)
+    stage_s: dict[str, float] = field(default_factory=dict)
+    model_s: float = 0.0
+    wall_s: float = 0.0
+
+
+class VideoDecodeError(RuntimeError):
+    pass
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_frames_csv(path: Path) -> dict[int, int]:
+    """``raw/<cam>.frames.csv`` -> {frame_index: t_ns}."""
+    out = {}
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            out[int(row["frame_index"])] = int(row["t_ns"])
+    return out
+
+
+class FrameReader(threading.Thread):
+    """Decodes one video in a thread into a bounded queue of (frame_index, t_ns, image).
+
+    Ends with ``_END``; a decoding failure before the announced frame count puts ``("error", index, msg)``.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        start: int = 0,
+        stop: int | None = None,
+        timestamps: dict[int, int] | None = None,
+        maxsize: int = 4,
+    ):
+        super().__init__(daemon=True)
+        self.path = Path(path)
+        self.cap = cv2.VideoCapture(str(path))
+        if not self.cap.isOpened():
+            raise VideoDecodeError(
+                f"{path}: cannot be opened as a video (missing codec or not a video file)."
+            )
+        self.n_frames = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+        self.fps = float(self.cap.get(cv2.CAP_PROP_FPS)) or 30.0
+        self.size_wh = (
+            int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+        )
+        self.start_index = start
+        self.stop_index = stop
+        self.timestamps = timestamps
+        self.q: queue.Queue = queue.Queue(maxsize)
+        self.decode_s = 0.0
+        self._halt = threading.Event()
+
+    def run(self) -> None:
+        i = 0
+        try:
+            while i < self.start_index:  # grab() skips without converting; exact where seeking is not
+                if not self.cap.grab():
+                    break
+                i += 1
+            while not self._halt.is_set() and (self.stop_index is None or i < self.stop_index):
+                t = time.perf_counter()
+                ok, img = self.cap.read()
+                self.decode_s += time.perf_counter() - t
+                if not ok:
+                    if self.n_frames is not None and i < self.n_frames:
+                        self.q.put(("error", i, f"decoding stopped at frame {i} of {self.n_frames}"))
+                    break
+                t_ns = self.timestamps.get(i, -1) if self.timestamps else int(round(i / self.fps * 1e9))
+                self.q.put((i, t_ns, img))
+                i += 1
+        except Exception as e:  # report any decoder failure as the frame it happened at
+            self.q.put(("error", i, f"{type(e).__name__}: {e}"))
+        finally:
+            self.q.put(_END)
+            self.cap.release()
+
+    def halt(self) -> None:
+        self._halt.set()
+        while True:  # unblock a put() waiting on a full queue
+            try:
+                self.q.get_nowait()
+            except queue.Empty:
+                break
+
+
+# ----------------------------------------------------------------------------- chunks
+
+
+class ChunkWriter:
+    """Accumulates per-frame results of one camera and writes them in atomic chunk files."""
+
+    def __init__(
+        self, out_dir: Path, cam: str, skeleton: str, model: str, model_sha256: str, chunk_frames: int
+    ):
+        self.dir = out_dir / f".{cam}.parts"
+        self.cam, self.skeleton, self.model, self.sha = cam, skeleton, model, model_sha256
+        self.chunk_frames = chunk_frames
+        self.J = get_skeleton(skeleton).n_joints
+        self.buf: list[tuple[int, int, FrameResult]] = []
+        self.write_s = 0.0
+
+    def existing(self) -> list[Path]:
+        """Chunks from an earlier run of the same models; others are removed."""
+        if not self.dir.is_dir():
+            return []
+        parts = sorted(self.dir.glob("[0-9]*.npz"))
+        good = []
+        for p in parts:
+            try:
+                d = load_npz(p)
+                same = (
+                    str(d["model"]) == self.model
+                    and str(d["model_sha256"]) == self.sha
+                    and str(d["skeleton"]) == self.skeleton
+                )
+            except (FormatError, KeyError):
+                same = False
+            if not same:
+                log.info("%s: discarding chunks of another run (%s)", self.cam, p)
+                shutil.rmtree(self.dir)
+                return []
+            good.append(p)
+        return good
+
+    def next_frame(self) -> int:
+        parts = self.existing()
+        if not parts:
+            return 0
+        return int(load_npz(parts[-1])["frame_index"][-1]) + 1
+
+    def add(self, frame_index: int, t_ns: int, res: FrameResult) -> None:
+        self.buf.append((frame_index, t_ns, res))
+        if len(self.buf) >= self.chunk_frames:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.buf:
+            return
+        t = time.perf_counter()
+        P = max([len(r.boxes) for _, _, r in self.buf] + [1])
+        T = len(self.buf)
+        xy = np.full((T, P, self.J, 2), np.nan, np.float32)
+        sc = np.zeros((T, P, self.J), np.float32)
+        bx = np.full((T, P, 5), np.nan, np.float32)
+        for k, (_, _, r) in enumerate(self.buf):
+            n = len(r.boxes)
+            xy[k, :n], sc[k, :n], bx[k, :n] = r.xy_px, r.score, r.boxes
+        fi = np.array([f for f, _, _ in self.buf], np.int64)
+        save_npz(
+            self.dir / f"{fi[0]:08d}.npz",
+            {
+                "frame_index": fi,
+                "t_ns": np.array([t for _, t, _ in self.buf], np.int64),
+                "xy_px": xy,
+                "score": sc,
+                "boxes": bx,
+                "model": self.model,
+                "model_sha256": self.sha,
+                "skeleton": self.skeleton,
+            },
+            compress=False,
+        )
+        self.buf = []
+        self.write_s += time.perf_counter() - t
+
+    def merge(self, dest: Path, image_size_wh, extra: dict) -> Detections:
+        self.flush()
+        parts = [load_npz(p) for p in sorted(self.dir.glob("[0-9]*.npz"))] if self.dir.is_dir() else []
+        if not parts:
+            det = Detections.empty(self.cam, self.skeleton, 0, 0, model=self.model, model_sha256=self.sha)
+        else:
+            P = max(p["xy_px"].shape[1] for p in parts)
+
+            def pad(a, fill):
+                width = [(0, 0)] * a.ndim
+                width[1] = (0, P - a.shape[1])
+                return np.pad(a, width, constant_values=fill)
+
+            det = Detections(
+                camera=self.cam,
+                skeleton=self.skeleton,
+                frame_index=np.concatenate([p["frame_index"] for p in parts]),
+                t_ns=np.concatenate([p["t_ns"] for p in parts]),
+                xy_px=np.concatenate([pad(p["xy_px"], np.nan) for p in parts]),
+                score=np.concatenate([pad(p["score"], 0) for p in parts]),
+                boxes=np.concatenate([pad(p["boxes"], np.nan) for p in parts]),
+                model=self.model,
+                model_sha256=self.sha,
+                image_size_wh=image_size_wh,
+                extra=extra,
+            )
+        t = time.perf_counter()
+        det.save(dest)
+        self.write_s += time.perf_counter() - t
+        if self.dir.is_dir():
+            shutil.rmtree(self.dir)
+        return det
+
+
+# ----------------------------------------------------------------------------- checks
+
+
+def check_size(cam: str, video_wh: tuple[int, int], calib_wh: tuple[int, int] | None, path: Path) -> None:
+    """Compare a video's frame size with its camera's calibrated size (see the module docstring)."""
+    if calib_wh is None:
+        return
+    vw, vh = video_wh
+    cw, ch = int(calib_wh[0]), int(calib_wh[1])
+    if (vw, vh) == (cw, ch):
+        return
+    if abs(vw - cw) <= SIZE_TOLERANCE_PX and abs(vh - ch) <= SIZE_TOLERANCE_PX:
+        log.warning(
+            "camera %s: video %s is %dx%d, calibration %dx%d; within codec padding, keypoints are used "
+            "as is (the origin is the top-left pixel in both)",
+            cam,
+            path,
+            vw,
+            vh,
+            cw,
+            ch,
+        )
+        return
+    hint = (
+        " Width and height are swapped: the video is rotated relative to the calibration; rotate it back "
+        "or recalibrate."
+        if (vw, vh) == (ch, cw)
+        else " Record at the calibrated resolution, or recalibrate (or scale K) for this resolution."
+    )
+    raise FormatError(
+        path, "size", f"camera '{cam}': video is {vw}x{vh} but the calibration says {cw}x{ch}.", hint.strip()
+    )
+
+
+def _calib_sizes(rig) -> dict[str, tuple[int, int]]:
+    if rig is None:
+        return {}
+    if isinstance(rig, dict):
+        return {k: tuple(v) for k, v in rig.items()}
+    return {c.name: tuple(c.size_wh) for c in rig.cameras}
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def run_videos(
+    videos: dict[str, str | os.PathLike],
+    out_dir: str | os.PathLike,
+    config: PipelineConfig | str = "default",
+    rig=None,
+    chunk_frames: int = 50,
+    max_frames: int | None = None,
+    progress: bool = False,
+    timestamps: dict[str, Path] | None = None,
+    pipeline: KeypointPipeline | None = None,
+) -> RunReport:
+    """Run the 2D pipeline over videos ``{camera name: path}`` and write ``out_dir/<cam>.npz``.
+
+    ``rig``: a ``CameraRig`` or ``{cam: (w, h)}`` to check video sizes against. ``max_frames``: stop after
+    this many frames per camera. ``timestamps``: ``{cam: frames.csv}`` with per-frame ``t_ns``.
+    """
+    t_wall = time.perf_counter()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if isinstance(config, str):
+        config = PipelineConfig(model_set=config)
+    pipe = pipeline or KeypointPipeline(config)
+    cams = list(videos)
+    for c in cams:
+        if not Path(videos[c]).exists():
+            raise FileNotFoundError(f"camera '{c}': video {videos[c]} does not exist.")
+    sizes = _calib_sizes(rig)
+    writers = {
+        c: ChunkWriter(out_dir, c, pipe.skeleton, pipe.model_id, pipe.model_sha256, chunk_frames)
+        for c in cams
+    }
+    report = RunReport()
+    readers: dict[str, FrameReader] = {}
+    for c in cams:
+        start = writers[c].next_frame()
+        ts = read_frames_csv(Path(timestamps[c])) if timestamps and c in timestamps else None
+        r = FrameReader(Path(videos[c]), start=start, stop=max_frames, timestamps=ts)
+        check_size(c, r.size_wh, sizes.get(c), Path(videos[c]))
+        if start:
+            log.info("camera %s: resuming at frame %d", c, start)
+            report.resumed_from[c] = start
+        readers[c] = r
+    bars = {}
+    if progress:
+        from tqdm import tqdm
+
+        for k, c in enumerate(cams):
+            total = (
+                readers[c].n_frames
+                if max_frames is None
+                else min(max_frames, readers[c].n_frames or max_frames)
+            )
+            bars[c] = tqdm(
+                total=total, initial=readers[c].start_index, desc=c, position=k, unit="fr", leave=True
+            )
+    for r in readers.values():
+        r.start()
+    live = list(cams)
+    try:
+        while live:
+            batch_cams, imgs, meta = [], [], []
+            for c in list(live):
+                item = readers[c].q.get()
+                if item is _END:
+                    live.remove(c)
+                    continue
+                if item[0] == "error":
+                    _, fi, msg = item
+                    report.decode_errors[c] = (fi, msg)
+                    log.warning("camera %s: %s (%s); keeping the %d frames before it", c, msg, videos[c], fi)
+                    continue
+                batch_cams.append(c)
+                imgs.append(item[2])
+                meta.append(item[:2])
+            if not imgs:
+                continue
+            results = pipe(imgs)
+            for c, (fi, t_ns), res in zip(batch_cams, meta, results, strict=True):
+                writers[c].add(fi, t_ns, res)
+                if c in bars:
+                    bars[c].update(1)
+    finally:
+        for r in readers.values():
+            r.halt()
+        for b in bars.values():
+            b.close()
+    for c in cams:
+        err = report.decode_errors.get(c, (-1, ""))
+        extra = {
+            "decode_error_frame": np.int64(err[0]),
+            "video": str(videos[c]),
+            "fps": np.float64(readers[c].fps),
+            "model_set": config.model_set,
+        }
+        det = writers[c].merge(out_dir / f"{c}.npz", readers[c].size_wh, extra)
+        report.paths[c] = out_dir / f"{c}.npz"
+        report.frames[c] = det.n_frames
+    st = defaultdict(float, pipe.stage_s)
+    st["decode"] = sum(r.decode_s for r in readers.values())
+    st["write"] = sum(w.write_s for w in writers.values())
+    report.stage_s = dict(st)
+    report.model_s = pipe.model_run_s()
+    report.wall_s = time.perf_counter() - t_wall
+    return report
+
+
+def videos_in(folder: str | os.PathLike) -> dict[str, Path]:
+    """``{stem: path}`` for the videos in a folder (the Pose2Sim layout ``<trial>/videos/camNN.mp4``)."""
+    folder = Path(folder)
+    out = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES}
+    if not out:
+        raise FileNotFoundError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {folder}.")
+    return out
+
+
+def run_session(
+    session_dir: str | os.PathLike,
+    model_set: str = "default",
+    cameras: list[str] | None = None,
+    progress: bool = True,
+    config: PipelineConfig | None = None,
+    rig=None,
+    **kw,
+) -> dict[str, Path]:
+    """Keypoints for a session folder: ``raw/<cam>.*`` -> ``keypoints/<cam>.npz``. Returns ``{cam: path}``.
+
+    The rig (``calib/rig.toml`` or the one session.toml points to) is loaded, when present and readable,
+    to check video sizes; timestamps come from ``raw/<cam>.frames.csv`` when present.
+    """
+    lay = SessionLayout(session_dir)
+    cams = cameras or lay.raw_cameras()
+    if not cams:
+        raise FileNotFoundError(f"no camera videos under {lay.raw_dir}; expected raw/<cam>.mp4.")
+    videos = {c: lay.video(c) for c in cams}
+    if rig is None and lay.rig_toml.exists():
+        try:
+            from calibrate.camera import CameraRig
+
+            rig = CameraRig.load(lay.rig_toml)
+        except ImportError:  # calibrate not available in this build
+            rig = None
+    if rig is not None and not isinstance(rig, dict):
+        missing = [c for c in cams if c not in rig.names]
+        if missing:
+            raise FormatError(
+                lay.rig_toml,
+                "cameras",
+                f"cameras {missing} have videos but no calibration (rig cameras: {list(rig.names)}).",
+                "Name videos raw/<rig camera name>.mp4.",
+            )
+    ts = {c: lay.frames_csv(c) for c in cams if lay.frames_csv(c).exists()}
+    cfg = config or PipelineConfig(model_set=model_set)
+    rep = run_videos(videos, lay.keypoints_dir, cfg, rig=rig, progress=progress, timestamps=ts, **kw)
+    return rep.paths

@@ -1,0 +1,131 @@
+"""Session video pipeline: chunked writing that resumes after a kill, a video that stops decoding mid-way,
+video size against the calibration, run_session on a session folder. Tiny ONNX models keep it fast."""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+import pytest
+from keypoints_tiny import make_dets_model, make_simcc_model
+
+from capture.fileio import FormatError
+from keypoints.detections import Detections
+from keypoints.pipeline import KeypointPipeline, PipelineConfig
+from keypoints.video import check_size, run_session, run_videos
+
+W, H = 160, 120
+
+
+@pytest.fixture
+def tiny_set(tmp_path, monkeypatch):
+    d = tmp_path / "models"
+    d.mkdir()
+    monkeypatch.setenv("ROOMCAP_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("ROOMCAP_MODELS", str(d))
+    kp = np.stack([np.arange(17) * 8 + 20, np.arange(17) * 10 + 30], 1).astype(np.float32)
+    make_simcc_model(d, kp)
+    make_dets_model(d, np.array([[40, 40, 200, 400, 0.9]], np.float32), np.array([0]))
+    return PipelineConfig(model_set="tiny_det+tiny_simcc", refine_passes=0, min_box_px=1)
+
+
+def write_video(path, n, size=(W, H), seed=0):
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, size)
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        w.write(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8))
+    w.release()
+    return path
+
+
+class Killed(Exception):
+    pass
+
+
+class DiesAfter:
+    """A pipeline that is killed at its n-th call (as if the process died)."""
+
+    def __init__(self, pipe, n):
+        self.pipe, self.n = pipe, n
+
+    def __getattr__(self, k):
+        return getattr(self.pipe, k)
+
+    def __call__(self, imgs):
+        self.n -= 1
+        if self.n < 0:
+            raise Killed
+        return self.pipe(imgs)
+
+
+def test_killed_run_resumes_after_last_chunk(tmp_path, tiny_set):
+    vids = {c: write_video(tmp_path / f"{c}.avi", 9, seed=i) for i, c in enumerate(["cam01", "cam02"])}
+    ref = run_videos(vids, tmp_path / "ref", tiny_set, chunk_frames=2)
+    pipe = KeypointPipeline(tiny_set)
+    with pytest.raises(Killed):
+        run_videos(vids, tmp_path / "out", tiny_set, chunk_frames=2, pipeline=DiesAfter(pipe, 5))
+    assert not (tmp_path / "out" / "cam01.npz").exists()
+    assert len(list((tmp_path / "out" / ".cam01.parts").glob("*.npz"))) == 2  # frames 0-3 survived
+    rep = run_videos(vids, tmp_path / "out", tiny_set, chunk_frames=2, pipeline=pipe)
+    assert rep.resumed_from == {"cam01": 4, "cam02": 4}
+    assert not (tmp_path / "out" / ".cam01.parts").exists()
+    for c in vids:
+        a, b = Detections.load(ref.paths[c]), Detections.load(rep.paths[c])
+        assert a.frame_index.tolist() == b.frame_index.tolist() == list(range(9))
+        np.testing.assert_array_equal(a.xy_px, b.xy_px)
+        assert b.skeleton == "body19" and b.model == "tiny_det+tiny_simcc" and len(b.model_sha256) == 129
+        assert b.image_size_wh == (W, H)
+        assert np.isfinite(b.xy_px[:, 0]).all() and np.allclose(b.t_ns[1] - b.t_ns[0], 1e8)
+
+
+def test_chunks_of_another_model_are_not_reused(tmp_path, tiny_set):
+    vids = {"cam01": write_video(tmp_path / "cam01.avi", 4)}
+    pipe = KeypointPipeline(tiny_set)
+    with pytest.raises(Killed):
+        run_videos(vids, tmp_path / "out", tiny_set, chunk_frames=2, pipeline=DiesAfter(pipe, 3))
+    other = PipelineConfig(model_set=tiny_set.model_set, skeleton="model", refine_passes=0, min_box_px=1)
+    rep = run_videos(vids, tmp_path / "out", other, chunk_frames=2)
+    assert rep.resumed_from == {} and Detections.load(rep.paths["cam01"]).skeleton == "coco17"
+
+
+def test_video_that_stops_decoding_keeps_the_frames_done(tmp_path, tiny_set, caplog):
+    good = write_video(tmp_path / "cam01.avi", 12)
+    bad = tmp_path / "cam02.avi"
+    data = write_video(tmp_path / "tmp.avi", 12, seed=1).read_bytes()
+    bad.write_bytes(data[: len(data) // 2])  # truncated: the header still announces 12 frames
+    with caplog.at_level(logging.WARNING):
+        rep = run_videos({"cam01": good, "cam02": bad}, tmp_path / "out", tiny_set, chunk_frames=4)
+    fi, msg = rep.decode_errors["cam02"]
+    assert 0 < fi < 12 and "frame" in msg
+    assert any("cam02" in r.message and str(fi) in r.message for r in caplog.records)
+    d2 = Detections.load(rep.paths["cam02"])
+    assert d2.n_frames == fi and int(d2.extra["decode_error_frame"]) == fi
+    assert Detections.load(rep.paths["cam01"]).n_frames == 12  # the other camera goes on to the end
+
+
+def test_video_size_against_calibration(tmp_path, caplog):
+    check_size("cam01", (1080, 1920), (1080, 1920), tmp_path)
+    with caplog.at_level(logging.WARNING):
+        check_size("cam01", (1080, 1920), (1088, 1920), tmp_path)  # the Pose2Sim demo: codec padding
+    assert "1088x1920" in caplog.text
+    with pytest.raises(FormatError, match="rotated"):
+        check_size("cam01", (1920, 1080), (1080, 1920), tmp_path)
+    with pytest.raises(FormatError, match=r"video is 640x480 but the calibration says 1280x720"):
+        check_size("cam01", (640, 480), (1280, 720), tmp_path)
+
+
+def test_run_session_reads_raw_and_writes_keypoints(tmp_path, tiny_set):
+    root = tmp_path / "session"
+    (root / "raw").mkdir(parents=True)
+    write_video(root / "raw" / "cam02.avi", 3)
+    write_video(root / "raw" / "cam01.avi", 3)
+    (root / "raw" / "cam01.frames.csv").write_text(
+        "frame_index,t_ns,t_host_ns,sequence\n0,1000,0,0\n1,2000,0,1\n2,3000,0,2\n"
+    )
+    with pytest.raises(FormatError, match="calibration says"):
+        run_session(root, config=tiny_set, progress=False, rig={"cam01": (640, 480), "cam02": (W, H)})
+    paths = run_session(root, config=tiny_set, progress=False)
+    assert sorted(paths) == ["cam01", "cam02"]
+    assert paths["cam01"] == root / "keypoints" / "cam01.npz"
+    assert Detections.load(paths["cam01"]).t_ns.tolist() == [1000, 2000, 3000]
