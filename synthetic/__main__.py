@@ -42,8 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = R.RenderConfig(skeleton=a.skeleton, noise_px=a.noise_px, missed_joint_rate=a.missed_joints,
                          flip_rate=a.flips, false_positive_rate=a.false_positives,
                          missed_detection_rate=a.missed_detections,
-                         time_offset_std_frames=a.time_offset_std_frames, time_drift_std_ppm=a.time_drift_std_ppm,
-                         seed=a.seed)
+                         time_offset_std_frames=a.time_offset_std_frames,
+                         time_drift_std_ppm=a.time_drift_std_ppm, seed=a.seed)
     lay = world.write_session(scene, R.render(scene, rig, cfg), rig, a.out)
     print(f"wrote {lay.root}: {len(rig)} cameras, {scene.n_people} people ({', '.join(scene.clip_names)}), "
           f"{scene.n_frames} frames at {scene.fps:g} fps")

@@ -230,3 +230,12 @@ def test_kitchen_12x8x10s_renders_in_seconds():
     # furniture + people occlusion   (measured 0.16: 0.09 furniture only, 0.08 people only)
     assert 0.05 < hidden < 0.5
     assert dt < 10.0  # measured 1.3-1.7 s (warm clip cache)
+
+
+def test_cli_writes_a_session(tmp_path):
+    from synthetic.__main__ import main
+
+    assert main([str(tmp_path / "s"), "--rig", "ring", "--cams", "3", "--people", "2", "--seconds", "1"]) == 0
+    names = sorted(p.name for p in (tmp_path / "s" / "keypoints").iterdir())
+    assert names == ["cam00.npz", "cam01.npz", "cam02.npz"]
+    assert world.load_gt(tmp_path / "s")["gt_xyz_m"].shape == (25, 2, 19, 3)
