@@ -70,7 +70,7 @@ def test_matching_groups_each_person(rng, n_cams, n_people):
     P = ring_P(n_cams, radius=5)
     X = people(rng, n_people, spread=2.5)
     xy, sc, perms = observe(rng, P, X, 2.0)
-    H = match_frame(xy, sc, fundamental_from_P(P))
+    H, _ = match_frame(xy, sc, fundamental_from_P(P))
     assert len(H) == n_people
     for row in H:  # each hypothesis holds one true person in every camera
         ids = {int(perms[c][k]) for c, k in enumerate(row) if k >= 0}
@@ -87,13 +87,13 @@ def test_matching_drops_singletons_and_false_positives(rng):
     xy = np.concatenate([xy, np.full((4, 1, 19, 2), np.nan)], 1)
     sc = np.concatenate([sc, np.zeros((4, 1, 19))], 1)
     xy[0, 3], sc[0, 3] = extra, 0.9
-    H = match_frame(xy, sc, fundamental_from_P(P))
+    H, _ = match_frame(xy, sc, fundamental_from_P(P))
     assert len(H) == 3 and (H[:, 0] != 3).all()
     # camera order is configurable and gives the same grouping here
-    H2 = match_frame(xy, sc, fundamental_from_P(P), order=np.array([2, 0, 3, 1]))
+    H2, _ = match_frame(xy, sc, fundamental_from_P(P), order=np.array([2, 0, 3, 1]))
     assert sorted(map(tuple, H)) == sorted(map(tuple, H2))
     # an empty frame gives no hypotheses
-    assert match_frame(np.full_like(xy, np.nan), sc, fundamental_from_P(P)).shape == (0, 4)
+    assert match_frame(np.full_like(xy, np.nan), sc, fundamental_from_P(P))[0].shape == (0, 4)
     with pytest.raises(ValueError, match="theta_px"):
         MatchConfig(theta_px=0)
 

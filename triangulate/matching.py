@@ -38,6 +38,8 @@ class MatchConfig:
     min_score: 2D joints with lower confidence are ignored.
     min_joints: 2D poses with fewer usable joints are ignored.
     min_shared_joints: pairs of poses sharing fewer joints get no epipolar evidence.
+    gate: set costs >= theta to "infinite" before the Hungarian step. Algorithm 1 thresholds after
+      the assignment, so a pair above theta can take a pose from a valid pair (False = as the seed).
     """
 
     theta_px: float = 40.0
@@ -45,6 +47,7 @@ class MatchConfig:
     min_score: float = 0.05
     min_joints: int = 4
     min_shared_joints: int = 3
+    gate: bool = True
 
     def __post_init__(self) -> None:
         if self.theta_px <= 0:
@@ -63,44 +66,78 @@ def _usable(xy: np.ndarray, score: np.ndarray, cfg: MatchConfig) -> np.ndarray:
     return vis
 
 
-def pair_costs(xy: np.ndarray, vis: np.ndarray, F: np.ndarray, min_shared: int = 1
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _homog(xy: np.ndarray, vis: np.ndarray) -> np.ndarray:
+    """(C,P,J,2) -> homogeneous (C,3,J,P), zero vector where not usable."""
+    C, P, J = vis.shape
+    xs = np.empty((C, 3, J, P))
+    xs[:, :2] = np.where(vis[..., None], xy, 0.0).transpose(0, 3, 2, 1)
+    xs[:, 2] = vis.transpose(0, 2, 1)
+    return xs
+
+
+def _lines(xs: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """L[a,b,k,j,p] = (F[a,b] x_{a,p,j})_k: epipolar lines in camera b, scaled to a unit normal."""
+    C, _, J, P = xs.shape
+    L = np.matmul(F.reshape(C, C * 3, 3), xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)
+    nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
+    np.maximum(nrm, 1e-12, out=nrm)
+    L /= nrm[:, :, None]
+    return L
+
+
+def _dist(L: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """(a,b,Pa,Pb): sum over joints of |point-line distance| in camera b of b's points to a's lines."""
+    d = np.matmul(L.transpose(0, 1, 3, 4, 2), xs.transpose(0, 2, 1, 3)[None])  # (a,b,J,Pa,Pb)
+    np.abs(d, out=d)
+    return d.sum(2)
+
+
+def pair_costs(xy: np.ndarray, vis: np.ndarray, F: np.ndarray, min_shared: int = 1,
+               flip: np.ndarray | None = None) -> tuple:
     """Mean symmetric epipolar distance (eq. 4.3 averaged over shared joints) between all pose pairs.
 
     xy (C,P,J,2) undistorted pixels, vis (C,P,J) usable joints, F (C,C,3,3) with x_b^T F[a,b] x_a = 0.
     Returns cost (C,P,C,P) in pixels and ok (C,P,C,P), False where fewer than ``min_shared`` joints
     are shared (or a == b). Unusable joints get a zero homogeneous vector, so they contribute
     nothing to any sum and the whole computation is a handful of batched matrix products.
+    With ``flip`` (J,) (the left/right joint permutation) also the cost and ok of the first pose
+    mirrored against the second unmirrored (``cross``; else None).
     """
     C, P, J = vis.shape
-    xs = np.empty((C, 3, J, P))  # homogeneous points, components first (contiguous matmuls below)
-    xs[:, :2] = np.where(vis[..., None], xy, 0.0).transpose(0, 3, 2, 1)
-    xs[:, 2] = vis.transpose(0, 2, 1)
-    # L[a,b,k,j,p] = (F[a,b] x_{a,p,j})_k: epipolar lines in camera b, scaled to a unit normal
-    L = np.matmul(F.reshape(C, C * 3, 3), xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)
-    nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
-    np.maximum(nrm, 1e-12, out=nrm)
-    L /= nrm[:, :, None]
-    d = np.matmul(L.transpose(0, 1, 3, 4, 2), xs.transpose(0, 2, 1, 3)[None])  # (a,b,J,Pa,Pb) distances in b
-    np.abs(d, out=d)
-    d = d.sum(2)  # (a,b,Pa,Pb)
+    xs = _homog(xy, vis)
+    L = _lines(xs, F)
+    d = _dist(L, xs)
     d = d + d.transpose(1, 0, 3, 2)  # symmetric: distance in b plus distance in a (eq. 4.3)
     v = vis.reshape(C * P, J).astype(np.float64)
     n = (v @ v.T).reshape(C, P, C, P)
     cost = d.transpose(0, 2, 1, 3) / np.maximum(n, 1)
     ok = n >= max(min_shared, 1)
     ok[np.arange(C), :, np.arange(C), :] = False
-    return cost, ok
+    if flip is None:
+        return cost, ok, None, None
+    vf = vis[:, :, flip]
+    xsf = _homog(xy[:, :, flip], vf)
+    dx = _dist(_lines(xsf, F), xs) + _dist(L, xsf).transpose(1, 0, 3, 2)  # cost(a'_p, b_q)
+    nx = (vf.reshape(C * P, J).astype(np.float64) @ v.T).reshape(C, P, C, P)
+    cross = dx.transpose(0, 2, 1, 3) / np.maximum(nx, 1)
+    okx = nx >= max(min_shared, 1)
+    okx[np.arange(C), :, np.arange(C), :] = False
+    return cost, ok, cross, okx
 
 
 def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: MatchConfig | None = None,
-                order: np.ndarray | None = None) -> np.ndarray:
+                order: np.ndarray | None = None, flip: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Algorithm 1 for one frame.
 
     xy_px: (C,P,J,2) undistorted pixels, NaN = missing (P = most poses in any camera, padded);
     score: (C,P,J); F: (C,C,3,3) with ``x_j^T F[i,j] x_i = 0``; order: camera indices (C',) to visit
-    (default 0..C-1). Returns the hypotheses as (M,C) int: the pose index in each camera or -1;
-    every row has at least two poses.
+    (default 0..C-1); flip: (J,) left/right joint permutation, or None to take every pose as it is.
+    Returns the hypotheses as (M,C) int: the pose index in each camera or -1 (every row has at
+    least two poses) and (M,C) bool: the pose is mirrored (left/right swapped) relative to the
+    hypothesis. The seed notes left/right flips of single views as its main failure (sec. 4.3.5):
+    with ``flip`` each pose joins in the orientation with the lower cost (eq. 4.2 against the
+    members in their own orientation), and each hypothesis takes its majority orientation.
     """
     cfg = config or MatchConfig()
     xy = np.asarray(xy_px, dtype=np.float64)
@@ -111,11 +148,20 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
     order = np.arange(C) if order is None else np.asarray(order, dtype=np.int64)
     vis = _usable(xy, np.asarray(score, dtype=np.float64), cfg)
     present = vis.any(-1)  # (C,P)
-    cost_all, ok_all = pair_costs(xy, vis, np.asarray(F, dtype=np.float64), cfg.min_shared_joints)
+    if flip is not None:
+        flip = np.asarray(flip, dtype=np.int64)
+        if (flip == np.arange(J)).all():
+            flip = None
+    cost_all, ok_all, cross_all, okx_all = pair_costs(xy, vis, np.asarray(F, dtype=np.float64),
+                                                      cfg.min_shared_joints, flip)
     cost_all = np.where(ok_all, cost_all, 0.0)
     ok_all = ok_all.astype(np.float64)
+    if flip is not None:
+        cross_all = np.where(okx_all, cross_all, 0.0)
+        okx_all = okx_all.astype(np.float64)
     cams = np.arange(C)[None, None, :]
     H = np.full((0, C), -1, dtype=np.int64)  # hypotheses: pose index per camera, -1 = none
+    S = np.zeros((0, C), dtype=bool)  # pose mirrored relative to its hypothesis
     for i in order:
         ks = np.flatnonzero(present[i])
         if len(ks) == 0:
@@ -126,10 +172,27 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
             has = H >= 0
             num = (cost_all[i][sel] * has).sum(-1)
             den = (ok_all[i][sel] * has).sum(-1)
-            phi = np.where(den > 0, num / np.maximum(den, 1), _BIG)
+            if flip is not None:
+                cs, cx = cost_all[i][sel], cross_all[i][sel]
+                os_, ox = ok_all[i][sel], okx_all[i][sel]
+                # pose as is vs a member mirrored = pose mirrored vs the member as is (cross)
+                num = (np.where(S, cx, cs) * has).sum(-1)
+                den = (np.where(S, ox, os_) * has).sum(-1)
+                numf = (np.where(S, cs, cx) * has).sum(-1)
+                denf = (np.where(S, os_, ox) * has).sum(-1)
+                phi0 = np.where(den > 0, num / np.maximum(den, 1), _BIG)
+                phi1 = np.where(denf > 0, numf / np.maximum(denf, 1), _BIG)
+                mirrored = phi1 < 0.8 * phi0  # prefer the pose as detected unless mirroring clearly helps
+                phi = np.where(mirrored, phi1, phi0)
+            else:
+                phi = np.where(den > 0, num / np.maximum(den, 1), _BIG)
+                mirrored = np.zeros(phi.shape, bool)
+            if cfg.gate:  # pairs above theta cannot join anyway; keep them from displacing valid pairs
+                phi = np.where(phi < cfg.theta_px, phi, _BIG)
             rows, cols = linear_sum_assignment(phi)  # eq. 4.4
             joined = phi[rows, cols] < cfg.theta_px
             H[cols[joined], i] = ks[rows[joined]]
+            S[cols[joined], i] = mirrored[rows[joined], cols[joined]]
             new = np.ones(len(ks), bool)
             new[rows[joined]] = False
         else:
@@ -138,4 +201,11 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
             Hn = np.full((int(new.sum()), C), -1, dtype=np.int64)
             Hn[:, i] = ks[new]
             H = np.concatenate([H, Hn], 0)
-    return H[(H >= 0).sum(1) >= 2]
+            S = np.concatenate([S, np.zeros(Hn.shape, bool)], 0)
+    keep = (H >= 0).sum(1) >= 2
+    H, S = H[keep], S[keep]
+    # a hypothesis started from a mirrored pose: take the majority orientation
+    invert = 2 * (S & (H >= 0)).sum(1) > (H >= 0).sum(1)
+    S[invert] = ~S[invert]
+    S &= H >= 0
+    return H, S

@@ -7,8 +7,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from triangulate.dlt import DLTConfig, Triangulator, _reject_unknown, limb_check
+from triangulate.evaluate import mean_joint_distance
 from triangulate.geometry import check_shape, fundamental_from_P
 from triangulate.matching import MatchConfig, match_frame
+
+
+def flip_index(joint_names: tuple[str, ...]) -> np.ndarray:
+    """(J,) permutation that swaps left_* and right_* joints."""
+    idx = {n: i for i, n in enumerate(joint_names)}
+    out = []
+    for n in joint_names:
+        m = n.replace("left_", "\0").replace("right_", "left_").replace("\0", "right_")
+        out.append(idx.get(m, idx[n]))
+    return np.asarray(out)
 
 
 @dataclass(frozen=True)
@@ -18,12 +29,18 @@ class TriangulateConfig:
     match / dlt: see :class:`MatchConfig`, :class:`DLTConfig`.
     min_joints_3d: 3D poses with fewer triangulated joints are dropped.
     limb_check: drop joints that make a limb implausibly short or long (``dlt.LIMB_BOUNDS_M``).
+    fix_flips: let the matching mirror a 2D pose whose left/right labels are swapped (sec. 4.3.5).
+    merge_dist_m: two 3D poses closer than this (mean joint distance) are one person seen as two
+      hypotheses: with disjoint cameras they are merged and re-triangulated, else the one with
+      fewer views is dropped (0 = off).
     """
 
     match: MatchConfig = field(default_factory=MatchConfig)
     dlt: DLTConfig = field(default_factory=DLTConfig)
     min_joints_3d: int = 5
     limb_check: bool = True
+    fix_flips: bool = True
+    merge_dist_m: float = 0.25
 
     @classmethod
     def from_dict(cls, d: dict) -> TriangulateConfig:
@@ -45,11 +62,12 @@ class FramePoses:
     n_views: np.ndarray  # (M,J)
     std_m: np.ndarray  # (M,J)
     members: np.ndarray  # (M,C) pose index per camera or -1
+    mirrored: np.ndarray  # (M,C) bool: the 2D pose was used left/right swapped
 
     @classmethod
     def empty(cls, J: int, C: int) -> FramePoses:
         return cls(np.zeros((0, J, 3)), np.zeros((0, J)), np.zeros((0, J)), np.zeros((0, J), np.int16),
-                   np.zeros((0, J)), np.zeros((0, C), np.int64))
+                   np.zeros((0, J)), np.zeros((0, C), np.int64), np.zeros((0, C), bool))
 
 
 class FrameReconstructor:
@@ -71,35 +89,81 @@ class FrameReconstructor:
         self.order = order
         self.joint_names = joint_names
         self.tri = Triangulator(self.P, self.config.dlt)
+        self.flip = None if joint_names is None else flip_index(joint_names)
 
-    def __call__(self, xy_px: np.ndarray, score: np.ndarray) -> FramePoses:
-        """xy_px: (C,P,J,2) undistorted pixels, NaN = missing; score: (C,P,J)."""
-        xy = np.asarray(xy_px, dtype=np.float64)
-        C = len(self.P)
-        check_shape("xy_px", xy, (C, None, None, 2))
-        J = xy.shape[2]
-        H = match_frame(xy, score, self.F, self.config.match, self.order)
+    def _triangulate(self, xy: np.ndarray, score: np.ndarray, H: np.ndarray, S: np.ndarray) -> dict:
+        """Triangulate hypotheses H (M,C) with mirror flags S (M,C); returns (M,...) arrays and keep (M,J)."""
+        C, J = len(self.P), xy.shape[2]
         M = len(H)
-        if M == 0:
-            return FramePoses.empty(J, C)
         sel = np.maximum(H, 0).T  # (C,M)
         xy_h = xy[np.arange(C)[:, None], sel]  # (C,M,J,2)
-        sc_h = np.asarray(score, dtype=np.float64)[np.arange(C)[:, None], sel]  # (C,M,J)
+        sc_h = score[np.arange(C)[:, None], sel]  # (C,M,J)
+        if self.flip is not None and S.any():
+            c, m = np.nonzero(S.T)
+            xy_h[c, m] = xy_h[c, m][:, self.flip]
+            sc_h[c, m] = sc_h[c, m][:, self.flip]
         miss = (H < 0).T
         xy_h[miss] = np.nan
         sc_h[miss] = 0.0
         r = self.tri(xy_h.reshape(C, M * J, 2), sc_h.reshape(C, M * J))
-        xyz = r.xyz_m.reshape(M, J, 3)
-        reproj = r.reproj_err_px.reshape(M, J)
-        keep = np.isfinite(xyz).all(-1)
+        out = {"xyz_m": r.xyz_m.reshape(M, J, 3), "reproj_err_px": r.reproj_err_px.reshape(M, J),
+               "score": r.score.reshape(M, J), "n_views": r.n_views.reshape(M, J),
+               "std_m": r.std_m.reshape(M, J)}
+        keep = np.isfinite(out["xyz_m"]).all(-1)
         if self.config.limb_check and self.joint_names is not None:
-            keep &= limb_check(xyz, reproj, self.joint_names)
+            keep &= limb_check(out["xyz_m"], out["reproj_err_px"], self.joint_names)
+        out["keep"] = keep
+        return out
+
+    def _merge_duplicates(self, xy, score, H, S, res):
+        """Sec. 4.2.1 leaves a person split over two hypotheses when one view did not join; merge them."""
+        X = np.where(res["keep"][..., None], res["xyz_m"], np.nan)
+        D = mean_joint_distance(X, X)
+        D[np.arange(len(D)), np.arange(len(D))] = np.inf
+        a_idx, b_idx = np.nonzero(np.triu(D < self.config.merge_dist_m, 1))
+        if len(a_idx) == 0:
+            return H, S, res
+        alive = np.ones(len(H), bool)
+        changed = np.zeros(len(H), bool)
+        views = np.where(res["keep"], res["n_views"], 0).sum(1)
+        for k in np.argsort(D[a_idx, b_idx]):
+            a, b = a_idx[k], b_idx[k]
+            if not (alive[a] and alive[b]):
+                continue
+            ca, cb = H[a] >= 0, H[b] >= 0
+            if not (ca & cb).any():
+                H[a, cb], S[a, cb] = H[b, cb], S[b, cb]
+                alive[b], changed[a] = False, True
+            else:
+                alive[b if views[b] < views[a] else a] = False
+        if changed.any():
+            idx = np.flatnonzero(changed & alive)
+            sub = self._triangulate(xy, score, H[idx], S[idx])
+            for k, v in sub.items():
+                res[k][idx] = v
+        return H[alive], S[alive], {k: v[alive] for k, v in res.items()}
+
+    def __call__(self, xy_px: np.ndarray, score: np.ndarray) -> FramePoses:
+        """xy_px: (C,P,J,2) undistorted pixels, NaN = missing; score: (C,P,J)."""
+        xy = np.asarray(xy_px, dtype=np.float64)
+        score = np.asarray(score, dtype=np.float64)
+        C = len(self.P)
+        check_shape("xy_px", xy, (C, None, None, 2))
+        J = xy.shape[2]
+        H, S = match_frame(xy, score, self.F, self.config.match, self.order,
+                           self.flip if self.config.fix_flips else None)
+        if len(H) == 0:
+            return FramePoses.empty(J, C)
+        res = self._triangulate(xy, score, H, S)
+        if self.config.merge_dist_m > 0 and len(H) > 1:
+            H, S, res = self._merge_duplicates(xy, score, H, S, res)
+        keep = res["keep"]
         good = keep.sum(1) >= self.config.min_joints_3d
         keep &= good[:, None]
         nan = np.float64(np.nan)
         return FramePoses(
-            xyz_m=np.where(keep[..., None], xyz, nan)[good],
-            score=np.where(keep, r.score.reshape(M, J), 0)[good],
-            reproj_err_px=np.where(keep, reproj, nan)[good],
-            n_views=np.where(keep, r.n_views.reshape(M, J), 0).astype(np.int16)[good],
-            std_m=np.where(keep, r.std_m.reshape(M, J), nan)[good], members=H[good])
+            xyz_m=np.where(keep[..., None], res["xyz_m"], nan)[good],
+            score=np.where(keep, res["score"], 0)[good],
+            reproj_err_px=np.where(keep, res["reproj_err_px"], nan)[good],
+            n_views=np.where(keep, res["n_views"], 0).astype(np.int16)[good],
+            std_m=np.where(keep, res["std_m"], nan)[good], members=H[good], mirrored=S[good])

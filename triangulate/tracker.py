@@ -28,7 +28,8 @@ class TrackerConfig:
     """tau_m: match threshold (sec. 4.2.2: 200 mm); max_gap: frames a track may be unseen (and
     the longest gap filled); max_speed_m_s: extra allowed distance per unseen second; sigma:
     Gaussian smoothing in frames (0 = off); min_track_frames: shorter tracks are dropped;
-    min_joints: poses with fewer joints are ignored."""
+    min_joints: poses with fewer joints are ignored; constant_velocity: compare a frame's poses with
+    each track's last pose moved by the track's mean-joint velocity (False = the seed's last pose)."""
 
     tau_m: float = 0.2
     max_gap: int = 10
@@ -36,6 +37,7 @@ class TrackerConfig:
     sigma: float = 2.0
     min_track_frames: int = 5
     min_joints: int = 5
+    constant_velocity: bool = True
 
     def __post_init__(self) -> None:
         if self.tau_m <= 0 or self.max_gap < 0 or self.sigma < 0:
@@ -68,6 +70,7 @@ def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float
     out = np.full((T, P), -1, dtype=np.int64)
     last_pose: list[np.ndarray] = []
     last_t: list[int] = []
+    last_v: list[np.ndarray] = []  # (3,) mean-joint velocity per frame
     for t in range(T):
         ok = np.flatnonzero(np.isfinite(xyz_m[t]).all(-1).sum(-1) >= cfg.min_joints)
         if len(ok) == 0:
@@ -75,10 +78,12 @@ def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float
         alive = [k for k in range(len(last_t)) if t - last_t[k] <= cfg.max_gap + 1]
         assigned = np.zeros(len(ok), bool)
         if alive:
-            cost = pose_distance(np.stack([last_pose[k] for k in alive]), xyz_m[t, ok])
+            pred = np.stack([last_pose[k] + (t - last_t[k]) * last_v[k] for k in alive])
+            cost = pose_distance(pred, xyz_m[t, ok])
             gap_s = (t - np.asarray([last_t[k] for k in alive]) - 1) / fps
             limit = cfg.tau_m + cfg.max_speed_m_s * gap_s
-            rows, cols = linear_sum_assignment(np.where(np.isfinite(cost), cost, 1e9))
+            # gate before the assignment: a pair above the limit must not pull a valid pair apart
+            rows, cols = linear_sum_assignment(np.where(cost < limit[:, None], cost, 1e9))
             for r, c in zip(rows, cols, strict=True):
                 if cost[r, c] < limit[r]:
                     k = alive[r]
@@ -86,13 +91,19 @@ def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float
                     # keep joints the track had but this frame lacks, so the next cost has them
                     pose = xyz_m[t, ok[c]].copy()
                     miss = ~np.isfinite(pose).all(-1)
-                    pose[miss] = last_pose[k][miss]
+                    if cfg.constant_velocity:
+                        both = ~miss & np.isfinite(last_pose[k]).all(-1)
+                        if both.any():
+                            v = (pose[both] - last_pose[k][both]).mean(0) / (t - last_t[k])
+                            last_v[k] = 0.5 * last_v[k] + 0.5 * v
+                    pose[miss] = last_pose[k][miss] + (t - last_t[k]) * last_v[k]
                     last_pose[k], last_t[k] = pose, t
                     assigned[c] = True
         for c in np.flatnonzero(~assigned):
             out[t, ok[c]] = len(last_t)
             last_pose.append(xyz_m[t, ok[c]].copy())
             last_t.append(t)
+            last_v.append(np.zeros(3))
     return out
 
 
