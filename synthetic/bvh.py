@@ -494,6 +494,35 @@ def list_clips(root: str | os.PathLike | None = None, exclude_raw_duplicates: bo
     return files
 
 
+@lru_cache(maxsize=1024)
+def _header_duration(path: str, size: int, mtime_ns: int) -> float:
+    with open(path, "rb") as f:
+        data = f.read()
+    i = data.find(b"MOTION")
+    if i < 0:
+        return 0.0
+    n, ft = 0, 0.0
+    for line in data[i:i + 200].splitlines()[1:3]:
+        key, _, val = line.decode(errors="replace").partition(":")
+        if key.strip().lower() == "frames":
+            n = int(val)
+        elif key.strip().lower() == "frame time":
+            ft = float(val)
+    return n * ft
+
+
+def clip_duration_s(path: str | os.PathLike) -> float:
+    """Duration from the BVH header (``Frames`` × ``Frame Time``) without parsing the motion.
+
+    0 when the file cannot be read."""
+    p = Path(path)
+    try:
+        st = p.stat()
+        return _header_duration(str(p), st.st_size, st.st_mtime_ns)
+    except (OSError, ValueError):
+        return 0.0
+
+
 def load_clips(fps: float, root: str | os.PathLike | None = None, min_frames: int = 0) -> list[MocapClip]:
     """Every clip under the mocap root (see :func:`list_clips`) at ``fps``, skipping clips shorter
     than ``min_frames`` frames; [] when the folder is absent. Cached after the first call."""

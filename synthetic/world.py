@@ -8,8 +8,9 @@ stable identities ``person_ids (P,)``. Rendering to per-camera detections is in
 Choices (the issue was silent):
 
 - each person plays a distinct clip when the pool allows (clips of climbing, where the head goes
-  above 2.0 m, are left out). A clip longer than the scene contributes a random window; a
-  shorter one is played forwards then backwards (ping-pong) so positions stay continuous.
+  above 2.0 m, are left out). Clips at least as long as the scene are tried first (their
+  duration read from the BVH header); such a clip contributes a random window. A shorter clip is
+  played forwards then backwards (ping-pong) so positions stay continuous.
 - placement: the clip's floor track is centred, rotated by a random yaw and translated so the
   whole body stays ``wall_margin_m`` inside the walls; among ``placement_tries`` random
   placements the one with the fewest frames inside furniture (grown by 0.25 m) or closer than
@@ -302,7 +303,9 @@ def make_scene(room: Room, config: SceneConfig | None = None, **overrides) -> Sc
         raise FileNotFoundError(
             "SceneConfig(motion='mocap'): no BVH clips found; set ROOMCAP_MOCAP or ROOMCAP_SHARED "
             "(expects <shared>/data/motion) or use motion='procedural'.")
-    order = list(rng.permutation(len(pool))) if pool else []
+    long_enough = np.array([bvh.clip_duration_s(f) >= cfg.duration_s for f in pool], dtype=bool)
+    perm = rng.permutation(len(pool)) if pool else np.zeros(0, np.int64)
+    order = [int(i) for i in perm if long_enough[i]] + [int(i) for i in perm if not long_enough[i]]
     gt = np.full((T, P, 19, 3), np.nan)
     names: list[str] = []
     placed: list[np.ndarray] = []

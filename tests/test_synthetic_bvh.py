@@ -96,3 +96,4 @@ def test_resample_and_listing():
     c25 = c60.resample(25)
     assert abs(c25.duration_s - c60.duration_s) < 0.1
     np.testing.assert_allclose(c25.xyz_m[0], c60.xyz_m[0])
+    assert abs(bvh.clip_duration_s(clips[-1]) - c60.duration_s) < 0.05  # header only, no parsing
