@@ -38,7 +38,7 @@ import numpy as np
 from calibrate.camera import Camera, CameraRig
 from keypoints.detections import Detections
 from keypoints.skeletons import CANONICAL, convert, get_skeleton
-from synthetic.world import J19, Scene, config_from_dict
+from synthetic.world import J19, Scene, config_from_dict, procedural_walk
 
 FLIP19 = CANONICAL.flip_index
 # Capsules (joint a, joint b, radius key) approximating a body's silhouette.
@@ -296,11 +296,12 @@ def render_camera(scene: Scene, rig: CameraRig, c: int, cfg: RenderConfig, offse
     fp_xy = np.full((T, K, 19, 2), np.nan)
     fp_score = np.zeros((T, K, 19))
     fp_ok = np.zeros((T, K), dtype=bool)
-    pres = np.argwhere(scene.present)
-    if K and len(pres):
+    if K:
+        poses = gt[scene.present]  # (N,19,3) real poses of the scene, else a procedural walker
+        if not len(poses):
+            poses = procedural_walk(50, scene.fps, scene.room, np.random.default_rng(0))
         tt, kk = np.nonzero(np.arange(K)[None] < n_fp[:, None])
-        src = pres[rng.integers(0, len(pres), len(tt))]
-        pose = gt[src[:, 0], src[:, 1]]  # (N,19,3)
+        pose = poses[rng.integers(0, len(poses), len(tt))]  # (N,19,3)
         pose = pose - pose[:, J19["pelvis"]][:, None] * np.array([1.0, 1.0, 0.0])
         a = rng.uniform(0, 2 * np.pi, len(tt))
         ca, sa = np.cos(a)[:, None], np.sin(a)[:, None]
