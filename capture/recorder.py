@@ -91,7 +91,7 @@ class SegmentWriter:
 
         k = self.segments
         if frame.encoded is not None:
-            ext = "." + self.codec
+            ext = ".h265" if self.codec == "h265" else ".h264"  # Annex B elementary stream from the device
             self._final = self.dir / f"seg_{k:06d}{ext}"
             self._part = self.dir / f"{_PART_PREFIX}seg_{k:06d}{ext}"
             self._raw = open(self._part, "wb")
@@ -280,7 +280,8 @@ class Recorder:
             if g is not None:
                 d.update(
                     frames_grabbed=g.stats.frames,
-                    dropped_queue=sum(g.stats.dropped_queue.values()),
+                    dropped_queue=g.stats.dropped_queue.get("writer", 0),
+                    dropped_live=g.stats.dropped_queue.get("live", 0),
                     dropped_source=g.stats.dropped_source,
                     ended=g.stats.ended,
                     gaps=[gap.to_dict() for gap in g.stats.gaps],

@@ -211,10 +211,12 @@ class SyntheticSource(FrameSource):
     def open(self) -> SourceInfo:
         now = time.monotonic_ns()
         if self._start_mono is None:
-            self._start_mono = now
-            if self.epoch_ns is None:
-                self.epoch_ns = host_now_ns()
             _texture(self.w, self.h)
+            now = time.monotonic_ns()
+            self._start_mono = now
+            # the device clock starts when the camera is opened (a fixed epoch only for non-realtime replays)
+            if self.realtime or self.epoch_ns is None:
+                self.epoch_ns = mono_to_host_ns(now)
         elif self._in_disconnect(now):
             raise SourceDisconnected(f"{self.name}: synthetic camera is unplugged")
         self._opened = True
@@ -526,7 +528,7 @@ class FileReplaySource(FrameSource):
         self._t0_file: int | None = None
         self._wrap_ns = 0
         self._last_rel = 0
-        self._start_mono = 0
+        self._start_mono: int | None = None
 
     @property
     def live(self) -> bool:
@@ -561,36 +563,43 @@ class FileReplaySource(FrameSource):
         self._rec, self._it, self._pending = rec, it, first
         if self.epoch_ns is None:
             self.epoch_ns = host_now_ns()
-        self._start_mono = time.monotonic_ns()
+        self._start_mono = None  # pacing starts at the first read, so a slow start drops nothing
         self._t0_file = first[1]
         return SourceInfo(rec.width, rec.height, rec.fps or 0.0, "file", f"file {self.path.name}")
 
     def read(self) -> Frame | None:
         if self._it is None:
             raise SourceError(f"{self.name}: read() before open()")
-        item, self._pending = self._pending, None
-        if item is None:
-            item = next(self._it, None)
+        while True:
+            item, self._pending = self._pending, None
             if item is None:
-                if not self.loop:
-                    return None
-                period = int(round(1e9 / self._rec.fps)) if self._rec.fps else 0
-                self._wrap_ns = self._last_rel + period
-                self._it = iter(self._rec)
                 item = next(self._it, None)
                 if item is None:
-                    return None
-                self._t0_file = item[1] - 0
-        _, t_file, img = item
-        rel = self._wrap_ns + (t_file - self._t0_file)
-        self._last_rel = rel
-        if self.realtime:
-            wait = self._start_mono + rel - time.monotonic_ns()
-            if wait > 0:
-                time.sleep(wait / 1e9)
-        seq = self._seq
-        self._seq += 1
-        return Frame(img, self.epoch_ns + rel, host_now_ns(), seq)
+                    if not self.loop:
+                        return None
+                    period = int(round(1e9 / self._rec.fps)) if self._rec.fps else 0
+                    self._wrap_ns = self._last_rel + period
+                    self._it = iter(self._rec)
+                    item = next(self._it, None)
+                    if item is None:
+                        return None
+                    self._t0_file = item[1]
+            _, t_file, img = item
+            rel = self._wrap_ns + (t_file - self._t0_file)
+            self._last_rel = rel
+            seq = self._seq
+            self._seq += 1
+            if self.realtime:
+                if self._start_mono is None:
+                    self._start_mono = time.monotonic_ns() - rel
+                wait = self._start_mono + rel - time.monotonic_ns()
+                if wait > 0:
+                    time.sleep(wait / 1e9)
+                elif self._rec.fps and -wait > 2e9 / self._rec.fps:
+                    # like a camera, a replay does not wait for a slow host: late frames are dropped
+                    # (a gap in the sequence numbers)
+                    continue
+            return Frame(img, self.epoch_ns + rel, host_now_ns(), seq)
 
     def close(self) -> None:
         self._it = None
