@@ -1,0 +1,202 @@
+"""``forecast train | sample | eval``.
+
+Examples::
+
+    forecast train --model gru --data cmu --out runs/gru.pt
+    forecast train --model social_diffusion --data cmu tracks.npz --set steps=2000 --out runs/sd.pt
+    forecast sample --checkpoint runs/gru.pt --tracks session/track/tracks.npz --horizon-s 2 --out fc.npz
+    forecast eval --checkpoints runs/gru.pt runs/intention.pt --data cmu --out runs/eval
+    forecast eval --social --checkpoints runs/gru.pt runs/sd.pt --data cmu --out runs/eval_social
+
+Data: ``cmu`` = the CMU BVH under ``$ROOMCAP_MOCAP`` / ``$ROOMCAP_SHARED/data/motion``; otherwise track files
+or folders containing ``tracks.npz``. Train/test split is by clip (``--test-fraction``, ``--split-seed``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+
+def _parse_sets(items: list[str]) -> dict:
+    out = {}
+    for it in items or []:
+        if "=" not in it:
+            raise SystemExit(f"--set expects key=value, got {it!r}")
+        k, v = it.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def _config(args) -> object:
+    from capture.fileio import load_toml
+    from forecast.train import config_from_dict
+
+    d = {}
+    if args.config:
+        t = load_toml(args.config)
+        d.update(t.get(args.model, t))
+    d.update(_parse_sets(args.set))
+    try:
+        return config_from_dict(args.model, d)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+
+
+def cmd_train(args) -> int:
+    from forecast import train as T
+
+    cfg = _config(args)
+    clips = T.load_sources(args.data)
+    tr, te = T.split_clips(clips, args.test_fraction, args.split_seed)
+    bar = tqdm(total=cfg.steps, desc=f"train {args.model}", unit="step")
+
+    def progress(step, terms):
+        bar.update(1)
+        if step % 20 == 0:
+            bar.set_postfix({k: f"{v:.4f}" for k, v in terms.items()})
+
+    model, hist = T.train(args.model, tr, cfg, progress, args.device)
+    bar.close()
+    T.save_checkpoint(
+        args.out,
+        model,
+        args.model,
+        cfg,
+        tr[0].skeleton,
+        extra={
+            "train_clips": [c.name for c in tr],
+            "test_clips": [c.name for c in te],
+            "steps_per_s": float(hist["steps_per_s"]),
+        },
+    )
+    n = len(hist["loss"])
+    first, last = sum(hist["loss"][:20]) / min(20, n), sum(hist["loss"][-20:]) / min(20, n)
+    print(
+        f"{args.model}: {len(tr)} train clips, {hist['n_windows']} windows, loss {first:.4f} -> {last:.4f}, "
+        f"{hist['steps_per_s']:.1f} steps/s; wrote {args.out}"
+    )
+    return 0
+
+
+def cmd_sample(args) -> int:
+    from forecast.preview import preview, save_forecast
+
+    fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
+    save_forecast(args.out, fc)
+    print(
+        f"{fc['model']}: {fc['xyz_m'].shape[2]} tracks, {fc['xyz_m'].shape[1]} frames "
+        f"x {fc['xyz_m'].shape[0]} samples -> {args.out}"
+    )
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from forecast import evaluate as E
+    from forecast import train as T
+
+    clips = T.load_sources(args.data)
+    _, te = T.split_clips(clips, args.test_fraction, args.split_seed)
+    models: dict = {}
+    for name in args.baselines:
+        models[name] = T.baseline(name)
+    for ck in args.checkpoints:
+        m, meta = T.load_checkpoint(ck, skeleton=te[0].skeleton)
+        models[Path(ck).stem] = m
+    bar = tqdm(total=len(models) + (0 if args.social else 2), desc="eval", unit="model")
+
+    def progress(name):
+        bar.set_postfix_str(name)
+        bar.update(1)
+
+    if args.social:
+        res = E.evaluate_social(
+            models, te, n_pred=int(round(args.horizon_s * 25)), n_scenes=args.scenes, progress=progress
+        )
+        title = "Forecast evaluation: composed two-person scenes (held-out CMU clips)"
+    else:
+        tr, _ = T.split_clips(clips, args.test_fraction, args.split_seed)
+        if args.fool:
+            ws = T.fdata.make_windows(tr, 1, 0, 10, persons="each")
+            models["fool"] = T.fool_model(ws)
+        models["real"] = E.Real()
+        res = E.evaluate_single(
+            models,
+            te,
+            n_pred=int(round(args.horizon_s * 25)),
+            n_samples=args.samples,
+            max_windows=args.max_windows,
+            progress=progress,
+        )
+        title = "Forecast evaluation: held-out clips"
+    bar.close()
+    path = E.write_report(res, args.out, title)
+    print(path.read_text())
+    print(
+        json.dumps(
+            {
+                k: {kk: vv for kk, vv in v.items() if not isinstance(vv, list)}
+                for k, v in res["models"].items()
+            }
+        )
+    )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
+    )
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def data_args(sp):
+        sp.add_argument("--data", nargs="+", default=["cmu"], help="'cmu' and/or track files / folders")
+        sp.add_argument("--test-fraction", type=float, default=0.2)
+        sp.add_argument("--split-seed", type=int, default=0)
+
+    t = sub.add_parser("train", help="train a model")
+    t.add_argument("--model", required=True, choices=["gru", "intention", "social_diffusion"])
+    t.add_argument("--config", help="TOML with the config (a [model] table or top-level keys)")
+    t.add_argument("--set", action="append", help="override one config key: key=value")
+    t.add_argument("--out", required=True)
+    t.add_argument("--device", default="cpu")
+    data_args(t)
+
+    s = sub.add_parser("sample", help="forecast every track of a track file")
+    s.add_argument("--checkpoint")
+    s.add_argument("--tracks", required=True)
+    s.add_argument("--horizon-s", type=float, default=1.0)
+    s.add_argument("--samples", type=int, default=1)
+    s.add_argument("--out", required=True)
+
+    e = sub.add_parser("eval", help="evaluate checkpoints and baselines on held-out clips")
+    e.add_argument("--checkpoints", nargs="*", default=[])
+    e.add_argument("--baselines", nargs="*", default=["zero_velocity", "constant_velocity"])
+    e.add_argument("--fool", action="store_true", help="add the clustered-static-poses 'fool' (sec. 6.4.4)")
+    e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
+    e.add_argument("--horizon-s", type=float, default=4.0)
+    e.add_argument("--samples", type=int, default=10)
+    e.add_argument("--scenes", type=int, default=24)
+    e.add_argument("--max-windows", type=int, default=200)
+    e.add_argument("--out", required=True)
+    data_args(e)
+
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,386 @@
+"""Motion data for forecasting: clips, normalisation (Tanke eq. 3.5-3.8), windows, adapters.
+
+A *clip* is ``xyz_m (T,P,J,3)`` world metres, z up, NaN where unknown, at ``fps``, in a
+named skeleton (``body19`` by default). Sources: track files (``track.trackfile``), CMU BVH
+(via ``synthetic.bvh``), and the Humans-in-Kitchens per-person npz layout (``smpl29``).
+
+Windows for training/evaluation are ``n_obs + n_pred`` frames resampled to a target rate;
+missing joints are filled (last known value) and reported in ``mask`` so losses and metrics
+can ignore them. Windows whose normalisation frame lacks both hips are skipped, clips
+shorter than a window are skipped, and both are counted in ``WindowSet.skipped``.
+
+Normalisation follows the code's version (DESIGN.md errata): root = mid-hips, the hip vector
+(left_hip -> right_hip) is rotated onto +x about z (z up).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from capture.fileio import FormatError, load_npz
+from keypoints.skeletons import get_skeleton
+
+log = logging.getLogger(__name__)
+
+TARGET_FPS = 25.0  # the seed's rate for forecasting (ch. 6-8)
+
+
+# ----------------------------------------------------------------------------- normalisation (eq. 3.5-3.8)
+
+
+def hip_indices(joint_names: tuple[str, ...] | list[str]) -> tuple[int, int]:
+    names = list(joint_names)
+    try:
+        return names.index("left_hip"), names.index("right_hip")
+    except ValueError:
+        raise ValueError(f"normalisation needs 'left_hip' and 'right_hip'; joints are {names}") from None
+
+
+def norm_frame(pose: np.ndarray, lhip: int, rhip: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (...,3,3) and root (...,3) of eq. 3.5/3.6 for pose (...,J,3).
+
+    R maps world into the canonical frame: root at the origin, hip vector (left->right) on +x, z up.
+    """
+    root = 0.5 * (pose[..., lhip, :] + pose[..., rhip, :])
+    d = pose[..., rhip, :] - pose[..., lhip, :]
+    theta = np.arctan2(d[..., 1], d[..., 0])
+    c, s = np.cos(theta), np.sin(theta)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    R = np.stack([np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    return R, root
+
+
+def normalize(seq: np.ndarray, R: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """Eq. 3.8: R (x - root) for seq (...,T,J,3) with R (...,3,3), root (...,3)."""
+    return np.einsum("...ij,...tkj->...tki", R, seq - root[..., None, None, :])
+
+
+def denormalize(seq: np.ndarray, R: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """Eq. 3.7, the inverse: R^T y + root."""
+    return np.einsum("...ji,...tkj->...tki", R, seq) + root[..., None, None, :]
+
+
+# ----------------------------------------------------------------------------- clips
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One recording: ``xyz_m (T,P,J,3)`` (NaN = unknown) at ``fps`` in ``skeleton``."""
+
+    name: str
+    xyz_m: np.ndarray
+    fps: float
+    skeleton: str = "body19"
+
+    def __post_init__(self) -> None:
+        x = np.asarray(self.xyz_m, dtype=np.float32)
+        if x.ndim == 3:
+            x = x[:, None]
+        J = get_skeleton(self.skeleton).n_joints
+        if x.ndim != 4 or x.shape[2:] != (J, 3):
+            raise ValueError(
+                f"clip '{self.name}': xyz_m must be (T,P,{J},3) for '{self.skeleton}', got {x.shape}"
+            )
+        object.__setattr__(self, "xyz_m", x)
+
+    @property
+    def n_frames(self) -> int:
+        return self.xyz_m.shape[0]
+
+    def resampled(self, fps: float) -> Clip:
+        """Linear resampling to ``fps`` (NaN stays NaN where either neighbour is NaN)."""
+        if abs(fps - self.fps) < 1e-6:
+            return self
+        T = self.n_frames
+        t_new = np.arange(0, (T - 1) / self.fps + 1e-9, 1.0 / fps)
+        pos = t_new * self.fps
+        i0 = np.clip(np.floor(pos).astype(int), 0, T - 1)
+        i1 = np.clip(i0 + 1, 0, T - 1)
+        w = (pos - i0)[:, None, None, None].astype(np.float32)
+        x = (1 - w) * self.xyz_m[i0] + w * self.xyz_m[i1]
+        return Clip(self.name, x, fps, self.skeleton)
+
+
+def clip_from_trackfile(path: str | os.PathLike) -> Clip:
+    """A track file (``tracks/1``) as a clip; raises ``FormatError``/``SchemaError`` for bad files."""
+    from track.trackfile import TrackFile  # the contract with the tracker
+
+    tf = TrackFile.load(path)
+    sk = _skeleton_for(tf.joint_names, path)
+    return Clip(
+        Path(path).stem if Path(path).stem != "tracks" else Path(path).parent.parent.name or "tracks",
+        tf.xyz_m,
+        tf.fps,
+        sk,
+    )
+
+
+def _skeleton_for(joint_names: tuple[str, ...], path) -> str:
+    for sid in ("body19", "smpl29"):
+        if tuple(get_skeleton(sid).joint_names) == tuple(joint_names):
+            return sid
+    raise FormatError(
+        path,
+        "joint_names",
+        f"joints {list(joint_names)} match no forecasting skeleton (body19, smpl29).",
+        "Convert the track file to body19 (keypoints.skeletons.convert).",
+    )
+
+
+def cmu_bvh_files(root: str | os.PathLike | None = None) -> list[Path]:
+    """The CMU BVH clips under the mocap root (``synthetic.bvh.list_clips``: ``$ROOMCAP_MOCAP`` or
+    ``$ROOMCAP_SHARED/data/motion``); raises with what to set when there are none."""
+    from synthetic import bvh  # written by the synthetic-world engineer
+
+    files = bvh.list_clips(root)
+    if not files:
+        raise FileNotFoundError(
+            f"no BVH clips under {root or 'the mocap root'}; set ROOMCAP_MOCAP or ROOMCAP_SHARED"
+        )
+    return files
+
+
+def clip_from_bvh(path: str | os.PathLike, fps: float = TARGET_FPS) -> Clip:
+    """A CMU BVH clip as body19 at ``fps`` through the synthetic-world BVH reader + FK."""
+    from synthetic import bvh
+
+    c = bvh.load_clip(path, fps=fps)
+    return Clip(Path(path).stem, np.asarray(c.xyz_m, np.float32), float(c.fps), "body19")
+
+
+def split_by_clip(names: list[str], test_fraction: float = 0.2, seed: int = 0) -> tuple[list[int], list[int]]:
+    """Deterministic train/test split of clip indices by clip (never by window)."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(names))
+    n_test = max(1, int(round(test_fraction * len(names))))
+    return sorted(order[n_test:].tolist()), sorted(order[:n_test].tolist())
+
+
+# ----------------------------------------------------------------------------- Humans in Kitchens
+
+KITCHEN_FPS = 25.0
+_KITCHEN_KEYS = ("poses3d", "frames")
+
+
+def load_kitchens_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """One Humans-in-Kitchens person segment (Tanke ch. 8) -> arrays, checked.
+
+    Layout: ``poses3d (n,29,3)`` metres z up (smpl29 order), ``frames (n,)`` global frame numbers at
+    25 Hz; optional ``act (n,82)``, ``transforms (n,6)``, ``smpl (n,21,3)``, ``betas (10,)``.
+    """
+    data = load_npz(path, required=_KITCHEN_KEYS)
+    p, f = np.asarray(data["poses3d"], np.float32), np.asarray(data["frames"], np.int64)
+    if p.ndim != 3 or p.shape[1:] != (29, 3):
+        raise FormatError(path, "poses3d", f"expected (n,29,3) metres, got {p.shape}.")
+    if f.shape != (len(p),):
+        raise FormatError(path, "frames", f"expected ({len(p)},) frame numbers, got {f.shape}.")
+    out = {"poses3d": p, "frames": f}
+    for key, tail in (("act", (82,)), ("transforms", (6,)), ("smpl", (21, 3))):
+        if key in data:
+            if data[key].shape != (len(p), *tail):
+                raise FormatError(path, key, f"expected {(len(p), *tail)}, got {data[key].shape}.")
+            out[key] = data[key]
+    if "betas" in data:
+        out["betas"] = data["betas"]
+    return out
+
+
+def kitchens_scene(paths: list[str | os.PathLike], name: str = "kitchen") -> Clip:
+    """Person segments of one kitchen recording -> one multi-person ``smpl29`` clip on the global frame axis.
+
+    Frames a person is absent from are NaN (masked downstream).
+    """
+    segs = [load_kitchens_npz(p) for p in paths]
+    if not segs:
+        raise ValueError("kitchens_scene needs at least one person npz")
+    f0 = min(int(s["frames"].min()) for s in segs)
+    f1 = max(int(s["frames"].max()) for s in segs)
+    x = np.full((f1 - f0 + 1, len(segs), 29, 3), np.nan, np.float32)
+    for k, s in enumerate(segs):
+        x[s["frames"] - f0, k] = s["poses3d"]
+    return Clip(name, x, KITCHEN_FPS, "smpl29")
+
+
+def smpl29_to_body19(xyz: np.ndarray) -> np.ndarray:
+    """Map the SMPL joints shared with body19 (hips, knees, ankles, shoulders, elbows, wrists, pelvis, neck);
+    face joints (nose/eyes/ears) are NaN. (...,29,3) -> (...,19,3)."""
+    src, dst = get_skeleton("smpl29").joint_names, get_skeleton("body19").joint_names
+    out = np.full((*xyz.shape[:-2], len(dst), 3), np.nan, np.float32)
+    for j, n in enumerate(dst):
+        if n in src:
+            out[..., j, :] = xyz[..., src.index(n), :]
+    return out
+
+
+# ----------------------------------------------------------------------------- windows
+
+
+@dataclass(frozen=True)
+class WindowSet:
+    """Windows of ``n_obs + n_pred`` frames.
+
+    ``x (N,T,P,J,3)`` world metres with missing values filled (last/next known value),
+    ``mask (N,T,P,J)`` True where observed, ``person_mask (N,P)`` True where a person is present at
+    the last observed frame, ``clip (N,)`` index into ``clip_names``, ``start (N,)`` first frame.
+    """
+
+    x: np.ndarray
+    mask: np.ndarray
+    person_mask: np.ndarray
+    clip: np.ndarray
+    start: np.ndarray
+    n_obs: int
+    n_pred: int
+    fps: float
+    skeleton: str
+    clip_names: tuple[str, ...]
+    skipped: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+
+def _fill(x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Fill unknown frames per (person, joint) with the last known value, before the first with the first."""
+    T = x.shape[0]
+    idx = np.where(m, np.arange(T)[:, None, None], -1)
+    idx = np.maximum.accumulate(idx, axis=0)
+    first = np.argmax(m, axis=0)  # first known frame (0 if none)
+    idx = np.where(idx < 0, first[None], idx)
+    out = np.take_along_axis(x, idx[..., None], axis=0)
+    return np.where(np.isfinite(out), out, 0.0).astype(np.float32)
+
+
+def make_windows(
+    clips: list[Clip],
+    n_obs: int,
+    n_pred: int,
+    stride: int,
+    fps: float = TARGET_FPS,
+    persons: str = "each",
+    min_persons: int = 1,
+    max_persons: int | None = None,
+) -> WindowSet:
+    """Cut clips into windows at ``fps``.
+
+    persons: ``"each"`` -> one single-person window per present person (P=1); ``"all"`` -> the scene
+    (P = the clip's person count, padded to ``max_persons``). A person counts as present when both
+    hips are known at the last observed frame (the normalisation frame of eq. 3.8); windows without
+    ``min_persons`` present people are skipped and counted.
+    """
+    if persons not in ("each", "all"):
+        raise ValueError(f"persons must be 'each' or 'all', got {persons!r}")
+    skipped: Counter[str] = Counter()
+    xs, ms, pms, cs, ss = [], [], [], [], []
+    T = n_obs + n_pred
+    sk = clips[0].skeleton if clips else "body19"
+    lh, rh = hip_indices(get_skeleton(sk).joint_names)
+    for ci, clip in enumerate(clips):
+        if clip.skeleton != sk:
+            raise ValueError(f"clip '{clip.name}' is {clip.skeleton}, others are {sk}; convert first")
+        c = clip.resampled(fps)
+        if c.n_frames < T:
+            skipped["clip_shorter_than_window"] += 1
+            continue
+        mask_all = np.isfinite(c.xyz_m).all(-1)
+        for s in range(0, c.n_frames - T + 1, stride):
+            x, m = c.xyz_m[s : s + T], mask_all[s : s + T]
+            present = m[n_obs - 1, :, lh] & m[n_obs - 1, :, rh]
+            if present.sum() < min_persons:
+                skipped["no_person_at_last_observed_frame"] += 1
+                continue
+            if persons == "each":
+                for p in np.flatnonzero(present):
+                    xs.append(_fill(x[:, p : p + 1], m[:, p : p + 1]))
+                    ms.append(m[:, p : p + 1])
+                    pms.append(np.ones(1, bool))
+                    cs.append(ci)
+                    ss.append(s)
+            else:
+                P = max_persons or x.shape[1]
+                keep = np.flatnonzero(present)[:P]
+                xf = np.zeros((T, P, x.shape[2], 3), np.float32)
+                mf = np.zeros((T, P, x.shape[2]), bool)
+                xf[:, : len(keep)] = _fill(x[:, keep], m[:, keep])
+                mf[:, : len(keep)] = m[:, keep]
+                pm = np.zeros(P, bool)
+                pm[: len(keep)] = True
+                xs.append(xf)
+                ms.append(mf)
+                pms.append(pm)
+                cs.append(ci)
+                ss.append(s)
+    if skipped:
+        log.info("make_windows skipped %s", dict(skipped))
+    J = get_skeleton(sk).n_joints
+    P0 = 1 if persons == "each" else (max_persons or (clips[0].xyz_m.shape[1] if clips else 1))
+    if not xs:
+        return WindowSet(
+            np.zeros((0, T, P0, J, 3), np.float32),
+            np.zeros((0, T, P0, J), bool),
+            np.zeros((0, P0), bool),
+            np.zeros(0, int),
+            np.zeros(0, int),
+            n_obs,
+            n_pred,
+            fps,
+            sk,
+            tuple(c.name for c in clips),
+            dict(skipped),
+        )
+    if persons == "all" and len({a.shape for a in xs}) > 1:
+        raise ValueError("clips have different person counts; pass max_persons")
+    return WindowSet(
+        np.stack(xs),
+        np.stack(ms),
+        np.stack(pms),
+        np.asarray(cs),
+        np.asarray(ss),
+        n_obs,
+        n_pred,
+        fps,
+        sk,
+        tuple(c.name for c in clips),
+        dict(skipped),
+    )
+
+
+def compose_scenes(
+    clips: list[Clip],
+    n_scenes: int,
+    n_frames: int,
+    n_persons: int = 2,
+    dist_m: tuple[float, float] = (1.0, 3.0),
+    seed: int = 0,
+) -> list[Clip]:
+    """Multi-person scenes composed from single-person mocap (as the seed's CMU-Mocap protocol [200]):
+    each scene takes ``n_frames`` from ``n_persons`` random clips, re-centres person 0 at the origin and
+    places the others at a random distance and heading around it."""
+    rng = np.random.default_rng(seed)
+    long = [c for c in clips if c.n_frames >= n_frames]
+    if not long:
+        raise ValueError(f"no clip has {n_frames} frames to compose scenes from")
+    lh, rh = hip_indices(get_skeleton(long[0].skeleton).joint_names)
+    out = []
+    for k in range(n_scenes):
+        people = []
+        for p in range(n_persons):
+            c = long[rng.integers(len(long))]
+            s = rng.integers(0, c.n_frames - n_frames + 1)
+            x = c.xyz_m[s : s + n_frames, 0].copy()
+            R, root = norm_frame(np.nan_to_num(x[0]), lh, rh)
+            a = rng.uniform(-np.pi, np.pi)
+            Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]], np.float32)
+            y = normalize(x[None], R, root * np.array([1, 1, 0], np.float32))[0] @ Rz.T
+            if p > 0:
+                r, b = rng.uniform(*dist_m), rng.uniform(-np.pi, np.pi)
+                y = y + np.array([r * np.cos(b), r * np.sin(b), 0], np.float32)
+            people.append(y)
+        out.append(Clip(f"scene{k:04d}", np.stack(people, 1), long[0].fps, long[0].skeleton))
+    return out

@@ -1,0 +1,159 @@
+"""Social Diffusion (Tanke ch. 7): multi-person motion forecasting with a diffusion model.
+
+- Cosine variance schedule (sec. 7.2.3, Nichol & Dhariwal), T diffusion steps; g predicts the clean
+  sequence X_0 (eq. 7.3), trained with the L1 norm ||X_0 - g(X_t, t)|| (eq. 7.4).
+- g: per person a causal temporal-convolution encoder e (4 layers, kernel 3, stride 2) and decoder d
+  (4 layers, linear x2 upsampling + causal conv), the diffusion step fed to every layer through a
+  sinusoidal encoding; an order-invariant mean over the people of the scene at the bottleneck
+  (Γ_E, eq. 7.10) concatenated to each person's bottleneck (eq. 7.8). We add U-Net skips from the
+  encoder to the decoder (the seed is silent; without them 64 frames through a 4-frame bottleneck lose
+  detail on a CPU budget).
+- Conditioning by inpainting (eq. 7.6): at every reverse step the observed frames are written back into
+  the X_0 estimate before it is re-noised to the next step. ``eta=1`` re-noises with fresh noise
+  (the seed's sampler); ``eta=0`` reuses the predicted noise (DDIM), which allows few steps.
+
+Per-person features (sec. 7.2.3): the per-frame hip-centric pose (3J) ⊕ root (3) ⊕ (cos θ, sin θ) of the
+global heading, in the scene frame, standardised with training mean/std (buffers in the checkpoint).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def cosine_alpha_bar(T: int, s: float = 0.008) -> torch.Tensor:
+    """ᾱ_t for t = 0..T (ᾱ_0 = 1), Nichol & Dhariwal's cosine schedule (clipped betas ≤ 0.999)."""
+    t = torch.arange(T + 1, dtype=torch.float64) / T
+    f = torch.cos((t + s) / (1 + s) * math.pi / 2) ** 2
+    ab = f / f[0]
+    beta = (1 - ab[1:] / ab[:-1]).clamp(max=0.999)
+    return torch.cat([torch.ones(1, dtype=torch.float64), torch.cumprod(1 - beta, 0)]).float()
+
+
+def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sinusoidal encoding (eq. 3.23) of diffusion steps t (B,) -> (B,dim)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(10000.0) * torch.arange(half, device=t.device, dtype=torch.float32) / half)
+    a = t.float()[:, None] * freqs[None]
+    return torch.cat([torch.sin(a), torch.cos(a)], -1)
+
+
+class _CausalConv(nn.Module):
+    def __init__(self, cin: int, cout: int, k: int = 3, stride: int = 1):
+        super().__init__()
+        self.pad = k - 1
+        self.conv = nn.Conv1d(cin, cout, k, stride=stride)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(F.pad(x, (self.pad, 0)))
+
+
+class _Block(nn.Module):
+    def __init__(self, cin: int, cout: int, temb: int, stride: int = 1):
+        super().__init__()
+        self.conv1 = _CausalConv(cin, cout, 3, stride)
+        self.conv2 = _CausalConv(cout, cout, 3)
+        self.t = nn.Linear(temb, cout)
+        self.norm1 = nn.GroupNorm(8, cout)
+        self.norm2 = nn.GroupNorm(8, cout)
+
+    def forward(self, x: torch.Tensor, te: torch.Tensor) -> torch.Tensor:
+        h = F.silu(self.norm1(self.conv1(x))) + self.t(te)[:, :, None]
+        return h + F.silu(self.norm2(self.conv2(h)))
+
+
+class SocialDiffusion(nn.Module):
+    kind = "social_diffusion"
+    stochastic = True
+
+    def __init__(self, feat_dim: int, n_frames: int = 64, channels: int = 96, T: int = 1000, temb: int = 64):
+        super().__init__()
+        if n_frames % 16:
+            raise ValueError(f"n_frames must be a multiple of 16 (4 stride-2 layers), got {n_frames}")
+        self.feat_dim, self.n_frames, self.T, self.temb = feat_dim, n_frames, T, temb
+        self.register_buffer("alpha_bar", cosine_alpha_bar(T))
+        self.register_buffer("feat_mean", torch.zeros(feat_dim))
+        self.register_buffer("feat_std", torch.ones(feat_dim))
+        C = channels
+        self.t_mlp = nn.Sequential(nn.Linear(temb, temb), nn.SiLU(), nn.Linear(temb, temb))
+        self.inp = nn.Conv1d(feat_dim, C, 1)
+        self.enc = nn.ModuleList([_Block(C, C, temb, stride=2) for _ in range(4)])
+        self.mix = nn.Conv1d(2 * C, C, 1)  # h^i ⊕ Γ({h^j})
+        self.dec = nn.ModuleList([_Block(2 * C, C, temb) for _ in range(4)])
+        self.out = nn.Conv1d(C, feat_dim, 1)
+
+    def g(self, x_t: torch.Tensor, t: torch.Tensor, person_mask: torch.Tensor) -> torch.Tensor:
+        """Eq. 7.3: x_t (B,P,N,F) standardised, t (B,), person_mask (B,P) -> X̂_0 (B,P,N,F)."""
+        B, P, N, Fd = x_t.shape
+        te = self.t_mlp(timestep_embedding(t, self.temb)).repeat_interleave(P, 0)
+        h = self.inp(x_t.reshape(B * P, N, Fd).transpose(1, 2))
+        skips = []
+        for blk in self.enc:  # eq. 7.7
+            skips.append(h)
+            h = blk(h, te)
+        m = person_mask.float().reshape(B, P, 1, 1)
+        hb = h.view(B, P, *h.shape[1:])
+        gamma = (hb * m).sum(1, keepdim=True) / m.sum(1, keepdim=True).clamp(min=1)  # Γ_E (7.10)
+        h = self.mix(torch.cat([hb, gamma.expand_as(hb)], 2).flatten(0, 1))
+        for blk, skip in zip(self.dec, reversed(skips), strict=True):  # eq. 7.8
+            h = F.interpolate(h, scale_factor=2, mode="linear", align_corners=False)
+            h = blk(torch.cat([h, skip], 1), te)
+        return self.out(h).transpose(1, 2).reshape(B, P, N, Fd)
+
+    def loss(
+        self, x0: torch.Tensor, person_mask: torch.Tensor, valid: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Eq. 7.4 (L1) for standardised x0 (B,P,N,F); valid (B,P,N) masks unknown frames."""
+        B = x0.shape[0]
+        t = torch.randint(1, self.T + 1, (B,), device=x0.device)
+        ab = self.alpha_bar[t].view(B, 1, 1, 1)
+        x_t = ab.sqrt() * x0 + (1 - ab).sqrt() * torch.randn_like(x0)
+        err = (self.g(x_t, t, person_mask) - x0).abs().mean(-1)
+        w = person_mask[:, :, None].float().expand_as(err)
+        if valid is not None:
+            w = w * valid.float()
+        return (err * w).sum() / w.sum().clamp(min=1)
+
+    def standardise(self, f: torch.Tensor) -> torch.Tensor:
+        return (f - self.feat_mean) / self.feat_std
+
+    def unstandardise(self, f: torch.Tensor) -> torch.Tensor:
+        return f * self.feat_std + self.feat_mean
+
+    @torch.no_grad()
+    def sample_window(
+        self,
+        obs: torch.Tensor,
+        person_mask: torch.Tensor,
+        n_samples: int = 1,
+        steps: int | None = None,
+        eta: float = 1.0,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Complete one window. obs (B,P,n_obs,F) raw features (n_obs < n_frames) -> (B,S,P,N,F) raw features
+        with the first n_obs frames equal to obs (eq. 7.6). ``steps`` ≤ T reverse steps (strided)."""
+        B, P, n_obs, Fd = obs.shape
+        N = self.n_frames
+        steps = steps or self.T
+        o = self.standardise(obs).repeat_interleave(n_samples, 0)
+        pm = person_mask.repeat_interleave(n_samples, 0)
+        BS = B * n_samples
+        ts = torch.linspace(self.T, 1, steps, device=obs.device).round().long()
+        x = torch.randn(BS, P, N, Fd, device=obs.device, generator=generator)
+        x0 = x
+        for i, t in enumerate(ts):
+            tt = t.expand(BS)
+            x0 = self.g(x, tt, pm)
+            x0 = torch.cat([o, x0[:, :, n_obs:]], 2)  # write back the observation
+            if i == len(ts) - 1:
+                break
+            ab, ab_next = self.alpha_bar[t], self.alpha_bar[ts[i + 1]]
+            eps_hat = (x - ab.sqrt() * x0) / (1 - ab).sqrt().clamp(min=1e-6)
+            noise = torch.randn(x.shape, device=x.device, generator=generator)
+            e = math.sqrt(1 - eta**2) * eps_hat + eta * noise
+            x = ab_next.sqrt() * x0 + (1 - ab_next).sqrt() * e
+        return self.unstandardise(x0).view(B, n_samples, P, N, Fd)

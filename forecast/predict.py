@@ -1,0 +1,114 @@
+"""World-space forecasting with any model: normalisation (eq. 3.8) in, inverse out, long rollouts.
+
+``forecast_world(model, obs_xyz_m (B,T,P,J,3), person_mask (B,P), n_pred, n_samples)`` returns
+``(B,S,n_pred,P,J,3)`` world metres. Single-person models see each person normalised at its own last
+observed frame; Social Diffusion sees the scene (features in ``scene_features``) and is rolled out window
+by window (observe ``n_obs``, generate ``n_frames - n_obs``, repeat) for horizons past its window.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from forecast.data import denormalize, norm_frame, normalize
+
+LHIP, RHIP = 11, 12  # body19
+
+
+# ----------------------------------------------------------------------------- scene features (ch. 7.2.3)
+
+
+def scene_frame(last: np.ndarray, person_mask: np.ndarray, lhip: int = LHIP, rhip: int = RHIP):
+    """Scene frame from the last observed frame last (B,P,J,3): heading of the first present person, root =
+    mean of present roots on the floor (z = 0). -> R (B,3,3), root (B,3)."""
+    B = last.shape[0]
+    first = np.argmax(person_mask, 1)
+    R, _ = norm_frame(last[np.arange(B), first], lhip, rhip)
+    roots = 0.5 * (last[..., lhip, :] + last[..., rhip, :])
+    m = person_mask[..., None].astype(np.float32)
+    root = (roots * m).sum(1) / np.maximum(m.sum(1), 1)
+    root[:, 2] = 0.0
+    return R.astype(np.float32), root.astype(np.float32)
+
+
+def scene_features(x: np.ndarray, lhip: int = LHIP, rhip: int = RHIP) -> np.ndarray:
+    """x (...,T,J,3) scene frame -> (...,T,3J+5): per-frame hip-centric pose ⊕ root ⊕ (cos θ, sin θ)."""
+    d = x[..., rhip, :] - x[..., lhip, :]
+    th = np.arctan2(d[..., 1], d[..., 0])
+    R, root = norm_frame(x, lhip, rhip)  # per frame
+    local = np.einsum("...ij,...kj->...ki", R, x - root[..., None, :])
+    return np.concatenate(
+        [local.reshape(*x.shape[:-2], -1), root, np.cos(th)[..., None], np.sin(th)[..., None]], -1
+    ).astype(np.float32)
+
+
+def features_to_poses(f: np.ndarray, n_joints: int) -> np.ndarray:
+    """Inverse of scene_features: (...,T,3J+5) -> (...,T,J,3)."""
+    J = n_joints
+    local = f[..., : 3 * J].reshape(*f.shape[:-1], J, 3)
+    root = f[..., 3 * J : 3 * J + 3]
+    th = np.arctan2(f[..., 3 * J + 4], f[..., 3 * J + 3])
+    c, s = np.cos(th), np.sin(th)
+    x = c[..., None] * local[..., 0] - s[..., None] * local[..., 1]
+    y = s[..., None] * local[..., 0] + c[..., None] * local[..., 1]
+    return np.stack([x, y, local[..., 2]], -1) + root[..., None, :]
+
+
+# ----------------------------------------------------------------------------- forecasting
+
+
+def _device(model) -> torch.device:
+    p = next(iter(model.parameters()), None)
+    if p is None:
+        b = next(iter(model.buffers()), None)
+        return b.device if b is not None else torch.device("cpu")
+    return p.device
+
+
+@torch.no_grad()
+def forecast_world(
+    model, obs: np.ndarray, person_mask: np.ndarray | None, n_pred: int, n_samples: int = 1, **sample_kw
+) -> np.ndarray:
+    """obs (B,T,P,J,3) world metres (no NaN: fill first), person_mask (B,P) -> (B,S,n_pred,P,J,3)."""
+    obs = np.asarray(obs, np.float32)
+    if obs.ndim != 5 or obs.shape[-1] != 3:
+        raise ValueError(f"obs must be (B,T,P,J,3), got {obs.shape}")
+    B, T, P, J, _ = obs.shape
+    pm = np.ones((B, P), bool) if person_mask is None else np.asarray(person_mask, bool)
+    model.eval()
+    dev = _device(model)
+    if getattr(model, "kind", "") == "social_diffusion":
+        return _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, **sample_kw)
+    flat = obs.transpose(0, 2, 1, 3, 4).reshape(B * P, T, J, 3)
+    R, root = norm_frame(flat[:, -1], LHIP, RHIP)
+    xn = normalize(flat, R, root).reshape(B * P, T, J * 3)
+    y = model.sample(torch.from_numpy(xn).to(dev), n_pred, n_samples).cpu().numpy()  # (BP,S,H,D)
+    y = y.reshape(B * P, n_samples * n_pred, J, 3)
+    yw = denormalize(y, R, root).reshape(B, P, n_samples, n_pred, J, 3)
+    return yw.transpose(0, 2, 3, 1, 4, 5)
+
+
+def _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, steps=None, eta=None):
+    n_obs = int(model.n_obs)
+    if obs.shape[1] < n_obs:
+        raise ValueError(f"Social Diffusion observes {n_obs} frames, got {obs.shape[1]}")
+    steps = steps or int(model.sample_steps)
+    eta = float(model.sample_eta if eta is None else eta)
+    B, _, P, J, _ = obs.shape
+    ctx = np.repeat(obs[:, -n_obs:], n_samples, 0)  # (BS,n_obs,P,J,3)
+    pms = np.repeat(pm, n_samples, 0)
+    out = []
+    done = 0
+    while done < n_pred:
+        R, root = scene_frame(ctx[:, -1], pms)
+        xs = np.einsum("bij,btpkj->btpki", R, ctx - root[:, None, None, None])
+        f = scene_features(xs.transpose(0, 2, 1, 3, 4))  # (BS,P,n_obs,F)
+        gen = model.sample_window(torch.from_numpy(f).to(dev), torch.from_numpy(pms).to(dev), 1, steps, eta)
+        g = features_to_poses(gen[:, 0, :, n_obs:].cpu().numpy(), J)  # (BS,P,G,J,3) scene frame
+        gw = np.einsum("bji,bptkj->btpki", R, g) + root[:, None, None, None]
+        out.append(gw)
+        done += gw.shape[1]
+        ctx = np.concatenate([ctx, gw], 1)[:, -n_obs:]
+    y = np.concatenate(out, 1)[:, :n_pred]
+    return y.reshape(B, n_samples, n_pred, P, J, 3)

@@ -1,0 +1,471 @@
+"""Training configurations, loops and checkpoints for every forecasting model.
+
+Configs are frozen dataclasses holding the only copy of each default (``config_from_dict`` rejects
+unknown keys, listing the valid ones). The small defaults train on 2 CPU cores in minutes.
+
+Checkpoints (``torch.save`` of plain containers, loaded with ``weights_only=True``) carry
+``schema = "forecast-checkpoint/1"``, the model kind, its config, the skeleton id and joint names, the
+frame rate and the normalisation convention, plus the state dict (k-means centres, feature statistics
+and the diffusion schedule are buffers inside it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import re
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from capture.fileio import FormatError, atomic_path
+from forecast import data as fdata
+from forecast.models import (
+    ConstantVelocity,
+    FoolClusters,
+    IntentionModel,
+    Seq2SeqGRU,
+    SocialDiffusion,
+    ZeroVelocity,
+)
+from forecast.models.intention import fit_intention_labels
+from forecast.predict import LHIP, RHIP, scene_features
+from keypoints.skeletons import get_skeleton
+
+log = logging.getLogger(__name__)
+
+CKPT_SCHEMA = "forecast-checkpoint/1"
+NORMALISATION = "eq. 3.8 at the last observed frame: root = mid-hips, hip vector (left->right) on +x, z up"
+
+
+@dataclass(frozen=True)
+class GRUConfig:
+    hidden: int = 128
+    dropout: float = 0.0
+    n_obs: int = 50
+    n_pred: int = 25
+    steps: int = 1200
+    batch: int = 32
+    lr: float = 1e-3
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class IntentionConfig:
+    hidden: int = 192
+    layers: int = 2
+    z_dim: int = 32
+    n_clusters: int = 32
+    n_intentions: int = 8
+    gamma: int = 10
+    f_dim: int = 16
+    tau_rec: int = 15
+    w_adv: float = 0.05
+    n_obs: int = 50
+    n_pred: int = 50
+    steps: int = 1500
+    batch: int = 64
+    lr: float = 1e-3
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class DiffusionConfig:
+    channels: int = 96
+    T: int = 1000
+    n_frames: int = 64
+    n_obs: int = 32
+    persons: int = 2
+    sample_steps: int = 20
+    sample_eta: float = 0.0
+    steps: int = 3000
+    batch: int = 32
+    lr: float = 5e-4
+    seed: int = 0
+
+
+CONFIGS = {"gru": GRUConfig, "intention": IntentionConfig, "social_diffusion": DiffusionConfig}
+BASELINES = ("zero_velocity", "constant_velocity")
+
+
+def config_from_dict(kind: str, d: dict | None = None):
+    """Typed config for ``kind`` from a dict (e.g. a TOML table); unknown keys are an error."""
+    if kind not in CONFIGS:
+        raise ValueError(f"unknown model '{kind}'; trainable models: {sorted(CONFIGS)}")
+    cls = CONFIGS[kind]
+    d = dict(d or {})
+    names = {f.name: f.type for f in dataclasses.fields(cls)}
+    bad = sorted(set(d) - set(names))
+    if bad:
+        raise ValueError(f"unknown {kind} config keys {bad}; valid keys: {sorted(names)}")
+    defaults = cls()
+    out = {}
+    for k, v in d.items():
+        out[k] = type(getattr(defaults, k))(v)
+    return cls(**out)
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def clip_key(name: str) -> str:
+    """Canonical CMU id (subject_trial) so one trial from two sources is one clip ('01_01' = '001_01')."""
+    m = re.fullmatch(r"(?:scaled_)?0*(\d+)_0*(\d+)", name)
+    return f"{int(m.group(1))}_{int(m.group(2))}" if m else name
+
+
+def load_cmu(fps: float = fdata.TARGET_FPS, root: str | os.PathLike | None = None) -> list[fdata.Clip]:
+    """All CMU clips at ``fps`` (one copy per trial)."""
+    seen, clips = set(), []
+    for f in fdata.cmu_bvh_files(root):
+        c = fdata.clip_from_bvh(f, fps)
+        k = clip_key(c.name)
+        if k in seen:
+            continue
+        seen.add(k)
+        clips.append(c)
+    return clips
+
+
+def load_sources(sources: list[str], fps: float = fdata.TARGET_FPS) -> list[fdata.Clip]:
+    """'cmu' (the mocap root), track files (``tracks.npz``) or folders searched for ``tracks.npz``."""
+    clips: list[fdata.Clip] = []
+    for s in sources:
+        if s == "cmu":
+            clips += load_cmu(fps)
+            continue
+        p = Path(s)
+        files = sorted(p.rglob("tracks.npz")) if p.is_dir() else [p]
+        if not files:
+            raise FileNotFoundError(f"no tracks.npz under {p}")
+        clips += [fdata.clip_from_trackfile(f).resampled(fps) for f in files]
+    return clips
+
+
+def split_clips(clips: list[fdata.Clip], test_fraction: float = 0.2, seed: int = 0):
+    tr, te = fdata.split_by_clip([c.name for c in clips], test_fraction, seed)
+    return [clips[i] for i in tr], [clips[i] for i in te]
+
+
+def single_person_arrays(ws: fdata.WindowSet) -> tuple[np.ndarray, np.ndarray]:
+    """Windows (N,T,1,J,3) -> normalised at the last observed frame (N,T,3J) and joint mask (N,T,J)."""
+    x = ws.x[:, :, 0]
+    R, root = fdata.norm_frame(x[:, ws.n_obs - 1], LHIP, RHIP)
+    xn = fdata.normalize(x, R, root)
+    return xn.reshape(len(x), x.shape[1], -1).astype(np.float32), ws.mask[:, :, 0]
+
+
+def mirror(xn: np.ndarray, mask: np.ndarray, flip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Left/right mirror of normalised poses (x -> -x, swap sides): doubles the data, keeps eq. 3.8."""
+    N, T, D = xn.shape
+    p = xn.reshape(N, T, D // 3, 3)[:, :, flip].copy()
+    p[..., 0] *= -1
+    return p.reshape(N, T, D), mask[:, :, flip]
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def save_checkpoint(
+    path: str | os.PathLike,
+    model: torch.nn.Module,
+    kind: str,
+    config,
+    skeleton: str = "body19",
+    fps: float = fdata.TARGET_FPS,
+    extra: dict | None = None,
+) -> None:
+    sk = get_skeleton(skeleton)
+    blob = {
+        "schema": CKPT_SCHEMA,
+        "kind": kind,
+        "config": dataclasses.asdict(config),
+        "skeleton": skeleton,
+        "joint_names": list(sk.joint_names),
+        "fps": float(fps),
+        "normalisation": NORMALISATION,
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "extra": extra or {},
+    }
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
+
+
+def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> torch.nn.Module:
+    D = 3 * n_joints
+    if kind == "gru":
+        m = Seq2SeqGRU(D, config.hidden, config.dropout)
+    elif kind == "intention":
+        centres = np.zeros((config.n_clusters, D), np.float32) if state is None else state["centres"].numpy()
+        merge = np.zeros(config.n_clusters, np.int64) if state is None else state["merge"].numpy()
+        m = IntentionModel(
+            D,
+            centres,
+            merge,
+            config.n_intentions,
+            config.hidden,
+            config.layers,
+            config.z_dim,
+            gamma=config.gamma,
+            f_dim=config.f_dim,
+        )
+    elif kind == "social_diffusion":
+        m = SocialDiffusion(D + 5, config.n_frames, config.channels, config.T)
+        m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
+    else:
+        raise ValueError(f"unknown model '{kind}'")
+    if state is not None:
+        m.load_state_dict(state)
+    m.n_obs = config.n_obs
+    return m
+
+
+def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_location: str = "cpu"):
+    """-> (model, meta). ``skeleton``: the skeleton the caller's data uses; a mismatch is a clear error."""
+    path = Path(path)
+    try:
+        blob = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - re-raised with what to do
+        raise FormatError(
+            path,
+            None,
+            f"not a readable forecast checkpoint ({type(e).__name__}: {e}).",
+            "Train one with `forecast train`.",
+        ) from e
+    if not isinstance(blob, dict) or blob.get("schema") != CKPT_SCHEMA:
+        raise FormatError(
+            path,
+            "schema",
+            f"expected '{CKPT_SCHEMA}', got {blob.get('schema') if isinstance(blob, dict) else type(blob)}.",
+            "This file was not written by `forecast train` of this version.",
+        )
+    if skeleton is not None and blob["skeleton"] != skeleton:
+        raise FormatError(
+            path,
+            "skeleton",
+            f"the checkpoint was trained on skeleton '{blob['skeleton']}' "
+            f"({len(blob['joint_names'])} joints) but the data is '{skeleton}'.",
+            f"Convert the data to '{blob['skeleton']}' or train a model on '{skeleton}'.",
+        )
+    config = config_from_dict(blob["kind"], blob["config"])
+    model = build_model(blob["kind"], config, len(blob["joint_names"]), blob["state_dict"])
+    meta = {k: v for k, v in blob.items() if k != "state_dict"}
+    meta["config"] = config
+    return model.to(map_location), meta
+
+
+def baseline(kind: str) -> torch.nn.Module:
+    if kind == "zero_velocity":
+        return ZeroVelocity()
+    if kind == "constant_velocity":
+        return ConstantVelocity()
+    raise ValueError(f"unknown baseline '{kind}'; baselines: {BASELINES}")
+
+
+def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> FoolClusters:
+    """Sec. 6.4.4's fool: 48 cluster means of the training poses (hip-centric, per-frame normalised)."""
+    from scipy.cluster.vq import kmeans2
+
+    x = train_windows.x[:, :, 0].reshape(-1, train_windows.x.shape[3], 3)
+    R, root = fdata.norm_frame(x, LHIP, RHIP)
+    loc = np.einsum("nij,nkj->nki", R, x - root[:, None]).reshape(len(x), -1)
+    rng = np.random.default_rng(seed)
+    sub = loc[rng.choice(len(loc), min(len(loc), 20000), replace=False)].astype(np.float64)
+    centres, _ = kmeans2(sub, k, minit="++", seed=seed)
+    return FoolClusters(torch.from_numpy(centres.astype(np.float32)))
+
+
+# ----------------------------------------------------------------------------- training loops
+
+Progress = Callable[[int, dict], None]
+
+
+def _masked_joint_l2(pred, fut, mask):
+    J = mask.shape[-1]
+    err = (pred - fut).view(*pred.shape[:2], J, 3).norm(dim=-1)
+    m = mask.float()
+    return (err * m).sum() / m.sum().clamp(min=1)
+
+
+def train(
+    kind: str, clips: list[fdata.Clip], config=None, progress: Progress | None = None, device: str = "cpu"
+) -> tuple[torch.nn.Module, dict]:
+    """Train ``kind`` on clips (body19). Returns the model and a history dict (loss per step, timing)."""
+    config = config or config_from_dict(kind)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    sk = clips[0].skeleton if clips else "body19"
+    J = get_skeleton(sk).n_joints
+    if kind == "social_diffusion":
+        return _train_diffusion(clips, config, J, rng, progress, device)
+    ws = fdata.make_windows(clips, config.n_obs, config.n_pred, stride=5, persons="each")
+    if len(ws) == 0:
+        raise ValueError(
+            f"no training windows of {config.n_obs + config.n_pred} frames (skipped: {ws.skipped})"
+        )
+    xn, mk = single_person_arrays(ws)
+    flip = get_skeleton(sk).flip_index
+    xm, mm = mirror(xn, mk, flip)
+    xn, mk = np.concatenate([xn, xm]), np.concatenate([mk, mm])
+    model = None
+    if kind == "gru":
+        model = build_model(kind, config, J).to(device)
+    elif kind == "intention":
+        from forecast.models.intention import local_poses
+
+        loc = local_poses(torch.from_numpy(xn)).numpy()
+        centres, merge = fit_intention_labels(
+            loc[::3].reshape(-1, 3 * J),
+            [s for s in loc[:, ::1]][:2000],
+            config.n_clusters,
+            config.n_intentions,
+            config.seed,
+        )
+        state = None
+        model = build_model(kind, config, J, state).to(device)
+        model.centres.copy_(torch.from_numpy(centres))
+        model.merge.copy_(torch.from_numpy(merge))
+        labels_all = model.labels(torch.from_numpy(loc)).numpy()  # (N,T)
+    X, M = torch.from_numpy(xn), torch.from_numpy(mk)
+    opt = torch.optim.Adam(
+        model.parameters() if kind == "gru" else model.generator_parameters(), lr=config.lr
+    )
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps)
+    if kind == "intention":
+        opt_d = torch.optim.Adam(model.discriminator_parameters(), lr=config.lr)
+    hist: dict = {"loss": [], "n_windows": len(xn), "skipped": ws.skipped}
+    t0 = time.perf_counter()
+    model.train()
+    n_obs, H = config.n_obs, config.n_pred
+    for step in range(config.steps):
+        idx = torch.from_numpy(rng.integers(0, len(X), config.batch))
+        xb, mb = X[idx].to(device), M[idx].to(device)
+        obs, fut, mfut = xb[:, :n_obs], xb[:, n_obs:], mb[:, n_obs:]
+        if kind == "gru":
+            loss = _masked_joint_l2(model(obs, H), fut, mfut)
+            terms = {"loss": loss.item()}
+        else:
+            g = config.gamma
+            lab = torch.from_numpy(labels_all)[idx].to(device)
+            c_all = torch.cat([lab[:, n_obs - 1 :], lab[:, -1:].expand(-1, g - 1)], 1)  # pad the look-ahead
+            loss, terms, d_loss, _ = model.losses(obs, fut, c_all, mfut, config.tau_rec, config.w_adv)
+            terms["loss"] = loss.item()
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        if kind == "intention":
+            opt_d.zero_grad()
+            dl = d_loss()
+            dl.backward()
+            opt_d.step()
+        hist["loss"].append(terms["loss"])
+        if progress:
+            progress(step, terms)
+    hist["seconds"] = time.perf_counter() - t0
+    hist["steps_per_s"] = config.steps / hist["seconds"]
+    model.eval()
+    return model, hist
+
+
+def composed_batch(
+    x_single: np.ndarray,
+    P: int,
+    batch: int,
+    rng: np.random.Generator,
+    dist_m: tuple[float, float] = (1.0, 3.0),
+) -> np.ndarray:
+    """Compose ``batch`` scenes of P people from single-person windows x_single (N,T,J,3) world metres (as the
+    seed's composed CMU-Mocap scenes [200]): each person is rotated about z at random and placed at a random
+    distance around the first. -> (batch,T,P,J,3)."""
+    N, T, J, _ = x_single.shape
+    idx = rng.integers(0, N, (batch, P))
+    x = x_single[idx]  # (B,P,T,J,3)
+    R, root = fdata.norm_frame(x[:, :, 0], LHIP, RHIP)
+    root[..., 2] = 0
+    x = np.einsum("bpij,bptkj->bptki", R, x - root[:, :, None, None])
+    a = rng.uniform(-np.pi, np.pi, (batch, P))
+    c, s = np.cos(a), np.sin(a)
+    Rz = np.stack(
+        [np.stack([c, -s, 0 * c], -1), np.stack([s, c, 0 * c], -1), np.stack([0 * c, 0 * c, 1 + 0 * c], -1)],
+        -2,
+    )
+    x = np.einsum("bpij,bptkj->bptki", Rz, x)
+    r, b = rng.uniform(*dist_m, (batch, P)), rng.uniform(-np.pi, np.pi, (batch, P))
+    off = np.stack([r * np.cos(b), r * np.sin(b), 0 * r], -1)
+    off[:, 0] = 0
+    x = x + off[:, :, None, None]
+    return x.transpose(0, 2, 1, 3, 4).astype(np.float32)
+
+
+def diffusion_batch_features(scenes: np.ndarray, person_mask: np.ndarray, n_obs: int) -> np.ndarray:
+    """Scenes (B,T,P,J,3) world -> features (B,P,T,F) in the scene frame of the last observed frame."""
+    from forecast.predict import scene_frame
+
+    R, root = scene_frame(scenes[:, n_obs - 1], person_mask)
+    xs = np.einsum("bij,btpkj->btpki", R, scenes - root[:, None, None, None])
+    return scene_features(xs.transpose(0, 2, 1, 3, 4))
+
+
+def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device):
+    N, P = config.n_frames, config.persons
+    single = fdata.make_windows(clips, config.n_obs, N - config.n_obs, stride=4, persons="each")
+    multi_clips = [c for c in clips if c.xyz_m.shape[1] > 1]
+    scenes = (
+        fdata.make_windows(
+            multi_clips, config.n_obs, N - config.n_obs, stride=4, persons="all", min_persons=1, max_persons=P
+        )
+        if multi_clips
+        else None
+    )
+    xs = single.x[:, :, 0]
+    if len(xs) == 0:
+        raise ValueError(f"no training windows of {N} frames")
+    # feature statistics from a large composed sample
+    sample = composed_batch(xs, P, 2048, rng)
+    f = diffusion_batch_features(sample, np.ones((len(sample), P), bool), config.n_obs)
+    model = build_model("social_diffusion", config, J).to(device)
+    model.feat_mean.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).mean(0)))
+    model.feat_std.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).std(0) + 1e-3))
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps)
+    hist: dict = {
+        "loss": [],
+        "n_windows": len(xs),
+        "n_scene_windows": 0 if scenes is None else len(scenes),
+        "skipped": single.skipped,
+    }
+    t0 = time.perf_counter()
+    model.train()
+    for step in range(config.steps):
+        use_real = scenes is not None and len(scenes) and rng.random() < 0.5
+        if use_real:
+            idx = rng.integers(0, len(scenes), config.batch)
+            sc, pm = scenes.x[idx], scenes.person_mask[idx]
+            valid = scenes.mask[idx].all(-1).transpose(0, 2, 1)  # (B,P,T)
+        else:
+            sc = composed_batch(xs, P, config.batch, rng)
+            pm = np.ones((config.batch, P), bool)
+            valid = np.ones((config.batch, P, N), bool)
+        feats = torch.from_numpy(diffusion_batch_features(sc, pm, config.n_obs)).to(device)
+        loss = model.loss(
+            model.standardise(feats), torch.from_numpy(pm).to(device), torch.from_numpy(valid).to(device)
+        )
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        hist["loss"].append(loss.item())
+        if progress:
+            progress(step, {"loss": loss.item()})
+    hist["seconds"] = time.perf_counter() - t0
+    hist["steps_per_s"] = config.steps / hist["seconds"]
+    model.eval()
+    return model, hist

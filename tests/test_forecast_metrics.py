@@ -1,0 +1,96 @@
+"""Forecast metrics on constructed cases: MPJPE, NDMS, APD/ADE/FDE, NPSS, SSCP."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from forecast import metrics as M
+from forecast.toy import walker
+from keypoints.skeletons import get_skeleton
+
+NAMES = get_skeleton("body19").joint_names
+
+
+def test_mpjpe_averages_over_joints_and_masks(rng):
+    gt = rng.normal(size=(4, 10, 19, 3))
+    pred = gt + np.array([0.1, 0, 0])
+    pred[0, :, 0] += 5.0  # a wild joint that is masked out
+    mask = np.ones((4, 10, 19), bool)
+    mask[0, :, 0] = False
+    assert np.allclose(M.mpjpe(pred, gt, mask), 0.1)
+    assert M.mpjpe(pred, gt).shape == (10,)
+    with pytest.raises(ValueError, match="end in 3"):
+        M.mpjpe(pred[..., :2], gt[..., :2])
+
+
+def test_ndms_pair_direction_and_magnitude():
+    x = walker(8)
+    assert M.ndms_pair(x, x) == pytest.approx(1.0, abs=1e-4)
+    still = np.repeat(x[:1], 8, 0)
+    assert M.ndms_pair(x, still) == pytest.approx(0.0, abs=1e-6)
+    back = x[::-1].copy()
+    assert M.ndms_pair(x, back) < 0.2  # opposite directions
+
+
+def _scorer(kappa=8):
+    db = [
+        walker(200, phase=p, speed_mps=s, heading_rad=h)
+        for p, s, h in [(0, 1.2, 0), (1.0, 1.0, 2.0), (2.0, 1.4, -1)]
+    ]
+    return M.NDMSScorer(db, NAMES, kappa)
+
+
+def test_ndms_real_far_above_zero_velocity_and_fool():
+    scorer = _scorer()
+    seq = walker(120, phase=0.5, speed_mps=1.1, heading_rad=0.7)
+    obs, fut = seq[:50], seq[50:]
+    real = M.ndms(scorer, obs, fut[None])
+    zero = M.ndms(scorer, obs, np.repeat(obs[-1:], 70, 0)[None])
+    # fool: many static poses (diverse, one of them the last pose): best-of ADE small, NDMS low
+    static = np.stack([np.repeat(seq[i : i + 1], 70, 0) for i in range(0, 120, 5)])
+    fool = M.ndms(scorer, obs, static)
+    assert real > 0.6  # measured 0.87
+    assert zero < 0.15  # measured 0.05 (only the words that include observed frames move)
+    assert fool < 0.15
+    assert M.apd(static) > 0.3 and M.apd(static) > 10 * M.apd(fut[None].repeat(2, 0))
+    curve = scorer.score_forecast(obs, np.repeat(obs[-1:], 70, 0)[None])
+    assert curve.shape == (70,) and curve[-1] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_apd_ade_fde():
+    a = np.zeros((3, 5, 2, 3))
+    a[1] += [1, 0, 0]
+    a[2] += [0, 2, 0]
+    # pairwise over flattened (5*2*3) vectors: |a0-a1| = sqrt(10), |a0-a2| = sqrt(40), |a1-a2| = sqrt(50)
+    assert M.apd(a) == pytest.approx((np.sqrt(10) + np.sqrt(40) + np.sqrt(50)) / 3)
+    assert M.apd(a[:1]) == 0.0
+    gt = np.zeros((5, 2, 3)) + [1, 0, 0]
+    assert M.ade(a, gt) == pytest.approx(0.0) and M.fde(a, gt) == pytest.approx(0.0)
+    assert M.ade(a[[0, 2]], gt) == pytest.approx(np.sqrt(2))
+
+
+def test_npss_zero_for_identical_positive_for_other_frequency():
+    t = np.arange(100) / 25
+    g = np.sin(2 * np.pi * 1.0 * t)[None, :, None] * np.ones((2, 1, 6))
+    p = np.sin(2 * np.pi * 3.0 * t)[None, :, None] * np.ones((2, 1, 6))
+    assert M.npss(g, g) == pytest.approx(0.0, abs=1e-9)
+    assert M.npss(p, g) > 0.5  # measured 2.0 (cumulative spectra far apart)
+    assert M.npss(g * 2 + 0.1 * p, g) < M.npss(p, g)
+
+
+def test_sscp_states_and_js_distance():
+    a = walker(10, start=(0, 0), heading_rad=0.0)  # faces +y
+    b = walker(10, start=(0, 1.5), heading_rad=np.pi)  # 1.5 m ahead, facing -y: they face each other
+    c = walker(10, start=(0, -6), heading_rad=np.pi)  # far away
+    s_face = M.default_social_state(np.stack([a, b], 1), NAMES)
+    s_far = M.default_social_state(np.stack([a, c], 1), NAMES)
+    assert s_face[0] == 9 + 3  # near, one mutual facing pair
+    assert s_far[0] == 0
+    p = M.state_transition_matrix([0, 0, 1, 1, 2], 3)
+    assert p.sum() == 4 and p[0, 1] == 1
+    assert M.js_distance(p, p) == pytest.approx(0.0, abs=1e-9)
+    assert M.js_distance([1, 0], [0, 1]) == pytest.approx(1.0)
+    sscp = M.SSCP(lambda X: M.default_social_state(X, NAMES), M.N_DEFAULT_STATES)
+    assert sscp.distance([np.stack([a, b], 1)], [np.stack([a, c], 1)]) == pytest.approx(1.0)
+    assert sscp.distance([np.stack([a, b], 1)], [np.stack([a, b], 1)]) == pytest.approx(0.0, abs=1e-9)
