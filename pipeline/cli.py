@@ -27,10 +27,15 @@ from pipeline.runner import SessionResult
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="reprocess", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        prog="reprocess", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("paths", nargs="+", help="session folders or folders containing sessions")
-    p.add_argument("--out", type=Path, help="write outputs to OUT/<session> (default: in place for roomcap "
-                   "sessions, <session>/roomcap for other layouts)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="write outputs to OUT/<session> (default: in place for roomcap "
+        "sessions, <session>/roomcap for other layouts)",
+    )
     p.add_argument("--stages", help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
     p.add_argument("--tracker", choices=TRACKERS, help="track stage: greedy (ch. 4) or particle (ch. 5)")
     p.add_argument("--config", type=Path, help="pipeline TOML (see pipeline/config.py)")
@@ -50,24 +55,46 @@ def make_config(args: argparse.Namespace) -> PipelineConfig:
     if args.tracker:
         cfg = cfg.replace(track=type(cfg.track)(tracker=args.tracker, options=cfg.track.options))
     if args.max_frames:
-        cfg = cfg.replace(keypoints=type(cfg.keypoints)(model_set=cfg.keypoints.model_set, max_frames=args.max_frames))
+        cfg = cfg.replace(
+            keypoints=type(cfg.keypoints)(model_set=cfg.keypoints.model_set, max_frames=args.max_frames)
+        )
     return cfg
 
 
 def format_table(results: list[SessionResult], stages: tuple[str, ...]) -> str:
-    head = ["session", "status", "cameras", "frames", "people", "tracks", *[f"{s}_s" for s in stages], "message"]
+    head = [
+        "session",
+        "status",
+        "cameras",
+        "frames",
+        "people",
+        "tracks",
+        *[f"{s}_s" for s in stages],
+        "message",
+    ]
     rows = [head]
     for r in results:
-        rows.append([r.name, r.status, str(r.cameras), str(r.frames), str(r.people), str(r.tracks),
-                     *[f"{r.stage_s[s]:.2f}" if s in r.stage_s else "-" for s in stages], r.message[:160]])
+        rows.append(
+            [
+                r.name,
+                r.status,
+                str(r.cameras),
+                str(r.frames),
+                str(r.people),
+                str(r.tracks),
+                *[f"{r.stage_s[s]:.2f}" if s in r.stage_s else "-" for s in stages],
+                r.message[:160],
+            ]
+        )
     widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
     try:
         cfg = make_config(args)
         sources = discover(args.paths)
@@ -75,8 +102,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"reprocess: {e}", file=sys.stderr)
         return 2
     if not sources:
-        print(f"reprocess: no sessions found under {args.paths}. A session is a folder with raw/ videos or "
-              "keypoints/*.npz and calib/rig.toml, or a Pose2Sim trial (videos/ + calibration/).", file=sys.stderr)
+        print(
+            f"reprocess: no sessions found under {args.paths}. A session is a folder with raw/ videos or "
+            "keypoints/*.npz and calib/rig.toml, or a Pose2Sim trial (videos/ + calibration/).",
+            file=sys.stderr,
+        )
         return 2
     t0 = time.perf_counter()
     bar = tqdm(total=len(sources), desc="sessions", unit="session", disable=None)
@@ -85,17 +115,29 @@ def main(argv: list[str] | None = None) -> int:
         bar.update(1)
         bar.set_postfix_str(f"{r.name}: {r.status}")
 
-    results = run_sessions(sources, args.out, cfg, force=args.force, executor=args.executor,
-                           workers=args.workers, address=args.address, on_result=done)
+    results = run_sessions(
+        sources,
+        args.out,
+        cfg,
+        force=args.force,
+        executor=args.executor,
+        workers=args.workers,
+        address=args.address,
+        on_result=done,
+    )
     bar.close()
-    table = format_table(results, ("calibration", *cfg.stages) if "calibration" not in cfg.stages else cfg.stages)
+    table = format_table(results, tuple(s for s in STAGES if any(s in r.stage_s for r in results)))
     print(table)
     failed = [r for r in results if r.status != "ok"]
-    print(f"{len(results) - len(failed)} sessions ok, {len(failed)} failed in {time.perf_counter() - t0:.1f} s")
+    print(
+        f"{len(results) - len(failed)} sessions ok, {len(failed)} failed in {time.perf_counter() - t0:.1f} s"
+    )
     for r in failed:
         print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
     if args.out:
-        atomic_write_text(args.out / "reprocess_summary.json", json.dumps([r.to_dict() for r in results], indent=1))
+        atomic_write_text(
+            args.out / "reprocess_summary.json", json.dumps([r.to_dict() for r in results], indent=1)
+        )
         atomic_write_text(args.out / "reprocess_summary.txt", table + "\n")
     return 1 if failed else 0
 

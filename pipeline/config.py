@@ -51,7 +51,9 @@ class TrackConfig:
 
     def __post_init__(self) -> None:
         if self.tracker not in TRACKERS:
-            raise FormatError(None, "track.tracker", f"'{self.tracker}' is not a tracker; valid: {list(TRACKERS)}.")
+            raise FormatError(
+                None, "track.tracker", f"'{self.tracker}' is not a tracker; valid: {list(TRACKERS)}."
+            )
 
 
 @dataclass(frozen=True)
@@ -76,8 +78,12 @@ class PipelineConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PipelineConfig:
-        sections = {"keypoints": KeypointsConfig, "triangulate": TriangulateConfig, "track": TrackConfig,
-                    "forecast": ForecastConfig}
+        sections = {
+            "keypoints": KeypointsConfig,
+            "triangulate": TriangulateConfig,
+            "track": TrackConfig,
+            "forecast": ForecastConfig,
+        }
         kw: dict[str, Any] = {}
         for key, value in data.items():
             if key in sections:

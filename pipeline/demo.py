@@ -3,7 +3,8 @@
 Imports the recording's calibration, extracts 2D keypoints, triangulates,
 tracks, previews forecasts and writes the HTML report::
 
-    python -m pipeline.demo --recording ../shared/data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson --out out/demo
+    python -m pipeline.demo --out out/demo \
+        --recording ../shared/data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson
 """
 
 from __future__ import annotations
@@ -22,18 +23,30 @@ def default_recording() -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--recording", type=Path, default=default_recording(),
-                   help="a folder with videos/ and calibration/ (Pose2Sim layout) or a roomcap session")
+    p = argparse.ArgumentParser(
+        prog="python -m pipeline.demo",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--recording",
+        type=Path,
+        default=default_recording(),
+        help="a folder with videos/ and calibration/ (Pose2Sim layout) or a roomcap session",
+    )
     p.add_argument("--out", type=Path, default=Path("out/demo"))
     p.add_argument("--tracker", default="greedy", choices=("greedy", "particle"))
     args = p.parse_args(argv)
     if not args.recording.exists():
-        print(f"demo: recording {args.recording} not found. Set ROOMCAP_SHARED to the shared/ folder or pass "
-              "--recording.", file=sys.stderr)
+        print(
+            f"demo: recording {args.recording} not found. Set ROOMCAP_SHARED to the shared/ folder or pass "
+            "--recording.",
+            file=sys.stderr,
+        )
         return 2
-    rc = reprocess_main([str(args.recording), "--out", str(args.out), "--tracker", args.tracker, "--workers", "1"])
+    rc = reprocess_main(
+        [str(args.recording), "--out", str(args.out), "--tracker", args.tracker, "--workers", "1"]
+    )
     report = args.out / args.recording.name / "report" / "report.html"
     if rc == 0 and report.exists():
         print(f"report: {report.resolve()}")

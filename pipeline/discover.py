@@ -22,7 +22,14 @@ from pathlib import Path
 
 from capture.session import VIDEO_SUFFIXES, SessionLayout
 
-CALIBRATION_PATTERNS = ("rig.toml", "*.qca.txt", "Calib*.toml", "calib*.toml", "camera_array.toml", "intri.yml")
+CALIBRATION_PATTERNS = (
+    "rig.toml",
+    "*.qca.txt",
+    "Calib*.toml",
+    "calib*.toml",
+    "camera_array.toml",
+    "intri.yml",
+)
 
 
 class SessionError(RuntimeError):
@@ -79,19 +86,31 @@ def inspect_folder(folder: Path, name: str) -> SessionSource | None:
     """A SessionSource if ``folder`` is a session, else None."""
     layout = SessionLayout(folder)
     raw = _videos_in(layout.raw_dir)
-    dets = {p.stem: p for p in sorted(layout.keypoints_dir.glob("*.npz"))} if layout.keypoints_dir.is_dir() else {}
+    dets = (
+        {p.stem: p for p in sorted(layout.keypoints_dir.glob("*.npz")) if not p.name.startswith(".")}
+        if layout.keypoints_dir.is_dir()
+        else {}
+    )
     if raw or dets or layout.session_toml.exists():
         try:
             rig = layout.rig_toml
         except Exception as e:  # a broken session.toml: reported for this session only
             return SessionSource(name, folder, "roomcap", raw, dets, problem=str(e))
-        problem = "" if rig.exists() else (
-            f"no calibration: {rig} does not exist. Put the rig in calib/rig.toml (calibrate-run calibrate or "
-            "calibrate-run import) or point session.toml's 'calibration' at one.")
+        problem = (
+            ""
+            if rig.exists()
+            else (
+                f"no calibration: {rig} does not exist. Put the rig in calib/rig.toml (calibrate-run "
+                "calibrate or calibrate-run import) or point session.toml's 'calibration' at one."
+            )
+        )
         if not raw and not dets:
-            problem = problem or f"no videos under {layout.raw_dir} and no detections under {layout.keypoints_dir}."
-        return SessionSource(name, folder, "roomcap", raw, dets, calibration=rig if rig.exists() else None,
-                             problem=problem)
+            problem = (
+                problem or f"no videos under {layout.raw_dir} and no detections under {layout.keypoints_dir}."
+            )
+        return SessionSource(
+            name, folder, "roomcap", raw, dets, calibration=rig if rig.exists() else None, problem=problem
+        )
     videos = _videos_in(folder / "videos")
     pose_dir = folder / "pose"
     jsons = {}
@@ -102,9 +121,14 @@ def inspect_folder(folder: Path, name: str) -> SessionSource | None:
     if not videos and not jsons:
         return None
     cal = _find_calibration(folder)
-    problem = "" if cal else (
-        f"no calibration found in {folder}/calibration or its parents. Add the calibration file "
-        "(Calib.qca.txt, Calib*.toml, camera_array.toml or rig.toml) there.")
+    problem = (
+        ""
+        if cal
+        else (
+            f"no calibration found in {folder}/calibration or its parents. Add the calibration file "
+            "(Calib.qca.txt, Calib*.toml, camera_array.toml or rig.toml) there."
+        )
+    )
     return SessionSource(name, folder, "pose2sim", videos, {}, jsons, cal, problem)
 
 
@@ -125,11 +149,18 @@ def discover(paths: list[str | os.PathLike]) -> list[SessionSource]:
             if src is not None:
                 found.append(src)
                 continue
-            children = [p for p in sorted(folder.iterdir()) if p.is_dir() and not p.name.startswith(".")
-                        and p.name not in ("calibration", "calib", "roomcap")]
+            children = [
+                p
+                for p in sorted(folder.iterdir())
+                if p.is_dir()
+                and not p.name.startswith(".")
+                and p.name not in ("calibration", "calib", "roomcap")
+            ]
             stack.extend(reversed(children))
     names = [s.name for s in found]
     if len(set(names)) != len(names):
-        raise SessionError(f"two sessions share a name: {sorted(n for n in names if names.count(n) > 1)}; "
-                           "pass folders with distinct names.")
+        raise SessionError(
+            f"two sessions share a name: {sorted(n for n in names if names.count(n) > 1)}; "
+            "pass folders with distinct names."
+        )
     return found

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
-from pipeline.runner import SessionResult, process_session
+from pipeline.runner import SessionResult, check_session, process_session
 
 log = logging.getLogger(__name__)
 EXECUTORS = ("local", "ray")
@@ -27,8 +27,9 @@ def _threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
-def run_local(sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool,
-              workers: int) -> Iterator[SessionResult]:
+def run_local(
+    sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool, workers: int
+) -> Iterator[SessionResult]:
     if workers <= 1 or len(sources) <= 1:
         for s in sources:
             yield process_session(s, out, config, force)
@@ -50,8 +51,14 @@ def _cuda_available() -> bool:
         return False
 
 
-def run_ray(sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool, workers: int,
-            address: str | None) -> Iterator[SessionResult]:
+def run_ray(
+    sources: list[SessionSource],
+    out: Path | None,
+    config: PipelineConfig,
+    force: bool,
+    workers: int,
+    address: str | None,
+) -> Iterator[SessionResult]:
     try:
         import ray
     except ImportError:
@@ -73,16 +80,37 @@ def run_ray(sources: list[SessionSource], out: Path | None, config: PipelineConf
             ray.shutdown()
 
 
-def run_sessions(sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool = False,
-                 executor: str = "local", workers: int | None = None, address: str | None = None,
-                 on_result: Callable[[SessionResult], None] | None = None) -> list[SessionResult]:
+def run_sessions(
+    sources: list[SessionSource],
+    out: Path | None,
+    config: PipelineConfig,
+    force: bool = False,
+    executor: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    on_result: Callable[[SessionResult], None] | None = None,
+) -> list[SessionResult]:
     """Process all sessions; results in the order of ``sources``."""
     if executor not in EXECUTORS:
         raise ValueError(f"unknown executor '{executor}'; valid: {list(EXECUTORS)}")
     workers = workers or (os.cpu_count() or 1)
-    it = run_local(sources, out, config, force, workers) if executor == "local" else \
-        run_ray(sources, out, config, force, workers, address)
-    by_name = {}
+    by_name: dict[str, SessionResult] = {}
+    todo = []
+    for s in sources:  # sessions already up to date are answered here, without starting workers
+        r = None if force else check_session(s, out, config)
+        if r is None:
+            todo.append(s)
+            continue
+        by_name[r.name] = r
+        if on_result:
+            on_result(r)
+    if not todo:
+        return [by_name[s.name] for s in sources]
+    it = (
+        run_local(todo, out, config, force, workers)
+        if executor == "local"
+        else run_ray(todo, out, config, force, workers, address)
+    )
     for r in it:
         by_name[r.name] = r
         if on_result:

@@ -82,8 +82,14 @@ class StageRecord:
     outputs: dict[str, str]  # path relative to the session output -> fingerprint
 
     def to_json(self) -> dict[str, Any]:
-        return {"stage": self.stage, "inputs": self.inputs, "config": self.config,
-                "model_sha256": self.model_sha256, "version": self.version, "outputs": self.outputs}
+        return {
+            "stage": self.stage,
+            "inputs": self.inputs,
+            "config": self.config,
+            "model_sha256": self.model_sha256,
+            "version": self.version,
+            "outputs": self.outputs,
+        }
 
 
 class ProvenanceStore:
@@ -102,7 +108,9 @@ class ProvenanceStore:
         return {str(p): path_fingerprint(p, self.stat_cache) for p in inputs}
 
     def fingerprint_outputs(self, outputs: list[Path]) -> dict[str, str]:
-        return {p.relative_to(self.out_root).as_posix(): path_fingerprint(p, self.stat_cache) for p in outputs}
+        return {
+            p.relative_to(self.out_root).as_posix(): path_fingerprint(p, self.stat_cache) for p in outputs
+        }
 
     def load(self, stage: str) -> dict[str, Any] | None:
         try:
@@ -110,13 +118,23 @@ class ProvenanceStore:
         except (FileNotFoundError, json.JSONDecodeError):
             return None
 
-    def is_current(self, stage: str, inputs: dict[str, str], config: dict[str, Any], model_sha256: str,
-                   outputs: list[Path]) -> bool:
+    def is_current(
+        self,
+        stage: str,
+        inputs: dict[str, str],
+        config: dict[str, Any],
+        model_sha256: str,
+        outputs: list[Path],
+    ) -> bool:
         rec = self.load(stage)
         if rec is None:
             return False
-        want = {"inputs": inputs, "config": json.loads(json.dumps(config)), "model_sha256": model_sha256,
-                "version": package_version()}
+        want = {
+            "inputs": inputs,
+            "config": json.loads(json.dumps(config)),
+            "model_sha256": model_sha256,
+            "version": package_version(),
+        }
         if any(rec.get(k) != v for k, v in want.items()):
             return False
         if not all(p.exists() for p in outputs):

@@ -1,3 +1,4 @@
+# ruff: noqa: E501  (the embedded HTML/JavaScript keeps its own line lengths)
 """The session report: one self-contained HTML file (no network needed to open it).
 
 Sections: summary and calibration (camera table and layout), per-camera
@@ -68,8 +69,8 @@ def _tracks_data(lay: SessionLayout) -> dict[str, Any] | None:
     sel = np.arange(0, T, step)
     std = d["std_m"]
     present = np.isfinite(xyz[..., 0]).any(-1)  # (T,K)
-    with np.errstate(invalid="ignore"):
-        mean_std = np.nanmean(np.where(np.isfinite(std), std, np.nan), axis=-1) if std.size else std
+    ok = np.isfinite(std)
+    mean_std = np.where(ok.any(-1), np.where(ok, std, 0).sum(-1) / np.maximum(ok.sum(-1), 1), np.nan)
     return {
         "fps": float(d["fps"]) / step, "frame_index": d["frame_index"][sel].tolist(),
         "track_id": d["track_id"].tolist(), "joint_names": d["joint_names"].tolist(),
@@ -87,7 +88,10 @@ def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
     keys = {"xyz_m", "track_id", "start_index"}
     if not keys <= set(d):
         return None
-    return {"xyz": _r(d["xyz_m"]), "track_id": d["track_id"].tolist(), "start_index": int(d["start_index"]),
+    xyz = d["xyz_m"]
+    if xyz.ndim != 4:  # (K,H,J,3) expected
+        return None
+    return {"xyz": _r(xyz), "track_id": d["track_id"].tolist(), "start_index": int(d["start_index"]),
             "model": str(d.get("model", "")), "fps": float(d["fps"]) if "fps" in d else None}
 
 

@@ -2,18 +2,25 @@
 
 calibration ─► keypoints ─► triangulate ─► track ─► forecast ─► report
 
-Each stage declares its inputs and outputs; it runs only when its provenance
-record (``pipeline/provenance.py``) says its outputs are stale or missing.
-Every output is written atomically by the stage that owns it and the record
-is written last, so a run killed at any point resumes where it stopped and
-ends with the same files as an uninterrupted run. This module wires stages
+Each stage declares its inputs, outputs, configuration and model sha256; it
+runs only when its provenance record (``pipeline/provenance.py``) says its
+outputs are stale or missing. A new calibration changes the inputs of
+triangulate and track (and what follows), not of keypoints, so only those
+rerun. Every output is written atomically by the stage that owns it and the
+record is written last, so a run killed at any point resumes where it stopped
+and ends with the same files as an uninterrupted run (temporary files a kill
+left behind are removed before a stage reruns). This module wires stages
 together; the algorithms live in the stage packages.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
+import json
 import logging
+import os
+import sys
 import time
 import traceback
 from collections.abc import Callable
@@ -21,19 +28,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from capture.fileio import atomic_write_text
 from capture.session import SessionLayout
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
-from pipeline.provenance import ProvenanceStore, StageRecord, package_version
+from pipeline.provenance import ProvenanceStore, StageRecord, package_version, path_fingerprint
 
 log = logging.getLogger(__name__)
+
+FPS_TOLERANCE = 0.01  # relative frame-rate difference between cameras of one session that is still "the same"
+
+
+class StageError(RuntimeError):
+    """A stage failed; the message names the stage, what went wrong and what to do."""
 
 
 @dataclass
 class SessionResult:
     name: str
     out: str
-    status: str = "ok"  # ok | failed | skipped
+    status: str = "ok"  # ok | failed
     message: str = ""
     cameras: int = 0
     frames: int = 0
@@ -41,6 +55,8 @@ class SessionResult:
     tracks: int = 0
     stage_s: dict[str, float] = field(default_factory=dict)
     ran: list[str] = field(default_factory=list)  # stages that did work (the rest were up to date)
+    warnings: list[str] = field(default_factory=list)
+    failed_stage: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -52,7 +68,7 @@ class StagePlan:
     inputs: list[Path]
     outputs: list[Path]
     config: dict[str, Any]
-    run: Callable[[], None]
+    run: Callable[[list[str]], None]  # gets the session's warning list to append to
     model_sha256: str = ""
 
 
@@ -68,79 +84,196 @@ def output_root(source: SessionSource, out: Path | None) -> Path:
 # ----------------------------------------------------------------------------- stage plans
 
 
-def _plan_calibration(src: SessionSource, lay: SessionLayout, cfg: PipelineConfig) -> StagePlan | None:
+def _plan_calibration(
+    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
+) -> StagePlan | None:
     target = lay.calib_dir / "rig.toml"
     if src.calibration is None:
         raise FileNotFoundError(src.problem or f"session {src.name} has no calibration")
     if src.calibration.resolve() == target.resolve():
         return None  # the session's own rig is the input of later stages
 
-    def run() -> None:
+    def run(warnings: list[str]) -> None:
         from calibrate.formats import import_calibration
 
         rig = import_calibration(src.calibration)
         missing = [c for c in src.cameras if c not in rig.names]
         if missing:
-            raise ValueError(f"{src.calibration}: cameras {missing} of the recording are not in the calibration "
-                             f"(it has {list(rig.names)}). Use a calibration of these cameras.")
+            raise ValueError(
+                f"{src.calibration}: cameras {missing} of the recording are not in the calibration "
+                f"(it has {list(rig.names)}). Use a calibration of these cameras."
+            )
         rig.save(target)
 
     return StagePlan("calibration", [src.calibration], [target], {}, run)
 
 
-def _plan_keypoints(src: SessionSource, lay: SessionLayout, cfg: PipelineConfig) -> StagePlan | None:
+def model_set_sha256(model_set: str, store: ProvenanceStore | None = None) -> str:
+    """sha256 of the model files of a keypoints model set (detector+pose), via the stat cache."""
+    from keypoints.registry import get_model_set, resolve
+
+    ms = get_model_set(model_set)
+    names = [n for n in (ms.detector, ms.pose) if n]
+    cache = store.stat_cache if store is not None else None
+    return "+".join(path_fingerprint(resolve(n, verify=False), cache) for n in names)
+
+
+def probe_videos(videos: dict[str, Path]) -> tuple[dict[str, tuple[int, float]], list[str]]:
+    """Frame count and rate of each camera's video; raises on unreadable videos or mixed frame rates.
+
+    Returns ``({cam: (n_frames, fps)}, warnings)``; videos of different lengths are a warning (the frames
+    are aligned by index, the tail of the longer videos is seen by fewer cameras).
+    """
+    import cv2
+
+    info: dict[str, tuple[int, float]] = {}
+    for cam, path in sorted(videos.items()):
+        files = sorted(p for p in path.iterdir() if not p.name.startswith(".")) if path.is_dir() else [path]
+        n, fps = 0, 0.0
+        for f in files:
+            if f.suffix.lower() in (".csv", ".json", ".toml"):
+                continue
+            cap = cv2.VideoCapture(str(f))
+            ok = cap.isOpened()
+            ok = ok and cap.read()[0]
+            count, rate = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), float(cap.get(cv2.CAP_PROP_FPS))
+            cap.release()
+            if not ok:
+                raise StageError(
+                    f"camera '{cam}': video {f} cannot be read (not a video, truncated or an "
+                    "unsupported codec). Replace it, or move it out of the session to run without "
+                    "this camera."
+                )
+            n, fps = n + max(count, 0), fps or rate
+        info[cam] = (n, fps)
+    rates = {c: r for c, (_, r) in info.items() if r > 0}
+    if rates and (max(rates.values()) - min(rates.values())) > FPS_TOLERANCE * max(rates.values()):
+        raise StageError(
+            "the cameras' videos have different frame rates ("
+            + ", ".join(f"{c} {r:g} fps" for c, r in rates.items())
+            + "). Frames cannot be matched by index: re-encode them at one rate or record "
+            "with synchronised cameras."
+        )
+    warnings = []
+    counts = {c: n for c, (n, _) in info.items()}
+    if counts and max(counts.values()) != min(counts.values()):
+        warnings.append(
+            "videos differ in length ("
+            + ", ".join(f"{c} {n}" for c, n in counts.items())
+            + " frames); frames are matched by index from the start, later frames have fewer views"
+        )
+    return info, warnings
+
+
+def _plan_keypoints(
+    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
+) -> StagePlan | None:
     if src.videos:
         cams = sorted(src.videos)
         outputs = [lay.detections(c) for c in cams]
         kcfg = dataclasses.asdict(cfg.keypoints)
 
-        from keypoints.video import model_set_sha256, run_videos
+        def run(warnings: list[str]) -> None:
+            from keypoints.video import run_videos
 
-        def run() -> None:
-            run_videos({c: src.videos[c] for c in cams}, lay.keypoints_dir, model_set=cfg.keypoints.model_set,
-                       max_frames=cfg.keypoints.max_frames, rig_path=lay.rig_toml, progress=False)
+            _, warn = probe_videos({c: src.videos[c] for c in cams})
+            warnings.extend(warn)
+            rig = None
+            if lay.rig_toml.exists():
+                from calibrate.camera import CameraRig
 
-        return StagePlan("keypoints", [src.videos[c] for c in cams], outputs, kcfg, run,
-                         model_set_sha256(cfg.keypoints.model_set))
+                rig = CameraRig.load(lay.rig_toml)
+            rep = run_videos(
+                {c: src.videos[c] for c in cams},
+                lay.keypoints_dir,
+                cfg.keypoints.model_set,
+                rig=rig,
+                max_frames=cfg.keypoints.max_frames,
+                progress=False,
+            )
+            for c, (fi, msg) in sorted(rep.decode_errors.items()):
+                warnings.append(f"camera '{c}': {msg}; kept the {fi} frames before it")
+
+        return StagePlan(
+            "keypoints",
+            [src.videos[c] for c in cams],
+            outputs,
+            kcfg,
+            run,
+            model_set_sha256(cfg.keypoints.model_set, store),
+        )
     if src.openpose_json:
         cams = sorted(src.openpose_json)
         outputs = [lay.detections(c) for c in cams]
 
-        def run_json() -> None:
-            from keypoints.openpose_json import read_openpose_folder
-
+        def run_json(warnings: list[str]) -> None:
+            try:
+                from keypoints.openpose_json import read_openpose_folder
+            except ImportError:
+                raise StageError(
+                    "reading OpenPose JSON folders needs keypoints.openpose_json, which this "
+                    "build lacks; run the keypoints stage on the videos instead."
+                ) from None
             for c in cams:
                 read_openpose_folder(src.openpose_json[c], camera=c).save(lay.detections(c))
 
-        return StagePlan("keypoints", [src.openpose_json[c] for c in cams], outputs, {"from": "openpose_json"},
-                         run_json)
-    return None  # detections made elsewhere are the input
+        return StagePlan(
+            "keypoints", [src.openpose_json[c] for c in cams], outputs, {"from": "openpose_json"}, run_json
+        )
+    if src.detections:  # detections made elsewhere: copied into the output session (unless it is the input)
+        cams = sorted(src.detections)
+        if all(src.detections[c].resolve() == lay.detections(c).resolve() for c in cams):
+            return None
+
+        def run_copy(warnings: list[str]) -> None:
+            from capture.fileio import atomic_write_bytes
+
+            for c in cams:
+                atomic_write_bytes(lay.detections(c), src.detections[c].read_bytes())
+
+        return StagePlan(
+            "keypoints",
+            [src.detections[c] for c in cams],
+            [lay.detections(c) for c in cams],
+            {"from": "detections"},
+            run_copy,
+        )
+    return None
 
 
 def _detection_paths(lay: SessionLayout) -> list[Path]:
     return [lay.detections(c) for c in lay.detection_cameras()]
 
 
-def _plan_triangulate(src: SessionSource, lay: SessionLayout, cfg: PipelineConfig) -> StagePlan:
-    def run() -> None:
+def _plan_triangulate(
+    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
+) -> StagePlan:
+    def run(warnings: list[str]) -> None:
         from triangulate.stage import triangulate_session
 
-        triangulate_session(lay.root, cfg.triangulate.options)
+        triangulate_session(lay.root, cfg.triangulate.options or None)
 
-    return StagePlan("triangulate", [lay.rig_toml, *_detection_paths(lay)], [lay.poses3d],
-                     dataclasses.asdict(cfg.triangulate), run)
+    return StagePlan(
+        "triangulate",
+        [lay.rig_toml, *_detection_paths(lay)],
+        [lay.poses3d],
+        dataclasses.asdict(cfg.triangulate),
+        run,
+    )
 
 
-def _plan_track(src: SessionSource, lay: SessionLayout, cfg: PipelineConfig) -> StagePlan:
-    def run() -> None:
+def _plan_track(
+    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
+) -> StagePlan:
+    def run(warnings: list[str]) -> None:
         if cfg.track.tracker == "greedy":
             from triangulate.stage import track_session_greedy
 
-            track_session_greedy(lay.root, cfg.track.options)
+            track_session_greedy(lay.root, cfg.track.options or None)
         else:
-            from track.stage import track_session_particle
+            from pipeline.glue import track_particle
 
-            track_session_particle(lay.root, cfg.track.options)
+            track_particle(lay, cfg.track.options)
 
     inputs = [lay.rig_toml, *_detection_paths(lay)]
     if cfg.track.tracker == "greedy":
@@ -148,36 +281,65 @@ def _plan_track(src: SessionSource, lay: SessionLayout, cfg: PipelineConfig) -> 
     return StagePlan("track", inputs, [lay.tracks], dataclasses.asdict(cfg.track), run)
 
 
-def _forecast_path(lay: SessionLayout) -> Path:
+def forecast_path(lay: SessionLayout) -> Path:
     return lay.root / "forecast" / "preview.npz"
 
 
-def _plan_forecast(src: SessionSource, lay: SessionLayout, cfg: PipelineConfig) -> StagePlan:
-    def run() -> None:
-        from forecast.preview import write_preview
+def _plan_forecast(
+    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
+) -> StagePlan:
+    from pipeline.glue import forecast_model
 
-        write_preview(lay.tracks, _forecast_path(lay), horizon_s=cfg.forecast.horizon_s, model=cfg.forecast.model)
+    kind, checkpoint = forecast_model(cfg.forecast.model)
+    sha = path_fingerprint(checkpoint, store.stat_cache) if checkpoint else ""
 
-    return StagePlan("forecast", [lay.tracks], [_forecast_path(lay)], dataclasses.asdict(cfg.forecast), run)
+    def run(warnings: list[str]) -> None:
+        from pipeline.glue import write_preview
+
+        write_preview(lay.tracks, forecast_path(lay), cfg.forecast.horizon_s, cfg.forecast.model)
+
+    return StagePlan(
+        "forecast",
+        [lay.tracks],
+        [forecast_path(lay)],
+        {**dataclasses.asdict(cfg.forecast), "kind": kind},
+        run,
+        sha,
+    )
 
 
-def _plan_report(src: SessionSource, lay: SessionLayout, cfg: PipelineConfig) -> StagePlan:
-    inputs = [p for p in (lay.rig_toml, *_detection_paths(lay), lay.poses3d, lay.tracks, _forecast_path(lay))
-              if p.exists()]
+def _plan_report(
+    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
+) -> StagePlan:
+    inputs = [
+        p
+        for p in (lay.rig_toml, *_detection_paths(lay), lay.poses3d, lay.tracks, forecast_path(lay))
+        if p.exists()
+    ]
 
-    def run() -> None:
+    def run(warnings: list[str]) -> None:
         from pipeline.report import write_report
 
         write_report(lay, title=src.name)
 
-    return StagePlan("report", inputs, [lay.report_html], {}, run)
+    return StagePlan("report", inputs, [lay.report_html], {"title": src.name}, run)
 
 
-_PLANNERS = {"calibration": _plan_calibration, "keypoints": _plan_keypoints, "triangulate": _plan_triangulate,
-             "track": _plan_track, "forecast": _plan_forecast, "report": _plan_report}
+_PLANNERS = {
+    "calibration": _plan_calibration,
+    "keypoints": _plan_keypoints,
+    "triangulate": _plan_triangulate,
+    "track": _plan_track,
+    "forecast": _plan_forecast,
+    "report": _plan_report,
+}
 
 
 # ----------------------------------------------------------------------------- running
+
+
+def _summary_path(root: Path) -> Path:
+    return root / ".roomcap" / "summary.json"
 
 
 def _summarise(lay: SessionLayout, result: SessionResult) -> None:
@@ -188,8 +350,7 @@ def _summarise(lay: SessionLayout, result: SessionResult) -> None:
     cams = lay.detection_cameras()
     result.cameras = len(cams)
     if cams:
-        d = load_npz(lay.detections(cams[0]))
-        result.frames = int(len(d["frame_index"]))
+        result.frames = max(int(len(load_npz(lay.detections(c))["frame_index"])) for c in cams)
     if lay.poses3d.exists():
         xyz = load_npz(lay.poses3d)["xyz_m"]
         result.people = int(np.isfinite(xyz[..., 0]).any(-1).sum(-1).max(initial=0))
@@ -197,55 +358,138 @@ def _summarise(lay: SessionLayout, result: SessionResult) -> None:
         result.tracks = int(len(load_npz(lay.tracks)["track_id"]))
 
 
-def process_session(source: SessionSource, out: Path | None, config: PipelineConfig, force: bool = False,
-                    threads: int | None = None) -> SessionResult:
+def _remove_stale_temporaries(outputs: list[Path]) -> None:
+    """Temporary files (``.<name>.*``) an atomic write left when the process was killed."""
+    for p in outputs:
+        if p.parent.is_dir():
+            for tmp in p.parent.glob(f".{p.name}.*"):
+                if tmp.is_file():
+                    tmp.unlink(missing_ok=True)
+
+
+def _stage_list(config: PipelineConfig, source: SessionSource | None = None) -> tuple[str, ...]:
+    """The stages to run: calibration always (it only imports), keypoints also when it only copies
+    detections made elsewhere, then the configured ones in graph order."""
+    extra = {"calibration"}
+    if source is not None and source.detections and not source.videos and not source.openpose_json:
+        extra.add("keypoints")
+    from pipeline.config import STAGES
+
+    return tuple(s for s in STAGES if s in extra or s in config.stages)
+
+
+def _explain(stage: str, e: BaseException, root: Path, done: list[str]) -> str:
+    kept = f" Finished stages are kept ({', '.join(done)}); a rerun resumes from '{stage}'." if done else ""
+    if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+        return (
+            f"stage '{stage}': the disk is full ({e}). Free space on the disk holding {root} (or pass "
+            f"--out on another disk) and rerun.{kept}"
+        )
+    return f"stage '{stage}': {type(e).__name__}: {e}{kept}"
+
+
+def check_session(source: SessionSource, out: Path | None, config: PipelineConfig) -> SessionResult | None:
+    """The result of a session whose every stage is up to date (without running anything), else None."""
+    if source.problem:
+        return None
+    root = output_root(source, out)
+    try:
+        saved = json.loads(_summary_path(root).read_text())
+        lay, store = SessionLayout(root), ProvenanceStore(root)
+        for name in _stage_list(config, source):
+            plan = _PLANNERS[name](source, lay, config, store)
+            if plan is None:
+                continue
+            if not all(p.exists() for p in plan.inputs):
+                return None
+            inputs = store.fingerprint_inputs(plan.inputs)
+            if not store.is_current(name, inputs, plan.config, plan.model_sha256, plan.outputs):
+                return None
+    except Exception:  # anything unusual: let the full run look at it (and report it)
+        return None
+    res = SessionResult(source.name, str(root))
+    for k in ("cameras", "frames", "people", "tracks", "warnings"):
+        if k in saved:
+            setattr(res, k, saved[k])
+    res.stage_s = {s: 0.0 for s in _stage_list(config)}
+    return res
+
+
+def process_session(
+    source: SessionSource,
+    out: Path | None,
+    config: PipelineConfig,
+    force: bool = False,
+    threads: int | None = None,
+) -> SessionResult:
     """Run the configured stages of one session; never raises (failures are in the result)."""
     root = output_root(source, out)
     result = SessionResult(source.name, str(root))
     if threads:
         _limit_threads(threads)
+    stage = "discovery"
+    done: list[str] = []
     try:
         if source.problem:
-            raise RuntimeError(source.problem)
+            raise StageError(source.problem)
         lay = SessionLayout(root)
         store = ProvenanceStore(root)
-        stages = ("calibration", *config.stages) if "calibration" not in config.stages else config.stages
-        for name in stages:
+        for name in _stage_list(config, source):
+            stage = name
             t0 = time.perf_counter()
-            plan = _PLANNERS[name](source, lay, config)
+            plan = _PLANNERS[name](source, lay, config, store)
             if plan is None:
                 continue
             missing = [p for p in plan.inputs if not p.exists()]
             if missing:
-                raise FileNotFoundError(f"stage '{name}' needs {[str(p) for p in missing]}; run the stages "
-                                        "before it (or drop --stages to run them all).")
+                raise StageError(
+                    f"needs {[str(p) for p in missing]}; run the stages before it (or drop --stages "
+                    "to run them all)."
+                )
             inputs = store.fingerprint_inputs(plan.inputs)
             if not force and store.is_current(name, inputs, plan.config, plan.model_sha256, plan.outputs):
                 result.stage_s[name] = round(time.perf_counter() - t0, 3)
+                done.append(name)
                 continue
             store.invalidate(name)
+            _remove_stale_temporaries(plan.outputs)
             log.info("%s: running %s", source.name, name)
-            plan.run()
-            store.record(StageRecord(name, inputs, plan.config, plan.model_sha256, package_version(),
-                                     store.fingerprint_outputs(plan.outputs)))
+            plan.run(result.warnings)
+            store.record(
+                StageRecord(
+                    name,
+                    inputs,
+                    plan.config,
+                    plan.model_sha256,
+                    package_version(),
+                    store.fingerprint_outputs(plan.outputs),
+                )
+            )
             result.ran.append(name)
+            done.append(name)
             result.stage_s[name] = round(time.perf_counter() - t0, 3)
+        stage = "summary"
         _summarise(lay, result)
+        atomic_write_text(
+            _summary_path(root),
+            json.dumps(
+                {k: getattr(result, k) for k in ("cameras", "frames", "people", "tracks", "warnings")}
+            ),
+        )
     except Exception as e:  # isolate the session: the others go on, the summary reports it
         result.status = "failed"
-        result.message = f"{type(e).__name__}: {e}"
+        result.failed_stage = stage
+        result.message = (
+            str(e) if isinstance(e, StageError) and stage == "discovery" else _explain(stage, e, root, done)
+        )
         log.debug("session %s failed:\n%s", source.name, traceback.format_exc())
+    if result.status == "ok" and result.warnings:
+        result.message = "warning: " + "; ".join(result.warnings)
     return result
 
 
 def _limit_threads(n: int) -> None:
-    import os
-
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "ROOMCAP_ORT_THREADS"):
         os.environ[var] = str(n)
-    try:
-        import torch
-
-        torch.set_num_threads(n)
-    except ImportError:
-        pass
+    if "torch" in sys.modules:  # importing torch just to limit it costs seconds
+        sys.modules["torch"].set_num_threads(n)

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from capture.fileio import FormatError
 from pipeline.config import PipelineConfig
 from pipeline.discover import discover
-from capture.fileio import FormatError
 
 
 def test_discovers_both_layouts_and_reports_missing_calibration(tmp_path):
@@ -27,7 +27,9 @@ def test_discovers_both_layouts_and_reports_missing_calibration(tmp_path):
     (tmp_path / "a" / "Lost" / "videos" / "cam01.avi").write_bytes(b"")
     found = {s.name: s for s in discover([tmp_path / "a"])}
     assert sorted(found) == ["a/Batch/Trial_1", "a/Batch/Trial_2", "a/Lost", "a/S1"]
-    assert found["a/S1"].layout == "roomcap" and found["a/S1"].cameras == ["cam1"] and not found["a/S1"].problem
+    assert (
+        found["a/S1"].layout == "roomcap" and found["a/S1"].cameras == ["cam1"] and not found["a/S1"].problem
+    )
     t1 = found["a/Batch/Trial_1"]
     assert t1.layout == "pose2sim" and t1.cameras == ["cam01", "cam02"]
     assert t1.calibration.name == "Calib.qca.txt"

@@ -34,18 +34,44 @@ def make_session(root, n_people=3, T=60):
         a = 2 * np.pi * i / 4
         c = np.array([4 * np.cos(a), 4 * np.sin(a), 2.5])
         R, t = _look_at(c, [0, 0, 1])
-        cams.append(Camera(f"cam{i + 1:02d}", (1280, 720), np.array([[900, 0, 640], [0, 900, 360], [0, 0, 1.0]]),
-                           np.zeros(5), "pinhole", R, t))
+        cams.append(
+            Camera(
+                f"cam{i + 1:02d}",
+                (1280, 720),
+                np.array([[900, 0, 640], [0, 900, 360], [0, 0, 1.0]]),
+                np.zeros(5),
+                "pinhole",
+                R,
+                t,
+            )
+        )
     lay = SessionLayout(root)
     CameraRig(tuple(cams)).save(lay.calib_dir / "rig.toml")
     rng = np.random.default_rng(1)
     # a standing body19 template (metres, z up), walked around in circles
     tmpl = np.zeros((19, 3))
     names = CANONICAL.joint_names
-    heights = {"nose": 1.65, "left_eye": 1.7, "right_eye": 1.7, "left_ear": 1.68, "right_ear": 1.68,
-               "left_shoulder": 1.45, "right_shoulder": 1.45, "left_elbow": 1.15, "right_elbow": 1.15,
-               "left_wrist": 0.9, "right_wrist": 0.9, "left_hip": 0.95, "right_hip": 0.95, "left_knee": 0.5,
-               "right_knee": 0.5, "left_ankle": 0.08, "right_ankle": 0.08, "pelvis": 0.95, "neck": 1.5}
+    heights = {
+        "nose": 1.65,
+        "left_eye": 1.7,
+        "right_eye": 1.7,
+        "left_ear": 1.68,
+        "right_ear": 1.68,
+        "left_shoulder": 1.45,
+        "right_shoulder": 1.45,
+        "left_elbow": 1.15,
+        "right_elbow": 1.15,
+        "left_wrist": 0.9,
+        "right_wrist": 0.9,
+        "left_hip": 0.95,
+        "right_hip": 0.95,
+        "left_knee": 0.5,
+        "right_knee": 0.5,
+        "left_ankle": 0.08,
+        "right_ankle": 0.08,
+        "pelvis": 0.95,
+        "neck": 1.5,
+    }
     for j, n in enumerate(names):
         tmpl[j, 2] = heights[n]
         tmpl[j, 1] = 0.2 if n.startswith("left") else (-0.2 if n.startswith("right") else 0)
@@ -55,29 +81,53 @@ def make_session(root, n_people=3, T=60):
             a = 2 * np.pi * (t / T + k / n_people)
             xyz[t, k] = tmpl + [1.5 * np.cos(a), 1.5 * np.sin(a), 0]
     xyz[: T // 3, -1] = np.nan  # the last person enters later
-    tf = TrackFile(fps=25, frame_index=np.arange(T), t_ns=np.arange(T) * 40_000_000, track_id=np.arange(n_people),
-                   joint_names=names, parents=np.asarray(CANONICAL.parents), xyz_m=xyz,
-                   confidence=np.ones((T, n_people, 19)), std_m=rng.uniform(0.01, 0.03, (T, n_people, 19)),
-                   flags=np.full((T, n_people, 19), OBSERVED), source="test")
+    tf = TrackFile(
+        fps=25,
+        frame_index=np.arange(T),
+        t_ns=np.arange(T) * 40_000_000,
+        track_id=np.arange(n_people),
+        joint_names=names,
+        parents=np.asarray(CANONICAL.parents),
+        xyz_m=xyz,
+        confidence=np.ones((T, n_people, 19)),
+        std_m=rng.uniform(0.01, 0.03, (T, n_people, 19)),
+        flags=np.full((T, n_people, 19), OBSERVED),
+        source="test",
+    )
     tf.save(lay.tracks)
     return lay
 
 
 def render_in_browser(html_path, tmp_path):
     """Screenshot and DOM of the page after its scripts ran."""
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={tmp_path / 'chrome'}", "--window-size=1500,1100", "--virtual-time-budget=4000",
-             "--hide-scrollbars"]
+    flags = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        f"--user-data-dir={tmp_path / 'chrome'}",
+        "--window-size=1500,1100",
+        "--virtual-time-budget=4000",
+        "--hide-scrollbars",
+    ]
     url = html_path.resolve().as_uri()
     png = tmp_path / "shot.png"
-    subprocess.run([CHROMIUM, *flags, f"--screenshot={png}", url], check=True, capture_output=True, timeout=120)
-    dom = subprocess.run([CHROMIUM, *flags, "--dump-dom", url], check=True, capture_output=True, timeout=120,
-                         text=True).stdout
+    subprocess.run(
+        [CHROMIUM, *flags, f"--screenshot={png}", url], check=True, capture_output=True, timeout=120
+    )
+    dom = subprocess.run(
+        [CHROMIUM, *flags, "--dump-dom", url], check=True, capture_output=True, timeout=120, text=True
+    ).stdout
     return cv2.imread(str(png)), dom
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium not installed (apt-get install chromium; .ci/run does)")
+@pytest.mark.skipif(
+    CHROMIUM is None, reason="headless Chromium not installed (apt-get install chromium; .ci/run does)"
+)
 def test_report_renders_people_without_errors(tmp_path):
     lay = make_session(tmp_path / "s1")
     path = write_report(lay, title="synthetic")
@@ -91,7 +141,7 @@ def test_report_renders_people_without_errors(tmp_path):
     dark = np.all(np.abs(img.astype(int) - [28, 20, 16]) < 6, axis=-1)  # BGR of #10141c
     ys, xs = np.nonzero(dark)
     assert len(ys) > 100_000, "no viewer canvas on the page"
-    viewer = img[ys.min():ys.max(), xs.min():xs.max()].astype(int)
+    viewer = img[ys.min() : ys.max(), xs.min() : xs.max()].astype(int)
     person_bgr = [(75, 25, 230), (75, 180, 60), (216, 99, 67)]  # #e6194b #3cb44b #4363d8
     hits = [int(np.all(np.abs(viewer - c) < 40, axis=-1).sum()) for c in person_bgr]
     assert min(hits) > 50, f"people not drawn in the viewer (pixels per person colour: {hits})"
