@@ -126,15 +126,15 @@ class Triangulator:
         xyn = np.where(seen[..., None], (np.nan_to_num(xy) - self.c[:, None]) / self.s[:, None, None], 0.0)
         used = seen.copy()
         ar = np.arange(N)
-        X = np.zeros((N, 3))
+        X = self._solve(xyn, w0)  # algebraic first guess
+        idx = ar
         for it in range(cfg.max_rejections + 1):
-            w = np.where(used, w0, 0.0)
-            X = self._solve(xyn, w)
-            # reweight by inverse projective depth: rows then measure (normalised) pixel error
-            depth = np.einsum("cj,nj->cn", self.Pn[:, 2, :3], X) + self.Pn[:, None, 2, 3]
-            used &= depth > 1e-6
-            w = np.where(used, w0 / np.where(used, depth, 1.0), 0.0)
-            X = self._solve(xyn, w)
+            # reweight by inverse projective depth: rows then measure (normalised) pixel error;
+            # after a rejection only the points that lost a view are solved again
+            depth = np.einsum("cj,nj->cn", self.Pn[:, 2, :3], X[idx]) + self.Pn[:, None, 2, 3]
+            u = used[:, idx] & (depth > 1e-6)
+            used[:, idx] = u
+            X[idx] = self._solve(xyn[:, idx], np.where(u, w0[:, idx] / np.where(u, depth, 1.0), 0.0))
             proj = np.einsum("cij,nj->cni", self.Pn[:, :, :3], X) + self.Pn[:, None, :, 3]
             depth = proj[..., 2]
             used &= depth > 1e-6
@@ -144,11 +144,11 @@ class Triangulator:
             if it == cfg.max_rejections:
                 break
             worst = err.argmax(0)
-            n_used = used.sum(0)
-            drop = (err[worst, ar] > cfg.max_reproj_px) & (n_used > cfg.min_views)
+            drop = (err[worst, ar] > cfg.max_reproj_px) & (used.sum(0) > cfg.min_views)
             if not drop.any():
                 break
-            used[worst[drop], ar[drop]] = False
+            idx = ar[drop]
+            used[worst[idx], idx] = False
         n_views = used.sum(0)
         err_used = np.where(used, err, 0.0)
         reproj = err_used.sum(0) / np.maximum(n_views, 1)
@@ -157,7 +157,8 @@ class Triangulator:
         Jr = np.concatenate([self.Pn[:, None, 0, :3] - (proj[..., 0:1] / safe) * self.Pn[:, None, 2, :3],
                              self.Pn[:, None, 1, :3] - (proj[..., 1:2] / safe) * self.Pn[:, None, 2, :3]],
                             0)  # (2C,N,3) normalised units, times 1/depth below
-        scale = np.tile(np.where(used, self.s[:, None] / safe[..., 0], 0.0), (2, 1))
+        scale = np.where(used, self.s[:, None] / safe[..., 0], 0.0)
+        scale = np.concatenate([scale, scale], 0)
         Jr = (Jr * scale[..., None]).transpose(1, 0, 2)  # (N,2C,3) pixels per metre
         info = np.matmul(Jr.transpose(0, 2, 1), Jr) + 1e-9 * np.eye(3)
         rms = np.sqrt((err_used ** 2).sum(0) / np.maximum(n_views, 1))
