@@ -99,7 +99,7 @@ def letterbox(img: np.ndarray, size_wh: tuple[int, int], pad_value: float, out: 
     canvas = np.full((H, W, 3), pad_value, np.uint8) if out is None else out
     if out is not None:
         canvas[...] = pad_value
-    canvas[:nh, :nw] = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if r < 1 else cv2.INTER_LINEAR)
+    canvas[:nh, :nw] = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_LINEAR)
     return canvas, r
 
 

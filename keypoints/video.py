@@ -14,7 +14,10 @@ does the same for explicit videos, e.g. the Pose2Sim demo layout ``<trial>/video
 - a video that stops decoding before its announced frame count keeps the frames done; the frame that
   failed is logged, returned in ``RunReport.decode_errors`` and saved as ``decode_error_frame``;
 - a video whose size differs from the calibration's: a difference of at most 16 px (codec padding,
-  e.g. 1080 vs 1088) is logged, anything else (or width and height swapped: a rotated video) raises.
+  e.g. 1080 vs 1088) is logged, anything else (or width and height swapped: a rotated video) raises;
+- bottom-up models run with ``PipelineConfig(keep_maps=True)`` also store their confidence maps and PAFs
+  for the tracker's observation model: ``maps_f16 (T,h,w,C)`` float16 and ``maps_to_img (T,2,3)`` (map px ->
+  image px) as extra keys of the detections file.
 """
 
 from __future__ import annotations
@@ -202,9 +205,16 @@ class ChunkWriter:
             n = len(r.boxes)
             xy[k, :n], sc[k, :n], bx[k, :n] = r.xy_px, r.score, r.boxes
         fi = np.array([f for f, _, _ in self.buf], np.int64)
+        maps = {}
+        if all(r.maps is not None for _, _, r in self.buf):  # bottom-up with keep_maps: for the tracker
+            maps = {
+                "maps_f16": np.stack([r.maps for _, _, r in self.buf]).astype(np.float16),
+                "maps_to_img": np.stack([r.maps_to_img for _, _, r in self.buf]),
+            }
         save_npz(
             self.dir / f"{fi[0]:08d}.npz",
             {
+                **maps,
                 "frame_index": fi,
                 "t_ns": np.array([t for _, t, _ in self.buf], np.int64),
                 "xy_px": xy,
@@ -243,7 +253,14 @@ class ChunkWriter:
                 model=self.model,
                 model_sha256=self.sha,
                 image_size_wh=image_size_wh,
-                extra=extra,
+                extra={
+                    **extra,
+                    **{
+                        k: np.concatenate([p[k] for p in parts])
+                        for k in ("maps_f16", "maps_to_img")
+                        if all(k in p for p in parts)
+                    },
+                },
             )
         t = time.perf_counter()
         det.save(dest)

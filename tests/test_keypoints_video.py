@@ -129,3 +129,17 @@ def test_run_session_reads_raw_and_writes_keypoints(tmp_path, tiny_set):
     assert sorted(paths) == ["cam01", "cam02"]
     assert paths["cam01"] == root / "keypoints" / "cam01.npz"
     assert Detections.load(paths["cam01"]).t_ns.tolist() == [1000, 2000, 3000]
+
+
+def test_bottom_up_maps_are_kept_for_the_tracker(tmp_path, monkeypatch):
+    from conftest import need_shared
+
+    need_shared("models", "openpose_mobilenetv2_368x432.onnx")
+    monkeypatch.setenv("ROOMCAP_CACHE", str(tmp_path / "cache"))
+    vids = {"cam01": write_video(tmp_path / "cam01.avi", 3, size=(320, 240))}
+    cfg = PipelineConfig(model_set="openpose", keep_maps=True)
+    d = Detections.load(run_videos(vids, tmp_path / "out", cfg, chunk_frames=2).paths["cam01"])
+    assert d.extra["maps_f16"].shape == (3, 46, 54, 57) and d.extra["maps_f16"].dtype == np.float16
+    assert d.extra["maps_to_img"].shape == (3, 2, 3)
+    # map px -> image px: 8 px stride in the 432x368 input, letterbox ratio 432/320 = 1.35
+    assert d.extra["maps_to_img"][0, 0, 0] == pytest.approx(8 / 1.35)

@@ -1,0 +1,106 @@
+"""Keypoints throughput on the Pose2Sim demo (4 portrait 1080x1920 cameras), per model set.
+
+Per stage (decode, detect = letterbox + detector run + decode, crop, pose, decode outputs, write) in ms per
+camera-frame, end-to-end frames per second per camera (all cameras processed together, as a session run
+does), and the overhead of everything that is not ``session.run`` as a fraction of model time:
+
+- ``overhead_pipeline`` = (time inside the pipeline - session.run time) / session.run time
+  (pre-processing, crops, output decoding: what the target "< 15 %" is about);
+- ``overhead_end_to_end`` = (wall time - session.run time) / session.run time (adds video decoding, which
+  runs in its own threads, and writing).
+
+Baseline measured in the same run: the default set with batching off (one crop per session.run).
+The machine may be shared: the load average is printed beside the figures.
+
+    .venv/bin/python bench/bench_keypoints_throughput.py [--frames 20] [--sets default,movenet,openpose]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from keypoints.pipeline import PipelineConfig  # noqa: E402
+from keypoints.runtime import RuntimeConfig  # noqa: E402
+from keypoints.video import run_videos, videos_in  # noqa: E402
+
+SHARED = Path(os.environ.get("ROOMCAP_SHARED", REPO.parent / "shared"))
+DEMO = SHARED / "data/pose2sim/demo-wheel-0.10.49/Demo_SinglePerson/videos"
+
+
+def measure(name: str, cfg: PipelineConfig, frames: int) -> dict:
+    vids = videos_in(DEMO)
+    with tempfile.TemporaryDirectory() as tmp:
+        rep = run_videos(vids, tmp, cfg, max_frames=frames, chunk_frames=25)
+    n = sum(rep.frames.values())  # camera-frames
+    st = rep.stage_s
+    ms = lambda k: 1e3 * st.get(k, 0.0) / n  # noqa: E731
+    inside = sum(v for k, v in st.items() if k not in ("decode", "write"))
+    row = {
+        "set": name,
+        "camera_frames": n,
+        "decode_ms": ms("decode"),
+        "detect_ms": ms("detect_pre") + ms("detect") + ms("detect_post"),
+        "detect_run_ms": ms("detect"),
+        "crop_ms": ms("crop"),
+        "pose_ms": ms("pose"),
+        "decode_outputs_ms": ms("pose_post") + ms("detect_post"),
+        "write_ms": ms("write"),
+        "model_ms": 1e3 * rep.model_s / n,
+        "fps_per_camera": (n / len(vids)) / rep.wall_s,
+        "overhead_pipeline": (inside - rep.model_s) / rep.model_s,
+        "overhead_end_to_end": (rep.wall_s - rep.model_s) / rep.model_s,
+    }
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=20, help="frames per camera")
+    ap.add_argument("--sets", default="default,lite,movenet,fast,openpose")
+    args = ap.parse_args()
+    rows = []
+    base = measure(
+        "default-unbatched", PipelineConfig(runtime=RuntimeConfig(dynamic_batch=False)), args.frames
+    )
+    rows.append(base)
+    for s in args.sets.split(","):
+        rows.append(measure(s, PipelineConfig(model_set=s), args.frames))
+    load = os.getloadavg()[0]
+    cols = ["decode_ms", "detect_ms", "crop_ms", "pose_ms", "decode_outputs_ms", "write_ms", "model_ms"]
+    print(
+        f"Demo_SinglePerson, 4 cameras 1080x1920, {args.frames} frames each; load average {load:.1f} "
+        f"on {os.cpu_count()} cores. ms per camera-frame:"
+    )
+    print(f"{'set':18s} " + " ".join(f"{c[:-3]:>9s}" for c in cols) + "   fps/cam  ovh_pipe  ovh_e2e")
+    for r in rows:
+        print(
+            f"{r['set']:18s} "
+            + " ".join(f"{r[c]:9.1f}" for c in cols)
+            + f"   {r['fps_per_camera']:7.2f}  {r['overhead_pipeline']:8.1%}  {r['overhead_end_to_end']:7.1%}"
+        )
+    d = next(r for r in rows if r["set"] == "default")
+    print(
+        "batching speed-up (default vs unbatched, same run): "
+        f"{d['fps_per_camera'] / base['fps_per_camera']:.2f}x"
+    )
+    out = {
+        "frames": args.frames,
+        "load_avg": load,
+        "rows": rows,
+        "default_fps_per_camera": d["fps_per_camera"],
+        "default_overhead_pipeline": d["overhead_pipeline"],
+        "batching_speedup": d["fps_per_camera"] / base["fps_per_camera"],
+    }
+    print("BENCH " + json.dumps(out, default=float))
+
+
+if __name__ == "__main__":
+    main()

