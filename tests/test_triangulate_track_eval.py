@@ -1,0 +1,130 @@
+"""The ch. 4 tracker (sec. 4.2.2) and the evaluation metrics on hand-made trajectories."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from triangulate_helpers import TEMPLATE
+
+from keypoints.openpose_json import read_openpose_folder
+from keypoints.skeletons import CANONICAL
+from track.trackfile import INTERPOLATED, OBSERVED, SMOOTHED
+from triangulate import evaluate as ev
+from triangulate.tracker import TrackerConfig, associate, pose_distance, track_poses
+
+
+def walkers(T=60):
+    """Two people walking towards each other along x (1 m apart in y), (T,2,19,3)."""
+    t = np.arange(T)[:, None, None]
+    a = TEMPLATE[None] + np.array([-2.0, -0.5, 0]) + t * np.array([0.04, 0, 0])
+    b = TEMPLATE[None] + np.array([2.0, 0.5, 0]) - t * np.array([0.04, 0, 0])
+    return np.stack([a, b], 1)
+
+
+def test_tracker_keeps_identities_through_gaps_and_shuffles(rng):
+    gt = walkers(60)
+    X = gt + rng.normal(0, 0.01, gt.shape)  # 10 mm noise per axis
+    order = rng.integers(0, 2, 60).astype(bool)  # poses arrive in random order each frame
+    X[order] = X[order][:, ::-1]
+    X[20:24, 0] = np.nan  # both poses missing for 4 frames in slot 0
+    X[30:33, :, 9] = np.nan  # a wrist missing for 3 frames
+    tf = track_poses(X, np.arange(60), np.arange(60) * 40_000_000, 25.0, CANONICAL.joint_names,
+                     np.asarray(CANONICAL.parents), config=TrackerConfig(sigma=2.0))
+    assert tf.n_tracks == 2
+    mot = ev.mot_metrics(gt, tf.xyz_m.astype(np.float64), threshold_m=0.2)
+    assert mot.id_switches == 0 and mot.mota > 0.95  # measured 1.0 (gaps filled by interpolation)
+    assert mot.idf1 > 0.95
+    assert (tf.flags & INTERPOLATED).any() and (tf.flags[tf.mask] & SMOOTHED).all()
+    assert (tf.flags & OBSERVED).sum() < tf.mask.sum()
+    # smoothing reduces the 10 mm noise
+    e_raw = ev.mpjpe(gt, X)["mpjpe_m"]
+    assert ev.mpjpe(gt, tf.xyz_m.astype(np.float64))["mpjpe_m"] < 0.7 * e_raw  # measured 9 vs 16 mm
+
+
+def test_tracker_threshold_and_ground_fallback():
+    A = TEMPLATE[None].copy()
+    B = TEMPLATE[None] + [0.5, 0, 0]
+    assert np.isclose(pose_distance(A, B)[0, 0], 0.5)
+    C = B.copy()
+    C[0, :10] = np.nan
+    A2 = A.copy()
+    A2[0, 10:] = np.nan  # no shared joint: ground-plane distance of the mean joints
+    d = pose_distance(A2, C)[0, 0]
+    assert np.isfinite(d) and d > 0.3
+    X = np.stack([A, A + [0.3, 0, 0]], 0)  # jump of 0.3 m > tau = 0.2 m in one frame
+    assign = associate(X, TrackerConfig(tau_m=0.2, constant_velocity=False))
+    assert assign[0, 0] != assign[1, 0]
+    assign = associate(X, TrackerConfig(tau_m=0.5, constant_velocity=False))
+    assert assign[0, 0] == assign[1, 0]
+    with pytest.raises(ValueError, match="valid keys"):
+        TrackerConfig.from_dict({"tau_mm": 200})
+
+
+def test_pcp_and_mpjpe_definitions():
+    gt = walkers(10)
+    pcp = ev.pcp(gt, gt)
+    assert pcp.actor_average == 1.0 and pcp.frame_weighted == 1.0
+    bad = gt.copy()
+    wrist = CANONICAL.index("left_wrist")
+    elbow = CANONICAL.index("left_elbow")
+    bad[:, 0, wrist] += [0.0, 0.0, 0.5]  # lower arm off by far more than half its length
+    r = ev.pcp(gt, bad)
+    assert r.per_actor_limb["lower_arm"][0] == 0.5 and r.per_actor_limb["lower_arm"][1] == 1.0
+    # exactly at the boundary: mean endpoint error = alpha * true length is correct
+    L = np.linalg.norm(gt[0, 0, wrist] - gt[0, 0, elbow])
+    edge = gt.copy()
+    edge[:, 0, wrist] += [0.0, 0.0, 2 * 0.5 * L * 0.999]
+    assert ev.pcp(gt, edge).per_actor_limb["lower_arm"][0] == 1.0
+    missing = gt.copy()
+    missing[:5, 1] = np.nan  # actor 2 missed in half the frames
+    r = ev.pcp(gt, missing)
+    assert np.isclose(r.per_actor[1], 0.5) and np.isclose(r.actor_average, 0.75)
+    m = ev.mpjpe(gt, gt + [0.01, 0, 0])
+    assert np.isclose(m["mpjpe_m"], 0.01)
+    assert np.isclose(ev.mpjpe(gt, missing)["missed"], 0.25)
+
+
+def test_mota_counts_switches_fp_and_misses():
+    gt = walkers(40)
+    pred = gt.copy()
+    pred[20:] = pred[20:, ::-1]  # identities swap half-way (poses are 4 m apart: a real switch)
+    r = ev.mot_metrics(gt, pred, threshold_m=0.3)
+    assert r.id_switches == 2 and r.misses == 0 and r.false_positives == 0
+    assert np.isclose(r.mota, 1 - 2 / 80)
+    assert np.isclose(r.idf1, 0.5)
+    extra = np.concatenate([gt, gt[:, :1] + [5.0, 0, 0]], 1)  # a false track
+    r = ev.mot_metrics(gt, extra)
+    assert r.false_positives == 40 and np.isclose(r.mota, 0.5)
+    r = ev.mot_metrics(gt, gt[:, :1])
+    assert r.misses == 40 and np.isclose(r.mota, 0.5)
+
+
+def test_openpose_json_reader(tmp_path):
+    folder = tmp_path / "cam7_json"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    for f in (0, 1, 3):  # frame 2 is missing
+        people = []
+        for _ in range(f % 2 + 1):
+            kp = np.concatenate([rng.uniform(0, 500, (25, 2)), rng.uniform(0.3, 1, (25, 1))], 1)
+            kp[4] = 0  # not detected
+            people.append({"person_id": [-1], "pose_keypoints_2d": kp.reshape(-1).tolist()})
+        (folder / f"cam7_{f:012d}_keypoints.json").write_text(json.dumps({"version": 1.3, "people": people}))
+    d = read_openpose_folder(folder, skeleton="body25b", fps=50.0)
+    assert d.camera == "cam7" and d.skeleton == "body25b"
+    assert d.xy_px.shape == (4, 2, 25, 2)
+    assert np.isnan(d.xy_px[:, :, 4]).all() and (d.score[:, :, 4] == 0).all()
+    assert np.isnan(d.xy_px[2]).all()  # missing frame -> empty
+    assert d.t_ns[1] == 20_000_000
+    with pytest.raises(Exception, match="joints"):
+        read_openpose_folder(folder, skeleton="coco18")
+
+
+def test_openpose_json_real_trial(shared):
+    from conftest import need_shared
+    folder = need_shared("data", "pose2sim", "session-2024", "S00_P00_SingleParticipant",
+                         "S00_P00_T01_BalancingTrial", "pose", "cam01_json")
+    d = read_openpose_folder(folder)  # layout from geometry: BODY_25B (keypoint 1 is an eye)
+    assert d.skeleton == "body25b" and d.n_frames == 100
