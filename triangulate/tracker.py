@@ -19,7 +19,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.optimize import linear_sum_assignment
 
-from track.trackfile import INTERPOLATED, OBSERVED, SMOOTHED, TrackFile
+from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 from triangulate.dlt import _reject_unknown
 
 
@@ -29,7 +29,10 @@ class TrackerConfig:
     the longest gap filled); max_speed_m_s: extra allowed distance per unseen second; sigma:
     Gaussian smoothing in frames (0 = off); min_track_frames: shorter tracks are dropped;
     min_joints: poses with fewer joints are ignored; constant_velocity: compare a frame's poses with
-    each track's last pose moved by the track's mean-joint velocity (False = the seed's last pose)."""
+    each track's last pose moved by the track's mean-joint velocity (False = the seed's last pose);
+    occlusion_fill: longer gaps of a joint (up to this many frames, 0 = off) are filled kinematically:
+    the joint keeps its offset from its parent joint, interpolated between the frames around the
+    gap (held at the track's ends); flagged PREDICTED, std = the parent's + 5 cm."""
 
     tau_m: float = 0.2
     max_gap: int = 10
@@ -38,6 +41,7 @@ class TrackerConfig:
     min_track_frames: int = 5
     min_joints: int = 5
     constant_velocity: bool = True
+    occlusion_fill: int = 50
 
     def __post_init__(self) -> None:
         if self.tau_m <= 0 or self.max_gap < 0 or self.sigma < 0:
@@ -135,8 +139,57 @@ def _smooth(x: np.ndarray, sigma: float) -> np.ndarray:
     return np.where(valid, num / np.maximum(den, 1e-12), np.nan)
 
 
+def _kinematic_fill(X: np.ndarray, parents: np.ndarray, max_fill: int) -> np.ndarray:
+    """Fill joint gaps of one track X (T,J,3) in place by the offset from the parent joint.
+
+    Parents are filled first (order of a walk from the root). The offset is linearly interpolated
+    between the observations around a gap and held before the first / after the last one; runs
+    longer than ``max_fill`` frames stay NaN. Returns the (T,J) mask of filled entries.
+    """
+    T, J = X.shape[:2]
+    filled = np.zeros((T, J), bool)
+    alive = np.flatnonzero(np.isfinite(X).all(-1).any(-1))
+    if len(alive) == 0:
+        return filled
+    t0, t1 = alive[0], alive[-1] + 1
+    order, seen = [], set()
+    while len(order) < J:
+        for j in range(J):
+            if j not in seen and (parents[j] < 0 or parents[j] in seen):
+                order.append(j)
+                seen.add(j)
+    tt = np.arange(T)
+    for j in order:
+        p = parents[j]
+        if p < 0:
+            continue
+        have_j = np.isfinite(X[:, j]).all(-1)
+        have_p = np.isfinite(X[:, p]).all(-1)
+        both = np.flatnonzero(have_j & have_p)
+        need = np.flatnonzero(~have_j & have_p & (tt >= t0) & (tt < t1))
+        if len(both) == 0 or len(need) == 0:
+            continue
+        # distance (frames) of each needed frame to the nearest observation of the offset
+        nearest = np.abs(need[:, None] - both[None]).min(1)
+        run_ok = nearest <= max_fill // 2 + 1
+        # gaps bounded on both sides by observations: allow up to max_fill frames in total
+        right = np.searchsorted(both, need)
+        inside = (right > 0) & (right < len(both))
+        span = np.where(inside, both[np.minimum(right, len(both) - 1)] - both[np.maximum(right - 1, 0)], 0)
+        run_ok = np.where(inside, span <= max_fill + 1, run_ok)
+        need = need[run_ok]
+        if len(need) == 0:
+            continue
+        off = X[both, j] - X[both, p]
+        o = np.stack([np.interp(need, both, off[:, k]) for k in range(3)], 1)
+        X[need, j] = X[need, p] + o
+        filled[need, j] = True
+    return filled
+
+
 def build_tracks(xyz_m: np.ndarray, assign: np.ndarray, confidence: np.ndarray | None = None,
-                 std_m: np.ndarray | None = None, config: TrackerConfig | None = None
+                 std_m: np.ndarray | None = None, config: TrackerConfig | None = None,
+                 parents: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Dense tracks from per-frame poses and assignments, with gap filling and smoothing.
 
@@ -169,6 +222,17 @@ def build_tracks(xyz_m: np.ndarray, assign: np.ndarray, confidence: np.ndarray |
                 S[filled, n, j] = s_f[filled, 0]
                 Cf[filled, n, j] = 0.5 * np.nan_to_num(c_f[filled, 0])
                 Fl[filled, n, j] |= INTERPOLATED
+        if cfg.occlusion_fill > 0 and parents is not None:
+            kin = _kinematic_fill(X[:, n], np.asarray(parents), cfg.occlusion_fill)
+            if kin.any():
+                # std of a predicted joint: its parent's std plus 5 cm (the offset is a guess)
+                known = np.isfinite(S[:, n])
+                fallback = np.nanmedian(S[:, n]) if known.any() else 0.05
+                s_par = np.where(known, S[:, n], fallback)
+                pj = np.maximum(np.asarray(parents), 0)
+                S[:, n] = np.where(kin, s_par[:, pj] + 0.05, S[:, n])
+                Cf[:, n] = np.where(kin, 0.25 * Cf[:, n, pj], Cf[:, n])
+                Fl[:, n][kin] |= PREDICTED
         if cfg.sigma > 0:
             have = np.isfinite(X[:, n]).all(-1)
             X[:, n] = np.where(have[..., None], _smooth(X[:, n], cfg.sigma), np.nan)
@@ -184,7 +248,7 @@ def track_poses(xyz_m: np.ndarray, frame_index: np.ndarray, t_ns: np.ndarray, fp
     """Per-frame poses (T,P,J,3) -> :class:`TrackFile` (track ids 0..K-1 by first appearance)."""
     cfg = config or TrackerConfig()
     assign = associate(xyz_m, cfg, fps)
-    ids, X, Cf, S, Fl = build_tracks(xyz_m, assign, confidence, std_m, cfg)
+    ids, X, Cf, S, Fl = build_tracks(xyz_m, assign, confidence, std_m, cfg, parents)
     return TrackFile(fps=fps, frame_index=frame_index, t_ns=t_ns, track_id=np.arange(len(ids)),
                      joint_names=joint_names, parents=parents, xyz_m=X, confidence=np.clip(Cf, 0, 1), std_m=S,
                      flags=Fl, calibration_sha256=calibration_sha256, source=source)
