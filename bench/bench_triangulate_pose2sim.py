@@ -1,4 +1,4 @@
-"""Real data: Pose2Sim's session-2024 trials (OpenPose BODY_25B JSON, 4 cameras, 60 fps, Qualisys calibration).
+"""Real data: Pose2Sim's session-2024 trials (OpenPose BODY_25B JSON, 4 cameras, 60 fps, Qualisys calib).
 
 Runs our triangulate + greedy track stages on the raw OpenPose JSON (``pose/``, bystanders
 included) and compares with Pose2Sim's own triangulated TRC of the same input (the unfiltered
@@ -204,10 +204,12 @@ def main() -> None:
                     ids.add(int(tf.track_id[int(np.argmin(d))]))
             per_gt.append(sorted(ids))
         print(f"tracks matched to Pose2Sim's P1, P2 (within 0.3 m): {per_gt}; MOTA {mot.mota:.3f}, "
-              f"IDF1 {mot.idf1:.3f}, ID switches {mot.id_switches}, misses {mot.misses}, FP {mot.false_positives}"
+              f"IDF1 {mot.idf1:.3f}, ID switches {mot.id_switches}, misses {mot.misses}, "
+              f"FP {mot.false_positives}"
               " (FP: the bystander, whom Pose2Sim's multi-person output leaves out)")
         out["multi"] = {"tracks": int(tf.n_tracks), "ids_per_participant": per_gt, "mota": mot.mota,
-                        "idf1": mot.idf1, "id_switches": mot.id_switches, "frames_per_track": lengths.tolist()}
+                        "idf1": mot.idf1, "id_switches": mot.id_switches,
+                        "frames_per_track": lengths.tolist()}
     print("BENCH " + json.dumps(out))
 
 

@@ -151,7 +151,8 @@ def main() -> None:
     args = ap.parse_args()
     out: dict = {}
     print("(1) kitchen, CMU motion, default faults: association + triangulation per frame, one core")
-    print(f"{'people':>6} {'cams':>5} {'cpu ms':>8} {'wall ms':>8} {'found':>6} {'Pose2Sim cpu ms':>16} {'ratio':>6}")
+    print(f"{'people':>6} {'cams':>5} {'cpu ms':>8} {'wall ms':>8} {'found':>6} {'Pose2Sim cpu ms':>16} "
+          f"{'ratio':>6}")
     heads = {}
     for n_people, n_cams in ((4, 5), (16, 12)):
         rig, room = kitchen(n_cams)
@@ -166,8 +167,8 @@ def main() -> None:
             r["speedup_vs_pose2sim"] = p2s["cpu_ms"] / r["cpu_ms"]
         heads[f"{n_people}x{n_cams}"] = r
         p2 = f"{r['pose2sim_cpu_ms']:16.1f} {r['speedup_vs_pose2sim']:6.0f}" if p2s else f"{'-':>16} {'-':>6}"
-        print(f"{n_people:>6} {n_cams:>5} {r['cpu_ms']:8.2f} {r['wall_ms']:8.2f} {r['people_found']:6.1f} {p2}",
-              flush=True)
+        print(f"{n_people:>6} {n_cams:>5} {r['cpu_ms']:8.2f} {r['wall_ms']:8.2f} {r['people_found']:6.1f} "
+              f"{p2}", flush=True)
     out["kitchen"] = heads
 
     people = [int(v) for v in args.people.split(",")]

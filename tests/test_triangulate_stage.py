@@ -50,7 +50,8 @@ def test_session_round_trip_scores(kitchen_session):
 
 def test_camera_order_config_and_unknown_keys(kitchen_session):
     root, _ = kitchen_session
-    triangulate_session(root, {"match": {"camera_order": ["cam03", "cam01", "cam00", "cam02", "cam04", "cam05"]}})
+    order = ["cam03", "cam01", "cam00", "cam02", "cam04", "cam05"]
+    triangulate_session(root, {"match": {"camera_order": order}})
     with pytest.raises(ValueError, match="valid keys"):
         triangulate_session(root, {"match": {"thetta_px": 3}})
     with pytest.raises(ValueError, match="no detections"):
