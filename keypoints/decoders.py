@@ -118,18 +118,21 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
 
 
 def decode_blazepose(landmarks: np.ndarray, presence: np.ndarray, n_landmarks: int = 33):
-    """landmarks (B,39*5), presence (B,1) logits -> xy (B,L,2) crop px, score (B,L), person (B,).
+    """landmarks (B,39*5), presence (B,1) logits -> xy (B,L,2) crop px, score (B,L), person (B,), aux (B,A,2).
 
     Per-landmark score = sigmoid(visibility) x sigmoid(presence) (mediapipe's two per-landmark
-    probabilities: visible and inside the image); ``person`` = sigmoid of the person-present logit.
+    probabilities: visible and inside the image); ``person`` = sigmoid of the person-present logit;
+    ``aux``: the auxiliary landmarks after the body ones (crop px); the first two are mediapipe's ROI
+    alignment points (hip centre, and a point above the head at the full-body radius).
     """
     landmarks = np.asarray(landmarks, dtype=np.float32)
     if landmarks.ndim != 2 or landmarks.shape[1] % 5:
         raise ValueError(f"decode_blazepose: expected (B,5*L) landmarks, got {landmarks.shape}")
-    lm = landmarks.reshape(len(landmarks), -1, 5)[:, :n_landmarks]
+    full = landmarks.reshape(len(landmarks), -1, 5)
+    lm = full[:, :n_landmarks]
     score = _sigmoid(lm[..., 3]) * _sigmoid(lm[..., 4])
     person = _sigmoid(np.asarray(presence, dtype=np.float32).reshape(len(lm), -1)[:, 0])
-    return lm[..., :2].copy(), score, person
+    return lm[..., :2].copy(), score, person, full[:, n_landmarks:, :2].copy()
 
 
 def decode_movenet(out: np.ndarray, size_wh: tuple[int, int]):

@@ -43,6 +43,7 @@ class PipelineConfig:
     pose_presence: float = 0.0  # drop BlazePose people whose person-present probability is below this
     refine_passes: int = 1  # top-down: pose passes on the box the previous pass's keypoints span
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
+    model_roi: bool = True  # refine passes: use the model's own ROI output where it has one (BlazePose)
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
@@ -280,7 +281,9 @@ class KeypointPipeline:
     ):
         """Run the pose model on every box of every image as one batch.
 
-        Returns per image (xy (M,J,2) image px, score (M,J), person (M,)) in the model's skeleton.
+        Returns per image (xy (M,J,2) image px, score (M,J), person (M,), roi) in the model's skeleton;
+        ``roi`` (M,5) = box x0,y0,x1,y1 + tilt angle for the next pass where the model gives one (BlazePose's
+        alignment points, as mediapipe's landmarks-to-ROI tracking step), else None.
         """
         spec = self.pose_spec
         W, H = spec.input.size_wh
@@ -309,10 +312,18 @@ class KeypointPipeline:
         t = self._tick("pose", t)
         d = spec.decoder
         J = get_skeleton(spec.skeleton).n_joints
+        roi = None
         if n == 0:
             xy, sc, person = np.zeros((0, J, 2)), np.zeros((0, J)), np.zeros(0)
         elif d.kind == "blazepose":
-            xy, sc, person = D.decode_blazepose(outs[0], outs[1], d.n_landmarks)
+            xy, sc, person, aux = D.decode_blazepose(outs[0], outs[1], d.n_landmarks)
+            if aux.shape[1] >= 2:
+                # ROI for the next pass: centre at the hip centre, square of side 2 x the full-body radius
+                # (then x box_padding = 1.25 as mediapipe), rotated so hips -> head points up
+                a = apply_inverse(Ms, aux[:, :2])
+                v = a[:, 1] - a[:, 0]
+                r = np.linalg.norm(v, axis=1, keepdims=True)
+                roi = np.concatenate([a[:, 0] - r, a[:, 0] + r, np.arctan2(v[:, :1], -v[:, 1:2])], 1)
         elif d.kind == "movenet":
             xy, sc = D.decode_movenet(outs[0], (W, H))
             person = sc.mean(1)
@@ -326,7 +337,9 @@ class KeypointPipeline:
         res, k = [], 0
         for bs in boxes:
             m = len(bs)
-            res.append((xy[k : k + m], sc[k : k + m], person[k : k + m]))
+            res.append(
+                (xy[k : k + m], sc[k : k + m], person[k : k + m], None if roi is None else roi[k : k + m])
+            )
             k += m
         self._tick("pose_post", t)
         return res
@@ -338,16 +351,19 @@ class KeypointPipeline:
             # again on the box the keypoints span, rotated upright: the detector's box is loose or cuts limbs,
             # and models trained on aligned crops (BlazePose) lose leaning people in unrotated crops
             t = time.perf_counter()
-            ba = [
-                upright_boxes(xy, sc, self.src_skeleton, b) for (xy, sc, _), b in zip(res, boxes, strict=True)
-            ]
+            ba = []
+            for (xy, sc, _, roi), b in zip(res, boxes, strict=True):
+                if roi is not None and self.config.model_roi:
+                    ba.append((roi[:, :4], roi[:, 4]))
+                else:
+                    ba.append(upright_boxes(xy, sc, self.src_skeleton, b))
             self._tick("pose_post", t)
             res = self.pose_on_boxes(
                 images, [b for b, _ in ba], [a if self.config.rotate else 0 * a for _, a in ba]
             )
         out = []
         t = time.perf_counter()
-        for (xy, sc, person), b in zip(res, boxes, strict=True):
+        for (xy, sc, person, _), b in zip(res, boxes, strict=True):
             keep = person >= self.config.pose_presence
             out.append(self._finish(b[keep], xy[keep], sc[keep]))
         self._tick("pose_post", t)

@@ -44,7 +44,8 @@ def test_blazepose_and_movenet_decoders():
     lm = np.zeros((2, 195), np.float32)
     lm.reshape(2, 39, 5)[:, :, :2] = [100.0, 50.0]
     lm.reshape(2, 39, 5)[1, :, 3:] = -10.0  # invisible, absent
-    xy, sc, person = D.decode_blazepose(lm, np.array([[5.0], [-5.0]]))
+    xy, sc, person, aux = D.decode_blazepose(lm, np.array([[5.0], [-5.0]]))
+    assert aux.shape == (2, 6, 2)
     assert xy.shape == (2, 33, 2) and np.allclose(xy[0, 0], [100, 50])
     assert sc[0, 0] == pytest.approx(0.25) and sc[1, 0] < 1e-8
     assert person[0] > 0.99 and person[1] < 0.01

@@ -143,3 +143,14 @@ def test_bottom_up_maps_are_kept_for_the_tracker(tmp_path, monkeypatch):
     assert d.extra["maps_to_img"].shape == (3, 2, 3)
     # map px -> image px: 8 px stride in the 432x368 input, letterbox ratio 432/320 = 1.35
     assert d.extra["maps_to_img"][0, 0, 0] == pytest.approx(8 / 1.35)
+
+
+def test_cli_run_on_explicit_videos(tmp_path, tiny_set, capsys):
+    from keypoints.cli import main
+
+    v = write_video(tmp_path / "camA.avi", 2)
+    args = ["run", f"cam07={v}", "--out", str(tmp_path / "kp"), "--models", tiny_set.model_set]
+    assert main(args + ["--refine-passes", "0"]) == 0
+    assert Detections.load(tmp_path / "kp" / "cam07.npz").camera == "cam07"
+    assert main(["run", str(tmp_path / "nope.mp4"), "--out", str(tmp_path / "kp")]) == 1
+    assert "does not exist" in capsys.readouterr().err
