@@ -45,8 +45,9 @@ class Poses3D:
                             "reproj_err_px": (T, P, J), "n_views": (T, P, J), "std_m": (T, P, J)}.items():
             if np.shape(getattr(self, name)) != shape:
                 raise FormatError(None, name, f"expected shape {shape}, got {np.shape(getattr(self, name))}.")
-        for name, dtype in {"frame_index": np.int64, "t_ns": np.int64, "xyz_m": np.float32, "score": np.float32,
-                            "reproj_err_px": np.float32, "n_views": np.int16, "std_m": np.float32}.items():
+        for name, dtype in {"frame_index": np.int64, "t_ns": np.int64, "xyz_m": np.float32,
+                            "score": np.float32, "reproj_err_px": np.float32, "n_views": np.int16,
+                            "std_m": np.float32}.items():
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dtype))
         object.__setattr__(self, "joint_names", tuple(str(n) for n in self.joint_names))
 
@@ -65,7 +66,8 @@ class Poses3D:
         data = load_npz(path, required=_KEYS)
         try:
             return cls(fps=float(data["fps"]), frame_index=data["frame_index"], t_ns=data["t_ns"],
-                       joint_names=tuple(data["joint_names"].tolist()), xyz_m=data["xyz_m"], score=data["score"],
+                       joint_names=tuple(data["joint_names"].tolist()), xyz_m=data["xyz_m"],
+                       score=data["score"],
                        reproj_err_px=data["reproj_err_px"], n_views=data["n_views"],
                        calibration_sha256=npz_str(data, "calibration_sha256"), std_m=data.get("std_m"))
         except FormatError as e:
