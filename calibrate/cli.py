@@ -135,9 +135,20 @@ def _run_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- calibrate (calibrate/calibration.py)
+
+
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:
+    from calibrate.calibration import add_cli_arguments, run_cli
+
+    p = sub.add_parser("calibrate", help="calibrate a rig from a board recording of all cameras")
+    add_cli_arguments(p)
+    p.set_defaults(func=run_cli)
+
+
 # ----------------------------------------------------------------------------- main
 
-SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, _add_export]
+SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, _add_export, _add_calibrate]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -45,6 +45,7 @@ class ExtrinsicsConfig:
     outlier_px: float = 4.0            # observations above max(outlier_px, 5 x median) are dropped, BA rerun
     max_iterations: int = 100
     world: str = ""                    # "" = first camera; "camera:NAME"; "board:FRAME" (board on the floor)
+    linear_solver: str = "sparse_normal_cholesky"  # or "auto" (COLMAP's choice), "dense_normal_cholesky", ...
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -248,8 +249,8 @@ def _colmap_camera(cam: Camera, camera_id: int):
         model, params = "OPENCV_FISHEYE", f + list(d)
     elif d.size == 0:
         model, params = "PINHOLE", f
-    elif d.size == 4:
-        model, params = "OPENCV", f + list(d)
+    elif d.size == 4 or (d.size == 5 and d[4] == 0.0):
+        model, params = "OPENCV", f + list(d[:4])  # k3 = 0: COLMAP's OPENCV model is exact
     elif d.size in (5, 8):
         dd = np.zeros(8)
         dd[: d.size] = d
@@ -266,8 +267,8 @@ def _camera_from_colmap(cam: Camera, cc) -> Camera:
     p = np.asarray(cc.params, float)
     K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
     d = p[4:]
-    if cam.model == "pinhole" and cam.dist.size == 5 and np.all(d[5:] == 0):
-        d = d[:5]
+    if cam.model == "pinhole" and cam.dist.size == 5:
+        d = np.append(d, 0.0) if d.size == 4 else d[:5] if np.all(d[5:] == 0) else d
     return cam.replace(K=K, dist=d)
 
 
@@ -339,7 +340,14 @@ def bundle_adjust(board: Board, cams: Sequence[Camera], cam_from_ref: Sequence[n
     opts.print_summary = False
     opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, cfg.loss.upper())
     opts.ceres.loss_function_scale = cfg.loss_scale_px
-    opts.ceres.solver_options.max_num_iterations = cfg.max_iterations
+    so = opts.ceres.solver_options
+    so.max_num_iterations = cfg.max_iterations
+    if cfg.linear_solver != "auto":
+        # the board points are constant, so there is nothing for a Schur complement to eliminate: the
+        # normal equations over poses (+ intrinsics) are small and dense-ish
+        opts.ceres.auto_select_solver_type = False
+        so.linear_solver_type = getattr(type(so.linear_solver_type), cfg.linear_solver.upper())
+    opts.ceres.solver_options = so
     ba_cfg = pycolmap.BundleAdjustmentConfig()
     for iid in rec.reg_image_ids():
         ba_cfg.add_image(iid)

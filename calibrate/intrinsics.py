@@ -2,6 +2,7 @@
 
 Models (``model``):
 - ``"pinhole"``: OpenCV k1, k2, p1, p2, k3 (k3 fixed at 0 with fewer than ``k3_min_frames`` frames);
+- ``"pinhole4"``: k1, k2, p1, p2 (COLMAP's OPENCV model: the bundle adjustment can refine it exactly);
 - ``"rational"``: OpenCV rational model, 8 coefficients (k1..k6, p1, p2);
 - ``"fisheye"``: ``cv2.fisheye`` (Kannala-Brandt) k1..k4.
 
@@ -24,7 +25,7 @@ log = logging.getLogger(__name__)
 __all__ = ["IntrinsicsConfig", "IntrinsicsResult", "calibrate_intrinsics", "select_frames", "coverage_grid",
            "MODELS"]
 
-MODELS = ("pinhole", "rational", "fisheye")
+MODELS = ("pinhole", "pinhole4", "rational", "fisheye")
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,7 @@ class IntrinsicsConfig:
     reject_factor: float = 3.0     # a frame is rejected above max(reject_factor * median, reject_floor_px)
     reject_floor_px: float = 1.0
     k3_min_frames: int = 15
+    point_reject_factor: float = 6.0  # a corner is dropped above max(factor * median point error, floor)
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -128,14 +130,14 @@ def _calibrate(obj: list[np.ndarray], img: list[np.ndarray], size_wh, model: str
     flags = 0
     if model == "rational":
         flags |= cv2.CALIB_RATIONAL_MODEL
-    elif n_frames_total < k3_min:
+    elif model == "pinhole4" or n_frames_total < k3_min:
         flags |= cv2.CALIB_FIX_K3
     o = [p.astype(np.float32) for p in obj]
     i = [p.astype(np.float32) for p in img]
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-10)
     rms, K, D, rv, tv = cv2.calibrateCamera(o, i, tuple(size_wh), None, None, flags=flags, criteria=crit)
     D = D.ravel()
-    D = D[:8] if model == "rational" else D[:5]
+    D = D[:8] if model == "rational" else D[:4] if model == "pinhole4" else D[:5]
     return K, D, np.array(rv).reshape(-1, 3), np.array(tv).reshape(-1, 3)
 
 
@@ -165,25 +167,40 @@ def calibrate_intrinsics(board: Board, det: CameraDetections, config: Intrinsics
             "or give known intrinsics (--intrinsics rig.toml).")
     sel = ok[select_frames(det.xy_px[ok], det.size_wh, cfg.max_frames)]
     rejected: list[int] = []
-    for _ in range(4):
-        obj = [obj_all[np.isfinite(det.xy_px[i, :, 0])] for i in sel]
-        img = [det.xy_px[i][np.isfinite(det.xy_px[i, :, 0])] for i in sel]
+    # per-point mask: single corners far off (a mis-refined corner) are dropped, not their whole frame
+    keep = {int(i): np.isfinite(det.xy_px[i, :, 0]) for i in sel}
+    n_dropped = 0
+    for _ in range(5):
+        sel = np.array([i for i in sel if keep[int(i)].sum() >= cfg.min_points], dtype=np.int64)
+        obj = [obj_all[keep[int(i)]] for i in sel]
+        img = [det.xy_px[i][keep[int(i)]] for i in sel]
         try:
             K, D, rv, tv = _calibrate(obj, img, det.size_wh, cfg.model, len(sel), cfg.k3_min_frames)
         except Exception as e:  # cv2.error: ill-conditioned input
             raise CalibrationError(f"Camera '{det.name}': OpenCV could not calibrate from {len(sel)} frames ({e}). "
                                    "Record more views of the board with more tilt, or use a simpler model "
                                    "(--model pinhole).") from e
-        errs = [np.sqrt(np.mean(np.sum((_project(cfg.model, o, r, t, K, D) - p) ** 2, 1)))
-                for o, p, r, t in zip(obj, img, rv, tv, strict=False)]
-        errs = np.asarray(errs)
+        perr = [np.linalg.norm(_project(cfg.model, o, r, t, K, D) - p, axis=1)
+                for o, p, r, t in zip(obj, img, rv, tv, strict=True)]
+        errs = np.array([np.sqrt(np.mean(e ** 2)) for e in perr])
         thr = max(cfg.reject_factor * float(np.median(errs)), cfg.reject_floor_px)
         bad = errs > thr
-        if not bad.any() or len(sel) - bad.sum() < cfg.min_frames:
+        pthr = max(cfg.point_reject_factor * float(np.median(np.concatenate(perr))), cfg.reject_floor_px)
+        n_bad_pts = 0
+        for i, e, b in zip(sel, perr, bad, strict=True):
+            if not b and (e > pthr).any():
+                idx = np.flatnonzero(keep[int(i)])
+                keep[int(i)][idx[e > pthr]] = False
+                n_bad_pts += int((e > pthr).sum())
+        if (not bad.any() and not n_bad_pts) or len(sel) - bad.sum() < cfg.min_frames:
             break
-        rejected.extend(det.frames[sel[bad]].tolist())
-        log.info("camera %s: rejecting %d frame(s) with RMS above %.2f px", det.name, int(bad.sum()), thr)
+        n_dropped += n_bad_pts
+        if bad.any():
+            rejected.extend(det.frames[sel[bad]].tolist())
+            log.info("camera %s: rejecting %d frame(s) with RMS above %.2f px", det.name, int(bad.sum()), thr)
         sel = sel[~bad]
+    if n_dropped:
+        log.info("camera %s: dropped %d single corner(s) above their frame's fit", det.name, n_dropped)
     n_pts = np.array([len(p) for p in img])
     rms = float(np.sqrt(np.sum(errs ** 2 * n_pts) / n_pts.sum()))
     cov = coverage_grid(det.xy_px[sel], det.size_wh)

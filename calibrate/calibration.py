@@ -1,0 +1,258 @@
+"""Board recording of many cameras -> ``rig.toml`` + report: the orchestration behind
+``calibrate-run calibrate`` / ``make calibrate``.
+
+Output folder (the folder of ``rig.toml``)::
+
+    rig.toml              the calibrated rig (calibrate/camera.py format)
+    detections/<cam>.npz  cached detections (reused when the videos and the board's pattern are unchanged)
+    report/report.toml    per-camera intrinsic/extrinsic RMS, frames used, coverage, per-pair links, BA figures
+    report/layout.png     cameras and board poses in 3D
+    report/coverage.png   where the board was seen in each camera
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibrate.boards import Board, CalibrationError, load_board
+from calibrate.camera import Camera, CameraRig
+from calibrate.detect import CameraDetections, detect_all, diagnose_board, discover_recording
+from calibrate.extrinsics import LOSSES, ExtrinsicsConfig, ExtrinsicsResult, calibrate_extrinsics
+from calibrate.intrinsics import MODELS, IntrinsicsConfig, IntrinsicsResult, calibrate_intrinsics
+from calibrate.report import summary_text, write_report
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CalibrationConfig", "CalibrationOutcome", "calibrate_recording", "add_cli_arguments", "run_cli"]
+
+Progress = Callable[[str, str, int, int], None]  # (stage, item, done, total)
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    model: str = "pinhole"               # intrinsics model, see calibrate/intrinsics.py
+    refine_intrinsics: str = "none"      # in the bundle adjustment: "none" | "focal_pp" | "all"
+    detect_max_frames: int = 1000        # frames examined per camera (evenly spaced)
+    intrinsic_frames: int = 40
+    extrinsic_frames: int = 300
+    min_frames: int = 6
+    loss: str = "soft_l1"
+    world: str = ""                      # "" (first camera) | "camera:NAME" | "board:FRAME"
+    exclude: tuple[str, ...] = ()
+    intrinsics_from: str = ""            # rig.toml whose cameras' intrinsics are used as given
+    workers: int = 0                     # detection threads (0: one per camera)
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"model {self.model!r} is not one of {list(MODELS)}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss {self.loss!r} is not one of {list(LOSSES)}")
+
+
+@dataclass(frozen=True)
+class CalibrationOutcome:
+    rig: CameraRig
+    detections: dict[str, CameraDetections]
+    intrinsics: dict[str, IntrinsicsResult | None]
+    extrinsics: ExtrinsicsResult | None
+    report: dict[str, Path]
+    timings_s: dict[str, float] = field(default_factory=dict)
+    summary: str = ""
+
+
+def _stage(progress: Progress | None, stage: str) -> Callable[[str, int, int], None] | None:
+    if progress is None:
+        return None
+    return lambda item, done, total: progress(stage, item, done, total)
+
+
+def calibrate_recording(recording: str | os.PathLike, board: Board | str | os.PathLike,
+                        out_rig: str | os.PathLike, config: CalibrationConfig | None = None,
+                        progress: Progress | None = None) -> CalibrationOutcome:
+    """Detect, calibrate intrinsics and extrinsics, write rig.toml and the report (see module doc)."""
+    cfg = config or CalibrationConfig()
+    board_path = None
+    if not isinstance(board, Board):
+        board_path = Path(board)
+        board = load_board(board_path)
+    out_rig = Path(out_rig)
+    out_dir = out_rig.parent
+    timings: dict[str, float] = {}
+    sources = [s for s in discover_recording(recording) if s.name not in cfg.exclude]
+    unknown = sorted(set(cfg.exclude) - {s.name for s in discover_recording(recording)})
+    if unknown:
+        raise CalibrationError(f"--exclude {unknown}: no such camera in {recording}.")
+    if not sources:
+        raise CalibrationError(f"No camera left to calibrate in {recording}.")
+    log.info("calibrating %d camera(s) %s with %s", len(sources), [s.name for s in sources], board.describe())
+
+    t0 = time.perf_counter()
+    dets = detect_all(board, sources, out_dir / "detections", cfg.detect_max_frames,
+                      workers=cfg.workers or None, progress=_stage(progress, "detect"))
+    timings["detect_s"] = time.perf_counter() - t0
+    seen = {k: len(v.seen_frames()) for k, v in dets.items()}
+    if all(n < cfg.min_frames for n in seen.values()):
+        diag = diagnose_board(board, sources)
+        where = f"Edit {board_path}" if board_path else "Change the board"
+        if diag.board is not None and diag.board.detection_key() != board.detection_key():
+            # detect with the matching settings now, so the run after fixing the file reuses the cache
+            detect_all(diag.board, sources, out_dir / "detections", cfg.detect_max_frames,
+                       workers=cfg.workers or None, progress=_stage(progress, "detect (diagnosis)"))
+            raise CalibrationError(
+                f"The board ({board.describe()}) was found in no camera ({seen}). Diagnosis: {diag.message}. "
+                f"{where} accordingly and run again; the detections with the matching settings are cached in "
+                f"{out_dir / 'detections'}, so the next run will not detect again.")
+        raise CalibrationError(
+            f"The board ({board.describe()}) was found in no camera ({seen}). Diagnosis: {diag.message}. "
+            "Check the board file (squares, dictionary, marker size) against the printed board, and that the "
+            "board is in focus and large enough in the images.")
+
+    # intrinsics
+    t0 = time.perf_counter()
+    given: dict[str, Camera] = {}
+    if cfg.intrinsics_from:
+        known = CameraRig.load(cfg.intrinsics_from)
+        given = {c.name: c for c in known.cameras if c.name in dets}
+    intr: dict[str, IntrinsicsResult | None] = {}
+    cams: list[Camera] = []
+    problems = []
+    icfg = IntrinsicsConfig(model=cfg.model, max_frames=cfg.intrinsic_frames, min_frames=cfg.min_frames)
+    for k, (name, d) in enumerate(dets.items()):
+        if name in given:
+            g = given[name]
+            if tuple(g.size_wh) != tuple(d.size_wh):
+                problems.append(f"Camera '{name}': --intrinsics gives {g.size_wh} but the recording is {d.size_wh}.")
+                continue
+            intr[name] = None
+            cams.append(g.replace(R=np.eye(3), t=np.zeros(3)))
+        else:
+            try:
+                r = calibrate_intrinsics(board, d, icfg)
+            except CalibrationError as e:
+                problems.append(str(e))
+                continue
+            intr[name] = r
+            cams.append(r.camera())
+        if progress is not None:
+            progress("intrinsics", name, k + 1, len(dets))
+    if problems:
+        ok = [c.name for c in cams]
+        raise CalibrationError("\n".join(problems) + (
+            f"\n(Cameras {ok} are fine; their detections are cached. To calibrate without the others, "
+            f"pass --exclude {' '.join(n for n in dets if n not in ok)}.)" if ok else ""))
+    timings["intrinsics_s"] = time.perf_counter() - t0
+
+    # extrinsics
+    ext = None
+    t0 = time.perf_counter()
+    if len(cams) >= 2:
+        ecfg = ExtrinsicsConfig(loss=cfg.loss, refine_intrinsics=cfg.refine_intrinsics,
+                                max_frames=cfg.extrinsic_frames, world=cfg.world)
+        ext = calibrate_extrinsics(board, cams, dets, ecfg, progress=_stage(progress, "bundle adjustment"))
+        rig = ext.rig
+    else:
+        rig = CameraRig(tuple(cams))
+    timings["extrinsics_s"] = time.perf_counter() - t0
+
+    src = (f"calibrate-run calibrate {Path(recording).name} ({board.describe()}; model {cfg.model}, "
+           f"refine_intrinsics {cfg.refine_intrinsics}, world {ext.world if ext else '-'})")
+    rig.save(out_rig, source=src)
+    report = write_report(out_dir / "report", board, rig, dets, intr, ext,
+                          extra={"timings_s": timings, "recording": str(Path(recording).resolve()),
+                                 "rig": str(out_rig.resolve())})
+    from calibrate.report import report_dict
+
+    text = summary_text(report_dict(board, rig, dets, intr, ext))
+    return CalibrationOutcome(rig, dets, intr, ext, report, timings, text)
+
+
+# ----------------------------------------------------------------------------- CLI (used by calibrate/cli.py)
+
+_HELP = """Calibrate a multi-camera rig from a recording of a calibration board.
+
+RECORDING is a folder with one video per camera (cam_0.mp4, cam_1.mp4, ...; the file name is the camera
+name), or one folder of images per camera, or a flat folder of images named <camera><frame number>
+(left01.jpg, right01.jpg). Frames with the same index are taken as simultaneous.
+
+Move the board through the whole image of every camera, tilted in all directions, and make sure that
+neighbouring cameras see it at the same time. The output folder (that of --out) receives rig.toml, the
+cached detections and a report (report/report.toml, layout.png, coverage.png).
+
+Example:
+  calibrate-run calibrate recordings/calib --board charuco.toml --out calib/rig.toml
+  calibrate-run calibrate recordings/calib --board charuco.toml --out calib/rig.toml --world board:120
+"""
+
+
+def add_cli_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = _HELP
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.add_argument("recording", type=Path, help="folder of per-camera videos or image folders")
+    p.add_argument("--board", type=Path, required=True,
+                   help="board file: roomcap board TOML (schema=\"board/1\") or caliscope's charuco.toml")
+    p.add_argument("--out", type=Path, required=True, help="rig.toml to write (its folder gets the report)")
+    p.add_argument("--model", choices=MODELS, default="pinhole",
+                   help="lens model: pinhole (k1,k2,p1,p2,k3), pinhole4 (k1,k2,p1,p2), rational (8), "
+                        "fisheye (4) (default: pinhole)")
+    p.add_argument("--refine-intrinsics", choices=("none", "focal_pp", "all"), default="none",
+                   help="let the bundle adjustment refine the intrinsics too (default: none = keep the "
+                        "per-camera calibration)")
+    p.add_argument("--world", default="",
+                   help="world frame: camera:NAME (that camera's frame; default: the first camera) or "
+                        "board:FRAME (the board lying on the floor in that frame: origin at the board, z up)")
+    p.add_argument("--intrinsics", default="", metavar="RIG_TOML",
+                   help="use the intrinsics of these cameras (same names) instead of calibrating them")
+    p.add_argument("--exclude", nargs="*", default=[], metavar="CAMERA", help="cameras to leave out")
+    p.add_argument("--loss", choices=LOSSES, default="soft_l1", help="robust loss of the bundle adjustment")
+    p.add_argument("--max-frames", type=int, default=1000, help="frames examined per camera (default 1000)")
+    p.add_argument("--intrinsic-frames", type=int, default=40,
+                   help="frames per camera for the intrinsics, chosen for coverage and diversity (default 40)")
+    p.add_argument("--extrinsic-frames", type=int, default=300,
+                   help="board poses in the bundle adjustment (default 300)")
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """The CLI action: progress bars on stderr, summary on stdout, errors as 'what happened, what to do'."""
+    from tqdm import tqdm
+
+    bars: dict[tuple[str, str], Any] = {}
+
+    def progress(stage: str, item: str, done: int, total: int) -> None:
+        key = (stage, item) if stage.startswith("detect") else (stage, "")
+        bar = bars.get(key)
+        if bar is None:
+            desc = f"{stage} {item}" if stage.startswith("detect") else stage
+            bar = bars[key] = tqdm(total=total, desc=desc, unit="frame" if stage.startswith("detect") else "step",
+                                   leave=True, file=sys.stderr)
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+        if done >= total:
+            bar.close()
+
+    try:
+        cfg = CalibrationConfig(model=args.model, refine_intrinsics=args.refine_intrinsics, world=args.world,
+                                intrinsics_from=args.intrinsics, exclude=tuple(args.exclude), loss=args.loss,
+                                detect_max_frames=args.max_frames, intrinsic_frames=args.intrinsic_frames,
+                                extrinsic_frames=args.extrinsic_frames)
+        out = calibrate_recording(args.recording, args.board, args.out, cfg, progress)
+    except (CalibrationError, ValueError) as e:
+        for b in bars.values():
+            b.close()
+        print(f"calibrate-run calibrate: error: {e}", file=sys.stderr)
+        return 2
+    for b in bars.values():
+        b.close()
+    print(out.summary)
+    print(f"wrote {args.out} and the report in {out.report['report'].parent}")
+    return 0
