@@ -154,38 +154,36 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
             flip = None
     cost_all, ok_all, cross_all, okx_all = pair_costs(xy, vis, np.asarray(F, dtype=np.float64),
                                                       cfg.min_shared_joints, flip)
-    cost_all = np.where(ok_all, cost_all, 0.0)
-    ok_all = ok_all.astype(np.float64)
-    if flip is not None:
-        cross_all = np.where(okx_all, cross_all, 0.0)
-        okx_all = okx_all.astype(np.float64)
+    # [..., 0]: both poses as detected, [..., 1]: the first mirrored (= the second mirrored)
+    if flip is None:
+        CC = np.where(ok_all, cost_all, 0.0)[..., None]
+        OK = ok_all.astype(np.float64)[..., None]
+    else:
+        CC = np.stack([np.where(ok_all, cost_all, 0.0), np.where(okx_all, cross_all, 0.0)], -1)
+        OK = np.stack([ok_all, okx_all], -1).astype(np.float64)
     cams = np.arange(C)[None, None, :]
     H = np.full((0, C), -1, dtype=np.int64)  # hypotheses: pose index per camera, -1 = none
-    S = np.zeros((0, C), dtype=bool)  # pose mirrored relative to its hypothesis
+    S = np.zeros((0, C), dtype=np.int64)  # 1 = pose mirrored relative to its hypothesis
     for i in order:
         ks = np.flatnonzero(present[i])
         if len(ks) == 0:
             continue
         if len(H):
-            # eq. 4.2: mean over the hypothesis' members (that share joints with the pose) of eq. 4.3
+            # eq. 4.2: mean over the hypothesis' members (that share joints with the pose) of eq. 4.3,
+            # each member taken in its own orientation: pose as is vs member mirrored = cross cost
             sel = (ks[:, None, None], cams, np.maximum(H, 0)[None])  # -> (K,M,C)
-            has = H >= 0
-            num = (cost_all[i][sel] * has).sum(-1)
-            den = (ok_all[i][sel] * has).sum(-1)
+            ok0 = OK[i][sel + (S[None] if flip is not None else 0,)] * (H >= 0)
+            num = (CC[i][sel + (S[None] if flip is not None else 0,)] * ok0).sum(-1)
+            den = ok0.sum(-1)
+            phi = np.where(den > 0, num / np.maximum(den, 1), _BIG)
             if flip is not None:
-                cs, cx = cost_all[i][sel], cross_all[i][sel]
-                os_, ox = ok_all[i][sel], okx_all[i][sel]
-                # pose as is vs a member mirrored = pose mirrored vs the member as is (cross)
-                num = (np.where(S, cx, cs) * has).sum(-1)
-                den = (np.where(S, ox, os_) * has).sum(-1)
-                numf = (np.where(S, cs, cx) * has).sum(-1)
-                denf = (np.where(S, os_, ox) * has).sum(-1)
-                phi0 = np.where(den > 0, num / np.maximum(den, 1), _BIG)
-                phi1 = np.where(denf > 0, numf / np.maximum(denf, 1), _BIG)
-                mirrored = phi1 < 0.8 * phi0  # prefer the pose as detected unless mirroring clearly helps
-                phi = np.where(mirrored, phi1, phi0)
+                ok1 = OK[i][sel + (1 - S[None],)] * (H >= 0)
+                num1 = (CC[i][sel + (1 - S[None],)] * ok1).sum(-1)
+                den1 = ok1.sum(-1)
+                phi1 = np.where(den1 > 0, num1 / np.maximum(den1, 1), _BIG)
+                mirrored = phi1 < 0.8 * phi  # prefer the pose as detected unless mirroring clearly helps
+                phi = np.where(mirrored, phi1, phi)
             else:
-                phi = np.where(den > 0, num / np.maximum(den, 1), _BIG)
                 mirrored = np.zeros(phi.shape, bool)
             if cfg.gate:  # pairs above theta cannot join anyway; keep them from displacing valid pairs
                 phi = np.where(phi < cfg.theta_px, phi, _BIG)
@@ -201,9 +199,9 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
             Hn = np.full((int(new.sum()), C), -1, dtype=np.int64)
             Hn[:, i] = ks[new]
             H = np.concatenate([H, Hn], 0)
-            S = np.concatenate([S, np.zeros(Hn.shape, bool)], 0)
+            S = np.concatenate([S, np.zeros(Hn.shape, np.int64)], 0)
     keep = (H >= 0).sum(1) >= 2
-    H, S = H[keep], S[keep]
+    H, S = H[keep], S[keep].astype(bool)
     # a hypothesis started from a mirrored pose: take the majority orientation
     invert = 2 * (S & (H >= 0)).sum(1) > (H >= 0).sum(1)
     S[invert] = ~S[invert]
