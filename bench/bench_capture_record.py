@@ -139,6 +139,7 @@ def run_one(
             )
     cfg = parse_config({"cameras": cams, "recorder": {"queue_frames": 30, "min_free_mb": 200}})
     out = tmp / f"session_{kind}"
+    load0 = os.getloadavg()[0]
     cpu0, t0 = _cpu_s(), time.monotonic()
     summary = Recorder(cfg, out, duration_s=seconds, handle_signals=False).run()
     wall = time.monotonic() - t0
@@ -172,6 +173,8 @@ def run_one(
         "skew_ms_median": timing.get("skew_ms_median"),
         "complete_sets": timing.get("complete_sets"),
         "sets": timing.get("sets"),
+        "loadavg_1min_before": load0,
+        "loadavg_1min_after": os.getloadavg()[0],
         **ts,
     }
     import shutil
@@ -225,7 +228,8 @@ def main() -> None:
                 f"{r['cpu_cores_busy']:.2f} cores ({r['cpu_pct_of_machine']:.0f}% of machine), "
                 f"t_ns vs source max {r['ts_err_ms_max']:.3f} ms, barcode mismatches "
                 f"{r['barcode_mismatches']}/{r['frames_checked']}, skew median {r['skew_ms_median']} ms, "
-                f"disk {r['disk_mb']:.0f} MB"
+                f"disk {r['disk_mb']:.0f} MB; load average {r['loadavg_1min_before']:.1f} -> "
+                f"{r['loadavg_1min_after']:.1f} (other processes share the {os.cpu_count()} cores)"
             )
     print("BENCH " + json.dumps({"bench": "capture_record", "baseline": base, "runs": results}))
 

@@ -78,15 +78,12 @@ def _match_people(prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
     """Reorder cur (P,J,2) so that person p continues prev's person p (Hungarian on mean joint distance)."""
     from scipy.optimize import linear_sum_assignment
 
-    P = prev.shape[0]
-    d = np.full((P, P), 1e9)
-    for i in range(P):
-        for j in range(P):
-            diff = np.linalg.norm(prev[i] - cur[j], axis=-1)
-            if np.isfinite(diff).any():
-                d[i, j] = np.nanmean(diff)
+    diff = np.linalg.norm(prev[:, None] - cur[None], axis=-1)  # (P,P,J)
+    valid = np.isfinite(diff)
+    n = valid.sum(-1)
+    d = np.where(n > 0, np.where(valid, diff, 0.0).sum(-1) / np.maximum(n, 1), 1e9)
     rows, cols = linear_sum_assignment(d)
-    order = np.arange(P)
+    order = np.arange(len(cur))
     order[rows] = cols
     return cur[order]
 
@@ -156,15 +153,26 @@ def lagged_correlation(ref: np.ndarray, sig: np.ndarray, max_lag: int, min_overl
             raise ValueError(
                 f"lagged_correlation: ref {ref.shape} and sig {sig.shape} need the same channels K"
             )
-        acc = np.zeros(2 * max_lag + 1)
-        wsum = np.zeros(2 * max_lag + 1)
-        for k in range(ref.shape[1]):
-            c = lagged_correlation(ref[:, k], sig[:, k], max_lag, min_overlap)
-            w = np.isfinite(c) * min(np.isfinite(ref[:, k]).sum(), np.isfinite(sig[:, k]).sum())
-            acc += np.where(np.isfinite(c), c, 0.0) * w
-            wsum += w
-        with np.errstate(invalid="ignore"):
-            return np.where(wsum > 0, acc / np.maximum(wsum, 1e-12), np.nan)
+        # channel weight: how much data it has (a joint seen rarely counts little)
+        w = np.minimum(np.isfinite(ref).sum(0), np.isfinite(sig).sum(0)).astype(np.float64)
+        out = np.full(2 * max_lag + 1, np.nan)
+        for k, L in enumerate(range(-max_lag, max_lag + 1)):
+            t0, t1 = max(0, -L), min(len(sig), len(ref) - L)
+            if t1 - t0 < min_overlap:
+                continue
+            a, b = ref[t0 + L : t1 + L], sig[t0:t1]
+            m = np.isfinite(a) & np.isfinite(b)
+            cnt = m.sum(0)
+            a = np.where(m, a, 0.0)
+            b = np.where(m, b, 0.0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ma, mb = a.sum(0) / cnt, b.sum(0) / cnt
+                da, db = np.where(m, a - ma, 0.0), np.where(m, b - mb, 0.0)
+                c = (da * db).sum(0) / np.sqrt((da * da).sum(0) * (db * db).sum(0))
+            ok = (cnt >= min_overlap) & np.isfinite(c)
+            if ok.any() and w[ok].sum() > 0:
+                out[k] = float((c[ok] * w[ok]).sum() / w[ok].sum())
+        return out
     out = np.full(2 * max_lag + 1, np.nan)
     for k, L in enumerate(range(-max_lag, max_lag + 1)):
         # pairs (ref[t+L], sig[t]) for all t where both exist
@@ -237,10 +245,17 @@ def estimate_offset_drift(
         ts.append(s + window / 2)
         lags.append(k - max_lag + frac)
         ws.append(max(c[k], 1e-3))
-    if len(ts) < 3:
+    if len(ts) < 4:
         return g.offset_frames, 0.0, g.correlation
-    b, a = np.polyfit(np.asarray(ts), np.asarray(lags), 1, w=np.asarray(ws))
-    return float(a), float(b), g.correlation
+    ts_a, lags_a = np.asarray(ts), np.asarray(lags)
+    (b, a0), cov = np.polyfit(ts_a, lags_a, 1, w=np.asarray(ws), cov="unscaled")
+    resid = lags_a - (a0 + b * ts_a)
+    se_b = float(np.sqrt(max(cov[0, 0], 0.0)) * max(np.std(resid), 1e-3) / max(np.sqrt(np.mean(ws)), 1e-3))
+    if abs(b) < 2 * se_b:  # no significant drift: keep the whole-recording estimate
+        return g.offset_frames, 0.0, g.correlation
+    # anchor at the whole-recording estimate (its lag holds at the middle of the overlap)
+    t_mid = 0.5 * (len(sig) - 1)
+    return float(g.offset_frames - b * t_mid), float(b), g.correlation
 
 
 # ----------------------------------------------------------------------------- audio

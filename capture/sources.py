@@ -463,6 +463,10 @@ class Recording:
         return None if self.table is None else self.table[:, 1].copy()
 
     def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
+        return self.iter_frames()
+
+    def iter_frames(self, skip=None) -> Iterator[tuple[int, int, np.ndarray | None]]:
+        """Like ``iter(self)``; ``skip(t_ns) -> bool`` may ask to not convert a frame (yields image None)."""
         import cv2
 
         i = 0
@@ -473,10 +477,7 @@ class Recording:
                 raise SourceError(f"{f}: cannot be decoded (corrupt segment?).")
             last_ms = 0.0
             try:
-                while True:
-                    ok, img = cap.read()
-                    if not ok:
-                        break
+                while cap.grab():
                     if self.table is not None:
                         if i >= len(self.table):
                             log.warning(
@@ -487,6 +488,11 @@ class Recording:
                     else:
                         last_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
                         t_ns = int(round((base_ms + last_ms) * 1e6))
+                    img = None
+                    if skip is None or not skip(t_ns):
+                        ok, img = cap.retrieve()
+                        if not ok:
+                            break
                     yield i, t_ns, img
                     i += 1
             finally:
@@ -529,6 +535,8 @@ class FileReplaySource(FrameSource):
         self._wrap_ns = 0
         self._last_rel = 0
         self._start_mono: int | None = None
+        self._skipped_in_row = 0
+        self._max_skip = 60
 
     @property
     def live(self) -> bool:
@@ -542,7 +550,7 @@ class FileReplaySource(FrameSource):
         if self.path.is_file() and self.path.stat().st_size == 0:
             raise SourceError(f"{self.name}: {self.path} is empty, not a video.")
         rec = Recording(self.path)
-        it = iter(rec)
+        it = rec.iter_frames(self._late)
         try:
             first = next(it)
         except StopIteration:
@@ -579,7 +587,7 @@ class FileReplaySource(FrameSource):
                         return None
                     period = int(round(1e9 / self._rec.fps)) if self._rec.fps else 0
                     self._wrap_ns = self._last_rel + period
-                    self._it = iter(self._rec)
+                    self._it = self._rec.iter_frames(self._late)
                     item = next(self._it, None)
                     if item is None:
                         return None
@@ -589,17 +597,33 @@ class FileReplaySource(FrameSource):
             self._last_rel = rel
             seq = self._seq
             self._seq += 1
+            if img is None and self._skipped_in_row < self._max_skip:
+                # like a camera, a replay does not wait for a slow host: late frames are dropped
+                # (a gap in the sequence numbers); bounded so a very slow host still gets frames
+                self._skipped_in_row += 1
+                continue
+            if img is None:  # skipped too many in a row: deliver this one
+                img = self._decode_again(item)
+            self._skipped_in_row = 0
             if self.realtime:
                 if self._start_mono is None:
                     self._start_mono = time.monotonic_ns() - rel
                 wait = self._start_mono + rel - time.monotonic_ns()
                 if wait > 0:
                     time.sleep(wait / 1e9)
-                elif self._rec.fps and -wait > 2e9 / self._rec.fps:
-                    # like a camera, a replay does not wait for a slow host: late frames are dropped
-                    # (a gap in the sequence numbers)
-                    continue
             return Frame(img, self.epoch_ns + rel, host_now_ns(), seq)
+
+    def _late(self, t_file_ns: int) -> bool:
+        """Whether the frame at file time ``t_file_ns`` is already more than 2 frame periods late."""
+        if not self.realtime or self._start_mono is None or self._t0_file is None or not self._rec.fps:
+            return False
+        if self._skipped_in_row >= self._max_skip:
+            return False
+        rel = self._wrap_ns + (t_file_ns - self._t0_file)
+        return time.monotonic_ns() - (self._start_mono + rel) > 2e9 / self._rec.fps
+
+    def _decode_again(self, item):  # only reached if _late said skip but the bound was hit meanwhile
+        raise SourceError(f"{self.name}: internal: frame {item[0]} was not decoded")
 
     def close(self) -> None:
         self._it = None
