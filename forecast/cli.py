@@ -116,7 +116,12 @@ def cmd_eval(args) -> int:
 
     if args.social:
         res = E.evaluate_social(
-            models, te, n_pred=int(round(args.horizon_s * 25)), n_scenes=args.scenes, progress=progress
+            models,
+            te,
+            n_pred=int(round(args.horizon_s * 25)),
+            n_scenes=args.scenes,
+            progress=progress,
+            ndms_database=clips if args.ndms_db == "all" else None,
         )
         title = "Forecast evaluation: composed two-person scenes (held-out CMU clips)"
     else:
@@ -128,6 +133,7 @@ def cmd_eval(args) -> int:
         res = E.evaluate_single(
             models,
             te,
+            ndms_database=clips if args.ndms_db == "all" else None,
             n_pred=int(round(args.horizon_s * 25)),
             n_samples=args.samples,
             max_windows=args.max_windows,
@@ -187,6 +193,12 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--samples", type=int, default=10)
     e.add_argument("--scenes", type=int, default=24)
     e.add_argument("--max-windows", type=int, default=200)
+    e.add_argument(
+        "--ndms-db",
+        choices=["test", "all"],
+        default="test",
+        help="NDMS database: held-out clips (seed) or all clips; the query's clip is always left out",
+    )
     e.add_argument("--out", required=True)
     data_args(e)
 

@@ -34,8 +34,10 @@ class Real:
 
 
 def ndms_scorer_for(clips: list[fdata.Clip], kappa: int = 8) -> M.NDMSScorer:
+    """Database of motion words from clips; a word's group is its clip (``clip_group(name)``)."""
     seqs, groups = [], []
-    for i, c in enumerate(clips):
+    for c in clips:
+        i = clip_group(c.name)
         for p in range(c.xyz_m.shape[1]):
             x = c.xyz_m[:, p]
             ok = np.isfinite(x).all((1, 2))
@@ -48,6 +50,13 @@ def ndms_scorer_for(clips: list[fdata.Clip], kappa: int = 8) -> M.NDMSScorer:
     return M.NDMSScorer(seqs, get_skeleton(clips[0].skeleton).joint_names, kappa, groups)
 
 
+def clip_group(name: str) -> int:
+    """Stable integer id of a clip name (groups in the NDMS database)."""
+    import zlib
+
+    return zlib.crc32(name.encode()) & 0x7FFFFFFF
+
+
 def evaluate_single(
     models: dict[str, object],
     test_clips: list[fdata.Clip],
@@ -58,17 +67,22 @@ def evaluate_single(
     max_windows: int = 200,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    ndms_database: list[fdata.Clip] | None = None,
 ) -> dict:
-    """-> {"fps", "horizon_s", "models": {name: {"mpjpe": [H], "ndms": [H], "apd_t": [H], "apd", "ade", "fde",
+    """``ndms_database``: clips for the NDMS database (default: the held-out clips; the query's own clip
+    is always excluded).
+
+    -> {"fps", "horizon_s", "models": {name: {"mpjpe": [H], "ndms": [H], "apd_t": [H], "apd", "ade", "fde",
     "npss", ...}}, "n_windows", "skipped"}."""
     ws = fdata.make_windows(test_clips, n_obs, n_pred, stride, persons="each")
     if len(ws) == 0:
         raise ValueError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
     rng = np.random.default_rng(seed)
     sel = np.sort(rng.choice(len(ws), min(max_windows, len(ws)), replace=False))
-    x, mask, groups = ws.x[sel, :, 0], ws.mask[sel, :, 0], ws.clip[sel]
+    x, mask = ws.x[sel, :, 0], ws.mask[sel, :, 0]
+    groups = np.array([clip_group(test_clips[c].name) for c in ws.clip[sel]])
     obs, gt = x[:, :n_obs], x[:, n_obs:]
-    scorer = ndms_scorer_for(test_clips)
+    scorer = ndms_scorer_for(ndms_database or test_clips)
     out: dict = {
         "fps": ws.fps,
         "n_obs": n_obs,
@@ -127,6 +141,7 @@ def evaluate_social(
     n_scenes: int = 24,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    ndms_database: list[fdata.Clip] | None = None,
 ) -> dict:
     """Composed two-person scenes from held-out clips; long-horizon NDMS(t) and SSCP."""
     from forecast.train import composed_batch
@@ -134,7 +149,7 @@ def evaluate_social(
     rng = np.random.default_rng(seed)
     single = fdata.make_windows(test_clips, n_obs, 0, stride=8, persons="each")
     obs = composed_batch(single.x[:, :, 0], 2, n_scenes, rng)  # (B,n_obs,2,J,3)
-    scorer = ndms_scorer_for(test_clips)
+    scorer = ndms_scorer_for(ndms_database or test_clips)
     names = get_skeleton(test_clips[0].skeleton).joint_names
     # real reference scenes for SSCP: the longest composed windows the held-out clips allow
     L = min(n_obs + n_pred, max(c.n_frames for c in test_clips))

@@ -57,9 +57,9 @@ class GRUConfig:
 
 @dataclass(frozen=True)
 class IntentionConfig:
-    hidden: int = 192
+    hidden: int = 128
     layers: int = 2
-    z_dim: int = 32
+    z_dim: int = 16
     n_clusters: int = 32
     n_intentions: int = 8
     gamma: int = 10
@@ -68,22 +68,22 @@ class IntentionConfig:
     w_adv: float = 0.05
     n_obs: int = 50
     n_pred: int = 50
-    steps: int = 1500
-    batch: int = 64
+    steps: int = 800
+    batch: int = 32
     lr: float = 1e-3
     seed: int = 0
 
 
 @dataclass(frozen=True)
 class DiffusionConfig:
-    channels: int = 96
+    channels: int = 64
     T: int = 1000
     n_frames: int = 64
     n_obs: int = 32
     persons: int = 2
     sample_steps: int = 20
     sample_eta: float = 0.0
-    steps: int = 3000
+    steps: int = 2500
     batch: int = 32
     lr: float = 5e-4
     seed: int = 0

@@ -94,3 +94,20 @@ def test_sscp_states_and_js_distance():
     sscp = M.SSCP(lambda X: M.default_social_state(X, NAMES), M.N_DEFAULT_STATES)
     assert sscp.distance([np.stack([a, b], 1)], [np.stack([a, c], 1)]) == pytest.approx(1.0)
     assert sscp.distance([np.stack([a, b], 1)], [np.stack([a, b], 1)]) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
+    from forecast import data as D
+    from forecast import evaluate as E
+    from forecast.models import ConstantVelocity, ZeroVelocity
+
+    clips = [D.Clip(f"w{i}", walker(150, phase=i, speed_mps=1.0 + 0.1 * i, heading_rad=i), 25.0) for i in range(4)]
+    models = {"zero_velocity": ZeroVelocity(), "constant_velocity": ConstantVelocity(), "real": E.Real()}
+    res = E.evaluate_single(models, clips, n_obs=25, n_pred=50, n_samples=2, stride=25, max_windows=8)
+    r = res["models"]
+    assert r["real"]["ndms_mean"] > 0.5 and r["zero_velocity"]["ndms_mean"] < 0.1  # measured 0.93 / 0.02
+    assert r["constant_velocity"]["mpjpe"][-1] > r["constant_velocity"]["mpjpe"][0]
+    path = E.write_report(res, tmp_path)
+    text = path.read_text()
+    assert "MPJPE 400 ms" in text and "NDMS 2 s" in text
+    assert (tmp_path / "ndms.png").stat().st_size > 1000 and (tmp_path / "mpjpe.png").exists()
