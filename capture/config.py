@@ -430,10 +430,13 @@ def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureCon
     for key in ("out", "calibration"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise ConfigError(path, key, f"expected a path string, got {data[key]!r}.")
+    calibration = data.get("calibration")
+    if calibration and path is not None and not Path(calibration).is_absolute():
+        calibration = str(Path(path).resolve().parent / calibration)
     return CaptureConfig(
         cameras=cams,
         out=data.get("out"),
-        calibration=data.get("calibration"),
+        calibration=calibration,
         sync=sync,
         recorder=rec,
         live=live,

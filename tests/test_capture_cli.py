@@ -1,0 +1,66 @@
+"""capture-run end to end: the minimal cams.yaml of the issue, clear errors for bad input, sync."""
+
+from __future__ import annotations
+
+import numpy as np
+from conftest import need_shared
+from test_capture_sources import write_video
+
+from capture.cli import main
+from capture.fileio import load_toml
+from capture.sources import read_frames_csv
+
+
+def test_minimal_cams_yaml_records_a_session(tmp_path, capsys):
+    v1 = write_video(tmp_path / "cam01.mp4", n=15, fps=30)
+    v2 = write_video(tmp_path / "cam02.mp4", n=15, fps=30)
+    (tmp_path / "cams.yaml").write_text(
+        f"cameras:\n  - name: cam01\n    source: {v1}\n  - name: cam02\n    source: {v2}\n"
+    )
+    out = tmp_path / "session"
+    assert (
+        main(["--cameras", str(tmp_path / "cams.yaml"), "--out", str(out), "--duration", "5", "--quiet"]) == 0
+    )
+    meta = load_toml(out / "session.toml")
+    assert meta["status"] == "complete" and meta["stop_reason"] == "all sources ended"  # files end before 5 s
+    assert "cam01" in meta["cams_yaml"] and meta["config"]["cameras"][1]["name"] == "cam02"
+    for cam in ("cam01", "cam02"):
+        tab = read_frames_csv(out / "raw" / f"{cam}.frames.csv")
+        assert len(tab) == 15 and np.all(np.diff(tab[:, 1]) > 0)
+    assert "cam01: 15 frames" in capsys.readouterr().out
+
+
+def test_bad_input_is_a_clear_error_without_a_session(tmp_path, capsys):
+    notvideo = tmp_path / "x.mp4"
+    notvideo.write_bytes(b"\x00garbage" * 100)
+    v25 = write_video(tmp_path / "v.mp4", n=3, fps=25)
+    cases = {
+        "dup": "cameras:\n  - {name: a, source: 'synthetic:'}\n  - {name: a, source: 'synthetic:'}\n",
+        "notvideo": f"cameras:\n  - {{name: a, source: '{notvideo}'}}\n",
+        "usb": "cameras:\n  - {name: a, source: 'usb:57'}\n",
+        "rtsp": "cameras:\n  - {name: a, source: 'rtsp://u:pw123@127.0.0.1:9/x'}\n",
+        "fps": f"cameras:\n  - {{name: a, source: '{v25}', fps: 90}}\n",
+    }
+    for name, text in cases.items():
+        (tmp_path / f"{name}.yaml").write_text(text)
+        out = tmp_path / f"out_{name}"
+        rc = main(
+            ["--cameras", str(tmp_path / f"{name}.yaml"), "--out", str(out), "--duration", "1", "--quiet"]
+        )
+        err = capsys.readouterr().err
+        assert rc == 2 and "error:" in err and "Traceback" not in err, (name, err)
+        assert "pw123" not in err
+        assert not out.exists(), name  # never a half-written session
+    assert main(["check", "--cameras", str(tmp_path / "dup.yaml")]) == 2
+
+
+def test_sync_command_on_openpose_folders(tmp_path, capsys):
+    root = need_shared(
+        "data", "pose2sim", "session-2024", "S00_P00_SingleParticipant", "S00_P00_T01_BalancingTrial", "pose"
+    )
+    args = ["sync", str(tmp_path), "--fps", "60", "--max-lag-s", "0.5", "--openpose"]
+    args += [f"{c}={root / (c + '_json')}" for c in ("cam01", "cam02", "cam03")]
+    assert main(args) == 0
+    meta = load_toml(tmp_path / "session.toml")
+    assert set(meta["sync"]["cameras"]) == {"cam01", "cam02", "cam03"}
+    assert "offset" in capsys.readouterr().out
