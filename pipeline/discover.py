@@ -93,6 +93,8 @@ def inspect_folder(folder: Path, name: str) -> SessionSource | None:
     )
     if raw or dets or layout.session_toml.exists():
         try:
+            if layout.session_toml.exists():
+                layout.read_meta()  # a newer or broken session.toml stops the session, not the run
             rig = layout.rig_toml
         except Exception as e:  # a broken session.toml: reported for this session only
             return SessionSource(name, folder, "roomcap", raw, dets, problem=str(e))

@@ -96,8 +96,13 @@ def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
 
 
 def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
+    from pipeline.config import STAGES
+
     rows = []
-    for p in sorted((lay.root / ".roomcap" / "provenance").glob("*.json")):
+    for stage in STAGES:
+        p = lay.root / ".roomcap" / "provenance" / f"{stage}.json"
+        if not p.exists():
+            continue
         try:
             rec = json.loads(p.read_text())
             rows.append({"stage": rec["stage"], "version": rec["version"],

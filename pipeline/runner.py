@@ -433,6 +433,9 @@ def process_session(
         if source.problem:
             raise StageError(source.problem)
         lay = SessionLayout(root)
+        for tmp in (root / ".roomcap").rglob(".*"):  # temporaries of bookkeeping writes a kill interrupted
+            if tmp.is_file():
+                tmp.unlink(missing_ok=True)
         store = ProvenanceStore(root)
         for name in _stage_list(config, source):
             stage = name

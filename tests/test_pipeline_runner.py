@@ -1,0 +1,178 @@
+"""The session runner on detections-only synthetic sessions: caching, resuming, failure isolation, executors.
+
+Sessions come from ``synthetic.world`` (via ``pipeline.synth``): a 4-camera ring, 1-3 people, 1 s at
+25 fps, so each runs triangulate -> track -> forecast -> report in well under a second.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main as reprocess
+from pipeline.config import PipelineConfig
+from pipeline.discover import discover
+from pipeline.executors import run_sessions
+from pipeline.synth import make_sessions
+
+REPO = Path(__file__).resolve().parents[1]
+STAGES = "triangulate,track,forecast,report"
+CFG = PipelineConfig(stages=tuple(STAGES.split(",")))
+
+
+def _outputs(root: Path) -> dict[str, bytes]:
+    """Every stage output under an output folder (bookkeeping under .roomcap and summaries excluded)."""
+    return {
+        p.relative_to(root).as_posix(): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and ".roomcap" not in p.parts and not p.name.startswith("reprocess_summary")
+    }
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("sessions") / "syn"
+    make_sessions(root, 4, duration_s=1.0)
+    return root
+
+
+@pytest.fixture(scope="module")
+def reference(sessions, tmp_path_factory) -> Path:
+    """One uninterrupted run (local executor, one worker) to compare the others with."""
+    out = tmp_path_factory.mktemp("ref")
+    assert reprocess([str(sessions), "--out", str(out), "--stages", STAGES, "--workers", "1"]) == 0
+    return out
+
+
+def test_rerun_does_nothing_and_is_fast(sessions, reference, capsys):
+    t0 = time.perf_counter()
+    results = run_sessions(discover([sessions]), reference, CFG, workers=2)
+    dt = time.perf_counter() - t0
+    assert all(r.status == "ok" and r.ran == [] for r in results), [(r.name, r.ran) for r in results]
+    assert [r.tracks for r in results] == [1, 2, 3, 1]  # the saved summary, not recomputed
+    assert dt < 5.0, f"no-op rerun of 4 sessions took {dt:.2f} s"  # measured 0.05 s
+
+
+def test_new_calibration_reruns_triangulation_not_keypoints(tmp_path):
+    make_sessions(tmp_path / "in", 1, duration_s=1.0)
+    out = tmp_path / "out"
+    cfg = PipelineConfig(stages=("triangulate", "track"))
+    (first,) = run_sessions(discover([tmp_path / "in"]), out, cfg, workers=1)
+    assert first.ran == ["calibration", "keypoints", "triangulate", "track"]
+    rig_path = tmp_path / "in" / "syn_00" / "calib" / "rig.toml"
+    from calibrate.camera import CameraRig
+
+    rig = CameraRig.load(rig_path)  # a recalibration: every camera 1 cm off
+    cams = [type(c)(c.name, c.size_wh, c.K, c.dist, c.model, c.R, np.asarray(c.t) + [0.01, 0, 0])
+            for c in rig.cameras]
+    CameraRig(tuple(cams)).save(rig_path)
+    (second,) = run_sessions(discover([tmp_path / "in"]), out, cfg, workers=1)
+    assert second.status == "ok", second.message
+    assert second.ran == ["calibration", "triangulate", "track"]  # detections were up to date
+
+
+def test_killed_run_resumes_to_identical_outputs(sessions, reference, tmp_path):
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "pipeline.cli", str(sessions), "--out", str(out), "--stages", STAGES,
+           "--workers", "1"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    # kill while the second session is being processed
+    while time.time() < deadline and not (out / "syn" / "syn_01" / "triangulate" / "poses3d.npz").exists():
+        if proc.poll() is not None:
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    n_reports = len(list(out.rglob("report.html")))
+    assert n_reports < 4, "the run finished before it could be killed"
+    assert reprocess([str(sessions), "--out", str(out), "--stages", STAGES, "--workers", "1"]) == 0
+    summary = json.loads((out / "reprocess_summary.json").read_text())
+    assert [s["ran"] for s in summary][0] == []  # the session done before the kill was not redone
+    got, want = _outputs(out), _outputs(reference)
+    assert sorted(got) == sorted(want)
+    assert [k for k in want if got[k] != want[k]] == []
+
+
+def test_corrupt_session_fails_alone(sessions, tmp_path, capsys):
+    import shutil
+
+    src = tmp_path / "in"
+    shutil.copytree(sessions, src)
+    (src / "syn_02" / "keypoints" / "cam01.npz").write_bytes(b"PK\x03\x04 this is not a zip archive")
+    rc = reprocess([str(src), "--out", str(tmp_path / "out"), "--stages", STAGES, "--workers", "1"])
+    assert rc == 1
+    summary = {s["name"]: s for s in json.loads((tmp_path / "out" / "reprocess_summary.json").read_text())}
+    bad = summary.pop("in/syn_02")
+    assert bad["status"] == "failed" and bad["failed_stage"] == "triangulate"
+    assert "cam01.npz" in bad["message"], bad["message"]
+    assert all(s["status"] == "ok" and s["tracks"] > 0 for s in summary.values())
+    err = capsys.readouterr().err
+    assert "FAILED in/syn_02" in err
+
+
+def test_disk_full_keeps_finished_stages(tmp_path, monkeypatch):
+    from pipeline import runner
+
+    make_sessions(tmp_path / "in", 1, duration_s=1.0)
+    out = tmp_path / "out"
+    real = runner._PLANNERS["track"]
+
+    def full_disk(*a):
+        plan = real(*a)
+
+        def run(warnings):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        return runner.StagePlan(plan.name, plan.inputs, plan.outputs, plan.config, run, plan.model_sha256)
+
+    monkeypatch.setitem(runner._PLANNERS, "track", full_disk)
+    (r,) = run_sessions(discover([tmp_path / "in"]), out, CFG, workers=1)
+    assert r.status == "failed" and r.failed_stage == "track"
+    assert "disk is full" in r.message and "Free space" in r.message and "triangulate" in r.message
+    poses = out / "in" / "syn_00" / "triangulate" / "poses3d.npz"
+    assert poses.exists()
+    monkeypatch.setitem(runner._PLANNERS, "track", real)
+    (r2,) = run_sessions(discover([tmp_path / "in"]), out, CFG, workers=1)
+    assert r2.status == "ok" and r2.ran == ["track", "forecast", "report"]
+
+
+def test_newer_schema_and_missing_calibration_are_reported(sessions, tmp_path):
+    import shutil
+
+    src = tmp_path / "in"
+    shutil.copytree(sessions / "syn_00", src / "newer")
+    shutil.copytree(sessions / "syn_01", src / "nocalib")
+    shutil.copytree(sessions / "syn_03", src / "good")
+    toml = src / "newer" / "session.toml"
+    toml.write_text(toml.read_text().replace('schema = "session/1"', 'schema = "session/7"'))
+    (src / "nocalib" / "calib" / "rig.toml").unlink()
+    results = {r.name: r for r in run_sessions(discover([src]), tmp_path / "out", CFG, workers=1)}
+    assert results["in/good"].status == "ok"
+    assert results["in/newer"].status == "failed" and "version 7" in results["in/newer"].message
+    assert "Upgrade roomcap" in results["in/newer"].message
+    assert results["in/nocalib"].status == "failed" and "no calibration" in results["in/nocalib"].message
+
+
+def test_local_and_ray_executors_give_identical_outputs(sessions, reference, tmp_path):
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        results = run_sessions(discover([sessions])[:2], tmp_path / "ray", CFG, executor="ray", workers=2)
+    finally:
+        ray.shutdown()
+    assert all(r.status == "ok" for r in results), [r.message for r in results]
+    got = _outputs(tmp_path / "ray")
+    want = {k: v for k, v in _outputs(reference).items() if k.split("/")[1] in ("syn_00", "syn_01")}
+    assert sorted(got) == sorted(want)
+    assert [k for k in want if got[k] != want[k]] == []
