@@ -37,6 +37,7 @@ from track.priors import (  # noqa: F401 - re-exported
     check_batch,
     concat_states,
     gather_state,
+    normal_noise,
 )
 
 log = logging.getLogger(__name__)
@@ -102,7 +103,9 @@ class GRUPrior:
         self.model_fps, self.fps, self.skeleton = float(model_fps), float(fps), skeleton
         self.dropout = model.dropout if dropout is None else float(dropout)
         self.sigma_m = float(sigma_m)
-        self.generator = torch.Generator().manual_seed(seed)
+        from scipy.special import ndtri
+
+        self._threshold = float(ndtri(self.dropout)) if 0 < self.dropout < 1 else -np.inf
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_CHECKPOINT, fps: float = 25.0, skeleton: Skeleton = CANONICAL,
@@ -120,16 +123,17 @@ class GRUPrior:
         B, H = len(x), self.model.hidden
         with torch.no_grad():
             mask = None
-            if self.dropout > 0:
+            if self.dropout > 0:  # MC dropout: keep with probability 1-p (a normal above its p-quantile)
                 keep = 1.0 - self.dropout
-                mask = torch.empty(B, H).bernoulli_(keep, generator=self.generator).div_(keep)
+                m = (normal_noise(rng, (B, H), 1.0) > self._threshold).astype(np.float32) * np.float32(1 / keep)
+                mask = torch.from_numpy(m)
             delta, h = self.model.step(torch.from_numpy(np.ascontiguousarray(x_hat, np.float32)),
                                        torch.from_numpy(np.ascontiguousarray(v_hat, np.float32)),
                                        torch.from_numpy(state["h"]), mask)
         delta = delta.numpy().reshape(B, -1, 3) * (self.model_fps / self.fps)
         new = x + unrotate_vectors(delta, theta)
         if self.sigma_m > 0:
-            new = new + rng.normal(0.0, self.sigma_m, new.shape).astype(np.float32)
+            new = new + normal_noise(rng, new.shape, self.sigma_m)
         return new.astype(np.float32), {"prev": x, "h": h.numpy()}
 
 

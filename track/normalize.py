@@ -50,25 +50,32 @@ def hip_frame(x: np.ndarray, skeleton: Skeleton = CANONICAL) -> tuple[np.ndarray
     return origin, theta
 
 
+def _rot(v: np.ndarray, theta: np.ndarray, sign: float) -> np.ndarray:
+    """R(theta) v (sign=+1) or R(theta)^T v (sign=-1) for v (...,J,3), theta (...,), without matrices."""
+    c = np.cos(theta).astype(v.dtype, copy=False)[..., None]
+    s = (sign * np.sin(theta)).astype(v.dtype, copy=False)[..., None]
+    out = np.empty_like(v)
+    out[..., 0] = c * v[..., 0] + s * v[..., 1]
+    out[..., 1] = c * v[..., 1] - s * v[..., 0]
+    out[..., 2] = v[..., 2]
+    return out
+
+
 def normalize(x: np.ndarray, origin: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Eq. 5.2. x: (...,J,3), origin: (...,3), theta: (...,) -> (...,J,3)."""
-    R = rotation_z(theta).astype(x.dtype, copy=False)
-    return np.einsum("...ab,...jb->...ja", R, x - origin[..., None, :])
+    return _rot(x - origin[..., None, :].astype(x.dtype, copy=False), theta, 1.0)
 
 
 def denormalize(x_hat: np.ndarray, origin: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Eq. 5.5, the inverse of :func:`normalize`."""
-    R = rotation_z(theta).astype(x_hat.dtype, copy=False)
-    return np.einsum("...ba,...jb->...ja", R, x_hat) + origin[..., None, :]
+    return _rot(x_hat, theta, -1.0) + origin[..., None, :].astype(x_hat.dtype, copy=False)
 
 
 def rotate_vectors(v: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Apply R(theta) of eq. 5.3 to vectors (no translation). v: (...,J,3), theta: (...,)."""
-    R = rotation_z(theta).astype(v.dtype, copy=False)
-    return np.einsum("...ab,...jb->...ja", R, v)
+    return _rot(v, theta, 1.0)
 
 
 def unrotate_vectors(v: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Apply R(theta)^T to vectors (no translation)."""
-    R = rotation_z(theta).astype(v.dtype, copy=False)
-    return np.einsum("...ba,...jb->...ja", R, v)
+    return _rot(v, theta, -1.0)

@@ -29,6 +29,8 @@ import itertools
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from track.priors import normal_noise
+
 
 def camera_pairs(n_cams: int) -> np.ndarray:
     """All camera pairs (V,2); a single camera is its own 'pair' (1,2) = [[0,0]]."""
@@ -177,17 +179,6 @@ def resample_pairs(log_phi_v: np.ndarray, rng: np.random.Generator) -> np.ndarra
     return stochastic_universal_indices(w, counts, rng).reshape(K, N)
 
 
-_BANK: dict[int, np.ndarray] = {}
-
-
-def _normal_bank(seed: int = 12345, size: int = 1 << 21) -> np.ndarray:
-    """A fixed block of standard normals; refinement draws contiguous slices at random offsets (drawing
-    fresh normals costs more than the rest of the refinement)."""
-    if seed not in _BANK:
-        _BANK[seed] = np.random.default_rng(seed).standard_normal(size, dtype=np.float32)
-    return _BANK[seed]
-
-
 def refine_scales(n_candidates: int, sigma_m: float) -> np.ndarray:
     """Spread of each refinement candidate (M,): 0 for the current position, then sigma_m * (1/2, 1, 2, 4, ...)
     cycling, so the search covers small corrections and fast motion alike."""
@@ -235,14 +226,7 @@ def refine_joints(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.
     if M <= 1 or K == 0:
         return X
     C = len(centers)
-    bank = _normal_bank()
-    n = K * J * 3 * N * M
-    if n > len(bank):
-        e = rng.standard_normal(n, dtype=np.float32)
-    else:
-        start = int(rng.integers(0, len(bank) - n + 1))
-        e = bank[start:start + n]
-    e = e.reshape(K, J, 3, N, M) * refine_scales(M, sigma_refine_m)
+    e = normal_noise(rng, (K, J, 3, N, M), 1.0) * refine_scales(M, sigma_refine_m)
     G = min(int(n_guided), M - 1)
     if G > 0:
         e[..., M - G:] *= np.float32(0.25)  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average

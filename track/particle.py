@@ -45,7 +45,7 @@ from track.priors import (
     concat_states,
     gather_state,
 )
-from track.trackfile import OBSERVED, PREDICTED
+from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,8 @@ class ParticleConfig:
       reid_dist_m + reid_speed_mps * gap of the predicted one and the mean bone-length difference is
       below reid_bone_tol_m, for gaps up to reid_max_gap_s.
     min_track_s: shorter tracks are dropped from the output; trim_coast: frames after a track's last
-      evidence are dropped when it ends (offline output).
+      evidence are dropped when it ends (offline output); smooth_sigma_frames: offline NaN-aware Gaussian
+      smoothing of the output in time (0 = off), as the seed's evaluation does (sec. 5.3.1, from ch. 4).
     seed: random seed.
     """
 
@@ -93,7 +94,7 @@ class ParticleConfig:
     gru_sigma_m: float = 0.003
     resample: bool = True
     refine: bool = True
-    refine_candidates: int = 8
+    refine_candidates: int = 6
     refine_sigma_m: float = 0.03
     refine_guided: int = 3
     obs_sigma_m: float = 0.05
@@ -116,6 +117,7 @@ class ParticleConfig:
     reid_bone_tol_m: float = 0.05
     min_track_s: float = 0.2
     trim_coast: bool = True
+    smooth_sigma_frames: float = 2.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -501,6 +503,27 @@ class TrackArrays:
     time_s: np.ndarray  # (T,) seconds spent in step() per frame
 
 
+def smooth_time(x: np.ndarray, sigma: float) -> np.ndarray:
+    """NaN-aware Gaussian smoothing along axis 0 (normalised convolution); NaN stays NaN. x: (T,...,3)."""
+    T = len(x)
+    if sigma <= 0 or T < 2:
+        return x
+    r = int(np.ceil(3 * sigma))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma)**2)
+    ok = np.isfinite(x).all(-1, keepdims=True)
+    v = np.where(ok, x, 0.0).astype(np.float64)
+    w = ok.astype(np.float64)
+    num = np.zeros_like(v)
+    den = np.zeros_like(w)
+    for i, kv in enumerate(k):  # loop over the kernel taps only
+        s = i - r
+        lo, hi = max(0, -s), min(T, T - s)
+        num[lo:hi] += kv * v[lo + s:hi + s]
+        den[lo:hi] += kv * w[lo + s:hi + s]
+    out = num / np.maximum(den, 1e-12)
+    return np.where(ok, out, np.nan).astype(x.dtype)
+
+
 def track_sequence(tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, frames: np.ndarray | None = None,
                    progress=None) -> TrackArrays:
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
@@ -551,6 +574,10 @@ def track_sequence(tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, fra
                 ev = np.flatnonzero(seen[s:t, k])
                 cut = s + (ev[-1] + 1 if len(ev) else 0)
                 xyz[cut:t, k], std[cut:t, k], conf[cut:t, k], flags[cut:t, k] = np.nan, np.nan, 0, 0
+    if cfg.smooth_sigma_frames > 0:
+        known = np.isfinite(xyz).all(-1)
+        xyz = smooth_time(xyz, cfg.smooth_sigma_frames)
+        flags = np.where(known, flags | SMOOTHED, flags).astype(np.uint8)
     keep = seen.sum(0) >= max(1, int(round(cfg.min_track_s * tracker.fps)))
     return TrackArrays(np.asarray(ids, np.int64)[keep], xyz[:, keep], std[:, keep], conf[:, keep],
                        flags[:, keep], nv[:, keep], times)

@@ -68,10 +68,11 @@ def make_batch(w: np.ndarray, noise_m: float, rng: np.random.Generator) -> tuple
             torch.from_numpy(np.ascontiguousarray(target)))
 
 
-def evaluate(model: PoseGRU, w: np.ndarray) -> dict[str, float]:
-    """Held-out one-step MPJPE (m, averaged over joints, last half of each window) for GRU, CV, ZV."""
+def evaluate(model: PoseGRU, w: np.ndarray, noise_m: float = 0.0) -> dict[str, float]:
+    """Held-out one-step MPJPE (m, averaged over joints, last half of each window) for GRU, CV, ZV, with
+    inputs perturbed by ``noise_m`` (particles are noisy poses)."""
     model.eval()
-    x_hat, v_hat, target = make_batch(w, 0.0, np.random.default_rng(0))
+    x_hat, v_hat, target = make_batch(w, noise_m, np.random.default_rng(0))
     with torch.no_grad():
         pred = model.forward_sequence(x_hat, v_hat)
     T = pred.shape[1]
@@ -119,6 +120,7 @@ def train(fps: float = 25.0, hidden: int = 128, dropout: float = 0.5, steps: int
         if step % 500 == 0:
             log.info("step %d loss %.6f", step, float(loss))
     metrics = evaluate(model, w_va)
+    metrics.update({f"noisy_{k}": v for k, v in evaluate(model, w_va, 0.01).items()})
     info = {"fps": fps, "hidden": hidden, "dropout": dropout, "steps": steps, "batch": batch, "length": length,
             "lr": lr, "noise_m": noise_m, "seed": seed, "n_train_windows": int(len(w_tr)),
             "n_val_windows": int(len(w_va)), "train_s": time.perf_counter() - t0,
