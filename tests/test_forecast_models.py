@@ -188,3 +188,19 @@ def test_preview_and_cli_on_track_files(tmp_path):
         == 0
     )
     assert np.load(tmp_path / "fc.npz")["schema"] == "forecast/1"
+
+
+def test_shipped_configs_and_checkpoint_load():
+    from pathlib import Path
+
+    from capture.fileio import load_toml
+
+    root = Path(T.__file__).parent
+    for kind in T.CONFIGS:
+        cfg = T.config_from_dict(kind, load_toml(root / "configs" / f"{kind}.toml")[kind])
+        assert cfg == T.CONFIGS[kind]()  # the TOML mirrors the dataclass defaults
+    ck = root / "checkpoints" / "gru_cmu.pt"
+    if ck.exists():
+        assert ck.stat().st_size < 2_000_000
+        model, meta = T.load_checkpoint(ck, skeleton="body19")
+        assert meta["kind"] == "gru" and meta["fps"] == 25.0

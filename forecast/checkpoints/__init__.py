@@ -1,0 +1,1 @@
+"""Small trained forecasting checkpoints shipped with the package (see forecast/preview.py)."""

@@ -1,0 +1,1 @@
+"""Small per-model training configurations (TOML)."""
