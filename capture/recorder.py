@@ -83,6 +83,7 @@ class SegmentWriter:
         self._rows: list[str] = []
         self._seg_t0 = 0
         self._shape = None
+        self._closed: list[str] = []
         if not self.frames_csv.exists():
             atomic_write_text(self.frames_csv, CSV_HEADER)
 
@@ -148,6 +149,8 @@ class SegmentWriter:
         rows = "".join(self._rows)
         atomic_write_text(self._final.with_suffix(".frames.csv"), CSV_HEADER + rows)
         os.replace(self._part, self._final)
+        self._closed.append(self._final.name)
+        write_ffconcat(self.dir, self._closed)
         with open(self.frames_csv, "a") as f:
             f.write(rows)
             f.flush()
@@ -159,6 +162,19 @@ class SegmentWriter:
 
     def close(self) -> None:
         self.close_segment()
+
+
+FFCONCAT = "index.ffconcat"
+
+
+def write_ffconcat(cam_dir: Path, segments: list[str]) -> None:
+    """``raw/<cam>/index.ffconcat``: the closed segments as one video for FFmpeg/OpenCV.
+
+    ``cv2.VideoCapture(str(cam_dir / "index.ffconcat"))`` decodes every segment in order.
+    """
+    atomic_write_text(
+        Path(cam_dir) / FFCONCAT, "ffconcat version 1.0\n" + "".join(f"file {n}\n" for n in segments)
+    )
 
 
 def _is_keyframe(frame: Frame) -> bool:
@@ -502,7 +518,7 @@ def repair_session(root: str | os.PathLike) -> dict[str, int]:
     for cam_dir in sorted(p for p in layout.raw_dir.iterdir() if p.is_dir()):
         for part in cam_dir.glob(f"{_PART_PREFIX}*"):
             part.unlink()
-        rows = []
+        rows, names = [], []
         for seg_csv in sorted(cam_dir.glob("seg_*.frames.csv")):
             video = [p for p in cam_dir.glob(seg_csv.name.replace(".frames.csv", ".*")) if p != seg_csv]
             if not video:
@@ -510,6 +526,8 @@ def repair_session(root: str | os.PathLike) -> dict[str, int]:
                 continue
             tab = read_frames_csv(seg_csv)
             rows.append(tab)
+            names.append(video[0].name)
+        write_ffconcat(cam_dir, names)
         tab = np.concatenate(rows) if rows else np.zeros((0, 4), np.int64)
         tab[:, 0] = np.arange(len(tab))
         atomic_write_text(

@@ -423,6 +423,8 @@ class Recording:
         import cv2
 
         self.path = Path(path)
+        if self.path.suffix == ".ffconcat":  # the recorder's index of a segment folder
+            self.path = self.path.parent
         if self.path.is_dir():
             self.files = _segments(self.path)
             if not self.files:

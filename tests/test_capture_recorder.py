@@ -73,9 +73,14 @@ def test_record_synthetic_and_file_replay(tmp_path):
     assert (
         40 <= len(read_frames_csv(out / "raw" / "syn1.frames.csv")) <= 54
     )  # 1.5 s at 30 fps (measured 45-49)
-    # the recording reads back through the helper the keypoints stage uses
+    # the recording reads back through the helper, and as one video through OpenCV (ffconcat index)
     rec = open_recording(SessionLayout(out).video("syn1"))
     assert len(rec) == len(list(rec))
+    cap = cv2.VideoCapture(str(out / "raw" / "syn1" / "index.ffconcat"))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == len(rec)
     t = meta["timing"]
     assert abs(t["cameras"]["syn2"]["fps_measured"] - 30) < 0.5
 
@@ -192,6 +197,8 @@ def test_kill_9_leaves_readable_videos_that_match_their_timestamps(tmp_path):
         imgs = _decode_segments(out / "raw" / cam)
         assert len(imgs) == len(tab) > 0
         assert [read_code(i) for i in imgs] == list(tab[:, 3])
+        listed = (out / "raw" / cam / "index.ffconcat").read_text().split()[3::2]
+        assert listed == sorted(p.name for p in (out / "raw" / cam).glob("seg_*.*") if "frames" not in p.name)
         lost_s = (t_kill_ns - tab[-1, 2]) / 1e9
         assert lost_s < 1.0  # segments of 0.5 s: measured 0.3-0.6 s lost
     counts = repair_session(out)
