@@ -30,6 +30,7 @@ def test_tracker_keeps_identities_through_gaps_and_shuffles(rng):
     X[order] = X[order][:, ::-1]
     X[20:24, 0] = np.nan  # both poses missing for 4 frames in slot 0
     X[30:33, :, 9] = np.nan  # a wrist missing for 3 frames
+    X[40:46, 1] = X[40:46, 1][:, CANONICAL.flip_index]  # mirrored (left/right swapped) 3D poses
     tf = track_poses(X, np.arange(60), np.arange(60) * 40_000_000, 25.0, CANONICAL.joint_names,
                      np.asarray(CANONICAL.parents), config=TrackerConfig(sigma=2.0))
     assert tf.n_tracks == 2
@@ -38,6 +39,7 @@ def test_tracker_keeps_identities_through_gaps_and_shuffles(rng):
     assert mot.idf1 > 0.95
     assert (tf.flags & INTERPOLATED).any() and (tf.flags[tf.mask] & SMOOTHED).all()
     assert (tf.flags & OBSERVED).sum() < tf.mask.sum()
+    assert ev.pcp(gt, tf.xyz_m.astype(np.float64)).actor_average == 1.0  # mirrored poses swapped back
     # smoothing reduces the 10 mm noise
     e_raw = ev.mpjpe(gt, X)["mpjpe_m"]
     assert ev.mpjpe(gt, tf.xyz_m.astype(np.float64))["mpjpe_m"] < 0.7 * e_raw  # measured 9 vs 16 mm

@@ -119,6 +119,11 @@ class FrameReconstructor:
         """Sec. 4.2.1 leaves a person split over two hypotheses when one view did not join; merge them."""
         X = np.where(res["keep"][..., None], res["xyz_m"], np.nan)
         D = mean_joint_distance(X, X)
+        mirror = np.zeros(D.shape, bool)
+        if self.flip is not None:  # the same person with left/right swapped (a mirrored hypothesis)
+            Dm = mean_joint_distance(X, X[:, self.flip])
+            mirror = Dm < D
+            D = np.minimum(D, Dm)
         D[np.arange(len(D)), np.arange(len(D))] = np.inf
         a_idx, b_idx = np.nonzero(np.triu(D < self.config.merge_dist_m, 1))
         if len(a_idx) == 0:
@@ -132,7 +137,7 @@ class FrameReconstructor:
                 continue
             ca, cb = H[a] >= 0, H[b] >= 0
             if not (ca & cb).any():
-                H[a, cb], S[a, cb] = H[b, cb], S[b, cb]
+                H[a, cb], S[a, cb] = H[b, cb], S[b, cb] ^ mirror[a, b]
                 alive[b], changed[a] = False, True
             else:
                 alive[b if views[b] < views[a] else a] = False

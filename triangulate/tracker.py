@@ -21,6 +21,7 @@ from scipy.optimize import linear_sum_assignment
 
 from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 from triangulate.dlt import _reject_unknown
+from triangulate.reconstruct import flip_index
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,8 @@ class TrackerConfig:
     each track's last pose moved by the track's mean-joint velocity (False = the seed's last pose);
     occlusion_fill: longer gaps of a joint (up to this many frames, 0 = off) are filled kinematically:
     the joint keeps its offset from its parent joint, interpolated between the frames around the
-    gap (held at the track's ends); flagged PREDICTED, std = the parent's + 5 cm."""
+    gap (held at the track's ends); flagged PREDICTED, std = the parent's + 5 cm;
+    fix_mirrored: a pose whose left/right-swapped version fits the track better joins swapped."""
 
     tau_m: float = 0.2
     max_gap: int = 10
@@ -42,6 +44,7 @@ class TrackerConfig:
     min_joints: int = 5
     constant_velocity: bool = True
     occlusion_fill: int = 50
+    fix_mirrored: bool = True
 
     def __post_init__(self) -> None:
         if self.tau_m <= 0 or self.max_gap < 0 or self.sigma < 0:
@@ -69,9 +72,18 @@ def pose_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0) -> np.ndarray:
     """Greedy tracking. xyz_m: (T,P,J,3) per-frame poses (NaN padding). Returns track index (T,P) or -1."""
+    return associate_mirrored(xyz_m, config, fps, None)[0]
+
+
+def associate_mirrored(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0,
+                       flip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`associate`, and with ``flip`` (J,) (left/right joint permutation) a pose may also join a
+    track mirrored, when its left/right-swapped version is closer (a hypothesis whose views were
+    mostly flipped in 2D triangulates to a mirrored person). Returns assign (T,P) and mirrored (T,P)."""
     cfg = config or TrackerConfig()
     T, P = xyz_m.shape[:2]
     out = np.full((T, P), -1, dtype=np.int64)
+    mirrored = np.zeros((T, P), bool)
     last_pose: list[np.ndarray] = []
     last_t: list[int] = []
     last_v: list[np.ndarray] = []  # (3,) mean-joint velocity per frame
@@ -84,6 +96,11 @@ def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float
         if alive:
             pred = np.stack([last_pose[k] + (t - last_t[k]) * last_v[k] for k in alive])
             cost = pose_distance(pred, xyz_m[t, ok])
+            mir = np.zeros(cost.shape, bool)
+            if flip is not None:
+                cost_m = pose_distance(pred, xyz_m[t, ok][:, flip])
+                mir = cost_m < cost
+                cost = np.minimum(cost, cost_m)
             gap_s = (t - np.asarray([last_t[k] for k in alive]) - 1) / fps
             limit = cfg.tau_m + cfg.max_speed_m_s * gap_s
             # gate before the assignment: a pair above the limit must not pull a valid pair apart
@@ -94,6 +111,9 @@ def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float
                     out[t, ok[c]] = k
                     # keep joints the track had but this frame lacks, so the next cost has them
                     pose = xyz_m[t, ok[c]].copy()
+                    if mir[r, c]:
+                        pose = pose[flip]
+                        mirrored[t, ok[c]] = True
                     miss = ~np.isfinite(pose).all(-1)
                     if cfg.constant_velocity:
                         both = ~miss & np.isfinite(last_pose[k]).all(-1)
@@ -108,7 +128,7 @@ def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float
             last_pose.append(xyz_m[t, ok[c]].copy())
             last_t.append(t)
             last_v.append(np.zeros(3))
-    return out
+    return out, mirrored
 
 
 def _interp_gaps(x: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
@@ -189,7 +209,8 @@ def _kinematic_fill(X: np.ndarray, parents: np.ndarray, max_fill: int) -> np.nda
 
 def build_tracks(xyz_m: np.ndarray, assign: np.ndarray, confidence: np.ndarray | None = None,
                  std_m: np.ndarray | None = None, config: TrackerConfig | None = None,
-                 parents: np.ndarray | None = None
+                 parents: np.ndarray | None = None, mirrored: np.ndarray | None = None,
+                 flip: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Dense tracks from per-frame poses and assignments, with gap filling and smoothing.
 
@@ -200,6 +221,11 @@ def build_tracks(xyz_m: np.ndarray, assign: np.ndarray, confidence: np.ndarray |
     T, P, J = xyz_m.shape[:3]
     conf = np.ones((T, P, J)) if confidence is None else confidence
     std = np.full((T, P, J), np.nan) if std_m is None else std_m
+    if mirrored is not None and flip is not None and mirrored.any():
+        xyz_m, conf, std = xyz_m.copy(), np.array(conf, copy=True), np.array(std, copy=True)
+        xyz_m[mirrored] = xyz_m[mirrored][:, flip]
+        conf[mirrored] = conf[mirrored][:, flip]
+        std[mirrored] = std[mirrored][:, flip]
     ids = np.unique(assign[assign >= 0])
     counts = np.array([(assign == k).any(1).sum() for k in ids], dtype=np.int64)
     ids = ids[counts >= cfg.min_track_frames]
@@ -247,8 +273,9 @@ def track_poses(xyz_m: np.ndarray, frame_index: np.ndarray, t_ns: np.ndarray, fp
                 ) -> TrackFile:
     """Per-frame poses (T,P,J,3) -> :class:`TrackFile` (track ids 0..K-1 by first appearance)."""
     cfg = config or TrackerConfig()
-    assign = associate(xyz_m, cfg, fps)
-    ids, X, Cf, S, Fl = build_tracks(xyz_m, assign, confidence, std_m, cfg, parents)
+    flip = flip_index(joint_names) if cfg.fix_mirrored else None
+    assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip)
+    ids, X, Cf, S, Fl = build_tracks(xyz_m, assign, confidence, std_m, cfg, parents, mirrored, flip)
     return TrackFile(fps=fps, frame_index=frame_index, t_ns=t_ns, track_id=np.arange(len(ids)),
                      joint_names=joint_names, parents=parents, xyz_m=X, confidence=np.clip(Cf, 0, 1), std_m=S,
                      flags=Fl, calibration_sha256=calibration_sha256, source=source)
