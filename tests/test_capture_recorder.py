@@ -197,7 +197,7 @@ def test_kill_9_leaves_readable_videos_that_match_their_timestamps(tmp_path):
         imgs = _decode_segments(out / "raw" / cam)
         assert len(imgs) == len(tab) > 0
         assert [read_code(i) for i in imgs] == list(tab[:, 3])
-        listed = (out / "raw" / cam / "index.ffconcat").read_text().split()[3::2]
+        listed = (out / "raw" / cam / "index.ffconcat").read_text().split()[4::2]
         assert listed == sorted(p.name for p in (out / "raw" / cam).glob("seg_*.*") if "frames" not in p.name)
         lost_s = (t_kill_ns - tab[-1, 2]) / 1e9
         assert lost_s < 1.0  # segments of 0.5 s: measured 0.3-0.6 s lost
