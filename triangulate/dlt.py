@@ -13,6 +13,7 @@ from the Gauss-Newton covariance ``sigma^2 (J^T J)^-1``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -199,6 +200,17 @@ LIMB_BOUNDS_M = {
 }
 
 
+def _pairs(joint_names: tuple[str, ...], bounds: dict):
+    idx = {n: i for i, n in enumerate(joint_names)}
+    pairs = [(idx[a], idx[b], lo, hi) for (a, b), (lo, hi) in bounds.items() if a in idx and b in idx]
+    return tuple(np.asarray(v) for v in zip(*pairs, strict=True)) if pairs else None
+
+
+@functools.cache
+def _limb_pairs(joint_names: tuple[str, ...]):
+    return _pairs(joint_names, LIMB_BOUNDS_M)
+
+
 def limb_check(xyz_m: np.ndarray, reproj_err_px: np.ndarray, joint_names: tuple[str, ...],
                bounds: dict | None = None) -> np.ndarray:
     """Plausibility of limb lengths. xyz_m: (M,J,3); reproj_err_px: (M,J).
@@ -206,13 +218,11 @@ def limb_check(xyz_m: np.ndarray, reproj_err_px: np.ndarray, joint_names: tuple[
     For each limb outside its bounds the endpoint with the larger reprojection error is marked.
     Returns a (M,J) bool mask of joints to keep.
     """
-    bounds = LIMB_BOUNDS_M if bounds is None else bounds
-    idx = {n: i for i, n in enumerate(joint_names)}
-    pairs = [(idx[a], idx[b], lo, hi) for (a, b), (lo, hi) in bounds.items() if a in idx and b in idx]
     keep = np.ones(xyz_m.shape[:2], bool)
-    if not pairs:
+    pairs = _limb_pairs(tuple(joint_names)) if bounds is None else _pairs(tuple(joint_names), bounds)
+    if pairs is None:
         return keep
-    a, b, lo, hi = (np.asarray(v) for v in zip(*pairs, strict=True))
+    a, b, lo, hi = pairs
     length = np.linalg.norm(xyz_m[:, a] - xyz_m[:, b], axis=-1)  # (M,L)
     bad = np.isfinite(length) & ((length < lo) | (length > hi))
     if bad.any():
