@@ -86,7 +86,7 @@ def evaluate(model: PoseGRU, w: np.ndarray, noise_m: float = 0.0) -> dict[str, f
     return out
 
 
-def train(fps: float = 25.0, hidden: int = 128, dropout: float = 0.5, steps: int = 3000, batch: int = 64,
+def train(fps: float = 25.0, hidden: int = 64, dropout: float = 0.5, steps: int = 3000, batch: int = 64,
           length: int = 32, lr: float = 1e-3, noise_m: float = 0.005, seed: int = 0, val_suffix: str = "1",
           mocap: str | None = None, progress: bool = False) -> tuple[PoseGRU, dict]:
     torch.manual_seed(seed)
@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="track/checkpoints/motion_gru.pt")
     ap.add_argument("--fps", type=float, default=25.0)
-    ap.add_argument("--hidden", type=int, default=128)
+    ap.add_argument("--hidden", type=int, default=64)
     ap.add_argument("--dropout", type=float, default=0.5)
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--batch", type=int, default=64)
