@@ -72,8 +72,10 @@ def test_new_calibration_reruns_triangulation_not_keypoints(tmp_path):
     from calibrate.camera import CameraRig
 
     rig = CameraRig.load(rig_path)  # a recalibration: every camera 1 cm off
-    cams = [type(c)(c.name, c.size_wh, c.K, c.dist, c.model, c.R, np.asarray(c.t) + [0.01, 0, 0])
-            for c in rig.cameras]
+    cams = [
+        type(c)(c.name, c.size_wh, c.K, c.dist, c.model, c.R, np.asarray(c.t) + [0.01, 0, 0])
+        for c in rig.cameras
+    ]
     CameraRig(tuple(cams)).save(rig_path)
     (second,) = run_sessions(discover([tmp_path / "in"]), out, cfg, workers=1)
     assert second.status == "ok", second.message
@@ -82,8 +84,18 @@ def test_new_calibration_reruns_triangulation_not_keypoints(tmp_path):
 
 def test_killed_run_resumes_to_identical_outputs(sessions, reference, tmp_path):
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "pipeline.cli", str(sessions), "--out", str(out), "--stages", STAGES,
-           "--workers", "1"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pipeline.cli",
+        str(sessions),
+        "--out",
+        str(out),
+        "--stages",
+        STAGES,
+        "--workers",
+        "1",
+    ]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     # kill while the second session is being processed
