@@ -65,10 +65,10 @@ class Board:
     grid: tuple[int, int]
     square_size_m: float
     marker_size_m: float = 0.0
-    marker_separation_m: float = 0.0
     dictionary: str = "DICT_4X4_50"
     legacy_pattern: bool = False
     inverted: bool = False
+    marker_separation_m: float = 0.0
     name: str = ""
     _cache: dict = field(default_factory=dict, repr=False, compare=False, hash=False)
 
@@ -79,6 +79,13 @@ class Board:
         if len(g) != 2 or min(g) < 2:
             raise ValueError(f"board grid must be two integers >= 2, got {self.grid!r}")
         object.__setattr__(self, "grid", g)
+        for k in ("square_size_m", "marker_size_m", "marker_separation_m"):
+            v = getattr(self, k)
+            if isinstance(v, (str, bytes)) or not np.isfinite(float(v)):
+                raise ValueError(f"board {k} must be a number (metres), got {v!r}")
+            object.__setattr__(self, k, float(v))
+        if not isinstance(self.dictionary, str):
+            raise ValueError(f"board dictionary must be a name such as 'DICT_4X4_50', got {self.dictionary!r}")
         if self.kind == "charuco" and min(g) < 3:
             raise ValueError(f"a ChArUco board needs at least 3x3 squares, got {g}")
         if self.kind in ("charuco", "checkerboard") and not self.square_size_m > 0:
@@ -167,15 +174,20 @@ class Board:
                                      value=0 if self.inverted else 255)
         return img
 
-    def render_offset_px(self, px_per_m: float) -> float:
-        """Offset in rendered pixels of board point (0,0) from the image origin (checkerboard: one square)."""
-        return self.square_size_m * px_per_m if self.kind == "checkerboard" else 0.0
+    def image_origin_m(self) -> float:
+        """Board coordinate (x = y) of the top-left edge of ``render()`` (checkerboard: one square before
+        the first inner corner; others: 0)."""
+        return -self.square_size_m if self.kind == "checkerboard" else 0.0
 
     # ---- identity
 
     def detection_key(self) -> str:
         """Hash of what changes detected pixels and ids (not the physical sizes): used to key the cache."""
-        d = {"kind": self.kind, "grid": list(self.grid), "dictionary": self.dictionary if self.uses_markers else "",
+        # dictionaries of one family (DICT_5X5_50/100/250/1000) share their first markers, and a board uses
+        # markers 0..n-1: detections do not depend on which one of the family is named
+        fam = self.dictionary.rsplit("_", 1)
+        dict_key = fam[0] if len(fam) == 2 and fam[1].isdigit() else self.dictionary
+        d = {"kind": self.kind, "grid": list(self.grid), "dictionary": dict_key if self.uses_markers else "",
              "legacy": bool(self.legacy_pattern) and self.kind == "charuco", "inverted": bool(self.inverted)}
         if self.kind == "charuco":
             d["ratio"] = round(self.marker_size_m / self.square_size_m, 6)
@@ -187,7 +199,7 @@ class Board:
             d["name"] = self.name
         key = {"charuco": "squares", "checkerboard": "inner_corners", "aruco_grid": "markers"}[self.kind]
         d[key] = list(self.grid)
-        if self.kind != "aruco_grid":
+        if self.square_size_m > 0:
             d["square_size_m"] = self.square_size_m
         if self.uses_markers:
             d["marker_size_m"] = self.marker_size_m

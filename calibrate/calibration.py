@@ -101,7 +101,7 @@ def calibrate_recording(recording: str | os.PathLike, board: Board | str | os.Pa
                       workers=cfg.workers or None, progress=_stage(progress, "detect"))
     timings["detect_s"] = time.perf_counter() - t0
     seen = {k: len(v.seen_frames()) for k, v in dets.items()}
-    if all(n < cfg.min_frames for n in seen.values()):
+    if all(n < 2 for n in seen.values()):  # nothing anywhere: the board file does not match the board
         diag = diagnose_board(board, sources)
         where = f"Edit {board_path}" if board_path else "Change the board"
         if diag.board is not None and diag.board.detection_key() != board.detection_key():

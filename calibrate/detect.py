@@ -135,6 +135,14 @@ def _charuco_detector(board: Board):
     return cv2.aruco.CharucoDetector(board.cv_board(), cp, params)
 
 
+def _aruco_detector(board: Board):
+    import cv2
+
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX  # marker corners are the points here
+    return cv2.aruco.ArucoDetector(board.cv_dictionary(), params)
+
+
 def detect_frame(board: Board, image: np.ndarray, min_points: int = 6, _det=None) -> np.ndarray:
     """Board points (N,2) in pixels in one image (H,W) or (H,W,3); NaN rows where not seen.
     Fewer than ``min_points`` points (or collinear ones) count as not seen (all NaN)."""
@@ -167,7 +175,7 @@ def detect_frame(board: Board, image: np.ndarray, min_points: int = 6, _det=None
             c = c[::-1]
         out[:] = c
     else:
-        det = _det or cv2.aruco.ArucoDetector(board.cv_dictionary(), cv2.aruco.DetectorParameters())
+        det = _det or _aruco_detector(board)
         corners, ids, _ = det.detectMarkers(g)
         if ids is None:
             return out
@@ -301,7 +309,7 @@ def detect_camera(board: Board, src: Source, max_frames: int = 1000, min_points:
     if board.kind == "aruco_grid":
         import cv2
 
-        det = cv2.aruco.ArucoDetector(board.cv_dictionary(), cv2.aruco.DetectorParameters())
+        det = _aruco_detector(board)
     frames, xys = [], []
     size = None
     n_read = 0
@@ -382,6 +390,13 @@ def detect_all(board: Board, sources: Sequence[Source], cache_dir: str | os.Path
 # ----------------------------------------------------------------------------- diagnosis
 
 
+_DICT_TIERS = (
+    ("DICT_4X4_50", "DICT_5X5_50", "DICT_6X6_50", "DICT_7X7_50", "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9",
+     "DICT_ARUCO_MIP_36h12"),
+    ("DICT_APRILTAG_36h11", "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_36h10"),
+)
+
+
 @dataclass(frozen=True)
 class Diagnosis:
     """Which board settings match the images. ``board`` is the suggested board (None if nothing matched)."""
@@ -455,38 +470,49 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
             return Diagnosis(b, "the images match " + b.describe() + " (change: " + ", ".join(
                 f"{k} = {getattr(b, k)!r}".replace("True", "true").replace("False", "false")
                 for k in ("inverted", "legacy_pattern") if getattr(b, k) != getattr(board, k)) + ")", {})
-    # 2) every predefined dictionary at once, on downscaled frames
+    # 2) the other dictionaries, on downscaled frames. Within a family (DICT_5X5_50/100/250/1000) the
+    # smaller dictionaries are the first markers of the larger ones, and boards number their markers
+    # from 0: trying the smallest of each family finds the family cheaply; the expensive families
+    # (36-bit AprilTag, ARUCO_ORIGINAL) only when the cheap ones find nothing.
     small = []
     for im in imgs:
         s = min(1.0, 960.0 / max(im.shape))
         small.append(cv2.resize(im, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else im)
     counts: dict[str, int] = {}
-    dicts = [cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, n)) for n in DICTIONARIES]
-    for inv in (False, True):
+    for tier in _DICT_TIERS:
+        for inv in (False, True):
+            for name in tier:
+                det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)),
+                                              cv2.aruco.DetectorParameters())
+                n = 0
+                for im in small:
+                    _, ids, _ = det.detectMarkers(255 - im if inv else im)
+                    n += 0 if ids is None else len(ids)
+                if n:
+                    counts[f"{name}|{inv}"] = n
+            if counts:
+                break
         if counts:
-            break  # found in normal colours: no need to look at inverted ones
-        params = cv2.aruco.DetectorParameters()
-        det = cv2.aruco.ArucoDetector(dicts[0], params)
-        det.setDictionaries(dicts)
-        for im in small:
-            # one candidate search for all dictionaries; dictIndices says which dictionary each marker is from
-            _, ids, _, dict_idx = det.detectMarkersMultiDict(255 - im if inv else im)
-            if ids is None or dict_idx is None:
-                continue
-            for di in np.asarray(dict_idx).ravel():
-                k = f"{DICTIONARIES[int(di)]}|{inv}"
-                counts[k] = counts.get(k, 0) + 1
+            break
     if not counts:
         return Diagnosis(None, f"no ArUco marker of any predefined dictionary was found in {len(imgs)} sample frames "
                          "(in normal or inverted colours): the board is not visible, out of focus or too small",
                          counts)
-    # smaller dictionaries are subsets of larger ones of the same bit size: prefer the declared one on ties
-    top = max(counts.values())
-    ranked = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0].split("|")[0] != board.dictionary))
-    good = [k for k, v in ranked if v >= 0.8 * top]
-    same_bits = sorted({k.split("|")[0] for k in good if k.split("|")[0].split("_")[1] == good[0].split("_")[1]})
-    dname, inv_s = good[0].split("|")
+    best = max(counts, key=lambda k: counts[k])
+    fam, inv_s = best.split("|")
     inv = inv_s == "True"
+    prefix = fam.rsplit("_", 1)[0]
+    family = [n for n in DICTIONARIES if n.rsplit("_", 1)[0] == prefix and n.rsplit("_", 1)[1].isdigit()]
+    n_markers = len(board.cv_board().getIds()) if board.uses_markers else 0
+    if board.dictionary in family:
+        dname = board.dictionary
+    elif family:
+        # the smallest dictionary of the family with enough markers for the declared board
+        fits = sorted((int(n.rsplit("_", 1)[1]), n) for n in family if int(n.rsplit("_", 1)[1]) >= n_markers)
+        dname = fits[0][1] if fits else fam
+    else:
+        dname = fam
+    same_bits = sorted(family) if len(family) > 1 else []
     cand = board.replace(dictionary=dname, inverted=inv)
     if board.kind == "charuco":
         scores = {}
@@ -506,6 +532,6 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
     msg = ("the images match " + cand.describe() +
            (f" (change: {', '.join(changes)})" if changes else " (the declared settings)"))
     if len(same_bits) > 1:
-        msg += (f"; the markers seen also belong to {', '.join(d for d in same_bits if d != cand.dictionary)} "
-                "(these share their first markers): use the one the board was printed with")
+        msg += (f"; {', '.join(d for d in same_bits if d != cand.dictionary)} share these first markers: "
+                "use the one the board was printed with")
     return Diagnosis(cand, msg, counts)

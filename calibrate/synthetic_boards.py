@@ -18,7 +18,8 @@ import numpy as np
 from calibrate.boards import Board
 from calibrate.camera import Camera, CameraRig
 
-__all__ = ["BoardRenderer", "look_at", "ring_rig", "board_trajectory", "write_recording", "SceneTruth", "views_near_camera"]
+__all__ = ["BoardRenderer", "look_at", "ring_rig", "board_trajectory", "write_recording", "SceneTruth", "views_near_camera",
+           "project_detections"]
 
 
 def look_at(center_m: np.ndarray, target_m: np.ndarray, up: Sequence[float] = (0, 0, 1)) -> tuple[np.ndarray, np.ndarray]:
@@ -133,7 +134,8 @@ class BoardRenderer:
 
     def _outline_world(self, world_from_board: np.ndarray) -> np.ndarray:
         w, h = self.board.extent_m()
-        m = self.margin_m
+        m = self.margin_m - self.board.image_origin_m()
+        w, h = w + 2 * self.board.image_origin_m(), h + 2 * self.board.image_origin_m()
         t = np.linspace(0, 1, 16)
         xs = np.concatenate([-m + t * (w + 2 * m), np.full(16, w + m), w + m - t * (w + 2 * m), np.full(16, -m)])
         ys = np.concatenate([np.full(16, -m), -m + t * (h + 2 * m), np.full(16, h + m), h + m - t * (h + 2 * m)])
@@ -184,8 +186,9 @@ class BoardRenderer:
             ok = (bw * np.sign(np.linalg.det(H))) > 0  # the ray meets the plane in front of the camera
             bw = np.where(ok, bw, 1.0)
             k = np.float32(self.ppm)
-            mx = np.where(ok, bx / bw * k - 0.5 + self.margin_px, -1e6).astype(np.float32)
-            my = np.where(ok, by / bw * k - 0.5 + self.margin_px, -1e6).astype(np.float32)
+            o = self.margin_px - self.board.image_origin_m() * self.ppm - 0.5
+            mx = np.where(ok, bx / bw * k + o, -1e6).astype(np.float32)
+            my = np.where(ok, by / bw * k + o, -1e6).astype(np.float32)
             out[y0:y1, x0:x1] = cv2.remap(self.img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                           borderValue=background)
         img = cv2.resize(out, (w, h), interpolation=cv2.INTER_AREA) if s > 1 else out
@@ -224,3 +227,35 @@ def write_recording(board: Board, rig: CameraRig, world_from_board: np.ndarray, 
             cv2.imwrite(str(d / f"frame_{k:05d}.png"), r.render(cam, T, rng, noise, blur_sigma_px))
             n[c] += 1
     return SceneTruth(rig, world_from_board, n)
+
+
+def project_detections(board: Board, rig: CameraRig, world_from_board: np.ndarray, rng: np.random.Generator,
+                       noise_px: float = 0.2, visible_mask: np.ndarray | None = None,
+                       min_points: int = 6) -> dict:
+    """Detections without rendering: exact projections plus Gaussian noise (noise_px per axis), for
+    frames where the printed side faces the camera; points outside the image are NaN.
+    visible_mask: (C,F) optional extra restriction. Returns camera name -> CameraDetections."""
+    from calibrate.detect import CameraDetections
+
+    r = BoardRenderer.__new__(BoardRenderer)  # visibility test only: no board image needed
+    r.board = board
+    obj = board.object_points()
+    out = {}
+    for c, cam in enumerate(rig.cameras):
+        frames, xys = [], []
+        w, h = cam.size_wh
+        for k, T in enumerate(world_from_board):
+            if visible_mask is not None and not visible_mask[c, k]:
+                continue
+            if not r.visible(cam, T, min_fraction=0.3):
+                continue
+            p = cam.project(obj @ T[:3, :3].T + T[:3, 3]) + rng.normal(0, noise_px, (len(obj), 2))
+            p[~((p[:, 0] >= 0) & (p[:, 1] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] <= h - 1))] = np.nan
+            if np.isfinite(p[:, 0]).sum() < min_points:
+                continue
+            frames.append(k)
+            xys.append(p)
+        xy = np.stack(xys) if xys else np.zeros((0, len(obj), 2))
+        out[cam.name] = CameraDetections(cam.name, cam.size_wh, np.asarray(frames, np.int64), xy,
+                                         len(world_from_board), 1)
+    return out
