@@ -141,9 +141,31 @@ def _sync(argv: list[str]) -> int:
         metavar="CAM=DIR",
         help="read OpenPose JSON folders instead of keypoints/<cam>.npz",
     )
+    p.add_argument(
+        "--audio",
+        nargs="*",
+        default=None,
+        metavar="CAM=VIDEO",
+        help="sync by the audio tracks of these videos instead of keypoints (needs PyAV)",
+    )
     p.add_argument("--fps", type=float, default=None, help="frame rate when the session has none")
     p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
     args = p.parse_args(argv)
+    if args.audio is not None:
+        from capture.offline_sync import sync_audio
+
+        videos = dict(item.partition("=")[::2] for item in args.audio)
+        if any(not v for v in videos.values()):
+            print("capture-run sync: --audio expects CAM=VIDEO pairs", file=sys.stderr)
+            return 2
+        res = sync_audio(
+            args.session, videos, reference=args.reference, max_lag_s=args.max_lag_s, write=not args.dry_run
+        )
+        for cam, r in res["cameras"].items():
+            print(
+                f"  {cam}: offset {r['offset_s'] * 1e3:+.1f} ms (audio), correlation {r['correlation']:.2f}"
+            )
+        return 0
     openpose = None
     if args.openpose is not None:
         openpose = {}

@@ -262,53 +262,89 @@ def estimate_offset_drift(
 
 
 def audio_offset(
-    ref_path: str | os.PathLike, path: str | os.PathLike, max_lag_s: float = 2.0
+    ref_path: str | os.PathLike, path: str | os.PathLike, max_lag_s: float = 2.0, env_rate: float = 1000.0
 ) -> tuple[float, float]:
-    """Offset in seconds (t_ref = t_cam + offset) from the audio envelopes of two videos; (offset_s, corr).
+    """Offset in seconds (t_ref = t_cam + offset, video clocks) from the audio envelopes of two videos.
 
-    Raises ValueError when a video has no audio track OpenCV can read.
+    Returns (offset_s, correlation). Needs PyAV (``pip install 'roomcap[audio]'``); raises ValueError
+    when a video has no audio track. The audio start of each file relative to its video is respected.
     """
-    env_r, rate = _audio_envelope(ref_path)
-    env_s, rate2 = _audio_envelope(path)
-    if rate != rate2:
-        raise ValueError(f"audio envelope rates differ ({rate} vs {rate2})")
-    est = estimate_lag(env_r, env_s, int(max_lag_s * rate))
-    return est.offset_frames / rate, est.correlation
+    env_r, a0_r = audio_envelope(ref_path, env_rate)
+    env_s, a0_s = audio_envelope(path, env_rate)
+    est = estimate_lag(env_r, env_s, int(max_lag_s * env_rate))
+    # envelope sample i of the camera is at video time a0_s + i / rate; same for the reference
+    return est.offset_frames / env_rate + a0_s - a0_r, est.correlation
 
 
-def _audio_envelope(path, env_rate: float = 1000.0) -> tuple[np.ndarray, float]:
-    import cv2
+def audio_envelope(
+    path: str | os.PathLike, env_rate: float = 1000.0, rate: int = 16000
+) -> tuple[np.ndarray, float]:
+    """Mono amplitude envelope at ``env_rate`` Hz of a video's first audio track -> (envelope (N,), start_s).
 
-    cap = cv2.VideoCapture(
-        str(path),
-        cv2.CAP_FFMPEG,
-        [
-            cv2.CAP_PROP_AUDIO_STREAM,
-            0,
-            cv2.CAP_PROP_VIDEO_STREAM,
-            -1,
-            cv2.CAP_PROP_AUDIO_DATA_DEPTH,
-            cv2.CV_32F,
-        ],
-    )
-    if not cap.isOpened() or cap.get(cv2.CAP_PROP_AUDIO_TOTAL_STREAMS) < 1:
-        cap.release()
-        raise ValueError(f"{path}: no audio track")
-    sr = cap.get(cv2.CAP_PROP_AUDIO_SAMPLES_PER_SECOND)
-    base = int(cap.get(cv2.CAP_PROP_AUDIO_BASE_INDEX))
-    chunks = []
-    while cap.grab():
-        a = cap.retrieve(flag=base)[1]
-        if a is not None:
-            chunks.append(np.asarray(a, np.float32).reshape(-1))
-    cap.release()
-    if not chunks or sr <= 0:
-        raise ValueError(f"{path}: audio track is empty")
+    ``start_s``: audio start minus video start of the file, seconds.
+    """
+    try:
+        import av
+    except ImportError:
+        raise ValueError("reading audio needs PyAV: pip install 'roomcap[audio]' (package 'av')") from None
+    path = Path(path)
+    try:
+        container = av.open(str(path))
+    except Exception as e:
+        raise ValueError(f"{path}: cannot be opened for audio ({e})") from None
+    with container:
+        if not container.streams.audio:
+            raise ValueError(f"{path}: no audio track; sync this camera by keypoints instead")
+        st = container.streams.audio[0]
+        v0 = 0.0
+        if container.streams.video and container.streams.video[0].start_time is not None:
+            vs = container.streams.video[0]
+            v0 = float(vs.start_time * vs.time_base)
+        a0 = float(st.start_time * st.time_base) if st.start_time is not None else 0.0
+        resampler = av.AudioResampler(format="flt", layout="mono", rate=rate)
+        chunks = []
+        for frame in container.decode(st):
+            for out in resampler.resample(frame):
+                chunks.append(out.to_ndarray().reshape(-1))
+        for out in resampler.resample(None):
+            chunks.append(out.to_ndarray().reshape(-1))
+    if not chunks:
+        raise ValueError(f"{path}: the audio track is empty")
     x = np.abs(np.concatenate(chunks))
-    hop = max(1, int(sr / env_rate))
+    hop = max(1, int(round(rate / env_rate)))
     n = len(x) // hop
-    env = x[: n * hop].reshape(n, hop).mean(axis=1)
-    return env, sr / hop
+    return x[: n * hop].reshape(n, hop).mean(axis=1), a0 - v0
+
+
+def sync_audio(
+    root: str | os.PathLike,
+    videos: dict[str, str],
+    reference: str | None = None,
+    max_lag_s: float = 2.0,
+    write: bool = True,
+) -> dict:
+    """Offsets of videos with audio tracks (camera -> video path); written into session.toml ``[sync]``."""
+    names = list(videos)
+    ref = reference or sorted(names)[0]
+    if ref not in videos:
+        raise ValueError(f"reference camera {ref!r} not in {names}")
+    res = {"method": "audio-envelope-xcorr", "reference": ref, "cameras": {}}
+    for n in names:
+        off_s, corr = (0.0, 1.0) if n == ref else audio_offset(videos[ref], videos[n], max_lag_s)
+        res["cameras"][n] = {"offset_s": off_s, "offset_ns": int(round(off_s * 1e9)), "correlation": corr}
+    if write:
+        _write_sync(root, res)
+    return res
+
+
+def _write_sync(root, res: dict) -> None:
+    layout = SessionLayout(root)
+    if layout.session_toml.exists():
+        meta = load_toml(layout.session_toml)
+    else:
+        meta = {"schema": f"{SESSION_SCHEMA}/{SESSION_VERSION}", "status": "imported"}
+    meta["sync"] = res
+    save_toml(layout.session_toml, meta)
 
 
 # ----------------------------------------------------------------------------- sessions
@@ -396,8 +432,5 @@ def sync_session(
         raise ValueError("frame rate unknown: pass --fps")
     res = estimate_offsets(signals, fps, reference, max_lag_s, drift)
     if write:
-        if meta is None:
-            meta = {"schema": f"{SESSION_SCHEMA}/{SESSION_VERSION}", "status": "imported"}
-        meta["sync"] = res
-        save_toml(layout.session_toml, meta)
+        _write_sync(root, res)
     return res
