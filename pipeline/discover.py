@@ -69,10 +69,12 @@ def _videos_in(folder: Path) -> dict[str, Path]:
 
 
 def _find_calibration(folder: Path, levels: int = 2) -> Path | None:
-    """The calibration of a Pose2Sim-style trial: ``calibration/`` here or in a parent."""
+    """The calibration of a Pose2Sim-style trial: ``calibration/`` (or ``*_Calibration/``, Pose2Sim's
+    session layout) here or in a parent."""
     here = folder
     for _ in range(levels + 1):
-        for cal_dir in (here / "calibration", here / "calib"):
+        named = sorted(p for p in here.glob("*alibration") if p.name.lower().endswith("_calibration"))
+        for cal_dir in (here / "calibration", here / "calib", *named):
             if cal_dir.is_dir():
                 for pattern in CALIBRATION_PATTERNS:
                     hits = sorted(cal_dir.glob(pattern))
@@ -157,6 +159,7 @@ def discover(paths: list[str | os.PathLike]) -> list[SessionSource]:
                 if p.is_dir()
                 and not p.name.startswith(".")
                 and p.name not in ("calibration", "calib", "roomcap")
+            and not p.name.lower().endswith("_calibration")
             ]
             stack.extend(reversed(children))
     names = [s.name for s in found]

@@ -96,7 +96,7 @@ def _plan_calibration(
     def run(warnings: list[str]) -> None:
         from calibrate.formats import import_calibration
 
-        rig = import_calibration(src.calibration)
+        rig = _match_camera_names(import_calibration(src.calibration), src.cameras)
         missing = [c for c in src.cameras if c not in rig.names]
         if missing:
             raise ValueError(
@@ -106,6 +106,30 @@ def _plan_calibration(
         rig.save(target)
 
     return StagePlan("calibration", [src.calibration], [target], {}, run)
+
+
+def _name_key(name: str) -> str:
+    """``cam_01``, ``Cam01``, ``cam-1`` -> ``cam1``: spelling differences between tools, not other cameras."""
+    import re
+
+    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[^0-9a-z]", "", name.lower()))
+
+
+def _match_camera_names(rig, cameras: list[str]):
+    """The rig with its cameras renamed to the recording's names where they differ only in spelling
+    (Pose2Sim's ``cam_01`` calibration for ``cam01_json``); matched by name, never by order."""
+    import dataclasses as dc
+
+    if all(c in rig.names for c in cameras):
+        return rig
+    keys = {_name_key(n): n for n in rig.names}
+    if len(keys) != len(rig.names):
+        return rig
+    rename = {keys[_name_key(c)]: c for c in cameras if _name_key(c) in keys}
+    if len(set(rename.values())) != len(rename):
+        return rig
+    log.info("calibration camera names %s matched to the recording's %s", list(rename), list(rename.values()))
+    return type(rig)(tuple(dc.replace(cam, name=rename.get(cam.name, cam.name)) for cam in rig.cameras))
 
 
 def model_set_sha256(model_set: str, store: ProvenanceStore | None = None) -> str:
@@ -214,8 +238,9 @@ def _plan_keypoints(
                     "reading OpenPose JSON folders needs keypoints.openpose_json, which this "
                     "build lacks; run the keypoints stage on the videos instead."
                 ) from None
+            fps = _pose2sim_frame_rate(src.root)
             for c in cams:
-                read_openpose_folder(src.openpose_json[c], camera=c).save(lay.detections(c))
+                read_openpose_folder(src.openpose_json[c], camera=c, fps=fps).save(lay.detections(c))
 
         return StagePlan(
             "keypoints", [src.openpose_json[c] for c in cams], outputs, {"from": "openpose_json"}, run_json
@@ -238,6 +263,22 @@ def _plan_keypoints(
             {"from": "detections"},
             run_copy,
         )
+    return None
+
+
+def _pose2sim_frame_rate(trial: Path) -> float | None:
+    """``[project] frame_rate`` of the nearest Pose2Sim ``Config.toml`` (trial, then parents)."""
+    from capture.fileio import load_toml
+
+    for folder in (trial, *trial.parents[:3]):
+        cfg = folder / "Config.toml"
+        if cfg.exists():
+            try:
+                rate = load_toml(cfg).get("project", {}).get("frame_rate")
+            except Exception:  # a Config.toml we cannot read says nothing about the rate
+                continue
+            if isinstance(rate, (int, float)) and rate > 0:
+                return float(rate)
     return None
 
 
