@@ -188,3 +188,28 @@ def test_local_and_ray_executors_give_identical_outputs(sessions, reference, tmp
     want = {k: v for k, v in _outputs(reference).items() if k.split("/")[1] in ("syn_00", "syn_01")}
     assert sorted(got) == sorted(want)
     assert [k for k in want if got[k] != want[k]] == []
+
+
+def test_ray_tasks_ask_for_a_gpu_when_onnxruntime_has_cuda(monkeypatch, sessions, tmp_path):
+    """Without a GPU here: a stand-in for ray records what the tasks ask for."""
+    import types
+
+    from pipeline import executors
+
+    asked = []
+    fake = types.SimpleNamespace(
+        is_initialized=lambda: True,
+        remote=lambda **kw: asked.append(kw) or (lambda f: types.SimpleNamespace(remote=lambda *a: f(*a))),
+        wait=lambda pending, num_returns: (pending[:1], pending[1:]),
+        get=lambda r: r,
+    )
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    src = discover([sessions])[:1]
+    for cuda, stages, want in [
+        (True, ("keypoints", "triangulate"), 1),
+        (True, ("triangulate",), 0),
+        (False, ("keypoints",), 0),
+    ]:
+        monkeypatch.setattr(executors, "_cuda_available", lambda c=cuda: c)
+        list(executors.run_ray(src, tmp_path, PipelineConfig(stages=stages), False, 1, None))
+        assert asked[-1] == {"num_cpus": 1, "num_gpus": want}
