@@ -151,10 +151,12 @@ class SegmentWriter:
         os.replace(self._part, self._final)
         self._closed.append(self._final.name)
         write_ffconcat(self.dir, self._closed)
-        with open(self.frames_csv, "a") as f:
-            f.write(rows)
-            f.flush()
-            os.fsync(f.fileno())
+        fd = os.open(self.frames_csv, os.O_WRONLY | os.O_APPEND)
+        try:
+            os.write(fd, rows.encode())  # one write: a kill leaves whole rows or none
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         self.frames_written += len(self._rows)
         self.segments += 1
         self._rows = []

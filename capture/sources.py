@@ -19,7 +19,6 @@ received it) and ``sequence`` (the source's own frame counter; gaps = drops at t
 
 from __future__ import annotations
 
-import csv
 import logging
 import os
 import threading
@@ -393,21 +392,27 @@ def _segments(folder: Path) -> list[Path]:
 
 
 def read_frames_csv(path: str | os.PathLike) -> np.ndarray:
-    """``raw/<cam>.frames.csv`` -> (T,4) int64 array: frame_index, t_ns, t_host_ns, sequence."""
-    path = Path(path)
-    rows = []
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
-            return np.zeros((0, 4), np.int64)
-        if header[:4] != ["frame_index", "t_ns", "t_host_ns", "sequence"]:
-            from capture.fileio import FormatError
+    """``raw/<cam>.frames.csv`` -> (T,4) int64 array: frame_index, t_ns, t_host_ns, sequence.
 
-            raise FormatError(path, "header", f"expected frame_index,t_ns,t_host_ns,sequence, got {header}.")
-        for r in reader:
-            if len(r) >= 4:
-                rows.append([int(x) for x in r[:4]])
+    A last line without its newline (a write cut by a kill) is ignored, never half-parsed.
+    """
+    from capture.fileio import FormatError
+
+    path = Path(path)
+    text = path.read_text()
+    lines = text.split("\n")
+    if lines and lines[-1] != "":
+        lines = lines[:-1]  # unterminated: not a complete row
+    lines = [ln for ln in lines if ln.strip()]
+    if not lines:
+        return np.zeros((0, 4), np.int64)
+    header = lines[0].strip().split(",")
+    if header[:4] != ["frame_index", "t_ns", "t_host_ns", "sequence"]:
+        raise FormatError(path, "header", f"expected frame_index,t_ns,t_host_ns,sequence, got {header}.")
+    try:
+        rows = [[int(x) for x in ln.split(",")[:4]] for ln in lines[1:]]
+    except ValueError as e:
+        raise FormatError(path, None, f"holds a malformed row ({e}).", "Run `capture-run repair`.") from None
     return np.asarray(rows, np.int64).reshape(-1, 4)
 
 

@@ -112,3 +112,22 @@ def test_missing_usb_camera():
 def test_synthetic_options_are_validated():
     with pytest.raises(SourceError, match="valid"):
         make_source(_cam("synthetic:?speed=3"))
+
+
+def test_frames_csv_ignores_an_unterminated_last_row(tmp_path):
+    from capture.sources import read_frames_csv
+
+    p = tmp_path / "c.frames.csv"
+    p.write_text("frame_index,t_ns,t_host_ns,sequence\n0,10,11,0\n1,20,21,1\n2,30,3")
+    assert read_frames_csv(p).tolist() == [[0, 10, 11, 0], [1, 20, 21, 1]]
+
+
+def test_device_that_cannot_deliver_the_requested_mode():
+    from capture.sources import check_delivery
+
+    cam = _cam("usb:0", fps=60, resolution=[1920, 1080])
+    check_delivery("c", cam, 1920, 1080, 60.0)
+    with pytest.raises(SourceError, match="requested 60 fps but the device delivers 30 fps"):
+        check_delivery("c", cam, 1920, 1080, 30.0)
+    with pytest.raises(SourceError, match="delivers 640x480"):
+        check_delivery("c", cam, 640, 480, 60.0)
