@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import numpy as np
@@ -55,7 +56,11 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     clips = _clips()
     scene = np.stack([walker(50), walker(50, start=(2, 0), heading_rad=2.0)], 1)[None]  # (1,50,2,J,3)
-    res: dict = {"threads": args.threads, "horizon_s": args.horizon_s}
+    res: dict = {
+        "threads": args.threads,
+        "horizon_s": args.horizon_s,
+        "loadavg_1min_start": os.getloadavg()[0],
+    }
     for kind in ("zero_velocity", "constant_velocity"):
         res[f"{kind}_sample_s_per_forecast_s"] = sample_time_per_s(T.baseline(kind), scene, args.horizon_s, 5)
     for kind in ("gru", "intention", "social_diffusion"):
@@ -93,6 +98,7 @@ def main() -> None:
         f"few-step ({res['social_diffusion_fewstep_steps']}) vs seed sampler "
         f"({res['social_diffusion_full_steps']} steps): {res['diffusion_fewstep_speedup']:.1f}x faster"
     )
+    res["loadavg_1min_end"] = os.getloadavg()[0]  # figures are per this (shared) CPU's load
     print("BENCH " + json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in res.items()}))
 
 

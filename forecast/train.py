@@ -16,6 +16,7 @@ import logging
 import os
 import re
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -276,7 +277,10 @@ def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> Fo
     loc = np.einsum("nij,nkj->nki", R, x - root[:, None]).reshape(len(x), -1)
     rng = np.random.default_rng(seed)
     sub = loc[rng.choice(len(loc), min(len(loc), 20000), replace=False)].astype(np.float64)
-    centres, _ = kmeans2(sub, k, minit="++", seed=seed)
+    with warnings.catch_warnings():  # tiny data sets leave clusters empty; the centres are still poses
+        warnings.simplefilter("ignore")
+        centres, _ = kmeans2(sub, k, minit="++", seed=seed)
+    centres = centres[np.isfinite(centres).all(1)]
     return FoolClusters(torch.from_numpy(centres.astype(np.float32)))
 
 

@@ -188,6 +188,47 @@ def test_preview_and_cli_on_track_files(tmp_path):
         == 0
     )
     assert np.load(tmp_path / "fc.npz")["schema"] == "forecast/1"
+    out = tmp_path / "eval"
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                *paths,
+                "--checkpoints",
+                str(ck),
+                "--fool",
+                "--samples",
+                "3",
+                "--horizon-s",
+                "1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert "| gru |" in (out / "report.md").read_text() and (out / "ndms.png").exists()
+    assert (
+        main(
+            [
+                "eval",
+                "--social",
+                "--data",
+                *paths,
+                "--checkpoints",
+                str(ck),
+                "--scenes",
+                "2",
+                "--horizon-s",
+                "1.5",
+                "--out",
+                str(tmp_path / "soc"),
+            ]
+        )
+        == 0
+    )
+    assert "SSCP" in (tmp_path / "soc" / "report.md").read_text()
 
 
 def test_shipped_configs_and_checkpoint_load():
