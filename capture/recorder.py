@@ -6,6 +6,7 @@ Layout written (see ``capture.session``)::
                                         rewritten at the end (status "complete", timing, gaps)
     <out>/raw/<cam>/seg_000000.mp4      closed segments of ``segment_s`` seconds, each playable
     <out>/raw/<cam>/seg_000000.frames.csv  that segment's rows (the repair source)
+    <out>/raw/<cam>/index.ffconcat      the closed segments as one video: cv2.VideoCapture opens it
     <out>/raw/<cam>.frames.csv          frame_index,t_ns,t_host_ns,sequence for every frame in the
                                         closed segments, appended as each segment closes
 

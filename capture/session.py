@@ -49,6 +49,15 @@ class SessionLayout:
                 return p
         return self.raw_dir / cam
 
+    def video_file(self, cam: str) -> Path:
+        """A path ``cv2.VideoCapture`` opens: ``raw/<cam>.<ext>``, or a segment folder's ``index.ffconcat``.
+
+        The recorder keeps ``index.ffconcat`` listing every closed segment; ``capture.sources.open_recording``
+        reads both forms with the timestamps of ``frames.csv``.
+        """
+        v = self.video(cam)
+        return v / "index.ffconcat" if v.is_dir() else v
+
     def frames_csv(self, cam: str) -> Path:
         return self.raw_dir / f"{cam}.frames.csv"
 

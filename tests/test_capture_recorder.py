@@ -76,7 +76,7 @@ def test_record_synthetic_and_file_replay(tmp_path):
     # the recording reads back through the helper, and as one video through OpenCV (ffconcat index)
     rec = open_recording(SessionLayout(out).video("syn1"))
     assert len(rec) == len(list(rec))
-    cap = cv2.VideoCapture(str(out / "raw" / "syn1" / "index.ffconcat"))
+    cap = cv2.VideoCapture(str(SessionLayout(out).video_file("syn1")))
     n = 0
     while cap.read()[0]:
         n += 1
