@@ -75,14 +75,15 @@ def test_refinement_moves_joints_to_the_evidence(rng):
     S = (X[None, None] + rng.normal(0, 0.05, (1, 100, 19, 3))).astype(np.float32)
     f = np.full(3, 1000, np.float32)
     e0 = np.linalg.norm(S - X, axis=-1).mean()
-    R = obs.refine_joints(S, centers, B, sc, f, 0.05, 3.0, 6, 0.03, rng, n_guided=0)
+    R, _ = obs.refine_joints(S, centers, B, sc, f, 0.05, 3.0, 6, 0.03, rng, n_guided=0)
     e1 = np.linalg.norm(R - X, axis=-1).mean()
-    G = obs.refine_joints(S, centers, B, sc, f, 0.05, 3.0, 6, 0.03, rng, n_guided=3)
+    G, score = obs.refine_joints(S, centers, B, sc, f, 0.05, 3.0, 6, 0.03, rng, n_guided=3)
     e2 = np.linalg.norm(G - X, axis=-1).mean()
     assert e1 < 0.9 * e0  # random candidates (the seed's): measured 0.080 -> 0.066 m
     assert e2 < 0.3 * e0  # with guided candidates: measured 0.080 -> 0.006 m
     none = np.zeros_like(sc)  # no evidence: nothing moves
-    assert np.array_equal(obs.refine_joints(S, centers, B, none, f, 0.05, 3.0, 6, 0.03, rng, 3), S)
+    assert np.array_equal(obs.refine_joints(S, centers, B, none, f, 0.05, 3.0, 6, 0.03, rng, 3)[0], S)
+    assert score.shape == (1, 19, 100) and score.mean() > 0.8 * 3 * 0.9  # near the peak in all 3 views
 
 
 def test_association_one_detection_per_track(rng):

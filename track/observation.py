@@ -102,16 +102,18 @@ def _kernel(q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
 
 
 def joint_scores(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray, focal_px: np.ndarray,
-                 sigma_m: float, sigma_px: float) -> np.ndarray:
+                 sigma_m: float, sigma_px: float, Y: np.ndarray | None = None) -> np.ndarray:
     """Keypoint 'confidence map' value of every sample joint in every camera.
 
     X: (K,N,J,3) samples; centers: (C,3); basis: (K,J,3C,3) from :func:`ray_basis` for each track's
-    associated keypoints; sc: (K,C,J) their scores (0 = none); focal_px: (C,). Returns conf (K,C,J,N) in
-    [0, 1]: ``sc * exp(-d^2 / 2 s^2)`` with d the distance of the joint from the keypoint's viewing ray
-    (the image distance seen at the joint's depth) and ``s^2 = sigma_m^2 + (sigma_px * depth / f)^2``.
+    associated keypoints; sc: (K,C,J) their scores (0 = none); focal_px: (C,); Y: the samples' ray
+    coordinates if already computed (:func:`ray_coords`). Returns conf (K,C,J,N) in [0, 1]:
+    ``sc * k(d^2 / s^2)`` (:func:`_kernel`) with d the distance of the joint from the keypoint's viewing
+    ray (the image distance seen at the joint's depth) and ``s^2 = sigma_m^2 + (sigma_px * depth / f)^2``.
     """
     C = len(centers)
-    Y = ray_coords(X, centers, basis)
+    if Y is None:
+        Y = ray_coords(X, centers, basis)
     along = Y[:, :, 2 * C:]
     d2 = Y[:, :, :C]**2 + Y[:, :, C:2 * C]**2  # (K,J,C,N)
     conf = _kernel(d2 / _variance(along, focal_px, sigma_m, sigma_px))
@@ -210,7 +212,7 @@ def guided_targets(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np
 
 def refine_joints(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray, focal_px: np.ndarray,
                   sigma_m: float, sigma_px: float, n_candidates: int, sigma_refine_m: float,
-                  rng: np.random.Generator, n_guided: int = 0) -> np.ndarray:
+                  rng: np.random.Generator, n_guided: int = 0, Y: np.ndarray | None = None) -> np.ndarray:
     """Joint refinement (sec. 5.2.2): per joint of every sample, draw M-1 positions around it and keep the one
     with the highest confidence summed over cameras (the current position, candidate 0, wins ties).
 
@@ -218,13 +220,15 @@ def refine_joints(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.
     sigma_refine_m / 2) instead of around the current position: a data-driven proposal that keeps up with
     fast joints in one frame (our addition; the argmax over candidates is unchanged).
 
-    X: (K,N,J,3) -> (K,N,J,3); other arguments as :func:`joint_scores`. Candidates are scored in the
-    keypoints' ray frames: one batched product ``basis @ offsets`` per frame, no loop.
+    X: (K,N,J,3) -> refined X (K,N,J,3) and the kept candidates' confidence summed over cameras (K,J,N);
+    other arguments as :func:`joint_scores`. Candidates are scored in the
+    keypoints' ray frames: one batched product ``basis @ offsets`` per frame, no loop; the tolerance uses
+    the mean depth of the samples per track, joint and camera.
     """
     K, N, J, _ = X.shape
     M = int(n_candidates)
     if M <= 1 or K == 0:
-        return X
+        raise ValueError(f"refine_joints needs at least 2 candidates and one track, got M={M}, K={K}")
     C = len(centers)
     e = normal_noise(rng, (K, J, 3, N, M), 1.0) * refine_scales(M, sigma_refine_m)
     G = min(int(n_guided), M - 1)
@@ -232,19 +236,34 @@ def refine_joints(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.
         e[..., M - G:] *= np.float32(0.25)  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
         xt = np.ascontiguousarray(X.transpose(0, 2, 3, 1))
         e[..., M - G:] += (guided_targets(X, centers, basis, sc) - xt)[..., None]
-    Y = ray_coords(X, centers, basis)  # (K,J,3C,N)
-    var = _variance(Y[:, :, 2 * C:], focal_px, sigma_m, sigma_px)  # (K,J,C,N)
-    s = np.where(Y[:, :, 2 * C:] > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))  # (K,J,C,N)
-    D = np.matmul(basis[:, :, :2 * C], e.reshape(K, J, 3, N * M)).reshape(K, J, 2 * C, N, M)
-    D += Y[:, :, :2 * C, :, None]
-    D *= D
-    d2 = D[:, :, :C] + D[:, :, C:]  # (K,J,C,N,M)
-    d2 *= (1.0 / var)[..., None]
-    _kernel(d2, out=d2)
-    d2 *= s[..., None]
-    best = d2.sum(2).argmax(-1)  # (K,J,N)
-    e_best = np.take_along_axis(e, best[:, :, None, :, None], 4)[..., 0]  # (K,J,3,N)
-    return X + e_best.transpose(0, 3, 1, 2)
+    if Y is None:
+        Y = ray_coords(X, centers, basis)  # (K,J,3C,N)
+    along = Y[:, :, 2 * C:].mean(-1, keepdims=True)  # (K,J,C,1): one tolerance per track, joint, camera
+    scale = np.sqrt(0.5 / _variance(along, focal_px, sigma_m, sigma_px))  # folds 1/(2 s^2) into the frame
+    scale2 = np.concatenate([scale, scale], 2)  # (K,J,2C,1)
+    s = np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))[..., None]  # (K,J,C,1,1)
+    Bs = basis[:, :, :2 * C] * scale2
+    Ys = (Y[:, :, :2 * C] * scale2)[..., None]
+    out = X.copy()
+    score = np.zeros((K, J, N), np.float32)
+    jb = max(1, J // 4)  # blocks of joints: the candidates' arrays stay in cache
+    for k in range(K):  # loop over tracks and joint blocks only
+        for j0 in range(0, J, jb):
+            j1 = min(J, j0 + jb)
+            ek = e[k, j0:j1]
+            D = np.matmul(Bs[k, j0:j1], ek.reshape(j1 - j0, 3, N * M)).reshape(j1 - j0, 2 * C, N, M)
+            D += Ys[k, j0:j1]
+            D *= D
+            q = D[:, :C]
+            q += D[:, C:]  # q = d^2 / (2 s^2) per camera, (j,C,N,M)
+            q += np.float32(1.0)
+            np.divide(s[k, j0:j1], q, out=q)  # s / (1 + d^2 / 2 s^2): the kernel of joint_scores
+            tot = q.sum(1)  # (j,N,M)
+            best = tot.argmax(-1)  # (j,N)
+            score[k, j0:j1] = np.take_along_axis(tot, best[..., None], 2)[..., 0]
+            e_best = np.take_along_axis(ek, best[:, None, :, None], 3)[..., 0]  # (j,3,N)
+            out[k, :, j0:j1] += e_best.transpose(2, 0, 1)
+    return out, score
 
 
 def weighted_stats(X: np.ndarray, log_phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -68,6 +68,8 @@ class ParticleConfig:
       positions per joint including the current one; refine_sigma_m their spread; refine_guided of them
       are drawn around the point the track's detections put the joint at (0 = the seed's purely random
       candidates).
+    exact_output_weights: the output weights (sec. 5.2.4) by eq. 5.7 over all cameras in an extra pass;
+      by default the refinement's per-joint scores summed over all cameras are reused (product over joints).
     obs_sigma_m / obs_sigma_px: keypoint likelihood tolerance (metres at the joint's depth, and pixels).
     eps: epsilon of eq. 5.7 (per limb).
     min_score: 2D joints below this score are ignored.
@@ -97,6 +99,7 @@ class ParticleConfig:
     refine_candidates: int = 6
     refine_sigma_m: float = 0.03
     refine_guided: int = 3
+    exact_output_weights: bool = False
     obs_sigma_m: float = 0.05
     obs_sigma_px: float = 3.0
     eps: float = 0.01
@@ -277,19 +280,24 @@ class ParticleTracker:
             akp = np.ascontiguousarray(np.moveaxis(akp, 0, 1))  # (K,C,J,2)
             asc = np.ascontiguousarray(np.moveaxis(asc, 0, 1)).astype(np.float32)  # (K,C,J)
             ev_k = has.any(0)
+            score_u, u = None, np.zeros(0, np.int64)
             rays = obs.ray_basis(self.Minv, akp)  # (K,J,3C,3)
             # 3. update for the tracks with evidence
             if ev_k.any():
                 u = np.flatnonzero(ev_k)
-                Xu, idx = self._update(X[u], rays[u], asc[u])
+                Xu, idx, score_u = self._update(X[u], rays[u], asc[u])
                 X[u] = Xu
                 flat = np.arange(K * N).reshape(K, N)
                 flat[u] = u[:, None] * N + idx
                 state = gather_state(state, flat.ravel())
             # 4. inference (sec. 5.2.4): weighted mean over all cameras
-            conf = obs.joint_scores(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
-                                    cfg.obs_sigma_px)  # (K,C,J,N)
-            lp = obs.log_phi_all(obs.limb_scores(conf, self.limbs, 2), cfg.eps)
+            if cfg.exact_output_weights or score_u is None:
+                conf = obs.joint_scores(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
+                                        cfg.obs_sigma_px)  # (K,C,J,N)
+                lp = obs.log_phi_all(obs.limb_scores(conf, self.limbs, 2), cfg.eps)
+            else:  # the refinement's scores of the kept joints, summed over all cameras, product over joints
+                lp = np.zeros((K, N), np.float32)
+                lp[u] = np.log(score_u + np.float32(cfg.eps)).sum(1)
             mean, std = obs.weighted_stats(X, lp)
             n_views = (asc > 0).sum(1)  # (K,J)
             conf_out = np.clip(asc.sum(1) / np.maximum(n_views, 1) * np.minimum(n_views, 2) / 2.0, 0, 1)
@@ -327,22 +335,26 @@ class ParticleTracker:
             out = _empty_estimate(J)
         return out
 
-    def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N)."""
+    def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray):
+        """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N) and
+        the refined joints' summed confidence (K,J,N) (None without refinement)."""
         cfg = self.config
         K, N = X.shape[:2]
+        Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
         if cfg.resample:
             conf = obs.joint_scores(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
-                                    cfg.obs_sigma_px)  # (K,C,J,N)
+                                    cfg.obs_sigma_px, Y)  # (K,C,J,N)
             lpv = obs.log_phi_pairs(obs.limb_scores(conf, self.limbs, 2), self.pairs, cfg.eps)  # (K,V,N)
             idx = obs.resample_pairs(lpv, self.rng)
-            X = np.take_along_axis(X, idx[:, :, None, None], 1)
+            X = np.stack([X[k][idx[k]] for k in range(K)])  # gathers per track (a loop over tracks)
+            Y = np.stack([np.take(Y[k], idx[k], axis=-1) for k in range(K)])
         else:
             idx = np.broadcast_to(np.arange(N), (K, N))
+        score = None
         if cfg.refine and cfg.refine_candidates > 1:
-            X = obs.refine_joints(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px,
-                                  cfg.refine_candidates, cfg.refine_sigma_m, self.rng, cfg.refine_guided)
-        return X, idx
+            X, score = obs.refine_joints(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px,
+                                  cfg.refine_candidates, cfg.refine_sigma_m, self.rng, cfg.refine_guided, Y)
+        return X, idx, score
 
     # ------------------------------------------------------------------ birth
 

@@ -22,7 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, atomic_write_text, check_schema, load_npz, npz_str, save_npz, schema_tag
+from capture.fileio import (
+    FormatError,
+    atomic_write_text,
+    check_schema,
+    load_npz,
+    npz_str,
+    save_npz,
+    schema_tag,
+)
 from keypoints.skeletons import CANONICAL, Skeleton
 
 SCHEMA = "tracks"
