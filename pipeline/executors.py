@@ -13,11 +13,12 @@ import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
-from pipeline.runner import SessionResult, check_session, process_session
+from pipeline.runner import SessionResult, check_session, output_root, process_session
 
 log = logging.getLogger(__name__)
 EXECUTORS = ("local", "ray")
@@ -30,16 +31,36 @@ def _threads_per_worker(workers: int) -> int:
 def run_local(
     sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool, workers: int
 ) -> Iterator[SessionResult]:
+    """Sessions in worker processes (in this process for one worker).
+
+    A worker that dies (a native crash in a decoder, out of memory) breaks the pool; the sessions it took
+    down are retried one at a time in a fresh process, so only the session that kills its worker again is
+    reported failed and the others finish.
+    """
     if workers <= 1 or len(sources) <= 1:
         for s in sources:
             yield process_session(s, out, config, force)
         return
     threads = _threads_per_worker(workers)
-    # spawn, not fork: onnxruntime and torch thread pools do not survive a fork.
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(process_session, s, out, config, force, threads) for s in sources]
+    ctx = mp.get_context("spawn")  # not fork: onnxruntime and torch thread pools do not survive a fork
+    broken: list[SessionSource] = []
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = {pool.submit(process_session, s, out, config, force, threads): s for s in sources}
         for f in as_completed(futures):
-            yield f.result()
+            try:
+                yield f.result()
+            except BrokenProcessPool:
+                broken.append(futures[f])
+    for s in sorted(broken, key=sources.index):
+        log.warning("session %s: its worker process died; retrying it alone", s.name)
+        try:
+            with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+                yield pool.submit(process_session, s, out, config, force, threads).result()
+        except BrokenProcessPool as e:
+            yield SessionResult(s.name, str(output_root(s, out)), status="failed", failed_stage="worker",
+                                message=f"the worker process running this session died ({e or 'crashed'}): "
+                                "a native crash (decoder, model runtime) or out of memory. Run it alone with "
+                                "--workers 1 -v to see where; finished stages are kept.")
 
 
 def _cuda_available() -> bool:

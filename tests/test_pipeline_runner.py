@@ -6,6 +6,7 @@ Sessions come from ``synthetic.world`` (via ``pipeline.synth``): a 4-camera ring
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import os
@@ -20,7 +21,7 @@ import pytest
 
 from pipeline.cli import main as reprocess
 from pipeline.config import PipelineConfig
-from pipeline.discover import discover
+from pipeline.discover import SessionSource, discover
 from pipeline.executors import run_sessions
 from pipeline.synth import make_sessions
 
@@ -213,3 +214,19 @@ def test_ray_tasks_ask_for_a_gpu_when_onnxruntime_has_cuda(monkeypatch, sessions
         monkeypatch.setattr(executors, "_cuda_available", lambda c=cuda: c)
         list(executors.run_ray(src, tmp_path, PipelineConfig(stages=stages), False, 1, None))
         assert asked[-1] == {"num_cpus": 1, "num_gpus": want}
+
+
+@dataclasses.dataclass(frozen=True)
+class _Crashing(SessionSource):
+    """A session whose worker process dies on arrival (as a native crash in a decoder would)."""
+
+    def __reduce__(self):
+        return (os._exit, (3,))
+
+
+def test_a_crashing_worker_takes_down_only_its_session(sessions, tmp_path):
+    srcs = discover([sessions])[:2]
+    crash = _Crashing(**{f.name: getattr(srcs[1], f.name) for f in dataclasses.fields(SessionSource)})
+    results = run_sessions([srcs[0], crash], tmp_path, CFG, workers=2)
+    assert [r.status for r in results] == ["ok", "failed"], [r.message for r in results]
+    assert results[1].failed_stage == "worker" and "worker process" in results[1].message
