@@ -230,3 +230,15 @@ def test_a_crashing_worker_takes_down_only_its_session(sessions, tmp_path):
     results = run_sessions([srcs[0], crash], tmp_path, CFG, workers=2)
     assert [r.status for r in results] == ["ok", "failed"], [r.message for r in results]
     assert results[1].failed_stage == "worker" and "worker process" in results[1].message
+
+
+def test_in_place_session_with_only_rig_and_detections(sessions, tmp_path):
+    """DESIGN.md: `reprocess S --stages triangulate,track` on calib/rig.toml + keypoints/*.npz only."""
+    import shutil
+
+    s = tmp_path / "S1"
+    for sub in ("calib", "keypoints"):
+        shutil.copytree(sessions / "syn_01" / sub, s / sub)
+    assert reprocess([str(s), "--stages", "triangulate,track", "--workers", "1"]) == 0
+    assert (s / "track" / "tracks.npz").exists() and not (s / "report").exists()
+    assert sorted(p.name for p in s.iterdir()) == [".roomcap", "calib", "keypoints", "track", "triangulate"]
