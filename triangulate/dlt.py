@@ -132,11 +132,11 @@ class Triangulator:
         for it in range(cfg.max_rejections + 1):
             # reweight by inverse projective depth: rows then measure (normalised) pixel error;
             # after a rejection only the points that lost a view are solved again
-            depth = np.einsum("cj,nj->cn", self.Pn[:, 2, :3], X[idx]) + self.Pn[:, None, 2, 3]
+            depth = (X[idx] @ self.Pn[:, 2, :3].T).T + self.Pn[:, None, 2, 3]
             u = used[:, idx] & (depth > 1e-6)
             used[:, idx] = u
             X[idx] = self._solve(xyn[:, idx], np.where(u, w0[:, idx] / np.where(u, depth, 1.0), 0.0))
-            proj = np.einsum("cij,nj->cni", self.Pn[:, :, :3], X) + self.Pn[:, None, :, 3]
+            proj = (np.matmul(self.Pn[:, :, :3], X.T) + self.Pn[:, :, 3:4]).transpose(0, 2, 1)  # (C,N,3)
             depth = proj[..., 2]
             used &= depth > 1e-6
             safe = np.where(depth > 1e-6, depth, 1.0)[..., None]
