@@ -43,7 +43,7 @@ class PipelineConfig:
     pose_presence: float = 0.0  # drop BlazePose people whose person-present probability is below this
     refine_passes: int = 1  # top-down: pose passes on the box the previous pass's keypoints span
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
-    model_roi: bool = True  # refine passes: use the model's own ROI output where it has one (BlazePose)
+    model_roi: bool = False  # refine passes: the model's own ROI where it has one (BlazePose; measured worse)
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
