@@ -125,7 +125,9 @@ def run_one(
     cams = []
     for i in range(n):
         if kind == "file":
-            cams.append({"name": f"cam{i:02d}", "source": str(video), "loop": True, "codec": codec})
+            cams.append(
+                {"name": f"cam{i:02d}", "source": str(video), "loop": True, "codec": codec, "drop_late": True}
+            )
         else:
             cams.append(
                 {

@@ -25,6 +25,8 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
         quality: 80                # encoder quality 1..100 (mjpg)
         loop: false                # file replay: start again at the end
         realtime: true             # file replay: pace frames by their timestamps
+        drop_late: false           # file replay: behave like a camera on a slow host (drop late frames
+                                   # and never wait for the writer); false = every frame is recorded
     sync:
       tolerance_ms: null           # frame-set tolerance (null = half a frame period)
       max_wait_ms: 200             # emit an incomplete set after this long
@@ -125,6 +127,7 @@ class CameraConfig:
     quality: int = 80
     loop: bool = False
     realtime: bool = True
+    drop_late: bool = False
 
     @property
     def kind(self) -> str:
@@ -324,6 +327,7 @@ def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
         quality=quality,
         loop=_bool(d.get("loop", False), f"{where}.loop", path),
         realtime=_bool(d.get("realtime", True), f"{where}.realtime", path),
+        drop_late=_bool(d.get("drop_late", False), f"{where}.drop_late", path),
     )
 
 

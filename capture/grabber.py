@@ -86,12 +86,23 @@ class Grabber(threading.Thread):
         self.last: Frame | None = None
 
     def _push(self, frame: Frame | None) -> None:
+        wait = self.source.waits_for_consumers
         for key, q in self.sinks.items():
             try:
                 q.put_nowait(frame)
             except queue.Full:
                 if frame is END:
                     q.put(END)  # the end marker must arrive; consumers are draining
+                elif wait and key == "writer":
+                    # a file that must be recorded whole: wait for the writer (not for live processing)
+                    while not self.stop_event.is_set():
+                        try:
+                            q.put(frame, timeout=0.1)
+                            break
+                        except queue.Full:
+                            continue
+                    else:
+                        self.stats.dropped_queue[key] += 1
                 else:
                     self.stats.dropped_queue[key] += 1
 

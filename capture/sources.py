@@ -96,6 +96,11 @@ class FrameSource(ABC):
         """A live source is retried after a disconnect; a file just ends."""
         return True
 
+    @property
+    def waits_for_consumers(self) -> bool:
+        """True for a file that must record every frame (the grabber blocks instead of dropping)."""
+        return False
+
     def __enter__(self):
         self.open()
         return self
@@ -528,6 +533,7 @@ class FileReplaySource(FrameSource):
         loop: bool = False,
         epoch_ns: int | None = None,
         fps: float | None = None,
+        drop_late: bool = False,
     ):
         self.name = name
         self.path = Path(path)
@@ -544,10 +550,15 @@ class FileReplaySource(FrameSource):
         self._start_mono: int | None = None
         self._skipped_in_row = 0
         self._max_skip = 60
+        self.drop_late = drop_late
 
     @property
     def live(self) -> bool:
         return False
+
+    @property
+    def waits_for_consumers(self) -> bool:
+        return not self.drop_late
 
     def open(self) -> SourceInfo:
         if not self.path.exists():
@@ -622,7 +633,9 @@ class FileReplaySource(FrameSource):
 
     def _late(self, t_file_ns: int) -> bool:
         """Whether the frame at file time ``t_file_ns`` is already more than 2 frame periods late."""
-        if not self.realtime or self._start_mono is None or self._t0_file is None or not self._rec.fps:
+        if not (self.realtime and self.drop_late) or self._start_mono is None or self._t0_file is None:
+            return False
+        if not self._rec.fps:
             return False
         if self._skipped_in_row >= self._max_skip:
             return False
@@ -647,7 +660,13 @@ def make_source(cam: CameraConfig, epoch_ns: int | None = None, timeout_s: float
         return SyntheticSource.from_config(cam, epoch_ns)
     if kind == "file":
         return FileReplaySource(
-            cam.name, cam.source, realtime=cam.realtime, loop=cam.loop, epoch_ns=epoch_ns, fps=cam.fps
+            cam.name,
+            cam.source,
+            realtime=cam.realtime,
+            loop=cam.loop,
+            epoch_ns=epoch_ns,
+            fps=cam.fps,
+            drop_late=cam.drop_late,
         )
     if kind == "oak":
         from capture.oak import OakSource

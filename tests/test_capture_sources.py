@@ -131,3 +131,38 @@ def test_device_that_cannot_deliver_the_requested_mode():
         check_delivery("c", cam, 1920, 1080, 30.0)
     with pytest.raises(SourceError, match="delivers 640x480"):
         check_delivery("c", cam, 640, 480, 60.0)
+
+
+@pytest.mark.parametrize("drop_late", [False, True])
+def test_file_replay_on_a_slow_host(tmp_path, drop_late):
+    p = write_video(tmp_path / "v.mp4", n=20, fps=50)
+    src = FileReplaySource("f", p, realtime=True, epoch_ns=0, drop_late=drop_late)
+    src.open()
+    seqs = []
+    while (f := src.read()) is not None:
+        seqs.append(f.sequence)
+        time.sleep(0.06)  # the host takes 3 frame periods per frame
+    if drop_late:
+        assert len(seqs) < 12 and seqs[-1] >= 17  # like a camera: late frames are gone (measured 7 of 20)
+    else:
+        assert seqs == list(range(20))  # every frame, late
+
+
+def test_grabber_waits_for_the_writer_when_a_file_must_be_recorded_whole(tmp_path):
+    import queue
+    import threading
+
+    from capture.grabber import Grabber
+
+    p = write_video(tmp_path / "v.mp4", n=30, fps=30)
+    src = FileReplaySource("f", p, realtime=False, epoch_ns=0)
+    info = src.open()
+    q: queue.Queue = queue.Queue(maxsize=2)
+    g = Grabber("f", src, info, {"writer": q}, threading.Event())
+    g.start()
+    got = []
+    time.sleep(0.2)  # a slow writer: the queue is full for a while
+    while (f := q.get(timeout=5)) is not None:
+        got.append(f.sequence)
+    g.join()
+    assert got == list(range(30)) and g.stats.dropped_queue["writer"] == 0
