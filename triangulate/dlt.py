@@ -104,14 +104,15 @@ class Triangulator:
         self.n_cams = len(self.P)
 
     def _solve(self, xyn, w):
-        """Weighted linear solve. xyn (C,N,2), w (C,N) (0 = unused). Returns X (N,3)."""
+        """Weighted linear solve. xyn (C,N,2), w (C,N) (0 = unused). Returns X (N,3) and the normal
+        matrix M (N,3,3) (with depth-reweighted rows: the Gauss-Newton information in normalised units)."""
         Pn = self.Pn
         U = xyn[..., 0:1] * Pn[:, None, 2, :] - Pn[:, None, 0, :]  # (C,N,4)
         V = xyn[..., 1:2] * Pn[:, None, 2, :] - Pn[:, None, 1, :]
         R = np.concatenate([U * w[..., None], V * w[..., None]], 0).transpose(1, 0, 2)  # (N,2C,4)
         A = np.matmul(R.transpose(0, 2, 1), R)  # (N,4,4)
         M = A[:, :3, :3] + 1e-12 * np.eye(3)
-        return np.linalg.solve(M, -A[:, :3, 3:4])[..., 0]
+        return np.linalg.solve(M, -A[:, :3, 3:4])[..., 0], M
 
     def __call__(self, xy_px: np.ndarray, weights: np.ndarray | None = None) -> Triangulated:
         """Triangulate N points. xy_px: (C,N,2) undistorted pixels, NaN = unseen; weights: (C,N) scores."""
@@ -127,7 +128,7 @@ class Triangulator:
         xyn = np.where(seen[..., None], (np.nan_to_num(xy) - self.c[:, None]) / self.s[:, None, None], 0.0)
         used = seen.copy()
         ar = np.arange(N)
-        X = self._solve(xyn, w0)  # algebraic first guess
+        X, info = self._solve(xyn, w0)  # algebraic first guess
         idx = ar
         for it in range(cfg.max_rejections + 1):
             # reweight by inverse projective depth: rows then measure (normalised) pixel error;
@@ -135,7 +136,8 @@ class Triangulator:
             depth = (X[idx] @ self.Pn[:, 2, :3].T).T + self.Pn[:, None, 2, 3]
             u = used[:, idx] & (depth > 1e-6)
             used[:, idx] = u
-            X[idx] = self._solve(xyn[:, idx], np.where(u, w0[:, idx] / np.where(u, depth, 1.0), 0.0))
+            w = np.where(u, w0[:, idx] / np.where(u, depth, 1.0), 0.0)
+            X[idx], info[idx] = self._solve(xyn[:, idx], w)
             proj = (np.matmul(self.Pn[:, :, :3], X.T) + self.Pn[:, :, 3:4]).transpose(0, 2, 1)  # (C,N,3)
             depth = proj[..., 2]
             used &= depth > 1e-6
@@ -153,19 +155,16 @@ class Triangulator:
         n_views = used.sum(0)
         err_used = np.where(used, err, 0.0)
         reproj = err_used.sum(0) / np.maximum(n_views, 1)
-        # covariance sigma^2 (J^T J)^-1, J rows = d(pixel)/dX of each used view
-        safe = np.where(depth > 1e-6, depth, 1.0)[..., None]
-        Jr = np.concatenate([self.Pn[:, None, 0, :3] - (proj[..., 0:1] / safe) * self.Pn[:, None, 2, :3],
-                             self.Pn[:, None, 1, :3] - (proj[..., 1:2] / safe) * self.Pn[:, None, 2, :3]],
-                            0)  # (2C,N,3) normalised units, times 1/depth below
-        scale = np.where(used, self.s[:, None] / safe[..., 0], 0.0)
-        scale = np.concatenate([scale, scale], 0)
-        Jr = (Jr * scale[..., None]).transpose(1, 0, 2)  # (N,2C,3) pixels per metre
-        info = np.matmul(Jr.transpose(0, 2, 1), Jr) + 1e-9 * np.eye(3)
-        rms = np.sqrt((err_used ** 2).sum(0) / np.maximum(n_views, 1))
+        # covariance sigma^2 (J^T W J)^-1 from the last solve's normal matrix: its rows are the
+        # Jacobian d(normalised pixel)/dX weighted by the confidences; back to pixels with the mean
+        # focal scale and mean squared confidence of the views used
+        nv = np.maximum(n_views, 1)
+        w2 = np.where(used, w0 ** 2, 0.0).sum(0) / nv
+        s2 = np.where(used, self.s[:, None] ** 2, 0.0).sum(0) / nv
+        rms = np.sqrt((err_used ** 2).sum(0) / nv)
         sigma = np.maximum(cfg.noise_px, rms)
         tr = np.trace(np.linalg.inv(info), axis1=1, axis2=2)
-        std = sigma * np.sqrt(np.maximum(tr, 0) / 3.0)
+        std = sigma * np.sqrt(np.maximum(tr, 0) * w2 / np.maximum(s2, 1e-12) / 3.0)
         max_err = np.where(used, err, 0.0).max(0)
         ok = (n_views >= cfg.min_views) & (max_err <= cfg.max_reproj_px) & (std <= cfg.max_std_m) \
             & np.isfinite(X).all(1)
