@@ -26,6 +26,7 @@ from calibrate.detect import CameraDetections
 log = logging.getLogger(__name__)
 
 __all__ = ["ExtrinsicsConfig", "ExtrinsicsResult", "calibrate_extrinsics", "board_poses", "pairwise_links",
+           "board_symmetry",
            "initial_poses", "bundle_adjust", "LOSSES", "FLIP_BOARD_Z_UP"]
 
 LOSSES = ("trivial", "soft_l1", "cauchy", "huber")
@@ -159,10 +160,23 @@ def _robust_mean(Ts: list[np.ndarray], rot_tol_deg: float = 5.0, rel_t_tol: floa
     return _T(Rm, tm), inl
 
 
-def pairwise_links(poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200
+def board_symmetry(board: Board) -> np.ndarray | None:
+    """For a checkerboard, the 180-degree turn about the board normal that maps point k to point N-1-k
+    (4,4): its corner order is ambiguous, so two cameras may number the same corners in opposite orders.
+    None for boards with unique ids (ChArUco, ArUco grid)."""
+    if board.kind != "checkerboard":
+        return None
+    W = (board.grid[0] - 1) * board.square_size_m
+    H = (board.grid[1] - 1) * board.square_size_m
+    return np.array([[-1.0, 0, 0, W], [0, -1.0, 0, H], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
+
+
+def pairwise_links(poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200, sym: np.ndarray | None = None
                    ) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
     """Relative poses from frames where two cameras see the board at once.
-    Returns links (C,C): consistent frames per pair, and (i,j) -> cam_i_from_cam_j (4,4) for i<j."""
+    Returns links (C,C): consistent frames per pair, and (i,j) -> cam_i_from_cam_j (4,4) for i<j.
+    With a board symmetry ``sym`` each frame gives two candidates (camera j's numbering as is or turned);
+    the consistent one of each frame joins the robust mean, the other is an outlier."""
     C = len(poses)
     links = np.zeros((C, C), np.int64)
     rel = {}
@@ -174,7 +188,11 @@ def pairwise_links(poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200
             if len(common) > max_per_pair:
                 common = [common[k] for k in np.linspace(0, len(common) - 1, max_per_pair).astype(int)]
             Ts = [poses[i][f][0] @ _inv(poses[j][f][0]) for f in common]
+            if sym is not None:
+                Ts += [poses[i][f][0] @ _inv(poses[j][f][0] @ sym) for f in common]
             T, inl = _robust_mean(Ts)
+            if sym is not None:
+                inl = inl[: len(common)] | inl[len(common):]
             links[i, j] = links[j, i] = int(inl.sum())
             rel[(i, j)] = T
     return links, rel
@@ -432,7 +450,8 @@ def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[
 
     poses = [board_poses(board, cameras[c], dets[names[c]], cfg.min_points) for c in range(C)]
     tick("board poses per camera")
-    links, rel = pairwise_links(poses)
+    sym = board_symmetry(board)
+    links, rel = pairwise_links(poses, sym=sym)
     ref, cam_from_ref = initial_poses(names, links, rel, [len(p) for p in poses])
     tick("pose graph")
     frames = _choose_frames(poses, cfg.max_frames)
@@ -447,7 +466,13 @@ def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[
                 k = int(np.flatnonzero(dets[names[c]].frames == f)[0])
                 xy = dets[names[c]].xy_px[k]
                 ids = np.flatnonzero(np.isfinite(xy[:, 0]))
-                obs.append(_Obs(c, f, ids, xy[ids]))
+                if sym is not None and c != best:
+                    # number this camera's corners like the best camera's: turned if that agrees better
+                    A = _inv(cam_from_ref[c]) @ poses[c][f][0]
+                    B = ref_from_board[f]
+                    if _rot_angle_deg((A @ sym)[:3, :3].T @ B[:3, :3]) < _rot_angle_deg(A[:3, :3].T @ B[:3, :3]):
+                        ids = board.n_points - 1 - ids
+                obs.append(_Obs(c, f, ids, xy[np.flatnonzero(np.isfinite(xy[:, 0]))]))
     cams = list(cameras)
     r0 = np.concatenate(_residuals(board, cams, cam_from_ref, ref_from_board, obs))
     initial_rms = float(np.sqrt(np.mean(r0 ** 2)))
