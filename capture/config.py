@@ -43,9 +43,10 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
       every_n: 1                   # process every n-th frame set
 
 Sources: ``usb:<index>``, ``/dev/videoN``, ``rtsp://``/``rtsps://``/``http(s)://`` streams,
-``oak:`` (first OAK device) or ``oak:<mxid-or-serial>``, ``synthetic:`` (a generated test
-pattern; ``synthetic:?disconnect_at_s=1&disconnect_for_s=3`` simulates a cable pull), or a path
-to a video file (file replay at the file's own timestamps) or a recorded session's ``raw/<cam>``.
+``oak:`` (first OAK device) or ``oak:<mxid-or-serial>[?socket=CAM_A&sync=master|slave|auto]``,
+``synthetic:`` (a generated test pattern; ``synthetic:?disconnect_at_s=1&disconnect_for_s=3``
+simulates a cable pull), or a path to a video file (file replay at the file's own timestamps) or a
+recorded session's ``raw/<cam>``.
 """
 
 from __future__ import annotations

@@ -353,7 +353,9 @@ class Recorder:
         opened: dict[str, FrameSource] = {}
         try:
             for c in self.cfg.cameras:
-                src = self._given_sources.get(c.name) or make_source(c, epoch_ns=self.t0_ns)
+                src = self._given_sources.get(c.name) or make_source(
+                    c, epoch_ns=self.t0_ns, segment_s=self.cfg.recorder.segment_s
+                )
                 self.infos[c.name] = src.open()
                 opened[c.name] = src
                 log.info("%s: opened %s", c.name, redact_url(self.infos[c.name].description))

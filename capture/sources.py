@@ -168,6 +168,8 @@ class SyntheticSource(FrameSource):
     (skip every n-th sequence number: a source-side drop).
     """
 
+    BUFFER_FRAMES = 4
+
     def __init__(
         self,
         name: str,
@@ -252,10 +254,11 @@ class SyntheticSource(FrameSource):
                 end = self._start_mono + int((self.disconnect_at_s + self.disconnect_for_s) * 1e9)
                 self._seq = int(np.ceil((end - self._start_mono) * self.fps / 1e9))
                 raise SourceDisconnected(f"{self.name}: synthetic camera unplugged")
-            # a late reader (host slower than fps) still gets consecutive frames; the camera does not wait
+            # a late reader (host slower than fps) gets the frames a driver keeps (BUFFER_FRAMES, like
+            # V4L2's ring of buffers); older ones the sensor overwrote: dropped at the source
             late = (now - due) * self.fps / 1e9
-            if late > 2:
-                self._seq += int(late)  # frames the sensor produced while nobody read: dropped at the source
+            if late > self.BUFFER_FRAMES:
+                self._seq += int(late) - self.BUFFER_FRAMES
         seq = self._seq
         self._seq += 1
         if self.drop_every and seq % self.drop_every == self.drop_every - 1:
@@ -653,7 +656,9 @@ class FileReplaySource(FrameSource):
 # ----------------------------------------------------------------------------- factory
 
 
-def make_source(cam: CameraConfig, epoch_ns: int | None = None, timeout_s: float = 5.0) -> FrameSource:
+def make_source(
+    cam: CameraConfig, epoch_ns: int | None = None, timeout_s: float = 5.0, segment_s: float = 0.5
+) -> FrameSource:
     """The FrameSource for one cams.yaml entry (nothing is opened yet)."""
     kind = cam.kind
     if kind == "synthetic":
@@ -671,7 +676,7 @@ def make_source(cam: CameraConfig, epoch_ns: int | None = None, timeout_s: float
     if kind == "oak":
         from capture.oak import OakSource
 
-        return OakSource(cam)
+        return OakSource(cam, segment_s=segment_s, timeout_s=timeout_s)
     if kind in ("usb", "device", "rtsp"):
         return OpenCVSource(cam, open_timeout_s=timeout_s, read_timeout_s=timeout_s)
     raise SourceError(f"{cam.name}: unknown source kind {kind!r} for {redact_url(cam.source)}")
