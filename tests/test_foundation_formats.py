@@ -164,3 +164,13 @@ def test_save_npz_is_byte_identical_across_runs(tmp_path, rng):
     save_npz(tmp_path / "2.npz", arrays)
     assert (tmp_path / "1.npz").read_bytes() == (tmp_path / "2.npz").read_bytes()
     np.testing.assert_array_equal(load_npz(tmp_path / "2.npz")["a"], arrays["a"])
+
+
+def test_atomic_writes_get_normal_permissions(tmp_path):
+    import os
+
+    atomic_write_text(tmp_path / "a.txt", "x")
+    mode = (tmp_path / "a.txt").stat().st_mode & 0o777
+    umask = os.umask(0)
+    os.umask(umask)
+    assert mode == 0o666 & ~umask
