@@ -429,6 +429,22 @@ def _explain(stage: str, e: BaseException, root: Path, done: list[str]) -> str:
     return f"stage '{stage}': {type(e).__name__}: {e}{kept}"
 
 
+class _WarningsTo(logging.Handler):
+    """Collects the WARNING records logged while a session runs into its result (shown in the summary)."""
+
+    def __init__(self, sink: list[str]):
+        super().__init__(logging.WARNING)
+        self.sink = sink
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            msg = record.getMessage()
+        except Exception:  # a broken log call must not fail the session
+            return
+        if msg not in self.sink:
+            self.sink.append(msg)
+
+
 def check_session(source: SessionSource, out: Path | None, config: PipelineConfig) -> SessionResult | None:
     """The result of a session whose every stage is up to date (without running anything), else None."""
     if source.problem:
@@ -470,6 +486,8 @@ def process_session(
         _limit_threads(threads)
     stage = "discovery"
     done: list[str] = []
+    collect = _WarningsTo(result.warnings)
+    logging.getLogger().addHandler(collect)
     try:
         if source.problem:
             raise StageError(source.problem)
@@ -527,6 +545,8 @@ def process_session(
             str(e) if isinstance(e, StageError) and stage == "discovery" else _explain(stage, e, root, done)
         )
         log.debug("session %s failed:\n%s", source.name, traceback.format_exc())
+    finally:
+        logging.getLogger().removeHandler(collect)
     if result.status == "ok" and result.warnings:
         result.message = "warning: " + "; ".join(result.warnings)
     return result
