@@ -69,7 +69,7 @@ def p2ds_of(board, cams, dets, frames) -> np.ndarray:
         idx = {int(f): k for k, f in enumerate(d.frames)}
         for j, f in enumerate(frames):
             if f in idx:
-                out[c, j * N:(j + 1) * N] = d.xy_px[idx[f]]
+                out[c, j * N : (j + 1) * N] = d.xy_px[idx[f]]
     keep = np.isfinite(out[..., 0]).sum(0) >= 2
     return out[:, keep]
 
@@ -78,8 +78,12 @@ def to_anipose(cams: list[Camera]):
     from aniposelib.cameras import Camera as ACam
     from aniposelib.cameras import CameraGroup
 
-    return CameraGroup([ACam(matrix=c.K, dist=c.dist, size=list(c.size_wh), rvec=c.rvec, tvec=c.t, name=c.name)
-                        for c in cams])
+    return CameraGroup(
+        [
+            ACam(matrix=c.K, dist=c.dist, size=list(c.size_wh), rvec=c.rvec, tvec=c.t, name=c.name)
+            for c in cams
+        ]
+    )
 
 
 def from_anipose(group, cams: list[Camera]) -> list[Camera]:
@@ -88,9 +92,14 @@ def from_anipose(group, cams: list[Camera]) -> list[Camera]:
         import cv2
 
         R = cv2.Rodrigues(np.asarray(a.get_rotation(), float).reshape(3))[0]
-        out.append(c.replace(R=R, t=np.asarray(a.get_translation(), float).reshape(3),
-                             K=np.asarray(a.get_camera_matrix(), float),
-                             dist=np.asarray(a.get_distortions(), float).reshape(-1)[: c.dist.size]))
+        out.append(
+            c.replace(
+                R=R,
+                t=np.asarray(a.get_translation(), float).reshape(3),
+                K=np.asarray(a.get_camera_matrix(), float),
+                dist=np.asarray(a.get_distortions(), float).reshape(-1)[: c.dist.size],
+            )
+        )
     return out
 
 
@@ -100,18 +109,24 @@ def common_rms(cams: list[Camera], p2ds: np.ndarray) -> float:
     p3 = g.triangulate(p2ds, progress=False)
     err = g.reprojection_error(p3, p2ds, mean=False)  # (C, P, 2)
     e = np.linalg.norm(err, axis=-1)
-    return float(np.sqrt(np.nanmean(e ** 2)))
+    return float(np.sqrt(np.nanmean(e**2)))
 
 
 def run_problem(name: str, board: Board, cams: list[Camera], dets: dict, log: dict) -> None:
     init, frames = initial_rig(board, cams, dets)
     p2ds = p2ds_of(board, cams, dets, frames)
-    res: dict = {"cameras": len(cams), "frames": len(frames), "points": int(p2ds.shape[1]),
-                 "observations": int(np.isfinite(p2ds[..., 0]).sum()),
-                 "rms_initial_px": common_rms(init, p2ds)}
+    res: dict = {
+        "cameras": len(cams),
+        "frames": len(frames),
+        "points": int(p2ds.shape[1]),
+        "observations": int(np.isfinite(p2ds[..., 0]).sum()),
+        "rms_initial_px": common_rms(init, p2ds),
+    }
     # ours: the whole extrinsics stage (PnP, pose graph, 2 BA passes) and the BA alone
     t0 = time.perf_counter()
-    ext = calibrate_extrinsics(board, cams, dets, ExtrinsicsConfig(refine_intrinsics="none", max_frames=10 ** 6))
+    ext = calibrate_extrinsics(
+        board, cams, dets, ExtrinsicsConfig(refine_intrinsics="none", max_frames=10**6)
+    )
     res["ours_total_s"] = time.perf_counter() - t0
     res["ours_ba_s"] = ext.ba_time_s
     res["ours_rms_px"] = common_rms(list(ext.rig.cameras), p2ds)
@@ -133,17 +148,29 @@ def run_problem(name: str, board: Board, cams: list[Camera], dets: dict, log: di
     log[name] = res
     print(f"== {name}: {res['cameras']} cameras, {res['frames']} frames, {res['observations']} observations")
     print(f"   initial RMS {res['rms_initial_px']:.3f} px")
-    print(f"   ours (pycolmap/Ceres)        BA {res['ours_ba_s']:.2f} s (extrinsics stage {res['ours_total_s']:.2f} s)"
-          f"  RMS {res['ours_rms_px']:.3f} px (rigid-board RMS {res['ours_board_rms_px']:.3f})")
-    print(f"   aniposelib bundle_adjust_iter   {res['anipose_iter_s']:.2f} s  RMS {res['anipose_iter_rms_px']:.3f} px"
-          f"  -> ours {res['speedup_vs_iter']:.1f}x faster")
-    print(f"   aniposelib bundle_adjust (all)  {res['anipose_full_s']:.2f} s  RMS {res['anipose_full_rms_px']:.3f} px"
-          f"  -> ours {res['speedup_vs_full']:.1f}x faster")
+    print(
+        f"   ours (pycolmap/Ceres)        BA {res['ours_ba_s']:.2f} s (extrinsics stage "
+        f"{res['ours_total_s']:.2f} s)"
+        f"  RMS {res['ours_rms_px']:.3f} px (rigid-board RMS {res['ours_board_rms_px']:.3f})"
+    )
+    print(
+        f"   aniposelib bundle_adjust_iter   {res['anipose_iter_s']:.2f} s  RMS "
+        f"{res['anipose_iter_rms_px']:.3f} px"
+        f"  -> ours {res['speedup_vs_iter']:.1f}x faster"
+    )
+    print(
+        f"   aniposelib bundle_adjust (all)  {res['anipose_full_s']:.2f} s  RMS "
+        f"{res['anipose_full_rms_px']:.3f} px"
+        f"  -> ours {res['speedup_vs_full']:.1f}x faster"
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")))
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+    )
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--ring-frames", type=int, default=30, help="shared board poses of the synthetic ring")
     args = ap.parse_args()
@@ -161,13 +188,25 @@ def main() -> None:
     rng = np.random.default_rng(0)
     board = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
     rig = ring_rig(12, 2.0, rng=rng)
-    T = np.concatenate([board_trajectory(board, args.ring_frames, rng, spread_m=0.6)] +
-                       [views_near_camera(board, c, 8, rng, tilt_deg=60) for c in rig])
+    T = np.concatenate(
+        [board_trajectory(board, args.ring_frames, rng, spread_m=0.6)]
+        + [views_near_camera(board, c, 8, rng, tilt_deg=60) for c in rig]
+    )
     dets = project_detections(board, rig, T, rng, noise_px=0.3)
     cams = [calibrate_intrinsics(board, dets[c.name]).camera() for c in rig]
     run_problem("synthetic_ring_12cam", board, cams, dets, log)
-    print("BENCH " + json.dumps({"bench": "calibrate_ba", **{k: {kk: round(vv, 4) if isinstance(vv, float) else vv
-                                                                for kk, vv in v.items()} for k, v in log.items()}}))
+    print(
+        "BENCH "
+        + json.dumps(
+            {
+                "bench": "calibrate_ba",
+                **{
+                    k: {kk: round(vv, 4) if isinstance(vv, float) else vv for kk, vv in v.items()}
+                    for k, v in log.items()
+                },
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

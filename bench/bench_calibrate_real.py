@@ -48,7 +48,7 @@ def umeyama(X: np.ndarray, Y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray
     D = np.eye(3)
     D[2, 2] = np.sign(np.linalg.det(U @ Vt))
     R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (Xc ** 2).sum() * len(X))
+    s = float(np.trace(np.diag(S) @ D) / (Xc**2).sum() * len(X))
     return s, R, my - s * R @ mx
 
 
@@ -58,13 +58,20 @@ def rig_errors(est: CameraRig, truth: CameraRig) -> dict:
     R = U @ Vt
     ce, ct = est.centers(), truth.centers()
     t = (ct - ce @ R.T).mean(0)
-    rot = [float(np.degrees(np.arccos(np.clip((np.trace((truth[i].R @ R).T @ est[i].R) - 1) / 2, -1, 1))))
-           for i in range(len(truth))]
+    rot = [
+        float(np.degrees(np.arccos(np.clip((np.trace((truth[i].R @ R).T @ est[i].R) - 1) / 2, -1, 1))))
+        for i in range(len(truth))
+    ]
     f = [abs(est[i].K[0, 0] / truth[i].K[0, 0] - 1) * 100 for i in range(len(truth))]
     c = np.linalg.norm(ce @ R.T + t - ct, axis=1) * 1000
-    return {"focal_err_pct_max": max(f), "rot_err_deg_max": max(rot), "center_err_mm_max": float(c.max()),
-            "focal_err_pct_median": float(np.median(f)), "rot_err_deg_median": float(np.median(rot)),
-            "center_err_mm_median": float(np.median(c))}
+    return {
+        "focal_err_pct_max": max(f),
+        "rot_err_deg_max": max(rot),
+        "center_err_mm_max": float(c.max()),
+        "focal_err_pct_median": float(np.median(f)),
+        "rot_err_deg_median": float(np.median(rot)),
+        "center_err_mm_median": float(np.median(c)),
+    }
 
 
 def caliscope(shared: Path, out: dict) -> None:
@@ -77,11 +84,18 @@ def caliscope(shared: Path, out: dict) -> None:
     ref = import_rig(rec / "camera_array.toml", "caliscope")
     import tomllib
 
-    ref_err = {f"cam_{k}": v["error"] for k, v in tomllib.loads((rec / "camera_array.toml").read_text())["cameras"].items()}
+    ref_err = {
+        f"cam_{k}": v["error"]
+        for k, v in tomllib.loads((rec / "camera_array.toml").read_text())["cameras"].items()
+    }
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        res = calibrate_recording(rec / "calibration" / "extrinsic", rec / "charuco.toml", Path(tmp) / "rig.toml",
-                                  CalibrationConfig())
+        res = calibrate_recording(
+            rec / "calibration" / "extrinsic",
+            rec / "charuco.toml",
+            Path(tmp) / "rig.toml",
+            CalibrationConfig(),
+        )
         total = time.perf_counter() - t0
     rig = res.rig
     s, R, t = umeyama(rig.centers(), ref.subset(rig.names).centers())
@@ -89,24 +103,48 @@ def caliscope(shared: Path, out: dict) -> None:
     dist = np.linalg.norm(aligned - ref.subset(rig.names).centers(), axis=1) * 1000
     rows = {}
     print("== caliscope charuco_calibration: calibrate_recording from the videos alone")
-    print(f"   {'camera':<8}{'ours RMS':>10}{'caliscope':>11}{'frames':>8}{'f ours':>9}{'f calisc.':>10}{'pos err mm':>11}")
+    print(
+        f"   {'camera':<8}{'ours RMS':>10}{'caliscope':>11}{'frames':>8}{'f ours':>9}"
+        f"{'f calisc.':>10}{'pos err mm':>11}"
+    )
     for i, name in enumerate(rig.names):
         r = res.intrinsics[name]
-        rows[name] = {"intrinsic_rms_px": r.rms_px, "caliscope_error_px": ref_err[name], "frames_used": len(r.frames_used),
-                      "focal_px": float(rig[name].K[0, 0]), "caliscope_focal_px": float(ref[name].K[0, 0]),
-                      "position_err_mm": float(dist[i])}
-        print(f"   {name:<8}{r.rms_px:>10.3f}{ref_err[name]:>11.3f}{len(r.frames_used):>8}{rig[name].K[0, 0]:>9.1f}"
-              f"{ref[name].K[0, 0]:>10.1f}{dist[i]:>11.1f}")
+        rows[name] = {
+            "intrinsic_rms_px": r.rms_px,
+            "caliscope_error_px": ref_err[name],
+            "frames_used": len(r.frames_used),
+            "focal_px": float(rig[name].K[0, 0]),
+            "caliscope_focal_px": float(ref[name].K[0, 0]),
+            "position_err_mm": float(dist[i]),
+        }
+        print(
+            f"   {name:<8}{r.rms_px:>10.3f}{ref_err[name]:>11.3f}{len(r.frames_used):>8}"
+            f"{rig[name].K[0, 0]:>9.1f}"
+            f"{ref[name].K[0, 0]:>10.1f}{dist[i]:>11.1f}"
+        )
     ext = res.extrinsics
-    print(f"   similarity alignment to caliscope: scale {s:.4f}, camera position error mean {dist.mean():.1f} mm, "
-          f"max {dist.max():.1f} mm (camera spread {np.ptp(ref.centers(), 0).max():.2f} m)")
-    print(f"   BA RMS {ext.initial_rms_px:.3f} -> {ext.final_rms_px:.3f} px in {ext.ba_time_s:.2f} s; "
-          f"end to end {total:.1f} s (detect {res.timings_s['detect_s']:.1f} s)")
-    out["caliscope"] = {"cameras": rows, "intrinsic_rms_all_le_caliscope": all(v["intrinsic_rms_px"] <= v["caliscope_error_px"]
-                                                                              for v in rows.values()),
-                        "umeyama_scale": s, "position_err_mm_mean": float(dist.mean()),
-                        "position_err_mm_max": float(dist.max()), "ba_rms_px": ext.final_rms_px,
-                        "ba_time_s": ext.ba_time_s, "end_to_end_s": total, "detect_s": res.timings_s["detect_s"]}
+    print(
+        f"   similarity alignment to caliscope: scale {s:.4f}, camera position error mean "
+        f"{dist.mean():.1f} mm, "
+        f"max {dist.max():.1f} mm (camera spread {np.ptp(ref.centers(), 0).max():.2f} m)"
+    )
+    print(
+        f"   BA RMS {ext.initial_rms_px:.3f} -> {ext.final_rms_px:.3f} px in {ext.ba_time_s:.2f} s; "
+        f"end to end {total:.1f} s (detect {res.timings_s['detect_s']:.1f} s)"
+    )
+    out["caliscope"] = {
+        "cameras": rows,
+        "intrinsic_rms_all_le_caliscope": all(
+            v["intrinsic_rms_px"] <= v["caliscope_error_px"] for v in rows.values()
+        ),
+        "umeyama_scale": s,
+        "position_err_mm_mean": float(dist.mean()),
+        "position_err_mm_max": float(dist.max()),
+        "ba_rms_px": ext.final_rms_px,
+        "ba_time_s": ext.ba_time_s,
+        "end_to_end_s": total,
+        "detect_s": res.timings_s["detect_s"],
+    }
 
 
 def pose2sim(shared: Path, out: dict) -> None:
@@ -121,7 +159,10 @@ def pose2sim(shared: Path, out: dict) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         dets = detect_all(board, discover_recording(d / "intrinsics"), Path(tmp))
     print("== Pose2Sim Demo_SinglePerson intrinsics (checkerboard 4x7, 60 mm) vs Qualisys Calib.qca.txt")
-    print(f"   {'camera':<8}{'views':>6}{'RMS':>7}{'f ours':>9}{'f QTM':>9}{'df %':>7}{'cx,cy ours':>16}{'cx,cy QTM':>16}{'dc px':>14}")
+    print(
+        f"   {'camera':<8}{'views':>6}{'RMS':>7}{'f ours':>9}{'f QTM':>9}{'df %':>7}"
+        f"{'cx,cy ours':>16}{'cx,cy QTM':>16}{'dc px':>14}"
+    )
     rows = {}
     for name, det in dets.items():
         qn = "cam" + name.split("cam")[1][:2]
@@ -129,13 +170,26 @@ def pose2sim(shared: Path, out: dict) -> None:
         r = calibrate_intrinsics(board, det, IntrinsicsConfig(min_frames=4))
         df = (r.K[0, 0] / qc.K[0, 0] - 1) * 100
         dc = r.K[:2, 2] - qc.K[:2, 2]
-        rows[qn] = {"views": len(r.frames_used), "rms_px": r.rms_px, "focal_px": float(r.K[0, 0]),
-                    "qualisys_focal_px": float(qc.K[0, 0]), "focal_diff_pct": float(df),
-                    "pp_diff_px": dc.tolist(), "size_wh": list(det.size_wh), "qualisys_size_wh": list(qc.size_wh)}
-        print(f"   {qn:<8}{len(r.frames_used):>6}{r.rms_px:>7.3f}{r.K[0, 0]:>9.1f}{qc.K[0, 0]:>9.1f}{df:>7.2f}"
-              f"{r.K[0, 2]:>8.1f},{r.K[1, 2]:<7.1f}{qc.K[0, 2]:>8.1f},{qc.K[1, 2]:<7.1f}{dc[0]:>7.1f},{dc[1]:<6.1f}")
-    out["pose2sim"] = {"cameras": rows, "focal_diff_pct_max_abs": max(abs(v["focal_diff_pct"]) for v in rows.values()),
-                       "pp_diff_px_max_abs": max(max(abs(x) for x in v["pp_diff_px"]) for v in rows.values())}
+        rows[qn] = {
+            "views": len(r.frames_used),
+            "rms_px": r.rms_px,
+            "focal_px": float(r.K[0, 0]),
+            "qualisys_focal_px": float(qc.K[0, 0]),
+            "focal_diff_pct": float(df),
+            "pp_diff_px": dc.tolist(),
+            "size_wh": list(det.size_wh),
+            "qualisys_size_wh": list(qc.size_wh),
+        }
+        print(
+            f"   {qn:<8}{len(r.frames_used):>6}{r.rms_px:>7.3f}{r.K[0, 0]:>9.1f}{qc.K[0, 0]:>9.1f}{df:>7.2f}"
+            f"{r.K[0, 2]:>8.1f},{r.K[1, 2]:<7.1f}{qc.K[0, 2]:>8.1f},{qc.K[1, 2]:<7.1f}"
+            f"{dc[0]:>7.1f},{dc[1]:<6.1f}"
+        )
+    out["pose2sim"] = {
+        "cameras": rows,
+        "focal_diff_pct_max_abs": max(abs(v["focal_diff_pct"]) for v in rows.values()),
+        "pp_diff_px_max_abs": max(max(abs(x) for x in v["pp_diff_px"]) for v in rows.values()),
+    }
 
 
 def stereo(shared: Path, out: dict) -> None:
@@ -151,17 +205,21 @@ def stereo(shared: Path, out: dict) -> None:
     fs.release()
     srcs = discover_recording(d)
     srcs = [s for s in srcs if s.name in ("left", "right")]
-    assert sorted(p.name for s in srcs for p in s.paths) == sorted(listed), "image list differs from stereo_calib.xml"
+    assert sorted(p.name for s in srcs for p in s.paths) == sorted(listed), (
+        "image list differs from stereo_calib.xml"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         dets = detect_all(board, srcs, Path(tmp))
     cams = [calibrate_intrinsics(board, dets[n], IntrinsicsConfig(min_frames=4)) for n in ("left", "right")]
     ext = calibrate_extrinsics(board, [c.camera() for c in cams], dets, ExtrinsicsConfig(world="camera:left"))
     R_ours, t_ours = ext.rig["right"].R, ext.rig["right"].t
-    # OpenCV's reference: stereoCalibrate on the same corners (frames seen by both), as samples/cpp/stereo_calib.cpp
+    # OpenCV's reference: stereoCalibrate on the same corners (frames seen by both), as stereo_calib.cpp
     common = sorted(set(dets["left"].seen_frames(54)) & set(dets["right"].seen_frames(54)))
     obj = board.object_points().astype(np.float32)
-    ip = {n: [dets[n].xy_px[int(np.flatnonzero(dets[n].frames == f)[0])].astype(np.float32) for f in common]
-          for n in ("left", "right")}
+    ip = {
+        n: [dets[n].xy_px[int(np.flatnonzero(dets[n].frames == f)[0])].astype(np.float32) for f in common]
+        for n in ("left", "right")
+    }
     # a checkerboard's corner order is ambiguous (180 degrees): number the right view's corners like the
     # left's, per frame, by which order gives the relative rotation agreeing with the others (independent of
     # our pipeline: OpenCV's single-camera calibrations and solvePnP)
@@ -186,38 +244,85 @@ def stereo(shared: Path, out: dict) -> None:
             n_turned += 1
     # the sample's flags (aspect ratio fixed, no tangential, same focal, rational k1,k2,k6), initial K from
     # initCameraMatrix2D as in the sample
-    flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_USE_INTRINSIC_GUESS | \
-        cv2.CALIB_SAME_FOCAL_LENGTH | cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5
+    flags = (
+        cv2.CALIB_FIX_ASPECT_RATIO
+        | cv2.CALIB_ZERO_TANGENT_DIST
+        | cv2.CALIB_USE_INTRINSIC_GUESS
+        | cv2.CALIB_SAME_FOCAL_LENGTH
+        | cv2.CALIB_RATIONAL_MODEL
+        | cv2.CALIB_FIX_K3
+        | cv2.CALIB_FIX_K4
+        | cv2.CALIB_FIX_K5
+    )
     objs = [obj.reshape(-1, 1, 3)] * len(common)
     K0 = cv2.initCameraMatrix2D(objs, [p.reshape(-1, 1, 2) for p in ip["left"]], (640, 480), 0)
     K0b = cv2.initCameraMatrix2D(objs, [p.reshape(-1, 1, 2) for p in ip["right"]], (640, 480), 0)
     rms, K1, D1, K2, D2, R, T, _, _ = cv2.stereoCalibrate(
-        objs, [p.reshape(-1, 1, 2) for p in ip["left"]], [p.reshape(-1, 1, 2) for p in ip["right"]],
-        K0, np.zeros(8), K0b, np.zeros(8), (640, 480), flags=flags,
-        criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-5))
+        objs,
+        [p.reshape(-1, 1, 2) for p in ip["left"]],
+        [p.reshape(-1, 1, 2) for p in ip["right"]],
+        K0,
+        np.zeros(8),
+        K0b,
+        np.zeros(8),
+        (640, 480),
+        flags=flags,
+        criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-5),
+    )
     dR = float(np.degrees(np.arccos(np.clip((np.trace(R.T @ R_ours) - 1) / 2, -1, 1))))
     # and with our intrinsics held fixed, so that only the extrinsics are compared
     c0, c1 = cams[0].camera(), cams[1].camera()
     rms_fix, *_, Rf, Tf, _, _ = cv2.stereoCalibrate(
-        objs, [p.reshape(-1, 1, 2) for p in ip["left"]], [p.reshape(-1, 1, 2) for p in ip["right"]],
-        c0.K.copy(), c0.dist.copy(), c1.K.copy(), c1.dist.copy(), (640, 480), None, None,
-        flags=cv2.CALIB_FIX_INTRINSIC)
+        objs,
+        [p.reshape(-1, 1, 2) for p in ip["left"]],
+        [p.reshape(-1, 1, 2) for p in ip["right"]],
+        c0.K.copy(),
+        c0.dist.copy(),
+        c1.K.copy(),
+        c1.dist.copy(),
+        (640, 480),
+        None,
+        None,
+        flags=cv2.CALIB_FIX_INTRINSIC,
+    )
     dR_fix = float(np.degrees(np.arccos(np.clip((np.trace(Rf.T @ R_ours) - 1) / 2, -1, 1))))
     db_fix = float(np.linalg.norm(t_ours) / np.linalg.norm(Tf) - 1) * 100
     b_ours, b_cv = float(np.linalg.norm(t_ours)), float(np.linalg.norm(T))
-    res = {"pairs": len(common), "right_views_renumbered": n_turned, "ours_f_px": [float(c.K[0, 0]) for c in cams], "opencv_f_px": [float(K1[0, 0]), float(K2[0, 0])],
-           "ours_intrinsic_rms_px": [c.rms_px for c in cams], "ours_ba_rms_px": ext.final_rms_px, "opencv_stereo_rms_px": float(rms),
-           "baseline_squares_ours": b_ours, "baseline_squares_opencv": b_cv, "relative_rotation_diff_deg": dR,
-           "fixed_intrinsics_rotation_diff_deg": dR_fix, "fixed_intrinsics_baseline_diff_pct": db_fix,
-           "fixed_intrinsics_opencv_rms_px": float(rms_fix),
-           "baseline_direction_diff_deg": float(np.degrees(np.arccos(np.clip(t_ours @ T.ravel() / b_ours / b_cv, -1, 1))))}
-    print("== OpenCV stereo chessboard (stereo_calib.xml image list, 9x6): ours vs cv2.stereoCalibrate (sample flags)")
-    print(f"   pairs {len(common)}; focal ours {res['ours_f_px'][0]:.1f}/{res['ours_f_px'][1]:.1f} vs OpenCV "
-          f"{res['opencv_f_px'][0]:.1f}/{res['opencv_f_px'][1]:.1f} px; RMS ours {ext.final_rms_px:.3f} vs OpenCV {rms:.3f} px")
-    print(f"   baseline {b_ours:.3f} vs {b_cv:.3f} squares; relative rotation differs by {dR:.3f} deg, "
-          f"baseline direction by {res['baseline_direction_diff_deg']:.3f} deg")
-    print(f"   with our intrinsics fixed in stereoCalibrate: rotation differs by {dR_fix:.3f} deg, baseline by "
-          f"{db_fix:.3f} % (OpenCV RMS {rms_fix:.3f} px)")
+    res = {
+        "pairs": len(common),
+        "right_views_renumbered": n_turned,
+        "ours_f_px": [float(c.K[0, 0]) for c in cams],
+        "opencv_f_px": [float(K1[0, 0]), float(K2[0, 0])],
+        "ours_intrinsic_rms_px": [c.rms_px for c in cams],
+        "ours_ba_rms_px": ext.final_rms_px,
+        "opencv_stereo_rms_px": float(rms),
+        "baseline_squares_ours": b_ours,
+        "baseline_squares_opencv": b_cv,
+        "relative_rotation_diff_deg": dR,
+        "fixed_intrinsics_rotation_diff_deg": dR_fix,
+        "fixed_intrinsics_baseline_diff_pct": db_fix,
+        "fixed_intrinsics_opencv_rms_px": float(rms_fix),
+        "baseline_direction_diff_deg": float(
+            np.degrees(np.arccos(np.clip(t_ours @ T.ravel() / b_ours / b_cv, -1, 1)))
+        ),
+    }
+    print(
+        "== OpenCV stereo chessboard (stereo_calib.xml image list, 9x6): ours vs cv2.stereoCalibrate "
+        "(sample flags)"
+    )
+    print(
+        f"   pairs {len(common)}; focal ours {res['ours_f_px'][0]:.1f}/{res['ours_f_px'][1]:.1f} vs OpenCV "
+        f"{res['opencv_f_px'][0]:.1f}/{res['opencv_f_px'][1]:.1f} px; RMS ours {ext.final_rms_px:.3f} vs "
+        f"OpenCV {rms:.3f} px"
+    )
+    print(
+        f"   baseline {b_ours:.3f} vs {b_cv:.3f} squares; relative rotation differs by {dR:.3f} deg, "
+        f"baseline direction by {res['baseline_direction_diff_deg']:.3f} deg"
+    )
+    print(
+        f"   with our intrinsics fixed in stereoCalibrate: rotation differs by {dR_fix:.3f} deg, baseline by "
+        f"{db_fix:.3f} % (OpenCV RMS {rms_fix:.3f} px)"
+    )
     out["stereo"] = res
 
 
@@ -227,8 +332,10 @@ def synthetic_ring(out: dict, n_frames: int) -> None:
     rng = np.random.default_rng(0)
     board = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
     rig = ring_rig(12, 2.0, size_wh=(960, 720), focal_px=800.0, rng=rng)
-    T = np.concatenate([board_trajectory(board, n_frames, rng, spread_m=0.6)] +
-                       [views_near_camera(board, c, 12, rng, tilt_deg=60) for c in rig])
+    T = np.concatenate(
+        [board_trajectory(board, n_frames, rng, spread_m=0.6)]
+        + [views_near_camera(board, c, 12, rng, tilt_deg=60) for c in rig]
+    )
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         write_recording(board, rig, T, Path(tmp) / "rec", rng, noise=2.0, blur_sigma_px=0.7)
@@ -236,23 +343,37 @@ def synthetic_ring(out: dict, n_frames: int) -> None:
         res = {}
         for model, refine in (("pinhole4", "all"), ("pinhole4", "focal_pp"), ("pinhole", "none")):
             t0 = time.perf_counter()
-            r = calibrate_recording(Path(tmp) / "rec", board, Path(tmp) / f"out_{model}_{refine}" / "rig.toml",
-                                    CalibrationConfig(model=model, refine_intrinsics=refine))
+            r = calibrate_recording(
+                Path(tmp) / "rec",
+                board,
+                Path(tmp) / f"out_{model}_{refine}" / "rig.toml",
+                CalibrationConfig(model=model, refine_intrinsics=refine),
+            )
             e = rig_errors(r.rig, rig)
             e["time_s"] = time.perf_counter() - t0
             e["ba_rms_px"] = r.extrinsics.final_rms_px
             res[f"{model}/{refine}"] = e
-    print(f"== synthetic 12-camera ring, rendered ({len(T)} board poses, 960x720, blur 0.7 px, noise 2 gray levels; "
-          f"render {t_render:.0f} s)")
+    print(
+        f"== synthetic 12-camera ring, rendered ({len(T)} board poses, 960x720, blur 0.7 px, noise 2 gray "
+        "levels; "
+        f"render {t_render:.0f} s)"
+    )
     for k, e in res.items():
-        print(f"   {k:<18} focal err max {e['focal_err_pct_max']:.3f} %  rotation max {e['rot_err_deg_max']:.3f} deg  "
-              f"centre max {e['center_err_mm_max']:.2f} mm  (BA RMS {e['ba_rms_px']:.3f} px, {e['time_s']:.0f} s)")
+        print(
+            f"   {k:<18} focal err max {e['focal_err_pct_max']:.3f} %  rotation max "
+            f"{e['rot_err_deg_max']:.3f} deg  "
+            f"centre max {e['center_err_mm_max']:.2f} mm  (BA RMS {e['ba_rms_px']:.3f} px, "
+            f"{e['time_s']:.0f} s)"
+        )
     out["synthetic_ring_rendered"] = res
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")))
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+    )
     ap.add_argument("--skip-synthetic", action="store_true")
     ap.add_argument("--ring-frames", type=int, default=40)
     args = ap.parse_args()

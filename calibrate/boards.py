@@ -40,11 +40,24 @@ __all__ = ["Board", "CalibrationError", "load_board", "save_board", "DICTIONARIE
 class CalibrationError(RuntimeError):
     """Calibration cannot go on: the message says what happened and what to do."""
 
+
 BOARD_SCHEMA = "board"
 BOARD_VERSION = 1
 BOARD_KINDS = ("charuco", "checkerboard", "aruco_grid")
-_KEYS = ("schema", "kind", "squares", "inner_corners", "markers", "square_size_m", "marker_size_m",
-         "marker_separation_m", "dictionary", "legacy_pattern", "inverted", "name")
+_KEYS = (
+    "schema",
+    "kind",
+    "squares",
+    "inner_corners",
+    "markers",
+    "square_size_m",
+    "marker_size_m",
+    "marker_separation_m",
+    "dictionary",
+    "legacy_pattern",
+    "inverted",
+    "name",
+)
 
 
 def _dictionaries() -> tuple[str, ...]:
@@ -85,17 +98,23 @@ class Board:
                 raise ValueError(f"board {k} must be a number (metres), got {v!r}")
             object.__setattr__(self, k, float(v))
         if not isinstance(self.dictionary, str):
-            raise ValueError(f"board dictionary must be a name such as 'DICT_4X4_50', got {self.dictionary!r}")
+            raise ValueError(
+                f"board dictionary must be a name such as 'DICT_4X4_50', got {self.dictionary!r}"
+            )
         if self.kind == "charuco" and min(g) < 3:
             raise ValueError(f"a ChArUco board needs at least 3x3 squares, got {g}")
         if self.kind in ("charuco", "checkerboard") and not self.square_size_m > 0:
             raise ValueError(f"square_size_m must be > 0, got {self.square_size_m}")
         if self.kind in ("charuco", "aruco_grid"):
             if not self.marker_size_m > 0:
-                raise ValueError(f"marker_size_m must be > 0 for a {self.kind} board, got {self.marker_size_m}")
+                raise ValueError(
+                    f"marker_size_m must be > 0 for a {self.kind} board, got {self.marker_size_m}"
+                )
             if self.kind == "charuco" and self.marker_size_m >= self.square_size_m:
-                raise ValueError(f"marker_size_m ({self.marker_size_m}) must be smaller than square_size_m "
-                                 f"({self.square_size_m})")
+                raise ValueError(
+                    f"marker_size_m ({self.marker_size_m}) must be smaller than square_size_m "
+                    f"({self.square_size_m})"
+                )
             if self.dictionary not in DICTIONARIES:
                 raise ValueError(f"unknown dictionary {self.dictionary!r}; valid: {', '.join(DICTIONARIES)}")
 
@@ -119,8 +138,9 @@ class Board:
                 xs, ys = np.meshgrid(np.arange(cx), np.arange(cy))
                 obj = np.stack([xs.ravel(), ys.ravel(), np.zeros(cx * cy)], 1) * self.square_size_m
             else:
-                obj = np.concatenate([np.asarray(o, np.float64).reshape(4, 3)
-                                      for o in self.cv_board().getObjPoints()])
+                obj = np.concatenate(
+                    [np.asarray(o, np.float64).reshape(4, 3) for o in self.cv_board().getObjPoints()]
+                )
             obj.setflags(write=False)
             self._cache["obj"] = obj
         return self._cache["obj"]
@@ -145,17 +165,21 @@ class Board:
         import cv2
 
         if self.kind == "charuco":
-            b = cv2.aruco.CharucoBoard(self.grid, self.square_size_m, self.marker_size_m, self.cv_dictionary())
+            b = cv2.aruco.CharucoBoard(
+                self.grid, self.square_size_m, self.marker_size_m, self.cv_dictionary()
+            )
             b.setLegacyPattern(bool(self.legacy_pattern))
             return b
         if self.kind == "aruco_grid":
-            return cv2.aruco.GridBoard(self.grid, self.marker_size_m, self.marker_separation_m,
-                                       self.cv_dictionary())
+            return cv2.aruco.GridBoard(
+                self.grid, self.marker_size_m, self.marker_separation_m, self.cv_dictionary()
+            )
         return None
 
     def render(self, px_per_m: float = 4000.0, margin_px: int = 0) -> np.ndarray:
         """The printed board as a grayscale image (H,W) uint8; board point (x,y) in metres maps to pixel
-        (x * px_per_m + margin_px, y * px_per_m + margin_px) (pixel centres). Inverted boards render inverted."""
+        (x * px_per_m + margin_px, y * px_per_m + margin_px) (pixel centres).
+        Inverted boards render inverted."""
         import cv2
 
         w_m, h_m = self.extent_m()
@@ -170,8 +194,15 @@ class Board:
         if self.inverted:
             img = 255 - img
         if margin_px:
-            img = cv2.copyMakeBorder(img, margin_px, margin_px, margin_px, margin_px, cv2.BORDER_CONSTANT,
-                                     value=0 if self.inverted else 255)
+            img = cv2.copyMakeBorder(
+                img,
+                margin_px,
+                margin_px,
+                margin_px,
+                margin_px,
+                cv2.BORDER_CONSTANT,
+                value=0 if self.inverted else 255,
+            )
         return img
 
     def image_origin_m(self) -> float:
@@ -187,8 +218,13 @@ class Board:
         # markers 0..n-1: detections do not depend on which one of the family is named
         fam = self.dictionary.rsplit("_", 1)
         dict_key = fam[0] if len(fam) == 2 and fam[1].isdigit() else self.dictionary
-        d = {"kind": self.kind, "grid": list(self.grid), "dictionary": dict_key if self.uses_markers else "",
-             "legacy": bool(self.legacy_pattern) and self.kind == "charuco", "inverted": bool(self.inverted)}
+        d = {
+            "kind": self.kind,
+            "grid": list(self.grid),
+            "dictionary": dict_key if self.uses_markers else "",
+            "legacy": bool(self.legacy_pattern) and self.kind == "charuco",
+            "inverted": bool(self.inverted),
+        }
         if self.kind == "charuco":
             d["ratio"] = round(self.marker_size_m / self.square_size_m, 6)
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
@@ -214,10 +250,15 @@ class Board:
     def describe(self) -> str:
         g = f"{self.grid[0]}x{self.grid[1]}"
         if self.kind == "charuco":
-            return (f"ChArUco {g} squares of {self.square_size_m * 100:g} cm, markers {self.marker_size_m * 100:g} cm, "
-                    f"{self.dictionary}, legacy_pattern={self.legacy_pattern}, inverted={self.inverted}")
+            return (
+                f"ChArUco {g} squares of {self.square_size_m * 100:g} cm, markers "
+                f"{self.marker_size_m * 100:g} cm, "
+                f"{self.dictionary}, legacy_pattern={self.legacy_pattern}, inverted={self.inverted}"
+            )
         if self.kind == "checkerboard":
-            return f"checkerboard {g} inner corners of {self.square_size_m * 100:g} cm, inverted={self.inverted}"
+            return (
+                f"checkerboard {g} inner corners of {self.square_size_m * 100:g} cm, inverted={self.inverted}"
+            )
         return f"ArUco grid {g} markers of {self.marker_size_m * 100:g} cm, {self.dictionary}"
 
     def replace(self, **kw: Any) -> Board:
@@ -230,7 +271,9 @@ def _from_ours(d: dict[str, Any], path: Any) -> Board:
     check_schema(d.get("schema"), BOARD_SCHEMA, (BOARD_VERSION,), path)
     unknown = sorted(set(d) - set(_KEYS))
     if unknown:
-        raise FormatError(path, unknown[0], f"unknown keys {unknown}; valid: {list(_KEYS)}.", "Remove or rename them.")
+        raise FormatError(
+            path, unknown[0], f"unknown keys {unknown}; valid: {list(_KEYS)}.", "Remove or rename them."
+        )
     kind = d.get("kind")
     if kind not in BOARD_KINDS:
         raise FormatError(path, "kind", f"is {kind!r}; valid: {list(BOARD_KINDS)}.", "")
@@ -238,26 +281,47 @@ def _from_ours(d: dict[str, Any], path: Any) -> Board:
     if gkey not in d:
         raise FormatError(path, gkey, f"is missing; a {kind} board needs {gkey} = [columns, rows].", "")
     try:
-        return Board(kind=kind, grid=tuple(d[gkey]), square_size_m=float(d.get("square_size_m", 0.0)),
-                     marker_size_m=float(d.get("marker_size_m", 0.0)),
-                     marker_separation_m=float(d.get("marker_separation_m", 0.0)),
-                     dictionary=str(d.get("dictionary", "DICT_4X4_50")),
-                     legacy_pattern=bool(d.get("legacy_pattern", False)), inverted=bool(d.get("inverted", False)),
-                     name=str(d.get("name", "")))
+        return Board(
+            kind=kind,
+            grid=tuple(d[gkey]),
+            square_size_m=float(d.get("square_size_m", 0.0)),
+            marker_size_m=float(d.get("marker_size_m", 0.0)),
+            marker_separation_m=float(d.get("marker_separation_m", 0.0)),
+            dictionary=str(d.get("dictionary", "DICT_4X4_50")),
+            legacy_pattern=bool(d.get("legacy_pattern", False)),
+            inverted=bool(d.get("inverted", False)),
+            name=str(d.get("name", "")),
+        )
     except (ValueError, TypeError) as e:
-        raise FormatError(path, None, str(e), "Fix the board file (see calibrate/boards.py for the format).") from e
+        raise FormatError(
+            path, None, str(e), "Fix the board file (see calibrate/boards.py for the format)."
+        ) from e
 
 
-_CALISCOPE_KEYS = ("columns", "rows", "board_height", "board_width", "dictionary", "units", "aruco_scale",
-                   "square_size_override_cm", "inverted", "legacy_pattern")
+_CALISCOPE_KEYS = (
+    "columns",
+    "rows",
+    "board_height",
+    "board_width",
+    "dictionary",
+    "units",
+    "aruco_scale",
+    "square_size_override_cm",
+    "inverted",
+    "legacy_pattern",
+)
 
 
 def _from_caliscope(d: dict[str, Any], path: Any) -> Board:
     """caliscope's charuco.toml: CharucoBoard((columns, rows), square, aruco_scale * square)."""
     unknown = sorted(set(d) - set(_CALISCOPE_KEYS))
     if unknown:
-        raise FormatError(path, unknown[0], f"unknown keys {unknown} for a caliscope charuco.toml; "
-                          f"valid: {list(_CALISCOPE_KEYS)}.", "")
+        raise FormatError(
+            path,
+            unknown[0],
+            f"unknown keys {unknown} for a caliscope charuco.toml; valid: {list(_CALISCOPE_KEYS)}.",
+            "",
+        )
     cols, rows = int(d["columns"]), int(d["rows"])
     sq_cm = d.get("square_size_override_cm")
     if sq_cm is None:
@@ -269,11 +333,16 @@ def _from_caliscope(d: dict[str, Any], path: Any) -> Board:
     else:
         sq_m = round(float(sq_cm) / 100.0, 12)
     try:
-        return Board(kind="charuco", grid=(cols, rows), square_size_m=sq_m,
-                     marker_size_m=sq_m * float(d.get("aruco_scale", 0.75)),
-                     dictionary=str(d.get("dictionary", "DICT_4X4_50")),
-                     legacy_pattern=bool(d.get("legacy_pattern", False)), inverted=bool(d.get("inverted", False)),
-                     name=f"caliscope:{Path(str(path)).name}" if path else "caliscope")
+        return Board(
+            kind="charuco",
+            grid=(cols, rows),
+            square_size_m=sq_m,
+            marker_size_m=sq_m * float(d.get("aruco_scale", 0.75)),
+            dictionary=str(d.get("dictionary", "DICT_4X4_50")),
+            legacy_pattern=bool(d.get("legacy_pattern", False)),
+            inverted=bool(d.get("inverted", False)),
+            name=f"caliscope:{Path(str(path)).name}" if path else "caliscope",
+        )
     except ValueError as e:
         raise FormatError(path, None, str(e), "") from e
 
@@ -285,10 +354,14 @@ def load_board(path: str | os.PathLike) -> Board:
         return _from_ours(d, path)
     if "columns" in d and "rows" in d:
         return _from_caliscope(d, path)
-    raise FormatError(path, None, "is neither a roomcap board file (schema = \"board/1\") nor a caliscope "
-                      "charuco.toml (columns, rows, dictionary, ...).",
-                      "See calibrate/boards.py for the format, e.g. schema=\"board/1\", kind=\"charuco\", "
-                      "squares=[5,7], square_size_m=0.04, marker_size_m=0.03, dictionary=\"DICT_4X4_50\".")
+    raise FormatError(
+        path,
+        None,
+        'is neither a roomcap board file (schema = "board/1") nor a caliscope '
+        "charuco.toml (columns, rows, dictionary, ...).",
+        'See calibrate/boards.py for the format, e.g. schema="board/1", kind="charuco", '
+        'squares=[5,7], square_size_m=0.04, marker_size_m=0.03, dictionary="DICT_4X4_50".',
+    )
 
 
 def save_board(path: str | os.PathLike, board: Board) -> None:

@@ -5,7 +5,7 @@ Output folder (the folder of ``rig.toml``)::
 
     rig.toml              the calibrated rig (calibrate/camera.py format)
     detections/<cam>.npz  cached detections (reused when the videos and the board's pattern are unchanged)
-    report/report.toml    per-camera intrinsic/extrinsic RMS, frames used, coverage, per-pair links, BA figures
+    report/report.toml    per-camera intrinsic/extrinsic RMS, frames used, coverage, pair links, BA
     report/layout.png     cameras and board poses in 3D
     report/coverage.png   where the board was seen in each camera
 """
@@ -40,17 +40,17 @@ Progress = Callable[[str, str, int, int], None]  # (stage, item, done, total)
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    model: str = "pinhole"               # intrinsics model, see calibrate/intrinsics.py
-    refine_intrinsics: str = "none"      # in the bundle adjustment: "none" | "focal_pp" | "all"
-    detect_max_frames: int = 1000        # frames examined per camera (evenly spaced)
+    model: str = "pinhole"  # intrinsics model, see calibrate/intrinsics.py
+    refine_intrinsics: str = "none"  # in the bundle adjustment: "none" | "focal_pp" | "all"
+    detect_max_frames: int = 1000  # frames examined per camera (evenly spaced)
     intrinsic_frames: int = 40
     extrinsic_frames: int = 300
     min_frames: int = 6
     loss: str = "soft_l1"
-    world: str = ""                      # "" (first camera) | "camera:NAME" | "board:FRAME"
+    world: str = ""  # "" (first camera) | "camera:NAME" | "board:FRAME"
     exclude: tuple[str, ...] = ()
-    intrinsics_from: str = ""            # rig.toml whose cameras' intrinsics are used as given
-    workers: int = 0                     # detection threads (0: one per camera)
+    intrinsics_from: str = ""  # rig.toml whose cameras' intrinsics are used as given
+    workers: int = 0  # detection threads (0: one per camera)
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -76,9 +76,13 @@ def _stage(progress: Progress | None, stage: str) -> Callable[[str, int, int], N
     return lambda item, done, total: progress(stage, item, done, total)
 
 
-def calibrate_recording(recording: str | os.PathLike, board: Board | str | os.PathLike,
-                        out_rig: str | os.PathLike, config: CalibrationConfig | None = None,
-                        progress: Progress | None = None) -> CalibrationOutcome:
+def calibrate_recording(
+    recording: str | os.PathLike,
+    board: Board | str | os.PathLike,
+    out_rig: str | os.PathLike,
+    config: CalibrationConfig | None = None,
+    progress: Progress | None = None,
+) -> CalibrationOutcome:
     """Detect, calibrate intrinsics and extrinsics, write rig.toml and the report (see module doc)."""
     cfg = config or CalibrationConfig()
     board_path = None
@@ -97,8 +101,14 @@ def calibrate_recording(recording: str | os.PathLike, board: Board | str | os.Pa
     log.info("calibrating %d camera(s) %s with %s", len(sources), [s.name for s in sources], board.describe())
 
     t0 = time.perf_counter()
-    dets = detect_all(board, sources, out_dir / "detections", cfg.detect_max_frames,
-                      workers=cfg.workers or None, progress=_stage(progress, "detect"))
+    dets = detect_all(
+        board,
+        sources,
+        out_dir / "detections",
+        cfg.detect_max_frames,
+        workers=cfg.workers or None,
+        progress=_stage(progress, "detect"),
+    )
     timings["detect_s"] = time.perf_counter() - t0
     seen = {k: len(v.seen_frames()) for k, v in dets.items()}
     if all(n < 2 for n in seen.values()):  # nothing anywhere: the board file does not match the board
@@ -106,16 +116,24 @@ def calibrate_recording(recording: str | os.PathLike, board: Board | str | os.Pa
         where = f"Edit {board_path}" if board_path else "Change the board"
         if diag.board is not None and diag.board.detection_key() != board.detection_key():
             # detect with the matching settings now, so the run after fixing the file reuses the cache
-            detect_all(diag.board, sources, out_dir / "detections", cfg.detect_max_frames,
-                       workers=cfg.workers or None, progress=_stage(progress, "detect (diagnosis)"))
+            detect_all(
+                diag.board,
+                sources,
+                out_dir / "detections",
+                cfg.detect_max_frames,
+                workers=cfg.workers or None,
+                progress=_stage(progress, "detect (diagnosis)"),
+            )
             raise CalibrationError(
                 f"The board ({board.describe()}) was found in no camera ({seen}). Diagnosis: {diag.message}. "
                 f"{where} accordingly and run again; the detections with the matching settings are cached in "
-                f"{out_dir / 'detections'}, so the next run will not detect again.")
+                f"{out_dir / 'detections'}, so the next run will not detect again."
+            )
         raise CalibrationError(
             f"The board ({board.describe()}) was found in no camera ({seen}). Diagnosis: {diag.message}. "
             "Check the board file (squares, dictionary, marker size) against the printed board, and that the "
-            "board is in focus and large enough in the images.")
+            "board is in focus and large enough in the images."
+        )
 
     # intrinsics
     t0 = time.perf_counter()
@@ -131,7 +149,9 @@ def calibrate_recording(recording: str | os.PathLike, board: Board | str | os.Pa
         if name in given:
             g = given[name]
             if tuple(g.size_wh) != tuple(d.size_wh):
-                problems.append(f"Camera '{name}': --intrinsics gives {g.size_wh} but the recording is {d.size_wh}.")
+                problems.append(
+                    f"Camera '{name}': --intrinsics gives {g.size_wh} but the recording is {d.size_wh}."
+                )
                 continue
             intr[name] = None
             cams.append(g.replace(R=np.eye(3), t=np.zeros(3)))
@@ -147,29 +167,51 @@ def calibrate_recording(recording: str | os.PathLike, board: Board | str | os.Pa
             progress("intrinsics", name, k + 1, len(dets))
     if problems:
         ok = [c.name for c in cams]
-        raise CalibrationError("\n".join(problems) + (
-            f"\n(Cameras {ok} are fine; their detections are cached. To calibrate without the others, "
-            f"pass --exclude {' '.join(n for n in dets if n not in ok)}.)" if ok else ""))
+        raise CalibrationError(
+            "\n".join(problems)
+            + (
+                f"\n(Cameras {ok} are fine; their detections are cached. To calibrate without the others, "
+                f"pass --exclude {' '.join(n for n in dets if n not in ok)}.)"
+                if ok
+                else ""
+            )
+        )
     timings["intrinsics_s"] = time.perf_counter() - t0
 
     # extrinsics
     ext = None
     t0 = time.perf_counter()
     if len(cams) >= 2:
-        ecfg = ExtrinsicsConfig(loss=cfg.loss, refine_intrinsics=cfg.refine_intrinsics,
-                                max_frames=cfg.extrinsic_frames, world=cfg.world)
+        ecfg = ExtrinsicsConfig(
+            loss=cfg.loss,
+            refine_intrinsics=cfg.refine_intrinsics,
+            max_frames=cfg.extrinsic_frames,
+            world=cfg.world,
+        )
         ext = calibrate_extrinsics(board, cams, dets, ecfg, progress=_stage(progress, "bundle adjustment"))
         rig = ext.rig
     else:
         rig = CameraRig(tuple(cams))
     timings["extrinsics_s"] = time.perf_counter() - t0
 
-    src = (f"calibrate-run calibrate {Path(recording).name} ({board.describe()}; model {cfg.model}, "
-           f"refine_intrinsics {cfg.refine_intrinsics}, world {ext.world if ext else '-'})")
+    src = (
+        f"calibrate-run calibrate {Path(recording).name} ({board.describe()}; model {cfg.model}, "
+        f"refine_intrinsics {cfg.refine_intrinsics}, world {ext.world if ext else '-'})"
+    )
     rig.save(out_rig, source=src)
-    report = write_report(out_dir / "report", board, rig, dets, intr, ext,
-                          extra={"timings_s": timings, "recording": str(Path(recording).resolve()),
-                                 "rig": str(out_rig.resolve())})
+    report = write_report(
+        out_dir / "report",
+        board,
+        rig,
+        dets,
+        intr,
+        ext,
+        extra={
+            "timings_s": timings,
+            "recording": str(Path(recording).resolve()),
+            "rig": str(out_rig.resolve()),
+        },
+    )
     from calibrate.report import report_dict
 
     text = summary_text(report_dict(board, rig, dets, intr, ext))
@@ -198,27 +240,51 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
     p.description = _HELP
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("recording", type=Path, help="folder of per-camera videos or image folders")
-    p.add_argument("--board", type=Path, required=True,
-                   help="board file: roomcap board TOML (schema=\"board/1\") or caliscope's charuco.toml")
+    p.add_argument(
+        "--board",
+        type=Path,
+        required=True,
+        help='board file: roomcap board TOML (schema="board/1") or caliscope\'s charuco.toml',
+    )
     p.add_argument("--out", type=Path, required=True, help="rig.toml to write (its folder gets the report)")
-    p.add_argument("--model", choices=MODELS, default="pinhole",
-                   help="lens model: pinhole (k1,k2,p1,p2,k3), pinhole4 (k1,k2,p1,p2), rational (8), "
-                        "fisheye (4) (default: pinhole)")
-    p.add_argument("--refine-intrinsics", choices=("none", "focal_pp", "all"), default="none",
-                   help="let the bundle adjustment refine the intrinsics too (default: none = keep the "
-                        "per-camera calibration)")
-    p.add_argument("--world", default="",
-                   help="world frame: camera:NAME (that camera's frame; default: the first camera) or "
-                        "board:FRAME (the board lying on the floor in that frame: origin at the board, z up)")
-    p.add_argument("--intrinsics", default="", metavar="RIG_TOML",
-                   help="use the intrinsics of these cameras (same names) instead of calibrating them")
+    p.add_argument(
+        "--model",
+        choices=MODELS,
+        default="pinhole",
+        help="lens model: pinhole (k1,k2,p1,p2,k3), pinhole4 (k1,k2,p1,p2), rational (8), "
+        "fisheye (4) (default: pinhole)",
+    )
+    p.add_argument(
+        "--refine-intrinsics",
+        choices=("none", "focal_pp", "all"),
+        default="none",
+        help="let the bundle adjustment refine the intrinsics too (default: none = keep the "
+        "per-camera calibration)",
+    )
+    p.add_argument(
+        "--world",
+        default="",
+        help="world frame: camera:NAME (that camera's frame; default: the first camera) or "
+        "board:FRAME (the board lying on the floor in that frame: origin at the board, z up)",
+    )
+    p.add_argument(
+        "--intrinsics",
+        default="",
+        metavar="RIG_TOML",
+        help="use the intrinsics of these cameras (same names) instead of calibrating them",
+    )
     p.add_argument("--exclude", nargs="*", default=[], metavar="CAMERA", help="cameras to leave out")
     p.add_argument("--loss", choices=LOSSES, default="soft_l1", help="robust loss of the bundle adjustment")
     p.add_argument("--max-frames", type=int, default=1000, help="frames examined per camera (default 1000)")
-    p.add_argument("--intrinsic-frames", type=int, default=40,
-                   help="frames per camera for the intrinsics, chosen for coverage and diversity (default 40)")
-    p.add_argument("--extrinsic-frames", type=int, default=300,
-                   help="board poses in the bundle adjustment (default 300)")
+    p.add_argument(
+        "--intrinsic-frames",
+        type=int,
+        default=40,
+        help="frames per camera for the intrinsics, chosen for coverage and diversity (default 40)",
+    )
+    p.add_argument(
+        "--extrinsic-frames", type=int, default=300, help="board poses in the bundle adjustment (default 300)"
+    )
 
 
 def run_cli(args: argparse.Namespace) -> int:
@@ -232,8 +298,13 @@ def run_cli(args: argparse.Namespace) -> int:
         bar = bars.get(key)
         if bar is None:
             desc = f"{stage} {item}" if stage.startswith("detect") else stage
-            bar = bars[key] = tqdm(total=total, desc=desc, unit="frame" if stage.startswith("detect") else "step",
-                                   leave=True, file=sys.stderr)
+            bar = bars[key] = tqdm(
+                total=total,
+                desc=desc,
+                unit="frame" if stage.startswith("detect") else "step",
+                leave=True,
+                file=sys.stderr,
+            )
         bar.total = total
         bar.n = done
         bar.refresh()
@@ -241,10 +312,17 @@ def run_cli(args: argparse.Namespace) -> int:
             bar.close()
 
     try:
-        cfg = CalibrationConfig(model=args.model, refine_intrinsics=args.refine_intrinsics, world=args.world,
-                                intrinsics_from=args.intrinsics, exclude=tuple(args.exclude), loss=args.loss,
-                                detect_max_frames=args.max_frames, intrinsic_frames=args.intrinsic_frames,
-                                extrinsic_frames=args.extrinsic_frames)
+        cfg = CalibrationConfig(
+            model=args.model,
+            refine_intrinsics=args.refine_intrinsics,
+            world=args.world,
+            intrinsics_from=args.intrinsics,
+            exclude=tuple(args.exclude),
+            loss=args.loss,
+            detect_max_frames=args.max_frames,
+            intrinsic_frames=args.intrinsic_frames,
+            extrinsic_frames=args.extrinsic_frames,
+        )
         out = calibrate_recording(args.recording, args.board, args.out, cfg, progress)
     except (CalibrationError, ValueError) as e:
         for b in bars.values():

@@ -135,7 +135,7 @@ def _run_export(args: argparse.Namespace) -> int:
     return 0
 
 
-# ----------------------------------------------------------------------------- calibrate (calibrate/calibration.py)
+# ----------------------------------------------------------------------------- calibrate (calibration.py)
 
 
 def _add_calibrate(sub: argparse._SubParsersAction) -> None:

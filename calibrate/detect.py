@@ -30,8 +30,16 @@ from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Source", "CameraDetections", "discover_recording", "detect_frame", "detect_all",
-           "diagnose_board", "VIDEO_EXT", "IMAGE_EXT"]
+__all__ = [
+    "Source",
+    "CameraDetections",
+    "discover_recording",
+    "detect_frame",
+    "detect_all",
+    "diagnose_board",
+    "VIDEO_EXT",
+    "IMAGE_EXT",
+]
 
 VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
@@ -80,8 +88,10 @@ def discover_recording(folder: str | os.PathLike) -> list[Source]:
     """Cameras of a recording folder (see module doc), sorted by name."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise CalibrationError(f"Recording folder {folder} does not exist or is not a folder. Give the folder that "
-                               "holds one video (or one image folder) per camera.")
+        raise CalibrationError(
+            f"Recording folder {folder} does not exist or is not a folder. Give the folder that "
+            "holds one video (or one image folder) per camera."
+        )
     entries = sorted(folder.iterdir())
     videos = [p for p in entries if p.is_file() and p.suffix.lower() in VIDEO_EXT]
     if videos:
@@ -112,9 +122,14 @@ def discover_recording(folder: str | os.PathLike) -> list[Source]:
     if skipped:
         log.warning("ignoring %d image(s) without a frame number in the name: %s", len(skipped), skipped[:5])
     if not groups:
-        raise CalibrationError(f"No videos ({', '.join(VIDEO_EXT)}) or images found in {folder}. Put one video per "
-                               "camera in the folder (cam_0.mp4, cam_1.mp4, ...) or one image folder per camera.")
-    return [Source(k, tuple(p for _, p in sorted(v)), tuple(i for i, _ in sorted(v))) for k, v in sorted(groups.items())]
+        raise CalibrationError(
+            f"No videos ({', '.join(VIDEO_EXT)}) or images found in {folder}. Put one video per "
+            "camera in the folder (cam_0.mp4, cam_1.mp4, ...) or one image folder per camera."
+        )
+    return [
+        Source(k, tuple(p for _, p in sorted(v)), tuple(i for i, _ in sorted(v)))
+        for k, v in sorted(groups.items())
+    ]
 
 
 # ----------------------------------------------------------------------------- single-frame detection
@@ -163,10 +178,13 @@ def detect_frame(board: Board, image: np.ndarray, min_points: int = 6, _det=None
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
         ok, c = cv2.findChessboardCorners(g, board.grid, flags=flags)
         if ok:
-            c = cv2.cornerSubPix(g, c, (5, 5), (-1, -1),
-                                 (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 0.01))
+            c = cv2.cornerSubPix(
+                g, c, (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 0.01)
+            )
         else:
-            ok, c = cv2.findChessboardCornersSB(g, board.grid, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+            ok, c = cv2.findChessboardCornersSB(
+                g, board.grid, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+            )
         if not ok:
             return out
         c = c.reshape(-1, 2).astype(np.float64)
@@ -182,7 +200,7 @@ def detect_frame(board: Board, image: np.ndarray, min_points: int = 6, _det=None
         n_markers = N // 4
         for c, i in zip(corners, ids.ravel(), strict=False):
             if 0 <= i < n_markers:
-                out[4 * i:4 * i + 4] = c.reshape(4, 2)
+                out[4 * i : 4 * i + 4] = c.reshape(4, 2)
     seen = np.isfinite(out[:, 0])
     if seen.sum() < min_points or _collinear(board.object_points()[seen]):
         out[:] = np.nan
@@ -213,8 +231,10 @@ class CameraDetections:
 
     def __post_init__(self) -> None:
         if self.xy_px.ndim != 3 or self.xy_px.shape[2] != 2 or self.xy_px.shape[0] != self.frames.shape[0]:
-            raise ValueError(f"CameraDetections: xy_px must be (F,N,2) with F={self.frames.shape[0]}, "
-                             f"got {self.xy_px.shape}")
+            raise ValueError(
+                f"CameraDetections: xy_px must be (F,N,2) with F={self.frames.shape[0]}, "
+                f"got {self.xy_px.shape}"
+            )
 
     @property
     def n_points_seen(self) -> np.ndarray:
@@ -224,10 +244,19 @@ class CameraDetections:
         return self.frames[self.n_points_seen >= min_points]
 
     def save(self, path: Path, key: dict[str, str]) -> None:
-        save_npz(path, {"schema": schema_tag(DET_SCHEMA, DET_VERSION), "name": self.name,
-                        "size_wh": np.array(self.size_wh), "frames": self.frames, "xy_px": self.xy_px.astype(np.float32),
-                        "n_frames_read": self.n_frames_read, "stride": self.stride,
-                        **{f"key_{k}": v for k, v in key.items()}})
+        save_npz(
+            path,
+            {
+                "schema": schema_tag(DET_SCHEMA, DET_VERSION),
+                "name": self.name,
+                "size_wh": np.array(self.size_wh),
+                "frames": self.frames,
+                "xy_px": self.xy_px.astype(np.float32),
+                "n_frames_read": self.n_frames_read,
+                "stride": self.stride,
+                **{f"key_{k}": v for k, v in key.items()},
+            },
+        )
 
     @classmethod
     def load(cls, path: Path, key: dict[str, str] | None = None) -> CameraDetections | None:
@@ -240,10 +269,18 @@ class CameraDetections:
         except FormatError as e:
             log.warning("ignoring detection cache %s: %s", path, e)
             return None
-        if key is not None and any(f"key_{k}" not in d or npz_str(d, f"key_{k}") != v for k, v in key.items()):
+        if key is not None and any(
+            f"key_{k}" not in d or npz_str(d, f"key_{k}") != v for k, v in key.items()
+        ):
             return None
-        return cls(npz_str(d, "name"), tuple(int(v) for v in d["size_wh"]), d["frames"].astype(np.int64),
-                   d["xy_px"].astype(np.float64), int(d["n_frames_read"]), int(d["stride"]))
+        return cls(
+            npz_str(d, "name"),
+            tuple(int(v) for v in d["size_wh"]),
+            d["frames"].astype(np.int64),
+            d["xy_px"].astype(np.float64),
+            int(d["n_frames_read"]),
+            int(d["stride"]),
+        )
 
 
 class _ResolutionChanged(Exception):
@@ -259,9 +296,13 @@ def _frames(src: Source, stride: int):
         cap = cv2.VideoCapture(str(path))
         if not cap.isOpened():
             raise CalibrationError(
-                f"Camera '{src.name}': cannot open video {path} (missing, corrupt or a codec OpenCV cannot read). "
-                f"Check the file plays; re-encode it with `ffmpeg -i {path.name} -c:v libx264 -pix_fmt yuv420p "
-                f"{path.stem}_h264.mp4`, or remove it from the recording folder to calibrate the other cameras.")
+                f"Camera '{src.name}': cannot open video {path} (missing, corrupt or a codec OpenCV cannot "
+                "read). "
+                f"Check the file plays; re-encode it with `ffmpeg -i {path.name} -c:v libx264 -pix_fmt "
+                "yuv420p "
+                f"{path.stem}_h264.mp4`, or remove it from the recording folder to calibrate the other "
+                "cameras."
+            )
         i = 0
         try:
             while True:
@@ -277,15 +318,19 @@ def _frames(src: Source, stride: int):
         finally:
             cap.release()
         if i == 0:
-            raise CalibrationError(f"Camera '{src.name}': video {path} opened but no frame could be decoded. "
-                                   "Re-encode it (ffmpeg -c:v libx264) or record again.")
+            raise CalibrationError(
+                f"Camera '{src.name}': video {path} opened but no frame could be decoded. "
+                "Re-encode it (ffmpeg -c:v libx264) or record again."
+            )
     else:
         for k, (p, fid) in enumerate(zip(src.paths, src.frame_ids or (), strict=False)):
             if k % stride:
                 continue
             img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
             if img is None:
-                raise CalibrationError(f"Camera '{src.name}': cannot read image {p}. Remove or replace the file.")
+                raise CalibrationError(
+                    f"Camera '{src.name}': cannot read image {p}. Remove or replace the file."
+                )
             yield fid, img
 
 
@@ -300,15 +345,14 @@ def _frame_count(src: Source) -> int:
     return max(n, 0)
 
 
-def detect_camera(board: Board, src: Source, max_frames: int = 1000, min_points: int = 6,
-                  progress: Progress | None = None) -> CameraDetections:
+def detect_camera(
+    board: Board, src: Source, max_frames: int = 1000, min_points: int = 6, progress: Progress | None = None
+) -> CameraDetections:
     """Detect the board in (a sample of at most ``max_frames``) frames of one camera."""
     n_total = _frame_count(src)
     stride = max(1, -(-n_total // max_frames)) if n_total else 1
     det = _charuco_detector(board) if board.kind == "charuco" else None
     if board.kind == "aruco_grid":
-        import cv2
-
         det = _aruco_detector(board)
     frames, xys = [], []
     size = None
@@ -322,8 +366,10 @@ def detect_camera(board: Board, src: Source, max_frames: int = 1000, min_points:
             raise CalibrationError(
                 f"Camera '{src.name}': the resolution changed mid-recording, from {size[0]}x{size[1]} to "
                 f"{wh[0]}x{wh[1]} at frame {fid} ({src.paths[0] if src.is_video else src.paths[n_read]}). "
-                "Intrinsics hold for one resolution only: fix the camera's resolution and record again, or cut "
-                "the recording so that each file has one resolution.")
+                "Intrinsics hold for one resolution only: fix the camera's resolution and record again, or "
+                "cut "
+                "the recording so that each file has one resolution."
+            )
         n_read += 1
         frames.append(fid)
         xys.append(detect_frame(board, img, min_points=min_points, _det=det))
@@ -336,13 +382,23 @@ def detect_camera(board: Board, src: Source, max_frames: int = 1000, min_points:
 
 
 def cache_key(board: Board, src: Source, max_frames: int, min_points: int) -> dict[str, str]:
-    return {"board": board.detection_key(), "source": src.signature(), "max_frames": str(max_frames),
-            "min_points": str(min_points)}
+    return {
+        "board": board.detection_key(),
+        "source": src.signature(),
+        "max_frames": str(max_frames),
+        "min_points": str(min_points),
+    }
 
 
-def detect_all(board: Board, sources: Sequence[Source], cache_dir: str | os.PathLike | None = None,
-               max_frames: int = 1000, min_points: int = 6, workers: int | None = None,
-               progress: Progress | None = None) -> dict[str, CameraDetections]:
+def detect_all(
+    board: Board,
+    sources: Sequence[Source],
+    cache_dir: str | os.PathLike | None = None,
+    max_frames: int = 1000,
+    min_points: int = 6,
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> dict[str, CameraDetections]:
     """Detect the board in every camera, one thread per camera (OpenCV releases the GIL).
 
     Cached results are reused; each camera's result is written as soon as it is done, so an error in one
@@ -373,7 +429,9 @@ def detect_all(board: Board, sources: Sequence[Source], cache_dir: str | os.Path
             return
         if path is not None:
             d.save(path, key)
-        log.info("camera %s: board seen in %d of %d frames read", src.name, len(d.seen_frames()), d.n_frames_read)
+        log.info(
+            "camera %s: board seen in %d of %d frames read", src.name, len(d.seen_frames()), d.n_frames_read
+        )
         with lock:
             out[src.name] = d
 
@@ -382,8 +440,10 @@ def detect_all(board: Board, sources: Sequence[Source], cache_dir: str | os.Path
         list(ex.map(one, sources))
     if errors:
         done = sorted(out)
-        raise CalibrationError("\n".join(errors[k] for k in sorted(errors)) +
-                               (f"\n(Detections of {done} are cached and will be reused.)" if done and cache else ""))
+        raise CalibrationError(
+            "\n".join(errors[k] for k in sorted(errors))
+            + (f"\n(Detections of {done} are cached and will be reused.)" if done and cache else "")
+        )
     return {s.name: out[s.name] for s in sources}
 
 
@@ -391,8 +451,15 @@ def detect_all(board: Board, sources: Sequence[Source], cache_dir: str | os.Path
 
 
 _DICT_TIERS = (
-    ("DICT_4X4_50", "DICT_5X5_50", "DICT_6X6_50", "DICT_7X7_50", "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9",
-     "DICT_ARUCO_MIP_36h12"),
+    (
+        "DICT_4X4_50",
+        "DICT_5X5_50",
+        "DICT_6X6_50",
+        "DICT_7X7_50",
+        "DICT_APRILTAG_16h5",
+        "DICT_APRILTAG_25h9",
+        "DICT_ARUCO_MIP_36h12",
+    ),
     ("DICT_APRILTAG_36h11", "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_36h10"),
 )
 
@@ -422,7 +489,9 @@ def _sample_images(src: Source, n: int) -> list[np.ndarray]:
                 imgs.append(_gray(img))
         cap.release()
     else:
-        for p in [src.paths[i] for i in np.linspace(0, len(src.paths) - 1, min(n, len(src.paths))).astype(int)]:
+        for p in [
+            src.paths[i] for i in np.linspace(0, len(src.paths) - 1, min(n, len(src.paths))).astype(int)
+        ]:
             img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
             if img is not None:
                 imgs.append(img)
@@ -454,22 +523,42 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
             if n > best_n:
                 best, best_n = b, n
         if best is None:
-            return Diagnosis(None, f"no checkerboard with about {board.grid} inner corners found in {len(imgs)} "
-                             "sample frames", {})
-        return Diagnosis(best, f"the images show a checkerboard with inner_corners = {list(best.grid)}, "
-                         f"inverted = {str(best.inverted).lower()}", {})
+            return Diagnosis(
+                None,
+                f"no checkerboard with about {board.grid} inner corners found in {len(imgs)} sample frames",
+                {},
+            )
+        return Diagnosis(
+            best,
+            f"the images show a checkerboard with inner_corners = {list(best.grid)}, "
+            f"inverted = {str(best.inverted).lower()}",
+            {},
+        )
     # 1) cheap: the declared dictionary with the colour / legacy switches toggled
     if board.kind == "charuco":
-        quick = [board.replace(inverted=i, legacy_pattern=lg) for i in (board.inverted, not board.inverted)
-                 for lg in (board.legacy_pattern, not board.legacy_pattern)]
+        quick = [
+            board.replace(inverted=i, legacy_pattern=lg)
+            for i in (board.inverted, not board.inverted)
+            for lg in (board.legacy_pattern, not board.legacy_pattern)
+        ]
     else:
         quick = [board.replace(inverted=not board.inverted)]
     for b in quick[1:] if board.kind == "charuco" else quick:
         n = sum(np.isfinite(detect_frame(b, im)[:, 0]).any() for im in imgs)
         if n >= max(1, len(imgs) // 10):
-            return Diagnosis(b, "the images match " + b.describe() + " (change: " + ", ".join(
-                f"{k} = {getattr(b, k)!r}".replace("True", "true").replace("False", "false")
-                for k in ("inverted", "legacy_pattern") if getattr(b, k) != getattr(board, k)) + ")", {})
+            return Diagnosis(
+                b,
+                "the images match "
+                + b.describe()
+                + " (change: "
+                + ", ".join(
+                    f"{k} = {getattr(b, k)!r}".replace("True", "true").replace("False", "false")
+                    for k in ("inverted", "legacy_pattern")
+                    if getattr(b, k) != getattr(board, k)
+                )
+                + ")",
+                {},
+            )
     # 2) the other dictionaries, on downscaled frames. Within a family (DICT_5X5_50/100/250/1000) the
     # smaller dictionaries are the first markers of the larger ones, and boards number their markers
     # from 0: trying the smallest of each family finds the family cheaply; the expensive families
@@ -482,8 +571,10 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
     for tier in _DICT_TIERS:
         for inv in (False, True):
             for name in tier:
-                det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)),
-                                              cv2.aruco.DetectorParameters())
+                det = cv2.aruco.ArucoDetector(
+                    cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)),
+                    cv2.aruco.DetectorParameters(),
+                )
                 n = 0
                 for im in small:
                     _, ids, _ = det.detectMarkers(255 - im if inv else im)
@@ -495,9 +586,12 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
         if counts:
             break
     if not counts:
-        return Diagnosis(None, f"no ArUco marker of any predefined dictionary was found in {len(imgs)} sample frames "
-                         "(in normal or inverted colours): the board is not visible, out of focus or too small",
-                         counts)
+        return Diagnosis(
+            None,
+            f"no ArUco marker of any predefined dictionary was found in {len(imgs)} sample frames "
+            "(in normal or inverted colours): the board is not visible, out of focus or too small",
+            counts,
+        )
     best = max(counts, key=lambda k: counts[k])
     fam, inv_s = best.split("|")
     inv = inv_s == "True"
@@ -519,19 +613,35 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
         for legacy in (False, True):
             b = cand.replace(legacy_pattern=legacy)
             det = _charuco_detector(b)
-            scores[legacy] = sum(int(np.isfinite(detect_frame(b, im, min_points=4, _det=det)[:, 0]).sum())
-                                 for im in imgs)
+            scores[legacy] = sum(
+                int(np.isfinite(detect_frame(b, im, min_points=4, _det=det)[:, 0]).sum()) for im in imgs
+            )
         cand = cand.replace(legacy_pattern=scores[True] > scores[False])
         if max(scores.values()) == 0:
-            return Diagnosis(None, f"markers of {dname} (inverted={inv}) are visible but no ChArUco corner could be "
-                             f"interpolated with the declared {board.grid[0]}x{board.grid[1]} squares and marker/square "
-                             "ratio in either pattern: check squares and marker_size_m", counts)
-    changes = [f"{k} = {v!r}" for k, v in (("dictionary", cand.dictionary), ("inverted", cand.inverted),
-                                          ("legacy_pattern", cand.legacy_pattern))
-               if getattr(cand, k) != getattr(board, k)]
-    msg = ("the images match " + cand.describe() +
-           (f" (change: {', '.join(changes)})" if changes else " (the declared settings)"))
+            return Diagnosis(
+                None,
+                f"markers of {dname} (inverted={inv}) are visible but no ChArUco corner could be "
+                f"interpolated with the declared {board.grid[0]}x{board.grid[1]} squares and marker/square "
+                "ratio in either pattern: check squares and marker_size_m",
+                counts,
+            )
+    changes = [
+        f"{k} = {v!r}"
+        for k, v in (
+            ("dictionary", cand.dictionary),
+            ("inverted", cand.inverted),
+            ("legacy_pattern", cand.legacy_pattern),
+        )
+        if getattr(cand, k) != getattr(board, k)
+    ]
+    msg = (
+        "the images match "
+        + cand.describe()
+        + (f" (change: {', '.join(changes)})" if changes else " (the declared settings)")
+    )
     if len(same_bits) > 1:
-        msg += (f"; {', '.join(d for d in same_bits if d != cand.dictionary)} share these first markers: "
-                "use the one the board was printed with")
+        msg += (
+            f"; {', '.join(d for d in same_bits if d != cand.dictionary)} share these first markers: "
+            "use the one the board was printed with"
+        )
     return Diagnosis(cand, msg, counts)

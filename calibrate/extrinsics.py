@@ -25,9 +25,18 @@ from calibrate.detect import CameraDetections
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ExtrinsicsConfig", "ExtrinsicsResult", "calibrate_extrinsics", "board_poses", "pairwise_links",
-           "board_symmetry",
-           "initial_poses", "bundle_adjust", "LOSSES", "FLIP_BOARD_Z_UP"]
+__all__ = [
+    "ExtrinsicsConfig",
+    "ExtrinsicsResult",
+    "calibrate_extrinsics",
+    "board_poses",
+    "pairwise_links",
+    "board_symmetry",
+    "initial_poses",
+    "bundle_adjust",
+    "LOSSES",
+    "FLIP_BOARD_Z_UP",
+]
 
 LOSSES = ("trivial", "soft_l1", "cauchy", "huber")
 # board frame (x right, y down the print, z into the board) -> world with z up when the board lies face up
@@ -38,21 +47,23 @@ Progress = Callable[[str, int, int], None]
 
 @dataclass(frozen=True)
 class ExtrinsicsConfig:
-    loss: str = "soft_l1"              # robust loss of the bundle adjustment
+    loss: str = "soft_l1"  # robust loss of the bundle adjustment
     loss_scale_px: float = 1.0
-    refine_intrinsics: str = "none"    # "none" | "focal_pp" | "all"
-    max_frames: int = 300              # time instants (seen by >= 2 cameras) given to the adjustment
+    refine_intrinsics: str = "none"  # "none" | "focal_pp" | "all"
+    max_frames: int = 300  # time instants (seen by >= 2 cameras) given to the adjustment
     min_points: int = 6
-    outlier_px: float = 4.0            # observations above max(outlier_px, 5 x median) are dropped, BA rerun
+    outlier_px: float = 4.0  # observations above max(outlier_px, 5 x median) are dropped, BA rerun
     max_iterations: int = 100
-    world: str = ""                    # "" = first camera; "camera:NAME"; "board:FRAME" (board on the floor)
+    world: str = ""  # "" = first camera; "camera:NAME"; "board:FRAME" (board on the floor)
     linear_solver: str = "sparse_normal_cholesky"  # or "auto" (COLMAP's choice), "dense_normal_cholesky", ...
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise ValueError(f"loss {self.loss!r} is not one of {list(LOSSES)}")
         if self.refine_intrinsics not in ("none", "focal_pp", "all"):
-            raise ValueError(f"refine_intrinsics {self.refine_intrinsics!r} is not one of ['none','focal_pp','all']")
+            raise ValueError(
+                f"refine_intrinsics {self.refine_intrinsics!r} is not one of ['none','focal_pp','all']"
+            )
         if self.world and not (self.world.startswith("camera:") or self.world.startswith("board:")):
             raise ValueError(f"world {self.world!r} must be '', 'camera:NAME' or 'board:FRAME'")
 
@@ -110,8 +121,9 @@ def _project_rot(M: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- per-camera board poses
 
 
-def board_poses(board: Board, cam: Camera, det: CameraDetections, min_points: int = 6
-                ) -> dict[int, tuple[np.ndarray, float, int]]:
+def board_poses(
+    board: Board, cam: Camera, det: CameraDetections, min_points: int = 6
+) -> dict[int, tuple[np.ndarray, float, int]]:
     """cam_from_board (4,4) of every frame with >= min_points points (PnP on undistorted points,
     IPPE then Levenberg-Marquardt). Returns frame -> (T, rms_px, n_points)."""
     import cv2
@@ -141,8 +153,9 @@ def board_poses(board: Board, cam: Camera, det: CameraDetections, min_points: in
 # ----------------------------------------------------------------------------- pose graph
 
 
-def _robust_mean(Ts: list[np.ndarray], rot_tol_deg: float = 5.0, rel_t_tol: float = 0.1
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _robust_mean(
+    Ts: list[np.ndarray], rot_tol_deg: float = 5.0, rel_t_tol: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
     """Robust average of rigid transforms: the medoid (least summed rotation + translation distance),
     then the mean of those within tolerance of it. Returns (T, inlier mask)."""
     n = len(Ts)
@@ -171,8 +184,9 @@ def board_symmetry(board: Board) -> np.ndarray | None:
     return np.array([[-1.0, 0, 0, W], [0, -1.0, 0, H], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
 
 
-def pairwise_links(poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200, sym: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
+def pairwise_links(
+    poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200, sym: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
     """Relative poses from frames where two cameras see the board at once.
     Returns links (C,C): consistent frames per pair, and (i,j) -> cam_i_from_cam_j (4,4) for i<j.
     With a board symmetry ``sym`` each frame gives two candidates (camera j's numbering as is or turned);
@@ -192,7 +206,7 @@ def pairwise_links(poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200
                 Ts += [poses[i][f][0] @ _inv(poses[j][f][0] @ sym) for f in common]
             T, inl = _robust_mean(Ts)
             if sym is not None:
-                inl = inl[: len(common)] | inl[len(common):]
+                inl = inl[: len(common)] | inl[len(common) :]
             links[i, j] = links[j, i] = int(inl.sum())
             rel[(i, j)] = T
     return links, rel
@@ -217,8 +231,9 @@ def _components(C: int, links: np.ndarray) -> list[list[int]]:
     return sorted(groups.values(), key=lambda g: (-len(g), g))
 
 
-def initial_poses(names: Sequence[str], links: np.ndarray, rel: Mapping[tuple[int, int], np.ndarray],
-                  n_seen: Sequence[int]) -> tuple[int, list[np.ndarray]]:
+def initial_poses(
+    names: Sequence[str], links: np.ndarray, rel: Mapping[tuple[int, int], np.ndarray], n_seen: Sequence[int]
+) -> tuple[int, list[np.ndarray]]:
     """cam_from_ref (4,4) per camera by composing relative poses along the maximum spanning tree of the
     link graph (weights = consistent shared frames), rooted at the best-linked camera. Unlinked cameras
     raise CalibrationError naming the groups and what to record."""
@@ -229,13 +244,19 @@ def initial_poses(names: Sequence[str], links: np.ndarray, rel: Mapping[tuple[in
         gtxt = "; ".join("[" + ", ".join(names[i] for i in g) + "]" for g in groups)
         main = groups[0]
         others = [names[i] for g in groups[1:] for i in g]
-        msg = (f"The cameras form {len(groups)} groups that never saw the board at the same time: {gtxt}. "
-               f"The extrinsics of {others} relative to {[names[i] for i in main]} cannot be found. ")
+        msg = (
+            f"The cameras form {len(groups)} groups that never saw the board at the same time: {gtxt}. "
+            f"The extrinsics of {others} relative to {[names[i] for i in main]} cannot be found. "
+        )
         if never:
-            msg += (f"Cameras {never} never saw the board at all: check they point at the capture area and the "
-                    "board is large enough in their image (or pass --exclude to leave them out). ")
-        msg += ("Record a clip where the board is visible to a camera of each group at once (hold it where their "
-                "views overlap, turned towards both), then calibrate again with both recordings.")
+            msg += (
+                f"Cameras {never} never saw the board at all: check they point at the capture area and the "
+                "board is large enough in their image (or pass --exclude to leave them out). "
+            )
+        msg += (
+            "Record a clip where the board is visible to a camera of each group at once (hold it where their "
+            "views overlap, turned towards both), then calibrate again with both recordings."
+        )
         raise CalibrationError(msg)
     root = int(np.argmax(links.sum(1)))
     cam_from_ref: list[np.ndarray | None] = [None] * C
@@ -274,11 +295,14 @@ def _colmap_camera(cam: Camera, camera_id: int):
         dd[: d.size] = d
         model, params = "FULL_OPENCV", f + list(dd)
     else:
-        raise CalibrationError(f"Camera '{cam.name}': {d.size} distortion coefficients (thin-prism/tilted) are not "
-                               "supported by the bundle adjustment; calibrate the intrinsics with --model pinhole "
-                               "or rational.")
-    return pycolmap.Camera(camera_id=camera_id, model=model, width=cam.size_wh[0], height=cam.size_wh[1],
-                           params=params)
+        raise CalibrationError(
+            f"Camera '{cam.name}': {d.size} distortion coefficients (thin-prism/tilted) are not "
+            "supported by the bundle adjustment; calibrate the intrinsics with --model pinhole "
+            "or rational."
+        )
+    return pycolmap.Camera(
+        camera_id=camera_id, model=model, width=cam.size_wh[0], height=cam.size_wh[1], params=params
+    )
 
 
 def _camera_from_colmap(cam: Camera, cc) -> Camera:
@@ -294,14 +318,20 @@ def _camera_from_colmap(cam: Camera, cc) -> Camera:
 class _Obs:
     cam: int
     frame: int
-    ids: np.ndarray      # (M,) board point ids
-    xy: np.ndarray       # (M,2)
+    ids: np.ndarray  # (M,) board point ids
+    xy: np.ndarray  # (M,2)
 
 
-def bundle_adjust(board: Board, cams: Sequence[Camera], cam_from_ref: Sequence[np.ndarray],
-                  ref_index: int, frames: Sequence[int], ref_from_board: Mapping[int, np.ndarray],
-                  obs: Sequence[_Obs], cfg: ExtrinsicsConfig) -> tuple[list[Camera], list[np.ndarray],
-                                                                       dict[int, np.ndarray], dict]:
+def bundle_adjust(
+    board: Board,
+    cams: Sequence[Camera],
+    cam_from_ref: Sequence[np.ndarray],
+    ref_index: int,
+    frames: Sequence[int],
+    ref_from_board: Mapping[int, np.ndarray],
+    obs: Sequence[_Obs],
+    cfg: ExtrinsicsConfig,
+) -> tuple[list[Camera], list[np.ndarray], dict[int, np.ndarray], dict]:
     """One pycolmap/Ceres bundle adjustment (see module doc). Returns cameras (intrinsics possibly
     refined), cam_from_ref, ref_from_board and a summary dict."""
     import pycolmap
@@ -336,8 +366,9 @@ def bundle_adjust(board: Board, cams: Sequence[Camera], cam_from_ref: Sequence[n
         fr.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3])
         images = []
         for o in by_frame[f]:
-            im = pycolmap.Image(name=f"{o.cam}_{f}", keypoints=o.xy.astype(np.float64), camera_id=o.cam + 1,
-                                image_id=image_id)
+            im = pycolmap.Image(
+                name=f"{o.cam}_{f}", keypoints=o.xy.astype(np.float64), camera_id=o.cam + 1, image_id=image_id
+            )
             im.frame_id = fi + 1
             image_id += 1
             fr.add_data_id(im.data_id)
@@ -386,10 +417,16 @@ def bundle_adjust(board: Board, cams: Sequence[Camera], cam_from_ref: Sequence[n
         else:
             s = r.sensor_from_rig(sensor[c])
             new_cfr.append(_T(s.rotation.matrix(), s.translation))
-    new_rfb = {f: _T(rec.frame(fid).rig_from_world.rotation.matrix(), rec.frame(fid).rig_from_world.translation)
-               for f, fid in frame_ids.items()}
-    info = {"time_s": dt, "iterations": int(cs.num_successful_steps + cs.num_unsuccessful_steps),
-            "termination": str(cs.termination_type), "n_residuals": int(cs.num_residuals)}
+    new_rfb = {
+        f: _T(rec.frame(fid).rig_from_world.rotation.matrix(), rec.frame(fid).rig_from_world.translation)
+        for f, fid in frame_ids.items()
+    }
+    info = {
+        "time_s": dt,
+        "iterations": int(cs.num_successful_steps + cs.num_unsuccessful_steps),
+        "termination": str(cs.termination_type),
+        "n_residuals": int(cs.num_residuals),
+    }
     return new_cams, new_cfr, new_rfb, info
 
 
@@ -427,13 +464,19 @@ def _choose_frames(poses: Sequence[Mapping[int, tuple]], max_frames: int) -> lis
     rest = [f for f in multi if f not in chosen]
     n_more = max(0, max_frames - len(chosen))
     if rest and n_more:
-        chosen.update(rest[k] for k in np.unique(np.linspace(0, len(rest) - 1, min(n_more, len(rest))).astype(int)))
+        chosen.update(
+            rest[k] for k in np.unique(np.linspace(0, len(rest) - 1, min(n_more, len(rest))).astype(int))
+        )
     return sorted(chosen)
 
 
-def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[str, CameraDetections],
-                         config: ExtrinsicsConfig | None = None, progress: Progress | None = None
-                         ) -> ExtrinsicsResult:
+def calibrate_extrinsics(
+    board: Board,
+    cameras: Sequence[Camera],
+    dets: Mapping[str, CameraDetections],
+    config: ExtrinsicsConfig | None = None,
+    progress: Progress | None = None,
+) -> ExtrinsicsResult:
     """Cameras (intrinsics known) + detections -> calibrated rig in the world frame (see module doc)."""
     cfg = config or ExtrinsicsConfig()
     names = [c.name for c in cameras]
@@ -470,14 +513,17 @@ def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[
                     # number this camera's corners like the best camera's: turned if that agrees better
                     A = _inv(cam_from_ref[c]) @ poses[c][f][0]
                     B = ref_from_board[f]
-                    if _rot_angle_deg((A @ sym)[:3, :3].T @ B[:3, :3]) < _rot_angle_deg(A[:3, :3].T @ B[:3, :3]):
+                    if _rot_angle_deg((A @ sym)[:3, :3].T @ B[:3, :3]) < _rot_angle_deg(
+                        A[:3, :3].T @ B[:3, :3]
+                    ):
                         ids = board.n_points - 1 - ids
                 obs.append(_Obs(c, f, ids, xy[np.flatnonzero(np.isfinite(xy[:, 0]))]))
     cams = list(cameras)
     r0 = np.concatenate(_residuals(board, cams, cam_from_ref, ref_from_board, obs))
-    initial_rms = float(np.sqrt(np.mean(r0 ** 2)))
-    cams, cam_from_ref, ref_from_board, info = bundle_adjust(board, cams, cam_from_ref, ref, frames,
-                                                             ref_from_board, obs, cfg)
+    initial_rms = float(np.sqrt(np.mean(r0**2)))
+    cams, cam_from_ref, ref_from_board, info = bundle_adjust(
+        board, cams, cam_from_ref, ref, frames, ref_from_board, obs, cfg
+    )
     tick("bundle adjustment")
     res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
     allr = np.concatenate(res)
@@ -491,13 +537,17 @@ def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[
             if m.sum() >= 4:
                 kept.append(_Obs(o.cam, o.frame, o.ids[m], o.xy[m]))
         obs = kept
-        cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(board, cams, cam_from_ref, ref, frames,
-                                                                  ref_from_board, obs, cfg)
+        cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(
+            board, cams, cam_from_ref, ref, frames, ref_from_board, obs, cfg
+        )
         info["time_s"] += info2["time_s"]
         info["iterations"] += info2["iterations"]
         res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
     tick("outlier rejection")
-    per_cam = [np.concatenate([r for o, r in zip(obs, res, strict=False) if o.cam == c] or [np.zeros(0)]) for c in range(C)]
+    per_cam = [
+        np.concatenate([r for o, r in zip(obs, res, strict=False) if o.cam == c] or [np.zeros(0)])
+        for c in range(C)
+    ]
     final_rms = float(np.sqrt(np.mean(np.concatenate(res) ** 2)))
     # world frame
     world = cfg.world or f"camera:{names[0]}"
@@ -510,15 +560,19 @@ def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[
         try:
             wf = int(world.split(":", 1)[1])
         except ValueError:
-            raise CalibrationError(f"--world {world}: give the frame number of a frame where the board lies on the "
-                                   "floor, e.g. board:0.") from None
+            raise CalibrationError(
+                f"--world {world}: give the frame number of a frame where the board lies on the "
+                "floor, e.g. board:0."
+            ) from None
         if wf in ref_from_board:
             rfb = ref_from_board[wf]
         else:
             seen = [c for c in range(C) if wf in poses[c]]
             if not seen:
-                raise CalibrationError(f"--world {world}: no camera saw the board in frame {wf}. Pick a frame where "
-                                       "the board lies on the floor and at least one camera sees it.")
+                raise CalibrationError(
+                    f"--world {world}: no camera saw the board in frame {wf}. Pick a frame where "
+                    "the board lies on the floor and at least one camera sees it."
+                )
             c = max(seen, key=lambda c: poses[c][wf][2])
             rfb = _inv(cam_from_ref[c]) @ poses[c][wf][0]
         ref_from_world = rfb @ FLIP_BOARD_Z_UP
@@ -532,9 +586,18 @@ def calibrate_extrinsics(board: Board, cameras: Sequence[Camera], dets: Mapping[
     frames_per_cam = np.array([len({o.frame for o in obs if o.cam == c}) for c in range(C)])
     tick("world frame")
     return ExtrinsicsResult(
-        rig=CameraRig(tuple(out_cams)), frames=bf, world_from_board=wfb, links=links,
-        per_camera_rms_px=np.array([float(np.sqrt(np.mean(r ** 2))) if r.size else np.nan for r in per_cam]),
-        per_camera_obs=np.array([r.size for r in per_cam]), per_camera_frames=frames_per_cam,
-        initial_rms_px=initial_rms, final_rms_px=final_rms, ba_time_s=info["time_s"],
-        ba_iterations=info["iterations"], n_outliers=n_out, world=world,
-        residuals_px={names[c]: per_cam[c] for c in range(C)})
+        rig=CameraRig(tuple(out_cams)),
+        frames=bf,
+        world_from_board=wfb,
+        links=links,
+        per_camera_rms_px=np.array([float(np.sqrt(np.mean(r**2))) if r.size else np.nan for r in per_cam]),
+        per_camera_obs=np.array([r.size for r in per_cam]),
+        per_camera_frames=frames_per_cam,
+        initial_rms_px=initial_rms,
+        final_rms_px=final_rms,
+        ba_time_s=info["time_s"],
+        ba_iterations=info["iterations"],
+        n_outliers=n_out,
+        world=world,
+        residuals_px={names[c]: per_cam[c] for c in range(C)},
+    )

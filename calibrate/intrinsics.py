@@ -22,8 +22,14 @@ from calibrate.detect import CameraDetections
 
 log = logging.getLogger(__name__)
 
-__all__ = ["IntrinsicsConfig", "IntrinsicsResult", "calibrate_intrinsics", "select_frames", "coverage_grid",
-           "MODELS"]
+__all__ = [
+    "IntrinsicsConfig",
+    "IntrinsicsResult",
+    "calibrate_intrinsics",
+    "select_frames",
+    "coverage_grid",
+    "MODELS",
+]
 
 MODELS = ("pinhole", "pinhole4", "rational", "fisheye")
 
@@ -31,10 +37,10 @@ MODELS = ("pinhole", "pinhole4", "rational", "fisheye")
 @dataclass(frozen=True)
 class IntrinsicsConfig:
     model: str = "pinhole"
-    max_frames: int = 40           # frames given to the solver, chosen for coverage and diversity
-    min_frames: int = 6            # fewer -> CalibrationError (record more)
-    min_points: int = 6            # per frame
-    reject_factor: float = 3.0     # a frame is rejected above max(reject_factor * median, reject_floor_px)
+    max_frames: int = 40  # frames given to the solver, chosen for coverage and diversity
+    min_frames: int = 6  # fewer -> CalibrationError (record more)
+    min_points: int = 6  # per frame
+    reject_factor: float = 3.0  # a frame is rejected above max(reject_factor * median, reject_floor_px)
     reject_floor_px: float = 1.0
     k3_min_frames: int = 15
     point_reject_factor: float = 6.0  # a corner is dropped above max(factor * median point error, floor)
@@ -68,7 +74,9 @@ class IntrinsicsResult:
         return float((self.coverage > 0).mean())
 
     def camera(self) -> Camera:
-        return Camera(self.name, self.size_wh, self.K, self.dist, "fisheye" if self.model == "fisheye" else "pinhole")
+        return Camera(
+            self.name, self.size_wh, self.K, self.dist, "fisheye" if self.model == "fisheye" else "pinhole"
+        )
 
 
 def coverage_grid(xy_px: np.ndarray, size_wh: tuple[int, int], gx: int = 16) -> np.ndarray:
@@ -89,8 +97,16 @@ def _descriptor(xy: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
     cov = np.cov((p / max(w, h)).T) + 1e-12 * np.eye(2)
     ev, evec = np.linalg.eigh(cov)
     ang = np.arctan2(evec[1, 1], evec[0, 1])
-    return np.array([c[0], c[1], 0.25 * np.log(ev.prod()) / 2, 0.5 * np.log(ev[1] / ev[0]) / 2,
-                     0.2 * np.cos(2 * ang), 0.2 * np.sin(2 * ang)])
+    return np.array(
+        [
+            c[0],
+            c[1],
+            0.25 * np.log(ev.prod()) / 2,
+            0.5 * np.log(ev[1] / ev[0]) / 2,
+            0.2 * np.cos(2 * ang),
+            0.2 * np.sin(2 * ang),
+        ]
+    )
 
 
 def select_frames(xy_px: np.ndarray, size_wh: tuple[int, int], max_frames: int) -> np.ndarray:
@@ -117,15 +133,21 @@ def select_frames(xy_px: np.ndarray, size_wh: tuple[int, int], max_frames: int) 
     return np.sort(np.array(chosen))
 
 
-def _calibrate(obj: list[np.ndarray], img: list[np.ndarray], size_wh, model: str, n_frames_total: int, k3_min: int):
+def _calibrate(
+    obj: list[np.ndarray], img: list[np.ndarray], size_wh, model: str, n_frames_total: int, k3_min: int
+):
     import cv2
 
     if model == "fisheye":
-        flags = cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+        # OpenCV 5 moved the fisheye flags to the top level (cv2.fisheye.CALIB_* in 4.x)
+        fl = lambda n: getattr(cv2.fisheye, n, None) or getattr(cv2, n)
+        flags = fl("CALIB_RECOMPUTE_EXTRINSIC") | fl("CALIB_FIX_SKEW")
         crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-9)
-        o = [p.reshape(-1, 1, 3).astype(np.float64) for p in obj]
-        i = [p.reshape(-1, 1, 2).astype(np.float64) for p in img]
-        rms, K, D, rv, tv = cv2.fisheye.calibrate(o, i, tuple(size_wh), None, None, flags=flags, criteria=crit)
+        o = [p.reshape(1, -1, 3).astype(np.float64) for p in obj]  # (1,N,3): OpenCV 5 rejects (N,1,3) here
+        i = [p.reshape(1, -1, 2).astype(np.float64) for p in img]
+        rms, K, D, rv, tv = cv2.fisheye.calibrate(
+            o, i, tuple(size_wh), None, None, flags=flags, criteria=crit
+        )
         return K, D.ravel(), np.array(rv).reshape(-1, 3), np.array(tv).reshape(-1, 3)
     flags = 0
     if model == "rational":
@@ -145,14 +167,17 @@ def _project(model: str, obj: np.ndarray, rvec, tvec, K, D) -> np.ndarray:
     import cv2
 
     if model == "fisheye":
-        p, _ = cv2.fisheye.projectPoints(obj.reshape(-1, 1, 3).astype(np.float64), rvec.reshape(3, 1),
-                                         tvec.reshape(3, 1), K, D)
+        p, _ = cv2.fisheye.projectPoints(
+            obj.reshape(-1, 1, 3).astype(np.float64), rvec.reshape(3, 1), tvec.reshape(3, 1), K, D
+        )
     else:
         p, _ = cv2.projectPoints(obj.astype(np.float64), rvec, tvec, K, D)
     return p.reshape(-1, 2)
 
 
-def calibrate_intrinsics(board: Board, det: CameraDetections, config: IntrinsicsConfig | None = None) -> IntrinsicsResult:
+def calibrate_intrinsics(
+    board: Board, det: CameraDetections, config: IntrinsicsConfig | None = None
+) -> IntrinsicsResult:
     """Intrinsics of one camera from its detections (see module doc); rejects frames whose RMS is far
     above the median and calibrates again."""
     cfg = config or IntrinsicsConfig()
@@ -162,9 +187,13 @@ def calibrate_intrinsics(board: Board, det: CameraDetections, config: Intrinsics
     if len(ok) < cfg.min_frames:
         raise CalibrationError(
             f"Camera '{det.name}': the board was seen (>= {cfg.min_points} points) in only {len(ok)} of "
-            f"{det.n_frames_read} frames read; intrinsics need at least {cfg.min_frames}. Record the board again "
+            f"{det.n_frames_read} frames read; intrinsics need at least {cfg.min_frames}. Record the board "
+            "again "
             "in front of this camera, moving it over the whole image and tilting it (about 20-40 views), "
-            "or give known intrinsics (--intrinsics rig.toml).")
+            "or give known intrinsics (--intrinsics rig.toml)."
+        )
+    import cv2
+
     sel = ok[select_frames(det.xy_px[ok], det.size_wh, cfg.max_frames)]
     rejected: list[int] = []
     # per-point mask: single corners far off (a mis-refined corner) are dropped, not their whole frame
@@ -176,13 +205,17 @@ def calibrate_intrinsics(board: Board, det: CameraDetections, config: Intrinsics
         img = [det.xy_px[i][keep[int(i)]] for i in sel]
         try:
             K, D, rv, tv = _calibrate(obj, img, det.size_wh, cfg.model, len(sel), cfg.k3_min_frames)
-        except Exception as e:  # cv2.error: ill-conditioned input
-            raise CalibrationError(f"Camera '{det.name}': OpenCV could not calibrate from {len(sel)} frames ({e}). "
-                                   "Record more views of the board with more tilt, or use a simpler model "
-                                   "(--model pinhole).") from e
-        perr = [np.linalg.norm(_project(cfg.model, o, r, t, K, D) - p, axis=1)
-                for o, p, r, t in zip(obj, img, rv, tv, strict=True)]
-        errs = np.array([np.sqrt(np.mean(e ** 2)) for e in perr])
+        except cv2.error as e:  # ill-conditioned input
+            raise CalibrationError(
+                f"Camera '{det.name}': OpenCV could not calibrate from {len(sel)} frames ({e}). "
+                "Record more views of the board with more tilt, or use a simpler model "
+                "(--model pinhole)."
+            ) from e
+        perr = [
+            np.linalg.norm(_project(cfg.model, o, r, t, K, D) - p, axis=1)
+            for o, p, r, t in zip(obj, img, rv, tv, strict=True)
+        ]
+        errs = np.array([np.sqrt(np.mean(e**2)) for e in perr])
         thr = max(cfg.reject_factor * float(np.median(errs)), cfg.reject_floor_px)
         bad = errs > thr
         pthr = max(cfg.point_reject_factor * float(np.median(np.concatenate(perr))), cfg.reject_floor_px)
@@ -202,9 +235,32 @@ def calibrate_intrinsics(board: Board, det: CameraDetections, config: Intrinsics
     if n_dropped:
         log.info("camera %s: dropped %d single corner(s) above their frame's fit", det.name, n_dropped)
     n_pts = np.array([len(p) for p in img])
-    rms = float(np.sqrt(np.sum(errs ** 2 * n_pts) / n_pts.sum()))
+    rms = float(np.sqrt(np.sum(errs**2 * n_pts) / n_pts.sum()))
     cov = coverage_grid(det.xy_px[sel], det.size_wh)
-    log.info("camera %s: %s f=(%.1f, %.1f) c=(%.1f, %.1f) RMS %.3f px from %d frames, coverage %.0f%%", det.name,
-             cfg.model, K[0, 0], K[1, 1], K[0, 2], K[1, 2], rms, len(sel), 100 * float((cov > 0).mean()))
-    return IntrinsicsResult(det.name, det.size_wh, cfg.model, np.asarray(K, float), np.asarray(D, float), rms,
-                            det.frames[sel], np.asarray(rejected, np.int64), errs, rv, tv, cov, int(len(ok)))
+    log.info(
+        "camera %s: %s f=(%.1f, %.1f) c=(%.1f, %.1f) RMS %.3f px from %d frames, coverage %.0f%%",
+        det.name,
+        cfg.model,
+        K[0, 0],
+        K[1, 1],
+        K[0, 2],
+        K[1, 2],
+        rms,
+        len(sel),
+        100 * float((cov > 0).mean()),
+    )
+    return IntrinsicsResult(
+        det.name,
+        det.size_wh,
+        cfg.model,
+        np.asarray(K, float),
+        np.asarray(D, float),
+        rms,
+        det.frames[sel],
+        np.asarray(rejected, np.int64),
+        errs,
+        rv,
+        tv,
+        cov,
+        int(len(ok)),
+    )

@@ -18,12 +18,23 @@ import numpy as np
 from calibrate.boards import Board
 from calibrate.camera import Camera, CameraRig
 
-__all__ = ["BoardRenderer", "look_at", "ring_rig", "board_trajectory", "write_recording", "SceneTruth", "views_near_camera",
-           "project_detections"]
+__all__ = [
+    "BoardRenderer",
+    "look_at",
+    "ring_rig",
+    "board_trajectory",
+    "write_recording",
+    "SceneTruth",
+    "views_near_camera",
+    "project_detections",
+]
 
 
-def look_at(center_m: np.ndarray, target_m: np.ndarray, up: Sequence[float] = (0, 0, 1)) -> tuple[np.ndarray, np.ndarray]:
-    """cam_from_world (R, t) of a camera at center_m looking at target_m (OpenCV axes: x right, y down, z ahead)."""
+def look_at(
+    center_m: np.ndarray, target_m: np.ndarray, up: Sequence[float] = (0, 0, 1)
+) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_world (R, t) of a camera at center_m looking at target_m
+    (OpenCV axes: x right, y down, z ahead)."""
     c = np.asarray(center_m, float)
     z = np.asarray(target_m, float) - c
     z /= np.linalg.norm(z)
@@ -34,8 +45,15 @@ def look_at(center_m: np.ndarray, target_m: np.ndarray, up: Sequence[float] = (0
     return R, -R @ c
 
 
-def ring_rig(n_cams: int, radius_m: float = 2.0, height_m: float = 1.5, size_wh: tuple[int, int] = (640, 480),
-             focal_px: float = 600.0, dist: Sequence[float] = (-0.12, 0.05, 0.0, 0.0, 0.0), rng=None) -> CameraRig:
+def ring_rig(
+    n_cams: int,
+    radius_m: float = 2.0,
+    height_m: float = 1.5,
+    size_wh: tuple[int, int] = (640, 480),
+    focal_px: float = 600.0,
+    dist: Sequence[float] = (-0.12, 0.05, 0.0, 0.0, 0.0),
+    rng=None,
+) -> CameraRig:
     """n_cams cameras on a circle looking at (0,0,1), with slightly different focal lengths."""
     rng = rng or np.random.default_rng(0)
     cams = []
@@ -51,22 +69,37 @@ def ring_rig(n_cams: int, radius_m: float = 2.0, height_m: float = 1.5, size_wh:
 
 def _rot(axis: str, a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
-    return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]), "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
-            "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
+    return {
+        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+    }[axis]
 
 
-def board_trajectory(board: Board, n_frames: int, rng: np.random.Generator, center_m=(0, 0, 1.0),
-                     spread_m: float = 0.6, tilt_deg: float = 35.0, yaw_range=(0.0, 2 * np.pi)) -> np.ndarray:
+def board_trajectory(
+    board: Board,
+    n_frames: int,
+    rng: np.random.Generator,
+    center_m=(0, 0, 1.0),
+    spread_m: float = 0.6,
+    tilt_deg: float = 35.0,
+    yaw_range=(0.0, 2 * np.pi),
+) -> np.ndarray:
     """(F,4,4) world_from_board poses of a board held upright near center_m, turning about the vertical
     (yaw swept over yaw_range) with random tilts; the board centre is at the given position."""
     w, h = board.extent_m()
     out = np.zeros((n_frames, 4, 4))
     for k in range(n_frames):
         yaw = yaw_range[0] + (yaw_range[1] - yaw_range[0]) * (k + rng.uniform(0, 1)) / n_frames
-        # upright board facing +x of its yaw: board x -> horizontal, board y -> down, board z -> into the board
+        # upright board facing +x of its yaw: board x horizontal, y down, z into the board
         base = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # columns: board x, y, z
-        Rw = _rot("z", yaw) @ base @ _rot("x", np.radians(rng.uniform(-tilt_deg, tilt_deg))) \
-            @ _rot("y", np.radians(rng.uniform(-tilt_deg, tilt_deg))) @ _rot("z", np.radians(rng.uniform(-20, 20)))
+        Rw = (
+            _rot("z", yaw)
+            @ base
+            @ _rot("x", np.radians(rng.uniform(-tilt_deg, tilt_deg)))
+            @ _rot("y", np.radians(rng.uniform(-tilt_deg, tilt_deg)))
+            @ _rot("z", np.radians(rng.uniform(-20, 20)))
+        )
         c = np.asarray(center_m, float) + rng.uniform(-spread_m, spread_m, 3) * np.array([1, 1, 0.5])
         t = c - Rw @ np.array([w / 2, h / 2, 0])
         out[k, :3, :3] = Rw
@@ -75,8 +108,14 @@ def board_trajectory(board: Board, n_frames: int, rng: np.random.Generator, cent
     return out
 
 
-def views_near_camera(board: Board, cam: Camera, n_frames: int, rng: np.random.Generator,
-                      depth_m: tuple[float, float] = (0.8, 1.3), tilt_deg: float = 45.0) -> np.ndarray:
+def views_near_camera(
+    board: Board,
+    cam: Camera,
+    n_frames: int,
+    rng: np.random.Generator,
+    depth_m: tuple[float, float] = (0.8, 1.3),
+    tilt_deg: float = 45.0,
+) -> np.ndarray:
     """(F,4,4) world_from_board poses of a board held in front of one camera (as for an intrinsic
     calibration): centred on a random image point, at a random depth, facing the camera with random tilts."""
     w, h = board.extent_m()
@@ -87,8 +126,11 @@ def views_near_camera(board: Board, cam: Camera, n_frames: int, rng: np.random.G
         ray = np.linalg.solve(cam.K, [u, v, 1.0])
         c_cam = ray / ray[2] * rng.uniform(*depth_m)
         # board facing the camera: board z along the camera's z (into the board), x right, y down
-        Rc = _rot("x", np.radians(rng.uniform(-tilt_deg, tilt_deg))) @ _rot("y", np.radians(rng.uniform(-tilt_deg, tilt_deg))) \
+        Rc = (
+            _rot("x", np.radians(rng.uniform(-tilt_deg, tilt_deg)))
+            @ _rot("y", np.radians(rng.uniform(-tilt_deg, tilt_deg)))
             @ _rot("z", np.radians(rng.uniform(-30, 30)))
+        )
         t_cam = c_cam - Rc @ np.array([w / 2, h / 2, 0])
         # world_from_board = world_from_cam @ cam_from_board
         Rw = cam.R.T @ Rc
@@ -101,7 +143,9 @@ class BoardRenderer:
     """Renders one board (with a white margin of half a square) into cameras.
     px_per_m: resolution of the printed board image; supersample: per axis."""
 
-    def __init__(self, board: Board, px_per_m: float = 3000.0, supersample: int = 2, margin_m: float | None = None):
+    def __init__(
+        self, board: Board, px_per_m: float = 3000.0, supersample: int = 2, margin_m: float | None = None
+    ):
         self.board = board
         self.ppm = px_per_m
         self.ss = supersample
@@ -126,8 +170,9 @@ class BoardRenderer:
             V = ((np.arange(ny) * step + (step - 1) / 2) + 0.5) / s - 0.5
             uu, vv = np.meshgrid(U, V)
             und = cam.undistort_px(np.stack([uu, vv], -1))
-            coarse = np.stack([(und[..., 0] - cam.K[0, 2]) / cam.K[0, 0],
-                               (und[..., 1] - cam.K[1, 2]) / cam.K[1, 1]], -1)
+            coarse = np.stack(
+                [(und[..., 0] - cam.K[0, 2]) / cam.K[0, 0], (und[..., 1] - cam.K[1, 2]) / cam.K[1, 1]], -1
+            )
             fine = cv2.resize(coarse, (nx * step, ny * step), interpolation=cv2.INTER_LINEAR)
             self._rays[key] = fine[: h * s, : w * s].astype(np.float32)
         return self._rays[key]
@@ -137,8 +182,12 @@ class BoardRenderer:
         m = self.margin_m - self.board.image_origin_m()
         w, h = w + 2 * self.board.image_origin_m(), h + 2 * self.board.image_origin_m()
         t = np.linspace(0, 1, 16)
-        xs = np.concatenate([-m + t * (w + 2 * m), np.full(16, w + m), w + m - t * (w + 2 * m), np.full(16, -m)])
-        ys = np.concatenate([np.full(16, -m), -m + t * (h + 2 * m), np.full(16, h + m), h + m - t * (h + 2 * m)])
+        xs = np.concatenate(
+            [-m + t * (w + 2 * m), np.full(16, w + m), w + m - t * (w + 2 * m), np.full(16, -m)]
+        )
+        ys = np.concatenate(
+            [np.full(16, -m), -m + t * (h + 2 * m), np.full(16, h + m), h + m - t * (h + 2 * m)]
+        )
         P = np.stack([xs, ys, np.zeros_like(xs)], 1)
         return (world_from_board[:3, :3] @ P.T).T + world_from_board[:3, 3]
 
@@ -156,8 +205,15 @@ class BoardRenderer:
         inside = np.isfinite(p[:, 0]) & (p[:, 0] > 2) & (p[:, 0] < w - 3) & (p[:, 1] > 2) & (p[:, 1] < h - 3)
         return bool(inside.mean() > min_fraction)
 
-    def render(self, cam: Camera, world_from_board: np.ndarray, rng: np.random.Generator,
-               noise: float = 2.0, blur_sigma_px: float = 0.6, background: float = 110.0) -> np.ndarray:
+    def render(
+        self,
+        cam: Camera,
+        world_from_board: np.ndarray,
+        rng: np.random.Generator,
+        noise: float = 2.0,
+        blur_sigma_px: float = 0.6,
+        background: float = 110.0,
+    ) -> np.ndarray:
         """Gray image (H,W) uint8 of the board seen by cam (world_from_board: (4,4))."""
         import cv2
 
@@ -189,8 +245,9 @@ class BoardRenderer:
             o = self.margin_px - self.board.image_origin_m() * self.ppm - 0.5
             mx = np.where(ok, bx / bw * k + o, -1e6).astype(np.float32)
             my = np.where(ok, by / bw * k + o, -1e6).astype(np.float32)
-            out[y0:y1, x0:x1] = cv2.remap(self.img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                          borderValue=background)
+            out[y0:y1, x0:x1] = cv2.remap(
+                self.img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=background
+            )
         img = cv2.resize(out, (w, h), interpolation=cv2.INTER_AREA) if s > 1 else out
         if blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
@@ -202,13 +259,21 @@ class BoardRenderer:
 @dataclass(frozen=True)
 class SceneTruth:
     rig: CameraRig
-    world_from_board: np.ndarray   # (F,4,4)
-    n_views: np.ndarray            # (C,) frames rendered per camera
+    world_from_board: np.ndarray  # (F,4,4)
+    n_views: np.ndarray  # (C,) frames rendered per camera
 
 
-def write_recording(board: Board, rig: CameraRig, world_from_board: np.ndarray, out_dir: str | os.PathLike,
-                    rng: np.random.Generator, visible_mask: np.ndarray | None = None, noise: float = 2.0,
-                    blur_sigma_px: float = 0.6, px_per_m: float = 3000.0) -> SceneTruth:
+def write_recording(
+    board: Board,
+    rig: CameraRig,
+    world_from_board: np.ndarray,
+    out_dir: str | os.PathLike,
+    rng: np.random.Generator,
+    visible_mask: np.ndarray | None = None,
+    noise: float = 2.0,
+    blur_sigma_px: float = 0.6,
+    px_per_m: float = 3000.0,
+) -> SceneTruth:
     """Write ``out_dir/<camera>/frame_<k>.png`` for every frame where the board is visible to that camera
     (and visible_mask (C,F), if given, allows it). Returns the truth."""
     import cv2
@@ -229,9 +294,15 @@ def write_recording(board: Board, rig: CameraRig, world_from_board: np.ndarray, 
     return SceneTruth(rig, world_from_board, n)
 
 
-def project_detections(board: Board, rig: CameraRig, world_from_board: np.ndarray, rng: np.random.Generator,
-                       noise_px: float = 0.2, visible_mask: np.ndarray | None = None,
-                       min_points: int = 6) -> dict:
+def project_detections(
+    board: Board,
+    rig: CameraRig,
+    world_from_board: np.ndarray,
+    rng: np.random.Generator,
+    noise_px: float = 0.2,
+    visible_mask: np.ndarray | None = None,
+    min_points: int = 6,
+) -> dict:
     """Detections without rendering: exact projections plus Gaussian noise (noise_px per axis), for
     frames where the printed side faces the camera; points outside the image are NaN.
     visible_mask: (C,F) optional extra restriction. Returns camera name -> CameraDetections."""
@@ -256,6 +327,7 @@ def project_detections(board: Board, rig: CameraRig, world_from_board: np.ndarra
             frames.append(k)
             xys.append(p)
         xy = np.stack(xys) if xys else np.zeros((0, len(obj), 2))
-        out[cam.name] = CameraDetections(cam.name, cam.size_wh, np.asarray(frames, np.int64), xy,
-                                         len(world_from_board), 1)
+        out[cam.name] = CameraDetections(
+            cam.name, cam.size_wh, np.asarray(frames, np.int64), xy, len(world_from_board), 1
+        )
     return out

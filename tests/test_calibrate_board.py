@@ -21,16 +21,24 @@ CHARUCO = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
 
 
 def test_board_toml_round_trip_and_errors(tmp_path):
-    for b in (CHARUCO, Board("checkerboard", (9, 6), 0.025), Board("aruco_grid", (4, 3), 0.05, 0.05, marker_separation_m=0.01),
-              CHARUCO.replace(legacy_pattern=True, inverted=True)):
+    for b in (
+        CHARUCO,
+        Board("checkerboard", (9, 6), 0.025),
+        Board("aruco_grid", (4, 3), 0.05, 0.05, marker_separation_m=0.01),
+        CHARUCO.replace(legacy_pattern=True, inverted=True),
+    ):
         save_board(tmp_path / "b.toml", b)
         assert load_board(tmp_path / "b.toml") == b
-    (tmp_path / "bad.toml").write_text('schema = "board/1"\nkind = "charuco"\nsquares = [5, 7]\nsquare_size_m = 0.04\n'
-                                       'marker_size_m = 0.03\ndictionary = "DICT_4X4_50"\ncolour = "red"\n')
+    (tmp_path / "bad.toml").write_text(
+        'schema = "board/1"\nkind = "charuco"\nsquares = [5, 7]\nsquare_size_m = 0.04\n'
+        'marker_size_m = 0.03\ndictionary = "DICT_4X4_50"\ncolour = "red"\n'
+    )
     with pytest.raises(FormatError, match="unknown keys"):
         load_board(tmp_path / "bad.toml")
-    (tmp_path / "bad2.toml").write_text('schema = "board/1"\nkind = "charuco"\nsquares = [5, 7]\nsquare_size_m = 0.04\n'
-                                        'marker_size_m = 0.03\ndictionary = "DICT_4X4_51"\n')
+    (tmp_path / "bad2.toml").write_text(
+        'schema = "board/1"\nkind = "charuco"\nsquares = [5, 7]\nsquare_size_m = 0.04\n'
+        'marker_size_m = 0.03\ndictionary = "DICT_4X4_51"\n'
+    )
     with pytest.raises(FormatError, match="unknown dictionary"):
         load_board(tmp_path / "bad2.toml")
 
@@ -48,12 +56,16 @@ def _views(board, n, rng, size=(640, 480)):
     return rig[0], T
 
 
-@pytest.mark.parametrize(("board", "bound_px"), [
-    (CHARUCO, 0.3),                              # measured median 0.08 px
-    (Board("checkerboard", (8, 5), 0.08), 0.3),  # measured 0.05 px
-    # marker corners are L-corners, biased by blur: measured 0.39 px
-    (Board("aruco_grid", (4, 3), 0.12, 0.12, "DICT_5X5_100", marker_separation_m=0.03), 0.6)],
-    ids=["charuco", "checkerboard", "aruco_grid"])
+@pytest.mark.parametrize(
+    ("board", "bound_px"),
+    [
+        (CHARUCO, 0.3),  # measured median 0.08 px
+        (Board("checkerboard", (8, 5), 0.08), 0.3),  # measured 0.05 px
+        # marker corners are L-corners, biased by blur: measured 0.39 px
+        (Board("aruco_grid", (4, 3), 0.12, 0.12, "DICT_5X5_100", marker_separation_m=0.03), 0.6),
+    ],
+    ids=["charuco", "checkerboard", "aruco_grid"],
+)
 def test_detection_on_rendered_views_is_subpixel(board, bound_px, rng):
     cam, T = _views(board, 6, rng)
     r = BoardRenderer(board)
@@ -91,8 +103,14 @@ def test_legacy_pattern_and_inverted_colours_are_diagnosed(tmp_path, rng):
 def _recording(tmp_path, board, n_cams=3, n_frames=10, rng=None, size=(640, 480)):
     rng = rng or np.random.default_rng(1)
     rig = ring_rig(n_cams, radius_m=1.8, size_wh=size, rng=rng)
-    T = board_trajectory(board, n_frames, rng, spread_m=0.35, yaw_range=(-0.5, 2 * np.pi / n_cams * (n_cams - 1) + 0.5),
-                         tilt_deg=30)
+    T = board_trajectory(
+        board,
+        n_frames,
+        rng,
+        spread_m=0.35,
+        yaw_range=(-0.5, 2 * np.pi / n_cams * (n_cams - 1) + 0.5),
+        tilt_deg=30,
+    )
     write_recording(board, rig, T, tmp_path / "rec", rng)
     return rig
 
@@ -131,9 +149,12 @@ def test_bad_recordings_say_what_to_do(tmp_path, rng):
     assert "cam_blind" in str(e.value) and "--exclude cam_blind" in str(e.value)
     # ... and excluding it works past that point (too few frames for the others here: a clear message too)
     with pytest.raises(CalibrationError) as e:
-        calibrate_recording(rec, board, tmp_path / "o1" / "rig.toml", CalibrationConfig(exclude=("cam_blind",),
-                                                                                        min_frames=30))
-    assert "only" in str(e.value) and "at least 30" in str(e.value) and "Record the board again" in str(e.value)
+        calibrate_recording(
+            rec, board, tmp_path / "o1" / "rig.toml", CalibrationConfig(exclude=("cam_blind",), min_frames=30)
+        )
+    assert (
+        "only" in str(e.value) and "at least 30" in str(e.value) and "Record the board again" in str(e.value)
+    )
     # resolution changing mid-recording
     cv2.imwrite(str(rec / "cam_blind" / "frame_00003.png"), np.full((240, 320), 90, np.uint8))
     with pytest.raises(CalibrationError, match="resolution changed mid-recording.*640x480 to 320x240"):
@@ -152,5 +173,9 @@ def test_unopenable_video_keeps_the_other_cameras(tmp_path, rng):
     (rec / "broken.mp4").write_bytes(b"this is not a video")
     with pytest.raises(CalibrationError) as e:
         detect_all(CHARUCO, discover_recording(rec), tmp_path / "cache")
-    assert "cannot open video" in str(e.value) and "ffmpeg" in str(e.value) and "['good'] are cached" in str(e.value)
+    assert (
+        "cannot open video" in str(e.value)
+        and "ffmpeg" in str(e.value)
+        and "['good'] are cached" in str(e.value)
+    )
     assert (tmp_path / "cache" / "good.npz").exists()
