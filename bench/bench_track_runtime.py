@@ -39,8 +39,12 @@ def people(n: int, T: int, seed: int = 0) -> np.ndarray:
     from synthetic.rigs import ring_room
     from synthetic.world import SceneConfig, make_scene
 
-    sc = make_scene(ring_room(6.5), SceneConfig(n_people=n, duration_s=T / 25.0, fps=25.0, seed=seed,
-                                                motion="procedural", min_separation_m=0.8))
+    sc = make_scene(
+        ring_room(6.5),
+        SceneConfig(
+            n_people=n, duration_s=T / 25.0, fps=25.0, seed=seed, motion="procedural", min_separation_m=0.8
+        ),
+    )
     return sc.gt_xyz_m[:T].astype(np.float32)
 
 
@@ -57,8 +61,12 @@ def time_tracker(P, kp, sc, cfg: ParticleConfig, n_people: int, warm: int) -> di
     ok = (np.arange(len(kp)) >= warm) & (ks == n_people)
     if not ok.any():
         ok = np.arange(len(kp)) >= warm
-    return {"cpu_ms": 1e3 * float(np.median(np.asarray(cpu)[ok])), "wall_ms": 1e3 * float(np.median(np.asarray(wall)[ok])),
-            "tracks": int(np.median(ks[ok])), "frames_timed": int(ok.sum())}
+    return {
+        "cpu_ms": 1e3 * float(np.median(np.asarray(cpu)[ok])),
+        "wall_ms": 1e3 * float(np.median(np.asarray(wall)[ok])),
+        "tracks": int(np.median(ks[ok])),
+        "frames_timed": int(ok.sum()),
+    }
 
 
 def time_triangulation(P, kp, sc, warm: int) -> float:
@@ -76,7 +84,7 @@ def time_triangulation(P, kp, sc, warm: int) -> float:
 def fit(k: np.ndarray, t: np.ndarray) -> tuple[float, float, float]:
     b, a = np.polyfit(k, t, 1)
     pred = a + b * k
-    r2 = 1 - ((t - pred)**2).sum() / max(((t - t.mean())**2).sum(), 1e-12)
+    r2 = 1 - ((t - pred) ** 2).sum() / max(((t - t.mean()) ** 2).sum(), 1e-12)
     return float(a), float(b), float(r2)
 
 
@@ -93,33 +101,52 @@ def main() -> None:
     P = ring_P(args.cams, radius_m=7.0, height_m=2.6)
     warm = 6
     rows = []
-    print(f"{args.cams} cameras, {args.samples} samples, median over frames {warm}..{args.frames - 1}; "
-          f"CPU ms per frame (process time), wall in ()")
+    print(
+        f"{args.cams} cameras, {args.samples} samples, median over frames {warm}..{args.frames - 1}; "
+        f"CPU ms per frame (process time), wall in ()"
+    )
     print(f"{'people':>6} | {'GRU prior':>18} | {'const. velocity':>18} | {'ch.4 triangulation':>18}")
     for n in args.people:
         X = people(n, args.frames, seed=n)
         kp, sc = render_kp(P, X, noise_px=1.0, seed=n)
         g = time_tracker(P, kp, sc, ParticleConfig(n_samples=args.samples, motion="gru"), n, warm)
-        c = time_tracker(P, kp, sc, ParticleConfig(n_samples=args.samples, motion="constant_velocity"), n, warm)
+        c = time_tracker(
+            P, kp, sc, ParticleConfig(n_samples=args.samples, motion="constant_velocity"), n, warm
+        )
         tri = time_triangulation(P, kp, sc, warm)
         rows.append({"people": n, "gru": g, "cv": c, "tri_cpu_ms": tri})
-        print(f"{n:>6} | {g['cpu_ms']:8.1f} ({g['wall_ms']:6.1f}) K={g['tracks']:<2} | "
-              f"{c['cpu_ms']:8.1f} ({c['wall_ms']:6.1f}) K={c['tracks']:<2} | {tri:10.1f}", flush=True)
-    k = np.array([r["people"] for r in rows], float)
+        print(
+            f"{n:>6} | {g['cpu_ms']:8.1f} ({g['wall_ms']:6.1f}) K={g['tracks']:<2} | "
+            f"{c['cpu_ms']:8.1f} ({c['wall_ms']:6.1f}) K={c['tracks']:<2} | {tri:10.1f}",
+            flush=True,
+        )
     res = {}
     for name in ("gru", "cv"):
+        k = np.array([r[name]["tracks"] for r in rows], float)  # the people actually tracked
         t = np.array([r[name]["cpu_ms"] for r in rows])
         a, b, r2 = fit(k, t)
-        res[name] = {"intercept_ms": a, "ms_per_person": b, "r2": r2,
-                     "max_ms_per_person_at_16": float(t[-1] / k[-1])}
-        print(f"{name}: t = {a:.2f} + {b:.2f} K ms (R^2 = {r2:.4f}); at K={int(k[-1])}: {t[-1] / k[-1]:.2f} ms/person")
+        res[name] = {
+            "intercept_ms": a,
+            "ms_per_person": b,
+            "r2": r2,
+            "max_ms_per_person_at_16": float(t[-1] / k[-1]),
+        }
+        print(
+            f"{name}: t = {a:.2f} + {b:.2f} K ms (R^2 = {r2:.4f}); "
+            f"at K={int(k[-1])}: {t[-1] / k[-1]:.2f} ms/person"
+        )
+    k = np.array([r["people"] for r in rows], float)
     tri = np.array([r["tri_cpu_ms"] for r in rows])
     q = np.polyfit(k, tri, 2)
     print(f"ch.4 triangulation per frame: {tri.round(1).tolist()} ms (quadratic term {q[0]:.3f} ms/person^2)")
     ok = res["gru"]["ms_per_person"] <= 3.0 and res["gru"]["r2"] >= 0.98
     print(f"criterion (GRU prior: slope <= 3 ms/person and R^2 >= 0.98): {'met' if ok else 'NOT met'}")
-    print("BENCH " + json.dumps({"cams": args.cams, "samples": args.samples, "rows": rows, "fit": res,
-                                 "criterion_met": bool(ok)}))
+    print(
+        "BENCH "
+        + json.dumps(
+            {"cams": args.cams, "samples": args.samples, "rows": rows, "fit": res, "criterion_met": bool(ok)}
+        )
+    )
 
 
 if __name__ == "__main__":

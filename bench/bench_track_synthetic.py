@@ -45,6 +45,7 @@ from triangulate.stage import track_session_greedy, triangulate_session  # noqa:
 
 FAULTS = dict(noise_px=3.0, missed_joint_rate=0.10, flip_rate=0.02, false_positive_rate=0.05)
 H128 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h128.pt"
+H32 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h32.pt"
 ABLATIONS = {
     "proposed (GRU 64, dropout)": {},
     "w/o pose resampling": {"resample": False},
@@ -52,8 +53,9 @@ ABLATIONS = {
     "zero-velocity prior (w/o pose prediction)": {"motion": "zero_velocity"},
     "prior w/o dropout": {"motion_dropout": 0.0},
     "constant-velocity prior": {"motion": "constant_velocity"},
-    "seed's random refinement (no guided cand.)": {"refine_guided": 0},
+    "seed's random refinement (M=8, no guided)": {"refine_guided": 0, "refine_candidates": 8},
     "GRU 128 units": {"motion_checkpoint": str(H128)},
+    "GRU 32 units": {"motion_checkpoint": str(H32)},
     "no output smoothing": {"smooth_sigma_frames": 0.0},
 }
 
@@ -63,14 +65,26 @@ def score(gt: np.ndarray, tf: TrackFile) -> dict:
     m = ev.mot_metrics(gt, x, threshold_m=0.3)
     p = ev.pcp(gt, x)
     e = ev.mpjpe(gt, x)
-    return {"mota": m.mota, "idf1": m.idf1, "idsw": m.id_switches, "fp": m.false_positives, "fn": m.misses,
-            "pcp": p.actor_average, "mpjpe_mm": 1e3 * e["mpjpe_m"], "tracks": int(tf.n_tracks)}
+    return {
+        "mota": m.mota,
+        "idf1": m.idf1,
+        "idsw": m.id_switches,
+        "fp": m.false_positives,
+        "fn": m.misses,
+        "pcp": p.actor_average,
+        "mpjpe_mm": 1e3 * e["mpjpe_m"],
+        "tracks": int(tf.n_tracks),
+    }
 
 
 def session(n_cams: int, n_people: int, seconds: float, seed: int, root: str):
     rig, room = kitchen(n_cams)
-    scene = make_scene(room, SceneConfig(n_people=n_people, duration_s=seconds, fps=25.0, seed=seed,
-                                         enter_leave=True, return_fraction=0.3))
+    scene = make_scene(
+        room,
+        SceneConfig(
+            n_people=n_people, duration_s=seconds, fps=25.0, seed=seed, enter_leave=True, return_fraction=0.3
+        ),
+    )
     rd = render(scene, rig, RenderConfig(seed=seed, **FAULTS))
     write_session(scene, rd, rig, root)
     return scene.gt_xyz_m
@@ -93,18 +107,28 @@ def run_particle(d: str, gt: np.ndarray, **cfg) -> dict:
     return r
 
 
-HEAD = (f"{'':<44} {'MOTA':>6} {'IDF1':>6} {'IDsw':>4} {'FP':>5} {'FN':>5} {'PCP':>6} {'MPJPE':>7} "
-        f"{'K':>3} {'ms/fr':>6}")
+HEAD = (
+    f"{'':<44} {'MOTA':>6} {'IDF1':>6} {'IDsw':>4} {'FP':>5} {'FN':>5} {'PCP':>6} {'MPJPE':>7} "
+    f"{'K':>3} {'ms/fr':>6}"
+)
 
 
 def line(label: str, r: dict) -> str:
-    return (f"{label:<44} {r['mota']:6.3f} {r['idf1']:6.3f} {r['idsw']:4d} {r['fp']:5d} {r['fn']:5d} "
-            f"{r['pcp']:6.3f} {r['mpjpe_mm']:6.1f}mm {r['tracks']:3d} {r['ms_per_frame']:6.1f}")
+    return (
+        f"{label:<44} {r['mota']:6.3f} {r['idf1']:6.3f} {r['idsw']:4d} {r['fp']:5d} {r['fn']:5d} "
+        f"{r['pcp']:6.3f} {r['mpjpe_mm']:6.1f}mm {r['tracks']:3d} {r['ms_per_frame']:6.1f}"
+    )
 
 
 def mean_rows(rows: list[dict]) -> dict:
-    return {k: (float(np.mean([r[k] for r in rows])) if isinstance(rows[0][k], float)
-                else int(round(np.mean([r[k] for r in rows])))) for k in rows[0]}
+    return {
+        k: (
+            float(np.mean([r[k] for r in rows]))
+            if isinstance(rows[0][k], float)
+            else int(round(np.mean([r[k] for r in rows])))
+        )
+        for k in rows[0]
+    }
 
 
 def main() -> None:
@@ -119,8 +143,10 @@ def main() -> None:
 
     torch.set_num_threads(1)
     out: dict = {"faults": FAULTS, "people": args.people, "seconds": args.seconds, "seeds": args.seeds}
-    print(f"kitchen, {args.people} people entering/leaving, {args.seconds:g} s at 25 fps, faults {FAULTS}; "
-          f"mean over seeds {args.seeds}")
+    print(
+        f"kitchen, {args.people} people entering/leaving, {args.seconds:g} s at 25 fps, faults {FAULTS}; "
+        f"mean over seeds {args.seeds}"
+    )
     print("(1) chapter-4 greedy vs particle filter by number of cameras")
     print(HEAD)
     table1 = {}
@@ -151,10 +177,15 @@ def main() -> None:
         print(line(label, table2[label]), flush=True)
     out["ablation"] = table2
     few = table1[args.cams[0]]
-    out["beats_greedy_few_cams"] = bool(few["particle"]["mota"] >= few["greedy"]["mota"]
-                                        and few["particle"]["idf1"] >= few["greedy"]["idf1"]
-                                        and few["particle"]["pcp"] >= few["greedy"]["pcp"])
-    print(f"\nparticle >= greedy on MOTA, IDF1 and PCP with {args.cams[0]} cameras: {out['beats_greedy_few_cams']}")
+    out["beats_greedy_few_cams"] = bool(
+        few["particle"]["mota"] >= few["greedy"]["mota"]
+        and few["particle"]["idf1"] >= few["greedy"]["idf1"]
+        and few["particle"]["pcp"] >= few["greedy"]["pcp"]
+    )
+    print(
+        f"\nparticle >= greedy on MOTA, IDF1 and PCP with {args.cams[0]} cameras: "
+        f"{out['beats_greedy_few_cams']}"
+    )
     print("BENCH " + json.dumps(out))
 
 

@@ -45,8 +45,10 @@ def test_priors_shapes_and_motion(rng):
 
 
 def test_non_learned_track_imports_without_torch():
-    code = ("import sys; import track.particle, track.observation, track.normalize, track.priors, "
-            "track.stage; print('torch' in sys.modules)")
+    code = (
+        "import sys; import track.particle, track.observation, track.normalize, track.priors, "
+        "track.stage; print('torch' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

@@ -103,7 +103,7 @@ def test_heatmap_and_paf_scores_eq_5_8():
     H, W = 60, 80
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
     a, b = np.float32([20, 30]), np.float32([60, 30])
-    heat = np.stack([np.exp(-((xx - p[0])**2 + (yy - p[1])**2) / 8.0) for p in (a, b)])  # (2,H,W)
+    heat = np.stack([np.exp(-((xx - p[0]) ** 2 + (yy - p[1]) ** 2) / 8.0) for p in (a, b)])  # (2,H,W)
     paf = np.zeros((1, 2, H, W), np.float32)
     band = (np.abs(yy - 30) < 3) & (xx >= 20) & (xx <= 60)
     paf[0, 0][band] = 1.0  # unit vector along +x on the limb

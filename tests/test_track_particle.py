@@ -90,7 +90,7 @@ def test_person_leaving_and_returning_gets_the_old_identity():
     assert len(res.track_id) == 2  # the returning person is not a new identity
     alive = np.isfinite(res.xyz_m).all(-1).all(-1)
     m = dict(_match(res.xyz_m, X))
-    k0 = [k for k in range(2) if _match(res.xyz_m[:, k:k + 1], X)[0][0] == 0][0]
+    k0 = [k for k in range(2) if _match(res.xyz_m[:, k : k + 1], X)[0][0] == 0][0]
     assert not alive[35:70, k0].any() and alive[75:, k0].all()
     assert all(e < 0.05 for e in m.values())
 

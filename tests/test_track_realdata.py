@@ -40,8 +40,12 @@ def test_pose2sim_two_participants_stable_ids_and_view_dependent_uncertainty(tmp
 
     rig = CameraRig.load(lay.rig_toml)
     sub, mv = load_detections(lay, rig)
-    tr = ParticleTracker(sub.projection_matrices(), focal_lengths(sub), 60.0,
-                         ParticleConfig(motion="constant_velocity", n_samples=200))
+    tr = ParticleTracker(
+        sub.projection_matrices(),
+        focal_lengths(sub),
+        60.0,
+        ParticleConfig(motion="constant_velocity", n_samples=200),
+    )
     res = track_sequence(tr, np.moveaxis(mv.xy_px, 0, 1), np.moveaxis(mv.score, 0, 1))
     tf = track_arrays_to_file(res, mv.frame_index, mv.t_ns, 60.0)
     frames = np.isfinite(tf.xyz_m).all(-1).any(-1).sum(0)  # frames per track

@@ -16,8 +16,10 @@ def _session(tmp_path, n_cams=3, n_people=2, seconds=3.0):
     from synthetic.world import SceneConfig, make_scene, write_session
 
     rig = ring_rig(n_cams, radius_m=4.0, distortion=True, seed=1)
-    scene = make_scene(ring_room(3.0), SceneConfig(n_people=n_people, duration_s=seconds, fps=25.0, seed=2,
-                                                   motion="procedural"))
+    scene = make_scene(
+        ring_room(3.0),
+        SceneConfig(n_people=n_people, duration_s=seconds, fps=25.0, seed=2, motion="procedural"),
+    )
     rd = render(scene, rig, RenderConfig(seed=2, noise_px=2.0, missed_joint_rate=0.05))
     write_session(scene, rd, rig, tmp_path)
     return scene.gt_xyz_m
@@ -51,10 +53,21 @@ def test_stage_camera_dropping_out_and_bad_config(tmp_path):
     # camera 2 stops delivering after frame 25 (its detections file is shorter)
     p = tmp_path / "keypoints" / "cam02.npz"
     d = Detections.load(p)
-    Detections(d.camera, d.skeleton, d.frame_index[:25], d.t_ns[:25], d.xy_px[:25], d.score[:25],
-               d.boxes[:25], d.model, d.model_sha256, d.image_size_wh).save(p)
-    tf = TrackFile.load(track_session_particle(tmp_path, {"particle": {"motion": "constant_velocity",
-                                                                       "n_samples": 100}}))
+    Detections(
+        d.camera,
+        d.skeleton,
+        d.frame_index[:25],
+        d.t_ns[:25],
+        d.xy_px[:25],
+        d.score[:25],
+        d.boxes[:25],
+        d.model,
+        d.model_sha256,
+        d.image_size_wh,
+    ).save(p)
+    tf = TrackFile.load(
+        track_session_particle(tmp_path, {"particle": {"motion": "constant_velocity", "n_samples": 100}})
+    )
     assert tf.n_frames == len(gt) and tf.n_tracks == 2
     assert np.isfinite(tf.xyz_m[30:]).all(-1).any(-1).all()  # both still tracked with two cameras
     with pytest.raises(ValueError, match="unknown keys.*particles"):

@@ -27,13 +27,16 @@ def walkers(n_people: int, n_frames: int, fps: float = 25.0, seed: int = 0) -> n
     from synthetic.rigs import ring_room
     from synthetic.world import SceneConfig, make_scene
 
-    scene = make_scene(ring_room(2.4), SceneConfig(n_people=n_people, duration_s=n_frames / fps, fps=fps,
-                                                   seed=seed, motion="procedural"))
+    scene = make_scene(
+        ring_room(2.4),
+        SceneConfig(n_people=n_people, duration_s=n_frames / fps, fps=fps, seed=seed, motion="procedural"),
+    )
     return scene.gt_xyz_m[:n_frames].astype(np.float32)
 
 
-def render_kp(P: np.ndarray, X: np.ndarray, noise_px: float = 1.0, seed: int = 0,
-              drop: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def render_kp(
+    P: np.ndarray, X: np.ndarray, noise_px: float = 1.0, seed: int = 0, drop: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Project people X (T,P,J,3) into cameras P (C,3,4): kp (T,C,P,J,2) shuffled per frame, sc (T,C,P,J)."""
     rng = np.random.default_rng(seed)
     T, Pn = X.shape[:2]

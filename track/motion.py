@@ -4,8 +4,8 @@ Every prior works on a flat batch of pose samples ``x (B,J,3)`` (world metres,
 B = tracks x samples) with a per-sample state (a dict of arrays whose first axis
 is B, so resampling is a gather along that axis):
 
-- :class:`ZeroVelocityPrior` (in :mod:`track.priors`, re-exported): x_t = x_{t-1} + N(0, sigma^2) (the seed's "w/o pose
-  prediction" ablation).
+- :class:`ZeroVelocityPrior` (in :mod:`track.priors`, re-exported): x_t = x_{t-1} + N(0, sigma^2)
+  (the seed's "w/o pose prediction" ablation).
 - :class:`ConstantVelocityPrior`: x_t = x_{t-1} + a (x_{t-1} - x_{t-2}) + N(0, sigma^2).
 - :class:`GRUPrior`: eq. 5.1, ``z_t, h_t = GRU(z_{t-1}, h_{t-1})`` with one hidden state
   per sample and dropout kept on at inference on the input of the final linear
@@ -46,7 +46,6 @@ CHECKPOINT_SCHEMA = "motion_gru/1"
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "motion_gru.pt"
 
 
-
 class CheckpointMismatch(ValueError):
     """The motion-model checkpoint does not fit the skeleton (or is not a motion checkpoint)."""
 
@@ -60,8 +59,9 @@ class PoseGRU(nn.Module):
         self.cell = nn.GRUCell(2 * n_joints * 3, hidden)
         self.out = nn.Linear(hidden, n_joints * 3)
 
-    def step(self, x_hat: torch.Tensor, v_hat: torch.Tensor, h: torch.Tensor,
-             mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(
+        self, x_hat: torch.Tensor, v_hat: torch.Tensor, h: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """x_hat, v_hat: (B,J*3) normalised; h: (B,H); mask: (B,H) dropout mask already scaled, or None."""
         h = self.cell(torch.cat([x_hat, v_hat], -1), h)
         hd = h if mask is None else h * mask
@@ -78,8 +78,9 @@ class PoseGRU(nn.Module):
         return torch.stack(outs, 1)
 
 
-def step_inputs(x_prev: np.ndarray, x_prev2: np.ndarray, fps: float, model_fps: float,
-                skeleton: Skeleton = CANONICAL) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def step_inputs(
+    x_prev: np.ndarray, x_prev2: np.ndarray, fps: float, model_fps: float, skeleton: Skeleton = CANONICAL
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Network inputs for poses x_prev (t-1) and x_prev2 (t-2), (...,J,3) world metres.
 
     Returns x_hat, v_hat (...,J*3) in the hip frame of x_prev (eq. 5.2), with the
@@ -93,12 +94,21 @@ def step_inputs(x_prev: np.ndarray, x_prev2: np.ndarray, fps: float, model_fps: 
 
 
 class GRUPrior:
-    """The learned prior of eq. 5.1. Load with :meth:`load`; ``dropout`` overrides the trained rate at inference."""
+    """The learned prior of eq. 5.1. Load with :meth:`load`; ``dropout`` overrides the trained rate at
+    inference."""
 
     name = "gru"
 
-    def __init__(self, model: PoseGRU, model_fps: float, fps: float, skeleton: Skeleton = CANONICAL,
-                 dropout: float | None = None, sigma_m: float = 0.0, seed: int = 0):
+    def __init__(
+        self,
+        model: PoseGRU,
+        model_fps: float,
+        fps: float,
+        skeleton: Skeleton = CANONICAL,
+        dropout: float | None = None,
+        sigma_m: float = 0.0,
+        seed: int = 0,
+    ):
         self.model = model.eval()
         self.model_fps, self.fps, self.skeleton = float(model_fps), float(fps), skeleton
         self.dropout = model.dropout if dropout is None else float(dropout)
@@ -108,8 +118,9 @@ class GRUPrior:
         self._threshold = float(ndtri(self.dropout)) if 0 < self.dropout < 1 else -np.inf
 
     @classmethod
-    def load(cls, path: str | Path = DEFAULT_CHECKPOINT, fps: float = 25.0, skeleton: Skeleton = CANONICAL,
-             **kw) -> GRUPrior:
+    def load(
+        cls, path: str | Path = DEFAULT_CHECKPOINT, fps: float = 25.0, skeleton: Skeleton = CANONICAL, **kw
+    ) -> GRUPrior:
         model, meta = load_checkpoint(path, skeleton)
         return cls(model, meta["fps"], fps, skeleton, **kw)
 
@@ -125,11 +136,16 @@ class GRUPrior:
             mask = None
             if self.dropout > 0:  # MC dropout: keep with probability 1-p (a normal above its p-quantile)
                 keep = 1.0 - self.dropout
-                m = (normal_noise(rng, (B, H), 1.0) > self._threshold).astype(np.float32) * np.float32(1 / keep)
+                m = (normal_noise(rng, (B, H), 1.0) > self._threshold).astype(np.float32) * np.float32(
+                    1 / keep
+                )
                 mask = torch.from_numpy(m)
-            delta, h = self.model.step(torch.from_numpy(np.ascontiguousarray(x_hat, np.float32)),
-                                       torch.from_numpy(np.ascontiguousarray(v_hat, np.float32)),
-                                       torch.from_numpy(state["h"]), mask)
+            delta, h = self.model.step(
+                torch.from_numpy(np.ascontiguousarray(x_hat, np.float32)),
+                torch.from_numpy(np.ascontiguousarray(v_hat, np.float32)),
+                torch.from_numpy(state["h"]),
+                mask,
+            )
         delta = delta.numpy().reshape(B, -1, 3) * (self.model_fps / self.fps)
         new = x + unrotate_vectors(delta, theta)
         if self.sigma_m > 0:
@@ -137,12 +153,18 @@ class GRUPrior:
         return new.astype(np.float32), {"prev": x, "h": h.numpy()}
 
 
-def save_checkpoint(path: str | Path, model: PoseGRU, fps: float, skeleton: Skeleton, train_info: dict) -> None:
+def save_checkpoint(
+    path: str | Path, model: PoseGRU, fps: float, skeleton: Skeleton, train_info: dict
+) -> None:
     from capture.fileio import atomic_path
 
     payload = {
-        "schema": CHECKPOINT_SCHEMA, "skeleton": skeleton.id, "joint_names": list(skeleton.joint_names),
-        "hidden": int(model.hidden), "dropout": float(model.dropout), "fps": float(fps),
+        "schema": CHECKPOINT_SCHEMA,
+        "skeleton": skeleton.id,
+        "joint_names": list(skeleton.joint_names),
+        "hidden": int(model.hidden),
+        "dropout": float(model.dropout),
+        "fps": float(fps),
         "state_dict": {k: v.detach().clone().half() for k, v in model.state_dict().items()},
         "train": {k: v for k, v in train_info.items() if isinstance(v, (int, float, str, list))},
     }
@@ -154,9 +176,11 @@ def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[P
     """Load a motion checkpoint (weights_only=True) and check it matches ``skeleton``."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"motion checkpoint {path} not found; train one with "
-                                "`python -m track.train_motion --out track/checkpoints/motion_gru.pt` "
-                                "or use the constant-velocity prior (motion = 'constant_velocity').")
+        raise FileNotFoundError(
+            f"motion checkpoint {path} not found; train one with "
+            "`python -m track.train_motion --out track/checkpoints/motion_gru.pt` "
+            "or use the constant-velocity prior (motion = 'constant_velocity')."
+        )
     try:
         meta = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unpickling failure means "not a checkpoint we can read"
@@ -167,9 +191,11 @@ def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[P
     names = tuple(meta["joint_names"])
     if names != tuple(skeleton.joint_names):
         raise CheckpointMismatch(
-            f"{path} was trained for skeleton '{meta.get('skeleton')}' with {len(names)} joints {list(names)}, "
-            f"but the tracker uses '{skeleton.id}' with {skeleton.n_joints} joints {list(skeleton.joint_names)}. "
-            "Retrain with `python -m track.train_motion --skeleton <id>` or pick the matching checkpoint.")
+            f"{path} was trained for skeleton '{meta.get('skeleton')}' with {len(names)} joints "
+            f"{list(names)}, but the tracker uses '{skeleton.id}' with {skeleton.n_joints} joints "
+            f"{list(skeleton.joint_names)}. "
+            "Retrain with `python -m track.train_motion --skeleton <id>` or pick the matching checkpoint."
+        )
     model = PoseGRU(len(names), int(meta["hidden"]), float(meta["dropout"]))
     model.load_state_dict({k: v.float() for k, v in meta["state_dict"].items()})
     return model.eval(), meta

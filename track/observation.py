@@ -53,7 +53,8 @@ def project(P: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def camera_rays(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centres (C,3) and the matrices (C,3,3) that turn undistorted pixels [u,v,1] into ray directions."""
+    """Camera centres (C,3) and the matrices (C,3,3) that turn undistorted pixels [u,v,1] into ray
+    directions."""
     P = np.asarray(P, np.float64)
     M = P[:, :, :3]
     Minv = np.linalg.inv(M)
@@ -89,7 +90,7 @@ def ray_coords(X: np.ndarray, centers: np.ndarray, basis: np.ndarray) -> np.ndar
 def _variance(along: np.ndarray, focal_px: np.ndarray, sigma_m: float, sigma_px: float) -> np.ndarray:
     """Tolerance s^2 = sigma_m^2 + (sigma_px * depth / f)^2. along: (K,J,C,N...) depths."""
     f = np.asarray(focal_px, np.float32).reshape((1, 1, -1) + (1,) * (along.ndim - 3))
-    return np.float32(sigma_m**2) + (np.float32(sigma_px) * along / f)**2
+    return np.float32(sigma_m**2) + (np.float32(sigma_px) * along / f) ** 2
 
 
 def _kernel(q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -101,8 +102,16 @@ def _kernel(q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return np.reciprocal(q, out=q)
 
 
-def joint_scores(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray, focal_px: np.ndarray,
-                 sigma_m: float, sigma_px: float, Y: np.ndarray | None = None) -> np.ndarray:
+def joint_scores(
+    X: np.ndarray,
+    centers: np.ndarray,
+    basis: np.ndarray,
+    sc: np.ndarray,
+    focal_px: np.ndarray,
+    sigma_m: float,
+    sigma_px: float,
+    Y: np.ndarray | None = None,
+) -> np.ndarray:
     """Keypoint 'confidence map' value of every sample joint in every camera.
 
     X: (K,N,J,3) samples; centers: (C,3); basis: (K,J,3C,3) from :func:`ray_basis` for each track's
@@ -114,8 +123,8 @@ def joint_scores(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.n
     C = len(centers)
     if Y is None:
         Y = ray_coords(X, centers, basis)
-    along = Y[:, :, 2 * C:]
-    d2 = Y[:, :, :C]**2 + Y[:, :, C:2 * C]**2  # (K,J,C,N)
+    along = Y[:, :, 2 * C :]
+    d2 = Y[:, :, :C] ** 2 + Y[:, :, C : 2 * C] ** 2  # (K,J,C,N)
     conf = _kernel(d2 / _variance(along, focal_px, sigma_m, sigma_px))
     conf *= np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))
     return conf.transpose(0, 2, 1, 3)
@@ -174,7 +183,8 @@ def stochastic_universal_indices(w: np.ndarray, counts: np.ndarray, rng: np.rand
 
 
 def resample_pairs(log_phi_v: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Per-camera-pair resampling (fig. 5.2). log_phi_v: (K,V,N) -> indices (K,N) into each track's samples."""
+    """Per-camera-pair resampling (fig. 5.2). log_phi_v: (K,V,N) -> indices (K,N) into each track's
+    samples."""
     K, V, N = log_phi_v.shape
     w = normalized_weights(log_phi_v).reshape(K * V, N)
     counts = np.tile(pair_sizes(N, V), K)
@@ -182,16 +192,17 @@ def resample_pairs(log_phi_v: np.ndarray, rng: np.random.Generator) -> np.ndarra
 
 
 def refine_scales(n_candidates: int, sigma_m: float) -> np.ndarray:
-    """Spread of each refinement candidate (M,): 0 for the current position, then sigma_m * (1/2, 1, 2, 4, ...)
-    cycling, so the search covers small corrections and fast motion alike."""
+    """Spread of each refinement candidate (M,): 0 for the current position, then
+    sigma_m * (1/2, 1, 2, 4, ...) cycling, so the search covers small corrections and fast motion alike."""
     cyc = np.float32([0.5, 1.0, 2.0, 4.0])
     s = np.zeros(n_candidates, np.float32)
     s[1:] = cyc[np.arange(n_candidates - 1) % len(cyc)] * np.float32(sigma_m)
     return s
 
 
-def guided_targets(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray,
-                   lam: float = 0.01) -> np.ndarray:
+def guided_targets(
+    X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray, lam: float = 0.01
+) -> np.ndarray:
     """Where the evidence puts each sample joint: argmin_x' sum_c s_c |x' - ray_c|^2 + lam |x' - x|^2.
 
     With two or more views this is the joint triangulated from the track's detections; with one view it is
@@ -200,7 +211,7 @@ def guided_targets(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np
     """
     K, N, J, _ = X.shape
     C = len(centers)
-    r = basis[:, :, 2 * C:]  # (K,J,C,3)
+    r = basis[:, :, 2 * C :]  # (K,J,C,3)
     s = sc.transpose(0, 2, 1)[..., None, None]  # (K,J,C,1,1)
     Q = np.eye(3, dtype=np.float32) - r[..., :, None] * r[..., None, :]  # (K,J,C,3,3)
     A = (s * Q).sum(2) + np.float32(lam) * np.eye(3, dtype=np.float32)
@@ -210,9 +221,20 @@ def guided_targets(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np
     return np.matmul(Ainv, b[..., None] + np.float32(lam) * xt)
 
 
-def refine_joints(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.ndarray, focal_px: np.ndarray,
-                  sigma_m: float, sigma_px: float, n_candidates: int, sigma_refine_m: float,
-                  rng: np.random.Generator, n_guided: int = 0, Y: np.ndarray | None = None) -> np.ndarray:
+def refine_joints(
+    X: np.ndarray,
+    centers: np.ndarray,
+    basis: np.ndarray,
+    sc: np.ndarray,
+    focal_px: np.ndarray,
+    sigma_m: float,
+    sigma_px: float,
+    n_candidates: int,
+    sigma_refine_m: float,
+    rng: np.random.Generator,
+    n_guided: int = 0,
+    Y: np.ndarray | None = None,
+) -> np.ndarray:
     """Joint refinement (sec. 5.2.2): per joint of every sample, draw M-1 positions around it and keep the one
     with the highest confidence summed over cameras (the current position, candidate 0, wins ties).
 
@@ -233,20 +255,20 @@ def refine_joints(X: np.ndarray, centers: np.ndarray, basis: np.ndarray, sc: np.
     e = normal_noise(rng, (K, J, 3, N, M), 1.0) * refine_scales(M, sigma_refine_m)
     G = min(int(n_guided), M - 1)
     if G > 0:
-        e[..., M - G:] *= np.float32(0.25)  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
+        e[..., M - G :] *= np.float32(0.25)  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
         xt = np.ascontiguousarray(X.transpose(0, 2, 3, 1))
-        e[..., M - G:] += (guided_targets(X, centers, basis, sc) - xt)[..., None]
+        e[..., M - G :] += (guided_targets(X, centers, basis, sc) - xt)[..., None]
     if Y is None:
         Y = ray_coords(X, centers, basis)  # (K,J,3C,N)
-    along = Y[:, :, 2 * C:].mean(-1, keepdims=True)  # (K,J,C,1): one tolerance per track, joint, camera
+    along = Y[:, :, 2 * C :].mean(-1, keepdims=True)  # (K,J,C,1): one tolerance per track, joint, camera
     scale = np.sqrt(0.5 / _variance(along, focal_px, sigma_m, sigma_px))  # folds 1/(2 s^2) into the frame
     scale2 = np.concatenate([scale, scale], 2)  # (K,J,2C,1)
     s = np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))[..., None]  # (K,J,C,1,1)
-    Bs = basis[:, :, :2 * C] * scale2
-    Ys = (Y[:, :, :2 * C] * scale2)[..., None]
+    Bs = basis[:, :, : 2 * C] * scale2
+    Ys = (Y[:, :, : 2 * C] * scale2)[..., None]
     out = X.copy()
     score = np.zeros((K, J, N), np.float32)
-    jb = max(1, J // 4)  # blocks of joints: the candidates' arrays stay in cache
+    jb = J if N * M <= 1024 else max(1, J // 4)  # blocks of joints keep the candidates in cache
     for k in range(K):  # loop over tracks and joint blocks only
         for j0 in range(0, J, jb):
             j1 = min(J, j0 + jb)
@@ -271,13 +293,22 @@ def weighted_stats(X: np.ndarray, log_phi: np.ndarray) -> tuple[np.ndarray, np.n
     mean (K,J,3), std_m (K,J) = sqrt(weighted mean squared distance to the mean / 3) (per-axis RMS)."""
     w = normalized_weights(log_phi)
     mean = np.einsum("kn,knja->kja", w, X)
-    d2 = ((X - mean[:, None])**2).sum(-1)
+    d2 = ((X - mean[:, None]) ** 2).sum(-1)
     std = np.sqrt(np.einsum("kn,knj->kj", w, d2) / 3.0)
     return mean, std
 
 
-def associate(mean_uv: np.ndarray, mean_depth: np.ndarray, det_kp: np.ndarray, det_sc: np.ndarray,
-              focal_px: np.ndarray, tol_m: float, gate: float, min_joints: int, min_score: float) -> np.ndarray:
+def associate(
+    mean_uv: np.ndarray,
+    mean_depth: np.ndarray,
+    det_kp: np.ndarray,
+    det_sc: np.ndarray,
+    focal_px: np.ndarray,
+    tol_m: float,
+    gate: float,
+    min_joints: int,
+    min_score: float,
+) -> np.ndarray:
     """One detection per track and camera (Hungarian on the predicted mean pose).
 
     mean_uv: (C,K,J,2), mean_depth: (C,K,J) projections of the tracks' predicted means;
@@ -291,7 +322,11 @@ def associate(mean_uv: np.ndarray, mean_depth: np.ndarray, det_kp: np.ndarray, d
         return out
     ok_det = np.isfinite(det_kp).all(-1) & (det_sc >= min_score)  # (C,D,J)
     d = np.linalg.norm(mean_uv[:, :, None] - det_kp[:, None], axis=-1)  # (C,K,D,J)
-    scale = np.asarray(focal_px, np.float64)[:, None, None, None] * tol_m / np.maximum(mean_depth[:, :, None], 0.1)
+    scale = (
+        np.asarray(focal_px, np.float64)[:, None, None, None]
+        * tol_m
+        / np.maximum(mean_depth[:, :, None], 0.1)
+    )
     r = d / scale
     both = ok_det[:, None] & np.isfinite(r) & (mean_depth[:, :, None] > 0.1)
     r = np.where(both, r, np.nan)
@@ -308,7 +343,7 @@ def associate(mean_uv: np.ndarray, mean_depth: np.ndarray, det_kp: np.ndarray, d
     return out
 
 
-# --- confidence maps and part affinity fields (eq. 5.8 as written) ------------------------------------------------
+# --- confidence maps and part affinity fields (eq. 5.8 as written) ---------------------------------------
 
 
 def _sample_map(maps: np.ndarray, uv_map: np.ndarray) -> np.ndarray:
@@ -321,8 +356,12 @@ def _sample_map(maps: np.ndarray, uv_map: np.ndarray) -> np.ndarray:
     u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
     fu, fv = u - u0, v - v0
     q = np.broadcast_to(np.arange(Q), u.shape)
-    val = (maps[q, v0, u0] * (1 - fu) * (1 - fv) + maps[q, v0, u0 + 1] * fu * (1 - fv)
-           + maps[q, v0 + 1, u0] * (1 - fu) * fv + maps[q, v0 + 1, u0 + 1] * fu * fv)
+    val = (
+        maps[q, v0, u0] * (1 - fu) * (1 - fv)
+        + maps[q, v0, u0 + 1] * fu * (1 - fv)
+        + maps[q, v0 + 1, u0] * (1 - fu) * fv
+        + maps[q, v0 + 1, u0 + 1] * fu * fv
+    )
     return np.where(inside, val, 0.0)
 
 
@@ -331,8 +370,9 @@ def heatmap_joint_scores(uv_px: np.ndarray, heatmaps: np.ndarray, px_to_map: flo
     return _sample_map(np.asarray(heatmaps, np.float32), np.asarray(uv_px, np.float32) * px_to_map)
 
 
-def paf_limb_scores(uv_px: np.ndarray, pafs: np.ndarray, paf_limbs: np.ndarray, px_to_map: float,
-                    n_steps: int = 5) -> np.ndarray:
+def paf_limb_scores(
+    uv_px: np.ndarray, pafs: np.ndarray, paf_limbs: np.ndarray, px_to_map: float, n_steps: int = 5
+) -> np.ndarray:
     """Integral term of eq. 5.8 for one camera: mean over u of max(0, <paf(l, p(u)), unit(limb)>).
 
     uv_px: (...,J,2); pafs: (L,2,H,W) (x and y components); paf_limbs: (L,2) joint index pairs -> (...,L).
@@ -350,8 +390,14 @@ def paf_limb_scores(uv_px: np.ndarray, pafs: np.ndarray, paf_limbs: np.ndarray, 
     return total / n_steps
 
 
-def heatmap_limb_scores(uv_px: np.ndarray, heatmaps: np.ndarray, pafs: np.ndarray, limbs: np.ndarray,
-                        paf_limbs: np.ndarray, px_to_map: float) -> np.ndarray:
+def heatmap_limb_scores(
+    uv_px: np.ndarray,
+    heatmaps: np.ndarray,
+    pafs: np.ndarray,
+    limbs: np.ndarray,
+    paf_limbs: np.ndarray,
+    px_to_map: float,
+) -> np.ndarray:
     """Eq. 5.8 for one camera: phi(c,l,s) = PAF integral * conf(a) * conf(b). uv_px: (...,J,2) -> (...,L).
 
     ``limbs`` (L,2) are the scored limbs; ``paf_limbs`` (L,2) the same limbs in the model's PAF order

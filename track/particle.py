@@ -96,9 +96,9 @@ class ParticleConfig:
     gru_sigma_m: float = 0.003
     resample: bool = True
     refine: bool = True
-    refine_candidates: int = 6
+    refine_candidates: int = 3
     refine_sigma_m: float = 0.03
-    refine_guided: int = 3
+    refine_guided: int = 1
     exact_output_weights: bool = False
     obs_sigma_m: float = 0.05
     obs_sigma_px: float = 3.0
@@ -150,9 +150,14 @@ def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICA
     from track.motion import DEFAULT_CHECKPOINT, GRUPrior
 
     path = config.motion_checkpoint or DEFAULT_CHECKPOINT
-    return GRUPrior.load(path, fps=fps, skeleton=skeleton,
-                         dropout=None if config.motion_dropout < 0 else config.motion_dropout,
-                         sigma_m=config.gru_sigma_m * float(np.sqrt(25.0 / fps)), seed=config.seed)
+    return GRUPrior.load(
+        path,
+        fps=fps,
+        skeleton=skeleton,
+        dropout=None if config.motion_dropout < 0 else config.motion_dropout,
+        sigma_m=config.gru_sigma_m * float(np.sqrt(25.0 / fps)),
+        seed=config.seed,
+    )
 
 
 @dataclass
@@ -197,8 +202,15 @@ class ParticleTracker:
     and scores ``sc (C,D,J)`` and returns a :class:`FrameEstimate`.
     """
 
-    def __init__(self, P: np.ndarray, focal_px: np.ndarray, fps: float, config: ParticleConfig | None = None,
-                 skeleton: Skeleton = CANONICAL, prior: MotionPrior | None = None):
+    def __init__(
+        self,
+        P: np.ndarray,
+        focal_px: np.ndarray,
+        fps: float,
+        config: ParticleConfig | None = None,
+        skeleton: Skeleton = CANONICAL,
+        prior: MotionPrior | None = None,
+    ):
         self.config = cfg = config or ParticleConfig()
         self.P = np.asarray(P, np.float32)
         if self.P.ndim != 3 or self.P.shape[1:] != (3, 4):
@@ -222,12 +234,17 @@ class ParticleTracker:
             from triangulate.matching import MatchConfig
             from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
-            tcfg = TriangulateConfig(match=MatchConfig(theta_px=cfg.init_theta_px, min_score=cfg.min_score),
-                                     min_joints_3d=cfg.init_min_joints)
-            self.reconstructor = FrameReconstructor(self.P.astype(np.float64), config=tcfg,
-                                                    joint_names=skeleton.joint_names)
+            tcfg = TriangulateConfig(
+                match=MatchConfig(theta_px=cfg.init_theta_px, min_score=cfg.min_score),
+                min_joints_3d=cfg.init_min_joints,
+            )
+            self.reconstructor = FrameReconstructor(
+                self.P.astype(np.float64), config=tcfg, joint_names=skeleton.joint_names
+            )
         else:
-            log.warning("a single camera cannot start tracks (sec. 5.2.3 triangulates); only existing tracks run")
+            log.warning(
+                "a single camera cannot start tracks (sec. 5.2.3 triangulates); only existing tracks run"
+            )
         self._tmpl = TEMPLATE_BODY19_M if skeleton.id == "body19" else None
 
     # ------------------------------------------------------------------ helpers
@@ -271,8 +288,17 @@ class ParticleTracker:
             # 2. association on the predicted means
             mean_pred = X.mean(1)
             muv, mz = obs.project(self.P, mean_pred)  # (C,K,J,2), (C,K,J)
-            assigned = obs.associate(muv, mz, kp, sc, self.focal, cfg.assoc_tol_m, cfg.assoc_gate,
-                                     cfg.assoc_min_joints, cfg.min_score)  # (C,K)
+            assigned = obs.associate(
+                muv,
+                mz,
+                kp,
+                sc,
+                self.focal,
+                cfg.assoc_tol_m,
+                cfg.assoc_gate,
+                cfg.assoc_min_joints,
+                cfg.min_score,
+            )  # (C,K)
             has = assigned >= 0
             sel = np.maximum(assigned, 0)
             akp = np.where(has[..., None, None], kp[np.arange(C)[:, None], sel], np.nan)  # (C,K,J,2)
@@ -292,8 +318,9 @@ class ParticleTracker:
                 state = gather_state(state, flat.ravel())
             # 4. inference (sec. 5.2.4): weighted mean over all cameras
             if cfg.exact_output_weights or score_u is None:
-                conf = obs.joint_scores(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
-                                        cfg.obs_sigma_px)  # (K,C,J,N)
+                conf = obs.joint_scores(
+                    X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px
+                )  # (K,C,J,N)
                 lp = obs.log_phi_all(obs.limb_scores(conf, self.limbs, 2), cfg.eps)
             else:  # the refinement's scores of the kept joints, summed over all cameras, product over joints
                 lp = np.zeros((K, N), np.float32)
@@ -313,16 +340,26 @@ class ParticleTracker:
                     t.last_seen = frame
                     t.n_seen += 1
                     b = np.where(n_views[k][self.limbs].min(1) > 0, self._bones(mean[k]), np.nan)
-                    t.bones = b if t.bones is None else np.where(np.isfinite(b), np.where(
-                        np.isfinite(t.bones), 0.9 * t.bones + 0.1 * b, b), t.bones)
-            out = FrameEstimate(np.array([t.id for t in self.tracks], np.int64), mean, std, conf_out, n_views,
-                                flags, ev_k)
+                    t.bones = (
+                        b
+                        if t.bones is None
+                        else np.where(
+                            np.isfinite(b),
+                            np.where(np.isfinite(t.bones), 0.9 * t.bones + 0.1 * b, b),
+                            t.bones,
+                        )
+                    )
+            out = FrameEstimate(
+                np.array([t.id for t in self.tracks], np.int64), mean, std, conf_out, n_views, flags, ev_k
+            )
             # 5. termination
             keep = []
             for t in self.tracks:
                 if frame - t.last_seen >= self.end_after:
                     self.ended.append((t.id, t.born, t.last_seen))
-                    self.lost.append(_Lost(t.id, t.last_seen, self._pelvis(t.mean), t.velocity.copy(), t.bones))
+                    self.lost.append(
+                        _Lost(t.id, t.last_seen, self._pelvis(t.mean), t.velocity.copy(), t.bones)
+                    )
                 else:
                     keep.append(t)
             self.tracks = keep
@@ -342,8 +379,9 @@ class ParticleTracker:
         K, N = X.shape[:2]
         Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
         if cfg.resample:
-            conf = obs.joint_scores(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
-                                    cfg.obs_sigma_px, Y)  # (K,C,J,N)
+            conf = obs.joint_scores(
+                X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px, Y
+            )  # (K,C,J,N)
             lpv = obs.log_phi_pairs(obs.limb_scores(conf, self.limbs, 2), self.pairs, cfg.eps)  # (K,V,N)
             idx = obs.resample_pairs(lpv, self.rng)
             X = np.stack([X[k][idx[k]] for k in range(K)])  # gathers per track (a loop over tracks)
@@ -352,8 +390,20 @@ class ParticleTracker:
             idx = np.broadcast_to(np.arange(N), (K, N))
         score = None
         if cfg.refine and cfg.refine_candidates > 1:
-            X, score = obs.refine_joints(X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px,
-                                  cfg.refine_candidates, cfg.refine_sigma_m, self.rng, cfg.refine_guided, Y)
+            X, score = obs.refine_joints(
+                X,
+                self.centers,
+                rays,
+                asc,
+                self.focal,
+                cfg.obs_sigma_m,
+                cfg.obs_sigma_px,
+                cfg.refine_candidates,
+                cfg.refine_sigma_m,
+                self.rng,
+                cfg.refine_guided,
+                Y,
+            )
         return X, idx, score
 
     # ------------------------------------------------------------------ birth
@@ -389,8 +439,9 @@ class ParticleTracker:
             if filled is None:
                 continue
             pel = self._pelvis(filled)
-            if any(np.linalg.norm(pel[:2] - self._pelvis(t.mean)[:2]) < cfg.init_exclusion_m
-                   for t in live + born):
+            if any(
+                np.linalg.norm(pel[:2] - self._pelvis(t.mean)[:2]) < cfg.init_exclusion_m for t in live + born
+            ):
                 continue
             samples = self._samples(filled, missing)
             bones = np.where(np.isfinite(self._bones(cand)), self._bones(filled), np.nan)
@@ -410,7 +461,8 @@ class ParticleTracker:
         return born
 
     def _fill(self, cand: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
-        """Fill joints the candidate lacks from the template aligned at the hips. cand: (J,3) NaN = missing."""
+        """Fill joints the candidate lacks from the template aligned at the hips. cand: (J,3), NaN =
+        missing."""
         missing = ~np.isfinite(cand).all(-1)
         if not missing.any():
             return cand, missing
@@ -447,8 +499,11 @@ class ParticleTracker:
             gap = (frame - t.last_seen) / self.fps
             pred = self._pelvis(t.mean)
             d = float(np.linalg.norm(pel[:2] - pred[:2]))
-            if d < cfg.reid_dist_m + cfg.reid_speed_mps * gap and \
-                    self._bone_diff(bones, t.bones) < cfg.reid_bone_tol_m and d < best_d:
+            if (
+                d < cfg.reid_dist_m + cfg.reid_speed_mps * gap
+                and self._bone_diff(bones, t.bones) < cfg.reid_bone_tol_m
+                and d < best_d
+            ):
                 best, best_d = t, d
         return best
 
@@ -481,25 +536,39 @@ class ParticleTracker:
     def _estimate_new(self, born: list[_Track]) -> FrameEstimate:
         J = self.skeleton.n_joints
         X = np.stack([t.x for t in born])
-        mean, std = X.mean(1), np.sqrt(((X - X.mean(1, keepdims=True))**2).sum(-1).mean(1) / 3.0)
+        mean, std = X.mean(1), np.sqrt(((X - X.mean(1, keepdims=True)) ** 2).sum(-1).mean(1) / 3.0)
         for t, m in zip(born, mean, strict=True):
             t.mean = m
         K = len(born)
-        return FrameEstimate(np.array([t.id for t in born], np.int64), mean, std, np.full((K, J), 0.5, np.float32),
-                             np.full((K, J), 2, np.int64), np.full((K, J), OBSERVED, np.uint8), np.ones(K, bool))
+        return FrameEstimate(
+            np.array([t.id for t in born], np.int64),
+            mean,
+            std,
+            np.full((K, J), 0.5, np.float32),
+            np.full((K, J), 2, np.int64),
+            np.full((K, J), OBSERVED, np.uint8),
+            np.ones(K, bool),
+        )
 
 
 def _empty_estimate(J: int) -> FrameEstimate:
-    return FrameEstimate(np.zeros(0, np.int64), np.zeros((0, J, 3), np.float32), np.zeros((0, J), np.float32),
-                         np.zeros((0, J), np.float32), np.zeros((0, J), np.int64), np.zeros((0, J), np.uint8),
-                         np.zeros(0, bool))
+    return FrameEstimate(
+        np.zeros(0, np.int64),
+        np.zeros((0, J, 3), np.float32),
+        np.zeros((0, J), np.float32),
+        np.zeros((0, J), np.float32),
+        np.zeros((0, J), np.int64),
+        np.zeros((0, J), np.uint8),
+        np.zeros(0, bool),
+    )
 
 
 def _concat_estimates(a: FrameEstimate, b: FrameEstimate) -> FrameEstimate:
     """Concatenate, a re-anchored track in b replacing its entry in a."""
     keep = ~np.isin(a.track_id, b.track_id)
-    return FrameEstimate(*(np.concatenate([getattr(a, f.name)[keep], getattr(b, f.name)])
-                           for f in fields(FrameEstimate)))
+    return FrameEstimate(
+        *(np.concatenate([getattr(a, f.name)[keep], getattr(b, f.name)]) for f in fields(FrameEstimate))
+    )
 
 
 @dataclass
@@ -521,7 +590,7 @@ def smooth_time(x: np.ndarray, sigma: float) -> np.ndarray:
     if sigma <= 0 or T < 2:
         return x
     r = int(np.ceil(3 * sigma))
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma)**2)
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
     ok = np.isfinite(x).all(-1, keepdims=True)
     v = np.where(ok, x, 0.0).astype(np.float64)
     w = ok.astype(np.float64)
@@ -530,14 +599,15 @@ def smooth_time(x: np.ndarray, sigma: float) -> np.ndarray:
     for i, kv in enumerate(k):  # loop over the kernel taps only
         s = i - r
         lo, hi = max(0, -s), min(T, T - s)
-        num[lo:hi] += kv * v[lo + s:hi + s]
-        den[lo:hi] += kv * w[lo + s:hi + s]
+        num[lo:hi] += kv * v[lo + s : hi + s]
+        den[lo:hi] += kv * w[lo + s : hi + s]
     out = num / np.maximum(den, 1e-12)
     return np.where(ok, out, np.nan).astype(x.dtype)
 
 
-def track_sequence(tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, frames: np.ndarray | None = None,
-                   progress=None) -> TrackArrays:
+def track_sequence(
+    tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, frames: np.ndarray | None = None, progress=None
+) -> TrackArrays:
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
 
     Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
@@ -569,8 +639,13 @@ def track_sequence(tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, fra
         if len(e.track_id) == 0:
             continue
         ks = np.array([col[int(i)] for i in e.track_id])
-        xyz[t, ks], std[t, ks], conf[t, ks], flags[t, ks], nv[t, ks] = e.xyz_m, e.std_m, e.confidence, e.flags, \
-            e.n_views
+        xyz[t, ks], std[t, ks], conf[t, ks], flags[t, ks], nv[t, ks] = (
+            e.xyz_m,
+            e.std_m,
+            e.confidence,
+            e.flags,
+            e.n_views,
+        )
         seen[t, ks] = e.evidence
     if cfg.trim_coast:
         for k in range(K):  # drop every frame after the last evidence of each contiguous segment
@@ -591,5 +666,12 @@ def track_sequence(tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, fra
         xyz = smooth_time(xyz, cfg.smooth_sigma_frames)
         flags = np.where(known, flags | SMOOTHED, flags).astype(np.uint8)
     keep = seen.sum(0) >= max(1, int(round(cfg.min_track_s * tracker.fps)))
-    return TrackArrays(np.asarray(ids, np.int64)[keep], xyz[:, keep], std[:, keep], conf[:, keep],
-                       flags[:, keep], nv[:, keep], times)
+    return TrackArrays(
+        np.asarray(ids, np.int64)[keep],
+        xyz[:, keep],
+        std[:, keep],
+        conf[:, keep],
+        flags[:, keep],
+        nv[:, keep],
+        times,
+    )

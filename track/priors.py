@@ -19,12 +19,30 @@ State = dict[str, np.ndarray]
 
 # Median body19 pose of the CMU mocap in the normalised hip frame (eq. 5.2–5.5: pelvis at the origin,
 # hips along +x, z up), used to fill joints a new track has not triangulated (sec. 5.2.3).
-TEMPLATE_BODY19_M = np.array([
-    [0.011, 0.147, 0.586], [-0.018, 0.148, 0.625], [0.044, 0.148, 0.623], [-0.059, 0.078, 0.651],
-    [0.086, 0.075, 0.646], [-0.172, 0.01, 0.485], [0.188, 0.008, 0.469], [-0.206, -0.033, 0.265],
-    [0.223, -0.011, 0.244], [-0.226, 0.086, 0.078], [0.236, 0.108, 0.115], [-0.097, 0.0, -0.001],
-    [0.097, 0.0, 0.001], [-0.1, 0.124, -0.442], [0.091, 0.127, -0.442], [-0.088, -0.07, -0.87],
-    [0.077, -0.065, -0.873], [0.0, 0.0, 0.0], [0.007, 0.005, 0.478]], np.float32)
+TEMPLATE_BODY19_M = np.array(
+    [
+        [0.011, 0.147, 0.586],
+        [-0.018, 0.148, 0.625],
+        [0.044, 0.148, 0.623],
+        [-0.059, 0.078, 0.651],
+        [0.086, 0.075, 0.646],
+        [-0.172, 0.01, 0.485],
+        [0.188, 0.008, 0.469],
+        [-0.206, -0.033, 0.265],
+        [0.223, -0.011, 0.244],
+        [-0.226, 0.086, 0.078],
+        [0.236, 0.108, 0.115],
+        [-0.097, 0.0, -0.001],
+        [0.097, 0.0, 0.001],
+        [-0.1, 0.124, -0.442],
+        [0.091, 0.127, -0.442],
+        [-0.088, -0.07, -0.87],
+        [0.077, -0.065, -0.873],
+        [0.0, 0.0, 0.0],
+        [0.007, 0.005, 0.478],
+    ],
+    np.float32,
+)
 
 
 class MotionPrior(Protocol):
@@ -59,7 +77,7 @@ def normal_noise(rng: np.random.Generator, shape: tuple[int, ...], sigma: float)
     if n > len(bank):
         return rng.standard_normal(shape, dtype=np.float32) * np.float32(sigma)
     start = int(rng.integers(0, len(bank) - n + 1))
-    return bank[start:start + n].reshape(shape) * np.float32(sigma)
+    return bank[start : start + n].reshape(shape) * np.float32(sigma)
 
 
 def check_batch(x: np.ndarray, n_joints: int) -> np.ndarray:

@@ -39,8 +39,10 @@ class ParticleTrackConfig:
         if "particle" in d:
             inner = d.pop("particle")
             if d:
-                raise ValueError(f"ParticleTrackConfig: unknown keys {sorted(d)}; valid keys: ['particle'] "
-                                 f"or the particle keys {sorted(f.name for f in fields(ParticleConfig))}")
+                raise ValueError(
+                    f"ParticleTrackConfig: unknown keys {sorted(d)}; valid keys: ['particle'] "
+                    f"or the particle keys {sorted(f.name for f in fields(ParticleConfig))}"
+                )
             return cls(particle=ParticleConfig.from_dict(inner) if isinstance(inner, dict) else inner)
         return cls(particle=ParticleConfig.from_dict(d))  # flat dict of particle keys
 
@@ -54,7 +56,9 @@ def _as_config(config) -> ParticleConfig:
         return config.particle
     if isinstance(config, dict):
         return ParticleTrackConfig.from_dict(config).particle
-    raise TypeError(f"expected ParticleConfig, ParticleTrackConfig, a dict or None, got {type(config).__name__}")
+    raise TypeError(
+        f"expected ParticleConfig, ParticleTrackConfig, a dict or None, got {type(config).__name__}"
+    )
 
 
 def focal_lengths(rig) -> np.ndarray:
@@ -62,28 +66,52 @@ def focal_lengths(rig) -> np.ndarray:
     return np.asarray([0.5 * (c.K[0, 0] + c.K[1, 1]) for c in rig.cameras], np.float32)
 
 
-def track_arrays_to_file(res: TrackArrays, frame_index: np.ndarray, t_ns: np.ndarray, fps: float,
-                         calibration_sha256: str = "", source: str = "track.particle") -> TrackFile:
-    return TrackFile(fps=fps, frame_index=frame_index, t_ns=t_ns, track_id=res.track_id,
-                     joint_names=CANONICAL.joint_names, parents=np.asarray(CANONICAL.parents),
-                     xyz_m=res.xyz_m, confidence=res.confidence, std_m=res.std_m, flags=res.flags,
-                     calibration_sha256=calibration_sha256, source=source)
+def track_arrays_to_file(
+    res: TrackArrays,
+    frame_index: np.ndarray,
+    t_ns: np.ndarray,
+    fps: float,
+    calibration_sha256: str = "",
+    source: str = "track.particle",
+) -> TrackFile:
+    return TrackFile(
+        fps=fps,
+        frame_index=frame_index,
+        t_ns=t_ns,
+        track_id=res.track_id,
+        joint_names=CANONICAL.joint_names,
+        parents=np.asarray(CANONICAL.parents),
+        xyz_m=res.xyz_m,
+        confidence=res.confidence,
+        std_m=res.std_m,
+        flags=res.flags,
+        calibration_sha256=calibration_sha256,
+        source=source,
+    )
 
 
-def track_session_particle(session_dir: str | os.PathLike,
-                           config: ParticleConfig | ParticleTrackConfig | dict | None = None,
-                           progress: Progress | None = None) -> Path:
+def track_session_particle(
+    session_dir: str | os.PathLike,
+    config: ParticleConfig | ParticleTrackConfig | dict | None = None,
+    progress: Progress | None = None,
+) -> Path:
     """Run the particle filter on a session's detections; writes and returns ``track/tracks.npz``."""
     from calibrate.camera import CameraRig
     from triangulate.stage import _fps, load_detections
 
     cfg = _as_config(config)
     lay = SessionLayout(session_dir)
-    rig_path = require(lay.rig_toml, "the calibration calib/rig.toml", "Calibrate the rig or import a calibration.")
+    rig_path = require(
+        lay.rig_toml, "the calibration calib/rig.toml", "Calibrate the rig or import a calibration."
+    )
     rig = CameraRig.load(rig_path)
     if len(rig) < 2:
-        raise FormatError(rig_path, "cameras", f"the particle tracker needs at least 2 cameras to start tracks, "
-                          f"the rig has {len(rig)}.", "Calibrate at least two cameras.")
+        raise FormatError(
+            rig_path,
+            "cameras",
+            f"the particle tracker needs at least 2 cameras to start tracks, the rig has {len(rig)}.",
+            "Calibrate at least two cameras.",
+        )
     sub, mv = load_detections(lay, rig)
     fps = _fps(lay, mv.t_ns)
     tracker = ParticleTracker(sub.projection_matrices(), focal_lengths(sub), fps, cfg)
@@ -98,10 +126,21 @@ def track_session_particle(session_dir: str | os.PathLike,
                 progress(i + 1, T)
 
     res = track_sequence(tracker, kp, sc, mv.frame_index, progress=prog)
-    tf = track_arrays_to_file(res, mv.frame_index, mv.t_ns, fps, rig.sha256(),
-                              f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}")
+    tf = track_arrays_to_file(
+        res,
+        mv.frame_index,
+        mv.t_ns,
+        fps,
+        rig.sha256(),
+        f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}",
+    )
     lay.tracks.parent.mkdir(parents=True, exist_ok=True)
     tf.save(lay.tracks)
-    log.info("particle tracker: %d tracks over %d frames from %d cameras (%.1f ms per frame)", tf.n_tracks,
-             tf.n_frames, len(sub), 1e3 * float(res.time_s.mean()) if T else 0.0)
+    log.info(
+        "particle tracker: %d tracks over %d frames from %d cameras (%.1f ms per frame)",
+        tf.n_tracks,
+        tf.n_frames,
+        len(sub),
+        1e3 * float(res.time_s.mean()) if T else 0.0,
+    )
     return lay.tracks

@@ -34,8 +34,10 @@ def load_motion(fps: float, root: str | None = None) -> tuple[list[np.ndarray], 
 
     clips = list_clips(root)
     if not clips:
-        raise FileNotFoundError("no BVH clips found; set ROOMCAP_SHARED to the shared/ folder "
-                                "(mocap under shared/data/motion) or pass --mocap.")
+        raise FileNotFoundError(
+            "no BVH clips found; set ROOMCAP_SHARED to the shared/ folder "
+            "(mocap under shared/data/motion) or pass --mocap."
+        )
     out, names = [], []
     for p in clips:
         x = load_clip(p, fps=fps).xyz_m.astype(np.float32)
@@ -47,7 +49,7 @@ def load_motion(fps: float, root: str | None = None) -> tuple[list[np.ndarray], 
 
 def windows(clips: list[np.ndarray], length: int, stride: int) -> np.ndarray:
     """(B, length+2, J, 3) windows: two frames of history plus ``length`` targets."""
-    w = [c[s:s + length + 2] for c in clips for s in range(0, len(c) - length - 2, stride)]
+    w = [c[s : s + length + 2] for c in clips for s in range(0, len(c) - length - 2, stride)]
     return np.stack(w).astype(np.float32)
 
 
@@ -64,8 +66,11 @@ def make_batch(w: np.ndarray, noise_m: float, rng: np.random.Generator) -> tuple
     prev2 = w[:, :-2] + rng.normal(0, noise_m, w[:, :-2].shape).astype(np.float32)
     x_hat, v_hat, _, theta = step_inputs(prev, prev2, 1.0, 1.0)
     target = rotate_vectors(w[:, 2:] - prev, theta).reshape(*w.shape[:1], w.shape[1] - 2, -1)
-    return (torch.from_numpy(np.ascontiguousarray(x_hat)), torch.from_numpy(np.ascontiguousarray(v_hat)),
-            torch.from_numpy(np.ascontiguousarray(target)))
+    return (
+        torch.from_numpy(np.ascontiguousarray(x_hat)),
+        torch.from_numpy(np.ascontiguousarray(v_hat)),
+        torch.from_numpy(np.ascontiguousarray(target)),
+    )
 
 
 def evaluate(model: PoseGRU, w: np.ndarray, noise_m: float = 0.0) -> dict[str, float]:
@@ -81,14 +86,29 @@ def evaluate(model: PoseGRU, w: np.ndarray, noise_m: float = 0.0) -> dict[str, f
     def err(p):
         return float(torch.linalg.norm((p - target)[:, half].reshape(-1, 3), dim=-1).mean())
 
-    out = {"gru_m": err(pred), "constant_velocity_m": err(v_hat), "zero_velocity_m": err(torch.zeros_like(pred))}
+    out = {
+        "gru_m": err(pred),
+        "constant_velocity_m": err(v_hat),
+        "zero_velocity_m": err(torch.zeros_like(pred)),
+    }
     model.train()
     return out
 
 
-def train(fps: float = 25.0, hidden: int = 64, dropout: float = 0.5, steps: int = 3000, batch: int = 64,
-          length: int = 32, lr: float = 1e-3, noise_m: float = 0.005, seed: int = 0, val_suffix: str = "1",
-          mocap: str | None = None, progress: bool = False) -> tuple[PoseGRU, dict]:
+def train(
+    fps: float = 25.0,
+    hidden: int = 64,
+    dropout: float = 0.5,
+    steps: int = 3000,
+    batch: int = 64,
+    length: int = 32,
+    lr: float = 1e-3,
+    noise_m: float = 0.005,
+    seed: int = 0,
+    val_suffix: str = "1",
+    mocap: str | None = None,
+    progress: bool = False,
+) -> tuple[PoseGRU, dict]:
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     clips, names = load_motion(fps, mocap)
@@ -106,6 +126,7 @@ def train(fps: float = 25.0, hidden: int = 64, dropout: float = 0.5, steps: int 
     it = range(steps)
     if progress:
         from tqdm import tqdm
+
         it = tqdm(it, desc="train motion GRU")
     model.train()
     for step in it:
@@ -121,10 +142,22 @@ def train(fps: float = 25.0, hidden: int = 64, dropout: float = 0.5, steps: int 
             log.info("step %d loss %.6f", step, float(loss))
     metrics = evaluate(model, w_va)
     metrics.update({f"noisy_{k}": v for k, v in evaluate(model, w_va, 0.01).items()})
-    info = {"fps": fps, "hidden": hidden, "dropout": dropout, "steps": steps, "batch": batch, "length": length,
-            "lr": lr, "noise_m": noise_m, "seed": seed, "n_train_windows": int(len(w_tr)),
-            "n_val_windows": int(len(w_va)), "train_s": time.perf_counter() - t0,
-            "clips": int(len(clips)), **{f"val_{k}": v for k, v in metrics.items()}}
+    info = {
+        "fps": fps,
+        "hidden": hidden,
+        "dropout": dropout,
+        "steps": steps,
+        "batch": batch,
+        "length": length,
+        "lr": lr,
+        "noise_m": noise_m,
+        "seed": seed,
+        "n_train_windows": int(len(w_tr)),
+        "n_val_windows": int(len(w_va)),
+        "train_s": time.perf_counter() - t0,
+        "clips": int(len(clips)),
+        **{f"val_{k}": v for k, v in metrics.items()},
+    }
     return model.eval(), info
 
 
@@ -142,12 +175,22 @@ def main(argv: list[str] | None = None) -> None:
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     torch.set_num_threads(a.threads)
-    model, info = train(fps=a.fps, hidden=a.hidden, dropout=a.dropout, steps=a.steps, batch=a.batch,
-                        seed=a.seed, mocap=a.mocap, progress=True)
+    model, info = train(
+        fps=a.fps,
+        hidden=a.hidden,
+        dropout=a.dropout,
+        steps=a.steps,
+        batch=a.batch,
+        seed=a.seed,
+        mocap=a.mocap,
+        progress=True,
+    )
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(a.out, model, a.fps, CANONICAL, info)
-    print(f"wrote {a.out}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                         for k, v in info.items()))
+    print(
+        f"wrote {a.out}: "
+        + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in info.items())
+    )
 
 
 if __name__ == "__main__":
