@@ -43,6 +43,8 @@ class PipelineConfig:
     pose_presence: float = 0.0  # drop BlazePose people whose person-present probability is below this
     refine_passes: int = 1  # top-down: pose passes on the box the previous pass's keypoints span
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
+    antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
+    flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
     model_roi: bool = False  # refine passes: the model's own ROI where it has one (BlazePose; measured worse)
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
@@ -205,6 +207,7 @@ class KeypointPipeline:
         self.skeleton = self.src_skeleton if config.skeleton == "model" else config.skeleton
         get_skeleton(self.skeleton)
         self.stage_s: dict[str, float] = defaultdict(float)
+        self._pyr: dict[int, list[np.ndarray]] = {}
 
     # identity of what produced the keypoints (goes into the detections file)
     @property
@@ -293,12 +296,14 @@ class KeypointPipeline:
         crops = np.empty((n, H, W, 3), np.uint8)
         Ms = np.empty((n, 2, 3))
         k = 0
-        for i, (im, bs) in enumerate(zip(images, boxes, strict=True)):
+        self._pyr = {}
+        for i, bs in enumerate(boxes):
             for j, b in enumerate(bs):
                 Ms[k] = crop_transform(b, (W, H), pad, 0.0 if angles is None else angles[i][j])
+                src, M = self._pyramid(images, i, Ms[k])
                 cv2.warpAffine(
-                    im,
-                    Ms[k],
+                    src,
+                    M,
                     (W, H),
                     dst=crops[k],
                     flags=cv2.INTER_LINEAR,
@@ -306,34 +311,28 @@ class KeypointPipeline:
                     borderValue=(spec.input.pad_value,) * 3,
                 )
                 k += 1
+        self._pyr = {}  # free the pyramid levels
+        flip = n > 0 and (spec.decoder.flip_test if self.config.flip_test is None else self.config.flip_test)
+        if flip:  # test-time augmentation: the mirrored crops go in the same batch
+            crops = np.concatenate([crops, crops[:, :, ::-1]])
         x = to_tensor(crops, spec) if n else None
         t = self._tick("crop", t)
         outs = self.pose.run(x) if n else None
         t = self._tick("pose", t)
-        d = spec.decoder
-        J = get_skeleton(spec.skeleton).n_joints
-        roi = None
-        if n == 0:
-            xy, sc, person = np.zeros((0, J, 2)), np.zeros((0, J)), np.zeros(0)
-        elif d.kind == "blazepose":
-            xy, sc, person, aux = D.decode_blazepose(outs[0], outs[1], d.n_landmarks)
-            if aux.shape[1] >= 2:
-                # ROI for the next pass: centre at the hip centre, square of side 2 x the full-body radius
-                # (then x box_padding = 1.25 as mediapipe), rotated so hips -> head points up
-                a = apply_inverse(Ms, aux[:, :2])
-                v = a[:, 1] - a[:, 0]
-                r = np.linalg.norm(v, axis=1, keepdims=True)
-                roi = np.concatenate([a[:, 0] - r, a[:, 0] + r, np.arctan2(v[:, :1], -v[:, 1:2])], 1)
-        elif d.kind == "movenet":
-            xy, sc = D.decode_movenet(outs[0], (W, H))
-            person = sc.mean(1)
-        elif d.kind == "simcc":
-            xy, sc = D.decode_simcc(outs[0], outs[1], d.split_ratio)
-            person = sc.mean(1)
-        else:  # pragma: no cover - registry validates role/decoder pairs
-            raise ValueError(f"decoder {d.kind} is not a top-down pose decoder")
+        xy, sc, person, roi = self._decode_pose(outs, n * (2 if flip else 1), (W, H))
+        if flip:
+            fi = get_skeleton(spec.skeleton).flip_index
+            xf = xy[n:, fi].copy()
+            xf[..., 0] = W - xf[..., 0]  # continuous pixel coordinates: x -> W - x
+            sf = sc[n:, fi]
+            w0, w1 = sc[:n, :, None] + 1e-6, sf[..., None] + 1e-6
+            xy = (xy[:n] * w0 + xf * w1) / (w0 + w1)
+            sc, person = 0.5 * (sc[:n] + sf), 0.5 * (person[:n] + person[n:])
+            roi = None if roi is None else roi[:n]
         if n:
             xy = apply_inverse(Ms, xy)
+            if roi is not None:
+                roi = self._roi_to_image(roi, Ms)
         res, k = [], 0
         for bs in boxes:
             m = len(bs)
@@ -343,6 +342,57 @@ class KeypointPipeline:
             k += m
         self._tick("pose_post", t)
         return res
+
+    def _pyramid(self, images, i: int, M: np.ndarray):
+        """The image level to crop from and the affine for it.
+
+        A crop that shrinks the image more than 2x is cut from a Gaussian pyramid level (cv2.pyrDown, cached
+        per image for this call), avoiding the aliasing of warpAffine's bilinear sampling. pyrDown centres
+        its kernel on source pixel 2i, so level-L pixels relate to image pixels by x = 2^L x_L.
+        """
+        if not self.config.antialias:
+            return images[i], M
+        scale = float(np.sqrt(abs(np.linalg.det(M[:, :2]))))
+        L = int(np.clip(np.floor(np.log2(1.0 / max(scale, 1e-9))), 0, 4))
+        if L == 0:
+            return images[i], M
+        levels = self._pyr.setdefault(i, [images[i]])
+        while len(levels) <= L:
+            levels.append(cv2.pyrDown(levels[-1]))
+        f = 2.0**L
+        return levels[L], np.hstack([M[:, :2] * f, M[:, 2:]])
+
+    @staticmethod
+    def _roi_to_image(aux: np.ndarray, Ms: np.ndarray) -> np.ndarray:
+        """BlazePose alignment points (N,2,2) crop px -> ROI (N,5) for the next pass: centre at the hips,
+        square of side 2 x the full-body radius (then x box_padding = 1.25 as mediapipe), rotated so that
+        hips -> head points up."""
+        a = apply_inverse(Ms, aux)
+        v = a[:, 1] - a[:, 0]
+        r = np.linalg.norm(v, axis=1, keepdims=True)
+        return np.concatenate([a[:, 0] - r, a[:, 0] + r, np.arctan2(v[:, :1], -v[:, 1:2])], 1)
+
+    def _decode_pose(self, outs, n: int, size_wh):
+        """Pose outputs -> xy (n,J,2) crop px, score (n,J), person (n,), BlazePose ROI points or None."""
+        spec = self.pose_spec
+        d = spec.decoder
+        J = get_skeleton(spec.skeleton).n_joints
+        roi = None
+        if n == 0:
+            xy, sc, person = np.zeros((0, J, 2)), np.zeros((0, J)), np.zeros(0)
+        elif d.kind == "blazepose":
+            xy, sc, person, aux = D.decode_blazepose(outs[0], outs[1], d.n_landmarks)
+            if aux.shape[1] >= 2:
+                roi = aux[:, :2]
+        elif d.kind == "movenet":
+            xy, sc = D.decode_movenet(outs[0], size_wh)
+            person = sc.mean(1)
+        elif d.kind == "simcc":
+            xy, sc = D.decode_simcc(outs[0], outs[1], d.split_ratio)
+            person = sc.mean(1)
+        else:  # pragma: no cover - registry validates role/decoder pairs
+            raise ValueError(f"decoder {d.kind} is not a top-down pose decoder")
+        return xy, sc, person, roi
 
     def _top_down(self, images):
         boxes = self.detect(images)

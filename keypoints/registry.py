@@ -127,9 +127,9 @@ class DecoderSpec:
     n_parts: int = 18  # openpose
     peak_threshold: float = 0.1  # openpose confidence-map peaks
     paf_threshold: float = 0.05  # openpose PAF line integral
-    paf_channels: tuple[
-        tuple[int, int], ...
-    ] = ()  # openpose: (x, y) channel of each limb's PAF; () = in order
+    flip_test: bool = False  # top-down: also run the mirrored crop and average (measured per model)
+    # openpose: the (x, y) channels of each limb's PAF; () = in limb order
+    paf_channels: tuple[tuple[int, int], ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "outputs", tuple(self.outputs))
