@@ -296,7 +296,6 @@ class KeypointPipeline:
         crops = np.empty((n, H, W, 3), np.uint8)
         Ms = np.empty((n, 2, 3))
         k = 0
-        self._pyr = {}
         for i, bs in enumerate(boxes):
             for j, b in enumerate(bs):
                 Ms[k] = crop_transform(b, (W, H), pad, 0.0 if angles is None else angles[i][j])
@@ -311,7 +310,6 @@ class KeypointPipeline:
                     borderValue=(spec.input.pad_value,) * 3,
                 )
                 k += 1
-        self._pyr = {}  # free the pyramid levels
         flip = n > 0 and (spec.decoder.flip_test if self.config.flip_test is None else self.config.flip_test)
         if flip:  # test-time augmentation: the mirrored crops go in the same batch
             crops = np.concatenate([crops, crops[:, :, ::-1]])
@@ -395,6 +393,13 @@ class KeypointPipeline:
         return xy, sc, person, roi
 
     def _top_down(self, images):
+        self._pyr = {}  # pyramid levels of these images, shared by the pose passes
+        try:
+            return self._top_down_passes(images)
+        finally:
+            self._pyr = {}
+
+    def _top_down_passes(self, images):
         boxes = self.detect(images)
         res = self.pose_on_boxes(images, boxes)
         for _ in range(self.config.refine_passes):
