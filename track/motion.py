@@ -130,27 +130,25 @@ class GRUPrior:
 
     def predict(self, x, state, rng):
         x = check_batch(x, self.skeleton.n_joints)
-        x_hat, v_hat, origin, theta = step_inputs(x, state["prev"], self.fps, self.model_fps, self.skeleton)
         B, H = len(x), self.model.hidden
+        origin, theta = hip_frame(x, self.skeleton)
+        inp = np.empty((B, 2, x.shape[1], 3), np.float32)  # [normalised pose, normalised displacement]
+        inp[:, 0] = normalize(x, origin, theta)
+        inp[:, 1] = rotate_vectors(x - state["prev"], theta)
+        inp[:, 1] *= np.float32(self.fps / self.model_fps)
         with torch.no_grad():
-            mask = None
+            h = self.model.cell(torch.from_numpy(inp.reshape(B, -1)), torch.from_numpy(state["h"]))
+            hd = h
             if self.dropout > 0:  # MC dropout: keep with probability 1-p (a normal above its p-quantile)
                 keep = 1.0 - self.dropout
-                m = (normal_noise(rng, (B, H), 1.0) > self._threshold).astype(np.float32) * np.float32(
-                    1 / keep
-                )
-                mask = torch.from_numpy(m)
-            delta, h = self.model.step(
-                torch.from_numpy(np.ascontiguousarray(x_hat, np.float32)),
-                torch.from_numpy(np.ascontiguousarray(v_hat, np.float32)),
-                torch.from_numpy(state["h"]),
-                mask,
-            )
-        delta = delta.numpy().reshape(B, -1, 3) * (self.model_fps / self.fps)
+                m = normal_noise(rng, (B, H), 1.0) > self._threshold
+                hd = h * torch.from_numpy(m.astype(np.float32) * np.float32(1 / keep))
+            delta = self.model.out(hd).numpy().reshape(B, -1, 3)
+        delta *= np.float32(self.model_fps / self.fps)
         new = x + unrotate_vectors(delta, theta)
         if self.sigma_m > 0:
-            new = new + normal_noise(rng, new.shape, self.sigma_m)
-        return new.astype(np.float32), {"prev": x, "h": h.numpy()}
+            new += normal_noise(rng, new.shape, self.sigma_m)
+        return new, {"prev": x, "h": h.numpy()}
 
 
 def save_checkpoint(

@@ -11,9 +11,14 @@ frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
    scores against the full confidence maps and separates people only at birth);
 3. **update** (sec. 5.2.2): importance weights per camera pair (eq. 5.6–5.7), stochastic
    universal resampling of N/V samples per pair, then joint refinement (M candidate
-   positions per joint, the best-scoring kept);
+   positions per joint, the best-scoring kept). Our addition: besides random candidates around
+   the joint, ``refine_guided`` candidates are drawn around the point the track's detections put
+   the joint at (triangulated from its views, or moved onto the single view's ray), so a fast
+   joint is caught in one frame with M = 3 instead of the seed's 50 random candidates;
 4. **inference** (sec. 5.2.4): weighted mean over all cameras, per-joint spread
-   ``std_m``, OBSERVED / PREDICTED flags from the number of cameras seeing each joint;
+   ``std_m``, OBSERVED (seen by >= 1 camera) / PREDICTED (carried through occlusion) flags;
+   offline, :func:`track_sequence` also drops trailing coasting frames, short tracks, and
+   smooths in time (sigma 2 frames, as the seed's evaluation does, flag SMOOTHED);
 5. **termination**: a track with no associated detection for ``end_after_s`` ends; its
    identity is kept for re-identification for ``reid_max_gap_s``;
 6. **initialisation** (sec. 5.2.3): the detections no track explains are matched and
@@ -23,8 +28,12 @@ frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
    around the candidate; joints it lacks are filled from a mocap template (a stand-in for the
    seed's dropout network g) with a larger spread.
 
-No Python loop runs over samples or joints; loops run over cameras (association) and
-over new candidates (initialisation) only.
+No Python loop runs over samples; loops run over tracks (gathers, refinement blocks of joints),
+cameras (association) and new candidates (initialisation) only.
+
+Not implemented from the seed: the observation from confidence maps + part affinity fields inside
+the filter (eq. 5.8 is in :mod:`track.observation` and unit-tested, but the filter scores keypoints),
+the confidence-subtraction network and the learned generator g of sec. 5.2.3.
 """
 
 from __future__ import annotations
