@@ -9,44 +9,19 @@ import cv2
 import numpy as np
 import pytest
 
-from calibrate.camera import Camera, CameraRig
 from capture.session import SessionLayout
 from keypoints.skeletons import CANONICAL
 from pipeline.report import write_report
+from synthetic.rigs import ring_rig
 from track.trackfile import OBSERVED, TrackFile
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 
 
-def _look_at(center, target):
-    z = np.asarray(target, float) - center
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ center
-
-
 def make_session(root, n_people=3, T=60):
-    cams = []
-    for i in range(4):
-        a = 2 * np.pi * i / 4
-        c = np.array([4 * np.cos(a), 4 * np.sin(a), 2.5])
-        R, t = _look_at(c, [0, 0, 1])
-        cams.append(
-            Camera(
-                f"cam{i + 1:02d}",
-                (1280, 720),
-                np.array([[900, 0, 640], [0, 900, 360], [0, 0, 1.0]]),
-                np.zeros(5),
-                "pinhole",
-                R,
-                t,
-            )
-        )
+    rig = ring_rig(4, radius_m=4.0)
     lay = SessionLayout(root)
-    CameraRig(tuple(cams)).save(lay.calib_dir / "rig.toml")
+    rig.save(lay.calib_dir / "rig.toml")
     rng = np.random.default_rng(1)
     # a standing body19 template (metres, z up), walked around in circles
     tmpl = np.zeros((19, 3))
