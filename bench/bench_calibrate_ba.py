@@ -4,9 +4,9 @@ same detections and the same starting cameras, in the same run.
 Problems: the caliscope 4-camera ChArUco recording (real detections) and a synthetic 12-camera ring
 (projected board corners + 0.3 px noise). Both methods start from our intrinsics and our pose-graph
 initialisation and keep the intrinsics fixed. Reported per method: wall time of the adjustment and the
-final RMS reprojection error measured the same way for both rigs (triangulate every board corner seen
-by >= 2 cameras with the rig, reproject, RMS over all observations: aniposelib's own criterion), plus our
-rigid-board RMS.
+final RMS reprojection error, measured the same two ways for every rig: "RMS" triangulates every board
+corner seen by >= 2 cameras with the rig and reprojects it (aniposelib's criterion: free 3D points);
+"board-fit" fits the rigid board to every frame with the rig's cameras held fixed (our model).
 
     .venv/bin/python bench/bench_calibrate_ba.py [--shared PATH] [--skip-real]
 
@@ -29,10 +29,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibrate.boards import Board, load_board  # noqa: E402
-from calibrate.camera import Camera  # noqa: E402
+from calibrate.camera import Camera, CameraRig  # noqa: E402
 from calibrate.detect import detect_all, discover_recording  # noqa: E402
 from calibrate.extrinsics import (  # noqa: E402
     ExtrinsicsConfig,
+    board_fit_rms,
     board_poses,
     calibrate_extrinsics,
     initial_poses,
@@ -130,19 +131,21 @@ def run_problem(name: str, board: Board, cams: list[Camera], dets: dict, log: di
     res["ours_total_s"] = time.perf_counter() - t0
     res["ours_ba_s"] = ext.ba_time_s
     res["ours_rms_px"] = common_rms(list(ext.rig.cameras), p2ds)
-    res["ours_board_rms_px"] = ext.final_rms_px
+    res["ours_board_rms_px"] = board_fit_rms(board, ext.rig, dets)
     # aniposelib, iterative robust BA (its calibrate() default), extrinsics only as ours
     g = to_anipose(init)
     t0 = time.perf_counter()
     g.bundle_adjust_iter(p2ds, only_extrinsics=True, verbose=False)
     res["anipose_iter_s"] = time.perf_counter() - t0
     res["anipose_iter_rms_px"] = common_rms(from_anipose(g, init), p2ds)
+    res["anipose_iter_board_rms_px"] = board_fit_rms(board, CameraRig(tuple(from_anipose(g, init))), dets)
     # aniposelib, one robust BA over all points (the same data as ours)
     g = to_anipose(init)
     t0 = time.perf_counter()
     g.bundle_adjust(p2ds, loss="soft_l1", threshold=1.0, only_extrinsics=True, verbose=False)
     res["anipose_full_s"] = time.perf_counter() - t0
     res["anipose_full_rms_px"] = common_rms(from_anipose(g, init), p2ds)
+    res["anipose_full_board_rms_px"] = board_fit_rms(board, CameraRig(tuple(from_anipose(g, init))), dets)
     res["speedup_vs_iter"] = res["anipose_iter_s"] / res["ours_ba_s"]
     res["speedup_vs_full"] = res["anipose_full_s"] / res["ours_ba_s"]
     log[name] = res
@@ -151,16 +154,16 @@ def run_problem(name: str, board: Board, cams: list[Camera], dets: dict, log: di
     print(
         f"   ours (pycolmap/Ceres)        BA {res['ours_ba_s']:.2f} s (extrinsics stage "
         f"{res['ours_total_s']:.2f} s)"
-        f"  RMS {res['ours_rms_px']:.3f} px (rigid-board RMS {res['ours_board_rms_px']:.3f})"
+        f"  RMS {res['ours_rms_px']:.3f} px, board-fit {res['ours_board_rms_px']:.3f} px"
     )
     print(
         f"   aniposelib bundle_adjust_iter   {res['anipose_iter_s']:.2f} s  RMS "
-        f"{res['anipose_iter_rms_px']:.3f} px"
+        f"{res['anipose_iter_rms_px']:.3f} px, board-fit {res['anipose_iter_board_rms_px']:.3f} px"
         f"  -> ours {res['speedup_vs_iter']:.1f}x faster"
     )
     print(
         f"   aniposelib bundle_adjust (all)  {res['anipose_full_s']:.2f} s  RMS "
-        f"{res['anipose_full_rms_px']:.3f} px"
+        f"{res['anipose_full_rms_px']:.3f} px, board-fit {res['anipose_full_board_rms_px']:.3f} px"
         f"  -> ours {res['speedup_vs_full']:.1f}x faster"
     )
 

@@ -341,7 +341,7 @@ def synthetic_ring(out: dict, n_frames: int) -> None:
         write_recording(board, rig, T, Path(tmp) / "rec", rng, noise=2.0, blur_sigma_px=0.7)
         t_render = time.perf_counter() - t0
         res = {}
-        for model, refine in (("pinhole4", "all"), ("pinhole4", "focal_pp"), ("pinhole", "none")):
+        for model, refine in (("pinhole4", "all"), ("pinhole", "none")):
             t0 = time.perf_counter()
             r = calibrate_recording(
                 Path(tmp) / "rec",
@@ -375,7 +375,7 @@ def main() -> None:
         default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
     )
     ap.add_argument("--skip-synthetic", action="store_true")
-    ap.add_argument("--ring-frames", type=int, default=40)
+    ap.add_argument("--ring-frames", type=int, default=30)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     shared = Path(args.shared)

@@ -32,6 +32,7 @@ __all__ = [
     "board_poses",
     "pairwise_links",
     "board_symmetry",
+    "board_fit_rms",
     "initial_poses",
     "bundle_adjust",
     "LOSSES",
@@ -55,6 +56,7 @@ class ExtrinsicsConfig:
     outlier_px: float = 4.0  # observations above max(outlier_px, 5 x median) are dropped, BA rerun
     max_iterations: int = 100
     world: str = ""  # "" = first camera; "camera:NAME"; "board:FRAME" (board on the floor)
+    function_tolerance: float = 1e-6  # Ceres: stop when the cost changes by less than this fraction
     linear_solver: str = "sparse_normal_cholesky"  # or "auto" (COLMAP's choice), "dense_normal_cholesky", ...
 
     def __post_init__(self) -> None:
@@ -331,6 +333,7 @@ def bundle_adjust(
     ref_from_board: Mapping[int, np.ndarray],
     obs: Sequence[_Obs],
     cfg: ExtrinsicsConfig,
+    refine_cameras: bool = True,
 ) -> tuple[list[Camera], list[np.ndarray], dict[int, np.ndarray], dict]:
     """One pycolmap/Ceres bundle adjustment (see module doc). Returns cameras (intrinsics possibly
     refined), cam_from_ref, ref_from_board and a summary dict."""
@@ -384,13 +387,14 @@ def bundle_adjust(
     opts.refine_focal_length = cfg.refine_intrinsics != "none"
     opts.refine_principal_point = cfg.refine_intrinsics != "none"
     opts.refine_extra_params = cfg.refine_intrinsics == "all"
-    opts.refine_sensor_from_rig = True
+    opts.refine_sensor_from_rig = refine_cameras
     opts.refine_rig_from_world = True
     opts.print_summary = False
     opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, cfg.loss.upper())
     opts.ceres.loss_function_scale = cfg.loss_scale_px
     so = opts.ceres.solver_options
     so.max_num_iterations = cfg.max_iterations
+    so.function_tolerance = cfg.function_tolerance  # COLMAP's default 0 runs to max iterations on noisy data
     if cfg.linear_solver != "auto":
         # the board points are constant, so there is nothing for a Schur complement to eliminate: the
         # normal equations over poses (+ intrinsics) are small and dense-ish
@@ -601,3 +605,37 @@ def calibrate_extrinsics(
         world=world,
         residuals_px={names[c]: per_cam[c] for c in range(C)},
     )
+
+
+def board_fit_rms(
+    board: Board,
+    rig: CameraRig,
+    dets: Mapping[str, CameraDetections],
+    min_points: int = 6,
+    loss: str = "soft_l1",
+) -> float:
+    """RMS (px) of the rigid board fitted to every frame seen by >= 2 cameras with the cameras of ``rig``
+    held fixed (only the board poses are adjusted): a way to score any rig, e.g. another tool's, on the
+    board model."""
+    cams = list(rig.cameras)
+    names = rig.names
+    poses = [board_poses(board, c, dets[c.name], min_points) for c in cams]
+    T0 = _T(cams[0].R, cams[0].t)
+    cam_from_ref = [_T(c.R, c.t) @ _inv(T0) for c in cams]
+    frames = _choose_frames(poses, 10**9)
+    ref_from_board, obs = {}, []
+    for f in frames:
+        best = min((c for c in range(len(cams)) if f in poses[c]), key=lambda c: -poses[c][f][2])
+        ref_from_board[f] = _inv(cam_from_ref[best]) @ poses[best][f][0]
+        for c in range(len(cams)):
+            if f in poses[c]:
+                k = int(np.flatnonzero(dets[names[c]].frames == f)[0])
+                xy = dets[names[c]].xy_px[k]
+                ids = np.flatnonzero(np.isfinite(xy[:, 0]))
+                obs.append(_Obs(c, f, ids, xy[ids]))
+    cfg = ExtrinsicsConfig(loss=loss)
+    _, cfr, rfb, _ = bundle_adjust(
+        board, cams, cam_from_ref, 0, frames, ref_from_board, obs, cfg, refine_cameras=False
+    )
+    r = np.concatenate(_residuals(board, cams, cfr, rfb, obs))
+    return float(np.sqrt(np.mean(r**2)))
