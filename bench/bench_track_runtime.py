@@ -34,6 +34,8 @@ from track_helpers import render_kp, ring_P  # noqa: E402
 
 from track.particle import ParticleConfig, ParticleTracker  # noqa: E402
 
+H32 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h32.pt"
+
 
 def people(n: int, T: int, seed: int = 0) -> np.ndarray:
     from synthetic.rigs import ring_room
@@ -105,7 +107,10 @@ def main() -> None:
         f"{args.cams} cameras, {args.samples} samples, median over frames {warm}..{args.frames - 1}; "
         f"CPU ms per frame (process time), wall in ()"
     )
-    print(f"{'people':>6} | {'GRU prior':>18} | {'const. velocity':>18} | {'ch.4 triangulation':>18}")
+    print(
+        f"{'people':>6} | {'GRU 64 prior':>18} | {'const. velocity':>18} | {'GRU 32 prior':>18} | "
+        f"{'ch.4 triangulation':>18}"
+    )
     for n in args.people:
         X = people(n, args.frames, seed=n)
         kp, sc = render_kp(P, X, noise_px=1.0, seed=n)
@@ -113,15 +118,19 @@ def main() -> None:
         c = time_tracker(
             P, kp, sc, ParticleConfig(n_samples=args.samples, motion="constant_velocity"), n, warm
         )
+        g32 = time_tracker(
+            P, kp, sc, ParticleConfig(n_samples=args.samples, motion_checkpoint=str(H32)), n, warm
+        )
         tri = time_triangulation(P, kp, sc, warm)
-        rows.append({"people": n, "gru": g, "cv": c, "tri_cpu_ms": tri})
+        rows.append({"people": n, "gru": g, "cv": c, "gru32": g32, "tri_cpu_ms": tri})
         print(
             f"{n:>6} | {g['cpu_ms']:8.1f} ({g['wall_ms']:6.1f}) K={g['tracks']:<2} | "
-            f"{c['cpu_ms']:8.1f} ({c['wall_ms']:6.1f}) K={c['tracks']:<2} | {tri:10.1f}",
+            f"{c['cpu_ms']:8.1f} ({c['wall_ms']:6.1f}) K={c['tracks']:<2} | "
+            f"{g32['cpu_ms']:8.1f} ({g32['wall_ms']:6.1f}) K={g32['tracks']:<2} | {tri:10.1f}",
             flush=True,
         )
     res = {}
-    for name in ("gru", "cv"):
+    for name in ("gru", "cv", "gru32"):
         k = np.array([r[name]["tracks"] for r in rows], float)  # the people actually tracked
         t = np.array([r[name]["cpu_ms"] for r in rows])
         a, b, r2 = fit(k, t)

@@ -10,7 +10,7 @@ average), MPJPE (matched poses, all joints the tracker outputs).
 
 Tables: (1) greedy vs particle over 3 / 4 / 6 cameras; (2) ablation mirroring Table 5.3 on the
 3-camera setting (w/o resampling, w/o joint refinement, zero-velocity prior, prior w/o dropout,
-plus: constant-velocity prior, the seed's purely random refinement candidates, GRU with 64 / 128 units,
+plus: constant-velocity prior, the seed's purely random refinement candidates, GRU with 32 / 128 units,
 no output smoothing).
 
     .venv/bin/python bench/bench_track_synthetic.py                  # ~4 min on 2 busy cores
@@ -46,9 +46,9 @@ from triangulate.stage import track_session_greedy, triangulate_session  # noqa:
 
 FAULTS = dict(noise_px=3.0, missed_joint_rate=0.10, flip_rate=0.02, false_positive_rate=0.05)
 H128 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h128.pt"
-H64 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h64.pt"
+H32 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h32.pt"
 ABLATIONS = {
-    "proposed (GRU 32 units, dropout 0.5)": {},
+    "proposed (GRU 64 units, dropout 0.5)": {},
     "w/o pose resampling": {"resample": False},
     "w/o joint refinement": {"refine": False},
     "zero-velocity prior (w/o pose prediction)": {"motion": "zero_velocity"},
@@ -56,7 +56,7 @@ ABLATIONS = {
     "constant-velocity prior": {"motion": "constant_velocity"},
     "seed's random refinement (M=8, no guided)": {"refine_guided": 0, "refine_candidates": 8},
     "GRU 128 units": {"motion_checkpoint": str(H128)},
-    "GRU 64 units": {"motion_checkpoint": str(H64)},
+    "GRU 32 units": {"motion_checkpoint": str(H32)},
     "no output smoothing": {"smooth_sigma_frames": 0.0},
 }
 
@@ -112,8 +112,11 @@ def common_mpjpe(gt: np.ndarray, a: TrackFile, b: TrackFile) -> tuple[float, flo
     ea, eb = joint_errors(gt, a.xyz_m.astype(np.float64)), joint_errors(gt, b.xyz_m.astype(np.float64))
     both = np.isfinite(ea) & np.isfinite(eb)
     only_b = np.isfinite(eb) & ~np.isfinite(ea)
-    return (1e3 * float(ea[both].mean()), 1e3 * float(eb[both].mean()),
-            1e3 * float(eb[only_b].mean()) if only_b.any() else float("nan"))
+    return (
+        1e3 * float(ea[both].mean()),
+        1e3 * float(eb[both].mean()),
+        1e3 * float(eb[only_b].mean()) if only_b.any() else float("nan"),
+    )
 
 
 def run_greedy(d: str, gt: np.ndarray) -> dict:
@@ -192,9 +195,12 @@ def main() -> None:
         table1[n_cams] = {"greedy": g, "particle": p}
         print(line(f"{n_cams} cams: chapter 4 (greedy + smoothing)", g))
         print(line(f"{n_cams} cams: particle filter (ch. 5)", p), flush=True)
-        print(f"{'':<44} MPJPE on the joints both output: greedy {g['mpjpe_common_mm']:.1f} mm, particle "
-              f"{p['mpjpe_common_mm']:.1f} mm; particle on joints only it outputs (carried through "
-              f"occlusion): {p['mpjpe_only_mm']:.1f} mm", flush=True)
+        print(
+            f"{'':<44} MPJPE on the joints both output: greedy {g['mpjpe_common_mm']:.1f} mm, particle "
+            f"{p['mpjpe_common_mm']:.1f} mm; particle on joints only it outputs (carried through "
+            f"occlusion): {p['mpjpe_only_mm']:.1f} mm",
+            flush=True,
+        )
     out["by_cams"] = table1
     print(f"\n(2) ablation (Table 5.3), {args.cams[0]} cameras")
     print(HEAD)

@@ -338,26 +338,27 @@ class ParticleTracker:
             n_views = (asc > 0).sum(1)  # (K,J)
             conf_out = np.clip(asc.sum(1) / np.maximum(n_views, 1) * np.minimum(n_views, 2) / 2.0, 0, 1)
             flags = np.where(n_views > 0, OBSERVED, PREDICTED).astype(np.uint8)
-            states = [gather_state(state, np.arange(k * N, (k + 1) * N)) for k in range(K)]
+            states = [{kk: v[k * N : (k + 1) * N] for kk, v in state.items()} for k in range(K)]  # views
+            pel_now = hip_frame(mean, self.skeleton)[0]  # (K,3)
+            bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
             for k, t in enumerate(self.tracks):
                 t.x, t.state = X[k], states[k]
                 if t.mean is not None:
-                    v = (self._pelvis(mean[k]) - self._pelvis(t.mean)) * self.fps
+                    v = (pel_now[k] - self._pelvis(t.mean)) * self.fps
                     t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
                 t.mean = mean[k]
                 if ev_k[k]:
                     t.last_seen = frame
                     t.n_seen += 1
-                    b = np.where(n_views[k][self.limbs].min(1) > 0, self._bones(mean[k]), np.nan)
-                    t.bones = (
-                        b
-                        if t.bones is None
-                        else np.where(
+                    b = bones_now[k]
+                    if t.bones is None:
+                        t.bones = b
+                    else:
+                        t.bones = np.where(
                             np.isfinite(b),
                             np.where(np.isfinite(t.bones), 0.9 * t.bones + 0.1 * b, b),
                             t.bones,
                         )
-                    )
             out = FrameEstimate(
                 np.array([t.id for t in self.tracks], np.int64), mean, std, conf_out, n_views, flags, ev_k
             )

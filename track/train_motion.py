@@ -97,7 +97,7 @@ def evaluate(model: PoseGRU, w: np.ndarray, noise_m: float = 0.0) -> dict[str, f
 
 def train(
     fps: float = 25.0,
-    hidden: int = 32,
+    hidden: int = 64,
     dropout: float = 0.5,
     steps: int = 3000,
     batch: int = 64,
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="track/checkpoints/motion_gru.pt")
     ap.add_argument("--fps", type=float, default=25.0)
-    ap.add_argument("--hidden", type=int, default=32)
+    ap.add_argument("--hidden", type=int, default=64)
     ap.add_argument("--dropout", type=float, default=0.5)
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--batch", type=int, default=64)
