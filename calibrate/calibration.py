@@ -323,7 +323,10 @@ def run_cli(args: argparse.Namespace) -> int:
             intrinsic_frames=args.intrinsic_frames,
             extrinsic_frames=args.extrinsic_frames,
         )
-        out = calibrate_recording(args.recording, args.board, args.out, cfg, progress)
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        with logging_redirect_tqdm():  # log lines above the bars, not through them
+            out = calibrate_recording(args.recording, args.board, args.out, cfg, progress)
     except (CalibrationError, ValueError) as e:
         for b in bars.values():
             b.close()
