@@ -35,6 +35,47 @@ def package_version() -> str:
         return "0+unknown"
 
 
+# the code each stage's output depends on (packages or files of this project): a change there reruns the stage
+# even while the package version stays the same (development checkouts, patched installs)
+STAGE_CODE: dict[str, tuple[str, ...]] = {
+    "calibration": ("calibrate", "capture/fileio.py"),
+    "keypoints": ("keypoints", "capture/fileio.py", "capture/session.py"),
+    "triangulate": (
+        "triangulate",
+        "calibrate/camera.py",
+        "keypoints/skeletons.py",
+        "keypoints/detections.py",
+    ),
+    "track": ("track", "triangulate", "calibrate/camera.py", "keypoints/skeletons.py"),
+    "forecast": ("forecast", "pipeline/glue.py", "track/trackfile.py"),
+    "report": ("pipeline/report.py",),
+}
+_ROOT = Path(__file__).resolve().parents[1]
+_code_cache: dict[str, str] = {}
+
+
+def code_fingerprint(stage: str, stat_cache: dict[str, Any] | None = None) -> str:
+    """sha256 (12 hex digits) of the Python sources a stage's output depends on; "" for unknown stages."""
+    if stage in _code_cache:
+        return _code_cache[stage]
+    h = hashlib.sha256()
+    for part in STAGE_CODE.get(stage, ()):
+        p = _ROOT / part
+        files = sorted(p.rglob("*.py")) if p.is_dir() else [p] if p.exists() else []
+        for f in files:
+            h.update(f.relative_to(_ROOT).as_posix().encode())
+            h.update(path_fingerprint(f, stat_cache).encode())
+    fp = h.hexdigest()[:12] if stage in STAGE_CODE else ""
+    _code_cache[stage] = fp
+    return fp
+
+
+def stage_version(stage: str, stat_cache: dict[str, Any] | None = None) -> str:
+    """The package version and the stage's code fingerprint, e.g. ``0.1.0+code.3f2a9c01b7de``."""
+    code = code_fingerprint(stage, stat_cache)
+    return f"{package_version()}+code.{code}" if code else package_version()
+
+
 def file_fingerprint(path: Path) -> str:
     h = hashlib.sha256()
     size = path.stat().st_size
@@ -125,6 +166,7 @@ class ProvenanceStore:
         config: dict[str, Any],
         model_sha256: str,
         outputs: list[Path],
+        version: str | None = None,
     ) -> bool:
         rec = self.load(stage)
         if rec is None:
@@ -133,7 +175,7 @@ class ProvenanceStore:
             "inputs": inputs,
             "config": json.loads(json.dumps(config)),
             "model_sha256": model_sha256,
-            "version": package_version(),
+            "version": version or package_version(),
         }
         if any(rec.get(k) != v for k, v in want.items()):
             return False

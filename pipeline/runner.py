@@ -32,7 +32,7 @@ from capture.fileio import atomic_write_text
 from capture.session import SessionLayout
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
-from pipeline.provenance import ProvenanceStore, StageRecord, package_version, path_fingerprint
+from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
 
 log = logging.getLogger(__name__)
 
@@ -460,7 +460,8 @@ def check_session(source: SessionSource, out: Path | None, config: PipelineConfi
             if not all(p.exists() for p in plan.inputs):
                 return None
             inputs = store.fingerprint_inputs(plan.inputs)
-            if not store.is_current(name, inputs, plan.config, plan.model_sha256, plan.outputs):
+            version = stage_version(name, store.stat_cache)
+            if not store.is_current(name, inputs, plan.config, plan.model_sha256, plan.outputs, version):
                 return None
     except Exception:  # anything unusual: let the full run look at it (and report it)
         return None
@@ -509,7 +510,10 @@ def process_session(
                     "to run them all)."
                 )
             inputs = store.fingerprint_inputs(plan.inputs)
-            if not force and store.is_current(name, inputs, plan.config, plan.model_sha256, plan.outputs):
+            version = stage_version(name, store.stat_cache)
+            if not force and store.is_current(
+                name, inputs, plan.config, plan.model_sha256, plan.outputs, version
+            ):
                 result.stage_s[name] = round(time.perf_counter() - t0, 3)
                 done.append(name)
                 continue
@@ -523,7 +527,7 @@ def process_session(
                     inputs,
                     plan.config,
                     plan.model_sha256,
-                    package_version(),
+                    version,
                     store.fingerprint_outputs(plan.outputs),
                 )
             )
