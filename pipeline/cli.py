@@ -135,10 +135,14 @@ def main(argv: list[str] | None = None) -> int:
     for r in failed:
         print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
     if args.out:
-        atomic_write_text(
-            args.out / "reprocess_summary.json", json.dumps([r.to_dict() for r in results], indent=1)
-        )
-        atomic_write_text(args.out / "reprocess_summary.txt", table + "\n")
+        try:
+            atomic_write_text(
+                args.out / "reprocess_summary.json", json.dumps([r.to_dict() for r in results], indent=1)
+            )
+            atomic_write_text(args.out / "reprocess_summary.txt", table + "\n")
+        except OSError as e:  # e.g. the disk filled up: the table above is the summary
+            print(f"reprocess: could not write the summary files to {args.out} ({e}).", file=sys.stderr)
+            return 1
     return 1 if failed else 0
 
 
