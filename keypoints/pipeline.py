@@ -40,7 +40,8 @@ class PipelineConfig:
     det_score: float = 0.0  # 0 = the detector description's threshold
     min_box_px: float = 24.0  # ignore boxes smaller than this (height, image px)
     box_padding: float = 0.0  # 0 = the pose description's value
-    pose_presence: float = 0.0  # drop BlazePose people whose person-present probability is below this
+    # vtest.avi: a static sign the detector takes for a person scores 0.12-0.18, the pedestrians >= 0.4
+    pose_presence: float = 0.25  # drop people whose pose score (BlazePose: person present; else mean) below
     refine_passes: int = 1  # top-down: pose passes on the box the previous pass's keypoints span
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level

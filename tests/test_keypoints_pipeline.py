@@ -107,3 +107,14 @@ def test_pyramid_crop_matches_direct_crop_on_a_smooth_image():
     a = cv2.warpAffine(img, M, (192, 192)).astype(float)
     b = cv2.warpAffine(src, M2, (192, 192)).astype(float)
     assert np.abs(a - b)[10:-10, 10:-10].mean() < 0.6  # measured 0.36 (0.76 with a half-pixel offset)
+
+
+@pytest.mark.parametrize("frame,people", [(0, 3), (600, 6)])  # counted by eye on the frames
+def test_vtest_pedestrian_count(frame, people):
+    need_shared("models")
+    cap = cv2.VideoCapture(str(need_shared("data", "opencv", "vtest.avi")))
+    cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
+    ok, img = cap.read()
+    assert ok
+    res = KeypointPipeline("default")([img])[0]
+    assert len(res.boxes) == people  # measured 3 and 6 (a static sign, pose score 0.12-0.18, is dropped)
