@@ -48,12 +48,27 @@ def _config(args) -> object:
         raise SystemExit(str(e)) from None
 
 
+def _load_split(args):
+    """Clips of every source, split by clip per source (adding a source never reshuffles another's split)."""
+    from forecast import train as T
+
+    clips, tr, te = [], [], []
+    groups = [["cmu"]] if "cmu" in args.data else []
+    groups += [[d for d in args.data if d != "cmu"]] if any(d != "cmu" for d in args.data) else []
+    for group in groups:  # CMU and the track files are split separately
+        c = T.load_sources(group)
+        a, b = T.split_clips(c, args.test_fraction, args.split_seed)
+        clips += c
+        tr += a
+        te += b
+    return clips, tr, te
+
+
 def cmd_train(args) -> int:
     from forecast import train as T
 
     cfg = _config(args)
-    clips = T.load_sources(args.data)
-    tr, te = T.split_clips(clips, args.test_fraction, args.split_seed)
+    clips, tr, te = _load_split(args)
     bar = tqdm(total=cfg.steps, desc=f"train {args.model}", unit="step")
 
     def progress(step, terms):
@@ -100,14 +115,20 @@ def cmd_eval(args) -> int:
     from forecast import evaluate as E
     from forecast import train as T
 
-    clips = T.load_sources(args.data)
-    _, te = T.split_clips(clips, args.test_fraction, args.split_seed)
+    clips, tr, te = _load_split(args)
     models: dict = {}
     for name in args.baselines:
         models[name] = T.baseline(name)
+    seen: set[str] = set()
     for ck in args.checkpoints:
-        m, meta = T.load_checkpoint(ck, skeleton=te[0].skeleton)
+        m, meta = T.load_checkpoint(ck, skeleton=clips[0].skeleton)
         models[Path(ck).stem] = m
+        seen |= set(meta["extra"].get("train_clips", []))
+    if seen:  # held out for every model: no clip any checkpoint trained on
+        te = [c for c in clips if c.name not in seen]
+        if not te:
+            raise SystemExit("every clip was used to train one of the checkpoints; nothing is held out")
+    print(f"evaluating on {len(te)} held-out clips: {', '.join(c.name for c in te)}")
     bar = tqdm(total=len(models) + (0 if args.social else 2), desc="eval", unit="model")
 
     def progress(name):
@@ -125,7 +146,6 @@ def cmd_eval(args) -> int:
         )
         title = "Forecast evaluation: composed two-person scenes (held-out CMU clips)"
     else:
-        tr, _ = T.split_clips(clips, args.test_fraction, args.split_seed)
         if args.fool:
             ws = T.fdata.make_windows(tr, 1, 0, 10, persons="each")
             models["fool"] = T.fool_model(ws)

@@ -113,12 +113,16 @@ def clip_from_trackfile(path: str | os.PathLike) -> Clip:
 
     tf = TrackFile.load(path)
     sk = _skeleton_for(tf.joint_names, path)
-    return Clip(
-        Path(path).stem if Path(path).stem != "tracks" else Path(path).parent.parent.name or "tracks",
-        tf.xyz_m,
-        tf.fps,
-        sk,
-    )
+    return Clip(clip_name(path), tf.xyz_m, tf.fps, sk)
+
+
+def clip_name(path: str | os.PathLike) -> str:
+    """A track file's clip name: the session for ``<session>/track/tracks.npz``, the folder for
+    ``<folder>/tracks.npz``, the file stem otherwise."""
+    p = Path(path)
+    if p.stem != "tracks":
+        return p.stem
+    return p.parent.parent.name if p.parent.name == "track" else p.parent.name
 
 
 def _skeleton_for(joint_names: tuple[str, ...], path) -> str:

@@ -84,6 +84,7 @@ class DiffusionConfig:
     persons: int = 2
     sample_steps: int = 20
     sample_eta: float = 0.0
+    clean_obs: bool = True
     steps: int = 2500
     batch: int = 32
     lr: float = 5e-4
@@ -107,7 +108,8 @@ def config_from_dict(kind: str, d: dict | None = None):
     defaults = cls()
     out = {}
     for k, v in d.items():
-        out[k] = type(getattr(defaults, k))(v)
+        kind_t = type(getattr(defaults, k))
+        out[k] = (str(v).lower() in ("1", "true", "yes")) if kind_t is bool else kind_t(v)
     return cls(**out)
 
 
@@ -218,6 +220,7 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
     elif kind == "social_diffusion":
         m = SocialDiffusion(D + 5, config.n_frames, config.channels, config.T)
         m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
+        m.n_obs_clean = config.n_obs if config.clean_obs else 0
     else:
         raise ValueError(f"unknown model '{kind}'")
     if state is not None:
