@@ -144,7 +144,7 @@ def cmd_eval(args) -> int:
             progress=progress,
             ndms_database=clips if args.ndms_db == "all" else None,
         )
-        title = "Forecast evaluation: composed two-person scenes (held-out CMU clips)"
+        title = f"Forecast evaluation: two-person scenes ({res['scenes']}), held-out clips"
     else:
         if args.fool:
             ws = T.fdata.make_windows(tr, 1, 0, 10, persons="each")

@@ -143,18 +143,31 @@ def evaluate_social(
     progress: Callable[[str], None] | None = None,
     ndms_database: list[fdata.Clip] | None = None,
 ) -> dict:
-    """Composed two-person scenes from held-out clips; long-horizon NDMS(t) and SSCP."""
+    """Two-person scenes from held-out clips (real ones where the clips hold two people, else composed);
+    long-horizon NDMS(t) and SSCP."""
     from forecast.train import composed_batch
 
     rng = np.random.default_rng(seed)
-    single = fdata.make_windows(test_clips, n_obs, 0, stride=8, persons="each")
-    obs = composed_batch(single.x[:, :, 0], 2, n_scenes, rng)  # (B,n_obs,2,J,3)
+    L = min(n_obs + n_pred, max(c.n_frames for c in test_clips))
+    multi = [c for c in test_clips if c.xyz_m.shape[1] >= 2]
+    if multi:  # real two-person scenes (e.g. track files): observe them, SSCP against their real future
+        mw = fdata.make_windows(multi, n_obs, 0, stride=8, persons="all", min_persons=2, max_persons=2)
+        pick = rng.choice(len(mw), min(n_scenes, len(mw)), replace=False)
+        obs = mw.x[pick]
+        longm = fdata.make_windows(
+            multi, L, 0, stride=max(L // 4, 1), persons="all", min_persons=2, max_persons=2
+        )
+        real = longm.x if len(longm) else None
+        source = "real multi-person clips"
+    else:  # compose two-person scenes from single-person clips
+        single = fdata.make_windows(test_clips, n_obs, 0, stride=8, persons="each")
+        obs = composed_batch(single.x[:, :, 0], 2, n_scenes, rng)  # (B,n_obs,2,J,3)
+        longw = fdata.make_windows(test_clips, L, 0, stride=max(L // 2, 1), persons="each")
+        real = composed_batch(longw.x[:, :, 0], 2, n_scenes, rng) if len(longw) else None
+        source = "composed from single-person clips"
+    n_scenes = len(obs)
     scorer = ndms_scorer_for(ndms_database or test_clips)
     names = get_skeleton(test_clips[0].skeleton).joint_names
-    # real reference scenes for SSCP: the longest composed windows the held-out clips allow
-    L = min(n_obs + n_pred, max(c.n_frames for c in test_clips))
-    longw = fdata.make_windows(test_clips, L, 0, stride=max(L // 2, 1), persons="each")
-    real = composed_batch(longw.x[:, :, 0], 2, n_scenes, rng) if len(longw) else None
     sscp = M.SSCP(lambda X: M.default_social_state(X, names), M.N_DEFAULT_STATES)
     out: dict = {
         "fps": fdata.TARGET_FPS,
@@ -163,6 +176,7 @@ def evaluate_social(
         "n_scenes": n_scenes,
         "models": {},
         "sscp_real_frames": int(L),
+        "scenes": source,
     }
     for name, model in models.items():
         if progress:

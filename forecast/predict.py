@@ -32,23 +32,42 @@ def scene_frame(last: np.ndarray, person_mask: np.ndarray, lhip: int = LHIP, rhi
     return R.astype(np.float32), root.astype(np.float32)
 
 
-def scene_features(x: np.ndarray, lhip: int = LHIP, rhip: int = RHIP) -> np.ndarray:
-    """x (...,T,J,3) scene frame -> (...,T,3J+5): per-frame hip-centric pose ⊕ root ⊕ (cos θ, sin θ)."""
+N_GLOBAL = (
+    10  # features beyond the 3J pose: root offset (3), relative heading (2), anchor root (3), heading (2)
+)
+
+
+def scene_features(x: np.ndarray, anchor: int, lhip: int = LHIP, rhip: int = RHIP) -> np.ndarray:
+    """x (...,T,J,3) in the scene frame -> (...,T,3J+10).
+
+    Per frame: the hip-centric pose (3J), the root relative to the person's root at frame ``anchor`` (3) and
+    the heading relative to the anchor heading (cos, sin); then, constant over time, the anchor root (3) and
+    heading (cos, sin) in the scene frame. Motion is thus coded relative to the last observed frame (fine
+    resolution after standardising) while the constant channels keep where people stand and face."""
     d = x[..., rhip, :] - x[..., lhip, :]
     th = np.arctan2(d[..., 1], d[..., 0])
     R, root = norm_frame(x, lhip, rhip)  # per frame
     local = np.einsum("...ij,...kj->...ki", R, x - root[..., None, :])
+    r0, th0 = root[..., anchor : anchor + 1, :], th[..., anchor : anchor + 1]
+    T = x.shape[-3]
+    const = np.concatenate([r0, np.cos(th0)[..., None], np.sin(th0)[..., None]], -1)
+    const = np.broadcast_to(const, (*const.shape[:-2], T, 5))
+    dth = th - th0
     return np.concatenate(
-        [local.reshape(*x.shape[:-2], -1), root, np.cos(th)[..., None], np.sin(th)[..., None]], -1
+        [local.reshape(*x.shape[:-2], -1), root - r0, np.cos(dth)[..., None], np.sin(dth)[..., None], const],
+        -1,
     ).astype(np.float32)
 
 
-def features_to_poses(f: np.ndarray, n_joints: int) -> np.ndarray:
-    """Inverse of scene_features: (...,T,3J+5) -> (...,T,J,3)."""
+def features_to_poses(f: np.ndarray, n_joints: int, anchor_const: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of scene_features: (...,T,3J+10) -> (...,T,J,3). ``anchor_const`` (...,5) replaces the
+    constant channels (use the observed ones when decoding generated frames)."""
     J = n_joints
     local = f[..., : 3 * J].reshape(*f.shape[:-1], J, 3)
-    root = f[..., 3 * J : 3 * J + 3]
-    th = np.arctan2(f[..., 3 * J + 4], f[..., 3 * J + 3])
+    const = f[..., 3 * J + 5 : 3 * J + 10] if anchor_const is None else anchor_const[..., None, :]
+    r0, th0 = const[..., :3], np.arctan2(const[..., 4], const[..., 3])
+    root = f[..., 3 * J : 3 * J + 3] + r0
+    th = np.arctan2(f[..., 3 * J + 4], f[..., 3 * J + 3]) + th0
     c, s = np.cos(th), np.sin(th)
     x = c[..., None] * local[..., 0] - s[..., None] * local[..., 1]
     y = s[..., None] * local[..., 0] + c[..., None] * local[..., 1]
@@ -103,9 +122,10 @@ def _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, steps=None, eta=N
     while done < n_pred:
         R, root = scene_frame(ctx[:, -1], pms)
         xs = np.einsum("bij,btpkj->btpki", R, ctx - root[:, None, None, None])
-        f = scene_features(xs.transpose(0, 2, 1, 3, 4))  # (BS,P,n_obs,F)
+        f = scene_features(xs.transpose(0, 2, 1, 3, 4), n_obs - 1)  # (BS,P,n_obs,F)
         gen = model.sample_window(torch.from_numpy(f).to(dev), torch.from_numpy(pms).to(dev), 1, steps, eta)
-        g = features_to_poses(gen[:, 0, :, n_obs:].cpu().numpy(), J)  # (BS,P,G,J,3) scene frame
+        const = f[:, :, -1, 3 * J + 5 :]  # the observed anchor root and heading
+        g = features_to_poses(gen[:, 0, :, n_obs:].cpu().numpy(), J, const)  # (BS,P,G,J,3) scene frame
         gw = np.einsum("bji,bptkj->btpki", R, g) + root[:, None, None, None]
         out.append(gw)
         done += gw.shape[1]

@@ -35,7 +35,7 @@ from forecast.models import (
     ZeroVelocity,
 )
 from forecast.models.intention import fit_intention_labels
-from forecast.predict import LHIP, RHIP, scene_features
+from forecast.predict import LHIP, N_GLOBAL, RHIP, scene_features
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -218,7 +218,7 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
             f_dim=config.f_dim,
         )
     elif kind == "social_diffusion":
-        m = SocialDiffusion(D + 5, config.n_frames, config.channels, config.T)
+        m = SocialDiffusion(D + N_GLOBAL, config.n_frames, config.channels, config.T)
         m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
         m.n_obs_clean = config.n_obs if config.clean_obs else 0
     else:
@@ -417,7 +417,7 @@ def diffusion_batch_features(scenes: np.ndarray, person_mask: np.ndarray, n_obs:
 
     R, root = scene_frame(scenes[:, n_obs - 1], person_mask)
     xs = np.einsum("bij,btpkj->btpki", R, scenes - root[:, None, None, None])
-    return scene_features(xs.transpose(0, 2, 1, 3, 4))
+    return scene_features(xs.transpose(0, 2, 1, 3, 4), n_obs - 1)
 
 
 def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device):

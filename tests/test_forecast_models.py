@@ -35,9 +35,11 @@ def test_baselines_in_world_space():
 
 def test_scene_features_round_trip():
     x = walker(20, heading_rad=2.5, start=(0.3, -1))
-    f = scene_features(x)
-    assert f.shape == (20, 19 * 3 + 5)
+    f = scene_features(x, anchor=9)
+    assert f.shape == (20, 19 * 3 + 10)
+    assert np.abs(f[9, 57:60]).max() < 1e-6  # root offset is 0 at the anchor frame
     assert np.abs(features_to_poses(f, 19) - x).max() < 1e-5
+    assert np.abs(features_to_poses(f, 19, f[0, 62:]) - x).max() < 1e-5
 
 
 def test_gru_learns_and_checkpoint_round_trip(tmp_path):
