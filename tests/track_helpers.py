@@ -51,3 +51,42 @@ def render_kp(
             perm = rng.permutation(Pn)
             kp[t, c], sc[t, c] = kp[t, c, perm], sc[t, c, perm]
     return kp.astype(np.float32), sc.astype(np.float32)
+
+
+def render_maps(P: np.ndarray, X: np.ndarray, size_wh=(1280, 720), stride: int = 8, sigma_map: float = 1.0):
+    """OpenPose-style maps of people X (P,J,3) body19 in cameras P (C,3,4): per camera a CameraMaps with
+    Gaussian blobs at the projected coco18 joints and unit vectors along the projected PAF limbs."""
+    from keypoints.decoders import OPENPOSE_LIMBS
+    from keypoints.skeletons import CANONICAL, get_skeleton
+    from track import observation as obs
+
+    coco18 = get_skeleton("coco18")
+    limbs = obs.paf_limbs_in(CANONICAL, coco18.joint_names, OPENPOSE_LIMBS)  # (L,2) body19 indices
+    W, H = size_wh[0] // stride, size_wh[1] // stride
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+    has = np.zeros(CANONICAL.n_joints, bool)
+    has[[CANONICAL.index(n) for n in coco18.joint_names]] = True
+    to_map = np.float32([[1 / stride, 0, 0], [0, 1 / stride, 0]])
+    out = []
+    for c in range(len(P)):
+        h = np.einsum("ab,pjb->pja", P[c, :, :3], X) + P[c, :, 3]
+        uv = h[..., :2] / h[..., 2:] / stride  # (P,J,2) map px
+        heat = np.zeros((CANONICAL.n_joints, H, W), np.float32)
+        paf = np.zeros((len(limbs), 2, H, W), np.float32)
+        for p in range(len(X)):
+            for j in np.flatnonzero(has):
+                g = np.exp(-((xx - uv[p, j, 0]) ** 2 + (yy - uv[p, j, 1]) ** 2) / (2 * sigma_map**2))
+                heat[j] = np.maximum(heat[j], g)
+            for li, (a, b) in enumerate(limbs):
+                d = uv[p, b] - uv[p, a]
+                n = float(np.linalg.norm(d))
+                if n < 1e-6:
+                    continue
+                e = d / n
+                rx, ry = xx - uv[p, a, 0], yy - uv[p, a, 1]
+                along = rx * e[0] + ry * e[1]
+                across = np.abs(-rx * e[1] + ry * e[0])
+                band = (along >= -1) & (along <= n + 1) & (across <= 1.0)
+                paf[li, 0][band], paf[li, 1][band] = e[0], e[1]
+        out.append(obs.CameraMaps(heat, paf, limbs, to_map))
+    return out

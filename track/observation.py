@@ -25,6 +25,7 @@ that no camera of the pair sees contributes the same factor to every sample:
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -347,22 +348,29 @@ def associate(
 
 
 def _sample_map(maps: np.ndarray, uv_map: np.ndarray) -> np.ndarray:
-    """Bilinear lookup. maps: (Q,H,W); uv_map: (...,Q,2) in map pixels -> (...,Q); 0 outside."""
-    Q, H, W = maps.shape
+    """Bilinear lookup. maps: (Q,H,W) or (Q,G,H,W) (G channels per map, e.g. PAF x/y); uv_map: (...,Q,2) in
+    map pixels -> (...,Q) or (...,Q,G); 0 outside. One flat gather per corner for all points."""
+    maps = np.asarray(maps, np.float32)
+    Q, H, W = maps.shape[0], maps.shape[-2], maps.shape[-1]
+    G = 1 if maps.ndim == 3 else maps.shape[1]
     u, v = uv_map[..., 0], uv_map[..., 1]
-    inside = (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1) & np.isfinite(u) & np.isfinite(v)
-    u = np.clip(np.nan_to_num(u), 0, W - 1.001)
-    v = np.clip(np.nan_to_num(v), 0, H - 1.001)
-    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        inside = (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
+    u = np.clip(np.nan_to_num(u, nan=-1.0), 0, W - 1.001).astype(np.float32)
+    v = np.clip(np.nan_to_num(v, nan=-1.0), 0, H - 1.001).astype(np.float32)
+    u0, v0 = np.floor(u), np.floor(v)
     fu, fv = u - u0, v - v0
-    q = np.broadcast_to(np.arange(Q), u.shape)
-    val = (
-        maps[q, v0, u0] * (1 - fu) * (1 - fv)
-        + maps[q, v0, u0 + 1] * fu * (1 - fv)
-        + maps[q, v0 + 1, u0] * (1 - fu) * fv
-        + maps[q, v0 + 1, u0 + 1] * fu * fv
+    base = (np.arange(Q, dtype=np.int64) * (G * H * W))[None] + (
+        v0.astype(np.int64) * W + u0.astype(np.int64)
     )
-    return np.where(inside, val, 0.0)
+    flat = maps.reshape(-1)
+    w00, w01, w10, w11 = (1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv
+    outs = []
+    for g in range(G):  # loop over channels per map (1 or 2) only
+        b = base + g * H * W
+        val = flat[b] * w00 + flat[b + 1] * w01 + flat[b + W] * w10 + flat[b + W + 1] * w11
+        outs.append(np.where(inside, val, np.float32(0.0)))
+    return outs[0] if maps.ndim == 3 else np.stack(outs, -1)
 
 
 def heatmap_joint_scores(uv_px: np.ndarray, heatmaps: np.ndarray, px_to_map: float) -> np.ndarray:
@@ -381,13 +389,10 @@ def paf_limb_scores(
     b = uv_px[..., paf_limbs[:, 1], :] * px_to_map
     d = b - a
     unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-6)
-    total = 0.0
-    for u in np.linspace(0.0, 1.0, n_steps):  # loop over integration steps only
-        p = a + u * d
-        fx = _sample_map(pafs[:, 0], p)
-        fy = _sample_map(pafs[:, 1], p)
-        total = total + np.maximum(0.0, fx * unit[..., 0] + fy * unit[..., 1])
-    return total / n_steps
+    steps = np.linspace(0.0, 1.0, n_steps, dtype=np.float32).reshape((n_steps,) + (1,) * a.ndim)
+    f = _sample_map(pafs, a[None] + steps * d[None])  # (S,...,L,2): all integration steps at once
+    dot = (f * unit[None]).sum(-1)
+    return np.maximum(dot, np.float32(0.0)).mean(0)
 
 
 def heatmap_limb_scores(
@@ -405,3 +410,66 @@ def heatmap_limb_scores(
     """
     conf = heatmap_joint_scores(uv_px, heatmaps, px_to_map)
     return paf_limb_scores(uv_px, pafs, paf_limbs, px_to_map) * limb_scores(conf, limbs)
+
+
+# --- the filter's maps path: one camera's maps for one frame, scored for all samples at once -------------
+
+
+def paf_limbs_in(skeleton, map_joint_names, paf_limbs) -> np.ndarray:
+    """The PAF limbs (L,2) of a map model (indices into ``map_joint_names``) as joint indices of
+    ``skeleton``; a limb whose joint the skeleton lacks raises (every coco18 joint is in body19)."""
+    names = list(skeleton.joint_names)
+    try:
+        return np.asarray(
+            [[names.index(map_joint_names[a]), names.index(map_joint_names[b])] for a, b in paf_limbs],
+            np.int64,
+        )
+    except ValueError as e:
+        raise ValueError(
+            f"the map model's joints {list(map_joint_names)} are not all in skeleton '{skeleton.id}' ({e})"
+        ) from None
+
+
+@dataclass(frozen=True)
+class CameraMaps:
+    """A bottom-up model's output for one camera and frame (eq. 5.8 as written).
+
+    heat: (J,H,W) confidence maps already in the tracker skeleton's joint order (zeros for joints the
+    model lacks, e.g. body19's pelvis); paf: (L,2,H,W) x/y fields of the limbs ``limbs`` (L,2) (tracker
+    joint indices, same row order); img_to_map: (2,3) affine from image px to map px;
+    distort: optional function undistorted px (...,2) -> image px (...,2) (the maps are in image px,
+    the filter projects on undistorted px); None = no distortion.
+    """
+
+    heat: np.ndarray
+    paf: np.ndarray
+    limbs: np.ndarray
+    img_to_map: np.ndarray
+    distort: object = None
+
+    def __post_init__(self) -> None:
+        if self.heat.ndim != 3 or self.paf.ndim != 4 or self.paf.shape[1] != 2:
+            raise ValueError(
+                f"heat must be (J,H,W) and paf (L,2,H,W), got {self.heat.shape}, {self.paf.shape}"
+            )
+        if self.paf.shape[2:] != self.heat.shape[1:] or len(self.limbs) != len(self.paf):
+            raise ValueError(
+                f"paf {self.paf.shape} does not fit heat {self.heat.shape} / limbs {np.shape(self.limbs)}"
+            )
+
+
+def map_limb_scores(X: np.ndarray, P: np.ndarray, maps: CameraMaps, n_steps: int = 5) -> np.ndarray:
+    """phi(c,l,s) of eq. 5.8 from one camera's maps for all samples at once: the PAF line integral along the
+    projected limb times the confidence maps at its projected ends. X: (K,N,J,3); P: (3,4) on undistorted
+    px -> (K,L,N) with L = len(maps.limbs). Samples behind the camera score 0."""
+    K, N, J, _ = X.shape
+    uv, z = project(np.asarray(P, np.float32)[None], X.reshape(K * N, J, 3))
+    uv, z = uv[0], z[0]  # (K*N,J,2), (K*N,J)
+    if maps.distort is not None:
+        uv = np.asarray(maps.distort(uv), np.float32)
+    A = np.asarray(maps.img_to_map, np.float32)
+    uvm = uv @ A[:, :2].T + A[:, 2]
+    uvm = np.where((z > 0.05)[..., None], uvm, np.float32(-1e6))  # behind the camera: outside the map
+    conf = heatmap_joint_scores(uvm, maps.heat, 1.0)  # (K*N,J)
+    phi = paf_limb_scores(uvm, maps.paf, maps.limbs, 1.0, n_steps) * limb_scores(conf, maps.limbs)
+    return np.ascontiguousarray(phi.reshape(K, N, -1).transpose(0, 2, 1)).astype(np.float32)

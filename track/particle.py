@@ -31,9 +31,12 @@ frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
 No Python loop runs over samples; loops run over tracks (gathers, refinement blocks of joints),
 cameras (association) and new candidates (initialisation) only.
 
-Not implemented from the seed: the observation from confidence maps + part affinity fields inside
-the filter (eq. 5.8 is in :mod:`track.observation` and unit-tested, but the filter scores keypoints),
-the confidence-subtraction network and the learned generator g of sec. 5.2.3.
+With a bottom-up model's confidence maps + part affinity fields for a frame (``step(..., maps=)``, the
+stage reads them from the detection files), the resampling weights of eq. 5.6–5.7 use eq. 5.8 on the maps
+of those cameras (:func:`track.observation.map_limb_scores`, all samples at once); association, joint
+refinement and the output weights still use the associated keypoints.
+
+Not implemented from the seed: the confidence-subtraction network of sec. 5.2.3.
 """
 
 from __future__ import annotations
@@ -94,6 +97,8 @@ class ParticleConfig:
     min_track_s: shorter tracks are dropped from the output; trim_coast: frames after a track's last
       evidence are dropped when it ends (offline output); smooth_sigma_frames: offline NaN-aware Gaussian
       smoothing of the output in time (0 = off), as the seed's evaluation does (sec. 5.3.1, from ch. 4).
+    use_maps: the stage weighs samples with the confidence maps + PAFs (eq. 5.8) stored in the
+      detection files by a bottom-up model (keypoints ``keep_maps``); off or absent = keypoints + scores.
     seed: random seed.
     """
 
@@ -130,6 +135,7 @@ class ParticleConfig:
     min_track_s: float = 0.2
     trim_coast: bool = True
     smooth_sigma_frames: float = 2.0
+    use_maps: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -234,6 +240,7 @@ class ParticleTracker:
         self.rng = np.random.default_rng(cfg.seed)
         self.prior = prior if prior is not None else make_prior(cfg, fps, skeleton)
         self.tracks: list[_Track] = []
+        self.n_map_scores = 0  # update steps whose weights came from confidence maps + PAFs
         self.lost: list[_Lost] = []
         self.ended: list[tuple[int, int, int]] = []  # (id, born, last_seen) of ended track segments
         self.next_id = 0
@@ -280,9 +287,21 @@ class ParticleTracker:
 
     # ------------------------------------------------------------------ the step
 
-    def step(self, kp: np.ndarray, sc: np.ndarray, frame: int) -> FrameEstimate:
+    def step(self, kp: np.ndarray, sc: np.ndarray, frame: int, maps=None) -> FrameEstimate:
+        """One frame. ``maps``: optional sequence of C :class:`track.observation.CameraMaps` or None per
+        camera (a bottom-up model's confidence maps + PAFs); with any, the update weights use eq. 5.8 on the
+        maps for those cameras (keypoints for the others)."""
         cfg = self.config
         kp, sc = self._check_frame(kp, sc)
+        if maps is not None:
+            maps = list(maps)
+            if len(maps) != len(self.P):
+                raise ValueError(
+                    f"maps must have one entry (CameraMaps or None) per camera ({len(self.P)}), "
+                    f"got {len(maps)}"
+                )
+            if all(m is None for m in maps):
+                maps = None
         C, D, J = kp.shape[:3]
         K, N = len(self.tracks), cfg.n_samples
         ev_k = np.zeros(K, bool)
@@ -320,7 +339,7 @@ class ParticleTracker:
             # 3. update for the tracks with evidence
             if ev_k.any():
                 u = np.flatnonzero(ev_k)
-                Xu, idx, score_u = self._update(X[u], rays[u], asc[u])
+                Xu, idx, score_u = self._update(X[u], rays[u], asc[u], maps)
                 X[u] = Xu
                 flat = np.arange(K * N).reshape(K, N)
                 flat[u] = u[:, None] * N + idx
@@ -382,17 +401,36 @@ class ParticleTracker:
             out = _empty_estimate(J)
         return out
 
-    def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray):
+    def _phi(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, Y: np.ndarray, maps) -> np.ndarray:
+        """phi(c,l,s) (K,C,L,N) of eq. 5.8: from the confidence maps + PAFs of the cameras that have them
+        (:func:`track.observation.map_limb_scores`, the limbs are then the maps' PAF limbs for every camera),
+        else from the associated keypoints."""
+        cfg = self.config
+        limbs = self.limbs
+        if maps is not None:
+            limbs = next(m for m in maps if m is not None).limbs
+        conf = obs.joint_scores(
+            X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px, Y
+        )  # (K,C,J,N)
+        phi = obs.limb_scores(conf, limbs, 2)  # (K,C,L,N)
+        if maps is not None:
+            self.n_map_scores += 1
+            for c, m in enumerate(maps):  # loop over cameras only; all samples at once inside
+                if m is not None:
+                    if not np.array_equal(m.limbs, limbs):
+                        raise ValueError("every camera's maps must score the same limbs")
+                    phi[:, c] = obs.map_limb_scores(X, self.P[c], m)
+        return phi
+
+    def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps=None):
         """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N) and
         the refined joints' summed confidence (K,J,N) (None without refinement)."""
         cfg = self.config
         K, N = X.shape[:2]
         Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
         if cfg.resample:
-            conf = obs.joint_scores(
-                X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px, Y
-            )  # (K,C,J,N)
-            lpv = obs.log_phi_pairs(obs.limb_scores(conf, self.limbs, 2), self.pairs, cfg.eps)  # (K,V,N)
+            phi = self._phi(X, rays, asc, Y, maps)
+            lpv = obs.log_phi_pairs(phi, self.pairs, cfg.eps)  # (K,V,N)
             idx = obs.resample_pairs(lpv, self.rng)
             X = np.stack([X[k][idx[k]] for k in range(K)])  # gathers per track (a loop over tracks)
             Y = np.stack([np.take(Y[k], idx[k], axis=-1) for k in range(K)])
@@ -616,9 +654,15 @@ def smooth_time(x: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def track_sequence(
-    tracker: ParticleTracker, kp: np.ndarray, sc: np.ndarray, frames: np.ndarray | None = None, progress=None
+    tracker: ParticleTracker,
+    kp: np.ndarray,
+    sc: np.ndarray,
+    frames: np.ndarray | None = None,
+    progress=None,
+    maps_at=None,
 ) -> TrackArrays:
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
+    ``maps_at(t)``: optional, the C :class:`track.observation.CameraMaps` (or None) of frame t.
 
     Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
     (``trim_coast``) and tracks with less evidence than ``min_track_s`` are removed.
@@ -634,7 +678,7 @@ def track_sequence(
     it = range(T) if progress is None else progress(range(T))
     for t in it:
         t0 = time.perf_counter()
-        per_frame.append(tracker.step(kp[t], sc[t], t))
+        per_frame.append(tracker.step(kp[t], sc[t], t, None if maps_at is None else maps_at(t)))
         times[t] = time.perf_counter() - t0
     ids = sorted({int(i) for e in per_frame for i in e.track_id})
     col = {tid: k for k, tid in enumerate(ids)}
