@@ -326,16 +326,10 @@ def stereo(shared: Path, out: dict) -> None:
     out["stereo"] = res
 
 
-def synthetic_ring(out: dict, n_frames: int) -> None:
-    from calibrate.synthetic_boards import board_trajectory, ring_rig, views_near_camera, write_recording
+def _rendered(out: dict, key: str, title: str, board: Board, rig: CameraRig, T: np.ndarray, rng) -> None:
+    """Render the board poses T into the rig, calibrate from the images, compare with the truth."""
+    from calibrate.synthetic_boards import write_recording
 
-    rng = np.random.default_rng(0)
-    board = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
-    rig = ring_rig(12, 2.0, size_wh=(960, 720), focal_px=800.0, rng=rng)
-    T = np.concatenate(
-        [board_trajectory(board, n_frames, rng, spread_m=0.6)]
-        + [views_near_camera(board, c, 12, rng, tilt_deg=60) for c in rig]
-    )
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         write_recording(board, rig, T, Path(tmp) / "rec", rng, noise=2.0, blur_sigma_px=0.7)
@@ -343,19 +337,20 @@ def synthetic_ring(out: dict, n_frames: int) -> None:
         res = {}
         for model, refine in (("pinhole4", "all"), ("pinhole", "none")):
             t0 = time.perf_counter()
-            r = calibrate_recording(
+            r = calibrate_recording(  # same output folder: the detections are reused
                 Path(tmp) / "rec",
                 board,
-                Path(tmp) / f"out_{model}_{refine}" / "rig.toml",
+                Path(tmp) / "out" / f"rig_{model}_{refine}.toml",
                 CalibrationConfig(model=model, refine_intrinsics=refine),
             )
             e = rig_errors(r.rig, rig)
             e["time_s"] = time.perf_counter() - t0
             e["ba_rms_px"] = r.extrinsics.final_rms_px
+            e["links"] = r.extrinsics.links.tolist()
             res[f"{model}/{refine}"] = e
+    w, h = rig[0].size_wh
     print(
-        f"== synthetic 12-camera ring, rendered ({len(T)} board poses, 960x720, blur 0.7 px, noise 2 gray "
-        "levels; "
+        f"== {title}, rendered ({len(T)} board poses, {w}x{h}, blur 0.7 px, noise 2 gray levels; "
         f"render {t_render:.0f} s)"
     )
     for k, e in res.items():
@@ -365,7 +360,50 @@ def synthetic_ring(out: dict, n_frames: int) -> None:
             f"centre max {e['center_err_mm_max']:.2f} mm  (BA RMS {e['ba_rms_px']:.3f} px, "
             f"{e['time_s']:.0f} s)"
         )
-    out["synthetic_ring_rendered"] = res
+    out[key] = res
+
+
+def synthetic_ring(out: dict, n_frames: int) -> None:
+    from calibrate.synthetic_boards import board_trajectory, ring_rig, views_near_camera
+
+    rng = np.random.default_rng(0)
+    board = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
+    rig = ring_rig(12, 2.0, size_wh=(960, 720), focal_px=800.0, rng=rng)
+    T = np.concatenate(
+        [board_trajectory(board, n_frames, rng, spread_m=0.6)]
+        + [views_near_camera(board, c, 12, rng, tilt_deg=60) for c in rig]
+    )
+    _rendered(out, "synthetic_ring_rendered", "synthetic 12-camera ring", board, rig, T, rng)
+
+
+def synthetic_weak_link(out: dict) -> None:
+    """4 cameras; c3 sees the board together with the others in 3 frames only (plus its own close-ups)."""
+    from calibrate.camera import Camera
+    from calibrate.synthetic_boards import board_trajectory, look_at, views_near_camera
+
+    rng = np.random.default_rng(1)
+    board = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
+    cams = []
+    places = [
+        ([2.0, -1.5, 1.6], [0, 0, 1]),
+        ([2.0, 1.5, 1.6], [0, 0, 1]),
+        ([0.0, -2.2, 1.8], [0, 0, 1]),
+        ([-2.2, 2.2, 1.4], [-0.5, 1.2, 1.0]),
+    ]
+    for i, (pos, tgt) in enumerate(places):
+        R, t = look_at(pos, tgt)
+        f = 700 * (1 + 0.03 * i)
+        K = np.array([[f, 0, 480 + 3 * i], [0, f, 360 - 2 * i], [0, 0, 1]])
+        cams.append(Camera(f"c{i}", (960, 720), K, np.array([-0.1, 0.04, 0.0, 0.0]), "pinhole", R, t))
+    rig = CameraRig(tuple(cams))
+    shared = board_trajectory(board, 30, rng, spread_m=0.4, yaw_range=(-0.6, 0.6))
+    link = board_trajectory(
+        board, 4, rng, center_m=(0.0, 1.0, 1.1), spread_m=0.2, tilt_deg=10, yaw_range=(1.3, 1.5)
+    )
+    T = np.concatenate([shared, link] + [views_near_camera(board, c, 20, rng, tilt_deg=60) for c in rig])
+    _rendered(
+        out, "synthetic_weak_link_rendered", "synthetic 4 cameras, c3 weakly linked", board, rig, T, rng
+    )
 
 
 def main() -> None:
@@ -385,6 +423,7 @@ def main() -> None:
     stereo(shared, out)
     if not args.skip_synthetic:
         synthetic_ring(out, args.ring_frames)
+        synthetic_weak_link(out)
 
     def r4(x):
         if isinstance(x, float):

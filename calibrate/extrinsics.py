@@ -56,6 +56,7 @@ class ExtrinsicsConfig:
     outlier_px: float = 4.0  # observations above max(outlier_px, 5 x median) are dropped, BA rerun
     max_iterations: int = 100
     world: str = ""  # "" = first camera; "camera:NAME"; "board:FRAME" (board on the floor)
+    single_view_frames: int = 40  # per camera, frames only it saw, added when refining intrinsics
     function_tolerance: float = 1e-6  # Ceres: stop when the cost changes by less than this fraction
     linear_solver: str = "sparse_normal_cholesky"  # or "auto" (COLMAP's choice), "dense_normal_cholesky", ...
 
@@ -502,6 +503,19 @@ def calibrate_extrinsics(
     ref, cam_from_ref = initial_poses(names, links, rel, [len(p) for p in poses])
     tick("pose graph")
     frames = _choose_frames(poses, cfg.max_frames)
+    if cfg.refine_intrinsics != "none":
+        # refining intrinsics: the views each camera has alone (its intrinsic views) constrain its lens too;
+        # without them a weakly linked camera's lens would rest on its few shared frames only
+        count: dict[int, int] = {}
+        for p in poses:
+            for f in p:
+                count[f] = count.get(f, 0) + 1
+        extra = []
+        for p in poses:
+            solo = sorted(f for f in p if count[f] == 1)
+            k = np.unique(np.linspace(0, len(solo) - 1, min(cfg.single_view_frames, len(solo))).astype(int))
+            extra += [solo[i] for i in k] if solo else []
+        frames = sorted(set(frames) | set(extra))
     ref_from_board = {}
     obs: list[_Obs] = []
     for f in frames:
