@@ -43,6 +43,7 @@ class PipelineConfig:
     # vtest.avi: a static sign the detector takes for a person scores 0.12-0.18, the pedestrians >= 0.4
     pose_presence: float = 0.25  # drop people whose pose score (BlazePose: person present; else mean) below
     refine_passes: int = 1  # top-down: pose passes on the box the previous pass's keypoints span
+    min_box_iou: float = 0.3  # refine passes: keep the previous pose where the new one left its box (IoU)
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
@@ -181,6 +182,23 @@ def upright_boxes(
         boxes[i] = (ctr[0] - half[0], ctr[1] - half[1], ctr[0] + half[0], ctr[1] + half[1])
         angles[i] = a
     return boxes, angles
+
+
+def _keypoint_box_iou(xy: np.ndarray, sc: np.ndarray, det: np.ndarray, min_score: float = 0.3) -> np.ndarray:
+    """IoU (M,) of the box of each person's confident keypoints (M,J,2) with its box det (M,>=4)."""
+    out = np.zeros(len(det))
+    for i in range(len(det)):
+        ok = (sc[i] >= min_score) & np.isfinite(xy[i, :, 0])
+        if ok.sum() < 2:
+            continue
+        (x0, y0), (x1, y1) = xy[i, ok].min(0), xy[i, ok].max(0)
+        b = det[i]
+        iw = max(0.0, min(x1, b[2]) - max(x0, b[0]))
+        ih = max(0.0, min(y1, b[3]) - max(y0, b[1]))
+        inter = iw * ih
+        union = (x1 - x0) * (y1 - y0) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+        out[i] = inter / max(union, 1e-9)
+    return out
 
 
 # ----------------------------------------------------------------------------- the pipeline
@@ -414,9 +432,14 @@ class KeypointPipeline:
                 else:
                     ba.append(upright_boxes(xy, sc, self.src_skeleton, b))
             self._tick("pose_post", t)
-            res = self.pose_on_boxes(
+            new = self.pose_on_boxes(
                 images, [b for b, _ in ba], [a if self.config.rotate else 0 * a for _, a in ba]
             )
+            # a refined crop that slid off its detector box onto someone else (an occluded person's crop
+            # centred on the person in front) keeps the previous pass's pose instead
+            t = time.perf_counter()
+            res = [self._keep_on_box(old, nw, b) for old, nw, b in zip(res, new, boxes, strict=True)]
+            self._tick("pose_post", t)
         out = []
         t = time.perf_counter()
         for (xy, sc, person, _), b in zip(res, boxes, strict=True):
@@ -424,6 +447,22 @@ class KeypointPipeline:
             out.append(self._finish(b[keep], xy[keep], sc[keep]))
         self._tick("pose_post", t)
         return out
+
+    def _keep_on_box(self, old, new, det: np.ndarray):
+        """Per person, the new pass's result unless its confident keypoints' box overlaps the detector box
+        by less than ``config.min_box_iou`` (IoU) while the old pass's did not."""
+        if not len(det) or self.config.min_box_iou <= 0:
+            return new
+        iou_new = _keypoint_box_iou(new[0], new[1], det)
+        iou_old = _keypoint_box_iou(old[0], old[1], det)
+        back = (iou_new < self.config.min_box_iou) & (iou_old >= iou_new)
+        if not back.any():
+            return new
+        out = [
+            np.where(back[(slice(None),) + (None,) * (a.ndim - 1)], o, a)
+            for o, a in zip(old[:3], new[:3], strict=True)
+        ]
+        return (*out, new[3])
 
     def _finish(self, boxes, xy, sc) -> FrameResult:
         if self.skeleton != self.src_skeleton:
