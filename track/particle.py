@@ -62,6 +62,7 @@ from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
 log = logging.getLogger(__name__)
 
 MOTIONS = ("gru", "constant_velocity", "zero_velocity")
+BIRTHS = ("gaussian", "learned")
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,10 @@ class ParticleConfig:
       smoothing of the output in time (0 = off), as the seed's evaluation does (sec. 5.3.1, from ch. 4).
     use_maps: the stage weighs samples with the confidence maps + PAFs (eq. 5.8) stored in the
       detection files by a bottom-up model (keypoints ``keep_maps``); off or absent = keypoints + scores.
+    birth: how a new track's samples are drawn (sec. 5.2.3): 'gaussian' = Gaussian noise around the
+      candidate, missing joints from the median mocap pose; 'learned' = the generator g of
+      :mod:`track.birth` (dropout network that fills missing joints, run N times with dropout on);
+      birth_checkpoint: its checkpoint ('' = the shipped one).
     seed: random seed.
     """
 
@@ -136,11 +141,15 @@ class ParticleConfig:
     trim_coast: bool = True
     smooth_sigma_frames: float = 2.0
     use_maps: bool = True
+    birth: str = "gaussian"
+    birth_checkpoint: str = ""
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"ParticleConfig.motion must be one of {MOTIONS}, got {self.motion!r}.")
+        if self.birth not in BIRTHS:
+            raise ValueError(f"ParticleConfig.birth must be one of {BIRTHS}, got {self.birth!r}.")
         if self.n_samples < 1:
             raise ValueError(f"ParticleConfig.n_samples must be >= 1, got {self.n_samples}.")
         if self.refine_candidates < 1:
@@ -262,6 +271,13 @@ class ParticleTracker:
                 "a single camera cannot start tracks (sec. 5.2.3 triangulates); only existing tracks run"
             )
         self._tmpl = TEMPLATE_BODY19_M if skeleton.id == "body19" else None
+        self.birth = None
+        if cfg.birth == "learned":  # imports torch (a learned module)
+            from track.birth import BirthGenerator
+
+            self.birth = BirthGenerator.load(
+                cfg.birth_checkpoint, skeleton, sigma_obs_m=cfg.init_sigma_m, sigma_fill_m=cfg.init_sigma_m
+            )
 
     # ------------------------------------------------------------------ helpers
 
@@ -483,15 +499,24 @@ class ParticleTracker:
             if n_good[m] < cfg.init_min_joints:
                 continue
             cand = np.where(good[m][:, None], poses.xyz_m[m], np.nan).astype(np.float32)
-            filled, missing = self._fill(cand)
-            if filled is None:
-                continue
+            if (
+                self.birth is not None
+            ):  # the learned generator g (sec. 5.2.3): sample 0 = its dropout-free fill
+                samples = self.birth.sample(cand, cfg.n_samples, self.rng)
+                if samples is None:
+                    continue
+                filled, missing = samples[0], ~np.isfinite(cand).all(-1)
+            else:
+                filled, missing = self._fill(cand)
+                if filled is None:
+                    continue
             pel = self._pelvis(filled)
             if any(
                 np.linalg.norm(pel[:2] - self._pelvis(t.mean)[:2]) < cfg.init_exclusion_m for t in live + born
             ):
                 continue
-            samples = self._samples(filled, missing)
+            if self.birth is None:
+                samples = self._samples(filled, missing)
             bones = np.where(np.isfinite(self._bones(cand)), self._bones(filled), np.nan)
             # a coasting track of this person? re-anchor it (keeps the identity)
             t = self._match_coasting(coasting, pel, bones, frame)

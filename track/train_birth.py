@@ -1,0 +1,152 @@
+"""Train the birth generator g of sec. 5.2.3 (:mod:`track.birth`) on the CMU mocap (``shared/data/motion``).
+
+    python -m track.train_birth --out track/checkpoints/birth_mlp.pt
+
+Poses of every clip (body19, metres, z up; :func:`track.train_motion.load_motion` at ``--fps``, mirrored
+left/right) are normalised (eq. 5.2–5.5); each training pose loses a random subset of joints (each with
+a probability drawn uniformly from [0, ``--max-drop``]), the observed ones get ``--noise-m`` Gaussian
+noise, and the network regresses the full clean pose (Huber loss, Adam, dropout on). Clips whose name ends
+with a digit in ``--val-suffix`` are held out; the held-out error on the missing joints of the network
+and of the median-template fill the tracker used before is printed and stored in the checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from keypoints.skeletons import CANONICAL
+from track.birth import BirthNet, save_checkpoint
+from track.normalize import hip_frame, normalize
+from track.priors import TEMPLATE_BODY19_M
+from track.train_motion import load_motion, mirror
+
+log = logging.getLogger(__name__)
+
+
+def normalised_poses(clips: list[np.ndarray]) -> np.ndarray:
+    x = np.concatenate(clips).astype(np.float32)
+    x = np.concatenate([x, mirror(x)])
+    origin, theta = hip_frame(x)
+    return normalize(x, origin, theta).astype(np.float32)
+
+
+def make_batch(x: np.ndarray, max_drop: float, noise_m: float, rng: np.random.Generator):
+    B, J, _ = x.shape
+    p = rng.uniform(0, max_drop, (B, 1))
+    mask = (rng.random((B, J)) >= p).astype(np.float32)
+    noisy = x + rng.normal(0, noise_m, x.shape).astype(np.float32)
+    return torch.from_numpy(noisy), torch.from_numpy(mask), torch.from_numpy(x)
+
+
+def evaluate(model: BirthNet, x: np.ndarray, max_drop: float) -> dict[str, float]:
+    """Held-out mean error (m) on the missing joints: network (dropout off) vs the median template."""
+    rng = np.random.default_rng(1)
+    xin, mask, target = make_batch(x, max_drop, 0.0, rng)
+    with torch.no_grad():
+        pred = model(xin, mask, mc=False)
+    miss = mask.numpy() == 0
+    e_net = np.linalg.norm((pred - target).numpy(), axis=-1)[miss]
+    e_tmpl = np.linalg.norm(TEMPLATE_BODY19_M[None] - x, axis=-1)[miss]
+    return {"missing_net_m": float(e_net.mean()), "missing_template_m": float(e_tmpl.mean())}
+
+
+def train(
+    fps: float = 25.0,
+    hidden: int = 128,
+    dropout: float = 0.2,
+    steps: int = 4000,
+    batch: int = 256,
+    lr: float = 2e-3,
+    max_drop: float = 0.6,
+    noise_m: float = 0.01,
+    seed: int = 0,
+    val_suffix: str = "1",
+    mocap: str | None = None,
+    progress: bool = False,
+) -> tuple[BirthNet, dict]:
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    clips, names = load_motion(fps, mocap)
+    is_val = [n[-1] in val_suffix and len(clips) > 1 for n in names]
+    x_tr = normalised_poses([c for c, v in zip(clips, is_val, strict=True) if not v])
+    x_va = normalised_poses([c for c, v in zip(clips, is_val, strict=True) if v] or clips[-1:])
+    model = BirthNet(CANONICAL.n_joints, hidden, dropout)
+    opt = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=1e-8)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    loss_fn = torch.nn.HuberLoss(delta=0.02)
+    t0 = time.perf_counter()
+    it = range(steps)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="train birth generator")
+    model.train()
+    for step in it:
+        xin, mask, target = make_batch(x_tr[rng.integers(0, len(x_tr), batch)], max_drop, noise_m, rng)
+        loss = loss_fn(model(xin, mask), target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step % 1000 == 0:
+            log.info("step %d loss %.6f", step, float(loss))
+    model.eval()
+    metrics = evaluate(model, x_va, max_drop)
+    info = {
+        "fps": fps,
+        "hidden": hidden,
+        "dropout": dropout,
+        "steps": steps,
+        "batch": batch,
+        "lr": lr,
+        "max_drop": max_drop,
+        "noise_m": noise_m,
+        "seed": seed,
+        "n_train_poses": int(len(x_tr)),
+        "n_val_poses": int(len(x_va)),
+        "train_s": time.perf_counter() - t0,
+        **{f"val_{k}": v for k, v in metrics.items()},
+    }
+    return model, info
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="track/checkpoints/birth_mlp.pt")
+    ap.add_argument("--fps", type=float, default=25.0)
+    ap.add_argument("--hidden", type=int, default=128)
+    ap.add_argument("--dropout", type=float, default=0.2)
+    ap.add_argument("--steps", type=int, default=4000)
+    ap.add_argument("--max-drop", type=float, default=0.6)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--mocap", default=None, help="mocap folder (default: $ROOMCAP_SHARED/data/motion)")
+    ap.add_argument("--threads", type=int, default=1)
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO)
+    torch.set_num_threads(a.threads)
+    model, info = train(
+        fps=a.fps,
+        hidden=a.hidden,
+        dropout=a.dropout,
+        steps=a.steps,
+        max_drop=a.max_drop,
+        seed=a.seed,
+        mocap=a.mocap,
+        progress=True,
+    )
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(a.out, model, CANONICAL, info)
+    print(
+        f"wrote {a.out}: "
+        + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in info.items())
+    )
+
+
+if __name__ == "__main__":
+    main()
