@@ -1,6 +1,9 @@
 """Train the birth generator g of sec. 5.2.3 (:mod:`track.birth`) on the CMU mocap (``shared/data/motion``).
 
-    python -m track.train_birth --out track/checkpoints/birth_mlp.pt
+    python -m track.train_birth --out track/checkpoints/birth_mlp.pt    # ~5 min on one core
+
+The shipped checkpoint (256 units, dropout 0.2, 15000 steps): held-out error on the missing joints
+6.6 cm vs 10.7 cm for the median-template fill.
 
 Poses of every clip (body19, metres, z up; :func:`track.train_motion.load_motion` at ``--fps``, mirrored
 left/right) are normalised (eq. 5.2–5.5); each training pose loses a random subset of joints (each with
@@ -58,9 +61,9 @@ def evaluate(model: BirthNet, x: np.ndarray, max_drop: float) -> dict[str, float
 
 def train(
     fps: float = 25.0,
-    hidden: int = 128,
+    hidden: int = 256,
     dropout: float = 0.2,
-    steps: int = 4000,
+    steps: int = 15000,
     batch: int = 256,
     lr: float = 2e-3,
     max_drop: float = 0.6,
@@ -120,9 +123,9 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="track/checkpoints/birth_mlp.pt")
     ap.add_argument("--fps", type=float, default=25.0)
-    ap.add_argument("--hidden", type=int, default=128)
+    ap.add_argument("--hidden", type=int, default=256)
     ap.add_argument("--dropout", type=float, default=0.2)
-    ap.add_argument("--steps", type=int, default=4000)
+    ap.add_argument("--steps", type=int, default=15000)
     ap.add_argument("--max-drop", type=float, default=0.6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--mocap", default=None, help="mocap folder (default: $ROOMCAP_SHARED/data/motion)")
