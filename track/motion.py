@@ -113,9 +113,6 @@ class GRUPrior:
         self.model_fps, self.fps, self.skeleton = float(model_fps), float(fps), skeleton
         self.dropout = model.dropout if dropout is None else float(dropout)
         self.sigma_m = float(sigma_m)
-        from scipy.special import ndtri
-
-        self._threshold = float(ndtri(self.dropout)) if 0 < self.dropout < 1 else -np.inf
 
     @classmethod
     def load(
@@ -128,24 +125,40 @@ class GRUPrior:
         x = check_batch(x, self.skeleton.n_joints)
         return {"prev": x.copy(), "h": np.zeros((len(x), self.model.hidden), np.float32)}
 
+    def _mask(self, rng: np.random.Generator, B: int, H: int) -> torch.Tensor:
+        """MC-dropout mask (B,H), entries 0 or 1/(1-p) (keep with probability 1-p): a contiguous slice at a
+        random offset of a fixed Bernoulli block (no per-step draws or conversions, as ``normal_noise``)."""
+        n = B * H
+        bank = getattr(self, "_mask_bank", None)
+        if bank is None or len(bank) < n:
+            size = max(1 << 21, 2 * n)
+            keep = np.random.default_rng(54321).random(size) >= self.dropout
+            bank = self._mask_bank = keep.astype(np.float32) * np.float32(1.0 / (1.0 - self.dropout))
+        start = int(rng.integers(0, len(bank) - n + 1))
+        return torch.from_numpy(bank[start : start + n].reshape(B, H))
+
     def predict(self, x, state, rng):
         x = check_batch(x, self.skeleton.n_joints)
         B, H = len(x), self.model.hidden
         origin, theta = hip_frame(x, self.skeleton)
-        inp = np.empty((B, 2, x.shape[1], 3), np.float32)  # [normalised pose, normalised displacement]
-        inp[:, 0] = normalize(x, origin, theta)
-        inp[:, 1] = rotate_vectors(x - state["prev"], theta)
-        inp[:, 1] *= np.float32(self.fps / self.model_fps)
+        # [pose - origin, last displacement] rotated into the hip frame in one pass: the normalised pose
+        # (eq. 5.2) and the normalised displacement
+        inp = np.empty((B, 2, x.shape[1], 3), np.float32)
+        np.subtract(x, origin[:, None, :].astype(np.float32, copy=False), out=inp[:, 0])
+        np.subtract(x, state["prev"], out=inp[:, 1])
+        if self.fps != self.model_fps:
+            inp[:, 1] *= np.float32(self.fps / self.model_fps)
+        inp = rotate_vectors(inp, theta[:, None])
         with torch.no_grad():
             h = self.model.cell(torch.from_numpy(inp.reshape(B, -1)), torch.from_numpy(state["h"]))
             hd = h
-            if self.dropout > 0:  # MC dropout: keep with probability 1-p (a normal above its p-quantile)
-                keep = 1.0 - self.dropout
-                m = normal_noise(rng, (B, H), 1.0) > self._threshold
-                hd = h * torch.from_numpy(m.astype(np.float32) * np.float32(1 / keep))
+            if 0 < self.dropout < 1:  # MC dropout kept on at inference
+                hd = h * self._mask(rng, B, H)
             delta = self.model.out(hd).numpy().reshape(B, -1, 3)
-        delta *= np.float32(self.model_fps / self.fps)
-        new = x + unrotate_vectors(delta, theta)
+        if self.fps != self.model_fps:
+            delta *= np.float32(self.model_fps / self.fps)
+        new = unrotate_vectors(delta, theta)
+        new += x
         if self.sigma_m > 0:
             new += normal_noise(rng, new.shape, self.sigma_m)
         return new, {"prev": x, "h": h.numpy()}

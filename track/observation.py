@@ -139,10 +139,23 @@ def limb_scores(conf: np.ndarray, limbs: np.ndarray, axis: int = -1) -> np.ndarr
 
 def log_phi_pairs(phi: np.ndarray, pairs: np.ndarray, eps: float) -> np.ndarray:
     """Eq. 5.7 in log space per camera pair. phi: (K,C,L,N) -> log Phi (K,V,N)."""
-    p2 = phi**2
-    distinct = (pairs[:, 0] != pairs[:, 1]).astype(np.float32)[None, :, None, None]
-    s = p2[:, pairs[:, 0]] + distinct * p2[:, pairs[:, 1]]
-    return np.log(np.sqrt(s) + np.float32(eps)).sum(2)
+    p2 = phi * phi
+    distinct = pairs[:, 0] != pairs[:, 1]
+    s = p2[:, pairs[:, 0]]
+    if distinct.all():
+        s += p2[:, pairs[:, 1]]
+    else:
+        s += distinct.astype(np.float32)[None, :, None, None] * p2[:, pairs[:, 1]]
+    np.sqrt(s, out=s)
+    s += np.float32(eps)
+    # sum of logs = log of products over groups of g limbs (each factor >= eps: eps^g stays above float32's
+    # smallest normal 1e-38; one log per group instead of per limb)
+    L = s.shape[2]
+    g = int(max(1, min(8, 35 // max(1.0, -np.log10(eps)))))
+    out = np.zeros(s.shape[:2] + s.shape[3:], np.float32)
+    for l0 in range(0, L, g):  # loop over limb groups only
+        out += np.log(s[:, :, l0 : l0 + g].prod(2))
+    return out
 
 
 def log_phi_all(phi: np.ndarray, eps: float) -> np.ndarray:
@@ -253,39 +266,62 @@ def refine_joints(
     if M <= 1 or K == 0:
         raise ValueError(f"refine_joints needs at least 2 candidates and one track, got M={M}, K={K}")
     C = len(centers)
-    e = normal_noise(rng, (K, J, 3, N, M), 1.0) * refine_scales(M, sigma_refine_m)
-    G = min(int(n_guided), M - 1)
+    R = M - 1  # candidates besides the current position (candidate 0, offset 0: scored from Y directly)
+    # candidate offsets (K,J,3,R,N): samples innermost, so every broadcast below runs over contiguous N
+    e = normal_noise(rng, (K, J, 3, R, N), 1.0)
+    e *= refine_scales(M, sigma_refine_m)[1:, None]
+    G = min(int(n_guided), R)
     if G > 0:
-        e[..., M - G :] *= np.float32(0.25)  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
-        xt = np.ascontiguousarray(X.transpose(0, 2, 3, 1))
-        e[..., M - G :] += (guided_targets(X, centers, basis, sc) - xt)[..., None]
+        e[:, :, :, R - G :] *= np.float32(
+            0.25
+        )  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
+        xt = X.transpose(0, 2, 3, 1)
+        e[:, :, :, R - G :] += (guided_targets(X, centers, basis, sc) - xt)[:, :, :, None]
     if Y is None:
         Y = ray_coords(X, centers, basis)  # (K,J,3C,N)
     along = Y[:, :, 2 * C :].mean(-1, keepdims=True)  # (K,J,C,1): one tolerance per track, joint, camera
     scale = np.sqrt(0.5 / _variance(along, focal_px, sigma_m, sigma_px))  # folds 1/(2 s^2) into the frame
     scale2 = np.concatenate([scale, scale], 2)  # (K,J,2C,1)
-    s = np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))[..., None]  # (K,J,C,1,1)
+    s = np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))  # (K,J,C,1)
     Bs = basis[:, :, : 2 * C] * scale2
-    Ys = (Y[:, :, : 2 * C] * scale2)[..., None]
-    out = X.copy()
-    score = np.zeros((K, J, N), np.float32)
-    jb = J if N * M <= 1024 else max(1, J // 4)  # blocks of joints keep the candidates in cache
-    for k in range(K):  # loop over tracks and joint blocks only
-        for j0 in range(0, J, jb):
-            j1 = min(J, j0 + jb)
-            ek = e[k, j0:j1]
-            D = np.matmul(Bs[k, j0:j1], ek.reshape(j1 - j0, 3, N * M)).reshape(j1 - j0, 2 * C, N, M)
-            D += Ys[k, j0:j1]
-            D *= D
-            q = D[:, :C]
-            q += D[:, C:]  # q = d^2 / (2 s^2) per camera, (j,C,N,M)
-            q += np.float32(1.0)
-            np.divide(s[k, j0:j1], q, out=q)  # s / (1 + d^2 / 2 s^2): the kernel of joint_scores
-            tot = q.sum(1)  # (j,N,M)
-            best = tot.argmax(-1)  # (j,N)
-            score[k, j0:j1] = np.take_along_axis(tot, best[..., None], 2)[..., 0]
-            e_best = np.take_along_axis(ek, best[:, None, :, None], 3)[..., 0]  # (j,3,N)
-            out[k, :, j0:j1] += e_best.transpose(2, 0, 1)
+    Ys = Y[:, :, : 2 * C] * scale2  # (K,J,2C,N)
+    q0 = Ys * Ys
+    q0 = q0[:, :, :C] + q0[:, :, C:]
+    q0 += np.float32(1.0)
+    np.divide(s, q0, out=q0)
+    score = q0.sum(2)  # (K,J,N): the current positions' confidence summed over cameras
+    # all tracks and joints in one batch (KJ rows); chunks of rows keep the candidates in cache
+    KJ = K * J
+    e2 = e.reshape(KJ, 3, R * N)
+    Bs, Ys, s = Bs.reshape(KJ, 2 * C, 3), Ys.reshape(KJ, 2 * C, 1, N), s.reshape(KJ, C, 1, 1)
+    sc0 = score.reshape(KJ, N)
+    delta = np.empty((KJ, 3, N), np.float32)
+    rb = max(1, 16384 // (N * R))
+    for r0 in range(0, KJ, rb):  # loop over row chunks only
+        r1 = min(KJ, r0 + rb)
+        D = np.matmul(Bs[r0:r1], e2[r0:r1]).reshape(r1 - r0, 2 * C, R, N)
+        D += Ys[r0:r1]
+        D *= D
+        q = D[:, :C]
+        q += D[:, C:]  # q = d^2 / (2 s^2) per camera, (rows,C,R,N)
+        q += np.float32(1.0)
+        np.divide(s[r0:r1], q, out=q)  # s / (1 + d^2 / 2 s^2): the kernel of joint_scores
+        tot = q.sum(1)  # (rows,R,N)
+        ek = e2[r0:r1].reshape(r1 - r0, 3, R, N)
+        if R == 1:
+            tbest, e_best = tot[:, 0], ek[:, :, 0]
+        elif R == 2:
+            pick = tot[:, 1] > tot[:, 0]
+            tbest = np.maximum(tot[:, 0], tot[:, 1])
+            e_best = np.where(pick[:, None], ek[:, :, 1], ek[:, :, 0])
+        else:
+            best = tot.argmax(1)  # (rows,N)
+            tbest = np.take_along_axis(tot, best[:, None], 1)[:, 0]
+            e_best = np.take_along_axis(ek, best[:, None, None], 2)[:, :, 0]
+        better = tbest > sc0[r0:r1]  # the current position wins ties
+        np.maximum(tbest, sc0[r0:r1], out=sc0[r0:r1])
+        np.multiply(e_best, better[:, None, :], out=delta[r0:r1])
+    out = X + delta.reshape(K, J, 3, N).transpose(0, 3, 1, 2)
     return out, score
 
 
