@@ -53,9 +53,12 @@ def render_kp(
     return kp.astype(np.float32), sc.astype(np.float32)
 
 
-def render_maps(P: np.ndarray, X: np.ndarray, size_wh=(1280, 720), stride: int = 8, sigma_map: float = 1.0):
+def render_maps(
+    P: np.ndarray, X: np.ndarray, size_wh=(1280, 720), stride: int = 8, sigma_map: float = 1.0, uv_px=None
+):
     """OpenPose-style maps of people X (P,J,3) body19 in cameras P (C,3,4): per camera a CameraMaps with
-    Gaussian blobs at the projected coco18 joints and unit vectors along the projected PAF limbs."""
+    Gaussian blobs at the projected coco18 joints and unit vectors along the projected PAF limbs.
+    ``uv_px`` (C,P,J,2): the image points to draw instead of the pinhole projections (lens distortion)."""
     from keypoints.decoders import OPENPOSE_LIMBS
     from keypoints.skeletons import CANONICAL, get_skeleton
     from track import observation as obs
@@ -69,8 +72,11 @@ def render_maps(P: np.ndarray, X: np.ndarray, size_wh=(1280, 720), stride: int =
     to_map = np.float32([[1 / stride, 0, 0], [0, 1 / stride, 0]])
     out = []
     for c in range(len(P)):
-        h = np.einsum("ab,pjb->pja", P[c, :, :3], X) + P[c, :, 3]
-        uv = h[..., :2] / h[..., 2:] / stride  # (P,J,2) map px
+        if uv_px is None:
+            h = np.einsum("ab,pjb->pja", P[c, :, :3], X) + P[c, :, 3]
+            uv = h[..., :2] / h[..., 2:] / stride  # (P,J,2) map px
+        else:
+            uv = np.asarray(uv_px[c]) / stride
         heat = np.zeros((CANONICAL.n_joints, H, W), np.float32)
         paf = np.zeros((len(limbs), 2, H, W), np.float32)
         for p in range(len(X)):
