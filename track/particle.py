@@ -25,8 +25,9 @@ frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
    triangulated with the chapter-4 engine (:class:`triangulate.reconstruct.FrameReconstructor`);
    each candidate (best first) either re-anchors a coasting track, revives a lost identity
    (position, velocity, body proportions agree) or starts a new track. Samples are drawn
-   around the candidate; joints it lacks are filled from a mocap template (a stand-in for the
-   seed's dropout network g) with a larger spread.
+   around the candidate; joints it lacks are filled from a mocap template with a larger spread
+   (``birth='gaussian'``, the default) or all N samples come from the seed's dropout network g
+   (``birth='learned'``, :mod:`track.birth`: run N times with dropout on, it fills the missing joints).
 
 No Python loop runs over samples; loops run over tracks (gathers, refinement blocks of joints),
 cameras (association) and new candidates (initialisation) only.
