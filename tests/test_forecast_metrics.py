@@ -101,7 +101,9 @@ def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
     from forecast import evaluate as E
     from forecast.models import ConstantVelocity, ZeroVelocity
 
-    clips = [D.Clip(f"w{i}", walker(150, phase=i, speed_mps=1.0 + 0.1 * i, heading_rad=i), 25.0) for i in range(4)]
+    clips = [
+        D.Clip(f"w{i}", walker(150, phase=i, speed_mps=1.0 + 0.1 * i, heading_rad=i), 25.0) for i in range(4)
+    ]
     models = {"zero_velocity": ZeroVelocity(), "constant_velocity": ConstantVelocity(), "real": E.Real()}
     res = E.evaluate_single(models, clips, n_obs=25, n_pred=50, n_samples=2, stride=25, max_windows=8)
     r = res["models"]
