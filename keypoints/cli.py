@@ -90,7 +90,20 @@ def _run(args) -> int:
         videos = _parse_videos(args.inputs)
         if args.cameras:
             videos = {c: p for c, p in videos.items() if c in args.cameras}
-        rep = run_videos(videos, args.out, cfg, progress=True, max_frames=args.max_frames)
+        rig = None
+        if (
+            args.calib
+        ):  # any format calibrate reads (rig.toml, Pose2Sim/aniposelib TOML, Qualisys .qca.txt, ...)
+            from calibrate.formats import import_rig
+
+            rig = import_rig(args.calib)
+            missing = [c for c in videos if c not in rig.names]
+            if missing:
+                print(
+                    f"keypoints run: cameras {missing} are not in {args.calib} ({rig.names})", file=sys.stderr
+                )
+                return 1
+        rep = run_videos(videos, args.out, cfg, rig=rig, progress=True, max_frames=args.max_frames)
         for c, (fi, msg) in rep.decode_errors.items():
             print(f"WARNING camera {c}: {msg}; kept frames before {fi}", file=sys.stderr)
         paths = rep.paths
@@ -117,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         "inputs", nargs="+", help="a session folder, videos (cam=path allowed) or a folder of videos"
     )
     r.add_argument("--out", default=None, help="output folder for explicit videos")
+    r.add_argument("--calib", default=None, help="calibration to check camera names and video sizes against")
     r.add_argument("--models", default="default", help="model set (keypoints list) or 'detector+pose'")
     r.add_argument("--cameras", nargs="*", default=None)
     r.add_argument("--max-frames", type=int, default=None)
