@@ -11,7 +11,8 @@ average), MPJPE (matched poses, all joints the tracker outputs).
 Tables: (1) greedy vs particle over 3 / 4 / 6 cameras; (2) ablation mirroring Table 5.3 on the
 3-camera setting (w/o resampling, w/o joint refinement, zero-velocity prior, prior w/o dropout,
 plus: constant-velocity prior, the seed's purely random refinement candidates, GRU with 32 / 128 units,
-no output smoothing).
+no output smoothing, the learned birth generator g of sec. 5.2.3). ``--ablations WORD ..`` keeps only the
+rows whose label contains a word, ``--skip-table1`` skips table (1).
 
     .venv/bin/python bench/bench_track_synthetic.py                  # ~4 min on 2 busy cores
     .venv/bin/python bench/bench_track_synthetic.py --seconds 20 --seeds 1 2 3
