@@ -76,7 +76,15 @@ def cmd_train(args) -> int:
         if step % 20 == 0:
             bar.set_postfix({k: f"{v:.4f}" for k, v in terms.items()})
 
-    model, hist = T.train(args.model, tr, cfg, progress, args.device)
+    init = None
+    if args.init:
+        import torch
+
+        blob = torch.load(args.init, map_location="cpu", weights_only=True)
+        if blob.get("kind") != args.model:
+            raise SystemExit(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
+        init = blob["state_dict"]
+    model, hist = T.train(args.model, tr, cfg, progress, args.device, init)
     bar.close()
     T.save_checkpoint(
         args.out,
@@ -195,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--set", action="append", help="override one config key: key=value")
     t.add_argument("--out", required=True)
     t.add_argument("--device", default="cpu")
+    t.add_argument("--init", help="continue training from this checkpoint (same model and architecture)")
     data_args(t)
 
     s = sub.add_parser("sample", help="forecast every track of a track file")

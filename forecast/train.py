@@ -41,6 +41,7 @@ from keypoints.skeletons import get_skeleton
 log = logging.getLogger(__name__)
 
 CKPT_SCHEMA = "forecast-checkpoint/1"
+DISCRIMINATOR_PREFIXES = ("D_pose.", "D_label.")
 NORMALISATION = "eq. 3.8 at the last observed frame: root = mid-hips, hip vector (left->right) on +x, z up"
 
 
@@ -192,7 +193,11 @@ def save_checkpoint(
         "joint_names": list(sk.joint_names),
         "fps": float(fps),
         "normalisation": NORMALISATION,
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "state_dict": {
+            k: v.detach().cpu()
+            for k, v in model.state_dict().items()
+            if not k.startswith(DISCRIMINATOR_PREFIXES)  # only needed for training; keeps files < 2 MB
+        },
         "extra": extra or {},
     }
     with atomic_path(path) as tmp:
@@ -224,7 +229,15 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
     else:
         raise ValueError(f"unknown model '{kind}'")
     if state is not None:
-        m.load_state_dict(state)
+        try:
+            missing, unexpected = m.load_state_dict(state, strict=False)
+        except RuntimeError as e:  # shape mismatches
+            raise ValueError(f"{kind} state does not fit the config: {e}") from None
+        missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
+        if missing or unexpected:
+            raise ValueError(
+                f"{kind} state does not fit the config: missing {missing}, unexpected {unexpected}"
+            )
     m.n_obs = config.n_obs
     return m
 
@@ -300,9 +313,16 @@ def _masked_joint_l2(pred, fut, mask):
 
 
 def train(
-    kind: str, clips: list[fdata.Clip], config=None, progress: Progress | None = None, device: str = "cpu"
+    kind: str,
+    clips: list[fdata.Clip],
+    config=None,
+    progress: Progress | None = None,
+    device: str = "cpu",
+    init: dict | None = None,
 ) -> tuple[torch.nn.Module, dict]:
-    """Train ``kind`` on clips (body19). Returns the model and a history dict (loss per step, timing)."""
+    """Train ``kind`` on clips (body19). Returns the model and a history dict (loss per step, timing).
+    ``init``: a state dict to continue from (same architecture; the intention model keeps its labels,
+    discriminators start fresh when the state has none)."""
     config = config or config_from_dict(kind)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
@@ -321,22 +341,22 @@ def train(
     xn, mk = np.concatenate([xn, xm]), np.concatenate([mk, mm])
     model = None
     if kind == "gru":
-        model = build_model(kind, config, J).to(device)
+        model = build_model(kind, config, J, init).to(device)
     elif kind == "intention":
         from forecast.models.intention import local_poses
 
         loc = local_poses(torch.from_numpy(xn)).numpy()
-        centres, merge = fit_intention_labels(
-            loc[::3].reshape(-1, 3 * J),
-            [s for s in loc[:, ::1]][:2000],
-            config.n_clusters,
-            config.n_intentions,
-            config.seed,
-        )
-        state = None
-        model = build_model(kind, config, J, state).to(device)
-        model.centres.copy_(torch.from_numpy(centres))
-        model.merge.copy_(torch.from_numpy(merge))
+        model = build_model(kind, config, J, init).to(device)
+        if init is None:
+            centres, merge = fit_intention_labels(
+                loc[::3].reshape(-1, 3 * J),
+                [s for s in loc[:, ::1]][:2000],
+                config.n_clusters,
+                config.n_intentions,
+                config.seed,
+            )
+            model.centres.copy_(torch.from_numpy(centres))
+            model.merge.copy_(torch.from_numpy(merge))
         labels_all = model.labels(torch.from_numpy(loc)).numpy()  # (N,T)
     X, M = torch.from_numpy(xn), torch.from_numpy(mk)
     opt = torch.optim.Adam(

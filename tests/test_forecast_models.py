@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -85,6 +87,26 @@ def test_intention_model_trains_and_samples_diverse_futures():
     y = forecast_world(model, walker(20)[None, :, None], None, 30, n_samples=4)
     assert y.shape == (1, 4, 30, 1, 19, 3) and np.isfinite(y).all()
     assert np.std(y[0, :, -1], axis=0).mean() > 0  # stochastic: samples differ
+
+
+def test_intention_checkpoint_is_small_and_training_continues_from_it(tmp_path):
+    cfg = T.config_from_dict(
+        "intention",
+        {"hidden": 16, "z_dim": 4, "n_clusters": 6, "n_intentions": 3, "steps": 3, "batch": 4, "n_obs": 20},
+    )
+    clips = _clips(3, 120)
+    model, _ = T.train("intention", clips, cfg)
+    T.save_checkpoint(tmp_path / "i.pt", model, "intention", cfg)
+    blob = torch.load(tmp_path / "i.pt", weights_only=True)
+    assert not any(k.startswith(T.DISCRIMINATOR_PREFIXES) for k in blob["state_dict"])  # training-only parts
+    m2, _ = T.load_checkpoint(tmp_path / "i.pt", skeleton="body19")
+    assert torch.equal(m2.centres, model.centres) and torch.equal(m2.merge, model.merge)
+    # continue with a longer horizon: labels are kept, discriminators start fresh
+    cfg2 = T.config_from_dict("intention", {**dataclasses.asdict(cfg), "n_pred": 60})
+    m3, hist = T.train("intention", clips, cfg2, init=blob["state_dict"])
+    assert torch.equal(m3.centres, model.centres) and np.isfinite(hist["loss"]).all()
+    with pytest.raises(ValueError, match="does not fit"):
+        T.build_model("intention", T.config_from_dict("intention", {"hidden": 8}), 19, blob["state_dict"])
 
 
 def test_social_diffusion_writes_back_observation_and_learns():
