@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="rerun stages even when their outputs are up to date")
     p.add_argument("--executor", choices=EXECUTORS, default="local")
     p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
-    p.add_argument("--workers", type=int, help="sessions processed at once (default: number of cores)")
+    p.add_argument("--workers", type=int, help="sessions processed at once (default: half the cores)")
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 

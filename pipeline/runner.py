@@ -207,10 +207,18 @@ def _plan_keypoints(
                 from calibrate.camera import CameraRig
 
                 rig = CameraRig.load(lay.rig_toml)
+            from keypoints.pipeline import PipelineConfig as KeypointsPipelineConfig
+            from keypoints.runtime import RuntimeConfig
+
+            # the executor's share of the cores (set per worker by _limit_threads); 0 = onnxruntime's default
+            threads = int(os.environ.get("ROOMCAP_ORT_THREADS", "0") or 0)
+            kp_cfg = KeypointsPipelineConfig(
+                model_set=cfg.keypoints.model_set, runtime=RuntimeConfig(threads=threads)
+            )
             rep = run_videos(
                 {c: src.videos[c] for c in cams},
                 lay.keypoints_dir,
-                cfg.keypoints.model_set,
+                kp_cfg,
                 rig=rig,
                 max_frames=cfg.keypoints.max_frames,
                 progress=False,
