@@ -403,8 +403,10 @@ def _summarise(lay: SessionLayout, result: SessionResult) -> None:
     if lay.poses3d.exists():
         xyz = load_npz(lay.poses3d)["xyz_m"]
         result.people = int(np.isfinite(xyz[..., 0]).any(-1).sum(-1).max(initial=0))
-    if lay.tracks.exists():
-        result.tracks = int(len(load_npz(lay.tracks)["track_id"]))
+    if lay.tracks.exists():  # people = most tracks present at once (as the report shows), when tracked
+        xyz = load_npz(lay.tracks)["xyz_m"]
+        result.tracks = int(xyz.shape[1])
+        result.people = int(np.isfinite(xyz[..., 0]).any(-1).sum(-1).max(initial=0))
 
 
 def _remove_stale_temporaries(outputs: list[Path]) -> None:
