@@ -89,7 +89,13 @@ def test_simcc_top_down_through_tiny_onnx_graphs(models, rng):
     box_in = np.array([[100, 50, 300, 450, 0.9], [0, 0, 10, 10, 0.1]], np.float32)  # 640x640 input px
     make_dets_model(models, box_in, np.array([0, 0]))
     pipe = KeypointPipeline(
-        PipelineConfig(model_set="tiny_det+tiny_simcc", skeleton="model", refine_passes=0, min_box_px=1)
+        PipelineConfig(
+            model_set="tiny_det+tiny_simcc",
+            skeleton="model",
+            refine_passes=0,
+            min_box_px=1,
+            runtime=RuntimeConfig(dynamic_batch=True),
+        )
     )
     assert pipe.pose.max_batch is None  # fixed batch 1 made dynamic
     img = rng.integers(0, 255, (960, 1280, 3), dtype=np.uint8)  # letterbox r = 0.5

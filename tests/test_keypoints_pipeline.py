@@ -68,9 +68,7 @@ def test_upright_boxes_follow_a_leaning_body():
 def test_model_sets_find_the_participant_in_every_view(single, model_set):
     pipe = KeypointPipeline(model_set)
     res = pipe(single)
-    assert pipe.detector.max_batch is None  # one detector run for all cameras
-    # BlazePose's fixed batch of 1 is made dynamic; MoveNet's graph cannot be (a Concat pins it): one by one
-    assert pipe.pose.max_batch == (None if model_set == "blazepose" else 1)
+    assert pipe.detector.max_batch == 1  # CPU: fixed-batch graphs kept (see RuntimeConfig.dynamic_batch)
     for img, r in zip(single, res, strict=True):
         assert len(r.boxes) >= 1
         h, w = img.shape[:2]
@@ -83,6 +81,14 @@ def test_model_sets_find_the_participant_in_every_view(single, model_set):
         b = r.boxes[best]
         inside = (xy[:, 0] > b[0] - 0.2 * (b[2] - b[0])) & (xy[:, 0] < b[2] + 0.2 * (b[2] - b[0]))
         assert inside.mean() > 0.9
+
+
+def test_fixed_batch_made_dynamic_when_asked(single):
+    from keypoints.runtime import OnnxModel, RuntimeConfig
+
+    assert OnnxModel("blazepose_full", RuntimeConfig(dynamic_batch=True)).max_batch is None
+    # MoveNet's graph cannot be rewritten (a Concat pins the batch): it runs one crop at a time
+    assert OnnxModel("movenet_lightning", RuntimeConfig(dynamic_batch=True)).max_batch == 1
 
 
 def test_openpose_paf_channel_order(single):
