@@ -24,3 +24,19 @@ def test_pose2sim_openpose_trial_end_to_end(tmp_path):
     assert reprocess([str(trial), "--out", str(out), "--workers", "1"]) == 0
     (again,) = json.loads((out / "reprocess_summary.json").read_text())
     assert again["ran"] == []
+
+
+def test_real_videos_through_keypoints_few_frames(tmp_path):
+    """The video path: a Pose2Sim demo trial (4 portrait 1080x1920 videos, Qualisys calibration), 5 frames
+    (the greedy tracker keeps no track from 3)."""
+    trial = need_shared("data", "pose2sim", "demo-wheel-0.10.49", "Demo_SinglePerson")
+    out = tmp_path / "out"
+    args = [str(trial), "--out", str(out), "--workers", "1", "--max-frames", "5"]
+    args += ["--stages", "keypoints,triangulate,track"]
+    assert reprocess(args) == 0
+    (s,) = json.loads((out / "reprocess_summary.json").read_text())
+    assert s["ran"] == ["calibration", "keypoints", "triangulate", "track"]
+    assert s["cameras"] == 4 and s["frames"] == 5 and s["tracks"] >= 1
+    assert "1088x1920" in s["message"]  # the codec-padding warning of keypoints reaches the summary
+    assert reprocess(args) == 0
+    assert json.loads((out / "reprocess_summary.json").read_text())[0]["ran"] == []
