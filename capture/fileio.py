@@ -56,8 +56,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix,
-                               dir=path.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=path.parent
+    )
     os.close(fd)
     os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual permissions
     try:
@@ -100,22 +101,34 @@ def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os
     if isinstance(tag, np.ndarray):
         tag = tag.item() if tag.shape == () else None
     if not isinstance(tag, str) or "/" not in tag:
-        raise SchemaError(path, "schema", f"missing or malformed schema tag {tag!r}; expected '{name}/<version>'.",
-                          "Write the file with this project's writer or add the schema key.")
+        raise SchemaError(
+            path,
+            "schema",
+            f"missing or malformed schema tag {tag!r}; expected '{name}/<version>'.",
+            "Write the file with this project's writer or add the schema key.",
+        )
     got_name, _, got_version = tag.rpartition("/")
     if got_name != name:
-        raise SchemaError(path, "schema", f"this is a '{got_name}' file, expected '{name}'.",
-                          "Check that the path points at the right file.")
+        raise SchemaError(
+            path,
+            "schema",
+            f"this is a '{got_name}' file, expected '{name}'.",
+            "Check that the path points at the right file.",
+        )
     try:
         version = int(got_version)
     except ValueError:
         raise SchemaError(path, "schema", f"version {got_version!r} is not an integer.") from None
     if version not in supported:
         newer = version > max(supported)
-        raise SchemaError(path, "schema",
-                          f"version {version} is not supported (this code reads {name} versions {list(supported)}).",
-                          "Upgrade roomcap to read files written by a newer version." if newer
-                          else "Re-create the file with this version of roomcap.")
+        raise SchemaError(
+            path,
+            "schema",
+            f"version {version} is not supported (this code reads {name} versions {list(supported)}).",
+            "Upgrade roomcap to read files written by a newer version."
+            if newer
+            else "Re-create the file with this version of roomcap.",
+        )
     return version
 
 
@@ -153,12 +166,20 @@ def load_npz(path: str | os.PathLike, required: tuple[str, ...] = ()) -> dict[st
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-        raise FormatError(path, None, f"cannot be read as npz ({e}); the file is truncated or corrupt.",
-                          "Delete it and rerun the stage that writes it.") from e
+        raise FormatError(
+            path,
+            None,
+            f"cannot be read as npz ({e}); the file is truncated or corrupt.",
+            "Delete it and rerun the stage that writes it.",
+        ) from e
     missing = [k for k in required if k not in data]
     if missing:
-        raise FormatError(path, missing[0], f"required keys {missing} are missing (present: {sorted(data)}).",
-                          "The file was written by another tool or is incomplete; rerun the stage that writes it.")
+        raise FormatError(
+            path,
+            missing[0],
+            f"required keys {missing} are missing (present: {sorted(data)}).",
+            "The file was written by another tool or is incomplete; rerun the stage that writes it.",
+        )
     return data
 
 

@@ -27,8 +27,18 @@ from keypoints.skeletons import get_skeleton
 
 SCHEMA = "detections"
 VERSION = 1
-_REQUIRED = ("schema", "camera", "skeleton", "frame_index", "t_ns", "xy_px", "score", "boxes", "model",
-             "model_sha256")
+_REQUIRED = (
+    "schema",
+    "camera",
+    "skeleton",
+    "frame_index",
+    "t_ns",
+    "xy_px",
+    "score",
+    "boxes",
+    "model",
+    "model_sha256",
+)
 
 
 @dataclass(frozen=True)
@@ -58,13 +68,17 @@ class Detections:
         P = None
         for name, (arr, shape) in shapes.items():
             arr = np.asarray(arr)
-            ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=False))
+            ok = arr.ndim == len(shape) and all(
+                s is None or s == a for s, a in zip(shape, arr.shape, strict=False)
+            )
             if ok and len(shape) > 1:
                 P = arr.shape[1] if P is None else P
                 ok = arr.shape[1] == P
             if not ok:
                 want = tuple("P" if s is None else s for s in shape)
-                raise FormatError(None, name, f"camera '{self.camera}': expected shape {want}, got {arr.shape}.")
+                raise FormatError(
+                    None, name, f"camera '{self.camera}': expected shape {want}, got {arr.shape}."
+                )
         object.__setattr__(self, "frame_index", np.asarray(self.frame_index, dtype=np.int64))
         object.__setattr__(self, "t_ns", np.asarray(self.t_ns, dtype=np.int64))
         object.__setattr__(self, "xy_px", np.asarray(self.xy_px, dtype=np.float32))
@@ -81,9 +95,16 @@ class Detections:
 
     def save(self, path: str | os.PathLike) -> None:
         arrays = {
-            "schema": schema_tag(SCHEMA, VERSION), "camera": self.camera, "skeleton": self.skeleton,
-            "frame_index": self.frame_index, "t_ns": self.t_ns, "xy_px": self.xy_px, "score": self.score,
-            "boxes": self.boxes, "model": self.model, "model_sha256": self.model_sha256,
+            "schema": schema_tag(SCHEMA, VERSION),
+            "camera": self.camera,
+            "skeleton": self.skeleton,
+            "frame_index": self.frame_index,
+            "t_ns": self.t_ns,
+            "xy_px": self.xy_px,
+            "score": self.score,
+            "boxes": self.boxes,
+            "model": self.model,
+            "model_sha256": self.model_sha256,
         }
         if self.image_size_wh is not None:
             arrays["image_size_wh"] = np.asarray(self.image_size_wh, dtype=np.int64)
@@ -98,15 +119,27 @@ class Detections:
         check_schema(data["schema"], SCHEMA, (VERSION,), path)
         missing = [k for k in _REQUIRED if k not in data]
         if missing:
-            raise FormatError(path, missing[0], f"required keys {missing} are missing.",
-                              "See keypoints/detections.py for the detections file layout.")
+            raise FormatError(
+                path,
+                missing[0],
+                f"required keys {missing} are missing.",
+                "See keypoints/detections.py for the detections file layout.",
+            )
         known = set(_REQUIRED) | {"image_size_wh"}
         try:
             return cls(
-                camera=npz_str(data, "camera"), skeleton=npz_str(data, "skeleton"),
-                frame_index=data["frame_index"], t_ns=data["t_ns"], xy_px=data["xy_px"], score=data["score"],
-                boxes=data["boxes"], model=npz_str(data, "model"), model_sha256=npz_str(data, "model_sha256"),
-                image_size_wh=tuple(int(v) for v in data["image_size_wh"]) if "image_size_wh" in data else None,
+                camera=npz_str(data, "camera"),
+                skeleton=npz_str(data, "skeleton"),
+                frame_index=data["frame_index"],
+                t_ns=data["t_ns"],
+                xy_px=data["xy_px"],
+                score=data["score"],
+                boxes=data["boxes"],
+                model=npz_str(data, "model"),
+                model_sha256=npz_str(data, "model_sha256"),
+                image_size_wh=tuple(int(v) for v in data["image_size_wh"])
+                if "image_size_wh" in data
+                else None,
                 extra={k: v for k, v in data.items() if k not in known},
             )
         except FormatError as e:
@@ -117,6 +150,13 @@ class Detections:
     @classmethod
     def empty(cls, camera: str, skeleton: str, n_frames: int, max_people: int = 0, **kw) -> Detections:
         J = get_skeleton(skeleton).n_joints
-        return cls(camera=camera, skeleton=skeleton, frame_index=np.arange(n_frames),
-                   t_ns=np.zeros(n_frames, np.int64), xy_px=np.full((n_frames, max_people, J, 2), np.nan),
-                   score=np.zeros((n_frames, max_people, J)), boxes=np.full((n_frames, max_people, 5), np.nan), **kw)
+        return cls(
+            camera=camera,
+            skeleton=skeleton,
+            frame_index=np.arange(n_frames),
+            t_ns=np.zeros(n_frames, np.int64),
+            xy_px=np.full((n_frames, max_people, J, 2), np.nan),
+            score=np.zeros((n_frames, max_people, J)),
+            boxes=np.full((n_frames, max_people, 5), np.nan),
+            **kw,
+        )

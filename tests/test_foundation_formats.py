@@ -17,10 +17,20 @@ def _tracks(rng, T=5, K=2, J=19):
     xyz[1, 0, 3] = np.nan
     flags = np.full((T, K, J), OBSERVED)
     flags[2, 1] |= PREDICTED
-    return TrackFile(fps=25.0, frame_index=np.arange(T), t_ns=np.arange(T) * 40_000_000, track_id=np.array([3, 7]),
-                     joint_names=CANONICAL.joint_names, parents=np.asarray(CANONICAL.parents), xyz_m=xyz,
-                     confidence=rng.uniform(size=(T, K, J)), std_m=rng.uniform(0, 0.05, (T, K, J)), flags=flags,
-                     calibration_sha256="abc", source="test")
+    return TrackFile(
+        fps=25.0,
+        frame_index=np.arange(T),
+        t_ns=np.arange(T) * 40_000_000,
+        track_id=np.array([3, 7]),
+        joint_names=CANONICAL.joint_names,
+        parents=np.asarray(CANONICAL.parents),
+        xyz_m=xyz,
+        confidence=rng.uniform(size=(T, K, J)),
+        std_m=rng.uniform(0, 0.05, (T, K, J)),
+        flags=flags,
+        calibration_sha256="abc",
+        source="test",
+    )
 
 
 def test_trackfile_round_trip_and_dense(tmp_path, rng):
@@ -72,23 +82,46 @@ def test_trc_and_json_export(tmp_path, rng):
 
 def test_detections_round_trip_and_errors(tmp_path, rng):
     T, P, J = 4, 3, 17
-    d = Detections(camera="cam01", skeleton="coco17", frame_index=np.arange(T), t_ns=np.arange(T),
-                   xy_px=rng.uniform(0, 100, (T, P, J, 2)), score=rng.uniform(size=(T, P, J)),
-                   boxes=np.full((T, P, 5), np.nan), model="m", model_sha256="00", image_size_wh=(640, 480))
+    d = Detections(
+        camera="cam01",
+        skeleton="coco17",
+        frame_index=np.arange(T),
+        t_ns=np.arange(T),
+        xy_px=rng.uniform(0, 100, (T, P, J, 2)),
+        score=rng.uniform(size=(T, P, J)),
+        boxes=np.full((T, P, 5), np.nan),
+        model="m",
+        model_sha256="00",
+        image_size_wh=(640, 480),
+    )
     d.save(tmp_path / "cam01.npz")
     back = Detections.load(tmp_path / "cam01.npz")
     assert back.camera == "cam01" and back.image_size_wh == (640, 480)
     np.testing.assert_allclose(back.xy_px, d.xy_px, rtol=1e-6)
     with pytest.raises(FormatError, match="xy_px.*expected shape"):
-        Detections(camera="c", skeleton="coco17", frame_index=np.arange(T), t_ns=np.arange(T),
-                   xy_px=np.zeros((T, P, 18, 2)), score=np.zeros((T, P, J)), boxes=np.zeros((T, P, 5)))
+        Detections(
+            camera="c",
+            skeleton="coco17",
+            frame_index=np.arange(T),
+            t_ns=np.arange(T),
+            xy_px=np.zeros((T, P, 18, 2)),
+            score=np.zeros((T, P, J)),
+            boxes=np.zeros((T, P, 5)),
+        )
 
 
 def test_poses3d_round_trip(tmp_path, rng):
     T, P, J = 3, 2, 19
-    p = Poses3D(fps=30, frame_index=np.arange(T), t_ns=np.zeros(T), joint_names=CANONICAL.joint_names,
-                xyz_m=rng.normal(size=(T, P, J, 3)), score=np.ones((T, P, J)), reproj_err_px=np.ones((T, P, J)),
-                n_views=np.full((T, P, J), 3))
+    p = Poses3D(
+        fps=30,
+        frame_index=np.arange(T),
+        t_ns=np.zeros(T),
+        joint_names=CANONICAL.joint_names,
+        xyz_m=rng.normal(size=(T, P, J, 3)),
+        score=np.ones((T, P, J)),
+        reproj_err_px=np.ones((T, P, J)),
+        n_views=np.full((T, P, J), 3),
+    )
     p.save(tmp_path / "p.npz")
     back = Poses3D.load(tmp_path / "p.npz")
     np.testing.assert_allclose(back.xyz_m, p.xyz_m, rtol=1e-6)

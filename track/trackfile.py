@@ -41,8 +41,21 @@ INTERPOLATED = np.uint8(2)
 PREDICTED = np.uint8(4)
 SMOOTHED = np.uint8(8)
 
-_REQUIRED = ("schema", "fps", "frame_index", "t_ns", "track_id", "joint_names", "parents", "xyz_m",
-             "confidence", "std_m", "flags", "calibration_sha256", "source")
+_REQUIRED = (
+    "schema",
+    "fps",
+    "frame_index",
+    "t_ns",
+    "track_id",
+    "joint_names",
+    "parents",
+    "xyz_m",
+    "confidence",
+    "std_m",
+    "flags",
+    "calibration_sha256",
+    "source",
+)
 
 
 @dataclass(frozen=True)
@@ -62,16 +75,30 @@ class TrackFile:
 
     def __post_init__(self) -> None:
         T, K, J = len(self.frame_index), len(self.track_id), len(self.joint_names)
-        expect = {"t_ns": (T,), "parents": (J,), "xyz_m": (T, K, J, 3), "confidence": (T, K, J),
-                  "std_m": (T, K, J), "flags": (T, K, J)}
+        expect = {
+            "t_ns": (T,),
+            "parents": (J,),
+            "xyz_m": (T, K, J, 3),
+            "confidence": (T, K, J),
+            "std_m": (T, K, J),
+            "flags": (T, K, J),
+        }
         for name, shape in expect.items():
             got = np.shape(getattr(self, name))
             if got != shape:
                 raise FormatError(None, name, f"expected shape {shape} (T={T}, K={K}, J={J}), got {got}.")
         if not np.isfinite(self.fps) or self.fps <= 0:
             raise FormatError(None, "fps", f"must be a positive number, got {self.fps}.")
-        cast = {"frame_index": np.int64, "t_ns": np.int64, "track_id": np.int64, "parents": np.int64,
-                "xyz_m": np.float32, "confidence": np.float32, "std_m": np.float32, "flags": np.uint8}
+        cast = {
+            "frame_index": np.int64,
+            "t_ns": np.int64,
+            "track_id": np.int64,
+            "parents": np.int64,
+            "xyz_m": np.float32,
+            "confidence": np.float32,
+            "std_m": np.float32,
+            "flags": np.uint8,
+        }
         for name, dtype in cast.items():
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dtype))
         object.__setattr__(self, "joint_names", tuple(str(n) for n in self.joint_names))
@@ -93,18 +120,39 @@ class TrackFile:
     @classmethod
     def empty(cls, frame_index, t_ns, fps: float, skeleton: Skeleton = CANONICAL, **kw) -> TrackFile:
         T, J = len(frame_index), skeleton.n_joints
-        return cls(fps=fps, frame_index=frame_index, t_ns=t_ns, track_id=np.zeros(0, np.int64),
-                   joint_names=skeleton.joint_names, parents=np.asarray(skeleton.parents),
-                   xyz_m=np.zeros((T, 0, J, 3)), confidence=np.zeros((T, 0, J)), std_m=np.zeros((T, 0, J)),
-                   flags=np.zeros((T, 0, J), np.uint8), **kw)
+        return cls(
+            fps=fps,
+            frame_index=frame_index,
+            t_ns=t_ns,
+            track_id=np.zeros(0, np.int64),
+            joint_names=skeleton.joint_names,
+            parents=np.asarray(skeleton.parents),
+            xyz_m=np.zeros((T, 0, J, 3)),
+            confidence=np.zeros((T, 0, J)),
+            std_m=np.zeros((T, 0, J)),
+            flags=np.zeros((T, 0, J), np.uint8),
+            **kw,
+        )
 
     def save(self, path: str | os.PathLike) -> None:
-        save_npz(path, {
-            "schema": schema_tag(SCHEMA, VERSION), "fps": np.float64(self.fps), "frame_index": self.frame_index,
-            "t_ns": self.t_ns, "track_id": self.track_id, "joint_names": np.asarray(self.joint_names),
-            "parents": self.parents, "xyz_m": self.xyz_m, "confidence": self.confidence, "std_m": self.std_m,
-            "flags": self.flags, "calibration_sha256": self.calibration_sha256, "source": self.source,
-        })
+        save_npz(
+            path,
+            {
+                "schema": schema_tag(SCHEMA, VERSION),
+                "fps": np.float64(self.fps),
+                "frame_index": self.frame_index,
+                "t_ns": self.t_ns,
+                "track_id": self.track_id,
+                "joint_names": np.asarray(self.joint_names),
+                "parents": self.parents,
+                "xyz_m": self.xyz_m,
+                "confidence": self.confidence,
+                "std_m": self.std_m,
+                "flags": self.flags,
+                "calibration_sha256": self.calibration_sha256,
+                "source": self.source,
+            },
+        )
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> TrackFile:
@@ -113,27 +161,49 @@ class TrackFile:
         check_schema(data["schema"], SCHEMA, (VERSION,), path)
         load_npz_required = [k for k in _REQUIRED if k not in data]
         if load_npz_required:
-            raise FormatError(path, load_npz_required[0], f"required keys {load_npz_required} are missing.",
-                              "See track/trackfile.py for the track file layout.")
+            raise FormatError(
+                path,
+                load_npz_required[0],
+                f"required keys {load_npz_required} are missing.",
+                "See track/trackfile.py for the track file layout.",
+            )
         try:
-            return cls(fps=float(data["fps"]), frame_index=data["frame_index"], t_ns=data["t_ns"],
-                       track_id=data["track_id"], joint_names=tuple(data["joint_names"].tolist()),
-                       parents=data["parents"], xyz_m=data["xyz_m"], confidence=data["confidence"],
-                       std_m=data["std_m"], flags=data["flags"],
-                       calibration_sha256=npz_str(data, "calibration_sha256"), source=npz_str(data, "source"))
+            return cls(
+                fps=float(data["fps"]),
+                frame_index=data["frame_index"],
+                t_ns=data["t_ns"],
+                track_id=data["track_id"],
+                joint_names=tuple(data["joint_names"].tolist()),
+                parents=data["parents"],
+                xyz_m=data["xyz_m"],
+                confidence=data["confidence"],
+                std_m=data["std_m"],
+                flags=data["flags"],
+                calibration_sha256=npz_str(data, "calibration_sha256"),
+                source=npz_str(data, "source"),
+            )
         except FormatError as e:
             raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
 
 
 def load_dense(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Dense arrays plus masks for training: xyz_m with NaN→0, ``joint_mask (T,K,J)``, ``track_mask (T,K)``."""
+    """Dense arrays plus masks for training.
+
+    xyz_m with NaN→0, ``joint_mask (T,K,J)``, ``track_mask (T,K)``."""
     tf = TrackFile.load(path)
     joint_mask = tf.mask
     return {
         "xyz_m": np.where(joint_mask[..., None], tf.xyz_m, 0.0).astype(np.float32),
-        "joint_mask": joint_mask, "track_mask": joint_mask.any(-1), "std_m": tf.std_m,
-        "confidence": tf.confidence, "track_id": tf.track_id, "frame_index": tf.frame_index, "t_ns": tf.t_ns,
-        "fps": np.float64(tf.fps), "joint_names": np.asarray(tf.joint_names), "parents": tf.parents,
+        "joint_mask": joint_mask,
+        "track_mask": joint_mask.any(-1),
+        "std_m": tf.std_m,
+        "confidence": tf.confidence,
+        "track_id": tf.track_id,
+        "frame_index": tf.frame_index,
+        "t_ns": tf.t_ns,
+        "fps": np.float64(tf.fps),
+        "joint_names": np.asarray(tf.joint_names),
+        "parents": tf.parents,
     }
 
 
@@ -169,14 +239,26 @@ def export_trc(tf: TrackFile, path: str | os.PathLike, track: int | None = None,
 
 def export_json(tf: TrackFile, path: str | os.PathLike) -> None:
     """Plain JSON: per track, per frame, joints as [x, y, z] or null."""
-    out = {"schema": schema_tag(SCHEMA, VERSION), "fps": tf.fps, "joint_names": list(tf.joint_names),
-           "parents": tf.parents.tolist(), "frame_index": tf.frame_index.tolist(), "tracks": []}
+    out = {
+        "schema": schema_tag(SCHEMA, VERSION),
+        "fps": tf.fps,
+        "joint_names": list(tf.joint_names),
+        "parents": tf.parents.tolist(),
+        "frame_index": tf.frame_index.tolist(),
+        "tracks": [],
+    }
     for k, tid in enumerate(tf.track_id):
         xyz = tf.xyz_m[:, k]
-        out["tracks"].append({
-            "track_id": int(tid),
-            "xyz_m": [[None if not np.isfinite(p).all() else [round(float(v), 5) for v in p] for p in fr]
-                      for fr in xyz],
-            "std_m": [[None if not np.isfinite(s) else round(float(s), 5) for s in fr] for fr in tf.std_m[:, k]],
-        })
+        out["tracks"].append(
+            {
+                "track_id": int(tid),
+                "xyz_m": [
+                    [None if not np.isfinite(p).all() else [round(float(v), 5) for v in p] for p in fr]
+                    for fr in xyz
+                ],
+                "std_m": [
+                    [None if not np.isfinite(s) else round(float(s), 5) for s in fr] for fr in tf.std_m[:, k]
+                ],
+            }
+        )
     atomic_write_text(path, json.dumps(out))
