@@ -100,3 +100,16 @@ def test_the_check_catches_a_torch_import(tmp_path):
     assert sorted(result["failed"]) == ["uses_dai", "uses_torch"]
     assert "blocked by test_import_boundaries" in result["failed"]["uses_torch"]
     assert result["imported"] == ["calibrate.camera"]
+
+
+LEARNED = {"track.motion", "track.birth", "track.train_motion", "track.train_birth"}
+
+
+def test_other_stages_import_without_torch_and_depthai():
+    """DESIGN.md: the non-learned parts of track, the keypoints inference path, the pipeline and
+    capture (but its OAK source) need neither torch nor depthai."""
+    modules = [m for pkg in ("track", "keypoints", "capture", "pipeline", "synthetic")
+               for m in package_modules(pkg) if m not in LEARNED and m != "capture.oak"]
+    result = import_blocked(modules)
+    assert not result["failed"], "\n\n".join(f"{m}:\n{tb}" for m, tb in result["failed"].items())
+    assert len(result["imported"]) == len(modules)
