@@ -86,7 +86,8 @@ def run_ray(
         raise RuntimeError("the Ray executor needs ray: pip install 'roomcap[cluster]'") from None
     started_here = not ray.is_initialized()
     if started_here:
-        kw = {"address": address} if address else {"num_cpus": workers}
+        # no --address: a new local instance of our own ("local"), never someone else's running cluster
+        kw = {"address": address} if address else {"address": "local", "num_cpus": workers}
         ray.init(include_dashboard=False, log_to_driver=False, **kw)
     try:
         gpus = 1 if ("keypoints" in config.stages and _cuda_available()) else 0

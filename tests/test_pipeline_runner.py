@@ -179,7 +179,7 @@ def test_newer_schema_and_missing_calibration_are_reported(sessions, tmp_path):
 
 def test_local_and_ray_executors_give_identical_outputs(sessions, reference, tmp_path):
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         results = run_sessions(discover([sessions])[:2], tmp_path / "ray", CFG, executor="ray", workers=2)
     finally:
