@@ -89,6 +89,31 @@ def atomic_write_with(path: str | os.PathLike, writer: Callable[[Path], Any]) ->
         writer(tmp)
 
 
+# ----------------------------------------------------------------------------- typed configs
+
+
+def config_from_dict(
+    cls, data: Mapping[str, Any], where: str | None = None, path: str | os.PathLike | None = None
+):
+    """Build the frozen config dataclass ``cls`` from ``data``, rejecting unknown keys with the valid ones.
+
+    DESIGN.md: configuration is loaded once into typed dataclasses that hold the only copy of
+    each default; every stage builds its config through this function.
+    """
+    import dataclasses
+
+    valid = sorted(f.name for f in dataclasses.fields(cls) if f.init)
+    unknown = sorted(set(data) - set(valid))
+    if unknown:
+        raise FormatError(
+            path,
+            where or cls.__name__,
+            f"unknown keys {unknown}; valid keys: {valid}.",
+            "Remove or rename them.",
+        )
+    return cls(**data)
+
+
 # ----------------------------------------------------------------------------- schema tags
 
 

@@ -19,18 +19,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import FormatError, load_toml
+from capture.fileio import FormatError, config_from_dict, load_toml
 
 STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "report")
 TRACKERS = ("greedy", "particle")
-
-
-def _from_dict(cls, data: dict[str, Any], where: str):
-    valid = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - valid)
-    if unknown:
-        raise FormatError(None, where, f"unknown keys {unknown}; valid keys: {sorted(valid)}.")
-    return cls(**data)
 
 
 @dataclass(frozen=True)
@@ -87,7 +79,7 @@ class PipelineConfig:
         kw: dict[str, Any] = {}
         for key, value in data.items():
             if key in sections:
-                kw[key] = _from_dict(sections[key], value, key)
+                kw[key] = config_from_dict(sections[key], value, key)
             elif key == "stages":
                 kw[key] = tuple(value)
             else:

@@ -34,7 +34,16 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.camera import CameraRig
-from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_npz, save_toml, schema_tag
+from capture.fileio import (
+    FormatError,
+    check_schema,
+    config_from_dict,
+    load_npz,
+    npz_str,
+    save_npz,
+    save_toml,
+    schema_tag,
+)
 from capture.session import SessionLayout
 from keypoints.skeletons import CANONICAL
 from synthetic import bvh
@@ -45,15 +54,6 @@ log = logging.getLogger(__name__)
 J19 = {n: i for i, n in enumerate(CANONICAL.joint_names)}
 GT_SCHEMA = "synthetic_gt"
 GT_VERSION = 1
-
-
-def config_from_dict(cls, d: dict):
-    """Build the frozen config dataclass ``cls`` from ``d``, rejecting unknown keys (listing valid ones)."""
-    names = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(d) - set(names))
-    if unknown:
-        raise ValueError(f"{cls.__name__}: unknown keys {unknown}; valid keys: {names}")
-    return cls(**d)
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from capture.fileio import config_from_dict
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import observation as obs
 from track.normalize import denormalize, hip_frame
@@ -158,11 +159,7 @@ class ParticleConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ParticleConfig:
-        valid = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - valid)
-        if unknown:
-            raise ValueError(f"ParticleConfig: unknown keys {unknown}; valid keys: {sorted(valid)}")
-        return cls(**d)
+        return config_from_dict(cls, d)
 
 
 def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICAL) -> MotionPrior:
