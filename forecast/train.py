@@ -329,7 +329,7 @@ def train(
     sk = clips[0].skeleton if clips else "body19"
     J = get_skeleton(sk).n_joints
     if kind == "social_diffusion":
-        return _train_diffusion(clips, config, J, rng, progress, device)
+        return _train_diffusion(clips, config, J, rng, progress, device, init)
     ws = fdata.make_windows(clips, config.n_obs, config.n_pred, stride=5, persons="each")
     if len(ws) == 0:
         raise ValueError(
@@ -440,7 +440,7 @@ def diffusion_batch_features(scenes: np.ndarray, person_mask: np.ndarray, n_obs:
     return scene_features(xs.transpose(0, 2, 1, 3, 4), n_obs - 1)
 
 
-def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device):
+def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, init=None):
     N, P = config.n_frames, config.persons
     single = fdata.make_windows(clips, config.n_obs, N - config.n_obs, stride=4, persons="each")
     multi_clips = [c for c in clips if c.xyz_m.shape[1] > 1]
@@ -457,9 +457,10 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device):
     # feature statistics from a large composed sample
     sample = composed_batch(xs, P, 2048, rng)
     f = diffusion_batch_features(sample, np.ones((len(sample), P), bool), config.n_obs)
-    model = build_model("social_diffusion", config, J).to(device)
-    model.feat_mean.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).mean(0)))
-    model.feat_std.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).std(0) + 1e-3))
+    model = build_model("social_diffusion", config, J, init).to(device)
+    if init is None:  # a continued model keeps its feature statistics
+        model.feat_mean.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).mean(0)))
+        model.feat_std.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).std(0) + 1e-3))
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps)
     hist: dict = {
