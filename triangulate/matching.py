@@ -158,50 +158,55 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
             flip = None
     cost_all, ok_all, cross_all, okx_all = pair_costs(xy, vis, np.asarray(F, dtype=np.float64),
                                                       cfg.min_shared_joints, flip)
-    # [..., 0]: both poses as detected, [..., 1]: the first mirrored (= the second mirrored)
+    # G[i][k, q, o, c, h]: q = 0: the cost (0 where not ok), q = 1: ok; o = 0: both poses as
+    # detected, o = 1: the first mirrored (= the second mirrored). One gather per camera reads all.
     if flip is None:
-        CC = np.where(ok_all, cost_all, 0.0)[..., None]
-        OK = ok_all.astype(np.float64)[..., None]
+        G = np.stack([np.where(ok_all, cost_all, 0.0), ok_all], 2)[:, :, :, None]  # (C,P,2,1,C,P)
     else:
-        CC = np.stack([np.where(ok_all, cost_all, 0.0), np.where(okx_all, cross_all, 0.0)], -1)
-        OK = np.stack([ok_all, okx_all], -1).astype(np.float64)
-    cams = np.arange(C)[None, None, :]
+        G = np.empty((C, P, 2, 2, C, P))
+        np.copyto(G[:, :, 0, 0], np.where(ok_all, cost_all, 0.0))
+        np.copyto(G[:, :, 0, 1], np.where(okx_all, cross_all, 0.0))
+        G[:, :, 1, 0], G[:, :, 1, 1] = ok_all, okx_all
+    cams = np.arange(C)[None, None, :]  # (1,1,C), with o (o,M,C)
     H = np.full((0, C), -1, dtype=np.int64)  # hypotheses: pose index per camera, -1 = none
     S = np.zeros((0, C), dtype=np.int64)  # 1 = pose mirrored relative to its hypothesis
-    for i in order:
+    theta = cfg.theta_px
+    for i in order.tolist():
         ks = np.flatnonzero(present[i])
         if len(ks) == 0:
             continue
+        new = None
         if len(H):
             # eq. 4.2: mean over the hypothesis' members (that share joints with the pose) of eq. 4.3,
             # each member taken in its own orientation: pose as is vs member mirrored = cross cost
-            sel = (ks[:, None, None], cams, np.maximum(H, 0)[None])  # -> (K,M,C)
-            ok0 = OK[i][sel + (S[None] if flip is not None else 0,)] * (H >= 0)
-            num = (CC[i][sel + (S[None] if flip is not None else 0,)] * ok0).sum(-1)
-            den = ok0.sum(-1)
-            phi = np.where(den > 0, num / np.maximum(den, 1), _BIG)
+            valid = H >= 0
+            # o = S: each member in its own orientation; o = 1 - S: the pose mirrored against it
+            o = np.stack([S, 1 - S]) if flip is not None else np.zeros((1,) + S.shape, np.int64)
+            t = (G[i][ks][:, :, o, cams, np.maximum(H, 0)] * valid).sum(-1)  # (K,q,o,M)
+            phis = np.where(t[:, 1] > 0, t[:, 0] / np.maximum(t[:, 1], 1), _BIG)  # (K,o,M)
+            phi = phis[:, 0]
             if flip is not None:
-                ok1 = OK[i][sel + (1 - S[None],)] * (H >= 0)
-                num1 = (CC[i][sel + (1 - S[None],)] * ok1).sum(-1)
-                den1 = ok1.sum(-1)
-                phi1 = np.where(den1 > 0, num1 / np.maximum(den1, 1), _BIG)
+                phi1 = phis[:, 1]
                 mirrored = phi1 < 0.8 * phi  # prefer the pose as detected unless mirroring clearly helps
                 phi = np.where(mirrored, phi1, phi)
             else:
                 mirrored = np.zeros(phi.shape, bool)
             if cfg.gate:  # pairs above theta cannot join anyway; keep them from displacing valid pairs
-                phi = np.where(phi < cfg.theta_px, phi, _BIG)
+                phi[phi >= theta] = _BIG
             rows, cols = linear_sum_assignment(phi)  # eq. 4.4
-            joined = phi[rows, cols] < cfg.theta_px
-            H[cols[joined], i] = ks[rows[joined]]
-            S[cols[joined], i] = mirrored[rows[joined], cols[joined]]
-            new = np.ones(len(ks), bool)
-            new[rows[joined]] = False
+            joined = phi[rows, cols] < theta
+            rj, cj = rows[joined], cols[joined]
+            H[cj, i] = ks[rj]
+            S[cj, i] = mirrored[rj, cj]
+            if len(rj) < len(ks):
+                new = np.ones(len(ks), bool)
+                new[rj] = False
+                new = ks[new]
         else:
-            new = np.ones(len(ks), bool)
-        if new.any():
-            Hn = np.full((int(new.sum()), C), -1, dtype=np.int64)
-            Hn[:, i] = ks[new]
+            new = ks
+        if new is not None:
+            Hn = np.full((len(new), C), -1, dtype=np.int64)
+            Hn[:, i] = new
             H = np.concatenate([H, Hn], 0)
             S = np.concatenate([S, np.zeros(Hn.shape, np.int64)], 0)
     keep = (H >= 0).sum(1) >= 2

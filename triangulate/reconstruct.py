@@ -7,9 +7,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from triangulate.dlt import DLTConfig, Triangulator, _reject_unknown, limb_check
-from triangulate.evaluate import mean_joint_distance
 from triangulate.geometry import check_shape, fundamental_from_P
 from triangulate.matching import MatchConfig, match_frame
+
+
+def _mean_joint_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``evaluate.mean_joint_distance`` (same arithmetic, same bits) with fewer temporaries."""
+    d = A[:, None] - B[None]
+    d *= d
+    d = np.sqrt(np.add.reduce(d, axis=-1))  # (G,K,J) = np.linalg.norm(A - B, axis=-1)
+    ok = np.isfinite(d)
+    n = ok.sum(-1)
+    d[~ok] = 0.0
+    return np.where(n > 0, d.sum(-1) / np.maximum(n, 1), np.inf)
 
 
 def flip_index(joint_names: tuple[str, ...]) -> np.ndarray:
@@ -90,6 +100,7 @@ class FrameReconstructor:
         self.joint_names = joint_names
         self.tri = Triangulator(self.P, self.config.dlt)
         self.flip = None if joint_names is None else flip_index(joint_names)
+        self._upper: dict[int, np.ndarray] = {}  # (M,M) strict upper-triangle masks by M
 
     def _triangulate(self, xy: np.ndarray, score: np.ndarray, H: np.ndarray, S: np.ndarray) -> dict:
         """Triangulate hypotheses H (M,C) with mirror flags S (M,C); returns (M,...) arrays and keep (M,J)."""
@@ -118,16 +129,24 @@ class FrameReconstructor:
     def _merge_duplicates(self, xy, score, H, S, res):
         """Sec. 4.2.1 leaves a person split over two hypotheses when one view did not join; merge them."""
         X = np.where(res["keep"][..., None], res["xyz_m"], np.nan)
-        D = mean_joint_distance(X, X)
-        mirror = np.zeros(D.shape, bool)
+        M = len(X)
         if self.flip is not None:  # the same person with left/right swapped (a mirrored hypothesis)
-            Dm = mean_joint_distance(X, X[:, self.flip])
+            D2 = _mean_joint_distance(X, np.concatenate([X, X[:, self.flip]], 0))  # one pass for both
+            D, Dm = D2[:, :M], D2[:, M:]
             mirror = Dm < D
             D = np.minimum(D, Dm)
-        D[np.arange(len(D)), np.arange(len(D))] = np.inf
-        a_idx, b_idx = np.nonzero(np.triu(D < self.config.merge_dist_m, 1))
-        if len(a_idx) == 0:
+        else:
+            D = _mean_joint_distance(X, X)
+            mirror = np.zeros(D.shape, bool)
+        close = D < self.config.merge_dist_m
+        upper = self._upper.get(M)
+        if upper is None:
+            upper = self._upper[M] = np.triu(np.ones((M, M), bool), 1)
+        close &= upper  # pairs a < b only
+        if not close.any():
             return H, S, res
+        D[np.arange(M), np.arange(M)] = np.inf
+        a_idx, b_idx = np.nonzero(close)
         alive = np.ones(len(H), bool)
         changed = np.zeros(len(H), bool)
         views = np.where(res["keep"], res["n_views"], 0).sum(1)
