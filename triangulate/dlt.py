@@ -173,11 +173,12 @@ class Triangulator:
         check_shape("weights", w0, (C, N))
         seen = np.isfinite(xy).all(-1) & (w0 >= cfg.min_score) & np.isfinite(w0)
         w0 = np.where(seen, w0, 0.0)
-        xyn = np.where(seen[..., None], (np.where(seen[..., None], xy, 0.0) - self._c) / self._s, 0.0)
+        xyn = (xy - self._c) / self._s
+        xyn[~seen] = 0.0
         used = seen.copy()
         ar = np.arange(N)
         X, info = self._solve(xyn, w0)  # algebraic first guess
-        idx = ar
+        idx = slice(None)  # all points (a view, no gather) until the first rejection
         for it in range(cfg.max_rejections + 1):
             # reweight by inverse projective depth: rows then measure (normalised) pixel error;
             # after a rejection only the points that lost a view are solved again
@@ -213,7 +214,7 @@ class Triangulator:
         sigma = np.maximum(cfg.noise_px, rms)
         tr = _sym3_inv_trace(info)
         std = sigma * np.sqrt(np.maximum(tr, 0) * w2 / np.maximum(s2, 1e-12) / 3.0)
-        max_err = np.where(used, err, 0.0).max(0)
+        max_err = err_used.max(0)
         ok = (n_views >= cfg.min_views) & (max_err <= cfg.max_reproj_px) & (std <= cfg.max_std_m) \
             & np.isfinite(X).all(1)
         score = np.where(used, w0, 0.0).sum(0) / np.maximum(n_views, 1)

@@ -107,9 +107,16 @@ def pair_costs(xy: np.ndarray, vis: np.ndarray, F: np.ndarray, min_shared: int =
     mirrored against the second unmirrored (``cross``; else None).
     """
     C, P, J = vis.shape
-    xs = _homog(xy, vis)
-    L = _lines(xs, F)
-    d = _dist(L, xs)
+    if flip is None:
+        xs = _homog(xy, vis)
+        L = _lines(xs, F)
+    else:  # the poses and their mirror images in one pass: (C,3,J,2P)
+        vf = vis[:, :, flip]
+        xs2 = _homog(np.concatenate([xy, xy[:, :, flip]], 1), np.concatenate([vis, vf], 1))
+        L2 = _lines(xs2, F)
+        xs, xsf, L = xs2[..., :P], xs2[..., P:], L2[..., :P]
+    d_all = _dist(L if flip is None else L2, xs)  # (a,b,P or 2P,P)
+    d = d_all[:, :, :P]
     d = (d + d.transpose(1, 0, 3, 2)).astype(np.float64)  # symmetric: in b plus in a (eq. 4.3)
     v = vis.reshape(C * P, J).astype(np.float64)
     n = (v @ v.T).reshape(C, P, C, P)
@@ -118,10 +125,8 @@ def pair_costs(xy: np.ndarray, vis: np.ndarray, F: np.ndarray, min_shared: int =
     ok[np.arange(C), :, np.arange(C), :] = False
     if flip is None:
         return cost, ok, None, None
-    vf = vis[:, :, flip]
-    xsf = _homog(xy[:, :, flip], vf)
-    # cost(a'_p, b_q)
-    dx = (_dist(_lines(xsf, F), xs) + _dist(L, xsf).transpose(1, 0, 3, 2)).astype(np.float64)
+    # cost(a'_p, b_q): b's points to the mirrored poses' lines, plus the mirrored points to b's lines
+    dx = (d_all[:, :, P:] + _dist(L, xsf).transpose(1, 0, 3, 2)).astype(np.float64)
     nx = (vf.reshape(C * P, J).astype(np.float64) @ v.T).reshape(C, P, C, P)
     cross = dx.transpose(0, 2, 1, 3) / np.maximum(nx, 1)
     okx = nx >= max(min_shared, 1)

@@ -100,6 +100,7 @@ class FrameReconstructor:
         self.joint_names = joint_names
         self.tri = Triangulator(self.P, self.config.dlt)
         self.flip = None if joint_names is None else flip_index(joint_names)
+        self._cams_col = np.arange(len(self.P))[:, None]
         self._upper: dict[int, np.ndarray] = {}  # (M,M) strict upper-triangle masks by M
 
     def _triangulate(self, xy: np.ndarray, score: np.ndarray, H: np.ndarray, S: np.ndarray) -> dict:
@@ -107,8 +108,8 @@ class FrameReconstructor:
         C, J = len(self.P), xy.shape[2]
         M = len(H)
         sel = np.maximum(H, 0).T  # (C,M)
-        xy_h = xy[np.arange(C)[:, None], sel]  # (C,M,J,2)
-        sc_h = score[np.arange(C)[:, None], sel]  # (C,M,J)
+        xy_h = xy[self._cams_col, sel]  # (C,M,J,2)
+        sc_h = score[self._cams_col, sel]  # (C,M,J)
         if self.flip is not None and S.any():
             c, m = np.nonzero(S.T)
             xy_h[c, m] = xy_h[c, m][:, self.flip]
@@ -120,7 +121,7 @@ class FrameReconstructor:
         out = {"xyz_m": r.xyz_m.reshape(M, J, 3), "reproj_err_px": r.reproj_err_px.reshape(M, J),
                "score": r.score.reshape(M, J), "n_views": r.n_views.reshape(M, J),
                "std_m": r.std_m.reshape(M, J)}
-        keep = np.isfinite(out["xyz_m"]).all(-1)
+        keep = out["n_views"] > 0  # = np.isfinite(xyz_m).all(-1): a kept joint has >= min_views views
         if self.config.limb_check and self.joint_names is not None:
             keep &= limb_check(out["xyz_m"], out["reproj_err_px"], self.joint_names)
         out["keep"] = keep
