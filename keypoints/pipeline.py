@@ -48,6 +48,10 @@ class PipelineConfig:
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
     model_roi: bool = False  # refine passes: the model's own ROI where it has one (BlazePose; measured worse)
+    # two poses of one image closer than this x the person's size (median over joints both see) are one
+    # person found twice (an occluded person's crop returning the pose of the person in front); 0 = off
+    duplicate_frac: float = 0.08
+    tta_scales: tuple[float, ...] = (1.0,)  # refine passes: crop sizes (x padding) averaged
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
@@ -201,6 +205,59 @@ def _keypoint_box_iou(xy: np.ndarray, sc: np.ndarray, det: np.ndarray, min_score
     return out
 
 
+def _duplicate_pairs(
+    xy: np.ndarray, sc: np.ndarray, frac: float, min_score: float = 0.3, min_joints: int = 4
+):
+    """Pairs (a, b) of poses xy (M,J,2), sc (M,J) whose median joint distance over the joints both see
+    confidently is under ``frac`` x the larger side of the smaller pose's keypoint box."""
+    out = []
+    ok = (sc >= min_score) & np.isfinite(xy[..., 0])
+    size = np.zeros(len(xy))
+    for m in range(len(xy)):
+        if ok[m].sum() >= 2:
+            size[m] = (xy[m, ok[m]].max(0) - xy[m, ok[m]].min(0)).max()
+    for a in range(len(xy)):
+        for b in range(a + 1, len(xy)):
+            both = ok[a] & ok[b]
+            if both.sum() < min_joints:
+                continue
+            d = np.median(np.linalg.norm(xy[a, both] - xy[b, both], axis=-1))
+            if d < frac * min(size[a], size[b]):
+                out.append((a, b))
+    return out
+
+
+def _paint_body(
+    img: np.ndarray,
+    xy: np.ndarray,
+    sc: np.ndarray,
+    skeleton: str,
+    value: float,
+    min_score: float = 0.3,
+    width: float = 0.12,
+) -> None:
+    """Paint a person over in place: lines ``width`` x the keypoint box height thick along the limbs between
+    confident keypoints xy (J,2), and discs at them (the torso as a filled polygon)."""
+    sk = get_skeleton(skeleton)
+    ok = (sc >= min_score) & np.isfinite(xy[:, 0])
+    if ok.sum() < 2:
+        return
+    h = float(np.ptp(xy[ok, 1]))
+    th = max(2, int(round(width * h)))
+    col = (int(value),) * 3
+    for a, b in sk.limbs:
+        if ok[a] and ok[b]:
+            cv2.line(img, tuple(int(v) for v in xy[a]), tuple(int(v) for v in xy[b]), col, th)
+    for j in np.flatnonzero(ok):
+        cv2.circle(img, tuple(int(v) for v in xy[j]), th // 2 + 1, col, -1)
+    try:
+        torso = [sk.index(n) for n in ("left_shoulder", "right_shoulder", "right_hip", "left_hip")]
+    except KeyError:
+        return
+    if ok[torso].all():
+        cv2.fillConvexPoly(img, np.round(xy[torso]).astype(np.int32), col)
+
+
 # ----------------------------------------------------------------------------- the pipeline
 
 
@@ -299,25 +356,32 @@ class KeypointPipeline:
         return res
 
     def pose_on_boxes(
-        self, images: list[np.ndarray], boxes: list[np.ndarray], angles: list[np.ndarray] | None = None
+        self,
+        images: list[np.ndarray],
+        boxes: list[np.ndarray],
+        angles: list[np.ndarray] | None = None,
+        scales: tuple[float, ...] = (1.0,),
     ):
         """Run the pose model on every box of every image as one batch.
 
         Returns per image (xy (M,J,2) image px, score (M,J), person (M,), roi) in the model's skeleton;
         ``roi`` (M,5) = box x0,y0,x1,y1 + tilt angle for the next pass where the model gives one (BlazePose's
-        alignment points, as mediapipe's landmarks-to-ROI tracking step), else None.
+        alignment points, as mediapipe's landmarks-to-ROI tracking step), else None. ``scales``: crop sizes
+        (x the padding) whose results are averaged (test-time augmentation, one batch).
         """
         spec = self.pose_spec
         W, H = spec.input.size_wh
         pad = self.config.box_padding or spec.input.box_padding
         t = time.perf_counter()
-        n = sum(len(b) for b in boxes)
+        scales = tuple(scales) or (1.0,)
+        n0 = sum(len(b) for b in boxes)
+        n = n0 * len(scales)  # crops ordered scale-major: crop s * n0 + person
         crops = np.empty((n, H, W, 3), np.uint8)
         Ms = np.empty((n, 2, 3))
         k = 0
-        for i, bs in enumerate(boxes):
+        for i, bs, f in ((i, bs, f) for f in scales for i, bs in enumerate(boxes)):
             for j, b in enumerate(bs):
-                Ms[k] = crop_transform(b, (W, H), pad, 0.0 if angles is None else angles[i][j])
+                Ms[k] = crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j])
                 src, M = self._pyramid(images, i, Ms[k])
                 cv2.warpAffine(
                     src,
@@ -349,7 +413,13 @@ class KeypointPipeline:
         if n:
             xy = apply_inverse(Ms, xy)
             if roi is not None:
-                roi = self._roi_to_image(roi, Ms)
+                roi = self._roi_to_image(roi[:n0], Ms[:n0])
+        if len(scales) > 1:  # multi-scale test-time augmentation: score-weighted mean over the crops
+            S = len(scales)
+            xy, sc, person = xy.reshape(S, n0, -1, 2), sc.reshape(S, n0, -1), person.reshape(S, n0)
+            w = sc[..., None] + 1e-6
+            xy = (xy * w).sum(0) / w.sum(0)
+            sc, person = sc.mean(0), person.mean(0)
         res, k = [], 0
         for bs in boxes:
             m = len(bs)
@@ -433,13 +503,18 @@ class KeypointPipeline:
                     ba.append(upright_boxes(xy, sc, self.src_skeleton, b))
             self._tick("pose_post", t)
             new = self.pose_on_boxes(
-                images, [b for b, _ in ba], [a if self.config.rotate else 0 * a for _, a in ba]
+                images,
+                [b for b, _ in ba],
+                [a if self.config.rotate else 0 * a for _, a in ba],
+                self.config.tta_scales,
             )
             # a refined crop that slid off its detector box onto someone else (an occluded person's crop
             # centred on the person in front) keeps the previous pass's pose instead
             t = time.perf_counter()
             res = [self._keep_on_box(old, nw, b) for old, nw, b in zip(res, new, boxes, strict=True)]
             self._tick("pose_post", t)
+        if self.config.duplicate_frac > 0:
+            res = self._resolve_duplicates(images, boxes, res)
         out = []
         t = time.perf_counter()
         for (xy, sc, person, _), b in zip(res, boxes, strict=True):
@@ -447,6 +522,48 @@ class KeypointPipeline:
             out.append(self._finish(b[keep], xy[keep], sc[keep]))
         self._tick("pose_post", t)
         return out
+
+    def _resolve_duplicates(self, images, boxes, res):
+        """Occluded people: where two poses of one image coincide, the one whose keypoints fit its detector
+        box worse is estimated again on a copy of the image with the other person's body painted over
+        (thick lines along its limbs, in the pad value), cropped around its own detector box; if it still
+        coincides, it is dropped (person score 0) rather than counted twice."""
+        t = time.perf_counter()
+        losers: list[tuple[int, int, int]] = []  # (image, loser, winner)
+        for i, ((xy, sc, _p, _), det) in enumerate(zip(res, boxes, strict=True)):
+            if len(det) < 2:
+                continue
+            for a, b in _duplicate_pairs(xy, sc, self.config.duplicate_frac):
+                iou = _keypoint_box_iou(xy[[a, b]], sc[[a, b]], det[[a, b]])
+                lose, win = (a, b) if iou[0] < iou[1] else (b, a)
+                if not any(ln == lose and im == i for im, ln, _ in losers):
+                    losers.append((i, lose, win))
+        self._tick("pose_post", t)
+        if not losers:
+            return res
+        pad = self.pose_spec.input.pad_value
+        imgs, bxs = [], []
+        for i, lose, win in losers:
+            img = images[i].copy()
+            _paint_body(img, res[i][0][win], res[i][1][win], self.src_skeleton, pad)
+            imgs.append(img)
+            bxs.append(boxes[i][lose : lose + 1])
+        saved = self._pyr
+        self._pyr = {}  # the painted copies have their own pyramid levels
+        try:
+            again = self.pose_on_boxes(imgs, bxs)
+        finally:
+            self._pyr = saved
+        res = [tuple(np.array(a) if a is not None else None for a in r) for r in res]
+        for (i, lose, win), (xy, sc, person, _) in zip(losers, again, strict=True):
+            xy_i, sc_i, p_i = res[i][0], res[i][1], res[i][2]
+            two_xy = np.stack([xy[0], xy_i[win]])
+            two_sc = np.stack([sc[0], sc_i[win]])
+            if _duplicate_pairs(two_xy, two_sc, self.config.duplicate_frac):
+                p_i[lose] = 0.0  # still the same person: drop it
+            else:
+                xy_i[lose], sc_i[lose], p_i[lose] = xy[0], sc[0], person[0]
+        return res
 
     def _keep_on_box(self, old, new, det: np.ndarray):
         """Per person, the new pass's result unless its confident keypoints' box overlaps the detector box

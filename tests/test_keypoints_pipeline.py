@@ -124,3 +124,21 @@ def test_vtest_pedestrian_count(frame, people):
     assert ok
     res = KeypointPipeline("default")([img])[0]
     assert len(res.boxes) == people  # measured 3 and 6 (a static sign, pose score 0.12-0.18, is dropped)
+
+
+def test_duplicate_pairs_and_body_paint(rng):
+    from keypoints.pipeline import _duplicate_pairs, _paint_body
+
+    xy = rng.uniform(100, 500, (1, 17, 2))
+    sc = np.full((1, 17), 0.9)
+    near = xy + rng.normal(0, 3, xy.shape)  # the same person found twice (size ~400 px, 3 px apart)
+    far = xy + np.array([150.0, 0.0])  # someone beside them
+    both = np.concatenate([xy, near, far])
+    assert _duplicate_pairs(both, np.repeat(sc, 3, 0), 0.08) == [(0, 1)]
+    sc_off = np.repeat(sc, 3, 0)
+    sc_off[1, 3:] = 0.0  # fewer than 4 joints seen by both: no verdict
+    assert _duplicate_pairs(both, sc_off, 0.08) == []
+    img = np.full((600, 600, 3), 255, np.uint8)
+    _paint_body(img, xy[0], sc[0], "coco17", 0)
+    assert (img[np.round(xy[0, :, 1]).astype(int), np.round(xy[0, :, 0]).astype(int)] == 0).all()
+    assert (img == 255).any()
