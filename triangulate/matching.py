@@ -60,8 +60,14 @@ class MatchConfig:
         return cls(**_reject_unknown(cls, d))
 
 
+def _as_float(F) -> np.ndarray:
+    F = np.asarray(F)
+    return F if F.dtype in (np.float32, np.float64) else F.astype(np.float64)
+
+
 def _usable(xy: np.ndarray, score: np.ndarray, cfg: MatchConfig) -> np.ndarray:
-    vis = np.isfinite(xy).all(-1) & (np.nan_to_num(score) >= cfg.min_score)
+    # NaN scores count as 0 (a NaN never passes ``>=``, so nan_to_num is only needed for min_score <= 0)
+    vis = np.isfinite(xy).all(-1) & ((score if cfg.min_score > 0 else np.nan_to_num(score)) >= cfg.min_score)
     vis &= (vis.sum(-1) >= cfg.min_joints)[..., None]
     return vis
 
@@ -81,7 +87,8 @@ def _homog(xy: np.ndarray, vis: np.ndarray) -> np.ndarray:
 def _lines(xs: np.ndarray, F: np.ndarray) -> np.ndarray:
     """L[a,b,k,j,p] = (F[a,b] x_{a,p,j})_k: epipolar lines in camera b, scaled to a unit normal."""
     C, _, J, P = xs.shape
-    L = np.matmul(F.reshape(C, C * 3, 3).astype(np.float32), xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)
+    F32 = F.reshape(C, C * 3, 3).astype(np.float32, copy=False)  # a float32 F (from the caller) is used as is
+    L = np.matmul(F32, xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)
     nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
     np.maximum(nrm, 1e-12, out=nrm)
     L /= nrm[:, :, None]
@@ -161,7 +168,7 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
         flip = np.asarray(flip, dtype=np.int64)
         if (flip == np.arange(J)).all():
             flip = None
-    cost_all, ok_all, cross_all, okx_all = pair_costs(xy, vis, np.asarray(F, dtype=np.float64),
+    cost_all, ok_all, cross_all, okx_all = pair_costs(xy, vis, _as_float(F),
                                                       cfg.min_shared_joints, flip)
     # G[i][k, q, o, c, h]: q = 0: the cost (0 where not ok), q = 1: ok; o = 0: both poses as
     # detected, o = 1: the first mirrored (= the second mirrored). One gather per camera reads all.

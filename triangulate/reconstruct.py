@@ -100,6 +100,7 @@ class FrameReconstructor:
         self.joint_names = joint_names
         self.tri = Triangulator(self.P, self.config.dlt)
         self.flip = None if joint_names is None else flip_index(joint_names)
+        self._F32 = self.F.astype(np.float32)  # what the matching's epipolar lines use
         self._cams_col = np.arange(len(self.P))[:, None]
         self._upper: dict[int, np.ndarray] = {}  # (M,M) strict upper-triangle masks by M
 
@@ -175,7 +176,7 @@ class FrameReconstructor:
         C = len(self.P)
         check_shape("xy_px", xy, (C, None, None, 2))
         J = xy.shape[2]
-        H, S = match_frame(xy, score, self.F, self.config.match, self.order,
+        H, S = match_frame(xy, score, self._F32, self.config.match, self.order,
                            self.flip if self.config.fix_flips else None)
         if len(H) == 0:
             return FramePoses.empty(J, C)
