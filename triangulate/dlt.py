@@ -277,7 +277,7 @@ def limb_check(xyz_m: np.ndarray, reproj_err_px: np.ndarray, joint_names: tuple[
     a, b, lo, hi = pairs
     dv = xyz_m[:, a] - xyz_m[:, b]
     length = np.sqrt(np.add.reduce(dv * dv, axis=-1))  # (M,L), = np.linalg.norm(dv, axis=-1)
-    bad = np.isfinite(length) & ((length < lo) | (length > hi))
+    bad = (length < lo) | (length > hi)  # NaN (a missing endpoint) is neither
     if bad.any():
         ea, eb = np.nan_to_num(reproj_err_px[:, a]), np.nan_to_num(reproj_err_px[:, b])
         m, limb = np.nonzero(bad)

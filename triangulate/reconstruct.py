@@ -191,5 +191,5 @@ class FrameReconstructor:
             xyz_m=np.where(keep[..., None], res["xyz_m"], nan)[good],
             score=np.where(keep, res["score"], 0)[good],
             reproj_err_px=np.where(keep, res["reproj_err_px"], nan)[good],
-            n_views=np.where(keep, res["n_views"], 0).astype(np.int16)[good],
+            n_views=np.where(keep, res["n_views"], 0).astype(np.int16, copy=False)[good],
             std_m=np.where(keep, res["std_m"], nan)[good], members=H[good], mirrored=S[good])
