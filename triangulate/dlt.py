@@ -25,16 +25,18 @@ _EPS_EYE = 1e-12 * np.eye(3)
 
 # adjugate of a symmetric 3x3 matrix in flat (row*3+col) indices: adj[k] = m[A]*m[B] - m[C]*m[D],
 # the cofactors c00 c01 c02 / c01 c11 c12 / c02 c12 c22 (upper-triangle entries read where possible)
-_ADJ_A, _ADJ_B = np.array([4, 2, 1, 2, 0, 1, 1, 1, 0]), np.array([8, 5, 5, 5, 8, 2, 5, 2, 4])
-_ADJ_C, _ADJ_D = np.array([5, 1, 2, 1, 2, 0, 2, 0, 1]), np.array([5, 8, 4, 8, 2, 5, 4, 5, 1])
+_ADJ_AC = np.array([[4, 2, 1, 2, 0, 1, 1, 1, 0], [5, 1, 2, 1, 2, 0, 2, 0, 1]])
+_ADJ_BD = np.array([[8, 5, 5, 5, 8, 2, 5, 2, 4], [5, 8, 4, 8, 2, 5, 4, 5, 1]])
 
 
 def _sym3_adj_det(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Adjugate (N,9) (flat, row-major) and determinant (N,) of symmetric 3x3 matrices M (N,3,3)."""
     m = M.reshape(len(M), 9)
-    adj = m[:, _ADJ_A] * m[:, _ADJ_B]
-    adj -= m[:, _ADJ_C] * m[:, _ADJ_D]
-    det = m[:, 0] * adj[:, 0] + m[:, 1] * adj[:, 1] + m[:, 2] * adj[:, 2]
+    ab_cd = m[:, _ADJ_AC] * m[:, _ADJ_BD]  # (N,2,9): the two products of each cofactor
+    adj = ab_cd[:, 0] - ab_cd[:, 1]
+    q = m[:, :3] * adj[:, :3]  # det = m00 c00 + m01 c01 + m02 c02 (expansion along the first row)
+    det = q[:, 0] + q[:, 1]
+    det += q[:, 2]
     return adj, det
 
 
@@ -44,8 +46,7 @@ def _sym3_solve(M: np.ndarray, b: np.ndarray) -> np.ndarray:
     agrees with LAPACK's LU (np.linalg.solve) to ~1e-15 relative and avoids its per-matrix call
     overhead (the frame's largest fixed cost)."""
     adj, det = _sym3_adj_det(M)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = -1.0 / det
+    r = -1.0 / det  # det >= 1e-36 > 0: M = A + 1e-12 I with A = R^T R positive semi-definite
     p = adj.reshape(len(M), 3, 3) * b[:, None, :]
     x = p[..., 0] + p[..., 1]
     x += p[..., 2]
@@ -56,8 +57,7 @@ def _sym3_solve(M: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _sym3_inv_trace(M: np.ndarray) -> np.ndarray:
     """trace(M^-1) (N,) of symmetric 3x3 matrices M (N,3,3), in closed form (see ``_sym3_solve``)."""
     adj, det = _sym3_adj_det(M)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (adj[:, 0] + adj[:, 4] + adj[:, 8]) / det
+    return (adj[:, 0] + adj[:, 4] + adj[:, 8]) / det
 
 
 def _reject_unknown(cls, d: dict) -> dict:
