@@ -27,6 +27,7 @@ from triangulate.dlt import _reject_unknown
 from triangulate.geometry import check_shape
 
 _BIG = 1e9
+_O01 = np.array([0, 1])[:, None, None]  # S ^ 0 = S, S ^ 1 = 1 - S for S in {0, 1}
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,7 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
     S = np.zeros((0, C), dtype=np.int64)  # 1 = pose mirrored relative to its hypothesis
     theta = cfg.theta_px
     for i in order.tolist():
-        ks = np.flatnonzero(present[i])
+        ks = present[i].nonzero()[0]
         if len(ks) == 0:
             continue
         new = None
@@ -193,7 +194,7 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
             # each member taken in its own orientation: pose as is vs member mirrored = cross cost
             valid = H >= 0
             # o = S: each member in its own orientation; o = 1 - S: the pose mirrored against it
-            o = np.stack([S, 1 - S]) if flip is not None else np.zeros((1,) + S.shape, np.int64)
+            o = S[None] ^ _O01 if flip is not None else np.zeros((1,) + S.shape, np.int64)  # (o,M,C): S, 1-S
             t = (G[i][ks][:, :, o, cams, np.maximum(H, 0)] * valid).sum(-1)  # (K,q,o,M)
             phis = np.where(t[:, 1] > 0, t[:, 0] / np.maximum(t[:, 1], 1), _BIG)  # (K,o,M)
             phi = phis[:, 0]
