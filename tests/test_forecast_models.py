@@ -278,3 +278,12 @@ def test_shipped_configs_and_checkpoint_load():
         assert y.shape == (1, 2, 40, 2, 19, 3) and np.isfinite(y).all()
         jump = np.linalg.norm(y[0, :, 0] - scene[0, -1], axis=-1).mean()
         assert jump < 0.3  # continues from the observation; measured 0.09 m (a walking step is 0.05 m)
+    ck = root / "checkpoints" / "intention_cmu.pt"
+    if ck.exists():
+        assert ck.stat().st_size < 2_000_000  # measured 1.24 MB (discriminators are not shipped)
+        model, meta = T.load_checkpoint(ck, skeleton="body19")
+        assert meta["kind"] == "intention" and meta["config"].n_pred == 100
+        torch.manual_seed(0)
+        y = forecast_world(model, walker(50)[None, :, None], None, 50, n_samples=3)
+        assert y.shape == (1, 3, 50, 1, 19, 3) and np.isfinite(y).all()
+        assert np.std(y[0, :, -1], axis=0).mean() > 0.002  # samples differ at 2 s; measured 0.008 m
