@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from keypoints.skeletons import CANONICAL, Skeleton
-from track.motion import CheckpointMismatch
+from track.motion import read_checkpoint
 from track.normalize import denormalize, hip_frame, normalize
 
 CHECKPOINT_SCHEMA = "birth_mlp/1"
@@ -68,27 +68,10 @@ def load_checkpoint(
     path: str | Path = DEFAULT_CHECKPOINT, skeleton: Skeleton = CANONICAL
 ) -> tuple[BirthNet, dict]:
     """Load a birth-generator checkpoint (weights_only=True) and check it matches ``skeleton``."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(
-            f"birth checkpoint {path} not found; train one with "
-            "`python -m track.train_birth --out track/checkpoints/birth_mlp.pt` or use birth = 'gaussian'."
-        )
-    try:
-        meta = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - any unpickling failure means "not a checkpoint we can read"
-        raise CheckpointMismatch(f"{path} is not a readable birth checkpoint ({e}).") from e
-    if not isinstance(meta, dict) or meta.get("schema") != CHECKPOINT_SCHEMA:
-        got = meta.get("schema") if isinstance(meta, dict) else type(meta).__name__
-        raise CheckpointMismatch(f"{path}: expected a '{CHECKPOINT_SCHEMA}' checkpoint, got {got!r}.")
+    meta = read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "birth",
+                           "python -m track.train_birth --out track/checkpoints/birth_mlp.pt",
+                           "use birth = 'gaussian'")
     names = tuple(meta["joint_names"])
-    if names != tuple(skeleton.joint_names):
-        raise CheckpointMismatch(
-            f"{path} was trained for skeleton '{meta.get('skeleton')}' with {len(names)} joints "
-            f"{list(names)}, but the tracker uses '{skeleton.id}' with {skeleton.n_joints} joints "
-            f"{list(skeleton.joint_names)}. "
-            "Retrain with `python -m track.train_birth` for that skeleton or use birth = 'gaussian'."
-        )
     model = BirthNet(len(names), int(meta["hidden"]), float(meta["dropout"]))
     model.load_state_dict({k: v.float() for k, v in meta["state_dict"].items()})
     return model.eval(), meta

@@ -183,30 +183,39 @@ def save_checkpoint(
         torch.save(payload, tmp)
 
 
-def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[PoseGRU, dict]:
-    """Load a motion checkpoint (weights_only=True) and check it matches ``skeleton``."""
+def read_checkpoint(path: str | Path, schema: str, skeleton: Skeleton, kind: str, train_cmd: str,
+                    alternative: str) -> dict:
+    """Load a learned-model checkpoint of the tracker (weights_only=True) and check its schema and skeleton.
+
+    ``kind`` names the model in messages; ``train_cmd`` and ``alternative`` say what to do instead."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(
-            f"motion checkpoint {path} not found; train one with "
-            "`python -m track.train_motion --out track/checkpoints/motion_gru.pt` "
-            "or use the constant-velocity prior (motion = 'constant_velocity')."
+            f"{kind} checkpoint {path} not found; train one with `{train_cmd}` or {alternative}."
         )
     try:
         meta = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unpickling failure means "not a checkpoint we can read"
-        raise CheckpointMismatch(f"{path} is not a readable motion checkpoint ({e}).") from e
-    if not isinstance(meta, dict) or meta.get("schema") != CHECKPOINT_SCHEMA:
+        raise CheckpointMismatch(f"{path} is not a readable {kind} checkpoint ({e}).") from e
+    if not isinstance(meta, dict) or meta.get("schema") != schema:
         got = meta.get("schema") if isinstance(meta, dict) else type(meta).__name__
-        raise CheckpointMismatch(f"{path}: expected a '{CHECKPOINT_SCHEMA}' checkpoint, got {got!r}.")
+        raise CheckpointMismatch(f"{path}: expected a '{schema}' checkpoint, got {got!r}.")
     names = tuple(meta["joint_names"])
     if names != tuple(skeleton.joint_names):
         raise CheckpointMismatch(
             f"{path} was trained for skeleton '{meta.get('skeleton')}' with {len(names)} joints "
             f"{list(names)}, but the tracker uses '{skeleton.id}' with {skeleton.n_joints} joints "
-            f"{list(skeleton.joint_names)}. "
-            "Retrain with `python -m track.train_motion --skeleton <id>` or pick the matching checkpoint."
+            f"{list(skeleton.joint_names)}. Retrain with `{train_cmd}` for that skeleton or {alternative}."
         )
+    return meta
+
+
+def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[PoseGRU, dict]:
+    """Load a motion checkpoint (weights_only=True) and check it matches ``skeleton``."""
+    meta = read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "motion",
+                           "python -m track.train_motion --out track/checkpoints/motion_gru.pt",
+                           "use the constant-velocity prior (motion = 'constant_velocity')")
+    names = tuple(meta["joint_names"])
     model = PoseGRU(len(names), int(meta["hidden"]), float(meta["dropout"]))
     model.load_state_dict({k: v.float() for k, v in meta["state_dict"].items()})
     return model.eval(), meta
