@@ -78,3 +78,26 @@ def test_gru_prior_dropout_diversity_and_checkpoint_mismatch(tmp_path, rng):
         GRUPrior.load(tmp_path / "junk.pt")
     with pytest.raises(FileNotFoundError, match="train_motion"):
         GRUPrior.load(tmp_path / "missing.pt")
+
+
+def test_trainers_write_loadable_checkpoints(tmp_path):
+    """Both trainers share one loop; a few steps on the real mocap give checkpoints the tracker loads."""
+    pytest.importorskip("torch")
+    from conftest import need_shared
+
+    from track import train_birth, train_motion
+    from track.birth import BirthGenerator
+    from track.motion import GRUPrior
+
+    mocap = need_shared("data", "motion")
+    clips = [np.zeros((10, 19, 3), np.float32) + i for i in range(3)]
+    train, val = train_motion.split_clips(clips, ["a_01", "b_02", "c_11"], "1")
+    assert [int(c[0, 0, 0]) for c in train] == [1] and [int(c[0, 0, 0]) for c in val] == [0, 2]
+    train_motion.main(
+        ["--out", str(tmp_path / "m.pt"), "--steps", "3", "--hidden", "8", "--mocap", str(mocap)]
+    )
+    train_birth.main(
+        ["--out", str(tmp_path / "b.pt"), "--steps", "3", "--hidden", "16", "--mocap", str(mocap)]
+    )
+    assert GRUPrior.load(tmp_path / "m.pt", fps=25.0).model.hidden == 8
+    assert BirthGenerator.load(tmp_path / "b.pt") is not None

@@ -15,7 +15,6 @@ and of the median-template fill the tracker used before is printed and stored in
 
 from __future__ import annotations
 
-import argparse
 import logging
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ from keypoints.skeletons import CANONICAL
 from track.birth import BirthNet, save_checkpoint
 from track.normalize import hip_frame, normalize
 from track.priors import TEMPLATE_BODY19_M
-from track.train_motion import load_motion, mirror
+from track.train_motion import common_arguments, fit, load_motion, mirror, report_written, split_clips
 
 log = logging.getLogger(__name__)
 
@@ -76,29 +75,17 @@ def train(
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     clips, names = load_motion(fps, mocap)
-    is_val = [n[-1] in val_suffix and len(clips) > 1 for n in names]
-    x_tr = normalised_poses([c for c, v in zip(clips, is_val, strict=True) if not v])
-    x_va = normalised_poses([c for c, v in zip(clips, is_val, strict=True) if v] or clips[-1:])
+    train_clips, val_clips = split_clips(clips, names, val_suffix)
+    x_tr, x_va = normalised_poses(train_clips), normalised_poses(val_clips)
     model = BirthNet(CANONICAL.n_joints, hidden, dropout)
-    opt = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=1e-8)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
     loss_fn = torch.nn.HuberLoss(delta=0.02)
-    t0 = time.perf_counter()
-    it = range(steps)
-    if progress:
-        from tqdm import tqdm
 
-        it = tqdm(it, desc="train birth generator")
-    model.train()
-    for step in it:
+    def batch_loss() -> torch.Tensor:
         xin, mask, target = make_batch(x_tr[rng.integers(0, len(x_tr), batch)], max_drop, noise_m, rng)
-        loss = loss_fn(model(xin, mask), target)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        if step % 1000 == 0:
-            log.info("step %d loss %.6f", step, float(loss))
+        return loss_fn(model(xin, mask), target)
+
+    t0 = time.perf_counter()
+    fit(model, batch_loss, steps, lr, "train birth generator", progress, log_every=1000)
     model.eval()
     metrics = evaluate(model, x_va, max_drop)
     info = {
@@ -120,16 +107,11 @@ def train(
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="track/checkpoints/birth_mlp.pt")
-    ap.add_argument("--fps", type=float, default=25.0)
+    ap = common_arguments(__doc__.split("\n\n")[0], "track/checkpoints/birth_mlp.pt")
     ap.add_argument("--hidden", type=int, default=256)
     ap.add_argument("--dropout", type=float, default=0.2)
     ap.add_argument("--steps", type=int, default=15000)
     ap.add_argument("--max-drop", type=float, default=0.6)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--mocap", default=None, help="mocap folder (default: $ROOMCAP_SHARED/data/motion)")
-    ap.add_argument("--threads", type=int, default=1)
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     torch.set_num_threads(a.threads)
@@ -145,10 +127,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(a.out, model, CANONICAL, info)
-    print(
-        f"wrote {a.out}: "
-        + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in info.items())
-    )
+    report_written(a.out, info)
 
 
 if __name__ == "__main__":

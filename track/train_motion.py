@@ -95,6 +95,64 @@ def evaluate(model: PoseGRU, w: np.ndarray, noise_m: float = 0.0) -> dict[str, f
     return out
 
 
+def split_clips(
+    clips: list[np.ndarray], names: list[str], val_suffix: str
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(train, validation) clips: a clip is held out when its name ends with a digit in ``val_suffix``
+    (the last clip when none does)."""
+    is_val = [n[-1] in val_suffix and len(clips) > 1 for n in names]
+    train = [c for c, v in zip(clips, is_val, strict=True) if not v]
+    val = [c for c, v in zip(clips, is_val, strict=True) if v] or clips[-1:]
+    return train, val
+
+
+def fit(
+    model: torch.nn.Module,
+    batch_loss,
+    steps: int,
+    lr: float,
+    desc: str,
+    progress: bool,
+    log_every: int,
+) -> None:
+    """Adam (weight decay 1e-8, sec. 5.2.1) with a cosine learning-rate schedule; ``batch_loss()`` draws a
+    batch and returns its loss."""
+    opt = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=1e-8)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    it = range(steps)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc=desc)
+    model.train()
+    for step in it:
+        loss = batch_loss()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step % log_every == 0:
+            log.info("step %d loss %.6f", step, loss.item())
+
+
+def common_arguments(description: str, out: str) -> argparse.ArgumentParser:
+    """The command-line options both trainers share (``--out --fps --seed --mocap --threads``)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--out", default=out)
+    ap.add_argument("--fps", type=float, default=25.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--mocap", default=None, help="mocap folder (default: $ROOMCAP_SHARED/data/motion)")
+    ap.add_argument("--threads", type=int, default=1)
+    return ap
+
+
+def report_written(out: str, info: dict) -> None:
+    print(
+        f"wrote {out}: "
+        + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in info.items())
+    )
+
+
 def train(
     fps: float = 25.0,
     hidden: int = 64,
@@ -112,34 +170,20 @@ def train(
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     clips, names = load_motion(fps, mocap)
-    is_val = [n[-1] in val_suffix and len(clips) > 1 for n in names]
-    tr = [c for c, v in zip(clips, is_val, strict=True) if not v]
-    va = [c for c, v in zip(clips, is_val, strict=True) if v] or clips[-1:]
+    tr, va = split_clips(clips, names, val_suffix)
     w_tr = windows(tr, length, 4)
     w_tr = np.concatenate([w_tr, mirror(w_tr)])
     w_va = windows(va, length, length)
     model = PoseGRU(CANONICAL.n_joints, hidden, dropout)
-    opt = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=1e-8)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
     loss_fn = torch.nn.HuberLoss(delta=0.01)
-    t0 = time.perf_counter()
-    it = range(steps)
-    if progress:
-        from tqdm import tqdm
 
-        it = tqdm(it, desc="train motion GRU")
-    model.train()
-    for step in it:
-        idx = rng.integers(0, len(w_tr), batch)
-        x_hat, v_hat, target = make_batch(w_tr[idx], noise_m, rng)
+    def batch_loss() -> torch.Tensor:
+        x_hat, v_hat, target = make_batch(w_tr[rng.integers(0, len(w_tr), batch)], noise_m, rng)
         pred = model.forward_sequence(x_hat, v_hat)
-        loss = loss_fn(pred[:, 2:], target[:, 2:])  # the first steps have no useful hidden state yet
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        if step % 500 == 0:
-            log.info("step %d loss %.6f", step, float(loss))
+        return loss_fn(pred[:, 2:], target[:, 2:])  # the first steps have no useful hidden state yet
+
+    t0 = time.perf_counter()
+    fit(model, batch_loss, steps, lr, "train motion GRU", progress, log_every=500)
     metrics = evaluate(model, w_va)
     metrics.update({f"noisy_{k}": v for k, v in evaluate(model, w_va, 0.01).items()})
     info = {
@@ -162,16 +206,11 @@ def train(
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="track/checkpoints/motion_gru.pt")
-    ap.add_argument("--fps", type=float, default=25.0)
+    ap = common_arguments(__doc__.split("\n\n")[0], "track/checkpoints/motion_gru.pt")
     ap.add_argument("--hidden", type=int, default=64)
     ap.add_argument("--dropout", type=float, default=0.5)
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--batch", type=int, default=64)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--mocap", default=None, help="mocap folder (default: $ROOMCAP_SHARED/data/motion)")
-    ap.add_argument("--threads", type=int, default=1)
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     torch.set_num_threads(a.threads)
@@ -187,10 +226,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(a.out, model, a.fps, CANONICAL, info)
-    print(
-        f"wrote {a.out}: "
-        + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in info.items())
-    )
+    report_written(a.out, info)
 
 
 if __name__ == "__main__":
