@@ -68,13 +68,9 @@ def load_checkpoint(
     path: str | Path = DEFAULT_CHECKPOINT, skeleton: Skeleton = CANONICAL
 ) -> tuple[BirthNet, dict]:
     """Load a birth-generator checkpoint (weights_only=True) and check it matches ``skeleton``."""
-    meta = read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "birth",
+    return read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "birth",
                            "python -m track.train_birth --out track/checkpoints/birth_mlp.pt",
-                           "use birth = 'gaussian'")
-    names = tuple(meta["joint_names"])
-    model = BirthNet(len(names), int(meta["hidden"]), float(meta["dropout"]))
-    model.load_state_dict({k: v.float() for k, v in meta["state_dict"].items()})
-    return model.eval(), meta
+                           "use birth = 'gaussian'", BirthNet)
 
 
 class BirthGenerator:

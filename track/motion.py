@@ -184,8 +184,9 @@ def save_checkpoint(
 
 
 def read_checkpoint(path: str | Path, schema: str, skeleton: Skeleton, kind: str, train_cmd: str,
-                    alternative: str) -> dict:
-    """Load a learned-model checkpoint of the tracker (weights_only=True) and check its schema and skeleton.
+                    alternative: str, model_cls: type[torch.nn.Module]) -> tuple[torch.nn.Module, dict]:
+    """Load a learned-model checkpoint of the tracker (weights_only=True), check its schema and skeleton and
+    build ``model_cls(n_joints, hidden, dropout)`` from it (in eval mode).
 
     ``kind`` names the model in messages; ``train_cmd`` and ``alternative`` say what to do instead."""
     path = Path(path)
@@ -207,15 +208,13 @@ def read_checkpoint(path: str | Path, schema: str, skeleton: Skeleton, kind: str
             f"{list(names)}, but the tracker uses '{skeleton.id}' with {skeleton.n_joints} joints "
             f"{list(skeleton.joint_names)}. Retrain with `{train_cmd}` for that skeleton or {alternative}."
         )
-    return meta
+    model = model_cls(len(names), int(meta["hidden"]), float(meta["dropout"]))
+    model.load_state_dict({k: v.float() for k, v in meta["state_dict"].items()})
+    return model.eval(), meta
 
 
 def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[PoseGRU, dict]:
     """Load a motion checkpoint (weights_only=True) and check it matches ``skeleton``."""
-    meta = read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "motion",
+    return read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "motion",
                            "python -m track.train_motion --out track/checkpoints/motion_gru.pt",
-                           "use the constant-velocity prior (motion = 'constant_velocity')")
-    names = tuple(meta["joint_names"])
-    model = PoseGRU(len(names), int(meta["hidden"]), float(meta["dropout"]))
-    model.load_state_dict({k: v.float() for k, v in meta["state_dict"].items()})
-    return model.eval(), meta
+                           "use the constant-velocity prior (motion = 'constant_velocity')", PoseGRU)
