@@ -1,14 +1,20 @@
 """Robust confidence-weighted DLT, batched over every joint of every person at once (seed sec. 4.2.1).
 
-One call triangulates N points seen by up to C cameras: the 2C x 4 DLT systems of all points
-are reduced to their 4 x 4 normal matrices with one batched matmul and solved together
-(inhomogeneous form, X_4 = 1). A second solve reweights every row by the inverse projective
-depth of the first estimate, which turns the algebraic error into (first-order) pixel error
-(Hartley & Sturm's iterative linear method). Views whose reprojection error exceeds a
-threshold are dropped one at a time (the worst first) and the point is re-triangulated, as
-long as ``min_views`` remain. Per point the result carries the mean reprojection error, the
-number of views used, the mean 2D confidence of those views and a positional standard deviation
-from the Gauss-Newton covariance ``sigma^2 (J^T J)^-1``.
+One call triangulates N points seen by up to C cameras. Each point's 2C x 4 DLT system (rows
+``w (x p3 - p1)``, ``w (y p3 - p2)`` per view) enters only through its 4 x 4 normal matrix, which
+is linear in four per-view features ``w^2 (x^2 + y^2), w^2 x, w^2 y, w^2`` with per-rig constant
+coefficients (outer products of the projection rows). So the normal matrices of *all* points are
+one (9 x 4C) @ (4C x N) matrix product (the 6 distinct entries of the 3 x 3 block and the 3 of the
+last column) and are solved together in closed form (inhomogeneous form, X_4 = 1). A second solve
+reweights every row by the inverse projective depth of the first estimate, which turns the
+algebraic error into (first-order) pixel error (Hartley & Sturm's iterative linear method). Views
+whose reprojection error exceeds a threshold are dropped one at a time (the worst first) and the
+point is re-triangulated, as long as ``min_views`` remain. Per point the result carries the mean
+reprojection error, the number of views used, the mean 2D confidence of those views and a
+positional standard deviation from the Gauss-Newton covariance ``sigma^2 (J^T J)^-1``.
+
+Everything runs on (C, N) planes (one row per camera, points along the contiguous axis): a frame
+of 4 people x 5 cameras is a few dozen array operations per rejection round whatever N.
 """
 
 from __future__ import annotations
@@ -20,44 +26,38 @@ import numpy as np
 
 from triangulate.geometry import check_shape
 
-_EPS_EYE = 1e-12 * np.eye(3)
+_EPS = 1e-12  # added to the 3x3 normal matrix' diagonal: keeps it positive definite (det > 0)
+
+# the 9 entries of the 4x4 normal matrix that the inhomogeneous solve reads, as (row, col):
+# the symmetric 3x3 block m00 m01 m02 m11 m12 m22, then b = (m03, m13, m23)
+_NE_ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2])
+_NE_COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3])
+# cofactors c00 c01 c02 c11 c12 c22 of a symmetric 3x3 matrix (m00 m01 m02 m11 m12 m22 = 0..5):
+# c = m[A] m[B] - m[C] m[D]; _COF[0] = (A, B), _COF[1] = (C, D)
+_COF = np.array([[[3, 2, 1, 0, 1, 0], [5, 4, 4, 5, 2, 3]],
+                 [[4, 1, 2, 2, 0, 1], [4, 5, 3, 2, 4, 1]]])
+_ADJ_FULL = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # (i, j) of the 3x3 adjugate -> cofactor row
 
 
-# adjugate of a symmetric 3x3 matrix in flat (row*3+col) indices: adj[k] = m[A]*m[B] - m[C]*m[D],
-# the cofactors c00 c01 c02 / c01 c11 c12 / c02 c12 c22 (upper-triangle entries read where possible)
-_ADJ_AC = np.array([[4, 2, 1, 2, 0, 1, 1, 1, 0], [5, 1, 2, 1, 2, 0, 2, 0, 1]])
-_ADJ_BD = np.array([[8, 5, 5, 5, 8, 2, 5, 2, 4], [5, 8, 4, 8, 2, 5, 4, 5, 1]])
-
-
-def _sym3_adj_det(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Adjugate (N,9) (flat, row-major) and determinant (N,) of symmetric 3x3 matrices M (N,3,3)."""
-    m = M.reshape(len(M), 9)
-    ab_cd = m[:, _ADJ_AC] * m[:, _ADJ_BD]  # (N,2,9): the two products of each cofactor
-    adj = ab_cd[:, 0] - ab_cd[:, 1]
-    q = m[:, :3] * adj[:, :3]  # det = m00 c00 + m01 c01 + m02 c02 (expansion along the first row)
-    det = q[:, 0] + q[:, 1]
-    det += q[:, 2]
+def _adj_det(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cofactors (6,N) and determinant (N,) of the symmetric 3x3 blocks A[:6] (m00 m01 m02 m11 m12 m22)."""
+    g = A[_COF]  # (2,2,6,N)
+    p = g[:, 0] * g[:, 1]
+    adj = p[0] - p[1]
+    det = (A[:3] * adj[:3]).sum(0)  # expansion along the first row
     return adj, det
 
 
-def _sym3_solve(M: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """x (N,3) with M x = -b for symmetric positive definite M (N,3,3), b (N,3): the adjugate in
-    closed form, a dozen array operations whatever N. On these well-scaled 3x3 normal matrices it
-    agrees with LAPACK's LU (np.linalg.solve) to ~1e-15 relative and avoids its per-matrix call
-    overhead (the frame's largest fixed cost)."""
-    adj, det = _sym3_adj_det(M)
-    r = -1.0 / det  # det >= 1e-36 > 0: M = A + 1e-12 I with A = R^T R positive semi-definite
-    p = adj.reshape(len(M), 3, 3) * b[:, None, :]
-    x = p[..., 0] + p[..., 1]
-    x += p[..., 2]
-    x *= r[:, None]
-    return x
-
-
-def _sym3_inv_trace(M: np.ndarray) -> np.ndarray:
-    """trace(M^-1) (N,) of symmetric 3x3 matrices M (N,3,3), in closed form (see ``_sym3_solve``)."""
-    adj, det = _sym3_adj_det(M)
-    return (adj[:, 0] + adj[:, 4] + adj[:, 8]) / det
+def _solve9(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """X (3,N) with M X = -b for the normal-matrix entries A (9,N) (see ``_NE_ROWS``): the adjugate in
+    closed form, a dozen array operations whatever N. On these well-scaled positive definite 3x3
+    matrices it agrees with LAPACK's LU (np.linalg.solve) to ~1e-15 relative without its per-matrix
+    call overhead. Also returns trace(M^-1) (N,) for the covariance."""
+    adj, det = _adj_det(A)
+    r = -1.0 / det  # det >= 1e-36 > 0: M = R^T R + 1e-12 I is positive definite
+    x = (adj[_ADJ_FULL] * A[None, 6:9]).sum(1)  # (3,N) = adj(M) b
+    x *= r
+    return x, (adj[0] + adj[3] + adj[5]) * -r
 
 
 def _reject_unknown(cls, d: dict) -> dict:
@@ -140,31 +140,31 @@ class Triangulator:
         check_shape("P", self.P, (None, 3, 4))
         self.config = config or DLTConfig()
         self.Pn, self.c, self.s = normalise_P(self.P)
-        self.n_cams = len(self.P)
-        # per-rig constants of the hot loop, shaped for broadcasting once
-        self._P0, self._P1, self._P2 = (np.ascontiguousarray(self.Pn[:, None, k, :]) for k in range(3))
-        # (views, not copies: matmul's result can depend on the operands' memory layout)
-        self._Pn2_3T, self._Pn2_4 = self.Pn[:, 2, :3].T, self.Pn[:, None, 2, 3]
-        self._Pn33, self._Pn3_4 = self.Pn[:, :, :3], self.Pn[:, :, 3:4]
-        self._c, self._s = self.c[:, None], self.s[:, None, None]
+        self.n_cams = C = len(self.P)
+        # per-rig constants of the hot loop. Normal matrix of one view (module doc):
+        # (x^2 + y^2) p3 p3^T - x (p3 p1^T + p1 p3^T) - y (p3 p2^T + p2 p3^T) + p1 p1^T + p2 p2^T,
+        # plus a constant feature row that puts 1e-12 on the 3x3 block's diagonal
+        p0, p1, p2 = self.Pn[:, 0], self.Pn[:, 1], self.Pn[:, 2]  # (C,4)
+
+        def sym(a, b):
+            o = a[:, :, None] * b[:, None, :]
+            return o + o.transpose(0, 2, 1) if a is not b else o
+
+        K = np.stack([sym(p2, p2), -sym(p2, p0), -sym(p2, p1), sym(p0, p0) + sym(p1, p1)])  # (4,C,4,4)
+        K9 = K[:, :, _NE_ROWS, _NE_COLS].reshape(4 * C, 9)
+        eps = np.zeros((1, 9))
+        eps[0, [0, 3, 5]] = _EPS
+        self._K = np.ascontiguousarray(np.concatenate([K9, eps]).T)  # (9, 4C+1)
+        self._Prows = np.ascontiguousarray(self.Pn.transpose(1, 0, 2).reshape(3 * C, 4))  # (3C,4): rows, cams
+        self._c2 = np.ascontiguousarray(self.c.T)[:, :, None]  # (2,C,1)
+        self._s1 = self.s[:, None]  # (C,1)
         self._s2 = self.s[:, None] ** 2
 
-    def _solve(self, xyn, w):
-        """Weighted linear solve. xyn (C,N,2), w (C,N) (0 = unused). Returns X (N,3) and the normal
-        matrix M (N,3,3) (with depth-reweighted rows: the Gauss-Newton information in normalised units)."""
-        C, N = w.shape
-        R = np.empty((2 * C, N, 4))
-        U, V = R[:C], R[C:]
-        np.multiply(xyn[..., 0:1], self._P2, out=U)  # (C,N,4)
-        U -= self._P0
-        U *= w[..., None]
-        np.multiply(xyn[..., 1:2], self._P2, out=V)
-        V -= self._P1
-        V *= w[..., None]
-        R = R.transpose(1, 0, 2)  # (N,2C,4)
-        A = np.matmul(R.transpose(0, 2, 1), R)  # (N,4,4)
-        M = A[:, :3, :3] + _EPS_EYE
-        return _sym3_solve(M, A[:, :3, 3]), M
+    def normalised(self, xy_px: np.ndarray) -> np.ndarray:
+        """(2, ...) normalised coordinates ``(x - c) / s`` of undistorted pixels ``xy_px`` (C, ..., 2)."""
+        xy = np.moveaxis(np.asarray(xy_px, dtype=np.float64), -1, 0)
+        sh = (2, self.n_cams) + (1,) * (xy.ndim - 2)
+        return (xy - self._c2.reshape(sh)) / self.s.reshape(sh[1:])
 
     def __call__(self, xy_px: np.ndarray, weights: np.ndarray | None = None) -> Triangulated:
         """Triangulate N points. xy_px: (C,N,2) undistorted pixels, NaN = unseen; weights: (C,N) scores."""
@@ -176,56 +176,84 @@ class Triangulator:
         w0 = np.ones(xy.shape[:2]) if weights is None else np.asarray(weights, dtype=np.float64)
         check_shape("weights", w0, (C, N))
         seen = np.isfinite(xy).all(-1) & (w0 >= cfg.min_score) & np.isfinite(w0)
-        w0 = np.where(seen, w0, 0.0)
-        xyn = (xy - self._c) / self._s
-        xyn[~seen] = 0.0
-        used = seen.copy()
+        return self.solve(self.normalised(xy), np.where(seen, w0, 0.0), seen)
+
+    def solve(self, xyn: np.ndarray, w0: np.ndarray, seen: np.ndarray) -> Triangulated:
+        """The robust DLT on prepared input: xyn (2,C,N) normalised coordinates (``normalised``; any
+        finite value where unseen), w0 (C,N) confidences (0 where unseen), seen (C,N) bool."""
+        cfg = self.config
+        C, N = w0.shape
+        xyn = np.where(seen, xyn, 0.0)  # unseen: finite, so every residual below stays finite
+        # feature planes of the normal matrices: (w^2 [x^2+y^2, x, y], w^2, 1) (module doc)
+        Fe = np.empty((4 * C + 1, N))
+        Fe[-1] = 1.0
+        F3, Fw = Fe[:3 * C].reshape(3, C, N), Fe[3 * C:4 * C]
+        xyr = np.empty((3, C, N))
+        np.multiply(xyn, xyn, out=xyr[1:])
+        np.add(xyr[1], xyr[2], out=xyr[0])
+        xyr[1:] = xyn
+        np.multiply(w0, w0, out=Fw)
+        np.multiply(xyr, Fw, out=F3)
+        X, tr = _solve9(self._K @ Fe)  # algebraic first guess (3,N)
+        Xh = np.empty((4, N))
+        Xh[:3], Xh[3] = X, 1.0
+        depth = self._Prows[2 * C:] @ Xh  # (C,N)
+        pos = depth > 1e-6
+        used = seen & pos
         ar = np.arange(N)
-        X, info = self._solve(xyn, w0)  # algebraic first guess
-        idx = slice(None)  # all points (a view, no gather) until the first rejection
+        drop = None
         for it in range(cfg.max_rejections + 1):
             # reweight by inverse projective depth: rows then measure (normalised) pixel error;
-            # after a rejection only the points that lost a view are solved again
-            depth = (X[idx] @ self._Pn2_3T).T + self._Pn2_4
-            u = used[:, idx] & (depth > 1e-6)
-            used[:, idx] = u
-            w = np.where(u, w0[:, idx] / np.where(u, depth, 1.0), 0.0)
-            X[idx], info[idx] = self._solve(xyn[:, idx], w)
-            proj = (np.matmul(self._Pn33, X.T) + self._Pn3_4).transpose(0, 2, 1)  # (C,N,3)
-            depth = proj[..., 2]
-            used &= depth > 1e-6
-            safe = np.where(depth > 1e-6, depth, 1.0)[..., None]
-            res = (proj[..., :2] / safe - xyn) * self._s
-            err = np.where(used, np.sqrt((res ** 2).sum(-1)), -np.inf)  # (C,N) pixels
+            # after a rejection only the points that lost a view take the new solution
+            w = np.where(used, w0 / np.where(pos, depth, 1.0), 0.0)
+            np.multiply(w, w, out=Fw)
+            np.multiply(xyr, Fw, out=F3)
+            X, tr_it = _solve9(self._K @ Fe)
+            if drop is None:
+                Xh[:3], tr = X, tr_it
+            else:
+                np.copyto(Xh[:3], X, where=drop)
+                np.copyto(tr, tr_it, where=drop)
+            proj = (self._Prows @ Xh).reshape(3, C, N)
+            depth = proj[2]
+            pos = depth > 1e-6
+            used &= pos
+            e = proj[:2] / np.where(pos, depth, 1.0) - xyn
+            e *= e
+            err = np.sqrt(e[0] + e[1])
+            err *= self._s1  # (C,N) pixels
             if it == cfg.max_rejections:
                 break
-            worst = err.argmax(0)
-            drop = (err[worst, ar] > cfg.max_reproj_px) & (used.sum(0) > cfg.min_views)
+            err_m = np.where(used, err, -np.inf)
+            worst = err_m.argmax(0)
+            drop = (err_m[worst, ar] > cfg.max_reproj_px) & (np.count_nonzero(used, 0) > cfg.min_views)
             if not drop.any():
                 break
-            idx = ar[drop]
+            idx = drop.nonzero()[0]
             used[worst[idx], idx] = False
-        n_views = used.sum(0)
-        err_used = np.where(used, err, 0.0)
-        reproj = err_used.sum(0) / np.maximum(n_views, 1)
+        # per-point sums over the views used: count, confidence, squared confidence, error,
+        # squared error, squared focal scale
+        E = np.empty((6, C, N))
+        E[0] = used
+        np.multiply(E[0], w0, out=E[1])
+        np.multiply(E[1], w0, out=E[2])
+        E[3] = np.where(used, err, 0.0)
+        np.multiply(E[3], E[3], out=E[4])
+        np.multiply(E[0], self._s2, out=E[5])
+        tot = E.sum(1)  # (6,N)
+        n_views = tot[0]
+        mean = tot[1:] / np.maximum(n_views, 1.0)  # score, w^2, reprojection error, err^2, s^2
         # covariance sigma^2 (J^T W J)^-1 from the last solve's normal matrix: its rows are the
         # Jacobian d(normalised pixel)/dX weighted by the confidences; back to pixels with the mean
         # focal scale and mean squared confidence of the views used
-        nv = np.maximum(n_views, 1)
-        w2 = np.where(used, w0 ** 2, 0.0).sum(0) / nv
-        s2 = np.where(used, self._s2, 0.0).sum(0) / nv
-        rms = np.sqrt((err_used ** 2).sum(0) / nv)
-        sigma = np.maximum(cfg.noise_px, rms)
-        tr = _sym3_inv_trace(info)
-        std = sigma * np.sqrt(np.maximum(tr, 0) * w2 / np.maximum(s2, 1e-12) / 3.0)
-        max_err = err_used.max(0)
-        ok = (n_views >= cfg.min_views) & (max_err <= cfg.max_reproj_px) & (std <= cfg.max_std_m) \
-            & np.isfinite(X).all(1)
-        score = np.where(used, w0, 0.0).sum(0) / np.maximum(n_views, 1)
+        sigma = np.maximum(cfg.noise_px, np.sqrt(mean[3]))
+        std = sigma * np.sqrt(np.maximum(tr, 0) * mean[1] / np.maximum(mean[4], 1e-12) / 3.0)
+        ok = (n_views >= cfg.min_views) & (E[3].max(0) <= cfg.max_reproj_px) & (std <= cfg.max_std_m) \
+            & np.isfinite(Xh[:3]).all(0)
         nan = np.float64(np.nan)
         return Triangulated(
-            xyz_m=np.where(ok[:, None], X, nan), reproj_err_px=np.where(ok, reproj, nan),
-            n_views=np.where(ok, n_views, 0).astype(np.int16), score=np.where(ok, score, 0.0),
+            xyz_m=np.where(ok[:, None], Xh[:3].T, nan), reproj_err_px=np.where(ok, mean[2], nan),
+            n_views=np.where(ok, n_views, 0).astype(np.int16), score=np.where(ok, mean[0], 0.0),
             std_m=np.where(ok, std, nan), used=used & ok[None])
 
 

@@ -102,23 +102,34 @@ class FrameReconstructor:
         self.flip = None if joint_names is None else flip_index(joint_names)
         self._F32 = self.F.astype(np.float32)  # what the matching's epipolar lines use
         self._cams_col = np.arange(len(self.P))[:, None]
+        self._arJ = None if joint_names is None else np.arange(len(joint_names))
         self._upper: dict[int, np.ndarray] = {}  # (M,M) strict upper-triangle masks by M
 
-    def _triangulate(self, xy: np.ndarray, score: np.ndarray, H: np.ndarray, S: np.ndarray) -> dict:
-        """Triangulate hypotheses H (M,C) with mirror flags S (M,C); returns (M,...) arrays and keep (M,J)."""
-        C, J = len(self.P), xy.shape[2]
+    def _planes(self, xy: np.ndarray, score: np.ndarray) -> np.ndarray:
+        """(4,C,P,J) per-frame planes the DLT reads: normalised x, y (0 where unseen), confidence
+        (0 where unseen), seen (1/0); each hypothesis then gathers its rows in one indexing step."""
+        seen = np.isfinite(xy).all(-1) & (score >= self.config.dlt.min_score) & np.isfinite(score)
+        Z = np.empty((4,) + seen.shape)
+        np.copyto(Z[:2], self.tri.normalised(xy))
+        Z[:2][:, ~seen] = 0.0
+        np.copyto(Z[2], np.where(seen, score, 0.0))
+        Z[3] = seen
+        return Z
+
+    def _triangulate(self, Z: np.ndarray, H: np.ndarray, S: np.ndarray) -> dict:
+        """Triangulate hypotheses H (M,C) with mirror flags S (M,C) from the planes Z (``_planes``);
+        returns (M,...) arrays and keep (M,J)."""
+        C, J = len(self.P), Z.shape[-1]
         M = len(H)
-        sel = np.maximum(H, 0).T  # (C,M)
-        xy_h = xy[self._cams_col, sel]  # (C,M,J,2)
-        sc_h = score[self._cams_col, sel]  # (C,M,J)
-        if self.flip is not None and S.any():
-            c, m = np.nonzero(S.T)
-            xy_h[c, m] = xy_h[c, m][:, self.flip]
-            sc_h[c, m] = sc_h[c, m][:, self.flip]
-        miss = (H < 0).T
-        xy_h[miss] = np.nan
-        sc_h[miss] = 0.0
-        r = self.tri(xy_h.reshape(C, M * J, 2), sc_h.reshape(C, M * J))
+        sel = np.maximum(H, 0).T[..., None]  # (C,M,1)
+        if self.flip is not None and S.any():  # a mirrored pose reads its joints left/right swapped
+            g = Z[:, self._cams_col[..., None], sel, np.where(S.T[..., None], self.flip, self._arJ)]
+        else:
+            g = Z[:, self._cams_col, sel[..., 0]]  # (4,C,M,J)
+        g = g.reshape(4, C, M * J)
+        seen = g[3] > 0
+        seen &= (H >= 0).T.repeat(J, 1)
+        r = self.tri.solve(g[:2], np.where(seen, g[2], 0.0), seen)
         out = {"xyz_m": r.xyz_m.reshape(M, J, 3), "reproj_err_px": r.reproj_err_px.reshape(M, J),
                "score": r.score.reshape(M, J), "n_views": r.n_views.reshape(M, J),
                "std_m": r.std_m.reshape(M, J)}
@@ -128,7 +139,7 @@ class FrameReconstructor:
         out["keep"] = keep
         return out
 
-    def _merge_duplicates(self, xy, score, H, S, res):
+    def _merge_duplicates(self, Z, H, S, res):
         """Sec. 4.2.1 leaves a person split over two hypotheses when one view did not join; merge them."""
         X = np.where(res["keep"][..., None], res["xyz_m"], np.nan)
         M = len(X)
@@ -164,7 +175,7 @@ class FrameReconstructor:
                 alive[b if views[b] < views[a] else a] = False
         if changed.any():
             idx = np.flatnonzero(changed & alive)
-            sub = self._triangulate(xy, score, H[idx], S[idx])
+            sub = self._triangulate(Z, H[idx], S[idx])
             for k, v in sub.items():
                 res[k][idx] = v
         return H[alive], S[alive], {k: v[alive] for k, v in res.items()}
@@ -180,9 +191,10 @@ class FrameReconstructor:
                            self.flip if self.config.fix_flips else None)
         if len(H) == 0:
             return FramePoses.empty(J, C)
-        res = self._triangulate(xy, score, H, S)
+        Z = self._planes(xy, score)
+        res = self._triangulate(Z, H, S)
         if self.config.merge_dist_m > 0 and len(H) > 1:
-            H, S, res = self._merge_duplicates(xy, score, H, S, res)
+            H, S, res = self._merge_duplicates(Z, H, S, res)
         keep = res["keep"]
         good = keep.sum(1) >= self.config.min_joints_3d
         keep &= good[:, None]
