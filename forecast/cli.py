@@ -9,7 +9,9 @@ Examples::
     forecast eval --social --checkpoints runs/gru.pt runs/sd.pt --data cmu --out runs/eval_social
 
 Data: ``cmu`` = the CMU BVH under ``$ROOMCAP_MOCAP`` / ``$ROOMCAP_SHARED/data/motion``; otherwise track files
-or folders containing ``tracks.npz``. Train/test split is by clip (``--test-fraction``, ``--split-seed``).
+or folders containing ``tracks.npz``. Train / validation / test split by clip (``data.split_train_val_test``,
+``--split-seed``): ``train`` fits on the train split and keeps the state with the best validation NDMS;
+``eval`` reports on the test split only.
 """
 
 from __future__ import annotations
@@ -49,26 +51,28 @@ def _config(args) -> object:
 
 
 def _load_split(args):
-    """Clips of every source, split by clip per source (adding a source never reshuffles another's split)."""
+    """Clips of every source, split train / val / test by clip per source (adding a source never reshuffles
+    another's split)."""
     from forecast import train as T
 
-    clips, tr, te = [], [], []
+    clips, tr, va, te = [], [], [], []
     groups = [["cmu"]] if "cmu" in args.data else []
     groups += [[d for d in args.data if d != "cmu"]] if any(d != "cmu" for d in args.data) else []
     for group in groups:  # CMU and the track files are split separately
         c = T.load_sources(group)
-        a, b = T.split_clips(c, args.test_fraction, args.split_seed)
+        a, v, b = T.split_clips(c, args.split_seed)
         clips += c
         tr += a
+        va += v
         te += b
-    return clips, tr, te
+    return clips, tr, va, te
 
 
 def cmd_train(args) -> int:
     from forecast import train as T
 
     cfg = _config(args)
-    clips, tr, te = _load_split(args)
+    clips, tr, va, te = _load_split(args)
     bar = tqdm(total=cfg.steps, desc=f"train {args.model}", unit="step")
 
     def progress(step, terms):
@@ -84,7 +88,7 @@ def cmd_train(args) -> int:
         if blob.get("kind") != args.model:
             raise SystemExit(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
         init = blob["state_dict"]
-    model, hist = T.train(args.model, tr, cfg, progress, args.device, init)
+    model, hist = T.train(args.model, tr, cfg, progress, args.device, init, val_clips=va)
     bar.close()
     T.save_checkpoint(
         args.out,
@@ -94,8 +98,12 @@ def cmd_train(args) -> int:
         tr[0].skeleton,
         extra={
             "train_clips": [c.name for c in tr],
+            "val_clips": [c.name for c in va],
             "test_clips": [c.name for c in te],
             "steps_per_s": float(hist["steps_per_s"]),
+            "val": hist.get("val", []),
+            "val_best": hist.get("val_best", {}),
+            "init": Path(args.init).name if args.init else "",
         },
     )
     n = len(hist["loss"])
@@ -104,6 +112,14 @@ def cmd_train(args) -> int:
         f"{args.model}: {len(tr)} train clips, {hist['n_windows']} windows, loss {first:.4f} -> {last:.4f}, "
         f"{hist['steps_per_s']:.1f} steps/s; wrote {args.out}"
     )
+    if hist.get("val_best"):
+        b = hist["val_best"]
+        print(
+            f"kept step {b['step']} by {b['select']}: validation NDMS 2-4 s {b['ndms_2_4']:.4f}, "
+            f"MPJPE 0-1 s {1000 * b['mpjpe_0_1']:.0f} mm ({len(va)} validation clips; step:NDMS/MPJPE "
+            + ", ".join(f"{r['step']}:{r['ndms_2_4']:.3f}/{1000 * r['mpjpe_0_1']:.0f}" for r in hist["val"])
+            + ")"
+        )
     return 0
 
 
@@ -123,20 +139,21 @@ def cmd_eval(args) -> int:
     from forecast import evaluate as E
     from forecast import train as T
 
-    clips, tr, te = _load_split(args)
+    clips, tr, va, te = _load_split(args)
     models: dict = {}
     for name in args.baselines:
         models[name] = T.baseline(name)
-    seen: set[str] = set()
     for ck in args.checkpoints:
         m, meta = T.load_checkpoint(ck, skeleton=clips[0].skeleton)
         models[Path(ck).stem] = m
-        seen |= set(meta["extra"].get("train_clips", []))
-    if seen:  # held out for every model: no clip any checkpoint trained on
-        te = [c for c in clips if c.name not in seen]
-        if not te:
-            raise SystemExit("every clip was used to train one of the checkpoints; nothing is held out")
-    print(f"evaluating on {len(te)} held-out clips: {', '.join(c.name for c in te)}")
+        used = set(meta["extra"].get("train_clips", [])) | set(meta["extra"].get("val_clips", []))
+        leak = sorted(used & {c.name for c in te})
+        if leak:  # a checkpoint that trained or was selected on a test clip cannot be evaluated fairly
+            raise SystemExit(
+                f"{ck} was trained or selected on test clips {leak[:5]}{'...' if len(leak) > 5 else ''}; "
+                "retrain it with this version's split (forecast train) or pass the --split-seed it used"
+            )
+    print(f"evaluating on {len(te)} test clips: {', '.join(c.name for c in te)}")
     bar = tqdm(total=len(models) + (0 if args.social else 2), desc="eval", unit="model")
 
     def progress(name):
@@ -165,7 +182,9 @@ def cmd_eval(args) -> int:
             n_pred=int(round(args.horizon_s * 25)),
             n_samples=args.samples,
             max_windows=args.max_windows,
+            stride=args.stride,
             progress=progress,
+            reference=args.reference,
         )
         title = "Forecast evaluation: held-out clips"
     bar.close()
@@ -194,7 +213,6 @@ def main(argv: list[str] | None = None) -> int:
 
     def data_args(sp):
         sp.add_argument("--data", nargs="+", default=["cmu"], help="'cmu' and/or track files / folders")
-        sp.add_argument("--test-fraction", type=float, default=0.2)
         sp.add_argument("--split-seed", type=int, default=0)
 
     t = sub.add_parser("train", help="train a model")
@@ -221,7 +239,13 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--horizon-s", type=float, default=4.0)
     e.add_argument("--samples", type=int, default=10)
     e.add_argument("--scenes", type=int, default=24)
-    e.add_argument("--max-windows", type=int, default=200)
+    e.add_argument("--max-windows", type=int, default=400)
+    e.add_argument("--stride", type=int, default=5, help="frames between test windows")
+    e.add_argument(
+        "--reference",
+        default="gru_cmu",
+        help="model whose NDMS the others are compared with (paired differences with bootstrap CIs)",
+    )
     e.add_argument(
         "--ndms-db",
         choices=["test", "all"],

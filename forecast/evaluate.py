@@ -1,8 +1,12 @@
 """Evaluation protocols and the report (tables + one plot per metric over the horizon).
 
-- ``evaluate_single``: held-out single-person windows (observe ``n_obs``, forecast ``n_pred`` frames at
-  25 Hz); MPJPE(t), NDMS(t) (eq. 6.9-6.12, database = motion words of the held-out clips, the query's own
-  clip excluded), APD(t) and APD, best-of-S ADE/FDE, NPSS.
+- ``evaluate_single``: test-split single-person windows (observe ``n_obs``, forecast ``n_pred`` frames at
+  25 Hz); MPJPE(t), NDMS(t) (eq. 6.9-6.12: every sample scored, then averaged over samples, as Z in eq. 6.9;
+  database = motion words of the test clips, the query's own clip excluded), APD(t) and APD, best-of-S
+  ADE/FDE, NPSS. Sampling noise is seeded per model, so re-evaluating a checkpoint gives the same figures.
+  NDMS at 2/3/4 s comes with a 95 % bootstrap interval that resamples whole clips (windows of one clip
+  overlap and are correlated, so resampling windows would understate the spread), and each model's
+  paired difference to a reference model (the GRU) over the same windows and the same resampled clips.
 - ``evaluate_social``: two-person scenes composed from held-out clips, a long horizon (10 s), NDMS(t)
   per person and the SSCP distance (sec. 7.3) against real composed scenes.
 """
@@ -63,17 +67,22 @@ def evaluate_single(
     n_obs: int = 50,
     n_pred: int = 100,
     n_samples: int = 10,
-    stride: int = 25,
-    max_windows: int = 200,
+    stride: int = 5,
+    max_windows: int = 400,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     ndms_database: list[fdata.Clip] | None = None,
+    reference: str | None = None,
+    n_boot: int = 2000,
 ) -> dict:
     """``ndms_database``: clips for the NDMS database (default: the held-out clips; the query's own clip
     is always excluded).
 
     -> {"fps", "horizon_s", "models": {name: {"mpjpe": [H], "ndms": [H], "apd_t": [H], "apd", "ade", "fde",
-    "npss", ...}}, "n_windows", "skipped"}."""
+    "npss", "ndms_at": {t: [mean, lo, hi]}, "ndms_diff_at": {t: [mean, lo, hi]} (minus ``reference``),
+    ...}}, "n_windows", "n_clips", "skipped"}."""
+    import torch
+
     ws = fdata.make_windows(test_clips, n_obs, n_pred, stride, persons="each")
     if len(ws) == 0:
         raise ValueError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
@@ -92,6 +101,8 @@ def evaluate_single(
         "skipped": ws.skipped,
         "models": {},
     }
+    out["n_clips"] = int(len(np.unique(groups)))
+    per_window = {}
     for name, model in models.items():
         if progress:
             progress(name)
@@ -99,17 +110,55 @@ def evaluate_single(
             y = gt[:, None]
         else:
             S = n_samples if getattr(model, "stochastic", False) else 1
+            torch.manual_seed(seed)  # the same sampling noise on every run
             y = forecast_world(model, obs[:, :, None], None, n_pred, S)[:, :, :, 0]  # (B,S,H,J,3)
-        out["models"][name] = _single_metrics(y, gt, obs, mask[:, n_obs:], groups, scorer)
+        out["models"][name], per_window[name] = _single_metrics(y, gt, obs, mask[:, n_obs:], groups, scorer)
+    boot = _cluster_bootstrap_index(groups, n_boot, seed)
+    ref = reference if reference in per_window else None
+    out["reference"] = ref
+    for name, w in per_window.items():
+        r = out["models"][name]
+        r["ndms_at"] = {
+            f"{t:g}": _ci(_ndms_at(w, ws.fps, t), boot) for t in NDMS_CI_S if t * ws.fps <= n_pred
+        }
+        if ref is not None and name != ref:
+            r["ndms_diff_at"] = {
+                f"{t:g}": _ci(_ndms_at(w, ws.fps, t) - _ndms_at(per_window[ref], ws.fps, t), boot)
+                for t in NDMS_CI_S
+                if t * ws.fps <= n_pred
+            }
     return out
 
 
-def _single_metrics(y, gt, obs, mask_fut, groups, scorer) -> dict:
+NDMS_CI_S = (1.0, 2.0, 3.0, 4.0)
+
+
+def _ndms_at(per_window: np.ndarray, fps: float, t_s: float) -> np.ndarray:
+    """Per-window NDMS at t: mean over the 0.2 s before t (the report's convention). (B,H) -> (B,)."""
+    win = max(1, int(0.2 * fps))
+    i = int(round(t_s * fps))
+    return per_window[:, max(0, i - win) : i].mean(1)
+
+
+def _cluster_bootstrap_index(groups: np.ndarray, n_boot: int, seed: int) -> list[np.ndarray]:
+    """Bootstrap replicates that resample whole clips (with replacement): window indices per replicate."""
+    rng = np.random.default_rng(seed + 1)
+    ids = np.unique(groups)
+    members = [np.flatnonzero(groups == g) for g in ids]
+    return [np.concatenate([members[k] for k in rng.integers(0, len(ids), len(ids))]) for _ in range(n_boot)]
+
+
+def _ci(values: np.ndarray, boot: list[np.ndarray]) -> list[float]:
+    """[mean, 2.5 %, 97.5 %] of the window mean under the clip bootstrap."""
+    means = np.array([values[b].mean() for b in boot])
+    return [float(values.mean()), float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))]
+
+
+def _single_metrics(y, gt, obs, mask_fut, groups, scorer) -> tuple[dict, np.ndarray]:
     B, S, H = y.shape[:3]
     mp = M.mpjpe(y, np.broadcast_to(gt[:, None], y.shape), np.broadcast_to(mask_fut[:, None], y.shape[:-1]))
-    nd = np.stack([scorer.score_forecast(obs[b], y[b], exclude_group=int(groups[b])) for b in range(B)]).mean(
-        0
-    )
+    nd_w = np.stack([scorer.score_forecast(obs[b], y[b], exclude_group=int(groups[b])) for b in range(B)])
+    nd = nd_w.mean(0)
     if S > 1:
         flat = y.reshape(B, S, H, -1)
         d = np.linalg.norm(flat[:, :, None] - flat[:, None], axis=-1)  # (B,S,S,H)
@@ -130,7 +179,7 @@ def _single_metrics(y, gt, obs, mask_fut, groups, scorer) -> dict:
         "fde": fde,
         "npss": npss,
         "ndms_mean": float(nd.mean()),
-    }
+    }, nd_w
 
 
 def evaluate_social(
@@ -244,6 +293,30 @@ def report_markdown(res: dict, title: str) -> str:
             row += f" {r['sscp_jsd']:.3f} |"
         lines.append(row)
     lines += ["", "NDMS at t = mean over the 0.2 s before t (motion words of κ = 8 frames)."]
+    if any("ndms_at" in r for r in res["models"].values()):
+        ts = sorted({t for r in res["models"].values() for t in r.get("ndms_at", {})}, key=float)
+        ref = res.get("reference")
+        lines += [
+            "",
+            f"NDMS with 95 % intervals (bootstrap over the {res.get('n_clips', '?')} test clips)"
+            + (f"; Δ = paired difference to {ref} (same windows, same resampled clips)" if ref else ""),
+            "",
+            "| model | "
+            + " | ".join(f"NDMS {t} s" for t in ts)
+            + (" | " + " | ".join(f"Δ {t} s" for t in ts) if ref else "")
+            + " |",
+            "|" + "---|" * (1 + len(ts) * (2 if ref else 1)),
+        ]
+        for name, r in res["models"].items():
+            if "ndms_at" not in r:
+                continue
+            cells = [f"{m:.3f} [{lo:.3f}, {hi:.3f}]" for m, lo, hi in (r["ndms_at"][t] for t in ts)]
+            if ref:
+                d = r.get("ndms_diff_at", {})
+                cells += [
+                    "-" if t not in d else f"{d[t][0]:+.3f} [{d[t][1]:+.3f}, {d[t][2]:+.3f}]" for t in ts
+                ]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

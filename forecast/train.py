@@ -55,6 +55,8 @@ class GRUConfig:
     batch: int = 32
     lr: float = 1e-3
     seed: int = 0
+    val_every: int = 50  # steps between validation scores (model selection); 0 = keep the last
+    select: str = "mpjpe"  # the deterministic model is selected by its own objective (validation MPJPE, 1 s)
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,8 @@ class IntentionConfig:
     batch: int = 32
     lr: float = 1e-3
     seed: int = 0
+    val_every: int = 200  # steps between validation scores (model selection); 0 = keep the last
+    select: str = "ndms"  # validation NDMS at 2-4 s
 
 
 @dataclass(frozen=True)
@@ -86,10 +90,13 @@ class DiffusionConfig:
     sample_steps: int = 20
     sample_eta: float = 0.0
     clean_obs: bool = True
+    anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
     steps: int = 2500
     batch: int = 32
     lr: float = 5e-4
     seed: int = 0
+    val_every: int = 250  # steps between validation scores (model selection); 0 = keep the last
+    select: str = "ndms"  # validation NDMS at 2-4 s
 
 
 CONFIGS = {"gru": GRUConfig, "intention": IntentionConfig, "social_diffusion": DiffusionConfig}
@@ -151,9 +158,10 @@ def load_sources(sources: list[str], fps: float = fdata.TARGET_FPS) -> list[fdat
     return clips
 
 
-def split_clips(clips: list[fdata.Clip], test_fraction: float = 0.2, seed: int = 0):
-    tr, te = fdata.split_by_clip([c.name for c in clips], test_fraction, seed)
-    return [clips[i] for i in tr], [clips[i] for i in te]
+def split_clips(clips: list[fdata.Clip], seed: int = 0):
+    """The protocol's train / validation / test split by clip (``data.split_train_val_test``)."""
+    tr, va, te = fdata.split_train_val_test([c.name for c in clips], [c.n_frames for c in clips], seed)
+    return [clips[i] for i in tr], [clips[i] for i in va], [clips[i] for i in te]
 
 
 def single_person_arrays(ws: fdata.WindowSet) -> tuple[np.ndarray, np.ndarray]:
@@ -223,9 +231,10 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
             f_dim=config.f_dim,
         )
     elif kind == "social_diffusion":
-        m = SocialDiffusion(D + N_GLOBAL, config.n_frames, config.channels, config.T)
+        m = SocialDiffusion(D + N_GLOBAL, config.n_frames, config.channels, config.T, anchored=config.anchor)
         m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
         m.n_obs_clean = config.n_obs if config.clean_obs else 0
+        m.anchor = config.n_obs - 1 if config.anchor else None
     else:
         raise ValueError(f"unknown model '{kind}'")
     if state is not None:
@@ -300,6 +309,96 @@ def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> Fo
     return FoolClusters(torch.from_numpy(centres.astype(np.float32)))
 
 
+# ----------------------------------------------------------------------------- model selection
+
+# The evaluation protocol's model selection (validation split only, never the test split): every
+# ``val_every`` steps the model forecasts validation windows (observe 2 s, forecast 4 s at 25 Hz, fixed
+# windows and seed) and is scored by NDMS (eq. 6.9-6.12, mean over samples) over the 2-4 s horizon, the
+# horizon the issue compares models at; the best state is kept. Every model is selected the same way.
+VAL_N_OBS, VAL_N_PRED, VAL_FROM = 50, 100, 50
+
+
+class Validator:
+    """Scores a model on fixed validation windows: ``__call__(model) -> {"ndms_2_4", "mpjpe_0_1"}`` (NDMS
+    over 2-4 s; MPJPE in metres averaged over the first second and the samples)."""
+
+    def __init__(
+        self,
+        clips: list[fdata.Clip],
+        n_samples: int = 4,
+        max_windows: int = 48,
+        stride: int = 10,
+        seed: int = 0,
+    ):
+        from forecast import evaluate as E
+
+        ws = fdata.make_windows(clips, VAL_N_OBS, VAL_N_PRED, stride, persons="each")
+        if len(ws) == 0:
+            raise ValueError(
+                f"no validation windows of {VAL_N_OBS + VAL_N_PRED} frames in {len(clips)} clips "
+                f"(skipped {ws.skipped}); add longer validation clips or set val_every=0"
+            )
+        sel = np.sort(np.random.default_rng(seed).choice(len(ws), min(max_windows, len(ws)), replace=False))
+        self.x = ws.x[sel, :, 0]
+        self.groups = [E.clip_group(clips[c].name) for c in ws.clip[sel]]
+        self.scorer = E.ndms_scorer_for(clips)
+        self.n_samples, self.seed = n_samples, seed
+
+    def __call__(self, model: torch.nn.Module) -> dict:
+        from forecast.predict import forecast_world
+
+        was_training = model.training
+        obs, gt = self.x[:, :VAL_N_OBS], self.x[:, VAL_N_OBS:]
+        S = self.n_samples if getattr(model, "stochastic", False) else 1
+        with torch.random.fork_rng(devices=[]):  # fixed sampling noise, training RNG untouched
+            torch.manual_seed(self.seed)
+            y = forecast_world(model, obs[:, :, None], None, VAL_N_PRED, S)[:, :, :, 0]  # (B,S,H,J,3)
+        model.train(was_training)
+        nd = np.stack([self.scorer.score_forecast(obs[b], y[b], self.groups[b]) for b in range(len(y))]).mean(
+            0
+        )
+        err = np.linalg.norm(y[:, :, :25] - gt[:, None, :25], axis=-1).mean()
+        return {"ndms_2_4": float(nd[VAL_FROM - 1 :].mean()), "mpjpe_0_1": float(err)}
+
+
+SELECT = {"ndms": ("ndms_2_4", 1.0), "mpjpe": ("mpjpe_0_1", -1.0)}  # criterion -> (score key, sign)
+
+
+class _Selector:
+    """Keeps the state with the best validation score (``config.select``, ``val_every`` steps apart)."""
+
+    def __init__(self, model, config, val_clips):
+        self.every = int(getattr(config, "val_every", 0)) if val_clips else 0
+        if config.select not in SELECT:
+            raise ValueError(f"select must be one of {sorted(SELECT)}, got {config.select!r}")
+        self.key, self.sign = SELECT[config.select]
+        self.validator = None
+        if self.every:
+            try:
+                self.validator = Validator(val_clips, seed=config.seed)
+            except ValueError as e:  # e.g. short track files: train without selection, say so
+                log.warning("no model selection, the last state is kept: %s", e)
+        self.model, self.best, self.best_state, self.history = model, -np.inf, None, []
+
+    def step(self, step: int, last: bool) -> None:
+        if self.validator is None or not ((step + 1) % self.every == 0 or last):
+            return
+        r = self.validator(self.model)
+        self.history.append({"step": step + 1, **r})
+        log.info("validation at step %d: %s", step + 1, r)
+        if self.sign * r[self.key] > self.best:
+            self.best = self.sign * r[self.key]
+            self.best_state = {k: v.detach().clone() for k, v in self.model.state_dict().items()}
+
+    def finish(self, hist: dict) -> None:
+        hist["val"] = self.history
+        if self.best_state is not None:
+            self.model.load_state_dict(self.best_state)
+            best = max(self.history, key=lambda r: self.sign * r[self.key])
+            hist["val_best"] = {**best, "select": self.key}
+            log.info("kept the state of step %d (validation %s)", best["step"], best)
+
+
 # ----------------------------------------------------------------------------- training loops
 
 Progress = Callable[[int, dict], None]
@@ -319,17 +418,21 @@ def train(
     progress: Progress | None = None,
     device: str = "cpu",
     init: dict | None = None,
+    val_clips: list[fdata.Clip] | None = None,
 ) -> tuple[torch.nn.Module, dict]:
     """Train ``kind`` on clips (body19). Returns the model and a history dict (loss per step, timing).
     ``init``: a state dict to continue from (same architecture; the intention model keeps its labels,
-    discriminators start fresh when the state has none)."""
+    discriminators start fresh when the state has none). ``val_clips``: the validation split; with
+    ``config.val_every`` > 0 the returned model is the state with the best validation NDMS at 2-4 s
+    (``Validator``), else the last state."""
     config = config or config_from_dict(kind)
     torch.manual_seed(config.seed)
+    np.random.seed(config.seed)  # the intention model's adversarial window offsets
     rng = np.random.default_rng(config.seed)
     sk = clips[0].skeleton if clips else "body19"
     J = get_skeleton(sk).n_joints
     if kind == "social_diffusion":
-        return _train_diffusion(clips, config, J, rng, progress, device, init)
+        return _train_diffusion(clips, config, J, rng, progress, device, init, val_clips)
     ws = fdata.make_windows(clips, config.n_obs, config.n_pred, stride=5, persons="each")
     if len(ws) == 0:
         raise ValueError(
@@ -366,7 +469,9 @@ def train(
     if kind == "intention":
         opt_d = torch.optim.Adam(model.discriminator_parameters(), lr=config.lr)
     hist: dict = {"loss": [], "n_windows": len(xn), "skipped": ws.skipped}
+    sel = _Selector(model, config, val_clips)
     t0 = time.perf_counter()
+    t_val = 0.0
     model.train()
     n_obs, H = config.n_obs, config.n_pred
     for step in range(config.steps):
@@ -393,10 +498,14 @@ def train(
             dl.backward()
             opt_d.step()
         hist["loss"].append(terms["loss"])
+        tv = time.perf_counter()
+        sel.step(step, step == config.steps - 1)
+        t_val += time.perf_counter() - tv
         if progress:
             progress(step, terms)
-    hist["seconds"] = time.perf_counter() - t0
+    hist["seconds"] = time.perf_counter() - t0 - t_val
     hist["steps_per_s"] = config.steps / hist["seconds"]
+    sel.finish(hist)
     model.eval()
     return model, hist
 
@@ -440,7 +549,20 @@ def diffusion_batch_features(scenes: np.ndarray, person_mask: np.ndarray, n_obs:
     return scene_features(xs.transpose(0, 2, 1, 3, 4), n_obs - 1)
 
 
-def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, init=None):
+def _feature_stats(model, f: np.ndarray, stat) -> np.ndarray:
+    """Mean or std of raw features f (B,P,N,F) in the model's coding: per channel, or (anchored models) per
+    frame and channel of the offsets from the anchor frame, constant channels pooled over frames."""
+    from forecast.models.diffusion import N_CONST
+
+    if model.feat_mean.dim() == 1:
+        return stat(f.reshape(-1, f.shape[-1]), 0).astype(np.float32)
+    rel = model.relative(torch.from_numpy(f), torch.from_numpy(f[:, :, model.anchor])).numpy()
+    out = stat(rel.reshape(-1, *rel.shape[-2:]), 0)  # (N,F)
+    out[:, -N_CONST:] = stat(rel[..., -N_CONST:].reshape(-1, N_CONST), 0)
+    return out.astype(np.float32)
+
+
+def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, init=None, val_clips=None):
     N, P = config.n_frames, config.persons
     single = fdata.make_windows(clips, config.n_obs, N - config.n_obs, stride=4, persons="each")
     multi_clips = [c for c in clips if c.xyz_m.shape[1] > 1]
@@ -459,8 +581,8 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
     f = diffusion_batch_features(sample, np.ones((len(sample), P), bool), config.n_obs)
     model = build_model("social_diffusion", config, J, init).to(device)
     if init is None:  # a continued model keeps its feature statistics
-        model.feat_mean.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).mean(0)))
-        model.feat_std.copy_(torch.from_numpy(f.reshape(-1, f.shape[-1]).std(0) + 1e-3))
+        model.feat_mean.copy_(torch.from_numpy(_feature_stats(model, f, np.mean)))
+        model.feat_std.copy_(torch.from_numpy(_feature_stats(model, f, np.std) + 1e-3))
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps)
     hist: dict = {
@@ -469,7 +591,9 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
         "n_scene_windows": 0 if scenes is None else len(scenes),
         "skipped": single.skipped,
     }
+    sel = _Selector(model, config, val_clips)
     t0 = time.perf_counter()
+    t_val = 0.0
     model.train()
     for step in range(config.steps):
         use_real = scenes is not None and len(scenes) and rng.random() < 0.5
@@ -491,9 +615,13 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
         opt.step()
         sched.step()
         hist["loss"].append(loss.item())
+        tv = time.perf_counter()
+        sel.step(step, step == config.steps - 1)
+        t_val += time.perf_counter() - tv
         if progress:
             progress(step, {"loss": loss.item()})
-    hist["seconds"] = time.perf_counter() - t0
+    hist["seconds"] = time.perf_counter() - t0 - t_val
     hist["steps_per_s"] = config.steps / hist["seconds"]
+    sel.finish(hist)
     model.eval()
     return model, hist

@@ -125,3 +125,25 @@ def test_cmu_clip_through_synthetic_bvh():
     assert c.fps == 25.0 and c.xyz_m.shape[1:] == (1, 19, 3) and c.n_frames > 100
     height = np.nanmax(c.xyz_m[..., 2]) - np.nanmin(c.xyz_m[..., 2])
     assert 1.2 < height < 2.3  # a person, in metres, z up
+
+
+def test_train_val_test_split_by_clip_is_deterministic_and_stratified():
+    names = [f"c{i:02d}" for i in range(40)]
+    lengths = [60 + 10 * i for i in range(40)]
+    tr, va, te = D.split_train_val_test(names, lengths)
+    assert sorted(tr + va + te) == list(range(40)) and not (
+        set(tr) & set(va) | set(tr) & set(te) | set(va) & set(te)
+    )
+    assert (len(tr), len(va), len(te)) == (25, 5, 10)
+    # the long clips (the only ones long enough for 6 s evaluation windows) are spread over the splits
+    long = set(range(30, 40))
+    assert len(long & set(te)) >= 2 and len(long & set(va)) >= 1
+    # the split depends on names and lengths, not on the order they are listed in
+    perm = np.random.default_rng(1).permutation(40)
+    tr2, va2, te2 = D.split_train_val_test([names[i] for i in perm], [lengths[i] for i in perm])
+    assert sorted(names[perm[i]] for i in te2) == sorted(names[i] for i in te)
+    assert D.split_train_val_test(names, lengths, seed=1) != (tr, va, te)
+    with pytest.raises(ValueError, match="at least 3"):
+        D.split_train_val_test(["a", "b"], [1, 2])
+    tr, va, te = D.split_train_val_test(["a", "b", "c"], [90, 90, 95])
+    assert te == [2] and len(va) == 1 and len(tr) == 1  # no split is left empty

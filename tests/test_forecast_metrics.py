@@ -113,3 +113,37 @@ def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
     text = path.read_text()
     assert "MPJPE 400 ms" in text and "NDMS 2 s" in text
     assert (tmp_path / "ndms.png").stat().st_size > 1000 and (tmp_path / "mpjpe.png").exists()
+
+
+def test_evaluation_intervals_paired_differences_and_repeatability():
+    import torch
+
+    from forecast import data as D
+    from forecast import evaluate as E
+    from forecast.models import ConstantVelocity, ZeroVelocity
+
+    class Noisy(torch.nn.Module):  # a stochastic stand-in: constant velocity plus sampled noise
+        stochastic = True
+
+        def sample(self, obs, n_pred, n_samples=1, **_):
+            y = ConstantVelocity().sample(obs, n_pred, n_samples)
+            return y + 0.02 * torch.randn(y.shape)
+
+    clips = [
+        D.Clip(f"w{i}", walker(130, phase=i, speed_mps=0.9 + 0.1 * i, heading_rad=i), 25.0) for i in range(5)
+    ]
+    models = {"zero_velocity": ZeroVelocity(), "constant_velocity": ConstantVelocity(), "noisy": Noisy()}
+    kw = dict(n_obs=25, n_pred=75, n_samples=3, stride=10, max_windows=30, reference="constant_velocity")
+    res = E.evaluate_single(models, clips, **kw)
+    assert res["n_clips"] == 5 and res["reference"] == "constant_velocity"
+    for r in res["models"].values():
+        for m, lo, hi in r["ndms_at"].values():
+            assert lo <= m <= hi
+    zv, cv = res["models"]["zero_velocity"], res["models"]["constant_velocity"]
+    assert set(zv["ndms_at"]) == {"1", "2", "3"} and "ndms_diff_at" not in cv
+    d = zv["ndms_diff_at"]["2"]
+    assert d[2] < 0 and d[0] == pytest.approx(zv["ndms_at"]["2"][0] - cv["ndms_at"]["2"][0])
+    # sampling is seeded: evaluating again gives the same figures
+    again = E.evaluate_single(models, clips, **kw)
+    assert again["models"]["noisy"]["ndms"] == res["models"]["noisy"]["ndms"]
+    assert "Δ 2 s" in E.report_markdown(res, "t")

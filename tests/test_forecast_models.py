@@ -141,6 +141,38 @@ def test_social_diffusion_writes_back_observation_and_learns():
     assert y.shape == (1, 2, 40, 2, 19, 3) and np.isfinite(y).all()
 
 
+def test_anchored_diffusion_codes_motion_relative_to_the_last_observed_frame():
+    cfg = T.config_from_dict(
+        "social_diffusion",
+        {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 3, "batch": 4, "sample_steps": 3},
+    )
+    assert cfg.anchor
+    model, _ = T.train("social_diffusion", _clips(3, 100), cfg)
+    assert model.feat_std.shape == (32, 19 * 3 + 10) and model.anchor == 15
+    std = model.feat_std[:, :57].mean(1)
+    assert std[16] < 0.5 * std[-1]  # the spread of the offsets grows with the lag from the anchor
+    scene = np.stack([walker(32), walker(32, start=(2, 0))], 1)[None]
+    f = torch.from_numpy(T.diffusion_batch_features(scene, np.ones((1, 2), bool), 16))
+    z = model.standardise(f)
+    assert torch.allclose(model.unstandardise(z, f[:, :, 15]), f, atol=1e-4)
+    out = model.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), n_samples=2, steps=3)
+    assert torch.allclose(out[:, 0, :, :16], f[:, :, :16], atol=1e-4)
+
+
+def test_training_keeps_the_state_with_the_best_validation_score():
+    cfg = T.config_from_dict(
+        "gru", {"hidden": 16, "steps": 30, "batch": 8, "n_obs": 20, "n_pred": 10, "val_every": 10}
+    )
+    clips = _clips(4, 160)
+    model, hist = T.train("gru", clips[:3], cfg, val_clips=clips[3:])
+    assert [r["step"] for r in hist["val"]] == [10, 20, 30]
+    best = min(hist["val"], key=lambda r: r["mpjpe_0_1"])
+    assert hist["val_best"]["step"] == best["step"]
+    assert T.Validator(clips[3:])(model)["mpjpe_0_1"] == pytest.approx(best["mpjpe_0_1"], rel=1e-5)
+    with pytest.raises(ValueError, match="validation windows"):
+        T.Validator([clips[3]][:0] + [D.Clip("short", walker(60), 25.0)])
+
+
 def test_preview_and_cli_on_track_files(tmp_path):
     from forecast.cli import main
     from forecast.preview import preview

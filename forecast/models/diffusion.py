@@ -19,6 +19,14 @@
 
 Per-person features (sec. 7.2.3): the per-frame hip-centric pose (3J) ⊕ root (3) ⊕ (cos θ, sin θ) of the
 global heading, in the scene frame, standardised with training mean/std (buffers in the checkpoint).
+
+Continuity with the observation (``anchor``, default on): the seed normalises every sequence at the last
+observed frame (sec. 7.2.3, as eq. 3.8) so the forecast starts where the observation ends. We carry that
+into the standardisation: the motion channels (everything but the constant anchor channels, the last
+``N_CONST``) are coded as offsets from the last observed frame and standardised *per frame* (mean/std of
+the offset at that lag, buffers (N,F)). An error of a fixed size in standardised units is then a few
+millimetres next to the observation and grows with the lag, as the spread of real motion does; with one
+global std per channel the same error was ~8 cm at the first forecast frame (the measured jump).
 """
 
 from __future__ import annotations
@@ -28,6 +36,8 @@ import math
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+N_CONST = 5  # the constant anchor channels at the end of the features (predict.scene_features)
 
 
 def cosine_alpha_bar(T: int, s: float = 0.008) -> torch.Tensor:
@@ -75,15 +85,25 @@ class SocialDiffusion(nn.Module):
     kind = "social_diffusion"
     stochastic = True
 
-    def __init__(self, feat_dim: int, n_frames: int = 64, channels: int = 96, T: int = 1000, temb: int = 64):
+    def __init__(
+        self,
+        feat_dim: int,
+        n_frames: int = 64,
+        channels: int = 96,
+        T: int = 1000,
+        temb: int = 64,
+        anchored: bool = False,
+    ):
         super().__init__()
         if n_frames % 16:
             raise ValueError(f"n_frames must be a multiple of 16 (4 stride-2 layers), got {n_frames}")
         self.feat_dim, self.n_frames, self.T, self.temb = feat_dim, n_frames, T, temb
         self.n_obs_clean = 0  # set from the config (clean_obs): observed frames fed clean to g
+        self.anchor: int | None = None  # set from the config (anchor): index of the last observed frame
         self.register_buffer("alpha_bar", cosine_alpha_bar(T))
-        self.register_buffer("feat_mean", torch.zeros(feat_dim))
-        self.register_buffer("feat_std", torch.ones(feat_dim))
+        shape = (n_frames, feat_dim) if anchored else (feat_dim,)
+        self.register_buffer("feat_mean", torch.zeros(shape))
+        self.register_buffer("feat_std", torch.ones(shape))
         C = channels
         self.t_mlp = nn.Sequential(nn.Linear(temb, temb), nn.SiLU(), nn.Linear(temb, temb))
         self.inp = nn.Conv1d(feat_dim, C, 1)
@@ -132,11 +152,24 @@ class SocialDiffusion(nn.Module):
             w = w * valid.float()
         return (err * w).sum() / w.sum().clamp(min=1)
 
-    def standardise(self, f: torch.Tensor) -> torch.Tensor:
-        return (f - self.feat_mean) / self.feat_std
+    def relative(self, f: torch.Tensor, anchor_feat: torch.Tensor, sign: float = -1.0) -> torch.Tensor:
+        """Motion channels of f (...,N',F) minus (sign -1) or plus (+1) those of anchor_feat (...,F)."""
+        k = self.feat_dim - N_CONST
+        return torch.cat([f[..., :k] + sign * anchor_feat[..., None, :k], f[..., k:]], -1)
 
-    def unstandardise(self, f: torch.Tensor) -> torch.Tensor:
-        return f * self.feat_std + self.feat_mean
+    def standardise(self, f: torch.Tensor) -> torch.Tensor:
+        """Raw features (...,N',F), N' ≤ n_frames frames from the window start -> standardised."""
+        if self.feat_mean.dim() == 1:
+            return (f - self.feat_mean) / self.feat_std
+        n = f.shape[-2]
+        return (self.relative(f, f[..., self.anchor, :]) - self.feat_mean[:n]) / self.feat_std[:n]
+
+    def unstandardise(self, f: torch.Tensor, anchor_feat: torch.Tensor | None = None) -> torch.Tensor:
+        """Inverse of standardise; anchored models need the raw features of the anchor frame (...,F)."""
+        if self.feat_mean.dim() == 1:
+            return f * self.feat_std + self.feat_mean
+        n = f.shape[-2]
+        return self.relative(f * self.feat_std[:n] + self.feat_mean[:n], anchor_feat, +1.0)
 
     @torch.no_grad()
     def sample_window(
@@ -172,4 +205,9 @@ class SocialDiffusion(nn.Module):
             noise = torch.randn(x.shape, device=x.device, generator=generator)
             e = math.sqrt(1 - eta**2) * eps_hat + eta * noise
             x = ab_next.sqrt() * x0 + (1 - ab_next).sqrt() * e
-        return self.unstandardise(x0).view(B, n_samples, P, N, Fd)
+        anchor = obs[:, :, -1].repeat_interleave(n_samples, 0) if self.feat_mean.dim() == 2 else None
+        if anchor is not None and self.anchor != n_obs - 1:
+            raise ValueError(
+                f"this model is anchored at frame {self.anchor}, the observation has {n_obs} frames"
+            )
+        return self.unstandardise(x0, anchor).view(B, n_samples, P, N, Fd)
