@@ -73,73 +73,154 @@ def _usable(xy: np.ndarray, score: np.ndarray, cfg: MatchConfig) -> np.ndarray:
     return vis
 
 
-def _homog(xy: np.ndarray, vis: np.ndarray) -> np.ndarray:
-    """(C,P,J,2) -> homogeneous (C,3,J,P) float32, zero vector where not usable.
+class Matcher:
+    """Algorithm 1 for one rig: per-rig constants (float32 F, camera order, joint permutations) made
+    once; ``__call__`` associates one frame (see :func:`match_frame`).
 
-    float32 on purpose: numpy's batched matmul of tiny float32 matrices is ~10x faster than float64
-    here, and pixel distances keep ~1e-4 px precision."""
-    C, P, J = vis.shape
-    xs = np.empty((C, 3, J, P), np.float32)
-    xs[:, :2] = np.where(vis[..., None], xy, 0.0).transpose(0, 3, 2, 1)
-    xs[:, 2] = vis.transpose(0, 2, 1)
-    return xs
-
-
-def _lines(xs: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """L[a,b,k,j,p] = (F[a,b] x_{a,p,j})_k: epipolar lines in camera b, scaled to a unit normal."""
-    C, _, J, P = xs.shape
-    F32 = F.reshape(C, C * 3, 3).astype(np.float32, copy=False)  # a float32 F (from the caller) is used as is
-    L = np.matmul(F32, xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)
-    nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
-    np.maximum(nrm, 1e-12, out=nrm)
-    L /= nrm[:, :, None]
-    return L
-
-
-def _dist(L: np.ndarray, xs: np.ndarray) -> np.ndarray:
-    """(a,b,Pa,Pb): sum over joints of |point-line distance| in camera b of b's points to a's lines."""
-    d = np.matmul(L.transpose(0, 1, 3, 4, 2), xs.transpose(0, 2, 1, 3)[None])  # (a,b,J,Pa,Pb)
-    np.abs(d, out=d)
-    return d.sum(2)
-
-
-def pair_costs(xy: np.ndarray, vis: np.ndarray, F: np.ndarray, min_shared: int = 1,
-               flip: np.ndarray | None = None) -> tuple:
-    """Mean symmetric epipolar distance (eq. 4.3 averaged over shared joints) between all pose pairs.
-
-    xy (C,P,J,2) undistorted pixels, vis (C,P,J) usable joints, F (C,C,3,3) with x_b^T F[a,b] x_a = 0.
-    Returns cost (C,P,C,P) in pixels and ok (C,P,C,P), False where fewer than ``min_shared`` joints
-    are shared (or a == b). Unusable joints get a zero homogeneous vector, so they contribute
-    nothing to any sum and the whole computation is a handful of batched matrix products.
-    With ``flip`` (J,) (the left/right joint permutation) also the cost and ok of the first pose
-    mirrored against the second unmirrored (``cross``; else None).
+    The pair table. With lines ``L[a,b,j,p] = F[a,b] x[a,p,j]`` scaled to a unit normal (the
+    epipolar line in camera b of joint j of pose p in camera a) the summed point-line distances
+    ``B[b,h,a,p,q] = sum_j |L[a,b,f_h(j),p] . x[b,q,j]|`` (f_0 = identity, f_1 = the left/right
+    permutation) give eq. 4.3 for every pair of poses, as detected (h = 0) and with the first pose
+    mirrored (h = 1): the line of the mirrored pose at joint j is the line of joint f(j), and the
+    distance of a's mirrored points to b's lines is ``B[a,h,b,q,p]`` after substituting j -> f(j).
+    So cost_h(a_p, b_q) = (B[b,h,a,p,q] + B[a,h,b,q,p]) / n_h(a_p, b_q), with n_h the number of
+    joints both see: one batched product over (camera, joint) of (H C P x 3) line blocks with
+    (3 x P) point blocks computes every cost of the frame, mirrored ones included.
+    Unusable joints get a zero homogeneous vector, so they contribute nothing to any sum.
     """
-    C, P, J = vis.shape
-    if flip is None:
-        xs = _homog(xy, vis)
-        L = _lines(xs, F)
-    else:  # the poses and their mirror images in one pass: (C,3,J,2P)
-        vf = vis[:, :, flip]
-        xs2 = _homog(np.concatenate([xy, xy[:, :, flip]], 1), np.concatenate([vis, vf], 1))
-        L2 = _lines(xs2, F)
-        xs, xsf, L = xs2[..., :P], xs2[..., P:], L2[..., :P]
-    d_all = _dist(L if flip is None else L2, xs)  # (a,b,P or 2P,P)
-    d = d_all[:, :, :P]
-    d = (d + d.transpose(1, 0, 3, 2)).astype(np.float64)  # symmetric: in b plus in a (eq. 4.3)
-    v = vis.reshape(C * P, J).astype(np.float64)
-    n = (v @ v.T).reshape(C, P, C, P)
-    cost = d.transpose(0, 2, 1, 3) / np.maximum(n, 1)
-    ok = n >= max(min_shared, 1)
-    ok[np.arange(C), :, np.arange(C), :] = False
-    if flip is None:
-        return cost, ok, None, None
-    # cost(a'_p, b_q): b's points to the mirrored poses' lines, plus the mirrored points to b's lines
-    dx = (d_all[:, :, P:] + _dist(L, xsf).transpose(1, 0, 3, 2)).astype(np.float64)
-    nx = (vf.reshape(C * P, J).astype(np.float64) @ v.T).reshape(C, P, C, P)
-    cross = dx.transpose(0, 2, 1, 3) / np.maximum(nx, 1)
-    okx = nx >= max(min_shared, 1)
-    okx[np.arange(C), :, np.arange(C), :] = False
-    return cost, ok, cross, okx
+
+    def __init__(self, F: np.ndarray, config: MatchConfig | None = None, order: np.ndarray | None = None,
+                 flip: np.ndarray | None = None):
+        self.config = config or MatchConfig()
+        F = _as_float(F)
+        C = len(F)
+        check_shape("F", F, (C, C, 3, 3))
+        self.n_cams = C
+        # float32 on purpose: numpy's batched matmul of tiny float32 matrices is much faster than float64
+        # here, and pixel distances keep ~1e-4 px precision (a float32 F from the caller is used as is)
+        self._F32 = np.ascontiguousarray(F.reshape(C, C * 3, 3), dtype=np.float32)
+        self.order = (np.arange(C) if order is None else np.asarray(order, dtype=np.int64)).tolist()
+        if flip is not None:
+            flip = np.asarray(flip, dtype=np.int64)
+            if (flip == np.arange(len(flip))).all():
+                flip = None
+        self.flip = flip
+        # joint index per orientation: (J,H), H = 1 (as detected) or 2 (and mirrored)
+        self._jh = None if flip is None else np.stack([np.arange(len(flip)), flip], 1)
+        self._offdiag = (np.arange(C)[:, None, None, None, None] != np.arange(C)[:, None])  # (C,1,1,C,1)
+        self._cams = np.arange(C)
+        self._o01 = np.zeros((1, 1, 1), np.int64) if flip is None else _O01  # o = S ^ _o01: S, 1 - S
+
+    def pair_table(self, xy: np.ndarray, vis: np.ndarray) -> np.ndarray:
+        """G (C, P, H, C, P+1) complex: the real part of G[a,p,h,b,q] is the cost of pose p of camera a
+        (mirrored if h = 1) against pose q of camera b in pixels (class doc; 0 where fewer than
+        ``min_shared_joints`` joints are shared or a == b), the imaginary part 1 where the cost is
+        valid, else 0. The last column (q = P, index -1) is all zero: hypotheses index it for
+        cameras they have no pose in."""
+        C, P, J = vis.shape
+        jh = self._jh
+        Hn = 1 if jh is None else 2
+        if jh is not None and len(jh) != J:
+            raise ValueError(f"flip has {len(jh)} joints, the poses {J}.")
+        xs = np.empty((C, 3, J, P), np.float32)  # homogeneous points, zero where unusable
+        xs[:, :2] = np.where(vis[..., None], xy, 0.0).transpose(0, 3, 2, 1)
+        xs[:, 2] = vis.transpose(0, 2, 1)
+        L = np.matmul(self._F32, xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)  # (a,b,k,j,p)
+        nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
+        np.maximum(nrm, 1e-12, out=nrm)
+        L /= nrm[:, :, None]
+        Lt = L.transpose(1, 3, 0, 4, 2)  # (b,j,a,p,k)
+        Lh = Lt[:, jh] if jh is not None else Lt[:, :, None]  # (b,j,h,a,p,k): line of joint f_h(j)
+        R = Hn * C * P
+        xT = xs.transpose(0, 2, 1, 3)  # (b,j,k,q)
+        if P < 8:  # the same products; numpy/BLAS is faster with the long side first for larger frames
+            B = np.matmul(Lh.reshape(C, J, R, 3), xT)  # (b,j,(h,a,p),q)
+            np.abs(B, out=B)
+            B = B.sum(1).reshape(C, Hn, C, P, P).transpose(0, 4, 1, 2, 3)
+        else:
+            B = np.matmul(xT.transpose(0, 1, 3, 2), Lh.reshape(C, J, R, 3).transpose(0, 1, 3, 2))  # (b,j,q,R)
+            np.abs(B, out=B)
+            B = B.sum(1).reshape(C, P, Hn, C, P)
+        # B[b,q,h,a,p] = sum_j |L[a,b,f_h(j),p] . x[b,q,j]|; eq. 4.3 both ways, laid out (a,p,h,b,q)
+        d = B.transpose(3, 4, 2, 0, 1) + B
+        v = vis.astype(np.float64)
+        vh = v if jh is None else v[:, :, jh.T]  # (a,p,h,J)
+        n = (vh.reshape(C * P * Hn, J) @ v.reshape(C * P, J).T).reshape(C, P, Hn, C, P)
+        ok = n >= max(self.config.min_shared_joints, 1)
+        ok &= self._offdiag
+        # cost + 1j * ok: Algorithm 1's loop then reads both with one gather of plain indices
+        G = np.empty((C, P, Hn, C, P + 1), np.complex128)
+        G[..., P] = 0.0
+        Gv = G[..., :P]
+        np.divide(d, np.maximum(n, 1.0), out=Gv.real)
+        Gv.real *= ok
+        Gv.imag = ok
+        return G
+
+    def __call__(self, xy_px: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Associate one frame: see :func:`match_frame` (same arguments and result)."""
+        cfg = self.config
+        xy = np.asarray(xy_px, dtype=np.float64)
+        C = self.n_cams
+        check_shape("xy_px", xy, (C, None, None, 2))
+        check_shape("score", np.asarray(score), xy.shape[:3])
+        vis = _usable(xy, np.asarray(score, dtype=np.float64), cfg)
+        present = vis.any(-1)  # (C,P)
+        G = self.pair_table(xy, vis)
+        flip = self.flip is not None
+        n_max = int(np.count_nonzero(present))
+        H = np.full((n_max, C), -1, dtype=np.int64)  # hypotheses: pose index per camera, -1 = none
+        S = np.zeros((n_max, C), dtype=np.int64)  # 1 = pose mirrored relative to its hypothesis
+        m = 0  # hypotheses so far: H[:m]
+        theta = cfg.theta_px
+        cams, o01 = self._cams, self._o01
+        for i in self.order:
+            ks = present[i].nonzero()[0]
+            K = len(ks)
+            if K == 0:
+                continue
+            if m:
+                Hm, Sm = H[:m], S[:m]
+                # eq. 4.2: mean over the hypothesis' members (that share joints with the pose) of eq. 4.3,
+                # each member in its own orientation (o = S), or the pose mirrored against it (o = 1 - S);
+                # H = -1 reads the zero column
+                t = G[i][ks[:, None, None, None], Sm ^ o01, cams, Hm].sum(-1)  # (K,o,M) cost + 1j count
+                t_ok = t.imag
+                phis = np.divide(t.real, t_ok, out=np.full(t.shape, _BIG), where=t_ok > 0)
+                if flip:
+                    phi = phis[:, 0]
+                    # prefer the pose as detected unless mirroring clearly helps
+                    mirrored = phis[:, 1] < 0.8 * phi
+                    phi = np.where(mirrored, phis[:, 1], phi)
+                else:
+                    phi = phis[:, 0]
+                if cfg.gate:  # pairs above theta cannot join anyway; keep them from displacing valid pairs
+                    phi[phi >= theta] = _BIG
+                rows, cols = linear_sum_assignment(phi)  # eq. 4.4
+                joined = phi[rows, cols] < theta
+                rj, cj = rows[joined], cols[joined]
+                H[cj, i] = ks[rj]
+                if flip:
+                    S[cj, i] = mirrored[rj, cj]
+                if len(rj) < K:  # the rest start new hypotheses
+                    new = np.ones(K, bool)
+                    new[rj] = False
+                    new = ks[new]
+                else:
+                    continue
+            else:
+                new = ks
+            H[m:m + len(new), i] = new
+            m += len(new)
+        H, S = H[:m], S[:m]
+        keep = np.count_nonzero(H >= 0, 1) >= 2
+        H, S = H[keep], S[keep].astype(bool)
+        if flip and S.any():  # a hypothesis started from a mirrored pose: take the majority orientation
+            has = H >= 0
+            invert = 2 * np.count_nonzero(S, 1) > np.count_nonzero(has, 1)
+            S[invert] = ~S[invert]
+            S &= has
+        return H, S
 
 
 def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: MatchConfig | None = None,
@@ -155,77 +236,9 @@ def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: Mat
     hypothesis. The seed notes left/right flips of single views as its main failure (sec. 4.3.5):
     with ``flip`` each pose joins in the orientation with the lower cost (eq. 4.2 against the
     members in their own orientation), and each hypothesis takes its majority orientation.
+    A :class:`Matcher` keeps the per-rig constants for repeated frames.
     """
-    cfg = config or MatchConfig()
     xy = np.asarray(xy_px, dtype=np.float64)
     check_shape("xy_px", xy, (None, None, None, 2))
-    C, P, J = xy.shape[:3]
-    check_shape("score", np.asarray(score), (C, P, J))
-    check_shape("F", np.asarray(F), (C, C, 3, 3))
-    order = np.arange(C) if order is None else np.asarray(order, dtype=np.int64)
-    vis = _usable(xy, np.asarray(score, dtype=np.float64), cfg)
-    present = vis.any(-1)  # (C,P)
-    if flip is not None:
-        flip = np.asarray(flip, dtype=np.int64)
-        if (flip == np.arange(J)).all():
-            flip = None
-    cost_all, ok_all, cross_all, okx_all = pair_costs(xy, vis, _as_float(F),
-                                                      cfg.min_shared_joints, flip)
-    # G[i][k, q, o, c, h]: q = 0: the cost (0 where not ok), q = 1: ok; o = 0: both poses as
-    # detected, o = 1: the first mirrored (= the second mirrored). One gather per camera reads all.
-    if flip is None:
-        G = np.stack([np.where(ok_all, cost_all, 0.0), ok_all], 2)[:, :, :, None]  # (C,P,2,1,C,P)
-    else:
-        G = np.empty((C, P, 2, 2, C, P))
-        np.copyto(G[:, :, 0, 0], np.where(ok_all, cost_all, 0.0))
-        np.copyto(G[:, :, 0, 1], np.where(okx_all, cross_all, 0.0))
-        G[:, :, 1, 0], G[:, :, 1, 1] = ok_all, okx_all
-    cams = np.arange(C)[None, None, :]  # (1,1,C), with o (o,M,C)
-    H = np.full((0, C), -1, dtype=np.int64)  # hypotheses: pose index per camera, -1 = none
-    S = np.zeros((0, C), dtype=np.int64)  # 1 = pose mirrored relative to its hypothesis
-    theta = cfg.theta_px
-    for i in order.tolist():
-        ks = present[i].nonzero()[0]
-        if len(ks) == 0:
-            continue
-        new = None
-        if len(H):
-            # eq. 4.2: mean over the hypothesis' members (that share joints with the pose) of eq. 4.3,
-            # each member taken in its own orientation: pose as is vs member mirrored = cross cost
-            valid = H >= 0
-            # o = S: each member in its own orientation; o = 1 - S: the pose mirrored against it
-            o = S[None] ^ _O01 if flip is not None else np.zeros((1,) + S.shape, np.int64)  # (o,M,C): S, 1-S
-            t = (G[i][ks][:, :, o, cams, np.maximum(H, 0)] * valid).sum(-1)  # (K,q,o,M)
-            phis = np.where(t[:, 1] > 0, t[:, 0] / np.maximum(t[:, 1], 1), _BIG)  # (K,o,M)
-            phi = phis[:, 0]
-            if flip is not None:
-                phi1 = phis[:, 1]
-                mirrored = phi1 < 0.8 * phi  # prefer the pose as detected unless mirroring clearly helps
-                phi = np.where(mirrored, phi1, phi)
-            else:
-                mirrored = np.zeros(phi.shape, bool)
-            if cfg.gate:  # pairs above theta cannot join anyway; keep them from displacing valid pairs
-                phi[phi >= theta] = _BIG
-            rows, cols = linear_sum_assignment(phi)  # eq. 4.4
-            joined = phi[rows, cols] < theta
-            rj, cj = rows[joined], cols[joined]
-            H[cj, i] = ks[rj]
-            S[cj, i] = mirrored[rj, cj]
-            if len(rj) < len(ks):
-                new = np.ones(len(ks), bool)
-                new[rj] = False
-                new = ks[new]
-        else:
-            new = ks
-        if new is not None:
-            Hn = np.full((len(new), C), -1, dtype=np.int64)
-            Hn[:, i] = new
-            H = np.concatenate([H, Hn], 0)
-            S = np.concatenate([S, np.zeros(Hn.shape, np.int64)], 0)
-    keep = (H >= 0).sum(1) >= 2
-    H, S = H[keep], S[keep].astype(bool)
-    # a hypothesis started from a mirrored pose: take the majority orientation
-    invert = 2 * (S & (H >= 0)).sum(1) > (H >= 0).sum(1)
-    S[invert] = ~S[invert]
-    S &= H >= 0
-    return H, S
+    check_shape("F", np.asarray(F), (len(xy), len(xy), 3, 3))
+    return Matcher(F, config, order, flip)(xy, score)

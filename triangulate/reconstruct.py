@@ -8,7 +8,7 @@ import numpy as np
 
 from triangulate.dlt import DLTConfig, Triangulator, _reject_unknown, limb_check
 from triangulate.geometry import check_shape, fundamental_from_P
-from triangulate.matching import MatchConfig, match_frame
+from triangulate.matching import MatchConfig, Matcher
 
 
 def _mean_joint_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -100,7 +100,7 @@ class FrameReconstructor:
         self.joint_names = joint_names
         self.tri = Triangulator(self.P, self.config.dlt)
         self.flip = None if joint_names is None else flip_index(joint_names)
-        self._F32 = self.F.astype(np.float32)  # what the matching's epipolar lines use
+        self.matcher = Matcher(self.F, self.config.match, order, self.flip if self.config.fix_flips else None)
         self._cams_col = np.arange(len(self.P))[:, None]
         self._arJ = None if joint_names is None else np.arange(len(joint_names))
         self._upper: dict[int, np.ndarray] = {}  # (M,M) strict upper-triangle masks by M
@@ -187,8 +187,7 @@ class FrameReconstructor:
         C = len(self.P)
         check_shape("xy_px", xy, (C, None, None, 2))
         J = xy.shape[2]
-        H, S = match_frame(xy, score, self._F32, self.config.match, self.order,
-                           self.flip if self.config.fix_flips else None)
+        H, S = self.matcher(xy, score)
         if len(H) == 0:
             return FramePoses.empty(J, C)
         Z = self._planes(xy, score)
