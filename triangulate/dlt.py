@@ -26,6 +26,7 @@ import numpy as np
 
 from triangulate.geometry import check_shape
 
+_SCORE, _REPROJ, _STD, _NVIEWS = 4, 5, 6, 7  # rows of ``Triangulator.solve_raw``'s V
 _EPS = 1e-12  # added to the 3x3 normal matrix' diagonal: keeps it positive definite (det > 0)
 
 # the 9 entries of the 4x4 normal matrix that the inhomogeneous solve reads, as (row, col):
@@ -181,6 +182,17 @@ class Triangulator:
     def solve(self, xyn: np.ndarray, w0: np.ndarray, seen: np.ndarray) -> Triangulated:
         """The robust DLT on prepared input: xyn (2,C,N) normalised coordinates (``normalised``; any
         finite value where unseen), w0 (C,N) confidences (0 where unseen), seen (C,N) bool."""
+        V, ok, used = self.solve_raw(xyn, w0, seen)
+        nan = np.float64(np.nan)
+        return Triangulated(
+            xyz_m=np.where(ok[:, None], V[:3].T, nan), reproj_err_px=np.where(ok, V[_REPROJ], nan),
+            n_views=np.where(ok, V[_NVIEWS], 0).astype(np.int16), score=np.where(ok, V[_SCORE], 0.0),
+            std_m=np.where(ok, V[_STD], nan), used=used & ok[None])
+
+    def solve_raw(self, xyn: np.ndarray, w0: np.ndarray, seen: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``solve`` without the masking: V (8,N) with rows x, y, z, 1, score, reprojection error,
+        std, view count (``_SCORE`` ...; meaningful where ok), ok (N,) and the views used (C,N)."""
         cfg = self.config
         C, N = w0.shape
         xyn = np.where(seen, xyn, 0.0)  # unseen: finite, so every residual below stays finite
@@ -194,9 +206,10 @@ class Triangulator:
         xyr[1:] = xyn
         np.multiply(w0, w0, out=Fw)
         np.multiply(xyr, Fw, out=F3)
-        X, tr = _solve9(self._K @ Fe)  # algebraic first guess (3,N)
-        Xh = np.empty((4, N))
-        Xh[:3], Xh[3] = X, 1.0
+        V = np.empty((8, N))
+        Xh = V[:4]  # homogeneous points
+        Xh[:3], tr = _solve9(self._K @ Fe)  # algebraic first guess (3,N)
+        Xh[3] = 1.0
         depth = self._Prows[2 * C:] @ Xh  # (C,N)
         pos = depth > 1e-6
         used = seen & pos
@@ -231,30 +244,29 @@ class Triangulator:
                 break
             idx = drop.nonzero()[0]
             used[worst[idx], idx] = False
-        # per-point sums over the views used: count, confidence, squared confidence, error,
+        # per-point sums over the views used: count, confidence, error, squared confidence,
         # squared error, squared focal scale
         E = np.empty((6, C, N))
         E[0] = used
         np.multiply(E[0], w0, out=E[1])
-        np.multiply(E[1], w0, out=E[2])
-        E[3] = np.where(used, err, 0.0)
-        np.multiply(E[3], E[3], out=E[4])
+        E[2] = np.where(used, err, 0.0)
+        np.multiply(E[1], w0, out=E[3])
+        np.multiply(E[2], E[2], out=E[4])
         np.multiply(E[0], self._s2, out=E[5])
         tot = E.sum(1)  # (6,N)
-        n_views = tot[0]
-        mean = tot[1:] / np.maximum(n_views, 1.0)  # score, w^2, reprojection error, err^2, s^2
+        n_views = V[_NVIEWS]
+        n_views[:] = tot[0]
+        mean = tot[1:] / np.maximum(n_views, 1.0)  # score, reprojection error, w^2, err^2, s^2
+        V[_SCORE:_SCORE + 2] = mean[:2]
         # covariance sigma^2 (J^T W J)^-1 from the last solve's normal matrix: its rows are the
         # Jacobian d(normalised pixel)/dX weighted by the confidences; back to pixels with the mean
         # focal scale and mean squared confidence of the views used
         sigma = np.maximum(cfg.noise_px, np.sqrt(mean[3]))
-        std = sigma * np.sqrt(np.maximum(tr, 0) * mean[1] / np.maximum(mean[4], 1e-12) / 3.0)
-        ok = (n_views >= cfg.min_views) & (E[3].max(0) <= cfg.max_reproj_px) & (std <= cfg.max_std_m) \
+        std = V[_STD]
+        np.multiply(sigma, np.sqrt(np.maximum(tr, 0) * mean[2] / np.maximum(mean[4], 1e-12) / 3.0), out=std)
+        ok = (n_views >= cfg.min_views) & (E[2].max(0) <= cfg.max_reproj_px) & (std <= cfg.max_std_m) \
             & np.isfinite(Xh[:3]).all(0)
-        nan = np.float64(np.nan)
-        return Triangulated(
-            xyz_m=np.where(ok[:, None], Xh[:3].T, nan), reproj_err_px=np.where(ok, mean[2], nan),
-            n_views=np.where(ok, n_views, 0).astype(np.int16), score=np.where(ok, mean[0], 0.0),
-            std_m=np.where(ok, std, nan), used=used & ok[None])
+        return V, ok, used
 
 
 def triangulate_dlt(P: np.ndarray, xy_px: np.ndarray, weights: np.ndarray | None = None,
@@ -282,7 +294,8 @@ LIMB_BOUNDS_M = {
 
 def _pairs(joint_names: tuple[str, ...], bounds: dict):
     idx = {n: i for i, n in enumerate(joint_names)}
-    pairs = [(idx[a], idx[b], lo, hi) for (a, b), (lo, hi) in bounds.items() if a in idx and b in idx]
+    pairs = [(idx[a], idx[b], lo * lo, hi * hi) for (a, b), (lo, hi) in bounds.items()
+             if a in idx and b in idx]  # squared bounds
     return tuple(np.asarray(v) for v in zip(*pairs, strict=True)) if pairs else None
 
 
@@ -302,10 +315,11 @@ def limb_check(xyz_m: np.ndarray, reproj_err_px: np.ndarray, joint_names: tuple[
     pairs = _limb_pairs(tuple(joint_names)) if bounds is None else _pairs(tuple(joint_names), bounds)
     if pairs is None:
         return keep
-    a, b, lo, hi = pairs
+    a, b, lo2, hi2 = pairs  # squared bounds
     dv = xyz_m[:, a] - xyz_m[:, b]
-    length = np.sqrt(np.add.reduce(dv * dv, axis=-1))  # (M,L), = np.linalg.norm(dv, axis=-1)
-    bad = (length < lo) | (length > hi)  # NaN (a missing endpoint) is neither
+    dv *= dv
+    length2 = np.add.reduce(dv, axis=-1)  # (M,L) squared limb lengths
+    bad = (length2 < lo2) | (length2 > hi2)  # NaN (a missing endpoint) is neither
     if bad.any():
         ea, eb = np.nan_to_num(reproj_err_px[:, a]), np.nan_to_num(reproj_err_px[:, b])
         m, limb = np.nonzero(bad)

@@ -66,9 +66,11 @@ def _as_float(F) -> np.ndarray:
     return F if F.dtype in (np.float32, np.float64) else F.astype(np.float64)
 
 
-def _usable(xy: np.ndarray, score: np.ndarray, cfg: MatchConfig) -> np.ndarray:
+def _usable(finite: np.ndarray, score: np.ndarray, cfg: MatchConfig) -> np.ndarray:
+    """Joints the matching uses (C,P,J): finite coordinates (``finite``), confidence >= min_score, in
+    poses with at least min_joints such joints."""
     # NaN scores count as 0 (a NaN never passes ``>=``, so nan_to_num is only needed for min_score <= 0)
-    vis = np.isfinite(xy).all(-1) & ((score if cfg.min_score > 0 else np.nan_to_num(score)) >= cfg.min_score)
+    vis = finite & ((score if cfg.min_score > 0 else np.nan_to_num(score)) >= cfg.min_score)
     vis &= (vis.sum(-1) >= cfg.min_joints)[..., None]
     return vis
 
@@ -126,7 +128,7 @@ class Matcher:
         xs[:, :2] = np.where(vis[..., None], xy, 0.0).transpose(0, 3, 2, 1)
         xs[:, 2] = vis.transpose(0, 2, 1)
         L = np.matmul(self._F32, xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)  # (a,b,k,j,p)
-        nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
+        nrm = np.hypot(L[:, :, 0], L[:, :, 1])
         np.maximum(nrm, 1e-12, out=nrm)
         L /= nrm[:, :, None]
         Lt = L.transpose(1, 3, 0, 4, 2)  # (b,j,a,p,k)
@@ -159,15 +161,22 @@ class Matcher:
 
     def __call__(self, xy_px: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Associate one frame: see :func:`match_frame` (same arguments and result)."""
-        cfg = self.config
         xy = np.asarray(xy_px, dtype=np.float64)
         C = self.n_cams
         check_shape("xy_px", xy, (C, None, None, 2))
-        check_shape("score", np.asarray(score), xy.shape[:3])
-        vis = _usable(xy, np.asarray(score, dtype=np.float64), cfg)
+        score = np.asarray(score, dtype=np.float64)
+        check_shape("score", score, xy.shape[:3])
+        return self.match(xy, score, np.isfinite(xy).all(-1))
+
+    def match(self, xy: np.ndarray, score: np.ndarray, finite: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``__call__`` on checked input: xy (C,P,J,2) and score (C,P,J) float64, finite (C,P,J) =
+        ``np.isfinite(xy).all(-1)``."""
+        cfg = self.config
+        vis = _usable(finite, score, cfg)
         present = vis.any(-1)  # (C,P)
         G = self.pair_table(xy, vis)
         flip = self.flip is not None
+        C = self.n_cams
         n_max = int(np.count_nonzero(present))
         H = np.full((n_max, C), -1, dtype=np.int64)  # hypotheses: pose index per camera, -1 = none
         S = np.zeros((n_max, C), dtype=np.int64)  # 1 = pose mirrored relative to its hypothesis

@@ -6,7 +6,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from triangulate.dlt import DLTConfig, Triangulator, _reject_unknown, limb_check
+from triangulate.dlt import (
+    _NVIEWS,
+    _REPROJ,
+    _SCORE,
+    _STD,
+    DLTConfig,
+    Triangulator,
+    _reject_unknown,
+    limb_check,
+)
 from triangulate.geometry import check_shape, fundamental_from_P
 from triangulate.matching import MatchConfig, Matcher
 
@@ -104,21 +113,27 @@ class FrameReconstructor:
         self._cams_col = np.arange(len(self.P))[:, None]
         self._arJ = None if joint_names is None else np.arange(len(joint_names))
         self._upper: dict[int, np.ndarray] = {}  # (M,M) strict upper-triangle masks by M
+        self._c4 = self.tri.c.T[:, :, None, None]  # (2,C,1,1) principal points, for ``_planes``
+        self._s4 = self.tri.s[:, None, None]  # (C,1,1) focal scales
+        self._fill = np.full((8, 1, 1), np.nan)  # what a dropped joint reads in each row of V
+        self._fill[[_SCORE, _NVIEWS]] = 0.0
 
-    def _planes(self, xy: np.ndarray, score: np.ndarray) -> np.ndarray:
-        """(4,C,P,J) per-frame planes the DLT reads: normalised x, y (0 where unseen), confidence
-        (0 where unseen), seen (1/0); each hypothesis then gathers its rows in one indexing step."""
-        seen = np.isfinite(xy).all(-1) & (score >= self.config.dlt.min_score) & np.isfinite(score)
-        Z = np.empty((4,) + seen.shape)
-        np.copyto(Z[:2], self.tri.normalised(xy))
-        Z[:2][:, ~seen] = 0.0
-        np.copyto(Z[2], np.where(seen, score, 0.0))
-        Z[3] = seen
+    def _planes(self, xy: np.ndarray, score: np.ndarray, finite: np.ndarray) -> np.ndarray:
+        """(4,C,P,J) per-frame planes the DLT reads: normalised x, y, confidence, seen (1/0), where
+        finite = all coordinates finite; each hypothesis then gathers its rows in one indexing step
+        (the DLT ignores the values of unseen joints)."""
+        Z = np.empty((4,) + finite.shape)
+        np.subtract(np.moveaxis(xy, -1, 0), self._c4, out=Z[:2])
+        Z[:2] /= self._s4
+        Z[2] = score
+        np.logical_and(finite, score >= self.config.dlt.min_score, out=Z[3], casting="unsafe")
+        Z[3] *= np.isfinite(score)
         return Z
 
-    def _triangulate(self, Z: np.ndarray, H: np.ndarray, S: np.ndarray) -> dict:
-        """Triangulate hypotheses H (M,C) with mirror flags S (M,C) from the planes Z (``_planes``);
-        returns (M,...) arrays and keep (M,J)."""
+    def _triangulate(self, Z: np.ndarray, H: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Triangulate hypotheses H (M,C) with mirror flags S (M,C) from the planes Z (``_planes``).
+        Returns V (8,M,J) (rows of ``Triangulator.solve_raw``) and keep (M,J): the joints that
+        passed the DLT's checks and the limb check."""
         C, J = len(self.P), Z.shape[-1]
         M = len(H)
         sel = np.maximum(H, 0).T[..., None]  # (C,M,1)
@@ -129,19 +144,16 @@ class FrameReconstructor:
         g = g.reshape(4, C, M * J)
         seen = g[3] > 0
         seen &= (H >= 0).T.repeat(J, 1)
-        r = self.tri.solve(g[:2], np.where(seen, g[2], 0.0), seen)
-        out = {"xyz_m": r.xyz_m.reshape(M, J, 3), "reproj_err_px": r.reproj_err_px.reshape(M, J),
-               "score": r.score.reshape(M, J), "n_views": r.n_views.reshape(M, J),
-               "std_m": r.std_m.reshape(M, J)}
-        keep = out["n_views"] > 0  # = np.isfinite(xyz_m).all(-1): a kept joint has >= min_views views
+        V, ok, _ = self.tri.solve_raw(g[:2], np.where(seen, g[2], 0.0), seen)
+        V, ok = V.reshape(8, M, J), ok.reshape(M, J)
         if self.config.limb_check and self.joint_names is not None:
-            keep &= limb_check(out["xyz_m"], out["reproj_err_px"], self.joint_names)
-        out["keep"] = keep
-        return out
+            xyz = np.where(ok[..., None], V[:3].transpose(1, 2, 0), np.nan)
+            ok &= limb_check(xyz, V[_REPROJ], self.joint_names)
+        return V, ok
 
-    def _merge_duplicates(self, Z, H, S, res):
+    def _merge_duplicates(self, Z, H, S, V, keep):
         """Sec. 4.2.1 leaves a person split over two hypotheses when one view did not join; merge them."""
-        X = np.where(res["keep"][..., None], res["xyz_m"], np.nan)
+        X = np.where(keep[..., None], V[:3].transpose(1, 2, 0), np.nan)
         M = len(X)
         if self.flip is not None:  # the same person with left/right swapped (a mirrored hypothesis)
             D2 = _mean_joint_distance(X, np.concatenate([X, X[:, self.flip]], 0))  # one pass for both
@@ -157,12 +169,12 @@ class FrameReconstructor:
             upper = self._upper[M] = np.triu(np.ones((M, M), bool), 1)
         close &= upper  # pairs a < b only
         if not close.any():
-            return H, S, res
+            return H, S, V, keep
         D[np.arange(M), np.arange(M)] = np.inf
         a_idx, b_idx = np.nonzero(close)
         alive = np.ones(len(H), bool)
         changed = np.zeros(len(H), bool)
-        views = np.where(res["keep"], res["n_views"], 0).sum(1)
+        views = np.where(keep, V[_NVIEWS], 0).sum(1)
         for k in np.argsort(D[a_idx, b_idx]):
             a, b = a_idx[k], b_idx[k]
             if not (alive[a] and alive[b]):
@@ -175,10 +187,8 @@ class FrameReconstructor:
                 alive[b if views[b] < views[a] else a] = False
         if changed.any():
             idx = np.flatnonzero(changed & alive)
-            sub = self._triangulate(Z, H[idx], S[idx])
-            for k, v in sub.items():
-                res[k][idx] = v
-        return H[alive], S[alive], {k: v[alive] for k, v in res.items()}
+            V[:, idx], keep[idx] = self._triangulate(Z, H[idx], S[idx])
+        return H[alive], S[alive], V[:, alive], keep[alive]
 
     def __call__(self, xy_px: np.ndarray, score: np.ndarray) -> FramePoses:
         """xy_px: (C,P,J,2) undistorted pixels, NaN = missing; score: (C,P,J)."""
@@ -186,21 +196,18 @@ class FrameReconstructor:
         score = np.asarray(score, dtype=np.float64)
         C = len(self.P)
         check_shape("xy_px", xy, (C, None, None, 2))
+        check_shape("score", score, xy.shape[:3])
         J = xy.shape[2]
-        H, S = self.matcher(xy, score)
+        finite = np.isfinite(xy).all(-1)
+        H, S = self.matcher.match(xy, score, finite)
         if len(H) == 0:
             return FramePoses.empty(J, C)
-        Z = self._planes(xy, score)
-        res = self._triangulate(Z, H, S)
+        Z = self._planes(xy, score, finite)
+        V, keep = self._triangulate(Z, H, S)
         if self.config.merge_dist_m > 0 and len(H) > 1:
-            H, S, res = self._merge_duplicates(Z, H, S, res)
-        keep = res["keep"]
-        good = keep.sum(1) >= self.config.min_joints_3d
-        keep &= good[:, None]
-        nan = np.float64(np.nan)
-        return FramePoses(
-            xyz_m=np.where(keep[..., None], res["xyz_m"], nan)[good],
-            score=np.where(keep, res["score"], 0)[good],
-            reproj_err_px=np.where(keep, res["reproj_err_px"], nan)[good],
-            n_views=np.where(keep, res["n_views"], 0).astype(np.int16, copy=False)[good],
-            std_m=np.where(keep, res["std_m"], nan)[good], members=H[good], mirrored=S[good])
+            H, S, V, keep = self._merge_duplicates(Z, H, S, V, keep)
+        good = np.count_nonzero(keep, 1) >= self.config.min_joints_3d
+        W = np.where(keep[good], V[:, good], self._fill)  # (8,M',J): NaN (0 for score, views) where dropped
+        return FramePoses(xyz_m=W[:3].transpose(1, 2, 0), score=W[_SCORE], reproj_err_px=W[_REPROJ],
+                          n_views=W[_NVIEWS].astype(np.int16), std_m=W[_STD], members=H[good],
+                          mirrored=S[good])
