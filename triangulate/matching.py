@@ -81,13 +81,14 @@ class Matcher:
 
     The pair table. With lines ``L[a,b,j,p] = F[a,b] x[a,p,j]`` scaled to a unit normal (the
     epipolar line in camera b of joint j of pose p in camera a) the summed point-line distances
-    ``B[b,h,a,p,q] = sum_j |L[a,b,f_h(j),p] . x[b,q,j]|`` (f_0 = identity, f_1 = the left/right
+    ``B[b,a,p,h,q] = sum_j |L[a,b,j,p] . x[b,q,f_h(j)]|`` (f_0 = identity, f_1 = the left/right
     permutation) give eq. 4.3 for every pair of poses, as detected (h = 0) and with the first pose
-    mirrored (h = 1): the line of the mirrored pose at joint j is the line of joint f(j), and the
-    distance of a's mirrored points to b's lines is ``B[a,h,b,q,p]`` after substituting j -> f(j).
-    So cost_h(a_p, b_q) = (B[b,h,a,p,q] + B[a,h,b,q,p]) / n_h(a_p, b_q), with n_h the number of
-    joints both see: one batched product over (camera, joint) of (H C P x 3) line blocks with
-    (3 x P) point blocks computes every cost of the frame, mirrored ones included.
+    mirrored (h = 1): the line of the mirrored pose at joint j is the line of joint f(j), so after
+    substituting j -> f(j) its distances to b's points are ``B[b,a,p,1,q]``, and the distances of
+    a's mirrored points to b's lines are ``B[a,b,q,1,p]``. So cost_h(a_p, b_q) = (B[b,a,p,h,q] +
+    B[a,b,q,h,p]) / n_h(a_p, b_q), with n_h the number of joints both see: one batched product
+    over (camera, joint) of (C P x 3) line blocks with (3 x H P) point blocks computes every cost
+    of the frame, mirrored ones included.
     Unusable joints get a zero homogeneous vector, so they contribute nothing to any sum.
     """
 
@@ -102,6 +103,8 @@ class Matcher:
         # here, and pixel distances keep ~1e-4 px precision (a float32 F from the caller is used as is)
         self._F32 = np.ascontiguousarray(F.reshape(C, C * 3, 3), dtype=np.float32)
         self.order = (np.arange(C) if order is None else np.asarray(order, dtype=np.int64)).tolist()
+        if len(set(self.order)) < len(self.order) or not all(0 <= i < C for i in self.order):
+            raise ValueError(f"camera order {self.order}: each camera index (0..{C - 1}) at most once.")
         if flip is not None:
             flip = np.asarray(flip, dtype=np.int64)
             if (flip == np.arange(len(flip))).all():
@@ -109,14 +112,13 @@ class Matcher:
         self.flip = flip
         # joint index per orientation: (J,H), H = 1 (as detected) or 2 (and mirrored)
         self._jh = None if flip is None else np.stack([np.arange(len(flip)), flip], 1)
-        self._offdiag = (np.arange(C)[:, None, None, None, None] != np.arange(C)[:, None])  # (C,1,1,C,1)
         self._cams = np.arange(C)
         self._o01 = np.zeros((1, 1, 1), np.int64) if flip is None else _O01  # o = S ^ _o01: S, 1 - S
 
     def pair_table(self, xy: np.ndarray, vis: np.ndarray) -> np.ndarray:
         """G (C, P, H, C, P+1) complex: the real part of G[a,p,h,b,q] is the cost of pose p of camera a
         (mirrored if h = 1) against pose q of camera b in pixels (class doc; 0 where fewer than
-        ``min_shared_joints`` joints are shared or a == b), the imaginary part 1 where the cost is
+        ``min_shared_joints`` joints are shared), the imaginary part 1 where the cost is
         valid, else 0. The last column (q = P, index -1) is all zero: hypotheses index it for
         cameras they have no pose in."""
         C, P, J = vis.shape
@@ -128,34 +130,36 @@ class Matcher:
         xs[:, :2] = np.where(vis[..., None], xy, 0.0).transpose(0, 3, 2, 1)
         xs[:, 2] = vis.transpose(0, 2, 1)
         L = np.matmul(self._F32, xs.reshape(C, 3, J * P)).reshape(C, C, 3, J, P)  # (a,b,k,j,p)
-        nrm = np.hypot(L[:, :, 0], L[:, :, 1])
+        nrm = np.sqrt(L[:, :, 0] ** 2 + L[:, :, 1] ** 2)
         np.maximum(nrm, 1e-12, out=nrm)
         L /= nrm[:, :, None]
-        Lt = L.transpose(1, 3, 0, 4, 2)  # (b,j,a,p,k)
-        Lh = Lt[:, jh] if jh is not None else Lt[:, :, None]  # (b,j,h,a,p,k): line of joint f_h(j)
-        R = Hn * C * P
-        xT = xs.transpose(0, 2, 1, 3)  # (b,j,k,q)
+        Lc = np.empty((C, J, C, P, 3), np.float32)  # (b,j,a,p,k): unit-normal lines, batched by (b, j)
+        Lc[...] = L.transpose(1, 3, 0, 4, 2)
+        # points x[b,q,f_h(j)] (b,j,k,h,q): sum_j |L[a,b,f(j),p].x[b,q,j]| = sum_j |L[a,b,j,p].x[b,q,f(j)]|,
+        # so the mirrored poses' costs need no lines of their own
+        xq = (xs[:, :, jh] if jh is not None else xs[:, :, :, None]).transpose(0, 2, 1, 3, 4)
+        xq = xq.reshape(C, J, 3, Hn * P)
+        Lm = Lc.reshape(C, J, C * P, 3)
         if P < 8:  # the same products; numpy/BLAS is faster with the long side first for larger frames
-            B = np.matmul(Lh.reshape(C, J, R, 3), xT)  # (b,j,(h,a,p),q)
+            B = np.matmul(Lm, xq)  # (b,j,(a,p),(h,q))
             np.abs(B, out=B)
-            B = B.sum(1).reshape(C, Hn, C, P, P).transpose(0, 4, 1, 2, 3)
+            B = B.sum(1).reshape(C, C, P, Hn, P)
         else:
-            B = np.matmul(xT.transpose(0, 1, 3, 2), Lh.reshape(C, J, R, 3).transpose(0, 1, 3, 2))  # (b,j,q,R)
+            B = np.matmul(xq.transpose(0, 1, 3, 2), Lm.transpose(0, 1, 3, 2))  # (b,j,(h,q),(a,p))
             np.abs(B, out=B)
-            B = B.sum(1).reshape(C, P, Hn, C, P)
-        # B[b,q,h,a,p] = sum_j |L[a,b,f_h(j),p] . x[b,q,j]|; eq. 4.3 both ways, laid out (a,p,h,b,q)
-        d = B.transpose(3, 4, 2, 0, 1) + B
+            B = B.sum(1).reshape(C, Hn, P, C, P).transpose(0, 3, 4, 1, 2)
+        # B[b,a,p,h,q] = sum_j |L[a,b,j,p] . x[b,q,f_h(j)]|; eq. 4.3 both ways, laid out (a,p,h,b,q):
+        # B[b,a,p,h,q] (a's pose p, mirrored if h, against b's lines) + B[a,b,q,h,p] (the other way)
+        d = B.transpose(1, 2, 3, 0, 4) + B.transpose(0, 4, 3, 1, 2)
         v = vis.astype(np.float64)
         vh = v if jh is None else v[:, :, jh.T]  # (a,p,h,J)
         n = (vh.reshape(C * P * Hn, J) @ v.reshape(C * P, J).T).reshape(C, P, Hn, C, P)
         ok = n >= max(self.config.min_shared_joints, 1)
-        ok &= self._offdiag
-        # cost + 1j * ok: Algorithm 1's loop then reads both with one gather of plain indices
-        G = np.empty((C, P, Hn, C, P + 1), np.complex128)
-        G[..., P] = 0.0
+        # cost + 1j * ok: Algorithm 1's loop then reads both with one gather of plain indices. (The
+        # a == b blocks are never read: a camera's poses meet hypotheses before it has joined any.)
+        G = np.zeros((C, P, Hn, C, P + 1), np.complex128)
         Gv = G[..., :P]
-        np.divide(d, np.maximum(n, 1.0), out=Gv.real)
-        Gv.real *= ok
+        np.divide(d, n, out=Gv.real, where=ok)
         Gv.imag = ok
         return G
 
