@@ -21,14 +21,17 @@ from triangulate.matching import MatchConfig, Matcher
 
 
 def _mean_joint_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``evaluate.mean_joint_distance`` (same arithmetic, same bits) with fewer temporaries."""
-    d = A[:, None] - B[None]
+    """``evaluate.mean_joint_distance`` (same arithmetic, same bits) on coordinate planes:
+    A (3,G,J), B (3,K,J) -> (G,K)."""
+    d = A[:, :, None] - B[:, None]  # (3,G,K,J)
     d *= d
-    d = np.sqrt(np.add.reduce(d, axis=-1))  # (G,K,J) = np.linalg.norm(A - B, axis=-1)
-    ok = np.isfinite(d)
-    n = ok.sum(-1)
+    d2 = d[0] + d[1]
+    d2 += d[2]
+    d = np.sqrt(d2)  # = np.linalg.norm(A - B, axis=-1) of (G,K,J,3) arrays, NaN where either is missing
+    ok = d == d
+    n = np.count_nonzero(ok, -1)
     d[~ok] = 0.0
-    return np.where(n > 0, d.sum(-1) / np.maximum(n, 1), np.inf)
+    return np.where(n > 0, np.add.reduce(d, -1) / np.maximum(n, 1), np.inf)
 
 
 def flip_index(joint_names: tuple[str, ...]) -> np.ndarray:
@@ -123,7 +126,8 @@ class FrameReconstructor:
         finite = all coordinates finite; each hypothesis then gathers its rows in one indexing step
         (the DLT ignores the values of unseen joints)."""
         Z = np.empty((4,) + finite.shape)
-        np.subtract(np.moveaxis(xy, -1, 0), self._c4, out=Z[:2])
+        np.subtract(xy[..., 0], self._c4[0], out=Z[0])
+        np.subtract(xy[..., 1], self._c4[1], out=Z[1])
         Z[:2] /= self._s4
         Z[2] = score
         np.logical_and(finite, score >= self.config.dlt.min_score, out=Z[3], casting="unsafe")
@@ -153,10 +157,10 @@ class FrameReconstructor:
 
     def _merge_duplicates(self, Z, H, S, V, keep):
         """Sec. 4.2.1 leaves a person split over two hypotheses when one view did not join; merge them."""
-        X = np.where(keep[..., None], V[:3].transpose(1, 2, 0), np.nan)
-        M = len(X)
+        X = np.where(keep, V[:3], np.nan)  # (3,M,J)
+        M = len(H)
         if self.flip is not None:  # the same person with left/right swapped (a mirrored hypothesis)
-            D2 = _mean_joint_distance(X, np.concatenate([X, X[:, self.flip]], 0))  # one pass for both
+            D2 = _mean_joint_distance(X, np.concatenate([X, X[:, :, self.flip]], 1))  # one pass for both
             D, Dm = D2[:, :M], D2[:, M:]
             mirror = Dm < D
             D = np.minimum(D, Dm)
