@@ -45,20 +45,25 @@ def _adj_det(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     g = A[_COF]  # (2,2,6,N)
     p = g[:, 0] * g[:, 1]
     adj = p[0] - p[1]
-    det = (A[:3] * adj[:3]).sum(0)  # expansion along the first row
+    det = np.add.reduce(A[:3] * adj[:3], 0)  # expansion along the first row
     return adj, det
 
 
-def _solve9(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _solve9(A: np.ndarray) -> np.ndarray:
     """X (3,N) with M X = -b for the normal-matrix entries A (9,N) (see ``_NE_ROWS``): the adjugate in
     closed form, a dozen array operations whatever N. On these well-scaled positive definite 3x3
     matrices it agrees with LAPACK's LU (np.linalg.solve) to ~1e-15 relative without its per-matrix
-    call overhead. Also returns trace(M^-1) (N,) for the covariance."""
+    call overhead."""
     adj, det = _adj_det(A)
-    r = -1.0 / det  # det >= 1e-36 > 0: M = R^T R + 1e-12 I is positive definite
-    x = (adj[_ADJ_FULL] * A[None, 6:9]).sum(1)  # (3,N) = adj(M) b
-    x *= r
-    return x, (adj[0] + adj[3] + adj[5]) * -r
+    x = np.add.reduce(adj[_ADJ_FULL] * A[None, 6:9], 1)  # (3,N) = adj(M) b
+    x *= -1.0 / det  # det >= 1e-36 > 0: M = R^T R + 1e-12 I is positive definite
+    return x
+
+
+def _inv_trace(A: np.ndarray) -> np.ndarray:
+    """trace(M^-1) (N,) of the 3x3 blocks of A (9,N)."""
+    adj, det = _adj_det(A)
+    return (adj[0] + adj[3] + adj[5]) / det
 
 
 def _reject_unknown(cls, d: dict) -> dict:
@@ -208,42 +213,49 @@ class Triangulator:
         np.multiply(xyr, Fw, out=F3)
         V = np.empty((8, N))
         Xh = V[:4]  # homogeneous points
-        Xh[:3], tr = _solve9(self._K @ Fe)  # algebraic first guess (3,N)
+        A = self._K @ Fe
+        Xh[:3] = _solve9(A)  # algebraic first guess (3,N)
         Xh[3] = 1.0
         depth = self._Prows[2 * C:] @ Xh  # (C,N)
         pos = depth > 1e-6
         used = seen & pos
-        ar = np.arange(N)
+        ds = np.where(pos, depth, 1.0)
+        thr2 = cfg.max_reproj_px ** 2
         drop = None
         for it in range(cfg.max_rejections + 1):
             # reweight by inverse projective depth: rows then measure (normalised) pixel error;
             # after a rejection only the points that lost a view take the new solution
-            w = np.where(used, w0 / np.where(pos, depth, 1.0), 0.0)
+            w = np.where(used, w0 / ds, 0.0)
             np.multiply(w, w, out=Fw)
             np.multiply(xyr, Fw, out=F3)
-            X, tr_it = _solve9(self._K @ Fe)
+            A_it = self._K @ Fe
+            X = _solve9(A_it)
             if drop is None:
-                Xh[:3], tr = X, tr_it
+                Xh[:3], A = X, A_it
             else:
                 np.copyto(Xh[:3], X, where=drop)
-                np.copyto(tr, tr_it, where=drop)
+                np.copyto(A, A_it, where=drop)
             proj = (self._Prows @ Xh).reshape(3, C, N)
             depth = proj[2]
             pos = depth > 1e-6
             used &= pos
-            e = proj[:2] / np.where(pos, depth, 1.0) - xyn
+            ds = np.where(pos, depth, 1.0)
+            e = proj[:2] / ds
+            e -= xyn
             e *= e
-            err = np.sqrt(e[0] + e[1])
-            err *= self._s1  # (C,N) pixels
+            err2 = e[0] + e[1]
+            err2 *= self._s2  # (C,N) squared pixel errors
             if it == cfg.max_rejections:
                 break
-            err_m = np.where(used, err, -np.inf)
+            err_m = np.where(used, err2, -1.0)
             worst = err_m.argmax(0)
-            drop = (err_m[worst, ar] > cfg.max_reproj_px) & (np.count_nonzero(used, 0) > cfg.min_views)
+            drop = (err_m.max(0) > thr2) & (np.count_nonzero(used, 0) > cfg.min_views)
             if not drop.any():
                 break
             idx = drop.nonzero()[0]
             used[worst[idx], idx] = False
+        err = np.sqrt(err2)
+        tr = _inv_trace(A)
         # per-point sums over the views used: count, confidence, error, squared confidence,
         # squared error, squared focal scale
         E = np.empty((6, C, N))
