@@ -323,18 +323,27 @@ def limb_check(xyz_m: np.ndarray, reproj_err_px: np.ndarray, joint_names: tuple[
     For each limb outside its bounds the endpoint with the larger reprojection error is marked.
     Returns a (M,J) bool mask of joints to keep.
     """
-    keep = np.ones(xyz_m.shape[:2], bool)
     pairs = _limb_pairs(tuple(joint_names)) if bounds is None else _pairs(tuple(joint_names), bounds)
-    if pairs is None:
-        return keep
-    a, b, lo2, hi2 = pairs  # squared bounds
-    dv = xyz_m[:, a] - xyz_m[:, b]
-    dv *= dv
-    length2 = np.add.reduce(dv, axis=-1)  # (M,L) squared limb lengths
-    bad = (length2 < lo2) | (length2 > hi2)  # NaN (a missing endpoint) is neither
-    if bad.any():
-        ea, eb = np.nan_to_num(reproj_err_px[:, a]), np.nan_to_num(reproj_err_px[:, b])
-        m, limb = np.nonzero(bad)
-        worse = np.where(ea[m, limb] >= eb[m, limb], a[limb], b[limb])
-        keep[m, worse] = False
+    keep = np.ones(xyz_m.shape[:2], bool)
+    drop = limb_outliers(np.moveaxis(np.asarray(xyz_m, dtype=np.float64), -1, 0), reproj_err_px, pairs)
+    if drop is not None:
+        keep[drop] = False
     return keep
+
+
+def limb_outliers(X: np.ndarray, reproj_err_px: np.ndarray, pairs) -> tuple | None:
+    """``limb_check`` on coordinate planes X (3,M,J) (NaN = missing) with the pairs of ``_limb_pairs``:
+    the (person, joint) indices to drop, or None when every limb is plausible."""
+    if pairs is None:
+        return None
+    a, b, lo2, hi2 = pairs  # squared bounds
+    dv = X[:, :, a] - X[:, :, b]  # (3,M,L)
+    dv *= dv
+    length2 = dv[0] + dv[1]
+    length2 += dv[2]  # (M,L) squared limb lengths
+    bad = (length2 < lo2) | (length2 > hi2)  # NaN (a missing endpoint) is neither
+    if not bad.any():
+        return None
+    ea, eb = np.nan_to_num(reproj_err_px[:, a]), np.nan_to_num(reproj_err_px[:, b])
+    m, limb = np.nonzero(bad)
+    return m, np.where(ea[m, limb] >= eb[m, limb], a[limb], b[limb])

@@ -66,12 +66,19 @@ def _as_float(F) -> np.ndarray:
     return F if F.dtype in (np.float32, np.float64) else F.astype(np.float64)
 
 
+def finite_xy(xy: np.ndarray) -> np.ndarray:
+    """(...,) True where both coordinates of xy (...,2) are finite (NaN = missing). One add and
+    one test instead of ``np.isfinite(xy).all(-1)``'s reduction over a length-2 axis (a sum
+    overflows only for coordinates beyond 1e308, which no image has)."""
+    return np.isfinite(xy[..., 0] + xy[..., 1])
+
+
 def _usable(finite: np.ndarray, score: np.ndarray, cfg: MatchConfig) -> np.ndarray:
     """Joints the matching uses (C,P,J): finite coordinates (``finite``), confidence >= min_score, in
     poses with at least min_joints such joints."""
     # NaN scores count as 0 (a NaN never passes ``>=``, so nan_to_num is only needed for min_score <= 0)
     vis = finite & ((score if cfg.min_score > 0 else np.nan_to_num(score)) >= cfg.min_score)
-    vis &= (vis.sum(-1) >= cfg.min_joints)[..., None]
+    vis &= (np.count_nonzero(vis, -1) >= cfg.min_joints)[..., None]
     return vis
 
 
@@ -170,11 +177,11 @@ class Matcher:
         check_shape("xy_px", xy, (C, None, None, 2))
         score = np.asarray(score, dtype=np.float64)
         check_shape("score", score, xy.shape[:3])
-        return self.match(xy, score, np.isfinite(xy).all(-1))
+        return self.match(xy, score, finite_xy(xy))
 
     def match(self, xy: np.ndarray, score: np.ndarray, finite: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``__call__`` on checked input: xy (C,P,J,2) and score (C,P,J) float64, finite (C,P,J) =
-        ``np.isfinite(xy).all(-1)``."""
+        ``finite_xy(xy)``."""
         cfg = self.config
         vis = _usable(finite, score, cfg)
         present = vis.any(-1)  # (C,P)

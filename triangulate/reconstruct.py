@@ -13,11 +13,12 @@ from triangulate.dlt import (
     _STD,
     DLTConfig,
     Triangulator,
+    _limb_pairs,
     _reject_unknown,
-    limb_check,
+    limb_outliers,
 )
 from triangulate.geometry import check_shape, fundamental_from_P
-from triangulate.matching import MatchConfig, Matcher
+from triangulate.matching import MatchConfig, Matcher, finite_xy
 
 
 def _mean_joint_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -118,6 +119,7 @@ class FrameReconstructor:
         self._upper: dict[int, np.ndarray] = {}  # (M,M) strict upper-triangle masks by M
         self._c4 = self.tri.c.T[:, :, None, None]  # (2,C,1,1) principal points, for ``_planes``
         self._s4 = self.tri.s[:, None, None]  # (C,1,1) focal scales
+        self._limbs = _limb_pairs(tuple(joint_names)) if self.config.limb_check and joint_names else None
         self._fill = np.full((8, 1, 1), np.nan)  # what a dropped joint reads in each row of V
         self._fill[[_SCORE, _NVIEWS]] = 0.0
 
@@ -150,9 +152,10 @@ class FrameReconstructor:
         seen &= (H >= 0).T.repeat(J, 1)
         V, ok, _ = self.tri.solve_raw(g[:2], np.where(seen, g[2], 0.0), seen)
         V, ok = V.reshape(8, M, J), ok.reshape(M, J)
-        if self.config.limb_check and self.joint_names is not None:
-            xyz = np.where(ok[..., None], V[:3].transpose(1, 2, 0), np.nan)
-            ok &= limb_check(xyz, V[_REPROJ], self.joint_names)
+        if self._limbs is not None:
+            drop = limb_outliers(np.where(ok, V[:3], np.nan), V[_REPROJ], self._limbs)
+            if drop is not None:
+                ok[drop] = False
         return V, ok
 
     def _merge_duplicates(self, Z, H, S, V, keep):
@@ -202,7 +205,7 @@ class FrameReconstructor:
         check_shape("xy_px", xy, (C, None, None, 2))
         check_shape("score", score, xy.shape[:3])
         J = xy.shape[2]
-        finite = np.isfinite(xy).all(-1)
+        finite = finite_xy(xy)
         H, S = self.matcher.match(xy, score, finite)
         if len(H) == 0:
             return FramePoses.empty(J, C)
