@@ -35,8 +35,12 @@ _BY_COUNT = {17: "coco17", 18: "coco18", 26: "halpe26", 33: "blazepose33"}
 def _frame_number(path: Path) -> int:
     m = _FRAME.search(path.stem)
     if m is None:
-        raise FormatError(path, None, "the file name has no frame number.",
-                          "Name files <camera>.<frame>.json or <camera>_<frame>_keypoints.json.")
+        raise FormatError(
+            path,
+            None,
+            "the file name has no frame number.",
+            "Name files <camera>.<frame>.json or <camera>_<frame>_keypoints.json.",
+        )
     return int(m.group(1))
 
 
@@ -51,21 +55,28 @@ def _guess_25(xy: np.ndarray, score: np.ndarray) -> str:
     return "body25" if np.median(rel) < 0.2 else "body25b"
 
 
-def read_openpose_folder(folder: str | os.PathLike, camera: str | None = None, skeleton: str | None = None,
-                         fps: float | None = None, max_people: int | None = None,
-                         image_size_wh: tuple[int, int] | None = None) -> Detections:
+def read_openpose_folder(
+    folder: str | os.PathLike,
+    camera: str | None = None,
+    skeleton: str | None = None,
+    fps: float | None = None,
+    max_people: int | None = None,
+    image_size_wh: tuple[int, int] | None = None,
+) -> Detections:
     """OpenPose JSON folder -> Detections for ``camera`` (default: the folder name without ``_json``).
 
     ``fps`` sets ``t_ns = frame / fps`` (else 0); ``max_people`` keeps the most confident people.
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise FormatError(folder, None, "is not a folder of OpenPose JSON files.",
-                          "Pass the camera's json folder.")
+        raise FormatError(
+            folder, None, "is not a folder of OpenPose JSON files.", "Pass the camera's json folder."
+        )
     files = sorted(folder.glob("*.json"), key=_frame_number)
     if not files:
-        raise FormatError(folder, None, "holds no .json files.",
-                          "Run OpenPose with --write_json on this camera.")
+        raise FormatError(
+            folder, None, "holds no .json files.", "Run OpenPose with --write_json on this camera."
+        )
     camera = camera or re.sub(r"_json$", "", folder.name)
     frames = np.array([_frame_number(f) for f in files], dtype=np.int64)
     if len(np.unique(frames)) != len(frames):
@@ -76,8 +87,9 @@ def read_openpose_folder(folder: str | os.PathLike, camera: str | None = None, s
         try:
             data = json.loads(f.read_text())
         except (OSError, json.JSONDecodeError) as e:
-            raise FormatError(f, None, f"cannot be read as JSON ({e}).",
-                              "Re-export the OpenPose JSON.") from e
+            raise FormatError(
+                f, None, f"cannot be read as JSON ({e}).", "Re-export the OpenPose JSON."
+            ) from e
         rows = []
         for p in data.get("people", []):
             kp = np.asarray(p.get("pose_keypoints_2d", []), dtype=np.float64)
@@ -103,20 +115,28 @@ def read_openpose_folder(folder: str | os.PathLike, camera: str | None = None, s
         p = p.reshape(-1, n_kp, 3)
         if max_people is not None and len(p) > max_people:
             p = p[np.argsort(-p[..., 2].mean(-1))[:max_people]]
-        raw[f_no - frames.min(), :len(p)] = p
+        raw[f_no - frames.min(), : len(p)] = p
     score = raw[..., 2]
     xy = np.where((score > 0)[..., None], raw[..., :2], np.nan)
     if skeleton is None:
         skeleton = _guess_25(xy, score) if n_kp == 25 else _BY_COUNT.get(n_kp)
         if skeleton is None:
-            raise FormatError(folder, "pose_keypoints_2d", f"{n_kp} keypoints match no known layout.",
-                              "Pass skeleton= explicitly.")
+            raise FormatError(
+                folder,
+                "pose_keypoints_2d",
+                f"{n_kp} keypoints match no known layout.",
+                "Pass skeleton= explicitly.",
+            )
         log.info("%s: %d keypoints read as skeleton '%s'", folder, n_kp, skeleton)
     if get_skeleton(skeleton).n_joints != n_kp:
-        raise FormatError(folder, "skeleton", f"'{skeleton}' has {get_skeleton(skeleton).n_joints} joints, "
-                          f"the files have {n_kp}.", "Pass the skeleton the files were written with.")
+        raise FormatError(
+            folder,
+            "skeleton",
+            f"'{skeleton}' has {get_skeleton(skeleton).n_joints} joints, the files have {n_kp}.",
+            "Pass the skeleton the files were written with.",
+        )
     frame_index = np.arange(frames.min(), frames.max() + 1, dtype=np.int64)
-    t_ns = (np.round(frame_index * 1e9 / fps).astype(np.int64) if fps else np.zeros(T, np.int64))
+    t_ns = np.round(frame_index * 1e9 / fps).astype(np.int64) if fps else np.zeros(T, np.int64)
     present = np.isfinite(xy).all(-1)
     boxes = np.full((T, P, 5), np.nan)
     any_p = present.any(-1)
@@ -125,6 +145,15 @@ def read_openpose_folder(folder: str | os.PathLike, camera: str | None = None, s
         hi = np.nanmax(np.where(present[..., None], xy, np.nan)[any_p], axis=1)
         mean_sc = np.where(present, score, 0).sum(-1)[any_p] / np.maximum(present.sum(-1)[any_p], 1)
         boxes[any_p] = np.concatenate([lo, hi, mean_sc[:, None]], 1)
-    return Detections(camera=camera, skeleton=skeleton, frame_index=frame_index, t_ns=t_ns, xy_px=xy,
-                      score=np.where(present, score, 0.0), boxes=boxes, model="openpose-json",
-                      model_sha256="", image_size_wh=image_size_wh)
+    return Detections(
+        camera=camera,
+        skeleton=skeleton,
+        frame_index=frame_index,
+        t_ns=t_ns,
+        xy_px=xy,
+        score=np.where(present, score, 0.0),
+        boxes=boxes,
+        model="openpose-json",
+        model_sha256="",
+        image_size_wh=image_size_wh,
+    )

@@ -49,6 +49,10 @@ class PipelineConfig:
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
+    # top-down: drop the face points of people seen from behind (hide_face_from_behind); None: the
+    # description's. MoveNet: Demo_SinglePerson 13.8 -> 12.5 px every 4th frame (OpenPose scores them low)
+    hide_face_from_behind: bool | None = None
+    back_view_facing: float = -0.15  # facing() below this = seen from behind (cos(yaw) < -0.3, yaw > 107 deg)
     model_roi: bool = False  # refine passes: the model's own ROI where it has one (BlazePose; measured worse)
     # two poses of one image closer than this x the person's size (median over joints both see) are one
     # person found twice (an occluded person's crop returning the pose of the person in front); 0 = off.
@@ -192,6 +196,54 @@ def upright_boxes(
         boxes[i] = (ctr[0] - half[0], ctr[1] - half[1], ctr[0] + half[0], ctr[1] + half[1])
         angles[i] = a
     return boxes, angles
+
+
+FACE_POINTS = ("nose", "left_eye", "right_eye", "mouth")  # name prefixes (eye_inner/outer, mouth_left, ...)
+
+
+def facing(xy: np.ndarray, sc: np.ndarray, skeleton: str, min_score: float = 0.3) -> np.ndarray:
+    """How much each person (M,J,2) faces the camera: the mean of the signed shoulder and hip widths
+    (left minus right joint along the body's own horizontal, image px) over the hips-centre ->
+    shoulders-centre length; NaN where the four joints are not all confident.
+
+    A person facing the camera has the left shoulder and hip on the image's right (positive); from behind the
+    sign flips (COCO-style models label left/right by the body, not the image). For an adult the value is
+    about 0.5 x cos(yaw) (shoulder width ~0.6 and hip width ~0.35 x torso length), whatever the image scale.
+    """
+    sk = get_skeleton(skeleton)
+    try:
+        ls, rs, lh, rh = (sk.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"))
+    except KeyError:
+        return np.full(len(xy), np.nan)
+    xy = np.asarray(xy, np.float64)
+    up = 0.5 * (xy[:, ls] + xy[:, rs]) - 0.5 * (xy[:, lh] + xy[:, rh])  # (M,2)
+    length = np.linalg.norm(up, axis=-1)
+    right = np.stack([-up[:, 1], up[:, 0]], -1) / np.maximum(length, 1e-9)[:, None]  # body's horizontal
+    w = np.einsum("mi,mi->m", xy[:, ls] - xy[:, rs] + xy[:, lh] - xy[:, rh], right)
+    f = 0.5 * w / np.maximum(length, 1e-9)
+    ok = (np.asarray(sc)[:, [ls, rs, lh, rh]] >= min_score).all(1) & (length > 1.0) & np.isfinite(f)
+    return np.where(ok, f, np.nan)
+
+
+def hide_face_from_behind(
+    xy: np.ndarray, sc: np.ndarray, skeleton: str, threshold: float = -0.15
+) -> np.ndarray:
+    """Scores (M,J) with the face points (nose, eyes, mouth; not the ears) set to 0 for people whose
+    ``facing`` is below ``threshold`` (turned away from the camera by more than about 107 degrees).
+
+    Single-person crop models (MoveNet) place these points with the confidence of the visible joints on the
+    back of a head; triangulated, they pull the 3D nose and eyes off and add 15-25 px reprojection error in
+    every view (Demo_SinglePerson). OpenPose gives them low scores instead. The head turning away from the
+    torso is not seen by this rule.
+    """
+    sk = get_skeleton(skeleton)
+    face = [j for j, n in enumerate(sk.joint_names) if n.startswith(FACE_POINTS)]
+    sc = np.array(sc, copy=True)
+    if not face or not len(sc):
+        return sc
+    back = facing(xy, sc, skeleton) < threshold
+    sc[np.ix_(back, face)] = 0.0
+    return sc
 
 
 def _keypoint_box_iou(xy: np.ndarray, sc: np.ndarray, det: np.ndarray, min_score: float = 0.3) -> np.ndarray:
@@ -410,7 +462,7 @@ class KeypointPipeline:
         if flip:
             fi = get_skeleton(spec.skeleton).flip_index
             xf = xy[n:, fi].copy()
-            xf[..., 0] = W - xf[..., 0]  # continuous pixel coordinates: x -> W - x
+            xf[..., 0] = (W - 1) - xf[..., 0]  # pixel-centre coordinates: column i -> W - 1 - i
             sf = sc[n:, fi]
             w0, w1 = sc[:n, :, None] + 1e-6, sf[..., None] + 1e-6
             xy = (xy[:n] * w0 + xf * w1) / (w0 + w1)
@@ -485,6 +537,11 @@ class KeypointPipeline:
             person = sc.mean(1)
         else:  # pragma: no cover - registry validates role/decoder pairs
             raise ValueError(f"decoder {d.kind} is not a top-down pose decoder")
+        if d.pixel_coords == "corner":  # to cv2.warpAffine's pixel-centre coordinates: x_c = x - 0.5
+            # Demo_SinglePerson, MoveNet: 12.45 -> 12.20 px median reprojection error (every 4th frame;
+            # +-0.15 px from sub-pixel crop changes alone), BlazePose 19.4 -> 18.5 px
+            xy = xy - 0.5
+            roi = None if roi is None else roi - 0.5
         return xy, sc, person, roi
 
     def _top_down(self, images):
@@ -523,7 +580,12 @@ class KeypointPipeline:
             res = self._resolve_duplicates(images, boxes, res)
         out = []
         t = time.perf_counter()
+        hide = self.config.hide_face_from_behind
+        if hide is None:
+            hide = self.pose_spec.decoder.hide_face_from_behind
         for (xy, sc, person, _), b in zip(res, boxes, strict=True):
+            if hide:
+                sc = hide_face_from_behind(xy, sc, self.src_skeleton, self.config.back_view_facing)
             keep = person >= self.config.pose_presence
             out.append(self._finish(b[keep], xy[keep], sc[keep]))
         self._tick("pose_post", t)

@@ -128,6 +128,13 @@ class DecoderSpec:
     peak_threshold: float = 0.1  # openpose confidence-map peaks
     paf_threshold: float = 0.05  # openpose PAF line integral
     flip_test: bool = False  # top-down: also run the mirrored crop and average (measured per model)
+    # top-down: drop the face points (nose, eyes, mouth) of people seen from behind (the model places them
+    # with full confidence where no face is visible; keypoints.pipeline.hide_face_from_behind)
+    hide_face_from_behind: bool = False
+    # top-down: how the pose model's output coordinates meet the crop's pixels. "corner": continuous
+    # coordinates, pixel i spans [i, i+1) (normalised [0, 1] x size: MoveNet, BlazePose); "center": pixel i's
+    # centre is at i, the convention of cv2.warpAffine that cuts the crops (mmpose's SimCC)
+    pixel_coords: str = "center"
     # openpose: the (x, y) channels of each limb's PAF; () = in limb order
     paf_channels: tuple[tuple[int, int], ...] = ()
 
@@ -135,6 +142,10 @@ class DecoderSpec:
         object.__setattr__(self, "outputs", tuple(self.outputs))
         object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
         object.__setattr__(self, "paf_channels", tuple(tuple(int(c) for c in p) for p in self.paf_channels))
+        if self.pixel_coords not in ("center", "corner"):
+            raise FormatError(
+                None, "decoder.pixel_coords", f"{self.pixel_coords!r} is not 'center' or 'corner'."
+            )
         if self.kind not in DECODERS:
             raise FormatError(
                 None,

@@ -142,3 +142,54 @@ def test_duplicate_pairs_and_body_paint(rng):
     _paint_body(img, xy[0], sc[0], "coco17", 0)
     assert (img[np.round(xy[0, :, 1]).astype(int), np.round(xy[0, :, 0]).astype(int)] == 0).all()
     assert (img == 255).any()
+
+
+def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A body19 pose standing upright, seen from the front (its left on the image's right) or the back."""
+    names = CANONICAL.joint_names
+    side = 1.0 if facing_camera else -1.0
+    pts = {"nose": (0, -60), "left_eye": (5, -65), "right_eye": (-5, -65), "left_ear": (10, -62),
+           "right_ear": (-10, -62), "left_shoulder": (30, 0), "right_shoulder": (-30, 0),
+           "left_hip": (18, 100), "right_hip": (-18, 100)}  # fmt: skip
+    xy = np.full((1, 19, 2), np.nan)
+    sc = np.zeros((1, 19))
+    for n, (x, y) in pts.items():
+        xy[0, names.index(n)] = (500 + side * x, 300 + y)
+        sc[0, names.index(n)] = 0.8
+    return xy, sc
+
+
+def test_face_points_hidden_only_for_people_seen_from_behind():
+    from keypoints.pipeline import facing, hide_face_from_behind
+
+    names = CANONICAL.joint_names
+    face = [names.index(n) for n in ("nose", "left_eye", "right_eye")]
+    ears = [names.index(n) for n in ("left_ear", "right_ear")]
+    front, back = _standing(True), _standing(False)
+    f = facing(np.concatenate([front[0], back[0]]), np.concatenate([front[1], back[1]]), "body19")
+    assert f[0] == pytest.approx(0.48) and f[1] == pytest.approx(-0.48)  # (60 + 36) / 2 / 100
+    kept = hide_face_from_behind(*front, "body19")
+    np.testing.assert_array_equal(kept, front[1])
+    hidden = hide_face_from_behind(*back, "body19")
+    assert (hidden[0, face] == 0).all() and (hidden[0, ears] == 0.8).all()
+    # a rotated (lying) person: the body's own horizontal, not the image's
+    c, s = np.cos(1.2), np.sin(1.2)
+    rot = (back[0] - 500) @ np.array([[c, s], [-s, c]]) + 500
+    assert facing(rot, back[1], "body19")[0] == pytest.approx(-0.48)
+    # unknown facing (a hip not seen): nothing hidden
+    sc = back[1].copy()
+    sc[0, names.index("left_hip")] = 0.1
+    np.testing.assert_array_equal(hide_face_from_behind(back[0], sc, "body19"), sc)
+
+
+def test_default_set_drops_the_face_of_the_back_views(single):
+    """Frame 30 of Demo_SinglePerson: the participant faces cam01/cam02 and turns the back to cam03/cam04
+    (OpenPose BODY_25B of the same frames: nose score 0.6 vs < 0.15)."""
+    res = KeypointPipeline("default")(single)
+    nose = CANONICAL.joint_names.index("nose")
+    best = [r.score.mean(1).argmax() for r in res]
+    seen = [bool(r.score[b, nose] > 0.3) for r, b in zip(res, best, strict=True)]
+    assert seen == [True, True, False, False]
+    assert all(
+        r.score[b, CANONICAL.joint_names.index("left_ear")] > 0 for r, b in zip(res, best, strict=True)
+    )

@@ -78,6 +78,8 @@ def test_unknown_key_and_bad_values_are_rejected_with_the_valid_keys():
         ModelSpec.from_dict({**base, "input": {**base["input"], "layout": "CHW"}})
     with pytest.raises(FormatError, match="role"):
         ModelSpec.from_dict({**base, "role": "pose", "skeleton": "coco17"})  # yolox is a detector decoder
+    with pytest.raises(FormatError, match="pixel_coords"):
+        ModelSpec.from_dict({**base, "decoder": {**base["decoder"], "pixel_coords": "centre"}})
 
 
 def test_missing_file_says_which_file_and_where_to_get_it(isolated):
