@@ -12,7 +12,7 @@ from keypoints.openpose_json import read_openpose_folder
 from keypoints.skeletons import CANONICAL
 from track.trackfile import INTERPOLATED, OBSERVED, SMOOTHED
 from triangulate import evaluate as ev
-from triangulate.tracker import TrackerConfig, associate, pose_distance, track_poses
+from triangulate.tracker import TrackerConfig, associate, pose_distance, stitch_tracks, track_poses
 
 
 def walkers(T=60):
@@ -62,6 +62,29 @@ def test_tracker_threshold_and_ground_fallback():
     assert assign[0, 0] == assign[1, 0]
     with pytest.raises(ValueError, match="valid keys"):
         TrackerConfig.from_dict({"tau_mm": 200})
+
+
+def test_stitch_joins_a_fragment_after_a_short_glitch(rng):
+    # one person standing still (2 cm noise); frames 20-22 triangulated 0.35 m off (beyond tau), so the
+    # frame-by-frame pass may start a second track there that then keeps the person
+    T = 40
+    X = TEMPLATE[None, None] + rng.normal(0, 0.02, (T, 1, 19, 3))
+    X[20:23, 0] += [0.35, 0.0, 0.0]
+    assign = np.where(np.arange(T)[:, None] < 20, 0, 1)
+    cfg = TrackerConfig()
+    out = stitch_tracks(X, assign, config=cfg, fps=25.0)
+    assert (out == 0).all()  # frame 23 is 3 frames after track 0 ended, within tau + 1.5 m/s * 3/25 s
+    # no link: another person 1 m away, a fragment starting after max_gap frames, or stitch off
+    Y = X.copy()
+    Y[20:] += [1.0, 0.0, 0.0]
+    assert (stitch_tracks(Y, assign, config=cfg, fps=25.0) == assign).all()
+    late = np.where(np.arange(T)[:, None] < 20, 0, np.where(np.arange(T)[:, None] < 32, -1, 1))
+    assert (stitch_tracks(X, late, config=cfg, fps=25.0) == late).all()
+    # overlapping tracks are never joined
+    both = np.stack([assign[:, 0], np.full(T, 2)], 1)
+    Xb = np.concatenate([X, X + [0.1, 0, 0]], 1)
+    out = stitch_tracks(Xb, both, config=cfg, fps=25.0)
+    assert (out[:, 0] == 0).all() and (out[:, 1] == 2).all()
 
 
 def test_pcp_and_mpjpe_definitions():

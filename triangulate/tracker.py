@@ -34,7 +34,10 @@ class TrackerConfig:
     occlusion_fill: longer gaps of a joint (up to this many frames, 0 = off) are filled kinematically:
     the joint keeps its offset from its parent joint, interpolated between the frames around the
     gap (held at the track's ends); flagged PREDICTED, std = the parent's + 5 cm;
-    fix_mirrored: a pose whose left/right-swapped version fits the track better joins swapped."""
+    fix_mirrored: a pose whose left/right-swapped version fits the track better joins swapped;
+    stitch: after the frame-by-frame pass, a track that starts while another has just ended (within
+    ``max_gap`` frames) continues it when one of its poses in that window is within the limit the
+    pass itself would have allowed the lost track (``stitch_tracks``)."""
 
     tau_m: float = 0.2
     max_gap: int = 10
@@ -45,6 +48,7 @@ class TrackerConfig:
     constant_velocity: bool = True
     occlusion_fill: int = 50
     fix_mirrored: bool = True
+    stitch: bool = True
 
     def __post_init__(self) -> None:
         if self.tau_m <= 0 or self.max_gap < 0 or self.sigma < 0:
@@ -128,7 +132,73 @@ def associate_mirrored(xyz_m: np.ndarray, config: TrackerConfig | None = None, f
             last_pose.append(xyz_m[t, ok[c]].copy())
             last_t.append(t)
             last_v.append(np.zeros(3))
+    if cfg.stitch:
+        out = stitch_tracks(xyz_m, out, mirrored, cfg, fps, flip)
     return out, mirrored
+
+
+def stitch_tracks(xyz_m: np.ndarray, assign: np.ndarray, mirrored: np.ndarray | None = None,
+                  config: TrackerConfig | None = None, fps: float = 25.0,
+                  flip: np.ndarray | None = None) -> np.ndarray:
+    """Join track fragments the frame-by-frame pass split. Returns the relabelled assign (T,P).
+
+    The pass starts a new track for a pose that is too far from every track (e.g. a few badly
+    triangulated frames of a person seen by two cameras only) and that young track then competes
+    with the lost one for the person's next poses: the Hungarian step gives them to whichever is
+    closer, often the young one, and the old track ends. Here a track b that begins after track a
+    ended, within ``max_gap`` frames, continues a when one of b's poses in that window lies within
+    the limit the pass would have allowed a (``tau_m + max_speed_m_s * gap``, sec. 4.2.2's
+    distance to a's last pose, missing joints held from a's earlier frames). Candidate links are
+    taken greedily by distance, each track continuing at most one and continued by at most one.
+    """
+    cfg = config or TrackerConfig()
+    T = len(assign)
+    t_idx, p_idx = np.nonzero(assign >= 0)
+    if len(t_idx) == 0:
+        return assign
+    X = xyz_m[t_idx, p_idx]  # (n,J,3) every assigned pose, in time order
+    if mirrored is not None and flip is not None:
+        m = mirrored[t_idx, p_idx]
+        X[m] = X[m][:, flip]
+    k_idx = assign[t_idx, p_idx]
+    K = int(k_idx.max()) + 1
+    first, last = np.full(K, T), np.full(K, -1)
+    np.minimum.at(first, k_idx, t_idx)
+    np.maximum.at(last, k_idx, t_idx)
+    cands = []
+    for a in range(K):
+        if last[a] < 0:
+            continue
+        later = np.flatnonzero((first > last[a]) & (first <= last[a] + cfg.max_gap + 1))
+        if len(later) == 0:
+            continue
+        rows = np.flatnonzero(k_idx == a)
+        end = X[rows[-1]].copy()  # a's last pose, joints it lacks held from a's earlier frames
+        for r in rows[::-1][1:]:
+            miss = ~np.isfinite(end).all(-1)
+            if not miss.any():
+                break
+            end[miss] = X[r][miss]
+        for b in later:
+            sel = np.flatnonzero((k_idx == b) & (t_idx <= last[a] + cfg.max_gap + 1))
+            d = pose_distance(end[None], X[sel])[0]
+            limit = cfg.tau_m + cfg.max_speed_m_s * (t_idx[sel] - last[a] - 1) / fps
+            hit = np.flatnonzero(d < limit)
+            if len(hit):
+                cands.append((float(d[hit[0]]), a, int(b)))
+    if not cands:
+        return assign
+    succ, pred = np.full(K, -1), np.full(K, -1)
+    for _, a, b in sorted(cands):
+        if succ[a] < 0 and pred[b] < 0:
+            succ[a], pred[b] = b, a
+    root = np.arange(K)
+    for k in np.argsort(first, kind="stable"):  # chains in time order: a -> b -> c share a's label
+        if pred[k] >= 0:
+            root[k] = root[pred[k]]
+    out = assign.copy()
+    out[t_idx, p_idx] = root[k_idx]
+    return out
 
 
 def _interp_gaps(x: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
