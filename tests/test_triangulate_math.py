@@ -232,5 +232,6 @@ def test_merge_distance_matches_evaluate_bit_for_bit(rng):
     B[rng.random((7, 19)) < 0.3] = np.nan
     B[3] = np.nan
     ref = mean_joint_distance(A, B)
-    assert np.array_equal(_mean_joint_distance(A.transpose(2, 0, 1), B.transpose(2, 0, 1)), ref)
+    A3, B3 = A.transpose(2, 0, 1), B.transpose(2, 0, 1)
+    assert np.array_equal(_mean_joint_distance(A3[:, :, None], B3[:, None]), ref)
     assert np.isinf(ref[:, 3]).all()

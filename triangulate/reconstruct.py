@@ -23,8 +23,9 @@ from triangulate.matching import MatchConfig, Matcher, finite_xy
 
 def _mean_joint_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``evaluate.mean_joint_distance`` (same arithmetic, same bits) on coordinate planes:
-    A (3,G,J), B (3,K,J) -> (G,K)."""
-    d = A[:, :, None] - B[:, None]  # (3,G,K,J)
+    A (3,...,J), B (3,...,J) broadcast against each other -> (...) (all pairs of (3,G,J) and (3,K,J)
+    poses: ``A[:, :, None]``, ``B[:, None]``)."""
+    d = A - B  # (3,...,J)
     d *= d
     d2 = d[0] + d[1]
     d2 += d[2]
@@ -162,33 +163,40 @@ class FrameReconstructor:
         """Sec. 4.2.1 leaves a person split over two hypotheses when one view did not join; merge them."""
         X = np.where(keep, V[:3], np.nan)  # (3,M,J)
         M = len(H)
-        if self.flip is not None:  # the same person with left/right swapped (a mirrored hypothesis)
-            D2 = _mean_joint_distance(X, np.concatenate([X, X[:, :, self.flip]], 1))  # one pass for both
-            D, Dm = D2[:, :M], D2[:, M:]
-            mirror = Dm < D
-            D = np.minimum(D, Dm)
-        else:
-            D = _mean_joint_distance(X, X)
-            mirror = np.zeros(D.shape, bool)
-        close = D < self.config.merge_dist_m
+        # a mean joint distance below merge_dist_m needs a shared joint closer than that, so the
+        # two poses' boxes (over their joints, any orientation) overlap within it on every axis
+        lo, hi = np.fmin.reduce(X, axis=2), np.fmax.reduce(X, axis=2)  # (3,M), NaN for no joints
+        gap = np.maximum(lo[:, None] - hi[:, :, None], lo[:, :, None] - hi[:, None])  # (3,M,M)
+        cand = (gap < self.config.merge_dist_m).all(0)
         upper = self._upper.get(M)
         if upper is None:
             upper = self._upper[M] = np.triu(np.ones((M, M), bool), 1)
-        close &= upper  # pairs a < b only
+        cand &= upper  # pairs a < b only
+        if not cand.any():
+            return H, S, V, keep
+        a_idx, b_idx = np.nonzero(cand)
+        Xa, Xb = X[:, a_idx], X[:, b_idx]
+        D = _mean_joint_distance(Xa, Xb)
+        if self.flip is not None:  # the same person with left/right swapped (a mirrored hypothesis)
+            Dm = _mean_joint_distance(Xa, Xb[:, :, self.flip])
+            mirror = Dm < D
+            D = np.minimum(D, Dm)
+        else:
+            mirror = np.zeros(D.shape, bool)
+        close = D < self.config.merge_dist_m
         if not close.any():
             return H, S, V, keep
-        D[np.arange(M), np.arange(M)] = np.inf
-        a_idx, b_idx = np.nonzero(close)
+        a_idx, b_idx, D, mirror = a_idx[close], b_idx[close], D[close], mirror[close]
         alive = np.ones(len(H), bool)
         changed = np.zeros(len(H), bool)
         views = np.where(keep, V[_NVIEWS], 0).sum(1)
-        for k in np.argsort(D[a_idx, b_idx]):
+        for k in np.argsort(D):
             a, b = a_idx[k], b_idx[k]
             if not (alive[a] and alive[b]):
                 continue
             ca, cb = H[a] >= 0, H[b] >= 0
             if not (ca & cb).any():
-                H[a, cb], S[a, cb] = H[b, cb], S[b, cb] ^ mirror[a, b]
+                H[a, cb], S[a, cb] = H[b, cb], S[b, cb] ^ mirror[k]
                 alive[b], changed[a] = False, True
             else:
                 alive[b if views[b] < views[a] else a] = False
