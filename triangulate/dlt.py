@@ -222,11 +222,13 @@ class Triangulator:
         ds = np.where(pos, depth, 1.0)
         thr2 = cfg.max_reproj_px ** 2
         drop = None
+        mx = None  # per point, the largest squared error over the views used (after the last projection)
         for it in range(cfg.max_rejections + 1):
             # reweight by inverse projective depth: rows then measure (normalised) pixel error;
             # after a rejection only the points that lost a view take the new solution
-            w = np.where(used, w0 / ds, 0.0)
-            np.multiply(w, w, out=Fw)
+            np.divide(w0, ds, out=Fw)
+            Fw *= Fw
+            Fw *= used
             np.multiply(xyr, Fw, out=F3)
             A_it = self._K @ Fe
             X = _solve9(A_it)
@@ -246,14 +248,19 @@ class Triangulator:
             err2 = e[0] + e[1]
             err2 *= self._s2  # (C,N) squared pixel errors
             if it == cfg.max_rejections:
+                mx = None
                 break
-            err_m = np.where(used, err2, -1.0)
-            worst = err_m.argmax(0)
-            drop = (err_m.max(0) > thr2) & (np.count_nonzero(used, 0) > cfg.min_views)
+            err_m = err2 * used  # unused views 0: never the worst above a positive threshold
+            mx = err_m.max(0)
+            drop = mx > thr2
+            if not drop.any():
+                break
+            drop &= np.count_nonzero(used, 0) > cfg.min_views
             if not drop.any():
                 break
             idx = drop.nonzero()[0]
-            used[worst[idx], idx] = False
+            used[err_m[:, idx].argmax(0), idx] = False
+            mx = None
         err = np.sqrt(err2)
         tr = _inv_trace(A)
         # per-point sums over the views used: count, confidence, error, squared confidence,
@@ -276,8 +283,9 @@ class Triangulator:
         sigma = np.maximum(cfg.noise_px, np.sqrt(mean[3]))
         std = V[_STD]
         np.multiply(sigma, np.sqrt(np.maximum(tr, 0) * mean[2] / np.maximum(mean[4], 1e-12) / 3.0), out=std)
-        ok = (n_views >= cfg.min_views) & (E[2].max(0) <= cfg.max_reproj_px) & (std <= cfg.max_std_m) \
-            & np.isfinite(Xh[:3]).all(0)
+        # (a non-finite point fails here too: its depth or error is NaN, so no view stays used / max is NaN)
+        max_ok = (E[2].max(0) <= cfg.max_reproj_px) if mx is None else (mx <= thr2)
+        ok = (n_views >= cfg.min_views) & max_ok & (std <= cfg.max_std_m)
         return V, ok, used
 
 
