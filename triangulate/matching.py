@@ -11,9 +11,10 @@ Eq. 4.3 writes the algebraic residual ``|p_j^T F p_i|``; the text defines it as 
 between the joint and the epipolar line, which is what we compute (the residual divided by the
 norm of the line's normal, i.e. pixels), so theta is in pixels.
 
-The cost of *all* poses of camera i against *all* poses already placed is computed at once,
-vectorised over (cameras seen so far x poses x poses x joints); eq. 4.2's average over the
-hypothesis' members is then one matrix product with the membership matrix.
+Eq. 4.3 for *every* pair of poses of the frame (and with either pose left/right mirrored) is
+one batched matrix product over (camera, joint) (:meth:`Matcher.pair_table`); Algorithm 1's loop
+then reads, per camera, the costs of its poses against all hypothesis members with one gather
+and averages them (eq. 4.2).
 """
 
 from __future__ import annotations
