@@ -97,6 +97,8 @@ def test_matching_drops_singletons_and_false_positives(rng):
     assert match_frame(np.full_like(xy, np.nan), sc, fundamental_from_P(P))[0].shape == (0, 4)
     with pytest.raises(ValueError, match="theta_px"):
         MatchConfig(theta_px=0)
+    with pytest.raises(ValueError, match="at most once"):
+        match_frame(xy, sc, fundamental_from_P(P), order=np.array([0, 2, 0]))
 
 
 def test_reconstruct_frame_accuracy_with_flip(rng):
