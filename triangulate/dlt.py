@@ -162,6 +162,8 @@ class Triangulator:
         eps[0, [0, 3, 5]] = _EPS
         self._K = np.ascontiguousarray(np.concatenate([K9, eps]).T)  # (9, 4C+1)
         self._Prows = np.ascontiguousarray(self.Pn.transpose(1, 0, 2).reshape(3 * C, 4))  # (3C,4): rows, cams
+        self._Prows_px = self._Prows.copy()  # the x and y rows times the focal scale: pixel residuals
+        self._Prows_px[:2 * C] *= np.tile(self.s, 2)[:, None]
         self._c2 = np.ascontiguousarray(self.c.T)[:, :, None]  # (2,C,1)
         self._s1 = self.s[:, None]  # (C,1)
         self._s2 = self.s[:, None] ** 2
@@ -221,6 +223,7 @@ class Triangulator:
         used = seen & pos
         ds = np.where(pos, depth, 1.0)
         thr2 = cfg.max_reproj_px ** 2
+        xy_px = xyn * self._s1  # pixels about the principal point, as the scaled projection rows give
         drop = None
         mx = None  # per point, the largest squared error over the views used (after the last projection)
         for it in range(cfg.max_rejections + 1):
@@ -237,16 +240,18 @@ class Triangulator:
             else:
                 np.copyto(Xh[:3], X, where=drop)
                 np.copyto(A, A_it, where=drop)
-            proj = (self._Prows @ Xh).reshape(3, C, N)
+            proj = (self._Prows_px @ Xh).reshape(3, C, N)  # x, y scaled to pixels about c, depth
             depth = proj[2]
             pos = depth > 1e-6
-            used &= pos
-            ds = np.where(pos, depth, 1.0)
+            if pos.all():
+                ds = depth
+            else:
+                used &= pos
+                ds = np.where(pos, depth, 1.0)
             e = proj[:2] / ds
-            e -= xyn
+            e -= xy_px
             e *= e
-            err2 = e[0] + e[1]
-            err2 *= self._s2  # (C,N) squared pixel errors
+            err2 = e[0] + e[1]  # (C,N) squared pixel errors
             if it == cfg.max_rejections:
                 mx = None
                 break
@@ -261,16 +266,15 @@ class Triangulator:
             idx = drop.nonzero()[0]
             used[err_m[:, idx].argmax(0), idx] = False
             mx = None
-        err = np.sqrt(err2)
         tr = _inv_trace(A)
         # per-point sums over the views used: count, confidence, error, squared confidence,
         # squared error, squared focal scale
         E = np.empty((6, C, N))
         E[0] = used
         np.multiply(E[0], w0, out=E[1])
-        E[2] = np.where(used, err, 0.0)
+        np.multiply(err2, E[0], out=E[4])
+        np.sqrt(E[4], out=E[2])
         np.multiply(E[1], w0, out=E[3])
-        np.multiply(E[2], E[2], out=E[4])
         np.multiply(E[0], self._s2, out=E[5])
         tot = E.sum(1)  # (6,N)
         n_views = V[_NVIEWS]
@@ -284,7 +288,7 @@ class Triangulator:
         std = V[_STD]
         np.multiply(sigma, np.sqrt(np.maximum(tr, 0) * mean[2] / np.maximum(mean[4], 1e-12) / 3.0), out=std)
         # (a non-finite point fails here too: its depth or error is NaN, so no view stays used / max is NaN)
-        max_ok = (E[2].max(0) <= cfg.max_reproj_px) if mx is None else (mx <= thr2)
+        max_ok = (E[4].max(0) if mx is None else mx) <= thr2
         ok = (n_views >= cfg.min_views) & max_ok & (std <= cfg.max_std_m)
         return V, ok, used
 
