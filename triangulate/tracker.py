@@ -165,6 +165,8 @@ def stitch_tracks(xyz_m: np.ndarray, assign: np.ndarray, mirrored: np.ndarray | 
     first, last = np.full(K, T), np.full(K, -1)
     np.minimum.at(first, k_idx, t_idx)
     np.maximum.at(last, k_idx, t_idx)
+    by_track = np.argsort(k_idx, kind="stable")  # each track's rows, in time order
+    bounds = np.searchsorted(k_idx[by_track], np.arange(K + 1))
     cands = []
     for a in range(K):
         if last[a] < 0:
@@ -172,7 +174,7 @@ def stitch_tracks(xyz_m: np.ndarray, assign: np.ndarray, mirrored: np.ndarray | 
         later = np.flatnonzero((first > last[a]) & (first <= last[a] + cfg.max_gap + 1))
         if len(later) == 0:
             continue
-        rows = np.flatnonzero(k_idx == a)
+        rows = by_track[bounds[a]:bounds[a + 1]]
         end = X[rows[-1]].copy()  # a's last pose, joints it lacks held from a's earlier frames
         for r in rows[::-1][1:]:
             miss = ~np.isfinite(end).all(-1)
@@ -180,7 +182,8 @@ def stitch_tracks(xyz_m: np.ndarray, assign: np.ndarray, mirrored: np.ndarray | 
                 break
             end[miss] = X[r][miss]
         for b in later:
-            sel = np.flatnonzero((k_idx == b) & (t_idx <= last[a] + cfg.max_gap + 1))
+            sel = by_track[bounds[b]:bounds[b + 1]]
+            sel = sel[t_idx[sel] <= last[a] + cfg.max_gap + 1]
             d = pose_distance(end[None], X[sel])[0]
             limit = cfg.tau_m + cfg.max_speed_m_s * (t_idx[sel] - last[a] - 1) / fps
             hit = np.flatnonzero(d < limit)
