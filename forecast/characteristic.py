@@ -223,12 +223,14 @@ class CharConfig:
     temperature: float = 0.025  # sec. 3.4.1
     k: int = 10  # hypotheses (sec. 3.6)
     refine_iters: int = 60
+    refine_angles_from: str = "last"  # eq. 3.2's theta: joint angles of the "first" or "last" observed pose
     val_every: int = 250  # model selection on the validation split (best-of-k MPJPE); 0 = keep the last
-    time_limit_s: float = 0.0  # stop the heatmap model's training after this much wall time (0 = no limit)
+    time_limit_s: float = 0.0  # stop the heatmap model's training after this much process CPU time (0 = none)
     seed: int = 0
 
 
 def config_from_dict(d: dict | None = None) -> CharConfig:
+    """Typed config from a dict; unknown keys are an error (listing the valid ones)."""
     d = dict(d or {})
     fields = {f.name for f in dataclasses.fields(CharConfig)}
     bad = sorted(set(d) - fields)
@@ -457,6 +459,7 @@ def evaluate(
             refine_iters=cfg.refine_iters,
             generator=g,
             return_raw=True,
+            angles_from=cfg.refine_angles_from,
         )
         ref_l.append(ref.numpy())
         raw_l.append(raw.numpy())
@@ -504,7 +507,7 @@ def _fit(model, steps, items, segs, rng, cfg, names, flip, val, progress, label,
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / max(1, cfg.warmup)))
     hist = {"loss": [], "val": []}
-    best, best_state, t0 = np.inf, None, time.perf_counter()
+    best, best_state, t0, c0 = np.inf, None, time.perf_counter(), time.process_time()
     step = -1
     for step in range(steps):
         model.train()
@@ -516,7 +519,7 @@ def _fit(model, steps, items, segs, rng, cfg, names, flip, val, progress, label,
         opt.step()
         sched.step()
         hist["loss"].append(float(terms["loss"].detach()))
-        out_of_time = time_limit_s > 0 and time.perf_counter() - t0 > time_limit_s
+        out_of_time = time_limit_s > 0 and time.process_time() - c0 > time_limit_s
         last = step == steps - 1 or out_of_time
         if val is not None and cfg.val_every and ((step + 1) % cfg.val_every == 0 or last):
             score = val(model)
@@ -532,7 +535,7 @@ def _fit(model, steps, items, segs, rng, cfg, names, flip, val, progress, label,
             log.warning("%s: time limit reached after %d steps", label, step + 1)
             break
     hist["steps_done"] = step + 1
-    hist["wall_s"] = time.perf_counter() - t0
+    hist["wall_s"], hist["cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
     if best_state is not None:
         model.load_state_dict(best_state)
         hist["val_best"] = min(hist["val"], key=lambda r: r["mpjpe_best_of_k"])

@@ -196,7 +196,7 @@ class CharacteristicPoseNet(nn.Module):
         self.up0 = Up2(2 * c, c)
         self.conv1 = nn.Conv3d(c + 4, c, 3, padding=1)  # + the last-input-skeleton volume (4 channels)
         self.conv2 = nn.Conv3d(c, c, 3, padding=1)
-        self.up1 = Up2(c, n_discr + 3)  # heatmap bin logits + offsets
+        self.up1 = Up2(c, n_discr + 4)  # heatmap bin logits + offsets + the gate of the last-skeleton offsets
         self.register_buffer("centres", voxel_centres(grid, span))
         self.register_buffer("centres_half", voxel_centres(grid // 2, span))
         self.register_buffer("values", bin_values(n_discr))
@@ -232,10 +232,23 @@ class CharacteristicPoseNet(nn.Module):
         x = F.relu(self.conv1(x))
         x = F.relu(self.conv2(x))
         x = self.up1(x)
-        G = self.grid
-        logits = x[:, : self.n_discr].reshape(B, Jp, self.n_discr, G, G, G)
-        off = torch.tanh(x[:, self.n_discr :]).reshape(B, Jp, 3, G, G, G) * (self.span / G)
-        return logits, off
+        G, nd, vs = self.grid, self.n_discr, self.span / self.grid
+        logits = x[:, :nd].reshape(B, Jp, nd, G, G, G)
+        # offsets: a learned field mixed (per-voxel gate) with the offsets volume of the last input skeleton
+        # at full resolution (appendix, Fig. 3.10); both lie within one voxel length (sec. 3.4)
+        c = self.centres
+        last = last_xyz.reshape(-1, 3)
+        last_off = torch.stack(
+            [
+                (last[:, 0, None, None, None] - c[None, :, None, None]).expand(-1, G, G, G),
+                (last[:, 1, None, None, None] - c[None, None, :, None]).expand(-1, G, G, G),
+                (last[:, 2, None, None, None] - c[None, None, None, :]).expand(-1, G, G, G),
+            ],
+            1,
+        ).clamp(-vs, vs)
+        gate = torch.sigmoid(x[:, nd + 3 : nd + 4])
+        off = gate * last_off + (1 - gate) * torch.tanh(x[:, nd : nd + 3]) * vs
+        return logits, off.reshape(B, Jp, 3, G, G, G)
 
     def stage(self, enc, obs_last: torch.Tensor, query: list[int], prior_xyz=None, prior_ids=None):
         q = torch.as_tensor(query, device=obs_last.device)
@@ -326,6 +339,7 @@ class CharacteristicPoseNet(nn.Module):
         refine_iters: int = 60,
         generator: torch.Generator | None = None,
         return_raw: bool = False,
+        angles_from: str = "last",
     ):
         """obs (B,N,J,3) normalised -> k pose hypotheses (B,k,J,3): right wrist, then left wrist given it,
         then the rest given both (Fig. 3.4); refined with eq. 3.2 unless ``refine=False``."""
@@ -366,6 +380,7 @@ class CharacteristicPoseNet(nn.Module):
             self.bones,
             self.span,
             iters=refine_iters,
+            angles_from=angles_from,
         ).reshape(B, k, J, 3)
         return (ref, raw) if return_raw else ref
 
@@ -404,42 +419,49 @@ def refine_pose(
     bones,
     span,
     iters: int = 60,
-    lr: float = 0.01,
+    lr: float = 0.005,
     weights: dict | None = None,
+    reduce: str = "sum",
+    angles_from: str = "first",
 ):
     """Eq. 3.2: min_x w_e||x_e - e||_2 + w_b||bonelengths(x) - b||_1 + w_a||angles(x) - theta||_1
     + w_c||x - x_0||_1 + w_h sum_i (1 - H_i(x_i)).
 
     x (M,J,3) raw sampled poses; heat (M,J,G,G,G) heatmaps (values in [0,1]); first_obs (M,J,3) the initially
-    observed skeleton (bone lengths b and angles theta); last_obs (M,J,3) x_0, the last input skeleton; e the
-    sampled end effectors (``order``). Norms are averaged over joints / bones / angles so the seed's weights
-    balance the terms independently of the skeleton size. Adam, ``iters`` steps."""
+    observed skeleton (bone lengths b and angles theta; ``angles_from="last"`` takes theta from x_0 instead);
+    last_obs (M,J,3) x_0, the last input skeleton; e the sampled end effectors (``order``). ``reduce``: the
+    norms sum over joints / bones / angles as written ("sum") or average ("mean"). Adam, ``iters`` steps with
+    the learning rate decaying linearly to 0 (l1 terms would otherwise leave the pose jittering by ``lr``)."""
     w = dict(REFINE_WEIGHTS, **(weights or {}))
+    red = (lambda t: t.sum(-1)) if reduce == "sum" else (lambda t: t.mean(-1))
     bones = bones.to(x.device)
     tri = joint_angle_triples(bones).to(x.device)
     b = _lengths(first_obs, bones)
-    theta = _angles(first_obs, tri) if len(tri) else None
+    theta = None
+    if len(tri):
+        theta = _angles(first_obs if angles_from == "first" else last_obs, tri)
     e_idx = list(order)
     e = x[:, e_idx].clone()
-    vol = heat[:, :, None]  # (M,J,1,G,G,G) -> grid_sample per joint
     M, J = x.shape[:2]
-    vol = vol.reshape(M * J, 1, *heat.shape[2:])
+    vol = heat.reshape(M * J, 1, *heat.shape[2:])  # one volume per joint for grid_sample
     with torch.enable_grad():
         y = x.clone().requires_grad_(True)
         opt = torch.optim.Adam([y], lr=lr)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / max(1, iters))
         for _ in range(iters):
             opt.zero_grad()
-            E = w["w_e"] * (y[:, e_idx] - e).norm(dim=-1).mean(-1)
-            E = E + w["w_b"] * (_lengths(y, bones) - b).abs().mean(-1)
+            E = w["w_e"] * red((y[:, e_idx] - e).norm(dim=-1))
+            E = E + w["w_b"] * red((_lengths(y, bones) - b).abs())
             if theta is not None:
-                E = E + w["w_a"] * (_angles(y, tri) - theta).abs().mean(-1)
-            E = E + w["w_c"] * (y - last_obs).abs().sum(-1).mean(-1)
+                E = E + w["w_a"] * red((_angles(y, tri) - theta).abs())
+            E = E + w["w_c"] * red((y - last_obs).abs().sum(-1))
             # heatmap likelihood by trilinear lookup; grid_sample takes (x,y,z) -> (W,H,D), coords in [-1,1]
             g = (y / (span / 2)).reshape(M * J, 1, 1, 1, 3).flip(-1)
             h = F.grid_sample(vol, g, align_corners=False, padding_mode="border").reshape(M, J)
-            E = E + w["w_h"] * (1 - h).sum(-1)
+            E = E + w["w_h"] * red(1 - h)
             E.sum().backward()
             opt.step()
+            sched.step()
     return y.detach()
 
 
