@@ -40,6 +40,11 @@ class PipelineConfig:
     skeleton: str = "body19"
     max_people: int = 20
     det_score: float = 0.0  # 0 = the detector description's threshold
+    # boxes scoring between this and det_score are kept only where less than half of each lies inside a
+    # stronger box (weak detections in clutter are mostly parts of someone already found: vtest.avi); people
+    # at the image border or small in a letterboxed portrait frame score there (Demo_MultiPerson's bystander
+    # in cam01: 0.22). 0 = off
+    det_score_weak: float = 0.2
     min_box_px: float = 24.0  # ignore boxes smaller than this (height, image px)
     box_padding: float = 0.0  # 0 = the pose description's value
     # vtest.avi: a static sign the detector takes for a person scores 0.12-0.18, the pedestrians >= 0.4
@@ -49,6 +54,9 @@ class PipelineConfig:
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
+    # flip test: joints the two crops place more than this x the crop width apart are not averaged; each
+    # person takes them from the crop with the higher score (merge_hypotheses); 0 = always average
+    flip_agree: float = 0.05
     # top-down: drop the face points of people seen from behind (hide_face_from_behind); None: the
     # description's. MoveNet: Demo_SinglePerson 13.8 -> 12.5 px every 4th frame (OpenPose scores them low)
     hide_face_from_behind: bool | None = None
@@ -246,6 +254,42 @@ def hide_face_from_behind(
     return sc
 
 
+def _strong_or_apart(boxes: np.ndarray, threshold: float, max_inside: float = 0.5) -> np.ndarray:
+    """Mask (N,) of boxes (N,5) scoring >= ``threshold``, or weaker ones of which less than ``max_inside`` of
+    the area lies inside any box scoring higher."""
+    keep = boxes[:, 4] >= threshold
+    for i in np.flatnonzero(~keep):
+        b = boxes[i]
+        higher = boxes[boxes[:, 4] > b[4]]
+        iw = np.clip(np.minimum(higher[:, 2], b[2]) - np.maximum(higher[:, 0], b[0]), 0, None)
+        ih = np.clip(np.minimum(higher[:, 3], b[3]) - np.maximum(higher[:, 1], b[1]), 0, None)
+        area = max((b[2] - b[0]) * (b[3] - b[1]), 1e-9)
+        keep[i] = not len(higher) or (iw * ih).max() < max_inside * area
+    return keep
+
+
+def merge_hypotheses(xy0, sc0, xy1, sc1, tol: float):
+    """Two estimates of the same people's joints (M,J,2) with scores (M,J) -> one (test-time augmentation).
+
+    Joints the two place within ``tol`` px of each other: the score-weighted mean (and the mean score).
+    Joints they place apart are two different answers (a leg taken for the other, a limb of someone
+    behind), whose mean would lie on neither: per person, all of them come from the estimate with the higher
+    mean score over those joints (one hypothesis, so a left/right pair is not split between the two).
+    ``tol`` <= 0: always the weighted mean.
+    """
+    w0, w1 = sc0[..., None] + 1e-6, sc1[..., None] + 1e-6
+    xy = (xy0 * w0 + xy1 * w1) / (w0 + w1)
+    sc = 0.5 * (sc0 + sc1)
+    if tol <= 0:
+        return xy, sc
+    apart = np.linalg.norm(xy0 - xy1, axis=-1) > tol  # (M,J)
+    n = np.maximum(apart.sum(1), 1)
+    first = (np.where(apart, sc0, 0).sum(1) / n) >= (np.where(apart, sc1, 0).sum(1) / n)  # (M,)
+    pick_xy = np.where(first[:, None, None], xy0, xy1)
+    pick_sc = np.where(first[:, None], sc0, sc1)
+    return np.where(apart[..., None], pick_xy, xy), np.where(apart, pick_sc, sc)
+
+
 def _keypoint_box_iou(xy: np.ndarray, sc: np.ndarray, det: np.ndarray, min_score: float = 0.3) -> np.ndarray:
     """IoU (M,) of the box of each person's confident keypoints (M,J,2) with its box det (M,>=4)."""
     out = np.zeros(len(det))
@@ -397,13 +441,15 @@ class KeypointPipeline:
         t = self._tick("detect", t)
         d = spec.decoder
         thr = self.config.det_score or d.score_threshold
+        weak = self.config.det_score_weak
+        lo = weak if 0 < weak < thr else thr
         if d.kind == "yolox":
-            boxes = D.decode_yolox(outs[0], spec.input.size_wh, d.strides, d.class_id, thr, d.nms_iou)
+            boxes = D.decode_yolox(outs[0], spec.input.size_wh, d.strides, d.class_id, lo, d.nms_iou)
         else:
-            boxes = D.decode_dets(outs[0], outs[1] if len(outs) > 1 else None, d.class_id, thr, d.nms_iou)
+            boxes = D.decode_dets(outs[0], outs[1] if len(outs) > 1 else None, d.class_id, lo, d.nms_iou)
         res = []
         for b, r, im in zip(boxes, ratios, images, strict=True):
-            b = b.copy()
+            b = b[_strong_or_apart(b, thr)] if lo < thr else b.copy()
             b[:, :4] /= r
             h, w = im.shape[:2]
             b[:, [0, 2]] = b[:, [0, 2]].clip(0, w)
@@ -463,10 +509,8 @@ class KeypointPipeline:
             fi = get_skeleton(spec.skeleton).flip_index
             xf = xy[n:, fi].copy()
             xf[..., 0] = (W - 1) - xf[..., 0]  # pixel-centre coordinates: column i -> W - 1 - i
-            sf = sc[n:, fi]
-            w0, w1 = sc[:n, :, None] + 1e-6, sf[..., None] + 1e-6
-            xy = (xy[:n] * w0 + xf * w1) / (w0 + w1)
-            sc, person = 0.5 * (sc[:n] + sf), 0.5 * (person[:n] + person[n:])
+            xy, sc = merge_hypotheses(xy[:n], sc[:n], xf, sc[n:, fi], self.config.flip_agree * W)
+            person = 0.5 * (person[:n] + person[n:])
             roi = None if roi is None else roi[:n]
         if n:
             xy = apply_inverse(Ms, xy)

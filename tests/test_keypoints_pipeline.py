@@ -193,3 +193,34 @@ def test_default_set_drops_the_face_of_the_back_views(single):
     assert all(
         r.score[b, CANONICAL.joint_names.index("left_ear")] > 0 for r, b in zip(res, best, strict=True)
     )
+
+
+def test_flip_hypotheses_averaged_where_they_agree_else_one_taken_whole():
+    from keypoints.pipeline import merge_hypotheses
+
+    xy0 = np.array([[[10.0, 10.0], [20.0, 50.0], [40.0, 50.0]]])
+    sc0 = np.array([[0.8, 0.6, 0.6]])
+    xy1 = xy0.copy()
+    xy1[0, 0, 0] += 1.0  # agrees within tolerance: score-weighted mean
+    xy1[0, 1:] = xy0[0, [2, 1]]  # the two legs swapped: two different answers
+    sc1 = np.array([[0.8, 0.7, 0.7]])
+    xy, sc = merge_hypotheses(xy0, sc0, xy1, sc1, tol=5.0)
+    np.testing.assert_allclose(xy[0, 0], [10.5, 10.0])
+    np.testing.assert_allclose(xy[0, 1:], xy1[0, 1:])  # both legs from the more confident estimate
+    np.testing.assert_allclose(sc[0], [0.8, 0.7, 0.7])
+    avg, _ = merge_hypotheses(xy0, sc0, xy1, sc1, tol=0.0)  # off: always the weighted mean
+    np.testing.assert_allclose(avg[0, 1], [30.0 + 10.0 * (0.1 / 1.3), 50.0], atol=1e-4)
+
+
+def test_weak_boxes_kept_only_apart_from_stronger_ones():
+    from keypoints.pipeline import _strong_or_apart
+
+    boxes = np.array(
+        [
+            [0, 0, 100, 300, 0.9],  # a person
+            [10, 150, 90, 300, 0.25],  # their legs found again, weakly: dropped
+            [300, 0, 350, 150, 0.22],  # someone small elsewhere: kept
+            [90, 0, 190, 300, 0.35],  # strong, overlapping: kept (NMS decides those)
+        ]
+    )
+    assert _strong_or_apart(boxes, 0.3).tolist() == [True, False, True, True]
