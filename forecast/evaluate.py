@@ -230,6 +230,9 @@ def evaluate_social(
     for name, model in models.items():
         if progress:
             progress(name)
+        import torch
+
+        torch.manual_seed(seed)  # the same sampling noise on every run
         y = forecast_world(model, obs, np.ones((n_scenes, 2), bool), n_pred, 1)[:, 0]  # (B,H,2,J,3)
         nd = np.stack(
             [scorer.score_forecast(obs[b, :, p], y[b, None, :, p]) for b in range(n_scenes) for p in range(2)]
