@@ -437,6 +437,7 @@ def evaluate(
     max_windows: int | None = None,
     progress=None,
     skeleton: str = "body19",
+    per_window: bool = False,
 ) -> dict:
     """Sec. 3.6 protocol on ``items``: ``n_starts`` starts per label, k hypotheses, best-of-k MPJPE and
     Diversity for the heatmap model (refined and not refined), the Deterministic ablation, zero velocity and
@@ -493,6 +494,10 @@ def evaluate(
             "diversity": float(div.mean()) if p.shape[1] > 1 else None,
             "mpjpe_by_start": [float(best[rows[:, 3] == s].mean()) for s in range(n_starts)],
         }
+        if per_window:
+            out["methods"][name]["per_window"] = best.tolist()
+    if per_window:
+        out["rows"] = rows.tolist()  # (item, start, characteristic frame, start index)
     return out
 
 

@@ -432,6 +432,10 @@ def refine_pose(
     last_obs (M,J,3) x_0, the last input skeleton; e the sampled end effectors (``order``). ``reduce``: the
     norms sum over joints / bones / angles as written ("sum") or average ("mean"). Adam, ``iters`` steps with
     the learning rate decaying linearly to 0 (l1 terms would otherwise leave the pose jittering by ``lr``)."""
+    if angles_from not in ("first", "last") or reduce not in ("sum", "mean"):
+        raise ValueError(
+            f"angles_from must be 'first'/'last' and reduce 'sum'/'mean', got {angles_from!r}, {reduce!r}"
+        )
     w = dict(REFINE_WEIGHTS, **(weights or {}))
     red = (lambda t: t.sum(-1)) if reduce == "sum" else (lambda t: t.mean(-1))
     bones = bones.to(x.device)
