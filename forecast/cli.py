@@ -7,6 +7,7 @@ Examples::
     forecast sample --checkpoint runs/gru.pt --tracks session/track/tracks.npz --horizon-s 2 --out fc.npz
     forecast eval --checkpoints runs/gru.pt runs/intention.pt --data cmu --out runs/eval
     forecast eval --social --checkpoints runs/gru.pt runs/sd.pt --data cmu --out runs/eval_social
+    forecast characteristic eval --checkpoint forecast/checkpoints/characteristic_cmu.pt   # Diller ch. 3
 
 Data: ``cmu`` = the CMU BVH under ``$ROOMCAP_MOCAP`` / ``$ROOMCAP_SHARED/data/motion``; otherwise track files
 or folders containing ``tracks.npz``. Train / validation / test split by clip (``data.split_train_val_test``,
@@ -202,6 +203,11 @@ def cmd_eval(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "characteristic":  # Diller ch. 3: `forecast characteristic train|eval ...`
+        from forecast.characteristic import main as characteristic_main
+
+        return characteristic_main(argv[1:]) or 0
     p = argparse.ArgumentParser(
         prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
