@@ -75,7 +75,7 @@ def _run(args) -> int:
 
     cfg = PipelineConfig(
         model_set=args.models,
-        refine_passes=args.refine_passes,
+        refine_passes=PipelineConfig.refine_passes if args.refine_passes is None else args.refine_passes,
         runtime=RuntimeConfig(threads=args.threads, model_dir=args.model_dir or ""),
     )
     first = Path(args.inputs[0])
@@ -138,8 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument(
         "--refine-passes",
         type=int,
-        default=1,
-        help="top-down: extra pose passes on upright crops from the previous pass (0 = faster)",
+        default=None,
+        help="top-down: extra pose passes on upright crops from the previous pass (0 = faster; default: "
+        "PipelineConfig's, 2)",
     )
     args = ap.parse_args(argv)
     logging.basicConfig(

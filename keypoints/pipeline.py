@@ -49,7 +49,10 @@ class PipelineConfig:
     box_padding: float = 0.0  # 0 = the pose description's value
     # vtest.avi: a static sign the detector takes for a person scores 0.12-0.18, the pedestrians >= 0.4
     pose_presence: float = 0.25  # drop people whose pose score (BlazePose: person present; else mean) below
-    refine_passes: int = 1  # top-down: pose passes on the box the previous pass's keypoints span
+    # top-down: pose passes on the box the previous pass's keypoints span. Demo_MultiPerson (100 frames):
+    # 2 passes (no flip test in the middle one) both participants in 4 views 83 -> 91 frames, bystander
+    # separate 83 -> 90; Demo_SinglePerson 12.3 -> 12.4 px (noise: +-0.15 px from sub-pixel crop changes)
+    refine_passes: int = 2
     min_box_iou: float = 0.3  # refine passes: keep the previous pose where the new one left its box (IoU)
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
@@ -57,6 +60,7 @@ class PipelineConfig:
     # flip test: joints the two crops place more than this x the crop width apart are not averaged; each
     # person takes them from the crop with the higher score (merge_hypotheses); 0 = always average
     flip_agree: float = 0.05
+    flip_all_passes: bool = False  # flip test in every pose pass, not only the first and the last
     # top-down: drop the face points of people seen from behind (hide_face_from_behind); None: the
     # description's. MoveNet: Demo_SinglePerson 13.8 -> 12.5 px every 4th frame (OpenPose scores them low)
     hide_face_from_behind: bool | None = None
@@ -67,9 +71,11 @@ class PipelineConfig:
     # Demo_MultiPerson: both participants matched in 4 views 79 -> 84 of 100 frames (cam03: 46 -> 0 frames
     # with a duplicate pose, 2 poses dropped)
     duplicate_frac: float = 0.08
-    # refine passes: crop sizes (x padding) whose poses are averaged (score-weighted). Demo_SinglePerson
-    # (0.9, 1.0, 1.1): 13.6 -> 13.4 px median reprojection error, Demo_MultiPerson 84 -> 81 frames: off
-    tta_scales: tuple[float, ...] = (1.0,)
+    # last refine pass: crop sizes (x padding) whose poses are merged (consensus: score-weighted mean of the
+    # estimates near the median; MoveNet int8's outputs carry ~1% of the crop of quantisation noise).
+    # (0.9, 1.0, 1.1): Demo_SinglePerson 12.4 -> 11.8 px (OpenPose 12.4), Demo_MultiPerson 91 -> 91 frames;
+    # 3x the pose time of that pass (9 instead of 5 MoveNet runs per person); (1.0,) = off
+    tta_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
@@ -290,6 +296,19 @@ def merge_hypotheses(xy0, sc0, xy1, sc1, tol: float):
     return np.where(apart[..., None], pick_xy, xy), np.where(apart, pick_sc, sc)
 
 
+def consensus(xy: np.ndarray, sc: np.ndarray, tol) -> tuple[np.ndarray, np.ndarray]:
+    """K estimates (K,M,J,2), scores (K,M,J) of the same joints -> one (M,J,2), (M,J): the score-weighted
+    mean of the estimates within ``tol`` px (scalar or broadcasting to (M,J)) of the coordinate-wise median,
+    with their mean score; an estimate far from the others is left out rather than averaged in."""
+    med = np.median(xy, axis=0)
+    inl = np.linalg.norm(xy - med, axis=-1) <= np.asarray(tol)  # (K,M,J)
+    none = ~inl.any(0)
+    inl[:, none] = sc[:, none] == sc[:, none].max(0)  # all apart: the most confident
+    w = np.where(inl, sc + 1e-6, 0.0)
+    out = (xy * w[..., None]).sum(0) / w.sum(0)[..., None]
+    return out, (sc * inl).sum(0) / inl.sum(0)
+
+
 def _keypoint_box_iou(xy: np.ndarray, sc: np.ndarray, det: np.ndarray, min_score: float = 0.3) -> np.ndarray:
     """IoU (M,) of the box of each person's confident keypoints (M,J,2) with its box det (M,>=4)."""
     out = np.zeros(len(det))
@@ -465,6 +484,7 @@ class KeypointPipeline:
         boxes: list[np.ndarray],
         angles: list[np.ndarray] | None = None,
         scales: tuple[float, ...] = (1.0,),
+        flip: bool | None = None,
     ):
         """Run the pose model on every box of every image as one batch.
 
@@ -497,7 +517,9 @@ class KeypointPipeline:
                     borderValue=(spec.input.pad_value,) * 3,
                 )
                 k += 1
-        flip = n > 0 and (spec.decoder.flip_test if self.config.flip_test is None else self.config.flip_test)
+        if flip is None:
+            flip = spec.decoder.flip_test if self.config.flip_test is None else self.config.flip_test
+        flip = n > 0 and flip
         if flip:  # test-time augmentation: the mirrored crops go in the same batch
             crops = np.concatenate([crops, crops[:, :, ::-1]])
         x = to_tensor(crops, spec) if n else None
@@ -519,9 +541,9 @@ class KeypointPipeline:
         if len(scales) > 1:  # multi-scale test-time augmentation: score-weighted mean over the crops
             S = len(scales)
             xy, sc, person = xy.reshape(S, n0, -1, 2), sc.reshape(S, n0, -1), person.reshape(S, n0)
-            w = sc[..., None] + 1e-6
-            xy = (xy * w).sum(0) / w.sum(0)
-            sc, person = sc.mean(0), person.mean(0)
+            side = W / np.sqrt(np.abs(np.linalg.det(Ms[:n0, :, :2])))  # crop side in image px (M,)
+            xy, sc = consensus(xy, sc, self.config.flip_agree * side[:, None])
+            person = person.mean(0)
         res, k = [], 0
         for bs in boxes:
             m = len(bs)
@@ -597,8 +619,15 @@ class KeypointPipeline:
 
     def _top_down_passes(self, images):
         boxes = self.detect(images)
+        passes = self.config.refine_passes
+        # the refine passes before the last only place the crops: no flip test there unless flip_all_passes
+        # (the first pass keeps it: its person score is the presence gate below)
+        early_flip = None if self.config.flip_all_passes else False
         res = self.pose_on_boxes(images, boxes)
-        for _ in range(self.config.refine_passes):
+        # presence is judged on the detector's box too: a refine crop zoomed onto a person-like thing raises
+        # the model's score (vtest.avi's static sign: 0.23 on its box with the flip test, 0.26 refined)
+        first_person = [r[2] for r in res]
+        for k_pass in range(passes):
             # again on the box the keypoints span, rotated upright: the detector's box is loose or cuts limbs,
             # and models trained on aligned crops (BlazePose) lose leaning people in unrotated crops
             t = time.perf_counter()
@@ -613,7 +642,8 @@ class KeypointPipeline:
                 images,
                 [b for b, _ in ba],
                 [a if self.config.rotate else 0 * a for _, a in ba],
-                self.config.tta_scales,
+                self.config.tta_scales if k_pass == passes - 1 else (1.0,),
+                flip=None if k_pass == passes - 1 else early_flip,
             )
             # a refined crop that slid off its detector box onto someone else (an occluded person's crop
             # centred on the person in front) keeps the previous pass's pose instead
@@ -627,10 +657,10 @@ class KeypointPipeline:
         hide = self.config.hide_face_from_behind
         if hide is None:
             hide = self.pose_spec.decoder.hide_face_from_behind
-        for (xy, sc, person, _), b in zip(res, boxes, strict=True):
+        for (xy, sc, person, _), b, p0 in zip(res, boxes, first_person, strict=True):
             if hide:
                 sc = hide_face_from_behind(xy, sc, self.src_skeleton, self.config.back_view_facing)
-            keep = person >= self.config.pose_presence
+            keep = np.minimum(person, p0) >= self.config.pose_presence
             out.append(self._finish(b[keep], xy[keep], sc[keep]))
         self._tick("pose_post", t)
         return out

@@ -224,3 +224,15 @@ def test_weak_boxes_kept_only_apart_from_stronger_ones():
         ]
     )
     assert _strong_or_apart(boxes, 0.3).tolist() == [True, False, True, True]
+
+
+def test_scale_consensus_leaves_out_the_odd_estimate():
+    from keypoints.pipeline import consensus
+
+    xy = np.array([[[[100.0, 100.0]]], [[[102.0, 100.0]]], [[[160.0, 100.0]]]])  # (K=3,M=1,J=1,2)
+    sc = np.array([[[0.5]], [[0.5]], [[0.9]]])
+    out, s = consensus(xy, sc, 10.0)
+    np.testing.assert_allclose(out[0, 0], [101.0, 100.0])  # the third (a different answer) left out
+    assert s[0, 0] == pytest.approx(0.5)
+    out, _ = consensus(xy, sc, 100.0)  # all within tolerance: the score-weighted mean
+    np.testing.assert_allclose(out[0, 0, 0], (100 * 0.5 + 102 * 0.5 + 160 * 0.9) / 1.9, atol=1e-4)
