@@ -538,7 +538,7 @@ class KeypointPipeline:
             xy = apply_inverse(Ms, xy)
             if roi is not None:
                 roi = self._roi_to_image(roi[:n0], Ms[:n0])
-        if len(scales) > 1:  # multi-scale test-time augmentation: score-weighted mean over the crops
+        if len(scales) > 1 and n0:  # multi-scale test-time augmentation: consensus over the crops
             S = len(scales)
             xy, sc, person = xy.reshape(S, n0, -1, 2), sc.reshape(S, n0, -1), person.reshape(S, n0)
             side = W / np.sqrt(np.abs(np.linalg.det(Ms[:n0, :, :2])))  # crop side in image px (M,)

@@ -236,3 +236,9 @@ def test_scale_consensus_leaves_out_the_odd_estimate():
     assert s[0, 0] == pytest.approx(0.5)
     out, _ = consensus(xy, sc, 100.0)  # all within tolerance: the score-weighted mean
     np.testing.assert_allclose(out[0, 0, 0], (100 * 0.5 + 102 * 0.5 + 160 * 0.9) / 1.9, atol=1e-4)
+
+
+def test_default_set_on_an_empty_image_finds_nobody():
+    need_shared("models")
+    res = KeypointPipeline("default")([np.full((240, 320, 3), 128, np.uint8)] * 2)
+    assert [len(r.boxes) for r in res] == [0, 0] and res[0].xy_px.shape == (0, 19, 2)
