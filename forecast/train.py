@@ -89,6 +89,7 @@ class DiffusionConfig:
     persons: int = 2
     sample_steps: int = 20
     sample_eta: float = 0.0
+    sample_dct: int = 0  # >0: the sampler keeps X_0 to this many DCT coefficients over the window (0 = off)
     clean_obs: bool = True
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
     p_single: float = 0.0  # share of composed training scenes with one person (0.25: val NDMS .268 vs .281)
@@ -234,6 +235,7 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
     elif kind == "social_diffusion":
         m = SocialDiffusion(D + N_GLOBAL, config.n_frames, config.channels, config.T, anchored=config.anchor)
         m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
+        m.sample_dct = config.sample_dct
         m.n_obs_clean = config.n_obs if config.clean_obs else 0
         m.anchor = config.n_obs - 1 if config.anchor else None
     else:

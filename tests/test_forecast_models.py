@@ -157,6 +157,32 @@ def test_anchored_diffusion_codes_motion_relative_to_the_last_observed_frame():
     assert torch.allclose(model.unstandardise(z, f[:, :, 15]), f, atol=1e-4)
     out = model.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), n_samples=2, steps=3)
     assert torch.allclose(out[:, 0, :, :16], f[:, :, :16], atol=1e-4)
+    # the band-limited sampler keeps the observation and removes frame-to-frame wobble from the forecast
+    model.sample_dct = 4
+    g = torch.Generator().manual_seed(0)
+    lp = model.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), 2, 3, generator=g)
+    assert torch.allclose(lp[:, 0, :, :16], f[:, :, :16], atol=1e-4)
+    g = torch.Generator().manual_seed(0)
+    model.sample_dct = 0
+    raw = model.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), 2, 3, generator=g)
+
+    def wobble(y):
+        return y[..., 17:, :57].diff(n=2, dim=-2).abs().mean()
+
+    assert wobble(lp) < wobble(raw)
+
+
+def test_dct_lowpass_is_a_projection_that_keeps_slow_motion():
+    from forecast.models.diffusion import dct_lowpass_matrix
+
+    P = dct_lowpass_matrix(32, 6)
+    assert torch.allclose(P @ P, P, atol=1e-5) and torch.allclose(P, P.T, atol=1e-6)
+    assert torch.allclose(P.trace(), torch.tensor(6.0), atol=1e-4)
+    t = torch.arange(32.0)
+    slow = torch.cos(torch.pi / 32 * (t + 0.5) * 2)  # DCT basis 2: kept
+    fast = torch.cos(torch.pi / 32 * (t + 0.5) * 20)  # DCT basis 20: removed
+    assert torch.allclose(P @ slow, slow, atol=1e-4) and (P @ fast).abs().max() < 1e-4
+    assert torch.allclose(dct_lowpass_matrix(8, 8), torch.eye(8), atol=1e-5)
 
 
 def test_training_keeps_the_state_with_the_best_validation_score():
@@ -311,6 +337,7 @@ def test_shipped_configs_and_checkpoint_load():
         jump = np.linalg.norm(y[0, :, 0] - scene[0, -1], axis=-1).mean()
         assert jump < 0.06  # continues from the observation; measured 0.018 m (a walking step is 0.05 m)
         assert model.feat_std.dim() == 2  # motion coded relative to the last observed frame
+        assert meta["config"].sample_dct == model.sample_dct == 10  # band-limited sampler (validation)
     ck = root / "checkpoints" / "intention_cmu.pt"
     if ck.exists():
         assert ck.stat().st_size < 2_000_000  # measured 1.24 MB (discriminators are not shipped)

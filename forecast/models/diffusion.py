@@ -16,6 +16,11 @@
   relative to the last observed frame (``predict.scene_features``) the jump is ~0.1 m.
   ``eta=1`` re-noises with fresh noise
   (the seed's sampler); ``eta=0`` reuses the predicted noise (DDIM), which allows few steps.
+- Band-limited sampling (``sample_dct`` > 0, our addition): at every reverse step the X_0 estimate of the
+  window is projected onto its first ``sample_dct`` DCT coefficients over time (in metres, before the
+  observation is written back), as methods that diffuse in a truncated DCT space do. On CMU validation the
+  samples' root moved ~2x faster frame to frame than real motion (0.83 vs 0.36 m/s; the hip-centric pose
+  matched); 10 of 64 coefficients keep real windows to 2 cm RMS and raised validation NDMS 2-4 s by ~0.006.
 
 Per-person features (sec. 7.2.3): the per-frame hip-centric pose (3J) ⊕ root (3) ⊕ (cos θ, sin θ) of the
 global heading, in the scene frame, standardised with training mean/std (buffers in the checkpoint).
@@ -47,6 +52,19 @@ def cosine_alpha_bar(T: int, s: float = 0.008) -> torch.Tensor:
     ab = f / f[0]
     beta = (1 - ab[1:] / ab[:-1]).clamp(max=0.999)
     return torch.cat([torch.ones(1, dtype=torch.float64), torch.cumprod(1 - beta, 0)]).float()
+
+
+def dct_lowpass_matrix(n: int, keep: int) -> torch.Tensor:
+    """(n,n) projection onto the first ``keep`` orthonormal DCT-II basis vectors over time (keep ≥ n: I).
+
+    Real motion at 25 Hz is band-limited; diffusing in a truncated DCT space (Mao et al. 2019, HumanMAC,
+    Chen et al. 2023: first 20 of 125 coefficients) keeps samples in that subspace."""
+    k = torch.arange(n, dtype=torch.float64)
+    basis = torch.cos(math.pi / n * (k[None] + 0.5) * k[:, None])  # (freq, time)
+    basis[0] *= 1 / math.sqrt(2)
+    basis *= math.sqrt(2 / n)
+    b = basis[: min(keep, n)]
+    return (b.T @ b).float()
 
 
 def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -100,6 +118,7 @@ class SocialDiffusion(nn.Module):
         self.feat_dim, self.n_frames, self.T, self.temb = feat_dim, n_frames, T, temb
         self.n_obs_clean = 0  # set from the config (clean_obs): observed frames fed clean to g
         self.anchor: int | None = None  # set from the config (anchor): index of the last observed frame
+        self.sample_dct = 0  # set from the config: low-pass the X_0 estimate to this many DCT coefficients
         self.register_buffer("alpha_bar", cosine_alpha_bar(T))
         shape = (n_frames, feat_dim) if anchored else (feat_dim,)
         self.register_buffer("feat_mean", torch.zeros(shape))
@@ -190,6 +209,11 @@ class SocialDiffusion(nn.Module):
         pm = person_mask.repeat_interleave(n_samples, 0)
         BS = B * n_samples
         ts = torch.linspace(self.T, 1, steps, device=obs.device).round().long()
+        lowpass = None
+        if 0 < self.sample_dct < N:  # band-limit X_0 (dct_lowpass_matrix) in metres, not per-lag units
+            lowpass = dct_lowpass_matrix(N, self.sample_dct).to(obs.device)
+            mean = self.feat_mean if self.feat_mean.dim() == 2 else self.feat_mean.expand(N, Fd)
+            std = self.feat_std if self.feat_std.dim() == 2 else self.feat_std.expand(N, Fd)
         x = torch.randn(BS, P, N, Fd, device=obs.device, generator=generator)
         x0 = x
         for i, t in enumerate(ts):
@@ -198,6 +222,9 @@ class SocialDiffusion(nn.Module):
                 x = torch.cat([o, x[:, :, n_obs:]], 2)
             x0 = self.g(x, tt, pm)
             x0 = torch.cat([o, x0[:, :, n_obs:]], 2)  # write back the observation
+            if lowpass is not None:  # project the whole window onto low frequencies, observation back on top
+                xl = torch.einsum("nm,bpmf->bpnf", lowpass, x0 * std + mean)
+                x0 = torch.cat([o, ((xl - mean) / std)[:, :, n_obs:]], 2)
             if i == len(ts) - 1:
                 break
             ab, ab_next = self.alpha_bar[t], self.alpha_bar[ts[i + 1]]
