@@ -637,16 +637,6 @@ def train(data: CharData, cfg: CharConfig = CharConfig(), progress=None):
 # ----------------------------------------------------------------------------- CLI
 
 
-def _parse_sets(items) -> dict:
-    out = {}
-    for it in items or []:
-        if "=" not in it:
-            raise SystemExit(f"--set expects key=value, got {it!r}")
-        k, v = it.split("=", 1)
-        out[k.strip()] = v.strip()
-    return out
-
-
 def _table(res: dict) -> str:
     lines = [
         f"{'method':<20} {'MPJPE best-of-k (m)':>20} {'Diversity (m)':>14}   "
@@ -664,7 +654,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     ap = argparse.ArgumentParser(
-        prog="python -m forecast.characteristic", description=__doc__.split("\n\n")[0]
+        prog="forecast characteristic", description=__doc__.split("\n\n")[0]
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train", help="annotate CMU, train the heatmap model and the Deterministic ablation")
@@ -691,8 +681,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     if args.cmd == "train":
+        from forecast.cli import parse_sets
+
         try:
-            cfg = config_from_dict(_parse_sets(args.set))
+            cfg = config_from_dict(parse_sets(args.set))
         except ValueError as err:
             raise SystemExit(str(err)) from None
         data = load_cmu_labelled(seed=args.split_seed)

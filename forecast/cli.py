@@ -26,7 +26,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 
-def _parse_sets(items: list[str]) -> dict:
+def parse_sets(items: list[str]) -> dict:
+    """``--set key=value`` options as a dict of strings (typed later by the config)."""
     out = {}
     for it in items or []:
         if "=" not in it:
@@ -44,7 +45,7 @@ def _config(args) -> object:
     if args.config:
         t = load_toml(args.config)
         d.update(t.get(args.model, t))
-    d.update(_parse_sets(args.set))
+    d.update(parse_sets(args.set))
     try:
         return config_from_dict(args.model, d)
     except ValueError as e:
