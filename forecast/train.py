@@ -92,6 +92,7 @@ class DiffusionConfig:
     sample_dct: int = 0  # >0: the sampler keeps X_0 to this many DCT coefficients over the window (0 = off)
     clean_obs: bool = True
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
+    root_vel: bool = False  # (anchored) root coded as per-frame displacements, not offsets from the anchor
     p_single: float = 0.0  # share of composed training scenes with one person (0.25: val NDMS .268 vs .281)
     steps: int = 2500
     batch: int = 32
@@ -238,6 +239,11 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
         m.sample_dct = config.sample_dct
         m.n_obs_clean = config.n_obs if config.clean_obs else 0
         m.anchor = config.n_obs - 1 if config.anchor else None
+        if config.root_vel and not config.anchor:
+            raise ValueError(
+                "root_vel = true needs anchor = true (displacements are summed from the anchor frame)"
+            )
+        m.root_vel = config.root_vel
     else:
         raise ValueError(f"unknown model '{kind}'")
     if state is not None:
@@ -559,7 +565,7 @@ def _feature_stats(model, f: np.ndarray, stat) -> np.ndarray:
 
     if model.feat_mean.dim() == 1:
         return stat(f.reshape(-1, f.shape[-1]), 0).astype(np.float32)
-    rel = model.relative(torch.from_numpy(f), torch.from_numpy(f[:, :, model.anchor])).numpy()
+    rel = model.code(torch.from_numpy(f), torch.from_numpy(f[:, :, model.anchor])).numpy()
     out = stat(rel.reshape(-1, *rel.shape[-2:]), 0)  # (N,F)
     out[:, -N_CONST:] = stat(rel[..., -N_CONST:].reshape(-1, N_CONST), 0)
     return out.astype(np.float32)

@@ -172,6 +172,43 @@ def test_anchored_diffusion_codes_motion_relative_to_the_last_observed_frame():
     assert wobble(lp) < wobble(raw)
 
 
+def test_root_velocity_coding_round_trips_and_keeps_the_observation():
+    cfg = T.config_from_dict(
+        "social_diffusion",
+        {
+            "channels": 16,
+            "T": 50,
+            "n_frames": 32,
+            "n_obs": 16,
+            "steps": 3,
+            "batch": 4,
+            "sample_steps": 3,
+            "root_vel": True,
+        },
+    )
+    model, _ = T.train("social_diffusion", _clips(3, 100), cfg)
+    assert model.root_vel and model.anchor == 15
+    scene = np.stack([walker(32), walker(32, start=(2, 0))], 1)[None]
+    f = torch.from_numpy(T.diffusion_batch_features(scene, np.ones((1, 2), bool), 16))
+    c = model.code(f, f[:, :, 15])
+    i = 19 * 3  # the root channels are per-frame displacements of the root offsets
+    assert torch.allclose(c[..., 1:, i : i + 3], f[..., 1:, i : i + 3] - f[..., :-1, i : i + 3], atol=1e-6)
+    assert torch.equal(c[..., :i], model.relative(f, f[:, :, 15])[..., :i])  # the pose: offsets, as before
+    assert torch.allclose(model.decode(c, f[:, :, 15]), f, atol=1e-5)  # exact round trip of the window
+    z = model.standardise(f)
+    assert torch.allclose(model.unstandardise(z, f[:, :, 15]), f, atol=1e-4)
+    # root displacements are a few cm per frame: their spread does not grow with the lag like offsets do
+    std = model.feat_std[1:, i : i + 2].mean(1)
+    assert std.max() < 3 * std.min()
+    out = model.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), n_samples=2, steps=3)
+    assert torch.allclose(out[:, 0, :, :16], f[:, :, :16], atol=1e-4)  # observed frames written back
+    assert torch.isfinite(out).all()
+    with pytest.raises(ValueError, match="root_vel"):
+        T.build_model(
+            "social_diffusion", T.config_from_dict("social_diffusion", {"root_vel": 1, "anchor": 0}), 19
+        )
+
+
 def test_dct_lowpass_is_a_projection_that_keeps_slow_motion():
     from forecast.models.diffusion import dct_lowpass_matrix
 
