@@ -295,60 +295,34 @@ def save_checkpoint(
     fps: float = fdata.TARGET_FPS,
     extra: dict | None = None,
 ) -> None:
-    from capture.fileio import atomic_path
+    from forecast.train import write_checkpoint
 
-    sk = get_skeleton(skeleton)
-    blob = {
-        "schema": CKPT_SCHEMA,
-        "kind": "characteristic",
-        "config": dataclasses.asdict(cfg),
-        "annotator": dataclasses.asdict(AnnotatorConfig()),
-        "skeleton": skeleton,
-        "joint_names": list(sk.joint_names),
-        "fps": float(fps),
-        "normalisation": NORMALISATION,
-        "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()},
-        "det_state_dict": {k: v.detach().cpu() for k, v in det.state_dict().items()},
-        "avg_pose": torch.as_tensor(np.asarray(avg_pose, np.float32)),
-        "extra": extra or {},
-    }
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    write_checkpoint(
+        path,
+        CKPT_SCHEMA,
+        "characteristic",
+        cfg,
+        skeleton,
+        fps,
+        NORMALISATION,
+        extra,
+        annotator=dataclasses.asdict(AnnotatorConfig()),
+        state_dict={k: v.detach().cpu() for k, v in net.state_dict().items()},
+        det_state_dict={k: v.detach().cpu() for k, v in det.state_dict().items()},
+        avg_pose=torch.as_tensor(np.asarray(avg_pose, np.float32)),
+    )
 
 
 def load_checkpoint(path, skeleton: str | None = None):
     """-> (heatmap model, deterministic model, meta). ``skeleton``: the caller's data skeleton; a mismatch is
     a clear error (``FormatError``)."""
     from capture.fileio import FormatError
+    from forecast.train import read_checkpoint
 
     path = Path(path)
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - re-raised with what to do
-        raise FormatError(
-            path,
-            None,
-            f"not a readable checkpoint ({type(e).__name__}: {e}).",
-            "Train one with `python -m forecast.characteristic train --out PATH`.",
-        ) from e
-    if not isinstance(blob, dict) or blob.get("schema") != CKPT_SCHEMA:
-        got = blob.get("schema") if isinstance(blob, dict) else type(blob).__name__
-        raise FormatError(
-            path,
-            "schema",
-            f"expected '{CKPT_SCHEMA}', got {got!r}.",
-            "This is not a characteristic-pose checkpoint of this version; train one with "
-            "`python -m forecast.characteristic train --out PATH`.",
-        )
-    if skeleton is not None and blob["skeleton"] != skeleton:
-        raise FormatError(
-            path,
-            "skeleton",
-            f"the checkpoint was trained on skeleton '{blob['skeleton']}' "
-            f"({len(blob['joint_names'])} joints) but the data is '{skeleton}'.",
-            f"Convert the data to '{blob['skeleton']}' or train a model on '{skeleton}'.",
-        )
+    train_cmd = "forecast characteristic train --out PATH"
+    blob = read_checkpoint(path, CKPT_SCHEMA, skeleton, "characteristic-pose checkpoint", train_cmd)
     if list(get_skeleton(blob["skeleton"]).joint_names) != list(blob["joint_names"]):
         raise FormatError(
             path,
@@ -653,9 +627,7 @@ def main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
-    ap = argparse.ArgumentParser(
-        prog="forecast characteristic", description=__doc__.split("\n\n")[0]
-    )
+    ap = argparse.ArgumentParser(prog="forecast characteristic", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train", help="annotate CMU, train the heatmap model and the Deterministic ablation")
     t.add_argument("--out", required=True, help="checkpoint path (.pt)")

@@ -186,6 +186,64 @@ def mirror(xn: np.ndarray, mask: np.ndarray, flip: np.ndarray) -> tuple[np.ndarr
 # ----------------------------------------------------------------------------- checkpoints
 
 
+def write_checkpoint(
+    path: str | os.PathLike,
+    schema: str,
+    kind: str,
+    config,
+    skeleton: str,
+    fps: float,
+    normalisation: str,
+    extra: dict | None,
+    **payload,
+) -> None:
+    """Write a forecast checkpoint atomically: its config, skeleton, joints, fps and normalisation, then the
+    caller's ``payload`` (weights and whatever else the model needs)."""
+    blob = {
+        "schema": schema,
+        "kind": kind,
+        "config": dataclasses.asdict(config),
+        "skeleton": skeleton,
+        "joint_names": list(get_skeleton(skeleton).joint_names),
+        "fps": float(fps),
+        "normalisation": normalisation,
+        **payload,
+        "extra": extra or {},
+    }
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
+
+
+def read_checkpoint(
+    path: Path, schema: str, skeleton: str | None, what: str, train_cmd: str, map_location: str = "cpu"
+) -> dict:
+    """Load a checkpoint written by :func:`write_checkpoint` (weights_only=True) and check that it is one
+    (``schema``) and fits the caller's data ``skeleton`` (None: any); errors say how to get a good one."""
+    try:
+        blob = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - re-raised with what to do
+        raise FormatError(
+            path, None, f"not a readable {what} ({type(e).__name__}: {e}).", f"Train one with `{train_cmd}`."
+        ) from e
+    if not isinstance(blob, dict) or blob.get("schema") != schema:
+        got = blob.get("schema") if isinstance(blob, dict) else type(blob).__name__
+        raise FormatError(
+            path,
+            "schema",
+            f"expected '{schema}', got {got!r}.",
+            f"This is not a {what} of this version; train one with `{train_cmd}`.",
+        )
+    if skeleton is not None and blob["skeleton"] != skeleton:
+        raise FormatError(
+            path,
+            "skeleton",
+            f"the checkpoint was trained on skeleton '{blob['skeleton']}' "
+            f"({len(blob['joint_names'])} joints) but the data is '{skeleton}'.",
+            f"Convert the data to '{blob['skeleton']}' or train a model on '{skeleton}'.",
+        )
+    return blob
+
+
 def save_checkpoint(
     path: str | os.PathLike,
     model: torch.nn.Module,
@@ -195,24 +253,12 @@ def save_checkpoint(
     fps: float = fdata.TARGET_FPS,
     extra: dict | None = None,
 ) -> None:
-    sk = get_skeleton(skeleton)
-    blob = {
-        "schema": CKPT_SCHEMA,
-        "kind": kind,
-        "config": dataclasses.asdict(config),
-        "skeleton": skeleton,
-        "joint_names": list(sk.joint_names),
-        "fps": float(fps),
-        "normalisation": NORMALISATION,
-        "state_dict": {
-            k: v.detach().cpu()
-            for k, v in model.state_dict().items()
-            if not k.startswith(DISCRIMINATOR_PREFIXES)  # only needed for training; keeps files < 2 MB
-        },
-        "extra": extra or {},
+    state = {
+        k: v.detach().cpu()
+        for k, v in model.state_dict().items()
+        if not k.startswith(DISCRIMINATOR_PREFIXES)  # only needed for training; keeps files < 2 MB
     }
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    write_checkpoint(path, CKPT_SCHEMA, kind, config, skeleton, fps, NORMALISATION, extra, state_dict=state)
 
 
 def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> torch.nn.Module:
@@ -262,31 +308,9 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
 
 def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_location: str = "cpu"):
     """-> (model, meta). ``skeleton``: the skeleton the caller's data uses; a mismatch is a clear error."""
-    path = Path(path)
-    try:
-        blob = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:  # noqa: BLE001 - re-raised with what to do
-        raise FormatError(
-            path,
-            None,
-            f"not a readable forecast checkpoint ({type(e).__name__}: {e}).",
-            "Train one with `forecast train`.",
-        ) from e
-    if not isinstance(blob, dict) or blob.get("schema") != CKPT_SCHEMA:
-        raise FormatError(
-            path,
-            "schema",
-            f"expected '{CKPT_SCHEMA}', got {blob.get('schema') if isinstance(blob, dict) else type(blob)}.",
-            "This file was not written by `forecast train` of this version.",
-        )
-    if skeleton is not None and blob["skeleton"] != skeleton:
-        raise FormatError(
-            path,
-            "skeleton",
-            f"the checkpoint was trained on skeleton '{blob['skeleton']}' "
-            f"({len(blob['joint_names'])} joints) but the data is '{skeleton}'.",
-            f"Convert the data to '{blob['skeleton']}' or train a model on '{skeleton}'.",
-        )
+    blob = read_checkpoint(
+        Path(path), CKPT_SCHEMA, skeleton, "forecast checkpoint", "forecast train", map_location
+    )
     config = config_from_dict(blob["kind"], blob["config"])
     model = build_model(blob["kind"], config, len(blob["joint_names"]), blob["state_dict"])
     meta = {k: v for k, v in blob.items() if k != "state_dict"}
