@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from keypoints.skeletons import CANONICAL, Skeleton
-from track.motion import read_checkpoint
+from track.motion import read_checkpoint, write_checkpoint
 from track.normalize import denormalize, hip_frame, normalize
 
 CHECKPOINT_SCHEMA = "birth_mlp/1"
@@ -49,28 +49,22 @@ class BirthNet(nn.Module):
 
 
 def save_checkpoint(path: str | Path, model: BirthNet, skeleton: Skeleton, train_info: dict) -> None:
-    from capture.fileio import atomic_path
-
-    payload = {
-        "schema": CHECKPOINT_SCHEMA,
-        "skeleton": skeleton.id,
-        "joint_names": list(skeleton.joint_names),
-        "hidden": int(model.hidden),
-        "dropout": float(model.dropout),
-        "state_dict": {k: v.detach().clone().half() for k, v in model.state_dict().items()},
-        "train": {k: v for k, v in train_info.items() if isinstance(v, (int, float, str, list))},
-    }
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    write_checkpoint(path, CHECKPOINT_SCHEMA, model, skeleton, train_info)
 
 
 def load_checkpoint(
     path: str | Path = DEFAULT_CHECKPOINT, skeleton: Skeleton = CANONICAL
 ) -> tuple[BirthNet, dict]:
     """Load a birth-generator checkpoint (weights_only=True) and check it matches ``skeleton``."""
-    return read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "birth",
-                           "python -m track.train_birth --out track/checkpoints/birth_mlp.pt",
-                           "use birth = 'gaussian'", BirthNet)
+    return read_checkpoint(
+        path,
+        CHECKPOINT_SCHEMA,
+        skeleton,
+        "birth",
+        "python -m track.train_birth --out track/checkpoints/birth_mlp.pt",
+        "use birth = 'gaussian'",
+        BirthNet,
+    )
 
 
 class BirthGenerator:

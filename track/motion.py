@@ -164,18 +164,20 @@ class GRUPrior:
         return new, {"prev": x, "h": h.numpy()}
 
 
-def save_checkpoint(
-    path: str | Path, model: PoseGRU, fps: float, skeleton: Skeleton, train_info: dict
+def write_checkpoint(
+    path: str | Path, schema: str, model: torch.nn.Module, skeleton: Skeleton, train_info: dict, **extra
 ) -> None:
+    """Write a learned-model checkpoint of the tracker atomically (half-precision weights, the model's
+    ``hidden`` and ``dropout``, the skeleton, the scalar training info); :func:`read_checkpoint` reads it."""
     from capture.fileio import atomic_path
 
     payload = {
-        "schema": CHECKPOINT_SCHEMA,
+        "schema": schema,
         "skeleton": skeleton.id,
         "joint_names": list(skeleton.joint_names),
         "hidden": int(model.hidden),
         "dropout": float(model.dropout),
-        "fps": float(fps),
+        **extra,
         "state_dict": {k: v.detach().clone().half() for k, v in model.state_dict().items()},
         "train": {k: v for k, v in train_info.items() if isinstance(v, (int, float, str, list))},
     }
@@ -183,8 +185,21 @@ def save_checkpoint(
         torch.save(payload, tmp)
 
 
-def read_checkpoint(path: str | Path, schema: str, skeleton: Skeleton, kind: str, train_cmd: str,
-                    alternative: str, model_cls: type[torch.nn.Module]) -> tuple[torch.nn.Module, dict]:
+def save_checkpoint(
+    path: str | Path, model: PoseGRU, fps: float, skeleton: Skeleton, train_info: dict
+) -> None:
+    write_checkpoint(path, CHECKPOINT_SCHEMA, model, skeleton, train_info, fps=float(fps))
+
+
+def read_checkpoint(
+    path: str | Path,
+    schema: str,
+    skeleton: Skeleton,
+    kind: str,
+    train_cmd: str,
+    alternative: str,
+    model_cls: type[torch.nn.Module],
+) -> tuple[torch.nn.Module, dict]:
     """Load a learned-model checkpoint of the tracker (weights_only=True), check its schema and skeleton and
     build ``model_cls(n_joints, hidden, dropout)`` from it (in eval mode).
 
@@ -215,6 +230,12 @@ def read_checkpoint(path: str | Path, schema: str, skeleton: Skeleton, kind: str
 
 def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[PoseGRU, dict]:
     """Load a motion checkpoint (weights_only=True) and check it matches ``skeleton``."""
-    return read_checkpoint(path, CHECKPOINT_SCHEMA, skeleton, "motion",
-                           "python -m track.train_motion --out track/checkpoints/motion_gru.pt",
-                           "use the constant-velocity prior (motion = 'constant_velocity')", PoseGRU)
+    return read_checkpoint(
+        path,
+        CHECKPOINT_SCHEMA,
+        skeleton,
+        "motion",
+        "python -m track.train_motion --out track/checkpoints/motion_gru.pt",
+        "use the constant-velocity prior (motion = 'constant_velocity')",
+        PoseGRU,
+    )
