@@ -378,38 +378,3 @@ def make_windows(
         tuple(c.name for c in clips),
         dict(skipped),
     )
-
-
-def compose_scenes(
-    clips: list[Clip],
-    n_scenes: int,
-    n_frames: int,
-    n_persons: int = 2,
-    dist_m: tuple[float, float] = (1.0, 3.0),
-    seed: int = 0,
-) -> list[Clip]:
-    """Multi-person scenes composed from single-person mocap (as the seed's CMU-Mocap protocol [200]):
-    each scene takes ``n_frames`` from ``n_persons`` random clips, re-centres person 0 at the origin and
-    places the others at a random distance and heading around it."""
-    rng = np.random.default_rng(seed)
-    long = [c for c in clips if c.n_frames >= n_frames]
-    if not long:
-        raise ValueError(f"no clip has {n_frames} frames to compose scenes from")
-    lh, rh = hip_indices(get_skeleton(long[0].skeleton).joint_names)
-    out = []
-    for k in range(n_scenes):
-        people = []
-        for p in range(n_persons):
-            c = long[rng.integers(len(long))]
-            s = rng.integers(0, c.n_frames - n_frames + 1)
-            x = c.xyz_m[s : s + n_frames, 0].copy()
-            R, root = norm_frame(np.nan_to_num(x[0]), lh, rh)
-            a = rng.uniform(-np.pi, np.pi)
-            Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]], np.float32)
-            y = normalize(x[None], R, root * np.array([1, 1, 0], np.float32))[0] @ Rz.T
-            if p > 0:
-                r, b = rng.uniform(*dist_m), rng.uniform(-np.pi, np.pi)
-                y = y + np.array([r * np.cos(b), r * np.sin(b), 0], np.float32)
-            people.append(y)
-        out.append(Clip(f"scene{k:04d}", np.stack(people, 1), long[0].fps, long[0].skeleton))
-    return out

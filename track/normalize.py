@@ -24,13 +24,6 @@ def hip_indices(skeleton: Skeleton = CANONICAL) -> tuple[int, int, int]:
     return skeleton.index("pelvis"), skeleton.index("left_hip"), skeleton.index("right_hip")
 
 
-def rotation_z(theta: np.ndarray) -> np.ndarray:
-    """Eq. 5.3 for a batch of angles. theta: (...,) -> R (...,3,3)."""
-    c, s = np.cos(theta), np.sin(theta)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2)
-
-
 def hip_frame(x: np.ndarray, skeleton: Skeleton = CANONICAL) -> tuple[np.ndarray, np.ndarray]:
     """Origin and facing angle of poses. x: (...,J,3) -> origin (...,3), theta (...,) (eq. 5.4).
 
