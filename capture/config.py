@@ -54,7 +54,7 @@ from __future__ import annotations
 import os
 import re
 import urllib.parse
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -463,9 +463,3 @@ def load_config(path: str | os.PathLike) -> CaptureConfig:
     except yaml.YAMLError as e:
         raise ConfigError(path, None, f"is not valid YAML ({redact_url(str(e))}).") from None
     return parse_config(data, path)
-
-
-def with_camera(cfg: CaptureConfig, name: str, **changes) -> CaptureConfig:
-    """A copy of ``cfg`` with one camera's fields changed (tests, CLI overrides)."""
-    cams = tuple(replace(c, **changes) if c.name == name else c for c in cfg.cameras)
-    return replace(cfg, cameras=cams)

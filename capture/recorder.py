@@ -26,7 +26,6 @@ import platform
 import queue
 import shutil
 import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -548,7 +547,3 @@ def repair_session(root: str | os.PathLike) -> dict[str, int]:
                 meta.setdefault("cameras", {}).setdefault(cam, {})["frames_written"] = n
             save_toml(layout.session_toml, meta)
     return counts
-
-
-def _stderr_is_tty() -> bool:
-    return sys.stderr.isatty()

@@ -15,7 +15,6 @@ numpy buffers, so it would not pay; on CUDA the per-frame tensors are small.
 from __future__ import annotations
 
 import logging
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -231,7 +230,3 @@ class OnnxModel:
     @property
     def device(self) -> str:
         return self.session.get_providers()[0]
-
-
-def default_threads() -> int:
-    return os.cpu_count() or 1

@@ -525,7 +525,7 @@ def clip_duration_s(path: str | os.PathLike) -> float:
 
 def load_clips(fps: float, root: str | os.PathLike | None = None, min_frames: int = 0) -> list[MocapClip]:
     """Every clip under the mocap root (see :func:`list_clips`) at ``fps``, skipping clips shorter
-    than ``min_frames`` frames; [] when the folder is absent. Cached after the first call."""
+    than ``min_frames`` frames; [] when the folder is absent."""
     out = []
     for p in list_clips(root):
         c = load_clip(p, fps)

@@ -30,21 +30,15 @@ log = logging.getLogger(__name__)
 
 
 def load_motion(fps: float, root: str | None = None) -> tuple[list[np.ndarray], list[str]]:
-    from synthetic.bvh import list_clips, load_clip
+    from synthetic.bvh import load_clips
 
-    clips = list_clips(root)
+    clips = [c for c in load_clips(fps, root, min_frames=8) if np.isfinite(c.xyz_m).all()]
     if not clips:
         raise FileNotFoundError(
             "no BVH clips found; set ROOMCAP_SHARED to the shared/ folder "
             "(mocap under shared/data/motion) or pass --mocap."
         )
-    out, names = [], []
-    for p in clips:
-        x = load_clip(p, fps=fps).xyz_m.astype(np.float32)
-        if len(x) >= 8 and np.isfinite(x).all():
-            out.append(x)
-            names.append(p.stem)
-    return out, names
+    return [c.xyz_m.astype(np.float32) for c in clips], [c.name for c in clips]
 
 
 def windows(clips: list[np.ndarray], length: int, stride: int) -> np.ndarray:
