@@ -10,7 +10,8 @@
    cam02 only) is a separate third detection.
 3. ``opencv/vtest.avi``: people per frame (writes PNGs of a few frames with boxes for a manual count).
 
-    .venv/bin/python bench/bench_keypoints_demo.py [--sets default,movenet] [--step 1] [--out /tmp/kpdemo]
+    .venv/bin/python bench/bench_keypoints_demo.py [--sets default,movenet] [--step 1] [--out /tmp/kpdemo] \
+        [--threads 1]
 
 About 2 min per model set on 2 idle cores at --step 1 (100 frames x 4 cameras); --step 4: a quick look.
 """
@@ -34,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from _kp_demo import read_qca, reprojection_errors  # noqa: E402
 
-from keypoints.pipeline import KeypointPipeline  # noqa: E402
+from keypoints.pipeline import KeypointPipeline, PipelineConfig  # noqa: E402
+from keypoints.runtime import RuntimeConfig  # noqa: E402
 from keypoints.skeletons import convert  # noqa: E402
 
 SHARED = Path(os.environ.get("ROOMCAP_SHARED", REPO.parent / "shared"))
@@ -192,7 +194,12 @@ def main() -> None:
     ap.add_argument("--match-px", type=float, default=30.0)
     ap.add_argument("--out", default="/tmp/kpdemo")
     ap.add_argument("--skip", default="", help="comma list of parts to skip: single,multi,vtest")
+    ap.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (0 = its default)")
     args = ap.parse_args()
+
+    def pipeline(s: str) -> KeypointPipeline:
+        return KeypointPipeline(PipelineConfig(model_set=s, runtime=RuntimeConfig(threads=args.threads)))
+
     skip = set(args.skip.split(","))
     res: dict = {"step": args.step}
     calib = read_qca(DEMO / "Demo_SinglePerson/calibration/Calib.qca.txt")
@@ -210,7 +217,7 @@ def main() -> None:
         )
         frames = {c: read_frames(DEMO / "Demo_SinglePerson/videos" / f"{c}.mp4", args.step) for c in CAMS}
         for s in args.sets.split(","):
-            pipe = KeypointPipeline(s)
+            pipe = pipeline(s)
             per, sec = run_set(pipe, frames)
             e = single_person_errors(cams, per)
             r = {
@@ -228,7 +235,7 @@ def main() -> None:
     if "multi" not in skip:
         frames = {c: read_frames(DEMO / "Demo_MultiPerson/videos" / f"{c}.mp4", args.step) for c in CAMS}
         for s in args.sets.split(","):
-            per, _ = run_set(KeypointPipeline(s), frames)
+            per, _ = run_set(pipeline(s), frames)
             m = multi_person(cams, per, args.match_px)
             res[f"multi_{s}"] = m
             print(
@@ -240,7 +247,7 @@ def main() -> None:
             )
     if "vtest" not in skip:
         s = args.sets.split(",")[0]
-        v = vtest_counts(KeypointPipeline(s), Path(args.out))
+        v = vtest_counts(pipeline(s), Path(args.out))
         res["vtest"] = v
         print(
             f"vtest.avi people per frame ({s}): {v['counts'][:12]} ... mean {v['mean']:.1f}; "

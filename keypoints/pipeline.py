@@ -76,6 +76,13 @@ class PipelineConfig:
     # (0.9, 1.0, 1.1): Demo_SinglePerson 12.4 -> 11.8 px (OpenPose 12.4), Demo_MultiPerson 91 -> 91 frames;
     # 3x the pose time of that pass (9 instead of 5 MoveNet runs per person); (1.0,) = off
     tta_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
+    # duplicates: the body of one person is erased before the other is estimated again, filled with these
+    # grey values (-1 = the median colour around the body); every fill is one more crop (_resolve_duplicates)
+    erase_fills: tuple[float, ...] = (-1.0, 0.0)
+    # refine passes: the bodies of other people whose detector boxes overlap a person's box by more than this
+    # x the smaller box are painted over (pad value) in that person's crop, from the previous pass's poses;
+    # 0 = off
+    erase_neighbours: float = 0.0
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
@@ -379,6 +386,45 @@ def _paint_body(
         cv2.fillConvexPoly(img, np.round(xy[torso]).astype(np.int32), col)
 
 
+def neighbours_to_erase(det: np.ndarray, person: np.ndarray, overlap: float, presence: float) -> np.ndarray:
+    """Mask (M,M): for each detector box m (M,>=4), the other people p whose box overlaps it by more than
+    ``overlap`` x the smaller box's area and whose pose is a person (score >= ``presence``)."""
+    M = len(det)
+    x0 = np.maximum(det[:, None, 0], det[None, :, 0])
+    x1 = np.minimum(det[:, None, 2], det[None, :, 2])
+    y0 = np.maximum(det[:, None, 1], det[None, :, 1])
+    y1 = np.minimum(det[:, None, 3], det[None, :, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+    area = (det[:, 2] - det[:, 0]) * (det[:, 3] - det[:, 1])
+    small = np.minimum(area[:, None], area[None, :])
+    mask = (inter > overlap * np.maximum(small, 1e-9)) & (np.asarray(person)[None, :] >= presence)
+    mask[np.arange(M), np.arange(M)] = False
+    return mask
+
+
+def _erase_body(
+    img: np.ndarray, xy: np.ndarray, sc: np.ndarray, skeleton: str, fill: float | None = None, ring: float = 0.05
+) -> None:
+    """Erase a person in place: the ``_paint_body`` mask filled with ``fill`` (a grey value) or, for None,
+    with the median colour of a ring around it (``ring`` x the keypoint box height wide): the background's
+    colour. A black person-shaped silhouette is itself taken for a person by crop models (Demo_MultiPerson
+    cam03 frames 75 and 85: the occluded person's crop re-estimated on the black silhouette of the person in
+    front), while on others the black shape reads as an occluder and the background-coloured one does not
+    (frame 63); ``_resolve_duplicates`` tries both."""
+    if fill is not None:
+        _paint_body(img, xy, sc, skeleton, fill)
+        return
+    mask = np.zeros(img.shape[:2], np.uint8)
+    _paint_body(mask, xy, sc, skeleton, 255)
+    if not mask.any():
+        return
+    ok = (sc >= 0.3) & np.isfinite(xy[:, 0])
+    k = 2 * max(2, int(round(ring * float(np.ptp(xy[ok, 1]))))) + 1
+    around = (cv2.dilate(mask, np.ones((k, k), np.uint8)) > 0) & (mask == 0)
+    m = mask > 0
+    img[m] = np.median(img[around], axis=0) if around.any() else 0
+
+
 # ----------------------------------------------------------------------------- the pipeline
 
 
@@ -485,13 +531,16 @@ class KeypointPipeline:
         angles: list[np.ndarray] | None = None,
         scales: tuple[float, ...] = (1.0,),
         flip: bool | None = None,
+        erase: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
     ):
         """Run the pose model on every box of every image as one batch.
 
         Returns per image (xy (M,J,2) image px, score (M,J), person (M,), roi) in the model's skeleton;
         ``roi`` (M,5) = box x0,y0,x1,y1 + tilt angle for the next pass where the model gives one (BlazePose's
         alignment points, as mediapipe's landmarks-to-ROI tracking step), else None. ``scales``: crop sizes
-        (x the padding) whose results are averaged (test-time augmentation, one batch).
+        (x the padding) whose results are averaged (test-time augmentation, one batch). ``erase``: per image
+        (xy (P,J,2), score (P,J), mask (M,P)) other people's poses in image px, painted over (``_paint_body``,
+        the pad value) in the crop of box m where mask[m, p] (``neighbours_to_erase``).
         """
         spec = self.pose_spec
         W, H = spec.input.size_wh
@@ -516,6 +565,11 @@ class KeypointPipeline:
                     borderMode=cv2.BORDER_CONSTANT,
                     borderValue=(spec.input.pad_value,) * 3,
                 )
+                if erase is not None and erase[i][2][j].any():
+                    oxy, osc, mask = erase[i]
+                    for o in np.flatnonzero(mask[j]):
+                        xy_c = oxy[o] @ Ms[k, :, :2].T + Ms[k, :, 2]
+                        _paint_body(crops[k], xy_c, osc[o], self.src_skeleton, spec.input.pad_value)
                 k += 1
         if flip is None:
             flip = spec.decoder.flip_test if self.config.flip_test is None else self.config.flip_test
@@ -637,6 +691,12 @@ class KeypointPipeline:
                     ba.append((roi[:, :4], roi[:, 4]))
                 else:
                     ba.append(upright_boxes(xy, sc, self.src_skeleton, b))
+            erase = None
+            if self.config.erase_neighbours > 0:
+                erase = [
+                    (xy, sc, neighbours_to_erase(b, p, self.config.erase_neighbours, self.config.pose_presence))
+                    for (xy, sc, p, _), b in zip(res, boxes, strict=True)
+                ]
             self._tick("pose_post", t)
             new = self.pose_on_boxes(
                 images,
@@ -644,6 +704,7 @@ class KeypointPipeline:
                 [a if self.config.rotate else 0 * a for _, a in ba],
                 self.config.tta_scales if k_pass == passes - 1 else (1.0,),
                 flip=None if k_pass == passes - 1 else early_flip,
+                erase=erase,
             )
             # a refined crop that slid off its detector box onto someone else (an occluded person's crop
             # centred on the person in front) keeps the previous pass's pose instead
@@ -666,45 +727,60 @@ class KeypointPipeline:
         return out
 
     def _resolve_duplicates(self, images, boxes, res):
-        """Occluded people: where two poses of one image coincide, the one whose keypoints fit its detector
-        box worse is estimated again on a copy of the image with the other person's body painted over
-        (thick lines along its limbs, in the pad value), cropped around its own detector box; if it still
-        coincides, it is dropped (person score 0) rather than counted twice."""
+        """Occluded people: where two poses a, b of one image coincide, each is estimated again on a copy of
+        the image with the other's body erased (thick lines along its limbs, filled with the colour around
+        it: ``_erase_body``), cropped around its own detector box. Of the two readings (a re-estimated next to
+        the old b, or b next to the old a), the one that no longer coincides with the higher summed person
+        score is kept: a crop model facing two overlapping people returns one pose that takes parts of both
+        (Demo_MultiPerson cam03 frame 75: the face of the person behind on the body of the person in front),
+        and which of the two poses is the mixed one is not known beforehand. If both still coincide, the one
+        whose keypoints fit its detector box worse is dropped (person score 0) rather than counted twice.
+        Each reading is made with the body erased two ways (``config.erase_fills``: background colour and the
+        pad value); all of them run as one batch."""
         t = time.perf_counter()
-        losers: list[tuple[int, int, int]] = []  # (image, loser, winner)
+        pairs: list[tuple[int, int, int]] = []  # (image, a, b)
         for i, ((xy, sc, _p, _), det) in enumerate(zip(res, boxes, strict=True)):
             if len(det) < 2:
                 continue
+            seen: set[int] = set()
             for a, b in _duplicate_pairs(xy, sc, self.config.duplicate_frac):
-                iou = _keypoint_box_iou(xy[[a, b]], sc[[a, b]], det[[a, b]])
-                lose, win = (a, b) if iou[0] < iou[1] else (b, a)
-                if not any(ln == lose and im == i for im, ln, _ in losers):
-                    losers.append((i, lose, win))
+                if a not in seen and b not in seen:
+                    pairs.append((i, a, b))
+                    seen |= {a, b}
         self._tick("pose_post", t)
-        if not losers:
+        if not pairs:
             return res
-        pad = self.pose_spec.input.pad_value
-        imgs, bxs = [], []
-        for i, lose, win in losers:
-            img = images[i].copy()
-            _paint_body(img, res[i][0][win], res[i][1][win], self.src_skeleton, pad)
-            imgs.append(img)
-            bxs.append(boxes[i][lose : lose + 1])
+        fills = [None if f < 0 else f for f in self.config.erase_fills]
+        imgs, bxs, which = [], [], []
+        for k, (i, a, b) in enumerate(pairs):
+            for redo, other in ((a, b), (b, a)):
+                for f in fills:
+                    img = images[i].copy()
+                    _erase_body(img, res[i][0][other], res[i][1][other], self.src_skeleton, f)
+                    imgs.append(img)
+                    bxs.append(boxes[i][redo : redo + 1])
+                    which.append((k, redo, other))
         saved = self._pyr
         self._pyr = {}  # the painted copies have their own pyramid levels
         try:
             again = self.pose_on_boxes(imgs, bxs)
         finally:
             self._pyr = saved
-        res = [tuple(np.array(a) if a is not None else None for a in r) for r in res]
-        for (i, lose, win), (xy, sc, person, _) in zip(losers, again, strict=True):
+        res = [tuple(np.array(v) if v is not None else None for v in r) for r in res]
+        frac = self.config.duplicate_frac
+        for k, (i, a, b) in enumerate(pairs):
             xy_i, sc_i, p_i = res[i][0], res[i][1], res[i][2]
-            two_xy = np.stack([xy[0], xy_i[win]])
-            two_sc = np.stack([sc[0], sc_i[win]])
-            if _duplicate_pairs(two_xy, two_sc, self.config.duplicate_frac):
-                p_i[lose] = 0.0  # still the same person: drop it
+            best = None
+            for (_, redo, other), (xy, sc, person, _) in (w for w in zip(which, again) if w[0][0] == k):
+                apart = not _duplicate_pairs(np.stack([xy[0], xy_i[other]]), np.stack([sc[0], sc_i[other]]), frac)
+                total = float(person[0] + p_i[other])
+                if apart and (best is None or total > best[0]):
+                    best = (total, redo, xy[0], sc[0], person[0])
+            if best is None:  # still the same person: drop the one that fits its box worse
+                iou = _keypoint_box_iou(xy_i[[a, b]], sc_i[[a, b]], boxes[i][[a, b]])
+                p_i[a if iou[0] < iou[1] else b] = 0.0
             else:
-                xy_i[lose], sc_i[lose], p_i[lose] = xy[0], sc[0], person[0]
+                _, redo, xy_i[redo], sc_i[redo], p_i[redo] = best
         return res
 
     def _keep_on_box(self, old, new, det: np.ndarray):

@@ -144,6 +144,33 @@ def test_duplicate_pairs_and_body_paint(rng):
     assert (img == 255).any()
 
 
+def test_erase_body_fills_with_the_background(rng):
+    from keypoints.pipeline import _erase_body
+
+    xy = rng.uniform(200, 400, (17, 2))
+    sc = np.full(17, 0.9)
+    img = np.zeros((600, 600, 3), np.uint8)
+    img[:] = (30, 140, 200)  # background
+    _erase_body(img, xy, sc, "coco17", fill=0.0)  # the pad value: a black silhouette
+    assert (img[np.round(xy[:, 1]).astype(int), np.round(xy[:, 0]).astype(int)] == 0).all()
+    _erase_body(img, xy, sc, "coco17")  # the colour around it: no silhouette left
+    assert (img == np.array([30, 140, 200], np.uint8)).all()
+
+
+@pytest.mark.parametrize("frame", [75, 85])
+def test_occluded_person_kept_beside_the_one_in_front(frame):
+    """Demo_MultiPerson cam03: the crop of the person behind (75) or in front (85) returns a pose mixing both;
+    resolving the duplicate keeps two people, each with >= 8 confident joints, apart (before: one dropped)."""
+    from keypoints.pipeline import _duplicate_pairs
+
+    need_shared("models")
+    img = frames("Demo_MultiPerson", frame)[2]
+    r = KeypointPipeline("default")([img])[0]
+    full = [k for k in range(len(r.boxes)) if (np.nan_to_num(r.score[k]) > 0.3).sum() >= 8]
+    assert len(full) == 2
+    assert _duplicate_pairs(r.xy_px[full], np.nan_to_num(r.score[full]), 0.08) == []
+
+
 def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:
     """A body19 pose standing upright, seen from the front (its left on the image's right) or the back."""
     names = CANONICAL.joint_names
