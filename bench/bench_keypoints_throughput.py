@@ -14,7 +14,11 @@ of all cameras go in one session.run (what a GPU provider does by default), agai
 original graphs run one crop at a time (the CPU default, see keypoints.runtime.RuntimeConfig).
 The machine may be shared: the load average is printed beside the figures.
 
-    .venv/bin/python bench/bench_keypoints_throughput.py [--frames 20] [--sets default,blazepose,openpose]
+    .venv/bin/python bench/bench_keypoints_throughput.py [--frames 20] [--sets default,blazepose,openpose] \
+        [--demo single|multi] [--threads 1]
+
+``--demo multi``: the three people of Demo_MultiPerson (duplicate poses of overlapping people are
+re-estimated there, ``KeypointPipeline._resolve_duplicates``; Demo_SinglePerson has none).
 """
 
 from __future__ import annotations
@@ -34,7 +38,11 @@ from keypoints.runtime import RuntimeConfig  # noqa: E402
 from keypoints.video import run_videos, videos_in  # noqa: E402
 
 SHARED = Path(os.environ.get("ROOMCAP_SHARED", REPO.parent / "shared"))
-DEMO = SHARED / "data/pose2sim/demo-wheel-0.10.49/Demo_SinglePerson/videos"
+DEMOS = {
+    "single": SHARED / "data/pose2sim/demo-wheel-0.10.49/Demo_SinglePerson/videos",
+    "multi": SHARED / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson/videos",
+}
+DEMO = DEMOS["single"]
 
 
 def measure(name: str, cfg: PipelineConfig, frames: int) -> dict:
@@ -67,20 +75,27 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=20, help="frames per camera")
     ap.add_argument("--sets", default="default,blazepose,lite,fast,openpose")
+    ap.add_argument("--demo", choices=sorted(DEMOS), default="single", help="which Pose2Sim demo's videos")
+    ap.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (0 = its default)")
     args = ap.parse_args()
+    global DEMO
+    DEMO = DEMOS[args.demo]
+    rt = RuntimeConfig(threads=args.threads)
     rows = []
     base = measure(
         "blazepose-batched",
-        PipelineConfig(model_set="blazepose", runtime=RuntimeConfig(dynamic_batch=True)),
+        PipelineConfig(
+            model_set="blazepose", runtime=RuntimeConfig(dynamic_batch=True, threads=args.threads)
+        ),
         args.frames,
     )
     rows.append(base)
     for s in args.sets.split(","):
-        rows.append(measure(s, PipelineConfig(model_set=s), args.frames))
+        rows.append(measure(s, PipelineConfig(model_set=s, runtime=rt), args.frames))
     load = os.getloadavg()[0]
     cols = ["decode_ms", "detect_ms", "crop_ms", "pose_ms", "decode_outputs_ms", "write_ms", "model_ms"]
     print(
-        f"Demo_SinglePerson, 4 cameras 1080x1920, {args.frames} frames each; load average {load:.1f} "
+        f"{DEMO.parent.name}, 4 cameras 1080x1920, {args.frames} frames each; load average {load:.1f} "
         f"on {os.cpu_count()} cores. ms per camera-frame:"
     )
     print(f"{'set':18s} " + " ".join(f"{c[:-3]:>9s}" for c in cols) + "   fps/cam  ovh_pipe  ovh_e2e")
@@ -95,6 +110,8 @@ def main() -> None:
     speedup = base["fps_per_camera"] / b["fps_per_camera"] if b else float("nan")
     print(f"batching speed-up on this CPU (blazepose batched vs one crop per run, same run): {speedup:.2f}x")
     out = {
+        "demo": args.demo,
+        "threads": args.threads,
         "frames": args.frames,
         "load_avg": load,
         "rows": rows,

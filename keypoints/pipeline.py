@@ -79,10 +79,10 @@ class PipelineConfig:
     # duplicates: the body of one person is erased before the other is estimated again, filled with these
     # grey values (-1 = the median colour around the body); every fill is one more crop (_resolve_duplicates)
     erase_fills: tuple[float, ...] = (-1.0, 0.0)
-    # refine passes: the bodies of other people whose detector boxes overlap a person's box by more than this
-    # x the smaller box are painted over (pad value) in that person's crop, from the previous pass's poses;
-    # 0 = off
-    erase_neighbours: float = 0.0
+    # top-down: people whose first-pass score is under this are estimated again on their detector box rotated
+    # by 90, 180 and 270 degrees, the most confident reading placing the refine crops (_rotation_hypotheses;
+    # bodies sideways or upside down: Demo_MultiPerson's cartwheel). 0 = off
+    rotation_weak: float = 0.5
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
@@ -386,24 +386,13 @@ def _paint_body(
         cv2.fillConvexPoly(img, np.round(xy[torso]).astype(np.int32), col)
 
 
-def neighbours_to_erase(det: np.ndarray, person: np.ndarray, overlap: float, presence: float) -> np.ndarray:
-    """Mask (M,M): for each detector box m (M,>=4), the other people p whose box overlaps it by more than
-    ``overlap`` x the smaller box's area and whose pose is a person (score >= ``presence``)."""
-    M = len(det)
-    x0 = np.maximum(det[:, None, 0], det[None, :, 0])
-    x1 = np.minimum(det[:, None, 2], det[None, :, 2])
-    y0 = np.maximum(det[:, None, 1], det[None, :, 1])
-    y1 = np.minimum(det[:, None, 3], det[None, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    area = (det[:, 2] - det[:, 0]) * (det[:, 3] - det[:, 1])
-    small = np.minimum(area[:, None], area[None, :])
-    mask = (inter > overlap * np.maximum(small, 1e-9)) & (np.asarray(person)[None, :] >= presence)
-    mask[np.arange(M), np.arange(M)] = False
-    return mask
-
-
 def _erase_body(
-    img: np.ndarray, xy: np.ndarray, sc: np.ndarray, skeleton: str, fill: float | None = None, ring: float = 0.05
+    img: np.ndarray,
+    xy: np.ndarray,
+    sc: np.ndarray,
+    skeleton: str,
+    fill: float | None = None,
+    ring: float = 0.05,
 ) -> None:
     """Erase a person in place: the ``_paint_body`` mask filled with ``fill`` (a grey value) or, for None,
     with the median colour of a ring around it (``ring`` x the keypoint box height wide): the background's
@@ -531,16 +520,13 @@ class KeypointPipeline:
         angles: list[np.ndarray] | None = None,
         scales: tuple[float, ...] = (1.0,),
         flip: bool | None = None,
-        erase: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
     ):
         """Run the pose model on every box of every image as one batch.
 
         Returns per image (xy (M,J,2) image px, score (M,J), person (M,), roi) in the model's skeleton;
         ``roi`` (M,5) = box x0,y0,x1,y1 + tilt angle for the next pass where the model gives one (BlazePose's
         alignment points, as mediapipe's landmarks-to-ROI tracking step), else None. ``scales``: crop sizes
-        (x the padding) whose results are averaged (test-time augmentation, one batch). ``erase``: per image
-        (xy (P,J,2), score (P,J), mask (M,P)) other people's poses in image px, painted over (``_paint_body``,
-        the pad value) in the crop of box m where mask[m, p] (``neighbours_to_erase``).
+        (x the padding) whose results are averaged (test-time augmentation, one batch).
         """
         spec = self.pose_spec
         W, H = spec.input.size_wh
@@ -565,11 +551,6 @@ class KeypointPipeline:
                     borderMode=cv2.BORDER_CONSTANT,
                     borderValue=(spec.input.pad_value,) * 3,
                 )
-                if erase is not None and erase[i][2][j].any():
-                    oxy, osc, mask = erase[i]
-                    for o in np.flatnonzero(mask[j]):
-                        xy_c = oxy[o] @ Ms[k, :, :2].T + Ms[k, :, 2]
-                        _paint_body(crops[k], xy_c, osc[o], self.src_skeleton, spec.input.pad_value)
                 k += 1
         if flip is None:
             flip = spec.decoder.flip_test if self.config.flip_test is None else self.config.flip_test
@@ -681,6 +662,8 @@ class KeypointPipeline:
         # presence is judged on the detector's box too: a refine crop zoomed onto a person-like thing raises
         # the model's score (vtest.avi's static sign: 0.23 on its box with the flip test, 0.26 refined)
         first_person = [r[2] for r in res]
+        if self.config.rotation_weak > 0:
+            res = self._rotation_hypotheses(images, boxes, res)
         for k_pass in range(passes):
             # again on the box the keypoints span, rotated upright: the detector's box is loose or cuts limbs,
             # and models trained on aligned crops (BlazePose) lose leaning people in unrotated crops
@@ -691,12 +674,6 @@ class KeypointPipeline:
                     ba.append((roi[:, :4], roi[:, 4]))
                 else:
                     ba.append(upright_boxes(xy, sc, self.src_skeleton, b))
-            erase = None
-            if self.config.erase_neighbours > 0:
-                erase = [
-                    (xy, sc, neighbours_to_erase(b, p, self.config.erase_neighbours, self.config.pose_presence))
-                    for (xy, sc, p, _), b in zip(res, boxes, strict=True)
-                ]
             self._tick("pose_post", t)
             new = self.pose_on_boxes(
                 images,
@@ -704,7 +681,6 @@ class KeypointPipeline:
                 [a if self.config.rotate else 0 * a for _, a in ba],
                 self.config.tta_scales if k_pass == passes - 1 else (1.0,),
                 flip=None if k_pass == passes - 1 else early_flip,
-                erase=erase,
             )
             # a refined crop that slid off its detector box onto someone else (an occluded person's crop
             # centred on the person in front) keeps the previous pass's pose instead
@@ -724,6 +700,29 @@ class KeypointPipeline:
             keep = np.minimum(person, p0) >= self.config.pose_presence
             out.append(self._finish(b[keep], xy[keep], sc[keep]))
         self._tick("pose_post", t)
+        return out
+
+    def _rotation_hypotheses(self, images, boxes, res):
+        """People whose first-pass score is under ``config.rotation_weak`` (a body sideways or upside down:
+        crop models are trained on upright people) are estimated again on the detector's box rotated by 90,
+        180 and 270 degrees; the most confident of the four readings places the refine passes' crop (which
+        then turns the body upright from its hips -> shoulders direction)."""
+        weak = [np.flatnonzero(p < self.config.rotation_weak) for _, _, p, _ in res]
+        if not sum(len(w) for w in weak):
+            return res
+        angs = np.deg2rad([90.0, 180.0, 270.0])
+        bx = [np.repeat(b[w], len(angs), 0) for b, w in zip(boxes, weak, strict=True)]
+        an = [np.tile(angs, len(w)) for w in weak]
+        again = self.pose_on_boxes(images, bx, an)
+        out = []
+        for (xy, sc, p, roi), w, (xa, sa, pa, _) in zip(res, weak, again, strict=True):
+            xy, sc, p = xy.copy(), sc.copy(), p.copy()
+            for k, m in enumerate(w):
+                r = slice(k * len(angs), (k + 1) * len(angs))
+                best = int(np.argmax(pa[r]))
+                if pa[r][best] > p[m]:
+                    xy[m], sc[m], p[m] = xa[r][best], sa[r][best], pa[r][best]
+            out.append((xy, sc, p, roi))
         return out
 
     def _resolve_duplicates(self, images, boxes, res):
@@ -771,8 +770,10 @@ class KeypointPipeline:
         for k, (i, a, b) in enumerate(pairs):
             xy_i, sc_i, p_i = res[i][0], res[i][1], res[i][2]
             best = None
-            for (_, redo, other), (xy, sc, person, _) in (w for w in zip(which, again) if w[0][0] == k):
-                apart = not _duplicate_pairs(np.stack([xy[0], xy_i[other]]), np.stack([sc[0], sc_i[other]]), frac)
+            mine = [w for w in zip(which, again, strict=True) if w[0][0] == k]
+            for (_, redo, other), (xy, sc, person, _) in mine:
+                two_xy, two_sc = np.stack([xy[0], xy_i[other]]), np.stack([sc[0], sc_i[other]])
+                apart = not _duplicate_pairs(two_xy, two_sc, frac)
                 total = float(person[0] + p_i[other])
                 if apart and (best is None or total > best[0]):
                     best = (total, redo, xy[0], sc[0], person[0])

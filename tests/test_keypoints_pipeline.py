@@ -8,7 +8,7 @@ import pytest
 from conftest import need_shared
 
 from keypoints.pipeline import KeypointPipeline, PipelineConfig, apply_inverse, crop_transform, upright_boxes
-from keypoints.skeletons import CANONICAL
+from keypoints.skeletons import CANONICAL, get_skeleton
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
 
@@ -169,6 +169,28 @@ def test_occluded_person_kept_beside_the_one_in_front(frame):
     full = [k for k in range(len(r.boxes)) if (np.nan_to_num(r.score[k]) > 0.3).sum() >= 8]
     assert len(full) == 2
     assert _duplicate_pairs(r.xy_px[full], np.nan_to_num(r.score[full]), 0.08) == []
+
+
+def test_rotation_hypotheses_turn_a_cartwheel_upright():
+    """Demo_MultiPerson cam04 frame 48: the participant is mid-cartwheel, head to the image's left (checked by
+    eye: facing the camera, right arm up, right leg raised to the image's right). The upright crop's first
+    pass scores 0.47 and mixes the sides; the 270-degree crop wins and the refined pose has them in order."""
+    need_shared("models")
+    img = frames("Demo_MultiPerson", 48)[3]
+
+    def sides(rotation_weak: float) -> bool:
+        r = KeypointPipeline(PipelineConfig(rotation_weak=rotation_weak, skeleton="model"))([img])[0]
+        k = int(np.argmax(r.boxes[:, 2] - r.boxes[:, 0]))  # the widest box: the cartwheel
+        p = {n: r.xy_px[k, j] for j, n in enumerate(get_skeleton("coco17").joint_names)}
+        return bool(
+            p["right_shoulder"][1] < p["left_shoulder"][1] - 50
+            and p["right_hip"][1] < p["left_hip"][1]
+            and p["right_wrist"][1] < p["left_wrist"][1] - 300
+            and p["right_ankle"][0] > p["left_ankle"][0] + 250
+        )
+
+    assert sides(0.5)
+    assert not sides(0.0)  # without the rotated crops (before)
 
 
 def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:
