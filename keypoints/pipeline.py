@@ -755,6 +755,7 @@ class KeypointPipeline:
         self._tick("pose_post", t)
         if not pairs:
             return res
+        t = time.perf_counter()
         fills = [None if f < 0 else f for f in self.config.erase_fills]
         imgs, bxs, which = [], [], []
         for k, (i, a, b) in enumerate(pairs):
@@ -765,12 +766,14 @@ class KeypointPipeline:
                     imgs.append(img)
                     bxs.append(boxes[i][redo : redo + 1])
                     which.append((k, redo, other))
+        self._tick("crop", t)  # erasing is crop preparation (counted in the pipeline's overhead)
         saved = self._pyr
         self._pyr = {}  # the painted copies have their own pyramid levels
         try:
             again = self.pose_on_boxes(imgs, bxs)
         finally:
             self._pyr = saved
+        t = time.perf_counter()
         res = [tuple(np.array(v) if v is not None else None for v in r) for r in res]
         frac = self.config.duplicate_frac
         for k, (i, a, b) in enumerate(pairs):
@@ -788,6 +791,7 @@ class KeypointPipeline:
                 p_i[a if iou[0] < iou[1] else b] = 0.0
             else:
                 _, redo, xy_i[redo], sc_i[redo], p_i[redo] = best
+        self._tick("pose_post", t)
         return res
 
     def _keep_on_box(self, old, new, det: np.ndarray):
