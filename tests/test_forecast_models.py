@@ -209,6 +209,24 @@ def test_root_velocity_coding_round_trips_and_keeps_the_observation():
         )
 
 
+def test_diffusion_ema_weights_are_validated_and_returned():
+    base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 4, "batch": 4, "lr": 1e-2}
+    clips = _clips(4, 160)  # validation needs 150-frame windows
+    init = T.build_model("social_diffusion", T.config_from_dict("social_diffusion", base), 19).state_dict()
+    init = {k: v.clone() for k, v in init.items()}
+    raw, _ = T.train("social_diffusion", clips[:3], T.config_from_dict("social_diffusion", base), init=init)
+    cfg = T.config_from_dict(
+        "social_diffusion",
+        {**base, "ema": 1 - 1e-9, "val_every": 2, "val_windows": 3, "val_samples": 2, "select": "ndms_2_3"},
+    )
+    slow, hist = T.train("social_diffusion", clips[:3], cfg, init=init, val_clips=clips[3:])
+    w = "inp.weight"
+    assert not torch.allclose(raw.state_dict()[w], init[w], atol=1e-4)  # the raw weights moved
+    assert torch.allclose(slow.state_dict()[w], init[w], atol=1e-6)  # an average that barely moves did not
+    assert [r["step"] for r in hist["val"]] == [2, 4] and hist["val_best"]["select"] == "ndms_2_3"
+    assert all(0 <= r["ndms_2_3"] <= 1 for r in hist["val"])
+
+
 def test_dct_lowpass_is_a_projection_that_keeps_slow_motion():
     from forecast.models.diffusion import dct_lowpass_matrix
 
@@ -378,8 +396,8 @@ def test_shipped_configs_and_checkpoint_load():
     ck = root / "checkpoints" / "intention_cmu.pt"
     if ck.exists():
         assert ck.stat().st_size < 2_000_000  # measured 1.24 MB (discriminators are not shipped)
-        assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
         model, meta = T.load_checkpoint(ck, skeleton="body19")
+        assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
         assert meta["kind"] == "intention" and meta["config"].n_pred == 100
         torch.manual_seed(0)
         y = forecast_world(model, walker(50)[None, :, None], None, 50, n_samples=3)
