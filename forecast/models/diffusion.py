@@ -39,6 +39,24 @@ decoded by summing from the anchor frame. An offset coding lets per-frame errors
 appear as frame-to-frame jitter of the root (samples' root 0.83 vs 0.36 m/s real on CMU validation);
 coding displacements scores the root speed directly. Trained from scratch it brought the root speed to
 0.42 m/s (real 0.35) but validation NDMS 2-4 s to 0.290 vs 0.309 for the shipped model: not shipped.
+
+What holds NDMS at 2-3 s down (issue 8; CMU validation, all 125 windows at stride 5, 10 samples, seeds 0/1):
+not the root speed. NDMS (eq. 6.9-6.12) rewards coherent whole-body translation: scaling the samples' root
+displacement to 0.5x / 0.3x / 0x lowers NDMS at 2 s from 0.320 to 0.275 / 0.253 / 0.215, and the real future
+with its root frozen drops from 0.287 to 0.249; the GRU's root moves 2.1 m/s (real 0.28) and it scores above
+the real future (0.318 vs 0.287 at 2 s). Not jitter either (smoothing the samples over time: +0.000) nor the
+window chaining (with ``sample_dct`` = 0 there is no speed jump at the chunk starts; ``sample_dct`` = 10 makes
+a 2 m/s first-frame jump, NDMS within ±0.01 either way). Sampler knobs (steps 10/20/50/100, eta 0/0.5/1,
+sample_dct 0/6/10/16, initial-noise temperature 0.6/0.8) all move validation NDMS by ≤ 0.02, within noise,
+except 100 steps at eta 1 (-0.05 at 2 s). The validation window mean is dominated by one clip (79 of the
+125 windows), where Social Diffusion beats the GRU (0.349 vs 0.305 at 2 s); on the other three it is well
+below (0.21-0.31 vs 0.32-0.37), and weighted per clip validation reproduces the test gap (2 s: 0.281 vs
+0.334). The trainer's ``select = "ndms_2_3"`` weights clips equally. An EMA of the weights (``ema`` = 0.999,
+22k steps from the shipped state) is stable on validation (0.282-0.289 every 2k steps) but below the shipped
+state (clip-weighted 2/3 s 0.265/0.245 vs 0.281/0.249): not shipped. Continuing the shipped state 10k steps
+(lr 2.5e-4, ``select = "ndms_2_3"``, sample_dct 0) picked step 3000, clip-weighted 2/3 s 0.275/0.287 and
+0.275/0.281 (seeds 0/1) vs the shipped state's 0.272/0.274 and 0.280/0.267 with sample_dct 0: gains under
+0.01, within the 0.23-0.28 spread of neighbouring states, so not shipped. The GRU: 0.334/0.295.
 """
 
 from __future__ import annotations
