@@ -394,8 +394,8 @@ class Validator:
         nd_w = np.stack([self.scorer.score_forecast(obs[b], y[b], self.groups[b]) for b in range(len(y))])
         nd = nd_w.mean(0)
         err = np.linalg.norm(y[:, :, :25] - gt[:, None, :25], axis=-1).mean()
-        # NDMS at 2 and 3 s (the 0.2 s before t, as evaluate._ndms_at), every validation clip weighted equally:
-        # on CMU one long clip holds 79 of the 125 windows at stride 5 and alone decided the window mean
+        # NDMS at 2 and 3 s (the 0.2 s before t, as evaluate._ndms_at), every validation clip weighted
+        # equally: on CMU one long clip holds 79 of the 125 windows at stride 5 and decided the window mean
         at = 0.5 * (nd_w[:, 45:50].mean(1) + nd_w[:, 70:75].mean(1))  # (B,)
         g = np.asarray(self.groups)
         return {
@@ -637,8 +637,10 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
     if init is None:  # a continued model keeps its feature statistics
         model.feat_mean.copy_(torch.from_numpy(_feature_stats(model, f, np.mean)))
         model.feat_std.copy_(torch.from_numpy(_feature_stats(model, f, np.std) + 1e-3))
-    # EMA of the weights (Ho et al. 2020, Nichol & Dhariwal 2021 sample from it): validated, selected, returned
-    ema = build_model("social_diffusion", config, J, model.state_dict()).to(device) if config.ema > 0 else None
+    # EMA of the weights (Ho et al. 2020, Nichol & Dhariwal 2021 sample from one): validated, kept, returned
+    ema = None
+    if config.ema > 0:
+        ema = build_model("social_diffusion", config, J, model.state_dict()).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps)
     hist: dict = {
