@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from capture.fileio import atomic_write_text
 from forecast import data as fdata
@@ -81,7 +82,6 @@ def evaluate_single(
     -> {"fps", "horizon_s", "models": {name: {"mpjpe": [H], "ndms": [H], "apd_t": [H], "apd", "ade", "fde",
     "npss", "ndms_at": {t: [mean, lo, hi]}, "ndms_diff_at": {t: [mean, lo, hi]} (minus ``reference``),
     ...}}, "n_windows", "n_clips", "skipped"}."""
-    import torch
 
     ws = fdata.make_windows(test_clips, n_obs, n_pred, stride, persons="each")
     if len(ws) == 0:
@@ -118,12 +118,10 @@ def evaluate_single(
     out["reference"] = ref
     for name, w in per_window.items():
         r = out["models"][name]
-        r["ndms_at"] = {
-            f"{t:g}": _ci(_ndms_at(w, ws.fps, t), boot) for t in NDMS_CI_S if t * ws.fps <= n_pred
-        }
+        r["ndms_at"] = {f"{t:g}": _ci(ndms_at(w, ws.fps, t), boot) for t in NDMS_CI_S if t * ws.fps <= n_pred}
         if ref is not None and name != ref:
             r["ndms_diff_at"] = {
-                f"{t:g}": _ci(_ndms_at(w, ws.fps, t) - _ndms_at(per_window[ref], ws.fps, t), boot)
+                f"{t:g}": _ci(ndms_at(w, ws.fps, t) - ndms_at(per_window[ref], ws.fps, t), boot)
                 for t in NDMS_CI_S
                 if t * ws.fps <= n_pred
             }
@@ -133,7 +131,7 @@ def evaluate_single(
 NDMS_CI_S = (1.0, 2.0, 3.0, 4.0)
 
 
-def _ndms_at(per_window: np.ndarray, fps: float, t_s: float) -> np.ndarray:
+def ndms_at(per_window: np.ndarray, fps: float, t_s: float) -> np.ndarray:
     """Per-window NDMS at t: mean over the 0.2 s before t (the report's convention). (B,H) -> (B,)."""
     win = max(1, int(0.2 * fps))
     i = int(round(t_s * fps))
@@ -230,8 +228,6 @@ def evaluate_social(
     for name, model in models.items():
         if progress:
             progress(name)
-        import torch
-
         torch.manual_seed(seed)  # the same sampling noise on every run
         y = forecast_world(model, obs, np.ones((n_scenes, 2), bool), n_pred, 1)[:, 0]  # (B,H,2,J,3)
         nd = np.stack(
