@@ -757,15 +757,15 @@ class KeypointPipeline:
             return res
         t = time.perf_counter()
         fills = [None if f < 0 else f for f in self.config.erase_fills]
-        imgs, bxs, which = [], [], []
-        for k, (i, a, b) in enumerate(pairs):
+        imgs, bxs, which = [], [], []  # per pair, 2 x len(fills) readings in a row
+        for i, a, b in pairs:
             for redo, other in ((a, b), (b, a)):
                 for f in fills:
                     img = images[i].copy()
                     _erase_body(img, res[i][0][other], res[i][1][other], self.src_skeleton, f)
                     imgs.append(img)
                     bxs.append(boxes[i][redo : redo + 1])
-                    which.append((k, redo, other))
+                    which.append((redo, other))
         self._tick("crop", t)  # erasing is crop preparation (counted in the pipeline's overhead)
         saved = self._pyr
         self._pyr = {}  # the painted copies have their own pyramid levels
@@ -779,8 +779,8 @@ class KeypointPipeline:
         for k, (i, a, b) in enumerate(pairs):
             xy_i, sc_i, p_i = res[i][0], res[i][1], res[i][2]
             best = None
-            mine = [w for w in zip(which, again, strict=True) if w[0][0] == k]
-            for (_, redo, other), (xy, sc, person, _) in mine:
+            r = slice(k * 2 * len(fills), (k + 1) * 2 * len(fills))
+            for (redo, other), (xy, sc, person, _) in zip(which[r], again[r], strict=True):
                 two_xy, two_sc = np.stack([xy[0], xy_i[other]]), np.stack([sc[0], sc_i[other]])
                 apart = not _duplicate_pairs(two_xy, two_sc, frac)
                 total = float(person[0] + p_i[other])
