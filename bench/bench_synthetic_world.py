@@ -26,9 +26,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from synthetic import bvh, rigs, world  # noqa: E402
 from synthetic import render as R  # noqa: E402
 
-FAULTS = R.RenderConfig(noise_px=3.0, missed_joint_rate=0.1, flip_rate=0.02, false_positive_rate=0.1,
-                        missed_detection_rate=0.02, occluded_guess_rate=0.1, time_offset_std_frames=0.5,
-                        time_drift_std_ppm=100.0)
+FAULTS = R.RenderConfig(
+    noise_px=3.0,
+    missed_joint_rate=0.1,
+    flip_rate=0.02,
+    false_positive_rate=0.1,
+    missed_detection_rate=0.02,
+    occluded_guess_rate=0.1,
+    time_offset_std_frames=0.5,
+    time_drift_std_ppm=100.0,
+)
 
 
 def _best(f, n=3):
@@ -77,15 +84,22 @@ def main() -> None:
     n_det = sum(int((g >= 0).sum()) for g in r.gt_index)
     n_fp = sum(int((g == -1).sum()) for g in r.gt_index)
     total = t_scene_cold + t_render
-    print(f"scene {a.cams} cams x {a.people} people x {a.seconds:g} s @ {a.fps:g} fps: "
-          f"clips {scene.clip_names}")
-    print(f"  scene generation: cold clip cache {t_scene_cold:.3f} s, disk cache {t_scene_disk:.3f} s, "
-          f"memory cache {t_scene_mem:.3f} s")
-    print(f"  render (all faults): {t_render:.3f} s; occlusion only: {t_clean:.3f} s; "
-          f"baseline rig.project of the GT: {t_proj:.3f} s (render/project = {t_render / t_proj:.1f}x)")
+    print(
+        f"scene {a.cams} cams x {a.people} people x {a.seconds:g} s @ {a.fps:g} fps: clips {scene.clip_names}"
+    )
+    print(
+        f"  scene generation: cold clip cache {t_scene_cold:.3f} s, disk cache {t_scene_disk:.3f} s, "
+        f"memory cache {t_scene_mem:.3f} s"
+    )
+    print(
+        f"  render (all faults): {t_render:.3f} s; occlusion only: {t_clean:.3f} s; "
+        f"baseline rig.project of the GT: {t_proj:.3f} s (render/project = {t_render / t_proj:.1f}x)"
+    )
     print(f"  write_session: {t_write:.3f} s; total scene(cold)+render: {total:.3f} s")
-    print(f"  joints in an image hidden by occlusion: {hidden:.3f}; GT detections {n_det}, "
-          f"false positives {n_fp}")
+    print(
+        f"  joints in an image hidden by occlusion: {hidden:.3f}; GT detections {n_det}, "
+        f"false positives {n_fp}"
+    )
     table = []
     if not a.no_table:
         print("\n  people x cameras -> render seconds (all faults, 10 s scene)")
@@ -100,15 +114,30 @@ def main() -> None:
                 row.append(t)
                 table.append({"people": p, "cams": c, "render_s": round(t, 4)})
             print(f"  {p:>6d} " + "".join(f"{t:8.3f}" for t in row))
-    print("BENCH " + json.dumps({
-        "bench": "synthetic_world", "cams": a.cams, "people": a.people, "seconds": a.seconds, "fps": a.fps,
-        "scene_cold_s": round(t_scene_cold, 4), "scene_warm_s": round(t_scene_mem, 4),
-        "render_s": round(t_render, 4), "render_occlusion_only_s": round(t_clean, 4),
-        "baseline_project_s": round(t_proj, 5), "render_over_project": round(t_render / t_proj, 1),
-        "write_session_s": round(t_write, 4), "total_s": round(total, 4),
-        "hidden_fraction": round(float(hidden), 4),
-        "gt_detections": n_det, "false_positives": n_fp, "table": table,
-    }))
+    print(
+        "BENCH "
+        + json.dumps(
+            {
+                "bench": "synthetic_world",
+                "cams": a.cams,
+                "people": a.people,
+                "seconds": a.seconds,
+                "fps": a.fps,
+                "scene_cold_s": round(t_scene_cold, 4),
+                "scene_warm_s": round(t_scene_mem, 4),
+                "render_s": round(t_render, 4),
+                "render_occlusion_only_s": round(t_clean, 4),
+                "baseline_project_s": round(t_proj, 5),
+                "render_over_project": round(t_render / t_proj, 1),
+                "write_session_s": round(t_write, 4),
+                "total_s": round(total, 4),
+                "hidden_fraction": round(float(hidden), 4),
+                "gt_detections": n_det,
+                "false_positives": n_fp,
+                "table": table,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

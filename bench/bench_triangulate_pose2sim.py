@@ -36,10 +36,21 @@ from track.trackfile import TrackFile  # noqa: E402
 from triangulate.poses3d import Poses3D  # noqa: E402
 from triangulate.stage import track_session_greedy, triangulate_session  # noqa: E402
 
-TRC_TO_BODY19 = {"RHip": "right_hip", "RKnee": "right_knee", "RAnkle": "right_ankle", "LHip": "left_hip",
-                 "LKnee": "left_knee", "LAnkle": "left_ankle", "Nose": "nose", "RShoulder": "right_shoulder",
-                 "RElbow": "right_elbow", "RWrist": "right_wrist", "LShoulder": "left_shoulder",
-                 "LElbow": "left_elbow", "LWrist": "left_wrist"}
+TRC_TO_BODY19 = {
+    "RHip": "right_hip",
+    "RKnee": "right_knee",
+    "RAnkle": "right_ankle",
+    "LHip": "left_hip",
+    "LKnee": "left_knee",
+    "LAnkle": "left_ankle",
+    "Nose": "nose",
+    "RShoulder": "right_shoulder",
+    "RElbow": "right_elbow",
+    "RWrist": "right_wrist",
+    "LShoulder": "left_shoulder",
+    "LElbow": "left_elbow",
+    "LWrist": "left_wrist",
+}
 
 
 def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
@@ -49,7 +60,7 @@ def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
     T = len(rows)
     out = np.full((T, len(names), 3), np.nan)
     for t, r in enumerate(rows):
-        vals = [float(v) if v not in ("", "nan", "NaN") else np.nan for v in r[2:2 + 3 * len(names)]]
+        vals = [float(v) if v not in ("", "nan", "NaN") else np.nan for v in r[2 : 2 + 3 * len(names)]]
         vals += [np.nan] * (3 * len(names) - len(vals))
         out[t] = np.asarray(vals).reshape(len(names), 3)
     return names, out
@@ -90,6 +101,7 @@ def reprojection(rig: CameraRig, lay: SessionLayout, X: np.ndarray) -> np.ndarra
     errs = []
     for ci, cam in enumerate(rig.names):
         from keypoints.detections import Detections
+
         d = Detections.load(lay.detections(cam))
         xy, sc = convert(d.xy_px, d.score, d.skeleton, "body19")
         xy = np.where((sc >= 0.3)[..., None], xy, np.nan)  # (T,P,J,2)
@@ -112,8 +124,13 @@ def run_trial(trial: Path, rig: CameraRig, tmp: Path) -> dict:
     track_session_greedy(lay.root)
     p = Poses3D.load(lay.poses3d)
     tf = TrackFile.load(lay.tracks)
-    return {"lay": lay, "poses": p, "tracks": tf, "t_tri_s": t_tri,
-            "rig": CameraRig.load(lay.calib_dir / "rig.toml")}
+    return {
+        "lay": lay,
+        "poses": p,
+        "tracks": tf,
+        "t_tri_s": t_tri,
+        "rig": CameraRig.load(lay.calib_dir / "rig.toml"),
+    }
 
 
 def main() -> None:
@@ -152,8 +169,10 @@ def main() -> None:
         axis_map, d_fit = best_axis_map(ours[:T, js], trc[:T, cols])
         dist_s = np.linalg.norm(ours[:T, js] - trc_w[:T, cols], axis=-1)
         dist_r = np.linalg.norm(raw_sel - trc_w[:T, cols], axis=-1)
-        print(f"single participant ({trial.name}, {T} frames, {len(r['rig'])} cameras): {tf.n_tracks} tracks,"
-              f" triangulation {1e3 * r['t_tri_s'] / T:.1f} ms/frame")
+        print(
+            f"single participant ({trial.name}, {T} frames, {len(r['rig'])} cameras): {tf.n_tracks} tracks,"
+            f" triangulation {1e3 * r['t_tri_s'] / T:.1f} ms/frame"
+        )
         print(f"axis map fitted: {axis_map} (median {1e3 * d_fit:.1f} mm); used: world = (Z, X, Y)")
         print(f"{'marker':<11}{'ours raw':>10}{'ours smooth':>13}   median distance to Pose2Sim [mm]")
         per_marker = {}
@@ -173,9 +192,14 @@ def main() -> None:
             e = reprojection(r["rig"], r["lay"], X)[:, :, js]
             rp[name] = (float(np.nanmean(e)), float(np.nanmedian(e)))
             print(f"reprojection error {name:<14} mean {rp[name][0]:6.2f} px  median {rp[name][1]:6.2f} px")
-        out["single"] = {"median_mm_raw": float(1e3 * np.nanmedian(dist_r)),
-                         "median_mm_smoothed": float(1e3 * np.nanmedian(dist_s)), "per_marker_mm": per_marker,
-                         "reproj_px": rp, "tracks": int(tf.n_tracks), "axis_map_fit": axis_map}
+        out["single"] = {
+            "median_mm_raw": float(1e3 * np.nanmedian(dist_r)),
+            "median_mm_smoothed": float(1e3 * np.nanmedian(dist_s)),
+            "per_marker_mm": per_marker,
+            "reproj_px": rp,
+            "tracks": int(tf.n_tracks),
+            "axis_map_fit": axis_map,
+        }
 
         # --- two participants
         trial = base / "S00_P01_MultiParticipants/S00_P01_T02_Participants1-2"
@@ -183,8 +207,10 @@ def main() -> None:
         tf = r["tracks"]
         present = np.isfinite(tf.xyz_m).all(-1).any(-1)  # (T,K)
         lengths = present.sum(0)
-        print(f"\ntwo participants ({trial.name}, {tf.n_frames} frames): {tf.n_tracks} tracks, "
-              f"frames per track {lengths.tolist()}")
+        print(
+            f"\ntwo participants ({trial.name}, {tf.n_frames} frames): {tf.n_tracks} tracks, "
+            f"frames per track {lengths.tolist()}"
+        )
         gts = []
         for pid in ("P1", "P2"):
             n2, trc2 = read_trc(trial / "pose-3d" / f"{trial.name}_{pid}_0-100.trc")
@@ -194,22 +220,30 @@ def main() -> None:
             gts.append(w)
         G = np.stack(gts, 1)[: tf.n_frames]  # (T,2,19,3)
         from triangulate.evaluate import mean_joint_distance, mot_metrics
+
         mot = mot_metrics(G, tf.xyz_m[: len(G)].astype(np.float64), threshold_m=0.3)
         per_gt = []
         for g in range(2):
             ids = set()
             for t in range(len(G)):
-                d = mean_joint_distance(G[t, g:g + 1], tf.xyz_m[t].astype(np.float64))[0]
+                d = mean_joint_distance(G[t, g : g + 1], tf.xyz_m[t].astype(np.float64))[0]
                 if np.isfinite(d).any() and d.min() < 0.3:
                     ids.add(int(tf.track_id[int(np.argmin(d))]))
             per_gt.append(sorted(ids))
-        print(f"tracks matched to Pose2Sim's P1, P2 (within 0.3 m): {per_gt}; MOTA {mot.mota:.3f}, "
-              f"IDF1 {mot.idf1:.3f}, ID switches {mot.id_switches}, misses {mot.misses}, "
-              f"FP {mot.false_positives}"
-              " (FP: the bystander, whom Pose2Sim's multi-person output leaves out)")
-        out["multi"] = {"tracks": int(tf.n_tracks), "ids_per_participant": per_gt, "mota": mot.mota,
-                        "idf1": mot.idf1, "id_switches": mot.id_switches,
-                        "frames_per_track": lengths.tolist()}
+        print(
+            f"tracks matched to Pose2Sim's P1, P2 (within 0.3 m): {per_gt}; MOTA {mot.mota:.3f}, "
+            f"IDF1 {mot.idf1:.3f}, ID switches {mot.id_switches}, misses {mot.misses}, "
+            f"FP {mot.false_positives}"
+            " (FP: the bystander, whom Pose2Sim's multi-person output leaves out)"
+        )
+        out["multi"] = {
+            "tracks": int(tf.n_tracks),
+            "ids_per_participant": per_gt,
+            "mota": mot.mota,
+            "idf1": mot.idf1,
+            "id_switches": mot.id_switches,
+            "frames_per_track": lengths.tolist(),
+        }
     print("BENCH " + json.dumps(out))
 
 

@@ -56,16 +56,17 @@ def frames_for(rig: CameraRig, scene, n: int, seed: int = 0) -> tuple[np.ndarray
     sc = np.zeros((n, C, max(P, 1), J))
     for c, d in enumerate(rd.detections):
         b, s = convert(d.xy_px[:n], d.score[:n], d.skeleton, "body19")
-        xy[:, c, :d.max_people] = rig[c].undistort_px(b)
-        sc[:, c, :d.max_people] = np.nan_to_num(s)
+        xy[:, c, : d.max_people] = rig[c].undistort_px(b)
+        sc[:, c, : d.max_people] = np.nan_to_num(s)
     return xy, sc
 
 
 def time_ours(rig: CameraRig, xy: np.ndarray, sc: np.ndarray, repeat: int = 5) -> dict:
     """Median over frames of: CPU time (mean of ``repeat`` runs), wall time, and the best of ``repeat``
     wall times (timeit's convention: the minimum is the least disturbed by other load)."""
-    rec = FrameReconstructor(rig.projection_matrices(), rig.fundamental_matrices(),
-                             joint_names=CANONICAL.joint_names)
+    rec = FrameReconstructor(
+        rig.projection_matrices(), rig.fundamental_matrices(), joint_names=CANONICAL.joint_names
+    )
     rec(xy[0], sc[0])  # warm-up
     cpu, wall, best, found = [], [], [], []
     for f in range(len(xy)):
@@ -79,8 +80,12 @@ def time_ours(rig: CameraRig, xy: np.ndarray, sc: np.ndarray, repeat: int = 5) -
         wall.append(float(np.median(w)))
         best.append(min(w))
         found.append(len(out.xyz_m))
-    return {"cpu_ms": 1e3 * float(np.median(cpu)), "wall_ms": 1e3 * float(np.median(wall)),
-            "best_ms": 1e3 * float(np.median(best)), "people_found": float(np.mean(found))}
+    return {
+        "cpu_ms": 1e3 * float(np.median(cpu)),
+        "wall_ms": 1e3 * float(np.median(wall)),
+        "best_ms": 1e3 * float(np.median(best)),
+        "people_found": float(np.mean(found)),
+    }
 
 
 def time_pose2sim(site: str, rig: CameraRig, xy: np.ndarray, sc: np.ndarray) -> dict | None:
@@ -91,16 +96,19 @@ def time_pose2sim(site: str, rig: CameraRig, xy: np.ndarray, sc: np.ndarray) -> 
         import logging
 
         import matplotlib
+
         matplotlib.use("Agg")
         logging.disable(logging.WARNING)
         from Pose2Sim import personAssociation as pa  # type: ignore
         from Pose2Sim import triangulation as pt  # type: ignore
         from Pose2Sim.common import retrieve_calib_params  # type: ignore
+
         logging.disable(logging.NOTSET)
     except Exception as e:  # noqa: BLE001 - report why the comparison is missing
         print(f"Pose2Sim not importable ({type(e).__name__}: {e}); skipping the comparison")
         return None
     from calibrate.formats import export_rig
+
     und = rig  # our frames are undistorted already: give Pose2Sim the same cameras without distortion
     und = CameraRig(tuple(c.replace(dist=np.zeros(4)) for c in rig))
     with tempfile.TemporaryDirectory() as d:
@@ -109,8 +117,14 @@ def time_pose2sim(site: str, rig: CameraRig, xy: np.ndarray, sc: np.ndarray) -> 
         calib = retrieve_calib_params(path)  # a Path: rtoml reads a str as TOML text
     P_all = [np.asarray(p) for p in und.projection_matrices()]
     flip = np.asarray(CANONICAL.flip_index)
-    cfg = {"triangulation": {"reproj_error_threshold_triangulation": 15, "min_cameras_for_triangulation": 2,
-                             "handle_LR_swap": False, "undistort_points": False}}
+    cfg = {
+        "triangulation": {
+            "reproj_error_threshold_triangulation": 15,
+            "min_cameras_for_triangulation": 2,
+            "handle_LR_swap": False,
+            "undistort_points": False,
+        }
+    }
     C = len(rig)
     cpu = []
     with warnings.catch_warnings():
@@ -140,8 +154,8 @@ def time_pose2sim(site: str, rig: CameraRig, xy: np.ndarray, sc: np.ndarray) -> 
                         if np.isnan(prop[c]):
                             continue
                         k = int(prop[c])
-                        coords[:, c] = frame[c][k][3 * j:3 * j + 3]
-                        coords_sw[:, c] = frame[c][k][3 * flip[j]:3 * flip[j] + 3]
+                        coords[:, c] = frame[c][k][3 * j : 3 * j + 3]
+                        coords_sw[:, c] = frame[c][k][3 * flip[j] : 3 * flip[j] + 3]
                     coords[2] = np.where(coords[2] > 0, coords[2], 0.0)
                     pt.triangulation_from_best_cameras(cfg, coords, coords_sw, P_all, calib)
             cpu.append(time.process_time() - c0)
@@ -157,24 +171,34 @@ def main() -> None:
     args = ap.parse_args()
     out: dict = {}
     print("(1) kitchen, CMU motion, default faults: association + triangulation per frame, one core")
-    print(f"{'people':>6} {'cams':>5} {'cpu ms':>8} {'wall ms':>8} {'best ms':>8} {'found':>6} "
-          f"{'Pose2Sim cpu ms':>16} {'ratio':>6}")
+    print(
+        f"{'people':>6} {'cams':>5} {'cpu ms':>8} {'wall ms':>8} {'best ms':>8} {'found':>6} "
+        f"{'Pose2Sim cpu ms':>16} {'ratio':>6}"
+    )
     heads = {}
     for n_people, n_cams in ((4, 5), (16, 12)):
         rig, room = kitchen(n_cams)
-        scene = make_scene(room, SceneConfig(n_people=n_people, duration_s=max(args.frames / 25, 0.2) + 0.2,
-                                             fps=25.0, seed=1))
+        scene = make_scene(
+            room,
+            SceneConfig(n_people=n_people, duration_s=max(args.frames / 25, 0.2) + 0.2, fps=25.0, seed=1),
+        )
         xy, sc = frames_for(rig, scene, args.frames)
         r = time_ours(rig, xy, sc)
-        p2s = time_pose2sim(args.pose2sim_site, rig, xy[: min(args.frames, 10)], sc[: min(args.frames, 10)]) \
-            if (args.pose2sim_site or _p2s_available()) else None
+        p2s = (
+            time_pose2sim(args.pose2sim_site, rig, xy[: min(args.frames, 10)], sc[: min(args.frames, 10)])
+            if (args.pose2sim_site or _p2s_available())
+            else None
+        )
         if p2s:
             r["pose2sim_cpu_ms"] = p2s["cpu_ms"]
             r["speedup_vs_pose2sim"] = p2s["cpu_ms"] / r["cpu_ms"]
         heads[f"{n_people}x{n_cams}"] = r
         p2 = f"{r['pose2sim_cpu_ms']:16.1f} {r['speedup_vs_pose2sim']:6.0f}" if p2s else f"{'-':>16} {'-':>6}"
-        print(f"{n_people:>6} {n_cams:>5} {r['cpu_ms']:8.2f} {r['wall_ms']:8.2f} {r['best_ms']:8.2f} "
-              f"{r['people_found']:6.1f} {p2}", flush=True)
+        print(
+            f"{n_people:>6} {n_cams:>5} {r['cpu_ms']:8.2f} {r['wall_ms']:8.2f} {r['best_ms']:8.2f} "
+            f"{r['people_found']:6.1f} {p2}",
+            flush=True,
+        )
     out["kitchen"] = heads
 
     people = [int(v) for v in args.people.split(",")]
@@ -183,8 +207,20 @@ def main() -> None:
     print("people\\cams " + "".join(f"{c:>8}" for c in cams))
     grid = {}
     room = ring_room(5.0)
-    scenes = {n: make_scene(room, SceneConfig(n_people=n, duration_s=args.frames / 25 + 0.2, fps=25.0, seed=2,
-                                              motion="procedural", min_separation_m=0.5)) for n in people}
+    scenes = {
+        n: make_scene(
+            room,
+            SceneConfig(
+                n_people=n,
+                duration_s=args.frames / 25 + 0.2,
+                fps=25.0,
+                seed=2,
+                motion="procedural",
+                min_separation_m=0.5,
+            ),
+        )
+        for n in people
+    }
     for n in people:
         line = f"{n:>11} "
         for c in cams:
@@ -207,6 +243,7 @@ def main() -> None:
 def _p2s_available() -> bool:
     try:
         import importlib.util
+
         return importlib.util.find_spec("Pose2Sim") is not None
     except Exception:  # noqa: BLE001
         return False

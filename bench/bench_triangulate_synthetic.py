@@ -40,8 +40,16 @@ from triangulate.stage import track_session_greedy, triangulate_session  # noqa:
 DEFAULT_FAULTS = dict(noise_px=3.0, missed_joint_rate=0.10, flip_rate=0.02, false_positive_rate=0.05)
 
 
-def run(n_people: int, n_cams: int, seconds: float, seed: int = 1, order: list[str] | None = None,
-        tri: TriangulateConfig | None = None, scene_cache: dict | None = None, **faults) -> dict:
+def run(
+    n_people: int,
+    n_cams: int,
+    seconds: float,
+    seed: int = 1,
+    order: list[str] | None = None,
+    tri: TriangulateConfig | None = None,
+    scene_cache: dict | None = None,
+    **faults,
+) -> dict:
     f = dict(DEFAULT_FAULTS, **faults)
     key = (n_people, n_cams, seconds, seed)
     if scene_cache is not None and key in scene_cache:
@@ -56,9 +64,14 @@ def run(n_people: int, n_cams: int, seconds: float, seed: int = 1, order: list[s
         write_session(scene, rd, rig, d)
         cfg = tri or TriangulateConfig()
         if order is not None:
-            cfg = TriangulateConfig(match=MatchConfig(**{**cfg.match.__dict__, "camera_order": tuple(order)}),
-                                    dlt=cfg.dlt, min_joints_3d=cfg.min_joints_3d, limb_check=cfg.limb_check,
-                                    fix_flips=cfg.fix_flips, merge_dist_m=cfg.merge_dist_m)
+            cfg = TriangulateConfig(
+                match=MatchConfig(**{**cfg.match.__dict__, "camera_order": tuple(order)}),
+                dlt=cfg.dlt,
+                min_joints_3d=cfg.min_joints_3d,
+                limb_check=cfg.limb_check,
+                fix_flips=cfg.fix_flips,
+                merge_dist_m=cfg.merge_dist_m,
+            )
         t0 = time.perf_counter()
         triangulate_session(d, cfg)
         t_tri = time.perf_counter() - t0
@@ -70,24 +83,41 @@ def run(n_people: int, n_cams: int, seconds: float, seed: int = 1, order: list[s
     pr, ps = ev.pcp(gt, raw), ev.pcp(gt, sm)
     mr, ms = ev.mpjpe(gt, raw), ev.mpjpe(gt, sm)
     mot = ev.mot_metrics(gt, sm, threshold_m=0.3)
-    return {"people": n_people, "cams": n_cams, "frames": int(gt.shape[0]),
-            "pcp_raw": pr.actor_average, "pcp": ps.actor_average, "pcp_frame_weighted": ps.frame_weighted,
-            "mpjpe_raw_mm": 1e3 * mr["mpjpe_m"], "mpjpe_mm": 1e3 * ms["mpjpe_m"], "missed": ms["missed"],
-            "mota": mot.mota, "idf1": mot.idf1, "idsw": mot.id_switches, "fp": mot.false_positives,
-            "fn": mot.misses, "tracks": int(tf.n_tracks), "tri_ms_per_frame": 1e3 * t_tri / gt.shape[0]}
+    return {
+        "people": n_people,
+        "cams": n_cams,
+        "frames": int(gt.shape[0]),
+        "pcp_raw": pr.actor_average,
+        "pcp": ps.actor_average,
+        "pcp_frame_weighted": ps.frame_weighted,
+        "mpjpe_raw_mm": 1e3 * mr["mpjpe_m"],
+        "mpjpe_mm": 1e3 * ms["mpjpe_m"],
+        "missed": ms["missed"],
+        "mota": mot.mota,
+        "idf1": mot.idf1,
+        "idsw": mot.id_switches,
+        "fp": mot.false_positives,
+        "fn": mot.misses,
+        "tracks": int(tf.n_tracks),
+        "tri_ms_per_frame": 1e3 * t_tri / gt.shape[0],
+    }
 
 
-HEAD = (f"{'people':>6} {'cams':>4} {'frames':>6} | {'PCP raw':>7} {'PCP':>6} {'PCPfw':>6} | "
-        f"{'MPJPE raw':>9} "
-        f"{'MPJPE':>6} | {'MOTA':>6} {'IDF1':>6} {'IDsw':>4} {'FP':>4} {'FN':>4} {'K':>3} | {'ms/frame':>8}")
+HEAD = (
+    f"{'people':>6} {'cams':>4} {'frames':>6} | {'PCP raw':>7} {'PCP':>6} {'PCPfw':>6} | "
+    f"{'MPJPE raw':>9} "
+    f"{'MPJPE':>6} | {'MOTA':>6} {'IDF1':>6} {'IDsw':>4} {'FP':>4} {'FN':>4} {'K':>3} | {'ms/frame':>8}"
+)
 
 
 def row(r: dict, label: str = "") -> str:
-    return (f"{r['people']:>6} {r['cams']:>4} {r['frames']:>6} | {r['pcp_raw']:7.4f} {r['pcp']:6.4f} "
-            f"{r['pcp_frame_weighted']:6.4f} | {r['mpjpe_raw_mm']:9.1f} {r['mpjpe_mm']:6.1f} | "
-            f"{r['mota']:6.4f} "
-            f"{r['idf1']:6.4f} {r['idsw']:4d} {r['fp']:4d} {r['fn']:4d} {r['tracks']:3d} | "
-            f"{r['tri_ms_per_frame']:8.1f} {label}")
+    return (
+        f"{r['people']:>6} {r['cams']:>4} {r['frames']:>6} | {r['pcp_raw']:7.4f} {r['pcp']:6.4f} "
+        f"{r['pcp_frame_weighted']:6.4f} | {r['mpjpe_raw_mm']:9.1f} {r['mpjpe_mm']:6.1f} | "
+        f"{r['mota']:6.4f} "
+        f"{r['idf1']:6.4f} {r['idsw']:4d} {r['fp']:4d} {r['fn']:4d} {r['tracks']:3d} | "
+        f"{r['tri_ms_per_frame']:8.1f} {label}"
+    )
 
 
 def main() -> None:
@@ -101,8 +131,10 @@ def main() -> None:
     cache: dict = {}
     out: dict = {"faults": DEFAULT_FAULTS}
 
-    print(f"(1) kitchen, CMU motion, faults {DEFAULT_FAULTS}; PCP = actor average; "
-          "'raw' = per-frame triangulation, else after the ch. 4 tracker (gap filling + smoothing sigma=2)")
+    print(
+        f"(1) kitchen, CMU motion, faults {DEFAULT_FAULTS}; PCP = actor average; "
+        "'raw' = per-frame triangulation, else after the ch. 4 tracker (gap filling + smoothing sigma=2)"
+    )
     print(HEAD)
     main_rows = []
     for n_people, n_cams in ((2, 4), (4, 6), (8, 8), (16, 12)):
@@ -114,13 +146,18 @@ def main() -> None:
     print("\n(2) degradation, 6 people x 8 cameras (one fault varied, others at the defaults)")
     print(HEAD)
     deg = []
-    for label, kw in (("noise 2 px", dict(noise_px=2.0)), ("noise 5 px", dict(noise_px=5.0)),
-                      ("noise 10 px", dict(noise_px=10.0)), ("flips 10%", dict(flip_rate=0.10)),
-                      ("flips 25%", dict(flip_rate=0.25)), ("missed 30%", dict(missed_joint_rate=0.30)),
-                      ("FP people 30%", dict(false_positive_rate=0.30)),
-                      ("no furniture occl.", dict(occlusion_furniture=False)),
-                      ("no occlusion at all", dict(occlusion_furniture=False, occlusion_people=False)),
-                      ("occluded joints guessed 30%", dict(occluded_guess_rate=0.30))):
+    for label, kw in (
+        ("noise 2 px", dict(noise_px=2.0)),
+        ("noise 5 px", dict(noise_px=5.0)),
+        ("noise 10 px", dict(noise_px=10.0)),
+        ("flips 10%", dict(flip_rate=0.10)),
+        ("flips 25%", dict(flip_rate=0.25)),
+        ("missed 30%", dict(missed_joint_rate=0.30)),
+        ("FP people 30%", dict(false_positive_rate=0.30)),
+        ("no furniture occl.", dict(occlusion_furniture=False)),
+        ("no occlusion at all", dict(occlusion_furniture=False, occlusion_people=False)),
+        ("occluded joints guessed 30%", dict(occluded_guess_rate=0.30)),
+    ):
         r = run(6, 8, args.seconds, args.seed, scene_cache=cache, **kw)
         r["label"] = label
         deg.append(r)
@@ -137,29 +174,44 @@ def main() -> None:
         pcps.append(r["pcp"])
         pcps_raw.append(r["pcp_raw"])
     pcps, pcps_raw = np.asarray(pcps), np.asarray(pcps_raw)
-    print(f"PCP smoothed: mean {pcps.mean():.4f}, min {pcps.min():.4f}, max {pcps.max():.4f}, "
-          f"spread {pcps.max() - pcps.min():.4f}")
-    print(f"PCP raw:      mean {pcps_raw.mean():.4f}, min {pcps_raw.min():.4f}, max {pcps_raw.max():.4f}, "
-          f"spread {pcps_raw.max() - pcps_raw.min():.4f}")
-    out["camera_order"] = {"n": args.perms, "pcp_spread": float(pcps.max() - pcps.min()),
-                           "pcp_raw_spread": float(pcps_raw.max() - pcps_raw.min()),
-                           "pcp_mean": float(pcps.mean())}
+    print(
+        f"PCP smoothed: mean {pcps.mean():.4f}, min {pcps.min():.4f}, max {pcps.max():.4f}, "
+        f"spread {pcps.max() - pcps.min():.4f}"
+    )
+    print(
+        f"PCP raw:      mean {pcps_raw.mean():.4f}, min {pcps_raw.min():.4f}, max {pcps_raw.max():.4f}, "
+        f"spread {pcps_raw.max() - pcps_raw.min():.4f}"
+    )
+    out["camera_order"] = {
+        "n": args.perms,
+        "pcp_spread": float(pcps.max() - pcps.min()),
+        "pcp_raw_spread": float(pcps_raw.max() - pcps_raw.min()),
+        "pcp_mean": float(pcps.mean()),
+    }
     if args.theta_sweep:
         print("\n(4) matching threshold theta (px), 16 people x 12 cameras")
         print(HEAD)
         out["theta"] = []
         for theta in (10.0, 20.0, 40.0, 80.0, 160.0):
-            r = run(16, 12, args.seconds, args.seed, tri=TriangulateConfig(match=MatchConfig(theta_px=theta)),
-                    scene_cache=cache)
+            r = run(
+                16,
+                12,
+                args.seconds,
+                args.seed,
+                tri=TriangulateConfig(match=MatchConfig(theta_px=theta)),
+                scene_cache=cache,
+            )
             r["theta_px"] = theta
             out["theta"].append(r)
             print(row(r, f"theta {theta:g}"), flush=True)
     worst = min(main_rows, key=lambda r: r["pcp"])
-    out["summary"] = {"min_pcp": min(r["pcp"] for r in main_rows),
-                      "max_mpjpe_mm": max(r["mpjpe_mm"] for r in main_rows),
-                      "min_mota": min(r["mota"] for r in main_rows),
-                      "min_idf1": min(r["idf1"] for r in main_rows),
-                      "worst_case": f"{worst['people']}x{worst['cams']}"}
+    out["summary"] = {
+        "min_pcp": min(r["pcp"] for r in main_rows),
+        "max_mpjpe_mm": max(r["mpjpe_mm"] for r in main_rows),
+        "min_mota": min(r["mota"] for r in main_rows),
+        "min_idf1": min(r["idf1"] for r in main_rows),
+        "worst_case": f"{worst['people']}x{worst['cams']}",
+    }
     print("BENCH " + json.dumps(out))
 
 

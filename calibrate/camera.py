@@ -41,8 +41,10 @@ __all__ = [
 
 RIG_SCHEMA = "rig"
 RIG_VERSION = 1
-CONVENTION = ("cam_from_world: x_cam = R @ x_world + t; metres; "
-              "pixels with origin at the centre of the top-left pixel as in OpenCV")
+CONVENTION = (
+    "cam_from_world: x_cam = R @ x_world + t; metres; "
+    "pixels with origin at the centre of the top-left pixel as in OpenCV"
+)
 PINHOLE_DIST_SIZES = (0, 4, 5, 8, 12, 14)
 FISHEYE_DIST_SIZES = (4,)
 MODELS = ("pinhole", "fisheye")
@@ -88,17 +90,29 @@ def _as_matrix(value: Any, shape: tuple[int, ...], path: Any, fld: str, fix: str
     return arr
 
 
-def _validated(name: Any, size_wh: Any, K: Any, dist: Any, model: Any, R: Any, t: Any,
-               path: str | os.PathLike | None = None, where: str | None = None,
-               names: Mapping[str, str] | None = None) -> dict[str, Any]:
+def _validated(
+    name: Any,
+    size_wh: Any,
+    K: Any,
+    dist: Any,
+    model: Any,
+    R: Any,
+    t: Any,
+    path: str | os.PathLike | None = None,
+    where: str | None = None,
+    names: Mapping[str, str] | None = None,
+) -> dict[str, Any]:
     """Check and normalise camera fields; errors name ``path`` and ``where.<field>``.
 
     ``names`` maps this module's field names (K, dist, R, t, size_wh, model) to the names a
     source file uses (e.g. ``{"K": "matrix"}``), so importer errors name the file's own field."""
     if not isinstance(name, str) or not name:
-        raise FormatError(path, f"{where}.name" if where else "name",
-                          f"camera name must be a non-empty string, got {name!r}.",
-                          "Give every camera a name.")
+        raise FormatError(
+            path,
+            f"{where}.name" if where else "name",
+            f"camera name must be a non-empty string, got {name!r}.",
+            "Give every camera a name.",
+        )
     nm = dict(names or {})
     w0 = where or f"camera '{name}'"
 
@@ -106,32 +120,52 @@ def _validated(name: Any, size_wh: Any, K: Any, dist: Any, model: Any, R: Any, t
         return f"{w0}.{nm.get(key, key)}"
 
     if model not in MODELS:
-        raise FormatError(path, fld("model"), f"unknown camera model {model!r}; valid: {list(MODELS)}.",
-                          "Use 'pinhole' (OpenCV 0/4/5/8/12/14 coefficients) or 'fisheye' (cv2.fisheye, 4).")
+        raise FormatError(
+            path,
+            fld("model"),
+            f"unknown camera model {model!r}; valid: {list(MODELS)}.",
+            "Use 'pinhole' (OpenCV 0/4/5/8/12/14 coefficients) or 'fisheye' (cv2.fisheye, 4).",
+        )
     try:
         wh = tuple(int(v) for v in size_wh)
-        ok = (len(wh) == 2 and all(v > 0 for v in wh)
-              and all(float(a) == b for a, b in zip(size_wh, wh, strict=True)))
+        ok = (
+            len(wh) == 2
+            and all(v > 0 for v in wh)
+            and all(float(a) == b for a, b in zip(size_wh, wh, strict=True))
+        )
     except (TypeError, ValueError):
         ok = False
     if not ok:
-        raise FormatError(path, fld("size_wh"),
-                          f"must be two positive integers [width, height], got {size_wh!r}.",
-                          "Write the image size in pixels as [width, height].")
-    K_ = _as_matrix(K, (3, 3), path, fld("K"),
-                    "Write K as the 3x3 OpenCV camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]].")
+        raise FormatError(
+            path,
+            fld("size_wh"),
+            f"must be two positive integers [width, height], got {size_wh!r}.",
+            "Write the image size in pixels as [width, height].",
+        )
+    K_ = _as_matrix(
+        K, (3, 3), path, fld("K"), "Write K as the 3x3 OpenCV camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]."
+    )
     if not (K_[0, 0] > 0 and K_[1, 1] > 0):
-        raise FormatError(path, fld("K"),
-                          f"focal lengths must be positive, got fx={K_[0, 0]}, fy={K_[1, 1]}.",
-                          "Check the camera matrix.")
+        raise FormatError(
+            path,
+            fld("K"),
+            f"focal lengths must be positive, got fx={K_[0, 0]}, fy={K_[1, 1]}.",
+            "Check the camera matrix.",
+        )
     if K_[1, 0] != 0 or K_[2, 0] != 0 or K_[2, 1] != 0 or K_[2, 2] != 1:
-        raise FormatError(path, fld("K"),
-                          f"last two rows must be [0, fy, cy] and [0, 0, 1], got {K_[1:].tolist()}.",
-                          "Normalise K so that K[2,2] = 1.")
+        raise FormatError(
+            path,
+            fld("K"),
+            f"last two rows must be [0, fy, cy] and [0, 0, 1], got {K_[1:].tolist()}.",
+            "Normalise K so that K[2,2] = 1.",
+        )
     if abs(K_[0, 1]) > 1e-9 * K_[0, 0]:
-        raise FormatError(path, fld("K"),
-                          f"has skew K[0,1]={K_[0, 1]}, which OpenCV's distortion model ignores.",
-                          "Recalibrate without skew (OpenCV does) or set K[0,1] = 0.")
+        raise FormatError(
+            path,
+            fld("K"),
+            f"has skew K[0,1]={K_[0, 1]}, which OpenCV's distortion model ignores.",
+            "Recalibrate without skew (OpenCV does) or set K[0,1] = 0.",
+        )
     K_[0, 1] = 0.0
     try:
         dist_ = np.array([] if dist is None else dist, dtype=np.float64).reshape(-1)
@@ -139,22 +173,27 @@ def _validated(name: Any, size_wh: Any, K: Any, dist: Any, model: Any, R: Any, t
         raise FormatError(path, fld("dist"), f"is not a numeric vector ({e}).", "") from None
     sizes = PINHOLE_DIST_SIZES if model == "pinhole" else FISHEYE_DIST_SIZES
     if dist_.size not in sizes:
-        raise FormatError(path, fld("dist"),
-                          f"has {dist_.size} coefficients; a {model} camera takes {list(sizes)}.",
-                          "Give the OpenCV distortion coefficients in OpenCV order "
-                          "(pad with zeros to a valid length)."
-                          if model == "pinhole" else "Give the 4 cv2.fisheye coefficients k1..k4.")
+        raise FormatError(
+            path,
+            fld("dist"),
+            f"has {dist_.size} coefficients; a {model} camera takes {list(sizes)}.",
+            "Give the OpenCV distortion coefficients in OpenCV order (pad with zeros to a valid length)."
+            if model == "pinhole"
+            else "Give the 4 cv2.fisheye coefficients k1..k4.",
+        )
     if not np.all(np.isfinite(dist_)):
         raise FormatError(path, fld("dist"), "contains NaN or infinite values.", "")
     R_ = _as_matrix(R, (3, 3), path, fld("R"), "Write R as a 3x3 rotation matrix (cam_from_world).")
     err = float(np.abs(R_ @ R_.T - np.eye(3)).max())
     det = float(np.linalg.det(R_))
     if err > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
-        raise FormatError(path, fld("R"),
-                          f"is not a rotation (max |R R^T - I| = {err:.3g}, det = {det:.9g}; "
-                          f"tolerance {ROTATION_TOL}).",
-                          "Write the full-precision cam_from_world rotation; if it is a Rodrigues vector "
-                          "or the transpose (world_from_cam) or has a reflection, convert it first.")
+        raise FormatError(
+            path,
+            fld("R"),
+            f"is not a rotation (max |R R^T - I| = {err:.3g}, det = {det:.9g}; tolerance {ROTATION_TOL}).",
+            "Write the full-precision cam_from_world rotation; if it is a Rodrigues vector "
+            "or the transpose (world_from_cam) or has a reflection, convert it first.",
+        )
     t_ = _as_matrix(t, (3,), path, fld("t"), "Write t as 3 numbers in metres (cam_from_world translation).")
     for a in (K_, dist_, R_, t_):
         a.setflags(write=False)
@@ -276,14 +315,16 @@ class Camera:
 
         src = np.ascontiguousarray(flat[ok]).reshape(-1, 1, 2)
         if self.model == "fisheye":
-            und = cv2.fisheye.undistortPoints(src, self.K, self.dist, R=np.eye(3), P=self.K,
-                                              criteria=_UNDISTORT_CRITERIA)
+            und = cv2.fisheye.undistortPoints(
+                src, self.K, self.dist, R=np.eye(3), P=self.K, criteria=_UNDISTORT_CRITERIA
+            )
         else:
             if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x: the iterated variant has its own name
                 und = cv2.undistortPointsIter(src, self.K, self.dist, None, self.K, _UNDISTORT_CRITERIA)
             else:  # OpenCV 5: undistortPoints takes the criteria
-                und = cv2.undistortPoints(src, self.K, self.dist, R=None, P=self.K,
-                                          criteria=_UNDISTORT_CRITERIA)
+                und = cv2.undistortPoints(
+                    src, self.K, self.dist, R=None, P=self.K, criteria=_UNDISTORT_CRITERIA
+                )
         res = out.reshape(-1, 2)
         res[ok] = und.reshape(-1, 2)
         return res.reshape(xy.shape)
@@ -303,21 +344,38 @@ class Camera:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], path: str | os.PathLike | None = None,
-                  where: str | None = None) -> Camera:
+    def from_dict(
+        cls, d: Mapping[str, Any], path: str | os.PathLike | None = None, where: str | None = None
+    ) -> Camera:
         """Inverse of ``to_dict``; errors name ``path`` and the field (``where`` prefixes it)."""
         w = where or f"camera '{d.get('name', '?')}'"
         unknown = sorted(set(d) - set(CAMERA_KEYS))
         if unknown:
-            raise FormatError(path, f"{w}.{unknown[0]}",
-                              f"unknown camera keys {unknown}; valid: {list(CAMERA_KEYS)}.",
-                              "Remove or rename them.")
+            raise FormatError(
+                path,
+                f"{w}.{unknown[0]}",
+                f"unknown camera keys {unknown}; valid: {list(CAMERA_KEYS)}.",
+                "Remove or rename them.",
+            )
         missing = [k for k in CAMERA_KEYS if k not in d and k not in ("dist", "model")]
         if missing:
-            raise FormatError(path, f"{w}.{missing[0]}", f"camera fields {missing} are missing.",
-                              f"Every camera needs {list(CAMERA_KEYS)} ('dist' and 'model' may be left out).")
-        v = _validated(d["name"], d["size_wh"], d["K"], d.get("dist", []), d.get("model", "pinhole"),
-                       d["R"], d["t"], path=path, where=w)
+            raise FormatError(
+                path,
+                f"{w}.{missing[0]}",
+                f"camera fields {missing} are missing.",
+                f"Every camera needs {list(CAMERA_KEYS)} ('dist' and 'model' may be left out).",
+            )
+        v = _validated(
+            d["name"],
+            d["size_wh"],
+            d["K"],
+            d.get("dist", []),
+            d.get("model", "pinhole"),
+            d["R"],
+            d["t"],
+            path=path,
+            where=w,
+        )
         return cls(**v)
 
     def replace(self, **changes: Any) -> Camera:
@@ -334,9 +392,11 @@ class Camera:
         return hash(json.dumps(self.to_dict(), sort_keys=True))
 
     def __repr__(self) -> str:
-        return (f"Camera(name={self.name!r}, size_wh={self.size_wh}, model={self.model!r}, "
-                f"f=({self.K[0, 0]:.1f},{self.K[1, 1]:.1f}), c=({self.K[0, 2]:.1f},{self.K[1, 2]:.1f}), "
-                f"ndist={self.dist.size}, center={np.round(self.center, 3).tolist()})")
+        return (
+            f"Camera(name={self.name!r}, size_wh={self.size_wh}, model={self.model!r}, "
+            f"f=({self.K[0, 0]:.1f},{self.K[1, 1]:.1f}), c=({self.K[0, 2]:.1f},{self.K[1, 2]:.1f}), "
+            f"ndist={self.dist.size}, center={np.round(self.center, 3).tolist()})"
+        )
 
 
 def _tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
@@ -370,8 +430,12 @@ class CameraRig:
         names = [c.name for c in cams]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
-            raise FormatError(None, "cameras.name", f"camera names must be unique; repeated: {dup}.",
-                              "Rename the cameras so each name is used once.")
+            raise FormatError(
+                None,
+                "cameras.name",
+                f"camera names must be unique; repeated: {dup}.",
+                "Rename the cameras so each name is used once.",
+            )
         object.__setattr__(self, "cameras", cams)
 
     @classmethod
@@ -463,8 +527,11 @@ class CameraRig:
     # ---- files
 
     def to_dict(self) -> dict[str, Any]:
-        return {"schema": schema_tag(RIG_SCHEMA, RIG_VERSION), "convention": CONVENTION,
-                "cameras": [c.to_dict() for c in self.cameras]}
+        return {
+            "schema": schema_tag(RIG_SCHEMA, RIG_VERSION),
+            "convention": CONVENTION,
+            "cameras": [c.to_dict() for c in self.cameras],
+        }
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], path: str | os.PathLike | None = None) -> CameraRig:
@@ -472,27 +539,44 @@ class CameraRig:
         allowed = ("schema", "convention", "source", "cameras")
         unknown = sorted(set(d) - set(allowed))
         if unknown:
-            raise FormatError(path, unknown[0], f"unknown top-level keys {unknown}; valid: {list(allowed)}.",
-                              "Remove them (per-camera values go in the [[cameras]] tables).")
+            raise FormatError(
+                path,
+                unknown[0],
+                f"unknown top-level keys {unknown}; valid: {list(allowed)}.",
+                "Remove them (per-camera values go in the [[cameras]] tables).",
+            )
         conv = d.get("convention")
         if conv is not None and conv != CONVENTION:
-            raise FormatError(path, "convention", f"says {conv!r}, but rig/1 files use {CONVENTION!r}.",
-                              "Convert the poses to cam_from_world in metres and write the convention "
-                              "string as shown (calibrate-run import does this for known formats).")
+            raise FormatError(
+                path,
+                "convention",
+                f"says {conv!r}, but rig/1 files use {CONVENTION!r}.",
+                "Convert the poses to cam_from_world in metres and write the convention "
+                "string as shown (calibrate-run import does this for known formats).",
+            )
         cams = d.get("cameras")
         if not isinstance(cams, list) or not cams:
-            raise FormatError(path, "cameras", "no [[cameras]] tables found.",
-                              "Add one [[cameras]] table per camera with " + ", ".join(CAMERA_KEYS) + ".")
+            raise FormatError(
+                path,
+                "cameras",
+                "no [[cameras]] tables found.",
+                "Add one [[cameras]] table per camera with " + ", ".join(CAMERA_KEYS) + ".",
+            )
         out: list[Camera] = []
         for i, cd in enumerate(cams):
             if not isinstance(cd, Mapping):
-                raise FormatError(path, f"cameras[{i}]", "is not a table.",
-                                  "Write each camera as [[cameras]].")
+                raise FormatError(
+                    path, f"cameras[{i}]", "is not a table.", "Write each camera as [[cameras]]."
+                )
             nm = cd.get("name")
             out.append(Camera.from_dict(cd, path=path, where=f"cameras[{i}]" + (f" ('{nm}')" if nm else "")))
             if out[-1].name in [c.name for c in out[:-1]]:
-                raise FormatError(path, f"cameras[{i}].name", f"camera name {out[-1].name!r} is used twice.",
-                                  "Give every camera a unique name.")
+                raise FormatError(
+                    path,
+                    f"cameras[{i}].name",
+                    f"camera name {out[-1].name!r} is used twice.",
+                    "Give every camera a unique name.",
+                )
         return cls(tuple(out))
 
     def save(self, path: str | os.PathLike, source: str | None = None) -> None:
@@ -500,10 +584,14 @@ class CameraRig:
         d = self.to_dict()
         if source:
             d["source"] = source
-        save_toml(path, d, header=f"roomcap camera rig ({schema_tag(RIG_SCHEMA, RIG_VERSION)}).\n"
-                  f"Convention: {CONVENTION}.\n"
-                  "K = [[fx,0,cx],[0,fy,cy],[0,0,1]]; dist in OpenCV order "
-                  "(pinhole: k1,k2,p1,p2,k3,k4,k5,k6,s1..s4,tau_x,tau_y; fisheye: k1..k4).")
+        save_toml(
+            path,
+            d,
+            header=f"roomcap camera rig ({schema_tag(RIG_SCHEMA, RIG_VERSION)}).\n"
+            f"Convention: {CONVENTION}.\n"
+            "K = [[fx,0,cx],[0,fy,cy],[0,0,1]]; dist in OpenCV order "
+            "(pinhole: k1,k2,p1,p2,k3,k4,k5,k6,s1..s4,tau_x,tau_y; fisheye: k1..k4).",
+        )
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> CameraRig:

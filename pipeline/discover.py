@@ -159,7 +159,7 @@ def discover(paths: list[str | os.PathLike]) -> list[SessionSource]:
                 if p.is_dir()
                 and not p.name.startswith(".")
                 and p.name not in ("calibration", "calib", "roomcap")
-            and not p.name.lower().endswith("_calibration")
+                and not p.name.lower().endswith("_calibration")
             ]
             stack.extend(reversed(children))
     names = [s.name for s in found]

@@ -57,10 +57,15 @@ def run_local(
             with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
                 yield pool.submit(process_session, s, out, config, force, threads).result()
         except BrokenProcessPool as e:
-            yield SessionResult(s.name, str(output_root(s, out)), status="failed", failed_stage="worker",
-                                message=f"the worker process running this session died ({e or 'crashed'}): "
-                                "a native crash (decoder, model runtime) or out of memory. Run it alone with "
-                                "--workers 1 -v to see where; finished stages are kept.")
+            yield SessionResult(
+                s.name,
+                str(output_root(s, out)),
+                status="failed",
+                failed_stage="worker",
+                message=f"the worker process running this session died ({e or 'crashed'}): "
+                "a native crash (decoder, model runtime) or out of memory. Run it alone with "
+                "--workers 1 -v to see where; finished stages are kept.",
+            )
 
 
 def _cuda_available() -> bool:

@@ -44,10 +44,20 @@ def _rig_data(lay: SessionLayout) -> dict[str, Any] | None:
         R = np.asarray(cam.R)
         w, h = cam.size_wh
         fx, fy = float(cam.K[0, 0]), float(cam.K[1, 1])
-        cams.append({"name": cam.name, "size_wh": list(cam.size_wh), "f_px": _r([fx, fy], 1),
-                     "c_px": _r([cam.K[0, 2], cam.K[1, 2]], 1), "model": cam.model,
-                     "fov_deg": _r(np.degrees(2 * np.arctan([w / (2 * fx), h / (2 * fy)])), 1),
-                     "center_m": _r(cam.center), "axis": _r(R[2]), "right": _r(R[0]), "up": _r(-R[1])})
+        cams.append(
+            {
+                "name": cam.name,
+                "size_wh": list(cam.size_wh),
+                "f_px": _r([fx, fy], 1),
+                "c_px": _r([cam.K[0, 2], cam.K[1, 2]], 1),
+                "model": cam.model,
+                "fov_deg": _r(np.degrees(2 * np.arctan([w / (2 * fx), h / (2 * fy)])), 1),
+                "center_m": _r(cam.center),
+                "axis": _r(R[2]),
+                "right": _r(R[0]),
+                "up": _r(-R[1]),
+            }
+        )
     return {"cameras": cams, "sha256": rig.sha256()}
 
 
@@ -75,10 +85,15 @@ def _tracks_data(lay: SessionLayout) -> dict[str, Any] | None:
     ok = np.isfinite(std)
     mean_std = np.where(ok.any(-1), np.where(ok, std, 0).sum(-1) / np.maximum(ok.sum(-1), 1), np.nan)
     return {
-        "fps": float(d["fps"]) / step, "frame_index": d["frame_index"][sel].tolist(),
-        "track_id": d["track_id"].tolist(), "joint_names": d["joint_names"].tolist(),
-        "parents": d["parents"].tolist(), "xyz": _r(xyz[sel]), "present": present.astype(int).T.tolist(),
-        "mean_std_m": _r(mean_std.T, 4) if std.size else [], "source": str(d["source"]),
+        "fps": float(d["fps"]) / step,
+        "frame_index": d["frame_index"][sel].tolist(),
+        "track_id": d["track_id"].tolist(),
+        "joint_names": d["joint_names"].tolist(),
+        "parents": d["parents"].tolist(),
+        "xyz": _r(xyz[sel]),
+        "present": present.astype(int).T.tolist(),
+        "mean_std_m": _r(mean_std.T, 4) if std.size else [],
+        "source": str(d["source"]),
         "step": step,
     }
 
@@ -94,8 +109,13 @@ def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
     xyz = d["xyz_m"]
     if xyz.ndim != 4:  # (K,H,J,3) expected
         return None
-    return {"xyz": _r(xyz), "track_id": d["track_id"].tolist(), "start_index": int(d["start_index"]),
-            "model": str(d.get("model", "")), "fps": float(d["fps"]) if "fps" in d else None}
+    return {
+        "xyz": _r(xyz),
+        "track_id": d["track_id"].tolist(),
+        "start_index": int(d["start_index"]),
+        "model": str(d.get("model", "")),
+        "fps": float(d["fps"]) if "fps" in d else None,
+    }
 
 
 def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
@@ -108,8 +128,14 @@ def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
             continue
         try:
             rec = json.loads(p.read_text())
-            rows.append({"stage": rec["stage"], "version": rec["version"],
-                         "model_sha256": rec.get("model_sha256", "")[:12], "inputs": len(rec["inputs"])})
+            rows.append(
+                {
+                    "stage": rec["stage"],
+                    "version": rec["version"],
+                    "model_sha256": rec.get("model_sha256", "")[:12],
+                    "inputs": len(rec["inputs"]),
+                }
+            )
         except (json.JSONDecodeError, KeyError):
             continue
     return rows
@@ -122,15 +148,24 @@ def collect(lay: SessionLayout, title: str) -> dict[str, Any]:
             meta = load_toml(lay.session_toml)
         except Exception:
             meta = {}
-    return {"title": title, "rig": _rig_data(lay), "detections": _detection_rates(lay),
-            "tracks": _tracks_data(lay), "forecast": _forecast_data(lay), "provenance": _provenance(lay),
-            "session": {k: v for k, v in meta.items() if isinstance(v, (str, int, float))}}
+    return {
+        "title": title,
+        "rig": _rig_data(lay),
+        "detections": _detection_rates(lay),
+        "tracks": _tracks_data(lay),
+        "forecast": _forecast_data(lay),
+        "provenance": _provenance(lay),
+        "session": {k: v for k, v in meta.items() if isinstance(v, (str, int, float))},
+    }
 
 
 def render(data: dict[str, Any]) -> str:
     payload = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
-    return (_TEMPLATE.replace("__TITLE__", html.escape(data["title"]))
-            .replace("__DATA__", payload).replace("__SCRIPT__", _SCRIPT))
+    return (
+        _TEMPLATE.replace("__TITLE__", html.escape(data["title"]))
+        .replace("__DATA__", payload)
+        .replace("__SCRIPT__", _SCRIPT)
+    )
 
 
 def write_report(lay: SessionLayout, title: str = "") -> Path:

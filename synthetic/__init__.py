@@ -17,7 +17,24 @@ from synthetic.rigs import Box, Room, kitchen, kitchen_rig, kitchen_room, ring_r
 from synthetic.world import Scene, SceneConfig, load_gt, make_scene, write_session
 
 __all__ = [
-    "Box", "RenderConfig", "Rendering", "Room", "Scene", "SceneConfig", "kitchen", "kitchen_rig",
-    "kitchen_room", "list_clips", "load_bvh_body19", "load_clip", "load_gt", "make_scene", "mocap_root",
-    "read_bvh", "render_scene", "ring_rig", "ring_room", "write_session",
+    "Box",
+    "RenderConfig",
+    "Rendering",
+    "Room",
+    "Scene",
+    "SceneConfig",
+    "kitchen",
+    "kitchen_rig",
+    "kitchen_room",
+    "list_clips",
+    "load_bvh_body19",
+    "load_clip",
+    "load_gt",
+    "make_scene",
+    "mocap_root",
+    "read_bvh",
+    "render_scene",
+    "ring_rig",
+    "ring_room",
+    "write_session",
 ]

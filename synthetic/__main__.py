@@ -37,16 +37,33 @@ def main(argv: list[str] | None = None) -> int:
         rig, room = rigs.kitchen_rig(a.cams, seed=a.seed), rigs.kitchen_room()
     else:
         rig, room = rigs.ring_rig(a.cams, 3.0, seed=a.seed), rigs.ring_room(3.0)
-    scene = world.make_scene(room, world.SceneConfig(n_people=a.people, duration_s=a.seconds, fps=a.fps,
-                                                     seed=a.seed, motion=a.motion, enter_leave=a.enter_leave))
-    cfg = R.RenderConfig(skeleton=a.skeleton, noise_px=a.noise_px, missed_joint_rate=a.missed_joints,
-                         flip_rate=a.flips, false_positive_rate=a.false_positives,
-                         missed_detection_rate=a.missed_detections,
-                         time_offset_std_frames=a.time_offset_std_frames,
-                         time_drift_std_ppm=a.time_drift_std_ppm, seed=a.seed)
+    scene = world.make_scene(
+        room,
+        world.SceneConfig(
+            n_people=a.people,
+            duration_s=a.seconds,
+            fps=a.fps,
+            seed=a.seed,
+            motion=a.motion,
+            enter_leave=a.enter_leave,
+        ),
+    )
+    cfg = R.RenderConfig(
+        skeleton=a.skeleton,
+        noise_px=a.noise_px,
+        missed_joint_rate=a.missed_joints,
+        flip_rate=a.flips,
+        false_positive_rate=a.false_positives,
+        missed_detection_rate=a.missed_detections,
+        time_offset_std_frames=a.time_offset_std_frames,
+        time_drift_std_ppm=a.time_drift_std_ppm,
+        seed=a.seed,
+    )
     lay = world.write_session(scene, R.render(scene, rig, cfg), rig, a.out)
-    print(f"wrote {lay.root}: {len(rig)} cameras, {scene.n_people} people ({', '.join(scene.clip_names)}), "
-          f"{scene.n_frames} frames at {scene.fps:g} fps")
+    print(
+        f"wrote {lay.root}: {len(rig)} cameras, {scene.n_people} people ({', '.join(scene.clip_names)}), "
+        f"{scene.n_frames} frames at {scene.fps:g} fps"
+    )
     return 0
 
 

@@ -67,8 +67,14 @@ _NAME_CANDIDATES: dict[str, tuple[str, ...]] = {
     "right_wrist": ("RightHand", "RightWrist", "CC_Base_R_Hand", "R_Wrist"),
     "head": ("Head", "CC_Base_Head", "head"),
 }
-_FOOT_CANDIDATES = ("LeftToeBase", "RightToeBase", "LeftToe", "RightToe", "CC_Base_L_ToeBase",
-                    "CC_Base_R_ToeBase")
+_FOOT_CANDIDATES = (
+    "LeftToeBase",
+    "RightToeBase",
+    "LeftToe",
+    "RightToe",
+    "CC_Base_L_ToeBase",
+    "CC_Base_R_ToeBase",
+)
 
 # Face points as offsets (forward, left, up) in metres from the BVH head joint (base of the
 # skull / top of the neck) in the head frame. Approximations of an adult head, not measured.
@@ -226,11 +232,11 @@ def read_bvh(path: str | os.PathLike) -> Bvh:
                 stack.pop()
                 i += 1
             elif t == "OFFSET":
-                offsets[stack[-1]] = [float(v) for v in tok[i + 1:i + 4]]
+                offsets[stack[-1]] = [float(v) for v in tok[i + 1 : i + 4]]
                 i += 4
             elif t == "CHANNELS":
                 n = int(tok[i + 1])
-                chans = tuple(tok[i + 2:i + 2 + n])
+                chans = tuple(tok[i + 2 : i + 2 + n])
                 for c in chans:
                     if c[0].upper() not in "XYZ" or c[1:].lower() not in ("position", "rotation"):
                         raise ValueError(f"unknown channel '{c}'")
@@ -239,8 +245,12 @@ def read_bvh(path: str | os.PathLike) -> Bvh:
             else:
                 raise ValueError(f"unexpected token '{t}'")
     except (ValueError, IndexError) as e:
-        raise BvhError(path, "HIERARCHY", f"cannot parse near token {i}: {e}",
-                       "The hierarchy is malformed; re-export the file.") from e
+        raise BvhError(
+            path,
+            "HIERARCHY",
+            f"cannot parse near token {i}: {e}",
+            "The hierarchy is malformed; re-export the file.",
+        ) from e
     # MOTION header
     lines = motion_text.lstrip().split("\n", 2)
     try:
@@ -254,16 +264,24 @@ def read_bvh(path: str | os.PathLike) -> Bvh:
     if n_full < n_frames:
         log.warning("%s: header says %d frames, %d complete rows found; using those", path, n_frames, n_full)
     if n_full == 0:
-        raise BvhError(path, "MOTION", f"no complete frame of {n_ch} channel values.",
-                       "The file is truncated.")
+        raise BvhError(
+            path, "MOTION", f"no complete frame of {n_ch} channel values.", "The file is truncated."
+        )
     n_use = min(n_full, n_frames) if n_frames > 0 else n_full
     motion = values[: n_use * n_ch].reshape(n_use, n_ch)
     if not (frame_time_s > 0):
         raise BvhError(path, "Frame Time", f"must be > 0, got {frame_time_s}.", "Fix the MOTION header.")
     starts = np.cumsum([0] + [len(c) for c in channels[:-1]])
-    return Bvh(str(path), tuple(names), np.asarray(parents, dtype=np.int64),
-               np.asarray(offsets, dtype=np.float64), tuple(channels),
-               np.asarray(starts, dtype=np.int64), motion, frame_time_s)
+    return Bvh(
+        str(path),
+        tuple(names),
+        np.asarray(parents, dtype=np.int64),
+        np.asarray(offsets, dtype=np.float64),
+        tuple(channels),
+        np.asarray(starts, dtype=np.int64),
+        motion,
+        frame_time_s,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -329,8 +347,9 @@ def resample(xyz: np.ndarray, fps_in: float, fps_out: float) -> np.ndarray:
     return (1.0 - w) * xyz[i0] + w * xyz[i0 + 1]
 
 
-def bvh_to_body19(bvh: Bvh, unit_m: float | str | None = None, drop_tpose: bool | None = None
-                  ) -> tuple[np.ndarray, str]:
+def bvh_to_body19(
+    bvh: Bvh, unit_m: float | str | None = None, drop_tpose: bool | None = None
+) -> tuple[np.ndarray, str]:
     """Canonical ``(F,19,3)`` metres z-up at the file's frame rate, and the unit name used.
 
     See the module docstring for the mapping, unit/axis detection and face approximation.
@@ -339,8 +358,12 @@ def bvh_to_body19(bvh: Bvh, unit_m: float | str | None = None, drop_tpose: bool 
     for name, cands in _NAME_CANDIDATES.items():
         j = _pick(bvh, cands)
         if j is None:
-            raise BvhError(bvh.path, name, f"no BVH joint for '{name}' (tried {list(cands)}).",
-                           "Add the rig's joint name to synthetic.bvh._NAME_CANDIDATES.")
+            raise BvhError(
+                bvh.path,
+                name,
+                f"no BVH joint for '{name}' (tried {list(cands)}).",
+                "Add the rig's joint name to synthetic.bvh._NAME_CANDIDATES.",
+            )
         idx[name] = j
     head = idx["head"]
     head_parent = int(bvh.parents[head])
@@ -350,8 +373,13 @@ def bvh_to_body19(bvh: Bvh, unit_m: float | str | None = None, drop_tpose: bool 
     P, R = bvh.forward_kinematics(order)
     body = {n: P[:, k] for k, n in enumerate(_NAME_CANDIDATES)}
     neck_joint = P[:, len(_NAME_CANDIDATES)]
-    foot_pts = np.concatenate([P[:, len(_NAME_CANDIDATES) + 1:], P[:, [order.index(idx["left_ankle"]),
-                                                                     order.index(idx["right_ankle"])]]], 1)
+    foot_pts = np.concatenate(
+        [
+            P[:, len(_NAME_CANDIDATES) + 1 :],
+            P[:, [order.index(idx["left_ankle"]), order.index(idx["right_ankle"])]],
+        ],
+        1,
+    )
     R_head = R[:, list(_NAME_CANDIDATES).index("head")]
 
     # Drop a prepended T-pose: frame 0 far from frame 1 compared with the clip's typical step.
@@ -385,8 +413,20 @@ def bvh_to_body19(bvh: Bvh, unit_m: float | str | None = None, drop_tpose: bool 
 
     out = np.full((len(next(iter(body.values()))), len(BODY19), 3), np.nan)
     J = {n: i for i, n in enumerate(BODY19)}
-    for n in ("left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
-              "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist"):
+    for n in (
+        "left_hip",
+        "right_hip",
+        "left_knee",
+        "right_knee",
+        "left_ankle",
+        "right_ankle",
+        "left_shoulder",
+        "right_shoulder",
+        "left_elbow",
+        "right_elbow",
+        "left_wrist",
+        "right_wrist",
+    ):
         out[:, J[n]] = to_world(body[n])
     out[:, J["pelvis"]] = 0.5 * (out[:, J["left_hip"]] + out[:, J["right_hip"]])
     out[:, J["neck"]] = 0.5 * (out[:, J["left_shoulder"]] + out[:, J["right_shoulder"]])
@@ -394,8 +434,12 @@ def bvh_to_body19(bvh: Bvh, unit_m: float | str | None = None, drop_tpose: bool 
     # Head frame in head-joint-local coordinates, averaged over the clip.
     head_w = to_world(body["head"])
     Rh = np.einsum("ab,fbc->fac", M, R_head)  # head joint rotation, world axes
-    left_w = _normalize(out[:, J["left_shoulder"]] - out[:, J["right_shoulder"]]
-                        + out[:, J["left_hip"]] - out[:, J["right_hip"]])
+    left_w = _normalize(
+        out[:, J["left_shoulder"]]
+        - out[:, J["right_shoulder"]]
+        + out[:, J["left_hip"]]
+        - out[:, J["right_hip"]]
+    )
     up_w = _normalize(head_w - to_world(neck_joint))
     fwd_w = _normalize(np.cross(left_w, up_w))  # facing direction (z up: forward = left x up)
     up_l = _normalize(np.einsum("fba,fb->fa", Rh, up_w).mean(0))
@@ -450,8 +494,12 @@ def _load_native(path: str, unit_m, drop_tpose) -> tuple[np.ndarray, float, str]
     return xyz, bvh.fps, unit
 
 
-def load_clip(path: str | os.PathLike, fps: float | None = None, unit_m: float | str | None = None,
-              drop_tpose: bool | None = None) -> MocapClip:
+def load_clip(
+    path: str | os.PathLike,
+    fps: float | None = None,
+    unit_m: float | str | None = None,
+    drop_tpose: bool | None = None,
+) -> MocapClip:
     """Load a BVH file as a :class:`MocapClip` (body19, metres, z up), resampled to ``fps`` if given."""
     path = Path(path)
     xyz, native_fps, unit = _load_native(str(path.resolve()), unit_m, drop_tpose)
@@ -459,8 +507,12 @@ def load_clip(path: str | os.PathLike, fps: float | None = None, unit_m: float |
     return clip if fps is None else clip.resample(fps)
 
 
-def load_bvh_body19(path: str | os.PathLike, fps: float | None = None, unit_m: float | str | None = None,
-                    drop_tpose: bool | None = None) -> np.ndarray:
+def load_bvh_body19(
+    path: str | os.PathLike,
+    fps: float | None = None,
+    unit_m: float | str | None = None,
+    drop_tpose: bool | None = None,
+) -> np.ndarray:
     """``(T,19,3)`` metres, z up, floor at z = 0, at ``fps`` (default: the file's rate)."""
     return load_clip(path, fps, unit_m, drop_tpose).xyz_m
 
@@ -502,7 +554,7 @@ def _header_duration(path: str, size: int, mtime_ns: int) -> float:
     if i < 0:
         return 0.0
     n, ft = 0, 0.0
-    for line in data[i:i + 200].splitlines()[1:3]:
+    for line in data[i : i + 200].splitlines()[1:3]:
         key, _, val = line.decode(errors="replace").partition(":")
         if key.strip().lower() == "frames":
             n = int(val)

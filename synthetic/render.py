@@ -43,12 +43,18 @@ from synthetic.world import J19, Scene, config_from_dict, procedural_walk
 FLIP19 = CANONICAL.flip_index
 # Capsules (joint a, joint b, radius key) approximating a body's silhouette.
 _CAPSULES = (
-    ("neck", "pelvis", "torso"), ("left_shoulder", "right_hip", "torso_side"),
-    ("right_shoulder", "left_hip", "torso_side"), ("neck", "nose", "head"),
-    ("left_shoulder", "left_elbow", "limb"), ("left_elbow", "left_wrist", "limb"),
-    ("right_shoulder", "right_elbow", "limb"), ("right_elbow", "right_wrist", "limb"),
-    ("left_hip", "left_knee", "limb"), ("left_knee", "left_ankle", "limb"),
-    ("right_hip", "right_knee", "limb"), ("right_knee", "right_ankle", "limb"),
+    ("neck", "pelvis", "torso"),
+    ("left_shoulder", "right_hip", "torso_side"),
+    ("right_shoulder", "left_hip", "torso_side"),
+    ("neck", "nose", "head"),
+    ("left_shoulder", "left_elbow", "limb"),
+    ("left_elbow", "left_wrist", "limb"),
+    ("right_shoulder", "right_elbow", "limb"),
+    ("right_elbow", "right_wrist", "limb"),
+    ("left_hip", "left_knee", "limb"),
+    ("left_knee", "left_ankle", "limb"),
+    ("right_hip", "right_knee", "limb"),
+    ("right_knee", "right_ankle", "limb"),
 )
 _CAP_A = np.array([J19[a] for a, _, _ in _CAPSULES])
 _CAP_B = np.array([J19[b] for _, b, _ in _CAPSULES])
@@ -153,8 +159,9 @@ def furniture_hidden(center: np.ndarray, X: np.ndarray, lo: np.ndarray, hi: np.n
     return hit
 
 
-def people_hidden(xy: np.ndarray, depth: np.ndarray, f_px: float, radii_m: np.ndarray,
-                  margin_m: float = 0.05) -> np.ndarray:
+def people_hidden(
+    xy: np.ndarray, depth: np.ndarray, f_px: float, radii_m: np.ndarray, margin_m: float = 0.05
+) -> np.ndarray:
     """(T,P,J) bool: joint ``xy (T,P,J,2)`` at ``depth (T,P,J)`` lies in another person's capsules at a
     smaller depth. Capsule radius in pixels is ``f_px * radius_m / depth``. Only joints inside the
     other person's image box (grown by its largest capsule radius) are tested."""
@@ -173,8 +180,12 @@ def people_hidden(xy: np.ndarray, depth: np.ndarray, f_px: float, radii_m: np.nd
         zmin = np.nanmin(depth, axis=2)  # (T,Q)
         zmax = np.nanmax(depth, axis=2)
     ok = np.isfinite(lo[..., 0]) & np.isfinite(zmin)
-    ov = ((lo[:, :, None, 0] <= hi[:, None, :, 0]) & (hi[:, :, None, 0] >= lo[:, None, :, 0])
-          & (lo[:, :, None, 1] <= hi[:, None, :, 1]) & (hi[:, :, None, 1] >= lo[:, None, :, 1]))
+    ov = (
+        (lo[:, :, None, 0] <= hi[:, None, :, 0])
+        & (hi[:, :, None, 0] >= lo[:, None, :, 0])
+        & (lo[:, :, None, 1] <= hi[:, None, :, 1])
+        & (hi[:, :, None, 1] >= lo[:, None, :, 1])
+    )
     ov &= ok[:, :, None] & ok[:, None, :] & (zmin[:, None, :] < zmax[:, :, None] - margin_m)
     ov &= ~np.eye(P, dtype=bool)[None]
     t, p, q = np.nonzero(ov)  # person p possibly behind person q at frame t
@@ -183,9 +194,13 @@ def people_hidden(xy: np.ndarray, depth: np.ndarray, f_px: float, radii_m: np.nd
     pts = xy[t, p]  # (M,J,2)
     lq, hq = lo[t, q][:, None], hi[t, q][:, None]  # (M,1,2)
     with np.errstate(invalid="ignore"):
-        inb = ((pts[..., 0] >= lq[..., 0]) & (pts[..., 0] <= hq[..., 0])
-               & (pts[..., 1] >= lq[..., 1]) & (pts[..., 1] <= hq[..., 1])
-               & (depth[t, p] > zmin[t, q][:, None] + margin_m))  # (M,J); NaN -> False
+        inb = (
+            (pts[..., 0] >= lq[..., 0])
+            & (pts[..., 0] <= hq[..., 0])
+            & (pts[..., 1] >= lq[..., 1])
+            & (pts[..., 1] <= hq[..., 1])
+            & (depth[t, p] > zmin[t, q][:, None] + margin_m)
+        )  # (M,J); NaN -> False
     m, j = np.nonzero(inb)
     if len(m) == 0:
         return hidden
@@ -210,8 +225,12 @@ def people_hidden(xy: np.ndarray, depth: np.ndarray, f_px: float, radii_m: np.nd
 
 
 def _capsule_radii(cfg: RenderConfig) -> np.ndarray:
-    table = {"torso": cfg.torso_radius_m, "torso_side": 0.8 * cfg.torso_radius_m, "head": cfg.head_radius_m,
-             "limb": cfg.limb_radius_m}
+    table = {
+        "torso": cfg.torso_radius_m,
+        "torso_side": 0.8 * cfg.torso_radius_m,
+        "head": cfg.head_radius_m,
+        "limb": cfg.limb_radius_m,
+    }
     return np.array([table[k] for _, _, k in _CAPSULES])
 
 
@@ -219,17 +238,29 @@ def _scores(err_px: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(0.97 * np.exp(-0.5 * (err_px / 8.0) ** 2) - rng.uniform(0, 0.08, err_px.shape), 0.05, 1.0)
 
 
-def _camera_times(rig: CameraRig, cfg: RenderConfig,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _camera_times(
+    rig: CameraRig, cfg: RenderConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     C = len(rig)
-    off = (np.asarray(cfg.time_offsets_frames, float) if cfg.time_offsets_frames is not None
-           else rng.normal(0, cfg.time_offset_std_frames, C) if cfg.time_offset_std_frames > 0
-           else np.zeros(C))
-    drift = (np.asarray(cfg.time_drifts_ppm, float) if cfg.time_drifts_ppm is not None
-             else rng.normal(0, cfg.time_drift_std_ppm, C) if cfg.time_drift_std_ppm > 0 else np.zeros(C))
+    off = (
+        np.asarray(cfg.time_offsets_frames, float)
+        if cfg.time_offsets_frames is not None
+        else rng.normal(0, cfg.time_offset_std_frames, C)
+        if cfg.time_offset_std_frames > 0
+        else np.zeros(C)
+    )
+    drift = (
+        np.asarray(cfg.time_drifts_ppm, float)
+        if cfg.time_drifts_ppm is not None
+        else rng.normal(0, cfg.time_drift_std_ppm, C)
+        if cfg.time_drift_std_ppm > 0
+        else np.zeros(C)
+    )
     if off.shape != (C,) or drift.shape != (C,):
-        raise ValueError(f"RenderConfig: time_offsets_frames/time_drifts_ppm need {C} values "
-                         f"(one per camera), got {off.shape} and {drift.shape}")
+        raise ValueError(
+            f"RenderConfig: time_offsets_frames/time_drifts_ppm need {C} values "
+            f"(one per camera), got {off.shape} and {drift.shape}"
+        )
     return off, drift
 
 
@@ -251,9 +282,15 @@ def _project(cam: Camera, X: np.ndarray, clip: bool = True) -> tuple[np.ndarray,
     return (_clip_to_image(cam, xy) if clip else xy), depth
 
 
-def render_camera(scene: Scene, rig: CameraRig, c: int, cfg: RenderConfig, offset_frames: float,
-                  drift_ppm: float, rng: np.random.Generator
-                  ) -> tuple[Detections, np.ndarray, np.ndarray, np.ndarray]:
+def render_camera(
+    scene: Scene,
+    rig: CameraRig,
+    c: int,
+    cfg: RenderConfig,
+    offset_frames: float,
+    drift_ppm: float,
+    rng: np.random.Generator,
+) -> tuple[Detections, np.ndarray, np.ndarray, np.ndarray]:
     """One camera: (Detections, gt_index (T,P_c), visible (T,P,19), gt_xy_px (T,P,19,2))."""
     cam = rig[c]
     gt = scene.gt_xyz_m
@@ -346,9 +383,17 @@ def render_camera(scene: Scene, rig: CameraRig, c: int, cfg: RenderConfig, offse
     box_score = out_score.sum(-1) / n_j
     boxes = np.concatenate([lo, hi, box_score[..., None]], -1)
     boxes[~out_ok] = np.nan
-    det = Detections(camera=cam.name, skeleton=cfg.skeleton, frame_index=np.arange(T),
-                     t_ns=np.round(np.arange(T) / scene.fps * 1e9).astype(np.int64), xy_px=out_xy,
-                     score=out_score, boxes=boxes, model=cfg.model, image_size_wh=cam.size_wh)
+    det = Detections(
+        camera=cam.name,
+        skeleton=cfg.skeleton,
+        frame_index=np.arange(T),
+        t_ns=np.round(np.arange(T) / scene.fps * 1e9).astype(np.int64),
+        xy_px=out_xy,
+        score=out_score,
+        boxes=boxes,
+        model=cfg.model,
+        image_size_wh=cam.size_wh,
+    )
     return det, gt_index, visible, gt_xy
 
 

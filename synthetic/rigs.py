@@ -18,8 +18,17 @@ import numpy as np
 
 from calibrate.camera import Camera, CameraRig
 
-__all__ = ["Box", "Room", "look_at", "make_camera", "ring_rig", "ring_room", "kitchen_rig", "kitchen_room",
-           "kitchen"]
+__all__ = [
+    "Box",
+    "Room",
+    "look_at",
+    "make_camera",
+    "ring_rig",
+    "ring_room",
+    "kitchen_rig",
+    "kitchen_room",
+    "kitchen",
+]
 
 
 def look_at(center_m, target_m, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -39,8 +48,15 @@ def look_at(center_m, target_m, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndar
     return R, -R @ c
 
 
-def make_camera(name: str, center_m, target_m, size_wh=(1280, 720), fov_h_deg: float = 80.0,
-                dist=None, roll_deg: float = 0.0) -> Camera:
+def make_camera(
+    name: str,
+    center_m,
+    target_m,
+    size_wh=(1280, 720),
+    fov_h_deg: float = 80.0,
+    dist=None,
+    roll_deg: float = 0.0,
+) -> Camera:
     """A pinhole camera at ``center_m`` looking at ``target_m``, horizontal field of view ``fov_h_deg``."""
     w, h = int(size_wh[0]), int(size_wh[1])
     f = 0.5 * w / np.tan(np.deg2rad(fov_h_deg) / 2)
@@ -96,9 +112,17 @@ def _mild_distortion(rng: np.random.Generator) -> np.ndarray:
     return np.array([k1, rng.uniform(0.0, 0.03), rng.normal(0, 5e-4), rng.normal(0, 5e-4), 0.0])
 
 
-def ring_rig(n_cams: int = 6, radius_m: float = 3.0, height_m: float = 2.0, size_wh=(1280, 720),
-             fov_h_deg: float = 70.0, target_m=(0.0, 0.0, 1.0), distortion: bool = False,
-             jitter_m: float = 0.0, seed: int = 0) -> CameraRig:
+def ring_rig(
+    n_cams: int = 6,
+    radius_m: float = 3.0,
+    height_m: float = 2.0,
+    size_wh=(1280, 720),
+    fov_h_deg: float = 70.0,
+    target_m=(0.0, 0.0, 1.0),
+    distortion: bool = False,
+    jitter_m: float = 0.0,
+    seed: int = 0,
+) -> CameraRig:
     """``n_cams`` cameras evenly on a circle of ``radius_m`` at ``height_m``, all looking at ``target_m``.
 
     ``distortion`` adds mild radial/tangential distortion; ``jitter_m`` perturbs centres and
@@ -129,10 +153,22 @@ _KITCHEN_BOXES = (
 
 # Camera mounting points (x, y) at ~2.5 m, in an order that spreads the first k cameras around the room.
 _KITCHEN_MOUNTS = (
-    (-3.9, -2.9), (3.9, 2.9), (3.9, -2.9), (-3.9, 2.9),  # corners
-    (0.0, -2.95), (0.0, 2.95), (-3.95, 0.0), (3.95, 0.0),  # wall centres
-    (-2.0, -2.95), (2.0, 2.95), (2.0, -2.95), (-2.0, 2.95),  # along the long walls
-    (-3.95, -1.5), (3.95, 1.5), (3.95, -1.5), (-3.95, 1.5),  # along the short walls
+    (-3.9, -2.9),
+    (3.9, 2.9),
+    (3.9, -2.9),
+    (-3.9, 2.9),  # corners
+    (0.0, -2.95),
+    (0.0, 2.95),
+    (-3.95, 0.0),
+    (3.95, 0.0),  # wall centres
+    (-2.0, -2.95),
+    (2.0, 2.95),
+    (2.0, -2.95),
+    (-2.0, 2.95),  # along the long walls
+    (-3.95, -1.5),
+    (3.95, 1.5),
+    (3.95, -1.5),
+    (-3.95, 1.5),  # along the short walls
 )
 
 
@@ -141,8 +177,15 @@ def kitchen_room() -> Room:
     return Room("kitchen", (-4.0, 4.0, -3.0, 3.0), 2.8, _KITCHEN_BOXES)
 
 
-def kitchen_rig(n_cams: int = 12, size_wh=(1280, 720), fov_h_deg: float = 85.0, height_m: float = 2.5,
-                distortion: bool = True, linkage: str = "full", seed: int = 0) -> CameraRig:
+def kitchen_rig(
+    n_cams: int = 12,
+    size_wh=(1280, 720),
+    fov_h_deg: float = 85.0,
+    height_m: float = 2.5,
+    distortion: bool = True,
+    linkage: str = "full",
+    seed: int = 0,
+) -> CameraRig:
     """Up to 16 wall/corner cameras at ~``height_m`` looking into the kitchen (see :func:`kitchen_room`).
 
     ``linkage="full"``: every camera looks near the room centre (targets jittered ±1 m), so all

@@ -80,11 +80,13 @@ class SceneConfig:
         if self.n_people < 0:
             raise ValueError(f"SceneConfig.n_people must be >= 0, got {self.n_people}")
         if not (self.duration_s > 0 and self.fps > 0):
-            raise ValueError(f"SceneConfig: duration_s and fps must be > 0, got {self.duration_s}, "
-                             f"{self.fps}")
+            raise ValueError(
+                f"SceneConfig: duration_s and fps must be > 0, got {self.duration_s}, {self.fps}"
+            )
         if self.motion not in ("auto", "mocap", "procedural"):
-            raise ValueError("SceneConfig.motion must be 'auto', 'mocap' or 'procedural', "
-                             f"got {self.motion!r}")
+            raise ValueError(
+                f"SceneConfig.motion must be 'auto', 'mocap' or 'procedural', got {self.motion!r}"
+            )
 
     @classmethod
     def from_dict(cls, d: dict) -> SceneConfig:
@@ -146,7 +148,8 @@ def _clip_pool(cfg: SceneConfig) -> list[Path]:
 
 def _usable(xyz: np.ndarray, cfg: SceneConfig) -> bool:
     return xyz.shape[0] >= max(2.0 * cfg.fps, 8) and float(np.percentile(xyz[..., 2].max(1), 95)) <= (
-        cfg.max_head_height_m)
+        cfg.max_head_height_m
+    )
 
 
 def _pingpong_window(n: int, T: int, rng: np.random.Generator) -> np.ndarray:
@@ -164,8 +167,9 @@ def _yaw(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _place(motion: np.ndarray, room: Room, placed: list[np.ndarray], cfg: SceneConfig,
-           rng: np.random.Generator) -> tuple[np.ndarray, int] | None:
+def _place(
+    motion: np.ndarray, room: Room, placed: list[np.ndarray], cfg: SceneConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, int] | None:
     """Rotate/translate ``motion (T,19,3)`` into the room. Returns (placed motion, violations) or None."""
     x0, x1, y0, y1 = room.bounds_m
     m = cfg.wall_margin_m
@@ -199,15 +203,17 @@ def _place(motion: np.ndarray, room: Room, placed: list[np.ndarray], cfg: SceneC
     return best
 
 
-def procedural_walk(n_frames: int, fps: float, room: Room, rng: np.random.Generator,
-                    margin_m: float = 0.4) -> np.ndarray:
+def procedural_walk(
+    n_frames: int, fps: float, room: Room, rng: np.random.Generator, margin_m: float = 0.4
+) -> np.ndarray:
     """A person walking between random waypoints with swinging limbs: ``(T,19,3)`` metres, z up."""
     x0, x1, y0, y1 = room.bounds_m
 
     def free_point() -> np.ndarray:
         for _ in range(100):
-            p = np.array([rng.uniform(x0 + margin_m, x1 - margin_m),
-                          rng.uniform(y0 + margin_m, y1 - margin_m)])
+            p = np.array(
+                [rng.uniform(x0 + margin_m, x1 - margin_m), rng.uniform(y0 + margin_m, y1 - margin_m)]
+            )
             if not any(b.contains_xy(p, 0.35) for b in room.boxes):
                 return p
         return p
@@ -256,8 +262,14 @@ def procedural_walk(n_frames: int, fps: float, room: Room, rng: np.random.Genera
         sh = pel + np.array([0.0, sgn * 0.18 * s, 0.52 * s])
         elbow = sh + uarm * np.stack([np.sin(aa), 0 * aa, -np.cos(aa)], 1)
         wrist = elbow + farm * np.stack([np.sin(aa + 0.3), 0 * aa, -np.cos(aa + 0.3)], 1)
-        for n, v in (("hip", hip), ("knee", knee), ("ankle", ankle), ("shoulder", sh), ("elbow", elbow),
-                     ("wrist", wrist)):
+        for n, v in (
+            ("hip", hip),
+            ("knee", knee),
+            ("ankle", ankle),
+            ("shoulder", sh),
+            ("elbow", elbow),
+            ("wrist", wrist),
+        ):
             out[:, J19[f"{side}_{n}"]] = v
     neck = 0.5 * (out[:, J19["left_shoulder"]] + out[:, J19["right_shoulder"]])
     out[:, J19["neck"]] = neck
@@ -302,7 +314,8 @@ def make_scene(room: Room, config: SceneConfig | None = None, **overrides) -> Sc
     if cfg.motion == "mocap" and not pool:
         raise FileNotFoundError(
             "SceneConfig(motion='mocap'): no BVH clips found; set ROOMCAP_MOCAP or ROOMCAP_SHARED "
-            "(expects <shared>/data/motion) or use motion='procedural'.")
+            "(expects <shared>/data/motion) or use motion='procedural'."
+        )
     long_enough = np.array([bvh.clip_duration_s(f) >= cfg.duration_s for f in pool], dtype=bool)
     perm = rng.permutation(len(pool)) if pool else np.zeros(0, np.int64)
     order = [int(i) for i in perm if long_enough[i]] + [int(i) for i in perm if not long_enough[i]]
@@ -335,8 +348,11 @@ def make_scene(room: Room, config: SceneConfig | None = None, **overrides) -> Sc
         gt[:, p] = m
         names.append(name)
     if total_bad:
-        log.info("scene seed %d: %d person-frames inside furniture or too close to another person",
-                 cfg.seed, total_bad)
+        log.info(
+            "scene seed %d: %d person-frames inside furniture or too close to another person",
+            cfg.seed,
+            total_bad,
+        )
     return Scene(gt, np.arange(P), cfg.fps, room, tuple(names), cfg)
 
 
@@ -359,16 +375,28 @@ def write_session(scene: Scene, rendering, rig: CameraRig, root: str | os.PathLi
     rig.save(lay.calib_dir / "rig.toml", source="synthetic")
     for det in rendering.detections:
         det.save(lay.detections(det.camera))
-    save_toml(lay.session_toml, {
-        "schema": "session/1", "cameras": list(rig.names), "fps": float(scene.fps), "synthetic": True,
-        "seed": int(scene.config.seed), "n_people": int(scene.n_people),
-    }, header="synthetic session (synthetic.world.write_session)")
+    save_toml(
+        lay.session_toml,
+        {
+            "schema": "session/1",
+            "cameras": list(rig.names),
+            "fps": float(scene.fps),
+            "synthetic": True,
+            "seed": int(scene.config.seed),
+            "n_people": int(scene.n_people),
+        },
+        header="synthetic session (synthetic.world.write_session)",
+    )
     arrays = {
-        "schema": schema_tag(GT_SCHEMA, GT_VERSION), "gt_xyz_m": scene.gt_xyz_m.astype(np.float64),
-        "person_ids": scene.person_ids, "fps": np.float64(scene.fps),
+        "schema": schema_tag(GT_SCHEMA, GT_VERSION),
+        "gt_xyz_m": scene.gt_xyz_m.astype(np.float64),
+        "person_ids": scene.person_ids,
+        "fps": np.float64(scene.fps),
         "clip_names": np.array(scene.clip_names),
-        "cameras": np.array(rig.names), "time_offsets_frames": rendering.time_offsets_frames,
-        "time_drifts_ppm": rendering.time_drifts_ppm, "visible": rendering.visible,
+        "cameras": np.array(rig.names),
+        "time_offsets_frames": rendering.time_offsets_frames,
+        "time_drifts_ppm": rendering.time_drifts_ppm,
+        "visible": rendering.visible,
     }
     for name, gi in zip(rig.names, rendering.gt_index, strict=True):
         arrays[f"gt_index_{name}"] = gi

@@ -108,8 +108,12 @@ LEARNED = {"track.motion", "track.birth", "track.train_motion", "track.train_bir
 def test_other_stages_import_without_torch_and_depthai():
     """DESIGN.md: the non-learned parts of track, the keypoints inference path, the pipeline and
     capture (but its OAK source) need neither torch nor depthai."""
-    modules = [m for pkg in ("track", "keypoints", "capture", "pipeline", "synthetic")
-               for m in package_modules(pkg) if m not in LEARNED and m != "capture.oak"]
+    modules = [
+        m
+        for pkg in ("track", "keypoints", "capture", "pipeline", "synthetic")
+        for m in package_modules(pkg)
+        if m not in LEARNED and m != "capture.oak"
+    ]
     result = import_blocked(modules)
     assert not result["failed"], "\n\n".join(f"{m}:\n{tb}" for m, tb in result["failed"].items())
     assert len(result["imported"]) == len(modules)

@@ -54,8 +54,15 @@ def test_truncated_file_is_a_clear_error(tmp_path):
         bvh.read_bvh(p)
 
 
-@pytest.mark.parametrize("rel", ["cmu-bvh-01/01_01.bvh", "cmu-bvh-131/scaled_131_02.bvh",
-                                 "cmu-bvh-131/131_02.bvh", "cmu-bvh-subjects01-07/002/002_01.bvh"])
+@pytest.mark.parametrize(
+    "rel",
+    [
+        "cmu-bvh-01/01_01.bvh",
+        "cmu-bvh-131/scaled_131_02.bvh",
+        "cmu-bvh-131/131_02.bvh",
+        "cmu-bvh-subjects01-07/002/002_01.bvh",
+    ],
+)
 def test_cmu_clips_to_body19(rel):
     path = need_shared("data", "motion", rel)
     x = bvh.load_bvh_body19(path, fps=25)

@@ -45,8 +45,13 @@ def test_kitchen_rig_sees_the_room(linkage, tmp_path):
     xs, ys = np.meshgrid(np.linspace(x0 + 0.5, x1 - 0.5, 12), np.linspace(y0 + 0.5, y1 - 0.5, 9))
     X = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 1.3)], 1)
     xy = rig.project(X)
-    inside = np.isfinite(xy[..., 0]) & (xy[..., 0] >= 0) & (xy[..., 0] < 1280) & (xy[..., 1] >= 0) & (
-        xy[..., 1] < 720)
+    inside = (
+        np.isfinite(xy[..., 0])
+        & (xy[..., 0] >= 0)
+        & (xy[..., 0] < 1280)
+        & (xy[..., 1] >= 0)
+        & (xy[..., 1] < 720)
+    )
     views = inside.sum(0)
     west = c[:, 0] < 0
     covis = (inside[:, None] & inside[None]).sum(-1)  # (C,C) points seen by both cameras

@@ -70,8 +70,12 @@ def test_noise_free_render_equals_projection(ring_scene):
         np.testing.assert_allclose(got[seen], want[seen], atol=1e-3)  # float32 storage
         # every GT joint inside the image is reported (no faults configured)
         w, h = rig[c].size_wh
-        inside = ((want[..., 0] >= -0.5) & (want[..., 0] <= w - 0.5)
-                  & (want[..., 1] >= -0.5) & (want[..., 1] <= h - 0.5))
+        inside = (
+            (want[..., 0] >= -0.5)
+            & (want[..., 0] <= w - 0.5)
+            & (want[..., 1] >= -0.5)
+            & (want[..., 1] <= h - 0.5)
+        )
         assert np.array_equal(seen, inside)
         assert np.all(det.score[t, k][seen] > 0.5)
 
@@ -135,11 +139,13 @@ def test_faults_have_their_rates():
     rig, room = rigs.kitchen(6)
     scene = world.make_scene(room, world.SceneConfig(n_people=4, duration_s=4, fps=25, seed=5))
     base = R.render(scene, rig, R.RenderConfig())
-    r = R.render(scene, rig, R.RenderConfig(missed_joint_rate=0.2, false_positive_rate=0.3,
-                                            missed_detection_rate=0.1))
+    r = R.render(
+        scene, rig, R.RenderConfig(missed_joint_rate=0.2, false_positive_rate=0.3, missed_detection_rate=0.1)
+    )
     n_vis = base.visible.sum()
-    n_rep = sum(np.isfinite(d.xy_px[..., 0])[g >= 0].sum()
-                for d, g in zip(r.detections, r.gt_index, strict=True))
+    n_rep = sum(
+        np.isfinite(d.xy_px[..., 0])[g >= 0].sum() for d, g in zip(r.detections, r.gt_index, strict=True)
+    )
     assert 0.65 < n_rep / n_vis < 0.78  # 0.8 x 0.9 = 0.72 expected   (measured 0.727)
     n_fp = sum((g == -1).sum() for g in r.gt_index)
     # 0.3 drawn per camera and frame, some fall outside the image   (measured 0.25)
@@ -153,8 +159,7 @@ def test_faults_have_their_rates():
 
 def test_time_offset_and_drift():
     rig = rigs.ring_rig(3, 3.0)
-    scene = world.make_scene(rigs.ring_room(3.0),
-                             world.SceneConfig(n_people=1, duration_s=2, fps=25, seed=2))
+    scene = world.make_scene(rigs.ring_room(3.0), world.SceneConfig(n_people=1, duration_s=2, fps=25, seed=2))
     off = (0.0, 0.5, -2.25)
     r = R.render(scene, rig, CLEAN.replace(time_offsets_frames=off, time_drifts_ppm=(0.0, 0.0, 1000.0)))
     np.testing.assert_allclose(r.time_offsets_frames, off)
@@ -172,8 +177,15 @@ def test_time_offset_and_drift():
 
 def test_people_enter_and_leave():
     rig, room = rigs.kitchen(4)
-    cfg = world.SceneConfig(n_people=6, duration_s=8, fps=10, seed=4, enter_leave=True,
-                            enter_leave_fraction=1.0, return_fraction=1.0)
+    cfg = world.SceneConfig(
+        n_people=6,
+        duration_s=8,
+        fps=10,
+        seed=4,
+        enter_leave=True,
+        enter_leave_fraction=1.0,
+        return_fraction=1.0,
+    )
     scene = world.make_scene(room, cfg)
     pres = scene.present
     assert not pres.all() and pres.any(0).all()
@@ -223,8 +235,17 @@ def test_kitchen_12x8x10s_renders_in_seconds():
     t0 = time.perf_counter()
     rig, room = rigs.kitchen(12)
     scene = world.make_scene(room, world.SceneConfig(n_people=8, duration_s=10, fps=25, seed=0))
-    r = R.render(scene, rig, R.RenderConfig(noise_px=3, missed_joint_rate=0.1, flip_rate=0.02,
-                                            false_positive_rate=0.1, missed_detection_rate=0.02))
+    r = R.render(
+        scene,
+        rig,
+        R.RenderConfig(
+            noise_px=3,
+            missed_joint_rate=0.1,
+            flip_rate=0.02,
+            false_positive_rate=0.1,
+            missed_detection_rate=0.02,
+        ),
+    )
     dt = time.perf_counter() - t0
     assert len(r.detections) == 12 and scene.gt_xyz_m.shape == (250, 8, 19, 3)
     hidden = 1 - r.visible.sum() / np.isfinite(r.gt_xy_px[..., 0]).sum()

@@ -24,8 +24,11 @@ from triangulate.stage import GreedyTrackConfig, track_session_greedy, triangula
 def kitchen_session(tmp_path_factory):
     rig, room = kitchen(6)
     scene = make_scene(room, SceneConfig(n_people=3, duration_s=2.0, fps=25.0, seed=3))
-    rd = render(scene, rig, RenderConfig(noise_px=3.0, missed_joint_rate=0.1, flip_rate=0.02,
-                                         false_positive_rate=0.05, seed=3))
+    rd = render(
+        scene,
+        rig,
+        RenderConfig(noise_px=3.0, missed_joint_rate=0.1, flip_rate=0.02, false_positive_rate=0.05, seed=3),
+    )
     root = tmp_path_factory.mktemp("kitchen")
     write_session(scene, rd, rig, root)
     return root, scene
@@ -51,8 +54,10 @@ def test_session_round_trip_scores(kitchen_session):
 def test_camera_order_config_and_unknown_keys(kitchen_session):
     root, scene = kitchen_session
     pcps = []
-    for order in (["cam03", "cam01", "cam00", "cam02", "cam04", "cam05"], ["cam05", "cam04", "cam02", "cam00",
-                                                                         "cam01", "cam03"]):
+    for order in (
+        ["cam03", "cam01", "cam00", "cam02", "cam04", "cam05"],
+        ["cam05", "cam04", "cam02", "cam00", "cam01", "cam03"],
+    ):
         p = Poses3D.load(triangulate_session(root, {"match": {"camera_order": order}}))
         pcps.append(ev.pcp(scene.gt_xyz_m, p.xyz_m.astype(np.float64)).actor_average)
     assert abs(pcps[0] - pcps[1]) <= 0.02  # sec. 4.3.6: robust to camera order; measured < 0.01
@@ -81,9 +86,17 @@ def _dets(rig, X, cams=None, T=3):
             continue
         xy = rig.project(X.reshape(-1, 3))[c].reshape(X.shape[0], 19, 2)
         xy = np.repeat(xy[None], T, 0)
-        out.append(Detections(camera=cam.name, skeleton="body19", frame_index=np.arange(T),
-                              t_ns=np.arange(T) * 40_000_000, xy_px=xy, score=np.full(xy.shape[:-1], 0.9),
-                              boxes=np.full(xy.shape[:2] + (5,), np.nan)))
+        out.append(
+            Detections(
+                camera=cam.name,
+                skeleton="body19",
+                frame_index=np.arange(T),
+                t_ns=np.arange(T) * 40_000_000,
+                xy_px=xy,
+                score=np.full(xy.shape[:-1], 0.9),
+                boxes=np.full(xy.shape[:2] + (5,), np.nan),
+            )
+        )
     return out
 
 
@@ -133,10 +146,20 @@ def test_detections_in_other_skeleton_are_converted(tmp_path, rng):
     dets = []
     for d in _dets(rig, X, T=2):
         from keypoints.skeletons import get_skeleton
+
         coco = get_skeleton("coco17")
         idx = [CANONICAL.index(n) for n in coco.joint_names]
-        dets.append(Detections(camera=d.camera, skeleton="coco17", frame_index=d.frame_index, t_ns=d.t_ns,
-                               xy_px=d.xy_px[:, :, idx], score=d.score[:, :, idx], boxes=d.boxes))
+        dets.append(
+            Detections(
+                camera=d.camera,
+                skeleton="coco17",
+                frame_index=d.frame_index,
+                t_ns=d.t_ns,
+                xy_px=d.xy_px[:, :, idx],
+                score=d.score[:, :, idx],
+                boxes=d.boxes,
+            )
+        )
     lay = _write(tmp_path, rig, dets)
     p = Poses3D.load(triangulate_session(lay.root))
     pelvis = CANONICAL.index("pelvis")

@@ -31,8 +31,15 @@ def test_tracker_keeps_identities_through_gaps_and_shuffles(rng):
     X[20:24, 0] = np.nan  # both poses missing for 4 frames in slot 0
     X[30:33, :, 9] = np.nan  # a wrist missing for 3 frames
     X[40:46, 1] = X[40:46, 1][:, CANONICAL.flip_index]  # mirrored (left/right swapped) 3D poses
-    tf = track_poses(X, np.arange(60), np.arange(60) * 40_000_000, 25.0, CANONICAL.joint_names,
-                     np.asarray(CANONICAL.parents), config=TrackerConfig(sigma=2.0))
+    tf = track_poses(
+        X,
+        np.arange(60),
+        np.arange(60) * 40_000_000,
+        25.0,
+        CANONICAL.joint_names,
+        np.asarray(CANONICAL.parents),
+        config=TrackerConfig(sigma=2.0),
+    )
     assert tf.n_tracks == 2
     mot = ev.mot_metrics(gt, tf.xyz_m.astype(np.float64), threshold_m=0.2)
     assert mot.id_switches == 0 and mot.mota > 0.95  # measured 1.0 (gaps filled by interpolation)
@@ -149,8 +156,16 @@ def test_openpose_json_reader(tmp_path):
 
 def test_openpose_json_real_trial(shared):
     from conftest import need_shared
-    folder = need_shared("data", "pose2sim", "session-2024", "S00_P00_SingleParticipant",
-                         "S00_P00_T01_BalancingTrial", "pose", "cam01_json")
+
+    folder = need_shared(
+        "data",
+        "pose2sim",
+        "session-2024",
+        "S00_P00_SingleParticipant",
+        "S00_P00_T01_BalancingTrial",
+        "pose",
+        "cam01_json",
+    )
     d = read_openpose_folder(folder)  # layout from geometry: BODY_25B (keypoint 1 is an eye)
     assert d.skeleton == "body25b" and d.n_frames == 100
 
@@ -171,21 +186,32 @@ def test_real_pose2sim_trial_matches_pose2sim_trc(tmp_path):
     lay = SessionLayout(tmp_path)
     names = [f"cam0{i}" for i in range(1, 5)]
     CameraRig(tuple(rig[f"cam_0{i}"].replace(name=n) for i, n in zip(range(1, 5), names, strict=True))).save(
-        lay.calib_dir / "rig.toml")
+        lay.calib_dir / "rig.toml"
+    )
     for n in names:
         read_openpose_folder(trial / "pose" / f"{n}_json", camera=n, skeleton="body25b", fps=60).save(
-            lay.detections(n))
+            lay.detections(n)
+        )
     triangulate_session(lay.root)
     tf = TrackFile.load(track_session_greedy(lay.root))
     k = int(np.argmax(tf.mask.any(-1).sum(0)))  # the participant: the longest track
     lines = (trial / "pose-3d" / f"{trial.name}_0-100.trc").read_text().splitlines()
     markers = [m for m in lines[3].split("\t")[2:] if m]
-    rows = [ln.split("\t")[2:2 + 3 * len(markers)] for ln in lines[5:] if ln.strip()]
+    rows = [ln.split("\t")[2 : 2 + 3 * len(markers)] for ln in lines[5:] if ln.strip()]
     trc = np.array([[float(v) for v in r] for r in rows])
     trc = trc.reshape(len(trc), len(markers), 3)
     world = np.stack([trc[..., 2], trc[..., 0], trc[..., 1]], -1)  # Pose2Sim zup2yup: TRC (X,Y,Z) = (y,z,x)
-    pairs = {"RKnee": "right_knee", "LKnee": "left_knee", "RAnkle": "right_ankle",
-             "RShoulder": "right_shoulder", "RElbow": "right_elbow", "RWrist": "right_wrist", "Nose": "nose"}
-    d = [np.linalg.norm(tf.xyz_m[:, k, CANONICAL.index(b)] - world[:, markers.index(m)], axis=-1)
-         for m, b in pairs.items()]
+    pairs = {
+        "RKnee": "right_knee",
+        "LKnee": "left_knee",
+        "RAnkle": "right_ankle",
+        "RShoulder": "right_shoulder",
+        "RElbow": "right_elbow",
+        "RWrist": "right_wrist",
+        "Nose": "nose",
+    }
+    d = [
+        np.linalg.norm(tf.xyz_m[:, k, CANONICAL.index(b)] - world[:, markers.index(m)], axis=-1)
+        for m, b in pairs.items()
+    ]
     assert np.nanmedian(np.concatenate(d)) < 0.04  # measured 17 mm on these markers (all 13: 25 mm)

@@ -35,8 +35,7 @@ _NE_ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2])
 _NE_COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3])
 # cofactors c00 c01 c02 c11 c12 c22 of a symmetric 3x3 matrix (m00 m01 m02 m11 m12 m22 = 0..5):
 # c = m[A] m[B] - m[C] m[D]; _COF[0] = (A, B), _COF[1] = (C, D)
-_COF = np.array([[[3, 2, 1, 0, 1, 0], [5, 4, 4, 5, 2, 3]],
-                 [[4, 1, 2, 2, 0, 1], [4, 5, 3, 2, 4, 1]]])
+_COF = np.array([[[3, 2, 1, 0, 1, 0], [5, 4, 4, 5, 2, 3]], [[4, 1, 2, 2, 0, 1], [4, 5, 3, 2, 4, 1]]])
 _ADJ_FULL = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # (i, j) of the 3x3 adjugate -> cofactor row
 
 
@@ -128,8 +127,9 @@ def normalise_P(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     check_shape("P", P, (None, 3, 4))
     P = P / np.linalg.norm(P[:, 2, :3], axis=1)[:, None, None]
     P = P * np.sign(np.linalg.det(P[:, :, :3]))[:, None, None]  # positive depth in front of the camera
-    c = np.stack([np.einsum("ci,ci->c", P[:, 0, :3], P[:, 2, :3]),
-                  np.einsum("ci,ci->c", P[:, 1, :3], P[:, 2, :3])], 1)
+    c = np.stack(
+        [np.einsum("ci,ci->c", P[:, 0, :3], P[:, 2, :3]), np.einsum("ci,ci->c", P[:, 1, :3], P[:, 2, :3])], 1
+    )
     s = np.sqrt(np.maximum(np.einsum("ci,ci->c", P[:, 0, :3], P[:, 0, :3]) - c[:, 0] ** 2, 1e-12))
     T = np.zeros((len(P), 3, 3))
     T[:, 0, 0] = T[:, 1, 1] = 1.0 / s
@@ -163,7 +163,7 @@ class Triangulator:
         self._K = np.ascontiguousarray(np.concatenate([K9, eps]).T)  # (9, 4C+1)
         self._Prows = np.ascontiguousarray(self.Pn.transpose(1, 0, 2).reshape(3 * C, 4))  # (3C,4): rows, cams
         self._Prows_px = self._Prows.copy()  # the x and y rows times the focal scale: pixel residuals
-        self._Prows_px[:2 * C] *= np.tile(self.s, 2)[:, None]
+        self._Prows_px[: 2 * C] *= np.tile(self.s, 2)[:, None]
         self._c2 = np.ascontiguousarray(self.c.T)[:, :, None]  # (2,C,1)
         self._s1 = self.s[:, None]  # (C,1)
         self._s2 = self.s[:, None] ** 2
@@ -192,12 +192,17 @@ class Triangulator:
         V, ok, used = self.solve_raw(xyn, w0, seen)
         nan = np.float64(np.nan)
         return Triangulated(
-            xyz_m=np.where(ok[:, None], V[:3].T, nan), reproj_err_px=np.where(ok, V[_REPROJ], nan),
-            n_views=np.where(ok, V[_NVIEWS], 0).astype(np.int16), score=np.where(ok, V[_SCORE], 0.0),
-            std_m=np.where(ok, V[_STD], nan), used=used & ok[None])
+            xyz_m=np.where(ok[:, None], V[:3].T, nan),
+            reproj_err_px=np.where(ok, V[_REPROJ], nan),
+            n_views=np.where(ok, V[_NVIEWS], 0).astype(np.int16),
+            score=np.where(ok, V[_SCORE], 0.0),
+            std_m=np.where(ok, V[_STD], nan),
+            used=used & ok[None],
+        )
 
-    def solve_raw(self, xyn: np.ndarray, w0: np.ndarray, seen: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def solve_raw(
+        self, xyn: np.ndarray, w0: np.ndarray, seen: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``solve`` without the masking: V (8,N) with rows x, y, z, 1, score, reprojection error,
         std, view count (``_SCORE`` ...; meaningful where ok), ok (N,) and the views used (C,N)."""
         cfg = self.config
@@ -206,7 +211,7 @@ class Triangulator:
         # feature planes of the normal matrices: (w^2 [x^2+y^2, x, y], w^2, 1) (module doc)
         Fe = np.empty((4 * C + 1, N))
         Fe[-1] = 1.0
-        F3, Fw = Fe[:3 * C].reshape(3, C, N), Fe[3 * C:4 * C]
+        F3, Fw = Fe[: 3 * C].reshape(3, C, N), Fe[3 * C : 4 * C]
         xyr = np.empty((3, C, N))
         np.multiply(xyn, xyn, out=xyr[1:])
         np.add(xyr[1], xyr[2], out=xyr[0])
@@ -218,11 +223,11 @@ class Triangulator:
         A = self._K @ Fe
         Xh[:3] = _solve9(A)  # algebraic first guess (3,N)
         Xh[3] = 1.0
-        depth = self._Prows[2 * C:] @ Xh  # (C,N)
+        depth = self._Prows[2 * C :] @ Xh  # (C,N)
         pos = depth > 1e-6
         used = seen & pos
         ds = np.where(pos, depth, 1.0)
-        thr2 = cfg.max_reproj_px ** 2
+        thr2 = cfg.max_reproj_px**2
         xy_px = xyn * self._s1  # pixels about the principal point, as the scaled projection rows give
         drop = None
         mx = None  # per point, the largest squared error over the views used (after the last projection)
@@ -280,7 +285,7 @@ class Triangulator:
         n_views = V[_NVIEWS]
         n_views[:] = tot[0]
         mean = tot[1:] / np.maximum(n_views, 1.0)  # score, reprojection error, w^2, err^2, s^2
-        V[_SCORE:_SCORE + 2] = mean[:2]
+        V[_SCORE : _SCORE + 2] = mean[:2]
         # covariance sigma^2 (J^T W J)^-1 from the last solve's normal matrix: its rows are the
         # Jacobian d(normalised pixel)/dX weighted by the confidences; back to pixels with the mean
         # focal scale and mean squared confidence of the views used
@@ -293,8 +298,9 @@ class Triangulator:
         return V, ok, used
 
 
-def triangulate_dlt(P: np.ndarray, xy_px: np.ndarray, weights: np.ndarray | None = None,
-                    min_views: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def triangulate_dlt(
+    P: np.ndarray, xy_px: np.ndarray, weights: np.ndarray | None = None, min_views: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
     """Plain weighted DLT (no rejection). P: (C,3,4); xy_px: (C,N,2), NaN = unseen; weights: (C,N).
 
     Returns xyz_m (N,3) (NaN where fewer than ``min_views``) and n_views (N,).
@@ -307,19 +313,26 @@ def triangulate_dlt(P: np.ndarray, xy_px: np.ndarray, weights: np.ndarray | None
 # Plausible limb lengths (metres) by joint-name pair: generous bounds that still catch a joint
 # triangulated from mismatched or flipped views.
 LIMB_BOUNDS_M = {
-    ("left_shoulder", "left_elbow"): (0.12, 0.50), ("right_shoulder", "right_elbow"): (0.12, 0.50),
-    ("left_elbow", "left_wrist"): (0.10, 0.45), ("right_elbow", "right_wrist"): (0.10, 0.45),
-    ("left_hip", "left_knee"): (0.20, 0.65), ("right_hip", "right_knee"): (0.20, 0.65),
-    ("left_knee", "left_ankle"): (0.20, 0.65), ("right_knee", "right_ankle"): (0.20, 0.65),
-    ("left_shoulder", "right_shoulder"): (0.15, 0.60), ("left_hip", "right_hip"): (0.08, 0.50),
-    ("neck", "pelvis"): (0.25, 0.90), ("nose", "neck"): (0.03, 0.45),
+    ("left_shoulder", "left_elbow"): (0.12, 0.50),
+    ("right_shoulder", "right_elbow"): (0.12, 0.50),
+    ("left_elbow", "left_wrist"): (0.10, 0.45),
+    ("right_elbow", "right_wrist"): (0.10, 0.45),
+    ("left_hip", "left_knee"): (0.20, 0.65),
+    ("right_hip", "right_knee"): (0.20, 0.65),
+    ("left_knee", "left_ankle"): (0.20, 0.65),
+    ("right_knee", "right_ankle"): (0.20, 0.65),
+    ("left_shoulder", "right_shoulder"): (0.15, 0.60),
+    ("left_hip", "right_hip"): (0.08, 0.50),
+    ("neck", "pelvis"): (0.25, 0.90),
+    ("nose", "neck"): (0.03, 0.45),
 }
 
 
 def _pairs(joint_names: tuple[str, ...], bounds: dict):
     idx = {n: i for i, n in enumerate(joint_names)}
-    pairs = [(idx[a], idx[b], lo * lo, hi * hi) for (a, b), (lo, hi) in bounds.items()
-             if a in idx and b in idx]  # squared bounds
+    pairs = [
+        (idx[a], idx[b], lo * lo, hi * hi) for (a, b), (lo, hi) in bounds.items() if a in idx and b in idx
+    ]  # squared bounds
     return tuple(np.asarray(v) for v in zip(*pairs, strict=True)) if pairs else None
 
 
@@ -328,8 +341,9 @@ def _limb_pairs(joint_names: tuple[str, ...]):
     return _pairs(joint_names, LIMB_BOUNDS_M)
 
 
-def limb_check(xyz_m: np.ndarray, reproj_err_px: np.ndarray, joint_names: tuple[str, ...],
-               bounds: dict | None = None) -> np.ndarray:
+def limb_check(
+    xyz_m: np.ndarray, reproj_err_px: np.ndarray, joint_names: tuple[str, ...], bounds: dict | None = None
+) -> np.ndarray:
     """Plausibility of limb lengths. xyz_m: (M,J,3); reproj_err_px: (M,J).
 
     For each limb outside its bounds the endpoint with the larger reprojection error is marked.

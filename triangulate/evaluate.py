@@ -47,13 +47,15 @@ class PCPResult:
         for k, v in self.per_actor_limb.items():
             lines.append(f"{k:<12}" + " ".join(f"{x:8.3f}" for x in v))
         lines.append("average     " + " ".join(f"{x:8.3f}" for x in self.per_actor))
-        lines.append(f"actor average (aAvg) {self.actor_average:.4f}   "
-                     f"frame-weighted (gAvg) {self.frame_weighted:.4f}")
+        lines.append(
+            f"actor average (aAvg) {self.actor_average:.4f}   frame-weighted (gAvg) {self.frame_weighted:.4f}"
+        )
         return "\n".join(lines)
 
 
-def pcp(gt: np.ndarray, pred: np.ndarray, skeleton: str | Skeleton = CANONICAL,
-        alpha: float = 0.5) -> PCPResult:
+def pcp(
+    gt: np.ndarray, pred: np.ndarray, skeleton: str | Skeleton = CANONICAL, alpha: float = 0.5
+) -> PCPResult:
     """PCP in 3D (see module doc). gt (T,G,J,3), pred (T,K,J,3)."""
     skel = get_skeleton(skeleton)
     limbs = skel.pcp_limbs()
@@ -65,8 +67,11 @@ def pcp(gt: np.ndarray, pred: np.ndarray, skeleton: str | Skeleton = CANONICAL,
         if len(g_idx) == 0:
             continue
         k_idx = np.flatnonzero(_present(pred[t])) if pred.shape[1] else np.zeros(0, int)
-        d = (mean_joint_distance(gt[t, g_idx], pred[t, k_idx]) if len(k_idx)
-             else np.full((len(g_idx), 0), np.inf))
+        d = (
+            mean_joint_distance(gt[t, g_idx], pred[t, k_idx])
+            if len(k_idx)
+            else np.full((len(g_idx), 0), np.inf)
+        )
         for gi, g in enumerate(g_idx):
             n_frames[g] += 1
             if d.shape[1] == 0 or not np.isfinite(d[gi]).any():
@@ -83,10 +88,15 @@ def pcp(gt: np.ndarray, pred: np.ndarray, skeleton: str | Skeleton = CANONICAL,
     per_actor = np.nanmean(np.stack(list(per_limb.values())), 0) if G else np.zeros(0)
     seen = n_frames > 0
     total = sum(v for v in correct.values())
-    return PCPResult(per_actor_limb=per_limb, per_actor=per_actor,
-                     actor_average=float(np.mean(per_actor[seen])) if seen.any() else float("nan"),
-                     frame_weighted=float(total[seen].sum() / (len(limbs) * n_frames[seen].sum()))
-                     if seen.any() else float("nan"), n_frames=n_frames)
+    return PCPResult(
+        per_actor_limb=per_limb,
+        per_actor=per_actor,
+        actor_average=float(np.mean(per_actor[seen])) if seen.any() else float("nan"),
+        frame_weighted=float(total[seen].sum() / (len(limbs) * n_frames[seen].sum()))
+        if seen.any()
+        else float("nan"),
+        n_frames=n_frames,
+    )
 
 
 def mpjpe(gt: np.ndarray, pred: np.ndarray, max_dist_m: float = 0.5) -> dict[str, float]:
@@ -114,9 +124,12 @@ def mpjpe(gt: np.ndarray, pred: np.ndarray, max_dist_m: float = 0.5) -> dict[str
             j_miss += (gj & ~np.isfinite(e)).sum()
             errs.append(np.nanmean(e))
     errs = np.asarray(errs)
-    return {"mpjpe_m": float(np.mean(errs)) if len(errs) else float("nan"),
-            "median_m": float(np.median(errs)) if len(errs) else float("nan"),
-            "missed": float(n_missed / max(n_gt, 1)), "joints_missing": float(j_miss / max(j_tot, 1))}
+    return {
+        "mpjpe_m": float(np.mean(errs)) if len(errs) else float("nan"),
+        "median_m": float(np.median(errs)) if len(errs) else float("nan"),
+        "missed": float(n_missed / max(n_gt, 1)),
+        "joints_missing": float(j_miss / max(j_tot, 1)),
+    }
 
 
 @dataclass
@@ -132,8 +145,9 @@ class MOTResult:
     extra: dict = field(default_factory=dict)
 
 
-def mot_metrics(gt: np.ndarray, pred: np.ndarray, threshold_m: float = 0.3,
-                joints: np.ndarray | None = None) -> MOTResult:
+def mot_metrics(
+    gt: np.ndarray, pred: np.ndarray, threshold_m: float = 0.3, joints: np.ndarray | None = None
+) -> MOTResult:
     """CLEAR MOT (MOTA with misses, false positives, identity switches) and IDF1.
 
     gt (T,G,J,3): identity = index along G; pred (T,K,J,3): identity = index along K. A pair matches
@@ -193,7 +207,14 @@ def mot_metrics(gt: np.ndarray, pred: np.ndarray, threshold_m: float = 0.3,
         idtp = 0
     idf1 = 2 * idtp / max(n_gt + n_pred, 1)
     mota = 1.0 - (misses + fps_ + idsw) / max(n_gt, 1)
-    return MOTResult(mota=float(mota), motp_m=float(dsum / max(nmatch, 1)), misses=misses,
-                     false_positives=fps_,
-                     id_switches=idsw, n_gt=n_gt, idf1=float(idf1), idtp=idtp,
-                     extra={"n_pred": n_pred, "matches": nmatch})
+    return MOTResult(
+        mota=float(mota),
+        motp_m=float(dsum / max(nmatch, 1)),
+        misses=misses,
+        false_positives=fps_,
+        id_switches=idsw,
+        n_gt=n_gt,
+        idf1=float(idf1),
+        idtp=idtp,
+        extra={"n_pred": n_pred, "matches": nmatch},
+    )

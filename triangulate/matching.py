@@ -100,8 +100,13 @@ class Matcher:
     Unusable joints get a zero homogeneous vector, so they contribute nothing to any sum.
     """
 
-    def __init__(self, F: np.ndarray, config: MatchConfig | None = None, order: np.ndarray | None = None,
-                 flip: np.ndarray | None = None):
+    def __init__(
+        self,
+        F: np.ndarray,
+        config: MatchConfig | None = None,
+        order: np.ndarray | None = None,
+        flip: np.ndarray | None = None,
+    ):
         self.config = config or MatchConfig()
         F = _as_float(F)
         C = len(F)
@@ -231,7 +236,7 @@ class Matcher:
                     continue
             else:
                 new = ks
-            H[m:m + len(new), i] = new
+            H[m : m + len(new), i] = new
             m += len(new)
         H, S = H[:m], S[:m]
         keep = np.count_nonzero(H >= 0, 1) >= 2
@@ -244,9 +249,14 @@ class Matcher:
         return H, S
 
 
-def match_frame(xy_px: np.ndarray, score: np.ndarray, F: np.ndarray, config: MatchConfig | None = None,
-                order: np.ndarray | None = None, flip: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+def match_frame(
+    xy_px: np.ndarray,
+    score: np.ndarray,
+    F: np.ndarray,
+    config: MatchConfig | None = None,
+    order: np.ndarray | None = None,
+    flip: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Algorithm 1 for one frame.
 
     xy_px: (C,P,J,2) undistorted pixels, NaN = missing (P = most poses in any camera, padded);

@@ -19,8 +19,18 @@ from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_np
 
 SCHEMA = "poses3d"
 VERSION = 1
-_KEYS = ("schema", "fps", "frame_index", "t_ns", "joint_names", "xyz_m", "score", "reproj_err_px", "n_views",
-         "calibration_sha256")
+_KEYS = (
+    "schema",
+    "fps",
+    "frame_index",
+    "t_ns",
+    "joint_names",
+    "xyz_m",
+    "score",
+    "reproj_err_px",
+    "n_views",
+    "calibration_sha256",
+)
 
 
 @dataclass(frozen=True)
@@ -41,22 +51,45 @@ class Poses3D:
         P = np.shape(self.xyz_m)[1] if np.ndim(self.xyz_m) == 4 else -1
         if self.std_m is None:
             object.__setattr__(self, "std_m", np.full((T, max(P, 0), J), np.nan, np.float32))
-        for name, shape in {"t_ns": (T,), "xyz_m": (T, P, J, 3), "score": (T, P, J),
-                            "reproj_err_px": (T, P, J), "n_views": (T, P, J), "std_m": (T, P, J)}.items():
+        for name, shape in {
+            "t_ns": (T,),
+            "xyz_m": (T, P, J, 3),
+            "score": (T, P, J),
+            "reproj_err_px": (T, P, J),
+            "n_views": (T, P, J),
+            "std_m": (T, P, J),
+        }.items():
             if np.shape(getattr(self, name)) != shape:
                 raise FormatError(None, name, f"expected shape {shape}, got {np.shape(getattr(self, name))}.")
-        for name, dtype in {"frame_index": np.int64, "t_ns": np.int64, "xyz_m": np.float32,
-                            "score": np.float32, "reproj_err_px": np.float32, "n_views": np.int16,
-                            "std_m": np.float32}.items():
+        for name, dtype in {
+            "frame_index": np.int64,
+            "t_ns": np.int64,
+            "xyz_m": np.float32,
+            "score": np.float32,
+            "reproj_err_px": np.float32,
+            "n_views": np.int16,
+            "std_m": np.float32,
+        }.items():
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dtype))
         object.__setattr__(self, "joint_names", tuple(str(n) for n in self.joint_names))
 
     def save(self, path: str | os.PathLike) -> None:
-        save_npz(path, {"schema": schema_tag(SCHEMA, VERSION), "fps": np.float64(self.fps),
-                        "frame_index": self.frame_index, "t_ns": self.t_ns,
-                        "joint_names": np.asarray(self.joint_names), "xyz_m": self.xyz_m, "score": self.score,
-                        "reproj_err_px": self.reproj_err_px, "n_views": self.n_views,
-                        "calibration_sha256": self.calibration_sha256, "std_m": self.std_m})
+        save_npz(
+            path,
+            {
+                "schema": schema_tag(SCHEMA, VERSION),
+                "fps": np.float64(self.fps),
+                "frame_index": self.frame_index,
+                "t_ns": self.t_ns,
+                "joint_names": np.asarray(self.joint_names),
+                "xyz_m": self.xyz_m,
+                "score": self.score,
+                "reproj_err_px": self.reproj_err_px,
+                "n_views": self.n_views,
+                "calibration_sha256": self.calibration_sha256,
+                "std_m": self.std_m,
+            },
+        )
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Poses3D:
@@ -65,10 +98,17 @@ class Poses3D:
         check_schema(data["schema"], SCHEMA, (VERSION,), path)
         data = load_npz(path, required=_KEYS)
         try:
-            return cls(fps=float(data["fps"]), frame_index=data["frame_index"], t_ns=data["t_ns"],
-                       joint_names=tuple(data["joint_names"].tolist()), xyz_m=data["xyz_m"],
-                       score=data["score"],
-                       reproj_err_px=data["reproj_err_px"], n_views=data["n_views"],
-                       calibration_sha256=npz_str(data, "calibration_sha256"), std_m=data.get("std_m"))
+            return cls(
+                fps=float(data["fps"]),
+                frame_index=data["frame_index"],
+                t_ns=data["t_ns"],
+                joint_names=tuple(data["joint_names"].tolist()),
+                xyz_m=data["xyz_m"],
+                score=data["score"],
+                reproj_err_px=data["reproj_err_px"],
+                n_views=data["n_views"],
+                calibration_sha256=npz_str(data, "calibration_sha256"),
+                std_m=data.get("std_m"),
+            )
         except FormatError as e:
             raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e

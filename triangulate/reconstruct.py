@@ -90,8 +90,15 @@ class FramePoses:
 
     @classmethod
     def empty(cls, J: int, C: int) -> FramePoses:
-        return cls(np.zeros((0, J, 3)), np.zeros((0, J)), np.zeros((0, J)), np.zeros((0, J), np.int16),
-                   np.zeros((0, J)), np.zeros((0, C), np.int64), np.zeros((0, C), bool))
+        return cls(
+            np.zeros((0, J, 3)),
+            np.zeros((0, J)),
+            np.zeros((0, J)),
+            np.zeros((0, J), np.int16),
+            np.zeros((0, J)),
+            np.zeros((0, C), np.int64),
+            np.zeros((0, C), bool),
+        )
 
 
 class FrameReconstructor:
@@ -101,8 +108,14 @@ class FrameReconstructor:
     order: camera indices visited by the matching (default 0..C-1); joint_names: for the limb check.
     """
 
-    def __init__(self, P: np.ndarray, F: np.ndarray | None = None, config: TriangulateConfig | None = None,
-                 order: np.ndarray | None = None, joint_names: tuple[str, ...] | None = None):
+    def __init__(
+        self,
+        P: np.ndarray,
+        F: np.ndarray | None = None,
+        config: TriangulateConfig | None = None,
+        order: np.ndarray | None = None,
+        joint_names: tuple[str, ...] | None = None,
+    ):
         self.config = config or TriangulateConfig()
         self.P = np.asarray(P, dtype=np.float64)
         check_shape("P", self.P, (None, 3, 4))
@@ -223,6 +236,12 @@ class FrameReconstructor:
             H, S, V, keep = self._merge_duplicates(Z, H, S, V, keep)
         good = np.count_nonzero(keep, 1) >= self.config.min_joints_3d
         W = np.where(keep[good], V[:, good], self._fill)  # (8,M',J): NaN (0 for score, views) where dropped
-        return FramePoses(xyz_m=W[:3].transpose(1, 2, 0), score=W[_SCORE], reproj_err_px=W[_REPROJ],
-                          n_views=W[_NVIEWS].astype(np.int16), std_m=W[_STD], members=H[good],
-                          mirrored=S[good])
+        return FramePoses(
+            xyz_m=W[:3].transpose(1, 2, 0),
+            score=W[_SCORE],
+            reproj_err_px=W[_REPROJ],
+            n_views=W[_NVIEWS].astype(np.int16),
+            std_m=W[_STD],
+            members=H[good],
+            mirrored=S[good],
+        )

@@ -79,8 +79,9 @@ def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float
     return associate_mirrored(xyz_m, config, fps, None)[0]
 
 
-def associate_mirrored(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0,
-                       flip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def associate_mirrored(
+    xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0, flip: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`associate`, and with ``flip`` (J,) (left/right joint permutation) a pose may also join a
     track mirrored, when its left/right-swapped version is closer (a hypothesis whose views were
     mostly flipped in 2D triangulates to a mirrored person). Returns assign (T,P) and mirrored (T,P)."""
@@ -137,9 +138,14 @@ def associate_mirrored(xyz_m: np.ndarray, config: TrackerConfig | None = None, f
     return out, mirrored
 
 
-def stitch_tracks(xyz_m: np.ndarray, assign: np.ndarray, mirrored: np.ndarray | None = None,
-                  config: TrackerConfig | None = None, fps: float = 25.0,
-                  flip: np.ndarray | None = None) -> np.ndarray:
+def stitch_tracks(
+    xyz_m: np.ndarray,
+    assign: np.ndarray,
+    mirrored: np.ndarray | None = None,
+    config: TrackerConfig | None = None,
+    fps: float = 25.0,
+    flip: np.ndarray | None = None,
+) -> np.ndarray:
     """Join track fragments the frame-by-frame pass split. Returns the relabelled assign (T,P).
 
     The pass starts a new track for a pose that is too far from every track (e.g. a few badly
@@ -174,7 +180,7 @@ def stitch_tracks(xyz_m: np.ndarray, assign: np.ndarray, mirrored: np.ndarray | 
         later = np.flatnonzero((first > last[a]) & (first <= last[a] + cfg.max_gap + 1))
         if len(later) == 0:
             continue
-        rows = by_track[bounds[a]:bounds[a + 1]]
+        rows = by_track[bounds[a] : bounds[a + 1]]
         end = X[rows[-1]].copy()  # a's last pose, joints it lacks held from a's earlier frames
         for r in rows[::-1][1:]:
             miss = ~np.isfinite(end).all(-1)
@@ -182,7 +188,7 @@ def stitch_tracks(xyz_m: np.ndarray, assign: np.ndarray, mirrored: np.ndarray | 
                 break
             end[miss] = X[r][miss]
         for b in later:
-            sel = by_track[bounds[b]:bounds[b + 1]]
+            sel = by_track[bounds[b] : bounds[b + 1]]
             sel = sel[t_idx[sel] <= last[a] + cfg.max_gap + 1]
             d = pose_distance(end[None], X[sel])[0]
             limit = cfg.tau_m + cfg.max_speed_m_s * (t_idx[sel] - last[a] - 1) / fps
@@ -217,8 +223,8 @@ def _interp_gaps(x: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
         if 1 < g <= max_gap + 1:
             i1 = i0 + g
             a = np.linspace(0, 1, g + 1)[1:-1, None]
-            x[i0 + 1:i1] = (1 - a) * x[i0] + a * x[i1]
-            filled[i0 + 1:i1] = True
+            x[i0 + 1 : i1] = (1 - a) * x[i0] + a * x[i1]
+            filled[i0 + 1 : i1] = True
     return x, filled
 
 
@@ -280,11 +286,16 @@ def _kinematic_fill(X: np.ndarray, parents: np.ndarray, max_fill: int) -> np.nda
     return filled
 
 
-def build_tracks(xyz_m: np.ndarray, assign: np.ndarray, confidence: np.ndarray | None = None,
-                 std_m: np.ndarray | None = None, config: TrackerConfig | None = None,
-                 parents: np.ndarray | None = None, mirrored: np.ndarray | None = None,
-                 flip: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def build_tracks(
+    xyz_m: np.ndarray,
+    assign: np.ndarray,
+    confidence: np.ndarray | None = None,
+    std_m: np.ndarray | None = None,
+    config: TrackerConfig | None = None,
+    parents: np.ndarray | None = None,
+    mirrored: np.ndarray | None = None,
+    flip: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Dense tracks from per-frame poses and assignments, with gap filling and smoothing.
 
     xyz_m (T,P,J,3), assign (T,P) from :func:`associate`, confidence/std_m (T,P,J).
@@ -339,16 +350,35 @@ def build_tracks(xyz_m: np.ndarray, assign: np.ndarray, confidence: np.ndarray |
     return ids, X, Cf, S, Fl
 
 
-def track_poses(xyz_m: np.ndarray, frame_index: np.ndarray, t_ns: np.ndarray, fps: float,
-                joint_names: tuple[str, ...], parents: np.ndarray, confidence: np.ndarray | None = None,
-                std_m: np.ndarray | None = None, config: TrackerConfig | None = None,
-                calibration_sha256: str = "", source: str = "triangulate.tracker (greedy, ch. 4)"
-                ) -> TrackFile:
+def track_poses(
+    xyz_m: np.ndarray,
+    frame_index: np.ndarray,
+    t_ns: np.ndarray,
+    fps: float,
+    joint_names: tuple[str, ...],
+    parents: np.ndarray,
+    confidence: np.ndarray | None = None,
+    std_m: np.ndarray | None = None,
+    config: TrackerConfig | None = None,
+    calibration_sha256: str = "",
+    source: str = "triangulate.tracker (greedy, ch. 4)",
+) -> TrackFile:
     """Per-frame poses (T,P,J,3) -> :class:`TrackFile` (track ids 0..K-1 by first appearance)."""
     cfg = config or TrackerConfig()
     flip = flip_index(joint_names) if cfg.fix_mirrored else None
     assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip)
     ids, X, Cf, S, Fl = build_tracks(xyz_m, assign, confidence, std_m, cfg, parents, mirrored, flip)
-    return TrackFile(fps=fps, frame_index=frame_index, t_ns=t_ns, track_id=np.arange(len(ids)),
-                     joint_names=joint_names, parents=parents, xyz_m=X, confidence=np.clip(Cf, 0, 1), std_m=S,
-                     flags=Fl, calibration_sha256=calibration_sha256, source=source)
+    return TrackFile(
+        fps=fps,
+        frame_index=frame_index,
+        t_ns=t_ns,
+        track_id=np.arange(len(ids)),
+        joint_names=joint_names,
+        parents=parents,
+        xyz_m=X,
+        confidence=np.clip(Cf, 0, 1),
+        std_m=S,
+        flags=Fl,
+        calibration_sha256=calibration_sha256,
+        source=source,
+    )
