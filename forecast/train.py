@@ -94,6 +94,7 @@ class DiffusionConfig:
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
     root_vel: bool = False  # (anchored) root coded as per-frame displacements, not offsets from the anchor
     p_single: float = 0.0  # share of composed training scenes with one person (0.25: val NDMS .268 vs .281)
+    mirror: bool = False  # also train on the left/right mirror of every single-person window
     steps: int = 2500
     batch: int = 32
     lr: float = 5e-4
@@ -349,9 +350,10 @@ def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> Fo
 # ----------------------------------------------------------------------------- model selection
 
 # The evaluation protocol's model selection (validation split only, never the test split): every
-# ``val_every`` steps the model forecasts validation windows (observe 2 s, forecast 4 s at 25 Hz, fixed
-# windows and seed) and is scored by NDMS (eq. 6.9-6.12, mean over samples) over the 2-4 s horizon, the
-# horizon the issue compares models at; the best state is kept. Every model is selected the same way.
+# ``val_every`` steps the model forecasts validation windows (observe 2 s, forecast 4 s at 25 Hz, the rate
+# make_windows resamples every clip to, as for training; fixed windows and seed) and is scored by NDMS
+# (eq. 6.9-6.12, mean over samples) over the 2-4 s horizon, the horizon the issue compares models at; the
+# best state is kept. Every model is selected the same way.
 VAL_N_OBS, VAL_N_PRED, VAL_FROM = 50, 100, 50
 
 
@@ -632,6 +634,10 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
     xs = single.x[:, :, 0]
     if len(xs) == 0:
         raise ValueError(f"no training windows of {N} frames")
+    if config.mirror:  # x -> -x with the sides swapped is a real pose too; composed_batch re-frames it
+        flip = get_skeleton(clips[0].skeleton).flip_index
+        xm, _ = mirror(xs.reshape(*xs.shape[:2], -1), single.mask[:, :, 0], flip)
+        xs = np.concatenate([xs, xm.reshape(xs.shape)])
     # feature statistics from a large composed sample
     sample = composed_batch(xs, P, 2048, rng)
     f = diffusion_batch_features(sample, np.ones((len(sample), P), bool), config.n_obs)

@@ -141,6 +141,16 @@ def test_social_diffusion_writes_back_observation_and_learns():
     assert y.shape == (1, 2, 40, 2, 19, 3) and np.isfinite(y).all()
 
 
+def test_diffusion_mirror_option_trains_on_both_sides():
+    base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 2, "batch": 4, "val_every": 0}
+    clips = [D.Clip("turning_left", walker(100, turn_rps=0.2), 25.0)]
+    _, plain = T.train("social_diffusion", clips, T.config_from_dict("social_diffusion", base))
+    _, mirrored = T.train(
+        "social_diffusion", clips, T.config_from_dict("social_diffusion", {**base, "mirror": 1})
+    )
+    assert mirrored["n_windows"] == 2 * plain["n_windows"] > 0
+
+
 def test_anchored_diffusion_codes_motion_relative_to_the_last_observed_frame():
     cfg = T.config_from_dict(
         "social_diffusion",
