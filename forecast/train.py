@@ -94,7 +94,7 @@ class DiffusionConfig:
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
     root_vel: bool = False  # (anchored) root coded as per-frame displacements, not offsets from the anchor
     p_single: float = 0.0  # share of composed training scenes with one person (0.25: val NDMS .268 vs .281)
-    mirror: bool = False  # also train on the left/right mirror of every single-person window
+    mirror: bool = True  # also train on the left/right mirror of every single-person window (as the others)
     steps: int = 2500
     batch: int = 32
     lr: float = 5e-4

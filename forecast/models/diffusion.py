@@ -57,6 +57,19 @@ state (clip-weighted 2/3 s 0.265/0.245 vs 0.281/0.249): not shipped. Continuing 
 (lr 2.5e-4, ``select = "ndms_2_3"``, sample_dct 0) picked step 3000, clip-weighted 2/3 s 0.275/0.287 and
 0.275/0.281 (seeds 0/1) vs the shipped state's 0.272/0.274 and 0.280/0.267 with sample_dct 0: gains under
 0.01, within the 0.23-0.28 spread of neighbouring states, so not shipped. The GRU: 0.334/0.295.
+(The "shipped state" above is the checkpoint before 2026-11-22's third session.)
+
+Then (same probe, clip-weighted 2 / 3 s): training on the left/right mirror of every window too (``mirror``,
+trainer option, as the GRU and intention trainers do), from scratch, 12k steps, gave 0.297/0.281 and
+0.301/0.272 (sampling seeds 0/1), the checkpoint shipped since; the same recipe with training seed 1 gave
+0.268/0.269 and 0.274/0.267, and without the mirror 0.277/0.281: training seeds move the figure as much as
+any change. Twice the channels fits better (MPJPE 0-1 s 283 vs 410 mm) and scores lower (0.278/0.252): the
+better-fitting model moves less. Clips also played 1.25x and 0.8x as fast: 0.272/0.253. The seed's own
+sampler (1000 steps, eta 1; Table 7.7), on 36 windows spread over the four clips: 0.268/0.261 against
+0.273/0.266 for 20 DDIM steps. Where the GRU's lead comes from: its root speeds up to 2.7 m/s at 3 s and 4.6
+m/s at 4 s (real 0.3; test FDE 35 m), coherent translation that NDMS rewards; the same GRU trained on the
+4 s horizon it is evaluated at (``n_pred`` = 100, selected on MPJPE 0-1 s) stays put and scores 0.122/0.096,
+below every stochastic model.
 """
 
 from __future__ import annotations
