@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from _pose2sim_trc import read_trc_body19  # noqa: E402
 from test_track_realdata import make_pose2sim_session  # noqa: E402
 
 from calibrate.camera import CameraRig  # noqa: E402
@@ -38,38 +39,6 @@ from keypoints.skeletons import CANONICAL  # noqa: E402
 from track.particle import ParticleConfig, ParticleTracker, track_sequence  # noqa: E402
 from track.stage import focal_lengths  # noqa: E402
 from triangulate.stage import load_detections  # noqa: E402
-
-TRC_TO_BODY19 = {
-    "RHip": "right_hip",
-    "RKnee": "right_knee",
-    "RAnkle": "right_ankle",
-    "LHip": "left_hip",
-    "LKnee": "left_knee",
-    "LAnkle": "left_ankle",
-    "Nose": "nose",
-    "RShoulder": "right_shoulder",
-    "RElbow": "right_elbow",
-    "RWrist": "right_wrist",
-    "LShoulder": "left_shoulder",
-    "LElbow": "left_elbow",
-    "LWrist": "left_wrist",
-}
-
-
-def read_trc_body19(path: Path) -> np.ndarray:
-    """Pose2Sim TRC (y up, ``zup2yup``: TRC (X, Y, Z) = world (y, z, x)) -> (T,19,3) world, NaN elsewhere."""
-    lines = path.read_text().splitlines()
-    names = [n for n in lines[3].split("\t")[2:] if n]
-    rows = [ln.split("\t") for ln in lines[5:] if ln.strip()]
-    out = np.full((len(rows), 19, 3), np.nan)
-    for t, r in enumerate(rows):
-        vals = [float(v) if v not in ("", "nan", "NaN") else np.nan for v in r[2 : 2 + 3 * len(names)]]
-        vals += [np.nan] * (3 * len(names) - len(vals))
-        v = np.asarray(vals).reshape(len(names), 3)
-        for i, n in enumerate(names):
-            if n in TRC_TO_BODY19:
-                out[t, CANONICAL.index(TRC_TO_BODY19[n])] = (v[i, 2], v[i, 0], v[i, 1])
-    return out
 
 
 def main() -> None:

@@ -26,6 +26,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from _pose2sim_trc import TRC_TO_BODY19, read_trc, trc_to_world  # noqa: E402
+
 from calibrate.camera import CameraRig  # noqa: E402
 from calibrate.formats import import_rig  # noqa: E402
 from capture.fileio import save_toml  # noqa: E402
@@ -35,40 +37,6 @@ from keypoints.skeletons import CANONICAL, convert  # noqa: E402
 from track.trackfile import TrackFile  # noqa: E402
 from triangulate.poses3d import Poses3D  # noqa: E402
 from triangulate.stage import track_session_greedy, triangulate_session  # noqa: E402
-
-TRC_TO_BODY19 = {
-    "RHip": "right_hip",
-    "RKnee": "right_knee",
-    "RAnkle": "right_ankle",
-    "LHip": "left_hip",
-    "LKnee": "left_knee",
-    "LAnkle": "left_ankle",
-    "Nose": "nose",
-    "RShoulder": "right_shoulder",
-    "RElbow": "right_elbow",
-    "RWrist": "right_wrist",
-    "LShoulder": "left_shoulder",
-    "LElbow": "left_elbow",
-    "LWrist": "left_wrist",
-}
-
-
-def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
-    lines = path.read_text().splitlines()
-    names = [n for n in lines[3].split("\t")[2:] if n]
-    rows = [ln.split("\t") for ln in lines[5:] if ln.strip()]
-    T = len(rows)
-    out = np.full((T, len(names), 3), np.nan)
-    for t, r in enumerate(rows):
-        vals = [float(v) if v not in ("", "nan", "NaN") else np.nan for v in r[2 : 2 + 3 * len(names)]]
-        vals += [np.nan] * (3 * len(names) - len(vals))
-        out[t] = np.asarray(vals).reshape(len(names), 3)
-    return names, out
-
-
-def trc_to_world(xyz: np.ndarray) -> np.ndarray:
-    """Pose2Sim zup2yup inverse: TRC (X, Y, Z) = world (y, z, x)."""
-    return np.stack([xyz[..., 2], xyz[..., 0], xyz[..., 1]], -1)
 
 
 def best_axis_map(ours: np.ndarray, trc: np.ndarray) -> tuple[str, float]:
