@@ -191,15 +191,20 @@ def load_npz(path: str | os.PathLike, required: tuple[str, ...] = ()) -> dict[st
             f"cannot be read as npz ({e}); the file is truncated or corrupt.",
             "Delete it and rerun the stage that writes it.",
         ) from e
+    require_keys(path, data, required)
+    return data
+
+
+def require_keys(path: str | os.PathLike, data: Mapping[str, np.ndarray], required: tuple[str, ...]) -> None:
+    """FormatError naming the first of ``required`` that ``data`` (an npz read by ``load_npz``) lacks."""
     missing = [k for k in required if k not in data]
     if missing:
         raise FormatError(
-            path,
+            Path(path),
             missing[0],
             f"required keys {missing} are missing (present: {sorted(data)}).",
             "The file was written by another tool or is incomplete; rerun the stage that writes it.",
         )
-    return data
 
 
 def npz_str(data: Mapping[str, np.ndarray], key: str) -> str:

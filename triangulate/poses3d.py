@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_npz, schema_tag
+from capture.fileio import FormatError, check_schema, load_npz, npz_str, require_keys, save_npz, schema_tag
 
 SCHEMA = "poses3d"
 VERSION = 1
@@ -96,7 +96,7 @@ class Poses3D:
         path = Path(path)
         data = load_npz(path, required=("schema",))
         check_schema(data["schema"], SCHEMA, (VERSION,), path)
-        data = load_npz(path, required=_KEYS)
+        require_keys(path, data, _KEYS)  # after the schema check, on the arrays already read
         try:
             return cls(
                 fps=float(data["fps"]),
