@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from capture.fileio import FormatError
+from core.cli import guarded
 
 log = logging.getLogger("calibrate")
 
@@ -160,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
@@ -170,6 +171,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except FormatError as e:
         print(f"calibrate-run {args.command}: error: {e}", file=sys.stderr)
         return 2
+
+
+main = guarded("calibrate-run", _main)
 
 
 if __name__ == "__main__":

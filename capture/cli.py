@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from core.cli import guarded
+
 log = logging.getLogger("capture")
 
 _SUBCOMMANDS = ("record", "check", "sync", "repair")
@@ -203,7 +205,7 @@ def _repair(argv: list[str]) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     from capture.config import ConfigError
     from capture.fileio import FormatError
     from capture.recorder import RecorderError, redact_text
@@ -225,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("capture-run: interrupted", file=sys.stderr)
         return 130
+
+
+main = guarded("capture-run", _main)
 
 
 if __name__ == "__main__":

@@ -21,8 +21,10 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import RoomcapError
 
-class FormatError(ValueError):
+
+class FormatError(RoomcapError, ValueError):
     """A file that is not what it claims to be: names the file, the field and the fix."""
 
     def __init__(self, path: str | os.PathLike | None, field: str | None, problem: str, fix: str = ""):

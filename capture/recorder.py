@@ -46,6 +46,7 @@ from capture.sources import (
     make_source,
     read_frames_csv,
 )
+from core.errors import RoomcapError
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +55,7 @@ _FOURCC = {"mp4v": ("mp4v", ".mp4"), "mjpg": ("MJPG", ".avi"), "xvid": ("XVID", 
 _PART_PREFIX = ".part_"
 
 
-class RecorderError(RuntimeError):
+class RecorderError(RoomcapError, RuntimeError):
     """The session cannot start (bad source, no disk space); nothing was written."""
 
 

@@ -25,13 +25,16 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from core.cli import guarded
+from core.errors import InputError
+
 
 def parse_sets(items: list[str]) -> dict:
     """``--set key=value`` options as a dict of strings (typed later by the config)."""
     out = {}
     for it in items or []:
         if "=" not in it:
-            raise SystemExit(f"--set expects key=value, got {it!r}")
+            raise InputError(f"--set expects key=value, got {it!r}")
         k, v = it.split("=", 1)
         out[k.strip()] = v.strip()
     return out
@@ -49,7 +52,7 @@ def _config(args) -> object:
     try:
         return config_from_dict(args.model, d)
     except ValueError as e:
-        raise SystemExit(str(e)) from None
+        raise InputError(str(e)) from None
 
 
 def _load_split(args):
@@ -88,7 +91,7 @@ def cmd_train(args) -> int:
 
         blob = torch.load(args.init, map_location="cpu", weights_only=True)
         if blob.get("kind") != args.model:
-            raise SystemExit(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
+            raise InputError(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
         init = blob["state_dict"]
     model, hist = T.train(args.model, tr, cfg, progress, args.device, init, val_clips=va)
     bar.close()
@@ -151,7 +154,7 @@ def cmd_eval(args) -> int:
         used = set(meta["extra"].get("train_clips", [])) | set(meta["extra"].get("val_clips", []))
         leak = sorted(used & {c.name for c in te})
         if leak:  # a checkpoint that trained or was selected on a test clip cannot be evaluated fairly
-            raise SystemExit(
+            raise InputError(
                 f"{ck} was trained or selected on test clips {leak[:5]}{'...' if len(leak) > 5 else ''}; "
                 "retrain it with this version's split (forecast train) or pass the --split-seed it used"
             )
@@ -203,7 +206,7 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "characteristic":  # Diller ch. 3: `forecast characteristic train|eval ...`
         from forecast.characteristic import main as characteristic_main
@@ -268,6 +271,9 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval}[args.cmd](args)
+
+
+main = guarded("forecast", _main)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ import logging
 import sys
 from pathlib import Path
 
-from capture.fileio import FormatError
+from core.cli import guarded
+from core.errors import InputError
 from keypoints import registry
 from keypoints.registry import ModelError
 
@@ -85,11 +86,13 @@ def _run(args) -> int:
         )
     else:
         if not args.out:
-            print("keypoints run: --out DIR is needed for explicit videos", file=sys.stderr)
-            return 2
+            raise InputError("--out DIR is needed for explicit videos (or give one session folder).")
         videos = _parse_videos(args.inputs)
         if args.cameras:
             videos = {c: p for c, p in videos.items() if c in args.cameras}
+        missing = [f"{c}={p}" for c, p in videos.items() if not p.is_file()]
+        if missing:  # checked before the models load, so a typo is found at once
+            raise InputError(f"these videos do not exist: {', '.join(missing)}. Check the paths.")
         rig = None
         if (
             args.calib
@@ -112,7 +115,7 @@ def _run(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="keypoints", description="2D multi-person keypoints through ONNX models"
     )
@@ -146,11 +149,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
     )
-    try:
-        return {"list": _list, "fetch": _fetch, "run": _run}[args.cmd](args)
-    except (ModelError, FormatError, FileNotFoundError, KeyError) as e:
-        print(f"keypoints {args.cmd}: {e}", file=sys.stderr)
-        return 1
+    return {"list": _list, "fetch": _fetch, "run": _run}[args.cmd](args)
+
+
+main = guarded("keypoints", _main)
 
 
 if __name__ == "__main__":

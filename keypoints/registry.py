@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text, check_schema, load_toml
+from core.errors import RoomcapError
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ CROPS = ("letterbox", "affine")
 REPO = Path(__file__).resolve().parents[1]
 
 
-class ModelError(FileNotFoundError):
+class ModelError(RoomcapError, FileNotFoundError):
     """A model file that is missing, damaged or does not match its description; says what to do."""
 
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from capture.fileio import FormatError, load_npz, save_npz
 from capture.session import VIDEO_SUFFIXES, SessionLayout
+from core.errors import RoomcapError
 from keypoints.detections import Detections
 from keypoints.pipeline import FrameResult, KeypointPipeline, PipelineConfig
 from keypoints.skeletons import get_skeleton
@@ -59,7 +60,7 @@ class RunReport:
     wall_s: float = 0.0
 
 
-class VideoDecodeError(RuntimeError):
+class VideoDecodeError(RoomcapError, RuntimeError):
     pass
 
 

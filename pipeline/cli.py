@@ -19,6 +19,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
+from core.cli import guarded
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
@@ -90,7 +91,7 @@ def format_table(results: list[SessionResult], stages: tuple[str, ...]) -> str:
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
@@ -144,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"reprocess: could not write the summary files to {args.out} ({e}).", file=sys.stderr)
             return 1
     return 1 if failed else 0
+
+
+main = guarded("reprocess", _main)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from capture.session import VIDEO_SUFFIXES, SessionLayout
+from core.errors import RoomcapError
 
 CALIBRATION_PATTERNS = (
     "rig.toml",
@@ -32,7 +33,7 @@ CALIBRATION_PATTERNS = (
 )
 
 
-class SessionError(RuntimeError):
+class SessionError(RoomcapError, RuntimeError):
     """A session folder that cannot be processed; the message says what is missing."""
 
 

@@ -30,6 +30,7 @@ from typing import Any
 
 from capture.fileio import atomic_write_text
 from capture.session import SessionLayout
+from core.errors import RoomcapError
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
@@ -39,7 +40,7 @@ log = logging.getLogger(__name__)
 FPS_TOLERANCE = 0.01  # relative frame-rate difference between cameras of one session that is still "the same"
 
 
-class StageError(RuntimeError):
+class StageError(RoomcapError, RuntimeError):
     """A stage failed; the message names the stage, what went wrong and what to do."""
 
 

@@ -9,11 +9,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+from core.cli import guarded
 from synthetic import render as R
 from synthetic import rigs, world
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m synthetic", description=__doc__.splitlines()[0])
     ap.add_argument("out", help="session folder to write")
     ap.add_argument("--rig", choices=("kitchen", "ring"), default="kitchen")
@@ -65,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
         f"{scene.n_frames} frames at {scene.fps:g} fps"
     )
     return 0
+
+
+main = guarded("python -m synthetic", _main)
 
 
 if __name__ == "__main__":
