@@ -106,6 +106,10 @@ def _run_import(args: argparse.Namespace) -> int:
             f"  {c.name}: {c.size_wh[0]}x{c.size_wh[1]} {c.model} f=({c.K[0, 0]:.1f}, {c.K[1, 1]:.1f}) "
             f"centre_m={[round(float(v), 3) for v in c.center]}"
         )
+    from calibrate.checks import rig_warnings
+
+    for w in rig_warnings(rig, str(args.out)):
+        print(f"WARNING {w}", file=sys.stderr)
     return 0
 
 

@@ -547,6 +547,11 @@ def process_session(
             result.stage_s[name] = round(time.perf_counter() - t0, 3)
         stage = "summary"
         _summarise(lay, result)
+        if result.people == 0 and (lay.poses3d.exists() or lay.tracks.exists()):
+            result.warnings.append(
+                "0 people in the result: nobody was reconstructed. See the warnings above; check that the "
+                "calibration is of these cameras and in metres, and that the videos show people."
+            )
         atomic_write_text(
             _summary_path(root),
             json.dumps(

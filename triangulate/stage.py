@@ -18,10 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.camera import CameraRig
+from calibrate.checks import rig_warnings
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from keypoints.detections import Detections
 from keypoints.skeletons import CANONICAL, convert
+from triangulate.checks import check_frame_order, detection_warnings
 from triangulate.dlt import _reject_unknown
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
@@ -111,7 +113,10 @@ def load_detections(layout: SessionLayout, rig: CameraRig) -> tuple[CameraRig, M
                 f"the file says camera '{d.camera}' but is named after '{c}'.",
                 "Rename the file or fix its 'camera' field.",
             )
+        check_frame_order(d, layout.detections(c))
         dets.append(d)
+    for w in detection_warnings(dets):
+        log.warning("%s", w)
     frames = np.unique(np.concatenate([d.frame_index for d in dets]))
     T = len(frames)
     P = max(d.max_people for d in dets)
@@ -202,6 +207,8 @@ def triangulate_session(
             f"triangulation needs at least 2 cameras, the rig has {len(rig)}.",
             "Calibrate at least two cameras.",
         )
+    for w in rig_warnings(rig, str(rig_path)):
+        log.warning("%s", w)
     sub, mv = load_detections(lay, rig)
     res = reconstruct_all(sub, mv, cfg, progress)
     fps = _fps(lay, mv.t_ns)
@@ -222,6 +229,14 @@ def triangulate_session(
         float(n.mean()) if len(n) else 0.0,
         int(n.max()) if len(n) else 0,
     )
+    if len(n) and n.max() == 0:
+        log.warning(
+            "nobody was triangulated in %d frames of %d cameras: check that the calibration belongs to "
+            "these cameras and is in metres (calibrate-run import --scale-to-m), and that the detections "
+            "are of this recording",
+            len(n),
+            len(sub),
+        )
     return lay.poses3d
 
 
