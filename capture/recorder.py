@@ -47,6 +47,7 @@ from capture.sources import (
     read_frames_csv,
 )
 from core.errors import RoomcapError
+from core.redact import redact
 
 log = logging.getLogger(__name__)
 
@@ -501,11 +502,7 @@ def _finite(d):
     return d
 
 
-def redact_text(text: str) -> str:
-    """Hide ``user:password@`` in any URL inside free text (the cams.yaml copy, error messages)."""
-    import re
-
-    return re.sub(r"(\b[a-zA-Z][a-zA-Z0-9+.-]*://)[^/\s@'\"]*@", r"\1***@", text)
+redact_text = redact  # the one redaction (core.redact), kept under this name for callers
 
 
 # ----------------------------------------------------------------------------- repair
