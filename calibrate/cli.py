@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from capture.fileio import FormatError
-from core.cli import guarded
+from core.cli import guarded, positive_float
 
 log = logging.getLogger("calibrate")
 
@@ -54,7 +54,7 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=IMPORT_FORMATS, default=None, help="input format (default: detect)")
     p.add_argument(
         "--scale-to-m",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="multiply translations by this to get metres (e.g. 0.001 for an aniposelib file in mm)",
     )
@@ -69,7 +69,7 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--distortion-scale",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="Qualisys: multiply distortion coefficients (1/64 = 0.015625 reproduces Pose2Sim)",
     )

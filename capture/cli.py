@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from core.cli import guarded
+from core.cli import guarded, positive_float
 
 log = logging.getLogger("capture")
 
@@ -32,7 +32,7 @@ def _record_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="session folder to create (default: 'out' in cams.yaml)")
     p.add_argument(
         "--duration",
-        type=float,
+        type=positive_float,
         default=None,
         help="seconds to record (default: until Ctrl-C or until every file source ends)",
     )
@@ -134,7 +134,7 @@ def _sync(argv: list[str]) -> int:
     )
     p.add_argument("session", help="session folder (keypoints/<cam>.npz or --openpose folders)")
     p.add_argument("--reference", help="camera the others are aligned to (default: the first by name)")
-    p.add_argument("--max-lag-s", type=float, default=2.0)
+    p.add_argument("--max-lag-s", type=positive_float, default=2.0)
     p.add_argument("--drift", action="store_true", help="also estimate a linear drift (long recordings)")
     p.add_argument(
         "--openpose",
@@ -150,7 +150,7 @@ def _sync(argv: list[str]) -> int:
         metavar="CAM=VIDEO",
         help="sync by the audio tracks of these videos instead of keypoints (needs PyAV)",
     )
-    p.add_argument("--fps", type=float, default=None, help="frame rate when the session has none")
+    p.add_argument("--fps", type=positive_float, default=None, help="frame rate when the session has none")
     p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
     args = p.parse_args(argv)
     if args.audio is not None:

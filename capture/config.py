@@ -58,6 +58,7 @@ from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError
+from core.errors import UnknownNameError
 from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
 
 CAMS_SCHEMA = "cams"
@@ -181,7 +182,7 @@ class CaptureConfig:
         for c in self.cameras:
             if c.name == name:
                 return c
-        raise KeyError(f"no camera {name!r}; cameras are {list(self.names)}")
+        raise UnknownNameError(f"no camera {name!r}; cameras are {list(self.names)}")
 
     def to_dict(self) -> dict[str, Any]:
         """The configuration as written into session.toml (credentials redacted)."""

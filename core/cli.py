@@ -15,11 +15,13 @@ An unexpected exception (a bug) still ends with its traceback, so that it can be
 
 from __future__ import annotations
 
+import argparse
 import errno
 import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from core.errors import RoomcapError
 from core.redact import redact, redact_log_records
@@ -68,3 +70,22 @@ def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Ca
     run.__doc__ = main.__doc__
     run.__wrapped__ = main  # type: ignore[attr-defined]
     return run
+
+
+def _number(kind: type, low: float, inclusive: bool, what: str) -> Callable[[str], Any]:
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if v < low or (v == low and not inclusive):
+            raise argparse.ArgumentTypeError(f"{text} is out of range: give {what}")
+        return v
+
+    parse.__name__ = what  # argparse names the type in its messages
+    return parse
+
+
+positive_int = _number(int, 0, False, "a whole number > 0")
+nonnegative_int = _number(int, 0, True, "a whole number >= 0")
+positive_float = _number(float, 0.0, False, "a number > 0")

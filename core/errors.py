@@ -15,3 +15,13 @@ class RoomcapError(Exception):
 
 class InputError(RoomcapError, ValueError):
     """A value given by the user (an argument, a file's content) is out of range or inconsistent."""
+
+
+class UnknownNameError(RoomcapError, KeyError):
+    """A name (model set, skeleton, camera, joint) that is not among the known ones; the message lists them.
+
+    A ``KeyError`` for callers that catch one, but printed as its sentence (``KeyError`` quotes it).
+    """
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""

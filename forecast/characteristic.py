@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import guarded
+from core.cli import guarded, positive_int
 from core.errors import InputError
 from forecast import data as fdata
 from keypoints.skeletons import get_skeleton
@@ -646,9 +646,11 @@ def _main(argv: list[str] | None = None) -> int:
     e.add_argument("--checkpoint", default=str(SHIPPED))
     e.add_argument("--split", choices=("test", "val", "train"), default="test")
     e.add_argument("--split-seed", type=int, default=0)
-    e.add_argument("--k", type=int, default=None, help="hypotheses per window (default: the config's, 10)")
+    e.add_argument(
+        "--k", type=positive_int, default=None, help="hypotheses per window (default: the config's, 10)"
+    )
     e.add_argument("--no-refine", action="store_true", help="skip the pose refinement of eq. 3.2")
-    e.add_argument("--max-windows", type=int, default=None)
+    e.add_argument("--max-windows", type=positive_int, default=None)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json", default=None, help="also write the figures as JSON here")
     args = ap.parse_args(argv)

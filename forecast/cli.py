@@ -23,9 +23,10 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
-from core.cli import guarded
+from core.cli import guarded, positive_float, positive_int
 from core.errors import InputError
 
 
@@ -132,6 +133,12 @@ def cmd_sample(args) -> int:
     from forecast.preview import preview, save_forecast
 
     fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
+    if not np.isfinite(fc["xyz_m"]).any():
+        raise InputError(
+            f"the forecast of {args.tracks} is NaN everywhere: none of its {fc['xyz_m'].shape[2]} tracks has "
+            "observed joints in the frames the model looks at. Check the track file (forecast the tracks of "
+            "a session where people were found) and the checkpoint; nothing was written."
+        )
     save_forecast(args.out, fc)
     print(
         f"{fc['model']}: {fc['xyz_m'].shape[2]} tracks, {fc['xyz_m'].shape[1]} frames "
@@ -216,7 +223,7 @@ def _main(argv: list[str] | None = None) -> int:
         prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     p.add_argument(
-        "--threads", type=int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
+        "--threads", type=positive_int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
     )
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -225,6 +232,8 @@ def _main(argv: list[str] | None = None) -> int:
         sp.add_argument("--data", nargs="+", default=["cmu"], help="'cmu' and/or track files / folders")
         sp.add_argument("--split-seed", type=int, default=0)
 
+    # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it
+    sub.add_parser("characteristic", help="the characteristic-3D-pose forecaster (Diller ch. 3): train|eval")
     t = sub.add_parser("train", help="train a model")
     t.add_argument("--model", required=True, choices=["gru", "intention", "social_diffusion"])
     t.add_argument("--config", help="TOML with the config (a [model] table or top-level keys)")
@@ -237,8 +246,8 @@ def _main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("sample", help="forecast every track of a track file")
     s.add_argument("--checkpoint")
     s.add_argument("--tracks", required=True)
-    s.add_argument("--horizon-s", type=float, default=1.0)
-    s.add_argument("--samples", type=int, default=1)
+    s.add_argument("--horizon-s", type=positive_float, default=1.0)
+    s.add_argument("--samples", type=positive_int, default=1)
     s.add_argument("--out", required=True)
 
     e = sub.add_parser("eval", help="evaluate checkpoints and baselines on held-out clips")
@@ -246,11 +255,11 @@ def _main(argv: list[str] | None = None) -> int:
     e.add_argument("--baselines", nargs="*", default=["zero_velocity", "constant_velocity"])
     e.add_argument("--fool", action="store_true", help="add the clustered-static-poses 'fool' (sec. 6.4.4)")
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
-    e.add_argument("--horizon-s", type=float, default=4.0)
-    e.add_argument("--samples", type=int, default=10)
-    e.add_argument("--scenes", type=int, default=24)
-    e.add_argument("--max-windows", type=int, default=400)
-    e.add_argument("--stride", type=int, default=5, help="frames between test windows")
+    e.add_argument("--horizon-s", type=positive_float, default=4.0)
+    e.add_argument("--samples", type=positive_int, default=10)
+    e.add_argument("--scenes", type=positive_int, default=24)
+    e.add_argument("--max-windows", type=positive_int, default=400)
+    e.add_argument("--stride", type=positive_int, default=5, help="frames between test windows")
     e.add_argument(
         "--reference",
         default="gru_cmu",

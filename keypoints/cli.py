@@ -14,7 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-from core.cli import guarded
+from core.cli import guarded, nonnegative_int, positive_int
 from core.errors import InputError
 from keypoints import registry
 from keypoints.registry import ModelError
@@ -136,11 +136,11 @@ def _main(argv: list[str] | None = None) -> int:
     r.add_argument("--calib", default=None, help="calibration to check camera names and video sizes against")
     r.add_argument("--models", default="default", help="model set (keypoints list) or 'detector+pose'")
     r.add_argument("--cameras", nargs="*", default=None)
-    r.add_argument("--max-frames", type=int, default=None)
-    r.add_argument("--threads", type=int, default=0)
+    r.add_argument("--max-frames", type=positive_int, default=None)
+    r.add_argument("--threads", type=nonnegative_int, default=0)
     r.add_argument(
         "--refine-passes",
-        type=int,
+        type=nonnegative_int,
         default=None,
         help="top-down: extra pose passes on upright crops from the previous pass (0 = faster; default: "
         "PipelineConfig's, 2)",

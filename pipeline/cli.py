@@ -19,7 +19,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
-from core.cli import guarded
+from core.cli import guarded, positive_int
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
@@ -40,11 +40,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stages", help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
     p.add_argument("--tracker", choices=TRACKERS, help="track stage: greedy (ch. 4) or particle (ch. 5)")
     p.add_argument("--config", type=Path, help="pipeline TOML (see pipeline/config.py)")
-    p.add_argument("--max-frames", type=int, help="keypoints: process only the first N frames of each video")
+    p.add_argument(
+        "--max-frames", type=positive_int, help="keypoints: process only the first N frames of each video"
+    )
     p.add_argument("--force", action="store_true", help="rerun stages even when their outputs are up to date")
     p.add_argument("--executor", choices=EXECUTORS, default="local")
     p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
-    p.add_argument("--workers", type=int, help="sessions processed at once (default: half the cores)")
+    p.add_argument(
+        "--workers", type=positive_int, help="sessions processed at once (default: half the cores)"
+    )
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 
