@@ -21,9 +21,10 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
-from core.errors import RoomcapError
+from core.errors import InputError, RoomcapError
 from core.redact import redact, redact_log_records
 
 EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -89,3 +90,14 @@ def _number(kind: type, low: float, inclusive: bool, what: str) -> Callable[[str
 positive_int = _number(int, 0, False, "a whole number > 0")
 nonnegative_int = _number(int, 0, True, "a whole number >= 0")
 positive_float = _number(float, 0.0, False, "a number > 0")
+
+
+def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:
+    """``path`` as a folder to write into, made if missing; a file there or no write access is an error."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{flag} {p} is a file; give a folder (it is made if missing).")
+    p.mkdir(parents=True, exist_ok=True)
+    if not os.access(p, os.W_OK):
+        raise InputError(f"{flag} {p} is not writable; choose another folder or fix its permissions.")
+    return p

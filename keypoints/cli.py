@@ -14,7 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-from core.cli import guarded, nonnegative_int, positive_int
+from core.cli import guarded, nonnegative_int, output_folder, positive_int
 from core.errors import InputError
 from keypoints import registry
 from keypoints.registry import ModelError
@@ -87,6 +87,7 @@ def _run(args) -> int:
     else:
         if not args.out:
             raise InputError("--out DIR is needed for explicit videos (or give one session folder).")
+        output_folder(args.out)
         videos = _parse_videos(args.inputs)
         if args.cameras:
             videos = {c: p for c, p in videos.items() if c in args.cameras}

@@ -19,7 +19,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
-from core.cli import guarded, positive_int
+from core.cli import guarded, output_folder, positive_int
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
@@ -100,6 +100,8 @@ def _main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    if args.out is not None:
+        output_folder(args.out)
     try:
         cfg = make_config(args)
         sources = discover(args.paths)
