@@ -1,5 +1,6 @@
-"""``calibrate-run``: import/export calibrations (and, later, board calibration).
+"""``calibrate-run``: board calibration, and import/export of other tools' calibrations.
 
+    calibrate-run calibrate RECORDING --board board.toml --out rig.toml   (what `make calibrate` runs)
     calibrate-run import FILE --out rig.toml [--format qualisys] [--scale-to-m 0.001] ...
     calibrate-run export rig.toml --format aniposelib --out calibration.toml
 
@@ -157,7 +158,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="calibrate-run", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1])
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:
