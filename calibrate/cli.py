@@ -158,7 +158,9 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1])
+    parser = argparse.ArgumentParser(
+        prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1]
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:
