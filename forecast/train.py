@@ -304,7 +304,7 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
             lines = [ln.strip() for ln in str(e).splitlines() if "mismatch" in ln]
             first = lines[0] if lines else str(e).splitlines()[0]
             raise ValueError(
-                f"the {kind} weights do not fit the checkpoint's config ({len(lines)} tensors differ; first: "
+                f"the {kind} state does not fit the checkpoint's config ({len(lines)} tensors differ; first: "
                 f"{first}). The config or the weights were changed after training: retrain with "
                 "`forecast train`, or use the original file."
             ) from None
