@@ -286,4 +286,5 @@ def test_dropped_frames_and_jittered_timestamps(rng):
 def test_frame_count_durations_are_converted_at_the_frame_rate():
     cfg = TrackerConfig(max_gap=24, sigma=4.0, occlusion_fill=120).at_fps(60.0)
     assert (cfg.max_gap_s, cfg.sigma_s, cfg.occlusion_fill_s) == (0.4, 4.0 / 60, 2.0)
-    assert cfg.max_gap is None and TrackerConfig().at_fps(60.0) == TrackerConfig()
+    assert cfg.max_gap is None and TrackerConfig().at_fps(60.0).sigma_s == 2.0 / 60  # the seed's 2 frames
+    assert TrackerConfig(sigma_s=0.1).at_fps(60.0) == TrackerConfig(sigma_s=0.1)

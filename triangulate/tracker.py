@@ -7,8 +7,8 @@ below tau (200 mm) continues the track; every other pose starts a new one. A tra
 matched for ``max_gap_s`` seconds ends; the allowed distance grows with the time since the track was
 last seen (``max_speed_m_s``), so a briefly lost person is picked up again. Missing joints inside a
 track are filled by linear interpolation in time (gaps up to ``max_gap_s``) and every joint
-trajectory is smoothed by a Gaussian kernel of ``sigma_s`` seconds (sec. 4.3.4's sigma = 2 frames
-at 25 Hz), NaN-aware (normalised convolution).
+trajectory is smoothed by a Gaussian kernel of ``sigma_s`` seconds (default: sec. 4.3.4's sigma = 2 frames
+at the frame rate), NaN-aware (normalised convolution).
 
 Every duration is on the clock (issue 17): the frames' times come from ``t_ns`` (from
 ``frame_index / fps`` where the timestamps are missing or not increasing), so dropped frames,
@@ -29,12 +29,15 @@ from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFi
 from triangulate.dlt import _reject_unknown
 from triangulate.reconstruct import flip_index
 
+SEED_SIGMA_FRAMES = 2.0  # sec. 4.3.4: Gaussian smoothing of sigma = 2 frames
+
 
 @dataclass(frozen=True)
 class TrackerConfig:
     """tau_m: match threshold (sec. 4.2.2: 200 mm); max_gap_s: seconds a track may be unseen, the
     longest gap filled and the longest gap between frames that smoothing bridges; max_speed_m_s: extra
-    allowed distance per unseen second; sigma_s: Gaussian smoothing in seconds (0 = off);
+    allowed distance per unseen second; sigma_s: Gaussian smoothing in seconds (0 = off; default the
+    seed's 2 frames at the session's frame rate, a filter defined on samples);
     min_track_frames: shorter tracks are dropped; min_joints: poses with fewer joints are ignored;
     constant_velocity: compare a frame's poses with each track's last pose moved by the track's
     mean-joint velocity (False = the seed's last pose); occlusion_fill_s: longer gaps of a joint (up to
@@ -54,7 +57,7 @@ class TrackerConfig:
     tau_m: float = 0.2
     max_gap_s: float = 0.4  # 10 frames at 25 Hz
     max_speed_m_s: float = 1.5
-    sigma_s: float = 0.08  # sec. 4.3.4: 2 frames at 25 Hz
+    sigma_s: float | None = None  # None: sec. 4.3.4's 2 frames, at the session's frame rate
     min_track_frames: int = 5
     min_joints: int = 5
     constant_velocity: bool = True
@@ -67,7 +70,7 @@ class TrackerConfig:
     occlusion_fill: int | None = None
 
     def __post_init__(self) -> None:
-        if self.tau_m <= 0 or self.max_gap_s < 0 or self.sigma_s < 0 or self.occlusion_fill_s < 0:
+        if self.tau_m <= 0 or self.max_gap_s < 0 or (self.sigma_s or 0) < 0 or self.occlusion_fill_s < 0:
             raise ValueError(
                 "TrackerConfig: tau_m must be positive, max_gap_s, sigma_s and occlusion_fill_s non-negative."
             )
@@ -81,13 +84,18 @@ class TrackerConfig:
         return cls(**_reject_unknown(cls, d))
 
     def at_fps(self, fps: float) -> TrackerConfig:
-        """The config with the durations given in frames converted to seconds at ``fps``."""
+        """The config with the durations given in frames converted to seconds at ``fps``, and the
+        smoothing width the seed gives in frames (sec. 4.3.4: sigma = 2) when none is set."""
         conv = {
             f"{k}_s": getattr(self, k) / fps
             for k in ("max_gap", "sigma", "occlusion_fill")
             if getattr(self, k) is not None
         }
-        return replace(self, **conv, max_gap=None, sigma=None, occlusion_fill=None) if conv else self
+        if self.sigma_s is None and "sigma_s" not in conv:
+            conv["sigma_s"] = SEED_SIGMA_FRAMES / fps
+        if not conv and self.max_gap is None and self.occlusion_fill is None:
+            return self
+        return replace(self, **conv, max_gap=None, sigma=None, occlusion_fill=None)
 
 
 def frame_times_s(frame_index: np.ndarray, t_ns: np.ndarray | None, fps: float) -> np.ndarray:
