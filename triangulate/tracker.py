@@ -7,8 +7,8 @@ below tau (200 mm) continues the track; every other pose starts a new one. A tra
 matched for ``max_gap_s`` seconds ends; the allowed distance grows with the time since the track was
 last seen (``max_speed_m_s``), so a briefly lost person is picked up again. Missing joints inside a
 track are filled by linear interpolation in time (gaps up to ``max_gap_s``) and every joint
-trajectory is smoothed by a Gaussian kernel of ``sigma_s`` seconds (default: sec. 4.3.4's sigma = 2 frames
-at the frame rate), NaN-aware (normalised convolution).
+trajectory is smoothed by a Gaussian kernel of ``sigma_s`` seconds (default: sec. 4.3.4's sigma =
+2 frames at the frame rate), NaN-aware (normalised convolution).
 
 Every duration is on the clock (issue 17): the frames' times come from ``t_ns`` (from
 ``frame_index / fps`` where the timestamps are missing or not increasing), so dropped frames,
