@@ -37,6 +37,16 @@ def _record_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--live", action="store_true", help="run keypoints/triangulation/tracking on every frame set"
     )
+    p.add_argument(
+        "--skip-failed-cameras",
+        action="store_true",
+        help="record the cameras that open; the ones that do not are reported and listed in session.toml",
+    )
+    p.add_argument(
+        "--no-join",
+        action="store_true",
+        help="keep raw/<cam>/seg_* instead of joining them into raw/<cam>.mp4 (join later: repair)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true")
     return p
@@ -63,7 +73,13 @@ def _record(argv: list[str]) -> int:
 
         live = LiveRunner(cfg, out)
     rec = Recorder(
-        cfg, out, duration_s=args.duration, frameset_sink=live.queue if live else None, cams_yaml_text=text
+        cfg,
+        out,
+        duration_s=args.duration,
+        frameset_sink=live.queue if live else None,
+        cams_yaml_text=text,
+        skip_failed_cameras=args.skip_failed_cameras,
+        join=not args.no_join,
     )
     if live:
         live.start()
@@ -94,11 +110,20 @@ def _record(argv: list[str]) -> int:
             live.stop()
     print(f"session: {out} ({summary['status']}; {rec.stop_reason})")
     for name, c in summary["cameras"].items():
+        if c.get("recorded") is False:
+            print(f"  {name}: NOT RECORDED (skipped: {c.get('failed', '')})")
+            continue
         gaps = c.get("gaps", [])
         print(
             f"  {name}: {c.get('frames_written', 0)} frames, dropped {c.get('dropped_queue', 0)} (queue) + "
             f"{c.get('dropped_source', 0)} (source), {len(gaps)} gap(s), ended: {c.get('ended', '')}"
         )
+        if "joined" in c:
+            print(
+                f"    -> {c['video']} ({c['frames_in_video']} frames)"
+                if c["joined"]
+                else f"    -> segments kept in raw/{name}/: {c.get('join_message', '')}"
+            )
     t = summary.get("timing", {})
     if "skew_ms_median" in t:
         print(
@@ -107,6 +132,15 @@ def _record(argv: list[str]) -> int:
         )
     if live:
         print("  live: " + redact_text(live.summary_line()))
+    if summary.get("failed_cameras"):
+        print(
+            f"capture-run: warning: {len(summary['failed_cameras'])} camera(s) not recorded: "
+            f"{', '.join(summary['failed_cameras'])} (listed in session.toml failed_cameras)",
+            file=sys.stderr,
+        )
+    if summary["status"] != "complete":
+        print(f"capture-run: recording stopped early: {rec.stop_reason}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -193,14 +227,33 @@ def _sync(argv: list[str]) -> int:
 
 
 def _repair(argv: list[str]) -> int:
-    from capture.recorder import repair_session
+    from capture.recorder import repair
 
-    p = argparse.ArgumentParser(prog="capture-run repair")
+    p = argparse.ArgumentParser(
+        prog="capture-run repair",
+        description="After a kill (or --no-join): drop unfinished segments, rebuild the timestamp files and "
+        "join each camera's segments into raw/<cam>.mp4 (stream copy, frame count checked).",
+    )
     p.add_argument("session")
+    p.add_argument("--no-join", action="store_true", help="only fix the timestamps, keep the segments")
     args = p.parse_args(argv)
-    for cam, n in repair_session(args.session).items():
-        print(f"  {cam}: {n} frames")
-    return 0
+    if not Path(args.session).is_dir():
+        print(f"capture-run repair: {args.session} is not a folder.", file=sys.stderr)
+        return 2
+    counts, joins = repair(args.session, join=not args.no_join)
+    if not counts:
+        print(f"  nothing to repair in {args.session} (no segment folders under raw/)")
+    kept = 0
+    for cam, n in counts.items():
+        j = joins.get(cam)
+        if j is None:
+            print(f"  {cam}: {n} frames")
+        elif j.ok:
+            print(f"  {cam}: {n} frames -> {j.video}")
+        else:
+            kept += 1
+            print(f"  {cam}: {n} frames, segments kept: {j.message}")
+    return 1 if kept else 0
 
 
 def main(argv: list[str] | None = None) -> int:
