@@ -120,7 +120,13 @@ def join_camera(
     exts = {s.suffix.lower() for s in segs}
     if len(exts) != 1:
         return JoinResult(
-            cam, False, f"raw/{cam}", frames_csv_rows, -1, len(segs), f"segments of mixed types {sorted(exts)}"
+            cam,
+            False,
+            f"raw/{cam}",
+            frames_csv_rows,
+            -1,
+            len(segs),
+            f"segments of mixed types {sorted(exts)}",
         )
     ext = JOINED_EXT[exts.pop()]
     final = raw_dir / f"{cam}{ext}"
