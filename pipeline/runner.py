@@ -330,19 +330,50 @@ def _detection_paths(lay: SessionLayout) -> list[Path]:
     return [lay.detections(c) for c in lay.detection_cameras()]
 
 
+def _sync_table(src: SessionSource) -> dict:
+    """The ``[sync]`` table (``capture-run sync``) of the input session's session.toml, or {}."""
+    toml = SessionLayout(src.root).session_toml
+    if not toml.exists():
+        return {}
+    from capture.fileio import load_toml
+
+    sync = load_toml(toml).get("sync")
+    return sync if isinstance(sync, dict) else {}
+
+
+def _carry_sync(src: SessionSource, lay: SessionLayout) -> None:
+    """Outputs written elsewhere (--out, Pose2Sim layout): copy the input's [sync] into the output's
+    session.toml, where the 3D stages (``triangulate.stage.load_detections``) read it."""
+    sync = _sync_table(src)
+    if not sync or lay.session_toml.resolve() == SessionLayout(src.root).session_toml.resolve():
+        return
+    from capture.fileio import load_toml, save_toml
+    from capture.session import SESSION_SCHEMA, SESSION_VERSION
+
+    meta = (
+        load_toml(lay.session_toml)
+        if lay.session_toml.exists()
+        else {"schema": f"{SESSION_SCHEMA}/{SESSION_VERSION}", "status": "imported"}
+    )
+    if meta.get("sync") != sync:
+        meta["sync"] = sync
+        save_toml(lay.session_toml, meta)
+
+
 def _plan_triangulate(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan:
     def run(warnings: list[str]) -> None:
         from triangulate.stage import triangulate_session
 
+        _carry_sync(src, lay)
         triangulate_session(lay.root, cfg.triangulate.options or None)
 
     return StagePlan(
         "triangulate",
         [lay.rig_toml, *_detection_paths(lay)],
         [lay.poses3d],
-        dataclasses.asdict(cfg.triangulate),
+        {**dataclasses.asdict(cfg.triangulate), "sync": _sync_table(src)},  # new offsets: rerun
         run,
     )
 
@@ -351,6 +382,7 @@ def _plan_track(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan:
     def run(warnings: list[str]) -> None:
+        _carry_sync(src, lay)
         if cfg.track.tracker == "greedy":
             from triangulate.stage import track_session_greedy
 
@@ -363,7 +395,10 @@ def _plan_track(
     inputs = [lay.rig_toml, *_detection_paths(lay)]
     if cfg.track.tracker == "greedy":
         inputs.append(lay.poses3d)
-    return StagePlan("track", inputs, [lay.tracks], dataclasses.asdict(cfg.track), run)
+    config = dataclasses.asdict(cfg.track)
+    if cfg.track.tracker != "greedy":  # the particle tracker reads the detections (and offsets) itself
+        config["sync"] = _sync_table(src)
+    return StagePlan("track", inputs, [lay.tracks], config, run)
 
 
 def forecast_path(lay: SessionLayout) -> Path:
