@@ -196,9 +196,8 @@ def _sync(argv: list[str]) -> int:
             args.session, videos, reference=args.reference, max_lag_s=args.max_lag_s, write=not args.dry_run
         )
         for cam, r in res["cameras"].items():
-            print(
-                f"  {cam}: offset {r['offset_s'] * 1e3:+.1f} ms (audio), correlation {r['correlation']:.2f}"
-            )
+            print(f"  {cam}: offset {r['offset_s'] * 1e3:+.1f} ms (audio), {_trust_text(r)}")
+        print(TRUST_LEGEND)
         return 0
     openpose = None
     if args.openpose is not None:
@@ -221,9 +220,24 @@ def _sync(argv: list[str]) -> int:
     for cam, r in res["cameras"].items():
         print(
             f"  {cam}: offset {r['offset_frames']:+.2f} frames ({r['offset_s'] * 1e3:+.1f} ms), "
-            f"drift {r.get('drift_ppm', 0.0):+.0f} ppm, correlation {r['correlation']:.2f}"
+            f"drift {r.get('drift_ppm', 0.0):+.0f} ppm, {_trust_text(r)}"
         )
+    print(TRUST_LEGEND)
     return 0
+
+
+TRUST_LEGEND = (
+    "  trust: good = correlation >= 0.2 and peak >= 2x any other lag's; fair = >= 0.1 and >= 1.3x; "
+    "poor = check before use (a clap or jump seen by all cameras, or --audio)"
+)
+
+
+def _trust_text(r: dict) -> str:
+    if r.get("trust") == "reference":
+        return "reference"
+    ratio = r.get("peak_ratio", float("nan"))
+    ratio_s = "no other peak" if ratio >= 99 else (">10" if ratio >= 10 else f"{ratio:.2f}")
+    return f"correlation {r['correlation']:.2f}, peak ratio {ratio_s}: trust {r.get('trust', '?')}"
 
 
 def _repair(argv: list[str]) -> int:
