@@ -411,8 +411,8 @@ class Recorder:
                 except SourceError as e:
                     if not self.skip_failed_cameras:
                         raise RecorderError(
-                            f"camera '{c.name}' cannot be opened: {e} Nothing was recorded. Fix it in "
-                            "cams.yaml, or pass --skip-failed-cameras to record the other cameras."
+                            f"camera '{c.name}' cannot be opened: {e} Nothing was recorded; to record the "
+                            "other cameras without it, pass --skip-failed-cameras."
                         ) from None
                     self.failed_cameras[c.name] = str(e)
                     log.error("%s: skipped, cannot be opened: %s", c.name, redact_text(str(e)))
