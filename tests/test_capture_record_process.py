@@ -248,3 +248,20 @@ def test_reprocess_keypoints_of_a_recording_needs_no_calibration(tmp_path, monke
     assert d.n_frames == 6 and np.array_equal(d.t_ns, tab[:, 1])  # the recorder's timestamps
     # the 3D stages still say what they need
     assert reprocess([str(out), "--stages", "triangulate", "--workers", "1"]) == 1
+
+
+def test_repair_bad_input(tmp_path, capsys):
+    assert capture_run(["repair", str(tmp_path / "nope")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert capture_run(["repair", str(tmp_path / "empty")]) == 2
+    err = capsys.readouterr().err
+    assert "no raw/ folder; this is not a recorded session" in err and "Traceback" not in err
+    # a segment folder whose timestamp rows do not match its video: repair keeps the segments, exit 1
+    rc, out = _record(tmp_path, n=(12, 12), extra_args=["--no-join"])
+    seg_csv = sorted((out / "raw" / "cam0").glob("seg_*.frames.csv"))[0]
+    seg_csv.write_text(seg_csv.read_text() + "999,1,2,999\n")
+    assert capture_run(["repair", str(out)]) == 1
+    cap = capsys.readouterr()
+    assert "cam0: 13 frames, segments kept: not joined: the joined video has 12 frames" in cap.out
+    assert (out / "raw" / "cam0").is_dir() and (out / "raw" / "cam1.mp4").exists()
