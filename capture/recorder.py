@@ -15,6 +15,16 @@ renamed to ``seg_*`` and its rows appended to ``<cam>.frames.csv``. A ``kill -9`
 closed segments whose frames match the timestamp file exactly, and at most ``segment_s`` (plus the
 queued frames) of video lost. ``repair_session`` removes the unfinished segment and rebuilds the
 timestamp files from the per-segment rows.
+
+When the recording ends (and in ``repair_session``) each camera's segments are joined into one
+``raw/<cam>.mp4`` (``.avi`` for MJPEG) by stream copy (``capture.join``); the segments are removed
+only after the joined file's frame count matched ``raw/<cam>.frames.csv``.
+
+Nothing lost: the recorder writes only into a new or empty folder (never over segments or onto an old
+frames.csv); a writer error (a full disk, also with the free-space guard off) stops every camera
+cleanly with ``status = "stopped"`` and the reason in ``stop_reason``, the open segment finalised or
+removed; with ``skip_failed_cameras`` a camera that cannot be opened is left out and listed in
+``failed_cameras``.
 """
 
 from __future__ import annotations
