@@ -100,3 +100,28 @@ def test_frame_shift_mapping_and_bad_sync_tables(tmp_path, world):
     save_toml(root / "session.toml", meta)
     with pytest.raises(FormatError, match="sync.cameras.cam02.*Rerun"):
         triangulate_session(root)
+
+
+def test_reprocess_carries_the_offsets_to_out_and_reruns_when_they_change(tmp_path, world):
+    from pipeline.config import PipelineConfig
+    from pipeline.discover import discover
+    from pipeline.executors import run_sessions
+
+    rig, scene = world
+    sync = {c: {"offset_frames": o} for c, o in zip(rig.names, OFFSETS, strict=True)}
+    src = _session(tmp_path / "in" / "S", world, OFFSETS, sync=sync)
+    cfg = PipelineConfig(stages=("triangulate", "track"))  # the greedy tracker (default)
+    (r,) = run_sessions(discover([src]), tmp_path / "out", cfg, workers=1)
+    assert r.status == "ok", r.message
+    out = tmp_path / "out" / "S"
+    assert load_toml(out / "session.toml")["sync"]["cameras"]["cam02"]["offset_frames"] == 6.0
+    tf = TrackFile.load(out / "track" / "tracks.npz")
+    T = min(tf.n_frames, scene.n_frames)
+    assert ev.mpjpe(scene.gt_xyz_m[:T], tf.xyz_m[:T].astype(np.float64))["mpjpe_m"] < 0.03
+    (again,) = run_sessions(discover([src]), tmp_path / "out", cfg, workers=1)
+    assert again.ran == []
+    meta = load_toml(src / "session.toml")
+    meta["sync"]["cameras"]["cam02"]["offset_frames"] = 5.0
+    save_toml(src / "session.toml", meta)
+    (third,) = run_sessions(discover([src]), tmp_path / "out", cfg, workers=1)
+    assert third.ran == ["triangulate", "track"]
