@@ -180,7 +180,8 @@ def _sync(argv: list[str]) -> int:
         nargs="*",
         default=None,
         metavar="CAM=VIDEO",
-        help="sync by the audio tracks of these videos instead of keypoints (needs PyAV)",
+        help="sync by the audio tracks of these videos instead of keypoints (no CAM=VIDEO: the "
+        "session's raw/<cam>.mp4)",
     )
     p.add_argument("--fps", type=float, default=None, help="frame rate when the session has none")
     p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
@@ -189,6 +190,25 @@ def _sync(argv: list[str]) -> int:
         from capture.offline_sync import sync_audio
 
         videos = dict(item.partition("=")[::2] for item in args.audio)
+        if not videos:  # the session's own recordings
+            from capture.session import SessionLayout
+
+            lay = SessionLayout(args.session)
+            videos = {c: str(lay.video(c)) for c in lay.raw_cameras()}
+            unjoined = [c for c, v in videos.items() if Path(v).is_dir()]
+            if unjoined:
+                print(
+                    f"capture-run sync: cameras {unjoined} are still segment folders; join them first "
+                    f"(capture-run repair {args.session}) or pass --audio CAM=VIDEO",
+                    file=sys.stderr,
+                )
+                return 2
+            if len(videos) < 2:
+                print(
+                    f"capture-run sync: {lay.raw_dir} holds {len(videos)} videos; --audio needs two",
+                    file=sys.stderr,
+                )
+                return 2
         if any(not v for v in videos.values()):
             print("capture-run sync: --audio expects CAM=VIDEO pairs", file=sys.stderr)
             return 2

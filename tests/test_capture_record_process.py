@@ -265,3 +265,15 @@ def test_repair_bad_input(tmp_path, capsys):
     cap = capsys.readouterr()
     assert "cam0: 13 frames, segments kept: not joined: the joined video has 12 frames" in cap.out
     assert (out / "raw" / "cam0").is_dir() and (out / "raw" / "cam1.mp4").exists()
+
+
+def test_sync_audio_on_the_session_videos_asks_to_join_segments_first(tmp_path, capsys):
+    rc, out = _record(tmp_path, n=(8, 8), extra_args=["--no-join"])
+    assert capture_run(["sync", str(out), "--audio", "--dry-run"]) == 2
+    assert "still segment folders" in capsys.readouterr().err
+    assert capture_run(["repair", str(out)]) == 0
+    capsys.readouterr()
+    # joined: the recordings are read (these test videos have no audio track, which is said clearly)
+    assert capture_run(["sync", str(out), "--audio", "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "no audio track" in err and "Traceback" not in err
