@@ -524,7 +524,12 @@ class Recorder:
             if self.cfg.sync.tolerance_ms is not None
             else None,
         )
-        failed_writer = any(w.error for w in self.writers.values())
+        failure = self._writer_failure()
+        if failure and not self.stop_reason.startswith(failure.split(":")[0]):
+            # a writer failed while the recording was ending anyway: that is the reason that matters
+            log.error("recording incomplete: %s (was: %s)", failure, self.stop_reason)
+            self.stop_reason = failure
+        failed_writer = bool(failure)
         status = "stopped" if self.stop_reason.startswith("disk") or failed_writer else "complete"
         if self.join:
             self._join_all(tables)
@@ -580,14 +585,20 @@ class Recorder:
                 )
                 log.error("stopping: %s", self.stop_reason)
                 break
-            bad = [(n, w) for n, w in self.writers.items() if w.failed.is_set()]
-            if bad:
-                cam, w = bad[0]
-                kind = "disk full" if w.errno in _DISK_FULL else "writer failed"
-                self.stop_reason = self.stop_reason or f"{kind}: camera {cam}: {w.error}"
+            failure = self._writer_failure()
+            if failure:
+                self.stop_reason = self.stop_reason or failure
                 log.error("stopping: %s", self.stop_reason)
                 break
             self.stop_event.wait(0.1)
+
+    def _writer_failure(self) -> str:
+        """'disk full: camera X: ...' (or 'writer failed: ...') once a writer thread failed, else ''."""
+        for cam, w in self.writers.items():
+            if w.failed.is_set():
+                kind = "disk full" if w.errno in _DISK_FULL else "writer failed"
+                return f"{kind}: camera {cam}: {w.error}"
+        return ""
 
     def stop(self, reason: str = "stopped") -> None:
         self.stop_reason = self.stop_reason or reason
