@@ -277,3 +277,20 @@ def test_sync_audio_on_the_session_videos_asks_to_join_segments_first(tmp_path, 
     assert capture_run(["sync", str(out), "--audio", "--dry-run"]) == 2
     err = capsys.readouterr().err
     assert "no audio track" in err and "Traceback" not in err
+
+
+def test_segment_writer_never_appends_or_overwrites(tmp_path):
+    from capture.recorder import RecorderError, SegmentWriter
+    from capture.sources import Frame
+
+    csv = tmp_path / "cam.frames.csv"
+    csv.write_text("frame_index,t_ns,t_host_ns,sequence\n0,1,2,0\n")
+    with pytest.raises(RecorderError, match="refusing to append"):
+        SegmentWriter(tmp_path / "cam", csv, "mp4v", 25, 0.5)
+    assert csv.read_text().count("\n") == 2
+    (tmp_path / "cam2").mkdir()
+    (tmp_path / "cam2" / "seg_000000.mp4").write_bytes(b"old")
+    w = SegmentWriter(tmp_path / "cam2", tmp_path / "cam2.frames.csv", "mp4v", 25, 0.5)
+    with pytest.raises(RecorderError, match="refusing to overwrite"):
+        w.write(Frame(np.zeros((48, 64, 3), np.uint8), 1, 1, 0))
+    assert (tmp_path / "cam2" / "seg_000000.mp4").read_bytes() == b"old"
