@@ -135,10 +135,15 @@ def _main(argv: list[str] | None = None) -> int:
     bar.close()
     table = format_table(results, tuple(s for s in STAGES if any(s in r.stage_s for r in results)))
     print(table)
-    failed = [r for r in results if r.status != "ok"]
+    failed = [r for r in results if r.status == "failed"]
+    partial = [r for r in results if r.status == "partial"]  # ran without some cameras (skipped_cameras)
     print(
-        f"{len(results) - len(failed)} sessions ok, {len(failed)} failed in {time.perf_counter() - t0:.1f} s"
+        f"{len(results) - len(failed) - len(partial)} sessions ok, "
+        + (f"{len(partial)} partial, " if partial else "")
+        + f"{len(failed)} failed in {time.perf_counter() - t0:.1f} s"
     )
+    for r in partial:
+        print(f"PARTIAL {r.name}: cameras {sorted(r.skipped_cameras)} left out: {r.message}", file=sys.stderr)
     for r in failed:
         print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
     if args.out:
