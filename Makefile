@@ -27,7 +27,7 @@ test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadgroup -q
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -n 2 -q -m "not slow"
+	$(PY) -m pytest -n 2 --dist loadgroup -q -m "not slow"
 
 demo: $(STAMP)
 	$(PY) -m pipeline.demo --recording $(DEMO) --out $(DEMO_OUT)

@@ -115,6 +115,7 @@ def _recording(tmp_path, board, n_cams=3, n_frames=10, rng=None, size=(640, 480)
     return rig
 
 
+@pytest.mark.slow
 def test_wrong_dictionary_is_diagnosed_and_detections_are_cached(tmp_path, monkeypatch, caplog):
     printed = Board("charuco", (5, 7), 0.08, 0.06, "DICT_5X5_100")
     _recording(tmp_path, printed, n_cams=2, n_frames=8)

@@ -43,6 +43,7 @@ def calibrate(board, rig, dets, refine="all", model="pinhole4", **kw):
     return calibrate_extrinsics(board, cams, dets, ExtrinsicsConfig(refine_intrinsics=refine, **kw))
 
 
+@pytest.mark.slow
 def test_ring_of_12_cameras(rng):
     rig = ring_rig(12, radius_m=2.0, rng=rng)
     T = np.concatenate(

@@ -70,6 +70,7 @@ def test_aniposelib_round_trip(tmp_path, rng):
     assert np.abs(rig.project(X) - back.project(X)).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_aniposelib_library_reads_our_export(tmp_path, rng):
     """aniposelib itself loads the file, keeps the order for 12 cameras and projects identically."""
     cameras = pytest.importorskip("aniposelib.cameras")

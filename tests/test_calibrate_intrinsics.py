@@ -59,6 +59,7 @@ def test_too_few_frames_says_what_to_record(rng):
         calibrate_intrinsics(BOARD, det)
 
 
+@pytest.mark.slow
 def test_caliscope_recording_rms_no_worse_than_caliscope(tmp_path):
     rec = need_shared("data", "caliscope", "charuco_calibration")
     board = load_board(rec / "charuco.toml")
@@ -71,6 +72,7 @@ def test_caliscope_recording_rms_no_worse_than_caliscope(tmp_path):
         assert abs(r.K[0, 0] / ref[name.split("_")[1]]["matrix"][0][0] - 1) < 0.05  # measured < 2 %
 
 
+@pytest.mark.slow
 def test_pose2sim_checkerboard_against_qualisys(tmp_path):
     from calibrate.formats import import_rig
 
@@ -85,6 +87,7 @@ def test_pose2sim_checkerboard_against_qualisys(tmp_path):
     assert r.rms_px < 1.0  # measured 0.58
 
 
+@pytest.mark.slow
 def test_cli_calibrates_a_rendered_recording(tmp_path, capsys):
     from calibrate.boards import save_board
     from calibrate.cli import main

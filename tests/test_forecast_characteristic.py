@@ -152,6 +152,7 @@ def test_model_shapes_loss_and_autoregressive_order():
     assert det.sample(obs, k=4).shape == (3, 4, J, 3)
 
 
+@pytest.mark.slow
 def test_refinement_restores_bone_lengths():
     torch.manual_seed(0)
     bones = torch.tensor([(p, j) for j, p in enumerate(SK.parents) if p >= 0])
@@ -174,6 +175,7 @@ def test_refinement_restores_bone_lengths():
     assert bone_err(out) < 0.5 * bone_err(noisy)
 
 
+@pytest.mark.slow
 def test_training_runs_on_a_synthetic_clip():
     x, _ = synthetic_clip()
     items = [C.Labelled("syn", x, C.annotate(x, NAMES, FPS))]
@@ -210,6 +212,7 @@ def test_checkpoint_round_trip_and_skeleton_mismatch(tmp_path):
         C.load_checkpoint(bad)
 
 
+@pytest.mark.slow
 def test_shipped_checkpoint_beats_the_average_pose_on_held_out_clips():
     from conftest import need_shared
 

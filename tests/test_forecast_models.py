@@ -65,6 +65,7 @@ def test_gru_learns_and_checkpoint_round_trip(tmp_path):
         T.config_from_dict("gru", {"hiden": 3})
 
 
+@pytest.mark.slow
 def test_intention_model_trains_and_samples_diverse_futures():
     cfg = T.config_from_dict(
         "intention",
@@ -109,6 +110,7 @@ def test_intention_checkpoint_is_small_and_training_continues_from_it(tmp_path):
         T.build_model("intention", T.config_from_dict("intention", {"hidden": 8}), 19, blob["state_dict"])
 
 
+@pytest.mark.slow
 def test_social_diffusion_writes_back_observation_and_learns():
     m = SocialDiffusion(62, n_frames=32, channels=16, T=100)
     obs = torch.randn(2, 3, 10, 62)
@@ -141,6 +143,7 @@ def test_social_diffusion_writes_back_observation_and_learns():
     assert y.shape == (1, 2, 40, 2, 19, 3) and np.isfinite(y).all()
 
 
+@pytest.mark.slow
 def test_diffusion_mirror_option_trains_on_both_sides():
     base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 2, "batch": 4, "val_every": 0}
     base["mirror"] = False
@@ -220,6 +223,7 @@ def test_root_velocity_coding_round_trips_and_keeps_the_observation():
         )
 
 
+@pytest.mark.slow
 def test_diffusion_ema_weights_are_validated_and_returned():
     base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 4, "batch": 4, "lr": 1e-2}
     clips = _clips(4, 160)  # validation needs 150-frame windows

@@ -114,7 +114,14 @@ def test_ctrl_c_during_reprocess_is_one_line_and_a_rerun_resumes(tmp_path):
     script = "import sys; from pipeline.cli import main; sys.exit(main())"
     cmd = [sys.executable, "-c", script, str(root), "--stages", "triangulate,track", "--workers", "1"]
     proc = subprocess.Popen(
-        [*cmd, "-v"], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        [*cmd, "-v"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        # pytest-xdist workers ignore SIGINT, and an ignored signal stays ignored in a child: restore it
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     seen = []
     for line in proc.stderr:  # wait until the triangulation runs (seconds of work for 1000 frames)

@@ -64,6 +64,7 @@ def test_upright_boxes_follow_a_leaning_body():
     assert boxes[0, 0] < 100 < boxes[0, 2]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model_set", ["default", "blazepose"])
 def test_model_sets_find_the_participant_in_every_view(single, model_set):
     pipe = KeypointPipeline(model_set)
@@ -115,6 +116,7 @@ def test_pyramid_crop_matches_direct_crop_on_a_smooth_image():
     assert np.abs(a - b)[10:-10, 10:-10].mean() < 0.6  # measured 0.36 (0.76 with a half-pixel offset)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("frame,people", [(0, 3), (600, 6)])  # counted by eye on the frames
 def test_vtest_pedestrian_count(frame, people):
     need_shared("models")
@@ -157,6 +159,7 @@ def test_erase_body_fills_with_the_background(rng):
     assert (img == np.array([30, 140, 200], np.uint8)).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("frame", [75, 85])
 def test_occluded_person_kept_beside_the_one_in_front(frame):
     """Demo_MultiPerson cam03: the crop of the person behind (75) or in front (85) returns a pose mixing both;
@@ -171,6 +174,7 @@ def test_occluded_person_kept_beside_the_one_in_front(frame):
     assert _duplicate_pairs(r.xy_px[full], np.nan_to_num(r.score[full]), 0.08) == []
 
 
+@pytest.mark.slow
 def test_rotation_hypotheses_turn_a_cartwheel_upright():
     """Demo_MultiPerson cam04 frames 40-52: a participant mid-cartwheel, head to the image's left (checked by
     eye on frame 48: facing the camera, right arm up, right leg raised to the image's right). Upright crops

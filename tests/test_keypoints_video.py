@@ -131,6 +131,7 @@ def test_run_session_reads_raw_and_writes_keypoints(tmp_path, tiny_set):
     assert Detections.load(paths["cam01"]).t_ns.tolist() == [1000, 2000, 3000]
 
 
+@pytest.mark.slow
 def test_bottom_up_maps_are_kept_for_the_tracker(tmp_path, monkeypatch):
     from conftest import need_shared
 

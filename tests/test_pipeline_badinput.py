@@ -38,6 +38,7 @@ def _models(monkeypatch):
     monkeypatch.setenv("ROOMCAP_SHARED", str(need_shared("models").parent))
 
 
+@pytest.mark.slow
 def test_mixed_frame_rates_fail_with_the_rates(tmp_path):
     _session(tmp_path / "in" / "mixed", rates=(25.0, 30.0))
     _session(tmp_path / "in" / "fine")

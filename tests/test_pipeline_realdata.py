@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from conftest import need_shared
 
 from pipeline.cli import main as reprocess
@@ -26,6 +27,7 @@ def test_pose2sim_openpose_trial_end_to_end(tmp_path):
     assert again["ran"] == []
 
 
+@pytest.mark.slow
 def test_real_videos_through_keypoints_few_frames(tmp_path):
     """The video path: a Pose2Sim demo trial (4 portrait 1080x1920 videos, Qualisys calibration), 5 frames
     (the greedy tracker keeps no track from 3)."""

@@ -83,6 +83,7 @@ def test_new_calibration_reruns_triangulation_not_keypoints(tmp_path):
     assert second.ran == ["calibration", "triangulate", "track"]  # detections were up to date
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_identical_outputs(sessions, reference, tmp_path):
     out = tmp_path / "out"
     cmd = [
@@ -177,6 +178,7 @@ def test_newer_schema_and_missing_calibration_are_reported(sessions, tmp_path):
     assert results["in/nocalib"].status == "failed" and "no calibration" in results["in/nocalib"].message
 
 
+@pytest.mark.slow
 def test_local_and_ray_executors_give_identical_outputs(sessions, reference, tmp_path):
     ray = pytest.importorskip("ray")
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
@@ -224,6 +226,7 @@ class _Crashing(SessionSource):
         return (os._exit, (3,))
 
 
+@pytest.mark.slow
 def test_a_crashing_worker_takes_down_only_its_session(sessions, tmp_path):
     srcs = discover([sessions])[:2]
     crash = _Crashing(**{f.name: getattr(srcs[1], f.name) for f in dataclasses.fields(SessionSource)})

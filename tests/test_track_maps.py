@@ -64,6 +64,7 @@ def test_maps_must_match_the_cameras(scene):
         tr.step(kp[0], sc[0], 0, maps[0][:2])
 
 
+@pytest.mark.slow
 def test_stage_reads_stored_maps_of_distorted_cameras(tmp_path, caplog):
     """Maps stored the way the keypoints stage stores them (``maps_f16`` raw OpenPose channel layout,
     ``maps_to_img``) are read back in the tracker's layout and weigh the samples; lens distortion applied."""
