@@ -296,3 +296,28 @@ def test_cli_bad_input_messages(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert tracks_main(["export", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
     assert "has no track file" in capsys.readouterr().err
+
+
+def test_cli_bvh_of_unfittable_person_says_why(tmp_path, capsys):
+    xyz = _walkers(2, 40)
+    xyz[:20, 1, CANONICAL.index("nose")] = np.nan
+    xyz[20:, 1, CANONICAL.index("right_knee")] = np.nan
+    sess = _session(tmp_path, xyz)
+    # every person: the one without a complete frame is skipped with a note, the other exported
+    assert tracks_main(["export", str(sess), "--format", "bvh", "--out", str(tmp_path / "o")]) == 0
+    out = capsys.readouterr().out
+    assert "BVH left out: track 4 has no frame in which all 19 joints are known" in out
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["S01_3.bvh"]
+    # that person asked for by id: an error that says why
+    assert (
+        tracks_main(["export", str(sess), "--format", "bvh", "--person", "4", "--out", str(tmp_path / "q")])
+        == 2
+    )
+    assert "track 4 has no frame in which all 19 joints are known" in capsys.readouterr().err
+
+
+def test_reprocess_export_rejects_unknown_format(tmp_path, capsys):
+    from pipeline.cli import main as reprocess_main
+
+    assert reprocess_main([str(tmp_path), "--export", "trc,obj"]) == 2
+    assert "unknown export format ['obj']" in capsys.readouterr().err

@@ -380,46 +380,68 @@ def export_tracks(
         rep.notes.append("the track file has no tracks; nothing written.")
         return rep
     fmts = options.formats
+    strict = persons is not None  # every track: one that cannot be exported is skipped with a note
     if "bvh" in fmts and fit is None:
         from track.skeleton_fit import fit_skeletons
 
         rep.notes.append(f"no skeleton fit was given: fitted the skeletons of tracks {ids} now")
-        fit = fit_skeletons(tf, track_ids=ids)
-    for p in ids:
-        stem = out_dir / f"{session}_{p}"
-        table = None
-        if "trc" in fmts or "c3d" in fmts:
-            table = marker_table(tf, p, options.max_gap, options.min_coverage)
-            if table.dropped_markers:
-                rep.notes.append(
-                    f"track {p}: left out markers known in < {options.min_coverage:.0%} of its frames: "
-                    + ", ".join(f"{n} ({c:.0%})" for n, c in table.dropped_markers.items())
-                )
-            n_out = int((~table.complete).sum())
-            if n_out:
-                rep.notes.append(
-                    f"track {p}: {n_out} of {len(table.rows)} frames left out of the TRC (a marker unknown "
-                    f"after filling gaps of up to {options.max_gap} frames)"
-                )
-        for fmt in fmts:
-            path = stem.with_suffix(f".{fmt}")
-            if fmt == "trc":
-                write_trc(tf, p, path, table)
-            elif fmt == "c3d":
-                write_c3d(tf, p, path, table)
-            elif fmt == "csv":
-                write_csv(tf, p, path)
-            elif fmt == "json":
-                export_json(tf, path, track=p)
-            elif fmt == "bvh":
-                from track.skeleton_fit import write_bvh
+        fit = fit_skeletons(tf, track_ids=ids, skip_unfittable=not strict)
+    if "bvh" in fmts:
+        rep.notes.extend(f"BVH left out: {n}" for n in fit.notes)
+    from track.skeleton_fit import FitError
 
-                write_bvh(fit, path, track_ids=[p])
-            rep.files.append(path)
-    if "bvh" in fmts and options.multi_bvh and len(ids) > 1:
+    for p in ids:
+        try:
+            rep.files.extend(_export_person(tf, p, out_dir / f"{session}_{p}", options, fit, rep))
+        except (ExportError, FitError) as e:
+            if strict:
+                raise
+            rep.notes.append(f"track {p} skipped: {e}")
+    if not rep.files:
+        raise ExportError("nothing could be exported: " + "; ".join(rep.notes))
+    if "bvh" in fmts and options.multi_bvh and len(fit.track_id) > 1:
         from track.skeleton_fit import write_bvh
 
         path = out_dir / f"{session}_all.bvh"
-        write_bvh(fit, path, track_ids=ids)
+        write_bvh(fit, path, track_ids=fit.track_id.tolist())
         rep.files.append(path)
     return rep
+
+
+def _export_person(
+    tf: TrackFile, p: int, stem: Path, options: ExportOptions, fit, rep: ExportReport
+) -> list[Path]:
+    fmts = options.formats
+    files = []
+    table = None
+    if "trc" in fmts or "c3d" in fmts:
+        table = marker_table(tf, p, options.max_gap, options.min_coverage)
+        if table.dropped_markers:
+            rep.notes.append(
+                f"track {p}: left out markers known in < {options.min_coverage:.0%} of its frames: "
+                + ", ".join(f"{n} ({c:.0%})" for n, c in table.dropped_markers.items())
+            )
+        n_out = int((~table.complete).sum())
+        if n_out:
+            rep.notes.append(
+                f"track {p}: {n_out} of {len(table.rows)} frames left out of the TRC (a marker unknown "
+                f"after filling gaps of up to {options.max_gap} frames)"
+            )
+    for fmt in fmts:
+        path = stem.with_suffix(f".{fmt}")
+        if fmt == "trc":
+            write_trc(tf, p, path, table)
+        elif fmt == "c3d":
+            write_c3d(tf, p, path, table)
+        elif fmt == "csv":
+            write_csv(tf, p, path)
+        elif fmt == "json":
+            export_json(tf, path, track=p)
+        elif fmt == "bvh":
+            from track.skeleton_fit import write_bvh
+
+            if p not in fit.track_id.tolist():
+                continue  # named in the notes
+            write_bvh(fit, path, track_ids=[p])
+        files.append(path)
+    return files

@@ -95,6 +95,7 @@ class SkeletonFit:
     fit_error_m: np.ndarray  # (T,K,J) against the track file's joints
     held: np.ndarray  # (T,K,J') bool
     tracks_sha256: str = ""
+    notes: tuple[str, ...] = ()  # tracks left out of the fit, and why
 
     @property
     def span(self) -> np.ndarray:
@@ -148,6 +149,7 @@ class SkeletonFit:
                 "rotation_xyzw": self.rotation_xyzw,
                 "fit_error_m": self.fit_error_m.astype(np.float32),
                 "held": self.held,
+                "notes": np.asarray(self.notes, dtype=str),
             },
         )
 
@@ -178,6 +180,7 @@ class SkeletonFit:
             fit_error_m=d["fit_error_m"].astype(np.float64),
             held=d["held"],
             tracks_sha256=sha,
+            notes=tuple(d["notes"].tolist()) if "notes" in d else (),
         )
 
 
@@ -444,13 +447,23 @@ def fit_skeletons(
     track_ids: list[int] | None = None,
     options: FitOptions = FitOptions(),
     tracks_sha256: str = "",
+    skip_unfittable: bool = False,
 ) -> SkeletonFit:
-    """Fit every track (or ``track_ids``) of ``tf``; :class:`FitError` names a track that cannot be fitted."""
+    """Fit every track (or ``track_ids``) of ``tf``; :class:`FitError` names a track that cannot be fitted
+    (with ``skip_unfittable`` such a track is left out and named in ``notes``)."""
     ids = tf.track_id.tolist() if track_ids is None else [int(i) for i in track_ids]
     names, parents, jidx = fit_skeleton(tf.joint_names, tf.parents)
     T, F = tf.n_frames, len(names)
-    K = len(ids)
-    res = [fit_track(tf, i, options) for i in ids]
+    res, kept, notes = [], [], []
+    for i in ids:
+        try:
+            res.append(fit_track(tf, i, options))
+            kept.append(i)
+        except FitError as e:
+            if not skip_unfittable:
+                raise
+            notes.append(str(e))
+    ids, K = kept, len(kept)
 
     def stack(key, axis, shape):
         return np.stack([r[key] for r in res], axis) if K else np.zeros(shape)
@@ -469,6 +482,7 @@ def fit_skeletons(
         fit_error_m=np.zeros((T, K, len(jidx))),
         held=stack("held", 1, (T, 0, F)).astype(bool),
         tracks_sha256=tracks_sha256,
+        notes=tuple(notes),
     )
     ks = [_track_index(tf, i) for i in ids]
     err = np.linalg.norm(fit.joint_positions() - tf.xyz_m[:, ks].astype(np.float64), axis=-1)
@@ -492,7 +506,7 @@ def load_or_fit(
         except FormatError as e:
             log.warning("%s; fitting again", e)
     tf = tf or TrackFile.load(tracks_path)
-    return fit_skeletons(tf, track_ids=track_ids, tracks_sha256=sha), True
+    return fit_skeletons(tf, track_ids=track_ids, tracks_sha256=sha, skip_unfittable=track_ids is None), True
 
 
 # ----------------------------------------------------------------------------- BVH
