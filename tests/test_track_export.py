@@ -321,3 +321,33 @@ def test_reprocess_export_rejects_unknown_format(tmp_path, capsys):
 
     assert reprocess_main([str(tmp_path), "--export", "trc,obj"]) == 2
     assert "unknown export format ['obj']" in capsys.readouterr().err
+
+
+def test_reprocess_export_writes_files_per_person(tmp_path, capsys):
+    from pipeline.cli import main as reprocess_main
+    from pipeline.synth import make_sessions
+
+    make_sessions(tmp_path / "syn", 1, duration_s=1.0)
+    sess = next(p for p in (tmp_path / "syn").iterdir() if p.is_dir())
+    out = tmp_path / "out"
+    rc = reprocess_main(
+        [
+            str(sess),
+            "--out",
+            str(out),
+            "--stages",
+            "triangulate,track",
+            "--workers",
+            "1",
+            "--export",
+            "trc,csv",
+        ]
+    )
+    assert rc == 0, capsys.readouterr()
+    exp = out / sess.name / "export"
+    tf = TrackFile.load(out / sess.name / "track" / "tracks.npz")
+    csvs = sorted(p.name for p in exp.glob("*.csv") if not p.name.endswith(".filled.csv"))
+    assert csvs == sorted(f"{sess.name}_{t}.csv" for t in tf.track_id.tolist())
+    for trc in exp.glob("*.trc"):
+        assert np.isfinite(read_trc(trc)[1]).all()
+    assert any(exp.glob("*.trc"))
