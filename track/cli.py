@@ -179,11 +179,12 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
     from track.export import ExportError
+    from track.opensim_ik import OpenSimError
     from track.skeleton_fit import FitError
 
     try:
         return args.func(args)
-    except (UsageError, ExportError, FitError, FormatError, OSError) as e:
+    except (UsageError, ExportError, FitError, OpenSimError, FormatError, OSError) as e:
         print(f"tracks {args.cmd}: {e}", file=sys.stderr)
         return 2
 

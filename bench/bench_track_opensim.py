@@ -1,0 +1,122 @@
+"""OpenSim inverse kinematics on our TRC against Pose2Sim's own TRC of the same trial (BODY_25B setup).
+
+Pose2Sim's single-participant balancing trial (``session-2024/S00_P00_SingleParticipant/
+S00_P00_T01_BalancingTrial``, 4 cameras, 100 frames at 60 fps; the videos are the demo's
+``Demo_SinglePerson``). Ours: the chain's track file — by default ``reprocess`` on the trial's own
+OpenPose BODY_25B JSON (the 2D input Pose2Sim triangulated), or ``--tracks`` a track file made from
+the videos (``python -m pipeline.demo --recording .../Demo_SinglePerson``). The participant is the
+longest track. Both TRCs go through the same scaling + IK with Pose2Sim's model and BODY_25B setups,
+restricted to the markers both have (by name), and once more without ``Neck`` (same name, another
+point: ours is the mid-shoulder point, BODY_25B's a detected upper-neck keypoint); reported:
+OpenSim's per-frame marker error RMS and max (median and mean over frames) for ours, Pose2Sim's
+unfiltered and Butterworth-filtered TRC, and the markers the setup names that our track lacks.
+
+    .venv/bin/python bench/bench_track_opensim.py [--shared ../shared] [--tracks T.npz] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.cli import main as reprocess  # noqa: E402
+from track.export import marker_table, write_trc  # noqa: E402
+from track.opensim_ik import find_setup, run_opensim_trc, setup_marker_names  # noqa: E402
+from track.trackfile import TrackFile, read_trc  # noqa: E402
+
+TRIAL = "data/pose2sim/session-2024/S00_P00_SingleParticipant/S00_P00_T01_BalancingTrial"
+
+
+def summary(r) -> dict:
+    return {
+        "frames": r.n_frames,
+        "markers": len(r.markers),
+        "rms_median_mm": round(1000 * float(np.median(r.rms_m)), 1),
+        "rms_mean_mm": round(1000 * float(np.mean(r.rms_m)), 1),
+        "max_median_mm": round(1000 * float(np.median(r.max_m)), 1),
+        "max_mean_mm": round(1000 * float(np.mean(r.max_m)), 1),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+    )
+    ap.add_argument("--tracks", type=Path, help="our track file (default: reprocess the trial's JSON)")
+    ap.add_argument("--label", default="", help="name of our input in the output")
+    ap.add_argument("--out", type=Path, help="keep the OpenSim outputs here")
+    args = ap.parse_args()
+    shared = Path(args.shared)
+    trial = shared / TRIAL
+    setup_dir = shared / "data/opensim-pose2sim"
+    try:
+        import opensim  # noqa: F401
+    except ImportError:
+        print("opensim not installed (pip install 'roomcap[opensim]')")
+        print("BENCH " + json.dumps({"skipped": True}))
+        return
+    if not trial.exists() or not setup_dir.exists():
+        print(f"Pose2Sim trial or setups not found under {shared}; pass --shared")
+        print("BENCH " + json.dumps({"skipped": True}))
+        return
+    out = args.out or Path(tempfile.mkdtemp(prefix="bench_opensim_"))
+    t0 = time.perf_counter()
+    tracks = args.tracks
+    if tracks is None:
+        rc = reprocess(
+            [str(trial), "--out", str(out / "chain"), "--stages", "calibration,keypoints,triangulate,track"]
+        )
+        assert rc == 0, "reprocess failed"
+        tracks = out / "chain" / trial.name / "track" / "tracks.npz"
+    tf = TrackFile.load(tracks)
+    k = int(np.argmax(tf.mask.any(-1).sum(0)))
+    tid = int(tf.track_id[k])
+    ours = out / "ours.trc"
+    mt = write_trc(tf, tid, ours, marker_table(tf, tid))
+    setup = find_setup(setup_dir, "Body25b")
+    wanted = setup_marker_names(setup)
+    p2s_raw = next((trial / "pose-3d").glob("*_0-100.trc"))
+    p2s_filt = next((trial / "pose-3d").glob("*_0-100_filt_butterworth.trc"))
+    theirs = read_trc(p2s_raw)[0]
+    common = [m for m in wanted if m in mt.names and m in theirs]
+    res = {}
+    res["ours"] = run_opensim_trc(ours, out / "ik_ours", "ours", setup_dir, "Body25b", common, track_id=tid)
+    res["pose2sim"] = run_opensim_trc(p2s_raw, out / "ik_p2s", "p2s", setup_dir, "Body25b", common)
+    res["pose2sim_butterworth"] = run_opensim_trc(
+        p2s_filt, out / "ik_p2sf", "p2sf", setup_dir, "Body25b", common
+    )
+    full = run_opensim_trc(ours, out / "ik_ours_all", "ours_all", setup_dir, "Body25b", None, track_id=tid)
+    report = {
+        "input": args.label or ("trial OpenPose JSON" if args.tracks is None else str(args.tracks)),
+        "track": tid,
+        "ours_trc_frames": int(mt.complete.sum()),
+        "common_markers": common,
+        "setup_markers_track_lacks": full.missing,
+        **{k: summary(v) for k, v in res.items()},
+        "ours_all_markers": summary(full),
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+    for name in res:
+        s = report[name]
+        print(
+            f"{name:30s} {s['frames']:4d} frames {s['markers']:2d} markers  RMS median "
+            f"{s['rms_median_mm']:6.1f} mm mean {s['rms_mean_mm']:6.1f} | max median "
+            f"{s['max_median_mm']:6.1f} mean {s['max_mean_mm']:6.1f}"
+        )
+    print(f"setup markers our track lacks: {full.missing}")
+    print("BENCH " + json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
