@@ -90,12 +90,18 @@ def main() -> None:
     p2s_filt = next((trial / "pose-3d").glob("*_0-100_filt_butterworth.trc"))
     theirs = read_trc(p2s_raw)[0]
     common = [m for m in wanted if m in mt.names and m in theirs]
+    # Same name, other definition: our body19 neck is the mid-shoulder point, OpenPose BODY_25B's
+    # (Pose2Sim's "Neck") a detected upper-neck keypoint; the second comparison leaves it out.
+    same_def = [m for m in common if m != "Neck"]
     res = {}
-    res["ours"] = run_opensim_trc(ours, out / "ik_ours", "ours", setup_dir, "Body25b", common, track_id=tid)
-    res["pose2sim"] = run_opensim_trc(p2s_raw, out / "ik_p2s", "p2s", setup_dir, "Body25b", common)
-    res["pose2sim_butterworth"] = run_opensim_trc(
-        p2s_filt, out / "ik_p2sf", "p2sf", setup_dir, "Body25b", common
-    )
+    for tag, mk in (("", common), ("_no_neck", same_def)):
+        res["ours" + tag] = run_opensim_trc(ours, out / f"ik_ours{tag}", "ours", setup_dir, "Body25b", mk)
+        res["pose2sim" + tag] = run_opensim_trc(
+            p2s_raw, out / f"ik_p2s{tag}", "p2s", setup_dir, "Body25b", mk
+        )
+        res["pose2sim_butterworth" + tag] = run_opensim_trc(
+            p2s_filt, out / f"ik_p2sf{tag}", "p2sf", setup_dir, "Body25b", mk
+        )
     full = run_opensim_trc(ours, out / "ik_ours_all", "ours_all", setup_dir, "Body25b", None, track_id=tid)
     report = {
         "input": args.label or ("trial OpenPose JSON" if args.tracks is None else str(args.tracks)),
