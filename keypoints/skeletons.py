@@ -301,6 +301,48 @@ SKELETONS: dict[str, Skeleton] = {
 }
 CANONICAL = SKELETONS["body19"]
 
+# Joints a 3D skeleton carries beyond body19 when a 2D layout provides them (``whole_body``).
+WHOLE_BODY_EXTRAS = (
+    "left_big_toe",
+    "left_small_toe",
+    "left_heel",
+    "right_big_toe",
+    "right_small_toe",
+    "right_heel",
+    "left_foot_index",
+    "right_foot_index",
+    "upper_neck",
+    "head_top",
+    "head",
+    "left_pinky",
+    "right_pinky",
+    "left_index",
+    "right_index",
+    "left_thumb",
+    "right_thumb",
+)
+
+
+def whole_body(sources) -> Skeleton:
+    """The 3D skeleton for detections in the 2D layouts ``sources``: ``body19`` plus every joint of
+    :data:`WHOLE_BODY_EXTRAS` that one of them provides (feet of BODY_25/BODY_25B/HALPE-26/BlazePose,
+    BlazePose's hand points, BODY_25B's upper neck and head top), in that order. Id ``whole_body``
+    (``body19`` itself when no layout adds a joint)."""
+    have = set()
+    for src in sources:
+        have |= set(get_skeleton(src).joint_names)
+    extra = tuple(n for n in WHOLE_BODY_EXTRAS if n in have)
+    return CANONICAL if not extra else Skeleton("whole_body", _BODY19 + extra)
+
+
+def skeleton_from_names(joint_names) -> Skeleton:
+    """The skeleton of a 3D file from its joint names (a known layout when the names are one's)."""
+    names = tuple(str(n) for n in joint_names)
+    for sk in SKELETONS.values():
+        if sk.joint_names == names:
+            return sk
+    return Skeleton("whole_body" if names[: len(_BODY19)] == _BODY19 else "custom", names)
+
 
 def get_skeleton(skeleton: str | Skeleton) -> Skeleton:
     if isinstance(skeleton, Skeleton):
@@ -312,13 +354,13 @@ def get_skeleton(skeleton: str | Skeleton) -> Skeleton:
 
 
 @cache
-def mapping(src: str, dst: str) -> tuple[np.ndarray, tuple[tuple[int, int, int], ...]]:
+def mapping(src: str | Skeleton, dst: str | Skeleton) -> tuple[np.ndarray, tuple[tuple[int, int, int], ...]]:
     """Index map from ``src`` to ``dst`` layout.
 
     Returns ``take`` (J_dst,) with the source index of each destination joint or -1,
     and ``derived``: (dst_index, src_a, src_b) for joints computed as a midpoint.
     """
-    s, d = get_skeleton(src), get_skeleton(dst)
+    s, d = get_skeleton(src), get_skeleton(dst)  # ids or Skeleton objects (hashable)
     src_idx = {n: i for i, n in enumerate(s.joint_names)}
     take = np.full(d.n_joints, -1, dtype=np.int64)
     derived = []
@@ -331,7 +373,7 @@ def mapping(src: str, dst: str) -> tuple[np.ndarray, tuple[tuple[int, int, int],
     return take, tuple(derived)
 
 
-def convert(xy: np.ndarray, score: np.ndarray | None, src: str, dst: str = "body19"):
+def convert(xy: np.ndarray, score: np.ndarray | None, src: str | Skeleton, dst: str | Skeleton = "body19"):
     """Map keypoints (..., J_src, D) and scores (..., J_src) to layout ``dst``.
 
     Joints the source cannot provide are NaN with score 0. Derived joints are the
@@ -341,7 +383,7 @@ def convert(xy: np.ndarray, score: np.ndarray | None, src: str, dst: str = "body
     s = get_skeleton(src)
     if xy.shape[-2] != s.n_joints:
         raise ValueError(f"convert: expected (..., {s.n_joints}, D) for '{src}', got {xy.shape}")
-    take, derived = mapping(s.id, get_skeleton(dst).id)
+    take, derived = mapping(s, get_skeleton(dst))
     out_shape = xy.shape[:-2] + (len(take), xy.shape[-1])
     out = np.full(out_shape, np.nan)
     ok = take >= 0

@@ -4,7 +4,9 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
 
 - **TRC** (OpenSim / Pose2Sim): metres, OpenSim's axes (y up: world (x, y, z) -> file (x, z, -y)),
   Pose2Sim's marker names (``Nose``, ``Neck``, ``LShoulder`` ... ``LBigToe``, ``LSmallToe``, ``LHeel``;
-  :data:`POSE2SIM_NAMES`). OpenSim refuses blank cells, so: interior gaps of a joint up to
+  :data:`POSE2SIM_NAMES`; with a ``whole_body`` track from BODY_25B, ``Neck`` and ``Head`` are its
+  detected upper neck and head top, as in Pose2Sim, not body19's mid-shoulder point). OpenSim refuses
+  blank cells, so: interior gaps of a joint up to
   ``max_gap`` frames (Pose2Sim's ``interp_if_gap_smaller_than``, 10) are filled by linear
   interpolation and **flagged** (a ``<name>.filled.csv`` list of frame, time and marker beside the
   TRC; residual 0, C3D's "modelled" value, in the C3D); markers known in fewer than ``min_coverage`` of the
@@ -58,6 +60,9 @@ POSE2SIM_NAMES = {
     "pelvis": "Hip",
     "head": "Head",
     "head_top": "Head",
+    "upper_neck": "Neck",
+    "left_foot_index": "LBigToe",
+    "right_foot_index": "RBigToe",
     "left_eye": "LEye",
     "right_eye": "REye",
     "left_ear": "LEar",
@@ -81,6 +86,11 @@ POSE2SIM_NAMES = {
     "right_small_toe": "RSmallToe",
     "right_heel": "RHeel",
 }
+
+
+# Joints that take a Pose2Sim name over another joint with the same name: OpenPose BODY_25B's detected
+# upper neck and head top are Pose2Sim's Neck and Head (body19's neck is the mid-shoulder point).
+PREFERRED = ("upper_neck", "head_top")
 
 
 class ExportError(ValueError):
@@ -174,12 +184,14 @@ def marker_table(
     cover = known[np.isin(rows, span)].mean(0)
     names_all = [marker_name(tf.joint_names[j]) for j in want]
     keep = [i for i in range(len(want)) if cover[i] >= min_coverage]
-    # two joints with one Pose2Sim name (head, head_top): the better covered one
+    # two joints with one Pose2Sim name: the detected one (upper_neck, head_top) over the derived
+    # or coarser one (body19's mid-shoulder neck, head), else the better covered
     seen: dict[str, int] = {}
-    for i in sorted(keep, key=lambda i: -cover[i]):
+    for i in sorted(keep, key=lambda i: (tf.joint_names[want[i]] not in PREFERRED, -cover[i])):
         seen.setdefault(names_all[i], i)
+    dup = [i for i in keep if seen[names_all[i]] != i]
     keep = sorted(seen.values())
-    dropped = {names_all[i]: float(cover[i]) for i in range(len(want)) if i not in keep}
+    dropped = {names_all[i]: float(cover[i]) for i in range(len(want)) if i not in keep and i not in dup}
     complete = known[:, keep].all(-1) if keep else np.zeros(len(rows), bool)
     if not keep or not complete.any():
         worst = sorted((float(cover[i]), names_all[i]) for i in range(len(want)))[:5]

@@ -57,6 +57,10 @@ class TriangulateConfig:
     merge_dist_m: two 3D poses closer than this (mean joint distance) are one person seen as two
       hypotheses: with disjoint cameras they are merged and re-triangulated, else the one with
       fewer views is dropped (0 = off).
+    skeleton: the 3D joints: ``body19`` (the default), or ``whole_body``: body19 plus every joint the
+      detections' 2D layouts provide beyond it (feet, BODY_25B's upper neck and head top, BlazePose's
+      hand points; :func:`keypoints.skeletons.whole_body`). The greedy tracker carries either; the
+      particle tracker and forecasting work on body19.
     """
 
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -65,6 +69,13 @@ class TriangulateConfig:
     limb_check: bool = True
     fix_flips: bool = True
     merge_dist_m: float = 0.25
+    skeleton: str = "body19"
+
+    def __post_init__(self) -> None:
+        if self.skeleton not in ("body19", "whole_body"):
+            raise ValueError(
+                f"TriangulateConfig.skeleton must be 'body19' or 'whole_body', got {self.skeleton!r}."
+            )
 
     @classmethod
     def from_dict(cls, d: dict) -> TriangulateConfig:

@@ -1,7 +1,8 @@
 """The triangulate stage and the greedy (chapter-4) track stage on a session folder.
 
 ``triangulate_session(session)`` reads ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (any
-detector, any skeleton :mod:`keypoints.skeletons` can convert to ``body19``) and writes
+detector, any skeleton :mod:`keypoints.skeletons` can convert to ``body19``, or ``whole_body``
+with ``skeleton = "whole_body"``) and writes
 ``triangulate/poses3d.npz``. ``track_session_greedy(session)`` reads that file and writes
 ``track/tracks.npz``. Both accept a typed config, a plain dict (unknown keys are rejected with
 the list of valid ones) or None for the defaults.
@@ -21,7 +22,7 @@ from calibrate.camera import CameraRig
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, convert
+from keypoints.skeletons import CANONICAL, convert, get_skeleton, skeleton_from_names, whole_body
 from triangulate.dlt import _reject_unknown
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
@@ -67,11 +68,15 @@ class MultiViewDetections:
     t_ns: np.ndarray  # (T,)
     xy_px: np.ndarray  # (C,T,P,J,2) undistorted pixels, NaN = missing
     score: np.ndarray  # (C,T,P,J)
+    joint_names: tuple[str, ...] = CANONICAL.joint_names  # the 3D skeleton's joints (J,)
 
 
-def load_detections(layout: SessionLayout, rig: CameraRig) -> tuple[CameraRig, MultiViewDetections]:
+def load_detections(
+    layout: SessionLayout, rig: CameraRig, skeleton: str = "body19"
+) -> tuple[CameraRig, MultiViewDetections]:
     """Read every ``keypoints/<cam>.npz``, check it against the rig, align frames, convert and undistort.
 
+    ``skeleton``: ``body19`` or ``whole_body`` (body19 plus the joints the cameras' layouts add).
     Returns the rig restricted to the cameras with detections (in rig order) and the detections.
     """
     kp_cams = layout.detection_cameras()
@@ -115,7 +120,8 @@ def load_detections(layout: SessionLayout, rig: CameraRig) -> tuple[CameraRig, M
     frames = np.unique(np.concatenate([d.frame_index for d in dets]))
     T = len(frames)
     P = max(d.max_people for d in dets)
-    J = CANONICAL.n_joints
+    skel = whole_body([d.skeleton for d in dets]) if skeleton == "whole_body" else get_skeleton(skeleton)
+    J = skel.n_joints
     xy = np.full((len(cams), T, P, J, 2), np.nan)
     sc = np.zeros((len(cams), T, P, J))
     t_ns = np.zeros(T, np.int64)
@@ -123,14 +129,14 @@ def load_detections(layout: SessionLayout, rig: CameraRig) -> tuple[CameraRig, M
     sub = rig.subset(cams)
     for ci, d in enumerate(dets):
         pos = np.searchsorted(frames, d.frame_index)
-        b19, s19 = convert(d.xy_px, d.score, d.skeleton, "body19")
+        b19, s19 = convert(d.xy_px, d.score, d.skeleton, skel)
         s19 = np.where(np.isfinite(s19), s19, 0.0)
         xy[ci, pos, : d.max_people] = sub[ci].undistort_px(b19)
         sc[ci, pos, : d.max_people] = s19
         new = ~have_t[pos] & (d.t_ns != 0)
         t_ns[pos[new]] = d.t_ns[new]
         have_t[pos[new]] = True
-    return sub, MultiViewDetections(tuple(cams), frames, t_ns, xy, sc)
+    return sub, MultiViewDetections(tuple(cams), frames, t_ns, xy, sc, skel.joint_names)
 
 
 def _fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
@@ -159,7 +165,7 @@ def reconstruct_all(
             )
         order = np.asarray([mv.cameras.index(c) for c in config.match.camera_order])
     rec = FrameReconstructor(
-        rig.projection_matrices(), rig.fundamental_matrices(), config, order, CANONICAL.joint_names
+        rig.projection_matrices(), rig.fundamental_matrices(), config, order, mv.joint_names
     )
     T = len(mv.frame_index)
     out = []
@@ -167,7 +173,7 @@ def reconstruct_all(
         out.append(rec(mv.xy_px[:, t], mv.score[:, t]))
         if progress is not None:
             progress(t + 1, T)
-    J = CANONICAL.n_joints
+    J = len(mv.joint_names)
     P3 = max([len(f.xyz_m) for f in out], default=0)
     res = {
         "xyz_m": np.full((T, P3, J, 3), np.nan),
@@ -202,14 +208,14 @@ def triangulate_session(
             f"triangulation needs at least 2 cameras, the rig has {len(rig)}.",
             "Calibrate at least two cameras.",
         )
-    sub, mv = load_detections(lay, rig)
+    sub, mv = load_detections(lay, rig, cfg.skeleton)
     res = reconstruct_all(sub, mv, cfg, progress)
     fps = _fps(lay, mv.t_ns)
     poses = Poses3D(
         fps=fps,
         frame_index=mv.frame_index,
         t_ns=mv.t_ns,
-        joint_names=CANONICAL.joint_names,
+        joint_names=mv.joint_names,
         calibration_sha256=rig.sha256(),
         **res,
     )
@@ -241,7 +247,7 @@ def track_session_greedy(
         p.t_ns,
         p.fps,
         p.joint_names,
-        np.asarray(CANONICAL.parents),
+        np.asarray(skeleton_from_names(p.joint_names).parents),
         confidence=p.score,
         std_m=p.std_m,
         config=cfg.tracker,
