@@ -12,6 +12,7 @@ OpenSim's per-frame marker error RMS and max (median and mean over frames) for o
 unfiltered and Butterworth-filtered TRC, and the markers the setup names that our track lacks.
 
     .venv/bin/python bench/bench_track_opensim.py [--shared ../shared] [--tracks T.npz] [--out DIR]
+        [--whole-body]
 """
 
 from __future__ import annotations
@@ -55,6 +56,11 @@ def main() -> None:
     )
     ap.add_argument("--tracks", type=Path, help="our track file (default: reprocess the trial's JSON)")
     ap.add_argument("--label", default="", help="name of our input in the output")
+    ap.add_argument(
+        "--whole-body",
+        action="store_true",
+        help="triangulate with skeleton = whole_body (feet, BODY_25B's upper neck and head top)",
+    )
     ap.add_argument("--out", type=Path, help="keep the OpenSim outputs here")
     args = ap.parse_args()
     shared = Path(args.shared)
@@ -74,9 +80,13 @@ def main() -> None:
     t0 = time.perf_counter()
     tracks = args.tracks
     if tracks is None:
-        rc = reprocess(
-            [str(trial), "--out", str(out / "chain"), "--stages", "calibration,keypoints,triangulate,track"]
-        )
+        stages = "calibration,keypoints,triangulate,track"
+        extra = []
+        if args.whole_body:
+            (out / "wb.toml").parent.mkdir(parents=True, exist_ok=True)
+            (out / "wb.toml").write_text('[triangulate.options]\nskeleton = "whole_body"\n')
+            extra = ["--config", str(out / "wb.toml")]
+        rc = reprocess([str(trial), "--out", str(out / "chain"), "--stages", stages, *extra])
         assert rc == 0, "reprocess failed"
         tracks = out / "chain" / trial.name / "track" / "tracks.npz"
     tf = TrackFile.load(tracks)
@@ -91,10 +101,11 @@ def main() -> None:
     theirs = read_trc(p2s_raw)[0]
     common = [m for m in wanted if m in mt.names and m in theirs]
     # Same name, other definition: our body19 neck is the mid-shoulder point, OpenPose BODY_25B's
-    # (Pose2Sim's "Neck") a detected upper-neck keypoint; the second comparison leaves it out.
-    same_def = [m for m in common if m != "Neck"]
+    # (Pose2Sim's "Neck") a detected upper-neck keypoint; the second comparison leaves it out (a
+    # whole_body track has BODY_25B's upper neck as Neck: no second comparison).
+    same_def = [m for m in common if m != "Neck" or "upper_neck" in tf.joint_names]
     res = {}
-    for tag, mk in (("", common), ("_no_neck", same_def)):
+    for tag, mk in (("", common), ("_no_neck", same_def)) if same_def != common else (("", common),):
         res["ours" + tag] = run_opensim_trc(ours, out / f"ik_ours{tag}", "ours", setup_dir, "Body25b", mk)
         res["pose2sim" + tag] = run_opensim_trc(
             p2s_raw, out / f"ik_p2s{tag}", "p2s", setup_dir, "Body25b", mk
@@ -105,6 +116,7 @@ def main() -> None:
     full = run_opensim_trc(ours, out / "ik_ours_all", "ours_all", setup_dir, "Body25b", None, track_id=tid)
     report = {
         "input": args.label or ("trial OpenPose JSON" if args.tracks is None else str(args.tracks)),
+        "skeleton": "whole_body" if args.whole_body else "body19",
         "track": tid,
         "ours_trc_frames": int(mt.complete.sum()),
         "common_markers": common,

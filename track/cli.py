@@ -83,12 +83,16 @@ def _export(args) -> int:
 
 
 def _fit(args) -> int:
-    from track.skeleton_fit import file_sha256, fit_skeletons
+    from track.skeleton_fit import FitError, file_sha256, fit_skeletons
     from track.trackfile import TrackFile
 
     path, _ = resolve_tracks(args.tracks)
     tf = TrackFile.load(path)
-    fit = fit_skeletons(tf, tracks_sha256=file_sha256(path))
+    fit = fit_skeletons(tf, tracks_sha256=file_sha256(path), skip_unfittable=True)
+    for n in fit.notes:
+        print(f"note: left out: {n}")
+    if not len(fit.track_id):
+        raise FitError("no track could be fitted (see the notes above).")
     out = path.with_name("skeleton_fit.npz")
     fit.save(out)
     import numpy as np

@@ -216,7 +216,12 @@ def _mirror(name: str) -> str:
 
 # A child that moves against its parent's other children (the trunk against the hips, the head against
 # the shoulders) hangs from a joint of its own at the parent's position (zero offset), named here.
-ARTICULATED = {("pelvis", "neck"): "spine", ("neck", "nose"): "head", ("neck", "head"): "head_neck"}
+ARTICULATED = {
+    ("pelvis", "neck"): "spine",
+    ("neck", "nose"): "head",
+    ("neck", "head"): "head_neck",
+    ("neck", "upper_neck"): "cervical",
+}
 
 
 def fit_skeleton(names, parents) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
