@@ -78,6 +78,9 @@ class FitOptions:
     symmetric: bool = True
     twist_weight: float = 0.25
     hinge_limits_deg: tuple[float, float] = HINGE_LIMITS_DEG
+    refine: bool = True  # weighted least squares over all joint rotations after the top-down solution
+    min_std_m: float = 0.01  # floor of the per-joint uncertainty weighting the refinement
+    prior_rad: float = 0.5  # spread of the refinement's prior around the top-down rotations
 
 
 @dataclass(frozen=True)
@@ -329,7 +332,7 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
     if not len(span):
         raise FitError(f"track {track} has no known joint in any frame; there is nothing to fit.")
     rows = np.arange(span[0], span[-1] + 1)
-    Xt, _, _ = fill_gaps(
+    Xt, St, _ = fill_gaps(
         tf.xyz_m[rows, k].astype(np.float64), tf.std_m[rows, k].astype(np.float64), opt.max_gap
     )
     known_t = np.isfinite(Xt).all(-1)
@@ -425,6 +428,11 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
             G[j] = Gp @ R
         if not np.isfinite(P[root]).all():
             continue
+        if opt.refine and kn.sum() >= 3:
+            sig = np.full(F, np.inf)
+            sig[jidx] = np.maximum(np.nan_to_num(St[t], nan=opt.min_std_m), opt.min_std_m)
+            P[root], Lcur = _refine(x, kn, sig, P[root], Lcur, rest, parents, order, children, hinge_axis,
+                                    (lo, hi), opt.prior_rad)  # fmt: skip
         root_prev = P[root].copy()
         Lprev = Lcur
         root_xyz[t] = P[root]
@@ -445,6 +453,107 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
         "rotation_xyzw": out_rot,
         "held": out_held,
     }
+
+
+def _rodrigues(v: np.ndarray) -> np.ndarray:
+    """Rotation vectors (...,3) -> matrices (...,3,3)."""
+    th = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    A = np.where(small, 1.0, np.sin(ths) / ths)
+    B = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
+    return np.eye(3) + A * K + B * (K @ K)
+
+
+def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, limits, prior_rad):
+    """Weighted least squares (positions / sigma, plus a prior on the change of each rotation) over
+    the root position and every rotating joint, from the top-down solution; hinges keep one angle
+    inside ``limits`` (flexion). Returns (root position, local rotations (F,3,3))."""
+    from scipy.optimize import least_squares
+
+    F = len(parents)
+    free = [j for j in order if children[j]]
+    hinge = {j: hinge_axis[j] for j in free if j in hinge_axis}
+    lo, hi = limits
+    layout, n = [], 3
+    x0, lb, ub = list(root_p), [-np.inf] * 3, [np.inf] * 3
+    for j in free:
+        if j in hinge:
+            c = children[j][0]
+            ax, o = hinge[j], rest[c]
+            phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
+            th0 = Rotation.from_matrix(L0[j]).as_rotvec() @ ax
+            layout.append((j, n, 1, phi0))
+            x0.append(th0)
+            lb.append(lo - phi0 - 1e-9)
+            ub.append(hi - phi0 + 1e-9)
+            n += 1
+        else:
+            layout.append((j, n, 3, 0.0))
+            x0 += [0.0, 0.0, 0.0]
+            lb += [-np.inf] * 3
+            ub += [np.inf] * 3
+            n += 3
+    x0 = np.clip(np.asarray(x0), np.asarray(lb) + 1e-12, np.asarray(ub) - 1e-12)
+    obs = np.flatnonzero(kn & np.isfinite(sig))
+    w = 1.0 / sig[obs]
+    root = order[0]
+
+    j3 = [j for j, _, m, _ in layout if m == 3]
+    c3 = np.asarray([[a, a + 1, a + 2] for _, a, m, _ in layout if m == 3], np.int64).reshape(-1, 3)
+    j1 = [j for j, _, m, _ in layout if m == 1]
+    c1 = np.asarray([a for _, a, m, _ in layout if m == 1], np.int64)
+    ax1 = np.asarray([hinge[j] for j in j1]).reshape(-1, 3)
+
+    def locals_(q: np.ndarray) -> np.ndarray:  # q (B,n) -> (B,F,3,3)
+        B = len(q)
+        L = np.broadcast_to(L0, (B, F, 3, 3)).copy()
+        if j3:
+            L[:, j3] = L0[j3] @ _rodrigues(q[:, c3])
+        if j1:
+            L[:, j1] = _rodrigues(q[:, c1, None] * ax1)
+        return L
+
+    def fk(q: np.ndarray) -> np.ndarray:  # (B,n) -> (B,F,3)
+        L = locals_(q)
+        B = len(q)
+        G = np.empty((B, F, 3, 3))
+        P = np.empty((B, F, 3))
+        for j in order:
+            p = parents[j]
+            if p < 0:
+                G[:, j], P[:, j] = L[:, j], q[:, :3]
+            else:
+                P[:, j] = P[:, p] + G[:, p] @ rest[j]
+                G[:, j] = G[:, p] @ L[:, j]
+        return P
+
+    def prior(q: np.ndarray) -> np.ndarray:
+        d = [q[:, a : a + m] - (x0[a : a + m] if m == 1 else 0.0) for _, a, m, _ in layout]
+        return np.concatenate(d, 1) / prior_rad
+
+    def res_batch(q: np.ndarray) -> np.ndarray:
+        P = fk(q)
+        r = ((P[:, obs] - x[obs]) * w[None, :, None]).reshape(len(q), -1)
+        return np.concatenate([r, prior(q)], 1)
+
+    def fun(q):
+        return res_batch(q[None])[0]
+
+    def jac(q):
+        h = 1e-6
+        Q = np.repeat(q[None], n + 1, 0)
+        Q[1:] += np.eye(n) * h
+        R = res_batch(Q)
+        return ((R[1:] - R[0]) / h).T
+
+    sol = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", max_nfev=8, x_scale=1.0)
+    L = locals_(sol.x[None])[0]
+    _ = root
+    return sol.x[:3].copy(), L
 
 
 def fit_skeletons(
