@@ -335,6 +335,74 @@ def whole_body(sources) -> Skeleton:
     return CANONICAL if not extra else Skeleton("whole_body", _BODY19 + extra)
 
 
+def custom_skeleton(id: str, joint_names, parents) -> Skeleton:
+    """A skeleton with its own tree: ``parents`` are joint names (``""`` for the root) or indices (-1)."""
+    names = tuple(str(n) for n in joint_names)
+    if len(set(names)) != len(names):
+        raise ValueError(f"skeleton '{id}': joint names repeat: {list(names)}")
+    if len(parents) != len(names):
+        raise ValueError(f"skeleton '{id}': {len(names)} joints but {len(parents)} parents")
+    idx = {n: i for i, n in enumerate(names)}
+    par = []
+    for n, p in zip(names, parents, strict=True):
+        if isinstance(p, str):
+            if p and p not in idx:
+                raise ValueError(
+                    f"skeleton '{id}': the parent '{p}' of '{n}' is not a joint; joints: {list(names)}"
+                )
+            par.append(idx[p] if p else -1)
+        else:
+            par.append(int(p))
+    if sum(1 for p in par if p < 0) != 1:
+        raise ValueError(f"skeleton '{id}': exactly one joint must be the root (parent \"\"), got {par}")
+    sk = Skeleton(id, names)
+    object.__setattr__(sk, "parents", tuple(par))
+    return sk
+
+
+def load_skeleton_toml(path) -> Skeleton:
+    """A skeleton the project does not know, declared in a small TOML, for the 3D stages::
+
+        [skeleton]
+        id = "mouse"
+        joints = ["snout", "left_ear", "right_ear", "neck", "tail_base"]
+        parents = ["neck", "snout", "snout", "", "neck"]      # "" = the root
+
+        [layouts.dlc_mouse]                 # a 2D layout: the ``skeleton`` id of the detections files
+        joints = ["nose", "earL", "earR", "neck", "tailbase"]
+        map = { snout = "nose", left_ear = "earL", right_ear = "earR", tail_base = "tailbase" }
+
+    The 3D joints take the 2D joints of the same name, or the one ``map`` names (3D = 2D). Each
+    layout is registered (so its detections files load) with its joints renamed to the 3D names.
+    Returns the 3D skeleton."""
+    from pathlib import Path
+
+    from capture.fileio import FormatError, load_toml
+
+    path = Path(path)
+    data = load_toml(path)
+    try:
+        sk = data["skeleton"]
+        skel = custom_skeleton(str(sk["id"]), sk["joints"], sk["parents"])
+        for lid, lay in data.get("layouts", {}).items():
+            m = {str(v): str(k) for k, v in lay.get("map", {}).items()}
+            bad = [v for v in m if v not in lay["joints"]]
+            if bad:
+                raise ValueError(f"layout '{lid}': map names 2D joints {bad} it does not have")
+            names = tuple(m.get(n, n) for n in lay["joints"])
+            if not set(names) & set(skel.joint_names):
+                raise ValueError(f"layout '{lid}' shares no joint with skeleton '{skel.id}'")
+            SKELETONS[str(lid)] = Skeleton(str(lid), names)
+        unknown = set(data) - {"skeleton", "layouts"}
+        if unknown:
+            raise ValueError(f"unknown sections {sorted(unknown)}; valid: skeleton, layouts")
+    except (KeyError, TypeError, ValueError) as e:
+        raise FormatError(
+            path, None, f"not a skeleton declaration ({e}).", "See keypoints.skeletons.load_skeleton_toml."
+        ) from None
+    return skel
+
+
 def skeleton_from_names(joint_names) -> Skeleton:
     """The skeleton of a 3D file from its joint names (a known layout when the names are one's)."""
     names = tuple(str(n) for n in joint_names)

@@ -9,7 +9,7 @@ from triangulate_helpers import people  # noqa: F401
 
 from capture.session import SessionLayout
 from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, SKELETONS, convert, whole_body
+from keypoints.skeletons import CANONICAL, SKELETONS, convert, load_skeleton_toml, whole_body
 from synthetic.rigs import ring_rig
 from track.export import marker_table
 from track.trackfile import TrackFile
@@ -102,5 +102,49 @@ def test_triangulate_and_track_carry_the_feet(tmp_path, rng):
 
 
 def test_unknown_skeleton_option():
-    with pytest.raises(ValueError, match="'body19' or 'whole_body'"):
+    with pytest.raises(ValueError, match="'body19', 'whole_body' or a skeleton TOML file"):
         TriangulateConfig.from_dict({"skeleton": "feet"})
+
+
+MOUSE_TOML = """
+[skeleton]
+id = "mouse"
+joints = ["snout", "left_ear", "right_ear", "neck", "spine_mid", "tail_base"]
+parents = ["neck", "snout", "snout", "", "neck", "spine_mid"]
+
+[layouts.dlc_mouse]
+joints = ["nose", "earL", "earR", "neck", "back", "tailbase"]
+map = { snout = "nose", left_ear = "earL", right_ear = "earR", spine_mid = "back", tail_base = "tailbase" }
+"""
+
+
+def test_custom_skeleton_from_toml(tmp_path, rng):
+    (tmp_path / "mouse.toml").write_text(MOUSE_TOML)
+    # two animals on the floor, 2D detections in the lab's own layout
+    base = np.array(
+        [
+            [0.12, 0, 0.05],
+            [0.09, 0.02, 0.07],
+            [0.09, -0.02, 0.07],
+            [0.05, 0, 0.06],
+            [0.0, 0, 0.05],
+            [-0.06, 0, 0.04],
+        ]
+    )
+    X = np.stack([base * 4 + [0.5, 0.3, 0], base * 4 @ np.diag([-1, -1, 1]) + [-0.6, -0.4, 0]])
+    load_skeleton_toml(tmp_path / "mouse.toml")  # registers the 2D layout (to write its detections here)
+    lay = _session(tmp_path / "S", X, skeleton="dlc_mouse")
+    cfg = {"skeleton": str(tmp_path / "mouse.toml"), "min_joints_3d": 4}
+    p = Poses3D.load(triangulate_session(lay.root, cfg))
+    assert p.joint_names == ("snout", "left_ear", "right_ear", "neck", "spine_mid", "tail_base")
+    assert p.parents.tolist() == [3, 0, 0, -1, 3, 4]
+    got = p.xyz_m[0]
+    d = np.linalg.norm(got[:, None] - X[None], axis=-1).mean(-1).min(1)
+    assert (d < 0.005).all()
+    tf = TrackFile.load(track_session_greedy(lay.root, {"min_joints": 4}))
+    assert tf.n_tracks == 2 and tf.parents.tolist() == [3, 0, 0, -1, 3, 4]
+    from capture.fileio import FormatError
+
+    (tmp_path / "bad.toml").write_text(MOUSE_TOML.replace('"neck", "spine_mid"]', '"neck", "hip"]'))
+    with pytest.raises(FormatError, match=r"bad\.toml.*parent 'hip' of 'tail_base' is not a joint"):
+        triangulate_session(lay.root, {"skeleton": str(tmp_path / "bad.toml")})

@@ -22,7 +22,14 @@ from calibrate.camera import CameraRig
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, convert, get_skeleton, skeleton_from_names, whole_body
+from keypoints.skeletons import (
+    CANONICAL,
+    convert,
+    get_skeleton,
+    load_skeleton_toml,
+    skeleton_from_names,
+    whole_body,
+)
 from triangulate.dlt import _reject_unknown
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
@@ -69,6 +76,7 @@ class MultiViewDetections:
     xy_px: np.ndarray  # (C,T,P,J,2) undistorted pixels, NaN = missing
     score: np.ndarray  # (C,T,P,J)
     joint_names: tuple[str, ...] = CANONICAL.joint_names  # the 3D skeleton's joints (J,)
+    parents: tuple[int, ...] = CANONICAL.parents  # (J,)
 
 
 def load_detections(
@@ -106,6 +114,7 @@ def load_detections(
             f"triangulation needs detections from at least 2 calibrated cameras, got {cams}.",
             "Add detections of another camera of the rig.",
         )
+    custom = load_skeleton_toml(skeleton) if str(skeleton).endswith(".toml") else None  # registers layouts
     dets = []
     for c in cams:
         d = Detections.load(layout.detections(c))
@@ -120,7 +129,12 @@ def load_detections(
     frames = np.unique(np.concatenate([d.frame_index for d in dets]))
     T = len(frames)
     P = max(d.max_people for d in dets)
-    skel = whole_body([d.skeleton for d in dets]) if skeleton == "whole_body" else get_skeleton(skeleton)
+    if custom is not None:
+        skel = custom
+    elif skeleton == "whole_body":
+        skel = whole_body([d.skeleton for d in dets])
+    else:
+        skel = get_skeleton(skeleton)
     J = skel.n_joints
     xy = np.full((len(cams), T, P, J, 2), np.nan)
     sc = np.zeros((len(cams), T, P, J))
@@ -136,7 +150,7 @@ def load_detections(
         new = ~have_t[pos] & (d.t_ns != 0)
         t_ns[pos[new]] = d.t_ns[new]
         have_t[pos[new]] = True
-    return sub, MultiViewDetections(tuple(cams), frames, t_ns, xy, sc, skel.joint_names)
+    return sub, MultiViewDetections(tuple(cams), frames, t_ns, xy, sc, skel.joint_names, skel.parents)
 
 
 def _fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
@@ -216,6 +230,7 @@ def triangulate_session(
         frame_index=mv.frame_index,
         t_ns=mv.t_ns,
         joint_names=mv.joint_names,
+        parents=np.asarray(mv.parents),
         calibration_sha256=rig.sha256(),
         **res,
     )
@@ -247,7 +262,7 @@ def track_session_greedy(
         p.t_ns,
         p.fps,
         p.joint_names,
-        np.asarray(skeleton_from_names(p.joint_names).parents),
+        np.asarray(skeleton_from_names(p.joint_names).parents if p.parents is None else p.parents),
         confidence=p.score,
         std_m=p.std_m,
         config=cfg.tracker,
