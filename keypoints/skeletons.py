@@ -6,6 +6,10 @@ Skeleton ids (DESIGN.md): ``coco17``, ``coco18`` (OpenPose COCO), ``body25``,
 points) and the canonical ``body19`` (COCO-17 plus pelvis and neck) used for
 every 3D file. Joint names are lower snake case.
 
+The 3D stages can also use ``whole_body`` (:func:`whole_body`: body19 plus the feet, hand
+points, upper neck and head top a 2D layout provides) or a skeleton declared in a TOML
+(:func:`load_skeleton_toml`).
+
 ``convert`` maps keypoints between layouts by joint name; joints the source
 lacks but can be derived (pelvis = mid-hips, neck = mid-shoulders) are
 computed, everything else is NaN.

@@ -11,6 +11,14 @@ Keys (T frames, K tracks, J joints):
   triangulation covariance), NaN where unknown
 - ``flags (T,K,J)`` uint8 bits: OBSERVED, INTERPOLATED, PREDICTED (carried through
   occlusion), SMOOTHED
+
+The skeleton is ``body19`` by default; with the triangulate option ``skeleton = "whole_body"`` (or a
+skeleton TOML) ``joint_names``/``parents`` carry the longer list (feet, ...), same keys.
+
+Beside it, ``skeleton_fit.npz`` (schema ``skeleton_fit/1``, written by ``tracks fit``; see
+:mod:`track.skeleton_fit`) holds one skeleton per track: constant bone lengths, per-frame joint
+rotations, fit error per joint, and the sha256 of the tracks.npz it was fitted on. Exporters: TRC,
+C3D, CSV, JSON, BVH (:mod:`track.export`, ``tracks export``).
 """
 
 from __future__ import annotations
