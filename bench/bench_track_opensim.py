@@ -12,7 +12,7 @@ OpenSim's per-frame marker error RMS and max (median and mean over frames) for o
 unfiltered and Butterworth-filtered TRC, and the markers the setup names that our track lacks.
 
     .venv/bin/python bench/bench_track_opensim.py [--shared ../shared] [--tracks T.npz] [--out DIR]
-        [--whole-body]
+        [--whole-body] [--videos]
 """
 
 from __future__ import annotations
@@ -48,6 +48,27 @@ def summary(r) -> dict:
     }
 
 
+def track_from_videos(shared: Path, out: Path) -> Path:
+    """Demo_SinglePerson videos -> BlazePose heavy (33 landmarks kept) -> whole_body triangulate + track."""
+    from capture.session import SessionLayout
+    from keypoints.pipeline import PipelineConfig as KeypointsConfig
+    from keypoints.video import run_videos
+
+    demo = shared / "data/pose2sim/demo-wheel-0.10.49/Demo_SinglePerson"
+    chain = out / "videos"
+    assert reprocess([str(demo), "--out", str(chain), "--stages", "calibration"]) == 0
+    lay = SessionLayout(chain / demo.name)
+    videos = {p.stem: p for p in sorted((demo / "videos").glob("*.mp4"))}
+    kp = KeypointsConfig(model_set="blazepose_heavy", skeleton="model", refine_passes=0)
+    from calibrate.camera import CameraRig
+
+    run_videos(videos, lay.keypoints_dir, kp, rig=CameraRig.load(lay.rig_toml), progress=False)
+    (out / "wb.toml").write_text('[triangulate.options]\nskeleton = "whole_body"\n')
+    stages = ["--stages", "triangulate,track", "--config", str(out / "wb.toml")]
+    assert reprocess([str(demo), "--out", str(chain), *stages]) == 0
+    return lay.tracks
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
@@ -56,6 +77,12 @@ def main() -> None:
     )
     ap.add_argument("--tracks", type=Path, help="our track file (default: reprocess the trial's JSON)")
     ap.add_argument("--label", default="", help="name of our input in the output")
+    ap.add_argument(
+        "--videos",
+        action="store_true",
+        help="ours from the demo's videos (Demo_SinglePerson): BlazePose heavy keypoints in their own "
+        "33-point layout, triangulated whole_body (heels and foot tips)",
+    )
     ap.add_argument(
         "--whole-body",
         action="store_true",
@@ -79,6 +106,8 @@ def main() -> None:
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_opensim_"))
     t0 = time.perf_counter()
     tracks = args.tracks
+    if args.videos:
+        tracks = track_from_videos(shared, out)
     if tracks is None:
         stages = "calibration,keypoints,triangulate,track"
         extra = []
@@ -115,8 +144,10 @@ def main() -> None:
         )
     full = run_opensim_trc(ours, out / "ik_ours_all", "ours_all", setup_dir, "Body25b", None, track_id=tid)
     report = {
-        "input": args.label or ("trial OpenPose JSON" if args.tracks is None else str(args.tracks)),
-        "skeleton": "whole_body" if args.whole_body else "body19",
+        "input": args.label
+        or ("Demo_SinglePerson videos, BlazePose heavy" if args.videos else None)
+        or ("trial OpenPose JSON" if args.tracks is None else str(args.tracks)),
+        "skeleton": "whole_body" if args.whole_body or args.videos else "body19",
         "track": tid,
         "ours_trc_frames": int(mt.complete.sum()),
         "common_markers": common,
