@@ -36,6 +36,7 @@ calibrate: $(STAMP)
 	$(VENV)/bin/calibrate-run calibrate $(RECORDING) --board $(BOARD) --out $(OUT)
 
 bench: $(STAMP)
+	$(PY) -m pip install -q --no-deps 'aniposelib==0.8.0'
 	@for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 lint: $(STAMP)

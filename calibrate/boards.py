@@ -33,11 +33,12 @@ from typing import Any
 import numpy as np
 
 from capture.fileio import FormatError, check_schema, load_toml, save_toml, schema_tag
+from core.errors import RoomcapError
 
 __all__ = ["Board", "CalibrationError", "load_board", "save_board", "DICTIONARIES", "BOARD_KINDS"]
 
 
-class CalibrationError(RuntimeError):
+class CalibrationError(RoomcapError, RuntimeError):
     """Calibration cannot go on: the message says what happened and what to do."""
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from calibrate.boards import Board, CalibrationError, load_board
 from calibrate.camera import Camera, CameraRig
-from calibrate.detect import CameraDetections, detect_all, diagnose_board, discover_recording
+from calibrate.detect import CameraDetections, detect_all, diagnose_board, diagnose_grid, discover_recording
 from calibrate.extrinsics import LOSSES, ExtrinsicsConfig, ExtrinsicsResult, calibrate_extrinsics
 from calibrate.intrinsics import MODELS, IntrinsicsConfig, IntrinsicsResult, calibrate_intrinsics
 from calibrate.report import summary_text, write_report
@@ -111,6 +111,14 @@ def calibrate_recording(
     )
     timings["detect_s"] = time.perf_counter() - t0
     seen = {k: len(v.seen_frames()) for k, v in dets.items()}
+    if not cfg.intrinsics_from and all(n < cfg.min_frames for n in seen.values()):
+        wrong_grid = diagnose_grid(board, sources)  # few views: a board file whose grid is not the print's?
+        if wrong_grid:
+            fix = f"Edit {board_path}" if board_path else "Change the board"
+            raise CalibrationError(
+                f"The board ({board.describe()}) was found in too few frames ({seen}). Diagnosis: "
+                f"{wrong_grid}. {fix} accordingly and run again."
+            )
     if all(n < 2 for n in seen.values()):  # nothing anywhere: the board file does not match the board
         diag = diagnose_board(board, sources)
         where = f"Edit {board_path}" if board_path else "Change the board"

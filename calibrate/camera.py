@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from capture.fileio import FormatError, check_schema, load_toml, save_toml, schema_tag
+from core.errors import UnknownNameError
 
 __all__ = [
     "CONVENTION",
@@ -463,7 +464,7 @@ class CameraRig:
         for i, c in enumerate(self.cameras):
             if c.name == name:
                 return i
-        raise KeyError(f"no camera named {name!r}; cameras: {self.names}")
+        raise UnknownNameError(f"no camera named {name!r}; cameras: {self.names}")
 
     def subset(self, names: Sequence[str]) -> CameraRig:
         """A rig with the named cameras, in the order given."""

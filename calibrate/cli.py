@@ -1,5 +1,6 @@
-"""``calibrate-run``: import/export calibrations (and, later, board calibration).
+"""``calibrate-run``: board calibration, and import/export of other tools' calibrations.
 
+    calibrate-run calibrate RECORDING --board board.toml --out rig.toml   (what `make calibrate` runs)
     calibrate-run import FILE --out rig.toml [--format qualisys] [--scale-to-m 0.001] ...
     calibrate-run export rig.toml --format aniposelib --out calibration.toml
 
@@ -18,6 +19,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from capture.fileio import FormatError
+from core.cli import guarded, positive_float
 
 log = logging.getLogger("calibrate")
 
@@ -53,7 +55,7 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=IMPORT_FORMATS, default=None, help="input format (default: detect)")
     p.add_argument(
         "--scale-to-m",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="multiply translations by this to get metres (e.g. 0.001 for an aniposelib file in mm)",
     )
@@ -68,7 +70,7 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--distortion-scale",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="Qualisys: multiply distortion coefficients (1/64 = 0.015625 reproduces Pose2Sim)",
     )
@@ -105,6 +107,10 @@ def _run_import(args: argparse.Namespace) -> int:
             f"  {c.name}: {c.size_wh[0]}x{c.size_wh[1]} {c.model} f=({c.K[0, 0]:.1f}, {c.K[1, 1]:.1f}) "
             f"centre_m={[round(float(v), 3) for v in c.center]}"
         )
+    from calibrate.checks import rig_warnings
+
+    for w in rig_warnings(rig, str(args.out)):
+        print(f"WARNING {w}", file=sys.stderr)
     return 0
 
 
@@ -152,7 +158,9 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="calibrate-run", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1]
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:
@@ -160,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
@@ -170,6 +178,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except FormatError as e:
         print(f"calibrate-run {args.command}: error: {e}", file=sys.stderr)
         return 2
+
+
+main = guarded("calibrate-run", _main)
 
 
 if __name__ == "__main__":

@@ -498,6 +498,34 @@ def _sample_images(src: Source, n: int) -> list[np.ndarray]:
     return imgs
 
 
+def diagnose_grid(board: Board, sources: Sequence[Source], n_frames: int = 6) -> str | None:
+    """A sentence when the images show markers of the board's dictionary that its declared grid cannot
+    hold (the printed board has more squares than the board file says); None when they fit."""
+    import cv2
+
+    if not board.uses_markers:
+        return None
+    n_markers = len(board.cv_board().getIds())
+    det = cv2.aruco.ArucoDetector(
+        cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, board.dictionary)),
+        cv2.aruco.DetectorParameters(),
+    )
+    seen: set[int] = set()
+    for s in sources:
+        for im in _sample_images(s, n_frames):
+            _, ids, _ = det.detectMarkers(_gray(255 - im if board.inverted else im))
+            seen |= set() if ids is None else {int(i) for i in ids.ravel()}
+    beyond = sorted(i for i in seen if i >= n_markers)
+    if len(beyond) < 2:  # one stray id can be a misread; several are markers the file does not declare
+        return None
+    return (
+        f"markers of {board.dictionary} with ids up to {max(beyond)} are visible, but the declared "
+        f"{board.grid[0]}x{board.grid[1]} squares hold only {n_markers} markers (ids 0-{n_markers - 1}): "
+        "the printed board has more squares than the board file says. Count the squares (columns x rows) "
+        "on the printed board and set them in the board file"
+    )
+
+
 def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -> Diagnosis:
     """Find the board settings that match the images when the given ones detect nothing.
 

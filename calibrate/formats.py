@@ -188,6 +188,13 @@ def _load_toml(path: Path) -> dict[str, Any]:
         raise FormatError(path, None, "file does not exist.") from None
     except tomllib.TOMLDecodeError as e:
         raise FormatError(path, None, f"is not valid TOML ({e}).", "Check the file is complete.") from None
+    except UnicodeDecodeError:
+        raise FormatError(
+            path,
+            None,
+            "is a binary file, not a calibration this tool reads.",
+            f"Give a calibration file of one of {list(IMPORT_FORMATS)} (see calibrate-run import --help).",
+        ) from None
 
 
 def _check_size_names(opts: ImportOptions, cams: list[Camera], path: Any) -> None:

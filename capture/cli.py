@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from core.cli import guarded, positive_float
+
 log = logging.getLogger("capture")
 
 _SUBCOMMANDS = ("record", "check", "sync", "repair")
@@ -30,12 +32,22 @@ def _record_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="session folder to create (default: 'out' in cams.yaml)")
     p.add_argument(
         "--duration",
-        type=float,
+        type=positive_float,
         default=None,
         help="seconds to record (default: until Ctrl-C or until every file source ends)",
     )
     p.add_argument(
         "--live", action="store_true", help="run keypoints/triangulation/tracking on every frame set"
+    )
+    p.add_argument(
+        "--skip-failed-cameras",
+        action="store_true",
+        help="record the cameras that open; the ones that do not are reported and listed in session.toml",
+    )
+    p.add_argument(
+        "--no-join",
+        action="store_true",
+        help="keep raw/<cam>/seg_* instead of joining them into raw/<cam>.mp4 (join later: repair)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true")
@@ -63,7 +75,13 @@ def _record(argv: list[str]) -> int:
 
         live = LiveRunner(cfg, out)
     rec = Recorder(
-        cfg, out, duration_s=args.duration, frameset_sink=live.queue if live else None, cams_yaml_text=text
+        cfg,
+        out,
+        duration_s=args.duration,
+        frameset_sink=live.queue if live else None,
+        cams_yaml_text=text,
+        skip_failed_cameras=args.skip_failed_cameras,
+        join=not args.no_join,
     )
     if live:
         live.start()
@@ -94,11 +112,20 @@ def _record(argv: list[str]) -> int:
             live.stop()
     print(f"session: {out} ({summary['status']}; {rec.stop_reason})")
     for name, c in summary["cameras"].items():
+        if c.get("recorded") is False:
+            print(f"  {name}: NOT RECORDED (skipped: {c.get('failed', '')})")
+            continue
         gaps = c.get("gaps", [])
         print(
             f"  {name}: {c.get('frames_written', 0)} frames, dropped {c.get('dropped_queue', 0)} (queue) + "
             f"{c.get('dropped_source', 0)} (source), {len(gaps)} gap(s), ended: {c.get('ended', '')}"
         )
+        if "joined" in c:
+            print(
+                f"    -> {c['video']} ({c['frames_in_video']} frames)"
+                if c["joined"]
+                else f"    -> segments kept in raw/{name}/: {c.get('join_message', '')}"
+            )
     t = summary.get("timing", {})
     if "skew_ms_median" in t:
         print(
@@ -107,6 +134,15 @@ def _record(argv: list[str]) -> int:
         )
     if live:
         print("  live: " + redact_text(live.summary_line()))
+    if summary.get("failed_cameras"):
+        print(
+            f"capture-run: warning: {len(summary['failed_cameras'])} camera(s) not recorded: "
+            f"{', '.join(summary['failed_cameras'])} (listed in session.toml failed_cameras)",
+            file=sys.stderr,
+        )
+    if summary["status"] != "complete":
+        print(f"capture-run: recording stopped early: {rec.stop_reason}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -132,7 +168,7 @@ def _sync(argv: list[str]) -> int:
     )
     p.add_argument("session", help="session folder (keypoints/<cam>.npz or --openpose folders)")
     p.add_argument("--reference", help="camera the others are aligned to (default: the first by name)")
-    p.add_argument("--max-lag-s", type=float, default=2.0)
+    p.add_argument("--max-lag-s", type=positive_float, default=2.0)
     p.add_argument("--drift", action="store_true", help="also estimate a linear drift (long recordings)")
     p.add_argument(
         "--openpose",
@@ -146,15 +182,35 @@ def _sync(argv: list[str]) -> int:
         nargs="*",
         default=None,
         metavar="CAM=VIDEO",
-        help="sync by the audio tracks of these videos instead of keypoints (needs PyAV)",
+        help="sync by the audio tracks of these videos instead of keypoints (no CAM=VIDEO: the "
+        "session's raw/<cam>.mp4)",
     )
-    p.add_argument("--fps", type=float, default=None, help="frame rate when the session has none")
+    p.add_argument("--fps", type=positive_float, default=None, help="frame rate when the session has none")
     p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
     args = p.parse_args(argv)
     if args.audio is not None:
         from capture.offline_sync import sync_audio
 
         videos = dict(item.partition("=")[::2] for item in args.audio)
+        if not videos:  # the session's own recordings
+            from capture.session import SessionLayout
+
+            lay = SessionLayout(args.session)
+            videos = {c: str(lay.video(c)) for c in lay.raw_cameras()}
+            unjoined = [c for c, v in videos.items() if Path(v).is_dir()]
+            if unjoined:
+                print(
+                    f"capture-run sync: cameras {unjoined} are still segment folders; join them first "
+                    f"(capture-run repair {args.session}) or pass --audio CAM=VIDEO",
+                    file=sys.stderr,
+                )
+                return 2
+            if len(videos) < 2:
+                print(
+                    f"capture-run sync: {lay.raw_dir} holds {len(videos)} videos; --audio needs two",
+                    file=sys.stderr,
+                )
+                return 2
         if any(not v for v in videos.values()):
             print("capture-run sync: --audio expects CAM=VIDEO pairs", file=sys.stderr)
             return 2
@@ -162,9 +218,8 @@ def _sync(argv: list[str]) -> int:
             args.session, videos, reference=args.reference, max_lag_s=args.max_lag_s, write=not args.dry_run
         )
         for cam, r in res["cameras"].items():
-            print(
-                f"  {cam}: offset {r['offset_s'] * 1e3:+.1f} ms (audio), correlation {r['correlation']:.2f}"
-            )
+            print(f"  {cam}: offset {r['offset_s'] * 1e3:+.1f} ms (audio), {_trust_text(r)}")
+        print(TRUST_LEGEND)
         return 0
     openpose = None
     if args.openpose is not None:
@@ -187,23 +242,57 @@ def _sync(argv: list[str]) -> int:
     for cam, r in res["cameras"].items():
         print(
             f"  {cam}: offset {r['offset_frames']:+.2f} frames ({r['offset_s'] * 1e3:+.1f} ms), "
-            f"drift {r.get('drift_ppm', 0.0):+.0f} ppm, correlation {r['correlation']:.2f}"
+            f"drift {r.get('drift_ppm', 0.0):+.0f} ppm, {_trust_text(r)}"
         )
+    print(TRUST_LEGEND)
     return 0
+
+
+TRUST_LEGEND = (
+    "  trust: good = correlation >= 0.2 and peak >= 2x any other lag's; fair = >= 0.1 and >= 1.3x; "
+    "poor = check before use (a clap or jump seen by all cameras, or --audio)"
+)
+
+
+def _trust_text(r: dict) -> str:
+    if r.get("trust") == "reference":
+        return "reference"
+    ratio = r.get("peak_ratio", float("nan"))
+    ratio_s = "no other peak" if ratio >= 99 else (">10" if ratio >= 10 else f"{ratio:.2f}")
+    return f"correlation {r['correlation']:.2f}, peak ratio {ratio_s}: trust {r.get('trust', '?')}"
 
 
 def _repair(argv: list[str]) -> int:
-    from capture.recorder import repair_session
+    from capture.recorder import repair
 
-    p = argparse.ArgumentParser(prog="capture-run repair")
+    p = argparse.ArgumentParser(
+        prog="capture-run repair",
+        description="After a kill (or --no-join): drop unfinished segments, rebuild the timestamp files and "
+        "join each camera's segments into raw/<cam>.mp4 (stream copy, frame count checked).",
+    )
     p.add_argument("session")
+    p.add_argument("--no-join", action="store_true", help="only fix the timestamps, keep the segments")
     args = p.parse_args(argv)
-    for cam, n in repair_session(args.session).items():
-        print(f"  {cam}: {n} frames")
-    return 0
+    if not Path(args.session).is_dir():
+        print(f"capture-run repair: {args.session} is not a folder.", file=sys.stderr)
+        return 2
+    counts, joins = repair(args.session, join=not args.no_join)
+    if not counts:
+        print(f"  nothing to repair in {args.session} (no segment folders under raw/)")
+    kept = 0
+    for cam, n in counts.items():
+        j = joins.get(cam)
+        if j is None:
+            print(f"  {cam}: {n} frames")
+        elif j.ok:
+            print(f"  {cam}: {n} frames -> {j.video}")
+        else:
+            kept += 1
+            print(f"  {cam}: {n} frames, segments kept: {j.message}")
+    return 1 if kept else 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     from capture.config import ConfigError
     from capture.fileio import FormatError
     from capture.recorder import RecorderError, redact_text
@@ -225,6 +314,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("capture-run: interrupted", file=sys.stderr)
         return 130
+
+
+main = guarded("capture-run", _main)
 
 
 if __name__ == "__main__":

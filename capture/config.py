@@ -53,12 +53,13 @@ from __future__ import annotations
 
 import os
 import re
-import urllib.parse
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError
+from core.errors import UnknownNameError
+from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
 
 CAMS_SCHEMA = "cams"
 CAMS_VERSION = 1
@@ -76,25 +77,6 @@ class ConfigError(FormatError):
 
 
 # ----------------------------------------------------------------------------- credentials
-
-
-def redact_url(source: str) -> str:
-    """``rtsp://user:pw@host/x`` -> ``rtsp://***@host/x``; also hides ``password=``-like query values."""
-    if "://" not in source:
-        return source
-    try:
-        parts = urllib.parse.urlsplit(source)
-    except ValueError:
-        return re.sub(r"//[^/@]*@", "//***@", source)
-    netloc = parts.netloc
-    if "@" in netloc:
-        netloc = "***@" + netloc.rpartition("@")[2]
-    query = parts.query
-    if query:
-        pairs = urllib.parse.parse_qsl(query, keep_blank_values=True)
-        secret = re.compile(r"(pass|pwd|token|key|secret|auth|user)", re.I)
-        query = "&".join(f"{k}={'***' if secret.search(k) else v}" for k, v in pairs)
-    return urllib.parse.urlunsplit((parts.scheme, netloc, parts.path, query, parts.fragment))
 
 
 def source_kind(source: str) -> str:
@@ -200,7 +182,7 @@ class CaptureConfig:
         for c in self.cameras:
             if c.name == name:
                 return c
-        raise KeyError(f"no camera {name!r}; cameras are {list(self.names)}")
+        raise UnknownNameError(f"no camera {name!r}; cameras are {list(self.names)}")
 
     def to_dict(self) -> dict[str, Any]:
         """The configuration as written into session.toml (credentials redacted)."""

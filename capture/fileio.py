@@ -21,8 +21,10 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import RoomcapError
 
-class FormatError(ValueError):
+
+class FormatError(RoomcapError, ValueError):
     """A file that is not what it claims to be: names the file, the field and the fix."""
 
     def __init__(self, path: str | os.PathLike | None, field: str | None, problem: str, fix: str = ""):
@@ -181,6 +183,16 @@ def load_npz(path: str | os.PathLike, required: tuple[str, ...] = ()) -> dict[st
     path = Path(path)
     if not path.exists():
         raise FormatError(path, None, "file does not exist.")
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04" and magic != b"PK\x05\x06":  # an npz is a zip archive (empty: end record only)
+        what = "is empty" if not magic else "is not an npz archive (numpy's zip of arrays)"
+        raise FormatError(
+            path,
+            None,
+            f"{what}; it may be another kind of file given the .npz name, or a write that never finished.",
+            "Give the file the stage wrote, or delete it and rerun the stage that writes it.",
+        )
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}

@@ -192,11 +192,56 @@ def lagged_correlation(ref: np.ndarray, sig: np.ndarray, max_lag: int, min_overl
     return out
 
 
+# How far to trust an offset, from the correlation curve over all lags (capture-run sync prints it):
+#   peak        Pearson correlation at the chosen lag (1 = the signals are the same up to the shift);
+#   peak_ratio  peak / the highest other local maximum more than PEAK_LOBE_FRAMES away (how much the
+#               chosen lag stands out: a ratio near 1 means another lag explains the motion as well).
+# "good": peak >= 0.2 and ratio >= 2; "fair": peak >= 0.1 and ratio >= 1.3; else "poor" (do not use
+# without a check: record a clap or a jump seen by all cameras, or sync by audio). The peak of 2D
+# keypoint-speed correlations is low even when right (views see different 2D motion): on the Pose2Sim
+# session-2024 trials peaks of 0.22-0.53 with no other positive lag recover known shifts of +7/-12
+# frames exactly (tests/test_capture_offline_sync.py), so the ratio weighs more than the peak.
+PEAK_LOBE_FRAMES = 3
+TRUST_GOOD = (0.2, 2.0)
+TRUST_FAIR = (0.1, 1.3)
+
+
 @dataclass(frozen=True)
 class LagEstimate:
     offset_frames: float  # camera frame i shows reference frame i + offset_frames
     correlation: float  # peak Pearson correlation
     lag_int: int
+    second_peak: float = float("nan")  # highest other local maximum of the correlation curve
+    overlap: int = 0  # frames correlated at the chosen lag
+
+    @property
+    def peak_ratio(self) -> float:
+        """peak / second peak (inf when no other lag correlates positively)."""
+        if not np.isfinite(self.second_peak) or self.second_peak <= 0:
+            return float("inf")
+        return float(self.correlation / self.second_peak)
+
+    @property
+    def trust(self) -> str:
+        """ "good" | "fair" | "poor", see TRUST_GOOD / TRUST_FAIR."""
+        for name, (c, r) in (("good", TRUST_GOOD), ("fair", TRUST_FAIR)):
+            if self.correlation >= c and self.peak_ratio >= r:
+                return name
+        return "poor"
+
+
+def second_peak(c: np.ndarray, k: int, lobe: int = PEAK_LOBE_FRAMES) -> float:
+    """The highest local maximum of the curve ``c`` more than ``lobe`` samples from index ``k``."""
+    c = np.where(np.isfinite(c), c, -np.inf)
+    best = -np.inf
+    for i in range(len(c)):
+        if abs(i - k) <= lobe or not np.isfinite(c[i]):
+            continue
+        left = c[i - 1] if i > 0 else -np.inf
+        right = c[i + 1] if i + 1 < len(c) else -np.inf
+        if c[i] >= left and c[i] >= right:
+            best = max(best, c[i])
+    return float(best) if np.isfinite(best) else float("nan")
 
 
 def estimate_lag(ref: np.ndarray, sig: np.ndarray, max_lag: int, subframe: bool = True) -> LagEstimate:
@@ -214,7 +259,9 @@ def estimate_lag(ref: np.ndarray, sig: np.ndarray, max_lag: int, subframe: bool 
         den = c[k - 1] - 2 * c[k] + c[k + 1]
         if den < 0:
             frac = float(np.clip(0.5 * (c[k - 1] - c[k + 1]) / den, -0.5, 0.5))
-    return LagEstimate(lag + frac, float(c[k]), lag)
+    overlap = min(len(sig), len(ref) - lag) - max(0, -lag)
+    lobe = max(PEAK_LOBE_FRAMES, len(c) // 50)
+    return LagEstimate(lag + frac, float(c[k]), lag, second_peak(c, k, lobe), int(overlap))
 
 
 def estimate_offset_drift(
@@ -269,11 +316,19 @@ def audio_offset(
     Returns (offset_s, correlation). Needs PyAV (``pip install 'roomcap[audio]'``); raises ValueError
     when a video has no audio track. The audio start of each file relative to its video is respected.
     """
+    off, est = audio_estimate(ref_path, path, max_lag_s, env_rate)
+    return off, est.correlation
+
+
+def audio_estimate(
+    ref_path: str | os.PathLike, path: str | os.PathLike, max_lag_s: float = 2.0, env_rate: float = 1000.0
+) -> tuple[float, LagEstimate]:
+    """:func:`audio_offset` with the whole :class:`LagEstimate` (peak, second peak, trust)."""
     env_r, a0_r = audio_envelope(ref_path, env_rate)
     env_s, a0_s = audio_envelope(path, env_rate)
     est = estimate_lag(env_r, env_s, int(max_lag_s * env_rate))
     # envelope sample i of the camera is at video time a0_s + i / rate; same for the reference
-    return est.offset_frames / env_rate + a0_s - a0_r, est.correlation
+    return est.offset_frames / env_rate + a0_s - a0_r, est
 
 
 def audio_envelope(
@@ -330,11 +385,30 @@ def sync_audio(
         raise ValueError(f"reference camera {ref!r} not in {names}")
     res = {"method": "audio-envelope-xcorr", "reference": ref, "cameras": {}}
     for n in names:
-        off_s, corr = (0.0, 1.0) if n == ref else audio_offset(videos[ref], videos[n], max_lag_s)
-        res["cameras"][n] = {"offset_s": off_s, "offset_ns": int(round(off_s * 1e9)), "correlation": corr}
+        if n == ref:
+            res["cameras"][n] = {"offset_s": 0.0, "offset_ns": 0, "correlation": 1.0, "trust": "reference"}
+            continue
+        off_s, est = audio_estimate(videos[ref], videos[n], max_lag_s)
+        res["cameras"][n] = {
+            "offset_s": off_s,
+            "offset_ns": int(round(off_s * 1e9)),
+            "correlation": est.correlation,
+            **_quality(est),
+        }
     if write:
         _write_sync(root, res)
     return res
+
+
+def _quality(est: LagEstimate) -> dict:
+    """The trust fields written per camera into session.toml [sync.cameras.<cam>]."""
+    ratio = est.peak_ratio
+    return {
+        "second_peak": est.second_peak if np.isfinite(est.second_peak) else -1.0,
+        "peak_ratio": ratio if np.isfinite(ratio) else 99.0,
+        "overlap_frames": est.overlap,
+        "trust": est.trust,
+    }
 
 
 def _write_sync(root, res: dict) -> None:
@@ -366,26 +440,32 @@ def estimate_offsets(
     max_lag = max(1, int(round(max_lag_s * fps)))
     out = {"method": "keypoint-speed-xcorr", "reference": ref, "fps": fps, "cameras": {}}
     for n in names:
+        quality: dict = {"trust": "reference"}
         if n == ref:
             a, b, corr = 0.0, 0.0, 1.0
-        elif drift:
-            a, b, corr = estimate_offset_drift(signals[ref], signals[n], max_lag, int(window_s * fps))
         else:
             e = estimate_lag(signals[ref], signals[n], max_lag)
+            quality = _quality(e)
             a, b, corr = e.offset_frames, 0.0, e.correlation
+            if drift:
+                a, b, corr = estimate_offset_drift(signals[ref], signals[n], max_lag, int(window_s * fps))
         r = {
             "offset_frames": a,
             "offset_s": a / fps,
             "offset_ns": int(round(a / fps * 1e9)),
             "correlation": corr,
+            **quality,
         }
         if drift:
             r["drift_ppm"] = b * 1e6
-        if n != ref and corr < 0.3:
+        if quality["trust"] == "poor":
             log.warning(
-                "%s: weak correlation %.2f with %s; the offset may be wrong (too little motion?)",
+                "%s: offset %+.1f frames is poorly supported (correlation %.2f, peak ratio %.2f against %s); "
+                "check it (a clap or jump seen by all cameras) before relying on it",
                 n,
+                a,
                 corr,
+                quality["peak_ratio"],
                 ref,
             )
         out["cameras"][n] = r

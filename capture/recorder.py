@@ -15,11 +15,22 @@ renamed to ``seg_*`` and its rows appended to ``<cam>.frames.csv``. A ``kill -9`
 closed segments whose frames match the timestamp file exactly, and at most ``segment_s`` (plus the
 queued frames) of video lost. ``repair_session`` removes the unfinished segment and rebuilds the
 timestamp files from the per-segment rows.
+
+When the recording ends (and in ``repair_session``) each camera's segments are joined into one
+``raw/<cam>.mp4`` (``.avi`` for MJPEG) by stream copy (``capture.join``); the segments are removed
+only after the joined file's frame count matched ``raw/<cam>.frames.csv``.
+
+Nothing lost: the recorder writes only into a new or empty folder (never over segments or onto an old
+frames.csv); a writer error (a full disk, also with the free-space guard off) stops every camera
+cleanly with ``status = "stopped"`` and the reason in ``stop_reason``, the open segment finalised or
+removed; with ``skip_failed_cameras`` a camera that cannot be opened is left out and listed in
+``failed_cameras``.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import logging
 import os
 import platform
@@ -46,15 +57,18 @@ from capture.sources import (
     make_source,
     read_frames_csv,
 )
+from core.errors import RoomcapError
+from core.redact import redact
 
 log = logging.getLogger(__name__)
 
 CSV_HEADER = "frame_index,t_ns,t_host_ns,sequence\n"
 _FOURCC = {"mp4v": ("mp4v", ".mp4"), "mjpg": ("MJPG", ".avi"), "xvid": ("XVID", ".avi")}
 _PART_PREFIX = ".part_"
+_DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
 
-class RecorderError(RuntimeError):
+class RecorderError(RoomcapError, RuntimeError):
     """The session cannot start (bad source, no disk space); nothing was written."""
 
 
@@ -84,13 +98,16 @@ class SegmentWriter:
         self._seg_t0 = 0
         self._shape = None
         self._closed: list[str] = []
-        if not self.frames_csv.exists():
-            atomic_write_text(self.frames_csv, CSV_HEADER)
+        if self.frames_csv.exists():  # the recorder only writes into folders it created
+            raise RecorderError(f"{self.frames_csv} already exists; refusing to append to an old recording.")
+        atomic_write_text(self.frames_csv, CSV_HEADER)
 
     def _open_segment(self, frame: Frame) -> None:
         import cv2
 
         k = self.segments
+        if any(self.dir.glob(f"seg_{k:06d}.*")):
+            raise RecorderError(f"{self.dir}: seg_{k:06d} already exists; refusing to overwrite a recording.")
         if frame.encoded is not None:
             ext = ".h265" if self.codec == "h265" else ".h264"  # Annex B elementary stream from the device
             self._final = self.dir / f"seg_{k:06d}{ext}"
@@ -165,6 +182,24 @@ class SegmentWriter:
     def close(self) -> None:
         self.close_segment()
 
+    def abort(self) -> None:
+        """After a write error: keep the open segment if it still closes cleanly, else remove it."""
+        try:
+            self.close_segment()
+        except Exception as e:  # e.g. the disk is full: a half-written segment is not kept
+            log.error("%s: could not finalise %s (%s); removing it", self.dir.name, self._part, e)
+            for obj in (self._writer, self._raw):
+                try:
+                    if obj is not None:
+                        obj.release() if hasattr(obj, "release") else obj.close()
+                except Exception:
+                    pass
+            self._writer = self._raw = None
+            if self._part is not None:
+                self._part.unlink(missing_ok=True)
+            self._part = self._final = None
+            self._rows = []
+
 
 FFCONCAT = "index.ffconcat"
 
@@ -188,6 +223,8 @@ class WriterThread(threading.Thread):
         super().__init__(name=f"write-{cam}", daemon=True)
         self.cam, self.q, self.writer = cam, q, writer
         self.error: str = ""
+        self.errno: int | None = None
+        self.failed = threading.Event()
 
     def run(self) -> None:
         try:
@@ -197,12 +234,21 @@ class WriterThread(threading.Thread):
                     break
                 self.writer.write(frame)
         except Exception as e:
-            log.exception("%s: writer failed", self.cam)
+            log.error("%s: writer failed: %s", self.cam, e)
             self.error = f"{type(e).__name__}: {e}"
+            self.errno = getattr(e, "errno", None)
+            self.failed.set()
+            self.writer.abort()
             while self.q.get() is not END:  # keep draining so the grabber never blocks
                 pass
-        finally:
-            self.writer.close()
+        else:
+            try:
+                self.writer.close()
+            except Exception as e:  # the last segment could not be finalised (disk full at the end)
+                self.error = f"{type(e).__name__}: {e}"
+                self.errno = getattr(e, "errno", None)
+                self.failed.set()
+                self.writer.abort()
 
 
 # ----------------------------------------------------------------------------- recorder
@@ -256,6 +302,8 @@ class Recorder:
         handle_signals: bool = True,
         sources: dict[str, FrameSource] | None = None,
         cams_yaml_text: str | None = None,
+        skip_failed_cameras: bool = False,
+        join: bool = True,
     ):
         self.cfg = cfg
         self.layout = SessionLayout(out)
@@ -273,6 +321,15 @@ class Recorder:
         self.t0_ns = 0
         self.started_utc = ""
         self._meta_lock = threading.Lock()
+        self.skip_failed_cameras = skip_failed_cameras
+        self.join = join
+        self.failed_cameras: dict[str, str] = {}  # camera -> why it could not be opened
+        self.joins: dict = {}  # camera -> capture.join.JoinResult
+
+    @property
+    def active(self) -> list:
+        """The cameras being recorded (cams.yaml order): all but those skipped at start."""
+        return [c for c in self.cfg.cameras if c.name not in self.failed_cameras]
 
     # -- metadata
     def _meta(self, status: str, timing: dict | None = None) -> dict:
@@ -308,6 +365,10 @@ class Recorder:
                 d.update(frames_written=w.writer.frames_written, segments=w.writer.segments)
                 if w.error:
                     d["writer_error"] = w.error
+            if c.name in self.failed_cameras:
+                d.update(recorded=False, failed=redact_text(self.failed_cameras[c.name]))
+            if c.name in self.joins:
+                d.update(self.joins[c.name].to_dict())
             cams[c.name] = d
         meta = {
             "schema": f"{SESSION_SCHEMA}/{SESSION_VERSION}",
@@ -321,6 +382,8 @@ class Recorder:
             "cameras": cams,
             "config": self.cfg.to_dict(),
         }
+        if self.failed_cameras:
+            meta["failed_cameras"] = sorted(self.failed_cameras)
         if self.cams_yaml_text is not None:
             meta["cams_yaml"] = redact_text(self.cams_yaml_text)
         if timing is not None:
@@ -352,23 +415,50 @@ class Recorder:
         opened: dict[str, FrameSource] = {}
         try:
             for c in self.cfg.cameras:
-                src = self._given_sources.get(c.name) or make_source(
-                    c, epoch_ns=self.t0_ns, segment_s=self.cfg.recorder.segment_s
-                )
-                self.infos[c.name] = src.open()
+                try:
+                    src = self._given_sources.get(c.name) or make_source(
+                        c, epoch_ns=self.t0_ns, segment_s=self.cfg.recorder.segment_s
+                    )
+                    self.infos[c.name] = src.open()
+                except SourceError as e:
+                    if not self.skip_failed_cameras:
+                        raise RecorderError(
+                            f"camera '{c.name}' cannot be opened: {e} Nothing was recorded; to record the "
+                            "other cameras without it, pass --skip-failed-cameras."
+                        ) from None
+                    self.failed_cameras[c.name] = str(e)
+                    log.error("%s: skipped, cannot be opened: %s", c.name, redact_text(str(e)))
+                    continue
                 opened[c.name] = src
                 log.info("%s: opened %s", c.name, redact_url(self.infos[c.name].description))
         except BaseException:
             for s in opened.values():
                 s.close()
             raise
+        if not opened:
+            raise RecorderError(
+                "no camera could be opened ("
+                + "; ".join(redact_text(m) for m in self.failed_cameras.values())
+                + "). Nothing was recorded."
+            )
         return opened
 
     def run(self) -> dict:
         root = self.layout.root
-        if self.layout.session_toml.exists():
+        if root.exists() and not root.is_dir():
+            raise RecorderError(f"--out {root} is a file, not a folder. Choose a new --out folder.")
+        if root.is_dir() and any(root.iterdir()):
+            held = sorted(p.name for p in root.iterdir())
+            what = "a session (session.toml exists)" if self.layout.session_toml.exists() else "files"
             raise RecorderError(
-                f"{root} already holds a session (session.toml exists). Choose a new --out folder."
+                f"{root} already holds {what}: {', '.join(held[:5])}{' ...' if len(held) > 5 else ''}. "
+                "The recorder writes only into a new or empty folder, so that nothing is overwritten. "
+                "Choose a new --out folder"
+                + (
+                    f", or run `capture-run repair {root}` if a recording there was interrupted."
+                    if self.layout.session_toml.exists()
+                    else "."
+                )
             )
         if not self._check_disk():
             raise RecorderError(
@@ -382,7 +472,7 @@ class Recorder:
         try:
             self.layout.raw_dir.mkdir(parents=True, exist_ok=True)
             self.write_meta("recording")  # metadata first: never a session without it
-            for c in self.cfg.cameras:
+            for c in self.active:
                 wq: queue.Queue = queue.Queue(maxsize=rc.queue_frames)
                 sinks: dict = {"writer": wq}
                 if self.sink is not None:
@@ -425,19 +515,62 @@ class Recorder:
             for w in self.writers.values():
                 w.join()
             self._restore_signals(old_handlers)
-        tables = {c: read_frames_csv(self.layout.frames_csv(c)) for c in self.cfg.names}
+        names = [c.name for c in self.active]
+        tables = {c: read_frames_csv(self.layout.frames_csv(c)) for c in names}
         from capture.sync import timing_report
 
         timing = timing_report(
             tables,
-            {c: self.infos[c].fps for c in self.cfg.names},
+            {c: self.infos[c].fps for c in names},
             self.cfg.sync.tolerance_ns(max(i.fps or 30.0 for i in self.infos.values()))
             if self.cfg.sync.tolerance_ms is not None
             else None,
         )
-        status = "complete" if not self.stop_reason.startswith("disk") else "stopped"
-        self.write_meta(status, _finite(timing))
+        failure = self._writer_failure()
+        if failure and not self.stop_reason.startswith(failure.split(":")[0]):
+            # a writer failed while the recording was ending anyway: that is the reason that matters
+            log.error("recording incomplete: %s (was: %s)", failure, self.stop_reason)
+            self.stop_reason = failure
+        failed_writer = bool(failure)
+        status = "stopped" if self.stop_reason.startswith("disk") or failed_writer else "complete"
+        if self.join:
+            self._join_all(tables)
+        try:
+            self.write_meta(status, _finite(timing))
+        except OSError as e:
+            raise RecorderError(
+                f"the recording stopped ({self.stop_reason}) but session.toml could not be updated ({e}). "
+                f"Free some space, then run `capture-run repair {root}`; the closed segments are kept."
+            ) from None
         return self._meta(status, timing)
+
+    def _join_all(self, tables: dict) -> None:
+        """Join each camera's segments into raw/<cam>.mp4 (capture.join), unless the disk is full."""
+        from capture.join import JoinResult, join_camera
+
+        disk_full = any(w.errno in _DISK_FULL for w in self.writers.values()) or self.stop_reason.startswith(
+            "disk"
+        )
+        for c in self.active:
+            n = len(tables[c.name])
+            if disk_full:
+                self.joins[c.name] = JoinResult(
+                    c.name,
+                    False,
+                    f"raw/{c.name}",
+                    n,
+                    -1,
+                    self.writers[c.name].writer.segments,
+                    f"not joined (disk full); free space and run `capture-run repair {self.layout.root}`",
+                )
+                continue
+            self.joins[c.name] = join_camera(
+                self.layout.raw_dir,
+                c.name,
+                n,
+                self.infos[c.name].fps,
+                int(self.cfg.recorder.min_free_mb * 2**20),
+            )
 
     def _wait(self) -> None:
         t_end = None if self.duration_s is None else time.monotonic() + self.duration_s
@@ -454,7 +587,20 @@ class Recorder:
                 )
                 log.error("stopping: %s", self.stop_reason)
                 break
+            failure = self._writer_failure()
+            if failure:
+                self.stop_reason = self.stop_reason or failure
+                log.error("stopping: %s", self.stop_reason)
+                break
             self.stop_event.wait(0.1)
+
+    def _writer_failure(self) -> str:
+        """'disk full: camera X: ...' (or 'writer failed: ...') once a writer thread failed, else ''."""
+        for cam, w in self.writers.items():
+            if w.failed.is_set():
+                kind = "disk full" if w.errno in _DISK_FULL else "writer failed"
+                return f"{kind}: camera {cam}: {w.error}"
+        return ""
 
     def stop(self, reason: str = "stopped") -> None:
         self.stop_reason = self.stop_reason or reason
@@ -500,26 +646,37 @@ def _finite(d):
     return d
 
 
-def redact_text(text: str) -> str:
-    """Hide ``user:password@`` in any URL inside free text (the cams.yaml copy, error messages)."""
-    import re
-
-    return re.sub(r"(\b[a-zA-Z][a-zA-Z0-9+.-]*://)[^/\s@'\"]*@", r"\1***@", text)
+redact_text = redact  # the one redaction (core.redact), kept under this name for callers
 
 
 # ----------------------------------------------------------------------------- repair
 
 
-def repair_session(root: str | os.PathLike) -> dict[str, int]:
-    """After a kill: drop unfinished segments, rebuild ``raw/<cam>.frames.csv`` from the segment rows.
+def repair_session(root: str | os.PathLike, join: bool = True) -> dict[str, int]:
+    """:func:`repair` returning camera -> frames only."""
+    return repair(root, join)[0]
 
-    Returns camera -> frames. Sets ``status = "recovered"`` in session.toml.
+
+def repair(root: str | os.PathLike, join: bool = True) -> tuple[dict[str, int], dict]:
+    """After a kill (or a recording whose join was skipped): make every camera one playable video.
+
+    Per camera folder ``raw/<cam>/``: drop unfinished segments, rebuild ``raw/<cam>.frames.csv`` from
+    the per-segment rows, then (``join``) join the segments into ``raw/<cam>.mp4`` (``capture.join``;
+    segments are kept when the frame count does not match). Returns (camera -> frames, camera ->
+    ``capture.join.JoinResult``). Sets
+    ``status = "recovered"`` in a session.toml left at ``recording`` and records each join.
     """
     from capture.fileio import load_toml
+    from capture.join import count_video_packets, join_camera, remove_segments
 
     layout = SessionLayout(root)
-    counts = {}
-    for cam_dir in sorted(p for p in layout.raw_dir.iterdir() if p.is_dir()):
+    if not layout.raw_dir.is_dir():
+        raise RecorderError(f"{layout.root}: no raw/ folder; this is not a recorded session.")
+    counts: dict[str, int] = {}
+    joins = {}
+    meta = load_toml(layout.session_toml) if layout.session_toml.exists() else {}
+    for cam_dir in sorted(p for p in layout.raw_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        cam = cam_dir.name
         for part in cam_dir.glob(f"{_PART_PREFIX}*"):
             part.unlink()
         rows, names = [], []
@@ -531,19 +688,32 @@ def repair_session(root: str | os.PathLike) -> dict[str, int]:
             tab = read_frames_csv(seg_csv)
             rows.append(tab)
             names.append(video[0].name)
-        write_ffconcat(cam_dir, names)
+        if not names:
+            continue
         tab = np.concatenate(rows) if rows else np.zeros((0, 4), np.int64)
         tab[:, 0] = np.arange(len(tab))
+        counts[cam] = len(tab)
+        joined = [layout.raw_dir / f"{cam}{ext}" for ext in (".mp4", ".avi", ".mkv")]
+        done = [p for p in joined if p.exists()]
+        if done and count_video_packets(done[0]) == len(tab):
+            remove_segments(cam_dir)  # killed after the join's rename, before the segments went
+            continue
+        write_ffconcat(cam_dir, names)
         atomic_write_text(
-            layout.frames_csv(cam_dir.name),
+            layout.frames_csv(cam),
             CSV_HEADER + "".join(",".join(str(int(x)) for x in r) + "\n" for r in tab),
         )
-        counts[cam_dir.name] = len(tab)
+        if join:
+            fps = meta.get("cameras", {}).get(cam, {}).get("fps_nominal") or 0.0
+            joins[cam] = join_camera(layout.raw_dir, cam, len(tab), float(fps))
     if layout.session_toml.exists():
-        meta = load_toml(layout.session_toml)
         if meta.get("status") == "recording":
             meta["status"] = "recovered"
-            for cam, n in counts.items():
-                meta.setdefault("cameras", {}).setdefault(cam, {})["frames_written"] = n
-            save_toml(layout.session_toml, meta)
-    return counts
+            meta["stop_reason"] = meta.get("stop_reason") or "interrupted (repaired by capture-run repair)"
+        for cam, n in counts.items():
+            cm = meta.setdefault("cameras", {}).setdefault(cam, {})
+            cm["frames_written"] = n
+            if cam in joins:
+                cm.update(joins[cam].to_dict())
+        save_toml(layout.session_toml, meta)
+    return counts, joins

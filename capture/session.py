@@ -4,8 +4,10 @@
 
     <session>/
       session.toml                 schema "session/1": cameras, fps, calibration pointer, sync offsets
-      raw/<cam>.mp4 | raw/<cam>/   video (or playable segments) per camera
+      raw/<cam>.mp4 | raw/<cam>/   video per camera; raw/<cam>/seg_*.mp4 + index.ffconcat while recording
+                                   (joined into raw/<cam>.mp4 when the recording ends, capture.join)
       raw/<cam>.frames.csv         per-frame timestamps: frame_index,t_ns,t_host_ns,sequence
+                                   (older sessions: raw/<cam>/frames.csv, still read)
       calib/rig.toml               the rig (or ``calibration = "<path>"`` in session.toml)
       keypoints/<cam>.npz          2D detections per camera
       triangulate/poses3d.npz      per-frame 3D poses
@@ -59,7 +61,24 @@ class SessionLayout:
         return v / "index.ffconcat" if v.is_dir() else v
 
     def frames_csv(self, cam: str) -> Path:
+        """Where the recorder writes the camera's timestamps (the README layout)."""
         return self.raw_dir / f"{cam}.frames.csv"
+
+    def find_frames_csv(self, cam: str) -> Path | None:
+        """The camera's timestamp file if there is one: ``raw/<cam>.frames.csv``, else the older place
+        ``raw/<cam>/frames.csv``."""
+        for p in (self.frames_csv(cam), self.raw_dir / cam / "frames.csv"):
+            if p.is_file():
+                return p
+        return None
+
+    def segment_files(self, cam: str) -> list[Path]:
+        """The closed segments of ``raw/<cam>/`` in recording order (empty once joined)."""
+        d = self.raw_dir / cam
+        if not d.is_dir():
+            return []
+        ok = VIDEO_SUFFIXES + (".h264", ".h265")
+        return sorted(p for p in d.glob("seg_*") if p.suffix.lower() in ok)
 
     @property
     def calib_dir(self) -> Path:
@@ -110,6 +129,8 @@ class SessionLayout:
             return []
         names = set()
         for p in self.raw_dir.iterdir():
+            if p.name.startswith("."):  # temporaries (a join in progress, unfinished segments)
+                continue
             if p.suffix.lower() in VIDEO_SUFFIXES:
                 names.add(p.stem)
             elif p.is_dir():

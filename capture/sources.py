@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.config import CameraConfig, redact_url
+from core.errors import RoomcapError
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +49,7 @@ def mono_to_host_ns(mono_ns: int) -> int:
     return int(mono_ns) + _MONO_TO_WALL_NS
 
 
-class SourceError(RuntimeError):
+class SourceError(RoomcapError, RuntimeError):
     """A source cannot be opened or delivers something impossible; the message says what to do."""
 
 

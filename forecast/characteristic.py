@@ -49,6 +49,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core.cli import guarded, positive_int
+from core.errors import InputError
 from forecast import data as fdata
 from keypoints.skeletons import get_skeleton
 
@@ -623,7 +625,7 @@ def _table(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
@@ -644,9 +646,11 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--checkpoint", default=str(SHIPPED))
     e.add_argument("--split", choices=("test", "val", "train"), default="test")
     e.add_argument("--split-seed", type=int, default=0)
-    e.add_argument("--k", type=int, default=None, help="hypotheses per window (default: the config's, 10)")
+    e.add_argument(
+        "--k", type=positive_int, default=None, help="hypotheses per window (default: the config's, 10)"
+    )
     e.add_argument("--no-refine", action="store_true", help="skip the pose refinement of eq. 3.2")
-    e.add_argument("--max-windows", type=int, default=None)
+    e.add_argument("--max-windows", type=positive_int, default=None)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json", default=None, help="also write the figures as JSON here")
     args = ap.parse_args(argv)
@@ -658,7 +662,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             cfg = config_from_dict(parse_sets(args.set))
         except ValueError as err:
-            raise SystemExit(str(err)) from None
+            raise InputError(str(err)) from None
         data = load_cmu_labelled(seed=args.split_seed)
         print(
             "labels: "
@@ -722,7 +726,7 @@ def _eval(args, tqdm) -> int:
     try:
         net, det, meta = load_checkpoint(args.checkpoint, skeleton="body19")
     except (FormatError, FileNotFoundError) as err:
-        raise SystemExit(f"error: {err}") from None
+        raise InputError(str(err)) from None
     cfg = meta["config"]
     data = load_cmu_labelled(meta["fps"], seed=args.split_seed)
     items = getattr(data, args.split)
@@ -759,6 +763,9 @@ def _eval(args, tqdm) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1))
     return 0
+
+
+main = guarded("forecast characteristic", _main)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,11 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
+
+from core.cli import guarded, positive_float, positive_int
+from core.errors import InputError
 
 
 def parse_sets(items: list[str]) -> dict:
@@ -31,7 +35,7 @@ def parse_sets(items: list[str]) -> dict:
     out = {}
     for it in items or []:
         if "=" not in it:
-            raise SystemExit(f"--set expects key=value, got {it!r}")
+            raise InputError(f"--set expects key=value, got {it!r}")
         k, v = it.split("=", 1)
         out[k.strip()] = v.strip()
     return out
@@ -49,7 +53,7 @@ def _config(args) -> object:
     try:
         return config_from_dict(args.model, d)
     except ValueError as e:
-        raise SystemExit(str(e)) from None
+        raise InputError(str(e)) from None
 
 
 def _load_split(args):
@@ -88,7 +92,7 @@ def cmd_train(args) -> int:
 
         blob = torch.load(args.init, map_location="cpu", weights_only=True)
         if blob.get("kind") != args.model:
-            raise SystemExit(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
+            raise InputError(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
         init = blob["state_dict"]
     model, hist = T.train(args.model, tr, cfg, progress, args.device, init, val_clips=va)
     bar.close()
@@ -129,6 +133,12 @@ def cmd_sample(args) -> int:
     from forecast.preview import preview, save_forecast
 
     fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
+    if not np.isfinite(fc["xyz_m"]).any():
+        raise InputError(
+            f"the forecast of {args.tracks} is NaN everywhere: none of its {fc['xyz_m'].shape[2]} tracks has "
+            "observed joints in the frames the model looks at. Check the track file (forecast the tracks of "
+            "a session where people were found) and the checkpoint; nothing was written."
+        )
     save_forecast(args.out, fc)
     print(
         f"{fc['model']}: {fc['xyz_m'].shape[2]} tracks, {fc['xyz_m'].shape[1]} frames "
@@ -151,7 +161,7 @@ def cmd_eval(args) -> int:
         used = set(meta["extra"].get("train_clips", [])) | set(meta["extra"].get("val_clips", []))
         leak = sorted(used & {c.name for c in te})
         if leak:  # a checkpoint that trained or was selected on a test clip cannot be evaluated fairly
-            raise SystemExit(
+            raise InputError(
                 f"{ck} was trained or selected on test clips {leak[:5]}{'...' if len(leak) > 5 else ''}; "
                 "retrain it with this version's split (forecast train) or pass the --split-seed it used"
             )
@@ -203,7 +213,7 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "characteristic":  # Diller ch. 3: `forecast characteristic train|eval ...`
         from forecast.characteristic import main as characteristic_main
@@ -213,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     p.add_argument(
-        "--threads", type=int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
+        "--threads", type=positive_int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
     )
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -222,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         sp.add_argument("--data", nargs="+", default=["cmu"], help="'cmu' and/or track files / folders")
         sp.add_argument("--split-seed", type=int, default=0)
 
+    # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it
+    sub.add_parser("characteristic", help="the characteristic-3D-pose forecaster (Diller ch. 3): train|eval")
     t = sub.add_parser("train", help="train a model")
     t.add_argument("--model", required=True, choices=["gru", "intention", "social_diffusion"])
     t.add_argument("--config", help="TOML with the config (a [model] table or top-level keys)")
@@ -234,8 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("sample", help="forecast every track of a track file")
     s.add_argument("--checkpoint")
     s.add_argument("--tracks", required=True)
-    s.add_argument("--horizon-s", type=float, default=1.0)
-    s.add_argument("--samples", type=int, default=1)
+    s.add_argument("--horizon-s", type=positive_float, default=1.0)
+    s.add_argument("--samples", type=positive_int, default=1)
     s.add_argument("--out", required=True)
 
     e = sub.add_parser("eval", help="evaluate checkpoints and baselines on held-out clips")
@@ -243,11 +255,11 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--baselines", nargs="*", default=["zero_velocity", "constant_velocity"])
     e.add_argument("--fool", action="store_true", help="add the clustered-static-poses 'fool' (sec. 6.4.4)")
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
-    e.add_argument("--horizon-s", type=float, default=4.0)
-    e.add_argument("--samples", type=int, default=10)
-    e.add_argument("--scenes", type=int, default=24)
-    e.add_argument("--max-windows", type=int, default=400)
-    e.add_argument("--stride", type=int, default=5, help="frames between test windows")
+    e.add_argument("--horizon-s", type=positive_float, default=4.0)
+    e.add_argument("--samples", type=positive_int, default=10)
+    e.add_argument("--scenes", type=positive_int, default=24)
+    e.add_argument("--max-windows", type=positive_int, default=400)
+    e.add_argument("--stride", type=positive_int, default=5, help="frames between test windows")
     e.add_argument(
         "--reference",
         default="gru_cmu",
@@ -268,6 +280,9 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval}[args.cmd](args)
+
+
+main = guarded("forecast", _main)
 
 
 if __name__ == "__main__":

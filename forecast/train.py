@@ -300,8 +300,14 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
     if state is not None:
         try:
             missing, unexpected = m.load_state_dict(state, strict=False)
-        except RuntimeError as e:  # shape mismatches
-            raise ValueError(f"{kind} state does not fit the config: {e}") from None
+        except RuntimeError as e:  # shape mismatches: torch lists every tensor, the first says enough
+            lines = [ln.strip() for ln in str(e).splitlines() if "mismatch" in ln]
+            first = lines[0] if lines else str(e).splitlines()[0]
+            raise ValueError(
+                f"the {kind} state does not fit the checkpoint's config ({len(lines)} tensors differ; first: "
+                f"{first}). The config or the weights were changed after training: retrain with "
+                "`forecast train`, or use the original file."
+            ) from None
         missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
         if missing or unexpected:
             raise ValueError(

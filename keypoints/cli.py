@@ -14,7 +14,8 @@ import logging
 import sys
 from pathlib import Path
 
-from capture.fileio import FormatError
+from core.cli import guarded, nonnegative_int, output_folder, positive_int
+from core.errors import InputError
 from keypoints import registry
 from keypoints.registry import ModelError
 
@@ -85,11 +86,14 @@ def _run(args) -> int:
         )
     else:
         if not args.out:
-            print("keypoints run: --out DIR is needed for explicit videos", file=sys.stderr)
-            return 2
+            raise InputError("--out DIR is needed for explicit videos (or give one session folder).")
+        output_folder(args.out)
         videos = _parse_videos(args.inputs)
         if args.cameras:
             videos = {c: p for c, p in videos.items() if c in args.cameras}
+        missing = [f"{c}={p}" for c, p in videos.items() if not p.is_file()]
+        if missing:  # checked before the models load, so a typo is found at once
+            raise InputError(f"these videos do not exist: {', '.join(missing)}. Check the paths.")
         rig = None
         if (
             args.calib
@@ -112,7 +116,7 @@ def _run(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="keypoints", description="2D multi-person keypoints through ONNX models"
     )
@@ -133,11 +137,11 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--calib", default=None, help="calibration to check camera names and video sizes against")
     r.add_argument("--models", default="default", help="model set (keypoints list) or 'detector+pose'")
     r.add_argument("--cameras", nargs="*", default=None)
-    r.add_argument("--max-frames", type=int, default=None)
-    r.add_argument("--threads", type=int, default=0)
+    r.add_argument("--max-frames", type=positive_int, default=None)
+    r.add_argument("--threads", type=nonnegative_int, default=0)
     r.add_argument(
         "--refine-passes",
-        type=int,
+        type=nonnegative_int,
         default=None,
         help="top-down: extra pose passes on upright crops from the previous pass (0 = faster; default: "
         "PipelineConfig's, 2)",
@@ -146,11 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
     )
-    try:
-        return {"list": _list, "fetch": _fetch, "run": _run}[args.cmd](args)
-    except (ModelError, FormatError, FileNotFoundError, KeyError) as e:
-        print(f"keypoints {args.cmd}: {e}", file=sys.stderr)
-        return 1
+    return {"list": _list, "fetch": _fetch, "run": _run}[args.cmd](args)
+
+
+main = guarded("keypoints", _main)
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text, check_schema, load_toml
+from core.errors import RoomcapError, UnknownNameError
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ CROPS = ("letterbox", "affine")
 REPO = Path(__file__).resolve().parents[1]
 
 
-class ModelError(FileNotFoundError):
+class ModelError(RoomcapError, FileNotFoundError):
     """A model file that is missing, damaged or does not match its description; says what to do."""
 
 
@@ -307,7 +308,7 @@ def get_spec(name: str | ModelSpec, model_dir: str | os.PathLike | None = None) 
         return ModelSpec.load(name)
     specs = list_specs(model_dir)
     if name not in specs:
-        raise KeyError(
+        raise UnknownNameError(
             f"unknown model {name!r}; known: {sorted(specs)}. Add a description "
             f"<name>.toml to a model folder ({', '.join(map(str, model_dirs(model_dir)))})."
         )
@@ -331,7 +332,9 @@ def get_model_set(name: str) -> ModelSet:
         return ModelSet(name=name, detector=det, pose=pose)
     if name in list_specs():
         return ModelSet(name=name, pose=name)
-    raise KeyError(f"unknown model set {name!r}; known: {sorted(sets)} (or 'detector+pose' model names).")
+    raise UnknownNameError(
+        f"unknown model set {name!r}; known: {sorted(sets)} (or 'detector+pose' model names)."
+    )
 
 
 # ----------------------------------------------------------------------------- files and checksums

@@ -22,6 +22,8 @@ from functools import cache
 
 import numpy as np
 
+from core.errors import UnknownNameError
+
 _COCO17 = (
     "nose",
     "left_eye",
@@ -272,7 +274,7 @@ class Skeleton:
         try:
             return self.joint_names.index(name)
         except ValueError:
-            raise KeyError(
+            raise UnknownNameError(
                 f"skeleton '{self.id}' has no joint '{name}'; joints: {list(self.joint_names)}"
             ) from None
 
@@ -422,7 +424,7 @@ def get_skeleton(skeleton: str | Skeleton) -> Skeleton:
     try:
         return SKELETONS[str(skeleton)]
     except KeyError:
-        raise KeyError(f"unknown skeleton id '{skeleton}'; known: {sorted(SKELETONS)}") from None
+        raise UnknownNameError(f"unknown skeleton id '{skeleton}'; known: {sorted(SKELETONS)}") from None
 
 
 @cache

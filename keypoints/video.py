@@ -38,6 +38,7 @@ import numpy as np
 
 from capture.fileio import FormatError, load_npz, save_npz
 from capture.session import VIDEO_SUFFIXES, SessionLayout
+from core.errors import RoomcapError
 from keypoints.detections import Detections
 from keypoints.pipeline import FrameResult, KeypointPipeline, PipelineConfig
 from keypoints.skeletons import get_skeleton
@@ -59,7 +60,7 @@ class RunReport:
     wall_s: float = 0.0
 
 
-class VideoDecodeError(RuntimeError):
+class VideoDecodeError(RoomcapError, RuntimeError):
     pass
 
 
@@ -73,6 +74,92 @@ def read_frames_csv(path: Path) -> dict[int, int]:
         for row in csv.DictReader(f):
             out[int(row["frame_index"])] = int(row["t_ns"])
     return out
+
+
+def session_segments(path: Path) -> list[Path]:
+    """The video segments of a recorder's camera folder ``raw/<cam>/`` (or its ``index.ffconcat``)."""
+    path = Path(path)
+    if path.suffix == ".ffconcat":
+        path = path.parent
+    if not path.is_dir():
+        return []
+    ok = VIDEO_SUFFIXES + (".h264", ".h265")
+    return sorted(p for p in path.glob("seg_*") if p.suffix.lower() in ok)
+
+
+class SegmentCapture:
+    """``cv2.VideoCapture`` over a recorder's segment folder ``raw/<cam>/seg_*.mp4``, as one video.
+
+    Only the calls FrameReader makes: isOpened, get (FRAME_COUNT summed over segments; FPS, size of
+    the first), grab, read, release.
+    """
+
+    def __init__(self, files: list[Path]):
+        self.files = list(files)
+        self._k = 0
+        self._cap = cv2.VideoCapture(str(self.files[0])) if self.files else None
+        self._first = {}
+        if self._cap is not None and self._cap.isOpened():
+            for prop in (cv2.CAP_PROP_FPS, cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
+                self._first[prop] = self._cap.get(prop)
+            n = 0
+            for f in self.files:
+                c = cv2.VideoCapture(str(f))
+                n += max(int(c.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
+                c.release()
+            self._first[cv2.CAP_PROP_FRAME_COUNT] = float(n)
+
+    def isOpened(self) -> bool:  # noqa: N802 (the cv2 name)
+        return self._cap is not None and self._cap.isOpened()
+
+    def get(self, prop: int) -> float:
+        return float(self._first.get(prop, 0.0))
+
+    def _advance(self) -> bool:
+        self._cap.release()
+        self._k += 1
+        if self._k >= len(self.files):
+            self._cap = None
+            return False
+        self._cap = cv2.VideoCapture(str(self.files[self._k]))
+        if not self._cap.isOpened():
+            raise VideoDecodeError(f"{self.files[self._k]}: segment cannot be opened (corrupt?)")
+        return True
+
+    def grab(self) -> bool:
+        while self._cap is not None:
+            if self._cap.grab():
+                return True
+            if not self._advance():
+                return False
+        return False
+
+    def read(self):
+        while self._cap is not None:
+            ok, img = self._cap.read()
+            if ok:
+                return ok, img
+            if not self._advance():
+                break
+        return False, None
+
+    def release(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+def open_capture(path: Path):
+    """A ``cv2.VideoCapture`` for a video file, or a :class:`SegmentCapture` for a segment folder."""
+    segs = session_segments(path)
+    if segs:
+        return SegmentCapture(segs)
+    if Path(path).is_dir():
+        raise VideoDecodeError(
+            f"{path}: a folder without recorded segments (seg_*.mp4); pass a video file or a "
+            "session's raw/<cam>/ segment folder."
+        )
+    return cv2.VideoCapture(str(path))
 
 
 class FrameReader(threading.Thread):
@@ -91,7 +178,7 @@ class FrameReader(threading.Thread):
     ):
         super().__init__(daemon=True)
         self.path = Path(path)
-        self.cap = cv2.VideoCapture(str(path))
+        self.cap = open_capture(self.path)
         if not self.cap.isOpened():
             raise VideoDecodeError(
                 f"{path}: cannot be opened as a video (missing codec or not a video file)."
@@ -465,7 +552,7 @@ def run_session(
                 f"cameras {missing} have videos but no calibration (rig cameras: {list(rig.names)}).",
                 "Name videos raw/<rig camera name>.mp4.",
             )
-    ts = {c: lay.frames_csv(c) for c in cams if lay.frames_csv(c).exists()}
+    ts = {c: lay.find_frames_csv(c) for c in cams if lay.find_frames_csv(c) is not None}
     cfg = config or PipelineConfig(model_set=model_set)
     rep = run_videos(videos, lay.keypoints_dir, cfg, rig=rig, progress=progress, timestamps=ts, **kw)
     return rep.paths

@@ -20,6 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
+from core.cli import guarded, output_folder, positive_int
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
@@ -40,11 +41,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stages", help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
     p.add_argument("--tracker", choices=TRACKERS, help="track stage: greedy (ch. 4) or particle (ch. 5)")
     p.add_argument("--config", type=Path, help="pipeline TOML (see pipeline/config.py)")
-    p.add_argument("--max-frames", type=int, help="keypoints: process only the first N frames of each video")
+    p.add_argument(
+        "--max-frames", type=positive_int, help="keypoints: process only the first N frames of each video"
+    )
     p.add_argument("--force", action="store_true", help="rerun stages even when their outputs are up to date")
     p.add_argument("--executor", choices=EXECUTORS, default="local")
     p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
-    p.add_argument("--workers", type=int, help="sessions processed at once (default: half the cores)")
+    p.add_argument(
+        "--workers", type=positive_int, help="sessions processed at once (default: half the cores)"
+    )
     p.add_argument(
         "--export",
         help="after the stages, write the track file as FORMATS (comma-separated: trc,c3d,bvh,csv,json) "
@@ -118,7 +123,7 @@ def format_table(results: list[SessionResult], stages: tuple[str, ...]) -> str:
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
@@ -132,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
         except ExportError as e:
             print(f"reprocess: --export: {e}", file=sys.stderr)
             return 2
+    if args.out is not None:
+        output_folder(args.out)
     try:
         cfg = make_config(args)
         sources = discover(args.paths)
@@ -165,10 +172,15 @@ def main(argv: list[str] | None = None) -> int:
     bar.close()
     table = format_table(results, tuple(s for s in STAGES if any(s in r.stage_s for r in results)))
     print(table)
-    failed = [r for r in results if r.status != "ok"]
+    failed = [r for r in results if r.status == "failed"]
+    partial = [r for r in results if r.status == "partial"]  # ran without some cameras (skipped_cameras)
     print(
-        f"{len(results) - len(failed)} sessions ok, {len(failed)} failed in {time.perf_counter() - t0:.1f} s"
+        f"{len(results) - len(failed) - len(partial)} sessions ok, "
+        + (f"{len(partial)} partial, " if partial else "")
+        + f"{len(failed)} failed in {time.perf_counter() - t0:.1f} s"
     )
+    for r in partial:
+        print(f"PARTIAL {r.name}: cameras {sorted(r.skipped_cameras)} left out: {r.message}", file=sys.stderr)
     for r in failed:
         print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
     export_errors = export_results(results, export_formats) if export_formats else []
@@ -184,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"reprocess: could not write the summary files to {args.out} ({e}).", file=sys.stderr)
             return 1
     return 1 if failed or export_errors else 0
+
+
+main = guarded("reprocess", _main)
 
 
 if __name__ == "__main__":

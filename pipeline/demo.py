@@ -14,6 +14,7 @@ import os
 import sys
 from pathlib import Path
 
+from core.cli import guarded
 from pipeline.cli import main as reprocess_main
 
 
@@ -22,7 +23,7 @@ def default_recording() -> Path:
     return shared / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_MultiPerson"
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m pipeline.demo",
         description=__doc__,
@@ -51,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     if rc == 0 and report.exists():
         print(f"report: {report.resolve()}")
     return rc
+
+
+main = guarded("make demo", _main)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from capture.session import VIDEO_SUFFIXES, SessionLayout
+from core.errors import RoomcapError
 
+SEGMENT_SUFFIXES = (*VIDEO_SUFFIXES, ".h264", ".h265")  # the recorder's raw/<cam>/seg_* files
 CALIBRATION_PATTERNS = (
     "rig.toml",
     "*.qca.txt",
@@ -32,7 +34,7 @@ CALIBRATION_PATTERNS = (
 )
 
 
-class SessionError(RuntimeError):
+class SessionError(RoomcapError, RuntimeError):
     """A session folder that cannot be processed; the message says what is missing."""
 
 
@@ -48,6 +50,7 @@ class SessionSource:
     openpose_json: dict[str, Path] = field(default_factory=dict)  # camera -> folder of OpenPose JSON
     calibration: Path | None = None  # rig.toml or a foreign calibration file
     problem: str = ""  # why this session cannot run (reported, the others still run)
+    calibration_missing: bool = False  # the problem is only the missing calibration (keypoints can run)
 
     @property
     def cameras(self) -> list[str]:
@@ -63,8 +66,8 @@ def _videos_in(folder: Path) -> dict[str, Path]:
             continue
         if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES:
             out[p.stem] = p
-        elif p.is_dir() and any(q.suffix.lower() in VIDEO_SUFFIXES for q in p.iterdir()):
-            out[p.name] = p  # a folder of recorded segments
+        elif p.is_dir() and any(q.suffix.lower() in SEGMENT_SUFFIXES for q in p.iterdir()):
+            out.setdefault(p.name, p)  # a folder of recorded segments (a joined raw/<cam>.mp4 wins)
     return out
 
 
@@ -108,12 +111,21 @@ def inspect_folder(folder: Path, name: str) -> SessionSource | None:
                 "calibrate or calibrate-run import) or point session.toml's 'calibration' at one."
             )
         )
+        only_calib = bool(problem)
         if not raw and not dets:
+            only_calib = False
             problem = (
                 problem or f"no videos under {layout.raw_dir} and no detections under {layout.keypoints_dir}."
             )
         return SessionSource(
-            name, folder, "roomcap", raw, dets, calibration=rig if rig.exists() else None, problem=problem
+            name,
+            folder,
+            "roomcap",
+            raw,
+            dets,
+            calibration=rig if rig.exists() else None,
+            problem=problem,
+            calibration_missing=only_calib,
         )
     videos = _videos_in(folder / "videos")
     pose_dir = folder / "pose"
@@ -133,7 +145,9 @@ def inspect_folder(folder: Path, name: str) -> SessionSource | None:
             "(Calib.qca.txt, Calib*.toml, camera_array.toml or rig.toml) there."
         )
     )
-    return SessionSource(name, folder, "pose2sim", videos, {}, jsons, cal, problem)
+    return SessionSource(
+        name, folder, "pose2sim", videos, {}, jsons, cal, problem, calibration_missing=not cal
+    )
 
 
 def discover(paths: list[str | os.PathLike]) -> list[SessionSource]:

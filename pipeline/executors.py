@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import signal
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -26,6 +27,20 @@ EXECUTORS = ("local", "ray")
 
 def _threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def _ignore_sigint() -> None:
+    """Worker processes leave Ctrl-C to the parent, which stops them (no traceback from each worker)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate a pool's processes at once. Stage outputs are written atomically, so a killed session
+    resumes from its last finished stage."""
+    procs = list(getattr(pool, "_processes", {}).values())  # no public API lists the workers
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        p.terminate()
 
 
 def run_local(
@@ -44,13 +59,17 @@ def run_local(
     threads = _threads_per_worker(workers)
     ctx = mp.get_context("spawn")  # not fork: onnxruntime and torch thread pools do not survive a fork
     broken: list[SessionSource] = []
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint) as pool:
         futures = {pool.submit(process_session, s, out, config, force, threads): s for s in sources}
-        for f in as_completed(futures):
-            try:
-                yield f.result()
-            except BrokenProcessPool:
-                broken.append(futures[f])
+        try:
+            for f in as_completed(futures):
+                try:
+                    yield f.result()
+                except BrokenProcessPool:
+                    broken.append(futures[f])
+        except KeyboardInterrupt:  # Ctrl-C: stop the workers now; their finished stages are on disk
+            _stop_workers(pool)
+            raise
     for s in sorted(broken, key=sources.index):
         log.warning("session %s: its worker process died; retrying it alone", s.name)
         try:

@@ -20,6 +20,7 @@ import numpy as np
 
 from capture.fileio import atomic_write_text, load_npz, load_toml
 from capture.session import SessionLayout
+from core.redact import redact
 
 _MAX_FRAMES = 2000  # frames embedded in the viewer (subsampled beyond)
 
@@ -155,7 +156,12 @@ def collect(lay: SessionLayout, title: str) -> dict[str, Any]:
         "tracks": _tracks_data(lay),
         "forecast": _forecast_data(lay),
         "provenance": _provenance(lay),
-        "session": {k: v for k, v in meta.items() if isinstance(v, (str, int, float))},
+        # redacted again: a session recorded by an older version may hold a camera URL with its password
+        "session": {
+            k: redact(v) if isinstance(v, str) else v
+            for k, v in meta.items()
+            if isinstance(v, (str, int, float))
+        },
     }
 
 

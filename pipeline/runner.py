@@ -30,6 +30,7 @@ from typing import Any
 
 from capture.fileio import atomic_write_text
 from capture.session import SessionLayout
+from core.errors import RoomcapError
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
@@ -39,7 +40,7 @@ log = logging.getLogger(__name__)
 FPS_TOLERANCE = 0.01  # relative frame-rate difference between cameras of one session that is still "the same"
 
 
-class StageError(RuntimeError):
+class StageError(RoomcapError, RuntimeError):
     """A stage failed; the message names the stage, what went wrong and what to do."""
 
 
@@ -47,7 +48,7 @@ class StageError(RuntimeError):
 class SessionResult:
     name: str
     out: str
-    status: str = "ok"  # ok | failed
+    status: str = "ok"  # ok | partial (some cameras were skipped, see skipped_cameras) | failed
     message: str = ""
     cameras: int = 0
     frames: int = 0
@@ -57,6 +58,7 @@ class SessionResult:
     ran: list[str] = field(default_factory=list)  # stages that did work (the rest were up to date)
     warnings: list[str] = field(default_factory=list)
     failed_stage: str = ""
+    skipped_cameras: dict[str, str] = field(default_factory=dict)  # camera -> why it was left out
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -70,6 +72,7 @@ class StagePlan:
     config: dict[str, Any]
     run: Callable[[list[str]], None]  # gets the session's warning list to append to
     model_sha256: str = ""
+    skipped: dict[str, str] = field(default_factory=dict)  # cameras this stage leaves out, and why
 
 
 def output_root(source: SessionSource, out: Path | None) -> Path:
@@ -150,13 +153,22 @@ def probe_videos(videos: dict[str, Path]) -> tuple[dict[str, tuple[int, float]],
     """
     import cv2
 
+    from pipeline.discover import SEGMENT_SUFFIXES
+
     info: dict[str, tuple[int, float]] = {}
     for cam, path in sorted(videos.items()):
-        files = sorted(p for p in path.iterdir() if not p.name.startswith(".")) if path.is_dir() else [path]
+        files = (
+            sorted(p for p in path.glob("seg_*") if p.suffix.lower() in SEGMENT_SUFFIXES)
+            or sorted(
+                p
+                for p in path.iterdir()
+                if not p.name.startswith(".") and p.suffix.lower() in SEGMENT_SUFFIXES
+            )
+            if path.is_dir()
+            else [path]
+        )
         n, fps = 0, 0.0
         for f in files:
-            if f.suffix.lower() in (".csv", ".json", ".toml"):
-                continue
             cap = cv2.VideoCapture(str(f))
             ok = cap.isOpened()
             ok = ok and cap.read()[0]
@@ -189,13 +201,36 @@ def probe_videos(videos: dict[str, Path]) -> tuple[dict[str, tuple[int, float]],
     return info, warnings
 
 
+def readable_videos(videos: dict[str, Path]) -> tuple[dict[str, Path], dict[str, str]]:
+    """Split ``{cam: video}`` into the readable ones and ``{cam: why not}`` (probe_videos per camera)."""
+    ok, bad = {}, {}
+    for cam, path in sorted(videos.items()):
+        try:
+            probe_videos({cam: path})
+            ok[cam] = path
+        except StageError as e:
+            bad[cam] = str(e)
+    return ok, bad
+
+
 def _plan_keypoints(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan | None:
     if src.videos:
-        cams = sorted(src.videos)
+        readable, skipped = readable_videos(src.videos)
+        if not readable:
+            raise StageError(
+                "no camera's video can be read: " + " ".join(skipped.values())
+                if len(skipped) > 1
+                else next(iter(skipped.values()))
+            )
+        cams = sorted(readable)
         outputs = [lay.detections(c) for c in cams]
         kcfg = dataclasses.asdict(cfg.keypoints)
+        frames_csv = {}
+        if src.layout == "roomcap":  # the recorder's per-frame timestamps (t_ns in the detections)
+            src_lay = SessionLayout(src.root)
+            frames_csv = {c: p for c in cams if (p := src_lay.find_frames_csv(c)) is not None}
 
         def run(warnings: list[str]) -> None:
             from keypoints.video import run_videos
@@ -222,17 +257,19 @@ def _plan_keypoints(
                 rig=rig,
                 max_frames=cfg.keypoints.max_frames,
                 progress=False,
+                timestamps=frames_csv or None,
             )
             for c, (fi, msg) in sorted(rep.decode_errors.items()):
                 warnings.append(f"camera '{c}': {msg}; kept the {fi} frames before it")
 
         return StagePlan(
             "keypoints",
-            [src.videos[c] for c in cams],
+            [src.videos[c] for c in cams] + sorted(frames_csv.values()),
             outputs,
             kcfg,
             run,
             model_set_sha256(cfg.keypoints.model_set, store),
+            skipped,
         )
     if src.openpose_json:
         cams = sorted(src.openpose_json)
@@ -294,19 +331,50 @@ def _detection_paths(lay: SessionLayout) -> list[Path]:
     return [lay.detections(c) for c in lay.detection_cameras()]
 
 
+def _sync_table(src: SessionSource) -> dict:
+    """The ``[sync]`` table (``capture-run sync``) of the input session's session.toml, or {}."""
+    toml = SessionLayout(src.root).session_toml
+    if not toml.exists():
+        return {}
+    from capture.fileio import load_toml
+
+    sync = load_toml(toml).get("sync")
+    return sync if isinstance(sync, dict) else {}
+
+
+def _carry_sync(src: SessionSource, lay: SessionLayout) -> None:
+    """Outputs written elsewhere (--out, Pose2Sim layout): copy the input's [sync] into the output's
+    session.toml, where the 3D stages (``triangulate.stage.load_detections``) read it."""
+    sync = _sync_table(src)
+    if not sync or lay.session_toml.resolve() == SessionLayout(src.root).session_toml.resolve():
+        return
+    from capture.fileio import load_toml, save_toml
+    from capture.session import SESSION_SCHEMA, SESSION_VERSION
+
+    meta = (
+        load_toml(lay.session_toml)
+        if lay.session_toml.exists()
+        else {"schema": f"{SESSION_SCHEMA}/{SESSION_VERSION}", "status": "imported"}
+    )
+    if meta.get("sync") != sync:
+        meta["sync"] = sync
+        save_toml(lay.session_toml, meta)
+
+
 def _plan_triangulate(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan:
     def run(warnings: list[str]) -> None:
         from triangulate.stage import triangulate_session
 
+        _carry_sync(src, lay)
         triangulate_session(lay.root, cfg.triangulate.options or None)
 
     return StagePlan(
         "triangulate",
         [lay.rig_toml, *_detection_paths(lay)],
         [lay.poses3d],
-        dataclasses.asdict(cfg.triangulate),
+        {**dataclasses.asdict(cfg.triangulate), "sync": _sync_table(src)},  # new offsets: rerun
         run,
     )
 
@@ -315,6 +383,7 @@ def _plan_track(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan:
     def run(warnings: list[str]) -> None:
+        _carry_sync(src, lay)
         if cfg.track.tracker == "greedy":
             from triangulate.stage import track_session_greedy
 
@@ -327,7 +396,10 @@ def _plan_track(
     inputs = [lay.rig_toml, *_detection_paths(lay)]
     if cfg.track.tracker == "greedy":
         inputs.append(lay.poses3d)
-    return StagePlan("track", inputs, [lay.tracks], dataclasses.asdict(cfg.track), run)
+    config = dataclasses.asdict(cfg.track)
+    if cfg.track.tracker != "greedy":  # the particle tracker reads the detections (and offsets) itself
+        config["sync"] = _sync_table(src)
+    return StagePlan("track", inputs, [lay.tracks], config, run)
 
 
 def forecast_path(lay: SessionLayout) -> Path:
@@ -418,10 +490,21 @@ def _remove_stale_temporaries(outputs: list[Path]) -> None:
                     tmp.unlink(missing_ok=True)
 
 
+NEEDS_CALIBRATION = ("triangulate", "track", "forecast")
+
+
+def _blocking_problem(source: SessionSource, config: PipelineConfig) -> str:
+    """Why the session cannot run these stages ('' if it can): a missing calibration only matters to
+    the stages that use it (``reprocess --stages keypoints`` runs without one)."""
+    if source.problem and source.calibration_missing and not set(config.stages) & set(NEEDS_CALIBRATION):
+        return ""
+    return source.problem
+
+
 def _stage_list(config: PipelineConfig, source: SessionSource | None = None) -> tuple[str, ...]:
-    """The stages to run: calibration always (it only imports), keypoints also when it only copies
-    detections made elsewhere, then the configured ones in graph order."""
-    extra = {"calibration"}
+    """The stages to run: calibration always (it only imports) when there is one, keypoints also when
+    it only copies detections made elsewhere, then the configured ones in graph order."""
+    extra = {"calibration"} if source is None or source.calibration is not None else set()
     if source is not None and source.detections and not source.videos and not source.openpose_json:
         extra.add("keypoints")
     from pipeline.config import STAGES
@@ -457,7 +540,7 @@ class _WarningsTo(logging.Handler):
 
 def check_session(source: SessionSource, out: Path | None, config: PipelineConfig) -> SessionResult | None:
     """The result of a session whose every stage is up to date (without running anything), else None."""
-    if source.problem:
+    if _blocking_problem(source, config):
         return None
     root = output_root(source, out)
     try:
@@ -476,9 +559,12 @@ def check_session(source: SessionSource, out: Path | None, config: PipelineConfi
     except Exception:  # anything unusual: let the full run look at it (and report it)
         return None
     res = SessionResult(source.name, str(root))
-    for k in ("cameras", "frames", "people", "tracks", "warnings"):
+    for k in ("cameras", "frames", "people", "tracks", "warnings", "skipped_cameras"):
         if k in saved:
             setattr(res, k, saved[k])
+    if res.skipped_cameras:
+        res.status = "partial"
+        res.message = "warning: " + "; ".join(res.warnings)
     res.stage_s = {s: 0.0 for s in _stage_list(config)}
     return res
 
@@ -500,7 +586,7 @@ def process_session(
     collect = _WarningsTo(result.warnings)
     logging.getLogger().addHandler(collect)
     try:
-        if source.problem:
+        if _blocking_problem(source, config):
             raise StageError(source.problem)
         lay = SessionLayout(root)
         for tmp in (root / ".roomcap").rglob(".*"):  # temporaries of bookkeeping writes a kill interrupted
@@ -513,6 +599,10 @@ def process_session(
             plan = _PLANNERS[name](source, lay, config, store)
             if plan is None:
                 continue
+            for cam, why in plan.skipped.items():
+                if cam not in result.skipped_cameras:
+                    result.skipped_cameras[cam] = why
+                    result.warnings.append(f"camera '{cam}' skipped ({why}); processed the other cameras")
             missing = [p for p in plan.inputs if not p.exists()]
             if missing:
                 raise StageError(
@@ -546,10 +636,18 @@ def process_session(
             result.stage_s[name] = round(time.perf_counter() - t0, 3)
         stage = "summary"
         _summarise(lay, result)
+        if result.people == 0 and (lay.poses3d.exists() or lay.tracks.exists()):
+            result.warnings.append(
+                "0 people in the result: nobody was reconstructed. See the warnings above; check that the "
+                "calibration is of these cameras and in metres, and that the videos show people."
+            )
         atomic_write_text(
             _summary_path(root),
             json.dumps(
-                {k: getattr(result, k) for k in ("cameras", "frames", "people", "tracks", "warnings")}
+                {
+                    k: getattr(result, k)
+                    for k in ("cameras", "frames", "people", "tracks", "warnings", "skipped_cameras")
+                }
             ),
         )
     except Exception as e:  # isolate the session: the others go on, the summary reports it
@@ -561,7 +659,9 @@ def process_session(
         log.debug("session %s failed:\n%s", source.name, traceback.format_exc())
     finally:
         logging.getLogger().removeHandler(collect)
-    if result.status == "ok" and result.warnings:
+    if result.status == "ok" and result.skipped_cameras:
+        result.status = "partial"
+    if result.status != "failed" and result.warnings:
         result.message = "warning: " + "; ".join(result.warnings)
     return result
 

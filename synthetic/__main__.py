@@ -9,18 +9,19 @@ from __future__ import annotations
 import argparse
 import sys
 
+from core.cli import guarded, nonnegative_int, positive_float, positive_int
 from synthetic import render as R
 from synthetic import rigs, world
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m synthetic", description=__doc__.splitlines()[0])
     ap.add_argument("out", help="session folder to write")
     ap.add_argument("--rig", choices=("kitchen", "ring"), default="kitchen")
-    ap.add_argument("--cams", type=int, default=12)
-    ap.add_argument("--people", type=int, default=8)
-    ap.add_argument("--seconds", type=float, default=10.0)
-    ap.add_argument("--fps", type=float, default=25.0)
+    ap.add_argument("--cams", type=positive_int, default=12)
+    ap.add_argument("--people", type=nonnegative_int, default=8)
+    ap.add_argument("--seconds", type=positive_float, default=10.0)
+    ap.add_argument("--fps", type=positive_float, default=25.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--motion", choices=("auto", "mocap", "procedural"), default="auto")
     ap.add_argument("--enter-leave", action="store_true", help="people appear and disappear")
@@ -65,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
         f"{scene.n_frames} frames at {scene.fps:g} fps"
     )
     return 0
+
+
+main = guarded("python -m synthetic", _main)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.fileio import FormatError
+from core.errors import UnknownNameError
 from keypoints.skeletons import CANONICAL
 
 log = logging.getLogger(__name__)
@@ -124,7 +125,7 @@ class Bvh:
         try:
             return self.names.index(name)
         except ValueError:
-            raise KeyError(f"{self.path}: no joint '{name}'; joints: {list(self.names)}") from None
+            raise UnknownNameError(f"{self.path}: no joint '{name}'; joints: {list(self.names)}") from None
 
     def ancestors(self, joints) -> np.ndarray:
         """Sorted indices of ``joints`` and all their ancestors."""

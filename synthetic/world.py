@@ -299,7 +299,8 @@ def _presence(T: int, cfg: SceneConfig, rng: np.random.Generator) -> np.ndarray:
     if rng.random() < cfg.return_fraction and end - start >= 3 * min_len // 2 + 2:
         g0 = int(rng.integers(start + min_len // 2, end - min_len // 2 - 1))
         g1 = min(end - 1, g0 + max(int(rng.integers(min_len // 2, min_len + 1)), 1))
-        present[g0:g1] = False
+        g1 = min(g1, g0 + (end - start) - min_len)  # the absence leaves min_present_s on stage in all
+        present[g0 : max(g0, g1)] = False
     return present
 
 

@@ -179,3 +179,18 @@ def test_unopenable_video_keeps_the_other_cameras(tmp_path, rng):
         and "['good'] are cached" in str(e.value)
     )
     assert (tmp_path / "cache" / "good.npz").exists()
+
+
+def test_wrong_grid_points_at_the_board_file(tmp_path):
+    """Issue 15: a board file declaring fewer squares than the print said 'record the board again'."""
+    printed = Board("charuco", (5, 7), 0.08, 0.06, "DICT_5X5_100")
+    _recording(tmp_path, printed, n_cams=2, n_frames=8)
+    wrong = tmp_path / "board.toml"
+    save_board(wrong, printed.replace(grid=(4, 5)))
+    with pytest.raises(CalibrationError) as e:
+        calibrate_recording(
+            tmp_path / "rec", wrong, tmp_path / "out" / "rig.toml", CalibrationConfig(min_frames=6)
+        )
+    msg = str(e.value)
+    assert "more squares than the board file says" in msg and str(wrong) in msg, msg
+    assert "Record the board again" not in msg

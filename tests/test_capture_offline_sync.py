@@ -135,3 +135,20 @@ def test_audio_sync_recovers_a_known_offset(tmp_path):
     assert rc == 0
     off = load_toml(tmp_path / "session.toml")["sync"]["cameras"]["b"]["offset_s"]
     assert abs(off - 0.3) < 0.002  # b's t=0 is a's t=0.3 s (measured error < 1 ms)
+
+
+def test_trust_says_when_an_offset_is_ambiguous_or_unsupported(rng):
+    x = np.convolve(rng.normal(size=400), np.ones(5) / 5, "same")
+    good = estimate_lag(x, _shift(x, 4), max_lag=30)
+    assert good.trust == "good" and good.peak_ratio > 2
+    # a periodic motion (someone pacing at a fixed rate) matches at every period: ambiguous
+    t = np.arange(400)
+    periodic = np.sin(2 * np.pi * t / 12) + 0.05 * rng.normal(size=400)
+    amb = estimate_lag(periodic, _shift(periodic, 4), max_lag=30)
+    assert amb.trust == "poor" and amb.peak_ratio < 1.3
+    # two unrelated signals: a peak somewhere, but nothing to trust
+    noise = estimate_lag(rng.normal(size=400), rng.normal(size=400), max_lag=30)
+    assert noise.trust == "poor"
+    res = estimate_offsets({"a": x, "b": _shift(x, 4), "c": rng.normal(size=400)}, 25.0, "a", max_lag_s=1.0)
+    assert res["cameras"]["a"]["trust"] == "reference"
+    assert res["cameras"]["b"]["trust"] == "good" and res["cameras"]["c"]["trust"] == "poor"

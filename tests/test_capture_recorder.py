@@ -18,7 +18,7 @@ from capture.config import parse_config
 from capture.fileio import load_toml
 from capture.recorder import Recorder, RecorderError, repair_session
 from capture.session import SessionLayout
-from capture.sources import SourceError, open_recording, read_code, read_frames_csv
+from capture.sources import open_recording, read_code, read_frames_csv
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -28,9 +28,13 @@ def _cfg(cams, **top):
 
 
 def _decode_segments(folder: Path) -> list[np.ndarray]:
-    """Every frame of every closed segment, decoded independently of the timestamp file."""
+    """Every frame of a camera, decoded independently of the timestamp file: the joined ``raw/<cam>.mp4``
+    (``.avi``) when the recording ended cleanly, else every closed segment of ``raw/<cam>/``."""
     imgs = []
-    for seg in sorted(folder.glob("seg_*.mp4")) + sorted(folder.glob("seg_*.avi")):
+    joined = [folder.with_suffix(e) for e in (".mp4", ".avi") if folder.with_suffix(e).exists()]
+    if joined:
+        assert not folder.exists(), "segments must be removed once joined"
+    for seg in joined or sorted(folder.glob("seg_*.mp4")) + sorted(folder.glob("seg_*.avi")):
         cap = cv2.VideoCapture(str(seg))
         assert cap.isOpened(), f"{seg} is not readable"
         while True:
@@ -90,7 +94,7 @@ def test_bad_source_leaves_no_half_written_session(tmp_path):
         [{"name": "ok", "source": "synthetic:"}, {"name": "bad", "source": str(tmp_path / "nope.mp4")}]
     )
     out = tmp_path / "s"
-    with pytest.raises(SourceError, match="does not exist"):
+    with pytest.raises(RecorderError, match="camera 'bad' cannot be opened.*does not exist.*--skip-failed"):
         Recorder(cfg, out, duration_s=1, handle_signals=False).run()
     assert not out.exists()
 
@@ -202,9 +206,13 @@ def test_kill_9_leaves_readable_videos_that_match_their_timestamps(tmp_path):
         lost_s = (t_kill_ns - tab[-1, 2]) / 1e9
         assert lost_s < 1.0  # segments of 0.5 s: measured 0.3-0.6 s lost
     counts = repair_session(out)
-    assert load_toml(out / "session.toml")["status"] == "recovered"
+    meta = load_toml(out / "session.toml")
+    assert meta["status"] == "recovered"
     assert all(n == len(read_frames_csv(out / "raw" / f"{c}.frames.csv")) for c, n in counts.items())
     assert not list((out / "raw").rglob(".part_*"))
+    for cam in ("a", "b", "c"):  # repair joined the segments: one video per camera, every frame in it
+        assert meta["cameras"][cam]["joined"] is True
+        assert len(_decode_segments(out / "raw" / cam)) == counts[cam]
 
 
 def test_sigterm_finalises_every_file(tmp_path):

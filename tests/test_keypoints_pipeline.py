@@ -172,25 +172,36 @@ def test_occluded_person_kept_beside_the_one_in_front(frame):
 
 
 def test_rotation_hypotheses_turn_a_cartwheel_upright():
-    """Demo_MultiPerson cam04 frame 48: the participant is mid-cartwheel, head to the image's left (checked by
-    eye: facing the camera, right arm up, right leg raised to the image's right). The upright crop's first
-    pass scores 0.47 and mixes the sides; the 270-degree crop wins and the refined pose has them in order."""
+    """Demo_MultiPerson cam04 frames 40-52: a participant mid-cartwheel, head to the image's left (checked by
+    eye on frame 48: facing the camera, right arm up, right leg raised to the image's right). Upright crops
+    score low and mix the sides; the rotated crops help. One frame's outcome flips with a decoder's last
+    pixel (OpenCV 5.0 against 5.1), so the claim is over seven frames: with the rotation hypotheses the
+    cartwheel's sides are in order in more frames, and its mean keypoint score is higher.
+    Measured (OpenCV 5.0): sides in order 4 of 7 frames with, 2 without; mean score 0.56 against 0.48."""
     need_shared("models")
-    img = frames("Demo_MultiPerson", 48)[3]
+    names = get_skeleton("coco17").joint_names
+    pipes = {w: KeypointPipeline(PipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)}
 
-    def sides(rotation_weak: float) -> bool:
-        r = KeypointPipeline(PipelineConfig(rotation_weak=rotation_weak, skeleton="model"))([img])[0]
+    def reading(img: np.ndarray, rotation_weak: float) -> tuple[bool, float]:
+        r = pipes[rotation_weak]([img])[0]
         k = int(np.argmax(r.boxes[:, 2] - r.boxes[:, 0]))  # the widest box: the cartwheel
-        p = {n: r.xy_px[k, j] for j, n in enumerate(get_skeleton("coco17").joint_names)}
-        return bool(
+        p = {n: r.xy_px[k, j] for j, n in enumerate(names)}
+        in_order = bool(
             p["right_shoulder"][1] < p["left_shoulder"][1] - 50
             and p["right_hip"][1] < p["left_hip"][1]
             and p["right_wrist"][1] < p["left_wrist"][1] - 300
             and p["right_ankle"][0] > p["left_ankle"][0] + 250
         )
+        return in_order, float(np.nanmean(r.score[k]))
 
-    assert sides(0.5)
-    assert not sides(0.0)  # without the rotated crops (before)
+    with_rot, without = [], []
+    for f in range(40, 53, 2):
+        img = frames("Demo_MultiPerson", f)[3]
+        with_rot.append(reading(img, 0.5))
+        without.append(reading(img, 0.0))  # without the rotated crops (before)
+    n_with, n_without = sum(o for o, _ in with_rot), sum(o for o, _ in without)
+    assert n_with > n_without, (n_with, n_without)
+    assert np.mean([s for _, s in with_rot]) > np.mean([s for _, s in without]) + 0.03
 
 
 def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -201,5 +201,5 @@ def test_cli_list_and_fetch(isolated, server, capsys):
     )
     assert main(["--model-dir", str(d), "fetch", "mv"]) == 0
     assert (d / src.name).exists()
-    assert main(["fetch", "no_such_model"]) == 1
+    assert main(["fetch", "no_such_model"]) == 2
     assert np.isfinite(1.0)

@@ -152,5 +152,5 @@ def test_cli_run_on_explicit_videos(tmp_path, tiny_set, capsys):
     args = ["run", f"cam07={v}", "--out", str(tmp_path / "kp"), "--models", tiny_set.model_set]
     assert main(args + ["--refine-passes", "0"]) == 0
     assert Detections.load(tmp_path / "kp" / "cam07.npz").camera == "cam07"
-    assert main(["run", str(tmp_path / "nope.mp4"), "--out", str(tmp_path / "kp")]) == 1
-    assert "does not exist" in capsys.readouterr().err
+    assert main(["run", str(tmp_path / "nope.mp4"), "--out", str(tmp_path / "kp")]) == 2
+    assert "do not exist" in capsys.readouterr().err

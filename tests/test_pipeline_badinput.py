@@ -57,8 +57,12 @@ def test_unreadable_video_and_different_lengths(tmp_path):
     _session(tmp_path / "in" / "ragged", frames=(5, 3))
     cfg = PipelineConfig(stages=("keypoints",))
     res = {r.name: r for r in run_sessions(discover([tmp_path / "in"]), tmp_path / "out", cfg, workers=1)}
-    assert res["in/broken"].status == "failed"
+    # one unreadable camera: the others are processed, and the summary says which was left out
+    assert res["in/broken"].status == "partial", res["in/broken"].message
     assert "cam01" in res["in/broken"].message and "cannot be read" in res["in/broken"].message
+    assert list(res["in/broken"].skipped_cameras) == ["cam01"]
+    assert (tmp_path / "out" / "in" / "broken" / "keypoints" / "cam00.npz").exists()
+    assert not (tmp_path / "out" / "in" / "broken" / "keypoints" / "cam01.npz").exists()
     ragged = res["in/ragged"]
     assert ragged.status == "ok", ragged.message
     assert (

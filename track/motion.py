@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from core.errors import RoomcapError
 from keypoints.skeletons import CANONICAL, Skeleton
 from track.normalize import hip_frame, normalize, rotate_vectors, unrotate_vectors
 from track.priors import (  # noqa: F401 - re-exported
@@ -46,7 +47,7 @@ CHECKPOINT_SCHEMA = "motion_gru/1"
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "motion_gru.pt"
 
 
-class CheckpointMismatch(ValueError):
+class CheckpointMismatch(RoomcapError, ValueError):
     """The motion-model checkpoint does not fit the skeleton (or is not a motion checkpoint)."""
 
 

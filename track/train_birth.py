@@ -16,12 +16,14 @@ and of the median-template fill the tracker used before is printed and stored in
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from core.cli import guarded
 from keypoints.skeletons import CANONICAL
 from track.birth import BirthNet, save_checkpoint
 from track.normalize import hip_frame, normalize
@@ -106,7 +108,7 @@ def train(
     return model, info
 
 
-def main(argv: list[str] | None = None) -> None:
+def _main(argv: list[str] | None = None) -> None:
     ap = common_arguments(__doc__.split("\n\n")[0], "track/checkpoints/birth_mlp.pt")
     ap.add_argument("--hidden", type=int, default=256)
     ap.add_argument("--dropout", type=float, default=0.2)
@@ -130,5 +132,8 @@ def main(argv: list[str] | None = None) -> None:
     report_written(a.out, info)
 
 
+main = guarded("python -m track.train_birth", _main)
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from core.cli import guarded
 from keypoints.skeletons import CANONICAL
 from track.motion import PoseGRU, save_checkpoint, step_inputs
 from track.normalize import rotate_vectors
@@ -199,7 +201,7 @@ def train(
     return model.eval(), info
 
 
-def main(argv: list[str] | None = None) -> None:
+def _main(argv: list[str] | None = None) -> None:
     ap = common_arguments(__doc__.split("\n\n")[0], "track/checkpoints/motion_gru.pt")
     ap.add_argument("--hidden", type=int, default=64)
     ap.add_argument("--dropout", type=float, default=0.5)
@@ -223,5 +225,8 @@ def main(argv: list[str] | None = None) -> None:
     report_written(a.out, info)
 
 
+main = guarded("python -m track.train_motion", _main)
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -4,59 +4,109 @@ Each frame's 3D poses are matched to the tracks alive at the previous frames by 
 method; the cost is the mean Euclidean distance over the joints both poses have, or, when they
 share none, the distance of their mean joints projected on the ground plane (z up). A match
 below tau (200 mm) continues the track; every other pose starts a new one. A track that was not
-matched for ``max_gap`` frames ends; the allowed distance grows with the time since the track was
+matched for ``max_gap_s`` seconds ends; the allowed distance grows with the time since the track was
 last seen (``max_speed_m_s``), so a briefly lost person is picked up again. Missing joints inside a
-track are filled by linear interpolation in time (gaps up to ``max_gap`` frames) and every joint
-trajectory is smoothed by a Gaussian kernel of ``sigma`` frames (sigma = 2 as in sec. 4.3.4),
-NaN-aware (normalised convolution), so gaps are never bridged by more than ``max_gap`` frames.
+track are filled by linear interpolation in time (gaps up to ``max_gap_s``) and every joint
+trajectory is smoothed by a Gaussian kernel of ``sigma_s`` seconds (default: sec. 4.3.4's sigma =
+2 frames at the frame rate), NaN-aware (normalised convolution).
+
+Every duration is on the clock (issue 17): the frames' times come from ``t_ns`` (from
+``frame_index / fps`` where the timestamps are missing or not increasing), so dropped frames,
+jittered timestamps and pauses of the recorder count as the time they last. Nothing is interpolated
+or smoothed across a gap between two frames longer than ``max_gap_s``, and the allowed distance
+never grows past the one of a ``max_gap_s`` gap. On frames at a regular rate the results equal the
+frame-count computation of earlier versions at 25 Hz.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 from scipy.optimize import linear_sum_assignment
 
 from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 from triangulate.dlt import _reject_unknown
 from triangulate.reconstruct import flip_index
 
+SEED_SIGMA_FRAMES = 2.0  # sec. 4.3.4: Gaussian smoothing of sigma = 2 frames
+
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    """tau_m: match threshold (sec. 4.2.2: 200 mm); max_gap: frames a track may be unseen (and
-    the longest gap filled); max_speed_m_s: extra allowed distance per unseen second; sigma:
-    Gaussian smoothing in frames (0 = off); min_track_frames: shorter tracks are dropped;
-    min_joints: poses with fewer joints are ignored; constant_velocity: compare a frame's poses with
-    each track's last pose moved by the track's mean-joint velocity (False = the seed's last pose);
-    occlusion_fill: longer gaps of a joint (up to this many frames, 0 = off) are filled kinematically:
-    the joint keeps its offset from its parent joint, interpolated between the frames around the
-    gap (held at the track's ends); flagged PREDICTED, std = the parent's + 5 cm;
-    fix_mirrored: a pose whose left/right-swapped version fits the track better joins swapped;
-    stitch: after the frame-by-frame pass, a track that starts while another has just ended (within
-    ``max_gap`` frames) continues it when one of its poses in that window is within the limit the
-    pass itself would have allowed the lost track (``stitch_tracks``)."""
+    """tau_m: match threshold (sec. 4.2.2: 200 mm); max_gap_s: seconds a track may be unseen, the
+    longest gap filled and the longest gap between frames that smoothing bridges; max_speed_m_s: extra
+    allowed distance per unseen second; sigma_s: Gaussian smoothing in seconds (0 = off; default the
+    seed's 2 frames at the session's frame rate, a filter defined on samples);
+    min_track_frames: shorter tracks are dropped; min_joints: poses with fewer joints are ignored;
+    constant_velocity: compare a frame's poses with each track's last pose moved by the track's
+    mean-joint velocity (False = the seed's last pose); occlusion_fill_s: longer gaps of a joint (up to
+    this many seconds, 0 = off) are filled kinematically: the joint keeps its offset from its parent
+    joint, interpolated between the frames around the gap (held at the track's ends); flagged
+    PREDICTED, std = the parent's + 5 cm; fix_mirrored: a pose whose left/right-swapped version fits
+    the track better joins swapped; stitch: after the frame-by-frame pass, a track that starts while
+    another has just ended (within ``max_gap_s``) continues it when one of its poses in that window is
+    within the limit the pass itself would have allowed the lost track (``stitch_tracks``);
+    pause_gate_m: a pause of the recorder (two consecutive frames more than ``max_gap_s`` apart) counts
+    as one frame for the tracks, which may continue across it by this much more distance (how far a
+    person may have moved while nothing was recorded); nothing is filled or smoothed across it.
+
+    ``max_gap``, ``sigma`` and ``occlusion_fill`` are the same durations in frames, as earlier
+    versions took them; given, they are converted at the session's frame rate (:meth:`at_fps`)."""
 
     tau_m: float = 0.2
-    max_gap: int = 10
+    max_gap_s: float = 0.4  # 10 frames at 25 Hz
     max_speed_m_s: float = 1.5
-    sigma: float = 2.0
+    sigma_s: float | None = None  # None: sec. 4.3.4's 2 frames, at the session's frame rate
     min_track_frames: int = 5
     min_joints: int = 5
     constant_velocity: bool = True
-    occlusion_fill: int = 50
+    occlusion_fill_s: float = 2.0  # 50 frames at 25 Hz
     fix_mirrored: bool = True
     stitch: bool = True
+    pause_gate_m: float = 0.5
+    max_gap: int | None = None
+    sigma: float | None = None
+    occlusion_fill: int | None = None
 
     def __post_init__(self) -> None:
-        if self.tau_m <= 0 or self.max_gap < 0 or self.sigma < 0:
-            raise ValueError("TrackerConfig: tau_m must be positive, max_gap and sigma non-negative.")
+        if self.tau_m <= 0 or self.max_gap_s < 0 or (self.sigma_s or 0) < 0 or self.occlusion_fill_s < 0:
+            raise ValueError(
+                "TrackerConfig: tau_m must be positive, max_gap_s, sigma_s and occlusion_fill_s non-negative."
+            )
+        if any(v is not None and v < 0 for v in (self.max_gap, self.sigma, self.occlusion_fill)):
+            raise ValueError(
+                "TrackerConfig: max_gap, sigma and occlusion_fill (frames) must be non-negative."
+            )
 
     @classmethod
     def from_dict(cls, d: dict) -> TrackerConfig:
         return cls(**_reject_unknown(cls, d))
+
+    def at_fps(self, fps: float) -> TrackerConfig:
+        """The config with the durations given in frames converted to seconds at ``fps``, and the
+        smoothing width the seed gives in frames (sec. 4.3.4: sigma = 2) when none is set."""
+        conv = {
+            f"{k}_s": getattr(self, k) / fps
+            for k in ("max_gap", "sigma", "occlusion_fill")
+            if getattr(self, k) is not None
+        }
+        if self.sigma_s is None and "sigma_s" not in conv:
+            conv["sigma_s"] = SEED_SIGMA_FRAMES / fps
+        if not conv and self.max_gap is None and self.occlusion_fill is None:
+            return self
+        return replace(self, **conv, max_gap=None, sigma=None, occlusion_fill=None)
+
+
+def frame_times_s(frame_index: np.ndarray, t_ns: np.ndarray | None, fps: float) -> np.ndarray:
+    """(T,) seconds of each frame from its start: ``t_ns`` when every frame has one and they increase,
+    else ``frame_index / fps`` (timestamps missing, or not usable)."""
+    fi = np.asarray(frame_index, np.float64)
+    if t_ns is not None and len(t_ns) == len(fi) and len(fi):
+        t = np.asarray(t_ns, np.int64)
+        if (np.diff(t) > 0).all() and (len(t) == 1 or t[-1] > 0):
+            return (t - t[0]) / 1e9
+    return (fi - (fi[0] if len(fi) else 0.0)) / fps
 
 
 def pose_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -74,40 +124,70 @@ def pose_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.where(n > 0, mean, np.nan_to_num(ground, nan=np.inf))
 
 
-def associate(xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0) -> np.ndarray:
-    """Greedy tracking. xyz_m: (T,P,J,3) per-frame poses (NaN padding). Returns track index (T,P) or -1."""
-    return associate_mirrored(xyz_m, config, fps, None)[0]
+def associate(
+    xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0, t_s: np.ndarray | None = None
+) -> np.ndarray:
+    """Greedy tracking. xyz_m: (T,P,J,3) per-frame poses (NaN padding); t_s (T,) frame times in seconds
+    (default: regular at ``fps``). Returns track index (T,P) or -1."""
+    return associate_mirrored(xyz_m, config, fps, None, t_s=t_s)[0]
+
+
+def _nominal_dt(fps: float) -> float:
+    """One frame interval at the nominal rate, plus a little for jittered timestamps."""
+    return 1.0 / fps + 1e-6
+
+
+def pause_clock(t_s: np.ndarray, max_gap_s: float, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """The tracks' clock: (T,) times with every pause of the recorder (consecutive frames more than
+    ``max_gap_s`` apart) shortened to one frame, and (T,) the number of pauses before each frame."""
+    d = np.diff(np.asarray(t_s, np.float64))
+    pause = d > max_gap_s + _nominal_dt(fps)
+    active = np.concatenate([[0.0], np.cumsum(np.where(pause, 1.0 / fps, d))])
+    return active, np.concatenate([[0], np.cumsum(pause)])
 
 
 def associate_mirrored(
-    xyz_m: np.ndarray, config: TrackerConfig | None = None, fps: float = 25.0, flip: np.ndarray | None = None
+    xyz_m: np.ndarray,
+    config: TrackerConfig | None = None,
+    fps: float = 25.0,
+    flip: np.ndarray | None = None,
+    *,
+    t_s: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`associate`, and with ``flip`` (J,) (left/right joint permutation) a pose may also join a
     track mirrored, when its left/right-swapped version is closer (a hypothesis whose views were
     mostly flipped in 2D triangulates to a mirrored person). Returns assign (T,P) and mirrored (T,P)."""
-    cfg = config or TrackerConfig()
+    cfg = (config or TrackerConfig()).at_fps(fps)
     T, P = xyz_m.shape[:2]
+    t_s = np.arange(T) / fps if t_s is None else np.asarray(t_s, np.float64)
+    clock, pauses = pause_clock(t_s, cfg.max_gap_s, fps)
+    dt = _nominal_dt(fps)
     out = np.full((T, P), -1, dtype=np.int64)
     mirrored = np.zeros((T, P), bool)
     last_pose: list[np.ndarray] = []
-    last_t: list[int] = []
-    last_v: list[np.ndarray] = []  # (3,) mean-joint velocity per frame
+    last_t: list[float] = []  # seconds on the tracks' clock (pauses shortened)
+    last_pause: list[int] = []  # pauses of the recorder before the track's last frame
+    last_v: list[np.ndarray] = []  # (3,) mean-joint velocity, m/s
     for t in range(T):
         ok = np.flatnonzero(np.isfinite(xyz_m[t]).all(-1).sum(-1) >= cfg.min_joints)
         if len(ok) == 0:
             continue
-        alive = [k for k in range(len(last_t)) if t - last_t[k] <= cfg.max_gap + 1]
+        now = clock[t]
+        alive = [k for k in range(len(last_t)) if now - last_t[k] <= cfg.max_gap_s + dt]
         assigned = np.zeros(len(ok), bool)
         if alive:
-            pred = np.stack([last_pose[k] + (t - last_t[k]) * last_v[k] for k in alive])
+            since = now - np.asarray([last_t[k] for k in alive])  # (A,) seconds since last seen
+            pred = np.stack([last_pose[k] + since[n] * last_v[k] for n, k in enumerate(alive)])
             cost = pose_distance(pred, xyz_m[t, ok])
             mir = np.zeros(cost.shape, bool)
             if flip is not None:
                 cost_m = pose_distance(pred, xyz_m[t, ok][:, flip])
                 mir = cost_m < cost
                 cost = np.minimum(cost, cost_m)
-            gap_s = (t - np.asarray([last_t[k] for k in alive]) - 1) / fps
-            limit = cfg.tau_m + cfg.max_speed_m_s * gap_s
+            # unseen time beyond one frame; bounded, as alive tracks were seen within max_gap_s
+            gap_s = np.clip(since - 1.0 / fps, 0.0, cfg.max_gap_s)
+            paused = pauses[t] > np.asarray([last_pause[k] for k in alive])
+            limit = cfg.tau_m + cfg.max_speed_m_s * gap_s + cfg.pause_gate_m * paused
             # gate before the assignment: a pair above the limit must not pull a valid pair apart
             rows, cols = linear_sum_assignment(np.where(cost < limit[:, None], cost, 1e9))
             for r, c in zip(rows, cols, strict=True):
@@ -123,18 +203,19 @@ def associate_mirrored(
                     if cfg.constant_velocity:
                         both = ~miss & np.isfinite(last_pose[k]).all(-1)
                         if both.any():
-                            v = (pose[both] - last_pose[k][both]).mean(0) / (t - last_t[k])
+                            v = (pose[both] - last_pose[k][both]).mean(0) / max(since[r], 1e-9)
                             last_v[k] = 0.5 * last_v[k] + 0.5 * v
-                    pose[miss] = last_pose[k][miss] + (t - last_t[k]) * last_v[k]
-                    last_pose[k], last_t[k] = pose, t
+                    pose[miss] = last_pose[k][miss] + since[r] * last_v[k]
+                    last_pose[k], last_t[k], last_pause[k] = pose, now, pauses[t]
                     assigned[c] = True
         for c in np.flatnonzero(~assigned):
             out[t, ok[c]] = len(last_t)
             last_pose.append(xyz_m[t, ok[c]].copy())
-            last_t.append(t)
+            last_t.append(now)
+            last_pause.append(pauses[t])
             last_v.append(np.zeros(3))
     if cfg.stitch:
-        out = stitch_tracks(xyz_m, out, mirrored, cfg, fps, flip)
+        out = stitch_tracks(xyz_m, out, mirrored, cfg, fps, flip, t_s=t_s)  # on the same clock
     return out, mirrored
 
 
@@ -145,6 +226,8 @@ def stitch_tracks(
     config: TrackerConfig | None = None,
     fps: float = 25.0,
     flip: np.ndarray | None = None,
+    *,
+    t_s: np.ndarray | None = None,
 ) -> np.ndarray:
     """Join track fragments the frame-by-frame pass split. Returns the relabelled assign (T,P).
 
@@ -152,13 +235,16 @@ def stitch_tracks(
     triangulated frames of a person seen by two cameras only) and that young track then competes
     with the lost one for the person's next poses: the Hungarian step gives them to whichever is
     closer, often the young one, and the old track ends. Here a track b that begins after track a
-    ended, within ``max_gap`` frames, continues a when one of b's poses in that window lies within
+    ended, within ``max_gap_s``, continues a when one of b's poses in that window lies within
     the limit the pass would have allowed a (``tau_m + max_speed_m_s * gap``, sec. 4.2.2's
     distance to a's last pose, missing joints held from a's earlier frames). Candidate links are
     taken greedily by distance, each track continuing at most one and continued by at most one.
     """
-    cfg = config or TrackerConfig()
+    cfg = (config or TrackerConfig()).at_fps(fps)
     T = len(assign)
+    t_s = np.arange(T) / fps if t_s is None else np.asarray(t_s, np.float64)
+    t_s, pauses = pause_clock(t_s, cfg.max_gap_s, fps)  # the tracks' clock, as in the pass
+    window = cfg.max_gap_s + _nominal_dt(fps)
     t_idx, p_idx = np.nonzero(assign >= 0)
     if len(t_idx) == 0:
         return assign
@@ -177,7 +263,8 @@ def stitch_tracks(
     for a in range(K):
         if last[a] < 0:
             continue
-        later = np.flatnonzero((first > last[a]) & (first <= last[a] + cfg.max_gap + 1))
+        first_s = t_s[np.minimum(first, T - 1)]
+        later = np.flatnonzero((first > last[a]) & (first_s - t_s[last[a]] <= window))
         if len(later) == 0:
             continue
         rows = by_track[bounds[a] : bounds[a + 1]]
@@ -189,9 +276,11 @@ def stitch_tracks(
             end[miss] = X[r][miss]
         for b in later:
             sel = by_track[bounds[b] : bounds[b + 1]]
-            sel = sel[t_idx[sel] <= last[a] + cfg.max_gap + 1]
+            since = t_s[t_idx[sel]] - t_s[last[a]]
+            sel, since = sel[since <= window], since[since <= window]
             d = pose_distance(end[None], X[sel])[0]
-            limit = cfg.tau_m + cfg.max_speed_m_s * (t_idx[sel] - last[a] - 1) / fps
+            limit = cfg.tau_m + cfg.max_speed_m_s * np.clip(since - 1.0 / fps, 0.0, cfg.max_gap_s)
+            limit = limit + cfg.pause_gate_m * (pauses[t_idx[sel]] > pauses[last[a]])
             hit = np.flatnonzero(d < limit)
             if len(hit):
                 cands.append((float(d[hit[0]]), a, int(b)))
@@ -210,40 +299,60 @@ def stitch_tracks(
     return out
 
 
-def _interp_gaps(x: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
-    """Linear interpolation over NaN runs of at most max_gap samples in x (T,D). Returns x, filled (T,)."""
+def _interp_gaps(
+    x: np.ndarray, t_s: np.ndarray, max_gap_s: float, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation in time over NaN runs of x (T,D) between two samples at most ``max_gap_s``
+    (+ one frame) apart. Returns x, filled (T,)."""
     valid = np.isfinite(x).all(-1)
     filled = np.zeros(len(x), bool)
     idx = np.flatnonzero(valid)
-    if len(idx) < 2 or max_gap <= 0:
+    if len(idx) < 2 or max_gap_s <= 0:
         return x, filled
-    gaps = np.diff(idx)
     x = x.copy()
-    for g, i0 in zip(gaps, idx[:-1], strict=True):
-        if 1 < g <= max_gap + 1:
-            i1 = i0 + g
-            a = np.linspace(0, 1, g + 1)[1:-1, None]
+    for i0, i1 in zip(idx[:-1], idx[1:], strict=True):
+        if i1 - i0 > 1 and t_s[i1] - t_s[i0] <= max_gap_s + dt:
+            a = ((t_s[i0 + 1 : i1] - t_s[i0]) / (t_s[i1] - t_s[i0]))[:, None]
             x[i0 + 1 : i1] = (1 - a) * x[i0] + a * x[i1]
             filled[i0 + 1 : i1] = True
     return x, filled
 
 
-def _smooth(x: np.ndarray, sigma: float) -> np.ndarray:
-    """NaN-aware Gaussian smoothing along axis 0 of x (T,...)."""
-    if sigma <= 0 or len(x) < 2:
+def _smooth(x: np.ndarray, t_s: np.ndarray, sigma_s: float, max_gap_s: float, fps: float) -> np.ndarray:
+    """NaN-aware Gaussian smoothing of x (T,...) in time: weights exp(-dt^2 / 2 sigma_s^2) over the
+    samples within 3 sigma (the taps ``gaussian_filter1d`` uses at ``fps``), never across two frames
+    more than ``max_gap_s`` (+ one frame) apart. On regular frames it equals ``gaussian_filter1d``
+    (mode constant, truncate 3) with sigma = sigma_s * fps, up to float rounding."""
+    T = len(x)
+    if sigma_s <= 0 or T < 2:
         return x
+    radius_s = int(3.0 * sigma_s * fps + 0.5) / fps + 1e-6
+    segment = np.concatenate([[0], np.cumsum(np.diff(t_s) > max_gap_s + _nominal_dt(fps))])
+    reach = int((np.searchsorted(t_s, t_s + radius_s, side="right") - np.arange(T)).max())
     valid = np.isfinite(x)
-    num = gaussian_filter1d(np.where(valid, x, 0.0), sigma, axis=0, mode="constant", truncate=3.0)
-    den = gaussian_filter1d(valid.astype(np.float64), sigma, axis=0, mode="constant", truncate=3.0)
+    xv = np.where(valid, x, 0.0)
+    num = np.zeros(x.shape)
+    den = np.zeros(x.shape)
+    extra = (1,) * (x.ndim - 1)
+    for k in range(-reach, reach + 1):
+        i = np.arange(max(0, -k), min(T, T - k))  # samples whose neighbour i + k exists
+        d = t_s[i + k] - t_s[i]
+        w = np.exp(-0.5 * (d / sigma_s) ** 2) * (np.abs(d) <= radius_s) * (segment[i + k] == segment[i])
+        w = w.reshape(-1, *extra)
+        num[i] += w * xv[i + k]
+        den[i] += w * valid[i + k]
     return np.where(valid, num / np.maximum(den, 1e-12), np.nan)
 
 
-def _kinematic_fill(X: np.ndarray, parents: np.ndarray, max_fill: int) -> np.ndarray:
+def _kinematic_fill(
+    X: np.ndarray, parents: np.ndarray, t_s: np.ndarray, max_fill_s: float, dt: float
+) -> np.ndarray:
     """Fill joint gaps of one track X (T,J,3) in place by the offset from the parent joint.
 
-    Parents are filled first (order of a walk from the root). The offset is linearly interpolated
-    between the observations around a gap and held before the first / after the last one; runs
-    longer than ``max_fill`` frames stay NaN. Returns the (T,J) mask of filled entries.
+    Parents are filled first (order of a walk from the root). The offset is linearly interpolated in
+    time between the observations around a gap and held before the first / after the last one (up to
+    half of ``max_fill_s``); gaps longer than ``max_fill_s`` stay NaN. Returns the (T,J) mask of filled
+    entries.
     """
     T, J = X.shape[:2]
     filled = np.zeros((T, J), bool)
@@ -268,19 +377,20 @@ def _kinematic_fill(X: np.ndarray, parents: np.ndarray, max_fill: int) -> np.nda
         need = np.flatnonzero(~have_j & have_p & (tt >= t0) & (tt < t1))
         if len(both) == 0 or len(need) == 0:
             continue
-        # distance (frames) of each needed frame to the nearest observation of the offset
-        nearest = np.abs(need[:, None] - both[None]).min(1)
-        run_ok = nearest <= max_fill // 2 + 1
-        # gaps bounded on both sides by observations: allow up to max_fill frames in total
+        # time of each needed frame to the nearest observation of the offset (held at the ends)
+        nearest = np.abs(t_s[need][:, None] - t_s[both][None]).min(1)
+        run_ok = nearest <= max_fill_s / 2 + dt
+        # gaps bounded on both sides by observations: allow up to max_fill_s in total
         right = np.searchsorted(both, need)
         inside = (right > 0) & (right < len(both))
-        span = np.where(inside, both[np.minimum(right, len(both) - 1)] - both[np.maximum(right - 1, 0)], 0)
-        run_ok = np.where(inside, span <= max_fill + 1, run_ok)
+        lo, hi = both[np.maximum(right - 1, 0)], both[np.minimum(right, len(both) - 1)]
+        span = np.where(inside, t_s[hi] - t_s[lo], 0.0)
+        run_ok = np.where(inside, span <= max_fill_s + dt, run_ok)
         need = need[run_ok]
         if len(need) == 0:
             continue
         off = X[both, j] - X[both, p]
-        o = np.stack([np.interp(need, both, off[:, k]) for k in range(3)], 1)
+        o = np.stack([np.interp(t_s[need], t_s[both], off[:, k]) for k in range(3)], 1)
         X[need, j] = X[need, p] + o
         filled[need, j] = True
     return filled
@@ -295,14 +405,20 @@ def build_tracks(
     parents: np.ndarray | None = None,
     mirrored: np.ndarray | None = None,
     flip: np.ndarray | None = None,
+    *,
+    fps: float = 25.0,
+    t_s: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Dense tracks from per-frame poses and assignments, with gap filling and smoothing.
 
-    xyz_m (T,P,J,3), assign (T,P) from :func:`associate`, confidence/std_m (T,P,J).
+    xyz_m (T,P,J,3), assign (T,P) from :func:`associate`, confidence/std_m (T,P,J), t_s (T,) frame
+    times in seconds (default: regular at ``fps``).
     Returns track ids (K,), xyz (T,K,J,3), confidence (T,K,J), std (T,K,J), flags (T,K,J) uint8.
     """
-    cfg = config or TrackerConfig()
+    cfg = (config or TrackerConfig()).at_fps(fps)
     T, P, J = xyz_m.shape[:3]
+    t_s = np.arange(T) / fps if t_s is None else np.asarray(t_s, np.float64)
+    dt = _nominal_dt(fps)
     conf = np.ones((T, P, J)) if confidence is None else confidence
     std = np.full((T, P, J), np.nan) if std_m is None else std_m
     if mirrored is not None and flip is not None and mirrored.any():
@@ -324,16 +440,20 @@ def build_tracks(
         obs = np.isfinite(X[:, n]).all(-1)
         Fl[:, n][obs] |= OBSERVED
         for j in range(J):
-            x, filled = _interp_gaps(X[:, n, j], cfg.max_gap)
+            x, filled = _interp_gaps(X[:, n, j], t_s, cfg.max_gap_s, dt)
             if filled.any():
                 X[filled, n, j] = x[filled]
-                s_f, _ = _interp_gaps(np.where(obs[:, j], S[:, n, j], np.nan)[:, None], cfg.max_gap)
-                c_f, _ = _interp_gaps(np.where(obs[:, j], Cf[:, n, j], np.nan)[:, None], cfg.max_gap)
+                s_f, _ = _interp_gaps(
+                    np.where(obs[:, j], S[:, n, j], np.nan)[:, None], t_s, cfg.max_gap_s, dt
+                )
+                c_f, _ = _interp_gaps(
+                    np.where(obs[:, j], Cf[:, n, j], np.nan)[:, None], t_s, cfg.max_gap_s, dt
+                )
                 S[filled, n, j] = s_f[filled, 0]
                 Cf[filled, n, j] = 0.5 * np.nan_to_num(c_f[filled, 0])
                 Fl[filled, n, j] |= INTERPOLATED
-        if cfg.occlusion_fill > 0 and parents is not None:
-            kin = _kinematic_fill(X[:, n], np.asarray(parents), cfg.occlusion_fill)
+        if cfg.occlusion_fill_s > 0 and parents is not None:
+            kin = _kinematic_fill(X[:, n], np.asarray(parents), t_s, cfg.occlusion_fill_s, dt)
             if kin.any():
                 # std of a predicted joint: its parent's std plus 5 cm (the offset is a guess)
                 known = np.isfinite(S[:, n])
@@ -343,9 +463,11 @@ def build_tracks(
                 S[:, n] = np.where(kin, s_par[:, pj] + 0.05, S[:, n])
                 Cf[:, n] = np.where(kin, 0.25 * Cf[:, n, pj], Cf[:, n])
                 Fl[:, n][kin] |= PREDICTED
-        if cfg.sigma > 0:
+        if cfg.sigma_s > 0:
             have = np.isfinite(X[:, n]).all(-1)
-            X[:, n] = np.where(have[..., None], _smooth(X[:, n], cfg.sigma), np.nan)
+            X[:, n] = np.where(
+                have[..., None], _smooth(X[:, n], t_s, cfg.sigma_s, cfg.max_gap_s, fps), np.nan
+            )
             Fl[:, n][have] |= SMOOTHED
     return ids, X, Cf, S, Fl
 
@@ -364,10 +486,13 @@ def track_poses(
     source: str = "triangulate.tracker (greedy, ch. 4)",
 ) -> TrackFile:
     """Per-frame poses (T,P,J,3) -> :class:`TrackFile` (track ids 0..K-1 by first appearance)."""
-    cfg = config or TrackerConfig()
+    cfg = (config or TrackerConfig()).at_fps(fps)
     flip = flip_index(joint_names) if cfg.fix_mirrored else None
-    assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip)
-    ids, X, Cf, S, Fl = build_tracks(xyz_m, assign, confidence, std_m, cfg, parents, mirrored, flip)
+    t_s = frame_times_s(frame_index, t_ns, fps)
+    assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip, t_s=t_s)
+    ids, X, Cf, S, Fl = build_tracks(
+        xyz_m, assign, confidence, std_m, cfg, parents, mirrored, flip, fps=fps, t_s=t_s
+    )
     return TrackFile(
         fps=fps,
         frame_index=frame_index,

@@ -1,0 +1,103 @@
+"""The command-line guard every console script runs under.
+
+Exit codes, the same for every command (README, "Exit codes"):
+
+- 0: done;
+- 1: the command ran to its end but some of its work failed (a session of ``reprocess``, say), as it
+  printed;
+- 2: bad input or a project error: one message on stderr that says what is wrong and what to do, no
+  traceback (argparse's usage errors also exit 2);
+- 130: interrupted (Ctrl-C); what was finished is kept.
+
+An unexpected exception (a bug) still ends with its traceback, so that it can be reported; set
+``ROOMCAP_DEBUG=1`` to see the traceback of the errors above as well.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import logging
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from core.errors import InputError, RoomcapError
+from core.redact import redact, redact_log_records
+
+EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+def describe_os_error(e: OSError) -> str:
+    """An OSError as a sentence: which file, what went wrong, what to do."""
+    where = f" {e.filename}" if e.filename else ""
+    what = e.strerror or str(e)
+    hint = {
+        errno.ENOENT: "check the path",
+        errno.EACCES: "check the permissions, or choose another folder",
+        errno.EPERM: "check the permissions, or choose another folder",
+        errno.EROFS: "the file system is read-only: choose another folder",
+        errno.ENOSPC: "the disk is full: free space or choose another folder",
+        errno.EISDIR: "a folder is there: give a file name",
+        errno.ENOTDIR: "a file is there where a folder is needed: choose another path",
+        errno.EEXIST: "something is already there: remove it or choose another path",
+    }.get(e.errno or -1)
+    return f"{what}:{where}" + (f" ({hint})" if hint else "")
+
+
+def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Callable[..., int]:
+    """Wrap ``main(argv) -> exit code`` so the project's errors end in one line and a documented code."""
+
+    def run(argv: Sequence[str] | None = None) -> int:
+        debug = os.environ.get("ROOMCAP_DEBUG", "") not in ("", "0")
+        redact_log_records()
+        try:
+            code = main(argv)
+            return EXIT_OK if code is None else int(code)
+        except KeyboardInterrupt:
+            print(f"{prog}: interrupted; what was finished is kept (run the command again to go on).",
+                  file=sys.stderr)  # fmt: skip
+            return EXIT_INTERRUPTED
+        except (RoomcapError, ValueError, OSError) as e:
+            # ValueError: the project's bad-input errors that predate RoomcapError are ValueErrors.
+            if debug:
+                logging.getLogger(prog).exception("ROOMCAP_DEBUG traceback")
+            text = describe_os_error(e) if isinstance(e, OSError) and e.strerror else str(e)
+            print(f"{prog}: error: {redact(text)}", file=sys.stderr)
+            return EXIT_INPUT
+
+    run.__doc__ = main.__doc__
+    run.__wrapped__ = main  # type: ignore[attr-defined]
+    return run
+
+
+def _number(kind: type, low: float, inclusive: bool, what: str) -> Callable[[str], Any]:
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if v < low or (v == low and not inclusive):
+            raise argparse.ArgumentTypeError(f"{text} is out of range: give {what}")
+        return v
+
+    parse.__name__ = what  # argparse names the type in its messages
+    return parse
+
+
+positive_int = _number(int, 0, False, "a whole number > 0")
+nonnegative_int = _number(int, 0, True, "a whole number >= 0")
+positive_float = _number(float, 0.0, False, "a number > 0")
+
+
+def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:
+    """``path`` as a folder to write into, made if missing; a file there or no write access is an error."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{flag} {p} is a file; give a folder (it is made if missing).")
+    p.mkdir(parents=True, exist_ok=True)
+    if not os.access(p, os.W_OK):
+        raise InputError(f"{flag} {p} is not writable; choose another folder or fix its permissions.")
+    return p

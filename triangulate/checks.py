@@ -1,0 +1,68 @@
+"""Plausibility of the detections that enter the 3D stages (issue 15): what is probably wrong is said.
+
+Errors (the 3D would be wrong by metres): frame numbers that are not strictly increasing in a camera's
+file, timestamps that go backwards. Warnings (the run goes on, the summary and report show them): a
+camera with no detection at all, cameras that cover different frame ranges with no timestamps to align
+them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from capture.fileio import FormatError
+from keypoints.detections import Detections
+
+
+def check_frame_order(det: Detections, path: Path) -> None:
+    """Raise when ``frame_index`` is not strictly increasing or ``t_ns`` (where set) goes backwards."""
+    fi = np.asarray(det.frame_index)
+    step = np.diff(fi)
+    if (step <= 0).any():
+        k = int(np.argmax(step <= 0)) + 1
+        what = "repeats" if step[k - 1] == 0 else "goes back to"
+        raise FormatError(
+            path,
+            "frame_index",
+            f"camera '{det.camera}': frame_index is not strictly increasing: row {k} {what} frame "
+            f"{int(fi[k])} after frame {int(fi[k - 1])}.",
+            "Sort the file's rows by frame_index and drop duplicates, or rerun the keypoints stage.",
+        )
+    t = np.asarray(det.t_ns)
+    have = np.flatnonzero(t != 0)
+    back = np.flatnonzero(np.diff(t[have]) < 0)
+    if len(back):
+        k = have[back[0] + 1]
+        raise FormatError(
+            path,
+            "t_ns",
+            f"camera '{det.camera}': timestamps go backwards at frame {int(fi[k])} "
+            f"({int(t[k])} ns after {int(t[have[back[0]]])} ns).",
+            "Fix the camera's frames.csv (the recorder's clock jumped?) or drop the timestamps (t_ns = 0) "
+            "to align the cameras by frame number.",
+        )
+
+
+def detection_warnings(dets: Sequence[Detections]) -> list[str]:
+    """What looks wrong across the cameras' detections (no detection at all, unalignable lengths)."""
+    out = []
+    for d in dets:
+        seen = np.isfinite(np.asarray(d.xy_px)[..., 0]) & (np.nan_to_num(np.asarray(d.score)) > 0)
+        if len(d.frame_index) == 0 or not seen.any():
+            out.append(
+                f"camera '{d.camera}' has no detection in its {len(d.frame_index)} frames: check its video "
+                "(covered, dark, pointing away) and its keypoints file; the 3D uses the other cameras."
+            )
+    spans = {d.camera: (int(d.frame_index[0]), int(d.frame_index[-1])) for d in dets if len(d.frame_index)}
+    timed = all((np.asarray(d.t_ns) != 0).any() for d in dets if len(d.frame_index))
+    if len(set(spans.values())) > 1 and not timed:
+        out.append(
+            "cameras cover different frames ("
+            + ", ".join(f"{c} {a}-{b}" for c, (a, b) in spans.items())
+            + ") and have no timestamps to align them: frames are matched by frame number, which is right "
+            "only if every camera started together. Record with timestamps or run `capture-run sync`."
+        )
+    return out
