@@ -6,6 +6,10 @@ Skeleton ids (DESIGN.md): ``coco17``, ``coco18`` (OpenPose COCO), ``body25``,
 points) and the canonical ``body19`` (COCO-17 plus pelvis and neck) used for
 every 3D file. Joint names are lower snake case.
 
+The 3D stages can also use ``whole_body`` (:func:`whole_body`: body19 plus the feet, hand
+points, upper neck and head top a 2D layout provides) or a skeleton declared in a TOML
+(:func:`load_skeleton_toml`).
+
 ``convert`` maps keypoints between layouts by joint name; joints the source
 lacks but can be derived (pelvis = mid-hips, neck = mid-shoulders) are
 computed, everything else is NaN.
@@ -303,6 +307,116 @@ SKELETONS: dict[str, Skeleton] = {
 }
 CANONICAL = SKELETONS["body19"]
 
+# Joints a 3D skeleton carries beyond body19 when a 2D layout provides them (``whole_body``).
+WHOLE_BODY_EXTRAS = (
+    "left_big_toe",
+    "left_small_toe",
+    "left_heel",
+    "right_big_toe",
+    "right_small_toe",
+    "right_heel",
+    "left_foot_index",
+    "right_foot_index",
+    "upper_neck",
+    "head_top",
+    "head",
+    "left_pinky",
+    "right_pinky",
+    "left_index",
+    "right_index",
+    "left_thumb",
+    "right_thumb",
+)
+
+
+def whole_body(sources) -> Skeleton:
+    """The 3D skeleton for detections in the 2D layouts ``sources``: ``body19`` plus every joint of
+    :data:`WHOLE_BODY_EXTRAS` that one of them provides (feet of BODY_25/BODY_25B/HALPE-26/BlazePose,
+    BlazePose's hand points, BODY_25B's upper neck and head top), in that order. Id ``whole_body``
+    (``body19`` itself when no layout adds a joint)."""
+    have = set()
+    for src in sources:
+        have |= set(get_skeleton(src).joint_names)
+    extra = tuple(n for n in WHOLE_BODY_EXTRAS if n in have)
+    return CANONICAL if not extra else Skeleton("whole_body", _BODY19 + extra)
+
+
+def custom_skeleton(id: str, joint_names, parents) -> Skeleton:
+    """A skeleton with its own tree: ``parents`` are joint names (``""`` for the root) or indices (-1)."""
+    names = tuple(str(n) for n in joint_names)
+    if len(set(names)) != len(names):
+        raise ValueError(f"skeleton '{id}': joint names repeat: {list(names)}")
+    if len(parents) != len(names):
+        raise ValueError(f"skeleton '{id}': {len(names)} joints but {len(parents)} parents")
+    idx = {n: i for i, n in enumerate(names)}
+    par = []
+    for n, p in zip(names, parents, strict=True):
+        if isinstance(p, str):
+            if p and p not in idx:
+                raise ValueError(
+                    f"skeleton '{id}': the parent '{p}' of '{n}' is not a joint; joints: {list(names)}"
+                )
+            par.append(idx[p] if p else -1)
+        else:
+            par.append(int(p))
+    if sum(1 for p in par if p < 0) != 1:
+        raise ValueError(f"skeleton '{id}': exactly one joint must be the root (parent \"\"), got {par}")
+    sk = Skeleton(id, names)
+    object.__setattr__(sk, "parents", tuple(par))
+    return sk
+
+
+def load_skeleton_toml(path) -> Skeleton:
+    """A skeleton the project does not know, declared in a small TOML, for the 3D stages::
+
+        [skeleton]
+        id = "mouse"
+        joints = ["snout", "left_ear", "right_ear", "neck", "tail_base"]
+        parents = ["neck", "snout", "snout", "", "neck"]      # "" = the root
+
+        [layouts.dlc_mouse]                 # a 2D layout: the ``skeleton`` id of the detections files
+        joints = ["nose", "earL", "earR", "neck", "tailbase"]
+        map = { snout = "nose", left_ear = "earL", right_ear = "earR", tail_base = "tailbase" }
+
+    The 3D joints take the 2D joints of the same name, or the one ``map`` names (3D = 2D). Each
+    layout is registered (so its detections files load) with its joints renamed to the 3D names.
+    Returns the 3D skeleton."""
+    from pathlib import Path
+
+    from capture.fileio import FormatError, load_toml
+
+    path = Path(path)
+    data = load_toml(path)
+    try:
+        sk = data["skeleton"]
+        skel = custom_skeleton(str(sk["id"]), sk["joints"], sk["parents"])
+        for lid, lay in data.get("layouts", {}).items():
+            m = {str(v): str(k) for k, v in lay.get("map", {}).items()}
+            bad = [v for v in m if v not in lay["joints"]]
+            if bad:
+                raise ValueError(f"layout '{lid}': map names 2D joints {bad} it does not have")
+            names = tuple(m.get(n, n) for n in lay["joints"])
+            if not set(names) & set(skel.joint_names):
+                raise ValueError(f"layout '{lid}' shares no joint with skeleton '{skel.id}'")
+            SKELETONS[str(lid)] = Skeleton(str(lid), names)
+        unknown = set(data) - {"skeleton", "layouts"}
+        if unknown:
+            raise ValueError(f"unknown sections {sorted(unknown)}; valid: skeleton, layouts")
+    except (KeyError, TypeError, ValueError) as e:
+        raise FormatError(
+            path, None, f"not a skeleton declaration ({e}).", "See keypoints.skeletons.load_skeleton_toml."
+        ) from None
+    return skel
+
+
+def skeleton_from_names(joint_names) -> Skeleton:
+    """The skeleton of a 3D file from its joint names (a known layout when the names are one's)."""
+    names = tuple(str(n) for n in joint_names)
+    for sk in SKELETONS.values():
+        if sk.joint_names == names:
+            return sk
+    return Skeleton("whole_body" if names[: len(_BODY19)] == _BODY19 else "custom", names)
+
 
 def get_skeleton(skeleton: str | Skeleton) -> Skeleton:
     if isinstance(skeleton, Skeleton):
@@ -314,13 +428,13 @@ def get_skeleton(skeleton: str | Skeleton) -> Skeleton:
 
 
 @cache
-def mapping(src: str, dst: str) -> tuple[np.ndarray, tuple[tuple[int, int, int], ...]]:
+def mapping(src: str | Skeleton, dst: str | Skeleton) -> tuple[np.ndarray, tuple[tuple[int, int, int], ...]]:
     """Index map from ``src`` to ``dst`` layout.
 
     Returns ``take`` (J_dst,) with the source index of each destination joint or -1,
     and ``derived``: (dst_index, src_a, src_b) for joints computed as a midpoint.
     """
-    s, d = get_skeleton(src), get_skeleton(dst)
+    s, d = get_skeleton(src), get_skeleton(dst)  # ids or Skeleton objects (hashable)
     src_idx = {n: i for i, n in enumerate(s.joint_names)}
     take = np.full(d.n_joints, -1, dtype=np.int64)
     derived = []
@@ -333,7 +447,7 @@ def mapping(src: str, dst: str) -> tuple[np.ndarray, tuple[tuple[int, int, int],
     return take, tuple(derived)
 
 
-def convert(xy: np.ndarray, score: np.ndarray | None, src: str, dst: str = "body19"):
+def convert(xy: np.ndarray, score: np.ndarray | None, src: str | Skeleton, dst: str | Skeleton = "body19"):
     """Map keypoints (..., J_src, D) and scores (..., J_src) to layout ``dst``.
 
     Joints the source cannot provide are NaN with score 0. Derived joints are the
@@ -343,7 +457,7 @@ def convert(xy: np.ndarray, score: np.ndarray | None, src: str, dst: str = "body
     s = get_skeleton(src)
     if xy.shape[-2] != s.n_joints:
         raise ValueError(f"convert: expected (..., {s.n_joints}, D) for '{src}', got {xy.shape}")
-    take, derived = mapping(s.id, get_skeleton(dst).id)
+    take, derived = mapping(s, get_skeleton(dst))
     out_shape = xy.shape[:-2] + (len(take), xy.shape[-1])
     out = np.full(out_shape, np.nan)
     ok = take >= 0

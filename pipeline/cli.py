@@ -5,6 +5,7 @@ Examples::
     reprocess recordings/                       # every session under recordings/, all stages
     reprocess S01 --stages triangulate,track --tracker greedy
     reprocess day1/ day2/ --out results/ --executor ray --address auto
+    reprocess S01 --export trc,bvh               # then <session>/export/<session>_<track id>.trc|.bvh
 """
 
 from __future__ import annotations
@@ -49,8 +50,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--workers", type=positive_int, help="sessions processed at once (default: half the cores)"
     )
+    p.add_argument(
+        "--export",
+        help="after the stages, write the track file as FORMATS (comma-separated: trc,c3d,bvh,csv,json) "
+        "to <session output>/export/ (see: tracks export --help)",
+    )
     p.add_argument("-v", "--verbose", action="store_true")
     return p
+
+
+def export_results(results: list[SessionResult], formats: tuple[str, ...]) -> list[str]:
+    """``tracks export`` of every session that ran; returns one error line per session that failed."""
+    from track.export import ExportError, ExportOptions, export_tracks
+    from track.skeleton_fit import FitError
+    from track.trackfile import TrackFile
+
+    errors = []
+    for r in results:
+        if r.status != "ok":
+            continue
+        path = Path(r.out) / "track" / "tracks.npz"
+        try:
+            rep = export_tracks(TrackFile.load(path), Path(r.out) / "export", r.name, ExportOptions(formats))
+        except (ExportError, FitError, FormatError, OSError) as e:
+            errors.append(f"{r.name}: export failed: {e}")
+            continue
+        for n in rep.notes:
+            print(f"{r.name}: note: {n}")
+        print(f"{r.name}: exported {len(rep.files)} files to {Path(r.out) / 'export'}")
+    return errors
 
 
 def make_config(args: argparse.Namespace) -> PipelineConfig:
@@ -100,6 +128,15 @@ def _main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    export_formats: tuple[str, ...] = ()
+    if args.export:
+        from track.export import ExportError, parse_formats
+
+        try:
+            export_formats = parse_formats(args.export)
+        except ExportError as e:
+            print(f"reprocess: --export: {e}", file=sys.stderr)
+            return 2
     if args.out is not None:
         output_folder(args.out)
     try:
@@ -146,6 +183,9 @@ def _main(argv: list[str] | None = None) -> int:
         print(f"PARTIAL {r.name}: cameras {sorted(r.skipped_cameras)} left out: {r.message}", file=sys.stderr)
     for r in failed:
         print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
+    export_errors = export_results(results, export_formats) if export_formats else []
+    for e in export_errors:
+        print(f"FAILED {e}", file=sys.stderr)
     if args.out:
         try:
             atomic_write_text(
@@ -155,7 +195,7 @@ def _main(argv: list[str] | None = None) -> int:
         except OSError as e:  # e.g. the disk filled up: the table above is the summary
             print(f"reprocess: could not write the summary files to {args.out} ({e}).", file=sys.stderr)
             return 1
-    return 1 if failed else 0
+    return 1 if failed or export_errors else 0
 
 
 main = guarded("reprocess", _main)

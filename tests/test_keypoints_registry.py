@@ -24,6 +24,7 @@ SHIPPED = [
     "light_person_detector",
     "blazepose_lite",
     "blazepose_full",
+    "blazepose_heavy",
     "movenet_lightning",
     "openpose_mobilenetv2",
 ]

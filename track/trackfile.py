@@ -11,6 +11,14 @@ Keys (T frames, K tracks, J joints):
   triangulation covariance), NaN where unknown
 - ``flags (T,K,J)`` uint8 bits: OBSERVED, INTERPOLATED, PREDICTED (carried through
   occlusion), SMOOTHED
+
+The skeleton is ``body19`` by default; with the triangulate option ``skeleton = "whole_body"`` (or a
+skeleton TOML) ``joint_names``/``parents`` carry the longer list (feet, ...), same keys.
+
+Beside it, ``skeleton_fit.npz`` (schema ``skeleton_fit/1``, written by ``tracks fit``; see
+:mod:`track.skeleton_fit`) holds one skeleton per track: constant bone lengths, per-frame joint
+rotations, fit error per joint, and the sha256 of the tracks.npz it was fitted on. Exporters: TRC,
+C3D, CSV, JSON, BVH (:mod:`track.export`, ``tracks export``).
 """
 
 from __future__ import annotations
@@ -208,50 +216,108 @@ def load_dense(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 def export_trc(tf: TrackFile, path: str | os.PathLike, track: int | None = None, y_up: bool = True) -> None:
-    """Write one track (or all, markers suffixed ``_<id>``) as OpenSim/Pose2Sim TRC.
+    """Write one track (or all, markers suffixed ``_<id>``) as OpenSim/Pose2Sim TRC, raw (blank cells
+    where a joint is unknown, the track file's joint names).
 
     TRC is written in metres with ``Units m``. OpenSim's axes are y up; with
     ``y_up`` the world (x, y, z) with z up becomes (x, z, -y) in the file, the
-    inverse of what the Pose2Sim importer in this project applies.
+    inverse of what the Pose2Sim importer in this project applies. For a file OpenSim accepts
+    (Pose2Sim marker names, gaps filled, no blank cells) use :func:`track.export.write_trc`.
     """
-    ks = range(tf.n_tracks) if track is None else [int(np.flatnonzero(tf.track_id == track)[0])]
+    ks = range(tf.n_tracks) if track is None else [_track_index(tf, track)]
     names, cols = [], []
     for k in ks:
         for j, n in enumerate(tf.joint_names):
             names.append(n if track is not None else f"{n}_{tf.track_id[k]}")
             xyz = tf.xyz_m[:, k, j].astype(np.float64)
-            cols.append(np.stack([xyz[:, 0], xyz[:, 2], -xyz[:, 1]], -1) if y_up else xyz)
+            cols.append(world_to_yup(xyz) if y_up else xyz)
     T = tf.n_frames
+    t0 = tf.t_ns[0] if T else 0
+    time_s = (tf.t_ns - t0) / 1e9 if tf.t_ns.any() else np.arange(T) / tf.fps
+    write_trc_table(path, names, np.stack(cols, 1) if cols else np.zeros((T, 0, 3)), tf.fps, time_s)
+
+
+def world_to_yup(xyz: np.ndarray) -> np.ndarray:
+    """(..., 3) world (x, y, z), z up -> OpenSim/BVH axes (x, z, -y), y up (a proper rotation)."""
+    xyz = np.asarray(xyz, np.float64)
+    return np.stack([xyz[..., 0], xyz[..., 2], -xyz[..., 1]], -1)
+
+
+def yup_to_world(xyz: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`world_to_yup`."""
+    xyz = np.asarray(xyz, np.float64)
+    return np.stack([xyz[..., 0], -xyz[..., 2], xyz[..., 1]], -1)
+
+
+def write_trc_table(
+    path: str | os.PathLike,
+    names: list[str],
+    xyz: np.ndarray,
+    fps: float,
+    time_s: np.ndarray,
+    frame_no: np.ndarray | None = None,
+) -> None:
+    """TRC text (PathFileType 4, metres) of ``xyz (T,M,3)`` in file axes; NaN becomes a blank cell.
+
+    ``frame_no (T,)`` is the Frame# column (default 1..T)."""
+    T = len(xyz)
+    frame_no = np.arange(1, T + 1) if frame_no is None else np.asarray(frame_no)
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
-        f"{tf.fps:g}\t{tf.fps:g}\t{T}\t{len(names)}\tm\t{tf.fps:g}\t1\t{T}",
+        f"{fps:g}\t{fps:g}\t{T}\t{len(names)}\tm\t{fps:g}\t{int(frame_no[0]) if T else 1}\t{T}",
         "Frame#\tTime\t" + "\t\t\t".join(names) + "\t\t",
         "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(len(names))),
         "",
     ]
-    t0 = tf.t_ns[0] if T else 0
     for t in range(T):
-        vals = "\t".join("" if not np.isfinite(v) else f"{v:.6f}" for c in cols for v in c[t])
-        lines.append(f"{t + 1}\t{(tf.t_ns[t] - t0) / 1e9 if tf.t_ns.any() else t / tf.fps:.6f}\t{vals}")
+        vals = "\t".join("" if not np.isfinite(v) else f"{v:.6f}" for v in xyz[t].ravel())
+        lines.append(f"{int(frame_no[t])}\t{time_s[t]:.6f}\t{vals}")
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def export_json(tf: TrackFile, path: str | os.PathLike) -> None:
-    """Plain JSON: per track, per frame, joints as [x, y, z] or null."""
+def read_trc(path: str | os.PathLike) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """-> (marker names, ``xyz (T,M,3)`` in file axes with NaN for blank cells, ``time_s (T,)``,
+    ``frame_no (T,)``). Reads this project's and Pose2Sim's TRC files."""
+    path = Path(path)
+    lines = path.read_text().splitlines()
+    if len(lines) < 5 or not lines[0].startswith("PathFileType"):
+        raise FormatError(path, None, "not a TRC file (no PathFileType header).")
+    names = [n for n in lines[3].split("\t")[2:] if n]
+    rows = [ln.split("\t") for ln in lines[5:] if ln.strip()]
+    out = np.full((len(rows), len(names), 3), np.nan)
+    time_s, frame_no = np.zeros(len(rows)), np.zeros(len(rows), np.int64)
+    for t, r in enumerate(rows):
+        frame_no[t], time_s[t] = int(float(r[0])), float(r[1])
+        vals = [
+            float(v) if v.strip() not in ("", "nan", "NaN") else np.nan for v in r[2 : 2 + 3 * len(names)]
+        ]
+        vals += [np.nan] * (3 * len(names) - len(vals))
+        out[t] = np.asarray(vals).reshape(len(names), 3)
+    return names, out, time_s, frame_no
+
+
+def export_json(tf: TrackFile, path: str | os.PathLike, track: int | None = None) -> None:
+    """Plain JSON: per track, per frame, joints as [x, y, z] or null (world metres, z up), with the
+    per-joint ``confidence``, ``std_m`` (uncertainty) and ``flags`` bits. All tracks, or one ``track`` id.
+    :func:`read_json` reads it back."""
+    ks = range(tf.n_tracks) if track is None else [_track_index(tf, track)]
     out = {
         "schema": schema_tag(SCHEMA, VERSION),
         "fps": tf.fps,
+        "axes": "world metres, z up",
+        "flag_bits": {"observed": 1, "interpolated": 2, "predicted": 4, "smoothed": 8},
         "joint_names": list(tf.joint_names),
         "parents": tf.parents.tolist(),
         "frame_index": tf.frame_index.tolist(),
+        "t_ns": tf.t_ns.tolist(),
         "tracks": [],
     }
-    for k, tid in enumerate(tf.track_id):
+    for k in ks:
         xyz = tf.xyz_m[:, k]
         out["tracks"].append(
             {
-                "track_id": int(tid),
+                "track_id": int(tf.track_id[k]),
                 "xyz_m": [
                     [None if not np.isfinite(p).all() else [round(float(v), 5) for v in p] for p in fr]
                     for fr in xyz
@@ -259,6 +325,55 @@ def export_json(tf: TrackFile, path: str | os.PathLike) -> None:
                 "std_m": [
                     [None if not np.isfinite(s) else round(float(s), 5) for s in fr] for fr in tf.std_m[:, k]
                 ],
+                "confidence": [[round(float(c), 4) for c in fr] for fr in tf.confidence[:, k]],
+                "flags": tf.flags[:, k].tolist(),
             }
         )
     atomic_write_text(path, json.dumps(out))
+
+
+def read_json(path: str | os.PathLike) -> TrackFile:
+    """The track file written by :func:`export_json` (values rounded to 0.01 mm)."""
+    path = Path(path)
+    try:
+        d = json.loads(Path(path).read_text())
+        check_schema(d.get("schema"), SCHEMA, (VERSION,), path)
+        T, J = len(d["frame_index"]), len(d["joint_names"])
+        K = len(d["tracks"])
+        xyz = np.full((T, K, J, 3), np.nan)
+        std = np.full((T, K, J), np.nan)
+        conf = np.zeros((T, K, J))
+        flags = np.zeros((T, K, J), np.uint8)
+        for k, tr in enumerate(d["tracks"]):
+            xyz[:, k] = [[p if p is not None else [np.nan] * 3 for p in fr] for fr in tr["xyz_m"]]
+            std[:, k] = [[np.nan if s is None else s for s in fr] for fr in tr["std_m"]]
+            if "confidence" in tr:
+                conf[:, k] = tr["confidence"]
+            if "flags" in tr:
+                flags[:, k] = tr["flags"]
+        return TrackFile(
+            fps=d["fps"],
+            frame_index=d["frame_index"],
+            t_ns=d.get("t_ns", np.round(np.arange(T) * 1e9 / d["fps"])),
+            track_id=[tr["track_id"] for tr in d["tracks"]],
+            joint_names=d["joint_names"],
+            parents=d["parents"],
+            xyz_m=xyz,
+            confidence=conf,
+            std_m=std,
+            flags=flags,
+            source=f"json:{path.name}",
+        )
+    except (KeyError, TypeError, ValueError) as e:
+        if isinstance(e, FormatError):
+            raise
+        raise FormatError(path, None, f"not a roomcap track JSON ({e}).") from None
+
+
+def _track_index(tf: TrackFile, track: int) -> int:
+    hit = np.flatnonzero(tf.track_id == int(track))
+    if not len(hit):
+        raise FormatError(
+            None, "track_id", f"there is no track {track}; the file has tracks {tf.track_id.tolist()}."
+        )
+    return int(hit[0])

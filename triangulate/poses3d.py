@@ -45,6 +45,7 @@ class Poses3D:
     n_views: np.ndarray  # (T,P,J)
     calibration_sha256: str = ""
     std_m: np.ndarray | None = None  # (T,P,J) optional
+    parents: np.ndarray | None = None  # (J,) optional: the skeleton's tree (a custom skeleton's; -1 = root)
 
     def __post_init__(self) -> None:
         T, J = len(self.frame_index), len(self.joint_names)
@@ -88,6 +89,7 @@ class Poses3D:
                 "n_views": self.n_views,
                 "calibration_sha256": self.calibration_sha256,
                 "std_m": self.std_m,
+                **({} if self.parents is None else {"parents": np.asarray(self.parents, np.int64)}),
             },
         )
 
@@ -109,6 +111,7 @@ class Poses3D:
                 n_views=data["n_views"],
                 calibration_sha256=npz_str(data, "calibration_sha256"),
                 std_m=data.get("std_m"),
+                parents=data.get("parents"),
             )
         except FormatError as e:
             raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e

@@ -57,6 +57,11 @@ class TriangulateConfig:
     merge_dist_m: two 3D poses closer than this (mean joint distance) are one person seen as two
       hypotheses: with disjoint cameras they are merged and re-triangulated, else the one with
       fewer views is dropped (0 = off).
+    skeleton: the 3D joints: ``body19`` (the default), or ``whole_body``: body19 plus every joint the
+      detections' 2D layouts provide beyond it (feet, BODY_25B's upper neck and head top, BlazePose's
+      hand points; :func:`keypoints.skeletons.whole_body`), or the path of a skeleton TOML (a lab's
+      own joints, animals included: :func:`keypoints.skeletons.load_skeleton_toml`). The greedy
+      tracker carries any of them; the particle tracker and forecasting work on body19.
     """
 
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -65,6 +70,14 @@ class TriangulateConfig:
     limb_check: bool = True
     fix_flips: bool = True
     merge_dist_m: float = 0.25
+    skeleton: str = "body19"
+
+    def __post_init__(self) -> None:
+        if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
+            raise ValueError(
+                f"TriangulateConfig.skeleton must be 'body19', 'whole_body' or a skeleton TOML file "
+                f"(keypoints.skeletons.load_skeleton_toml), got {self.skeleton!r}."
+            )
 
     @classmethod
     def from_dict(cls, d: dict) -> TriangulateConfig:

@@ -1,7 +1,8 @@
 """The triangulate stage and the greedy (chapter-4) track stage on a session folder.
 
 ``triangulate_session(session)`` reads ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (any
-detector, any skeleton :mod:`keypoints.skeletons` can convert to ``body19``) and writes
+detector, any skeleton :mod:`keypoints.skeletons` can convert to ``body19``, or ``whole_body``
+or a skeleton TOML with the option ``skeleton``) and writes
 ``triangulate/poses3d.npz``. ``track_session_greedy(session)`` reads that file and writes
 ``track/tracks.npz``. Both accept a typed config, a plain dict (unknown keys are rejected with
 the list of valid ones) or None for the defaults.
@@ -22,7 +23,14 @@ from calibrate.checks import rig_warnings
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, convert
+from keypoints.skeletons import (
+    CANONICAL,
+    convert,
+    get_skeleton,
+    load_skeleton_toml,
+    skeleton_from_names,
+    whole_body,
+)
 from triangulate.checks import check_frame_order, detection_warnings
 from triangulate.dlt import _reject_unknown
 from triangulate.poses3d import Poses3D
@@ -70,6 +78,8 @@ class MultiViewDetections:
     xy_px: np.ndarray  # (C,T,P,J,2) undistorted pixels, NaN = missing
     score: np.ndarray  # (C,T,P,J)
     offsets_frames: dict[str, float] = field(default_factory=dict)  # sync offsets applied (session.toml)
+    joint_names: tuple[str, ...] = CANONICAL.joint_names  # the 3D skeleton's joints (J,)
+    parents: tuple[int, ...] = CANONICAL.parents  # (J,)
 
 
 @dataclass(frozen=True)
@@ -143,7 +153,7 @@ def sync_shifts(layout: SessionLayout, cams: list[str], fps: float | None) -> di
 
 
 def load_detections(
-    layout: SessionLayout, rig: CameraRig, apply_sync: bool = True
+    layout: SessionLayout, rig: CameraRig, apply_sync: bool = True, skeleton: str = "body19"
 ) -> tuple[CameraRig, MultiViewDetections]:
     """Read every ``keypoints/<cam>.npz``, check it against the rig, align frames, convert and undistort.
 
@@ -151,8 +161,9 @@ def load_detections(
     (``capture-run sync``, :func:`sync_shifts`) are applied (``apply_sync``): each camera's frames are
     moved onto the reference camera's frame axis, to the nearest frame (the residual is under half a
     frame; detections are not interpolated, their person slots are not identities). Frames that land
-    before reference frame 0 are dropped. Returns the rig restricted to the cameras with detections
-    (in rig order) and the detections.
+    before reference frame 0 are dropped. ``skeleton``: the 3D joints, ``body19``, ``whole_body``
+    (body19 plus the joints the cameras' layouts add) or a skeleton TOML. Returns the rig restricted
+    to the cameras with detections (in rig order) and the detections.
     """
     kp_cams = layout.detection_cameras()
     if not kp_cams:
@@ -181,6 +192,8 @@ def load_detections(
             f"triangulation needs detections from at least 2 calibrated cameras, got {cams}.",
             "Add detections of another camera of the rig.",
         )
+    # a skeleton TOML registers its 2D layouts before any detections file loads
+    custom = load_skeleton_toml(skeleton) if str(skeleton).endswith(".toml") else None
     dets = []
     for c in cams:
         d = Detections.load(layout.detections(c))
@@ -232,7 +245,13 @@ def load_detections(
     frames = np.unique(np.concatenate([m[k] for m, k in zip(mapped, keep, strict=True)]))
     T = len(frames)
     P = max(d.max_people for d in dets)
-    J = CANONICAL.n_joints
+    if custom is not None:
+        skel = custom
+    elif skeleton == "whole_body":
+        skel = whole_body([d.skeleton for d in dets])
+    else:
+        skel = get_skeleton(skeleton)
+    J = skel.n_joints
     xy = np.full((len(cams), T, P, J, 2), np.nan)
     sc = np.zeros((len(cams), T, P, J))
     t_ns = np.zeros(T, np.int64)
@@ -243,7 +262,7 @@ def load_detections(
     for ci in order:
         d, k = dets[ci], keep[ci]
         pos = np.searchsorted(frames, mapped[ci][k])
-        b19, s19 = convert(d.xy_px[k], d.score[k], d.skeleton, "body19")
+        b19, s19 = convert(d.xy_px[k], d.score[k], d.skeleton, skel)
         s19 = np.where(np.isfinite(s19), s19, 0.0)
         xy[ci, pos, : d.max_people] = sub[ci].undistort_px(b19)
         sc[ci, pos, : d.max_people] = s19
@@ -255,7 +274,9 @@ def load_detections(
         t_ns[pos[new]] = t_c[new]
         have_t[pos[new]] = True
     offsets = {c: shifts[c].offset_frames for c in shifts}
-    return sub, MultiViewDetections(tuple(cams), frames, t_ns, xy, sc, offsets)
+    return sub, MultiViewDetections(
+        tuple(cams), frames, t_ns, xy, sc, offsets, skel.joint_names, skel.parents
+    )
 
 
 def _fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
@@ -284,7 +305,7 @@ def reconstruct_all(
             )
         order = np.asarray([mv.cameras.index(c) for c in config.match.camera_order])
     rec = FrameReconstructor(
-        rig.projection_matrices(), rig.fundamental_matrices(), config, order, CANONICAL.joint_names
+        rig.projection_matrices(), rig.fundamental_matrices(), config, order, mv.joint_names
     )
     T = len(mv.frame_index)
     out = []
@@ -292,7 +313,7 @@ def reconstruct_all(
         out.append(rec(mv.xy_px[:, t], mv.score[:, t]))
         if progress is not None:
             progress(t + 1, T)
-    J = CANONICAL.n_joints
+    J = len(mv.joint_names)
     P3 = max([len(f.xyz_m) for f in out], default=0)
     res = {
         "xyz_m": np.full((T, P3, J, 3), np.nan),
@@ -329,14 +350,15 @@ def triangulate_session(
         )
     for w in rig_warnings(rig, str(rig_path)):
         log.warning("%s", w)
-    sub, mv = load_detections(lay, rig)
+    sub, mv = load_detections(lay, rig, skeleton=cfg.skeleton)
     res = reconstruct_all(sub, mv, cfg, progress)
     fps = _fps(lay, mv.t_ns)
     poses = Poses3D(
         fps=fps,
         frame_index=mv.frame_index,
         t_ns=mv.t_ns,
-        joint_names=CANONICAL.joint_names,
+        joint_names=mv.joint_names,
+        parents=np.asarray(mv.parents),
         calibration_sha256=rig.sha256(),
         **res,
     )
@@ -376,7 +398,7 @@ def track_session_greedy(
         p.t_ns,
         p.fps,
         p.joint_names,
-        np.asarray(CANONICAL.parents),
+        np.asarray(skeleton_from_names(p.joint_names).parents if p.parents is None else p.parents),
         confidence=p.score,
         std_m=p.std_m,
         config=cfg.tracker,

@@ -1,0 +1,67 @@
+"""Headless Blender imports the BVH export: one armature per person, frames and rate, heads on the fit.
+
+Needs Debian's ``blender`` (``apt-get install -y blender``); skipped with that reason when absent.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from track.skeleton_fit import SkeletonFit, fit_skeletons, write_bvh
+
+PROBE = Path(__file__).with_name("blender_bvh_probe.py")
+
+
+def blender_import(bvh_files: list[Path], out_json: Path) -> dict:
+    """Import BVH files in headless Blender; the probe's JSON (see tests/blender_bvh_probe.py)."""
+    exe = shutil.which("blender")
+    if exe is None:
+        pytest.skip("blender is not installed (apt-get install -y blender)")
+    cmd = [exe, "-b", "--factory-startup", "--python", str(PROBE), "--", str(out_json), *map(str, bvh_files)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0 and out_json.exists(), run.stdout[-2000:] + run.stderr[-2000:]
+    return json.loads(out_json.read_text())
+
+
+def check_armatures(fit: SkeletonFit, files: dict[int, Path], got: dict) -> dict[str, float]:
+    """Assert the issue's criteria; returns the worst head error and bone length spread (metres)."""
+    assert got["n_armatures"] == len(files), "one armature per person"
+    P = fit.positions()
+    worst_head = worst_len = 0.0
+    by_file = {a["file"]: a for a in got["armatures"]}
+    for tid, path in files.items():
+        a = by_file[str(path)]
+        k = int(np.flatnonzero(fit.track_id == tid)[0])
+        rows = np.flatnonzero(fit.span[:, k])
+        assert a["frame_range"] == [1, len(rows)], "frame count"
+        assert a["fps"] == pytest.approx(fit.fps, rel=1e-3), "frame rate"
+        H = np.array([[fr[n] for n in fit.joint_names] for fr in a["heads"]])  # Blender z up = world
+        err = np.linalg.norm(H - P[rows, k], axis=-1)
+        worst_head = max(worst_head, float(err.max()))
+        for j, p in enumerate(fit.parents):
+            if p >= 0:
+                d = np.linalg.norm(H[:, j] - H[:, p], axis=-1)
+                worst_len = max(worst_len, float(np.ptp(d)))
+    assert worst_head < 0.01, f"bone heads {1000 * worst_head:.2f} mm from the fitted joints (limit 10 mm)"
+    assert worst_len < 0.001, f"bone lengths vary by {1000 * worst_len:.3f} mm (limit 1 mm)"
+    return {"head_err_max_m": worst_head, "bone_length_ptp_max_m": worst_len}
+
+
+def test_blender_imports_one_armature_per_person(tmp_path):
+    from tests.test_track_export import _trackfile, _walkers
+
+    xyz = _walkers(2, 40) + np.random.default_rng(1).normal(0, 0.005, (40, 2, 19, 3))
+    xyz[:8, 1] = np.nan  # the second person enters later: its file starts there
+    fit = fit_skeletons(_trackfile(xyz))
+    files = {}
+    for tid in fit.track_id.tolist():
+        files[tid] = tmp_path / f"S_{tid}.bvh"
+        write_bvh(fit, files[tid], track_ids=[tid])
+    got = blender_import(list(files.values()), tmp_path / "probe.json")
+    check_armatures(fit, files, got)

@@ -1,0 +1,197 @@
+"""``tracks`` console script: from the track file to the user's next tool.
+
+tracks export SESSION|tracks.npz --format trc,c3d,bvh,csv,json [--person ID] --out DIR
+    one file per person and format, ``<session>_<track id>.<ext>`` (see track/export.py)
+tracks fit SESSION|tracks.npz
+    one skeleton per person: writes track/skeleton_fit.npz beside the track file
+tracks opensim SESSION|tracks.npz [--setup DIR] [--person ID] --out DIR
+    Pose2Sim's OpenSim model scaled and inverse kinematics on the TRC (needs the opensim extra)
+
+Also runnable as ``python -m track.cli``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from capture.fileio import FormatError
+
+log = logging.getLogger(__name__)
+
+
+class UsageError(ValueError):
+    pass
+
+
+def resolve_tracks(path: str | Path) -> tuple[Path, str]:
+    """A session folder or a tracks.npz -> (tracks.npz path, session name)."""
+    p = Path(path)
+    if p.is_dir():
+        for cand in (p / "track" / "tracks.npz", p / "tracks.npz", p / "roomcap" / "track" / "tracks.npz"):
+            if cand.exists():
+                root = cand.parent.parent if cand.parent.name == "track" else cand.parent
+                if root.name == "roomcap":
+                    root = root.parent
+                return cand, root.name
+        raise UsageError(
+            f"{p} has no track file (looked for track/tracks.npz). Run the track stage first: "
+            f"reprocess {p} --stages triangulate,track"
+        )
+    if not p.exists():
+        raise UsageError(f"{p} does not exist; pass a session folder or a tracks.npz.")
+    session = p.parent.parent.name if p.parent.name == "track" else p.stem
+    return p, session
+
+
+def _persons(text: str | None) -> list[int] | None:
+    if not text:
+        return None
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise UsageError(f"--person takes track ids (integers, comma-separated), got {text!r}.") from None
+
+
+def _export(args) -> int:
+    from track.export import ExportOptions, export_tracks, parse_formats
+    from track.skeleton_fit import load_or_fit
+    from track.trackfile import TrackFile
+
+    fmts = parse_formats(args.format)
+    path, session = resolve_tracks(args.tracks)
+    tf = TrackFile.load(path)
+    persons = _persons(args.person)
+    fit = None
+    if "bvh" in fmts:
+        fit, made = load_or_fit(path, tf, persons)
+        if made:
+            print(
+                f"note: {path} has no current skeleton fit beside it (tracks fit); fitted the skeletons now."
+            )
+    opts = ExportOptions(
+        formats=fmts, max_gap=args.max_gap, min_coverage=args.min_coverage, multi_bvh=args.multi
+    )
+    rep = export_tracks(tf, args.out, args.session or session, opts, persons=persons, fit=fit)
+    for n in rep.notes:
+        print(f"note: {n}")
+    for f in rep.files:
+        print(f)
+    return 0
+
+
+def _fit(args) -> int:
+    from track.skeleton_fit import FitError, file_sha256, fit_skeletons
+    from track.trackfile import TrackFile
+
+    path, _ = resolve_tracks(args.tracks)
+    tf = TrackFile.load(path)
+    fit = fit_skeletons(tf, tracks_sha256=file_sha256(path), skip_unfittable=True)
+    for n in fit.notes:
+        print(f"note: left out: {n}")
+    if not len(fit.track_id):
+        raise FitError("no track could be fitted (see the notes above).")
+    out = path.with_name("skeleton_fit.npz")
+    fit.save(out)
+    import numpy as np
+
+    for k, tid in enumerate(fit.track_id):
+        e = fit.fit_error_m[:, k]
+        print(
+            f"track {tid}: {int(fit.span[:, k].sum())} frames, fit error median "
+            f"{1000 * np.nanmedian(e):.1f} mm, p95 {1000 * np.nanpercentile(e, 95):.1f} mm"
+        )
+    print(out)
+    return 0
+
+
+def _opensim(args) -> int:
+    from track.opensim_ik import default_setup_dir, run_opensim
+    from track.trackfile import TrackFile
+
+    path, session = resolve_tracks(args.tracks)
+    tf = TrackFile.load(path)
+    setup = Path(args.setup) if args.setup else default_setup_dir()
+    results = run_opensim(
+        tf,
+        Path(args.out),
+        args.session or session,
+        setup,
+        persons=_persons(args.person),
+        markerset=args.markerset,
+        max_gap=args.max_gap,
+    )
+    for r in results:
+        for n in r.notes:
+            print(f"note: {n}")
+        print(
+            f"track {r.track_id}: {r.n_frames} frames, markers {len(r.markers)}; marker error RMS median "
+            f"{1000 * r.rms_median_m:.1f} mm, max per frame median {1000 * r.max_median_m:.1f} mm"
+        )
+        print(r.mot)
+        print(r.errors_csv)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tracks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    e = sub.add_parser("export", help="TRC / C3D / BVH / CSV / JSON, one file per person and format")
+    e.add_argument("tracks", help="session folder or tracks.npz")
+    e.add_argument("--format", default="trc", help="comma-separated: trc,c3d,bvh,csv,json (default trc)")
+    e.add_argument("--person", help="track id(s), comma-separated (default: every track)")
+    e.add_argument("--out", type=Path, required=True, help="output folder")
+    e.add_argument("--session", help="name used in the file names (default: the session folder's name)")
+    e.add_argument(
+        "--max-gap", type=int, default=10, help="TRC/C3D/BVH: fill gaps up to N frames (default 10)"
+    )
+    e.add_argument(
+        "--min-coverage",
+        type=float,
+        default=0.5,
+        help="TRC/C3D: leave out markers known in fewer than this share of the person's frames (default 0.5)",
+    )
+    e.add_argument("--multi", action="store_true", help="BVH: also one file with every person")
+    e.set_defaults(func=_export)
+    f = sub.add_parser("fit", help="one skeleton per person -> track/skeleton_fit.npz")
+    f.add_argument("tracks", help="session folder or tracks.npz")
+    f.set_defaults(func=_fit)
+    o = sub.add_parser("opensim", help="scale Pose2Sim's model and run inverse kinematics (opensim extra)")
+    o.add_argument("tracks", help="session folder or tracks.npz")
+    o.add_argument(
+        "--setup", help="folder with the model, marker sets and setups (default: Pose2Sim's, shared)"
+    )
+    o.add_argument(
+        "--markerset", default="Body25b", help="Body25b | Halpe26 | Coco17 | Blazepose (default Body25b)"
+    )
+    o.add_argument("--person", help="track id(s), comma-separated (default: every track)")
+    o.add_argument("--out", type=Path, required=True)
+    o.add_argument("--session")
+    o.add_argument("--max-gap", type=int, default=10)
+    o.set_defaults(func=_opensim)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
+    from track.export import ExportError
+    from track.opensim_ik import OpenSimError
+    from track.skeleton_fit import FitError
+
+    try:
+        return args.func(args)
+    except (UsageError, ExportError, FitError, OpenSimError, FormatError, OSError) as e:
+        print(f"tracks {args.cmd}: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,313 @@
+"""OpenSim scaling and inverse kinematics on the TRC export, with Pose2Sim's model and setups.
+
+Needs the optional extra ``opensim`` (``pip install 'roomcap[opensim]'``). The setup folder holds
+an OpenSim model (``*.osim``), a marker set ``Markers_<set>.xml`` and the setups
+``Scaling_Setup_Pose2Sim_<set>.xml`` and ``IK_Setup_Pose2Sim_<set>.xml`` (Pose2Sim's, BSD-3, in
+``<shared>/data/opensim-pose2sim`` by default; ``--setup DIR`` for a lab's own).
+
+Per person: the TRC (:func:`track.export.write_trc`), the marker set added to the generic model,
+scaling (the setup's measurements averaged over the whole trial; the markers placed on the
+slowest quarter second), then inverse kinematics over the whole TRC, writing
+
+- ``<session>_<id>.mot`` joint angles,
+- ``<session>_<id>_marker_errors.csv``: per frame ``time_s, rms_m, max_m`` (OpenSim's own
+  ``marker_error_RMS`` / ``marker_error_max`` over the markers that took part) and the error of
+  each marker (model marker against the TRC, metres),
+- ``<session>_<id>_scaled.osim``.
+
+Markers the setups name that the TRC lacks are left out of scaling (a measurement that needs one is
+not applied) and of IK, and named in the result's notes; fewer than 6 markers left is an error.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from capture.fileio import atomic_write_text
+from track.trackfile import TrackFile, read_trc
+
+log = logging.getLogger(__name__)
+
+MIN_MARKERS = 6
+
+
+class OpenSimError(ValueError):
+    """OpenSim is missing, the setup folder is incomplete, or too few markers; says what to do."""
+
+
+@dataclass
+class OpenSimResult:
+    track_id: int | str
+    trc: Path
+    model: Path
+    mot: Path
+    errors_csv: Path
+    markers: list[str]
+    missing: list[str]
+    time_s: np.ndarray
+    rms_m: np.ndarray  # (T,)
+    max_m: np.ndarray  # (T,)
+    per_marker_m: np.ndarray  # (T,M)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.time_s)
+
+    @property
+    def rms_median_m(self) -> float:
+        return float(np.median(self.rms_m))
+
+    @property
+    def max_median_m(self) -> float:
+        return float(np.median(self.max_m))
+
+
+def default_setup_dir() -> Path:
+    shared = Path(os.environ.get("ROOMCAP_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+    return shared / "data" / "opensim-pose2sim"
+
+
+@dataclass(frozen=True)
+class Setup:
+    model: Path
+    markers: Path
+    scaling: Path
+    ik: Path
+
+
+def find_setup(setup_dir: Path, markerset: str) -> Setup:
+    setup_dir = Path(setup_dir)
+    if not setup_dir.is_dir():
+        raise OpenSimError(
+            f"OpenSim setup folder {setup_dir} not found; pass --setup DIR or set ROOMCAP_SHARED to the "
+            "shared/ folder that holds data/opensim-pose2sim."
+        )
+    files = {p.name.lower(): p for p in setup_dir.iterdir()}
+    ms = markerset.lower()
+
+    def pick(name: str) -> Path:
+        if name.lower() in files:
+            return files[name.lower()]
+        have = sorted(p.name for p in setup_dir.glob("*.xml"))
+        raise OpenSimError(f"{setup_dir} has no {name} (it has {have}); choose another --markerset.")
+
+    models = sorted(setup_dir.glob("*.osim"))
+    if not models:
+        raise OpenSimError(f"{setup_dir} has no OpenSim model (*.osim).")
+    model = next((m for m in models if ms in m.name.lower()), models[0])
+    return Setup(
+        model,
+        pick(f"Markers_{markerset}.xml"),
+        pick(f"Scaling_Setup_Pose2Sim_{markerset}.xml"),
+        pick(f"IK_Setup_Pose2Sim_{markerset}.xml"),
+    )
+
+
+def setup_marker_names(setup: Setup) -> list[str]:
+    """Markers the IK setup gives a task to (applied)."""
+    root = ET.parse(setup.ik).getroot()
+    out = []
+    for t in root.iter("IKMarkerTask"):
+        apply = (t.findtext("apply") or "true").strip().lower() == "true"
+        if apply:
+            out.append(t.get("name"))
+    return out
+
+
+def _import_opensim():
+    try:
+        import opensim as osim
+    except ImportError:
+        raise OpenSimError(
+            "tracks opensim needs the opensim package: pip install 'roomcap[opensim]' "
+            "(or: pip install opensim)."
+        ) from None
+    return osim
+
+
+def _read_sto(path: Path) -> tuple[list[str], np.ndarray]:
+    lines = path.read_text().splitlines()
+    i = next(i for i, ln in enumerate(lines) if ln.strip() == "endheader")
+    cols = lines[i + 1].split("\t")
+    data = np.array([[float(v) for v in ln.split()] for ln in lines[i + 2 :] if ln.strip()])
+    return [c.strip() for c in cols], data.reshape(-1, len(cols))
+
+
+def _slowest_window(xyz: np.ndarray, time_s: np.ndarray, width_s: float = 0.25) -> tuple[float, float]:
+    """Time range of the ``width_s`` window where the markers move least (for placing markers)."""
+    if len(time_s) < 3:
+        return float(time_s[0]), float(time_s[-1])
+    speed = np.linalg.norm(np.diff(xyz, axis=0), axis=-1).mean(-1)
+    n = max(2, int(round(width_s / max(np.median(np.diff(time_s)), 1e-9))))
+    n = min(n, len(speed))
+    c = np.convolve(speed, np.ones(n), mode="valid")
+    a = int(np.argmin(c))
+    return float(time_s[a]), float(time_s[min(a + n, len(time_s) - 1)])
+
+
+def run_opensim_trc(
+    trc: Path,
+    out_dir: Path,
+    stem: str,
+    setup_dir: Path,
+    markerset: str = "Body25b",
+    markers: list[str] | None = None,
+    mass_kg: float | None = None,
+    track_id: int | str = "",
+) -> OpenSimResult:
+    """Scale the model and run IK on one TRC (ours or Pose2Sim's); ``markers`` restricts the markers used."""
+    osim = _import_opensim()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    setup = find_setup(setup_dir, markerset)
+    names, xyz, time_s, _ = read_trc(trc)
+    wanted = setup_marker_names(setup)
+    missing = [m for m in wanted if m not in names]
+    use = [m for m in wanted if m in names and (markers is None or m in markers)]
+    notes = []
+    if missing:
+        notes.append(
+            f"the setup {setup.ik.name} names markers the track lacks: {missing}; they are left out of "
+            "scaling and inverse kinematics"
+        )
+    if len(use) < MIN_MARKERS:
+        raise OpenSimError(
+            f"only {len(use)} of the setup's markers are in {trc.name} ({use}); OpenSim needs at least "
+            f"{MIN_MARKERS}. The setup names {wanted}; the TRC has {names}. Use the setup of the track's "
+            "skeleton (--markerset) or a setup folder of your own (--setup)."
+        )
+    osim.Logger.setLevelString("error")
+    osim.Logger.removeFileSink()
+    osim.Logger.addFileSink(str(out_dir / "opensim.log"))
+
+    # generic model + marker set
+    model = osim.Model(str(setup.model))
+    mset = osim.MarkerSet(str(setup.markers))
+    have = {model.getMarkerSet().get(i).getName() for i in range(model.getMarkerSet().getSize())}
+    for i in range(mset.getSize()):
+        if mset.get(i).getName() not in have:
+            model.addMarker(mset.get(i).clone())
+    model.finalizeConnections()
+    model.initSystem()
+    generic = out_dir / f"{stem}_generic.osim"
+    model.printToXML(str(generic))
+
+    scaled = out_dir / f"{stem}_scaled.osim"
+    t0, t1 = float(time_s[0]), float(time_s[-1])
+    st = osim.ScaleTool(str(setup.scaling))
+    if mass_kg:
+        st.setSubjectMass(float(mass_kg))
+    st.getGenericModelMaker().setModelFileName(str(generic))
+    ms_ = st.getModelScaler()
+    mset_meas = ms_.getMeasurementSet()
+    for i in range(mset_meas.getSize()):
+        meas = mset_meas.get(i)
+        pairs = meas.getMarkerPairSet()
+        need = {pairs.get(p).getMarkerName(e) for p in range(pairs.getSize()) for e in (0, 1)}
+        if not need <= set(use):
+            meas.setApply(False)
+            notes.append(
+                f"scaling measurement '{meas.getName()}' not applied (needs {sorted(need - set(use))})"
+            )
+    tr = osim.ArrayDouble()
+    tr.append(t0)
+    tr.append(t1)
+    ms_.setMarkerFileName(str(trc))
+    ms_.setTimeRange(tr)
+    ms_.setOutputModelFileName(str(scaled))
+    mp = st.getMarkerPlacer()
+    _restrict_tasks(mp.getIKTaskSet(), use)
+    a, b = _slowest_window(np.nan_to_num(xyz), time_s)
+    tr2 = osim.ArrayDouble()
+    tr2.append(a)
+    tr2.append(b)
+    mp.setMarkerFileName(str(trc))
+    mp.setTimeRange(tr2)
+    mp.setOutputModelFileName(str(scaled))
+    mp.setApply(True)
+    st.setPathToSubject("")
+    if not st.run():
+        raise OpenSimError(f"OpenSim scaling failed on {trc}; see {out_dir / 'opensim.log'}.")
+
+    mot = out_dir / f"{stem}.mot"
+    ik = osim.InverseKinematicsTool(str(setup.ik))
+    scaled_model = osim.Model(str(scaled))  # kept referenced: the tool does not own it
+    ik.setModel(scaled_model)
+    _restrict_tasks(ik.getIKTaskSet(), use)
+    ik.setMarkerDataFileName(str(trc))
+    ik.setStartTime(t0)
+    ik.setEndTime(t1)
+    ik.setOutputMotionFileName(str(mot))
+    ik.setResultsDir(str(out_dir))
+    ik.set_report_marker_locations(True)
+    ik.set_report_errors(True)
+    ik.setName(stem)
+    ok = ik.run()
+    del ik, scaled_model
+    if not ok:
+        raise OpenSimError(f"OpenSim inverse kinematics failed on {trc}; see {out_dir / 'opensim.log'}.")
+    cols, err = _read_sto(out_dir / f"{stem}_ik_marker_errors.sto")
+    t_err, rms, mx = err[:, 0], err[:, cols.index("marker_error_RMS")], err[:, cols.index("marker_error_max")]
+    # per-marker error: model marker locations against the TRC
+    lcols, loc = _read_sto(out_dir / f"{stem}_ik_model_marker_locations.sto")
+    rows = np.searchsorted(time_s, t_err - 1e-6)
+    per = np.full((len(t_err), len(use)), np.nan)
+    for m, name in enumerate(use):
+        try:
+            c = lcols.index(f"{name}_tx")
+        except ValueError:
+            continue
+        model_xyz = loc[:, c : c + 3]
+        per[:, m] = np.linalg.norm(model_xyz - xyz[rows, names.index(name)], axis=-1)
+    errors_csv = out_dir / f"{stem}_marker_errors.csv"
+    head = "time_s,rms_m,max_m," + ",".join(f"{n}_m" for n in use)
+    body = [
+        f"{t:.6f},{r:.6f},{x:.6f}," + ",".join(f"{v:.6f}" for v in pm)
+        for t, r, x, pm in zip(t_err, rms, mx, per, strict=True)
+    ]
+    atomic_write_text(errors_csv, "\n".join([head, *body]) + "\n")
+    return OpenSimResult(track_id, trc, scaled, mot, errors_csv, use, missing, t_err, rms, mx, per, notes)
+
+
+def _restrict_tasks(task_set, use: list[str]) -> None:
+    for i in range(task_set.getSize()):
+        t = task_set.get(i)
+        if t.getConcreteClassName() == "IKMarkerTask" and t.getName() not in use:
+            t.setApply(False)
+
+
+def run_opensim(
+    tf: TrackFile,
+    out_dir: Path,
+    session: str,
+    setup_dir: Path,
+    persons: list[int] | None = None,
+    markerset: str = "Body25b",
+    max_gap: int = 10,
+    markers: list[str] | None = None,
+    mass_kg: float | None = None,
+) -> list[OpenSimResult]:
+    """TRC export + scaling + IK for every person (or ``persons``) of a track file."""
+    from track.export import marker_table, write_trc
+
+    _import_opensim()
+    find_setup(setup_dir, markerset)
+    out_dir = Path(out_dir)
+    ids = tf.track_id.tolist() if persons is None else persons
+    results = []
+    for p in ids:
+        stem = f"{session}_{p}"
+        trc = out_dir / f"{stem}.trc"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_trc(tf, p, trc, marker_table(tf, p, max_gap=max_gap))
+        results.append(
+            run_opensim_trc(trc, out_dir, stem, setup_dir, markerset, markers, mass_kg, track_id=p)
+        )
+    return results

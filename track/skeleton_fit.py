@@ -1,0 +1,698 @@
+"""One skeleton per person: constant bone lengths, joint rotations by inverse kinematics, BVH.
+
+The fit of a track file is kept in a versioned companion file ``<session>/track/skeleton_fit.npz``
+beside ``tracks.npz`` (the track file itself is unchanged, so every reader of it keeps working):
+
+- ``schema`` = ``"skeleton_fit/1"``, ``tracks_sha256`` (of the tracks.npz it was fitted on; a fit of
+  another track file is refused), ``fps``, ``frame_index (T,)``, ``track_id (K,)``,
+  ``joint_names (J,)``, ``parents (J,)`` (the track file's skeleton)
+- ``bone_length_m (K,J)``: length of the bone parent(j) -> j, constant per person; NaN for the root
+- ``rest_offset_m (K,J,3)``: offset of j from its parent in the rest pose (world axes, z up)
+- ``root_xyz_m (T,K,3)``: root joint position; ``rotation_xyzw (T,K,J,4)``: rotation of joint j relative
+  to its parent's frame, from the rest pose (quaternion x, y, z, w; BVH's local rotation). NaN outside
+  the person's span (the frames from its first to its last known joint).
+- ``fit_error_m (T,K,J)``: distance of the fitted joint to the track file's position (NaN where the
+  track file does not know the joint); ``held (T,K,J)`` bool: the rotation was held from the previous
+  frame (the joint's children unknown even after filling short gaps).
+
+Method (the seeds are silent here; the choices are the usual ones of marker-based pipelines):
+
+1. short gaps (<= ``max_gap`` frames) are filled by linear interpolation, as for the TRC;
+2. bone lengths: the median over the frames in which both ends are OBSERVED with confidence >=
+   ``min_confidence`` (all frames with both ends known when fewer than 5 are), then the mean of the
+   left and right sides (``symmetric``);
+3. rest pose: the bone directions of the person's most confident frame with every joint known
+   (after filling), scaled to the bone lengths; the root's rotation is the identity there;
+4. inverse kinematics per frame, top down from the root: each joint's rotation aligns its rest
+   child offsets (and, for a joint with one child, the grandchild offsets at a quarter of the weight,
+   which fixes the twist) with the observed directions from the fitted joint position (weighted
+   Wahba/Kabsch); knees and elbows are hinges about their rest-pose bend axis with flexion limited to
+   [-10, 150] degrees (the usual clinical range, hyperextension included), so a stretched limb never
+   bends backwards; a joint with a single leaf child keeps the previous frame's twist;
+5. refinement (``refine``, default on): weighted least squares over the root position and every
+   rotation at once (residuals: fitted - tracked joint / max(std_m, 1 cm), as in OpenSim's IK; a
+   prior of 0.5 rad on the change from step 4; hinge angles bounded), a few trust-region steps per
+   frame; about 50-70 ms per person-frame on this machine.
+
+:func:`write_bvh` writes the fit as BVH (metres, y up like the TRC: world (x, y, z) -> (x, z, -y),
+joint names as in the track file; every joint is a BVH JOINT with ``Zrotation Xrotation Yrotation``
+channels and leaves end in a short End Site so every joint is a bone head in Blender).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from capture.fileio import (
+    FormatError,
+    atomic_write_text,
+    check_schema,
+    load_npz,
+    npz_str,
+    save_npz,
+    schema_tag,
+)
+from track.trackfile import OBSERVED, TrackFile, _track_index
+
+log = logging.getLogger(__name__)
+
+SCHEMA = "skeleton_fit"
+VERSION = 1
+HINGES = ("left_knee", "right_knee", "left_elbow", "right_elbow")
+HINGE_LIMITS_DEG = (-10.0, 150.0)
+# file axes of BVH and TRC: y up
+YUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+class FitError(ValueError):
+    """A track that cannot be fitted; the message says why and what to do."""
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    max_gap: int = 10  # frames filled by interpolation before the fit
+    min_confidence: float = 0.3
+    symmetric: bool = True
+    twist_weight: float = 0.25
+    hinge_limits_deg: tuple[float, float] = HINGE_LIMITS_DEG
+    refine: bool = True  # weighted least squares over all joint rotations after the top-down solution
+    min_std_m: float = 0.01  # floor of the per-joint uncertainty weighting the refinement
+    prior_rad: float = 0.5  # spread of the refinement's prior around the top-down rotations
+
+
+@dataclass(frozen=True)
+class SkeletonFit:
+    fps: float
+    frame_index: np.ndarray  # (T,)
+    track_id: np.ndarray  # (K,)
+    joint_names: tuple[str, ...]
+    parents: np.ndarray  # (J',) the fit skeleton (fit_skeleton)
+    track_joints: np.ndarray  # (J,) index of each track file joint in the fit skeleton
+    bone_length_m: np.ndarray  # (K,J')
+    rest_offset_m: np.ndarray  # (K,J',3)
+    root_xyz_m: np.ndarray  # (T,K,3)
+    rotation_xyzw: np.ndarray  # (T,K,J',4)
+    fit_error_m: np.ndarray  # (T,K,J) against the track file's joints
+    held: np.ndarray  # (T,K,J') bool
+    tracks_sha256: str = ""
+    notes: tuple[str, ...] = ()  # tracks left out of the fit, and why
+
+    @property
+    def span(self) -> np.ndarray:
+        """(T,K) bool: frames the fit covers."""
+        return np.isfinite(self.root_xyz_m).all(-1)
+
+    def global_rotations(self, k: int) -> np.ndarray:
+        """(T,J',3,3) world rotation of each joint's frame for track index ``k`` (identity outside spans)."""
+        q = np.nan_to_num(self.rotation_xyzw[:, k], nan=0.0)
+        q[~np.isfinite(self.rotation_xyzw[:, k]).all(-1)] = (0, 0, 0, 1)
+        T, J = q.shape[:2]
+        L = Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(T, J, 3, 3)
+        G = np.empty_like(L)
+        for j in _topological(self.parents):
+            p = self.parents[j]
+            G[:, j] = L[:, j] if p < 0 else G[:, p] @ L[:, j]
+        return G
+
+    def positions(self) -> np.ndarray:
+        """(T,K,J',3) fitted positions of the fit skeleton's joints (world, z up), NaN outside each span."""
+        T, K, J = self.rotation_xyzw.shape[:3]
+        out = np.full((T, K, J, 3), np.nan)
+        for k in range(K):
+            G = self.global_rotations(k)
+            P = np.empty((T, J, 3))
+            for j in _topological(self.parents):
+                p = self.parents[j]
+                P[:, j] = self.root_xyz_m[:, k] if p < 0 else P[:, p] + G[:, p] @ self.rest_offset_m[k, j]
+            out[:, k] = np.where(self.span[:, k, None, None], P, np.nan)
+        return out
+
+    def joint_positions(self) -> np.ndarray:
+        """(T,K,J,3) fitted positions of the track file's joints."""
+        return self.positions()[:, :, self.track_joints]
+
+    def save(self, path: str | os.PathLike) -> None:
+        save_npz(
+            path,
+            {
+                "schema": schema_tag(SCHEMA, VERSION),
+                "tracks_sha256": self.tracks_sha256,
+                "fps": np.float64(self.fps),
+                "frame_index": self.frame_index,
+                "track_id": self.track_id,
+                "joint_names": np.asarray(self.joint_names),
+                "parents": self.parents,
+                "track_joints": self.track_joints,
+                "bone_length_m": self.bone_length_m.astype(np.float32),
+                "rest_offset_m": self.rest_offset_m,
+                "root_xyz_m": self.root_xyz_m,
+                "rotation_xyzw": self.rotation_xyzw,
+                "fit_error_m": self.fit_error_m.astype(np.float32),
+                "held": self.held,
+                "notes": np.asarray(self.notes, dtype=str),
+            },
+        )
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, tracks_sha256: str | None = None) -> SkeletonFit:
+        path = Path(path)
+        d = load_npz(path, required=("schema",))
+        check_schema(d["schema"], SCHEMA, (VERSION,), path)
+        sha = npz_str(d, "tracks_sha256")
+        if tracks_sha256 is not None and sha != tracks_sha256:
+            raise FormatError(
+                path,
+                "tracks_sha256",
+                "was fitted on another version of the track file.",
+                "Refit it: tracks fit <session>.",
+            )
+        return cls(
+            fps=float(d["fps"]),
+            frame_index=d["frame_index"],
+            track_id=d["track_id"],
+            joint_names=tuple(d["joint_names"].tolist()),
+            parents=d["parents"],
+            track_joints=d["track_joints"],
+            bone_length_m=d["bone_length_m"].astype(np.float64),
+            rest_offset_m=d["rest_offset_m"],
+            root_xyz_m=d["root_xyz_m"],
+            rotation_xyzw=d["rotation_xyzw"],
+            fit_error_m=d["fit_error_m"].astype(np.float64),
+            held=d["held"],
+            tracks_sha256=sha,
+            notes=tuple(d["notes"].tolist()) if "notes" in d else (),
+        )
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _topological(parents) -> list[int]:
+    parents = np.asarray(parents)
+    order, seen = [], set()
+    while len(order) < len(parents):
+        n = len(order)
+        for j, p in enumerate(parents.tolist()):
+            if j not in seen and (p < 0 or p in seen):
+                order.append(j)
+                seen.add(j)
+        if len(order) == n:
+            raise FitError(f"the skeleton's parents {parents.tolist()} contain a cycle.")
+    return order
+
+
+def _children(parents) -> list[list[int]]:
+    ch: list[list[int]] = [[] for _ in parents]
+    for j, p in enumerate(np.asarray(parents).tolist()):
+        if p >= 0:
+            ch[p].append(j)
+    return ch
+
+
+def _mirror(name: str) -> str:
+    return name.replace("left_", "\0").replace("right_", "left_").replace("\0", "right_")
+
+
+# A child that moves against its parent's other children (the trunk against the hips, the head against
+# the shoulders) hangs from a joint of its own at the parent's position (zero offset), named here.
+ARTICULATED = {
+    ("pelvis", "neck"): "spine",
+    ("neck", "nose"): "head",
+    ("neck", "head"): "head_neck",
+    ("neck", "upper_neck"): "cervical",
+}
+
+
+def fit_skeleton(names, parents) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """The skeleton the fit and the BVH use: the track file's, plus a zero-offset joint between a
+    multi-child joint and each child in :data:`ARTICULATED`.
+
+    Returns ``(fit names (J',), fit parents (J',), index (J,) of each track joint in the fit)``."""
+    names, parents = tuple(names), np.asarray(parents)
+    n_children = np.bincount(parents[parents >= 0], minlength=len(names))
+    out_names, out_parents, index = [], [], {}
+    for j in _topological(parents):
+        p = int(parents[j])
+        if p >= 0 and n_children[p] > 1 and (names[p], names[j]) in ARTICULATED:
+            v = ARTICULATED[(names[p], names[j])]
+            v = v if v not in names else f"{names[p]}_{names[j]}"
+            out_names.append(v)
+            out_parents.append(index[p])
+            index[("v", j)] = len(out_names) - 1
+            p_fit = index[("v", j)]
+        else:
+            p_fit = -1 if p < 0 else index[p]
+        out_names.append(names[j])
+        out_parents.append(p_fit)
+        index[j] = len(out_names) - 1
+    return (
+        tuple(out_names),
+        np.asarray(out_parents, np.int64),
+        np.asarray([index[j] for j in range(len(names))]),
+    )
+
+
+# ----------------------------------------------------------------------------- rotations
+
+
+def wahba(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray | None:
+    """Rotation R minimising sum w |R a_i - b_i|^2 (a, b (N,3) unit vectors); None when degenerate."""
+    H = (w[:, None, None] * a[:, :, None] * b[:, None, :]).sum(0)  # sum w a b^T
+    U, S, Vt = np.linalg.svd(H)
+    if S[1] < 1e-6 * max(S[0], 1e-12):
+        return None
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+
+
+def min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking direction a to direction b."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v = np.cross(a, b)
+    s, c = np.linalg.norm(v), float(a @ b)
+    if s < 1e-9:
+        if c > 0:
+            return np.eye(3)
+        perp = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+        return Rotation.from_rotvec(np.pi * perp / np.linalg.norm(perp)).as_matrix()
+    return Rotation.from_rotvec(v / s * np.arctan2(s, c)).as_matrix()
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(n > 1e-12, n, 1.0)
+
+
+# ----------------------------------------------------------------------------- the fit
+
+
+def _bone_lengths(tf: TrackFile, k: int, X: np.ndarray, rows: np.ndarray, opt: FitOptions) -> np.ndarray:
+    J = len(tf.joint_names)
+    L = np.full(J, np.nan)
+    good = ((tf.flags[rows, k] & OBSERVED) > 0) & (tf.confidence[rows, k] >= opt.min_confidence)
+    good &= np.isfinite(tf.xyz_m[rows, k]).all(-1)
+    known = np.isfinite(X).all(-1)
+    for j, p in enumerate(tf.parents.tolist()):
+        if p < 0:
+            continue
+        both = good[:, j] & good[:, p]
+        if both.sum() < 5:
+            both = known[:, j] & known[:, p]
+        if both.any():
+            L[j] = float(np.median(np.linalg.norm(X[both, j] - X[both, p], axis=-1)))
+    if opt.symmetric:
+        idx = {n: i for i, n in enumerate(tf.joint_names)}
+        sym = L.copy()
+        for j, n in enumerate(tf.joint_names):
+            m = idx.get(_mirror(n))
+            if m is not None and m != j:
+                vals = [v for v in (L[j], L[m]) if np.isfinite(v)]
+                sym[j] = np.mean(vals) if vals else np.nan
+        L = sym
+    return L
+
+
+def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> dict[str, np.ndarray]:
+    """Fit one person; returns arrays over the whole track file and the fit skeleton (module docstring)."""
+    from track.export import fill_gaps, person_span
+
+    opt = options
+    k = _track_index(tf, track)
+    T, J = tf.n_frames, len(tf.joint_names)
+    names, parents, jidx = fit_skeleton(tf.joint_names, tf.parents)
+    F = len(names)
+    real = np.zeros(F, bool)
+    real[jidx] = True
+    span = np.flatnonzero(person_span(tf, k))
+    if not len(span):
+        raise FitError(f"track {track} has no known joint in any frame; there is nothing to fit.")
+    rows = np.arange(span[0], span[-1] + 1)
+    Xt, St, _ = fill_gaps(
+        tf.xyz_m[rows, k].astype(np.float64), tf.std_m[rows, k].astype(np.float64), opt.max_gap
+    )
+    known_t = np.isfinite(Xt).all(-1)
+    full = known_t.all(-1)
+    if not full.any():
+        miss = (~known_t).mean(0)
+        worst = np.argsort(-miss)[:4]
+        raise FitError(
+            f"track {track} has no frame in which all {J} joints are known, even after filling gaps of up to "
+            f"{opt.max_gap} frames (missing most often: "
+            + ", ".join(f"{tf.joint_names[j]} {miss[j]:.0%}" for j in worst)
+            + "); the skeleton fit needs one for the rest pose. Export TRC/CSV/JSON instead, or track with "
+            "a skeleton of the joints the cameras see."
+        )
+    Lt = _bone_lengths(tf, k, Xt, rows, opt)
+    bad = [tf.joint_names[j] for j in range(J) if tf.parents[j] >= 0 and not np.isfinite(Lt[j])]
+    if bad:
+        raise FitError(f"track {track}: no length for the bones to {bad}.")
+    X = np.full((len(rows), F, 3), np.nan)
+    X[:, jidx] = Xt
+    known = np.isfinite(X).all(-1)
+    L = np.zeros(F)
+    L[jidx] = np.nan_to_num(Lt)
+    root = int(np.flatnonzero(parents < 0)[0])
+    # rest pose: the most confident complete frame; virtual joints sit on their parent
+    conf = np.where(full, tf.confidence[rows, k].sum(-1), -np.inf)
+    t_rest = int(np.argmax(conf))
+    Xr = X[t_rest].copy()
+    for j in _topological(parents):
+        if not real[j]:
+            Xr[j] = Xr[parents[j]]
+    rest = np.zeros((F, 3))
+    for j in range(F):
+        if j != root and real[j]:
+            rest[j] = L[j] * _unit(Xr[j] - Xr[parents[j]])
+    children = _children(parents)
+    order = _topological(parents)
+    hinge_axis = {}
+    for j in range(F):
+        if names[j] in HINGES and len(children[j]) == 1:
+            ax = np.cross(rest[j], rest[children[j][0]])
+            if np.linalg.norm(ax) > 1e-3 * L[j] * L[children[j][0]]:
+                hinge_axis[j] = ax / np.linalg.norm(ax)
+    lo, hi = np.deg2rad(opt.hinge_limits_deg)
+
+    Tn = len(rows)
+    rot = np.full((Tn, F, 4), np.nan)
+    root_xyz = np.full((Tn, 3), np.nan)
+    held = np.zeros((Tn, F), bool)
+    Lprev = np.tile(np.eye(3), (F, 1, 1))
+    root_prev = None
+    for t in range(Tn):
+        x, kn = X[t], known[t]
+        Lcur = Lprev.copy()
+        G = np.empty((F, 3, 3))
+        P = np.empty((F, 3))
+        P[root] = x[root] if kn[root] else (root_prev if root_prev is not None else np.nan)
+        for j in order:
+            p = parents[j]
+            Gp = np.eye(3) if p < 0 else G[p]
+            if p >= 0:
+                P[j] = P[p] + Gp @ rest[j]
+            ch = children[j]
+            a, b, w = [], [], []
+            for c in ch:
+                if kn[c]:
+                    a.append(rest[c])
+                    b.append(Gp.T @ (x[c] - P[j]))
+                    w.append(1.0)
+                if len(ch) == 1 or not real[c]:  # grandchildren fix the twist / the tilt
+                    for g in children[c]:
+                        if kn[g]:
+                            a.append(rest[c] + rest[g])
+                            b.append(Gp.T @ (x[g] - P[j]))
+                            w.append(opt.twist_weight)
+            R = None
+            if j in hinge_axis and kn[ch[0]]:
+                ax, o, u = hinge_axis[j], rest[ch[0]], b[0]
+                u_p, o_p = u - ax * (ax @ u), o - ax * (ax @ o)
+                if np.linalg.norm(u_p) > 1e-9:
+                    phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
+                    theta = np.arctan2(ax @ np.cross(o_p, u_p), o_p @ u_p)
+                    theta = np.clip(phi0 + theta, lo, hi) - phi0
+                    R = Rotation.from_rotvec(ax * theta).as_matrix()
+            elif len(a) >= 2:
+                R = wahba(_unit(np.asarray(a)), _unit(np.asarray(b)), np.asarray(w))
+            if R is None and len(a) >= 1:  # one direction: swing from the previous frame's rotation
+                R = min_rotation(Lprev[j] @ a[0], b[0]) @ Lprev[j]
+            if R is None:
+                held[t, j] = bool(ch)
+                R = Lprev[j]
+            Lcur[j] = R
+            G[j] = Gp @ R
+        if not np.isfinite(P[root]).all():
+            continue
+        if opt.refine and kn.sum() >= 3:
+            sig = np.full(F, np.inf)
+            sig[jidx] = np.maximum(np.nan_to_num(St[t], nan=opt.min_std_m), opt.min_std_m)
+            P[root], Lcur = _refine(x, kn, sig, P[root], Lcur, rest, parents, order, children, hinge_axis,
+                                    (lo, hi), opt.prior_rad)  # fmt: skip
+        root_prev = P[root].copy()
+        Lprev = Lcur
+        root_xyz[t] = P[root]
+        rot[t] = Rotation.from_matrix(Lcur).as_quat()
+    first = np.flatnonzero(np.isfinite(root_xyz).all(-1))
+    if len(first) and first[0] > 0:  # frames before the root was first known: the first fitted pose
+        root_xyz[: first[0]] = root_xyz[first[0]]
+        rot[: first[0]] = rot[first[0]]
+        held[: first[0]] = True
+    out_rot = np.full((T, F, 4), np.nan)
+    out_root = np.full((T, 3), np.nan)
+    out_held = np.zeros((T, F), bool)
+    out_rot[rows], out_root[rows], out_held[rows] = rot, root_xyz, held
+    return {
+        "bone_length_m": L,
+        "rest_offset_m": rest,
+        "root_xyz_m": out_root,
+        "rotation_xyzw": out_rot,
+        "held": out_held,
+    }
+
+
+def _rodrigues(v: np.ndarray) -> np.ndarray:
+    """Rotation vectors (...,3) -> matrices (...,3,3)."""
+    th = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    A = np.where(small, 1.0, np.sin(ths) / ths)
+    B = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
+    return np.eye(3) + A * K + B * (K @ K)
+
+
+def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, limits, prior_rad):
+    """Weighted least squares (positions / sigma, plus a prior on the change of each rotation) over
+    the root position and every rotating joint, from the top-down solution; hinges keep one angle
+    inside ``limits`` (flexion). Returns (root position, local rotations (F,3,3))."""
+    from scipy.optimize import least_squares
+
+    F = len(parents)
+    free = [j for j in order if children[j]]
+    hinge = {j: hinge_axis[j] for j in free if j in hinge_axis}
+    lo, hi = limits
+    layout, n = [], 3
+    x0, lb, ub = list(root_p), [-np.inf] * 3, [np.inf] * 3
+    for j in free:
+        if j in hinge:
+            c = children[j][0]
+            ax, o = hinge[j], rest[c]
+            phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
+            th0 = Rotation.from_matrix(L0[j]).as_rotvec() @ ax
+            layout.append((j, n, 1, phi0))
+            x0.append(th0)
+            lb.append(lo - phi0 - 1e-9)
+            ub.append(hi - phi0 + 1e-9)
+            n += 1
+        else:
+            layout.append((j, n, 3, 0.0))
+            x0 += [0.0, 0.0, 0.0]
+            lb += [-np.inf] * 3
+            ub += [np.inf] * 3
+            n += 3
+    x0 = np.clip(np.asarray(x0), np.asarray(lb) + 1e-12, np.asarray(ub) - 1e-12)
+    obs = np.flatnonzero(kn & np.isfinite(sig))
+    w = 1.0 / sig[obs]
+    root = order[0]
+
+    j3 = [j for j, _, m, _ in layout if m == 3]
+    c3 = np.asarray([[a, a + 1, a + 2] for _, a, m, _ in layout if m == 3], np.int64).reshape(-1, 3)
+    j1 = [j for j, _, m, _ in layout if m == 1]
+    c1 = np.asarray([a for _, a, m, _ in layout if m == 1], np.int64)
+    ax1 = np.asarray([hinge[j] for j in j1]).reshape(-1, 3)
+
+    def locals_(q: np.ndarray) -> np.ndarray:  # q (B,n) -> (B,F,3,3)
+        B = len(q)
+        L = np.broadcast_to(L0, (B, F, 3, 3)).copy()
+        if j3:
+            L[:, j3] = L0[j3] @ _rodrigues(q[:, c3])
+        if j1:
+            L[:, j1] = _rodrigues(q[:, c1, None] * ax1)
+        return L
+
+    def fk(q: np.ndarray) -> np.ndarray:  # (B,n) -> (B,F,3)
+        L = locals_(q)
+        B = len(q)
+        G = np.empty((B, F, 3, 3))
+        P = np.empty((B, F, 3))
+        for j in order:
+            p = parents[j]
+            if p < 0:
+                G[:, j], P[:, j] = L[:, j], q[:, :3]
+            else:
+                P[:, j] = P[:, p] + G[:, p] @ rest[j]
+                G[:, j] = G[:, p] @ L[:, j]
+        return P
+
+    def prior(q: np.ndarray) -> np.ndarray:
+        d = [q[:, a : a + m] - (x0[a : a + m] if m == 1 else 0.0) for _, a, m, _ in layout]
+        return np.concatenate(d, 1) / prior_rad
+
+    def res_batch(q: np.ndarray) -> np.ndarray:
+        P = fk(q)
+        r = ((P[:, obs] - x[obs]) * w[None, :, None]).reshape(len(q), -1)
+        return np.concatenate([r, prior(q)], 1)
+
+    def fun(q):
+        return res_batch(q[None])[0]
+
+    def jac(q):
+        h = 1e-6
+        Q = np.repeat(q[None], n + 1, 0)
+        Q[1:] += np.eye(n) * h
+        R = res_batch(Q)
+        return ((R[1:] - R[0]) / h).T
+
+    sol = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", max_nfev=8, x_scale=1.0)
+    L = locals_(sol.x[None])[0]
+    _ = root
+    return sol.x[:3].copy(), L
+
+
+def fit_skeletons(
+    tf: TrackFile,
+    track_ids: list[int] | None = None,
+    options: FitOptions = FitOptions(),
+    tracks_sha256: str = "",
+    skip_unfittable: bool = False,
+) -> SkeletonFit:
+    """Fit every track (or ``track_ids``) of ``tf``; :class:`FitError` names a track that cannot be fitted
+    (with ``skip_unfittable`` such a track is left out and named in ``notes``)."""
+    ids = tf.track_id.tolist() if track_ids is None else [int(i) for i in track_ids]
+    names, parents, jidx = fit_skeleton(tf.joint_names, tf.parents)
+    T, F = tf.n_frames, len(names)
+    res, kept, notes = [], [], []
+    for i in ids:
+        try:
+            res.append(fit_track(tf, i, options))
+            kept.append(i)
+        except FitError as e:
+            if not skip_unfittable:
+                raise
+            notes.append(str(e))
+    ids, K = kept, len(kept)
+
+    def stack(key, axis, shape):
+        return np.stack([r[key] for r in res], axis) if K else np.zeros(shape)
+
+    fit = SkeletonFit(
+        fps=tf.fps,
+        frame_index=tf.frame_index.copy(),
+        track_id=np.asarray(ids, np.int64),
+        joint_names=names,
+        parents=parents,
+        track_joints=jidx,
+        bone_length_m=stack("bone_length_m", 0, (0, F)),
+        rest_offset_m=stack("rest_offset_m", 0, (0, F, 3)),
+        root_xyz_m=stack("root_xyz_m", 1, (T, 0, 3)),
+        rotation_xyzw=stack("rotation_xyzw", 1, (T, 0, F, 4)),
+        fit_error_m=np.zeros((T, K, len(jidx))),
+        held=stack("held", 1, (T, 0, F)).astype(bool),
+        tracks_sha256=tracks_sha256,
+        notes=tuple(notes),
+    )
+    ks = [_track_index(tf, i) for i in ids]
+    err = np.linalg.norm(fit.joint_positions() - tf.xyz_m[:, ks].astype(np.float64), axis=-1)
+    object.__setattr__(fit, "fit_error_m", err)
+    return fit
+
+
+def load_or_fit(
+    tracks_path: str | os.PathLike, tf: TrackFile | None = None, track_ids: list[int] | None = None
+) -> tuple[SkeletonFit, bool]:
+    """The companion fit of ``tracks_path`` if it is there, current and has ``track_ids``, else a fit
+    (of ``track_ids``, default all) made now. Returns (fit, made_now)."""
+    tracks_path = Path(tracks_path)
+    sha = file_sha256(tracks_path)
+    comp = tracks_path.with_name("skeleton_fit.npz")
+    if comp.exists():
+        try:
+            fit = SkeletonFit.load(comp, tracks_sha256=sha)
+            if track_ids is None or set(track_ids) <= set(fit.track_id.tolist()):
+                return fit, False
+        except FormatError as e:
+            log.warning("%s; fitting again", e)
+    tf = tf or TrackFile.load(tracks_path)
+    return fit_skeletons(tf, track_ids=track_ids, tracks_sha256=sha, skip_unfittable=track_ids is None), True
+
+
+# ----------------------------------------------------------------------------- BVH
+
+
+def write_bvh(fit: SkeletonFit, path: str | os.PathLike, track_ids: list[int] | None = None) -> None:
+    """BVH of the fitted skeleton of one person, or several (one ROOT each, joint names suffixed
+    ``_<id>``). Frames: the persons' span; frames where a person of several is absent hold its nearest
+    fitted pose."""
+    ids = fit.track_id.tolist() if track_ids is None else [int(i) for i in track_ids]
+    ks = [int(np.flatnonzero(fit.track_id == i)[0]) for i in ids]
+    span = fit.span[:, ks].any(-1)
+    rows = np.flatnonzero(span)
+    if not len(rows):
+        raise FitError(f"tracks {ids} have no fitted frame.")
+    rows = np.arange(rows[0], rows[-1] + 1)
+    names, parents = fit.joint_names, fit.parents
+    children = _children(parents)
+    multi = len(ids) > 1
+    lines = ["HIERARCHY"]
+    motion_cols = []
+    for k, tid in zip(ks, ids, strict=True):
+        sfx = f"_{tid}" if multi else ""
+        off = fit.rest_offset_m[k] @ YUP.T
+        root = int(np.flatnonzero(parents < 0)[0])
+        # hold the nearest fitted pose outside this person's span
+        have = np.flatnonzero(fit.span[rows, k])
+        near = have[np.clip(np.searchsorted(have, np.arange(len(rows))), 0, len(have) - 1)]
+        prev = have[np.clip(np.searchsorted(have, np.arange(len(rows)), side="right") - 1, 0, len(have) - 1)]
+        pick = np.where(np.abs(near - np.arange(len(rows))) < np.abs(prev - np.arange(len(rows))), near, prev)
+        src = rows[pick]
+        root_p = fit.root_xyz_m[src, k] @ YUP.T
+        q = fit.rotation_xyzw[src, k]
+        Lm = Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(len(rows), len(names), 3, 3)
+        Lm = YUP @ Lm @ YUP.T
+        eul = (
+            Rotation.from_matrix(Lm.reshape(-1, 3, 3)).as_euler("ZXY", degrees=True).reshape(len(rows), -1, 3)
+        )
+        order: list[int] = []
+
+        def emit(j: int, depth: int, sfx=sfx, off=off, order=order) -> None:
+            ind = "\t" * depth
+            kind = "ROOT" if parents[j] < 0 else "JOINT"
+            lines.append(f"{ind}{kind} {names[j]}{sfx}")
+            lines.append(f"{ind}{{")
+            o = np.zeros(3) if parents[j] < 0 else off[j]
+            lines.append(f"{ind}\tOFFSET {o[0]:.6f} {o[1]:.6f} {o[2]:.6f}")
+            if parents[j] < 0:
+                lines.append(f"{ind}\tCHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation")
+            else:
+                lines.append(f"{ind}\tCHANNELS 3 Zrotation Xrotation Yrotation")
+            order.append(j)
+            if children[j]:
+                for c in children[j]:
+                    emit(c, depth + 1, sfx, off, order)
+            else:  # End Site continuing the bone by a quarter of its length (5 cm for a root leaf)
+                e = 0.25 * off[j] if np.linalg.norm(off[j]) > 0 else np.array([0.0, 0.05, 0.0])
+                lines.append(f"{ind}\tEnd Site")
+                lines.append(f"{ind}\t{{")
+                lines.append(f"{ind}\t\tOFFSET {e[0]:.6f} {e[1]:.6f} {e[2]:.6f}")
+                lines.append(f"{ind}\t}}")
+            lines.append(f"{ind}}}")
+
+        emit(root, 0)
+        cols = [root_p]
+        cols += [eul[:, j] for j in order]
+        motion_cols.append(np.concatenate(cols, 1))
+    M = np.concatenate(motion_cols, 1)
+    lines += ["MOTION", f"Frames: {len(rows)}", f"Frame Time: {1.0 / fit.fps:.8f}"]
+    lines += [" ".join(f"{v:.6f}" for v in r) for r in M]
+    atomic_write_text(path, "\n".join(lines) + "\n")
