@@ -175,6 +175,7 @@ def reconstruct_all(
         "reproj_err_px": np.full((T, P3, J), np.nan),
         "n_views": np.zeros((T, P3, J), np.int16),
         "std_m": np.full((T, P3, J), np.nan),
+        "reproj_err_cam_px": np.full((T, P3, J, len(mv.cameras)), np.nan),
     }
     for t, f in enumerate(out):
         m = len(f.xyz_m)
@@ -211,6 +212,7 @@ def triangulate_session(
         t_ns=mv.t_ns,
         joint_names=CANONICAL.joint_names,
         calibration_sha256=rig.sha256(),
+        cameras=tuple(sub.names),
         **res,
     )
     poses.save(lay.poses3d)
