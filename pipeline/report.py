@@ -266,15 +266,17 @@ def _detection_rates(inp: _Inputs) -> dict[str, Any]:
 
 def _roots(xyz: np.ndarray, joint_names: tuple[str, ...]) -> np.ndarray:
     """(T,K,3) a root point per track and frame: the pelvis, else the hips' mean, else all joints'."""
+    import warnings
+
     names = list(joint_names)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: no root there
         out = np.nanmean(xyz, axis=2) if xyz.shape[2] else np.full(xyz.shape[:2] + (3,), np.nan)
         hips = [names.index(n) for n in ("left_hip", "right_hip") if n in names]
         if hips:
             h = xyz[:, :, hips]
             hm = np.where(np.isfinite(h).all(-1, keepdims=True), h, np.nan)
-            with np.errstate(all="ignore"):
-                mh = np.nanmean(hm, axis=2)
+            mh = np.nanmean(hm, axis=2)
             out = np.where(np.isfinite(mh), mh, out)
         if "pelvis" in names:
             p = xyz[:, :, names.index("pelvis")]
@@ -819,9 +821,12 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                     _problem(
                         "warning",
                         f"{c} rarely sees anyone",
-                        f"people were detected in {100 * r:.0f}% of its frames (best camera: {100 * best:.0f}%).",
-                        f"Look at {c}'s filmstrip: if the room is outside its view, aim it at the capture area; if people "
-                        "are visible but not detected, check focus, exposure and that the lens is not covered.",
+                        f"people were detected in {100 * r:.0f}% of its frames (best camera: "
+                        f"{100 * best:.0f}%).",
+                        f"Look at {c}'s filmstrip: if the room is outside its view, aim it at the capture "
+                        "area; if people "
+                        "are visible but not detected, check focus, exposure and that the lens is not "
+                        "covered.",
                     )
                 )
     if Q and not Q.get("error"):
@@ -838,9 +843,12 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                             f"{c['name']}: large reprojection error",
                             f"the 3D lands {c['mean_px']:.1f} px from {c['name']}'s detections on average "
                             f"(other cameras {ref:.1f} px).",
-                            f"Compare the dots (reprojection) with the skeletons (detections) in {c['name']}'s filmstrip: "
-                            "a steady offset means the camera moved or its calibration is off (recalibrate it); an "
-                            "offset that follows the motion means its video is out of sync (fix the sync offset).",
+                            "Compare the dots (reprojection) with the skeletons (detections) in "
+                            f"{c['name']}'s filmstrip: "
+                            "a steady offset means the camera moved or its calibration is off (recalibrate "
+                            "it); an "
+                            "offset that follows the motion means its video is out of sync (fix the sync "
+                            "offset).",
                         )
                     )
             for c in Q["cameras"]:
@@ -850,7 +858,8 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                             "warning",
                             f"{c['name']} is rarely used",
                             f"its view went into {100 * (c['share'] or 0):.0f}% of the triangulated joints.",
-                            "It may see little of the capture area, or its detections disagree with the other cameras "
+                            "It may see little of the capture area, or its detections disagree with the "
+                            "other cameras "
                             "(calibration or sync): check its filmstrip.",
                         )
                     )
@@ -863,7 +872,8 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                     "info",
                     "Joints seen by few cameras",
                     f"a triangulated joint was seen by {float(np.mean(pv)):.1f} cameras on average.",
-                    "Two views give little redundancy against a wrong detection: add cameras or aim them so each "
+                    "Two views give little redundancy against a wrong detection: add cameras or aim them "
+                    "so each "
                     "part of the room is seen by three or more.",
                 )
             )
@@ -878,7 +888,8 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                         "info",
                         "Some joints fit worse than the rest",
                         f"{', '.join(worst)}: more than twice the mean error ({m:.1f} px).",
-                        "Usual for fast or often occluded joints (wrists, ankles); if it is a hip or shoulder, the 2D "
+                        "Usual for fast or often occluded joints (wrists, ankles); if it is a hip or "
+                        "shoulder, the 2D "
                         "model may confuse left and right or the skeleton definitions differ between views.",
                     )
                 )
@@ -892,9 +903,11 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                     _problem(
                         "info",
                         f"id {tid} carried without being seen",
-                        f"{un / fps_full:.1f} s of its {pres / fps_full:.1f} s ({100 * un / pres:.0f}%) were predicted or "
+                        f"{un / fps_full:.1f} s of its {pres / fps_full:.1f} s ({100 * un / pres:.0f}%) "
+                        "were predicted or "
                         "interpolated, not observed.",
-                        "Its positions there are guesses (hatched in the timeline): if it was in view, the detections "
+                        "Its positions there are guesses (hatched in the timeline): if it was in view, the "
+                        "detections "
                         "missed it (occlusion, low light); if not, more camera coverage would help.",
                     )
                 )
@@ -917,9 +930,12 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                         else ""
                     ),
                     where + (" …" if len(jumps) > 6 else "") + ".",
-                    "Check those frames in the filmstrips (red marks on the timeline): if two people crossed, their "
-                    "identities may have been exchanged; the particle tracker (--tracker particle) keeps identities "
-                    "better through crossings. A jump of one person alone is usually a wrong 3D pose (bad association).",
+                    "Check those frames in the filmstrips (red marks on the timeline): if two people "
+                    "crossed, their "
+                    "identities may have been exchanged; the particle tracker (--tracker particle) keeps "
+                    "identities "
+                    "better through crossings. A jump of one person alone is usually a wrong 3D pose (bad "
+                    "association).",
                 )
             )
         people = (
@@ -933,7 +949,8 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                     "info",
                     "Identities fragmented",
                     f"{len(T['track_id'])} tracks for at most {people} people at once.",
-                    "People lost and found again get new ids: check the timeline for short tracks; longer occlusion "
+                    "People lost and found again get new ids: check the timeline for short tracks; longer "
+                    "occlusion "
                     "handling (tracker options) or more coverage helps.",
                 )
             )
@@ -958,7 +975,8 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                     "warning",
                     "Video size differs from the calibration",
                     msg,
-                    "The keypoints are used as they are (codec padding). If the overlays look shifted or scaled, "
+                    "The keypoints are used as they are (codec padding). If the overlays look shifted or "
+                    "scaled, "
                     "recalibrate at the video's resolution.",
                 )
             )

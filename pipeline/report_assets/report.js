@@ -107,8 +107,9 @@ for (const [v, k] of cards) { const d = document.createElement('div'); d.classNa
 (function viewsHist(){ const cv = $('viewsHist'), c = cv.getContext('2d'), W = cv.width, H = cv.height;
   c.font = '11px system-ui,sans-serif';
   if (!Q || !Q.views_hist.length) { c.fillStyle = '#999'; c.fillText('no triangulated joints', 10, 20); return; }
-  const h = Q.views_hist, tot = h.reduce((s, v) => s + v, 0) || 1, n = h.length, bw = (W - 60) / Math.max(1, n - 1);
-  let x = 40; for (let v = 1; v < n; v++) { const f = h[v] / tot, bh = (H - 30) * f;
+  const h = Q.views_hist, tot = h.reduce((s, v) => s + v, 0) || 1, n = h.length, v0 = Math.max(1, h.findIndex(v => v > 0));
+  const bw = (W - 60) / Math.max(1, n - v0);
+  let x = 40; for (let v = v0; v < n; v++) { const f = h[v] / tot, bh = (H - 30) * f;
     c.fillStyle = '#4363d8'; c.fillRect(x, H - 18 - bh, bw - 8, bh); c.fillStyle = '#333';
     c.fillText(`${v} views`, x, H - 4); c.fillText((100 * f).toFixed(0) + '%', x, H - 22 - bh); x += bw; } })();
 (function trackTable(){ const tt = $('trackTable');
