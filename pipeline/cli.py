@@ -19,6 +19,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
+from capture.session import SessionLayout
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
@@ -44,6 +45,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--executor", choices=EXECUTORS, default="local")
     p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
     p.add_argument("--workers", type=int, help="sessions processed at once (default: half the cores)")
+    p.add_argument(
+        "--overlay",
+        action="store_true",
+        help="also write <session>/report/overlay/<cam>.mp4: each video with the detections and tracks drawn",
+    )
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 
@@ -126,6 +132,17 @@ def main(argv: list[str] | None = None) -> int:
         on_result=done,
     )
     bar.close()
+    if args.overlay:
+        from pipeline.report import write_overlay_videos
+
+        for r in results:
+            if r.status == "ok":
+                try:
+                    print(
+                        f"{r.name}: overlay videos in {write_overlay_videos(SessionLayout(r.out))[0].parent}"
+                    )
+                except (FormatError, OSError, ValueError) as e:
+                    print(f"reprocess: {r.name}: no overlay videos ({e})", file=sys.stderr)
     table = format_table(results, tuple(s for s in STAGES if any(s in r.stage_s for r in results)))
     print(table)
     failed = [r for r in results if r.status != "ok"]

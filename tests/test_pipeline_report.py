@@ -86,7 +86,16 @@ def synthetic_session(root, seconds=3.0, cams=4, people=2, seed=0):
 
     rig, room = rigs.ring_rig(cams, 3.0, seed=seed), rigs.ring_room(3.0)
     scene = world.make_scene(room, world.SceneConfig(n_people=people, duration_s=seconds, seed=seed))
-    lay = world.write_session(scene, R.render(scene, rig, R.RenderConfig(seed=seed)), rig, root)
+    lay = world.write_session(
+        scene,
+        R.render(
+            scene,
+            rig,
+            R.RenderConfig(noise_px=2.0, missed_joint_rate=0.05, false_positive_rate=0.1, seed=seed),
+        ),
+        rig,
+        root,
+    )
     triangulate_session(lay.root)
     track_session_greedy(lay.root)
     return lay
@@ -242,8 +251,13 @@ def test_warnings_logged_by_a_stage_reach_the_report(tmp_path):
     saved = json.loads((lay.root / ".roomcap" / "warnings" / "triangulate.json").read_text())
     assert any("cam01" in m and "no detections" in m for m in saved)
     # a rerun of the report alone still shows what triangulate logged when it made its output
-    assert reprocess([str(lay.root), "--stages", "report", "--workers", "1", "--force"]) == 0
+    assert reprocess([str(lay.root), "--stages", "report", "--workers", "1", "--force", "--overlay"]) == 0
     data = report_data(lay.report_html)
+    assert sorted(p.name for p in (lay.root / "report" / "overlay").iterdir()) == [
+        "cam00.mp4",
+        "cam02.mp4",
+        "cam03.mp4",
+    ]
     assert any(w["stage"] == "triangulate" and "cam01" in w["message"] for w in data["warnings"])
 
 
@@ -319,7 +333,7 @@ def test_synthetic_report_in_browser_filmstrips_and_tables(tmp_path):
         assert crop.size and crop.std() > 8, f"{cam}: the camera view is blank"
     want, _ = independent_camera_figures(lay.poses3d)
     rows = dom_cell_values(dom, "reprojCams")
-    assert [r[:3] for r in rows[: len(want)]] == [list(v[:3]) for v in want.values()]
+    assert [r[1:4] for r in rows[: len(want)]] == [list(v[:3]) for v in want.values()]
 
 
 def test_report_without_tracks_still_writes(tmp_path):
@@ -362,8 +376,8 @@ def test_multi_person_demo_report(tmp_path):
         assert crop.std() > 20, f"{cam}: the filmstrip is blank"
     want, mean_all = independent_camera_figures(lay.poses3d)
     rows = dom_cell_values(dom, "reprojCams")
-    assert [r[:3] for r in rows[:4]] == [list(v[:3]) for v in want.values()]
-    assert rows[4][0] == mean_all
+    assert [r[1:4] for r in rows[:4]] == [list(v[:3]) for v in want.values()]
+    assert rows[4][1] == mean_all
     # room from above: every tracked root lies in the footprint of at least one camera
     polys = [PolyPath(np.asarray(c["footprint_m"])) for c in data["rig"]["cameras"]]
     xyz = np.load(lay.tracks)["xyz_m"]
