@@ -170,7 +170,7 @@ class FrameReconstructor:
         seen = g[3] > 0
         seen &= (H >= 0).T.repeat(J, 1)
         V, ok, _ = self.tri.solve_raw(g[:2], np.where(seen, g[2], 0.0), seen)
-        V, ok = V.reshape(-1, M, J), ok.reshape(M, J)
+        V, ok = V.reshape(len(V), M, J), ok.reshape(M, J)
         if self._limbs is not None:
             drop = limb_outliers(np.where(ok, V[:3], np.nan), V[_REPROJ], self._limbs)
             if drop is not None:
