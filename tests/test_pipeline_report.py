@@ -385,3 +385,30 @@ def test_multi_person_demo_report(tmp_path):
     pelvis = pelvis[np.isfinite(pelvis).all(-1)]
     inside = np.any([p.contains_points(pelvis) for p in polys], axis=0)
     assert inside.mean() > 0.99, f"{(~inside).sum()} of {len(inside)} track positions outside every camera"
+
+
+def test_merge_whose_merged_hypothesis_is_dropped_later():
+    """A merged into by B (disjoint cameras), then A dropped for C (shared cameras, more views): nothing
+    is left to re-triangulate, which must work with the per-camera rows of V (it once raised)."""
+    from synthetic.rigs import ring_rig as rr
+    from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
+
+    rig = rr(4, radius_m=4.0)
+    X = np.zeros((19, 3))
+    X[:, 2] = np.linspace(0.1, 1.7, 19)
+    X[:, 0] = np.linspace(-0.2, 0.2, 19)
+    xy = np.full((4, 2, 19, 2), np.nan)
+    for c in range(4):
+        xy[c, 0] = rig.cameras[c].project(X)
+    xy[:3, 1] = xy[:3, 0] + 3.0  # a second, slightly shifted detection in cameras 0-2
+    sc = np.where(np.isfinite(xy[..., 0]), 0.9, 0.0)
+    cfg = TriangulateConfig(limb_check=False)  # a stick, not a body
+    rec = FrameReconstructor(rig.projection_matrices(), None, cfg, joint_names=CANONICAL.joint_names)
+    Z = rec._planes(xy, sc, np.isfinite(xy).all(-1))
+    H = np.array([[0, 0, -1, -1], [-1, -1, 0, 0], [1, 1, 1, -1]])  # A, B, C
+    S = np.zeros(H.shape, bool)
+    V, keep = rec._triangulate(Z, H, S)
+    assert V.shape == (8 + 4, 3, 19) and keep.all()
+    H2, _, V2, _ = rec._merge_duplicates(Z, H.copy(), S.copy(), V.copy(), keep.copy())
+    np.testing.assert_array_equal(H2, H[2:])
+    assert V2.shape == (12, 1, 19)
