@@ -579,7 +579,10 @@ class _Overlay:
         d = np.linalg.norm(det[:, None] - proj[None], axis=-1)  # (P,K,J)
         ok = np.isfinite(d)
         n = ok.sum(-1)
-        with np.errstate(all="ignore"):
+        import warnings
+
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a track not in this frame: all NaN
             cost = np.where(n >= 3, np.where(ok, d, 0).sum(-1) / np.maximum(n, 1), np.inf)
             lo, hi = np.nanmin(proj, axis=1), np.nanmax(proj, axis=1)  # (K,2)
             diag = np.linalg.norm(hi - lo, axis=-1)
@@ -967,25 +970,27 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                             "Recalibrate with more board views covering the whole image.",
                         )
                     )
-    for w in data["warnings"]:
-        msg = w["message"]
-        if "calibration" in msg and ("video" in msg or "size" in msg):
-            P.append(
-                _problem(
-                    "warning",
-                    "Video size differs from the calibration",
-                    msg,
-                    "The keypoints are used as they are (codec padding). If the overlays look shifted or "
-                    "scaled, "
-                    "recalibrate at the video's resolution.",
-                )
+    size = [
+        w["message"] for w in data["warnings"] if "calibration" in w["message"] and "video" in w["message"]
+    ]
+    if size:
+        P.append(
+            _problem(
+                "warning",
+                "Video size differs from the calibration"
+                + (f" ({len(size)} cameras)" if len(size) > 1 else ""),
+                "; ".join(size),
+                "The keypoints are used as they are (codec padding). If the overlays look shifted or "
+                "scaled, recalibrate at the video's resolution.",
             )
-        elif "differ in length" in msg:
+        )
+    for w in data["warnings"]:
+        if "differ in length" in w["message"]:
             P.append(
                 _problem(
                     "warning",
                     "Videos of different length",
-                    msg,
+                    w["message"],
                     "Check the sync: trim the videos to a common start.",
                 )
             )

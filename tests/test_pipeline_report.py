@@ -350,23 +350,25 @@ def test_report_without_tracks_still_writes(tmp_path):
 @pytest.mark.slow
 @need_chromium
 def test_multi_person_demo_report(tmp_path):
-    """The Pose2Sim multi-person demo (4 portrait videos): a filmstrip per camera with the video and the
-    overlays, the reprojection figures as triangulate wrote them, the codec-padding warning, no page errors,
-    and every track inside some camera's field of view in the room from above."""
+    """The Pose2Sim multi-person demo (4 portrait videos, first 12 frames): a filmstrip per camera with the
+    video and the overlays, the reprojection figures as triangulate wrote them, the calibration's figures,
+    no page errors, and every track inside some camera's field of view in the room from above (the
+    bystander was drawn outside all of them: the old sectors were cut at 2.5 m)."""
     from matplotlib.path import Path as PolyPath
 
     from pipeline.cli import main as reprocess
 
     trial = need_shared("data", "pose2sim", "demo-wheel-0.10.49", "Demo_MultiPerson")
     out = tmp_path / "out"
-    assert reprocess([str(trial), "--out", str(out), "--workers", "1", "--max-frames", "30"]) == 0
+    assert reprocess([str(trial), "--out", str(out), "--workers", "1", "--max-frames", "12"]) == 0
     lay = SessionLayout(out / trial.name)
     data = report_data(lay.report_html)
     assert lay.report_html.stat().st_size < 30e6
     assert [c["name"] for c in data["views"]["cameras"]] == ["cam01", "cam02", "cam03", "cam04"]
     assert all(all(c["images"]) for c in data["views"]["cameras"])
-    assert any("1088x1920" in w["message"] for w in data["warnings"])
-    assert any(p["title"] == "Video size differs from the calibration" for p in data["problems"])
+    # the calibration's own figures: the Qualisys file's per-camera residuals
+    assert sorted(data["rig"]["figures"]["cameras"]) == ["cam01", "cam02", "cam03", "cam04"]
+    assert data["rig"]["figures"]["cameras"]["cam01"]["avg_residual"] == 0.402
     img, dom = render_in_browser(lay.report_html, tmp_path, height=4600, name="demo")
     assert page_errors(dom) == "", f"page errors: {page_errors(dom)}"
     assert 'data-films="4"' in dom

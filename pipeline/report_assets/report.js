@@ -215,7 +215,7 @@ function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W 
   c.fillStyle = '#999'; c.font = '10px system-ui,sans-serif'; c.fillText('grid: 1 m · x →, y ↑', 8, H - 8);
   if (D.rig) D.rig.cameras.forEach((k, i) => { if (!k.footprint_m) return; c.save(); c.beginPath();
     k.footprint_m.forEach((p, n) => { const q = P(p); if (n) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); }); c.closePath();
-    c.fillStyle = camColor(i) + '12'; c.fill(); c.strokeStyle = camColor(i) + '70'; c.lineWidth = 1; c.setLineDash([4, 3]); c.stroke(); c.restore(); });
+    c.fillStyle = camColor(i) + '0b'; c.fill(); c.strokeStyle = camColor(i) + '90'; c.lineWidth = 1.2; c.setLineDash([4, 3]); c.stroke(); c.restore(); });
   if (D.rig) D.rig.cameras.forEach((k, i) => { const [x, y] = P(k.center_m), a = k.axis, h = Math.hypot(a[0], a[1]);
     if (h > 1e-6) { c.strokeStyle = camColor(i); c.lineWidth = 2; c.beginPath(); c.moveTo(x, y); c.lineTo(x + 18 * a[0] / h, y - 18 * a[1] / h); c.stroke(); }
     c.fillStyle = camColor(i); c.beginPath(); c.arc(x, y, 5, 0, 7); c.fill();
@@ -279,10 +279,16 @@ function cameraLabels(boxes){ // after the people: a label goes where it covers 
   if (!D.rig) return; ctx.font = '12px system-ui,sans-serif'; const taken = boxes.slice();
   for (const k of D.rig.cameras) { const q = project(k.center_m); if (!q) continue;
     const w = ctx.measureText(k.name).width, h = 14; let placed = null;
-    for (const [dx, dy] of [[6, -6], [6, 16], [-w - 6, -6], [-w - 6, 16], [-w / 2, -14], [-w / 2, 26], [14, 5], [-w - 14, 5]]) {
+    const near = [[6, -6], [6, 16], [-w - 6, -6], [-w - 6, 16], [-w / 2, -14], [-w / 2, 26], [14, 5], [-w - 14, 5]];
+    const far = []; for (const r of [45, 80, 120]) for (let a = 0; a < 8; a++) { const t = -Math.PI / 2 + a * Math.PI / 4;
+      far.push([r * Math.cos(t) - w / 2, r * Math.sin(t) + 5, true]); }
+    for (const [dx, dy, lead] of near.concat(far)) {
       const b = [q[0] + dx - 2, q[1] + dy - h + 2, q[0] + dx + w + 2, q[1] + dy + 4];
-      if (!taken.some(t => overlaps(t, b))) { placed = [dx, dy, b]; break; } }
+      if (b[0] < 0 || b[1] < 0 || b[2] > cv.width || b[3] > cv.height) continue;
+      if (!taken.some(t => overlaps(t, b))) { placed = [dx, dy, b, lead]; break; } }
     ctx.fillStyle = '#aab3c5'; ctx.globalAlpha = placed ? 1 : 0.3; const [dx, dy] = placed || [6, -6];
+    if (placed && placed[3]) { ctx.strokeStyle = '#5d6882'; ctx.lineWidth = 1; ctx.setLineDash([2, 3]); ctx.beginPath(); ctx.moveTo(q[0], q[1]);
+      ctx.lineTo(q[0] + dx + w / 2, q[1] + dy - 4); ctx.stroke(); ctx.setLineDash([]); }
     ctx.fillText(k.name, q[0] + dx, q[1] + dy); ctx.globalAlpha = 1; if (placed) taken.push(placed[2]); } }
 function draw(){
   ctx.fillStyle = '#10141c'; ctx.fillRect(0, 0, cv.width, cv.height);
