@@ -20,6 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
+from capture.session import SessionLayout
 from core.cli import guarded, output_folder, positive_int
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
@@ -54,6 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--export",
         help="after the stages, write the track file as FORMATS (comma-separated: trc,c3d,bvh,csv,json) "
         "to <session output>/export/ (see: tracks export --help)",
+    )
+    p.add_argument(
+        "--overlay",
+        action="store_true",
+        help="also write <session>/report/overlay/<cam>.mp4: each video with the detections and tracks drawn",
     )
     p.add_argument("-v", "--verbose", action="store_true")
     return p
@@ -170,6 +176,17 @@ def _main(argv: list[str] | None = None) -> int:
         on_result=done,
     )
     bar.close()
+    if args.overlay:
+        from pipeline.report import write_overlay_videos
+
+        for r in results:
+            if r.status == "ok":
+                try:
+                    print(
+                        f"{r.name}: overlay videos in {write_overlay_videos(SessionLayout(r.out))[0].parent}"
+                    )
+                except (FormatError, OSError, ValueError) as e:
+                    print(f"reprocess: {r.name}: no overlay videos ({e})", file=sys.stderr)
     table = format_table(results, tuple(s for s in STAGES if any(s in r.stage_s for r in results)))
     print(table)
     failed = [r for r in results if r.status == "failed"]

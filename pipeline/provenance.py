@@ -48,7 +48,12 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
     ),
     "track": ("track", "triangulate", "calibrate/camera.py", "keypoints/skeletons.py"),
     "forecast": ("forecast", "pipeline/glue.py", "track/trackfile.py"),
-    "report": ("pipeline/report.py",),
+    "report": (
+        "pipeline/report.py",
+        "pipeline/report_assets/report.html",
+        "pipeline/report_assets/report.css",
+        "pipeline/report_assets/report.js",
+    ),
 }
 _ROOT = Path(__file__).resolve().parents[1]
 _code_cache: dict[str, str] = {}

@@ -1,28 +1,81 @@
-# ruff: noqa: E501  (the embedded HTML/JavaScript keeps its own line lengths)
 """The session report: one self-contained HTML file (no network needed to open it).
 
-Sections: summary and calibration (camera table and layout), per-camera
-detection rates over time, a 3D viewer of the tracks with playback and
-per-person colours (cameras drawn in the same view, forecasts as faded
-skeletons), track timelines, and per-joint uncertainty. All data is embedded
-as JSON; the viewer is a few hundred lines of plain canvas JavaScript.
-Script errors are collected into ``#errors`` so tests (and people) see them.
+Sections: a plain-language list of problems with what to do about each; the 3D viewer of the
+tracks (playback, per-person colours, cameras, forecasts as faded skeletons); per camera a
+filmstrip of the video with the 2D detections and the tracks reprojected into it, coloured by
+identity, on a frame slider shared with the viewer; the reprojection error per camera and per
+joint as the triangulation wrote it (table, camera x joint matrix, plot over time), the views per
+joint; track timelines with the frames a track was carried without observations and suspected
+identity swaps; the room from above with each camera's field of view; detection rates; the
+calibration (and its own figures when its report is there); the warnings the pipeline logged.
+
+Everything is embedded: data as JSON, video frames as JPEG data URIs sized to a byte budget
+(``ReportConfig``: a 4-camera, 2-minute session stays under about 30 MB; longer ones sample
+frames evenly). The page is plain canvas JavaScript (``report_assets/``); script errors are
+collected into ``#errors`` so tests (and people) see them.
+
+``write_overlay_videos`` draws the same overlays on every frame of every camera's video (MP4);
+``python -m pipeline.report SESSION [--overlay]`` writes the report (and those videos) for a
+session folder without running the pipeline.
 """
 
 from __future__ import annotations
 
+import argparse
+import base64
 import html
 import json
+import logging
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from capture.fileio import atomic_write_text, load_npz, load_toml
+from capture.fileio import FormatError, atomic_path, atomic_write_text, load_npz, load_toml
 from capture.session import SessionLayout
 from core.redact import redact
 
-_MAX_FRAMES = 2000  # frames embedded in the viewer (subsampled beyond)
+log = logging.getLogger(__name__)
+
+_ASSETS = Path(__file__).resolve().parent / "report_assets"
+_MAX_FRAMES = 2000  # frames embedded in the viewer (subsampled beyond); ReportConfig.max_viewer_frames
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """What the report embeds and what it calls a problem.
+
+    max_viewer_frames: 3D frames embedded (evenly subsampled beyond).
+    image_budget_bytes: JPEG bytes of the filmstrips, all cameras together (base64 adds a third);
+      frames are sampled evenly over the session to fit.
+    overlay_budget_bytes: JSON bytes of the 2D overlays of the sampled frames, all cameras together.
+    image_max_side_px, jpeg_quality: size of the embedded frames.
+    max_film_frames / min_film_frames: sampled frames per camera, at most / at least.
+    jump_m, jump_speed_m_s: a track's root moving farther than ``jump_m + jump_speed_m_s * dt`` between
+      two frames it is present in is a sudden jump (a walking person moves ~1.5 m/s);
+    swap_radius_m: ... and a suspected identity swap when another track was within this of where it
+      landed the frame before.
+    match_px_frac: a 2D detection takes a track's colour when its mean joint distance to the track's
+      reprojection is below this fraction of the reprojection's box diagonal (else it is drawn grey).
+    """
+
+    max_viewer_frames: int = _MAX_FRAMES
+    image_budget_bytes: int = 18_000_000
+    overlay_budget_bytes: int = 4_000_000
+    image_max_side_px: int = 480
+    jpeg_quality: int = 70
+    max_film_frames: int = 600
+    min_film_frames: int = 8
+    jump_m: float = 0.35
+    jump_speed_m_s: float = 2.5
+    swap_radius_m: float = 0.35
+    match_px_frac: float = 0.35
 
 
 def _r(a: np.ndarray, nd: int = 3) -> Any:
@@ -31,17 +84,152 @@ def _r(a: np.ndarray, nd: int = 3) -> Any:
     return np.where(np.isfinite(a), a, None).tolist()
 
 
-def _rig_data(lay: SessionLayout) -> dict[str, Any] | None:
-    if not lay.rig_toml.exists():
-        return None
-    try:
-        from calibrate.camera import CameraRig
+def _f(x: Any, nd: int = 3) -> float | None:
+    x = float(x)
+    return round(x, nd) if np.isfinite(x) else None
 
-        rig = CameraRig.load(lay.rig_toml)
-    except Exception as e:  # the report shows what it can
-        return {"error": str(e), "cameras": []}
+
+# ----------------------------------------------------------------------------- loading
+
+
+@dataclass
+class _Inputs:
+    """What the report reads, loaded once; a file that cannot be read is a problem, not a crash."""
+
+    lay: SessionLayout
+    rig: Any = None
+    rig_error: str = ""
+    tracks: Any = None
+    tracks_error: str = ""
+    poses: Any = None
+    poses_error: str = ""
+    detections: dict[str, Any] | None = None
+    detections_error: dict[str, str] | None = None
+
+
+def _load(lay: SessionLayout) -> _Inputs:
+    inp = _Inputs(lay, detections={}, detections_error={})
+    if lay.rig_toml.exists():
+        try:
+            from calibrate.camera import CameraRig
+
+            inp.rig = CameraRig.load(lay.rig_toml)
+        except Exception as e:  # the report shows what it can
+            inp.rig_error = str(e)
+    if lay.tracks.exists():
+        try:
+            from track.trackfile import TrackFile
+
+            inp.tracks = TrackFile.load(lay.tracks)
+        except Exception as e:
+            inp.tracks_error = str(e)
+    if lay.poses3d.exists():
+        try:
+            from triangulate.poses3d import Poses3D
+
+            inp.poses = Poses3D.load(lay.poses3d)
+        except Exception as e:
+            inp.poses_error = str(e)
+    from keypoints.detections import Detections
+
+    for cam in lay.detection_cameras():
+        try:
+            inp.detections[cam] = Detections.load(lay.detections(cam))
+        except Exception as e:
+            inp.detections_error[cam] = str(e)
+    return inp
+
+
+# ----------------------------------------------------------------------------- calibration
+
+
+def _footprint(cam, height_m: float = 0.9, range_m: float = 12.0, n: int = 24) -> list[list[float]]:
+    """The part of the horizontal plane at ``height_m`` (a standing person's hips) the camera sees:
+    rays through its image border intersected with the plane, or cut at ``range_m`` (horizontal)
+    where they miss it; (N,2) world x, y. Lens distortion is ignored (a few pixels at the border)."""
+    w, h = cam.size_wh
+    t = np.linspace(0, 1, n, endpoint=False)
+    border = np.concatenate(
+        [
+            np.stack([t * w, np.zeros(n)], 1),
+            np.stack([np.full(n, w), t * h], 1),
+            np.stack([(1 - t) * w, np.full(n, h)], 1),
+            np.stack([np.zeros(n), (1 - t) * h], 1),
+        ]
+    )
+    rays = np.linalg.inv(cam.K) @ np.vstack([border.T, np.ones(len(border))])  # (3,N) camera frame
+    d = (cam.R.T @ rays).T  # (N,3) world directions
+    c = cam.center
+    pts = []
+    for di in d:
+        horiz = float(np.hypot(di[0], di[1]))
+        s = (height_m - c[2]) / di[2] if abs(di[2]) > 1e-9 else -1.0
+        if s <= 0 or s * horiz > range_m:  # the ray misses the plane in front, or meets it far away
+            s = range_m / max(horiz, 1e-9)
+        p = c + s * di
+        pts.append([round(float(p[0]), 3), round(float(p[1]), 3)])
+    return pts
+
+
+def _calibration_figures(lay: SessionLayout) -> dict[str, Any] | None:
+    """The calibration's own figures: roomcap's ``report/report.toml`` next to the rig (intrinsic /
+    extrinsic RMS, bundle adjustment), or the per-camera residuals of an imported Qualisys file."""
+    rep = lay.rig_toml.parent / "report" / "report.toml"
+    if rep.exists():
+        try:
+            d = load_toml(rep)
+            cams = {}
+            for c in d.get("cameras", []):
+                cams[str(c.get("name"))] = {
+                    k: c[k]
+                    for k in (
+                        "intrinsic_rms_px",
+                        "extrinsic_rms_px",
+                        "frames_with_board",
+                        "coverage_fraction",
+                        "intrinsic_frames_used",
+                    )
+                    if k in c
+                }
+            ba = d.get("bundle_adjustment", {})
+            return {
+                "source": _shown_path(rep, lay),
+                "unit": "px",
+                "cameras": cams,
+                "bundle_adjustment": {k: v for k, v in ba.items() if isinstance(v, (int, float, str))},
+            }
+        except Exception as e:
+            return {"source": _shown_path(rep, lay), "error": str(e), "cameras": {}}
+    prov = lay.root / ".roomcap" / "provenance" / "calibration.json"
+    try:
+        inputs = list(json.loads(prov.read_text())["inputs"])
+    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        return None
+    for src in inputs:
+        p = Path(src)
+        if p.name.lower().endswith((".qca.txt", ".qca")) and p.exists():
+            try:
+                import xml.etree.ElementTree as ET
+
+                root = ET.parse(p).getroot()
+                cams = {}
+                for c in root.iter("camera"):
+                    if c.get("avg-residual") is not None:
+                        cams[str(c.get("serial"))] = {"avg_residual": float(c.get("avg-residual"))}
+                if cams:
+                    return {"source": str(p), "unit": "mm (Qualisys marker residual)", "cameras": cams}
+            except Exception:  # a file we cannot parse says nothing about the calibration
+                return None
+    return None
+
+
+def _rig_data(inp: _Inputs) -> dict[str, Any] | None:
+    if inp.rig_error:
+        return {"error": inp.rig_error, "cameras": []}
+    if inp.rig is None:
+        return None
     cams = []
-    for cam in rig.cameras:
+    for cam in inp.rig.cameras:
         R = np.asarray(cam.R)
         w, h = cam.size_wh
         fx, fy = float(cam.K[0, 0]), float(cam.K[1, 1])
@@ -57,66 +245,775 @@ def _rig_data(lay: SessionLayout) -> dict[str, Any] | None:
                 "axis": _r(R[2]),
                 "right": _r(R[0]),
                 "up": _r(-R[1]),
+                "footprint_m": _footprint(cam),
             }
         )
-    return {"cameras": cams, "sha256": rig.sha256()}
+    return {"cameras": cams, "sha256": inp.rig.sha256(), "figures": _calibration_figures(inp.lay)}
 
 
-def _detection_rates(lay: SessionLayout) -> dict[str, Any]:
+def _detection_rates(inp: _Inputs) -> dict[str, Any]:
     out = {}
-    for cam in lay.detection_cameras():
-        d = load_npz(lay.detections(cam))
-        xy = d["xy_px"]
-        people = np.isfinite(xy[..., 0]).any(-1).sum(-1) if xy.size else np.zeros(len(d["frame_index"]))
-        joints = np.isfinite(xy[..., 0]).sum((-1, -2)) if xy.size else np.zeros(len(d["frame_index"]))
+    for cam, d in inp.detections.items():
+        xy = d.xy_px
+        T = len(d.frame_index)
+        people = np.isfinite(xy[..., 0]).any(-1).sum(-1) if xy.size else np.zeros(T)
+        joints = np.isfinite(xy[..., 0]).sum((-1, -2)) if xy.size else np.zeros(T)
         out[cam] = {"people": people.astype(int).tolist(), "joints": joints.astype(int).tolist()}
     return out
 
 
-def _tracks_data(lay: SessionLayout) -> dict[str, Any] | None:
-    if not lay.tracks.exists():
+# ----------------------------------------------------------------------------- tracks
+
+
+def _roots(xyz: np.ndarray, joint_names: tuple[str, ...]) -> np.ndarray:
+    """(T,K,3) a root point per track and frame: the pelvis, else the hips' mean, else all joints'."""
+    import warnings
+
+    names = list(joint_names)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: no root there
+        out = np.nanmean(xyz, axis=2) if xyz.shape[2] else np.full(xyz.shape[:2] + (3,), np.nan)
+        hips = [names.index(n) for n in ("left_hip", "right_hip") if n in names]
+        if hips:
+            h = xyz[:, :, hips]
+            hm = np.where(np.isfinite(h).all(-1, keepdims=True), h, np.nan)
+            mh = np.nanmean(hm, axis=2)
+            out = np.where(np.isfinite(mh), mh, out)
+        if "pelvis" in names:
+            p = xyz[:, :, names.index("pelvis")]
+            out = np.where(np.isfinite(p).all(-1, keepdims=True), p, out)
+    return out
+
+
+def _segments(mask: np.ndarray) -> list[list[int]]:
+    """[[start, end_inclusive], ...] of the runs of True in a (T,) mask."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    d = np.diff(m.astype(np.int8))
+    starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1
+    return [[int(a), int(b)] for a, b in zip(starts, ends, strict=True)]
+
+
+def track_events(tf, cfg: ReportConfig) -> dict[str, Any]:
+    """Per track: frames carried without an observation (track file flags) and sudden jumps of the root,
+    with the track that was where it landed (a suspected identity swap). Frames are track-file rows."""
+    from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED
+
+    xyz = np.asarray(tf.xyz_m, np.float64)
+    T, K = xyz.shape[:2]
+    present = np.isfinite(xyz[..., 0]).any(-1)  # (T,K)
+    fl = np.asarray(tf.flags)
+    observed = ((fl & OBSERVED) > 0).any(-1)
+    unobserved = present & ~observed
+    interp = unobserved & ((fl & INTERPOLATED) > 0).any(-1)
+    pred = unobserved & ~interp & ((fl & PREDICTED) > 0).any(-1)
+    roots = _roots(xyz, tf.joint_names)
+    fps = float(tf.fps) or 25.0
+    fi = np.asarray(tf.frame_index)
+    jumps = []
+    for k in range(K):
+        idx = np.flatnonzero(np.isfinite(roots[:, k]).all(-1))
+        if len(idx) < 2:
+            continue
+        a, b = idx[:-1], idx[1:]
+        dt = (fi[b] - fi[a]) / fps
+        dist = np.linalg.norm(roots[b, k] - roots[a, k], axis=-1)
+        bad = np.flatnonzero((dist > cfg.jump_m + cfg.jump_speed_m_s * dt) & (b - a <= 3))
+        for i in bad:
+            t0, t1 = int(a[i]), int(b[i])
+            other = None
+            d_other = np.linalg.norm(roots[t0] - roots[t1, k], axis=-1)  # (K,) others' roots before
+            d_other[k] = np.inf
+            d_other = np.where(np.isfinite(d_other), d_other, np.inf)
+            if K > 1 and d_other.min() < cfg.swap_radius_m:
+                other = int(np.asarray(tf.track_id)[int(d_other.argmin())])
+            jumps.append(
+                {
+                    "track": k,
+                    "id": int(np.asarray(tf.track_id)[k]),
+                    "t": t1,
+                    "frame": int(fi[t1]),
+                    "dist_m": round(float(dist[i]), 3),
+                    "speed_m_s": round(float(dist[i] / max(dt[i], 1e-9)), 2),
+                    "swap_with": other,
+                }
+            )
+    jumps.sort(key=lambda j: (j["t"], j["id"]))
+    return {
+        "unobserved": [_segments(unobserved[:, k]) for k in range(K)],
+        "unobserved_frames": unobserved.sum(0).astype(int).tolist(),
+        "interpolated_frames": interp.sum(0).astype(int).tolist(),
+        "predicted_frames": pred.sum(0).astype(int).tolist(),
+        "present_frames": present.sum(0).astype(int).tolist(),
+        "jumps": jumps,
+    }
+
+
+def _tracks_data(inp: _Inputs, cfg: ReportConfig) -> dict[str, Any] | None:
+    tf = inp.tracks
+    if tf is None:
         return None
-    d = load_npz(lay.tracks)
-    xyz = d["xyz_m"]
+    xyz = np.asarray(tf.xyz_m)
     T = xyz.shape[0]
-    step = max(1, int(np.ceil(T / _MAX_FRAMES)))
+    step = max(1, int(np.ceil(T / cfg.max_viewer_frames)))
     sel = np.arange(0, T, step)
-    std = d["std_m"]
+    std = np.asarray(tf.std_m)
     present = np.isfinite(xyz[..., 0]).any(-1)  # (T,K)
     ok = np.isfinite(std)
     mean_std = np.where(ok.any(-1), np.where(ok, std, 0).sum(-1) / np.maximum(ok.sum(-1), 1), np.nan)
+    ev = track_events(tf, cfg)
     return {
-        "fps": float(d["fps"]) / step,
-        "frame_index": d["frame_index"][sel].tolist(),
-        "track_id": d["track_id"].tolist(),
-        "joint_names": d["joint_names"].tolist(),
-        "parents": d["parents"].tolist(),
+        "fps": float(tf.fps) / step,
+        "frame_index": np.asarray(tf.frame_index)[sel].tolist(),
+        "track_id": np.asarray(tf.track_id).tolist(),
+        "joint_names": list(tf.joint_names),
+        "parents": np.asarray(tf.parents).tolist(),
         "xyz": _r(xyz[sel]),
         "present": present.astype(int).T.tolist(),
         "mean_std_m": _r(mean_std.T, 4) if std.size else [],
-        "source": str(d["source"]),
+        "source": str(tf.source),
         "step": step,
+        "events": ev,
     }
 
 
-def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
-    path = lay.root / "forecast" / "preview.npz"
-    if not path.exists():
-        return None
-    d = load_npz(path)
-    keys = {"xyz_m", "track_id", "start_index"}
-    if not keys <= set(d):
-        return None
-    xyz = d["xyz_m"]
-    if xyz.ndim != 4:  # (K,H,J,3) expected
-        return None
-    return {
-        "xyz": _r(xyz),
-        "track_id": d["track_id"].tolist(),
-        "start_index": int(d["start_index"]),
-        "model": str(d.get("model", "")),
-        "fps": float(d["fps"]) if "fps" in d else None,
+# ----------------------------------------------------------------------------- reprojection quality
+
+
+def reprojection_figures(poses) -> dict[str, Any]:
+    """The triangulation's reprojection errors summarised (the arrays of ``triangulate/poses3d.npz``).
+
+    per camera: mean / median / 90th percentile over the joints that camera's view was used for
+    (``reproj_err_cam_px``), that count and the share of all triangulated joints; per joint: the mean of
+    ``reproj_err_px`` (the mean over the views used) and the mean ``n_views``; the camera x joint matrix
+    of means; per frame: the mean error per camera and overall (NaN = nothing triangulated).
+    """
+    err = np.asarray(poses.reproj_err_px, np.float64)  # (T,P,J)
+    nv = np.asarray(poses.n_views)
+    ok = np.isfinite(err) & (nv > 0)
+    J = err.shape[2]
+    with np.errstate(all="ignore"):
+        per_joint = np.where(ok.any((0, 1)), np.nansum(np.where(ok, err, 0), (0, 1)) / ok.sum((0, 1)), np.nan)
+        views_joint = np.where(ok.any((0, 1)), np.where(ok, nv, 0).sum((0, 1)) / ok.sum((0, 1)), np.nan)
+        per_frame = np.where(ok.any((1, 2)), np.where(ok, err, 0).sum((1, 2)) / ok.sum((1, 2)), np.nan)
+    n_ok = int(ok.sum())
+    hist = np.bincount(nv[ok].astype(int), minlength=1).tolist() if n_ok else []
+    out: dict[str, Any] = {
+        "joint_names": list(poses.joint_names),
+        "frame_index": np.asarray(poses.frame_index).tolist(),
+        "n_joints_3d": n_ok,
+        "mean_px": _f(err[ok].mean()) if n_ok else None,
+        "median_px": _f(np.median(err[ok])) if n_ok else None,
+        "per_joint_mean_px": _r(per_joint),
+        "per_joint_views": _r(views_joint),
+        "views_hist": hist,
+        "per_frame_mean_px": _r(per_frame),
+        "cameras": [],
     }
+    if poses.cameras is None:
+        out["per_camera_note"] = (
+            "poses3d.npz was written before per-camera errors were kept: rerun the triangulate stage "
+            "(reprocess SESSION --stages triangulate --force) to see them."
+        )
+        return out
+    ec = np.asarray(poses.reproj_err_cam_px, np.float64)  # (T,P,J,C)
+    cams = []
+    for c, name in enumerate(poses.cameras):
+        e = ec[..., c]
+        m = np.isfinite(e) & ok
+        v = e[m]
+        with np.errstate(all="ignore"):
+            pj = np.where(m.any((0, 1)), np.where(m, e, 0).sum((0, 1)) / m.sum((0, 1)), np.nan)
+            pf = np.where(m.any((1, 2)), np.where(m, e, 0).sum((1, 2)) / m.sum((1, 2)), np.nan)
+        cams.append(
+            {
+                "name": str(name),
+                "n": int(m.sum()),
+                "share": _f(m.sum() / max(n_ok, 1)),
+                "mean_px": _f(v.mean()) if len(v) else None,
+                "median_px": _f(np.median(v)) if len(v) else None,
+                "p90_px": _f(np.percentile(v, 90)) if len(v) else None,
+                "per_joint_mean_px": _r(pj),
+                "per_frame_mean_px": _r(pf),
+            }
+        )
+    out["cameras"] = cams
+    out["J"] = J
+    return out
+
+
+def _binned(series: list, n_bin: int) -> list:
+    """Mean of each run of ``n_bin`` values (None = missing) for the plots of long sessions."""
+    if n_bin <= 1:
+        return series
+    a = np.asarray([np.nan if v is None else v for v in series], np.float64)
+    pad = (-len(a)) % n_bin
+    a = np.concatenate([a, np.full(pad, np.nan)]).reshape(-1, n_bin)
+    ok = np.isfinite(a)
+    with np.errstate(all="ignore"):
+        m = np.where(ok.any(1), np.where(ok, a, 0).sum(1) / ok.sum(1), np.nan)
+    return _r(m)
+
+
+def _quality(inp: _Inputs, cfg: ReportConfig) -> dict[str, Any] | None:
+    if inp.poses_error:
+        return {"error": inp.poses_error}
+    if inp.poses is None:
+        return None
+    q = reprojection_figures(inp.poses)
+    fi = q.pop("frame_index")
+    n_bin = max(1, int(np.ceil(len(fi) / cfg.max_viewer_frames)))
+    q["frame_index0"] = int(fi[0]) if fi else 0
+    q["per_frame_bin"] = n_bin
+    q["per_frame_mean_px"] = _binned(q["per_frame_mean_px"], n_bin)
+    for c in q["cameras"]:
+        c["per_frame_mean_px"] = _binned(c["per_frame_mean_px"], n_bin)
+    return q
+
+
+# ----------------------------------------------------------------------------- overlays
+
+
+def _video_paths(lay: SessionLayout, cams: list[str]) -> dict[str, Path]:
+    """Each camera's video: the session's ``raw/<cam>.*``, else the video the keypoints stage read
+    (its provenance record: a Pose2Sim trial's ``videos/<cam>.mp4`` when the outputs went elsewhere)."""
+    out: dict[str, Path] = {}
+    inputs: list[str] = []
+    try:
+        inputs = list(
+            json.loads((lay.root / ".roomcap" / "provenance" / "keypoints.json").read_text())["inputs"]
+        )
+    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        pass
+    from capture.session import VIDEO_SUFFIXES
+
+    for cam in cams:
+        if lay.video(cam).exists():
+            out[cam] = lay.video_file(cam)
+            continue
+        for src in inputs:
+            p = Path(src)
+            if p.stem == cam and p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES:
+                out[cam] = p
+                break
+    return out
+
+
+class _Overlay:
+    """2D detections (body19, as detected: distorted pixels) and the tracks reprojected into each camera
+    (with the lens model), per session frame; detections take the colour of the track they match."""
+
+    def __init__(self, inp: _Inputs, cfg: ReportConfig):
+        from keypoints.skeletons import CANONICAL, convert
+        from triangulate.dlt import DLTConfig
+
+        self.cfg = cfg
+        self.rig = inp.rig
+        self.cams = [c for c in (inp.rig.names if inp.rig is not None else []) if c in inp.detections]
+        self.cams += [c for c in inp.detections if c not in self.cams]
+        self.det = {}
+        min_score = DLTConfig().min_score  # the joints the triangulation would use
+        for cam in self.cams:
+            d = inp.detections[cam]
+            xy, sc = convert(d.xy_px, d.score, d.skeleton, "body19")
+            xy = np.where((sc >= min_score)[..., None], xy, np.nan)
+            self.det[cam] = ({int(f): i for i, f in enumerate(d.frame_index)}, xy)
+        self.parents = list(CANONICAL.parents)
+        tf = inp.tracks
+        self.untracked = tf is None
+        if tf is not None and list(tf.joint_names) == list(CANONICAL.joint_names):
+            self.xyz, self.fi, self.ids = np.asarray(tf.xyz_m, np.float64), np.asarray(tf.frame_index), None
+        elif inp.poses is not None:  # no track file: the per-frame 3D poses, colour by slot
+            p = inp.poses
+            self.xyz, self.fi = np.asarray(p.xyz_m, np.float64), np.asarray(p.frame_index)
+            self.untracked = True
+        else:
+            self.xyz, self.fi = np.zeros((0, 0, len(CANONICAL.joint_names), 3)), np.zeros(0, np.int64)
+        self.row = {int(f): i for i, f in enumerate(self.fi)}
+        self.err = {}
+        if inp.poses is not None and inp.poses.cameras is not None:
+            ec = np.asarray(inp.poses.reproj_err_cam_px, np.float64)
+            prow = {int(f): i for i, f in enumerate(inp.poses.frame_index)}
+            for c, name in enumerate(inp.poses.cameras):
+                e = ec[..., c]
+                with np.errstate(all="ignore"):
+                    m = np.isfinite(e)
+                    pf = np.where(m.any((1, 2)), np.where(m, e, 0).sum((1, 2)) / m.sum((1, 2)), np.nan)
+                self.err[str(name)] = (prow, pf)
+
+    def frames(self) -> np.ndarray:
+        """The session frames overlays exist for: the track file's, else all detected frames."""
+        if len(self.fi):
+            return np.asarray(self.fi)
+        allf = [np.asarray(list(self.det[c][0])) for c in self.cams]
+        return np.unique(np.concatenate(allf)) if allf else np.zeros(0, np.int64)
+
+    def project(self, cam: str, frames: np.ndarray) -> np.ndarray:
+        """(n,K,J,2) pixels of the 3D at ``frames`` in ``cam``; NaN where unknown or behind the camera."""
+        K, J = self.xyz.shape[1:3]
+        out = np.full((len(frames), K, J, 2), np.nan)
+        if self.rig is None or cam not in self.rig.names or K == 0:
+            return out
+        rows = np.asarray([self.row.get(int(f), -1) for f in frames])
+        have = rows >= 0
+        if have.any():
+            X = self.xyz[rows[have]].reshape(-1, 3)
+            out[have] = self.rig[cam].project(X).reshape(int(have.sum()), K, J, 2)
+        return out
+
+    def detections(self, cam: str, frame: int) -> np.ndarray:
+        idx, xy = self.det[cam]
+        i = idx.get(int(frame))
+        if i is None:
+            return np.zeros((0, xy.shape[2], 2))
+        d = xy[i]
+        return d[np.isfinite(d[..., 0]).any(-1)]
+
+    def match(self, det: np.ndarray, proj: np.ndarray) -> np.ndarray:
+        """(P,) the track index each detection (P,J,2) belongs to among the reprojections (K,J,2), or -1:
+        the assignment of least mean joint distance, kept below ``match_px_frac`` of the box diagonal."""
+        from scipy.optimize import linear_sum_assignment
+
+        P, K = len(det), len(proj)
+        out = np.full(P, -1)
+        if P == 0 or K == 0:
+            return out
+        d = np.linalg.norm(det[:, None] - proj[None], axis=-1)  # (P,K,J)
+        ok = np.isfinite(d)
+        n = ok.sum(-1)
+        import warnings
+
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a track not in this frame: all NaN
+            cost = np.where(n >= 3, np.where(ok, d, 0).sum(-1) / np.maximum(n, 1), np.inf)
+            lo, hi = np.nanmin(proj, axis=1), np.nanmax(proj, axis=1)  # (K,2)
+            diag = np.linalg.norm(hi - lo, axis=-1)
+        limit = np.maximum(np.where(np.isfinite(diag), diag, 0) * self.cfg.match_px_frac, 15.0)
+        good = np.isfinite(cost) & (cost < limit[None])
+        if not good.any():
+            return out
+        r, c = linear_sum_assignment(np.where(good, cost, 1e9))
+        for a, b in zip(r, c, strict=True):
+            if good[a, b]:
+                out[a] = b
+        return out
+
+    def frame_error(self, cam: str, frame: int) -> float | None:
+        if cam not in self.err:
+            return None
+        prow, pf = self.err[cam]
+        i = prow.get(int(frame))
+        return None if i is None else _f(pf[i], 2)
+
+
+def _shown_path(p: Path, lay: SessionLayout) -> str:
+    """A path as the page shows it: relative to the session when inside it (the same outputs in another
+    folder give the same report), else as given."""
+    try:
+        return Path(p).resolve().relative_to(lay.root.resolve()).as_posix()
+    except ValueError:
+        return str(p)
+
+
+def _flat(xy: np.ndarray) -> list[int | None]:
+    """(J,2) pixels -> [x0, y0, x1, y1, ...] rounded, None for missing."""
+    v = np.round(xy.reshape(-1)).astype(np.float64)
+    return [int(a) if np.isfinite(a) else None for a in v]
+
+
+def _frame_overlay(ov: _Overlay, cam: str, frame: int, proj: np.ndarray) -> dict[str, Any]:
+    det = ov.detections(cam, frame)
+    who = ov.match(det, proj)
+    P = [[int(k), _flat(d)] for k, d in zip(who, det, strict=True)]
+    R = [[k, _flat(p)] for k, p in enumerate(proj) if np.isfinite(p[..., 0]).any()]
+    return {"det": P, "proj": R, "err": ov.frame_error(cam, frame)}
+
+
+def _read_frames(path: Path, wanted: list[int]) -> dict[int, np.ndarray]:
+    """The frames ``wanted`` (sorted indices) of a video: decoded in order (grab() over the others,
+    exact where seeking is not); a video that ends early gives what it has."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    out: dict[int, np.ndarray] = {}
+    if not cap.isOpened():
+        return out
+    want = set(wanted)
+    last = max(wanted) if wanted else -1
+    i = 0
+    try:
+        while i <= last:
+            if i in want:
+                ok, img = cap.read()
+                if not ok:
+                    break
+                out[i] = img
+            elif not cap.grab():
+                break
+            i += 1
+    finally:
+        cap.release()
+    return out
+
+
+def _encode_jpeg(img: np.ndarray, cfg: ReportConfig) -> tuple[str, list[int]]:
+    import cv2
+
+    h, w = img.shape[:2]
+    s = min(1.0, cfg.image_max_side_px / max(h, w))
+    if s < 1.0:
+        img = cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return "data:image/jpeg;base64," + base64.b64encode(buf.tobytes()).decode("ascii"), [
+        int(img.shape[1]),
+        int(img.shape[0]),
+    ]
+
+
+def _views_data(inp: _Inputs, cfg: ReportConfig) -> dict[str, Any] | None:
+    """Per camera the filmstrip: sampled frames (the same for every camera) with their JPEG (when the
+    video is found) and the overlays of that frame."""
+    if not inp.detections:
+        return None
+    ov = _Overlay(inp, cfg)
+    cand = ov.frames()
+    if not len(cand) or not ov.cams:
+        return None
+    videos = _video_paths(inp.lay, ov.cams)
+    # estimate the bytes one sampled frame costs (all cameras), on a few evenly spaced frames
+    probe = cand[np.unique(np.linspace(0, len(cand) - 1, min(5, len(cand))).round().astype(int))]
+    coord_bytes = 0
+    for cam in ov.cams:
+        pr = ov.project(cam, probe)
+        coord_bytes += sum(
+            len(json.dumps(_frame_overlay(ov, cam, int(f), pr[i]))) for i, f in enumerate(probe)
+        )
+    coord_bytes = max(1.0, coord_bytes / len(probe))
+    img_bytes = 0.0
+    first = {}
+    for cam, path in videos.items():
+        imgs = _read_frames(path, [int(cand[0])])
+        if imgs:
+            uri, _ = _encode_jpeg(imgs[int(cand[0])], cfg)
+            first[cam] = len(uri)
+            img_bytes += len(uri) * 3 / 4
+    n = min(cfg.max_film_frames, int(cfg.overlay_budget_bytes / coord_bytes))
+    if img_bytes:
+        n = min(n, int(cfg.image_budget_bytes / img_bytes))
+    n = int(min(len(cand), max(cfg.min_film_frames, n)))
+    sample = cand[np.unique(np.linspace(0, len(cand) - 1, n).round().astype(int))]
+    out: dict[str, Any] = {"parents": ov.parents, "frames": sample.astype(int).tolist(), "cameras": []}
+    out["untracked"] = ov.untracked
+    out["sampled_every"] = round(len(cand) / max(1, len(sample)), 2)
+    for cam in ov.cams:
+        size = inp.rig[cam].size_wh if inp.rig is not None and cam in inp.rig.names else None
+        d = inp.detections[cam]
+        if size is None:
+            size = d.image_size_wh
+        if size is None:
+            xy = d.xy_px[np.isfinite(d.xy_px)]
+            size = (
+                (int(np.nanmax(d.xy_px[..., 0]) + 1), int(np.nanmax(d.xy_px[..., 1]) + 1))
+                if xy.size
+                else (640, 480)
+            )
+        view: dict[str, Any] = {
+            "name": cam,
+            "size_wh": [int(size[0]), int(size[1])],
+            "video": _shown_path(videos[cam], inp.lay) if cam in videos else None,
+            "images": [],
+            "image_wh": None,
+        }
+        pr = ov.project(cam, sample)
+        view["overlays"] = [_frame_overlay(ov, cam, int(f), pr[i]) for i, f in enumerate(sample)]
+        if cam in videos:
+            imgs = _read_frames(videos[cam], sample.astype(int).tolist())
+            enc = []
+            for f in sample:
+                img = imgs.get(int(f))
+                if img is None:
+                    enc.append(None)
+                    continue
+                uri, wh = _encode_jpeg(img, cfg)
+                enc.append(uri)
+                view["image_wh"] = wh
+                view["video_wh"] = [int(img.shape[1]), int(img.shape[0])]
+            view["images"] = enc
+            if not imgs:
+                view["note"] = f"video {view['video']} could not be read: detections on a blank canvas"
+        else:
+            view["note"] = "no video found for this camera: detections and reprojections on a blank canvas"
+        out["cameras"].append(view)
+    return out
+
+
+# ----------------------------------------------------------------------------- warnings and problems
+
+
+def warnings_path(root: Path, stage: str) -> Path:
+    """Where the runner keeps the warnings a stage logged when it last ran (a JSON list of strings)."""
+    return Path(root) / ".roomcap" / "warnings" / f"{stage}.json"
+
+
+def _warnings(lay: SessionLayout) -> list[dict[str, str]]:
+    """The warnings the pipeline logged while making the current outputs, by stage (the runner saves
+    them per stage; sessions processed before that show the last run's summary)."""
+    from pipeline.config import STAGES
+
+    out: list[dict[str, str]] = []
+    seen = set()
+    for stage in STAGES:
+        try:
+            msgs = json.loads(warnings_path(lay.root, stage).read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        for m in msgs if isinstance(msgs, list) else []:
+            if str(m) not in seen:
+                seen.add(str(m))
+                out.append({"stage": stage, "message": str(m)})
+    if not out:
+        try:
+            for m in json.loads((lay.root / ".roomcap" / "summary.json").read_text()).get("warnings", []):
+                if str(m) not in seen:
+                    seen.add(str(m))
+                    out.append({"stage": "", "message": str(m)})
+        except (OSError, json.JSONDecodeError, AttributeError):
+            pass
+    return out
+
+
+def _problem(level: str, title: str, detail: str, action: str) -> dict[str, str]:
+    return {"level": level, "title": title, "detail": detail, "action": action}
+
+
+def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
+    """A plain-language list of what looks wrong in this session and what to do about each."""
+    P: list[dict[str, str]] = []
+    rig, T, Q, V = data["rig"], data["tracks"], data["quality"], data["views"]
+    if rig is None:
+        P.append(
+            _problem(
+                "error",
+                "No calibration",
+                "calib/rig.toml is missing.",
+                "Calibrate the rig or import a calibration.",
+            )
+        )
+    elif rig.get("error"):
+        P.append(_problem("error", "Calibration unreadable", rig["error"], "Fix or replace calib/rig.toml."))
+    for cam, msg in (inp.detections_error or {}).items():
+        P.append(_problem("error", f"Detections of {cam} unreadable", msg, "Rerun the keypoints stage."))
+    if not inp.detections:
+        P.append(
+            _problem(
+                "error", "No 2D detections", "keypoints/ has no detection files.", "Run the keypoints stage."
+            )
+        )
+    for name, err in (("poses3d.npz", inp.poses_error), ("tracks.npz", inp.tracks_error)):
+        if err:
+            P.append(
+                _problem("error", f"{name} unreadable", err, "Rerun the stage that writes it (--force).")
+            )
+    if T is None and not inp.tracks_error:
+        P.append(
+            _problem(
+                "error", "No tracks", "track/tracks.npz is missing.", "Run the triangulate and track stages."
+            )
+        )
+    # detection rates: a camera that rarely finds anyone while the others do
+    rates = {
+        c: float(np.mean(np.asarray(d["people"]) > 0)) if d["people"] else 0.0
+        for c, d in data["detections"].items()
+    }
+    if len(rates) > 1:
+        best = max(rates.values())
+        for c, r in rates.items():
+            if best > 0.3 and r < 0.5 * best:
+                P.append(
+                    _problem(
+                        "warning",
+                        f"{c} rarely sees anyone",
+                        f"people were detected in {100 * r:.0f}% of its frames (best camera: "
+                        f"{100 * best:.0f}%).",
+                        f"Look at {c}'s filmstrip: if the room is outside its view, aim it at the capture "
+                        "area; if people "
+                        "are visible but not detected, check focus, exposure and that the lens is not "
+                        "covered.",
+                    )
+                )
+    if Q and not Q.get("error"):
+        cams = [c for c in Q["cameras"] if c["mean_px"] is not None]
+        if cams:
+            med = float(np.median([c["mean_px"] for c in cams]))
+            for c in cams:
+                others = [o["mean_px"] for o in cams if o is not c]
+                ref = float(np.median(others)) if others else med
+                if c["mean_px"] > 8.0 or (c["mean_px"] > 4.0 and c["mean_px"] > 2.0 * ref):
+                    P.append(
+                        _problem(
+                            "warning",
+                            f"{c['name']}: large reprojection error",
+                            f"the 3D lands {c['mean_px']:.1f} px from {c['name']}'s detections on average "
+                            f"(other cameras {ref:.1f} px).",
+                            "Compare the dots (reprojection) with the skeletons (detections) in "
+                            f"{c['name']}'s filmstrip: "
+                            "a steady offset means the camera moved or its calibration is off (recalibrate "
+                            "it); an "
+                            "offset that follows the motion means its video is out of sync (fix the sync "
+                            "offset).",
+                        )
+                    )
+            for c in Q["cameras"]:
+                if len(Q["cameras"]) > 2 and (c["share"] or 0) < 0.2 and Q["n_joints_3d"] > 0:
+                    P.append(
+                        _problem(
+                            "warning",
+                            f"{c['name']} is rarely used",
+                            f"its view went into {100 * (c['share'] or 0):.0f}% of the triangulated joints.",
+                            "It may see little of the capture area, or its detections disagree with the "
+                            "other cameras "
+                            "(calibration or sync): check its filmstrip.",
+                        )
+                    )
+        if Q.get("per_camera_note"):
+            P.append(_problem("info", "No per-camera errors", Q["per_camera_note"], "Rerun triangulate."))
+        pv = [v for v in Q["per_joint_views"] if v is not None]
+        if pv and float(np.mean(pv)) < 2.5 and len(Q["cameras"]) > 2:
+            P.append(
+                _problem(
+                    "info",
+                    "Joints seen by few cameras",
+                    f"a triangulated joint was seen by {float(np.mean(pv)):.1f} cameras on average.",
+                    "Two views give little redundancy against a wrong detection: add cameras or aim them "
+                    "so each "
+                    "part of the room is seen by three or more.",
+                )
+            )
+        pj = Q["per_joint_mean_px"]
+        vals = [v for v in pj if v is not None]
+        if vals:
+            m = float(np.mean(vals))
+            worst = [Q["joint_names"][j] for j, v in enumerate(pj) if v is not None and v > max(2.0 * m, 6.0)]
+            if worst:
+                P.append(
+                    _problem(
+                        "info",
+                        "Some joints fit worse than the rest",
+                        f"{', '.join(worst)}: more than twice the mean error ({m:.1f} px).",
+                        "Usual for fast or often occluded joints (wrists, ankles); if it is a hip or "
+                        "shoulder, the 2D "
+                        "model may confuse left and right or the skeleton definitions differ between views.",
+                    )
+                )
+    if T is not None:
+        ev = T["events"]
+        fps_full = T["fps"] * T["step"]
+        for k, tid in enumerate(T["track_id"]):
+            pres, un = ev["present_frames"][k], ev["unobserved_frames"][k]
+            if pres and un / pres > 0.1 and un / fps_full >= 0.5:
+                P.append(
+                    _problem(
+                        "info",
+                        f"id {tid} carried without being seen",
+                        f"{un / fps_full:.1f} s of its {pres / fps_full:.1f} s ({100 * un / pres:.0f}%) "
+                        "were predicted or "
+                        "interpolated, not observed.",
+                        "Its positions there are guesses (hatched in the timeline): if it was in view, the "
+                        "detections "
+                        "missed it (occlusion, low light); if not, more camera coverage would help.",
+                    )
+                )
+        jumps = ev["jumps"]
+        if jumps:
+            swaps = [j for j in jumps if j["swap_with"] is not None]
+            where = ", ".join(
+                f"id {j['id']} at frame {j['frame']} ({j['dist_m']:.2f} m"
+                + (f", to where id {j['swap_with']} was" if j["swap_with"] is not None else "")
+                + ")"
+                for j in jumps[:6]
+            )
+            P.append(
+                _problem(
+                    "warning",
+                    f"{len(jumps)} sudden jump{'s' if len(jumps) > 1 else ''}"
+                    + (
+                        f", {len(swaps)} suspected identity swap{'s' if len(swaps) > 1 else ''}"
+                        if swaps
+                        else ""
+                    ),
+                    where + (" …" if len(jumps) > 6 else "") + ".",
+                    "Check those frames in the filmstrips (red marks on the timeline): if two people "
+                    "crossed, their "
+                    "identities may have been exchanged; the particle tracker (--tracker particle) keeps "
+                    "identities "
+                    "better through crossings. A jump of one person alone is usually a wrong 3D pose (bad "
+                    "association).",
+                )
+            )
+        people = (
+            max((sum(1 for v in col if v) for col in zip(*T["present"], strict=True)), default=0)
+            if T["present"]
+            else 0
+        )
+        if people and len(T["track_id"]) > 2 * people + 1:
+            P.append(
+                _problem(
+                    "info",
+                    "Identities fragmented",
+                    f"{len(T['track_id'])} tracks for at most {people} people at once.",
+                    "People lost and found again get new ids: check the timeline for short tracks; longer "
+                    "occlusion "
+                    "handling (tracker options) or more coverage helps.",
+                )
+            )
+    figs = (rig or {}).get("figures") or {}
+    if figs.get("unit") == "px":
+        for cam, f in figs.get("cameras", {}).items():
+            for key in ("intrinsic_rms_px", "extrinsic_rms_px"):
+                if key in f and f[key] > 1.0:
+                    P.append(
+                        _problem(
+                            "warning",
+                            f"{cam}: calibration {key.split('_')[0]} RMS {f[key]:.2f} px",
+                            "above 1 px, its 3D will be less accurate.",
+                            "Recalibrate with more board views covering the whole image.",
+                        )
+                    )
+    size = [
+        w["message"] for w in data["warnings"] if "calibration" in w["message"] and "video" in w["message"]
+    ]
+    if size:
+        P.append(
+            _problem(
+                "warning",
+                "Video size differs from the calibration"
+                + (f" ({len(size)} cameras)" if len(size) > 1 else ""),
+                "; ".join(size),
+                "The keypoints are used as they are (codec padding). If the overlays look shifted or "
+                "scaled, recalibrate at the video's resolution.",
+            )
+        )
+    for w in data["warnings"]:
+        if "differ in length" in w["message"]:
+            P.append(
+                _problem(
+                    "warning",
+                    "Videos of different length",
+                    w["message"],
+                    "Check the sync: trim the videos to a common start.",
+                )
+            )
+    if V:
+        for c in V["cameras"]:
+            if c.get("note") and c["note"].startswith("video") and "could not be read" in c["note"]:
+                P.append(
+                    _problem("info", f"{c['name']}: video unreadable", c["note"], "Check the video file.")
+                )
+    return P
+
+
+# ----------------------------------------------------------------------------- the page
 
 
 def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
@@ -142,20 +1039,49 @@ def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
     return rows
 
 
-def collect(lay: SessionLayout, title: str) -> dict[str, Any]:
+def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
+    path = lay.root / "forecast" / "preview.npz"
+    if not path.exists():
+        return None
+    try:
+        d = load_npz(path)
+    except Exception:
+        return None
+    keys = {"xyz_m", "track_id", "start_index"}
+    if not keys <= set(d):
+        return None
+    xyz = d["xyz_m"]
+    if xyz.ndim != 4:  # (K,H,J,3) expected
+        return None
+    return {
+        "xyz": _r(xyz),
+        "track_id": d["track_id"].tolist(),
+        "start_index": int(d["start_index"]),
+        "model": str(d.get("model", "")),
+        "fps": float(d["fps"]) if "fps" in d else None,
+    }
+
+
+def collect(lay: SessionLayout, title: str, config: ReportConfig | None = None) -> dict[str, Any]:
+    """Everything the page shows, as plain data (the JSON embedded in the page)."""
+    cfg = config or ReportConfig()
+    t0 = time.perf_counter()
     meta = {}
     if lay.session_toml.exists():
         try:
             meta = load_toml(lay.session_toml)
         except Exception:
             meta = {}
-    return {
+    inp = _load(lay)
+    data: dict[str, Any] = {
         "title": title,
-        "rig": _rig_data(lay),
-        "detections": _detection_rates(lay),
-        "tracks": _tracks_data(lay),
+        "rig": _rig_data(inp),
+        "detections": _detection_rates(inp),
+        "tracks": _tracks_data(inp, cfg),
+        "quality": _quality(inp, cfg),
         "forecast": _forecast_data(lay),
         "provenance": _provenance(lay),
+        "warnings": _warnings(lay),
         # redacted again: a session recorded by an older version may hold a camera URL with its password
         "session": {
             k: redact(v) if isinstance(v, str) else v
@@ -163,310 +1089,195 @@ def collect(lay: SessionLayout, title: str) -> dict[str, Any]:
             if isinstance(v, (str, int, float))
         },
     }
+    t1 = time.perf_counter()
+    data["views"] = _views_data(inp, cfg)
+    data["problems"] = _problems(data, inp)
+    # (no timings in the page: the same outputs make the same report, byte for byte)
+    log.info("report data %.2f s, camera views %.2f s", t1 - t0, time.perf_counter() - t1)
+    return data
+
+
+def _asset(name: str) -> str:
+    return (_ASSETS / name).read_text(encoding="utf-8")
 
 
 def render(data: dict[str, Any]) -> str:
-    payload = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
+    payload = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
     return (
-        _TEMPLATE.replace("__TITLE__", html.escape(data["title"]))
+        _asset("report.html")
+        .replace("__TITLE__", html.escape(data["title"]))
+        .replace("__STYLE__", _asset("report.css"))
+        .replace("__SCRIPT__", _asset("report.js").replace("</script", "<\\/script"))
         .replace("__DATA__", payload)
-        .replace("__SCRIPT__", _SCRIPT)
     )
 
 
-def write_report(lay: SessionLayout, title: str = "") -> Path:
-    atomic_write_text(lay.report_html, render(collect(lay, title or lay.root.name)))
+def write_report(lay: SessionLayout, title: str = "", config: ReportConfig | None = None) -> Path:
+    """Write ``report/report.html`` (atomically); returns its path."""
+    atomic_write_text(lay.report_html, render(collect(lay, title or lay.root.name, config)))
     return lay.report_html
 
 
-_TEMPLATE = """<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>__TITLE__ — roomcap report</title>
-<style>
-:root{--ink:#1d2330;--muted:#6b7385;--card:#fff;--bg:#eef0f4;--line:#e3e5ea}
-*{box-sizing:border-box}
-body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;margin:0;background:var(--bg);color:var(--ink)}
-header{background:linear-gradient(90deg,#161b26,#243049);color:#fff;padding:16px 24px 18px}
-header h1{margin:0;font-size:22px;font-weight:600;letter-spacing:.2px}
-header .sub{color:#aab3c5;font-size:13px;margin-top:3px}
-.cards{display:flex;gap:12px;flex-wrap:wrap;margin-top:14px}
-.card{background:#ffffff14;border:1px solid #ffffff22;border-radius:10px;padding:8px 14px;min-width:110px}
-.card b{display:block;font-size:22px;font-weight:600}.card span{font-size:11px;color:#aab3c5;text-transform:uppercase;letter-spacing:.6px}
-main{display:grid;grid-template-columns:minmax(560px,3fr) minmax(340px,2fr);gap:16px;padding:16px}
-section{background:var(--card);border-radius:10px;padding:12px 16px 14px;box-shadow:0 1px 3px #0001,0 4px 14px #0000000a;margin-bottom:16px}
-h2{font-size:14px;margin:2px 0 10px;font-weight:600}h2 small{font-weight:400;color:var(--muted);margin-left:6px}
-table{border-collapse:collapse;font-size:12px;width:100%}td,th{border-bottom:1px solid var(--line);padding:4px 6px;text-align:left}
-th{color:var(--muted);font-weight:500}canvas{display:block;width:100%}
-#viewer{background:#10141c;border-radius:8px;cursor:grab}
-.controls{display:flex;gap:10px;align-items:center;margin-top:8px}.controls input[type=range]{flex:1;accent-color:#4363d8}
-button{border:0;background:#1d2330;color:#fff;border-radius:6px;padding:5px 12px;font-size:12px;cursor:pointer}
-.legend{margin-top:6px}.legend span{display:inline-flex;align-items:center;margin-right:12px;font-size:12px}
-.swatch{display:inline-block;width:11px;height:11px;border-radius:3px;margin-right:5px}
-.muted{color:var(--muted);font-size:12px}details summary{cursor:pointer;font-size:13px;font-weight:600}
-#errors{color:#b00;white-space:pre-wrap;font-size:12px}#errsec{display:none}
-</style></head><body>
-<header><h1>__TITLE__</h1><div class="sub" id="subtitle"></div><div class="cards" id="cards"></div></header>
-<main>
-<div>
-<section><h2>People in 3D<small id="viewerNote"></small></h2><canvas id="viewer" width="1000" height="620"></canvas>
-<div class="controls"><button id="play">&#9654; Play</button><input id="frame" type="range" min="0" max="0" value="0">
-<span id="frameLabel" class="muted"></span></div><div class="legend" id="legend"></div>
-<div class="muted">Drag to orbit, wheel to zoom. Floor lines: where each person walked; dashed: the forecast after the last frame (ghosts). Halo size: positional uncertainty.</div>
-</section>
-<section><h2>Who was there when<small>one row per track</small></h2><canvas id="timeline" width="1000" height="150"></canvas></section>
-<section><h2>Uncertainty<small>mean per-joint standard deviation, mm</small></h2><canvas id="uncertainty" width="1000" height="150"></canvas></section>
-</div>
-<div>
-<section><h2>Room from above<small>cameras, their fields of view and the paths walked</small></h2><canvas id="layout" width="560" height="420"></canvas></section>
-<section><h2>Detections per camera<small>people found in each frame</small></h2><canvas id="detections" width="560" height="170"></canvas></section>
-<section><h2>Calibration</h2><table id="cams"></table></section>
-<section><details><summary>Provenance (what each output was made from)</summary><table id="prov"></table></details></section>
-<section id="errsec"><h2>Page errors</h2><div id="errors"></div></section>
-</div>
-</main>
-<script>
-window.__errors=[];
-function __showErr(){var el=document.getElementById('errors');if(el){el.textContent=window.__errors.join('\\n');document.getElementById('errsec').style.display='block';}}
-window.addEventListener('error',function(e){window.__errors.push(String(e.message));__showErr();});
-(function(){var ce=console.error;console.error=function(){window.__errors.push(Array.from(arguments).join(' '));__showErr();ce.apply(console,arguments);};})();
-</script>
-<script id="data" type="application/json">__DATA__</script>
-<script>__SCRIPT__</script>
-</body></html>
-"""
+# ----------------------------------------------------------------------------- overlay videos
 
-_SCRIPT = r"""
-(function(){
-const D = JSON.parse(document.getElementById('data').textContent);
-const COLORS = ['#e6194b','#3cb44b','#4363d8','#f58231','#911eb4','#42d4f4','#f032e6','#bfef45','#fabed4',
-                '#469990','#dcbeff','#9a6324','#fffac8','#800000','#aaffc3','#808000'];
-const color = k => COLORS[k % COLORS.length];
-const $ = id => document.getElementById(id);
-const fin = p => p && p[0] !== null && p[1] !== null && p[2] !== null;
-function row(tbl, cells, head){const tr=document.createElement('tr');for(const c of cells){const td=document.createElement(head?'th':'td');td.textContent=c;tr.appendChild(td);}tbl.appendChild(tr);}
-function hidpi(cv){ const r = window.devicePixelRatio || 1; if (r !== 1) { const w = cv.width, h = cv.height; cv.width = w * r; cv.height = h * r; cv.getContext('2d').scale(r, r); cv._w = w; cv._h = h; } else { cv._w = cv.width; cv._h = cv.height; } return cv.getContext('2d'); }
 
-// ---------------------------------------------------------------- data prepared once
-const T = D.tracks, F = D.forecast;
-const nFrames = T ? T.xyz.length : 0, nTracks = T ? T.track_id.length : 0;
-const fps = T ? (T.fps || 25) : 25;
-const J = T ? T.joint_names.length : 0;
-const jPelvis = T ? T.joint_names.indexOf('pelvis') : -1;
-const jHips = T ? [T.joint_names.indexOf('left_hip'), T.joint_names.indexOf('right_hip')] : [-1, -1];
-const jHead = T ? Math.max(T.joint_names.indexOf('nose'), T.joint_names.indexOf('neck')) : -1;
-function rootOf(pose){ if (!pose) return null;
-  if (jPelvis >= 0 && fin(pose[jPelvis])) return pose[jPelvis];
-  const h = jHips.filter(j => j >= 0 && fin(pose[j])).map(j => pose[j]);
-  if (h.length) return [0,1,2].map(a => h.reduce((s, p) => s + p[a], 0) / h.length);
-  const any = pose.filter(fin); if (!any.length) return null;
-  return [0,1,2].map(a => any.reduce((s, p) => s + p[a], 0) / any.length); }
-const roots = T ? T.xyz.map(fr => fr.map(rootOf)) : [];              // [t][k] -> xyz | null
-const peopleAt = roots.map(fr => fr.filter(r => r).length);
-const maxPeople = peopleAt.length ? Math.max(...peopleAt) : 0;
-const fcRoots = F ? F.xyz.map(traj => traj.map(rootOf)) : [];
-const fcFps = F ? (F.fps || fps) : fps;
-const fcTrack = F ? F.track_id.map(id => T ? T.track_id.indexOf(id) : -1) : [];
+def _bgr(k: int) -> tuple[int, int, int]:
+    h = _COLORS[k % len(_COLORS)].lstrip("#")
+    r, g, b = (int(h[i : i + 2], 16) for i in (0, 2, 4))
+    return (b, g, r)
 
-// ---------------------------------------------------------------- header: cards, tables
-const dur = T && nFrames ? (T.frame_index[nFrames - 1] - T.frame_index[0] + 1) / (fps * T.step) : 0;
-$('subtitle').textContent = `roomcap session report · ${D.rig ? D.rig.cameras.length : 0} cameras · ` +
-  (T ? `tracked by ${T.source}` : 'no tracks yet');
-const cards = [[D.rig ? D.rig.cameras.length : '–', 'cameras'], [T ? dur.toFixed(1) + ' s' : '–', 'recording'],
-  [T ? nFrames * T.step : '–', 'frames'], [T ? maxPeople : '–', 'people at once'], [T ? nTracks : '–', 'tracks'],
-  [F ? (F.model || 'yes') : 'none', 'forecast' + (F && F.xyz[0] ? ` +${(F.xyz[0].length / fcFps).toFixed(1)} s` : '')]];
-for (const [v, k] of cards) { const d = document.createElement('div'); d.className = 'card';
-  d.innerHTML = '<b></b><span></span>'; d.firstChild.textContent = v; d.lastChild.textContent = k; $('cards').appendChild(d); }
-const ct = $('cams');
-if (D.rig && D.rig.cameras.length) { row(ct, ['camera','image','focal (px)','field of view','position (m)'], true);
-  for (const c of D.rig.cameras) row(ct, [c.name, c.size_wh.join('×'), c.f_px[0].toFixed(0), c.fov_deg ? c.fov_deg.map(v => v.toFixed(0) + '°').join(' × ') : '-',
-    c.center_m.map(v => v.toFixed(2)).join(', ')]); }
-else row(ct, [D.rig && D.rig.error ? 'calibration unreadable: ' + D.rig.error : 'no calibration']);
-const pt = $('prov'); row(pt, ['stage','version','model sha256','inputs'], true);
-for (const p of D.provenance) row(pt, [p.stage, p.version, p.model_sha256 || '-', p.inputs]);
 
-// ---------------------------------------------------------------- timeline, uncertainty, detections
-let frame = 0;
-const charts = [];
-function timeline(){ const cv = $('timeline'), c = cv.getContext('2d'), W = cv.width, H = cv.height, L = 56, R = 10;
-  c.clearRect(0, 0, W, H); c.font = '11px system-ui,sans-serif';
-  if (!T || !nFrames) { c.fillStyle = '#999'; c.fillText('no tracks', 10, 20); return; }
-  const n = T.present[0] ? T.present[0].length : nFrames, rowH = Math.max(5, Math.min(20, (H - 26) / Math.max(1, nTracks)));
-  const x = t => L + (W - L - R) * t / Math.max(1, n);
-  T.present.forEach((pres, k) => { const y = 4 + k * rowH;
-    c.fillStyle = '#f3f4f7'; c.fillRect(L, y, W - L - R, rowH - 3);
-    c.fillStyle = color(k); let s = -1;
-    for (let t = 0; t <= n; t++) { const on = t < n && pres[t];
-      if (on && s < 0) s = t; if (!on && s >= 0) { c.beginPath(); c.roundRect ? c.roundRect(x(s), y, x(t) - x(s), rowH - 3, 3) : c.rect(x(s), y, x(t) - x(s), rowH - 3); c.fill(); s = -1; } }
-    c.fillStyle = '#333'; c.fillText('id ' + T.track_id[k], 6, y + rowH - 6); });
-  axisSeconds(c, L, R, W, H, n);
-  c.strokeStyle = '#1d2330'; c.lineWidth = 2; const px = x(frame * T.step + 0.5); c.beginPath(); c.moveTo(px, 0); c.lineTo(px, H - 16); c.stroke(); }
-function axisSeconds(c, L, R, W, H, n){ c.fillStyle = '#777'; c.font = '10px system-ui,sans-serif';
-  const secs = n / (fps * (T ? T.step : 1)), step = secs > 60 ? 10 : secs > 20 ? 5 : secs > 5 ? 1 : 0.5;
-  for (let s = 0; s <= secs + 1e-9; s += step) { const px = L + (W - L - R) * s / Math.max(1e-9, secs); c.fillText(s.toFixed(step < 1 ? 1 : 0) + ' s', px - 8, H - 3); } }
-function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W = cv.width, H = cv.height, L = 56, R = 10, B = 18;
-  c.clearRect(0, 0, W, H); c.font = '11px system-ui,sans-serif';
-  if (!T || !T.mean_std_m.length) { c.fillStyle = '#999'; c.fillText('no uncertainty in the track file', 10, 20); return; }
-  const n = T.mean_std_m[0].length; let maxY = 1;
-  for (const s of T.mean_std_m) for (const v of s) if (v !== null && 1000 * v > maxY) maxY = 1000 * v;
-  maxY = Math.ceil(maxY / 10) * 10;
-  const x = t => L + (W - L - R) * t / Math.max(1, n - 1), y = v => H - B - (H - B - 6) * v / maxY;
-  c.strokeStyle = '#eceef2'; c.fillStyle = '#777';
-  for (let g = 0; g <= maxY; g += maxY / 4) { c.beginPath(); c.moveTo(L, y(g)); c.lineTo(W - R, y(g)); c.stroke(); c.fillText(g.toFixed(0) + ' mm', 4, y(g) + 4); }
-  T.mean_std_m.forEach((s, k) => { c.strokeStyle = color(k); c.lineWidth = 1.6; c.beginPath(); let pen = false;
-    s.forEach((v, t) => { if (v === null) { pen = false; return; } const px = x(t), py = y(1000 * v); if (pen) c.lineTo(px, py); else c.moveTo(px, py); pen = true; }); c.stroke(); });
-  axisSeconds(c, L, R, W, H, n);
-  c.strokeStyle = '#1d2330'; c.lineWidth = 2; const px = x(frame * T.step); c.beginPath(); c.moveTo(px, 0); c.lineTo(px, H - B); c.stroke(); }
-(function detections(){ const cv = $('detections'), c = cv.getContext('2d'), W = cv.width, L = 64, R = 8;
-  const cams = Object.keys(D.detections); c.font = '11px system-ui,sans-serif';
-  if (!cams.length) { c.fillStyle = '#999'; c.fillText('no detections', 10, 20); return; }
-  const rowH = Math.min(30, (cv.height - 24) / cams.length); let maxP = 1;
-  for (const k of cams) for (const v of D.detections[k].people) if (v > maxP) maxP = v;
-  cams.forEach((cam, i) => { const p = D.detections[cam].people, n = p.length, y = 4 + i * rowH;
-    const bins = Math.min(n, W - L - R), bw = (W - L - R) / Math.max(1, bins);
-    for (let b = 0; b < bins; b++) { const a = Math.floor(b * n / bins), e = Math.max(a + 1, Math.floor((b + 1) * n / bins));
-      let s = 0; for (let t = a; t < e; t++) s += p[t]; const v = s / (e - a) / maxP;
-      c.fillStyle = v <= 0 ? '#f1f2f5' : `hsl(${220 - 190 * v}, 70%, ${88 - 45 * v}%)`; c.fillRect(L + b * bw, y, Math.ceil(bw), rowH - 4); }
-    const mean = p.reduce((s, v) => s + v, 0) / Math.max(1, n);
-    c.fillStyle = '#333'; c.fillText(cam, 4, y + rowH / 2 + 2); c.fillStyle = '#777'; c.fillText(mean.toFixed(1) + '/frame', 4, y + rowH / 2 + 13 > y + rowH ? y + rowH : y + rowH / 2 + 13); });
-  const y0 = 4 + cams.length * rowH + 4; c.fillStyle = '#777'; c.fillText('0', L, y0 + 10);
-  for (let i = 0; i <= 20; i++) { const v = i / 20; c.fillStyle = `hsl(${220 - 190 * v}, 70%, ${88 - 45 * v}%)`; c.fillRect(L + 12 + i * 6, y0 + 2, 6, 10); }
-  c.fillStyle = '#777'; c.fillText(maxP + ' people', L + 12 + 21 * 6 + 4, y0 + 10);
-})();
+# the page's identity colours (report.js COLORS), the same track gets the same colour in the videos
+_COLORS = (
+    "#e6194b #3cb44b #4363d8 #f58231 #911eb4 #42d4f4 #f032e6 #bfef45 #fabed4 #469990 #dcbeff #9a6324 "
+    "#fffac8 #800000 #aaffc3 #808000"
+).split()
 
-// ---------------------------------------------------------------- room from above
-(function layout(){ const cv = $('layout'), c = cv.getContext('2d'), W = cv.width, H = cv.height;
-  c.fillStyle = '#fbfbfd'; c.fillRect(0, 0, W, H);
-  const pts = [];
-  if (D.rig) for (const k of D.rig.cameras) pts.push(k.center_m);
-  for (const fr of roots) for (const r of fr) if (r) pts.push(r);
-  if (!pts.length) { c.fillStyle = '#999'; c.fillText('nothing to draw', 10, 20); return; }
-  let minX = Math.min(...pts.map(p => p[0])) - 0.6, maxX = Math.max(...pts.map(p => p[0])) + 0.6;
-  let minY = Math.min(...pts.map(p => p[1])) - 0.6, maxY = Math.max(...pts.map(p => p[1])) + 0.6;
-  const s = Math.min((W - 30) / (maxX - minX), (H - 30) / (maxY - minY));
-  const ox = (W - s * (maxX - minX)) / 2, oy = (H - s * (maxY - minY)) / 2;
-  const P = p => [ox + (p[0] - minX) * s, H - oy - (p[1] - minY) * s];
-  c.strokeStyle = '#e6e8ee'; c.lineWidth = 1;
-  for (let g = Math.ceil(minX); g <= maxX; g++) { const a = P([g, minY]), b = P([g, maxY]); c.beginPath(); c.moveTo(a[0], a[1]); c.lineTo(b[0], b[1]); c.stroke(); }
-  for (let g = Math.ceil(minY); g <= maxY; g++) { const a = P([minX, g]), b = P([maxX, g]); c.beginPath(); c.moveTo(a[0], a[1]); c.lineTo(b[0], b[1]); c.stroke(); }
-  c.fillStyle = '#999'; c.font = '10px system-ui,sans-serif'; c.fillText('grid: 1 m', 8, H - 8);
-  if (D.rig) D.rig.cameras.forEach(k => { const [x, y] = P(k.center_m), a = k.axis, h = Math.atan2(a[1], a[0]);
-    const half = (k.fov_deg ? k.fov_deg[0] : 60) * Math.PI / 360, r = 2.5 * s;
-    c.fillStyle = '#4363d814'; c.beginPath(); c.moveTo(x, y); c.arc(x, y, r, -(h + half), -(h - half)); c.closePath(); c.fill();
-    c.fillStyle = '#1d2330'; c.beginPath(); c.arc(x, y, 5, 0, 7); c.fill();
-    c.font = '11px system-ui,sans-serif'; c.fillText(k.name, x + 8, y - 6); });
-  for (let k = 0; k < nTracks; k++) { c.strokeStyle = color(k); c.lineWidth = 2.2; c.beginPath(); let pen = false, last = null, first = null;
-    for (let t = 0; t < nFrames; t++) { const r = roots[t][k]; if (!r) { pen = false; continue; } const q = P(r);
-      if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; last = q; first = first || q; }
-    c.stroke(); if (first) { c.fillStyle = color(k); c.beginPath(); c.arc(first[0], first[1], 3, 0, 7); c.fill(); }
-    if (last) { c.beginPath(); c.arc(last[0], last[1], 5, 0, 7); c.fill(); } }
-  fcRoots.forEach((traj, i) => { const k = fcTrack[i]; const r0 = traj.find(r => r); if (!r0 || k < 0) return;
-    c.strokeStyle = color(k); c.lineWidth = 2; c.setLineDash([5, 4]); c.beginPath(); let pen = false;
-    const lastObs = roots.length ? roots[nFrames - 1][k] : null; if (lastObs) { const q = P(lastObs); c.moveTo(q[0], q[1]); pen = true; }
-    for (const r of traj) { if (!r) continue; const q = P(r); if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; }
-    c.stroke(); c.setLineDash([]); });
-})();
 
-// ---------------------------------------------------------------- 3D viewer
-const cv = $('viewer'), ctx = cv.getContext('2d');
-let yaw = -0.9, pitch = 0.42, zoom = 1.0, playing = false;
-let center = [0, 0, 0.9], radius = 3;
-(function fit(){ const pts = []; for (const fr of roots) for (const r of fr) if (r) pts.push(r);
-  for (const traj of fcRoots) for (const r of traj) if (r) pts.push(r);
-  if (!pts.length && D.rig) for (const k of D.rig.cameras) pts.push(k.center_m);
-  if (!pts.length) return;
-  const lo = [0, 1].map(a => Math.min(...pts.map(p => p[a]))), hi = [0, 1].map(a => Math.max(...pts.map(p => p[a])));
-  center = [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.9];
-  radius = Math.max(1.3, 0.5 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1]) + 0.7);
-})();
-function project(p){ // orbit camera looking at `center`, z up
-  const x = p[0] - center[0], y = p[1] - center[1], z = p[2] - center[2];
-  const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
-  const xr = cy * x - sy * y, yr = sy * x + cy * y;
-  const depth = cp * yr + sp * z, up = -sp * yr + cp * z;
-  const dist = radius * 2.1 / zoom, f = cv.height * 0.95;
-  const d = dist + depth; if (d < 0.05) return null;
-  return [cv.width / 2 + f * xr / d, cv.height * 0.56 - f * up / d, d, f / d];
-}
-function line(a, b, col, w, dash){ const p = project(a), q = project(b); if (!p || !q) return;
-  ctx.strokeStyle = col; ctx.lineWidth = w; if (dash) ctx.setLineDash(dash); ctx.beginPath(); ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]); ctx.stroke(); if (dash) ctx.setLineDash([]); }
-function floorOf(p){ return [p[0], p[1], 0]; }
-function skeleton(pose, col, w, std_m, alpha){
-  if (!pose) return; ctx.globalAlpha = alpha === undefined ? 1 : alpha; ctx.lineCap = 'round';
-  // shadow on the floor first
-  ctx.globalAlpha *= 0.35;
-  T.parents.forEach((p, j) => { if (p < 0 || !fin(pose[j]) || !fin(pose[p])) return; line(floorOf(pose[j]), floorOf(pose[p]), '#000', w + 2); });
-  ctx.globalAlpha = alpha === undefined ? 1 : alpha;
-  T.parents.forEach((p, j) => { if (p < 0 || !fin(pose[j]) || !fin(pose[p])) return; line(pose[j], pose[p], col, w); });
-  pose.forEach(j => { if (!fin(j)) return; const q = project(j); if (!q) return;
-    if (std_m) { const r = Math.min(40, std_m * q[3]); ctx.fillStyle = col; ctx.globalAlpha *= 0.18; ctx.beginPath(); ctx.arc(q[0], q[1], Math.max(2, r), 0, 7); ctx.fill(); ctx.globalAlpha = alpha === undefined ? 1 : alpha; }
-    ctx.fillStyle = col; ctx.beginPath(); ctx.arc(q[0], q[1], Math.max(1.5, w * 0.8), 0, 7); ctx.fill(); });
-  ctx.globalAlpha = 1;
-}
-function drawCamera(k){ const c0 = k.center_m, a = k.axis, r = k.right || [0, 0, 0], u = k.up || [0, 0, 1];
-  const tw = Math.tan((k.fov_deg ? k.fov_deg[0] : 60) * Math.PI / 360) * 0.35, th = Math.tan((k.fov_deg ? k.fov_deg[1] : 40) * Math.PI / 360) * 0.35;
-  const corner = (sx, sy) => [0, 1, 2].map(i => c0[i] + 0.35 * a[i] + sx * tw * r[i] + sy * th * u[i]);
-  const cs = [corner(-1, -1), corner(1, -1), corner(1, 1), corner(-1, 1)];
-  for (let i = 0; i < 4; i++) { line(c0, cs[i], '#8f9bb3', 1.2); line(cs[i], cs[(i + 1) % 4], '#8f9bb3', 1.2); }
-  line(cs[2], cs[3], '#c9d2e6', 2.4); // top edge: which way is up
-  const q = project(c0); if (q) { ctx.fillStyle = '#aab3c5'; ctx.font = '12px system-ui,sans-serif'; ctx.fillText(k.name, q[0] + 6, q[1] - 6); } }
-function draw(){
-  ctx.fillStyle = '#10141c'; ctx.fillRect(0, 0, cv.width, cv.height);
-  const g = Math.ceil(radius * 1.6);
-  for (let i = -g; i <= g; i++) { const cx = Math.round(center[0]) + i, cy = Math.round(center[1]) + i;
-    line([cx, Math.round(center[1]) - g, 0], [cx, Math.round(center[1]) + g, 0], '#222a38', 1);
-    line([Math.round(center[0]) - g, cy, 0], [Math.round(center[0]) + g, cy, 0], '#222a38', 1); }
-  if (D.rig) for (const k of D.rig.cameras) drawCamera(k);
-  if (!T || !nFrames) { ctx.fillStyle = '#aab3c5'; ctx.font = '16px system-ui,sans-serif'; ctx.fillText('No tracks in this session yet.', 30, 40); return; }
-  // floor paths: the whole track faintly, the last second brightly
-  const trail = Math.round(fps * 1.0);
-  for (let k = 0; k < nTracks; k++) { let prev = null;
-    for (let t = 0; t <= frame; t++) { const r = roots[t][k]; if (!r) { prev = null; continue; }
-      if (prev) { ctx.globalAlpha = t > frame - trail ? 0.9 : 0.22; line(floorOf(prev), floorOf(r), color(k), t > frame - trail ? 2.5 : 1.5); } prev = r; }
-    ctx.globalAlpha = 1; }
-  // forecast: dashed future paths from the last frame; ghosts near the end of playback
-  const nearEnd = frame >= nFrames - 1 - Math.round(fps * 0.5);
-  fcRoots.forEach((traj, i) => { const k = fcTrack[i]; if (k < 0) return; let prev = roots[nFrames - 1][k];
-    ctx.globalAlpha = nearEnd ? 0.95 : 0.45;
-    for (const r of traj) { if (!r) continue; if (prev) line(floorOf(prev), floorOf(r), color(k), 2, [6, 5]); prev = r; }
-    ctx.globalAlpha = 1;
-    if (nearEnd) { const H = traj.length, step = Math.max(1, Math.round(fcFps * 0.5));
-      for (let h = step - 1; h < H; h += step) skeleton(F.xyz[i][h], color(k), 1.6, 0, 0.16 + 0.3 * (1 - h / H)); } });
-  const fr = T.xyz[frame];
-  fr.forEach((pose, k) => { skeleton(pose, color(k), 3.2, T.mean_std_m.length ? T.mean_std_m[k][frame] : 0);
-    const top = pose ? (fin(pose[jHead]) ? pose[jHead] : rootOf(pose)) : null;
-    if (top) { const q = project([top[0], top[1], top[2] + 0.25]); if (q) { ctx.font = 'bold 12px system-ui,sans-serif';
-      const label = 'id ' + T.track_id[k], w = ctx.measureText(label).width + 10; ctx.fillStyle = color(k); ctx.globalAlpha = 0.9;
-      ctx.beginPath(); ctx.roundRect ? ctx.roundRect(q[0] - w / 2, q[1] - 16, w, 18, 9) : ctx.rect(q[0] - w / 2, q[1] - 16, w, 18); ctx.fill();
-      ctx.globalAlpha = 1; ctx.fillStyle = '#fff'; ctx.fillText(label, q[0] - w / 2 + 5, q[1] - 3); } } });
-  ctx.fillStyle = '#aab3c5'; ctx.font = '13px system-ui,sans-serif';
-  const tSec = (T.frame_index[frame] - T.frame_index[0]) / (fps * T.step);
-  ctx.fillText(`${tSec.toFixed(2)} s · frame ${T.frame_index[frame]} · ${peopleAt[frame]} people`, 16, 26);
-  if (F && nearEnd) ctx.fillText(`forecast: ${F.model}, ghosts every 0.5 s`, 16, 46);
-  $('frameLabel').textContent = `frame ${T.frame_index[frame]} / ${T.frame_index[nFrames - 1]}`;
-  timeline(); uncertainty();
-}
-const slider = $('frame'); slider.max = Math.max(0, nFrames - 1);
-slider.addEventListener('input', () => { frame = +slider.value; draw(); });
-$('play').addEventListener('click', () => { playing = !playing; $('play').innerHTML = playing ? '&#10074;&#10074; Pause' : '&#9654; Play'; });
-let drag = null;
-cv.addEventListener('mousedown', e => drag = [e.clientX, e.clientY]);
-window.addEventListener('mouseup', () => drag = null);
-window.addEventListener('mousemove', e => { if (!drag) return; yaw += (e.clientX - drag[0]) * 0.01;
-  pitch = Math.max(-0.1, Math.min(1.5, pitch + (e.clientY - drag[1]) * 0.01)); drag = [e.clientX, e.clientY]; draw(); });
-cv.addEventListener('wheel', e => { e.preventDefault(); zoom *= e.deltaY < 0 ? 1.1 : 0.9; draw(); }, {passive: false});
-if (T) { const lg = $('legend'); T.track_id.forEach((id, k) => { const s = document.createElement('span');
-  const first = T.present[k].indexOf(1), last = T.present[k].lastIndexOf(1);
-  s.innerHTML = `<i class="swatch" style="background:${color(k)}"></i>`; s.appendChild(document.createTextNode(
-    `id ${id} (${first < 0 ? 0 : ((last - first + 1) / (fps * T.step)).toFixed(1)} s)`)); lg.appendChild(s); }); }
-$('viewerNote').textContent = T ? `${nTracks} tracks, ${maxPeople} people at most at once` : '';
-// start where a still picture says most: the last frame with its forecast, else the frame with the most people
-if (T && nFrames) { let best = 0; peopleAt.forEach((n, t) => { if (n >= peopleAt[best]) best = t; });
-  if (F && peopleAt[nFrames - 1] > 0) best = nFrames - 1; frame = best; slider.value = best; }
-draw();
-document.body.setAttribute('data-rendered', T ? String(nTracks) : '0');
-let last = 0;
-function tick(ts){ if (playing && T && nFrames > 1 && ts - last > 1000 / Math.min(30, fps)) {
-  frame = (frame + 1) % nFrames; slider.value = frame; draw(); last = ts; } requestAnimationFrame(tick); }
-requestAnimationFrame(tick);
-if (!navigator.webdriver && !/HeadlessChrome/.test(navigator.userAgent)) { playing = true; $('play').innerHTML = '&#10074;&#10074; Pause'; }
-})();
-"""
+def draw_overlay(img: np.ndarray, det: np.ndarray, who: np.ndarray, proj: np.ndarray, parents) -> np.ndarray:
+    """Draw detections (P,J,2) as thick skeletons in their track's colour (grey: no track) and the
+    reprojected tracks (K,J,2) as thin white-edged skeletons with dots, on a BGR image (in place)."""
+    import cv2
+
+    def pt(p):
+        return (int(round(p[0])), int(round(p[1])))
+
+    s = max(1, round(max(img.shape[:2]) / 700))
+    for d, k in zip(det, who, strict=True):
+        col = _bgr(int(k)) if k >= 0 else (170, 170, 170)
+        for j, p in enumerate(parents):
+            if p >= 0 and np.isfinite(d[j]).all() and np.isfinite(d[p]).all():
+                cv2.line(img, pt(d[j]), pt(d[p]), col, 3 * s, cv2.LINE_AA)
+    for k, q in enumerate(proj):
+        col = _bgr(k)
+        for j, p in enumerate(parents):
+            if p >= 0 and np.isfinite(q[j]).all() and np.isfinite(q[p]).all():
+                cv2.line(img, pt(q[j]), pt(q[p]), (255, 255, 255), 1 * s + 1, cv2.LINE_AA)
+        for j in range(len(q)):
+            if np.isfinite(q[j]).all():
+                cv2.circle(img, pt(q[j]), 2 * s + 1, col, -1, cv2.LINE_AA)
+                cv2.circle(img, pt(q[j]), 2 * s + 1, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
+
+
+def write_overlay_videos(
+    lay: SessionLayout,
+    out_dir: Path | None = None,
+    config: ReportConfig | None = None,
+    progress: Progress | None = None,
+) -> list[Path]:
+    """Every camera's video with the detections and the reprojected tracks drawn on every frame, as
+    ``report/overlay/<cam>.mp4`` (MP4V; a camera without a video: on a dark canvas of its image size).
+    Returns the paths written."""
+    import cv2
+
+    cfg = config or ReportConfig()
+    inp = _load(lay)
+    if not inp.detections:
+        raise FormatError(
+            lay.keypoints_dir, None, "no detection files to draw.", "Run the keypoints stage first."
+        )
+    ov = _Overlay(inp, cfg)
+    frames = ov.frames()
+    videos = _video_paths(lay, ov.cams)
+    out_dir = Path(out_dir) if out_dir is not None else lay.report_html.parent / "overlay"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fps = float(inp.tracks.fps) if inp.tracks is not None else 25.0
+    written = []
+    total = len(ov.cams) * len(frames)
+    done = 0
+    for cam in ov.cams:
+        cap = cv2.VideoCapture(str(videos[cam])) if cam in videos else None
+        if cap is not None and cap.isOpened():
+            fps = float(cap.get(cv2.CAP_PROP_FPS)) or fps
+            size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        else:
+            cap = None
+            size = (
+                tuple(inp.rig[cam].size_wh) if inp.rig is not None and cam in inp.rig.names else (1280, 720)
+            )
+        path = out_dir / f"{cam}.mp4"
+        with atomic_path(path, suffix=".mp4") as tmp:
+            wr = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+            if not wr.isOpened():
+                raise OSError(f"cannot write {path}: OpenCV has no MP4 writer here")
+            try:
+                i = 0
+                for start in range(0, len(frames), 256):
+                    chunk = frames[start : start + 256]
+                    proj = ov.project(cam, chunk)
+                    for n, f in enumerate(chunk):
+                        f = int(f)
+                        img = None
+                        if cap is not None:
+                            while i < f and cap.grab():
+                                i += 1
+                            ok, img = cap.read() if i == f else (False, None)
+                            i += 1 if ok else 0
+                            if not ok:
+                                img = None
+                        if img is None:
+                            img = np.full((size[1], size[0], 3), 24, np.uint8)
+                        det = ov.detections(cam, f)
+                        draw_overlay(img, det, ov.match(det, proj[n]), proj[n], ov.parents)
+                        cv2.putText(
+                            img,
+                            f"{cam}  frame {f}",
+                            (12, 32),
+                            cv2.FONT_HERSHEY_SIMPLEX,
+                            0.9,
+                            (255, 255, 255),
+                            2,
+                        )
+                        wr.write(img)
+                        done += 1
+                        if progress is not None:
+                            progress(done, total)
+            finally:
+                wr.release()
+        if cap is not None:
+            cap.release()
+        written.append(path)
+        log.info("overlay video %s: %d frames", path, len(frames))
+    return written
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m pipeline.report",
+        description="Write report/report.html for a session folder (and, with --overlay, an overlay video "
+        "per camera in report/overlay/) from the outputs already there.",
+    )
+    p.add_argument("session", type=Path, help="a session output folder (calib/, keypoints/, track/ ...)")
+    p.add_argument("--title", default="")
+    p.add_argument("--overlay", action="store_true", help="also write report/overlay/<cam>.mp4")
+    p.add_argument("--budget-mb", type=float, help="JPEG megabytes of the filmstrips (default 18)")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not args.session.is_dir():
+        print(f"report: {args.session} is not a folder; pass a session output folder.", file=sys.stderr)
+        return 2
+    lay = SessionLayout(args.session)
+    cfg = (
+        ReportConfig()
+        if args.budget_mb is None
+        else ReportConfig(image_budget_bytes=int(args.budget_mb * 1e6))
+    )
+    t0 = time.perf_counter()
+    try:
+        path = write_report(lay, args.title, cfg)
+        print(f"report: {path} ({path.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - t0:.1f} s)")
+        if args.overlay:
+            paths = write_overlay_videos(lay, config=cfg)
+            print(f"overlay videos: {', '.join(str(q) for q in paths)}")
+    except (FormatError, OSError, ValueError) as e:
+        print(f"report: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -620,7 +620,12 @@ def process_session(
             store.invalidate(name)
             _remove_stale_temporaries(plan.outputs)
             log.info("%s: running %s", source.name, name)
+            n_warn = len(result.warnings)
             plan.run(result.warnings)
+            # what this stage logged, kept with its outputs for the report (replaced when it reruns)
+            atomic_write_text(
+                root / ".roomcap" / "warnings" / f"{name}.json", json.dumps(result.warnings[n_warn:])
+            )
             store.record(
                 StageRecord(
                     name,

@@ -27,6 +27,7 @@ import numpy as np
 from triangulate.geometry import check_shape
 
 _SCORE, _REPROJ, _STD, _NVIEWS = 4, 5, 6, 7  # rows of ``Triangulator.solve_raw``'s V
+_PER_VIEW = 8  # V[_PER_VIEW + c]: the reprojection error in camera c (NaN where that view was not used)
 _EPS = 1e-12  # added to the 3x3 normal matrix' diagonal: keeps it positive definite (det > 0)
 
 # the 9 entries of the 4x4 normal matrix that the inhomogeneous solve reads, as (row, col):
@@ -203,8 +204,10 @@ class Triangulator:
     def solve_raw(
         self, xyn: np.ndarray, w0: np.ndarray, seen: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``solve`` without the masking: V (8,N) with rows x, y, z, 1, score, reprojection error,
-        std, view count (``_SCORE`` ...; meaningful where ok), ok (N,) and the views used (C,N)."""
+        """``solve`` without the masking: V (8+C,N) with rows x, y, z, 1, score, reprojection error,
+        std, view count (``_SCORE`` ...; meaningful where ok), then the reprojection error in each camera
+        (``_PER_VIEW``; NaN where the view was not used: their mean is the reprojection error row),
+        ok (N,) and the views used (C,N)."""
         cfg = self.config
         C, N = w0.shape
         xyn = np.where(seen, xyn, 0.0)  # unseen: finite, so every residual below stays finite
@@ -218,7 +221,7 @@ class Triangulator:
         xyr[1:] = xyn
         np.multiply(w0, w0, out=Fw)
         np.multiply(xyr, Fw, out=F3)
-        V = np.empty((8, N))
+        V = np.empty((_PER_VIEW + C, N))
         Xh = V[:4]  # homogeneous points
         A = self._K @ Fe
         Xh[:3] = _solve9(A)  # algebraic first guess (3,N)
@@ -286,6 +289,8 @@ class Triangulator:
         n_views[:] = tot[0]
         mean = tot[1:] / np.maximum(n_views, 1.0)  # score, reprojection error, w^2, err^2, s^2
         V[_SCORE : _SCORE + 2] = mean[:2]
+        np.copyto(V[_PER_VIEW:], E[2])  # per-view pixel errors of the final point
+        V[_PER_VIEW:][~used] = np.nan
         # covariance sigma^2 (J^T W J)^-1 from the last solve's normal matrix: its rows are the
         # Jacobian d(normalised pixel)/dX weighted by the confidences; back to pixels with the mean
         # focal scale and mean squared confidence of the views used

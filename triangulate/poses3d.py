@@ -4,7 +4,10 @@ Keys (T frames, P people per frame padded with NaN, J joints of ``body19``):
 ``schema`` = ``"poses3d/1"``, ``fps``, ``frame_index (T,)``, ``t_ns (T,)``, ``joint_names (J,)``,
 ``xyz_m (T,P,J,3)`` NaN = not triangulated, ``score (T,P,J)`` mean 2D confidence of the views used,
 ``reproj_err_px (T,P,J)`` mean reprojection error, ``n_views (T,P,J)`` int, ``calibration_sha256``;
-optional ``std_m (T,P,J)`` positional std from the triangulation covariance (NaN = unknown).
+optional ``std_m (T,P,J)`` positional std from the triangulation covariance (NaN = unknown);
+optional ``cameras (C,)`` and ``reproj_err_cam_px (T,P,J,C)`` the reprojection error in each camera, NaN
+where that camera's view was not used (its mean over the cameras is ``reproj_err_px``; files written
+before these keys existed load with None).
 """
 
 from __future__ import annotations
@@ -46,12 +49,28 @@ class Poses3D:
     calibration_sha256: str = ""
     std_m: np.ndarray | None = None  # (T,P,J) optional
     parents: np.ndarray | None = None  # (J,) optional: the skeleton's tree (a custom skeleton's; -1 = root)
+    cameras: tuple[str, ...] | None = None  # (C,) optional, the order of reproj_err_cam_px's last axis
+    reproj_err_cam_px: np.ndarray | None = None  # (T,P,J,C) optional
 
     def __post_init__(self) -> None:
         T, J = len(self.frame_index), len(self.joint_names)
         P = np.shape(self.xyz_m)[1] if np.ndim(self.xyz_m) == 4 else -1
         if self.std_m is None:
             object.__setattr__(self, "std_m", np.full((T, max(P, 0), J), np.nan, np.float32))
+        if (self.cameras is None) != (self.reproj_err_cam_px is None):
+            raise FormatError(
+                None, "cameras", "cameras and reproj_err_cam_px go together: give both or neither."
+            )
+        if self.cameras is not None:
+            object.__setattr__(self, "cameras", tuple(str(c) for c in self.cameras))
+            C = len(self.cameras)
+            if np.shape(self.reproj_err_cam_px) != (T, P, J, C):
+                raise FormatError(
+                    None,
+                    "reproj_err_cam_px",
+                    f"expected shape {(T, P, J, C)}, got {np.shape(self.reproj_err_cam_px)}.",
+                )
+            object.__setattr__(self, "reproj_err_cam_px", np.asarray(self.reproj_err_cam_px, np.float32))
         for name, shape in {
             "t_ns": (T,),
             "xyz_m": (T, P, J, 3),
@@ -75,6 +94,9 @@ class Poses3D:
         object.__setattr__(self, "joint_names", tuple(str(n) for n in self.joint_names))
 
     def save(self, path: str | os.PathLike) -> None:
+        extra = {}
+        if self.cameras is not None:
+            extra = {"cameras": np.asarray(self.cameras), "reproj_err_cam_px": self.reproj_err_cam_px}
         save_npz(
             path,
             {
@@ -90,6 +112,7 @@ class Poses3D:
                 "calibration_sha256": self.calibration_sha256,
                 "std_m": self.std_m,
                 **({} if self.parents is None else {"parents": np.asarray(self.parents, np.int64)}),
+                **extra,
             },
         )
 
@@ -112,6 +135,8 @@ class Poses3D:
                 calibration_sha256=npz_str(data, "calibration_sha256"),
                 std_m=data.get("std_m"),
                 parents=data.get("parents"),
+                cameras=tuple(data["cameras"].tolist()) if "cameras" in data else None,
+                reproj_err_cam_px=data.get("reproj_err_cam_px") if "cameras" in data else None,
             )
         except FormatError as e:
             raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e

@@ -8,6 +8,7 @@ import numpy as np
 
 from triangulate.dlt import (
     _NVIEWS,
+    _PER_VIEW,
     _REPROJ,
     _SCORE,
     _STD,
@@ -100,6 +101,9 @@ class FramePoses:
     std_m: np.ndarray  # (M,J)
     members: np.ndarray  # (M,C) pose index per camera or -1
     mirrored: np.ndarray  # (M,C) bool: the 2D pose was used left/right swapped
+    reproj_err_cam_px: np.ndarray | None = (
+        None  # (M,J,C) per camera, NaN = view not used (mean = reproj_err_px)
+    )
 
     @classmethod
     def empty(cls, J: int, C: int) -> FramePoses:
@@ -111,6 +115,7 @@ class FramePoses:
             np.zeros((0, J)),
             np.zeros((0, C), np.int64),
             np.zeros((0, C), bool),
+            np.zeros((0, J, C)),
         )
 
 
@@ -147,7 +152,7 @@ class FrameReconstructor:
         self._c4 = self.tri.c.T[:, :, None, None]  # (2,C,1,1) principal points, for ``_planes``
         self._s4 = self.tri.s[:, None, None]  # (C,1,1) focal scales
         self._limbs = _limb_pairs(tuple(joint_names)) if self.config.limb_check and joint_names else None
-        self._fill = np.full((8, 1, 1), np.nan)  # what a dropped joint reads in each row of V
+        self._fill = np.full((_PER_VIEW + len(self.P), 1, 1), np.nan)  # what a dropped joint reads in V
         self._fill[[_SCORE, _NVIEWS]] = 0.0
 
     def _planes(self, xy: np.ndarray, score: np.ndarray, finite: np.ndarray) -> np.ndarray:
@@ -165,7 +170,7 @@ class FrameReconstructor:
 
     def _triangulate(self, Z: np.ndarray, H: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Triangulate hypotheses H (M,C) with mirror flags S (M,C) from the planes Z (``_planes``).
-        Returns V (8,M,J) (rows of ``Triangulator.solve_raw``) and keep (M,J): the joints that
+        Returns V (8+C,M,J) (rows of ``Triangulator.solve_raw``) and keep (M,J): the joints that
         passed the DLT's checks and the limb check."""
         C, J = len(self.P), Z.shape[-1]
         M = len(H)
@@ -178,7 +183,7 @@ class FrameReconstructor:
         seen = g[3] > 0
         seen &= (H >= 0).T.repeat(J, 1)
         V, ok, _ = self.tri.solve_raw(g[:2], np.where(seen, g[2], 0.0), seen)
-        V, ok = V.reshape(8, M, J), ok.reshape(M, J)
+        V, ok = V.reshape(len(V), M, J), ok.reshape(M, J)
         if self._limbs is not None:
             drop = limb_outliers(np.where(ok, V[:3], np.nan), V[_REPROJ], self._limbs)
             if drop is not None:
@@ -248,7 +253,7 @@ class FrameReconstructor:
         if self.config.merge_dist_m > 0 and len(H) > 1:
             H, S, V, keep = self._merge_duplicates(Z, H, S, V, keep)
         good = np.count_nonzero(keep, 1) >= self.config.min_joints_3d
-        W = np.where(keep[good], V[:, good], self._fill)  # (8,M',J): NaN (0 for score, views) where dropped
+        W = np.where(keep[good], V[:, good], self._fill)  # (8+C,M',J): NaN (0 for score, views) if dropped
         return FramePoses(
             xyz_m=W[:3].transpose(1, 2, 0),
             score=W[_SCORE],
@@ -257,4 +262,5 @@ class FrameReconstructor:
             std_m=W[_STD],
             members=H[good],
             mirrored=S[good],
+            reproj_err_cam_px=W[_PER_VIEW:].transpose(1, 2, 0),
         )

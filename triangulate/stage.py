@@ -321,6 +321,7 @@ def reconstruct_all(
         "reproj_err_px": np.full((T, P3, J), np.nan),
         "n_views": np.zeros((T, P3, J), np.int16),
         "std_m": np.full((T, P3, J), np.nan),
+        "reproj_err_cam_px": np.full((T, P3, J, len(mv.cameras)), np.nan),
     }
     for t, f in enumerate(out):
         m = len(f.xyz_m)
@@ -360,6 +361,7 @@ def triangulate_session(
         joint_names=mv.joint_names,
         parents=np.asarray(mv.parents),
         calibration_sha256=rig.sha256(),
+        cameras=tuple(sub.names),
         **res,
     )
     poses.save(lay.poses3d)
