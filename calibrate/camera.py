@@ -21,7 +21,7 @@ import hashlib
 import json
 import math
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -99,7 +99,7 @@ def _validated(
     model: Any,
     R: Any,
     t: Any,
-    path: str | os.PathLike | None = None,
+    path: str | os.PathLike[str] | None = None,
     where: str | None = None,
     names: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
@@ -346,7 +346,7 @@ class Camera:
 
     @classmethod
     def from_dict(
-        cls, d: Mapping[str, Any], path: str | os.PathLike | None = None, where: str | None = None
+        cls, d: Mapping[str, Any], path: str | os.PathLike[str] | None = None, where: str | None = None
     ) -> Camera:
         """Inverse of ``to_dict``; errors name ``path`` and the field (``where`` prefixes it)."""
         w = where or f"camera '{d.get('name', '?')}'"
@@ -452,7 +452,7 @@ class CameraRig:
     def __len__(self) -> int:
         return len(self.cameras)
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Camera]:
         return iter(self.cameras)
 
     def __getitem__(self, key: int | str) -> Camera:
@@ -535,7 +535,7 @@ class CameraRig:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], path: str | os.PathLike | None = None) -> CameraRig:
+    def from_dict(cls, d: Mapping[str, Any], path: str | os.PathLike[str] | None = None) -> CameraRig:
         check_schema(d.get("schema"), RIG_SCHEMA, (RIG_VERSION,), path)
         allowed = ("schema", "convention", "source", "cameras")
         unknown = sorted(set(d) - set(allowed))
@@ -580,7 +580,7 @@ class CameraRig:
                 )
         return cls(tuple(out))
 
-    def save(self, path: str | os.PathLike, source: str | None = None) -> None:
+    def save(self, path: str | os.PathLike[str], source: str | None = None) -> None:
         """Write ``rig.toml`` atomically (every digit kept)."""
         d = self.to_dict()
         if source:
@@ -595,7 +595,7 @@ class CameraRig:
         )
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> CameraRig:
+    def load(cls, path: str | os.PathLike[str]) -> CameraRig:
         return cls.from_dict(load_toml(path), path=path)
 
     def sha256(self) -> str:

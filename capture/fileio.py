@@ -14,20 +14,22 @@ import os
 import tempfile
 import tomllib
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from core.errors import RoomcapError
 
+T = TypeVar("T")
+
 
 class FormatError(RoomcapError, ValueError):
     """A file that is not what it claims to be: names the file, the field and the fix."""
 
-    def __init__(self, path: str | os.PathLike | None, field: str | None, problem: str, fix: str = ""):
+    def __init__(self, path: str | os.PathLike[str] | None, field: str | None, problem: str, fix: str = ""):
         self.path = None if path is None else str(path)
         self.field = field
         where = f"{self.path}" if self.path else "<input>"
@@ -50,7 +52,7 @@ os.umask(_UMASK)
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str | None = None):
+def atomic_path(path: str | os.PathLike[str], suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed over ``path``.
 
     ``suffix`` defaults to the target's suffix, so libraries that pick a format
@@ -76,12 +78,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
         raise
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
@@ -89,8 +91,11 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def config_from_dict(
-    cls, data: Mapping[str, Any], where: str | None = None, path: str | os.PathLike | None = None
-):
+    cls: type[T],
+    data: Mapping[str, Any],
+    where: str | None = None,
+    path: str | os.PathLike[str] | None = None,
+) -> T:
     """Build the frozen config dataclass ``cls`` from ``data``, rejecting unknown keys with the valid ones.
 
     DESIGN.md: configuration is loaded once into typed dataclasses that hold the only copy of
@@ -98,7 +103,7 @@ def config_from_dict(
     """
     import dataclasses
 
-    valid = sorted(f.name for f in dataclasses.fields(cls) if f.init)
+    valid = sorted(f.name for f in dataclasses.fields(cls) if f.init)  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(valid))
     if unknown:
         raise FormatError(
@@ -117,7 +122,7 @@ def schema_tag(name: str, version: int) -> str:
     return f"{name}/{version}"
 
 
-def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os.PathLike | None) -> int:
+def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os.PathLike[str] | None) -> int:
     """Parse ``"name/version"`` and return the version; raise SchemaError otherwise."""
     if isinstance(tag, np.ndarray):
         tag = tag.item() if tag.shape == () else None
@@ -156,7 +161,7 @@ def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os
 # ----------------------------------------------------------------------------- npz
 
 
-def save_npz(path: str | os.PathLike, arrays: Mapping[str, Any], compress: bool = True) -> None:
+def save_npz(path: str | os.PathLike[str], arrays: Mapping[str, Any], compress: bool = True) -> None:
     """Write an npz atomically. Strings become 0-d or 1-d unicode arrays, never object arrays."""
     clean: dict[str, np.ndarray] = {}
     for key, value in arrays.items():
@@ -178,7 +183,7 @@ def save_npz(path: str | os.PathLike, arrays: Mapping[str, Any], compress: bool 
     atomic_write_bytes(path, buf.getvalue())
 
 
-def load_npz(path: str | os.PathLike, required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
     """Load every array of an npz with ``allow_pickle=False``; a truncated file gets a FormatError."""
     path = Path(path)
     if not path.exists():
@@ -207,7 +212,9 @@ def load_npz(path: str | os.PathLike, required: tuple[str, ...] = ()) -> dict[st
     return data
 
 
-def require_keys(path: str | os.PathLike, data: Mapping[str, np.ndarray], required: tuple[str, ...]) -> None:
+def require_keys(
+    path: str | os.PathLike[str], data: Mapping[str, np.ndarray], required: tuple[str, ...]
+) -> None:
     """FormatError naming the first of ``required`` that ``data`` (an npz read by ``load_npz``) lacks."""
     missing = [k for k in required if k not in data]
     if missing:
@@ -226,7 +233,7 @@ def npz_str(data: Mapping[str, np.ndarray], key: str) -> str:
 # ----------------------------------------------------------------------------- toml
 
 
-def load_toml(path: str | os.PathLike) -> dict[str, Any]:
+def load_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     path = Path(path)
     if not path.exists():
         raise FormatError(path, None, "file does not exist.")
@@ -237,7 +244,7 @@ def load_toml(path: str | os.PathLike) -> dict[str, Any]:
         raise FormatError(path, None, f"is not valid TOML ({e}).") from e
 
 
-def save_toml(path: str | os.PathLike, data: Mapping[str, Any], header: str = "") -> None:
+def save_toml(path: str | os.PathLike[str], data: Mapping[str, Any], header: str = "") -> None:
     import tomli_w
 
     text = tomli_w.dumps(_toml_ready(data))

@@ -74,7 +74,7 @@ def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Ca
 
 
 def _number(kind: type, low: float, inclusive: bool, what: str) -> Callable[[str], Any]:
-    def parse(text: str):
+    def parse(text: str) -> Any:
         try:
             v = kind(text)
         except ValueError:
@@ -92,7 +92,7 @@ nonnegative_int = _number(int, 0, True, "a whole number >= 0")
 positive_float = _number(float, 0.0, False, "a number > 0")
 
 
-def output_folder(path: str | os.PathLike, flag: str = "--out") -> Path:
+def output_folder(path: str | os.PathLike[str], flag: str = "--out") -> Path:
     """``path`` as a folder to write into, made if missing; a file there or no write access is an error."""
     p = Path(path)
     if p.exists() and not p.is_dir():

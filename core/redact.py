@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import re
 import urllib.parse
+from typing import Any
 
 HIDDEN = "***"
 _SECRET_NAME = re.compile(r"pass|pwd|token|key|secret|auth|user|sig|credential", re.I)
@@ -57,7 +58,7 @@ def redact_log_records() -> None:
         return
     make = logging.getLogRecordFactory()
 
-    def factory(*args, **kwargs) -> logging.LogRecord:
+    def factory(*args: Any, **kwargs: Any) -> logging.LogRecord:
         record = make(*args, **kwargs)
         msg = record.getMessage()
         if "://" in msg:

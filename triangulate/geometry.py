@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def check_shape(name: str, arr: np.ndarray, shape: tuple) -> None:
+def check_shape(name: str, arr: np.ndarray, shape: tuple[int | None, ...]) -> None:
     """Raise ValueError unless ``arr.shape`` matches ``shape`` (None = any size)."""
     ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=False))
     if not ok:
