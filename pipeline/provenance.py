@@ -47,7 +47,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
         "keypoints/detections.py",
     ),
     "track": ("track", "triangulate", "calibrate/camera.py", "keypoints/skeletons.py"),
-    "forecast": ("forecast", "pipeline/glue.py", "track/trackfile.py"),
+    "forecast": ("forecast", "pipeline/glue.py", "triangulate/trackfile.py"),
     "report": (
         "pipeline/report.py",
         "pipeline/report_assets/report.html",

@@ -25,9 +25,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 from triangulate.dlt import _reject_unknown
 from triangulate.reconstruct import flip_index
+from triangulate.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 
 SEED_SIGMA_FRAMES = 2.0  # sec. 4.3.4: Gaussian smoothing of sigma = 2 frames
 
