@@ -11,6 +11,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -94,9 +95,7 @@ def make_config(args: argparse.Namespace) -> PipelineConfig:
     if args.tracker:
         cfg = cfg.replace(track=type(cfg.track)(tracker=args.tracker, options=cfg.track.options))
     if args.max_frames:
-        cfg = cfg.replace(
-            keypoints=type(cfg.keypoints)(model_set=cfg.keypoints.model_set, max_frames=args.max_frames)
-        )
+        cfg = cfg.replace(keypoints=dataclasses.replace(cfg.keypoints, max_frames=args.max_frames))
     return cfg
 
 

@@ -29,6 +29,17 @@ TRACKERS = ("greedy", "particle")
 class KeypointsConfig:
     model_set: str = "default"
     max_frames: int | None = None  # process only the first N frames (demos, smoke tests)
+    # layout of the detections files: body19, or "model" (the model's own, e.g. BlazePose's feet for
+    # [triangulate] options.skeleton = "whole_body"); see keypoints.pipeline.PipelineConfig.skeleton
+    skeleton: str = "body19"
+
+    def provenance(self) -> dict[str, Any]:
+        """The settings a keypoints run depends on; ``skeleton`` only when it is not the default, so
+        sessions made before the key existed are not run again."""
+        d = dataclasses.asdict(self)
+        if self.skeleton == "body19":
+            d.pop("skeleton")
+        return d
 
 
 @dataclass(frozen=True)

@@ -226,7 +226,7 @@ def _plan_keypoints(
             )
         cams = sorted(readable)
         outputs = [lay.detections(c) for c in cams]
-        kcfg = dataclasses.asdict(cfg.keypoints)
+        kcfg = cfg.keypoints.provenance()
         frames_csv = {}
         if src.layout == "roomcap":  # the recorder's per-frame timestamps (t_ns in the detections)
             src_lay = SessionLayout(src.root)
@@ -248,7 +248,9 @@ def _plan_keypoints(
             # the executor's share of the cores (set per worker by _limit_threads); 0 = onnxruntime's default
             threads = int(os.environ.get("ROOMCAP_ORT_THREADS", "0") or 0)
             kp_cfg = KeypointsPipelineConfig(
-                model_set=cfg.keypoints.model_set, runtime=RuntimeConfig(threads=threads)
+                model_set=cfg.keypoints.model_set,
+                skeleton=cfg.keypoints.skeleton,
+                runtime=RuntimeConfig(threads=threads),
             )
             rep = run_videos(
                 {c: src.videos[c] for c in cams},

@@ -48,3 +48,18 @@ def test_config_rejects_unknown_keys_and_stages():
         PipelineConfig.from_dict({"stages": ["keypoints", "magic"]})
     cfg = PipelineConfig.from_dict({"stages": ["track", "triangulate"]})
     assert cfg.stages == ("triangulate", "track")
+
+
+def test_keypoints_skeleton_option_reaches_the_2d_stage_without_rerunning_old_sessions():
+    """[keypoints] skeleton = "model" keeps the model's own layout (BlazePose's feet for whole-body 3D);
+    the default is left out of the stage's recorded settings, so sessions made before it stay current."""
+    from pipeline.config import KeypointsConfig
+
+    default = PipelineConfig.from_dict({"keypoints": {"model_set": "default"}})
+    assert default.keypoints.provenance() == {"model_set": "default", "max_frames": None}
+    feet = PipelineConfig.from_dict(
+        {"keypoints": {"model_set": "blazepose_heavy", "skeleton": "model"},
+         "triangulate": {"options": {"skeleton": "whole_body"}}}
+    )  # fmt: skip
+    assert feet.keypoints == KeypointsConfig(model_set="blazepose_heavy", skeleton="model")
+    assert feet.keypoints.provenance()["skeleton"] == "model"
