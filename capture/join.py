@@ -117,15 +117,14 @@ def join_camera(
     segs = segment_files(cam_dir)
     if not segs:
         return JoinResult(cam, False, f"raw/{cam}", frames_csv_rows, -1, 0, "no closed segments to join")
+
+    def kept(message: str, frames_in_video: int = -1) -> JoinResult:
+        """Not joined: the segments stay where they are and readers use the folder."""
+        return JoinResult(cam, False, f"raw/{cam}", frames_csv_rows, frames_in_video, len(segs), message)
+
     exts = {s.suffix.lower() for s in segs}
     if len(exts) != 1:
-        return JoinResult(
-            cam,
-            False,
-            f"raw/{cam}",
-            frames_csv_rows,
-            -1,
-            len(segs),
+        return kept(
             f"segments of mixed types {sorted(exts)}",
         )
     ext = JOINED_EXT[exts.pop()]
@@ -133,13 +132,7 @@ def join_camera(
     need = sum(s.stat().st_size for s in segs) + min_free_bytes
     free = shutil.disk_usage(raw_dir).free
     if free < need:
-        return JoinResult(
-            cam,
-            False,
-            f"raw/{cam}",
-            frames_csv_rows,
-            -1,
-            len(segs),
+        return kept(
             f"not joined: joining needs {need / 2**20:.0f} MB free, {free / 2**20:.0f} MB are; the "
             f"segments are kept. Free space and run `capture-run repair {raw_dir.parent}`",
         )
@@ -147,13 +140,7 @@ def join_camera(
     try:
         import av  # noqa: F401
     except ImportError:
-        return JoinResult(
-            cam,
-            False,
-            f"raw/{cam}",
-            frames_csv_rows,
-            -1,
-            len(segs),
+        return kept(
             "not joined: PyAV (package 'av') is not installed; the segments are kept",
         )
     try:
@@ -164,13 +151,7 @@ def join_camera(
     except Exception as e:  # any codec/container/disk failure: keep the segments, say why
         tmp.unlink(missing_ok=True)
         log.error("%s: joining %d segments failed (%s); the segments are kept", cam, len(segs), e)
-        return JoinResult(
-            cam,
-            False,
-            f"raw/{cam}",
-            frames_csv_rows,
-            -1,
-            len(segs),
+        return kept(
             f"not joined ({type(e).__name__}: {e}); the segments are kept",
         )
     if n != frames_csv_rows:
@@ -180,7 +161,7 @@ def join_camera(
             "rows; the segments are kept (readers use raw/<cam>/ as it is)"
         )
         log.error("%s: %s", cam, msg)
-        return JoinResult(cam, False, f"raw/{cam}", frames_csv_rows, n, len(segs), msg)
+        return kept(msg, n)
     os.replace(tmp, final)
     _fsync_dir(raw_dir)
     remove_segments(cam_dir)
