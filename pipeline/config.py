@@ -20,6 +20,9 @@ from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError, config_from_dict, load_toml
+from track.stage import ParticleTrackConfig
+from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
+from triangulate.stage import GreedyTrackConfig
 
 STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "report")
 TRACKERS = ("greedy", "particle")
@@ -78,6 +81,23 @@ class PipelineConfig:
         if bad:
             raise FormatError(None, "stages", f"unknown stages {bad}; valid: {list(STAGES)}.")
         object.__setattr__(self, "stages", tuple(s for s in STAGES if s in self.stages))  # graph order
+        self._check_options()
+
+    def _check_options(self) -> None:
+        """Parse the triangulate and track options with their stages' typed configs now, so that a typo
+        in ``reprocess --config`` is reported before any session runs, not when that stage is reached."""
+        parsers = [("triangulate.options", self.triangulate.options, TriangulateOptions.from_dict)]
+        track_parser = (
+            GreedyTrackConfig.from_dict if self.track.tracker == "greedy" else ParticleTrackConfig.from_dict
+        )
+        parsers.append(("track.options", self.track.options, track_parser))
+        for where, options, parse in parsers:
+            if not options:
+                continue
+            try:
+                parse(dict(options))
+            except (ValueError, TypeError) as e:
+                raise FormatError(None, where, str(e)) from None
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PipelineConfig:

@@ -63,3 +63,18 @@ def test_keypoints_skeleton_option_reaches_the_2d_stage_without_rerunning_old_se
     )  # fmt: skip
     assert feet.keypoints == KeypointsConfig(model_set="blazepose_heavy", skeleton="model")
     assert feet.keypoints.provenance()["skeleton"] == "model"
+
+
+def test_stage_options_are_checked_when_the_config_loads(tmp_path, capsys):
+    """A typo in a stage's options is found before any session runs (issue 16), not when it is reached."""
+    with pytest.raises(FormatError, match=r"triangulate.options.*thetta_px.*valid keys"):
+        PipelineConfig.from_dict({"triangulate": {"options": {"match": {"thetta_px": 3}}}})
+    with pytest.raises(FormatError, match=r"track.options.*'tau'"):
+        PipelineConfig.from_dict({"track": {"tracker": "greedy", "options": {"tau": 0.2}}})
+    with pytest.raises(FormatError, match=r"track.options.*n_particle"):
+        PipelineConfig.from_dict({"track": {"tracker": "particle", "options": {"n_particle": 3}}})
+    from pipeline.cli import main
+
+    (tmp_path / "p.toml").write_text('[track]\ntracker = "greedy"\n[track.options]\nsigmaa = 2\n')
+    assert main([str(tmp_path), "--config", str(tmp_path / "p.toml")]) == 2
+    assert "sigmaa" in capsys.readouterr().err
