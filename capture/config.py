@@ -58,6 +58,7 @@ from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError
+from core.config import check_keys
 from core.errors import UnknownNameError
 from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
 
@@ -208,9 +209,7 @@ _CAM_KEYS = tuple(f.name for f in fields(CameraConfig))
 
 
 def _reject_unknown(d: dict, valid: tuple[str, ...], where: str, path) -> None:
-    unknown = sorted(set(d) - set(valid))
-    if unknown:
-        raise ConfigError(path, where, f"unknown key(s) {unknown}.", f"Valid keys: {list(valid)}.")
+    check_keys(d, valid, where, path, error=ConfigError)
 
 
 def _num(v: Any, where: str, path, lo: float, hi: float, integer: bool = False, allow_none: bool = False):

@@ -8,6 +8,8 @@ that catch the builtin keep working and a command-line tool catches the whole fa
 
 from __future__ import annotations
 
+import os
+
 
 class RoomcapError(Exception):
     """An error whose message says what is wrong and what to do; shown to users without a traceback."""
@@ -25,3 +27,22 @@ class UnknownNameError(RoomcapError, KeyError):
 
     def __str__(self) -> str:
         return str(self.args[0]) if self.args else ""
+
+
+class FormatError(RoomcapError, ValueError):
+    """A file that is not what it claims to be: names the file, the field and the fix."""
+
+    def __init__(self, path: str | os.PathLike[str] | None, field: str | None, problem: str, fix: str = ""):
+        self.path = None if path is None else str(path)
+        self.field = field
+        where = f"{self.path}" if self.path else "<input>"
+        if field:
+            where += f": field '{field}'"
+        msg = f"{where}: {problem}"
+        if fix:
+            msg += f" {fix}"
+        super().__init__(msg)
+
+
+class SchemaError(FormatError):
+    """The file's schema tag is missing, names another format or a version this code cannot read."""

@@ -24,13 +24,14 @@ import os
 import tempfile
 import urllib.request
 import zipfile
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from functools import cache
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text, check_schema, load_toml
+from core.config import config_from_dict
 from core.errors import RoomcapError, UnknownNameError
 from keypoints.skeletons import get_skeleton
 
@@ -58,14 +59,10 @@ class ModelError(RoomcapError, FileNotFoundError):
 
 def _strict(cls, data: dict[str, Any], where: str):
     """Build a frozen dataclass from a dict, rejecting unknown keys with the list of valid ones."""
-    valid = {f.name for f in fields(cls) if f.init}
-    unknown = sorted(set(data) - valid)
-    if unknown:
-        raise FormatError(where, unknown[0], f"unknown key(s) {unknown}.", f"Valid keys: {sorted(valid)}.")
     try:
-        return cls(**data)
-    except TypeError as e:
-        raise FormatError(where, None, f"{e}.", f"Valid keys: {sorted(valid)}.") from e
+        return config_from_dict(cls, data, None, where)
+    except TypeError as e:  # a required key missing
+        raise FormatError(where, None, f"{e}.") from e
 
 
 @dataclass(frozen=True)

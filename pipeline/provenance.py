@@ -38,8 +38,8 @@ def package_version() -> str:
 # the code each stage's output depends on (packages or files of this project): a change there reruns the stage
 # even while the package version stays the same (development checkouts, patched installs)
 STAGE_CODE: dict[str, tuple[str, ...]] = {
-    "calibration": ("calibrate", "capture/fileio.py"),
-    "keypoints": ("keypoints", "capture/fileio.py", "capture/session.py"),
+    "calibration": ("calibrate", "core/fileio.py"),
+    "keypoints": ("keypoints", "core/fileio.py", "capture/session.py"),
     "triangulate": (
         "triangulate",
         "calibrate/camera.py",

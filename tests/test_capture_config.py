@@ -74,9 +74,9 @@ live: {enabled: true, stages: [keypoints], every_n: 2}
 @pytest.mark.parametrize(
     "text,needle",
     [
-        ("cameras: [{name: a, source: 'synthetic:', colour: red}]", "Valid keys"),
-        ("cameras: [{name: a, source: 'synthetic:'}]\nrecordr: {}", "Valid keys"),
-        ("cameras: [{name: a, source: 'synthetic:'}]\nsync: {tolerance: 3}", "Valid keys"),
+        ("cameras: [{name: a, source: 'synthetic:', colour: red}]", "valid keys"),
+        ("cameras: [{name: a, source: 'synthetic:'}]\nrecordr: {}", "valid keys"),
+        ("cameras: [{name: a, source: 'synthetic:'}]\nsync: {tolerance: 3}", "valid keys"),
         ("cameras: [{name: a, source: 'synthetic:'}, {name: a, source: 'synthetic:'}]", "used twice"),
         ("cameras: [{name: a, source: 'synthetic:', fps: -5}]", "outside the valid range"),
         ("cameras: [{name: a, source: 'synthetic:', fps: 0}]", "outside the valid range"),

@@ -11,13 +11,14 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
+from core.config import config_from_dict
 from keypoints.skeletons import CANONICAL
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
@@ -35,15 +36,8 @@ class ParticleTrackConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ParticleTrackConfig:
-        d = dict(d)
         if "particle" in d:
-            inner = d.pop("particle")
-            if d:
-                raise ValueError(
-                    f"ParticleTrackConfig: unknown keys {sorted(d)}; valid keys: ['particle'] "
-                    f"or the particle keys {sorted(f.name for f in fields(ParticleConfig))}"
-                )
-            return cls(particle=ParticleConfig.from_dict(inner) if isinstance(inner, dict) else inner)
+            return config_from_dict(cls, d)
         return cls(particle=ParticleConfig.from_dict(d))  # flat dict of particle keys
 
 

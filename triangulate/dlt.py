@@ -20,10 +20,11 @@ of 4 people x 5 cameras is a few dozen array operations per rejection round what
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
+from core.config import config_from_dict
 from triangulate.geometry import check_shape
 
 _SCORE, _REPROJ, _STD, _NVIEWS = 4, 5, 6, 7  # rows of ``Triangulator.solve_raw``'s V
@@ -66,14 +67,6 @@ def _inv_trace(A: np.ndarray) -> np.ndarray:
     return (adj[0] + adj[3] + adj[5]) / det
 
 
-def _reject_unknown(cls, d: dict) -> dict:
-    valid = {f.name for f in fields(cls)}
-    unknown = sorted(set(d) - valid)
-    if unknown:
-        raise ValueError(f"{cls.__name__}: unknown keys {unknown}; valid keys: {sorted(valid)}")
-    return d
-
-
 @dataclass(frozen=True)
 class DLTConfig:
     """Triangulation settings.
@@ -102,7 +95,7 @@ class DLTConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> DLTConfig:
-        return cls(**_reject_unknown(cls, d))
+        return config_from_dict(cls, d)
 
 
 @dataclass(frozen=True)

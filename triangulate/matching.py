@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from triangulate.dlt import _reject_unknown
+from core.config import config_from_dict
 from triangulate.geometry import check_shape
 
 _BIG = 1e9
@@ -59,7 +59,7 @@ class MatchConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> MatchConfig:
-        return cls(**_reject_unknown(cls, d))
+        return config_from_dict(cls, d)
 
 
 def _as_float(F) -> np.ndarray:

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.config import config_from_dict
 from triangulate.dlt import (
     _NVIEWS,
     _PER_VIEW,
@@ -15,7 +16,6 @@ from triangulate.dlt import (
     DLTConfig,
     Triangulator,
     _limb_pairs,
-    _reject_unknown,
     limb_outliers,
 )
 from triangulate.geometry import check_shape, fundamental_from_P
@@ -82,12 +82,7 @@ class TriangulateConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TriangulateConfig:
-        d = dict(_reject_unknown(cls, d))
-        if "match" in d and isinstance(d["match"], dict):
-            d["match"] = MatchConfig.from_dict(d["match"])
-        if "dlt" in d and isinstance(d["dlt"], dict):
-            d["dlt"] = DLTConfig.from_dict(d["dlt"])
-        return cls(**d)
+        return config_from_dict(cls, d)  # the match and dlt sections are parsed by their dataclasses
 
 
 @dataclass(frozen=True)

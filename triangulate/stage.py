@@ -22,6 +22,7 @@ from calibrate.camera import CameraRig
 from calibrate.checks import rig_warnings
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
+from core.config import config_from_dict
 from keypoints.detections import Detections
 from keypoints.skeletons import (
     CANONICAL,
@@ -32,7 +33,6 @@ from keypoints.skeletons import (
     whole_body,
 )
 from triangulate.checks import check_frame_order, detection_warnings
-from triangulate.dlt import _reject_unknown
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 from triangulate.tracker import TrackerConfig, track_poses
@@ -50,11 +50,8 @@ class GreedyTrackConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> GreedyTrackConfig:
-        d = dict(d)
         if "tracker" in d:
-            inner = d.pop("tracker")
-            _reject_unknown(cls, {"tracker": None, **d})
-            return cls(tracker=TrackerConfig.from_dict(inner) if isinstance(inner, dict) else inner)
+            return config_from_dict(cls, d)
         return cls(tracker=TrackerConfig.from_dict(d))  # flat dict of tracker keys
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from triangulate.dlt import _reject_unknown
+from core.config import config_from_dict
 from triangulate.reconstruct import flip_index
 from triangulate.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 
@@ -81,7 +81,7 @@ class TrackerConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrackerConfig:
-        return cls(**_reject_unknown(cls, d))
+        return config_from_dict(cls, d)
 
     def at_fps(self, fps: float) -> TrackerConfig:
         """The config with the durations given in frames converted to seconds at ``fps``, and the

@@ -1,0 +1,98 @@
+"""One loader for every typed configuration: frozen dataclasses built from mappings (TOML, YAML, dicts).
+
+:func:`config_from_dict` rejects unknown keys listing the valid ones, recurses into nested sections
+(fields whose type is itself a config dataclass), and coerces values to the field's type where the
+meaning is unambiguous (an int for a float, a list for a tuple, the text of a number, a boolean or a
+list from the command line's ``--set key=value``). A value of the wrong kind is a
+:class:`~core.errors.FormatError` naming the key. DESIGN.md: each default lives in its dataclass
+only; no ``.get(key, default)`` in the algorithms.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import types
+import typing
+from collections.abc import Mapping
+from typing import Any, TypeVar
+
+from core.errors import FormatError
+
+T = TypeVar("T")
+
+
+def _parse_text(text: str) -> Any:
+    """The value a command-line string stands for: a number, a boolean, a list, or the text itself."""
+    import tomllib
+
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _coerce(value: Any, hint: Any, where: str, path: str | os.PathLike[str] | None) -> Any:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        for a in options:  # the first kind that takes the value as it is
+            if _is_instance(value, a):
+                return _coerce(value, a, where, path)
+        return _coerce(value, options[0], where, path) if len(options) == 1 else value
+    if dataclasses.is_dataclass(hint) and isinstance(hint, type):
+        if isinstance(value, Mapping):
+            return config_from_dict(hint, value, where, path)
+        return value
+    if isinstance(value, str) and hint in (int, float, bool, tuple, list) or origin in (tuple, list):
+        value = _parse_text(value) if isinstance(value, str) else value
+    if hint is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if (hint is tuple or origin is tuple) and isinstance(value, list):
+        return tuple(value)
+    if hint in (int, float, bool) and not _is_instance(value, hint):
+        raise FormatError(path, where, f"expected {hint.__name__}, got {value!r}.", "Fix the value.")
+    return value
+
+
+def _is_instance(value: Any, hint: Any) -> bool:
+    if hint is Any:
+        return True
+    origin = typing.get_origin(hint) or hint
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(origin, type) and isinstance(value, origin)
+
+
+def check_keys(
+    data: Mapping[str, Any],
+    valid: typing.Iterable[str],
+    where: str | None,
+    path: str | os.PathLike[str] | None,
+    error: type[FormatError] = FormatError,
+) -> None:
+    """``error`` listing the valid keys when ``data`` has others (the one wording of every config)."""
+    names = sorted(valid)
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise error(path, where, f"unknown keys {unknown}; valid keys: {names}.", "Remove or rename them.")
+
+
+def config_from_dict(
+    cls: type[T],
+    data: Mapping[str, Any],
+    where: str | None = None,
+    path: str | os.PathLike[str] | None = None,
+) -> T:
+    """Build the frozen config dataclass ``cls`` from ``data`` (see the module docstring)."""
+    if not isinstance(data, Mapping):
+        raise FormatError(path, where or cls.__name__, f"expected a table of settings, got {data!r}.")
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    check_keys(data, fields, where or cls.__name__, path)
+    hints = typing.get_type_hints(cls)
+    kw = {k: _coerce(v, hints.get(k, Any), f"{where}.{k}" if where else k, path) for k, v in data.items()}
+    return cls(**kw)

@@ -1,0 +1,221 @@
+"""Atomic writes, schema tags and safe loads shared by every stage's files.
+
+Every file the project writes carries ``schema`` = ``"<name>/<version>"``;
+readers reject other names and unknown versions with a message that names
+the file and says what to do. Writes go to a temporary file in the same
+folder followed by ``os.replace``, so a reader never sees half a file and a
+killed writer leaves the previous version intact.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+import tomllib
+import zipfile
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from core.config import config_from_dict as config_from_dict  # re-exported: its old home
+from core.errors import FormatError as FormatError  # re-exported: its old home
+from core.errors import SchemaError as SchemaError
+
+T = TypeVar("T")
+
+
+# ----------------------------------------------------------------------------- atomic writes
+
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike[str], suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success it is renamed over ``path``.
+
+    ``suffix`` defaults to the target's suffix, so libraries that pick a format
+    by extension (numpy, OpenCV, matplotlib) write the right thing.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=path.parent
+    )
+    os.close(fd)
+    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual permissions
+    try:
+        yield Path(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# ----------------------------------------------------------------------------- schema tags
+
+
+def schema_tag(name: str, version: int) -> str:
+    return f"{name}/{version}"
+
+
+def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os.PathLike[str] | None) -> int:
+    """Parse ``"name/version"`` and return the version; raise SchemaError otherwise."""
+    if isinstance(tag, np.ndarray):
+        tag = tag.item() if tag.shape == () else None
+    if not isinstance(tag, str) or "/" not in tag:
+        raise SchemaError(
+            path,
+            "schema",
+            f"missing or malformed schema tag {tag!r}; expected '{name}/<version>'.",
+            "Write the file with this project's writer or add the schema key.",
+        )
+    got_name, _, got_version = tag.rpartition("/")
+    if got_name != name:
+        raise SchemaError(
+            path,
+            "schema",
+            f"this is a '{got_name}' file, expected '{name}'.",
+            "Check that the path points at the right file.",
+        )
+    try:
+        version = int(got_version)
+    except ValueError:
+        raise SchemaError(path, "schema", f"version {got_version!r} is not an integer.") from None
+    if version not in supported:
+        newer = version > max(supported)
+        raise SchemaError(
+            path,
+            "schema",
+            f"version {version} is not supported (this code reads {name} versions {list(supported)}).",
+            "Upgrade roomcap to read files written by a newer version."
+            if newer
+            else "Re-create the file with this version of roomcap.",
+        )
+    return version
+
+
+# ----------------------------------------------------------------------------- npz
+
+
+def save_npz(path: str | os.PathLike[str], arrays: Mapping[str, Any], compress: bool = True) -> None:
+    """Write an npz atomically. Strings become 0-d or 1-d unicode arrays, never object arrays."""
+    clean: dict[str, np.ndarray] = {}
+    for key, value in arrays.items():
+        arr = np.asarray(value)
+        if arr.dtype == object:
+            raise TypeError(f"save_npz({path}): '{key}' is an object array; store strings or numbers only")
+        clean[key] = arr
+    # Written by hand rather than np.savez: numpy stamps each member with the current
+    # time, and byte-identical reruns (pipeline caching, resume tests) need fixed stamps.
+    buf = io.BytesIO()
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(buf, "w", compression=method, allowZip64=True) as zf:
+        for key, arr in clean.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            info.external_attr = 0o644 << 16
+            with zf.open(info, "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, arr, allow_pickle=False)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """Load every array of an npz with ``allow_pickle=False``; a truncated file gets a FormatError."""
+    path = Path(path)
+    if not path.exists():
+        raise FormatError(path, None, "file does not exist.")
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04" and magic != b"PK\x05\x06":  # an npz is a zip archive (empty: end record only)
+        what = "is empty" if not magic else "is not an npz archive (numpy's zip of arrays)"
+        raise FormatError(
+            path,
+            None,
+            f"{what}; it may be another kind of file given the .npz name, or a write that never finished.",
+            "Give the file the stage wrote, or delete it and rerun the stage that writes it.",
+        )
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        raise FormatError(
+            path,
+            None,
+            f"cannot be read as npz ({e}); the file is truncated or corrupt.",
+            "Delete it and rerun the stage that writes it.",
+        ) from e
+    require_keys(path, data, required)
+    return data
+
+
+def require_keys(
+    path: str | os.PathLike[str], data: Mapping[str, np.ndarray], required: tuple[str, ...]
+) -> None:
+    """FormatError naming the first of ``required`` that ``data`` (an npz read by ``load_npz``) lacks."""
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise FormatError(
+            Path(path),
+            missing[0],
+            f"required keys {missing} are missing (present: {sorted(data)}).",
+            "The file was written by another tool or is incomplete; rerun the stage that writes it.",
+        )
+
+
+def npz_str(data: Mapping[str, np.ndarray], key: str) -> str:
+    return str(np.asarray(data[key]).item())
+
+
+# ----------------------------------------------------------------------------- toml
+
+
+def load_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    path = Path(path)
+    if not path.exists():
+        raise FormatError(path, None, "file does not exist.")
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise FormatError(path, None, f"is not valid TOML ({e}).") from e
+
+
+def save_toml(path: str | os.PathLike[str], data: Mapping[str, Any], header: str = "") -> None:
+    import tomli_w
+
+    text = tomli_w.dumps(_toml_ready(data))
+    if header:
+        text = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines()) + "\n" + text
+    atomic_write_text(path, text)
+
+
+def _toml_ready(value: Any) -> Any:
+    """Numpy scalars/arrays to plain Python so tomli_w writes every digit."""
+    if isinstance(value, Mapping):
+        return {str(k): _toml_ready(v) for k, v in value.items() if v is not None}
+    if isinstance(value, np.ndarray):
+        return _toml_ready(value.tolist())
+    if isinstance(value, (list, tuple)):
+        return [_toml_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
