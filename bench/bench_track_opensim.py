@@ -62,7 +62,7 @@ def track_from_videos(shared: Path, out: Path) -> Path:
     kp = KeypointsConfig(model_set="blazepose_heavy", skeleton="model", refine_passes=0)
     from calibrate.camera import CameraRig
 
-    run_videos(videos, lay.keypoints_dir, kp, rig=CameraRig.load(lay.rig_toml), progress=False)
+    run_videos(videos, lay.keypoints_dir, kp, rig=CameraRig.load(lay.rig_toml), progress=None)
     (out / "wb.toml").write_text('[triangulate.options]\nskeleton = "whole_body"\n')
     stages = ["--stages", "triangulate,track", "--config", str(out / "wb.toml")]
     assert reprocess([str(demo), "--out", str(chain), *stages]) == 0

@@ -17,10 +17,8 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -30,12 +28,11 @@ from calibrate.detect import CameraDetections, detect_all, diagnose_board, diagn
 from calibrate.extrinsics import LOSSES, ExtrinsicsConfig, ExtrinsicsResult, calibrate_extrinsics
 from calibrate.intrinsics import MODELS, IntrinsicsConfig, IntrinsicsResult, calibrate_intrinsics
 from calibrate.report import summary_text, write_report
+from core.progress import Bars, Progress
 
 log = logging.getLogger(__name__)
 
 __all__ = ["CalibrationConfig", "CalibrationOutcome", "calibrate_recording", "add_cli_arguments", "run_cli"]
-
-Progress = Callable[[str, str, int, int], None]  # (stage, item, done, total)
 
 
 @dataclass(frozen=True)
@@ -70,10 +67,11 @@ class CalibrationOutcome:
     summary: str = ""
 
 
-def _stage(progress: Progress | None, stage: str) -> Callable[[str, int, int], None] | None:
+def _stage(progress: Progress | None, stage: str) -> Progress | None:
+    """Prefix the tasks a step reports (a camera, a bundle adjustment phase) with the stage's name."""
     if progress is None:
         return None
-    return lambda item, done, total: progress(stage, item, done, total)
+    return lambda item, done, total: progress(f"{stage} {item}", done, total)
 
 
 def calibrate_recording(
@@ -172,7 +170,7 @@ def calibrate_recording(
             intr[name] = r
             cams.append(r.camera())
         if progress is not None:
-            progress("intrinsics", name, k + 1, len(dets))
+            progress("intrinsics", k + 1, len(dets))
     if problems:
         ok = [c.name for c in cams]
         raise CalibrationError(
@@ -297,28 +295,6 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_cli(args: argparse.Namespace) -> int:
     """The CLI action: progress bars on stderr, summary on stdout, errors as 'what happened, what to do'."""
-    from tqdm import tqdm
-
-    bars: dict[tuple[str, str], Any] = {}
-
-    def progress(stage: str, item: str, done: int, total: int) -> None:
-        key = (stage, item) if stage.startswith("detect") else (stage, "")
-        bar = bars.get(key)
-        if bar is None:
-            desc = f"{stage} {item}" if stage.startswith("detect") else stage
-            bar = bars[key] = tqdm(
-                total=total,
-                desc=desc,
-                unit="frame" if stage.startswith("detect") else "step",
-                leave=True,
-                file=sys.stderr,
-            )
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-        if done >= total:
-            bar.close()
-
     try:
         cfg = CalibrationConfig(
             model=args.model,
@@ -331,17 +307,11 @@ def run_cli(args: argparse.Namespace) -> int:
             intrinsic_frames=args.intrinsic_frames,
             extrinsic_frames=args.extrinsic_frames,
         )
-        from tqdm.contrib.logging import logging_redirect_tqdm
-
-        with logging_redirect_tqdm():  # log lines above the bars, not through them
+        with Bars(unit="step") as progress:  # log lines above the bars, not through them
             out = calibrate_recording(args.recording, args.board, args.out, cfg, progress)
     except (CalibrationError, ValueError) as e:
-        for b in bars.values():
-            b.close()
         print(f"calibrate-run calibrate: error: {e}", file=sys.stderr)
         return 2
-    for b in bars.values():
-        b.close()
     print(out.summary)
     print(f"wrote {args.out} and the report in {out.report['report'].parent}")
     return 0

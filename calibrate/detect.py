@@ -18,7 +18,7 @@ import logging
 import os
 import re
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +27,7 @@ import numpy as np
 
 from calibrate.boards import DICTIONARIES, Board, CalibrationError
 from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_npz, schema_tag
+from core.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +46,6 @@ VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 DET_SCHEMA = "board_detections"
 DET_VERSION = 1
-
-Progress = Callable[[str, int, int], None]  # (camera, done, total)
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,6 +22,7 @@ import numpy as np
 from calibrate.boards import Board, CalibrationError
 from calibrate.camera import Camera, CameraRig
 from calibrate.detect import CameraDetections
+from core.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +43,6 @@ __all__ = [
 LOSSES = ("trivial", "soft_l1", "cauchy", "huber")
 # board frame (x right, y down the print, z into the board) -> world with z up when the board lies face up
 FLIP_BOARD_Z_UP = np.diag([1.0, -1.0, -1.0, 1.0])
-
-Progress = Callable[[str, int, int], None]
 
 
 @dataclass(frozen=True)

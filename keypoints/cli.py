@@ -16,6 +16,7 @@ from pathlib import Path
 
 from core.cli import guarded, nonnegative_int, output_folder, positive_int
 from core.errors import InputError
+from core.progress import Bars
 from keypoints import registry
 from keypoints.registry import ModelError
 
@@ -37,19 +38,8 @@ def _list(args) -> int:
 
 
 def _fetch(args) -> int:
-    from tqdm import tqdm
-
-    bar = tqdm(unit="B", unit_scale=True, desc=args.name)
-
-    def progress(done, total):
-        bar.total = total or None
-        bar.n = done
-        bar.refresh()
-
-    try:
-        path = registry.fetch(args.name, args.model_dir, force=args.force, progress=progress)
-    finally:
-        bar.close()
+    with Bars(unit="B") as bars:
+        path = registry.fetch(args.name, args.model_dir, force=args.force, progress=bars)
     print(f"{args.name}: {path} (sha256 {registry.sha256_file(path)})")
     return 0
 
@@ -81,9 +71,10 @@ def _run(args) -> int:
     )
     first = Path(args.inputs[0])
     if len(args.inputs) == 1 and first.is_dir() and (first / "raw").is_dir():
-        paths = run_session(
-            first, cameras=args.cameras, config=cfg, progress=True, max_frames=args.max_frames
-        )
+        with Bars(unit="fr") as bars:
+            paths = run_session(
+                first, cameras=args.cameras, config=cfg, progress=bars, max_frames=args.max_frames
+            )
     else:
         if not args.out:
             raise InputError("--out DIR is needed for explicit videos (or give one session folder).")
@@ -107,7 +98,8 @@ def _run(args) -> int:
                     f"keypoints run: cameras {missing} are not in {args.calib} ({rig.names})", file=sys.stderr
                 )
                 return 1
-        rep = run_videos(videos, args.out, cfg, rig=rig, progress=True, max_frames=args.max_frames)
+        with Bars(unit="fr") as bars:
+            rep = run_videos(videos, args.out, cfg, rig=rig, progress=bars, max_frames=args.max_frames)
         for c, (fi, msg) in rep.decode_errors.items():
             print(f"WARNING camera {c}: {msg}; kept frames before {fi}", file=sys.stderr)
         paths = rep.paths

@@ -33,6 +33,7 @@ from typing import Any
 from capture.fileio import FormatError, atomic_path, atomic_write_text, check_schema, load_toml
 from core.config import config_from_dict
 from core.errors import RoomcapError, UnknownNameError
+from core.progress import Progress
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -396,7 +397,7 @@ def fetch(
     model_dir: str | os.PathLike | None = None,
     force: bool = False,
     timeout_s: float = 60.0,
-    progress=None,
+    progress: Progress | None = None,
 ) -> Path:
     """Download a model into the cache (or ``model_dir``), unpack OpenMMLab SDK zips, check the sha256.
 
@@ -446,7 +447,7 @@ def fetch(
     )
 
 
-def _download(url: str, timeout_s: float, progress=None) -> bytes:
+def _download(url: str, timeout_s: float, progress: Progress | None = None) -> bytes:
     with urllib.request.urlopen(url, timeout=timeout_s) as r, tempfile.TemporaryFile() as tmp:
         total = int(r.headers.get("Content-Length") or 0)
         done = 0
@@ -454,7 +455,7 @@ def _download(url: str, timeout_s: float, progress=None) -> bytes:
             tmp.write(block)
             done += len(block)
             if progress:
-                progress(done, total)
+                progress(url.rsplit("/", 1)[-1], done, total or None)
         if total and done != total:
             raise OSError(f"truncated download: {done} of {total} bytes")
         tmp.seek(0)

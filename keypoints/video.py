@@ -39,6 +39,7 @@ import numpy as np
 from capture.fileio import FormatError, load_npz, save_npz
 from capture.session import VIDEO_SUFFIXES, SessionLayout
 from core.errors import RoomcapError
+from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.pipeline import FrameResult, KeypointPipeline, PipelineConfig
 from keypoints.skeletons import get_skeleton
@@ -409,7 +410,7 @@ def run_videos(
     rig=None,
     chunk_frames: int = 50,
     max_frames: int | None = None,
-    progress: bool = False,
+    progress: Progress | None = None,
     timestamps: dict[str, Path] | None = None,
     pipeline: KeypointPipeline | None = None,
 ) -> RunReport:
@@ -444,19 +445,11 @@ def run_videos(
             log.info("camera %s: resuming at frame %d", c, start)
             report.resumed_from[c] = start
         readers[c] = r
-    bars = {}
-    if progress:
-        from tqdm import tqdm
-
-        for k, c in enumerate(cams):
-            total = (
-                readers[c].n_frames
-                if max_frames is None
-                else min(max_frames, readers[c].n_frames or max_frames)
-            )
-            bars[c] = tqdm(
-                total=total, initial=readers[c].start_index, desc=c, position=k, unit="fr", leave=True
-            )
+    totals = {
+        c: readers[c].n_frames if max_frames is None else min(max_frames, readers[c].n_frames or max_frames)
+        for c in cams
+    }
+    done = {c: readers[c].start_index for c in cams}
     for r in readers.values():
         r.start()
     live = list(cams)
@@ -481,13 +474,12 @@ def run_videos(
             results = pipe(imgs)
             for c, (fi, t_ns), res in zip(batch_cams, meta, results, strict=True):
                 writers[c].add(fi, t_ns, res)
-                if c in bars:
-                    bars[c].update(1)
+                done[c] += 1
+                if progress is not None:
+                    progress(c, done[c], totals[c])
     finally:
         for r in readers.values():
             r.halt()
-        for b in bars.values():
-            b.close()
     for c in cams:
         err = report.decode_errors.get(c, (-1, ""))
         extra = {
@@ -521,7 +513,7 @@ def run_session(
     session_dir: str | os.PathLike,
     model_set: str = "default",
     cameras: list[str] | None = None,
-    progress: bool = True,
+    progress: Progress | None = None,
     config: PipelineConfig | None = None,
     rig=None,
     **kw,

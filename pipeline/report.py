@@ -28,7 +28,6 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,14 +36,13 @@ import numpy as np
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text, load_npz, load_toml
 from capture.session import SessionLayout
+from core.progress import Progress
 from core.redact import redact
 
 log = logging.getLogger(__name__)
 
 _ASSETS = Path(__file__).resolve().parent / "report_assets"
 _MAX_FRAMES = 2000  # frames embedded in the viewer (subsampled beyond); ReportConfig.max_viewer_frames
-
-Progress = Callable[[int, int], None]
 
 
 @dataclass(frozen=True)
@@ -1232,7 +1230,7 @@ def write_overlay_videos(
                         wr.write(img)
                         done += 1
                         if progress is not None:
-                            progress(done, total)
+                            progress("overlay videos", done, total)
             finally:
                 wr.release()
         if cap is not None:

@@ -258,7 +258,6 @@ def _plan_keypoints(
                 kp_cfg,
                 rig=rig,
                 max_frames=cfg.keypoints.max_frames,
-                progress=False,
                 timestamps=frames_csv or None,
             )
             for c, (fi, msg) in sorted(rep.decode_errors.items()):

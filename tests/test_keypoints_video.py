@@ -124,8 +124,8 @@ def test_run_session_reads_raw_and_writes_keypoints(tmp_path, tiny_set):
         "frame_index,t_ns,t_host_ns,sequence\n0,1000,0,0\n1,2000,0,1\n2,3000,0,2\n"
     )
     with pytest.raises(FormatError, match="calibration says"):
-        run_session(root, config=tiny_set, progress=False, rig={"cam01": (640, 480), "cam02": (W, H)})
-    paths = run_session(root, config=tiny_set, progress=False)
+        run_session(root, config=tiny_set, progress=None, rig={"cam01": (640, 480), "cam02": (W, H)})
+    paths = run_session(root, config=tiny_set, progress=None)
     assert sorted(paths) == ["cam01", "cam02"]
     assert paths["cam01"] == root / "keypoints" / "cam01.npz"
     assert Detections.load(paths["cam01"]).t_ns.tolist() == [1000, 2000, 3000]

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from capture.fileio import config_from_dict
+from core.progress import Progress
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import observation as obs
 from track.normalize import denormalize, hip_frame
@@ -681,7 +682,7 @@ def track_sequence(
     kp: np.ndarray,
     sc: np.ndarray,
     frames: np.ndarray | None = None,
-    progress=None,
+    progress: Progress | None = None,
     maps_at=None,
 ) -> TrackArrays:
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
@@ -698,11 +699,12 @@ def track_sequence(
     J = tracker.skeleton.n_joints
     per_frame: list[FrameEstimate] = []
     times = np.zeros(T)
-    it = range(T) if progress is None else progress(range(T))
-    for t in it:
+    for t in range(T):
         t0 = time.perf_counter()
         per_frame.append(tracker.step(kp[t], sc[t], t, None if maps_at is None else maps_at(t)))
         times[t] = time.perf_counter() - t0
+        if progress is not None:
+            progress("track", t + 1, T)
     ids = sorted({int(i) for e in per_frame for i in e.track_id})
     col = {tid: k for k, tid in enumerate(ids)}
     K = len(ids)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,13 +18,12 @@ import numpy as np
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from core.config import config_from_dict
+from core.progress import Progress
 from keypoints.skeletons import CANONICAL
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
-
-Progress = Callable[[int, int], None]
 
 
 @dataclass(frozen=True)
@@ -180,16 +178,10 @@ def track_session_particle(
     sc = np.moveaxis(mv.score, 0, 1).astype(np.float32)
     T = len(mv.frame_index)
 
-    def prog(it):
-        for i in it:
-            yield i
-            if progress is not None:
-                progress(i + 1, T)
-
     maps_at = load_maps(lay, sub, mv.frame_index) if cfg.use_maps else None
     if maps_at is not None:
         log.info("particle tracker: weighing samples with the stored confidence maps + PAFs (eq. 5.8)")
-    res = track_sequence(tracker, kp, sc, mv.frame_index, progress=prog, maps_at=maps_at)
+    res = track_sequence(tracker, kp, sc, mv.frame_index, progress=progress, maps_at=maps_at)
     tf = track_arrays_to_file(
         res,
         mv.frame_index,

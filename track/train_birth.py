@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from core.cli import guarded
+from core.progress import Bars, Progress
 from keypoints.skeletons import CANONICAL
 from track.birth import BirthNet, save_checkpoint
 from track.normalize import hip_frame, normalize
@@ -72,7 +73,7 @@ def train(
     seed: int = 0,
     val_suffix: str = "1",
     mocap: str | None = None,
-    progress: bool = False,
+    progress: Progress | None = None,
 ) -> tuple[BirthNet, dict]:
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -117,16 +118,17 @@ def _main(argv: list[str] | None = None) -> None:
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     torch.set_num_threads(a.threads)
-    model, info = train(
-        fps=a.fps,
-        hidden=a.hidden,
-        dropout=a.dropout,
-        steps=a.steps,
-        max_drop=a.max_drop,
-        seed=a.seed,
-        mocap=a.mocap,
-        progress=True,
-    )
+    with Bars(unit="step") as bars:
+        model, info = train(
+            fps=a.fps,
+            hidden=a.hidden,
+            dropout=a.dropout,
+            steps=a.steps,
+            max_drop=a.max_drop,
+            seed=a.seed,
+            mocap=a.mocap,
+            progress=bars,
+        )
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(a.out, model, CANONICAL, info)
     report_written(a.out, info)

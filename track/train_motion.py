@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from core.cli import guarded
+from core.progress import Bars, Progress
 from keypoints.skeletons import CANONICAL
 from track.motion import PoseGRU, save_checkpoint, step_inputs
 from track.normalize import rotate_vectors
@@ -108,25 +109,22 @@ def fit(
     steps: int,
     lr: float,
     desc: str,
-    progress: bool,
+    progress: Progress | None,
     log_every: int,
 ) -> None:
     """Adam (weight decay 1e-8, sec. 5.2.1) with a cosine learning-rate schedule; ``batch_loss()`` draws a
     batch and returns its loss."""
     opt = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=1e-8)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
-    it = range(steps)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc=desc)
     model.train()
-    for step in it:
+    for step in range(steps):
         loss = batch_loss()
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
+        if progress is not None:
+            progress(desc, step + 1, steps)
         if step % log_every == 0:
             log.info("step %d loss %.6f", step, loss.item())
 
@@ -161,7 +159,7 @@ def train(
     seed: int = 0,
     val_suffix: str = "1",
     mocap: str | None = None,
-    progress: bool = False,
+    progress: Progress | None = None,
 ) -> tuple[PoseGRU, dict]:
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -210,16 +208,17 @@ def _main(argv: list[str] | None = None) -> None:
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     torch.set_num_threads(a.threads)
-    model, info = train(
-        fps=a.fps,
-        hidden=a.hidden,
-        dropout=a.dropout,
-        steps=a.steps,
-        batch=a.batch,
-        seed=a.seed,
-        mocap=a.mocap,
-        progress=True,
-    )
+    with Bars(unit="step") as bars:
+        model, info = train(
+            fps=a.fps,
+            hidden=a.hidden,
+            dropout=a.dropout,
+            steps=a.steps,
+            batch=a.batch,
+            seed=a.seed,
+            mocap=a.mocap,
+            progress=bars,
+        )
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(a.out, model, a.fps, CANONICAL, info)
     report_written(a.out, info)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from calibrate.checks import rig_warnings
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from core.config import config_from_dict
+from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.skeletons import (
     CANONICAL,
@@ -38,8 +38,6 @@ from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 from triangulate.tracker import TrackerConfig, track_poses
 
 log = logging.getLogger(__name__)
-
-Progress = Callable[[int, int], None]
 
 
 @dataclass(frozen=True)
@@ -309,7 +307,7 @@ def reconstruct_all(
     for t in range(T):
         out.append(rec(mv.xy_px[:, t], mv.score[:, t]))
         if progress is not None:
-            progress(t + 1, T)
+            progress("triangulate", t + 1, T)
     J = len(mv.joint_names)
     P3 = max([len(f.xyz_m) for f in out], default=0)
     res = {
