@@ -12,10 +12,8 @@ Output folder (the folder of ``rig.toml``)::
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,11 +26,11 @@ from calibrate.detect import CameraDetections, detect_all, diagnose_board, diagn
 from calibrate.extrinsics import LOSSES, ExtrinsicsConfig, ExtrinsicsResult, calibrate_extrinsics
 from calibrate.intrinsics import MODELS, IntrinsicsConfig, IntrinsicsResult, calibrate_intrinsics
 from calibrate.report import summary_text, write_report
-from core.progress import Bars, Progress
+from core.progress import Progress
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CalibrationConfig", "CalibrationOutcome", "calibrate_recording", "add_cli_arguments", "run_cli"]
+__all__ = ["CalibrationConfig", "CalibrationOutcome", "calibrate_recording"]
 
 
 @dataclass(frozen=True)
@@ -222,96 +220,3 @@ def calibrate_recording(
 
     text = summary_text(report_dict(board, rig, dets, intr, ext))
     return CalibrationOutcome(rig, dets, intr, ext, report, timings, text)
-
-
-# ----------------------------------------------------------------------------- CLI (used by calibrate/cli.py)
-
-_HELP = """Calibrate a multi-camera rig from a recording of a calibration board.
-
-RECORDING is a folder with one video per camera (cam_0.mp4, cam_1.mp4, ...; the file name is the camera
-name), or one folder of images per camera, or a flat folder of images named <camera><frame number>
-(left01.jpg, right01.jpg). Frames with the same index are taken as simultaneous.
-
-Move the board through the whole image of every camera, tilted in all directions, and make sure that
-neighbouring cameras see it at the same time. The output folder (that of --out) receives rig.toml, the
-cached detections and a report (report/report.toml, layout.png, coverage.png).
-
-Example:
-  calibrate-run calibrate recordings/calib --board charuco.toml --out calib/rig.toml
-  calibrate-run calibrate recordings/calib --board charuco.toml --out calib/rig.toml --world board:120
-"""
-
-
-def add_cli_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = _HELP
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
-    p.add_argument("recording", type=Path, help="folder of per-camera videos or image folders")
-    p.add_argument(
-        "--board",
-        type=Path,
-        required=True,
-        help='board file: roomcap board TOML (schema="board/1") or caliscope\'s charuco.toml',
-    )
-    p.add_argument("--out", type=Path, required=True, help="rig.toml to write (its folder gets the report)")
-    p.add_argument(
-        "--model",
-        choices=MODELS,
-        default="pinhole",
-        help="lens model: pinhole (k1,k2,p1,p2,k3), pinhole4 (k1,k2,p1,p2), rational (8), "
-        "fisheye (4) (default: pinhole)",
-    )
-    p.add_argument(
-        "--refine-intrinsics",
-        choices=("none", "focal_pp", "all"),
-        default="none",
-        help="let the bundle adjustment refine the intrinsics too (default: none = keep the "
-        "per-camera calibration)",
-    )
-    p.add_argument(
-        "--world",
-        default="",
-        help="world frame: camera:NAME (that camera's frame; default: the first camera) or "
-        "board:FRAME (the board lying on the floor in that frame: origin at the board, z up)",
-    )
-    p.add_argument(
-        "--intrinsics",
-        default="",
-        metavar="RIG_TOML",
-        help="use the intrinsics of these cameras (same names) instead of calibrating them",
-    )
-    p.add_argument("--exclude", nargs="*", default=[], metavar="CAMERA", help="cameras to leave out")
-    p.add_argument("--loss", choices=LOSSES, default="soft_l1", help="robust loss of the bundle adjustment")
-    p.add_argument("--max-frames", type=int, default=1000, help="frames examined per camera (default 1000)")
-    p.add_argument(
-        "--intrinsic-frames",
-        type=int,
-        default=40,
-        help="frames per camera for the intrinsics, chosen for coverage and diversity (default 40)",
-    )
-    p.add_argument(
-        "--extrinsic-frames", type=int, default=300, help="board poses in the bundle adjustment (default 300)"
-    )
-
-
-def run_cli(args: argparse.Namespace) -> int:
-    """The CLI action: progress bars on stderr, summary on stdout, errors as 'what happened, what to do'."""
-    try:
-        cfg = CalibrationConfig(
-            model=args.model,
-            refine_intrinsics=args.refine_intrinsics,
-            world=args.world,
-            intrinsics_from=args.intrinsics,
-            exclude=tuple(args.exclude),
-            loss=args.loss,
-            detect_max_frames=args.max_frames,
-            intrinsic_frames=args.intrinsic_frames,
-            extrinsic_frames=args.extrinsic_frames,
-        )
-        with Bars(unit="step") as progress:  # log lines above the bars, not through them
-            out = calibrate_recording(args.recording, args.board, args.out, cfg, progress)
-    except (CalibrationError, ValueError) as e:
-        print(f"calibrate-run calibrate: error: {e}", file=sys.stderr)
-        return 2
-    print(out.summary)
-    print(f"wrote {args.out} and the report in {out.report['report'].parent}")
-    return 0
