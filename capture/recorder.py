@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.config import CaptureConfig, redact_url
+from capture.factory import make_source
 from capture.fileio import atomic_write_text, save_toml
 from capture.grabber import END, Gap, Grabber
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
@@ -54,7 +55,6 @@ from capture.sources import (
     SourceError,
     SourceInfo,
     host_now_ns,
-    make_source,
     read_frames_csv,
 )
 from core.errors import RoomcapError

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.config import CameraConfig, redact_url
+from capture.config import CameraConfig
 from core.errors import RoomcapError
 
 log = logging.getLogger(__name__)
@@ -655,29 +655,3 @@ class FileReplaySource(FrameSource):
 
 
 # ----------------------------------------------------------------------------- factory
-
-
-def make_source(
-    cam: CameraConfig, epoch_ns: int | None = None, timeout_s: float = 5.0, segment_s: float = 0.5
-) -> FrameSource:
-    """The FrameSource for one cams.yaml entry (nothing is opened yet)."""
-    kind = cam.kind
-    if kind == "synthetic":
-        return SyntheticSource.from_config(cam, epoch_ns)
-    if kind == "file":
-        return FileReplaySource(
-            cam.name,
-            cam.source,
-            realtime=cam.realtime,
-            loop=cam.loop,
-            epoch_ns=epoch_ns,
-            fps=cam.fps,
-            drop_late=cam.drop_late,
-        )
-    if kind == "oak":
-        from capture.oak import OakSource
-
-        return OakSource(cam, segment_s=segment_s, timeout_s=timeout_s)
-    if kind in ("usb", "device", "rtsp"):
-        return OpenCVSource(cam, open_timeout_s=timeout_s, read_timeout_s=timeout_s)
-    raise SourceError(f"{cam.name}: unknown source kind {kind!r} for {redact_url(cam.source)}")

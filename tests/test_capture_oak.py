@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from capture.config import parse_config
+from capture.factory import make_source
 from capture.oak import OakSource, check_sensor_mode, frame_from_message, oak_config, select_device
 from capture.recorder import SegmentWriter
-from capture.sources import SourceError, host_now_ns, make_source, mono_to_host_ns, read_frames_csv
+from capture.sources import SourceError, host_now_ns, mono_to_host_ns, read_frames_csv
 
 
 def _cam(source="oak:", **kw):

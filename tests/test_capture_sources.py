@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from capture.config import parse_config
+from capture.factory import make_source
 from capture.sources import (
     FileReplaySource,
     SourceError,
     SyntheticSource,
-    make_source,
     open_recording,
     read_code,
     stamp_code,
