@@ -58,12 +58,17 @@ def test_project_errors_share_one_base_and_keep_their_builtin_parents():
     from keypoints.video import VideoDecodeError
     from pipeline.discover import SessionError
     from pipeline.runner import StageError
+    from track.cli import UsageError
+    from track.export import ExportError
     from track.motion import CheckpointMismatch
+    from track.opensim_ik import OpenSimError
+    from track.skeleton_fit import FitError
 
     parents = {
         CalibrationError: RuntimeError, FormatError: ValueError, RecorderError: RuntimeError,
         SourceError: RuntimeError, ModelError: FileNotFoundError, VideoDecodeError: RuntimeError,
         SessionError: RuntimeError, StageError: RuntimeError, CheckpointMismatch: ValueError,
+        UsageError: ValueError, ExportError: ValueError, FitError: ValueError, OpenSimError: ValueError,
     }  # fmt: skip
     for cls, builtin in parents.items():
         assert issubclass(cls, RoomcapError) and issubclass(cls, builtin), cls

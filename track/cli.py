@@ -18,11 +18,12 @@ import sys
 from pathlib import Path
 
 from capture.fileio import FormatError
+from core.errors import RoomcapError
 
 log = logging.getLogger(__name__)
 
 
-class UsageError(ValueError):
+class UsageError(RoomcapError, ValueError):
     pass
 
 

@@ -41,6 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text
+from core.errors import RoomcapError
+from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span, write_bvh
 from track.trackfile import (
     TrackFile,
     _track_index,
@@ -93,7 +95,7 @@ POSE2SIM_NAMES = {
 PREFERRED = ("upper_neck", "head_top")
 
 
-class ExportError(ValueError):
+class ExportError(RoomcapError, ValueError):
     """Input that cannot be exported as asked; the message says what is wrong and what to do."""
 
 
@@ -117,41 +119,6 @@ def parse_formats(text: str) -> tuple[str, ...]:
             "(comma-separated, e.g. --format trc,bvh)."
         )
     return tuple(dict.fromkeys(fmts))
-
-
-# ----------------------------------------------------------------------------- gap filling
-
-
-def person_span(tf: TrackFile, k: int) -> np.ndarray:
-    """(T,) bool: frames in which track ``k`` has at least one known joint."""
-    return tf.mask[:, k].any(-1)
-
-
-def fill_gaps(xyz: np.ndarray, std: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear interpolation over interior NaN runs of at most ``max_gap`` frames, per joint.
-
-    ``xyz (T,J,3)``, ``std (T,J)`` -> (filled xyz, filled std, ``filled (T,J)`` bool)."""
-    xyz, std = xyz.copy(), std.copy()
-    T, J = xyz.shape[:2]
-    filled = np.zeros((T, J), bool)
-    known = np.isfinite(xyz).all(-1)
-    t = np.arange(T)
-    for j in range(J):
-        idx = np.flatnonzero(known[:, j])
-        if len(idx) < 2:
-            continue
-        gaps = np.flatnonzero(np.diff(idx) > 1)
-        for g in gaps:
-            a, b = idx[g], idx[g + 1]
-            if b - a - 1 > max_gap:
-                continue
-            tt = t[a + 1 : b]
-            w = ((tt - a) / (b - a))[:, None]
-            xyz[a + 1 : b, j] = (1 - w) * xyz[a, j] + w * xyz[b, j]
-            sa, sb = std[a, j], std[b, j]
-            std[a + 1 : b, j] = (1 - w[:, 0]) * sa + w[:, 0] * sb if np.isfinite(sa + sb) else np.nan
-            filled[a + 1 : b, j] = True
-    return xyz, std, filled
 
 
 @dataclass
@@ -394,13 +361,10 @@ def export_tracks(
     fmts = options.formats
     strict = persons is not None  # every track: one that cannot be exported is skipped with a note
     if "bvh" in fmts and fit is None:
-        from track.skeleton_fit import fit_skeletons
-
         rep.notes.append(f"no skeleton fit was given: fitted the skeletons of tracks {ids} now")
         fit = fit_skeletons(tf, track_ids=ids, skip_unfittable=not strict)
     if "bvh" in fmts:
         rep.notes.extend(f"BVH left out: {n}" for n in fit.notes)
-    from track.skeleton_fit import FitError
 
     for p in ids:
         try:
@@ -412,8 +376,6 @@ def export_tracks(
     if not rep.files:
         raise ExportError("nothing could be exported: " + "; ".join(rep.notes))
     if "bvh" in fmts and options.multi_bvh and len(fit.track_id) > 1:
-        from track.skeleton_fit import write_bvh
-
         path = out_dir / f"{session}_all.bvh"
         write_bvh(fit, path, track_ids=fit.track_id.tolist())
         rep.files.append(path)
@@ -450,8 +412,6 @@ def _export_person(
         elif fmt == "json":
             export_json(tf, path, track=p)
         elif fmt == "bvh":
-            from track.skeleton_fit import write_bvh
-
             if p not in fit.track_id.tolist():
                 continue  # named in the notes
             write_bvh(fit, path, track_ids=[p])

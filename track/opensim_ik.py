@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.fileio import atomic_write_text
+from core.errors import RoomcapError
 from track.trackfile import TrackFile, read_trc
 
 log = logging.getLogger(__name__)
@@ -37,7 +38,7 @@ log = logging.getLogger(__name__)
 MIN_MARKERS = 6
 
 
-class OpenSimError(ValueError):
+class OpenSimError(RoomcapError, ValueError):
     """OpenSim is missing, the setup folder is incomplete, or too few markers; says what to do."""
 
 

@@ -59,7 +59,43 @@ from capture.fileio import (
     save_npz,
     schema_tag,
 )
+from core.errors import RoomcapError
 from track.trackfile import OBSERVED, TrackFile, _track_index
+
+# ----------------------------------------------------------------------------- gap filling
+
+
+def person_span(tf: TrackFile, k: int) -> np.ndarray:
+    """(T,) bool: frames in which track ``k`` has at least one known joint."""
+    return tf.mask[:, k].any(-1)
+
+
+def fill_gaps(xyz: np.ndarray, std: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Linear interpolation over interior NaN runs of at most ``max_gap`` frames, per joint.
+
+    ``xyz (T,J,3)``, ``std (T,J)`` -> (filled xyz, filled std, ``filled (T,J)`` bool)."""
+    xyz, std = xyz.copy(), std.copy()
+    T, J = xyz.shape[:2]
+    filled = np.zeros((T, J), bool)
+    known = np.isfinite(xyz).all(-1)
+    t = np.arange(T)
+    for j in range(J):
+        idx = np.flatnonzero(known[:, j])
+        if len(idx) < 2:
+            continue
+        gaps = np.flatnonzero(np.diff(idx) > 1)
+        for g in gaps:
+            a, b = idx[g], idx[g + 1]
+            if b - a - 1 > max_gap:
+                continue
+            tt = t[a + 1 : b]
+            w = ((tt - a) / (b - a))[:, None]
+            xyz[a + 1 : b, j] = (1 - w) * xyz[a, j] + w * xyz[b, j]
+            sa, sb = std[a, j], std[b, j]
+            std[a + 1 : b, j] = (1 - w[:, 0]) * sa + w[:, 0] * sb if np.isfinite(sa + sb) else np.nan
+            filled[a + 1 : b, j] = True
+    return xyz, std, filled
+
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +107,7 @@ HINGE_LIMITS_DEG = (-10.0, 150.0)
 YUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-class FitError(ValueError):
+class FitError(RoomcapError, ValueError):
     """A track that cannot be fitted; the message says why and what to do."""
 
 
@@ -323,8 +359,6 @@ def _bone_lengths(tf: TrackFile, k: int, X: np.ndarray, rows: np.ndarray, opt: F
 
 def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> dict[str, np.ndarray]:
     """Fit one person; returns arrays over the whole track file and the fit skeleton (module docstring)."""
-    from track.export import fill_gaps, person_span
-
     opt = options
     k = _track_index(tf, track)
     T, J = tf.n_frames, len(tf.joint_names)
