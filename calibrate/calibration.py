@@ -25,7 +25,7 @@ from calibrate.camera import Camera, CameraRig
 from calibrate.detect import CameraDetections, detect_all, diagnose_board, diagnose_grid, discover_recording
 from calibrate.extrinsics import LOSSES, ExtrinsicsConfig, ExtrinsicsResult, calibrate_extrinsics
 from calibrate.intrinsics import MODELS, IntrinsicsConfig, IntrinsicsResult, calibrate_intrinsics
-from calibrate.report import summary_text, write_report
+from calibrate.report import report_dict, summary_text, write_report
 from core.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -216,7 +216,6 @@ def calibrate_recording(
             "rig": str(out_rig.resolve()),
         },
     )
-    from calibrate.report import report_dict
 
     text = summary_text(report_dict(board, rig, dets, intr, ext))
     return CalibrationOutcome(rig, dets, intr, ext, report, timings, text)

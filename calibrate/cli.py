@@ -20,7 +20,17 @@ from pathlib import Path
 
 from calibrate.boards import CalibrationError
 from calibrate.calibration import CalibrationConfig, calibrate_recording
+from calibrate.camera import CameraRig
+from calibrate.checks import rig_warnings
 from calibrate.extrinsics import LOSSES
+from calibrate.formats import (
+    EXPORT_FORMATS,
+    IMPORT_FORMATS,
+    ImportOptions,
+    detect_format,
+    export_rig,
+    import_rig,
+)
 from calibrate.intrinsics import MODELS
 from capture.fileio import FormatError
 from core.cli import guarded, positive_float
@@ -45,7 +55,6 @@ def _size_arg(text: str) -> tuple[str, tuple[int, int]]:
 
 
 def _add_import(sub: argparse._SubParsersAction) -> None:
-    from calibrate.formats import IMPORT_FORMATS
 
     p = sub.add_parser(
         "import",
@@ -92,7 +101,6 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_import(args: argparse.Namespace) -> int:
-    from calibrate.formats import ImportOptions, detect_format, import_rig
 
     fmt = args.format or detect_format(args.file)
     opts = ImportOptions(
@@ -112,7 +120,6 @@ def _run_import(args: argparse.Namespace) -> int:
             f"  {c.name}: {c.size_wh[0]}x{c.size_wh[1]} {c.model} f=({c.K[0, 0]:.1f}, {c.K[1, 1]:.1f}) "
             f"centre_m={[round(float(v), 3) for v in c.center]}"
         )
-    from calibrate.checks import rig_warnings
 
     for w in rig_warnings(rig, str(args.out)):
         print(f"WARNING {w}", file=sys.stderr)
@@ -123,7 +130,6 @@ def _run_import(args: argparse.Namespace) -> int:
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:
-    from calibrate.formats import EXPORT_FORMATS
 
     p = sub.add_parser(
         "export",
@@ -137,8 +143,6 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from calibrate.camera import CameraRig
-    from calibrate.formats import export_rig
 
     rig = CameraRig.load(args.rig)
     written = export_rig(rig, args.out, args.format)

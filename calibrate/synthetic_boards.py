@@ -17,6 +17,7 @@ import numpy as np
 
 from calibrate.boards import Board
 from calibrate.camera import Camera, CameraRig
+from calibrate.detect import CameraDetections
 
 __all__ = [
     "BoardRenderer",
@@ -306,7 +307,6 @@ def project_detections(
     """Detections without rendering: exact projections plus Gaussian noise (noise_px per axis), for
     frames where the printed side faces the camera; points outside the image are NaN.
     visible_mask: (C,F) optional extra restriction. Returns camera name -> CameraDetections."""
-    from calibrate.detect import CameraDetections
 
     r = BoardRenderer.__new__(BoardRenderer)  # visibility test only: no board image needed
     r.board = board

@@ -16,6 +16,13 @@ import sys
 import time
 from pathlib import Path
 
+from capture.config import ConfigError, load_config
+from capture.fileio import FormatError
+from capture.live import LiveRunner
+from capture.offline_sync import sync_audio, sync_session
+from capture.recorder import Recorder, RecorderError, redact_text, repair
+from capture.session import SessionLayout
+from capture.sources import SourceError
 from core.cli import guarded, positive_float
 
 log = logging.getLogger("capture")
@@ -55,8 +62,6 @@ def _record_parser() -> argparse.ArgumentParser:
 
 
 def _record(argv: list[str]) -> int:
-    from capture.config import load_config
-    from capture.recorder import Recorder, redact_text
 
     args = _record_parser().parse_args(argv)
     cfg = load_config(args.cameras)
@@ -71,8 +76,6 @@ def _record(argv: list[str]) -> int:
     live_on = args.live or cfg.live.enabled
     live = None
     if live_on:
-        from capture.live import LiveRunner
-
         live = LiveRunner(cfg, out)
     rec = Recorder(
         cfg,
@@ -147,7 +150,6 @@ def _record(argv: list[str]) -> int:
 
 
 def _check(argv: list[str]) -> int:
-    from capture.config import load_config
 
     p = argparse.ArgumentParser(prog="capture-run check")
     p.add_argument("--cameras", required=True)
@@ -159,7 +161,6 @@ def _check(argv: list[str]) -> int:
 
 
 def _sync(argv: list[str]) -> int:
-    from capture.offline_sync import sync_session
 
     p = argparse.ArgumentParser(
         prog="capture-run sync",
@@ -189,12 +190,8 @@ def _sync(argv: list[str]) -> int:
     p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
     args = p.parse_args(argv)
     if args.audio is not None:
-        from capture.offline_sync import sync_audio
-
         videos = dict(item.partition("=")[::2] for item in args.audio)
         if not videos:  # the session's own recordings
-            from capture.session import SessionLayout
-
             lay = SessionLayout(args.session)
             videos = {c: str(lay.video(c)) for c in lay.raw_cameras()}
             unjoined = [c for c, v in videos.items() if Path(v).is_dir()]
@@ -263,7 +260,6 @@ def _trust_text(r: dict) -> str:
 
 
 def _repair(argv: list[str]) -> int:
-    from capture.recorder import repair
 
     p = argparse.ArgumentParser(
         prog="capture-run repair",
@@ -293,10 +289,6 @@ def _repair(argv: list[str]) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    from capture.config import ConfigError
-    from capture.fileio import FormatError
-    from capture.recorder import RecorderError, redact_text
-    from capture.sources import SourceError
 
     argv = list(sys.argv[1:] if argv is None else argv)
     verbose = "-v" in argv or "--verbose" in argv

@@ -57,7 +57,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import FormatError
+from capture.fileio import FormatError, check_schema
 from core.config import check_keys
 from core.errors import UnknownNameError
 from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
@@ -343,8 +343,6 @@ def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureCon
         )
     _reject_unknown(data, _TOP_KEYS, "<top level>", path)
     if "schema" in data:
-        from capture.fileio import check_schema
-
         check_schema(data["schema"], CAMS_SCHEMA, (CAMS_VERSION,), path)
     defaults = data.get("defaults") or {}
     if not isinstance(defaults, dict):

@@ -26,6 +26,9 @@ from capture.config import CaptureConfig
 from capture.session import SessionLayout
 from capture.sources import host_now_ns
 from capture.sync import FrameSet, Synchroniser
+from keypoints.skeletons import CANONICAL
+from triangulate.reconstruct import FrameReconstructor
+from triangulate.tracker import track_poses
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +54,7 @@ class LiveContext:
 
 
 def _keypoints(ctx: LiveContext) -> Stage:
-    from keypoints.pipeline import KeypointPipeline
+    from keypoints.pipeline import KeypointPipeline  # lazy: loads onnxruntime
 
     pipe = KeypointPipeline()
 
@@ -65,8 +68,6 @@ def _keypoints(ctx: LiveContext) -> Stage:
 
 
 def _triangulate(ctx: LiveContext) -> Stage:
-    from keypoints.skeletons import CANONICAL
-    from triangulate.reconstruct import FrameReconstructor
 
     if ctx.rig is None:
         raise RuntimeError(
@@ -95,8 +96,6 @@ def _triangulate(ctx: LiveContext) -> Stage:
 
 
 def _track(ctx: LiveContext) -> Stage:
-    from keypoints.skeletons import CANONICAL
-    from triangulate.tracker import track_poses
 
     hist_xyz: list[np.ndarray] = []
     hist_t: list[int] = []

@@ -25,6 +25,7 @@ import numpy as np
 
 from capture.fileio import FormatError, load_toml, save_toml
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from keypoints.detections import Detections
 
 log = logging.getLogger(__name__)
 
@@ -498,7 +499,6 @@ def sync_session(
                 f"found {len(cams)} keypoints/<cam>.npz; sync needs two or more.",
                 "Run the keypoints stage first, or pass --openpose CAM=DIR ...",
             )
-        from keypoints.detections import Detections
 
         for cam in cams:
             det = Detections.load(layout.detections(cam))

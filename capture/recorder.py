@@ -46,8 +46,10 @@ import numpy as np
 
 from capture.config import CaptureConfig, redact_url
 from capture.factory import make_source
-from capture.fileio import atomic_write_text, save_toml
+from capture.fileio import atomic_write_text, load_toml, save_toml
 from capture.grabber import END, Gap, Grabber
+from capture.join import JoinResult, count_video_packets, join_camera, remove_segments
+from capture.oak import depthai_version
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
 from capture.sources import (
     Frame,
@@ -57,6 +59,7 @@ from capture.sources import (
     host_now_ns,
     read_frames_csv,
 )
+from capture.sync import timing_report
 from core.errors import RoomcapError
 from core.redact import redact
 
@@ -270,8 +273,6 @@ def _versions(cfg: CaptureConfig) -> dict[str, str]:
     except Exception:  # not installed (running from a checkout)
         v["roomcap"] = "unknown"
     if any(c.kind == "oak" for c in cfg.cameras):
-        from capture.oak import depthai_version
-
         v["depthai"] = depthai_version()
     return v
 
@@ -517,7 +518,6 @@ class Recorder:
             self._restore_signals(old_handlers)
         names = [c.name for c in self.active]
         tables = {c: read_frames_csv(self.layout.frames_csv(c)) for c in names}
-        from capture.sync import timing_report
 
         timing = timing_report(
             tables,
@@ -546,7 +546,6 @@ class Recorder:
 
     def _join_all(self, tables: dict) -> None:
         """Join each camera's segments into raw/<cam>.mp4 (capture.join), unless the disk is full."""
-        from capture.join import JoinResult, join_camera
 
         disk_full = any(w.errno in _DISK_FULL for w in self.writers.values()) or self.stop_reason.startswith(
             "disk"
@@ -666,8 +665,6 @@ def repair(root: str | os.PathLike, join: bool = True) -> tuple[dict[str, int], 
     ``capture.join.JoinResult``). Sets
     ``status = "recovered"`` in a session.toml left at ``recording`` and records each join.
     """
-    from capture.fileio import load_toml
-    from capture.join import count_video_packets, join_camera, remove_segments
 
     layout = SessionLayout(root)
     if not layout.raw_dir.is_dir():

@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from capture.config import CameraConfig
+from capture.fileio import FormatError
+from capture.session import VIDEO_SUFFIXES
 from core.errors import RoomcapError
 
 log = logging.getLogger(__name__)
@@ -394,7 +396,6 @@ SEGMENT_GLOB = "seg_*"
 
 
 def _segments(folder: Path) -> list[Path]:
-    from capture.session import VIDEO_SUFFIXES
 
     ok = VIDEO_SUFFIXES + (".h264", ".h265")
     return sorted(p for p in folder.glob(SEGMENT_GLOB) if p.suffix.lower() in ok)
@@ -405,7 +406,6 @@ def read_frames_csv(path: str | os.PathLike) -> np.ndarray:
 
     A last line without its newline (a write cut by a kill) is ignored, never half-parsed.
     """
-    from capture.fileio import FormatError
 
     path = Path(path)
     text = path.read_text()

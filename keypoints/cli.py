@@ -14,6 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
+from calibrate.formats import import_rig
 from core.cli import guarded, nonnegative_int, output_folder, positive_int
 from core.errors import InputError
 from core.progress import Bars
@@ -45,7 +46,7 @@ def _fetch(args) -> int:
 
 
 def _parse_videos(items: list[str]) -> dict[str, Path]:
-    from keypoints.video import videos_in
+    from keypoints.video import videos_in  # lazy: loads onnxruntime
 
     out: dict[str, Path] = {}
     for it in items:
@@ -60,9 +61,9 @@ def _parse_videos(items: list[str]) -> dict[str, Path]:
 
 
 def _run(args) -> int:
-    from keypoints.pipeline import PipelineConfig
-    from keypoints.runtime import RuntimeConfig
-    from keypoints.video import run_session, run_videos
+    from keypoints.pipeline import PipelineConfig  # lazy: loads onnxruntime
+    from keypoints.runtime import RuntimeConfig  # lazy: loads onnxruntime
+    from keypoints.video import run_session, run_videos  # lazy: loads onnxruntime
 
     cfg = PipelineConfig(
         model_set=args.models,
@@ -89,8 +90,6 @@ def _run(args) -> int:
         if (
             args.calib
         ):  # any format calibrate reads (rig.toml, Pose2Sim/aniposelib TOML, Qualisys .qca.txt, ...)
-            from calibrate.formats import import_rig
-
             rig = import_rig(args.calib)
             missing = [c for c in videos if c not in rig.names]
             if missing:

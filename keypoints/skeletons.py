@@ -22,6 +22,7 @@ from functools import cache
 
 import numpy as np
 
+from capture.fileio import FormatError, load_toml
 from core.errors import UnknownNameError
 
 _COCO17 = (
@@ -382,8 +383,6 @@ def load_skeleton_toml(path) -> Skeleton:
     layout is registered (so its detections files load) with its joints renamed to the 3D names.
     Returns the 3D skeleton."""
     from pathlib import Path
-
-    from capture.fileio import FormatError, load_toml
 
     path = Path(path)
     data = load_toml(path)

@@ -26,7 +26,11 @@ from core.cli import guarded, output_folder, positive_int
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
+from pipeline.report import write_overlay_videos
 from pipeline.runner import SessionResult
+from track.export import ExportError, ExportOptions, export_tracks, parse_formats
+from track.skeleton_fit import FitError
+from track.trackfile import TrackFile
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,9 +72,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def export_results(results: list[SessionResult], formats: tuple[str, ...]) -> list[str]:
     """``tracks export`` of every session that ran; returns one error line per session that failed."""
-    from track.export import ExportError, ExportOptions, export_tracks
-    from track.skeleton_fit import FitError
-    from track.trackfile import TrackFile
 
     errors = []
     for r in results:
@@ -135,8 +136,6 @@ def _main(argv: list[str] | None = None) -> int:
     )
     export_formats: tuple[str, ...] = ()
     if args.export:
-        from track.export import ExportError, parse_formats
-
         try:
             export_formats = parse_formats(args.export)
         except ExportError as e:
@@ -176,8 +175,6 @@ def _main(argv: list[str] | None = None) -> int:
     )
     bar.close()
     if args.overlay:
-        from pipeline.report import write_overlay_videos
-
         for r in results:
             if r.status == "ok":
                 try:

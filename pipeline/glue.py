@@ -20,6 +20,8 @@ import numpy as np
 
 from capture.fileio import save_npz, schema_tag
 from capture.session import SessionLayout
+from forecast.preview import preview
+from track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 
@@ -77,15 +79,12 @@ def _baseline(xyz: np.ndarray, fps: float, H: int, kind: str) -> tuple[np.ndarra
 
 def write_preview(tracks_path: Path, out_path: Path, horizon_s: float, model: str) -> Path:
     """Forecast every track present at the last frame ``horizon_s`` ahead and write ``out_path``."""
-    from track.trackfile import TrackFile
 
     kind, checkpoint = forecast_model(model)
     tf = TrackFile.load(tracks_path)
     start = int(tf.frame_index[-1]) if tf.n_frames else 0
     if kind == "checkpoint":
         import torch
-
-        from forecast.preview import preview
 
         torch.set_num_threads(1)  # the same bytes on every machine and executor
         fc = preview(tracks_path, horizon_s, checkpoint=checkpoint)

@@ -35,9 +35,14 @@ from typing import Any
 import numpy as np
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text, load_npz, load_toml
-from capture.session import SessionLayout
+from capture.session import VIDEO_SUFFIXES, SessionLayout
 from core.progress import Progress
 from core.redact import redact
+from keypoints.detections import Detections
+from keypoints.skeletons import CANONICAL, convert
+from pipeline.config import STAGES
+from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED
+from triangulate.dlt import DLTConfig
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +133,6 @@ def _load(lay: SessionLayout) -> _Inputs:
             inp.poses = Poses3D.load(lay.poses3d)
         except Exception as e:
             inp.poses_error = str(e)
-    from keypoints.detections import Detections
 
     for cam in lay.detection_cameras():
         try:
@@ -294,7 +298,6 @@ def _segments(mask: np.ndarray) -> list[list[int]]:
 def track_events(tf, cfg: ReportConfig) -> dict[str, Any]:
     """Per track: frames carried without an observation (track file flags) and sudden jumps of the root,
     with the track that was where it landed (a suspected identity swap). Frames are track-file rows."""
-    from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED
 
     xyz = np.asarray(tf.xyz_m, np.float64)
     T, K = xyz.shape[:2]
@@ -482,7 +485,6 @@ def _video_paths(lay: SessionLayout, cams: list[str]) -> dict[str, Path]:
         )
     except (OSError, json.JSONDecodeError, KeyError, TypeError):
         pass
-    from capture.session import VIDEO_SUFFIXES
 
     for cam in cams:
         if lay.video(cam).exists():
@@ -501,8 +503,6 @@ class _Overlay:
     (with the lens model), per session frame; detections take the colour of the track they match."""
 
     def __init__(self, inp: _Inputs, cfg: ReportConfig):
-        from keypoints.skeletons import CANONICAL, convert
-        from triangulate.dlt import DLTConfig
 
         self.cfg = cfg
         self.rig = inp.rig
@@ -757,7 +757,6 @@ def warnings_path(root: Path, stage: str) -> Path:
 def _warnings(lay: SessionLayout) -> list[dict[str, str]]:
     """The warnings the pipeline logged while making the current outputs, by stage (the runner saves
     them per stage; sessions processed before that show the last run's summary)."""
-    from pipeline.config import STAGES
 
     out: list[dict[str, str]] = []
     seen = set()
@@ -1015,7 +1014,6 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
 
 
 def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
-    from pipeline.config import STAGES
 
     rows = []
     for stage in STAGES:

@@ -28,12 +28,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import atomic_write_text
-from capture.session import SessionLayout
+from calibrate.camera import CameraRig
+from calibrate.formats import import_calibration
+from capture.fileio import atomic_write_bytes, atomic_write_text, load_npz, load_toml, save_toml
+from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
 from core.errors import RoomcapError
-from pipeline.config import PipelineConfig
-from pipeline.discover import SessionSource
+from keypoints.registry import get_model_set, resolve
+from pipeline.config import STAGES, PipelineConfig
+from pipeline.discover import SEGMENT_SUFFIXES, SessionSource
+from pipeline.glue import forecast_model, track_particle, write_preview
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
+from pipeline.report import write_report
+from triangulate.stage import track_session_greedy, triangulate_session
 
 log = logging.getLogger(__name__)
 
@@ -97,8 +103,6 @@ def _plan_calibration(
         return None  # the session's own rig is the input of later stages
 
     def run(warnings: list[str]) -> None:
-        from calibrate.formats import import_calibration
-
         rig = _match_camera_names(import_calibration(src.calibration), src.cameras)
         missing = [c for c in src.cameras if c not in rig.names]
         if missing:
@@ -137,7 +141,6 @@ def _match_camera_names(rig, cameras: list[str]):
 
 def model_set_sha256(model_set: str, store: ProvenanceStore | None = None) -> str:
     """sha256 of the model files of a keypoints model set (detector+pose), via the stat cache."""
-    from keypoints.registry import get_model_set, resolve
 
     ms = get_model_set(model_set)
     names = [n for n in (ms.detector, ms.pose) if n]
@@ -152,8 +155,6 @@ def probe_videos(videos: dict[str, Path]) -> tuple[dict[str, tuple[int, float]],
     are aligned by index, the tail of the longer videos is seen by fewer cameras).
     """
     import cv2
-
-    from pipeline.discover import SEGMENT_SUFFIXES
 
     info: dict[str, tuple[int, float]] = {}
     for cam, path in sorted(videos.items()):
@@ -233,17 +234,17 @@ def _plan_keypoints(
             frames_csv = {c: p for c in cams if (p := src_lay.find_frames_csv(c)) is not None}
 
         def run(warnings: list[str]) -> None:
-            from keypoints.video import run_videos
+            from keypoints.video import run_videos  # lazy: loads onnxruntime
 
             _, warn = probe_videos({c: src.videos[c] for c in cams})
             warnings.extend(warn)
             rig = None
             if lay.rig_toml.exists():
-                from calibrate.camera import CameraRig
-
                 rig = CameraRig.load(lay.rig_toml)
-            from keypoints.pipeline import PipelineConfig as KeypointsPipelineConfig
-            from keypoints.runtime import RuntimeConfig
+            from keypoints.pipeline import (
+                PipelineConfig as KeypointsPipelineConfig,  # lazy: loads onnxruntime
+            )
+            from keypoints.runtime import RuntimeConfig  # lazy: loads onnxruntime
 
             # the executor's share of the cores (set per worker by _limit_threads); 0 = onnxruntime's default
             threads = int(os.environ.get("ROOMCAP_ORT_THREADS", "0") or 0)
@@ -297,8 +298,6 @@ def _plan_keypoints(
             return None
 
         def run_copy(warnings: list[str]) -> None:
-            from capture.fileio import atomic_write_bytes
-
             for c in cams:
                 atomic_write_bytes(lay.detections(c), src.detections[c].read_bytes())
 
@@ -314,7 +313,6 @@ def _plan_keypoints(
 
 def _pose2sim_frame_rate(trial: Path) -> float | None:
     """``[project] frame_rate`` of the nearest Pose2Sim ``Config.toml`` (trial, then parents)."""
-    from capture.fileio import load_toml
 
     for folder in (trial, *trial.parents[:3]):
         cfg = folder / "Config.toml"
@@ -337,7 +335,6 @@ def _sync_table(src: SessionSource) -> dict:
     toml = SessionLayout(src.root).session_toml
     if not toml.exists():
         return {}
-    from capture.fileio import load_toml
 
     sync = load_toml(toml).get("sync")
     return sync if isinstance(sync, dict) else {}
@@ -349,8 +346,6 @@ def _carry_sync(src: SessionSource, lay: SessionLayout) -> None:
     sync = _sync_table(src)
     if not sync or lay.session_toml.resolve() == SessionLayout(src.root).session_toml.resolve():
         return
-    from capture.fileio import load_toml, save_toml
-    from capture.session import SESSION_SCHEMA, SESSION_VERSION
 
     meta = (
         load_toml(lay.session_toml)
@@ -366,8 +361,6 @@ def _plan_triangulate(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan:
     def run(warnings: list[str]) -> None:
-        from triangulate.stage import triangulate_session
-
         _carry_sync(src, lay)
         triangulate_session(lay.root, cfg.triangulate.options or None)
 
@@ -386,12 +379,8 @@ def _plan_track(
     def run(warnings: list[str]) -> None:
         _carry_sync(src, lay)
         if cfg.track.tracker == "greedy":
-            from triangulate.stage import track_session_greedy
-
             track_session_greedy(lay.root, cfg.track.options or None)
         else:
-            from pipeline.glue import track_particle
-
             track_particle(lay, cfg.track.options)
 
     inputs = [lay.rig_toml, *_detection_paths(lay)]
@@ -410,14 +399,11 @@ def forecast_path(lay: SessionLayout) -> Path:
 def _plan_forecast(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan:
-    from pipeline.glue import forecast_model
 
     kind, checkpoint = forecast_model(cfg.forecast.model)
     sha = path_fingerprint(checkpoint, store.stat_cache) if checkpoint else ""
 
     def run(warnings: list[str]) -> None:
-        from pipeline.glue import write_preview
-
         write_preview(lay.tracks, forecast_path(lay), cfg.forecast.horizon_s, cfg.forecast.model)
 
     return StagePlan(
@@ -440,8 +426,6 @@ def _plan_report(
     ]
 
     def run(warnings: list[str]) -> None:
-        from pipeline.report import write_report
-
         write_report(lay, title=src.name)
 
     return StagePlan("report", inputs, [lay.report_html], {"title": src.name}, run)
@@ -466,8 +450,6 @@ def _summary_path(root: Path) -> Path:
 
 def _summarise(lay: SessionLayout, result: SessionResult) -> None:
     import numpy as np
-
-    from capture.fileio import load_npz
 
     cams = lay.detection_cameras()
     result.cameras = len(cams)
@@ -508,7 +490,6 @@ def _stage_list(config: PipelineConfig, source: SessionSource | None = None) -> 
     extra = {"calibration"} if source is None or source.calibration is not None else set()
     if source is not None and source.detections and not source.videos and not source.openpose_json:
         extra.add("keypoints")
-    from pipeline.config import STAGES
 
     return tuple(s for s in STAGES if s in extra or s in config.stages)
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from synthetic import render, rigs, world
+
 
 def make_session(
     root: str | os.PathLike,
@@ -20,7 +22,6 @@ def make_session(
     n_cams: int = 4,
     noise_px: float = 1.0,
 ) -> Path:
-    from synthetic import render, rigs, world
 
     rig = rigs.ring_rig(n_cams, 3.0, seed=seed)
     scene = world.make_scene(

@@ -19,6 +19,10 @@ from pathlib import Path
 
 from capture.fileio import FormatError
 from core.errors import RoomcapError
+from track.export import ExportError, ExportOptions, export_tracks, parse_formats
+from track.opensim_ik import OpenSimError, default_setup_dir, run_opensim
+from track.skeleton_fit import FitError, file_sha256, fit_skeletons, load_or_fit
+from track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +61,6 @@ def _persons(text: str | None) -> list[int] | None:
 
 
 def _export(args) -> int:
-    from track.export import ExportOptions, export_tracks, parse_formats
-    from track.skeleton_fit import load_or_fit
-    from track.trackfile import TrackFile
 
     fmts = parse_formats(args.format)
     path, session = resolve_tracks(args.tracks)
@@ -84,8 +85,6 @@ def _export(args) -> int:
 
 
 def _fit(args) -> int:
-    from track.skeleton_fit import FitError, file_sha256, fit_skeletons
-    from track.trackfile import TrackFile
 
     path, _ = resolve_tracks(args.tracks)
     tf = TrackFile.load(path)
@@ -109,8 +108,6 @@ def _fit(args) -> int:
 
 
 def _opensim(args) -> int:
-    from track.opensim_ik import default_setup_dir, run_opensim
-    from track.trackfile import TrackFile
 
     path, session = resolve_tracks(args.tracks)
     tf = TrackFile.load(path)
@@ -183,9 +180,6 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
-    from track.export import ExportError
-    from track.opensim_ik import OpenSimError
-    from track.skeleton_fit import FitError
 
     try:
         return args.func(args)

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from capture.fileio import atomic_path
 from core.errors import RoomcapError
 from keypoints.skeletons import CANONICAL, Skeleton
 from track.normalize import hip_frame, normalize, rotate_vectors, unrotate_vectors
@@ -170,7 +171,6 @@ def write_checkpoint(
 ) -> None:
     """Write a learned-model checkpoint of the tracker atomically (half-precision weights, the model's
     ``hidden`` and ``dropout``, the skeleton, the scalar training info); :func:`read_checkpoint` reads it."""
-    from capture.fileio import atomic_path
 
     payload = {
         "schema": schema,

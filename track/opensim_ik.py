@@ -31,6 +31,7 @@ import numpy as np
 
 from capture.fileio import atomic_write_text
 from core.errors import RoomcapError
+from track.export import marker_table, write_trc
 from track.trackfile import TrackFile, read_trc
 
 log = logging.getLogger(__name__)
@@ -296,7 +297,6 @@ def run_opensim(
     mass_kg: float | None = None,
 ) -> list[OpenSimResult]:
     """TRC export + scaling + IK for every person (or ``persons``) of a track file."""
-    from track.export import marker_table, write_trc
 
     _import_opensim()
     find_setup(setup_dir, markerset)

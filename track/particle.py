@@ -61,6 +61,8 @@ from track.priors import (
     gather_state,
 )
 from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
+from triangulate.matching import MatchConfig
+from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
 log = logging.getLogger(__name__)
 
@@ -170,7 +172,7 @@ def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICA
         return ZeroVelocityPrior(sigma, skeleton.n_joints)
     if config.motion == "constant_velocity":
         return ConstantVelocityPrior(sigma, n_joints=skeleton.n_joints)
-    from track.motion import DEFAULT_CHECKPOINT, GRUPrior
+    from track.motion import DEFAULT_CHECKPOINT, GRUPrior  # lazy: loads torch
 
     path = config.motion_checkpoint or DEFAULT_CHECKPOINT
     return GRUPrior.load(
@@ -255,9 +257,6 @@ class ParticleTracker:
         self.end_after = max(1, int(round(cfg.end_after_s * fps)))
         self.reconstructor = None
         if C >= 2:
-            from triangulate.matching import MatchConfig
-            from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
-
             tcfg = TriangulateConfig(
                 match=MatchConfig(theta_px=cfg.init_theta_px, min_score=cfg.min_score),
                 min_joints_3d=cfg.init_min_joints,
@@ -272,7 +271,7 @@ class ParticleTracker:
         self._tmpl = TEMPLATE_BODY19_M if skeleton.id == "body19" else None
         self.birth = None
         if cfg.birth == "learned":  # imports torch (a learned module)
-            from track.birth import BirthGenerator
+            from track.birth import BirthGenerator  # lazy: loads torch
 
             self.birth = BirthGenerator.load(
                 cfg.birth_checkpoint, skeleton, sigma_obs_m=cfg.init_sigma_m, sigma_fill_m=cfg.init_sigma_m

@@ -15,13 +15,19 @@ from pathlib import Path
 
 import numpy as np
 
+from calibrate.camera import CameraRig
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from core.config import config_from_dict
 from core.progress import Progress
-from keypoints.skeletons import CANONICAL
+from keypoints.decoders import OPENPOSE_LIMBS
+from keypoints.detections import Detections
+from keypoints.registry import get_spec
+from keypoints.skeletons import CANONICAL, get_skeleton
+from track import observation as obs
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
+from triangulate.stage import _fps, load_detections
 
 log = logging.getLogger(__name__)
 
@@ -77,11 +83,6 @@ def load_maps(lay: SessionLayout, rig, frames: np.ndarray):
     """The bottom-up model's confidence maps + PAFs stored in ``keypoints/<cam>.npz`` (``maps_f16``,
     ``maps_to_img``; keypoints ``PipelineConfig(keep_maps=True)``) as ``maps_at(t) -> [CameraMaps | None]
     * C`` on the common frame axis ``frames``, or None when no camera has maps."""
-    from keypoints.decoders import OPENPOSE_LIMBS
-    from keypoints.detections import Detections
-    from keypoints.registry import get_spec
-    from keypoints.skeletons import get_skeleton
-    from track import observation as obs
 
     coco18 = get_skeleton("coco18")
     limbs = obs.paf_limbs_in(CANONICAL, coco18.joint_names, OPENPOSE_LIMBS)
@@ -155,8 +156,6 @@ def track_session_particle(
     progress: Progress | None = None,
 ) -> Path:
     """Run the particle filter on a session's detections; writes and returns ``track/tracks.npz``."""
-    from calibrate.camera import CameraRig
-    from triangulate.stage import _fps, load_detections
 
     cfg = _as_config(config)
     lay = SessionLayout(session_dir)

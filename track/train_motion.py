@@ -26,6 +26,7 @@ import torch
 from core.cli import guarded
 from core.progress import Bars, Progress
 from keypoints.skeletons import CANONICAL
+from synthetic.bvh import load_clips
 from track.motion import PoseGRU, save_checkpoint, step_inputs
 from track.normalize import rotate_vectors
 
@@ -33,7 +34,6 @@ log = logging.getLogger(__name__)
 
 
 def load_motion(fps: float, root: str | None = None) -> tuple[list[np.ndarray], list[str]]:
-    from synthetic.bvh import load_clips
 
     clips = [c for c in load_clips(fps, root, min_frames=8) if np.isfinite(c.xyz_m).all()]
     if not clips:
