@@ -87,9 +87,16 @@ def _device(model) -> torch.device:
 
 @torch.no_grad()
 def forecast_world(
-    model, obs: np.ndarray, person_mask: np.ndarray | None, n_pred: int, n_samples: int = 1, **sample_kw
+    model,
+    obs: np.ndarray,
+    person_mask: np.ndarray | None,
+    n_pred: int,
+    n_samples: int = 1,
+    hips: tuple[int, int] = (LHIP, RHIP),
+    **sample_kw,
 ) -> np.ndarray:
-    """obs (B,T,P,J,3) world metres (no NaN: fill first), person_mask (B,P) -> (B,S,n_pred,P,J,3)."""
+    """obs (B,T,P,J,3) world metres (no NaN: fill first), person_mask (B,P) -> (B,S,n_pred,P,J,3).
+    ``hips``: the skeleton's left/right hip indices (body19 by default) for the normalisation (eq. 3.8)."""
     obs = np.asarray(obs, np.float32)
     if obs.ndim != 5 or obs.shape[-1] != 3:
         raise ValueError(f"obs must be (B,T,P,J,3), got {obs.shape}")
@@ -100,7 +107,7 @@ def forecast_world(
     if getattr(model, "kind", "") == "social_diffusion":
         return _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, **sample_kw)
     flat = obs.transpose(0, 2, 1, 3, 4).reshape(B * P, T, J, 3)
-    R, root = norm_frame(flat[:, -1], LHIP, RHIP)
+    R, root = norm_frame(flat[:, -1], *hips)
     xn = normalize(flat, R, root).reshape(B * P, T, J * 3)
     y = model.sample(torch.from_numpy(xn).to(dev), n_pred, n_samples).cpu().numpy()  # (BP,S,H,D)
     y = y.reshape(B * P, n_samples * n_pred, J, 3)

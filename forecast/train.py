@@ -31,6 +31,7 @@ from forecast.models import (
     FoolClusters,
     IntentionModel,
     Seq2SeqGRU,
+    SlideLastPose,
     SocialDiffusion,
     ZeroVelocity,
 )
@@ -108,7 +109,7 @@ class DiffusionConfig:
 
 
 CONFIGS = {"gru": GRUConfig, "intention": IntentionConfig, "social_diffusion": DiffusionConfig}
-BASELINES = ("zero_velocity", "constant_velocity")
+BASELINES = ("zero_velocity", "constant_velocity", "slide")  # the evaluation's names: evaluate.BASELINES
 
 
 def config_from_dict(kind: str, d: dict | None = None):
@@ -323,11 +324,13 @@ def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_lo
     return model.to(map_location), meta
 
 
-def baseline(kind: str) -> torch.nn.Module:
-    if kind == "zero_velocity":
+def baseline(kind: str, lhip: int = LHIP, rhip: int = RHIP) -> torch.nn.Module:
+    if kind in ("zero_velocity", "zero"):
         return ZeroVelocity()
-    if kind == "constant_velocity":
+    if kind in ("constant_velocity", "const"):
         return ConstantVelocity()
+    if kind == "slide":
+        return SlideLastPose(lhip, rhip)
     raise ValueError(f"unknown baseline '{kind}'; baselines: {BASELINES}")
 
 
@@ -574,10 +577,11 @@ def composed_batch(
     batch: int,
     rng: np.random.Generator,
     dist_m: tuple[float, float] = (1.0, 3.0),
-) -> np.ndarray:
+    return_index: bool = False,
+):
     """Compose ``batch`` scenes of P people from single-person windows x_single (N,T,J,3) world metres (as the
     seed's composed CMU-Mocap scenes [200]): each person is rotated about z at random and placed at a random
-    distance around the first. -> (batch,T,P,J,3)."""
+    distance around the first. -> (batch,T,P,J,3) (and the windows used, (batch,P), with return_index)."""
     N, T, J, _ = x_single.shape
     idx = rng.integers(0, N, (batch, P))
     x = x_single[idx]  # (B,P,T,J,3)
@@ -595,7 +599,8 @@ def composed_batch(
     off = np.stack([r * np.cos(b), r * np.sin(b), 0 * r], -1)
     off[:, 0] = 0
     x = x + off[:, :, None, None]
-    return x.transpose(0, 2, 1, 3, 4).astype(np.float32)
+    x = x.transpose(0, 2, 1, 3, 4).astype(np.float32)
+    return (x, idx) if return_index else x
 
 
 def diffusion_batch_features(scenes: np.ndarray, person_mask: np.ndarray, n_obs: int) -> np.ndarray:
