@@ -36,7 +36,7 @@ import torch
 from capture.fileio import atomic_write_text
 from forecast import data as fdata
 from forecast import metrics as M
-from forecast.predict import forecast_world
+from forecast.predict import diffusion_rollout, forecast_world
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -184,6 +184,8 @@ def evaluate_single(
             y, gt, obs, mask[:, n_obs:], groups, wact, scorer, (lh, rh), mm_gt
         )
         r["wall_s"] = time.perf_counter() - tm
+        if getattr(model, "kind", "") == "social_diffusion":
+            r["rollout"] = diffusion_rollout(model, n_pred)
         out["models"][name] = r
     loo_ok = np.isfinite(next(iter(per_window_loo.values()))).all(1) if per_window_loo else np.zeros(0, bool)
     out["n_windows_loo"] = int(loo_ok.sum())
@@ -367,6 +369,8 @@ def _social_models(models, obs, act, scorer, sscp, real, n_pred, L, seed, progre
             ]
         ).mean(0)
         entry = {"ndms": nd.tolist(), "ndms_mean": float(nd.mean())}
+        if getattr(model, "kind", "") == "social_diffusion":
+            entry["rollout"] = diffusion_rollout(model, n_pred)
         if real is not None:
             gen = [np.concatenate([obs[b], y[b]], 0)[:L] for b in range(B)]
             entry["sscp_jsd"] = sscp.distance([r[:L] for r in real], gen)
@@ -383,6 +387,11 @@ _NDMS_S = (0.4, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 10.0)
 def _at(curve: list[float], fps: float, t_s: float) -> float | None:
     i = int(round(t_s * fps)) - 1
     return float(curve[i]) if 0 <= i < len(curve) else None
+
+
+def _nanmean(a) -> float:
+    a = np.asarray(a, float)
+    return float(a[np.isfinite(a)].mean()) if np.isfinite(a).any() else float("nan")
 
 
 def _f(v, fmt=".3f") -> str:
@@ -406,8 +415,8 @@ def _ndms_table(models: dict, fps: float, n_pred: int, key: str = "ndms") -> lis
         if key not in r:
             continue
         c = np.asarray(r[key], float)
-        vals = [np.nanmean(c[max(0, int(round(t * fps)) - win) : int(round(t * fps))]) for t in ts]
-        row = f"| {name} | " + " | ".join(_f(v) for v in vals) + f" | {_f(np.nanmean(c))} |"
+        vals = [_nanmean(c[max(0, int(round(t * fps)) - win) : int(round(t * fps))]) for t in ts]
+        row = f"| {name} | " + " | ".join(_f(v) for v in vals) + f" | {_f(_nanmean(c))} |"
         if has_sscp:
             row += f" {_f(r.get('sscp_jsd'))} |"
         lines.append(row)

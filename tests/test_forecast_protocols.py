@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from capture.fileio import FormatError, save_npz
 from forecast import data as D
@@ -237,3 +238,26 @@ def test_hik_protocol_on_a_fixture(tmp_path):
         D.load_kitchen_people(tmp_path)
     with pytest.raises(SystemExit, match="D_9_0.npz"):
         main(["eval", "--protocol", "hik", str(tmp_path), "--out", str(out)])
+
+
+def test_social_diffusion_generates_the_whole_horizon_in_one_pass():
+    from forecast.models import SocialDiffusion
+    from forecast.predict import diffusion_rollout, forecast_world
+
+    m = SocialDiffusion(67, n_frames=32, channels=8, T=20)  # global statistics: not bound to its window
+    m.n_obs, m.sample_steps, m.sample_eta = 16, 2, 1.0
+    calls = []
+    orig = m.sample_window
+    m.sample_window = lambda *a, **k: calls.append(k.get("n_frames")) or orig(*a, **k)
+    scene = np.stack([walker(16), walker(16, start=(2, 0))], 1)[None]
+    assert diffusion_rollout(m, 100) == "one_pass"
+    y = forecast_world(m, scene, None, 100, n_samples=2)
+    assert y.shape == (1, 2, 100, 2, 19, 3) and np.isfinite(y).all() and calls == [128]  # one window of 128
+    calls.clear()
+    forecast_world(m, scene, None, 40, n_samples=1, mode="chained")  # the ablation: windows of 32
+    assert calls == [None, None, None]
+    anchored = SocialDiffusion(67, n_frames=32, channels=8, T=20, anchored=True)
+    anchored.n_obs = 16
+    assert diffusion_rollout(anchored, 16) == "one_pass" and diffusion_rollout(anchored, 40) == "chained"
+    with pytest.raises(ValueError, match="per-frame statistics"):
+        anchored.sample_window(torch.zeros(1, 1, 16, 67), torch.ones(1, 1, dtype=torch.bool), n_frames=64)
