@@ -422,8 +422,9 @@ def activity_of_description(desc: str) -> str:
 
 
 def cmu_subject_trial(name: str) -> tuple[int, int] | None:
-    """(subject, trial) of a CMU clip name ('001_08', 'scaled_131_02', '18_01') or None."""
-    parts = name.split("_")
+    """(subject, trial) of a CMU clip name ('001_08', 'scaled_131_02', '18_01', '18_01+19_01': the first)
+    or None."""
+    parts = name.split("+")[0].split("_")
     try:
         return int(parts[-2]), int(parts[-1])
     except (IndexError, ValueError):

@@ -307,7 +307,7 @@ def evaluate_social(
     t0 = time.perf_counter()
     single = [c for c in test_clips if c.xyz_m.shape[1] == 1]
     multi = [c for c in test_clips if c.xyz_m.shape[1] >= 2] + list(real_scenes or [])
-    db_clips = list(ndms_database or single or test_clips)
+    db_clips = list(ndms_database or single or test_clips) + multi  # the real scenes' own motion too
     acts = fdata.clip_activities(list(test_clips) + db_clips + multi) if activities is None else activities
     scorer = ndms_scorer_for(db_clips, activities=acts)
     names = get_skeleton(test_clips[0].skeleton).joint_names

@@ -140,9 +140,14 @@ def clip_key(name: str) -> str:
 
 
 def load_cmu(fps: float = fdata.TARGET_FPS, root: str | os.PathLike | None = None) -> list[fdata.Clip]:
-    """All CMU clips at ``fps`` (one copy per trial)."""
+    """All single-person CMU clips at ``fps`` (one copy per trial). The two-person take
+    (``data.TWO_PERSON_DIR``, 18_01 + 19_01) is left out: it is the real two-person scene of the
+    social evaluation (``data.cmu_two_person_clip``), never trained on, and leaving it out keeps the
+    train/val/test split that the shipped checkpoints were trained and selected on."""
     seen, clips = set(), []
     for f in fdata.cmu_bvh_files(root):
+        if f.parent.name == fdata.TWO_PERSON_DIR:
+            continue
         c = fdata.clip_from_bvh(f, fps)
         k = clip_key(c.name)
         if k in seen:
