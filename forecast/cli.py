@@ -18,7 +18,6 @@ or folders containing ``tracks.npz``. Train / validation / test split by clip (`
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
@@ -147,17 +146,44 @@ def cmd_sample(args) -> int:
     return 0
 
 
-def cmd_eval(args) -> int:
+def _baseline_models(names: list[str], train_clips, lhip: int | None = None, rhip: int | None = None) -> dict:
     from forecast import evaluate as E
     from forecast import train as T
 
-    clips, tr, va, te = _load_split(args)
     models: dict = {}
-    for name in args.baselines:
-        models[name] = T.baseline(name)
+    for name in names:
+        if name == "real":
+            models["real"] = E.Real()
+        elif name == "fool":
+            ws = T.fdata.make_windows(train_clips, 1, 0, 10, persons="each")
+            models["fool"] = T.fool_model(ws)
+        elif lhip is None:
+            models[name] = T.baseline(name)
+        else:
+            models[name] = T.baseline(name, lhip, rhip)
+    return models
+
+
+def cmd_eval(args) -> int:
+    import time
+
+    from forecast import evaluate as E
+    from forecast import train as T
+
+    try:
+        names = E.check_baselines(args.baselines + (["fool"] if args.fool else []))
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    if args.protocol == "hik":
+        return _eval_hik(args, names)
+    if args.protocol != "cmu":
+        raise SystemExit(f"unknown protocol '{args.protocol}'; choose cmu or hik")
+    t0 = time.perf_counter()
+    clips, tr, va, te = _load_split(args)
+    ck_models: dict = {}
     for ck in args.checkpoints:
         m, meta = T.load_checkpoint(ck, skeleton=clips[0].skeleton)
-        models[Path(ck).stem] = m
+        ck_models[Path(ck).stem] = m
         used = set(meta["extra"].get("train_clips", [])) | set(meta["extra"].get("val_clips", []))
         leak = sorted(used & {c.name for c in te})
         if leak:  # a checkpoint that trained or was selected on a test clip cannot be evaluated fairly
@@ -165,14 +191,22 @@ def cmd_eval(args) -> int:
                 f"{ck} was trained or selected on test clips {leak[:5]}{'...' if len(leak) > 5 else ''}; "
                 "retrain it with this version's split (forecast train) or pass the --split-seed it used"
             )
+    models = _baseline_models(names, tr)
+    models.update(ck_models)
     print(f"evaluating on {len(te)} test clips: {', '.join(c.name for c in te)}")
-    bar = tqdm(total=len(models) + (0 if args.social else 2), desc="eval", unit="model")
+    bar = tqdm(total=len(models), desc="eval", unit="model")
 
     def progress(name):
         bar.set_postfix_str(name)
         bar.update(1)
 
     if args.social:
+        real_scenes = []
+        if "cmu" in args.data:
+            try:
+                real_scenes.append(T.fdata.cmu_two_person_clip())
+            except FileNotFoundError as e:
+                print(f"no real two-person CMU take: {e}")
         res = E.evaluate_social(
             models,
             te,
@@ -180,13 +214,10 @@ def cmd_eval(args) -> int:
             n_scenes=args.scenes,
             progress=progress,
             ndms_database=clips if args.ndms_db == "all" else None,
+            real_scenes=real_scenes,
         )
-        title = f"Forecast evaluation: two-person scenes ({res['scenes']}), held-out clips"
+        title = f"Forecast evaluation: two-person scenes ({res['scenes']}, and real ones), held-out clips"
     else:
-        if args.fool:
-            ws = T.fdata.make_windows(tr, 1, 0, 10, persons="each")
-            models["fool"] = T.fool_model(ws)
-        models["real"] = E.Real()
         res = E.evaluate_single(
             models,
             te,
@@ -200,16 +231,27 @@ def cmd_eval(args) -> int:
         )
         title = "Forecast evaluation: held-out clips"
     bar.close()
+    res["wall_s_total"] = time.perf_counter() - t0
     path = E.write_report(res, args.out, title)
     print(path.read_text())
-    print(
-        json.dumps(
-            {
-                k: {kk: vv for kk, vv in v.items() if not isinstance(vv, list)}
-                for k, v in res["models"].items()
-            }
+    print(f"evaluation wall time {res['wall_s_total']:.1f} s (metrics and sampling {res['wall_s']:.1f} s)")
+    return 0
+
+
+def _eval_hik(args, names: list[str]) -> int:
+    from capture.fileio import FormatError
+    from forecast import hik
+
+    if not args.path:
+        raise SystemExit(
+            "forecast eval --protocol hik DATA: give the folder of HiK person files (data/poses)"
         )
-    )
+    try:
+        res = hik.evaluate_hik(args.path, names, args.checkpoints, n_samples=args.samples)
+    except (FileNotFoundError, FormatError, ValueError) as e:
+        raise SystemExit(str(e)) from None
+    path = hik.write_hik_report(res, args.out)
+    print(path.read_text())
     return 0
 
 
@@ -252,11 +294,26 @@ def _main(argv: list[str] | None = None) -> int:
 
     e = sub.add_parser("eval", help="evaluate checkpoints and baselines on held-out clips")
     e.add_argument("--checkpoints", nargs="*", default=[])
-    e.add_argument("--baselines", nargs="*", default=["zero_velocity", "constant_velocity"])
-    e.add_argument("--fool", action="store_true", help="add the clustered-static-poses 'fool' (sec. 6.4.4)")
+    e.add_argument(
+        "--baselines",
+        nargs="*",
+        default=["real", "zero", "const", "slide", "fool"],
+        help="any of real (the ground-truth future), zero, const, slide (last pose carried along the last "
+        "root velocity), fool (clustered static poses, sec. 6.4.4); zero_velocity / constant_velocity "
+        "also work",
+    )
+    e.add_argument("--fool", action="store_true", help="add the 'fool' (sec. 6.4.4) to --baselines")
+    e.add_argument(
+        "--protocol",
+        default="cmu",
+        help="cmu (held-out CMU clips, --data) or hik (Tanke ch. 8.3 on the HiK person files in PATH)",
+    )
+    e.add_argument("path", nargs="?", help="--protocol hik: the folder of HiK person files")
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
     e.add_argument("--horizon-s", type=positive_float, default=4.0)
-    e.add_argument("--samples", type=positive_int, default=10)
+    e.add_argument(
+        "--samples", type=positive_int, default=50, help="samples per stochastic model (DLow, Tanke: 50)"
+    )
     e.add_argument("--scenes", type=positive_int, default=24)
     e.add_argument("--max-windows", type=positive_int, default=400)
     e.add_argument("--stride", type=positive_int, default=5, help="frames between test windows")
@@ -269,13 +326,22 @@ def _main(argv: list[str] | None = None) -> int:
         "--ndms-db",
         choices=["test", "all"],
         default="test",
-        help="NDMS database: held-out clips (seed) or all clips; the query's clip is always left out",
+        help="NDMS database: held-out clips (seed) or all clips, always grouped by activity; ndms keeps the "
+        "query's own clip in it (seed), ndms_loo leaves it out",
     )
     e.add_argument("--out", required=True)
     data_args(e)
 
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
+    import os
+
+    for var in (
+        "OPENBLAS_NUM_THREADS",
+        "OMP_NUM_THREADS",
+        "MKL_NUM_THREADS",
+    ):  # numpy's BLAS, if not loaded yet
+        os.environ.setdefault(var, str(args.threads))
     import torch
 
     torch.set_num_threads(args.threads)

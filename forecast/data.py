@@ -378,3 +378,184 @@ def make_windows(
         tuple(c.name for c in clips),
         dict(skipped),
     )
+
+
+# ------------------------------------------------------------------------- activities (NDMS database groups)
+
+UNLABELLED = "unlabelled"
+
+
+def cmu_index(root: str | os.PathLike | None = None) -> dict[tuple[int, int], str]:
+    """The CMU database listing (``index.csv`` with Subject, Trial #, Motion Description) found under the
+    mocap root -> {(subject, trial): description}; {} when there is none."""
+    import csv
+
+    from synthetic import bvh
+
+    r = bvh.mocap_root(root)
+    if r is None:
+        return {}
+    out: dict[tuple[int, int], str] = {}
+    for f in sorted(Path(r).rglob("index.csv")):
+        with open(f, newline="", encoding="utf-8", errors="replace") as fh:
+            for row in csv.DictReader(fh):
+                try:
+                    out[(int(row["Subject"]), int(row["Trial #"]))] = row["Motion Description"].strip()
+                except (KeyError, TypeError, ValueError):
+                    continue
+    return out
+
+
+def activity_of_description(desc: str) -> str:
+    """The activity of a CMU motion description: the part before ' - ' ("basketball - forward dribble" ->
+    "basketball", "dance - ..." -> "dance"); any description that mentions walking is "walk" ("slow walk",
+    "walk, shake hands", "Start Walk Stop"); otherwise the description, lower case. Remarks in parentheses
+    ("(2 subjects - subject A)") are dropped first."""
+    import re
+
+    d = re.sub(r"\([^)]*\)", "", desc).strip().lower()
+    if " - " in d:
+        return d.split(" - ", 1)[0].strip()
+    if "walk" in d:
+        return "walk"
+    return d or UNLABELLED
+
+
+def cmu_subject_trial(name: str) -> tuple[int, int] | None:
+    """(subject, trial) of a CMU clip name ('001_08', 'scaled_131_02', '18_01', '18_01+19_01': the first)
+    or None."""
+    parts = name.split("+")[0].split("_")
+    try:
+        return int(parts[-2]), int(parts[-1])
+    except (IndexError, ValueError):
+        return None
+
+
+def clip_activities(clips: list[Clip], index: dict[tuple[int, int], str] | None = None) -> dict[str, str]:
+    """Clip name -> activity for the NDMS database: CMU clips by their description in ``index.csv``
+    (``activity_of_description``); clips without an entry (track files, ...) are ``UNLABELLED``."""
+    idx = cmu_index() if index is None else index
+    out = {}
+    for c in clips:
+        st = cmu_subject_trial(c.name)
+        out[c.name] = activity_of_description(idx[st]) if st is not None and st in idx else UNLABELLED
+    return out
+
+
+# ------------------------------------------------------------------------- CMU two-person take 18_01 + 19_01
+
+TWO_PERSON_DIR = "cmu-two-person-18-19"
+
+
+def cmu_two_person_clip(folder: str | os.PathLike | None = None, fps: float = TARGET_FPS) -> Clip:
+    """CMU 18_01 + 19_01 ("walk, shake hands", 2.5 s), recorded together in one capture volume, as one
+    two-person body19 clip at ``fps`` (P=2: person 0 is subject 18, person 1 subject 19).
+
+    Each BVH goes through the same reader as every CMU clip (``synthetic.bvh``: ASF units -> metres, z up,
+    the synthetic T-pose frame 0 dropped); both share the world frame and the clock, so they are stacked
+    frame by frame. The cgspeed conversion lacks the ASF thorax bone (README of the folder): everything above
+    Spine1 sits ~0.12 m low, which leaves within-person motion (NDMS) and the hips (SSCP's root and facing)
+    intact but makes hand-to-hand distances wrong; nothing here uses them."""
+    from synthetic import bvh
+
+    if folder is None:
+        r = bvh.mocap_root(None)
+        if r is None:
+            raise FileNotFoundError(
+                f"no mocap root for {TWO_PERSON_DIR}; set ROOMCAP_MOCAP or ROOMCAP_SHARED"
+            )
+        folder = Path(r) / TWO_PERSON_DIR
+    folder = Path(folder)
+    files = [folder / "18_01.bvh", folder / "19_01.bvh"]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        raise FileNotFoundError(f"two-person CMU take: missing {missing}; expected 18_01.bvh and 19_01.bvh")
+    a, b = (clip_from_bvh(f, fps) for f in files)
+    n = min(a.n_frames, b.n_frames)
+    x = np.concatenate([a.xyz_m[:n], b.xyz_m[:n]], 1)
+    return Clip("18_01+19_01", x, fps, "body19")
+
+
+# ------------------------------------------------------------------------- Humans in Kitchens protocol (8.3)
+
+# activity2index of the HiK API (hik/data/constants.py): the 82 columns of ``act``.
+KITCHEN_ACTIVITIES = (
+    "carry cake", "carry cup", "carry plate", "carry whiteboard eraser", "carry whiteboard marker",
+    "check water in coffee machine", "clean countertop", "clean dish", "close cupboard", "close dishwasher",
+    "close drawer", "close fridge", "close window", "cut cake in pieces", "draw on whiteboard", "drink",
+    "eat cake", "eat fruit", "empty cup in sink", "empty dishwasher", "empty ground from coffee machine",
+    "empty water from coffee machine", "erase on whiteboard", "fill coffee beens", "fill water tank",
+    "fill water to coffee machine", "fussball", "kneeling", "kneeling down", "leaning", "leaning down",
+    "listening", "make coffee", "mark coffee", "open cupboard", "open dishwasher", "open drawer",
+    "open fridge",
+    "open window", "peal fruit", "phone call", "place cake on plate", "place cake on table",
+    "place cup onto coffee machine", "place in dishwasher", "place sheet onto whiteboard",
+    "place water tank in coffee machine", "pour kettle", "pour milk", "press coffee button",
+    "put cake in fridge", "put cup in microwave", "put sugar in cup", "put teabag in cup",
+    "put water in glass",
+    "put water in kettle", "read paper", "remove sheet from whiteboard", "sitting", "sitting down",
+    "squatting", "standing", "standing up", "start dishwasher", "start microwave", "steps",
+    "take cake out of fridge", "take cup from coffee machine", "take cup out of microwave",
+    "take dish out of cupboard", "take kettle", "take milk", "take piece of cake", "take teabag",
+    "take water from sink", "take water tank from coffee machine", "talking", "throw in trash", "use laptop",
+    "use smartphone", "walking", "washing hands",
+)  # fmt: skip
+
+
+def _kitchen_columns(word: str, exact: bool) -> tuple[int, ...]:
+    return tuple(
+        i for i, a in enumerate(KITCHEN_ACTIVITIES) if (a == word if exact else word in a.split(" "))
+    )
+
+
+# Tanke ch. 8.3: two motion activities and four human-object interactions; the objects are every activity
+# that names them. kind "motion": the last observed frame is 10 frames after the onset; "object": the onset.
+HIK_ACTIVITIES: dict[str, tuple[str, tuple[int, ...]]] = {
+    "walking": ("motion", _kitchen_columns("walking", True)),
+    "sitting down": ("motion", _kitchen_columns("sitting down", True)),
+    "whiteboard": ("object", _kitchen_columns("whiteboard", False)),
+    "sink": ("object", _kitchen_columns("sink", False)),
+    "cupboard": ("object", _kitchen_columns("cupboard", False)),
+    "coffee": ("object", _kitchen_columns("coffee", False)),
+}
+HIK_TRAIN_KITCHENS, HIK_TEST_KITCHEN = ("A", "B", "C"), "D"
+
+
+@dataclass(frozen=True)
+class KitchenPerson:
+    """One HiK person file ``{kitchen}_{pid}_{seqid}.npz``: poses on the global frame axis, activity flags."""
+
+    name: str
+    kitchen: str
+    pid: int
+    frames: np.ndarray  # (n,) global frame numbers at 25 Hz
+    poses3d: np.ndarray  # (n,29,3) metres, z up
+    act: np.ndarray  # (n,82) activity flags (> 0.5 = on)
+
+
+def load_kitchen_people(folder: str | os.PathLike) -> list[KitchenPerson]:
+    """Every ``{kitchen}_{pid}_{seqid}.npz`` under folder (the HiK API's ``data/poses``); each needs the
+    activity flags ``act`` (FormatError naming the file otherwise)."""
+    folder = Path(folder)
+    files = sorted(folder.rglob("*.npz")) if folder.is_dir() else []
+    out = []
+    for f in files:
+        parts = f.stem.split("_")
+        if len(parts) != 3 or parts[0] not in "ABCD" or not parts[1].isdigit():
+            continue
+        d = load_kitchens_npz(f)
+        if "act" not in d:
+            raise FormatError(
+                f,
+                "act",
+                "this HiK person file has no activity flags 'act' (n,82); the ch. 8.3 protocol picks its "
+                "test windows by activity.",
+                "Use the HiK release with activity annotations (hik/data/poses/*.npz).",
+            )
+        out.append(KitchenPerson(f.stem, parts[0], int(parts[1]), d["frames"], d["poses3d"], d["act"]))
+    if not out:
+        raise FileNotFoundError(
+            f"no HiK person files '{{kitchen}}_{{pid}}_{{seqid}}.npz' under {folder} "
+            "(the HiK API's data/poses)"
+        )
+    return out

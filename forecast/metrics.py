@@ -2,9 +2,13 @@
 
 Conventions follow the code behind the seed's numbers (DESIGN.md errata):
 MPJPE averages over joints (Tanke eq. 3.25 prints a sum); NPSS compares *cumulative* normalised
-power spectra (eq. 3.26-3.29 as in Gopalakrishnan et al.'s code); APD is DLow's pdist (mean pairwise
-L2 distance between flattened samples); ADE/FDE are DLow's best-of-S; the SSCP distance is the square
-root of the Jensen-Shannon divergence (eq. 7.15, base-2 logs so it lies in [0, 1]).
+power spectra of the real part of the DFT (eq. 3.26-3.29 as Gopalakrishnan et al.'s reference code computes
+it) and is applied to root-centred poses by the evaluation (the reference code works on joint angles, which
+no translation changes); APD is DLow's pdist (mean pairwise L2 distance between flattened samples);
+ADE/FDE are DLow's best-of-S and MMADE/MMFDE DLow's multi-modal versions (eq. 3.31-3.33), all on
+root-centred poses in the evaluation; NDMS (eq. 6.11/6.12) clamps the velocity norms at eps as the seed's
+reference code (jutanke/ndms) does, so a word scores exactly 1 against itself; the SSCP distance is the
+square root of the Jensen-Shannon divergence (eq. 7.15, base-2 logs so it lies in [0, 1]).
 
 Shapes: S samples, T frames, J joints. Sequences are ``(T,J,3)`` metres; sample sets ``(S,T,J,3)``.
 """
@@ -87,17 +91,54 @@ def fde(samples: np.ndarray, gt: np.ndarray) -> float:
     return float(np.linalg.norm(s[:, -1] - g[:, -1], axis=-1).min())
 
 
+def root_centred(seq: np.ndarray, lhip: int, rhip: int) -> np.ndarray:
+    """Poses relative to their own root (mid-hips) in every frame: (...,J,3) -> (...,J,3). What DLow's
+    APD/ADE/FDE/MMADE/MMFDE are computed on (its H3.6M poses are root-relative); no translation changes it."""
+    x = np.asarray(seq, np.float64)
+    return x - 0.5 * (x[..., lhip : lhip + 1, :] + x[..., rhip : rhip + 1, :])
+
+
+def root_trajectory(seq: np.ndarray, lhip: int, rhip: int) -> np.ndarray:
+    """The root (mid-hips) of poses (...,J,3) -> (...,1,3), for the root trajectory's own ADE/FDE."""
+    x = np.asarray(seq, np.float64)
+    return 0.5 * (x[..., lhip : lhip + 1, :] + x[..., rhip : rhip + 1, :])
+
+
+def multimodal_gt(last_obs: np.ndarray, futures: np.ndarray, threshold: float = 0.5) -> list[np.ndarray]:
+    """DLow's multi-modal ground truth: for window i, the futures of every window whose last observed
+    (root-centred, flattened) pose lies within ``threshold`` of i's (i's own future included).
+    last_obs (N,J,3), futures (N,H,J,3) -> N arrays (M_i,H,J,3)."""
+    a = np.asarray(last_obs, np.float64).reshape(len(last_obs), -1)
+    d = np.sqrt(np.maximum((a**2).sum(1)[:, None] - 2 * a @ a.T + (a**2).sum(1)[None], 0.0))
+    return [futures[np.flatnonzero((d[i] < threshold) | (np.arange(len(a)) == i))] for i in range(len(a))]
+
+
+def mmade(samples: np.ndarray, gt_multi: np.ndarray) -> float:
+    """DLow's MMADE: mean over the multi-modal ground truths (M,T,J,3) of best-of-S ADE."""
+    return float(np.mean([ade(samples, g) for g in gt_multi]))
+
+
+def mmfde(samples: np.ndarray, gt_multi: np.ndarray) -> float:
+    """DLow's MMFDE: mean over the multi-modal ground truths (M,T,J,3) of best-of-S FDE."""
+    return float(np.mean([fde(samples, g) for g in gt_multi]))
+
+
 # ----------------------------------------------------------------------------- NPSS (eq. 3.26-3.29)
 
 
 def npss(pred: np.ndarray, gt: np.ndarray) -> float:
-    """Normalised power spectrum similarity (lower is better). pred, gt: (N,T,D) (or (N,T,J,3))."""
+    """Normalised power spectrum similarity (lower is better). pred, gt: (N,T,D) (or (N,T,J,3)).
+
+    As the reference code (Gopalakrishnan et al., used by the seed, Table 6.1): power = the square of the
+    *real part* of the DFT coefficients per feature, normalised per feature, cumulated over frequency, L1
+    between the cumulative spectra, averaged with the ground truth's total power as weights. Pass
+    root-centred poses (``root_centred``) so that a translation of the data changes nothing."""
     p = np.asarray(pred, np.float64).reshape(len(pred), pred.shape[1], -1)
     g = np.asarray(gt, np.float64).reshape(len(gt), gt.shape[1], -1)
     if p.shape != g.shape:
         raise ValueError(f"npss: shapes differ {p.shape} vs {g.shape}")
-    gp = np.abs(np.fft.fft(g, axis=1)) ** 2
-    pp = np.abs(np.fft.fft(p, axis=1)) ** 2
+    gp = np.real(np.fft.fft(g, axis=1)) ** 2
+    pp = np.real(np.fft.fft(p, axis=1)) ** 2
     gtot, ptot = gp.sum(1, keepdims=True), pp.sum(1, keepdims=True)
     gcdf = np.cumsum(gp / np.maximum(gtot, 1e-12), axis=1)
     pcdf = np.cumsum(pp / np.maximum(ptot, 1e-12), axis=1)
@@ -109,12 +150,15 @@ def npss(pred: np.ndarray, gt: np.ndarray) -> float:
 # ----------------------------------------------------------------------------- NDMS (eq. 6.9-6.12)
 
 
-def ndms_pair(x: np.ndarray, y: np.ndarray, eps: float = 1e-8) -> np.ndarray:
-    """Eq. 6.11/6.12 for motion words x, y (...,κ,J,3) -> (...,) in [0, 1]."""
+def ndms_pair(x: np.ndarray, y: np.ndarray, eps: float = 1e-7) -> np.ndarray:
+    """Eq. 6.11/6.12 for motion words x, y (...,κ,J,3) -> (...,) in [0, 1]. Velocity norms are clamped at
+    eps as in the seed's reference code (jutanke/ndms), so identical moving words score exactly 1 and a
+    still joint against a moving one 0."""
     vx, vy = np.diff(x, axis=-3), np.diff(y, axis=-3)
-    nx, ny = np.linalg.norm(vx, axis=-1), np.linalg.norm(vy, axis=-1)
-    cos = (vx * vy).sum(-1) / (nx * ny + eps)
-    mag = np.minimum(nx, ny) / (np.maximum(nx, ny) + eps)
+    nx = np.maximum(np.linalg.norm(vx, axis=-1), eps)
+    ny = np.maximum(np.linalg.norm(vy, axis=-1), eps)
+    cos = (vx * vy).sum(-1) / (nx * ny)
+    mag = np.minimum(nx, ny) / np.maximum(nx, ny)
     return (0.5 * (1 + cos) * mag).mean((-1, -2))
 
 
@@ -128,11 +172,21 @@ def motion_words(seq: np.ndarray, kappa: int, lhip: int, rhip: int) -> np.ndarra
     return normalize(w, R, root)
 
 
-class NDMSScorer:
-    """Motion-word database D of real motion (sec. 6.3) and the score f_sim (eq. 6.9).
+MIN_GROUP_WORDS = (
+    50  # an activity group of the database with fewer words than this is an error (2 s at 25 Hz)
+)
 
-    database: list of real sequences (T_i,J,3) of the same kind (e.g. held-out test clips);
-    ``groups`` labels each (e.g. its clip) so a query can exclude its own clip from D.
+
+class NDMSScorer:
+    """Motion-word database D of real motion (sec. 6.3, 6.3.2) and the score f_sim (eq. 6.9).
+
+    database: real sequences (T_i,J,3) of held-out motion. ``activities`` labels each sequence with its
+    activity: a query is scored against the words of its own activity only ("all *basketball* test
+    sequences for evaluating *basketball*", sec. 6.3.2); None puts every sequence in one group.
+    ``groups`` labels each sequence with its clip, so that the stricter leave-clip-out variant can drop the
+    query's own clip from D (the seed keeps it: g is 1 when D holds the exact word). Every activity needs at
+    least ``min_words`` words (ValueError naming the group otherwise). ``max_words`` (None: all) subsamples
+    each activity's words.
     """
 
     def __init__(
@@ -141,14 +195,16 @@ class NDMSScorer:
         joint_names: tuple[str, ...],
         kappa: int = 8,
         groups: list[int] | None = None,
-        max_words: int = 20000,
+        max_words: int | None = None,
         seed: int = 0,
+        activities: list[str] | None = None,
+        min_words: int = MIN_GROUP_WORDS,
     ):
         self.kappa = kappa
         names = list(joint_names)
         self.lhip, self.rhip = hip_indices(names)
         self.jsel = np.array([names.index(n) for n in NDMS_JOINTS if n in names])
-        words, gid = [], []
+        words, gid, act = [], [], []
         for i, seq in enumerate(database):
             seq = np.asarray(seq, np.float32)
             if len(seq) < kappa or not np.isfinite(seq).all():
@@ -156,37 +212,74 @@ class NDMSScorer:
             w = motion_words(seq, kappa, self.lhip, self.rhip)[:, :, self.jsel]
             words.append(w)
             gid.append(np.full(len(w), i if groups is None else groups[i]))
+            act.append(np.full(len(w), "all" if activities is None else str(activities[i]), dtype=object))
         if not words:
             raise ValueError(
                 f"NDMS database is empty: need complete real sequences of at least κ={kappa} frames"
             )
-        W, G = np.concatenate(words), np.concatenate(gid)
-        if len(W) > max_words:
-            keep = np.sort(np.random.default_rng(seed).choice(len(W), max_words, replace=False))
-            W, G = W[keep], G[keep]
-        self.words = W.astype(np.float32)
+        W, G, A = np.concatenate(words), np.concatenate(gid), np.concatenate(act)
+        wanted = sorted(set(A)) if activities is None else sorted({str(a) for a in activities})
+        keep = []
+        rng = np.random.default_rng(seed)
+        for a in wanted:
+            idx = np.flatnonzero(A == a)
+            if len(idx) < min_words:
+                raise ValueError(
+                    f"NDMS database group '{a}' has {len(idx)} motion words (κ={kappa}), fewer than "
+                    f"{min_words}: "
+                    "add more real sequences of that activity, merge it with a related activity, or lower "
+                    "min_words"
+                )
+            if max_words is not None and len(idx) > max_words:
+                idx = np.sort(rng.choice(idx, max_words, replace=False))
+            keep.append(idx)
+        keep = np.concatenate(keep)
+        W, G, A = W[keep], G[keep], A[keep]
+        self.words = W.astype(np.float64)
         self.flat = self.words.reshape(len(W), -1)
         self.sq = (self.flat**2).sum(1)
         self.groups = G
+        self.activity_of_word = A
+        self.activities = tuple(wanted)
 
-    def word_scores(self, seq: np.ndarray, exclude_group: int | None = None) -> np.ndarray:
-        """g (eq. 6.10) for every motion word of seq (...,T,J,3) -> (...,T-κ+1)."""
-        w = motion_words(np.asarray(seq, np.float32), self.kappa, self.lhip, self.rhip)[..., self.jsel, :]
+    def _candidates(self, activity: str | None, exclude_group: int | None) -> np.ndarray | None:
+        ok = None
+        if activity is not None:
+            if activity not in self.activities:
+                raise ValueError(f"activity '{activity}' is not in the NDMS database (has {self.activities})")
+            ok = self.activity_of_word == activity
+        if exclude_group is not None:
+            ok = (self.groups != exclude_group) if ok is None else (ok & (self.groups != exclude_group))
+        return ok
+
+    def word_scores(
+        self, seq: np.ndarray, exclude_group: int | None = None, activity: str | None = None
+    ) -> np.ndarray:
+        """g (eq. 6.10) for every motion word of seq (...,T,J,3) -> (...,T-κ+1); NaN where no word of the
+        activity is left after excluding ``exclude_group``."""
+        w = motion_words(np.asarray(seq, np.float64), self.kappa, self.lhip, self.rhip)[..., self.jsel, :]
         lead = w.shape[:-3]
         q = w.reshape(-1, w.shape[-3] * w.shape[-2] * 3)
+        ok = self._candidates(activity, exclude_group)
+        if ok is not None and not ok.any():
+            return np.full(lead, np.nan)
+        flat, sq, words = (
+            (self.flat, self.sq, self.words) if ok is None else (self.flat[ok], self.sq[ok], self.words[ok])
+        )
         out = np.empty(len(q))
-        bad = None if exclude_group is None else (self.groups == exclude_group)
         for a in range(0, len(q), 2048):
             qq = q[a : a + 2048]
-            d = (qq**2).sum(1)[:, None] - 2 * qq @ self.flat.T + self.sq[None]
-            if bad is not None and bad.any():
-                d[:, bad] = np.inf
+            d = (qq**2).sum(1)[:, None] - 2 * qq @ flat.T + sq[None]
             nn = np.argmin(d, 1)
-            out[a : a + 2048] = ndms_pair(w.reshape(-1, *w.shape[-3:])[a : a + 2048], self.words[nn])
+            out[a : a + 2048] = ndms_pair(w.reshape(-1, *w.shape[-3:])[a : a + 2048], words[nn])
         return out.reshape(lead)
 
     def score_forecast(
-        self, obs_tail: np.ndarray, samples: np.ndarray, exclude_group: int | None = None
+        self,
+        obs_tail: np.ndarray,
+        samples: np.ndarray,
+        exclude_group: int | None = None,
+        activity: str | None = None,
     ) -> np.ndarray:
         """Per-forecast-frame NDMS (eq. 6.9 before averaging over frames): obs_tail (≥κ-1,J,3) the last
         observed frames, samples (S,H,J,3) -> (H,), mean over samples; entry τ scores the word ending at
@@ -194,14 +287,18 @@ class NDMSScorer:
         tail = np.asarray(obs_tail)[-(self.kappa - 1) :]
         S = len(samples)
         seqs = np.concatenate([np.broadcast_to(tail, (S, *tail.shape)), samples], 1)
-        return self.word_scores(seqs, exclude_group).mean(0)
+        return self.word_scores(seqs, exclude_group, activity).mean(0)
 
 
 def ndms(
-    scorer: NDMSScorer, obs_tail: np.ndarray, samples: np.ndarray, exclude_group: int | None = None
+    scorer: NDMSScorer,
+    obs_tail: np.ndarray,
+    samples: np.ndarray,
+    exclude_group: int | None = None,
+    activity: str | None = None,
 ) -> float:
     """f_sim (eq. 6.9): mean over samples and forecast words."""
-    return float(scorer.score_forecast(obs_tail, samples, exclude_group).mean())
+    return float(scorer.score_forecast(obs_tail, samples, exclude_group, activity).mean())
 
 
 # ----------------------------------------------------------------------------- SSCP (sec. 7.3)

@@ -2,8 +2,9 @@
 
 ``forecast_world(model, obs_xyz_m (B,T,P,J,3), person_mask (B,P), n_pred, n_samples)`` returns
 ``(B,S,n_pred,P,J,3)`` world metres. Single-person models see each person normalised at its own last
-observed frame; Social Diffusion sees the scene (features in ``scene_features``) and is rolled out window
-by window (observe ``n_obs``, generate ``n_frames - n_obs``, repeat) for horizons past its window.
+observed frame; Social Diffusion sees the scene (features in ``scene_features``) and generates the whole
+horizon in one pass where it can (``diffusion_rollout``); chaining windows (observe ``n_obs``, generate
+``n_frames - n_obs``, repeat) is the ablation, and the only way for models bound to their window length.
 """
 
 from __future__ import annotations
@@ -87,9 +88,16 @@ def _device(model) -> torch.device:
 
 @torch.no_grad()
 def forecast_world(
-    model, obs: np.ndarray, person_mask: np.ndarray | None, n_pred: int, n_samples: int = 1, **sample_kw
+    model,
+    obs: np.ndarray,
+    person_mask: np.ndarray | None,
+    n_pred: int,
+    n_samples: int = 1,
+    hips: tuple[int, int] = (LHIP, RHIP),
+    **sample_kw,
 ) -> np.ndarray:
-    """obs (B,T,P,J,3) world metres (no NaN: fill first), person_mask (B,P) -> (B,S,n_pred,P,J,3)."""
+    """obs (B,T,P,J,3) world metres (no NaN: fill first), person_mask (B,P) -> (B,S,n_pred,P,J,3).
+    ``hips``: the skeleton's left/right hip indices (body19 by default) for the normalisation (eq. 3.8)."""
     obs = np.asarray(obs, np.float32)
     if obs.ndim != 5 or obs.shape[-1] != 3:
         raise ValueError(f"obs must be (B,T,P,J,3), got {obs.shape}")
@@ -100,7 +108,7 @@ def forecast_world(
     if getattr(model, "kind", "") == "social_diffusion":
         return _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, **sample_kw)
     flat = obs.transpose(0, 2, 1, 3, 4).reshape(B * P, T, J, 3)
-    R, root = norm_frame(flat[:, -1], LHIP, RHIP)
+    R, root = norm_frame(flat[:, -1], *hips)
     xn = normalize(flat, R, root).reshape(B * P, T, J * 3)
     y = model.sample(torch.from_numpy(xn).to(dev), n_pred, n_samples).cpu().numpy()  # (BP,S,H,D)
     y = y.reshape(B * P, n_samples * n_pred, J, 3)
@@ -108,12 +116,30 @@ def forecast_world(
     return yw.transpose(0, 2, 3, 1, 4, 5)
 
 
-def _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, steps=None, eta=None):
+DIFFUSION_MODES = ("auto", "one_pass", "chained")
+
+
+def diffusion_rollout(model, n_pred: int, mode: str = "auto") -> str:
+    """How Social Diffusion covers ``n_pred`` frames: ``one_pass`` (the whole horizon in one window, as the
+    seed's fully convolutional model) or ``chained`` (windows of the training length, each observing the
+    last generated frames: the ablation). ``auto``: one pass where the model can (the horizon fits its window,
+    or its statistics do not depend on the frame), else chained."""
+    if mode not in DIFFUSION_MODES:
+        raise ValueError(f"diffusion mode must be one of {DIFFUSION_MODES}, got {mode!r}")
+    if mode != "auto":
+        return mode
+    fits = int(model.n_obs) + n_pred <= int(model.n_frames)
+    return "one_pass" if fits or model.feat_mean.dim() == 1 else "chained"
+
+
+def _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, steps=None, eta=None, mode="auto"):
     n_obs = int(model.n_obs)
     if obs.shape[1] < n_obs:
         raise ValueError(f"Social Diffusion observes {n_obs} frames, got {obs.shape[1]}")
     steps = steps or int(model.sample_steps)
     eta = float(model.sample_eta if eta is None else eta)
+    mode = diffusion_rollout(model, n_pred, mode)
+    N = max(int(model.n_frames), -(-(n_obs + n_pred) // 16) * 16) if mode == "one_pass" else None
     B, _, P, J, _ = obs.shape
     ctx = np.repeat(obs[:, -n_obs:], n_samples, 0)  # (BS,n_obs,P,J,3)
     pms = np.repeat(pm, n_samples, 0)
@@ -123,7 +149,9 @@ def _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, steps=None, eta=N
         R, root = scene_frame(ctx[:, -1], pms)
         xs = np.einsum("bij,btpkj->btpki", R, ctx - root[:, None, None, None])
         f = scene_features(xs.transpose(0, 2, 1, 3, 4), n_obs - 1)  # (BS,P,n_obs,F)
-        gen = model.sample_window(torch.from_numpy(f).to(dev), torch.from_numpy(pms).to(dev), 1, steps, eta)
+        gen = model.sample_window(
+            torch.from_numpy(f).to(dev), torch.from_numpy(pms).to(dev), 1, steps, eta, n_frames=N
+        )
         const = f[:, :, -1, 3 * J + 5 :]  # the observed anchor root and heading
         g = features_to_poses(gen[:, 0, :, n_obs:].cpu().numpy(), J, const)  # (BS,P,G,J,3) scene frame
         gw = np.einsum("bji,bptkj->btpki", R, g) + root[:, None, None, None]

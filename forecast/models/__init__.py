@@ -5,7 +5,7 @@ Single-person models take ``obs (B,T,D)`` normalised at the last observed frame 
 D = 3J; Social Diffusion takes scenes (see ``diffusion.py``).
 """
 
-from forecast.models.baselines import ConstantVelocity, FoolClusters, ZeroVelocity
+from forecast.models.baselines import ConstantVelocity, FoolClusters, SlideLastPose, ZeroVelocity
 from forecast.models.diffusion import SocialDiffusion
 from forecast.models.gru import Seq2SeqGRU
 from forecast.models.intention import IntentionModel
@@ -15,6 +15,7 @@ __all__ = [
     "FoolClusters",
     "IntentionModel",
     "Seq2SeqGRU",
+    "SlideLastPose",
     "SocialDiffusion",
     "ZeroVelocity",
 ]

@@ -1,4 +1,5 @@
-"""Baselines: zero velocity, constant velocity, and the clustered-static-poses 'fool' (sec. 6.4.4)."""
+"""Baselines: zero velocity, constant velocity, the rigidly sliding last pose, and the clustered-static-poses
+'fool' (sec. 6.4.4)."""
 
 from __future__ import annotations
 
@@ -33,6 +34,28 @@ class ConstantVelocity(nn.Module):
         steps = torch.arange(1, n_pred + 1, dtype=obs.dtype, device=obs.device)
         out = obs[:, -1, None] + steps[None, :, None] * v[:, None]
         return out[:, None].expand(-1, n_samples, -1, -1).clone()
+
+
+class SlideLastPose(nn.Module):
+    """The last observed pose carried rigidly along the last observed root velocity on the floor (xy; z up):
+    a control for NDMS, which rewards coherent translation of every joint; it is no plausible motion."""
+
+    kind = "slide"
+    stochastic = False
+
+    def __init__(self, lhip: int = 11, rhip: int = 12):  # body19 hips
+        super().__init__()
+        self.lhip, self.rhip = lhip, rhip
+
+    def sample(self, obs: torch.Tensor, n_pred: int, n_samples: int = 1, **_) -> torch.Tensor:
+        B, D = obs.shape[0], obs.shape[-1]
+        p = obs[:, -2:].reshape(B, 2, D // 3, 3)
+        root = 0.5 * (p[:, :, self.lhip] + p[:, :, self.rhip])  # (B,2,3)
+        v = root[:, 1] - root[:, 0]
+        v = torch.cat([v[:, :2], torch.zeros_like(v[:, 2:])], 1)  # along the floor
+        steps = torch.arange(1, n_pred + 1, dtype=obs.dtype, device=obs.device)
+        out = p[:, 1, None] + steps[None, :, None, None] * v[:, None, None]  # (B,H,J,3)
+        return out.reshape(B, n_pred, D)[:, None].expand(-1, n_samples, -1, -1).clone()
 
 
 class FoolClusters(nn.Module):

@@ -262,11 +262,26 @@ class SocialDiffusion(nn.Module):
         steps: int | None = None,
         eta: float = 1.0,
         generator: torch.Generator | None = None,
+        n_frames: int | None = None,
     ) -> torch.Tensor:
         """Complete one window. obs (B,P,n_obs,F) raw features (n_obs < n_frames) -> (B,S,P,N,F) raw features
-        with the first n_obs frames equal to obs (eq. 7.6). ``steps`` ≤ T reverse steps (strided)."""
+        with the first n_obs frames equal to obs (eq. 7.6). ``steps`` ≤ T reverse steps (strided).
+
+        ``n_frames`` (a multiple of 16) other than the training window: the network is fully convolutional in
+        time (sec. 7.2.2, "sequences of arbitrary size"), so a whole horizon is generated in one pass; models
+        with per-frame feature statistics (anchored) only know their training window's length."""
         B, P, n_obs, Fd = obs.shape
-        N = self.n_frames
+        N = self.n_frames if n_frames is None else int(n_frames)
+        if N != self.n_frames:
+            if N % 16:
+                raise ValueError(f"n_frames must be a multiple of 16 (4 stride-2 layers), got {N}")
+            if self.feat_mean.dim() != 1:
+                raise ValueError(
+                    f"this Social Diffusion model keeps per-frame statistics for its {self.n_frames}-frame "
+                    f"window and cannot generate {N} frames in one pass; train it with n_frames >= the "
+                    "horizon "
+                    "or use the chained-window ablation"
+                )
         steps = steps or self.T
         o = self.standardise(obs).repeat_interleave(n_samples, 0)
         pm = person_mask.repeat_interleave(n_samples, 0)
