@@ -173,11 +173,11 @@ def cmd_eval(args) -> int:
     try:
         names = E.check_baselines(args.baselines + (["fool"] if args.fool else []))
     except ValueError as e:
-        raise SystemExit(str(e)) from None
+        raise InputError(str(e)) from None
     if args.protocol == "hik":
         return _eval_hik(args, names)
     if args.protocol != "cmu":
-        raise SystemExit(f"unknown protocol '{args.protocol}'; choose cmu or hik")
+        raise InputError(f"unknown protocol '{args.protocol}'; choose cmu or hik")
     t0 = time.perf_counter()
     clips, tr, va, te = _load_split(args)
     ck_models: dict = {}
@@ -243,13 +243,13 @@ def _eval_hik(args, names: list[str]) -> int:
     from forecast import hik
 
     if not args.path:
-        raise SystemExit(
+        raise InputError(
             "forecast eval --protocol hik DATA: give the folder of HiK person files (data/poses)"
         )
     try:
         res = hik.evaluate_hik(args.path, names, args.checkpoints, n_samples=args.samples)
     except (FileNotFoundError, FormatError, ValueError) as e:
-        raise SystemExit(str(e)) from None
+        raise InputError(str(e)) from None
     path = hik.write_hik_report(res, args.out)
     print(path.read_text())
     return 0
