@@ -14,8 +14,12 @@ of all cameras go in one session.run (what a GPU provider does by default), agai
 original graphs run one crop at a time (the CPU default, see keypoints.runtime.RuntimeConfig).
 The machine may be shared: the load average is printed beside the figures.
 
-    .venv/bin/python bench/bench_keypoints_throughput.py [--frames 20] [--sets default,blazepose,openpose] \
-        [--demo single|multi] [--threads 1]
+    .venv/bin/python bench/bench_keypoints_throughput.py [--frames 20] [--sets legacy,balanced,fast] \
+        [--demo single|multi] [--threads 1] [--gpu]
+
+``--sets`` takes presets (``keypoints list``) and model sets; ratios ``x_first`` are against the first,
+measured in the same run. ``--gpu``: every set on the CUDA execution provider (crops batched: the graphs are
+made dynamic there) against the CPU; where onnxruntime has no CUDA provider it says so and measures nothing.
 
 ``--demo multi``: the three people of Demo_MultiPerson (duplicate poses of overlapping people are
 re-estimated there, ``KeypointPipeline._resolve_duplicates``; Demo_SinglePerson has none).
@@ -33,7 +37,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import onnxruntime as ort  # noqa: E402
+
 from keypoints.pipeline import PipelineConfig  # noqa: E402
+from keypoints.presets import preset_config  # noqa: E402
+from keypoints.registry import presets  # noqa: E402
 from keypoints.runtime import RuntimeConfig  # noqa: E402
 from keypoints.video import run_videos, videos_in  # noqa: E402
 
@@ -74,7 +82,8 @@ def measure(name: str, cfg: PipelineConfig, frames: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=20, help="frames per camera")
-    ap.add_argument("--sets", default="default,blazepose,lite,fast,openpose")
+    ap.add_argument("--sets", default="legacy,balanced,fast,accurate,feet")
+    ap.add_argument("--gpu", action="store_true", help="CUDA execution provider against the CPU")
     ap.add_argument("--demo", choices=sorted(DEMOS), default="single", help="which Pose2Sim demo's videos")
     ap.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (0 = its default)")
     args = ap.parse_args()
@@ -82,7 +91,30 @@ def main() -> None:
     DEMO = DEMOS[args.demo]
     rt = RuntimeConfig(threads=args.threads)
     sets = args.sets.split(",")
-    rows = [measure(s, PipelineConfig(model_set=s, runtime=rt), args.frames) for s in sets]
+    known_presets = presets()[1]
+
+    def config(s: str, runtime: RuntimeConfig) -> PipelineConfig:
+        if s in known_presets:
+            return preset_config(s, runtime=runtime)
+        return PipelineConfig(model_set=s, runtime=runtime)
+
+    if args.gpu:
+        available = ort.get_available_providers()
+        if "CUDAExecutionProvider" not in available:
+            print(
+                f"GPU benchmark: no CUDA execution provider here (onnxruntime: {available}); nothing measured"
+            )
+            print("BENCH " + json.dumps({"gpu": False, "providers": available}))
+            return
+        gpu = RuntimeConfig(providers=("CUDAExecutionProvider", "CPUExecutionProvider"))
+        rows = []
+        for s in sets:
+            rows.append(measure(f"{s} (cpu)", config(s, rt), args.frames))
+            rows.append(measure(f"{s} (cuda)", config(s, gpu), args.frames))
+    else:
+        rows = [measure(s, config(s, rt), args.frames) for s in sets]
+    for r in rows:
+        r["x_first"] = r["fps_per_camera"] / rows[0]["fps_per_camera"]
     if "blazepose" in sets:  # the batching comparison needs the one-crop-per-run BlazePose row
         batched = RuntimeConfig(dynamic_batch=True, threads=args.threads)
         rows.append(
@@ -94,12 +126,15 @@ def main() -> None:
         f"{DEMO.parent.name}, 4 cameras 1080x1920, {args.frames} frames each; load average {load:.1f} "
         f"on {os.cpu_count()} cores. ms per camera-frame:"
     )
-    print(f"{'set':18s} " + " ".join(f"{c[:-3]:>9s}" for c in cols) + "   fps/cam  ovh_pipe  ovh_e2e")
+    print(
+        f"{'set':18s} " + " ".join(f"{c[:-3]:>9s}" for c in cols) + "   fps/cam  x_first  ovh_pipe  ovh_e2e"
+    )
     for r in rows:
         print(
             f"{r['set']:18s} "
             + " ".join(f"{r[c]:9.1f}" for c in cols)
-            + f"   {r['fps_per_camera']:7.2f}  {r['overhead_pipeline']:8.1%}  {r['overhead_end_to_end']:7.1%}"
+            + f"   {r['fps_per_camera']:7.2f}  {r['x_first']:7.2f}  {r['overhead_pipeline']:8.1%}"
+            + f"  {r['overhead_end_to_end']:7.1%}"
         )
     by_set = {r["set"]: r for r in rows}
     d = rows[0]

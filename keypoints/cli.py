@@ -34,6 +34,11 @@ def _list(args) -> int:
     print("\nmodel sets:")
     for name, ms in registry.model_sets().items():
         print(f"  {name:14s} {ms.detector + ' + ' if ms.detector else ''}{ms.pose}  {ms.description}")
+    print("\npresets (keypoints run --preset; [keypoints] preset in pipeline.toml):")
+    default_preset, table = registry.presets()
+    for name, settings in table.items():
+        default = " (default)" if name == default_preset else ""
+        print(f"  {name:10s} {', '.join(f'{k}={v}' for k, v in settings.items())}{default}")
     print(f"\nsearch path: {[str(d) for d in registry.model_dirs(args.model_dir)]}")
     return 0
 
@@ -41,7 +46,15 @@ def _list(args) -> int:
 def _fetch(args) -> int:
     with Bars(unit="B") as bars:
         path = registry.fetch(args.name, args.model_dir, force=args.force, progress=bars)
-    print(f"{args.name}: {path} (sha256 {registry.sha256_file(path)})")
+    sha = registry.sha256_file(path)
+    spec = registry.get_spec(args.name, args.model_dir)
+    if spec.sha256:
+        print(f"{args.name}: {path} (sha256 {sha}, as its description says)")
+    else:
+        print(
+            f"{args.name}: {path} (sha256 {sha}). Its description has no checksum: this one is recorded in "
+            f"{registry.lock_file(path.parent)} and every later load is checked against it."
+        )
     return 0
 
 
@@ -61,15 +74,16 @@ def _parse_videos(items: list[str]) -> dict[str, Path]:
 
 
 def _run(args) -> int:
-    from keypoints.pipeline import PipelineConfig  # lazy: loads onnxruntime
+    from keypoints.presets import preset_config  # lazy: loads onnxruntime
     from keypoints.runtime import RuntimeConfig  # lazy: loads onnxruntime
     from keypoints.video import run_session, run_videos  # lazy: loads onnxruntime
 
-    cfg = PipelineConfig(
-        model_set=args.models,
-        refine_passes=PipelineConfig.refine_passes if args.refine_passes is None else args.refine_passes,
-        runtime=RuntimeConfig(threads=args.threads, model_dir=args.model_dir or ""),
-    )
+    over: dict = {"runtime": RuntimeConfig(threads=args.threads, model_dir=args.model_dir or "")}
+    if args.models:
+        over["model_set"] = args.models
+    if args.refine_passes is not None:
+        over["refine_passes"] = args.refine_passes
+    cfg = preset_config(args.preset, **over)
     first = Path(args.inputs[0])
     if len(args.inputs) == 1 and first.is_dir() and (first / "raw").is_dir():
         with Bars(unit="fr") as bars:
@@ -126,7 +140,14 @@ def _main(argv: list[str] | None = None) -> int:
     )
     r.add_argument("--out", default=None, help="output folder for explicit videos")
     r.add_argument("--calib", default=None, help="calibration to check camera names and video sizes against")
-    r.add_argument("--models", default="default", help="model set (keypoints list) or 'detector+pose'")
+    r.add_argument(
+        "--preset",
+        default="",
+        help="speed/accuracy preset: fast, balanced (the default), accurate, feet, legacy (`keypoints list`)",
+    )
+    r.add_argument(
+        "--models", default=None, help="model set (keypoints list) or 'detector+pose'; default: the preset's"
+    )
     r.add_argument("--cameras", nargs="*", default=None)
     r.add_argument("--max-frames", type=positive_int, default=None)
     r.add_argument("--threads", type=nonnegative_int, default=0)

@@ -175,6 +175,25 @@ def decode_rtmo(dets: np.ndarray, keypoints: np.ndarray, score_threshold: float 
     return out
 
 
+def decode_movenet_multipose(out: np.ndarray, size_wh: tuple[int, int], score_threshold: float = 0.2):
+    """MoveNet MultiPose ``output_0`` (B,6,56): per candidate 17 x (y, x, score) normalised to the input, then
+    a box (ymin, xmin, ymax, xmax, score) -> per image (boxes (M,5) x0,y0,x1,y1,score, xy (M,17,2), score
+    (M,17)) in input px, candidates whose box score exceeds ``score_threshold``."""
+    out = np.asarray(out, np.float32)
+    if out.ndim != 3 or out.shape[-1] != 56:
+        raise ValueError(f"decode_movenet_multipose: expected (B,N,56), got {out.shape}")
+    W, H = size_wh
+    res = []
+    for o in out:
+        o = o[o[:, 55] > score_threshold]
+        k = o[:, :51].reshape(-1, 17, 3)
+        xy = np.stack([k[..., 1] * W, k[..., 0] * H], -1)
+        b = o[:, 51:55]
+        boxes = np.stack([b[:, 1] * W, b[:, 0] * H, b[:, 3] * W, b[:, 2] * H, o[:, 55]], -1)
+        res.append((boxes, xy, k[..., 2]))
+    return res
+
+
 # ----------------------------------------------------------------------------- OpenPose (bottom-up)
 
 # COCO-18 limbs of the PAF channels (README of the shipped model; OpenPose's order).

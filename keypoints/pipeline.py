@@ -89,6 +89,12 @@ class PipelineConfig:
     # tuned): Demo_MultiPerson both participants in 4 views 96 -> 98 of 100 frames (cam04 frames 48 and 60:
     # the 270-degree crop wins), 9% of people-views tried, Demo_SinglePerson unchanged (11.8 px)
     rotation_weak: float = 0.5
+    # tracked crops (videos: ``KeypointPipeline(images, streams)``): the detector runs every this many frames
+    # of a camera (and when someone was lost, or nobody is tracked); in between, each person's crop is placed
+    # by the previous frame's pose and only ``track_passes`` pose passes run (the last with tta_scales and
+    # the flip test). 1 = the detector and the whole chain on every frame
+    detect_every: int = 1
+    track_passes: int = 1
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
@@ -420,6 +426,37 @@ def _erase_body(
     img[m] = np.median(img[around], axis=0) if around.any() else 0
 
 
+def keypoint_boxes(
+    xy: np.ndarray, sc: np.ndarray, fallback: np.ndarray, margin: float = 0.1, min_score: float = 0.3
+) -> np.ndarray:
+    """(M,5) axis-aligned boxes of each person's confident keypoints xy (M,J,2), scores (M,J), grown by
+    ``margin`` x the larger side; ``fallback`` (M,>=4) where fewer than 2 keypoints are confident. Column 4
+    is the fallback's score."""
+    out = np.zeros((len(xy), 5))
+    if len(fallback):
+        out[:, : min(5, fallback.shape[1])] = np.asarray(fallback, np.float64)[:, :5]
+    for i in range(len(xy)):
+        ok = (sc[i] >= min_score) & np.isfinite(xy[i, :, 0])
+        if ok.sum() < 2:
+            continue
+        lo, hi = xy[i, ok].min(0), xy[i, ok].max(0)
+        m = margin * float(max(hi - lo))
+        out[i, :4] = (lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m)
+    return out
+
+
+@dataclass
+class _Seed:
+    """A stream's people in its last frame: poses (M,J,2), scores (M,J) in the model's skeleton, their
+    keypoint boxes (M,5); frames since the detector ran; whether someone was lost in that frame."""
+
+    xy: np.ndarray
+    sc: np.ndarray
+    boxes: np.ndarray
+    age: int = 0
+    lost: bool = False
+
+
 # ----------------------------------------------------------------------------- the pipeline
 
 
@@ -446,6 +483,10 @@ class KeypointPipeline:
         get_skeleton(self.skeleton)
         self.stage_s: dict[str, float] = defaultdict(float)
         self._pyr: dict[int, list[np.ndarray]] = {}
+        self._seeds: dict = {}  # stream -> _Seed (tracked crops)
+        self.n_detected = self.n_tracked = (
+            0  # images that ran the detector / were cropped from the last poses
+        )
 
     # identity of what produced the keypoints (goes into the detections file)
     @property
@@ -468,8 +509,12 @@ class KeypointPipeline:
         self.stage_s[name] += t - t0
         return t
 
-    def __call__(self, images: list[np.ndarray]) -> list[FrameResult]:
-        """images: list of (H,W,3) uint8 BGR (sizes may differ). Returns one FrameResult per image."""
+    def __call__(self, images: list[np.ndarray], streams=None) -> list[FrameResult]:
+        """images: list of (H,W,3) uint8 BGR (sizes may differ). Returns one FrameResult per image.
+
+        ``streams``: one key per image (the camera), for consecutive frames of videos: with
+        ``config.detect_every`` > 1 the previous frame's poses of that stream place the crops (``_tracked``).
+        None: every image on its own (the detector on each)."""
         for i, im in enumerate(images):
             if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
                 raise ValueError(f"image {i}: expected (H,W,3) uint8 BGR, got {im.shape} {im.dtype}")
@@ -477,7 +522,7 @@ class KeypointPipeline:
             return []
         role = self.pose_spec.role
         if role == "pose":
-            return self._top_down(images)
+            return self._top_down(images, streams)
         if role == "onestage":
             return self._one_stage(images)
         return self._bottom_up(images)
@@ -651,10 +696,12 @@ class KeypointPipeline:
             roi = None if roi is None else roi - 0.5
         return xy, sc, person, roi
 
-    def _top_down(self, images):
+    def _top_down(self, images, streams=None):
         self._pyr = {}  # pyramid levels of these images, shared by the pose passes
         try:
-            return self._top_down_passes(images)
+            if streams is None or self.config.detect_every <= 1:
+                return self._top_down_passes(images)[0]
+            return self._tracked(images, list(streams))
         finally:
             self._pyr = {}
 
@@ -695,18 +742,118 @@ class KeypointPipeline:
             self._tick("pose_post", t)
         if self.config.duplicate_frac > 0:
             res = self._resolve_duplicates(images, boxes, res)
-        out = []
+        return self._finish_top_down(res, boxes, first_person)
+
+    def _finish_top_down(self, res, boxes, first_person):
+        """Presence gate, back-view face rule and skeleton conversion. Returns the FrameResults and, per
+        image, the kept people's ``(xy, score)`` in the model's skeleton (the next frame's crops)."""
+        out, kept = [], []
         t = time.perf_counter()
         hide = self.config.hide_face_from_behind
         if hide is None:
             hide = self.pose_spec.decoder.hide_face_from_behind
         for (xy, sc, person, _), b, p0 in zip(res, boxes, first_person, strict=True):
+            keep = np.minimum(person, p0) >= self.config.pose_presence
+            kept.append((xy[keep], sc[keep]))
             if hide:
                 sc = hide_face_from_behind(xy, sc, self.src_skeleton, self.config.back_view_facing)
-            keep = np.minimum(person, p0) >= self.config.pose_presence
             out.append(self._finish(b[keep], xy[keep], sc[keep]))
         self._tick("pose_post", t)
-        return out
+        return out, kept
+
+    # ---- tracked crops: the previous frame's poses place this frame's crops
+    def _tracked(self, images, streams) -> list[FrameResult]:
+        """One image per stream (camera). A stream's people are cropped where its previous frame's poses
+        were, and estimated by the refine passes alone (``config.track_passes``). The detector runs on a
+        stream's first frame, every ``config.detect_every`` frames (people who entered), on the frame after
+        a tracked person was lost (presence under ``pose_presence``, a pose that left its previous box, a
+        duplicate dropped) and while the stream has nobody to track (then the pose model costs nothing)."""
+        if len(set(streams)) != len(streams):
+            raise ValueError(f"one image per stream per call; got streams {list(streams)}")
+        every = self.config.detect_every
+        detect = [
+            s not in self._seeds
+            or self._seeds[s].lost
+            or not len(self._seeds[s].xy)
+            or self._seeds[s].age + 1 >= every
+            for s in streams
+        ]
+        out: list[FrameResult | None] = [None] * len(images)
+        det_i = [i for i, d in enumerate(detect) if d]
+        trk_i = [i for i, d in enumerate(detect) if not d]
+        if det_i:
+            res, kept = self._top_down_passes([images[i] for i in det_i])
+            for i, r, (xy, sc) in zip(det_i, res, kept, strict=True):
+                out[i] = r
+                self._seeds[streams[i]] = _Seed(xy, sc, keypoint_boxes(xy, sc, r.boxes))
+            self._pyr = {}  # the pyramid cache is keyed by list position
+        if trk_i:
+            seeds = [self._seeds[streams[i]] for i in trk_i]
+            res, kept, lost = self._tracked_passes([images[i] for i in trk_i], seeds)
+            for i, seed, r, (xy, sc), gone in zip(trk_i, seeds, res, kept, lost, strict=True):
+                out[i] = r
+                self._seeds[streams[i]] = _Seed(xy, sc, keypoint_boxes(xy, sc, r.boxes), seed.age + 1, gone)
+        self.n_detected += len(det_i)
+        self.n_tracked += len(trk_i)
+        return out  # type: ignore[return-value]
+
+    def _tracked_passes(self, images, seeds):
+        t = time.perf_counter()
+        boxes = [s.boxes for s in seeds]  # the previous frame's keypoint boxes
+        ba = [upright_boxes(s.xy, s.sc, self.src_skeleton, s.boxes) for s in seeds]
+        self._tick("pose_post", t)
+        passes = max(1, self.config.track_passes)
+        early_flip = None if self.config.flip_all_passes else False
+        res = None
+        for k_pass in range(passes):
+            last = k_pass == passes - 1
+            new = self.pose_on_boxes(
+                images,
+                [b for b, _ in ba],
+                [a if self.config.rotate else 0 * a for _, a in ba],
+                self.config.tta_scales if last else (1.0,),
+                flip=None if last else early_flip,
+            )
+            t = time.perf_counter()
+            res = (
+                new
+                if res is None
+                else [self._keep_on_box(o, n, b) for o, n, b in zip(res, new, boxes, strict=True)]
+            )
+            if not last:
+                ba = [
+                    upright_boxes(xy, sc, self.src_skeleton, b)
+                    for (xy, sc, _, _), b in zip(res, boxes, strict=True)
+                ]
+            self._tick("pose_post", t)
+        t = time.perf_counter()
+        # a pose that left its previous frame's box jumped (onto someone else, or lost the person)
+        moved = [
+            _keypoint_box_iou(xy, sc, b) < self.config.min_box_iou
+            if self.config.min_box_iou > 0
+            else np.zeros(len(b), bool)
+            for (xy, sc, _, _), b in zip(res, boxes, strict=True)
+        ]
+        res = [(xy, sc, np.where(m, 0.0, p), roi) for (xy, sc, p, roi), m in zip(res, moved, strict=True)]
+        self._tick("pose_post", t)
+        if self.config.duplicate_frac > 0:
+            res = self._resolve_duplicates(images, boxes, res)
+        person = [r[2] for r in res]
+        out, kept = self._finish_top_down(res, [self._kp_boxes(r) for r in res], person)
+        lost = [len(k[0]) < len(b) for k, b in zip(kept, boxes, strict=True)]
+        return out, kept, lost
+
+    @staticmethod
+    def _kp_boxes(r) -> np.ndarray:
+        """(M,5) boxes of a pass's confident keypoints, scored by the person score."""
+        xy, sc, person, _ = r
+        b = keypoint_boxes(xy, sc, np.zeros((len(xy), 5)), margin=0.0)
+        b[:, 4] = person
+        return b
+
+    def reset_streams(self) -> None:
+        """Forget the tracked people of every stream (the next call runs the detector everywhere)."""
+        self._seeds.clear()
 
     def _rotation_hypotheses(self, images, boxes, res):
         """People whose first-pass score is under ``config.rotation_weak`` (a body sideways or upside down:
@@ -826,10 +973,14 @@ class KeypointPipeline:
         outs = self.pose.run(x)
         t = self._tick("pose", t)
         d = spec.decoder
+        if d.kind == "movenet_multipose":
+            people = D.decode_movenet_multipose(outs[0], spec.input.size_wh, d.score_threshold)
+        else:
+            people = D.decode_rtmo(outs[0], outs[1], d.score_threshold, d.nms_iou)
+        if d.pixel_coords == "corner":  # to pixel-centre coordinates, as the top-down decoders
+            people = [(b, xy - 0.5, sc) for b, xy, sc in people]
         res = []
-        for (b, xy, sc), r in zip(
-            D.decode_rtmo(outs[0], outs[1], d.score_threshold, d.nms_iou), ratios, strict=True
-        ):
+        for (b, xy, sc), r in zip(people, ratios, strict=True):
             b = b.copy()
             b[:, :4] /= r
             order = np.argsort(-b[:, 4])[: self.config.max_people]

@@ -30,7 +30,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import FormatError, atomic_path, atomic_write_text, check_schema, load_toml
+from capture.fileio import FormatError, atomic_path, check_schema, load_toml, save_toml
 from core.config import config_from_dict
 from core.errors import RoomcapError, UnknownNameError
 from core.progress import Progress
@@ -48,6 +48,7 @@ DECODERS = {
     "movenet": "pose",
     "simcc": "pose",
     "rtmo": "onestage",
+    "movenet_multipose": "onestage",
     "openpose": "bottomup",
 }
 CROPS = ("letterbox", "affine")
@@ -313,11 +314,25 @@ def get_spec(name: str | ModelSpec, model_dir: str | os.PathLike | None = None) 
     return specs[name]
 
 
-def model_sets() -> dict[str, ModelSet]:
+def _sets_toml() -> tuple[Path, dict[str, Any]]:
     path = Path(str(resources.files("keypoints.models").joinpath("sets.toml")))
     data = load_toml(path)
     check_schema(data.get("schema"), SETS_SCHEMA, (1,), path)
+    return path, data
+
+
+def model_sets() -> dict[str, ModelSet]:
+    path, data = _sets_toml()
     return {k: _strict(ModelSet, {"name": k, **v}, str(path)) for k, v in data["sets"].items()}
+
+
+def presets() -> tuple[str, dict[str, dict[str, Any]]]:
+    """The default preset's name and every preset's settings (``[presets]`` of ``sets.toml``; read by
+    ``keypoints.presets.preset_config``)."""
+    _, data = _sets_toml()
+    table = dict(data.get("presets", {}))
+    default = str(table.pop("default", ""))
+    return default, {k: dict(v) for k, v in table.items()}
 
 
 def get_model_set(name: str) -> ModelSet:
@@ -356,7 +371,42 @@ def file_sha256(path: Path) -> str:
     return _sha_cached(str(path), st.st_size, st.st_mtime_ns)
 
 
+LOCK_NAME = "models.lock.toml"
+LOCK_SCHEMA = "keypoint-model-lock"
+
+
+def lock_file(folder: Path) -> Path:
+    """The lock file of a model folder: the sha256 ``fetch`` saw for models whose description has none."""
+    return Path(folder) / LOCK_NAME
+
+
+def _read_lock(folder: Path) -> dict[str, dict[str, str]]:
+    path = lock_file(folder)
+    if not path.exists():
+        return {}
+    data = load_toml(path)
+    check_schema(data.get("schema"), LOCK_SCHEMA, (1,), path)
+    return {str(k): dict(v) for k, v in data.get("models", {}).items()}
+
+
+def _record_lock(folder: Path, spec: ModelSpec, sha: str, url: str) -> Path:
+    models = _read_lock(folder)
+    models[spec.name] = {"file": spec.file, "sha256": sha, "url": url}
+    path = lock_file(folder)
+    save_toml(
+        path,
+        {"schema": f"{LOCK_SCHEMA}/1", "models": models},
+        header="# sha256 of downloaded models whose descriptions have none (trust on first use); every\n"
+        "# later load is checked against it. Delete an entry to accept a new download of that model.\n",
+    )
+    return path
+
+
 def _recorded_sha(path: Path) -> str:
+    """The digest ``fetch`` recorded for a model file: its folder's lock file, else an older ``.sha256``."""
+    for entry in _read_lock(path.parent).values():
+        if entry.get("file") == path.name:
+            return str(entry.get("sha256", ""))
     side = path.with_name(path.name + ".sha256")
     return side.read_text().split()[0] if side.exists() else ""
 
@@ -433,11 +483,13 @@ def fetch(
         with atomic_path(dest) as tmp:
             tmp.write_bytes(payload)
         if not spec.sha256:
-            atomic_write_text(dest.with_name(dest.name + ".sha256"), f"{got}  {spec.file}  {url}\n")
+            lock = _record_lock(dest_dir, spec, got, url)
             log.warning(
-                "model '%s' has no sha256 in its description; recorded %s (trust on first use)",
+                "model '%s' has no sha256 in its description: recorded the one of this download, %s, in %s "
+                "(trust on first use); later loads are checked against it",
                 spec.name,
                 got,
+                lock,
             )
         log.info("fetched %s -> %s (sha256 %s)", url, dest, got)
         return dest

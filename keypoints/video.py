@@ -42,6 +42,8 @@ from core.errors import RoomcapError
 from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.pipeline import FrameResult, KeypointPipeline, PipelineConfig
+from keypoints.presets import preset_config
+from keypoints.registry import presets
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -190,6 +192,11 @@ class FrameReader(threading.Thread):
             int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
             int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
         )
+        # rotation metadata (a phone's portrait video): OpenCV turns the frames upright and reports the
+        # upright size; check_size names it when that size does not fit the calibration
+        rot = float(self.cap.get(cv2.CAP_PROP_ORIENTATION_META) or 0.0)
+        self.rotation_deg = int(rot) % 360 if np.isfinite(rot) and abs(rot) <= 360 else 0
+        self.variable_rate = False  # set when the container's timestamps depart from index / fps
         self.start_index = start
         self.stop_index = stop
         self.timestamps = timestamps
@@ -212,7 +219,10 @@ class FrameReader(threading.Thread):
                     if self.n_frames is not None and i < self.n_frames:
                         self.q.put(("error", i, f"decoding stopped at frame {i} of {self.n_frames}"))
                     break
-                t_ns = self.timestamps.get(i, -1) if self.timestamps else int(round(i / self.fps * 1e9))
+                if self.timestamps:
+                    t_ns = self.timestamps.get(i, -1)
+                else:
+                    t_ns = self._container_t_ns(i)
                 self.q.put((i, t_ns, img))
                 i += 1
         except Exception as e:  # report any decoder failure as the frame it happened at
@@ -220,6 +230,31 @@ class FrameReader(threading.Thread):
         finally:
             self.q.put(_END)
             self.cap.release()
+
+    def _container_t_ns(self, i: int) -> int:
+        """The frame's time from the container (relative to the first frame read), which is index / fps
+        for a constant frame rate. A variable-frame-rate video (phones, screen recorders) departs from that
+        by more than half a frame: its own timestamps are used and a warning says so once."""
+        nominal = int(round(i / self.fps * 1e9))
+        pos_ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+        if not np.isfinite(pos_ms) or (pos_ms <= 0 and i > 0):
+            return nominal
+        if not hasattr(self, "_t0_ns"):
+            self._t0_ns = int(round(pos_ms * 1e6)) - nominal
+        t_ns = int(round(pos_ms * 1e6)) - self._t0_ns
+        if abs(t_ns - nominal) > 0.5e9 / self.fps:
+            if not self.variable_rate:
+                log.warning(
+                    "%s: variable frame rate (frame %d at %.3f s, %.3f s at the nominal %.2f fps); "
+                    "using the video's own timestamps",
+                    self.path,
+                    i,
+                    t_ns / 1e9,
+                    nominal / 1e9,
+                    self.fps,
+                )
+            self.variable_rate = True
+        return t_ns if self.variable_rate else nominal
 
     def halt(self) -> None:
         self._halt.set()
@@ -361,8 +396,11 @@ class ChunkWriter:
 # ----------------------------------------------------------------------------- checks
 
 
-def check_size(cam: str, video_wh: tuple[int, int], calib_wh: tuple[int, int] | None, path: Path) -> None:
-    """Compare a video's frame size with its camera's calibrated size (see the module docstring)."""
+def check_size(
+    cam: str, video_wh: tuple[int, int], calib_wh: tuple[int, int] | None, path: Path, rotation_deg: int = 0
+) -> None:
+    """Compare a video's frame size with its camera's calibrated size (see the module docstring).
+    ``rotation_deg``: the video's rotation metadata (its frames are decoded upright)."""
     if calib_wh is None:
         return
     vw, vh = video_wh
@@ -381,9 +419,15 @@ def check_size(cam: str, video_wh: tuple[int, int], calib_wh: tuple[int, int] | 
             ch,
         )
         return
+    rotated = (
+        f" Its rotation metadata says {rotation_deg} degrees, and its frames are read turned upright: "
+        "calibrate from frames read the same way (or strip the metadata)."
+        if rotation_deg % 180
+        else ""
+    )
     hint = (
         " Width and height are swapped: the video is rotated relative to the calibration; rotate it back "
-        "or recalibrate."
+        "or recalibrate." + rotated
         if (vw, vh) == (ch, cw)
         else " Record at the calibrated resolution, or recalibrate (or scale K) for this resolution."
     )
@@ -423,8 +467,9 @@ def run_videos(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if isinstance(config, str):
-        config = PipelineConfig(model_set=config)
+        config = preset_config(config) if config in presets()[1] else PipelineConfig(model_set=config)
     pipe = pipeline or KeypointPipeline(config)
+    pipe.reset_streams()
     cams = list(videos)
     for c in cams:
         if not Path(videos[c]).exists():
@@ -440,7 +485,7 @@ def run_videos(
         start = writers[c].next_frame()
         ts = read_frames_csv(Path(timestamps[c])) if timestamps and c in timestamps else None
         r = FrameReader(Path(videos[c]), start=start, stop=max_frames, timestamps=ts)
-        check_size(c, r.size_wh, sizes.get(c), Path(videos[c]))
+        check_size(c, r.size_wh, sizes.get(c), Path(videos[c]), r.rotation_deg)
         if start:
             log.info("camera %s: resuming at frame %d", c, start)
             report.resumed_from[c] = start
@@ -471,7 +516,7 @@ def run_videos(
                 meta.append(item[:2])
             if not imgs:
                 continue
-            results = pipe(imgs)
+            results = pipe(imgs, streams=batch_cams)
             for c, (fi, t_ns), res in zip(batch_cams, meta, results, strict=True):
                 writers[c].add(fi, t_ns, res)
                 done[c] += 1
@@ -487,6 +532,8 @@ def run_videos(
             "video": str(videos[c]),
             "fps": np.float64(readers[c].fps),
             "model_set": config.model_set,
+            "variable_frame_rate": np.bool_(readers[c].variable_rate),
+            "rotation_deg": np.int64(readers[c].rotation_deg),
         }
         det = writers[c].merge(out_dir / f"{c}.npz", readers[c].size_wh, extra)
         report.paths[c] = out_dir / f"{c}.npz"

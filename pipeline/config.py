@@ -5,7 +5,7 @@ with the list of valid ones. Example ``pipeline.toml``::
 
     stages = ["keypoints", "triangulate", "track", "forecast", "report"]
     [keypoints]
-    model_set = "default"
+    preset = "balanced"     # fast | balanced | accurate | feet | legacy
     [track]
     tracker = "greedy"      # or "particle"
     [forecast]
@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError, config_from_dict, load_toml
+from keypoints.registry import presets
 from track.stage import ParticleTrackConfig
 from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
 from triangulate.stage import GreedyTrackConfig
@@ -30,19 +31,48 @@ TRACKERS = ("greedy", "particle")
 
 @dataclass(frozen=True)
 class KeypointsConfig:
-    model_set: str = "default"
+    # speed/accuracy preset of the 2D stage (keypoints/models/sets.toml [presets]). "" = the default preset,
+    # or, when ``model_set`` is given, "legacy" (the chain of configurations written before presets existed)
+    preset: str = ""
+    model_set: str = ""  # "" = the preset's
     max_frames: int | None = None  # process only the first N frames (demos, smoke tests)
     # layout of the detections files: body19, or "model" (the model's own, e.g. BlazePose's feet for
-    # [triangulate] options.skeleton = "whole_body"); see keypoints.pipeline.PipelineConfig.skeleton
-    skeleton: str = "body19"
+    # [triangulate] options.skeleton = "whole_body"); "" = the preset's (body19; "model" for "feet")
+    skeleton: str = ""
+
+    def __post_init__(self) -> None:
+        _, table = presets()
+        if self.preset and self.preset not in table:
+            raise FormatError(
+                None, "keypoints.preset", f"'{self.preset}' is not a preset; valid: {sorted(table)}."
+            )
+
+    def settings(self) -> tuple[str, dict[str, Any]]:
+        """The preset's name and its ``keypoints.pipeline.PipelineConfig`` settings with this section's
+        overrides."""
+        default, table = presets()
+        name = self.preset or ("legacy" if self.model_set else default)
+        settings = dict(table[name])
+        if self.model_set:
+            settings["model_set"] = self.model_set
+        if self.skeleton:
+            settings["skeleton"] = self.skeleton
+        return name, settings
+
+    @property
+    def model_set_name(self) -> str:
+        return str(self.settings()[1].get("model_set", "default"))
 
     def provenance(self) -> dict[str, Any]:
-        """The settings a keypoints run depends on; ``skeleton`` only when it is not the default, so
-        sessions made before the key existed are not run again."""
-        d = dataclasses.asdict(self)
-        if self.skeleton == "body19":
-            d.pop("skeleton")
-        return d
+        """The settings a keypoints run depends on. A plain model set (the legacy chain) is recorded as it
+        was before presets existed (``skeleton`` only when not body19), so those sessions stay current."""
+        name, settings = self.settings()
+        if set(settings) <= {"model_set", "skeleton"}:
+            d: dict[str, Any] = {"model_set": self.model_set_name, "max_frames": self.max_frames}
+            if settings.get("skeleton", "body19") != "body19":
+                d["skeleton"] = settings["skeleton"]
+            return d
+        return {"preset": name, "settings": settings, "max_frames": self.max_frames}
 
 
 @dataclass(frozen=True)

@@ -241,18 +241,13 @@ def _plan_keypoints(
             rig = None
             if lay.rig_toml.exists():
                 rig = CameraRig.load(lay.rig_toml)
-            from keypoints.pipeline import (
-                PipelineConfig as KeypointsPipelineConfig,  # lazy: loads onnxruntime
-            )
+            from keypoints.presets import preset_config  # lazy: loads onnxruntime
             from keypoints.runtime import RuntimeConfig  # lazy: loads onnxruntime
 
             # the executor's share of the cores (set per worker by _limit_threads); 0 = onnxruntime's default
             threads = int(os.environ.get("ROOMCAP_ORT_THREADS", "0") or 0)
-            kp_cfg = KeypointsPipelineConfig(
-                model_set=cfg.keypoints.model_set,
-                skeleton=cfg.keypoints.skeleton,
-                runtime=RuntimeConfig(threads=threads),
-            )
+            preset, settings = cfg.keypoints.settings()
+            kp_cfg = preset_config(preset, **settings, runtime=RuntimeConfig(threads=threads))
             rep = run_videos(
                 {c: src.videos[c] for c in cams},
                 lay.keypoints_dir,
@@ -270,7 +265,7 @@ def _plan_keypoints(
             outputs,
             kcfg,
             run,
-            model_set_sha256(cfg.keypoints.model_set, store),
+            model_set_sha256(cfg.keypoints.model_set_name, store),
             skipped,
         )
     if src.openpose_json:

@@ -129,3 +129,20 @@ def test_input_shape_not_matching_the_description_is_refused(models):
     make_simcc_model(models, np.zeros((17, 2)), name="wrong", graph_size_wh=(128, 128))
     with pytest.raises(ModelError, match=r"input shape \[1, 3, 128, 128\] does not match.*192x256"):
         OnnxModel("wrong", RuntimeConfig(model_dir=str(models)))
+
+
+def test_movenet_multipose_decoder_reads_keypoints_then_box():
+    from keypoints.decoders import decode_movenet_multipose
+
+    out = np.zeros((1, 6, 56), np.float32)
+    k = np.zeros((17, 3), np.float32)
+    k[:, 0], k[:, 1], k[:, 2] = 0.5, 0.25, 0.9  # y, x, score
+    out[0, 0, :51] = k.ravel()
+    out[0, 0, 51:56] = (0.1, 0.2, 0.9, 0.3, 0.8)  # ymin, xmin, ymax, xmax, score
+    out[0, 1, 55] = 0.1  # below the threshold
+    ((boxes, xy, sc),) = decode_movenet_multipose(out, (256, 128), 0.2)
+    np.testing.assert_allclose(boxes, [[0.2 * 256, 0.1 * 128, 0.3 * 256, 0.9 * 128, 0.8]], rtol=1e-6)
+    np.testing.assert_allclose(xy[0, 0], [64.0, 64.0])
+    assert xy.shape == (1, 17, 2) and np.allclose(sc, 0.9)
+    with pytest.raises(ValueError, match="56"):
+        decode_movenet_multipose(np.zeros((1, 6, 50)), (256, 256))

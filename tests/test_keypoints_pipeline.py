@@ -306,3 +306,67 @@ def test_default_set_on_an_empty_image_finds_nobody():
     need_shared("models")
     res = KeypointPipeline("default")([np.full((240, 320, 3), 128, np.uint8)] * 2)
     assert [len(r.boxes) for r in res] == [0, 0] and res[0].xy_px.shape == (0, 19, 2)
+
+
+def clip(demo: str, n: int) -> list[list[np.ndarray]]:
+    """The first ``n`` frames of the four cameras: per frame, one image per camera."""
+    d = need_shared("data", "pose2sim", "demo-wheel-0.10.49", demo, "videos")
+    caps = [cv2.VideoCapture(str(d / f"{c}.mp4")) for c in CAMS]
+    return [[cap.read()[1] for cap in caps] for _ in range(n)]
+
+
+@pytest.mark.slow
+def test_tracked_crops_run_the_detector_every_n_frames_and_agree_with_the_whole_chain():
+    """balanced: the previous frame's poses place the crops; the detector runs on frames 0 and 8 of each
+    camera only, and the joints stay within a few pixels of the detector-every-frame chain's."""
+    need_shared("models")
+    from keypoints.presets import preset_config
+
+    video = clip("Demo_SinglePerson", 10)
+    tracked = KeypointPipeline(preset_config("balanced", detect_every=8))
+    every = KeypointPipeline(preset_config("balanced", detect_every=1))
+    diffs = []
+    for images in video:
+        a = tracked(images, streams=CAMS)
+        b = every(images, streams=CAMS)
+        for ra, rb in zip(a, b, strict=True):
+            assert len(ra.boxes) >= 1 and len(rb.boxes) >= 1
+            k = int(np.argmax(ra.boxes[:, 4]))  # the participant against the nearest of the other's people
+            d = [
+                np.nanmedian(np.linalg.norm(ra.xy_px[k] - rb.xy_px[m], axis=-1)) for m in range(len(rb.boxes))
+            ]
+            diffs.append(min(d))
+    assert tracked.n_detected == 2 * len(CAMS) and tracked.n_tracked == 8 * len(CAMS)
+    assert every.n_tracked == 0
+    assert np.median(diffs) < 4.0, np.round(diffs, 1)
+
+
+def test_a_stream_that_loses_its_people_runs_the_detector_again(single):
+    """A camera whose tracked person vanishes (an empty frame) runs the detector on its next frame; the other
+    cameras keep their tracked crops."""
+    from keypoints.presets import preset_config
+
+    pipe = KeypointPipeline(preset_config("balanced", detect_every=100))
+    pipe(single, streams=CAMS)
+    assert pipe.n_detected == 4
+    blank = [np.zeros_like(single[0])] + single[1:]
+    res = pipe(blank, streams=CAMS)
+    assert len(res[0].boxes) == 0 and all(len(r.boxes) >= 1 for r in res[1:])
+    assert (pipe.n_detected, pipe.n_tracked) == (4, 4)
+    detected = pipe.n_detected
+    res = pipe(single, streams=CAMS)  # cam01 detects again and finds the participant
+    assert pipe.n_detected > detected and len(res[0].boxes) >= 1
+    with pytest.raises(ValueError, match="one image per stream"):
+        pipe(single[:2], streams=["cam01", "cam01"])
+
+
+def test_multipose_finds_both_participants_without_a_detector():
+    need_shared("models")
+    images = frames("Demo_MultiPerson", 0)
+    res = KeypointPipeline("movenet_multipose")(images)
+    assert [len(r.boxes) for r in res] == [2, 2, 2, 2]
+    for r in res:  # poses lie inside their boxes, on the image
+        h, w = images[0].shape[:2]
+        ok = r.score > 0.3
+        assert ok.sum() > 20
+        assert (r.xy_px[ok] >= 0).all() and (r.xy_px[ok][:, 0] < w).all() and (r.xy_px[ok][:, 1] < h).all()

@@ -26,6 +26,9 @@ SHIPPED = [
     "blazepose_full",
     "blazepose_heavy",
     "movenet_lightning",
+    "movenet_lightning_fp16",
+    "movenet_thunder",
+    "movenet_multipose",
     "openpose_mobilenetv2",
 ]
 
@@ -174,7 +177,8 @@ def test_fetch_unpacks_openmmlab_zip_and_records_sha(isolated, server):
     p = registry.fetch(spec)
     want = hashlib.sha256(src.read_bytes()).hexdigest()
     assert registry.sha256_file(p) == want
-    assert (p.parent / "z.onnx.sha256").read_text().startswith(want)  # trust on first use
+    lock = registry.load_toml(registry.lock_file(p.parent))  # trust on first use, in the lock file
+    assert lock["models"]["z"] == {"file": "z.onnx", "sha256": want, "url": f"{base}/model.zip"}
     data = bytearray(p.read_bytes())
     data[10] ^= 1
     p.write_bytes(bytes(data))  # later damage is caught against the recorded digest

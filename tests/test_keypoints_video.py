@@ -52,11 +52,11 @@ class DiesAfter:
     def __getattr__(self, k):
         return getattr(self.pipe, k)
 
-    def __call__(self, imgs):
+    def __call__(self, imgs, streams=None):
         self.n -= 1
         if self.n < 0:
             raise Killed
-        return self.pipe(imgs)
+        return self.pipe(imgs, streams)
 
 
 def test_killed_run_resumes_after_last_chunk(tmp_path, tiny_set):
@@ -155,3 +155,69 @@ def test_cli_run_on_explicit_videos(tmp_path, tiny_set, capsys):
     assert Detections.load(tmp_path / "kp" / "cam07.npz").camera == "cam07"
     assert main(["run", str(tmp_path / "nope.mp4"), "--out", str(tmp_path / "kp")]) == 2
     assert "do not exist" in capsys.readouterr().err
+
+
+def _write_av(path, pts_ms, size=(W, H), rotate_deg=0):
+    """An mp4 whose frames sit at ``pts_ms`` (milliseconds); ``rotate_deg`` 90 writes portrait rotation
+    metadata (the track header's display matrix, as phones do)."""
+    import struct
+
+    import av
+
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("mpeg4", rate=1000)
+        s.width, s.height, s.pix_fmt = size[0], size[1], "yuv420p"
+        s.codec_context.time_base = s.time_base = __import__("fractions").Fraction(1, 1000)
+        rng = np.random.default_rng(1)
+        for t in pts_ms:
+            f = av.VideoFrame.from_ndarray(
+                rng.integers(0, 255, (size[1], size[0], 3), np.uint8), format="rgb24"
+            )
+            f.pts = int(t)
+            for p in s.encode(f):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    if rotate_deg:
+        b = bytearray(path.read_bytes())
+        i = b.find(b"tkhd")
+        off = i + 4 + 4 + (32 if b[i + 4] == 1 else 20) + 16  # version/flags, times, id, duration; layer..
+        b[off : off + 36] = struct.pack(">9i", 0, 65536, 0, -65536, 0, 0, 0, 0, 1 << 30)
+        path.write_bytes(bytes(b))
+    return path
+
+
+def test_variable_frame_rate_video_keeps_its_own_timestamps(tmp_path, tiny_set, caplog):
+    """A phone-style variable-frame-rate video: the detections carry the container's frame times, not
+    index / fps, and a warning says so."""
+    pts = [0, 33, 67, 100, 400, 433, 467, 800, 833, 867]  # 30 fps with two stalls of ~0.3 s
+    v = _write_av(tmp_path / "cam01.mp4", pts)
+    with caplog.at_level(logging.WARNING):
+        rep = run_videos({"cam01": v}, tmp_path / "kp", tiny_set)
+    d = Detections.load(rep.paths["cam01"])
+    np.testing.assert_allclose(d.t_ns / 1e6, pts, atol=1.5)
+    assert bool(d.extra["variable_frame_rate"]) and "variable frame rate" in caplog.text
+    cfr = write_video(tmp_path / "cam02.avi", 6)  # a steady frame rate: index / fps
+    d2 = Detections.load(run_videos({"cam02": cfr}, tmp_path / "kp2", tiny_set).paths["cam02"])
+    assert not bool(d2.extra["variable_frame_rate"])
+    np.testing.assert_array_equal(
+        d2.t_ns, np.round(np.arange(6) / float(d2.extra["fps"]) * 1e9).astype(np.int64)
+    )
+
+
+def test_portrait_rotation_metadata_is_read_upright_and_named_when_it_misfits(tmp_path, tiny_set):
+    v = _write_av(tmp_path / "cam01.mp4", [0, 40, 80], size=(W, H), rotate_deg=90)
+    rep = run_videos({"cam01": v}, tmp_path / "kp", tiny_set, rig={"cam01": (H, W)})  # upright: portrait
+    d = Detections.load(rep.paths["cam01"])
+    assert tuple(d.image_size_wh) == (H, W) and int(d.extra["rotation_deg"]) == 90
+    with pytest.raises(FormatError, match=r"rotation metadata says 90 degrees"):
+        run_videos(
+            {"cam01": v}, tmp_path / "kp2", tiny_set, rig={"cam01": (W, H)}
+        )  # calibrated on the sensor
+
+
+def test_4k_video_runs(tmp_path, tiny_set):
+    v = write_video(tmp_path / "cam01.avi", 3, size=(3840, 2160))
+    d = Detections.load(run_videos({"cam01": v}, tmp_path / "kp", tiny_set).paths["cam01"])
+    assert d.n_frames == 3 and tuple(d.image_size_wh) == (3840, 2160)
+    assert np.isfinite(d.xy_px).any()

@@ -65,6 +65,21 @@ def test_keypoints_skeleton_option_reaches_the_2d_stage_without_rerunning_old_se
     assert feet.keypoints.provenance()["skeleton"] == "model"
 
 
+def test_keypoint_presets_resolve_and_are_recorded():
+    """The default preset is "balanced" (tracked crops); a named preset's settings are what the stage records,
+    so changing a preset re-runs keypoints; an unknown preset fails when the config loads."""
+    from keypoints.presets import preset_config
+
+    name, settings = PipelineConfig().keypoints.settings()
+    assert name == "balanced" and settings["detect_every"] > 1
+    cfg = PipelineConfig.from_dict({"keypoints": {"preset": "feet"}})
+    prov = cfg.keypoints.provenance()
+    assert prov["preset"] == "feet" and prov["settings"]["skeleton"] == "model"
+    assert preset_config("feet").skeleton == "model" and preset_config("legacy").detect_every == 1
+    with pytest.raises(FormatError, match="not a preset.*balanced"):
+        PipelineConfig.from_dict({"keypoints": {"preset": "quick"}})
+
+
 def test_stage_options_are_checked_when_the_config_loads(tmp_path, capsys):
     """A typo in a stage's options is found before any session runs (issue 16), not when it is reached."""
     with pytest.raises(FormatError, match=r"triangulate.options.*thetta_px.*valid keys"):

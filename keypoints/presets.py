@@ -1,0 +1,31 @@
+"""Named presets of the 2D stage: a model set and the pipeline settings that trade speed for accuracy.
+
+The presets are data, in the ``[presets]`` table of ``keypoints/models/sets.toml`` (read by
+``keypoints.registry.presets``), each chosen by measurement on both Pose2Sim demos
+(``bench/bench_keypoints_presets.py``; figures in BENCHMARKS.md, "2D presets").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from core.config import config_from_dict
+from core.errors import UnknownNameError
+from keypoints.pipeline import PipelineConfig
+from keypoints.registry import presets
+
+
+def preset_config(name: str = "", **overrides: Any) -> PipelineConfig:
+    """The 2D stage's settings for a preset ("" = the default preset), with ``PipelineConfig`` fields
+    overridden by ``overrides``."""
+    default, table = presets()
+    name = name or default
+    if name not in table:
+        raise UnknownNameError(f"unknown keypoint preset {name!r}; known: {sorted(table)}.")
+    fields = {f.name for f in dataclasses.fields(PipelineConfig)}
+    bad = sorted(set(overrides) - fields)
+    if bad:
+        raise UnknownNameError(f"unknown keypoint settings {bad}; valid: {sorted(fields)}.")
+    cfg = config_from_dict(PipelineConfig, table[name], f"presets.{name}")
+    return dataclasses.replace(cfg, **overrides)
