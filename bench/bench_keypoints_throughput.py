@@ -53,10 +53,10 @@ DEMOS = {
 DEMO = DEMOS["single"]
 
 
-def measure(name: str, cfg: PipelineConfig, frames: int) -> dict:
+def measure(name: str, cfg: PipelineConfig, frames: int, camera_groups: int = 1) -> dict:
     vids = videos_in(DEMO)
     with tempfile.TemporaryDirectory() as tmp:
-        rep = run_videos(vids, tmp, cfg, max_frames=frames, chunk_frames=25)
+        rep = run_videos(vids, tmp, cfg, max_frames=frames, chunk_frames=25, camera_groups=camera_groups)
     n = sum(rep.frames.values())  # camera-frames
     st = rep.stage_s
     ms = lambda k: 1e3 * st.get(k, 0.0) / n  # noqa: E731
@@ -84,6 +84,13 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=20, help="frames per camera")
     ap.add_argument("--sets", default="legacy,balanced,fast,accurate,feet")
     ap.add_argument("--gpu", action="store_true", help="CUDA execution provider against the CPU")
+    ap.add_argument(
+        "--camera-groups",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also run with the cameras in N thread groups",
+    )
     ap.add_argument("--demo", choices=sorted(DEMOS), default="single", help="which Pose2Sim demo's videos")
     ap.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (0 = its default)")
     args = ap.parse_args()
@@ -113,6 +120,8 @@ def main() -> None:
             rows.append(measure(f"{s} (cuda)", config(s, gpu), args.frames))
     else:
         rows = [measure(s, config(s, rt), args.frames) for s in sets]
+        for g in args.camera_groups:
+            rows += [measure(f"{s} ({g} camera groups)", config(s, rt), args.frames, g) for s in sets]
     for r in rows:
         r["x_first"] = r["fps_per_camera"] / rows[0]["fps_per_camera"]
     if "blazepose" in sets:  # the batching comparison needs the one-crop-per-run BlazePose row

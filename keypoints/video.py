@@ -30,7 +30,8 @@ import shutil
 import threading
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -457,20 +458,27 @@ def run_videos(
     progress: Progress | None = None,
     timestamps: dict[str, Path] | None = None,
     pipeline: KeypointPipeline | None = None,
+    camera_groups: int = 1,
 ) -> RunReport:
     """Run the 2D pipeline over videos ``{camera name: path}`` and write ``out_dir/<cam>.npz``.
 
     ``rig``: a ``CameraRig`` or ``{cam: (w, h)}`` to check video sizes against. ``max_frames``: stop after
     this many frames per camera. ``timestamps``: ``{cam: frames.csv}`` with per-frame ``t_ns``.
+    ``camera_groups``: split the cameras into this many groups, each run by its own thread and pipeline with
+    its share of the onnxruntime threads (the cameras spread over the cores).
     """
     t_wall = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if isinstance(config, str):
         config = preset_config(config) if config in presets()[1] else PipelineConfig(model_set=config)
+    cams = list(videos)
+    n_groups = 1 if pipeline is not None else max(1, min(camera_groups, len(cams)))
+    if n_groups > 1:  # each group's share of the onnxruntime threads
+        threads = max(1, (config.runtime.threads or os.cpu_count() or 1) // n_groups)
+        config = replace(config, runtime=replace(config.runtime, threads=threads))
     pipe = pipeline or KeypointPipeline(config)
     pipe.reset_streams()
-    cams = list(videos)
     for c in cams:
         if not Path(videos[c]).exists():
             raise FileNotFoundError(f"camera '{c}': video {videos[c]} does not exist.")
@@ -495,10 +503,10 @@ def run_videos(
         for c in cams
     }
     done = {c: readers[c].start_index for c in cams}
-    for r in readers.values():
-        r.start()
-    live = list(cams)
-    try:
+    lock = threading.Lock()  # the progress callback and the report are shared by the camera groups
+
+    def run_group(group: list[str], gpipe: KeypointPipeline) -> None:
+        live = list(group)
         while live:
             batch_cams, imgs, meta = [], [], []
             for c in list(live):
@@ -508,7 +516,8 @@ def run_videos(
                     continue
                 if item[0] == "error":
                     _, fi, msg = item
-                    report.decode_errors[c] = (fi, msg)
+                    with lock:
+                        report.decode_errors[c] = (fi, msg)
                     log.warning("camera %s: %s (%s); keeping the %d frames before it", c, msg, videos[c], fi)
                     continue
                 batch_cams.append(c)
@@ -516,12 +525,24 @@ def run_videos(
                 meta.append(item[:2])
             if not imgs:
                 continue
-            results = pipe(imgs, streams=batch_cams)
+            results = gpipe(imgs, streams=batch_cams)
             for c, (fi, t_ns), res in zip(batch_cams, meta, results, strict=True):
                 writers[c].add(fi, t_ns, res)
                 done[c] += 1
                 if progress is not None:
-                    progress(c, done[c], totals[c])
+                    with lock:
+                        progress(c, done[c], totals[c])
+
+    # the cameras spread over the cores: groups of cameras, each stepped by its own thread and pipeline
+    # (onnxruntime, OpenCV and numpy release the GIL while they compute)
+    groups = [cams[g::n_groups] for g in range(n_groups)]
+    pipes = [pipe] + [KeypointPipeline(config) for _ in groups[1:]]
+    for r in readers.values():
+        r.start()
+    try:
+        with ThreadPoolExecutor(n_groups) as pool:
+            for f in [pool.submit(run_group, g, gp) for g, gp in zip(groups, pipes, strict=True)]:
+                f.result()
     finally:
         for r in readers.values():
             r.halt()
@@ -538,11 +559,14 @@ def run_videos(
         det = writers[c].merge(out_dir / f"{c}.npz", readers[c].size_wh, extra)
         report.paths[c] = out_dir / f"{c}.npz"
         report.frames[c] = det.n_frames
-    st = defaultdict(float, pipe.stage_s)
+    st: defaultdict[str, float] = defaultdict(float)
+    for gp in pipes:
+        for k, v in gp.stage_s.items():
+            st[k] += v
     st["decode"] = sum(r.decode_s for r in readers.values())
     st["write"] = sum(w.write_s for w in writers.values())
     report.stage_s = dict(st)
-    report.model_s = pipe.model_run_s()
+    report.model_s = sum(gp.model_run_s() for gp in pipes)
     report.wall_s = time.perf_counter() - t_wall
     return report
 
