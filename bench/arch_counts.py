@@ -31,8 +31,28 @@ import sys
 import tomllib
 from pathlib import Path
 
-PACKAGES = ["core", "capture", "calibrate", "keypoints", "synthetic", "triangulate", "track", "forecast", "pipeline"]
-ORDER = ["core", "capture", "calibrate", "keypoints", "synthetic", "triangulate", "track", "forecast", "pipeline"]
+PACKAGES = [
+    "core",
+    "capture",
+    "calibrate",
+    "keypoints",
+    "synthetic",
+    "triangulate",
+    "track",
+    "forecast",
+    "pipeline",
+]
+ORDER = [
+    "core",
+    "capture",
+    "calibrate",
+    "keypoints",
+    "synthetic",
+    "triangulate",
+    "track",
+    "forecast",
+    "pipeline",
+]
 HEAVY = {"torch", "onnxruntime", "depthai", "bpy", "opensim", "mediapipe"}
 BUILTIN_EXC = {n for n in dir(__builtins__) if isinstance(getattr(__builtins__, n, None), type)}
 BUILTIN_EXC = {n for n in BUILTIN_EXC if issubclass(getattr(__builtins__, n), BaseException)}
@@ -91,7 +111,7 @@ def count(root: Path) -> dict:
             for ch in ast.iter_child_nodes(node):
                 parents[ch] = node
 
-        def in_function(n):
+        def in_function(n, parents=parents):
             p = parents.get(n)
             while p is not None:
                 if isinstance(p, (ast.FunctionDef, ast.AsyncFunctionDef)):
@@ -101,15 +121,23 @@ def count(root: Path) -> dict:
 
         for node in ast.walk(tree):
             if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Sub):
-                if (_is_set_call(node.left) and (_is_set_call(node.right) or isinstance(node.right, ast.Name))) or (
-                    _is_keys(node.left)
-                ):
+                if (
+                    _is_set_call(node.left) and (_is_set_call(node.right) or isinstance(node.right, ast.Name))
+                ) or (_is_keys(node.left)):
                     if mod != "core.config":
                         res["validators"].append(f"{mod}:{node.lineno}")
-            if isinstance(node, ast.Call) and _name(node.func) == "difference" and isinstance(node.func, ast.Attribute):
+            if (
+                isinstance(node, ast.Call)
+                and _name(node.func) == "difference"
+                and isinstance(node.func, ast.Attribute)
+            ):
                 if _is_set_call(node.func.value) and mod != "core.config":
                     res["validators"].append(f"{mod}:{node.lineno}")
-            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in PROGRESS_NAMES:
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id in PROGRESS_NAMES
+            ):
                 shape = (len(node.args), tuple(sorted(k.arg or "**" for k in node.keywords)))
                 res["progress_shapes"].add(shape)
                 if shape != (3, ()):
@@ -117,7 +145,11 @@ def count(root: Path) -> dict:
             if isinstance(node, ast.Assign) and any(_name(t) == "Progress" for t in node.targets):
                 if mod != "core.progress":
                     res["progress_aliases"].append(mod)
-            if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call) and _name(node.exc.func) == "ValueError":
+            if (
+                isinstance(node, ast.Raise)
+                and isinstance(node.exc, ast.Call)
+                and _name(node.exc.func) == "ValueError"
+            ):
                 res["raise_valueerror"] += 1
             if isinstance(node, ast.Call) and _name(node.func) in ("SystemExit", "exit") and node.args:
                 a = node.args[0]
@@ -219,9 +251,7 @@ def main() -> None:
     root = Path(sys.argv[1] if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]).resolve()
     r = count(root)
     summary = {
-        k: (len(v) if isinstance(v, list) else v)
-        for k, v in r.items()
-        if k not in ("progress_shapes",)
+        k: (len(v) if isinstance(v, list) else v) for k, v in r.items() if k not in ("progress_shapes",)
     }
     summary["progress_shapes"] = len(r["progress_shapes"])
     for k, v in r.items():

@@ -3,9 +3,9 @@
 :func:`config_from_dict` rejects unknown keys listing the valid ones, recurses into nested sections
 (fields whose type is itself a config dataclass), and coerces values to the field's type where the
 meaning is unambiguous (an int for a float, a list for a tuple, the text of a number, a boolean or a
-list from the command line's ``--set key=value``). A value of the wrong kind is a
-:class:`~core.errors.FormatError` naming the key. DESIGN.md: each default lives in its dataclass
-only; no ``.get(key, default)`` in the algorithms.
+list from the command line's ``--set key=value``, a boolean also as 0/1, yes/no or on/off). A value
+of the wrong kind is a :class:`~core.errors.FormatError` naming the key. DESIGN.md: each default lives
+in its dataclass only; no ``.get(key, default)`` in the algorithms.
 """
 
 from __future__ import annotations
@@ -32,6 +32,11 @@ def _parse_text(text: str) -> Any:
         return text
 
 
+# booleans written as words or 0/1 (``--set mirror=1``, ``mirror = "yes"``); any other value is an error
+_BOOL_WORDS: dict[Any, bool] = {"true": True, "yes": True, "on": True, "1": True, 1: True,
+                                "false": False, "no": False, "off": False, "0": False, 0: False}  # fmt: skip
+
+
 def _coerce(value: Any, hint: Any, where: str, path: str | os.PathLike[str] | None) -> Any:
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType):
@@ -48,6 +53,8 @@ def _coerce(value: Any, hint: Any, where: str, path: str | os.PathLike[str] | No
         return value
     if isinstance(value, str) and hint in (int, float, bool, tuple, list) or origin in (tuple, list):
         value = _parse_text(value) if isinstance(value, str) else value
+    if hint is bool and isinstance(value, (str, int)) and not isinstance(value, bool):
+        value = _BOOL_WORDS.get(value.lower() if isinstance(value, str) else value, value)
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if (hint is tuple or origin is tuple) and isinstance(value, list):

@@ -27,15 +27,16 @@ import logging
 import os
 import time
 import zlib
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from capture.fileio import atomic_write_text
+from core.progress import Progress
 from forecast import data as fdata
 from forecast import metrics as M
+from forecast.clips import composed_batch
 from forecast.predict import diffusion_rollout, forecast_world
 from keypoints.skeletons import get_skeleton
 
@@ -122,7 +123,7 @@ def evaluate_single(
     stride: int = 5,
     max_windows: int = 400,
     seed: int = 0,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
     ndms_database: list[fdata.Clip] | None = None,
     reference: str | None = None,
     n_boot: int = 2000,
@@ -170,9 +171,8 @@ def evaluate_single(
     }
     out["n_clips"] = int(len(np.unique(groups)))
     per_window, per_window_loo = {}, {}
-    for name, model in models.items():
-        if progress:
-            progress(name)
+    for i, (name, model) in enumerate(models.items()):
+        _report(progress, "eval models", i, len(models), name)
         tm = time.perf_counter()
         if isinstance(model, Real):
             y = gt[:, None]
@@ -187,6 +187,7 @@ def evaluate_single(
         if getattr(model, "kind", "") == "social_diffusion":
             r["rollout"] = diffusion_rollout(model, n_pred)
         out["models"][name] = r
+    _report(progress, "eval models", len(models), len(models))
     loo_ok = np.isfinite(next(iter(per_window_loo.values()))).all(1) if per_window_loo else np.zeros(0, bool)
     out["n_windows_loo"] = int(loo_ok.sum())
     boot = _cluster_bootstrap_index(groups, n_boot, seed)
@@ -293,7 +294,7 @@ def evaluate_social(
     n_pred: int = 250,
     n_scenes: int = 24,
     seed: int = 0,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
     ndms_database: list[fdata.Clip] | None = None,
     real_scenes: list[fdata.Clip] | None = None,
     activities: dict[str, str] | None = None,
@@ -302,8 +303,6 @@ def evaluate_social(
     real multi-person clips among ``test_clips`` plus ``real_scenes`` (``real.models``, e.g. the CMU
     two-person take): long-horizon NDMS(t) per person (D = held-out clips of the person's activity, own clip
     included) and SSCP against the real scenes of the same kind."""
-    from forecast.train import composed_batch
-
     t0 = time.perf_counter()
     single = [c for c in test_clips if c.xyz_m.shape[1] == 1]
     multi = [c for c in test_clips if c.xyz_m.shape[1] >= 2] + list(real_scenes or [])
@@ -353,11 +352,10 @@ def _social_models(models, obs, act, scorer, sscp, real, n_pred, L, seed, progre
     B = len(obs)
     pm = np.ones((B, 2), bool) if person_mask is None else person_mask
     res = {}
-    for name, model in models.items():
+    for i, (name, model) in enumerate(models.items()):
+        _report(progress, "eval models", i, len(models), name)
         if isinstance(model, Real):
             continue
-        if progress:
-            progress(name)
         torch.manual_seed(seed)  # the same sampling noise on every run
         y = forecast_world(model, obs, pm, n_pred, 1)[:, 0]  # (B,H,2,J,3)
         nd = np.stack(
@@ -375,7 +373,16 @@ def _social_models(models, obs, act, scorer, sscp, real, n_pred, L, seed, progre
             gen = [np.concatenate([obs[b], y[b]], 0)[:L] for b in range(B)]
             entry["sscp_jsd"] = sscp.distance([r[:L] for r in real], gen)
         res[name] = entry
+    _report(progress, "eval models", len(models), len(models))
     return res
+
+
+def _report(progress: Progress | None, task: str, done: int, total: int, name: str | None = None) -> None:
+    """``done`` of ``total`` models scored (the progress protocol); the next one's name goes to the log."""
+    if progress is not None:
+        progress(task, done, total)
+    if name is not None:
+        log.info("%s: %s (%d of %d)", task, name, done + 1, total)
 
 
 # ----------------------------------------------------------------------------- report
