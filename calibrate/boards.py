@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from capture.fileio import FormatError, check_schema, load_toml, save_toml, schema_tag
+from core.config import check_keys
 from core.errors import RoomcapError
 
 __all__ = ["Board", "CalibrationError", "load_board", "save_board", "DICTIONARIES", "BOARD_KINDS"]
@@ -270,11 +271,7 @@ class Board:
 
 def _from_ours(d: dict[str, Any], path: Any) -> Board:
     check_schema(d.get("schema"), BOARD_SCHEMA, (BOARD_VERSION,), path)
-    unknown = sorted(set(d) - set(_KEYS))
-    if unknown:
-        raise FormatError(
-            path, unknown[0], f"unknown keys {unknown}; valid: {list(_KEYS)}.", "Remove or rename them."
-        )
+    check_keys(d, _KEYS, None, path, name_key=True)
     kind = d.get("kind")
     if kind not in BOARD_KINDS:
         raise FormatError(path, "kind", f"is {kind!r}; valid: {list(BOARD_KINDS)}.", "")
@@ -315,14 +312,9 @@ _CALISCOPE_KEYS = (
 
 def _from_caliscope(d: dict[str, Any], path: Any) -> Board:
     """caliscope's charuco.toml: CharucoBoard((columns, rows), square, aruco_scale * square)."""
-    unknown = sorted(set(d) - set(_CALISCOPE_KEYS))
-    if unknown:
-        raise FormatError(
-            path,
-            unknown[0],
-            f"unknown keys {unknown} for a caliscope charuco.toml; valid: {list(_CALISCOPE_KEYS)}.",
-            "",
-        )
+    check_keys(
+        d, _CALISCOPE_KEYS, None, path, fix="A caliscope charuco.toml has these keys only.", name_key=True
+    )
     cols, rows = int(d["columns"]), int(d["rows"])
     sq_cm = d.get("square_size_override_cm")
     if sq_cm is None:

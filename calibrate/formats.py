@@ -69,6 +69,7 @@ from calibrate.camera import (
     rotation_from_rvec,
 )
 from capture.fileio import FormatError, atomic_path, save_toml
+from core.config import check_keys
 
 log = logging.getLogger(__name__)
 
@@ -125,10 +126,7 @@ class ImportOptions:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> ImportOptions:
-        valid = [f.name for f in fields(cls)]
-        unknown = sorted(set(d) - set(valid))
-        if unknown:
-            raise ValueError(f"unknown import options {unknown}; valid: {valid}")
+        check_keys(d, [f.name for f in fields(cls)], "import options", None)
         return cls(**d)
 
 

@@ -123,12 +123,17 @@ def check_keys(
     where: str | None,
     path: str | os.PathLike[str] | None,
     error: type[FormatError] = FormatError,
+    fix: str = "Remove or rename them.",
+    name_key: bool = False,
 ) -> None:
-    """``error`` listing the valid keys when ``data`` has others (the one wording of every config)."""
+    """``error`` listing the valid keys when ``data`` has others (the one wording of every config);
+    ``name_key``: the error's field is the first unknown key (under ``where``), as file formats name it."""
     names = sorted(valid)
     unknown = sorted(set(data) - set(names))
     if unknown:
-        raise error(path, where, f"unknown keys {unknown}; valid keys: {names}.", "Remove or rename them.")
+        if name_key:
+            where = f"{where}.{unknown[0]}" if where else unknown[0]
+        raise error(path, where, f"unknown keys {unknown}; valid keys: {names}.", fix)
 
 
 def config_from_dict(
