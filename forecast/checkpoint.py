@@ -41,6 +41,7 @@ def write_checkpoint(
     path: str | os.PathLike,
     schema: str,
     kind: str,
+    *,
     config,
     skeleton: str,
     fps: float,
@@ -109,7 +110,17 @@ def save_checkpoint(
         for k, v in model.state_dict().items()
         if not k.startswith(DISCRIMINATOR_PREFIXES)  # only needed for training; keeps files < 2 MB
     }
-    write_checkpoint(path, CKPT_SCHEMA, kind, config, skeleton, fps, NORMALISATION, extra, state_dict=state)
+    write_checkpoint(
+        path,
+        CKPT_SCHEMA,
+        kind,
+        config=config,
+        skeleton=skeleton,
+        fps=fps,
+        normalisation=NORMALISATION,
+        extra=extra,
+        state_dict=state,
+    )
 
 
 def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> torch.nn.Module:

@@ -291,6 +291,7 @@ def make_windows(
     n_obs: int,
     n_pred: int,
     stride: int,
+    *,
     fps: float = TARGET_FPS,
     persons: str = "each",
     min_persons: int = 1,

@@ -117,6 +117,7 @@ def ndms_scorer_for(
 def evaluate_single(
     models: dict[str, object],
     test_clips: list[fdata.Clip],
+    *,
     n_obs: int = 50,
     n_pred: int = 100,
     n_samples: int = DEFAULT_SAMPLES,
@@ -290,6 +291,7 @@ def _single_metrics(y, gt, obs, mask_fut, groups, wact, scorer, hips, mm_gt):
 def evaluate_social(
     models: dict[str, object],
     test_clips: list[fdata.Clip],
+    *,
     n_obs: int = 32,
     n_pred: int = 250,
     n_scenes: int = 24,

@@ -104,7 +104,7 @@ def _main(argv: list[str] | None = None) -> int:
         for part in ("heatmap", "deterministic"):
             extra["history"][part] = {k: v for k, v in hist[part].items() if k != "loss"}
             extra["history"][part]["loss_last100"] = float(np.mean(hist[part]["loss"][-100:]))
-        save_checkpoint(args.out, net, det, cfg, avg, data.skeleton, extra=extra)
+        save_checkpoint(args.out, net, det, cfg, avg, skeleton=data.skeleton, extra=extra)
         print(
             f"wrote {args.out} ({Path(args.out).stat().st_size / 1e6:.2f} MB) after "
             f"{hist['train_wall_s']:.0f} s "
