@@ -34,7 +34,7 @@ import numpy as np
 
 from capture.fileio import FormatError, check_schema, load_toml, save_toml, schema_tag
 from core.config import check_keys
-from core.errors import RoomcapError
+from core.errors import InputError, RoomcapError
 
 __all__ = ["Board", "CalibrationError", "load_board", "save_board", "DICTIONARIES", "BOARD_KINDS"]
 
@@ -89,36 +89,36 @@ class Board:
 
     def __post_init__(self) -> None:
         if self.kind not in BOARD_KINDS:
-            raise ValueError(f"board kind {self.kind!r} is not one of {list(BOARD_KINDS)}")
+            raise InputError(f"board kind {self.kind!r} is not one of {list(BOARD_KINDS)}")
         g = tuple(int(v) for v in self.grid)
         if len(g) != 2 or min(g) < 2:
-            raise ValueError(f"board grid must be two integers >= 2, got {self.grid!r}")
+            raise InputError(f"board grid must be two integers >= 2, got {self.grid!r}")
         object.__setattr__(self, "grid", g)
         for k in ("square_size_m", "marker_size_m", "marker_separation_m"):
             v = getattr(self, k)
             if isinstance(v, (str, bytes)) or not np.isfinite(float(v)):
-                raise ValueError(f"board {k} must be a number (metres), got {v!r}")
+                raise InputError(f"board {k} must be a number (metres), got {v!r}")
             object.__setattr__(self, k, float(v))
         if not isinstance(self.dictionary, str):
-            raise ValueError(
+            raise InputError(
                 f"board dictionary must be a name such as 'DICT_4X4_50', got {self.dictionary!r}"
             )
         if self.kind == "charuco" and min(g) < 3:
-            raise ValueError(f"a ChArUco board needs at least 3x3 squares, got {g}")
+            raise InputError(f"a ChArUco board needs at least 3x3 squares, got {g}")
         if self.kind in ("charuco", "checkerboard") and not self.square_size_m > 0:
-            raise ValueError(f"square_size_m must be > 0, got {self.square_size_m}")
+            raise InputError(f"square_size_m must be > 0, got {self.square_size_m}")
         if self.kind in ("charuco", "aruco_grid"):
             if not self.marker_size_m > 0:
-                raise ValueError(
+                raise InputError(
                     f"marker_size_m must be > 0 for a {self.kind} board, got {self.marker_size_m}"
                 )
             if self.kind == "charuco" and self.marker_size_m >= self.square_size_m:
-                raise ValueError(
+                raise InputError(
                     f"marker_size_m ({self.marker_size_m}) must be smaller than square_size_m "
                     f"({self.square_size_m})"
                 )
             if self.dictionary not in DICTIONARIES:
-                raise ValueError(f"unknown dictionary {self.dictionary!r}; valid: {', '.join(DICTIONARIES)}")
+                raise InputError(f"unknown dictionary {self.dictionary!r}; valid: {', '.join(DICTIONARIES)}")
 
     # ---- geometry
 

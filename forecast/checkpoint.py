@@ -18,6 +18,7 @@ import torch
 from scipy.cluster.vq import kmeans2
 
 from capture.fileio import FormatError, atomic_path
+from core.errors import InputError
 from forecast import data as fdata
 from forecast.config import BASELINES, config_from_dict
 from forecast.models import (
@@ -148,26 +149,26 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
         m.n_obs_clean = config.n_obs if config.clean_obs else 0
         m.anchor = config.n_obs - 1 if config.anchor else None
         if config.root_vel and not config.anchor:
-            raise ValueError(
+            raise InputError(
                 "root_vel = true needs anchor = true (displacements are summed from the anchor frame)"
             )
         m.root_vel = config.root_vel
     else:
-        raise ValueError(f"unknown model '{kind}'")
+        raise InputError(f"unknown model '{kind}'")
     if state is not None:
         try:
             missing, unexpected = m.load_state_dict(state, strict=False)
         except RuntimeError as e:  # shape mismatches: torch lists every tensor, the first says enough
             lines = [ln.strip() for ln in str(e).splitlines() if "mismatch" in ln]
             first = lines[0] if lines else str(e).splitlines()[0]
-            raise ValueError(
+            raise InputError(
                 f"the {kind} state does not fit the checkpoint's config ({len(lines)} tensors differ; first: "
                 f"{first}). The config or the weights were changed after training: retrain with "
                 "`forecast train`, or use the original file."
             ) from None
         missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
         if missing or unexpected:
-            raise ValueError(
+            raise InputError(
                 f"{kind} state does not fit the config: missing {missing}, unexpected {unexpected}"
             )
     m.n_obs = config.n_obs
@@ -193,7 +194,7 @@ def baseline(kind: str, lhip: int = LHIP, rhip: int = RHIP) -> torch.nn.Module:
         return ConstantVelocity()
     if kind == "slide":
         return SlideLastPose(lhip, rhip)
-    raise ValueError(f"unknown baseline '{kind}'; baselines: {BASELINES}")
+    raise InputError(f"unknown baseline '{kind}'; baselines: {BASELINES}")
 
 
 def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> FoolClusters:

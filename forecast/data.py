@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.fileio import FormatError, load_npz
+from core.errors import InputError
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,7 @@ def hip_indices(joint_names: tuple[str, ...] | list[str]) -> tuple[int, int]:
     try:
         return names.index("left_hip"), names.index("right_hip")
     except ValueError:
-        raise ValueError(f"normalisation needs 'left_hip' and 'right_hip'; joints are {names}") from None
+        raise InputError(f"normalisation needs 'left_hip' and 'right_hip'; joints are {names}") from None
 
 
 def norm_frame(pose: np.ndarray, lhip: int, rhip: int) -> tuple[np.ndarray, np.ndarray]:
@@ -84,7 +85,7 @@ class Clip:
             x = x[:, None]
         J = get_skeleton(self.skeleton).n_joints
         if x.ndim != 4 or x.shape[2:] != (J, 3):
-            raise ValueError(
+            raise InputError(
                 f"clip '{self.name}': xyz_m must be (T,P,{J},3) for '{self.skeleton}', got {x.shape}"
             )
         object.__setattr__(self, "xyz_m", x)
@@ -176,9 +177,9 @@ def split_train_val_test(
     import zlib
 
     if len(names) != len(lengths):
-        raise ValueError(f"{len(names)} names but {len(lengths)} lengths")
+        raise InputError(f"{len(names)} names but {len(lengths)} lengths")
     if len(names) < 3:
-        raise ValueError(f"a train/val/test split needs at least 3 clips, got {len(names)}")
+        raise InputError(f"a train/val/test split needs at least 3 clips, got {len(names)}")
     key = [(int(n), zlib.crc32(f"{seed}:{nm}".encode()), nm) for nm, n in zip(names, lengths, strict=True)]
     order = sorted(range(len(names)), key=lambda i: key[i])
     out: dict[str, list[int]] = {"train": [], "val": [], "test": []}
@@ -227,7 +228,7 @@ def kitchens_scene(paths: list[str | os.PathLike], name: str = "kitchen") -> Cli
     """
     segs = [load_kitchens_npz(p) for p in paths]
     if not segs:
-        raise ValueError("kitchens_scene needs at least one person npz")
+        raise InputError("kitchens_scene needs at least one person npz")
     f0 = min(int(s["frames"].min()) for s in segs)
     f1 = max(int(s["frames"].max()) for s in segs)
     x = np.full((f1 - f0 + 1, len(segs), 29, 3), np.nan, np.float32)
@@ -305,7 +306,7 @@ def make_windows(
     ``min_persons`` present people are skipped and counted.
     """
     if persons not in ("each", "all"):
-        raise ValueError(f"persons must be 'each' or 'all', got {persons!r}")
+        raise InputError(f"persons must be 'each' or 'all', got {persons!r}")
     skipped: Counter[str] = Counter()
     xs, ms, pms, cs, ss = [], [], [], [], []
     T = n_obs + n_pred
@@ -313,7 +314,7 @@ def make_windows(
     lh, rh = hip_indices(get_skeleton(sk).joint_names)
     for ci, clip in enumerate(clips):
         if clip.skeleton != sk:
-            raise ValueError(f"clip '{clip.name}' is {clip.skeleton}, others are {sk}; convert first")
+            raise InputError(f"clip '{clip.name}' is {clip.skeleton}, others are {sk}; convert first")
         c = clip.resampled(fps)
         if c.n_frames < T:
             skipped["clip_shorter_than_window"] += 1
@@ -365,7 +366,7 @@ def make_windows(
             dict(skipped),
         )
     if persons == "all" and len({a.shape for a in xs}) > 1:
-        raise ValueError("clips have different person counts; pass max_persons")
+        raise InputError("clips have different person counts; pass max_persons")
     return WindowSet(
         np.stack(xs),
         np.stack(ms),

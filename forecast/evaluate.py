@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from capture.fileio import atomic_write_text
+from core.errors import InputError
 from core.progress import Progress
 from forecast import data as fdata
 from forecast import metrics as M
@@ -68,7 +69,7 @@ def check_baselines(names: list[str]) -> list[str]:
     for n in names:
         c = BASELINE_ALIASES.get(n, n)
         if c not in BASELINES:
-            raise ValueError(f"unknown baseline '{n}'; choose from {', '.join(BASELINES)}")
+            raise InputError(f"unknown baseline '{n}'; choose from {', '.join(BASELINES)}")
         if c not in out:
             out.append(c)
     return out
@@ -142,7 +143,7 @@ def evaluate_single(
     t0 = time.perf_counter()
     ws = fdata.make_windows(test_clips, n_obs, n_pred, stride, persons="each")
     if len(ws) == 0:
-        raise ValueError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
+        raise InputError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
     db_clips = ndms_database or test_clips
     acts = fdata.clip_activities(list(test_clips) + list(db_clips)) if activities is None else activities
     rng = np.random.default_rng(seed)

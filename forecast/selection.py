@@ -8,6 +8,7 @@ import logging
 import numpy as np
 import torch
 
+from core.errors import InputError
 from forecast import data as fdata
 from forecast import evaluate as E
 from forecast.predict import forecast_world
@@ -39,7 +40,7 @@ class Validator:
     ):
         ws = fdata.make_windows(clips, VAL_N_OBS, VAL_N_PRED, stride, persons="each")
         if len(ws) == 0:
-            raise ValueError(
+            raise InputError(
                 f"no validation windows of {VAL_N_OBS + VAL_N_PRED} frames in {len(clips)} clips "
                 f"(skipped {ws.skipped}); add longer validation clips or set val_every=0"
             )
@@ -89,7 +90,7 @@ class Selector:
     def __init__(self, model, config, val_clips):
         self.every = int(getattr(config, "val_every", 0)) if val_clips else 0
         if config.select not in SELECT:
-            raise ValueError(f"select must be one of {sorted(SELECT)}, got {config.select!r}")
+            raise InputError(f"select must be one of {sorted(SELECT)}, got {config.select!r}")
         self.key, self.sign = SELECT[config.select]
         self.validator = None
         if self.every:

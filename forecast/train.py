@@ -15,6 +15,7 @@ import time
 import numpy as np
 import torch
 
+from core.errors import InputError
 from core.progress import Progress
 from forecast import data as fdata
 from forecast.checkpoint import (
@@ -134,7 +135,7 @@ def train(
         return _train_diffusion(clips, config, J, rng, progress, device, init, val_clips)
     ws = fdata.make_windows(clips, config.n_obs, config.n_pred, stride=5, persons="each")
     if len(ws) == 0:
-        raise ValueError(
+        raise InputError(
             f"no training windows of {config.n_obs + config.n_pred} frames (skipped: {ws.skipped})"
         )
     xn, mk = single_person_arrays(ws)
@@ -230,7 +231,7 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
     )
     xs = single.x[:, :, 0]
     if len(xs) == 0:
-        raise ValueError(f"no training windows of {N} frames")
+        raise InputError(f"no training windows of {N} frames")
     if config.mirror:  # x -> -x with the sides swapped is a real pose too; composed_batch re-frames it
         flip = get_skeleton(clips[0].skeleton).flip_index
         xm, _ = mirror(xs.reshape(*xs.shape[:2], -1), single.mask[:, :, 0], flip)

@@ -70,6 +70,7 @@ from calibrate.formats.easymocap import read_easymocap, write_easymocap
 from calibrate.formats.qualisys import _rotate_image_cw as _rotate_image_cw  # the tests use it
 from calibrate.formats.qualisys import read_qualisys
 from capture.fileio import FormatError
+from core.errors import InputError
 
 __all__ = [
     "EXPORT_FORMATS",
@@ -150,7 +151,7 @@ def import_rig(
         "rig": lambda p, o: CameraRig.load(p),
     }
     if fmt not in readers:
-        raise ValueError(f"unknown calibration format {fmt!r}; valid: {list(IMPORT_FORMATS)}")
+        raise InputError(f"unknown calibration format {fmt!r}; valid: {list(IMPORT_FORMATS)}")
     return readers[fmt](Path(path), opts)
 
 
@@ -172,4 +173,4 @@ def export_rig(rig: CameraRig, path: str | os.PathLike, fmt: str) -> list[Path]:
     if fmt == "rig":
         rig.save(p)
         return [p]
-    raise ValueError(f"unknown export format {fmt!r}; valid: {list(EXPORT_FORMATS)}")
+    raise InputError(f"unknown export format {fmt!r}; valid: {list(EXPORT_FORMATS)}")

@@ -21,6 +21,7 @@ from calibrate.camera import (
 )
 from capture.fileio import FormatError
 from core.config import check_keys
+from core.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -52,9 +53,9 @@ class ImportOptions:
 
     def __post_init__(self) -> None:
         if not (self.scale_to_m > 0 and math.isfinite(self.scale_to_m)):
-            raise ValueError(f"ImportOptions.scale_to_m must be a positive number, got {self.scale_to_m}")
+            raise InputError(f"ImportOptions.scale_to_m must be a positive number, got {self.scale_to_m}")
         if self.view_rotation not in ("sensor", "apply"):
-            raise ValueError(
+            raise InputError(
                 f"ImportOptions.view_rotation must be 'sensor' or 'apply', got {self.view_rotation!r}"
             )
         if self.image_size_wh is not None:
@@ -64,7 +65,7 @@ class ImportOptions:
             for name, size in items:
                 wh = tuple(int(v) for v in size)
                 if len(wh) != 2 or min(wh) <= 0:
-                    raise ValueError(f"ImportOptions.image_size_wh must be (width, height), got {size}")
+                    raise InputError(f"ImportOptions.image_size_wh must be (width, height), got {size}")
                 norm[str(name)] = wh
             object.__setattr__(self, "image_size_wh", norm["*"] if list(norm) == ["*"] else norm)
 

@@ -9,6 +9,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
+from core.errors import InputError
 from forecast import data as fdata
 from forecast.clips import mirror
 from keypoints.skeletons import get_skeleton
@@ -38,7 +39,7 @@ def articulation(xyz: np.ndarray, joint_names, fps: float, cfg: AnnotatorConfig 
     eff = [names.index(n) for n in END_EFFECTORS]
     x = np.asarray(xyz, np.float64)
     if x.ndim != 3 or x.shape[1:] != (len(names), 3):
-        raise ValueError(f"annotate: expected xyz (T,{len(names)},3), got {x.shape}")
+        raise InputError(f"annotate: expected xyz (T,{len(names)},3), got {x.shape}")
     R, root = fdata.norm_frame(x, lh, rh)  # eq. 3.8 at every frame: the hip-centred body frame
     q = np.einsum("tij,tkj->tki", R, x[:, eff] - root[:, None])
     q = _smooth(q, cfg.smooth_s * fps)
@@ -55,7 +56,7 @@ def annotate(
     docstring)."""
     x = np.asarray(xyz, np.float64)
     if not np.isfinite(x).all():
-        raise ValueError("annotate: xyz has NaN/inf; fill or cut the gaps first")
+        raise InputError("annotate: xyz has NaN/inf; fill or cut the gaps first")
     A, v = articulation(x, joint_names, fps, cfg)
     T = len(A)
     w = max(1, int(round(cfg.window_s * fps)))

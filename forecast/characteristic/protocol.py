@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from core.errors import InputError
 from core.progress import Progress
 from forecast import data as fdata
 from forecast.characteristic.labels import Labelled, eval_starts, label_clips, make_pairs, segments
@@ -88,7 +89,7 @@ def evaluate(
     if max_windows is not None and len(rows) > max_windows:
         rows = rows[np.linspace(0, len(rows) - 1, max_windows).round().astype(int)]
     if len(rows) == 0:
-        raise ValueError(
+        raise InputError(
             f"no evaluation windows: {len(items)} clips give no label at least {cfg.n_obs} frames "
             "after the clip start or the previous label"
         )
