@@ -26,6 +26,8 @@ import numpy as np
 from capture.fileio import FormatError, load_npz
 from core.errors import InputError
 from keypoints.skeletons import get_skeleton
+from synthetic import bvh
+from track.trackfile import TrackFile  # the contract with the tracker
 
 log = logging.getLogger(__name__)
 
@@ -110,8 +112,6 @@ class Clip:
 
 def clip_from_trackfile(path: str | os.PathLike) -> Clip:
     """A track file (``tracks/1``) as a clip; raises ``FormatError``/``SchemaError`` for bad files."""
-    from track.trackfile import TrackFile  # the contract with the tracker
-
     tf = TrackFile.load(path)
     sk = _skeleton_for(tf.joint_names, path)
     return Clip(clip_name(path), tf.xyz_m, tf.fps, sk)
@@ -141,8 +141,6 @@ def _skeleton_for(joint_names: tuple[str, ...], path) -> str:
 def cmu_bvh_files(root: str | os.PathLike | None = None) -> list[Path]:
     """The CMU BVH clips under the mocap root (``synthetic.bvh.list_clips``: ``$ROOMCAP_MOCAP`` or
     ``$ROOMCAP_SHARED/data/motion``); raises with what to set when there are none."""
-    from synthetic import bvh  # written by the synthetic-world engineer
-
     files = bvh.list_clips(root)
     if not files:
         raise FileNotFoundError(
@@ -153,8 +151,6 @@ def cmu_bvh_files(root: str | os.PathLike | None = None) -> list[Path]:
 
 def clip_from_bvh(path: str | os.PathLike, fps: float = TARGET_FPS) -> Clip:
     """A CMU BVH clip as body19 at ``fps`` through the synthetic-world BVH reader + FK."""
-    from synthetic import bvh
-
     c = bvh.load_clip(path, fps=fps)
     return Clip(Path(path).stem, np.asarray(c.xyz_m, np.float32), float(c.fps), "body19")
 
@@ -392,8 +388,6 @@ def cmu_index(root: str | os.PathLike | None = None) -> dict[tuple[int, int], st
     mocap root -> {(subject, trial): description}; {} when there is none."""
     import csv
 
-    from synthetic import bvh
-
     r = bvh.mocap_root(root)
     if r is None:
         return {}
@@ -458,8 +452,6 @@ def cmu_two_person_clip(folder: str | os.PathLike | None = None, fps: float = TA
     frame by frame. The cgspeed conversion lacks the ASF thorax bone (README of the folder): everything above
     Spine1 sits ~0.12 m low, which leaves within-person motion (NDMS) and the hips (SSCP's root and facing)
     intact but makes hand-to-hand distances wrong; nothing here uses them."""
-    from synthetic import bvh
-
     if folder is None:
         r = bvh.mocap_root(None)
         if r is None:

@@ -28,7 +28,9 @@ import torch
 from capture.fileio import atomic_write_text
 from core.errors import InputError
 from forecast import data as fdata
+from forecast import evaluate as E
 from forecast import metrics as M
+from forecast import train as T
 from forecast.predict import forecast_world
 from keypoints.skeletons import get_skeleton
 
@@ -81,9 +83,6 @@ def evaluate_hik(
     seed: int = 0,
 ) -> dict:
     """Run the ch. 8.3 protocol on the HiK person files under folder -> results (``write_hik_report``)."""
-    from forecast import evaluate as E
-    from forecast import train as T
-
     t0 = time.perf_counter()
     people = fdata.load_kitchen_people(folder)
     kitchens = sorted({p.kitchen for p in people})
