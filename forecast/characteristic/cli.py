@@ -89,9 +89,8 @@ def _main(argv: list[str] | None = None) -> int:
             + ", ".join(f"{p} {len(segments(getattr(data, p), cfg.n_obs))}" for p in ("train", "val", "test"))
             + f" (clips {len(data.train)}/{len(data.val)}/{len(data.test)})"
         )
-        logging.getLogger("forecast.characteristic.training").setLevel(
-            logging.INFO
-        )  # loss terms above the bar
+        # the loss terms, as log lines above the bars
+        logging.getLogger("forecast.characteristic.training").setLevel(logging.INFO)
         t0, c0 = time.perf_counter(), time.process_time()
         with Bars(unit="step") as bars:
             net, det, avg, hist = train(data, cfg, bars)
