@@ -20,6 +20,7 @@ import time
 import torch
 
 from forecast import characteristic as C
+from forecast.characteristic.cli import results_table
 
 
 def main() -> None:
@@ -71,7 +72,7 @@ def main() -> None:
         net, det, meta = C.load_checkpoint(C.SHIPPED, skeleton="body19")
         data = C.load_cmu_labelled(meta["fps"])
         ev = C.evaluate(net, det, meta["avg_pose"], data.test, meta["config"])
-        print(C._table(ev))
+        print(results_table(ev))
         res["test"] = {k: round(v["mpjpe"], 4) for k, v in ev["methods"].items()}
         res["test_diversity"] = round(ev["methods"]["ours"]["diversity"], 4)
         res["test_windows"] = ev["n_windows"]

@@ -135,14 +135,18 @@ def main() -> None:
     same_def = [m for m in common if m != "Neck" or "upper_neck" in tf.joint_names]
     res = {}
     for tag, mk in (("", common), ("_no_neck", same_def)) if same_def != common else (("", common),):
-        res["ours" + tag] = run_opensim_trc(ours, out / f"ik_ours{tag}", "ours", setup_dir, "Body25b", mk)
+        res["ours" + tag] = run_opensim_trc(
+            ours, out / f"ik_ours{tag}", "ours", setup_dir, markerset="Body25b", markers=mk
+        )
         res["pose2sim" + tag] = run_opensim_trc(
-            p2s_raw, out / f"ik_p2s{tag}", "p2s", setup_dir, "Body25b", mk
+            p2s_raw, out / f"ik_p2s{tag}", "p2s", setup_dir, markerset="Body25b", markers=mk
         )
         res["pose2sim_butterworth" + tag] = run_opensim_trc(
-            p2s_filt, out / f"ik_p2sf{tag}", "p2sf", setup_dir, "Body25b", mk
+            p2s_filt, out / f"ik_p2sf{tag}", "p2sf", setup_dir, markerset="Body25b", markers=mk
         )
-    full = run_opensim_trc(ours, out / "ik_ours_all", "ours_all", setup_dir, "Body25b", None, track_id=tid)
+    full = run_opensim_trc(
+        ours, out / "ik_ours_all", "ours_all", setup_dir, markerset="Body25b", markers=None, track_id=tid
+    )
     report = {
         "input": args.label
         or ("Demo_SinglePerson videos, BlazePose heavy" if args.videos else None)

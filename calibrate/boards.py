@@ -33,7 +33,8 @@ from typing import Any
 import numpy as np
 
 from capture.fileio import FormatError, check_schema, load_toml, save_toml, schema_tag
-from core.errors import RoomcapError
+from core.config import check_keys
+from core.errors import InputError, RoomcapError
 
 __all__ = ["Board", "CalibrationError", "load_board", "save_board", "DICTIONARIES", "BOARD_KINDS"]
 
@@ -88,36 +89,36 @@ class Board:
 
     def __post_init__(self) -> None:
         if self.kind not in BOARD_KINDS:
-            raise ValueError(f"board kind {self.kind!r} is not one of {list(BOARD_KINDS)}")
+            raise InputError(f"board kind {self.kind!r} is not one of {list(BOARD_KINDS)}")
         g = tuple(int(v) for v in self.grid)
         if len(g) != 2 or min(g) < 2:
-            raise ValueError(f"board grid must be two integers >= 2, got {self.grid!r}")
+            raise InputError(f"board grid must be two integers >= 2, got {self.grid!r}")
         object.__setattr__(self, "grid", g)
         for k in ("square_size_m", "marker_size_m", "marker_separation_m"):
             v = getattr(self, k)
             if isinstance(v, (str, bytes)) or not np.isfinite(float(v)):
-                raise ValueError(f"board {k} must be a number (metres), got {v!r}")
+                raise InputError(f"board {k} must be a number (metres), got {v!r}")
             object.__setattr__(self, k, float(v))
         if not isinstance(self.dictionary, str):
-            raise ValueError(
+            raise InputError(
                 f"board dictionary must be a name such as 'DICT_4X4_50', got {self.dictionary!r}"
             )
         if self.kind == "charuco" and min(g) < 3:
-            raise ValueError(f"a ChArUco board needs at least 3x3 squares, got {g}")
+            raise InputError(f"a ChArUco board needs at least 3x3 squares, got {g}")
         if self.kind in ("charuco", "checkerboard") and not self.square_size_m > 0:
-            raise ValueError(f"square_size_m must be > 0, got {self.square_size_m}")
+            raise InputError(f"square_size_m must be > 0, got {self.square_size_m}")
         if self.kind in ("charuco", "aruco_grid"):
             if not self.marker_size_m > 0:
-                raise ValueError(
+                raise InputError(
                     f"marker_size_m must be > 0 for a {self.kind} board, got {self.marker_size_m}"
                 )
             if self.kind == "charuco" and self.marker_size_m >= self.square_size_m:
-                raise ValueError(
+                raise InputError(
                     f"marker_size_m ({self.marker_size_m}) must be smaller than square_size_m "
                     f"({self.square_size_m})"
                 )
             if self.dictionary not in DICTIONARIES:
-                raise ValueError(f"unknown dictionary {self.dictionary!r}; valid: {', '.join(DICTIONARIES)}")
+                raise InputError(f"unknown dictionary {self.dictionary!r}; valid: {', '.join(DICTIONARIES)}")
 
     # ---- geometry
 
@@ -270,11 +271,7 @@ class Board:
 
 def _from_ours(d: dict[str, Any], path: Any) -> Board:
     check_schema(d.get("schema"), BOARD_SCHEMA, (BOARD_VERSION,), path)
-    unknown = sorted(set(d) - set(_KEYS))
-    if unknown:
-        raise FormatError(
-            path, unknown[0], f"unknown keys {unknown}; valid: {list(_KEYS)}.", "Remove or rename them."
-        )
+    check_keys(d, _KEYS, None, path, name_key=True)
     kind = d.get("kind")
     if kind not in BOARD_KINDS:
         raise FormatError(path, "kind", f"is {kind!r}; valid: {list(BOARD_KINDS)}.", "")
@@ -315,14 +312,9 @@ _CALISCOPE_KEYS = (
 
 def _from_caliscope(d: dict[str, Any], path: Any) -> Board:
     """caliscope's charuco.toml: CharucoBoard((columns, rows), square, aruco_scale * square)."""
-    unknown = sorted(set(d) - set(_CALISCOPE_KEYS))
-    if unknown:
-        raise FormatError(
-            path,
-            unknown[0],
-            f"unknown keys {unknown} for a caliscope charuco.toml; valid: {list(_CALISCOPE_KEYS)}.",
-            "",
-        )
+    check_keys(
+        d, _CALISCOPE_KEYS, None, path, fix="A caliscope charuco.toml has these keys only.", name_key=True
+    )
     cols, rows = int(d["columns"]), int(d["rows"])
     sq_cm = d.get("square_size_override_cm")
     if sq_cm is None:

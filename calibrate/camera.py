@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from capture.fileio import FormatError, check_schema, load_toml, save_toml, schema_tag
+from core.config import check_keys
 from core.errors import UnknownNameError
 
 __all__ = [
@@ -350,14 +351,7 @@ class Camera:
     ) -> Camera:
         """Inverse of ``to_dict``; errors name ``path`` and the field (``where`` prefixes it)."""
         w = where or f"camera '{d.get('name', '?')}'"
-        unknown = sorted(set(d) - set(CAMERA_KEYS))
-        if unknown:
-            raise FormatError(
-                path,
-                f"{w}.{unknown[0]}",
-                f"unknown camera keys {unknown}; valid: {list(CAMERA_KEYS)}.",
-                "Remove or rename them.",
-            )
+        check_keys(d, CAMERA_KEYS, w, path, name_key=True)
         missing = [k for k in CAMERA_KEYS if k not in d and k not in ("dist", "model")]
         if missing:
             raise FormatError(
@@ -537,15 +531,14 @@ class CameraRig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], path: str | os.PathLike[str] | None = None) -> CameraRig:
         check_schema(d.get("schema"), RIG_SCHEMA, (RIG_VERSION,), path)
-        allowed = ("schema", "convention", "source", "cameras")
-        unknown = sorted(set(d) - set(allowed))
-        if unknown:
-            raise FormatError(
-                path,
-                unknown[0],
-                f"unknown top-level keys {unknown}; valid: {list(allowed)}.",
-                "Remove them (per-camera values go in the [[cameras]] tables).",
-            )
+        check_keys(
+            d,
+            ("schema", "convention", "source", "cameras"),
+            None,
+            path,
+            fix="Remove them (per-camera values go in the [[cameras]] tables).",
+            name_key=True,
+        )
         conv = d.get("convention")
         if conv is not None and conv != CONVENTION:
             raise FormatError(

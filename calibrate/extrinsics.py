@@ -329,6 +329,7 @@ def bundle_adjust(
     cams: Sequence[Camera],
     cam_from_ref: Sequence[np.ndarray],
     ref_index: int,
+    *,
     frames: Sequence[int],
     ref_from_board: Mapping[int, np.ndarray],
     obs: Sequence[_Obs],
@@ -539,7 +540,7 @@ def calibrate_extrinsics(
     r0 = np.concatenate(_residuals(board, cams, cam_from_ref, ref_from_board, obs))
     initial_rms = float(np.sqrt(np.mean(r0**2)))
     cams, cam_from_ref, ref_from_board, info = bundle_adjust(
-        board, cams, cam_from_ref, ref, frames, ref_from_board, obs, cfg
+        board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
     )
     tick("bundle adjustment")
     res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
@@ -555,7 +556,7 @@ def calibrate_extrinsics(
                 kept.append(_Obs(o.cam, o.frame, o.ids[m], o.xy[m]))
         obs = kept
         cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(
-            board, cams, cam_from_ref, ref, frames, ref_from_board, obs, cfg
+            board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
         )
         info["time_s"] += info2["time_s"]
         info["iterations"] += info2["iterations"]
@@ -648,7 +649,15 @@ def board_fit_rms(
                 obs.append(_Obs(c, f, ids, xy[ids]))
     cfg = ExtrinsicsConfig(loss=loss)
     _, cfr, rfb, _ = bundle_adjust(
-        board, cams, cam_from_ref, 0, frames, ref_from_board, obs, cfg, refine_cameras=False
+        board,
+        cams,
+        cam_from_ref,
+        0,
+        frames=frames,
+        ref_from_board=ref_from_board,
+        obs=obs,
+        cfg=cfg,
+        refine_cameras=False,
     )
     r = np.concatenate(_residuals(board, cams, cfr, rfb, obs))
     return float(np.sqrt(np.mean(r**2)))

@@ -270,6 +270,7 @@ def write_recording(
     world_from_board: np.ndarray,
     out_dir: str | os.PathLike,
     rng: np.random.Generator,
+    *,
     visible_mask: np.ndarray | None = None,
     noise: float = 2.0,
     blur_sigma_px: float = 0.6,

@@ -58,7 +58,7 @@ from pathlib import Path
 from typing import Any
 
 from capture.fileio import FormatError, check_schema
-from core.config import check_keys
+from core.config import bounded, check_keys, check_range, coerce, config_from_dict
 from core.errors import UnknownNameError
 from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
 
@@ -139,8 +139,8 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class SyncConfig:
-    tolerance_ms: float | None = None  # None = half a frame period
-    max_wait_ms: float = 200.0
+    tolerance_ms: float | None = bounded(None, 0.01, 10_000)  # None = half a frame period
+    max_wait_ms: float = bounded(200.0, 1, 60_000)
 
     def tolerance_ns(self, fps: float) -> int:
         if self.tolerance_ms is not None:
@@ -150,19 +150,19 @@ class SyncConfig:
 
 @dataclass(frozen=True)
 class RecorderConfig:
-    segment_s: float = 0.5
-    queue_frames: int = 64
-    min_free_mb: float = 500.0
-    reconnect_initial_s: float = 0.1
-    reconnect_max_s: float = 2.0
-    reconnect_give_up_s: float = 60.0
+    segment_s: float = bounded(0.5, 0.1, 3600)
+    queue_frames: int = bounded(64, 2, 100_000)
+    min_free_mb: float = bounded(500.0, 0, 1e9)
+    reconnect_initial_s: float = bounded(0.1, 0.001, 60)
+    reconnect_max_s: float = bounded(2.0, 0.001, 600)
+    reconnect_give_up_s: float = bounded(60.0, 0, 1e7)
 
 
 @dataclass(frozen=True)
 class LiveConfig:
     enabled: bool = False
     stages: tuple[str, ...] = LIVE_STAGES
-    every_n: int = 1
+    every_n: int = bounded(1, 1, 10_000)
 
 
 @dataclass(frozen=True)
@@ -213,21 +213,11 @@ def _reject_unknown(d: dict, valid: tuple[str, ...], where: str, path) -> None:
 
 
 def _num(v: Any, where: str, path, lo: float, hi: float, integer: bool = False, allow_none: bool = False):
-    if v is None and allow_none:
-        return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ConfigError(path, where, f"expected a number in [{lo}, {hi}], got {v!r}.")
-    if integer and int(v) != v:
-        raise ConfigError(path, where, f"expected an integer in [{lo}, {hi}], got {v!r}.")
-    if not (lo <= v <= hi):
-        raise ConfigError(path, where, f"{v!r} is outside the valid range [{lo}, {hi}].")
-    return int(v) if integer else float(v)
+    return check_range(v, where, path, lo, hi, integer=integer, allow_none=allow_none, error=ConfigError)
 
 
 def _bool(v: Any, where: str, path) -> bool:
-    if not isinstance(v, bool):
-        raise ConfigError(path, where, f"expected true or false, got {v!r}.")
-    return v
+    return bool(coerce(v, bool, where, path, ConfigError))
 
 
 def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
@@ -313,23 +303,13 @@ def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
     )
 
 
-def _section(raw: Any, cls, where: str, path, ranges: dict) -> Any:
+def _section(raw: Any, cls, where: str, path) -> Any:
+    """A section (sync, recorder, live) by the core loader: keys, kinds and the fields' ranges checked."""
     if raw is None:
         return cls()
     if not isinstance(raw, dict):
         raise ConfigError(path, where, f"expected a mapping, got {type(raw).__name__}.")
-    valid = tuple(f.name for f in fields(cls))
-    _reject_unknown(raw, valid, where, path)
-    kw = {}
-    for k, v in raw.items():
-        if k in ranges:
-            lo, hi, integer, allow_none = ranges[k]
-            kw[k] = _num(v, f"{where}.{k}", path, lo, hi, integer, allow_none)
-        elif isinstance(getattr(cls(), k), bool):
-            kw[k] = _bool(v, f"{where}.{k}", path)
-        else:
-            kw[k] = v
-    return cls(**kw)
+    return config_from_dict(cls, raw, where, path, error=ConfigError)
 
 
 def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureConfig:
@@ -378,27 +358,8 @@ def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureCon
                 "Give each camera its own source.",
             )
         srcs[c.source] = c.name
-    sync = _section(
-        data.get("sync"),
-        SyncConfig,
-        "sync",
-        path,
-        {"tolerance_ms": (0.01, 10_000, False, True), "max_wait_ms": (1, 60_000, False, False)},
-    )
-    rec = _section(
-        data.get("recorder"),
-        RecorderConfig,
-        "recorder",
-        path,
-        {
-            "segment_s": (0.1, 3600, False, False),
-            "queue_frames": (2, 100_000, True, False),
-            "min_free_mb": (0, 1e9, False, False),
-            "reconnect_initial_s": (0.001, 60, False, False),
-            "reconnect_max_s": (0.001, 600, False, False),
-            "reconnect_give_up_s": (0, 1e7, False, False),
-        },
-    )
+    sync = _section(data.get("sync"), SyncConfig, "sync", path)
+    rec = _section(data.get("recorder"), RecorderConfig, "recorder", path)
     live_raw = data.get("live")
     if isinstance(live_raw, dict) and "stages" in live_raw:
         stages = live_raw["stages"]
@@ -410,7 +371,7 @@ def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureCon
                 f"Valid stages: {list(LIVE_STAGES)}.",
             )
         live_raw = {**live_raw, "stages": tuple(stages)}
-    live = _section(live_raw, LiveConfig, "live", path, {"every_n": (1, 10_000, True, False)})
+    live = _section(live_raw, LiveConfig, "live", path)
     for key in ("out", "calibration"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise ConfigError(path, key, f"expected a path string, got {data[key]!r}.")

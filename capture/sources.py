@@ -210,7 +210,7 @@ class SyntheticSource(FrameSource):
         query = cam.source.partition("?")[2]
         opts = dict(urllib.parse.parse_qsl(query))
         valid = ("offset_ms", "drift_ppm", "disconnect_at_s", "disconnect_for_s", "frames", "drop_every")
-        bad = sorted(set(opts) - set(valid))
+        bad = sorted(set(opts) - set(valid))  # a URL query, not a config table: its own error
         if bad:
             raise SourceError(f"{cam.name}: unknown synthetic option(s) {bad}; valid: {list(valid)}.")
         kw = {k: (int(v) if k in ("frames", "drop_every") else float(v)) for k, v in opts.items()}

@@ -92,6 +92,17 @@ nonnegative_int = _number(int, 0, True, "a whole number >= 0")
 positive_float = _number(float, 0.0, False, "a number > 0")
 
 
+def parse_sets(items: Sequence[str] | None) -> dict[str, str]:
+    """``--set key=value`` options as a dict of strings (typed later by ``core.config.config_from_dict``)."""
+    out = {}
+    for it in items or []:
+        if "=" not in it:
+            raise InputError(f"--set expects key=value, got {it!r}")
+        k, v = it.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
 def output_folder(path: str | os.PathLike[str], flag: str = "--out") -> Path:
     """``path`` as a folder to write into, made if missing; a file there or no write access is an error."""
     p = Path(path)

@@ -3,9 +3,10 @@
 :func:`config_from_dict` rejects unknown keys listing the valid ones, recurses into nested sections
 (fields whose type is itself a config dataclass), and coerces values to the field's type where the
 meaning is unambiguous (an int for a float, a list for a tuple, the text of a number, a boolean or a
-list from the command line's ``--set key=value``). A value of the wrong kind is a
-:class:`~core.errors.FormatError` naming the key. DESIGN.md: each default lives in its dataclass
-only; no ``.get(key, default)`` in the algorithms.
+list from the command line's ``--set key=value``, a boolean also as 0/1, yes/no or on/off). A value
+of the wrong kind is a :class:`~core.errors.FormatError` naming the key. A field declared with
+:func:`bounded` also has its range checked (:func:`check_range`). DESIGN.md: each default lives in its
+dataclass only; no ``.get(key, default)`` in the algorithms.
 """
 
 from __future__ import annotations
@@ -32,7 +33,14 @@ def _parse_text(text: str) -> Any:
         return text
 
 
-def _coerce(value: Any, hint: Any, where: str, path: str | os.PathLike[str] | None) -> Any:
+# booleans written as words or 0/1 (``--set mirror=1``, ``mirror = "yes"``); any other value is an error
+_BOOL_WORDS: dict[Any, bool] = {"true": True, "yes": True, "on": True, "1": True, 1: True,
+                                "false": False, "no": False, "off": False, "0": False, 0: False}  # fmt: skip
+
+
+def _coerce(
+    value: Any, hint: Any, where: str, path: str | os.PathLike[str] | None, error: type[FormatError]
+) -> Any:
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
@@ -40,21 +48,62 @@ def _coerce(value: Any, hint: Any, where: str, path: str | os.PathLike[str] | No
         options = [a for a in args if a is not type(None)]
         for a in options:  # the first kind that takes the value as it is
             if _is_instance(value, a):
-                return _coerce(value, a, where, path)
-        return _coerce(value, options[0], where, path) if len(options) == 1 else value
+                return _coerce(value, a, where, path, error)
+        return _coerce(value, options[0], where, path, error) if len(options) == 1 else value
     if dataclasses.is_dataclass(hint) and isinstance(hint, type):
         if isinstance(value, Mapping):
-            return config_from_dict(hint, value, where, path)
+            return config_from_dict(hint, value, where, path, error=error)
         return value
     if isinstance(value, str) and hint in (int, float, bool, tuple, list) or origin in (tuple, list):
         value = _parse_text(value) if isinstance(value, str) else value
+    if hint is bool and isinstance(value, (str, int)) and not isinstance(value, bool):
+        value = _BOOL_WORDS.get(value.lower() if isinstance(value, str) else value, value)
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if (hint is tuple or origin is tuple) and isinstance(value, list):
         return tuple(value)
     if hint in (int, float, bool) and not _is_instance(value, hint):
-        raise FormatError(path, where, f"expected {hint.__name__}, got {value!r}.", "Fix the value.")
+        raise error(path, where, f"expected {hint.__name__}, got {value!r}.", "Fix the value.")
     return value
+
+
+def coerce(
+    value: Any,
+    hint: Any,
+    where: str,
+    path: str | os.PathLike[str] | None = None,
+    error: type[FormatError] = FormatError,
+) -> Any:
+    """One value coerced to the type ``hint`` as :func:`config_from_dict` does (``error`` names ``where``)."""
+    return _coerce(value, hint, where, path, error)
+
+
+def bounded(default: Any, lo: float, hi: float) -> Any:
+    """A dataclass field whose value :func:`config_from_dict` checks to lie in [lo, hi] (None passes)."""
+    return dataclasses.field(default=default, metadata={"range": (lo, hi)})
+
+
+def check_range(
+    value: Any,
+    where: str,
+    path: str | os.PathLike[str] | None,
+    lo: float,
+    hi: float,
+    *,
+    integer: bool = False,
+    allow_none: bool = False,
+    error: type[FormatError] = FormatError,
+) -> Any:
+    """``value`` as a float (an int with ``integer``) in [lo, hi], else ``error`` naming ``where``."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise error(path, where, f"expected a number in [{lo}, {hi}], got {value!r}.")
+    if integer and int(value) != value:
+        raise error(path, where, f"expected an integer in [{lo}, {hi}], got {value!r}.")
+    if not (lo <= value <= hi):
+        raise error(path, where, f"{value!r} is outside the valid range [{lo}, {hi}].")
+    return int(value) if integer else float(value)
 
 
 def _is_instance(value: Any, hint: Any) -> bool:
@@ -74,12 +123,17 @@ def check_keys(
     where: str | None,
     path: str | os.PathLike[str] | None,
     error: type[FormatError] = FormatError,
+    fix: str = "Remove or rename them.",
+    name_key: bool = False,
 ) -> None:
-    """``error`` listing the valid keys when ``data`` has others (the one wording of every config)."""
+    """``error`` listing the valid keys when ``data`` has others (the one wording of every config);
+    ``name_key``: the error's field is the first unknown key (under ``where``), as file formats name it."""
     names = sorted(valid)
     unknown = sorted(set(data) - set(names))
     if unknown:
-        raise error(path, where, f"unknown keys {unknown}; valid keys: {names}.", "Remove or rename them.")
+        if name_key:
+            where = f"{where}.{unknown[0]}" if where else unknown[0]
+        raise error(path, where, f"unknown keys {unknown}; valid keys: {names}.", fix)
 
 
 def config_from_dict(
@@ -87,12 +141,28 @@ def config_from_dict(
     data: Mapping[str, Any],
     where: str | None = None,
     path: str | os.PathLike[str] | None = None,
+    *,
+    error: type[FormatError] = FormatError,
 ) -> T:
-    """Build the frozen config dataclass ``cls`` from ``data`` (see the module docstring)."""
+    """Build the frozen config dataclass ``cls`` from ``data`` (see the module docstring); problems raise
+    ``error`` (a :class:`~core.errors.FormatError`, or a subclass such as cams.yaml's ``ConfigError``)."""
     if not isinstance(data, Mapping):
-        raise FormatError(path, where or cls.__name__, f"expected a table of settings, got {data!r}.")
+        raise error(path, where or cls.__name__, f"expected a table of settings, got {data!r}.")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
-    check_keys(data, fields, where or cls.__name__, path)
+    check_keys(data, fields, where or cls.__name__, path, error)
     hints = typing.get_type_hints(cls)
-    kw = {k: _coerce(v, hints.get(k, Any), f"{where}.{k}" if where else k, path) for k, v in data.items()}
+    kw = {}
+    for k, v in data.items():
+        name = f"{where}.{k}" if where else k
+        hint = hints.get(k, Any)
+        value = _coerce(v, hint, name, path, error)
+        rng = fields[k].metadata.get("range")
+        if rng is not None:
+            integer = hint is int or (
+                typing.get_origin(hint) in (typing.Union, types.UnionType) and int in typing.get_args(hint)
+            )
+            value = check_range(
+                value, name, path, rng[0], rng[1], integer=integer, allow_none=True, error=error
+            )
+        kw[k] = value
     return cls(**kw)

@@ -19,31 +19,25 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
-from core.cli import guarded, positive_float, positive_int
-from core.errors import InputError
+from core.cli import guarded, parse_sets, positive_float, positive_int
+from core.errors import FormatError, InputError
+from core.fileio import load_toml
+from core.progress import Bars
+from forecast.config import config_from_dict
 
+__all__ = ["main", "parse_sets"]  # parse_sets: core.cli's, importable from here as before
 
-def parse_sets(items: list[str]) -> dict:
-    """``--set key=value`` options as a dict of strings (typed later by the config)."""
-    out = {}
-    for it in items or []:
-        if "=" not in it:
-            raise InputError(f"--set expects key=value, got {it!r}")
-        k, v = it.split("=", 1)
-        out[k.strip()] = v.strip()
-    return out
+log = logging.getLogger(__name__)
 
 
 def _config(args) -> object:
-    from capture.fileio import load_toml
-    from forecast.train import config_from_dict
-
     d = {}
     if args.config:
         t = load_toml(args.config)
@@ -58,7 +52,7 @@ def _config(args) -> object:
 def _load_split(args):
     """Clips of every source, split train / val / test by clip per source (adding a source never reshuffles
     another's split)."""
-    from forecast import train as T
+    from forecast import train as T  # lazy: loads torch (after --threads set the BLAS threads)
 
     clips, tr, va, te = [], [], [], []
     groups = [["cmu"]] if "cmu" in args.data else []
@@ -74,27 +68,21 @@ def _load_split(args):
 
 
 def cmd_train(args) -> int:
-    from forecast import train as T
+    import torch  # lazy: loads torch
+
+    from forecast import train as T  # lazy: loads torch
 
     cfg = _config(args)
     clips, tr, va, te = _load_split(args)
-    bar = tqdm(total=cfg.steps, desc=f"train {args.model}", unit="step")
-
-    def progress(step, terms):
-        bar.update(1)
-        if step % 20 == 0:
-            bar.set_postfix({k: f"{v:.4f}" for k, v in terms.items()})
-
     init = None
     if args.init:
-        import torch
-
         blob = torch.load(args.init, map_location="cpu", weights_only=True)
         if blob.get("kind") != args.model:
             raise InputError(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
         init = blob["state_dict"]
-    model, hist = T.train(args.model, tr, cfg, progress, args.device, init, val_clips=va)
-    bar.close()
+    logging.getLogger("forecast.train").setLevel(logging.INFO)  # the loss terms, above the bar
+    with Bars(unit="step") as bars:
+        model, hist = T.train(args.model, tr, cfg, progress=bars, device=args.device, init=init, val_clips=va)
     T.save_checkpoint(
         args.out,
         model,
@@ -129,7 +117,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_sample(args) -> int:
-    from forecast.preview import preview, save_forecast
+    from forecast.preview import preview, save_forecast  # lazy: loads torch
 
     fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
     if not np.isfinite(fc["xyz_m"]).any():
@@ -147,8 +135,8 @@ def cmd_sample(args) -> int:
 
 
 def _baseline_models(names: list[str], train_clips, lhip: int | None = None, rhip: int | None = None) -> dict:
-    from forecast import evaluate as E
-    from forecast import train as T
+    from forecast import evaluate as E  # lazy: loads torch
+    from forecast import train as T  # lazy: loads torch
 
     models: dict = {}
     for name in names:
@@ -165,10 +153,8 @@ def _baseline_models(names: list[str], train_clips, lhip: int | None = None, rhi
 
 
 def cmd_eval(args) -> int:
-    import time
-
-    from forecast import evaluate as E
-    from forecast import train as T
+    from forecast import evaluate as E  # lazy: loads torch
+    from forecast import train as T  # lazy: loads torch
 
     try:
         names = E.check_baselines(args.baselines + (["fool"] if args.fool else []))
@@ -194,19 +180,24 @@ def cmd_eval(args) -> int:
     models = _baseline_models(names, tr)
     models.update(ck_models)
     print(f"evaluating on {len(te)} test clips: {', '.join(c.name for c in te)}")
-    bar = tqdm(total=len(models), desc="eval", unit="model")
+    logging.getLogger("forecast.evaluate").setLevel(logging.INFO)  # the model being scored, above the bar
+    with Bars(unit="model") as progress:
+        res = _eval_cmu(args, E, T, models, clips, te, progress)
+    res["wall_s_total"] = time.perf_counter() - t0
+    path = E.write_report(res, args.out, res.pop("title"))
+    print(path.read_text())
+    print(f"evaluation wall time {res['wall_s_total']:.1f} s (metrics and sampling {res['wall_s']:.1f} s)")
+    return 0
 
-    def progress(name):
-        bar.set_postfix_str(name)
-        bar.update(1)
 
+def _eval_cmu(args, E, T, models: dict, clips, te, progress) -> dict:
     if args.social:
         real_scenes = []
         if "cmu" in args.data:
             try:
                 real_scenes.append(T.fdata.cmu_two_person_clip())
             except FileNotFoundError as e:
-                print(f"no real two-person CMU take: {e}")
+                log.warning("no real two-person CMU take: %s", e)
         res = E.evaluate_social(
             models,
             te,
@@ -230,17 +221,12 @@ def cmd_eval(args) -> int:
             reference=args.reference,
         )
         title = "Forecast evaluation: held-out clips"
-    bar.close()
-    res["wall_s_total"] = time.perf_counter() - t0
-    path = E.write_report(res, args.out, title)
-    print(path.read_text())
-    print(f"evaluation wall time {res['wall_s_total']:.1f} s (metrics and sampling {res['wall_s']:.1f} s)")
-    return 0
+    res["title"] = title
+    return res
 
 
 def _eval_hik(args, names: list[str]) -> int:
-    from capture.fileio import FormatError
-    from forecast import hik
+    from forecast import hik  # lazy: loads torch
 
     if not args.path:
         raise InputError(
@@ -258,7 +244,7 @@ def _eval_hik(args, names: list[str]) -> int:
 def _main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "characteristic":  # Diller ch. 3: `forecast characteristic train|eval ...`
-        from forecast.characteristic import main as characteristic_main
+        from forecast.characteristic.cli import main as characteristic_main  # lazy: loads torch
 
         return characteristic_main(argv[1:]) or 0
     p = argparse.ArgumentParser(
@@ -334,15 +320,13 @@ def _main(argv: list[str] | None = None) -> int:
 
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
-    import os
-
     for var in (
         "OPENBLAS_NUM_THREADS",
         "OMP_NUM_THREADS",
         "MKL_NUM_THREADS",
     ):  # numpy's BLAS, if not loaded yet
         os.environ.setdefault(var, str(args.threads))
-    import torch
+    import torch  # lazy: loads torch (after the BLAS thread variables above)
 
     torch.set_num_threads(args.threads)
     return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval}[args.cmd](args)

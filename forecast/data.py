@@ -24,7 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from capture.fileio import FormatError, load_npz
+from core.errors import InputError
 from keypoints.skeletons import get_skeleton
+from synthetic import bvh
+from track.trackfile import TrackFile  # the contract with the tracker
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +42,7 @@ def hip_indices(joint_names: tuple[str, ...] | list[str]) -> tuple[int, int]:
     try:
         return names.index("left_hip"), names.index("right_hip")
     except ValueError:
-        raise ValueError(f"normalisation needs 'left_hip' and 'right_hip'; joints are {names}") from None
+        raise InputError(f"normalisation needs 'left_hip' and 'right_hip'; joints are {names}") from None
 
 
 def norm_frame(pose: np.ndarray, lhip: int, rhip: int) -> tuple[np.ndarray, np.ndarray]:
@@ -84,7 +87,7 @@ class Clip:
             x = x[:, None]
         J = get_skeleton(self.skeleton).n_joints
         if x.ndim != 4 or x.shape[2:] != (J, 3):
-            raise ValueError(
+            raise InputError(
                 f"clip '{self.name}': xyz_m must be (T,P,{J},3) for '{self.skeleton}', got {x.shape}"
             )
         object.__setattr__(self, "xyz_m", x)
@@ -109,8 +112,6 @@ class Clip:
 
 def clip_from_trackfile(path: str | os.PathLike) -> Clip:
     """A track file (``tracks/1``) as a clip; raises ``FormatError``/``SchemaError`` for bad files."""
-    from track.trackfile import TrackFile  # the contract with the tracker
-
     tf = TrackFile.load(path)
     sk = _skeleton_for(tf.joint_names, path)
     return Clip(clip_name(path), tf.xyz_m, tf.fps, sk)
@@ -140,8 +141,6 @@ def _skeleton_for(joint_names: tuple[str, ...], path) -> str:
 def cmu_bvh_files(root: str | os.PathLike | None = None) -> list[Path]:
     """The CMU BVH clips under the mocap root (``synthetic.bvh.list_clips``: ``$ROOMCAP_MOCAP`` or
     ``$ROOMCAP_SHARED/data/motion``); raises with what to set when there are none."""
-    from synthetic import bvh  # written by the synthetic-world engineer
-
     files = bvh.list_clips(root)
     if not files:
         raise FileNotFoundError(
@@ -152,8 +151,6 @@ def cmu_bvh_files(root: str | os.PathLike | None = None) -> list[Path]:
 
 def clip_from_bvh(path: str | os.PathLike, fps: float = TARGET_FPS) -> Clip:
     """A CMU BVH clip as body19 at ``fps`` through the synthetic-world BVH reader + FK."""
-    from synthetic import bvh
-
     c = bvh.load_clip(path, fps=fps)
     return Clip(Path(path).stem, np.asarray(c.xyz_m, np.float32), float(c.fps), "body19")
 
@@ -176,9 +173,9 @@ def split_train_val_test(
     import zlib
 
     if len(names) != len(lengths):
-        raise ValueError(f"{len(names)} names but {len(lengths)} lengths")
+        raise InputError(f"{len(names)} names but {len(lengths)} lengths")
     if len(names) < 3:
-        raise ValueError(f"a train/val/test split needs at least 3 clips, got {len(names)}")
+        raise InputError(f"a train/val/test split needs at least 3 clips, got {len(names)}")
     key = [(int(n), zlib.crc32(f"{seed}:{nm}".encode()), nm) for nm, n in zip(names, lengths, strict=True)]
     order = sorted(range(len(names)), key=lambda i: key[i])
     out: dict[str, list[int]] = {"train": [], "val": [], "test": []}
@@ -227,7 +224,7 @@ def kitchens_scene(paths: list[str | os.PathLike], name: str = "kitchen") -> Cli
     """
     segs = [load_kitchens_npz(p) for p in paths]
     if not segs:
-        raise ValueError("kitchens_scene needs at least one person npz")
+        raise InputError("kitchens_scene needs at least one person npz")
     f0 = min(int(s["frames"].min()) for s in segs)
     f1 = max(int(s["frames"].max()) for s in segs)
     x = np.full((f1 - f0 + 1, len(segs), 29, 3), np.nan, np.float32)
@@ -291,6 +288,7 @@ def make_windows(
     n_obs: int,
     n_pred: int,
     stride: int,
+    *,
     fps: float = TARGET_FPS,
     persons: str = "each",
     min_persons: int = 1,
@@ -304,7 +302,7 @@ def make_windows(
     ``min_persons`` present people are skipped and counted.
     """
     if persons not in ("each", "all"):
-        raise ValueError(f"persons must be 'each' or 'all', got {persons!r}")
+        raise InputError(f"persons must be 'each' or 'all', got {persons!r}")
     skipped: Counter[str] = Counter()
     xs, ms, pms, cs, ss = [], [], [], [], []
     T = n_obs + n_pred
@@ -312,7 +310,7 @@ def make_windows(
     lh, rh = hip_indices(get_skeleton(sk).joint_names)
     for ci, clip in enumerate(clips):
         if clip.skeleton != sk:
-            raise ValueError(f"clip '{clip.name}' is {clip.skeleton}, others are {sk}; convert first")
+            raise InputError(f"clip '{clip.name}' is {clip.skeleton}, others are {sk}; convert first")
         c = clip.resampled(fps)
         if c.n_frames < T:
             skipped["clip_shorter_than_window"] += 1
@@ -364,7 +362,7 @@ def make_windows(
             dict(skipped),
         )
     if persons == "all" and len({a.shape for a in xs}) > 1:
-        raise ValueError("clips have different person counts; pass max_persons")
+        raise InputError("clips have different person counts; pass max_persons")
     return WindowSet(
         np.stack(xs),
         np.stack(ms),
@@ -389,8 +387,6 @@ def cmu_index(root: str | os.PathLike | None = None) -> dict[tuple[int, int], st
     """The CMU database listing (``index.csv`` with Subject, Trial #, Motion Description) found under the
     mocap root -> {(subject, trial): description}; {} when there is none."""
     import csv
-
-    from synthetic import bvh
 
     r = bvh.mocap_root(root)
     if r is None:
@@ -456,8 +452,6 @@ def cmu_two_person_clip(folder: str | os.PathLike | None = None, fps: float = TA
     frame by frame. The cgspeed conversion lacks the ASF thorax bone (README of the folder): everything above
     Spine1 sits ~0.12 m low, which leaves within-person motion (NDMS) and the hips (SSCP's root and facing)
     intact but makes hand-to-hand distances wrong; nothing here uses them."""
-    from synthetic import bvh
-
     if folder is None:
         r = bvh.mocap_root(None)
         if r is None:

@@ -27,15 +27,17 @@ import logging
 import os
 import time
 import zlib
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from capture.fileio import atomic_write_text
+from core.errors import InputError
+from core.progress import Progress
 from forecast import data as fdata
 from forecast import metrics as M
+from forecast.clips import composed_batch
 from forecast.predict import diffusion_rollout, forecast_world
 from keypoints.skeletons import get_skeleton
 
@@ -67,7 +69,7 @@ def check_baselines(names: list[str]) -> list[str]:
     for n in names:
         c = BASELINE_ALIASES.get(n, n)
         if c not in BASELINES:
-            raise ValueError(f"unknown baseline '{n}'; choose from {', '.join(BASELINES)}")
+            raise InputError(f"unknown baseline '{n}'; choose from {', '.join(BASELINES)}")
         if c not in out:
             out.append(c)
     return out
@@ -116,13 +118,14 @@ def ndms_scorer_for(
 def evaluate_single(
     models: dict[str, object],
     test_clips: list[fdata.Clip],
+    *,
     n_obs: int = 50,
     n_pred: int = 100,
     n_samples: int = DEFAULT_SAMPLES,
     stride: int = 5,
     max_windows: int = 400,
     seed: int = 0,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
     ndms_database: list[fdata.Clip] | None = None,
     reference: str | None = None,
     n_boot: int = 2000,
@@ -140,7 +143,7 @@ def evaluate_single(
     t0 = time.perf_counter()
     ws = fdata.make_windows(test_clips, n_obs, n_pred, stride, persons="each")
     if len(ws) == 0:
-        raise ValueError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
+        raise InputError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
     db_clips = ndms_database or test_clips
     acts = fdata.clip_activities(list(test_clips) + list(db_clips)) if activities is None else activities
     rng = np.random.default_rng(seed)
@@ -170,9 +173,8 @@ def evaluate_single(
     }
     out["n_clips"] = int(len(np.unique(groups)))
     per_window, per_window_loo = {}, {}
-    for name, model in models.items():
-        if progress:
-            progress(name)
+    for i, (name, model) in enumerate(models.items()):
+        _report(progress, "eval models", i, len(models), name)
         tm = time.perf_counter()
         if isinstance(model, Real):
             y = gt[:, None]
@@ -187,6 +189,7 @@ def evaluate_single(
         if getattr(model, "kind", "") == "social_diffusion":
             r["rollout"] = diffusion_rollout(model, n_pred)
         out["models"][name] = r
+    _report(progress, "eval models", len(models), len(models))
     loo_ok = np.isfinite(next(iter(per_window_loo.values()))).all(1) if per_window_loo else np.zeros(0, bool)
     out["n_windows_loo"] = int(loo_ok.sum())
     boot = _cluster_bootstrap_index(groups, n_boot, seed)
@@ -289,11 +292,12 @@ def _single_metrics(y, gt, obs, mask_fut, groups, wact, scorer, hips, mm_gt):
 def evaluate_social(
     models: dict[str, object],
     test_clips: list[fdata.Clip],
+    *,
     n_obs: int = 32,
     n_pred: int = 250,
     n_scenes: int = 24,
     seed: int = 0,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
     ndms_database: list[fdata.Clip] | None = None,
     real_scenes: list[fdata.Clip] | None = None,
     activities: dict[str, str] | None = None,
@@ -302,8 +306,6 @@ def evaluate_social(
     real multi-person clips among ``test_clips`` plus ``real_scenes`` (``real.models``, e.g. the CMU
     two-person take): long-horizon NDMS(t) per person (D = held-out clips of the person's activity, own clip
     included) and SSCP against the real scenes of the same kind."""
-    from forecast.train import composed_batch
-
     t0 = time.perf_counter()
     single = [c for c in test_clips if c.xyz_m.shape[1] == 1]
     multi = [c for c in test_clips if c.xyz_m.shape[1] >= 2] + list(real_scenes or [])
@@ -353,11 +355,10 @@ def _social_models(models, obs, act, scorer, sscp, real, n_pred, L, seed, progre
     B = len(obs)
     pm = np.ones((B, 2), bool) if person_mask is None else person_mask
     res = {}
-    for name, model in models.items():
+    for i, (name, model) in enumerate(models.items()):
+        _report(progress, "eval models", i, len(models), name)
         if isinstance(model, Real):
             continue
-        if progress:
-            progress(name)
         torch.manual_seed(seed)  # the same sampling noise on every run
         y = forecast_world(model, obs, pm, n_pred, 1)[:, 0]  # (B,H,2,J,3)
         nd = np.stack(
@@ -375,7 +376,16 @@ def _social_models(models, obs, act, scorer, sscp, real, n_pred, L, seed, progre
             gen = [np.concatenate([obs[b], y[b]], 0)[:L] for b in range(B)]
             entry["sscp_jsd"] = sscp.distance([r[:L] for r in real], gen)
         res[name] = entry
+    _report(progress, "eval models", len(models), len(models))
     return res
+
+
+def _report(progress: Progress | None, task: str, done: int, total: int, name: str | None = None) -> None:
+    """``done`` of ``total`` models scored (the progress protocol); the next one's name goes to the log."""
+    if progress is not None:
+        progress(task, done, total)
+    if name is not None:
+        log.info("%s: %s (%d of %d)", task, name, done + 1, total)
 
 
 # ----------------------------------------------------------------------------- report

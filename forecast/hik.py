@@ -26,8 +26,11 @@ import numpy as np
 import torch
 
 from capture.fileio import atomic_write_text
+from core.errors import InputError
 from forecast import data as fdata
+from forecast import evaluate as E
 from forecast import metrics as M
+from forecast import train as T
 from forecast.predict import forecast_world
 from keypoints.skeletons import get_skeleton
 
@@ -80,14 +83,11 @@ def evaluate_hik(
     seed: int = 0,
 ) -> dict:
     """Run the ch. 8.3 protocol on the HiK person files under folder -> results (``write_hik_report``)."""
-    from forecast import evaluate as E
-    from forecast import train as T
-
     t0 = time.perf_counter()
     people = fdata.load_kitchen_people(folder)
     kitchens = sorted({p.kitchen for p in people})
     if fdata.HIK_TEST_KITCHEN not in kitchens:
-        raise ValueError(f"no person files of the test kitchen D under {folder} (kitchens found: {kitchens})")
+        raise InputError(f"no person files of the test kitchen D under {folder} (kitchens found: {kitchens})")
     names = get_skeleton("smpl29").joint_names
     lh, rh = fdata.hip_indices(names)
     train_names = {p.name for p in people if p.kitchen in fdata.HIK_TRAIN_KITCHENS}
@@ -104,10 +104,10 @@ def evaluate_hik(
         try:
             m, meta = T.load_checkpoint(ck, skeleton="smpl29")
         except Exception as e:  # the checkpoint reader's message says what is wrong
-            raise ValueError(f"{ck}: {e}") from None
+            raise InputError(f"{ck}: {e}") from None
         leak = sorted(set(meta["extra"].get("train_clips", [])) & test_names)
         if leak:
-            raise ValueError(f"{ck} was trained on test-kitchen files {leak[:5]}; train on kitchens A-C only")
+            raise InputError(f"{ck} was trained on test-kitchen files {leak[:5]}; train on kitchens A-C only")
         models[Path(ck).stem] = m
     cases, skipped = kitchen_cases(people)
     out: dict = {

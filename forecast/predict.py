@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from core.errors import InputError
 from forecast.data import denormalize, norm_frame, normalize
 
 LHIP, RHIP = 11, 12  # body19
@@ -100,7 +101,7 @@ def forecast_world(
     ``hips``: the skeleton's left/right hip indices (body19 by default) for the normalisation (eq. 3.8)."""
     obs = np.asarray(obs, np.float32)
     if obs.ndim != 5 or obs.shape[-1] != 3:
-        raise ValueError(f"obs must be (B,T,P,J,3), got {obs.shape}")
+        raise InputError(f"obs must be (B,T,P,J,3), got {obs.shape}")
     B, T, P, J, _ = obs.shape
     pm = np.ones((B, P), bool) if person_mask is None else np.asarray(person_mask, bool)
     model.eval()
@@ -125,7 +126,7 @@ def diffusion_rollout(model, n_pred: int, mode: str = "auto") -> str:
     last generated frames: the ablation). ``auto``: one pass where the model can (the horizon fits its window,
     or its statistics do not depend on the frame), else chained."""
     if mode not in DIFFUSION_MODES:
-        raise ValueError(f"diffusion mode must be one of {DIFFUSION_MODES}, got {mode!r}")
+        raise InputError(f"diffusion mode must be one of {DIFFUSION_MODES}, got {mode!r}")
     if mode != "auto":
         return mode
     fits = int(model.n_obs) + n_pred <= int(model.n_frames)
@@ -135,7 +136,7 @@ def diffusion_rollout(model, n_pred: int, mode: str = "auto") -> str:
 def _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, steps=None, eta=None, mode="auto"):
     n_obs = int(model.n_obs)
     if obs.shape[1] < n_obs:
-        raise ValueError(f"Social Diffusion observes {n_obs} frames, got {obs.shape[1]}")
+        raise InputError(f"Social Diffusion observes {n_obs} frames, got {obs.shape[1]}")
     steps = steps or int(model.sample_steps)
     eta = float(model.sample_eta if eta is None else eta)
     mode = diffusion_rollout(model, n_pred, mode)

@@ -46,6 +46,7 @@ _SWING = {
 def walker(
     n_frames: int,
     fps: float = 25.0,
+    *,
     speed_mps: float = 1.2,
     period_s: float = 1.0,
     heading_rad: float = 0.0,

@@ -75,9 +75,23 @@ class KeypointsConfig:
         return {"preset": name, "settings": settings, "max_frames": self.max_frames}
 
 
+def _parse_options(where: str, options: dict[str, Any], parse: Any) -> None:
+    """Parse a stage's options with its typed config now, so that a typo in ``reprocess --config`` is
+    reported when the config loads, before any session runs, not when that stage is reached."""
+    if not options:
+        return
+    try:
+        parse(dict(options))
+    except (ValueError, TypeError) as e:
+        raise FormatError(None, where, str(e).removeprefix("<input>: ")) from None
+
+
 @dataclass(frozen=True)
 class TriangulateConfig:
     options: dict[str, Any] = field(default_factory=dict)  # passed to triangulate's own config
+
+    def __post_init__(self) -> None:  # once per section: PipelineConfig.replace() keeps the sections
+        _parse_options("triangulate.options", self.options, TriangulateOptions.from_dict)
 
 
 @dataclass(frozen=True)
@@ -90,6 +104,8 @@ class TrackConfig:
             raise FormatError(
                 None, "track.tracker", f"'{self.tracker}' is not a tracker; valid: {list(TRACKERS)}."
             )
+        parse = GreedyTrackConfig.from_dict if self.tracker == "greedy" else ParticleTrackConfig.from_dict
+        _parse_options("track.options", self.options, parse)
 
 
 @dataclass(frozen=True)
@@ -111,23 +127,7 @@ class PipelineConfig:
         if bad:
             raise FormatError(None, "stages", f"unknown stages {bad}; valid: {list(STAGES)}.")
         object.__setattr__(self, "stages", tuple(s for s in STAGES if s in self.stages))  # graph order
-        self._check_options()
-
-    def _check_options(self) -> None:
-        """Parse the triangulate and track options with their stages' typed configs now, so that a typo
-        in ``reprocess --config`` is reported before any session runs, not when that stage is reached."""
-        parsers = [("triangulate.options", self.triangulate.options, TriangulateOptions.from_dict)]
-        track_parser = (
-            GreedyTrackConfig.from_dict if self.track.tracker == "greedy" else ParticleTrackConfig.from_dict
-        )
-        parsers.append(("track.options", self.track.options, track_parser))
-        for where, options, parse in parsers:
-            if not options:
-                continue
-            try:
-                parse(dict(options))
-            except (ValueError, TypeError) as e:
-                raise FormatError(None, where, str(e)) from None
+        # the stage options were parsed when their sections were made (TriangulateConfig, TrackConfig)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PipelineConfig:
@@ -155,4 +155,5 @@ class PipelineConfig:
             raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
 
     def replace(self, **kw) -> PipelineConfig:
+        """A copy with ``kw`` changed; sections not given are kept as they are (not parsed again)."""
         return dataclasses.replace(self, **kw)

@@ -130,6 +130,7 @@ def run_sessions(
     sources: list[SessionSource],
     out: Path | None,
     config: PipelineConfig,
+    *,
     force: bool = False,
     executor: str = "local",
     workers: int | None = None,

@@ -2,8 +2,8 @@
 
 * forecast preview: ``forecast.preview.preview`` gives ``xyz_m (S,H,K,J,3)`` at the checkpoint's rate;
   the report wants one future per track, ``xyz_m (K,H,J,3)`` starting after the last tracked frame.
-  Without a trained checkpoint (``forecast/checkpoints/gru_cmu.pt``) the preview is the constant-velocity
-  baseline of the body root (Tanke 2024, sec. 6.4.4 baselines), computed here in numpy.
+  Without a trained checkpoint (``forecast/checkpoints/gru_cmu.pt``) the preview is the forecast package's
+  torch-free baseline ``forecast.preview.baseline_preview`` (the last pose moved along the root velocity).
 * particle tracker: ``track.stage.track_session_particle`` when the track package provides it.
 
 The preview file ``forecast/preview.npz`` (schema ``forecast_preview/1``): ``xyz_m (K,H,J,3)`` world metres,
@@ -20,14 +20,12 @@ import numpy as np
 
 from capture.fileio import save_npz, schema_tag
 from capture.session import SessionLayout
-from forecast.preview import preview
+from forecast.preview import BASELINES, DEFAULT_CHECKPOINT, baseline_preview, preview
 from track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 
 PREVIEW_SCHEMA, PREVIEW_VERSION = "forecast_preview", 1
-BASELINES = ("constant_velocity", "zero_velocity")
-_VEL_WINDOW_S = 0.2  # root velocity = mean over the last 0.2 s
 
 
 def forecast_model(model: str) -> tuple[str, Path | None]:
@@ -36,10 +34,6 @@ def forecast_model(model: str) -> tuple[str, Path | None]:
     if model in BASELINES:
         return model, None
     if model == "default":
-        try:
-            from forecast.preview import DEFAULT_CHECKPOINT
-        except ImportError:
-            return "constant_velocity", None
         return (
             ("checkpoint", Path(DEFAULT_CHECKPOINT))
             if Path(DEFAULT_CHECKPOINT).exists()
@@ -53,30 +47,6 @@ def forecast_model(model: str) -> tuple[str, Path | None]:
     return "checkpoint", path
 
 
-def _baseline(xyz: np.ndarray, fps: float, H: int, kind: str) -> tuple[np.ndarray, np.ndarray]:
-    """xyz (T,K,J,3) -> future (K,H,J,3) for tracks present in the last frame, and that mask (K,)."""
-    T, K, J, _ = xyz.shape
-    out = np.full((K, H, J, 3), np.nan, np.float32)
-    if T == 0:
-        return out, np.zeros(K, bool)
-    last = xyz[-1]
-    present = np.isfinite(last).all(-1).any(-1)
-    seen = np.isfinite(xyz).all(-1, keepdims=True)
-    n_seen = seen.sum(2)
-    root = np.where(n_seen > 0, np.where(seen, xyz, 0).sum(2) / np.maximum(n_seen, 1), np.nan)  # (T,K,3)
-    n = max(1, min(T - 1, int(round(_VEL_WINDOW_S * fps))))
-    if kind == "constant_velocity" and T >= 2:
-        v = (root[-1] - root[-1 - n]) / n  # metres per frame
-        v = np.where(np.isfinite(v), v, 0.0)
-        v[:, 2] = 0.0  # people walk on the floor
-    else:
-        v = np.zeros((K, 3))
-    steps = np.arange(1, H + 1)[None, :, None, None]
-    out[:] = last[:, None] + steps * v[:, None, None, :]
-    out[~present] = np.nan
-    return out.astype(np.float32), present
-
-
 def write_preview(tracks_path: Path, out_path: Path, horizon_s: float, model: str) -> Path:
     """Forecast every track present at the last frame ``horizon_s`` ahead and write ``out_path``."""
 
@@ -84,7 +54,7 @@ def write_preview(tracks_path: Path, out_path: Path, horizon_s: float, model: st
     tf = TrackFile.load(tracks_path)
     start = int(tf.frame_index[-1]) if tf.n_frames else 0
     if kind == "checkpoint":
-        import torch
+        import torch  # lazy: loads torch
 
         torch.set_num_threads(1)  # the same bytes on every machine and executor
         fc = preview(tracks_path, horizon_s, checkpoint=checkpoint)
@@ -93,7 +63,7 @@ def write_preview(tracks_path: Path, out_path: Path, horizon_s: float, model: st
     else:
         fps = float(tf.fps)
         H = max(1, int(round(horizon_s * fps)))
-        xyz, _ = _baseline(np.asarray(tf.xyz_m, np.float64), fps, H, kind)
+        xyz, _ = baseline_preview(np.asarray(tf.xyz_m, np.float64), fps, H, kind)
         t_s, name = np.arange(1, H + 1) / fps, kind
     save_npz(
         out_path,

@@ -115,6 +115,7 @@ def _mild_distortion(rng: np.random.Generator) -> np.ndarray:
 def ring_rig(
     n_cams: int = 6,
     radius_m: float = 3.0,
+    *,
     height_m: float = 2.0,
     size_wh=(1280, 720),
     fov_h_deg: float = 70.0,

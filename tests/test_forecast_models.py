@@ -35,6 +35,21 @@ def test_baselines_in_world_space():
     assert np.abs(cv[0, 0, 2, 0] - (x[0, -1, 0] + 3 * v)).max() < 1e-4
 
 
+def test_training_and_evaluation_report_through_the_progress_protocol():
+    """progress(task, done, total) from the library (core.progress), done reaching total; nothing printed."""
+    from forecast import evaluate as E
+
+    calls = []
+    cfg = T.config_from_dict("gru", {"hidden": 8, "steps": 4, "batch": 4, "n_obs": 10, "n_pred": 5})
+    model, _ = T.train("gru", _clips(2, 60), cfg, progress=lambda *a: calls.append(a))
+    assert calls == [("train gru", i, 4) for i in range(1, 5)]
+    calls.clear()
+    models = {"zero": T.baseline("zero"), "gru": model}
+    E.evaluate_single(models, _clips(2, 80), n_obs=10, n_pred=10, max_windows=4, n_boot=10,
+                      progress=lambda *a: calls.append(a))  # fmt: skip
+    assert calls == [("eval models", 0, 2), ("eval models", 1, 2), ("eval models", 2, 2)]
+
+
 def test_scene_features_round_trip():
     x = walker(20, heading_rad=2.5, start=(0.3, -1))
     f = scene_features(x, anchor=9)

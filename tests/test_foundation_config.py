@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from core.config import config_from_dict
+from core.config import bounded, config_from_dict
 from core.errors import FormatError
 from triangulate.reconstruct import TriangulateConfig
 
@@ -50,3 +50,30 @@ def test_wrong_kinds_name_the_key():
         config_from_dict(Outer, {"inner": {"gate_m": "wide"}})
     with pytest.raises(FormatError, match=r"field 'n': expected int, got 2.5"):
         config_from_dict(Outer, {"n": 2.5})
+
+
+@dataclass(frozen=True)
+class Ranged:
+    segment_s: float = bounded(0.5, 0.1, 10)
+    frames: int = bounded(4, 2, 100)
+    flag: bool = False
+
+
+class SectionError(FormatError):
+    pass
+
+
+def test_booleans_as_words_and_ranges_checked_with_the_callers_error():
+    assert config_from_dict(Ranged, {"flag": "yes"}).flag is True
+    assert config_from_dict(Ranged, {"flag": 0}).flag is False
+    assert config_from_dict(Ranged, {"flag": "1", "segment_s": 2}).segment_s == 2.0
+    with pytest.raises(FormatError, match=r"field 'flag': expected bool, got 2"):
+        config_from_dict(Ranged, {"flag": 2})
+    with pytest.raises(SectionError, match=r"field 'rec.frames': 1 is outside the valid range \[2, 100\]"):
+        config_from_dict(Ranged, {"frames": 1}, "rec", error=SectionError)
+    with pytest.raises(SectionError, match=r"unknown keys \['fps'\]"):
+        config_from_dict(Ranged, {"fps": 1}, "rec", error=SectionError)
+    with pytest.raises(
+        SectionError, match=r"expected a number in \[0.1, 10\], got 'x'|expected float, got 'x'"
+    ):
+        config_from_dict(Ranged, {"segment_s": "x"}, error=SectionError)

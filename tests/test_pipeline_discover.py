@@ -93,3 +93,21 @@ def test_stage_options_are_checked_when_the_config_loads(tmp_path, capsys):
     (tmp_path / "p.toml").write_text('[track]\ntracker = "greedy"\n[track.options]\nsigmaa = 2\n')
     assert main([str(tmp_path), "--config", str(tmp_path / "p.toml")]) == 2
     assert "sigmaa" in capsys.readouterr().err
+
+
+def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
+    """The options are parsed when their section is made; replace() of other fields does not parse them
+    again, and a new track section (another tracker) is checked against its own tracker's keys."""
+    import pipeline.config as pc
+
+    cfg = PipelineConfig.from_dict(
+        {"triangulate": {"options": {"match": {"theta_px": 30}}}, "track": {"options": {"sigma_s": 0.1}}}
+    )
+    calls = []
+    monkeypatch.setattr(pc.TriangulateOptions, "from_dict", lambda d: calls.append(d))
+    monkeypatch.setattr(pc.GreedyTrackConfig, "from_dict", lambda d: calls.append(d))
+    assert cfg.replace(stages=("triangulate", "track")).stages == ("triangulate", "track")
+    assert calls == []
+    monkeypatch.undo()
+    with pytest.raises(FormatError, match=r"track.options.*sigma_s"):
+        cfg.replace(track=type(cfg.track)(tracker="particle", options=cfg.track.options))

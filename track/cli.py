@@ -17,10 +17,10 @@ import logging
 import sys
 from pathlib import Path
 
-from capture.fileio import FormatError
+from core.cli import guarded
 from core.errors import RoomcapError
-from track.export import ExportError, ExportOptions, export_tracks, parse_formats
-from track.opensim_ik import OpenSimError, default_setup_dir, run_opensim
+from track.export import ExportOptions, export_tracks, parse_formats
+from track.opensim_ik import default_setup_dir, run_opensim
 from track.skeleton_fit import FitError, file_sha256, fit_skeletons, load_or_fit
 from track.trackfile import TrackFile
 
@@ -175,17 +175,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    return args.func(args)  # UsageError, ExportError, FitError, OpenSimError, FormatError: RoomcapErrors
 
-    try:
-        return args.func(args)
-    except (UsageError, ExportError, FitError, OpenSimError, FormatError, OSError) as e:
-        print(f"tracks {args.cmd}: {e}", file=sys.stderr)
-        return 2
+
+main = guarded("tracks", _main)  # one message and exit 2 for bad input, 130 for Ctrl-C (core.cli)
 
 
 if __name__ == "__main__":

@@ -159,6 +159,7 @@ def run_opensim_trc(
     out_dir: Path,
     stem: str,
     setup_dir: Path,
+    *,
     markerset: str = "Body25b",
     markers: list[str] | None = None,
     mass_kg: float | None = None,
@@ -290,6 +291,7 @@ def run_opensim(
     out_dir: Path,
     session: str,
     setup_dir: Path,
+    *,
     persons: list[int] | None = None,
     markerset: str = "Body25b",
     max_gap: int = 10,
@@ -309,6 +311,15 @@ def run_opensim(
         out_dir.mkdir(parents=True, exist_ok=True)
         write_trc(tf, p, trc, marker_table(tf, p, max_gap=max_gap))
         results.append(
-            run_opensim_trc(trc, out_dir, stem, setup_dir, markerset, markers, mass_kg, track_id=p)
+            run_opensim_trc(
+                trc,
+                out_dir,
+                stem,
+                setup_dir,
+                markerset=markerset,
+                markers=markers,
+                mass_kg=mass_kg,
+                track_id=p,
+            )
         )
     return results

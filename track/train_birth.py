@@ -62,6 +62,7 @@ def evaluate(model: BirthNet, x: np.ndarray, max_drop: float) -> dict[str, float
 
 
 def train(
+    *,
     fps: float = 25.0,
     hidden: int = 256,
     dropout: float = 0.2,

@@ -148,6 +148,7 @@ def report_written(out: str, info: dict) -> None:
 
 
 def train(
+    *,
     fps: float = 25.0,
     hidden: int = 64,
     dropout: float = 0.5,

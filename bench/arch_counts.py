@@ -1,0 +1,266 @@
+"""Architecture counts on a source tree (issue 16's "Show it"): run on this checkout or an old one.
+
+    python bench/arch_counts.py [ROOT]     # ROOT: a checkout of the repository (default: this one)
+
+Counts, over the project packages (tests and bench left out):
+
+* ``validators``: places outside ``core/config.py`` that compute a mapping's unknown keys themselves
+  (``set(a) - set(b)``, ``set(a).difference(b)``, ``a.keys() - b``) instead of calling the core loader;
+* ``progress_shapes``: distinct shapes of the calls ``progress(...)`` / ``progress_cb(...)`` / ``on_progress``
+  make (positional argument count, keyword names), and ``progress_calls_off_protocol``: calls that are not
+  the core protocol's ``progress(task, done, total)``;
+* ``progress_aliases``: module-level ``Progress = Callable[...]`` aliases other than core's protocol;
+* ``exception_classes`` and ``exceptions_without_base``: classes deriving (in the project) from a builtin
+  exception, and those of them that do not derive from ``RoomcapError``;
+* ``raise_valueerror``: ``raise ValueError(...)`` statements;
+* ``systemexit_str``: ``raise SystemExit(<text>)`` / ``sys.exit(<text>)``; ``scripts_unguarded``: console
+  scripts whose ``main`` is not wrapped by ``core.cli.guarded``;
+* ``function_imports``: project imports inside functions (``lazy_heavy``: imports of torch, onnxruntime,
+  depthai, bpy or opensim inside functions, the allowed lazy loads);
+* ``import_cycles``: strongly connected components (size > 1) of the module import graph, function-level
+  imports included (grimp), and ``imports_against_order``: import edges from a lower layer to a higher one;
+* ``long_positional``: public functions with 8 or more parameters that can be passed positionally.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import re
+import sys
+import tomllib
+from pathlib import Path
+
+PACKAGES = [
+    "core",
+    "capture",
+    "calibrate",
+    "keypoints",
+    "synthetic",
+    "triangulate",
+    "track",
+    "forecast",
+    "pipeline",
+]
+ORDER = [
+    "core",
+    "capture",
+    "calibrate",
+    "keypoints",
+    "synthetic",
+    "triangulate",
+    "track",
+    "forecast",
+    "pipeline",
+]
+HEAVY = {"torch", "onnxruntime", "depthai", "bpy", "opensim", "mediapipe"}
+BUILTIN_EXC = {n for n in dir(__builtins__) if isinstance(getattr(__builtins__, n, None), type)}
+BUILTIN_EXC = {n for n in BUILTIN_EXC if issubclass(getattr(__builtins__, n), BaseException)}
+PROGRESS_NAMES = {"progress", "progress_cb", "on_progress", "report_progress"}
+
+
+def modules(root: Path):
+    for pkg in PACKAGES:
+        base = root / pkg
+        if not base.is_dir():
+            continue
+        for f in sorted(base.rglob("*.py")):
+            rel = f.relative_to(root).with_suffix("")
+            parts = list(rel.parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            yield ".".join(parts), f
+
+
+def _name(node) -> str | None:
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        return node.attr
+    return None
+
+
+def _is_set_call(node) -> bool:
+    return isinstance(node, ast.Call) and _name(node.func) == "set"
+
+
+def _is_keys(node) -> bool:
+    return isinstance(node, ast.Call) and _name(node.func) == "keys"
+
+
+def count(root: Path) -> dict:
+    res: dict = {
+        "validators": [],
+        "progress_shapes": set(),
+        "progress_calls_off_protocol": 0,
+        "progress_aliases": [],
+        "raise_valueerror": 0,
+        "systemexit_str": 0,
+        "function_imports": 0,
+        "lazy_heavy": 0,
+        "long_positional": [],
+    }
+    classes: dict[str, list[str]] = {}
+    texts = {}
+    for mod, f in modules(root):
+        src = f.read_text()
+        texts[mod] = src
+        tree = ast.parse(src)
+        parents = {}
+        for node in ast.walk(tree):
+            for ch in ast.iter_child_nodes(node):
+                parents[ch] = node
+
+        def in_function(n, parents=parents):
+            p = parents.get(n)
+            while p is not None:
+                if isinstance(p, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    return True
+                p = parents.get(p)
+            return False
+
+        for node in ast.walk(tree):
+            if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Sub):
+                if (
+                    _is_set_call(node.left) and (_is_set_call(node.right) or isinstance(node.right, ast.Name))
+                ) or (_is_keys(node.left)):
+                    if mod != "core.config":
+                        res["validators"].append(f"{mod}:{node.lineno}")
+            if (
+                isinstance(node, ast.Call)
+                and _name(node.func) == "difference"
+                and isinstance(node.func, ast.Attribute)
+            ):
+                if _is_set_call(node.func.value) and mod != "core.config":
+                    res["validators"].append(f"{mod}:{node.lineno}")
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id in PROGRESS_NAMES
+            ):
+                shape = (len(node.args), tuple(sorted(k.arg or "**" for k in node.keywords)))
+                res["progress_shapes"].add(shape)
+                if shape != (3, ()):
+                    res["progress_calls_off_protocol"] += 1
+            if isinstance(node, ast.Assign) and any(_name(t) == "Progress" for t in node.targets):
+                if mod != "core.progress":
+                    res["progress_aliases"].append(mod)
+            if (
+                isinstance(node, ast.Raise)
+                and isinstance(node.exc, ast.Call)
+                and _name(node.exc.func) == "ValueError"
+            ):
+                res["raise_valueerror"] += 1
+            if isinstance(node, ast.Call) and _name(node.func) in ("SystemExit", "exit") and node.args:
+                a = node.args[0]
+                if (isinstance(a, ast.Constant) and isinstance(a.value, str)) or isinstance(a, ast.JoinedStr):
+                    res["systemexit_str"] += 1
+            if isinstance(node, (ast.Import, ast.ImportFrom)) and in_function(node):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+                top = {n.split(".")[0] for n in names}
+                if isinstance(node, ast.ImportFrom) and node.level:
+                    top = {mod.split(".")[0]}
+                if top & set(PACKAGES):
+                    res["function_imports"] += 1
+                if top & HEAVY:
+                    res["lazy_heavy"] += 1
+            if isinstance(node, ast.ClassDef):
+                classes[node.name] = [_name(b) or "" for b in node.bases]
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not node.name.startswith("_"):
+                pos = [a.arg for a in node.args.posonlyargs + node.args.args if a.arg not in ("self", "cls")]
+                if len(pos) >= 8:
+                    res["long_positional"].append(f"{mod}.{node.name}({len(pos)})")
+
+    def exc_root(name, seen=()):
+        """'roomcap', 'builtin' or None (not an exception)."""
+        if name == "RoomcapError":
+            return "roomcap"
+        if name in seen:
+            return None
+        out = None
+        for b in classes.get(name, []):
+            if b == "RoomcapError":
+                return "roomcap"
+            r = exc_root(b, (*seen, name)) if b in classes else ("builtin" if b in BUILTIN_EXC else None)
+            if r == "roomcap":
+                return "roomcap"
+            out = out or r
+        return out
+
+    excs = {c: exc_root(c) for c in classes if c != "RoomcapError"}
+    excs = {c: r for c, r in excs.items() if r}
+    res["exception_classes"] = len(excs)
+    res["exceptions_without_base"] = sorted(c for c, r in excs.items() if r == "builtin")
+
+    scripts = tomllib.loads((root / "pyproject.toml").read_text()).get("project", {}).get("scripts", {})
+    unguarded = []
+    for name, target in scripts.items():
+        m, attr = target.split(":")
+        src = texts.get(m, "")
+        if not re.search(rf"^{attr}\s*=\s*guarded\(", src, re.M):
+            unguarded.append(name)
+    res["scripts_unguarded"] = unguarded
+
+    import grimp
+
+    sys.path.insert(0, str(root))
+    g = grimp.build_graph(*[p for p in PACKAGES if (root / p).is_dir()], include_external_packages=False)
+    mods = sorted(g.modules)
+    # Tarjan's strongly connected components
+    index, low, stack, on, sccs, counter = {}, {}, [], set(), [], [0]
+    sys.setrecursionlimit(10000)
+
+    def strong(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in g.find_modules_directly_imported_by(v):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                sccs.append(sorted(comp))
+
+    for v in mods:
+        if v not in index:
+            strong(v)
+    res["import_cycles"] = sccs
+    against = []
+    for v in mods:
+        for w in g.find_modules_directly_imported_by(v):
+            a, b = v.split(".")[0], w.split(".")[0]
+            if a in ORDER and b in ORDER and ORDER.index(a) < ORDER.index(b):
+                against.append(f"{v} -> {w}")
+    res["imports_against_order"] = sorted(against)
+    res["progress_shapes"] = sorted(str(s) for s in res["progress_shapes"])
+    return res
+
+
+def main() -> None:
+    root = Path(sys.argv[1] if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]).resolve()
+    r = count(root)
+    summary = {
+        k: (len(v) if isinstance(v, list) else v) for k, v in r.items() if k not in ("progress_shapes",)
+    }
+    summary["progress_shapes"] = len(r["progress_shapes"])
+    for k, v in r.items():
+        if isinstance(v, list) and v:
+            print(f"{k} ({len(v)}):")
+            for x in v:
+                print(f"  {x}")
+    print("BENCH " + json.dumps({"root": str(root), **summary}))
+
+
+if __name__ == "__main__":
+    main()

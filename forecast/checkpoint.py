@@ -1,0 +1,211 @@
+"""Forecast checkpoints: writing, reading and building models from them, and the baselines.
+
+Checkpoints (``torch.save`` of plain containers, loaded with ``weights_only=True``) carry
+``schema = "forecast-checkpoint/1"``, the model kind, its config, the skeleton id and joint names, the
+frame rate and the normalisation convention, plus the state dict (k-means centres, feature statistics
+and the diffusion schedule are buffers inside it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.cluster.vq import kmeans2
+
+from capture.fileio import FormatError, atomic_path
+from core.errors import InputError
+from forecast import data as fdata
+from forecast.config import BASELINES, config_from_dict
+from forecast.models import (
+    ConstantVelocity,
+    FoolClusters,
+    IntentionModel,
+    Seq2SeqGRU,
+    SlideLastPose,
+    SocialDiffusion,
+    ZeroVelocity,
+)
+from forecast.predict import LHIP, N_GLOBAL, RHIP
+from keypoints.skeletons import get_skeleton
+
+CKPT_SCHEMA = "forecast-checkpoint/1"
+DISCRIMINATOR_PREFIXES = ("D_pose.", "D_label.")
+NORMALISATION = "eq. 3.8 at the last observed frame: root = mid-hips, hip vector (left->right) on +x, z up"
+
+
+def write_checkpoint(
+    path: str | os.PathLike,
+    schema: str,
+    kind: str,
+    *,
+    config,
+    skeleton: str,
+    fps: float,
+    normalisation: str,
+    extra: dict | None,
+    **payload,
+) -> None:
+    """Write a forecast checkpoint atomically: its config, skeleton, joints, fps and normalisation, then the
+    caller's ``payload`` (weights and whatever else the model needs)."""
+    blob = {
+        "schema": schema,
+        "kind": kind,
+        "config": dataclasses.asdict(config),
+        "skeleton": skeleton,
+        "joint_names": list(get_skeleton(skeleton).joint_names),
+        "fps": float(fps),
+        "normalisation": normalisation,
+        **payload,
+        "extra": extra or {},
+    }
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
+
+
+def read_checkpoint(
+    path: Path, schema: str, skeleton: str | None, what: str, train_cmd: str, map_location: str = "cpu"
+) -> dict:
+    """Load a checkpoint written by :func:`write_checkpoint` (weights_only=True) and check that it is one
+    (``schema``) and fits the caller's data ``skeleton`` (None: any); errors say how to get a good one."""
+    try:
+        blob = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - re-raised with what to do
+        raise FormatError(
+            path, None, f"not a readable {what} ({type(e).__name__}: {e}).", f"Train one with `{train_cmd}`."
+        ) from e
+    if not isinstance(blob, dict) or blob.get("schema") != schema:
+        got = blob.get("schema") if isinstance(blob, dict) else type(blob).__name__
+        raise FormatError(
+            path,
+            "schema",
+            f"expected '{schema}', got {got!r}.",
+            f"This is not a {what} of this version; train one with `{train_cmd}`.",
+        )
+    if skeleton is not None and blob["skeleton"] != skeleton:
+        raise FormatError(
+            path,
+            "skeleton",
+            f"the checkpoint was trained on skeleton '{blob['skeleton']}' "
+            f"({len(blob['joint_names'])} joints) but the data is '{skeleton}'.",
+            f"Convert the data to '{blob['skeleton']}' or train a model on '{skeleton}'.",
+        )
+    return blob
+
+
+def save_checkpoint(
+    path: str | os.PathLike,
+    model: torch.nn.Module,
+    kind: str,
+    config,
+    skeleton: str = "body19",
+    fps: float = fdata.TARGET_FPS,
+    extra: dict | None = None,
+) -> None:
+    state = {
+        k: v.detach().cpu()
+        for k, v in model.state_dict().items()
+        if not k.startswith(DISCRIMINATOR_PREFIXES)  # only needed for training; keeps files < 2 MB
+    }
+    write_checkpoint(
+        path,
+        CKPT_SCHEMA,
+        kind,
+        config=config,
+        skeleton=skeleton,
+        fps=fps,
+        normalisation=NORMALISATION,
+        extra=extra,
+        state_dict=state,
+    )
+
+
+def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> torch.nn.Module:
+    D = 3 * n_joints
+    if kind == "gru":
+        m = Seq2SeqGRU(D, config.hidden, config.dropout)
+    elif kind == "intention":
+        centres = np.zeros((config.n_clusters, D), np.float32) if state is None else state["centres"].numpy()
+        merge = np.zeros(config.n_clusters, np.int64) if state is None else state["merge"].numpy()
+        m = IntentionModel(
+            D,
+            centres,
+            merge,
+            config.n_intentions,
+            config.hidden,
+            config.layers,
+            config.z_dim,
+            gamma=config.gamma,
+            f_dim=config.f_dim,
+        )
+    elif kind == "social_diffusion":
+        m = SocialDiffusion(D + N_GLOBAL, config.n_frames, config.channels, config.T, anchored=config.anchor)
+        m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
+        m.sample_dct = config.sample_dct
+        m.n_obs_clean = config.n_obs if config.clean_obs else 0
+        m.anchor = config.n_obs - 1 if config.anchor else None
+        if config.root_vel and not config.anchor:
+            raise InputError(
+                "root_vel = true needs anchor = true (displacements are summed from the anchor frame)"
+            )
+        m.root_vel = config.root_vel
+    else:
+        raise InputError(f"unknown model '{kind}'")
+    if state is not None:
+        try:
+            missing, unexpected = m.load_state_dict(state, strict=False)
+        except RuntimeError as e:  # shape mismatches: torch lists every tensor, the first says enough
+            lines = [ln.strip() for ln in str(e).splitlines() if "mismatch" in ln]
+            first = lines[0] if lines else str(e).splitlines()[0]
+            raise InputError(
+                f"the {kind} state does not fit the checkpoint's config ({len(lines)} tensors differ; first: "
+                f"{first}). The config or the weights were changed after training: retrain with "
+                "`forecast train`, or use the original file."
+            ) from None
+        missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
+        if missing or unexpected:
+            raise InputError(
+                f"{kind} state does not fit the config: missing {missing}, unexpected {unexpected}"
+            )
+    m.n_obs = config.n_obs
+    return m
+
+
+def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_location: str = "cpu"):
+    """-> (model, meta). ``skeleton``: the skeleton the caller's data uses; a mismatch is a clear error."""
+    blob = read_checkpoint(
+        Path(path), CKPT_SCHEMA, skeleton, "forecast checkpoint", "forecast train", map_location
+    )
+    config = config_from_dict(blob["kind"], blob["config"])
+    model = build_model(blob["kind"], config, len(blob["joint_names"]), blob["state_dict"])
+    meta = {k: v for k, v in blob.items() if k != "state_dict"}
+    meta["config"] = config
+    return model.to(map_location), meta
+
+
+def baseline(kind: str, lhip: int = LHIP, rhip: int = RHIP) -> torch.nn.Module:
+    if kind in ("zero_velocity", "zero"):
+        return ZeroVelocity()
+    if kind in ("constant_velocity", "const"):
+        return ConstantVelocity()
+    if kind == "slide":
+        return SlideLastPose(lhip, rhip)
+    raise InputError(f"unknown baseline '{kind}'; baselines: {BASELINES}")
+
+
+def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> FoolClusters:
+    """Sec. 6.4.4's fool: 48 cluster means of the training poses (hip-centric, per-frame normalised)."""
+    x = train_windows.x[:, :, 0].reshape(-1, train_windows.x.shape[3], 3)
+    R, root = fdata.norm_frame(x, LHIP, RHIP)
+    loc = np.einsum("nij,nkj->nki", R, x - root[:, None]).reshape(len(x), -1)
+    rng = np.random.default_rng(seed)
+    sub = loc[rng.choice(len(loc), min(len(loc), 20000), replace=False)].astype(np.float64)
+    with warnings.catch_warnings():  # tiny data sets leave clusters empty; the centres are still poses
+        warnings.simplefilter("ignore")
+        centres, _ = kmeans2(sub, k, minit="++", seed=seed)
+    centres = centres[np.isfinite(centres).all(1)]
+    return FoolClusters(torch.from_numpy(centres.astype(np.float32)))
