@@ -57,6 +57,8 @@ def candidate(spec: str, threads: int):
     name, _, js = spec.partition("=")
     over = json.loads(js) if js else {}
     base = over.pop("base", name if not js else "legacy")
+    # scored in body19 (the metrics' layout); "feet" writes the model's own 33 points in a session
+    over.setdefault("skeleton", "body19")
     cfg = preset_config(base, runtime=RuntimeConfig(threads=threads), **over)
     return name, cfg
 
