@@ -366,7 +366,7 @@ def associate(
     det_sc: np.ndarray,
     focal_px: np.ndarray,
     tol_m: float,
-    gate: float,
+    gate: float | np.ndarray,
     min_joints: int,
     min_score: float,
 ) -> np.ndarray:
@@ -374,7 +374,8 @@ def associate(
 
     mean_uv: (C,K,J,2), mean_depth: (C,K,J) projections of the tracks' predicted means;
     det_kp: (C,D,J,2), det_sc: (C,D,J). The cost is the median joint distance in units of
-    ``tol_m`` seen at the joint's depth. Returns assignment (C,K): detection index or -1.
+    ``tol_m`` seen at the joint's depth; ``gate``: a number or one per track (K,). Returns assignment (C,K):
+    detection index or -1.
     """
     C, K = mean_uv.shape[:2]
     D = det_kp.shape[1]
@@ -395,9 +396,10 @@ def associate(
     with np.errstate(all="ignore"):
         cost = np.nanmedian(np.where(n[..., None] > 0, r, 0.0), -1)
     cost = np.where(n >= min_joints, cost, np.inf)
+    gate_k = np.broadcast_to(np.asarray(gate, np.float64), (K,))[:, None]
     for c in range(C):  # Hungarian per camera; C is small
         cc = cost[c]
-        big = np.where(np.isfinite(cc) & (cc < gate), cc, 1e6)
+        big = np.where(np.isfinite(cc) & (cc < gate_k), cc, 1e6)
         rows, cols = linear_sum_assignment(big)
         keep = big[rows, cols] < 1e6
         out[c, rows[keep]] = cols[keep]
