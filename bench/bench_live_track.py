@@ -127,7 +127,8 @@ def main() -> None:
         "load_1min": [load0, os.getloadavg()[0]],
     }
     print(
-        f"{n_steps} frame sets ({args.minutes:g} min at {fps:g} Hz, 4 cameras): 3D stages CPU first minute p50 "
+        f"{n_steps} frame sets ({args.minutes:g} min at {fps:g} Hz, 4 cameras): 3D stages CPU, first minute "
+        f"p50 "
         f"{res['first_minute_ms']['p50']:.2f} / p95 {res['first_minute_ms']['p95']:.2f} ms, last minute p50 "
         f"{res['last_minute_ms']['p50']:.2f} / p95 {res['last_minute_ms']['p95']:.2f} ms "
         f"(x{res['ratio_last_over_first_p50']:.2f}); {len(distinct)} track ids, file = steps: {same_ids}; "
