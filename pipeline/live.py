@@ -250,6 +250,7 @@ def _track(ctx: LiveContext) -> Stage:
 
     stage.writer = writer  # type: ignore[attr-defined]  # the bench and tests read the parts it wrote
     stage.tracker = tracker  # type: ignore[attr-defined]
+    stage.close = writer.flush  # type: ignore[attr-defined]  # the runner calls it when the recording ends
     return stage
 
 

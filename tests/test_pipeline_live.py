@@ -63,3 +63,23 @@ def test_track_stage_steps_the_filter_and_appends_whole_parts(tmp_path):
         d = np.linalg.norm(tf.xyz_m[:, k, None].astype(np.float64) - X, axis=-1).mean(-1)  # (T,P)
         assert len(set(d.argmin(1))) == 1 and d.min(1).max() < 0.05
     assert len(stage.tracker.tracks) == 2 and len(stage.writer._rows) == 0  # bounded state: nothing buffered
+
+
+def test_the_runner_closes_the_track_stage_so_the_last_part_is_written(tmp_path):
+    """A recording that ends on a non-final set (the runner skips sets when it falls behind) still gets its
+    last frames: LiveRunner calls the stage's close() at the end."""
+    from capture.live import LiveRunner
+
+    rig = ring_rig(3, radius_m=4.0)
+    names = [c.name for c in rig.cameras]
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:", "fps": 25} for n in names]})
+    lay = SessionLayout(tmp_path)
+    stage = _track(LiveContext(cfg, lay, rig, FAST, chunk_frames=50))
+    runner = LiveRunner(cfg, tmp_path, stages={"track": stage})
+    for step in _steps(rig, walkers(1, 12, seed=1)):
+        step.outputs["final"] = False
+        stage(step)
+    assert not (live_dir(lay) / "index.json").exists()  # 12 < 50 frames: nothing written yet
+    runner.start()
+    runner.stop()
+    assert load_live_tracks(live_dir(lay)).n_frames == 12 and runner.summary()["errors"] == {}
