@@ -11,14 +11,16 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from capture.config import ConfigError, load_config
 from capture.fileio import FormatError
-from capture.live import LiveRunner
+from capture.live import BuildStages, LiveRunner
 from capture.offline_sync import sync_audio, sync_session
 from capture.recorder import Recorder, RecorderError, redact_text, repair
 from capture.session import SessionLayout
@@ -61,7 +63,7 @@ def _record_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _record(argv: list[str]) -> int:
+def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
 
     args = _record_parser().parse_args(argv)
     cfg = load_config(args.cameras)
@@ -76,7 +78,16 @@ def _record(argv: list[str]) -> int:
     live_on = args.live or cfg.live.enabled
     live = None
     if live_on:
-        live = LiveRunner(cfg, out)
+        if build_live is None:
+            print(
+                "capture-run: live processing (--live, or live.enabled in cams.yaml) needs the pipeline's "
+                "live "
+                "stages: run `capture-run` (entry point pipeline.live:main; after an update reinstall with "
+                "`pip install -e .`) or `python -m pipeline.live`.",
+                file=sys.stderr,
+            )
+            return 2
+        live = LiveRunner(cfg, out, build_stages=build_live)
     rec = Recorder(
         cfg,
         out,
@@ -288,7 +299,7 @@ def _repair(argv: list[str]) -> int:
     return 1 if kept else 0
 
 
-def _main(argv: list[str] | None = None) -> int:
+def _main(argv: list[str] | None = None, build_live: BuildStages | None = None) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     verbose = "-v" in argv or "--verbose" in argv
@@ -299,7 +310,9 @@ def _main(argv: list[str] | None = None) -> int:
     cmd = argv[0] if argv and argv[0] in _SUBCOMMANDS else "record"
     rest = argv[1:] if argv and argv[0] in _SUBCOMMANDS else argv
     try:
-        return {"record": _record, "check": _check, "sync": _sync, "repair": _repair}[cmd](rest)
+        if cmd == "record":
+            return _record(rest, build_live)
+        return {"check": _check, "sync": _sync, "repair": _repair}[cmd](rest)
     except (ConfigError, FormatError, SourceError, RecorderError, ValueError) as e:
         print(f"capture-run: error: {redact_text(str(e))}", file=sys.stderr)
         return 2
@@ -308,7 +321,13 @@ def _main(argv: list[str] | None = None) -> int:
         return 130
 
 
-main = guarded("capture-run", _main)
+def make_main(build_live: BuildStages | None = None) -> Callable[..., int]:
+    """``capture-run``'s entry with the live stages ``build_live`` (:func:`pipeline.live.build_stages`:
+    the installed ``capture-run`` is ``pipeline.live:main``); without them ``--live`` says where to go."""
+    return guarded("capture-run", functools.partial(_main, build_live=build_live))
+
+
+main = make_main()
 
 
 if __name__ == "__main__":

@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from capture.config import parse_config
-from capture.live import STAGES, LiveRunner
+from capture.live import LiveRunner
 from capture.recorder import Recorder
 from capture.sources import read_code
-from track.trackfile import TrackFile
 
 
 def test_live_path_with_synthetic_sources_runs_every_stage(tmp_path):
@@ -58,37 +55,20 @@ def test_live_path_with_synthetic_sources_runs_every_stage(tmp_path):
     assert s["errors"] == {}
 
 
-def test_stage_registry_is_one_line_per_batch_stage():
-    assert list(STAGES) == ["keypoints", "triangulate", "track"]
+def test_live_without_the_pipeline_stages_says_where_to_go(tmp_path, capsys):
+    """capture.cli alone has no 3D stages (they sit above capture in the stage order): --live is refused with
+    a message naming the entry that has them (pipeline.live)."""
+    from capture.cli import main
 
-
-def test_track_stage_writes_the_track_file_incrementally(tmp_path):
-    from capture.live import LiveContext, LiveStep, _track
-    from capture.session import SessionLayout
-    from capture.sources import Frame
-    from capture.sync import FrameSet
-
-    cfg = parse_config({"cameras": [{"name": "a", "source": "synthetic:", "fps": 30}]})
-    ctx = LiveContext(cfg, SessionLayout(tmp_path), None)
-    stage = _track(ctx)
-
-    class Poses:
-        def __init__(self, x):
-            self.xyz_m = x
-
-    for t in range(5):
-        x = np.zeros((1, 19, 3)) + t * 0.01
-        fs = FrameSet(t, t * 33_000_000, {"a": Frame(None, t * 33_000_000, 0, t)})
-        stage(LiveStep(fs, ("a",), {"poses3d": Poses(x), "final": t == 4}))
-    tf = TrackFile.load(SessionLayout(tmp_path).tracks)
-    assert tf.n_frames == 5 and tf.n_tracks == 1
-    assert np.allclose(tf.xyz_m[4, 0, 0], 0.04, atol=0.02)
+    (tmp_path / "cams.yaml").write_text("cameras:\n  - {name: a, source: 'synthetic:', fps: 10}\n")
+    rc = main(["--cameras", str(tmp_path / "cams.yaml"), "--out", str(tmp_path / "s"), "--live", "--quiet"])
+    assert rc == 2 and "pipeline.live" in capsys.readouterr().err
 
 
 def test_cli_live_runs_the_real_keypoint_stage_on_synthetic_cameras(tmp_path, capsys):
     from conftest import need_shared
 
-    from capture.cli import main
+    from pipeline.live import main
 
     need_shared("models")
     (tmp_path / "cams.yaml").write_text(

@@ -115,3 +115,19 @@ def test_heatmap_and_paf_scores_eq_5_8():
     s_flip = obs.heatmap_limb_scores(flipped, heat, paf, limbs, limbs, 1.0)
     s_off = obs.heatmap_limb_scores(off, heat, paf, limbs, limbs, 1.0)
     assert s_good[0, 0] > 0.9 and s_flip[0, 0] < 0.05 and s_off[0, 0] < 0.05
+
+
+def test_log_phi_pairs_broadcast_equals_gather(rng):
+    """The per-first-camera broadcast (the filter's path for camera_pairs) equals the gather over any pair
+    list, bit for bit, zero scores of unseen cameras included (eps 0.01: groups of 8 limbs); a custom pair
+    list takes the gather."""
+    phi = (rng.random((3, 7, 18, 20)) ** 3).astype(np.float32)
+    phi[:, 5:] = 0.0
+    pairs = obs.camera_pairs(7)
+    fast = obs.log_phi_pairs(phi, pairs, 0.01)
+    ref = obs._log_phi_pairs_gather(phi * phi, pairs, 0.01, 8)
+    assert fast.shape == (3, 21, 20) and np.array_equal(fast, ref)
+    sub = pairs[::4]
+    assert np.array_equal(
+        obs.log_phi_pairs(phi, sub, 0.01), obs._log_phi_pairs_gather(phi * phi, sub, 0.01, 8)
+    )

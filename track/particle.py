@@ -43,7 +43,7 @@ Not implemented from the seed: the confidence-subtraction network of sec. 5.2.3.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -63,6 +63,7 @@ from track.priors import (
 from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
 from triangulate.matching import MatchConfig
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
+from triangulate.tracker import SEED_SIGMA_FRAMES, _nominal_dt, _smooth, frame_times_s, pause_clock
 
 log = logging.getLogger(__name__)
 
@@ -101,8 +102,16 @@ class ParticleConfig:
       reid_dist_m + reid_speed_mps * gap of the predicted one and the mean bone-length difference is
       below reid_bone_tol_m, for gaps up to reid_max_gap_s.
     min_track_s: shorter tracks are dropped from the output; trim_coast: frames after a track's last
-      evidence are dropped when it ends (offline output); smooth_sigma_frames: offline NaN-aware Gaussian
-      smoothing of the output in time (0 = off), as the seed's evaluation does (sec. 5.3.1, from ch. 4).
+      evidence are dropped when it ends (offline output); smooth_sigma_s: offline NaN-aware Gaussian
+      smoothing of the output in time, in seconds (0 = off; None = the seed's 2 frames at the session's
+      rate, as its evaluation does, sec. 5.3.1 from ch. 4), never across two frames more than max_gap_s
+      apart; smooth_sigma_frames: the same width in frames, as earlier versions took it (converted at the
+      frame rate by :meth:`at_fps`).
+    max_gap_s: two consecutive frames further apart than this (+ one frame) are a pause of the recorder:
+      the tracks' clock counts it as one frame (termination, re-identification), the motion prior moves
+      once across it, and association, re-anchoring and re-identification allow pause_gate_m more distance
+      for each pause since the track's last evidence (how far a person may have moved while nothing was
+      recorded); shorter gaps (dropped frames) are predicted one motion step per missed frame.
     use_maps: the stage weighs samples with the confidence maps + PAFs (eq. 5.8) stored in the
       detection files by a bottom-up model (keypoints ``keep_maps``); off or absent = keypoints + scores.
     birth: how a new track's samples are drawn (sec. 5.2.3): 'gaussian' = Gaussian noise around the
@@ -144,7 +153,10 @@ class ParticleConfig:
     reid_bone_tol_m: float = 0.05
     min_track_s: float = 0.2
     trim_coast: bool = True
-    smooth_sigma_frames: float = 2.0
+    smooth_sigma_s: float | None = None  # None: the seed's 2 frames at the session's frame rate
+    max_gap_s: float = 0.4
+    pause_gate_m: float = 0.5
+    smooth_sigma_frames: float | None = None  # the old key (frames)
     use_maps: bool = True
     birth: str = "gaussian"
     birth_checkpoint: str = ""
@@ -159,6 +171,19 @@ class ParticleConfig:
             raise ValueError(f"ParticleConfig.n_samples must be >= 1, got {self.n_samples}.")
         if self.refine_candidates < 1:
             raise ValueError(f"ParticleConfig.refine_candidates must be >= 1, got {self.refine_candidates}.")
+        if self.max_gap_s < 0 or self.pause_gate_m < 0 or self.end_after_s <= 0:
+            raise ValueError("ParticleConfig: end_after_s must be positive, max_gap_s and pause_gate_m >= 0.")
+        if any(v is not None and v < 0 for v in (self.smooth_sigma_s, self.smooth_sigma_frames)):
+            raise ValueError("ParticleConfig: smooth_sigma_s and smooth_sigma_frames must be >= 0.")
+
+    def at_fps(self, fps: float) -> ParticleConfig:
+        """The config with the smoothing width given in frames converted to seconds at ``fps`` (as
+        :meth:`triangulate.tracker.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
+        if self.smooth_sigma_frames is not None:
+            return replace(self, smooth_sigma_s=self.smooth_sigma_frames / fps, smooth_sigma_frames=None)
+        if self.smooth_sigma_s is None:
+            return replace(self, smooth_sigma_s=SEED_SIGMA_FRAMES / fps)
+        return self
 
     @classmethod
     def from_dict(cls, d: dict) -> ParticleConfig:
@@ -205,6 +230,8 @@ class _Track:
     state: dict
     born: int
     last_seen: int
+    last_seen_s: float = 0.0  # the tracks' clock (pauses of the recorder shortened to one frame)
+    pauses_seen: int = 0  # pauses of the recorder before the last evidence
     n_seen: int = 1
     mean: np.ndarray | None = None  # (J,3) last estimate
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))  # pelvis m/s
@@ -218,13 +245,17 @@ class _Lost:
     pelvis: np.ndarray
     velocity: np.ndarray
     bones: np.ndarray | None
+    end_s: float = 0.0  # the tracks' clock at the last evidence
+    pauses: int = 0  # pauses of the recorder before it
 
 
 class ParticleTracker:
     """The filter over a rig. P: (C,3,4) projection matrices (undistorted px); focal_px: (C,).
 
-    ``step(kp, sc, frame)`` takes one frame of undistorted detections ``kp (C,D,J,2)`` (NaN = missing)
-    and scores ``sc (C,D,J)`` and returns a :class:`FrameEstimate`.
+    ``step(kp, sc, frame, t_s=)`` takes one frame of undistorted detections ``kp (C,D,J,2)`` (NaN =
+    missing) and scores ``sc (C,D,J)`` at time ``t_s`` (seconds, increasing; default ``frame / fps``) and
+    returns a :class:`FrameEstimate`. Durations are in seconds on the tracks' clock (see
+    ``ParticleConfig.max_gap_s``): dropped frames, jittered times and pauses of the recorder are handled.
     """
 
     def __init__(
@@ -236,7 +267,7 @@ class ParticleTracker:
         skeleton: Skeleton = CANONICAL,
         prior: MotionPrior | None = None,
     ):
-        self.config = cfg = config or ParticleConfig()
+        self.config = cfg = (config or ParticleConfig()).at_fps(float(fps))
         self.P = np.asarray(P, np.float32)
         if self.P.ndim != 3 or self.P.shape[1:] != (3, 4):
             raise ValueError(f"P must have shape (C,3,4), got {self.P.shape}")
@@ -255,6 +286,10 @@ class ParticleTracker:
         self.ended: list[tuple[int, int, int]] = []  # (id, born, last_seen) of ended track segments
         self.next_id = 0
         self.end_after = max(1, int(round(cfg.end_after_s * fps)))
+        self.t_s: float | None = None  # time of the last frame stepped (s)
+        self.clock_s = 0.0  # the tracks' clock: time with every pause shortened to one frame
+        self.pauses = 0  # pauses of the recorder so far
+        self.dt_s = 1.0 / self.fps  # the last step on the tracks' clock
         self.reconstructor = None
         if C >= 2:
             tcfg = TriangulateConfig(
@@ -301,12 +336,42 @@ class ParticleTracker:
 
     # ------------------------------------------------------------------ the step
 
-    def step(self, kp: np.ndarray, sc: np.ndarray, frame: int, maps=None) -> FrameEstimate:
-        """One frame. ``maps``: optional sequence of C :class:`track.observation.CameraMaps` or None per
-        camera (a bottom-up model's confidence maps + PAFs); with any, the update weights use eq. 5.8 on the
-        maps for those cameras (keypoints for the others)."""
+    def _advance_clock(self, frame: int, t_s: float | None) -> int:
+        """Move the tracks' clock to the frame at ``t_s`` (default ``frame / fps``); returns the motion
+        steps to predict: 1 per nominal frame interval elapsed, 1 across a pause (an unknown motion)."""
+        t = float(frame) / self.fps if t_s is None else float(t_s)
+        if not np.isfinite(t):
+            raise ValueError(f"frame {frame}: its time {t_s!r} is not a finite number of seconds")
+        if self.t_s is None:
+            self.t_s, self.dt_s = t, 1.0 / self.fps
+            return 1
+        dt = t - self.t_s
+        if dt <= 0:
+            raise ValueError(
+                f"frame {frame}: time {t:.6f} s does not follow the previous frame's {self.t_s:.6f} s; "
+                "frame times must increase (check the recording's timestamps)"
+            )
+        self.t_s = t
+        if dt > self.config.max_gap_s + _nominal_dt(self.fps):  # a pause of the recorder: one frame
+            self.pauses += 1
+            self.dt_s = 1.0 / self.fps
+            self.clock_s += self.dt_s
+            return 1
+        self.dt_s = dt
+        self.clock_s += dt
+        return max(1, int(round(dt * self.fps)))
+
+    def step(
+        self, kp: np.ndarray, sc: np.ndarray, frame: int, maps=None, t_s: float | None = None
+    ) -> FrameEstimate:
+        """One frame at time ``t_s`` (seconds, increasing; default ``frame / fps``). ``maps``: optional
+        sequence of C :class:`track.observation.CameraMaps` or None per camera (a bottom-up model's
+        confidence maps + PAFs); with any, the update weights use eq. 5.8 on the maps for those cameras
+        (keypoints for the others)."""
         cfg = self.config
         kp, sc = self._check_frame(kp, sc)
+        n_pred = self._advance_clock(frame, t_s)
+        now = self.clock_s
         if maps is not None:
             maps = list(maps)
             if len(maps) != len(self.P):
@@ -324,9 +389,13 @@ class ParticleTracker:
         if K:
             X = np.stack([t.x for t in self.tracks])  # (K,N,J,3)
             state = concat_states([t.state for t in self.tracks])
-            # 1. prediction (eq. 5.1), all tracks and samples in one batch
-            Xf, state = self.prior.predict(X.reshape(K * N, J, 3), state, self.rng)
+            # 1. prediction (eq. 5.1), all tracks and samples in one batch; one step per frame interval
+            Xf = X.reshape(K * N, J, 3)
+            for _ in range(n_pred):  # > 1 only over dropped frames
+                Xf, state = self.prior.predict(Xf, state, self.rng)
             X = Xf.reshape(K, N, J, 3)
+            # tracks whose last evidence precedes a pause of the recorder: wider gates, fresh motion state
+            paused = np.asarray([self.pauses - t.pauses_seen for t in self.tracks], np.float64)
             # 2. association on the predicted means
             mean_pred = X.mean(1)
             muv, mz = obs.project(self.P, mean_pred)  # (C,K,J,2), (C,K,J)
@@ -337,7 +406,7 @@ class ParticleTracker:
                 sc,
                 self.focal,
                 cfg.assoc_tol_m,
-                cfg.assoc_gate,
+                cfg.assoc_gate + paused * (cfg.pause_gate_m / cfg.assoc_tol_m),
                 cfg.assoc_min_joints,
                 cfg.min_score,
             )  # (C,K)
@@ -358,6 +427,13 @@ class ParticleTracker:
                 flat = np.arange(K * N).reshape(K, N)
                 flat[u] = u[:, None] * N + idx
                 state = gather_state(state, flat.ravel())
+                resume = np.flatnonzero(ev_k & (paused > 0))
+                if len(resume):  # the motion before a pause says nothing about the motion after it
+                    rows = (resume[:, None] * N + np.arange(N)).ravel()
+                    fresh = self.prior.init_state(X[resume].reshape(-1, J, 3))
+                    state = {kk: v.copy() for kk, v in state.items()}
+                    for kk, v in fresh.items():
+                        state[kk][rows] = v
             # 4. inference (sec. 5.2.4): weighted mean over all cameras
             if cfg.exact_output_weights or score_u is None:
                 conf = obs.joint_scores(
@@ -376,12 +452,14 @@ class ParticleTracker:
             bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
             for k, t in enumerate(self.tracks):
                 t.x, t.state = X[k], states[k]
-                if t.mean is not None:
-                    v = (pel_now[k] - self._pelvis(t.mean)) * self.fps
+                if t.mean is not None and paused[k] == 0:
+                    v = (pel_now[k] - self._pelvis(t.mean)) / self.dt_s
                     t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
+                elif paused[k] > 0 and ev_k[k]:
+                    t.velocity = np.zeros(3, np.float32)
                 t.mean = mean[k]
                 if ev_k[k]:
-                    t.last_seen = frame
+                    t.last_seen, t.last_seen_s, t.pauses_seen = frame, now, self.pauses
                     t.n_seen += 1
                     b = bones_now[k]
                     if t.bones is None:
@@ -397,11 +475,21 @@ class ParticleTracker:
             )
             # 5. termination
             keep = []
-            for t in self.tracks:
-                if frame - t.last_seen >= self.end_after:
+            for (
+                t
+            ) in self.tracks:  # on the clock: end_after_s, as a whole number of frames at the nominal rate
+                if now - t.last_seen_s >= (self.end_after - 0.5) / self.fps:
                     self.ended.append((t.id, t.born, t.last_seen))
                     self.lost.append(
-                        _Lost(t.id, t.last_seen, self._pelvis(t.mean), t.velocity.copy(), t.bones)
+                        _Lost(
+                            t.id,
+                            t.last_seen,
+                            self._pelvis(t.mean),
+                            t.velocity.copy(),
+                            t.bones,
+                            t.last_seen_s,
+                            t.pauses_seen,
+                        )
                     )
                 else:
                     keep.append(t)
@@ -517,16 +605,27 @@ class ParticleTracker:
                 samples = self._samples(filled, missing)
             bones = np.where(np.isfinite(self._bones(cand)), self._bones(filled), np.nan)
             # a coasting track of this person? re-anchor it (keeps the identity)
-            t = self._match_coasting(coasting, pel, bones, frame)
+            t = self._match_coasting(coasting, pel, bones)
             if t is not None:
                 coasting.remove(t)
                 t.x, t.state, t.last_seen = samples, self.prior.init_state(samples), frame
+                t.last_seen_s, t.pauses_seen = self.clock_s, self.pauses
                 t.n_seen += 1
                 t.mean = filled
                 born.append(t)
                 continue
             tid = self._reidentify(pel, bones, frame)
-            t = _Track(tid, samples, self.prior.init_state(samples), frame, frame, mean=filled, bones=bones)
+            t = _Track(
+                tid,
+                samples,
+                self.prior.init_state(samples),
+                frame,
+                frame,
+                self.clock_s,
+                self.pauses,
+                mean=filled,
+                bones=bones,
+            )
             self.tracks.append(t)
             born.append(t)
         return born
@@ -563,15 +662,18 @@ class ParticleTracker:
         ok = np.isfinite(a) & np.isfinite(b)
         return float(np.abs(a[ok] - b[ok]).mean()) if ok.sum() >= 3 else 0.0
 
-    def _match_coasting(self, coasting: list[_Track], pel: np.ndarray, bones, frame: int) -> _Track | None:
+    def _match_coasting(self, coasting: list[_Track], pel: np.ndarray, bones) -> _Track | None:
         cfg = self.config
         best, best_d = None, np.inf
         for t in coasting:
-            gap = (frame - t.last_seen) / self.fps
+            gap = self.clock_s - t.last_seen_s
             pred = self._pelvis(t.mean)
             d = float(np.linalg.norm(pel[:2] - pred[:2]))
             if (
-                d < cfg.reid_dist_m + cfg.reid_speed_mps * gap
+                d
+                < cfg.reid_dist_m
+                + cfg.reid_speed_mps * gap
+                + cfg.pause_gate_m * (self.pauses - t.pauses_seen)
                 and self._bone_diff(bones, t.bones) < cfg.reid_bone_tol_m
                 and d < best_d
             ):
@@ -581,10 +683,10 @@ class ParticleTracker:
     def _reidentify(self, pel: np.ndarray, bones, frame: int) -> int:
         """An ended identity whose predicted position and body proportions agree, else a new id."""
         cfg = self.config
-        self.lost = [lt for lt in self.lost if (frame - lt.end) / self.fps <= cfg.reid_max_gap_s]
+        self.lost = [lt for lt in self.lost if self.clock_s - lt.end_s <= cfg.reid_max_gap_s + 1e-9]
         best, best_cost = None, np.inf
         for lt in self.lost:
-            gap = (frame - lt.end) / self.fps
+            gap = self.clock_s - lt.end_s
             v = lt.velocity[:2]
             speed = float(np.linalg.norm(v))
             if speed > 2.0:
@@ -592,7 +694,8 @@ class ParticleTracker:
             pred = lt.pelvis[:2] + v * min(gap, 1.0)
             d = float(np.linalg.norm(pel[:2] - pred))
             bd = self._bone_diff(bones, lt.bones)
-            if d < cfg.reid_dist_m + cfg.reid_speed_mps * gap and bd < cfg.reid_bone_tol_m:
+            reach = cfg.reid_dist_m + cfg.reid_speed_mps * gap + cfg.pause_gate_m * (self.pauses - lt.pauses)
+            if d < reach and bd < cfg.reid_bone_tol_m:
                 cost = d + 10.0 * bd
                 if cost < best_cost:
                     best, best_cost = lt, cost
@@ -683,9 +786,12 @@ def track_sequence(
     frames: np.ndarray | None = None,
     progress: Progress | None = None,
     maps_at=None,
+    t_ns: np.ndarray | None = None,
 ) -> TrackArrays:
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
-    ``maps_at(t)``: optional, the C :class:`track.observation.CameraMaps` (or None) of frame t.
+    ``maps_at(t)``: optional, the C :class:`track.observation.CameraMaps` (or None) of frame t. Frame
+    times come from ``t_ns`` (T,), else from the frame numbers ``frames`` at the tracker's rate
+    (:func:`triangulate.tracker.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
 
     Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
     (``trim_coast``) and tracks with less evidence than ``min_track_s`` are removed.
@@ -695,12 +801,23 @@ def track_sequence(
     cfg = tracker.config
     T = len(kp)
     frames = np.arange(T) if frames is None else np.asarray(frames)
+    if len(frames) != T or (t_ns is not None and len(t_ns) != T):
+        raise ValueError(f"frames and t_ns must have one entry per frame ({T})")
+    if t_ns is not None and T > 1 and np.any(t_ns) and not (np.diff(np.asarray(t_ns, np.int64)) > 0).all():
+        bad = int(np.flatnonzero(np.diff(np.asarray(t_ns, np.int64)) <= 0)[0]) + 1
+        raise ValueError(
+            f"frame {int(frames[bad])}: its timestamp does not follow the previous frame's; "
+            "t_ns must increase (all zeros = no timestamps: times from the frame numbers)"
+        )
+    t_s = frame_times_s(frames, t_ns, tracker.fps)
     J = tracker.skeleton.n_joints
     per_frame: list[FrameEstimate] = []
     times = np.zeros(T)
     for t in range(T):
         t0 = time.perf_counter()
-        per_frame.append(tracker.step(kp[t], sc[t], t, None if maps_at is None else maps_at(t)))
+        per_frame.append(
+            tracker.step(kp[t], sc[t], t, None if maps_at is None else maps_at(t), float(t_s[t]))
+        )
         times[t] = time.perf_counter() - t0
         if progress is not None:
             progress("track", t + 1, T)
@@ -725,6 +842,12 @@ def track_sequence(
             e.n_views,
         )
         seen[t, ks] = e.evidence
+    # frames coasted after a pause of the recorder (no evidence since before it): the filter's guess across
+    # an unknown stretch of time, never output (as the greedy tracker never fills across a pause)
+    _, pauses = pause_clock(t_s, cfg.max_gap_s, tracker.fps)
+    last_ev = np.maximum.accumulate(np.where(seen, np.arange(T)[:, None], -1), axis=0)  # (T,K)
+    across = ~seen & (last_ev >= 0) & (pauses[:, None] != pauses[np.maximum(last_ev, 0)])
+    xyz[across], std[across], conf[across], flags[across] = np.nan, np.nan, 0, 0
     if cfg.trim_coast:
         for k in range(K):  # drop every frame after the last evidence of each contiguous segment
             alive = np.isfinite(xyz[:, k]).all(-1).any(-1)
@@ -739,9 +862,10 @@ def track_sequence(
                 ev = np.flatnonzero(seen[s:t, k])
                 cut = s + (ev[-1] + 1 if len(ev) else 0)
                 xyz[cut:t, k], std[cut:t, k], conf[cut:t, k], flags[cut:t, k] = np.nan, np.nan, 0, 0
-    if cfg.smooth_sigma_frames > 0:
+    sigma_s = cfg.smooth_sigma_s or 0.0
+    if sigma_s > 0:
         known = np.isfinite(xyz).all(-1)
-        xyz = smooth_time(xyz, cfg.smooth_sigma_frames)
+        xyz = _smooth(xyz, t_s, sigma_s, cfg.max_gap_s, tracker.fps).astype(np.float32)
         flags = np.where(known, flags | SMOOTHED, flags).astype(np.uint8)
     keep = seen.sum(0) >= max(1, int(round(cfg.min_track_s * tracker.fps)))
     return TrackArrays(

@@ -180,7 +180,7 @@ def track_session_particle(
     maps_at = load_maps(lay, sub, mv.frame_index) if cfg.use_maps else None
     if maps_at is not None:
         log.info("particle tracker: weighing samples with the stored confidence maps + PAFs (eq. 5.8)")
-    res = track_sequence(tracker, kp, sc, mv.frame_index, progress=progress, maps_at=maps_at)
+    res = track_sequence(tracker, kp, sc, mv.frame_index, progress=progress, maps_at=maps_at, t_ns=mv.t_ns)
     tf = track_arrays_to_file(
         res,
         mv.frame_index,

@@ -1,0 +1,292 @@
+"""The live 3D wiring of ``capture-run --live``: every synchronised frame set is a batch of one frame.
+
+``capture`` records and synchronises (``capture.live.LiveRunner`` runs stages on each frame set); the
+stages themselves use the later stages' functions, so they live here, on top of the stage order
+(issue 16): ``capture-run`` is :func:`main` of this module (``capture.cli`` with these stages injected),
+``python -m pipeline.live`` the same.
+
+Stages (``STAGES``, one line each, built by the same functions the batch stages call):
+
+- ``keypoints``: :class:`keypoints.pipeline.KeypointPipeline` on the frame set's images;
+- ``triangulate``: the detections converted to ``body19`` and undistorted (``step.outputs["kp_px"]``,
+  ``["kp_score"]``, shared with the tracker) and :class:`triangulate.reconstruct.FrameReconstructor`
+  (``poses3d``);
+- ``track``: one step of the recursive particle filter (seed ch. 5,
+  :class:`track.particle.ParticleTracker`) per frame set, at the set's time ``t_ns``: a track's
+  identity is given once and never changed; its state is what the next step needs, so the cost of a
+  step does not grow with the session's length. Estimates are appended to the live track file in
+  chunks of ``CHUNK_FRAMES`` frames: ``track/live/part_NNNNNN.npz`` (each a whole ``tracks/1`` file of its
+  frames, written atomically, never rewritten) and ``track/live/index.json`` (rewritten atomically after
+  each part); :func:`load_live_tracks` joins them. A reader therefore always sees whole files.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibrate.camera import CameraRig
+from capture.cli import make_main
+from capture.config import CaptureConfig
+from capture.live import LiveStep, Stage
+from capture.session import SessionLayout
+from core.fileio import atomic_write_text
+from keypoints.skeletons import CANONICAL, convert
+from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
+from track.stage import focal_lengths
+from track.trackfile import TrackFile
+from triangulate.reconstruct import FrameReconstructor
+
+log = logging.getLogger(__name__)
+
+CHUNK_FRAMES = 50  # frame sets per part of the live track file (2 s at 25 Hz)
+LIVE_DIR = "live"  # under the session's track folder
+
+
+@dataclass
+class LiveContext:
+    cfg: CaptureConfig
+    layout: SessionLayout
+    rig: CameraRig | None  # when cams.yaml names a calibration
+    particle: ParticleConfig | None = None  # the live tracker's settings (default ParticleConfig())
+    chunk_frames: int = CHUNK_FRAMES
+
+
+def live_dir(layout: SessionLayout) -> Path:
+    return layout.tracks.parent / LIVE_DIR
+
+
+# ----------------------------------------------------------------------------- stages (batch functions)
+
+
+def _keypoints(ctx: LiveContext) -> Stage:
+    from keypoints.pipeline import KeypointPipeline  # lazy: loads onnxruntime
+
+    pipe = KeypointPipeline()
+
+    def stage(step: LiveStep) -> None:
+        frames = [step.frameset.frames[c] for c in step.cameras]
+        present = [i for i, f in enumerate(frames) if f is not None and f.image is not None]
+        results = pipe([frames[i].image for i in present])
+        step.outputs["detections"] = {step.cameras[i]: r for i, r in zip(present, results, strict=True)}
+
+    return stage
+
+
+def _rig(ctx: LiveContext, what: str) -> CameraRig:
+    if ctx.rig is None:
+        raise RuntimeError(f"{what} needs a calibration: set 'calibration: path/to/rig.toml' in cams.yaml")
+    return ctx.rig.subset(list(ctx.cfg.names))
+
+
+def frame_arrays(step: LiveStep, rig: CameraRig) -> tuple[np.ndarray, np.ndarray]:
+    """The frame set's detections as body19, undistorted: kp (C,P,J,2) px (NaN = missing), sc (C,P,J).
+    Computed once per step (``step.outputs["kp_px"]``, ``["kp_score"]``)."""
+    if "kp_px" in step.outputs:
+        return step.outputs["kp_px"], step.outputs["kp_score"]
+    dets = step.outputs.get("detections", {})
+    J = CANONICAL.n_joints
+    P = max([len(d.xy_px) for d in dets.values()], default=0)
+    C = len(step.cameras)
+    xy = np.full((C, P, J, 2), np.nan, np.float32)
+    sc = np.zeros((C, P, J), np.float32)
+    for c, cam in enumerate(step.cameras):
+        d = dets.get(cam)
+        if d is None or not len(d.xy_px):
+            continue
+        dxy, dsc = np.asarray(d.xy_px), np.asarray(d.score)
+        skel = getattr(d, "skeleton", CANONICAL.id)
+        if skel != CANONICAL.id:
+            dxy, dsc = convert(dxy, dsc, skel, CANONICAL)
+        xy[c, : len(dxy)] = rig[cam].undistort_px(dxy)
+        sc[c, : len(dxy)] = dsc
+    step.outputs["kp_px"], step.outputs["kp_score"] = xy, sc
+    return xy, sc
+
+
+def _triangulate(ctx: LiveContext) -> Stage:
+    rig = _rig(ctx, "triangulation")
+    rec = FrameReconstructor(
+        rig.projection_matrices(), rig.fundamental_matrices(), None, None, CANONICAL.joint_names
+    )
+
+    def stage(step: LiveStep) -> None:
+        xy, sc = frame_arrays(step, rig)
+        step.outputs["poses3d"] = rec(xy.astype(np.float64), sc)
+
+    return stage
+
+
+class LiveTrackWriter:
+    """Appends per-frame estimates to ``track/live/`` in whole parts (see the module doc). Only the open
+    part's frames are held in memory."""
+
+    def __init__(
+        self, folder: Path, fps: float, calibration_sha256: str = "", chunk_frames: int = CHUNK_FRAMES
+    ):
+        self.folder, self.fps, self.sha = Path(folder), float(fps), calibration_sha256
+        self.chunk = max(1, int(chunk_frames))
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.parts: list[dict] = []
+        self._rows: list[tuple[int, int, FrameEstimate]] = []
+
+    def add(self, frame_index: int, t_ns: int, est: FrameEstimate) -> None:
+        self._rows.append((int(frame_index), int(t_ns), est))
+        if len(self._rows) >= self.chunk:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the open part (if any) and the index."""
+        if not self._rows:
+            return
+        rows, self._rows = self._rows, []
+        ids = sorted({int(i) for _, _, e in rows for i in e.track_id})
+        col = {tid: k for k, tid in enumerate(ids)}
+        T, K, J = len(rows), len(ids), CANONICAL.n_joints
+        xyz = np.full((T, K, J, 3), np.nan, np.float32)
+        std = np.full((T, K, J), np.nan, np.float32)
+        conf = np.zeros((T, K, J), np.float32)
+        flags = np.zeros((T, K, J), np.uint8)
+        for t, (_, _, e) in enumerate(rows):
+            if len(e.track_id):
+                ks = np.asarray([col[int(i)] for i in e.track_id])
+                xyz[t, ks], std[t, ks], conf[t, ks], flags[t, ks] = e.xyz_m, e.std_m, e.confidence, e.flags
+        tf = TrackFile(
+            fps=self.fps,
+            frame_index=np.asarray([r[0] for r in rows], np.int64),
+            t_ns=np.asarray([r[1] for r in rows], np.int64),
+            track_id=np.asarray(ids, np.int64),
+            joint_names=CANONICAL.joint_names,
+            parents=np.asarray(CANONICAL.parents),
+            xyz_m=xyz,
+            confidence=conf,
+            std_m=std,
+            flags=flags,
+            calibration_sha256=self.sha,
+            source="pipeline.live (track.particle, one step per frame set)",
+        )
+        name = f"part_{len(self.parts):06d}.npz"
+        tf.save(self.folder / name)  # atomic
+        self.parts.append({"file": name, "first_frame": int(tf.frame_index[0]), "frames": T})
+        index = {"schema": "live_tracks/1", "fps": self.fps, "parts": self.parts}
+        atomic_write_text(self.folder / "index.json", json.dumps(index, indent=1))
+
+
+def load_live_tracks(folder: str | Path) -> TrackFile:
+    """The live track file: the parts listed in ``index.json`` joined in time (columns = every track id,
+    sorted). A part missing or unreadable raises a clear error (a reader never sees a partial part)."""
+    folder = Path(folder)
+    idx_path = folder / "index.json"
+    if not idx_path.exists():
+        raise FileNotFoundError(
+            f"{idx_path} not found: no live track parts written yet (run capture-run --live)"
+        )
+    index = json.loads(idx_path.read_text(encoding="utf-8"))
+    parts = [TrackFile.load(folder / p["file"]) for p in index["parts"]]
+    if not parts:
+        raise ValueError(f"{idx_path} lists no parts")
+    ids = sorted({int(i) for p in parts for i in p.track_id})
+    col = {tid: k for k, tid in enumerate(ids)}
+    T, K, J = sum(p.n_frames for p in parts), len(ids), len(parts[0].joint_names)
+    xyz = np.full((T, K, J, 3), np.nan, np.float32)
+    std = np.full((T, K, J), np.nan, np.float32)
+    conf = np.zeros((T, K, J), np.float32)
+    flags = np.zeros((T, K, J), np.uint8)
+    t0 = 0
+    for p in parts:
+        ks = np.asarray([col[int(i)] for i in p.track_id], np.int64)
+        sl = slice(t0, t0 + p.n_frames)
+        if len(ks):
+            xyz[sl, ks], std[sl, ks], conf[sl, ks], flags[sl, ks] = p.xyz_m, p.std_m, p.confidence, p.flags
+        t0 += p.n_frames
+    return TrackFile(
+        fps=parts[0].fps,
+        frame_index=np.concatenate([p.frame_index for p in parts]),
+        t_ns=np.concatenate([p.t_ns for p in parts]),
+        track_id=np.asarray(ids, np.int64),
+        joint_names=parts[0].joint_names,
+        parents=parts[0].parents,
+        xyz_m=xyz,
+        confidence=conf,
+        std_m=std,
+        flags=flags,
+        calibration_sha256=parts[0].calibration_sha256,
+        source=parts[0].source,
+    )
+
+
+def _track(ctx: LiveContext) -> Stage:
+    rig = _rig(ctx, "tracking")
+    fps = max(c.fps or 30.0 for c in ctx.cfg.cameras)
+    tracker = ParticleTracker(rig.projection_matrices(), focal_lengths(rig), fps, ctx.particle)
+    writer = LiveTrackWriter(live_dir(ctx.layout), fps, rig.sha256(), ctx.chunk_frames)
+    clock = {"t0": None, "last": None, "n": 0}
+
+    def stage(step: LiveStep) -> None:
+        t_ns = int(step.frameset.t_ns)
+        if clock["t0"] is None:
+            clock["t0"] = t_ns
+        if clock["last"] is not None and t_ns <= clock["last"]:
+            log.warning(
+                "live track: frame set %d at %d ns does not follow the last one; skipped",
+                step.frameset.index,
+                t_ns,
+            )
+            return
+        clock["last"] = t_ns
+        xy, sc = frame_arrays(step, rig)
+        est = tracker.step(xy, sc, clock["n"], t_s=(t_ns - clock["t0"]) / 1e9)
+        clock["n"] += 1
+        writer.add(step.frameset.index, t_ns, est)
+        step.outputs["tracks"] = est
+        if step.outputs.get("final"):
+            writer.flush()
+
+    stage.writer = writer  # type: ignore[attr-defined]  # the bench and tests read the parts it wrote
+    stage.tracker = tracker  # type: ignore[attr-defined]
+    stage.close = writer.flush  # type: ignore[attr-defined]  # the runner calls it when the recording ends
+    return stage
+
+
+# the live pipeline: one line per stage, same functions as the batch stages
+STAGES: dict[str, Callable[[LiveContext], Stage]] = {
+    "keypoints": _keypoints,
+    "triangulate": _triangulate,
+    "track": _track,
+}
+
+
+def build_stages(cfg: CaptureConfig, layout: SessionLayout) -> tuple[dict[str, Stage], dict[str, str]]:
+    """The stages ``cfg.live.stages`` names, for :class:`capture.live.LiveRunner`; a stage that cannot be
+    built (no calibration, a package missing) is left out with a warning. Returns (stages, errors)."""
+    rig = None
+    if cfg.calibration:
+        try:
+            p = Path(cfg.calibration)
+            if not p.is_absolute() and cfg.path:
+                p = Path(cfg.path).parent / p
+            rig = CameraRig.load(p)
+        except Exception as e:  # noqa: BLE001 - live keeps recording without 3D
+            log.warning("live: cannot load calibration %s (%s); 3D stages are off", cfg.calibration, e)
+    ctx = LiveContext(cfg, layout, rig)
+    out: dict[str, Stage] = {}
+    errors: dict[str, str] = {}
+    for name in cfg.live.stages:
+        try:
+            out[name] = STAGES[name](ctx)
+        except Exception as e:  # noqa: BLE001 - any failure to build a stage: skip it, say why
+            log.warning("live: stage %r is not available (%s); skipping it", name, e)
+            errors[name] = str(e)
+    return out, errors
+
+
+main = make_main(build_stages)
+
+if __name__ == "__main__":
+    sys.exit(main())
