@@ -67,13 +67,15 @@ def live_dir(layout: SessionLayout) -> Path:
 
 def _keypoints(ctx: LiveContext) -> Stage:
     from keypoints.pipeline import KeypointPipeline  # lazy: loads onnxruntime
+    from keypoints.presets import preset_config  # lazy: loads onnxruntime
 
-    pipe = KeypointPipeline()
+    # the default preset with the cameras as streams: each person's crop follows from the last frame set
+    pipe = KeypointPipeline(preset_config(skeleton="body19"))
 
     def stage(step: LiveStep) -> None:
         frames = [step.frameset.frames[c] for c in step.cameras]
         present = [i for i, f in enumerate(frames) if f is not None and f.image is not None]
-        results = pipe([frames[i].image for i in present])
+        results = pipe([frames[i].image for i in present], streams=[step.cameras[i] for i in present])
         step.outputs["detections"] = {step.cameras[i]: r for i, r in zip(present, results, strict=True)}
 
     return stage
