@@ -44,15 +44,27 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class GreedyTrackConfig:
-    """The greedy track stage: the tracker's settings (see :class:`TrackerConfig`)."""
+    """The greedy track stage: the tracker's settings (see :class:`TrackerConfig`).
+
+    chunk_s: stream the session in time chunks of this many seconds (issue 17,
+    :mod:`triangulate.stream_track`): bounded memory, output ``track/tracks.parts/`` (one tracks/1
+    file per chunk, global track ids, an index with sizes and hashes), a killed run resumes at the
+    last complete chunk; the result equals the whole session's. 0 = at once into ``tracks.npz``."""
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    chunk_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.chunk_s >= 0:
+            raise ValueError(f"GreedyTrackConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
 
     @classmethod
     def from_dict(cls, d: dict) -> GreedyTrackConfig:
         if "tracker" in d:
             return config_from_dict(cls, d)
-        return cls(tracker=TrackerConfig.from_dict(d))  # flat dict of tracker keys
+        d = dict(d)
+        chunk_s = float(d.pop("chunk_s", 0.0))
+        return cls(tracker=TrackerConfig.from_dict(d), chunk_s=chunk_s)  # flat dict of tracker keys
 
 
 def _as_config(cls, config):
@@ -676,13 +688,17 @@ def _triangulate_chunked(
 def track_session_greedy(
     session_dir: str | os.PathLike, config: GreedyTrackConfig | TrackerConfig | dict | None = None
 ) -> Path:
-    """The chapter-4 tracker on ``triangulate/poses3d.npz``; writes ``track/tracks.npz``."""
+    """The chapter-4 tracker on ``triangulate/poses3d.npz`` (or its parts); writes ``track/tracks.npz``
+    (with ``chunk_s`` > 0: ``track/tracks.parts/``, streamed, resumable; ``TrackFile.load`` reads either)."""
     if isinstance(config, TrackerConfig):
         config = GreedyTrackConfig(tracker=config)
     cfg = _as_config(GreedyTrackConfig, config)
     lay = SessionLayout(session_dir)
-    path = require(lay.poses3d, "triangulate/poses3d.npz", "Run the triangulate stage first.")
-    p = Poses3D.load(path)
+    if not lay.poses3d.exists() and not parts_dir(lay.poses3d).is_dir():
+        require(lay.poses3d, "triangulate/poses3d.npz", "Run the triangulate stage first.")
+    if cfg.chunk_s > 0:
+        return _track_chunked(lay, cfg)
+    p = Poses3D.load(lay.poses3d)
     tf = track_poses(
         p.xyz_m.astype(np.float64),
         p.frame_index,
@@ -695,6 +711,125 @@ def track_session_greedy(
         config=cfg.tracker,
         calibration_sha256=p.calibration_sha256,
     )
+    remove_output(lay.tracks)
     tf.save(lay.tracks)
     log.info("greedy tracker: %d tracks over %d frames", tf.n_tracks, tf.n_frames)
+    return lay.tracks
+
+
+class PosesReader:
+    """Frames [a, b) of ``poses3d.npz`` or of its parts, reading only the parts a range touches."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._cache: dict[int, Poses3D] = {}
+        if path.exists():
+            self.whole: Poses3D | None = Poses3D.load(path)
+            self.spans = [(0, self.whole.n_frames, path)]
+            self.stamp: object = file_stamp(path)
+            head = self.whole
+        else:
+            self.whole = None
+            store = PartStore(parts_dir(path), "poses3d")
+            self.spans = store.checked_parts()
+            self.stamp = (
+                store.index["key"],
+                [store.index["parts"][k]["sha256"] for k in sorted(store.index["parts"])],
+            )
+            head = Poses3D.load(self.spans[0][2])
+        self.fps, self.joint_names = head.fps, head.joint_names
+        self.parents = head.parents
+        self.calibration_sha256 = head.calibration_sha256
+        if self.whole is not None:
+            self.frame_index, self.t_ns = self.whole.frame_index, self.whole.t_ns
+        else:  # the frame axis of every part (small)
+            fi, tn = [], []
+            for _, _, p in self.spans:
+                with NpzRows(p) as r:
+                    fi.append(r.full("frame_index"))
+                    tn.append(r.full("t_ns"))
+            self.frame_index, self.t_ns = np.concatenate(fi), np.concatenate(tn)
+
+    def _part(self, i: int) -> Poses3D:
+        if self.whole is not None:
+            return self.whole
+        if i not in self._cache:
+            if len(self._cache) >= 3:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[i] = Poses3D.load(self.spans[i][2])
+        return self._cache[i]
+
+    def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        xs, cs, ss = [], [], []
+        for i, (f0, f1, _) in enumerate(self.spans):
+            if f1 <= a or f0 >= b:
+                continue
+            p = self._part(i)
+            sl = slice(max(a - f0, 0), min(b, f1) - f0)
+            xs.append(p.xyz_m[sl])
+            cs.append(p.score[sl])
+            ss.append(p.std_m[sl])
+        P = max(x.shape[1] for x in xs)
+
+        def cat(arrs, fill):
+            return np.concatenate(
+                [
+                    np.pad(x, [(0, 0), (0, P - x.shape[1])] + [(0, 0)] * (x.ndim - 2), constant_values=fill)
+                    for x in arrs
+                ]
+            )
+
+        return cat(xs, np.nan), cat(cs, 0.0), cat(ss, np.nan)
+
+
+def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
+    """The streaming greedy tracker (:mod:`triangulate.stream_track`), one track part per chunk."""
+    from triangulate.reconstruct import flip_index
+    from triangulate.stream_track import build_chunks, link_chunks
+    from triangulate.tracker import frame_times_s
+    from triangulate.trackfile import TrackFile
+
+    read = PosesReader(lay.poses3d)
+    fps = read.fps
+    tcfg = cfg.tracker.at_fps(fps)
+    parents = np.asarray(
+        skeleton_from_names(read.joint_names).parents if read.parents is None else read.parents
+    )
+    flip = flip_index(read.joint_names) if tcfg.fix_mirrored else None
+    t_s = frame_times_s(read.frame_index, read.t_ns, fps)
+    T = len(t_s)
+    step = max(int(round(cfg.chunk_s * fps)), 1)
+    chunks = [(a, min(a + step, T)) for a in range(0, T, step)]
+    key = hash_key(["tracks", repr(cfg), read.stamp])
+    if lay.tracks.exists():
+        lay.tracks.unlink()
+    store = PartStore(parts_dir(lay.tracks), "tracks")
+    todo = set(store.open(key, chunks, {"fps": fps, "n_frames": T}))
+    if todo and len(todo) < len(chunks):
+        log.info(
+            "greedy tracker: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
+        )
+    if todo:
+        labels, mirrored, final = link_chunks(read, chunks, tcfg, fps, flip, t_s)
+        for i, ch in build_chunks(read, chunks, labels, mirrored, final, tcfg, parents, flip, fps, t_s, todo):
+            TrackFile(
+                fps=fps,
+                frame_index=read.frame_index[ch.a : ch.b],
+                t_ns=read.t_ns[ch.a : ch.b],
+                track_id=ch.track_id,
+                joint_names=read.joint_names,
+                parents=parents,
+                xyz_m=ch.xyz_m,
+                confidence=np.clip(ch.confidence, 0, 1),
+                std_m=ch.std_m,
+                flags=ch.flags,
+                calibration_sha256=read.calibration_sha256,
+                source="triangulate.tracker (greedy, ch. 4; streamed)",
+            ).save(store.part_path(i))
+            store.commit(i)
+        n_tracks = int(final.max(initial=-1)) + 1
+    else:
+        n_tracks = -1
+    store.finish({"n_tracks": n_tracks} if n_tracks >= 0 else None)
+    log.info("greedy tracker (streamed): %d chunks, %s tracks over %d frames", len(chunks), n_tracks, T)
     return lay.tracks
