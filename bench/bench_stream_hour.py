@@ -97,6 +97,7 @@ def _evaluate(folder: str, np) -> dict:
         t += tf.n_frames
     out = {k: v / max(n_w, 1.0) for k, v in sums.items()}
     out["tracks"] = len(tracks)
+    out["gt_people"] = int(np.isfinite(gt_all).all(-1).any(-1).any(0).sum())
     out["frames"] = int(t)
     return out
 
@@ -154,9 +155,10 @@ def main() -> int:
     ap.add_argument("--chunk-s", type=float, default=60.0)
     ap.add_argument("--work", default="/tmp/roomcap_bench_stream")
     ap.add_argument("--no-kill", action="store_true")
-    a, rest = ap.parse_known_args()
+    ap.add_argument("--synthetic", default="[]", help=argparse.SUPPRESS)
+    a = ap.parse_args()
     if a.stage:
-        _stage(a.stage[0], a.stage[1], a.chunk_s, rest)
+        _stage(a.stage[0], a.stage[1], a.chunk_s, json.loads(a.synthetic))
         return 0
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -171,7 +173,8 @@ def main() -> int:
             "--seconds", str(60 * minutes), "--chunk-s", str(a.chunk_s),
         ]  # fmt: skip
         r = {"minutes": minutes, "frames": int(round(60 * minutes * 25))}
-        r["synthetic"] = _child(["--stage", "synthetic", str(folder), *gen])
+        # the generator's options after "--synthetic", so this parser does not take --cams/--people
+        r["synthetic"] = _child(["--stage", "synthetic", str(folder), "--synthetic", json.dumps(gen)])
         r["triangulate"] = _child(["--stage", "triangulate", str(folder), "--chunk-s", str(a.chunk_s)])
         r["track"] = _child(["--stage", "track", str(folder), "--chunk-s", str(a.chunk_s)])
         r["metrics"] = _child(["--stage", "evaluate", str(folder)])
