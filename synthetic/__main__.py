@@ -12,6 +12,7 @@ import sys
 from core.cli import guarded, nonnegative_int, positive_float, positive_int
 from synthetic import render as R
 from synthetic import rigs, world
+from synthetic.chunked import write_session_chunked
 
 
 def _main(argv: list[str] | None = None) -> int:
@@ -33,6 +34,13 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--missed-detections", type=float, default=0.02)
     ap.add_argument("--time-offset-std-frames", type=float, default=0.0)
     ap.add_argument("--time-drift-std-ppm", type=float, default=0.0)
+    ap.add_argument(
+        "--chunk-s",
+        type=float,
+        default=None,
+        help="render and write in time chunks of this many seconds (bounded memory; default 60 for "
+        "sessions over 5 minutes without time offsets, else 0 = at once)",
+    )
     a = ap.parse_args(argv)
     if a.rig == "kitchen":
         rig, room = rigs.kitchen_rig(a.cams, seed=a.seed), rigs.kitchen_room()
@@ -60,7 +68,14 @@ def _main(argv: list[str] | None = None) -> int:
         time_drift_std_ppm=a.time_drift_std_ppm,
         seed=a.seed,
     )
-    lay = world.write_session(scene, R.render(scene, rig, cfg), rig, a.out)
+    chunk_s = a.chunk_s
+    if chunk_s is None:
+        plain = not (a.time_offset_std_frames or a.time_drift_std_ppm)
+        chunk_s = 60.0 if a.seconds > 300 and plain else 0.0
+    if chunk_s > 0:
+        lay = write_session_chunked(scene, rig, cfg, a.out, chunk_s)
+    else:
+        lay = world.write_session(scene, R.render(scene, rig, cfg), rig, a.out)
     print(
         f"wrote {lay.root}: {len(rig)} cameras, {scene.n_people} people ({', '.join(scene.clip_names)}), "
         f"{scene.n_frames} frames at {scene.fps:g} fps"

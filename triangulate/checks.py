@@ -46,16 +46,16 @@ def check_frame_order(det: Detections, path: Path) -> None:
         )
 
 
-def detection_warnings(dets: Sequence[Detections]) -> list[str]:
-    """What looks wrong across the cameras' detections (no detection at all, unalignable lengths)."""
+def no_detection_warning(camera: str, n_frames: int) -> str:
+    return (
+        f"camera '{camera}' has no detection in its {n_frames} frames: check its video "
+        "(covered, dark, pointing away) and its keypoints file; the 3D uses the other cameras."
+    )
+
+
+def span_warnings(dets: Sequence[Detections]) -> list[str]:
+    """Cameras covering different frames with no timestamps (needs ``camera``, ``frame_index``, ``t_ns``)."""
     out = []
-    for d in dets:
-        seen = np.isfinite(np.asarray(d.xy_px)[..., 0]) & (np.nan_to_num(np.asarray(d.score)) > 0)
-        if len(d.frame_index) == 0 or not seen.any():
-            out.append(
-                f"camera '{d.camera}' has no detection in its {len(d.frame_index)} frames: check its video "
-                "(covered, dark, pointing away) and its keypoints file; the 3D uses the other cameras."
-            )
     spans = {d.camera: (int(d.frame_index[0]), int(d.frame_index[-1])) for d in dets if len(d.frame_index)}
     timed = all((np.asarray(d.t_ns) != 0).any() for d in dets if len(d.frame_index))
     if len(set(spans.values())) > 1 and not timed:
@@ -66,3 +66,13 @@ def detection_warnings(dets: Sequence[Detections]) -> list[str]:
             "only if every camera started together. Record with timestamps or run `capture-run sync`."
         )
     return out
+
+
+def detection_warnings(dets: Sequence[Detections]) -> list[str]:
+    """What looks wrong across the cameras' detections (no detection at all, unalignable lengths)."""
+    out = []
+    for d in dets:
+        seen = np.isfinite(np.asarray(d.xy_px)[..., 0]) & (np.nan_to_num(np.asarray(d.score)) > 0)
+        if len(d.frame_index) == 0 or not seen.any():
+            out.append(no_detection_warning(d.camera, len(d.frame_index)))
+    return out + span_warnings(dets)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.fileio import FormatError, check_schema, load_npz, npz_str, require_keys, save_npz, schema_tag
+from triangulate.chunks import PartStore, parts_dir
 
 SCHEMA = "poses3d"
 VERSION = 1
@@ -93,6 +94,43 @@ class Poses3D:
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dtype))
         object.__setattr__(self, "joint_names", tuple(str(n) for n in self.joint_names))
 
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_index)
+
+    @classmethod
+    def concat(cls, parts: list[Poses3D]) -> Poses3D:
+        """Consecutive chunks joined along time (people slots padded to the widest chunk)."""
+        if not parts:
+            raise FormatError(None, None, "no poses3d parts to join.")
+        P = max(p.xyz_m.shape[1] for p in parts)
+
+        def pad(name: str, fill) -> np.ndarray:
+            arrs = []
+            for p in parts:
+                a = getattr(p, name)
+                w = [(0, 0)] * a.ndim
+                w[1] = (0, P - a.shape[1])
+                arrs.append(np.pad(a, w, constant_values=fill))
+            return np.concatenate(arrs)
+
+        p0 = parts[0]
+        return cls(
+            fps=p0.fps,
+            frame_index=np.concatenate([p.frame_index for p in parts]),
+            t_ns=np.concatenate([p.t_ns for p in parts]),
+            joint_names=p0.joint_names,
+            xyz_m=pad("xyz_m", np.nan),
+            score=pad("score", 0),
+            reproj_err_px=pad("reproj_err_px", np.nan),
+            n_views=pad("n_views", 0),
+            calibration_sha256=p0.calibration_sha256,
+            std_m=pad("std_m", np.nan),
+            parents=p0.parents,
+            cameras=p0.cameras,
+            reproj_err_cam_px=None if p0.cameras is None else pad("reproj_err_cam_px", np.nan),
+        )
+
     def save(self, path: str | os.PathLike) -> None:
         extra = {}
         if self.cameras is not None:
@@ -118,7 +156,10 @@ class Poses3D:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Poses3D:
+        """The file, or where only ``poses3d.parts/`` exists (a chunked run) its parts joined."""
         path = Path(path)
+        if not path.exists() and parts_dir(path).is_dir():
+            return cls.concat([cls.load(p) for _, _, p in PartStore(parts_dir(path), SCHEMA).checked_parts()])
         data = load_npz(path, required=("schema",))
         check_schema(data["schema"], SCHEMA, (VERSION,), path)
         require_keys(path, data, _KEYS)  # after the schema check, on the arrays already read

@@ -63,6 +63,10 @@ class TriangulateConfig:
       hand points; :func:`keypoints.skeletons.whole_body`), or the path of a skeleton TOML (a lab's
       own joints, animals included: :func:`keypoints.skeletons.load_skeleton_toml`). The greedy
       tracker carries any of them; the particle tracker and forecasting work on body19.
+    chunk_s: stream the session in time chunks of this many seconds (issue 17): detections are read
+      chunk by chunk and the output is written as ``poses3d.parts/`` (one poses3d file per chunk with
+      an index, :mod:`triangulate.chunks`), so memory does not grow with the session and a killed run
+      resumes at the last complete chunk; 0 = the whole session at once into ``poses3d.npz``.
     """
 
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -72,8 +76,11 @@ class TriangulateConfig:
     fix_flips: bool = True
     merge_dist_m: float = 0.25
     skeleton: str = "body19"
+    chunk_s: float = 0.0
 
     def __post_init__(self) -> None:
+        if not self.chunk_s >= 0:
+            raise ValueError(f"TriangulateConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
         if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
             raise ValueError(
                 f"TriangulateConfig.skeleton must be 'body19', 'whole_body' or a skeleton TOML file "

@@ -26,13 +26,15 @@ from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.skeletons import (
     CANONICAL,
+    Skeleton,
     convert,
     get_skeleton,
     load_skeleton_toml,
     skeleton_from_names,
     whole_body,
 )
-from triangulate.checks import check_frame_order, detection_warnings
+from triangulate.checks import check_frame_order, detection_warnings, no_detection_warning, span_warnings
+from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir, remove_output
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 from triangulate.tracker import TrackerConfig, track_poses
@@ -42,15 +44,27 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class GreedyTrackConfig:
-    """The greedy track stage: the tracker's settings (see :class:`TrackerConfig`)."""
+    """The greedy track stage: the tracker's settings (see :class:`TrackerConfig`).
+
+    chunk_s: stream the session in time chunks of this many seconds (issue 17,
+    :mod:`triangulate.stream_track`): bounded memory, output ``track/tracks.parts/`` (one tracks/1
+    file per chunk, global track ids, an index with sizes and hashes), a killed run resumes at the
+    last complete chunk; the result equals the whole session's. 0 = at once into ``tracks.npz``."""
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    chunk_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.chunk_s >= 0:
+            raise ValueError(f"GreedyTrackConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
 
     @classmethod
     def from_dict(cls, d: dict) -> GreedyTrackConfig:
         if "tracker" in d:
             return config_from_dict(cls, d)
-        return cls(tracker=TrackerConfig.from_dict(d))  # flat dict of tracker keys
+        d = dict(d)
+        chunk_s = float(d.pop("chunk_s", 0.0))
+        return cls(tracker=TrackerConfig.from_dict(d), chunk_s=chunk_s)  # flat dict of tracker keys
 
 
 def _as_config(cls, config):
@@ -147,19 +161,189 @@ def sync_shifts(layout: SessionLayout, cams: list[str], fps: float | None) -> di
     return out
 
 
-def load_detections(
-    layout: SessionLayout, rig: CameraRig, apply_sync: bool = True, skeleton: str = "body19"
-) -> tuple[CameraRig, MultiViewDetections]:
-    """Read every ``keypoints/<cam>.npz``, check it against the rig, align frames, convert and undistort.
+@dataclass
+class _CameraMeta:
+    """What the 3D stages need of one camera's detections file before reading its rows."""
 
-    Frames are matched across cameras by frame index after the sync offsets of session.toml
-    (``capture-run sync``, :func:`sync_shifts`) are applied (``apply_sync``): each camera's frames are
-    moved onto the reference camera's frame axis, to the nearest frame (the residual is under half a
-    frame; detections are not interpolated, their person slots are not identities). Frames that land
-    before reference frame 0 are dropped. ``skeleton``: the 3D joints, ``body19``, ``whole_body``
-    (body19 plus the joints the cameras' layouts add) or a skeleton TOML. Returns the rig restricted
-    to the cameras with detections (in rig order) and the detections.
-    """
+    camera: str
+    path: Path
+    skeleton: str
+    frame_index: np.ndarray  # (n,)
+    t_ns: np.ndarray  # (n,)
+    n_people: int
+    n_joints: int
+    reader: NpzRows | None = None
+    det: Detections | None = None  # the whole file, where it was loaded whole
+    seen: bool = False  # any detection read so far
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_index)
+
+    def rows(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """xy_px (b-a,P,J,2) and score (b-a,P,J) of rows [a, b) as float32."""
+        if self.det is not None:
+            return self.det.xy_px[a:b], self.det.score[a:b]
+        assert self.reader is not None
+        xy = self.reader.rows("xy_px", a, b).astype(np.float32, copy=False)
+        return xy, self.reader.rows("score", a, b).astype(np.float32, copy=False)
+
+
+def _camera_meta(path: Path, cam: str, stream: bool) -> _CameraMeta:
+    """Read one detections file's header arrays (streamed) or the whole file; check names and shapes."""
+    if not stream:
+        d = Detections.load(path)
+        meta = _CameraMeta(
+            d.camera, path, d.skeleton, d.frame_index, d.t_ns, d.max_people, d.xy_px.shape[2], det=d
+        )
+    else:
+        from capture.fileio import check_schema, npz_str
+
+        r = NpzRows(path)
+        need = ("schema", "camera", "skeleton", "frame_index", "t_ns", "xy_px", "score")
+        missing = [k for k in need if k not in r.names]
+        if missing:
+            r.close()
+            raise FormatError(
+                path,
+                missing[0],
+                f"required keys {missing} are missing.",
+                "See keypoints/detections.py for the detections file layout.",
+            )
+        check_schema(r.full("schema"), "detections", (1,), path)
+        small = {k: r.full(k) for k in ("camera", "skeleton")}
+        fi = np.asarray(r.full("frame_index"), np.int64)
+        t = np.asarray(r.full("t_ns"), np.int64)
+        xy_shape, _ = r.header("xy_px")
+        sc_shape, _ = r.header("score")
+        try:
+            J = get_skeleton(npz_str(small, "skeleton")).n_joints
+        except KeyError as e:
+            r.close()
+            raise FormatError(path, "skeleton", str(e)) from None
+        T = len(fi)
+        cam_name = npz_str(small, "camera")
+        for name, shape, want in (
+            ("t_ns", t.shape, (T,)),
+            ("xy_px", xy_shape, (T, None, J, 2)),
+            ("score", sc_shape, (T, None, J)),
+        ):
+            ok = len(shape) == len(want) and all(
+                w is None or w == s for w, s in zip(want, shape, strict=True)
+            )
+            if not ok or (len(shape) > 1 and shape[1] != xy_shape[1]):
+                r.close()
+                wants = tuple("P" if w is None else w for w in want)
+                raise FormatError(
+                    path,
+                    name,
+                    f"camera '{cam_name}': expected shape {wants} (T={T} frames), got {tuple(shape)}.",
+                    "Every array of a detections file has one row per frame; rewrite the file.",
+                )
+        meta = _CameraMeta(cam_name, path, npz_str(small, "skeleton"), fi, t, int(xy_shape[1]), J, reader=r)
+    if meta.camera != cam:
+        raise FormatError(
+            path,
+            "camera",
+            f"the file says camera '{meta.camera}' but is named after '{cam}'.",
+            "Rename the file or fix its 'camera' field.",
+        )
+    check_frame_order(meta, path)  # type: ignore[arg-type]  # frame_index, t_ns, camera
+    return meta
+
+
+@dataclass
+class DetectionPlan:
+    """How the cameras' detection rows land on the common frame axis (:func:`plan_detections`).
+
+    ``frames (T,)`` the reference frame numbers, ``t_ns (T,)`` their times; per camera ``rows[c]``
+    the file rows used and ``pos[c]`` their positions on the axis (both increasing)."""
+
+    cameras: tuple[str, ...]
+    rig: CameraRig
+    metas: list[_CameraMeta]
+    skel: Skeleton
+    frames: np.ndarray
+    t_ns: np.ndarray
+    rows: list[np.ndarray]
+    pos: list[np.ndarray]
+    offsets_frames: dict[str, float]
+    n_people: int
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    def close(self) -> None:
+        for m in self.metas:
+            if m.reader is not None:
+                m.reader.close()
+
+    def chunk(self, a: int, b: int) -> MultiViewDetections:
+        """The detections of axis positions [a, b): converted, undistorted, (C,b-a,P,J,...)."""
+        C, J = len(self.cameras), self.skel.n_joints
+        xy = np.full((C, b - a, self.n_people, J, 2), np.nan)
+        sc = np.zeros((C, b - a, self.n_people, J))
+        for ci, m in enumerate(self.metas):
+            lo, hi = np.searchsorted(self.pos[ci], [a, b])
+            if hi <= lo:
+                continue
+            rows = self.rows[ci][lo:hi]
+            r0, r1 = int(rows[0]), int(rows[-1]) + 1
+            bxy, bsc = m.rows(r0, r1)
+            bxy, bsc = bxy[rows - r0], bsc[rows - r0]
+            b19, s19 = convert(bxy, bsc, m.skeleton, self.skel)
+            s19 = np.where(np.isfinite(s19), s19, 0.0)
+            p = self.pos[ci][lo:hi] - a
+            xy[ci, p, : m.n_people] = self.rig[ci].undistort_px(b19)
+            sc[ci, p, : m.n_people] = s19
+            if not m.seen:
+                m.seen = bool((np.isfinite(bxy[..., 0]) & (np.nan_to_num(bsc) > 0)).any())
+        return MultiViewDetections(
+            self.cameras,
+            self.frames[a:b],
+            self.t_ns[a:b],
+            xy,
+            sc,
+            self.offsets_frames,
+            self.skel.joint_names,
+            self.skel.parents,
+        )
+
+
+def _check_rates(metas: list[_CameraMeta]) -> None:
+    """Cameras with timestamps at different frame rates cannot be matched by frame number."""
+    rates = {}
+    for m in metas:
+        t = m.t_ns[m.t_ns != 0]
+        if len(t) > 2 and (np.diff(m.frame_index[m.t_ns != 0]) > 0).all():
+            per_frame = np.diff(t) / np.diff(m.frame_index[m.t_ns != 0])
+            rates[m.camera] = 1e9 / float(np.median(per_frame))
+    if len(rates) > 1:
+        lo, hi = min(rates.values()), max(rates.values())
+        if hi > 1.05 * lo:
+            raise FormatError(
+                metas[0].path.parent,
+                None,
+                "the cameras run at different frame rates ("
+                + ", ".join(f"{c} {r:.2f} fps" for c, r in rates.items())
+                + "): frames are matched by frame number, which would pair different instants.",
+                "Resample the detections to one frame rate (or record at one rate) before the 3D stages.",
+            )
+
+
+def plan_detections(
+    layout: SessionLayout,
+    rig: CameraRig,
+    apply_sync: bool = True,
+    skeleton: str = "body19",
+    stream: bool = True,
+) -> DetectionPlan:
+    """Check every ``keypoints/<cam>.npz`` against the rig and put the cameras' frames on one axis.
+
+    With ``stream`` only the frame numbers and timestamps are read now; :meth:`DetectionPlan.chunk`
+    reads the rows of a time chunk (memory bounded by the chunk, not the session). See
+    :func:`load_detections` for the alignment."""
     kp_cams = layout.detection_cameras()
     if not kp_cams:
         raise FormatError(
@@ -189,30 +373,24 @@ def load_detections(
         )
     # a skeleton TOML registers its 2D layouts before any detections file loads
     custom = load_skeleton_toml(skeleton) if str(skeleton).endswith(".toml") else None
-    dets = []
-    for c in cams:
-        d = Detections.load(layout.detections(c))
-        if d.camera != c:
-            raise FormatError(
-                layout.detections(c),
-                "camera",
-                f"the file says camera '{d.camera}' but is named after '{c}'.",
-                "Rename the file or fix its 'camera' field.",
-            )
-        check_frame_order(d, layout.detections(c))
-        dets.append(d)
-    for w in detection_warnings(dets):
+    metas = [_camera_meta(layout.detections(c), c, stream) for c in cams]
+    if stream:  # a camera with no detection at all is said once its rows were read (empty_camera_warnings)
+        warns = span_warnings(metas)  # type: ignore[arg-type]
+    else:
+        warns = detection_warnings([m.det for m in metas if m.det is not None])
+    for w in warns:
         log.warning("%s", w)
+    _check_rates(metas)
     shifts = {}
     if apply_sync:
         fps_hint = None
-        dt = np.diff(dets[0].t_ns)
+        dt = np.diff(metas[0].t_ns)
         dt = dt[dt > 0]
         if len(dt):
             fps_hint = float(1e9 / np.median(dt))
         shifts = sync_shifts(layout, cams, fps_hint)
     keep, mapped = [], []
-    for c, d in zip(cams, dets, strict=True):
+    for c, d in zip(cams, metas, strict=True):
         if c not in shifts:
             keep.append(np.ones(d.n_frames, bool))
             mapped.append(d.frame_index)
@@ -239,28 +417,23 @@ def load_detections(
         )
     frames = np.unique(np.concatenate([m[k] for m, k in zip(mapped, keep, strict=True)]))
     T = len(frames)
-    P = max(d.max_people for d in dets)
+    P = max(d.n_people for d in metas)
     if custom is not None:
         skel = custom
     elif skeleton == "whole_body":
-        skel = whole_body([d.skeleton for d in dets])
+        skel = whole_body([d.skeleton for d in metas])
     else:
         skel = get_skeleton(skeleton)
-    J = skel.n_joints
-    xy = np.full((len(cams), T, P, J, 2), np.nan)
-    sc = np.zeros((len(cams), T, P, J))
     t_ns = np.zeros(T, np.int64)
     have_t = np.zeros(T, bool)
-    sub = rig.subset(cams)
+    rows_l, pos_l = [], []
+    for ci in range(len(cams)):
+        r = np.flatnonzero(keep[ci])
+        rows_l.append(r)
+        pos_l.append(np.searchsorted(frames, mapped[ci][r]))
     # timestamps: unshifted cameras first (the reference's clock), then shifted ones moved onto it
-    order = sorted(range(len(cams)), key=lambda i: cams[i] in shifts)
-    for ci in order:
-        d, k = dets[ci], keep[ci]
-        pos = np.searchsorted(frames, mapped[ci][k])
-        b19, s19 = convert(d.xy_px[k], d.score[k], d.skeleton, skel)
-        s19 = np.where(np.isfinite(s19), s19, 0.0)
-        xy[ci, pos, : d.max_people] = sub[ci].undistort_px(b19)
-        sc[ci, pos, : d.max_people] = s19
+    for ci in sorted(range(len(cams)), key=lambda i: cams[i] in shifts):
+        d, k, pos = metas[ci], keep[ci], pos_l[ci]
         t_c = d.t_ns[k]
         if cams[ci] in shifts and len(t_c) > 1:
             period_ns = float(np.median(np.diff(d.t_ns))) if d.n_frames > 1 else 0.0
@@ -269,9 +442,45 @@ def load_detections(
         t_ns[pos[new]] = t_c[new]
         have_t[pos[new]] = True
     offsets = {c: shifts[c].offset_frames for c in shifts}
-    return sub, MultiViewDetections(
-        tuple(cams), frames, t_ns, xy, sc, offsets, skel.joint_names, skel.parents
-    )
+    return DetectionPlan(tuple(cams), rig.subset(cams), metas, skel, frames, t_ns, rows_l, pos_l, offsets, P)
+
+
+def load_detections(
+    layout: SessionLayout, rig: CameraRig, apply_sync: bool = True, skeleton: str = "body19"
+) -> tuple[CameraRig, MultiViewDetections]:
+    """Read every ``keypoints/<cam>.npz``, check it against the rig, align frames, convert and undistort.
+
+    Frames are matched across cameras by frame index after the sync offsets of session.toml
+    (``capture-run sync``, :func:`sync_shifts`) are applied (``apply_sync``): each camera's frames are
+    moved onto the reference camera's frame axis, to the nearest frame (the residual is under half a
+    frame; detections are not interpolated, their person slots are not identities). Frames that land
+    before reference frame 0 are dropped. ``skeleton``: the 3D joints, ``body19``, ``whole_body``
+    (body19 plus the joints the cameras' layouts add) or a skeleton TOML. Returns the rig restricted
+    to the cameras with detections (in rig order) and the detections.
+
+    The whole session in memory; :func:`plan_detections` + :meth:`DetectionPlan.chunk` read it in
+    time chunks (:func:`iter_detection_chunks`).
+    """
+    plan = plan_detections(layout, rig, apply_sync, skeleton, stream=False)
+    return plan.rig, plan.chunk(0, plan.n_frames)
+
+
+def iter_detection_chunks(
+    layout: SessionLayout,
+    rig: CameraRig,
+    chunk_frames: int,
+    apply_sync: bool = True,
+    skeleton: str = "body19",
+):
+    """Yield ``(rig, MultiViewDetections)`` of consecutive time chunks of ``chunk_frames`` frames, each
+    read from the files as it is needed (the streaming form of :func:`load_detections`, for trackers
+    that step frame by frame)."""
+    plan = plan_detections(layout, rig, apply_sync, skeleton, stream=True)
+    try:
+        for a in range(0, plan.n_frames, max(int(chunk_frames), 1)):
+            yield plan.rig, plan.chunk(a, min(a + chunk_frames, plan.n_frames))
+    finally:
+        plan.close()
 
 
 def _fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
@@ -287,27 +496,37 @@ def _fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
     return float(1e9 / np.median(dt)) if len(dt) else 25.0
 
 
-def reconstruct_all(
-    rig: CameraRig, mv: MultiViewDetections, config: TriangulateConfig, progress: Progress | None = None
-) -> dict[str, np.ndarray]:
-    """Run association + triangulation on every frame. Returns padded (T,P3,J,...) arrays."""
+def _reconstructor(rig: CameraRig, cameras: tuple[str, ...], joint_names, config: TriangulateConfig):
     order = None
     if config.match.camera_order is not None:
-        bad = [c for c in config.match.camera_order if c not in mv.cameras]
+        bad = [c for c in config.match.camera_order if c not in cameras]
         if bad:
             raise ValueError(
-                f"match.camera_order names cameras {bad} that have no detections; cameras: {list(mv.cameras)}"
+                f"match.camera_order names cameras {bad} that have no detections; cameras: {list(cameras)}"
             )
-        order = np.asarray([mv.cameras.index(c) for c in config.match.camera_order])
-    rec = FrameReconstructor(
-        rig.projection_matrices(), rig.fundamental_matrices(), config, order, mv.joint_names
+        order = np.asarray([cameras.index(c) for c in config.match.camera_order])
+    return FrameReconstructor(
+        rig.projection_matrices(), rig.fundamental_matrices(), config, order, joint_names
     )
+
+
+def reconstruct_all(
+    rig: CameraRig,
+    mv: MultiViewDetections,
+    config: TriangulateConfig,
+    progress: Progress | None = None,
+    rec: FrameReconstructor | None = None,
+    done: int = 0,
+    total: int | None = None,
+) -> dict[str, np.ndarray]:
+    """Run association + triangulation on every frame. Returns padded (T,P3,J,...) arrays."""
+    rec = rec or _reconstructor(rig, mv.cameras, mv.joint_names, config)
     T = len(mv.frame_index)
     out = []
     for t in range(T):
         out.append(rec(mv.xy_px[:, t], mv.score[:, t]))
         if progress is not None:
-            progress("triangulate", t + 1, T)
+            progress("triangulate", done + t + 1, total or T)
     J = len(mv.joint_names)
     P3 = max([len(f.xyz_m) for f in out], default=0)
     res = {
@@ -325,12 +544,28 @@ def reconstruct_all(
     return res
 
 
+def _people_log(xyz_m: np.ndarray) -> np.ndarray:
+    return np.isfinite(xyz_m).all(-1).any(-1).sum(1)
+
+
+def _nobody_warning(n_frames: int, n_cams: int) -> None:
+    log.warning(
+        "nobody was triangulated in %d frames of %d cameras: check that the calibration belongs to "
+        "these cameras and is in metres (calibrate-run import --scale-to-m), and that the detections "
+        "are of this recording",
+        n_frames,
+        n_cams,
+    )
+
+
 def triangulate_session(
     session_dir: str | os.PathLike,
     config: TriangulateConfig | dict | None = None,
     progress: Progress | None = None,
 ) -> Path:
-    """Association (Alg. 1) + robust DLT for every frame of a session; writes ``triangulate/poses3d.npz``."""
+    """Association (Alg. 1) + robust DLT for every frame of a session; writes ``triangulate/poses3d.npz``
+    (with ``chunk_s`` > 0: ``triangulate/poses3d.parts/``, streamed and resumable; ``Poses3D.load`` of
+    ``poses3d.npz`` reads either)."""
     cfg = _as_config(TriangulateConfig, config)
     lay = SessionLayout(session_dir)
     rig_path = require(
@@ -346,6 +581,8 @@ def triangulate_session(
         )
     for w in rig_warnings(rig, str(rig_path)):
         log.warning("%s", w)
+    if cfg.chunk_s > 0:
+        return _triangulate_chunked(lay, rig, cfg, progress)
     sub, mv = load_detections(lay, rig, skeleton=cfg.skeleton)
     res = reconstruct_all(sub, mv, cfg, progress)
     fps = _fps(lay, mv.t_ns)
@@ -359,8 +596,9 @@ def triangulate_session(
         cameras=tuple(sub.names),
         **res,
     )
+    remove_output(lay.poses3d)
     poses.save(lay.poses3d)
-    n = np.isfinite(res["xyz_m"]).all(-1).any(-1).sum(1)
+    n = _people_log(res["xyz_m"])
     log.info(
         "triangulated %d frames from %d cameras: %.2f people per frame (max %d)",
         len(n),
@@ -369,26 +607,98 @@ def triangulate_session(
         int(n.max()) if len(n) else 0,
     )
     if len(n) and n.max() == 0:
-        log.warning(
-            "nobody was triangulated in %d frames of %d cameras: check that the calibration belongs to "
-            "these cameras and is in metres (calibrate-run import --scale-to-m), and that the detections "
-            "are of this recording",
-            len(n),
-            len(sub),
+        _nobody_warning(len(n), len(sub))
+    return lay.poses3d
+
+
+def _triangulate_chunked(
+    lay: SessionLayout, rig: CameraRig, cfg: TriangulateConfig, progress: Progress | None
+) -> Path:
+    """The streaming form: one poses3d part per ``cfg.chunk_s`` of frames, resumable (issue 17)."""
+    plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
+    try:
+        fps = _fps(lay, plan.t_ns)
+        step = max(int(round(cfg.chunk_s * fps)), 1)
+        T = plan.n_frames
+        chunks = [(a, min(a + step, T)) for a in range(0, T, step)] or [(0, 0)]
+        key = hash_key(
+            [
+                "poses3d",
+                repr(cfg),
+                rig.sha256(),
+                [file_stamp(m.path) for m in plan.metas],
+                lay.session_toml.read_bytes() if lay.session_toml.exists() else b"",
+            ]
         )
+        if lay.poses3d.exists():
+            lay.poses3d.unlink()
+        store = PartStore(parts_dir(lay.poses3d), "poses3d")
+        todo = set(store.open(key, chunks, {"fps": fps, "n_frames": T}))
+        if len(todo) < len(chunks):
+            log.info(
+                "triangulate: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
+            )
+        rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
+        n_sum, n_max, n_frames = 0, 0, 0
+        for i, (a, b) in enumerate(chunks):
+            if i not in todo:
+                if progress is not None:
+                    progress("triangulate", b, T)
+                continue
+            mv = plan.chunk(a, b)
+            res = reconstruct_all(plan.rig, mv, cfg, progress, rec, done=a, total=T)
+            Poses3D(
+                fps=fps,
+                frame_index=mv.frame_index,
+                t_ns=mv.t_ns,
+                joint_names=mv.joint_names,
+                parents=np.asarray(mv.parents),
+                calibration_sha256=rig.sha256(),
+                cameras=tuple(plan.cameras),
+                **res,
+            ).save(store.part_path(i))
+            store.commit(i)
+            n = _people_log(res["xyz_m"])
+            n_sum, n_max, n_frames = (
+                n_sum + int(n.sum()),
+                max(n_max, int(n.max(initial=0))),
+                n_frames + len(n),
+            )
+            del mv, res
+        store.finish()
+        for m in plan.metas:
+            if not m.seen and len(todo) == len(chunks):
+                log.warning("%s", no_detection_warning(m.camera, m.n_frames))
+        log.info(
+            "triangulated %d frames (%d new) from %d cameras in %d chunks: %.2f people per frame (max %d)",
+            T,
+            n_frames,
+            len(plan.cameras),
+            len(chunks),
+            n_sum / max(n_frames, 1),
+            n_max,
+        )
+        if n_frames and n_max == 0 and len(todo) == len(chunks):
+            _nobody_warning(n_frames, len(plan.cameras))
+    finally:
+        plan.close()
     return lay.poses3d
 
 
 def track_session_greedy(
     session_dir: str | os.PathLike, config: GreedyTrackConfig | TrackerConfig | dict | None = None
 ) -> Path:
-    """The chapter-4 tracker on ``triangulate/poses3d.npz``; writes ``track/tracks.npz``."""
+    """The chapter-4 tracker on ``triangulate/poses3d.npz`` (or its parts); writes ``track/tracks.npz``
+    (with ``chunk_s`` > 0: ``track/tracks.parts/``, streamed, resumable; ``TrackFile.load`` reads either)."""
     if isinstance(config, TrackerConfig):
         config = GreedyTrackConfig(tracker=config)
     cfg = _as_config(GreedyTrackConfig, config)
     lay = SessionLayout(session_dir)
-    path = require(lay.poses3d, "triangulate/poses3d.npz", "Run the triangulate stage first.")
-    p = Poses3D.load(path)
+    if not lay.poses3d.exists() and not parts_dir(lay.poses3d).is_dir():
+        require(lay.poses3d, "triangulate/poses3d.npz", "Run the triangulate stage first.")
+    if cfg.chunk_s > 0:
+        return _track_chunked(lay, cfg)
+    p = Poses3D.load(lay.poses3d)
     tf = track_poses(
         p.xyz_m.astype(np.float64),
         p.frame_index,
@@ -401,6 +711,125 @@ def track_session_greedy(
         config=cfg.tracker,
         calibration_sha256=p.calibration_sha256,
     )
+    remove_output(lay.tracks)
     tf.save(lay.tracks)
     log.info("greedy tracker: %d tracks over %d frames", tf.n_tracks, tf.n_frames)
+    return lay.tracks
+
+
+class PosesReader:
+    """Frames [a, b) of ``poses3d.npz`` or of its parts, reading only the parts a range touches."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._cache: dict[int, Poses3D] = {}
+        if path.exists():
+            self.whole: Poses3D | None = Poses3D.load(path)
+            self.spans = [(0, self.whole.n_frames, path)]
+            self.stamp: object = file_stamp(path)
+            head = self.whole
+        else:
+            self.whole = None
+            store = PartStore(parts_dir(path), "poses3d")
+            self.spans = store.checked_parts()
+            self.stamp = (
+                store.index["key"],
+                [store.index["parts"][k]["sha256"] for k in sorted(store.index["parts"])],
+            )
+            head = Poses3D.load(self.spans[0][2])
+        self.fps, self.joint_names = head.fps, head.joint_names
+        self.parents = head.parents
+        self.calibration_sha256 = head.calibration_sha256
+        if self.whole is not None:
+            self.frame_index, self.t_ns = self.whole.frame_index, self.whole.t_ns
+        else:  # the frame axis of every part (small)
+            fi, tn = [], []
+            for _, _, p in self.spans:
+                with NpzRows(p) as r:
+                    fi.append(r.full("frame_index"))
+                    tn.append(r.full("t_ns"))
+            self.frame_index, self.t_ns = np.concatenate(fi), np.concatenate(tn)
+
+    def _part(self, i: int) -> Poses3D:
+        if self.whole is not None:
+            return self.whole
+        if i not in self._cache:
+            if len(self._cache) >= 3:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[i] = Poses3D.load(self.spans[i][2])
+        return self._cache[i]
+
+    def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        xs, cs, ss = [], [], []
+        for i, (f0, f1, _) in enumerate(self.spans):
+            if f1 <= a or f0 >= b:
+                continue
+            p = self._part(i)
+            sl = slice(max(a - f0, 0), min(b, f1) - f0)
+            xs.append(p.xyz_m[sl])
+            cs.append(p.score[sl])
+            ss.append(p.std_m[sl])
+        P = max(x.shape[1] for x in xs)
+
+        def cat(arrs, fill):
+            return np.concatenate(
+                [
+                    np.pad(x, [(0, 0), (0, P - x.shape[1])] + [(0, 0)] * (x.ndim - 2), constant_values=fill)
+                    for x in arrs
+                ]
+            )
+
+        return cat(xs, np.nan), cat(cs, 0.0), cat(ss, np.nan)
+
+
+def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
+    """The streaming greedy tracker (:mod:`triangulate.stream_track`), one track part per chunk."""
+    from triangulate.reconstruct import flip_index
+    from triangulate.stream_track import build_chunks, link_chunks
+    from triangulate.tracker import frame_times_s
+    from triangulate.trackfile import TrackFile
+
+    read = PosesReader(lay.poses3d)
+    fps = read.fps
+    tcfg = cfg.tracker.at_fps(fps)
+    parents = np.asarray(
+        skeleton_from_names(read.joint_names).parents if read.parents is None else read.parents
+    )
+    flip = flip_index(read.joint_names) if tcfg.fix_mirrored else None
+    t_s = frame_times_s(read.frame_index, read.t_ns, fps)
+    T = len(t_s)
+    step = max(int(round(cfg.chunk_s * fps)), 1)
+    chunks = [(a, min(a + step, T)) for a in range(0, T, step)]
+    key = hash_key(["tracks", repr(cfg), read.stamp])
+    if lay.tracks.exists():
+        lay.tracks.unlink()
+    store = PartStore(parts_dir(lay.tracks), "tracks")
+    todo = set(store.open(key, chunks, {"fps": fps, "n_frames": T}))
+    if todo and len(todo) < len(chunks):
+        log.info(
+            "greedy tracker: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
+        )
+    if todo:
+        labels, mirrored, final = link_chunks(read, chunks, tcfg, fps, flip, t_s)
+        for i, ch in build_chunks(read, chunks, labels, mirrored, final, tcfg, parents, flip, fps, t_s, todo):
+            TrackFile(
+                fps=fps,
+                frame_index=read.frame_index[ch.a : ch.b],
+                t_ns=read.t_ns[ch.a : ch.b],
+                track_id=ch.track_id,
+                joint_names=read.joint_names,
+                parents=parents,
+                xyz_m=ch.xyz_m,
+                confidence=np.clip(ch.confidence, 0, 1),
+                std_m=ch.std_m,
+                flags=ch.flags,
+                calibration_sha256=read.calibration_sha256,
+                source="triangulate.tracker (greedy, ch. 4; streamed)",
+            ).save(store.part_path(i))
+            store.commit(i)
+        n_tracks = int(final.max(initial=-1)) + 1
+    else:
+        n_tracks = -1
+    store.finish({"n_tracks": n_tracks} if n_tracks >= 0 else None)
+    log.info("greedy tracker (streamed): %d chunks, %s tracks over %d frames", len(chunks), n_tracks, T)
     return lay.tracks

@@ -350,9 +350,11 @@ def _kinematic_fill(
     """Fill joint gaps of one track X (T,J,3) in place by the offset from the parent joint.
 
     Parents are filled first (order of a walk from the root). The offset is linearly interpolated in
-    time between the observations around a gap and held before the first / after the last one (up to
-    half of ``max_fill_s``); gaps longer than ``max_fill_s`` stay NaN. Returns the (T,J) mask of filled
-    entries.
+    time between the observations around a gap of at most ``max_fill_s``; elsewhere (before the first /
+    after the last observation, and inside a longer gap) it is held from the nearest observation up to
+    half of ``max_fill_s`` away, and the middle of a longer gap stays NaN. Each filled value depends
+    only on the observations within ``max_fill_s`` (the rule is local in time, so a chunked run
+    equals the whole session's, issue 17). Returns the (T,J) mask of filled entries.
     """
     T, J = X.shape[:2]
     filled = np.zeros((T, J), bool)
@@ -377,20 +379,31 @@ def _kinematic_fill(
         need = np.flatnonzero(~have_j & have_p & (tt >= t0) & (tt < t1))
         if len(both) == 0 or len(need) == 0:
             continue
-        # time of each needed frame to the nearest observation of the offset (held at the ends)
-        nearest = np.abs(t_s[need][:, None] - t_s[both][None]).min(1)
-        run_ok = nearest <= max_fill_s / 2 + dt
-        # gaps bounded on both sides by observations: allow up to max_fill_s in total
+        # the observations of the offset around each needed frame
         right = np.searchsorted(both, need)
-        inside = (right > 0) & (right < len(both))
+        has_lo, has_hi = right > 0, right < len(both)
         lo, hi = both[np.maximum(right - 1, 0)], both[np.minimum(right, len(both) - 1)]
-        span = np.where(inside, t_s[hi] - t_s[lo], 0.0)
-        run_ok = np.where(inside, span <= max_fill_s + dt, run_ok)
-        need = need[run_ok]
-        if len(need) == 0:
+        d_lo = np.where(has_lo, t_s[need] - t_s[lo], np.inf)
+        d_hi = np.where(has_hi, t_s[hi] - t_s[need], np.inf)
+        # a gap of at most max_fill_s between two observations: interpolated
+        inside = has_lo & has_hi & (t_s[hi] - t_s[lo] <= max_fill_s + dt)
+        # else held from the nearer observation, up to max_fill_s / 2 away
+        held = ~inside & (np.minimum(d_lo, d_hi) <= max_fill_s / 2 + dt)
+        run_ok = inside | held
+        if not run_ok.any():
             continue
         off = X[both, j] - X[both, p]
-        o = np.stack([np.interp(t_s[need], t_s[both], off[:, k]) for k in range(3)], 1)
+        o = np.full((len(need), 3), np.nan)
+        ii = np.flatnonzero(inside)
+        if len(ii):
+            o[ii] = np.stack([np.interp(t_s[need[ii]], t_s[both], off[:, k]) for k in range(3)], 1)
+        hh = np.flatnonzero(held)
+        if len(hh):
+            o[hh] = (
+                X[np.where(d_lo[hh] <= d_hi[hh], lo[hh], hi[hh]), j]
+                - X[np.where(d_lo[hh] <= d_hi[hh], lo[hh], hi[hh]), p]
+            )
+        need, o = need[run_ok], o[run_ok]
         X[need, j] = X[need, p] + o
         filled[need, j] = True
     return filled
@@ -456,9 +469,10 @@ def build_tracks(
             kin = _kinematic_fill(X[:, n], np.asarray(parents), t_s, cfg.occlusion_fill_s, dt)
             if kin.any():
                 # std of a predicted joint: its parent's std plus 5 cm (the offset is a guess)
+                # (a parent of unknown std counts as 5 cm: a constant, so a chunk needs no whole-track
+                # statistic, issue 17)
                 known = np.isfinite(S[:, n])
-                fallback = np.nanmedian(S[:, n]) if known.any() else 0.05
-                s_par = np.where(known, S[:, n], fallback)
+                s_par = np.where(known, S[:, n], 0.05)
                 pj = np.maximum(np.asarray(parents), 0)
                 S[:, n] = np.where(kin, s_par[:, pj] + 0.05, S[:, n])
                 Cf[:, n] = np.where(kin, 0.25 * Cf[:, n, pj], Cf[:, n])

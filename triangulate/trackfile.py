@@ -40,6 +40,7 @@ from capture.fileio import (
     schema_tag,
 )
 from keypoints.skeletons import CANONICAL, Skeleton
+from triangulate.chunks import PartStore, parts_dir
 
 SCHEMA = "tracks"
 VERSION = 1
@@ -163,8 +164,47 @@ class TrackFile:
         )
 
     @classmethod
+    def concat(cls, parts: list[TrackFile]) -> TrackFile:
+        """Consecutive chunks (each with its own tracks, ids global) joined along time."""
+        if not parts:
+            raise FormatError(None, None, "no track parts to join.")
+        ids = np.unique(np.concatenate([p.track_id for p in parts]))
+        T = sum(p.n_frames for p in parts)
+        J = len(parts[0].joint_names)
+        K = len(ids)
+        xyz = np.full((T, K, J, 3), np.nan, np.float32)
+        conf = np.zeros((T, K, J), np.float32)
+        std = np.full((T, K, J), np.nan, np.float32)
+        flags = np.zeros((T, K, J), np.uint8)
+        t = 0
+        for p in parts:
+            k = np.searchsorted(ids, p.track_id)
+            sl = slice(t, t + p.n_frames)
+            xyz[sl, k], conf[sl, k], std[sl, k], flags[sl, k] = p.xyz_m, p.confidence, p.std_m, p.flags
+            t += p.n_frames
+        p0 = parts[0]
+        return cls(
+            fps=p0.fps,
+            frame_index=np.concatenate([p.frame_index for p in parts]),
+            t_ns=np.concatenate([p.t_ns for p in parts]),
+            track_id=ids,
+            joint_names=p0.joint_names,
+            parents=p0.parents,
+            xyz_m=xyz,
+            confidence=conf,
+            std_m=std,
+            flags=flags,
+            calibration_sha256=p0.calibration_sha256,
+            source=p0.source,
+        )
+
+    @classmethod
     def load(cls, path: str | os.PathLike) -> TrackFile:
+        """The file, or where only ``tracks.parts/`` exists (a streamed run) its parts joined
+        (:func:`iter_parts` reads them one at a time)."""
         path = Path(path)
+        if not path.exists() and parts_dir(path).is_dir():
+            return cls.concat(list(iter_parts(path)))
         data = load_npz(path, required=("schema",))
         check_schema(data["schema"], SCHEMA, (VERSION,), path)
         load_npz_required = [k for k in _REQUIRED if k not in data]
@@ -192,6 +232,17 @@ class TrackFile:
             )
         except FormatError as e:
             raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
+
+
+def iter_parts(path: str | os.PathLike):
+    """Yield the track file of ``path`` chunk by chunk: its parts (checked against the index), or the
+    single file as one chunk. Track ids are global, each part holds the tracks present in it."""
+    path = Path(path)
+    if path.exists():
+        yield TrackFile.load(path)
+        return
+    for _, _, p in PartStore(parts_dir(path), SCHEMA).checked_parts():
+        yield TrackFile.load(p)
 
 
 def load_dense(path: str | os.PathLike) -> dict[str, np.ndarray]:

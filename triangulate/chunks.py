@@ -1,0 +1,268 @@
+"""Chunked files of the 3D stages (issue 17): read an npz's arrays by rows, write outputs part by part.
+
+Hours of 12 cameras x 16 people do not fit in memory as whole arrays, so the streaming stages read
+their inputs in time chunks (:class:`NpzRows`: rows of one array of an ``.npz``, compressed or not,
+decompressed as a stream, never the whole array) and write their outputs as a folder of parts with an
+index (:class:`PartStore`), ``<file>.parts/``::
+
+    triangulate/poses3d.parts/index.json     {"schema": "parts/1", "kind", "key", "chunks": [[f0, f1], ...],
+                                              "parts": {"<i>": {"file", "size", "sha256"}}, "complete"}
+    triangulate/poses3d.parts/part_00000.npz the ordinary file (poses3d/1, tracks/1) of frames [f0, f1)
+
+A part is written atomically, then entered in the index with its size and sha256; a part that is
+missing, of another size or another hash is rebuilt, never trusted. ``key`` hashes the inputs and the
+settings: parts of another run (other detections, other config) are discarded. A killed run rerun with
+the same inputs resumes at the first part that is not valid. The loaders (``Poses3D.load``,
+``TrackFile.load``) read such a folder where the single file is absent.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import zipfile
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from capture.fileio import FormatError, atomic_write_text
+
+PARTS_SCHEMA = "parts/1"
+
+
+def parts_dir(path: str | os.PathLike) -> Path:
+    """The parts folder of a stage file: ``poses3d.npz`` -> ``poses3d.parts``."""
+    p = Path(path)
+    return p.with_suffix(".parts")
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def hash_key(items: Iterable[object]) -> str:
+    """A short hash of the inputs and settings of a run (what makes its parts reusable)."""
+    h = hashlib.sha256()
+    for it in items:
+        h.update(repr(it).encode())
+        h.update(b"\0")
+    return h.hexdigest()[:32]
+
+
+def file_stamp(path: Path) -> tuple[str, int, int]:
+    """(name, size, mtime_ns) of an input file: cheap identity for the run key."""
+    st = path.stat()
+    return (path.name, st.st_size, st.st_mtime_ns)
+
+
+class PartStore:
+    """The parts folder of one output (see the module docstring)."""
+
+    def __init__(self, folder: str | os.PathLike, kind: str) -> None:
+        self.folder = Path(folder)
+        self.kind = kind
+        self.index_path = self.folder / "index.json"
+        self.index: dict = {}
+
+    # -- writing
+    def open(self, key: str, chunks: list[tuple[int, int]], meta: dict | None = None) -> list[int]:
+        """Start or resume a run: returns the chunk numbers whose parts must be (re)built."""
+        old = self._read_index(strict=False)
+        chunks = [[int(a), int(b)] for a, b in chunks]
+        if old and old.get("key") == key and old.get("chunks") == chunks and old.get("kind") == self.kind:
+            self.index = old
+        else:
+            if self.folder.exists():
+                shutil.rmtree(self.folder)
+            self.index = {
+                "schema": PARTS_SCHEMA,
+                "kind": self.kind,
+                "key": key,
+                "chunks": chunks,
+                "parts": {},
+                "meta": meta or {},
+                "complete": False,
+            }
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.index["complete"] = False
+        todo = [i for i in range(len(chunks)) if not self.valid(i)]
+        for i in todo:
+            self.index["parts"].pop(str(i), None)
+        self._write_index()
+        return todo
+
+    def part_path(self, i: int) -> Path:
+        return self.folder / f"part_{i:05d}.npz"
+
+    def commit(self, i: int) -> None:
+        """Enter part ``i`` (already written atomically at :meth:`part_path`) in the index."""
+        p = self.part_path(i)
+        self.index["parts"][str(i)] = {"file": p.name, "size": p.stat().st_size, "sha256": sha256_file(p)}
+        self._write_index()
+
+    def finish(self, meta: dict | None = None) -> None:
+        if meta:
+            self.index.setdefault("meta", {}).update(meta)
+        missing = [i for i in range(len(self.index["chunks"])) if str(i) not in self.index["parts"]]
+        if missing:
+            raise RuntimeError(f"parts {missing} of {self.folder} were not written")
+        self.index["complete"] = True
+        self._write_index()
+
+    def valid(self, i: int) -> bool:
+        e = self.index.get("parts", {}).get(str(i))
+        if not e:
+            return False
+        p = self.folder / e["file"]
+        try:
+            return p.stat().st_size == e["size"] and sha256_file(p) == e["sha256"]
+        except OSError:
+            return False
+
+    def _write_index(self) -> None:
+        atomic_write_text(self.index_path, json.dumps(self.index, indent=1))
+
+    # -- reading
+    def _read_index(self, strict: bool = True) -> dict:
+        try:
+            d = json.loads(self.index_path.read_text())
+            if d.get("schema") != PARTS_SCHEMA or "chunks" not in d or "parts" not in d:
+                raise ValueError("not a parts/1 index")
+            return d
+        except (OSError, ValueError) as e:
+            if not strict:
+                return {}
+            raise FormatError(
+                self.index_path,
+                None,
+                f"cannot read the parts index ({e}).",
+                "Delete the folder and rerun the stage that writes it.",
+            ) from None
+
+    def load_index(self) -> dict:
+        """The index of a finished run; a run that did not finish or a damaged part is an error."""
+        self.index = self._read_index()
+        if not self.index.get("complete"):
+            raise FormatError(
+                self.index_path,
+                "complete",
+                f"the {self.kind} parts are incomplete (the run was stopped).",
+                "Rerun the stage: it resumes from the last complete part.",
+            )
+        return self.index
+
+    def checked_parts(self) -> list[tuple[int, int, Path]]:
+        """(f0, f1, path) of every part, each checked against its size and hash in the index."""
+        idx = self.load_index()
+        out = []
+        for i, (a, b) in enumerate(idx["chunks"]):
+            if not self.valid(i):
+                raise FormatError(
+                    self.part_path(i),
+                    None,
+                    "the part is missing or does not match its size and sha256 in index.json "
+                    "(truncated or changed).",
+                    "Rerun the stage: it rebuilds the damaged parts.",
+                )
+            out.append((a, b, self.folder / idx["parts"][str(i)]["file"]))
+        return out
+
+
+def remove_output(path: str | os.PathLike) -> None:
+    """Remove a stage output in either layout (the single file and its parts folder)."""
+    p = Path(path)
+    if p.exists():
+        p.unlink()
+    if parts_dir(p).exists():
+        shutil.rmtree(parts_dir(p))
+
+
+class NpzRows:
+    """Rows ``[a, b)`` of the arrays of one ``.npz`` along their first axis, read as a stream.
+
+    Members stored or deflated are both read without loading a whole array: a read at or after the
+    last position continues the stream; a read before it reopens the member. Small arrays
+    (:meth:`full`) are read whole."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        try:
+            self._zf = zipfile.ZipFile(self.path)
+            self.names = {n[:-4] for n in self._zf.namelist() if n.endswith(".npy")}
+        except (OSError, zipfile.BadZipFile) as e:
+            raise FormatError(
+                self.path, None, f"cannot be read as npz ({e}); the file is truncated or corrupt.", ""
+            ) from None
+        self._streams: dict[str, tuple] = {}
+
+    def close(self) -> None:
+        for s in self._streams.values():
+            s[0].close()
+        self._streams.clear()
+        self._zf.close()
+
+    def __enter__(self) -> NpzRows:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def full(self, name: str) -> np.ndarray:
+        try:
+            with self._zf.open(name + ".npy") as f:
+                return np.lib.format.read_array(f, allow_pickle=False)
+        except (KeyError, OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise FormatError(self.path, name, f"cannot read the array ({e}).", "") from None
+
+    def header(self, name: str) -> tuple[tuple[int, ...], np.dtype]:
+        with self._zf.open(name + ".npy") as f:
+            shape, fortran, dtype = self._read_header(f)
+        return shape, dtype
+
+    def _read_header(self, f) -> tuple[tuple[int, ...], bool, np.dtype]:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        return shape, fortran, dtype
+
+    def rows(self, name: str, a: int, b: int) -> np.ndarray:
+        """(b - a, ...) rows of array ``name``."""
+        s = self._streams.get(name)
+        if s is None or s[4] > a:
+            if s is not None:
+                s[0].close()
+            f = self._zf.open(name + ".npy")
+            shape, fortran, dtype = self._read_header(f)
+            if fortran and len(shape) > 1:
+                f.close()
+                return self.full(name)[a:b]
+            row = int(np.prod(shape[1:], dtype=np.int64)) * dtype.itemsize
+            s = (f, shape, dtype, row, 0)
+        f, shape, dtype, row, pos = s
+        a, b = max(a, 0), min(b, shape[0])
+        try:
+            skip = (a - pos) * row
+            while skip > 0:
+                got = len(f.read(min(skip, 1 << 24)))
+                if got == 0:
+                    raise EOFError("the array ends early")
+                skip -= got
+            n = max(b - a, 0)
+            buf = f.read(n * row)
+            if len(buf) != n * row:
+                raise EOFError("the array ends early")
+        except (OSError, EOFError, zipfile.BadZipFile) as e:
+            raise FormatError(
+                self.path, name, f"cannot read rows {a}-{b} ({e}); the file is truncated or corrupt.", ""
+            ) from None
+        self._streams[name] = (f, shape, dtype, row, max(b, a))
+        return np.frombuffer(buf, dtype=dtype).reshape((n, *shape[1:])).copy()
