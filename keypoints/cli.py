@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -88,7 +89,12 @@ def _run(args) -> int:
     if len(args.inputs) == 1 and first.is_dir() and (first / "raw").is_dir():
         with Bars(unit="fr") as bars:
             paths = run_session(
-                first, cameras=args.cameras, config=cfg, progress=bars, max_frames=args.max_frames
+                first,
+                cameras=args.cameras,
+                config=cfg,
+                progress=bars,
+                max_frames=args.max_frames,
+                camera_groups=args.camera_groups or os.cpu_count() or 1,
             )
     else:
         if not args.out:
@@ -112,7 +118,15 @@ def _run(args) -> int:
                 )
                 return 1
         with Bars(unit="fr") as bars:
-            rep = run_videos(videos, args.out, cfg, rig=rig, progress=bars, max_frames=args.max_frames)
+            rep = run_videos(
+                videos,
+                args.out,
+                cfg,
+                rig=rig,
+                progress=bars,
+                max_frames=args.max_frames,
+                camera_groups=args.camera_groups or os.cpu_count() or 1,
+            )
         for c, (fi, msg) in rep.decode_errors.items():
             print(f"WARNING camera {c}: {msg}; kept frames before {fi}", file=sys.stderr)
         paths = rep.paths
@@ -151,6 +165,12 @@ def _main(argv: list[str] | None = None) -> int:
     r.add_argument("--cameras", nargs="*", default=None)
     r.add_argument("--max-frames", type=positive_int, default=None)
     r.add_argument("--threads", type=nonnegative_int, default=0)
+    r.add_argument(
+        "--camera-groups",
+        type=nonnegative_int,
+        default=0,
+        help="cameras split over this many threads, each with its own models (0 = one per core)",
+    )
     r.add_argument(
         "--refine-passes",
         type=nonnegative_int,
