@@ -27,6 +27,26 @@ import cv2
 import numpy as np
 
 from keypoints import decoders as D
+from keypoints.crops import (  # noqa: F401 (re-exported: the module's names before the split)
+    apply_inverse,
+    crop_transform,
+    keypoint_boxes,
+    letterbox,
+    to_tensor,
+    upright_boxes,
+)
+from keypoints.hypotheses import (  # noqa: F401 (re-exported: the module's names before the split)
+    FACE_POINTS,
+    _duplicate_pairs,
+    _erase_body,
+    _keypoint_box_iou,
+    _paint_body,
+    _strong_or_apart,
+    consensus,
+    facing,
+    hide_face_from_behind,
+    merge_hypotheses,
+)
 from keypoints.registry import ModelSpec, get_model_set, get_spec
 from keypoints.runtime import OnnxModel, RuntimeConfig
 from keypoints.skeletons import convert, get_skeleton
@@ -36,25 +56,22 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own)."""
+    """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own).
+
+    What each setting gave on the Pose2Sim demos when it was chosen is in BENCHMARKS.md ("2D keypoints",
+    "2D presets"); the presets in ``keypoints/models/sets.toml`` combine them."""
 
     model_set: str = "default"
     skeleton: str = "body19"
     max_people: int = 20
     det_score: float = 0.0  # 0 = the detector description's threshold
     # boxes scoring between this and det_score are kept only where less than half of each lies inside a
-    # stronger box (weak detections in clutter are mostly parts of someone already found: vtest.avi); people
-    # at the image border or small in a letterboxed portrait frame score there (Demo_MultiPerson's bystander
-    # in cam01: 0.22). 0 = off
+    # stronger box (people at the image border or small in a letterboxed frame score there). 0 = off
     det_score_weak: float = 0.2
     min_box_px: float = 24.0  # ignore boxes smaller than this (height, image px)
     box_padding: float = 0.0  # 0 = the pose description's value
-    # vtest.avi: a static sign the detector takes for a person scores 0.12-0.18, the pedestrians >= 0.4
     pose_presence: float = 0.25  # drop people whose pose score (BlazePose: person present; else mean) below
-    # top-down: pose passes on the box the previous pass's keypoints span. Demo_MultiPerson (100 frames):
-    # 2 passes (no flip test in the middle one) both participants in 4 views 83 -> 91 frames, bystander
-    # separate 83 -> 90; Demo_SinglePerson 12.3 -> 12.4 px (noise: +-0.15 px from sub-pixel crop changes)
-    refine_passes: int = 2
+    refine_passes: int = 2  # top-down: pose passes on the box the previous pass's keypoints span
     min_box_iou: float = 0.3  # refine passes: keep the previous pose where the new one left its box (IoU)
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
@@ -63,31 +80,22 @@ class PipelineConfig:
     # person takes them from the crop with the higher score (merge_hypotheses); 0 = always average
     flip_agree: float = 0.05
     flip_all_passes: bool = False  # flip test in every pose pass, not only the first and the last
-    # top-down: drop the face points of people seen from behind (hide_face_from_behind); None: the
-    # description's. MoveNet: Demo_SinglePerson 13.8 -> 12.5 px every 4th frame (OpenPose scores them low)
+    # top-down: no face points for people seen from behind (hide_face_from_behind); None: the description's
     hide_face_from_behind: bool | None = None
     back_view_facing: float = -0.15  # facing() below this = seen from behind (cos(yaw) < -0.3, yaw > 107 deg)
-    model_roi: bool = False  # refine passes: the model's own ROI where it has one (BlazePose; measured worse)
+    model_roi: bool = False  # refine passes: the model's own ROI where it has one (BlazePose)
     # two poses of one image closer than this x the person's size (median over joints both see) are one
-    # person found twice (an occluded person's crop returning the pose of the person in front); 0 = off.
-    # Demo_MultiPerson: both participants matched in 4 views 79 -> 84 of 100 frames (cam03: 46 -> 0 frames
-    # with a duplicate pose, 2 poses dropped)
+    # person found twice (an occluded person's crop returning the pose of the person in front); 0 = off
     duplicate_frac: float = 0.08
-    # last refine pass: crop sizes (x padding) whose poses are merged (consensus: score-weighted mean of the
-    # estimates near the median; MoveNet int8's outputs carry ~1% of the crop of quantisation noise).
-    # (0.9, 1.0, 1.1): Demo_SinglePerson 12.4 -> 11.8 px (OpenPose 12.4), Demo_MultiPerson 91 -> 91 frames;
-    # 3x the pose time of that pass (9 instead of 5 MoveNet runs per person); (1.0,) = off
+    # last pose pass: crop sizes (x padding) whose poses are merged (consensus: score-weighted mean of the
+    # estimates near the median); (1.0,) = off
     tta_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
     # duplicates: the body of one person is erased before the other is estimated again, filled with these
-    # grey values (-1 = the median colour around the body); every fill is one more crop (_resolve_duplicates).
-    # Demo_MultiPerson both participants in 4 views: 91 (black fill, worse-fitting pose re-estimated) -> 95
-    # (both readings, background fill) -> 96 (both fills) of 100 frames
+    # grey values (-1 = the median colour around the body); every fill is one more crop (_resolve_duplicates)
     erase_fills: tuple[float, ...] = (-1.0, 0.0)
     # top-down: people whose first-pass score is under this are estimated again on their detector box rotated
-    # by 90, 180 and 270 degrees, the most confident reading placing the refine crops (_rotation_hypotheses;
-    # bodies sideways or upside down: Demo_MultiPerson's cartwheel). 0 = off. Threshold set once (0.5, not
-    # tuned): Demo_MultiPerson both participants in 4 views 96 -> 98 of 100 frames (cam04 frames 48 and 60:
-    # the 270-degree crop wins), 9% of people-views tried, Demo_SinglePerson unchanged (11.8 px)
+    # by 90, 180 and 270 degrees, the most confident reading placing the refine crops (_rotation_hypotheses:
+    # bodies sideways or upside down). 0 = off
     rotation_weak: float = 0.5
     # tracked crops (videos: ``KeypointPipeline(images, streams)``): the detector runs every this many frames
     # of a camera (and when someone was lost, or nobody is tracked); in between, each person's crop is placed
@@ -112,337 +120,6 @@ class FrameResult:
     score: np.ndarray
     maps: np.ndarray | None = None
     maps_to_img: np.ndarray | None = None
-
-
-# ----------------------------------------------------------------------------- preprocessing
-
-
-def to_tensor(batch: np.ndarray, spec: ModelSpec) -> np.ndarray:
-    """batch (B,H,W,3) uint8 BGR -> model input (B,3,H,W) | (B,H,W,3), the description's dtype/colour."""
-    s = spec.input
-    if batch.ndim != 4 or batch.shape[-1] != 3:
-        raise ValueError(f"to_tensor: expected (B,H,W,3) images, got {batch.shape}")
-    if s.color == "RGB":
-        batch = batch[..., ::-1]
-    if s.dtype == "uint8":
-        x = batch
-    else:
-        x = batch.astype(np.float32)
-        if s.scale != 1.0:
-            x *= np.float32(s.scale)
-        if any(s.mean):
-            x -= np.asarray(s.mean, np.float32)
-        if any(v != 1.0 for v in s.std):
-            x /= np.asarray(s.std, np.float32)
-    if s.layout == "NCHW":
-        x = x.transpose(0, 3, 1, 2)
-    return np.ascontiguousarray(x)
-
-
-def letterbox(img: np.ndarray, size_wh: tuple[int, int], pad_value: float, out: np.ndarray | None = None):
-    """Resize keeping aspect by r = min(W/w, H/h), paste at the top-left of a padded canvas (H,W,3).
-
-    Returns (canvas, r); image px = input px / r.
-    """
-    h, w = img.shape[:2]
-    W, H = size_wh
-    r = min(W / w, H / h)
-    nw, nh = max(1, int(round(w * r))), max(1, int(round(h * r)))
-    canvas = np.full((H, W, 3), pad_value, np.uint8) if out is None else out
-    if out is not None:
-        canvas[...] = pad_value
-    canvas[:nh, :nw] = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_LINEAR)
-    return canvas, r
-
-
-def crop_transform(
-    box: np.ndarray, size_wh: tuple[int, int], padding: float, angle_rad: float = 0.0
-) -> np.ndarray:
-    """(2,3) affine image px -> crop px for a box x0,y0,x1,y1 enlarged by ``padding`` to the crop's aspect.
-
-    ``angle_rad``: the body's tilt from the image's up direction (clockwise positive); the crop is rotated by
-    it so that the person stands upright in the crop (BlazePose's ROI alignment, mediapipe's pose landmark
-    graph). The box is then taken in that rotated frame.
-    """
-    W, H = size_wh
-    cx, cy = 0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3])
-    bw, bh = (box[2] - box[0]) * padding, (box[3] - box[1]) * padding
-    aspect = W / H
-    if bw / max(bh, 1e-6) > aspect:
-        bh = bw / aspect
-    else:
-        bw = bh * aspect
-    s = W / max(bw, 1e-6)
-    c, n = np.cos(angle_rad), np.sin(angle_rad)
-    A = s * np.array([[c, n], [-n, c]])  # rotate the image by -angle, then scale
-    return np.hstack([A, (np.array([W / 2, H / 2]) - A @ np.array([cx, cy]))[:, None]])
-
-
-def apply_inverse(M: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Crop px back to image px through the inverse of affines M (N,2,3); xy (N,J,2)."""
-    A, t = M[:, :, :2], M[:, :, 2]
-    Ainv = np.linalg.inv(A)  # (N,2,2)
-    return np.einsum("nij,nkj->nki", Ainv, xy - t[:, None, :])
-
-
-def upright_boxes(
-    xy: np.ndarray,
-    sc: np.ndarray,
-    skeleton: str,
-    det: np.ndarray,
-    min_score: float = 0.3,
-    margin: float = 0.1,
-):
-    """Boxes (M,4) and tilt angles (M,) from first-pass keypoints (M,J,2) image px, scores (M,J).
-
-    The tilt is the angle of the hips-centre -> shoulders-centre vector from the image's up direction; the
-    box is the extent of the confident keypoints in the frame rotated upright, grown by ``margin`` x its
-    size (keypoints are joint centres: head top and feet lie beyond them). Where fewer than 4 keypoints or
-    no hips/shoulders are confident, the detector's box and no tilt.
-    """
-    sk = get_skeleton(skeleton)
-    try:
-        idx = [sk.index(n) for n in ("left_hip", "right_hip", "left_shoulder", "right_shoulder")]
-    except KeyError:
-        idx = None
-    boxes = np.asarray(det[:, :4], np.float64).copy()
-    angles = np.zeros(len(det))
-    for i in range(len(det)):
-        ok = sc[i] >= min_score
-        if ok.sum() < 4:
-            continue
-        p = xy[i, ok].astype(np.float64)
-        a = 0.0
-        if idx is not None and (sc[i, idx] >= min_score).all():
-            hip = 0.5 * (xy[i, idx[0]] + xy[i, idx[1]])
-            sho = 0.5 * (xy[i, idx[2]] + xy[i, idx[3]])
-            up = sho - hip
-            a = float(np.arctan2(up[0], -up[1]))  # 0 = upright, clockwise positive
-        c, n = np.cos(a), np.sin(a)
-        R = np.array([[c, n], [-n, c]])
-        q = p @ R.T  # rotated frame
-        lo, hi = q.min(0), q.max(0)
-        m = margin * max(hi - lo)
-        lo, hi = lo - m, hi + m
-        ctr = R.T @ (0.5 * (lo + hi))  # back to image frame
-        half = 0.5 * (hi - lo)
-        boxes[i] = (ctr[0] - half[0], ctr[1] - half[1], ctr[0] + half[0], ctr[1] + half[1])
-        angles[i] = a
-    return boxes, angles
-
-
-FACE_POINTS = ("nose", "left_eye", "right_eye", "mouth")  # name prefixes (eye_inner/outer, mouth_left, ...)
-
-
-def facing(xy: np.ndarray, sc: np.ndarray, skeleton: str, min_score: float = 0.3) -> np.ndarray:
-    """How much each person (M,J,2) faces the camera: the mean of the signed shoulder and hip widths
-    (left minus right joint along the body's own horizontal, image px) over the hips-centre ->
-    shoulders-centre length; NaN where the four joints are not all confident.
-
-    A person facing the camera has the left shoulder and hip on the image's right (positive); from behind the
-    sign flips (COCO-style models label left/right by the body, not the image). For an adult the value is
-    about 0.5 x cos(yaw) (shoulder width ~0.6 and hip width ~0.35 x torso length), whatever the image scale.
-    """
-    sk = get_skeleton(skeleton)
-    try:
-        ls, rs, lh, rh = (sk.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"))
-    except KeyError:
-        return np.full(len(xy), np.nan)
-    xy = np.asarray(xy, np.float64)
-    up = 0.5 * (xy[:, ls] + xy[:, rs]) - 0.5 * (xy[:, lh] + xy[:, rh])  # (M,2)
-    length = np.linalg.norm(up, axis=-1)
-    right = np.stack([-up[:, 1], up[:, 0]], -1) / np.maximum(length, 1e-9)[:, None]  # body's horizontal
-    w = np.einsum("mi,mi->m", xy[:, ls] - xy[:, rs] + xy[:, lh] - xy[:, rh], right)
-    f = 0.5 * w / np.maximum(length, 1e-9)
-    ok = (np.asarray(sc)[:, [ls, rs, lh, rh]] >= min_score).all(1) & (length > 1.0) & np.isfinite(f)
-    return np.where(ok, f, np.nan)
-
-
-def hide_face_from_behind(
-    xy: np.ndarray, sc: np.ndarray, skeleton: str, threshold: float = -0.15
-) -> np.ndarray:
-    """Scores (M,J) with the face points (nose, eyes, mouth; not the ears) set to 0 for people whose
-    ``facing`` is below ``threshold`` (turned away from the camera by more than about 107 degrees).
-
-    Single-person crop models (MoveNet) place these points with the confidence of the visible joints on the
-    back of a head; triangulated, they pull the 3D nose and eyes off and add 15-25 px reprojection error in
-    every view (Demo_SinglePerson). OpenPose gives them low scores instead. The head turning away from the
-    torso is not seen by this rule.
-    """
-    sk = get_skeleton(skeleton)
-    face = [j for j, n in enumerate(sk.joint_names) if n.startswith(FACE_POINTS)]
-    sc = np.array(sc, copy=True)
-    if not face or not len(sc):
-        return sc
-    back = facing(xy, sc, skeleton) < threshold
-    sc[np.ix_(back, face)] = 0.0
-    return sc
-
-
-def _strong_or_apart(boxes: np.ndarray, threshold: float, max_inside: float = 0.5) -> np.ndarray:
-    """Mask (N,) of boxes (N,5) scoring >= ``threshold``, or weaker ones of which less than ``max_inside`` of
-    the area lies inside any box scoring higher."""
-    keep = boxes[:, 4] >= threshold
-    for i in np.flatnonzero(~keep):
-        b = boxes[i]
-        higher = boxes[boxes[:, 4] > b[4]]
-        iw = np.clip(np.minimum(higher[:, 2], b[2]) - np.maximum(higher[:, 0], b[0]), 0, None)
-        ih = np.clip(np.minimum(higher[:, 3], b[3]) - np.maximum(higher[:, 1], b[1]), 0, None)
-        area = max((b[2] - b[0]) * (b[3] - b[1]), 1e-9)
-        keep[i] = not len(higher) or (iw * ih).max() < max_inside * area
-    return keep
-
-
-def merge_hypotheses(xy0, sc0, xy1, sc1, tol: float):
-    """Two estimates of the same people's joints (M,J,2) with scores (M,J) -> one (test-time augmentation).
-
-    Joints the two place within ``tol`` px of each other: the score-weighted mean (and the mean score).
-    Joints they place apart are two different answers (a leg taken for the other, a limb of someone
-    behind), whose mean would lie on neither: per person, all of them come from the estimate with the higher
-    mean score over those joints (one hypothesis, so a left/right pair is not split between the two).
-    ``tol`` <= 0: always the weighted mean.
-    """
-    w0, w1 = sc0[..., None] + 1e-6, sc1[..., None] + 1e-6
-    xy = (xy0 * w0 + xy1 * w1) / (w0 + w1)
-    sc = 0.5 * (sc0 + sc1)
-    if tol <= 0:
-        return xy, sc
-    apart = np.linalg.norm(xy0 - xy1, axis=-1) > tol  # (M,J)
-    n = np.maximum(apart.sum(1), 1)
-    first = (np.where(apart, sc0, 0).sum(1) / n) >= (np.where(apart, sc1, 0).sum(1) / n)  # (M,)
-    pick_xy = np.where(first[:, None, None], xy0, xy1)
-    pick_sc = np.where(first[:, None], sc0, sc1)
-    return np.where(apart[..., None], pick_xy, xy), np.where(apart, pick_sc, sc)
-
-
-def consensus(xy: np.ndarray, sc: np.ndarray, tol) -> tuple[np.ndarray, np.ndarray]:
-    """K estimates (K,M,J,2), scores (K,M,J) of the same joints -> one (M,J,2), (M,J): the score-weighted
-    mean of the estimates within ``tol`` px (scalar or broadcasting to (M,J)) of the coordinate-wise median,
-    with their mean score; an estimate far from the others is left out rather than averaged in."""
-    med = np.median(xy, axis=0)
-    inl = np.linalg.norm(xy - med, axis=-1) <= np.asarray(tol)  # (K,M,J)
-    none = ~inl.any(0)
-    inl[:, none] = sc[:, none] == sc[:, none].max(0)  # all apart: the most confident
-    w = np.where(inl, sc + 1e-6, 0.0)
-    out = (xy * w[..., None]).sum(0) / w.sum(0)[..., None]
-    return out, (sc * inl).sum(0) / inl.sum(0)
-
-
-def _keypoint_box_iou(xy: np.ndarray, sc: np.ndarray, det: np.ndarray, min_score: float = 0.3) -> np.ndarray:
-    """IoU (M,) of the box of each person's confident keypoints (M,J,2) with its box det (M,>=4)."""
-    out = np.zeros(len(det))
-    for i in range(len(det)):
-        ok = (sc[i] >= min_score) & np.isfinite(xy[i, :, 0])
-        if ok.sum() < 2:
-            continue
-        (x0, y0), (x1, y1) = xy[i, ok].min(0), xy[i, ok].max(0)
-        b = det[i]
-        iw = max(0.0, min(x1, b[2]) - max(x0, b[0]))
-        ih = max(0.0, min(y1, b[3]) - max(y0, b[1]))
-        inter = iw * ih
-        union = (x1 - x0) * (y1 - y0) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-        out[i] = inter / max(union, 1e-9)
-    return out
-
-
-def _duplicate_pairs(
-    xy: np.ndarray, sc: np.ndarray, frac: float, min_score: float = 0.3, min_joints: int = 4
-):
-    """Pairs (a, b) of poses xy (M,J,2), sc (M,J) whose median joint distance over the joints both see
-    confidently is under ``frac`` x the larger side of the smaller pose's keypoint box."""
-    out = []
-    ok = (sc >= min_score) & np.isfinite(xy[..., 0])
-    size = np.zeros(len(xy))
-    for m in range(len(xy)):
-        if ok[m].sum() >= 2:
-            size[m] = (xy[m, ok[m]].max(0) - xy[m, ok[m]].min(0)).max()
-    for a in range(len(xy)):
-        for b in range(a + 1, len(xy)):
-            both = ok[a] & ok[b]
-            if both.sum() < min_joints:
-                continue
-            d = np.median(np.linalg.norm(xy[a, both] - xy[b, both], axis=-1))
-            if d < frac * min(size[a], size[b]):
-                out.append((a, b))
-    return out
-
-
-def _paint_body(
-    img: np.ndarray,
-    xy: np.ndarray,
-    sc: np.ndarray,
-    skeleton: str,
-    value: float,
-    min_score: float = 0.3,
-    width: float = 0.12,
-) -> None:
-    """Paint a person over in place: lines ``width`` x the keypoint box height thick along the limbs between
-    confident keypoints xy (J,2), and discs at them (the torso as a filled polygon)."""
-    sk = get_skeleton(skeleton)
-    ok = (sc >= min_score) & np.isfinite(xy[:, 0])
-    if ok.sum() < 2:
-        return
-    h = float(np.ptp(xy[ok, 1]))
-    th = max(2, int(round(width * h)))
-    col = (int(value),) * 3
-    for a, b in sk.limbs:
-        if ok[a] and ok[b]:
-            cv2.line(img, tuple(int(v) for v in xy[a]), tuple(int(v) for v in xy[b]), col, th)
-    for j in np.flatnonzero(ok):
-        cv2.circle(img, tuple(int(v) for v in xy[j]), th // 2 + 1, col, -1)
-    try:
-        torso = [sk.index(n) for n in ("left_shoulder", "right_shoulder", "right_hip", "left_hip")]
-    except KeyError:
-        return
-    if ok[torso].all():
-        cv2.fillConvexPoly(img, np.round(xy[torso]).astype(np.int32), col)
-
-
-def _erase_body(
-    img: np.ndarray,
-    xy: np.ndarray,
-    sc: np.ndarray,
-    skeleton: str,
-    fill: float | None = None,
-    ring: float = 0.05,
-) -> None:
-    """Erase a person in place: the ``_paint_body`` mask filled with ``fill`` (a grey value) or, for None,
-    with the median colour of a ring around it (``ring`` x the keypoint box height wide): the background's
-    colour. A black person-shaped silhouette is itself taken for a person by crop models (Demo_MultiPerson
-    cam03 frames 75 and 85: the occluded person's crop re-estimated on the black silhouette of the person in
-    front), while on others the black shape reads as an occluder and the background-coloured one does not
-    (frame 63); ``_resolve_duplicates`` tries both."""
-    if fill is not None:
-        _paint_body(img, xy, sc, skeleton, fill)
-        return
-    mask = np.zeros(img.shape[:2], np.uint8)
-    _paint_body(mask, xy, sc, skeleton, 255)
-    if not mask.any():
-        return
-    ok = (sc >= 0.3) & np.isfinite(xy[:, 0])
-    k = 2 * max(2, int(round(ring * float(np.ptp(xy[ok, 1]))))) + 1
-    around = (cv2.dilate(mask, np.ones((k, k), np.uint8)) > 0) & (mask == 0)
-    m = mask > 0
-    img[m] = np.median(img[around], axis=0) if around.any() else 0
-
-
-def keypoint_boxes(
-    xy: np.ndarray, sc: np.ndarray, fallback: np.ndarray, margin: float = 0.1, min_score: float = 0.3
-) -> np.ndarray:
-    """(M,5) axis-aligned boxes of each person's confident keypoints xy (M,J,2), scores (M,J), grown by
-    ``margin`` x the larger side; ``fallback`` (M,>=4) where fewer than 2 keypoints are confident. Column 4
-    is the fallback's score."""
-    out = np.zeros((len(xy), 5))
-    if len(fallback):
-        out[:, : min(5, fallback.shape[1])] = np.asarray(fallback, np.float64)[:, :5]
-    for i in range(len(xy)):
-        ok = (sc[i] >= min_score) & np.isfinite(xy[i, :, 0])
-        if ok.sum() < 2:
-            continue
-        lo, hi = xy[i, ok].min(0), xy[i, ok].max(0)
-        m = margin * float(max(hi - lo))
-        out[i, :4] = (lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m)
-    return out
 
 
 @dataclass
