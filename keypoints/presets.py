@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from core.config import config_from_dict
+from core.config import check_keys, config_from_dict
 from core.errors import UnknownNameError
 from keypoints.pipeline import PipelineConfig
 from keypoints.registry import presets
@@ -23,9 +23,6 @@ def preset_config(name: str = "", **overrides: Any) -> PipelineConfig:
     name = name or default
     if name not in table:
         raise UnknownNameError(f"unknown keypoint preset {name!r}; known: {sorted(table)}.")
-    fields = {f.name for f in dataclasses.fields(PipelineConfig)}
-    bad = sorted(set(overrides) - fields)
-    if bad:
-        raise UnknownNameError(f"unknown keypoint settings {bad}; valid: {sorted(fields)}.")
+    check_keys(overrides, [f.name for f in dataclasses.fields(PipelineConfig)], "keypoint settings", None)
     cfg = config_from_dict(PipelineConfig, table[name], f"presets.{name}")
     return dataclasses.replace(cfg, **overrides)

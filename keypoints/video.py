@@ -452,6 +452,7 @@ def run_videos(
     videos: dict[str, str | os.PathLike],
     out_dir: str | os.PathLike,
     config: PipelineConfig | str = "default",
+    *,
     rig=None,
     chunk_frames: int = 50,
     max_frames: int | None = None,
