@@ -314,6 +314,7 @@ def get_spec(name: str | ModelSpec, model_dir: str | os.PathLike | None = None) 
     return specs[name]
 
 
+@cache  # read once: the configs ask for the presets on every construction (callers copy what they keep)
 def _sets_toml() -> tuple[Path, dict[str, Any]]:
     path = Path(str(resources.files("keypoints.models").joinpath("sets.toml")))
     data = load_toml(path)

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.camera import CameraRig
-from capture.fileio import save_toml, schema_tag
+from capture.fileio import schema_tag
 from capture.session import SessionLayout
 from core.fileio import atomic_path
 from synthetic import render as R
-from synthetic.world import GT_SCHEMA, GT_VERSION, Scene
+from synthetic.world import GT_SCHEMA, GT_VERSION, Scene, write_session_toml
 
 
 class _Member:
@@ -127,18 +127,7 @@ def write_session_chunked(
             },
         )
     rig.save(lay.calib_dir / "rig.toml", source="synthetic")
-    save_toml(
-        lay.session_toml,
-        {
-            "schema": "session/1",
-            "cameras": list(rig.names),
-            "fps": float(scene.fps),
-            "synthetic": True,
-            "seed": int(scene.config.seed),
-            "n_people": int(scene.n_people),
-        },
-        header="synthetic session (synthetic.chunked.write_session_chunked)",
-    )
+    write_session_toml(lay, scene, rig, "synthetic.chunked.write_session_chunked")
     gt_members: dict[str, np.ndarray | _Member] = {
         "schema": np.asarray(schema_tag(GT_SCHEMA, GT_VERSION)),
         "gt_xyz_m": scene.gt_xyz_m,

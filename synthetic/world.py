@@ -361,6 +361,22 @@ def make_scene(room: Room, config: SceneConfig | None = None, **overrides) -> Sc
 # session folders
 
 
+def write_session_toml(lay: SessionLayout, scene: Scene, rig: CameraRig, writer: str) -> None:
+    """The synthetic session's ``session.toml``; ``writer`` names the function that wrote the session."""
+    save_toml(
+        lay.session_toml,
+        {
+            "schema": "session/1",
+            "cameras": list(rig.names),
+            "fps": float(scene.fps),
+            "synthetic": True,
+            "seed": int(scene.config.seed),
+            "n_people": int(scene.n_people),
+        },
+        header=f"synthetic session ({writer})",
+    )
+
+
 def write_session(scene: Scene, rendering, rig: CameraRig, root: str | os.PathLike) -> SessionLayout:
     """Write a session folder the 3D stages can run on.
 
@@ -376,18 +392,7 @@ def write_session(scene: Scene, rendering, rig: CameraRig, root: str | os.PathLi
     rig.save(lay.calib_dir / "rig.toml", source="synthetic")
     for det in rendering.detections:
         det.save(lay.detections(det.camera))
-    save_toml(
-        lay.session_toml,
-        {
-            "schema": "session/1",
-            "cameras": list(rig.names),
-            "fps": float(scene.fps),
-            "synthetic": True,
-            "seed": int(scene.config.seed),
-            "n_people": int(scene.n_people),
-        },
-        header="synthetic session (synthetic.world.write_session)",
-    )
+    write_session_toml(lay, scene, rig, "synthetic.world.write_session")
     arrays = {
         "schema": schema_tag(GT_SCHEMA, GT_VERSION),
         "gt_xyz_m": scene.gt_xyz_m.astype(np.float64),

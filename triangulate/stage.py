@@ -585,17 +585,7 @@ def triangulate_session(
         return _triangulate_chunked(lay, rig, cfg, progress)
     sub, mv = load_detections(lay, rig, skeleton=cfg.skeleton)
     res = reconstruct_all(sub, mv, cfg, progress)
-    fps = _fps(lay, mv.t_ns)
-    poses = Poses3D(
-        fps=fps,
-        frame_index=mv.frame_index,
-        t_ns=mv.t_ns,
-        joint_names=mv.joint_names,
-        parents=np.asarray(mv.parents),
-        calibration_sha256=rig.sha256(),
-        cameras=tuple(sub.names),
-        **res,
-    )
+    poses = _poses3d(mv, res, _fps(lay, mv.t_ns), rig, sub.names)
     remove_output(lay.poses3d)
     poses.save(lay.poses3d)
     n = _people_log(res["xyz_m"])
@@ -609,6 +599,20 @@ def triangulate_session(
     if len(n) and n.max() == 0:
         _nobody_warning(len(n), len(sub))
     return lay.poses3d
+
+
+def _poses3d(mv, res: dict, fps: float, rig: CameraRig, cameras) -> Poses3D:
+    """The per-frame poses of the frames ``mv`` covers, from ``reconstruct_all``'s arrays ``res``."""
+    return Poses3D(
+        fps=fps,
+        frame_index=mv.frame_index,
+        t_ns=mv.t_ns,
+        joint_names=mv.joint_names,
+        parents=np.asarray(mv.parents),
+        calibration_sha256=rig.sha256(),
+        cameras=tuple(cameras),
+        **res,
+    )
 
 
 def _triangulate_chunked(
@@ -647,16 +651,7 @@ def _triangulate_chunked(
                 continue
             mv = plan.chunk(a, b)
             res = reconstruct_all(plan.rig, mv, cfg, progress, rec, done=a, total=T)
-            Poses3D(
-                fps=fps,
-                frame_index=mv.frame_index,
-                t_ns=mv.t_ns,
-                joint_names=mv.joint_names,
-                parents=np.asarray(mv.parents),
-                calibration_sha256=rig.sha256(),
-                cameras=tuple(plan.cameras),
-                **res,
-            ).save(store.part_path(i))
+            _poses3d(mv, res, fps, rig, plan.cameras).save(store.part_path(i))
             store.commit(i)
             n = _people_log(res["xyz_m"])
             n_sum, n_max, n_frames = (
