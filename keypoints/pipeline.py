@@ -54,6 +54,30 @@ from keypoints.skeletons import convert, get_skeleton
 log = logging.getLogger(__name__)
 
 
+def _crop_region(M: np.ndarray, size_wh: tuple[int, int], shape, f: int) -> tuple[int, int, int, int]:
+    """Image px region x0,y0,x1,y1 that a crop of affine M (image -> crop px) samples, with a margin of 4f
+    px (the reach of L = log2 f pyrDown kernels, 2(f - 1), and of the bilinear sample at level L), clipped
+    to the image, its corner on multiples of f."""
+    W, H = size_wh
+    corners = np.array([[0.0, 0.0], [W, 0.0], [0.0, H], [W, H]])
+    A, t = M[:, :2], M[:, 2]
+    xy = (corners - t) @ np.linalg.inv(A).T
+    h, w = shape[:2]
+    m = 4 * f
+    x0 = int(np.clip(np.floor(xy[:, 0].min()) - m, 0, w - 1)) // f * f
+    y0 = int(np.clip(np.floor(xy[:, 1].min()) - m, 0, h - 1)) // f * f
+    x1 = int(np.clip(np.ceil(xy[:, 0].max()) + m + 1, x0 + 1, w))
+    y1 = int(np.clip(np.ceil(xy[:, 1].max()) + m + 1, y0 + 1, h))
+    return x0, y0, x1, y1
+
+
+def _containing(regions, box):
+    """The first region (x0, y0, x1, y1, level) that contains box x0,y0,x1,y1, else None."""
+    return next(
+        (r for r in regions if r[0] <= box[0] and r[1] <= box[1] and r[2] >= box[2] and r[3] >= box[3]), None
+    )
+
+
 @dataclass(frozen=True)
 class PipelineConfig:
     """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own).
@@ -159,7 +183,8 @@ class KeypointPipeline:
         self.skeleton = self.src_skeleton if config.skeleton == "model" else config.skeleton
         get_skeleton(self.skeleton)
         self.stage_s: dict[str, float] = defaultdict(float)
-        self._pyr: dict[int, list[np.ndarray]] = {}
+        # pyramid regions per (image, level) for the current call: (x0, y0, x1, y1, level image)
+        self._pyr: dict[tuple[int, int], list[tuple[int, int, int, int, np.ndarray]]] = {}
         self._seeds: dict = {}  # stream -> _Seed (tracked crops)
         self.n_detected = self.n_tracked = (
             0  # images that ran the detector / were cropped from the last poses
@@ -265,21 +290,27 @@ class KeypointPipeline:
         n = n0 * len(scales)  # crops ordered scale-major: crop s * n0 + person
         crops = np.empty((n, H, W, 3), np.uint8)
         Ms = np.empty((n, 2, 3))
+        owner = np.empty(n, int)
         k = 0
         for i, bs, f in ((i, bs, f) for f in scales for i, bs in enumerate(boxes)):
             for j, b in enumerate(bs):
-                Ms[k] = crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j])
-                src, M = self._pyramid(images, i, Ms[k])
-                cv2.warpAffine(
-                    src,
-                    M,
-                    (W, H),
-                    dst=crops[k],
-                    flags=cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=(spec.input.pad_value,) * 3,
+                Ms[k], owner[k] = (
+                    crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j]),
+                    i,
                 )
                 k += 1
+        self._reduce_regions(images, owner, Ms, (W, H))
+        for k in range(n):
+            src, M = self._pyramid(images, owner[k], Ms[k], (W, H))
+            cv2.warpAffine(
+                src,
+                M,
+                (W, H),
+                dst=crops[k],
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=(spec.input.pad_value,) * 3,
+            )
         if flip is None:
             flip = spec.decoder.flip_test if self.config.flip_test is None else self.config.flip_test
         flip = n > 0 and flip
@@ -317,24 +348,62 @@ class KeypointPipeline:
         self._tick("pose_post", t)
         return res
 
-    def _pyramid(self, images, i: int, M: np.ndarray):
-        """The image level to crop from and the affine for it.
-
-        A crop that shrinks the image more than 2x is cut from a Gaussian pyramid level (cv2.pyrDown, cached
-        per image for this call), avoiding the aliasing of warpAffine's bilinear sampling. pyrDown centres
-        its kernel on source pixel 2i, so level-L pixels relate to image pixels by x = 2^L x_L.
-        """
+    def _level(self, M: np.ndarray) -> int:
+        """The pyramid level a crop of affine M is cut from: a crop that shrinks the image more than 2x comes
+        from a Gaussian pyramid level (cv2.pyrDown), avoiding the aliasing of warpAffine's bilinear
+        sampling; 0 = the image itself."""
         if not self.config.antialias:
-            return images[i], M
+            return 0
         scale = float(np.sqrt(abs(np.linalg.det(M[:, :2]))))
-        L = int(np.clip(np.floor(np.log2(1.0 / max(scale, 1e-9))), 0, 4))
+        return int(np.clip(np.floor(np.log2(1.0 / max(scale, 1e-9))), 0, 4))
+
+    def _reduce_regions(self, images, owner: np.ndarray, Ms: np.ndarray, size_wh: tuple[int, int]) -> None:
+        """Pyramid levels of the regions these crops sample, made before cutting them: per image and level,
+        overlapping regions are merged into one (people close together, the crop sizes of the test-time
+        augmentation) so that each pixel is reduced once."""
+        want: dict[tuple[int, int], list[list[int]]] = {}
+        for i, M in zip(owner, Ms, strict=True):
+            L = self._level(M)
+            if L:
+                want.setdefault((int(i), L), []).append(list(_crop_region(M, size_wh, images[i].shape, 2**L)))
+        for (i, L), boxes in want.items():
+            have = self._pyr.setdefault((i, L), [])
+            todo = [b for b in boxes if _containing(have, b) is None]
+            merged: list[list[int]] = []
+            for b in sorted(todo):
+                for m in merged:
+                    if b[0] < m[2] and m[0] < b[2] and b[1] < m[3] and m[1] < b[3]:
+                        m[:] = [min(m[0], b[0]), min(m[1], b[1]), max(m[2], b[2]), max(m[3], b[3])]
+                        break
+                else:
+                    merged.append(list(b))
+            for x0, y0, x1, y1 in merged:
+                level = images[i][y0:y1, x0:x1]
+                for _ in range(L):
+                    level = cv2.pyrDown(level)
+                have.append((x0, y0, x1, y1, level))
+
+    def _pyramid(self, images, i: int, M: np.ndarray, size_wh: tuple[int, int]):
+        """The image level to crop from and the affine for it (``_level``).
+
+        pyrDown centres its kernel on source pixel 2i, so level-L pixels relate to image pixels by
+        x = 2^L x_L. Only the region the crop samples is reduced (``_reduce_regions``; with the kernels'
+        reach as margin and its corner on the level-L grid, so the pixels equal those of the whole image's
+        pyramid); regions are kept per image and level for this call's passes.
+        """
+        L = self._level(M)
         if L == 0:
             return images[i], M
-        levels = self._pyr.setdefault(i, [images[i]])
-        while len(levels) <= L:
-            levels.append(cv2.pyrDown(levels[-1]))
-        f = 2.0**L
-        return levels[L], np.hstack([M[:, :2] * f, M[:, 2:]])
+        f = 2**L
+        need = list(_crop_region(M, size_wh, images[i].shape, f))
+        hit = _containing(self._pyr.get((i, L), []), need)
+        if hit is None:
+            self._reduce_regions(images, np.array([i]), M[None], size_wh)
+            hit = _containing(self._pyr[(i, L)], need)
+        assert hit is not None
+        # crop px = A x + t with x = (region x0, y0) + f x_L
+        A = M[:, :2]
+        return hit[4], np.hstack([A * f, (M[:, 2] + A @ np.array([hit[0], hit[1]], float))[:, None]])
 
     @staticmethod
     def _roi_to_image(aux: np.ndarray, Ms: np.ndarray) -> np.ndarray:
