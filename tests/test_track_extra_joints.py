@@ -137,6 +137,7 @@ def test_pipeline_gives_the_particle_tracker_the_triangulate_skeleton():
     wb = {"triangulate": {"options": {"skeleton": "whole_body"}}}
     cfg = PipelineConfig.from_dict({**wb, "track": {"tracker": "particle", "options": {"n_samples": 50}}})
     assert particle_options(cfg) == {"n_samples": 50, "skeleton": "whole_body"}
-    own = PipelineConfig.from_dict({**wb, "track": {"tracker": "particle", "options": {"skeleton": "body19"}}})
+    track = {"tracker": "particle", "options": {"skeleton": "body19"}}
+    own = PipelineConfig.from_dict({**wb, "track": track})
     assert particle_options(own) == {"skeleton": "body19"}  # the track options' own choice wins
     assert particle_options(PipelineConfig.from_dict({"track": {"tracker": "particle"}})) == {}
