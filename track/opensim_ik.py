@@ -16,7 +16,9 @@ slowest quarter second), then inverse kinematics over the whole TRC, writing
 - ``<session>_<id>_scaled.osim``.
 
 Markers the setups name that the TRC lacks are left out of scaling (a measurement that needs one is
-not applied) and of IK, and named in the result's notes; fewer than 6 markers left is an error.
+not applied) and of IK, and named in the result's notes; fewer than 6 markers left is an error. A
+body19 track's ``Neck`` (the mid-shoulder point) is left out, with a note, when the setup's ``Neck`` is an
+upper-neck point (BODY_25B, HALPE-26: above the shoulder markers; :func:`neck_mismatch`).
 """
 
 from __future__ import annotations
@@ -121,6 +123,44 @@ def setup_marker_names(setup: Setup) -> list[str]:
         if apply:
             out.append(t.get("name"))
     return out
+
+
+def marker_locations(setup: Setup) -> dict[str, tuple[str, np.ndarray]]:
+    """Marker name -> (parent body, location in that body's frame, metres) of the setup's marker set."""
+    out = {}
+    for m in ET.parse(setup.markers).getroot().iter("Marker"):
+        body = (m.findtext("socket_parent_frame") or "").strip().rsplit("/", 1)[-1]
+        loc = np.array([float(v) for v in (m.findtext("location") or "0 0 0").split()])
+        out[str(m.get("name"))] = (body, loc)
+    return out
+
+
+# a setup's Neck this far above its shoulder markers (torso frame) is an upper-neck keypoint (BODY_25B,
+# HALPE-26), not the mid-shoulder point (Pose2Sim's COCO-17 set, at shoulder height)
+UPPER_NECK_ABOVE_SHOULDERS_M = 0.03
+
+
+def neck_mismatch(tf: TrackFile, setup: Setup) -> str | None:
+    """Why the track's ``Neck`` must not take part, or None: body19's ``neck`` is the mid-shoulder point;
+    a marker set whose ``Neck`` sits above its shoulder markers means the upper neck (BODY_25B's
+    detected keypoint). Tracks with ``upper_neck`` export that as ``Neck`` and match."""
+    if "upper_neck" in tf.joint_names or "neck" not in tf.joint_names:
+        return None
+    locs = marker_locations(setup)
+    if "Neck" not in locs or "LShoulder" not in locs or "RShoulder" not in locs:
+        return None
+    (nb, neck), (lb, ls), (rb, rs) = locs["Neck"], locs["LShoulder"], locs["RShoulder"]
+    if not nb == lb == rb:
+        return None
+    above = float(neck[1] - 0.5 * (ls[1] + rs[1]))
+    if above <= UPPER_NECK_ABOVE_SHOULDERS_M:
+        return None
+    return (
+        f"Neck left out: the setup's Neck ({setup.markers.name}) is an upper-neck point "
+        f"{1000 * above:.0f} mm above its shoulder markers, the track's neck the mid-shoulder point "
+        "(body19; the 2D model has no neck keypoint); use a track with the upper neck (BODY_25B, skeleton = whole_body) or a setup "
+        "whose Neck is the mid-shoulder point (--markerset Coco17)"
+    )
 
 
 def _import_opensim():
@@ -301,7 +341,10 @@ def run_opensim(
     """TRC export + scaling + IK for every person (or ``persons``) of a track file."""
 
     _import_opensim()
-    find_setup(setup_dir, markerset)
+    setup = find_setup(setup_dir, markerset)
+    why = neck_mismatch(tf, setup) if markers is None or "Neck" in markers else None
+    if why is not None:
+        markers = [m for m in (markers or setup_marker_names(setup)) if m != "Neck"]
     out_dir = Path(out_dir)
     ids = tf.track_id.tolist() if persons is None else persons
     results = []
@@ -322,4 +365,6 @@ def run_opensim(
                 track_id=p,
             )
         )
+        if why is not None:
+            results[-1].notes.insert(0, why)
     return results
