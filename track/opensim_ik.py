@@ -158,8 +158,8 @@ def neck_mismatch(tf: TrackFile, setup: Setup) -> str | None:
     return (
         f"Neck left out: the setup's Neck ({setup.markers.name}) is an upper-neck point "
         f"{1000 * above:.0f} mm above its shoulder markers, the track's neck the mid-shoulder point "
-        "(body19; the 2D model has no neck keypoint); use a track with the upper neck (BODY_25B, skeleton = whole_body) or a setup "
-        "whose Neck is the mid-shoulder point (--markerset Coco17)"
+        "(body19; the 2D model has no neck keypoint); use a track with the upper neck (BODY_25B, "
+        "skeleton = whole_body) or a setup whose Neck is the mid-shoulder point (--markerset Coco17)"
     )
 
 
