@@ -126,6 +126,16 @@ def test_attach_joints_checks_shapes_and_bad_skeleton():
             tuple("abcde"),
             [-1, 0, 0, 0, 0],
         )
+    tf19 = TrackFile.empty(np.arange(4), np.zeros(4, np.int64), 25.0)
+    with pytest.raises(ValueError, match="shares 0 joints.*greedy tracker"):
+        attach_joints(
+            tf19,
+            np.zeros((2, 3, 4)),
+            np.zeros((2, 4, 1, 5, 2)),
+            np.zeros((2, 4, 1, 5)),
+            tuple("abcde"),
+            [-1] * 5,
+        )
     with pytest.raises(ValueError, match="'body19', 'whole_body' or a skeleton TOML"):
         ParticleTrackConfig.from_dict({"skeleton": "feet"})
 

@@ -143,6 +143,12 @@ def attach_joints(
     own = {n: i for i, n in enumerate(tf.joint_names)}
     shared = [j for j, n in enumerate(joint_names) if n in own]  # joints the tracker has
     extra = [j for j, n in enumerate(joint_names) if n not in own]
+    if extra and len(shared) < cfg.min_joints:
+        raise ValueError(
+            f"the skeleton {list(joint_names)} shares {len(shared)} joints with the tracks' "
+            f"{list(tf.joint_names)}; the particle tracker places the other joints from at least "
+            f"{cfg.min_joints} shared ones. Use the greedy tracker (--tracker greedy) for this skeleton."
+        )
     xyz = np.full((T, K, J, 3), np.nan, np.float32)
     conf = np.zeros((T, K, J), np.float32)
     std = np.full((T, K, J), np.nan, np.float32)
