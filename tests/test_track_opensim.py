@@ -11,7 +11,14 @@ import pytest
 from tests.conftest import need_shared
 from tests.test_track_export import _trackfile, _walkers
 from track.cli import main as tracks_main
-from track.opensim_ik import OpenSimError, find_setup, neck_mismatch, run_opensim, setup_marker_names
+from track.opensim_ik import (
+    OpenSimError,
+    find_setup,
+    foot_index_note,
+    neck_mismatch,
+    run_opensim,
+    setup_marker_names,
+)
 
 pytest.importorskip("opensim", reason="OpenSim is an optional extra: pip install 'roomcap[opensim]'")
 
@@ -46,6 +53,15 @@ def test_scaling_and_ik_on_a_walker(tmp_path, setup_dir):
         tf, joint_names=tuple("upper_neck" if n == "nose" else n for n in tf.joint_names)
     )
     assert neck_mismatch(wb, find_setup(setup_dir, "Body25b")) is None  # a detected upper neck matches
+    bp = dataclasses.replace(
+        tf, joint_names=tuple("left_foot_index" if n == "nose" else n for n in tf.joint_names)
+    )
+    note = foot_index_note(bp, find_setup(setup_dir, "Body25b"))
+    assert note and "foot index" in note and "mm from Markers_BlazePose.xml" in note
+    assert (
+        foot_index_note(bp, find_setup(setup_dir, "Blazepose")) is None
+        and foot_index_note(tf, find_setup(setup_dir, "Body25b")) is None
+    )
 
 
 def test_setup_naming_missing_markers_and_too_few(tmp_path, setup_dir):

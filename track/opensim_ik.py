@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import os
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -160,6 +160,28 @@ def neck_mismatch(tf: TrackFile, setup: Setup) -> str | None:
         f"{1000 * above:.0f} mm above its shoulder markers, the track's neck the mid-shoulder point "
         "(body19; the 2D model has no neck keypoint); use a track with the upper neck (BODY_25B, "
         "skeleton = whole_body) or a setup whose Neck is the mid-shoulder point (--markerset Coco17)"
+    )
+
+
+def foot_index_note(tf: TrackFile, setup: Setup) -> str | None:
+    """A note when a BlazePose track (``foot_index``, exported as Pose2Sim names it: ``LBigToe``/``RBigToe``)
+    meets a marker set whose ``LBigToe`` is another point (the BODY_25B big toe), or None."""
+    if "left_big_toe" in tf.joint_names or "left_foot_index" not in tf.joint_names:
+        return None
+    if "blazepose" in setup.markers.name.lower():
+        return None
+    other = next(iter(sorted(setup.markers.parent.glob("Markers_[Bb]laze[Pp]ose.xml"))), None)
+    where = ""
+    if other is not None:
+        here, there = (
+            marker_locations(setup).get("LBigToe"),
+            marker_locations(replace(setup, markers=other)).get("LBigToe"),
+        )
+        if here and there and here[0] == there[0]:
+            where = f" ({1000 * float(np.linalg.norm(here[1] - there[1])):.0f} mm from {other.name}'s)"
+    return (
+        f"LBigToe/RBigToe are BlazePose's foot index (the foot tip); {setup.markers.name} places its "
+        f"LBigToe on the big toe{where}: --markerset Blazepose matches BlazePose's points"
     )
 
 
@@ -367,4 +389,7 @@ def run_opensim(
         )
         if why is not None:
             results[-1].notes.insert(0, why)
+        toe = foot_index_note(tf, setup)
+        if toe is not None and "LBigToe" in results[-1].markers:
+            results[-1].notes.append(toe)
     return results
