@@ -45,6 +45,33 @@ def summary(r) -> dict:
         "rms_mean_mm": round(1000 * float(np.mean(r.rms_m)), 1),
         "max_median_mm": round(1000 * float(np.median(r.max_m)), 1),
         "max_mean_mm": round(1000 * float(np.mean(r.max_m)), 1),
+        **per_marker(r),
+    }
+
+
+def per_marker(r) -> dict:
+    """Diagnostics from the same IK run (not the protocol's statistics): each marker's error median and
+    90th percentile over frames, how often it is the frame's largest, and the per-frame max over the
+    markers other than that most frequent one."""
+    e = 1000 * np.asarray(r.per_marker_m, float)  # (T,M) mm
+    ok = np.isfinite(e).all(0)
+    names = [m for m, k in zip(r.markers, ok, strict=True) if k]
+    e = e[:, ok]
+    if not e.size:
+        return {}
+    top = np.bincount(np.argmax(e, 1), minlength=len(names))
+    worst = int(np.argmax(top))
+    rest = np.delete(e, worst, axis=1).max(1) if e.shape[1] > 1 else np.full(len(e), np.nan)
+    return {
+        "per_marker_mm": {
+            n: {
+                "median": round(float(np.median(e[:, i])), 1),
+                "p90": round(float(np.percentile(e[:, i], 90)), 1),
+            }
+            for i, n in enumerate(names)
+        },
+        "frames_marker_is_max": {n: int(c) for n, c in zip(names, top, strict=True) if c},
+        f"max_median_mm_without_{names[worst]}": round(float(np.median(rest)), 1),
     }
 
 
@@ -151,7 +178,7 @@ def main() -> None:
         "input": args.label
         or ("Demo_SinglePerson videos, BlazePose heavy" if args.videos else None)
         or ("trial OpenPose JSON" if args.tracks is None else str(args.tracks)),
-        "skeleton": "whole_body" if args.whole_body or args.videos else "body19",
+        "skeleton": "whole_body" if len(tf.joint_names) > 19 else "body19",
         "track": tid,
         "ours_trc_frames": int(mt.complete.sum()),
         "common_markers": common,
@@ -167,6 +194,16 @@ def main() -> None:
             f"{s['rms_median_mm']:6.1f} mm mean {s['rms_mean_mm']:6.1f} | max median "
             f"{s['max_median_mm']:6.1f} mean {s['max_mean_mm']:6.1f}"
         )
+    for name in res:
+        s = report[name]
+        if "frames_marker_is_max" in s:
+            worst = max(s["frames_marker_is_max"], key=s["frames_marker_is_max"].get)
+            pm = s["per_marker_mm"]
+            print(
+                f"  {name}: largest marker per frame {s['frames_marker_is_max']}; {worst} median "
+                f"{pm[worst]['median']} p90 {pm[worst]['p90']} mm; max per frame without {worst}: median "
+                f"{s[f'max_median_mm_without_{worst}']} mm"
+            )
     print(f"setup markers our track lacks: {full.missing}")
     print("BENCH " + json.dumps(report))
 

@@ -379,7 +379,7 @@ def _plan_track(
         if cfg.track.tracker == "greedy":
             track_session_greedy(lay.root, cfg.track.options or None)
         else:
-            track_particle(lay, cfg.track.options)
+            track_particle(lay, particle_options(cfg))
 
     inputs = [lay.rig_toml, *_detection_paths(lay)]
     if cfg.track.tracker == "greedy":
@@ -387,7 +387,18 @@ def _plan_track(
     config = dataclasses.asdict(cfg.track)
     if cfg.track.tracker != "greedy":  # the particle tracker reads the detections (and offsets) itself
         config["sync"] = _sync_table(src)
+        config["options"] = particle_options(cfg)
     return StagePlan("track", inputs, [lay.tracks], config, run)
+
+
+def particle_options(cfg: PipelineConfig) -> dict:
+    """The particle tracker's options: ``[track] options``, with the 3D joints of ``[triangulate.options]
+    skeleton`` (whole_body, a skeleton TOML) unless the track options name their own ``skeleton``."""
+    opts = dict(cfg.track.options or {})
+    skel = (cfg.triangulate.options or {}).get("skeleton")
+    if skel and skel != "body19":
+        opts.setdefault("skeleton", skel)
+    return opts
 
 
 def forecast_path(lay: SessionLayout) -> Path:

@@ -351,3 +351,38 @@ def test_reprocess_export_writes_files_per_person(tmp_path, capsys):
     for trc in exp.glob("*.trc"):
         assert np.isfinite(read_trc(trc)[1]).all()
     assert any(exp.glob("*.trc"))
+
+
+def test_lowpass_as_pose2sim_filters(tmp_path, capsys):
+    from track.export import lowpass
+    from track.trackfile import SMOOTHED
+
+    T, fps = 120, 25.0
+    t = np.arange(T) / fps
+    xyz = np.full((T, 1, len(CANONICAL.joint_names), 3), np.nan)
+    slow, fast = 0.3 * np.sin(2 * np.pi * 1.0 * t), 0.01 * np.sin(2 * np.pi * 10.0 * t)
+    xyz[:, 0, :, 0] = (slow + fast)[:, None]
+    xyz[:, 0, :, 1:] = 1.0
+    xyz[50:53, 0, 2] = np.nan  # a gap: both runs filtered, the gap stays
+    xyz[:8, 0, 4] = np.nan
+    xyz[12:, 0, 4] = np.nan  # a 4-frame run, too short to filter: as it is
+    tf = _trackfile(xyz)
+    f = lowpass(tf, 6.0)
+    x = f.xyz_m[:, 0, 0, 0].astype(np.float64)
+    mid = slice(15, T - 15)
+    assert np.abs(x - slow)[mid].max() < 0.003  # the 10 Hz wobble (10 mm) is gone, the 1 Hz motion kept
+    assert np.abs(tf.xyz_m[:, 0, 0, 0] - slow)[mid].max() > 0.009
+    assert np.isnan(f.xyz_m[50:53, 0, 2]).all() and np.isfinite(f.xyz_m[53:, 0, 2]).all()
+    np.testing.assert_array_equal(f.xyz_m[8:12, 0, 4], tf.xyz_m[8:12, 0, 4])
+    assert (f.flags[:, 0, 0] & SMOOTHED).all() and not (f.flags[8:12, 0, 4] & SMOOTHED).any()
+    with pytest.raises(ExportError, match="below half the frame rate"):
+        lowpass(tf, 13.0)
+    # through the command: the TRC is the filtered one
+    (tmp_path / "S" / "track").mkdir(parents=True)
+    tf.save(tmp_path / "S" / "track" / "tracks.npz")
+    args = ["export", str(tmp_path / "S"), "--format", "trc", "--out", str(tmp_path / "o")]
+    assert tracks_main([*args, "--lowpass", "6"]) == 0
+    assert "low-pass filtered (Butterworth, order 4, zero phase, 6 Hz)" in capsys.readouterr().out
+    names, trc, _, _ = read_trc(tmp_path / "o" / "S_3.trc")
+    np.testing.assert_allclose(yup_to_world(trc)[:, names.index("Nose"), 0], x[:T], atol=1e-5)
+    assert tracks_main([*args, "--lowpass", "-1"]) == 2

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 
 import numpy as np
@@ -10,7 +11,14 @@ import pytest
 from tests.conftest import need_shared
 from tests.test_track_export import _trackfile, _walkers
 from track.cli import main as tracks_main
-from track.opensim_ik import OpenSimError, find_setup, run_opensim, setup_marker_names
+from track.opensim_ik import (
+    OpenSimError,
+    find_setup,
+    foot_index_note,
+    neck_mismatch,
+    run_opensim,
+    setup_marker_names,
+)
 
 pytest.importorskip("opensim", reason="OpenSim is an optional extra: pip install 'roomcap[opensim]'")
 
@@ -36,6 +44,24 @@ def test_scaling_and_ik_on_a_walker(tmp_path, setup_dir):
     # BODY_25B names the head and feet, which a body19 track lacks: said, and left out
     assert set(r.missing) == {"Head", "LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel"}
     assert any("names markers the track lacks" in n and "LHeel" in n for n in r.notes)
+    # BODY_25B's Neck is the upper neck, body19's neck the mid-shoulder point: same name, not the same
+    # point, so it takes no part (Pose2Sim's COCO-17 set has its Neck at shoulder height: it stays)
+    assert "Neck" not in r.markers and "LShoulder" in r.markers
+    assert any(n.startswith("Neck left out") and "mid-shoulder" in n for n in r.notes)
+    assert neck_mismatch(tf, find_setup(setup_dir, "Coco17")) is None
+    wb = dataclasses.replace(
+        tf, joint_names=tuple("upper_neck" if n == "nose" else n for n in tf.joint_names)
+    )
+    assert neck_mismatch(wb, find_setup(setup_dir, "Body25b")) is None  # a detected upper neck matches
+    bp = dataclasses.replace(
+        tf, joint_names=tuple("left_foot_index" if n == "nose" else n for n in tf.joint_names)
+    )
+    note = foot_index_note(bp, find_setup(setup_dir, "Body25b"))
+    assert note and "foot index" in note and "mm from Markers_BlazePose.xml" in note
+    assert (
+        foot_index_note(bp, find_setup(setup_dir, "Blazepose")) is None
+        and foot_index_note(tf, find_setup(setup_dir, "Body25b")) is None
+    )
 
 
 def test_setup_naming_missing_markers_and_too_few(tmp_path, setup_dir):
@@ -46,7 +72,7 @@ def test_setup_naming_missing_markers_and_too_few(tmp_path, setup_dir):
     assert "LMidFoot" in setup_marker_names(find_setup(custom, "Coco17"))
     tf = _trackfile(_walkers(1, 6))
     (r,) = run_opensim(tf, tmp_path / "o", "S", custom, markerset="Coco17")
-    assert r.missing == ["LMidFoot"]
+    assert r.missing == ["LMidFoot"] and "Neck" in r.markers
     with pytest.raises(OpenSimError, match=r"only 2 of the setup's markers.*at least 6"):
         run_opensim(tf, tmp_path / "o2", "S", custom, markerset="Coco17", markers=["LKnee", "RKnee"])
     with pytest.raises(OpenSimError, match=r"has no Markers_Nope.xml"):

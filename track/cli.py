@@ -74,7 +74,11 @@ def _export(args) -> int:
                 f"note: {path} has no current skeleton fit beside it (tracks fit); fitted the skeletons now."
             )
     opts = ExportOptions(
-        formats=fmts, max_gap=args.max_gap, min_coverage=args.min_coverage, multi_bvh=args.multi
+        formats=fmts,
+        max_gap=args.max_gap,
+        min_coverage=args.min_coverage,
+        multi_bvh=args.multi,
+        lowpass_hz=args.lowpass,
     )
     rep = export_tracks(tf, args.out, args.session or session, opts, persons=persons, fit=fit)
     for n in rep.notes:
@@ -155,6 +159,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="TRC/C3D: leave out markers known in fewer than this share of the person's frames (default 0.5)",
     )
     e.add_argument("--multi", action="store_true", help="BVH: also one file with every person")
+    e.add_argument(
+        "--lowpass",
+        type=float,
+        default=0.0,
+        metavar="HZ",
+        help="TRC/C3D/CSV/JSON: zero-phase Butterworth low-pass, order 4, at HZ (Pose2Sim's default 6); "
+        "default: none (the trackers smooth already)",
+    )
     e.set_defaults(func=_export)
     f = sub.add_parser("fit", help="one skeleton per person -> track/skeleton_fit.npz")
     f.add_argument("tracks", help="session folder or tracks.npz")

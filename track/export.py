@@ -26,6 +26,11 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
   confidence, std_m, flags`` (world metres, z up, as the track file); :func:`read_csv` reads it back.
 - **JSON**: :func:`track.trackfile.export_json` for one track (confidence, std_m, flags).
 - **BVH**: the fitted skeleton (:mod:`track.skeleton_fit`), written by :func:`track.skeleton_fit.write_bvh`.
+
+``ExportOptions(lowpass_hz=6)`` (``tracks export --lowpass 6``) low-pass filters the positions first, as
+Pose2Sim filters its 3D before OpenSim (:func:`lowpass`: Butterworth, order 4, zero phase). Off by
+default: both trackers already smooth their output (on Pose2Sim's balancing trial it changed OpenSim's
+marker errors by under 0.5 mm; BENCHMARKS.md, issue 18).
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ import io
 import logging
 import os
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +49,7 @@ from capture.fileio import FormatError, atomic_path, atomic_write_text
 from core.errors import RoomcapError
 from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span, write_bvh
 from track.trackfile import (
+    SMOOTHED,
     TrackFile,
     _track_index,
     export_json,
@@ -329,6 +335,38 @@ class ExportOptions:
     max_gap: int = 10  # frames
     min_coverage: float = 0.5
     multi_bvh: bool = False  # also one BVH with every person
+    lowpass_hz: float = 0.0  # > 0: TRC/C3D/CSV/JSON low-pass filtered (:func:`lowpass`); BVH is the fit's
+
+
+def lowpass(tf: TrackFile, cutoff_hz: float, order: int = 4) -> TrackFile:
+    """The track file low-pass filtered as Pose2Sim filters its 3D (``[filtering.butterworth]``, order 4,
+    cut-off 6 Hz by default there): a Butterworth of ``order / 2`` run forwards and backwards (zero
+    phase, ``order`` in all), per track and joint, over each run of known frames; runs shorter than the
+    filter's padding (3 * (order / 2 + 1) frames + 1) are left as they are. Filtered joints get the
+    ``SMOOTHED`` flag; unknown joints stay unknown."""
+    from scipy.signal import butter, filtfilt  # lazy: only the filter needs scipy.signal
+
+    nyq = tf.fps / 2
+    if not (0 < cutoff_hz < nyq):
+        raise ExportError(
+            f"low-pass cut-off {cutoff_hz} Hz: must be above 0 and below half the frame rate "
+            f"({nyq:g} Hz at {tf.fps:g} fps); Pose2Sim uses 6 Hz."
+        )
+    if order < 2 or order % 2:
+        raise ExportError(f"low-pass order {order}: must be even and >= 2 (forwards + backwards).")
+    b, a = butter(order // 2, cutoff_hz / nyq, "low")
+    pad = 3 * max(len(a), len(b))
+    xyz = tf.xyz_m.astype(np.float64)
+    flags = tf.flags.copy()
+    known = np.isfinite(xyz).all(-1)
+    for k in range(tf.n_tracks):
+        for j in range(len(tf.joint_names)):
+            idx = np.flatnonzero(known[:, k, j])
+            for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+                if len(run) > pad:
+                    xyz[run, k, j] = filtfilt(b, a, xyz[run, k, j], axis=0, padlen=pad)
+                    flags[run, k, j] |= SMOOTHED
+    return replace(tf, xyz_m=xyz.astype(np.float32), flags=flags)
 
 
 @dataclass
@@ -359,6 +397,12 @@ def export_tracks(
         rep.notes.append("the track file has no tracks; nothing written.")
         return rep
     fmts = options.formats
+    if options.lowpass_hz:
+        tf = lowpass(tf, options.lowpass_hz)
+        rep.notes.append(
+            f"positions low-pass filtered (Butterworth, order 4, zero phase, {options.lowpass_hz:g} Hz)"
+            + ("; the BVH is the skeleton fit's, not filtered" if "bvh" in fmts else "")
+        )
     strict = persons is not None  # every track: one that cannot be exported is skipped with a note
     if "bvh" in fmts and fit is None:
         rep.notes.append(f"no skeleton fit was given: fitted the skeletons of tracks {ids} now")

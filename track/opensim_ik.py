@@ -16,7 +16,9 @@ slowest quarter second), then inverse kinematics over the whole TRC, writing
 - ``<session>_<id>_scaled.osim``.
 
 Markers the setups name that the TRC lacks are left out of scaling (a measurement that needs one is
-not applied) and of IK, and named in the result's notes; fewer than 6 markers left is an error.
+not applied) and of IK, and named in the result's notes; fewer than 6 markers left is an error. A
+body19 track's ``Neck`` (the mid-shoulder point) is left out, with a note, when the setup's ``Neck`` is an
+upper-neck point (BODY_25B, HALPE-26: above the shoulder markers; :func:`neck_mismatch`).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from __future__ import annotations
 import logging
 import os
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +123,66 @@ def setup_marker_names(setup: Setup) -> list[str]:
         if apply:
             out.append(t.get("name"))
     return out
+
+
+def marker_locations(setup: Setup) -> dict[str, tuple[str, np.ndarray]]:
+    """Marker name -> (parent body, location in that body's frame, metres) of the setup's marker set."""
+    out = {}
+    for m in ET.parse(setup.markers).getroot().iter("Marker"):
+        body = (m.findtext("socket_parent_frame") or "").strip().rsplit("/", 1)[-1]
+        loc = np.array([float(v) for v in (m.findtext("location") or "0 0 0").split()])
+        out[str(m.get("name"))] = (body, loc)
+    return out
+
+
+# a setup's Neck this far above its shoulder markers (torso frame) is an upper-neck keypoint (BODY_25B,
+# HALPE-26), not the mid-shoulder point (Pose2Sim's COCO-17 set, at shoulder height)
+UPPER_NECK_ABOVE_SHOULDERS_M = 0.03
+
+
+def neck_mismatch(tf: TrackFile, setup: Setup) -> str | None:
+    """Why the track's ``Neck`` must not take part, or None: body19's ``neck`` is the mid-shoulder point;
+    a marker set whose ``Neck`` sits above its shoulder markers means the upper neck (BODY_25B's
+    detected keypoint). Tracks with ``upper_neck`` export that as ``Neck`` and match."""
+    if "upper_neck" in tf.joint_names or "neck" not in tf.joint_names:
+        return None
+    locs = marker_locations(setup)
+    if "Neck" not in locs or "LShoulder" not in locs or "RShoulder" not in locs:
+        return None
+    (nb, neck), (lb, ls), (rb, rs) = locs["Neck"], locs["LShoulder"], locs["RShoulder"]
+    if not nb == lb == rb:
+        return None
+    above = float(neck[1] - 0.5 * (ls[1] + rs[1]))
+    if above <= UPPER_NECK_ABOVE_SHOULDERS_M:
+        return None
+    return (
+        f"Neck left out: the setup's Neck ({setup.markers.name}) is an upper-neck point "
+        f"{1000 * above:.0f} mm above its shoulder markers, the track's neck the mid-shoulder point "
+        "(body19; the 2D model has no neck keypoint); use a track with the upper neck (BODY_25B, "
+        "skeleton = whole_body) or a setup whose Neck is the mid-shoulder point (--markerset Coco17)"
+    )
+
+
+def foot_index_note(tf: TrackFile, setup: Setup) -> str | None:
+    """A note when a BlazePose track (``foot_index``, exported as Pose2Sim names it: ``LBigToe``/``RBigToe``)
+    meets a marker set whose ``LBigToe`` is another point (the BODY_25B big toe), or None."""
+    if "left_big_toe" in tf.joint_names or "left_foot_index" not in tf.joint_names:
+        return None
+    if "blazepose" in setup.markers.name.lower():
+        return None
+    other = next(iter(sorted(setup.markers.parent.glob("Markers_[Bb]laze[Pp]ose.xml"))), None)
+    where = ""
+    if other is not None:
+        here, there = (
+            marker_locations(setup).get("LBigToe"),
+            marker_locations(replace(setup, markers=other)).get("LBigToe"),
+        )
+        if here and there and here[0] == there[0]:
+            where = f" ({1000 * float(np.linalg.norm(here[1] - there[1])):.0f} mm from {other.name}'s)"
+    return (
+        f"LBigToe/RBigToe are BlazePose's foot index (the foot tip); {setup.markers.name} places its "
+        f"LBigToe on the big toe{where}: --markerset Blazepose matches BlazePose's points"
+    )
 
 
 def _import_opensim():
@@ -301,7 +363,10 @@ def run_opensim(
     """TRC export + scaling + IK for every person (or ``persons``) of a track file."""
 
     _import_opensim()
-    find_setup(setup_dir, markerset)
+    setup = find_setup(setup_dir, markerset)
+    why = neck_mismatch(tf, setup) if markers is None or "Neck" in markers else None
+    if why is not None:
+        markers = [m for m in (markers or setup_marker_names(setup)) if m != "Neck"]
     out_dir = Path(out_dir)
     ids = tf.track_id.tolist() if persons is None else persons
     results = []
@@ -322,4 +387,9 @@ def run_opensim(
                 track_id=p,
             )
         )
+        if why is not None:
+            results[-1].notes.insert(0, why)
+        toe = foot_index_note(tf, setup)
+        if toe is not None and "LBigToe" in results[-1].markers:
+            results[-1].notes.append(toe)
     return results

@@ -3,14 +3,16 @@
 ``track_session_particle(session_dir, config)`` reads ``calib/rig.toml`` and every
 ``keypoints/<cam>.npz`` (aligned on a common frame axis, converted to ``body19`` and undistorted by
 :func:`triangulate.stage.load_detections`), runs :class:`track.particle.ParticleTracker` over the
-frames and writes the track file. The videos are never needed.
+frames and writes the track file. The videos are never needed. With ``skeleton = "whole_body"`` (or a
+skeleton TOML; ``reprocess`` passes ``[triangulate.options] skeleton``) the joints beyond body19 (feet,
+head top, ...) are triangulated per track after tracking (:mod:`track.extra_joints`).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +27,7 @@ from keypoints.detections import Detections
 from keypoints.registry import get_spec
 from keypoints.skeletons import CANONICAL, get_skeleton
 from track import observation as obs
+from track.extra_joints import ExtraJointsConfig, attach_session_joints
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
 from triangulate.stage import _fps, load_detections
@@ -37,23 +40,41 @@ class ParticleTrackConfig:
     """The particle track stage: the filter's settings (see :class:`ParticleConfig`)."""
 
     particle: ParticleConfig = field(default_factory=ParticleConfig)
+    # the 3D joints, as the triangulate option: body19 (the filter's state), "whole_body" or a skeleton
+    # TOML; the joints beyond body19 are attached to the tracks afterwards (track.extra_joints)
+    skeleton: str = "body19"
+    extra_joints: ExtraJointsConfig = field(default_factory=ExtraJointsConfig)
+
+    def __post_init__(self) -> None:
+        if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
+            raise FormatError(
+                None,
+                "skeleton",
+                f"must be 'body19', 'whole_body' or a skeleton TOML file (.toml), got {self.skeleton!r}.",
+            )
 
     @classmethod
     def from_dict(cls, d: dict) -> ParticleTrackConfig:
         if "particle" in d:
             return config_from_dict(cls, d)
-        return cls(particle=ParticleConfig.from_dict(d))  # flat dict of particle keys
+        stage = {k: d[k] for k in ("skeleton", "extra_joints") if k in d}
+        flat = {k: v for k, v in d.items() if k not in stage}  # flat dict of particle keys
+        return replace(config_from_dict(cls, stage), particle=ParticleConfig.from_dict(flat))
 
 
 def _as_config(config) -> ParticleConfig:
+    return _stage_config(config).particle
+
+
+def _stage_config(config) -> ParticleTrackConfig:
     if config is None:
-        return ParticleConfig()
+        return ParticleTrackConfig()
     if isinstance(config, ParticleConfig):
-        return config
+        return ParticleTrackConfig(particle=config)
     if isinstance(config, ParticleTrackConfig):
-        return config.particle
+        return config
     if isinstance(config, dict):
-        return ParticleTrackConfig.from_dict(config).particle
+        return ParticleTrackConfig.from_dict(config)
     raise TypeError(
         f"expected ParticleConfig, ParticleTrackConfig, a dict or None, got {type(config).__name__}"
     )
@@ -157,7 +178,8 @@ def track_session_particle(
 ) -> Path:
     """Run the particle filter on a session's detections; writes and returns ``track/tracks.npz``."""
 
-    cfg = _as_config(config)
+    stage_cfg = _stage_config(config)
+    cfg = stage_cfg.particle
     lay = SessionLayout(session_dir)
     rig_path = require(
         lay.rig_toml, "the calibration calib/rig.toml", "Calibrate the rig or import a calibration."
@@ -189,6 +211,8 @@ def track_session_particle(
         rig.sha256(),
         f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}",
     )
+    if stage_cfg.skeleton != "body19":
+        tf = attach_session_joints(lay, rig, sub, tf, stage_cfg.skeleton, stage_cfg.extra_joints)
     lay.tracks.parent.mkdir(parents=True, exist_ok=True)
     tf.save(lay.tracks)
     log.info(
