@@ -366,9 +366,20 @@ def _plan_triangulate(
         "triangulate",
         [lay.rig_toml, *_detection_paths(lay)],
         [lay.poses3d],
-        {**dataclasses.asdict(cfg.triangulate), "sync": _sync_table(src)},  # new offsets: rerun
+        {
+            **_without_workers(dataclasses.asdict(cfg.triangulate)),
+            "sync": _sync_table(src),
+        },  # new offsets: rerun
         run,
     )
+
+
+def _without_workers(d: dict) -> dict:
+    """A stage's config without ``options.workers`` (how many processes ran it, not what it computed)."""
+    opts = d.get("options") or {}
+    if "workers" not in opts:
+        return d
+    return {**d, "options": {k: v for k, v in opts.items() if k != "workers"}}
 
 
 def _plan_track(

@@ -84,6 +84,33 @@ def test_chunked_equals_whole_session(session, tmp_path):
     assert all(p.n_tracks <= tf.n_tracks for p in parts)
 
 
+def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch):
+    """Issue 17, item 3: the chunks of one session triangulated by 2 worker processes give the one-process
+    parts bit for bit, so the (sequential, streamed) tracker's identities are the single worker's; a run
+    killed with one worker resumes with two."""
+    root = _copy(session, tmp_path)
+    lay = SessionLayout(root)
+    real_commit = C.PartStore.commit
+    calls = {"n": 0}
+
+    def dying_commit(self, i):
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        calls["n"] += 1
+        real_commit(self, i)
+
+    monkeypatch.setattr(C.PartStore, "commit", dying_commit)
+    with pytest.raises(KeyboardInterrupt):
+        triangulate_session(root, TRI)
+    monkeypatch.setattr(C.PartStore, "commit", real_commit)
+    triangulate_session(root, {**TRI, "workers": 2})
+    idx = json.loads((C.parts_dir(lay.poses3d) / "index.json").read_text())
+    assert idx["complete"] and len(idx["parts"]) == 6
+    _same_poses(Poses3D.load(lay.poses3d), session[1])
+    track_session_greedy(root, TRK)
+    _same_tracks(TrackFile.load(lay.tracks), session[2])
+
+
 def test_killed_run_resumes_and_equals(session, tmp_path, monkeypatch):
     root = _copy(session, tmp_path)
     lay = SessionLayout(root)

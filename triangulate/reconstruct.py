@@ -67,6 +67,9 @@ class TriangulateConfig:
       chunk by chunk and the output is written as ``poses3d.parts/`` (one poses3d file per chunk with
       an index, :mod:`triangulate.chunks`), so memory does not grow with the session and a killed run
       resumes at the last complete chunk; 0 = the whole session at once into ``poses3d.npz``.
+    workers: with ``chunk_s`` > 0, the chunks are triangulated by this many processes in parallel (frames
+      are independent here, so the parts are those of one process); a run-time setting, not part of the
+      result: the parts of a run with another ``workers`` are reused.
     """
 
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -77,10 +80,13 @@ class TriangulateConfig:
     merge_dist_m: float = 0.25
     skeleton: str = "body19"
     chunk_s: float = 0.0
+    workers: int = 1
 
     def __post_init__(self) -> None:
         if not self.chunk_s >= 0:
             raise ValueError(f"TriangulateConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
+        if self.workers < 1:
+            raise ValueError(f"TriangulateConfig.workers must be >= 1, got {self.workers}.")
         if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
             raise ValueError(
                 f"TriangulateConfig.skeleton must be 'body19', 'whole_body' or a skeleton TOML file "

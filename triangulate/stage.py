@@ -11,8 +11,10 @@ the list of valid ones) or None for the defaults.
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
 import os
-from dataclasses import dataclass, field
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -628,7 +630,7 @@ def _triangulate_chunked(
         key = hash_key(
             [
                 "poses3d",
-                repr(cfg),
+                repr(replace(cfg, workers=1)),  # the result does not depend on the number of processes
                 rig.sha256(),
                 [file_stamp(m.path) for m in plan.metas],
                 lay.session_toml.read_bytes() if lay.session_toml.exists() else b"",
@@ -642,24 +644,14 @@ def _triangulate_chunked(
             log.info(
                 "triangulate: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
             )
-        rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
         n_sum, n_max, n_frames = 0, 0, 0
-        for i, (a, b) in enumerate(chunks):
-            if i not in todo:
-                if progress is not None:
-                    progress("triangulate", b, T)
-                continue
-            mv = plan.chunk(a, b)
-            res = reconstruct_all(plan.rig, mv, cfg, progress, rec, done=a, total=T)
-            _poses3d(mv, res, fps, rig, plan.cameras).save(store.part_path(i))
+        for i, n in _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress):
             store.commit(i)
-            n = _people_log(res["xyz_m"])
             n_sum, n_max, n_frames = (
                 n_sum + int(n.sum()),
                 max(n_max, int(n.max(initial=0))),
                 n_frames + len(n),
             )
-            del mv, res
         store.finish()
         for m in plan.metas:
             if not m.seen and len(todo) == len(chunks):
@@ -678,6 +670,60 @@ def _triangulate_chunked(
     finally:
         plan.close()
     return lay.poses3d
+
+
+def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress):
+    """Triangulate the chunks ``todo`` into their part files; yields (chunk, people per frame) as each is
+    written. ``cfg.workers`` > 1: in that many processes (spawned: onnxruntime and torch thread pools do not
+    survive a fork), each planning the session once (``_chunk_worker``)."""
+    T = plan.n_frames
+    for i, (_, b) in enumerate(chunks):
+        if i not in todo and progress is not None:
+            progress("triangulate", b, T)
+    if cfg.workers <= 1 or len(todo) <= 1:
+        rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
+        for i in sorted(todo):
+            a, b = chunks[i]
+            mv = plan.chunk(a, b)
+            res = reconstruct_all(plan.rig, mv, cfg, progress, rec, done=a, total=T)
+            _poses3d(mv, res, fps, rig, plan.cameras).save(store.part_path(i))
+            yield i, _people_log(res["xyz_m"])
+            del mv, res
+        return
+    ctx = mp.get_context("spawn")
+    done = sum(b - a for i, (a, b) in enumerate(chunks) if i not in todo)
+    with ProcessPoolExecutor(min(cfg.workers, len(todo)), mp_context=ctx) as pool:
+        futures = {
+            pool.submit(_chunk_worker, str(lay.root), cfg, chunks[i], fps, str(store.part_path(i))): i
+            for i in sorted(todo)
+        }
+        for f in as_completed(futures):
+            i = futures[f]
+            n = f.result()
+            done += chunks[i][1] - chunks[i][0]
+            if progress is not None:
+                progress("triangulate", done, T)
+            yield i, n
+
+
+_WORKER_PLAN: dict = {}  # per worker process: the session's detection plan and reconstructor
+
+
+def _chunk_worker(session_dir: str, cfg: TriangulateConfig, chunk, fps: float, part: str) -> np.ndarray:
+    """One chunk in a worker process: triangulate frames [a, b) and write its part; returns the people
+    per frame."""
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if _WORKER_PLAN.get("key") != (session_dir, repr(cfg)):
+        lay = SessionLayout(session_dir)
+        rig = CameraRig.load(lay.rig_toml)
+        plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
+        rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
+        _WORKER_PLAN.update(key=(session_dir, repr(cfg)), rig=rig, plan=plan, rec=rec)
+    plan, rig = _WORKER_PLAN["plan"], _WORKER_PLAN["rig"]
+    mv = plan.chunk(*chunk)
+    res = reconstruct_all(plan.rig, mv, cfg, None, _WORKER_PLAN["rec"])
+    _poses3d(mv, res, fps, rig, plan.cameras).save(Path(part))
+    return _people_log(res["xyz_m"])
 
 
 def track_session_greedy(
