@@ -67,6 +67,13 @@ from triangulate.tracker import SEED_SIGMA_FRAMES, _nominal_dt, _smooth, frame_t
 
 log = logging.getLogger(__name__)
 
+_SCORE_BLOCK = 2  # tracks per block of the update's per-sample scores (cache-sized at 12 cameras)
+
+
+def _blocks(n: int, size: int) -> list[slice]:
+    return [slice(i, min(n, i + size)) for i in range(0, n, size)]
+
+
 MOTIONS = ("gru", "constant_velocity", "zero_velocity")
 BIRTHS = ("gaussian", "learned")
 
@@ -531,11 +538,20 @@ class ParticleTracker:
         K, N = X.shape[:2]
         Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
         if cfg.resample:
-            phi = self._phi(X, rays, asc, Y, maps)
-            lpv = obs.log_phi_pairs(phi, self.pairs, cfg.eps)  # (K,V,N)
+            if maps is None:  # blocks of tracks: each block's (k,J,C,N) scores stay in the cache (1.3x)
+                lpv = np.concatenate(
+                    [
+                        obs.log_phi_pairs(self._phi(X[b], rays[b], asc[b], Y[b], None), self.pairs, cfg.eps)
+                        for b in _blocks(K, _SCORE_BLOCK)
+                    ]
+                )  # (K,V,N)
+            else:
+                lpv = obs.log_phi_pairs(self._phi(X, rays, asc, Y, maps), self.pairs, cfg.eps)
             idx = obs.resample_pairs(lpv, self.rng)
-            X = np.stack([X[k][idx[k]] for k in range(K)])  # gathers per track (a loop over tracks)
-            Y = np.stack([np.take(Y[k], idx[k], axis=-1) for k in range(K)])
+            X = X[np.arange(K)[:, None], idx]  # all tracks in one gather
+            # the kept samples' ray coordinates computed again: the same bits as gathering Y's columns (one
+            # batched product per column), at a quarter of a (K,J,3C,N) gather's cost
+            Y = obs.ray_coords(X, self.centers, rays)
         else:
             idx = np.broadcast_to(np.arange(N), (K, N))
         score = None
