@@ -27,6 +27,7 @@ from keypoints.skeletons import CANONICAL, get_skeleton
 from track import observation as obs
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
+from triangulate.chunks import remove_output
 from triangulate.stage import _fps, load_detections
 
 log = logging.getLogger(__name__)
@@ -34,29 +35,47 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class ParticleTrackConfig:
-    """The particle track stage: the filter's settings (see :class:`ParticleConfig`)."""
+    """The particle track stage: the filter's settings (see :class:`ParticleConfig`).
+
+    chunk_s: stream the session in time chunks of this many seconds (issue 17, :mod:`track.stream`):
+    bounded memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an index
+    with sizes and hashes; the filter's raw output and state per chunk in ``track/particle_raw.parts/``),
+    a killed run resumes at the last complete chunk; the result equals the whole session's bit for bit.
+    0 = at once into ``tracks.npz``."""
 
     particle: ParticleConfig = field(default_factory=ParticleConfig)
+    chunk_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.chunk_s >= 0:
+            raise ValueError(f"ParticleTrackConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
 
     @classmethod
     def from_dict(cls, d: dict) -> ParticleTrackConfig:
         if "particle" in d:
             return config_from_dict(cls, d)
-        return cls(particle=ParticleConfig.from_dict(d))  # flat dict of particle keys
+        d = dict(d)
+        chunk_s = float(d.pop("chunk_s", 0.0))
+        return cls(particle=ParticleConfig.from_dict(d), chunk_s=chunk_s)  # flat dict of particle keys
 
 
-def _as_config(config) -> ParticleConfig:
+def _as_stage_config(config) -> ParticleTrackConfig:
     if config is None:
-        return ParticleConfig()
+        return ParticleTrackConfig()
     if isinstance(config, ParticleConfig):
-        return config
+        return ParticleTrackConfig(particle=config)
     if isinstance(config, ParticleTrackConfig):
-        return config.particle
+        return config
     if isinstance(config, dict):
-        return ParticleTrackConfig.from_dict(config).particle
+        return ParticleTrackConfig.from_dict(config)
     raise TypeError(
         f"expected ParticleConfig, ParticleTrackConfig, a dict or None, got {type(config).__name__}"
     )
+
+
+def source_of(cfg: ParticleConfig) -> str:
+    """The track file's ``source`` for the particle tracker with ``cfg``."""
+    return f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}"
 
 
 def focal_lengths(rig) -> np.ndarray:
@@ -157,7 +176,8 @@ def track_session_particle(
 ) -> Path:
     """Run the particle filter on a session's detections; writes and returns ``track/tracks.npz``."""
 
-    cfg = _as_config(config)
+    stage = _as_stage_config(config)
+    cfg = stage.particle
     lay = SessionLayout(session_dir)
     rig_path = require(
         lay.rig_toml, "the calibration calib/rig.toml", "Calibrate the rig or import a calibration."
@@ -170,6 +190,10 @@ def track_session_particle(
             f"the particle tracker needs at least 2 cameras to start tracks, the rig has {len(rig)}.",
             "Calibrate at least two cameras.",
         )
+    if stage.chunk_s > 0:
+        from track.stream import track_session_particle_chunked  # lazy: track.stream imports this module
+
+        return track_session_particle_chunked(lay, rig, cfg, stage.chunk_s, progress)
     sub, mv = load_detections(lay, rig)
     fps = _fps(lay, mv.t_ns)
     tracker = ParticleTracker(sub.projection_matrices(), focal_lengths(sub), fps, cfg)
@@ -187,9 +211,10 @@ def track_session_particle(
         mv.t_ns,
         fps,
         rig.sha256(),
-        f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}",
+        source_of(cfg),
     )
     lay.tracks.parent.mkdir(parents=True, exist_ok=True)
+    remove_output(lay.tracks)  # and a streamed run's parts
     tf.save(lay.tracks)
     log.info(
         "particle tracker: %d tracks over %d frames from %d cameras (%.1f ms per frame)",
