@@ -27,7 +27,7 @@ from keypoints.skeletons import CANONICAL, get_skeleton
 from track import observation as obs
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
-from triangulate.chunks import remove_output
+from triangulate.chunks import NpzRows, remove_output
 from triangulate.stage import _fps, load_detections
 
 log = logging.getLogger(__name__)
@@ -108,10 +108,12 @@ def load_maps(lay: SessionLayout, rig, frames: np.ndarray):
     heat_idx = np.asarray([CANONICAL.index(n) for n in coco18.joint_names])
     per_cam = []
     for cam in rig.cameras:
-        det = Detections.load(lay.detections(cam.name))
-        if "maps_f16" not in det.extra or "maps_to_img" not in det.extra:
+        with NpzRows(lay.detections(cam.name)) as r:  # the member names only: no array is read
+            has_maps = {"maps_f16", "maps_to_img"} <= r.names
+        if not has_maps:
             per_cam.append(None)
             continue
+        det = Detections.load(lay.detections(cam.name))
         try:
             dec = get_spec(det.model).decoder
         except Exception as e:  # noqa: BLE001 - an unknown model: its map layout is unknown
