@@ -193,6 +193,7 @@ def track_session_particle_chunked(
             mv = plan.chunk(a, b)
             kp = np.moveaxis(mv.xy_px, 0, 1).astype(np.float32)  # (n,C,P,J,2)
             sc = np.moveaxis(mv.score, 0, 1).astype(np.float32)
+            del mv  # the float64 chunk: only its float32 copy is stepped
             per_frame = []
             for t in range(b - a):
                 g = a + t
@@ -208,7 +209,7 @@ def track_session_particle_chunked(
             save_npz(raw_store.part_path(i), {**arrays, **tracker.state_arrays()})
             raw_store.commit(i)
             held = i
-            del mv, kp, sc, per_frame, raw
+            del kp, sc, per_frame, raw
         raw_store.finish()
         # pass 2: the offline clean-up per chunk with margins, each track's evidence over the session
         read = RawReader(raw_store, chunks, J)
