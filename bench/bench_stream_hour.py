@@ -1,13 +1,15 @@
 """Issue 17, item 1: the streamed 3D stages on a long synthetic kitchen session, in bounded memory.
 
     python bench/bench_stream_hour.py [--minutes 60] [--base-minutes 5] [--metric-minutes 2]
-        [--cams 12] [--people 16] [--chunk-s 60] [--work DIR]
+        [--cams 12] [--people 16] [--chunk-s 60] [--work DIR] [--tracker greedy|particle]
 
 Three sessions of the same setup (``python -m synthetic OUT --rig kitchen --cams 12 --people 16
 --enter-leave --seconds N``): the long one, the memory baseline (``--base-minutes``) and the metric
 baseline (``--metric-minutes``). Each runs triangulation and the greedy tracker streamed
 (``chunk_s``), every stage in its own process, whose peak resident memory (ru_maxrss) and wall time
-are reported. Against the ground truth: MOTA, IDF1 (threshold 0.3 m), PCP (actor average) and MPJPE
+are reported. With ``--tracker particle`` the particle tracker (default config, streamed by
+:mod:`track.stream`) replaces triangulation + the greedy tracker (it reads the detections itself).
+Against the ground truth: MOTA, IDF1 (threshold 0.3 m), PCP (actor average) and MPJPE
 on consecutive 60-second windows (the windowed IDF1 counts identity per minute), frame-weighted.
 Then the memory-baseline session is run again killed (SIGKILL) at a random moment of each stage
 and rerun: the parts must equal the uninterrupted run's byte for byte. Ends with ``BENCH {json}``:
@@ -42,7 +44,7 @@ def _child(args: list[str]) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _stage(name: str, folder: str, chunk_s: float, extra: list[str]) -> None:
+def _stage(name: str, folder: str, chunk_s: float, extra: list[str], tracker: str = "greedy") -> None:
     import numpy as np
 
     t0 = time.perf_counter()
@@ -55,6 +57,13 @@ def _stage(name: str, folder: str, chunk_s: float, extra: list[str]) -> None:
         from triangulate.stage import triangulate_session
 
         triangulate_session(folder, {"chunk_s": chunk_s})
+    elif name == "track" and tracker == "particle":
+        import torch
+
+        torch.set_num_threads(1)
+        from track.stage import track_session_particle
+
+        track_session_particle(folder, {"chunk_s": chunk_s})
     elif name == "track":
         from triangulate.stage import track_session_greedy
 
@@ -107,12 +116,15 @@ def _parts_digest(folder: Path) -> dict:
     return {k: v["sha256"] for k, v in sorted(idx["parts"].items())}
 
 
-def _killed_rerun(src: Path, dst: Path, stage: str, chunk_s: float, wall_s: float, rng) -> dict:
+def _killed_rerun(
+    src: Path, dst: Path, stage: str, chunk_s: float, wall_s: float, rng, tracker: str = "greedy"
+) -> dict:
     """Run ``stage`` on a copy, SIGKILL it at a random moment, rerun; compare its parts with src's."""
     sub = {"triangulate": ("triangulate", "poses3d.parts"), "track": ("track", "tracks.parts")}[stage]
     target = dst / sub[0] / sub[1]
-    if target.exists():
-        shutil.rmtree(target)
+    for t in (target, dst / "track" / "particle_raw.parts"):
+        if t.exists():
+            shutil.rmtree(t)
     at = rng.uniform(0.3, 0.8) * wall_s
     p = subprocess.Popen(
         [
@@ -123,6 +135,8 @@ def _killed_rerun(src: Path, dst: Path, stage: str, chunk_s: float, wall_s: floa
             str(dst),
             "--chunk-s",
             str(chunk_s),
+            "--tracker",
+            tracker,
         ],
         cwd=ROOT,
         stdout=subprocess.DEVNULL,
@@ -131,14 +145,17 @@ def _killed_rerun(src: Path, dst: Path, stage: str, chunk_s: float, wall_s: floa
     time.sleep(at)
     os.kill(p.pid, signal.SIGKILL)
     p.wait()
-    idx = json.loads((target / "index.json").read_text())
-    done_before = len(idx["parts"])
-    rerun = _child(["--stage", stage, str(dst), "--chunk-s", str(chunk_s)])
+    idx = json.loads((target / "index.json").read_text()) if (target / "index.json").exists() else {}
+    done_before = len(idx.get("parts", {}))
+    raw = dst / "track" / "particle_raw.parts" / "index.json"
+    raw_done = len(json.loads(raw.read_text())["parts"]) if raw.exists() else None
+    rerun = _child(["--stage", stage, str(dst), "--chunk-s", str(chunk_s), "--tracker", tracker])
     same = _parts_digest(target) == _parts_digest(src / sub[0] / sub[1])
     return {
         "killed_after_s": round(at, 1),
         "parts_done_at_kill": done_before,
-        "parts": len(idx["chunks"]),
+        "filter_parts_done_at_kill": raw_done,
+        "parts": len(json.loads((target / "index.json").read_text())["chunks"]),
         "rerun_s": round(rerun["wall_s"], 1),
         "equal": same,
     }
@@ -155,10 +172,11 @@ def main() -> int:
     ap.add_argument("--chunk-s", type=float, default=60.0)
     ap.add_argument("--work", default="/tmp/roomcap_bench_stream")
     ap.add_argument("--no-kill", action="store_true")
+    ap.add_argument("--tracker", choices=("greedy", "particle"), default="greedy")
     ap.add_argument("--synthetic", default="[]", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.stage:
-        _stage(a.stage[0], a.stage[1], a.chunk_s, json.loads(a.synthetic))
+        _stage(a.stage[0], a.stage[1], a.chunk_s, json.loads(a.synthetic), a.tracker)
         return 0
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -175,8 +193,13 @@ def main() -> int:
         r = {"minutes": minutes, "frames": int(round(60 * minutes * 25))}
         # the generator's options after "--synthetic", so this parser does not take --cams/--people
         r["synthetic"] = _child(["--stage", "synthetic", str(folder), "--synthetic", json.dumps(gen)])
-        r["triangulate"] = _child(["--stage", "triangulate", str(folder), "--chunk-s", str(a.chunk_s)])
-        r["track"] = _child(["--stage", "track", str(folder), "--chunk-s", str(a.chunk_s)])
+        if a.tracker == "greedy":
+            r["triangulate"] = _child(["--stage", "triangulate", str(folder), "--chunk-s", str(a.chunk_s)])
+        else:  # the particle tracker reads the detections
+            r["triangulate"] = {"wall_s": 0.0, "peak_mb": 0.0}
+        r["track"] = _child(
+            ["--stage", "track", str(folder), "--chunk-s", str(a.chunk_s), "--tracker", a.tracker]
+        )
         r["metrics"] = _child(["--stage", "evaluate", str(folder)])
         res[label] = r
         print(
@@ -195,8 +218,8 @@ def main() -> int:
             shutil.rmtree(copy)
         shutil.copytree(base, copy)
         res["killed"] = {
-            st: _killed_rerun(base, copy, st, a.chunk_s, res["base"][st]["wall_s"], rng)
-            for st in ("triangulate", "track")
+            st: _killed_rerun(base, copy, st, a.chunk_s, res["base"][st]["wall_s"], rng, a.tracker)
+            for st in (("triangulate", "track") if a.tracker == "greedy" else ("track",))
         }
         print("killed and rerun:", json.dumps(res["killed"]), flush=True)
     long_, base_, metric = res["long"], res["base"], res["metric"]
@@ -209,6 +232,7 @@ def main() -> int:
         "cams": a.cams,
         "people": a.people,
         "chunk_s": a.chunk_s,
+        "tracker": a.tracker,
         "peak_mb_long": round(stage_peak["long"], 1),
         "peak_mb_base": round(stage_peak["base"], 1),
         "peak_ratio_long_over_base": round(stage_peak["long"] / stage_peak["base"], 3),

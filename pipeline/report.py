@@ -42,6 +42,7 @@ from keypoints.detections import Detections
 from keypoints.skeletons import CANONICAL, convert
 from pipeline.config import STAGES
 from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED
+from triangulate.chunks import parts_dir
 from triangulate.dlt import DLTConfig
 
 log = logging.getLogger(__name__)
@@ -119,14 +120,14 @@ def _load(lay: SessionLayout) -> _Inputs:
             inp.rig = CameraRig.load(lay.rig_toml)
         except Exception as e:  # the report shows what it can
             inp.rig_error = str(e)
-    if lay.tracks.exists():
+    if lay.tracks.exists() or parts_dir(lay.tracks).is_dir():  # the file or a streamed run's parts
         try:
             from track.trackfile import TrackFile
 
             inp.tracks = TrackFile.load(lay.tracks)
         except Exception as e:
             inp.tracks_error = str(e)
-    if lay.poses3d.exists():
+    if lay.poses3d.exists() or parts_dir(lay.poses3d).is_dir():
         try:
             from triangulate.poses3d import Poses3D
 

@@ -39,6 +39,7 @@ from pipeline.discover import SEGMENT_SUFFIXES, SessionSource
 from pipeline.glue import forecast_model, track_particle, write_preview
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
 from pipeline.report import write_report
+from triangulate.chunks import PartStore, parts_dir
 from triangulate.stage import track_session_greedy, triangulate_session
 
 log = logging.getLogger(__name__)
@@ -355,6 +356,32 @@ def _carry_sync(src: SessionSource, lay: SessionLayout) -> None:
         save_toml(lay.session_toml, meta)
 
 
+def stage_file(path: Path) -> Path:
+    """A 3D stage's output as it was written: the single file, else its parts folder (a streamed run,
+    ``chunk_s`` > 0: ``poses3d.parts/``, ``tracks.parts/``), else the file's path (missing)."""
+    if path.exists():
+        return path
+    d = parts_dir(path)
+    return d if d.is_dir() else path
+
+
+def _output_file(path: Path, options: dict[str, Any]) -> Path:
+    """What a 3D stage with these options writes: ``path``, or its parts folder when ``chunk_s`` > 0."""
+    return parts_dir(path) if float((options or {}).get("chunk_s", 0) or 0) > 0 else path
+
+
+def _stage_xyz(path: Path, kind: str):
+    """(track ids or None, xyz_m) of each part of a 3D stage's output (one for a single file), read one
+    part at a time."""
+    p = stage_file(path)
+    files = (
+        [p] if p.is_file() else [f for _, _, f in PartStore(p, kind).checked_parts()] if p.is_dir() else []
+    )
+    for f in files:
+        d = load_npz(f)
+        yield d.get("track_id"), d["xyz_m"]
+
+
 def _plan_triangulate(
     src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
 ) -> StagePlan:
@@ -365,7 +392,7 @@ def _plan_triangulate(
     return StagePlan(
         "triangulate",
         [lay.rig_toml, *_detection_paths(lay)],
-        [lay.poses3d],
+        [_output_file(lay.poses3d, cfg.triangulate.options)],
         {
             **_without_workers(dataclasses.asdict(cfg.triangulate)),
             "sync": _sync_table(src),
@@ -394,12 +421,12 @@ def _plan_track(
 
     inputs = [lay.rig_toml, *_detection_paths(lay)]
     if cfg.track.tracker == "greedy":
-        inputs.append(lay.poses3d)
+        inputs.append(stage_file(lay.poses3d))  # the file or a streamed run's parts
     config = dataclasses.asdict(cfg.track)
     if cfg.track.tracker != "greedy":  # the particle tracker reads the detections (and offsets) itself
         config["sync"] = _sync_table(src)
         config["options"] = particle_options(cfg)
-    return StagePlan("track", inputs, [lay.tracks], config, run)
+    return StagePlan("track", inputs, [_output_file(lay.tracks, cfg.track.options)], config, run)
 
 
 def particle_options(cfg: PipelineConfig) -> dict:
@@ -428,7 +455,7 @@ def _plan_forecast(
 
     return StagePlan(
         "forecast",
-        [lay.tracks],
+        [stage_file(lay.tracks)],
         [forecast_path(lay)],
         {**dataclasses.asdict(cfg.forecast), "kind": kind},
         run,
@@ -441,7 +468,13 @@ def _plan_report(
 ) -> StagePlan:
     inputs = [
         p
-        for p in (lay.rig_toml, *_detection_paths(lay), lay.poses3d, lay.tracks, forecast_path(lay))
+        for p in (
+            lay.rig_toml,
+            *_detection_paths(lay),
+            stage_file(lay.poses3d),
+            stage_file(lay.tracks),
+            forecast_path(lay),
+        )
         if p.exists()
     ]
 
@@ -475,13 +508,19 @@ def _summarise(lay: SessionLayout, result: SessionResult) -> None:
     result.cameras = len(cams)
     if cams:
         result.frames = max(int(len(load_npz(lay.detections(c))["frame_index"])) for c in cams)
-    if lay.poses3d.exists():
-        xyz = load_npz(lay.poses3d)["xyz_m"]
-        result.people = int(np.isfinite(xyz[..., 0]).any(-1).sum(-1).max(initial=0))
-    if lay.tracks.exists():  # people = most tracks present at once (as the report shows), when tracked
-        xyz = load_npz(lay.tracks)["xyz_m"]
-        result.tracks = int(xyz.shape[1])
-        result.people = int(np.isfinite(xyz[..., 0]).any(-1).sum(-1).max(initial=0))
+
+    def most_at_once(xyz) -> int:
+        return int(np.isfinite(xyz[..., 0]).any(-1).sum(-1).max(initial=0))
+
+    if stage_file(lay.poses3d).exists():  # the file or a streamed run's parts, one part at a time
+        result.people = max((most_at_once(x) for _, x in _stage_xyz(lay.poses3d, "poses3d")), default=0)
+    if stage_file(lay.tracks).exists():  # people = most tracks present at once (as the report shows)
+        ids: set[int] = set()
+        result.people = 0
+        for tid, xyz in _stage_xyz(lay.tracks, "tracks"):
+            result.people = max(result.people, most_at_once(xyz))
+            ids.update(np.asarray(tid).tolist())
+        result.tracks = len(ids)
 
 
 def _remove_stale_temporaries(outputs: list[Path]) -> None:
@@ -643,7 +682,7 @@ def process_session(
             result.stage_s[name] = round(time.perf_counter() - t0, 3)
         stage = "summary"
         _summarise(lay, result)
-        if result.people == 0 and (lay.poses3d.exists() or lay.tracks.exists()):
+        if result.people == 0 and (stage_file(lay.poses3d).exists() or stage_file(lay.tracks).exists()):
             result.warnings.append(
                 "0 people in the result: nobody was reconstructed. See the warnings above; check that the "
                 "calibration is of these cameras and in metres, and that the videos show people."

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from track_helpers import ring_P
 
@@ -131,3 +133,31 @@ def test_log_phi_pairs_broadcast_equals_gather(rng):
     assert np.array_equal(
         obs.log_phi_pairs(phi, sub, 0.01), obs._log_phi_pairs_gather(phi * phi, sub, 0.01, 8)
     )
+
+
+def test_nanmedian_last_equals_numpy(rng):
+    x = rng.normal(0, 1, (40, 7, 9))
+    x[rng.random(x.shape) < 0.4] = np.nan
+    x[3, 2] = np.nan  # a row without any value
+    x[5, 1, :] = rng.normal(0, 1, 9)  # a full row (odd count); other rows have even and odd counts
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN row
+        ref = np.nanmedian(x, -1)
+    got = obs.nanmedian_last(x)
+    assert np.isnan(got[3, 2])
+    assert np.array_equal(got, ref, equal_nan=True)  # the same bits
+
+
+def test_ray_coords_of_resampled_samples_are_the_gathered_columns(rng):
+    """The update recomputes the kept samples' ray coordinates instead of gathering them (cheaper); the two
+    must give the same bits (one batched product per sample column)."""
+    K, N, J, C = 5, 300, 19, 12
+    P = ring_P(C).astype(np.float32)
+    X = (rng.normal(0, 0.3, (K, N, J, 3)) + [0.2, 0.1, 1.0]).astype(np.float32)
+    centers, Minv = obs.camera_rays(P)
+    uv, _ = obs.project(P, X[:, 0])  # (C,K,J,2)
+    B = obs.ray_basis(Minv, np.moveaxis(uv, 0, 1).astype(np.float32))
+    idx = rng.integers(0, N, (K, N))
+    Y = obs.ray_coords(X, centers, B)
+    gathered = np.take_along_axis(Y, idx[:, None, None, :], -1)
+    assert np.array_equal(obs.ray_coords(X[np.arange(K)[:, None], idx], centers, B), gathered)

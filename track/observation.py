@@ -85,7 +85,9 @@ def ray_coords(X: np.ndarray, centers: np.ndarray, basis: np.ndarray) -> np.ndar
     Y (K,J,3C,N): rows :2C are the offsets from the rays (metres), rows 2C: the depth along them."""
     xt = np.ascontiguousarray(X.transpose(0, 2, 3, 1))  # (K,J,3,N)
     off = (basis * np.tile(centers, (3, 1))[None, None]).sum(-1)  # (K,J,3C): rows repeat the C centres
-    return np.matmul(basis, xt) - off[..., None]
+    Y = np.matmul(basis, xt)
+    Y -= off[..., None]  # in place: no second (K,J,3C,N) array
+    return Y
 
 
 def _variance(along: np.ndarray, focal_px: np.ndarray, sigma_m: float, sigma_px: float) -> np.ndarray:
@@ -308,23 +310,25 @@ def refine_joints(
     scale2 = np.concatenate([scale, scale], 2)  # (K,J,2C,1)
     s = np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))  # (K,J,C,1)
     Bs = basis[:, :, : 2 * C] * scale2
-    Ys = Y[:, :, : 2 * C] * scale2  # (K,J,2C,N)
-    q0 = Ys * Ys
-    q0 = q0[:, :, :C] + q0[:, :, C:]
-    q0 += np.float32(1.0)
-    np.divide(s, q0, out=q0)
-    score = q0.sum(2)  # (K,J,N): the current positions' confidence summed over cameras
     # all tracks and joints in one batch (KJ rows); chunks of rows keep the candidates in cache
     KJ = K * J
     e2 = e.reshape(KJ, 3, R * N)
-    Bs, Ys, s = Bs.reshape(KJ, 2 * C, 3), Ys.reshape(KJ, 2 * C, 1, N), s.reshape(KJ, C, 1, 1)
+    Bs, s = Bs.reshape(KJ, 2 * C, 3), s.reshape(KJ, C, 1, 1)
+    Y2, scale2 = Y.reshape(KJ, 3 * C, N), scale2.reshape(KJ, 2 * C, 1)
+    score = np.empty((K, J, N), np.float32)  # the current positions' confidence summed over cameras
     sc0 = score.reshape(KJ, N)
     delta = np.empty((KJ, 3, N), np.float32)
     rb = max(1, 16384 // (N * R))
     for r0 in range(0, KJ, rb):  # loop over row chunks only
         r1 = min(KJ, r0 + rb)
+        Ys = Y2[r0:r1, : 2 * C] * scale2[r0:r1]  # (rows,2C,N)
+        q0 = Ys * Ys
+        q0 = q0[:, :C] + q0[:, C:]
+        q0 += np.float32(1.0)
+        np.divide(s[r0:r1, :, 0], q0, out=q0)
+        q0.sum(1, out=sc0[r0:r1])
         D = np.matmul(Bs[r0:r1], e2[r0:r1]).reshape(r1 - r0, 2 * C, R, N)
-        D += Ys[r0:r1]
+        D += Ys[:, :, None]
         D *= D
         q = D[:, :C]
         q += D[:, C:]  # q = d^2 / (2 s^2) per camera, (rows,C,R,N)
@@ -357,6 +361,17 @@ def weighted_stats(X: np.ndarray, log_phi: np.ndarray) -> tuple[np.ndarray, np.n
     d2 = ((X - mean[:, None]) ** 2).sum(-1)
     std = np.sqrt(np.einsum("kn,knj->kj", w, d2) / 3.0)
     return mean, std
+
+
+def nanmedian_last(x: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(x, -1)`` (the same values: the mean of the two middle ones for an even count; NaN for
+    a row without any finite value) by one sort of all rows: 7x faster on the small rows of
+    :func:`associate`, where nanmedian loops in Python."""
+    s = np.sort(x, -1)  # NaN sort last
+    m = (~np.isnan(s)).sum(-1)
+    lo = np.take_along_axis(s, np.maximum((m - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(s, np.maximum(m // 2 - (m == 0), 0)[..., None], -1)[..., 0]
+    return np.where(m > 0, (lo + hi) / 2, np.nan)
 
 
 def associate(
@@ -393,8 +408,7 @@ def associate(
     both = ok_det[:, None] & np.isfinite(r) & (mean_depth[:, :, None] > 0.1)
     r = np.where(both, r, np.nan)
     n = both.sum(-1)
-    with np.errstate(all="ignore"):
-        cost = np.nanmedian(np.where(n[..., None] > 0, r, 0.0), -1)
+    cost = nanmedian_last(np.where(n[..., None] > 0, r, 0.0))
     cost = np.where(n >= min_joints, cost, np.inf)
     gate_k = np.broadcast_to(np.asarray(gate, np.float64), (K,))[:, None]
     for c in range(C):  # Hungarian per camera; C is small

@@ -30,6 +30,7 @@ from track import observation as obs
 from track.extra_joints import ExtraJointsConfig, attach_session_joints
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
+from triangulate.chunks import NpzRows, remove_output
 from triangulate.stage import _fps, load_detections
 
 log = logging.getLogger(__name__)
@@ -37,13 +38,20 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class ParticleTrackConfig:
-    """The particle track stage: the filter's settings (see :class:`ParticleConfig`)."""
+    """The particle track stage: the filter's settings (see :class:`ParticleConfig`).
+
+    chunk_s: stream the session in time chunks of this many seconds (issue 17, :mod:`track.stream`):
+    bounded memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an index
+    with sizes and hashes; the filter's raw output and state per chunk in ``track/particle_raw.parts/``),
+    a killed run resumes at the last complete chunk; the result equals the whole session's bit for bit.
+    0 = at once into ``tracks.npz``."""
 
     particle: ParticleConfig = field(default_factory=ParticleConfig)
     # the 3D joints, as the triangulate option: body19 (the filter's state), "whole_body" or a skeleton
     # TOML; the joints beyond body19 are attached to the tracks afterwards (track.extra_joints)
     skeleton: str = "body19"
     extra_joints: ExtraJointsConfig = field(default_factory=ExtraJointsConfig)
+    chunk_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
@@ -52,21 +60,26 @@ class ParticleTrackConfig:
                 "skeleton",
                 f"must be 'body19', 'whole_body' or a skeleton TOML file (.toml), got {self.skeleton!r}.",
             )
+        if not self.chunk_s >= 0:
+            raise ValueError(f"ParticleTrackConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
+        if self.chunk_s > 0 and self.skeleton != "body19":
+            raise FormatError(
+                None,
+                "skeleton",
+                f"the streamed particle tracker (chunk_s > 0) tracks body19 only, not {self.skeleton!r}.",
+                "Set chunk_s = 0 for the whole-body joints, or use the greedy tracker, which streams them.",
+            )
 
     @classmethod
     def from_dict(cls, d: dict) -> ParticleTrackConfig:
         if "particle" in d:
             return config_from_dict(cls, d)
-        stage = {k: d[k] for k in ("skeleton", "extra_joints") if k in d}
+        stage = {k: d[k] for k in ("skeleton", "extra_joints", "chunk_s") if k in d}
         flat = {k: v for k, v in d.items() if k not in stage}  # flat dict of particle keys
         return replace(config_from_dict(cls, stage), particle=ParticleConfig.from_dict(flat))
 
 
-def _as_config(config) -> ParticleConfig:
-    return _stage_config(config).particle
-
-
-def _stage_config(config) -> ParticleTrackConfig:
+def _as_stage_config(config) -> ParticleTrackConfig:
     if config is None:
         return ParticleTrackConfig()
     if isinstance(config, ParticleConfig):
@@ -78,6 +91,11 @@ def _stage_config(config) -> ParticleTrackConfig:
     raise TypeError(
         f"expected ParticleConfig, ParticleTrackConfig, a dict or None, got {type(config).__name__}"
     )
+
+
+def source_of(cfg: ParticleConfig) -> str:
+    """The track file's ``source`` for the particle tracker with ``cfg``."""
+    return f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}"
 
 
 def focal_lengths(rig) -> np.ndarray:
@@ -110,10 +128,12 @@ def load_maps(lay: SessionLayout, rig, frames: np.ndarray):
     heat_idx = np.asarray([CANONICAL.index(n) for n in coco18.joint_names])
     per_cam = []
     for cam in rig.cameras:
-        det = Detections.load(lay.detections(cam.name))
-        if "maps_f16" not in det.extra or "maps_to_img" not in det.extra:
+        with NpzRows(lay.detections(cam.name)) as r:  # the member names only: no array is read
+            has_maps = {"maps_f16", "maps_to_img"} <= r.names
+        if not has_maps:
             per_cam.append(None)
             continue
+        det = Detections.load(lay.detections(cam.name))
         try:
             dec = get_spec(det.model).decoder
         except Exception as e:  # noqa: BLE001 - an unknown model: its map layout is unknown
@@ -178,8 +198,8 @@ def track_session_particle(
 ) -> Path:
     """Run the particle filter on a session's detections; writes and returns ``track/tracks.npz``."""
 
-    stage_cfg = _stage_config(config)
-    cfg = stage_cfg.particle
+    stage = _as_stage_config(config)
+    cfg = stage.particle
     lay = SessionLayout(session_dir)
     rig_path = require(
         lay.rig_toml, "the calibration calib/rig.toml", "Calibrate the rig or import a calibration."
@@ -192,6 +212,10 @@ def track_session_particle(
             f"the particle tracker needs at least 2 cameras to start tracks, the rig has {len(rig)}.",
             "Calibrate at least two cameras.",
         )
+    if stage.chunk_s > 0:
+        from track.stream import track_session_particle_chunked  # lazy: track.stream imports this module
+
+        return track_session_particle_chunked(lay, rig, cfg, stage.chunk_s, progress)
     sub, mv = load_detections(lay, rig)
     fps = _fps(lay, mv.t_ns)
     tracker = ParticleTracker(sub.projection_matrices(), focal_lengths(sub), fps, cfg)
@@ -209,11 +233,12 @@ def track_session_particle(
         mv.t_ns,
         fps,
         rig.sha256(),
-        f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}",
+        source_of(cfg),
     )
-    if stage_cfg.skeleton != "body19":
-        tf = attach_session_joints(lay, rig, sub, tf, stage_cfg.skeleton, stage_cfg.extra_joints)
+    if stage.skeleton != "body19":
+        tf = attach_session_joints(lay, rig, sub, tf, stage.skeleton, stage.extra_joints)
     lay.tracks.parent.mkdir(parents=True, exist_ok=True)
+    remove_output(lay.tracks)  # and a streamed run's parts
     tf.save(lay.tracks)
     log.info(
         "particle tracker: %d tracks over %d frames from %d cameras (%.1f ms per frame)",
