@@ -238,6 +238,33 @@ def test_root_velocity_coding_round_trips_and_keeps_the_observation():
         )
 
 
+def test_shared_statistics_free_an_anchored_model_from_its_window_length():
+    """lag_stats = false: motion still coded relative to the last observed frame, standardised with one
+    mean/std per channel shared over time (the seed's), so any length is generated in one pass (issue 19)."""
+    from forecast.predict import diffusion_rollout
+
+    base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 3, "batch": 4, "sample_steps": 3}
+    model, _ = T.train("social_diffusion", _clips(3, 100), T.config_from_dict("social_diffusion", base))
+    shared, _ = T.train(
+        "social_diffusion", _clips(3, 100), T.config_from_dict("social_diffusion", {**base, "lag_stats": 0})
+    )
+    assert model.feat_std.shape == (32, 67) and shared.feat_std.shape == (67,) and shared.anchor == 15
+    assert diffusion_rollout(model, 100) == "chained" and diffusion_rollout(shared, 100) == "one_pass"
+    scene = np.stack([walker(64), walker(64, start=(2, 0))], 1)[None]  # twice the training window
+    f = torch.from_numpy(T.diffusion_batch_features(scene, np.ones((1, 2), bool), 16))
+    z = shared.standardise(f)
+    k = 67 - 5  # motion channels at the anchor frame are offsets of 0: the shared mean, standardised
+    assert torch.allclose(z[:, :, 15, :k], -shared.feat_mean[:k] / shared.feat_std[:k], atol=1e-5)
+    assert torch.allclose(shared.unstandardise(z, f[:, :, 15]), f, atol=1e-4)
+    out = shared.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), 2, 3, n_frames=64)
+    assert out.shape == (1, 2, 2, 64, 67) and torch.isfinite(out).all()
+    assert torch.allclose(out[:, 0, :, :16], f[:, :, :16], atol=1e-4)  # observation written back
+    with pytest.raises(ValueError, match="per-frame statistics"):
+        model.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), 1, 3, n_frames=64)
+    y = forecast_world(shared, scene[:, :16], None, 100, n_samples=1)
+    assert y.shape == (1, 1, 100, 2, 19, 3) and np.isfinite(y).all()
+
+
 @pytest.mark.slow
 def test_diffusion_ema_weights_are_validated_and_returned():
     base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 4, "batch": 4, "lr": 1e-2}
