@@ -12,7 +12,7 @@ from capture.fileio import FormatError
 from forecast import data as D
 from forecast import train as T
 from forecast.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
-from forecast.predict import features_to_poses, forecast_world, scene_features
+from forecast.predict import diffusion_rollout, features_to_poses, forecast_world, scene_features
 from forecast.toy import walker
 from keypoints.skeletons import get_skeleton
 
@@ -241,8 +241,6 @@ def test_root_velocity_coding_round_trips_and_keeps_the_observation():
 def test_shared_statistics_free_an_anchored_model_from_its_window_length():
     """lag_stats = false: motion still coded relative to the last observed frame, standardised with one
     mean/std per channel shared over time (the seed's), so any length is generated in one pass (issue 19)."""
-    from forecast.predict import diffusion_rollout
-
     base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 3, "batch": 4, "sample_steps": 3}
     model, _ = T.train("social_diffusion", _clips(3, 100), T.config_from_dict("social_diffusion", base))
     shared, _ = T.train(
@@ -450,6 +448,21 @@ def test_shipped_configs_and_checkpoint_load():
         assert jump < 0.06  # continues from the observation; measured 0.018 m (a walking step is 0.05 m)
         assert model.feat_std.dim() == 2  # motion coded relative to the last observed frame
         assert meta["config"].mirror and meta["extra"]["val_best"]["select"] == "ndms_2_3"  # the recipe
+    ck = root / "checkpoints" / "social_diffusion_1pass_cmu.pt"
+    if ck.exists():  # issue 19: shared statistics, one pass over any horizon
+        assert ck.stat().st_size < 2_000_000
+        model, meta = T.load_checkpoint(ck, skeleton="body19")
+        assert model.feat_std.dim() == 1 and model.anchor == model.n_obs - 1
+        assert diffusion_rollout(model, 250) == "one_pass"
+        calls = []
+        orig = model.sample_window
+        model.sample_window = lambda *a, **k: calls.append(k.get("n_frames")) or orig(*a, **k)
+        scene = np.stack([walker(32), walker(32, start=(2, 0), heading_rad=2.0)], 1)[None]
+        y = forecast_world(model, scene, None, 100, 2)
+        assert calls == [144] and y.shape == (1, 2, 100, 2, 19, 3) and np.isfinite(y).all()
+        jump = np.linalg.norm(y[0, :, 0] - scene[0, -1], axis=-1).mean()
+        assert jump < 0.06  # continues from the observation (a walking step is 0.05 m)
+        assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
     ck = root / "checkpoints" / "intention_cmu.pt"
     if ck.exists():
         assert ck.stat().st_size < 2_000_000  # measured 1.24 MB (discriminators are not shipped)
