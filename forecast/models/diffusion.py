@@ -31,7 +31,12 @@ into the standardisation: the motion channels (everything but the constant ancho
 ``N_CONST``) are coded as offsets from the last observed frame and standardised *per frame* (mean/std of
 the offset at that lag, buffers (N,F)). An error of a fixed size in standardised units is then a few
 millimetres next to the observation and grows with the lag, as the spread of real motion does; with one
-global std per channel the same error was ~8 cm at the first forecast frame (the measured jump).
+global std per channel the same error was ~8 cm at the first forecast frame (the measured jump). Per-lag
+statistics bind the model to its window (longer horizons only by chaining windows); ``lag_stats = false``
+keeps the anchored coding with one mean/std per channel shared over time (the seed's standardisation), so
+the fully convolutional network generates any length in one pass (issue 19: trained with a 144-frame
+window, it samples 4 s and 10 s in one pass; CMU validation NDMS 2-4 s .247 against .250 for the chained
+64-frame model).
 
 Root as velocity (``root_vel``, default off, our addition): the 3 root channels are coded as per-frame
 displacements r[n] - r[n-1] (standardised per lag like the rest) instead of offsets from the anchor, and
