@@ -143,7 +143,14 @@ def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> 
             f_dim=config.f_dim,
         )
     elif kind == "social_diffusion":
-        m = SocialDiffusion(D + N_GLOBAL, config.n_frames, config.channels, config.T, anchored=config.anchor)
+        m = SocialDiffusion(
+            D + N_GLOBAL,
+            config.n_frames,
+            config.channels,
+            config.T,
+            anchored=config.anchor,
+            lag_stats=config.lag_stats,
+        )
         m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
         m.sample_dct = config.sample_dct
         m.n_obs_clean = config.n_obs if config.clean_obs else 0

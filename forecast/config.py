@@ -60,6 +60,7 @@ class DiffusionConfig:
     sample_dct: int = 0  # >0: the sampler keeps X_0 to this many DCT coefficients over the window (0 = off)
     clean_obs: bool = True
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
+    lag_stats: bool = True  # (anchored) mean/std per lag: bound to n_frames; false: per channel, any length
     root_vel: bool = False  # (anchored) root coded as per-frame displacements, not offsets from the anchor
     p_single: float = 0.0  # share of composed training scenes with one person
     mirror: bool = True  # also train on the left/right mirror of every single-person window (as the others)

@@ -208,11 +208,14 @@ def train(
 
 
 def _feature_stats(model, f: np.ndarray, stat) -> np.ndarray:
-    """Mean or std of raw features f (B,P,N,F) in the model's coding: per channel, or (anchored models) per
-    frame and channel of the offsets from the anchor frame, constant channels pooled over frames."""
+    """Mean or std of raw features f (B,P,N,F) in the model's coding (anchored models: offsets from the anchor
+    frame): per channel pooled over frames, or (``lag_stats``) per frame and channel, constant channels
+    pooled over frames."""
+    rel = f
+    if model.anchor is not None:
+        rel = model.code(torch.from_numpy(f), torch.from_numpy(f[:, :, model.anchor])).numpy()
     if model.feat_mean.dim() == 1:
-        return stat(f.reshape(-1, f.shape[-1]), 0).astype(np.float32)
-    rel = model.code(torch.from_numpy(f), torch.from_numpy(f[:, :, model.anchor])).numpy()
+        return stat(rel.reshape(-1, rel.shape[-1]), 0).astype(np.float32)
     out = stat(rel.reshape(-1, *rel.shape[-2:]), 0)  # (N,F)
     out[:, -N_CONST:] = stat(rel[..., -N_CONST:].reshape(-1, N_CONST), 0)
     return out.astype(np.float32)

@@ -12,7 +12,7 @@ from capture.fileio import FormatError
 from forecast import data as D
 from forecast import train as T
 from forecast.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
-from forecast.predict import features_to_poses, forecast_world, scene_features
+from forecast.predict import diffusion_rollout, features_to_poses, forecast_world, scene_features
 from forecast.toy import walker
 from keypoints.skeletons import get_skeleton
 
@@ -238,6 +238,31 @@ def test_root_velocity_coding_round_trips_and_keeps_the_observation():
         )
 
 
+def test_shared_statistics_free_an_anchored_model_from_its_window_length():
+    """lag_stats = false: motion still coded relative to the last observed frame, standardised with one
+    mean/std per channel shared over time (the seed's), so any length is generated in one pass (issue 19)."""
+    base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 3, "batch": 4, "sample_steps": 3}
+    model, _ = T.train("social_diffusion", _clips(3, 100), T.config_from_dict("social_diffusion", base))
+    shared, _ = T.train(
+        "social_diffusion", _clips(3, 100), T.config_from_dict("social_diffusion", {**base, "lag_stats": 0})
+    )
+    assert model.feat_std.shape == (32, 67) and shared.feat_std.shape == (67,) and shared.anchor == 15
+    assert diffusion_rollout(model, 100) == "chained" and diffusion_rollout(shared, 100) == "one_pass"
+    scene = np.stack([walker(64), walker(64, start=(2, 0))], 1)[None]  # twice the training window
+    f = torch.from_numpy(T.diffusion_batch_features(scene, np.ones((1, 2), bool), 16))
+    z = shared.standardise(f)
+    k = 67 - 5  # motion channels at the anchor frame are offsets of 0: the shared mean, standardised
+    assert torch.allclose(z[:, :, 15, :k], -shared.feat_mean[:k] / shared.feat_std[:k], atol=1e-5)
+    assert torch.allclose(shared.unstandardise(z, f[:, :, 15]), f, atol=1e-4)
+    out = shared.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), 2, 3, n_frames=64)
+    assert out.shape == (1, 2, 2, 64, 67) and torch.isfinite(out).all()
+    assert torch.allclose(out[:, 0, :, :16], f[:, :, :16], atol=1e-4)  # observation written back
+    with pytest.raises(ValueError, match="per-frame statistics"):
+        model.sample_window(f[:, :, :16], torch.ones(1, 2, dtype=torch.bool), 1, 3, n_frames=64)
+    y = forecast_world(shared, scene[:, :16], None, 100, n_samples=1)
+    assert y.shape == (1, 1, 100, 2, 19, 3) and np.isfinite(y).all()
+
+
 @pytest.mark.slow
 def test_diffusion_ema_weights_are_validated_and_returned():
     base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 4, "batch": 4, "lr": 1e-2}
@@ -423,6 +448,21 @@ def test_shipped_configs_and_checkpoint_load():
         assert jump < 0.06  # continues from the observation; measured 0.018 m (a walking step is 0.05 m)
         assert model.feat_std.dim() == 2  # motion coded relative to the last observed frame
         assert meta["config"].mirror and meta["extra"]["val_best"]["select"] == "ndms_2_3"  # the recipe
+    ck = root / "checkpoints" / "social_diffusion_1pass_cmu.pt"
+    if ck.exists():  # issue 19: shared statistics, one pass over any horizon
+        assert ck.stat().st_size < 2_000_000
+        model, meta = T.load_checkpoint(ck, skeleton="body19")
+        assert model.feat_std.dim() == 1 and model.anchor == model.n_obs - 1
+        assert diffusion_rollout(model, 250) == "one_pass"
+        calls = []
+        orig = model.sample_window
+        model.sample_window = lambda *a, **k: calls.append(k.get("n_frames")) or orig(*a, **k)
+        scene = np.stack([walker(32), walker(32, start=(2, 0), heading_rad=2.0)], 1)[None]
+        y = forecast_world(model, scene, None, 100, 2)
+        assert calls == [144] and y.shape == (1, 2, 100, 2, 19, 3) and np.isfinite(y).all()
+        jump = np.linalg.norm(y[0, :, 0] - scene[0, -1], axis=-1).mean()
+        assert jump < 0.06  # continues from the observation (a walking step is 0.05 m)
+        assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
     ck = root / "checkpoints" / "intention_cmu.pt"
     if ck.exists():
         assert ck.stat().st_size < 2_000_000  # measured 1.24 MB (discriminators are not shipped)

@@ -31,7 +31,12 @@ into the standardisation: the motion channels (everything but the constant ancho
 ``N_CONST``) are coded as offsets from the last observed frame and standardised *per frame* (mean/std of
 the offset at that lag, buffers (N,F)). An error of a fixed size in standardised units is then a few
 millimetres next to the observation and grows with the lag, as the spread of real motion does; with one
-global std per channel the same error was ~8 cm at the first forecast frame (the measured jump).
+global std per channel the same error was ~8 cm at the first forecast frame (the measured jump). Per-lag
+statistics bind the model to its window (longer horizons only by chaining windows); ``lag_stats = false``
+keeps the anchored coding with one mean/std per channel shared over time (the seed's standardisation), so
+the fully convolutional network generates any length in one pass (issue 19: trained with a 144-frame
+window, it samples 4 s and 10 s in one pass; CMU validation NDMS 2-4 s .247 against .250 for the chained
+64-frame model).
 
 Root as velocity (``root_vel``, default off, our addition): the 3 root channels are coded as per-frame
 displacements r[n] - r[n-1] (standardised per lag like the rest) instead of offsets from the anchor, and
@@ -149,6 +154,7 @@ class SocialDiffusion(nn.Module):
         T: int = 1000,
         temb: int = 64,
         anchored: bool = False,
+        lag_stats: bool = True,
     ):
         super().__init__()
         if n_frames % 16:
@@ -159,7 +165,9 @@ class SocialDiffusion(nn.Module):
         self.sample_dct = 0  # set from the config: low-pass the X_0 estimate to this many DCT coefficients
         self.root_vel = False  # set from the config (root_vel): root channels coded as per-frame velocity
         self.register_buffer("alpha_bar", cosine_alpha_bar(T))
-        shape = (n_frames, feat_dim) if anchored else (feat_dim,)
+        # per-lag statistics (anchored, ``lag_stats``) tie the model to its window length; one mean/std per
+        # channel shared over time (the seed's standardisation) lets it generate any length in one pass
+        shape = (n_frames, feat_dim) if anchored and lag_stats else (feat_dim,)
         self.register_buffer("feat_mean", torch.zeros(shape))
         self.register_buffer("feat_std", torch.ones(shape))
         C = channels
@@ -239,19 +247,26 @@ class SocialDiffusion(nn.Module):
             c = torch.cat([c[..., :i], r, c[..., i + 3 :]], -1)
         return self.relative(c, anchor_feat, +1.0)
 
-    def standardise(self, f: torch.Tensor) -> torch.Tensor:
-        """Raw features (...,N',F), N' ≤ n_frames frames from the window start -> standardised."""
+    def _stats(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and std for n frames from the window start: per lag (rows :n) or shared over time."""
         if self.feat_mean.dim() == 1:
-            return (f - self.feat_mean) / self.feat_std
-        n = f.shape[-2]
-        return (self.code(f, f[..., self.anchor, :]) - self.feat_mean[:n]) / self.feat_std[:n]
+            return self.feat_mean, self.feat_std
+        return self.feat_mean[:n], self.feat_std[:n]
+
+    def standardise(self, f: torch.Tensor) -> torch.Tensor:
+        """Raw features (...,N',F) from the window start (N' ≤ n_frames for per-lag statistics) ->
+        standardised; anchored models code motion relative to the anchor frame first (``code``)."""
+        mean, std = self._stats(f.shape[-2])
+        if self.anchor is None:
+            return (f - mean) / std
+        return (self.code(f, f[..., self.anchor, :]) - mean) / std
 
     def unstandardise(self, f: torch.Tensor, anchor_feat: torch.Tensor | None = None) -> torch.Tensor:
         """Inverse of standardise; anchored models need the raw features of the anchor frame (...,F)."""
-        if self.feat_mean.dim() == 1:
-            return f * self.feat_std + self.feat_mean
-        n = f.shape[-2]
-        return self.decode(f * self.feat_std[:n] + self.feat_mean[:n], anchor_feat)
+        mean, std = self._stats(f.shape[-2])
+        if self.anchor is None:
+            return f * std + mean
+        return self.decode(f * std + mean, anchor_feat)
 
     @torch.no_grad()
     def sample_window(
@@ -269,7 +284,7 @@ class SocialDiffusion(nn.Module):
 
         ``n_frames`` (a multiple of 16) other than the training window: the network is fully convolutional in
         time (sec. 7.2.2, "sequences of arbitrary size"), so a whole horizon is generated in one pass; models
-        with per-frame feature statistics (anchored) only know their training window's length."""
+        with per-lag feature statistics (``lag_stats``) only know their training window's length."""
         B, P, n_obs, Fd = obs.shape
         N = self.n_frames if n_frames is None else int(n_frames)
         if N != self.n_frames:
@@ -310,7 +325,7 @@ class SocialDiffusion(nn.Module):
             noise = torch.randn(x.shape, device=x.device, generator=generator)
             e = math.sqrt(1 - eta**2) * eps_hat + eta * noise
             x = ab_next.sqrt() * x0 + (1 - ab_next).sqrt() * e
-        anchor = obs[:, :, -1].repeat_interleave(n_samples, 0) if self.feat_mean.dim() == 2 else None
+        anchor = obs[:, :, -1].repeat_interleave(n_samples, 0) if self.anchor is not None else None
         if anchor is not None and self.anchor != n_obs - 1:
             raise ValueError(
                 f"this model is anchored at frame {self.anchor}, the observation has {n_obs} frames"
