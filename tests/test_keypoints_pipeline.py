@@ -401,3 +401,22 @@ def test_multipose_finds_both_participants_without_a_detector():
         ok = r.score > 0.3
         assert ok.sum() > 20
         assert (r.xy_px[ok] >= 0).all() and (r.xy_px[ok][:, 0] < w).all() and (r.xy_px[ok][:, 1] < h).all()
+
+
+def test_to_tensor_swaps_channels_and_normalises_as_the_description_says():
+    """RGB models get the crops' channels reversed (cv2's swap equals numpy's reversed copy), float models
+    the description's scale, mean and std, in its layout."""
+    from keypoints.crops import to_tensor
+    from keypoints.registry import get_spec
+
+    rng = np.random.default_rng(3)
+    rgb, bgr = get_spec("movenet_lightning_fp16"), get_spec("yolox_nano")
+    b = rng.integers(0, 256, (2, rgb.input.size_wh[1], rgb.input.size_wh[0], 3), np.uint8)
+    assert rgb.input.color == "RGB" and np.array_equal(to_tensor(b, rgb), b[..., ::-1])
+    assert to_tensor(b[:0], rgb).shape[0] == 0
+    s = bgr.input
+    x = to_tensor(b, bgr)
+    want = (b.astype(np.float32) * np.float32(s.scale) - np.asarray(s.mean, np.float32)) / np.asarray(
+        s.std, np.float32
+    )
+    assert s.color == "BGR" and np.allclose(x, want.transpose(0, 3, 1, 2))
