@@ -84,7 +84,7 @@ def test_chunked_equals_whole_session(session, tmp_path):
     assert all(p.n_tracks <= tf.n_tracks for p in parts)
 
 
-def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch):
+def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch, caplog):
     """Issue 17, item 3: the chunks of one session triangulated by 2 worker processes give the one-process
     parts bit for bit, so the (sequential, streamed) tracker's identities are the single worker's; a run
     killed with one worker resumes with two."""
@@ -109,6 +109,12 @@ def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch):
     _same_poses(Poses3D.load(lay.poses3d), session[1])
     track_session_greedy(root, TRK)
     _same_tracks(TrackFile.load(lay.tracks), session[2])
+    fresh = tmp_path / "fresh"
+    shutil.copytree(session[0], fresh)
+    caplog.clear()
+    triangulate_session(fresh, {**TRI, "workers": 2})  # every chunk in the workers
+    assert "has no detection" not in caplog.text  # the workers say which cameras they saw
+    _same_poses(Poses3D.load(SessionLayout(fresh).poses3d), session[1])
 
 
 def test_killed_run_resumes_and_equals(session, tmp_path, monkeypatch):

@@ -699,7 +699,9 @@ def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress)
         }
         for f in as_completed(futures):
             i = futures[f]
-            n = f.result()
+            n, seen = f.result()
+            for m, s in zip(plan.metas, seen, strict=True):  # for the "camera without detections" check
+                m.seen = m.seen or s
             done += chunks[i][1] - chunks[i][0]
             if progress is not None:
                 progress("triangulate", done, T)
@@ -709,9 +711,11 @@ def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress)
 _WORKER_PLAN: dict = {}  # per worker process: the session's detection plan and reconstructor
 
 
-def _chunk_worker(session_dir: str, cfg: TriangulateConfig, chunk, fps: float, part: str) -> np.ndarray:
+def _chunk_worker(
+    session_dir: str, cfg: TriangulateConfig, chunk, fps: float, part: str
+) -> tuple[np.ndarray, list[bool]]:
     """One chunk in a worker process: triangulate frames [a, b) and write its part; returns the people
-    per frame."""
+    per frame and, per camera, whether it has had a detection in this process."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     if _WORKER_PLAN.get("key") != (session_dir, repr(cfg)):
         lay = SessionLayout(session_dir)
@@ -723,7 +727,7 @@ def _chunk_worker(session_dir: str, cfg: TriangulateConfig, chunk, fps: float, p
     mv = plan.chunk(*chunk)
     res = reconstruct_all(plan.rig, mv, cfg, None, _WORKER_PLAN["rec"])
     _poses3d(mv, res, fps, rig, plan.cameras).save(Path(part))
-    return _people_log(res["xyz_m"])
+    return _people_log(res["xyz_m"]), [m.seen for m in plan.metas]
 
 
 def track_session_greedy(
