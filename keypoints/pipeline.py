@@ -294,10 +294,8 @@ class KeypointPipeline:
         k = 0
         for i, bs, f in ((i, bs, f) for f in scales for i, bs in enumerate(boxes)):
             for j, b in enumerate(bs):
-                Ms[k], owner[k] = (
-                    crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j]),
-                    i,
-                )
+                Ms[k] = crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j])
+                owner[k] = i
                 k += 1
         self._reduce_regions(images, owner, Ms, (W, H))
         for k in range(n):
