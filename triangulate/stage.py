@@ -683,12 +683,7 @@ def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress)
     if cfg.workers <= 1 or len(todo) <= 1:
         rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
         for i in sorted(todo):
-            a, b = chunks[i]
-            mv = plan.chunk(a, b)
-            res = reconstruct_all(plan.rig, mv, cfg, progress, rec, done=a, total=T)
-            _poses3d(mv, res, fps, rig, plan.cameras).save(store.part_path(i))
-            yield i, _people_log(res["xyz_m"])
-            del mv, res
+            yield i, _triangulate_chunk(plan, rig, cfg, rec, chunks[i], fps, store.part_path(i), progress)
         return
     ctx = mp.get_context("spawn")
     done = sum(b - a for i, (a, b) in enumerate(chunks) if i not in todo)
@@ -708,6 +703,15 @@ def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress)
             yield i, n
 
 
+def _triangulate_chunk(plan, rig, cfg, rec, chunk, fps: float, part: Path, progress=None) -> np.ndarray:
+    """Frames [a, b) of the plan triangulated into the part file ``part``; returns the people per frame."""
+    a, b = chunk
+    mv = plan.chunk(a, b)
+    res = reconstruct_all(plan.rig, mv, cfg, progress, rec, done=a, total=plan.n_frames)
+    _poses3d(mv, res, fps, rig, plan.cameras).save(part)
+    return _people_log(res["xyz_m"])
+
+
 _WORKER_PLAN: dict = {}  # per worker process: the session's detection plan and reconstructor
 
 
@@ -716,18 +720,15 @@ def _chunk_worker(
 ) -> tuple[np.ndarray, list[bool]]:
     """One chunk in a worker process: triangulate frames [a, b) and write its part; returns the people
     per frame and, per camera, whether it has had a detection in this process."""
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     if _WORKER_PLAN.get("key") != (session_dir, repr(cfg)):
         lay = SessionLayout(session_dir)
         rig = CameraRig.load(lay.rig_toml)
         plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
         rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
         _WORKER_PLAN.update(key=(session_dir, repr(cfg)), rig=rig, plan=plan, rec=rec)
-    plan, rig = _WORKER_PLAN["plan"], _WORKER_PLAN["rig"]
-    mv = plan.chunk(*chunk)
-    res = reconstruct_all(plan.rig, mv, cfg, None, _WORKER_PLAN["rec"])
-    _poses3d(mv, res, fps, rig, plan.cameras).save(Path(part))
-    return _people_log(res["xyz_m"]), [m.seen for m in plan.metas]
+    plan = _WORKER_PLAN["plan"]
+    n = _triangulate_chunk(plan, _WORKER_PLAN["rig"], cfg, _WORKER_PLAN["rec"], chunk, fps, Path(part))
+    return n, [m.seen for m in plan.metas]
 
 
 def track_session_greedy(
