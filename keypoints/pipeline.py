@@ -297,9 +297,7 @@ class KeypointPipeline:
                 Ms[k] = crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j])
                 owner[k] = i
                 k += 1
-        self._reduce_regions(images, owner, Ms, (W, H))
-        for k in range(n):
-            src, M = self._pyramid(images, owner[k], Ms[k], (W, H))
+        for k, (src, M) in enumerate(self._crop_sources(images, owner, Ms, (W, H))):
             cv2.warpAffine(
                 src,
                 M,
@@ -355,53 +353,50 @@ class KeypointPipeline:
         scale = float(np.sqrt(abs(np.linalg.det(M[:, :2]))))
         return int(np.clip(np.floor(np.log2(1.0 / max(scale, 1e-9))), 0, 4))
 
-    def _reduce_regions(self, images, owner: np.ndarray, Ms: np.ndarray, size_wh: tuple[int, int]) -> None:
-        """Pyramid levels of the regions these crops sample, made before cutting them: per image and level,
-        overlapping regions are merged into one (people close together, the crop sizes of the test-time
-        augmentation) so that each pixel is reduced once."""
-        want: dict[tuple[int, int], list[list[int]]] = {}
-        for i, M in zip(owner, Ms, strict=True):
-            L = self._level(M)
+    def _crop_sources(self, images, owner: np.ndarray, Ms: np.ndarray, size_wh: tuple[int, int]):
+        """Per crop (of image ``owner[k]``, affine ``Ms[k]``), the image level to cut it from and the affine
+        for that level (``_level``).
+
+        pyrDown centres its kernel on source pixel 2i, so level-L pixels relate to image pixels by
+        x = 2^L x_L. Only the region a crop samples is reduced (``_crop_region``: with the kernels' reach as
+        margin and its corner on the level-L grid, so the pixels equal those of the whole image's pyramid);
+        per image and level, overlapping regions are merged into one (people close together, the crop
+        sizes of the test-time augmentation) so that each pixel is reduced once, and the regions are kept
+        for this call's passes (``self._pyr``).
+        """
+        levels = [self._level(M) for M in Ms]
+        need = [
+            _crop_region(M, size_wh, images[i].shape, 2**L) if L else None
+            for i, M, L in zip(owner, Ms, levels, strict=True)
+        ]
+        want: dict[tuple[int, int], list] = {}
+        for i, L, box in zip(owner, levels, need, strict=True):
             if L:
-                want.setdefault((int(i), L), []).append(list(_crop_region(M, size_wh, images[i].shape, 2**L)))
+                want.setdefault((int(i), L), []).append(box)
         for (i, L), boxes in want.items():
             have = self._pyr.setdefault((i, L), [])
-            todo = [b for b in boxes if _containing(have, b) is None]
             merged: list[list[int]] = []
-            for b in sorted(todo):
+            for box in sorted(b for b in boxes if _containing(have, b) is None):
                 for m in merged:
-                    if b[0] < m[2] and m[0] < b[2] and b[1] < m[3] and m[1] < b[3]:
-                        m[:] = [min(m[0], b[0]), min(m[1], b[1]), max(m[2], b[2]), max(m[3], b[3])]
+                    if box[0] < m[2] and m[0] < box[2] and box[1] < m[3] and m[1] < box[3]:
+                        m[:] = [min(m[0], box[0]), min(m[1], box[1]), max(m[2], box[2]), max(m[3], box[3])]
                         break
                 else:
-                    merged.append(list(b))
+                    merged.append(list(box))
             for x0, y0, x1, y1 in merged:
                 level = images[i][y0:y1, x0:x1]
                 for _ in range(L):
                     level = cv2.pyrDown(level)
                 have.append((x0, y0, x1, y1, level))
-
-    def _pyramid(self, images, i: int, M: np.ndarray, size_wh: tuple[int, int]):
-        """The image level to crop from and the affine for it (``_level``).
-
-        pyrDown centres its kernel on source pixel 2i, so level-L pixels relate to image pixels by
-        x = 2^L x_L. Only the region the crop samples is reduced (``_reduce_regions``; with the kernels'
-        reach as margin and its corner on the level-L grid, so the pixels equal those of the whole image's
-        pyramid); regions are kept per image and level for this call's passes.
-        """
-        L = self._level(M)
-        if L == 0:
-            return images[i], M
-        f = 2**L
-        need = list(_crop_region(M, size_wh, images[i].shape, f))
-        hit = _containing(self._pyr.get((i, L), []), need)
-        if hit is None:
-            self._reduce_regions(images, np.array([i]), M[None], size_wh)
-            hit = _containing(self._pyr[(i, L)], need)
-        assert hit is not None
-        # crop px = A x + t with x = (region x0, y0) + f x_L
-        A = M[:, :2]
-        return hit[4], np.hstack([A * f, (M[:, 2] + A @ np.array([hit[0], hit[1]], float))[:, None]])
+        out = []
+        for i, M, L, box in zip(owner, Ms, levels, need, strict=True):
+            if not L:
+                out.append((images[i], M))
+                continue
+            x0, y0, _, _, level = _containing(self._pyr[(int(i), L)], box)
+            A = M[:, :2]  # crop px = A x + t with x = (region x0, y0) + 2^L x_L
+            out.append((level, np.hstack([A * 2**L, (M[:, 2] + A @ np.array([x0, y0], float))[:, None]])))
+        return out
 
     @staticmethod
     def _roi_to_image(aux: np.ndarray, Ms: np.ndarray) -> np.ndarray:

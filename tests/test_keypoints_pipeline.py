@@ -109,7 +109,7 @@ def test_pyramid_crop_matches_direct_crop_on_a_smooth_image():
     pipe.config = PipelineConfig()
     pipe._pyr = {}
     M = crop_transform(np.array([200.0, 300.0, 900.0, 1700.0]), (192, 192), 1.0, 0.3)
-    src, M2 = pipe._pyramid([img], 0, M, (192, 192))
+    src, M2 = pipe._crop_sources([img], np.array([0]), M[None], (192, 192))[0]
     assert src.shape[0] < 480  # level 2 of the region the crop samples only (the whole image: 1920 -> 480)
     a = cv2.warpAffine(img, M, (192, 192)).astype(float)
     b = cv2.warpAffine(src, M2, (192, 192)).astype(float)
@@ -133,7 +133,7 @@ def test_pyramid_region_equals_the_whole_pyramid_on_noise_and_at_the_border():
     ]:
         pipe._pyr = {}
         M = crop_transform(np.array(box, float), (192, 256), 1.25, ang)
-        src, M2 = pipe._pyramid([img], 0, M, (192, 256))
+        src, M2 = pipe._crop_sources([img], np.array([0]), M[None], (192, 256))[0]
         L = int(round(np.log2(M2[0, :2] @ M2[0, :2] / (M[0, :2] @ M[0, :2])) / 2))
         whole = img
         for _ in range(L):
