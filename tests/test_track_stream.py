@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 from track_helpers import render_kp, ring_P
-from triangulate_helpers import TEMPLATE
+from triangulate_helpers import TEMPLATE, killed_after_commits
 
 from capture.fileio import FormatError
 from capture.session import SessionLayout
@@ -61,6 +61,19 @@ def _same_tracks(a: TrackFile, b: TrackFile) -> None:
         assert np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True), k
 
 
+def _stepped_frames(monkeypatch) -> list:
+    """The frame numbers ``ParticleTracker.step`` is called with from now on (appended as it runs)."""
+    frames: list = []
+    real_step = ParticleTracker.step
+
+    def counting(self, kp, sc, frame, *a, **k):
+        frames.append(frame)
+        return real_step(self, kp, sc, frame, *a, **k)
+
+    monkeypatch.setattr(ParticleTracker, "step", counting)
+    return frames
+
+
 @pytest.mark.parametrize("chunk_s", [2.0, 0.52])  # 6 chunks; 24 chunks shorter than the margin (1.44 s)
 def test_streamed_equals_whole_session(session, tmp_path, chunk_s):
     root = _copy(session, tmp_path)
@@ -78,46 +91,18 @@ def test_killed_run_resumes_from_the_last_chunk_and_equals(session, tmp_path, mo
     root = _copy(session, tmp_path)
     lay = SessionLayout(root)
     kill_at = int(np.random.default_rng(24).integers(1, 5))  # parts of the filter pass written before
-    real_commit = C.PartStore.commit
-    calls = {"n": 0}
-
-    def dying_commit(self, i):
-        if self.kind == stream.RAW_SCHEMA and calls["n"] == kill_at:
-            raise KeyboardInterrupt  # killed after kill_at filter parts
-        calls["n"] += self.kind == stream.RAW_SCHEMA
-        real_commit(self, i)
-
-    monkeypatch.setattr(C.PartStore, "commit", dying_commit)
-    with pytest.raises(KeyboardInterrupt):
-        track_session_particle(root, STREAM)
+    with killed_after_commits(monkeypatch, kill_at, stream.RAW_SCHEMA), pytest.raises(KeyboardInterrupt):
+        track_session_particle(root, STREAM)  # killed after kill_at filter parts
     with pytest.raises(FormatError, match="incomplete"):
         TrackFile.load(lay.tracks)
-    monkeypatch.setattr(C.PartStore, "commit", real_commit)
-    frames = []
-    real_step = ParticleTracker.step
-
-    def counting(self, kp, sc, frame, *a, **k):
-        frames.append(frame)
-        return real_step(self, kp, sc, frame, *a, **k)
-
-    monkeypatch.setattr(ParticleTracker, "step", counting)
+    frames = _stepped_frames(monkeypatch)
     track_session_particle(root, STREAM)
     assert frames[0] == 50 * kill_at and len(frames) == 300 - 50 * kill_at  # resumed, nothing stepped twice
     _same_tracks(TrackFile.load(lay.tracks), session[1])
     # killed in the clean-up pass after 2 track parts: the rerun steps no frame and writes the rest
-    calls["n"] = 0
-
-    def dying_out(self, i):
-        if self.kind == "tracks" and calls["n"] == 2:
-            raise KeyboardInterrupt
-        calls["n"] += self.kind == "tracks"
-        real_commit(self, i)
-
     shutil.rmtree(C.parts_dir(lay.tracks))
-    monkeypatch.setattr(C.PartStore, "commit", dying_out)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_after_commits(monkeypatch, 2, "tracks"), pytest.raises(KeyboardInterrupt):
         track_session_particle(root, STREAM)
-    monkeypatch.setattr(C.PartStore, "commit", real_commit)
     frames.clear()
     track_session_particle(root, STREAM)
     assert frames == []
@@ -135,14 +120,7 @@ def test_damaged_parts_are_rebuilt_never_trusted(session, tmp_path, monkeypatch)
     tp.write_bytes(tp.read_bytes()[:100])  # a truncated track part
     with pytest.raises(FormatError, match="part_00004"):
         TrackFile.load(lay.tracks)
-    frames = []
-    real_step = ParticleTracker.step
-
-    def counting(self, kp, sc, frame, *a, **k):
-        frames.append(frame)
-        return real_step(self, kp, sc, frame, *a, **k)
-
-    monkeypatch.setattr(ParticleTracker, "step", counting)
+    frames = _stepped_frames(monkeypatch)
     track_session_particle(root, STREAM)
     assert frames == list(range(100, 150))  # chunk 2 again, from the state after chunk 1; chunk 3 kept
     _same_tracks(TrackFile.load(lay.tracks), session[1])

@@ -8,6 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
+from triangulate_helpers import killed_after_commits
 
 from capture.fileio import FormatError
 from capture.session import SessionLayout
@@ -90,19 +91,8 @@ def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch, caplo
     killed with one worker resumes with two."""
     root = _copy(session, tmp_path)
     lay = SessionLayout(root)
-    real_commit = C.PartStore.commit
-    calls = {"n": 0}
-
-    def dying_commit(self, i):
-        if calls["n"] == 2:
-            raise KeyboardInterrupt
-        calls["n"] += 1
-        real_commit(self, i)
-
-    monkeypatch.setattr(C.PartStore, "commit", dying_commit)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_after_commits(monkeypatch, 2), pytest.raises(KeyboardInterrupt):
         triangulate_session(root, TRI)
-    monkeypatch.setattr(C.PartStore, "commit", real_commit)
     triangulate_session(root, {**TRI, "workers": 2})
     idx = json.loads((C.parts_dir(lay.poses3d) / "index.json").read_text())
     assert idx["complete"] and len(idx["parts"]) == 6
@@ -122,21 +112,10 @@ def test_killed_run_resumes_and_equals(session, tmp_path, monkeypatch):
     lay = SessionLayout(root)
     rng = np.random.default_rng(17)
     kill_at = int(rng.integers(1, 5))  # a random chunk of the 6
-    real_commit = C.PartStore.commit
-    calls = {"n": 0}
-
-    def dying_commit(self, i):
-        if calls["n"] == kill_at:
-            raise KeyboardInterrupt  # the run is killed after kill_at parts
-        calls["n"] += 1
-        real_commit(self, i)
-
-    monkeypatch.setattr(C.PartStore, "commit", dying_commit)
-    with pytest.raises(KeyboardInterrupt):
-        triangulate_session(root, TRI)
+    with killed_after_commits(monkeypatch, kill_at), pytest.raises(KeyboardInterrupt):
+        triangulate_session(root, TRI)  # the run is killed after kill_at parts
     with pytest.raises(FormatError, match="incomplete"):
         Poses3D.load(lay.poses3d)
-    monkeypatch.setattr(C.PartStore, "commit", real_commit)
     built = []
     real_rec = stage.reconstruct_all
 
@@ -149,11 +128,8 @@ def test_killed_run_resumes_and_equals(session, tmp_path, monkeypatch):
     assert len(built) == 6 - kill_at  # resumed from the last complete chunk
     _same_poses(Poses3D.load(lay.poses3d), session[1])
     # the tracker, killed after one part, then rerun
-    calls["n"], kill_at = 0, 1
-    monkeypatch.setattr(C.PartStore, "commit", dying_commit)
-    with pytest.raises(KeyboardInterrupt):
+    with killed_after_commits(monkeypatch, 1), pytest.raises(KeyboardInterrupt):
         track_session_greedy(root, TRK)
-    monkeypatch.setattr(C.PartStore, "commit", real_commit)
     track_session_greedy(root, TRK)
     _same_tracks(TrackFile.load(lay.tracks), session[2])
 

@@ -1,8 +1,35 @@
-"""Tiny hand-made fixtures for the triangulate tests: a ring of pinhole cameras and body19 people."""
+"""Tiny hand-made fixtures for the triangulate tests: a ring of pinhole cameras and body19 people, and a
+run killed after some of its chunk parts."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
+
+from triangulate import chunks as C
+
+
+@contextmanager
+def killed_after_commits(monkeypatch, n: int, kind: str | None = None):
+    """Inside, a streamed run is killed (``KeyboardInterrupt``) when it commits its part after the first
+    ``n`` parts of ``kind`` (any kind: None); the real ``PartStore.commit`` is back on leaving."""
+    real = C.PartStore.commit
+    done = {"n": 0}
+
+    def dying(self, i):
+        if kind is None or self.kind == kind:
+            if done["n"] == n:
+                raise KeyboardInterrupt
+            done["n"] += 1
+        real(self, i)
+
+    monkeypatch.setattr(C.PartStore, "commit", dying)
+    try:
+        yield
+    finally:
+        monkeypatch.setattr(C.PartStore, "commit", real)
+
 
 # body19 (COCO-17 + pelvis + neck) standing template, metres, facing +x, z up, left = +y
 TEMPLATE = np.array(
