@@ -22,7 +22,7 @@ give stays unknown (NaN).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -203,18 +203,14 @@ def attach_joints(
             n_obs,
             int(tf.mask.any(-1).sum()) * E,
         )
-    return TrackFile(
-        fps=tf.fps,
-        frame_index=tf.frame_index,
-        t_ns=tf.t_ns,
-        track_id=tf.track_id,
+    return replace(
+        tf,
         joint_names=joint_names,
         parents=parents,
         xyz_m=xyz,
         confidence=conf,
         std_m=std,
         flags=flags,
-        calibration_sha256=tf.calibration_sha256,
         source=tf.source + " + extra joints triangulated (track.extra_joints)",
     )
 
