@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from triangulate_helpers import FOOT_HEAD_OFFSETS
 
 from capture.session import SessionLayout
 from keypoints.detections import Detections
@@ -12,17 +13,6 @@ from keypoints.skeletons import CANONICAL, SKELETONS, whole_body
 from track.extra_joints import ExtraJointsConfig, assign_views, attach_joints
 from track.stage import ParticleTrackConfig, track_session_particle
 from track.trackfile import OBSERVED, TrackFile
-
-EXTRA = {  # offsets from the parent joint (metres, world z up)
-    "left_big_toe": ("left_ankle", (0.16, 0.02, -0.07)),
-    "left_small_toe": ("left_ankle", (0.13, 0.06, -0.07)),
-    "left_heel": ("left_ankle", (-0.06, 0.0, -0.07)),
-    "right_big_toe": ("right_ankle", (0.16, -0.02, -0.07)),
-    "right_small_toe": ("right_ankle", (0.13, -0.06, -0.07)),
-    "right_heel": ("right_ankle", (-0.06, 0.0, -0.07)),
-    "upper_neck": ("neck", (0.0, 0.0, 0.10)),
-    "head_top": ("neck", (0.0, 0.0, 0.30)),
-}
 
 
 def _body25b(gt19: np.ndarray) -> np.ndarray:
@@ -33,7 +23,7 @@ def _body25b(gt19: np.ndarray) -> np.ndarray:
         if name in CANONICAL.joint_names:
             out[:, :, j] = gt19[:, :, CANONICAL.index(name)]
         else:
-            par, off = EXTRA[name]
+            par, off = FOOT_HEAD_OFFSETS[name]
             out[:, :, j] = gt19[:, :, CANONICAL.index(par)] + off
     return out
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from triangulate_helpers import people  # noqa: F401
+from triangulate_helpers import FOOT_HEAD_OFFSETS, people  # noqa: F401
 
 from capture.session import SessionLayout
 from keypoints.detections import Detections
@@ -17,17 +17,6 @@ from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import TriangulateConfig
 from triangulate.stage import track_session_greedy, triangulate_session
 
-EXTRA = {  # offsets from the parent joint (metres, world z up) of a person facing +x
-    "left_big_toe": ("left_ankle", (0.16, 0.02, -0.07)),
-    "left_small_toe": ("left_ankle", (0.13, 0.06, -0.07)),
-    "left_heel": ("left_ankle", (-0.06, 0.0, -0.07)),
-    "right_big_toe": ("right_ankle", (0.16, -0.02, -0.07)),
-    "right_small_toe": ("right_ankle", (0.13, -0.06, -0.07)),
-    "right_heel": ("right_ankle", (-0.06, 0.0, -0.07)),
-    "upper_neck": ("neck", (0.0, 0.0, 0.10)),
-    "head_top": ("neck", (0.0, 0.0, 0.30)),
-}
-
 
 def _body25b_people(rng, n=2):
     X = people(rng, n, spread=0.8)  # (n,19,3) body19
@@ -37,7 +26,7 @@ def _body25b_people(rng, n=2):
         if name in CANONICAL.joint_names:
             out[:, j] = X[:, CANONICAL.index(name)]
         else:
-            par, off = EXTRA[name]
+            par, off = FOOT_HEAD_OFFSETS[name]
             out[:, j] = X[:, CANONICAL.index(par)] + off
     return out
 

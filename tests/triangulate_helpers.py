@@ -57,6 +57,19 @@ TEMPLATE = np.array(
 )
 
 
+# whole-body joints beyond body19: offsets from the parent joint (metres, world z up) of a person facing +x
+FOOT_HEAD_OFFSETS = {
+    "left_big_toe": ("left_ankle", (0.16, 0.02, -0.07)),
+    "left_small_toe": ("left_ankle", (0.13, 0.06, -0.07)),
+    "left_heel": ("left_ankle", (-0.06, 0.0, -0.07)),
+    "right_big_toe": ("right_ankle", (0.16, -0.02, -0.07)),
+    "right_small_toe": ("right_ankle", (0.13, -0.06, -0.07)),
+    "right_heel": ("right_ankle", (-0.06, 0.0, -0.07)),
+    "upper_neck": ("neck", (0.0, 0.0, 0.10)),
+    "head_top": ("neck", (0.0, 0.0, 0.30)),
+}
+
+
 def ring_P(
     n: int,
     radius: float = 4.0,
