@@ -37,7 +37,7 @@ from capture.config import CaptureConfig
 from capture.live import LiveStep, Stage
 from capture.session import SessionLayout
 from core.fileio import atomic_write_text
-from core.memory import release_free_memory
+from core.memory import TRIM_EVERY, release_free_memory
 from keypoints.skeletons import CANONICAL, convert
 from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
 from track.stage import focal_lengths
@@ -246,7 +246,7 @@ def _track(ctx: LiveContext) -> Stage:
         xy, sc = frame_arrays(step, rig)
         est = tracker.step(xy, sc, clock["n"], t_s=(t_ns - clock["t0"]) / 1e9)
         clock["n"] += 1
-        if clock["n"] % 25 == 0:  # hours of steps: give the fragmented heap's free pages back (core.memory)
+        if clock["n"] % TRIM_EVERY == 0:  # hours of steps: the fragmented heap's free pages back
             release_free_memory()
         writer.add(step.frameset.index, t_ns, est)
         step.outputs["tracks"] = est

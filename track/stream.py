@@ -37,7 +37,7 @@ import numpy as np
 
 from capture.session import SessionLayout
 from core.fileio import save_npz
-from core.memory import release_free_memory
+from core.memory import TRIM_EVERY, release_free_memory
 from core.progress import Progress
 from track.particle import (
     ParticleConfig,
@@ -55,7 +55,6 @@ from triangulate.tracker import _nominal_dt, frame_times_s, pause_clock
 log = logging.getLogger(__name__)
 
 RAW_SCHEMA = "particle_raw/1"
-_TRIM_EVERY = 25  # frames between returns of the heap's free pages to the OS (costs nothing measurable)
 _RAW_KEYS = ("track_id", "xyz_m", "std_m", "confidence", "flags", "n_views", "seen")
 
 
@@ -202,7 +201,7 @@ def track_session_particle_chunked(
                 )
                 if progress is not None:
                     progress("track", g + 1, T)
-                if t % _TRIM_EVERY == _TRIM_EVERY - 1:  # bounded resident memory (core.memory)
+                if t % TRIM_EVERY == TRIM_EVERY - 1:  # bounded resident memory (core.memory)
                     release_free_memory()
             raw = gather_estimates(per_frame, J)
             arrays = {"schema": np.asarray(RAW_SCHEMA), **{k: getattr(raw, k) for k in _RAW_KEYS}}
