@@ -98,7 +98,10 @@ class PipelineConfig:
     refine_passes: int = 2  # top-down: pose passes on the box the previous pass's keypoints span
     min_box_iou: float = 0.3  # refine passes: keep the previous pose where the new one left its box (IoU)
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
-    antialias: bool = True  # top-down: crops that shrink > 2x are cut from a Gaussian pyramid level
+    antialias: bool = True  # top-down: crops that shrink > 2x are cut from a pyramid level
+    # the pyramid's filter: "gaussian" (cv2.pyrDown, 5x5) or "box" (2x2 means, cv2.resize INTER_AREA: about
+    # 3x cheaper per level; BENCHMARKS.md "2D presets" has what each gave)
+    pyramid: str = "gaussian"
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
     # flip test: joints the two crops place more than this x the crop width apart are not averaged; each
     # person takes them from the crop with the higher score (merge_hypotheses); 0 = always average
@@ -129,6 +132,10 @@ class PipelineConfig:
     track_passes: int = 1
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+
+    def __post_init__(self) -> None:
+        if self.pyramid not in ("gaussian", "box"):
+            raise ValueError(f"PipelineConfig.pyramid must be 'gaussian' or 'box', got {self.pyramid!r}")
 
 
 @dataclass
@@ -353,6 +360,14 @@ class KeypointPipeline:
         scale = float(np.sqrt(abs(np.linalg.det(M[:, :2]))))
         return int(np.clip(np.floor(np.log2(1.0 / max(scale, 1e-9))), 0, 4))
 
+    def _reduce(self, image: np.ndarray) -> np.ndarray:
+        """One pyramid level down: cv2.pyrDown, or (``pyramid = "box"``) the means of 2x2 pixels (an odd last
+        row or column is dropped)."""
+        if self.config.pyramid == "gaussian":
+            return cv2.pyrDown(image)
+        h, w = max(image.shape[0] // 2, 1), max(image.shape[1] // 2, 1)
+        return cv2.resize(image[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA)
+
     def _crop_sources(self, images, owner: np.ndarray, Ms: np.ndarray, size_wh: tuple[int, int]):
         """Per crop (of image ``owner[k]``, affine ``Ms[k]``), the image level to cut it from and the affine
         for that level (``_level``).
@@ -386,7 +401,7 @@ class KeypointPipeline:
             for x0, y0, x1, y1 in merged:
                 level = images[i][y0:y1, x0:x1]
                 for _ in range(L):
-                    level = cv2.pyrDown(level)
+                    level = self._reduce(level)
                 have.append((x0, y0, x1, y1, level))
         out = []
         for i, M, L, box in zip(owner, Ms, levels, need, strict=True):
@@ -394,8 +409,11 @@ class KeypointPipeline:
                 out.append((images[i], M))
                 continue
             x0, y0, _, _, level = _containing(self._pyr[(int(i), L)], box)
-            A = M[:, :2]  # crop px = A x + t with x = (region x0, y0) + 2^L x_L
-            out.append((level, np.hstack([A * 2**L, (M[:, 2] + A @ np.array([x0, y0], float))[:, None]])))
+            # crop px = A x + t with x = (region x0, y0) + 2^L x_L (+ (2^L - 1) / 2 for box means: a level-L
+            # pixel is the mean of image pixels 2^L x_L .. 2^L x_L + 2^L - 1)
+            c = (2**L - 1) / 2 if self.config.pyramid == "box" else 0.0
+            A = M[:, :2]
+            out.append((level, np.hstack([A * 2**L, (M[:, 2] + A @ np.array([x0 + c, y0 + c]))[:, None]])))
         return out
 
     @staticmethod

@@ -100,13 +100,24 @@ def test_openpose_paf_channel_order(single):
     assert (res.score > 0).sum(1).max() >= 12  # measured 14-15 parts on the main person (limb order: 0-3)
 
 
-def test_pyramid_crop_matches_direct_crop_on_a_smooth_image():
-    """The anti-aliased crop (cut from a pyrDown level) lands on the same pixels as the direct warp."""
+def _whole_pyramid(img: np.ndarray, levels: int, pyramid: str) -> tuple[np.ndarray, float]:
+    """The whole image's pyramid level and the image px offset c of its pixel 0 (x = 2^L x_L + c)."""
+    for _ in range(levels):
+        if pyramid == "gaussian":
+            img = cv2.pyrDown(img)
+        else:
+            img = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    return img, (2**levels - 1) / 2 if pyramid == "box" else 0.0
+
+
+@pytest.mark.parametrize("pyramid", ["gaussian", "box"])
+def test_pyramid_crop_matches_direct_crop_on_a_smooth_image(pyramid):
+    """The anti-aliased crop (cut from a pyramid level) lands on the same pixels as the direct warp."""
     yy, xx = np.mgrid[0:1920, 0:1080].astype(np.float32)
     img = (127 + 60 * np.sin(xx / 90.0) + 60 * np.cos(yy / 110.0)).astype(np.uint8)
     img = np.repeat(img[..., None], 3, 2)
     pipe = KeypointPipeline.__new__(KeypointPipeline)  # only the cropping helper is needed
-    pipe.config = PipelineConfig()
+    pipe.config = PipelineConfig(pyramid=pyramid)
     pipe._pyr = {}
     M = crop_transform(np.array([200.0, 300.0, 900.0, 1700.0]), (192, 192), 1.0, 0.3)
     src, M2 = pipe._crop_sources([img], np.array([0]), M[None], (192, 192))[0]
@@ -115,17 +126,18 @@ def test_pyramid_crop_matches_direct_crop_on_a_smooth_image():
     b = cv2.warpAffine(src, M2, (192, 192)).astype(float)
     assert np.abs(a - b)[10:-10, 10:-10].mean() < 0.6  # measured 0.36 (0.76 with a half-pixel offset)
     # the same pixels as a crop from the whole image's pyramid
-    whole = cv2.pyrDown(cv2.pyrDown(img))
-    c = cv2.warpAffine(whole, np.hstack([M[:, :2] * 4, M[:, 2:]]), (192, 192)).astype(int)
-    assert np.abs(c - b).max() <= 1
+    whole, off = _whole_pyramid(img, 2, pyramid)
+    c = cv2.warpAffine(whole, np.hstack([M[:, :2] * 4, M[:, 2:] + M[:, :2] @ [[off], [off]]]), (192, 192))
+    assert np.abs(c.astype(int) - b).max() <= 1
 
 
-def test_pyramid_region_equals_the_whole_pyramid_on_noise_and_at_the_border():
+@pytest.mark.parametrize("pyramid", ["gaussian", "box"])
+def test_pyramid_region_equals_the_whole_pyramid_on_noise_and_at_the_border(pyramid):
     """Crops from the reduced region are the whole-image pyramid's, also for boxes leaving the image."""
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (1080, 1920, 3), np.uint8)
     pipe = KeypointPipeline.__new__(KeypointPipeline)
-    pipe.config = PipelineConfig()
+    pipe.config = PipelineConfig(pyramid=pyramid)
     for box, ang in [
         ((-300.0, 100.0, 500.0, 1000.0), 0.2),
         ((1500, 600, 2300, 1400), -0.4),
@@ -135,11 +147,11 @@ def test_pyramid_region_equals_the_whole_pyramid_on_noise_and_at_the_border():
         M = crop_transform(np.array(box, float), (192, 256), 1.25, ang)
         src, M2 = pipe._crop_sources([img], np.array([0]), M[None], (192, 256))[0]
         L = int(round(np.log2(M2[0, :2] @ M2[0, :2] / (M[0, :2] @ M[0, :2])) / 2))
-        whole = img
-        for _ in range(L):
-            whole = cv2.pyrDown(whole)
+        whole, off = _whole_pyramid(img, L, pyramid)
         f = 2.0**L
-        ref = cv2.warpAffine(whole, np.hstack([M[:, :2] * f, M[:, 2:]]), (192, 256))
+        ref = cv2.warpAffine(
+            whole, np.hstack([M[:, :2] * f, M[:, 2:] + M[:, :2] @ [[off], [off]]]), (192, 256)
+        )
         d = np.abs(ref.astype(int) - cv2.warpAffine(src, M2, (192, 256)))
         # warpAffine rounds its fixed-point coordinates from the translation: 1 grey level on 5e-5 of pixels
         assert L >= 1 and d.max() <= 1 and (d > 0).mean() < 1e-3

@@ -185,6 +185,7 @@ def test_stream_tracker_equals_batch_on_a_paused_irregular_recording(session):
     whole = track_poses(xyz, fi, t_ns, p.fps, p.joint_names, parents, conf, std, cfg)
     t_s = frame_times_s(fi, t_ns, p.fps)
     from triangulate.reconstruct import flip_index
+    from triangulate.tracker import facing_joints
 
     flip = flip_index(p.joint_names)
     for step in (7, 40, 1000):
@@ -193,7 +194,9 @@ def test_stream_tracker_equals_batch_on_a_paused_irregular_recording(session):
         def read(a, b):
             return xyz[a:b], conf[a:b], std[a:b]
 
-        labels, mirrored, final = link_chunks(read, chunks, cfg, p.fps, flip, t_s)
+        labels, mirrored, final = link_chunks(
+            read, chunks, cfg, p.fps, flip, t_s, facing_joints(p.joint_names)
+        )
         built = list(build_chunks(read, chunks, labels, mirrored, final, cfg, parents, flip, p.fps, t_s))
         assert int(final.max()) + 1 == whole.n_tracks
         for _, ch in built:

@@ -832,7 +832,7 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
     """The streaming greedy tracker (:mod:`triangulate.stream_track`), one track part per chunk."""
     from triangulate.reconstruct import flip_index
     from triangulate.stream_track import build_chunks, link_chunks
-    from triangulate.tracker import frame_times_s
+    from triangulate.tracker import facing_joints, frame_times_s
     from triangulate.trackfile import TrackFile
 
     read = PosesReader(lay.poses3d)
@@ -856,7 +856,9 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
             "greedy tracker: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
         )
     if todo:
-        labels, mirrored, final = link_chunks(read, chunks, tcfg, fps, flip, t_s)
+        labels, mirrored, final = link_chunks(
+            read, chunks, tcfg, fps, flip, t_s, facing_joints(read.joint_names)
+        )
         for i, ch in build_chunks(read, chunks, labels, mirrored, final, tcfg, parents, flip, fps, t_s, todo):
             TrackFile(
                 fps=fps,

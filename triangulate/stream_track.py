@@ -31,6 +31,7 @@ from triangulate.tracker import (
     TrackerConfig,
     _nominal_dt,
     build_tracks,
+    labels_face_forward,
     pause_clock,
     pose_distance,
 )
@@ -45,9 +46,15 @@ class StreamLinker:
     """
 
     def __init__(
-        self, cfg: TrackerConfig, fps: float, flip: np.ndarray | None, clock: np.ndarray, pauses: np.ndarray
+        self,
+        cfg: TrackerConfig,
+        fps: float,
+        flip: np.ndarray | None,
+        clock: np.ndarray,
+        pauses: np.ndarray,
+        facing: tuple[int, int, int] | None = None,
     ) -> None:
-        self.cfg, self.fps, self.flip = cfg, fps, flip
+        self.cfg, self.fps, self.flip, self.facing = cfg, fps, flip, facing
         self.clock, self.pauses = clock, pauses
         self.dt = _nominal_dt(fps)
         self.window = cfg.max_gap_s + self.dt
@@ -153,7 +160,9 @@ class StreamLinker:
                     k = alive[r]
                     out[ok[c]] = k
                     pose = poses[ok[c]].copy()
-                    if mir[r, c]:
+                    if mir[r, c] and labels_face_forward(pose, self.facing):  # the track is the mirrored one
+                        self.pose[k] = self.pose[k][flip]
+                    elif mir[r, c]:
                         pose = pose[flip]
                         mirrored[ok[c]] = True
                     self._record(k, t, pose)
@@ -308,10 +317,12 @@ def link_chunks(
     fps: float,
     flip: np.ndarray | None,
     t_s: np.ndarray,
+    facing: tuple[int, int, int] | None = None,
 ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
-    """Pass 1 over the chunks: per chunk labels (n,P) int32 and mirrored (n,P), and the final id map."""
+    """Pass 1 over the chunks: per chunk labels (n,P) int32 and mirrored (n,P), and the final id map
+    (``facing``: :func:`~triangulate.tracker.associate_mirrored`'s)."""
     clock, pauses = pause_clock(t_s, cfg.max_gap_s, fps)
-    linker = StreamLinker(cfg, fps, flip, clock, pauses)
+    linker = StreamLinker(cfg, fps, flip, clock, pauses, facing)
     labels, mirrored = [], []
     for a, b in chunks:
         xyz, _, _ = read(a, b)

@@ -146,6 +146,31 @@ def pause_clock(t_s: np.ndarray, max_gap_s: float, fps: float) -> tuple[np.ndarr
     return active, np.concatenate([[0], np.cumsum(pause)])
 
 
+def facing_joints(joint_names) -> tuple[int, int, int] | None:
+    """(nose, left_shoulder, right_shoulder) indices for :func:`labels_face_forward`, None where missing."""
+    idx = {n: i for i, n in enumerate(joint_names)}
+    if not {"nose", "left_shoulder", "right_shoulder"} <= idx.keys():
+        return None
+    return idx["nose"], idx["left_shoulder"], idx["right_shoulder"]
+
+
+def labels_face_forward(
+    pose: np.ndarray, facing: tuple[int, int, int] | None, margin_m: float = 0.03
+) -> bool:
+    """Whether pose (J,3) (world, z up) has its nose at least ``margin_m`` in front of its shoulders, front
+    being (left - right shoulder) x up: left/right labels a mirror could not have (mirrored, the nose is
+    behind). False where a joint is missing or the skeleton has none (``facing`` None)."""
+    if facing is None:
+        return False
+    nose, left, right = pose[list(facing)]
+    across = left - right
+    front = np.array([across[1], -across[0], 0.0])
+    norm = float(np.hypot(front[0], front[1]))
+    if not (np.isfinite(nose).all() and np.isfinite(front).all()) or norm < 1e-6:
+        return False
+    return float((nose - 0.5 * (left + right)) @ front) / norm > margin_m
+
+
 def associate_mirrored(
     xyz_m: np.ndarray,
     config: TrackerConfig | None = None,
@@ -153,10 +178,16 @@ def associate_mirrored(
     flip: np.ndarray | None = None,
     *,
     t_s: np.ndarray | None = None,
+    facing: tuple[int, int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`associate`, and with ``flip`` (J,) (left/right joint permutation) a pose may also join a
     track mirrored, when its left/right-swapped version is closer (a hypothesis whose views were
-    mostly flipped in 2D triangulates to a mirrored person). Returns assign (T,P) and mirrored (T,P)."""
+    mostly flipped in 2D triangulates to a mirrored person). Returns assign (T,P) and mirrored (T,P).
+
+    ``facing`` (:func:`facing_joints`): where the pose's own labels face forward
+    (:func:`labels_face_forward`), it is the track's last pose that is mirrored (it took a mirrored pose
+    earlier, or was born from one): the track is turned back instead, so that one mirrored frame does not
+    mirror every correct pose after it (measured on the 60-minute synthetic session, BENCHMARKS.md)."""
     cfg = (config or TrackerConfig()).at_fps(fps)
     T, P = xyz_m.shape[:2]
     t_s = np.arange(T) / fps if t_s is None else np.asarray(t_s, np.float64)
@@ -196,7 +227,9 @@ def associate_mirrored(
                     out[t, ok[c]] = k
                     # keep joints the track had but this frame lacks, so the next cost has them
                     pose = xyz_m[t, ok[c]].copy()
-                    if mir[r, c]:
+                    if mir[r, c] and labels_face_forward(pose, facing):
+                        last_pose[k] = last_pose[k][flip]
+                    elif mir[r, c]:
                         pose = pose[flip]
                         mirrored[t, ok[c]] = True
                     miss = ~np.isfinite(pose).all(-1)
@@ -503,7 +536,7 @@ def track_poses(
     cfg = (config or TrackerConfig()).at_fps(fps)
     flip = flip_index(joint_names) if cfg.fix_mirrored else None
     t_s = frame_times_s(frame_index, t_ns, fps)
-    assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip, t_s=t_s)
+    assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip, t_s=t_s, facing=facing_joints(joint_names))
     ids, X, Cf, S, Fl = build_tracks(
         xyz_m, assign, confidence, std_m, cfg, parents, mirrored, flip, fps=fps, t_s=t_s
     )
