@@ -255,7 +255,8 @@ def test_rotation_hypotheses_read_a_person_lying_sideways():
     """Demo_SinglePerson cam03 frame 50 turned 90 degrees clockwise: the participant lies sideways, the
     upright crops misplace the joints and the rotated hypotheses find them. Reference: the pose read on the
     upright frame, turned the same way. Measured: median joint error 3.7 px with the rotated crops, 39.6 px
-    without."""
+    without; on another CPU (AMD EPYC, same library versions: onnxruntime's int8 kernels differ) 12.2 px
+    against 99.9 px. The claim is the ratio; the bound on the error leaves room for both."""
     need_shared("models")
     pipes = {w: KeypointPipeline(PipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)}
     img = frames("Demo_SinglePerson", 50)[2]
@@ -269,7 +270,7 @@ def test_rotation_hypotheses_read_a_person_lying_sideways():
         r = pipe([side])[0]
         assert len(r.boxes) >= 1
         err[w] = min(float(np.nanmedian(np.linalg.norm(xy - ref, axis=1))) for xy in r.xy_px)
-    assert err[0.5] < 10.0 and err[0.0] > 2 * err[0.5], err
+    assert err[0.5] < 20.0 and err[0.0] > 4 * err[0.5], err
 
 
 def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:
