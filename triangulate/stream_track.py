@@ -31,7 +31,7 @@ from triangulate.tracker import (
     TrackerConfig,
     _nominal_dt,
     build_tracks,
-    labels_face_forward,
+    join_mirrored,
     pause_clock,
     pose_distance,
 )
@@ -52,7 +52,7 @@ class StreamLinker:
         flip: np.ndarray | None,
         clock: np.ndarray,
         pauses: np.ndarray,
-        facing: tuple[int, int, int] | None = None,
+        facing: tuple[int, int, int] | None,
     ) -> None:
         self.cfg, self.fps, self.flip, self.facing = cfg, fps, flip, facing
         self.clock, self.pauses = clock, pauses
@@ -160,11 +160,10 @@ class StreamLinker:
                     k = alive[r]
                     out[ok[c]] = k
                     pose = poses[ok[c]].copy()
-                    if mir[r, c] and labels_face_forward(pose, self.facing):  # the track is the mirrored one
-                        self.pose[k] = self.pose[k][flip]
-                    elif mir[r, c]:
-                        pose = pose[flip]
-                        mirrored[ok[c]] = True
+                    if mir[r, c]:
+                        pose, self.pose[k], mirrored[ok[c]] = join_mirrored(
+                            pose, self.pose[k], flip, self.facing
+                        )
                     self._record(k, t, pose)
                     miss = ~np.isfinite(pose).all(-1)
                     if cfg.constant_velocity:
@@ -317,7 +316,7 @@ def link_chunks(
     fps: float,
     flip: np.ndarray | None,
     t_s: np.ndarray,
-    facing: tuple[int, int, int] | None = None,
+    facing: tuple[int, int, int] | None,
 ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
     """Pass 1 over the chunks: per chunk labels (n,P) int32 and mirrored (n,P), and the final id map
     (``facing``: :func:`~triangulate.tracker.associate_mirrored`'s)."""

@@ -171,6 +171,19 @@ def labels_face_forward(
     return float((nose - 0.5 * (left + right)) @ front) / norm > margin_m
 
 
+def join_mirrored(
+    pose: np.ndarray, track_pose: np.ndarray, flip: np.ndarray, facing: tuple[int, int, int] | None
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """A pose (J,3) that fits the track's last pose better left/right swapped joins the track: returns the
+    pose as joined, the track's last pose and whether the pose was swapped. Where the pose's own labels
+    face forward (:func:`labels_face_forward`) the track is the mirrored one and is turned back; otherwise
+    the pose is swapped. The one rule of both greedy linkers (:func:`associate_mirrored`,
+    :class:`triangulate.stream_track.StreamLinker`)."""
+    if labels_face_forward(pose, facing):
+        return pose, track_pose[flip], False
+    return pose[flip], track_pose, True
+
+
 def associate_mirrored(
     xyz_m: np.ndarray,
     config: TrackerConfig | None = None,
@@ -227,11 +240,10 @@ def associate_mirrored(
                     out[t, ok[c]] = k
                     # keep joints the track had but this frame lacks, so the next cost has them
                     pose = xyz_m[t, ok[c]].copy()
-                    if mir[r, c] and labels_face_forward(pose, facing):
-                        last_pose[k] = last_pose[k][flip]
-                    elif mir[r, c]:
-                        pose = pose[flip]
-                        mirrored[t, ok[c]] = True
+                    if mir[r, c]:
+                        pose, last_pose[k], mirrored[t, ok[c]] = join_mirrored(
+                            pose, last_pose[k], flip, facing
+                        )
                     miss = ~np.isfinite(pose).all(-1)
                     if cfg.constant_velocity:
                         both = ~miss & np.isfinite(last_pose[k]).all(-1)
