@@ -78,6 +78,20 @@ def _containing(regions, box):
     )
 
 
+PYRAMIDS = ("gaussian", "box", "mixed")
+
+
+def level_offset(levels: int, pyramid: str) -> float:
+    """Image px of a level's pixel 0 (x = 2^L x_L + c): 0 for pyrDown (its kernel is centred on pixel 2i),
+    (2^L - 1) / 2 for 2x2 means (a level-L pixel is the mean of image pixels 2^L x_L .. 2^L x_L + 2^L - 1),
+    and for "mixed" the box levels' offset (2^(L-1) - 1) / 2, which the last level's pyrDown keeps."""
+    if pyramid == "box":
+        return (2**levels - 1) / 2
+    if pyramid == "mixed" and levels > 1:
+        return (2 ** (levels - 1) - 1) / 2
+    return 0.0
+
+
 @dataclass(frozen=True)
 class PipelineConfig:
     """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own).
@@ -99,8 +113,9 @@ class PipelineConfig:
     min_box_iou: float = 0.3  # refine passes: keep the previous pose where the new one left its box (IoU)
     rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a pyramid level
-    # the pyramid's filter: "gaussian" (cv2.pyrDown, 5x5) or "box" (2x2 means, cv2.resize INTER_AREA: about
-    # 3x cheaper per level; BENCHMARKS.md "2D presets" has what each gave)
+    # the pyramid's filter: "gaussian" (cv2.pyrDown, 5x5), "box" (2x2 means, cv2.resize INTER_AREA: about
+    # 6x cheaper per level) or "mixed" (box levels, then one pyrDown for the level the crop is cut from: the
+    # Gaussian's anti-aliasing at the crop, at a quarter of its cost for L = 2); BENCHMARKS.md "2D presets"
     pyramid: str = "gaussian"
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
     # flip test: joints the two crops place more than this x the crop width apart are not averaged; each
@@ -134,8 +149,8 @@ class PipelineConfig:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
     def __post_init__(self) -> None:
-        if self.pyramid not in ("gaussian", "box"):
-            raise ValueError(f"PipelineConfig.pyramid must be 'gaussian' or 'box', got {self.pyramid!r}")
+        if self.pyramid not in PYRAMIDS:
+            raise ValueError(f"PipelineConfig.pyramid must be one of {PYRAMIDS}, got {self.pyramid!r}")
 
 
 @dataclass
@@ -304,7 +319,11 @@ class KeypointPipeline:
                 Ms[k] = crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j])
                 owner[k] = i
                 k += 1
-        for k, (src, M) in enumerate(self._crop_sources(images, owner, Ms, (W, H))):
+        # one pyramid level per person for all its crop sizes (its largest crop's): sizes on either side of a
+        # level's bound would reduce the same pixels to two levels
+        levels = np.array([self._level(M) for M in Ms], int).reshape(len(scales), n0).max(0, initial=0)
+        levels = np.tile(levels, len(scales))
+        for k, (src, M) in enumerate(self._crop_sources(images, owner, Ms, (W, H), levels)):
             cv2.warpAffine(
                 src,
                 M,
@@ -360,17 +379,17 @@ class KeypointPipeline:
         scale = float(np.sqrt(abs(np.linalg.det(M[:, :2]))))
         return int(np.clip(np.floor(np.log2(1.0 / max(scale, 1e-9))), 0, 4))
 
-    def _reduce(self, image: np.ndarray) -> np.ndarray:
-        """One pyramid level down: cv2.pyrDown, or (``pyramid = "box"``) the means of 2x2 pixels (an odd last
-        row or column is dropped)."""
-        if self.config.pyramid == "gaussian":
+    def _reduce(self, image: np.ndarray, last: bool) -> np.ndarray:
+        """One pyramid level down: cv2.pyrDown, or the means of 2x2 pixels (an odd last row or column is
+        dropped) for ``pyramid = "box"`` and for the levels of ``"mixed"`` before the ``last``."""
+        if self.config.pyramid == "gaussian" or (self.config.pyramid == "mixed" and last):
             return cv2.pyrDown(image)
         h, w = max(image.shape[0] // 2, 1), max(image.shape[1] // 2, 1)
         return cv2.resize(image[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA)
 
-    def _crop_sources(self, images, owner: np.ndarray, Ms: np.ndarray, size_wh: tuple[int, int]):
-        """Per crop (of image ``owner[k]``, affine ``Ms[k]``), the image level to cut it from and the affine
-        for that level (``_level``).
+    def _crop_sources(self, images, owner: np.ndarray, Ms: np.ndarray, size_wh: tuple[int, int], levels=None):
+        """Per crop (of image ``owner[k]``, affine ``Ms[k]``), the image level to cut it from (``levels[k]``,
+        default ``_level``) and the affine for that level.
 
         pyrDown centres its kernel on source pixel 2i, so level-L pixels relate to image pixels by
         x = 2^L x_L. Only the region a crop samples is reduced (``_crop_region``: with the kernels' reach as
@@ -379,7 +398,7 @@ class KeypointPipeline:
         sizes of the test-time augmentation) so that each pixel is reduced once, and the regions are kept
         for this call's passes (``self._pyr``).
         """
-        levels = [self._level(M) for M in Ms]
+        levels = [self._level(M) for M in Ms] if levels is None else [int(L) for L in levels]
         need = [
             _crop_region(M, size_wh, images[i].shape, 2**L) if L else None
             for i, M, L in zip(owner, Ms, levels, strict=True)
@@ -400,8 +419,8 @@ class KeypointPipeline:
                     merged.append(list(box))
             for x0, y0, x1, y1 in merged:
                 level = images[i][y0:y1, x0:x1]
-                for _ in range(L):
-                    level = self._reduce(level)
+                for k in range(L):
+                    level = self._reduce(level, last=k == L - 1)
                 have.append((x0, y0, x1, y1, level))
         out = []
         for i, M, L, box in zip(owner, Ms, levels, need, strict=True):
@@ -409,9 +428,8 @@ class KeypointPipeline:
                 out.append((images[i], M))
                 continue
             x0, y0, _, _, level = _containing(self._pyr[(int(i), L)], box)
-            # crop px = A x + t with x = (region x0, y0) + 2^L x_L (+ (2^L - 1) / 2 for box means: a level-L
-            # pixel is the mean of image pixels 2^L x_L .. 2^L x_L + 2^L - 1)
-            c = (2**L - 1) / 2 if self.config.pyramid == "box" else 0.0
+            # crop px = A x + t with x = (region x0, y0) + 2^L x_L + c (level_offset)
+            c = level_offset(L, self.config.pyramid)
             A = M[:, :2]
             out.append((level, np.hstack([A * 2**L, (M[:, 2] + A @ np.array([x0 + c, y0 + c]))[:, None]])))
         return out

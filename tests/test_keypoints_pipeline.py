@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from keypoints.pipeline import KeypointPipeline, PipelineConfig, apply_inverse, crop_transform, upright_boxes
+from keypoints.pipeline import (
+    PYRAMIDS,
+    KeypointPipeline,
+    PipelineConfig,
+    apply_inverse,
+    crop_transform,
+    level_offset,
+    upright_boxes,
+)
 from keypoints.skeletons import CANONICAL, get_skeleton
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
@@ -102,15 +110,15 @@ def test_openpose_paf_channel_order(single):
 
 def _whole_pyramid(img: np.ndarray, levels: int, pyramid: str) -> tuple[np.ndarray, float]:
     """The whole image's pyramid level and the image px offset c of its pixel 0 (x = 2^L x_L + c)."""
-    for _ in range(levels):
-        if pyramid == "gaussian":
+    for k in range(levels):
+        if pyramid == "gaussian" or (pyramid == "mixed" and k == levels - 1):
             img = cv2.pyrDown(img)
         else:
             img = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    return img, (2**levels - 1) / 2 if pyramid == "box" else 0.0
+    return img, level_offset(levels, pyramid)
 
 
-@pytest.mark.parametrize("pyramid", ["gaussian", "box"])
+@pytest.mark.parametrize("pyramid", PYRAMIDS)
 def test_pyramid_crop_matches_direct_crop_on_a_smooth_image(pyramid):
     """The anti-aliased crop (cut from a pyramid level) lands on the same pixels as the direct warp."""
     yy, xx = np.mgrid[0:1920, 0:1080].astype(np.float32)
@@ -131,7 +139,7 @@ def test_pyramid_crop_matches_direct_crop_on_a_smooth_image(pyramid):
     assert np.abs(c.astype(int) - b).max() <= 1
 
 
-@pytest.mark.parametrize("pyramid", ["gaussian", "box"])
+@pytest.mark.parametrize("pyramid", PYRAMIDS)
 def test_pyramid_region_equals_the_whole_pyramid_on_noise_and_at_the_border(pyramid):
     """Crops from the reduced region are the whole-image pyramid's, also for boxes leaving the image."""
     rng = np.random.default_rng(0)
