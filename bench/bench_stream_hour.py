@@ -70,6 +70,7 @@ def _stage(name: str, folder: str, chunk_s: float, extra: list[str], tracker: st
         track_session_greedy(folder, {"chunk_s": chunk_s})
     elif name == "evaluate":
         rep = _evaluate(folder, np)
+        print(_window_table(rep["windows"]), file=sys.stderr)
     rep.update(
         wall_s=time.perf_counter() - t0, peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     )
@@ -77,14 +78,16 @@ def _stage(name: str, folder: str, chunk_s: float, extra: list[str], tracker: st
 
 
 def _evaluate(folder: str, np) -> dict:
-    """Metrics on 60 s windows of the track parts against gt.npz (both read window by window)."""
+    """Metrics on 60 s windows of the track parts against gt.npz (both read window by window); ``windows``
+    has one row per window (people present per frame, tracks seen, tracks born, identity switches, IDF1,
+    MPJPE): where a longer session's metrics differ, it shows when, and with how many people in view."""
     from capture.fileio import load_npz
     from triangulate import evaluate as ev
     from triangulate.trackfile import iter_parts
 
     gt_all = load_npz(Path(folder) / "gt.npz", required=("gt_xyz_m",))["gt_xyz_m"]
     sums = {"mota": 0.0, "idf1": 0.0, "pcp": 0.0, "mpjpe_mm": 0.0}
-    n_w, t, tracks = 0.0, 0, set()
+    n_w, t, tracks, windows = 0.0, 0, set(), []
     for tf in iter_parts(Path(folder) / "track" / "tracks.npz"):
         for a in range(0, tf.n_frames, 1500):
             b = min(a + 1500, tf.n_frames)
@@ -92,23 +95,57 @@ def _evaluate(folder: str, np) -> dict:
             x = tf.xyz_m[a:b].astype(np.float64)
             keep = np.isfinite(x).all(-1).any((0, 2))
             x = x[:, keep]
-            tracks |= set(tf.track_id[keep].tolist())
+            ids = set(tf.track_id[keep].tolist())
+            born = len(ids - tracks)
+            tracks |= ids
             gpres = np.isfinite(gt).all(-1).any(-1)
             if not gpres.any():
                 continue
             w = float(gpres.sum())
             m = ev.mot_metrics(gt, x, threshold_m=0.3)
-            sums["mota"] += w * m.mota
-            sums["idf1"] += w * m.idf1
-            sums["pcp"] += w * ev.pcp(gt, x).actor_average
-            sums["mpjpe_mm"] += w * 1e3 * ev.mpjpe(gt, x)["mpjpe_m"]
+            row = {
+                "mota": m.mota,
+                "idf1": m.idf1,
+                "pcp": ev.pcp(gt, x).actor_average,
+                "mpjpe_mm": 1e3 * ev.mpjpe(gt, x)["mpjpe_m"],
+            }
+            for k, v in row.items():
+                sums[k] += w * v
             n_w += w
+            windows.append(
+                {
+                    "start_s": (t + a) / 25.0,
+                    "people": w / (b - a),
+                    "people_max": int(gpres.sum(1).max()),
+                    "tracks": len(ids),
+                    "born": born,
+                    "id_switches": m.id_switches,
+                    **{k: round(v, 4) for k, v in row.items()},
+                }
+            )
         t += tf.n_frames
-    out = {k: v / max(n_w, 1.0) for k, v in sums.items()}
+    out: dict = {k: v / max(n_w, 1.0) for k, v in sums.items()}
     out["tracks"] = len(tracks)
     out["gt_people"] = int(np.isfinite(gt_all).all(-1).any(-1).any(0).sum())
     out["frames"] = int(t)
+    out["windows"] = windows
     return out
+
+
+def _window_table(windows: list[dict]) -> str:
+    """The per-window rows as a table, and IDF1's correlation with the people in view."""
+    lines = ["  start  people (max)  tracks  born  id sw   MOTA   IDF1  MPJPE mm"]
+    for w in windows:
+        lines.append(
+            f"{w['start_s'] / 60:5.0f}m  {w['people']:6.1f} ({w['people_max']:2d})  {w['tracks']:6d}"
+            f"  {w['born']:4d}  {w['id_switches']:5d}  {w['mota']:.3f}  {w['idf1']:.3f}  {w['mpjpe_mm']:8.1f}"
+        )
+    if len(windows) > 2:
+        import numpy as np
+
+        r = np.corrcoef([w["people"] for w in windows], [w["idf1"] for w in windows])[0, 1]
+        lines.append(f"correlation of IDF1 with the people in view, over {len(windows)} windows: {r:+.2f}")
+    return "\n".join(lines)
 
 
 def _parts_digest(folder: Path) -> dict:
@@ -202,6 +239,7 @@ def main() -> int:
         )
         r["metrics"] = _child(["--stage", "evaluate", str(folder)])
         res[label] = r
+        print(_window_table(r["metrics"].pop("windows")), flush=True)
         print(
             f"{label:>6} {minutes:5.1f} min: synthetic {r['synthetic']['wall_s']:7.1f} s "
             f"{r['synthetic']['peak_mb']:6.0f} MB | triangulate {r['triangulate']['wall_s']:7.1f} s "

@@ -205,6 +205,7 @@ class KeypointPipeline:
         self.skeleton = self.src_skeleton if config.skeleton == "model" else config.skeleton
         get_skeleton(self.skeleton)
         self.stage_s: dict[str, float] = defaultdict(float)
+        self.call_cpu_s = 0.0  # CPU time of the calling thread in __call__ (the models': model_run_cpu_s)
         # pyramid regions per (image, level) for the current call: (x0, y0, x1, y1, level image)
         self._pyr: dict[tuple[int, int], list[tuple[int, int, int, int, np.ndarray]]] = {}
         self._seeds: dict = {}  # stream -> _Seed (tracked crops)
@@ -228,6 +229,9 @@ class KeypointPipeline:
     def model_run_s(self) -> float:
         return sum(m.run_s for m in self.models)
 
+    def model_run_cpu_s(self) -> float:
+        return sum(m.run_cpu_s for m in self.models)
+
     def _tick(self, name: str, t0: float) -> float:
         t = time.perf_counter()
         self.stage_s[name] += t - t0
@@ -244,6 +248,13 @@ class KeypointPipeline:
                 raise ValueError(f"image {i}: expected (H,W,3) uint8 BGR, got {im.shape} {im.dtype}")
         if not images:
             return []
+        c = time.thread_time()
+        try:
+            return self._call(images, streams)
+        finally:
+            self.call_cpu_s += time.thread_time() - c
+
+    def _call(self, images, streams):
         role = self.pose_spec.role
         if role == "pose":
             return self._top_down(images, streams)

@@ -124,6 +124,7 @@ class OnnxModel:
         self.sha256 = file_sha256(self.path)
         self.providers = choose_providers(self.config.providers)
         self.run_s = 0.0
+        self.run_cpu_s = 0.0  # this thread's CPU time in session.run (all of it when intra-op threads = 1)
         self.n_runs = 0
         self.max_batch: int | None = None  # None = any
         self.session = self._open(self.path)
@@ -145,7 +146,7 @@ class OnnxModel:
         )
         for _ in range(self.config.warmup_runs):
             self.run(np.zeros(self.spec.input.tensor_shape(1), dtype=self.spec.input.dtype))
-        self.run_s, self.n_runs = 0.0, 0
+        self.run_s, self.run_cpu_s, self.n_runs = 0.0, 0.0, 0
 
     def _open(self, path: Path) -> ort.InferenceSession:
         try:
@@ -219,9 +220,10 @@ class OnnxModel:
         """x: the input tensor (B, ...) in the description's layout/dtype. Returns the decoder's outputs."""
         names = list(self.spec.decoder.outputs)
         if self.max_batch is None or len(x) <= self.max_batch:
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.thread_time()
             out = self.session.run(names, {self.spec.input.name: x})
             self.run_s += time.perf_counter() - t
+            self.run_cpu_s += time.thread_time() - c
             self.n_runs += 1
             return out
         parts = [self.run(x[i : i + 1]) for i in range(len(x))]

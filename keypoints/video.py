@@ -61,6 +61,10 @@ class RunReport:
     resumed_from: dict[str, int] = field(default_factory=dict)
     stage_s: dict[str, float] = field(default_factory=dict)
     model_s: float = 0.0
+    # CPU time of the pipelines' threads: in their calls, and in session.run within them (the work itself,
+    # without the waits of threads that share the cores; all of session.run's when it runs on one thread)
+    pipeline_cpu_s: float = 0.0
+    model_cpu_s: float = 0.0
     wall_s: float = 0.0
 
 
@@ -574,6 +578,8 @@ def run_videos(
     st["write"] = sum(w.write_s for w in writers.values())
     report.stage_s = dict(st)
     report.model_s = sum(gp.model_run_s() for gp in pipes)
+    report.model_cpu_s = sum(gp.model_run_cpu_s() for gp in pipes)
+    report.pipeline_cpu_s = sum(gp.call_cpu_s for gp in pipes)
     report.wall_s = time.perf_counter() - t_wall
     return report
 
