@@ -3,7 +3,10 @@
 A session is the unit of work (its stages depend on each other); sessions are
 independent, so both executors map :func:`pipeline.runner.process_session`
 over them. Ray tasks ask for a GPU when onnxruntime on this machine offers CUDA
-and the keypoints stage is part of the run.
+and the keypoints stage is part of the run. With Ray, a session triangulated in
+time chunks (``[triangulate.options] chunk_s``) also sends its chunks to the
+cluster as tasks of their own (``executor = "ray"``, :func:`chunks_on_ray`), so
+one long session spreads over the workers.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from core.errors import InputError
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
 from pipeline.runner import SessionResult, check_session, output_root, process_session
@@ -96,6 +100,17 @@ def _cuda_available() -> bool:
         return False
 
 
+def chunks_on_ray(config: PipelineConfig) -> PipelineConfig:
+    """``config`` with ``[triangulate.options] executor = "ray"`` where the triangulation is streamed in
+    chunks and no executor is set: each session's chunks become Ray tasks nested in the session's task
+    (which lends its CPU back while it waits for them). The parts and the stage's fingerprint are the same
+    as with processes (``executor`` is a run-time setting)."""
+    opts = dict(config.triangulate.options or {})
+    if float(opts.get("chunk_s", 0) or 0) <= 0 or "executor" in opts:
+        return config
+    return config.replace(triangulate=type(config.triangulate)(options={**opts, "executor": "ray"}))
+
+
 def run_ray(
     sources: list[SessionSource],
     out: Path | None,
@@ -107,7 +122,8 @@ def run_ray(
     try:
         import ray
     except ImportError:
-        raise RuntimeError("the Ray executor needs ray: pip install 'roomcap[cluster]'") from None
+        raise InputError("the Ray executor needs ray: pip install 'roomcap[cluster]'") from None
+    config = chunks_on_ray(config)
     started_here = not ray.is_initialized()
     if started_here:
         # no --address: a new local instance of our own ("local"), never someone else's running cluster

@@ -394,19 +394,23 @@ def _plan_triangulate(
         [lay.rig_toml, *_detection_paths(lay)],
         [_output_file(lay.poses3d, cfg.triangulate.options)],
         {
-            **_without_workers(dataclasses.asdict(cfg.triangulate)),
+            **_without_run_settings(dataclasses.asdict(cfg.triangulate)),
             "sync": _sync_table(src),
         },  # new offsets: rerun
         run,
     )
 
 
-def _without_workers(d: dict) -> dict:
-    """A stage's config without ``options.workers`` (how many processes ran it, not what it computed)."""
+RUN_SETTINGS = ("workers", "executor")  # [triangulate.options] that say how the chunks ran, not what they are
+
+
+def _without_run_settings(d: dict) -> dict:
+    """A stage's config without ``options.workers`` and ``options.executor`` (how many processes or which
+    executor ran it, not what it computed)."""
     opts = d.get("options") or {}
-    if "workers" not in opts:
+    if not any(k in opts for k in RUN_SETTINGS):
         return d
-    return {**d, "options": {k: v for k, v in opts.items() if k != "workers"}}
+    return {**d, "options": {k: v for k, v in opts.items() if k not in RUN_SETTINGS}}
 
 
 def _plan_track(

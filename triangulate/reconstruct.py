@@ -47,6 +47,9 @@ def flip_index(joint_names: tuple[str, ...]) -> np.ndarray:
     return np.asarray(out)
 
 
+CHUNK_EXECUTORS = ("processes", "ray")  # where TriangulateConfig.executor runs the chunks of one session
+
+
 @dataclass(frozen=True)
 class TriangulateConfig:
     """Settings of the triangulate stage.
@@ -70,6 +73,12 @@ class TriangulateConfig:
     workers: with ``chunk_s`` > 0, the chunks are triangulated by this many processes in parallel (frames
       are independent here, so the parts are those of one process); a run-time setting, not part of the
       result: the parts of a run with another ``workers`` are reused.
+    executor: where those chunks run: ``processes`` (spawned processes of this machine) or ``ray`` (one
+      Ray task of one CPU per chunk: the free CPUs of the running Ray, e.g. the cluster of ``reprocess
+      --executor ray``, which sets this for sessions streamed in chunks; where no Ray runs in this process,
+      a local one of ``workers`` CPUs, stopped after the stage). The workers read the session folder and
+      write the parts into it, so on a cluster of several machines it must be on a shared file system.
+      A run-time setting like ``workers``: the parts are the same.
     """
 
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -81,12 +90,17 @@ class TriangulateConfig:
     skeleton: str = "body19"
     chunk_s: float = 0.0
     workers: int = 1
+    executor: str = "processes"
 
     def __post_init__(self) -> None:
         if not self.chunk_s >= 0:
             raise ValueError(f"TriangulateConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
         if self.workers < 1:
             raise ValueError(f"TriangulateConfig.workers must be >= 1, got {self.workers}.")
+        if self.executor not in CHUNK_EXECUTORS:
+            raise ValueError(
+                f"TriangulateConfig.executor must be one of {list(CHUNK_EXECUTORS)}, got {self.executor!r}."
+            )
         if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
             raise ValueError(
                 f"TriangulateConfig.skeleton must be 'body19', 'whole_body' or a skeleton TOML file "

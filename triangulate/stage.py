@@ -14,6 +14,7 @@ import logging
 import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import closing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from calibrate.checks import rig_warnings
 from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from core.config import config_from_dict
+from core.errors import InputError
 from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.skeletons import (
@@ -621,6 +623,8 @@ def _triangulate_chunked(
     lay: SessionLayout, rig: CameraRig, cfg: TriangulateConfig, progress: Progress | None
 ) -> Path:
     """The streaming form: one poses3d part per ``cfg.chunk_s`` of frames, resumable (issue 17)."""
+    if cfg.executor == "ray":
+        _import_ray()  # before any work: a clear message where ray is not installed
     plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
     try:
         fps = _fps(lay, plan.t_ns)
@@ -630,7 +634,7 @@ def _triangulate_chunked(
         key = hash_key(
             [
                 "poses3d",
-                repr(replace(cfg, workers=1)),  # the result does not depend on the number of processes
+                repr(_without_run_settings(cfg)),  # the result depends on neither the processes nor Ray
                 rig.sha256(),
                 [file_stamp(m.path) for m in plan.metas],
                 lay.session_toml.read_bytes() if lay.session_toml.exists() else b"",
@@ -645,13 +649,17 @@ def _triangulate_chunked(
                 "triangulate: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
             )
         n_sum, n_max, n_frames = 0, 0, 0
-        for i, n in _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress):
-            store.commit(i)
-            n_sum, n_max, n_frames = (
-                n_sum + int(n.sum()),
-                max(n_max, int(n.max(initial=0))),
-                n_frames + len(n),
-            )
+        # closing: a kill (Ctrl-C) between parts stops the workers now (queued chunks cancelled, a Ray
+        # started here shut down), not when the generator is collected
+        parts = _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress)
+        with closing(parts):
+            for i, n in parts:
+                store.commit(i)
+                n_sum, n_max, n_frames = (
+                    n_sum + int(n.sum()),
+                    max(n_max, int(n.max(initial=0))),
+                    n_frames + len(n),
+                )
         store.finish()
         for m in plan.metas:
             if not m.seen and len(todo) == len(chunks):
@@ -672,35 +680,92 @@ def _triangulate_chunked(
     return lay.poses3d
 
 
-def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, progress):
+def _without_run_settings(cfg: TriangulateConfig) -> TriangulateConfig:
+    """``cfg`` with ``workers`` and ``executor`` at their defaults: how the chunks ran, not what they are."""
+    return replace(cfg, workers=1, executor="processes")
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise InputError(
+            "triangulate: executor = 'ray' needs ray: pip install 'roomcap[cluster]' (or set "
+            "[triangulate.options] executor = 'processes' to use this machine's processes)."
+        ) from None
+    return ray
+
+
+def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress):
     """Triangulate the chunks ``todo`` into their part files; yields (chunk, people per frame) as each is
-    written. ``cfg.workers`` > 1: in that many processes (spawned: onnxruntime and torch thread pools do not
-    survive a fork), each planning the session once (``_chunk_worker``)."""
+    written. ``cfg.workers`` > 1 or ``cfg.executor`` "ray": in worker processes (spawned: onnxruntime and
+    torch thread pools do not survive a fork) or Ray tasks, each worker planning the session once
+    (``_chunk_worker``)."""
     T = plan.n_frames
     for i, (_, b) in enumerate(chunks):
         if i not in todo and progress is not None:
             progress("triangulate", b, T)
-    if cfg.workers <= 1 or len(todo) <= 1:
+    if len(todo) <= 1 or (cfg.workers <= 1 and cfg.executor == "processes"):
         rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
         for i in sorted(todo):
             yield i, _triangulate_chunk(plan, rig, cfg, rec, chunks[i], fps, store.part_path(i), progress)
         return
-    ctx = mp.get_context("spawn")
+    jobs = {i: (str(lay.root), cfg, chunks[i], fps, str(store.part_path(i)), key) for i in sorted(todo)}
+    run = _chunks_on_ray if cfg.executor == "ray" else _chunks_in_processes
     done = sum(b - a for i, (a, b) in enumerate(chunks) if i not in todo)
-    with ProcessPoolExecutor(min(cfg.workers, len(todo)), mp_context=ctx) as pool:
-        futures = {
-            pool.submit(_chunk_worker, str(lay.root), cfg, chunks[i], fps, str(store.part_path(i))): i
-            for i in sorted(todo)
-        }
-        for f in as_completed(futures):
-            i = futures[f]
-            n, seen = f.result()
+    with closing(run(jobs, cfg.workers)) as results:
+        for i, (n, seen) in results:
             for m, s in zip(plan.metas, seen, strict=True):  # for the "camera without detections" check
                 m.seen = m.seen or s
             done += chunks[i][1] - chunks[i][0]
             if progress is not None:
                 progress("triangulate", done, T)
             yield i, n
+
+
+def _chunks_in_processes(jobs: dict, workers: int):
+    """``_chunk_worker(*jobs[i])`` in ``workers`` spawned processes; yields (i, result) as each finishes."""
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx) as pool:
+        futures = {pool.submit(_chunk_worker, *args): i for i, args in jobs.items()}
+        try:
+            for f in as_completed(futures):
+                yield futures[f], f.result()
+        except BaseException:  # killed, or the caller stopped: the queued chunks are not started
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+
+
+def _chunks_on_ray(jobs: dict, workers: int):
+    """``_chunk_worker(*jobs[i])`` as Ray tasks of one CPU each; yields (i, result) as each finishes.
+
+    In a running Ray (a cluster, or inside a session's task of ``reprocess --executor ray``) the tasks
+    go to its free CPUs; a task blocked in ``ray.wait`` lends its CPU back, so nesting does not deadlock.
+    Where no Ray runs in this process, a local one of ``workers`` CPUs is started and stopped after."""
+    ray = _import_ray()
+    started_here = not ray.is_initialized()
+    if started_here:
+        # a new local instance of our own ("local"), never someone else's running cluster
+        ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    pending: dict = {}
+    try:
+        task = ray.remote(num_cpus=1)(_chunk_worker)
+        pending = {task.remote(*args): i for i, args in jobs.items()}
+        while pending:
+            (ref,), _ = ray.wait(list(pending), num_returns=1)
+            i = pending.pop(ref)
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayTaskError as e:  # the worker's own error (a bad file), not Ray's wrapper
+                if isinstance(e.cause, Exception):
+                    raise e.cause from None
+                raise
+            yield i, result
+    finally:
+        for ref in pending:  # killed, failed or stopped: the chunks not yet written are not run
+            ray.cancel(ref)
+        if started_here:
+            ray.shutdown()
 
 
 def _triangulate_chunk(plan, rig, cfg, rec, chunk, fps: float, part: Path, progress=None) -> np.ndarray:
@@ -716,16 +781,24 @@ _WORKER_PLAN: dict = {}  # per worker process: the session's detection plan and 
 
 
 def _chunk_worker(
-    session_dir: str, cfg: TriangulateConfig, chunk, fps: float, part: str
+    session_dir: str, cfg: TriangulateConfig, chunk, fps: float, part: str, key: str = ""
 ) -> tuple[np.ndarray, list[bool]]:
     """One chunk in a worker process: triangulate frames [a, b) and write its part; returns the people
-    per frame and, per camera, whether it has had a detection in this process."""
-    if _WORKER_PLAN.get("key") != (session_dir, repr(cfg)):
+    per frame and, per camera, whether it has had a detection in this process.
+
+    The plan is kept for the next chunk of the same run (``key``: the parts' key, which changes with the
+    detection files, the rig and the settings); a Ray worker outlives the run, so another run or changed
+    files plan anew (the old files closed)."""
+    run = (session_dir, key, repr(cfg))
+    if _WORKER_PLAN.get("key") != run:
+        if "plan" in _WORKER_PLAN:
+            _WORKER_PLAN.pop("plan").close()
+        _WORKER_PLAN.clear()
         lay = SessionLayout(session_dir)
         rig = CameraRig.load(lay.rig_toml)
         plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
         rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
-        _WORKER_PLAN.update(key=(session_dir, repr(cfg)), rig=rig, plan=plan, rec=rec)
+        _WORKER_PLAN.update(key=run, rig=rig, plan=plan, rec=rec)
     plan = _WORKER_PLAN["plan"]
     n = _triangulate_chunk(plan, _WORKER_PLAN["rig"], cfg, _WORKER_PLAN["rec"], chunk, fps, Path(part))
     return n, [m.seen for m in plan.metas]
