@@ -3,8 +3,9 @@
 Two passes over the per-frame poses, each reading them in time chunks:
 
 1. **Linking** (:class:`StreamLinker`): the frame-by-frame Hungarian pass of
-   :func:`~triangulate.tracker.associate_mirrored`, keeping only the tracks still alive (seen within
-   ``max_gap_s`` on the tracks' clock), plus, for the seam stitching of
+   :func:`~triangulate.tracker.associate_mirrored` (:class:`~triangulate.tracker.FrameLinker`), keeping
+   only the tracks still alive (seen within ``max_gap_s`` on the tracks' clock), plus, for the seam
+   stitching of
    :func:`~triangulate.tracker.stitch_tracks`, each track's held last pose and its first ``max_gap_s``
    of poses; a track's stitch candidates are computed the moment it can no longer continue, and the
    data are dropped once no later track can need them. What grows with the session is one small int
@@ -25,20 +26,21 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from triangulate.tracker import (
+    FrameLinker,
     TrackerConfig,
     _nominal_dt,
     build_tracks,
-    join_mirrored,
     pause_clock,
     pose_distance,
 )
 
 
-class StreamLinker:
-    """The linking pass of the greedy tracker, fed frame by frame (:meth:`step`) or by chunks (:meth:`run`).
+class StreamLinker(FrameLinker):
+    """The linking pass of the greedy tracker (:class:`~triangulate.tracker.FrameLinker`), fed frame by
+    frame (:meth:`step`) or by chunks (:meth:`run`), keeping what the seam stitching of
+    :func:`~triangulate.tracker.stitch_tracks` needs.
 
     ``clock (T,)`` and ``pauses (T,)`` of the whole session (:func:`~triangulate.tracker.pause_clock`;
     small). Labels are the raw track numbers of the pass (by first appearance); :meth:`finish` returns
@@ -54,15 +56,7 @@ class StreamLinker:
         pauses: np.ndarray,
         facing: tuple[int, int, int] | None,
     ) -> None:
-        self.cfg, self.fps, self.flip, self.facing = cfg, fps, flip, facing
-        self.clock, self.pauses = clock, pauses
-        self.dt = _nominal_dt(fps)
-        self.window = cfg.max_gap_s + self.dt
-        self.active: list[int] = []  # alive tracks, increasing
-        self.pose: dict[int, np.ndarray] = {}
-        self.last_clock: dict[int, float] = {}
-        self.last_pause: dict[int, int] = {}
-        self.vel: dict[int, np.ndarray] = {}
+        super().__init__(cfg, fps, flip, clock, pauses, facing)
         # per track, for stitching and the filter (a few numbers per track)
         self.first: list[int] = []
         self.last: list[int] = []
@@ -71,23 +65,13 @@ class StreamLinker:
         self.head: dict[int, list[tuple[int, np.ndarray]]] = {}  # rows within window of the first
         self.cands: list[tuple[float, int, int]] = []
 
-    @property
-    def n_tracks(self) -> int:
-        return len(self.first)
+    def _retired(self, k: int) -> None:
+        if self.cfg.stitch:
+            self._candidates(k)
+        self.end.pop(k, None)
 
-    def _retire(self, now: float, final: bool = False) -> None:
-        """Tracks that can no longer continue: their stitch candidates, then their state is dropped."""
-        keep = []
-        for k in self.active:
-            if final or now - self.last_clock[k] > self.window:
-                if self.cfg.stitch:
-                    self._candidates(k)
-                for d in (self.pose, self.last_clock, self.last_pause, self.vel):
-                    d.pop(k, None)
-                self.end.pop(k, None)
-            else:
-                keep.append(k)
-        self.active = keep
+    def retire(self, now: float, final: bool = False) -> None:
+        super().retire(now, final)
         if not final:  # heads no track still to retire can need
             for b in [b for b in self.head if self.clock[self.first[b]] + 2 * self.window < now]:
                 del self.head[b]
@@ -114,8 +98,13 @@ class StreamLinker:
             if len(hit):
                 self.cands.append((float(d[hit[0]]), a, int(b)))
 
-    def _record(self, k: int, t: int, raw: np.ndarray) -> None:
+    def _joined(self, k: int, t: int, raw: np.ndarray, born: bool) -> None:
         """Stitch bookkeeping of a pose (mirror-corrected raw pose) joining track k at frame t."""
+        if born:
+            self.first.append(t)
+            self.last.append(t)
+            self.count.append(0)
+            self.head[k] = []
         self.last[k] = t
         self.count[k] += 1
         if self.cfg.stitch:
@@ -129,64 +118,6 @@ class StreamLinker:
             if h is not None and self.clock[t] - self.clock[self.first[k]] <= self.window:
                 h.append((t, raw.copy()))
 
-    def step(self, t: int, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Frame ``t`` (session position) with poses (P,J,3): returns labels (P,) (-1 none), mirrored (P,)."""
-        cfg, flip = self.cfg, self.flip
-        P = len(poses)
-        out = np.full(P, -1, np.int64)
-        mirrored = np.zeros(P, bool)
-        now = self.clock[t]
-        self._retire(now)
-        ok = np.flatnonzero(np.isfinite(poses).all(-1).sum(-1) >= cfg.min_joints)
-        if len(ok) == 0:
-            return out, mirrored
-        alive = [k for k in self.active if now - self.last_clock[k] <= self.window]
-        assigned = np.zeros(len(ok), bool)
-        if alive:
-            since = now - np.asarray([self.last_clock[k] for k in alive])
-            pred = np.stack([self.pose[k] + since[n] * self.vel[k] for n, k in enumerate(alive)])
-            cost = pose_distance(pred, poses[ok])
-            mir = np.zeros(cost.shape, bool)
-            if flip is not None:
-                cost_m = pose_distance(pred, poses[ok][:, flip])
-                mir = cost_m < cost
-                cost = np.minimum(cost, cost_m)
-            gap_s = np.clip(since - 1.0 / self.fps, 0.0, cfg.max_gap_s)
-            paused = self.pauses[t] > np.asarray([self.last_pause[k] for k in alive])
-            limit = cfg.tau_m + cfg.max_speed_m_s * gap_s + cfg.pause_gate_m * paused
-            rows, cols = linear_sum_assignment(np.where(cost < limit[:, None], cost, 1e9))
-            for r, c in zip(rows, cols, strict=True):
-                if cost[r, c] < limit[r]:
-                    k = alive[r]
-                    out[ok[c]] = k
-                    pose = poses[ok[c]].copy()
-                    if mir[r, c]:
-                        pose, self.pose[k], mirrored[ok[c]] = join_mirrored(
-                            pose, self.pose[k], flip, self.facing
-                        )
-                    self._record(k, t, pose)
-                    miss = ~np.isfinite(pose).all(-1)
-                    if cfg.constant_velocity:
-                        both = ~miss & np.isfinite(self.pose[k]).all(-1)
-                        if both.any():
-                            v = (pose[both] - self.pose[k][both]).mean(0) / max(since[r], 1e-9)
-                            self.vel[k] = 0.5 * self.vel[k] + 0.5 * v
-                    pose[miss] = self.pose[k][miss] + since[r] * self.vel[k]
-                    self.pose[k], self.last_clock[k], self.last_pause[k] = pose, now, int(self.pauses[t])
-                    assigned[c] = True
-        for c in np.flatnonzero(~assigned):
-            k = self.n_tracks
-            out[ok[c]] = k
-            self.first.append(t)
-            self.last.append(t)
-            self.count.append(0)
-            self.head[k] = []
-            self._record(k, t, poses[ok[c]])
-            self.pose[k] = poses[ok[c]].copy()
-            self.last_clock[k], self.last_pause[k], self.vel[k] = now, int(self.pauses[t]), np.zeros(3)
-            self.active.append(k)
-        return out, mirrored
-
     def run(self, t0: int, xyz_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Frames t0 .. t0+len-1: labels (n,P), mirrored (n,P)."""
         n, P = xyz_m.shape[:2]
@@ -198,7 +129,7 @@ class StreamLinker:
 
     def finish(self) -> np.ndarray:
         """(K,) final track id of each label (stitched chains share one; -1 = dropped by the filter)."""
-        self._retire(np.inf, final=True)
+        self.retire(np.inf, final=True)
         self.head.clear()
         K = self.n_tracks
         succ, pred = np.full(K, -1), np.full(K, -1)

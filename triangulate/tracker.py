@@ -176,12 +176,122 @@ def join_mirrored(
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """A pose (J,3) that fits the track's last pose better left/right swapped joins the track: returns the
     pose as joined, the track's last pose and whether the pose was swapped. Where the pose's own labels
-    face forward (:func:`labels_face_forward`) the track is the mirrored one and is turned back; otherwise
-    the pose is swapped. The one rule of both greedy linkers (:func:`associate_mirrored`,
-    :class:`triangulate.stream_track.StreamLinker`)."""
+    face forward (:func:`labels_face_forward`; ``facing``: :func:`facing_joints`) the track is the mirrored
+    one (it took a mirrored pose earlier, or was born from one) and is turned back, so that one mirrored
+    frame does not mirror every correct pose after it (the 60-minute synthetic session, BENCHMARKS.md);
+    otherwise the pose is swapped."""
     if labels_face_forward(pose, facing):
         return pose, track_pose[flip], False
     return pose[flip], track_pose, True
+
+
+class FrameLinker:
+    """The greedy tracker's linking step, one frame at a time (:meth:`step`): each alive track's pose,
+    predicted at constant velocity, is matched to the frame's poses by the Hungarian method on the mean
+    joint distance, gated by ``tau_m + max_speed_m_s`` x the unseen time (+ ``pause_gate_m`` across a
+    pause of the recorder); a pose that joins no track starts one. Labels are track numbers by first
+    appearance. Only the tracks seen within ``max_gap_s`` on the tracks' clock are kept, so the state does
+    not grow with the session.
+
+    ``clock (T,)``, ``pauses (T,)``: :func:`pause_clock` of the session's frame times. ``flip`` (J,)
+    (left/right joint permutation): a pose may also join a track mirrored, when its left/right-swapped
+    version is closer; ``facing``: see :func:`join_mirrored`. The hooks :meth:`_joined` and
+    :meth:`_retired` let :class:`triangulate.stream_track.StreamLinker` keep what stitching needs."""
+
+    def __init__(
+        self,
+        cfg: TrackerConfig,
+        fps: float,
+        flip: np.ndarray | None,
+        clock: np.ndarray,
+        pauses: np.ndarray,
+        facing: tuple[int, int, int] | None,
+    ) -> None:
+        self.cfg, self.fps, self.flip, self.facing = cfg, fps, flip, facing
+        self.clock, self.pauses = clock, pauses
+        self.window = cfg.max_gap_s + _nominal_dt(fps)
+        self.n_tracks = 0
+        self.active: list[int] = []  # alive tracks, increasing
+        self.pose: dict[int, np.ndarray] = {}  # last pose, joints the track had but a frame lacked kept
+        self.last_clock: dict[int, float] = {}  # seconds on the tracks' clock (pauses shortened)
+        self.last_pause: dict[int, int] = {}  # pauses of the recorder before the track's last frame
+        self.vel: dict[int, np.ndarray] = {}  # (3,) mean-joint velocity, m/s
+
+    def _joined(self, k: int, t: int, raw: np.ndarray, born: bool) -> None:
+        """Hook: the (mirror-corrected) pose ``raw`` joined track ``k`` at frame ``t`` (``born``: new)."""
+
+    def _retired(self, k: int) -> None:
+        """Hook: track ``k`` can no longer continue (before its state is dropped)."""
+
+    def retire(self, now: float, final: bool = False) -> None:
+        """Drop the tracks that can no longer continue at clock time ``now`` (all with ``final``)."""
+        keep = []
+        for k in self.active:
+            if final or now - self.last_clock[k] > self.window:
+                self._retired(k)
+                for d in (self.pose, self.last_clock, self.last_pause, self.vel):
+                    d.pop(k, None)
+            else:
+                keep.append(k)
+        self.active = keep
+
+    def step(self, t: int, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``t`` (session position) with poses (P,J,3): returns labels (P,) (-1 none), mirrored (P,)."""
+        cfg, flip = self.cfg, self.flip
+        P = len(poses)
+        out = np.full(P, -1, np.int64)
+        mirrored = np.zeros(P, bool)
+        now = self.clock[t]
+        self.retire(now)
+        ok = np.flatnonzero(np.isfinite(poses).all(-1).sum(-1) >= cfg.min_joints)
+        if len(ok) == 0:
+            return out, mirrored
+        alive = self.active
+        assigned = np.zeros(len(ok), bool)
+        if alive:
+            since = now - np.asarray([self.last_clock[k] for k in alive])  # (A,) seconds since last seen
+            pred = np.stack([self.pose[k] + since[n] * self.vel[k] for n, k in enumerate(alive)])
+            cost = pose_distance(pred, poses[ok])
+            mir = np.zeros(cost.shape, bool)
+            if flip is not None:
+                cost_m = pose_distance(pred, poses[ok][:, flip])
+                mir = cost_m < cost
+                cost = np.minimum(cost, cost_m)
+            # unseen time beyond one frame; bounded, as alive tracks were seen within max_gap_s
+            gap_s = np.clip(since - 1.0 / self.fps, 0.0, cfg.max_gap_s)
+            paused = self.pauses[t] > np.asarray([self.last_pause[k] for k in alive])
+            limit = cfg.tau_m + cfg.max_speed_m_s * gap_s + cfg.pause_gate_m * paused
+            # gate before the assignment: a pair above the limit must not pull a valid pair apart
+            rows, cols = linear_sum_assignment(np.where(cost < limit[:, None], cost, 1e9))
+            for r, c in zip(rows, cols, strict=True):
+                if cost[r, c] < limit[r]:
+                    k = alive[r]
+                    out[ok[c]] = k
+                    # keep joints the track had but this frame lacks, so the next cost has them
+                    pose = poses[ok[c]].copy()
+                    if mir[r, c]:
+                        pose, self.pose[k], mirrored[ok[c]] = join_mirrored(
+                            pose, self.pose[k], flip, self.facing
+                        )
+                    self._joined(k, t, pose, born=False)
+                    miss = ~np.isfinite(pose).all(-1)
+                    if cfg.constant_velocity:
+                        both = ~miss & np.isfinite(self.pose[k]).all(-1)
+                        if both.any():
+                            v = (pose[both] - self.pose[k][both]).mean(0) / max(since[r], 1e-9)
+                            self.vel[k] = 0.5 * self.vel[k] + 0.5 * v
+                    pose[miss] = self.pose[k][miss] + since[r] * self.vel[k]
+                    self.pose[k], self.last_clock[k], self.last_pause[k] = pose, now, int(self.pauses[t])
+                    assigned[c] = True
+        for c in np.flatnonzero(~assigned):
+            k = self.n_tracks
+            self.n_tracks += 1
+            out[ok[c]] = k
+            self._joined(k, t, poses[ok[c]], born=True)
+            self.pose[k] = poses[ok[c]].copy()
+            self.last_clock[k], self.last_pause[k], self.vel[k] = now, int(self.pauses[t]), np.zeros(3)
+            self.active.append(k)
+        return out, mirrored
 
 
 def associate_mirrored(
@@ -193,72 +303,17 @@ def associate_mirrored(
     t_s: np.ndarray | None = None,
     facing: tuple[int, int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`associate`, and with ``flip`` (J,) (left/right joint permutation) a pose may also join a
-    track mirrored, when its left/right-swapped version is closer (a hypothesis whose views were
-    mostly flipped in 2D triangulates to a mirrored person). Returns assign (T,P) and mirrored (T,P).
-
-    ``facing`` (:func:`facing_joints`): where the pose's own labels face forward
-    (:func:`labels_face_forward`), it is the track's last pose that is mirrored (it took a mirrored pose
-    earlier, or was born from one): the track is turned back instead, so that one mirrored frame does not
-    mirror every correct pose after it (measured on the 60-minute synthetic session, BENCHMARKS.md)."""
+    """:func:`associate` with :class:`FrameLinker`'s mirrored joins (``flip``, ``facing``) over the whole
+    session, then :func:`stitch_tracks`. Returns assign (T,P) and mirrored (T,P)."""
     cfg = (config or TrackerConfig()).at_fps(fps)
     T, P = xyz_m.shape[:2]
     t_s = np.arange(T) / fps if t_s is None else np.asarray(t_s, np.float64)
     clock, pauses = pause_clock(t_s, cfg.max_gap_s, fps)
-    dt = _nominal_dt(fps)
+    linker = FrameLinker(cfg, fps, flip, clock, pauses, facing)
     out = np.full((T, P), -1, dtype=np.int64)
     mirrored = np.zeros((T, P), bool)
-    last_pose: list[np.ndarray] = []
-    last_t: list[float] = []  # seconds on the tracks' clock (pauses shortened)
-    last_pause: list[int] = []  # pauses of the recorder before the track's last frame
-    last_v: list[np.ndarray] = []  # (3,) mean-joint velocity, m/s
     for t in range(T):
-        ok = np.flatnonzero(np.isfinite(xyz_m[t]).all(-1).sum(-1) >= cfg.min_joints)
-        if len(ok) == 0:
-            continue
-        now = clock[t]
-        alive = [k for k in range(len(last_t)) if now - last_t[k] <= cfg.max_gap_s + dt]
-        assigned = np.zeros(len(ok), bool)
-        if alive:
-            since = now - np.asarray([last_t[k] for k in alive])  # (A,) seconds since last seen
-            pred = np.stack([last_pose[k] + since[n] * last_v[k] for n, k in enumerate(alive)])
-            cost = pose_distance(pred, xyz_m[t, ok])
-            mir = np.zeros(cost.shape, bool)
-            if flip is not None:
-                cost_m = pose_distance(pred, xyz_m[t, ok][:, flip])
-                mir = cost_m < cost
-                cost = np.minimum(cost, cost_m)
-            # unseen time beyond one frame; bounded, as alive tracks were seen within max_gap_s
-            gap_s = np.clip(since - 1.0 / fps, 0.0, cfg.max_gap_s)
-            paused = pauses[t] > np.asarray([last_pause[k] for k in alive])
-            limit = cfg.tau_m + cfg.max_speed_m_s * gap_s + cfg.pause_gate_m * paused
-            # gate before the assignment: a pair above the limit must not pull a valid pair apart
-            rows, cols = linear_sum_assignment(np.where(cost < limit[:, None], cost, 1e9))
-            for r, c in zip(rows, cols, strict=True):
-                if cost[r, c] < limit[r]:
-                    k = alive[r]
-                    out[t, ok[c]] = k
-                    # keep joints the track had but this frame lacks, so the next cost has them
-                    pose = xyz_m[t, ok[c]].copy()
-                    if mir[r, c]:
-                        pose, last_pose[k], mirrored[t, ok[c]] = join_mirrored(
-                            pose, last_pose[k], flip, facing
-                        )
-                    miss = ~np.isfinite(pose).all(-1)
-                    if cfg.constant_velocity:
-                        both = ~miss & np.isfinite(last_pose[k]).all(-1)
-                        if both.any():
-                            v = (pose[both] - last_pose[k][both]).mean(0) / max(since[r], 1e-9)
-                            last_v[k] = 0.5 * last_v[k] + 0.5 * v
-                    pose[miss] = last_pose[k][miss] + since[r] * last_v[k]
-                    last_pose[k], last_t[k], last_pause[k] = pose, now, pauses[t]
-                    assigned[c] = True
-        for c in np.flatnonzero(~assigned):
-            out[t, ok[c]] = len(last_t)
-            last_pose.append(xyz_m[t, ok[c]].copy())
-            last_t.append(now)
-            last_pause.append(pauses[t])
-            last_v.append(np.zeros(3))
+        out[t], mirrored[t] = linker.step(t, xyz_m[t])
     if cfg.stitch:
         out = stitch_tracks(xyz_m, out, mirrored, cfg, fps, flip, t_s=t_s)  # on the same clock
     return out, mirrored
