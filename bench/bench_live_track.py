@@ -11,8 +11,10 @@ the detections are fed to the live 3D stages of ``capture-run --live`` (``pipeli
 through the recorder. Each step of both stages is timed as CPU time of this process (``time.process_time``,
 robust to the other processes sharing the machine) and wall time (``time.perf_counter``); figures: p50 /
 p95 in the first and in the last minute and their ratio (the baseline of this run: the first minute).
-Identities: the ids every step returned are compared with those in the parts written to
-``track/live/`` (never rewritten) and counted.
+Identities: the ids every step returned are compared with those in the live track file, read as any
+track file (``TrackFile.load("track/live.npz")``: the parts of ``track/live.parts/``, each checked
+against its size and sha256 in the ``parts/1`` index, never rewritten), and counted; the time to
+append a part (write, hash, index) is reported too.
 
     python bench/bench_live_track.py [--minutes 5] [--shared /work/shared]
 """
@@ -53,7 +55,8 @@ def main() -> None:
     from capture.sources import Frame
     from capture.sync import FrameSet
     from keypoints.openpose_json import read_openpose_folder
-    from pipeline.live import LiveContext, _track, _triangulate, live_dir, load_live_tracks
+    from pipeline.live import LiveContext, _track, _triangulate, live_dir
+    from track.trackfile import TrackFile
 
     base = Path(args.shared) / "data" / "pose2sim" / "session-2024"
     trial = base / "S00_P01_MultiParticipants" / "S00_P01_T02_Participants1-2"
@@ -94,8 +97,12 @@ def main() -> None:
             ms[t] = 1e3 * (time.process_time() - c0)
             wall[t] = 1e3 * (time.perf_counter() - w0)
             ids_per_step.append(np.sort(step.outputs["tracks"].track_id))
-        tf = load_live_tracks(live_dir(lay))
-        n_parts = len(json.loads((live_dir(lay) / "index.json").read_text())["parts"])
+        t_load = time.perf_counter()
+        tf = TrackFile.load(lay.live_tracks)  # the common loader: parts checked against the index
+        load_s = time.perf_counter() - t_load
+        index = json.loads((live_dir(lay) / "index.json").read_text())
+        n_parts = len(index["parts"])
+        complete = bool(index["complete"])
     # the file's ids per frame (tracks with an estimate) against what each step returned
     col_ids = tf.track_id
     file_ids = [np.sort(col_ids[np.isfinite(tf.xyz_m[t]).any(-1).any(-1)]) for t in range(tf.n_frames)]
@@ -103,6 +110,8 @@ def main() -> None:
         np.array_equal(a, b) for a, b in zip(ids_per_step, file_ids, strict=True)
     )
     minute = int(60 * fps)
+    wrote = (np.arange(n_steps) + 1) % ctx.chunk_frames == 0  # the steps that appended a part
+    wrote[-1] = True
     first, last = ms[:minute], ms[-minute:]
     distinct = sorted({int(i) for ids in ids_per_step for i in ids})
     res = {
@@ -124,6 +133,10 @@ def main() -> None:
         "tracks_at_end": int(len(ids_per_step[-1])),
         "file_ids_equal_step_ids": bool(same_ids),
         "parts": n_parts,
+        "index_complete": complete,
+        "cpu_ms_mean_steps_appending_a_part": float(ms[wrote].mean()),
+        "cpu_ms_mean_other_steps": float(ms[~wrote].mean()),
+        "load_live_track_s": load_s,
         "load_1min": [load0, os.getloadavg()[0]],
     }
     print(
@@ -132,7 +145,10 @@ def main() -> None:
         f"{res['first_minute_ms']['p50']:.2f} / p95 {res['first_minute_ms']['p95']:.2f} ms, last minute p50 "
         f"{res['last_minute_ms']['p50']:.2f} / p95 {res['last_minute_ms']['p95']:.2f} ms "
         f"(x{res['ratio_last_over_first_p50']:.2f}); {len(distinct)} track ids, file = steps: {same_ids}; "
-        f"load {load0:.2f}"
+        f"{n_parts} parts (complete: {complete}), steps appending a part "
+        f"{res['cpu_ms_mean_steps_appending_a_part']:.2f} ms against "
+        f"{res['cpu_ms_mean_other_steps']:.2f} ms, "
+        f"TrackFile.load {load_s:.2f} s; load {load0:.2f}"
     )
     print("BENCH " + json.dumps(res))
 

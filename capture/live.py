@@ -126,7 +126,7 @@ class LiveRunner:
                     log.exception("live: closing stage %r failed", name)
                     self.stats.errors[name] = f"{type(e).__name__}: {e}"
         if "track" in self.stages and self.stats.processed:
-            log.info("live: track parts in %s", self.layout.tracks.parent / "live")
+            log.info("live: track parts in %s", self.layout.live_tracks.with_suffix(".parts"))
 
     def process(self, fs: FrameSet, final: bool = False) -> LiveStep:
         step = LiveStep(fs, self.cfg.names, {"final": final})

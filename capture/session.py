@@ -11,7 +11,10 @@
       calib/rig.toml               the rig (or ``calibration = "<path>"`` in session.toml)
       keypoints/<cam>.npz          2D detections per camera
       triangulate/poses3d.npz      per-frame 3D poses
-      track/tracks.npz             the track file
+      track/tracks.npz             the track file (a streamed run: track/tracks.parts/, same reader)
+      track/live.npz               the track of ``capture-run --live``, written as track/live.parts/
+                                   (parts + index.json, read as this path; older sessions:
+                                   track/live/, read by pipeline.live.load_live_tracks)
       report/report.html           the session report
 """
 
@@ -113,6 +116,12 @@ class SessionLayout:
     @property
     def tracks(self) -> Path:
         return self.root / "track" / "tracks.npz"
+
+    @property
+    def live_tracks(self) -> Path:
+        """The live track (``capture-run --live``): its parts are ``track/live.parts/``, the loaders read
+        them through this path. Apart from :attr:`tracks`, so a reprocess never touches it."""
+        return self.root / "track" / "live.npz"
 
     @property
     def report_html(self) -> Path:

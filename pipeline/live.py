@@ -15,9 +15,25 @@ Stages (``STAGES``, one line each, built by the same functions the batch stages 
   :class:`track.particle.ParticleTracker`) per frame set, at the set's time ``t_ns``: a track's
   identity is given once and never changed; its state is what the next step needs, so the cost of a
   step does not grow with the session's length. Estimates are appended to the live track file in
-  chunks of ``CHUNK_FRAMES`` frames: ``track/live/part_NNNNNN.npz`` (each a whole ``tracks/1`` file of its
-  frames, written atomically, never rewritten) and ``track/live/index.json`` (rewritten atomically after
-  each part); :func:`load_live_tracks` joins them. A reader therefore always sees whole files.
+  chunks of ``CHUNK_FRAMES`` frames.
+
+The live track file is ``track/live.npz`` (``SessionLayout.live_tracks``), written in the chunked layout
+of the streamed batch stages (:mod:`triangulate.chunks`, schema ``parts/1``) as an appendable store::
+
+    track/live.parts/index.json      {"schema": "parts/1", "kind": "tracks", "key", "appendable": true,
+                                      "chunks": [[0, 50], [50, 100], ...],
+                                      "parts": {"<i>": {"file", "size", "sha256"}}, "meta", "complete"}
+    track/live.parts/part_00000.npz  a whole ``tracks/1`` file of the chunk's frame sets
+
+Each part is written atomically and never rewritten, then entered (its chunk, size and sha256) in one
+atomic rewrite of the index, so a reader always sees whole, listed files; ``complete`` is set when the
+recording ends (:meth:`LiveTrackWriter.close`). The common loaders read it like a streamed batch track:
+``TrackFile.load("track/live.npz")``, ``iter_parts`` part by part, a part that does not match the index
+is an error naming it (a live part cannot be rebuilt). It is kept apart from ``track/tracks.npz`` /
+``track/tracks.parts/``, which the batch track stage owns and replaces: a later ``reprocess`` of the
+session leaves the live result as it was. Sessions recorded by earlier versions hold
+``track/live/index.json`` (schema ``live_tracks/1``) and ``part_NNNNNN.npz``; :func:`load_live_tracks`
+still reads them.
 """
 
 from __future__ import annotations
@@ -25,6 +41,7 @@ from __future__ import annotations
 import json
 import logging
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,18 +53,22 @@ from capture.cli import make_main
 from capture.config import CaptureConfig
 from capture.live import LiveStep, Stage
 from capture.session import SessionLayout
-from core.fileio import atomic_write_text
+from core.errors import FormatError
 from core.memory import TRIM_EVERY, release_free_memory
 from keypoints.skeletons import CANONICAL, convert
 from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
 from track.stage import focal_lengths
-from track.trackfile import TrackFile
+from track.trackfile import SCHEMA, TrackFile
+from triangulate.chunks import PartStore, hash_key, parts_dir
 from triangulate.reconstruct import FrameReconstructor
 
 log = logging.getLogger(__name__)
 
 CHUNK_FRAMES = 50  # frame sets per part of the live track file (2 s at 25 Hz)
-LIVE_DIR = "live"  # under the session's track folder
+LIVE_DIR = "live.parts"  # under the session's track folder: the parts of SessionLayout.live_tracks
+LEGACY_LIVE_DIR = "live"  # the live track folder of sessions recorded before the parts/1 layout
+LEGACY_SCHEMA = "live_tracks/1"
+SOURCE = "pipeline.live (track.particle, one step per frame set)"
 
 
 @dataclass
@@ -60,7 +81,14 @@ class LiveContext:
 
 
 def live_dir(layout: SessionLayout) -> Path:
-    return layout.tracks.parent / LIVE_DIR
+    """The live track's parts folder, ``track/live.parts/`` (the track file path is
+    ``layout.live_tracks``, ``track/live.npz``)."""
+    return parts_dir(layout.live_tracks)
+
+
+def legacy_live_dir(layout: SessionLayout) -> Path:
+    """``track/live/``: where sessions recorded by earlier versions hold their live track."""
+    return layout.tracks.parent / LEGACY_LIVE_DIR
 
 
 # ----------------------------------------------------------------------------- stages (batch functions)
@@ -127,16 +155,19 @@ def _triangulate(ctx: LiveContext) -> Stage:
 
 
 class LiveTrackWriter:
-    """Appends per-frame estimates to ``track/live/`` in whole parts (see the module doc). Only the open
-    part's frames are held in memory."""
+    """Appends per-frame estimates to the live track ``path`` (``track/live.npz``) as the parts of an
+    appendable :class:`triangulate.chunks.PartStore` in ``track/live.parts/`` (see the module doc). Only
+    the open part's frames are held in memory; the folder is started at the first part."""
 
     def __init__(
-        self, folder: Path, fps: float, calibration_sha256: str = "", chunk_frames: int = CHUNK_FRAMES
+        self, path: Path, fps: float, calibration_sha256: str = "", chunk_frames: int = CHUNK_FRAMES
     ):
-        self.folder, self.fps, self.sha = Path(folder), float(fps), calibration_sha256
+        self.path, self.fps, self.sha = Path(path), float(fps), calibration_sha256
+        self.folder = parts_dir(self.path)
         self.chunk = max(1, int(chunk_frames))
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.parts: list[dict] = []
+        self.store = PartStore(self.folder, SCHEMA)
+        self.started = False
+        self.n_frames = 0
         self._rows: list[tuple[int, int, FrameEstimate]] = []
 
     def add(self, frame_index: int, t_ns: int, est: FrameEstimate) -> None:
@@ -144,8 +175,14 @@ class LiveTrackWriter:
         if len(self._rows) >= self.chunk:
             self.flush()
 
+    def _start(self) -> None:
+        key = hash_key(["live", self.fps, self.sha, self.chunk, time.time_ns()])  # one key per recording
+        meta = {"fps": self.fps, "chunk_frames": self.chunk, "source": SOURCE}
+        self.store.start_appending(key, meta)
+        self.started = True
+
     def flush(self) -> None:
-        """Write the open part (if any) and the index."""
+        """Write the open part (if any), then enter it in the index."""
         if not self._rows:
             return
         rows, self._rows = self._rows, []
@@ -172,63 +209,67 @@ class LiveTrackWriter:
             std_m=std,
             flags=flags,
             calibration_sha256=self.sha,
-            source="pipeline.live (track.particle, one step per frame set)",
+            source=SOURCE,
         )
-        name = f"part_{len(self.parts):06d}.npz"
-        tf.save(self.folder / name)  # atomic
-        self.parts.append({"file": name, "first_frame": int(tf.frame_index[0]), "frames": T})
-        index = {"schema": "live_tracks/1", "fps": self.fps, "parts": self.parts}
-        atomic_write_text(self.folder / "index.json", json.dumps(index, indent=1))
+        if not self.started:
+            self._start()
+        tf.save(self.store.next_part_path)  # atomic; listed in the index only once whole
+        self.store.append(T)
+        self.n_frames += T
+
+    def close(self) -> None:
+        """The recording ended: the open part written and the index marked complete."""
+        self.flush()
+        if self.started:
+            self.store.finish({"n_frames": self.n_frames})
 
 
-def load_live_tracks(folder: str | Path) -> TrackFile:
-    """The live track file: the parts listed in ``index.json`` joined in time (columns = every track id,
-    sorted). A part missing or unreadable raises a clear error (a reader never sees a partial part)."""
-    folder = Path(folder)
-    idx_path = folder / "index.json"
-    if not idx_path.exists():
+def load_live_tracks(path: str | Path) -> TrackFile:
+    """The live track file: a session folder, ``track/live.npz`` or its folder ``track/live.parts/`` (read by
+    :meth:`TrackFile.load`, parts checked against their size and sha256), or the ``track/live/`` folder
+    of a session recorded by an earlier version (``index.json`` schema ``live_tracks/1``: its parts
+    joined in time, columns = every track id, sorted). A part missing or unreadable raises a clear error
+    (a reader never sees a partial part)."""
+    path = Path(path)
+    if (path / "track").is_dir():  # a session folder: its live track, else an older session's folder
+        lay = SessionLayout(path)
+        new = lay.live_tracks.exists() or live_dir(lay).is_dir() or not legacy_live_dir(lay).is_dir()
+        path = lay.live_tracks if new else legacy_live_dir(lay)
+    idx_path = path / "index.json"
+    if path.is_dir() and path.suffix != ".parts":
+        if not idx_path.exists():
+            raise FileNotFoundError(
+                f"{idx_path} not found: no live track parts written yet (run capture-run --live)"
+            )
+        try:
+            index = json.loads(idx_path.read_text(encoding="utf-8"))
+            files = [str(p["file"]) for p in index["parts"]] if index.get("schema") == LEGACY_SCHEMA else None
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise FormatError(idx_path, None, f"cannot read the live track index ({e}).") from None
+        if files is None:
+            raise FormatError(
+                idx_path,
+                "schema",
+                f"expected {LEGACY_SCHEMA!r} (an older live track folder), got {index.get('schema')!r}.",
+            )
+        if not files:
+            raise FormatError(idx_path, "parts", "lists no parts.")
+        return TrackFile.concat([TrackFile.load(path / f) for f in files])
+    if path.suffix == ".parts":
+        path = path.with_suffix(".npz")
+    if not path.exists() and not parts_dir(path).is_dir():
         raise FileNotFoundError(
-            f"{idx_path} not found: no live track parts written yet (run capture-run --live)"
+            f"{path} not found (nor {parts_dir(path)}): no live track parts written yet "
+            "(run capture-run --live)"
         )
-    index = json.loads(idx_path.read_text(encoding="utf-8"))
-    parts = [TrackFile.load(folder / p["file"]) for p in index["parts"]]
-    if not parts:
-        raise ValueError(f"{idx_path} lists no parts")
-    ids = sorted({int(i) for p in parts for i in p.track_id})
-    col = {tid: k for k, tid in enumerate(ids)}
-    T, K, J = sum(p.n_frames for p in parts), len(ids), len(parts[0].joint_names)
-    xyz = np.full((T, K, J, 3), np.nan, np.float32)
-    std = np.full((T, K, J), np.nan, np.float32)
-    conf = np.zeros((T, K, J), np.float32)
-    flags = np.zeros((T, K, J), np.uint8)
-    t0 = 0
-    for p in parts:
-        ks = np.asarray([col[int(i)] for i in p.track_id], np.int64)
-        sl = slice(t0, t0 + p.n_frames)
-        if len(ks):
-            xyz[sl, ks], std[sl, ks], conf[sl, ks], flags[sl, ks] = p.xyz_m, p.std_m, p.confidence, p.flags
-        t0 += p.n_frames
-    return TrackFile(
-        fps=parts[0].fps,
-        frame_index=np.concatenate([p.frame_index for p in parts]),
-        t_ns=np.concatenate([p.t_ns for p in parts]),
-        track_id=np.asarray(ids, np.int64),
-        joint_names=parts[0].joint_names,
-        parents=parts[0].parents,
-        xyz_m=xyz,
-        confidence=conf,
-        std_m=std,
-        flags=flags,
-        calibration_sha256=parts[0].calibration_sha256,
-        source=parts[0].source,
-    )
+    return TrackFile.load(path)
 
 
 def _track(ctx: LiveContext) -> Stage:
     rig = _rig(ctx, "tracking")
     fps = max(c.fps or 30.0 for c in ctx.cfg.cameras)
     tracker = ParticleTracker(rig.projection_matrices(), focal_lengths(rig), fps, ctx.particle)
-    writer = LiveTrackWriter(live_dir(ctx.layout), fps, rig.sha256(), ctx.chunk_frames)
+    writer = LiveTrackWriter(ctx.layout.live_tracks, fps, rig.sha256(), ctx.chunk_frames)
     clock = {"t0": None, "last": None, "n": 0}
 
     def stage(step: LiveStep) -> None:
@@ -251,11 +292,11 @@ def _track(ctx: LiveContext) -> Stage:
         writer.add(step.frameset.index, t_ns, est)
         step.outputs["tracks"] = est
         if step.outputs.get("final"):
-            writer.flush()
+            writer.close()
 
     stage.writer = writer  # type: ignore[attr-defined]  # the bench and tests read the parts it wrote
     stage.tracker = tracker  # type: ignore[attr-defined]
-    stage.close = writer.flush  # type: ignore[attr-defined]  # the runner calls it when the recording ends
+    stage.close = writer.close  # type: ignore[attr-defined]  # the runner calls it when the recording ends
     return stage
 
 

@@ -105,6 +105,7 @@ class _Inputs:
     rig_error: str = ""
     tracks: Any = None
     tracks_error: str = ""
+    tracks_name: str = "tracks.npz"  # live.npz where only the live track exists
     poses: Any = None
     poses_error: str = ""
     detections: dict[str, Any] | None = None
@@ -120,13 +121,19 @@ def _load(lay: SessionLayout) -> _Inputs:
             inp.rig = CameraRig.load(lay.rig_toml)
         except Exception as e:  # the report shows what it can
             inp.rig_error = str(e)
-    if lay.tracks.exists() or parts_dir(lay.tracks).is_dir():  # the file or a streamed run's parts
+    # the batch track (the file or a streamed run's parts), else the live one (capture-run --live): the
+    # same loader reads both layouts
+    for path in (lay.tracks, lay.live_tracks):
+        if not (path.exists() or parts_dir(path).is_dir()):
+            continue
+        inp.tracks_name = path.name
         try:
             from track.trackfile import TrackFile
 
-            inp.tracks = TrackFile.load(lay.tracks)
+            inp.tracks = TrackFile.load(path)
         except Exception as e:
             inp.tracks_error = str(e)
+        break
     if lay.poses3d.exists() or parts_dir(lay.poses3d).is_dir():
         try:
             from triangulate.poses3d import Poses3D
@@ -808,7 +815,7 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                 "error", "No 2D detections", "keypoints/ has no detection files.", "Run the keypoints stage."
             )
         )
-    for name, err in (("poses3d.npz", inp.poses_error), ("tracks.npz", inp.tracks_error)):
+    for name, err in (("poses3d.npz", inp.poses_error), (inp.tracks_name, inp.tracks_error)):
         if err:
             P.append(
                 _problem("error", f"{name} unreadable", err, "Rerun the stage that writes it (--force).")

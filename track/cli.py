@@ -1,9 +1,13 @@
 """``tracks`` console script: from the track file to the user's next tool.
 
+SESSION is a session folder (its ``track/tracks.npz``, else the live track ``track/live.npz``), a
+track file, or a chunked track's parts folder (``tracks.parts/``, ``live.parts/``).
+
 tracks export SESSION|tracks.npz --format trc,c3d,bvh,csv,json [--person ID] --out DIR
     one file per person and format, ``<session>_<track id>.<ext>`` (see track/export.py)
 tracks fit SESSION|tracks.npz
-    one skeleton per person: writes track/skeleton_fit.npz beside the track file
+    one skeleton per person: writes track/skeleton_fit.npz beside the track file (beside the live track
+    track/live.npz: live_skeleton_fit.npz)
 tracks opensim SESSION|tracks.npz [--setup DIR] [--person ID] --out DIR
     Pose2Sim's OpenSim model scaled and inverse kinematics on the TRC (needs the opensim extra)
 
@@ -21,8 +25,9 @@ from core.cli import guarded
 from core.errors import RoomcapError
 from track.export import ExportOptions, export_tracks, parse_formats
 from track.opensim_ik import default_setup_dir, run_opensim
-from track.skeleton_fit import FitError, file_sha256, fit_skeletons, load_or_fit
+from track.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
 from track.trackfile import TrackFile
+from triangulate.chunks import parts_dir
 
 log = logging.getLogger(__name__)
 
@@ -31,21 +36,31 @@ class UsageError(RoomcapError, ValueError):
     pass
 
 
+def _has_track(p: Path) -> bool:
+    """The track file or its parts folder (a streamed run's ``tracks.parts/``, the live ``live.parts/``)."""
+    return p.is_file() or (parts_dir(p) / "index.json").is_file()
+
+
 def resolve_tracks(path: str | Path) -> tuple[Path, str]:
-    """A session folder or a tracks.npz -> (tracks.npz path, session name)."""
+    """A session folder, a track file (``tracks.npz``, ``live.npz``) or its parts folder -> (track file
+    path, session name). In a session the batch track ``track/tracks.npz`` comes first, else the live
+    one ``track/live.npz`` (``capture-run --live``)."""
     p = Path(path)
+    if p.suffix == ".parts" and (p / "index.json").is_file():
+        p = p.with_suffix(".npz")
     if p.is_dir():
-        for cand in (p / "track" / "tracks.npz", p / "tracks.npz", p / "roomcap" / "track" / "tracks.npz"):
-            if cand.exists():
+        cands = (p / "track" / "tracks.npz", p / "tracks.npz", p / "roomcap" / "track" / "tracks.npz")
+        for cand in (*cands, p / "track" / "live.npz"):
+            if _has_track(cand):
                 root = cand.parent.parent if cand.parent.name == "track" else cand.parent
                 if root.name == "roomcap":
                     root = root.parent
                 return cand, root.name
         raise UsageError(
-            f"{p} has no track file (looked for track/tracks.npz). Run the track stage first: "
-            f"reprocess {p} --stages triangulate,track"
+            f"{p} has no track file (looked for track/tracks.npz, its parts and track/live.npz). Run the "
+            f"track stage first: reprocess {p} --stages triangulate,track"
         )
-    if not p.exists():
+    if not _has_track(p):
         raise UsageError(f"{p} does not exist; pass a session folder or a tracks.npz.")
     session = p.parent.parent.name if p.parent.name == "track" else p.stem
     return p, session
@@ -97,7 +112,7 @@ def _fit(args) -> int:
         print(f"note: left out: {n}")
     if not len(fit.track_id):
         raise FitError("no track could be fitted (see the notes above).")
-    out = path.with_name("skeleton_fit.npz")
+    out = fit_path(path)
     fit.save(out)
     import numpy as np
 

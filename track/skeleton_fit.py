@@ -61,6 +61,7 @@ from capture.fileio import (
 )
 from core.errors import RoomcapError
 from track.trackfile import OBSERVED, TrackFile, _track_index
+from triangulate.chunks import PartStore, parts_dir, sha256_file
 
 # ----------------------------------------------------------------------------- gap filling
 
@@ -228,7 +229,23 @@ class SkeletonFit:
 
 
 def file_sha256(path: str | os.PathLike) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    """The sha256 of a track file; of a chunked one (``tracks.parts/``, ``live.parts/``: only the folder
+    exists), the sha256 of its parts' sha256 in order (each part checked against the index)."""
+    path = Path(path)
+    if not path.exists() and parts_dir(path).is_dir():
+        h = hashlib.sha256()
+        for _, _, part in PartStore(parts_dir(path), "tracks").checked_parts():
+            h.update(sha256_file(part).encode())
+        return h.hexdigest()
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def fit_path(tracks_path: str | os.PathLike) -> Path:
+    """The companion fit of a track file: ``skeleton_fit.npz`` beside ``tracks.npz``,
+    ``<stem>_skeleton_fit.npz`` beside another (``live_skeleton_fit.npz`` beside the live track
+    ``live.npz``), so the fits of both never collide."""
+    p = Path(tracks_path)
+    return p.with_name("skeleton_fit.npz" if p.stem == "tracks" else f"{p.stem}_skeleton_fit.npz")
 
 
 def _topological(parents) -> list[int]:
@@ -649,7 +666,7 @@ def load_or_fit(
     (of ``track_ids``, default all) made now. Returns (fit, made_now)."""
     tracks_path = Path(tracks_path)
     sha = file_sha256(tracks_path)
-    comp = tracks_path.with_name("skeleton_fit.npz")
+    comp = fit_path(tracks_path)
     if comp.exists():
         try:
             fit = SkeletonFit.load(comp, tracks_sha256=sha)

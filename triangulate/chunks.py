@@ -14,12 +14,21 @@ missing, of another size or another hash is rebuilt, never trusted. ``key`` hash
 settings: parts of another run (other detections, other config) are discarded. A killed run rerun with
 the same inputs resumes at the first part that is not valid. The loaders (``Poses3D.load``,
 ``TrackFile.load``) read such a folder where the single file is absent.
+
+The same layout is appendable (:meth:`PartStore.start_appending`, :meth:`PartStore.append`): the live
+track of ``capture-run --live`` (``track/live.parts/``, read as ``track/live.npz``) does not know its
+chunks in advance, so each part is written atomically and then entered, its chunk and its size and
+sha256 together, in one atomic rewrite of the index (``"appendable": true``); ``complete`` is set when
+the recording ends. A reader of such a folder sees only whole, listed parts, also while the recording
+runs or after it was stopped (a warning says the parts are not complete); a part that does not match
+the index is an error naming it, since a live part cannot be rebuilt.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 import zipfile
@@ -31,6 +40,8 @@ import numpy as np
 from capture.fileio import FormatError, atomic_write_text
 
 PARTS_SCHEMA = "parts/1"
+
+log = logging.getLogger(__name__)
 
 
 def parts_dir(path: str | os.PathLike) -> Path:
@@ -107,6 +118,44 @@ class PartStore:
         self.index["parts"][str(i)] = {"file": p.name, "size": p.stat().st_size, "sha256": sha256_file(p)}
         self._write_index()
 
+    # -- appending (chunks not known in advance: the live track)
+    def start_appending(self, key: str, meta: dict | None = None) -> None:
+        """Start an appendable store: an earlier folder (a previous recording's parts) is removed and an
+        index with no parts is written."""
+        if self.folder.exists():
+            shutil.rmtree(self.folder)
+        self.folder.mkdir(parents=True)
+        self.index = {
+            "schema": PARTS_SCHEMA,
+            "kind": self.kind,
+            "key": key,
+            "chunks": [],
+            "parts": {},
+            "meta": meta or {},
+            "appendable": True,
+            "complete": False,
+        }
+        self._write_index()
+
+    @property
+    def next_part_path(self) -> Path:
+        """Where the part that :meth:`append` enters next is written (atomically, by the caller)."""
+        return self.part_path(len(self.index["chunks"]))
+
+    def append(self, n_rows: int) -> int:
+        """Enter the part written at :attr:`next_part_path`, of ``n_rows`` rows following the last chunk:
+        its chunk and its size and sha256 in one atomic rewrite of the index. Returns its number."""
+        if not self.index.get("appendable"):
+            raise RuntimeError(f"{self.folder} was not started with start_appending()")
+        chunks = self.index["chunks"]
+        i, p = len(chunks), self.next_part_path
+        a = chunks[-1][1] if chunks else 0
+        chunks.append([a, a + int(n_rows)])
+        self.index["parts"][str(i)] = {"file": p.name, "size": p.stat().st_size, "sha256": sha256_file(p)}
+        self.index["complete"] = False
+        self._write_index()
+        return i
+
     def finish(self, meta: dict | None = None) -> None:
         if meta:
             self.index.setdefault("meta", {}).update(meta)
@@ -127,7 +176,9 @@ class PartStore:
             return False
 
     def _write_index(self) -> None:
-        atomic_write_text(self.index_path, json.dumps(self.index, indent=1))
+        # compact: json's C encoder (indent falls back to the Python one, 4x slower); the index is
+        # rewritten after every part, and an hour's live track has thousands of them
+        atomic_write_text(self.index_path, json.dumps(self.index, separators=(",", ":")))
 
     # -- reading
     def _read_index(self, strict: bool = True) -> dict:
@@ -147,9 +198,19 @@ class PartStore:
             ) from None
 
     def load_index(self) -> dict:
-        """The index of a finished run; a run that did not finish or a damaged part is an error."""
+        """The index of a finished run; a run that did not finish or a damaged part is an error. An
+        appendable store (the live track) is read as far as it was written, with a warning when it
+        is not complete (the recording is running, or was stopped)."""
         self.index = self._read_index()
-        if not self.index.get("complete"):
+        if not self.index.get("complete") and self.index.get("appendable"):
+            log.warning(
+                "%s: the %s parts are not complete (the recording is still running or was stopped); "
+                "reading the %d parts written",
+                self.folder,
+                self.kind,
+                len(self.index["chunks"]),
+            )
+        elif not self.index.get("complete"):
             raise FormatError(
                 self.index_path,
                 "complete",
@@ -161,17 +222,26 @@ class PartStore:
     def checked_parts(self) -> list[tuple[int, int, Path]]:
         """(f0, f1, path) of every part, each checked against its size and hash in the index."""
         idx = self.load_index()
+        if not idx["chunks"]:
+            raise FormatError(
+                self.index_path, "chunks", f"no {self.kind} parts written yet.", "Read it again later."
+            )
         out = []
         for i, (a, b) in enumerate(idx["chunks"]):
+            e = idx["parts"].get(str(i))
+            path = self.folder / e["file"] if e else self.part_path(i)
             if not self.valid(i):
                 raise FormatError(
-                    self.part_path(i),
+                    path,
                     None,
-                    "the part is missing or does not match its size and sha256 in index.json "
-                    "(truncated or changed).",
-                    "Rerun the stage: it rebuilds the damaged parts.",
+                    f"part {i} is missing or does not match its size and sha256 in index.json "
+                    "(truncated or changed); it is not read.",
+                    "A live recording's parts cannot be rebuilt: reprocess the session "
+                    "(reprocess SESSION) for a track made from its videos."
+                    if idx.get("appendable")
+                    else "Rerun the stage: it rebuilds the damaged parts.",
                 )
-            out.append((a, b, self.folder / idx["parts"][str(i)]["file"]))
+            out.append((a, b, path))
         return out
 
 

@@ -200,8 +200,9 @@ class TrackFile:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> TrackFile:
-        """The file, or where only ``tracks.parts/`` exists (a streamed run) its parts joined
-        (:func:`iter_parts` reads them one at a time)."""
+        """The file, or where only its parts folder exists (``<name>.parts/``: a streamed run's
+        ``tracks.parts/``, the live track's ``live.parts/`` read as ``track/live.npz``) its parts joined,
+        each checked against its size and sha256 (:func:`iter_parts` reads them one at a time)."""
         path = Path(path)
         if not path.exists() and parts_dir(path).is_dir():
             return cls.concat(list(iter_parts(path)))
