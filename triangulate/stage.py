@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import closing
 from dataclasses import dataclass, field, replace
@@ -179,10 +180,11 @@ class _CameraMeta:
     reader: NpzRows | None = None
     det: Detections | None = None  # the whole file, where it was loaded whole
     seen: bool = False  # any detection read so far
+    n_frames: int = -1  # rows of the file (frame_index and t_ns are released once a streamed plan is made)
 
-    @property
-    def n_frames(self) -> int:
-        return len(self.frame_index)
+    def __post_init__(self) -> None:
+        if self.n_frames < 0:
+            self.n_frames = len(self.frame_index)
 
     def rows(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         """xy_px (b-a,P,J,2) and score (b-a,P,J) of rows [a, b) as float32."""
@@ -431,10 +433,11 @@ def plan_detections(
     t_ns = np.zeros(T, np.int64)
     have_t = np.zeros(T, bool)
     rows_l, pos_l = [], []
+    small = np.int32 if max(T, *(m.n_frames for m in metas)) < 2**31 else np.int64  # an hour: 4 MB per camera
     for ci in range(len(cams)):
         r = np.flatnonzero(keep[ci])
-        rows_l.append(r)
-        pos_l.append(np.searchsorted(frames, mapped[ci][r]))
+        rows_l.append(r.astype(small))
+        pos_l.append(np.searchsorted(frames, mapped[ci][r]).astype(small))
     # timestamps: unshifted cameras first (the reference's clock), then shifted ones moved onto it
     for ci in sorted(range(len(cams)), key=lambda i: cams[i] in shifts):
         d, k, pos = metas[ci], keep[ci], pos_l[ci]
@@ -446,6 +449,9 @@ def plan_detections(
         t_ns[pos[new]] = t_c[new]
         have_t[pos[new]] = True
     offsets = {c: shifts[c].offset_frames for c in shifts}
+    if stream:  # the rows and positions above replace the files' frame numbers and times (memory: an hour)
+        for m in metas:
+            m.frame_index = m.t_ns = np.zeros(0, np.int64)
     return DetectionPlan(tuple(cams), rig.subset(cams), metas, skel, frames, t_ns, rows_l, pos_l, offsets, P)
 
 
@@ -516,22 +522,26 @@ def _reconstructor(rig: CameraRig, cameras: tuple[str, ...], joint_names, config
 
 def reconstruct_all(
     rig: CameraRig,
-    mv: MultiViewDetections,
+    mv: MultiViewDetections | Iterable[MultiViewDetections],
     config: TriangulateConfig,
     progress: Progress | None = None,
     rec: FrameReconstructor | None = None,
     done: int = 0,
     total: int | None = None,
 ) -> dict[str, np.ndarray]:
-    """Run association + triangulation on every frame. Returns padded (T,P3,J,...) arrays."""
-    rec = rec or _reconstructor(rig, mv.cameras, mv.joint_names, config)
-    T = len(mv.frame_index)
-    out = []
-    for t in range(T):
-        out.append(rec(mv.xy_px[:, t], mv.score[:, t]))
-        if progress is not None:
-            progress("triangulate", done + t + 1, total or T)
-    J = len(mv.joint_names)
+    """Run association + triangulation on every frame of ``mv`` (or of consecutive blocks of frames, read
+    one at a time). Returns padded (T,P3,J,...) arrays."""
+    blocks = [mv] if isinstance(mv, MultiViewDetections) else mv
+    out: list = []
+    cameras, J = (), 0
+    for b in blocks:
+        cameras, J = b.cameras, len(b.joint_names)
+        rec = rec or _reconstructor(rig, b.cameras, b.joint_names, config)
+        for t in range(len(b.frame_index)):
+            out.append(rec(b.xy_px[:, t], b.score[:, t]))
+            if progress is not None:
+                progress("triangulate", done + len(out), total or len(b.frame_index))
+    T = len(out)
     P3 = max([len(f.xyz_m) for f in out], default=0)
     res = {
         "xyz_m": np.full((T, P3, J, 3), np.nan),
@@ -539,12 +549,13 @@ def reconstruct_all(
         "reproj_err_px": np.full((T, P3, J), np.nan),
         "n_views": np.zeros((T, P3, J), np.int16),
         "std_m": np.full((T, P3, J), np.nan),
-        "reproj_err_cam_px": np.full((T, P3, J, len(mv.cameras)), np.nan),
+        "reproj_err_cam_px": np.full((T, P3, J, len(cameras)), np.nan),
     }
     for t, f in enumerate(out):
         m = len(f.xyz_m)
         for k in res:
             res[k][t, :m] = getattr(f, k)
+        out[t] = None  # each frame's arrays are freed once copied
     return res
 
 
@@ -589,7 +600,16 @@ def triangulate_session(
         return _triangulate_chunked(lay, rig, cfg, progress)
     sub, mv = load_detections(lay, rig, skeleton=cfg.skeleton)
     res = reconstruct_all(sub, mv, cfg, progress)
-    poses = _poses3d(mv, res, _fps(lay, mv.t_ns), rig, sub.names)
+    poses = _poses3d(
+        res,
+        _fps(lay, mv.t_ns),
+        rig,
+        sub.names,
+        frame_index=mv.frame_index,
+        t_ns=mv.t_ns,
+        joint_names=mv.joint_names,
+        parents=mv.parents,
+    )
     remove_output(lay.poses3d)
     poses.save(lay.poses3d)
     n = _people_log(res["xyz_m"])
@@ -605,14 +625,16 @@ def triangulate_session(
     return lay.poses3d
 
 
-def _poses3d(mv, res: dict, fps: float, rig: CameraRig, cameras) -> Poses3D:
-    """The per-frame poses of the frames ``mv`` covers, from ``reconstruct_all``'s arrays ``res``."""
+def _poses3d(
+    res: dict, fps: float, rig: CameraRig, cameras, *, frame_index, t_ns, joint_names, parents
+) -> Poses3D:
+    """The per-frame poses of frames ``frame_index`` from ``reconstruct_all``'s arrays ``res``."""
     return Poses3D(
         fps=fps,
-        frame_index=mv.frame_index,
-        t_ns=mv.t_ns,
-        joint_names=mv.joint_names,
-        parents=np.asarray(mv.parents),
+        frame_index=frame_index,
+        t_ns=t_ns,
+        joint_names=joint_names,
+        parents=np.asarray(parents),
         calibration_sha256=rig.sha256(),
         cameras=tuple(cameras),
         **res,
@@ -783,12 +805,27 @@ def _chunks_on_ray(jobs: dict, workers: int):
             ray.shutdown()
 
 
+BLOCK_FRAMES = 250  # frames of detections read at a time within a chunk
+
+
 def _triangulate_chunk(plan, rig, cfg, rec, chunk, fps: float, part: Path, progress=None) -> np.ndarray:
     """Frames [a, b) of the plan triangulated into the part file ``part``; returns the people per frame."""
     a, b = chunk
-    mv = plan.chunk(a, b)
-    res = reconstruct_all(plan.rig, mv, cfg, progress, rec, done=a, total=plan.n_frames)
-    _poses3d(mv, res, fps, rig, plan.cameras).save(part)
+    # the detections are read in blocks of BLOCK_FRAMES: their padded arrays (cameras x frames x the
+    # session's most people x joints) would otherwise be most of the stage's memory
+    blocks = (plan.chunk(f, min(f + BLOCK_FRAMES, b)) for f in range(a, max(b, a + 1), BLOCK_FRAMES))
+    res = reconstruct_all(plan.rig, blocks, cfg, progress, rec, done=a, total=plan.n_frames)
+    skel = plan.skel
+    _poses3d(
+        res,
+        fps,
+        rig,
+        plan.cameras,
+        frame_index=plan.frames[a:b],
+        t_ns=plan.t_ns[a:b],
+        joint_names=skel.joint_names,
+        parents=skel.parents,
+    ).save(part)
     return _people_log(res["xyz_m"])
 
 
