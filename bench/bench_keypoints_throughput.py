@@ -21,7 +21,8 @@ The machine may be shared: the load average is printed beside the figures.
     .venv/bin/python bench/bench_keypoints_throughput.py [--frames 20] [--sets legacy,balanced,fast] \
         [--demo single|multi] [--threads 1] [--gpu]
 
-``--sets`` takes presets (``keypoints list``) and model sets; ratios ``x_first`` are against the first,
+``--sets`` takes presets (``keypoints list``) and model sets, ``--extra 'name={"base": "balanced", "pyramid":
+"gaussian"}'`` a preset with PipelineConfig fields overridden; ratios ``x_first`` are against the first,
 measured in the same run. ``--gpu``: every set on the CUDA execution provider (crops batched: the graphs are
 made dynamic there) against the CPU; where onnxruntime has no CUDA provider it says so and measures nothing.
 
@@ -88,6 +89,9 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=20, help="frames per camera")
     ap.add_argument("--sets", default="legacy,balanced,fast,accurate,feet")
+    ap.add_argument(
+        "--extra", action="append", default=[], help='name={"base": preset, field: value} (repeatable)'
+    )
     ap.add_argument("--gpu", action="store_true", help="CUDA execution provider against the CPU")
     ap.add_argument(
         "--camera-groups",
@@ -102,10 +106,15 @@ def main() -> None:
     global DEMO
     DEMO = DEMOS[args.demo]
     rt = RuntimeConfig(threads=args.threads)
-    sets = args.sets.split(",")
+    sets = args.sets.split(",") + args.extra
+    label = lambda s: s.partition("=")[0]  # noqa: E731
     known_presets = presets()[1]
 
     def config(s: str, runtime: RuntimeConfig) -> PipelineConfig:
+        name, _, js = s.partition("=")
+        if js:  # name={"base": preset, ...PipelineConfig fields}
+            over = json.loads(js)
+            return preset_config(over.pop("base", ""), runtime=runtime, **over)
         if s in known_presets:
             return preset_config(s, runtime=runtime)
         return PipelineConfig(model_set=s, runtime=runtime)
@@ -121,12 +130,12 @@ def main() -> None:
         gpu = RuntimeConfig(providers=("CUDAExecutionProvider", "CPUExecutionProvider"))
         rows = []
         for s in sets:
-            rows.append(measure(f"{s} (cpu)", config(s, rt), args.frames))
-            rows.append(measure(f"{s} (cuda)", config(s, gpu), args.frames))
+            rows.append(measure(f"{label(s)} (cpu)", config(s, rt), args.frames))
+            rows.append(measure(f"{label(s)} (cuda)", config(s, gpu), args.frames))
     else:
-        rows = [measure(s, config(s, rt), args.frames) for s in sets]
+        rows = [measure(label(s), config(s, rt), args.frames) for s in sets]
         for g in args.camera_groups:
-            rows += [measure(f"{s} ({g} camera groups)", config(s, rt), args.frames, g) for s in sets]
+            rows += [measure(f"{label(s)} ({g} camera groups)", config(s, rt), args.frames, g) for s in sets]
     for r in rows:
         r["x_first"] = r["fps_per_camera"] / rows[0]["fps_per_camera"]
     if "blazepose" in sets:  # the batching comparison needs the one-crop-per-run BlazePose row
