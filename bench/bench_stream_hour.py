@@ -145,7 +145,18 @@ def _window_table(windows: list[dict]) -> str:
 
         r = np.corrcoef([w["people"] for w in windows], [w["idf1"] for w in windows])[0, 1]
         lines.append(f"correlation of IDF1 with the people in view, over {len(windows)} windows: {r:+.2f}")
+    for lo, hi in CROWDING:  # sessions compared at the same crowding (a longer one has busier minutes)
+        sel = [w for w in windows if lo <= w["people"] < hi]
+        if sel:
+            m = {k: sum(w[k] for w in sel) / len(sel) for k in ("mota", "idf1", "mpjpe_mm")}
+            lines.append(
+                f"{lo:g}-{hi:g} people in view: {len(sel)} windows, MOTA {m['mota']:.3f} "
+                f"IDF1 {m['idf1']:.3f} MPJPE {m['mpjpe_mm']:.1f} mm"
+            )
     return "\n".join(lines)
+
+
+CROWDING = ((0.0, 10.0), (10.0, 12.0), (12.0, 99.0))  # people in view per frame, bins of the window table
 
 
 def _parts_digest(folder: Path) -> dict:
