@@ -115,7 +115,7 @@ class PipelineConfig:
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a pyramid level
     # the pyramid's filter: "gaussian" (cv2.pyrDown, 5x5), "box" (2x2 means, cv2.resize INTER_AREA: about
     # 6x cheaper per level) or "mixed" (box levels, then one pyrDown for the level the crop is cut from: the
-    # Gaussian's anti-aliasing at the crop, at a quarter of its cost for L = 2); BENCHMARKS.md "2D presets"
+    # Gaussian's anti-aliasing at the crop, at a third of its cost for L = 2); BENCHMARKS.md "2D presets"
     pyramid: str = "gaussian"
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
     # flip test: joints the two crops place more than this x the crop width apart are not averaged; each
@@ -330,10 +330,7 @@ class KeypointPipeline:
                 Ms[k] = crop_transform(b, (W, H), pad * f, 0.0 if angles is None else angles[i][j])
                 owner[k] = i
                 k += 1
-        # one pyramid level per person for all its crop sizes (its largest crop's): sizes on either side of a
-        # level's bound would reduce the same pixels to two levels
-        levels = np.array([self._level(M) for M in Ms], int).reshape(len(scales), n0).max(0, initial=0)
-        levels = np.tile(levels, len(scales))
+        levels = self._person_levels(Ms, len(scales))
         for k, (src, M) in enumerate(self._crop_sources(images, owner, Ms, (W, H), levels)):
             cv2.warpAffine(
                 src,
@@ -389,6 +386,14 @@ class KeypointPipeline:
             return 0
         scale = float(np.sqrt(abs(np.linalg.det(M[:, :2]))))
         return int(np.clip(np.floor(np.log2(1.0 / max(scale, 1e-9))), 0, 4))
+
+    def _person_levels(self, Ms: np.ndarray, n_scales: int) -> np.ndarray:
+        """The pyramid level of each crop of ``Ms`` (ordered scale-major: crop s * n + person): one level
+        per person for all its crop sizes, its largest crop's. Sizes on either side of a level's bound would
+        otherwise reduce the same pixels to two levels."""
+        n = len(Ms) // max(n_scales, 1)
+        per = np.array([self._level(M) for M in Ms], int).reshape(n_scales, n).max(0, initial=0)
+        return np.tile(per, n_scales)
 
     def _reduce(self, image: np.ndarray, last: bool) -> np.ndarray:
         """One pyramid level down: cv2.pyrDown, or the means of 2x2 pixels (an odd last row or column is

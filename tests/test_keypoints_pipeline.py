@@ -464,3 +464,18 @@ def test_to_tensor_swaps_channels_and_normalises_as_the_description_says():
         s.std, np.float32
     )
     assert s.color == "BGR" and np.allclose(x, want.transpose(0, 3, 1, 2))
+
+
+def test_the_crop_sizes_of_one_person_share_one_pyramid_level():
+    """Test-time crop sizes on either side of a level's bound (0.9 x at level 1, 1.1 x at level 2) are cut
+    from one level, the largest crop's, so the person's pixels are reduced once."""
+    pipe = KeypointPipeline.__new__(KeypointPipeline)
+    pipe.config = PipelineConfig()
+    box = np.array([100.0, 100.0, 100.0 + 192 * 4 / 1.0, 100.0 + 192 * 4 / 1.0])  # scale 1/4 at padding 1
+    Ms = np.stack([crop_transform(box, (192, 192), f) for f in (0.9, 1.1)])
+    assert [pipe._level(M) for M in Ms] == [1, 2]  # each alone: two levels
+    assert pipe._person_levels(Ms, 2).tolist() == [2, 2]
+    # two people, two sizes: each person keeps its own level
+    small = np.array([0.0, 0.0, 192.0, 192.0])  # scale 1: no pyramid
+    Ms2 = np.stack([crop_transform(b, (192, 192), f) for f in (0.9, 1.1) for b in (box, small)])
+    assert pipe._person_levels(Ms2, 2).tolist() == [2, 0, 2, 0]
