@@ -64,6 +64,10 @@ def pair_weights(X, centers, basis, sc, focal, sigma_m, sigma_px, eps, limbs, pa
     conf = np.empty((C, J, _NB), np.float32)
     p2 = np.empty((C, L, _NB), np.float32)
     prod = np.empty(_NB, np.float64)
+    pf = np.empty(_NB, np.float32)
+    # limbs per float32 product: each factor lies in [eps, sqrt(2) + eps] (conf <= 1), so eps^g32 stays
+    # above float32's smallest normal (1e-38) and (sqrt(2) + eps)^g32 far below its largest
+    g32 = max(1, min(8, int(30.0 / max(1.0, -math.log10(min(eps, 1.0))))))
     sm2 = _F(sigma_m) * _F(sigma_m)
     spx = _F(sigma_px)
     epsf = _F(eps)
@@ -102,13 +106,17 @@ def pair_weights(X, centers, basis, sc, focal, sigma_m, sigma_px, eps, limbs, pa
             for v in range(V):
                 ca, cb = pairs[v, 0], pairs[v, 1]
                 prod[:nb] = 1.0
-                for li in range(L):
-                    if ca != cb:
-                        for i in range(nb):
-                            prod[i] *= np.float64(np.sqrt(p2[ca, li, i] + p2[cb, li, i]) + epsf)
-                    else:
-                        for i in range(nb):
-                            prod[i] *= np.float64(np.sqrt(p2[ca, li, i]) + epsf)
+                for l0 in range(0, L, g32):  # float32 products of g32 limbs, then one float64 product
+                    pf[:nb] = 1.0
+                    for li in range(l0, min(L, l0 + g32)):
+                        if ca != cb:
+                            for i in range(nb):
+                                pf[i] *= np.sqrt(p2[ca, li, i] + p2[cb, li, i]) + epsf
+                        else:
+                            for i in range(nb):
+                                pf[i] *= np.sqrt(p2[ca, li, i]) + epsf
+                    for i in range(nb):
+                        prod[i] *= np.float64(pf[i])
                 out[k, v, n0 : n0 + nb] = prod[:nb]
     return out
 
@@ -121,27 +129,27 @@ def sus_indices(phi, counts, u):
     :func:`track.observation.resample_pairs`: index = first i with cdf_i >= (u + m) / count)."""
     K, V, N = phi.shape
     idx = np.empty((K, N), np.int64)
-    cdf = np.empty(N, np.float64)
+    cdf = np.empty((V, N), np.float64)
+    acc = np.zeros(8, np.float64)
     for k in range(K):
+        for v0 in range(0, V, 8):  # 8 rows' running sums interleaved: independent additions in flight
+            nv = min(8, V - v0)
+            acc[:] = 0.0
+            for i in range(N):
+                for r in range(nv):
+                    acc[r] += phi[k, v0 + r, i]
+                    cdf[v0 + r, i] = acc[r]
         o = 0
         for v in range(V):
-            tot = 0.0
-            for i in range(N):
-                tot += phi[k, v, i]
-                cdf[i] = tot
+            tot = cdf[v, N - 1]
             m = counts[v]
             if not (tot > 0.0 and np.isfinite(tot)):  # degenerate row: uniform weights
                 for i in range(N):
-                    cdf[i] = (i + 1.0) / N
+                    cdf[v, i] = (i + 1.0) / N
                 tot = 1.0
-            inv = 1.0 / tot
-            cdf[N - 1] = tot
-            j = 0
-            for q in range(m):
-                pos = (u[k * V + v] + q) / m
-                while j < N - 1 and cdf[j] * inv < pos:
-                    j += 1
-                idx[k, o + q] = j
+            row = cdf[v]
+            for q in range(m):  # binary search: first i with cdf_i >= pos (side='left'), at most N - 1
+                idx[k, o + q] = min(np.searchsorted(row, (u[k * V + v] + q) / m * tot), N - 1)
             o += m
     return idx
 
@@ -287,6 +295,8 @@ def output_stats(X, score, has, eps):
     lp = np.empty(N, np.float64)
     p = np.empty(N, np.float64)
     w = np.empty(N, np.float64)
+    m = np.empty(J * 3, np.float64)
+    d2 = np.empty(J, np.float64)
     for k in range(K):
         if has[k]:
             lp[:] = 0.0
@@ -306,18 +316,21 @@ def output_stats(X, score, has, eps):
                 w[n] /= tot
         else:
             w[:] = 1.0 / N
+        Xk = X[k].reshape(N, J * 3)
+        m[:] = 0.0
+        for n in range(N):  # joints and axes innermost: one vector of sums per sample
+            wn = w[n]
+            for q in range(J * 3):
+                m[q] += wn * Xk[n, q]
+        d2[:] = 0.0
+        for n in range(N):
+            wn = w[n]
+            for j in range(J):
+                a0, a1, a2 = Xk[n, 3 * j] - m[3 * j], Xk[n, 3 * j + 1] - m[3 * j + 1], Xk[n, 3 * j + 2] - m[3 * j + 2]
+                d2[j] += wn * (a0 * a0 + a1 * a1 + a2 * a2)
         for j in range(J):
-            m0 = m1 = m2 = 0.0
-            for n in range(N):
-                m0 += w[n] * X[k, n, j, 0]
-                m1 += w[n] * X[k, n, j, 1]
-                m2 += w[n] * X[k, n, j, 2]
-            d2 = 0.0
-            for n in range(N):
-                a0, a1, a2 = X[k, n, j, 0] - m0, X[k, n, j, 1] - m1, X[k, n, j, 2] - m2
-                d2 += w[n] * (a0 * a0 + a1 * a1 + a2 * a2)
-            mean[k, j, 0], mean[k, j, 1], mean[k, j, 2] = m0, m1, m2
-            std[k, j] = math.sqrt(d2 / 3.0)
+            mean[k, j, 0], mean[k, j, 1], mean[k, j, 2] = m[3 * j], m[3 * j + 1], m[3 * j + 2]
+            std[k, j] = math.sqrt(d2[j] / 3.0)
     return mean, std
 
 
@@ -400,6 +413,30 @@ def association_costs(mean_uv, mean_depth, det_kp, det_sc, focal, tol_m, min_joi
     return cost
 
 
+@njit(cache=True, error_model="numpy")
+def gather_rows(a, idx):
+    """a[idx] for a (B,F) float32 array: the resampling's gather of the motion state."""
+    F = a.shape[1]
+    out = np.empty((idx.shape[0], F), np.float32)
+    for i in range(idx.shape[0]):
+        j = idx[i]
+        for f in range(F):
+            out[i, f] = a[j, f]
+    return out
+
+
+def gather_state(state: dict, idx: np.ndarray) -> dict:
+    """:func:`track.priors.gather_state` with float32 states gathered by :func:`gather_rows`."""
+    out = {}
+    idx = np.ascontiguousarray(idx, np.int64)
+    for k, v in state.items():
+        if v.dtype == np.float32 and v.ndim >= 1 and v.flags.c_contiguous and len(v):
+            out[k] = gather_rows(v.reshape(len(v), -1), idx).reshape((len(idx),) + v.shape[1:])
+        else:
+            out[k] = v[idx]
+    return out
+
+
 # --- the GRU motion prior (eq. 5.1-5.5) ----------------------------------------------------------------
 
 
@@ -408,7 +445,8 @@ def gru_inputs(x, prev, ip, il, ir, vscale):
     """Eq. 5.2–5.4 for a batch: x, prev (B,J,3) float32 (the samples and their previous positions) ->
     inp (B,2·J·3) = [R(x - origin), R(x - prev)·vscale] flattened, and (cos, sin) of each sample's facing
     angle (B,2). The origin is the pelvis (mid-hips where it is NaN); theta = atan2 of right - left hip
-    (0 where unknown), as :func:`track.normalize.hip_frame`."""
+    (0 where unknown), as :func:`track.normalize.hip_frame`; its cosine and sine are the hip direction's
+    components over its length."""
     B, J = x.shape[0], x.shape[1]
     inp = np.empty((B, 2 * J * 3), np.float32)
     cs = np.empty((B, 2), np.float32)
@@ -422,10 +460,12 @@ def gru_inputs(x, prev, ip, il, ir, vscale):
             o1 = h * (x[b, il, 1] + x[b, ir, 1])
         if not np.isfinite(o2):
             o2 = h * (x[b, il, 2] + x[b, ir, 2])
-        th = np.arctan2(x[b, ir, 1] - x[b, il, 1], x[b, ir, 0] - x[b, il, 0])
-        if not np.isfinite(th):
-            th = _F(0.0)
-        c, s = np.cos(th), np.sin(th)
+        dx, dy = x[b, ir, 0] - x[b, il, 0], x[b, ir, 1] - x[b, il, 1]
+        nd = np.sqrt(dx * dx + dy * dy)  # cos, sin of theta = atan2(dy, dx) without the trigonometry
+        if nd > 0 and np.isfinite(nd):
+            c, s = dx / nd, dy / nd
+        else:  # theta = 0 (as atan2(0, 0); unknown hips)
+            c, s = _F(1.0), _F(0.0)
         cs[b, 0], cs[b, 1] = c, s
         for j in range(J):
             a0, a1, a2 = x[b, j, 0] - o0, x[b, j, 1] - o1, x[b, j, 2] - o2

@@ -60,7 +60,6 @@ from track.priors import (
     MotionPrior,
     ZeroVelocityPrior,
     concat_states,
-    gather_state,
     standard_normals,
 )
 from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
@@ -537,7 +536,7 @@ class ParticleTracker:
                 X[u] = Xu
                 flat = np.arange(K * N).reshape(K, N)
                 flat[u] = u[:, None] * N + idx
-                state = gather_state(state, flat.ravel())
+                state = kernels.gather_state(state, flat.ravel())
                 resume = np.flatnonzero(ev_k & (paused > 0))
                 if len(resume):  # the motion before a pause says nothing about the motion after it
                     rows = (resume[:, None] * N + np.arange(N)).ravel()
