@@ -38,6 +38,23 @@ _NB = 128  # samples per block of pair_weights: (C,J,NB) + (C,L,NB) float32 scra
 
 
 @njit(cache=True, error_model="numpy")
+def _in_range(a, n):
+    """Every entry of the integer array ``a`` lies in [0, n) (the kernels index without bounds checks)."""
+    f = a.ravel()
+    for i in range(f.shape[0]):
+        if f[i] < 0 or f[i] >= n:
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _check_scores(basis, sc, focal, K, J, C):
+    """The shapes the scoring kernels index without bounds checks: basis (K,J,3C,3), sc (K,C,J), focal (C,)."""
+    if basis.shape != (K, J, 3 * C, 3) or sc.shape != (K, C, J) or focal.shape[0] != C:
+        raise ValueError("basis must be (K,J,3C,3), sc (K,C,J) and focal (C,)")
+
+
+@njit(cache=True, error_model="numpy")
 def _ray_rows(basis, centers, k, j, c, C):
     """Rows u, w, r of camera c's ray frame for track k, joint j, and their offsets (rows · centre)."""
     u0, u1, u2 = basis[k, j, c, 0], basis[k, j, c, 1], basis[k, j, c, 2]
@@ -59,10 +76,13 @@ def pair_weights(X, centers, basis, sc, focal, sigma_m, sigma_px, eps, limbs, pa
     conf = sc k(d^2 / s^2) (:func:`track.observation.joint_scores`)."""
     K, N, J = X.shape[0], X.shape[1], X.shape[2]
     C, L, V = centers.shape[0], limbs.shape[0], pairs.shape[0]
+    _check_scores(basis, sc, focal, K, J, C)
+    if not (_in_range(limbs, J) and _in_range(pairs, C)):
+        raise ValueError("pair_weights: limbs must index joints and pairs cameras")
     out = np.empty((K, V, N), np.float64)
     xt = np.empty((J, 3, _NB), np.float32)
     conf = np.empty((C, J, _NB), np.float32)
-    p2 = np.empty((C, L, _NB), np.float32)
+    p2 = np.zeros((C + 1, L, _NB), np.float32)  # row C stays 0: the partner of a camera alone
     prod = np.empty(_NB, np.float64)
     pf = np.empty(_NB, np.float32)
     # limbs per float32 product: each factor lies in [eps, sqrt(2) + eps] (conf <= 1), so eps^g32 stays
@@ -71,7 +91,7 @@ def pair_weights(X, centers, basis, sc, focal, sigma_m, sigma_px, eps, limbs, pa
     sm2 = _F(sigma_m) * _F(sigma_m)
     spx = _F(sigma_px)
     epsf = _F(eps)
-    half, one, near = _F(0.5), _F(1.0), _F(0.05)
+    near = _F(0.05)
     for k in range(K):
         for n0 in range(0, N, _NB):
             nb = min(_NB, N - n0)
@@ -94,8 +114,8 @@ def pair_weights(X, centers, basis, sc, focal, sigma_m, sigma_px, eps, limbs, pa
                         yw = w0 * x0 + w1 * x1 + w2 * x2 - ow
                         d = r0 * x0 + r1 * x1 + r2 * x2 - orr  # depth along it
                         gd = g * d
-                        q = (yu * yu + yw * yw) / (sm2 + gd * gd)  # d^2 / s^2
-                        kv = one / (q * half + one)  # the Cauchy peak of observation._kernel
+                        v2 = _F(2.0) * (sm2 + gd * gd)  # 2 s^2
+                        kv = v2 / (v2 + (yu * yu + yw * yw))  # 1 / (1 + d^2 / 2 s^2): observation._kernel
                         conf[c, j, i] = kv * s if d > near else _F(0.0)
             for c in range(C):
                 for li in range(L):
@@ -105,16 +125,13 @@ def pair_weights(X, centers, basis, sc, focal, sigma_m, sigma_px, eps, limbs, pa
                         p2[c, li, i] = t * t
             for v in range(V):
                 ca, cb = pairs[v, 0], pairs[v, 1]
+                cb = C if cb == ca else cb
                 prod[:nb] = 1.0
                 for l0 in range(0, L, g32):  # float32 products of g32 limbs, then one float64 product
                     pf[:nb] = 1.0
                     for li in range(l0, min(L, l0 + g32)):
-                        if ca != cb:
-                            for i in range(nb):
-                                pf[i] *= np.sqrt(p2[ca, li, i] + p2[cb, li, i]) + epsf
-                        else:
-                            for i in range(nb):
-                                pf[i] *= np.sqrt(p2[ca, li, i]) + epsf
+                        for i in range(nb):
+                            pf[i] *= np.sqrt(p2[ca, li, i] + p2[cb, li, i]) + epsf
                     for i in range(nb):
                         prod[i] *= np.float64(pf[i])
                 out[k, v, n0 : n0 + nb] = prod[:nb]
@@ -128,6 +145,11 @@ def sus_indices(phi, counts, u):
     (K,N) indices into each track's samples, the V rows' draws in order (as
     :func:`track.observation.resample_pairs`: index = first i with cdf_i >= (u + m) / count)."""
     K, V, N = phi.shape
+    total = 0
+    for v in range(counts.shape[0]):
+        total += max(counts[v], -N - 1)
+    if counts.shape[0] != V or u.shape[0] != K * V or not _in_range(counts, N + 1) or total != N:
+        raise ValueError("sus_indices: counts (V,) must sum to N and u have K*V entries")
     idx = np.empty((K, N), np.int64)
     cdf = np.empty((V, N), np.float64)
     acc = np.zeros(8, np.float64)
@@ -155,21 +177,6 @@ def sus_indices(phi, counts, u):
 
 
 @njit(cache=True, error_model="numpy")
-def _inv3(A):
-    """Inverse of a 3x3 matrix (adjugate / determinant), float64."""
-    a, b, c = A[0, 0], A[0, 1], A[0, 2]
-    d, e, f = A[1, 0], A[1, 1], A[1, 2]
-    g, h, i = A[2, 0], A[2, 1], A[2, 2]
-    co0, co1, co2 = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * co0 + b * co1 + c * co2
-    out = np.empty((3, 3), np.float64)
-    out[0, 0], out[0, 1], out[0, 2] = co0 / det, (c * h - b * i) / det, (b * f - c * e) / det
-    out[1, 0], out[1, 1], out[1, 2] = co1 / det, (a * i - c * g) / det, (c * d - a * f) / det
-    out[2, 0], out[2, 1], out[2, 2] = co2 / det, (b * g - a * h) / det, (a * e - b * d) / det
-    return out
-
-
-@njit(cache=True, error_model="numpy")
 def refine_resampled(
     X, idx, centers, basis, sc, focal, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
 ):
@@ -186,6 +193,11 @@ def refine_resampled(
     K, N, J = X.shape[0], X.shape[1], X.shape[2]
     C = centers.shape[0]
     R = noise.shape[3]
+    _check_scores(basis, sc, focal, K, J, C)
+    if idx.shape != (K, N) or not _in_range(idx, N):
+        raise ValueError("refine_resampled: idx must be (K,N) indices into the samples")
+    if refine and (noise.shape != (K, J, 3, R, N) or scales.shape[0] < R):
+        raise ValueError("refine_resampled: noise must be (K,J,3,R,N) with R scales")
     G = min(n_guided, R)
     out = np.empty((K, N, J, 3), np.float32)
     score = np.zeros((K, J, N), np.float32)
@@ -199,8 +211,7 @@ def refine_resampled(
     tot = np.empty((R + 1, N), np.float32)  # summed confidence of candidate 0 (current) and the others
     ys = np.empty((2, N), np.float32)
     sm2, spx, half, one, near = _F(sigma_m) * _F(sigma_m), _F(sigma_px), _F(0.5), _F(1.0), _F(0.05)
-    A = np.empty((3, 3), np.float64)
-    bvec = np.empty(3, np.float64)
+    tg = np.empty((3, N), np.float32)  # guided target - current position
     for k in range(K):
         for j in range(J):
             for n in range(N):
@@ -212,33 +223,39 @@ def refine_resampled(
                     for n in range(N):
                         e[r, a, n] = noise[k, j, a, r, n] * s_r
             if G > 0:  # guided: argmin_x' sum_c s_c |x' - ray_c|^2 + lam |x' - x|^2, closed form
-                A[:] = 0.0
-                bvec[:] = 0.0
+                a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = 0.0  # A = sum s (I - r r^T), b = A c
                 for c in range(C):
                     s = np.float64(sc[k, c, j])
                     if s == 0:
                         continue
-                    r0, r1, r2 = basis[k, j, 2 * C + c, 0], basis[k, j, 2 * C + c, 1], basis[k, j, 2 * C + c, 2]
-                    rr = (np.float64(r0), np.float64(r1), np.float64(r2))
-                    cc = (np.float64(centers[c, 0]), np.float64(centers[c, 1]), np.float64(centers[c, 2]))
-                    for a in range(3):
-                        qa = 0.0
-                        for b in range(3):
-                            Q = (1.0 if a == b else 0.0) - rr[a] * rr[b]  # I - r r^T
-                            A[a, b] += s * Q
-                            qa += Q * cc[b]
-                        bvec[a] += s * qa
-                for a in range(3):
-                    A[a, a] += lam
-                Ai = _inv3(A)
+                    r0 = np.float64(basis[k, j, 2 * C + c, 0])
+                    r1 = np.float64(basis[k, j, 2 * C + c, 1])
+                    r2 = np.float64(basis[k, j, 2 * C + c, 2])
+                    c0, c1, c2 = np.float64(centers[c, 0]), np.float64(centers[c, 1]), np.float64(centers[c, 2])
+                    a00 += s * (1.0 - r0 * r0)
+                    a11 += s * (1.0 - r1 * r1)
+                    a22 += s * (1.0 - r2 * r2)
+                    a01 -= s * r0 * r1
+                    a02 -= s * r0 * r2
+                    a12 -= s * r1 * r2
+                    rc = r0 * c0 + r1 * c1 + r2 * c2
+                    b0 += s * (c0 - r0 * rc)
+                    b1 += s * (c1 - r1 * rc)
+                    b2 += s * (c2 - r2 * rc)
+                a00, a11, a22 = a00 + lam, a11 + lam, a22 + lam
+                i00, i01, i02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+                i11, i12, i22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+                det = a00 * i00 + a01 * i01 + a02 * i02  # the symmetric inverse by its adjugate
+                i00, i01, i02, i11, i12, i22 = i00 / det, i01 / det, i02 / det, i11 / det, i12 / det, i22 / det
+                for n in range(N):
+                    y0, y1, y2 = b0 + lam * x[0, n], b1 + lam * x[1, n], b2 + lam * x[2, n]
+                    tg[0, n] = _F(i00 * y0 + i01 * y1 + i02 * y2) - x[0, n]
+                    tg[1, n] = _F(i01 * y0 + i11 * y1 + i12 * y2) - x[1, n]
+                    tg[2, n] = _F(i02 * y0 + i12 * y1 + i22 * y2) - x[2, n]
                 for r in range(R - G, R):
-                    for n in range(N):
-                        y0 = bvec[0] + lam * x[0, n]
-                        y1 = bvec[1] + lam * x[1, n]
-                        y2 = bvec[2] + lam * x[2, n]
-                        for a in range(3):
-                            t = Ai[a, 0] * y0 + Ai[a, 1] * y1 + Ai[a, 2] * y2
-                            e[r, a, n] += _F(t) - x[a, n]
+                    for a in range(3):
+                        for n in range(N):
+                            e[r, a, n] += tg[a, n]
             tot[:] = 0
             xm0 = xm1 = xm2 = 0.0  # the samples' mean joint: its depth is their mean depth in each camera
             for n in range(N):
@@ -291,6 +308,8 @@ def output_stats(X, score, has, eps):
     ``log_phi = sum_j log(score + eps)``; the product runs in float64 over groups of 8 joints."""
     K, N, J = X.shape[0], X.shape[1], X.shape[2]
     mean = np.empty((K, J, 3), np.float32)
+    if score.shape != (K, J, N) or has.shape[0] != K:
+        raise ValueError("output_stats: score must be (K,J,N) and has (K,)")
     std = np.empty((K, J), np.float32)
     lp = np.empty(N, np.float64)
     p = np.empty(N, np.float64)
@@ -340,6 +359,8 @@ def ray_basis(Minv, kp):
     Minv: (C,3,3) float32; kp: (K,C,J,2) undistorted px (NaN = 0) -> B (K,J,3C,3) float32, rows
     [u_0..u_{C-1}, w_0..w_{C-1}, r_0..r_{C-1}] with r_c the unit ray and u_c, w_c perpendicular to it."""
     K, C, J = kp.shape[0], kp.shape[1], kp.shape[2]
+    if Minv.shape != (C, 3, 3):
+        raise ValueError("ray_basis: Minv must be (C,3,3)")
     out = np.empty((K, J, 3 * C, 3), np.float32)
     for k in range(K):
         for c in range(C):
@@ -375,6 +396,14 @@ def association_costs(mean_uv, mean_depth, det_kp, det_sc, focal, tol_m, min_joi
     lie within the track's gate the median reaches it and is not computed: inf (the same assignment)."""
     C, K, J = mean_uv.shape[0], mean_uv.shape[1], mean_uv.shape[2]
     D = det_kp.shape[1]
+    if (
+        mean_depth.shape != (C, K, J)
+        or det_kp.shape != (C, D, J, 2)
+        or det_sc.shape != (C, D, J)
+        or focal.shape[0] != C
+        or gate.shape[0] != K
+    ):
+        raise ValueError("association_costs: shapes do not agree")
     cost = np.empty((C, K, D), np.float64)
     v = np.empty(J, np.float64)
     scale = np.empty(J, np.float64)
@@ -417,6 +446,8 @@ def association_costs(mean_uv, mean_depth, det_kp, det_sc, focal, tol_m, min_joi
 def gather_rows(a, idx):
     """a[idx] for a (B,F) float32 array: the resampling's gather of the motion state."""
     F = a.shape[1]
+    if not _in_range(idx, a.shape[0]):
+        raise ValueError("gather_rows: index out of range")
     out = np.empty((idx.shape[0], F), np.float32)
     for i in range(idx.shape[0]):
         j = idx[i]
@@ -449,6 +480,8 @@ def gru_inputs(x, prev, ip, il, ir, vscale):
     components over its length."""
     B, J = x.shape[0], x.shape[1]
     inp = np.empty((B, 2 * J * 3), np.float32)
+    if prev.shape != x.shape or max(ip, il, ir) >= J or min(ip, il, ir) < 0:
+        raise ValueError("gru_inputs: prev must be shaped as x and the hip joints index it")
     cs = np.empty((B, 2), np.float32)
     vs = _F(vscale)
     for b in range(B):
@@ -534,6 +567,10 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     h' = (1 - z) n + z h. mask: (B,H) MC-dropout mask already scaled (eq. 5.1's dropout kept on at
     inference), or (0,0) for none. Returns h' and h' * mask (the output layer's input), (B,H) float32."""
     B, H = h.shape
+    if gi.shape != (B, 3 * H) or gh.shape != (B, 3 * H) or b_ih.shape[0] != 3 * H or b_hh.shape[0] != 3 * H:
+        raise ValueError("gru_gates: gi, gh must be (B,3H) and the biases (3H,)")
+    if mask.shape[0] and mask.shape != (B, H):
+        raise ValueError("gru_gates: mask must be (B,H) or empty")
     out = np.empty((B, H), np.float32)
     dropped = np.empty((B, H), np.float32) if mask.shape[0] else out
     one = _F(1.0)
@@ -556,6 +593,10 @@ def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     standard normals (ignored for sigma 0) -> (B,J,3) float32."""
     B, J = x.shape[0], x.shape[1]
     out = np.empty((B, J, 3), np.float32)
+    if delta.shape != (B, 3 * J) or b_out.shape[0] != 3 * J or cs.shape != (B, 2):
+        raise ValueError("gru_outputs: delta must be (B,3J), b_out (3J,) and cs (B,2)")
+    if sigma != 0 and noise.shape != x.shape:
+        raise ValueError("gru_outputs: noise must be shaped as x")
     ds, sg = _F(dscale), _F(sigma)
     for b in range(B):
         c, s = cs[b, 0], cs[b, 1]
