@@ -3,25 +3,31 @@
 Each kernel fuses a chain of numpy passes over (K,J,C,N) arrays that :mod:`track.observation` and
 :mod:`track.motion` write as whole-array expressions; the numpy functions stay the reference
 (``tests/test_track_kernels.py`` checks that both agree). Shapes: K tracks, N samples, J joints, L limbs,
-C cameras, V camera pairs, B = K·N.
+C cameras, V camera pairs, D detections, B = K·N.
 
-- :func:`pair_weights`: ray coordinates, keypoint confidences, limb scores and eq. 5.7 per camera pair in
-  one pass per block of samples (:func:`track.observation.ray_coords`, :func:`~track.observation.joint_scores`,
-  :func:`~track.observation.limb_scores`, :func:`~track.observation.log_phi_pairs`), returned as
-  Phi(v, s) itself, not its log: eq. 5.6 needs only ratios of Phi within a row.
+- :func:`pair_weights`: ray coordinates, keypoint confidences, limb scores and eq. 5.7 per camera pair
+  in one pass per block of samples (observation's ``ray_coords``, ``joint_scores``, ``limb_scores``,
+  ``log_phi_pairs``), returned as Phi(v, s) itself, not its log: eq. 5.6 needs only ratios of Phi
+  within a row.
 - :func:`sus_indices`: eq. 5.6's normalisation and stochastic universal resampling per camera pair
-  (:func:`~track.observation.resample_pairs`), the uniform draws given.
+  (observation's ``resample_pairs``), the uniform draws given.
 - :func:`refine_resampled`: the gather of the resampled samples and the joint refinement of sec. 5.2.2
-  with the guided candidates (:func:`~track.observation.refine_joints`, :func:`~track.observation.guided_targets`).
+  with the guided candidates (observation's ``refine_joints``, ``guided_targets``).
 - :func:`output_stats`: the output weights (product over joints of the refined scores) and sec. 5.2.4's
-  weighted mean and spread (:func:`~track.observation.weighted_stats`).
+  weighted mean and spread (observation's ``weighted_stats``).
+- :func:`ray_basis`, :func:`association_costs`: the keypoints' ray frames and the association's cost
+  table (the same bits as observation's).
 - :func:`gru_inputs`, :func:`gru_gates`, :func:`gru_outputs`: eq. 5.1's inputs in the hip frame (eq.
-  5.2–5.4), the GRU cell's gates after its two matrix products, the displacement turned back (eq. 5.5).
+  5.2–5.4), the GRU cell's gates after its two matrix products, the displacement turned back (eq. 5.5);
+  :func:`gather_state` the resampling's gather of the motion state.
 
 Arithmetic is float32 where the numpy path's is, with float64 products and sums where a range or an
 accumulation needs it; the results agree with numpy to float32 rounding, not bit for bit (fused
-expressions, other summation orders). Kernels compile on first use and are cached on disk
-(``cache=True``, next to this file).
+expressions, other summation orders). ``fastmath`` is off (IEEE arithmetic, no reassociation);
+``error_model="numpy"`` lets a division by zero give inf as in numpy instead of raising, which is what
+lets the loops vectorise. The kernels index without bounds checks, so each checks its shapes and index
+arrays first (ValueError). They compile on first use (about 15 s for all on a loaded 2-core machine)
+and are cached on disk (``cache=True``, next to this file): a later process loads them in ~0.3 s.
 """
 
 from __future__ import annotations
@@ -49,7 +55,8 @@ def _in_range(a, n):
 
 @njit(cache=True, error_model="numpy")
 def _check_scores(basis, sc, focal, K, J, C):
-    """The shapes the scoring kernels index without bounds checks: basis (K,J,3C,3), sc (K,C,J), focal (C,)."""
+    """The shapes the scoring kernels index without bounds checks: basis (K,J,3C,3), sc (K,C,J),
+    focal (C,)."""
     if basis.shape != (K, J, 3 * C, 3) or sc.shape != (K, C, J) or focal.shape[0] != C:
         raise ValueError("basis must be (K,J,3C,3), sc (K,C,J) and focal (C,)")
 
@@ -231,7 +238,11 @@ def refine_resampled(
                     r0 = np.float64(basis[k, j, 2 * C + c, 0])
                     r1 = np.float64(basis[k, j, 2 * C + c, 1])
                     r2 = np.float64(basis[k, j, 2 * C + c, 2])
-                    c0, c1, c2 = np.float64(centers[c, 0]), np.float64(centers[c, 1]), np.float64(centers[c, 2])
+                    c0, c1, c2 = (
+                        np.float64(centers[c, 0]),
+                        np.float64(centers[c, 1]),
+                        np.float64(centers[c, 2]),
+                    )
                     a00 += s * (1.0 - r0 * r0)
                     a11 += s * (1.0 - r1 * r1)
                     a22 += s * (1.0 - r2 * r2)
@@ -246,7 +257,14 @@ def refine_resampled(
                 i00, i01, i02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
                 i11, i12, i22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
                 det = a00 * i00 + a01 * i01 + a02 * i02  # the symmetric inverse by its adjugate
-                i00, i01, i02, i11, i12, i22 = i00 / det, i01 / det, i02 / det, i11 / det, i12 / det, i22 / det
+                i00, i01, i02, i11, i12, i22 = (
+                    i00 / det,
+                    i01 / det,
+                    i02 / det,
+                    i11 / det,
+                    i12 / det,
+                    i22 / det,
+                )
                 for n in range(N):
                     y0, y1, y2 = b0 + lam * x[0, n], b1 + lam * x[1, n], b2 + lam * x[2, n]
                     tg[0, n] = _F(i00 * y0 + i01 * y1 + i02 * y2) - x[0, n]
@@ -345,7 +363,11 @@ def output_stats(X, score, has, eps):
         for n in range(N):
             wn = w[n]
             for j in range(J):
-                a0, a1, a2 = Xk[n, 3 * j] - m[3 * j], Xk[n, 3 * j + 1] - m[3 * j + 1], Xk[n, 3 * j + 2] - m[3 * j + 2]
+                a0, a1, a2 = (
+                    Xk[n, 3 * j] - m[3 * j],
+                    Xk[n, 3 * j + 1] - m[3 * j + 1],
+                    Xk[n, 3 * j + 2] - m[3 * j + 2],
+                )
                 d2[j] += wn * (a0 * a0 + a1 * a1 + a2 * a2)
         for j in range(J):
             mean[k, j, 0], mean[k, j, 1], mean[k, j, 2] = m[3 * j], m[3 * j + 1], m[3 * j + 2]
@@ -601,7 +623,11 @@ def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     for b in range(B):
         c, s = cs[b, 0], cs[b, 1]
         for j in range(J):
-            d0, d1, d2 = delta[b, 3 * j] + b_out[3 * j], delta[b, 3 * j + 1] + b_out[3 * j + 1], delta[b, 3 * j + 2] + b_out[3 * j + 2]
+            d0, d1, d2 = (
+                delta[b, 3 * j] + b_out[3 * j],
+                delta[b, 3 * j + 1] + b_out[3 * j + 1],
+                delta[b, 3 * j + 2] + b_out[3 * j + 2],
+            )
             if ds != _F(1.0):
                 d0, d1, d2 = d0 * ds, d1 * ds, d2 * ds
             o0 = c * d0 - s * d1 + x[b, j, 0]  # R^T v = [c v0 - s v1, c v1 + s v0, v2]

@@ -148,7 +148,14 @@ class GRUPrior:
             cell, out = self.model.cell, self.model.out
             w = self._np_weights = tuple(
                 np.ascontiguousarray(t.detach().numpy(), np.float32)
-                for t in (cell.weight_ih.T, cell.bias_ih, cell.weight_hh.T, cell.bias_hh, out.weight.T, out.bias)
+                for t in (
+                    cell.weight_ih.T,
+                    cell.bias_ih,
+                    cell.weight_hh.T,
+                    cell.bias_hh,
+                    out.weight.T,
+                    out.bias,
+                )
             )
         return w
 

@@ -1,4 +1,8 @@
-"""Observation model p(o_t | z_t) and the update step's sampling (seed ch. 5.2.2, eq. 5.6–5.8). numpy only.
+"""Observation model p(o_t | z_t) and the update step's sampling (seed ch. 5.2.2, eq. 5.6–5.8) in numpy.
+
+The filter runs the hot chains of this module as compiled kernels (:mod:`track.kernels`); these numpy
+functions are their reference, and the maps path (eq. 5.8 on confidence maps) and the exact output
+weights use them directly. :func:`associate` computes its cost table with the compiled kernel.
 
 Shapes: K tracks, N samples per track, J joints, L limbs, C cameras, V camera
 pairs, D detections per camera, M refinement candidates.

@@ -647,8 +647,16 @@ class ParticleTracker:
         if cfg.resample:
             if maps is None and self._phi_in_range:
                 phi = kernels.pair_weights(
-                    X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px, cfg.eps,
-                    self.limbs, self.pairs,
+                    X,
+                    self.centers,
+                    rays,
+                    asc,
+                    self.focal,
+                    cfg.obs_sigma_m,
+                    cfg.obs_sigma_px,
+                    cfg.eps,
+                    self.limbs,
+                    self.pairs,
                 )  # (K,V,N): Phi(v,s) of eq. 5.7
             else:
                 Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
@@ -660,11 +668,23 @@ class ParticleTracker:
             idx = np.broadcast_to(np.arange(N), (K, N))
         refine = cfg.refine and cfg.refine_candidates > 1
         R = cfg.refine_candidates - 1 if refine else 0
-        noise = standard_normals(self.rng, (K, J, 3, R, N)) if refine else np.zeros((K, J, 3, 0, N), np.float32)
+        noise = (
+            standard_normals(self.rng, (K, J, 3, R, N)) if refine else np.zeros((K, J, 3, 0, N), np.float32)
+        )
         X, score = kernels.refine_resampled(
-            X, np.ascontiguousarray(idx), self.centers, rays, asc, self.focal, cfg.obs_sigma_m,
-            cfg.obs_sigma_px, noise, obs.refine_scales(cfg.refine_candidates, cfg.refine_sigma_m)[1:],
-            cfg.refine_guided, _GUIDED_LAM, refine,
+            X,
+            np.ascontiguousarray(idx),
+            self.centers,
+            rays,
+            asc,
+            self.focal,
+            cfg.obs_sigma_m,
+            cfg.obs_sigma_px,
+            noise,
+            obs.refine_scales(cfg.refine_candidates, cfg.refine_sigma_m)[1:],
+            cfg.refine_guided,
+            _GUIDED_LAM,
+            refine,
         )
         return X, idx, score if refine else None
 

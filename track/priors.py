@@ -68,9 +68,9 @@ _BANK: dict[int, np.ndarray] = {}
 
 
 def standard_normals(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
-    """N(0, 1) float32 noise of ``shape``: a view (not to be written) of a contiguous slice at a random offset of a
-    fixed block of standard normals (drawing fresh normals costs more than the rest of a prediction step);
-    fresh draws when the block is too small."""
+    """N(0, 1) float32 noise of ``shape``: a view (not to be written) of a contiguous slice at a random
+    offset of a fixed block of standard normals (drawing fresh normals costs more than the rest of a
+    prediction step); fresh draws when the block is too small."""
     if 0 not in _BANK:
         _BANK[0] = np.random.default_rng(12345).standard_normal(1 << 21, dtype=np.float32)
     bank = _BANK[0]
