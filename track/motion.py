@@ -142,7 +142,8 @@ class GRUPrior:
         return bank[start : start + n].reshape(B, H)
 
     def _weights(self) -> tuple[np.ndarray, ...]:
-        """The cell's and the output layer's weights as float32 numpy arrays, transposed for ``x @ W``."""
+        """The cell's and the output layer's weights as float32 numpy arrays, transposed for ``x @ W`` (read
+        once: the prior wraps a trained model in eval mode)."""
         w = getattr(self, "_np_weights", None)
         if w is None:
             cell, out = self.model.cell, self.model.out
