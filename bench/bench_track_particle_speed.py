@@ -6,7 +6,8 @@ and :class:`track.particle.ParticleTracker` (default config: GRU prior, 300 samp
 the frames with this tree's code and, in the same run, with the code of ``--baseline REV`` (a git
 revision of this repository, extracted with ``git archive`` into a temporary folder and run there in a
 subprocess on the same detections). Both use the same seed; the bench reports whether the tracks are
-identical (ids and positions bit for bit) and fails if they are not, unless ``--allow-different``.
+identical (ids and positions bit for bit) and fails if they are not, unless ``--allow-different`` (or
+the tolerance below).
 Frames are timed after the first ``--warm`` (births of the first people excluded); figures: CPU time of
 the stepping process per frame divided by the live tracks (ms per person-frame) and the ratio
 baseline / current. Runs alternate (current, baseline, current, ...) ``--repeats`` times and the best
@@ -18,11 +19,11 @@ each: the difference one step makes from the same state, before any divergence b
 ``--atol-m TOL`` the tracks need not be identical: the bench passes when every such step gives the
 baseline's track ids and no position differs by more than TOL (metres). Either way it reports, for the
 whole runs, the first frame whose ids differ, whose positions differ at all and by more than TOL, the
-largest position difference before that and over the frames with the same ids, and both runs' raw
+largest position difference before that, over the frames with the same ids and over the tracks with
+evidence in both runs (an associated detection; a coasting track drifts its own way), and both runs' raw
 per-frame estimates against the session's ground truth (MOTA, IDF1 at 0.3 m, MPJPE). A particle filter
 is chaotic: one weight that differs in its last bit can move one resampling index, and from then on the
-two runs' samples differ by the filter's Monte-Carlo noise, and a coasting track (no detections) drifts
-its own way, though both runs track equally well.
+two runs' samples differ by the filter's Monte-Carlo noise, though both runs track equally well.
 
     python bench/bench_track_particle_speed.py [--seconds 8] [--warm 50] [--baseline REV] [--repeats 2]
         [--atol-m TOL]
@@ -82,7 +83,7 @@ def run_tracker(session: Path, warm: int, record: Path | None = None, every: int
     (untimed; skipped by a revision without ``state_arrays``)."""
     kp, sc, make = _setup(session)
     tr = make()
-    cpu, ks, ids, xyz = [], [], [], []
+    cpu, ks, ids, xyz, seen = [], [], [], [], []
     for t in range(len(kp)):
         if record is not None and t % every == every // 2 and hasattr(tr, "state_arrays"):
             np.savez(record / f"state_{t}.npz", **tr.state_arrays())
@@ -92,6 +93,7 @@ def run_tracker(session: Path, warm: int, record: Path | None = None, every: int
         ks.append(len(tr.tracks))
         ids.append(e.track_id.copy())
         xyz.append(e.xyz_m.copy())
+        seen.append(np.asarray(getattr(e, "evidence", np.ones(len(e.track_id), bool)), bool).copy())
     cpu_a, ks_a = np.asarray(cpu[warm:]), np.asarray(ks[warm:])
     return {
         "frames": len(kp),
@@ -100,6 +102,7 @@ def run_tracker(session: Path, warm: int, record: Path | None = None, every: int
         "mean_tracks": float(ks_a.mean()),
         "ids": ids,
         "xyz": xyz,
+        "seen": seen,
     }
 
 
@@ -131,6 +134,7 @@ def _worker(tree: str, session: str, out: str, warm: int, record: str) -> None:
     r = run_tracker(Path(session), warm, Path(record) if record else None)
     arrays = {f"ids_{t}": a for t, a in enumerate(r.pop("ids"))}
     arrays.update({f"xyz_{t}": a for t, a in enumerate(r.pop("xyz"))})
+    arrays.update({f"seen_{t}": a for t, a in enumerate(r.pop("seen"))})
     np.savez(out, meta=json.dumps(r), **arrays)
 
 
@@ -144,6 +148,7 @@ def run_baseline(tree: Path, session: Path, warm: int, tmp: Path, record: Path |
         T = r["frames"]
         r["ids"] = [z[f"ids_{t}"] for t in range(T)]
         r["xyz"] = [z[f"xyz_{t}"] for t in range(T)]
+        r["seen"] = [z[f"seen_{t}"] for t in range(T)]
     return r
 
 
@@ -164,6 +169,7 @@ def compare(a: dict, b: dict, atol_m: float) -> dict:
     differ by more than ``atol_m``, the first whose positions differ at all, the largest position difference
     over the frames with the same ids and before the first frame beyond ``atol_m``."""
     first_ids, first_beyond, first_any, worst, worst_before, n_same = None, None, None, 0.0, 0.0, 0
+    worst_seen = 0.0  # over the tracks with evidence (an associated detection) in both runs
     T = max(len(a["ids"]), len(b["ids"]))
     for t in range(T):
         if t >= min(len(a["ids"]), len(b["ids"])):
@@ -178,6 +184,10 @@ def compare(a: dict, b: dict, atol_m: float) -> dict:
             continue
         n_same += 1
         worst = max(worst, d)
+        both = a["seen"][t] & b["seen"][t]
+        if both.any():
+            dd = np.abs(xa[both].astype(np.float64) - xb[both])
+            worst_seen = max(worst_seen, float(np.nanmax(dd, initial=0.0)))
         if d > 0 and first_any is None:
             first_any = t
         if d > atol_m and first_beyond is None:
@@ -190,6 +200,7 @@ def compare(a: dict, b: dict, atol_m: float) -> dict:
         "first_frame_beyond_atol": first_beyond,
         "first_frame_positions_differ": first_any,
         "max_position_diff_same_ids_m": worst,
+        "max_position_diff_seen_m": worst_seen,
         "max_position_diff_before_beyond_m": worst_before,
         "within_atol": first_beyond is None,
     }
@@ -266,7 +277,7 @@ def main() -> None:
         "frames": cur["frames"],
         "cams": args.cams,
         "people": args.people,
-        "current": {k: v for k, v in cur.items() if k not in ("ids", "xyz")},
+        "current": {k: v for k, v in cur.items() if k not in ("ids", "xyz", "seen")},
         "target_ms_per_person_frame": 1.0,
     }
     line = (
@@ -277,7 +288,7 @@ def main() -> None:
     if base is not None:
         same, _ = identical(cur, base)
         cmp = compare(cur, base, 0.0 if args.atol_m is None else args.atol_m)
-        res["baseline"] = {k: v for k, v in base.items() if k not in ("ids", "xyz")}
+        res["baseline"] = {k: v for k, v in base.items() if k not in ("ids", "xyz", "seen")}
         res["baseline_rev"] = args.baseline
         res["ratio_baseline_over_current"] = base["ms_per_person_frame"] / cur["ms_per_person_frame"]
         res["identical_tracks"], res["max_position_diff_m"] = same, cmp["max_position_diff_same_ids_m"]
@@ -291,10 +302,11 @@ def main() -> None:
             line += (
                 f"\n  same ids in {cmp['frames_same_ids']} of {cur['frames']} frames (first differ: "
                 f"{cmp['first_frame_ids_differ']}); positions first differ at frame "
-                f"{cmp['first_frame_positions_differ']}, by more than {args.atol_m} m at frame "
+                f"{cmp['first_frame_positions_differ']}, by more than {args.atol_m or 0} m at frame "
                 f"{cmp['first_frame_beyond_atol']} (max diff before: "
                 f"{cmp['max_position_diff_before_beyond_m']:.2g} m); max diff over frames with the same ids "
-                f"{cmp['max_position_diff_same_ids_m']:.2g} m"
+                f"{cmp['max_position_diff_same_ids_m']:.2g} m, over tracks seen in both "
+                f"{cmp['max_position_diff_seen_m']:.2g} m"
             )
         if steps and steps["steps"]:
             line += (

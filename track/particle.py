@@ -560,11 +560,16 @@ class ParticleTracker:
             flags = np.where(n_views > 0, OBSERVED, PREDICTED).astype(np.uint8)
             states = [{kk: v[k * N : (k + 1) * N] for kk, v in state.items()} for k in range(K)]  # views
             pel_now = hip_frame(mean, self.skeleton)[0]  # (K,3)
+            had = [t.mean is not None for t in self.tracks]
+            pel_before = np.zeros((K, 3), np.float32)  # the pelvis of each track's last estimate
+            if any(had):
+                prev = np.stack([t.mean for t in self.tracks if t.mean is not None])
+                pel_before[had] = hip_frame(prev, self.skeleton)[0]
             bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
             for k, t in enumerate(self.tracks):
                 t.x, t.state = X[k], states[k]
-                if t.mean is not None and paused[k] == 0:
-                    v = (pel_now[k] - self._pelvis(t.mean)) / self.dt_s
+                if had[k] and paused[k] == 0:
+                    v = (pel_now[k] - pel_before[k]) / self.dt_s
                     t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
                 elif paused[k] > 0 and ev_k[k]:
                     t.velocity = np.zeros(3, np.float32)
