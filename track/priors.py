@@ -8,6 +8,7 @@ learned GRU prior of eq. 5.1 lives in :mod:`track.motion` (torch).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -74,7 +75,7 @@ def standard_normals(rng: np.random.Generator, shape: tuple[int, ...]) -> np.nda
     if 0 not in _BANK:
         _BANK[0] = np.random.default_rng(12345).standard_normal(1 << 21, dtype=np.float32)
     bank = _BANK[0]
-    n = int(np.prod(shape))
+    n = math.prod(shape)
     if n > len(bank):
         return rng.standard_normal(shape, dtype=np.float32)
     start = int(rng.integers(0, len(bank) - n + 1))
