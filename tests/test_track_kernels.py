@@ -50,9 +50,10 @@ def test_ray_basis_and_association_costs_equal_numpy(rng):
     muv, mz = obs.project(P, X.mean(1))
     det = np.moveaxis(kp, 0, 1)[:, ::-1].copy()  # (C,D,J,2), detections in the other order
     dsc = np.moveaxis(sc, 0, 1)[:, ::-1].copy()
-    ref = obs.association_costs(muv, mz, det, dsc, f, 0.1, 3, 0.1)
+    kw = dict(tol_m=0.1, min_joints=3, min_score=0.1)
+    ref = obs.association_costs(muv, mz, det, dsc, focal_px=f, **kw)
     gate = np.array([3.0, 3.0, 1e9])
-    got = kn.association_costs(muv, mz, det, dsc, f, 0.1, 3, 0.1, gate)
+    got = kn.association_costs(muv, mz, det, dsc, focal=f, gate=gate, **kw)
     fin = np.isfinite(got)
     assert np.array_equal(got[fin], ref[fin])  # the same bits where computed
     assert fin[ref < gate[None, :, None]].all()  # every cost below its track's gate is computed
@@ -68,10 +69,11 @@ def test_pair_weights_equal_eq_5_7_in_numpy(rng):
         Y = obs.ray_coords(X, centers, B)
         conf = obs.joint_scores(X, centers, B, sc, f, SM, SPX, Y)
         ref = obs.log_phi_pairs(obs.limb_scores(conf, LIMBS, 2), pairs, EPS)  # (K,V,N)
-        phi = kn.pair_weights(X, centers, B, sc, f, SM, SPX, EPS, LIMBS, pairs)
+        kw = dict(focal=f, sigma_m=SM, sigma_px=SPX, eps=EPS, limbs=LIMBS, pairs=pairs)
+        phi = kn.pair_weights(X, centers, B, sc, **kw)
         assert phi.shape == ref.shape and phi.dtype == np.float64
         assert np.abs(np.log(phi) - ref).max() < 1e-4  # measured 1.3e-5
-        one = kn.pair_weights(X[1:2], centers, B[1:2], sc[1:2], f, SM, SPX, EPS, LIMBS, pairs)
+        one = kn.pair_weights(X[1:2], centers, B[1:2], sc[1:2], **kw)
         assert np.array_equal(one, phi[1:2])  # a track's weights do not depend on the batch
 
 
@@ -107,7 +109,8 @@ def test_refinement_equals_numpy_and_its_gather(rng, monkeypatch):
     M, R = 4, 3
     noise = rng.standard_normal((K, 19, 3, R, N)).astype(np.float32)
     scales = obs.refine_scales(M, 0.03)[1:]
-    got, score = kn.refine_resampled(X, idx, centers, B, sc, f, SM, SPX, noise, scales, 1, 0.01, True)
+    kw = dict(sigma_m=SM, sigma_px=SPX, scales=scales, n_guided=1, lam=0.01)
+    got, score = kn.refine_resampled(X, idx, centers, B, sc, f, noise=noise, refine=True, **kw)
 
     Xg = X[np.arange(K)[:, None], idx]
     monkeypatch.setattr(obs, "normal_noise", lambda rng, shape, s: noise.reshape(shape) * np.float32(s))
@@ -117,15 +120,13 @@ def test_refinement_equals_numpy_and_its_gather(rng, monkeypatch):
     assert np.abs(score - ref_score).max() < 1e-4  # measured 8.6e-6 (scores up to 3.8)
     assert np.abs(got - Xg).max() > 0.01  # joints moved
     alone, _ = kn.refine_resampled(
-        X[2:], idx[2:], centers, B[2:], sc[2:], f, SM, SPX, noise[2:], scales, 1, 0.01, True
+        X[2:], idx[2:], centers, B[2:], sc[2:], f, noise=noise[2:], refine=True, **kw
     )
     assert np.array_equal(alone, got[2:])
-    plain, _ = kn.refine_resampled(
-        X, idx, centers, B, sc, f, SM, SPX, noise[..., :0, :], scales, 1, 0.01, False
-    )
+    plain, _ = kn.refine_resampled(X, idx, centers, B, sc, f, noise=noise[..., :0, :], refine=False, **kw)
     assert np.array_equal(plain, Xg)  # without refinement: the gather only
     with pytest.raises(ValueError, match="idx"):
-        kn.refine_resampled(X, idx + N, centers, B, sc, f, SM, SPX, noise, scales, 1, 0.01, True)
+        kn.refine_resampled(X, idx + N, centers, B, sc, f, noise=noise, refine=True, **kw)
 
 
 def test_output_stats_equal_weighted_stats(rng):

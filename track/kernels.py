@@ -75,7 +75,7 @@ def _ray_rows(basis, centers, k, j, c, C):
 
 
 @njit(cache=True, error_model="numpy")
-def pair_weights(X, centers, basis, sc, focal, sigma_m, sigma_px, eps, limbs, pairs):
+def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs, pairs):
     """Phi(v, s) of eq. 5.7 for every track, camera pair and sample. X: (K,N,J,3) float32; centers: (C,3);
     basis: (K,J,3C,3) (:func:`track.observation.ray_basis`); sc: (K,C,J) associated keypoint scores (0 =
     none); focal: (C,); limbs: (L,2); pairs: (V,2) (a pair (c, c) = camera c alone). Returns (K,V,N)
@@ -185,7 +185,7 @@ def sus_indices(phi, counts, u):
 
 @njit(cache=True, error_model="numpy")
 def refine_resampled(
-    X, idx, centers, basis, sc, focal, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
+    X, idx, centers, basis, sc, focal, *, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
 ):
     """The resampled samples X[k, idx[k]] refined joint by joint (sec. 5.2.2).
 
@@ -410,7 +410,7 @@ def ray_basis(Minv, kp):
 
 
 @njit(cache=True, error_model="numpy")
-def association_costs(mean_uv, mean_depth, det_kp, det_sc, focal, tol_m, min_joints, min_score, gate):
+def association_costs(mean_uv, mean_depth, det_kp, det_sc, *, focal, tol_m, min_joints, min_score, gate):
     """The cost of every track-detection pair per camera, as :func:`track.observation.association_costs`:
     the median over joints of the image distance in units of ``tol_m`` seen at the joint's depth, on the
     joints both have (at least ``min_joints``, else inf). mean_uv: (C,K,J,2), mean_depth: (C,K,J), det_kp:

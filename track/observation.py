@@ -384,6 +384,7 @@ def association_costs(
     mean_depth: np.ndarray,
     det_kp: np.ndarray,
     det_sc: np.ndarray,
+    *,
     focal_px: np.ndarray,
     tol_m: float,
     min_joints: int,
@@ -437,11 +438,11 @@ def associate(
         np.ascontiguousarray(mean_depth, np.float32),
         np.ascontiguousarray(det_kp, np.float32),
         np.ascontiguousarray(det_sc, np.float32),
-        np.ascontiguousarray(focal_px, np.float32),
-        float(tol_m),
-        int(min_joints),
-        float(min_score),
-        gate_k,
+        focal=np.ascontiguousarray(focal_px, np.float32),
+        tol_m=float(tol_m),
+        min_joints=int(min_joints),
+        min_score=float(min_score),
+        gate=gate_k,
     )  # inf where the cost reaches the gate
     gate_k = gate_k[:, None]
     for c in range(C):  # Hungarian per camera; C is small

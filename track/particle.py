@@ -656,12 +656,12 @@ class ParticleTracker:
                     self.centers,
                     rays,
                     asc,
-                    self.focal,
-                    cfg.obs_sigma_m,
-                    cfg.obs_sigma_px,
-                    cfg.eps,
-                    self.limbs,
-                    self.pairs,
+                    focal=self.focal,
+                    sigma_m=cfg.obs_sigma_m,
+                    sigma_px=cfg.obs_sigma_px,
+                    eps=cfg.eps,
+                    limbs=self.limbs,
+                    pairs=self.pairs,
                 )  # (K,V,N): Phi(v,s) of eq. 5.7
             else:
                 Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
@@ -683,13 +683,13 @@ class ParticleTracker:
             rays,
             asc,
             self.focal,
-            cfg.obs_sigma_m,
-            cfg.obs_sigma_px,
-            noise,
-            obs.refine_scales(cfg.refine_candidates, cfg.refine_sigma_m)[1:],
-            cfg.refine_guided,
-            _GUIDED_LAM,
-            refine,
+            sigma_m=cfg.obs_sigma_m,
+            sigma_px=cfg.obs_sigma_px,
+            noise=noise,
+            scales=obs.refine_scales(cfg.refine_candidates, cfg.refine_sigma_m)[1:],
+            n_guided=cfg.refine_guided,
+            lam=_GUIDED_LAM,
+            refine=refine,
         )
         return X, idx, score if refine else None
 
