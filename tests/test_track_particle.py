@@ -106,21 +106,3 @@ def test_config_rejects_unknown_keys_and_single_camera_rig():
     assert len(est.track_id) == 0
     with pytest.raises(ValueError, match=r"kp must have shape \(C=1"):
         tr.step(np.zeros((2, 1, 19, 2)), np.zeros((2, 1, 19)), 1)
-
-
-def test_blocked_pair_weights_give_the_same_tracks(scene, monkeypatch):
-    """The update scores samples in cache-sized blocks of tracks; one block for all gives the same bits."""
-    import track.particle as particle
-
-    P, X, kp, sc = scene
-    kp2, sc2 = kp, sc
-    cfg = ParticleConfig(n_samples=60, smooth_sigma_frames=0.0)  # the GRU prior, 2 people
-    a = track_sequence(ParticleTracker(P, FOCAL, 25.0, cfg), kp2[:30], sc2[:30])
-    monkeypatch.setattr(particle, "_SCORE_BLOCK", 1)
-    b = track_sequence(ParticleTracker(P, FOCAL, 25.0, cfg), kp2[:30], sc2[:30])
-    monkeypatch.setattr(particle, "_SCORE_BLOCK", 1000)
-    c = track_sequence(ParticleTracker(P, FOCAL, 25.0, cfg), kp2[:30], sc2[:30])
-    assert len(a.track_id) == 2
-    for r in (b, c):
-        assert np.array_equal(a.track_id, r.track_id)
-        assert np.array_equal(a.xyz_m, r.xyz_m, equal_nan=True)

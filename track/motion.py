@@ -30,7 +30,8 @@ from torch import nn
 from capture.fileio import atomic_path
 from core.errors import RoomcapError
 from keypoints.skeletons import CANONICAL, Skeleton
-from track.normalize import hip_frame, normalize, rotate_vectors, unrotate_vectors
+from track import kernels
+from track.normalize import hip_frame, hip_indices, normalize, rotate_vectors
 from track.priors import (  # noqa: F401 - re-exported
     ConstantVelocityPrior,
     MotionPrior,
@@ -40,6 +41,7 @@ from track.priors import (  # noqa: F401 - re-exported
     concat_states,
     gather_state,
     normal_noise,
+    standard_normals,
 )
 
 log = logging.getLogger(__name__)
@@ -127,7 +129,7 @@ class GRUPrior:
         x = check_batch(x, self.skeleton.n_joints)
         return {"prev": x.copy(), "h": np.zeros((len(x), self.model.hidden), np.float32)}
 
-    def _mask(self, rng: np.random.Generator, B: int, H: int) -> torch.Tensor:
+    def _mask(self, rng: np.random.Generator, B: int, H: int) -> np.ndarray:
         """MC-dropout mask (B,H), entries 0 or 1/(1-p) (keep with probability 1-p): a contiguous slice at a
         random offset of a fixed Bernoulli block (no per-step draws or conversions, as ``normal_noise``)."""
         n = B * H
@@ -137,33 +139,46 @@ class GRUPrior:
             keep = np.random.default_rng(54321).random(size) >= self.dropout
             bank = self._mask_bank = keep.astype(np.float32) * np.float32(1.0 / (1.0 - self.dropout))
         start = int(rng.integers(0, len(bank) - n + 1))
-        return torch.from_numpy(bank[start : start + n].reshape(B, H))
+        return bank[start : start + n].reshape(B, H)
+
+    def _weights(self) -> tuple[np.ndarray, ...]:
+        """The cell's and the output layer's weights as float32 numpy arrays, transposed for ``x @ W`` (read
+        once: the prior wraps a trained model in eval mode)."""
+        w = getattr(self, "_np_weights", None)
+        if w is None:
+            cell, out = self.model.cell, self.model.out
+            w = self._np_weights = tuple(
+                np.ascontiguousarray(t.detach().numpy(), np.float32)
+                for t in (
+                    cell.weight_ih.T,
+                    cell.bias_ih,
+                    cell.weight_hh.T,
+                    cell.bias_hh,
+                    out.weight.T,
+                    out.bias,
+                )
+            )
+        return w
 
     def predict(self, x, state, rng):
         x = check_batch(x, self.skeleton.n_joints)
         B, H = len(x), self.model.hidden
-        origin, theta = hip_frame(x, self.skeleton)
+        ip, il, ir = hip_indices(self.skeleton)
         # [pose - origin, last displacement] rotated into the hip frame in one pass: the normalised pose
-        # (eq. 5.2) and the normalised displacement
-        inp = np.empty((B, 2, x.shape[1], 3), np.float32)
-        np.subtract(x, origin[:, None, :].astype(np.float32, copy=False), out=inp[:, 0])
-        np.subtract(x, state["prev"], out=inp[:, 1])
-        if self.fps != self.model_fps:
-            inp[:, 1] *= np.float32(self.fps / self.model_fps)
-        inp = rotate_vectors(inp, theta[:, None])
-        with torch.no_grad():
-            h = self.model.cell(torch.from_numpy(inp.reshape(B, -1)), torch.from_numpy(state["h"]))
-            hd = h
-            if 0 < self.dropout < 1:  # MC dropout kept on at inference
-                hd = h * self._mask(rng, B, H)
-            delta = self.model.out(hd).numpy().reshape(B, -1, 3)
-        if self.fps != self.model_fps:
-            delta *= np.float32(self.model_fps / self.fps)
-        new = unrotate_vectors(delta, theta)
-        new += x
-        if self.sigma_m > 0:
-            new += normal_noise(rng, new.shape, self.sigma_m)
-        return new, {"prev": x, "h": h.numpy()}
+        # (eq. 5.2-5.4) and the normalised displacement
+        inp, cs = kernels.gru_inputs(
+            x, np.ascontiguousarray(state["prev"], np.float32), ip, il, ir, self.fps / self.model_fps
+        )
+        w_ih, b_ih, w_hh, b_hh, w_out, b_out = self._weights()
+        h_prev = np.ascontiguousarray(state["h"], np.float32)
+        # the GRU cell's two products (B,3H) (gates r, z, n), then its gates and the dropout compiled
+        mask = self._mask(rng, B, H) if 0 < self.dropout < 1 else np.zeros((0, 0), np.float32)
+        h, hd = kernels.gru_gates(inp @ w_ih, b_ih, h_prev @ w_hh, b_hh, h_prev, mask)
+        noise = standard_normals(rng, x.shape) if self.sigma_m > 0 else np.zeros((0, 0, 3), np.float32)
+        new = kernels.gru_outputs(
+            hd @ w_out, b_out, cs, x, self.model_fps / self.fps, noise, self.sigma_m
+        )  # eq. 5.5 for the displacement, plus the noise
+        return new, {"prev": x, "h": h}
 
 
 def write_checkpoint(

@@ -1,4 +1,8 @@
-"""Observation model p(o_t | z_t) and the update step's sampling (seed ch. 5.2.2, eq. 5.6–5.8). numpy only.
+"""Observation model p(o_t | z_t) and the update step's sampling (seed ch. 5.2.2, eq. 5.6–5.8) in numpy.
+
+The filter runs the hot chains of this module as compiled kernels (:mod:`track.kernels`); these numpy
+functions are their reference, and the maps path (eq. 5.8 on confidence maps) and the exact output
+weights use them directly. :func:`associate` computes its cost table with the compiled kernel.
 
 Shapes: K tracks, N samples per track, J joints, L limbs, C cameras, V camera
 pairs, D detections per camera, M refinement candidates.
@@ -30,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from track import kernels
 from track.priors import normal_noise
 
 
@@ -374,6 +379,36 @@ def nanmedian_last(x: np.ndarray) -> np.ndarray:
     return np.where(m > 0, (lo + hi) / 2, np.nan)
 
 
+def association_costs(
+    mean_uv: np.ndarray,
+    mean_depth: np.ndarray,
+    det_kp: np.ndarray,
+    det_sc: np.ndarray,
+    *,
+    focal_px: np.ndarray,
+    tol_m: float,
+    min_joints: int,
+    min_score: float,
+) -> np.ndarray:
+    """The cost of :func:`associate` for every track-detection pair (C,K,D): the median joint distance in
+    units of ``tol_m`` seen at the joint's depth, on the joints both have; inf with fewer than
+    ``min_joints``. :func:`associate` computes it with :func:`track.kernels.association_costs` (inf where
+    it reaches the gate); this is the numpy reference."""
+    ok_det = np.isfinite(det_kp).all(-1) & (det_sc >= min_score)  # (C,D,J)
+    d = np.linalg.norm(mean_uv[:, :, None] - det_kp[:, None], axis=-1)  # (C,K,D,J)
+    scale = (
+        np.asarray(focal_px, np.float64)[:, None, None, None]
+        * tol_m
+        / np.maximum(mean_depth[:, :, None], 0.1)
+    )
+    r = d / scale
+    both = ok_det[:, None] & np.isfinite(r) & (mean_depth[:, :, None] > 0.1)
+    r = np.where(both, r, np.nan)
+    n = both.sum(-1)
+    cost = nanmedian_last(np.where(n[..., None] > 0, r, 0.0))
+    return np.where(n >= min_joints, cost, np.inf)
+
+
 def associate(
     mean_uv: np.ndarray,
     mean_depth: np.ndarray,
@@ -389,28 +424,27 @@ def associate(
 
     mean_uv: (C,K,J,2), mean_depth: (C,K,J) projections of the tracks' predicted means;
     det_kp: (C,D,J,2), det_sc: (C,D,J). The cost is the median joint distance in units of
-    ``tol_m`` seen at the joint's depth; ``gate``: a number or one per track (K,). Returns assignment (C,K):
-    detection index or -1.
+    ``tol_m`` seen at the joint's depth (:func:`association_costs`); ``gate``: a number or one per track
+    (K,). Returns assignment (C,K): detection index or -1.
     """
     C, K = mean_uv.shape[:2]
     D = det_kp.shape[1]
     out = np.full((C, K), -1, np.int64)
     if K == 0 or D == 0:
         return out
-    ok_det = np.isfinite(det_kp).all(-1) & (det_sc >= min_score)  # (C,D,J)
-    d = np.linalg.norm(mean_uv[:, :, None] - det_kp[:, None], axis=-1)  # (C,K,D,J)
-    scale = (
-        np.asarray(focal_px, np.float64)[:, None, None, None]
-        * tol_m
-        / np.maximum(mean_depth[:, :, None], 0.1)
-    )
-    r = d / scale
-    both = ok_det[:, None] & np.isfinite(r) & (mean_depth[:, :, None] > 0.1)
-    r = np.where(both, r, np.nan)
-    n = both.sum(-1)
-    cost = nanmedian_last(np.where(n[..., None] > 0, r, 0.0))
-    cost = np.where(n >= min_joints, cost, np.inf)
-    gate_k = np.broadcast_to(np.asarray(gate, np.float64), (K,))[:, None]
+    gate_k = np.ascontiguousarray(np.broadcast_to(np.asarray(gate, np.float64), (K,)))
+    cost = kernels.association_costs(
+        np.ascontiguousarray(mean_uv, np.float32),
+        np.ascontiguousarray(mean_depth, np.float32),
+        np.ascontiguousarray(det_kp, np.float32),
+        np.ascontiguousarray(det_sc, np.float32),
+        focal=np.ascontiguousarray(focal_px, np.float32),
+        tol_m=float(tol_m),
+        min_joints=int(min_joints),
+        min_score=float(min_score),
+        gate=gate_k,
+    )  # inf where the cost reaches the gate
+    gate_k = gate_k[:, None]
     for c in range(C):  # Hungarian per camera; C is small
         cc = cost[c]
         big = np.where(np.isfinite(cc) & (cc < gate_k), cc, 1e6)

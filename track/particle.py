@@ -51,6 +51,7 @@ import numpy as np
 from capture.fileio import config_from_dict
 from core.progress import Progress
 from keypoints.skeletons import CANONICAL, Skeleton
+from track import kernels
 from track import observation as obs
 from track.normalize import denormalize, hip_frame
 from track.priors import (
@@ -59,7 +60,7 @@ from track.priors import (
     MotionPrior,
     ZeroVelocityPrior,
     concat_states,
-    gather_state,
+    standard_normals,
 )
 from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
 from triangulate.matching import MatchConfig
@@ -68,11 +69,7 @@ from triangulate.tracker import SEED_SIGMA_FRAMES, _nominal_dt, _smooth, frame_t
 
 log = logging.getLogger(__name__)
 
-_SCORE_BLOCK = 2  # tracks per block of the update's per-sample scores (cache-sized at 12 cameras)
-
-
-def _blocks(n: int, size: int) -> list[slice]:
-    return [slice(i, min(n, i + size)) for i in range(0, n, size)]
+_GUIDED_LAM = 0.01  # the guided targets' pull towards the sample's own joint (observation.guided_targets)
 
 
 STATE_SCHEMA = "particle_state/1"
@@ -286,6 +283,9 @@ class ParticleTracker:
         self.skeleton = skeleton
         self.limbs = np.asarray(skeleton.limbs, np.int64)
         self.pairs = obs.camera_pairs(C)
+        # eq. 5.7's product over limbs in float64 (kernels.pair_weights): each factor >= eps, so it stays
+        # above float64's smallest normal when eps^L does; else the weights take the numpy path in logs
+        self._phi_in_range = len(self.limbs) * -np.log10(min(cfg.eps, 1.0)) < 290
         self.centers, self.Minv = obs.camera_rays(self.P)
         self.rng = np.random.default_rng(cfg.seed)
         self.prior = prior if prior is not None else make_prior(cfg, fps, skeleton)
@@ -528,7 +528,7 @@ class ParticleTracker:
             asc = np.ascontiguousarray(np.moveaxis(asc, 0, 1)).astype(np.float32)  # (K,C,J)
             ev_k = has.any(0)
             score_u, u = None, np.zeros(0, np.int64)
-            rays = obs.ray_basis(self.Minv, akp)  # (K,J,3C,3)
+            rays = kernels.ray_basis(self.Minv, akp)  # (K,J,3C,3), as obs.ray_basis
             # 3. update for the tracks with evidence
             if ev_k.any():
                 u = np.flatnonzero(ev_k)
@@ -536,7 +536,7 @@ class ParticleTracker:
                 X[u] = Xu
                 flat = np.arange(K * N).reshape(K, N)
                 flat[u] = u[:, None] * N + idx
-                state = gather_state(state, flat.ravel())
+                state = kernels.gather_state(state, flat.ravel())
                 resume = np.flatnonzero(ev_k & (paused > 0))
                 if len(resume):  # the motion before a pause says nothing about the motion after it
                     rows = (resume[:, None] * N + np.arange(N)).ravel()
@@ -550,20 +550,26 @@ class ParticleTracker:
                     X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px
                 )  # (K,C,J,N)
                 lp = obs.log_phi_all(obs.limb_scores(conf, self.limbs, 2), cfg.eps)
+                mean, std = obs.weighted_stats(X, lp)
             else:  # the refinement's scores of the kept joints, summed over all cameras, product over joints
-                lp = np.zeros((K, N), np.float32)
-                lp[u] = np.log(score_u + np.float32(cfg.eps)).sum(1)
-            mean, std = obs.weighted_stats(X, lp)
+                score = np.zeros((K, J, N), np.float32)
+                score[u] = score_u
+                mean, std = kernels.output_stats(X, score, ev_k, cfg.eps)
             n_views = (asc > 0).sum(1)  # (K,J)
             conf_out = np.clip(asc.sum(1) / np.maximum(n_views, 1) * np.minimum(n_views, 2) / 2.0, 0, 1)
             flags = np.where(n_views > 0, OBSERVED, PREDICTED).astype(np.uint8)
             states = [{kk: v[k * N : (k + 1) * N] for kk, v in state.items()} for k in range(K)]  # views
             pel_now = hip_frame(mean, self.skeleton)[0]  # (K,3)
+            had = [t.mean is not None for t in self.tracks]
+            pel_before = np.zeros((K, 3), np.float32)  # the pelvis of each track's last estimate
+            if any(had):
+                prev = np.stack([t.mean for t in self.tracks if t.mean is not None])
+                pel_before[had] = hip_frame(prev, self.skeleton)[0]
             bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
             for k, t in enumerate(self.tracks):
                 t.x, t.state = X[k], states[k]
-                if t.mean is not None and paused[k] == 0:
-                    v = (pel_now[k] - self._pelvis(t.mean)) / self.dt_s
+                if had[k] and paused[k] == 0:
+                    v = (pel_now[k] - pel_before[k]) / self.dt_s
                     t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
                 elif paused[k] > 0 and ev_k[k]:
                     t.velocity = np.zeros(3, np.float32)
@@ -636,44 +642,56 @@ class ParticleTracker:
 
     def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps=None):
         """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N) and
-        the refined joints' summed confidence (K,J,N) (None without refinement)."""
+        the refined joints' summed confidence (K,J,N) (None without refinement).
+
+        Keypoint evidence: compiled kernels (:mod:`track.kernels`) fuse the weights' numpy chain (ray
+        coordinates, joint and limb scores, eq. 5.7 per pair), the resampling, the gather and the
+        refinement; with confidence maps the weights come from :meth:`_phi` (numpy)."""
         cfg = self.config
-        K, N = X.shape[:2]
-        Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
+        K, N, J = X.shape[:3]
         if cfg.resample:
-            if maps is None:  # blocks of tracks: each block's (k,J,C,N) scores stay in the cache (1.3x)
-                lpv = np.concatenate(
-                    [
-                        obs.log_phi_pairs(self._phi(X[b], rays[b], asc[b], Y[b], None), self.pairs, cfg.eps)
-                        for b in _blocks(K, _SCORE_BLOCK)
-                    ]
-                )  # (K,V,N)
+            if maps is None and self._phi_in_range:
+                phi = kernels.pair_weights(
+                    X,
+                    self.centers,
+                    rays,
+                    asc,
+                    focal=self.focal,
+                    sigma_m=cfg.obs_sigma_m,
+                    sigma_px=cfg.obs_sigma_px,
+                    eps=cfg.eps,
+                    limbs=self.limbs,
+                    pairs=self.pairs,
+                )  # (K,V,N): Phi(v,s) of eq. 5.7
             else:
+                Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
                 lpv = obs.log_phi_pairs(self._phi(X, rays, asc, Y, maps), self.pairs, cfg.eps)
-            idx = obs.resample_pairs(lpv, self.rng)
-            X = X[np.arange(K)[:, None], idx]  # all tracks in one gather
-            # the kept samples' ray coordinates computed again: the same bits as gathering Y's columns (one
-            # batched product per column), at a quarter of a (K,J,3C,N) gather's cost
-            Y = obs.ray_coords(X, self.centers, rays)
+                phi = np.exp(lpv - lpv.max(-1, keepdims=True), dtype=np.float64)
+            V = len(self.pairs)
+            idx = kernels.sus_indices(phi, obs.pair_sizes(N, V), self.rng.random(K * V))
         else:
             idx = np.broadcast_to(np.arange(N), (K, N))
-        score = None
-        if cfg.refine and cfg.refine_candidates > 1:
-            X, score = obs.refine_joints(
-                X,
-                self.centers,
-                rays,
-                asc,
-                self.focal,
-                cfg.obs_sigma_m,
-                cfg.obs_sigma_px,
-                cfg.refine_candidates,
-                cfg.refine_sigma_m,
-                self.rng,
-                cfg.refine_guided,
-                Y,
-            )
-        return X, idx, score
+        refine = cfg.refine and cfg.refine_candidates > 1
+        R = cfg.refine_candidates - 1 if refine else 0
+        noise = (
+            standard_normals(self.rng, (K, J, 3, R, N)) if refine else np.zeros((K, J, 3, 0, N), np.float32)
+        )
+        X, score = kernels.refine_resampled(
+            X,
+            np.ascontiguousarray(idx),
+            self.centers,
+            rays,
+            asc,
+            self.focal,
+            sigma_m=cfg.obs_sigma_m,
+            sigma_px=cfg.obs_sigma_px,
+            noise=noise,
+            scales=obs.refine_scales(cfg.refine_candidates, cfg.refine_sigma_m)[1:],
+            n_guided=cfg.refine_guided,
+            lam=_GUIDED_LAM,
+            refine=refine,
+        )
+        return X, idx, score if refine else None
 
     # ------------------------------------------------------------------ birth
 

@@ -8,6 +8,7 @@ learned GRU prior of eq. 5.1 lives in :mod:`track.motion` (torch).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -67,17 +68,23 @@ def concat_states(states: list[State]) -> State:
 _BANK: dict[int, np.ndarray] = {}
 
 
-def normal_noise(rng: np.random.Generator, shape: tuple[int, ...], sigma: float) -> np.ndarray:
-    """N(0, sigma^2) float32 noise of ``shape`` as a contiguous slice at a random offset of a fixed block of
-    standard normals (drawing fresh normals costs more than the rest of a prediction step)."""
+def standard_normals(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """N(0, 1) float32 noise of ``shape``: a view (not to be written) of a contiguous slice at a random
+    offset of a fixed block of standard normals (drawing fresh normals costs more than the rest of a
+    prediction step); fresh draws when the block is too small."""
     if 0 not in _BANK:
         _BANK[0] = np.random.default_rng(12345).standard_normal(1 << 21, dtype=np.float32)
     bank = _BANK[0]
-    n = int(np.prod(shape))
+    n = math.prod(shape)
     if n > len(bank):
-        return rng.standard_normal(shape, dtype=np.float32) * np.float32(sigma)
+        return rng.standard_normal(shape, dtype=np.float32)
     start = int(rng.integers(0, len(bank) - n + 1))
-    return bank[start : start + n].reshape(shape) * np.float32(sigma)
+    return bank[start : start + n].reshape(shape)
+
+
+def normal_noise(rng: np.random.Generator, shape: tuple[int, ...], sigma: float) -> np.ndarray:
+    """N(0, sigma^2) float32 noise of ``shape`` (a new array), from :func:`standard_normals`."""
+    return standard_normals(rng, shape) * np.float32(sigma)
 
 
 def check_batch(x: np.ndarray, n_joints: int) -> np.ndarray:
