@@ -449,7 +449,7 @@ def plan_detections(
         t_ns[pos[new]] = t_c[new]
         have_t[pos[new]] = True
     offsets = {c: shifts[c].offset_frames for c in shifts}
-    if stream:  # the rows and positions above replace the files' frame numbers and times (memory: an hour)
+    if stream:  # the rows and positions above replace the files' frame numbers and times (an hour: 17 MB)
         for m in metas:
             m.frame_index = m.t_ns = np.zeros(0, np.int64)
     return DetectionPlan(tuple(cams), rig.subset(cams), metas, skel, frames, t_ns, rows_l, pos_l, offsets, P)
