@@ -47,16 +47,8 @@ class StreamLinker(FrameLinker):
     the label -> final track id map after stitching and the ``min_track_frames`` filter (-1 = dropped).
     """
 
-    def __init__(
-        self,
-        cfg: TrackerConfig,
-        fps: float,
-        flip: np.ndarray | None,
-        clock: np.ndarray,
-        pauses: np.ndarray,
-        facing: tuple[int, int, int] | None,
-    ) -> None:
-        super().__init__(cfg, fps, flip, clock, pauses, facing)
+    def __init__(self, *args, **kwargs) -> None:  # FrameLinker's arguments
+        super().__init__(*args, **kwargs)
         # per track, for stitching and the filter (a few numbers per track)
         self.first: list[int] = []
         self.last: list[int] = []
