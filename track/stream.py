@@ -210,6 +210,7 @@ def track_session_particle_chunked(
             held = i
             del kp, sc, per_frame, raw
         raw_store.finish()
+        release_free_memory()  # pass 1's fragmented heap, before pass 2 allocates its windows
         # pass 2: the offline clean-up per chunk with margins, each track's evidence over the session
         read = RawReader(raw_store, chunks, J)
         counts = read.evidence()
@@ -233,6 +234,8 @@ def track_session_particle_chunked(
                 out_store.part_path(i)
             )
             out_store.commit(i)
+            del raw, res, res_core, X, S, Cf, Fl
+            release_free_memory()
         n_tracks = sum(n >= max(1, int(round(tracker.config.min_track_s * fps))) for n in counts.values())
         out_store.finish({"n_tracks": int(n_tracks)})
         log.info(
