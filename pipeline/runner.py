@@ -40,6 +40,7 @@ from pipeline.glue import forecast_model, track_particle, write_preview
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
 from pipeline.report import write_report
 from triangulate.chunks import PartStore, parts_dir
+from triangulate.reconstruct import RUN_SETTINGS
 from triangulate.stage import track_session_greedy, triangulate_session
 
 log = logging.getLogger(__name__)
@@ -399,9 +400,6 @@ def _plan_triangulate(
         },  # new offsets: rerun
         run,
     )
-
-
-RUN_SETTINGS = ("workers", "executor")  # [triangulate.options] that say how the chunks ran, not what they are
 
 
 def _without_run_settings(d: dict) -> dict:

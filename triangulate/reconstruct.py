@@ -48,6 +48,7 @@ def flip_index(joint_names: tuple[str, ...]) -> np.ndarray:
 
 
 CHUNK_EXECUTORS = ("processes", "ray")  # where TriangulateConfig.executor runs the chunks of one session
+RUN_SETTINGS = ("workers", "executor")  # TriangulateConfig fields: how the chunks ran, not what they are
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ from keypoints.skeletons import (
 from triangulate.checks import check_frame_order, detection_warnings, no_detection_warning, span_warnings
 from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir, remove_output
 from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
+from triangulate.reconstruct import RUN_SETTINGS, FrameReconstructor, TriangulateConfig
 from triangulate.tracker import TrackerConfig, track_poses
 
 log = logging.getLogger(__name__)
@@ -703,8 +703,8 @@ def _triangulate_chunked(
 
 
 def _without_run_settings(cfg: TriangulateConfig) -> TriangulateConfig:
-    """``cfg`` with ``workers`` and ``executor`` at their defaults: how the chunks ran, not what they are."""
-    return replace(cfg, workers=1, executor="processes")
+    """``cfg`` with its ``RUN_SETTINGS`` at their defaults: how the chunks ran, not what they are."""
+    return replace(cfg, **{k: TriangulateConfig.__dataclass_fields__[k].default for k in RUN_SETTINGS})
 
 
 def _import_ray():
