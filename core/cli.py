@@ -31,7 +31,11 @@ EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
 def describe_os_error(e: OSError) -> str:
-    """An OSError as a sentence: which file, what went wrong, what to do."""
+    """An OSError as a sentence: which file, what went wrong, what to do.
+
+    >>> describe_os_error(FileNotFoundError(errno.ENOENT, "No such file or directory", "rig.toml"))
+    'No such file or directory: rig.toml (check the path)'
+    """
     where = f" {e.filename}" if e.filename else ""
     what = e.strerror or str(e)
     hint = {
@@ -93,7 +97,14 @@ positive_float = _number(float, 0.0, False, "a number > 0")
 
 
 def parse_sets(items: Sequence[str] | None) -> dict[str, str]:
-    """``--set key=value`` options as a dict of strings (typed later by ``core.config.config_from_dict``)."""
+    """``--set key=value`` options as a dict of strings (typed later by ``core.config.config_from_dict``).
+
+    >>> parse_sets(["epochs=20", "lr = 1e-3"])
+    {'epochs': '20', 'lr': '1e-3'}
+    >>> parse_sets(["epochs"])
+    Traceback (most recent call last):
+    core.errors.InputError: --set expects key=value, got 'epochs'
+    """
     out = {}
     for it in items or []:
         if "=" not in it:
