@@ -25,7 +25,7 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
 - **CSV** tidy, one row per known joint and frame: ``frame, time_s, person, joint, x, y, z,
   confidence, std_m, flags`` (world metres, z up, as the track file); :func:`read_csv` reads it back.
 - **JSON**: :func:`track.trackfile.export_json` for one track (confidence, std_m, flags).
-- **BVH**: the fitted skeleton (:mod:`track.skeleton_fit`), written by :func:`track.skeleton_fit.write_bvh`.
+- **BVH**: the fitted skeleton (:mod:`track.skeleton_fit`), written by :func:`track.bvh.write_bvh`.
 
 ``ExportOptions(lowpass_hz=6)`` (``tracks export --lowpass 6``) low-pass filters the positions first, as
 Pose2Sim filters its 3D before OpenSim (:func:`lowpass`: Butterworth, order 4, zero phase). Off by
@@ -47,7 +47,8 @@ import numpy as np
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text
 from core.errors import RoomcapError
-from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span, write_bvh
+from track.bvh import write_bvh
+from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span
 from track.trackfile import (
     SMOOTHED,
     TrackFile,
