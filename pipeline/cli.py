@@ -51,6 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-frames", type=positive_int, help="keypoints: process only the first N frames of each video"
     )
     p.add_argument("--force", action="store_true", help="rerun stages even when their outputs are up to date")
+    p.add_argument(
+        "--wait",
+        action="store_true",
+        help="when another run is processing a session (it holds <session output>/.roomcap/lock), wait for "
+        "it to finish, then go on (default: refuse that session, naming the other run, and exit 2)",
+    )
     p.add_argument("--executor", choices=EXECUTORS, default="local")
     p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
     p.add_argument(
@@ -172,6 +178,7 @@ def _main(argv: list[str] | None = None) -> int:
         workers=args.workers,
         address=args.address,
         on_result=done,
+        wait=args.wait,
     )
     bar.close()
     if args.overlay:
@@ -187,11 +194,15 @@ def _main(argv: list[str] | None = None) -> int:
     print(table)
     failed = [r for r in results if r.status == "failed"]
     partial = [r for r in results if r.status == "partial"]  # ran without some cameras (skipped_cameras)
+    locked = [r for r in results if r.status == "locked"]  # another run holds the session
     print(
-        f"{len(results) - len(failed) - len(partial)} sessions ok, "
+        f"{len(results) - len(failed) - len(partial) - len(locked)} sessions ok, "
         + (f"{len(partial)} partial, " if partial else "")
+        + (f"{len(locked)} locked, " if locked else "")
         + f"{len(failed)} failed in {time.perf_counter() - t0:.1f} s"
     )
+    for r in locked:
+        print(f"LOCKED {r.name}: {r.message}", file=sys.stderr)
     for r in partial:
         print(f"PARTIAL {r.name}: cameras {sorted(r.skipped_cameras)} left out: {r.message}", file=sys.stderr)
     for r in failed:
@@ -208,7 +219,10 @@ def _main(argv: list[str] | None = None) -> int:
         except OSError as e:  # e.g. the disk filled up: the table above is the summary
             print(f"reprocess: could not write the summary files to {args.out} ({e}).", file=sys.stderr)
             return 1
-    return 1 if failed or export_errors else 0
+    if locked:
+        return 2
+    # partial: a camera could not be used, so some of the work failed (exit 1, as a failed session)
+    return 1 if failed or partial or export_errors else 0
 
 
 main = guarded("reprocess", _main)

@@ -32,11 +32,13 @@ from calibrate.camera import CameraRig
 from calibrate.formats import import_calibration
 from capture.fileio import atomic_write_bytes, atomic_write_text, load_npz, load_toml, save_toml
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from core.cli import describe_os_error
 from core.errors import RoomcapError
 from keypoints.registry import get_model_set, resolve
 from pipeline.config import STAGES, PipelineConfig
 from pipeline.discover import SEGMENT_SUFFIXES, SessionSource
 from pipeline.glue import forecast_model, track_particle, write_preview
+from pipeline.lock import SessionLocked, holder, lock_path, session_lock
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
 from pipeline.report import write_report
 from triangulate.chunks import PartStore, parts_dir
@@ -56,7 +58,8 @@ class StageError(RoomcapError, RuntimeError):
 class SessionResult:
     name: str
     out: str
-    status: str = "ok"  # ok | partial (some cameras were skipped, see skipped_cameras) | failed
+    # ok | partial (some cameras were skipped, see skipped_cameras) | failed | locked (another run holds it)
+    status: str = "ok"
     message: str = ""
     cameras: int = 0
     frames: int = 0
@@ -587,6 +590,8 @@ def check_session(source: SessionSource, out: Path | None, config: PipelineConfi
         return None
     root = output_root(source, out)
     try:
+        if holder(root) is not None:  # another run is writing it: process_session refuses or waits
+            return None
         saved = json.loads(_summary_path(root).read_text())
         lay, store = SessionLayout(root), ProvenanceStore(root)
         for name in _stage_list(config, source):
@@ -618,8 +623,40 @@ def process_session(
     config: PipelineConfig,
     force: bool = False,
     threads: int | None = None,
+    wait: bool = False,
 ) -> SessionResult:
-    """Run the configured stages of one session; never raises (failures are in the result)."""
+    """Run the configured stages of one session under its lock (``pipeline.lock``); never raises (failures
+    are in the result). Another run holding the session: status ``locked`` (or, with ``wait``, wait)."""
+    root = output_root(source, out)
+    if _blocking_problem(source, config):  # nothing will be written: no lock (nor folder) to make
+        return _process_session(source, out, config, force, threads)
+    try:
+        with session_lock(root, wait=wait) as lock:
+            result = _process_session(source, out, config, force, threads)
+        if lock.took_over is not None:
+            result.warnings.insert(0, lock.took_over_message(root))
+            if result.status != "failed":
+                result.message = "warning: " + "; ".join(result.warnings)
+        return result
+    except SessionLocked as e:
+        return SessionResult(source.name, str(root), status="locked", failed_stage="lock", message=str(e))
+    except OSError as e:
+        return SessionResult(
+            source.name,
+            str(root),
+            status="failed",
+            failed_stage="lock",
+            message=f"cannot take the session's lock {lock_path(root)}: {describe_os_error(e)}",
+        )
+
+
+def _process_session(
+    source: SessionSource,
+    out: Path | None,
+    config: PipelineConfig,
+    force: bool = False,
+    threads: int | None = None,
+) -> SessionResult:
     root = output_root(source, out)
     result = SessionResult(source.name, str(root))
     if threads:
