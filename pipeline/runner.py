@@ -40,7 +40,7 @@ from pipeline.discover import SEGMENT_SUFFIXES, SessionSource
 from pipeline.glue import forecast_model, track_particle, write_preview
 from pipeline.lock import SessionLocked, holder, lock_path, session_lock
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
-from pipeline.report import write_report
+from pipeline.report import warnings_path, write_report
 from triangulate.chunks import PartStore, parts_dir
 from triangulate.reconstruct import RUN_SETTINGS
 from triangulate.stage import track_session_greedy, triangulate_session
@@ -584,6 +584,19 @@ class _WarningsTo(logging.Handler):
             self.sink.append(msg)
 
 
+def stored_warnings(root: Path, stage: str) -> list[str]:
+    """The warnings a stage logged when it made its current outputs (kept beside its record)."""
+    try:
+        msgs = json.loads(warnings_path(root, stage).read_text())
+    except (OSError, json.JSONDecodeError):
+        return []
+    return [str(m) for m in msgs] if isinstance(msgs, list) else []
+
+
+def _keep_warnings(sink: list[str], msgs: list[str]) -> None:
+    sink.extend(m for m in msgs if m not in sink)
+
+
 def check_session(source: SessionSource, out: Path | None, config: PipelineConfig) -> SessionResult | None:
     """The result of a session whose every stage is up to date (without running anything), else None."""
     if _blocking_problem(source, config):
@@ -612,6 +625,7 @@ def check_session(source: SessionSource, out: Path | None, config: PipelineConfi
             setattr(res, k, saved[k])
     if res.skipped_cameras:
         res.status = "partial"
+    if res.warnings:  # the stages' warnings, as when they ran
         res.message = "warning: " + "; ".join(res.warnings)
     res.stage_s = {s: 0.0 for s in _stage_list(config)}
     return res
@@ -691,21 +705,23 @@ def _process_session(
                 )
             inputs = store.fingerprint_inputs(plan.inputs)
             version = stage_version(name, store.stat_cache)
-            if not force and store.is_current(
-                name, inputs, plan.config, plan.model_sha256, plan.outputs, version
-            ):
+            what, why = store.why_stale(name, inputs, plan.config, plan.model_sha256, plan.outputs, version)
+            if not force and not what:
                 result.stage_s[name] = round(time.perf_counter() - t0, 3)
                 done.append(name)
+                _keep_warnings(result.warnings, stored_warnings(root, name))
                 continue
+            if what == "outputs" and not force:  # not what the stage wrote: never trusted, and said
+                log.warning("stage '%s' reruns: its outputs are not what it wrote (%s)", name, why)
+            else:
+                log.info("%s: stage '%s' reruns: %s", source.name, name, why)
             store.invalidate(name)
             _remove_stale_temporaries(plan.outputs)
             log.info("%s: running %s", source.name, name)
             n_warn = len(result.warnings)
             plan.run(result.warnings)
             # what this stage logged, kept with its outputs for the report (replaced when it reruns)
-            atomic_write_text(
-                root / ".roomcap" / "warnings" / f"{name}.json", json.dumps(result.warnings[n_warn:])
-            )
+            atomic_write_text(warnings_path(root, name), json.dumps(result.warnings[n_warn:]))
             store.record(
                 StageRecord(
                     name,
@@ -714,6 +730,7 @@ def _process_session(
                     plan.model_sha256,
                     version,
                     store.fingerprint_outputs(plan.outputs),
+                    store.output_files(plan.outputs),
                 )
             )
             result.ran.append(name)

@@ -144,3 +144,92 @@ def test_lock_in_one_process_and_wait(tmp_path):
         assert not got and said and "waiting" in said[0]
     t.join(5)
     assert got and holder(tmp_path) is None
+
+
+# ----------------------------------------------------------------------------- the cache's record
+
+
+@pytest.mark.parametrize("change", ["truncate", "same_size", "delete_part"])
+def test_outputs_that_are_not_what_the_stage_wrote_are_not_trusted(session, tmp_path, caplog, change):
+    """Each output's size and sha256 are in the stage's record; an output changed behind the cache's back
+    (even with its size and mtime kept) reruns the stage, which says which file and how."""
+    out = tmp_path / "out"
+    cfg = PipelineConfig(stages=("triangulate", "track"))
+    if change == "delete_part":  # a streamed track: a folder of parts
+        cfg = cfg.replace(track=type(cfg.track)(tracker="greedy", options={"chunk_s": 1.0}))
+    (first,) = run_sessions(discover([session]), out, cfg, workers=1)
+    assert first.status == "ok", first.message
+    s = out / "S1"
+    want = _outputs(s)
+    target = s / "track" / "tracks.npz"
+    if change == "truncate":
+        target.write_bytes(target.read_bytes()[:100])
+    elif change == "same_size":
+        st = target.stat()
+        data = bytearray(target.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        target.write_bytes(bytes(data))
+        os.utime(target, ns=(st.st_atime_ns, st.st_mtime_ns))  # the same size and mtime
+    else:
+        parts = sorted((s / "track" / "tracks.parts").glob("*.npz"))
+        assert len(parts) >= 2
+        parts[-1].unlink()
+    caplog.clear()
+    (second,) = run_sessions(discover([session]), out, cfg, workers=1)
+    assert second.status == "ok" and second.ran == ["track"], (second.ran, second.message)
+    said = [r.getMessage() for r in caplog.records if "reruns" in r.getMessage()]
+    assert said and "not what it wrote" in said[0], said
+    assert {"truncate": "bytes, the stage wrote", "same_size": "sha256 differs", "delete_part": "is missing"}[
+        change
+    ] in said[0]
+    assert _outputs(s) == want  # restored byte for byte
+    (third,) = run_sessions(discover([session]), out, cfg, workers=1)
+    assert third.ran == []
+
+
+def test_record_holds_size_and_sha256_of_each_output(session, tmp_path):
+    import hashlib
+
+    out = tmp_path / "out"
+    run_sessions(discover([session]), out, PipelineConfig(stages=("triangulate",)), workers=1)
+    rec = json.loads((out / "S1" / ".roomcap" / "provenance" / "triangulate.json").read_text())
+    f = out / "S1" / "triangulate" / "poses3d.npz"
+    assert rec["output_files"] == {
+        "triangulate/poses3d.npz": {
+            "size": f.stat().st_size,
+            "sha256": hashlib.sha256(f.read_bytes()).hexdigest(),
+        }
+    }
+
+
+# ----------------------------------------------------------------------------- warnings kept
+
+
+def test_warnings_survive_cached_reruns(session, tmp_path):
+    """A kilometre-wide rig is warned on the first run and again, from the stage's record, on every cached
+    or partly cached rerun: in the summary table, the summary file and the report."""
+    import shutil
+
+    import numpy as np
+
+    from calibrate.camera import CameraRig
+    from capture.session import SessionLayout
+    from pipeline.report import _warnings
+
+    src = tmp_path / "in" / "wide"
+    shutil.copytree(session, src)
+    rig = CameraRig.load(src / "calib" / "rig.toml")  # translations in millimetres
+    cams = [
+        type(c)(c.name, c.size_wh, c.K, c.dist, c.model, c.R, np.asarray(c.t) * 1000) for c in rig.cameras
+    ]
+    CameraRig(tuple(cams)).save(src / "calib" / "rig.toml")
+    out = tmp_path / "out"
+    args = [str(src), "--out", str(out), "--workers", "1"]
+    for stages in ("triangulate,track", "triangulate,track", "triangulate,track,forecast,report", "report"):
+        assert reprocess([*args, "--stages", stages]) == 0
+        (r,) = json.loads((out / "reprocess_summary.json").read_text())
+        assert any("km), wider than any room" in w for w in r["warnings"]), (stages, r["warnings"])
+        assert "km), wider than any room" in r["message"], (stages, r["message"])
+        assert "warning: " in (out / "reprocess_summary.txt").read_text()  # in the table too
+    shown = [w["message"] for w in _warnings(SessionLayout(out / "wide"))]
+    assert any("km), wider than any room" in m for m in shown), shown
