@@ -7,7 +7,9 @@ Exit codes, the same for every command (README, "Exit codes"):
   printed;
 - 2: bad input or a project error: one message on stderr that says what is wrong and what to do, no
   traceback (argparse's usage errors also exit 2);
-- 130: interrupted (Ctrl-C); what was finished is kept.
+- 130: interrupted (Ctrl-C); what was finished is kept. The first Ctrl-C prints "stopping…" at once and
+  the command ends within ``STOP_GRACE_S`` (work still running then is dropped: every output is written
+  atomically, so nothing half-written is left as a result); a second Ctrl-C ends it at once.
 
 An unexpected exception (a bug) still ends with its traceback, so that it can be reported; set
 ``ROOMCAP_DEBUG=1`` to see the traceback of the errors above as well.
@@ -19,7 +21,10 @@ import argparse
 import errno
 import logging
 import os
+import signal
 import sys
+import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -28,6 +33,44 @@ from core.errors import InputError, RoomcapError
 from core.redact import redact, redact_log_records
 
 EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+STOP_GRACE_S = 1.5  # after the first Ctrl-C, how long a command may take to stop before it is ended
+
+
+def _say(text: str) -> None:
+    """Write to stderr from a signal handler or a watchdog thread (no locks: os.write)."""
+    try:
+        os.write(2, text.encode())
+    except OSError:
+        pass
+
+
+def _stop_on_sigint(prog: str) -> Any:
+    """Install the Ctrl-C handler of a command; returns the previous handler (None off the main thread).
+
+    The first SIGINT says "stopping…" at once and raises KeyboardInterrupt in the main thread, so the
+    command unwinds and keeps what it finished; a watchdog ends the process with 130 if it has not ended
+    within ``STOP_GRACE_S`` (a thread pool finishing its queue, a native call that does not return, worker
+    processes). A second SIGINT ends it at once.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    hits = [0]
+
+    def deadline() -> None:
+        time.sleep(STOP_GRACE_S)
+        _say(f"{prog}: stopped; what was finished is kept (run the command again to go on).\n")
+        os._exit(EXIT_INTERRUPTED)
+
+    def handler(signum: int, frame: Any) -> None:
+        hits[0] += 1
+        if hits[0] > 1:
+            _say(f"{prog}: stopped.\n")
+            os._exit(EXIT_INTERRUPTED)
+        _say(f"{prog}: stopping… (Ctrl-C again to quit at once)\n")
+        threading.Thread(target=deadline, name="stop-deadline", daemon=True).start()
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGINT, handler)
 
 
 def describe_os_error(e: OSError) -> str:
@@ -53,6 +96,7 @@ def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Ca
     def run(argv: Sequence[str] | None = None) -> int:
         debug = os.environ.get("ROOMCAP_DEBUG", "") not in ("", "0")
         redact_log_records()
+        previous = _stop_on_sigint(prog)
         try:
             code = main(argv)
             return EXIT_OK if code is None else int(code)
@@ -67,6 +111,9 @@ def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Ca
             text = describe_os_error(e) if isinstance(e, OSError) and e.strerror else str(e)
             print(f"{prog}: error: {redact(text)}", file=sys.stderr)
             return EXIT_INPUT
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
 
     run.__doc__ = main.__doc__
     run.__wrapped__ = main  # type: ignore[attr-defined]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -233,3 +234,54 @@ def test_warnings_survive_cached_reruns(session, tmp_path):
         assert "warning: " in (out / "reprocess_summary.txt").read_text()  # in the table too
     shown = [w["message"] for w in _warnings(SessionLayout(out / "wide"))]
     assert any("km), wider than any room" in m for m in shown), shown
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+
+
+def test_ctrl_c_says_stopping_and_ends_within_2_s_keeping_finished_stages(
+    session, config_toml, reference, tmp_path
+):
+    out = tmp_path / "out"
+    proc = _start(session, out, config_toml)
+    poses = out / "S1" / "triangulate" / "poses3d.npz"
+    deadline = time.time() + 60
+    while not poses.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.3)  # inside the track stage (about 3 s)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    t0 = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    dt = time.perf_counter() - t0
+    assert proc.returncode == 130, err
+    assert err.startswith("reprocess: stopping…"), err
+    assert dt < 2.0, f"took {dt:.2f} s to stop"  # measured 0.1-0.3 s
+    assert reprocess([str(session), "--out", str(out), "--workers", "1", "--config", str(config_toml)]) == 0
+    (r,) = json.loads((out / "reprocess_summary.json").read_text())
+    assert r["ran"][0] == "track" and "triangulate" not in r["ran"]  # the finished stage was kept
+    got, want = _outputs(out), _outputs(reference)
+    assert sorted(got) == sorted(want) and [k for k in want if got[k] != want[k]] == []
+
+
+def test_a_command_that_does_not_stop_is_ended_after_the_grace(tmp_path):
+    """Work that ignores the interrupt (a thread pool draining its queue, a native call): the guard's
+    watchdog ends the process with 130 within STOP_GRACE_S of the first Ctrl-C."""
+    code = (
+        "import time\nfrom core.cli import guarded\n"
+        "def main(argv):\n"
+        "    while True:\n"
+        "        try:\n            print('ready', flush=True)\n            time.sleep(30)\n"
+        "        except KeyboardInterrupt:\n            pass  # keeps working\n"
+        "raise SystemExit(guarded('stubborn', main)([]))\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+    t0 = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    dt = time.perf_counter() - t0
+    assert proc.returncode == 130 and "stubborn: stopping…" in err and "stubborn: stopped" in err, err
+    assert dt < 2.0, f"{dt:.2f} s"
