@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from capture.config import ConfigError, load_config
+from capture.config import ConfigError, load_config, shared_sources
 from capture.fileio import FormatError
 from capture.live import BuildStages, LiveRunner
 from capture.offline_sync import sync_audio, sync_session
@@ -75,6 +75,9 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
         print(f"capture-run: --duration must be positive, got {args.duration}.", file=sys.stderr)
         return 2
     text = Path(args.cameras).read_text(encoding="utf-8")
+    shared = shared_sources(cfg)
+    for w in shared:
+        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
     live_on = args.live or cfg.live.enabled
     live = None
     if live_on:
@@ -146,6 +149,8 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
             f"  skew between cameras: median {t['skew_ms_median']:.2f} ms, p95 {t['skew_ms_p95']:.2f} ms; "
             f"{t['complete_sets']}/{t['sets']} complete frame sets"
         )
+    for w in shared:  # again beside the skew it makes meaningless
+        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
     if live:
         print("  live: " + redact_text(live.summary_line()))
     if summary.get("failed_cameras"):
@@ -162,13 +167,21 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
 
 def _check(argv: list[str]) -> int:
 
-    p = argparse.ArgumentParser(prog="capture-run check")
-    p.add_argument("--cameras", required=True)
+    p = argparse.ArgumentParser(
+        prog="capture-run check",
+        description="Parse cams.yaml and list its cameras. Exit 0 when it is usable, 1 when it parses but "
+        "something is probably wrong (two cameras reading one source; said on stderr), 2 when it is "
+        "invalid.",
+    )
+    p.add_argument("--cameras", required=True, help="cams.yaml to check")
     args = p.parse_args(argv)
     cfg = load_config(args.cameras)
     for c in cfg.cameras:
         print(f"{c.name}: {c.kind} {c.source_redacted} resolution={c.resolution} fps={c.fps} codec={c.codec}")
-    return 0
+    problems = shared_sources(cfg)
+    for w in problems:
+        print(f"capture-run check: warning: {redact_text(w)}", file=sys.stderr)
+    return 1 if problems else 0
 
 
 def _sync(argv: list[str]) -> int:

@@ -21,6 +21,7 @@ import argparse
 import errno
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -90,6 +91,28 @@ def describe_os_error(e: OSError) -> str:
     return f"{what}:{where}" + (f" ({hint})" if hint else "")
 
 
+_HOME = re.compile(r"^~[A-Za-z0-9._-]*(?=/|$)")
+
+
+def expand_user_args(argv: Sequence[str]) -> list[str]:
+    """``~`` and ``~user`` at the start of an argument, or of an option's value after ``=``, expanded to the
+    home folder as a shell does (a shell leaves ``--out=~/x`` and quoted ``'~/x'`` alone), so every path
+    option means the home folder and never a folder named ``~``.
+
+    >>> home = os.path.expanduser("~")
+    >>> expand_user_args(["--out=~/x", "~/y", "a~b", "--set", "k=~/z"]) == [
+    ...     f"--out={home}/x", f"{home}/y", "a~b", "--set", "k=~/z"]
+    True
+    """
+    out = []
+    for a in argv:
+        flag, eq, value = a.partition("=") if a.startswith("--") else ("", "", a)
+        if _HOME.match(value):
+            value = os.path.expanduser(value)
+        out.append(f"{flag}{eq}{value}" if eq else value if not flag else a)
+    return out
+
+
 def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Callable[..., int]:
     """Wrap ``main(argv) -> exit code`` so the project's errors end in one line and a documented code."""
 
@@ -98,7 +121,7 @@ def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Ca
         redact_log_records()
         previous = _stop_on_sigint(prog)
         try:
-            code = main(argv)
+            code = main(expand_user_args(sys.argv[1:] if argv is None else argv))
             return EXIT_OK if code is None else int(code)
         except KeyboardInterrupt:
             print(f"{prog}: interrupted; what was finished is kept (run the command again to go on).",

@@ -117,10 +117,13 @@ def cmd_train(args) -> int:
 
 
 def cmd_sample(args) -> int:
-    from forecast.preview import preview, save_forecast  # lazy: loads torch
+    from forecast.preview import no_forecast_reason, preview, save_forecast  # lazy: loads torch
 
     fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
     if not np.isfinite(fc["xyz_m"]).any():
+        why = no_forecast_reason(args.tracks, args.checkpoint)
+        if why:
+            raise InputError(f"{why} Nothing was written.")
         raise InputError(
             f"the forecast of {args.tracks} is NaN everywhere: none of its {fc['xyz_m'].shape[2]} tracks has "
             "observed joints in the frames the model looks at. Check the track file (forecast the tracks of "
