@@ -34,6 +34,7 @@ from calibrate.formats import (
 from calibrate.intrinsics import MODELS
 from capture.fileio import FormatError
 from core.cli import guarded, positive_float
+from core.errors import InputError
 from core.progress import Bars
 
 log = logging.getLogger("calibrate")
@@ -100,8 +101,19 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run_import)
 
 
+def _not_the_input(out: Path, given: Path, what: str, example: str) -> None:
+    """Refuse an ``--out`` that is the input file: the write would replace it."""
+    same = out.resolve() == given.resolve() or (out.exists() and given.exists() and out.samefile(given))
+    if same:
+        raise InputError(
+            f"--out {out} is the input file {given}: writing it would replace the {what}. Give --out "
+            f"another file name (e.g. {example} in another folder); nothing was written."
+        )
+
+
 def _run_import(args: argparse.Namespace) -> int:
 
+    _not_the_input(args.out, args.file, "file being imported", "rig.toml")
     fmt = args.format or detect_format(args.file)
     opts = ImportOptions(
         scale_to_m=args.scale_to_m,
@@ -144,6 +156,7 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 
 def _run_export(args: argparse.Namespace) -> int:
 
+    _not_the_input(args.out, args.rig, "rig being exported", "calibration.toml")
     rig = CameraRig.load(args.rig)
     written = export_rig(rig, args.out, args.format)
     print(f"wrote {', '.join(str(p) for p in written)} ({args.format}, {len(rig)} cameras)")

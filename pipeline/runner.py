@@ -31,6 +31,7 @@ from typing import Any
 from calibrate.camera import CameraRig
 from calibrate.formats import import_calibration
 from capture.fileio import atomic_write_bytes, atomic_write_text, load_npz, load_toml, save_toml
+from capture.offline_sync import POSE2SIM_OUTPUT
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
 from core.cli import describe_os_error
 from core.errors import RoomcapError
@@ -92,7 +93,7 @@ def output_root(source: SessionSource, out: Path | None) -> Path:
         return Path(out) / source.name
     if source.layout == "roomcap":
         return source.root
-    return source.root / "roomcap"
+    return source.root / POSE2SIM_OUTPUT
 
 
 # ----------------------------------------------------------------------------- stage plans
