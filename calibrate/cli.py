@@ -33,7 +33,7 @@ from calibrate.formats import (
 )
 from calibrate.intrinsics import MODELS
 from capture.fileio import FormatError
-from core.cli import guarded, positive_float
+from core.cli import Parser, guarded, positive_float
 from core.errors import InputError
 from core.progress import Bars
 
@@ -149,7 +149,7 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
         description="Write a rig.toml as aniposelib/Pose2Sim TOML or EasyMocap intri.yml/extri.yml.",
     )
     p.add_argument("rig", type=Path, help="rig.toml")
-    p.add_argument("--format", choices=EXPORT_FORMATS, required=True)
+    p.add_argument("--format", choices=EXPORT_FORMATS, required=True, help="the other tool's format")
     p.add_argument("--out", type=Path, required=True, help="output file (easymocap: a folder)")
     p.set_defaults(func=_run_export)
 
@@ -268,9 +268,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1]
-    )
+    parser = Parser(prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1])
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:

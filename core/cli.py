@@ -143,6 +143,52 @@ def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Ca
     return run
 
 
+class _DefaultsMixin(argparse.HelpFormatter):
+    """Every option that takes a value shows its default: "(default: X)" is appended to its help unless the
+    help already says its default."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if (
+            not text
+            or text == argparse.SUPPRESS
+            or "default" in text.lower()
+            or not action.option_strings
+            or action.nargs == 0
+            or action.required
+        ):
+            return action.help
+        d = action.default
+        if d is None or d == "" or (isinstance(d, (list, tuple)) and not d):
+            shown = "none"
+        elif isinstance(d, (list, tuple)):
+            shown = ",".join(map(str, d))
+        else:
+            shown = str(d)
+        return f"{text} (default: {shown.replace('%', '%%')})"
+
+
+class HelpFormatter(_DefaultsMixin, argparse.HelpFormatter):
+    pass
+
+
+class RawDescriptionHelpFormatter(_DefaultsMixin, argparse.RawDescriptionHelpFormatter):
+    pass
+
+
+class Parser(argparse.ArgumentParser):
+    """The argument parser of every command: its ``--help`` (and its subcommands') names each option's
+    default."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        fmt = kwargs.get("formatter_class", argparse.HelpFormatter)
+        if fmt is argparse.RawDescriptionHelpFormatter:
+            kwargs["formatter_class"] = RawDescriptionHelpFormatter
+        elif fmt is argparse.HelpFormatter:
+            kwargs["formatter_class"] = HelpFormatter
+        super().__init__(*args, **kwargs)
+
+
 def _number(kind: type, low: float, inclusive: bool, what: str) -> Callable[[str], Any]:
     def parse(text: str) -> Any:
         try:

@@ -6,6 +6,14 @@ Examples::
     reprocess S01 --stages triangulate,track --tracker greedy
     reprocess day1/ day2/ --out results/ --executor ray --address auto
     reprocess S01 --export trc,bvh               # then <session>/export/<session>_<track id>.trc|.bvh
+
+One run at a time per session: a run holds <session output>/.roomcap/lock; another run on that session
+refuses it (LOCKED, naming the holder's pid, host, start time and command) or, with --wait, waits. A lock
+left by a killed run is taken over. Before a stage's outputs are trusted, their sizes and sha256 are checked
+against the stage's record; outputs changed since are made again.
+
+Exit codes: 0 every session ok; 1 a session failed, or is partial (a camera left out: its video could not
+be read); 2 bad input, or a session locked by another run; 130 Ctrl-C (finished stages are kept).
 """
 
 from __future__ import annotations
@@ -22,7 +30,7 @@ from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
 from capture.session import SessionLayout
-from core.cli import guarded, output_folder, positive_int
+from core.cli import Parser, guarded, output_folder, positive_int
 from pipeline.config import STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
@@ -34,9 +42,7 @@ from track.trackfile import TrackFile
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="reprocess", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    p = Parser(prog="reprocess", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="+", help="session folders or folders containing sessions")
     p.add_argument(
         "--out",
@@ -45,10 +51,18 @@ def build_parser() -> argparse.ArgumentParser:
         "sessions, <session>/roomcap for other layouts)",
     )
     p.add_argument("--stages", help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
-    p.add_argument("--tracker", choices=TRACKERS, help="track stage: greedy (ch. 4) or particle (ch. 5)")
-    p.add_argument("--config", type=Path, help="pipeline TOML (see pipeline/config.py)")
     p.add_argument(
-        "--max-frames", type=positive_int, help="keypoints: process only the first N frames of each video"
+        "--tracker",
+        choices=TRACKERS,
+        help="track stage: greedy (ch. 4) or particle (ch. 5) (default: the config's [track] tracker)",
+    )
+    p.add_argument(
+        "--config", type=Path, help="pipeline TOML (see README, 'A pipeline TOML'; default: every default)"
+    )
+    p.add_argument(
+        "--max-frames",
+        type=positive_int,
+        help="keypoints: process only the first N frames of each video (default: all)",
     )
     p.add_argument("--force", action="store_true", help="rerun stages even when their outputs are up to date")
     p.add_argument(
@@ -57,7 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="when another run is processing a session (it holds <session output>/.roomcap/lock), wait for "
         "it to finish, then go on (default: refuse that session, naming the other run, and exit 2)",
     )
-    p.add_argument("--executor", choices=EXECUTORS, default="local")
+    p.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="local",
+        help="local: worker processes on this machine; ray: tasks on a Ray cluster (pip install "
+        "'roomcap[cluster]')",
+    )
     p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
     p.add_argument(
         "--workers", type=positive_int, help="sessions processed at once (default: half the cores)"
@@ -65,14 +85,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--export",
         help="after the stages, write the track file as FORMATS (comma-separated: trc,c3d,bvh,csv,json) "
-        "to <session output>/export/ (see: tracks export --help)",
+        "to <session output>/export/ (see: tracks export --help; default: no export)",
     )
     p.add_argument(
         "--overlay",
         action="store_true",
         help="also write <session>/report/overlay/<cam>.mp4: each video with the detections and tracks drawn",
     )
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log what each stage does")
     return p
 
 
