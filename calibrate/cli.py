@@ -33,7 +33,7 @@ from calibrate.formats import (
 )
 from calibrate.intrinsics import MODELS
 from capture.fileio import FormatError
-from core.cli import Parser, guarded, positive_float
+from core.cli import Parser, RawDescriptionHelpFormatter, guarded, positive_float
 from core.errors import InputError
 from core.progress import Bars
 
@@ -184,7 +184,7 @@ Example:
 
 def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
     p.description = _CALIBRATE_HELP
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.formatter_class = RawDescriptionHelpFormatter
     p.add_argument("recording", type=Path, help="folder of per-camera videos or image folders")
     p.add_argument(
         "--board",
