@@ -3,8 +3,8 @@
 Exit codes, the same for every command (README, "Exit codes"):
 
 - 0: done;
-- 1: the command ran to its end but some of its work failed (a session of ``reprocess``, say), as it
-  printed;
+- 1: the command ran to its end but some of its work failed (a session of ``reprocess`` that failed or
+  is ``partial``, a camera left out), as it printed;
 - 2: bad input or a project error: one message on stderr that says what is wrong and what to do, no
   traceback (argparse's usage errors also exit 2);
 - 130: interrupted (Ctrl-C); what was finished is kept. The first Ctrl-C prints "stopping…" at once and
