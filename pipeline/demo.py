@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-from core.cli import guarded
+from core.cli import Parser, guarded
 from pipeline.cli import main as reprocess_main
 
 
@@ -24,7 +24,7 @@ def default_recording() -> Path:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="python -m pipeline.demo",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -35,8 +35,8 @@ def _main(argv: list[str] | None = None) -> int:
         default=default_recording(),
         help="a folder with videos/ and calibration/ (Pose2Sim layout) or a roomcap session",
     )
-    p.add_argument("--out", type=Path, default=Path("out/demo"))
-    p.add_argument("--tracker", default="greedy", choices=("greedy", "particle"))
+    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
+    p.add_argument("--tracker", default="greedy", choices=("greedy", "particle"), help="track stage")
     args = p.parse_args(argv)
     if not args.recording.exists():
         print(

@@ -21,7 +21,7 @@ import logging
 import sys
 from pathlib import Path
 
-from core.cli import guarded
+from core.cli import Parser, guarded
 from core.errors import RoomcapError
 from track.export import ExportOptions, export_tracks, parse_formats
 from track.opensim_ik import default_setup_dir, run_opensim
@@ -153,10 +153,8 @@ def _opensim(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="tracks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    p.add_argument("-v", "--verbose", action="store_true")
+    p = Parser(prog="tracks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("export", help="TRC / C3D / BVH / CSV / JSON, one file per person and format")
     e.add_argument("tracks", help="session folder or tracks.npz")
@@ -195,9 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--markerset", default="Body25b", help="Body25b | Halpe26 | Coco17 | Blazepose (default Body25b)"
     )
     o.add_argument("--person", help="track id(s), comma-separated (default: every track)")
-    o.add_argument("--out", type=Path, required=True)
-    o.add_argument("--session")
-    o.add_argument("--max-gap", type=int, default=10)
+    o.add_argument("--out", type=Path, required=True, help="output folder (scaled model, motion files, logs)")
+    o.add_argument("--session", help="name used in the file names (default: the session folder's name)")
+    o.add_argument("--max-gap", type=int, default=10, help="fill gaps up to N frames before IK")
     o.set_defaults(func=_opensim)
     return p
 
