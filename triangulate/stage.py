@@ -996,7 +996,7 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
     """The streaming greedy tracker (:mod:`triangulate.stream_track`), one track part per chunk."""
     from triangulate.reconstruct import flip_index
     from triangulate.stream_track import build_chunks, link_chunks
-    from triangulate.tracker import facing_joints, frame_times_s
+    from triangulate.tracker import facing_joints, frame_times_s, pause_clock, sparse_time_warning
     from triangulate.trackfile import TrackFile
 
     read = PosesReader(lay.poses3d)
@@ -1008,6 +1008,11 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
     flip = flip_index(read.joint_names) if tcfg.fix_mirrored else None
     t_s = frame_times_s(read.frame_index, read.t_ns, fps)
     T = len(t_s)
+    warn = sparse_time_warning(
+        pause_clock(t_s, tcfg.max_gap_s, fps)[1], tcfg.max_gap_s, tcfg.min_track_frames
+    )
+    if warn:
+        log.warning("greedy tracker: %s", warn)
     step = max(int(round(cfg.chunk_s * fps)), 1)
     chunks = [(a, min(a + step, T)) for a in range(0, T, step)]
     key = hash_key(["tracks", repr(cfg), read.stamp])
