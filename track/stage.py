@@ -96,7 +96,7 @@ def _as_stage_config(config) -> ParticleTrackConfig:
 
 def source_of(cfg: ParticleConfig) -> str:
     """The track file's ``source`` for the particle tracker with ``cfg``."""
-    return f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}"
+    return f"track.particle (particle filter, ch. 5) motion={cfg.motion} n_samples={cfg.n_samples}"
 
 
 def focal_lengths(rig) -> np.ndarray:
