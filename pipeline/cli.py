@@ -3,7 +3,7 @@
 Examples::
 
     reprocess recordings/                       # every session under recordings/, all stages
-    reprocess S01 --stages triangulate,track --tracker greedy
+    reprocess S01 --stages triangulate,track --tracker greedy   # the ch. 4 tracker (default: particle)
     reprocess day1/ day2/ --out results/ --executor ray --address auto
     reprocess S01 --export trc,bvh               # then <session>/export/<session>_<track id>.trc|.bvh
 
@@ -31,7 +31,7 @@ from tqdm import tqdm
 from capture.fileio import FormatError, atomic_write_text
 from capture.session import SessionLayout
 from core.cli import Parser, guarded, output_folder, positive_int
-from pipeline.config import STAGES, TRACKERS, PipelineConfig
+from pipeline.config import STAGES, TRACKERS, PipelineConfig, TrackConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
 from pipeline.report import write_overlay_videos
@@ -54,7 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--tracker",
         choices=TRACKERS,
-        help="track stage: greedy (ch. 4) or particle (ch. 5) (default: the config's [track] tracker)",
+        help=f"track stage: particle (ch. 5 particle filter) or greedy (ch. 4 matching in time); default: "
+        f"{TrackConfig().tracker} (or [track] tracker of --config)",
     )
     p.add_argument(
         "--config", type=Path, help="pipeline TOML (see README, 'A pipeline TOML'; default: every default)"

@@ -7,7 +7,7 @@ with the list of valid ones. Example ``pipeline.toml``::
     [keypoints]
     preset = "balanced"     # fast | balanced | accurate | feet | legacy
     [track]
-    tracker = "greedy"      # or "particle"
+    tracker = "particle"    # the default: the ch. 5 particle filter; or "greedy" (ch. 4)
     [forecast]
     horizon_s = 2.0
 """
@@ -96,7 +96,13 @@ class TriangulateConfig:
 
 @dataclass(frozen=True)
 class TrackConfig:
-    tracker: str = "greedy"
+    """The track stage. ``tracker``: ``particle`` (the default: seed ch. 5's per-person particle filter,
+    identities and per-joint uncertainty from its samples; on Pose2Sim's real two-participant trial
+    14 mm from Pose2Sim's own triangulation against 26 mm for the greedy tracker, BENCHMARKS.md
+    "Tracker by default") or ``greedy`` (ch. 4: matching in time of the per-frame triangulation, about
+    3x faster and with less memory)."""
+
+    tracker: str = "particle"
     options: dict[str, Any] = field(default_factory=dict)  # passed to the tracker's own config
 
     def __post_init__(self) -> None:

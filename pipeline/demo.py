@@ -1,7 +1,8 @@
 """``make demo``: the whole chain on a Pose2Sim-style recording (default: its multi-person demo).
 
 Imports the recording's calibration, extracts 2D keypoints, triangulates,
-tracks, previews forecasts and writes the HTML report::
+tracks (with ``reprocess``'s default tracker, the particle filter; ``--tracker greedy`` for the
+chapter-4 tracker), previews forecasts and writes the HTML report::
 
     python -m pipeline.demo --out out/demo \
         --recording ../shared/data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson
@@ -16,6 +17,7 @@ from pathlib import Path
 
 from core.cli import Parser, guarded
 from pipeline.cli import main as reprocess_main
+from pipeline.config import TRACKERS, TrackConfig
 
 
 def default_recording() -> Path:
@@ -36,7 +38,11 @@ def _main(argv: list[str] | None = None) -> int:
         help="a folder with videos/ and calibration/ (Pose2Sim layout) or a roomcap session",
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    p.add_argument("--tracker", default="greedy", choices=("greedy", "particle"), help="track stage")
+    p.add_argument(
+        "--tracker",
+        choices=TRACKERS,
+        help=f"the track stage's tracker (default: reprocess's, {TrackConfig().tracker})",
+    )
     args = p.parse_args(argv)
     if not args.recording.exists():
         print(
@@ -45,9 +51,8 @@ def _main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    rc = reprocess_main(
-        [str(args.recording), "--out", str(args.out), "--tracker", args.tracker, "--workers", "1"]
-    )
+    tracker = ["--tracker", args.tracker] if args.tracker else []
+    rc = reprocess_main([str(args.recording), "--out", str(args.out), *tracker, "--workers", "1"])
     report = args.out / args.recording.name / "report" / "report.html"
     if rc == 0 and report.exists():
         print(f"report: {report.resolve()}")

@@ -24,6 +24,7 @@ from core.errors import InputError
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
 from pipeline.runner import SessionResult, check_session, output_root, process_session
+from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
 
 log = logging.getLogger(__name__)
 EXECUTORS = ("local", "ray")
@@ -111,7 +112,7 @@ def chunks_on_ray(config: PipelineConfig) -> PipelineConfig:
     (which lends its CPU back while it waits for them). The parts and the stage's fingerprint are the same
     as with processes (``executor`` is a run-time setting)."""
     opts = dict(config.triangulate.options or {})
-    if float(opts.get("chunk_s", 0) or 0) <= 0 or "executor" in opts:
+    if TriangulateOptions.from_dict(opts).chunk_s == 0 or "executor" in opts:  # "auto" may stream
         return config
     return config.replace(triangulate=type(config.triangulate)(options={**opts, "executor": "ray"}))
 

@@ -42,9 +42,11 @@ from pipeline.glue import forecast_model, track_particle, write_preview
 from pipeline.lock import SessionLocked, holder, lock_path, session_lock
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
 from pipeline.report import warnings_path, write_report
+from track.stage import ParticleTrackConfig, stream_chunk_s
 from triangulate.chunks import PartStore, parts_dir
 from triangulate.reconstruct import RUN_SETTINGS
-from triangulate.stage import track_session_greedy, triangulate_session
+from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
+from triangulate.stage import GreedyTrackConfig, session_chunk_s, track_session_greedy, triangulate_session
 
 log = logging.getLogger(__name__)
 
@@ -370,9 +372,22 @@ def stage_file(path: Path) -> Path:
     return d if d.is_dir() else path
 
 
-def _output_file(path: Path, options: dict[str, Any]) -> Path:
-    """What a 3D stage with these options writes: ``path``, or its parts folder when ``chunk_s`` > 0."""
-    return parts_dir(path) if float((options or {}).get("chunk_s", 0) or 0) > 0 else path
+def _output_file(lay: SessionLayout, cfg: PipelineConfig, stage: str) -> Path:
+    """What a 3D stage writes on this session: its file, or its parts folder where it streams (``chunk_s``
+    > 0, or ``"auto"`` on a long session: the stage decides by the same rule, ``session_chunk_s``)."""
+    if stage == "triangulate":
+        path, chunk_s = (
+            lay.poses3d,
+            session_chunk_s(lay, TriangulateOptions.from_dict(cfg.triangulate.options).chunk_s),
+        )
+    elif cfg.track.tracker == "greedy":
+        path, chunk_s = (
+            lay.tracks,
+            session_chunk_s(lay, GreedyTrackConfig.from_dict(cfg.track.options).chunk_s),
+        )
+    else:
+        path, chunk_s = lay.tracks, stream_chunk_s(lay, ParticleTrackConfig.from_dict(particle_options(cfg)))
+    return parts_dir(path) if chunk_s > 0 else path
 
 
 def _stage_xyz(path: Path, kind: str):
@@ -397,7 +412,7 @@ def _plan_triangulate(
     return StagePlan(
         "triangulate",
         [lay.rig_toml, *_detection_paths(lay)],
-        [_output_file(lay.poses3d, cfg.triangulate.options)],
+        [_output_file(lay, cfg, "triangulate")],
         {
             **_without_run_settings(dataclasses.asdict(cfg.triangulate)),
             "sync": _sync_table(src),
@@ -432,7 +447,7 @@ def _plan_track(
     if cfg.track.tracker != "greedy":  # the particle tracker reads the detections (and offsets) itself
         config["sync"] = _sync_table(src)
         config["options"] = particle_options(cfg)
-    return StagePlan("track", inputs, [_output_file(lay.tracks, cfg.track.options)], config, run)
+    return StagePlan("track", inputs, [_output_file(lay, cfg, "track")], config, run)
 
 
 def particle_options(cfg: PipelineConfig) -> dict:

@@ -307,3 +307,51 @@ def test_reprocess_with_chunk_s_streams_end_to_end(sessions, tmp_path, tracker):
     cfg = dataclasses.replace(PipelineConfig.load(tmp_path / "c.toml"), stages=tuple(stages.split(",")))
     res = run_sessions(discover([src]), chunked, cfg, workers=1)
     assert res[0].status == "ok" and res[0].ran == [], res[0].ran
+
+
+@pytest.mark.parametrize("tracker", ["greedy", "particle"])
+def test_long_sessions_stream_by_default(sessions, tmp_path, tracker, monkeypatch):
+    """chunk_s = "auto" (the default): a session longer than STREAM_ABOVE_FRAMES is streamed in chunks of
+    STREAM_CHUNK_FRAMES, a shorter one is not; the runner plans the outputs the stages write (a rerun runs
+    nothing) and the tracks equal the whole-session run's bit for bit. The thresholds are lowered here so
+    that a small session is "long"."""
+    from triangulate import chunks
+    from triangulate.trackfile import TrackFile
+
+    src = sessions / "syn_02"
+    n = max(int(np.load(f)["frame_index"].shape[0]) for f in (src / "keypoints").glob("*.npz"))
+    monkeypatch.setattr(chunks, "STREAM_ABOVE_FRAMES", n - 1)
+    monkeypatch.setattr(chunks, "STREAM_CHUNK_FRAMES", max(n // 3, 1))
+    samples = "n_samples = 60\n" if tracker == "particle" else ""
+    (tmp_path / "auto.toml").write_text(f'[track]\ntracker = "{tracker}"\n[track.options]\n{samples}')
+    (tmp_path / "whole.toml").write_text(
+        "[triangulate.options]\nchunk_s = 0\n"
+        f'[track]\ntracker = "{tracker}"\n[track.options]\nchunk_s = 0\n{samples}'
+    )
+    args = [str(src), "--stages", "triangulate,track", "--workers", "1"]
+    auto, whole = tmp_path / "auto", tmp_path / "whole"
+    assert reprocess([*args, "--out", str(auto), "--config", str(tmp_path / "auto.toml")]) == 0
+    assert reprocess([*args, "--out", str(whole), "--config", str(tmp_path / "whole.toml")]) == 0
+    s = auto / "syn_02"
+    assert (s / "track" / "tracks.parts" / "index.json").exists() and not (
+        s / "track" / "tracks.npz"
+    ).exists()
+    assert (s / "triangulate" / "poses3d.parts" / "index.json").exists()
+    assert len(json.loads((s / "track" / "tracks.parts" / "index.json").read_text())["chunks"]) >= 3
+    assert (whole / "syn_02" / "track" / "tracks.npz").is_file()
+    a, b = (
+        TrackFile.load(s / "track" / "tracks.npz"),
+        TrackFile.load(whole / "syn_02" / "track" / "tracks.npz"),
+    )
+    assert np.array_equal(a.track_id, b.track_id) and a.n_tracks > 0
+    for k in ("xyz_m", "confidence", "std_m", "flags"):
+        assert np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True), k
+    cfg = dataclasses.replace(PipelineConfig.load(tmp_path / "auto.toml"), stages=("triangulate", "track"))
+    res = run_sessions(discover([src]), auto, cfg, workers=1)
+    assert res[0].status == "ok" and res[0].ran == [], res[0].ran
+    # one frame fewer than the threshold's session: whole, into the single files
+    monkeypatch.setattr(chunks, "STREAM_ABOVE_FRAMES", n)
+    short = tmp_path / "short"
+    assert reprocess([*args, "--out", str(short), "--config", str(tmp_path / "auto.toml")]) == 0
+    assert (short / "syn_02" / "track" / "tracks.npz").is_file()
+    assert (short / "syn_02" / "triangulate" / "poses3d.npz").is_file()

@@ -27,17 +27,48 @@ expressions, other summation orders). ``fastmath`` is off (IEEE arithmetic, no r
 ``error_model="numpy"`` lets a division by zero give inf as in numpy instead of raising, which is what
 lets the loops vectorise. The kernels index without bounds checks, so each checks its shapes and index
 arrays first (ValueError). They compile on first use (about 15 s for all on a loaded 2-core machine)
-and are cached on disk (``cache=True``, next to this file): a later process loads them in ~0.3 s.
+and are cached on disk (``cache=True``): a later process loads them in ~0.3 s. The cache is numba's:
+next to this file (``track/__pycache__``), else, in an install that cannot be written, the user's cache
+folder (``~/.cache/numba``); where neither can be written, a folder in the temp directory
+(:func:`_cache_fallback`) rather than numba's error at import. ``NUMBA_CACHE_DIR`` overrides all three.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import tempfile
+from pathlib import Path
 
+import numba
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
+from numba.misc.appdirs import AppDirs
+
+
+def _writable(folder: Path) -> bool:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            return True
+    except OSError:
+        return False
+
+
+def _cache_fallback() -> None:
+    """Point numba's cache at the temp directory when neither this package's ``__pycache__`` nor the user's
+    cache folder can be written (numba raises at decoration time then: "no locator available")."""
+    if numba.config.CACHE_DIR:
+        return
+    user = Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
+    if _writable(Path(__file__).parent / "__pycache__") or _writable(user):
+        return
+    numba.config.CACHE_DIR = str(Path(tempfile.gettempdir()) / f"roomcap-numba-{os.getuid()}")
+
+
+_cache_fallback()
 
 _F = np.float32
 _NB = 128  # samples per block of pair_weights: (C,J,NB) + (C,L,NB) float32 scratch stay in L2

@@ -65,7 +65,16 @@ from track.priors import (
 from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
 from triangulate.matching import MatchConfig
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
-from triangulate.tracker import SEED_SIGMA_FRAMES, _nominal_dt, _smooth, frame_times_s, pause_clock
+from triangulate.tracker import (
+    SEED_SIGMA_FRAMES,
+    _nominal_dt,
+    _smooth,
+    frame_times_s,
+    long_enough,
+    pause_clock,
+    segment_frames,
+    sparse_time_warning,
+)
 
 log = logging.getLogger(__name__)
 
@@ -480,8 +489,11 @@ class ParticleTracker:
         (keypoints for the others)."""
         cfg = self.config
         kp, sc = self._check_frame(kp, sc)
+        pauses_before = self.pauses
         n_pred = self._advance_clock(frame, t_s)
         now = self.clock_s
+        if self.pauses > pauses_before:
+            self._end_at_pause()
         if maps is not None:
             maps = list(maps)
             if len(maps) != len(self.P):
@@ -619,6 +631,22 @@ class ParticleTracker:
             out = _empty_estimate(J)
         return out
 
+    def _end_at_pause(self) -> None:
+        """A pause of the recorder (``max_gap_s``): no motion model bridges an unknown stretch of time, so
+        every track ends here; a person found again after it takes their identity back by
+        re-identification (position within ``pause_gate_m`` more, body proportions), else a new one.
+        Without this, tracks predicted across snapshots far apart in time gathered other people's
+        detections (a time-lapse's frames a minute apart: duplicated, mixed poses)."""
+        for t in self.tracks:
+            if t.mean is None:
+                continue
+            self.ended.append((t.id, t.born, t.last_seen))
+            self.lost.append(
+                _Lost(t.id, t.last_seen, self._pelvis(t.mean), t.velocity.copy(), t.bones, t.last_seen_s,
+                      t.pauses_seen)
+            )  # fmt: skip
+        self.tracks = []
+
     def _phi(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, Y: np.ndarray, maps) -> np.ndarray:
         """phi(c,l,s) (K,C,L,N) of eq. 5.8: from the confidence maps + PAFs of the cameras that have them
         (:func:`track.observation.map_limb_scores`, the limbs are then the maps' PAF limbs for every camera),
@@ -718,6 +746,10 @@ class ParticleTracker:
         born: list[_Track] = []
         live = [t for t in self.tracks if frame - t.last_seen == 0]
         coasting = [t for t in self.tracks if frame - t.last_seen > 0]
+        # with no track at all (the first frame, the frame after a pause) the candidates are the frame's
+        # people as the reconstructor separated them (its merge_dist_m joins one person seen twice): none
+        # excludes another, so people closer than init_exclusion_m are not lost to each other
+        near_born = bool(self.tracks)
         for m in order:
             if n_good[m] < cfg.init_min_joints:
                 continue
@@ -735,7 +767,8 @@ class ParticleTracker:
                     continue
             pel = self._pelvis(filled)
             if any(
-                np.linalg.norm(pel[:2] - self._pelvis(t.mean)[:2]) < cfg.init_exclusion_m for t in live + born
+                np.linalg.norm(pel[:2] - self._pelvis(t.mean)[:2]) < cfg.init_exclusion_m
+                for t in live + (born if near_born else [])
             ):
                 continue
             if self.birth is None:
@@ -928,6 +961,15 @@ def check_times(frames: np.ndarray, t_ns: np.ndarray | None) -> None:
         )
 
 
+def warn_sparse_time(t_s: np.ndarray, cfg: ParticleConfig, fps: float) -> None:
+    """Say so when the frames are snapshots too far apart to link (``sparse_time_warning``)."""
+    warn = sparse_time_warning(
+        pause_clock(t_s, cfg.max_gap_s, fps)[1], cfg.max_gap_s, min_evidence_frames(cfg, fps)
+    )
+    if warn:
+        log.warning("particle tracker: %s", warn)
+
+
 def track_sequence(
     tracker: ParticleTracker,
     kp: np.ndarray,
@@ -954,6 +996,7 @@ def track_sequence(
         raise ValueError(f"frames and t_ns must have one entry per frame ({T})")
     check_times(frames, t_ns)
     t_s = frame_times_s(frames, t_ns, tracker.fps)
+    warn_sparse_time(t_s, cfg, tracker.fps)
     J = tracker.skeleton.n_joints
     per_frame: list[FrameEstimate] = []
     times = np.zeros(T)
@@ -1010,6 +1053,11 @@ def gather_estimates(per_frame: list[FrameEstimate], J: int) -> RawEstimates:
     return RawEstimates(np.asarray(ids, np.int64), xyz, std, conf, flags, nv, seen)
 
 
+def min_evidence_frames(cfg: ParticleConfig, fps: float) -> int:
+    """``min_track_s`` in frames at ``fps``: a track with less evidence is dropped (:func:`finish_tracks`)."""
+    return max(1, int(round(cfg.min_track_s * fps)))
+
+
 def finish_tracks(
     raw: RawEstimates,
     t_s: np.ndarray,
@@ -1017,12 +1065,15 @@ def finish_tracks(
     fps: float,
     times: np.ndarray | None = None,
     evidence_frames: np.ndarray | None = None,
+    room_frames: np.ndarray | None = None,
 ) -> TrackArrays:
     """The offline clean-up of :func:`track_sequence` on the raw estimates of T frames at times ``t_s``
     (T,) (seconds, the session's clock): frames coasted across a pause are removed, then trailing coasting
     frames (``trim_coast``), then the smoothing (``smooth_sigma_s``), then tracks with less evidence than
-    ``min_track_s``. ``evidence_frames`` (K,): each track's evidence frames over the whole session when
-    ``raw`` is a window of it (default: counted in ``raw``). Each value depends only on the frames within
+    ``min_track_s`` (:func:`triangulate.tracker.long_enough`: not where the recorder paused sooner).
+    ``evidence_frames`` (K,) and ``room_frames`` (K,): each track's evidence frames over the whole session
+    and the longest stretch without a pause among them, when ``raw`` is a window of it (default: from
+    ``raw``). Each value depends only on the frames within
     ``end_after_s`` (on the tracks' clock) plus the smoothing radius of it, so a window with that margin
     gives its middle frames exactly as the whole session does (:mod:`track.stream`). Changes ``raw``'s
     arrays in place."""
@@ -1055,7 +1106,9 @@ def finish_tracks(
         xyz = _smooth(xyz, t_s, sigma_s, cfg.max_gap_s, fps).astype(np.float32)
         flags = np.where(known, flags | SMOOTHED, flags).astype(np.uint8)
     n_ev = seen.sum(0) if evidence_frames is None else np.asarray(evidence_frames)
-    keep = n_ev >= max(1, int(round(cfg.min_track_s * fps)))
+    if room_frames is None:
+        room_frames = np.where(seen, segment_frames(pauses)[:, None], 0).max(0, initial=0)
+    keep = long_enough(n_ev, room_frames, min_evidence_frames(cfg, fps))
     return TrackArrays(
         ids[keep],
         xyz[:, keep],

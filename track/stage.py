@@ -30,8 +30,8 @@ from track import observation as obs
 from track.extra_joints import ExtraJointsConfig, attach_session_joints
 from track.particle import ParticleConfig, ParticleTracker, TrackArrays, track_sequence
 from track.trackfile import TrackFile
-from triangulate.chunks import NpzRows, remove_output
-from triangulate.stage import _fps, load_detections
+from triangulate.chunks import AUTO, NpzRows, parse_chunk_s, remove_output
+from triangulate.stage import _fps, load_detections, session_chunk_s
 
 log = logging.getLogger(__name__)
 
@@ -40,18 +40,20 @@ log = logging.getLogger(__name__)
 class ParticleTrackConfig:
     """The particle track stage: the filter's settings (see :class:`ParticleConfig`).
 
-    chunk_s: stream the session in time chunks of this many seconds (issue 17, :mod:`track.stream`):
-    bounded memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an index
-    with sizes and hashes; the filter's raw output and state per chunk in ``track/particle_raw.parts/``),
-    a killed run resumes at the last complete chunk; the result equals the whole session's bit for bit.
-    0 = at once into ``tracks.npz``."""
+    chunk_s: stream the session in time chunks of this many seconds (:mod:`track.stream`): bounded
+    memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an index with
+    sizes and hashes; the filter's raw output and state per chunk in ``track/particle_raw.parts/``), a
+    killed run resumes at the last complete chunk; the result equals the whole session's bit for bit.
+    0 = at once into ``tracks.npz``; ``"auto"`` (the default) = streamed when the session is long
+    (:func:`triangulate.stage.session_chunk_s`; whole with ``skeleton`` other than body19, which the
+    streamed tracker does not carry)."""
 
     particle: ParticleConfig = field(default_factory=ParticleConfig)
     # the 3D joints, as the triangulate option: body19 (the filter's state), "whole_body" or a skeleton
     # TOML; the joints beyond body19 are attached to the tracks afterwards (track.extra_joints)
     skeleton: str = "body19"
     extra_joints: ExtraJointsConfig = field(default_factory=ExtraJointsConfig)
-    chunk_s: float = 0.0
+    chunk_s: float | str = AUTO
 
     def __post_init__(self) -> None:
         if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
@@ -60,9 +62,8 @@ class ParticleTrackConfig:
                 "skeleton",
                 f"must be 'body19', 'whole_body' or a skeleton TOML file (.toml), got {self.skeleton!r}.",
             )
-        if not self.chunk_s >= 0:
-            raise ValueError(f"ParticleTrackConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
-        if self.chunk_s > 0 and self.skeleton != "body19":
+        object.__setattr__(self, "chunk_s", parse_chunk_s(self.chunk_s, "ParticleTrackConfig.chunk_s"))
+        if self.chunk_s != AUTO and float(self.chunk_s) > 0 and self.skeleton != "body19":
             raise FormatError(
                 None,
                 "skeleton",
@@ -95,7 +96,7 @@ def _as_stage_config(config) -> ParticleTrackConfig:
 
 def source_of(cfg: ParticleConfig) -> str:
     """The track file's ``source`` for the particle tracker with ``cfg``."""
-    return f"track.particle motion={cfg.motion} n_samples={cfg.n_samples}"
+    return f"track.particle (particle filter, ch. 5) motion={cfg.motion} n_samples={cfg.n_samples}"
 
 
 def focal_lengths(rig) -> np.ndarray:
@@ -191,6 +192,15 @@ def track_arrays_to_file(
     )
 
 
+def stream_chunk_s(lay: SessionLayout, stage: ParticleTrackConfig) -> float:
+    """Seconds per chunk of the stage on this session (0 = whole): ``chunk_s`` as
+    :func:`triangulate.stage.session_chunk_s` resolves it; ``"auto"`` with joints beyond body19 runs
+    whole (the streamed tracker carries body19 only)."""
+    if stage.chunk_s == AUTO and stage.skeleton != "body19":
+        return 0.0
+    return session_chunk_s(lay, stage.chunk_s)
+
+
 def track_session_particle(
     session_dir: str | os.PathLike,
     config: ParticleConfig | ParticleTrackConfig | dict | None = None,
@@ -212,10 +222,11 @@ def track_session_particle(
             f"the particle tracker needs at least 2 cameras to start tracks, the rig has {len(rig)}.",
             "Calibrate at least two cameras.",
         )
-    if stage.chunk_s > 0:
+    chunk_s = stream_chunk_s(lay, stage)
+    if chunk_s > 0:
         from track.stream import track_session_particle_chunked  # lazy: track.stream imports this module
 
-        return track_session_particle_chunked(lay, rig, cfg, stage.chunk_s, progress)
+        return track_session_particle_chunked(lay, rig, cfg, chunk_s, progress)
     sub, mv = load_detections(lay, rig)
     fps = _fps(lay, mv.t_ns)
     tracker = ParticleTracker(sub.projection_matrices(), focal_lengths(sub), fps, cfg)

@@ -46,11 +46,13 @@ from track.particle import (
     check_times,
     finish_tracks,
     gather_estimates,
+    min_evidence_frames,
+    warn_sparse_time,
 )
 from track.stage import focal_lengths, load_maps, source_of, track_arrays_to_file
 from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
 from triangulate.stage import _fps, plan_detections
-from triangulate.tracker import _nominal_dt, frame_times_s, pause_clock
+from triangulate.tracker import _nominal_dt, frame_times_s, long_enough, pause_clock, segment_frames
 
 log = logging.getLogger(__name__)
 
@@ -97,15 +99,20 @@ class RawReader:
                 self._cache[i] = {k: r.full(k) for k in _RAW_KEYS}
         return self._cache[i]
 
-    def evidence(self) -> dict[int, int]:
-        """Evidence frames of every id over the whole session (reads only ids and evidence)."""
+    def evidence(self, run: np.ndarray) -> tuple[dict[int, int], dict[int, int]]:
+        """Evidence frames of every id over the whole session, and the longest stretch without a pause
+        among them (``run`` (T,): :func:`triangulate.tracker.segment_frames` of the session); reads only
+        ids and evidence."""
         out: dict[int, int] = {}
-        for i in range(len(self.chunks)):
+        room: dict[int, int] = {}
+        for i, (a, b) in enumerate(self.chunks):
             with NpzRows(self.store.part_path(i)) as r:
                 ids, seen = r.full("track_id"), r.full("seen")
-            for tid, n in zip(ids.tolist(), seen.sum(0).tolist(), strict=True):
+            longest = np.where(seen, run[a:b, None], 0).max(0, initial=0)
+            for tid, n, m in zip(ids.tolist(), seen.sum(0).tolist(), longest.tolist(), strict=True):
                 out[tid] = out.get(tid, 0) + int(n)
-        return out
+                room[tid] = max(room.get(tid, 0), int(m))
+        return out, room
 
     def __call__(self, a: int, b: int) -> RawEstimates:
         sel = [(i, f0, f1) for i, (f0, f1) in enumerate(self.chunks) if f1 > a and f0 < b]
@@ -146,6 +153,7 @@ def track_session_particle_chunked(
         T = plan.n_frames
         check_times(frames, t_ns)
         t_s = frame_times_s(frames, t_ns, fps)
+        warn_sparse_time(t_s, cfg.at_fps(fps), fps)
         step = max(int(round(chunk_s * fps)), 1)
         chunks = [(a, min(a + step, T)) for a in range(0, T, step)] or [(0, 0)]
         tracker = ParticleTracker(plan.rig.projection_matrices(), focal_lengths(plan.rig), fps, cfg)
@@ -213,8 +221,8 @@ def track_session_particle_chunked(
         release_free_memory()  # pass 1's fragmented heap, before pass 2 allocates its windows
         # pass 2: the offline clean-up per chunk with margins, each track's evidence over the session
         read = RawReader(raw_store, chunks, J)
-        counts = read.evidence()
-        clock, _ = pause_clock(t_s, tracker.config.max_gap_s, fps)
+        clock, pauses = pause_clock(t_s, tracker.config.max_gap_s, fps)
+        counts, rooms = read.evidence(segment_frames(pauses))
         margin = finish_margin_s(tracker.config, fps)
         source = source_of(cfg) + " (streamed)"
         for i, (a, b) in enumerate(chunks):
@@ -223,7 +231,8 @@ def track_session_particle_chunked(
             w0, w1 = window_bounds(clock, a, b, margin) if b > a else (a, b)
             raw = read(w0, w1)
             ev = np.asarray([counts.get(int(k), 0) for k in raw.track_id], np.int64)
-            res = finish_tracks(raw, t_s[w0:w1], tracker.config, fps, evidence_frames=ev)
+            room = np.asarray([rooms.get(int(k), 0) for k in raw.track_id], np.int64)
+            res = finish_tracks(raw, t_s[w0:w1], tracker.config, fps, evidence_frames=ev, room_frames=room)
             core = slice(a - w0, b - w0)
             X, S, Cf, Fl = res.xyz_m[core], res.std_m[core], res.confidence[core], res.flags[core]
             has = (np.isfinite(X).any((0, 2, 3)) | np.isfinite(S).any((0, 2)) | (Cf != 0).any((0, 2))) | (
@@ -236,7 +245,14 @@ def track_session_particle_chunked(
             out_store.commit(i)
             del raw, res, res_core, X, S, Cf, Fl
             release_free_memory()
-        n_tracks = sum(n >= max(1, int(round(tracker.config.min_track_s * fps))) for n in counts.values())
+        ids = list(counts)
+        n_tracks = int(
+            long_enough(
+                np.asarray([counts[k] for k in ids], np.int64),
+                np.asarray([rooms[k] for k in ids], np.int64),
+                min_evidence_frames(tracker.config, fps),
+            ).sum()
+        )
         out_store.finish({"n_tracks": int(n_tracks)})
         log.info(
             "particle tracker (streamed): %d chunks (%d written now), %d tracks over %d frames",

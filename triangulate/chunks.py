@@ -50,6 +50,40 @@ def parts_dir(path: str | os.PathLike) -> Path:
     return p.with_suffix(".parts")
 
 
+# The 3D stages' default ``chunk_s = "auto"``: a session of more than STREAM_ABOVE_FRAMES frames is
+# streamed in chunks of STREAM_CHUNK_FRAMES frames (60 s at 25 Hz), a shorter one runs whole into the
+# single file. Frames, not seconds: a stage's memory grows with the frames it holds (cameras x people per
+# frame), whatever their rate. Measured in BENCHMARKS.md "Streamed by default": the whole run of 1,500
+# frames of 12 cameras x 16 people peaks as high as the streamed run of any length.
+AUTO = "auto"
+STREAM_ABOVE_FRAMES = 1500
+STREAM_CHUNK_FRAMES = 1500
+
+
+def parse_chunk_s(value: object, where: str) -> float | str:
+    """A stage's ``chunk_s`` setting: ``"auto"`` or seconds >= 0 (0 = the whole session at once)."""
+    if value == AUTO:
+        return AUTO
+    try:
+        seconds = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        seconds = float("nan")
+    if isinstance(value, bool) or not seconds >= 0:
+        raise ValueError(
+            f'{where} must be "auto" (stream sessions longer than {STREAM_ABOVE_FRAMES} frames) or '
+            f"seconds >= 0 (0 = the whole session at once), got {value!r}."
+        )
+    return seconds
+
+
+def resolve_chunk_s(chunk_s: float | str, n_frames: int, fps: float) -> float:
+    """Seconds per chunk for a session of ``n_frames`` at ``fps`` (0 = whole): ``"auto"`` streams in
+    chunks of STREAM_CHUNK_FRAMES when the session has more than STREAM_ABOVE_FRAMES frames."""
+    if chunk_s != AUTO:
+        return float(chunk_s)
+    return STREAM_CHUNK_FRAMES / fps if n_frames > STREAM_ABOVE_FRAMES and fps > 0 else 0.0
+
+
 def sha256_file(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

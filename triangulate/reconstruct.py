@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.config import config_from_dict
+from triangulate.chunks import AUTO, parse_chunk_s
 from triangulate.dlt import (
     _NVIEWS,
     _PER_VIEW,
@@ -67,10 +68,12 @@ class TriangulateConfig:
       hand points; :func:`keypoints.skeletons.whole_body`), or the path of a skeleton TOML (a lab's
       own joints, animals included: :func:`keypoints.skeletons.load_skeleton_toml`). The greedy
       tracker carries any of them; the particle tracker and forecasting work on body19.
-    chunk_s: stream the session in time chunks of this many seconds (issue 17): detections are read
-      chunk by chunk and the output is written as ``poses3d.parts/`` (one poses3d file per chunk with
-      an index, :mod:`triangulate.chunks`), so memory does not grow with the session and a killed run
-      resumes at the last complete chunk; 0 = the whole session at once into ``poses3d.npz``.
+    chunk_s: stream the session in time chunks of this many seconds: detections are read chunk by
+      chunk and the output is written as ``poses3d.parts/`` (one poses3d file per chunk with an index,
+      :mod:`triangulate.chunks`), so memory does not grow with the session and a killed run resumes at
+      the last complete chunk; 0 = the whole session at once into ``poses3d.npz``; ``"auto"`` (the
+      default) = streamed in chunks of 1,500 frames when the session has more than 1,500 frames
+      (:func:`triangulate.stage.session_chunk_s`). The parts equal the single file byte for byte.
     workers: with ``chunk_s`` > 0, the chunks are triangulated by this many processes in parallel (frames
       are independent here, so the parts are those of one process); a run-time setting, not part of the
       result: the parts of a run with another ``workers`` are reused.
@@ -89,13 +92,12 @@ class TriangulateConfig:
     fix_flips: bool = True
     merge_dist_m: float = 0.25
     skeleton: str = "body19"
-    chunk_s: float = 0.0
+    chunk_s: float | str = AUTO
     workers: int = 1
     executor: str = "processes"
 
     def __post_init__(self) -> None:
-        if not self.chunk_s >= 0:
-            raise ValueError(f"TriangulateConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
+        object.__setattr__(self, "chunk_s", parse_chunk_s(self.chunk_s, "TriangulateConfig.chunk_s"))
         if self.workers < 1:
             raise ValueError(f"TriangulateConfig.workers must be >= 1, got {self.workers}.")
         if self.executor not in CHUNK_EXECUTORS:

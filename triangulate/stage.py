@@ -39,7 +39,17 @@ from keypoints.skeletons import (
     whole_body,
 )
 from triangulate.checks import check_frame_order, detection_warnings, no_detection_warning, span_warnings
-from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir, remove_output
+from triangulate.chunks import (
+    AUTO,
+    NpzRows,
+    PartStore,
+    file_stamp,
+    hash_key,
+    parse_chunk_s,
+    parts_dir,
+    remove_output,
+    resolve_chunk_s,
+)
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import RUN_SETTINGS, FrameReconstructor, TriangulateConfig
 from triangulate.tracker import TrackerConfig, track_poses
@@ -51,25 +61,25 @@ log = logging.getLogger(__name__)
 class GreedyTrackConfig:
     """The greedy track stage: the tracker's settings (see :class:`TrackerConfig`).
 
-    chunk_s: stream the session in time chunks of this many seconds (issue 17,
-    :mod:`triangulate.stream_track`): bounded memory, output ``track/tracks.parts/`` (one tracks/1
-    file per chunk, global track ids, an index with sizes and hashes), a killed run resumes at the
-    last complete chunk; the result equals the whole session's. 0 = at once into ``tracks.npz``."""
+    chunk_s: stream the session in time chunks of this many seconds (:mod:`triangulate.stream_track`):
+    bounded memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an
+    index with sizes and hashes), a killed run resumes at the last complete chunk; the result equals the
+    whole session's bit for bit. 0 = at once into ``tracks.npz``; ``"auto"`` (the default) = streamed
+    when the session is long (:func:`session_chunk_s`)."""
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    chunk_s: float = 0.0
+    chunk_s: float | str = AUTO
 
     def __post_init__(self) -> None:
-        if not self.chunk_s >= 0:
-            raise ValueError(f"GreedyTrackConfig.chunk_s must be >= 0 seconds, got {self.chunk_s}.")
+        object.__setattr__(self, "chunk_s", parse_chunk_s(self.chunk_s, "GreedyTrackConfig.chunk_s"))
 
     @classmethod
     def from_dict(cls, d: dict) -> GreedyTrackConfig:
         if "tracker" in d:
             return config_from_dict(cls, d)
         d = dict(d)
-        chunk_s = float(d.pop("chunk_s", 0.0))
-        return cls(tracker=TrackerConfig.from_dict(d), chunk_s=chunk_s)  # flat dict of tracker keys
+        stage = {"chunk_s": d.pop("chunk_s")} if "chunk_s" in d else {}
+        return cls(tracker=TrackerConfig.from_dict(d), **stage)  # flat dict of tracker keys
 
 
 def _as_config(cls, config):
@@ -506,6 +516,33 @@ def _fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
     return float(1e9 / np.median(dt)) if len(dt) else 25.0
 
 
+def session_chunk_s(layout: SessionLayout, chunk_s: float | str) -> float:
+    """Seconds per chunk a 3D stage with setting ``chunk_s`` uses on this session (0 = the whole session
+    into the single file). ``"auto"`` streams a session of more than ``STREAM_ABOVE_FRAMES`` frames
+    (:func:`triangulate.chunks.resolve_chunk_s`), counted in the detections files (the camera with the
+    most frames; ``triangulate/poses3d`` where there are none), so every stage and the runner, which
+    must know the output's path before the stage runs, decide the same for one session."""
+    if chunk_s != AUTO:
+        return float(chunk_s)
+    n, t_ns = 0, np.zeros(0, np.int64)
+    files = [layout.detections(c) for c in layout.detection_cameras()]
+    if not files and layout.poses3d.exists():
+        files = [layout.poses3d]
+    for f in files:
+        try:
+            with NpzRows(f) as r:
+                rows = r.header("frame_index")[0][0]
+                if rows > n:
+                    n, t_ns = rows, r.full("t_ns")
+        except (FormatError, KeyError):  # the stage itself reports an unreadable file
+            continue
+    if not files and parts_dir(layout.poses3d).is_dir():
+        index = PartStore(parts_dir(layout.poses3d), "poses3d").load_index()
+        meta = index.get("meta", {})
+        return resolve_chunk_s(chunk_s, int(meta.get("n_frames", 0)), float(meta.get("fps", 0.0)))
+    return resolve_chunk_s(chunk_s, n, _fps(layout, t_ns))
+
+
 def _reconstructor(rig: CameraRig, cameras: tuple[str, ...], joint_names, config: TriangulateConfig):
     order = None
     if config.match.camera_order is not None:
@@ -596,6 +633,7 @@ def triangulate_session(
         )
     for w in rig_warnings(rig, str(rig_path)):
         log.warning("%s", w)
+    cfg = replace(cfg, chunk_s=session_chunk_s(lay, cfg.chunk_s))
     if cfg.chunk_s > 0:
         return _triangulate_chunked(lay, rig, cfg, progress)
     sub, mv = load_detections(lay, rig, skeleton=cfg.skeleton)
@@ -867,6 +905,7 @@ def track_session_greedy(
     lay = SessionLayout(session_dir)
     if not lay.poses3d.exists() and not parts_dir(lay.poses3d).is_dir():
         require(lay.poses3d, "triangulate/poses3d.npz", "Run the triangulate stage first.")
+    cfg = replace(cfg, chunk_s=session_chunk_s(lay, cfg.chunk_s))
     if cfg.chunk_s > 0:
         return _track_chunked(lay, cfg)
     p = Poses3D.load(lay.poses3d)
@@ -957,7 +996,7 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
     """The streaming greedy tracker (:mod:`triangulate.stream_track`), one track part per chunk."""
     from triangulate.reconstruct import flip_index
     from triangulate.stream_track import build_chunks, link_chunks
-    from triangulate.tracker import facing_joints, frame_times_s
+    from triangulate.tracker import facing_joints, frame_times_s, pause_clock, sparse_time_warning
     from triangulate.trackfile import TrackFile
 
     read = PosesReader(lay.poses3d)
@@ -969,6 +1008,11 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
     flip = flip_index(read.joint_names) if tcfg.fix_mirrored else None
     t_s = frame_times_s(read.frame_index, read.t_ns, fps)
     T = len(t_s)
+    warn = sparse_time_warning(
+        pause_clock(t_s, tcfg.max_gap_s, fps)[1], tcfg.max_gap_s, tcfg.min_track_frames
+    )
+    if warn:
+        log.warning("greedy tracker: %s", warn)
     step = max(int(round(cfg.chunk_s * fps)), 1)
     chunks = [(a, min(a + step, T)) for a in range(0, T, step)]
     key = hash_key(["tracks", repr(cfg), read.stamp])

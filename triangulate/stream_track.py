@@ -32,8 +32,10 @@ from triangulate.tracker import (
     TrackerConfig,
     _nominal_dt,
     build_tracks,
+    long_enough,
     pause_clock,
     pose_distance,
+    segment_frames,
 )
 
 
@@ -53,6 +55,8 @@ class StreamLinker(FrameLinker):
         self.first: list[int] = []
         self.last: list[int] = []
         self.count: list[int] = []
+        self.room: list[int] = []  # the longest stretch without a pause among the track's frames
+        self.stretch = segment_frames(self.pauses)
         self.end: dict[int, np.ndarray] = {}  # held last raw pose (joints from earlier frames)
         self.head: dict[int, list[tuple[int, np.ndarray]]] = {}  # rows within window of the first
         self.cands: list[tuple[float, int, int]] = []
@@ -96,9 +100,11 @@ class StreamLinker(FrameLinker):
             self.first.append(t)
             self.last.append(t)
             self.count.append(0)
+            self.room.append(0)
             self.head[k] = []
         self.last[k] = t
         self.count[k] += 1
+        self.room[k] = max(self.room[k], int(self.stretch[t]))
         if self.cfg.stitch:
             e = self.end.get(k)
             held = raw.copy()
@@ -134,7 +140,9 @@ class StreamLinker(FrameLinker):
             if pred[k] >= 0:
                 root[k] = root[pred[k]]
         frames = np.bincount(root, weights=np.asarray(self.count, np.float64), minlength=K)
-        kept = np.flatnonzero(frames >= self.cfg.min_track_frames)
+        room = np.zeros(K, np.int64)
+        np.maximum.at(room, root, np.asarray(self.room, np.int64))
+        kept = np.flatnonzero(long_enough(frames, room, self.cfg.min_track_frames))
         final = np.full(K, -1, np.int64)
         final_of_root = np.full(K, -1, np.int64)
         final_of_root[kept] = np.arange(len(kept))

@@ -20,6 +20,7 @@ frame-count computation of earlier versions at 25 Hz.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -28,6 +29,8 @@ from scipy.optimize import linear_sum_assignment
 from core.config import config_from_dict
 from triangulate.reconstruct import flip_index
 from triangulate.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
+
+log = logging.getLogger(__name__)
 
 SEED_SIGMA_FRAMES = 2.0  # sec. 4.3.4: Gaussian smoothing of sigma = 2 frames
 
@@ -144,6 +147,38 @@ def pause_clock(t_s: np.ndarray, max_gap_s: float, fps: float) -> tuple[np.ndarr
     pause = d > max_gap_s + _nominal_dt(fps)
     active = np.concatenate([[0.0], np.cumsum(np.where(pause, 1.0 / fps, d))])
     return active, np.concatenate([[0], np.cumsum(pause)])
+
+
+def segment_frames(pauses: np.ndarray) -> np.ndarray:
+    """(T,) the number of frames of the stretch without a pause of the recorder that each frame lies in
+    (``pauses`` (T,) from :func:`pause_clock`): 1 for every frame of a time-lapse."""
+    pauses = np.asarray(pauses, np.int64)
+    return np.bincount(pauses)[pauses] if len(pauses) else np.zeros(0, np.int64)
+
+
+def long_enough(frames: np.ndarray, room: np.ndarray, min_frames: int) -> np.ndarray:
+    """(K,) bool: tracks of ``frames`` (K,) frames kept by the minimum length ``min_frames``, which a
+    track need not reach where the recorder never ran that long around it: ``room`` (K,) is the longest
+    stretch without a pause (:func:`segment_frames`) among the track's frames. Poses between pauses (a
+    time-lapse, snapshots far apart) stay as short tracks; the tracker never drops them as too short."""
+    return np.asarray(frames) >= np.minimum(min_frames, np.maximum(np.asarray(room), 1))
+
+
+def sparse_time_warning(pauses: np.ndarray, max_gap_s: float, min_frames: int) -> str | None:
+    """A warning when most frames lie in stretches between pauses of the recorder too short to link
+    (fewer than ``min_frames`` frames): snapshots far apart in time (a time-lapse, a motion-triggered
+    recording), whose per-frame poses are kept as short tracks."""
+    if not len(pauses) or pauses[-1] == 0:
+        return None
+    short = int((segment_frames(pauses) < min_frames).sum())
+    if short * 2 < len(pauses):
+        return None
+    return (
+        f"{short} of {len(pauses)} frames lie between pauses of the recorder (consecutive frames more than "
+        f"{max_gap_s:g} s apart, {int(pauses[-1])} pauses): snapshots this far apart cannot be linked in "
+        "time, so they are kept as short tracks of their per-frame poses; identities across a pause are "
+        "guesses by position"
+    )
 
 
 def facing_joints(joint_names) -> tuple[int, int, int] | None:
@@ -541,7 +576,9 @@ def build_tracks(
         std[mirrored] = std[mirrored][:, flip]
     ids = np.unique(assign[assign >= 0])
     counts = np.array([(assign == k).any(1).sum() for k in ids], dtype=np.int64)
-    ids = ids[counts >= cfg.min_track_frames]
+    run = segment_frames(pause_clock(t_s, cfg.max_gap_s, fps)[1])
+    room = np.array([run[(assign == k).any(1)].max() for k in ids], dtype=np.int64)
+    ids = ids[long_enough(counts, room, cfg.min_track_frames)]
     K = len(ids)
     X = np.full((T, K, J, 3), np.nan)
     Cf = np.zeros((T, K, J))
@@ -603,6 +640,9 @@ def track_poses(
     cfg = (config or TrackerConfig()).at_fps(fps)
     flip = flip_index(joint_names) if cfg.fix_mirrored else None
     t_s = frame_times_s(frame_index, t_ns, fps)
+    warn = sparse_time_warning(pause_clock(t_s, cfg.max_gap_s, fps)[1], cfg.max_gap_s, cfg.min_track_frames)
+    if warn:
+        log.warning("greedy tracker: %s", warn)
     assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip, t_s=t_s, facing=facing_joints(joint_names))
     ids, X, Cf, S, Fl = build_tracks(
         xyz_m, assign, confidence, std_m, cfg, parents, mirrored, flip, fps=fps, t_s=t_s
