@@ -453,6 +453,7 @@ class LiveView:
         fs = step.frameset
         est = step.outputs.get("tracks")
         tracks = []
+        shown: list[tuple[int, np.ndarray]] = []  # (track id, xyz (J,3)) of the tracks present
         if est is not None:
             ids = np.asarray(est.track_id).reshape(-1)
             xyz = np.asarray(est.xyz_m, np.float64).reshape(len(ids), -1, 3)
@@ -460,6 +461,7 @@ class LiveView:
             for k, tid in enumerate(ids):
                 if not np.isfinite(xyz[k]).all(-1).any():
                     continue
+                shown.append((int(tid), xyz[k]))
                 tracks.append({"id": int(tid), "xyz": _flat(xyz[k], 3), "std": _flat(std[k], 3)})
         det: dict[str, list[list[float | None]]] = {}
         proj: dict[str, list[Any]] = {}
@@ -472,12 +474,9 @@ class LiveView:
                 if skel != CANONICAL.id:
                     xy, _ = convert(xy, np.asarray(d.score), skel, CANONICAL)
                 det[cam] = [_flat(p) for p in xy]
-            if self.rig is not None and tracks and cam in self.rig.names:
+            if self.rig is not None and shown and cam in self.rig.names:
                 cm = self.rig[cam]
-                proj[cam] = [
-                    [t["id"], _flat(cm.project(np.asarray(t["xyz"], np.float64).reshape(-1, 3)))]
-                    for t in _as_arrays(tracks)
-                ]
+                proj[cam] = [[tid, _flat(cm.project(x))] for tid, x in shown]
         live: dict[str, Any] = {}
         if self.runner is not None:
             s = self.runner.stats
@@ -515,7 +514,3 @@ class LiveView:
             "acks": len(lat),
             "producer_cpu_s": self.encode_s,
         }
-
-
-def _as_arrays(tracks: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    return [{"id": t["id"], "xyz": [np.nan if v is None else v for v in t["xyz"]]} for t in tracks]
