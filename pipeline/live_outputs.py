@@ -56,7 +56,10 @@ def load_rig(cfg: CaptureConfig) -> CameraRig | None:
 
 
 class Outputs:
-    """:class:`capture.live.LiveOutputs` of ``capture-run``: the options and the outputs they open."""
+    """:class:`capture.live.LiveOutputs` of ``capture-run``: the options and the outputs they open
+    (``feed``: the :class:`StepFeed` of the last :meth:`open`, None when nothing was asked for)."""
+
+    feed: StepFeed | None = None
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
         g = parser.add_argument_group("sent out while recording (with --live)")
@@ -141,7 +144,7 @@ class Outputs:
             for c in reversed(closers):
                 c()
             raise
-        feed = StepFeed(view, streamer, rerun)
+        feed = self.feed = StepFeed(view, streamer, rerun)
         previous = runner.on_step
 
         def on_step(step: LiveStep) -> None:

@@ -36,6 +36,7 @@ import asyncio
 import errno
 import json
 import logging
+import re
 import secrets
 import socket
 import threading
@@ -72,10 +73,10 @@ class ViewConfig:
     host: str = "127.0.0.1"
     port: int = DEFAULT_PORT
     token: str | None = None
-    image_hz: float = 10.0
+    image_hz: float = 5.0
     image_width_px: int = 360
     jpeg_quality: int = 70
-    state_hz: float = 30.0
+    state_hz: float = 15.0
 
     def __post_init__(self) -> None:
         if self.host not in LOOPBACK and not self.token:
@@ -133,9 +134,22 @@ def bind_socket(host: str, port: int) -> socket.socket:
     return s
 
 
-def _flat(a: np.ndarray, nd: int = 1) -> list[float | None]:
-    a = np.round(np.asarray(a, np.float64).reshape(-1), nd)
-    return [None if not np.isfinite(v) else float(v) for v in a]
+def _flat(a: np.ndarray, nd: int = 1) -> list[float]:
+    """Flattened and rounded; NaN stays NaN here and is written as null by :func:`to_json`."""
+    return np.round(np.asarray(a, np.float64).reshape(-1), nd).tolist()  # type: ignore[no-any-return]
+
+
+_NAN = re.compile(r"(?<=[\[,:\s])(?:NaN|-?Infinity)(?=[\],}\s])")
+
+
+def to_json(obj: Any) -> str:
+    """JSON for the page: non-finite numbers as null (JavaScript's JSON.parse takes no NaN); a name in
+    quotes is never touched.
+
+    >>> to_json({"a": [1.5, float("nan")], "NaN": "x"})
+    '{"a": [1.5, null], "NaN": "x"}'
+    """
+    return _NAN.sub("null", json.dumps(obj))
 
 
 class _Client:
@@ -375,7 +389,7 @@ class LiveView:
         if now - self._last_state >= 1.0 / self.cfg.state_hz:
             self._last_state = now
             self.seq += 1
-            out["state"] = json.dumps(self.state(step, t_cap_ms), allow_nan=False)
+            out["state"] = to_json(self.state(step, t_cap_ms))
             self.states_sent += 1
         else:  # an image goes with the state of its own frame set (the page draws its detections on it)
             return out
@@ -388,7 +402,8 @@ class LiveView:
             h, w = img.shape[:2]
             W = min(self.cfg.image_width_px, w)
             H = max(1, round(h * W / w))
-            small = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA) if W < w else img
+            # bilinear: a preview, 10x cheaper than INTER_AREA on a 1088x1920 frame (0.6 vs 7.5 ms)
+            small = cv2.resize(img, (W, H), interpolation=cv2.INTER_LINEAR) if W < w else img
             ok, jpg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, int(self.cfg.jpeg_quality)])
             if not ok:
                 continue
@@ -475,8 +490,8 @@ class LiveView:
                     xy, _ = convert(xy, np.asarray(d.score), skel, CANONICAL)
                 det[cam] = [_flat(p) for p in xy]
             if self.rig is not None and shown and cam in self.rig.names:
-                cm = self.rig[cam]
-                proj[cam] = [[tid, _flat(cm.project(x))] for tid, x in shown]
+                uv = self.rig[cam].project(np.concatenate([x for _, x in shown])).reshape(len(shown), -1, 2)
+                proj[cam] = [[tid, _flat(uv[k])] for k, (tid, _) in enumerate(shown)]
         live: dict[str, Any] = {}
         if self.runner is not None:
             s = self.runner.stats
