@@ -35,6 +35,7 @@ from capture.live import LiveRunner, LiveStep
 from core.cli import positive_int
 from core.errors import InputError
 from pipeline.liveview.server import DEFAULT_PORT, LiveView, ViewConfig
+from track.rerun_export import LiveRerun
 from track.streams import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
 
 log = logging.getLogger(__name__)
@@ -119,12 +120,13 @@ class Outputs:
         osc_to = parse_host_port(args.osc_to) if args.osc_to else None
         scfg = StreamConfig(kinds, osc_to, args.slots, session=runner.layout.root.name) if kinds else None
         view = rerun = streamer = None
+        rig = load_rig(cfg) if args.view or args.rerun else None
+        rig = rig.subset(list(cfg.names)) if rig is not None else None
         closers: list[Callable[[], None]] = []
         try:
             if args.view:
                 vcfg = ViewConfig(host=args.view_host, port=args.view_port, token=args.view_token)
-                rig = load_rig(cfg)
-                view = LiveView(vcfg, cfg, runner, recorder, rig.subset(list(cfg.names)) if rig else None)
+                view = LiveView(vcfg, cfg, runner, recorder, rig)
                 view.start()  # binds now: a port in use or a refused host fails here
                 closers.append(view.stop)
                 print(f"live view: {view.url}", flush=True)
@@ -136,9 +138,7 @@ class Outputs:
                 ]
                 log.info("streaming tracks: %s", ", ".join(where))
             if args.rerun is not None:
-                from track.rerun_export import LiveRerun  # lazy: loads rerun-sdk (the rerun extra)
-
-                rerun = LiveRerun(args.rerun, cfg, runner.layout, fps)
+                rerun = LiveRerun(args.rerun, cfg, runner.layout, fps, rig)
                 closers.append(rerun.close)
         except BaseException:
             for c in reversed(closers):
