@@ -201,7 +201,10 @@ def main() -> None:
                         v = b.evaluate("document.body.dataset.latencyMs")
                         if v:
                             readouts.append(float(v))
-                        if shot is None and time.monotonic() - t0 > 0.6 * seconds:
+                        el = time.monotonic() - t0
+                        n_people = b.evaluate("document.body.dataset.people")
+                        # the screenshot: when the page shows 3 people (after 30 % of the phase), else at 60 %
+                        if shot is None and (el > 0.6 * seconds or (el > 0.3 * seconds and n_people == "3")):
                             shot = b.screenshot(out_dir / "live_view_demo.png")
                             shot_meta["people"] = b.evaluate("document.body.dataset.people")
                             shot_meta["panes_drawn"] = b.evaluate("document.body.dataset.panesDrawn")
@@ -265,7 +268,10 @@ def main() -> None:
         }
         if view is not None:
             lat = view.latency_ms()
+            split = np.asarray(view.latency_split_ms()).reshape(-1, 2)
             res.update(
+                capture_to_state_ms_median=float(np.median(split[:, 0])) if len(split) else None,
+                state_to_page_ms_median=float(np.median(split[:, 1])) if len(split) else None,
                 page_latency_ms_readout_median=float(np.median(readouts)) if readouts else None,
                 page_latency_ms_acks_median=float(np.median(lat)) if lat else None,
                 page_latency_ms_acks_p95=float(np.percentile(lat, 95)) if lat else None,
@@ -298,7 +304,9 @@ def main() -> None:
     print(
         f"{args.seconds:g} s per phase, 4 file cameras at 60 Hz: page latency (capture -> drawn) readout "
         f"median {full.get('page_latency_ms_readout_median')} ms, acks median "
-        f"{full.get('page_latency_ms_acks_median')} ms (p95 {full.get('page_latency_ms_acks_p95')}); "
+        f"{full.get('page_latency_ms_acks_median')} ms (p95 {full.get('page_latency_ms_acks_p95')}; "
+        f"capture -> state built {full.get('capture_to_state_ms_median')} ms, -> page drawn "
+        f"{full.get('state_to_page_ms_median')} ms); "
         f"outputs' CPU share of the live loop's stages {share:.1f} %, of the --live process "
         f"{100 * res['outputs_share_of_process']:.1f} %; process CPU x{res['process_cpu_ratio']:.2f} vs "
         f"--live alone; recorder drops {drops}; LSL samples {full.get('lsl_samples')}, OSC frames "

@@ -119,7 +119,7 @@ function render(){
     const ms = Date.now() - state.t_capture_ms; lat.push(ms); if (lat.length > 60) lat.shift();
     const m = median(lat); $('latency').textContent = m.toFixed(0) + ' ms';
     document.body.dataset.latencyMs = String(m.toFixed(1));
-    if (ws && ws.readyState === 1) ws.send(JSON.stringify({ack: state.seq, t_capture_ms: state.t_capture_ms}));
+    if (ws && ws.readyState === 1) ws.send(JSON.stringify({ack: state.seq, t_capture_ms: state.t_capture_ms, t_sent_ms: state.t_sent_ms}));
   }
   document.body.dataset.people = String(ids.length);
   document.body.dataset.panesDrawn = String(hello.cameras.filter(c => panes[c].bitmap).length);

@@ -192,6 +192,7 @@ class LiveView:
         self.images_sent = 0
         self.encode_s = 0.0  # producer CPU time (thread time)
         self._acks: deque[float] = deque(maxlen=5000)
+        self._split: deque[tuple[float, float]] = deque(maxlen=5000)
         self._last_img: dict[str, float] = {}
         self._last_state = 0.0
         self._fps: dict[str, tuple[float, int, float]] = {}
@@ -227,6 +228,10 @@ class LiveView:
     def latency_ms(self) -> list[float]:
         """Frame capture -> the page drew it, ms, one per acknowledged state (measured at the server)."""
         return list(self._acks)
+
+    def latency_split_ms(self) -> list[tuple[float, float]]:
+        """Per acknowledged state: (frame capture -> the state built here, built -> the page drew it), ms."""
+        return list(self._split)
 
     @property
     def n_clients(self) -> int:
@@ -305,7 +310,8 @@ class LiveView:
 
         if not self._allowed(request):
             return web.Response(status=403)
-        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 16)
+        # no permessage-deflate: JPEGs do not compress, and zlib on every update costs the server its CPU
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 16, compress=False)
         await ws.prepare(request)
         client = _Client()
         client.pending["hello"] = json.dumps(self.hello())
@@ -350,7 +356,11 @@ class LiveView:
         except (ValueError, KeyError, TypeError):
             return
         if "ack" in m:
-            self._acks.append(host_now_ns() / 1e6 - t)
+            now = host_now_ns() / 1e6
+            self._acks.append(now - t)
+            sent = m.get("t_sent_ms")
+            if isinstance(sent, (int, float)):
+                self._split.append((float(sent) - t, now - float(sent)))
 
     def _publish(self, msgs: dict[str, Any]) -> None:  # on the loop
         for c in self._clients:
