@@ -19,7 +19,8 @@ Figures:
 - latency, frame capture -> page drawn: the page's own readout (median of its last 60 updates, read through
   the DevTools protocol) and, from outside the page, the server's acknowledgements (each drawn update
   acknowledged over the WebSocket, received at ``host_now_ns``; median over the phase);
-- CPU: per thread (``time.pthread_getcpuclockid``): the live loop (stages + the outputs' feed), the view's
+- CPU: per thread (``time.pthread_getcpuclockid``, from the start of the recording: the server's start-up,
+  importing aiohttp, is left out): the live loop (stages + the outputs' feed), the view's
   producer (JPEG encoding) and server threads; the outputs' share = (feed in the live loop + producer +
   server) / (the live loop's own stage work); and the whole process's CPU per second against the baseline
   phase (liblsl's native threads included). Chromium is another process and is not counted;
@@ -56,6 +57,7 @@ class ThreadCpu:
 
     def __init__(self) -> None:
         self.cpu: dict[str, float] = {}
+        self.first: dict[str, float] = {}  # each thread's CPU when first seen: its start-up is left out
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
 
@@ -68,11 +70,18 @@ class ThreadCpu:
             if t.ident is None or not t.is_alive():
                 continue
             try:
-                self.cpu[t.name] = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
+                v = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
+                self.first.setdefault(t.name, v)
+                self.cpu[t.name] = v
             except (OSError, ProcessLookupError):
                 pass
 
+    def used(self, name: str) -> float:
+        """CPU seconds of the thread since it was first seen (0.0 if never)."""
+        return self.cpu.get(name, 0.0) - self.first.get(name, 0.0)
+
     def __enter__(self) -> ThreadCpu:
+        self.sample()
         self._t.start()
         return self
 
@@ -248,17 +257,17 @@ def main() -> None:
             for c in CAMS
         }
         feed_s = outputs.feed.cpu_s if outputs.feed is not None else 0.0
-        stage_cpu = tc.cpu.get("live", float("nan")) - feed_s
-        out_cpu = feed_s + tc.cpu.get("liveview-producer", 0.0) + tc.cpu.get("liveview-server", 0.0)
+        stage_cpu = tc.used("live") - feed_s
+        out_cpu = feed_s + tc.used("liveview-producer") + tc.used("liveview-server")
         res = {
             "seconds": w1 - w0,
             "process_cpu_per_s": (c1 - c0) / (w1 - w0),
             "outputs_cpu_per_s": out_cpu / (w1 - w0),
-            "live_thread_cpu_s": tc.cpu.get("live"),
+            "live_thread_cpu_s": tc.used("live"),
             "live_stages_cpu_s": stage_cpu,
             "outputs_feed_cpu_s": feed_s,
-            "view_producer_cpu_s": tc.cpu.get("liveview-producer"),
-            "view_server_cpu_s": tc.cpu.get("liveview-server"),
+            "view_producer_cpu_s": tc.used("liveview-producer"),
+            "view_server_cpu_s": tc.used("liveview-server"),
             "outputs_share_of_live_loop": out_cpu / stage_cpu if stage_cpu else None,
             "processed": s["processed"],
             "skipped": s["skipped"],
