@@ -180,6 +180,8 @@ def main() -> None:
             oargs.osc_to = f"127.0.0.1:{osc.server_address[1]}"
         close = outputs.open(oargs, live, rec)
         lsl_n = [0]
+        lsl_rows: list = []
+        lsl_ts: list = []
         lsl_stop = threading.Event()
         if oargs.stream and "lsl" in ",".join(oargs.stream):
             import pylsl
@@ -190,8 +192,10 @@ def main() -> None:
 
             def pull():
                 while not lsl_stop.is_set():
-                    d_, _ts = inlet.pull_chunk(timeout=0.2)
+                    d_, ts_ = inlet.pull_chunk(timeout=0.2)
                     lsl_n[0] += len(d_)
+                    lsl_rows.extend(d_)
+                    lsl_ts.extend(ts_)
 
             threading.Thread(target=pull, daemon=True).start()
         readouts: list[float] = []
@@ -292,6 +296,8 @@ def main() -> None:
             )
         if oargs.stream:
             res.update(lsl_samples=lsl_n[0], osc_frames=osc_frames[0] if osc is not None else None)
+            if lsl_rows:
+                res["lsl_vs_live_track"] = _compare_lsl(sess, lsl_rows, lsl_ts, oargs.slots)
         return res
 
     phase("warmup", [], browser=False, seconds=4.0)  # compiles the tracker's kernels (numba) once
@@ -324,6 +330,37 @@ def main() -> None:
         f"{full.get('screenshot_page')}; load {base['load_1min'][0]:.2f}"
     )
     print("BENCH " + json.dumps(res))
+
+
+def _compare_lsl(session: Path, rows: list, ts: list, slots: int) -> dict:
+    """The LSL samples an inlet received against the session's live track file: frames, positions (each
+    slot's track id channel names the column), timestamps against t_ns on LSL's clock."""
+    import pylsl
+
+    from capture.session import SessionLayout
+    from capture.sources import host_now_ns
+    from track.trackfile import TrackFile
+
+    tf = TrackFile.load(SessionLayout(session).live_tracks)
+    J = len(tf.joint_names)
+    arr = np.asarray(rows, np.float32)
+    offset_s = float(np.median([host_now_ns() / 1e9 - pylsl.local_clock() for _ in range(5)]))
+    ids = arr[:, slots * J * 4 :]
+    xyz = arr[:, : slots * J * 4].reshape(len(arr), slots, J, 4)[..., :3]
+    n = min(len(arr), tf.n_frames)
+    equal = True
+    for t in range(n):
+        for s, tid in enumerate(ids[t]):
+            if np.isfinite(tid):
+                k = int(np.flatnonzero(tf.track_id == int(tid))[0])
+                equal &= bool(np.array_equal(xyz[t, s], tf.xyz_m[t, k], equal_nan=True))
+    err_ms = np.abs(np.asarray(ts[:n]) - (tf.t_ns[:n] / 1e9 - offset_s)) * 1e3
+    return {
+        "samples": len(arr),
+        "track_file_frames": tf.n_frames,
+        "positions_equal": equal,
+        "timestamp_error_ms_max": float(err_ms.max()) if n else None,
+    }
 
 
 if __name__ == "__main__":
