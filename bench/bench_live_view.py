@@ -175,7 +175,7 @@ def main() -> None:
 
             d = dispatcher.Dispatcher()
             d.map("/roomcap/frame", on_frame)
-            osc = osc_server.ThreadingOSCUDPServer(("127.0.0.1", 0), d)
+            osc = osc_server.BlockingOSCUDPServer(("127.0.0.1", 0), d)
             threading.Thread(target=osc.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True).start()
             oargs.osc_to = f"127.0.0.1:{osc.server_address[1]}"
         close = outputs.open(oargs, live, rec)

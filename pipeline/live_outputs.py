@@ -75,7 +75,7 @@ class Outputs:
             "--view-host",
             default="127.0.0.1",
             help="address the view listens on (default 127.0.0.1, this machine only); any other address "
-            "needs the token printed at start in the page's URL",
+            "needs --view-token",
         )
         g.add_argument(
             "--view-token",
@@ -92,7 +92,10 @@ class Outputs:
             "and/or OSC (default: none)",
         )
         g.add_argument(
-            "--osc-to", default=None, metavar="HOST:PORT", help="OSC receiver (needed by --stream osc)"
+            "--osc-to",
+            default=None,
+            metavar="HOST:PORT",
+            help="OSC receiver (needed by --stream osc; default: none)",
         )
         g.add_argument(
             "--slots",
@@ -138,7 +141,7 @@ class Outputs:
                 ]
                 log.info("streaming tracks: %s", ", ".join(where))
             if args.rerun is not None:
-                rerun = LiveRerun(args.rerun, cfg, runner.layout, fps, rig)
+                rerun = LiveRerun(args.rerun, runner.layout, rig)
                 closers.append(rerun.close)
         except BaseException:
             for c in reversed(closers):

@@ -118,7 +118,7 @@ def test_live_steps_are_logged_by_their_own_thread(tmp_path):
     from track.rerun_export import LiveRerun
 
     rig = ring_rig(2, radius_m=4.0)
-    lr = LiveRerun(tmp_path / "live.rrd", None, SessionLayout(tmp_path / "S"), 25.0, rig, image_hz=1000)
+    lr = LiveRerun(tmp_path / "live.rrd", SessionLayout(tmp_path / "S"), rig, image_hz=1000)
     X = np.zeros((1, J, 3), np.float32)
     X[..., 2] = np.linspace(0.1, 1.7, J)
     for t in range(6):
@@ -142,3 +142,46 @@ def test_without_rerun_the_command_names_the_extra(monkeypatch, tmp_path, capsys
     monkeypatch.setitem(sys.modules, "rerun", None)
     assert tracks(["view", str(lay.root), "--rrd", str(tmp_path / "x.rrd")]) == 2
     assert "pip install 'roomcap[rerun]'" in capsys.readouterr().err
+
+
+def test_capture_run_live_rerun_writes_the_file_as_it_records(tmp_path):
+    """capture-run's path (Recorder -> LiveRunner -> Outputs.open with --rerun): the file holds the cameras'
+    frames and the live tracks."""
+    pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
+    import argparse
+
+    from capture.config import load_config
+    from capture.live import LiveRunner
+    from capture.recorder import Recorder
+    from pipeline.live_outputs import Outputs
+
+    rig = ring_rig(2, radius_m=4.0)
+    rig.save(tmp_path / "rig.toml")
+    cams = "".join(
+        f"  - {{name: {n}, source: 'synthetic:', resolution: [320, 240], fps: 20}}\n" for n in rig.names
+    )
+    (tmp_path / "cams.yaml").write_text("calibration: rig.toml\ncameras:\n" + cams)
+    cfg = load_config(tmp_path / "cams.yaml")
+    X = np.zeros((1, J, 3), np.float32)
+    X[..., 2] = np.linspace(0.1, 1.7, J)
+
+    def one_person(step):
+        step.outputs["tracks"] = SimpleNamespace(track_id=np.array([4]), xyz_m=X, std_m=np.full((1, J), 0.02))
+
+    live = LiveRunner(cfg, tmp_path / "S", stages={"track": one_person})
+    rec = Recorder(cfg, tmp_path / "S", duration_s=1.5, frameset_sink=live.queue, handle_signals=False)
+    outputs = Outputs()
+    p = argparse.ArgumentParser()
+    outputs.add_arguments(p)
+    close = outputs.open(p.parse_args(["--rerun", str(tmp_path / "live.rrd")]), live, rec)
+    live.start()
+    rec.run()
+    live.stop()
+    close()
+    got = _read(tmp_path / "live.rrd")
+    rows = [r for r in got["/world/tracks/4"] if r.get("Points3D:positions") is not None]
+    assert (
+        len(rows) == live.stats.processed - outputs.feed.rerun.dropped >= 15
+    )  # 1.5 s at 20 fps (measured 30)
+    for cam in rig.names:
+        assert any(r.get("EncodedImage:blob") for r in got[f"/world/cameras/{cam}/image"])

@@ -66,13 +66,13 @@ def lsl_loopback(tmp_path_factory):
 
 
 class OscSink:
-    """An OSC server on 127.0.0.1 (a free port) recording every message, served by a thread."""
+    """An OSC server on 127.0.0.1 (a free port) recording every message in arrival order (one thread)."""
 
     def __init__(self):
         self.msgs: list[tuple[str, tuple]] = []
         d = dispatcher.Dispatcher()
         d.set_default_handler(lambda addr, *a: self.msgs.append((addr, a)))
-        self.server = osc_server.ThreadingOSCUDPServer(("127.0.0.1", 0), d)
+        self.server = osc_server.BlockingOSCUDPServer(("127.0.0.1", 0), d)
         self.port = self.server.server_address[1]
         self.thread = threading.Thread(
             target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True

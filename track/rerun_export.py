@@ -248,9 +248,7 @@ class LiveRerun:
     def __init__(
         self,
         path: str | Path,
-        capture: Any,
         layout: SessionLayout,
-        fps: float,
         rig: CameraRig | None = None,
         image_hz: float = 5.0,
         queue_size: int = 16,
