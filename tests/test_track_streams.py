@@ -309,3 +309,46 @@ def test_missing_packages_and_bad_options_say_what_to_do(monkeypatch, tmp_path, 
         parse_kinds(["lsl,zmq"])
     with pytest.raises(ValueError, match="HOST:PORT"):
         parse_host_port("localhost")
+
+
+@need_lsl
+def test_a_file_with_many_tracks_gets_as_many_slots_as_are_present_at_once(tmp_path):
+    """70 short tracks, at most 2 at once: 2 slots given at each birth (the layout stays small)."""
+    from track.cli import main as tracks
+
+    T, K = 70, 70
+    xyz = np.full((T, K, J, 3), np.nan, np.float32)
+    for k in range(K):
+        xyz[k, k] = 1.0
+        xyz[min(T - 1, k + 1), k] = 1.0  # each track lives two frames: two at once
+    tf = TrackFile(
+        fps=100.0,
+        frame_index=np.arange(T),
+        t_ns=np.arange(T) * 10_000_000,
+        track_id=np.arange(K) + 100,
+        joint_names=CANONICAL.joint_names,
+        parents=np.asarray(CANONICAL.parents),
+        xyz_m=xyz,
+        confidence=np.ones((T, K, J), np.float32),
+        std_m=np.full((T, K, J), 0.02, np.float32),
+        flags=np.ones((T, K, J), np.uint8),
+        source="test",
+    )
+    tf.save(tmp_path / "many.npz")
+    got = {}
+
+    def read():
+        inlet = _inlet("roomcap-many")
+        got["slots"] = inlet.info().desc().child("layout").child_value("slots")
+        got["data"], _ = _pull_all(inlet, T)
+
+    t = threading.Thread(target=read)
+    t.start()
+    assert tracks(["stream", str(tmp_path / "many.npz"), "--stream", "lsl", "--wait", "2.0"]) == 0
+    t.join(10)
+    assert got["slots"] == "2"
+    ids = np.asarray(got["data"], np.float32)[:, 2 * J * 4 :]
+    assert len(ids) == T and all(
+        set(r[np.isfinite(r)].astype(int)) == {100 + t} | ({99 + t} if t else set())
+        for t, r in enumerate(ids)
+    )

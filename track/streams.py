@@ -404,6 +404,11 @@ class TrackStreamer:
         return float(self.lsl.pylsl.local_clock())
 
 
+def _present_rows(tf: TrackFile) -> np.ndarray:
+    """(T,K) bool: the track has a known joint in the frame."""
+    return np.isfinite(np.asarray(tf.xyz_m)).all(-1).any(-1)
+
+
 def track_events(present: np.ndarray, track_id: np.ndarray) -> list[tuple[int, str, int]]:
     """Births and deaths of a track file: present (T,K) bool -> [(row t, 'birth'|'death', track id)], a
     birth at the first row of each run of presence, a death at the first row after it (no death for a
@@ -487,7 +492,11 @@ def add_parser(sub: Any, resolve: Callable[[str], tuple[Any, str]]) -> None:
         "--osc-to", default=None, metavar="HOST:PORT", help="OSC receiver (needed by --stream osc)"
     )
     s.add_argument(
-        "--slots", type=int, default=None, help="LSL person slots (default: the file's track count)"
+        "--slots",
+        type=int,
+        default=None,
+        help="LSL person slots (default: one per track of the file up to 64 tracks, listed in the stream's "
+        "description; else as many as are present at once, given at each birth)",
     )
     s.add_argument(
         "--speed",
@@ -513,11 +522,13 @@ def _stream_cmd(args: Any, resolve: Callable[[str], tuple[Any, str]]) -> int:
     check_installed(kinds)
     path, session = resolve(args.tracks)
     tf = TrackFile.load(path)
-    slots = args.slots or max(1, tf.n_tracks)
+    at_once = int(_present_rows(tf).sum(1).max()) if tf.n_frames and tf.n_tracks else 0
+    # default: a slot per track when they fit (the layout lists them all), else as many as are present at once
+    slots = args.slots or min(256, tf.n_tracks if tf.n_tracks <= 64 else at_once) or 1
     cfg = StreamConfig(
         kinds, parse_host_port(args.osc_to) if args.osc_to else None, slots, args.name, session
     )
-    slot_ids = {int(t): k for k, t in enumerate(tf.track_id[:slots])}
+    slot_ids = {int(t): k for k, t in enumerate(tf.track_id)} if tf.n_tracks <= slots else None
     streamer = TrackStreamer(cfg, tf.fps, tuple(tf.joint_names), tuple(int(p) for p in tf.parents), slot_ids)
     try:
         if args.wait:

@@ -197,6 +197,7 @@ class LiveView:
         self._last_state = 0.0
         self._fps: dict[str, tuple[float, int, float]] = {}
         self.clients_seen = 0
+        self._dropped_gone = 0  # updates dropped for pages that have gone
         self.client_errors = 0
 
     # ------------------------------------------------------------------ public
@@ -240,8 +241,6 @@ class LiveView:
     @property
     def dropped_updates(self) -> int:
         return sum(c.dropped for c in list(self._clients)) + self._dropped_gone
-
-    _dropped_gone = 0
 
     def stop(self) -> None:
         self._stop.set()
