@@ -306,6 +306,7 @@ def main() -> None:
         "outputs", ["--view", "--view-port", "0", "--stream", "lsl,osc"], browser=True, seconds=args.seconds
     )
     res = {"baseline": base, "outputs": full}
+    res["rerun"] = _rerun_check(tmp / "outputs", tmp / "rig.toml", tmp / "outputs.rrd")
     res["process_cpu_ratio"] = full["process_cpu_per_s"] / base["process_cpu_per_s"]
     # the outputs' own threads against the whole capture-run --live process without them
     res["outputs_share_of_process"] = full["outputs_cpu_per_s"] / base["process_cpu_per_s"]
@@ -327,9 +328,55 @@ def main() -> None:
         f"--live alone; recorder drops {drops}; LSL samples {full.get('lsl_samples')}, OSC frames "
         f"{full.get('osc_frames')}, "
         f"frame sets processed {full['processed']}; screenshot {full.get('screenshot')} "
-        f"{full.get('screenshot_page')}; load {base['load_1min'][0]:.2f}"
+        f"{full.get('screenshot_page')}; rerun {res['rerun']}; load {base['load_1min'][0]:.2f}"
     )
     print("BENCH " + json.dumps(res))
+
+
+def _rerun_check(session: Path, rig_toml: Path, rrd: Path) -> dict:
+    """``tracks view`` of the recorded session (its videos, its live track) read back with Rerun's reader:
+    entity paths, frames per track and positions against the live track file."""
+    import shutil
+
+    try:
+        from rerun.chunk import RrdReader
+    except ImportError:
+        return {"skipped": "rerun-sdk not installed (pip install 'roomcap[rerun]')"}
+    from capture.session import SessionLayout
+    from track.rerun_export import write_session_rrd
+    from track.trackfile import TrackFile
+
+    lay = SessionLayout(session)
+    lay.calib_dir.mkdir(exist_ok=True)
+    shutil.copy(rig_toml, lay.calib_dir / "rig.toml")
+    t0 = time.perf_counter()
+    counts = write_session_rrd(session, lay.live_tracks, rrd)
+    write_s = time.perf_counter() - t0
+    tf = TrackFile.load(lay.live_tracks)
+    rows: dict[str, list] = {}
+    paths: set[str] = set()
+    for c in RrdReader(rrd).stream().to_chunks():
+        rb = c.to_record_batch()
+        paths.add(str(c.entity_path))
+        if "Points3D:positions" in rb.schema.names and "frame" in rb.schema.names:
+            fr, pos = rb.column("frame").to_pylist(), rb.column("Points3D:positions").to_pylist()
+            rows.setdefault(str(c.entity_path), []).extend((f, p) for f, p in zip(fr, pos, strict=True) if p)
+    present = np.isfinite(tf.xyz_m).all(-1).any(-1)
+    row_of = {int(f): t for t, f in enumerate(tf.frame_index)}
+    equal = True
+    for k, tid in enumerate(tf.track_id):
+        got = sorted(rows.get(f"/world/tracks/{int(tid)}", []), key=lambda x: x[0])
+        equal &= [f for f, _ in got] == [int(f) for f in tf.frame_index[present[:, k]]]
+        for f, p in got:
+            equal &= bool(np.array_equal(np.asarray(p, np.float32), tf.xyz_m[row_of[f], k], equal_nan=True))
+    return {
+        **counts,
+        "track_frames": tf.n_frames,
+        "tracks_equal": bool(equal),
+        "camera_entities": sorted(e for e in paths if e.startswith("/world/cameras")),
+        "rrd_mb": rrd.stat().st_size / 2**20,
+        "write_s": write_s,
+    }
 
 
 def _compare_lsl(session: Path, rows: list, ts: list, slots: int) -> dict:
