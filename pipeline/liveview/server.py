@@ -249,11 +249,11 @@ class LiveView:
         if loop is not None and loop.is_running():
             fut = asyncio.run_coroutine_threadsafe(self._shutdown(), loop)
             try:
-                fut.result(5.0)
+                fut.result(2.0)
             except Exception:  # noqa: BLE001 - stopping: nothing to keep
                 log.debug("live view: shutdown", exc_info=True)
         for t in self._threads:
-            t.join(5.0)
+            t.join(2.0)
 
     # ------------------------------------------------------------------ server thread
     def _serve(self, started: threading.Event, err: list[BaseException]) -> None:
