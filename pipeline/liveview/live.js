@@ -113,7 +113,6 @@ function render(){
     tbl.appendChild(tr); }
   const errs = Object.entries((state.live && state.live.errors) || {});
   $('errors').textContent = errs.length ? 'stage errors: ' + errs.map(([k, v]) => `${k}: ${v}`).join('; ') : '';
-  const lg = $('legend'); lg.textContent = '';
   if (state.seq !== acked) {
     acked = state.seq;
     const ms = Date.now() - state.t_capture_ms; lat.push(ms); if (lat.length > 60) lat.shift();

@@ -198,6 +198,7 @@ class LiveView:
         self._fps: dict[str, tuple[float, int, float]] = {}
         self.clients_seen = 0
         self._dropped_gone = 0  # updates dropped for pages that have gone
+        self._rig_data: dict[str, Any] | None = None
         self.client_errors = 0
 
     # ------------------------------------------------------------------ public
@@ -432,12 +433,12 @@ class LiveView:
         return out
 
     def hello(self) -> dict[str, Any]:
-        rig = None
-        if self.rig is not None:
+        if self._rig_data is None and self.rig is not None:  # once: the cameras do not move
             try:
-                rig = {"cameras": rig_cameras_data(self.rig)}
+                self._rig_data = {"cameras": rig_cameras_data(self.rig)}
             except Exception:  # noqa: BLE001 - a page without the camera drawings still works
                 log.exception("live view: rig drawing data")
+        rig = self._rig_data
         return {
             "type": "hello",
             "cameras": list(self.cameras),
