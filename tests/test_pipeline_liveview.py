@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -176,6 +177,13 @@ def test_bad_view_options_are_refused_with_what_to_do():
             view.start()
     finally:
         held.close()
+
+
+def test_without_aiohttp_the_view_names_the_extra(monkeypatch):
+    _, _, view = _setup()
+    monkeypatch.setitem(sys.modules, "aiohttp", None)
+    with pytest.raises(InputError, match=r"pip install 'roomcap\[view\]'"):
+        view.start()
 
 
 def test_a_token_guards_every_request():

@@ -210,6 +210,12 @@ class LiveView:
         return f"http://{host}:{self.port}{q}"
 
     def start(self) -> None:
+        try:
+            import aiohttp  # noqa: F401  # lazy: the view extra; checked before binding
+        except ImportError:
+            raise InputError(
+                "--view needs the aiohttp package, which is not installed: pip install 'roomcap[view]'."
+            ) from None
         self._sock = bind_socket(self.cfg.host, self.cfg.port)
         self.port = int(self._sock.getsockname()[1])
         started = threading.Event()
