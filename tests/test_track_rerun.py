@@ -185,3 +185,23 @@ def test_capture_run_live_rerun_writes_the_file_as_it_records(tmp_path):
     )  # 1.5 s at 20 fps (measured 30)
     for cam in rig.names:
         assert any(r.get("EncodedImage:blob") for r in got[f"/world/cameras/{cam}/image"])
+
+
+def test_a_live_tracks_rows_find_their_video_frames_by_time(tmp_path):
+    """A live track's rows are frame sets (their own numbering): with the camera's frames.csv the frames are
+    matched by timestamp."""
+    pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
+    from capture.recorder import CSV_HEADER
+    from track.rerun_export import write_session_rrd
+
+    lay, rig, tf = _session(tmp_path / "S")
+    for cam in rig.names:  # the recorder's timestamps: frame k at the track's k-th t_ns
+        rows = "".join(f"{k},{t},{t},{k}\n" for k, t in enumerate(tf.t_ns))
+        lay.frames_csv(cam).write_text(CSV_HEADER + rows)
+    shifted = TrackFile(**{**tf.__dict__, "frame_index": tf.frame_index + 100})
+    shifted.save(tmp_path / "live.npz")
+    counts = write_session_rrd(lay.root, tmp_path / "live.npz", tmp_path / "x.rrd", max_width_px=64)
+    assert counts["images"] == 2 * tf.n_frames
+    got = _read(tmp_path / "x.rrd")
+    frames = [r["frame"] for r in got["/world/cameras/cam00/image"] if r.get("EncodedImage:blob")]
+    assert frames == list(range(100, 110))

@@ -203,27 +203,32 @@ def write_session_rrd(
             if d.skeleton != CANONICAL.id:
                 xy, _ = convert(xy, np.asarray(d.score), d.skeleton, CANONICAL)
             dets[cam] = ({int(f): t for t, f in enumerate(d.frame_index)}, xy)
-    videos = {}
+    videos: dict[str, tuple[Any, bool]] = {}
     if images:
         for cam in cams:
             v = lay.video(cam)
             if v.exists():
-                videos[cam] = iter(Recording(v, lay.find_frames_csv(cam)).iter_frames())
+                rec = Recording(v, lay.find_frames_csv(cam))
+                videos[cam] = (iter(rec.iter_frames()), rec.table is not None)
     w = RerunWriter(out, rig, name=lay.root.name, max_width_px=max_width_px)
     counts = {"frames": 0, "images": 0, "detections": 0, "tracks": int(tf.n_tracks)}
     pending: dict[str, tuple[int, int, np.ndarray | None] | None] = {c: None for c in videos}
+    tol_ns = int(0.5e9 / tf.fps) if tf.fps else 0  # half a frame period
     try:
         for t in range(tf.n_frames):
             fi = int(tf.frame_index[t])
             w.set_time(fi, int(tf.t_ns[t]))
-            for cam, it in videos.items():  # advance each video to this frame
+            for cam, (it, timed) in videos.items():
+                # the video's frame at this row: by timestamp where the video has its frames.csv (a live
+                # track's rows are frame sets, not video frames), else by frame number
+                key, want = (1, int(tf.t_ns[t])) if timed else (0, fi)
                 item = pending[cam]
-                while item is None or item[0] < fi:
+                while item is None or item[key] < want - tol_ns * timed:
                     item = next(it, None)
                     if item is None:
                         break
                 pending[cam] = item
-                if item is not None and item[0] == fi and item[2] is not None:
+                if item is not None and abs(item[key] - want) <= tol_ns * timed and item[2] is not None:
                     w.image(cam, item[2])
                     counts["images"] += 1
             for cam, (rows, xy) in dets.items():
