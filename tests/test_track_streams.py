@@ -198,6 +198,7 @@ def test_live_frames_reach_an_lsl_inlet_and_an_osc_server_equal_to_the_live_trac
     i = 0
     for t in range(tf.n_frames):
         assert frames[t][0] == tf.frame_index[t] and frames[t][2] == present[t].sum()
+        assert abs(frames[t][1] - tf.t_ns[t] / 1e9) < 1e-6  # a double: the frame's time to the microsecond
         for k in np.flatnonzero(present[t]):
             pid, *flat = persons[i]
             i += 1

@@ -29,7 +29,8 @@ tracks than slots are sent over OSC only (warned once).
 
 **OSC** (``python-osc``; UDP to ``--osc-to HOST:PORT``). Per frame, as separate messages:
 
-- ``/roomcap/frame``  ``frame_index:int, t_s:float, n_people:int`` (``t_s``: ``t_ns`` / 1e9);
+- ``/roomcap/frame``  ``frame_index:int32, t_s:double, n_people:int32`` (``t_s``: ``t_ns`` / 1e9, UNIX
+  seconds of the host clock; a 64-bit double, OSC type ``d``, as a float32 would be 128 s coarse);
 - ``/roomcap/person`` ``track_id:int, x0, y0, z0, x1, ... x18, y18, z18`` (float32, metres, z up,
   ``body19`` joint order; NaN = joint unknown), one message per person present;
 - ``/roomcap/birth`` and ``/roomcap/death`` ``track_id:int`` when a track appears or disappears.
@@ -63,6 +64,7 @@ OSC_FRAME, OSC_PERSON, OSC_BIRTH, OSC_DEATH = (
     "/roomcap/birth",
     "/roomcap/death",
 )
+CLOSE_GRACE_S = 0.5  # on close, time for connected LSL inlets to receive the last samples
 EXTRA = {"lsl": "stream", "osc": "stream", "rerun": "rerun"}  # pip extra that installs each consumer
 _PACKAGE = {"lsl": "pylsl", "osc": "python-osc", "rerun": "rerun-sdk"}
 
@@ -182,6 +184,17 @@ def lsl_clock_offset_ns(local_clock: Callable[[], float], n: int = 7) -> int:
     return best[1]
 
 
+def _frame_message(frame_index: int, t_ns: int, n_people: int) -> Any:
+    """``/roomcap/frame`` with ``t_s`` as a 64-bit double: a float32 of UNIX seconds would be 128 s coarse."""
+    from pythonosc.osc_message_builder import OscMessageBuilder  # lazy: the stream extra
+
+    b = OscMessageBuilder(address=OSC_FRAME)
+    b.add_arg(frame_index, OscMessageBuilder.ARG_TYPE_INT)
+    b.add_arg(t_ns / 1e9, OscMessageBuilder.ARG_TYPE_DOUBLE)
+    b.add_arg(n_people, OscMessageBuilder.ARG_TYPE_INT)
+    return b.build()
+
+
 def _lsl() -> Any:
     try:
         import pylsl  # lazy: loads liblsl (the stream extra)
@@ -299,6 +312,12 @@ class _LslOutlets:
         self.data.push_sample(smp, ts)
 
     def close(self) -> None:
+        # liblsl sends from its own threads: give connected inlets the last samples before the outlets go
+        try:
+            if self.data.have_consumers() or self.markers.have_consumers():
+                time.sleep(CLOSE_GRACE_S)
+        except Exception:  # noqa: BLE001 - closing: the outlets go either way
+            pass
         del self.data, self.markers
 
 
@@ -385,7 +404,7 @@ class TrackStreamer:
                     send(OSC_DEATH, int(i))
                 for i, _ in births:
                     send(OSC_BIRTH, int(i))
-                send(OSC_FRAME, [int(frame_index), int(t_ns) / 1e9, len(ids)])
+                self.osc.send(_frame_message(int(frame_index), int(t_ns), len(ids)))
                 for k, tid in enumerate(ids):
                     send(OSC_PERSON, [int(tid), *xyz[k].reshape(-1).tolist()])
             except OSError as e:  # e.g. ECONNREFUSED after a listener went away: go on sending
