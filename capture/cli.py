@@ -20,7 +20,7 @@ from pathlib import Path
 
 from capture.config import ConfigError, load_config, shared_sources
 from capture.fileio import FormatError
-from capture.live import BuildStages, LiveRunner
+from capture.live import BuildStages, LiveOutputs, LiveRunner
 from capture.offline_sync import sync_audio, sync_session
 from capture.recorder import Recorder, RecorderError, redact_text, repair
 from capture.session import SessionLayout
@@ -63,9 +63,14 @@ def _record_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
+def _record(
+    argv: list[str], build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+) -> int:
 
-    args = _record_parser().parse_args(argv)
+    parser = _record_parser()
+    if outputs is not None:
+        outputs.add_arguments(parser)
+    args = parser.parse_args(argv)
     cfg = load_config(args.cameras)
     out = args.out or cfg.out
     if not out:
@@ -100,6 +105,7 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
         skip_failed_cameras=args.skip_failed_cameras,
         join=not args.no_join,
     )
+    close_outputs = outputs.open(args, live, rec) if outputs is not None else None
     if live:
         live.start()
     bar = None
@@ -127,6 +133,8 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
             bar.close()
         if live:
             live.stop()
+        if close_outputs is not None:
+            close_outputs()
     print(f"session: {out} ({summary['status']}; {rec.stop_reason})")
     for name, c in summary["cameras"].items():
         if c.get("recorded") is False:
@@ -317,7 +325,9 @@ def _repair(argv: list[str]) -> int:
     return 1 if kept else 0
 
 
-def _main(argv: list[str] | None = None, build_live: BuildStages | None = None) -> int:
+def _main(
+    argv: list[str] | None = None, build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     verbose = "-v" in argv or "--verbose" in argv
@@ -329,7 +339,7 @@ def _main(argv: list[str] | None = None, build_live: BuildStages | None = None) 
     rest = argv[1:] if argv and argv[0] in _SUBCOMMANDS else argv
     try:
         if cmd == "record":
-            return _record(rest, build_live)
+            return _record(rest, build_live, outputs)
         return {"check": _check, "sync": _sync, "repair": _repair}[cmd](rest)
     except (ConfigError, FormatError, SourceError, RecorderError, ValueError) as e:
         print(f"capture-run: error: {redact_text(str(e))}", file=sys.stderr)
@@ -339,10 +349,13 @@ def _main(argv: list[str] | None = None, build_live: BuildStages | None = None) 
         return 130
 
 
-def make_main(build_live: BuildStages | None = None) -> Callable[..., int]:
+def make_main(
+    build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+) -> Callable[..., int]:
     """``capture-run``'s entry with the live stages ``build_live`` (:func:`pipeline.live.build_stages`:
-    the installed ``capture-run`` is ``pipeline.live:main``); without them ``--live`` says where to go."""
-    return guarded("capture-run", functools.partial(_main, build_live=build_live))
+    the installed ``capture-run`` is ``pipeline.live:main``) and what the live run sends out
+    (``outputs``: :class:`pipeline.live_outputs.Outputs`); without them ``--live`` says where to go."""
+    return guarded("capture-run", functools.partial(_main, build_live=build_live, outputs=outputs))
 
 
 main = make_main()

@@ -10,6 +10,10 @@ tracks fit SESSION|tracks.npz
     track/live.npz: live_skeleton_fit.npz)
 tracks opensim SESSION|tracks.npz [--setup DIR] [--person ID] --out DIR
     Pose2Sim's OpenSim model scaled and inverse kinematics on the TRC (needs the opensim extra)
+tracks stream SESSION|tracks.npz --stream lsl,osc [--osc-to HOST:PORT] [--speed 1]
+    replay the track at its own clock to the Lab Streaming Layer and/or OSC (track/streams.py)
+tracks view SESSION --rrd FILE.rrd
+    the session as a Rerun recording: cameras, frames, 2D detections, 3D tracks (track/rerun_export.py)
 
 Also runnable as ``python -m track.cli``.
 """
@@ -23,6 +27,7 @@ from pathlib import Path
 
 from core.cli import Parser, guarded
 from core.errors import RoomcapError
+from track import rerun_export, streams
 from track.export import ExportOptions, export_tracks, parse_formats
 from track.opensim_ik import default_setup_dir, run_opensim
 from track.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
@@ -197,6 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--session", help="name used in the file names (default: the session folder's name)")
     o.add_argument("--max-gap", type=int, default=10, help="fill gaps up to N frames before IK")
     o.set_defaults(func=_opensim)
+    streams.add_parser(sub, resolve_tracks)
+    rerun_export.add_parser(sub, resolve_tracks)
     return p
 
 
