@@ -84,7 +84,7 @@ def _export(args) -> int:
     unknown = sorted(set(persons or ()) - set(tf.track_id.tolist()))
     if unknown:
         raise UsageError(
-            f"--person {','.join(map(str, unknown))}: {path} has no such track (its tracks: "
+            f"--person: there is no track {','.join(map(str, unknown))} in {path} (its tracks: "
             f"{tf.track_id.tolist()}); nothing was written."
         )
     fit = None
