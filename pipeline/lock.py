@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 
 LOCK_NAME = "lock"
 POLL_S = 0.2
+REFUSE_AFTER_S = 0.5  # how long a refusing run retries first (another run's holder() probe takes a moment)
 
 
 class SessionLocked(RoomcapError, RuntimeError):
@@ -137,12 +138,16 @@ def session_lock(
     locked = False
     try:
         told = False
+        patience = time.monotonic() + REFUSE_AFTER_S
         while True:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 locked = True
                 break
             except BlockingIOError:
+                if not wait and time.monotonic() < patience:  # a moment's probe by holder() passes
+                    time.sleep(0.05)
+                    continue
                 h = None
                 for _ in range(10):  # the holder writes its name just after taking the lock
                     h = _read(path)

@@ -1,9 +1,9 @@
 """Safe by default: one run per session (the lock), outputs checked against the cache's record, warnings
 kept with the stages' outputs, Ctrl-C, and the smaller faults of everyday use.
 
-The session is a synthetic detections-only one (``pipeline.synth``, 4 cameras, 2 people, 4 s at 25 fps);
-the particle tracker with 200 samples makes one run last about 3 s, long enough for a second run to
-meet the first.
+The session is a synthetic detections-only one (``pipeline.synth``, 4 cameras, 2 people, 5 s at 25 fps);
+the particle tracker with 200 samples and the forecast stage make one run last about 5 s, long enough for
+a second run started 2 s later to meet the first.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def _outputs(root: Path) -> dict[str, bytes]:
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory) -> Path:
-    return make_session(tmp_path_factory.mktemp("in") / "S1", seed=1, n_people=2, duration_s=4.0)
+    return make_session(tmp_path_factory.mktemp("in") / "S1", seed=1, n_people=2, duration_s=5.0)
 
 
 @pytest.fixture(scope="module")
