@@ -86,9 +86,6 @@ def _read(path: Path) -> LockHolder | None:
         return None
 
 
-_DUMMY = LockHolder(0, "", "", "")
-
-
 def holder(root: str | os.PathLike[str]) -> LockHolder | None:
     """The run that holds the session's lock now, or None when nobody does (a stale lock file is free)."""
     path = lock_path(root)
@@ -161,19 +158,19 @@ def session_lock(
                     (on_wait or log.warning)(msg)
                     told = True
                 time.sleep(POLL_S)
-        held = HeldLock(_DUMMY, _read(path))
-        if held.took_over is not None:
-            log.warning("%s", held.took_over_message(root))
         me = LockHolder(
             os.getpid(),
             socket.gethostname(),
             datetime.now(UTC).isoformat(timespec="seconds"),
             redact(shlex.join(sys.argv)),
         )
+        held = HeldLock(me, _read(path))  # a name still in the file: a run that ended without releasing
+        if held.took_over is not None:
+            log.warning("%s", held.took_over_message(root))
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(asdict(me)).encode(), 0)
         os.fsync(fd)
-        yield HeldLock(me, held.took_over)
+        yield held
     finally:
         if locked:
             try:
