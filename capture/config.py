@@ -322,7 +322,7 @@ def shared_sources(cfg: CaptureConfig) -> list[str]:
         groups.setdefault(key, []).append(c.name)
     return [
         f"cameras {', '.join(repr(n) for n in names)} all read {cfg.camera(names[0]).source_redacted!r}: "
-        "the same frames would be recorded twice and their skew (0.00 ms) says nothing about the cameras. "
+        "the same frames would be recorded twice and the skew between them says nothing about the cameras. "
         "Give each camera its own source in cams.yaml."
         for names in groups.values()
         if len(names) > 1

@@ -45,8 +45,9 @@ def _say(text: str) -> None:
         pass
 
 
-def _stop_on_sigint(prog: str) -> Any:
+def _stop_on_sigint(prog: str, hits: list[int]) -> Any:
     """Install the Ctrl-C handler of a command; returns the previous handler (None off the main thread).
+    ``hits[0]`` counts the SIGINTs received.
 
     The first SIGINT says "stopping…" at once and raises KeyboardInterrupt in the main thread, so the
     command unwinds and keeps what it finished; a watchdog ends the process with 130 if it has not ended
@@ -55,7 +56,6 @@ def _stop_on_sigint(prog: str) -> Any:
     """
     if threading.current_thread() is not threading.main_thread():
         return None
-    hits = [0]
 
     def deadline() -> None:
         time.sleep(STOP_GRACE_S)
@@ -123,13 +123,21 @@ def guarded(prog: str, main: Callable[[Sequence[str] | None], int | None]) -> Ca
     def run(argv: Sequence[str] | None = None) -> int:
         debug = os.environ.get("ROOMCAP_DEBUG", "") not in ("", "0")
         redact_log_records()
-        previous = _stop_on_sigint(prog)
+        hits = [0]
+        previous = _stop_on_sigint(prog, hits)
         try:
             code = main(expand_user_args(sys.argv[1:] if argv is None else argv))
             return EXIT_OK if code is None else int(code)
         except KeyboardInterrupt:
             print(f"{prog}: interrupted; what was finished is kept (run the command again to go on).",
                   file=sys.stderr)  # fmt: skip
+            if hits[0]:  # a real Ctrl-C: the work has unwound; skip the interpreter's slow teardown
+                for stream in (sys.stdout, sys.stderr):
+                    try:
+                        stream.flush()
+                    except (OSError, ValueError):
+                        pass
+                os._exit(EXIT_INTERRUPTED)
             return EXIT_INTERRUPTED
         except (RoomcapError, ValueError, OSError) as e:
             # ValueError: the project's bad-input errors that predate RoomcapError are ValueErrors.

@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 
 LOCK_NAME = "lock"
 POLL_S = 0.2
+REFUSE_AFTER_S = 0.5  # how long a refusing run retries first (another run's holder() probe takes a moment)
 
 
 class SessionLocked(RoomcapError, RuntimeError):
@@ -83,9 +84,6 @@ def _read(path: Path) -> LockHolder | None:
         return LockHolder(int(d["pid"]), str(d["host"]), str(d["started"]), str(d["command"]))
     except (OSError, ValueError, TypeError, KeyError):
         return None
-
-
-_DUMMY = LockHolder(0, "", "", "")
 
 
 def holder(root: str | os.PathLike[str]) -> LockHolder | None:
@@ -137,12 +135,16 @@ def session_lock(
     locked = False
     try:
         told = False
+        patience = time.monotonic() + REFUSE_AFTER_S
         while True:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 locked = True
                 break
             except BlockingIOError:
+                if not wait and time.monotonic() < patience:  # a moment's probe by holder() passes
+                    time.sleep(0.05)
+                    continue
                 h = None
                 for _ in range(10):  # the holder writes its name just after taking the lock
                     h = _read(path)
@@ -156,19 +158,19 @@ def session_lock(
                     (on_wait or log.warning)(msg)
                     told = True
                 time.sleep(POLL_S)
-        held = HeldLock(_DUMMY, _read(path))
-        if held.took_over is not None:
-            log.warning("%s", held.took_over_message(root))
         me = LockHolder(
             os.getpid(),
             socket.gethostname(),
             datetime.now(UTC).isoformat(timespec="seconds"),
             redact(shlex.join(sys.argv)),
         )
+        held = HeldLock(me, _read(path))  # a name still in the file: a run that ended without releasing
+        if held.took_over is not None:
+            log.warning("%s", held.took_over_message(root))
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(asdict(me)).encode(), 0)
         os.fsync(fd)
-        yield HeldLock(me, held.took_over)
+        yield held
     finally:
         if locked:
             try:

@@ -197,7 +197,9 @@ def test_export_of_an_unknown_person_makes_no_folder(tracked, tmp_path, capsys):
     out = tmp_path / "x" / "exports"
     assert tracks(["export", str(tracked), "--person", "99", "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "99" in err and "Traceback" not in err, err
+    assert (
+        "--person: there is no track 99 in" in err and "(its tracks: [" in err and "Traceback" not in err
+    ), err
     assert not (tmp_path / "x").exists()
 
 

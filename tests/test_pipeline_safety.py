@@ -1,9 +1,9 @@
 """Safe by default: one run per session (the lock), outputs checked against the cache's record, warnings
 kept with the stages' outputs, Ctrl-C, and the smaller faults of everyday use.
 
-The session is a synthetic detections-only one (``pipeline.synth``, 4 cameras, 2 people, 4 s at 25 fps);
-the particle tracker with 200 samples makes one run last about 3 s, long enough for a second run to
-meet the first.
+The session is a synthetic detections-only one (``pipeline.synth``, 4 cameras, 2 people, 5 s at 25 fps);
+the particle tracker with 200 samples and the forecast stage make one run last about 5 s, long enough for
+a second run started 2 s later to meet the first.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def _outputs(root: Path) -> dict[str, bytes]:
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory) -> Path:
-    return make_session(tmp_path_factory.mktemp("in") / "S1", seed=1, n_people=2, duration_s=4.0)
+    return make_session(tmp_path_factory.mktemp("in") / "S1", seed=1, n_people=2, duration_s=5.0)
 
 
 @pytest.fixture(scope="module")
@@ -285,3 +285,25 @@ def test_a_command_that_does_not_stop_is_ended_after_the_grace(tmp_path):
     dt = time.perf_counter() - t0
     assert proc.returncode == 130 and "stubborn: stopping…" in err and "stubborn: stopped" in err, err
     assert dt < 2.0, f"{dt:.2f} s"
+
+
+def test_ray_tasks_take_the_same_lock(session, tmp_path, monkeypatch):
+    """A session run as a Ray task (a stand-in for ray runs the task here) meets the lock like a local run."""
+    import types
+
+    from pipeline import executors
+
+    fake = types.SimpleNamespace(
+        is_initialized=lambda: True,
+        remote=lambda **kw: lambda f: types.SimpleNamespace(remote=lambda *a: f(*a)),
+        wait=lambda pending, num_returns: (pending[:1], pending[1:]),
+        get=lambda r: r,
+    )
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    cfg = PipelineConfig(stages=("triangulate",))
+    out = tmp_path / "out"
+    with session_lock(out / "S1") as lock:
+        (r,) = executors.run_ray(discover([session]), out, cfg, False, 1, None)
+    assert r.status == "locked" and f"pid {lock.holder.pid}" in r.message
+    (r,) = executors.run_ray(discover([session]), out, cfg, False, 1, None)
+    assert r.status == "ok" and r.ran == ["calibration", "keypoints", "triangulate"], (r.ran, r.message)

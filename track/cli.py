@@ -86,6 +86,12 @@ def _export(args) -> int:
     path, session = resolve_tracks(args.tracks)
     tf = TrackFile.load(path)
     persons = _persons(args.person)
+    unknown = sorted(set(persons or ()) - set(tf.track_id.tolist()))
+    if unknown:
+        raise UsageError(
+            f"--person: there is no track {','.join(map(str, unknown))} in {path} (its tracks: "
+            f"{tf.track_id.tolist()}); nothing was written."
+        )
     fit = None
     if "bvh" in fmts:
         fit, made = load_or_fit(path, tf, persons)
