@@ -140,3 +140,22 @@ def test_shared_test_windows():
     seq = B.sequence(ts.files["walking"][0])
     s = B.window_starts(len(seq))
     assert np.allclose(ts.windows["walking"][0], seq[s[0] : s[0] + 75])
+
+
+def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, monkeypatch):
+    from forecast import cli
+
+    seen = {}
+    real_evaluate = B.evaluate
+
+    def fake_evaluate(root, mlp_checkpoints, body19_checkpoints, **kw):
+        seen.update(mlp=mlp_checkpoints, b19=body19_checkpoints)
+        return real_evaluate(root, n_windows=1)
+
+    monkeypatch.setattr(B, "evaluate", fake_evaluate)
+    assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
+    shipped = cli.shipped_checkpoints()
+    assert any(p.endswith("gru_cmu.pt") for p in shipped)
+    assert not any("characteristic" in p for p in shipped)
+    assert seen["b19"] == shipped
+    assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
