@@ -193,6 +193,7 @@ class MlpConfig:
     weight_decay: float = 1e-4
     val_every: int = 500
     seed: int = 0
+    mirror: bool = False  # augment: each training window left/right mirrored with probability 1/2
 
 
 class _Block(nn.Module):
@@ -239,6 +240,23 @@ class DctMlp(nn.Module):
         h = self.blocks(h.transpose(1, 2)).transpose(1, 2)
         y = torch.einsum("ts,bsd->btd", self.idct, self.fc_out(h))[:, : self.n_pred]
         return y.reshape(B, self.n_pred, P, 3) + last
+
+
+def mirror_index() -> np.ndarray:
+    """For the 25 used points: the index of each one's left/right partner (legs 1-6 <-> 7-12, arms 20-28 <->
+    29-37 of the reference's 38; the spine is its own partner)."""
+    perm = list(range(38))
+    for a, b in [(i, i + 6) for i in range(1, 7)] + [(20 + k, 29 + k) for k in range(9)]:
+        perm[a], perm[b] = b, a
+    used = list(JOINTS_USED)
+    return np.array([used.index(perm[j]) for j in used])
+
+
+def _mirror(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Windows ``b (B,T,25,3)``: those with ``flip`` mirrored (x -> -x in the body frame, left <-> right)."""
+    m = b[:, :, idx].clone()
+    m[..., 0] = -m[..., 0]
+    return torch.where(flip[:, None, None, None], m, b)
 
 
 def _loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
@@ -296,12 +314,15 @@ def train_mlp(
     best = {"val_mm": float("inf"), "step": 0}
     best_state = {k: v.clone() for k, v in model.state_dict().items()}
     curve = []
+    midx = torch.from_numpy(mirror_index())
     t0 = time.perf_counter()
     losses = []
     for step in range(1, config.steps + 1):
         model.train()
         idx = torch.from_numpy(rng.integers(0, len(x), config.batch))
         b = x[idx]
+        if config.mirror:
+            b = _mirror(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
         loss = _loss(model(b[:, : config.n_obs]), b[:, config.n_obs : config.n_obs + config.n_pred])
         opt.zero_grad()
         loss.backward()
@@ -658,12 +679,20 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
     t.add_argument("--lr", type=positive_float, default=d.lr)
     t.add_argument("--seed", type=int, default=d.seed)
+    t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
     t.add_argument("--threads", type=positive_int, default=1)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger(__name__).setLevel(logging.INFO)  # the validation curve, one line per check
-    cfg = MlpConfig(n_blocks=args.blocks, lr=args.lr, steps=args.steps, batch=args.batch, seed=args.seed)
+    cfg = MlpConfig(
+        n_blocks=args.blocks,
+        lr=args.lr,
+        steps=args.steps,
+        batch=args.batch,
+        seed=args.seed,
+        mirror=args.mirror,
+    )
     bf = C.benchmark_files(args.path)
     tr, va = split_train_val(bf)
     if not tr:

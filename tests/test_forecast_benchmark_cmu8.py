@@ -159,3 +159,15 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
     assert not any("characteristic" in p for p in shipped)
     assert seen["b19"] == shipped
     assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
+
+
+def test_mirror_swaps_sides_and_is_an_involution():
+    idx = B.mirror_index()
+    used = list(B.JOINTS_USED)
+    assert sorted(idx.tolist()) == list(range(25)) and (idx[idx] == np.arange(25)).all()
+    assert idx[used.index(3)] == used.index(9)  # left knee <-> right knee
+    assert idx[used.index(14)] == used.index(14)  # the spine stays
+    b = torch.randn(2, 5, 25, 3)
+    m = B._mirror(b, torch.tensor([True, False]), torch.from_numpy(idx))
+    assert torch.equal(m[1], b[1]) and torch.allclose(m[0, :, used.index(3), 0], -b[0, :, used.index(9), 0])
+    assert torch.allclose(B._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
