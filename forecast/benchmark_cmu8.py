@@ -547,8 +547,8 @@ def evaluate(
             for k, v in P.PUBLISHED.items()
         },
         "published_other_metric": P.OTHER_METRIC,
-        "published_not_found": "LTD's 3D MPJPE table on CMU (no source reachable here quotes it); siMLPe has "
-        "no CMU results (Human3.6M, AMASS, 3DPW only)",
+        "published_not_found": "siMLPe has no CMU results (Human3.6M, AMASS, 3DPW only); LTD publishes no "
+        "560 ms value on CMU",
         "layout": LAYOUT,
     }
     if samples_dir is not None:

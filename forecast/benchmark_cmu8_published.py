@@ -3,9 +3,8 @@
 ``PUBLISHED``: 3D MPJPE in the reference's millimetres at 80/160/320/400/560/1000 ms. ``OTHER_METRIC``: rows
 on the same data in another metric (mean angle error), shown for context only, never compared with MPJPE.
 
-Not found: LTD's own 3D MPJPE table on CMU (Mao et al. 2019) is not quoted by its repository's README nor by
-any source the search tool reaches, so no LTD MPJPE row is given; siMLPe (Guo et al. 2023) reports Human3.6M,
-AMASS and 3DPW only (its repository has no CMU code or table), so it has no row either.
+LTD publishes no 560 ms value on CMU (None). siMLPe (Guo et al. 2023) reports Human3.6M, AMASS and 3DPW only
+(its repository has no CMU code or table), so it has no row.
 """
 
 from __future__ import annotations
@@ -31,6 +30,13 @@ _MSR = {
 }
 
 PUBLISHED: dict[str, dict] = {
+    "LTD (Mao et al. 2019)": {
+        "mpjpe_mm": [11.5, 20.4, 37.8, 46.8, None, 96.5],
+        "windows": "the protocol's 8 per action, all 8 test files",
+        "reruns_mpjpe_mm": [[11.3, 19.8, 36.9, 45.5, None, 92.7], [11.3, 19.7, 37.2, 46.0, None, 94.0]],
+        "source": "github.com/wei-mao-2019/LearnTrajDep README.md (commit 47530723), section 'CMU-mocap', 3D "
+        "coordinate rows (bottom half), row 'pre-trained' (the two re-runs 'test_run_1/2' kept beside it)",
+    },
     "MSR-GCN (Dang et al. 2021)": {
         "mpjpe_mm": [8.81, 15.90, 30.43, 37.89, 51.69, 78.67],
         "per_action": _MSR,
