@@ -171,3 +171,17 @@ def test_mirror_swaps_sides_and_is_an_involution():
     m = B._mirror(b, torch.tensor([True, False]), torch.from_numpy(idx))
     assert torch.equal(m[1], b[1]) and torch.allclose(m[0, :, used.index(3), 0], -b[0, :, used.index(9), 0])
     assert torch.allclose(B._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
+
+
+def test_shipped_dct_mlp_checkpoint():
+    ck = B.SHIPPED_MLP
+    if not ck.exists():
+        pytest.skip("no shipped cmu8 checkpoint")
+    assert ck.stat().st_size < 1_000_000  # measured 216 KB
+    model, blob = B.load_mlp(ck)
+    assert blob["extra"]["best"]["step"] > 0 and blob["extra"]["val_files"]  # picked on validation
+    assert not any("test" in f for f in blob["extra"]["train_files"])
+    obs = np.cumsum(np.random.default_rng(0).normal(0, 0.01, (2, 50, 38, 3)), 1)
+    y = B.mlp_forecast(model, obs)
+    assert y.shape == (2, 25, 38, 3) and np.isfinite(y).all()
+    assert np.abs(y[:, 0] - obs[:, -1]).max() < 1.0  # continues from the last observed pose (ASF units)
