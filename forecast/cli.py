@@ -287,7 +287,9 @@ def _eval_hik(args, names: list[str]) -> int:
             "forecast eval --protocol hik DATA: give the folder of HiK person files (data/poses)"
         )
     try:
-        res = hik.evaluate_hik(args.path, names, args.checkpoints or [], n_samples=args.samples)
+        res = hik.evaluate_hik(
+            args.path, names, args.checkpoints or [], n_samples=args.samples, samples_dir=args.save_samples
+        )
     except (FileNotFoundError, FormatError, ValueError) as e:
         raise InputError(str(e)) from None
     path = hik.write_hik_report(res, args.out)
@@ -367,7 +369,7 @@ def _main(argv: list[str] | None = None) -> int:
         "--save-samples",
         metavar="DIR",
         help="write samples_<model>.npz per model and baseline (pred, obs, gt in metres, fps, joint_names, "
-        "activity, model) for rescoring (protocols cmu and cmu8)",
+        "activity, model) for rescoring (protocols cmu, cmu8 and hik; not --social)",
     )
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
     e.add_argument("--horizon-s", type=positive_float, default=4.0)
