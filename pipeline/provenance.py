@@ -54,10 +54,11 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
     "track": ("track", "triangulate", "calibrate/camera.py", "keypoints/skeletons.py"),
     "forecast": ("forecast", "pipeline/glue.py", "triangulate/trackfile.py"),
     "report": (
-        "pipeline/report.py",
+        "pipeline/report",
         "pipeline/report_assets/report.html",
         "pipeline/report_assets/report.css",
         "pipeline/report_assets/report.js",
+        "pipeline/report_assets/viewer3d.js",
     ),
 }
 _ROOT = Path(__file__).resolve().parents[1]

@@ -232,7 +232,7 @@ def test_the_runner_closes_the_track_stage_so_the_last_part_is_written(tmp_path)
 def test_downstream_reads_a_live_session_like_a_batch_one(tmp_path, capsys):
     """The tracks CLI and the report read a session that only has the live track, through the common
     loader; the skeleton fit of the live track does not take the batch track's companion name."""
-    from pipeline.report import _load
+    from pipeline.report.inputs import _load
     from track.cli import main as tracks_main
 
     sess = tmp_path / "S07"

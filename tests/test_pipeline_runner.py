@@ -290,7 +290,7 @@ def test_reprocess_with_chunk_s_streams_end_to_end(sessions, tmp_path, tracker):
         assert (s / "triangulate" / "poses3d.parts" / "index.json").exists()
     assert (s / "forecast" / "preview.npz").exists() and (s / "report" / "report.html").exists()
     from capture.session import SessionLayout
-    from pipeline.report import _load
+    from pipeline.report.inputs import _load
 
     inp = _load(SessionLayout(s))  # what the report reads: the parts joined
     assert inp.tracks is not None and not inp.tracks_error and inp.tracks.n_tracks == 3

@@ -215,7 +215,7 @@ def test_warnings_survive_cached_reruns(session, tmp_path):
 
     from calibrate.camera import CameraRig
     from capture.session import SessionLayout
-    from pipeline.report import _warnings
+    from pipeline.report.problems import _warnings
 
     src = tmp_path / "in" / "wide"
     shutil.copytree(session, src)

@@ -1,0 +1,7 @@
+"""``python -m pipeline.report SESSION [--overlay]``: the report of a session folder."""
+
+import sys
+
+from pipeline.report.page import main
+
+sys.exit(main())

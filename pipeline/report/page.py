@@ -1,0 +1,167 @@
+"""The page: everything collected into one self-contained HTML file, and ``python -m pipeline.report``."""
+
+from __future__ import annotations
+
+import argparse
+import html
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from capture.fileio import FormatError, atomic_write_text, load_npz, load_toml
+from capture.session import SessionLayout
+from core.redact import redact
+from pipeline.config import STAGES
+from pipeline.report.figures import _detection_rates, _quality, _rig_data, _tracks_data
+from pipeline.report.inputs import ReportConfig, _load, _r
+from pipeline.report.overlay_video import write_overlay_videos
+from pipeline.report.problems import _problems, _warnings
+from pipeline.report.views import _views_data
+
+log = logging.getLogger(__name__)
+
+
+_ASSETS = Path(__file__).resolve().parents[1] / "report_assets"
+
+
+def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
+
+    rows = []
+    for stage in STAGES:
+        p = lay.root / ".roomcap" / "provenance" / f"{stage}.json"
+        if not p.exists():
+            continue
+        try:
+            rec = json.loads(p.read_text())
+            rows.append(
+                {
+                    "stage": rec["stage"],
+                    "version": rec["version"],
+                    "model_sha256": rec.get("model_sha256", "")[:12],
+                    "inputs": len(rec["inputs"]),
+                }
+            )
+        except (json.JSONDecodeError, KeyError):
+            continue
+    return rows
+
+
+def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
+    path = lay.root / "forecast" / "preview.npz"
+    if not path.exists():
+        return None
+    try:
+        d = load_npz(path)
+    except Exception:
+        return None
+    keys = {"xyz_m", "track_id", "start_index"}
+    if not keys <= set(d):
+        return None
+    xyz = d["xyz_m"]
+    if xyz.ndim != 4:  # (K,H,J,3) expected
+        return None
+    return {
+        "xyz": _r(xyz),
+        "track_id": d["track_id"].tolist(),
+        "start_index": int(d["start_index"]),
+        "model": str(d.get("model", "")),
+        "fps": float(d["fps"]) if "fps" in d else None,
+    }
+
+
+def collect(lay: SessionLayout, title: str, config: ReportConfig | None = None) -> dict[str, Any]:
+    """Everything the page shows, as plain data (the JSON embedded in the page)."""
+    cfg = config or ReportConfig()
+    t0 = time.perf_counter()
+    meta = {}
+    if lay.session_toml.exists():
+        try:
+            meta = load_toml(lay.session_toml)
+        except Exception:
+            meta = {}
+    inp = _load(lay)
+    data: dict[str, Any] = {
+        "title": title,
+        "rig": _rig_data(inp),
+        "detections": _detection_rates(inp),
+        "tracks": _tracks_data(inp, cfg),
+        "quality": _quality(inp, cfg),
+        "forecast": _forecast_data(lay),
+        "provenance": _provenance(lay),
+        "warnings": _warnings(lay),
+        # redacted again: a session recorded by an older version may hold a camera URL with its password
+        "session": {
+            k: redact(v) if isinstance(v, str) else v
+            for k, v in meta.items()
+            if isinstance(v, (str, int, float))
+        },
+    }
+    t1 = time.perf_counter()
+    data["views"] = _views_data(inp, cfg)
+    data["problems"] = _problems(data, inp)
+    # (no timings in the page: the same outputs make the same report, byte for byte)
+    log.info("report data %.2f s, camera views %.2f s", t1 - t0, time.perf_counter() - t1)
+    return data
+
+
+def _asset(name: str) -> str:
+    return (_ASSETS / name).read_text(encoding="utf-8")
+
+
+def render(data: dict[str, Any]) -> str:
+    payload = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
+    return (
+        _asset("report.html")
+        .replace("__TITLE__", html.escape(data["title"]))
+        .replace("__STYLE__", _asset("report.css"))
+        .replace(
+            "__SCRIPT__", (_asset("viewer3d.js") + _asset("report.js")).replace("</script", "<\\/script")
+        )
+        .replace("__DATA__", payload)
+    )
+
+
+def write_report(lay: SessionLayout, title: str = "", config: ReportConfig | None = None) -> Path:
+    """Write ``report/report.html`` (atomically); returns its path."""
+    atomic_write_text(lay.report_html, render(collect(lay, title or lay.root.name, config)))
+    return lay.report_html
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m pipeline.report",
+        description="Write report/report.html for a session folder (and, with --overlay, an overlay video "
+        "per camera in report/overlay/) from the outputs already there.",
+    )
+    p.add_argument("session", type=Path, help="a session output folder (calib/, keypoints/, track/ ...)")
+    p.add_argument("--title", default="")
+    p.add_argument("--overlay", action="store_true", help="also write report/overlay/<cam>.mp4")
+    p.add_argument("--budget-mb", type=float, help="JPEG megabytes of the filmstrips (default 18)")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not args.session.is_dir():
+        print(f"report: {args.session} is not a folder; pass a session output folder.", file=sys.stderr)
+        return 2
+    lay = SessionLayout(args.session)
+    cfg = (
+        ReportConfig()
+        if args.budget_mb is None
+        else ReportConfig(image_budget_bytes=int(args.budget_mb * 1e6))
+    )
+    t0 = time.perf_counter()
+    try:
+        path = write_report(lay, args.title, cfg)
+        print(f"report: {path} ({path.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - t0:.1f} s)")
+        if args.overlay:
+            paths = write_overlay_videos(lay, config=cfg)
+            print(f"overlay videos: {', '.join(str(q) for q in paths)}")
+    except (FormatError, OSError, ValueError) as e:
+        print(f"report: {e}", file=sys.stderr)
+        return 1
+    return 0
