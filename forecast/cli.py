@@ -247,6 +247,10 @@ def _main(argv: list[str] | None = None) -> int:
         from forecast.characteristic.cli import main as characteristic_main  # lazy: loads torch
 
         return characteristic_main(argv[1:]) or 0
+    if argv and argv[0] == "behaviour":  # Diller ch. 4: `forecast behaviour train|eval|sample ...`
+        from forecast.behaviour.cli import main as behaviour_main  # lazy: loads torch
+
+        return behaviour_main(argv[1:]) or 0
     p = argparse.ArgumentParser(
         prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -262,6 +266,9 @@ def _main(argv: list[str] | None = None) -> int:
 
     # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it
     sub.add_parser("characteristic", help="the characteristic-3D-pose forecaster (Diller ch. 3): train|eval")
+    sub.add_parser(
+        "behaviour", help="next actions and their characteristic 3D poses (Diller ch. 4): train|eval|sample"
+    )
     t = sub.add_parser("train", help="train a model")
     t.add_argument("--model", required=True, choices=["gru", "intention", "social_diffusion"])
     t.add_argument("--config", help="TOML with the config (a [model] table or top-level keys)")

@@ -417,3 +417,15 @@ function tick(ts){ if (playing && T && nFrames > 1 && ts - last > 1000 / Math.mi
 requestAnimationFrame(tick);
 if (!navigator.webdriver && !/HeadlessChrome/.test(navigator.userAgent)) { playing = true; $('play').innerHTML = '&#10074;&#10074; Pause'; }
 })();
+
+// behaviour forecast (forecast/behaviour.npz): observed actions, then the next M with their probabilities
+(function () {
+  const B = D.behaviour; if (!B || !B.track_id.length) return;
+  $('behavsec').style.display = 'block'; $('behavNote').textContent = B.model;
+  const t = $('behaviour'); const M = B.actions[0].length;
+  const h = t.insertRow(); ['track', 'observed'].concat(Array.from({length: M}, (_, k) => `+${k + 1}`)).forEach(x => {
+    const c = document.createElement('th'); c.textContent = x; h.appendChild(c); });
+  B.track_id.forEach((id, i) => { const r = t.insertRow(); r.insertCell().textContent = id;
+    r.insertCell().textContent = (B.observed[i] || []).filter(x => x).join(' → ');
+    B.actions[i].forEach((a, k) => { r.insertCell().textContent = `${a} (${Math.round(100 * B.prob[i][k])}%)`; }); });
+})();
