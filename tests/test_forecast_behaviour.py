@@ -284,3 +284,21 @@ def test_sample_needs_a_rig(session, tmp_path):
     lab = tmp_path / "l.csv"
     lab.write_text("track_id,start_s,end_s,label\n3,0,1,walk\n")
     assert main(["sample", str(s), "--labels", str(lab), "--checkpoint", str(root / "b.pt")]) == 2
+
+
+def test_hide_history_hides_only_the_first_steps():
+    from forecast.behaviour.training import hide_history
+
+    cfg = BehaviourConfig(short_history=1.0)
+    B, N = 64, cfg.n_obs
+    tb = {
+        "seen": torch.ones(B, N, 19, dtype=torch.bool),
+        "feats": torch.ones(B, N, 19, 2),
+        "obs_acts": torch.zeros(B, N, dtype=torch.long),
+    }
+    hide_history(tb, cfg, torch.Generator().manual_seed(0))
+    hidden = ~tb["seen"].any(-1)
+    assert hidden.any(1).all() and not hidden[:, -1].any()  # every sequence keeps its last step
+    assert (tb["obs_acts"][hidden] == len(ACTIONS)).all() and (tb["feats"][hidden] == 0).all()
+    # hidden steps are a prefix
+    assert (hidden[:, 1:] <= hidden[:, :-1]).all()

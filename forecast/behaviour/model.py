@@ -56,6 +56,7 @@ class BehaviourConfig:
     lambda_pose2d: float = 1.0  # on pixels / 100 (so the three terms are of one order)
     lambda_adv3d: float = 0.1
     gp: float = 10.0
+    short_history: float = 0.25  # fraction of training sequences that hide their first 1..n_obs-1 steps
     n_train: int = 20000  # composite training sequences
     n_eval: int = 1000  # validation / test sequences
     eval_every: int = 500

@@ -173,6 +173,20 @@ def to_torch(d: Prepared, idx, n_obs: int) -> dict:
     }
 
 
+def hide_history(tb: dict, cfg: BehaviourConfig, g: torch.Generator) -> None:
+    """A person labelled fewer than n_obs times shows only the last steps: hide the first 1..n_obs-1
+    observed steps (unseen pose, unknown action) of a ``short_history`` fraction of the batch, in place."""
+    B, N = tb["obs_acts"].shape
+    if N < 2 or cfg.short_history <= 0:
+        return
+    hide = torch.rand(B, generator=g) < cfg.short_history
+    n = torch.randint(1, N, (B,), generator=g)
+    drop = hide[:, None] & (torch.arange(N)[None] < n[:, None])
+    tb["seen"] = tb["seen"] & ~drop[..., None]
+    tb["feats"] = tb["feats"] * (~drop)[..., None, None]
+    tb["obs_acts"] = torch.where(drop, torch.full_like(tb["obs_acts"], len(ACTIONS)), tb["obs_acts"])
+
+
 def train(
     cfg: BehaviourConfig,
     tr: Prepared,
@@ -200,6 +214,7 @@ def train(
     for step in range(1, cfg.steps + 1):
         idx = torch.randint(len(tr), (cfg.batch,), generator=g).numpy()
         tb = to_torch(tr, idx, cfg.n_obs)
+        hide_history(tb, cfg, g)
         gen.train()
         logits, P, l_act, l_2d = _losses(gen, cfg, tb, neck)
         fake = critic_input(P.reshape(-1, len(names), 3), pelvis)
