@@ -302,3 +302,32 @@ def test_hide_history_hides_only_the_first_steps():
     assert (tb["obs_acts"][hidden] == len(ACTIONS)).all() and (tb["feats"][hidden] == 0).all()
     # hidden steps are a prefix
     assert (hidden[:, 1:] <= hidden[:, :-1]).all()
+
+
+@pytest.mark.slow
+def test_report_shows_the_behaviour_forecast(session, tmp_path):
+    """The session report lists each person's observed and forecast actions when behaviour.npz is there."""
+    import re
+
+    from capture.session import SessionLayout
+    from forecast.behaviour.sample import run_sample
+    from pipeline.report import collect, write_report
+    from tests.test_pipeline_report import CHROMIUM, page_errors, render_in_browser
+
+    root, _ = session
+    lab = root / "rep.csv"
+    lab.write_text("track_id,start_s,end_s,label\n3,0,2,walk\n3,2,4,sit\n7,0,3,climb\n")
+    run_sample(root / "s", lab, checkpoint=root / "b.pt")  # default: SESSION/forecast/behaviour.npz
+    lay = SessionLayout(root / "s")
+    b = collect(lay, "t")["behaviour"]
+    assert b["track_id"] == [3, 7] and b["observed"][0][-2:] == ["walk", "sit"] and len(b["actions"][0]) == 5
+    if CHROMIUM is None:
+        pytest.skip("headless Chromium not installed")
+    path = write_report(lay, title="behaviour")
+    _, dom = render_in_browser(path, tmp_path, height=3000)
+    assert page_errors(dom) == "", page_errors(dom)
+    body = dom.split('id="behaviour"', 1)[1].split("</table>", 1)[0]
+    rows = [re.findall(r"<td[^>]*>(.*?)</td>", tr) for tr in re.findall(r"<tr[^>]*>(.*?)</tr>", body, re.S)]
+    rows = [r for r in rows if r]
+    assert [r[0] for r in rows] == ["3", "7"] and rows[0][1] == "walk → sit" and len(rows[0]) == 2 + 5
+    assert all(re.fullmatch(r"[a-z]+ \(\d+%\)", c) for c in rows[0][2:])
