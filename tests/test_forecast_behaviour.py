@@ -95,8 +95,8 @@ def test_project_matches_camera(rng):
     X = rng.uniform(-1, 1, (1, 30, 3)) + np.array([0, 0, 1.0])
     px = geometry.project(
         torch.as_tensor(X),
-        torch.as_tensor(cam.K)[None],
-        torch.as_tensor(cam.R)[None],
+        torch.as_tensor(cam.K.copy())[None],
+        torch.as_tensor(cam.R.copy())[None],
         torch.as_tensor(cam.t)[None],
     ).numpy()[0]
     assert np.abs(px - cam.project(X[0])).max() < 1e-6
@@ -331,3 +331,33 @@ def test_report_shows_the_behaviour_forecast(session, tmp_path):
     rows = [r for r in rows if r]
     assert [r[0] for r in rows] == ["3", "7"] and rows[0][1] == "walk → sit" and len(rows[0]) == 2 + 5
     assert all(re.fullmatch(r"[a-z]+ \(\d+%\)", c) for c in rows[0][2:])
+
+
+def test_session_windows_from_a_label_file(session):
+    """A user's session with labels gives training windows: n_obs + M consecutive labelled steps per track,
+    with the detections as 2D targets and the track's 3D."""
+    from forecast.behaviour.sample import session_windows
+    from forecast.behaviour.training import concat
+
+    root, scene = session
+    acts = ["walk", "sit", "drink", "laugh", "walk", "climb", "reach", "wash", "walk"]
+    lines = [f"3,{0.65 * i:.2f},{0.65 * (i + 1):.2f},{a}" for i, a in enumerate(acts[:8])]
+    lines += [f"7,{0.6 * i:.2f},{0.6 * (i + 1):.2f},{a}" for i, a in enumerate(acts)]
+    lab = root / "train.csv"
+    lab.write_text("track_id,start_s,end_s,label\n" + "\n".join(lines) + "\n")
+    d = session_windows(root / "s", lab, 3, 5)
+    assert len(d) == 1 + 2  # 8 steps: one window; 9 steps: two
+    assert d.acts[0].tolist() == [ACTIONS.index(a) for a in acts[:8]]
+    assert (
+        d.feats.shape == (3, 3, 19, 2) and d.tgt_px.shape == (3, 5, 19, 2) and d.tgt_3d.shape == (3, 5, 19, 3)
+    )
+    assert d.seen.mean() > 0.5 and np.isfinite(d.tgt_px).mean() > 0.5
+    # the 3D targets are the track's poses in the viewer frame: bone lengths are kept
+    X = d.tgt_3d[0]
+    gt_len = np.linalg.norm(scene.gt_xyz_m[:, 0, 9] - scene.gt_xyz_m[:, 0, 7], axis=-1)
+    assert np.allclose(np.linalg.norm(X[:, 9] - X[:, 7], axis=-1), np.nanmedian(gt_len), atol=0.02)
+    assert len(concat([d, d])) == 6
+    short = root / "short.csv"
+    short.write_text("track_id,start_s,end_s,label\n3,0,1,walk\n")
+    with pytest.raises(InputError, match="no track has 8 labelled steps"):
+        session_windows(root / "s", short, 3, 5)

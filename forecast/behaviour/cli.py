@@ -26,9 +26,10 @@ from forecast.behaviour.model import (
     load_checkpoint,
     save_checkpoint,
 )
-from forecast.behaviour.sample import run_sample
+from forecast.behaviour.sample import run_sample, session_windows
 from forecast.behaviour.training import (
     action_frequencies,
+    concat,
     evaluate_all,
     load_splits,
     results_table,
@@ -68,11 +69,25 @@ def _main(argv: list[str] | None = None) -> int:
         help="evaluate on this split after training (model choice on val; test once)",
     )
     t.add_argument("--json", default=None, help="write the evaluation as JSON here")
+    t.add_argument(
+        "--sessions",
+        nargs="*",
+        default=[],
+        metavar="SESSION=LABELS",
+        help="your own sessions with their label files, added to the training sequences",
+    )
     e = sub.add_parser("eval", help="Table 4.1 / 4.2 and Fig. 4.3 on composite activities")
     e.add_argument("--checkpoint", default=str(SHIPPED))
     e.add_argument("--split", choices=("test", "val"), default="test")
     e.add_argument("--split-seed", type=int, default=0)
     e.add_argument("--out", default="results.json", help="results JSON (default results.json)")
+    e.add_argument(
+        "--sessions",
+        nargs="*",
+        default=[],
+        metavar="SESSION=LABELS",
+        help="evaluate on these sessions and label files instead of the composite test split",
+    )
     s = sub.add_parser("sample", help="forecast the next M actions and 3D poses of every person of a session")
     s.add_argument("session", help="session folder with keypoints/, track/tracks.npz and calib/rig.toml")
     s.add_argument(
@@ -113,6 +128,10 @@ def _train(args) -> int:
         f"composite sequences: train {len(sp.train)}, val {len(sp.val)}, test {len(sp.test)}; "
         f"3D database {len(sp.db)} poses; data {time.perf_counter() - t0:.0f} s"
     )
+    if args.sessions:
+        own = _session_windows(args.sessions, base)
+        sp.train = concat([sp.train, own])
+        print(f"added {len(own)} windows of {len(args.sessions)} sessions to the training sequences")
     logging.getLogger("forecast.behaviour.training").setLevel(logging.INFO)
     gens, cfgs, hists = {}, {}, {}
     with Bars(unit="step") as bars:
@@ -147,6 +166,18 @@ def _train(args) -> int:
     return 0
 
 
+def _session_windows(pairs: list[str], cfg: BehaviourConfig):
+    out = []
+    for pair in pairs:
+        sess, sep, lab = pair.partition("=")
+        if not sep:
+            raise InputError(
+                f"--sessions {pair!r}: write SESSION=LABELS (a session folder and its label CSV)"
+            )
+        out.append(session_windows(sess, lab, cfg.n_obs, cfg.m, cfg.joint_names))
+    return concat(out)
+
+
 def _eval(args) -> int:
     try:
         gens, cfgs, extra = load_checkpoint(args.checkpoint)
@@ -157,7 +188,8 @@ def _eval(args) -> int:
     cfg = cfgs["full"]
     sp = load_splits(cfg, args.split_seed, cfg.joint_names)
     c0 = time.process_time()
-    res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.split))
+    test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
+    res = evaluate_all(gens, cfgs, extra, sp.val, test)
     res.update(split=args.split, checkpoint=str(args.checkpoint), eval_cpu_s=time.process_time() - c0)
     res["train_wall_s"] = {n: h.get("train_wall_s") for n, h in extra.get("history", {}).items()}
     print(

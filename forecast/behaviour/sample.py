@@ -18,6 +18,7 @@ label strings, ``probs (K,M,A)``, ``poses_m (K,M,J,3)``, ``joint_names (J,)``, `
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,7 @@ from forecast.behaviour.data import ACTIONS, JOINTS
 from forecast.behaviour.geometry import make_view, plane_features, to_world
 from forecast.behaviour.labels import LabelRow, read_labels
 from forecast.behaviour.model import SHIPPED, load_checkpoint, rollout
+from forecast.behaviour.training import Prepared
 from forecast.characteristic.labels import articulation
 from keypoints.detections import Detections
 from keypoints.skeletons import convert
@@ -129,6 +131,94 @@ def _detection_near(det: Detections, cam, frame: int, X: np.ndarray) -> np.ndarr
     return xy[int(np.nanargmin(d))]
 
 
+@dataclass(frozen=True)
+class TrackSteps:
+    """One person's labelled steps: ``rows`` (sorted), characteristic ``frames`` (track frame rows), the
+    matched detections ``xy_px`` ((19,2) body19 distorted px, or None) in ``camera``, and the track's
+    ``xyz_m (T,19,3)``."""
+
+    rows: list[LabelRow]
+    frames: list[int]
+    xy_px: list[np.ndarray | None]
+    camera: str
+    xyz_m: np.ndarray
+
+
+def track_steps(
+    tracks: TrackFile,
+    dets: dict[str, Detections],
+    rig: CameraRig,
+    rows: list[LabelRow],
+    camera: str | None = None,
+    last: int | None = None,
+) -> TrackSteps:
+    """The steps of one track's label rows (the ``last`` ones): characteristic frames, and the detections in
+    the camera that sees them best (or ``camera``)."""
+    tj = list(tracks.joint_names)
+    k = int(np.flatnonzero(tracks.track_id == rows[0].track_id)[0])
+    xyz = tracks.xyz_m[:, k][:, [tj.index(n) for n in JOINTS]]
+    t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9
+    mine = sorted(rows, key=lambda r: r.start_s)
+    mine = mine[-last:] if last else mine
+    frames = [
+        _char_frame(xyz, JOINTS, tracks.fps, np.flatnonzero((t_s >= r.start_s) & (t_s <= r.end_s)))
+        for r in mine
+    ]
+    cand = [camera] if camera else sorted(dets)
+    found = {
+        c: [_detection_near(dets[c], rig[c], int(tracks.frame_index[f]), xyz[f]) for f in frames]
+        for c in cand
+    }
+    best = max(cand, key=lambda c: sum(int(np.isfinite(p).all(1).sum()) for p in found[c] if p is not None))
+    return TrackSteps(mine, frames, found[best], best, xyz)
+
+
+def session_windows(session, labels, n_obs: int, m: int, names: tuple[str, ...] = JOINTS) -> Prepared:
+    """Training / evaluation windows from a user's session and its label file: every run of n_obs + m
+    consecutive labelled steps of one track, observed in that track's best camera; the targets' 2D are
+    the detections, the 3D (evaluation only) the track file's."""
+    lay, rig, tracks, dets = _session(session)
+    rows = read_labels(labels)
+    _check_labels(rows, tracks, ACTIONS, labels)
+    pel = JOINTS.index("pelvis")
+    jidx = [JOINTS.index(n) for n in names]
+    L = n_obs + m
+    parts: list[tuple] = []
+    for tid in sorted({r.track_id for r in rows}):
+        st = track_steps(tracks, dets, rig, [r for r in rows if r.track_id == tid])
+        if len(st.rows) < L:
+            continue
+        cam = rig[st.camera]
+        und = np.stack(
+            [cam.undistort_px(p) if p is not None else np.full((19, 2), np.nan) for p in st.xy_px]
+        ).astype(np.float64)
+        for a in range(len(st.rows) - L + 1):
+            f = st.frames[a : a + L]
+            g = np.array([st.xyz_m[f[n_obs - 1], pel, 0], st.xyz_m[f[n_obs - 1], pel, 1], 0.0])
+            parts.append(
+                (cam, g, und[a : a + L], [ACTIONS.index(r.label) for r in st.rows[a : a + L]], st.xyz_m[f])
+            )
+    if not parts:
+        raise InputError(f"{labels}: no track has {L} labelled steps (n_obs {n_obs} + M {m}); label more")
+    K = np.stack([p[0].K for p in parts])
+    R = np.stack([p[0].R for p in parts])
+    t = np.stack([p[0].t for p in parts])
+    view = make_view(K, R, t, np.stack([p[1] for p in parts]))
+    und = np.stack([p[2] for p in parts])
+    feats = plane_features(view, und[:, :n_obs])[:, :, jidx]
+    X = np.stack([p[4] for p in parts])[:, n_obs:][:, :, jidx] - view.g[:, None, None]
+    return Prepared(
+        tuple(names),
+        view,
+        np.nan_to_num(feats).astype(np.float32),
+        np.isfinite(feats).all(-1),
+        und[:, :n_obs][:, :, jidx].astype(np.float32),
+        np.asarray([p[3] for p in parts], np.int64),
+        und[:, n_obs:][:, :, jidx].astype(np.float32),
+        np.einsum("sij,smnj->smni", view.V, X).astype(np.float32),
+    )
+
+
 def run_sample(
     session, labels, out=None, *, checkpoint=SHIPPED, camera: str | None = None, model: str = "full"
 ) -> Path:
@@ -152,7 +242,6 @@ def run_sample(
     missing = [n for n in JOINTS if n not in tj]
     if missing:
         raise InputError(f"{lay.tracks}: the tracks lack the joints {missing}; the forecaster needs body19")
-    jt = [tj.index(n) for n in JOINTS]
     t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9
     N, names = cfg.n_obs, cfg.joint_names
     jidx = [JOINTS.index(n) for n in names]
@@ -166,27 +255,14 @@ def run_sample(
     step_t = np.full((K, N), np.nan)
     views, cams = [], []
     for i, tid in enumerate(ids):
-        k = int(np.flatnonzero(tracks.track_id == tid)[0])
-        xyz = tracks.xyz_m[:, k][:, jt]
-        mine = sorted((r for r in rows if r.track_id == tid), key=lambda r: r.start_s)[-N:]
-        frames = [
-            _char_frame(xyz, JOINTS, tracks.fps, np.flatnonzero((t_s >= r.start_s) & (t_s <= r.end_s)))
-            for r in mine
-        ]
-        cand = [camera] if camera else sorted(dets)
-        found = {
-            c: [_detection_near(dets[c], rig[c], int(tracks.frame_index[f]), xyz[f]) for f in frames]
-            for c in cand
-        }
-        best = max(
-            cand, key=lambda c: sum(int(np.isfinite(p).all(1).sum()) for p in found[c] if p is not None)
-        )
+        st = track_steps(tracks, dets, rig, [r for r in rows if r.track_id == tid], camera, last=N)
+        mine, frames, found, best, xyz = st.rows, st.frames, st.xy_px, st.camera, st.xyz_m
         cam = rig[best]
         last = xyz[frames[-1]]
         g = np.array([last[pel, 0], last[pel, 1], 0.0])
         view = make_view(cam.K[None], cam.R[None], cam.t[None], g[None])
         off = N - len(mine)
-        for s, (r, f, p) in enumerate(zip(mine, frames, found[best], strict=True)):
+        for s, (r, f, p) in enumerate(zip(mine, frames, found, strict=True)):
             acts[i, off + s] = ACTIONS.index(r.label)
             observed[i, off + s] = r.label
             step_t[i, off + s] = t_s[f]

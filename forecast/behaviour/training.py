@@ -63,6 +63,19 @@ class Prepared:
         return len(self.acts)
 
 
+def concat(parts: list[Prepared]) -> Prepared:
+    """One set of the sequences of several (same joints)."""
+    v = View(*(np.concatenate([getattr(p.view, f) for p in parts]) for f in ("K", "R", "t", "g", "V", "c")))
+    return Prepared(
+        parts[0].names,
+        v,
+        *(
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("feats", "seen", "obs_px", "acts", "tgt_px", "tgt_3d")
+        ),
+    )
+
+
 def anchors(K, R, t, und_px: np.ndarray) -> np.ndarray:
     """Floor anchor (S,3) from the observed undistorted 2D (S,N,19,2): the ankles of the latest step that
     shows one, else the neck's ray at ``NECK_FALLBACK_M``, else 3 m in front of the camera."""
