@@ -361,3 +361,23 @@ def test_session_windows_from_a_label_file(session):
     short.write_text("track_id,start_s,end_s,label\n3,0,1,walk\n")
     with pytest.raises(InputError, match="no track has 8 labelled steps"):
         session_windows(root / "s", short, 3, 5)
+
+
+def test_continuous_activity_session(tmp_path):
+    """Continuous composite activities (blended transitions) make a session with a label file that the
+    user-data path reads: labels tile the motion, each step's characteristic frame lies in its range."""
+    need_shared("data", "motion", "cmu-more", "single", "13")
+    from forecast.behaviour import data
+    from forecast.behaviour.sample import session_windows
+
+    pool = data.split_pool(data.load_pool())["test"]
+    a = data.compose_continuous(pool, 8, seed=3)
+    assert len(a.labels) == 8 and np.allclose(a.start_s[1:], a.end_s[:-1]) and a.start_s[0] == 0
+    t = a.char_frame / a.fps
+    assert ((t >= a.start_s) & (t < a.end_s)).all()
+    speed = np.linalg.norm(np.diff(a.xyz_m, axis=0), axis=-1).max(-1) * a.fps
+    assert speed.max() < 8.0  # no jump at the joins (measured 4.3 m/s peak, a hand)
+    rig = ring_rig(3, 4.0, height_m=2.2)
+    lay, lab = data.activity_session(pool, tmp_path / "s", n_people=2, length=8, seed=1, rig=rig)
+    d = session_windows(lay.root, lab, 3, 5)
+    assert len(d) == 2 and d.seen.mean() > 0.6

@@ -36,9 +36,10 @@ from forecast import data as fdata
 from forecast.characteristic.labels import annotate, articulation
 from keypoints.skeletons import get_skeleton
 from synthetic import bvh
-from synthetic.render import RenderConfig, render_camera
+from synthetic.render import RenderConfig, render, render_camera
 from synthetic.rigs import ring_rig, ring_room
-from synthetic.world import Scene, SceneConfig
+from synthetic.world import Scene, SceneConfig, write_session
+from track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 
@@ -296,3 +297,133 @@ def make_composite(pool: list[StepClip], n: int, length: int, seed: int = 0, rig
     acts, X, names = compose(pool, n, length, seed)
     xy, cam = observe(X, rig, seed)
     return Composite(acts, X, xy, cam, rig, names)
+
+
+# ----------------------------------------------------------------------------- continuous activities
+
+
+@dataclass(frozen=True)
+class Activity:
+    """One person's continuous composite activity: ``xyz_m (T,19,3)`` at ``fps`` with its steps: ``labels``
+    (L,), ``start_s``/``end_s`` (L,) the label ranges, ``char_frame`` (L,) each step's characteristic
+    frame."""
+
+    xyz_m: np.ndarray
+    fps: float
+    labels: tuple[str, ...]
+    start_s: np.ndarray
+    end_s: np.ndarray
+    char_frame: np.ndarray
+
+
+def compose_continuous(
+    pool: list[StepClip],
+    length: int,
+    seed: int = 0,
+    fps: float = fdata.TARGET_FPS,
+    around_s: float = 1.0,
+    blend_s: float = 0.4,
+    start_xy: tuple[float, float] = (0.0, 0.0),
+) -> Activity:
+    """A scripted sequence of ``length`` steps as one motion: each step is its clip's frames within
+    ``around_s`` of a characteristic frame, turned and moved so that it starts where and facing how the
+    previous one ended, the two cross-faded over ``blend_s`` (linear blend of the aligned poses). A label
+    covers its step from the middle of the blend before it to the middle of the blend after it."""
+    rng = np.random.default_rng(seed)
+    by_action = {a: [c for c in pool if c.action == a] for a in ACTIONS}
+    pel = JOINTS.index("pelvis")
+    nb = max(1, int(round(blend_s * fps)))
+    a = ACTIONS[rng.integers(len(ACTIONS))]
+    out = np.zeros((0, len(JOINTS), 3))
+    labels, starts, chars = [], [], []
+    for k in range(length):
+        if k:
+            nxt = SCRIPT[a]
+            a = str(rng.choice(list(nxt), p=np.array(list(nxt.values())) / sum(nxt.values())))
+        if not by_action[a]:
+            raise InputError(f"compose_continuous: no clip of the action {a!r} in this pool")
+        c = by_action[a][rng.integers(len(by_action[a]))]
+        f = int(c.frames[rng.integers(len(c.frames))])
+        w = int(round(around_s * fps))
+        lo, hi = max(0, f - w), min(len(c.xyz_m), f + w + 1)
+        seg = c.xyz_m[lo:hi].astype(np.float64)
+        if len(out):
+            prev = out[-1]
+            turn = _facing(prev) - _facing(seg[0])
+            seg = (seg - np.array([seg[0, pel, 0], seg[0, pel, 1], 0.0])) @ _yaw(turn).T
+            seg = seg + np.array([prev[pel, 0], prev[pel, 1], 0.0])
+            n = min(nb, len(seg) - 1, len(out) - 1)
+            wgt = np.linspace(0, 1, n + 2)[1:-1][:, None, None]
+            # the blended frames replace the previous tail and the segment's head
+            out[-n:] = (1 - wgt) * out[-n:] + wgt * seg[:n]
+            start = len(out) - n // 2
+            chars.append(len(out) - n + (f - lo))
+            out = np.concatenate([out, seg[n:]])
+        else:
+            seg = seg - np.array([seg[0, pel, 0] - start_xy[0], seg[0, pel, 1] - start_xy[1], 0.0])
+            start = 0
+            chars.append(f - lo)
+            out = seg
+        labels.append(a)
+        starts.append(start)
+    st = np.asarray(starts, np.float64) / fps
+    en = np.append(st[1:], len(out) / fps)
+    return Activity(out.astype(np.float32), fps, tuple(labels), st, en, np.asarray(chars, np.int64))
+
+
+def activity_session(
+    pool: list[StepClip], root, n_people: int = 2, length: int = 8, seed: int = 0, rig=None
+) -> tuple[object, Path]:
+    """A session folder in the layout the pipeline writes, for people doing continuous composite
+    activities: ``calib/rig.toml``, ``keypoints/<cam>.npz`` (rendered with ``DEFAULT_RENDER``'s faults),
+    ``track/tracks.npz`` (the ground truth as the track file, ids 0..P-1) and ``labels.csv`` (the label file
+    of ``forecast behaviour``). -> (SessionLayout, label file path)."""
+    rig = rig or default_rig()
+    acts = []
+    for p in range(n_people):
+        a = compose_continuous(pool, length, seed * 100 + p)
+        x = a.xyz_m.copy()
+        ang = 2 * np.pi * p / max(n_people, 1)
+        x[..., :2] += np.array([1.2 * np.cos(ang), 1.2 * np.sin(ang)]) - x[
+            :, JOINTS.index("pelvis"), :2
+        ].mean(0)
+        acts.append((a, x))
+    T = max(len(x) for _, x in acts)
+    gt = np.full((T, n_people, len(JOINTS), 3), np.nan)
+    for p, (_, x) in enumerate(acts):
+        gt[: len(x), p] = x
+    scene = Scene(
+        gt,
+        np.arange(n_people),
+        acts[0][0].fps,
+        ring_room(4.0),
+        tuple(f"activity{p}" for p in range(n_people)),
+        SceneConfig(n_people=n_people, seed=seed),
+    )
+    lay = write_session(scene, render(scene, rig, DEFAULT_RENDER.replace(shuffle=True, seed=seed)), rig, root)
+    xyz = gt.astype(np.float32)
+    seen = np.isfinite(xyz[..., 0])
+    tf = TrackFile(
+        fps=scene.fps,
+        frame_index=np.arange(T),
+        t_ns=(np.arange(T) * 1e9 / scene.fps).astype(np.int64),
+        track_id=np.arange(n_people),
+        joint_names=JOINTS,
+        parents=np.asarray(PARENTS),
+        xyz_m=xyz,
+        confidence=seen.astype(np.float32),
+        std_m=np.where(seen, 0.0, np.nan).astype(np.float32),
+        flags=seen.astype(np.uint8),
+        source="forecast.behaviour.data.activity_session (ground truth)",
+    )
+    lay.tracks.parent.mkdir(parents=True, exist_ok=True)
+    tf.save(lay.tracks)
+    lines = ["track_id,start_s,end_s,label"]
+    for p, (a, _) in enumerate(acts):
+        lines += [
+            f"{p},{s:.3f},{e:.3f},{lab}"
+            for s, e, lab in zip(a.start_s, a.end_s - 1e-3, a.labels, strict=True)
+        ]
+    lab = Path(root) / "labels.csv"
+    lab.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return lay, lab

@@ -125,7 +125,9 @@ def _detection_near(det: Detections, cam, frame: int, X: np.ndarray) -> np.ndarr
         return None
     proj = np.full((19, 2), np.nan)
     proj[ok] = cam.project(X[ok])
-    d = np.nanmean(np.linalg.norm(xy - proj[None], axis=-1), axis=1) if len(xy) else np.array([])
+    dist = np.linalg.norm(xy - proj[None], axis=-1)  # (P,19)
+    n = np.isfinite(dist).sum(1)
+    d = np.where(n > 0, np.nansum(np.nan_to_num(dist, nan=0.0), 1) / np.maximum(n, 1), np.nan)
     if len(d) == 0 or not np.isfinite(d).any() or np.nanmin(d) > MATCH_PX:
         return None
     return xy[int(np.nanargmin(d))]
