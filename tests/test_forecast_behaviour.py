@@ -381,3 +381,22 @@ def test_continuous_activity_session(tmp_path):
     lay, lab = data.activity_session(pool, tmp_path / "s", n_people=2, length=8, seed=1, rig=rig)
     d = session_windows(lay.root, lab, 3, 5)
     assert len(d) == 2 and d.seen.mean() > 0.6
+
+
+def test_merge_joins_variants(tmp_path, capsys):
+    from forecast.behaviour.cli import main
+
+    extra = {"action_freq": [1 / len(ACTIONS)] * len(ACTIONS), "avg_pose": [[0.0, 0.0, 1.0]] * 19}
+    for v in ("full", "action_only"):
+        cfg = BehaviourConfig(variant=v, hidden=16)
+        gen, _ = build(cfg)
+        save_checkpoint(tmp_path / f"{v}.pt", {v: gen}, {v: cfg}, {**extra, "history": {v: {"best_step": 1}}})
+    out = tmp_path / "both.pt"
+    assert (
+        main(["merge", str(tmp_path / "full.pt"), str(tmp_path / "action_only.pt"), "--out", str(out)]) == 0
+    )
+    gens, cfgs, ex = load_checkpoint(out)
+    assert sorted(gens) == ["action_only", "full"] and cfgs["action_only"].variant == "action_only"
+    assert sorted(ex["history"]) == ["action_only", "full"]
+    assert main(["merge", str(tmp_path / "full.pt"), str(tmp_path / "full.pt"), "--out", str(out)]) == 2
+    assert "again" in capsys.readouterr().err

@@ -100,6 +100,9 @@ def _main(argv: list[str] | None = None) -> int:
     )
     s.add_argument("--model", default="full", help="variant of the checkpoint to use (default full)")
     argv = sys.argv[1:] if argv is None else list(argv)
+    mg = sub.add_parser("merge", help="join checkpoints of variants trained apart (in parallel) into one")
+    mg.add_argument("checkpoints", nargs="+")
+    mg.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     args.argv = argv
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -107,6 +110,8 @@ def _main(argv: list[str] | None = None) -> int:
         return _train(args)
     if args.cmd == "eval":
         return _eval(args)
+    if args.cmd == "merge":
+        return _merge(args)
     out = run_sample(
         args.session, args.labels, args.out, checkpoint=args.checkpoint, camera=args.camera, model=args.model
     )
@@ -155,7 +160,7 @@ def _train(args) -> int:
             f"{v} {h['train_wall_s']:.0f} s wall (best step {h.get('best_step')})" for v, h in hists.items()
         )
     )
-    if args.eval_split == "none":
+    if args.eval_split == "none" or "full" not in gens:
         return 0
     res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split))
     res["split"] = args.eval_split
@@ -163,6 +168,29 @@ def _train(args) -> int:
     print(results_table(res))
     if args.json:
         atomic_write_text(args.json, json.dumps(res, indent=1))
+    return 0
+
+
+def _merge(args) -> int:
+    gens, cfgs, extra = {}, {}, {}
+    for path in args.checkpoints:
+        try:
+            g, c, e = load_checkpoint(path)
+        except (FormatError, FileNotFoundError) as err:
+            raise InputError(str(err)) from None
+        clash = sorted(set(g) & set(gens))
+        if clash:
+            raise InputError(f"{path}: holds {clash} again; give each variant once")
+        if extra and e["avg_pose"] != extra["avg_pose"]:
+            raise InputError(
+                f"{path}: trained on other data than {args.checkpoints[0]} (another train average)"
+            )
+        hist = {**extra.get("history", {}), **e.get("history", {})}
+        extra = {**e, "history": hist}
+        gens.update(g)
+        cfgs.update(c)
+    save_checkpoint(args.out, gens, cfgs, extra)
+    print(f"wrote {args.out} ({Path(args.out).stat().st_size / 1e6:.2f} MB): {sorted(gens)}")
     return 0
 
 
