@@ -214,7 +214,7 @@ def _eval(args) -> int:
     if "full" not in gens:
         raise InputError(f"{args.checkpoint}: holds {sorted(gens)}, no 'full' model")
     cfg = cfgs["full"]
-    sp = load_splits(cfg, args.split_seed, cfg.joint_names)
+    sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
     res = evaluate_all(gens, cfgs, extra, sp.val, test)

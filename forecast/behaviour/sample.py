@@ -82,7 +82,8 @@ def _check_labels(rows: list[LabelRow], tracks: TrackFile, known: tuple[str, ...
     if unknown:
         raise InputError(
             f"{path}: labels {unknown} are unknown to the model, which knows {list(known)}; "
-            "rename them to these, or train a model on your labels"
+            "rename them to the nearest of these (the action set is the training data's, "
+            "forecast.behaviour.data.ACTIONS)"
         )
     t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9
     for r in rows:

@@ -463,14 +463,18 @@ class Splits:
     db: np.ndarray  # (N,19,3) the uncorrelated 3D database
 
 
-def load_splits(cfg: BehaviourConfig, seed: int = 0, names: tuple[str, ...] = JOINTS) -> Splits:
+def load_splits(
+    cfg: BehaviourConfig, seed: int = 0, names: tuple[str, ...] = JOINTS, with_train: bool = True
+) -> Splits:
     """The composite train / val / test sequences (``n_train`` / ``n_eval`` / ``n_eval``, each its own seed)
-    and the 3D database."""
+    and the 3D database; without ``with_train``, the train split holds its first 100 sequences only (the
+    evaluation needs none)."""
     pool = bdata.split_pool(bdata.load_pool())
     L = cfg.n_obs + cfg.m
+    sizes = (("train", cfg.n_train if with_train else 100), ("val", cfg.n_eval), ("test", cfg.n_eval))
     parts = [
         prepare(bdata.make_composite(pool[p], n, L, seed * 10 + i), cfg.n_obs, cfg.m, names)
-        for i, (p, n) in enumerate((("train", cfg.n_train), ("val", cfg.n_eval), ("test", cfg.n_eval)))
+        for i, (p, n) in enumerate(sizes)
     ]
     return Splits(*parts, db=bdata.load_db_poses())
 
