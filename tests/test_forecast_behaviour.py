@@ -244,6 +244,8 @@ def test_sample_writes_forecast(session):
     assert d["actions"].shape == (K, M) and set(d["actions"].ravel()) <= set(ACTIONS)
     assert d["probs"].shape == (K, M, A) and np.allclose(d["probs"].sum(-1), 1, atol=1e-5)
     assert d["poses_m"].shape == (K, M, 19, 3) and np.isfinite(d["poses_m"]).all()
+    ank = d["poses_m"][..., [JOINTS.index("left_ankle"), JOINTS.index("right_ankle")], 2].min(-1)
+    assert np.allclose(ank, 0.08, atol=1e-5)  # standing on the floor
     assert d["observed"].tolist()[0] == ["walk", "sit", "drink"] and d["observed"].tolist()[1][-1] == "walk"
     # the forecast poses stand in the room near where each person was last seen (untrained: within 3 m)
     last = scene.gt_xyz_m[int(round(5.9 * 25)) - 1, 0, JOINTS.index("pelvis"), :2]

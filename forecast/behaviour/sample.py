@@ -7,7 +7,8 @@ ch. 3 annotation rule peaks on, ``forecast.characteristic.labels.articulation``,
 observed 2D pose of a step is the detection, in the observing camera, nearest to the track's projection at
 that frame (the camera that sees the person's steps best, unless ``--camera`` names one). The anchor is the
 floor point under the track's pelvis at the last observed step; the forecast poses are written in the room's
-frame (metres) by the viewer frame of that anchor.
+frame (metres) by the viewer frame of that anchor, each moved up or down to stand on the floor
+(``stand_on_floor``).
 
 Output ``behaviour.npz`` (schema ``behaviour/1``): ``track_id (K,)``, ``labels (A,)``, ``actions (K,M)``
 label strings, ``probs (K,M,A)``, ``poses_m (K,M,J,3)``, ``joint_names (J,)``, ``camera (K,)``,
@@ -29,7 +30,7 @@ from capture.session import SessionLayout
 from core.errors import FormatError, InputError
 from core.fileio import save_npz, schema_tag
 from forecast.behaviour.data import ACTIONS, JOINTS
-from forecast.behaviour.geometry import make_view, plane_features, to_world
+from forecast.behaviour.geometry import ANKLE_HEIGHT_M, make_view, plane_features, to_world
 from forecast.behaviour.labels import LabelRow, read_labels
 from forecast.behaviour.model import SHIPPED, load_checkpoint, rollout
 from forecast.behaviour.training import Prepared
@@ -222,6 +223,19 @@ def session_windows(session, labels, n_obs: int, m: int, names: tuple[str, ...] 
     )
 
 
+def stand_on_floor(W: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """Poses (...,J,3) in the room moved up or down so that the lower ankle is at ``ANKLE_HEIGHT_M``: the
+    2D loss is neck-centred (the seed's translation removal), so it leaves a forecast pose's height above
+    the floor free, and only the critic (which sees it) holds it. Without ankles (the 9-joint setting) the
+    poses are returned as they are."""
+    if "left_ankle" not in names or "right_ankle" not in names:
+        return W
+    ank = W[..., [names.index("left_ankle"), names.index("right_ankle")], 2].min(-1)
+    out = W.copy()
+    out[..., 2] += (ANKLE_HEIGHT_M - ank)[..., None]
+    return out
+
+
 def run_sample(
     session, labels, out=None, *, checkpoint=SHIPPED, camera: str | None = None, model: str = "full"
 ) -> Path:
@@ -296,6 +310,7 @@ def run_sample(
         W = to_world(
             P, torch.as_tensor(V, dtype=torch.float32), torch.as_tensor(G, dtype=torch.float32)
         ).numpy()
+    W = stand_on_floor(W, names)
     out = Path(out) if out else lay.root / "forecast" / "behaviour.npz"
     out.parent.mkdir(parents=True, exist_ok=True)
     save_npz(
