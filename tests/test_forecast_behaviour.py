@@ -402,3 +402,22 @@ def test_merge_joins_variants(tmp_path, capsys):
     assert sorted(ex["history"]) == ["action_only", "full"]
     assert main(["merge", str(tmp_path / "full.pt"), str(tmp_path / "full.pt"), "--out", str(out)]) == 2
     assert "again" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_train_and_eval_commands_tiny(tmp_path):
+    """`train` then `eval` end to end at a tiny scale: every method of Table 4.1 gets its figures."""
+    import json
+
+    need_shared("data", "motion", "cmu-more", "single", "14")
+    from forecast.behaviour.cli import main
+
+    ck, res = tmp_path / "t.pt", tmp_path / "r.json"
+    sets = ["steps=4", "eval_every=2", "n_train=120", "n_eval=60", "hidden=16"]
+    assert main(["train", "--out", str(ck), "--eval-split", "none", "--set", *sets]) == 0
+    assert main(["eval", "--checkpoint", str(ck), "--split", "val", "--out", str(res)]) == 0
+    models = json.loads(res.read_text())["models"]
+    assert sorted(models) == ["action_only", "full", "pose_only", "train_average", "zero_velocity"]
+    assert models["full"]["mpjpe2d_px"] > 0 and 0 <= models["full"]["quality3d"] <= 1
+    assert models["action_only"]["mpjpe2d_px"] is None and models["pose_only"]["top1"] is None
+    assert len(models["full"]["top1_by_step"]) == 5

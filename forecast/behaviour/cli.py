@@ -160,7 +160,7 @@ def _train(args) -> int:
     )
     if args.eval_split == "none" or "full" not in gens:
         return 0
-    res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split))
+    res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split), sp.db)
     res["split"] = args.eval_split
     print(f"{args.eval_split} split:")
     print(results_table(res))
@@ -184,7 +184,8 @@ def _merge(args) -> int:
                 f"{path}: trained on other data than {args.checkpoints[0]} (another train average)"
             )
         hist = {**extra.get("history", {}), **e.get("history", {})}
-        extra = {**e, "history": hist}
+        cmds = [c for c in (extra.get("command"), e.get("command")) if c]
+        extra = {**e, "history": hist, "command": " ; ".join(cmds)}
         gens.update(g)
         cfgs.update(c)
     save_checkpoint(args.out, gens, cfgs, extra)
@@ -215,7 +216,7 @@ def _eval(args) -> int:
     sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
-    res = evaluate_all(gens, cfgs, extra, sp.val, test)
+    res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db)
     res.update(split=args.split, checkpoint=str(args.checkpoint), eval_cpu_s=time.process_time() - c0)
     res["train_wall_s"] = {n: h.get("train_wall_s") for n, h in extra.get("history", {}).items()}
     print(
