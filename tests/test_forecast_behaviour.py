@@ -97,7 +97,7 @@ def test_project_matches_camera(rng):
         torch.as_tensor(X),
         torch.as_tensor(cam.K.copy())[None],
         torch.as_tensor(cam.R.copy())[None],
-        torch.as_tensor(cam.t)[None],
+        torch.as_tensor(cam.t.copy())[None],
     ).numpy()[0]
     assert np.abs(px - cam.project(X[0])).max() < 1e-6
 
@@ -306,7 +306,6 @@ def test_hide_history_hides_only_the_first_steps():
     assert (hidden[:, 1:] <= hidden[:, :-1]).all()
 
 
-@pytest.mark.slow
 def test_report_shows_the_behaviour_forecast(session, tmp_path):
     """The session report lists each person's observed and forecast actions when behaviour.npz is there."""
     import re
@@ -404,7 +403,6 @@ def test_merge_joins_variants(tmp_path, capsys):
     assert "again" in capsys.readouterr().err
 
 
-@pytest.mark.slow
 def test_train_and_eval_commands_tiny(tmp_path):
     """`train` then `eval` end to end at a tiny scale: every method of Table 4.1 gets its figures."""
     import json

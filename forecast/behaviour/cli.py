@@ -217,10 +217,19 @@ def _eval(args) -> int:
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
     res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db)
-    res.update(split=args.split, checkpoint=str(args.checkpoint), eval_cpu_s=time.process_time() - c0)
+    res.update(
+        split="sessions" if args.sessions else args.split,
+        checkpoint=str(args.checkpoint),
+        eval_cpu_s=time.process_time() - c0,
+    )
     res["train_wall_s"] = {n: h.get("train_wall_s") for n, h in extra.get("history", {}).items()}
     print(
-        f"{args.split} split: {res['n_sequences']} composite sequences, {res['n_obs']} observed + "
+        (
+            f"{len(args.sessions)} sessions: {res['n_sequences']} windows"
+            if args.sessions
+            else f"{args.split} split: {res['n_sequences']} composite sequences"
+        )
+        + f", {res['n_obs']} observed + "
         f"M = {res['m']} forecast steps, {len(res['joints'])} joints"
     )
     print(results_table(res))
