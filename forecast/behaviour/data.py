@@ -16,9 +16,13 @@ is built from data that ships with the project:
 - **2D observation.** Every step pose is rendered into one camera of a ring rig by
   ``synthetic.render.render_camera`` (pixel noise, missed joints, missed detections, lens distortion), the
   camera fixed per sequence, so training sees the kind of 2D the ``keypoints`` stage writes.
-- **Subjects.** Sequences of ``train``/``val`` come from ``TRAIN_SUBJECTS`` (val: a held-out fifth of
-  their clips per action), ``test`` from ``TEST_SUBJECTS``, and the adversarial 3D database from other
-  subjects again (``DB_SUBJECTS``), so the critic's real poses never correspond to the sequences.
+- **Subjects.** Sequences of ``train``/``val`` come from ``TRAIN_SUBJECTS`` (val: every fifth
+  characteristic frame of their clips, ``split_pool``), ``test`` from ``TEST_SUBJECTS``, and the adversarial
+  3D database from other subjects again (``DB_SUBJECTS``), so the critic's real poses never correspond to
+  the sequences.
+- **Continuous activities.** ``compose_continuous`` joins the steps into one motion (each step aligned to
+  where the previous ended, the two cross-faded) with its label ranges, and ``activity_session`` writes such
+  people as a session folder with a label file, the form a lab's own annotated recording takes.
 """
 
 from __future__ import annotations
