@@ -310,6 +310,10 @@ def _main(argv: list[str] | None = None) -> int:
         from forecast.benchmark_cmu8 import main as cmu8_main  # lazy: loads torch
 
         return cmu8_main(argv[1:]) or 0
+    if argv and argv[0] == "behaviour":  # Diller ch. 4: `forecast behaviour train|eval|sample ...`
+        from forecast.behaviour.cli import main as behaviour_main  # lazy: loads torch
+
+        return behaviour_main(argv[1:]) or 0
     p = Parser(prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument(
         "--threads", type=positive_int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
@@ -324,6 +328,9 @@ def _main(argv: list[str] | None = None) -> int:
     # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it
     sub.add_parser("characteristic", help="the characteristic-3D-pose forecaster (Diller ch. 3): train|eval")
     sub.add_parser("cmu8", help="the CMU 8-action benchmark's DCT + MLP forecaster: train")
+    sub.add_parser(
+        "behaviour", help="next actions and their characteristic 3D poses (Diller ch. 4): train|eval|sample"
+    )
     t = sub.add_parser("train", help="train a model")
     t.add_argument(
         "--model", required=True, choices=["gru", "intention", "social_diffusion"], help="model to train"

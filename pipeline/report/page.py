@@ -72,6 +72,28 @@ def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
     }
 
 
+def _behaviour_data(lay: SessionLayout) -> dict[str, Any] | None:
+    """``forecast/behaviour.npz`` (``forecast behaviour sample``): per person the next actions, their
+    probabilities and the height of each forecast pose's head, or None."""
+    path = lay.root / "forecast" / "behaviour.npz"
+    if not path.exists():
+        return None
+    try:
+        d = load_npz(path, required=("track_id", "actions", "probs", "poses_m"))
+    except FormatError as e:
+        log.warning("behaviour forecast not shown: %s", e)
+        return None
+    p = d["probs"].max(-1)
+    obs = d["observed"].tolist() if "observed" in d else [[] for _ in d["track_id"]]
+    return {
+        "track_id": d["track_id"].tolist(),
+        "observed": obs,
+        "actions": d["actions"].tolist(),
+        "prob": _r(p),
+        "model": str(d["model"]) if "model" in d else "",
+    }
+
+
 def collect(lay: SessionLayout, title: str, config: ReportConfig | None = None) -> dict[str, Any]:
     """Everything the page shows, as plain data (the JSON embedded in the page)."""
     cfg = config or ReportConfig()
@@ -90,6 +112,7 @@ def collect(lay: SessionLayout, title: str, config: ReportConfig | None = None) 
         "tracks": _tracks_data(inp, cfg),
         "quality": _quality(inp, cfg),
         "forecast": _forecast_data(lay),
+        "behaviour": _behaviour_data(lay),
         "provenance": _provenance(lay),
         "warnings": _warnings(lay),
         # redacted again: a session recorded by an older version may hold a camera URL with its password

@@ -373,5 +373,16 @@ let last = 0;
 function tick(ts){ if (playing && T && nFrames > 1 && ts - last > 1000 / Math.min(30, fps)) {
   frame = (frame + 1) % nFrames; slider.value = frame; if (V) filmIdx = filmIndexOf(T.frame_index[frame]); redraw(); last = ts; } requestAnimationFrame(tick); }
 requestAnimationFrame(tick);
+// behaviour forecast (forecast/behaviour.npz): observed actions, then the next M with their probabilities
+{
+  const B = D.behaviour; if (B && B.track_id.length) {
+  $('behavsec').style.display = 'block'; $('behavNote').textContent = B.model;
+  const t = $('behaviour'); const M = B.actions[0].length;
+  const h = t.insertRow(); ['track', 'observed'].concat(Array.from({length: M}, (_, k) => `+${k + 1}`)).forEach(x => {
+    const c = document.createElement('th'); c.textContent = x; h.appendChild(c); });
+  B.track_id.forEach((id, i) => { const r = t.insertRow(); r.insertCell().textContent = id;
+    r.insertCell().textContent = (B.observed[i] || []).filter(x => x).join(' → ');
+    B.actions[i].forEach((a, k) => { r.insertCell().textContent = `${a} (${Math.round(100 * B.prob[i][k])}%)`; }); });
+} }
 if (!navigator.webdriver && !/HeadlessChrome/.test(navigator.userAgent)) { playing = true; $('play').innerHTML = '&#10074;&#10074; Pause'; }
 })();

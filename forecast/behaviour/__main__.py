@@ -1,0 +1,3 @@
+from forecast.behaviour.cli import main
+
+raise SystemExit(main())

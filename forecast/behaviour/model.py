@@ -1,0 +1,278 @@
+"""The joint action and characteristic-3D-pose forecaster of Diller ch. 4 (sec. 4.4), its critic, the
+autoregressive rollout (sec. 4.4.3) and the checkpoint.
+
+Generator (sec. 4.4, Fig. 4.7): three encoders in parallel, a joint latent, two decoders.
+- pose encoder: the last ``n_obs`` 2D poses (plane features, ``geometry``, with a seen-mask per joint),
+  one linear layer and three residual blocks;
+- action encoder: the last ``n_obs`` action labels as one-hot vectors (an extra "unknown" class), an MLP;
+- context encoder: the seed's initially-observed objects have no counterpart here, so the third encoder
+  takes the context a room gives: every action seen so far (multi-hot) and the camera's distance and
+  height in the viewer frame, an MLP;
+- an MLP over the concatenation gives the latent z; an MLP decodes the next action's logits, another the
+  next characteristic 3D pose (J,3) in the viewer frame, metres from the anchor.
+
+Critic (sec. 4.4.2, 4.7.10): joints through four linear layers and the bone Gram matrix
+``Psi = B^T B`` (bone lengths squared on its diagonal, angles off it) through three, in parallel; two linear
+layers combine them into the score. Trained as a Wasserstein critic (eq. 4.1's ``L_adv3d``) with a
+gradient penalty instead of weight clipping (stabler on small batches; the choice is ours).
+
+Smaller than the seed (one CPU thread, minutes instead of 12 GPU hours): width 128 instead of the seed's
+larger layers, batch 128 instead of 4096, learning rate 1e-3 instead of 1e-4.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from core.config import config_from_dict as _config_from_dict
+from core.errors import FormatError
+from core.fileio import atomic_path
+from forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, UPPER9
+from forecast.behaviour.geometry import plane_of_3d
+
+SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_cmu.pt"
+SCHEMA = "behaviour_checkpoint/1"
+VARIANTS = ("full", "action_only", "pose_only")
+
+
+@dataclass(frozen=True)
+class BehaviourConfig:
+    variant: str = "full"  # full | action_only (no pose losses) | pose_only (no action loss), Table 4.2
+    joints: str = "body19"  # body19 | upper9 (the seed's 9 upper-body joints, the ablation)
+    n_obs: int = 3  # observed steps
+    m: int = 5  # forecast steps M (the seed: 5 on IKEA-ASM, 10 on MPII Cooking II)
+    hidden: int = 128
+    lr: float = 1e-3
+    weight_decay: float = 1e-3
+    batch: int = 128
+    steps: int = 3000
+    lambda_action: float = 1.0
+    lambda_pose2d: float = 1.0  # on pixels / 100 (so the three terms are of one order)
+    lambda_adv3d: float = 0.1
+    gp: float = 10.0
+    short_history: float = 0.25  # fraction of training sequences that hide their first 1..n_obs-1 steps
+    n_train: int = 20000  # composite training sequences
+    n_eval: int = 1000  # validation / test sequences
+    eval_every: int = 500
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        if self.joints not in ("body19", "upper9"):
+            raise ValueError(f"joints must be 'body19' or 'upper9', got {self.joints!r}")
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return JOINTS if self.joints == "body19" else UPPER9
+
+    @property
+    def use_pose(self) -> bool:
+        return self.variant != "action_only"
+
+    @property
+    def use_action(self) -> bool:
+        return self.variant != "pose_only"
+
+
+def config_from_dict(d: dict) -> BehaviourConfig:
+    return _config_from_dict(BehaviourConfig, d, "behaviour config")
+
+
+def bones(names: tuple[str, ...]) -> np.ndarray:
+    """(b,2) child, parent index pairs of the body19 tree restricted to ``names`` (a missing parent is
+    skipped up the tree)."""
+    idx = {n: i for i, n in enumerate(names)}
+    out = []
+    for n in names:
+        p = PARENTS[JOINTS.index(n)]
+        while p >= 0 and JOINTS[p] not in idx:
+            p = PARENTS[p]
+        if p >= 0:
+            out.append((idx[n], idx[JOINTS[p]]))
+    return np.asarray(out, np.int64)
+
+
+def gram(P: torch.Tensor, bone_idx: torch.Tensor) -> torch.Tensor:
+    """Psi = B^T B (sec. 4.4.2) of poses P (B,J,3): its upper triangle (B, b(b+1)/2)."""
+    Bm = P[:, bone_idx[:, 0]] - P[:, bone_idx[:, 1]]  # (B,b,3): columns b_i = j_k - j_l
+    G = Bm @ Bm.transpose(1, 2)
+    iu = torch.triu_indices(G.shape[1], G.shape[1])
+    return G[:, iu[0], iu[1]]
+
+
+class _Res(nn.Module):
+    def __init__(self, h: int) -> None:
+        super().__init__()
+        self.f = nn.Sequential(nn.Linear(h, h), nn.LeakyReLU(0.2), nn.Linear(h, h))
+        self.act = nn.LeakyReLU(0.2)
+
+    def forward(self, x):
+        return self.act(x + self.f(x))
+
+
+def _mlp(*dims: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for a, b in zip(dims[:-1], dims[1:], strict=True):
+        layers += [nn.Linear(a, b), nn.LeakyReLU(0.2)]
+    return nn.Sequential(*layers[:-1])
+
+
+class Generator(nn.Module):
+    """One step: (pose feats (B,N,J,3) = plane xz + seen, action one-hots (B,N,A+1), context (B,A+2)) ->
+    (action logits (B,A), 3D pose (B,J,3) viewer frame)."""
+
+    def __init__(self, n_obs: int, J: int, A: int, h: int) -> None:
+        super().__init__()
+        self.J, self.A = J, A
+        self.pose_in = nn.Linear(n_obs * J * 3, h)
+        self.pose_res = nn.Sequential(_Res(h), _Res(h), _Res(h))
+        self.act_enc = _mlp(n_obs * (A + 1), h // 2, h // 2)
+        self.ctx_enc = _mlp(A + 2, h // 4, h // 4)
+        self.joint = nn.Sequential(_mlp(h + h // 2 + h // 4, h, h), nn.LeakyReLU(0.2))
+        self.dec_action = _mlp(h, h, A)
+        self.dec_pose = _mlp(h, h, J * 3)
+
+    def forward(self, pose, acts, ctx):
+        B = pose.shape[0]
+        zp = self.pose_res(self.pose_in(pose.reshape(B, -1)))
+        za = self.act_enc(acts.reshape(B, -1))
+        zc = self.ctx_enc(ctx)
+        z = self.joint(torch.cat([zp, za, zc], 1))
+        return self.dec_action(z), self.dec_pose(z).reshape(B, self.J, 3)
+
+
+class Critic(nn.Module):
+    """Wasserstein critic over joints (pelvis x, y at 0) and the bone Gram matrix (sec. 4.4.2, 4.7.10)."""
+
+    def __init__(self, J: int, bone_idx: np.ndarray, h: int) -> None:
+        super().__init__()
+        self.register_buffer("bone_idx", torch.as_tensor(bone_idx))
+        nb = len(bone_idx)
+        self.joints = _mlp(J * 3, h, h, h, h)
+        self.kcs = _mlp(nb * (nb + 1) // 2, h, h, h)
+        self.head = _mlp(2 * h, h, 1)
+
+    def forward(self, P):
+        B = P.shape[0]
+        a = self.joints(P.reshape(B, -1))
+        b = self.kcs(gram(P, self.bone_idx))
+        return self.head(torch.cat([nn.functional.leaky_relu(a, 0.2), nn.functional.leaky_relu(b, 0.2)], 1))[
+            :, 0
+        ]
+
+
+def rollout(
+    gen: Generator,
+    feats: torch.Tensor,
+    acts: torch.Tensor,
+    seen: torch.Tensor,
+    c: torch.Tensor,
+    m: int,
+    *,
+    feed_pose: bool = True,
+    feed_action: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sec. 4.4.3: predict m steps autoregressively, each from the n_obs most recent (observed or
+    predicted) steps. feats (B,N,J,2) plane features of the observed steps (0 where unseen), seen
+    (B,N,J) bool, acts (B,N) observed action indices, c (B,3) camera centre in the viewer frame.
+    A predicted step re-enters as the plane features of its 3D pose and its action probabilities
+    (``feed_pose``/``feed_action`` False: as unseen / unknown, the ablations without that head).
+    -> logits (B,m,A), poses (B,m,J,3)."""
+    B, N, J, _ = feats.shape
+    A = gen.A
+    pose_hist = torch.cat([feats, seen[..., None].float()], -1)  # (B,N,J,3)
+    oh = torch.zeros(B, N, A + 1)
+    oh.scatter_(2, acts[..., None], 1.0)
+    seen_mh = oh[..., :A].amax(1)
+    cam = torch.stack([c[:, 1].abs(), c[:, 2]], 1) / 5.0
+    logits_l, poses_l = [], []
+    for _ in range(m):
+        ctx = torch.cat([seen_mh, cam], 1)
+        lg, P = gen(pose_hist[:, -N:], oh[:, -N:], ctx)
+        logits_l.append(lg)
+        poses_l.append(P)
+        if feed_pose:
+            nxt = torch.cat([plane_of_3d(P, c), torch.ones(B, J, 1)], -1)
+        else:
+            nxt = torch.zeros(B, J, 3)
+        if feed_action:
+            pr = torch.softmax(lg, 1)
+            nxt_a = torch.cat([pr, torch.zeros(B, 1)], 1)
+            seen_mh = torch.maximum(seen_mh, pr)
+        else:
+            nxt_a = torch.zeros(B, A + 1)
+            nxt_a[:, A] = 1.0
+        pose_hist = torch.cat([pose_hist, nxt[:, None]], 1)
+        oh = torch.cat([oh, nxt_a[:, None]], 1)
+    return torch.stack(logits_l, 1), torch.stack(poses_l, 1)
+
+
+def build(cfg: BehaviourConfig) -> tuple[Generator, Critic]:
+    names = cfg.joint_names
+    torch.manual_seed(cfg.seed)
+    return Generator(cfg.n_obs, len(names), len(ACTIONS), cfg.hidden), Critic(
+        len(names), bones(names), cfg.hidden
+    )
+
+
+def save_checkpoint(path, gens: dict[str, Generator], cfgs: dict[str, BehaviourConfig], extra: dict) -> None:
+    """One file with every trained variant: {name: (state_dict, config)} plus ``extra`` (the train-average
+    pose, the action frequencies, history). Plain tensors and builtins (loads with weights_only=True)."""
+    blob = {
+        "schema": SCHEMA,
+        "actions": list(ACTIONS),
+        "models": {
+            n: {
+                "state": {k: v.detach().clone() for k, v in g.state_dict().items()},
+                "config": dataclasses.asdict(cfgs[n]),
+            }
+            for n, g in gens.items()
+        },
+        "extra": extra,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
+
+
+def load_checkpoint(path) -> tuple[dict[str, Generator], dict[str, BehaviourConfig], dict]:
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # torch raises several kinds for a file that is not a checkpoint
+        raise FormatError(
+            path,
+            None,
+            f"not a behaviour checkpoint ({e})",
+            "Train one with `forecast behaviour train --out FILE`.",
+        ) from None
+    if not isinstance(blob, dict) or blob.get("schema") != SCHEMA:
+        got = blob.get("schema") if isinstance(blob, dict) else None
+        raise FormatError(
+            path,
+            "schema",
+            f"{got!r}, expected {SCHEMA!r}; not a behaviour checkpoint.",
+            "Train one with `forecast behaviour train --out FILE`.",
+        )
+    if list(blob["actions"]) != list(ACTIONS):
+        raise FormatError(
+            path,
+            "actions",
+            f"trained on {blob['actions']}, this code knows {list(ACTIONS)}",
+            "Train a new checkpoint with `forecast behaviour train`.",
+        )
+    gens, cfgs = {}, {}
+    for n, m in blob["models"].items():
+        cfg = BehaviourConfig(**m["config"])
+        g, _ = build(cfg)
+        g.load_state_dict(m["state"])
+        g.eval()
+        gens[n], cfgs[n] = g, cfg
+    return gens, cfgs, blob["extra"]

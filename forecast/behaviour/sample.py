@@ -1,0 +1,332 @@
+"""``forecast behaviour sample``: the next M actions and their characteristic 3D poses of every labelled
+person of a session.
+
+For each track named in the label file, its labelled actions are the observed steps. A step's
+characteristic frame is the frame of greatest articulation inside its label's time range (the quantity the
+ch. 3 annotation rule peaks on, ``forecast.characteristic.labels.articulation``, on the track's 3D). The
+observed 2D pose of a step is the detection, in the observing camera, nearest to the track's projection at
+that frame (the camera that sees the person's steps best, unless ``--camera`` names one). The anchor is the
+floor point under the track's pelvis at the last observed step; the forecast poses are written in the room's
+frame (metres) by the viewer frame of that anchor, each moved up or down to stand on the floor
+(``stand_on_floor``).
+
+Output ``behaviour.npz`` (schema ``behaviour/1``): ``track_id (K,)``, ``labels (A,)``, ``actions (K,M)``
+label strings, ``probs (K,M,A)``, ``poses_m (K,M,J,3)``, ``joint_names (J,)``, ``camera (K,)``,
+``observed (K,N)`` the labels of the observed steps (``""`` where a track has fewer than N),
+``step_time_s (K,N)`` their characteristic times, ``model``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from calibrate.camera import CameraRig
+from capture.session import SessionLayout
+from core.errors import FormatError, InputError
+from core.fileio import save_npz, schema_tag
+from forecast.behaviour.data import ACTIONS, JOINTS
+from forecast.behaviour.geometry import ANKLE_HEIGHT_M, make_view, plane_features, to_world
+from forecast.behaviour.labels import LabelRow, read_labels
+from forecast.behaviour.model import SHIPPED, load_checkpoint, rollout
+from forecast.behaviour.training import Prepared
+from forecast.characteristic.labels import articulation
+from keypoints.detections import Detections
+from keypoints.skeletons import convert
+from track.trackfile import TrackFile
+
+log = logging.getLogger(__name__)
+
+SCHEMA, VERSION = "behaviour", 1
+MATCH_PX = 80.0  # a detection further than this (mean over joints) from the track's projection is not it
+
+
+def _session(session) -> tuple[SessionLayout, CameraRig, TrackFile, dict[str, Detections]]:
+    lay = SessionLayout(session)
+    if not lay.root.is_dir():
+        raise InputError(f"{lay.root}: no such session folder")
+    if not lay.rig_toml.exists():
+        raise InputError(
+            f"{lay.root}: the session has no rig ({lay.rig_toml} is missing); the forecast needs the "
+            "cameras' calibration: calibrate (`calibrate-run`) or import one (`calibrate-run import`) first"
+        )
+    rig = CameraRig.load(lay.rig_toml)
+    try:
+        tracks = TrackFile.load(lay.tracks)
+    except FileNotFoundError:
+        raise InputError(
+            f"{lay.root}: no track file ({lay.tracks}); run the track stage first "
+            "(`reprocess SESSION --stages triangulate,track`)"
+        ) from None
+    dets = {}
+    for cam in lay.detection_cameras():
+        if cam in rig.names:
+            dets[cam] = Detections.load(lay.detections(cam))
+    if not dets:
+        raise InputError(f"{lay.root}: no detections (keypoints/<cam>.npz) of the rig's cameras {rig.names}")
+    return lay, rig, tracks, dets
+
+
+def _check_labels(rows: list[LabelRow], tracks: TrackFile, known: tuple[str, ...], path) -> None:
+    ids = set(tracks.track_id.tolist())
+    bad = sorted({r.track_id for r in rows} - ids)
+    if bad:
+        raise InputError(
+            f"{path}: track ids {bad} match no track of the session (its tracks: "
+            f"{sorted(ids)}); use the ids of track/tracks.npz"
+        )
+    unknown = sorted({r.label for r in rows} - set(known))
+    if unknown:
+        raise InputError(
+            f"{path}: labels {unknown} are unknown to the model, which knows {list(known)}; "
+            "rename them to the nearest of these (the action set is the training data's, "
+            "forecast.behaviour.data.ACTIONS)"
+        )
+    t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9
+    for r in rows:
+        k = int(np.flatnonzero(tracks.track_id == r.track_id)[0])
+        inside = (t_s >= r.start_s) & (t_s <= r.end_s) & np.isfinite(tracks.xyz_m[:, k, 0, 0])
+        if not inside.any():
+            raise InputError(
+                f"{path}, line {r.line}: track {r.track_id} has no 3D between {r.start_s} and {r.end_s} s "
+                f"(the session spans 0 .. {t_s[-1]:.2f} s; the track is seen "
+                f"{_span(t_s, tracks.xyz_m[:, k, 0, 0])}); fix the times"
+            )
+
+
+def _span(t_s: np.ndarray, x: np.ndarray) -> str:
+    ok = np.flatnonzero(np.isfinite(x))
+    return "never" if len(ok) == 0 else f"{t_s[ok[0]]:.2f} .. {t_s[ok[-1]]:.2f} s"
+
+
+def _char_frame(xyz: np.ndarray, names, fps: float, frames: np.ndarray) -> int:
+    """The frame of greatest articulation among ``frames`` of one track xyz (T,J,3) (gaps filled)."""
+    x = xyz[frames].astype(np.float64)
+    ok = np.isfinite(x).all((1, 2))
+    if ok.sum() < 3:
+        return int(frames[np.flatnonzero(ok)[-1]]) if ok.any() else int(frames[-1])
+    idx = np.flatnonzero(ok)
+    x = x[idx]
+    A, _ = articulation(x, names, fps)
+    return int(frames[idx[int(np.argmax(A))]])
+
+
+def _detection_near(det: Detections, cam, frame: int, X: np.ndarray) -> np.ndarray | None:
+    """The body19 2D pose (19,2) in ``det`` at track frame index ``frame`` nearest to the projection of
+    X (19,3), or None."""
+    hit = np.flatnonzero(det.frame_index == frame)
+    if len(hit) == 0:
+        return None
+    xy, _ = convert(det.xy_px[hit[0]], None, det.skeleton, "body19")  # (P,19,2)
+    ok = np.isfinite(X).all(1)
+    if not ok.any():
+        return None
+    proj = np.full((19, 2), np.nan)
+    proj[ok] = cam.project(X[ok])
+    dist = np.linalg.norm(xy - proj[None], axis=-1)  # (P,19)
+    n = np.isfinite(dist).sum(1)
+    d = np.where(n > 0, np.nansum(np.nan_to_num(dist, nan=0.0), 1) / np.maximum(n, 1), np.nan)
+    if len(d) == 0 or not np.isfinite(d).any() or np.nanmin(d) > MATCH_PX:
+        return None
+    return xy[int(np.nanargmin(d))]
+
+
+@dataclass(frozen=True)
+class TrackSteps:
+    """One person's labelled steps: ``rows`` (sorted), characteristic ``frames`` (track frame rows), the
+    matched detections ``xy_px`` ((19,2) body19 distorted px, or None) in ``camera``, and the track's
+    ``xyz_m (T,19,3)``."""
+
+    rows: list[LabelRow]
+    frames: list[int]
+    xy_px: list[np.ndarray | None]
+    camera: str
+    xyz_m: np.ndarray
+
+
+def track_steps(
+    tracks: TrackFile,
+    dets: dict[str, Detections],
+    rig: CameraRig,
+    rows: list[LabelRow],
+    camera: str | None = None,
+    last: int | None = None,
+) -> TrackSteps:
+    """The steps of one track's label rows (the ``last`` ones): characteristic frames, and the detections in
+    the camera that sees them best (or ``camera``)."""
+    tj = list(tracks.joint_names)
+    k = int(np.flatnonzero(tracks.track_id == rows[0].track_id)[0])
+    xyz = tracks.xyz_m[:, k][:, [tj.index(n) for n in JOINTS]]
+    t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9
+    mine = sorted(rows, key=lambda r: r.start_s)
+    mine = mine[-last:] if last else mine
+    frames = [
+        _char_frame(xyz, JOINTS, tracks.fps, np.flatnonzero((t_s >= r.start_s) & (t_s <= r.end_s)))
+        for r in mine
+    ]
+    cand = [camera] if camera else sorted(dets)
+    found = {
+        c: [_detection_near(dets[c], rig[c], int(tracks.frame_index[f]), xyz[f]) for f in frames]
+        for c in cand
+    }
+    best = max(cand, key=lambda c: sum(int(np.isfinite(p).all(1).sum()) for p in found[c] if p is not None))
+    return TrackSteps(mine, frames, found[best], best, xyz)
+
+
+def session_windows(session, labels, n_obs: int, m: int, names: tuple[str, ...] = JOINTS) -> Prepared:
+    """Training / evaluation windows from a user's session and its label file: every run of n_obs + m
+    consecutive labelled steps of one track, observed in that track's best camera; the targets' 2D are
+    the detections, the 3D (evaluation only) the track file's."""
+    lay, rig, tracks, dets = _session(session)
+    rows = read_labels(labels)
+    _check_labels(rows, tracks, ACTIONS, labels)
+    pel = JOINTS.index("pelvis")
+    jidx = [JOINTS.index(n) for n in names]
+    L = n_obs + m
+    parts: list[tuple] = []
+    for tid in sorted({r.track_id for r in rows}):
+        st = track_steps(tracks, dets, rig, [r for r in rows if r.track_id == tid])
+        if len(st.rows) < L:
+            continue
+        cam = rig[st.camera]
+        und = np.stack(
+            [cam.undistort_px(p) if p is not None else np.full((19, 2), np.nan) for p in st.xy_px]
+        ).astype(np.float64)
+        for a in range(len(st.rows) - L + 1):
+            f = st.frames[a : a + L]
+            g = np.array([st.xyz_m[f[n_obs - 1], pel, 0], st.xyz_m[f[n_obs - 1], pel, 1], 0.0])
+            parts.append(
+                (cam, g, und[a : a + L], [ACTIONS.index(r.label) for r in st.rows[a : a + L]], st.xyz_m[f])
+            )
+    if not parts:
+        raise InputError(f"{labels}: no track has {L} labelled steps (n_obs {n_obs} + M {m}); label more")
+    K = np.stack([p[0].K for p in parts])
+    R = np.stack([p[0].R for p in parts])
+    t = np.stack([p[0].t for p in parts])
+    view = make_view(K, R, t, np.stack([p[1] for p in parts]))
+    und = np.stack([p[2] for p in parts])
+    feats = plane_features(view, und[:, :n_obs])[:, :, jidx]
+    X = np.stack([p[4] for p in parts])[:, n_obs:][:, :, jidx] - view.g[:, None, None]
+    return Prepared(
+        tuple(names),
+        view,
+        np.nan_to_num(feats).astype(np.float32),
+        np.isfinite(feats).all(-1),
+        und[:, :n_obs][:, :, jidx].astype(np.float32),
+        np.asarray([p[3] for p in parts], np.int64),
+        und[:, n_obs:][:, :, jidx].astype(np.float32),
+        np.einsum("sij,smnj->smni", view.V, X).astype(np.float32),
+    )
+
+
+def stand_on_floor(W: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """Poses (...,J,3) in the room moved up or down so that the lower ankle is at ``ANKLE_HEIGHT_M``: the
+    2D loss is neck-centred (the seed's translation removal), so it leaves a forecast pose's height above
+    the floor free, and only the critic (which sees it) holds it. Without ankles (the 9-joint setting) the
+    poses are returned as they are."""
+    if "left_ankle" not in names or "right_ankle" not in names:
+        return W
+    ank = W[..., [names.index("left_ankle"), names.index("right_ankle")], 2].min(-1)
+    out = W.copy()
+    out[..., 2] += (ANKLE_HEIGHT_M - ank)[..., None]
+    return out
+
+
+def run_sample(
+    session, labels, out=None, *, checkpoint=SHIPPED, camera: str | None = None, model: str = "full"
+) -> Path:
+    try:
+        gens, cfgs, _ = load_checkpoint(checkpoint)
+    except FileNotFoundError:
+        raise InputError(
+            f"{checkpoint}: no such checkpoint; train one with `forecast behaviour train`"
+        ) from None
+    except FormatError as e:
+        raise InputError(str(e)) from None
+    if model not in gens:
+        raise InputError(f"--model {model!r}: the checkpoint holds {sorted(gens)}")
+    gen, cfg = gens[model], cfgs[model]
+    lay, rig, tracks, dets = _session(session)
+    if camera is not None and camera not in dets:
+        raise InputError(f"--camera {camera!r}: the session has detections of {sorted(dets)}")
+    rows = read_labels(labels)
+    _check_labels(rows, tracks, ACTIONS, labels)
+    tj = list(tracks.joint_names)
+    missing = [n for n in JOINTS if n not in tj]
+    if missing:
+        raise InputError(f"{lay.tracks}: the tracks lack the joints {missing}; the forecaster needs body19")
+    t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9
+    N, names = cfg.n_obs, cfg.joint_names
+    jidx = [JOINTS.index(n) for n in names]
+    pel = JOINTS.index("pelvis")
+    ids = sorted({r.track_id for r in rows})
+    K = len(ids)
+    feats = np.zeros((K, N, len(names), 2), np.float32)
+    seen = np.zeros((K, N, len(names)), bool)
+    acts = np.full((K, N), len(ACTIONS), np.int64)  # "unknown" where a track has fewer than N labels
+    observed = np.full((K, N), "", dtype=object)
+    step_t = np.full((K, N), np.nan)
+    views, cams = [], []
+    for i, tid in enumerate(ids):
+        st = track_steps(tracks, dets, rig, [r for r in rows if r.track_id == tid], camera, last=N)
+        mine, frames, found, best, xyz = st.rows, st.frames, st.xy_px, st.camera, st.xyz_m
+        cam = rig[best]
+        last = xyz[frames[-1]]
+        g = np.array([last[pel, 0], last[pel, 1], 0.0])
+        view = make_view(cam.K[None], cam.R[None], cam.t[None], g[None])
+        off = N - len(mine)
+        for s, (r, f, p) in enumerate(zip(mine, frames, found, strict=True)):
+            acts[i, off + s] = ACTIONS.index(r.label)
+            observed[i, off + s] = r.label
+            step_t[i, off + s] = t_s[f]
+            if p is None:
+                continue
+            und = cam.undistort_px(p)[None, None]
+            pf = plane_features(view, und)[0, 0][jidx]
+            ok = np.isfinite(pf).all(1)
+            feats[i, off + s][ok] = pf[ok]
+            seen[i, off + s] = ok
+        views.append(view)
+        cams.append(best)
+    V = np.concatenate([v.V for v in views])
+    G = np.concatenate([v.g for v in views])
+    C = np.concatenate([v.c for v in views])
+    with torch.no_grad():
+        lg, P = rollout(
+            gen,
+            torch.from_numpy(feats),
+            torch.from_numpy(acts),
+            torch.from_numpy(seen),
+            torch.as_tensor(C, dtype=torch.float32),
+            cfg.m,
+            feed_pose=cfg.use_pose,
+            feed_action=cfg.use_action,
+        )
+        probs = torch.softmax(lg, -1).numpy()
+        W = to_world(
+            P, torch.as_tensor(V, dtype=torch.float32), torch.as_tensor(G, dtype=torch.float32)
+        ).numpy()
+    W = stand_on_floor(W, names)
+    out = Path(out) if out else lay.root / "forecast" / "behaviour.npz"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_npz(
+        out,
+        {
+            "schema": schema_tag(SCHEMA, VERSION),
+            "track_id": np.asarray(ids, np.int64),
+            "labels": np.asarray(ACTIONS),
+            "actions": np.asarray([[ACTIONS[j] for j in row] for row in probs.argmax(-1)]),
+            "probs": probs.astype(np.float32),
+            "poses_m": W.astype(np.float32),
+            "joint_names": np.asarray(names),
+            "camera": np.asarray(cams),
+            "observed": observed.astype(str),
+            "step_time_s": step_t,
+            "model": np.asarray(f"{Path(checkpoint).name}:{model}"),
+        },
+    )
+    return out

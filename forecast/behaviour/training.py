@@ -1,0 +1,567 @@
+"""Training (eq. 4.1) and the evaluation of sec. 4.5.1 on composite activities.
+
+``prepare`` turns a :class:`~forecast.behaviour.data.Composite` into the model's arrays (plane features of
+the observed steps, the targets' undistorted 2D, the viewer frames, and the 3D truth that only the
+evaluation reads). ``train`` fits one variant; ``evaluate`` scores the baselines of Table 4.1 (zero velocity,
+train average) and the trained variants of Table 4.2 by 2D MPJPE (px), 3D quality (1 - accuracy of a
+real-vs-predicted pose classifier, sec. 4.7.7), action top-1/top-3 per step and overall (Fig. 4.3), and the
+3D MPJPE (mm, pelvis-centred) that the composite sequences' known 3D allows.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from core.progress import Progress
+from forecast.behaviour import data as bdata
+from forecast.behaviour.data import ACTIONS, JOINTS, Composite
+from forecast.behaviour.geometry import (
+    View,
+    anchor_from_2d,
+    make_view,
+    plane_features,
+    project,
+    rays,
+    to_world,
+)
+from forecast.behaviour.model import BehaviourConfig, Generator, build, rollout
+
+log = logging.getLogger(__name__)
+
+NECK_FALLBACK_M = 1.45  # neck height used to place a person whose ankles are never seen
+PX = 100.0  # the 2D loss is on pixels / PX
+
+
+@dataclass
+class Prepared:
+    """Arrays of S sequences (n_obs observed steps, m forecast steps) for the joints ``names``."""
+
+    names: tuple[str, ...]
+    view: View
+    feats: np.ndarray  # (S,N,J,2) plane features, 0 where unseen
+    seen: np.ndarray  # (S,N,J) bool
+    obs_px: np.ndarray  # (S,N,J,2) undistorted px of the observed steps, NaN unseen
+    acts: np.ndarray  # (S,N+m) action indices
+    tgt_px: np.ndarray  # (S,m,J,2) undistorted px of the forecast steps, NaN unseen
+    tgt_3d: np.ndarray  # (S,m,J,3) viewer frame, metres from the anchor (evaluation only)
+
+    def take(self, idx) -> Prepared:
+        return Prepared(
+            self.names,
+            self.view.take(idx),
+            *(getattr(self, f)[idx] for f in ("feats", "seen", "obs_px", "acts", "tgt_px", "tgt_3d")),
+        )
+
+    def __len__(self) -> int:
+        return len(self.acts)
+
+
+def concat(parts: list[Prepared]) -> Prepared:
+    """One set of the sequences of several (same joints)."""
+    v = View(*(np.concatenate([getattr(p.view, f) for p in parts]) for f in ("K", "R", "t", "g", "V", "c")))
+    return Prepared(
+        parts[0].names,
+        v,
+        *(
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("feats", "seen", "obs_px", "acts", "tgt_px", "tgt_3d")
+        ),
+    )
+
+
+def anchors(K, R, t, und_px: np.ndarray) -> np.ndarray:
+    """Floor anchor (S,3) from the observed undistorted 2D (S,N,19,2): the ankles of the latest step that
+    shows one, else the neck's ray at ``NECK_FALLBACK_M``, else 3 m in front of the camera."""
+    S, N = und_px.shape[:2]
+    la, ra, nk = JOINTS.index("left_ankle"), JOINTS.index("right_ankle"), JOINTS.index("neck")
+    g = np.full((S, 3), np.nan)
+    for k in range(N - 1, -1, -1):
+        miss = ~np.isfinite(g[:, 0])
+        if not miss.any():
+            break
+        g[miss] = anchor_from_2d(K[miss], R[miss], t[miss], und_px[miss, k], (la, ra))
+    for k in range(N - 1, -1, -1):
+        miss = ~np.isfinite(g[:, 0]) & np.isfinite(und_px[:, k, nk, 0])
+        if miss.any():
+            C, d = rays(K[miss], R[miss], t[miss], und_px[miss, k, nk][:, None])
+            s = (NECK_FALLBACK_M - C[:, 2]) / d[:, 0, 2]
+            P = C + np.abs(s)[:, None] * d[:, 0]
+            g[miss] = np.c_[P[:, :2], np.zeros(len(P))]
+    miss = ~np.isfinite(g[:, 0])
+    if miss.any():
+        C = -np.einsum("sji,sj->si", R[miss], t[miss])
+        fwd = R[miss][:, 2]
+        fwd[:, 2] = 0
+        fwd /= np.maximum(np.linalg.norm(fwd, axis=1, keepdims=True), 1e-9)
+        g[miss] = np.c_[(C + 3.0 * fwd)[:, :2], np.zeros(miss.sum())]
+    return g
+
+
+def prepare(comp: Composite, n_obs: int, m: int, names: tuple[str, ...] = JOINTS) -> Prepared:
+    S, L = comp.actions.shape
+    if L < n_obs + m:
+        raise ValueError(f"prepare: sequences of {L} steps, need n_obs + m = {n_obs + m}")
+    rig = comp.rig
+    und = np.stack([rig[int(c)].undistort_px(comp.xy_px[s]) for s, c in enumerate(comp.cam)])
+    K = np.stack([rig[int(c)].K for c in comp.cam])
+    R = np.stack([rig[int(c)].R for c in comp.cam])
+    t = np.stack([rig[int(c)].t for c in comp.cam])
+    g = anchors(K, R, t, und[:, :n_obs])
+    view = make_view(K, R, t, g)
+    jidx = [JOINTS.index(n) for n in names]
+    feats = plane_features(view, und[:, :n_obs])[:, :, jidx]
+    seen = np.isfinite(feats).all(-1)
+    X = comp.xyz_m[:, n_obs : n_obs + m][:, :, jidx].astype(np.float64) - g[:, None, None]
+    tgt3 = np.einsum("sij,smnj->smni", view.V, X)
+    return Prepared(
+        tuple(names),
+        view,
+        np.nan_to_num(feats).astype(np.float32),
+        seen,
+        und[:, :n_obs][:, :, jidx].astype(np.float32),
+        comp.actions[:, : n_obs + m],
+        und[:, n_obs : n_obs + m][:, :, jidx].astype(np.float32),
+        tgt3.astype(np.float32),
+    )
+
+
+def neck_centred(px: torch.Tensor, neck: int) -> torch.Tensor:
+    """The seed's translation removal: 2D poses (...,J,2) relative to their neck."""
+    return px - px[..., neck : neck + 1, :]
+
+
+def pose2d_error(
+    P: torch.Tensor, view: dict, tgt_px: torch.Tensor, neck: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 4.2-4.3 terms: predicted viewer-frame poses P (B,m,J,3) projected into the observing camera,
+    against target px (B,m,J,2) (NaN unseen), both neck-centred -> (per-joint error px (B,m,J), valid
+    mask)."""
+    px = project(to_world(P, view["V"], view["g"]), view["K"], view["R"], view["t"])
+    ok = torch.isfinite(tgt_px).all(-1) & torch.isfinite(tgt_px[..., neck : neck + 1, :]).all(-1)
+    tgt = torch.nan_to_num(tgt_px)
+    d = neck_centred(px, neck) - neck_centred(tgt, neck)
+    return d.norm(dim=-1), ok
+
+
+def critic_input(P: torch.Tensor, pelvis: int) -> torch.Tensor:
+    """Poses (B,J,3) with the pelvis moved to x = y = 0 (the height above the floor kept)."""
+    off = P[:, pelvis : pelvis + 1].clone()
+    off[..., 2] = 0
+    return P - off
+
+
+def _random_yaw(X: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+    a = torch.rand(X.shape[0], generator=g) * 2 * np.pi
+    c, s = torch.cos(a), torch.sin(a)
+    Rz = torch.zeros(X.shape[0], 3, 3)
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1
+    return torch.einsum("bij,bnj->bni", Rz, X)
+
+
+def _losses(gen, cfg, tb, neck):
+    feed = {"feed_pose": cfg.use_pose, "feed_action": cfg.use_action}
+    logits, P = rollout(gen, tb["feats"], tb["obs_acts"], tb["seen"], tb["view"]["c"], cfg.m, **feed)
+    l_act = nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), tb["tgt_acts"].reshape(-1))
+    err, ok = pose2d_error(P, tb["view"], tb["tgt_px"], neck)
+    l_2d = ((err / PX) ** 2 * ok).sum() / ok.sum().clamp(min=1)  # eq. 4.3 on the seen joints
+    return logits, P, l_act, l_2d
+
+
+def to_torch(d: Prepared, idx, n_obs: int) -> dict:
+    v = d.view.take(idx).torch()
+    return {
+        "feats": torch.from_numpy(d.feats[idx]),
+        "seen": torch.from_numpy(d.seen[idx]),
+        "obs_acts": torch.from_numpy(d.acts[idx, :n_obs]),
+        "tgt_acts": torch.from_numpy(d.acts[idx, n_obs:]),
+        "tgt_px": torch.from_numpy(d.tgt_px[idx]),
+        "view": v,
+    }
+
+
+def hide_history(tb: dict, cfg: BehaviourConfig, g: torch.Generator) -> None:
+    """A person labelled fewer than n_obs times shows only the last steps: hide the first 1..n_obs-1
+    observed steps (unseen pose, unknown action) of a ``short_history`` fraction of the batch, in place."""
+    B, N = tb["obs_acts"].shape
+    if N < 2 or cfg.short_history <= 0:
+        return
+    hide = torch.rand(B, generator=g) < cfg.short_history
+    n = torch.randint(1, N, (B,), generator=g)
+    drop = hide[:, None] & (torch.arange(N)[None] < n[:, None])
+    tb["seen"] = tb["seen"] & ~drop[..., None]
+    tb["feats"] = tb["feats"] * (~drop)[..., None, None]
+    tb["obs_acts"] = torch.where(drop, torch.full_like(tb["obs_acts"], len(ACTIONS)), tb["obs_acts"])
+
+
+def train(
+    cfg: BehaviourConfig,
+    tr: Prepared,
+    va: Prepared,
+    db: np.ndarray,
+    progress: Progress | None = None,
+) -> tuple[Generator, dict]:
+    """Fit one variant (eq. 4.1) with Adam, the critic alternating with the generator; keeps the state
+    with the lowest validation objective (the variant's weighted action and 2D terms)."""
+    gen, critic = build(cfg)
+    names = cfg.joint_names
+    neck, pelvis = names.index("neck"), names.index("pelvis")
+    jidx = [JOINTS.index(n) for n in names]
+    real = torch.from_numpy(np.ascontiguousarray(db[:, jidx]))
+    og = torch.optim.Adam(gen.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    oc = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=(0.5, 0.9))
+    g = torch.Generator().manual_seed(cfg.seed)
+    la = cfg.lambda_action if cfg.use_action else 0.0
+    l2 = cfg.lambda_pose2d if cfg.use_pose else 0.0
+    lv = cfg.lambda_adv3d if cfg.use_pose else 0.0
+    vb = to_torch(va, np.arange(len(va)), cfg.n_obs)
+    hist: dict = {"val": [], "loss": []}
+    best, best_state = np.inf, copy.deepcopy(gen.state_dict())
+    t0 = time.perf_counter()
+    for step in range(1, cfg.steps + 1):
+        idx = torch.randint(len(tr), (cfg.batch,), generator=g).numpy()
+        tb = to_torch(tr, idx, cfg.n_obs)
+        hide_history(tb, cfg, g)
+        gen.train()
+        logits, P, l_act, l_2d = _losses(gen, cfg, tb, neck)
+        fake = critic_input(P.reshape(-1, len(names), 3), pelvis)
+        fake = fake[torch.randperm(len(fake), generator=g)[: cfg.batch]]  # one batch of the B*m poses
+        l_adv = torch.zeros(())
+        if lv > 0:
+            # critic step (Wasserstein with gradient penalty)
+            r = _random_yaw(real[torch.randint(len(real), (len(fake),), generator=g)], g)
+            f = fake.detach()
+            eps = torch.rand(len(f), 1, 1, generator=g)
+            mix = (eps * r + (1 - eps) * f).requires_grad_(True)
+            grad = torch.autograd.grad(critic(mix).sum(), mix, create_graph=True)[0]
+            gp = ((grad.reshape(len(f), -1).norm(dim=1) - 1) ** 2).mean()
+            l_c = critic(f).mean() - critic(r).mean() + cfg.gp * gp
+            oc.zero_grad()
+            l_c.backward()
+            oc.step()
+            l_adv = -critic(fake).mean()
+        loss = la * l_act + l2 * l_2d + lv * l_adv
+        og.zero_grad()
+        loss.backward()
+        og.step()
+        hist["loss"].append([l_act.item(), l_2d.item(), l_adv.item()])
+        if step % cfg.eval_every == 0 or step == cfg.steps:
+            gen.eval()
+            with torch.no_grad():
+                _, _, va_act, va_2d = _losses(gen, cfg, vb, neck)
+            obj = la * float(va_act) + l2 * float(va_2d)
+            hist["val"].append(
+                {
+                    "step": step,
+                    "action_ce": float(va_act),
+                    "pose2d": float(va_2d),
+                    "objective": obj,
+                    "wall_s": time.perf_counter() - t0,
+                }
+            )
+            log.info(
+                "%s step %d: train ce %.3f 2d %.3f adv %.3f | val ce %.3f 2d %.3f",
+                cfg.variant,
+                step,
+                *hist["loss"][-1],
+                float(va_act),
+                float(va_2d),
+            )
+            if obj < best:
+                best, best_state = obj, copy.deepcopy(gen.state_dict())
+                hist["best_step"] = step
+        if progress:
+            progress(f"train {cfg.variant}", step, cfg.steps)
+    gen.load_state_dict(best_state)
+    gen.eval()
+    hist["train_wall_s"] = time.perf_counter() - t0
+    return gen, hist
+
+
+# ----------------------------------------------------------------------------- evaluation (sec. 4.5.1)
+
+
+def train_average(tr: Prepared) -> np.ndarray:
+    """The average training target 3D pose (J,3) in the viewer frame, pelvis at x = y = 0."""
+    X = tr.tgt_3d.reshape(-1, len(tr.names), 3).copy()
+    p = tr.names.index("pelvis")
+    X[..., :2] -= X[:, p : p + 1, :2]
+    return X.mean(0)
+
+
+def predict(
+    gen: Generator, cfg: BehaviourConfig, d: Prepared, batch: int = 1024
+) -> tuple[np.ndarray, np.ndarray]:
+    """-> action probabilities (S,m,A), viewer-frame poses (S,m,J,3)."""
+    pr, ps = [], []
+    with torch.no_grad():
+        for i in range(0, len(d), batch):
+            tb = to_torch(d, np.arange(i, min(i + batch, len(d))), cfg.n_obs)
+            lg, P = rollout(
+                gen,
+                tb["feats"],
+                tb["obs_acts"],
+                tb["seen"],
+                tb["view"]["c"],
+                cfg.m,
+                feed_pose=cfg.use_pose,
+                feed_action=cfg.use_action,
+            )
+            pr.append(torch.softmax(lg, -1).numpy())
+            ps.append(P.numpy())
+    return np.concatenate(pr), np.concatenate(ps)
+
+
+def _canonical(P: np.ndarray, names) -> np.ndarray:
+    """Poses (N,J,3) pelvis-centred and turned so the shoulders (or hips) lie along +x: what the quality
+    classifier sees (position and heading are no evidence of realism)."""
+    a, b = names.index("left_shoulder"), names.index("right_shoulder")
+    X = P - P[:, names.index("pelvis"), None]
+    v = X[:, b] - X[:, a]
+    ang = np.arctan2(v[:, 1], v[:, 0])
+    c, s = np.cos(-ang), np.sin(-ang)
+    R = np.zeros((len(X), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1
+    return np.einsum("nij,nkj->nki", R, X).astype(np.float32)
+
+
+def quality_classifier(
+    real: np.ndarray, fakes: np.ndarray, names, seed: int = 0, steps: int = 1500
+) -> nn.Module:
+    """Sec. 4.7.7: a 3-layer MLP that tells real poses (N,J,3) from predicted ones (canonical frame)."""
+    torch.manual_seed(seed)
+    J = len(names)
+    clf = nn.Sequential(
+        nn.Linear(J * 3, 128), nn.LeakyReLU(0.2), nn.Linear(128, 128), nn.LeakyReLU(0.2), nn.Linear(128, 1)
+    )
+    Xr = torch.from_numpy(_canonical(real, names)).reshape(len(real), -1)
+    Xf = torch.from_numpy(_canonical(fakes, names)).reshape(len(fakes), -1)
+    opt = torch.optim.Adam(clf.parameters(), lr=1e-3)
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        r = Xr[torch.randint(len(Xr), (256,), generator=g)]
+        f = Xf[torch.randint(len(Xf), (256,), generator=g)]
+        x = torch.cat([r, f])
+        y = torch.cat([torch.ones(256), torch.zeros(256)])
+        loss = nn.functional.binary_cross_entropy_with_logits(clf(x)[:, 0], y)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    clf.eval()
+    return clf
+
+
+def quality(clf: nn.Module, real: np.ndarray, pred: np.ndarray, names, seed: int = 0) -> float:
+    """1 - accuracy of ``clf`` on a balanced set of predicted and real poses (sec. 4.5.1)."""
+    rng = np.random.default_rng(seed)
+    n = min(len(real), len(pred))
+    r = real[rng.choice(len(real), n, replace=False)]
+    p = pred[rng.choice(len(pred), n, replace=False)]
+    with torch.no_grad():
+        sr = clf(torch.from_numpy(_canonical(r, names)).reshape(n, -1))[:, 0].numpy()
+        sp = clf(torch.from_numpy(_canonical(p, names)).reshape(n, -1))[:, 0].numpy()
+    acc = ((sr > 0).sum() + (sp <= 0).sum()) / (2 * n)
+    return float(1.0 - acc)
+
+
+def perturbed(real: np.ndarray, names, seed: int = 0) -> np.ndarray:
+    """Unrealistic poses for the quality classifier's fake class besides the models' predictions: real poses
+    with joint noise (1-20 cm) and bone-length changes, the range of deformations sec. 4.7.7 describes."""
+    rng = np.random.default_rng(seed)
+    n = len(real)
+    X = real + rng.normal(0, 1, real.shape) * rng.choice([0.01, 0.03, 0.08, 0.2], n)[:, None, None]
+    s = rng.uniform(0.7, 1.3, (n, 1, 1))
+    p = names.index("pelvis")
+    return (X[:, p : p + 1] + (X - X[:, p : p + 1]) * s).astype(np.float32)
+
+
+def metrics(
+    probs: np.ndarray | None,
+    poses: np.ndarray | None,
+    d: Prepared,
+    n_obs: int,
+    px2d: np.ndarray | None = None,
+) -> dict:
+    """mpjpe2d_px (neck-centred, mean over seen joints, steps and sequences), top1/top3 overall and per step,
+    mpjpe3d_mm (pelvis-centred). None where the method has no such output."""
+    out: dict = {}
+    names = d.names
+    neck, pelvis = names.index("neck"), names.index("pelvis")
+    if poses is not None or px2d is not None:
+        tgt = torch.from_numpy(d.tgt_px)
+        if px2d is None:
+            P = torch.from_numpy(np.asarray(poses, np.float32))
+            err, ok = pose2d_error(P, d.view.torch(), tgt, neck)
+        else:
+            ok = torch.isfinite(tgt).all(-1) & torch.isfinite(tgt[..., neck : neck + 1, :]).all(-1)
+            pz = torch.from_numpy(px2d.astype(np.float32))
+            ok &= torch.isfinite(pz).all(-1) & torch.isfinite(pz[..., neck : neck + 1, :]).all(-1)
+            err = (neck_centred(torch.nan_to_num(pz), neck) - neck_centred(torch.nan_to_num(tgt), neck)).norm(
+                dim=-1
+            )
+        e, o = err.numpy(), ok.numpy()
+        out["mpjpe2d_px"] = float((e * o).sum() / max(o.sum(), 1))
+        out["mpjpe2d_px_by_step"] = [
+            float((e[:, k] * o[:, k]).sum() / max(o[:, k].sum(), 1)) for k in range(e.shape[1])
+        ]
+    else:
+        out["mpjpe2d_px"] = None
+    if poses is not None:
+        P = poses - poses[:, :, pelvis : pelvis + 1]
+        T = d.tgt_3d - d.tgt_3d[:, :, pelvis : pelvis + 1]
+        e3 = np.linalg.norm(P - T, axis=-1).mean(-1) * 1000
+        out["mpjpe3d_mm"] = float(e3.mean())
+        out["mpjpe3d_mm_by_step"] = e3.mean(0).tolist()
+    else:
+        out["mpjpe3d_mm"] = None
+    if probs is not None:
+        gt = d.acts[:, n_obs:]
+        order = np.argsort(-probs, -1)
+        top1 = order[..., 0] == gt
+        top3 = (order[..., :3] == gt[..., None]).any(-1)
+        out["top1"], out["top3"] = float(top1.mean()), float(top3.mean())
+        out["top1_by_step"], out["top3_by_step"] = top1.mean(0).tolist(), top3.mean(0).tolist()
+    else:
+        out["top1"] = out["top3"] = None
+    return out
+
+
+def zero_velocity_2d(d: Prepared, m: int) -> np.ndarray:
+    """The last observed 2D pose (the latest step whose neck is seen), repeated m times (S,m,J,2)."""
+    neck = d.names.index("neck")
+    S, N = d.obs_px.shape[:2]
+    last = np.full(d.obs_px.shape[:1] + d.obs_px.shape[2:], np.nan, np.float32)
+    for k in range(N):
+        ok = np.isfinite(d.obs_px[:, k, neck, 0])
+        last[ok] = d.obs_px[ok, k]
+    return np.repeat(last[:, None], m, 1)
+
+
+def one_hot_probs(idx: np.ndarray, m: int) -> np.ndarray:
+    """A constant prediction idx (S,) as probabilities (S,m,A) (ties broken by a tiny ramp so top-3 is
+    defined: the order of ``ACTIONS``)."""
+    A = len(ACTIONS)
+    p = np.tile(np.linspace(1e-3, 0, A), (len(idx), m, 1))
+    p[np.arange(len(idx)), :, idx] = 1.0
+    return p
+
+
+# ----------------------------------------------------------------------------- the whole protocol
+
+
+@dataclass
+class Splits:
+    train: Prepared
+    val: Prepared
+    test: Prepared
+    db: np.ndarray  # (N,19,3) the uncorrelated 3D database
+
+
+def load_splits(
+    cfg: BehaviourConfig, seed: int = 0, names: tuple[str, ...] = JOINTS, with_train: bool = True
+) -> Splits:
+    """The composite train / val / test sequences (``n_train`` / ``n_eval`` / ``n_eval``, each its own seed)
+    and the 3D database; without ``with_train``, the train split holds its first 100 sequences only (the
+    evaluation needs none)."""
+    pool = bdata.split_pool(bdata.load_pool())
+    L = cfg.n_obs + cfg.m
+    sizes = (("train", cfg.n_train if with_train else 100), ("val", cfg.n_eval), ("test", cfg.n_eval))
+    parts = [
+        prepare(bdata.make_composite(pool[p], n, L, seed * 10 + i), cfg.n_obs, cfg.m, names)
+        for i, (p, n) in enumerate(sizes)
+    ]
+    return Splits(*parts, db=bdata.load_db_poses())
+
+
+def action_frequencies(tr: Prepared, n_obs: int) -> np.ndarray:
+    f = np.bincount(tr.acts[:, n_obs:].ravel(), minlength=len(ACTIONS)).astype(np.float64)
+    return f / f.sum()
+
+
+def evaluate_all(
+    gens: dict[str, Generator],
+    cfgs: dict[str, BehaviourConfig],
+    extra: dict,
+    val: Prepared,
+    test: Prepared,
+    db: np.ndarray,
+    seed: int = 0,
+) -> dict:
+    """Table 4.1/4.2 on ``test``: zero velocity and train average (poses and, as in sec. 4.7.4, actions:
+    repeat the last one / the most common), then every trained variant. The quality classifier (sec. 4.7.7)
+    is trained once: real, half of the 3D database ``db`` (N,19,3); fake, every method's predictions on
+    ``val`` plus perturbed real poses; it is scored on the other half against each method's test poses."""
+    n_obs, m = cfgs["full"].n_obs, cfgs["full"].m
+    freq = np.asarray(extra["action_freq"])
+    avg = np.asarray(extra["avg_pose"], np.float32)
+    names = val.names
+    preds: dict[str, dict[str, tuple]] = {"val": {}, "test": {}}
+    for split, d in (("val", val), ("test", test)):
+        S = len(d)
+        last = d.acts[:, n_obs - 1]
+        zv = np.tile(freq * 0.1, (S, m, 1))
+        zv[np.arange(S), :, last] = 1.0
+        preds[split]["zero_velocity"] = (zv, None, zero_velocity_2d(d, m))
+        preds[split]["train_average"] = (
+            np.tile(freq, (S, m, 1)),
+            np.broadcast_to(avg, (S, m) + avg.shape).copy(),
+            None,
+        )
+        for n, g in gens.items():
+            if cfgs[n].joint_names != names:
+                continue
+            pr, ps = predict(g, cfgs[n], d)
+            preds[split][n] = (pr if cfgs[n].use_action else None, ps if cfgs[n].use_pose else None, None)
+    # real poses: the 3D database (sec. 4.5.1), even frames train the classifier, odd frames test it, so
+    # the real poses of both halves come from one distribution whatever the test sequences' subjects
+    jidx = [JOINTS.index(n) for n in names]
+    real_v, real_t = db[0::2][:, jidx], db[1::2][:, jidx]
+    fakes = [perturbed(real_v, names, seed)] + [
+        p[1].reshape(-1, len(names), 3) for p in preds["val"].values() if p[1] is not None
+    ]
+    clf = quality_classifier(real_v, np.concatenate(fakes), names, seed)
+    out = {
+        "n_sequences": len(test),
+        "n_obs": n_obs,
+        "m": m,
+        "actions": list(ACTIONS),
+        "joints": list(names),
+        "models": {},
+    }
+    for n, (pr, ps, px) in preds["test"].items():
+        r = metrics(pr, ps, test, n_obs, px2d=px)
+        r["quality3d"] = (
+            quality(clf, real_t, ps.reshape(-1, len(names), 3), names, seed) if ps is not None else None
+        )
+        out["models"][n] = r
+    return out
+
+
+def results_table(res: dict) -> str:
+    lines = [
+        f"{'method':<16} {'2D MPJPE px':>12} {'3D quality':>11} {'top-1':>7} {'top-3':>7} {'3D MPJPE mm':>12}"
+    ]
+
+    def f(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    for n, r in res["models"].items():
+        lines.append(
+            f"{n:<16} {f(r['mpjpe2d_px'], '12.1f')} {f(r['quality3d'], '11.2f')} "
+            f"{f(r['top1'], '7.1%')} {f(r['top3'], '7.1%')} {f(r['mpjpe3d_mm'], '12.0f')}"
+        )
+    lines.append(
+        "action top-1 by step (Fig. 4.3): "
+        + "; ".join(
+            f"{n} " + " ".join(f"{v:.0%}" for v in r["top1_by_step"])
+            for n, r in res["models"].items()
+            if r.get("top1_by_step")
+        )
+    )
+    return "\n".join(lines)
