@@ -165,6 +165,8 @@ def evaluate_single(
     groups = np.array([clip_group(n) for n in names_sel])
     wact = [acts.get(n, fdata.UNLABELLED) for n in names_sel]
     obs, gt = x[:, :n_obs], x[:, n_obs:]
+    queried = set(wact)  # D holds the activities queried (a short clip of another activity is not needed)
+    db_clips = [c for c in db_clips if acts.get(c.name, fdata.UNLABELLED) in queried]
     scorer = ndms_scorer_for(db_clips, activities=acts)
     scorer_ff = ndms_scorer_for(db_clips, activities=acts, word_form="word_first_frame")
     names = get_skeleton(test_clips[0].skeleton).joint_names
