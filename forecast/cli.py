@@ -60,6 +60,11 @@ def _load_split(args):
 
         d = load_one_person_all(args.split_seed)
         clips, tr, va, te = d.clips, list(d.train), list(d.val), list(d.test)
+    if "two-person" in args.data:  # the real two-person takes (clips.load_two_person_real), split by take
+        from forecast.clips import load_two_person_real
+
+        d = load_two_person_real(args.split_seed)
+        clips, tr, va, te = clips + d.clips, tr + d.train, va + d.val, te + d.test
     groups = [["cmu"]] if "cmu" in args.data else []
     groups += (
         [[d for d in args.data if d not in ("cmu", "cmu-all")]] if set(args.data) - {"cmu", "cmu-all"} else []
@@ -269,7 +274,8 @@ def _main(argv: list[str] | None = None) -> int:
             nargs="+",
             default=["cmu"],
             help="'cmu' (the CMU BVH), 'cmu-all' (every one-person CMU clip: cmu + cmu-more + the 8-action "
-            "benchmark, whose test files are test only) and/or track files / folders",
+            "benchmark, whose test files are test only), 'two-person' (the salsa takes + 18_01/19_01, split "
+            "by take) and/or track files / folders",
         )
         sp.add_argument("--split-seed", type=int, default=0)
 

@@ -41,8 +41,8 @@ def load_cmu(fps: float = fdata.TARGET_FPS, root: str | os.PathLike | None = Non
 
 
 @dataclass(frozen=True)
-class OnePersonData:
-    """Every one-person CMU clip split by clip (:func:`load_one_person_all`) and each clip's activity."""
+class SplitData:
+    """Clips split by clip (:func:`load_one_person_all`, :func:`load_two_person_real`), their activities."""
 
     train: list[fdata.Clip]
     val: list[fdata.Clip]
@@ -67,7 +67,7 @@ def more_activities() -> dict[str, str]:
 BENCHMARK_PREFIX = "cmu8"  # clip names of the 8-action benchmark: cmu8_train_walking_1, cmu8_test_walking_1
 
 
-def load_one_person_all(seed: int = 0, fps: float = fdata.TARGET_FPS) -> OnePersonData:
+def load_one_person_all(seed: int = 0, fps: float = fdata.TARGET_FPS) -> SplitData:
     """All one-person CMU motion, split by clip: the CMU BVH of ``load_cmu`` (its split unchanged), the
     one-person ``cmu-more`` BVH (split the same way, on its own, so neither reshuffles the other) and the
     CMU 8-action benchmark's files (``cmu_more.BENCHMARK_ACTIONS``): its train files train, its test files
@@ -89,7 +89,22 @@ def load_one_person_all(seed: int = 0, fps: float = fdata.TARGET_FPS) -> OnePers
                 c = cmu_more.benchmark_clip(f, fps)
                 name = f"{BENCHMARK_PREFIX}_{split}_{c.name}"
                 (tr if split == "train" else te).append(fdata.Clip(name, c.xyz_m, c.fps, c.skeleton))
-    return OnePersonData(tr, va, te, fdata.clip_activities(tr + va + te))
+    return SplitData(tr, va, te, fdata.clip_activities(tr + va + te))
+
+
+def load_two_person_real(seed: int = 0, fps: float = fdata.TARGET_FPS) -> SplitData:
+    """The real two-person CMU takes: the 14 salsa takes of ``cmu-more`` split by take (``split_clips``: with
+    seed 0, 9 train / 2 validation / 3 test) and 18_01 + 19_01 (2.5 s, too short for a 10-s evaluation)
+    in train."""
+    from forecast import cmu_more
+
+    salsa = cmu_more.load_salsa(fps)
+    tr, va, te = split_clips(salsa, seed)
+    try:
+        tr = tr + [fdata.cmu_two_person_clip(fps=fps)]
+    except FileNotFoundError:
+        pass
+    return SplitData(tr, va, te, fdata.clip_activities(tr + va + te))
 
 
 def load_sources(sources: list[str], fps: float = fdata.TARGET_FPS) -> list[fdata.Clip]:
