@@ -65,10 +65,9 @@ def _load_split(args):
 
         d = load_two_person_real(args.split_seed)
         clips, tr, va, te = clips + d.clips, tr + d.train, va + d.val, te + d.test
+    own = {"cmu", "cmu-all", "two-person"}
     groups = [["cmu"]] if "cmu" in args.data else []
-    groups += (
-        [[d for d in args.data if d not in ("cmu", "cmu-all")]] if set(args.data) - {"cmu", "cmu-all"} else []
-    )
+    groups += [[d for d in args.data if d not in own]] if set(args.data) - own else []
     for group in groups:  # CMU and the track files are split separately
         c = T.load_sources(group)
         a, v, b = T.split_clips(c, args.split_seed)
