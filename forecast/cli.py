@@ -55,8 +55,19 @@ def _load_split(args):
     from forecast import train as T  # lazy: loads torch (after --threads set the BLAS threads)
 
     clips, tr, va, te = [], [], [], []
+    if "cmu-all" in args.data:  # every one-person CMU clip (clips.load_one_person_all), its own split rule
+        from forecast.clips import load_one_person_all
+
+        d = load_one_person_all(args.split_seed)
+        clips, tr, va, te = d.clips, list(d.train), list(d.val), list(d.test)
+    if "two-person" in args.data:  # the real two-person takes (clips.load_two_person_real), split by take
+        from forecast.clips import load_two_person_real
+
+        d = load_two_person_real(args.split_seed)
+        clips, tr, va, te = clips + d.clips, tr + d.train, va + d.val, te + d.test
+    own = {"cmu", "cmu-all", "two-person"}
     groups = [["cmu"]] if "cmu" in args.data else []
-    groups += [[d for d in args.data if d != "cmu"]] if any(d != "cmu" for d in args.data) else []
+    groups += [[d for d in args.data if d not in own]] if set(args.data) - own else []
     for group in groups:  # CMU and the track files are split separately
         c = T.load_sources(group)
         a, v, b = T.split_clips(c, args.split_seed)
@@ -322,7 +333,14 @@ def _main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     def data_args(sp):
-        sp.add_argument("--data", nargs="+", default=["cmu"], help="'cmu' and/or track files / folders")
+        sp.add_argument(
+            "--data",
+            nargs="+",
+            default=["cmu"],
+            help="'cmu' (the CMU BVH), 'cmu-all' (every one-person CMU clip: cmu + cmu-more + the 8-action "
+            "benchmark, whose test files are test only), 'two-person' (the salsa takes + 18_01/19_01, split "
+            "by take) and/or track files / folders",
+        )
         sp.add_argument("--split-seed", type=int, default=0, help="seed of the train/val/test split by clip")
 
     # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from forecast import data as fdata
+from forecast.cmu_more import CMU_MORE_DIR
 from forecast.predict import LHIP, RHIP, scene_features, scene_frame
 
 
@@ -23,10 +25,11 @@ def load_cmu(fps: float = fdata.TARGET_FPS, root: str | os.PathLike | None = Non
     """All single-person CMU clips at ``fps`` (one copy per trial). The two-person take
     (``data.TWO_PERSON_DIR``, 18_01 + 19_01) is left out: it is the real two-person scene of the
     social evaluation (``data.cmu_two_person_clip``), never trained on, and leaving it out keeps the
-    train/val/test split that the shipped checkpoints were trained and selected on."""
+    train/val/test split that the shipped checkpoints were trained and selected on. ``cmu-more`` is left out
+    too (source ``cmu-all``, :func:`load_one_person_all`)."""
     seen, clips = set(), []
     for f in fdata.cmu_bvh_files(root):
-        if f.parent.name == fdata.TWO_PERSON_DIR:
+        if f.parent.name == fdata.TWO_PERSON_DIR or CMU_MORE_DIR in f.parts:
             continue
         c = fdata.clip_from_bvh(f, fps)
         k = clip_key(c.name)
@@ -35,6 +38,73 @@ def load_cmu(fps: float = fdata.TARGET_FPS, root: str | os.PathLike | None = Non
         seen.add(k)
         clips.append(c)
     return clips
+
+
+@dataclass(frozen=True)
+class SplitData:
+    """Clips split by clip (:func:`load_one_person_all`, :func:`load_two_person_real`), their activities."""
+
+    train: list[fdata.Clip]
+    val: list[fdata.Clip]
+    test: list[fdata.Clip]
+    activities: dict[str, str]
+
+    @property
+    def clips(self) -> list[fdata.Clip]:
+        return self.train + self.val + self.test
+
+
+def more_activities() -> dict[str, str]:
+    """Activities of ``cmu-more``'s clips from its manifest ({} when the folder is absent)."""
+    from forecast import cmu_more
+
+    try:
+        return cmu_more.activities()
+    except FileNotFoundError:
+        return {}
+
+
+BENCHMARK_PREFIX = "cmu8"  # clip names of the 8-action benchmark: cmu8_train_walking_1, cmu8_test_walking_1
+
+
+def load_one_person_all(seed: int = 0, fps: float = fdata.TARGET_FPS) -> SplitData:
+    """All one-person CMU motion, split by clip: the CMU BVH of ``load_cmu`` (its split unchanged), the
+    one-person ``cmu-more`` BVH (split the same way, on its own, so neither reshuffles the other) and the
+    CMU 8-action benchmark's files (``cmu_more.BENCHMARK_ACTIONS``): its train files train, its test files
+    are test only, never trained on. The two-person takes are not here (18_01 + 19_01, the salsa pairs).
+    Activities: CMU ``index.csv`` for the first, ``cmu-more``'s manifest for the second, and
+    "cmu8 <action>" for the benchmark (its NDMS database is the benchmark's own test sequences of the action,
+    as the seed scores it, sec. 6.3.2)."""
+    from forecast import cmu_more
+
+    old = load_cmu(fps)
+    more = cmu_more.load_single(fps)
+    tr, va, te = split_clips(old, seed)
+    a, v, b = split_clips(more, seed)
+    tr, va, te = tr + a, va + v, te + b
+    bf = cmu_more.benchmark_files()
+    for split, by_action in bf.files.items():
+        for files in by_action.values():
+            for f in files:
+                c = cmu_more.benchmark_clip(f, fps)
+                name = f"{BENCHMARK_PREFIX}_{split}_{c.name}"
+                (tr if split == "train" else te).append(fdata.Clip(name, c.xyz_m, c.fps, c.skeleton))
+    return SplitData(tr, va, te, fdata.clip_activities(tr + va + te))
+
+
+def load_two_person_real(seed: int = 0, fps: float = fdata.TARGET_FPS) -> SplitData:
+    """The real two-person CMU takes: the 14 salsa takes of ``cmu-more`` split by take (``split_clips``: with
+    seed 0, 9 train / 2 validation / 3 test) and 18_01 + 19_01 (2.5 s, too short for a 10-s evaluation)
+    in train."""
+    from forecast import cmu_more
+
+    salsa = cmu_more.load_salsa(fps)
+    tr, va, te = split_clips(salsa, seed)
+    try:
+        tr = tr + [fdata.cmu_two_person_clip(fps=fps)]
+    except FileNotFoundError:
+        pass
+    return SplitData(tr, va, te, fdata.clip_activities(tr + va + te))
 
 
 def load_sources(sources: list[str], fps: float = fdata.TARGET_FPS) -> list[fdata.Clip]:

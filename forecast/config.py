@@ -63,6 +63,9 @@ class DiffusionConfig:
     lag_stats: bool = True  # (anchored) mean/std per lag: bound to n_frames; false: per channel, any length
     root_vel: bool = False  # (anchored) root coded as per-frame displacements, not offsets from the anchor
     p_single: float = 0.0  # share of composed training scenes with one person
+    p_real: float = (
+        0.5  # share of batches of real multi-person scenes (when the clips hold any), else composed
+    )
     mirror: bool = True  # also train on the left/right mirror of every single-person window (as the others)
     steps: int = 2500
     batch: int = 32

@@ -3,14 +3,17 @@
 - ``evaluate_single``: test-split single-person windows (observe ``n_obs``, forecast ``n_pred`` frames at
   25 Hz), 50 samples per stochastic model by default (DLow, Tanke Table 6.2). Per model:
   MPJPE(t) in world coordinates; NDMS(t) (eq. 6.9-6.12, every sample scored, then averaged, as Z in
-  eq. 6.9) against a database D of the held-out clips *of the query's activity* (sec. 6.3.2; CMU clips
-  grouped by their ``index.csv`` description, ``data.clip_activities``) that contains the query's own clip,
-  so the real future scores 1 (``ndms``, the seed's protocol); the stricter ``ndms_loo`` drops the query's
-  own clip from D (windows whose activity has no other held-out clip are left out of it and counted in
-  ``n_windows_loo``). APD, ADE, FDE, MMADE, MMFDE (DLow) on root-centred poses, the root trajectory's own
-  best-of-S ADE/FDE (``root_ade``, ``root_fde``) and NPSS (reference code, root-centred poses, first sample)
-  beside them; none of them changes when the data are moved. NDMS at 0.4/1/2/3/4 s comes with 95 %
-  intervals from a bootstrap that resamples whole clips, and each model's paired difference to a reference.
+  eq. 6.9; motion words of root-centred poses with the heading kept, ``metrics.motion_words``) against a
+  database D of the held-out clips *of the query's activity* (sec. 6.3.2; CMU clips grouped by their
+  ``index.csv`` description, ``data.clip_activities``) that contains the query's own clip, so the real
+  future scores 1 (``ndms``, the seed's protocol); the stricter ``ndms_loo`` drops the query's own clip from
+  D (windows whose activity has no other held-out clip are left out of it and counted in
+  ``n_windows_loo``); ``ndms_word_first_frame`` is ``ndms`` with words normalised at their first frame
+  only (the root's motion inside the word counts). APD, ADE, FDE, MMADE, MMFDE (DLow) on root-centred
+  poses, the root trajectory's own best-of-S ADE/FDE (``root_ade``, ``root_fde``) and NPSS (reference code,
+  root-centred poses, first sample) beside them; none of them changes when the data are moved. NDMS at
+  0.4/1/2/3/4 s comes with 95 % intervals from a bootstrap that resamples whole clips, and each model's
+  paired difference to a reference.
 - ``evaluate_social``: two-person scenes, a long horizon (10 s), NDMS(t) per person (same database rule)
   and the SSCP distance (sec. 7.3): scenes composed from held-out single-person clips, and beside them the
   real multi-person clips (``real_scenes``: the CMU two-person take, multi-person track files).
@@ -48,13 +51,14 @@ RESULTS_LAYOUT = {
     "models.<name>.mpjpe": "per-frame MPJPE (m), world coordinates, mean over joints, windows and samples",
     "models.<name>.ndms": "per-frame NDMS, D = held-out clips of the query's activity incl. its own clip",
     "models.<name>.ndms_loo": "per-frame NDMS with the query's own clip left out of D",
+    "models.<name>.ndms_word_first_frame": "per-frame NDMS, words normalised at their first frame only",
     "models.<name>.apd_t": "per-frame APD (m) between samples, root-centred",
     "models.<name>.apd|ade|fde|mmade|mmfde": "DLow's scalars (m) on root-centred poses, best of S samples",
     "models.<name>.root_ade|root_fde": "best-of-S ADE/FDE (m) of the root (mid-hip) trajectory alone",
     "models.<name>.npss": "NPSS (reference code) on root-centred poses, first sample",
     "models.<name>.ndms_mean|ndms_loo_mean": "mean of the per-frame curve",
-    "models.<name>.ndms_at|ndms_loo_at": "{t_s: [mean, 2.5 %, 97.5 %]}, mean over the 0.2 s before t, "
-    "clip bootstrap",
+    "models.<name>.ndms_at|ndms_loo_at|ndms_word_first_frame_at": "{t_s: [mean, 2.5 %, 97.5 %]}, mean over "
+    "the 0.2 s before t, clip bootstrap",
     "models.<name>.ndms_diff_at|ndms_loo_diff_at": "paired difference to `reference`, same bootstrap",
 }
 
@@ -100,9 +104,11 @@ def ndms_scorer_for(
     kappa: int = 8,
     activities: dict[str, str] | None = None,
     min_words: int = M.MIN_GROUP_WORDS,
+    word_form: str = "root_centred",
 ) -> M.NDMSScorer:
     """Database of motion words from clips (every complete run of every person); a word's group is its clip
-    (``clip_group(name)``) and its activity ``activities[name]`` (None: one pool, activity ``all``)."""
+    (``clip_group(name)``) and its activity ``activities[name]`` (None: one pool, activity ``all``);
+    ``word_form``: ``metrics.WORD_FORMS``."""
     seqs, groups, acts = [], [], []
     for c in clips:
         for p in range(c.xyz_m.shape[1]):
@@ -111,7 +117,13 @@ def ndms_scorer_for(
                 groups.append(clip_group(c.name))
                 acts.append("all" if activities is None else activities.get(c.name, fdata.UNLABELLED))
     return M.NDMSScorer(
-        seqs, get_skeleton(clips[0].skeleton).joint_names, kappa, groups, activities=acts, min_words=min_words
+        seqs,
+        get_skeleton(clips[0].skeleton).joint_names,
+        kappa,
+        groups,
+        activities=acts,
+        min_words=min_words,
+        word_form=word_form,
     )
 
 
@@ -155,7 +167,10 @@ def evaluate_single(
     groups = np.array([clip_group(n) for n in names_sel])
     wact = [acts.get(n, fdata.UNLABELLED) for n in names_sel]
     obs, gt = x[:, :n_obs], x[:, n_obs:]
+    queried = set(wact)  # D holds the activities queried (a short clip of another activity is not needed)
+    db_clips = [c for c in db_clips if acts.get(c.name, fdata.UNLABELLED) in queried]
     scorer = ndms_scorer_for(db_clips, activities=acts)
+    scorer_ff = ndms_scorer_for(db_clips, activities=acts, word_form="word_first_frame")
     names = get_skeleton(test_clips[0].skeleton).joint_names
     lh, rh = fdata.hip_indices(names)
     gt_rc = M.root_centred(gt, lh, rh)
@@ -174,7 +189,7 @@ def evaluate_single(
         "models": {},
     }
     out["n_clips"] = int(len(np.unique(groups)))
-    per_window, per_window_loo = {}, {}
+    per_window, per_window_loo, per_window_ff = {}, {}, {}
     for i, (name, model) in enumerate(models.items()):
         _report(progress, "eval models", i, len(models), name)
         tm = time.perf_counter()
@@ -189,6 +204,10 @@ def evaluate_single(
         r, per_window[name], per_window_loo[name] = _single_metrics(
             y, gt, obs, mask[:, n_obs:], groups, wact, scorer, (lh, rh), mm_gt
         )
+        per_window_ff[name] = np.stack(
+            [scorer_ff.score_forecast(obs[b], y[b], None, wact[b]) for b in range(len(y))]
+        )
+        r["ndms_word_first_frame"] = per_window_ff[name].mean(0).tolist()
         r["wall_s"] = time.perf_counter() - tm
         if getattr(model, "kind", "") == "social_diffusion":
             r["rollout"] = diffusion_rollout(model, n_pred)
@@ -205,6 +224,9 @@ def evaluate_single(
         r = out["models"][name]
         w, wl = per_window[name], per_window_loo[name][loo_ok]
         r["ndms_at"] = {f"{t:g}": _ci(ndms_at(w, ws.fps, t), boot) for t in ts}
+        r["ndms_word_first_frame_at"] = {
+            f"{t:g}": _ci(ndms_at(per_window_ff[name], ws.fps, t), boot) for t in ts
+        }
         if boot_loo is not None:
             r["ndms_loo_at"] = {f"{t:g}": _ci(ndms_at(wl, ws.fps, t), boot_loo) for t in ts}
         if ref is not None and name != ref:
@@ -439,7 +461,7 @@ def _ndms_table(models: dict, fps: float, n_pred: int, key: str = "ndms") -> lis
     horizon = n_pred / fps
     ts = [t for t in _NDMS_S if t <= horizon + 1e-9]
     has_sscp = any("sscp_jsd" in r for r in models.values())
-    label = {"ndms": "NDMS", "ndms_loo": "NDMS loo"}.get(key, key)
+    label = {"ndms": "NDMS", "ndms_loo": "NDMS loo", "ndms_word_first_frame": "NDMS ff"}.get(key, key)
     lines = [
         "| model | "
         + " | ".join(f"{label} {t:g} s" for t in ts)
@@ -491,13 +513,15 @@ def report_markdown(res: dict, title: str) -> str:
             )
         lines += ["", "APD/ADE/FDE/MMADE/MMFDE/NPSS on root-centred poses; MPJPE in world coordinates.", ""]
     lines += _ndms_table(res["models"], fps, res["n_pred"], "ndms")
-    if any("ndms_loo" in r for r in res["models"].values()):
-        lines += [""] + _ndms_table(res["models"], fps, res["n_pred"], "ndms_loo")
+    for extra in ("ndms_loo", "ndms_word_first_frame"):
+        if any(extra in r for r in res["models"].values()):
+            lines += [""] + _ndms_table(res["models"], fps, res["n_pred"], extra)
     lines += [
         "",
         "NDMS at t = mean over the 0.2 s before t (motion words of κ = 8 frames); ndms: D = held-out clips "
-        "of "
-        "the query's activity incl. its own clip; ndms_loo: the query's own clip left out.",
+        "of the query's activity incl. its own clip, words of root-centred poses with the heading kept; "
+        "ndms_loo: the query's own clip left out; NDMS ff (ndms_word_first_frame): words normalised at their "
+        "first frame.",
     ]
     if "real" in res:
         rr = res["real"]
@@ -508,7 +532,7 @@ def report_markdown(res: dict, title: str) -> str:
             "",
         ]
         lines += _ndms_table(rr["models"], fps, res["n_pred"], "ndms")
-    for key in ("ndms", "ndms_loo"):
+    for key in ("ndms", "ndms_loo", "ndms_word_first_frame"):
         if not any(f"{key}_at" in r for r in res["models"].values()):
             continue
         ts = sorted({t for r in res["models"].values() for t in r.get(f"{key}_at", {})}, key=float)

@@ -7,7 +7,8 @@ it) and is applied to root-centred poses by the evaluation (the reference code w
 no translation changes); APD is DLow's pdist (mean pairwise L2 distance between flattened samples);
 ADE/FDE are DLow's best-of-S and MMADE/MMFDE DLow's multi-modal versions (eq. 3.31-3.33), all on
 root-centred poses in the evaluation; NDMS (eq. 6.11/6.12) clamps the velocity norms at eps as the seed's
-reference code (jutanke/ndms) does, so a word scores exactly 1 against itself; the SSCP distance is the
+reference code (jutanke/ndms) does, so a word scores exactly 1 against itself, and forms its motion words from
+root-centred poses with the heading kept (``motion_words``, Tables 6.3/6.8); the SSCP distance is the
 square root of the Jensen-Shannon divergence (eq. 7.15, base-2 logs so it lies in [0, 1]).
 
 Shapes: S samples, T frames, J joints. Sequences are ``(T,J,3)`` metres; sample sets ``(S,T,J,3)``.
@@ -162,14 +163,35 @@ def ndms_pair(x: np.ndarray, y: np.ndarray, eps: float = 1e-7) -> np.ndarray:
     return (0.5 * (1 + cos) * mag).mean((-1, -2))
 
 
-def motion_words(seq: np.ndarray, kappa: int, lhip: int, rhip: int) -> np.ndarray:
-    """All overlapping words of κ frames of seq (...,T,J,3) -> (...,T-κ+1,κ,J,3), each normalised
-    (eq. 3.8) at its own first frame so search and score ignore where and which way the person stands."""
+def _words(seq: np.ndarray, kappa: int) -> np.ndarray:
+    """All overlapping windows of κ frames of seq (...,T,J,3) -> (...,T-κ+1,κ,J,3)."""
     T = seq.shape[-3]
     idx = np.arange(T - kappa + 1)[:, None] + np.arange(kappa)[None]
-    w = seq[..., idx, :, :]
+    return seq[..., idx, :, :]
+
+
+def motion_words(seq: np.ndarray, kappa: int, lhip: int, rhip: int) -> np.ndarray:
+    """The seed's motion words: all overlapping words of κ frames of seq (...,T,J,3) -> (...,T-κ+1,κ,J,3),
+    every frame's pose minus its own root (mid-hips) at that frame, heading as in the data ("3D skeletons
+    centered at the origin but with global rotation", Tables 6.3/6.8). The root's own motion is not in the
+    word (it is measured apart, as root ADE/FDE), so a rigidly translated still pose moves no joint."""
+    return _words(root_centred(seq, lhip, rhip), kappa)
+
+
+def motion_words_first_frame(seq: np.ndarray, kappa: int, lhip: int, rhip: int) -> np.ndarray:
+    """Words normalised (eq. 3.8) at their own first frame only: root and heading of frame 1 removed from
+    all κ frames, so the root's motion inside the word still counts (``ndms_word_first_frame``)."""
+    w = _words(seq, kappa)
     R, root = norm_frame(w[..., 0, :, :], lhip, rhip)
     return normalize(w, R, root)
+
+
+# How a motion word is formed before the search and the score: the seed's (every frame root-centred, heading
+# kept) and the variant normalised at the word's first frame.
+WORD_FORMS: dict[str, Callable[[np.ndarray, int, int, int], np.ndarray]] = {
+    "root_centred": motion_words,
+    "word_first_frame": motion_words_first_frame,
+}
 
 
 MIN_GROUP_WORDS = (
@@ -186,7 +208,9 @@ class NDMSScorer:
     ``groups`` labels each sequence with its clip, so that the stricter leave-clip-out variant can drop the
     query's own clip from D (the seed keeps it: g is 1 when D holds the exact word). Every activity needs at
     least ``min_words`` words (ValueError naming the group otherwise). ``max_words`` (None: all) subsamples
-    each activity's words.
+    each activity's words. ``word_form`` (``WORD_FORMS``): "root_centred" (the seed's, default) or
+    "word_first_frame"; the nearest neighbour is the exact Euclidean one on the flattened words of the
+    selected joints (the reference code's Annoy index is approximate).
     """
 
     def __init__(
@@ -199,8 +223,13 @@ class NDMSScorer:
         seed: int = 0,
         activities: list[str] | None = None,
         min_words: int = MIN_GROUP_WORDS,
+        word_form: str = "root_centred",
     ):
+        if word_form not in WORD_FORMS:
+            raise ValueError(f"unknown NDMS word form '{word_form}'; choose from {', '.join(WORD_FORMS)}")
         self.kappa = kappa
+        self.word_form = word_form
+        self._form = WORD_FORMS[word_form]
         names = list(joint_names)
         self.lhip, self.rhip = hip_indices(names)
         self.jsel = np.array([names.index(n) for n in NDMS_JOINTS if n in names])
@@ -209,7 +238,7 @@ class NDMSScorer:
             seq = np.asarray(seq, np.float32)
             if len(seq) < kappa or not np.isfinite(seq).all():
                 continue
-            w = motion_words(seq, kappa, self.lhip, self.rhip)[:, :, self.jsel]
+            w = self._form(seq.astype(np.float64), kappa, self.lhip, self.rhip)[:, :, self.jsel]
             words.append(w)
             gid.append(np.full(len(w), i if groups is None else groups[i]))
             act.append(np.full(len(w), "all" if activities is None else str(activities[i]), dtype=object))
@@ -257,7 +286,10 @@ class NDMSScorer:
     ) -> np.ndarray:
         """g (eq. 6.10) for every motion word of seq (...,T,J,3) -> (...,T-κ+1); NaN where no word of the
         activity is left after excluding ``exclude_group``."""
-        w = motion_words(np.asarray(seq, np.float64), self.kappa, self.lhip, self.rhip)[..., self.jsel, :]
+        # float32 first, as the database (and both sides in the reference code): the query's exact word in D
+        # is then at distance 0, not at a float32 rounding away from periodic copies of itself
+        seq = np.asarray(np.asarray(seq, np.float32), np.float64)
+        w = self._form(seq, self.kappa, self.lhip, self.rhip)[..., self.jsel, :]
         lead = w.shape[:-3]
         q = w.reshape(-1, w.shape[-3] * w.shape[-2] * 3)
         ok = self._candidates(activity, exclude_group)

@@ -49,7 +49,8 @@ class Validator:
         acts = fdata.clip_activities(clips)
         self.activities = [acts[clips[c].name] for c in ws.clip[sel]]
         self.groups = [E.clip_group(clips[c].name) for c in ws.clip[sel]]
-        self.scorer = E.ndms_scorer_for(clips, activities=acts)
+        queried = set(self.activities)  # D holds the activities queried, as in the evaluation
+        self.scorer = E.ndms_scorer_for([c for c in clips if acts[c.name] in queried], activities=acts)
         self.n_samples, self.seed, self.fps = n_samples, seed, ws.fps
 
     def __call__(self, model: torch.nn.Module) -> dict:

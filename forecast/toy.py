@@ -53,8 +53,11 @@ def walker(
     start=(0.0, 0.0),
     phase: float = 0.0,
     turn_rps: float = 0.0,
+    sway_rad: float = 0.0,
 ) -> np.ndarray:
-    """(T,19,3) toy walking motion."""
+    """(T,19,3) toy walking motion. ``sway_rad``: the hips and the shoulders turn about the vertical body axis
+    against each other with the gait (amplitude in radians); 0 keeps the torso rigid, so that relative to its
+    root only the limbs move."""
     names = get_skeleton("body19").joint_names
     rest = np.array([_REST[n] for n in names], np.float64)
     t = np.arange(n_frames) / fps
@@ -63,6 +66,13 @@ def walker(
     for n, a in _SWING.items():
         local[:, names.index(n), 1] += a * np.sin(w)
     local[:, :, 2] += 0.02 * np.cos(2 * w)[:, None]
+    for group, sign in (("hip", 1.0), ("shoulder", -1.0)):
+        ang = sign * sway_rad * np.sin(w)
+        for side in ("left", "right"):
+            j = names.index(f"{side}_{group}")
+            x0, y0 = local[:, j, 0].copy(), local[:, j, 1].copy()
+            local[:, j, 0] = np.cos(ang) * x0 - np.sin(ang) * y0
+            local[:, j, 1] = np.sin(ang) * x0 + np.cos(ang) * y0
     head = heading_rad + turn_rps * t
     step = speed_mps / fps * np.stack([-np.sin(head), np.cos(head)], -1)  # facing +y rotated by heading
     pos = np.asarray(start, np.float64) + np.cumsum(step, 0) - step[0]

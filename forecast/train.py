@@ -263,7 +263,7 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
     t_val = 0.0
     model.train()
     for step in range(config.steps):
-        use_real = scenes is not None and len(scenes) and rng.random() < 0.5
+        use_real = scenes is not None and len(scenes) and rng.random() < config.p_real
         if use_real:
             idx = rng.integers(0, len(scenes), config.batch)
             sc, pm = scenes.x[idx], scenes.person_mask[idx]

@@ -33,17 +33,23 @@ def test_ndms_pair_direction_and_magnitude():
     assert M.ndms_pair(x, back) < 0.2  # opposite directions
 
 
-def _scorer(kappa=8):
+# Turning hips and shoulders (walker's sway_rad): with a rigid torso the seed's root-centred words would hold
+# still joints, which the reference's clamp scores 1/2 against still and below 1 against themselves.
+SWAY = 0.15
+
+
+def _scorer(kappa=8, word_form="root_centred"):
     db = [
-        walker(200, phase=p, speed_mps=s, heading_rad=h)
+        walker(200, phase=p, speed_mps=s, heading_rad=h, sway_rad=SWAY)
         for p, s, h in [(0, 1.2, 0), (1.0, 1.0, 2.0), (2.0, 1.4, -1)]
     ]
-    return M.NDMSScorer(db, NAMES, kappa)
+    return M.NDMSScorer(db, NAMES, kappa, word_form=word_form)
 
 
-def test_ndms_real_far_above_zero_velocity_and_fool():
-    scorer = _scorer()
-    seq = walker(120, phase=0.5, speed_mps=1.1, heading_rad=0.7)
+@pytest.mark.parametrize("word_form", ["root_centred", "word_first_frame"])
+def test_ndms_real_far_above_zero_velocity_and_fool(word_form):
+    scorer = _scorer(word_form=word_form)
+    seq = walker(120, phase=0.5, speed_mps=1.1, heading_rad=0.7, sway_rad=SWAY)
     obs, fut = seq[:50], seq[50:]
     real = M.ndms(scorer, obs, fut[None])
     zero = M.ndms(scorer, obs, np.repeat(obs[-1:], 70, 0)[None])
@@ -105,7 +111,8 @@ def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
     from forecast.models import ConstantVelocity, ZeroVelocity
 
     clips = [
-        D.Clip(f"w{i}", walker(150, phase=i, speed_mps=1.0 + 0.1 * i, heading_rad=i), 25.0) for i in range(4)
+        D.Clip(f"w{i}", walker(150, phase=i, speed_mps=1.0 + 0.1 * i, heading_rad=i, sway_rad=SWAY), 25.0)
+        for i in range(4)
     ]
     models = {"zero_velocity": ZeroVelocity(), "constant_velocity": ConstantVelocity(), "real": E.Real()}
     res = E.evaluate_single(models, clips, n_obs=25, n_pred=50, n_samples=2, stride=25, max_windows=8)

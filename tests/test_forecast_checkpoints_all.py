@@ -1,0 +1,48 @@
+"""The checkpoints trained on every one-person CMU clip (``--data cmu-all``) and on the real two-person takes
+(``--data two-person``): small, loadable with weights only, never trained or selected on a test clip (the
+8-action benchmark's test files, the held-out salsa takes), picked on validation NDMS."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from forecast import train as T
+from forecast.predict import forecast_world
+from forecast.toy import walker
+
+ROOT = Path(T.__file__).parent / "checkpoints"
+SHIPPED = {
+    "gru_4s_cmuall.pt": "gru",
+    "intention_cmuall.pt": "intention",
+    "social_diffusion_salsa.pt": "social_diffusion",
+}
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_checkpoint_small_clean_split_and_selected_on_validation(name):
+    ck = ROOT / name
+    if not ck.exists():
+        pytest.skip(f"{name} is not shipped")
+    assert ck.stat().st_size < 2_000_000
+    blob = torch.load(ck, map_location="cpu", weights_only=True)  # plain tensors and builtins only
+    assert blob["kind"] == SHIPPED[name]
+    model, meta = T.load_checkpoint(ck, skeleton="body19")
+    extra = meta["extra"]
+    used = set(extra["train_clips"]) | set(extra["val_clips"])
+    assert used and not used & set(extra["test_clips"])
+    assert not any(n.startswith("cmu8_test_") for n in used)  # the benchmark's test files: test only
+    assert extra["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
+    if SHIPPED[name] == "social_diffusion":
+        assert any("+" in n for n in extra["test_clips"])  # held-out salsa takes
+        scene = np.stack([walker(32), walker(32, start=(1.2, 0), heading_rad=2.0)], 1)[None]
+        y = forecast_world(model, scene, None, 50, 1)
+    else:
+        assert any(
+            n.startswith("cmu8_train_") for n in extra["train_clips"]
+        )  # trained on all one-person data
+        y = forecast_world(model, walker(50)[None, :, None], None, 50, 2)
+    assert np.isfinite(y).all()
