@@ -81,7 +81,7 @@ def _evaluate(folder: str, np) -> dict:
     """Metrics on 60 s windows of the track parts against gt.npz (both read window by window); ``windows``
     has one row per window (people present per frame, tracks seen, tracks born, identity switches, IDF1,
     MPJPE): where a longer session's metrics differ, it shows when, and with how many people in view."""
-    from capture.fileio import load_npz
+    from core.fileio import load_npz
     from triangulate import evaluate as ev
     from triangulate.trackfile import iter_parts
 

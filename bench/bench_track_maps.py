@@ -40,8 +40,8 @@ def main() -> None:
     os.environ["ROOMCAP_SHARED"] = a.shared
     from calibrate.camera import CameraRig
     from calibrate.formats import import_rig
-    from capture.fileio import save_toml
     from capture.session import SessionLayout
+    from core.fileio import save_toml
     from keypoints.pipeline import PipelineConfig
     from keypoints.video import run_videos
     from track.particle import ParticleConfig

@@ -30,8 +30,8 @@ from _pose2sim_trc import TRC_TO_BODY19, read_trc, trc_to_world  # noqa: E402
 
 from calibrate.camera import CameraRig  # noqa: E402
 from calibrate.formats import import_rig  # noqa: E402
-from capture.fileio import save_toml  # noqa: E402
 from capture.session import SessionLayout  # noqa: E402
+from core.fileio import save_toml  # noqa: E402
 from keypoints.openpose_json import read_openpose_folder  # noqa: E402
 from keypoints.skeletons import CANONICAL, convert  # noqa: E402
 from track.trackfile import TrackFile  # noqa: E402

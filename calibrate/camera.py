@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from capture.fileio import FormatError, check_schema, load_toml, save_toml, schema_tag
 from core.config import check_keys
-from core.errors import UnknownNameError
+from core.errors import FormatError, UnknownNameError
+from core.fileio import check_schema, load_toml, save_toml, schema_tag
 
 __all__ = [
     "CONVENTION",

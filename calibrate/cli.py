@@ -32,9 +32,8 @@ from calibrate.formats import (
     import_rig,
 )
 from calibrate.intrinsics import MODELS
-from capture.fileio import FormatError
 from core.cli import Parser, RawDescriptionHelpFormatter, guarded, positive_float
-from core.errors import InputError
+from core.errors import FormatError, InputError
 from core.progress import Bars
 
 log = logging.getLogger("calibrate")

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.boards import DICTIONARIES, Board, CalibrationError
-from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_npz, schema_tag
+from core.errors import FormatError
+from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
 from core.progress import Progress
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,7 @@ from calibrate.camera import CameraRig
 from calibrate.detect import CameraDetections
 from calibrate.extrinsics import ExtrinsicsResult
 from calibrate.intrinsics import IntrinsicsResult, coverage_grid
-from capture.fileio import atomic_path, save_toml, schema_tag
+from core.fileio import atomic_path, save_toml, schema_tag
 
 log = logging.getLogger(__name__)
 

@@ -19,13 +19,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from capture.config import ConfigError, load_config, shared_sources
-from capture.fileio import FormatError
 from capture.live import BuildStages, LiveOutputs, LiveRunner
 from capture.offline_sync import sync_audio, sync_session
 from capture.recorder import Recorder, RecorderError, redact_text, repair
 from capture.session import SessionLayout
 from capture.sources import SourceError
 from core.cli import Parser, guarded, positive_float
+from core.errors import FormatError
 
 log = logging.getLogger("capture")
 

@@ -57,9 +57,9 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import FormatError, check_schema
 from core.config import bounded, check_keys, check_range, coerce, config_from_dict
-from core.errors import UnknownNameError
+from core.errors import FormatError, UnknownNameError
+from core.fileio import check_schema
 from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
 
 CAMS_SCHEMA = "cams"

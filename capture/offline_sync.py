@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, load_toml, save_toml
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from core.errors import FormatError
+from core.fileio import load_toml, save_toml
 from keypoints.detections import Detections
 
 log = logging.getLogger(__name__)

@@ -46,7 +46,6 @@ import numpy as np
 
 from capture.config import CaptureConfig, redact_url
 from capture.factory import make_source
-from capture.fileio import atomic_write_text, load_toml, save_toml
 from capture.grabber import END, Gap, Grabber
 from capture.join import JoinResult, count_video_packets, join_camera, remove_segments
 from capture.oak import depthai_version
@@ -61,6 +60,7 @@ from capture.sources import (
 )
 from capture.sync import timing_report
 from core.errors import RoomcapError
+from core.fileio import atomic_write_text, load_toml, save_toml
 from core.redact import redact
 
 log = logging.getLogger(__name__)

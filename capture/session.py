@@ -24,7 +24,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from capture.fileio import FormatError, check_schema, load_toml
+from core.errors import FormatError
+from core.fileio import check_schema, load_toml
 
 SESSION_SCHEMA = "session"
 SESSION_VERSION = 1

@@ -32,9 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from capture.config import CameraConfig
-from capture.fileio import FormatError
 from capture.session import VIDEO_SUFFIXES
-from core.errors import RoomcapError
+from core.errors import FormatError, RoomcapError
 
 log = logging.getLogger(__name__)
 

@@ -21,9 +21,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from core.config import config_from_dict as config_from_dict  # re-exported: its old home
-from core.errors import FormatError as FormatError  # re-exported: its old home
-from core.errors import SchemaError as SchemaError
+from core.errors import FormatError, SchemaError
 
 T = TypeVar("T")
 

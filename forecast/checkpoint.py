@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from scipy.cluster.vq import kmeans2
 
-from capture.fileio import FormatError, atomic_path
-from core.errors import InputError
+from core.errors import FormatError, InputError
+from core.fileio import atomic_path
 from forecast import data as fdata
 from forecast.config import BASELINES, config_from_dict
 from forecast.models import (

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, load_npz
-from core.errors import InputError
+from core.errors import FormatError, InputError
+from core.fileio import load_npz
 from keypoints.skeletons import get_skeleton
 from synthetic import bvh
 from track.trackfile import TrackFile  # the contract with the tracker

@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture.fileio import atomic_write_text
 from core.errors import InputError
+from core.fileio import atomic_write_text
 from core.progress import Progress
 from forecast import data as fdata
 from forecast import metrics as M

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture.fileio import atomic_write_text
 from core.errors import InputError
+from core.fileio import atomic_write_text
 from forecast import data as fdata
 from forecast import evaluate as E
 from forecast import metrics as M

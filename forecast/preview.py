@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import save_npz, schema_tag
+from core.fileio import save_npz, schema_tag
 from forecast import data as fdata
 from track.trackfile import TrackFile
 

@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, check_schema, load_npz, npz_str, save_npz, schema_tag
+from core.errors import FormatError
+from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
 from keypoints.skeletons import get_skeleton
 
 SCHEMA = "detections"

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError
+from core.errors import FormatError
 from keypoints.detections import Detections
 from keypoints.skeletons import get_skeleton
 

@@ -30,9 +30,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import FormatError, atomic_path, check_schema, load_toml, save_toml
 from core.config import config_from_dict
-from core.errors import RoomcapError, UnknownNameError
+from core.errors import FormatError, RoomcapError, UnknownNameError
+from core.fileio import atomic_path, check_schema, load_toml, save_toml
 from core.progress import Progress
 from keypoints.skeletons import get_skeleton
 

@@ -22,8 +22,8 @@ from functools import cache
 
 import numpy as np
 
-from capture.fileio import FormatError, load_toml
-from core.errors import UnknownNameError
+from core.errors import FormatError, UnknownNameError
+from core.fileio import load_toml
 
 _COCO17 = (
     "nose",

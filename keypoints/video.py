@@ -37,9 +37,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from capture.fileio import FormatError, load_npz, save_npz
 from capture.session import VIDEO_SUFFIXES, SessionLayout
-from core.errors import RoomcapError
+from core.errors import FormatError, RoomcapError
+from core.fileio import load_npz, save_npz
 from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.pipeline import FrameResult, KeypointPipeline, PipelineConfig

@@ -28,9 +28,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from capture.fileio import FormatError, atomic_write_text
 from capture.session import SessionLayout
 from core.cli import Parser, guarded, output_folder, positive_int
+from core.errors import FormatError
+from core.fileio import atomic_write_text
 from pipeline.config import STAGES, TRACKERS, PipelineConfig, TrackConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions

@@ -19,7 +19,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import FormatError, config_from_dict, load_toml
+from core.config import config_from_dict
+from core.errors import FormatError
+from core.fileio import load_toml
 from keypoints.registry import presets
 from track.stage import ParticleTrackConfig
 from triangulate.reconstruct import TriangulateConfig as TriangulateOptions

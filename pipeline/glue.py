@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import save_npz, schema_tag
 from capture.session import SessionLayout
+from core.fileio import save_npz, schema_tag
 from forecast.preview import BASELINES, DEFAULT_CHECKPOINT, baseline_preview, preview
 from track.trackfile import TrackFile
 

@@ -30,11 +30,11 @@ from typing import Any
 
 from calibrate.camera import CameraRig
 from calibrate.formats import import_calibration
-from capture.fileio import atomic_write_bytes, atomic_write_text, load_npz, load_toml, save_toml
 from capture.offline_sync import POSE2SIM_OUTPUT
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
 from core.cli import describe_os_error
 from core.errors import RoomcapError
+from core.fileio import atomic_write_bytes, atomic_write_text, load_npz, load_toml, save_toml
 from keypoints.registry import get_model_set, resolve
 from pipeline.config import STAGES, PipelineConfig
 from pipeline.discover import SEGMENT_SUFFIXES, SessionSource

@@ -46,8 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError
-from core.errors import UnknownNameError
+from core.errors import FormatError, UnknownNameError
 from keypoints.skeletons import CANONICAL
 
 log = logging.getLogger(__name__)

@@ -18,9 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.camera import CameraRig
-from capture.fileio import schema_tag
 from capture.session import SessionLayout
-from core.fileio import atomic_path
+from core.fileio import atomic_path, schema_tag
 from synthetic import render as R
 from synthetic.world import GT_SCHEMA, GT_VERSION, Scene, write_session_toml
 

@@ -34,17 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.camera import CameraRig
-from capture.fileio import (
-    FormatError,
-    check_schema,
-    config_from_dict,
-    load_npz,
-    npz_str,
-    save_npz,
-    save_toml,
-    schema_tag,
-)
 from capture.session import SessionLayout
+from core.config import config_from_dict
+from core.errors import FormatError
+from core.fileio import check_schema, load_npz, npz_str, save_npz, save_toml, schema_tag
 from keypoints.skeletons import CANONICAL
 from synthetic import bvh
 from synthetic.rigs import Room

@@ -15,7 +15,7 @@ from calibrate.boards import Board, CalibrationError, load_board, save_board
 from calibrate.calibration import CalibrationConfig, calibrate_recording
 from calibrate.detect import detect_all, detect_frame, diagnose_board, discover_recording
 from calibrate.synthetic_boards import BoardRenderer, board_trajectory, ring_rig, write_recording
-from capture.fileio import FormatError
+from core.errors import FormatError
 
 CHARUCO = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
 

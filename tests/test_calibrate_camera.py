@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from calibrate.camera import CONVENTION, Camera, CameraRig, rotation_from_rvec
-from capture.fileio import FormatError, SchemaError
+from core.errors import FormatError, SchemaError
 
 DIST_SIZES = [0, 4, 5, 8, 12, 14]
 

@@ -16,7 +16,7 @@ from calibrate.formats import (
     import_rig,
     pad_dist,
 )
-from capture.fileio import FormatError
+from core.errors import FormatError
 
 
 def random_rig(rng, n: int = 4, dists=(5, 8, 4, 14, 0, 12), fisheye: bool = False) -> CameraRig:

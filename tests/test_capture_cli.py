@@ -7,8 +7,8 @@ from conftest import need_shared
 from test_capture_sources import write_video
 
 from capture.cli import main
-from capture.fileio import load_toml
 from capture.sources import read_frames_csv
+from core.fileio import load_toml
 
 
 def test_minimal_cams_yaml_records_a_session(tmp_path, capsys):

@@ -21,8 +21,8 @@ from conftest import need_shared
 
 from calibrate.cli import main as calibrate_run
 from capture.cli import main as capture_run
-from capture.fileio import load_toml
 from capture.sources import read_frames_csv
+from core.fileio import load_toml
 from track.trackfile import TrackFile
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")

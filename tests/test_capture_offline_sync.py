@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from capture.fileio import load_toml
 from capture.offline_sync import (
     estimate_lag,
     estimate_offsets,
@@ -14,6 +13,7 @@ from capture.offline_sync import (
     read_openpose_folder,
     sync_session,
 )
+from core.fileio import load_toml
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
 

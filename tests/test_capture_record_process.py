@@ -18,11 +18,11 @@ from test_capture_sources import write_video
 from capture import recorder as recorder_mod
 from capture.cli import main as capture_run
 from capture.config import parse_config
-from capture.fileio import load_toml
 from capture.join import count_video_packets, join_camera
 from capture.recorder import Recorder
 from capture.session import SessionLayout
 from capture.sources import read_code, read_frames_csv
+from core.fileio import load_toml
 from keypoints.video import _END, FrameReader
 
 

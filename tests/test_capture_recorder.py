@@ -15,10 +15,10 @@ import pytest
 from test_capture_sources import write_video
 
 from capture.config import parse_config
-from capture.fileio import load_toml
 from capture.recorder import Recorder, RecorderError, repair_session
 from capture.session import SessionLayout
 from capture.sources import open_recording, read_code, read_frames_csv
+from core.fileio import load_toml
 
 REPO = Path(__file__).resolve().parents[1]
 

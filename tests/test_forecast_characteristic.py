@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from capture.fileio import FormatError
+from core.errors import FormatError
 from forecast import characteristic as C
 from forecast.models.characteristic import refine_pose, target_heatmap
 from keypoints.skeletons import get_skeleton

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.fileio import FormatError, SchemaError, save_npz
+from core.errors import FormatError, SchemaError
+from core.fileio import save_npz
 from forecast import data as D
 from forecast.toy import walker
 from keypoints.skeletons import get_skeleton

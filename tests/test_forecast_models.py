@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from capture.fileio import FormatError
+from core.errors import FormatError
 from forecast import data as D
 from forecast import train as T
 from forecast.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
@@ -426,7 +426,7 @@ def test_preview_and_cli_on_track_files(tmp_path):
 def test_shipped_configs_and_checkpoint_load():
     from pathlib import Path
 
-    from capture.fileio import load_toml
+    from core.fileio import load_toml
 
     root = Path(T.__file__).parent
     for kind in T.CONFIGS:

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from capture.fileio import FormatError, save_npz
+from core.errors import FormatError
+from core.fileio import save_npz
 from forecast import data as D
 from forecast import evaluate as E
 from forecast import metrics as M

@@ -51,9 +51,9 @@ def test_interrupt_exits_130_and_bugs_keep_their_traceback(capsys):
 
 def test_project_errors_share_one_base_and_keep_their_builtin_parents():
     from calibrate.boards import CalibrationError
-    from capture.fileio import FormatError
     from capture.recorder import RecorderError
     from capture.sources import SourceError
+    from core.errors import FormatError
     from keypoints.registry import ModelError
     from keypoints.video import VideoDecodeError
     from pipeline.discover import SessionError

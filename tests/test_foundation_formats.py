@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.fileio import FormatError, SchemaError, atomic_write_text, load_npz, save_npz
+from core.errors import FormatError, SchemaError
+from core.fileio import atomic_write_text, load_npz, save_npz
 from keypoints.detections import Detections
 from keypoints.skeletons import CANONICAL, SKELETONS, convert, get_skeleton
 from track.trackfile import OBSERVED, PREDICTED, TrackFile, export_json, export_trc, load_dense
@@ -135,7 +136,7 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path):
     class Boom(Exception):
         pass
 
-    from capture.fileio import atomic_path
+    from core.fileio import atomic_path
 
     with pytest.raises(Boom):
         with atomic_path(p) as tmp:

@@ -7,7 +7,7 @@ import logging
 import pytest
 
 from capture.cli import main as capture_main
-from capture.fileio import load_toml
+from core.fileio import load_toml
 from core.redact import redact, redact_log_records, redact_url
 
 SECRET_URL = "rtsp://host/stream?user=admin&password=hunter2&channel=1"

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from capture.fileio import FormatError
+from core.errors import FormatError
 from keypoints import registry
 from keypoints.registry import ModelError, ModelSpec
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from keypoints_tiny import make_dets_model, make_simcc_model
 
-from capture.fileio import FormatError
+from core.errors import FormatError
 from keypoints.detections import Detections
 from keypoints.pipeline import KeypointPipeline, PipelineConfig
 from keypoints.video import check_size, run_session, run_videos

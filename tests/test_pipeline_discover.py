@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from capture.fileio import FormatError
+from core.errors import FormatError
 from pipeline.config import PipelineConfig
 from pipeline.discover import discover
 

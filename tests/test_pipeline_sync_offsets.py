@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.fileio import FormatError, load_toml, save_toml
 from capture.session import SessionLayout
+from core.errors import FormatError
+from core.fileio import load_toml, save_toml
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session

@@ -9,8 +9,8 @@ import pytest
 
 from calibrate.camera import CameraRig
 from calibrate.checks import rig_warnings
-from capture.fileio import FormatError
 from capture.session import SessionLayout
+from core.errors import FormatError
 from keypoints.detections import Detections
 from pipeline.config import PipelineConfig
 from pipeline.discover import discover

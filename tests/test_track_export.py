@@ -113,7 +113,7 @@ def test_unknown_format_and_person():
     with pytest.raises(ExportError, match=r"unknown export format \['fbx'\].*trc,c3d,bvh,csv,json"):
         parse_formats("trc,fbx")
     tf = _trackfile(_walkers(1, 10))
-    from capture.fileio import FormatError
+    from core.errors import FormatError
 
     with pytest.raises(FormatError, match=r"no track 9; the file has tracks \[3\]"):
         marker_table(tf, 9)
@@ -216,7 +216,7 @@ def test_fit_save_load_and_stale(tmp_path, rng):
     fit.save(tmp_path / "skeleton_fit.npz")
     back = SkeletonFit.load(tmp_path / "skeleton_fit.npz", tracks_sha256=sha)
     np.testing.assert_allclose(back.positions(), fit.positions(), atol=1e-9)
-    from capture.fileio import FormatError
+    from core.errors import FormatError
 
     with pytest.raises(FormatError, match="another version of the track file"):
         SkeletonFit.load(tmp_path / "skeleton_fit.npz", tracks_sha256="0" * 64)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from conftest import need_shared
 
-from capture.fileio import save_toml
 from capture.session import SessionLayout
+from core.fileio import save_toml
 
 
 def make_pose2sim_session(trial, calib, root) -> SessionLayout:

@@ -9,8 +9,8 @@ import logging
 import numpy as np
 import pytest
 
-from capture.fileio import load_npz, load_toml, save_toml
 from capture.session import SessionLayout
+from core.fileio import load_npz, load_toml, save_toml
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session

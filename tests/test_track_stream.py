@@ -13,8 +13,8 @@ import pytest
 from track_helpers import render_kp, ring_P
 from triangulate_helpers import TEMPLATE, killed_after_commits
 
-from capture.fileio import FormatError
 from capture.session import SessionLayout
+from core.errors import FormatError
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session

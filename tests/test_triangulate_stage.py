@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from triangulate_helpers import people, project, ring_P  # noqa: F401
 
-from capture.fileio import FormatError
 from capture.session import SessionLayout
+from core.errors import FormatError
 from keypoints.detections import Detections
 from keypoints.skeletons import CANONICAL
 from synthetic.render import RenderConfig, render

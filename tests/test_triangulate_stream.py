@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from triangulate_helpers import killed_after_commits
 
-from capture.fileio import FormatError
 from capture.session import SessionLayout
+from core.errors import FormatError
 from keypoints.detections import Detections
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
@@ -238,7 +238,7 @@ def test_bad_input_streamed(session, tmp_path):
     _rewrite(root, cams[2], t_ns=d.t_ns)
     # arrays of different lengths within a file (written by another tool)
     dd = Detections.load(lay.detections(cams[3]))
-    from capture.fileio import save_npz
+    from core.fileio import save_npz
 
     save_npz(
         lay.detections(cams[3]),

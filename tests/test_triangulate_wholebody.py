@@ -132,7 +132,7 @@ def test_custom_skeleton_from_toml(tmp_path, rng):
     assert (d < 0.005).all()
     tf = TrackFile.load(track_session_greedy(lay.root, {"min_joints": 4}))
     assert tf.n_tracks == 2 and tf.parents.tolist() == [3, 0, 0, -1, 3, 4]
-    from capture.fileio import FormatError
+    from core.errors import FormatError
 
     (tmp_path / "bad.toml").write_text(MOUSE_TOML.replace('"neck", "spine_mid"]', '"neck", "hip"]'))
     with pytest.raises(FormatError, match=r"bad\.toml.*parent 'hip' of 'tail_base' is not a joint"):

@@ -45,8 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, atomic_path, atomic_write_text
-from core.errors import RoomcapError
+from core.errors import FormatError, RoomcapError
+from core.fileio import atomic_path, atomic_write_text
 from track.bvh import write_bvh
 from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span
 from track.trackfile import (

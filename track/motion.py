@@ -27,8 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from capture.fileio import atomic_path
 from core.errors import RoomcapError
+from core.fileio import atomic_path
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import kernels
 from track.normalize import hip_frame, hip_indices, normalize, rotate_vectors

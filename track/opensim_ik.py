@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import atomic_write_text
 from core.errors import RoomcapError
+from core.fileio import atomic_write_text
 from track.export import marker_table, write_trc
 from track.trackfile import TrackFile, read_trc
 

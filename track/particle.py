@@ -48,7 +48,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from capture.fileio import config_from_dict
+from core.config import config_from_dict
 from core.progress import Progress
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import kernels

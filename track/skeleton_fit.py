@@ -48,15 +48,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from capture.fileio import (
-    FormatError,
-    check_schema,
-    load_npz,
-    npz_str,
-    save_npz,
-    schema_tag,
-)
-from core.errors import RoomcapError
+from core.errors import FormatError, RoomcapError
+from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
 from track.trackfile import OBSERVED, TrackFile, _track_index
 from triangulate.chunks import PartStore, parts_dir, sha256_file
 

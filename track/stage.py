@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from calibrate.camera import CameraRig
-from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from core.config import config_from_dict
+from core.errors import FormatError
 from core.progress import Progress
 from keypoints.decoders import OPENPOSE_LIMBS
 from keypoints.detections import Detections

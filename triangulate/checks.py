@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError
+from core.errors import FormatError
 from keypoints.detections import Detections
 
 

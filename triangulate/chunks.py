@@ -37,7 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, atomic_write_text
+from core.errors import FormatError
+from core.fileio import atomic_write_text
 
 PARTS_SCHEMA = "parts/1"
 

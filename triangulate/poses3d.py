@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, check_schema, load_npz, npz_str, require_keys, save_npz, schema_tag
+from core.errors import FormatError
+from core.fileio import check_schema, load_npz, npz_str, require_keys, save_npz, schema_tag
 from triangulate.chunks import PartStore, parts_dir
 
 SCHEMA = "poses3d"

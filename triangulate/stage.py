@@ -23,10 +23,9 @@ import numpy as np
 
 from calibrate.camera import CameraRig
 from calibrate.checks import rig_warnings
-from capture.fileio import FormatError
 from capture.session import SessionLayout, require
 from core.config import config_from_dict
-from core.errors import InputError
+from core.errors import FormatError, InputError
 from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.skeletons import (
@@ -213,7 +212,7 @@ def _camera_meta(path: Path, cam: str, stream: bool) -> _CameraMeta:
             d.camera, path, d.skeleton, d.frame_index, d.t_ns, d.max_people, d.xy_px.shape[2], det=d
         )
     else:
-        from capture.fileio import check_schema, npz_str
+        from core.fileio import check_schema, npz_str
 
         r = NpzRows(path)
         need = ("schema", "camera", "skeleton", "frame_index", "t_ns", "xy_px", "score")

@@ -30,15 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import (
-    FormatError,
-    atomic_write_text,
-    check_schema,
-    load_npz,
-    npz_str,
-    save_npz,
-    schema_tag,
-)
+from core.errors import FormatError
+from core.fileio import atomic_write_text, check_schema, load_npz, npz_str, save_npz, schema_tag
 from keypoints.skeletons import CANONICAL, Skeleton
 from triangulate.chunks import PartStore, parts_dir
 

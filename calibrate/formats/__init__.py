@@ -69,8 +69,7 @@ from calibrate.formats.caliscope import read_caliscope
 from calibrate.formats.easymocap import read_easymocap, write_easymocap
 from calibrate.formats.qualisys import _rotate_image_cw as _rotate_image_cw  # the tests use it
 from calibrate.formats.qualisys import read_qualisys
-from capture.fileio import FormatError
-from core.errors import InputError
+from core.errors import FormatError, InputError
 
 __all__ = [
     "EXPORT_FORMATS",

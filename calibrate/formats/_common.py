@@ -19,9 +19,8 @@ from calibrate.camera import (
     CameraRig,
     _validated,
 )
-from capture.fileio import FormatError
 from core.config import check_keys
-from core.errors import InputError
+from core.errors import FormatError, InputError
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,8 @@ from calibrate.formats._common import (
     _size,
     pad_dist,
 )
-from capture.fileio import FormatError, save_toml
+from core.errors import FormatError
+from core.fileio import save_toml
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,8 @@ from calibrate.formats._common import (
     _nonempty,
     pad_dist,
 )
-from capture.fileio import FormatError, atomic_path
+from core.errors import FormatError
+from core.fileio import atomic_path
 
 log = logging.getLogger(__name__)
 

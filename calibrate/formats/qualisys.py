@@ -20,7 +20,7 @@ from calibrate.formats._common import (
     _check_size_names,
     _nonempty,
 )
-from capture.fileio import FormatError
+from core.errors import FormatError
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from capture.fileio import load_toml
 from capture.session import SessionLayout
+from core.fileio import load_toml
 from pipeline.report.inputs import ReportConfig, _f, _Inputs, _r
 from pipeline.report.views import _shown_path
 from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED

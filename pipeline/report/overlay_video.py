@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.fileio import FormatError, atomic_path
 from capture.session import SessionLayout
+from core.errors import FormatError
+from core.fileio import atomic_path
 from core.progress import Progress
 from pipeline.report.inputs import ReportConfig, _load
 from pipeline.report.views import _Overlay, _video_paths

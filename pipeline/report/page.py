@@ -11,8 +11,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from capture.fileio import FormatError, atomic_write_text, load_npz, load_toml
 from capture.session import SessionLayout
+from core.errors import FormatError
+from core.fileio import atomic_write_text, load_npz, load_toml
 from core.redact import redact
 from pipeline.config import STAGES
 from pipeline.report.figures import _detection_rates, _quality, _rig_data, _tracks_data
