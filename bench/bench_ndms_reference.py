@@ -21,7 +21,7 @@ import numpy as np
 from forecast import data as D
 from forecast import evaluate as E
 from forecast import metrics as M
-from forecast.clips import load_cmu, split_clips
+from forecast.clips import clip_activities, load_cmu, split_clips
 
 N_WINDOWS, N_OBS, N_FUT, KAPPA = 100, 8, 25, 8
 
@@ -30,7 +30,7 @@ def main() -> None:
     from annoy import AnnoyIndex
 
     te = split_clips(load_cmu(), 0)[2]
-    acts = D.clip_activities(te)
+    acts = clip_activities(te)
     sc = E.ndms_scorer_for(te, activities=acts)
     ws = D.make_windows(te, N_OBS, N_FUT, stride=7, persons="each")
     sel = np.sort(np.random.default_rng(0).choice(len(ws), min(N_WINDOWS, len(ws)), replace=False))

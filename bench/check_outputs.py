@@ -13,7 +13,8 @@
   TOML setting ``chunk_s``).
 
 It writes ``DIR/manifest.json``: per scenario, each output file's sha256 (the cache records under
-``.roomcap/`` and the run summaries hold times and paths, and are left out), and the wall time.
+``.roomcap/`` and the run summaries hold times and paths, and are left out; a parts index is hashed without
+its ``key``, which hashes the input files' mtimes), and the wall time.
 ``compare`` lists the files that differ, are missing or are new, and exits 1 when any does. Ends with one
 line ``BENCH {json}``.
 """
@@ -47,12 +48,23 @@ def _volatile(rel: Path) -> bool:
     return ".roomcap" in rel.parts or rel.name.startswith("reprocess_summary") or rel.suffix == ".log"
 
 
+def _content(p: Path) -> bytes:
+    """A file's bytes; a parts index without its ``key`` (a hash of the input files' sizes and mtimes, which
+    differ between two copies of a session, not a result)."""
+    data = p.read_bytes()
+    if p.name == "index.json" and p.parent.name.endswith(".parts"):
+        index = json.loads(data)
+        index.pop("key", None)
+        data = json.dumps(index, sort_keys=True).encode()
+    return data
+
+
 def digest(root: Path) -> dict[str, str]:
     out = {}
     for p in sorted(root.rglob("*")):
         rel = p.relative_to(root)
         if p.is_file() and not _volatile(rel):
-            out[rel.as_posix()] = hashlib.sha256(p.read_bytes()).hexdigest()
+            out[rel.as_posix()] = hashlib.sha256(_content(p)).hexdigest()
     return out
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from forecast import cmu_more
 from forecast import data as fdata
 from forecast.cmu_more import CMU_MORE_DIR
 from forecast.predict import LHIP, RHIP, scene_features, scene_frame
@@ -56,12 +57,39 @@ class SplitData:
 
 def more_activities() -> dict[str, str]:
     """Activities of ``cmu-more``'s clips from its manifest ({} when the folder is absent)."""
-    from forecast import cmu_more
-
     try:
         return cmu_more.activities()
     except FileNotFoundError:
         return {}
+
+
+def clip_activities(
+    clips: list[fdata.Clip], index: dict[tuple[int, int], str] | None = None
+) -> dict[str, str]:
+    """Clip name -> activity for the NDMS database: CMU clips by their description in ``index.csv``
+    (``activity_of_description``), else by ``cmu-more``'s manifest, the 8-action benchmark's clips
+    ('cmu8_test_walking_1') by their action ('cmu8 walking'); clips without an entry (track files, ...) are
+    ``data.UNLABELLED``."""
+    idx = fdata.cmu_index() if index is None else index
+    out = {}
+    extra: dict[str, str] | None = None
+    for c in clips:
+        st = fdata.cmu_subject_trial(c.name)
+        if st is not None and st in idx:
+            out[c.name] = fdata.activity_of_description(idx[st])
+            continue
+        if extra is None:  # cmu-more's manifest, read once
+            extra = more_activities()
+        out[c.name] = extra.get(c.name) or _benchmark_activity(c.name) or fdata.UNLABELLED
+    return out
+
+
+def _benchmark_activity(name: str) -> str | None:
+    """'cmu8 walking' for a clip of the 8-action benchmark named 'cmu8_<split>_walking_<n>', else None."""
+    parts = name.split("_", 2)
+    if len(parts) == 3 and parts[0] == "cmu8" and parts[1] in ("train", "test"):
+        return "cmu8 " + parts[2].rsplit("_", 1)[0]
+    return None
 
 
 BENCHMARK_PREFIX = "cmu8"  # clip names of the 8-action benchmark: cmu8_train_walking_1, cmu8_test_walking_1
@@ -75,8 +103,6 @@ def load_one_person_all(seed: int = 0, fps: float = fdata.TARGET_FPS) -> SplitDa
     Activities: CMU ``index.csv`` for the first, ``cmu-more``'s manifest for the second, and
     "cmu8 <action>" for the benchmark (its NDMS database is the benchmark's own test sequences of the action,
     as the seed scores it, sec. 6.3.2)."""
-    from forecast import cmu_more
-
     old = load_cmu(fps)
     more = cmu_more.load_single(fps)
     tr, va, te = split_clips(old, seed)
@@ -89,22 +115,20 @@ def load_one_person_all(seed: int = 0, fps: float = fdata.TARGET_FPS) -> SplitDa
                 c = cmu_more.benchmark_clip(f, fps)
                 name = f"{BENCHMARK_PREFIX}_{split}_{c.name}"
                 (tr if split == "train" else te).append(fdata.Clip(name, c.xyz_m, c.fps, c.skeleton))
-    return SplitData(tr, va, te, fdata.clip_activities(tr + va + te))
+    return SplitData(tr, va, te, clip_activities(tr + va + te))
 
 
 def load_two_person_real(seed: int = 0, fps: float = fdata.TARGET_FPS) -> SplitData:
     """The real two-person CMU takes: the 14 salsa takes of ``cmu-more`` split by take (``split_clips``: with
     seed 0, 9 train / 2 validation / 3 test) and 18_01 + 19_01 (2.5 s, too short for a 10-s evaluation)
     in train."""
-    from forecast import cmu_more
-
     salsa = cmu_more.load_salsa(fps)
     tr, va, te = split_clips(salsa, seed)
     try:
         tr = tr + [fdata.cmu_two_person_clip(fps=fps)]
     except FileNotFoundError:
         pass
-    return SplitData(tr, va, te, fdata.clip_activities(tr + va + te))
+    return SplitData(tr, va, te, clip_activities(tr + va + te))
 
 
 def load_sources(sources: list[str], fps: float = fdata.TARGET_FPS) -> list[fdata.Clip]:

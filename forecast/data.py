@@ -427,35 +427,6 @@ def cmu_subject_trial(name: str) -> tuple[int, int] | None:
         return None
 
 
-def clip_activities(clips: list[Clip], index: dict[tuple[int, int], str] | None = None) -> dict[str, str]:
-    """Clip name -> activity for the NDMS database: CMU clips by their description in ``index.csv``
-    (``activity_of_description``), else by ``cmu-more``'s manifest, the 8-action benchmark's clips
-    ('cmu8_test_walking_1') by their action ('cmu8 walking'); clips without an entry (track files, ...) are
-    ``UNLABELLED``."""
-    idx = cmu_index() if index is None else index
-    out = {}
-    extra: dict[str, str] | None = None
-    for c in clips:
-        st = cmu_subject_trial(c.name)
-        if st is not None and st in idx:
-            out[c.name] = activity_of_description(idx[st])
-            continue
-        if extra is None:  # cmu-more's manifest and the 8-action benchmark's names (forecast.clips)
-            from forecast.clips import more_activities
-
-            extra = more_activities()
-        out[c.name] = extra.get(c.name) or _benchmark_activity(c.name) or UNLABELLED
-    return out
-
-
-def _benchmark_activity(name: str) -> str | None:
-    """'cmu8 walking' for a clip of the 8-action benchmark named 'cmu8_<split>_walking_<n>', else None."""
-    parts = name.split("_", 2)
-    if len(parts) == 3 and parts[0] == "cmu8" and parts[1] in ("train", "test"):
-        return "cmu8 " + parts[2].rsplit("_", 1)[0]
-    return None
-
-
 # ------------------------------------------------------------------------- CMU two-person take 18_01 + 19_01
 
 TWO_PERSON_DIR = "cmu-two-person-18-19"

@@ -5,7 +5,7 @@
   MPJPE(t) in world coordinates; NDMS(t) (eq. 6.9-6.12, every sample scored, then averaged, as Z in
   eq. 6.9; motion words of root-centred poses with the heading kept, ``metrics.motion_words``) against a
   database D of the held-out clips *of the query's activity* (sec. 6.3.2; CMU clips grouped by their
-  ``index.csv`` description, ``data.clip_activities``) that contains the query's own clip, so the real
+  ``index.csv`` description, ``clips.clip_activities``) that contains the query's own clip, so the real
   future scores 1 (``ndms``, the seed's protocol); the stricter ``ndms_loo`` drops the query's own clip from
   D (windows whose activity has no other held-out clip are left out of it and counted in
   ``n_windows_loo``); ``ndms_word_first_frame`` is ``ndms`` with words normalised at their first frame
@@ -40,7 +40,7 @@ from core.fileio import atomic_write_text
 from core.progress import Progress
 from forecast import data as fdata
 from forecast import metrics as M
-from forecast.clips import composed_batch
+from forecast.clips import clip_activities, composed_batch
 from forecast.predict import diffusion_rollout, forecast_world
 from keypoints.skeletons import get_skeleton
 
@@ -147,7 +147,7 @@ def evaluate_single(
 ) -> dict:
     """``samples_dir``: write ``samples_<model>.npz`` there per model (``write_samples``).
     ``ndms_database``: clips for the NDMS database (default: the held-out clips); ``activities``: clip
-    name -> activity (default ``data.clip_activities``: CMU by ``index.csv``, others one group). The query's
+    name -> activity (default ``clips.clip_activities``: CMU by ``index.csv``, others one group). The query's
     own clip is in D for ``ndms`` and left out for ``ndms_loo``. ``mm_threshold_m``: DLow's multi-modal
     ground-truth threshold on the last observed root-centred pose (0.5 as in DLow).
 
@@ -159,7 +159,7 @@ def evaluate_single(
     if len(ws) == 0:
         raise InputError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
     db_clips = ndms_database or test_clips
-    acts = fdata.clip_activities(list(test_clips) + list(db_clips)) if activities is None else activities
+    acts = clip_activities(list(test_clips) + list(db_clips)) if activities is None else activities
     rng = np.random.default_rng(seed)
     sel = np.sort(rng.choice(len(ws), min(max_windows, len(ws)), replace=False))
     x, mask = ws.x[sel, :, 0], ws.mask[sel, :, 0]
@@ -359,7 +359,7 @@ def evaluate_social(
     single = [c for c in test_clips if c.xyz_m.shape[1] == 1]
     multi = [c for c in test_clips if c.xyz_m.shape[1] >= 2] + list(real_scenes or [])
     db_clips = list(ndms_database or single or test_clips) + multi  # the real scenes' own motion too
-    acts = fdata.clip_activities(list(test_clips) + db_clips + multi) if activities is None else activities
+    acts = clip_activities(list(test_clips) + db_clips + multi) if activities is None else activities
     scorer = ndms_scorer_for(db_clips, activities=acts)
     names = get_skeleton(test_clips[0].skeleton).joint_names
     sscp = M.SSCP(lambda X: M.default_social_state(X, names), M.N_DEFAULT_STATES)

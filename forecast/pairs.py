@@ -25,6 +25,7 @@ import torch
 from core.errors import InputError
 from forecast import data as fdata
 from forecast import metrics as M
+from forecast.clips import clip_activities
 from forecast.evaluate import Real, ndms_scorer_for
 from forecast.predict import forecast_world
 from keypoints.skeletons import get_skeleton
@@ -78,7 +79,7 @@ def evaluate_pairs(
     ws = fdata.make_windows(takes, n_obs, n_pred, stride, persons="all", min_persons=2, max_persons=2)
     if len(ws) == 0:
         raise InputError(f"no two-person windows of {n_obs + n_pred} frames in {len(takes)} takes")
-    acts = fdata.clip_activities(takes) if activities is None else activities
+    acts = clip_activities(takes) if activities is None else activities
     names = get_skeleton(takes[0].skeleton).joint_names
     lh, rh = fdata.hip_indices(names)
     scorer = ndms_scorer_for(takes, activities=acts)

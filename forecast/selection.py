@@ -11,6 +11,7 @@ import torch
 from core.errors import InputError
 from forecast import data as fdata
 from forecast import evaluate as E
+from forecast.clips import clip_activities
 from forecast.predict import forecast_world
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,7 @@ class Validator:
             )
         sel = np.sort(np.random.default_rng(seed).choice(len(ws), min(max_windows, len(ws)), replace=False))
         self.x = ws.x[sel, :, 0]
-        acts = fdata.clip_activities(clips)
+        acts = clip_activities(clips)
         self.activities = [acts[clips[c].name] for c in ws.clip[sel]]
         self.groups = [E.clip_group(clips[c].name) for c in ws.clip[sel]]
         queried = set(self.activities)  # D holds the activities queried, as in the evaluation

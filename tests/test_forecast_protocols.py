@@ -14,6 +14,7 @@ from forecast import data as D
 from forecast import evaluate as E
 from forecast import metrics as M
 from forecast import train as T
+from forecast.clips import clip_activities
 from forecast.toy import walker
 from keypoints.skeletons import get_skeleton
 
@@ -124,7 +125,7 @@ def test_cmu_activities_from_the_index_descriptions():
         (18, 1): "walk, shake hands",
     }
     clips = [D.Clip(n, walker(10), 25.0) for n in ("006_08", "scaled_131_02", "18_01", "tracks_a")]
-    assert D.clip_activities(clips, index) == {
+    assert clip_activities(clips, index) == {
         "006_08": "basketball",
         "scaled_131_02": "walk",
         "18_01": "walk",
