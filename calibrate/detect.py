@@ -283,10 +283,6 @@ class CameraDetections:
         )
 
 
-class _ResolutionChanged(Exception):
-    pass
-
-
 def _frames(src: Source, stride: int):
     """Yield (frame_index, image) for every stride-th frame; raise CalibrationError if unreadable."""
     import cv2

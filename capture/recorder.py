@@ -39,7 +39,6 @@ import shutil
 import signal
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -275,17 +274,6 @@ def _versions(cfg: CaptureConfig) -> dict[str, str]:
     if any(c.kind == "oak" for c in cfg.cameras):
         v["depthai"] = depthai_version()
     return v
-
-
-@dataclass
-class CameraResult:
-    info: SourceInfo
-    frames: int = 0
-    dropped_queue: int = 0
-    dropped_source: int = 0
-    gaps: list[Gap] = field(default_factory=list)
-    ended: str = ""
-    writer_error: str = ""
 
 
 class Recorder:

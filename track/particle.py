@@ -928,27 +928,6 @@ class TrackArrays:
     time_s: np.ndarray  # (T,) seconds spent in step() per frame
 
 
-def smooth_time(x: np.ndarray, sigma: float) -> np.ndarray:
-    """NaN-aware Gaussian smoothing along axis 0 (normalised convolution); NaN stays NaN. x: (T,...,3)."""
-    T = len(x)
-    if sigma <= 0 or T < 2:
-        return x
-    r = int(np.ceil(3 * sigma))
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    ok = np.isfinite(x).all(-1, keepdims=True)
-    v = np.where(ok, x, 0.0).astype(np.float64)
-    w = ok.astype(np.float64)
-    num = np.zeros_like(v)
-    den = np.zeros_like(w)
-    for i, kv in enumerate(k):  # loop over the kernel taps only
-        s = i - r
-        lo, hi = max(0, -s), min(T, T - s)
-        num[lo:hi] += kv * v[lo + s : hi + s]
-        den[lo:hi] += kv * w[lo + s : hi + s]
-    out = num / np.maximum(den, 1e-12)
-    return np.where(ok, out, np.nan).astype(x.dtype)
-
-
 def check_times(frames: np.ndarray, t_ns: np.ndarray | None) -> None:
     """Timestamps ``t_ns`` (T,) must increase (all zeros = none: times from the frame numbers); the error
     names the first frame whose time does not follow the previous frame's."""
