@@ -18,7 +18,7 @@ STAMP := $(VENV)/.installed
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install -q -c constraints.txt -e '.[dev,cluster,bench,c3d,opensim]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[dev,cluster,bench,c3d,opensim,view,stream,rerun]'
 	touch $(STAMP)
 
 install: $(STAMP)

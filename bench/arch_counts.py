@@ -19,7 +19,15 @@ Counts, over the project packages (tests and bench left out):
   depthai, bpy or opensim inside functions, the allowed lazy loads);
 * ``import_cycles``: strongly connected components (size > 1) of the module import graph, function-level
   imports included (grimp), and ``imports_against_order``: import edges from a lower layer to a higher one;
-* ``long_positional``: public functions with 8 or more parameters that can be passed positionally.
+* ``long_positional``: public functions with 8 or more parameters that can be passed positionally;
+* ``private_imports``: ``from <package> import _name`` where the package is another top-level project
+  package than the importing module's (a private name used across a package boundary);
+* ``long_functions``: functions (methods included) over 80 lines, and ``largest_module``: the longest module
+  in lines;
+* ``option_reads``: per stage option name (``chunk_s``, ``workers``, ``executor``, ``tracker``, ``preset``),
+  the places that read it from a mapping (``x.get("name"...)`` or ``x["name"]``);
+* ``doctested``: public functions and methods of ``core/``, ``calibrate/camera.py``, ``triangulate/`` and
+  ``track/`` whose docstring holds a ``>>>`` example.
 """
 
 from __future__ import annotations
@@ -88,6 +96,30 @@ def _is_keys(node) -> bool:
     return isinstance(node, ast.Call) and _name(node.func) == "keys"
 
 
+OPTION_NAMES = ("chunk_s", "workers", "executor", "tracker", "preset")
+
+
+def _option_key(node) -> str | None:
+    """The string key of ``x.get("key", ...)`` or ``x["key"]``, else None."""
+    if (
+        isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and node.func.attr == "get"
+        and node.args
+        and isinstance(node.args[0], ast.Constant)
+        and isinstance(node.args[0].value, str)
+    ):
+        return node.args[0].value
+    if (
+        isinstance(node, ast.Subscript)
+        and isinstance(node.ctx, ast.Load)
+        and isinstance(node.slice, ast.Constant)
+        and isinstance(node.slice.value, str)
+    ):
+        return node.slice.value
+    return None
+
+
 def count(root: Path) -> dict:
     res: dict = {
         "validators": [],
@@ -99,13 +131,22 @@ def count(root: Path) -> dict:
         "function_imports": 0,
         "lazy_heavy": 0,
         "long_positional": [],
+        "private_imports": [],
+        "long_functions": [],
+        "doctested": 0,
     }
+    option_reads: dict[str, list[str]] = {k: [] for k in OPTION_NAMES}
+    largest = ("", 0)
     classes: dict[str, list[str]] = {}
     texts = {}
     for mod, f in modules(root):
         src = f.read_text()
         texts[mod] = src
         tree = ast.parse(src)
+        n_lines = len(src.splitlines())
+        if n_lines > largest[1]:
+            largest = (mod, n_lines)
+        doctest_scope = mod.split(".")[0] in ("core", "triangulate", "track") or mod == "calibrate.camera"
         parents = {}
         for node in ast.walk(tree):
             for ch in ast.iter_child_nodes(node):
@@ -170,6 +211,21 @@ def count(root: Path) -> dict:
                 pos = [a.arg for a in node.args.posonlyargs + node.args.args if a.arg not in ("self", "cls")]
                 if len(pos) >= 8:
                     res["long_positional"].append(f"{mod}.{node.name}({len(pos)})")
+                if doctest_scope and ">>>" in (ast.get_docstring(node) or ""):
+                    res["doctested"] += 1
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno:
+                length = node.end_lineno - node.lineno + 1
+                if length > 80:
+                    res["long_functions"].append(f"{mod}.{node.name} ({length})")
+            if isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                other = node.module.split(".")[0]
+                if other in PACKAGES and other != mod.split(".")[0]:
+                    for a in node.names:
+                        if a.name.startswith("_") and not a.name.startswith("__"):
+                            res["private_imports"].append(f"{mod} <- {node.module}.{a.name}")
+            key = _option_key(node)
+            if key in option_reads:
+                option_reads[key].append(f"{mod}:{node.lineno}")
 
     def exc_root(name, seen=()):
         """'roomcap', 'builtin' or None (not an exception)."""
@@ -186,6 +242,10 @@ def count(root: Path) -> dict:
                 return "roomcap"
             out = out or r
         return out
+
+    res["largest_module"] = f"{largest[0]} ({largest[1]})"
+    res["option_reads"] = {k: len(v) for k, v in option_reads.items()}
+    res["option_read_places"] = [f"{k}: {p}" for k, v in option_reads.items() for p in v]
 
     excs = {c: exc_root(c) for c in classes if c != "RoomcapError"}
     excs = {c: r for c, r in excs.items() if r}
@@ -251,7 +311,9 @@ def main() -> None:
     root = Path(sys.argv[1] if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]).resolve()
     r = count(root)
     summary = {
-        k: (len(v) if isinstance(v, list) else v) for k, v in r.items() if k not in ("progress_shapes",)
+        k: (len(v) if isinstance(v, list) else v)
+        for k, v in r.items()
+        if k not in ("progress_shapes", "option_read_places")
     }
     summary["progress_shapes"] = len(r["progress_shapes"])
     for k, v in r.items():

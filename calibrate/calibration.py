@@ -133,6 +133,13 @@ def calibrate_recording(
                 f"{where} accordingly and run again; the detections with the matching settings are cached in "
                 f"{out_dir / 'detections'}, so the next run will not detect again."
             )
+        if diag.board is None and not diag.markers_by_dictionary:  # not a setting: nothing board-like at all
+            raise CalibrationError(
+                f"No board was seen at all in the {len(sources)} camera(s) of {recording}: {diag.message}. "
+                "Check that the recording shows the board (in view, in focus, lit, its markers or squares "
+                f"at least about 20 px wide); the board settings ({board.describe()}) cannot be checked "
+                "before something of a board is seen."
+            )
         raise CalibrationError(
             f"The board ({board.describe()}) was found in no camera ({seen}). Diagnosis: {diag.message}. "
             "Check the board file (squares, dictionary, marker size) against the printed board, and that the "

@@ -59,7 +59,13 @@ _UNDISTORT_CRITERIA = (3, 100, 1e-12)  # cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRIT
 
 
 def rotation_from_rvec(rvec: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Rodrigues vector (3,) -> rotation matrix (3,3) (same as ``cv2.Rodrigues``)."""
+    """Rodrigues vector (3,) -> rotation matrix (3,3) (same as ``cv2.Rodrigues``).
+
+    >>> np.round(rotation_from_rvec([0, 0, np.pi / 2]), 6) + 0.0  # a quarter turn about z
+    array([[ 0., -1.,  0.],
+           [ 1.,  0.,  0.],
+           [ 0.,  0.,  1.]])
+    """
     r = np.asarray(rvec, dtype=np.float64).reshape(3)
     theta = float(np.linalg.norm(r))
     if theta < 1e-15:
@@ -70,7 +76,11 @@ def rotation_from_rvec(rvec: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def rvec_from_rotation(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3,3) -> Rodrigues vector (3,) (same as ``cv2.Rodrigues``)."""
+    """Rotation matrix (3,3) -> Rodrigues vector (3,) (same as ``cv2.Rodrigues``).
+
+    >>> np.round(rvec_from_rotation(rotation_from_rvec([0.1, -0.2, 0.3])), 9)
+    array([ 0.1, -0.2,  0.3])
+    """
     import cv2
 
     rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
@@ -207,7 +217,14 @@ def _validated(
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """One calibrated camera. K: (3,3); dist: (n,) OpenCV order; R: (3,3), t: (3,) cam_from_world, metres."""
+    """One calibrated camera. K: (3,3); dist: (n,) OpenCV order; R: (3,3), t: (3,) cam_from_world, metres.
+
+    >>> Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])  # doctest: +ELLIPSIS
+    Camera(name='c0', size_wh=(640, 480), model='pinhole', ..., center=[0.0, 0.0, -2.0])
+    >>> Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240]])  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.FormatError: <input>: field 'camera 'c0'.K': has shape (2, 3), expected (3, 3). ...
+    """
 
     name: str
     size_wh: tuple[int, int]
@@ -226,12 +243,22 @@ class Camera:
 
     @property
     def center(self) -> np.ndarray:
-        """Camera centre in world coordinates (3,), metres: ``-R^T t``."""
+        """Camera centre in world coordinates (3,), metres: ``-R^T t``.
+
+        >>> Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2]).center
+        array([ 0.,  0., -2.])
+        """
         return -self.R.T @ self.t
 
     @property
     def P(self) -> np.ndarray:
-        """Projection matrix (3,4) ``K [R | t]`` for undistorted pixels."""
+        """Projection matrix (3,4) ``K [R | t]`` for undistorted pixels.
+
+        >>> Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2]).P
+        array([[500.,   0., 320., 640.],
+               [  0., 500., 240., 480.],
+               [  0.,   0.,   1.,   2.]])
+        """
         return self.K @ np.hstack([self.R, self.t[:, None]])
 
     @property
@@ -251,7 +278,17 @@ class Camera:
 
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points X: (N,3) metres -> pixels (N,2) with distortion (matches cv2.projectPoints /
-        cv2.fisheye.projectPoints). NaN rows and points behind the camera give NaN."""
+        cv2.fisheye.projectPoints). NaN rows and points behind the camera give NaN.
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> cam.project(np.array([[0.0, 0.0, 0.0], [0.2, -0.1, 0.0], [0.0, 0.0, -3.0]]))
+        array([[320., 240.],
+               [370., 215.],
+               [ nan,  nan]])
+        >>> cam.project(np.zeros(3))
+        Traceback (most recent call last):
+        ValueError: Camera.project: X must be (N,3), got (3,)
+        """
         X = np.asarray(X, dtype=np.float64)
         if X.ndim != 2 or X.shape[1] != 3:
             raise ValueError(f"Camera.project: X must be (N,3), got {X.shape}")
@@ -266,7 +303,12 @@ class Camera:
         return np.stack([fx * xd + cx, fy * yd + cy], axis=-1)
 
     def distort_normalized(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Apply the lens model to normalised coordinates (x/z, y/z) of any equal shape."""
+        """Apply the lens model to normalised coordinates (x/z, y/z) of any equal shape.
+
+        >>> cam = Camera("c0", (640, 480), np.diag([500.0, 500.0, 1.0]), dist=[0.1, 0.0, 0.0, 0.0])
+        >>> cam.distort_normalized(np.array([0.0, 0.5]), np.array([0.0, 0.0]))  # k1 = 0.1: x (1 + k1 r^2)
+        (array([0.    , 0.5125]), array([0., 0.]))
+        """
         d = self.dist
         if self.model == "fisheye":
             # OpenCV fisheye (cv::fisheye::projectPoints):
@@ -301,7 +343,14 @@ class Camera:
         return xd, yd
 
     def undistort_px(self, xy_px: np.ndarray) -> np.ndarray:
-        """Distorted pixels (...,2) -> ideal-pinhole pixels (...,2) with the same K. NaN passes through."""
+        """Distorted pixels (...,2) -> ideal-pinhole pixels (...,2) with the same K. NaN passes through.
+
+        >>> K = [[500, 0, 320], [0, 500, 240], [0, 0, 1]]
+        >>> cam = Camera("c0", (640, 480), K, dist=[0.1, 0.0, 0.0, 0.0])
+        >>> np.round(cam.undistort_px(np.array([[576.25, 240.0], [np.nan, np.nan]])), 6)  # 320 + 500 * 0.5125
+        array([[570., 240.],
+               [ nan,  nan]])
+        """
         xy = np.asarray(xy_px, dtype=np.float64)
         if xy.shape[-1:] != (2,):
             raise ValueError(f"Camera.undistort_px: xy_px must be (...,2), got {xy.shape}")
@@ -349,7 +398,16 @@ class Camera:
     def from_dict(
         cls, d: Mapping[str, Any], path: str | os.PathLike[str] | None = None, where: str | None = None
     ) -> Camera:
-        """Inverse of ``to_dict``; errors name ``path`` and the field (``where`` prefixes it)."""
+        """Inverse of ``to_dict``; errors name ``path`` and the field (``where`` prefixes it).
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> Camera.from_dict(cam.to_dict()) == cam
+        True
+        >>> Camera.from_dict({"name": "c0", "size_wh": [640, 480], "K": cam.K.tolist()}, "rig.toml")
+        ... # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        core.errors.FormatError: rig.toml: field 'camera 'c0'.R': camera fields ['R', 't'] are missing. ...
+        """
         w = where or f"camera '{d.get('name', '?')}'"
         check_keys(d, CAMERA_KEYS, w, path, name_key=True)
         missing = [k for k in CAMERA_KEYS if k not in d and k not in ("dist", "model")]
@@ -374,6 +432,12 @@ class Camera:
         return cls(**v)
 
     def replace(self, **changes: Any) -> Camera:
+        """A copy with some fields changed (checked like a new camera).
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> cam.replace(name="c1", t=[0, 0, 3]).center
+        array([ 0.,  0., -3.])
+        """
         d = {k: getattr(self, k) for k in CAMERA_KEYS}
         d.update(changes)
         return Camera(**d)
@@ -413,7 +477,15 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class CameraRig:
-    """An ordered tuple of cameras with unique names (C cameras)."""
+    """An ordered tuple of cameras with unique names (C cameras).
+
+    >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+    >>> CameraRig.of([cam, cam.replace(name="c1")])
+    CameraRig(2 cameras: ['c0', 'c1'])
+    >>> CameraRig.of([cam, cam])  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.FormatError: <input>: field 'cameras.name': camera names must be unique; repeated: ['c0']. ...
+    """
 
     cameras: tuple[Camera, ...]
 
@@ -455,13 +527,28 @@ class CameraRig:
         return self.cameras[key]
 
     def index(self, name: str) -> int:
+        """Position of the camera named ``name``.
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> rig = CameraRig.of([cam, cam.replace(name="c1")])
+        >>> rig.index("c1"), rig["c1"].name
+        (1, 'c1')
+        >>> rig.index("left")
+        Traceback (most recent call last):
+        core.errors.UnknownNameError: no camera named 'left'; cameras: ['c0', 'c1']
+        """
         for i, c in enumerate(self.cameras):
             if c.name == name:
                 return i
         raise UnknownNameError(f"no camera named {name!r}; cameras: {self.names}")
 
     def subset(self, names: Sequence[str]) -> CameraRig:
-        """A rig with the named cameras, in the order given."""
+        """A rig with the named cameras, in the order given.
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> CameraRig.of([cam, cam.replace(name="c1"), cam.replace(name="c2")]).subset(["c2", "c0"]).names
+        ['c2', 'c0']
+        """
         return CameraRig(tuple(self[n] for n in names))
 
     def __eq__(self, other: object) -> bool:
@@ -475,7 +562,15 @@ class CameraRig:
     # ---- geometry
 
     def project(self, X: np.ndarray) -> np.ndarray:
-        """World points X: (N,3) -> pixels (C,N,2) with distortion; NaN where behind a camera or X is NaN."""
+        """World points X: (N,3) -> pixels (C,N,2) with distortion; NaN where behind a camera or X is NaN.
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> rig = CameraRig.of([cam, cam.replace(name="c1", t=[-0.5, 0, 2])])
+        >>> rig.project(np.array([[0.0, 0.0, 0.0]]))
+        array([[[320., 240.]],
+        <BLANKLINE>
+               [[195., 240.]]])
+        """
         X = np.asarray(X, dtype=np.float64)
         if X.ndim != 2 or X.shape[1] != 3:
             raise ValueError(f"CameraRig.project: X must be (N,3), got {X.shape}")
@@ -484,15 +579,34 @@ class CameraRig:
         return np.stack([c.project(X) for c in self.cameras])
 
     def projection_matrices(self) -> np.ndarray:
-        """(C,3,4) ``K [R|t]`` per camera, for undistorted pixels."""
+        """(C,3,4) ``K [R|t]`` per camera, for undistorted pixels.
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> CameraRig.of([cam, cam.replace(name="c1")]).projection_matrices().shape
+        (2, 3, 4)
+        """
         return np.stack([c.P for c in self.cameras]) if self.cameras else np.zeros((0, 3, 4))
 
     def centers(self) -> np.ndarray:
-        """(C,3) camera centres in world metres."""
+        """(C,3) camera centres in world metres.
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> CameraRig.of([cam, cam.replace(name="c1", t=[-0.5, 0, 2])]).centers() + 0.0
+        array([[ 0. ,  0. , -2. ],
+               [ 0.5,  0. , -2. ]])
+        """
         return np.stack([c.center for c in self.cameras]) if self.cameras else np.zeros((0, 3))
 
     def undistort_px(self, xy_px: np.ndarray) -> np.ndarray:
-        """Distorted pixels (C,...,2) -> ideal-pinhole pixels (C,...,2); NaN passes through."""
+        """Distorted pixels (C,...,2) -> ideal-pinhole pixels (C,...,2); NaN passes through.
+
+        >>> rig = CameraRig.of([Camera("c0", (640, 480), np.diag([500.0, 500.0, 1.0]), t=[0, 0, 2])])
+        >>> rig.undistort_px(np.array([[[100.0, 50.0]]]))
+        array([[[100.,  50.]]])
+        >>> rig.undistort_px(np.zeros((2, 1, 2)))
+        Traceback (most recent call last):
+        ValueError: CameraRig.undistort_px: expected (C=1,...,2), got (2, 1, 2)
+        """
         xy = np.asarray(xy_px, dtype=np.float64)
         if xy.ndim < 2 or xy.shape[0] != len(self) or xy.shape[-1] != 2:
             raise ValueError(f"CameraRig.undistort_px: expected (C={len(self)},...,2), got {xy.shape}")
@@ -504,7 +618,16 @@ class CameraRig:
         """(C,C,3,3) F with ``x_j^T F[i,j] x_i = 0`` for undistorted homogeneous pixels of the same point
         (Tanke 2024, eq. 3.15, with x = camera i, x' = camera j). The diagonal is zero.
 
-        F[i,j] = K_j^-T [t_ij]_x R_ij K_i^-1 with x_cj = R_ij x_ci + t_ij (Hartley & Zisserman eq. 9.2)."""
+        F[i,j] = K_j^-T [t_ij]_x R_ij K_i^-1 with x_cj = R_ij x_ci + t_ij (Hartley & Zisserman eq. 9.2).
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> turned = cam.replace(name="c1", R=rotation_from_rvec([0, 0.4, 0]), t=[-0.5, 0, 2])
+        >>> rig = CameraRig.of([cam, turned])
+        >>> X = np.array([[0.1, -0.2, 0.3]])
+        >>> x0, x1 = (np.append(p[0], 1.0) for p in rig.project(X))
+        >>> abs(float(x1 @ rig.fundamental_matrices()[0, 1] @ x0)) < 1e-9
+        True
+        """
         C = len(self)
         F = np.zeros((C, C, 3, 3))
         Kinv = [np.linalg.inv(c.K) for c in self.cameras]
@@ -592,7 +715,13 @@ class CameraRig:
         return cls.from_dict(load_toml(path), path=path)
 
     def sha256(self) -> str:
-        """SHA-256 of the canonical JSON of the cameras (order, names and every float digit)."""
+        """SHA-256 of the canonical JSON of the cameras (order, names and every float digit).
+
+        >>> cam = Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240], [0, 0, 1]], t=[0, 0, 2])
+        >>> a, b = CameraRig.of([cam]), CameraRig.of([cam.replace(t=[0, 0, 2.000001])])
+        >>> a.sha256() == CameraRig.from_dict(a.to_dict()).sha256(), a.sha256() == b.sha256()
+        (True, False)
+        """
         canon = json.dumps([c.to_dict() for c in self.cameras], sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canon.encode("utf-8")).hexdigest()
 

@@ -33,7 +33,8 @@ from calibrate.formats import (
 )
 from calibrate.intrinsics import MODELS
 from capture.fileio import FormatError
-from core.cli import guarded, positive_float
+from core.cli import Parser, RawDescriptionHelpFormatter, guarded, positive_float
+from core.errors import InputError
 from core.progress import Bars
 
 log = logging.getLogger("calibrate")
@@ -100,8 +101,19 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run_import)
 
 
+def _not_the_input(out: Path, given: Path, what: str, example: str) -> None:
+    """Refuse an ``--out`` that is the input file: the write would replace it."""
+    same = out.resolve() == given.resolve() or (out.exists() and given.exists() and out.samefile(given))
+    if same:
+        raise InputError(
+            f"--out {out} is the input file {given}: writing it would replace the {what}. Give --out "
+            f"another file name (e.g. {example} in another folder); nothing was written."
+        )
+
+
 def _run_import(args: argparse.Namespace) -> int:
 
+    _not_the_input(args.out, args.file, "file being imported", "rig.toml")
     fmt = args.format or detect_format(args.file)
     opts = ImportOptions(
         scale_to_m=args.scale_to_m,
@@ -137,13 +149,14 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
         description="Write a rig.toml as aniposelib/Pose2Sim TOML or EasyMocap intri.yml/extri.yml.",
     )
     p.add_argument("rig", type=Path, help="rig.toml")
-    p.add_argument("--format", choices=EXPORT_FORMATS, required=True)
+    p.add_argument("--format", choices=EXPORT_FORMATS, required=True, help="the other tool's format")
     p.add_argument("--out", type=Path, required=True, help="output file (easymocap: a folder)")
     p.set_defaults(func=_run_export)
 
 
 def _run_export(args: argparse.Namespace) -> int:
 
+    _not_the_input(args.out, args.rig, "rig being exported", "calibration.toml")
     rig = CameraRig.load(args.rig)
     written = export_rig(rig, args.out, args.format)
     print(f"wrote {', '.join(str(p) for p in written)} ({args.format}, {len(rig)} cameras)")
@@ -171,7 +184,7 @@ Example:
 
 def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
     p.description = _CALIBRATE_HELP
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.formatter_class = RawDescriptionHelpFormatter
     p.add_argument("recording", type=Path, help="folder of per-camera videos or image folders")
     p.add_argument(
         "--board",
@@ -255,9 +268,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_import, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1]
-    )
+    parser = Parser(prog="calibrate-run", description=__doc__.split("\n")[0].split(": ", 1)[1])
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS:

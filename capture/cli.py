@@ -18,14 +18,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from capture.config import ConfigError, load_config
+from capture.config import ConfigError, load_config, shared_sources
 from capture.fileio import FormatError
-from capture.live import BuildStages, LiveRunner
+from capture.live import BuildStages, LiveOutputs, LiveRunner
 from capture.offline_sync import sync_audio, sync_session
 from capture.recorder import Recorder, RecorderError, redact_text, repair
 from capture.session import SessionLayout
 from capture.sources import SourceError
-from core.cli import guarded, positive_float
+from core.cli import Parser, guarded, positive_float
 
 log = logging.getLogger("capture")
 
@@ -33,7 +33,7 @@ _SUBCOMMANDS = ("record", "check", "sync", "repair")
 
 
 def _record_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="capture-run",
         description="Record cameras from cams.yaml into a session folder (subcommands: check, sync, repair).",
     )
@@ -59,13 +59,18 @@ def _record_parser() -> argparse.ArgumentParser:
         help="keep raw/<cam>/seg_* instead of joining them into raw/<cam>.mp4 (join later: repair)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     return p
 
 
-def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
+def _record(
+    argv: list[str], build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+) -> int:
 
-    args = _record_parser().parse_args(argv)
+    parser = _record_parser()
+    if outputs is not None:
+        outputs.add_arguments(parser)
+    args = parser.parse_args(argv)
     cfg = load_config(args.cameras)
     out = args.out or cfg.out
     if not out:
@@ -75,6 +80,9 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
         print(f"capture-run: --duration must be positive, got {args.duration}.", file=sys.stderr)
         return 2
     text = Path(args.cameras).read_text(encoding="utf-8")
+    shared = shared_sources(cfg)
+    for w in shared:
+        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
     live_on = args.live or cfg.live.enabled
     live = None
     if live_on:
@@ -97,6 +105,7 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
         skip_failed_cameras=args.skip_failed_cameras,
         join=not args.no_join,
     )
+    close_outputs = outputs.open(args, live, rec) if outputs is not None else None
     if live:
         live.start()
     bar = None
@@ -124,6 +133,8 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
             bar.close()
         if live:
             live.stop()
+        if close_outputs is not None:
+            close_outputs()
     print(f"session: {out} ({summary['status']}; {rec.stop_reason})")
     for name, c in summary["cameras"].items():
         if c.get("recorded") is False:
@@ -146,6 +157,8 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
             f"  skew between cameras: median {t['skew_ms_median']:.2f} ms, p95 {t['skew_ms_p95']:.2f} ms; "
             f"{t['complete_sets']}/{t['sets']} complete frame sets"
         )
+    for w in shared:  # again beside the skew it makes meaningless
+        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
     if live:
         print("  live: " + redact_text(live.summary_line()))
     if summary.get("failed_cameras"):
@@ -162,25 +175,33 @@ def _record(argv: list[str], build_live: BuildStages | None = None) -> int:
 
 def _check(argv: list[str]) -> int:
 
-    p = argparse.ArgumentParser(prog="capture-run check")
-    p.add_argument("--cameras", required=True)
+    p = Parser(
+        prog="capture-run check",
+        description="Parse cams.yaml and list its cameras. Exit 0 when it is usable, 1 when it parses but "
+        "something is probably wrong (two cameras reading one source; said on stderr), 2 when it is "
+        "invalid.",
+    )
+    p.add_argument("--cameras", required=True, help="cams.yaml to check")
     args = p.parse_args(argv)
     cfg = load_config(args.cameras)
     for c in cfg.cameras:
         print(f"{c.name}: {c.kind} {c.source_redacted} resolution={c.resolution} fps={c.fps} codec={c.codec}")
-    return 0
+    problems = shared_sources(cfg)
+    for w in problems:
+        print(f"capture-run check: warning: {redact_text(w)}", file=sys.stderr)
+    return 1 if problems else 0
 
 
 def _sync(argv: list[str]) -> int:
 
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="capture-run sync",
         description="Estimate per-camera time offsets (and "
         "drift) from 2D keypoint speeds and write them into session.toml [sync].",
     )
     p.add_argument("session", help="session folder (keypoints/<cam>.npz or --openpose folders)")
     p.add_argument("--reference", help="camera the others are aligned to (default: the first by name)")
-    p.add_argument("--max-lag-s", type=positive_float, default=2.0)
+    p.add_argument("--max-lag-s", type=positive_float, default=2.0, help="largest offset searched, seconds")
     p.add_argument("--drift", action="store_true", help="also estimate a linear drift (long recordings)")
     p.add_argument(
         "--openpose",
@@ -197,7 +218,12 @@ def _sync(argv: list[str]) -> int:
         help="sync by the audio tracks of these videos instead of keypoints (no CAM=VIDEO: the "
         "session's raw/<cam>.mp4)",
     )
-    p.add_argument("--fps", type=positive_float, default=None, help="frame rate when the session has none")
+    p.add_argument(
+        "--fps",
+        type=positive_float,
+        default=None,
+        help="frame rate when the session has none (default: from the detections' timestamps)",
+    )
     p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
     args = p.parse_args(argv)
     if args.audio is not None:
@@ -272,12 +298,12 @@ def _trust_text(r: dict) -> str:
 
 def _repair(argv: list[str]) -> int:
 
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="capture-run repair",
         description="After a kill (or --no-join): drop unfinished segments, rebuild the timestamp files and "
         "join each camera's segments into raw/<cam>.mp4 (stream copy, frame count checked).",
     )
-    p.add_argument("session")
+    p.add_argument("session", help="session folder (raw/<cam>/seg_*)")
     p.add_argument("--no-join", action="store_true", help="only fix the timestamps, keep the segments")
     args = p.parse_args(argv)
     if not Path(args.session).is_dir():
@@ -299,7 +325,9 @@ def _repair(argv: list[str]) -> int:
     return 1 if kept else 0
 
 
-def _main(argv: list[str] | None = None, build_live: BuildStages | None = None) -> int:
+def _main(
+    argv: list[str] | None = None, build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     verbose = "-v" in argv or "--verbose" in argv
@@ -311,7 +339,7 @@ def _main(argv: list[str] | None = None, build_live: BuildStages | None = None) 
     rest = argv[1:] if argv and argv[0] in _SUBCOMMANDS else argv
     try:
         if cmd == "record":
-            return _record(rest, build_live)
+            return _record(rest, build_live, outputs)
         return {"check": _check, "sync": _sync, "repair": _repair}[cmd](rest)
     except (ConfigError, FormatError, SourceError, RecorderError, ValueError) as e:
         print(f"capture-run: error: {redact_text(str(e))}", file=sys.stderr)
@@ -321,10 +349,13 @@ def _main(argv: list[str] | None = None, build_live: BuildStages | None = None) 
         return 130
 
 
-def make_main(build_live: BuildStages | None = None) -> Callable[..., int]:
+def make_main(
+    build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+) -> Callable[..., int]:
     """``capture-run``'s entry with the live stages ``build_live`` (:func:`pipeline.live.build_stages`:
-    the installed ``capture-run`` is ``pipeline.live:main``); without them ``--live`` says where to go."""
-    return guarded("capture-run", functools.partial(_main, build_live=build_live))
+    the installed ``capture-run`` is ``pipeline.live:main``) and what the live run sends out
+    (``outputs``: :class:`pipeline.live_outputs.Outputs`); without them ``--live`` says where to go."""
+    return guarded("capture-run", functools.partial(_main, build_live=build_live, outputs=outputs))
 
 
 main = make_main()

@@ -312,6 +312,23 @@ def _section(raw: Any, cls, where: str, path) -> Any:
     return config_from_dict(cls, raw, where, path, error=ConfigError)
 
 
+def shared_sources(cfg: CaptureConfig) -> list[str]:
+    """One sentence per group of cameras that read the same file, stream or synthetic source (devices
+    opened twice are refused by :func:`parse_config`): they record the same frames twice and their skew
+    (0.00 ms) says nothing about the cameras."""
+    groups: dict[str, list[str]] = {}
+    for c in cfg.cameras:
+        key = os.path.realpath(c.source) if c.kind == "file" else c.source
+        groups.setdefault(key, []).append(c.name)
+    return [
+        f"cameras {', '.join(repr(n) for n in names)} all read {cfg.camera(names[0]).source_redacted!r}: "
+        "the same frames would be recorded twice and the skew between them says nothing about the cameras. "
+        "Give each camera its own source in cams.yaml."
+        for names in groups.values()
+        if len(names) > 1
+    ]
+
+
 def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureConfig:
     """Validate a parsed cams.yaml mapping into a CaptureConfig (raises ConfigError)."""
     if not isinstance(data, dict):

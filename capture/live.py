@@ -13,12 +13,14 @@ Latency = end of processing - host arrival of the newest frame in the set.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -39,6 +41,19 @@ class LiveStep:
 
 Stage = Callable[[LiveStep], None]
 BuildStages = Callable[[CaptureConfig, SessionLayout], "tuple[dict[str, Stage], dict[str, str]]"]
+
+
+class LiveOutputs(Protocol):
+    """What ``capture-run --live`` sends out while it records (the live view, network streams, a Rerun
+    recording), built above capture (:mod:`pipeline.live_outputs`) and handed to ``capture.cli``."""
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        """Add the command-line options (``--view``, ``--stream``, ...)."""
+
+    def open(self, args: argparse.Namespace, runner: LiveRunner | None, recorder: Any) -> Callable[[], None]:
+        """Check the options and open the outputs before the recording starts (bad input raises a
+        ``RoomcapError`` and nothing is recorded); returns the function that closes them."""
+        ...
 
 
 # ----------------------------------------------------------------------------- runner

@@ -473,6 +473,18 @@ def estimate_offsets(
     return out
 
 
+POSE2SIM_OUTPUT = "roomcap"  # reprocess writes a foreign-layout session's outputs here (pipeline.runner)
+
+
+def detections_layout(root: str | os.PathLike) -> SessionLayout:
+    """The layout holding a session folder's ``keypoints/<cam>.npz``, found as ``reprocess`` places them:
+    the folder itself (this project's sessions), else ``<folder>/roomcap`` (a Pose2Sim trial: ``videos/``
+    + ``calibration/``, whose outputs ``reprocess`` writes beside its inputs)."""
+    own = SessionLayout(root)
+    nested = SessionLayout(Path(root) / POSE2SIM_OUTPUT)
+    return nested if not own.detection_cameras() and nested.detection_cameras() else own
+
+
 def sync_session(
     root: str | os.PathLike,
     reference: str | None = None,
@@ -485,23 +497,27 @@ def sync_session(
     """Estimate offsets for a session folder and write them into ``session.toml`` ``[sync]``."""
     layout = SessionLayout(root)
     meta = load_toml(layout.session_toml) if layout.session_toml.exists() else None
+    found = detections_layout(root)  # a Pose2Sim trial's detections are in <trial>/roomcap/keypoints
     signals: dict[str, np.ndarray] = {}
     if openpose_dirs:
         for cam, d in openpose_dirs.items():
             xy, _ = read_openpose_folder(d)
             signals[cam] = keypoint_speed(xy)
     else:
-        cams = layout.detection_cameras()
+        cams = found.detection_cameras()
         if len(cams) < 2:
             raise FormatError(
                 layout.keypoints_dir,
                 None,
-                f"found {len(cams)} keypoints/<cam>.npz; sync needs two or more.",
-                "Run the keypoints stage first, or pass --openpose CAM=DIR ...",
+                f"found {len(cams)} keypoints/<cam>.npz (nor two in "
+                f"{Path(root) / POSE2SIM_OUTPUT / 'keypoints'}, where reprocess writes a Pose2Sim trial's); "
+                "sync needs two or more.",
+                f"Run the keypoints stage first (reprocess {root} --stages keypoints), or pass --openpose "
+                "CAM=DIR ...",
             )
 
         for cam in cams:
-            det = Detections.load(layout.detections(cam))
+            det = Detections.load(found.detections(cam))
             signals[cam] = keypoint_speed(det.xy_px)
             if fps is None and len(det.t_ns) > 2:
                 fps = float(1e9 / np.median(np.diff(det.t_ns)))

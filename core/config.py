@@ -74,12 +74,29 @@ def coerce(
     path: str | os.PathLike[str] | None = None,
     error: type[FormatError] = FormatError,
 ) -> Any:
-    """One value coerced to the type ``hint`` as :func:`config_from_dict` does (``error`` names ``where``)."""
+    """One value coerced to the type ``hint`` as :func:`config_from_dict` does (``error`` names ``where``).
+
+    >>> coerce("2.5", float, "fps"), coerce([1, 2], tuple[int, ...], "scales"), coerce("yes", bool, "mirror")
+    (2.5, (1, 2), True)
+    >>> coerce("fast", int, "workers")
+    Traceback (most recent call last):
+    core.errors.FormatError: <input>: field 'workers': expected int, got 'fast'. Fix the value.
+    """
     return _coerce(value, hint, where, path, error)
 
 
 def bounded(default: Any, lo: float, hi: float) -> Any:
-    """A dataclass field whose value :func:`config_from_dict` checks to lie in [lo, hi] (None passes)."""
+    """A dataclass field whose value :func:`config_from_dict` checks to lie in [lo, hi] (None passes).
+
+    >>> @dataclasses.dataclass(frozen=True)
+    ... class Chunks:
+    ...     chunk_s: float = bounded(0.0, 0.0, 3600.0)
+    >>> config_from_dict(Chunks, {"chunk_s": 60})
+    Chunks(chunk_s=60.0)
+    >>> config_from_dict(Chunks, {"chunk_s": -1}, "track")
+    Traceback (most recent call last):
+    core.errors.FormatError: <input>: field 'track.chunk_s': -1.0 is outside the valid range [0.0, 3600.0].
+    """
     return dataclasses.field(default=default, metadata={"range": (lo, hi)})
 
 
@@ -94,7 +111,14 @@ def check_range(
     allow_none: bool = False,
     error: type[FormatError] = FormatError,
 ) -> Any:
-    """``value`` as a float (an int with ``integer``) in [lo, hi], else ``error`` naming ``where``."""
+    """``value`` as a float (an int with ``integer``) in [lo, hi], else ``error`` naming ``where``.
+
+    >>> check_range(3, "workers", None, 1, 64, integer=True)
+    3
+    >>> check_range(0.5, "workers", "run.toml", 1, 64, integer=True)
+    Traceback (most recent call last):
+    core.errors.FormatError: run.toml: field 'workers': expected an integer in [1, 64], got 0.5.
+    """
     if value is None and allow_none:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -127,7 +151,13 @@ def check_keys(
     name_key: bool = False,
 ) -> None:
     """``error`` listing the valid keys when ``data`` has others (the one wording of every config);
-    ``name_key``: the error's field is the first unknown key (under ``where``), as file formats name it."""
+    ``name_key``: the error's field is the first unknown key (under ``where``), as file formats name it.
+
+    >>> check_keys({"fps": 25}, ["fps", "chunk_s"], "track", None)
+    >>> check_keys({"fsp": 25}, ["fps", "chunk_s"], "track", "run.toml")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.FormatError: run.toml: field 'track': unknown keys ['fsp']; valid keys: ['chunk_s', 'fps']...
+    """
     names = sorted(valid)
     unknown = sorted(set(data) - set(names))
     if unknown:
@@ -145,7 +175,15 @@ def config_from_dict(
     error: type[FormatError] = FormatError,
 ) -> T:
     """Build the frozen config dataclass ``cls`` from ``data`` (see the module docstring); problems raise
-    ``error`` (a :class:`~core.errors.FormatError`, or a subclass such as cams.yaml's ``ConfigError``)."""
+    ``error`` (a :class:`~core.errors.FormatError`, or a subclass such as cams.yaml's ``ConfigError``).
+
+    >>> @dataclasses.dataclass(frozen=True)
+    ... class Stage:
+    ...     fps: float = 25.0
+    ...     scales: tuple[float, ...] = (1.0,)
+    >>> config_from_dict(Stage, {"fps": 30, "scales": [1, 0.5]})
+    Stage(fps=30.0, scales=(1, 0.5))
+    """
     if not isinstance(data, Mapping):
         raise error(path, where or cls.__name__, f"expected a table of settings, got {data!r}.")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]

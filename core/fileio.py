@@ -67,6 +67,14 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
+    """Write ``text`` as UTF-8 through :func:`atomic_path`: readers see the old or the new file, never a part.
+
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> atomic_write_text(folder / "sub" / "note.txt", "done")
+    >>> (folder / "sub" / "note.txt").read_text(), sorted(p.name for p in (folder / "sub").iterdir())
+    ('done', ['note.txt'])
+    """
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
@@ -74,11 +82,26 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
 
 
 def schema_tag(name: str, version: int) -> str:
+    """The ``schema`` value every file carries.
+
+    >>> schema_tag("tracks", 2)
+    'tracks/2'
+    """
     return f"{name}/{version}"
 
 
 def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os.PathLike[str] | None) -> int:
-    """Parse ``"name/version"`` and return the version; raise SchemaError otherwise."""
+    """Parse ``"name/version"`` and return the version; raise SchemaError otherwise.
+
+    >>> check_schema("tracks/2", "tracks", (1, 2), "t.npz")
+    2
+    >>> check_schema("tracks/3", "tracks", (1, 2), "t.npz")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.SchemaError: t.npz: field 'schema': version 3 is not supported (...). Upgrade roomcap ...
+    >>> check_schema("detections/1", "tracks", (1,), "t.npz")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.SchemaError: t.npz: field 'schema': this is a 'detections' file, expected 'tracks'. ...
+    """
     if isinstance(tag, np.ndarray):
         tag = tag.item() if tag.shape == () else None
     if not isinstance(tag, str) or "/" not in tag:
@@ -117,7 +140,20 @@ def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os
 
 
 def save_npz(path: str | os.PathLike[str], arrays: Mapping[str, Any], compress: bool = True) -> None:
-    """Write an npz atomically. Strings become 0-d or 1-d unicode arrays, never object arrays."""
+    """Write an npz atomically. Strings become 0-d or 1-d unicode arrays, never object arrays.
+
+    The bytes depend on the arrays only (fixed member time stamps), so a rerun writes the same file:
+
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> save_npz(folder / "a.npz", {"schema": "demo/1", "xyz_m": np.zeros((2, 3))})
+    >>> save_npz(folder / "b.npz", {"schema": "demo/1", "xyz_m": np.zeros((2, 3))})
+    >>> (folder / "a.npz").read_bytes() == (folder / "b.npz").read_bytes()
+    True
+    >>> save_npz(folder / "c.npz", {"bad": np.array([{}], dtype=object)})  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    TypeError: save_npz(...): 'bad' is an object array; store strings or numbers only
+    """
     clean: dict[str, np.ndarray] = {}
     for key, value in arrays.items():
         arr = np.asarray(value)
@@ -139,7 +175,19 @@ def save_npz(path: str | os.PathLike[str], arrays: Mapping[str, Any], compress: 
 
 
 def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
-    """Load every array of an npz with ``allow_pickle=False``; a truncated file gets a FormatError."""
+    """Load every array of an npz with ``allow_pickle=False``; a truncated file gets a FormatError.
+
+    >>> import tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "poses.npz"
+    >>> save_npz(path, {"schema": "demo/1", "fps": 25.0})
+    >>> data = load_npz(path, required=("schema", "fps"))
+    >>> npz_str(data, "schema"), float(data["fps"])
+    ('demo/1', 25.0)
+    >>> _ = path.write_bytes(b"not a zip")
+    >>> load_npz(path)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.FormatError: ...poses.npz: is not an npz archive (numpy's zip of arrays); it may be ...
+    """
     path = Path(path)
     if not path.exists():
         raise FormatError(path, None, "file does not exist.")
@@ -170,7 +218,12 @@ def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> di
 def require_keys(
     path: str | os.PathLike[str], data: Mapping[str, np.ndarray], required: tuple[str, ...]
 ) -> None:
-    """FormatError naming the first of ``required`` that ``data`` (an npz read by ``load_npz``) lacks."""
+    """FormatError naming the first of ``required`` that ``data`` (an npz read by ``load_npz``) lacks.
+
+    >>> require_keys("t.npz", {"fps": np.float64(25)}, ("fps", "xyz_m"))  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.FormatError: t.npz: field 'xyz_m': required keys ['xyz_m'] are missing (present: ['fps']). ...
+    """
     missing = [k for k in required if k not in data]
     if missing:
         raise FormatError(
@@ -182,6 +235,11 @@ def require_keys(
 
 
 def npz_str(data: Mapping[str, np.ndarray], key: str) -> str:
+    """A string stored as a 0-d array, as Python text.
+
+    >>> npz_str({"skeleton": np.array("body19")}, "skeleton")
+    'body19'
+    """
     return str(np.asarray(data[key]).item())
 
 
@@ -189,6 +247,18 @@ def npz_str(data: Mapping[str, np.ndarray], key: str) -> str:
 
 
 def load_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A TOML file as a dict; a missing or malformed file is a FormatError naming it.
+
+    >>> import tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "run.toml"
+    >>> save_toml(path, {"track": {"tracker": "particle", "fps": np.float64(25.0)}}, header="a test")
+    >>> load_toml(path)
+    {'track': {'tracker': 'particle', 'fps': 25.0}}
+    >>> _ = path.write_text("[track")
+    >>> load_toml(path)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.FormatError: ...run.toml: is not valid TOML (...).
+    """
     path = Path(path)
     if not path.exists():
         raise FormatError(path, None, "file does not exist.")

@@ -25,6 +25,11 @@ def redact_url(source: str) -> str:
 
     Works on the text of the URL (no parse-and-rebuild), so everything that is not a secret is kept
     exactly as written, even in URLs that ``urllib`` refuses.
+
+    >>> redact_url("rtsp://admin:secret@192.0.2.7:554/stream1?token=abc&channel=1")
+    'rtsp://***@192.0.2.7:554/stream1?token=***&channel=1'
+    >>> redact_url("/dev/video0")
+    '/dev/video0'
     """
     if "://" not in source:
         return source
@@ -42,7 +47,11 @@ def redact_url(source: str) -> str:
 
 
 def redact(text: str) -> str:
-    """Every URL inside ``text`` redacted (:func:`redact_url`); the rest unchanged."""
+    """Every URL inside ``text`` redacted (:func:`redact_url`); the rest unchanged.
+
+    >>> redact("camera 'rtsp://u:p@cam1/live' stopped after 3 s")
+    "camera 'rtsp://***@cam1/live' stopped after 3 s"
+    """
     if "://" not in text:
         return text
     return _URL.sub(lambda m: redact_url(m[0]), text)

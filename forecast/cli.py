@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.cli import guarded, parse_sets, positive_float, positive_int
+from core.cli import Parser, guarded, parse_sets, positive_float, positive_int
 from core.errors import FormatError, InputError
 from core.fileio import load_toml
 from core.progress import Bars
@@ -117,10 +117,13 @@ def cmd_train(args) -> int:
 
 
 def cmd_sample(args) -> int:
-    from forecast.preview import preview, save_forecast  # lazy: loads torch
+    from forecast.preview import no_forecast_reason, preview, save_forecast  # lazy: loads torch
 
     fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
     if not np.isfinite(fc["xyz_m"]).any():
+        why = no_forecast_reason(args.tracks, args.checkpoint)
+        if why:
+            raise InputError(f"{why} Nothing was written.")
         raise InputError(
             f"the forecast of {args.tracks} is NaN everywhere: none of its {fc['xyz_m'].shape[2]} tracks has "
             "observed joints in the frames the model looks at. Check the track file (forecast the tracks of "
@@ -247,39 +250,46 @@ def _main(argv: list[str] | None = None) -> int:
         from forecast.characteristic.cli import main as characteristic_main  # lazy: loads torch
 
         return characteristic_main(argv[1:]) or 0
-    p = argparse.ArgumentParser(
-        prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    p = Parser(prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument(
         "--threads", type=positive_int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
     )
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     def data_args(sp):
         sp.add_argument("--data", nargs="+", default=["cmu"], help="'cmu' and/or track files / folders")
-        sp.add_argument("--split-seed", type=int, default=0)
+        sp.add_argument("--split-seed", type=int, default=0, help="seed of the train/val/test split by clip")
 
     # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it
     sub.add_parser("characteristic", help="the characteristic-3D-pose forecaster (Diller ch. 3): train|eval")
     t = sub.add_parser("train", help="train a model")
-    t.add_argument("--model", required=True, choices=["gru", "intention", "social_diffusion"])
+    t.add_argument(
+        "--model", required=True, choices=["gru", "intention", "social_diffusion"], help="model to train"
+    )
     t.add_argument("--config", help="TOML with the config (a [model] table or top-level keys)")
-    t.add_argument("--set", action="append", help="override one config key: key=value")
-    t.add_argument("--out", required=True)
-    t.add_argument("--device", default="cpu")
-    t.add_argument("--init", help="continue training from this checkpoint (same model and architecture)")
+    t.add_argument(
+        "--set", action="append", help="override one config key: key=value (repeatable; default: none)"
+    )
+    t.add_argument("--out", required=True, help="checkpoint to write (.pt)")
+    t.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
+    t.add_argument(
+        "--init",
+        help="continue training from this checkpoint (same model and architecture; default: from scratch)",
+    )
     data_args(t)
 
     s = sub.add_parser("sample", help="forecast every track of a track file")
-    s.add_argument("--checkpoint")
-    s.add_argument("--tracks", required=True)
-    s.add_argument("--horizon-s", type=positive_float, default=1.0)
-    s.add_argument("--samples", type=positive_int, default=1)
-    s.add_argument("--out", required=True)
+    s.add_argument(
+        "--checkpoint", help="model checkpoint (default: the shipped GRU, forecast/checkpoints/gru_cmu.pt)"
+    )
+    s.add_argument("--tracks", required=True, help="track file (track/tracks.npz) or session folder")
+    s.add_argument("--horizon-s", type=positive_float, default=1.0, help="seconds to forecast")
+    s.add_argument("--samples", type=positive_int, default=1, help="samples per track (stochastic models)")
+    s.add_argument("--out", required=True, help="forecast file to write (.npz)")
 
     e = sub.add_parser("eval", help="evaluate checkpoints and baselines on held-out clips")
-    e.add_argument("--checkpoints", nargs="*", default=[])
+    e.add_argument("--checkpoints", nargs="*", default=[], help="checkpoints to evaluate")
     e.add_argument(
         "--baselines",
         nargs="*",
@@ -296,12 +306,12 @@ def _main(argv: list[str] | None = None) -> int:
     )
     e.add_argument("path", nargs="?", help="--protocol hik: the folder of HiK person files")
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
-    e.add_argument("--horizon-s", type=positive_float, default=4.0)
+    e.add_argument("--horizon-s", type=positive_float, default=4.0, help="seconds forecast per window")
     e.add_argument(
         "--samples", type=positive_int, default=50, help="samples per stochastic model (DLow, Tanke: 50)"
     )
-    e.add_argument("--scenes", type=positive_int, default=24)
-    e.add_argument("--max-windows", type=positive_int, default=400)
+    e.add_argument("--scenes", type=positive_int, default=24, help="--social: composed two-person scenes")
+    e.add_argument("--max-windows", type=positive_int, default=400, help="at most this many test windows")
     e.add_argument("--stride", type=positive_int, default=5, help="frames between test windows")
     e.add_argument(
         "--reference",
@@ -315,7 +325,7 @@ def _main(argv: list[str] | None = None) -> int:
         help="NDMS database: held-out clips (seed) or all clips, always grouped by activity; ndms keeps the "
         "query's own clip in it (seed), ndms_loo leaves it out",
     )
-    e.add_argument("--out", required=True)
+    e.add_argument("--out", required=True, help="report to write (Markdown; a .json beside it)")
     data_args(e)
 
     args = p.parse_args(argv)

@@ -68,6 +68,45 @@ def preview(
     }
 
 
+def no_forecast_reason(
+    track_file: str | os.PathLike, checkpoint: str | os.PathLike | None = None, obs_s: float | None = None
+) -> str:
+    """Why :func:`preview` forecast none of the tracks of ``track_file``, as a sentence with what to do: the
+    tracks are shorter than the frames the model needs, or nobody is seen at the last frame (where every
+    forecast starts)."""
+    from forecast.checkpoint import load_checkpoint  # lazy: loads torch
+
+    clip = fdata.clip_from_trackfile(track_file)
+    _, meta = load_checkpoint(checkpoint or DEFAULT_CHECKPOINT, skeleton=clip.skeleton)
+    fps = float(meta["fps"])
+    c = clip.resampled(fps)
+    n_obs = int(round(obs_s * fps)) if obs_s else int(meta["config"].n_obs)
+    T, K = c.xyz_m.shape[:2]
+    lh, rh = fdata.hip_indices(fdata.get_skeleton(clip.skeleton).joint_names)
+    hips = np.isfinite(c.xyz_m[:, :, [lh, rh]]).all((-1, -2))  # (T,K) both hips seen
+    seen_until_end = np.zeros(K, int)  # frames each track is seen up to the last frame
+    for k in range(K):
+        while seen_until_end[k] < T and hips[T - 1 - seen_until_end[k], k]:
+            seen_until_end[k] += 1
+    longest = int(seen_until_end.max(initial=0))
+    if T and longest >= 2:
+        return ""
+    window = (
+        f"the model ({meta['kind']}) looks at the last {n_obs} frames ({n_obs / fps:.1f} s at {fps:g} Hz)"
+    )
+    if T < 2 or (longest == 1 and hips[-1].any()):
+        return (
+            f"{track_file} is too short to forecast: it holds {T} frame{'s' if T != 1 else ''} "
+            f"({T / fps:.2f} s at {fps:g} Hz), and {window}. A track must be seen (both hips) in at least "
+            f"its last 2 frames ({2 / fps:.2f} s), and in {n_obs} ({n_obs / fps:.1f} s) for the forecast the "
+            "model was trained for: forecast a longer recording."
+        )
+    return (
+        f"none of the {K} tracks of {track_file} is seen (both hips) in its last frame, where every forecast "
+        f"starts ({window}). Forecast a track file that ends while people are in view."
+    )
+
+
 def baseline_preview(xyz: np.ndarray, fps: float, H: int, kind: str) -> tuple[np.ndarray, np.ndarray]:
     """The preview without a checkpoint, in numpy at the track file's own rate: xyz (T,K,J,3) world metres ->
     future (K,H,J,3) for the tracks present in the last frame, and that mask (K,). ``constant_velocity``:

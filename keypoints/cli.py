@@ -9,14 +9,13 @@ keypoints run TRIAL/videos --out DIR        every video in a folder (Pose2Sim de
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import sys
 from pathlib import Path
 
 from calibrate.formats import import_rig
-from core.cli import guarded, nonnegative_int, output_folder, positive_int
+from core.cli import Parser, guarded, nonnegative_int, output_folder, positive_int
 from core.errors import InputError
 from core.progress import Bars
 from keypoints import registry
@@ -136,24 +135,31 @@ def _run(args) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="keypoints", description="2D multi-person keypoints through ONNX models"
-    )
+    ap = Parser(prog="keypoints", description="2D multi-person keypoints through ONNX models")
     ap.add_argument(
-        "--model-dir", default=None, help="folder with model files / descriptions (also ROOMCAP_MODELS)"
+        "--model-dir",
+        default=None,
+        help="folder with model files / descriptions (default: $ROOMCAP_MODELS, else <shared>/models)",
     )
-    ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
     sub = ap.add_subparsers(dest="cmd", required=True)
     sub.add_parser("list", help="list model descriptions and sets")
     f = sub.add_parser("fetch", help="download a model and check its sha256")
-    f.add_argument("name")
-    f.add_argument("--force", action="store_true")
+    f.add_argument("name", help="model name (keypoints list)")
+    f.add_argument("--force", action="store_true", help="download again even when the file is there")
     r = sub.add_parser("run", help="detect keypoints in a session or in videos")
     r.add_argument(
         "inputs", nargs="+", help="a session folder, videos (cam=path allowed) or a folder of videos"
     )
-    r.add_argument("--out", default=None, help="output folder for explicit videos")
-    r.add_argument("--calib", default=None, help="calibration to check camera names and video sizes against")
+    r.add_argument(
+        "--out", default=None, help="output folder for explicit videos (default: a session's keypoints/)"
+    )
+    r.add_argument(
+        "--calib",
+        default=None,
+        help="calibration to check camera names and video sizes against (default: a session's "
+        "calib/rig.toml)",
+    )
     r.add_argument(
         "--preset",
         default="",
@@ -162,9 +168,16 @@ def _main(argv: list[str] | None = None) -> int:
     r.add_argument(
         "--models", default=None, help="model set (keypoints list) or 'detector+pose'; default: the preset's"
     )
-    r.add_argument("--cameras", nargs="*", default=None)
-    r.add_argument("--max-frames", type=positive_int, default=None)
-    r.add_argument("--threads", type=nonnegative_int, default=0)
+    r.add_argument("--cameras", nargs="*", default=None, help="only these cameras (default: every camera)")
+    r.add_argument(
+        "--max-frames",
+        type=positive_int,
+        default=None,
+        help="only the first N frames of each video (default: all)",
+    )
+    r.add_argument(
+        "--threads", type=nonnegative_int, default=0, help="onnxruntime threads (0 = onnxruntime's choice)"
+    )
     r.add_argument(
         "--camera-groups",
         type=nonnegative_int,

@@ -510,9 +510,11 @@ def run_videos(
     done = {c: readers[c].start_index for c in cams}
     lock = threading.Lock()  # the progress callback and the report are shared by the camera groups
 
+    stop = threading.Event()  # set when the caller is interrupted: the groups end after their batch
+
     def run_group(group: list[str], gpipe: KeypointPipeline) -> None:
         live = list(group)
-        while live:
+        while live and not stop.is_set():
             batch_cams, imgs, meta = [], [], []
             for c in list(live):
                 item = readers[c].q.get()
@@ -551,8 +553,16 @@ def run_videos(
         r.start()
     try:
         with ThreadPoolExecutor(n_groups) as pool:
-            for f in [pool.submit(run_group, g, gp) for g, gp in zip(groups, pipes, strict=True)]:
-                f.result()
+            try:
+                for f in [pool.submit(run_group, g, gp) for g, gp in zip(groups, pipes, strict=True)]:
+                    f.result()
+            except (
+                BaseException
+            ):  # Ctrl-C or a failed group: the other groups stop too (finished chunks stay)
+                stop.set()
+                for r in readers.values():
+                    r.halt()
+                raise
     finally:
         for r in readers.values():
             r.halt()

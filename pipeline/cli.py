@@ -6,6 +6,14 @@ Examples::
     reprocess S01 --stages triangulate,track --tracker greedy   # the ch. 4 tracker (default: particle)
     reprocess day1/ day2/ --out results/ --executor ray --address auto
     reprocess S01 --export trc,bvh               # then <session>/export/<session>_<track id>.trc|.bvh
+
+One run at a time per session: a run holds <session output>/.roomcap/lock; another run on that session
+refuses it (LOCKED, naming the holder's pid, host, start time and command) or, with --wait, waits. A lock
+left by a killed run is taken over. Before a stage's outputs are trusted, their sizes and sha256 are checked
+against the stage's record; outputs changed since are made again.
+
+Exit codes: 0 every session ok; 1 a session failed, or is partial (a camera left out: its video could not
+be read); 2 bad input, or a session locked by another run; 130 Ctrl-C (finished stages are kept).
 """
 
 from __future__ import annotations
@@ -22,7 +30,7 @@ from tqdm import tqdm
 
 from capture.fileio import FormatError, atomic_write_text
 from capture.session import SessionLayout
-from core.cli import guarded, output_folder, positive_int
+from core.cli import Parser, guarded, output_folder, positive_int
 from pipeline.config import STAGES, TRACKERS, PipelineConfig, TrackConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
@@ -34,9 +42,7 @@ from track.trackfile import TrackFile
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="reprocess", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    p = Parser(prog="reprocess", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="+", help="session folders or folders containing sessions")
     p.add_argument(
         "--out",
@@ -51,12 +57,28 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"track stage: particle (ch. 5 particle filter) or greedy (ch. 4 matching in time); default: "
         f"{TrackConfig().tracker} (or [track] tracker of --config)",
     )
-    p.add_argument("--config", type=Path, help="pipeline TOML (see pipeline/config.py)")
     p.add_argument(
-        "--max-frames", type=positive_int, help="keypoints: process only the first N frames of each video"
+        "--config", type=Path, help="pipeline TOML (see README, 'A pipeline TOML'; default: every default)"
+    )
+    p.add_argument(
+        "--max-frames",
+        type=positive_int,
+        help="keypoints: process only the first N frames of each video (default: all)",
     )
     p.add_argument("--force", action="store_true", help="rerun stages even when their outputs are up to date")
-    p.add_argument("--executor", choices=EXECUTORS, default="local")
+    p.add_argument(
+        "--wait",
+        action="store_true",
+        help="when another run is processing a session (it holds <session output>/.roomcap/lock), wait for "
+        "it to finish, then go on (default: refuse that session, naming the other run, and exit 2)",
+    )
+    p.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="local",
+        help="local: worker processes on this machine; ray: tasks on a Ray cluster (pip install "
+        "'roomcap[cluster]')",
+    )
     p.add_argument("--address", help="Ray cluster address (with --executor ray); default: start a local Ray")
     p.add_argument(
         "--workers", type=positive_int, help="sessions processed at once (default: half the cores)"
@@ -64,14 +86,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--export",
         help="after the stages, write the track file as FORMATS (comma-separated: trc,c3d,bvh,csv,json) "
-        "to <session output>/export/ (see: tracks export --help)",
+        "to <session output>/export/ (see: tracks export --help; default: no export)",
     )
     p.add_argument(
         "--overlay",
         action="store_true",
         help="also write <session>/report/overlay/<cam>.mp4: each video with the detections and tracks drawn",
     )
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log what each stage does")
     return p
 
 
@@ -177,6 +199,7 @@ def _main(argv: list[str] | None = None) -> int:
         workers=args.workers,
         address=args.address,
         on_result=done,
+        wait=args.wait,
     )
     bar.close()
     if args.overlay:
@@ -192,11 +215,15 @@ def _main(argv: list[str] | None = None) -> int:
     print(table)
     failed = [r for r in results if r.status == "failed"]
     partial = [r for r in results if r.status == "partial"]  # ran without some cameras (skipped_cameras)
+    locked = [r for r in results if r.status == "locked"]  # another run holds the session
     print(
-        f"{len(results) - len(failed) - len(partial)} sessions ok, "
+        f"{len(results) - len(failed) - len(partial) - len(locked)} sessions ok, "
         + (f"{len(partial)} partial, " if partial else "")
+        + (f"{len(locked)} locked, " if locked else "")
         + f"{len(failed)} failed in {time.perf_counter() - t0:.1f} s"
     )
+    for r in locked:
+        print(f"LOCKED {r.name}: {r.message}", file=sys.stderr)
     for r in partial:
         print(f"PARTIAL {r.name}: cameras {sorted(r.skipped_cameras)} left out: {r.message}", file=sys.stderr)
     for r in failed:
@@ -213,7 +240,10 @@ def _main(argv: list[str] | None = None) -> int:
         except OSError as e:  # e.g. the disk filled up: the table above is the summary
             print(f"reprocess: could not write the summary files to {args.out} ({e}).", file=sys.stderr)
             return 1
-    return 1 if failed or export_errors else 0
+    if locked:
+        return 2
+    # partial: a camera could not be used, so some of the work failed (exit 1, as a failed session)
+    return 1 if failed or partial or export_errors else 0
 
 
 main = guarded("reprocess", _main)

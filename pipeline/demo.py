@@ -15,7 +15,7 @@ import os
 import sys
 from pathlib import Path
 
-from core.cli import guarded
+from core.cli import Parser, guarded
 from pipeline.cli import main as reprocess_main
 from pipeline.config import TRACKERS, TrackConfig
 
@@ -26,7 +26,7 @@ def default_recording() -> Path:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="python -m pipeline.demo",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -37,7 +37,7 @@ def _main(argv: list[str] | None = None) -> int:
         default=default_recording(),
         help="a folder with videos/ and calibration/ (Pose2Sim layout) or a roomcap session",
     )
-    p.add_argument("--out", type=Path, default=Path("out/demo"))
+    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
     p.add_argument(
         "--tracker",
         choices=TRACKERS,

@@ -49,7 +49,12 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
 
 
 def run_local(
-    sources: list[SessionSource], out: Path | None, config: PipelineConfig, force: bool, workers: int
+    sources: list[SessionSource],
+    out: Path | None,
+    config: PipelineConfig,
+    force: bool,
+    workers: int,
+    wait: bool = False,
 ) -> Iterator[SessionResult]:
     """Sessions in worker processes (in this process for one worker).
 
@@ -59,13 +64,13 @@ def run_local(
     """
     if workers <= 1 or len(sources) <= 1:
         for s in sources:
-            yield process_session(s, out, config, force)
+            yield process_session(s, out, config, force, wait=wait)
         return
     threads = _threads_per_worker(workers)
     ctx = mp.get_context("spawn")  # not fork: onnxruntime and torch thread pools do not survive a fork
     broken: list[SessionSource] = []
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint) as pool:
-        futures = {pool.submit(process_session, s, out, config, force, threads): s for s in sources}
+        futures = {pool.submit(process_session, s, out, config, force, threads, wait): s for s in sources}
         try:
             for f in as_completed(futures):
                 try:
@@ -79,7 +84,7 @@ def run_local(
         log.warning("session %s: its worker process died; retrying it alone", s.name)
         try:
             with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
-                yield pool.submit(process_session, s, out, config, force, threads).result()
+                yield pool.submit(process_session, s, out, config, force, threads, wait).result()
         except BrokenProcessPool as e:
             yield SessionResult(
                 s.name,
@@ -119,6 +124,7 @@ def run_ray(
     force: bool,
     workers: int,
     address: str | None,
+    wait: bool = False,
 ) -> Iterator[SessionResult]:
     try:
         import ray
@@ -134,7 +140,7 @@ def run_ray(
         gpus = 1 if ("keypoints" in config.stages and _cuda_available()) else 0
         threads = _threads_per_worker(workers)
         task = ray.remote(num_cpus=1, num_gpus=gpus)(process_session)
-        pending = [task.remote(s, out, config, force, threads) for s in sources]
+        pending = [task.remote(s, out, config, force, threads, wait) for s in sources]
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             yield ray.get(done[0])
@@ -153,8 +159,10 @@ def run_sessions(
     workers: int | None = None,
     address: str | None = None,
     on_result: Callable[[SessionResult], None] | None = None,
+    wait: bool = False,
 ) -> list[SessionResult]:
-    """Process all sessions; results in the order of ``sources``."""
+    """Process all sessions; results in the order of ``sources``. A session another run is processing
+    (its lock, ``pipeline.lock``) is answered ``locked``, or with ``wait`` processed once that run ends."""
     if executor not in EXECUTORS:
         raise ValueError(f"unknown executor '{executor}'; valid: {list(EXECUTORS)}")
     # default: half the cores, two threads each; the 2D models already use 2 threads well, and on 2 cores one
@@ -173,9 +181,9 @@ def run_sessions(
     if not todo:
         return [by_name[s.name] for s in sources]
     it = (
-        run_local(todo, out, config, force, workers)
+        run_local(todo, out, config, force, workers, wait)
         if executor == "local"
-        else run_ray(todo, out, config, force, workers, address)
+        else run_ray(todo, out, config, force, workers, address, wait)
     )
     for r in it:
         by_name[r.name] = r

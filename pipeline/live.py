@@ -56,6 +56,7 @@ from capture.session import SessionLayout
 from core.errors import FormatError
 from core.memory import TRIM_EVERY, release_free_memory
 from keypoints.skeletons import CANONICAL, convert
+from pipeline.live_outputs import Outputs, load_rig
 from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
 from track.stage import focal_lengths
 from track.trackfile import SCHEMA, TrackFile
@@ -311,16 +312,7 @@ STAGES: dict[str, Callable[[LiveContext], Stage]] = {
 def build_stages(cfg: CaptureConfig, layout: SessionLayout) -> tuple[dict[str, Stage], dict[str, str]]:
     """The stages ``cfg.live.stages`` names, for :class:`capture.live.LiveRunner`; a stage that cannot be
     built (no calibration, a package missing) is left out with a warning. Returns (stages, errors)."""
-    rig = None
-    if cfg.calibration:
-        try:
-            p = Path(cfg.calibration)
-            if not p.is_absolute() and cfg.path:
-                p = Path(cfg.path).parent / p
-            rig = CameraRig.load(p)
-        except Exception as e:  # noqa: BLE001 - live keeps recording without 3D
-            log.warning("live: cannot load calibration %s (%s); 3D stages are off", cfg.calibration, e)
-    ctx = LiveContext(cfg, layout, rig)
+    ctx = LiveContext(cfg, layout, load_rig(cfg))
     out: dict[str, Stage] = {}
     errors: dict[str, str] = {}
     for name in cfg.live.stages:
@@ -332,7 +324,7 @@ def build_stages(cfg: CaptureConfig, layout: SessionLayout) -> tuple[dict[str, S
     return out, errors
 
 
-main = make_main(build_stages)
+main = make_main(build_stages, Outputs())
 
 if __name__ == "__main__":
     sys.exit(main())

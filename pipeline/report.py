@@ -233,13 +233,11 @@ def _calibration_figures(lay: SessionLayout) -> dict[str, Any] | None:
     return None
 
 
-def _rig_data(inp: _Inputs) -> dict[str, Any] | None:
-    if inp.rig_error:
-        return {"error": inp.rig_error, "cameras": []}
-    if inp.rig is None:
-        return None
+def rig_cameras_data(rig) -> list[dict[str, Any]]:
+    """Each camera of ``rig`` as the 3D viewer draws it (report.js and the live view's page): image size,
+    focal length, field of view, centre and axes in metres (world, z up)."""
     cams = []
-    for cam in inp.rig.cameras:
+    for cam in rig.cameras:
         R = np.asarray(cam.R)
         w, h = cam.size_wh
         fx, fy = float(cam.K[0, 0]), float(cam.K[1, 1])
@@ -258,7 +256,19 @@ def _rig_data(inp: _Inputs) -> dict[str, Any] | None:
                 "footprint_m": _footprint(cam),
             }
         )
-    return {"cameras": cams, "sha256": inp.rig.sha256(), "figures": _calibration_figures(inp.lay)}
+    return cams
+
+
+def _rig_data(inp: _Inputs) -> dict[str, Any] | None:
+    if inp.rig_error:
+        return {"error": inp.rig_error, "cameras": []}
+    if inp.rig is None:
+        return None
+    return {
+        "cameras": rig_cameras_data(inp.rig),
+        "sha256": inp.rig.sha256(),
+        "figures": _calibration_figures(inp.lay),
+    }
 
 
 def _detection_rates(inp: _Inputs) -> dict[str, Any]:
@@ -1111,7 +1121,9 @@ def render(data: dict[str, Any]) -> str:
         _asset("report.html")
         .replace("__TITLE__", html.escape(data["title"]))
         .replace("__STYLE__", _asset("report.css"))
-        .replace("__SCRIPT__", _asset("report.js").replace("</script", "<\\/script"))
+        .replace(
+            "__SCRIPT__", (_asset("viewer3d.js") + _asset("report.js")).replace("</script", "<\\/script")
+        )
         .replace("__DATA__", payload)
     )
 

@@ -31,14 +31,17 @@ from typing import Any
 from calibrate.camera import CameraRig
 from calibrate.formats import import_calibration
 from capture.fileio import atomic_write_bytes, atomic_write_text, load_npz, load_toml, save_toml
+from capture.offline_sync import POSE2SIM_OUTPUT
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from core.cli import describe_os_error
 from core.errors import RoomcapError
 from keypoints.registry import get_model_set, resolve
 from pipeline.config import STAGES, PipelineConfig
 from pipeline.discover import SEGMENT_SUFFIXES, SessionSource
 from pipeline.glue import forecast_model, track_particle, write_preview
+from pipeline.lock import SessionLocked, holder, lock_path, session_lock
 from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
-from pipeline.report import write_report
+from pipeline.report import warnings_path, write_report
 from track.stage import ParticleTrackConfig, stream_chunk_s
 from triangulate.chunks import PartStore, parts_dir
 from triangulate.reconstruct import RUN_SETTINGS
@@ -58,7 +61,8 @@ class StageError(RoomcapError, RuntimeError):
 class SessionResult:
     name: str
     out: str
-    status: str = "ok"  # ok | partial (some cameras were skipped, see skipped_cameras) | failed
+    # ok | partial (some cameras were skipped, see skipped_cameras) | failed | locked (another run holds it)
+    status: str = "ok"
     message: str = ""
     cameras: int = 0
     frames: int = 0
@@ -91,7 +95,7 @@ def output_root(source: SessionSource, out: Path | None) -> Path:
         return Path(out) / source.name
     if source.layout == "roomcap":
         return source.root
-    return source.root / "roomcap"
+    return source.root / POSE2SIM_OUTPUT
 
 
 # ----------------------------------------------------------------------------- stage plans
@@ -596,12 +600,27 @@ class _WarningsTo(logging.Handler):
             self.sink.append(msg)
 
 
+def stored_warnings(root: Path, stage: str) -> list[str]:
+    """The warnings a stage logged when it made its current outputs (kept beside its record)."""
+    try:
+        msgs = json.loads(warnings_path(root, stage).read_text())
+    except (OSError, json.JSONDecodeError):
+        return []
+    return [str(m) for m in msgs] if isinstance(msgs, list) else []
+
+
+def _keep_warnings(sink: list[str], msgs: list[str]) -> None:
+    sink.extend(m for m in msgs if m not in sink)
+
+
 def check_session(source: SessionSource, out: Path | None, config: PipelineConfig) -> SessionResult | None:
     """The result of a session whose every stage is up to date (without running anything), else None."""
     if _blocking_problem(source, config):
         return None
     root = output_root(source, out)
     try:
+        if holder(root) is not None:  # another run is writing it: process_session refuses or waits
+            return None
         saved = json.loads(_summary_path(root).read_text())
         lay, store = SessionLayout(root), ProvenanceStore(root)
         for name in _stage_list(config, source):
@@ -622,6 +641,7 @@ def check_session(source: SessionSource, out: Path | None, config: PipelineConfi
             setattr(res, k, saved[k])
     if res.skipped_cameras:
         res.status = "partial"
+    if res.warnings:  # the stages' warnings, as when they ran
         res.message = "warning: " + "; ".join(res.warnings)
     res.stage_s = {s: 0.0 for s in _stage_list(config)}
     return res
@@ -633,8 +653,40 @@ def process_session(
     config: PipelineConfig,
     force: bool = False,
     threads: int | None = None,
+    wait: bool = False,
 ) -> SessionResult:
-    """Run the configured stages of one session; never raises (failures are in the result)."""
+    """Run the configured stages of one session under its lock (``pipeline.lock``); never raises (failures
+    are in the result). Another run holding the session: status ``locked`` (or, with ``wait``, wait)."""
+    root = output_root(source, out)
+    if _blocking_problem(source, config):  # nothing will be written: no lock (nor folder) to make
+        return _process_session(source, out, config, force, threads)
+    try:
+        with session_lock(root, wait=wait) as lock:
+            result = _process_session(source, out, config, force, threads)
+        if lock.took_over is not None:
+            result.warnings.insert(0, lock.took_over_message(root))
+            if result.status != "failed":
+                result.message = "warning: " + "; ".join(result.warnings)
+        return result
+    except SessionLocked as e:
+        return SessionResult(source.name, str(root), status="locked", failed_stage="lock", message=str(e))
+    except OSError as e:
+        return SessionResult(
+            source.name,
+            str(root),
+            status="failed",
+            failed_stage="lock",
+            message=f"cannot take the session's lock {lock_path(root)}: {describe_os_error(e)}",
+        )
+
+
+def _process_session(
+    source: SessionSource,
+    out: Path | None,
+    config: PipelineConfig,
+    force: bool = False,
+    threads: int | None = None,
+) -> SessionResult:
     root = output_root(source, out)
     result = SessionResult(source.name, str(root))
     if threads:
@@ -669,21 +721,23 @@ def process_session(
                 )
             inputs = store.fingerprint_inputs(plan.inputs)
             version = stage_version(name, store.stat_cache)
-            if not force and store.is_current(
-                name, inputs, plan.config, plan.model_sha256, plan.outputs, version
-            ):
+            what, why = store.why_stale(name, inputs, plan.config, plan.model_sha256, plan.outputs, version)
+            if not force and not what:
                 result.stage_s[name] = round(time.perf_counter() - t0, 3)
                 done.append(name)
+                _keep_warnings(result.warnings, stored_warnings(root, name))
                 continue
+            if what == "outputs" and not force:  # not what the stage wrote: never trusted, and said
+                log.warning("stage '%s' reruns: its outputs are not what it wrote (%s)", name, why)
+            else:
+                log.info("%s: stage '%s' reruns: %s", source.name, name, why)
             store.invalidate(name)
             _remove_stale_temporaries(plan.outputs)
             log.info("%s: running %s", source.name, name)
             n_warn = len(result.warnings)
             plan.run(result.warnings)
             # what this stage logged, kept with its outputs for the report (replaced when it reruns)
-            atomic_write_text(
-                root / ".roomcap" / "warnings" / f"{name}.json", json.dumps(result.warnings[n_warn:])
-            )
+            atomic_write_text(warnings_path(root, name), json.dumps(result.warnings[n_warn:]))
             store.record(
                 StageRecord(
                     name,
@@ -692,6 +746,7 @@ def process_session(
                     plan.model_sha256,
                     version,
                     store.fingerprint_outputs(plan.outputs),
+                    store.output_files(plan.outputs),
                 )
             )
             result.ran.append(name)

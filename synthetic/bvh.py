@@ -49,23 +49,31 @@ from keypoints.skeletons import CANONICAL
 
 log = logging.getLogger(__name__)
 
-_READER_VERSION = 2
+_READER_VERSION = 3
 BODY19 = CANONICAL.joint_names
 
-# Candidate BVH joint names per body19 joint, first present wins (CMU ASF exports and iClone CC rig).
+# Candidate BVH joint names per body19 joint, first present wins (CMU ASF exports, the iClone CC rig and
+# the cgspeed "Daz-friendly" conversion of ``cmu-more``, whose feet end in ``lFoot_end``/``rFoot_end``).
 _NAME_CANDIDATES: dict[str, tuple[str, ...]] = {
-    "left_hip": ("LeftUpLeg", "LeftHip", "CC_Base_L_Thigh", "LeftThigh", "L_Hip"),
-    "right_hip": ("RightUpLeg", "RightHip", "CC_Base_R_Thigh", "RightThigh", "R_Hip"),
-    "left_knee": ("LeftLeg", "LeftKnee", "CC_Base_L_Calf", "LeftShin", "L_Knee"),
-    "right_knee": ("RightLeg", "RightKnee", "CC_Base_R_Calf", "RightShin", "R_Knee"),
-    "left_ankle": ("LeftFoot", "LeftAnkle", "CC_Base_L_Foot", "L_Ankle"),
-    "right_ankle": ("RightFoot", "RightAnkle", "CC_Base_R_Foot", "R_Ankle"),
-    "left_shoulder": ("LeftArm", "LeftUpArm", "LeftShoulder", "CC_Base_L_Upperarm", "L_Shoulder"),
-    "right_shoulder": ("RightArm", "RightUpArm", "RightShoulder", "CC_Base_R_Upperarm", "R_Shoulder"),
-    "left_elbow": ("LeftForeArm", "LeftElbow", "CC_Base_L_Forearm", "LeftLowArm", "L_Elbow"),
-    "right_elbow": ("RightForeArm", "RightElbow", "CC_Base_R_Forearm", "RightLowArm", "R_Elbow"),
-    "left_wrist": ("LeftHand", "LeftWrist", "CC_Base_L_Hand", "L_Wrist"),
-    "right_wrist": ("RightHand", "RightWrist", "CC_Base_R_Hand", "R_Wrist"),
+    "left_hip": ("LeftUpLeg", "LeftHip", "CC_Base_L_Thigh", "LeftThigh", "L_Hip", "lThigh"),
+    "right_hip": ("RightUpLeg", "RightHip", "CC_Base_R_Thigh", "RightThigh", "R_Hip", "rThigh"),
+    "left_knee": ("LeftLeg", "LeftKnee", "CC_Base_L_Calf", "LeftShin", "L_Knee", "lShin"),
+    "right_knee": ("RightLeg", "RightKnee", "CC_Base_R_Calf", "RightShin", "R_Knee", "rShin"),
+    "left_ankle": ("LeftFoot", "LeftAnkle", "CC_Base_L_Foot", "L_Ankle", "lFoot"),
+    "right_ankle": ("RightFoot", "RightAnkle", "CC_Base_R_Foot", "R_Ankle", "rFoot"),
+    "left_shoulder": ("LeftArm", "LeftUpArm", "LeftShoulder", "CC_Base_L_Upperarm", "L_Shoulder", "lShldr"),
+    "right_shoulder": (
+        "RightArm",
+        "RightUpArm",
+        "RightShoulder",
+        "CC_Base_R_Upperarm",
+        "R_Shoulder",
+        "rShldr",
+    ),
+    "left_elbow": ("LeftForeArm", "LeftElbow", "CC_Base_L_Forearm", "LeftLowArm", "L_Elbow", "lForeArm"),
+    "right_elbow": ("RightForeArm", "RightElbow", "CC_Base_R_Forearm", "RightLowArm", "R_Elbow", "rForeArm"),
+    "left_wrist": ("LeftHand", "LeftWrist", "CC_Base_L_Hand", "L_Wrist", "lHand"),
+    "right_wrist": ("RightHand", "RightWrist", "CC_Base_R_Hand", "R_Wrist", "rHand"),
     "head": ("Head", "CC_Base_Head", "head"),
 }
 _FOOT_CANDIDATES = (
@@ -75,6 +83,8 @@ _FOOT_CANDIDATES = (
     "RightToe",
     "CC_Base_L_ToeBase",
     "CC_Base_R_ToeBase",
+    "lFoot_end",
+    "rFoot_end",
 )
 
 # Face points as offsets (forward, left, up) in metres from the BVH head joint (base of the

@@ -67,6 +67,9 @@ class SceneConfig:
     motion: str = "auto"  # "auto" (mocap if found, else procedural) | "mocap" | "procedural"
     mocap_root: str | None = None
     clip_filter: tuple[str, ...] = ()  # keep clips whose path contains any of these substrings
+    # leave out clips under these folders of the mocap root: cmu-more is the forecasting collection, and
+    # the world (its benchmarks and the bounds its tests measured) is made of the clips before it
+    clip_exclude: tuple[str, ...] = ("cmu-more",)
     enter_leave: bool = False
     enter_leave_fraction: float = 0.5
     return_fraction: float = 0.0
@@ -140,7 +143,7 @@ class Scene:
 
 
 def _clip_pool(cfg: SceneConfig) -> list[Path]:
-    files = bvh.list_clips(cfg.mocap_root)
+    files = [f for f in bvh.list_clips(cfg.mocap_root) if not set(cfg.clip_exclude) & set(f.parts)]
     if cfg.clip_filter:
         files = [f for f in files if any(s in str(f) for s in cfg.clip_filter)]
     return files

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from track.skeleton_fit import SkeletonFit, fit_skeletons, write_bvh
+from track.bvh import write_bvh
+from track.skeleton_fit import SkeletonFit, fit_skeletons
 
 PROBE = Path(__file__).with_name("blender_bvh_probe.py")
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from keypoints.skeletons import CANONICAL
+from track.bvh import write_bvh
 from track.cli import main as tracks_main
 from track.export import (
     ExportError,
@@ -18,7 +19,7 @@ from track.export import (
     write_c3d,
     write_trc,
 )
-from track.skeleton_fit import SkeletonFit, file_sha256, fit_skeleton, fit_skeletons, write_bvh
+from track.skeleton_fit import SkeletonFit, file_sha256, fit_skeleton, fit_skeletons
 from track.trackfile import OBSERVED, TrackFile, read_json, read_trc, world_to_yup, yup_to_world
 
 

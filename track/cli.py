@@ -10,6 +10,10 @@ tracks fit SESSION|tracks.npz
     track/live.npz: live_skeleton_fit.npz)
 tracks opensim SESSION|tracks.npz [--setup DIR] [--person ID] --out DIR
     Pose2Sim's OpenSim model scaled and inverse kinematics on the TRC (needs the opensim extra)
+tracks stream SESSION|tracks.npz --stream lsl,osc [--osc-to HOST:PORT] [--speed 1]
+    replay the track at its own clock to the Lab Streaming Layer and/or OSC (track/streams.py)
+tracks view SESSION --rrd FILE.rrd
+    the session as a Rerun recording: cameras, frames, 2D detections, 3D tracks (track/rerun_export.py)
 
 Also runnable as ``python -m track.cli``.
 """
@@ -21,8 +25,9 @@ import logging
 import sys
 from pathlib import Path
 
-from core.cli import guarded
+from core.cli import Parser, guarded
 from core.errors import RoomcapError
+from track import rerun_export, streams
 from track.export import ExportOptions, export_tracks, parse_formats
 from track.opensim_ik import default_setup_dir, run_opensim
 from track.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
@@ -81,6 +86,12 @@ def _export(args) -> int:
     path, session = resolve_tracks(args.tracks)
     tf = TrackFile.load(path)
     persons = _persons(args.person)
+    unknown = sorted(set(persons or ()) - set(tf.track_id.tolist()))
+    if unknown:
+        raise UsageError(
+            f"--person: there is no track {','.join(map(str, unknown))} in {path} (its tracks: "
+            f"{tf.track_id.tolist()}); nothing was written."
+        )
     fit = None
     if "bvh" in fmts:
         fit, made = load_or_fit(path, tf, persons)
@@ -153,10 +164,8 @@ def _opensim(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="tracks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    p.add_argument("-v", "--verbose", action="store_true")
+    p = Parser(prog="tracks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("export", help="TRC / C3D / BVH / CSV / JSON, one file per person and format")
     e.add_argument("tracks", help="session folder or tracks.npz")
@@ -195,10 +204,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--markerset", default="Body25b", help="Body25b | Halpe26 | Coco17 | Blazepose (default Body25b)"
     )
     o.add_argument("--person", help="track id(s), comma-separated (default: every track)")
-    o.add_argument("--out", type=Path, required=True)
-    o.add_argument("--session")
-    o.add_argument("--max-gap", type=int, default=10)
+    o.add_argument("--out", type=Path, required=True, help="output folder (scaled model, motion files, logs)")
+    o.add_argument("--session", help="name used in the file names (default: the session folder's name)")
+    o.add_argument("--max-gap", type=int, default=10, help="fill gaps up to N frames before IK")
     o.set_defaults(func=_opensim)
+    streams.add_parser(sub, resolve_tracks)
+    rerun_export.add_parser(sub, resolve_tracks)
     return p
 
 

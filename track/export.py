@@ -25,7 +25,7 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
 - **CSV** tidy, one row per known joint and frame: ``frame, time_s, person, joint, x, y, z,
   confidence, std_m, flags`` (world metres, z up, as the track file); :func:`read_csv` reads it back.
 - **JSON**: :func:`track.trackfile.export_json` for one track (confidence, std_m, flags).
-- **BVH**: the fitted skeleton (:mod:`track.skeleton_fit`), written by :func:`track.skeleton_fit.write_bvh`.
+- **BVH**: the fitted skeleton (:mod:`track.skeleton_fit`), written by :func:`track.bvh.write_bvh`.
 
 ``ExportOptions(lowpass_hz=6)`` (``tracks export --lowpass 6``) low-pass filters the positions first, as
 Pose2Sim filters its 3D before OpenSim (:func:`lowpass`: Butterworth, order 4, zero phase). Off by
@@ -47,7 +47,8 @@ import numpy as np
 
 from capture.fileio import FormatError, atomic_path, atomic_write_text
 from core.errors import RoomcapError
-from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span, write_bvh
+from track.bvh import write_bvh
+from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span
 from track.trackfile import (
     SMOOTHED,
     TrackFile,
@@ -388,9 +389,8 @@ def export_tracks(
     ``fit`` is a :class:`track.skeleton_fit.SkeletonFit` of ``tf`` (BVH); fitted on the fly when None."""
     options = options or ExportOptions()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     ids = tf.track_id.tolist() if persons is None else [int(p) for p in persons]
-    for p in ids:
+    for p in ids:  # an unknown id is refused before anything is made
         _track_index(tf, p)
     rep = ExportReport()
     if not ids:
@@ -410,15 +410,25 @@ def export_tracks(
     if "bvh" in fmts:
         rep.notes.extend(f"BVH left out: {n}" for n in fit.notes)
 
-    for p in ids:
-        try:
-            rep.files.extend(_export_person(tf, p, out_dir / f"{session}_{p}", options, fit, rep))
-        except (ExportError, FitError) as e:
-            if strict:
-                raise
-            rep.notes.append(f"track {p} skipped: {e}")
-    if not rep.files:
-        raise ExportError("nothing could be exported: " + "; ".join(rep.notes))
+    made = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # removed again if nothing is written
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        for p in ids:
+            try:
+                rep.files.extend(_export_person(tf, p, out_dir / f"{session}_{p}", options, fit, rep))
+            except (ExportError, FitError) as e:
+                if strict:
+                    raise
+                rep.notes.append(f"track {p} skipped: {e}")
+        if not rep.files:
+            raise ExportError("nothing could be exported: " + "; ".join(rep.notes))
+    except BaseException:
+        for d in made:  # the folders this call made, innermost first, while they are empty
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
     if "bvh" in fmts and options.multi_bvh and len(fit.track_id) > 1:
         path = out_dir / f"{session}_all.bvh"
         write_bvh(fit, path, track_ids=fit.track_id.tolist())

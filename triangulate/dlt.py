@@ -301,7 +301,19 @@ def triangulate_dlt(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Plain weighted DLT (no rejection). P: (C,3,4); xy_px: (C,N,2), NaN = unseen; weights: (C,N).
 
-    Returns xyz_m (N,3) (NaN where fewer than ``min_views``) and n_views (N,).
+    Returns xyz_m (N,3) (NaN where fewer than ``min_views``) and n_views (N,), the views used (0 where
+    the point was not triangulated).
+
+    >>> from triangulate.geometry import project
+    >>> K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    >>> P = np.stack([K @ np.hstack([np.eye(3), [[dx], [0], [2]]]) for dx in (0.0, -0.5, 0.5)])
+    >>> X = np.array([[0.1, -0.2, 0.3], [0.0, 0.4, -0.1]])
+    >>> xy = project(P, X)
+    >>> xy[1:, 1] = np.nan  # the second point is seen by the first camera only
+    >>> xyz_m, n_views = triangulate_dlt(P, xy)
+    >>> np.round(xyz_m, 6) + 0.0, n_views.tolist()
+    (array([[ 0.1, -0.2,  0.3],
+           [ nan,  nan,  nan]]), [3, 0])
     """
     cfg = DLTConfig(min_views=min_views, min_score=0.0, max_reproj_px=1e9, max_rejections=0, max_std_m=1e9)
     r = Triangulator(P, cfg)(xy_px, weights)

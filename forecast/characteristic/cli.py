@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import guarded, parse_sets, positive_int
+from core.cli import Parser, guarded, parse_sets, positive_int
 from core.errors import FormatError, InputError
 from core.fileio import atomic_write_text
 from core.progress import Bars
@@ -51,7 +51,7 @@ DESCRIPTION = (
 
 def _main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
-    ap = argparse.ArgumentParser(prog="forecast characteristic", description=DESCRIPTION)
+    ap = Parser(prog="forecast characteristic", description=DESCRIPTION)
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train", help="annotate CMU, train the heatmap model and the Deterministic ablation")
     t.add_argument("--out", required=True, help="checkpoint path (.pt)")
@@ -62,19 +62,21 @@ def _main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help=f"config overrides; keys: {', '.join(f.name for f in dataclasses.fields(CharConfig))}",
     )
-    t.add_argument("--split-seed", type=int, default=0)
+    t.add_argument("--split-seed", type=int, default=0, help="seed of the split by clip")
     t.add_argument("--no-eval", action="store_true", help="skip the test-split evaluation after training")
     e = sub.add_parser("eval", help="sec. 3.6 evaluation on the CMU test (or val) split")
-    e.add_argument("--checkpoint", default=str(SHIPPED))
-    e.add_argument("--split", choices=("test", "val", "train"), default="test")
-    e.add_argument("--split-seed", type=int, default=0)
+    e.add_argument("--checkpoint", default=str(SHIPPED), help="checkpoint (default: the shipped one)")
+    e.add_argument("--split", choices=("test", "val", "train"), default="test", help="split to evaluate")
+    e.add_argument("--split-seed", type=int, default=0, help="seed of the split by clip")
     e.add_argument(
         "--k", type=positive_int, default=None, help="hypotheses per window (default: the config's, 10)"
     )
     e.add_argument("--no-refine", action="store_true", help="skip the pose refinement of eq. 3.2")
-    e.add_argument("--max-windows", type=positive_int, default=None)
-    e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--json", default=None, help="also write the figures as JSON here")
+    e.add_argument(
+        "--max-windows", type=positive_int, default=None, help="at most this many windows (default: all)"
+    )
+    e.add_argument("--seed", type=int, default=0, help="seed of the sampled hypotheses")
+    e.add_argument("--json", default=None, help="also write the figures as JSON here (default: no JSON)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 

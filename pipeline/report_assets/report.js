@@ -232,48 +232,15 @@ function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W 
     c.stroke(); c.setLineDash([]); });
 })();
 
-// ---------------------------------------------------------------- 3D viewer
-const cv = $('viewer'), ctx = cv.getContext('2d');
-let yaw = -0.9, pitch = 0.42, zoom = 1.0, playing = false;
-let center = [0, 0, 0.9], radius = 3;
+// ---------------------------------------------------------------- 3D viewer (viewer3d.js)
+const cv = $('viewer'), V3 = RoomView3D(cv), ctx = V3.ctx, project = V3.project, line = V3.line, floorOf = V3.floorOf;
+let playing = false;
 (function fit(){ const pts = []; for (const fr of roots) for (const r of fr) if (r) pts.push(r);
   for (const traj of fcRoots) for (const r of traj) if (r) pts.push(r);
   if (!pts.length && D.rig) for (const k of D.rig.cameras) pts.push(k.center_m);
-  if (!pts.length) return;
-  const lo = [0, 1].map(a => Math.min(...pts.map(p => p[a]))), hi = [0, 1].map(a => Math.max(...pts.map(p => p[a])));
-  center = [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.9];
-  radius = Math.max(1.3, 0.5 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1]) + 0.7);
+  V3.fit(pts);
 })();
-function project(p){ // orbit camera looking at `center`, z up
-  const x = p[0] - center[0], y = p[1] - center[1], z = p[2] - center[2];
-  const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
-  const xr = cy * x - sy * y, yr = sy * x + cy * y;
-  const depth = cp * yr + sp * z, up = -sp * yr + cp * z;
-  const dist = radius * 2.1 / zoom, f = cv.height * 0.95;
-  const d = dist + depth; if (d < 0.05) return null;
-  return [cv.width / 2 + f * xr / d, cv.height * 0.56 - f * up / d, d, f / d];
-}
-function line(a, b, col, w, dash){ const p = project(a), q = project(b); if (!p || !q) return;
-  ctx.strokeStyle = col; ctx.lineWidth = w; if (dash) ctx.setLineDash(dash); ctx.beginPath(); ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]); ctx.stroke(); if (dash) ctx.setLineDash([]); }
-function floorOf(p){ return [p[0], p[1], 0]; }
-function skeleton(pose, col, w, std_m, alpha, box){
-  if (!pose) return; ctx.globalAlpha = alpha === undefined ? 1 : alpha; ctx.lineCap = 'round';
-  ctx.globalAlpha *= 0.35;
-  T.parents.forEach((p, j) => { if (p < 0 || !fin(pose[j]) || !fin(pose[p])) return; line(floorOf(pose[j]), floorOf(pose[p]), '#000', w + 2); });
-  ctx.globalAlpha = alpha === undefined ? 1 : alpha;
-  T.parents.forEach((p, j) => { if (p < 0 || !fin(pose[j]) || !fin(pose[p])) return; line(pose[j], pose[p], col, w); });
-  pose.forEach(j => { if (!fin(j)) return; const q = project(j); if (!q) return;
-    if (box) { box[0] = Math.min(box[0], q[0]); box[1] = Math.min(box[1], q[1]); box[2] = Math.max(box[2], q[0]); box[3] = Math.max(box[3], q[1]); }
-    if (std_m) { const r = Math.min(40, std_m * q[3]); ctx.fillStyle = col; ctx.globalAlpha *= 0.18; ctx.beginPath(); ctx.arc(q[0], q[1], Math.max(2, r), 0, 7); ctx.fill(); ctx.globalAlpha = alpha === undefined ? 1 : alpha; }
-    ctx.fillStyle = col; ctx.beginPath(); ctx.arc(q[0], q[1], Math.max(1.5, w * 0.8), 0, 7); ctx.fill(); });
-  ctx.globalAlpha = 1;
-}
-function drawCamera(k){ const c0 = k.center_m, a = k.axis, r = k.right || [0, 0, 0], u = k.up || [0, 0, 1];
-  const tw = Math.tan((k.fov_deg ? k.fov_deg[0] : 60) * Math.PI / 360) * 0.35, th = Math.tan((k.fov_deg ? k.fov_deg[1] : 40) * Math.PI / 360) * 0.35;
-  const corner = (sx, sy) => [0, 1, 2].map(i => c0[i] + 0.35 * a[i] + sx * tw * r[i] + sy * th * u[i]);
-  const cs = [corner(-1, -1), corner(1, -1), corner(1, 1), corner(-1, 1)];
-  for (let i = 0; i < 4; i++) { line(c0, cs[i], '#8f9bb3', 1.2); line(cs[i], cs[(i + 1) % 4], '#8f9bb3', 1.2); }
-  line(cs[2], cs[3], '#c9d2e6', 2.4); }
+function skeleton(pose, col, w, std_m, alpha, box){ V3.skeleton(pose, T.parents, col, w, std_m, alpha, box); }
 const overlaps = (a, b) => a[0] < b[2] && b[0] < a[2] && a[1] < b[3] && b[1] < a[3];
 function cameraLabels(boxes){ // after the people: a label goes where it covers no one (and no other label), else it fades
   if (!D.rig) return; ctx.font = '12px system-ui,sans-serif'; const taken = boxes.slice();
@@ -291,12 +258,8 @@ function cameraLabels(boxes){ // after the people: a label goes where it covers 
       ctx.lineTo(q[0] + dx + w / 2, q[1] + dy - 4); ctx.stroke(); ctx.setLineDash([]); }
     ctx.fillText(k.name, q[0] + dx, q[1] + dy); ctx.globalAlpha = 1; if (placed) taken.push(placed[2]); } }
 function draw(){
-  ctx.fillStyle = '#10141c'; ctx.fillRect(0, 0, cv.width, cv.height);
-  const g = Math.ceil(radius * 1.6);
-  for (let i = -g; i <= g; i++) { const cx = Math.round(center[0]) + i, cy = Math.round(center[1]) + i;
-    line([cx, Math.round(center[1]) - g, 0], [cx, Math.round(center[1]) + g, 0], '#222a38', 1);
-    line([Math.round(center[0]) - g, cy, 0], [Math.round(center[0]) + g, cy, 0], '#222a38', 1); }
-  if (D.rig) for (const k of D.rig.cameras) drawCamera(k);
+  V3.background();
+  if (D.rig) for (const k of D.rig.cameras) V3.drawCamera(k);
   if (!T || !nFrames) { ctx.fillStyle = '#aab3c5'; ctx.font = '16px system-ui,sans-serif'; ctx.fillText('No tracks in this session yet.', 30, 40); cameraLabels([]); return; }
   const trail = Math.round(fps * 1.0);
   for (let k = 0; k < nTracks; k++) { let prev = null;
@@ -388,12 +351,7 @@ function setFilm(i){ if (!V) return; filmIdx = Math.max(0, Math.min(V.frames.len
 const slider = $('frame'); slider.max = Math.max(0, nFrames - 1);
 slider.addEventListener('input', () => setFrame(+slider.value));
 $('play').addEventListener('click', () => { playing = !playing; $('play').innerHTML = playing ? '&#10074;&#10074; Pause' : '&#9654; Play'; });
-let drag = null;
-cv.addEventListener('mousedown', e => drag = [e.clientX, e.clientY]);
-window.addEventListener('mouseup', () => drag = null);
-window.addEventListener('mousemove', e => { if (!drag) return; yaw += (e.clientX - drag[0]) * 0.01;
-  pitch = Math.max(-0.1, Math.min(1.5, pitch + (e.clientY - drag[1]) * 0.01)); drag = [e.clientX, e.clientY]; draw(); });
-cv.addEventListener('wheel', e => { e.preventDefault(); zoom *= e.deltaY < 0 ? 1.1 : 0.9; draw(); }, {passive: false});
+V3.orbit(draw);
 if (T) { const lg = $('legend'); T.track_id.forEach((id, k) => { const s = document.createElement('span');
   const first = T.present[k].indexOf(1), last = T.present[k].lastIndexOf(1);
   s.innerHTML = `<i class="swatch" style="background:${color(k)}"></i>`; s.appendChild(document.createTextNode(

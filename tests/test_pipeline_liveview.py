@@ -1,0 +1,309 @@
+"""The live view (pipeline.liveview): what the page receives (tracks, 2D detections, the 3D reprojected,
+reduced camera images), that the live loop never waits for a page (a page that reads nothing or is killed
+loses view updates, the recorder loses no frame), and the bad-input rules (loopback unless a token, a port
+in use named with a free one). Network: 127.0.0.1 only, every wait bounded."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import sys
+import time
+import urllib.error
+import urllib.request
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from capture.config import parse_config
+from capture.live import LiveStep
+from capture.sources import Frame, host_now_ns
+from capture.sync import FrameSet
+from core.errors import InputError
+from keypoints.skeletons import CANONICAL
+from pipeline.liveview.browser import find_chromium
+from pipeline.liveview.server import LiveView, ViewConfig
+from synthetic.rigs import ring_rig
+
+aiohttp = pytest.importorskip("aiohttp", reason="aiohttp not installed: pip install 'roomcap[view]'")
+J = CANONICAL.n_joints
+
+
+def _setup(n_cams=2, **kw):
+    rig = ring_rig(n_cams, radius_m=4.0)
+    names = [c.name for c in rig.cameras]
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:", "fps": 30} for n in names]})
+    view = LiveView(ViewConfig(port=0, **kw), cfg, None, None, rig)
+    return rig, names, view
+
+
+def _step(rig, names, t, X, img_wh=(640, 480)):
+    """One frame set: images, detections (the projections of X (P,J,3)) and the track estimate."""
+    t_ns = host_now_ns()
+    rng = np.random.default_rng(t)
+    img = rng.integers(0, 255, (img_wh[1], img_wh[0], 3), np.uint8)
+    uv = rig.project(X.reshape(-1, 3)).reshape(len(names), len(X), J, 2)
+    dets = {
+        n: SimpleNamespace(xy_px=uv[c], score=np.full(uv.shape[1:3], 0.9), skeleton="body19")
+        for c, n in enumerate(names)
+    }
+    est = SimpleNamespace(track_id=np.arange(len(X)) + 3, xyz_m=X, std_m=np.full(X.shape[:2], 0.02))
+    fs = FrameSet(t, t_ns, {n: Frame(img, t_ns, t_ns, t) for n in names})
+    return LiveStep(fs, tuple(names), {"detections": dets, "tracks": est})
+
+
+def _person(x=0.0):
+    X = np.zeros((J, 3))
+    X[:, 0] = x
+    X[:, 2] = np.linspace(0.1, 1.7, J)
+    return X
+
+
+async def _receive(url, n_state, n_img=0, timeout_s=10.0, ack=True):
+    got = {"hello": None, "state": [], "img": []}
+    async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+        t0 = time.monotonic()
+        while (len(got["state"]) < n_state or len(got["img"]) < n_img) and time.monotonic() - t0 < timeout_s:
+            try:
+                msg = await ws.receive(timeout=timeout_s)
+            except TimeoutError:
+                break
+            if msg.type == aiohttp.WSMsgType.TEXT:
+                m = json.loads(msg.data)
+                if m["type"] == "hello":
+                    got["hello"] = m
+                else:
+                    got["state"].append(m)
+                    if ack:
+                        await ws.send_str(json.dumps({"ack": m["seq"], "t_capture_ms": m["t_capture_ms"]}))
+            elif msg.type == aiohttp.WSMsgType.BINARY:
+                n = int.from_bytes(msg.data[:2], "big")
+                got["img"].append((json.loads(msg.data[2 : 2 + n]), msg.data[2 + n :]))
+            else:
+                break
+        await asyncio.sleep(0.1)  # the acks reach the server
+    return got
+
+
+def test_the_page_receives_tracks_detections_reprojections_and_reduced_images():
+    rig, names, view = _setup()
+    view.start()
+    try:
+        X = np.stack([_person(-0.5), _person(0.5)])
+        step = _step(rig, names, 0, X)
+
+        async def run():
+            task = asyncio.create_task(_receive(f"ws://127.0.0.1:{view.port}/ws", 1, 2))
+            for _ in range(100):  # until the page is connected
+                if view.n_clients:
+                    break
+                await asyncio.sleep(0.02)
+            view.offer(step)
+            return await task
+
+        got = asyncio.run(run())
+    finally:
+        view.stop()
+    h = got["hello"]
+    assert h["cameras"] == names and h["joint_names"] == list(CANONICAL.joint_names)
+    assert [c["name"] for c in h["rig"]["cameras"]] == names
+    (st,) = got["state"]
+    assert [t["id"] for t in st["tracks"]] == [3, 4]
+    np.testing.assert_allclose(np.asarray(st["tracks"][1]["xyz"], float).reshape(J, 3), X[1], atol=1e-3)
+    for c, cam in enumerate(names):
+        want = rig.project(X.reshape(-1, 3)).reshape(len(names), 2, J, 2)[c]
+        np.testing.assert_allclose(np.asarray(st["det"][cam], float).reshape(2, J, 2), want, atol=0.06)
+        ids = [p[0] for p in st["proj"][cam]]
+        assert ids == [3, 4]
+        np.testing.assert_allclose(np.asarray(st["proj"][cam][0][1], float).reshape(J, 2), want[0], atol=0.06)
+    assert sorted(hd["cam"] for hd, _ in got["img"]) == sorted(names)
+    hd, jpg = got["img"][0]
+    im = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)
+    assert im.shape[:2] == (270, 360) and hd["src_wh"] == [640, 480] and hd["seq"] == st["seq"]
+    lat = view.latency_ms()
+    assert len(lat) == 1 and 0 <= lat[0] < 2000  # capture -> the client acknowledged, measured at the server
+
+
+def test_a_page_that_reads_nothing_or_dies_loses_view_updates_never_the_live_loop():
+    rig, names, view = _setup(n_cams=4, image_hz=1000.0, state_hz=1000.0)
+    view.start()
+    X = np.stack([_person(0.0)])
+    steps = [_step(rig, names, t, X, img_wh=(1280, 720)) for t in range(8)]
+    sock = socket.create_connection(("127.0.0.1", view.port), timeout=5)  # a page that never reads
+    sock.sendall(
+        b"GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    for _ in range(100):
+        if view.n_clients:
+            break
+        time.sleep(0.02)
+    assert view.n_clients == 1
+    offer_s = []
+    t_end = time.monotonic() + 3.0
+    i = 0
+    while time.monotonic() < t_end:
+        t0 = time.perf_counter()
+        view.offer(steps[i % len(steps)])
+        offer_s.append(time.perf_counter() - t0)
+        i += 1
+        time.sleep(0.002)
+    dropped = view.dropped_updates
+    sock.close()  # the page dies
+    for t in range(50):
+        view.offer(steps[t % len(steps)])
+    t0 = time.monotonic()
+    view.stop()
+    assert time.monotonic() - t0 < 6.0
+    assert max(offer_s) < 0.005, max(offer_s)  # the live loop's cost: an assignment (measured ~5 us)
+    assert dropped > 0 and view.states_sent > 10  # the producer went on; the slow page's slot was overwritten
+
+
+def test_bad_view_options_are_refused_with_what_to_do():
+    with pytest.raises(InputError, match="--view-token auto"):
+        ViewConfig(host="0.0.0.0")
+    held = socket.socket()
+    held.bind(("127.0.0.1", 0))
+    held.listen(1)
+    port = held.getsockname()[1]
+    try:
+        rig, names, _ = _setup()
+        cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:"} for n in names]})
+        view = LiveView(ViewConfig(port=port), cfg, None, None, rig)
+        with pytest.raises(InputError, match=rf"--view-port {port} is in use.*--view-port \d+ \(free now\)"):
+            view.start()
+    finally:
+        held.close()
+
+
+def test_without_aiohttp_the_view_names_the_extra(monkeypatch):
+    _, _, view = _setup()
+    monkeypatch.setitem(sys.modules, "aiohttp", None)
+    with pytest.raises(InputError, match=r"pip install 'roomcap\[view\]'"):
+        view.start()
+
+
+def test_a_token_guards_every_request():
+    _, _, view = _setup(token="auto")
+    view.start()
+    try:
+        token = view.cfg.token
+        assert token and token != "auto" and f"token={token}" in view.url
+        base = f"http://127.0.0.1:{view.port}"
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(base + "/", timeout=5)
+        assert e.value.code == 403
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(base + "/status.json?token=wrong", timeout=5)
+        page = urllib.request.urlopen(view.url, timeout=5).read().decode()
+        assert "roomcap live" in page and "RoomView3D" in page and "__SCRIPT__" not in page
+    finally:
+        view.stop()
+
+
+def test_capture_run_refuses_bad_live_output_options_before_recording(tmp_path, capsys):
+    from pipeline.live import main
+
+    (tmp_path / "cams.yaml").write_text("cameras:\n  - {name: a, source: 'synthetic:', fps: 10}\n")
+    base = ["--cameras", str(tmp_path / "cams.yaml"), "--duration", "0.5", "--quiet"]
+    assert main([*base, "--out", str(tmp_path / "s1"), "--view"]) == 2
+    assert "need --live" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "s2"), "--live", "--view", "--view-host", "0.0.0.0"]) == 2
+    assert "--view-token" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "s3"), "--live", "--stream", "osc"]) == 2
+    assert "--osc-to HOST:PORT" in capsys.readouterr().err
+    for s in ("s1", "s2", "s3"):
+        assert not (tmp_path / s).exists()  # refused before anything was recorded
+
+
+def test_live_without_view_or_streams_is_unchanged():
+    """No output asked for: nothing opens, the live loop's hook stays as it was (None in capture-run)."""
+    import argparse
+
+    from capture.live import LiveRunner
+    from pipeline.live_outputs import Outputs
+
+    cfg = parse_config({"cameras": [{"name": "a", "source": "synthetic:"}]})
+    live = LiveRunner(cfg, "unused", stages={})
+    outputs = Outputs()
+    p = argparse.ArgumentParser()
+    outputs.add_arguments(p)
+    close = outputs.open(p.parse_args([]), live, None)
+    assert live.on_step is None and outputs.feed is None
+    close()
+
+
+need_chromium = pytest.mark.skipif(
+    find_chromium() is None, reason="headless Chromium not installed (apt-get install chromium)"
+)
+
+
+@need_chromium
+def test_recording_with_the_page_in_chromium_killed_mid_run_drops_no_frame(tmp_path):
+    """capture-run's path (Recorder -> LiveRunner -> Outputs.open): the page draws 4 camera panes and 3
+    people, acknowledges its updates; the browser is killed mid-run and the recorder writes every frame it
+    grabbed."""
+    import argparse
+    import threading
+
+    from capture.config import load_config
+    from capture.live import LiveRunner
+    from capture.recorder import Recorder
+    from pipeline.live_outputs import Outputs
+    from pipeline.liveview.browser import HeadlessBrowser
+
+    rig = ring_rig(4, radius_m=4.0)
+    names = [c.name for c in rig.cameras]
+    rig.save(tmp_path / "rig.toml")
+    cams = "".join(
+        f"  - {{name: {n}, source: 'synthetic:', resolution: [320, 240], fps: 30}}\n" for n in names
+    )
+    (tmp_path / "cams.yaml").write_text("calibration: rig.toml\ncameras:\n" + cams)
+    cfg = load_config(tmp_path / "cams.yaml")
+    X = np.stack([_person(-0.6), _person(0.0), _person(0.6)])
+
+    def people(step):  # stands in for the 3D stages: three people in the room
+        step.outputs["tracks"] = SimpleNamespace(
+            track_id=np.array([1, 2, 5]), xyz_m=X, std_m=np.full((3, J), 0.03)
+        )
+
+    live = LiveRunner(cfg, tmp_path / "S", stages={"track": people})
+    rec = Recorder(cfg, tmp_path / "S", duration_s=5.0, frameset_sink=live.queue, handle_signals=False)
+    outputs = Outputs()
+    p = argparse.ArgumentParser()
+    outputs.add_arguments(p)
+    close = outputs.open(p.parse_args(["--view", "--view-port", "0"]), live, rec)
+    view = outputs.feed.view
+    seen = {}
+
+    def drive():
+        with HeadlessBrowser(tmp_path / "chrome") as b:
+            b.open(view.url)
+            seen["people"] = b.wait_for(
+                "document.body.dataset.panesDrawn === '4' && document.body.dataset.people", 15
+            )
+            seen["latency_ms"] = b.evaluate("document.body.dataset.latencyMs")
+            b.screenshot(tmp_path / "live.png")
+            seen["killed_at"] = live.stats.processed
+            b.kill()  # mid-run: the page dies, the recording goes on
+
+    t = threading.Thread(target=drive)
+    live.start()
+    t.start()
+    summary = rec.run()
+    live.stop()
+    t.join(30)
+    status = view.status()
+    close()
+    assert seen["people"] == "3" and float(seen["latency_ms"]) < 2000
+    assert (tmp_path / "live.png").stat().st_size > 10_000
+    assert 0 < seen["killed_at"] < live.stats.processed  # frame sets went on after the kill
+    for n in names:
+        c = summary["cameras"][n]
+        # the recorder wrote every frame the camera gave (a synthetic camera on a loaded host may skip some
+        # itself: dropped_source, not the recorder's doing)
+        assert c["dropped_queue"] == 0 and c["frames_written"] == c["frames_grabbed"] >= 60, c  # measured 150
+    assert status["acks"] >= 3 and status["clients"] == 0
