@@ -155,6 +155,16 @@ def _baseline_models(names: list[str], train_clips, lhip: int | None = None, rhi
     return models
 
 
+PROTOCOLS = ("cmu", "cmu8", "hik")
+
+
+def shipped_checkpoints() -> list[str]:
+    """The body19 forecast checkpoints shipped in forecast/checkpoints (not the characteristic-pose one, not
+    the CMU 8-action benchmark's own model)."""
+    d = Path(__file__).resolve().parent / "checkpoints"
+    return [str(p) for p in sorted(d.glob("*.pt")) if not p.name.startswith(("characteristic", "cmu8_"))]
+
+
 def cmd_eval(args) -> int:
     from forecast import evaluate as E  # lazy: loads torch
     from forecast import train as T  # lazy: loads torch
@@ -163,18 +173,32 @@ def cmd_eval(args) -> int:
         names = E.check_baselines(args.baselines + (["fool"] if args.fool else []))
     except ValueError as e:
         raise InputError(str(e)) from None
+    if args.protocol not in PROTOCOLS:
+        raise InputError(f"unknown protocol '{args.protocol}'; choose one of {', '.join(PROTOCOLS)}")
     if args.protocol == "hik":
         return _eval_hik(args, names)
-    if args.protocol != "cmu":
-        raise InputError(f"unknown protocol '{args.protocol}'; choose cmu or hik")
+    if args.protocol == "cmu8":
+        return _eval_cmu8(args)
     t0 = time.perf_counter()
     clips, tr, va, te = _load_split(args)
     ck_models: dict = {}
-    for ck in args.checkpoints:
-        m, meta = T.load_checkpoint(ck, skeleton=clips[0].skeleton)
-        ck_models[Path(ck).stem] = m
+    default = args.checkpoints is None  # no --checkpoints: the shipped ones
+    for ck in shipped_checkpoints() if default else args.checkpoints:
+        try:
+            m, meta = T.load_checkpoint(ck, skeleton=clips[0].skeleton)
+        except FormatError as e:
+            if not default:
+                raise
+            print(f"skipping shipped {Path(ck).name}: {e}")
+            continue
         used = set(meta["extra"].get("train_clips", [])) | set(meta["extra"].get("val_clips", []))
         leak = sorted(used & {c.name for c in te})
+        if leak and default:
+            print(
+                f"skipping shipped {Path(ck).name}: trained or selected on this split's test clips {leak[:3]}"
+            )
+            continue
+        ck_models[Path(ck).stem] = m
         if leak:  # a checkpoint that trained or was selected on a test clip cannot be evaluated fairly
             raise InputError(
                 f"{ck} was trained or selected on test clips {leak[:5]}{'...' if len(leak) > 5 else ''}; "
@@ -222,10 +246,40 @@ def _eval_cmu(args, E, T, models: dict, clips, te, progress) -> dict:
             stride=args.stride,
             progress=progress,
             reference=args.reference,
+            samples_dir=args.save_samples,
         )
         title = "Forecast evaluation: held-out clips"
     res["title"] = title
     return res
+
+
+def _eval_cmu8(args) -> int:
+    """The CMU 8-action benchmark (``forecast.benchmark_cmu8``): zero velocity, the DCT + MLP checkpoints on
+    the exact protocol, the body19 checkpoints on its body19 variant."""
+    from forecast import benchmark_cmu8 as B  # lazy: loads torch
+
+    if args.checkpoints is None:
+        cks = ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else []) + shipped_checkpoints()
+    else:
+        cks = list(args.checkpoints)
+    for ck in cks:
+        if not Path(ck).is_file():
+            raise InputError(f"no checkpoint {ck}")
+    mlp = [c for c in cks if B.is_cmu8_checkpoint(c)]
+    b19 = [c for c in cks if c not in mlp]
+    with Bars(unit="model") as progress:
+        res = B.evaluate(
+            args.path,
+            mlp_checkpoints=mlp,
+            body19_checkpoints=b19,
+            n_samples=args.samples,
+            samples_dir=args.save_samples,
+            progress=lambda i, n, name=None: progress("body19 models", i, n),
+        )
+    path = B.write_report(res, args.out)
+    print(path.read_text())
+    print(f"evaluation wall time {res['wall_s']:.1f} s; results in {Path(args.out) / 'results.json'}")
+    return 0
 
 
 def _eval_hik(args, names: list[str]) -> int:
@@ -236,7 +290,9 @@ def _eval_hik(args, names: list[str]) -> int:
             "forecast eval --protocol hik DATA: give the folder of HiK person files (data/poses)"
         )
     try:
-        res = hik.evaluate_hik(args.path, names, args.checkpoints, n_samples=args.samples)
+        res = hik.evaluate_hik(
+            args.path, names, args.checkpoints or [], n_samples=args.samples, samples_dir=args.save_samples
+        )
     except (FileNotFoundError, FormatError, ValueError) as e:
         raise InputError(str(e)) from None
     path = hik.write_hik_report(res, args.out)
@@ -250,6 +306,10 @@ def _main(argv: list[str] | None = None) -> int:
         from forecast.characteristic.cli import main as characteristic_main  # lazy: loads torch
 
         return characteristic_main(argv[1:]) or 0
+    if argv and argv[0] == "cmu8":  # `forecast cmu8 train ...`: the CMU 8-action benchmark's DCT + MLP
+        from forecast.benchmark_cmu8 import main as cmu8_main  # lazy: loads torch
+
+        return cmu8_main(argv[1:]) or 0
     p = Parser(prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument(
         "--threads", type=positive_int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
@@ -263,6 +323,7 @@ def _main(argv: list[str] | None = None) -> int:
 
     # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it
     sub.add_parser("characteristic", help="the characteristic-3D-pose forecaster (Diller ch. 3): train|eval")
+    sub.add_parser("cmu8", help="the CMU 8-action benchmark's DCT + MLP forecaster: train")
     t = sub.add_parser("train", help="train a model")
     t.add_argument(
         "--model", required=True, choices=["gru", "intention", "social_diffusion"], help="model to train"
@@ -289,7 +350,12 @@ def _main(argv: list[str] | None = None) -> int:
     s.add_argument("--out", required=True, help="forecast file to write (.npz)")
 
     e = sub.add_parser("eval", help="evaluate checkpoints and baselines on held-out clips")
-    e.add_argument("--checkpoints", nargs="*", default=[], help="checkpoints to evaluate")
+    e.add_argument(
+        "--checkpoints",
+        nargs="*",
+        default=None,
+        help="checkpoints to score (default: the shipped ones in forecast/checkpoints that fit the protocol)",
+    )
     e.add_argument(
         "--baselines",
         nargs="*",
@@ -302,9 +368,19 @@ def _main(argv: list[str] | None = None) -> int:
     e.add_argument(
         "--protocol",
         default="cmu",
-        help="cmu (held-out CMU clips, --data) or hik (Tanke ch. 8.3 on the HiK person files in PATH)",
+        help="cmu (held-out CMU clips, --data), cmu8 (the CMU 8-action benchmark of Li et al. 2018 as LTD "
+        "scores it; PATH: its benchmark-cmu8 folder, default the shared one) or hik (Tanke ch. 8.3 on the "
+        "HiK person files in PATH)",
     )
-    e.add_argument("path", nargs="?", help="--protocol hik: the folder of HiK person files")
+    e.add_argument(
+        "path", nargs="?", help="--protocol hik: the folder of HiK person files; cmu8: the benchmark folder"
+    )
+    e.add_argument(
+        "--save-samples",
+        metavar="DIR",
+        help="write samples_<model>.npz per model and baseline (pred, obs, gt in metres, fps, joint_names, "
+        "activity, model) for rescoring (protocols cmu, cmu8 and hik; not --social)",
+    )
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
     e.add_argument("--horizon-s", type=positive_float, default=4.0, help="seconds forecast per window")
     e.add_argument(

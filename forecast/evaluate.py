@@ -131,8 +131,10 @@ def evaluate_single(
     n_boot: int = 2000,
     activities: dict[str, str] | None = None,
     mm_threshold_m: float = 0.5,
+    samples_dir: str | os.PathLike | None = None,
 ) -> dict:
-    """``ndms_database``: clips for the NDMS database (default: the held-out clips); ``activities``: clip
+    """``samples_dir``: write ``samples_<model>.npz`` there per model (``write_samples``).
+    ``ndms_database``: clips for the NDMS database (default: the held-out clips); ``activities``: clip
     name -> activity (default ``data.clip_activities``: CMU by ``index.csv``, others one group). The query's
     own clip is in D for ``ndms`` and left out for ``ndms_loo``. ``mm_threshold_m``: DLow's multi-modal
     ground-truth threshold on the last observed root-centred pose (0.5 as in DLow).
@@ -182,6 +184,8 @@ def evaluate_single(
             S = n_samples if getattr(model, "stochastic", False) else 1
             torch.manual_seed(seed)  # the same sampling noise on every run
             y = forecast_world(model, obs[:, :, None], None, n_pred, S)[:, :, :, 0]  # (B,S,H,J,3)
+        if samples_dir is not None:
+            write_samples(samples_dir, name, y, obs, gt, ws.fps, names, wact)
         r, per_window[name], per_window_loo[name] = _single_metrics(
             y, gt, obs, mask[:, n_obs:], groups, wact, scorer, (lh, rh), mm_gt
         )
@@ -217,6 +221,29 @@ def evaluate_single(
 
 
 NDMS_CI_S = (0.4, 1.0, 2.0, 3.0, 4.0)
+
+
+def write_samples(out_dir, model: str, pred, obs, gt, fps: float, joint_names, activity) -> Path:
+    """``samples_<model>.npz`` for rescoring a run with any metric: ``pred (N,S,T,J,3)``,
+    ``obs (N,T_obs,J,3)``, ``gt (N,T,J,3)`` in metres, ``fps``, ``joint_names``, ``activity (N,)``,
+    ``model``."""
+    from core.fileio import atomic_path
+
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    path = d / f"samples_{model.replace('/', '_')}.npz"
+    with atomic_path(path) as tmp:
+        np.savez_compressed(
+            tmp,
+            pred=np.asarray(pred, np.float32),
+            obs=np.asarray(obs, np.float32),
+            gt=np.asarray(gt, np.float32),
+            fps=np.float64(fps),
+            joint_names=np.array(list(joint_names)),
+            activity=np.array(list(activity)),
+            model=np.array(model),
+        )
+    return path
 
 
 def ndms_at(per_window: np.ndarray, fps: float, t_s: float) -> np.ndarray:

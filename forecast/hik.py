@@ -81,8 +81,11 @@ def evaluate_hik(
     checkpoints: list[str] = (),
     n_samples: int = 50,
     seed: int = 0,
+    samples_dir=None,
 ) -> dict:
-    """Run the ch. 8.3 protocol on the HiK person files under folder -> results (``write_hik_report``)."""
+    """Run the ch. 8.3 protocol on the HiK person files under folder -> results (``write_hik_report``).
+    ``samples_dir``: write the short-horizon forecasts there, ``samples_<model>.npz``
+    (``evaluate.write_samples``; activity = the case's activity)."""
     t0 = time.perf_counter()
     people = fdata.load_kitchen_people(folder)
     kitchens = sorted({p.kitchen for p in people})
@@ -119,6 +122,7 @@ def evaluate_hik(
         "skipped": dict(skipped),
         "activities": {},
     }
+    kept: dict[str, list] = {}
     for act, cs in cases.items():
         if not cs:
             out["activities"][act] = {"n_cases": 0, "models": {}}
@@ -140,6 +144,8 @@ def evaluate_hik(
             else:
                 torch.manual_seed(seed)
                 y_s = forecast_world(model, obs[:, :, None], None, N_SHORT, S, hips=(lh, rh))[:, :, :, 0]
+            if samples_dir is not None:
+                kept.setdefault(mname, []).append((y_s, obs, gt_s, [act] * len(obs)))
             mp = M.mpjpe(y_s, np.broadcast_to(gt_s[:, None], y_s.shape))
             r = {"mpjpe": mp.tolist(), "mpjpe_at": {str(f): float(mp[f - 1]) for f in MPJPE_FRAMES}}
             if scorer is not None:
@@ -164,6 +170,12 @@ def evaluate_hik(
                 r["ndms_loo_at"] = {str(f): float(loo_c[f - 1]) for f in NDMS_FRAMES}
             entry["models"][mname] = r
         out["activities"][act] = entry
+    for mname, parts in kept.items():
+        pred = np.concatenate([p[0] for p in parts])
+        obs_k = np.concatenate([p[1] for p in parts])
+        gt_k = np.concatenate([p[2] for p in parts])
+        acts = [a for p in parts for a in p[3]]
+        E.write_samples(samples_dir, mname, pred, obs_k, gt_k, fdata.KITCHEN_FPS, names, acts)
     out["wall_s"] = time.perf_counter() - t0
     return out
 

@@ -19,12 +19,15 @@ everywhere in roomcap (z up, floor at z = 0):
   torso's forward and the neck→head direction expressed in the head joint's local frame,
   so head turns relative to the torso are kept.
 - **units** are detected from the body height (m, cm, inches, or CMU's ASF unit of
-  1/0.45 in = 0.05644 m), or given. **Axes**: the vertical axis is detected from the
-  head-above-ankles direction and rotated (a proper rotation, handedness kept) to +z.
+  1/0.45 in = 0.05644 m), or given; the cgspeed "Daz-friendly" skeleton (``cmu-more``) is one fixed
+  skeleton for every subject, so its unit is known, not guessed (:func:`cgspeed_unit`). **Axes**: the
+  vertical axis is detected from the head-above-ankles direction and rotated (a proper rotation,
+  handedness kept) to +z.
 - **floor**: the clip is shifted so the 5th percentile of its lowest foot point is z = 0
   (ankles then sit ~5–10 cm above the floor). The horizontal root position is kept.
 - **prepended T-pose** (``cmu-bvh-subjects01-07``): the first frame is dropped when it is a
-  jump far larger than the clip's typical frame-to-frame motion.
+  jump far larger than the clip's typical frame-to-frame motion; for the cgspeed Daz-friendly skeleton
+  frame 0 is always dropped (its README: frame 0 of each clip is a T-pose).
 - **resampling** to ``fps`` is linear interpolation of joint positions.
 
 Parsed clips are cached in memory (``functools.lru_cache``) and on disk as ``.npz`` under
@@ -49,7 +52,7 @@ from keypoints.skeletons import CANONICAL
 
 log = logging.getLogger(__name__)
 
-_READER_VERSION = 3
+_READER_VERSION = 4
 BODY19 = CANONICAL.joint_names
 
 # Candidate BVH joint names per body19 joint, first present wins (CMU ASF exports, the iClone CC rig and
@@ -99,6 +102,17 @@ FACE_OFFSETS_M: dict[str, tuple[float, float, float]] = {
 
 # Scale candidates, metres per file unit.
 UNITS_M = {"m": 1.0, "cm": 0.01, "in": 0.0254, "cmu": 0.0254 / 0.45, "mm": 0.001}
+
+
+# The cgspeed "Daz-friendly" conversion of the CMU database (``cmu-more``) retargets every subject onto ONE
+# skeleton (the same OFFSETs in every file): its leg, |lShin offset| + |lFoot offset| (hip -> knee -> ankle),
+# is 36.827 + 45.406 = 82.233 file units. The unit is the centimetre: that leg is 0.822 m, against 0.827 m
+# (subject 01) and 0.849 m (subject 18) through CMU's ASF unit, and the T-pose stands about 1.5 m from the
+# soles to the eyes.
+# The salsa takes of ``cmu-more/two-person`` are the same skeleton written at 1/128 of that scale.
+CGSPEED_JOINTS = ("hip", "abdomen", "chest", "neck", "head", "lThigh", "lShin", "lFoot", "rThigh", "rShin")
+CGSPEED_LEG_UNITS = 82.233
+CGSPEED_SCALES = {"cm": 0.01, "cgspeed/128": 1.28}  # metres per file unit of the two known writings
 
 
 class BvhError(FormatError):
@@ -310,6 +324,34 @@ def _pick(bvh: Bvh, candidates: tuple[str, ...]) -> int | None:
     return None
 
 
+def is_cgspeed(bvh: Bvh) -> bool:
+    """True for the cgspeed "Daz-friendly" skeleton (its joint names, ``CGSPEED_JOINTS``)."""
+    return all(n in bvh.names for n in CGSPEED_JOINTS)
+
+
+def cgspeed_unit(bvh: Bvh) -> tuple[str, float] | None:
+    """(unit name, metres per file unit) of a cgspeed Daz-friendly file, None for other skeletons.
+
+    The skeleton is fixed (``CGSPEED_LEG_UNITS`` at centimetres), so the file's leg offsets say at which of
+    the known scales (``CGSPEED_SCALES``) it is written; any other uniform scale is taken relative to the
+    centimetre skeleton and logged."""
+    if not is_cgspeed(bvh):
+        return None
+    leg = float(
+        np.linalg.norm(bvh.offsets[bvh.index("lShin")]) + np.linalg.norm(bvh.offsets[bvh.index("lFoot")])
+    )
+    if leg <= 0:
+        raise BvhError(bvh.path, "lShin", "the leg offsets are zero.", "Re-export the file.")
+    for unit, m in CGSPEED_SCALES.items():
+        if abs(leg * m / (CGSPEED_LEG_UNITS * 0.01) - 1.0) < 0.01:
+            return unit, m
+    m = CGSPEED_LEG_UNITS * 0.01 / leg
+    log.warning(
+        "%s: cgspeed skeleton at an unknown scale (leg %.4g units); %.4g m per unit", bvh.path, leg, m
+    )
+    return f"cgspeed x{m:.4g}", m
+
+
 def _up_rotation(up_axis: int, sign: float) -> np.ndarray:
     """Proper rotation (det +1, axis permutation with signs) taking the file's up axis to +z."""
     a = up_axis
@@ -393,6 +435,11 @@ def bvh_to_body19(
     )
     R_head = R[:, list(_NAME_CANDIDATES).index("head")]
 
+    cg = cgspeed_unit(bvh)
+    if cg is not None and drop_tpose is None:
+        drop_tpose = bvh.n_frames > 1  # frame 0 of every cgspeed Daz-friendly clip is a T-pose
+    if cg is not None and unit_m is None:
+        unit_m = cg[1]
     # Drop a prepended T-pose: frame 0 far from frame 1 compared with the clip's typical step.
     if drop_tpose is None and bvh.n_frames > 3:
         stack = np.stack(list(body.values()), 1)
@@ -416,6 +463,8 @@ def bvh_to_body19(
         scale = UNITS_M[unit]
     elif isinstance(unit_m, str):
         unit, scale = unit_m, UNITS_M[unit_m]
+    elif cg is not None and float(unit_m) == cg[1]:
+        unit, scale = cg
     else:
         unit, scale = f"{unit_m:g} m", float(unit_m)
 

@@ -231,8 +231,12 @@ def test_hik_protocol_on_a_fixture(tmp_path, capsys):
     assert np.isfinite(w["models"]["real"]["ndms_loo_at"]["100"])  # the other walker of D
     assert np.isnan(s["models"]["real"]["ndms_loo_at"]["100"])  # one long sink case: no other clip
     out = tmp_path / "out"
-    main(["eval", "--protocol", "hik", str(tmp_path), "--baselines", "real", "zero", "--out", str(out)])
+    argv = ["eval", "--protocol", "hik", str(tmp_path), "--baselines", "real", "zero", "--out", str(out)]
+    main(argv + ["--save-samples", str(out / "samples")])
     assert "| walking | 3 (2) | real | 0.0 | 0.0 | 0.0 | 1.000" in (out / "report.md").read_text()
+    z = np.load(out / "samples" / "samples_zero.npz")  # the 5 short-horizon cases: 3 walking, 2 sink
+    assert z["pred"].shape == (5, 1, 25, 29, 3) and z["obs"].shape[0] == 5 and z["gt"].shape == (5, 25, 29, 3)
+    assert sorted(set(z["activity"])) == ["sink", "walking"] and float(z["fps"]) == D.KITCHEN_FPS
     # HiK files without activity flags: a clear message naming the file
     save_npz(tmp_path / "D_9_0.npz", {"poses3d": np.zeros((5, 29, 3), np.float32), "frames": np.arange(5)})
     with pytest.raises(FormatError, match="no activity flags"):

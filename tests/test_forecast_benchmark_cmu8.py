@@ -1,0 +1,187 @@
+"""The CMU 8-action benchmark protocol (forecast eval --protocol cmu8): the reference's windows, joints and
+averaging on a tiny synthetic benchmark folder, the DCT + MLP, samples.npz, and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from forecast import benchmark_cmu8 as B
+from forecast import cmu_more as C
+from forecast import evaluate as E
+from forecast import train as T
+from forecast.toy import walker
+from tests.conftest import need_shared
+
+
+def _write_action(root, split, action, k, n_frames, rng):
+    """A synthetic benchmark file: 117 values a line, smooth exp-maps on the joints that move."""
+    t = np.arange(n_frames)[:, None] / 120.0
+    a = np.zeros((n_frames, 117))
+    cols = 3 + 3 * np.array([2, 3, 4, 9, 10, 14, 15, 21, 22, 30, 31])  # hips, knees, spine, arms (exp-map x)
+    a[:, cols] = 0.4 * np.sin(2 * np.pi * (0.8 + rng.random(len(cols))) * t + rng.random(len(cols)) * 6)
+    d = root / split / action
+    d.mkdir(parents=True, exist_ok=True)
+    np.savetxt(d / f"{action}_{k}.txt", a, delimiter=",", fmt="%.6f")
+
+
+@pytest.fixture(scope="module")
+def tiny_root(tmp_path_factory):
+    """walking and soccer with a test file each, jumping with train files only; the rest missing."""
+    root = tmp_path_factory.mktemp("bench") / "benchmark-cmu8"
+    rng = np.random.default_rng(0)
+    for a in ("walking", "soccer"):
+        _write_action(root, "test", a, 1, 400, rng)
+        for k in (1, 2):
+            _write_action(root, "train", a, k, 300, rng)
+    _write_action(root, "train", "jumping", 1, 300, rng)
+    return root
+
+
+def test_windows_joints_and_scoring_follow_the_reference():
+    # a fresh RandomState(1234567890) per file, randint(0, F - 75), 8 draws
+    rng = np.random.RandomState(1234567890)
+    assert B.window_starts(300).tolist() == [rng.randint(0, 225) for _ in range(8)]
+    assert B.window_starts(300).tolist() == B.window_starts(300).tolist()
+    assert len(B.JOINTS_USED) == 25 and B.HORIZON_FRAMES == (1, 3, 7, 9, 13, 24)
+    gt = np.random.default_rng(1).normal(size=(3, 25, 38, 3))
+    for j, k in B.JOINTS_EQUAL.items():  # as in the data: these points sit on their partner
+        gt[..., j, :] = gt[..., k, :]
+    full = B.complete(gt[..., list(B.JOINTS_USED), :] + 1.0, gt)
+    assert np.allclose(full[..., 0, :], gt[..., 0, :])  # fixed points from the truth
+    assert np.allclose(full[..., 16, :], full[..., 15, :])  # coinciding points from the partner's forecast
+    e = B.mpjpe_mm(full, gt)  # 25 points off by sqrt(3) units, their 7 copies too, the 6 fixed ones exact
+    assert e.shape == (3, 25)
+    assert np.allclose(e, B.MM_PER_UNIT * np.sqrt(3) * 32 / 38)
+    assert B.mpjpe_mm(gt, gt).max() == 0
+    # the DCT matrix is orthonormal (the reference's get_dct_matrix)
+    d = B.dct_matrix(50)
+    assert np.allclose(d @ d.T, np.eye(50), atol=1e-10)
+
+
+def test_protocol_on_a_tiny_benchmark(tiny_root, tmp_path):
+    cfg = B.MlpConfig(steps=2, batch=8, val_every=1, n_blocks=2)
+    tr, va = B.split_train_val(C.benchmark_files(tiny_root))
+    assert [f.name for f in va] == ["soccer_2.txt", "walking_2.txt"]  # the last file of each 2-file action
+    model, hist = B.train_mlp(tr, va, cfg)
+    ck = tmp_path / "mlp.pt"
+    B.save_mlp(ck, model, cfg, {"train_files": [f.name for f in tr]})
+    assert B.is_cmu8_checkpoint(ck)
+    res = B.evaluate(tiny_root, mlp_checkpoints=[ck], samples_dir=tmp_path / "s", n_windows=2)
+    assert res["protocol"] == "cmu8" and res["horizons_ms"] == [80, 160, 320, 400, 560, 1000]
+    assert res["actions"] == ["soccer", "walking"]
+    assert "jumping" in res["actions_missing"] and "test/jumping/jumping_1.txt" in res["files_missing"]
+    assert "test/basketball_signal and test/directing_traffic are missing" in res["note"]
+    for name in ("zero_velocity", "mlp"):
+        r = res["models"][name]
+        pa = [r["per_action"][a]["mpjpe_mm"] for a in res["actions"]]
+        assert np.allclose(r["mpjpe_mm"], np.mean(pa, 0))  # the average over the scored actions
+        assert len(r["mpjpe_mm"]) == 6 and all(v > 0 for v in r["mpjpe_mm"])
+    assert res["models"]["zero_velocity@body19"]["variant"] == "body19"
+    pub = res["published"]["MSR-GCN (Dang et al. 2021)"]
+    assert pub["source"] and len(pub["mpjpe_mm"]) == 6 and len(pub["average_same_actions"]) == 6
+    # samples: rescoring the saved forecasts gives the reported numbers
+    z = np.load(tmp_path / "s" / "samples_mlp.npz")
+    assert z["pred"].shape == (4, 1, 25, 38, 3) and z["obs"].shape == (4, 50, 38, 3)
+    assert z["gt"].shape == (4, 25, 38, 3) and z["fps"] == 60.0 and len(z["joint_names"]) == 38
+    assert list(z["activity"]) == ["soccer"] * 2 + ["walking"] * 2 and str(z["model"]) == "mlp"
+    e = np.linalg.norm(z["pred"][:, 0] - z["gt"], axis=-1).mean(-1) * z["protocol_mm_per_m"]
+    assert np.allclose(e[:, list(B.HORIZON_FRAMES)].mean(0), res["models"]["mlp"]["mpjpe_mm"], rtol=1e-4)
+    md = B.report_markdown(res)
+    assert "Exact protocol" in md and "missing" in md and "MSR-GCN" in md
+
+
+def test_cli_cmu8_bad_input(tiny_root, tmp_path, capsys):
+    from forecast.cli import main
+
+    out = tmp_path / "o"
+    assert main(["eval", "--protocol", "cmu9", "--out", str(out)]) == 2
+    assert "unknown protocol 'cmu9'; choose one of cmu, cmu8, hik" in capsys.readouterr().err
+    assert main(["eval", "--protocol", "cmu8", str(tmp_path / "none"), "--out", str(out)]) == 2
+    assert "no train/ or test/ folder" in capsys.readouterr().err
+    # a folder with files missing: they are named and the rest is scored
+    assert main(["eval", "--protocol", "cmu8", str(tiny_root), "--checkpoints", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert (
+        "not scored: basketball, basketball_signal, directing_traffic, jumping, running, washwindow" in text
+    )
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["models"]) == {"zero_velocity", "zero_velocity@body19"}
+    assert "test/running/running_1.txt" in res["files_missing"]
+
+
+def test_eval_single_writes_samples(tmp_path):
+    from forecast.data import Clip
+
+    clips = [Clip(f"walk{i}", walker(150, phase=i, heading_rad=i), 25.0) for i in range(3)]
+    models = {"zero": T.baseline("zero"), "real": E.Real()}
+    torch.manual_seed(0)
+    E.evaluate_single(
+        models, clips, n_obs=25, n_pred=50, n_samples=2, stride=25, n_boot=20, samples_dir=tmp_path,
+        activities={c.name: "walk" for c in clips},
+    )  # fmt: skip
+    z = np.load(tmp_path / "samples_zero.npz")
+    N = len(z["activity"])
+    assert N > 0 and z["pred"].shape == (N, 1, 50, 19, 3) and z["obs"].shape == (N, 25, 19, 3)
+    assert z["gt"].shape == (N, 50, 19, 3) and float(z["fps"]) == 25.0 and str(z["model"]) == "zero"
+    assert np.allclose(z["pred"][:, 0, -1], z["obs"][:, -1], atol=1e-5)  # zero velocity: the last pose
+    r = np.load(tmp_path / "samples_real.npz")
+    assert np.allclose(r["pred"][:, 0], r["gt"])
+
+
+def test_shared_test_windows():
+    need_shared("data", "motion", "cmu-more", "benchmark-cmu8", "test", "walking", "walking_1.txt")
+    ts = B.test_set(C.benchmark_files(), actions=["walking", "basketball_signal"])
+    assert ts.windows["walking"].shape == (8, 75, 38, 3)
+    assert ts.actions_missing == ["basketball_signal"]
+    seq = B.sequence(ts.files["walking"][0])
+    s = B.window_starts(len(seq))
+    assert np.allclose(ts.windows["walking"][0], seq[s[0] : s[0] + 75])
+
+
+def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, monkeypatch):
+    from forecast import cli
+
+    seen = {}
+    real_evaluate = B.evaluate
+
+    def fake_evaluate(root, mlp_checkpoints, body19_checkpoints, **kw):
+        seen.update(mlp=mlp_checkpoints, b19=body19_checkpoints)
+        return real_evaluate(root, n_windows=1)
+
+    monkeypatch.setattr(B, "evaluate", fake_evaluate)
+    assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
+    shipped = cli.shipped_checkpoints()
+    assert any(p.endswith("gru_cmu.pt") for p in shipped)
+    assert not any("characteristic" in p for p in shipped)
+    assert seen["b19"] == shipped
+    assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
+
+
+def test_mirror_swaps_sides_and_is_an_involution():
+    idx = B.mirror_index()
+    used = list(B.JOINTS_USED)
+    assert sorted(idx.tolist()) == list(range(25)) and (idx[idx] == np.arange(25)).all()
+    assert idx[used.index(3)] == used.index(9)  # left knee <-> right knee
+    assert idx[used.index(14)] == used.index(14)  # the spine stays
+    b = torch.randn(2, 5, 25, 3)
+    m = B._mirror(b, torch.tensor([True, False]), torch.from_numpy(idx))
+    assert torch.equal(m[1], b[1]) and torch.allclose(m[0, :, used.index(3), 0], -b[0, :, used.index(9), 0])
+    assert torch.allclose(B._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
+
+
+def test_shipped_dct_mlp_checkpoint():
+    ck = B.SHIPPED_MLP
+    if not ck.exists():
+        pytest.skip("no shipped cmu8 checkpoint")
+    assert ck.stat().st_size < 1_000_000  # measured 216 KB
+    model, blob = B.load_mlp(ck)
+    assert blob["extra"]["best"]["step"] > 0 and blob["extra"]["val_files"]  # picked on validation
+    assert not any("test" in f for f in blob["extra"]["train_files"])
+    obs = np.cumsum(np.random.default_rng(0).normal(0, 0.01, (2, 50, 38, 3)), 1)
+    y = B.mlp_forecast(model, obs)
+    assert y.shape == (2, 25, 38, 3) and np.isfinite(y).all()
+    assert np.abs(y[:, 0] - obs[:, -1]).max() < 1.0  # continues from the last observed pose (ASF units)
