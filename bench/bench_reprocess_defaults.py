@@ -71,8 +71,11 @@ def run_tree(cmd: list[str], env: dict) -> tuple[int, str, float, float]:
     with tempfile.TemporaryFile("w+") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=ROOT, text=True)
         root = psutil.Process(proc.pid)
-        peak = 0
+        peak, shown = 0, t0
         while proc.poll() is None:
+            if time.perf_counter() - shown > 60:  # a long run: the peak so far, in case it is stopped
+                shown = time.perf_counter()
+                print(f"  {shown - t0:.0f} s: peak so far {peak / 2**20:.0f} MB", file=sys.stderr, flush=True)
             try:
                 procs = [root, *root.children(recursive=True)]
                 rss = 0

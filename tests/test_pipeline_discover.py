@@ -101,7 +101,10 @@ def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
     import pipeline.config as pc
 
     cfg = PipelineConfig.from_dict(
-        {"triangulate": {"options": {"match": {"theta_px": 30}}}, "track": {"options": {"sigma_s": 0.1}}}
+        {
+            "triangulate": {"options": {"match": {"theta_px": 30}}},
+            "track": {"tracker": "greedy", "options": {"sigma_s": 0.1}},
+        }
     )
     calls = []
     monkeypatch.setattr(pc.TriangulateOptions, "from_dict", lambda d: calls.append(d))

@@ -151,4 +151,7 @@ def test_a_chunked_pipeline_asks_for_ray_chunks_only_on_ray():
     assert chunks_on_ray(cfg).triangulate.options == {**TRI, "executor": "ray"}
     mine = PipelineConfig(triangulate=TriangulateConfig(options={**TRI, "executor": "processes"}))
     assert chunks_on_ray(mine).triangulate.options["executor"] == "processes"  # the user's choice kept
-    assert "executor" not in chunks_on_ray(PipelineConfig()).triangulate.options  # whole session: one task
+    # the default chunk_s ("auto") streams a long session: its chunks may go to Ray
+    assert chunks_on_ray(PipelineConfig()).triangulate.options == {"executor": "ray"}
+    whole = PipelineConfig(triangulate=TriangulateConfig(options={"chunk_s": 0}))
+    assert "executor" not in chunks_on_ray(whole).triangulate.options  # whole session: one task
