@@ -61,13 +61,13 @@ def _setup(session: Path):
     from calibrate.camera import CameraRig
     from capture.session import SessionLayout
     from track.particle import ParticleConfig, ParticleTracker
-    from track.stage import focal_lengths
-    from triangulate.stage import _fps, load_detections
+    from track.particle_io import focal_lengths
+    from triangulate.stage import load_detections, session_fps
 
     lay = SessionLayout(session)
     rig = CameraRig.load(lay.rig_toml)
     sub, mv = load_detections(lay, rig)
-    fps = _fps(lay, mv.t_ns)
+    fps = session_fps(lay, mv.t_ns)
     kp = np.moveaxis(mv.xy_px, 0, 1).astype(np.float32)
     sc = np.moveaxis(mv.score, 0, 1).astype(np.float32)
     return (

@@ -37,7 +37,7 @@ from test_track_realdata import make_pose2sim_session  # noqa: E402
 from calibrate.camera import CameraRig  # noqa: E402
 from keypoints.skeletons import CANONICAL  # noqa: E402
 from track.particle import ParticleConfig, ParticleTracker, track_sequence  # noqa: E402
-from track.stage import focal_lengths  # noqa: E402
+from track.particle_io import focal_lengths  # noqa: E402
 from triangulate.stage import load_detections  # noqa: E402
 
 

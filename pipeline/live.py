@@ -58,7 +58,7 @@ from core.memory import TRIM_EVERY, release_free_memory
 from keypoints.skeletons import CANONICAL, convert
 from pipeline.live_outputs import Outputs, load_rig
 from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
-from track.stage import focal_lengths
+from track.particle_io import focal_lengths
 from track.trackfile import SCHEMA, TrackFile
 from triangulate.chunks import PartStore, hash_key, parts_dir
 from triangulate.reconstruct import FrameReconstructor

@@ -77,7 +77,8 @@ def test_stage_reads_stored_maps_of_distorted_cameras(tmp_path, caplog):
     from synthetic.render import RenderConfig, render
     from synthetic.rigs import ring_rig, ring_room
     from synthetic.world import SceneConfig, make_scene, write_session
-    from track.stage import load_maps, track_session_particle
+    from track.particle_io import load_maps
+    from track.stage import track_session_particle
     from track.trackfile import TrackFile
     from triangulate.stage import load_detections
 

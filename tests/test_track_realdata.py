@@ -35,7 +35,7 @@ def test_pose2sim_two_participants_stable_ids_and_view_dependent_uncertainty(tmp
     lay = make_pose2sim_session(trial, base / "S00_Calibration" / "Calib_qualisys.toml", tmp_path / "s")
     from calibrate.camera import CameraRig
     from track.particle import ParticleConfig, ParticleTracker, track_sequence
-    from track.stage import focal_lengths, track_arrays_to_file
+    from track.particle_io import focal_lengths, track_arrays_to_file
     from triangulate.stage import load_detections
 
     rig = CameraRig.load(lay.rig_toml)

@@ -52,8 +52,8 @@ from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span
 from track.trackfile import (
     SMOOTHED,
     TrackFile,
-    _track_index,
     export_json,
+    track_index,
     world_to_yup,
     write_trc_table,
 )
@@ -147,7 +147,7 @@ def marker_table(
     tf: TrackFile, track: int, max_gap: int = 10, min_coverage: float = 0.5, joints: list[str] | None = None
 ) -> MarkerTable:
     """Select, name and fill one person's markers (module docstring: the TRC rules)."""
-    k = _track_index(tf, track)
+    k = track_index(tf, track)
     span = np.flatnonzero(person_span(tf, k))
     if not len(span):
         raise ExportError(f"track {track} has no known joint in any frame; nothing to export.")
@@ -264,7 +264,7 @@ CSV_COLUMNS = ("frame", "time_s", "person", "joint", "x", "y", "z", "confidence"
 
 def write_csv(tf: TrackFile, track: int, path: str | os.PathLike) -> int:
     """Tidy CSV of one person (world metres, z up); returns the number of rows."""
-    k = _track_index(tf, track)
+    k = track_index(tf, track)
     t_s = _time_s(tf)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -391,7 +391,7 @@ def export_tracks(
     out_dir = Path(out_dir)
     ids = tf.track_id.tolist() if persons is None else [int(p) for p in persons]
     for p in ids:  # an unknown id is refused before anything is made
-        _track_index(tf, p)
+        track_index(tf, p)
     rep = ExportReport()
     if not ids:
         rep.notes.append("the track file has no tracks; nothing written.")

@@ -67,12 +67,12 @@ from triangulate.matching import MatchConfig
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 from triangulate.tracker import (
     SEED_SIGMA_FRAMES,
-    _nominal_dt,
-    _smooth,
     frame_times_s,
     long_enough,
+    nominal_dt,
     pause_clock,
     segment_frames,
+    smooth_segments,
     sparse_time_warning,
 )
 
@@ -471,7 +471,7 @@ class ParticleTracker:
                 "frame times must increase (check the recording's timestamps)"
             )
         self.t_s = t
-        if dt > self.config.max_gap_s + _nominal_dt(self.fps):  # a pause of the recorder: one frame
+        if dt > self.config.max_gap_s + nominal_dt(self.fps):  # a pause of the recorder: one frame
             self.pauses += 1
             self.dt_s = 1.0 / self.fps
             self.clock_s += self.dt_s
@@ -1082,7 +1082,7 @@ def finish_tracks(
     sigma_s = cfg.smooth_sigma_s or 0.0
     if sigma_s > 0:
         known = np.isfinite(xyz).all(-1)
-        xyz = _smooth(xyz, t_s, sigma_s, cfg.max_gap_s, fps).astype(np.float32)
+        xyz = smooth_segments(xyz, t_s, sigma_s, cfg.max_gap_s, fps).astype(np.float32)
         flags = np.where(known, flags | SMOOTHED, flags).astype(np.uint8)
     n_ev = seen.sum(0) if evidence_frames is None else np.asarray(evidence_frames)
     if room_frames is None:

@@ -50,7 +50,7 @@ from scipy.spatial.transform import Rotation
 
 from core.errors import FormatError, RoomcapError
 from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
-from track.trackfile import OBSERVED, TrackFile, _track_index
+from track.trackfile import OBSERVED, TrackFile, track_index
 from triangulate.chunks import PartStore, parts_dir, sha256_file
 
 # ----------------------------------------------------------------------------- gap filling
@@ -367,7 +367,7 @@ def _bone_lengths(tf: TrackFile, k: int, X: np.ndarray, rows: np.ndarray, opt: F
 def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> dict[str, np.ndarray]:
     """Fit one person; returns arrays over the whole track file and the fit skeleton (module docstring)."""
     opt = options
-    k = _track_index(tf, track)
+    k = track_index(tf, track)
     T, J = tf.n_frames, len(tf.joint_names)
     names, parents, jidx = fit_skeleton(tf.joint_names, tf.parents)
     F = len(names)
@@ -643,7 +643,7 @@ def fit_skeletons(
         tracks_sha256=tracks_sha256,
         notes=tuple(notes),
     )
-    ks = [_track_index(tf, i) for i in ids]
+    ks = [track_index(tf, i) for i in ids]
     err = np.linalg.norm(fit.joint_positions() - tf.xyz_m[:, ks].astype(np.float64), axis=-1)
     object.__setattr__(fit, "fit_error_m", err)
     return fit

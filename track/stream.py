@@ -49,10 +49,10 @@ from track.particle import (
     min_evidence_frames,
     warn_sparse_time,
 )
-from track.stage import focal_lengths, load_maps, source_of, track_arrays_to_file
+from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
-from triangulate.stage import _fps, plan_detections
-from triangulate.tracker import _nominal_dt, frame_times_s, long_enough, pause_clock, segment_frames
+from triangulate.stage import plan_detections, session_fps
+from triangulate.tracker import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +69,7 @@ def finish_margin_s(cfg: ParticleConfig, fps: float) -> float:
     """Seconds on the tracks' clock on either side of a frame that its cleaned value depends on: a track
     coasts at most ``end_after_s`` without evidence (the pause mask looks back that far, the coast trim
     forward), and the smoothing reaches its radius (3 sigma) beyond; plus a few frames."""
-    dt = _nominal_dt(fps)
+    dt = nominal_dt(fps)
     m = cfg.end_after_s + 2 * dt
     if cfg.smooth_sigma_s:
         m += int(3.0 * cfg.smooth_sigma_s * fps + 0.5) / fps + dt
@@ -148,7 +148,7 @@ def track_session_particle_chunked(
     """The streamed particle track stage (see the module docstring); writes ``track/tracks.parts/``."""
     plan = plan_detections(lay, rig, stream=True)
     try:
-        fps = _fps(lay, plan.t_ns)
+        fps = session_fps(lay, plan.t_ns)
         frames, t_ns = plan.frames, plan.t_ns
         T = plan.n_frames
         check_times(frames, t_ns)

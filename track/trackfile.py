@@ -7,4 +7,3 @@ TrackFile`` keeps working.
 """
 
 from triangulate.trackfile import *  # noqa: F403
-from triangulate.trackfile import _track_index  # noqa: F401

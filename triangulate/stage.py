@@ -502,7 +502,7 @@ def iter_detection_chunks(
         plan.close()
 
 
-def _fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
+def session_fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
     if layout.session_toml.exists():
         try:
             fps = layout.read_meta().get("fps")
@@ -539,7 +539,7 @@ def session_chunk_s(layout: SessionLayout, chunk_s: float | str) -> float:
         index = PartStore(parts_dir(layout.poses3d), "poses3d").load_index()
         meta = index.get("meta", {})
         return resolve_chunk_s(chunk_s, int(meta.get("n_frames", 0)), float(meta.get("fps", 0.0)))
-    return resolve_chunk_s(chunk_s, n, _fps(layout, t_ns))
+    return resolve_chunk_s(chunk_s, n, session_fps(layout, t_ns))
 
 
 def _reconstructor(rig: CameraRig, cameras: tuple[str, ...], joint_names, config: TriangulateConfig):
@@ -639,7 +639,7 @@ def triangulate_session(
     res = reconstruct_all(sub, mv, cfg, progress)
     poses = _poses3d(
         res,
-        _fps(lay, mv.t_ns),
+        session_fps(lay, mv.t_ns),
         rig,
         sub.names,
         frame_index=mv.frame_index,
@@ -686,7 +686,7 @@ def _triangulate_chunked(
         _import_ray()  # before any work: a clear message where ray is not installed
     plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
     try:
-        fps = _fps(lay, plan.t_ns)
+        fps = session_fps(lay, plan.t_ns)
         step = max(int(round(cfg.chunk_s * fps)), 1)
         T = plan.n_frames
         chunks = [(a, min(a + step, T)) for a in range(0, T, step)] or [(0, 0)]

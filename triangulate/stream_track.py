@@ -30,9 +30,9 @@ import numpy as np
 from triangulate.tracker import (
     FrameLinker,
     TrackerConfig,
-    _nominal_dt,
     build_tracks,
     long_enough,
+    nominal_dt,
     pause_clock,
     pose_distance,
     segment_frames,
@@ -165,7 +165,7 @@ def build_margin_s(cfg: TrackerConfig, fps: float, parents: np.ndarray | None) -
     """Seconds of poses on either side of a frame that its built value depends on: the interpolation
     (``max_gap_s``), then each level of the kinematic fill (``occlusion_fill_s``), then the smoothing
     (3 sigma), each plus a frame."""
-    dt = _nominal_dt(fps)
+    dt = nominal_dt(fps)
     m = cfg.max_gap_s + dt
     if cfg.occlusion_fill_s > 0 and parents is not None:
         m += skeleton_depth(parents) * (cfg.occlusion_fill_s + dt)

@@ -135,7 +135,7 @@ def associate(
     return associate_mirrored(xyz_m, config, fps, None, t_s=t_s)[0]
 
 
-def _nominal_dt(fps: float) -> float:
+def nominal_dt(fps: float) -> float:
     """One frame interval at the nominal rate, plus a little for jittered timestamps."""
     return 1.0 / fps + 1e-6
 
@@ -144,7 +144,7 @@ def pause_clock(t_s: np.ndarray, max_gap_s: float, fps: float) -> tuple[np.ndarr
     """The tracks' clock: (T,) times with every pause of the recorder (consecutive frames more than
     ``max_gap_s`` apart) shortened to one frame, and (T,) the number of pauses before each frame."""
     d = np.diff(np.asarray(t_s, np.float64))
-    pause = d > max_gap_s + _nominal_dt(fps)
+    pause = d > max_gap_s + nominal_dt(fps)
     active = np.concatenate([[0.0], np.cumsum(np.where(pause, 1.0 / fps, d))])
     return active, np.concatenate([[0], np.cumsum(pause)])
 
@@ -244,7 +244,7 @@ class FrameLinker:
     ) -> None:
         self.cfg, self.fps, self.flip, self.facing = cfg, fps, flip, facing
         self.clock, self.pauses = clock, pauses
-        self.window = cfg.max_gap_s + _nominal_dt(fps)
+        self.window = cfg.max_gap_s + nominal_dt(fps)
         self.n_tracks = 0
         self.active: list[int] = []  # alive tracks, increasing
         self.pose: dict[int, np.ndarray] = {}  # last pose, joints the track had but a frame lacked kept
@@ -379,7 +379,7 @@ def stitch_tracks(
     T = len(assign)
     t_s = np.arange(T) / fps if t_s is None else np.asarray(t_s, np.float64)
     t_s, pauses = pause_clock(t_s, cfg.max_gap_s, fps)  # the tracks' clock, as in the pass
-    window = cfg.max_gap_s + _nominal_dt(fps)
+    window = cfg.max_gap_s + nominal_dt(fps)
     t_idx, p_idx = np.nonzero(assign >= 0)
     if len(t_idx) == 0:
         return assign
@@ -453,7 +453,9 @@ def _interp_gaps(
     return x, filled
 
 
-def _smooth(x: np.ndarray, t_s: np.ndarray, sigma_s: float, max_gap_s: float, fps: float) -> np.ndarray:
+def smooth_segments(
+    x: np.ndarray, t_s: np.ndarray, sigma_s: float, max_gap_s: float, fps: float
+) -> np.ndarray:
     """NaN-aware Gaussian smoothing of x (T,...) in time: weights exp(-dt^2 / 2 sigma_s^2) over the
     samples within 3 sigma (the taps ``gaussian_filter1d`` uses at ``fps``), never across two frames
     more than ``max_gap_s`` (+ one frame) apart. On regular frames it equals ``gaussian_filter1d``
@@ -462,7 +464,7 @@ def _smooth(x: np.ndarray, t_s: np.ndarray, sigma_s: float, max_gap_s: float, fp
     if sigma_s <= 0 or T < 2:
         return x
     radius_s = int(3.0 * sigma_s * fps + 0.5) / fps + 1e-6
-    segment = np.concatenate([[0], np.cumsum(np.diff(t_s) > max_gap_s + _nominal_dt(fps))])
+    segment = np.concatenate([[0], np.cumsum(np.diff(t_s) > max_gap_s + nominal_dt(fps))])
     reach = int((np.searchsorted(t_s, t_s + radius_s, side="right") - np.arange(T)).max())
     valid = np.isfinite(x)
     xv = np.where(valid, x, 0.0)
@@ -566,7 +568,7 @@ def build_tracks(
     cfg = (config or TrackerConfig()).at_fps(fps)
     T, P, J = xyz_m.shape[:3]
     t_s = np.arange(T) / fps if t_s is None else np.asarray(t_s, np.float64)
-    dt = _nominal_dt(fps)
+    dt = nominal_dt(fps)
     conf = np.ones((T, P, J)) if confidence is None else confidence
     std = np.full((T, P, J), np.nan) if std_m is None else std_m
     if mirrored is not None and flip is not None and mirrored.any():
@@ -617,7 +619,7 @@ def build_tracks(
         if cfg.sigma_s > 0:
             have = np.isfinite(X[:, n]).all(-1)
             X[:, n] = np.where(
-                have[..., None], _smooth(X[:, n], t_s, cfg.sigma_s, cfg.max_gap_s, fps), np.nan
+                have[..., None], smooth_segments(X[:, n], t_s, cfg.sigma_s, cfg.max_gap_s, fps), np.nan
             )
             Fl[:, n][have] |= SMOOTHED
     return ids, X, Cf, S, Fl

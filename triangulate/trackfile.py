@@ -269,7 +269,7 @@ def export_trc(tf: TrackFile, path: str | os.PathLike, track: int | None = None,
     inverse of what the Pose2Sim importer in this project applies. For a file OpenSim accepts
     (Pose2Sim marker names, gaps filled, no blank cells) use :func:`track.export.write_trc`.
     """
-    ks = range(tf.n_tracks) if track is None else [_track_index(tf, track)]
+    ks = range(tf.n_tracks) if track is None else [track_index(tf, track)]
     names, cols = [], []
     for k in ks:
         for j, n in enumerate(tf.joint_names):
@@ -346,7 +346,7 @@ def export_json(tf: TrackFile, path: str | os.PathLike, track: int | None = None
     """Plain JSON: per track, per frame, joints as [x, y, z] or null (world metres, z up), with the
     per-joint ``confidence``, ``std_m`` (uncertainty) and ``flags`` bits. All tracks, or one ``track`` id.
     :func:`read_json` reads it back."""
-    ks = range(tf.n_tracks) if track is None else [_track_index(tf, track)]
+    ks = range(tf.n_tracks) if track is None else [track_index(tf, track)]
     out = {
         "schema": schema_tag(SCHEMA, VERSION),
         "fps": tf.fps,
@@ -415,7 +415,7 @@ def read_json(path: str | os.PathLike) -> TrackFile:
         raise FormatError(path, None, f"not a roomcap track JSON ({e}).") from None
 
 
-def _track_index(tf: TrackFile, track: int) -> int:
+def track_index(tf: TrackFile, track: int) -> int:
     hit = np.flatnonzero(tf.track_id == int(track))
     if not len(hit):
         raise FormatError(
