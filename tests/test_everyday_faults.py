@@ -9,6 +9,7 @@ onto its own input, and every command's ``--help`` naming each option's default.
 from __future__ import annotations
 
 import argparse
+import re
 import shutil
 from pathlib import Path
 
@@ -310,4 +311,5 @@ def test_readme_examples_are_valid_and_complete():
     assert set(data) == {f.name for f in dataclasses.fields(PipelineConfig)}  # every section
     cfg = PipelineConfig.from_dict(data)
     assert cfg.track.tracker == "particle" and cfg.triangulate.options["match"]["theta_px"] == 40.0
-    assert "`<trial>/roomcap/`" in text and "564 tests in about 3 min" in text
+    assert "`<trial>/roomcap/`" in text
+    assert re.search(r"\d+ tests in about \d+ min", text), "README: make test's count and duration"

@@ -1,9 +1,9 @@
 """Safe by default: one run per session (the lock), outputs checked against the cache's record, warnings
 kept with the stages' outputs, Ctrl-C, and the smaller faults of everyday use.
 
-The session is a synthetic detections-only one (``pipeline.synth``, 4 cameras, 2 people, 5 s at 25 fps);
-the particle tracker with 200 samples and the forecast stage make one run last about 5 s, long enough for
-a second run started 2 s later to meet the first.
+The session is a synthetic detections-only one (``pipeline.synth``, 4 cameras, 4 people, 20 s at 25 fps);
+the particle tracker with 1,000 samples makes one run hold the lock for about 7 s on an idle machine, long
+enough for a second run started 2 s later (and its own start-up, about 1.5 s) to meet the first.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from pipeline.lock import LockHolder, holder, lock_path, session_lock
 from pipeline.synth import make_session
 
 REPO = Path(__file__).resolve().parents[1]
-PARTICLE = '[track]\ntracker = "particle"\n[track.options]\nn_samples = 200\n'
+PARTICLE = '[track]\ntracker = "particle"\n[track.options]\nn_samples = 1000\n'
 
 
 def _outputs(root: Path) -> dict[str, bytes]:
@@ -40,7 +40,7 @@ def _outputs(root: Path) -> dict[str, bytes]:
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory) -> Path:
-    return make_session(tmp_path_factory.mktemp("in") / "S1", seed=1, n_people=2, duration_s=5.0)
+    return make_session(tmp_path_factory.mktemp("in") / "S1", seed=1, n_people=4, duration_s=20.0)
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +76,9 @@ def test_two_concurrent_runs_on_one_session(session, config_toml, reference, tmp
     first run's pid and start time) or, with --wait, waits; the outputs equal a single run's."""
     out = tmp_path / "out"
     first = _start(session, out, config_toml)
+    deadline = time.monotonic() + 60.0  # the delay counts from the first run holding the lock
+    while holder(out / "S1") is None and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
     time.sleep(delay_s)
     second = _start(session, out, config_toml, *(["--wait"] if wait else []))
     (_, e1), (o2, e2) = first.communicate(timeout=120), second.communicate(timeout=120)

@@ -50,8 +50,23 @@ def _problem(level: str, title: str, detail: str, action: str) -> dict[str, str]
 
 def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
     """A plain-language list of what looks wrong in this session and what to do about each."""
+    rig, T = data["rig"], data["tracks"]
+    return [
+        *_input_problems(rig, T, inp),
+        *_detection_rate_problems(data["detections"]),
+        *_quality_problems(data["quality"]),
+        *_track_problems(T),
+        *_calibration_problems(rig),
+        *_warning_problems(data["warnings"]),
+        *_video_problems(data["views"]),
+    ]
+
+
+def _input_problems(
+    rig: dict[str, Any] | None, T: dict[str, Any] | None, inp: _Inputs
+) -> list[dict[str, str]]:
+    """Missing or unreadable inputs."""
     P: list[dict[str, str]] = []
-    rig, T, Q, V = data["rig"], data["tracks"], data["quality"], data["views"]
     if rig is None:
         P.append(
             _problem(
@@ -82,10 +97,14 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                 "error", "No tracks", "track/tracks.npz is missing.", "Run the triangulate and track stages."
             )
         )
-    # detection rates: a camera that rarely finds anyone while the others do
+    return P
+
+
+def _detection_rate_problems(detections: dict[str, Any]) -> list[dict[str, str]]:
+    """A camera that rarely finds anyone while the others do."""
+    P: list[dict[str, str]] = []
     rates = {
-        c: float(np.mean(np.asarray(d["people"]) > 0)) if d["people"] else 0.0
-        for c, d in data["detections"].items()
+        c: float(np.mean(np.asarray(d["people"]) > 0)) if d["people"] else 0.0 for c, d in detections.items()
     }
     if len(rates) > 1:
         best = max(rates.values())
@@ -103,6 +122,12 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                         "covered.",
                     )
                 )
+    return P
+
+
+def _quality_problems(Q: dict[str, Any] | None) -> list[dict[str, str]]:
+    """Reprojection errors, little-used cameras, joints seen by few cameras or fitting worse."""
+    P: list[dict[str, str]] = []
     if Q and not Q.get("error"):
         cams = [c for c in Q["cameras"] if c["mean_px"] is not None]
         if cams:
@@ -167,6 +192,12 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                         "model may confuse left and right or the skeleton definitions differ between views.",
                     )
                 )
+    return P
+
+
+def _track_problems(T: dict[str, Any] | None) -> list[dict[str, str]]:
+    """Tracks carried unseen, sudden jumps and swaps, fragmented identities."""
+    P: list[dict[str, str]] = []
     if T is not None:
         ev = T["events"]
         fps_full = T["fps"] * T["step"]
@@ -228,6 +259,12 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                     "handling (tracker options) or more coverage helps.",
                 )
             )
+    return P
+
+
+def _calibration_problems(rig: dict[str, Any] | None) -> list[dict[str, str]]:
+    """The calibration's own RMS errors."""
+    P: list[dict[str, str]] = []
     figs = (rig or {}).get("figures") or {}
     if figs.get("unit") == "px":
         for cam, f in figs.get("cameras", {}).items():
@@ -241,9 +278,13 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                             "Recalibrate with more board views covering the whole image.",
                         )
                     )
-    size = [
-        w["message"] for w in data["warnings"] if "calibration" in w["message"] and "video" in w["message"]
-    ]
+    return P
+
+
+def _warning_problems(warnings: list[dict[str, str]]) -> list[dict[str, str]]:
+    """The stages' warnings that call for an action (video size, video lengths)."""
+    P: list[dict[str, str]] = []
+    size = [w["message"] for w in warnings if "calibration" in w["message"] and "video" in w["message"]]
     if size:
         P.append(
             _problem(
@@ -255,7 +296,7 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                 "scaled, recalibrate at the video's resolution.",
             )
         )
-    for w in data["warnings"]:
+    for w in warnings:
         if "differ in length" in w["message"]:
             P.append(
                 _problem(
@@ -265,6 +306,12 @@ def _problems(data: dict[str, Any], inp: _Inputs) -> list[dict[str, str]]:
                     "Check the sync: trim the videos to a common start.",
                 )
             )
+    return P
+
+
+def _video_problems(V: dict[str, Any] | None) -> list[dict[str, str]]:
+    """Videos the filmstrips could not read."""
+    P: list[dict[str, str]] = []
     if V:
         for c in V["cameras"]:
             if c.get("note") and c["note"].startswith("video") and "could not be read" in c["note"]:
