@@ -23,6 +23,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -311,44 +312,39 @@ def _eval_hik(args, names: list[str]) -> int:
     return 0
 
 
-def _main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv and argv[0] == "characteristic":  # Diller ch. 3: `forecast characteristic train|eval ...`
-        from forecast.characteristic.cli import main as characteristic_main  # lazy: loads torch
+# sub-commands with parsers of their own, dispatched before parsing (each loads torch when it runs)
+OWN_PARSERS = {
+    "characteristic": "the characteristic-3D-pose forecaster (Diller ch. 3): train|eval",
+    "cmu8": "the CMU 8-action benchmark's DCT + MLP forecaster: train",
+    "behaviour": "next actions and their characteristic 3D poses (Diller ch. 4): train|eval|sample",
+}
 
-        return characteristic_main(argv[1:]) or 0
-    if argv and argv[0] == "cmu8":  # `forecast cmu8 train ...`: the CMU 8-action benchmark's DCT + MLP
-        from forecast.benchmark_cmu8 import main as cmu8_main  # lazy: loads torch
 
-        return cmu8_main(argv[1:]) or 0
-    if argv and argv[0] == "behaviour":  # Diller ch. 4: `forecast behaviour train|eval|sample ...`
-        from forecast.behaviour.cli import main as behaviour_main  # lazy: loads torch
+def _run_own_parser(name: str, argv: list[str]) -> int:
+    if name == "characteristic":
+        from forecast.characteristic.cli import main as sub_main
+    elif name == "cmu8":
+        from forecast.benchmark_cmu8 import main as sub_main
+    else:
+        from forecast.behaviour.cli import main as sub_main
+    return sub_main(argv) or 0
 
-        return behaviour_main(argv[1:]) or 0
-    p = Parser(prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument(
-        "--threads", type=positive_int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
+
+def _data_args(sp: argparse.ArgumentParser) -> None:
+    """The data a command trains or evaluates on."""
+    sp.add_argument(
+        "--data",
+        nargs="+",
+        default=["cmu"],
+        help="'cmu' (the CMU BVH), 'cmu-all' (every one-person CMU clip: cmu + cmu-more + the 8-action "
+        "benchmark, whose test files are test only), 'two-person' (the salsa takes + 18_01/19_01, split "
+        "by take) and/or track files / folders",
     )
-    p.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
-    sub = p.add_subparsers(dest="cmd", required=True)
+    sp.add_argument("--split-seed", type=int, default=0, help="seed of the train/val/test split by clip")
 
-    def data_args(sp):
-        sp.add_argument(
-            "--data",
-            nargs="+",
-            default=["cmu"],
-            help="'cmu' (the CMU BVH), 'cmu-all' (every one-person CMU clip: cmu + cmu-more + the 8-action "
-            "benchmark, whose test files are test only), 'two-person' (the salsa takes + 18_01/19_01, split "
-            "by take) and/or track files / folders",
-        )
-        sp.add_argument("--split-seed", type=int, default=0, help="seed of the train/val/test split by clip")
 
-    # dispatched before parsing (its own parser); listed here so that `forecast --help` shows it
-    sub.add_parser("characteristic", help="the characteristic-3D-pose forecaster (Diller ch. 3): train|eval")
-    sub.add_parser("cmu8", help="the CMU 8-action benchmark's DCT + MLP forecaster: train")
-    sub.add_parser(
-        "behaviour", help="next actions and their characteristic 3D poses (Diller ch. 4): train|eval|sample"
-    )
+def _add_train(sub: Any) -> None:
+    """``forecast train``."""
     t = sub.add_parser("train", help="train a model")
     t.add_argument(
         "--model", required=True, choices=["gru", "intention", "social_diffusion"], help="model to train"
@@ -363,8 +359,11 @@ def _main(argv: list[str] | None = None) -> int:
         "--init",
         help="continue training from this checkpoint (same model and architecture; default: from scratch)",
     )
-    data_args(t)
+    _data_args(t)
 
+
+def _add_sample(sub: Any) -> None:
+    """``forecast sample``."""
     s = sub.add_parser("sample", help="forecast every track of a track file")
     s.add_argument(
         "--checkpoint", help="model checkpoint (default: the shipped GRU, forecast/checkpoints/gru_cmu.pt)"
@@ -374,6 +373,9 @@ def _main(argv: list[str] | None = None) -> int:
     s.add_argument("--samples", type=positive_int, default=1, help="samples per track (stochastic models)")
     s.add_argument("--out", required=True, help="forecast file to write (.npz)")
 
+
+def _add_eval(sub: Any) -> None:
+    """``forecast eval``."""
     e = sub.add_parser("eval", help="evaluate checkpoints and baselines on held-out clips")
     e.add_argument(
         "--checkpoints",
@@ -427,15 +429,31 @@ def _main(argv: list[str] | None = None) -> int:
         "query's own clip in it (seed), ndms_loo leaves it out",
     )
     e.add_argument("--out", required=True, help="report to write (Markdown; a .json beside it)")
-    data_args(e)
+    _data_args(e)
 
-    args = p.parse_args(argv)
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument(
+        "--threads", type=positive_int, default=1, help="torch CPU threads (1 is fastest on a busy machine)"
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for name, text in OWN_PARSERS.items():  # listed so that `forecast --help` shows them
+        sub.add_parser(name, help=text)
+    _add_train(sub)
+    _add_sample(sub)
+    _add_eval(sub)
+    return p
+
+
+def _main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in OWN_PARSERS:
+        return _run_own_parser(argv[0], argv[1:])
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
-    for var in (
-        "OPENBLAS_NUM_THREADS",
-        "OMP_NUM_THREADS",
-        "MKL_NUM_THREADS",
-    ):  # numpy's BLAS, if not loaded yet
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # numpy's BLAS, if not loaded
         os.environ.setdefault(var, str(args.threads))
     import torch  # lazy: loads torch (after the BLAS thread variables above)
 
