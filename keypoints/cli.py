@@ -17,6 +17,7 @@ from pathlib import Path
 from calibrate.formats import import_rig
 from core.cli import Parser, guarded, nonnegative_int, output_folder, positive_int
 from core.errors import InputError
+from core.fileio import sha256_file
 from core.progress import Bars
 from keypoints import registry
 from keypoints.registry import ModelError
@@ -46,7 +47,7 @@ def _list(args) -> int:
 def _fetch(args) -> int:
     with Bars(unit="B") as bars:
         path = registry.fetch(args.name, args.model_dir, force=args.force, progress=bars)
-    sha = registry.sha256_file(path)
+    sha = sha256_file(path)
     spec = registry.get_spec(args.name, args.model_dir)
     if spec.sha256:
         print(f"{args.name}: {path} (sha256 {sha}, as its description says)")

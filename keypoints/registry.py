@@ -32,7 +32,7 @@ from typing import Any
 
 from core.config import config_from_dict
 from core.errors import FormatError, RoomcapError, UnknownNameError
-from core.fileio import atomic_path, check_schema, load_toml, save_toml
+from core.fileio import atomic_path, check_schema, load_toml, save_toml, sha256_file
 from core.progress import Progress
 from keypoints.skeletons import get_skeleton
 
@@ -352,14 +352,6 @@ def get_model_set(name: str) -> ModelSet:
 
 
 # ----------------------------------------------------------------------------- files and checksums
-
-
-def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 @cache

@@ -49,9 +49,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from core.errors import FormatError, RoomcapError
-from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
+from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag, sha256_file
 from track.trackfile import OBSERVED, TrackFile, track_index
-from triangulate.chunks import PartStore, parts_dir, sha256_file
+from triangulate.chunks import PartStore, parts_dir
 
 # ----------------------------------------------------------------------------- gap filling
 

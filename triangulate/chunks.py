@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import FormatError
-from core.fileio import atomic_write_text
+from core.fileio import atomic_write_text, sha256_file
 
 PARTS_SCHEMA = "parts/1"
 
@@ -83,14 +83,6 @@ def resolve_chunk_s(chunk_s: float | str, n_frames: int, fps: float) -> float:
     if chunk_s != AUTO:
         return float(chunk_s)
     return STREAM_CHUNK_FRAMES / fps if n_frames > STREAM_ABOVE_FRAMES and fps > 0 else 0.0
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def hash_key(items: Iterable[object]) -> str:
