@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pipeline_helpers import stage_outputs
 
 from pipeline.cli import main as reprocess
 from pipeline.config import PipelineConfig
@@ -28,15 +29,6 @@ from pipeline.synth import make_sessions
 REPO = Path(__file__).resolve().parents[1]
 STAGES = "triangulate,track,forecast,report"
 CFG = PipelineConfig(stages=tuple(STAGES.split(",")))
-
-
-def _outputs(root: Path) -> dict[str, bytes]:
-    """Every stage output under an output folder (bookkeeping under .roomcap and summaries excluded)."""
-    return {
-        p.relative_to(root).as_posix(): p.read_bytes()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and ".roomcap" not in p.parts and not p.name.startswith("reprocess_summary")
-    }
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +105,7 @@ def test_killed_run_resumes_to_identical_outputs(sessions, reference, tmp_path):
     assert reprocess([str(sessions), "--out", str(out), "--stages", STAGES, "--workers", "1"]) == 0
     summary = json.loads((out / "reprocess_summary.json").read_text())
     assert [s["ran"] for s in summary][0] == []  # the session done before the kill was not redone
-    got, want = _outputs(out), _outputs(reference)
+    got, want = stage_outputs(out), stage_outputs(reference)
     assert sorted(got) == sorted(want)
     assert [k for k in want if got[k] != want[k]] == []
 
@@ -187,8 +179,8 @@ def test_local_and_ray_executors_give_identical_outputs(sessions, reference, tmp
     finally:
         ray.shutdown()
     assert all(r.status == "ok" for r in results), [r.message for r in results]
-    got = _outputs(tmp_path / "ray")
-    want = {k: v for k, v in _outputs(reference).items() if k.split("/")[1] in ("syn_00", "syn_01")}
+    got = stage_outputs(tmp_path / "ray")
+    want = {k: v for k, v in stage_outputs(reference).items() if k.split("/")[1] in ("syn_00", "syn_01")}
     assert sorted(got) == sorted(want)
     assert [k for k in want if got[k] != want[k]] == []
 

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+from pipeline_helpers import stage_outputs
 
 from pipeline.cli import main as reprocess
 from pipeline.config import PipelineConfig
@@ -28,14 +29,6 @@ from pipeline.synth import make_session
 
 REPO = Path(__file__).resolve().parents[1]
 PARTICLE = '[track]\ntracker = "particle"\n[track.options]\nn_samples = 1000\n'
-
-
-def _outputs(root: Path) -> dict[str, bytes]:
-    return {
-        p.relative_to(root).as_posix(): p.read_bytes()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and ".roomcap" not in p.parts and not p.name.startswith("reprocess_summary")
-    }
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +85,7 @@ def test_two_concurrent_runs_on_one_session(session, config_toml, reference, tmp
         assert second.returncode == 2, (o2, e2)
         assert f"LOCKED S1: {out / 'S1'} is being processed by another run: pid {first.pid}" in e2
         assert "started 20" in e2 and "--wait" in e2
-    got, want = _outputs(out), _outputs(reference)
+    got, want = stage_outputs(out), stage_outputs(reference)
     assert sorted(got) == sorted(want)
     assert [k for k in want if got[k] != want[k]] == []
     assert holder(out / "S1") is None  # released
@@ -164,7 +157,7 @@ def test_outputs_that_are_not_what_the_stage_wrote_are_not_trusted(session, tmp_
     (first,) = run_sessions(discover([session]), out, cfg, workers=1)
     assert first.status == "ok", first.message
     s = out / "S1"
-    want = _outputs(s)
+    want = stage_outputs(s)
     target = s / "track" / "tracks.npz"
     if change == "truncate":
         target.write_bytes(target.read_bytes()[:100])
@@ -186,7 +179,7 @@ def test_outputs_that_are_not_what_the_stage_wrote_are_not_trusted(session, tmp_
     assert {"truncate": "bytes, the stage wrote", "same_size": "sha256 differs", "delete_part": "is missing"}[
         change
     ] in said[0]
-    assert _outputs(s) == want  # restored byte for byte
+    assert stage_outputs(s) == want  # restored byte for byte
     (third,) = run_sessions(discover([session]), out, cfg, workers=1)
     assert third.ran == []
 
@@ -263,7 +256,7 @@ def test_ctrl_c_says_stopping_and_ends_within_2_s_keeping_finished_stages(
     assert reprocess([str(session), "--out", str(out), "--workers", "1", "--config", str(config_toml)]) == 0
     (r,) = json.loads((out / "reprocess_summary.json").read_text())
     assert r["ran"][0] == "track" and "triangulate" not in r["ran"]  # the finished stage was kept
-    got, want = _outputs(out), _outputs(reference)
+    got, want = stage_outputs(out), stage_outputs(reference)
     assert sorted(got) == sorted(want) and [k for k in want if got[k] != want[k]] == []
 
 
