@@ -19,7 +19,6 @@ be read); 2 bad input, or a session locked by another run; 130 Ctrl-C (finished 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -32,7 +31,7 @@ from capture.session import SessionLayout
 from core.cli import Parser, guarded, output_folder, positive_int
 from core.errors import FormatError
 from core.fileio import atomic_write_text
-from pipeline.config import STAGES, TRACKERS, PipelineConfig, TrackConfig
+from pipeline.config import DEFAULT_TRACKER, STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
 from pipeline.report import write_overlay_videos
@@ -56,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--tracker",
         choices=TRACKERS,
         help=f"track stage: particle (ch. 5 particle filter) or greedy (ch. 4 matching in time); default: "
-        f"{TrackConfig().tracker} (or [track] tracker of --config)",
+        f"{DEFAULT_TRACKER} (or [track] tracker of --config)",
     )
     p.add_argument(
         "--config", type=Path, help="pipeline TOML (see README, 'A pipeline TOML'; default: every default)"
@@ -118,14 +117,17 @@ def export_results(results: list[SessionResult], formats: tuple[str, ...]) -> li
 
 
 def make_config(args: argparse.Namespace) -> PipelineConfig:
-    cfg = PipelineConfig.load(args.config) if args.config else PipelineConfig()
+    """The pipeline config of ``--config`` with the command line's options in it, parsed once."""
+    overrides: dict = {}
     if args.stages:
-        cfg = cfg.replace(stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()))
+        overrides["stages"] = [s.strip() for s in args.stages.split(",") if s.strip()]
     if args.tracker:
-        cfg = cfg.replace(track=type(cfg.track)(tracker=args.tracker, options=cfg.track.options))
+        overrides["track"] = {"tracker": args.tracker}
     if args.max_frames:
-        cfg = cfg.replace(keypoints=dataclasses.replace(cfg.keypoints, max_frames=args.max_frames))
-    return cfg
+        overrides["keypoints"] = {"max_frames": args.max_frames}
+    if args.config:
+        return PipelineConfig.load(args.config, overrides)
+    return PipelineConfig.from_dict(overrides)
 
 
 def format_table(results: list[SessionResult], stages: tuple[str, ...]) -> str:

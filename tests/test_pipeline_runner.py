@@ -258,7 +258,7 @@ def test_changed_stage_code_reruns_that_stage_only(tmp_path, monkeypatch):
 def test_reprocess_with_chunk_s_streams_end_to_end(sessions, tmp_path, tracker):
     """`reprocess` with chunk_s > 0 (issue 17): the 3D stages write their parts folders, the runner caches
     and fingerprints them, forecast and report read them, and the tracks equal the whole-session run's."""
-    from triangulate.trackfile import TrackFile
+    from track.trackfile import TrackFile
 
     src = sessions / "syn_02"  # 3 people
     stages = "triangulate,track,forecast,report" if tracker == "greedy" else "track,forecast,report"
@@ -307,8 +307,8 @@ def test_long_sessions_stream_by_default(sessions, tmp_path, tracker, monkeypatc
     STREAM_CHUNK_FRAMES, a shorter one is not; the runner plans the outputs the stages write (a rerun runs
     nothing) and the tracks equal the whole-session run's bit for bit. The thresholds are lowered here so
     that a small session is "long"."""
+    from track.trackfile import TrackFile
     from triangulate import chunks
-    from triangulate.trackfile import TrackFile
 
     src = sessions / "syn_02"
     n = max(int(np.load(f)["frame_index"].shape[0]) for f in (src / "keypoints").glob("*.npz"))

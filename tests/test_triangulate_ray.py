@@ -21,9 +21,9 @@ from pipeline.executors import run_sessions
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
+from track.trackfile import TrackFile
 from triangulate import chunks as C
 from triangulate.stage import triangulate_session
-from triangulate.trackfile import TrackFile
 
 TRI = {"chunk_s": 2.0}  # 12 s at 25 Hz: 6 chunks
 TRK = {"chunk_s": 3.0}

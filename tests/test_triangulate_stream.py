@@ -16,13 +16,14 @@ from keypoints.detections import Detections
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
+from track.greedy import TrackerConfig, frame_times_s, track_poses
+from track.greedy_stage import track_session_greedy
+from track.greedy_stream import build_chunks, link_chunks
+from track.trackfile import TrackFile, iter_parts
 from triangulate import chunks as C
 from triangulate import stage
 from triangulate.poses3d import Poses3D
-from triangulate.stage import track_session_greedy, triangulate_session
-from triangulate.stream_track import build_chunks, link_chunks
-from triangulate.tracker import TrackerConfig, frame_times_s, track_poses
-from triangulate.trackfile import TrackFile, iter_parts
+from triangulate.stage import triangulate_session
 
 TRI = {"chunk_s": 2.0}
 TRK = {"chunk_s": 3.0}
@@ -184,8 +185,8 @@ def test_stream_tracker_equals_batch_on_a_paused_irregular_recording(session):
     cfg = TrackerConfig().at_fps(p.fps)
     whole = track_poses(xyz, fi, t_ns, p.fps, p.joint_names, parents, conf, std, cfg)
     t_s = frame_times_s(fi, t_ns, p.fps)
+    from track.greedy import facing_joints
     from triangulate.reconstruct import flip_index
-    from triangulate.tracker import facing_joints
 
     flip = flip_index(p.joint_names)
     for step in (7, 40, 1000):

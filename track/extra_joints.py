@@ -28,9 +28,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.config import config_from_dict
+from track.trackfile import OBSERVED, SMOOTHED, TrackFile
 from triangulate.dlt import DLTConfig, Triangulator
 from triangulate.geometry import project
-from triangulate.trackfile import OBSERVED, SMOOTHED, TrackFile
 
 log = logging.getLogger(__name__)
 

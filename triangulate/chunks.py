@@ -32,7 +32,7 @@ import logging
 import os
 import shutil
 import zipfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,6 +63,10 @@ STREAM_ABOVE_FRAMES = 1500
 STREAM_CHUNK_FRAMES = 1500
 
 
+# Runs ``fn(*jobs[i])`` for every chunk ``i``, ``workers`` at a time, and yields ``(i, result)`` as each
+# finishes; closing the generator stops the chunks not yet run (``pipeline.executors.chunk_runner``).
+ChunkRunner = Callable[[Callable[..., Any], dict[int, tuple], int], Iterator[tuple[int, Any]]]
+
 CHUNK_EXECUTORS = ("processes", "ray")  # where StreamConfig.executor runs the chunks of one session
 STREAM_KEYS = ("chunk_s", "workers", "executor")
 
@@ -87,9 +91,9 @@ class StreamConfig:
     30.0
     >>> StreamConfig().seconds(n_frames=9000, fps=25.0), StreamConfig().seconds(n_frames=100, fps=25.0)
     (60.0, 0.0)
-    >>> StreamConfig(chunk_s=-1)
+    >>> StreamConfig(chunk_s=-1)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    ValueError: chunk_s must be "auto" (stream sessions longer than 1500 frames) or seconds >= 0 (0 = the whole session at once), got -1.
+    ValueError: chunk_s must be "auto" (stream sessions longer than 1500 frames) or seconds >= 0 ...
     """
 
     chunk_s: float | str = AUTO
@@ -113,6 +117,14 @@ class StreamConfig:
         if self.chunk_s != AUTO:
             return float(self.chunk_s)
         return STREAM_CHUNK_FRAMES / fps if n_frames > STREAM_ABOVE_FRAMES and fps > 0 else 0.0
+
+    def check_in_order(self) -> None:
+        """For a stage whose chunks depend on the one before (a tracker): one process, in order."""
+        if self.workers != 1 or self.executor != "processes":
+            raise ValueError(
+                "workers and executor: a tracker carries its tracks from one chunk to the next, so its "
+                "chunks run in order in one process; set them on [triangulate.options] only."
+            )
 
     def result_settings(self) -> dict[str, Any]:
         """What the parts depend on (``chunk_s``), without how they were run (``workers``, ``executor``)."""

@@ -11,10 +11,8 @@ the list of valid ones) or None for the defaults.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import os
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import closing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -24,8 +22,8 @@ import numpy as np
 from calibrate.camera import CameraRig
 from calibrate.checks import rig_warnings
 from capture.session import SessionLayout, require
-from core.config import config_from_dict
-from core.errors import FormatError, InputError
+from core.config import as_config
+from core.errors import FormatError
 from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.skeletons import (
@@ -34,61 +32,24 @@ from keypoints.skeletons import (
     convert,
     get_skeleton,
     load_skeleton_toml,
-    skeleton_from_names,
     whole_body,
 )
 from triangulate.checks import check_frame_order, detection_warnings, no_detection_warning, span_warnings
 from triangulate.chunks import (
     AUTO,
+    ChunkRunner,
     NpzRows,
     PartStore,
+    StreamConfig,
     file_stamp,
     hash_key,
-    parse_chunk_s,
     parts_dir,
     remove_output,
-    resolve_chunk_s,
 )
 from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import RUN_SETTINGS, FrameReconstructor, TriangulateConfig
-from triangulate.tracker import TrackerConfig, track_poses
+from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class GreedyTrackConfig:
-    """The greedy track stage: the tracker's settings (see :class:`TrackerConfig`).
-
-    chunk_s: stream the session in time chunks of this many seconds (:mod:`triangulate.stream_track`):
-    bounded memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an
-    index with sizes and hashes), a killed run resumes at the last complete chunk; the result equals the
-    whole session's bit for bit. 0 = at once into ``tracks.npz``; ``"auto"`` (the default) = streamed
-    when the session is long (:func:`session_chunk_s`)."""
-
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    chunk_s: float | str = AUTO
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "chunk_s", parse_chunk_s(self.chunk_s, "GreedyTrackConfig.chunk_s"))
-
-    @classmethod
-    def from_dict(cls, d: dict) -> GreedyTrackConfig:
-        if "tracker" in d:
-            return config_from_dict(cls, d)
-        d = dict(d)
-        stage = {"chunk_s": d.pop("chunk_s")} if "chunk_s" in d else {}
-        return cls(tracker=TrackerConfig.from_dict(d), **stage)  # flat dict of tracker keys
-
-
-def _as_config(cls, config):
-    if config is None:
-        return cls()
-    if isinstance(config, cls):
-        return config
-    if isinstance(config, dict):
-        return cls.from_dict(config)
-    raise TypeError(f"expected {cls.__name__}, a dict or None, got {type(config).__name__}")
 
 
 @dataclass(frozen=True)
@@ -515,14 +476,14 @@ def session_fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
     return float(1e9 / np.median(dt)) if len(dt) else 25.0
 
 
-def session_chunk_s(layout: SessionLayout, chunk_s: float | str) -> float:
-    """Seconds per chunk a 3D stage with setting ``chunk_s`` uses on this session (0 = the whole session
-    into the single file). ``"auto"`` streams a session of more than ``STREAM_ABOVE_FRAMES`` frames
-    (:func:`triangulate.chunks.resolve_chunk_s`), counted in the detections files (the camera with the
-    most frames; ``triangulate/poses3d`` where there are none), so every stage and the runner, which
-    must know the output's path before the stage runs, decide the same for one session."""
-    if chunk_s != AUTO:
-        return float(chunk_s)
+def session_chunk_s(layout: SessionLayout, stream: StreamConfig) -> float:
+    """Seconds per chunk a 3D stage walking as ``stream`` says uses on this session (0 = the whole
+    session into the single file). ``"auto"`` streams a session of more than ``STREAM_ABOVE_FRAMES``
+    frames (:meth:`StreamConfig.seconds`), counted in the detections files (the camera with the most
+    frames; ``triangulate/poses3d`` where there are none), so every stage and the runner, which must know
+    the output's path before the stage runs, decide the same for one session."""
+    if stream.chunk_s != AUTO:
+        return float(stream.chunk_s)
     n, t_ns = 0, np.zeros(0, np.int64)
     files = [layout.detections(c) for c in layout.detection_cameras()]
     if not files and layout.poses3d.exists():
@@ -538,8 +499,8 @@ def session_chunk_s(layout: SessionLayout, chunk_s: float | str) -> float:
     if not files and parts_dir(layout.poses3d).is_dir():
         index = PartStore(parts_dir(layout.poses3d), "poses3d").load_index()
         meta = index.get("meta", {})
-        return resolve_chunk_s(chunk_s, int(meta.get("n_frames", 0)), float(meta.get("fps", 0.0)))
-    return resolve_chunk_s(chunk_s, n, session_fps(layout, t_ns))
+        return stream.seconds(int(meta.get("n_frames", 0)), float(meta.get("fps", 0.0)))
+    return stream.seconds(n, session_fps(layout, t_ns))
 
 
 def _reconstructor(rig: CameraRig, cameras: tuple[str, ...], joint_names, config: TriangulateConfig):
@@ -613,11 +574,13 @@ def triangulate_session(
     session_dir: str | os.PathLike,
     config: TriangulateConfig | dict | None = None,
     progress: Progress | None = None,
+    executor: ChunkRunner | None = None,
 ) -> Path:
     """Association (Alg. 1) + robust DLT for every frame of a session; writes ``triangulate/poses3d.npz``
-    (with ``chunk_s`` > 0: ``triangulate/poses3d.parts/``, streamed and resumable; ``Poses3D.load`` of
-    ``poses3d.npz`` reads either)."""
-    cfg = _as_config(TriangulateConfig, config)
+    (streamed: ``triangulate/poses3d.parts/``, resumable; ``Poses3D.load`` of ``poses3d.npz`` reads
+    either). ``executor`` runs the chunks ``config.stream.workers`` at a time
+    (``pipeline.executors.chunk_runner``: processes or Ray); without one they run in this process."""
+    cfg = as_config(TriangulateConfig, config)
     lay = SessionLayout(session_dir)
     rig_path = require(
         lay.rig_toml, "the calibration calib/rig.toml", "Calibrate the rig or import a calibration."
@@ -632,9 +595,9 @@ def triangulate_session(
         )
     for w in rig_warnings(rig, str(rig_path)):
         log.warning("%s", w)
-    cfg = replace(cfg, chunk_s=session_chunk_s(lay, cfg.chunk_s))
-    if cfg.chunk_s > 0:
-        return _triangulate_chunked(lay, rig, cfg, progress)
+    cfg = replace(cfg, stream=replace(cfg.stream, chunk_s=session_chunk_s(lay, cfg.stream)))
+    if cfg.stream.chunk_s > 0:
+        return _triangulate_chunked(lay, rig, cfg, progress, executor)
     sub, mv = load_detections(lay, rig, skeleton=cfg.skeleton)
     res = reconstruct_all(sub, mv, cfg, progress)
     poses = _poses3d(
@@ -679,15 +642,17 @@ def _poses3d(
 
 
 def _triangulate_chunked(
-    lay: SessionLayout, rig: CameraRig, cfg: TriangulateConfig, progress: Progress | None
+    lay: SessionLayout,
+    rig: CameraRig,
+    cfg: TriangulateConfig,
+    progress: Progress | None,
+    executor: ChunkRunner | None,
 ) -> Path:
-    """The streaming form: one poses3d part per ``cfg.chunk_s`` of frames, resumable (issue 17)."""
-    if cfg.executor == "ray":
-        _import_ray()  # before any work: a clear message where ray is not installed
+    """The streaming form: one poses3d part per ``cfg.stream.chunk_s`` of frames, resumable."""
     plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
     try:
         fps = session_fps(lay, plan.t_ns)
-        step = max(int(round(cfg.chunk_s * fps)), 1)
+        step = max(int(round(cfg.stream.chunk_s * fps)), 1)
         T = plan.n_frames
         chunks = [(a, min(a + step, T)) for a in range(0, T, step)] or [(0, 0)]
         key = hash_key(
@@ -710,7 +675,7 @@ def _triangulate_chunked(
         n_sum, n_max, n_frames = 0, 0, 0
         # closing: a kill (Ctrl-C) between parts stops the workers now (queued chunks cancelled, a Ray
         # started here shut down), not when the generator is collected
-        parts = _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress)
+        parts = _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress, executor)
         with closing(parts):
             for i, n in parts:
                 store.commit(i)
@@ -740,39 +705,26 @@ def _triangulate_chunked(
 
 
 def _without_run_settings(cfg: TriangulateConfig) -> TriangulateConfig:
-    """``cfg`` with its ``RUN_SETTINGS`` at their defaults: how the chunks ran, not what they are."""
-    return replace(cfg, **{k: TriangulateConfig.__dataclass_fields__[k].default for k in RUN_SETTINGS})
+    """``cfg`` with ``workers`` and ``executor`` at their defaults: how the chunks ran, not what they are."""
+    return replace(cfg, stream=StreamConfig(chunk_s=cfg.stream.chunk_s))
 
 
-def _import_ray():
-    try:
-        import ray
-    except ImportError:
-        raise InputError(
-            "triangulate: executor = 'ray' needs ray: pip install 'roomcap[cluster]' (or set "
-            "[triangulate.options] executor = 'processes' to use this machine's processes)."
-        ) from None
-    return ray
-
-
-def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress):
+def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress, executor):
     """Triangulate the chunks ``todo`` into their part files; yields (chunk, people per frame) as each is
-    written. ``cfg.workers`` > 1 or ``cfg.executor`` "ray": in worker processes (spawned: onnxruntime and
-    torch thread pools do not survive a fork) or Ray tasks, each worker planning the session once
-    (``_chunk_worker``)."""
+    written: in this process, or with ``executor`` (worker processes or Ray tasks, each worker planning
+    the session once, ``_chunk_worker``)."""
     T = plan.n_frames
     for i, (_, b) in enumerate(chunks):
         if i not in todo and progress is not None:
             progress("triangulate", b, T)
-    if len(todo) <= 1 or (cfg.workers <= 1 and cfg.executor == "processes"):
+    if len(todo) <= 1 or executor is None:
         rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
         for i in sorted(todo):
             yield i, _triangulate_chunk(plan, rig, cfg, rec, chunks[i], fps, store.part_path(i), progress)
         return
     jobs = {i: (str(lay.root), cfg, chunks[i], fps, str(store.part_path(i)), key) for i in sorted(todo)}
-    run = _chunks_on_ray if cfg.executor == "ray" else _chunks_in_processes
     done = sum(b - a for i, (a, b) in enumerate(chunks) if i not in todo)
-    with closing(run(jobs, cfg.workers)) as results:
+    with closing(executor(_chunk_worker, jobs, cfg.stream.workers)) as results:
         for i, (n, seen) in results:
             for m, s in zip(plan.metas, seen, strict=True):  # for the "camera without detections" check
                 m.seen = m.seen or s
@@ -780,66 +732,6 @@ def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, prog
             if progress is not None:
                 progress("triangulate", done, T)
             yield i, n
-
-
-_BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def _chunks_in_processes(jobs: dict, workers: int):
-    """``_chunk_worker(*jobs[i])`` in ``workers`` spawned processes; yields (i, result) as each finishes.
-
-    Each process gets its share of the cores' BLAS threads (read when numpy loads, so set in the
-    environment the processes are spawned with): with the default of one per core, 2 processes on 2 cores
-    ran at 1.16x one process, with one each at 1.93x (bench_triangulate_workers.py)."""
-    ctx = mp.get_context("spawn")
-    share = str(max(1, (os.cpu_count() or 1) // max(1, min(workers, len(jobs)))))
-    saved = {v: os.environ.get(v) for v in _BLAS_THREADS}
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx) as pool:
-        try:  # the processes start at the submits (spawn: on demand), with this environment
-            os.environ.update({v: share for v in _BLAS_THREADS if saved[v] is None})
-            futures = {pool.submit(_chunk_worker, *args): i for i, args in jobs.items()}
-        finally:
-            for v, old in saved.items():
-                if old is None:
-                    os.environ.pop(v, None)
-        try:
-            for f in as_completed(futures):
-                yield futures[f], f.result()
-        except BaseException:  # killed, or the caller stopped: the queued chunks are not started
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
-
-
-def _chunks_on_ray(jobs: dict, workers: int):
-    """``_chunk_worker(*jobs[i])`` as Ray tasks of one CPU each; yields (i, result) as each finishes.
-
-    In a running Ray (a cluster, or inside a session's task of ``reprocess --executor ray``) the tasks
-    go to its free CPUs; a task blocked in ``ray.wait`` lends its CPU back, so nesting does not deadlock.
-    Where no Ray runs in this process, a local one of ``workers`` CPUs is started and stopped after."""
-    ray = _import_ray()
-    started_here = not ray.is_initialized()
-    if started_here:
-        # a new local instance of our own ("local"), never someone else's running cluster
-        ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
-    pending: dict = {}
-    try:
-        task = ray.remote(num_cpus=1)(_chunk_worker)
-        pending = {task.remote(*args): i for i, args in jobs.items()}
-        while pending:
-            (ref,), _ = ray.wait(list(pending), num_returns=1)
-            i = pending.pop(ref)
-            try:
-                result = ray.get(ref)
-            except ray.exceptions.RayTaskError as e:  # the worker's own error (a bad file), not Ray's wrapper
-                if isinstance(e.cause, Exception):
-                    raise e.cause from None
-                raise
-            yield i, result
-    finally:
-        for ref in pending:  # killed, failed or stopped: the chunks not yet written are not run
-            ray.cancel(ref)
-        if started_here:
-            ray.shutdown()
 
 
 BLOCK_FRAMES = 250  # frames of detections read at a time within a chunk
@@ -891,161 +783,3 @@ def _chunk_worker(
     plan = _WORKER_PLAN["plan"]
     n = _triangulate_chunk(plan, _WORKER_PLAN["rig"], cfg, _WORKER_PLAN["rec"], chunk, fps, Path(part))
     return n, [m.seen for m in plan.metas]
-
-
-def track_session_greedy(
-    session_dir: str | os.PathLike, config: GreedyTrackConfig | TrackerConfig | dict | None = None
-) -> Path:
-    """The chapter-4 tracker on ``triangulate/poses3d.npz`` (or its parts); writes ``track/tracks.npz``
-    (with ``chunk_s`` > 0: ``track/tracks.parts/``, streamed, resumable; ``TrackFile.load`` reads either)."""
-    if isinstance(config, TrackerConfig):
-        config = GreedyTrackConfig(tracker=config)
-    cfg = _as_config(GreedyTrackConfig, config)
-    lay = SessionLayout(session_dir)
-    if not lay.poses3d.exists() and not parts_dir(lay.poses3d).is_dir():
-        require(lay.poses3d, "triangulate/poses3d.npz", "Run the triangulate stage first.")
-    cfg = replace(cfg, chunk_s=session_chunk_s(lay, cfg.chunk_s))
-    if cfg.chunk_s > 0:
-        return _track_chunked(lay, cfg)
-    p = Poses3D.load(lay.poses3d)
-    tf = track_poses(
-        p.xyz_m.astype(np.float64),
-        p.frame_index,
-        p.t_ns,
-        p.fps,
-        p.joint_names,
-        np.asarray(skeleton_from_names(p.joint_names).parents if p.parents is None else p.parents),
-        confidence=p.score,
-        std_m=p.std_m,
-        config=cfg.tracker,
-        calibration_sha256=p.calibration_sha256,
-    )
-    remove_output(lay.tracks)
-    tf.save(lay.tracks)
-    log.info("greedy tracker: %d tracks over %d frames", tf.n_tracks, tf.n_frames)
-    return lay.tracks
-
-
-class PosesReader:
-    """Frames [a, b) of ``poses3d.npz`` or of its parts, reading only the parts a range touches."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._cache: dict[int, Poses3D] = {}
-        if path.exists():
-            self.whole: Poses3D | None = Poses3D.load(path)
-            self.spans = [(0, self.whole.n_frames, path)]
-            self.stamp: object = file_stamp(path)
-            head = self.whole
-        else:
-            self.whole = None
-            store = PartStore(parts_dir(path), "poses3d")
-            self.spans = store.checked_parts()
-            self.stamp = (
-                store.index["key"],
-                [store.index["parts"][k]["sha256"] for k in sorted(store.index["parts"])],
-            )
-            head = Poses3D.load(self.spans[0][2])
-        self.fps, self.joint_names = head.fps, head.joint_names
-        self.parents = head.parents
-        self.calibration_sha256 = head.calibration_sha256
-        if self.whole is not None:
-            self.frame_index, self.t_ns = self.whole.frame_index, self.whole.t_ns
-        else:  # the frame axis of every part (small)
-            fi, tn = [], []
-            for _, _, p in self.spans:
-                with NpzRows(p) as r:
-                    fi.append(r.full("frame_index"))
-                    tn.append(r.full("t_ns"))
-            self.frame_index, self.t_ns = np.concatenate(fi), np.concatenate(tn)
-
-    def _part(self, i: int) -> Poses3D:
-        if self.whole is not None:
-            return self.whole
-        if i not in self._cache:
-            if len(self._cache) >= 3:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[i] = Poses3D.load(self.spans[i][2])
-        return self._cache[i]
-
-    def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        xs, cs, ss = [], [], []
-        for i, (f0, f1, _) in enumerate(self.spans):
-            if f1 <= a or f0 >= b:
-                continue
-            p = self._part(i)
-            sl = slice(max(a - f0, 0), min(b, f1) - f0)
-            xs.append(p.xyz_m[sl])
-            cs.append(p.score[sl])
-            ss.append(p.std_m[sl])
-        P = max(x.shape[1] for x in xs)
-
-        def cat(arrs, fill):
-            return np.concatenate(
-                [
-                    np.pad(x, [(0, 0), (0, P - x.shape[1])] + [(0, 0)] * (x.ndim - 2), constant_values=fill)
-                    for x in arrs
-                ]
-            )
-
-        return cat(xs, np.nan), cat(cs, 0.0), cat(ss, np.nan)
-
-
-def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
-    """The streaming greedy tracker (:mod:`triangulate.stream_track`), one track part per chunk."""
-    from triangulate.reconstruct import flip_index
-    from triangulate.stream_track import build_chunks, link_chunks
-    from triangulate.tracker import facing_joints, frame_times_s, pause_clock, sparse_time_warning
-    from triangulate.trackfile import TrackFile
-
-    read = PosesReader(lay.poses3d)
-    fps = read.fps
-    tcfg = cfg.tracker.at_fps(fps)
-    parents = np.asarray(
-        skeleton_from_names(read.joint_names).parents if read.parents is None else read.parents
-    )
-    flip = flip_index(read.joint_names) if tcfg.fix_mirrored else None
-    t_s = frame_times_s(read.frame_index, read.t_ns, fps)
-    T = len(t_s)
-    warn = sparse_time_warning(
-        pause_clock(t_s, tcfg.max_gap_s, fps)[1], tcfg.max_gap_s, tcfg.min_track_frames
-    )
-    if warn:
-        log.warning("greedy tracker: %s", warn)
-    step = max(int(round(cfg.chunk_s * fps)), 1)
-    chunks = [(a, min(a + step, T)) for a in range(0, T, step)]
-    key = hash_key(["tracks", repr(cfg), read.stamp])
-    if lay.tracks.exists():
-        lay.tracks.unlink()
-    store = PartStore(parts_dir(lay.tracks), "tracks")
-    todo = set(store.open(key, chunks, {"fps": fps, "n_frames": T}))
-    if todo and len(todo) < len(chunks):
-        log.info(
-            "greedy tracker: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
-        )
-    if todo:
-        labels, mirrored, final = link_chunks(
-            read, chunks, tcfg, fps, flip, t_s, facing_joints(read.joint_names)
-        )
-        for i, ch in build_chunks(read, chunks, labels, mirrored, final, tcfg, parents, flip, fps, t_s, todo):
-            TrackFile(
-                fps=fps,
-                frame_index=read.frame_index[ch.a : ch.b],
-                t_ns=read.t_ns[ch.a : ch.b],
-                track_id=ch.track_id,
-                joint_names=read.joint_names,
-                parents=parents,
-                xyz_m=ch.xyz_m,
-                confidence=np.clip(ch.confidence, 0, 1),
-                std_m=ch.std_m,
-                flags=ch.flags,
-                calibration_sha256=read.calibration_sha256,
-                source="triangulate.tracker (greedy, ch. 4; streamed)",
-            ).save(store.part_path(i))
-            store.commit(i)
-        n_tracks = int(final.max(initial=-1)) + 1
-    else:
-        n_tracks = -1
-    store.finish({"n_tracks": n_tracks} if n_tracks >= 0 else None)
-    log.info("greedy tracker (streamed): %d chunks, %s tracks over %d frames", len(chunks), n_tracks, T)
-    return lay.tracks

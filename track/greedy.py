@@ -27,8 +27,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.config import config_from_dict
+from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 from triangulate.reconstruct import flip_index
-from triangulate.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +231,7 @@ class FrameLinker:
     ``clock (T,)``, ``pauses (T,)``: :func:`pause_clock` of the session's frame times. ``flip`` (J,)
     (left/right joint permutation): a pose may also join a track mirrored, when its left/right-swapped
     version is closer; ``facing``: see :func:`join_mirrored`. The hooks :meth:`_joined` and
-    :meth:`_retired` let :class:`triangulate.stream_track.StreamLinker` keep what stitching needs."""
+    :meth:`_retired` let :class:`track.greedy_stream.StreamLinker` keep what stitching needs."""
 
     def __init__(
         self,
@@ -636,7 +636,7 @@ def track_poses(
     std_m: np.ndarray | None = None,
     config: TrackerConfig | None = None,
     calibration_sha256: str = "",
-    source: str = "triangulate.tracker (greedy, ch. 4)",
+    source: str = "track.greedy (greedy, ch. 4)",
 ) -> TrackFile:
     """Per-frame poses (T,P,J,3) -> :class:`TrackFile` (track ids 0..K-1 by first appearance)."""
     cfg = (config or TrackerConfig()).at_fps(fps)
