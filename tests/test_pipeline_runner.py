@@ -128,27 +128,21 @@ def test_corrupt_session_fails_alone(sessions, tmp_path, capsys):
 
 
 def test_disk_full_keeps_finished_stages(tmp_path, monkeypatch):
-    from pipeline import runner
+    from pipeline.stages import TrackStage
 
     make_sessions(tmp_path / "in", 1, duration_s=1.0)
     out = tmp_path / "out"
-    real = runner._PLANNERS["track"]
 
-    def full_disk(*a):
-        plan = real(*a)
+    def full_disk(self, session, config, progress, executor):
+        raise OSError(errno.ENOSPC, "No space left on device")
 
-        def run(warnings):
-            raise OSError(errno.ENOSPC, "No space left on device")
-
-        return runner.StagePlan(plan.name, plan.inputs, plan.outputs, plan.config, run, plan.model_sha256)
-
-    monkeypatch.setitem(runner._PLANNERS, "track", full_disk)
+    monkeypatch.setattr(TrackStage, "run", full_disk)
     (r,) = run_sessions(discover([tmp_path / "in"]), out, CFG, workers=1)
     assert r.status == "failed" and r.failed_stage == "track"
     assert "disk is full" in r.message and "Free space" in r.message and "triangulate" in r.message
     poses = out / "in" / "syn_00" / "triangulate" / "poses3d.npz"
     assert poses.exists()
-    monkeypatch.setitem(runner._PLANNERS, "track", real)
+    monkeypatch.undo()
     (r2,) = run_sessions(discover([tmp_path / "in"]), out, CFG, workers=1)
     assert r2.status == "ok" and r2.ran == ["track", "forecast", "report"]
 

@@ -23,10 +23,19 @@ from track.trackfile import TrackFile, iter_parts
 from triangulate import chunks as C
 from triangulate import stage
 from triangulate.poses3d import Poses3D
+from triangulate.reconstruct import TriangulateConfig
 from triangulate.stage import triangulate_session
 
 TRI = {"chunk_s": 2.0}
 TRK = {"chunk_s": 3.0}
+
+
+def _triangulate_on(root, options):
+    """``triangulate_session`` with its chunks run as ``options`` say (``workers``, ``executor``)."""
+    from pipeline.executors import chunk_runner
+
+    cfg = TriangulateConfig.from_dict(options)
+    return triangulate_session(root, cfg, executor=chunk_runner(cfg.stream))
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +103,7 @@ def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch, caplo
     lay = SessionLayout(root)
     with killed_after_commits(monkeypatch, 2), pytest.raises(KeyboardInterrupt):
         triangulate_session(root, TRI)
-    triangulate_session(root, {**TRI, "workers": 2})
+    _triangulate_on(root, {**TRI, "workers": 2})
     idx = json.loads((C.parts_dir(lay.poses3d) / "index.json").read_text())
     assert idx["complete"] and len(idx["parts"]) == 6
     _same_poses(Poses3D.load(lay.poses3d), session[1])
@@ -103,7 +112,7 @@ def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch, caplo
     fresh = tmp_path / "fresh"
     shutil.copytree(session[0], fresh)
     caplog.clear()
-    triangulate_session(fresh, {**TRI, "workers": 2})  # every chunk in the workers
+    _triangulate_on(fresh, {**TRI, "workers": 2})  # every chunk in the workers
     assert "has no detection" not in caplog.text  # the workers say which cameras they saw
     _same_poses(Poses3D.load(SessionLayout(fresh).poses3d), session[1])
 
