@@ -46,8 +46,9 @@ from pipeline.session_inputs import (
 from track.greedy_stage import GreedyTrackConfig, track_session_greedy
 from track.stage import ParticleTrackConfig, stream_chunk_s, track_session_particle
 from triangulate.chunks import ChunkRunner, parts_dir
+from triangulate.multiview import session_chunk_s
 from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import session_chunk_s, triangulate_session
+from triangulate.stage import triangulate_session
 
 
 @dataclass
@@ -92,12 +93,9 @@ def model_set_sha256(model_set: str, store: ProvenanceStore | None = None) -> st
     return "+".join(path_fingerprint(resolve(n, verify=False), cache) for n in names)
 
 
-def _without_run_settings(settings: dict[str, Any]) -> dict[str, Any]:
+def _result_settings(config: TriangulateConfig | TrackerChoice) -> dict[str, Any]:
     """A 3D stage's settings without how its chunks ran (``stream.workers``, ``stream.executor``)."""
-    stream = settings.get("stream")
-    if not isinstance(stream, dict):
-        return settings
-    return {**settings, "stream": {"chunk_s": stream["chunk_s"]}}
+    return {**dataclasses.asdict(config), "stream": config.stream.result_settings()}
 
 
 class CalibrationStage:
@@ -240,7 +238,7 @@ class TriangulateStage:
             [parts_dir(lay.poses3d) if streamed else lay.poses3d],
             # new sync offsets: rerun
             {
-                "options": _without_run_settings(dataclasses.asdict(config)),
+                "options": _result_settings(config),
                 "sync": sync_table(session.source),
             },
         )
@@ -270,7 +268,7 @@ class TrackStage:
         inputs = [lay.rig_toml, *detection_paths(lay)]
         settings: dict[str, Any] = {
             "tracker": tracker_name(config),
-            "options": _without_run_settings(dataclasses.asdict(config)),
+            "options": _result_settings(config),
         }
         if isinstance(config, GreedyTrackConfig):
             inputs.append(stage_file(lay.poses3d))  # the file or a streamed run's parts

@@ -31,6 +31,7 @@ from core.config import config_from_dict
 from track.trackfile import OBSERVED, SMOOTHED, TrackFile
 from triangulate.dlt import DLTConfig, Triangulator
 from triangulate.geometry import project
+from triangulate.multiview import load_detections
 
 log = logging.getLogger(__name__)
 
@@ -221,8 +222,6 @@ def attach_session_joints(
     """:func:`attach_joints` for a session: the detections read again in the layout of ``skeleton``
     (``whole_body`` or a skeleton TOML, as the triangulate option) on the particle tracker's frame axis;
     ``sub`` is the rig the tracker ran on (the cameras with detections)."""
-    from triangulate.stage import load_detections
-
     sub2, mv = load_detections(lay, rig, skeleton=skeleton)
     if tuple(sub2.names) != tuple(sub.names) or not np.array_equal(mv.frame_index, tf.frame_index):
         raise ValueError(

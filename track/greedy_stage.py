@@ -37,9 +37,9 @@ from triangulate.chunks import (
     remove_output,
     split_stream_keys,
 )
+from triangulate.multiview import session_chunk_s
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import flip_index
-from triangulate.stage import session_chunk_s
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from track.particle import ParticleConfig, ParticleTracker, track_sequence
 from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from track.stream import track_session_particle_chunked
 from triangulate.chunks import AUTO, StreamConfig, remove_output, split_stream_keys
-from triangulate.stage import load_detections, session_chunk_s, session_fps
+from triangulate.multiview import load_detections, session_chunk_s, session_fps
 
 log = logging.getLogger(__name__)
 

@@ -52,7 +52,7 @@ from track.particle import (
 )
 from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
-from triangulate.stage import plan_detections, session_fps
+from triangulate.multiview import plan_detections, session_fps
 
 log = logging.getLogger(__name__)
 
