@@ -31,7 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import FormatError
-from core.fileio import atomic_write_text, check_schema, load_npz, npz_str, save_npz, schema_tag
+from core.fileio import (
+    atomic_write_text,
+    check_schema,
+    errors_in,
+    load_container,
+    npz_str,
+    save_npz,
+    schema_tag,
+)
 from keypoints.skeletons import CANONICAL, Skeleton
 from triangulate.chunks import PartStore, parts_dir
 
@@ -199,17 +207,8 @@ class TrackFile:
         path = Path(path)
         if not path.exists() and parts_dir(path).is_dir():
             return cls.concat(list(iter_parts(path)))
-        data = load_npz(path, required=("schema",))
-        check_schema(data["schema"], SCHEMA, (VERSION,), path)
-        load_npz_required = [k for k in _REQUIRED if k not in data]
-        if load_npz_required:
-            raise FormatError(
-                path,
-                load_npz_required[0],
-                f"required keys {load_npz_required} are missing.",
-                "See track/trackfile.py for the track file layout.",
-            )
-        try:
+        data = load_container(path, SCHEMA, (VERSION,), _REQUIRED)
+        with errors_in(path):
             return cls(
                 fps=float(data["fps"]),
                 frame_index=data["frame_index"],
@@ -224,8 +223,6 @@ class TrackFile:
                 calibration_sha256=npz_str(data, "calibration_sha256"),
                 source=npz_str(data, "source"),
             )
-        except FormatError as e:
-            raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
 
 
 def iter_parts(path: str | os.PathLike):

@@ -18,6 +18,7 @@ import numpy as np
 from calibrate.camera import CameraRig
 from capture.session import SessionLayout
 from core.errors import FormatError
+from core.fileio import check_schema, npz_str
 from keypoints.detections import Detections
 from keypoints.skeletons import (
     CANONICAL,
@@ -160,8 +161,6 @@ def _camera_meta(path: Path, cam: str, stream: bool) -> _CameraMeta:
             d.camera, path, d.skeleton, d.frame_index, d.t_ns, d.max_people, d.xy_px.shape[2], det=d
         )
     else:
-        from core.fileio import check_schema, npz_str
-
         r = NpzRows(path)
         need = ("schema", "camera", "skeleton", "frame_index", "t_ns", "xy_px", "score")
         missing = [k for k in need if k not in r.names]
