@@ -85,7 +85,7 @@ def _shas(folder) -> dict:
 def test_without_ray_the_message_says_how_to_install(session, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails as where it is not installed
     with pytest.raises(InputError, match=r"executor = 'ray' needs ray: pip install 'roomcap\[cluster\]'"):
-        triangulate_session(_copy(session[0], tmp_path / "s"), {**TRI, "executor": "ray"})
+        _triangulate_on(_copy(session[0], tmp_path / "s"), {**TRI, "executor": "ray"})
     with pytest.raises(ValueError, match="executor must be one of"):
         _triangulate_on(tmp_path / "s", {**TRI, "executor": "dask"})
 
