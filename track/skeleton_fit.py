@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from core.errors import FormatError, RoomcapError
@@ -560,35 +561,12 @@ def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, 
     """Weighted least squares (positions / sigma, plus a prior on the change of each rotation) over
     the root position and every rotating joint, from the top-down solution; hinges keep one angle
     inside ``limits`` (flexion). Returns (root position, local rotations (F,3,3))."""
-    from scipy.optimize import least_squares
-
     F = len(parents)
-    free = [j for j in order if children[j]]
-    hinge = {j: hinge_axis[j] for j in free if j in hinge_axis}
-    lo, hi = limits
-    layout, n = [], 3
-    x0, lb, ub = list(root_p), [-np.inf] * 3, [np.inf] * 3
-    for j in free:
-        if j in hinge:
-            c = children[j][0]
-            ax, o = hinge[j], rest[c]
-            phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
-            th0 = Rotation.from_matrix(L0[j]).as_rotvec() @ ax
-            layout.append((j, n, 1, phi0))
-            x0.append(th0)
-            lb.append(lo - phi0 - 1e-9)
-            ub.append(hi - phi0 + 1e-9)
-            n += 1
-        else:
-            layout.append((j, n, 3, 0.0))
-            x0 += [0.0, 0.0, 0.0]
-            lb += [-np.inf] * 3
-            ub += [np.inf] * 3
-            n += 3
-    x0 = np.clip(np.asarray(x0), np.asarray(lb) + 1e-12, np.asarray(ub) - 1e-12)
+    layout, x0, lb, ub = _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits)
+    n = len(x0)
+    hinge = {j: hinge_axis[j] for j, _, m, _ in layout if m == 1}
     obs = np.flatnonzero(kn & np.isfinite(sig))
     w = 1.0 / sig[obs]
-    root = order[0]
 
     j3 = [j for j, _, m, _ in layout if m == 3]
     c3 = np.asarray([[a, a + 1, a + 2] for _, a, m, _ in layout if m == 3], np.int64).reshape(-1, 3)
@@ -640,8 +618,35 @@ def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, 
 
     sol = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", max_nfev=8, x_scale=1.0)
     L = locals_(sol.x[None])[0]
-    _ = root
     return sol.x[:3].copy(), L
+
+
+def _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits):
+    """The parameters of :func:`_refine`: the root position, then per rotating joint a hinge angle
+    (bounded by ``limits`` about its rest angle) or a rotation vector; ``(layout, x0, lower, upper)``
+    with ``layout`` rows ``(joint, first parameter, count, rest angle)``."""
+    lo, hi = limits
+    layout, n = [], 3
+    x0, lb, ub = list(root_p), [-np.inf] * 3, [np.inf] * 3
+    for j in (j for j in order if children[j]):
+        if j in hinge_axis:
+            c = children[j][0]
+            ax, o = hinge_axis[j], rest[c]
+            phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
+            th0 = Rotation.from_matrix(L0[j]).as_rotvec() @ ax
+            layout.append((j, n, 1, phi0))
+            x0.append(th0)
+            lb.append(lo - phi0 - 1e-9)
+            ub.append(hi - phi0 + 1e-9)
+            n += 1
+        else:
+            layout.append((j, n, 3, 0.0))
+            x0 += [0.0, 0.0, 0.0]
+            lb += [-np.inf] * 3
+            ub += [np.inf] * 3
+            n += 3
+    x0 = np.clip(np.asarray(x0), np.asarray(lb) + 1e-12, np.asarray(ub) - 1e-12)
+    return layout, x0, lb, ub
 
 
 def fit_skeletons(
