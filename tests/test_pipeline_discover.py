@@ -109,7 +109,7 @@ def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
             "track": {"tracker": "greedy", "options": {"sigma_s": 0.1}},
         }
     )
-    assert isinstance(cfg.track, GreedyTrackConfig) and cfg.track.tracker.sigma_s == 0.1
+    assert isinstance(cfg.track, GreedyTrackConfig) and cfg.track.greedy.sigma_s == 0.1
     assert cfg.triangulate.match.theta_px == 30.0
     calls = []
     monkeypatch.setattr(pc.TriangulateOptions, "from_dict", lambda d: calls.append(d))

@@ -51,7 +51,7 @@ class GreedyTrackConfig:
     tracks/1 part per chunk with global track ids, equal to the whole session's result bit for bit).
     Its chunks carry the tracks from one to the next, so they run in order in one process."""
 
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    greedy: TrackerConfig = field(default_factory=TrackerConfig)
     stream: StreamConfig = field(default_factory=StreamConfig)
 
     def __post_init__(self) -> None:
@@ -59,13 +59,13 @@ class GreedyTrackConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> GreedyTrackConfig:
-        """From ``[track.options]``: the tracker's keys flat (or under ``tracker``), ``chunk_s`` flat."""
+        """From ``[track.options]``: the tracker's keys flat (or under ``greedy``), ``chunk_s`` flat."""
         own, stream = split_stream_keys(d)
-        tracker = own.pop("tracker") if "tracker" in own else own
-        if "tracker" in d and own:
+        tracker = own.pop("greedy") if "greedy" in own else own
+        if "greedy" in d and own:
             config_from_dict(cls, own)  # names the unknown keys
         return cls(
-            tracker=config_from_dict(TrackerConfig, tracker), stream=config_from_dict(StreamConfig, stream)
+            greedy=config_from_dict(TrackerConfig, tracker), stream=config_from_dict(StreamConfig, stream)
         )
 
 
@@ -91,7 +91,7 @@ def track_session_greedy(
         np.asarray(skeleton_from_names(p.joint_names).parents if p.parents is None else p.parents),
         confidence=p.score,
         std_m=p.std_m,
-        config=cfg.tracker,
+        config=cfg.greedy,
         calibration_sha256=p.calibration_sha256,
     )
     remove_output(lay.tracks)
@@ -169,7 +169,7 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
     """The streaming greedy tracker (:mod:`track.greedy_stream`), one track part per chunk."""
     read = PosesReader(lay.poses3d)
     fps = read.fps
-    tcfg = cfg.tracker.at_fps(fps)
+    tcfg = cfg.greedy.at_fps(fps)
     parents = np.asarray(
         skeleton_from_names(read.joint_names).parents if read.parents is None else read.parents
     )
