@@ -19,6 +19,7 @@ from calibrate.camera import CameraRig
 from capture.session import SessionLayout
 from core.errors import FormatError
 from core.fileio import check_schema, npz_str
+from core.timebase import frame_rate_hz
 from keypoints.detections import Detections
 from keypoints.skeletons import (
     CANONICAL,
@@ -277,10 +278,11 @@ def _check_rates(metas: list[_CameraMeta]) -> None:
     """Cameras with timestamps at different frame rates cannot be matched by frame number."""
     rates = {}
     for m in metas:
-        t = m.t_ns[m.t_ns != 0]
-        if len(t) > 2 and (np.diff(m.frame_index[m.t_ns != 0]) > 0).all():
-            per_frame = np.diff(t) / np.diff(m.frame_index[m.t_ns != 0])
-            rates[m.camera] = 1e9 / float(np.median(per_frame))
+        stamped = m.t_ns != 0
+        if stamped.sum() > 2 and (np.diff(m.frame_index[stamped]) > 0).all():
+            rate = frame_rate_hz(m.t_ns, m.frame_index)
+            if rate is not None:
+                rates[m.camera] = rate
     if len(rates) > 1:
         lo, hi = min(rates.values()), max(rates.values())
         if hi > 1.05 * lo:
@@ -319,9 +321,7 @@ def plan_detections(
     _check_rates(metas)
     shifts = {}
     if apply_sync:
-        dt = np.diff(metas[0].t_ns)
-        dt = dt[dt > 0]
-        shifts = sync_shifts(layout, cams, float(1e9 / np.median(dt)) if len(dt) else None)
+        shifts = sync_shifts(layout, cams, frame_rate_hz(metas[0].t_ns))
     keep, mapped = _frames_on_reference_axis(cams, metas, shifts)
     frames = np.unique(np.concatenate([m[k] for m, k in zip(mapped, keep, strict=True)]))
     T = len(frames)
@@ -474,9 +474,7 @@ def session_fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
                 return float(fps)
         except FormatError as e:
             log.warning("session.toml unreadable (%s); estimating fps from timestamps", e)
-    dt = np.diff(t_ns[t_ns > 0])
-    dt = dt[dt > 0]
-    return float(1e9 / np.median(dt)) if len(dt) else 25.0
+    return frame_rate_hz(t_ns[t_ns > 0]) or 25.0
 
 
 def session_chunk_s(layout: SessionLayout, stream: StreamConfig) -> float:
