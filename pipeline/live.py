@@ -1,8 +1,8 @@
 """The live 3D wiring of ``capture-run --live``: every synchronised frame set is a batch of one frame.
 
 ``capture`` records and synchronises (``capture.live.LiveRunner`` runs stages on each frame set); the
-stages themselves use the later stages' functions, so they live here, on top of the stage order
-(issue 16): ``capture-run`` is :func:`main` of this module (``capture.cli`` with these stages injected),
+stages themselves use the later stages' functions, so they live here, on top of the stage order:
+``capture-run`` is :func:`main` of this module (``capture.cli`` with these stages injected),
 ``python -m pipeline.live`` the same.
 
 Stages (``STAGES``, one line each, built by the same functions the batch stages call):

@@ -1,4 +1,4 @@
-"""The greedy tracker (:mod:`track.greedy`) in bounded memory, chunk by chunk (issue 17, item 1).
+"""The greedy tracker (:mod:`track.greedy`) in bounded memory, chunk by chunk.
 
 Two passes over the per-frame poses, each reading them in time chunks:
 
