@@ -138,7 +138,7 @@ class PipelineConfig:
     stages: tuple[str, ...] = STAGES
     keypoints: KeypointsConfig = field(default_factory=KeypointsConfig)
     triangulate: TriangulateOptions = field(default_factory=TriangulateOptions)
-    track: TrackerChoice = field(default_factory=TRACKER_CONFIGS[DEFAULT_TRACKER])
+    track: TrackerChoice = field(default_factory=lambda: TRACKER_CONFIGS[DEFAULT_TRACKER]())
     forecast: ForecastConfig = field(default_factory=ForecastConfig)
 
     def __post_init__(self) -> None:

@@ -28,7 +28,7 @@ from keypoints.openpose_json import read_openpose_folder
 from keypoints.registry import get_model_set, resolve
 from keypoints.runtime import RuntimeConfig
 from keypoints.video import run_videos
-from pipeline.config import PipelineConfig, TrackerChoice, tracker_name
+from pipeline.config import ForecastConfig, KeypointsConfig, PipelineConfig, TrackerChoice, tracker_name
 from pipeline.discover import SessionSource
 from pipeline.provenance import ProvenanceStore, path_fingerprint
 from pipeline.report import write_report
@@ -136,10 +136,10 @@ class KeypointsStage:
 
     name = "keypoints"
 
-    def config(self, pipeline: PipelineConfig) -> Any:
+    def config(self, pipeline: PipelineConfig) -> KeypointsConfig:
         return pipeline.keypoints
 
-    def plan(self, session: Session, config: Any) -> StageWork | None:
+    def plan(self, session: Session, config: KeypointsConfig) -> StageWork | None:
         src, lay = session.source, session.layout
         if src.videos:
             readable, skipped = readable_videos(src.videos)
@@ -184,7 +184,11 @@ class KeypointsStage:
         return {c: p for c in cams if (p := src_lay.find_frames_csv(c)) is not None}
 
     def run(
-        self, session: Session, config: Any, progress: Progress | None, executor: ChunkRunner | None
+        self,
+        session: Session,
+        config: KeypointsConfig,
+        progress: Progress | None,
+        executor: ChunkRunner | None,
     ) -> None:
         src, lay = session.source, session.layout
         if src.videos:
@@ -197,7 +201,7 @@ class KeypointsStage:
             for c in sorted(src.detections):
                 atomic_write_bytes(lay.detections(c), src.detections[c].read_bytes())
 
-    def _run_videos(self, session: Session, config: Any) -> None:
+    def _run_videos(self, session: Session, config: KeypointsConfig) -> None:
         src, lay = session.source, session.layout
         readable, _ = readable_videos(src.videos)
         _, warn = probe_videos(readable)
@@ -297,10 +301,10 @@ class ForecastStage:
 
     name = "forecast"
 
-    def config(self, pipeline: PipelineConfig) -> Any:
+    def config(self, pipeline: PipelineConfig) -> ForecastConfig:
         return pipeline.forecast
 
-    def plan(self, session: Session, config: Any) -> StageWork:
+    def plan(self, session: Session, config: ForecastConfig) -> StageWork:
         kind, checkpoint = forecast_model(config.model)
         sha = path_fingerprint(checkpoint, session.store.stat_cache) if checkpoint else ""
         return StageWork(
@@ -311,7 +315,11 @@ class ForecastStage:
         )
 
     def run(
-        self, session: Session, config: Any, progress: Progress | None, executor: ChunkRunner | None
+        self,
+        session: Session,
+        config: ForecastConfig,
+        progress: Progress | None,
+        executor: ChunkRunner | None,
     ) -> None:
         lay = session.layout
         write_preview(lay.tracks, forecast_path(lay), config.horizon_s, config.model)
