@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from core.config import config_from_dict
+from core.config import check_keys, config_from_dict
 from core.errors import FormatError
 from core.fileio import load_toml
 from keypoints.pipeline import PipelineConfig as KeypointSettings
@@ -111,9 +111,7 @@ def _track_section(data: Any, triangulate: TriangulateOptions) -> TrackerChoice:
     tracker's joints follow ``[triangulate.options] skeleton`` unless its options name their own."""
     if not isinstance(data, dict):
         raise FormatError(None, "track", f"expected a table of settings, got {data!r}.")
-    unknown = sorted(set(data) - {"tracker", "options"})
-    if unknown:
-        raise FormatError(None, "track", f"unknown keys {unknown}; valid keys: ['options', 'tracker'].")
+    check_keys(data, ("tracker", "options"), "track", None)
     name = data.get("tracker", DEFAULT_TRACKER)
     if name not in TRACKER_CONFIGS:
         raise FormatError(None, "track.tracker", f"'{name}' is not a tracker; valid: {list(TRACKERS)}.")
@@ -157,10 +155,9 @@ class PipelineConfig:
 
     @classmethod
     def _from_dict(cls, data: dict[str, Any]) -> PipelineConfig:
-        valid = ["stages", "keypoints", "triangulate", "track", "forecast"]
-        unknown = [k for k in data if k not in valid]
-        if unknown:
-            raise FormatError(None, unknown[0], f"unknown key; valid: {valid}.")
+        check_keys(
+            data, ("stages", "keypoints", "triangulate", "track", "forecast"), None, None, name_key=True
+        )
         kw: dict[str, Any] = {}
         if "stages" in data:
             kw["stages"] = tuple(data["stages"])
@@ -168,8 +165,9 @@ class PipelineConfig:
             if key in data:
                 kw[key] = config_from_dict(section, data[key], key)
         tri = data.get("triangulate", {})
-        if not isinstance(tri, dict) or set(tri) - {"options"}:
-            raise FormatError(None, "triangulate", "expected a table with one key, options.")
+        if not isinstance(tri, dict):
+            raise FormatError(None, "triangulate", f"expected a table with the key options, got {tri!r}.")
+        check_keys(tri, ("options",), "triangulate", None)
         options = tri.get("options", {})
         kw["triangulate"] = _stage_options("triangulate.options", options, TriangulateOptions.from_dict)
         kw["track"] = _track_section(data.get("track", {}), kw["triangulate"])
