@@ -40,7 +40,7 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from triangulate.trackfile import TrackFile, iter_parts  # noqa: E402
+from track.trackfile import TrackFile, iter_parts  # noqa: E402
 
 REPROCESS = [sys.executable, "-c", "import sys; from pipeline.cli import main; sys.exit(main())"]
 

@@ -41,6 +41,7 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
       enabled: false               # same as --live
       stages: [keypoints, triangulate, track]
       every_n: 1                   # process every n-th frame set
+      preset: ""                   # the 2D preset (as [keypoints] preset; "" = the default)
 
 Sources: ``usb:<index>``, ``/dev/videoN``, ``rtsp://``/``rtsps://``/``http(s)://`` streams,
 ``oak:`` (first OAK device) or ``oak:<mxid-or-serial>[?socket=CAM_A&sync=master|slave|auto]``,
@@ -60,7 +61,7 @@ from typing import Any
 from core.config import bounded, check_keys, check_range, coerce, config_from_dict
 from core.errors import FormatError, UnknownNameError
 from core.fileio import check_schema
-from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
+from core.redact import redact as redact_url  # one redaction for every source string
 
 CAMS_SCHEMA = "cams"
 CAMS_VERSION = 1
@@ -163,6 +164,7 @@ class LiveConfig:
     enabled: bool = False
     stages: tuple[str, ...] = LIVE_STAGES
     every_n: int = bounded(1, 1, 10_000)
+    preset: str = ""  # the 2D stage's preset, as [keypoints] preset of a pipeline TOML ("" = the default)
 
 
 @dataclass(frozen=True)

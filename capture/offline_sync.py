@@ -26,6 +26,7 @@ import numpy as np
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
 from core.errors import FormatError
 from core.fileio import load_toml, save_toml
+from core.timebase import frame_rate_hz
 from keypoints.detections import Detections
 
 log = logging.getLogger(__name__)
@@ -521,7 +522,7 @@ def sync_session(
             det = Detections.load(found.detections(cam))
             signals[cam] = keypoint_speed(det.xy_px)
             if fps is None and len(det.t_ns) > 2:
-                fps = float(1e9 / np.median(np.diff(det.t_ns)))
+                fps = frame_rate_hz(det.t_ns, det.frame_index)
     if fps is None and meta is not None:
         vals = [c.get("fps_nominal") for c in meta.get("cameras", {}).values() if c.get("fps_nominal")]
         fps = float(vals[0]) if vals else None

@@ -52,7 +52,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
         "keypoints/detections.py",
     ),
     "track": ("track", "triangulate", "calibrate/camera.py", "keypoints/skeletons.py"),
-    "forecast": ("forecast", "pipeline/glue.py", "triangulate/trackfile.py"),
+    "forecast": ("forecast", "track/trackfile.py"),
     "report": (
         "pipeline/report",
         "pipeline/report_assets/report.html",

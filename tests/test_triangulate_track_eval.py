@@ -11,9 +11,9 @@ from triangulate_helpers import TEMPLATE
 
 from keypoints.openpose_json import read_openpose_folder
 from keypoints.skeletons import CANONICAL
+from track.greedy import TrackerConfig, associate, pose_distance, stitch_tracks, track_poses
 from track.trackfile import INTERPOLATED, OBSERVED, SMOOTHED
 from triangulate import evaluate as ev
-from triangulate.tracker import TrackerConfig, associate, pose_distance, stitch_tracks, track_poses
 
 
 def walkers(T=60):
@@ -200,8 +200,9 @@ def test_real_pose2sim_trial_matches_pose2sim_trc(tmp_path):
     from calibrate.camera import CameraRig
     from calibrate.formats import import_rig
     from capture.session import SessionLayout
+    from track.greedy_stage import track_session_greedy
     from track.trackfile import TrackFile
-    from triangulate.stage import track_session_greedy, triangulate_session
+    from triangulate.stage import triangulate_session
 
     base = need_shared("data", "pose2sim", "session-2024")
     trial = base / "S00_P00_SingleParticipant" / "S00_P00_T01_BalancingTrial"

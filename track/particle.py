@@ -53,6 +53,16 @@ from core.progress import Progress
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import kernels
 from track import observation as obs
+from track.greedy import (
+    SEED_SIGMA_FRAMES,
+    frame_times_s,
+    long_enough,
+    nominal_dt,
+    pause_clock,
+    segment_frames,
+    smooth_segments,
+    sparse_time_warning,
+)
 from track.normalize import denormalize, hip_frame
 from track.priors import (
     TEMPLATE_BODY19_M,
@@ -65,16 +75,6 @@ from track.priors import (
 from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
 from triangulate.matching import MatchConfig
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
-from triangulate.tracker import (
-    SEED_SIGMA_FRAMES,
-    frame_times_s,
-    long_enough,
-    nominal_dt,
-    pause_clock,
-    segment_frames,
-    smooth_segments,
-    sparse_time_warning,
-)
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +193,7 @@ class ParticleConfig:
 
     def at_fps(self, fps: float) -> ParticleConfig:
         """The config with the smoothing width given in frames converted to seconds at ``fps`` (as
-        :meth:`triangulate.tracker.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
+        :meth:`track.greedy.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
         if self.smooth_sigma_frames is not None:
             return replace(self, smooth_sigma_s=self.smooth_sigma_frames / fps, smooth_sigma_frames=None)
         if self.smooth_sigma_s is None:
@@ -961,7 +961,7 @@ def track_sequence(
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
     ``maps_at(t)``: optional, the C :class:`track.observation.CameraMaps` (or None) of frame t. Frame
     times come from ``t_ns`` (T,), else from the frame numbers ``frames`` at the tracker's rate
-    (:func:`triangulate.tracker.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
+    (:func:`track.greedy.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
 
     Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
     (``trim_coast``) and tracks with less evidence than ``min_track_s`` are removed.
@@ -1049,7 +1049,7 @@ def finish_tracks(
     """The offline clean-up of :func:`track_sequence` on the raw estimates of T frames at times ``t_s``
     (T,) (seconds, the session's clock): frames coasted across a pause are removed, then trailing coasting
     frames (``trim_coast``), then the smoothing (``smooth_sigma_s``), then tracks with less evidence than
-    ``min_track_s`` (:func:`triangulate.tracker.long_enough`: not where the recorder paused sooner).
+    ``min_track_s`` (:func:`track.greedy.long_enough`: not where the recorder paused sooner).
     ``evidence_frames`` (K,) and ``room_frames`` (K,): each track's evidence frames over the whole session
     and the longest stretch without a pause among them, when ``raw`` is a window of it (default: from
     ``raw``). Each value depends only on the frames within

@@ -12,7 +12,7 @@ changed is rebuilt, never trusted):
    lost identities, the clock, the random generator). A killed run resumes at the first part that is not
    valid, from the state in the part before it, and continues bit for bit.
 2. **Clean-up** (``track/tracks.parts/``, one ``tracks/1`` file per chunk, read by
-   :meth:`triangulate.trackfile.TrackFile.load` as one file): :func:`track.particle.finish_tracks` on each
+   :meth:`track.trackfile.TrackFile.load` as one file): :func:`track.particle.finish_tracks` on each
    chunk plus a margin on either side (:func:`finish_margin_s`: ``end_after_s`` + the smoothing radius on
    the tracks' clock), with each track's evidence counted over the whole session for ``min_track_s``; only
    the chunk's own frames are kept.
@@ -39,6 +39,7 @@ from capture.session import SessionLayout
 from core.fileio import save_npz
 from core.memory import TRIM_EVERY, release_free_memory
 from core.progress import Progress
+from track.greedy import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
 from track.particle import (
     ParticleConfig,
     ParticleTracker,
@@ -51,8 +52,7 @@ from track.particle import (
 )
 from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
-from triangulate.stage import plan_detections, session_fps
-from triangulate.tracker import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
+from triangulate.multiview import plan_detections, session_fps
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ class RawReader:
 
     def evidence(self, run: np.ndarray) -> tuple[dict[int, int], dict[int, int]]:
         """Evidence frames of every id over the whole session, and the longest stretch without a pause
-        among them (``run`` (T,): :func:`triangulate.tracker.segment_frames` of the session); reads only
+        among them (``run`` (T,): :func:`track.greedy.segment_frames` of the session); reads only
         ids and evidence."""
         out: dict[int, int] = {}
         room: dict[int, int] = {}
