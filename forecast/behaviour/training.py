@@ -223,6 +223,8 @@ def _fit_state(cfg: BehaviourConfig, db: np.ndarray) -> _Fit:
     gen, critic = build(cfg)
     names = cfg.joint_names
     jidx = [JOINTS.index(n) for n in names]
+    if gen.skeleton is not None:
+        gen.skeleton.set_lengths(db[:, jidx])
     return _Fit(
         cfg,
         gen,
@@ -268,7 +270,8 @@ def _generator_step(f: _Fit, tr: Prepared) -> list[float]:
     fake = fake[torch.randperm(len(fake), generator=g)[: cfg.batch]]  # one batch of the B*m poses
     l_adv = torch.zeros(())
     if f.lv > 0:
-        _critic_step(f, fake)
+        for _ in range(cfg.n_critic):
+            _critic_step(f, fake)
         l_adv = -f.critic(fake).mean()
     loss = f.la * l_act + f.l2 * l_2d + f.lv * l_adv
     f.og.zero_grad()
