@@ -80,3 +80,55 @@ def test_skeleton_checkpoint_and_older_configs(tmp_path):
         BehaviourConfig(bone_lengths="rigid")
     with pytest.raises(ValueError, match="n_critic"):
         BehaviourConfig(n_critic=0)
+
+
+def _tiny_prepared(S: int = 16):
+    from forecast.behaviour import geometry
+    from forecast.behaviour.data import ACTIONS
+    from forecast.behaviour.training import Prepared
+    from synthetic.rigs import ring_rig
+
+    rng = np.random.default_rng(2)
+    rig = ring_rig(6, 4.0, height_m=2.2)
+    cams = [rig[int(i)] for i in rng.integers(6, size=S)]
+    view = geometry.make_view(
+        np.stack([c.K for c in cams]),
+        np.stack([c.R for c in cams]),
+        np.stack([c.t for c in cams]),
+        np.c_[rng.uniform(-1, 1, (S, 2)), np.zeros(S)],
+    )
+    f32 = np.float32
+    return Prepared(
+        JOINTS,
+        view,
+        rng.normal(0, 0.3, (S, 3, 19, 2)).astype(f32),
+        np.ones((S, 3, 19), bool),
+        rng.uniform(500, 700, (S, 3, 19, 2)).astype(f32),
+        rng.integers(len(ACTIONS), size=(S, 8)),
+        rng.uniform(500, 700, (S, 5, 19, 2)).astype(f32),
+        rng.normal(0, 0.3, (S, 5, 19, 3)).astype(f32),
+    )
+
+
+def test_training_steps_with_skeleton_and_n_critic():
+    """n_critic critic updates per generator update, and a trained skeleton model's poses keep the
+    database's proportions."""
+    from forecast.behaviour import training as T
+
+    tr = _tiny_prepared()
+    db = np.random.default_rng(3).normal(0, 0.4, (40, 19, 3)).astype(np.float32)
+    cfg = BehaviourConfig(hidden=16, batch=8, n_critic=3, bone_lengths="database", short_history=0.0)
+    f = T._fit_state(cfg, db)
+    for _ in range(2):
+        losses = T._generator_step(f, tr)
+        assert len(losses) == 3 and all(np.isfinite(losses))
+    steps = {int(s["step"]) for s in f.oc.state.values()}
+    assert steps == {6}  # 2 generator steps x 3 critic steps
+    assert {int(s["step"]) for s in f.og.state.values()} == {2}
+    _, P = T.predict(f.gen, cfg, tr)
+    b = f.gen.skeleton.bone_idx.numpy()
+    L = np.linalg.norm(P[..., b[:, 0], :] - P[..., b[:, 1], :], axis=-1)
+    ratio = L / f.gen.skeleton.bone_len.numpy()
+    assert np.allclose(ratio, ratio[..., :1], atol=1e-4)
+    want = np.linalg.norm(db[:, b[:, 0]] - db[:, b[:, 1]], axis=-1).mean(0)
+    assert np.allclose(f.gen.skeleton.bone_len.numpy(), want, atol=1e-5)
