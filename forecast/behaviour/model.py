@@ -17,7 +17,8 @@ layers combine them into the score. Trained as a Wasserstein critic (eq. 4.1's `
 gradient penalty instead of weight clipping (stabler on small batches; the choice is ours).
 
 Smaller than the seed (one CPU thread, minutes instead of 12 GPU hours): width 128 instead of the seed's
-larger layers, batch 128 instead of 4096, learning rate 1e-3 instead of 1e-4.
+larger layers, batch 128 instead of 4096, learning rate 3e-4 instead of 1e-4 and no weight decay (the
+seed: 0.001) over 3,000 steps, the settings chosen on validation.
 """
 
 from __future__ import annotations
@@ -48,8 +49,8 @@ class BehaviourConfig:
     n_obs: int = 3  # observed steps
     m: int = 5  # forecast steps M (the seed: 5 on IKEA-ASM, 10 on MPII Cooking II)
     hidden: int = 128
-    lr: float = 1e-3
-    weight_decay: float = 1e-3
+    lr: float = 3e-4
+    weight_decay: float = 0.0
     batch: int = 128
     steps: int = 3000
     lambda_action: float = 1.0
