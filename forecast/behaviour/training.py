@@ -200,6 +200,100 @@ def hide_history(tb: dict, cfg: BehaviourConfig, g: torch.Generator) -> None:
     tb["obs_acts"] = torch.where(drop, torch.full_like(tb["obs_acts"], len(ACTIONS)), tb["obs_acts"])
 
 
+@dataclass
+class _Fit:
+    """One variant's training state: the two networks, their optimisers, the random stream, the real 3D
+    poses of the critic and the eq. 4.1 weights of the variant (0 for the heads it lacks)."""
+
+    cfg: BehaviourConfig
+    gen: Generator
+    critic: nn.Module
+    og: torch.optim.Optimizer
+    oc: torch.optim.Optimizer
+    g: torch.Generator
+    real: torch.Tensor  # (N,J,3) the 3D database, the variant's joints
+    neck: int
+    pelvis: int
+    la: float
+    l2: float
+    lv: float
+
+
+def _fit_state(cfg: BehaviourConfig, db: np.ndarray) -> _Fit:
+    gen, critic = build(cfg)
+    names = cfg.joint_names
+    jidx = [JOINTS.index(n) for n in names]
+    if gen.skeleton is not None:
+        gen.skeleton.set_lengths(db[:, jidx])
+    return _Fit(
+        cfg,
+        gen,
+        critic,
+        torch.optim.Adam(gen.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
+        torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=(0.5, 0.9)),
+        torch.Generator().manual_seed(cfg.seed),
+        torch.from_numpy(np.ascontiguousarray(db[:, jidx])),
+        names.index("neck"),
+        names.index("pelvis"),
+        cfg.lambda_action if cfg.use_action else 0.0,
+        cfg.lambda_pose2d if cfg.use_pose else 0.0,
+        cfg.lambda_adv3d if cfg.use_pose else 0.0,
+    )
+
+
+def _critic_step(f: _Fit, fake: torch.Tensor) -> None:
+    """One critic update: Wasserstein loss with gradient penalty, real database poses at a random heading
+    against the generator's poses ``fake`` (B,J,3) (detached here)."""
+    g = f.g
+    r = _random_yaw(f.real[torch.randint(len(f.real), (len(fake),), generator=g)], g)
+    fk = fake.detach()
+    eps = torch.rand(len(fk), 1, 1, generator=g)
+    mix = (eps * r + (1 - eps) * fk).requires_grad_(True)
+    grad = torch.autograd.grad(f.critic(mix).sum(), mix, create_graph=True)[0]
+    gp = ((grad.reshape(len(fk), -1).norm(dim=1) - 1) ** 2).mean()
+    l_c = f.critic(fk).mean() - f.critic(r).mean() + f.cfg.gp * gp
+    f.oc.zero_grad()
+    l_c.backward()
+    f.oc.step()
+
+
+def _generator_step(f: _Fit, tr: Prepared) -> list[float]:
+    """One eq. 4.1 step on a random batch (after the critic's step when the variant has the 3D term)
+    -> [action CE, 2D term, adversarial term]."""
+    cfg, g = f.cfg, f.g
+    idx = torch.randint(len(tr), (cfg.batch,), generator=g).numpy()
+    tb = to_torch(tr, idx, cfg.n_obs)
+    hide_history(tb, cfg, g)
+    f.gen.train()
+    _, P, l_act, l_2d = _losses(f.gen, cfg, tb, f.neck)
+    fake = critic_input(P.reshape(-1, len(cfg.joint_names), 3), f.pelvis)
+    fake = fake[torch.randperm(len(fake), generator=g)[: cfg.batch]]  # one batch of the B*m poses
+    l_adv = torch.zeros(())
+    if f.lv > 0:
+        for _ in range(cfg.n_critic):
+            _critic_step(f, fake)
+        l_adv = -f.critic(fake).mean()
+    loss = f.la * l_act + f.l2 * l_2d + f.lv * l_adv
+    f.og.zero_grad()
+    loss.backward()
+    f.og.step()
+    return [l_act.item(), l_2d.item(), l_adv.item()]
+
+
+def _validate(f: _Fit, vb: dict, step: int, wall_s: float) -> dict:
+    """The validation objective of the variant (its weighted action and 2D terms) at ``step``."""
+    f.gen.eval()
+    with torch.no_grad():
+        _, _, va_act, va_2d = _losses(f.gen, f.cfg, vb, f.neck)
+    return {
+        "step": step,
+        "action_ce": float(va_act),
+        "pose2d": float(va_2d),
+        "objective": f.la * float(va_act) + f.l2 * float(va_2d),
+        "wall_s": wall_s,
+    }
+
+
 def train(
     cfg: BehaviourConfig,
     tr: Prepared,
@@ -209,79 +303,33 @@ def train(
 ) -> tuple[Generator, dict]:
     """Fit one variant (eq. 4.1) with Adam, the critic alternating with the generator; keeps the state
     with the lowest validation objective (the variant's weighted action and 2D terms)."""
-    gen, critic = build(cfg)
-    names = cfg.joint_names
-    neck, pelvis = names.index("neck"), names.index("pelvis")
-    jidx = [JOINTS.index(n) for n in names]
-    real = torch.from_numpy(np.ascontiguousarray(db[:, jidx]))
-    og = torch.optim.Adam(gen.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    oc = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=(0.5, 0.9))
-    g = torch.Generator().manual_seed(cfg.seed)
-    la = cfg.lambda_action if cfg.use_action else 0.0
-    l2 = cfg.lambda_pose2d if cfg.use_pose else 0.0
-    lv = cfg.lambda_adv3d if cfg.use_pose else 0.0
+    f = _fit_state(cfg, db)
     vb = to_torch(va, np.arange(len(va)), cfg.n_obs)
     hist: dict = {"val": [], "loss": []}
-    best, best_state = np.inf, copy.deepcopy(gen.state_dict())
+    best, best_state = np.inf, copy.deepcopy(f.gen.state_dict())
     t0 = time.perf_counter()
     for step in range(1, cfg.steps + 1):
-        idx = torch.randint(len(tr), (cfg.batch,), generator=g).numpy()
-        tb = to_torch(tr, idx, cfg.n_obs)
-        hide_history(tb, cfg, g)
-        gen.train()
-        logits, P, l_act, l_2d = _losses(gen, cfg, tb, neck)
-        fake = critic_input(P.reshape(-1, len(names), 3), pelvis)
-        fake = fake[torch.randperm(len(fake), generator=g)[: cfg.batch]]  # one batch of the B*m poses
-        l_adv = torch.zeros(())
-        if lv > 0:
-            # critic step (Wasserstein with gradient penalty)
-            r = _random_yaw(real[torch.randint(len(real), (len(fake),), generator=g)], g)
-            f = fake.detach()
-            eps = torch.rand(len(f), 1, 1, generator=g)
-            mix = (eps * r + (1 - eps) * f).requires_grad_(True)
-            grad = torch.autograd.grad(critic(mix).sum(), mix, create_graph=True)[0]
-            gp = ((grad.reshape(len(f), -1).norm(dim=1) - 1) ** 2).mean()
-            l_c = critic(f).mean() - critic(r).mean() + cfg.gp * gp
-            oc.zero_grad()
-            l_c.backward()
-            oc.step()
-            l_adv = -critic(fake).mean()
-        loss = la * l_act + l2 * l_2d + lv * l_adv
-        og.zero_grad()
-        loss.backward()
-        og.step()
-        hist["loss"].append([l_act.item(), l_2d.item(), l_adv.item()])
+        hist["loss"].append(_generator_step(f, tr))
         if step % cfg.eval_every == 0 or step == cfg.steps:
-            gen.eval()
-            with torch.no_grad():
-                _, _, va_act, va_2d = _losses(gen, cfg, vb, neck)
-            obj = la * float(va_act) + l2 * float(va_2d)
-            hist["val"].append(
-                {
-                    "step": step,
-                    "action_ce": float(va_act),
-                    "pose2d": float(va_2d),
-                    "objective": obj,
-                    "wall_s": time.perf_counter() - t0,
-                }
-            )
+            v = _validate(f, vb, step, time.perf_counter() - t0)
+            hist["val"].append(v)
             log.info(
                 "%s step %d: train ce %.3f 2d %.3f adv %.3f | val ce %.3f 2d %.3f",
                 cfg.variant,
                 step,
                 *hist["loss"][-1],
-                float(va_act),
-                float(va_2d),
+                v["action_ce"],
+                v["pose2d"],
             )
-            if obj < best:
-                best, best_state = obj, copy.deepcopy(gen.state_dict())
+            if v["objective"] < best:
+                best, best_state = v["objective"], copy.deepcopy(f.gen.state_dict())
                 hist["best_step"] = step
         if progress:
             progress(f"train {cfg.variant}", step, cfg.steps)
-    gen.load_state_dict(best_state)
-    gen.eval()
+    f.gen.load_state_dict(best_state)
+    f.gen.eval()
     hist["train_wall_s"] = time.perf_counter() - t0
-    return gen, hist
+    return f.gen, hist
 
 
 # ----------------------------------------------------------------------------- evaluation (sec. 4.5.1)
