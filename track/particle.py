@@ -55,11 +55,13 @@ from track import kernels
 from track import observation as obs
 from track.normalize import denormalize, hip_frame
 from track.priors import (
+    DEFAULT_MOTION_CHECKPOINT,
     TEMPLATE_BODY19_M,
     ConstantVelocityPrior,
     MotionPrior,
     ZeroVelocityPrior,
     concat_states,
+    load_gru_numpy,
     standard_normals,
 )
 from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
@@ -206,23 +208,24 @@ class ParticleConfig:
 
 
 def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICAL) -> MotionPrior:
-    """The motion prior named by ``config.motion`` (imports torch only for 'gru')."""
+    """The motion prior named by ``config.motion``; 'gru' from the checkpoint's numpy copy when it has an
+    up-to-date one (:func:`track.priors.load_gru_numpy`), else from the checkpoint itself (imports torch)."""
     sigma = config.motion_sigma_m * float(np.sqrt(25.0 / fps))
     if config.motion == "zero_velocity":
         return ZeroVelocityPrior(sigma, skeleton.n_joints)
     if config.motion == "constant_velocity":
         return ConstantVelocityPrior(sigma, n_joints=skeleton.n_joints)
-    from track.motion import DEFAULT_CHECKPOINT, GRUPrior  # lazy: loads torch
+    path = config.motion_checkpoint or DEFAULT_MOTION_CHECKPOINT
+    kw = {
+        "dropout": None if config.motion_dropout < 0 else config.motion_dropout,
+        "sigma_m": config.gru_sigma_m * float(np.sqrt(25.0 / fps)),
+    }
+    prior = load_gru_numpy(path, fps, skeleton, **kw)  # the checkpoint's numpy copy: no torch
+    if prior is not None:
+        return prior
+    from track.motion import GRUPrior  # lazy: loads torch
 
-    path = config.motion_checkpoint or DEFAULT_CHECKPOINT
-    return GRUPrior.load(
-        path,
-        fps=fps,
-        skeleton=skeleton,
-        dropout=None if config.motion_dropout < 0 else config.motion_dropout,
-        sigma_m=config.gru_sigma_m * float(np.sqrt(25.0 / fps)),
-        seed=config.seed,
-    )
+    return GRUPrior.load(path, fps=fps, skeleton=skeleton, seed=config.seed, **kw)
 
 
 @dataclass
