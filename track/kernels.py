@@ -112,7 +112,10 @@ def _pair_rows(pairs, active, C):
     scores 0 everywhere, exactly as the zero row C a camera alone is paired with, so a pair with such a
     camera gives the same bits as the other camera alone, and a pair of two such cameras eps^L."""
     V = pairs.shape[0]
-    first = np.full((C + 1, C + 1), -1, np.int64)
+    first = np.empty((C + 1, C + 1), np.int64)
+    for a in range(C + 1):
+        for b in range(C + 1):
+            first[a, b] = -1
     rep = np.empty(V, np.int64)
     slot = np.empty((V, 2), np.int64)
     for v in range(V):
@@ -245,9 +248,17 @@ def sus_indices(phi, counts, u):
                 for i in range(N):
                     cdf[v, i] = (i + 1.0) / N
                 tot = 1.0
-            row = cdf[v]
+            lo = 0
             for q in range(m):  # binary search: first i with cdf_i >= pos (side='left'), at most N - 1
-                idx[k, o + q] = min(np.searchsorted(row, (u[k * V + v] + q) / m * tot), N - 1)
+                pos = (u[k * V + v] + q) / m * tot  # increasing in q: the search starts at the last answer
+                hi = N
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if cdf[v, mid] < pos:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                idx[k, o + q] = min(lo, N - 1)
             o += m
     return idx
 
@@ -277,10 +288,13 @@ def refine_resampled(
     G = min(n_guided, R)
     out = np.empty((K, N, J, 3), np.float32)
     score = np.zeros((K, J, N), np.float32)
-    if not refine:
+    if not refine:  # element by element: an array-to-array slice assignment costs seconds of compile
         for k in range(K):
             for n in range(N):
-                out[k, n] = X[k, idx[k, n]]
+                m = idx[k, n]
+                for j in range(J):
+                    for a in range(3):
+                        out[k, n, j, a] = X[k, m, j, a]
         return out, score
     x = np.empty((3, N), np.float32)
     e = np.empty((R, 3, N), np.float32)  # candidate offsets
@@ -413,7 +427,10 @@ def output_stats(X, score, has, eps):
                         p[n] *= np.float64(score[k, j, n] + _F(eps))
                 for n in range(N):
                     lp[n] += math.log(p[n])
-            mx = lp.max()
+            mx = lp[0]
+            for n in range(1, N):  # the maximum as a loop (np.max costs a second of compile); NaN wins
+                if (lp[n] > mx or lp[n] != lp[n]) and mx == mx:
+                    mx = lp[n]
             tot = 0.0
             for n in range(N):
                 w[n] = math.exp(lp[n] - mx)

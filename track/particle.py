@@ -547,11 +547,7 @@ class ParticleTracker:
             # 3. update for the tracks with evidence
             if ev_k.any():
                 u = np.flatnonzero(ev_k)
-                Xu, idx, score_u = self._update(X[u], rays[u], asc[u], maps)
-                X[u] = Xu
-                flat = np.arange(K * N).reshape(K, N)
-                flat[u] = u[:, None] * N + idx
-                state = kernels.gather_state(state, flat.ravel())
+                X, state, score_u = self._update_seen(X, state, u, rays, asc, maps)
                 resume = np.flatnonzero(ev_k & (paused > 0))
                 if len(resume):  # the motion before a pause says nothing about the motion after it
                     rows = (resume[:, None] * N + np.arange(N)).ravel()
@@ -671,6 +667,21 @@ class ParticleTracker:
                     phi[:, c] = obs.map_limb_scores(X, self.P[c], m)
         return phi
 
+    def _update_seen(
+        self, X: np.ndarray, state: dict, u: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps
+    ):
+        """:meth:`_update` for the tracks ``u`` with evidence (all of them without a copy): X (K,N,J,3) and
+        the motion state with their samples resampled and refined (X in place), the refined joints' scores."""
+        K, N = X.shape[:2]
+        if len(u) == K:
+            X, idx, score_u = self._update(X, rays, asc, maps)
+            flat = idx + (np.arange(K) * N)[:, None]
+        else:
+            X[u], idx, score_u = self._update(X[u], rays[u], asc[u], maps)
+            flat = np.arange(K * N).reshape(K, N)
+            flat[u] = u[:, None] * N + idx
+        return X, kernels.gather_state(state, flat.ravel()), score_u
+
     def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps=None):
         """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N) and
         the refined joints' summed confidence (K,J,N) (None without refinement).
@@ -738,8 +749,10 @@ class ParticleTracker:
         free &= (sc > 0).sum(-1) >= cfg.assoc_min_joints
         if (free.sum(1) > 0).sum() < cfg.init_min_views:
             return []
-        kpf = np.where(free[..., None, None], kp, np.nan)
         scf = np.where(free[..., None], sc, 0.0)
+        if not self._enough_views(scf):
+            return []
+        kpf = np.where(free[..., None, None], kp, np.nan)
         poses = self.reconstructor(kpf.astype(np.float64), scf)
         if len(poses.xyz_m) == 0:
             return []
@@ -802,6 +815,18 @@ class ParticleTracker:
             self.tracks.append(t)
             born.append(t)
         return born
+
+    def _enough_views(self, scf: np.ndarray) -> bool:
+        """Whether the free detections' scores ``scf`` (C,D,J) could give any candidate: it needs
+        ``init_min_joints`` joints seen by ``init_min_views`` cameras, and a joint's views are at most the
+        cameras with a free detection of it (or of its left/right twin, which a mirrored pose reads), so
+        with fewer such joints the matching would find none (skipped: the same result)."""
+        cfg = self.config
+        cams = (scf > 0).any(1)  # (C,J)
+        flip = self.reconstructor.flip if self.reconstructor is not None else None
+        if flip is not None:
+            cams = cams | cams[:, flip]
+        return int((cams.sum(0) >= cfg.init_min_views).sum()) >= cfg.init_min_joints
 
     def _fill(self, cand: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
         """Fill joints the candidate lacks from the template aligned at the hips. cand: (J,3), NaN =
