@@ -752,8 +752,12 @@ class ParticleTracker:
         scf = np.where(free[..., None], sc, 0.0)
         if not self._enough_views(scf):
             return []
+        # the matching sees only the free detections: each camera's first, in their order (the others after
+        # them are all NaN), and no more rows per camera than the most free detections of one camera
+        rows = np.argsort(~free, axis=1, kind="stable")[:, : free.sum(1).max()]  # (C,P')
         kpf = np.where(free[..., None, None], kp, np.nan)
-        poses = self.reconstructor(kpf.astype(np.float64), scf)
+        kpf = np.take_along_axis(kpf, rows[..., None, None], 1)
+        poses = self.reconstructor(kpf.astype(np.float64), np.take_along_axis(scf, rows[..., None], 1))
         if len(poses.xyz_m) == 0:
             return []
         good = (poses.n_views >= cfg.init_min_views) & np.isfinite(poses.xyz_m).all(-1)
