@@ -1,7 +1,7 @@
 """`reprocess` with default settings, as a user runs it: peak memory of the process tree and the stage times.
 
     python bench/bench_reprocess_defaults.py SESSION... [--trackers greedy,particle] [--work DIR]
-        [--whole] [--cold]
+        [--whole] [--cold] [--stages S] [--tree CHECKOUT]
 
 Each SESSION is a folder with ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (e.g. ``python -m synthetic
 OUT --rig kitchen --cams 12 --people 16 --enter-leave --seconds 300``). For each session and tracker the
@@ -22,6 +22,7 @@ Besides the wall times each run reports the CPU time of the whole ``reprocess`` 
 ``cpu_s``; with ``--stages track`` that is the track stage plus the command's start-up) and it per
 person-frame: on a shared machine the CPU time says what the code costs, the wall time what the load
 made of it.
+``--tree``: run the code of another checkout (e.g. a worktree of an earlier revision) for a before/after.
 Ends with ``BENCH {json}``.
 """
 
@@ -76,13 +77,13 @@ def _children_cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def run_tree(cmd: list[str], env: dict) -> tuple[int, str, float, float, float]:
+def run_tree(cmd: list[str], env: dict, cwd: Path = ROOT) -> tuple[int, str, float, float, float]:
     """Run ``cmd``; returns (exit code, stdout, wall s, peak MB of the resident memory of its tree, CPU s of
     the tree: user + system of the process and the children it waited for)."""
     c0 = _children_cpu_s()
     t0 = time.perf_counter()
     with tempfile.TemporaryFile("w+") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=ROOT, text=True)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=cwd, text=True)
         root = psutil.Process(proc.pid)
         peak, shown = 0, t0
         while proc.poll() is None:
@@ -142,7 +143,7 @@ def run_one(src: Path, work: Path, tracker: str, env: dict, extra: list[str], ta
     dst = work / f"{src.name}-{tracker}{tag}"
     link_session(src, dst)
     cmd = [*REPROCESS, str(dst), "--stages", stages, "--tracker", tracker, *extra]
-    code, text, wall, peak, cpu = run_tree(cmd, env)
+    code, text, wall, peak, cpu = run_tree(cmd, env, Path(env["PYTHONPATH"]))
     if code != 0:
         raise SystemExit(f"reprocess failed ({code}):\n{text[-3000:]}")
     tracks = dst / "track" / "tracks.npz"
@@ -177,9 +178,13 @@ def main() -> int:
     ap.add_argument("--whole", action="store_true")
     ap.add_argument("--cold", action="store_true")
     ap.add_argument("--stages", default="triangulate,track", help="the stages reprocess runs")
+    ap.add_argument(
+        "--tree", type=Path, default=ROOT, help="the checkout whose code reprocess runs (default: this one)"
+    )
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    a.tree = a.tree.resolve()
+    env = {**os.environ, "PYTHONPATH": str(a.tree)}
     rows = []
     for src in a.sessions:
         for tracker in a.trackers.split(","):
@@ -190,7 +195,9 @@ def main() -> int:
             rows.append(r)
             if a.cold and tracker == "particle":  # the same stage again, its kernels now cached
                 code, text, wall, peak, cpu = run_tree(
-                    [*REPROCESS, r["dir"], "--stages", "track", "--tracker", tracker, "--force"], run_env
+                    [*REPROCESS, r["dir"], "--stages", "track", "--tracker", tracker, "--force"],
+                    run_env,
+                    a.tree,
                 )
                 st = stage_seconds(text, Path(r["dir"]).name)
                 r["warm_track_s"] = st.get("track")
