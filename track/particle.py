@@ -303,6 +303,7 @@ class ParticleTracker:
         self.prior = prior if prior is not None else make_prior(cfg, fps, skeleton)
         self.tracks: list[_Track] = []
         self.n_map_scores = 0  # update steps whose weights came from confidence maps + PAFs
+        self._batch: tuple | None = None  # the last step's (X, state, the tracks' views of them)
         self.lost: list[_Lost] = []
         self.ended: list[tuple[int, int, int]] = []  # (id, born, last_seen) of ended track segments
         self.next_id = 0
@@ -403,6 +404,7 @@ class ParticleTracker:
             self.n_map_scores = int(meta["n_map_scores"])
             self.ended = [tuple(e) for e in meta["ended"]]
             self.tracks = []
+            self._batch = None
             for i, m in enumerate(meta["tracks"]):
                 self.tracks.append(
                     _Track(
@@ -455,6 +457,18 @@ class ParticleTracker:
     def _pelvis(self, x: np.ndarray) -> np.ndarray:
         origin, _ = hip_frame(x[None], self.skeleton)
         return origin[0]
+
+    def _batch_of_tracks(self) -> tuple[np.ndarray, dict]:
+        """The live tracks' samples (K,N,J,3) and motion state as one batch: the last step's batch itself
+        when the tracks still hold its views (no track born, ended or re-anchored since), else stacked."""
+        if self._batch is not None:
+            X, state, views = self._batch
+            self._batch = None
+            if len(views) == len(self.tracks) and all(
+                t.x is x and t.state is st for t, (x, st) in zip(self.tracks, views, strict=True)
+            ):
+                return X, state
+        return np.stack([t.x for t in self.tracks]), concat_states([t.state for t in self.tracks])
 
     # ------------------------------------------------------------------ the step
 
@@ -512,8 +526,7 @@ class ParticleTracker:
         out = None
         assigned = np.full((C, 0), -1, np.int64)
         if K:
-            X = np.stack([t.x for t in self.tracks])  # (K,N,J,3)
-            state = concat_states([t.state for t in self.tracks])
+            X, state = self._batch_of_tracks()  # (K,N,J,3), the motion state of the K*N samples
             # 1. prediction (eq. 5.1), all tracks and samples in one batch; one step per frame interval
             Xf = X.reshape(K * N, J, 3)
             for _ in range(n_pred):  # > 1 only over dropped frames
@@ -579,6 +592,8 @@ class ParticleTracker:
             bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
             for k, t in enumerate(self.tracks):
                 t.x, t.state = X[k], states[k]
+            self._batch = (X, state, [(t.x, t.state) for t in self.tracks])
+            for k, t in enumerate(self.tracks):
                 if had[k] and paused[k] == 0:
                     v = (pel_now[k] - pel_before[k]) / self.dt_s
                     t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
