@@ -183,7 +183,8 @@ def _train(args) -> int:
     )
     if args.eval_split == "none" or "full" not in gens:
         return 0
-    qc = _quality_clf(str(Q.QUALITY_SHIPPED), missing_ok=True)
+    qm = _quality_model(str(Q.QUALITY_SHIPPED), missing_ok=True)
+    qc = (qm.clf, qm.joints) if qm is not None else None
     res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split), sp.db, quality_clf=qc)
     res["split"] = args.eval_split
     print(f"{args.eval_split} split:")
@@ -217,18 +218,17 @@ def _merge(args) -> int:
     return 0
 
 
-def _quality_clf(path: str, missing_ok: bool = False):
+def _quality_model(path: str, missing_ok: bool = False) -> Q.QualityModel | None:
     if missing_ok and not Path(path).exists():
         return None
     try:
-        q = Q.load(path)
+        return Q.load(path)
     except FileNotFoundError:
         raise InputError(
             f"{path}: no 3D quality classifier; build one with `forecast behaviour quality --out FILE`"
         ) from None
     except FormatError as err:
         raise InputError(str(err)) from None
-    return q.clf, q.joints
 
 
 def _quality(args) -> int:
@@ -303,10 +303,13 @@ def _eval(args) -> int:
     sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
-    res = evaluate_all(
-        gens, cfgs, extra, sp.val, test, sp.db, quality_clf=_quality_clf(args.quality_classifier)
-    )
-    res["quality3d_classifier"] = str(args.quality_classifier)
+    qm = _quality_model(args.quality_classifier)
+    assert qm is not None
+    res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db, quality_clf=(qm.clf, qm.joints))
+    res["quality3d_classifier"] = {
+        "path": str(args.quality_classifier),
+        **{k: qm.meta.get(k) for k in ("n_real", "n_fake", "variants", "snapshot_steps", "seed")},
+    }
     res.update(
         split="sessions" if args.sessions else args.split,
         checkpoint=str(args.checkpoint),
