@@ -623,7 +623,7 @@ def results_table(res: dict) -> str:
     ]
 
     def f(v, fmt):
-        return "-" if v is None else format(v, fmt)
+        return format("-", ">" + fmt.split(".")[0]) if v is None else format(v, fmt)
 
     for n, r in res["models"].items():
         lines.append(
