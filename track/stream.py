@@ -213,7 +213,8 @@ def track_session_particle_chunked(
                     release_free_memory()
             raw = gather_estimates(per_frame, J)
             arrays = {"schema": np.asarray(RAW_SCHEMA), **{k: getattr(raw, k) for k in _RAW_KEYS}}
-            save_npz(raw_store.part_path(i), {**arrays, **tracker.state_arrays()})
+            # stored, not deflated: the filter's float noise compresses to 0.6 of its size at 5x the time
+            save_npz(raw_store.part_path(i), {**arrays, **tracker.state_arrays()}, compress=False)
             raw_store.commit(i)
             held = i
             del kp, sc, per_frame, raw
