@@ -119,3 +119,20 @@ def test_frame_count_keys_and_bad_times():
         track_sequence(
             ParticleTracker(P, FOCAL, 25.0), np.zeros((10, 3, 0, 19, 2)), np.zeros((10, 3, 0, 19)), t_ns=t_ns
         )
+
+
+def test_max_people_caps_the_tracks_at_once():
+    """A recording of a known number of people: ``max_people`` stops new identities beyond it, set as a user
+    would in ``[track.options]`` and checked when the config loads."""
+    t_s = np.arange(40) / 25.0
+    gt = _two_walkers(t_s, 0.5)
+    both, _ = _run(gt, t_s)
+    one, _ = _run(gt, t_s, max_people=1)
+    assert len(both.track_id) == 2 and len(one.track_id) == 1
+    from core.errors import FormatError
+    from pipeline.config import PipelineConfig
+
+    cfg = PipelineConfig.from_dict({"track": {"tracker": "particle", "options": {"max_people": 2}}})
+    assert cfg.track.particle.max_people == 2
+    with pytest.raises(FormatError, match=r"p.toml: field 'track.options.particle.max_people'.*range"):
+        PipelineConfig.from_dict({"track": {"options": {"max_people": -1}}}, "p.toml")
