@@ -21,6 +21,11 @@ C cameras, V camera pairs, D detections, B = K·N.
   5.2–5.4), the GRU cell's gates after its two matrix products, the displacement turned back (eq. 5.5);
   :func:`gather_state` the resampling's gather of the motion state.
 
+The kernels that loop over tracks or batch rows (``pair_weights``, ``refine_resampled``, the GRU's
+three) run those loops on numba's threads (``parallel=True``, ``prange``; ``NUMBA_NUM_THREADS``, by
+default the machine's cores): each iteration writes only its own rows with its own buffers, so the
+results are the same bits for any number of threads.
+
 Arithmetic is float32 where the numpy path's is, with float64 products and sums where a range or an
 accumulation needs it; the results agree with numpy to float32 rounding, not bit for bit (fused
 expressions, other summation orders). ``fastmath`` is off (IEEE arithmetic, no reassociation);
@@ -130,7 +135,7 @@ def _pair_rows(pairs, active, C):
     return rep, slot
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs, pairs):
     """Phi(v, s) of eq. 5.7 for every track, camera pair and sample. X: (K,N,J,3) float32; centers: (C,3);
     basis: (K,J,3C,3) (:func:`track.observation.ray_basis`); sc: (K,C,J) associated keypoint scores (0 =
@@ -144,12 +149,6 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
     if not (_in_range(limbs, J) and _in_range(pairs, C)):
         raise ValueError("pair_weights: limbs must index joints and pairs cameras")
     out = np.empty((K, V, N), np.float64)
-    xt = np.empty((J, 3, _NB), np.float32)
-    conf = np.empty((C, J, _NB), np.float32)
-    p2 = np.zeros((C + 1, L, _NB), np.float32)  # row C stays 0: the partner of a camera alone
-    prod = np.empty(_NB, np.float64)
-    pf = np.empty(_NB, np.float32)
-    active = np.empty(C, np.bool_)
     # limbs per float32 product: each factor lies in [eps, sqrt(2) + eps] (conf <= 1), so eps^g32 stays
     # above float32's smallest normal (1e-38) and (sqrt(2) + eps)^g32 far below its largest
     g32 = max(1, min(8, int(30.0 / max(1.0, -math.log10(min(eps, 1.0))))))
@@ -157,7 +156,13 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
     spx = _F(sigma_px)
     epsf = _F(eps)
     near = _F(0.05)
-    for k in range(K):
+    for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
+        xt = np.empty((J, 3, _NB), np.float32)
+        conf = np.empty((C, J, _NB), np.float32)
+        p2 = np.zeros((C + 1, L, _NB), np.float32)  # row C stays 0: the partner of a camera alone
+        prod = np.empty(_NB, np.float64)
+        pf = np.empty(_NB, np.float32)
+        active = np.empty(C, np.bool_)
         for c in range(C):
             active[c] = False
             for j in range(J):
@@ -263,7 +268,7 @@ def sus_indices(phi, counts, u):
     return idx
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def refine_resampled(
     X, idx, centers, basis, sc, focal, *, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
 ):
@@ -296,13 +301,13 @@ def refine_resampled(
                     for a in range(3):
                         out[k, n, j, a] = X[k, m, j, a]
         return out, score
-    x = np.empty((3, N), np.float32)
-    e = np.empty((R, 3, N), np.float32)  # candidate offsets
-    tot = np.empty((R + 1, N), np.float32)  # summed confidence of candidate 0 (current) and the others
-    ys = np.empty((2, N), np.float32)
     sm2, spx, half, one, near = _F(sigma_m) * _F(sigma_m), _F(sigma_px), _F(0.5), _F(1.0), _F(0.05)
-    tg = np.empty((3, N), np.float32)  # guided target - current position
-    for k in range(K):
+    for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
+        x = np.empty((3, N), np.float32)
+        e = np.empty((R, 3, N), np.float32)  # candidate offsets
+        tot = np.empty((R + 1, N), np.float32)  # summed confidence of candidate 0 (current) and the others
+        ys = np.empty((2, N), np.float32)
+        tg = np.empty((3, N), np.float32)  # guided target - current position
         for j in range(J):
             for n in range(N):
                 m = idx[k, n]
@@ -579,7 +584,7 @@ def gather_state(state: dict, idx: np.ndarray) -> dict:
 # --- the GRU motion prior (eq. 5.1-5.5) ----------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def gru_inputs(x, prev, ip, il, ir, vscale):
     """Eq. 5.2–5.4 for a batch: x, prev (B,J,3) float32 (the samples and their previous positions) ->
     inp (B,2·J·3) = [R(x - origin), R(x - prev)·vscale] flattened, and (cos, sin) of each sample's facing
@@ -592,7 +597,7 @@ def gru_inputs(x, prev, ip, il, ir, vscale):
         raise ValueError("gru_inputs: prev must be shaped as x and the hip joints index it")
     cs = np.empty((B, 2), np.float32)
     vs = _F(vscale)
-    for b in range(B):
+    for b in numba.prange(B):  # rows in parallel: the same bits as in order
         o0, o1, o2 = x[b, ip, 0], x[b, ip, 1], x[b, ip, 2]
         h = _F(0.5)
         if not np.isfinite(o0):
@@ -668,7 +673,7 @@ def _tanh(x):
     return big if a >= _F(0.625) else small
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     """The GRU cell after its two products gi = x W_ih, gh = h W_hh (B,3H), gates r, z, n (torch.nn.GRUCell):
     r = sigma(gi_r + b_ir + gh_r + b_hr), z likewise, n = tanh(gi_n + b_in + r (gh_n + b_hn)),
@@ -682,7 +687,7 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     out = np.empty((B, H), np.float32)
     dropped = np.empty((B, H), np.float32) if mask.shape[0] else out
     one = _F(1.0)
-    for b in range(B):
+    for b in numba.prange(B):  # rows in parallel: the same bits as in order
         for i in range(H):
             r = one / (one + _exp(-((gi[b, i] + b_ih[i]) + (gh[b, i] + b_hh[i]))))
             z = one / (one + _exp(-((gi[b, H + i] + b_ih[H + i]) + (gh[b, H + i] + b_hh[H + i]))))
@@ -694,7 +699,7 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     return out, dropped
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     """Eq. 5.5 for the displacement: x + R^T (delta + b_out)·dscale + sigma·noise. delta (B,3J) = the output
     layer's product, b_out (3J,) its bias, cs (B,2) from :func:`gru_inputs`, x (B,J,3), noise (B,J,3)
@@ -706,7 +711,7 @@ def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     if sigma != 0 and noise.shape != x.shape:
         raise ValueError("gru_outputs: noise must be shaped as x")
     ds, sg = _F(dscale), _F(sigma)
-    for b in range(B):
+    for b in numba.prange(B):  # rows in parallel: the same bits as in order
         c, s = cs[b, 0], cs[b, 1]
         for j in range(J):
             d0, d1, d2 = (

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from core.config import config_from_dict
+from core.config import bounded, config_from_dict
 from core.progress import Progress
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import kernels
@@ -115,6 +115,8 @@ class ParticleConfig:
       cameras; no live track's pelvis within init_exclusion_m); samples spread init_sigma_m around
       the candidate and init_fill_sigma_m around template-filled joints.
     end_after_s: a track without any associated detection for this long ends.
+    max_people: at most this many tracks at once (0 = no limit), for a recording whose number of people
+      is known: with as many tracks, no new identity is born (a coasting track is still re-anchored).
     reid_*: a new candidate takes an ended identity when its pelvis lies within
       reid_dist_m + reid_speed_mps * gap of the predicted one and the mean bone-length difference is
       below reid_bone_tol_m, for gaps up to reid_max_gap_s.
@@ -164,6 +166,7 @@ class ParticleConfig:
     init_fill_sigma_m: float = 0.1
     init_theta_px: float = 40.0
     end_after_s: float = 1.0
+    max_people: int = bounded(0, 0, 10_000)
     reid_max_gap_s: float = 10.0
     reid_dist_m: float = 0.5
     reid_speed_mps: float = 1.0
@@ -785,6 +788,7 @@ class ParticleTracker:
         # people as the reconstructor separated them (its merge_dist_m joins one person seen twice): none
         # excludes another, so people closer than init_exclusion_m are not lost to each other
         near_born = bool(self.tracks)
+        n_new = 0
         for m in order:
             if n_good[m] < cfg.init_min_joints:
                 continue
@@ -819,6 +823,9 @@ class ParticleTracker:
                 t.mean = filled
                 born.append(t)
                 continue
+            if cfg.max_people and len(self.tracks) + n_new >= cfg.max_people:
+                continue
+            n_new += 1
             tid = self._reidentify(pel, bones, frame)
             t = _Track(
                 tid,
