@@ -779,10 +779,12 @@ class ParticleTracker:
 
     # ------------------------------------------------------------------ birth
 
-    def _initialise(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray, frame: int) -> list[_Track]:
+    def _free_poses(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray):
+        """The 3D poses triangulated from the detections no track explains (None when they cannot give
+        a candidate: too few cameras with free detections)."""
         cfg = self.config
         if self.reconstructor is None:
-            return []
+            return None
         C, D = kp.shape[:2]
         free = np.ones((C, D), bool)
         for c in range(C):
@@ -790,17 +792,22 @@ class ParticleTracker:
             free[c, a] = False
         free &= (sc > 0).sum(-1) >= cfg.assoc_min_joints
         if (free.sum(1) > 0).sum() < cfg.init_min_views:
-            return []
+            return None
         scf = np.where(free[..., None], sc, 0.0)
         if not self._enough_views(scf):
-            return []
+            return None
         # the matching sees only the free detections: each camera's first, in their order (the others after
         # them are all NaN), and no more rows per camera than the most free detections of one camera
         rows = np.argsort(~free, axis=1, kind="stable")[:, : free.sum(1).max()]  # (C,P')
         kpf = np.where(free[..., None, None], kp, np.nan)
         kpf = np.take_along_axis(kpf, rows[..., None, None], 1)
         poses = self.reconstructor(kpf.astype(np.float64), np.take_along_axis(scf, rows[..., None], 1))
-        if len(poses.xyz_m) == 0:
+        return poses if len(poses.xyz_m) else None
+
+    def _initialise(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray, frame: int) -> list[_Track]:
+        cfg = self.config
+        poses = self._free_poses(kp, sc, assigned)
+        if poses is None:
             return []
         good = (poses.n_views >= cfg.init_min_views) & np.isfinite(poses.xyz_m).all(-1)
         n_good = good.sum(1)
