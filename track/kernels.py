@@ -135,6 +135,31 @@ def _pair_rows(pairs, active, C):
     return rep, slot
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _camera_conf(basis, centers, sc, focal, k, c, C, xt, nb, sm2, spx, conf):
+    """Into ``conf[c]`` (J,nb): camera ``c``'s keypoint evidence of track ``k``'s samples ``xt`` (J,3,nb):
+    conf = sc k(d^2 / s^2) (:func:`track.observation.joint_scores`), 0 where the camera has no keypoint."""
+    J = xt.shape[0]
+    near = _F(0.05)
+    g = spx / _F(focal[c])
+    for j in range(J):
+        s = sc[k, c, j]
+        if s == 0:
+            for i in range(nb):
+                conf[c, j, i] = 0
+            continue
+        u0, u1, u2, w0, w1, w2, r0, r1, r2, ou, ow, orr = _ray_rows(basis, centers, k, j, c, C)
+        for i in range(nb):
+            x0, x1, x2 = xt[j, 0, i], xt[j, 1, i], xt[j, 2, i]
+            yu = u0 * x0 + u1 * x1 + u2 * x2 - ou  # offsets from the ray (m)
+            yw = w0 * x0 + w1 * x1 + w2 * x2 - ow
+            d = r0 * x0 + r1 * x1 + r2 * x2 - orr  # depth along it
+            gd = g * d
+            v2 = _F(2.0) * (sm2 + gd * gd)  # 2 s^2
+            kv = v2 / (v2 + (yu * yu + yw * yw))  # 1 / (1 + d^2 / 2 s^2): observation._kernel
+            conf[c, j, i] = kv * s if d > near else _F(0.0)
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
 def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs, pairs):
     """Phi(v, s) of eq. 5.7 for every track, camera pair and sample. X: (K,N,J,3) float32; centers: (C,3);
@@ -155,7 +180,6 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
     sm2 = _F(sigma_m) * _F(sigma_m)
     spx = _F(sigma_px)
     epsf = _F(eps)
-    near = _F(0.05)
     for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
         xt = np.empty((J, 3, _NB), np.float32)
         conf = np.empty((C, J, _NB), np.float32)
@@ -179,23 +203,7 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
             for c in range(C):
                 if not active[c]:
                     continue
-                g = spx / _F(focal[c])
-                for j in range(J):
-                    s = sc[k, c, j]
-                    if s == 0:
-                        for i in range(nb):
-                            conf[c, j, i] = 0
-                        continue
-                    u0, u1, u2, w0, w1, w2, r0, r1, r2, ou, ow, orr = _ray_rows(basis, centers, k, j, c, C)
-                    for i in range(nb):
-                        x0, x1, x2 = xt[j, 0, i], xt[j, 1, i], xt[j, 2, i]
-                        yu = u0 * x0 + u1 * x1 + u2 * x2 - ou  # offsets from the ray (m)
-                        yw = w0 * x0 + w1 * x1 + w2 * x2 - ow
-                        d = r0 * x0 + r1 * x1 + r2 * x2 - orr  # depth along it
-                        gd = g * d
-                        v2 = _F(2.0) * (sm2 + gd * gd)  # 2 s^2
-                        kv = v2 / (v2 + (yu * yu + yw * yw))  # 1 / (1 + d^2 / 2 s^2): observation._kernel
-                        conf[c, j, i] = kv * s if d > near else _F(0.0)
+                _camera_conf(basis, centers, sc, focal, k, c, C, xt, nb, sm2, spx, conf)
                 for li in range(L):
                     a, b = limbs[li, 0], limbs[li, 1]
                     for i in range(nb):
@@ -268,6 +276,96 @@ def sus_indices(phi, counts, u):
     return idx
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _guided_offsets(basis, centers, sc, k, j, C, lam, x, tg):
+    """Into ``tg`` (3,N): for each sample's joint ``x`` (3,N) of track ``k``, joint ``j``, the offset to
+    argmin_x' sum_c s_c |x' - ray_c|^2 + lam |x' - x|^2 (the rays of the track's detections), closed form."""
+    N = x.shape[1]
+    a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = 0.0  # A = sum s (I - r r^T), b = A c
+    for c in range(C):
+        s = np.float64(sc[k, c, j])
+        if s == 0:
+            continue
+        r0 = np.float64(basis[k, j, 2 * C + c, 0])
+        r1 = np.float64(basis[k, j, 2 * C + c, 1])
+        r2 = np.float64(basis[k, j, 2 * C + c, 2])
+        c0, c1, c2 = (
+            np.float64(centers[c, 0]),
+            np.float64(centers[c, 1]),
+            np.float64(centers[c, 2]),
+        )
+        a00 += s * (1.0 - r0 * r0)
+        a11 += s * (1.0 - r1 * r1)
+        a22 += s * (1.0 - r2 * r2)
+        a01 -= s * r0 * r1
+        a02 -= s * r0 * r2
+        a12 -= s * r1 * r2
+        rc = r0 * c0 + r1 * c1 + r2 * c2
+        b0 += s * (c0 - r0 * rc)
+        b1 += s * (c1 - r1 * rc)
+        b2 += s * (c2 - r2 * rc)
+    a00, a11, a22 = a00 + lam, a11 + lam, a22 + lam
+    i00, i01, i02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+    i11, i12, i22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+    det = a00 * i00 + a01 * i01 + a02 * i02  # the symmetric inverse by its adjugate
+    i00, i01, i02, i11, i12, i22 = (
+        i00 / det,
+        i01 / det,
+        i02 / det,
+        i11 / det,
+        i12 / det,
+        i22 / det,
+    )
+    for n in range(N):
+        y0, y1, y2 = b0 + lam * x[0, n], b1 + lam * x[1, n], b2 + lam * x[2, n]
+        tg[0, n] = _F(i00 * y0 + i01 * y1 + i02 * y2) - x[0, n]
+        tg[1, n] = _F(i01 * y0 + i11 * y1 + i12 * y2) - x[1, n]
+        tg[2, n] = _F(i02 * y0 + i12 * y1 + i22 * y2) - x[2, n]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _score_candidates(basis, centers, sc, focal, k, j, c, C, x, e, xm, tot, ys, sm2, spx):
+    """Adds camera ``c``'s confidence of the current positions ``x`` (3,N) and of the candidates ``x + e``
+    (R,3,N) of track ``k``'s joint ``j`` to ``tot`` (R+1,N); the tolerance at the samples' mean ``xm``."""
+    N, R = x.shape[1], e.shape[0]
+    half, one, near = _F(0.5), _F(1.0), _F(0.05)
+    xm0, xm1, xm2 = xm
+    s = sc[k, c, j]
+    if s == 0:
+        return
+    u0, u1, u2, w0, w1, w2, r0, r1, r2, ou, ow, orr = _ray_rows(basis, centers, k, j, c, C)
+    along = _F(r0 * xm0 + r1 * xm1 + r2 * xm2 - orr)  # one tolerance per track, joint and camera
+    if not along > near:
+        return
+    gd = spx * along / _F(focal[c])
+    sca = np.sqrt(half / (sm2 + gd * gd))  # folds 1 / (2 s^2) into the ray frame
+    u0, u1, u2, w0, w1, w2 = u0 * sca, u1 * sca, u2 * sca, w0 * sca, w1 * sca, w2 * sca
+    for n in range(N):
+        yu = u0 * x[0, n] + u1 * x[1, n] + u2 * x[2, n] - ou * sca
+        yw = w0 * x[0, n] + w1 * x[1, n] + w2 * x[2, n] - ow * sca
+        ys[0, n], ys[1, n] = yu, yw
+        tot[0, n] += s / (one + yu * yu + yw * yw)  # s / (1 + d^2 / 2 s^2)
+    for r in range(R):
+        for n in range(N):
+            e0, e1, e2 = e[r, 0, n], e[r, 1, n], e[r, 2, n]
+            du = ys[0, n] + u0 * e0 + u1 * e1 + u2 * e2
+            dw = ys[1, n] + w0 * e0 + w1 * e1 + w2 * e2
+            tot[r + 1, n] += s / (one + du * du + dw * dw)
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_resampled(X, idx, out):
+    """out[k, n] = X[k, idx[k, n]], element by element (an array-to-array slice assignment costs seconds
+    of compile)."""
+    K, N, J = X.shape[0], X.shape[1], X.shape[2]
+    for k in range(K):
+        for n in range(N):
+            m = idx[k, n]
+            for j in range(J):
+                for a in range(3):
+                    out[k, n, j, a] = X[k, m, j, a]
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
 def refine_resampled(
     X, idx, centers, basis, sc, focal, *, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
@@ -293,15 +391,10 @@ def refine_resampled(
     G = min(n_guided, R)
     out = np.empty((K, N, J, 3), np.float32)
     score = np.zeros((K, J, N), np.float32)
-    if not refine:  # element by element: an array-to-array slice assignment costs seconds of compile
-        for k in range(K):
-            for n in range(N):
-                m = idx[k, n]
-                for j in range(J):
-                    for a in range(3):
-                        out[k, n, j, a] = X[k, m, j, a]
+    if not refine:
+        _gather_resampled(X, idx, out)
         return out, score
-    sm2, spx, half, one, near = _F(sigma_m) * _F(sigma_m), _F(sigma_px), _F(0.5), _F(1.0), _F(0.05)
+    sm2, spx, one = _F(sigma_m) * _F(sigma_m), _F(sigma_px), _F(1.0)
     for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
         x = np.empty((3, N), np.float32)
         e = np.empty((R, 3, N), np.float32)  # candidate offsets
@@ -318,46 +411,7 @@ def refine_resampled(
                     for n in range(N):
                         e[r, a, n] = noise[k, j, a, r, n] * s_r
             if G > 0:  # guided: argmin_x' sum_c s_c |x' - ray_c|^2 + lam |x' - x|^2, closed form
-                a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = 0.0  # A = sum s (I - r r^T), b = A c
-                for c in range(C):
-                    s = np.float64(sc[k, c, j])
-                    if s == 0:
-                        continue
-                    r0 = np.float64(basis[k, j, 2 * C + c, 0])
-                    r1 = np.float64(basis[k, j, 2 * C + c, 1])
-                    r2 = np.float64(basis[k, j, 2 * C + c, 2])
-                    c0, c1, c2 = (
-                        np.float64(centers[c, 0]),
-                        np.float64(centers[c, 1]),
-                        np.float64(centers[c, 2]),
-                    )
-                    a00 += s * (1.0 - r0 * r0)
-                    a11 += s * (1.0 - r1 * r1)
-                    a22 += s * (1.0 - r2 * r2)
-                    a01 -= s * r0 * r1
-                    a02 -= s * r0 * r2
-                    a12 -= s * r1 * r2
-                    rc = r0 * c0 + r1 * c1 + r2 * c2
-                    b0 += s * (c0 - r0 * rc)
-                    b1 += s * (c1 - r1 * rc)
-                    b2 += s * (c2 - r2 * rc)
-                a00, a11, a22 = a00 + lam, a11 + lam, a22 + lam
-                i00, i01, i02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
-                i11, i12, i22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
-                det = a00 * i00 + a01 * i01 + a02 * i02  # the symmetric inverse by its adjugate
-                i00, i01, i02, i11, i12, i22 = (
-                    i00 / det,
-                    i01 / det,
-                    i02 / det,
-                    i11 / det,
-                    i12 / det,
-                    i22 / det,
-                )
-                for n in range(N):
-                    y0, y1, y2 = b0 + lam * x[0, n], b1 + lam * x[1, n], b2 + lam * x[2, n]
-                    tg[0, n] = _F(i00 * y0 + i01 * y1 + i02 * y2) - x[0, n]
-                    tg[1, n] = _F(i01 * y0 + i11 * y1 + i12 * y2) - x[1, n]
-                    tg[2, n] = _F(i02 * y0 + i12 * y1 + i22 * y2) - x[2, n]
+                _guided_offsets(basis, centers, sc, k, j, C, lam, x, tg)
                 for r in range(R - G, R):
                     for a in range(3):
                         for n in range(N):
@@ -370,27 +424,9 @@ def refine_resampled(
                 xm2 += x[2, n]
             xm0, xm1, xm2 = xm0 / N, xm1 / N, xm2 / N
             for c in range(C):
-                s = sc[k, c, j]
-                if s == 0:
-                    continue
-                u0, u1, u2, w0, w1, w2, r0, r1, r2, ou, ow, orr = _ray_rows(basis, centers, k, j, c, C)
-                along = _F(r0 * xm0 + r1 * xm1 + r2 * xm2 - orr)  # one tolerance per track, joint and camera
-                if not along > near:
-                    continue
-                gd = spx * along / _F(focal[c])
-                sca = np.sqrt(half / (sm2 + gd * gd))  # folds 1 / (2 s^2) into the ray frame
-                u0, u1, u2, w0, w1, w2 = u0 * sca, u1 * sca, u2 * sca, w0 * sca, w1 * sca, w2 * sca
-                for n in range(N):
-                    yu = u0 * x[0, n] + u1 * x[1, n] + u2 * x[2, n] - ou * sca
-                    yw = w0 * x[0, n] + w1 * x[1, n] + w2 * x[2, n] - ow * sca
-                    ys[0, n], ys[1, n] = yu, yw
-                    tot[0, n] += s / (one + yu * yu + yw * yw)  # s / (1 + d^2 / 2 s^2)
-                for r in range(R):
-                    for n in range(N):
-                        e0, e1, e2 = e[r, 0, n], e[r, 1, n], e[r, 2, n]
-                        du = ys[0, n] + u0 * e0 + u1 * e1 + u2 * e2
-                        dw = ys[1, n] + w0 * e0 + w1 * e1 + w2 * e2
-                        tot[r + 1, n] += s / (one + du * du + dw * dw)
+                _score_candidates(
+                    basis, centers, sc, focal, k, j, c, C, x, e, (xm0, xm1, xm2), tot, ys, sm2, spx
+                )
             for n in range(N):
                 best, tb = -1, tot[0, n]  # the current position wins ties
                 for r in range(R):

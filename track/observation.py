@@ -266,6 +266,26 @@ def guided_targets(
     return np.matmul(Ainv, b[..., None] + np.float32(lam) * xt)
 
 
+def _candidate_offsets(
+    X, centers, basis, sc, M: int, sigma_refine_m: float, n_guided: int, rng
+) -> np.ndarray:
+    """The M-1 candidate offsets of every joint of every sample, (K,J,3,R,N) with the samples innermost (so
+    every broadcast of the refinement runs over contiguous N): random at the refinement's scales, the
+    last ``n_guided`` of them a quarter as wide around :func:`guided_targets`."""
+    K, N, J, _ = X.shape
+    R = M - 1
+    e = normal_noise(rng, (K, J, 3, R, N), 1.0)
+    e *= refine_scales(M, sigma_refine_m)[1:, None]
+    G = min(n_guided, R)
+    if G > 0:
+        e[:, :, :, R - G :] *= np.float32(
+            0.25
+        )  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
+        xt = X.transpose(0, 2, 3, 1)
+        e[:, :, :, R - G :] += (guided_targets(X, centers, basis, sc) - xt)[:, :, :, None]
+    return e
+
+
 def refine_joints(
     X: np.ndarray,
     centers: np.ndarray,
@@ -297,17 +317,7 @@ def refine_joints(
     if M <= 1 or K == 0:
         raise ValueError(f"refine_joints needs at least 2 candidates and one track, got M={M}, K={K}")
     C = len(centers)
-    R = M - 1  # candidates besides the current position (candidate 0, offset 0: scored from Y directly)
-    # candidate offsets (K,J,3,R,N): samples innermost, so every broadcast below runs over contiguous N
-    e = normal_noise(rng, (K, J, 3, R, N), 1.0)
-    e *= refine_scales(M, sigma_refine_m)[1:, None]
-    G = min(int(n_guided), R)
-    if G > 0:
-        e[:, :, :, R - G :] *= np.float32(
-            0.25
-        )  # 1/2, 1/4, 1/8, 1/16 of the random scales: sigma/4 on average
-        xt = X.transpose(0, 2, 3, 1)
-        e[:, :, :, R - G :] += (guided_targets(X, centers, basis, sc) - xt)[:, :, :, None]
+    e = _candidate_offsets(X, centers, basis, sc, M, sigma_refine_m, int(n_guided), rng)
     if Y is None:
         Y = ray_coords(X, centers, basis)  # (K,J,3C,N)
     along = Y[:, :, 2 * C :].mean(-1, keepdims=True)  # (K,J,C,1): one tolerance per track, joint, camera
@@ -315,6 +325,15 @@ def refine_joints(
     scale2 = np.concatenate([scale, scale], 2)  # (K,J,2C,1)
     s = np.where(along > 0.05, sc.transpose(0, 2, 1)[..., None], np.float32(0.0))  # (K,J,C,1)
     Bs = basis[:, :, : 2 * C] * scale2
+    return _best_candidates(X, e, Y, Bs, s, scale2)
+
+
+def _best_candidates(X, e, Y, Bs, s, scale2) -> tuple[np.ndarray, np.ndarray]:
+    """Each joint of each sample moved to its best candidate (the current position wins ties), scored in
+    the keypoints' ray frames (``Bs``: the frames' rows scaled by 1 / (2 s^2)); returns X' and the kept
+    candidates' confidence summed over cameras (K,J,N)."""
+    K, N, J, _ = X.shape
+    R, C = e.shape[3], s.shape[2]
     # all tracks and joints in one batch (KJ rows); chunks of rows keep the candidates in cache
     KJ = K * J
     e2 = e.reshape(KJ, 3, R * N)

@@ -514,18 +514,9 @@ class ParticleTracker:
         now = self.clock_s
         if self.pauses > pauses_before:
             self._end_at_pause()
-        if maps is not None:
-            maps = list(maps)
-            if len(maps) != len(self.P):
-                raise ValueError(
-                    f"maps must have one entry (CameraMaps or None) per camera ({len(self.P)}), "
-                    f"got {len(maps)}"
-                )
-            if all(m is None for m in maps):
-                maps = None
+        maps = self._checked_maps(maps)
         C, D, J = kp.shape[:3]
         K, N = len(self.tracks), cfg.n_samples
-        ev_k = np.zeros(K, bool)
         out = None
         assigned = np.full((C, 0), -1, np.int64)
         if K:
@@ -538,26 +529,8 @@ class ParticleTracker:
             # tracks whose last evidence precedes a pause of the recorder: wider gates, fresh motion state
             paused = np.asarray([self.pauses - t.pauses_seen for t in self.tracks], np.float64)
             # 2. association on the predicted means
-            mean_pred = X.mean(1)
-            muv, mz = obs.project(self.P, mean_pred)  # (C,K,J,2), (C,K,J)
-            assigned = obs.associate(
-                muv,
-                mz,
-                kp,
-                sc,
-                self.focal,
-                cfg.assoc_tol_m,
-                cfg.assoc_gate + paused * (cfg.pause_gate_m / cfg.assoc_tol_m),
-                cfg.assoc_min_joints,
-                cfg.min_score,
-            )  # (C,K)
-            has = assigned >= 0
-            sel = np.maximum(assigned, 0)
-            akp = np.where(has[..., None, None], kp[np.arange(C)[:, None], sel], np.nan)  # (C,K,J,2)
-            asc = np.where(has[..., None], sc[np.arange(C)[:, None], sel], 0.0)  # (C,K,J)
-            akp = np.ascontiguousarray(np.moveaxis(akp, 0, 1))  # (K,C,J,2)
-            asc = np.ascontiguousarray(np.moveaxis(asc, 0, 1)).astype(np.float32)  # (K,C,J)
-            ev_k = has.any(0)
+            assigned, akp, asc = self._associate(X, kp, sc, paused)
+            ev_k = (assigned >= 0).any(0)
             score_u, u = None, np.zeros(0, np.int64)
             rays = kernels.ray_basis(self.Minv, akp)  # (K,J,3C,3), as obs.ray_basis
             # 3. update for the tracks with evidence
@@ -572,73 +545,16 @@ class ParticleTracker:
                     for kk, v in fresh.items():
                         state[kk][rows] = v
             # 4. inference (sec. 5.2.4): weighted mean over all cameras
-            if cfg.exact_output_weights or score_u is None:
-                conf = obs.joint_scores(
-                    X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px
-                )  # (K,C,J,N)
-                lp = obs.log_phi_all(obs.limb_scores(conf, self.limbs, 2), cfg.eps)
-                mean, std = obs.weighted_stats(X, lp)
-            else:  # the refinement's scores of the kept joints, summed over all cameras, product over joints
-                score = np.zeros((K, J, N), np.float32)
-                score[u] = score_u
-                mean, std = kernels.output_stats(X, score, ev_k, cfg.eps)
+            mean, std = self._output_pose(X, rays, asc, score_u, u, ev_k)
             n_views = (asc > 0).sum(1)  # (K,J)
             conf_out = np.clip(asc.sum(1) / np.maximum(n_views, 1) * np.minimum(n_views, 2) / 2.0, 0, 1)
             flags = np.where(n_views > 0, OBSERVED, PREDICTED).astype(np.uint8)
-            states = [{kk: v[k * N : (k + 1) * N] for kk, v in state.items()} for k in range(K)]  # views
-            pel_now = hip_frame(mean, self.skeleton)[0]  # (K,3)
-            had = [t.mean is not None for t in self.tracks]
-            pel_before = np.zeros((K, 3), np.float32)  # the pelvis of each track's last estimate
-            if any(had):
-                prev = np.stack([t.mean for t in self.tracks if t.mean is not None])
-                pel_before[had] = hip_frame(prev, self.skeleton)[0]
-            bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
-            for k, t in enumerate(self.tracks):
-                t.x, t.state = X[k], states[k]
-            self._batch = (X, state, [(t.x, t.state) for t in self.tracks])
-            for k, t in enumerate(self.tracks):
-                if had[k] and paused[k] == 0:
-                    v = (pel_now[k] - pel_before[k]) / self.dt_s
-                    t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
-                elif paused[k] > 0 and ev_k[k]:
-                    t.velocity = np.zeros(3, np.float32)
-                t.mean = mean[k]
-                if ev_k[k]:
-                    t.last_seen, t.last_seen_s, t.pauses_seen = frame, now, self.pauses
-                    t.n_seen += 1
-                    b = bones_now[k]
-                    if t.bones is None:
-                        t.bones = b
-                    else:
-                        t.bones = np.where(
-                            np.isfinite(b),
-                            np.where(np.isfinite(t.bones), 0.9 * t.bones + 0.1 * b, b),
-                            t.bones,
-                        )
+            self._remember(X, state, mean, n_views, paused, ev_k, frame, now)
             out = FrameEstimate(
                 np.array([t.id for t in self.tracks], np.int64), mean, std, conf_out, n_views, flags, ev_k
             )
             # 5. termination
-            keep = []
-            for (
-                t
-            ) in self.tracks:  # on the clock: end_after_s, as a whole number of frames at the nominal rate
-                if now - t.last_seen_s >= (self.end_after - 0.5) / self.fps:
-                    self.ended.append((t.id, t.born, t.last_seen))
-                    self.lost.append(
-                        _Lost(
-                            t.id,
-                            t.last_seen,
-                            self._pelvis(t.mean),
-                            t.velocity.copy(),
-                            t.bones,
-                            t.last_seen_s,
-                            t.pauses_seen,
-                        )
-                    )
-                else:
-                    keep.append(t)
-            self.tracks = keep
+            self._terminate(now)
         # 6. initialisation from the detections no track explains
         born = self._initialise(kp, sc, assigned, frame)
         if born:
@@ -647,6 +563,114 @@ class ParticleTracker:
         if out is None:
             out = _empty_estimate(J)
         return out
+
+    def _checked_maps(self, maps):
+        """The frame's confidence maps as a list of one entry per camera, or None when there are none."""
+        if maps is None:
+            return None
+        maps = list(maps)
+        if len(maps) != len(self.P):
+            raise ValueError(
+                f"maps must have one entry (CameraMaps or None) per camera ({len(self.P)}), got {len(maps)}"
+            )
+        return None if all(m is None for m in maps) else maps
+
+    def _associate(self, X: np.ndarray, kp: np.ndarray, sc: np.ndarray, paused: np.ndarray):
+        """Each camera's detection of each track (on the predicted means; gates wider after a pause):
+        ``(assigned (C,K), keypoints (K,C,J,2), scores (K,C,J))``, unassigned NaN / 0."""
+        cfg = self.config
+        C = kp.shape[0]
+        muv, mz = obs.project(self.P, X.mean(1))  # (C,K,J,2), (C,K,J)
+        assigned = obs.associate(
+            muv,
+            mz,
+            kp,
+            sc,
+            self.focal,
+            cfg.assoc_tol_m,
+            cfg.assoc_gate + paused * (cfg.pause_gate_m / cfg.assoc_tol_m),
+            cfg.assoc_min_joints,
+            cfg.min_score,
+        )  # (C,K)
+        has = assigned >= 0
+        sel = np.maximum(assigned, 0)
+        akp = np.where(has[..., None, None], kp[np.arange(C)[:, None], sel], np.nan)  # (C,K,J,2)
+        asc = np.where(has[..., None], sc[np.arange(C)[:, None], sel], 0.0)  # (C,K,J)
+        akp = np.ascontiguousarray(np.moveaxis(akp, 0, 1))  # (K,C,J,2)
+        asc = np.ascontiguousarray(np.moveaxis(asc, 0, 1)).astype(np.float32)  # (K,C,J)
+        return assigned, akp, asc
+
+    def _output_pose(self, X, rays, asc, score_u, u, ev_k) -> tuple[np.ndarray, np.ndarray]:
+        """Sec. 5.2.4: the samples' mean and spread weighted over all cameras; by default with the
+        refinement's scores of the kept joints (summed over cameras, product over joints)."""
+        cfg = self.config
+        K, N, J = X.shape[:3]
+        if cfg.exact_output_weights or score_u is None:
+            conf = obs.joint_scores(
+                X, self.centers, rays, asc, self.focal, cfg.obs_sigma_m, cfg.obs_sigma_px
+            )  # (K,C,J,N)
+            lp = obs.log_phi_all(obs.limb_scores(conf, self.limbs, 2), cfg.eps)
+            return obs.weighted_stats(X, lp)
+        score = np.zeros((K, J, N), np.float32)
+        score[u] = score_u
+        return kernels.output_stats(X, score, ev_k, cfg.eps)
+
+    def _remember(self, X, state, mean, n_views, paused, ev_k, frame: int, now: float) -> None:
+        """The tracks keep their samples, motion state and estimate; their pelvis velocity, and, where seen,
+        the time of their last evidence and their bone lengths (a running mean)."""
+        K, N = X.shape[:2]
+        states = [{kk: v[k * N : (k + 1) * N] for kk, v in state.items()} for k in range(K)]  # views
+        pel_now = hip_frame(mean, self.skeleton)[0]  # (K,3)
+        had = [t.mean is not None for t in self.tracks]
+        pel_before = np.zeros((K, 3), np.float32)  # the pelvis of each track's last estimate
+        if any(had):
+            prev = np.stack([t.mean for t in self.tracks if t.mean is not None])
+            pel_before[had] = hip_frame(prev, self.skeleton)[0]
+        bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
+        for k, t in enumerate(self.tracks):
+            t.x, t.state = X[k], states[k]
+        self._batch = (X, state, [(t.x, t.state) for t in self.tracks])
+        for k, t in enumerate(self.tracks):
+            if had[k] and paused[k] == 0:
+                v = (pel_now[k] - pel_before[k]) / self.dt_s
+                t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
+            elif paused[k] > 0 and ev_k[k]:
+                t.velocity = np.zeros(3, np.float32)
+            t.mean = mean[k]
+            if ev_k[k]:
+                t.last_seen, t.last_seen_s, t.pauses_seen = frame, now, self.pauses
+                t.n_seen += 1
+                b = bones_now[k]
+                if t.bones is None:
+                    t.bones = b
+                else:
+                    t.bones = np.where(
+                        np.isfinite(b),
+                        np.where(np.isfinite(t.bones), 0.9 * t.bones + 0.1 * b, b),
+                        t.bones,
+                    )
+
+    def _terminate(self, now: float) -> None:
+        """Tracks without evidence for ``end_after_s`` (on the clock, a whole number of frames at the
+        nominal rate) end; they are kept for re-identification."""
+        keep = []
+        for t in self.tracks:
+            if now - t.last_seen_s >= (self.end_after - 0.5) / self.fps:
+                self.ended.append((t.id, t.born, t.last_seen))
+                self.lost.append(
+                    _Lost(
+                        t.id,
+                        t.last_seen,
+                        self._pelvis(t.mean),
+                        t.velocity.copy(),
+                        t.bones,
+                        t.last_seen_s,
+                        t.pauses_seen,
+                    )
+                )
+            else:
+                keep.append(t)
+        self.tracks = keep
 
     def _end_at_pause(self) -> None:
         """A pause of the recorder (``max_gap_s``): no motion model bridges an unknown stretch of time, so
@@ -755,10 +779,12 @@ class ParticleTracker:
 
     # ------------------------------------------------------------------ birth
 
-    def _initialise(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray, frame: int) -> list[_Track]:
+    def _free_poses(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray):
+        """The 3D poses triangulated from the detections no track explains (None when they cannot give
+        a candidate: too few cameras with free detections)."""
         cfg = self.config
         if self.reconstructor is None:
-            return []
+            return None
         C, D = kp.shape[:2]
         free = np.ones((C, D), bool)
         for c in range(C):
@@ -766,17 +792,22 @@ class ParticleTracker:
             free[c, a] = False
         free &= (sc > 0).sum(-1) >= cfg.assoc_min_joints
         if (free.sum(1) > 0).sum() < cfg.init_min_views:
-            return []
+            return None
         scf = np.where(free[..., None], sc, 0.0)
         if not self._enough_views(scf):
-            return []
+            return None
         # the matching sees only the free detections: each camera's first, in their order (the others after
         # them are all NaN), and no more rows per camera than the most free detections of one camera
         rows = np.argsort(~free, axis=1, kind="stable")[:, : free.sum(1).max()]  # (C,P')
         kpf = np.where(free[..., None, None], kp, np.nan)
         kpf = np.take_along_axis(kpf, rows[..., None, None], 1)
         poses = self.reconstructor(kpf.astype(np.float64), np.take_along_axis(scf, rows[..., None], 1))
-        if len(poses.xyz_m) == 0:
+        return poses if len(poses.xyz_m) else None
+
+    def _initialise(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray, frame: int) -> list[_Track]:
+        cfg = self.config
+        poses = self._free_poses(kp, sc, assigned)
+        if poses is None:
             return []
         good = (poses.n_views >= cfg.init_min_views) & np.isfinite(poses.xyz_m).all(-1)
         n_good = good.sum(1)

@@ -157,7 +157,6 @@ def track_session_particle_chunked(
         step = max(int(round(chunk_s * fps)), 1)
         chunks = [(a, min(a + step, T)) for a in range(0, T, step)] or [(0, 0)]
         tracker = ParticleTracker(plan.rig.projection_matrices(), focal_lengths(plan.rig), fps, cfg)
-        J = tracker.skeleton.n_joints
         key = hash_key(
             [
                 "particle",
@@ -190,62 +189,13 @@ def track_session_particle_chunked(
                 "particle tracker (streamed): the confidence maps are read whole; memory is not bounded "
                 "by the chunk (use_maps = false to stream)"
             )
-        held = -1  # the chunk whose end state the tracker holds (-1: the start of the session)
-        for i, (a, b) in enumerate(chunks):
-            if i not in todo:
-                continue
-            if held != i - 1:  # resume from the state after the previous (valid) part
-                with NpzRows(raw_store.part_path(i - 1)) as r:
-                    tracker.load_state_arrays({n: r.full(n) for n in r.names if n not in _RAW_KEYS})
-            mv = plan.chunk(a, b)
-            kp = np.moveaxis(mv.xy_px, 0, 1).astype(np.float32)  # (n,C,P,J,2)
-            sc = np.moveaxis(mv.score, 0, 1).astype(np.float32)
-            del mv  # the float64 chunk: only its float32 copy is stepped
-            per_frame = []
-            for t in range(b - a):
-                g = a + t
-                per_frame.append(
-                    tracker.step(kp[t], sc[t], g, None if maps_at is None else maps_at(g), float(t_s[g]))
-                )
-                if progress is not None:
-                    progress("track", g + 1, T)
-                if t % TRIM_EVERY == TRIM_EVERY - 1:  # bounded resident memory (core.memory)
-                    release_free_memory()
-            raw = gather_estimates(per_frame, J)
-            arrays = {"schema": np.asarray(RAW_SCHEMA), **{k: getattr(raw, k) for k in _RAW_KEYS}}
-            # stored, not deflated: the filter's float noise compresses to 0.6 of its size at 5x the time
-            save_npz(raw_store.part_path(i), {**arrays, **tracker.state_arrays()}, compress=False)
-            raw_store.commit(i)
-            held = i
-            del kp, sc, per_frame, raw
+        _filter_pass(tracker, plan, chunks, todo, raw_store, t_s, maps_at, progress)
         raw_store.finish()
         release_free_memory()  # pass 1's fragmented heap, before pass 2 allocates its windows
         # pass 2: the offline clean-up per chunk with margins, each track's evidence over the session
-        read = RawReader(raw_store, chunks, J)
-        clock, pauses = pause_clock(t_s, tracker.config.max_gap_s, fps)
-        counts, rooms = read.evidence(segment_frames(pauses))
-        margin = finish_margin_s(tracker.config, fps)
-        source = source_of(cfg) + " (streamed)"
-        for i, (a, b) in enumerate(chunks):
-            if i not in out_todo:
-                continue
-            w0, w1 = window_bounds(clock, a, b, margin) if b > a else (a, b)
-            raw = read(w0, w1)
-            ev = np.asarray([counts.get(int(k), 0) for k in raw.track_id], np.int64)
-            room = np.asarray([rooms.get(int(k), 0) for k in raw.track_id], np.int64)
-            res = finish_tracks(raw, t_s[w0:w1], tracker.config, fps, evidence_frames=ev, room_frames=room)
-            core = slice(a - w0, b - w0)
-            X, S, Cf, Fl = res.xyz_m[core], res.std_m[core], res.confidence[core], res.flags[core]
-            has = (np.isfinite(X).any((0, 2, 3)) | np.isfinite(S).any((0, 2)) | (Cf != 0).any((0, 2))) | (
-                Fl != 0
-            ).any((0, 2))
-            res_core = type(res)(res.track_id[has], X[:, has], S[:, has], Cf[:, has], Fl[:, has], None, None)
-            track_arrays_to_file(res_core, frames[a:b], t_ns[a:b], fps, rig.sha256(), source).save(
-                out_store.part_path(i)
-            )
-            out_store.commit(i)
-            del raw, res, res_core, X, S, Cf, Fl
-            release_free_memory()
+        counts, rooms = _cleanup_pass(
+            tracker, chunks, out_todo, raw_store, out_store, (frames, t_ns, t_s), fps, rig, cfg
+        )
         ids = list(counts)
         n_tracks = int(
             long_enough(
@@ -265,3 +215,70 @@ def track_session_particle_chunked(
     finally:
         plan.close()
     return lay.tracks
+
+
+def _filter_pass(tracker, plan, chunks, todo, raw_store, t_s, maps_at, progress) -> None:
+    """Pass 1: the filter over the chunks ``todo``, each chunk's raw estimates and the filter's end state
+    written as one raw part (a resumed run starts from the state after the last valid part)."""
+    T, J = plan.n_frames, tracker.skeleton.n_joints
+    held = -1  # the chunk whose end state the tracker holds (-1: the start of the session)
+    for i, (a, b) in enumerate(chunks):
+        if i not in todo:
+            continue
+        if held != i - 1:  # resume from the state after the previous (valid) part
+            with NpzRows(raw_store.part_path(i - 1)) as r:
+                tracker.load_state_arrays({n: r.full(n) for n in r.names if n not in _RAW_KEYS})
+        mv = plan.chunk(a, b)
+        kp = np.moveaxis(mv.xy_px, 0, 1).astype(np.float32)  # (n,C,P,J,2)
+        sc = np.moveaxis(mv.score, 0, 1).astype(np.float32)
+        del mv  # the float64 chunk: only its float32 copy is stepped
+        per_frame = []
+        for t in range(b - a):
+            g = a + t
+            per_frame.append(
+                tracker.step(kp[t], sc[t], g, None if maps_at is None else maps_at(g), float(t_s[g]))
+            )
+            if progress is not None:
+                progress("track", g + 1, T)
+            if t % TRIM_EVERY == TRIM_EVERY - 1:  # bounded resident memory (core.memory)
+                release_free_memory()
+        raw = gather_estimates(per_frame, J)
+        arrays = {"schema": np.asarray(RAW_SCHEMA), **{k: getattr(raw, k) for k in _RAW_KEYS}}
+        # stored, not deflated: the filter's float noise compresses to 0.6 of its size at 5x the time
+        save_npz(raw_store.part_path(i), {**arrays, **tracker.state_arrays()}, compress=False)
+        raw_store.commit(i)
+        held = i
+        del kp, sc, per_frame, raw
+
+
+def _cleanup_pass(tracker, chunks, out_todo, raw_store, out_store, times, fps, rig, cfg):
+    """Pass 2: the offline clean-up of each chunk with margins of the raw parts around it, each track's
+    evidence counted over the whole session; returns the evidence and room per track id."""
+    frames, t_ns, t_s = times
+    J = tracker.skeleton.n_joints
+    read = RawReader(raw_store, chunks, J)
+    clock, pauses = pause_clock(t_s, tracker.config.max_gap_s, fps)
+    counts, rooms = read.evidence(segment_frames(pauses))
+    margin = finish_margin_s(tracker.config, fps)
+    source = source_of(cfg) + " (streamed)"
+    for i, (a, b) in enumerate(chunks):
+        if i not in out_todo:
+            continue
+        w0, w1 = window_bounds(clock, a, b, margin) if b > a else (a, b)
+        raw = read(w0, w1)
+        ev = np.asarray([counts.get(int(k), 0) for k in raw.track_id], np.int64)
+        room = np.asarray([rooms.get(int(k), 0) for k in raw.track_id], np.int64)
+        res = finish_tracks(raw, t_s[w0:w1], tracker.config, fps, evidence_frames=ev, room_frames=room)
+        core = slice(a - w0, b - w0)
+        X, S, Cf, Fl = res.xyz_m[core], res.std_m[core], res.confidence[core], res.flags[core]
+        has = (np.isfinite(X).any((0, 2, 3)) | np.isfinite(S).any((0, 2)) | (Cf != 0).any((0, 2))) | (
+            Fl != 0
+        ).any((0, 2))
+        res_core = type(res)(res.track_id[has], X[:, has], S[:, has], Cf[:, has], Fl[:, has], None, None)
+        track_arrays_to_file(res_core, frames[a:b], t_ns[a:b], fps, rig.sha256(), source).save(
+            out_store.part_path(i)
+        )
+        out_store.commit(i)
+        del raw, res, res_core, X, S, Cf, Fl
+        release_free_memory()
+    return counts, rooms
