@@ -173,14 +173,19 @@ def test_mirror_swaps_sides_and_is_an_involution():
     assert torch.allclose(B._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
 
 
-def test_shipped_dct_mlp_checkpoint():
-    ck = B.SHIPPED_MLP
+@pytest.mark.parametrize(
+    "ck", [B.SHIPPED_MLP, B.SHIPPED_MLP.with_name("cmu8_dct_mlp.pt")], ids=["best", "first"]
+)
+def test_shipped_dct_mlp_checkpoints(ck):
     if not ck.exists():
-        pytest.skip("no shipped cmu8 checkpoint")
-    assert ck.stat().st_size < 1_000_000  # measured 216 KB
+        pytest.skip(f"no shipped cmu8 checkpoint {ck.name}")
+    assert ck.stat().st_size < 3_000_000  # measured 216 KB for one model
     model, blob = B.load_mlp(ck)
-    assert blob["extra"]["best"]["step"] > 0 and blob["extra"]["val_files"]  # picked on validation
-    assert not any("test" in f for f in blob["extra"]["train_files"])
+    trains = blob["extra"]["member_train"] if isinstance(model, B.DctMlpEnsemble) else [blob["extra"]]
+    for t in trains:
+        assert t["best"]["step"] > 0 and t["val_files"]  # every model picked on validation
+        assert not any("test" in f for f in t["train_files"])
+        assert not set(t["train_files"]) & set(t["val_files"])
     obs = np.cumsum(np.random.default_rng(0).normal(0, 0.01, (2, 50, 38, 3)), 1)
     y = B.mlp_forecast(model, obs)
     assert y.shape == (2, 25, 38, 3) and np.isfinite(y).all()
