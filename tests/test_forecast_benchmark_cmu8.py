@@ -156,7 +156,7 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
     assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
     shipped = cli.shipped_checkpoints()
     assert any(p.endswith("gru_cmu.pt") for p in shipped)
-    assert not any("characteristic" in p for p in shipped)
+    assert not any(n in p for p in shipped for n in ("characteristic", "behaviour", "cmu8_"))
     assert seen["b19"] == shipped
     assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
 
