@@ -6,7 +6,11 @@ or chained windows for models bound to their window); the rollout and the sampli
 the GRU's time is the baseline of the timing ratio when a GRU checkpoint is given.
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_forecast_validation.py CKPT [CKPT ...] \
-        [--windows 400 --stride 5 --samples 10 --seed 0]
+        [--windows 400 --stride 5 --samples 10 --seed 0] [--data cmu-all]
+
+``--data cmu-all``: the validation clips of all one-person CMU data (``forecast.clips.load_one_person_all``,
+as ``forecast train --data cmu-all`` selects on); the trainer's own probe is ``--windows 48 --stride 10
+--samples 4``.
 
 Needs the CMU BVH under $ROOMCAP_SHARED/data/motion. Ends with one line ``BENCH {json}``.
 """
@@ -32,10 +36,16 @@ def main() -> None:
     p.add_argument("--stride", type=int, default=5)
     p.add_argument("--samples", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--data", choices=("cmu", "cmu-all"), default="cmu")
     args = p.parse_args()
     torch.set_num_threads(1)
-    clips = T.load_sources(["cmu"])
-    _, va, _ = T.split_clips(clips, 0)
+    if args.data == "cmu-all":
+        from forecast.clips import load_one_person_all
+
+        va = load_one_person_all().val
+    else:
+        clips = T.load_sources(["cmu"])
+        _, va, _ = T.split_clips(clips, 0)
     v = Validator(va, n_samples=args.samples, max_windows=args.windows, stride=args.stride, seed=args.seed)
     print(f"{len(v.x)} validation windows of {len(va)} clips, {args.samples} samples, seed {args.seed}")
     print("| checkpoint | rollout | ndms 2-4 s | ndms 2/3 s, clips weighted equally | MPJPE 0-1 s | s |")
@@ -54,7 +64,8 @@ def main() -> None:
             f"| {dt:.1f} |"
         )
     gru = [k for k in out if k.startswith("gru")]
-    bench = {"n_windows": len(v.x), "samples": args.samples, "seed": args.seed, "models": out}
+    bench = {"data": args.data, "n_windows": len(v.x), "samples": args.samples, "seed": args.seed}
+    bench["models"] = out
     if gru:
         bench["wall_ratio_vs_" + gru[0]] = {k: r["wall_s"] / out[gru[0]]["wall_s"] for k, r in out.items()}
     print("BENCH " + json.dumps(bench))

@@ -194,6 +194,7 @@ class MlpConfig:
     val_every: int = 500
     seed: int = 0
     mirror: bool = False  # augment: each training window left/right mirrored with probability 1/2
+    reverse: bool = False  # augment: each training window played backwards with probability 1/2 (siMLPe)
 
 
 class _Block(nn.Module):
@@ -259,6 +260,12 @@ def _mirror(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Ten
     return torch.where(flip[:, None, None, None], m, b)
 
 
+def _reverse(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
+    """Windows ``b (B,T,25,3)``: those with ``flip`` played backwards (the whole window, observed and future,
+    so the model observes the last frames and forecasts the first ones)."""
+    return torch.where(flip[:, None, None, None], b.flip(1), b)
+
+
 def _loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
     """Mean point error plus the mean error of the frame-to-frame velocities (siMLPe's two terms)."""
     pos = torch.linalg.norm(pred - fut, dim=-1).mean()
@@ -267,7 +274,7 @@ def _loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def mlp_forecast(model: DctMlp, obs: np.ndarray, batch: int = 512) -> np.ndarray:
+def mlp_forecast(model: DctMlp | DctMlpEnsemble, obs: np.ndarray, batch: int = 512) -> np.ndarray:
     """obs (W, >= n_obs, 38, 3) units -> forecasts of all 38 points (W, n_pred, 38, 3) (used points from the
     model; the rest filled by :func:`complete` from the last observed frame: they are fixed in the body
     frame)."""
@@ -323,6 +330,8 @@ def train_mlp(
         b = x[idx]
         if config.mirror:
             b = _mirror(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
+        if config.reverse:
+            b = _reverse(b, torch.from_numpy(rng.random(len(b)) < 0.5))
         loss = _loss(model(b[:, : config.n_obs]), b[:, config.n_obs : config.n_obs + config.n_pred])
         opt.zero_grad()
         loss.backward()
@@ -330,8 +339,7 @@ def train_mlp(
         sched.step()
         losses.append(float(loss.detach()))
         if step % config.val_every == 0 or step == config.steps:
-            pred = mlp_forecast(model, val[:, : config.n_obs])
-            v = float(np.mean(at_horizons(mpjpe_mm(pred, val[:, config.n_obs :]))))
+            v = validation_mm(model, val)
             curve.append({"step": step, "val_mm": v, "loss": float(np.mean(losses[-config.val_every :]))})
             log.info("step %d loss %.4f val %.2f mm", step, curve[-1]["loss"], v)
             if v < best["val_mm"]:
@@ -378,7 +386,55 @@ def is_cmu8_checkpoint(path: str | os.PathLike) -> bool:
     return isinstance(blob, dict) and blob.get("schema") == CKPT_SCHEMA
 
 
-def load_mlp(path: str | os.PathLike) -> tuple[DctMlp, dict]:
+class DctMlpEnsemble(nn.Module):
+    """The mean forecast of several DCT + MLPs (e.g. trained with different seeds); they share ``n_obs`` and
+    ``n_pred``."""
+
+    kind = "dct_mlp_ensemble"
+
+    def __init__(self, members: list[DctMlp]):
+        super().__init__()
+        if not members:
+            raise InputError("an ensemble needs at least one DCT + MLP member")
+        if len({(m.n_obs, m.n_pred) for m in members}) != 1:
+            raise InputError("the ensemble's members observe or forecast different numbers of frames")
+        self.members = nn.ModuleList(members)
+        self.n_obs, self.n_pred = members[0].n_obs, members[0].n_pred
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """obs (B, n_obs, P, 3) -> the members' mean forecast (B, n_pred, P, 3)."""
+        return torch.stack([m(obs) for m in self.members]).mean(0)
+
+
+Forecaster = DctMlp | DctMlpEnsemble
+
+
+def save_ensemble(path: str | os.PathLike, members: list[tuple[DctMlp, MlpConfig]], extra: dict) -> None:
+    """One checkpoint holding every member's config and weights (same schema as :func:`save_mlp`)."""
+    blob = {
+        "schema": CKPT_SCHEMA,
+        "kind": DctMlpEnsemble.kind,
+        "members": [
+            {"config": asdict(c), "state_dict": {k: v.detach().cpu() for k, v in m.state_dict().items()}}
+            for m, c in members
+        ],
+        "points": [C.CMU38_NAMES[j] for j in JOINTS_USED],
+        "fps": FPS,
+        "units": "CMU ASF units (0.0254/0.45 m), the benchmark's body frame, y up",
+        "extra": extra,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
+
+
+def _build(n_points: int, config: dict, state: dict) -> DctMlp:
+    m = DctMlp(n_points, MlpConfig(**config))
+    m.load_state_dict(state)
+    return m.eval()
+
+
+def load_mlp(path: str | os.PathLike) -> tuple[Forecaster, dict]:
+    """A ``forecast cmu8`` checkpoint: one DCT + MLP, or an ensemble of them (``kind``)."""
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - re-raised with what to do
@@ -387,14 +443,22 @@ def load_mlp(path: str | os.PathLike) -> tuple[DctMlp, dict]:
         raise FormatError(
             path, "schema", f"expected '{CKPT_SCHEMA}'.", "Train one with `forecast cmu8 train`."
         )
-    cfg = MlpConfig(**blob["config"])
-    m = DctMlp(len(blob["points"]), cfg)
-    m.load_state_dict(blob["state_dict"])
+    n = len(blob["points"])
+    if blob.get("kind") == DctMlpEnsemble.kind:
+        m: Forecaster = DctMlpEnsemble([_build(n, k["config"], k["state_dict"]) for k in blob["members"]])
+    else:
+        m = _build(n, blob["config"], blob["state_dict"])
     m.eval()
     return m, blob
 
 
-SHIPPED_MLP = Path(__file__).resolve().parent / "checkpoints" / "cmu8_dct_mlp.pt"
+def validation_mm(model: Forecaster, val: np.ndarray) -> float:
+    """Validation MPJPE: protocol units, mean over the six horizons of windows ``val (W, 75, 38, 3)``."""
+    pred = mlp_forecast(model, val[:, : model.n_obs])
+    return float(np.mean(at_horizons(mpjpe_mm(pred, val[:, model.n_obs : model.n_obs + model.n_pred]))))
+
+
+SHIPPED_MLP = Path(__file__).resolve().parent / "checkpoints" / "cmu8_dct_mlp_ens.pt"  # picked on validation
 
 
 # ----------------------------------------------------------------------------- the body19 variant
@@ -432,85 +496,78 @@ def _interp(seq: np.ndarray, pos: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- the evaluation
 
 
-def evaluate(
-    root: str | os.PathLike | None = None,
-    mlp_checkpoints: list[str | os.PathLike] | None = None,
-    body19_checkpoints: list[str | os.PathLike] | None = None,
-    n_samples: int = 1,
-    samples_dir: str | os.PathLike | None = None,
-    n_windows: int = N_WINDOWS,
-    progress=None,
-) -> dict:
-    """Score zero velocity and the models on the protocol -> the ``results.json`` dict (see ``LAYOUT``)."""
-    from forecast import benchmark_cmu8_published as P
-    from forecast.checkpoint import load_checkpoint  # lazy: models
+@dataclass
+class _Scores:
+    """What an evaluation gathers: per-window errors per model and action, the forecasts for
+    ``--save-samples`` (only when ``samples_dir`` is set) and, once scored, the models' result entries."""
 
-    t0 = time.perf_counter()
-    bf = C.benchmark_files(root)
-    ts = test_set(bf, n_windows)
-    acts = list(ts.windows)
-    models: dict[str, dict] = {}
-    samples: dict[str, dict[str, list]] = {}
+    acts: list[str]
+    samples_dir: str | os.PathLike | None = None
+    per: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # name -> action -> (W, 25)
+    meta: dict[str, tuple[str, str, dict]] = field(default_factory=dict)  # name -> (variant, joints, extra)
+    samples: dict[str, dict[str, list]] = field(default_factory=dict)
 
-    def add(name: str, per_act: dict[str, np.ndarray], variant: str, joints: str, extra: dict | None = None):
-        r = {
-            "variant": variant,
-            "joints": joints,
-            "per_action": {a: {"mpjpe_mm": at_horizons(per_act[a])} for a in acts},
-        }
-        r["mpjpe_mm"] = [float(np.mean([r["per_action"][a]["mpjpe_mm"][k] for a in acts])) for k in range(6)]
-        r.update(extra or {})
-        models[name] = r
+    def put(self, name: str, a: str, err: np.ndarray, variant: str, joints: str, extra: dict | None = None):
+        self.per.setdefault(name, {})[a] = err
+        self.meta.setdefault(name, (variant, joints, extra or {}))
 
-    def keep(name: str, a: str, pred_m, obs_m, gt_m, joint_names, fps):
-        if samples_dir is None:
+    def keep(self, name: str, a: str, pred_m, obs_m, gt_m, joint_names, fps) -> None:
+        """Forecasts ``pred_m (W,S,T,J,3)``, ``obs_m``, ``gt_m`` in metres, for ``samples_<name>.npz``."""
+        if self.samples_dir is None:
             return
-        s = samples.setdefault(name, {"pred": [], "obs": [], "gt": [], "activity": []})
+        s = self.samples.setdefault(name, {"pred": [], "obs": [], "gt": [], "activity": []})
         s["pred"].append(pred_m.astype(np.float32))
         s["obs"].append(obs_m.astype(np.float32))
         s["gt"].append(gt_m.astype(np.float32))
         s["activity"] += [a] * len(gt_m)
         s["joint_names"], s["fps"] = list(joint_names), fps
 
-    # exact protocol: zero velocity and the DCT + MLP checkpoints on all 38 points
-    mlps = [(Path(p).stem, *load_mlp(p)) for p in (mlp_checkpoints or [])]
-    per: dict[str, dict[str, np.ndarray]] = {"zero_velocity": {}}
-    per_v: dict[str, dict[str, np.ndarray]] = {"zero_velocity@body19": {}}
-    for name, _, _ in mlps:
-        per[name], per_v[f"{name}@body19"] = {}, {}
-    for a in acts:
+    def models(self) -> dict[str, dict]:
+        """The ``models`` entry of ``results.json``: per action the mean over its windows at the horizons,
+        and their mean over the actions; exact-protocol models first, as they were scored."""
+        out = {}
+        order = sorted(self.per, key=lambda n: self.meta[n][0] != "exact")
+        for name in order:
+            variant, joints, extra = self.meta[name]
+            pa = {a: {"mpjpe_mm": at_horizons(self.per[name][a])} for a in self.acts}
+            avg = [float(np.mean([pa[a]["mpjpe_mm"][k] for a in self.acts])) for k in range(len(HORIZONS_MS))]
+            out[name] = {"variant": variant, "joints": joints, "per_action": pa, "mpjpe_mm": avg, **extra}
+        return out
+
+
+_EXACT = ("exact", "38 points (reference)")
+_BODY19 = ("body19", "12 body19 limb points (hips, knees, ankles, shoulders, elbows, wrists)")
+
+
+def _score_exact(ts: TestSet, mlps: list[tuple[str, nn.Module, dict]], sc: _Scores) -> None:
+    """Zero velocity and the DCT + MLP checkpoints on the exact protocol (all 38 points) and, for the body19
+    variant's table, on its 12 limb points."""
+    u = C.ASF_UNIT_M
+    for a in sc.acts:
         w = ts.windows[a]
         obs, gt = w[:, :N_OBS], w[:, N_OBS:]
-        zero = np.repeat(obs[:, -1:], N_PRED, 1)
-        per["zero_velocity"][a] = mpjpe_mm(zero, gt)
-        per_v["zero_velocity@body19"][a] = mpjpe_mm(zero, gt, BODY19_LIMB_POINTS)
-        keep("zero_velocity", a, zero[:, None] * C.ASF_UNIT_M, obs * C.ASF_UNIT_M, gt * C.ASF_UNIT_M,
-             C.CMU38_NAMES, FPS)  # fmt: skip
-        for name, m, _ in mlps:
-            p = mlp_forecast(m, obs)
-            per[name][a] = mpjpe_mm(p, gt)
-            per_v[f"{name}@body19"][a] = mpjpe_mm(p, gt, BODY19_LIMB_POINTS)
-            u = C.ASF_UNIT_M
-            keep(name, a, p[:, None] * u, obs * u, gt * u, C.CMU38_NAMES, FPS)
-    add("zero_velocity", per["zero_velocity"], "exact", "38 points (reference)")
-    for name, _, blob in mlps:
-        add(name, per[name], "exact", "38 points (reference)", {"train": blob.get("extra", {})})
+        preds = [("zero_velocity", np.repeat(obs[:, -1:], N_PRED, 1), {})]
+        preds += [(name, mlp_forecast(m, obs), {"train": blob.get("extra", {})}) for name, m, blob in mlps]
+        for name, p, extra in preds:
+            sc.put(name, a, mpjpe_mm(p, gt), *_EXACT, extra)
+            sc.put(f"{name}@body19", a, mpjpe_mm(p, gt, BODY19_LIMB_POINTS), *_BODY19)
+            sc.keep(name, a, p[:, None] * u, obs * u, gt * u, C.CMU38_NAMES, FPS)
 
-    # body19 variant: the project's checkpoints on the 12 limb points
-    b19 = []
-    for p in body19_checkpoints or []:
-        m, meta = load_checkpoint(p, skeleton="body19")
-        b19.append((Path(p).stem, m, meta))
+
+def _score_body19(ts: TestSet, checkpoints: list, n_samples: int, sc: _Scores, progress=None) -> None:
+    """The project's body19 checkpoints on the body19 variant (see the module docstring)."""
+    from forecast.checkpoint import load_checkpoint  # lazy: models
     from synthetic.bvh import BODY19
 
     limb19 = [BODY19.index(n) for n in BODY19_LIMBS]
-    for i, (name, m, _meta) in enumerate(b19):
+    for i, p in enumerate(checkpoints):
+        name = f"{Path(p).stem}@body19"
+        m, _meta = load_checkpoint(p, skeleton="body19")
         if progress is not None:
-            progress(i, len(b19), name)
-        per_v[f"{name}@body19"] = {}
+            progress(i, len(checkpoints), Path(p).stem)
         S = n_samples if getattr(m, "stochastic", False) else 1
         run = _body19_predictor(m)
-        for a in acts:
+        for a in sc.acts:
             errs = []
             for fi, f in enumerate(ts.files[a]):
                 sel = [k for k, (fj, _) in enumerate(ts.starts[a]) if fj == fi]
@@ -522,12 +579,17 @@ def evaluate(
                 obs_m = C.cmu38_to_body19(ts.windows[a][sel, :N_OBS])
                 # a rotation keeps distances: metres / ASF unit = the protocol's units
                 errs.append(mpjpe_mm(y[..., limb19, :] / C.ASF_UNIT_M, gt_m[..., limb19, :] / C.ASF_UNIT_M))
-                keep(f"{name}@body19", a, y, obs_m, gt_m, BODY19, FPS)
-            per_v[f"{name}@body19"][a] = np.concatenate(errs)
-    for name, pa in per_v.items():
-        add(name, pa, "body19", "12 body19 limb points (hips, knees, ankles, shoulders, elbows, wrists)")
+                sc.keep(name, a, y, obs_m, gt_m, BODY19, FPS)
+            sc.put(name, a, np.concatenate(errs), *_BODY19)
 
-    res = {
+
+def _results(bf: C.BenchmarkFiles, ts: TestSet, models: dict[str, dict]) -> dict:
+    """The ``results.json`` dict around the scored models: protocol, units, what was missing, the published
+    rows (with their average over the same actions)."""
+    from forecast import benchmark_cmu8_published as P
+
+    acts = list(ts.windows)
+    return {
         "protocol": PROTOCOL,
         "reference": REFERENCE,
         "horizons_ms": list(HORIZONS_MS),
@@ -551,8 +613,28 @@ def evaluate(
         "560 ms value on CMU",
         "layout": LAYOUT,
     }
+
+
+def evaluate(
+    root: str | os.PathLike | None = None,
+    mlp_checkpoints: list[str | os.PathLike] | None = None,
+    body19_checkpoints: list[str | os.PathLike] | None = None,
+    n_samples: int = 1,
+    samples_dir: str | os.PathLike | None = None,
+    n_windows: int = N_WINDOWS,
+    progress=None,
+) -> dict:
+    """Score zero velocity and the models on the protocol -> the ``results.json`` dict (see ``LAYOUT``)."""
+    t0 = time.perf_counter()
+    bf = C.benchmark_files(root)
+    ts = test_set(bf, n_windows)
+    sc = _Scores(list(ts.windows), samples_dir)
+    mlps = [(Path(p).stem, *load_mlp(p)) for p in (mlp_checkpoints or [])]
+    _score_exact(ts, mlps, sc)
+    _score_body19(ts, list(body19_checkpoints or []), n_samples, sc, progress)
+    res = _results(bf, ts, sc.models())
     if samples_dir is not None:
-        res["samples"] = write_samples(samples_dir, samples)
+        res["samples"] = write_samples(samples_dir, sc.samples)
     res["wall_s"] = time.perf_counter() - t0
     return res
 
@@ -680,9 +762,17 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--lr", type=positive_float, default=d.lr)
     t.add_argument("--seed", type=int, default=d.seed)
     t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
+    t.add_argument("--reverse", action="store_true", help="augment with windows played backwards")
     t.add_argument("--threads", type=positive_int, default=1)
+    e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
+    e.add_argument("members", nargs="+", help="checkpoints written by `forecast cmu8 train`")
+    e.add_argument("--data", help="the benchmark-cmu8 folder (default: the shared one)")
+    e.add_argument("--out", required=True)
+    e.add_argument("--threads", type=positive_int, default=1)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.cmd == "ensemble":
+        return _main_ensemble(args)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger(__name__).setLevel(logging.INFO)  # the validation curve, one line per check
     cfg = MlpConfig(
@@ -692,6 +782,7 @@ def main(argv: list[str] | None = None) -> int:
         batch=args.batch,
         seed=args.seed,
         mirror=args.mirror,
+        reverse=args.reverse,
     )
     bf = C.benchmark_files(args.path)
     tr, va = split_train_val(bf)
@@ -714,4 +805,38 @@ def main(argv: list[str] | None = None) -> int:
         f"{hist['n_train_windows']} train windows, {hist['train_s']:.0f} s, "
         f"{hist['steps_per_s']:.2f} steps/s, {hist['samples_per_s']:.0f} samples/s; wrote {args.out}"
     )
+    return 0
+
+
+def _main_ensemble(args) -> int:
+    """``forecast cmu8 ensemble --out PATH A.pt B.pt ...``: every member and their mean scored on the
+    validation windows (as in training), the ensemble written."""
+    members, names = [], []
+    for p in args.members:
+        m, blob = load_mlp(p)
+        if not isinstance(m, DctMlp):
+            raise InputError(f"{p} is already an ensemble; give the single models it was made of")
+        members.append((m, MlpConfig(**blob["config"])))
+        names.append(Path(p).name)
+    bf = C.benchmark_files(args.data)
+    _, va = split_train_val(bf)
+    if not va:
+        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    val = train_windows(va, stride=5)
+    scores = {n: validation_mm(m, val) for n, (m, _) in zip(names, members, strict=True)}
+    ens = DctMlpEnsemble([m for m, _ in members])
+    v = validation_mm(ens, val)
+    for n, s in scores.items():
+        print(f"{n}: validation MPJPE {s:.2f} mm")
+    print(f"ensemble of {len(members)}: validation MPJPE {v:.2f} mm (mean of the six horizons)")
+    extra = {
+        "members": names,
+        "member_val_mm": scores,
+        "best": {"val_mm": v},
+        "val_files": [f.name for f in va],
+        "files_missing": bf.missing,
+        "member_train": [load_mlp(p)[1].get("extra", {}) for p in args.members],
+    }
+    save_ensemble(args.out, members, extra)
+    print(f"wrote {args.out}")
     return 0

@@ -172,9 +172,10 @@ PROTOCOLS = ("cmu", "cmu8", "hik")
 
 def shipped_checkpoints() -> list[str]:
     """The body19 forecast checkpoints shipped in forecast/checkpoints (not the characteristic-pose one, not
-    the CMU 8-action benchmark's own model)."""
+    the behaviour model, not the CMU 8-action benchmark's own models)."""
     d = Path(__file__).resolve().parent / "checkpoints"
-    return [str(p) for p in sorted(d.glob("*.pt")) if not p.name.startswith(("characteristic", "cmu8_"))]
+    skip = ("characteristic", "behaviour", "cmu8_")
+    return [str(p) for p in sorted(d.glob("*.pt")) if not p.name.startswith(skip)]
 
 
 def cmd_eval(args) -> int:

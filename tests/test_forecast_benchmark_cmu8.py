@@ -156,7 +156,7 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
     assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
     shipped = cli.shipped_checkpoints()
     assert any(p.endswith("gru_cmu.pt") for p in shipped)
-    assert not any("characteristic" in p for p in shipped)
+    assert not any(n in p for p in shipped for n in ("characteristic", "behaviour", "cmu8_"))
     assert seen["b19"] == shipped
     assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
 
@@ -173,15 +173,72 @@ def test_mirror_swaps_sides_and_is_an_involution():
     assert torch.allclose(B._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
 
 
-def test_shipped_dct_mlp_checkpoint():
-    ck = B.SHIPPED_MLP
+@pytest.mark.parametrize(
+    "ck", [B.SHIPPED_MLP, B.SHIPPED_MLP.with_name("cmu8_dct_mlp.pt")], ids=["best", "first"]
+)
+def test_shipped_dct_mlp_checkpoints(ck):
     if not ck.exists():
-        pytest.skip("no shipped cmu8 checkpoint")
-    assert ck.stat().st_size < 1_000_000  # measured 216 KB
+        pytest.skip(f"no shipped cmu8 checkpoint {ck.name}")
+    assert ck.stat().st_size < 3_000_000  # measured 216 KB for one model
     model, blob = B.load_mlp(ck)
-    assert blob["extra"]["best"]["step"] > 0 and blob["extra"]["val_files"]  # picked on validation
-    assert not any("test" in f for f in blob["extra"]["train_files"])
+    trains = blob["extra"]["member_train"] if isinstance(model, B.DctMlpEnsemble) else [blob["extra"]]
+    for t in trains:
+        assert t["best"]["step"] > 0 and t["val_files"]  # every model picked on validation
+        assert not any("test" in f for f in t["train_files"])
+        assert not set(t["train_files"]) & set(t["val_files"])
     obs = np.cumsum(np.random.default_rng(0).normal(0, 0.01, (2, 50, 38, 3)), 1)
     y = B.mlp_forecast(model, obs)
     assert y.shape == (2, 25, 38, 3) and np.isfinite(y).all()
     assert np.abs(y[:, 0] - obs[:, -1]).max() < 1.0  # continues from the last observed pose (ASF units)
+
+
+def test_reverse_plays_chosen_windows_backwards():
+    b = torch.randn(3, 75, 25, 3)
+    r = B._reverse(b, torch.tensor([True, False, True]))
+    assert torch.equal(r[1], b[1])
+    assert torch.equal(r[0, 0], b[0, -1]) and torch.equal(r[2, 50], b[2, 24])
+    assert torch.equal(B._reverse(r, torch.tensor([True, False, True])), b)
+
+
+def _random_mlp(seed: int) -> tuple[B.DctMlp, B.MlpConfig]:
+    cfg = B.MlpConfig(n_blocks=2, seed=seed)
+    torch.manual_seed(seed)
+    m = B.DctMlp(25, cfg)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn_like(p))  # away from the near-identity initialisation
+    return m.eval(), cfg
+
+
+def test_ensemble_forecasts_the_members_mean_and_round_trips(tiny_root, tmp_path, capsys):
+    from forecast.cli import main
+
+    (m1, c1), (m2, c2) = _random_mlp(1), _random_mlp(2)
+    obs = np.cumsum(np.random.default_rng(0).normal(0, 0.05, (4, 50, 38, 3)), 1)
+    y1, y2 = B.mlp_forecast(m1, obs), B.mlp_forecast(m2, obs)
+    assert np.abs(y1 - y2).max() > 1e-3  # different members
+    ck = tmp_path / "ens.pt"
+    B.save_ensemble(ck, [(m1, c1), (m2, c2)], {"members": ["a", "b"]})
+    assert B.is_cmu8_checkpoint(ck)
+    ens, blob = B.load_mlp(ck)
+    assert isinstance(ens, B.DctMlpEnsemble) and len(ens.members) == 2
+    assert blob["extra"]["members"] == ["a", "b"]
+    assert np.allclose(B.mlp_forecast(ens, obs), (y1 + y2) / 2, atol=1e-5)
+    # the command: members scored on validation, the ensemble written and scored by evaluate
+    paths = []
+    for i, (m, c) in enumerate(((m1, c1), (m2, c2))):
+        paths.append(tmp_path / f"m{i}.pt")
+        B.save_mlp(paths[-1], m, c, {"train_files": []})
+    out = tmp_path / "e2.pt"
+    assert main(["cmu8", "ensemble", *map(str, paths), "--data", str(tiny_root), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "m0.pt: validation MPJPE" in text and "ensemble of 2: validation MPJPE" in text
+    e2, blob2 = B.load_mlp(out)
+    assert set(blob2["extra"]["member_val_mm"]) == {"m0.pt", "m1.pt"} and blob2["extra"]["val_files"]
+    assert np.allclose(B.mlp_forecast(e2, obs), (y1 + y2) / 2, atol=1e-5)
+    res = B.evaluate(tiny_root, mlp_checkpoints=[out], n_windows=1)
+    assert len(res["models"]["e2"]["mpjpe_mm"]) == 6
+    # an ensemble is not a member
+    bad = ["cmu8", "ensemble", str(out), "--data", str(tiny_root), "--out", str(tmp_path / "x.pt")]
+    assert main(bad) == 2
+    assert "already an ensemble" in capsys.readouterr().err
