@@ -325,7 +325,7 @@ def _run_own_parser(name: str, argv: list[str]) -> int:
     if name == "characteristic":
         from forecast.characteristic.cli import main as sub_main
     elif name == "cmu8":
-        from forecast.benchmark_cmu8 import main as sub_main
+        from forecast.benchmark_cmu8_train import main as sub_main
     else:
         from forecast.behaviour.cli import main as sub_main
     return sub_main(argv) or 0
