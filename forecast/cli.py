@@ -367,7 +367,7 @@ def _add_sample(sub: Any) -> None:
     """``forecast sample``."""
     s = sub.add_parser("sample", help="forecast every track of a track file")
     s.add_argument(
-        "--checkpoint", help="model checkpoint (default: the shipped GRU, forecast/checkpoints/gru_cmu.pt)"
+        "--checkpoint", help="model checkpoint (default: the shipped GRU, forecast/checkpoints/gru_cmuall.pt)"
     )
     s.add_argument("--tracks", required=True, help="track file (track/tracks.npz) or session folder")
     s.add_argument("--horizon-s", type=positive_float, default=1.0, help="seconds to forecast")

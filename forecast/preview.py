@@ -23,7 +23,7 @@ from forecast import data as fdata
 from track.trackfile import TrackFile
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
-DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "gru_cmu.pt"
+DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "gru_cmuall.pt"  # picked over gru_cmu.pt on validation (BENCHMARKS)
 FORECAST_SCHEMA, FORECAST_VERSION = "forecast", 1
 BASELINES = ("constant_velocity", "zero_velocity")  # the checkpoint-free previews (baseline_preview)
 PREVIEW_VEL_WINDOW_S = 0.2  # root velocity = mean over the last 0.2 s
