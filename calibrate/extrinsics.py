@@ -341,6 +341,48 @@ def bundle_adjust(
     import pycolmap
 
     rec = pycolmap.Reconstruction()
+    sensor = _add_rig(rec, cams, cam_from_ref, ref_index)
+    pids, frame_ids = _add_frames(rec, board, frames, ref_from_board, obs)
+    opts = _ba_options(cfg, refine_cameras)
+    ba_cfg = pycolmap.BundleAdjustmentConfig()
+    for iid in rec.reg_image_ids():
+        ba_cfg.add_image(iid)
+    for pid in pids:
+        if rec.point3D(pid).track.length() > 0:
+            ba_cfg.add_constant_point(pid)
+    t0 = time.perf_counter()
+    adj = pycolmap.create_default_bundle_adjuster(opts, ba_cfg, rec)
+    summary = adj.solve()
+    dt = time.perf_counter() - t0
+    cs = summary.ceres_summary if hasattr(summary, "ceres_summary") else summary
+    C = len(cams)
+    r = rec.rig(1)
+    new_cams = [_camera_from_colmap(cams[c], rec.camera(c + 1)) for c in range(C)]
+    new_cfr = []
+    for c in range(C):
+        if c == ref_index:
+            new_cfr.append(np.eye(4))
+        else:
+            s = r.sensor_from_rig(sensor[c])
+            new_cfr.append(_T(s.rotation.matrix(), s.translation))
+    new_rfb = {
+        f: _T(rec.frame(fid).rig_from_world.rotation.matrix(), rec.frame(fid).rig_from_world.translation)
+        for f, fid in frame_ids.items()
+    }
+    info = {
+        "time_s": dt,
+        "iterations": int(cs.num_successful_steps + cs.num_unsuccessful_steps),
+        "termination": str(cs.termination_type),
+        "n_residuals": int(cs.num_residuals),
+    }
+    return new_cams, new_cfr, new_rfb, info
+
+
+def _add_rig(rec, cams: Sequence[Camera], cam_from_ref: Sequence[np.ndarray], ref_index: int) -> list:
+    """Add the cameras and the rig (the reference camera and each other's pose in it) to ``rec``; the
+    sensors, one per camera."""
+    import pycolmap
+
     rig = pycolmap.Rig()
     rig.rig_id = 1
     C = len(cams)
@@ -353,6 +395,16 @@ def bundle_adjust(
             T = cam_from_ref[c]
             rig.add_sensor(sensor[c], pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3]))
     rec.add_rig(rig)
+    return sensor
+
+
+def _add_frames(
+    rec, board: Board, frames: Sequence[int], ref_from_board: Mapping[int, np.ndarray], obs: Sequence[_Obs]
+) -> tuple[list, dict[int, int]]:
+    """Add the board points and, per frame with observations, the rig pose and one image per camera that saw
+    the board; the point ids and ``{frame: COLMAP frame id}``."""
+    import pycolmap
+
     obj = board.object_points()
     pids = [rec.add_point3D(o, pycolmap.Track()) for o in obj]
     by_frame: dict[int, list[_Obs]] = {}
@@ -384,6 +436,13 @@ def bundle_adjust(
                 rec.add_observation(pids[int(pid)], pycolmap.TrackElement(im.image_id, k))
         rec.register_frame(fi + 1)
         frame_ids[f] = fi + 1
+    return pids, frame_ids
+
+
+def _ba_options(cfg: ExtrinsicsConfig, refine_cameras: bool):
+    """pycolmap's bundle adjustment options from the config: what is refined, the loss, the solver."""
+    import pycolmap
+
     opts = pycolmap.BundleAdjustmentOptions()
     opts.refine_focal_length = cfg.refine_intrinsics != "none"
     opts.refine_principal_point = cfg.refine_intrinsics != "none"
@@ -402,37 +461,7 @@ def bundle_adjust(
         opts.ceres.auto_select_solver_type = False
         so.linear_solver_type = getattr(type(so.linear_solver_type), cfg.linear_solver.upper())
     opts.ceres.solver_options = so
-    ba_cfg = pycolmap.BundleAdjustmentConfig()
-    for iid in rec.reg_image_ids():
-        ba_cfg.add_image(iid)
-    for pid in pids:
-        if rec.point3D(pid).track.length() > 0:
-            ba_cfg.add_constant_point(pid)
-    t0 = time.perf_counter()
-    adj = pycolmap.create_default_bundle_adjuster(opts, ba_cfg, rec)
-    summary = adj.solve()
-    dt = time.perf_counter() - t0
-    cs = summary.ceres_summary if hasattr(summary, "ceres_summary") else summary
-    r = rec.rig(1)
-    new_cams = [_camera_from_colmap(cams[c], rec.camera(c + 1)) for c in range(C)]
-    new_cfr = []
-    for c in range(C):
-        if c == ref_index:
-            new_cfr.append(np.eye(4))
-        else:
-            s = r.sensor_from_rig(sensor[c])
-            new_cfr.append(_T(s.rotation.matrix(), s.translation))
-    new_rfb = {
-        f: _T(rec.frame(fid).rig_from_world.rotation.matrix(), rec.frame(fid).rig_from_world.translation)
-        for f, fid in frame_ids.items()
-    }
-    info = {
-        "time_s": dt,
-        "iterations": int(cs.num_successful_steps + cs.num_unsuccessful_steps),
-        "termination": str(cs.termination_type),
-        "n_residuals": int(cs.num_residuals),
-    }
-    return new_cams, new_cfr, new_rfb, info
+    return opts
 
 
 def _residuals(board: Board, cams, cam_from_ref, ref_from_board, obs: Sequence[_Obs]) -> list[np.ndarray]:
@@ -504,38 +533,8 @@ def calibrate_extrinsics(
     tick("pose graph")
     frames = _choose_frames(poses, cfg.max_frames)
     if cfg.refine_intrinsics != "none":
-        # refining intrinsics: the views each camera has alone (its intrinsic views) constrain its lens too;
-        # without them a weakly linked camera's lens would rest on its few shared frames only
-        count: dict[int, int] = {}
-        for p in poses:
-            for f in p:
-                count[f] = count.get(f, 0) + 1
-        extra = []
-        for p in poses:
-            solo = sorted(f for f in p if count[f] == 1)
-            k = np.unique(np.linspace(0, len(solo) - 1, min(cfg.single_view_frames, len(solo))).astype(int))
-            extra += [solo[i] for i in k] if solo else []
-        frames = sorted(set(frames) | set(extra))
-    ref_from_board = {}
-    obs: list[_Obs] = []
-    for f in frames:
-        # initial board pose from the camera that sees it best (most points, then lowest PnP error)
-        best = min((c for c in range(C) if f in poses[c]), key=lambda c: (-poses[c][f][2], poses[c][f][1]))
-        ref_from_board[f] = _inv(cam_from_ref[best]) @ poses[best][f][0]
-        for c in range(C):
-            if f in poses[c]:
-                k = int(np.flatnonzero(dets[names[c]].frames == f)[0])
-                xy = dets[names[c]].xy_px[k]
-                ids = np.flatnonzero(np.isfinite(xy[:, 0]))
-                if sym is not None and c != best:
-                    # number this camera's corners like the best camera's: turned if that agrees better
-                    A = _inv(cam_from_ref[c]) @ poses[c][f][0]
-                    B = ref_from_board[f]
-                    if _rot_angle_deg((A @ sym)[:3, :3].T @ B[:3, :3]) < _rot_angle_deg(
-                        A[:3, :3].T @ B[:3, :3]
-                    ):
-                        ids = board.n_points - 1 - ids
-                obs.append(_Obs(c, f, ids, xy[np.flatnonzero(np.isfinite(xy[:, 0]))]))
+        frames = _with_single_views(poses, frames, cfg.single_view_frames)
+    ref_from_board, obs = _observations(board, names, dets, poses, cam_from_ref, frames, sym)
     cams = list(cameras)
     r0 = np.concatenate(_residuals(board, cams, cam_from_ref, ref_from_board, obs))
     initial_rms = float(np.sqrt(np.mean(r0**2)))
@@ -543,24 +542,9 @@ def calibrate_extrinsics(
         board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
     )
     tick("bundle adjustment")
-    res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
-    allr = np.concatenate(res)
-    thr = max(cfg.outlier_px, 5 * float(np.median(allr)))
-    n_out = int((allr > thr).sum())
-    if n_out:
-        log.info("extrinsics: dropping %d observation(s) above %.2f px and adjusting again", n_out, thr)
-        kept = []
-        for o, r in zip(obs, res, strict=False):
-            m = r <= thr
-            if m.sum() >= 4:
-                kept.append(_Obs(o.cam, o.frame, o.ids[m], o.xy[m]))
-        obs = kept
-        cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(
-            board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
-        )
-        info["time_s"] += info2["time_s"]
-        info["iterations"] += info2["iterations"]
-        res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    cams, cam_from_ref, ref_from_board, obs, res, n_out = _drop_outliers(
+        board, cams, cam_from_ref, ref, frames, ref_from_board, obs, cfg, info
+    )
     tick("outlier rejection")
     per_cam = [
         np.concatenate([r for o, r in zip(obs, res, strict=False) if o.cam == c] or [np.zeros(0)])
@@ -569,31 +553,7 @@ def calibrate_extrinsics(
     final_rms = float(np.sqrt(np.mean(np.concatenate(res) ** 2)))
     # world frame
     world = cfg.world or f"camera:{names[0]}"
-    if world.startswith("camera:"):
-        wname = world.split(":", 1)[1]
-        if wname not in names:
-            raise CalibrationError(f"--world {world}: no camera named {wname!r}; cameras: {names}.")
-        ref_from_world = _inv(cam_from_ref[names.index(wname)])
-    else:
-        try:
-            wf = int(world.split(":", 1)[1])
-        except ValueError:
-            raise CalibrationError(
-                f"--world {world}: give the frame number of a frame where the board lies on the "
-                "floor, e.g. board:0."
-            ) from None
-        if wf in ref_from_board:
-            rfb = ref_from_board[wf]
-        else:
-            seen = [c for c in range(C) if wf in poses[c]]
-            if not seen:
-                raise CalibrationError(
-                    f"--world {world}: no camera saw the board in frame {wf}. Pick a frame where "
-                    "the board lies on the floor and at least one camera sees it."
-                )
-            c = max(seen, key=lambda c: poses[c][wf][2])
-            rfb = _inv(cam_from_ref[c]) @ poses[c][wf][0]
-        ref_from_world = rfb @ FLIP_BOARD_Z_UP
+    ref_from_world = _ref_from_world(world, names, cam_from_ref, ref_from_board, poses)
     out_cams = []
     for c in range(C):
         T = cam_from_ref[c] @ ref_from_world
@@ -619,6 +579,129 @@ def calibrate_extrinsics(
         world=world,
         residuals_px={names[c]: per_cam[c] for c in range(C)},
     )
+
+
+def _with_single_views(poses: list[dict], frames: list[int], per_camera: int) -> list[int]:
+    """``frames`` plus up to ``per_camera`` frames each camera saw the board in alone, spread over its
+    recording: when intrinsics are refined they constrain each lens too (without them a weakly linked
+    camera's lens would rest on its few shared frames only)."""
+    count: dict[int, int] = {}
+    for p in poses:
+        for f in p:
+            count[f] = count.get(f, 0) + 1
+    extra = []
+    for p in poses:
+        solo = sorted(f for f in p if count[f] == 1)
+        k = np.unique(np.linspace(0, len(solo) - 1, min(per_camera, len(solo))).astype(int))
+        extra += [solo[i] for i in k] if solo else []
+    return sorted(set(frames) | set(extra))
+
+
+def _observations(
+    board: Board,
+    names: list[str],
+    dets: Mapping[str, CameraDetections],
+    poses: list[dict],
+    cam_from_ref: list[np.ndarray],
+    frames: list[int],
+    sym: np.ndarray | None,
+) -> tuple[dict[int, np.ndarray], list[_Obs]]:
+    """Each frame's initial board pose in the reference camera, and every camera's corner observations in
+    it (numbered like the best camera's on a symmetric board)."""
+    C = len(names)
+    ref_from_board = {}
+    obs: list[_Obs] = []
+    for f in frames:
+        # initial board pose from the camera that sees it best (most points, then lowest PnP error)
+        best = min((c for c in range(C) if f in poses[c]), key=lambda c: (-poses[c][f][2], poses[c][f][1]))
+        ref_from_board[f] = _inv(cam_from_ref[best]) @ poses[best][f][0]
+        for c in range(C):
+            if f in poses[c]:
+                k = int(np.flatnonzero(dets[names[c]].frames == f)[0])
+                xy = dets[names[c]].xy_px[k]
+                ids = np.flatnonzero(np.isfinite(xy[:, 0]))
+                if sym is not None and c != best:
+                    # number this camera's corners like the best camera's: turned if that agrees better
+                    A = _inv(cam_from_ref[c]) @ poses[c][f][0]
+                    B = ref_from_board[f]
+                    if _rot_angle_deg((A @ sym)[:3, :3].T @ B[:3, :3]) < _rot_angle_deg(
+                        A[:3, :3].T @ B[:3, :3]
+                    ):
+                        ids = board.n_points - 1 - ids
+                obs.append(_Obs(c, f, ids, xy[np.flatnonzero(np.isfinite(xy[:, 0]))]))
+    return ref_from_board, obs
+
+
+def _drop_outliers(
+    board: Board,
+    cams: list[Camera],
+    cam_from_ref: list[np.ndarray],
+    ref: int,
+    frames: list[int],
+    ref_from_board: dict[int, np.ndarray],
+    obs: list[_Obs],
+    cfg: ExtrinsicsConfig,
+    info: dict,
+) -> tuple[list[Camera], list[np.ndarray], dict[int, np.ndarray], list[_Obs], list[np.ndarray], int]:
+    """Drop the corners whose residual exceeds ``max(cfg.outlier_px, 5 x the median)`` and adjust again
+    (adding to ``info``'s time and iterations); the results, the residuals and the number dropped."""
+    res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    allr = np.concatenate(res)
+    thr = max(cfg.outlier_px, 5 * float(np.median(allr)))
+    n_out = int((allr > thr).sum())
+    if n_out:
+        log.info("extrinsics: dropping %d observation(s) above %.2f px and adjusting again", n_out, thr)
+        kept = []
+        for o, r in zip(obs, res, strict=False):
+            m = r <= thr
+            if m.sum() >= 4:
+                kept.append(_Obs(o.cam, o.frame, o.ids[m], o.xy[m]))
+        obs = kept
+        cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(
+            board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
+        )
+        info["time_s"] += info2["time_s"]
+        info["iterations"] += info2["iterations"]
+        res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    return cams, cam_from_ref, ref_from_board, obs, res, n_out
+
+
+def _ref_from_world(
+    world: str,
+    names: list[str],
+    cam_from_ref: list[np.ndarray],
+    ref_from_board: dict[int, np.ndarray],
+    poses: list[dict],
+) -> np.ndarray:
+    """The world frame in the reference camera: a camera's (``camera:<name>``) or the board's in a frame
+    where it lies on the floor (``board:<frame>``, z up)."""
+    C = len(names)
+    if world.startswith("camera:"):
+        wname = world.split(":", 1)[1]
+        if wname not in names:
+            raise CalibrationError(f"--world {world}: no camera named {wname!r}; cameras: {names}.")
+        ref_from_world = _inv(cam_from_ref[names.index(wname)])
+    else:
+        try:
+            wf = int(world.split(":", 1)[1])
+        except ValueError:
+            raise CalibrationError(
+                f"--world {world}: give the frame number of a frame where the board lies on the "
+                "floor, e.g. board:0."
+            ) from None
+        if wf in ref_from_board:
+            rfb = ref_from_board[wf]
+        else:
+            seen = [c for c in range(C) if wf in poses[c]]
+            if not seen:
+                raise CalibrationError(
+                    f"--world {world}: no camera saw the board in frame {wf}. Pick a frame where "
+                    "the board lies on the floor and at least one camera sees it."
+                )
+            c = max(seen, key=lambda c: poses[c][wf][2])
+            rfb = _inv(cam_from_ref[c]) @ poses[c][wf][0]
+        ref_from_world = rfb @ FLIP_BOARD_Z_UP
+    return ref_from_world
 
 
 def board_fit_rms(
