@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from core.errors import InputError
-from core.fileio import atomic_write_text
+from core.fileio import atomic_path, atomic_write_text
 from core.progress import Progress
 from forecast import data as fdata
 from forecast import metrics as M
@@ -249,8 +249,6 @@ def write_samples(out_dir, model: str, pred, obs, gt, fps: float, joint_names, a
     """``samples_<model>.npz`` for rescoring a run with any metric: ``pred (N,S,T,J,3)``,
     ``obs (N,T_obs,J,3)``, ``gt (N,T,J,3)`` in metres, ``fps``, ``joint_names``, ``activity (N,)``,
     ``model``."""
-    from core.fileio import atomic_path
-
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"samples_{model.replace('/', '_')}.npz"

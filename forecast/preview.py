@@ -24,6 +24,23 @@ BASELINES = ("constant_velocity", "zero_velocity")  # the checkpoint-free previe
 PREVIEW_VEL_WINDOW_S = 0.2  # root velocity = mean over the last 0.2 s
 
 
+def shipped_checkpoints() -> list[str]:
+    """The body19 forecast checkpoints shipped in forecast/checkpoints (not the characteristic-pose one, not
+    the CMU 8-action benchmark's own model)."""
+    return [
+        str(p)
+        for p in sorted(CHECKPOINT_DIR.glob("*.pt"))
+        if not p.name.startswith(("characteristic", "cmu8_"))
+    ]
+
+
+def _load_model(checkpoint: str | os.PathLike | None, skeleton: str) -> tuple:
+    """The model of ``checkpoint`` (default: the shipped GRU) for ``skeleton``, and its metadata."""
+    from forecast.checkpoint import load_checkpoint  # lazy: loads torch
+
+    return load_checkpoint(checkpoint or DEFAULT_CHECKPOINT, skeleton=skeleton)
+
+
 def preview(
     track_file: str | os.PathLike,
     horizon_s: float = 1.0,
@@ -33,11 +50,10 @@ def preview(
 ) -> dict:
     import torch  # lazy: loads torch
 
-    from forecast.checkpoint import load_checkpoint  # lazy: loads torch
     from forecast.predict import forecast_world  # lazy: loads torch
 
     clip = fdata.clip_from_trackfile(track_file)
-    model, meta = load_checkpoint(checkpoint or DEFAULT_CHECKPOINT, skeleton=clip.skeleton)
+    model, meta = _load_model(checkpoint, clip.skeleton)
     fps = float(meta["fps"])
     c = clip.resampled(fps)
     n_obs = int(round(obs_s * fps)) if obs_s else int(meta["config"].n_obs)
@@ -74,10 +90,8 @@ def no_forecast_reason(
     """Why :func:`preview` forecast none of the tracks of ``track_file``, as a sentence with what to do: the
     tracks are shorter than the frames the model needs, or nobody is seen at the last frame (where every
     forecast starts)."""
-    from forecast.checkpoint import load_checkpoint  # lazy: loads torch
-
     clip = fdata.clip_from_trackfile(track_file)
-    _, meta = load_checkpoint(checkpoint or DEFAULT_CHECKPOINT, skeleton=clip.skeleton)
+    _, meta = _load_model(checkpoint, clip.skeleton)
     fps = float(meta["fps"])
     c = clip.resampled(fps)
     n_obs = int(round(obs_s * fps)) if obs_s else int(meta["config"].n_obs)

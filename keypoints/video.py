@@ -37,6 +37,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from calibrate.camera import CameraRig
 from capture.session import VIDEO_SUFFIXES, SessionLayout
 from core.errors import FormatError, RoomcapError
 from core.fileio import load_npz, save_npz
@@ -594,15 +595,6 @@ def run_videos(
     return report
 
 
-def videos_in(folder: str | os.PathLike) -> dict[str, Path]:
-    """``{stem: path}`` for the videos in a folder (the Pose2Sim layout ``<trial>/videos/camNN.mp4``)."""
-    folder = Path(folder)
-    out = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES}
-    if not out:
-        raise FileNotFoundError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {folder}.")
-    return out
-
-
 def run_session(
     session_dir: str | os.PathLike,
     model_set: str = "default",
@@ -623,12 +615,7 @@ def run_session(
         raise FileNotFoundError(f"no camera videos under {lay.raw_dir}; expected raw/<cam>.mp4.")
     videos = {c: lay.video(c) for c in cams}
     if rig is None and lay.rig_toml.exists():
-        try:
-            from calibrate.camera import CameraRig
-
-            rig = CameraRig.load(lay.rig_toml)
-        except ImportError:  # calibrate not available in this build
-            rig = None
+        rig = CameraRig.load(lay.rig_toml)
     if rig is not None and not isinstance(rig, dict):
         missing = [c for c in cams if c not in rig.names]
         if missing:
