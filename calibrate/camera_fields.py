@@ -137,6 +137,7 @@ def validated_fields(
     model: Any,
     R: Any,
     t: Any,
+    *,
     path: str | os.PathLike[str] | None = None,
     where: str | None = None,
     names: Mapping[str, str] | None = None,

@@ -507,6 +507,7 @@ def sync_session(
     openpose_dirs: dict[str, str] | None = None,
     fps: float | None = None,
     write: bool = True,
+    *,
     load_keypoints: LoadKeypoints | None = None,
 ) -> dict:
     """Estimate offsets for a session folder and write them into ``session.toml`` ``[sync]``.
