@@ -21,11 +21,12 @@ from pathlib import Path
 from capture.config import ConfigError, load_config, shared_sources
 from capture.live import BuildStages, LiveOutputs, LiveRunner
 from capture.offline_sync import LoadKeypoints, sync_audio, sync_session
-from capture.recorder import Recorder, RecorderError, redact_text, repair
+from capture.recorder import Recorder, RecorderError, repair
 from capture.session import SessionLayout
 from capture.sources import SourceError
 from core.cli import Parser, guarded, positive_float
 from core.errors import FormatError
+from core.redact import redact
 
 log = logging.getLogger("capture")
 
@@ -82,7 +83,7 @@ def _record(
     text = Path(args.cameras).read_text(encoding="utf-8")
     shared = shared_sources(cfg)
     for w in shared:
-        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
+        print(f"capture-run: warning: {redact(w)}", file=sys.stderr)
     live_on = args.live or cfg.live.enabled
     live = None
     if live_on:
@@ -170,9 +171,9 @@ def _print_summary(out, rec: Recorder, summary: dict, shared: list[str], live: L
             f"{t['complete_sets']}/{t['sets']} complete frame sets"
         )
     for w in shared:  # again beside the skew it makes meaningless
-        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
+        print(f"capture-run: warning: {redact(w)}", file=sys.stderr)
     if live:
-        print("  live: " + redact_text(live.summary_line()))
+        print("  live: " + redact(live.summary_line()))
     if summary.get("failed_cameras"):
         print(
             f"capture-run: warning: {len(summary['failed_cameras'])} camera(s) not recorded: "
@@ -200,7 +201,7 @@ def _check(argv: list[str]) -> int:
         print(f"{c.name}: {c.kind} {c.source_redacted} resolution={c.resolution} fps={c.fps} codec={c.codec}")
     problems = shared_sources(cfg)
     for w in problems:
-        print(f"capture-run check: warning: {redact_text(w)}", file=sys.stderr)
+        print(f"capture-run check: warning: {redact(w)}", file=sys.stderr)
     return 1 if problems else 0
 
 
@@ -370,7 +371,7 @@ def _main(
             return _sync(rest, load_keypoints)
         return {"check": _check, "repair": _repair}[cmd](rest)
     except (ConfigError, FormatError, SourceError, RecorderError, ValueError) as e:
-        print(f"capture-run: error: {redact_text(str(e))}", file=sys.stderr)
+        print(f"capture-run: error: {redact(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("capture-run: interrupted", file=sys.stderr)

@@ -60,7 +60,7 @@ from typing import Any
 from core.config import bounded, check_keys, check_range, coerce, config_from_dict
 from core.errors import FormatError, UnknownNameError
 from core.fileio import check_schema
-from core.redact import redact as redact_url  # one redaction for every source string (issue 15)
+from core.redact import redact as redact_url  # one redaction for every source string
 
 CAMS_SCHEMA = "cams"
 CAMS_VERSION = 1

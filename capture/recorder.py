@@ -175,7 +175,7 @@ class Recorder:
                 if w.error:
                     d["writer_error"] = w.error
             if c.name in self.failed_cameras:
-                d.update(recorded=False, failed=redact_text(self.failed_cameras[c.name]))
+                d.update(recorded=False, failed=redact(self.failed_cameras[c.name]))
             if c.name in self.joins:
                 d.update(self.joins[c.name].to_dict())
             cams[c.name] = d
@@ -194,7 +194,7 @@ class Recorder:
         if self.failed_cameras:
             meta["failed_cameras"] = sorted(self.failed_cameras)
         if self.cams_yaml_text is not None:
-            meta["cams_yaml"] = redact_text(self.cams_yaml_text)
+            meta["cams_yaml"] = redact(self.cams_yaml_text)
         if timing is not None:
             meta["timing"] = timing
         return meta
@@ -236,7 +236,7 @@ class Recorder:
                             "other cameras without it, pass --skip-failed-cameras."
                         ) from None
                     self.failed_cameras[c.name] = str(e)
-                    log.error("%s: skipped, cannot be opened: %s", c.name, redact_text(str(e)))
+                    log.error("%s: skipped, cannot be opened: %s", c.name, redact(str(e)))
                     continue
                 opened[c.name] = src
                 log.info("%s: opened %s", c.name, redact_url(self.infos[c.name].description))
@@ -247,7 +247,7 @@ class Recorder:
         if not opened:
             raise RecorderError(
                 "no camera could be opened ("
-                + "; ".join(redact_text(m) for m in self.failed_cameras.values())
+                + "; ".join(redact(m) for m in self.failed_cameras.values())
                 + "). Nothing was recorded."
             )
         return opened
@@ -470,9 +470,6 @@ def _finite(d):
     if isinstance(d, dict):
         return {k: _finite(v) for k, v in d.items() if not (isinstance(v, float) and not np.isfinite(v))}
     return d
-
-
-redact_text = redact  # the one redaction (core.redact), kept under this name for callers
 
 
 # ----------------------------------------------------------------------------- repair

@@ -1,4 +1,4 @@
-"""Long synthetic sessions in bounded memory (issue 17): rendered in time chunks, written as stream.
+"""Long synthetic sessions in bounded memory: rendered in time chunks, written as stream.
 
 :func:`write_session_chunked` renders the scene chunk by chunk (each chunk and camera seeded by its
 own generator, so a chunked session is a different random draw from :func:`synthetic.world.write_session`'s
