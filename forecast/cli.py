@@ -13,9 +13,10 @@ Data: ``cmu`` = the CMU BVH under ``$ROOMCAP_MOCAP`` / ``$ROOMCAP_SHARED/data/mo
 or folders containing ``tracks.npz``. Train / validation / test split by clip (``data.split_train_val_test``,
 ``--split-seed``): ``train`` fits on the train split and keeps the state with the best validation NDMS;
 ``eval`` reports on the test split only.
-
-This module parses the command line; :mod:`forecast.commands` runs the commands (and loads torch).
 """
+
+# The module docstring is `forecast --help`'s text. This module parses the command line and stays light;
+# forecast.commands runs the commands (importing it loads torch).
 
 from __future__ import annotations
 
