@@ -26,7 +26,8 @@ from forecast.behaviour import cli as behaviour_cli
 from forecast.characteristic import cli as characteristic_cli
 from forecast.clips import load_one_person_all, load_two_person_real
 from forecast.config import config_from_dict
-from forecast.preview import no_forecast_reason, preview, save_forecast, shipped_checkpoints
+from forecast.preview import DEFAULT_CHECKPOINT, preview, save_forecast, shipped_checkpoints
+from forecast.track_forecast import no_forecast_reason
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +115,7 @@ def cmd_train(args) -> int:
 def cmd_sample(args) -> int:
     fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
     if not np.isfinite(fc["xyz_m"]).any():
-        why = no_forecast_reason(args.tracks, args.checkpoint)
+        why = no_forecast_reason(args.tracks, args.checkpoint or DEFAULT_CHECKPOINT)
         if why:
             raise InputError(f"{why} Nothing was written.")
         raise InputError(
