@@ -619,7 +619,8 @@ def _merge_chunks(
     out_dir: Path,
     model_set: str,
 ) -> None:
-    """Merge each camera's chunks into ``out_dir/<cam>.npz`` with the video's facts; into the report."""
+    """Merge each camera's chunks into ``out_dir/<cam>.npz`` with the video's facts; the paths and frame
+    counts into the report."""
     for c in videos:
         err = report.decode_errors.get(c, (-1, ""))
         extra = {
@@ -641,7 +642,8 @@ def _stage_times(
     readers: dict[str, FrameReader],
     writers: dict[str, ChunkWriter],
 ) -> None:
-    """The seconds spent per stage (summed over the groups' pipelines), in decoding and writing."""
+    """The report's times: seconds per stage (summed over the groups' pipelines), in decoding, writing and
+    the models."""
     st: defaultdict[str, float] = defaultdict(float)
     for gp in pipes:
         for k, v in gp.stage_s.items():
