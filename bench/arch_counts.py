@@ -25,7 +25,12 @@ Counts, over the project packages (tests and bench left out):
 * ``long_functions``: functions (methods included) over 80 lines, and ``largest_module``: the longest module
   in lines;
 * ``option_reads``: per stage option name (``chunk_s``, ``workers``, ``executor``, ``tracker``, ``preset``),
-  the places that read it from a mapping (``x.get("name"...)`` or ``x["name"]``);
+  the places that read it from a mapping (``x.get("name"...)`` or ``x["name"]``); ``option_parses``: per
+  option, the modules that parse it: those reads, the config fields that declare it (a class body's
+  ``name: type``) and calls of a parser named for it (``parse_chunk_s(...)``), counted once per module;
+  ``option_compares``: comparisons of an attribute of that name with a string (``cfg.tracker == "greedy"``:
+  string dispatch, or a check of the value); ``preset_lookups``: calls
+  that resolve a keypoint preset's name (``presets()``, ``preset_config(...)``);
 * ``doctested``: public functions and methods of ``core/``, ``calibrate/camera.py``, ``triangulate/`` and
   ``track/`` whose docstring holds a ``>>>`` example.
 """
@@ -120,6 +125,13 @@ def _option_key(node) -> str | None:
     return None
 
 
+def _module_of(place: str) -> str:
+    """``pkg.mod`` of a place written ``pkg.mod:line ...`` or ``pkg.mod.Class:line ...``."""
+    dotted = place.split(":")[0]
+    head = dotted.rsplit(".", 1)
+    return head[0] if len(head) == 2 and head[1][:1].isupper() else dotted
+
+
 def count(root: Path) -> dict:
     res: dict = {
         "validators": [],
@@ -136,6 +148,9 @@ def count(root: Path) -> dict:
         "doctested": 0,
     }
     option_reads: dict[str, list[str]] = {k: [] for k in OPTION_NAMES}
+    option_parses: dict[str, list[str]] = {k: [] for k in OPTION_NAMES}
+    preset_lookups: list[str] = []
+    option_compares: list[str] = []
     largest = ("", 0)
     classes: dict[str, list[str]] = {}
     texts = {}
@@ -226,6 +241,25 @@ def count(root: Path) -> dict:
             key = _option_key(node)
             if key in option_reads:
                 option_reads[key].append(f"{mod}:{node.lineno}")
+                option_parses[key].append(f"{mod}:{node.lineno} read")
+            if isinstance(node, ast.ClassDef):
+                for st in node.body:
+                    if isinstance(st, ast.AnnAssign) and isinstance(st.target, ast.Name):
+                        if st.target.id in option_parses:
+                            option_parses[st.target.id].append(f"{mod}.{node.name}:{st.lineno} field")
+            if isinstance(node, ast.Compare) and isinstance(node.left, ast.Attribute):
+                consts = [
+                    c for c in node.comparators if isinstance(c, ast.Constant) and isinstance(c.value, str)
+                ]
+                if node.left.attr in option_parses and consts:
+                    option_compares.append(f"{node.left.attr}: {mod}:{node.lineno}")
+            if isinstance(node, ast.Call):
+                fname = _name(node.func) or ""
+                for opt in option_parses:
+                    if fname in (f"parse_{opt}", f"_parse_{opt}"):
+                        option_parses[opt].append(f"{mod}:{node.lineno} {fname}()")
+                if fname in ("presets", "preset_config"):
+                    preset_lookups.append(f"{mod}:{node.lineno} {fname}()")
 
     def exc_root(name, seen=()):
         """'roomcap', 'builtin' or None (not an exception)."""
@@ -246,6 +280,10 @@ def count(root: Path) -> dict:
     res["largest_module"] = f"{largest[0]} ({largest[1]})"
     res["option_reads"] = {k: len(v) for k, v in option_reads.items()}
     res["option_read_places"] = [f"{k}: {p}" for k, v in option_reads.items() for p in v]
+    res["option_parses"] = {k: len({_module_of(p) for p in v}) for k, v in option_parses.items()}
+    res["option_compares"] = option_compares
+    res["option_parse_places"] = [f"{k}: {p}" for k, v in option_parses.items() for p in v]
+    res["preset_lookups"] = preset_lookups
 
     excs = {c: exc_root(c) for c in classes if c != "RoomcapError"}
     excs = {c: r for c, r in excs.items() if r}

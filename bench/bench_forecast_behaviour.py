@@ -7,6 +7,14 @@ Process CPU time (``time.process_time``), torch on one thread by default, random
 (body19, n_obs 3, M 5), so it needs no mocap.
 
     .venv/bin/python bench/bench_forecast_behaviour.py [--steps 10] [--threads 1] [--results results.json]
+        [--set KEY=VALUE ...]   (config overrides as in ``forecast behaviour train --set``)
+
+With ``--ceilings`` (needs the CMU mocap; about a minute) also what the composite data allow: the top-1
+accuracy of the best possible forecaster of the script (the Markov chain's k-step most likely action after
+the last observed one, Fig. 4.3's ceiling), and the 3D quality of the test sequences' true 3D poses: under the
+seed's metric (the share the shipped once-trained classifier judges real, ``forecast behaviour quality``) and
+under the per-method variant (a "method" whose val predictions, the classifier's fakes, are the val sequences'
+true 3D).
 
 Ends with one line ``BENCH {json}``.
 """
@@ -17,11 +25,48 @@ import argparse
 import json
 import time
 
+import numpy as np
 import torch
 
-from forecast.behaviour.data import ACTIONS
-from forecast.behaviour.model import BehaviourConfig, build, rollout
+from core.cli import parse_sets
+from forecast.behaviour import training as T
+from forecast.behaviour.data import ACTIONS, JOINTS, SCRIPT
+from forecast.behaviour.model import BehaviourConfig, build, config_from_dict, rollout
+from forecast.behaviour.quality import QUALITY_SHIPPED
+from forecast.behaviour.quality import load as load_quality
 from forecast.behaviour.training import critic_input
+
+
+def ceilings(cfg: BehaviourConfig) -> dict:
+    """Bayes top-1/top-3 of the script per step on the test split, and the two qualities of the truth."""
+    sp = T.load_splits(cfg, 0, JOINTS, with_train=False)
+    A = len(ACTIONS)
+    P = np.zeros((A, A))
+    for a, nxt in SCRIPT.items():
+        for b, p in nxt.items():
+            P[ACTIONS.index(a), ACTIONS.index(b)] = p
+    P /= P.sum(1, keepdims=True)
+    d, n_obs = sp.test, cfg.n_obs
+    Pk, top1, top3 = np.eye(A), [], []
+    for k in range(cfg.m):
+        Pk = Pk @ P
+        order = np.argsort(-Pk[d.acts[:, n_obs - 1]], 1)
+        top1.append(float((order[:, 0] == d.acts[:, n_obs + k]).mean()))
+        top3.append(float((order[:, :3] == d.acts[:, n_obs + k, None]).any(1).mean()))
+    real_v, real_t = sp.db[0::2], sp.db[1::2]
+    J = len(JOINTS)
+    fakes = np.concatenate([T.perturbed(real_v, JOINTS, 0), sp.val.tgt_3d.reshape(-1, J, 3)])
+    clf = T.quality_classifier(real_v, fakes.astype(np.float32), JOINTS, 0)
+    q = T.quality(clf, real_t, sp.test.tgt_3d.reshape(-1, J, 3), JOINTS, 0)
+    seed_clf = load_quality(QUALITY_SHIPPED)
+    qs = T.share_real(seed_clf.clf, sp.test.tgt_3d.reshape(-1, J, 3), JOINTS)
+    return {
+        "bayes_top1_by_step": top1,
+        "bayes_top1": float(np.mean(top1)),
+        "bayes_top3": float(np.mean(top3)),
+        "quality3d_of_true_3d": qs,
+        "quality3d_per_method_of_true_3d": q,
+    }
 
 
 def main() -> None:
@@ -29,11 +74,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--results", default=None, help="an eval results.json to report ratios from")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
+    ap.add_argument("--ceilings", action="store_true", help="the data's Bayes top-1 and the truth's quality")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    cfg = BehaviourConfig()
+    cfg = config_from_dict(parse_sets(args.set))
     gen, critic = build(cfg)
-    B, N, J, A = cfg.batch, cfg.n_obs, 19, len(ACTIONS)
+    B, N, J, A = cfg.batch, cfg.n_obs, len(cfg.joint_names), len(ACTIONS)
     g = torch.Generator().manual_seed(0)
     feats = torch.randn(B, N, J, 2, generator=g) * 0.4
     seen = torch.ones(B, N, J, dtype=torch.bool)
@@ -45,13 +92,14 @@ def main() -> None:
         if i == 1:  # first step is warm-up
             c0 = time.process_time()
         lg, P = rollout(gen, feats, acts, seen, c, cfg.m)
-        fake = critic_input(P.reshape(-1, J, 3), J - 2)[:B]
-        mix = fake.detach().clone().requires_grad_(True)
-        grad = torch.autograd.grad(critic(mix).sum(), mix, create_graph=True)[0]
-        lc = critic(fake.detach()).mean() + ((grad.reshape(B, -1).norm(dim=1) - 1) ** 2).mean()
-        oc.zero_grad()
-        lc.backward()
-        oc.step()
+        fake = critic_input(P.reshape(-1, J, 3), cfg.joint_names.index("pelvis"))[:B]
+        for _ in range(cfg.n_critic):
+            mix = fake.detach().clone().requires_grad_(True)
+            grad = torch.autograd.grad(critic(mix).sum(), mix, create_graph=True)[0]
+            lc = critic(fake.detach()).mean() + ((grad.reshape(B, -1).norm(dim=1) - 1) ** 2).mean()
+            oc.zero_grad()
+            lc.backward()
+            oc.step()
         loss = torch.nn.functional.cross_entropy(lg.reshape(-1, A), torch.zeros(B * cfg.m, dtype=torch.long))
         loss = loss - critic(fake).mean() + P.square().mean()
         og.zero_grad()
@@ -64,8 +112,15 @@ def main() -> None:
         for _ in range(20):
             rollout(gen, feats[:1], acts[:1], seen[:1], c[:1], cfg.m)
         one_ms = (time.process_time() - c0) / 20 * 1000
-    out = {"train_step_cpu_s": step_s, "batch": B, "forecast_one_person_cpu_ms": one_ms, "m": cfg.m}
-    print(f"training step (batch {B}, M = {cfg.m}, critic + GP): {step_s:.3f} s CPU")
+    out = {
+        "train_step_cpu_s": step_s,
+        "batch": B,
+        "forecast_one_person_cpu_ms": one_ms,
+        "m": cfg.m,
+        "n_critic": cfg.n_critic,
+        "bone_lengths": cfg.bone_lengths,
+    }
+    print(f"training step (batch {B}, M = {cfg.m}, {cfg.n_critic} critic step(s) + GP): {step_s:.3f} s CPU")
     print(f"one person's forecast (M = {cfg.m} steps): {one_ms:.2f} ms CPU")
     if args.results:
         with open(args.results, encoding="utf-8") as fh:
@@ -77,10 +132,23 @@ def main() -> None:
             "top1_full_over_action_only": full["top1"] / res["action_only"]["top1"],
             "mpjpe3d_full_over_train_average": full["mpjpe3d_mm"] / res["train_average"]["mpjpe3d_mm"],
             "quality3d_full": full["quality3d"],
+            "quality3d_per_method_full": full.get("quality3d_per_method"),
         }
         for k, v in ratios.items():
-            print(f"{k}: {v:.3f}")
+            print(f"{k}: " + ("-" if v is None else f"{v:.3f}"))
         out.update(ratios)
+    if args.ceilings:
+        ce = ceilings(cfg)
+        print(
+            "best possible top-1 by step (the script's Markov chain, test split): "
+            + " / ".join(f"{v:.1%}" for v in ce["bayes_top1_by_step"])
+            + f"; overall {ce['bayes_top1']:.1%} (top-3 {ce['bayes_top3']:.1%})"
+        )
+        print(
+            f"3D quality of the true 3D poses: {ce['quality3d_of_true_3d']:.2f} (seed's metric), "
+            f"{ce['quality3d_per_method_of_true_3d']:.2f} (per-method variant)"
+        )
+        out.update(ce)
     print("BENCH " + json.dumps(out))
 
 

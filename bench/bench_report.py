@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.report import write_report
     from synthetic import render as R
     from synthetic import rigs, world
-    from triangulate.stage import track_session_greedy, triangulate_session
+    from track.greedy_stage import track_session_greedy
+    from triangulate.stage import triangulate_session
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_report_")) if a.keep is None else a.keep
     try:

@@ -1,7 +1,7 @@
 """`reprocess` with default settings, as a user runs it: peak memory of the process tree and the stage times.
 
     python bench/bench_reprocess_defaults.py SESSION... [--trackers greedy,particle] [--work DIR]
-        [--whole] [--cold]
+        [--whole] [--cold] [--stages S] [--tree CHECKOUT]
 
 Each SESSION is a folder with ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (e.g. ``python -m synthetic
 OUT --rig kitchen --cams 12 --people 16 --enter-leave --seconds 300``). For each session and tracker the
@@ -17,7 +17,13 @@ parts), the track's person-frames (track present in a frame) and ``track_s`` per
 ``--whole``: the same session again with ``chunk_s = 0`` for both stages (``--config``), and the two
 track files compared array by array (ids, positions, confidence, spread, flags), bit for bit.
 ``--cold``: the particle stage is run twice, first with an empty numba cache (``NUMBA_CACHE_DIR`` a new
-folder: every kernel compiles), then again (``--force --stages track``) with that cache warm.
+folder: every kernel compiles), then again on a fresh copy of the session with that cache warm (a rerun
+on the same output would find the streamed parts done and run nothing).
+Besides the wall times each run reports the CPU time of the whole ``reprocess`` process (user + system,
+``cpu_s``; with ``--stages track`` that is the track stage plus the command's start-up) and it per
+person-frame: on a shared machine the CPU time says what the code costs, the wall time what the load
+made of it.
+``--tree``: run the code of another checkout (e.g. a worktree of an earlier revision) for a before/after.
 Ends with ``BENCH {json}``.
 """
 
@@ -27,6 +33,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import shutil
 import subprocess
 import sys
@@ -40,7 +47,7 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from triangulate.trackfile import TrackFile, iter_parts  # noqa: E402
+from track.trackfile import TrackFile, iter_parts  # noqa: E402
 
 REPROCESS = [sys.executable, "-c", "import sys; from pipeline.cli import main; sys.exit(main())"]
 
@@ -65,11 +72,19 @@ def link_session(src: Path, dst: Path) -> None:
                 shutil.copy2(src / name, dst / name)
 
 
-def run_tree(cmd: list[str], env: dict) -> tuple[int, str, float, float]:
-    """Run ``cmd``; returns (exit code, stdout, wall s, peak MB of the resident memory of its tree)."""
+def _children_cpu_s() -> float:
+    """User + system CPU seconds of this process's finished (waited-for) children so far."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def run_tree(cmd: list[str], env: dict, cwd: Path = ROOT) -> tuple[int, str, float, float, float]:
+    """Run ``cmd``; returns (exit code, stdout, wall s, peak MB of the resident memory of its tree, CPU s of
+    the tree: user + system of the process and the children it waited for)."""
+    c0 = _children_cpu_s()
     t0 = time.perf_counter()
     with tempfile.TemporaryFile("w+") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=ROOT, text=True)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=cwd, text=True)
         root = psutil.Process(proc.pid)
         peak, shown = 0, t0
         while proc.poll() is None:
@@ -91,7 +106,7 @@ def run_tree(cmd: list[str], env: dict) -> tuple[int, str, float, float]:
         wall = time.perf_counter() - t0
         out.seek(0)
         text = out.read()
-    return proc.returncode, text, wall, peak / 2**20
+    return proc.returncode, text, wall, peak / 2**20, _children_cpu_s() - c0
 
 
 def stage_seconds(text: str, name: str) -> dict[str, float]:
@@ -129,7 +144,7 @@ def run_one(src: Path, work: Path, tracker: str, env: dict, extra: list[str], ta
     dst = work / f"{src.name}-{tracker}{tag}"
     link_session(src, dst)
     cmd = [*REPROCESS, str(dst), "--stages", stages, "--tracker", tracker, *extra]
-    code, text, wall, peak = run_tree(cmd, env)
+    code, text, wall, peak, cpu = run_tree(cmd, env, Path(env["PYTHONPATH"]))
     if code != 0:
         raise SystemExit(f"reprocess failed ({code}):\n{text[-3000:]}")
     tracks = dst / "track" / "tracks.npz"
@@ -143,6 +158,8 @@ def run_one(src: Path, work: Path, tracker: str, env: dict, extra: list[str], ta
         "layout": layout,
         "peak_mb": round(peak, 1),
         "wall_s": round(wall, 1),
+        "cpu_s": round(cpu, 1),
+        "cpu_ms_per_person_frame": round(1e3 * cpu / max(pf, 1), 3),
         "triangulate_s": st.get("triangulate"),
         "track_s": st.get("track"),
         "person_frames": pf,
@@ -162,9 +179,13 @@ def main() -> int:
     ap.add_argument("--whole", action="store_true")
     ap.add_argument("--cold", action="store_true")
     ap.add_argument("--stages", default="triangulate,track", help="the stages reprocess runs")
+    ap.add_argument(
+        "--tree", type=Path, default=ROOT, help="the checkout whose code reprocess runs (default: this one)"
+    )
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    a.tree = a.tree.resolve()
+    env = {**os.environ, "PYTHONPATH": str(a.tree)}
     rows = []
     for src in a.sessions:
         for tracker in a.trackers.split(","):
@@ -174,14 +195,17 @@ def main() -> int:
             r = run_one(src.resolve(), a.work, tracker, run_env, [], "", a.stages)
             rows.append(r)
             if a.cold and tracker == "particle":  # the same stage again, its kernels now cached
-                code, text, wall, peak = run_tree(
-                    [*REPROCESS, r["dir"], "--stages", "track", "--tracker", tracker, "--force"], run_env
-                )
-                st = stage_seconds(text, Path(r["dir"]).name)
-                r["warm_track_s"] = st.get("track")
-                r["warm_ms_per_person_frame"] = round(1e3 * st["track"] / max(r["person_frames"], 1), 3)
-                r["warm_peak_mb"] = round(peak, 1)
-                r["warm_load"] = round(os.getloadavg()[0], 2)
+                # into a fresh copy: a rerun on the same output would find the streamed parts done
+                w = run_one(src.resolve(), a.work, tracker, run_env, [], "-warm", a.stages)
+                for k in (
+                    "track_s",
+                    "track_ms_per_person_frame",
+                    "peak_mb",
+                    "cpu_s",
+                    "cpu_ms_per_person_frame",
+                ):
+                    r["warm_" + k] = w[k]
+                r["warm_load"] = w["load"]
                 print(json.dumps({k: r[k] for k in r if k.startswith("warm")}), flush=True)
             if a.whole:
                 cfg = a.work / "whole.toml"

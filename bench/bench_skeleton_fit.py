@@ -39,9 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from keypoints.skeletons import CANONICAL  # noqa: E402
 from synthetic import bvh as sbvh  # noqa: E402
 from synthetic import render, rigs, world  # noqa: E402
+from track.greedy_stage import track_session_greedy  # noqa: E402
 from track.skeleton_fit import fit_skeletons  # noqa: E402
 from track.trackfile import TrackFile  # noqa: E402
-from triangulate.stage import track_session_greedy, triangulate_session  # noqa: E402
+from triangulate.stage import triangulate_session  # noqa: E402
 
 SEGMENTS = ("left_hip", "right_hip", "left_knee", "right_knee", "left_shoulder", "right_shoulder",
             "left_elbow", "right_elbow")  # fmt: skip

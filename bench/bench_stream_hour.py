@@ -65,7 +65,7 @@ def _stage(name: str, folder: str, chunk_s: float, extra: list[str], tracker: st
 
         track_session_particle(folder, {"chunk_s": chunk_s})
     elif name == "track":
-        from triangulate.stage import track_session_greedy
+        from track.greedy_stage import track_session_greedy
 
         track_session_greedy(folder, {"chunk_s": chunk_s})
     elif name == "evaluate":
@@ -82,8 +82,8 @@ def _evaluate(folder: str, np) -> dict:
     has one row per window (people present per frame, tracks seen, tracks born, identity switches, IDF1,
     MPJPE): where a longer session's metrics differ, it shows when, and with how many people in view."""
     from core.fileio import load_npz
+    from track.trackfile import iter_parts
     from triangulate import evaluate as ev
-    from triangulate.trackfile import iter_parts
 
     gt_all = load_npz(Path(folder) / "gt.npz", required=("gt_xyz_m",))["gt_xyz_m"]
     sums = {"mota": 0.0, "idf1": 0.0, "pcp": 0.0, "mpjpe_mm": 0.0}

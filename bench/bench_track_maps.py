@@ -47,7 +47,7 @@ def main() -> None:
     from track.particle import ParticleConfig
     from track.stage import track_session_particle
     from track.trackfile import TrackFile
-    from triangulate.stage import load_detections
+    from triangulate.multiview import load_detections
 
     demo = Path(a.shared) / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_MultiPerson"
     videos = {p.stem: p for p in sorted((demo / "videos").glob("cam*.mp4"))}

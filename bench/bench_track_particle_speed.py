@@ -62,7 +62,7 @@ def _setup(session: Path):
     from capture.session import SessionLayout
     from track.particle import ParticleConfig, ParticleTracker
     from track.particle_io import focal_lengths
-    from triangulate.stage import load_detections, session_fps
+    from triangulate.multiview import load_detections, session_fps
 
     lay = SessionLayout(session)
     rig = CameraRig.load(lay.rig_toml)

@@ -38,7 +38,7 @@ from calibrate.camera import CameraRig  # noqa: E402
 from keypoints.skeletons import CANONICAL  # noqa: E402
 from track.particle import ParticleConfig, ParticleTracker, track_sequence  # noqa: E402
 from track.particle_io import focal_lengths  # noqa: E402
-from triangulate.stage import load_detections  # noqa: E402
+from triangulate.multiview import load_detections  # noqa: E402
 
 
 def main() -> None:

@@ -48,7 +48,8 @@ def _child(tracker: str, folder: str) -> None:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     if tracker == "greedy":
-        from triangulate.stage import track_session_greedy, triangulate_session
+        from track.greedy_stage import track_session_greedy
+        from triangulate.stage import triangulate_session
 
         triangulate_session(folder)
         track_session_greedy(folder)
@@ -120,7 +121,7 @@ def main() -> None:
     from _pose2sim_trc import read_trc_body19
     from test_track_realdata import make_pose2sim_session
 
-    from triangulate.trackfile import TrackFile
+    from track.trackfile import TrackFile
 
     trial = base.joinpath(*TRIAL)
     ref = np.stack(

@@ -34,9 +34,10 @@ from capture.session import SessionLayout  # noqa: E402
 from core.fileio import save_toml  # noqa: E402
 from keypoints.openpose_json import read_openpose_folder  # noqa: E402
 from keypoints.skeletons import CANONICAL, convert  # noqa: E402
+from track.greedy_stage import track_session_greedy  # noqa: E402
 from track.trackfile import TrackFile  # noqa: E402
 from triangulate.poses3d import Poses3D  # noqa: E402
-from triangulate.stage import track_session_greedy, triangulate_session  # noqa: E402
+from triangulate.stage import triangulate_session  # noqa: E402
 
 
 def best_axis_map(ours: np.ndarray, trc: np.ndarray) -> tuple[str, float]:

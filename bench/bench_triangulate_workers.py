@@ -28,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from synthetic.__main__ import _main as synthetic_main  # noqa: E402
-from triangulate.stage import track_session_greedy, triangulate_session  # noqa: E402
+from track.greedy_stage import track_session_greedy  # noqa: E402
+from triangulate.stage import triangulate_session  # noqa: E402
 
 
 def _digest(parts: Path) -> dict:

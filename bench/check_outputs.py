@@ -2,6 +2,7 @@
 
     python bench/check_outputs.py record DIR [--scenarios demo,greedy,particle,streamed] [--seconds 120]
     python bench/check_outputs.py compare BEFORE/manifest.json AFTER/manifest.json
+    python bench/check_outputs.py rehash DIR      # an earlier record hashed again by this version
 
 ``record`` runs each scenario as a user would, with the commands of the README, in ``DIR``:
 
@@ -14,8 +15,10 @@
 
 It writes ``DIR/manifest.json``: per scenario, each output file's sha256 (the cache records under
 ``.roomcap/`` and the run summaries hold times and paths, and are left out; a parts index is hashed without
-its ``key``, which hashes the input files' mtimes), and the wall time.
-``compare`` lists the files that differ, are missing or are new, and exits 1 when any does. Ends with one
+its ``key``, which hashes the input files' mtimes; the report without the stages' code fingerprints),
+and the wall time.
+``compare`` lists the files that differ (an npz file with the arrays that differ), are missing or are new,
+and exits 1 when any does. Ends with one
 line ``BENCH {json}``.
 """
 
@@ -25,6 +28,7 @@ import argparse
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -50,8 +54,12 @@ def _volatile(rel: Path) -> bool:
 
 def _content(p: Path) -> bytes:
     """A file's bytes; a parts index without its ``key`` (a hash of the input files' sizes and mtimes, which
-    differ between two copies of a session, not a result)."""
+    differ between two copies of a session, not a result); the report without the stages' code
+    fingerprints in its provenance table (``0.1.0+code.<sha>``: the hash of the stage's source files,
+    which any change of the code changes by design)."""
     data = p.read_bytes()
+    if p.name == "report.html":
+        data = re.sub(rb"\+code\.[0-9a-f]{12}", b"+code.*", data)
     if p.name == "index.json" and p.parent.name.endswith(".parts"):
         index = json.loads(data)
         index.pop("key", None)
@@ -111,7 +119,33 @@ def record(work: Path, scenarios: list[str], seconds: float) -> dict:
     return result
 
 
-def compare(before: dict, after: dict) -> dict:
+def rehash(work: Path) -> dict:
+    """The manifest of a record made earlier, its files hashed again as :func:`digest` does now."""
+    manifest = json.loads((work / "manifest.json").read_text())
+    for name, scenario in manifest["scenarios"].items():
+        scenario["files"] = digest(work / name)
+    (work / "manifest.json").write_text(json.dumps(manifest, indent=1, sort_keys=True))
+    return manifest
+
+
+def npz_differences(a: Path, b: Path) -> list[str]:
+    """The arrays of two npz files that differ (by name)."""
+    import numpy as np
+
+    with np.load(a) as x, np.load(b) as y:
+        names = sorted(set(x.files) | set(y.files))
+        return [
+            n
+            for n in names
+            if n not in x.files
+            or n not in y.files
+            or not np.array_equal(x[n], y[n], equal_nan=x[n].dtype.kind in "fc")
+        ]
+
+
+def compare(before: dict, after: dict, dirs: tuple[Path, Path] | None = None) -> dict:
+    """Per scenario the files that differ, are only before or only after; with the records' folders
+    ``dirs``, a differing npz file is listed with the arrays that differ."""
     report: dict = {}
     for name in sorted(set(before["scenarios"]) | set(after["scenarios"])):
         a = before["scenarios"].get(name, {}).get("files")
@@ -119,9 +153,17 @@ def compare(before: dict, after: dict) -> dict:
         if a is None or b is None:
             report[name] = {"missing_scenario": "before" if a is None else "after"}
             continue
+        differ = sorted(k for k in a.keys() & b.keys() if a[k] != b[k])
+        if dirs is not None:
+            differ = [
+                f"{k} ({', '.join(npz_differences(dirs[0] / name / k, dirs[1] / name / k))})"
+                if k.endswith(".npz") and (dirs[0] / name / k).exists() and (dirs[1] / name / k).exists()
+                else k
+                for k in differ
+            ]
         report[name] = {
             "files": len(a),
-            "differ": sorted(k for k in a.keys() & b.keys() if a[k] != b[k]),
+            "differ": differ,
             "only_before": sorted(a.keys() - b.keys()),
             "only_after": sorted(b.keys() - a.keys()),
         }
@@ -137,6 +179,8 @@ def main() -> int:
     r.add_argument(
         "--seconds", type=float, default=120.0, help="length of the synthetic session (default: 120)"
     )
+    h = sub.add_parser("rehash", help="hash the outputs of an earlier record again, as this version does")
+    h.add_argument("dir", type=Path)
     c = sub.add_parser("compare", help="compare two manifests")
     c.add_argument("before", type=Path)
     c.add_argument("after", type=Path)
@@ -150,7 +194,15 @@ def main() -> int:
         summary = {n: {"files": len(s["files"]), "wall_s": s["wall_s"]} for n, s in res["scenarios"].items()}
         print("BENCH " + json.dumps({"bench": "check_outputs", "mode": "record", **summary}))
         return 0
-    report = compare(json.loads(a.before.read_text()), json.loads(a.after.read_text()))
+    if a.cmd == "rehash":
+        res = rehash(a.dir.resolve())
+        print("BENCH " + json.dumps({"bench": "check_outputs", "mode": "rehash", "dir": str(a.dir)}))
+        return 0
+    report = compare(
+        json.loads(a.before.read_text()),
+        json.loads(a.after.read_text()),
+        (a.before.resolve().parent, a.after.resolve().parent),
+    )
     same = True
     for name, r_ in report.items():
         bad = {k: v for k, v in r_.items() if k != "files" and v}

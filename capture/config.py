@@ -41,6 +41,7 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
       enabled: false               # same as --live
       stages: [keypoints, triangulate, track]
       every_n: 1                   # process every n-th frame set
+      preset: ""                   # the 2D preset (as [keypoints] preset; "" = the default)
 
 Sources: ``usb:<index>``, ``/dev/videoN``, ``rtsp://``/``rtsps://``/``http(s)://`` streams,
 ``oak:`` (first OAK device) or ``oak:<mxid-or-serial>[?socket=CAM_A&sync=master|slave|auto]``,
@@ -163,6 +164,7 @@ class LiveConfig:
     enabled: bool = False
     stages: tuple[str, ...] = LIVE_STAGES
     every_n: int = bounded(1, 1, 10_000)
+    preset: str = ""  # the 2D stage's preset, as [keypoints] preset of a pipeline TOML ("" = the default)
 
 
 @dataclass(frozen=True)

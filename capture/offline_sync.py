@@ -28,6 +28,7 @@ import numpy as np
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
 from core.errors import FormatError, InputError
 from core.fileio import load_toml, save_toml
+from core.timebase import frame_rate_hz
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,7 @@ class CameraKeypoints(Protocol):
 
     xy_px: np.ndarray  # (T,P,J,2)
     t_ns: np.ndarray  # (T,)
+    frame_index: np.ndarray  # (T,)
 
 
 # Reads ``keypoints/<cam>.npz``: ``keypoints.detections.Detections.load``, handed in from above (the keypoints
@@ -544,7 +546,7 @@ def sync_session(
             det = load_keypoints(found.detections(cam))
             signals[cam] = keypoint_speed(det.xy_px)
             if fps is None and len(det.t_ns) > 2:
-                fps = float(1e9 / np.median(np.diff(det.t_ns)))
+                fps = frame_rate_hz(det.t_ns, det.frame_index)
     if fps is None and meta is not None:
         vals = [c.get("fps_nominal") for c in meta.get("cameras", {}).values() if c.get("fps_nominal")]
         fps = float(vals[0]) if vals else None

@@ -204,3 +204,23 @@ def config_from_dict(
             )
         kw[k] = value
     return cls(**kw)
+
+
+def as_config(cls: type[T], value: T | Mapping[str, Any] | None) -> T:
+    """A stage function's ``config`` argument as ``cls``: the typed config itself, ``None`` for the
+    defaults, or a mapping (a script's ``{"chunk_s": 30}``) parsed by ``cls.from_dict`` where it has one.
+
+    >>> @dataclasses.dataclass(frozen=True)
+    ... class Stage:
+    ...     fps: float = 25.0
+    >>> as_config(Stage, None), as_config(Stage, {"fps": 30}), as_config(Stage, Stage(50.0))
+    (Stage(fps=25.0), Stage(fps=30.0), Stage(fps=50.0))
+    """
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    if isinstance(value, Mapping):
+        parse = getattr(cls, "from_dict", None)
+        return parse(dict(value)) if parse is not None else config_from_dict(cls, value)
+    raise TypeError(f"expected {cls.__name__}, a mapping or None, got {type(value).__name__}")

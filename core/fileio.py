@@ -249,6 +249,42 @@ def require_keys(
         )
 
 
+def load_container(
+    path: str | os.PathLike[str], schema: str, versions: tuple[int, ...], required: tuple[str, ...]
+) -> dict[str, np.ndarray]:
+    """The arrays of one of the project's files (detections, poses3d, tracks): read, its schema tag
+    checked, its required keys present; the load checks every data container shares.
+
+    >>> import tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "tracks.npz"
+    >>> save_npz(path, {"schema": "tracks/1", "fps": 25.0})
+    >>> float(load_container(path, "tracks", (1,), ("fps",))["fps"])
+    25.0
+    >>> load_container(path, "tracks", (1,), ("fps", "xyz_m"))  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    core.errors.FormatError: ...tracks.npz: field 'xyz_m': required keys ['xyz_m'] are missing ...
+    """
+    data = load_npz(path, required=("schema",))
+    check_schema(data["schema"], schema, versions, path)
+    require_keys(path, data, required)  # after the schema check, on the arrays already read
+    return data
+
+
+@contextmanager
+def errors_in(path: str | os.PathLike[str]) -> Iterator[None]:
+    """A container's own checks (shapes, values) raised while it is built from ``path`` name the file.
+
+    >>> with errors_in("t.npz"):  # doctest: +ELLIPSIS
+    ...     raise FormatError(None, "fps", "must be a positive number, got 0.")
+    Traceback (most recent call last):
+    core.errors.FormatError: t.npz: field 'fps': must be a positive number, got 0.
+    """
+    try:
+        yield
+    except FormatError as e:
+        raise FormatError(Path(path), e.field, str(e).split(": ", 2)[-1]) from e
+
+
 def npz_str(data: Mapping[str, np.ndarray], key: str) -> str:
     """A string stored as a 0-d array, as Python text.
 

@@ -1,4 +1,4 @@
-"""Give freed heap memory back to the operating system (long streamed runs, issue 17).
+"""Give freed heap memory back to the operating system (long streamed runs).
 
 numpy's large temporaries of varying size fragment glibc's heap: after glibc raises its mmap threshold
 (it does so whenever a large mmapped block is freed), blocks of tens of MB come from the heap and the

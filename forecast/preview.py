@@ -1,5 +1,10 @@
 """Forecast preview for the pipeline: the next seconds of every track in a track file.
 
+``write_preview`` is the pipeline's forecast stage: ``forecast/preview.npz`` (schema
+``forecast_preview/1``): ``xyz_m (K,H,J,3)`` world metres, ``track_id (K,)``, ``start_index`` (frame
+index of the last observed frame), ``fps`` of the forecast, ``t_s (H,)`` seconds after the last frame,
+``model``; without a trained checkpoint the torch-free ``baseline_preview``.
+
 ``preview(track_file, horizon_s)`` -> dict with ``xyz_m (S,H,K,J,3)`` world metres (NaN for tracks not
 present at the last frame), ``t_s (H,)`` seconds after the last frame, ``track_id (K,)``, ``fps`` (25),
 ``joint_names``, ``model``. Uses the shipped GRU checkpoint unless ``checkpoint`` is given. Importing this
@@ -14,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from core.fileio import save_npz, schema_tag
+from track.trackfile import TrackFile
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "gru_cmu.pt"
@@ -79,3 +85,60 @@ def baseline_preview(xyz: np.ndarray, fps: float, H: int, kind: str) -> tuple[np
 def save_forecast(path: str | os.PathLike, fc: dict) -> None:
     """Write a preview/sample result as ``forecast/1`` npz."""
     save_npz(path, {"schema": schema_tag(FORECAST_SCHEMA, FORECAST_VERSION), **fc})
+
+
+# ----------------------------------------------------------------------------- the pipeline's forecast stage
+
+PREVIEW_SCHEMA, PREVIEW_VERSION = "forecast_preview", 1
+
+
+def forecast_model(model: str) -> tuple[str, Path | None]:
+    """``(kind, checkpoint)`` for a forecast model name: "default" (the shipped GRU if present, else the
+    constant-velocity baseline), a baseline name, or a checkpoint path."""
+    if model in BASELINES:
+        return model, None
+    if model == "default":
+        return (
+            ("checkpoint", Path(DEFAULT_CHECKPOINT))
+            if Path(DEFAULT_CHECKPOINT).exists()
+            else ("constant_velocity", None)
+        )
+    path = Path(model)
+    if not path.exists():
+        raise FileNotFoundError(
+            f"forecast model '{model}' is neither {['default', *BASELINES]} nor an existing checkpoint file."
+        )
+    return "checkpoint", path
+
+
+def write_preview(tracks_path: Path, out_path: Path, horizon_s: float, model: str) -> Path:
+    """Forecast every track present at the last frame ``horizon_s`` ahead and write ``out_path``."""
+
+    kind, checkpoint = forecast_model(model)
+    tf = TrackFile.load(tracks_path)
+    start = int(tf.frame_index[-1]) if tf.n_frames else 0
+    if kind == "checkpoint":
+        import torch  # lazy: loads torch
+
+        torch.set_num_threads(1)  # the same bytes on every machine and executor
+        fc = preview(tracks_path, horizon_s, checkpoint=checkpoint)
+        xyz = np.moveaxis(np.asarray(fc["xyz_m"][0], np.float32), 1, 0)  # (H,K,J,3) -> (K,H,J,3)
+        fps, t_s, name = float(fc["fps"]), np.asarray(fc["t_s"], np.float64), str(fc["model"])
+    else:
+        fps = float(tf.fps)
+        H = max(1, int(round(horizon_s * fps)))
+        xyz, _ = baseline_preview(np.asarray(tf.xyz_m, np.float64), fps, H, kind)
+        t_s, name = np.arange(1, H + 1) / fps, kind
+    save_npz(
+        out_path,
+        {
+            "schema": schema_tag(PREVIEW_SCHEMA, PREVIEW_VERSION),
+            "xyz_m": xyz,
+            "track_id": np.asarray(tf.track_id, np.int64),
+            "start_index": np.int64(start),
+            "fps": np.float64(fps),
+            "t_s": t_s,
+            "model": name,
+        },
+    )
+    return out_path

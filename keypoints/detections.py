@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import FormatError
-from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
+from core.fileio import errors_in, load_container, npz_str, save_npz, schema_tag
 from keypoints.skeletons import get_skeleton
 
 SCHEMA = "detections"
@@ -116,35 +116,25 @@ class Detections:
     @classmethod
     def load(cls, path: str | os.PathLike) -> Detections:
         path = Path(path)
-        data = load_npz(path, required=("schema",))
-        check_schema(data["schema"], SCHEMA, (VERSION,), path)
-        missing = [k for k in _REQUIRED if k not in data]
-        if missing:
-            raise FormatError(
-                path,
-                missing[0],
-                f"required keys {missing} are missing.",
-                "See keypoints/detections.py for the detections file layout.",
-            )
+        data = load_container(path, SCHEMA, (VERSION,), _REQUIRED)
         known = set(_REQUIRED) | {"image_size_wh"}
         try:
-            return cls(
-                camera=npz_str(data, "camera"),
-                skeleton=npz_str(data, "skeleton"),
-                frame_index=data["frame_index"],
-                t_ns=data["t_ns"],
-                xy_px=data["xy_px"],
-                score=data["score"],
-                boxes=data["boxes"],
-                model=npz_str(data, "model"),
-                model_sha256=npz_str(data, "model_sha256"),
-                image_size_wh=tuple(int(v) for v in data["image_size_wh"])
-                if "image_size_wh" in data
-                else None,
-                extra={k: v for k, v in data.items() if k not in known},
-            )
-        except FormatError as e:
-            raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
+            with errors_in(path):
+                return cls(
+                    camera=npz_str(data, "camera"),
+                    skeleton=npz_str(data, "skeleton"),
+                    frame_index=data["frame_index"],
+                    t_ns=data["t_ns"],
+                    xy_px=data["xy_px"],
+                    score=data["score"],
+                    boxes=data["boxes"],
+                    model=npz_str(data, "model"),
+                    model_sha256=npz_str(data, "model_sha256"),
+                    image_size_wh=tuple(int(v) for v in data["image_size_wh"])
+                    if "image_size_wh" in data
+                    else None,
+                    extra={k: v for k, v in data.items() if k not in known},
+                )
         except KeyError as e:
             raise FormatError(path, "skeleton", str(e)) from e
 

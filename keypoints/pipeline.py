@@ -298,7 +298,7 @@ class KeypointPipeline:
         default ``_level``) and the affine for that level.
 
         pyrDown centres its kernel on source pixel 2i, so level-L pixels relate to image pixels by
-        x = 2^L x_L. Only the region a crop samples is reduced (``_crop_region``: with the kernels' reach as
+        x = 2^L x_L. Only the region a crop samples is reduced (``crop_region``: with the kernels' reach as
         margin and its corner on the level-L grid, so the pixels equal those of the whole image's pyramid);
         per image and level, overlapping regions are merged into one (people close together, the crop
         sizes of the test-time augmentation) so that each pixel is reduced once, and the regions are kept

@@ -19,7 +19,6 @@ be read); 2 bad input, or a session locked by another run; 130 Ctrl-C (finished 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -32,7 +31,7 @@ from capture.session import SessionLayout
 from core.cli import Parser, guarded, output_folder, positive_int
 from core.errors import FormatError
 from core.fileio import atomic_write_text
-from pipeline.config import STAGES, TRACKERS, PipelineConfig, TrackConfig
+from pipeline.config import DEFAULT_TRACKER, STAGES, TRACKERS, PipelineConfig
 from pipeline.discover import SessionError, discover
 from pipeline.executors import EXECUTORS, run_sessions
 from pipeline.report import write_overlay_videos
@@ -56,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--tracker",
         choices=TRACKERS,
         help=f"track stage: particle (ch. 5 particle filter) or greedy (ch. 4 matching in time); default: "
-        f"{TrackConfig().tracker} (or [track] tracker of --config)",
+        f"{DEFAULT_TRACKER} (or [track] tracker of --config)",
     )
     p.add_argument(
         "--config", type=Path, help="pipeline TOML (see README, 'A pipeline TOML'; default: every default)"
@@ -118,14 +117,17 @@ def export_results(results: list[SessionResult], formats: tuple[str, ...]) -> li
 
 
 def make_config(args: argparse.Namespace) -> PipelineConfig:
-    cfg = PipelineConfig.load(args.config) if args.config else PipelineConfig()
+    """The pipeline config of ``--config`` with the command line's options in it, parsed once."""
+    overrides: dict = {}
     if args.stages:
-        cfg = cfg.replace(stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()))
+        overrides["stages"] = [s.strip() for s in args.stages.split(",") if s.strip()]
     if args.tracker:
-        cfg = cfg.replace(track=type(cfg.track)(tracker=args.tracker, options=cfg.track.options))
+        overrides["track"] = {"tracker": args.tracker}
     if args.max_frames:
-        cfg = cfg.replace(keypoints=dataclasses.replace(cfg.keypoints, max_frames=args.max_frames))
-    return cfg
+        overrides["keypoints"] = {"max_frames": args.max_frames}
+    if args.config:
+        return PipelineConfig.load(args.config, overrides)
+    return PipelineConfig.from_dict(overrides)
 
 
 def format_table(results: list[SessionResult], stages: tuple[str, ...]) -> str:
@@ -157,94 +159,116 @@ def format_table(results: list[SessionResult], stages: tuple[str, ...]) -> str:
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
 
-def _main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
-    )
+def _inputs(args: argparse.Namespace) -> tuple[PipelineConfig, list, tuple[str, ...]] | str:
+    """The config, the sessions and the export formats the command line names, or what is wrong."""
     export_formats: tuple[str, ...] = ()
     if args.export:
         try:
             export_formats = parse_formats(args.export)
         except ExportError as e:
-            print(f"reprocess: --export: {e}", file=sys.stderr)
-            return 2
+            return f"--export: {e}"
     if args.out is not None:
         output_folder(args.out)
     try:
         cfg = make_config(args)
         sources = discover(args.paths)
     except (FormatError, SessionError) as e:
-        print(f"reprocess: {e}", file=sys.stderr)
-        return 2
+        return str(e)
     if not sources:
-        print(
-            f"reprocess: no sessions found under {args.paths}. A session is a folder with raw/ videos or "
-            "keypoints/*.npz and calib/rig.toml, or a Pose2Sim trial (videos/ + calibration/).",
-            file=sys.stderr,
+        return (
+            f"no sessions found under {args.paths}. A session is a folder with raw/ videos or "
+            "keypoints/*.npz and calib/rig.toml, or a Pose2Sim trial (videos/ + calibration/)."
         )
-        return 2
-    t0 = time.perf_counter()
+    return cfg, sources, export_formats
+
+
+def _run_with_bar(args: argparse.Namespace, cfg: PipelineConfig, sources: list) -> list[SessionResult]:
     bar = tqdm(total=len(sources), desc="sessions", unit="session", disable=None)
 
     def done(r: SessionResult) -> None:
         bar.update(1)
         bar.set_postfix_str(f"{r.name}: {r.status}")
 
-    results = run_sessions(
-        sources,
-        args.out,
-        cfg,
-        force=args.force,
-        executor=args.executor,
-        workers=args.workers,
-        address=args.address,
-        on_result=done,
-        wait=args.wait,
+    try:
+        return run_sessions(
+            sources,
+            args.out,
+            cfg,
+            force=args.force,
+            executor=args.executor,
+            workers=args.workers,
+            address=args.address,
+            on_result=done,
+            wait=args.wait,
+        )
+    finally:
+        bar.close()
+
+
+def _write_overlays(results: list[SessionResult]) -> None:
+    for r in results:
+        if r.status == "ok":
+            try:
+                print(f"{r.name}: overlay videos in {write_overlay_videos(SessionLayout(r.out))[0].parent}")
+            except (FormatError, OSError, ValueError) as e:
+                print(f"reprocess: {r.name}: no overlay videos ({e})", file=sys.stderr)
+
+
+def _print_outcome(results: list[SessionResult], seconds: float) -> None:
+    """One line of counts, then a line per session that is locked, partial or failed."""
+    by = {k: [r for r in results if r.status == k] for k in ("failed", "partial", "locked")}
+    print(
+        f"{len(results) - sum(len(v) for v in by.values())} sessions ok, "
+        + (f"{len(by['partial'])} partial, " if by["partial"] else "")
+        + (f"{len(by['locked'])} locked, " if by["locked"] else "")
+        + f"{len(by['failed'])} failed in {seconds:.1f} s"
     )
-    bar.close()
+    for r in by["locked"]:  # another run holds the session
+        print(f"LOCKED {r.name}: {r.message}", file=sys.stderr)
+    for r in by["partial"]:  # ran without some cameras (skipped_cameras)
+        print(f"PARTIAL {r.name}: cameras {sorted(r.skipped_cameras)} left out: {r.message}", file=sys.stderr)
+    for r in by["failed"]:
+        print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
+
+
+def _write_summaries(out: Path, results: list[SessionResult], table: str) -> bool:
+    try:
+        atomic_write_text(
+            out / "reprocess_summary.json", json.dumps([r.to_dict() for r in results], indent=1)
+        )
+        atomic_write_text(out / "reprocess_summary.txt", table + "\n")
+    except OSError as e:  # e.g. the disk filled up: the table above is the summary
+        print(f"reprocess: could not write the summary files to {out} ({e}).", file=sys.stderr)
+        return False
+    return True
+
+
+def _main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
+    inputs = _inputs(args)
+    if isinstance(inputs, str):
+        print(f"reprocess: {inputs}", file=sys.stderr)
+        return 2
+    cfg, sources, export_formats = inputs
+    t0 = time.perf_counter()
+    results = _run_with_bar(args, cfg, sources)
     if args.overlay:
-        for r in results:
-            if r.status == "ok":
-                try:
-                    print(
-                        f"{r.name}: overlay videos in {write_overlay_videos(SessionLayout(r.out))[0].parent}"
-                    )
-                except (FormatError, OSError, ValueError) as e:
-                    print(f"reprocess: {r.name}: no overlay videos ({e})", file=sys.stderr)
+        _write_overlays(results)
     table = format_table(results, tuple(s for s in STAGES if any(s in r.stage_s for r in results)))
     print(table)
-    failed = [r for r in results if r.status == "failed"]
-    partial = [r for r in results if r.status == "partial"]  # ran without some cameras (skipped_cameras)
-    locked = [r for r in results if r.status == "locked"]  # another run holds the session
-    print(
-        f"{len(results) - len(failed) - len(partial) - len(locked)} sessions ok, "
-        + (f"{len(partial)} partial, " if partial else "")
-        + (f"{len(locked)} locked, " if locked else "")
-        + f"{len(failed)} failed in {time.perf_counter() - t0:.1f} s"
-    )
-    for r in locked:
-        print(f"LOCKED {r.name}: {r.message}", file=sys.stderr)
-    for r in partial:
-        print(f"PARTIAL {r.name}: cameras {sorted(r.skipped_cameras)} left out: {r.message}", file=sys.stderr)
-    for r in failed:
-        print(f"FAILED {r.name}: {r.message}", file=sys.stderr)
+    _print_outcome(results, time.perf_counter() - t0)
     export_errors = export_results(results, export_formats) if export_formats else []
     for e in export_errors:
         print(f"FAILED {e}", file=sys.stderr)
-    if args.out:
-        try:
-            atomic_write_text(
-                args.out / "reprocess_summary.json", json.dumps([r.to_dict() for r in results], indent=1)
-            )
-            atomic_write_text(args.out / "reprocess_summary.txt", table + "\n")
-        except OSError as e:  # e.g. the disk filled up: the table above is the summary
-            print(f"reprocess: could not write the summary files to {args.out} ({e}).", file=sys.stderr)
-            return 1
-    if locked:
+    if args.out and not _write_summaries(args.out, results, table):
+        return 1
+    if any(r.status == "locked" for r in results):
         return 2
     # partial: a camera could not be used, so some of the work failed (exit 1, as a failed session)
-    return 1 if failed or partial or export_errors else 0
+    return 1 if export_errors or any(r.status in ("failed", "partial") for r in results) else 0
 
 
 main = guarded("reprocess", _main)

@@ -19,20 +19,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from core.config import config_from_dict
+from core.config import check_keys, config_from_dict
 from core.errors import FormatError
 from core.fileio import load_toml
+from keypoints.pipeline import PipelineConfig as KeypointSettings
+from keypoints.presets import preset_config
 from keypoints.registry import presets
+from track.greedy_stage import GreedyTrackConfig
 from track.stage import ParticleTrackConfig
 from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
-from triangulate.stage import GreedyTrackConfig
 
 STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "report")
-TRACKERS = ("greedy", "particle")
 
 
 @dataclass(frozen=True)
 class KeypointsConfig:
+    """The ``[keypoints]`` section, resolved once: the preset's name, its settings and the 2D stage's
+    typed config (:class:`keypoints.pipeline.PipelineConfig`) are computed when the section is made."""
+
     # speed/accuracy preset of the 2D stage (keypoints/models/sets.toml [presets]). "" = the default preset,
     # or, when ``model_set`` is given, "legacy" (the chain of configurations written before presets existed)
     preset: str = ""
@@ -41,79 +45,80 @@ class KeypointsConfig:
     # layout of the detections files: body19, or "model" (the model's own, e.g. BlazePose's feet for
     # [triangulate] options.skeleton = "whole_body"); "" = the preset's (body19; "model" for "feet")
     skeleton: str = ""
+    preset_name: str = field(init=False, repr=False, compare=False)
+    settings: dict[str, Any] = field(init=False, repr=False, compare=False)  # the preset's, with overrides
+    detector: KeypointSettings = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        _, table = presets()
+        default, table = presets()
         if self.preset and self.preset not in table:
             raise FormatError(
                 None, "keypoints.preset", f"'{self.preset}' is not a preset; valid: {sorted(table)}."
             )
-
-    def settings(self) -> tuple[str, dict[str, Any]]:
-        """The preset's name and its ``keypoints.pipeline.PipelineConfig`` settings with this section's
-        overrides."""
-        default, table = presets()
         name = self.preset or ("legacy" if self.model_set else default)
-        settings = dict(table[name])
-        if self.model_set:
-            settings["model_set"] = self.model_set
-        if self.skeleton:
-            settings["skeleton"] = self.skeleton
-        return name, settings
+        overrides = {k: v for k, v in (("model_set", self.model_set), ("skeleton", self.skeleton)) if v}
+        object.__setattr__(self, "preset_name", name)
+        object.__setattr__(self, "settings", {**table[name], **overrides})
+        object.__setattr__(self, "detector", preset_config(name, **overrides))
 
     @property
     def model_set_name(self) -> str:
-        return str(self.settings()[1].get("model_set", "default"))
+        return self.detector.model_set
 
     def provenance(self) -> dict[str, Any]:
-        """The settings a keypoints run depends on. A plain model set (the legacy chain) is recorded as it
-        was before presets existed (``skeleton`` only when not body19), so those sessions stay current."""
-        name, settings = self.settings()
-        if set(settings) <= {"model_set", "skeleton"}:
+        """The settings a keypoints run depends on. A plain model set (the legacy chain) is recorded by its
+        name (``skeleton`` only when not body19)."""
+        if set(self.settings) <= {"model_set", "skeleton"}:
             d: dict[str, Any] = {"model_set": self.model_set_name, "max_frames": self.max_frames}
-            if settings.get("skeleton", "body19") != "body19":
-                d["skeleton"] = settings["skeleton"]
+            if self.settings.get("skeleton", "body19") != "body19":
+                d["skeleton"] = self.settings["skeleton"]
             return d
-        return {"preset": name, "settings": settings, "max_frames": self.max_frames}
+        return {"preset": self.preset_name, "settings": self.settings, "max_frames": self.max_frames}
 
 
-def _parse_options(where: str, options: dict[str, Any], parse: Any) -> None:
-    """Parse a stage's options with its typed config now, so that a typo in ``reprocess --config`` is
-    reported when the config loads, before any session runs, not when that stage is reached."""
-    if not options:
-        return
+# the trackers by the name ``[track] tracker`` and ``--tracker`` give; nothing after parsing sees the name
+TRACKER_CONFIGS: dict[str, type[GreedyTrackConfig] | type[ParticleTrackConfig]] = {
+    "greedy": GreedyTrackConfig,
+    "particle": ParticleTrackConfig,
+}
+TRACKERS = tuple(TRACKER_CONFIGS)
+TrackerChoice = GreedyTrackConfig | ParticleTrackConfig
+
+
+DEFAULT_TRACKER = "particle"
+
+
+def tracker_name(track: TrackerChoice) -> str:
+    """The name a user writes for the tracker ``track`` configures (``[track] tracker``)."""
+    return next(name for name, cls in TRACKER_CONFIGS.items() if isinstance(track, cls))
+
+
+def _stage_options(where: str, options: Any, parse: Any) -> Any:
+    """A stage's ``options`` table parsed by its typed config, errors naming the section and the key."""
+    if not isinstance(options, dict):
+        raise FormatError(None, where, f"expected a table of settings, got {options!r}.")
     try:
-        parse(dict(options))
+        return parse(dict(options))
+    except FormatError as e:
+        field_name = f"{where}.{e.field}" if e.field and not e.field.startswith(where) else where
+        raise FormatError(None, field_name, str(e).split(": ", 2)[-1]) from None
     except (ValueError, TypeError) as e:
         raise FormatError(None, where, str(e).removeprefix("<input>: ")) from None
 
 
-@dataclass(frozen=True)
-class TriangulateConfig:
-    options: dict[str, Any] = field(default_factory=dict)  # passed to triangulate's own config
-
-    def __post_init__(self) -> None:  # once per section: PipelineConfig.replace() keeps the sections
-        _parse_options("triangulate.options", self.options, TriangulateOptions.from_dict)
-
-
-@dataclass(frozen=True)
-class TrackConfig:
-    """The track stage. ``tracker``: ``particle`` (the default: seed ch. 5's per-person particle filter,
-    identities and per-joint uncertainty from its samples; on Pose2Sim's real two-participant trial
-    14 mm from Pose2Sim's own triangulation against 26 mm for the greedy tracker, BENCHMARKS.md
-    "Tracker by default") or ``greedy`` (ch. 4: matching in time of the per-frame triangulation, about
-    3x faster and with less memory)."""
-
-    tracker: str = "particle"
-    options: dict[str, Any] = field(default_factory=dict)  # passed to the tracker's own config
-
-    def __post_init__(self) -> None:
-        if self.tracker not in TRACKERS:
-            raise FormatError(
-                None, "track.tracker", f"'{self.tracker}' is not a tracker; valid: {list(TRACKERS)}."
-            )
-        parse = GreedyTrackConfig.from_dict if self.tracker == "greedy" else ParticleTrackConfig.from_dict
-        _parse_options("track.options", self.options, parse)
+def _track_section(data: Any, triangulate: TriangulateOptions) -> TrackerChoice:
+    """``[track] tracker`` and ``[track.options]`` as the chosen tracker's typed config. The particle
+    tracker's joints follow ``[triangulate.options] skeleton`` unless its options name their own."""
+    if not isinstance(data, dict):
+        raise FormatError(None, "track", f"expected a table of settings, got {data!r}.")
+    check_keys(data, ("tracker", "options"), "track", None)
+    name = data.get("tracker", DEFAULT_TRACKER)
+    if name not in TRACKER_CONFIGS:
+        raise FormatError(None, "track.tracker", f"'{name}' is not a tracker; valid: {list(TRACKERS)}.")
+    options = dict(data.get("options", {}))
+    if name == "particle" and "skeleton" not in options and triangulate.skeleton != "body19":
+        options["skeleton"] = triangulate.skeleton
+    return _stage_options("track.options", options, TRACKER_CONFIGS[name].from_dict)
 
 
 @dataclass(frozen=True)
@@ -124,10 +129,14 @@ class ForecastConfig:
 
 @dataclass(frozen=True)
 class PipelineConfig:
+    """Every section of ``pipeline.toml``, each parsed once into its stage's own typed config:
+    ``[triangulate.options]`` -> :class:`triangulate.reconstruct.TriangulateConfig`; ``[track] tracker``
+    with ``[track.options]`` -> the tracker's config (:data:`TrackerChoice`: the type is the choice)."""
+
     stages: tuple[str, ...] = STAGES
     keypoints: KeypointsConfig = field(default_factory=KeypointsConfig)
-    triangulate: TriangulateConfig = field(default_factory=TriangulateConfig)
-    track: TrackConfig = field(default_factory=TrackConfig)
+    triangulate: TriangulateOptions = field(default_factory=TriangulateOptions)
+    track: TrackerChoice = field(default_factory=lambda: TRACKER_CONFIGS[DEFAULT_TRACKER]())
     forecast: ForecastConfig = field(default_factory=ForecastConfig)
 
     def __post_init__(self) -> None:
@@ -135,33 +144,55 @@ class PipelineConfig:
         if bad:
             raise FormatError(None, "stages", f"unknown stages {bad}; valid: {list(STAGES)}.")
         object.__setattr__(self, "stages", tuple(s for s in STAGES if s in self.stages))  # graph order
-        # the stage options were parsed when their sections were made (TriangulateConfig, TrackConfig)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> PipelineConfig:
-        sections = {
-            "keypoints": KeypointsConfig,
-            "triangulate": TriangulateConfig,
-            "track": TrackConfig,
-            "forecast": ForecastConfig,
-        }
+    def from_dict(cls, data: dict[str, Any], path: str | Path | None = None) -> PipelineConfig:
+        """The config of a parsed TOML (``path`` named in errors), each section checked here, once."""
+        try:
+            return cls._from_dict(data)
+        except FormatError as e:
+            raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from None
+
+    @classmethod
+    def _from_dict(cls, data: dict[str, Any]) -> PipelineConfig:
+        check_keys(
+            data, ("stages", "keypoints", "triangulate", "track", "forecast"), None, None, name_key=True
+        )
         kw: dict[str, Any] = {}
-        for key, value in data.items():
-            if key in sections:
-                kw[key] = config_from_dict(sections[key], value, key)
-            elif key == "stages":
-                kw[key] = tuple(value)
-            else:
-                raise FormatError(None, key, f"unknown key; valid: {['stages', *sections]}.")
+        if "stages" in data:
+            kw["stages"] = tuple(data["stages"])
+        for key, section in (("keypoints", KeypointsConfig), ("forecast", ForecastConfig)):
+            if key in data:
+                kw[key] = config_from_dict(section, data[key], key)
+        tri = data.get("triangulate", {})
+        if not isinstance(tri, dict):
+            raise FormatError(None, "triangulate", f"expected a table with the key options, got {tri!r}.")
+        check_keys(tri, ("options",), "triangulate", None)
+        options = tri.get("options", {})
+        kw["triangulate"] = _stage_options("triangulate.options", options, TriangulateOptions.from_dict)
+        kw["track"] = _track_section(data.get("track", {}), kw["triangulate"])
         return cls(**kw)
 
     @classmethod
-    def load(cls, path: str | Path) -> PipelineConfig:
-        try:
-            return cls.from_dict(load_toml(path))
-        except FormatError as e:
-            raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e
+    def load(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> PipelineConfig:
+        """``path``'s TOML with the command line's ``overrides`` (``{section: {key: value}}``) merged in
+        before it is parsed."""
+        return cls.from_dict(merge_sections(load_toml(path), overrides or {}), path)
 
     def replace(self, **kw) -> PipelineConfig:
         """A copy with ``kw`` changed; sections not given are kept as they are (not parsed again)."""
         return dataclasses.replace(self, **kw)
+
+
+def merge_sections(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with ``overrides`` merged in, one level of tables deep (``{"track": {"tracker": "greedy"}}``).
+
+    >>> merge_sections({"track": {"tracker": "particle", "options": {}}}, {"track": {"tracker": "greedy"}})
+    {'track': {'tracker': 'greedy', 'options': {}}}
+    """
+    out = dict(data)
+    for key, value in overrides.items():
+        out[key] = (
+            {**out[key], **value} if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+        )
+    return out

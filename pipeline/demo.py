@@ -17,7 +17,7 @@ from pathlib import Path
 
 from core.cli import Parser, guarded
 from pipeline.cli import main as reprocess_main
-from pipeline.config import TRACKERS, TrackConfig
+from pipeline.config import DEFAULT_TRACKER, TRACKERS
 
 
 def default_recording() -> Path:
@@ -41,7 +41,7 @@ def _main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--tracker",
         choices=TRACKERS,
-        help=f"the track stage's tracker (default: reprocess's, {TrackConfig().tracker})",
+        help=f"the track stage's tracker (default: reprocess's, {DEFAULT_TRACKER})",
     )
     args = p.parse_args(argv)
     if not args.recording.exists():

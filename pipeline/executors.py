@@ -1,12 +1,12 @@
-"""Executors: the same per-session task on this machine's cores or on a Ray cluster.
+"""Executors: where work runs, on this machine's cores or on a Ray cluster.
 
-A session is the unit of work (its stages depend on each other); sessions are
-independent, so both executors map :func:`pipeline.runner.process_session`
-over them. Ray tasks ask for a GPU when onnxruntime on this machine offers CUDA
-and the keypoints stage is part of the run. With Ray, a session triangulated in
-time chunks (``[triangulate.options] chunk_s``) also sends its chunks to the
-cluster as tasks of their own (``executor = "ray"``, :func:`chunks_on_ray`), so
-one long session spreads over the workers.
+A session is the unit of work (its stages depend on each other); sessions are independent, so both
+executors map :func:`pipeline.runner.process_session` over them. Within a session, a stage's
+independent time chunks (``[triangulate.options] workers``, ``executor``:
+:class:`triangulate.chunks.StreamConfig`) run by :func:`chunk_runner`: in spawned processes or as Ray
+tasks. Ray tasks ask for a GPU when onnxruntime on this machine offers CUDA and the keypoints stage is
+part of the run. With Ray, a session triangulated in time chunks also sends its chunks to the cluster
+as tasks of their own (:func:`ray_for_chunks`), so one long session spreads over the workers.
 """
 
 from __future__ import annotations
@@ -18,13 +18,15 @@ import signal
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from core.errors import InputError
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
 from pipeline.runner import SessionResult, check_session, output_root, process_session
-from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
+from triangulate.chunks import ChunkRunner, StreamConfig
 
 log = logging.getLogger(__name__)
 EXECUTORS = ("local", "ray")
@@ -64,13 +66,16 @@ def run_local(
     """
     if workers <= 1 or len(sources) <= 1:
         for s in sources:
-            yield process_session(s, out, config, force, wait=wait)
+            yield process_session(s, out, config, force, wait=wait, chunks=chunk_runner)
         return
     threads = _threads_per_worker(workers)
     ctx = mp.get_context("spawn")  # not fork: onnxruntime and torch thread pools do not survive a fork
     broken: list[SessionSource] = []
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint) as pool:
-        futures = {pool.submit(process_session, s, out, config, force, threads, wait): s for s in sources}
+        futures = {
+            pool.submit(process_session, s, out, config, force, threads, wait, chunk_runner): s
+            for s in sources
+        }
         try:
             for f in as_completed(futures):
                 try:
@@ -84,7 +89,9 @@ def run_local(
         log.warning("session %s: its worker process died; retrying it alone", s.name)
         try:
             with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
-                yield pool.submit(process_session, s, out, config, force, threads, wait).result()
+                yield pool.submit(
+                    process_session, s, out, config, force, threads, wait, chunk_runner
+                ).result()
         except BrokenProcessPool as e:
             yield SessionResult(
                 s.name,
@@ -106,15 +113,96 @@ def _cuda_available() -> bool:
         return False
 
 
-def chunks_on_ray(config: PipelineConfig) -> PipelineConfig:
-    """``config`` with ``[triangulate.options] executor = "ray"`` where the triangulation is streamed in
-    chunks and no executor is set: each session's chunks become Ray tasks nested in the session's task
-    (which lends its CPU back while it waits for them). The parts and the stage's fingerprint are the same
-    as with processes (``executor`` is a run-time setting)."""
-    opts = dict(config.triangulate.options or {})
-    if TriangulateOptions.from_dict(opts).chunk_s == 0 or "executor" in opts:  # "auto" may stream
+def ray_for_chunks(config: PipelineConfig) -> PipelineConfig:
+    """``config`` with the triangulation's chunks on Ray where it is streamed and the user chose no
+    executor: each session's chunks become Ray tasks nested in the session's task (which lends its CPU
+    back while it waits for them). The parts and the stage's fingerprint are the same as with processes
+    (``executor`` is a run-time setting)."""
+    stream = config.triangulate.stream
+    if not stream.streams or stream != StreamConfig(chunk_s=stream.chunk_s):  # whole, or the user's choice
         return config
-    return config.replace(triangulate=type(config.triangulate)(options={**opts, "executor": "ray"}))
+    ray_stream = replace(stream, executor="ray")
+    return config.replace(triangulate=replace(config.triangulate, stream=ray_stream))
+
+
+def chunk_runner(stream: StreamConfig) -> ChunkRunner | None:
+    """What runs a stage's independent chunks as ``stream`` says: None (in the stage's process, one
+    worker), spawned processes, or Ray tasks (ray is imported now: a clear message where it is missing)."""
+    if stream.executor == "ray":
+        import_ray()
+        return chunks_on_ray
+    return chunks_in_processes if stream.workers > 1 else None
+
+
+def import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise InputError(
+            "executor = 'ray' needs ray: pip install 'roomcap[cluster]' (or set "
+            "[triangulate.options] executor = 'processes' to use this machine's processes)."
+        ) from None
+    return ray
+
+
+_BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def chunks_in_processes(fn: Callable[..., Any], jobs: dict[int, tuple], workers: int) -> Iterator:
+    """``fn(*jobs[i])`` in ``workers`` spawned processes; yields (i, result) as each finishes.
+
+    Each process gets its share of the cores' BLAS threads (read when numpy loads, so set in the
+    environment the processes are spawned with): with the default of one per core, 2 processes on 2 cores
+    ran at 1.16x one process, with one each at 1.93x (bench_triangulate_workers.py)."""
+    ctx = mp.get_context("spawn")
+    share = str(max(1, (os.cpu_count() or 1) // max(1, min(workers, len(jobs)))))
+    saved = {v: os.environ.get(v) for v in _BLAS_THREADS}
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx) as pool:
+        try:  # the processes start at the submits (spawn: on demand), with this environment
+            os.environ.update({v: share for v in _BLAS_THREADS if saved[v] is None})
+            futures = {pool.submit(fn, *args): i for i, args in jobs.items()}
+        finally:
+            for v, old in saved.items():
+                if old is None:
+                    os.environ.pop(v, None)
+        try:
+            for f in as_completed(futures):
+                yield futures[f], f.result()
+        except BaseException:  # killed, or the caller stopped: the queued chunks are not started
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+
+
+def chunks_on_ray(fn: Callable[..., Any], jobs: dict[int, tuple], workers: int) -> Iterator:
+    """``fn(*jobs[i])`` as Ray tasks of one CPU each; yields (i, result) as each finishes.
+
+    In a running Ray (a cluster, or inside a session's task of ``reprocess --executor ray``) the tasks
+    go to its free CPUs; a task blocked in ``ray.wait`` lends its CPU back, so nesting does not deadlock.
+    Where no Ray runs in this process, a local one of ``workers`` CPUs is started and stopped after."""
+    ray = import_ray()
+    started_here = not ray.is_initialized()
+    if started_here:
+        # a new local instance of our own ("local"), never someone else's running cluster
+        ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    pending: dict = {}
+    try:
+        task = ray.remote(num_cpus=1)(fn)
+        pending = {task.remote(*args): i for i, args in jobs.items()}
+        while pending:
+            (ref,), _ = ray.wait(list(pending), num_returns=1)
+            i = pending.pop(ref)
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayTaskError as e:  # the worker's own error (a bad file), not Ray's wrapper
+                if isinstance(e.cause, Exception):
+                    raise e.cause from None
+                raise
+            yield i, result
+    finally:
+        for ref in pending:  # killed, failed or stopped: the chunks not yet written are not run
+            ray.cancel(ref)
+        if started_here:
+            ray.shutdown()
 
 
 def run_ray(
@@ -130,7 +218,7 @@ def run_ray(
         import ray
     except ImportError:
         raise InputError("the Ray executor needs ray: pip install 'roomcap[cluster]'") from None
-    config = chunks_on_ray(config)
+    config = ray_for_chunks(config)
     started_here = not ray.is_initialized()
     if started_here:
         # no --address: a new local instance of our own ("local"), never someone else's running cluster
@@ -140,7 +228,7 @@ def run_ray(
         gpus = 1 if ("keypoints" in config.stages and _cuda_available()) else 0
         threads = _threads_per_worker(workers)
         task = ray.remote(num_cpus=1, num_gpus=gpus)(process_session)
-        pending = [task.remote(s, out, config, force, threads, wait) for s in sources]
+        pending = [task.remote(s, out, config, force, threads, wait, chunk_runner) for s in sources]
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             yield ray.get(done[0])

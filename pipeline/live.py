@@ -1,8 +1,8 @@
 """The live 3D wiring of ``capture-run --live``: every synchronised frame set is a batch of one frame.
 
 ``capture`` records and synchronises (``capture.live.LiveRunner`` runs stages on each frame set); the
-stages themselves use the later stages' functions, so they live here, on top of the stage order
-(issue 16): ``capture-run`` is :func:`main` of this module (``capture.cli`` with these stages injected),
+stages themselves use the later stages' functions, so they live here, on top of the stage order:
+``capture-run`` is :func:`main` of this module (``capture.cli`` with these stages injected),
 ``python -m pipeline.live`` the same.
 
 Stages (``STAGES``, one line each, built by the same functions the batch stages call):
@@ -56,7 +56,9 @@ from capture.session import SessionLayout
 from core.errors import FormatError
 from core.memory import TRIM_EVERY, release_free_memory
 from keypoints.detections import Detections
+from keypoints.pipeline import KeypointPipeline
 from keypoints.skeletons import CANONICAL, convert
+from pipeline.config import KeypointsConfig
 from pipeline.live_outputs import Outputs, load_rig
 from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
 from track.particle_io import focal_lengths
@@ -97,11 +99,12 @@ def legacy_live_dir(layout: SessionLayout) -> Path:
 
 
 def _keypoints(ctx: LiveContext) -> Stage:
-    from keypoints.pipeline import KeypointPipeline  # lazy: loads onnxruntime
-    from keypoints.presets import preset_config  # lazy: loads onnxruntime
-
-    # the default preset with the cameras as streams: each person's crop follows from the last frame set
-    pipe = KeypointPipeline(preset_config(skeleton="body19"))
+    # cams.yaml's live preset with the cameras as streams: each person's crop follows from the last frame set
+    try:
+        settings = KeypointsConfig(preset=ctx.cfg.live.preset, skeleton="body19")
+    except FormatError as e:
+        raise FormatError(ctx.cfg.path, "live.preset", str(e).split(": ", 2)[-1]) from None
+    pipe = KeypointPipeline(settings.detector)
 
     def stage(step: LiveStep) -> None:
         frames = [step.frameset.frames[c] for c in step.cameras]

@@ -59,7 +59,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
         "calibrate/camera_fields.py",
         "keypoints/skeletons.py",
     ),
-    "forecast": ("forecast", "pipeline/glue.py", "triangulate/trackfile.py"),
+    "forecast": ("forecast", "track/trackfile.py"),
     "report": (
         "pipeline/report",
         "pipeline/report_assets/report.html",

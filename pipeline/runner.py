@@ -28,33 +28,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from calibrate.camera import CameraRig
-from calibrate.formats import import_calibration
+import numpy as np
+
 from capture.offline_sync import POSE2SIM_OUTPUT
-from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from capture.session import SessionLayout
 from core.cli import describe_os_error
-from core.errors import RoomcapError
-from core.fileio import atomic_write_bytes, atomic_write_text, load_npz, load_toml, save_toml
-from keypoints.registry import get_model_set, resolve
-from pipeline.config import STAGES, PipelineConfig
-from pipeline.discover import SEGMENT_SUFFIXES, SessionSource
-from pipeline.glue import forecast_model, track_particle, write_preview
+from core.fileio import atomic_write_text, load_npz
+from pipeline.config import PipelineConfig
+from pipeline.discover import SessionSource
 from pipeline.lock import SessionLocked, holder, lock_path, session_lock
-from pipeline.provenance import ProvenanceStore, StageRecord, path_fingerprint, stage_version
-from pipeline.report import warnings_path, write_report
-from track.stage import ParticleTrackConfig, stream_chunk_s
-from triangulate.chunks import PartStore, parts_dir
-from triangulate.reconstruct import RUN_SETTINGS
-from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
-from triangulate.stage import GreedyTrackConfig, session_chunk_s, track_session_greedy, triangulate_session
+from pipeline.provenance import ProvenanceStore, StageRecord, stage_version
+from pipeline.report import warnings_path
+from pipeline.session_inputs import StageError, probe_videos, stage_file
+from pipeline.stages import STAGES, Session, Stage, StageWork
+from triangulate.chunks import ChunkRunner, PartStore, StreamConfig
+
+__all__ = ["SessionResult", "StageError", "check_session", "output_root", "probe_videos", "process_session"]
 
 log = logging.getLogger(__name__)
-
-FPS_TOLERANCE = 0.01  # relative frame-rate difference between cameras of one session that is still "the same"
-
-
-class StageError(RoomcapError, RuntimeError):
-    """A stage failed; the message names the stage, what went wrong and what to do."""
 
 
 @dataclass
@@ -78,17 +69,6 @@ class SessionResult:
         return dataclasses.asdict(self)
 
 
-@dataclass(frozen=True)
-class StagePlan:
-    name: str
-    inputs: list[Path]
-    outputs: list[Path]
-    config: dict[str, Any]
-    run: Callable[[list[str]], None]  # gets the session's warning list to append to
-    model_sha256: str = ""
-    skipped: dict[str, str] = field(default_factory=dict)  # cameras this stage leaves out, and why
-
-
 def output_root(source: SessionSource, out: Path | None) -> Path:
     """Where a session's outputs go: ``out/<name>``, or in place for this project's own layout."""
     if out is not None:
@@ -96,298 +76,6 @@ def output_root(source: SessionSource, out: Path | None) -> Path:
     if source.layout == "roomcap":
         return source.root
     return source.root / POSE2SIM_OUTPUT
-
-
-# ----------------------------------------------------------------------------- stage plans
-
-
-def _plan_calibration(
-    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
-) -> StagePlan | None:
-    target = lay.calib_dir / "rig.toml"
-    if src.calibration is None:
-        raise FileNotFoundError(src.problem or f"session {src.name} has no calibration")
-    if src.calibration.resolve() == target.resolve():
-        return None  # the session's own rig is the input of later stages
-
-    def run(warnings: list[str]) -> None:
-        rig = _match_camera_names(import_calibration(src.calibration), src.cameras)
-        missing = [c for c in src.cameras if c not in rig.names]
-        if missing:
-            raise ValueError(
-                f"{src.calibration}: cameras {missing} of the recording are not in the calibration "
-                f"(it has {list(rig.names)}). Use a calibration of these cameras."
-            )
-        rig.save(target)
-
-    return StagePlan("calibration", [src.calibration], [target], {}, run)
-
-
-def _name_key(name: str) -> str:
-    """``cam_01``, ``Cam01``, ``cam-1`` -> ``cam1``: spelling differences between tools, not other cameras."""
-    import re
-
-    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[^0-9a-z]", "", name.lower()))
-
-
-def _match_camera_names(rig, cameras: list[str]):
-    """The rig with its cameras renamed to the recording's names where they differ only in spelling
-    (Pose2Sim's ``cam_01`` calibration for ``cam01_json``); matched by name, never by order."""
-    import dataclasses as dc
-
-    if all(c in rig.names for c in cameras):
-        return rig
-    keys = {_name_key(n): n for n in rig.names}
-    if len(keys) != len(rig.names):
-        return rig
-    rename = {keys[_name_key(c)]: c for c in cameras if _name_key(c) in keys}
-    if len(set(rename.values())) != len(rename):
-        return rig
-    log.info("calibration camera names %s matched to the recording's %s", list(rename), list(rename.values()))
-    return type(rig)(tuple(dc.replace(cam, name=rename.get(cam.name, cam.name)) for cam in rig.cameras))
-
-
-def model_set_sha256(model_set: str, store: ProvenanceStore | None = None) -> str:
-    """sha256 of the model files of a keypoints model set (detector+pose), via the stat cache."""
-
-    ms = get_model_set(model_set)
-    names = [n for n in (ms.detector, ms.pose) if n]
-    cache = store.stat_cache if store is not None else None
-    return "+".join(path_fingerprint(resolve(n, verify=False), cache) for n in names)
-
-
-def probe_videos(videos: dict[str, Path]) -> tuple[dict[str, tuple[int, float]], list[str]]:
-    """Frame count and rate of each camera's video; raises on unreadable videos or mixed frame rates.
-
-    Returns ``({cam: (n_frames, fps)}, warnings)``; videos of different lengths are a warning (the frames
-    are aligned by index, the tail of the longer videos is seen by fewer cameras).
-    """
-    import cv2
-
-    info: dict[str, tuple[int, float]] = {}
-    for cam, path in sorted(videos.items()):
-        files = (
-            sorted(p for p in path.glob("seg_*") if p.suffix.lower() in SEGMENT_SUFFIXES)
-            or sorted(
-                p
-                for p in path.iterdir()
-                if not p.name.startswith(".") and p.suffix.lower() in SEGMENT_SUFFIXES
-            )
-            if path.is_dir()
-            else [path]
-        )
-        n, fps = 0, 0.0
-        for f in files:
-            cap = cv2.VideoCapture(str(f))
-            ok = cap.isOpened()
-            ok = ok and cap.read()[0]
-            count, rate = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), float(cap.get(cv2.CAP_PROP_FPS))
-            cap.release()
-            if not ok:
-                raise StageError(
-                    f"camera '{cam}': video {f} cannot be read (not a video, truncated or an "
-                    "unsupported codec). Replace it, or move it out of the session to run without "
-                    "this camera."
-                )
-            n, fps = n + max(count, 0), fps or rate
-        info[cam] = (n, fps)
-    rates = {c: r for c, (_, r) in info.items() if r > 0}
-    if rates and (max(rates.values()) - min(rates.values())) > FPS_TOLERANCE * max(rates.values()):
-        raise StageError(
-            "the cameras' videos have different frame rates ("
-            + ", ".join(f"{c} {r:g} fps" for c, r in rates.items())
-            + "). Frames cannot be matched by index: re-encode them at one rate or record "
-            "with synchronised cameras."
-        )
-    warnings = []
-    counts = {c: n for c, (n, _) in info.items()}
-    if counts and max(counts.values()) != min(counts.values()):
-        warnings.append(
-            "videos differ in length ("
-            + ", ".join(f"{c} {n}" for c, n in counts.items())
-            + " frames); frames are matched by index from the start, later frames have fewer views"
-        )
-    return info, warnings
-
-
-def readable_videos(videos: dict[str, Path]) -> tuple[dict[str, Path], dict[str, str]]:
-    """Split ``{cam: video}`` into the readable ones and ``{cam: why not}`` (probe_videos per camera)."""
-    ok, bad = {}, {}
-    for cam, path in sorted(videos.items()):
-        try:
-            probe_videos({cam: path})
-            ok[cam] = path
-        except StageError as e:
-            bad[cam] = str(e)
-    return ok, bad
-
-
-def _plan_keypoints(
-    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
-) -> StagePlan | None:
-    if src.videos:
-        readable, skipped = readable_videos(src.videos)
-        if not readable:
-            raise StageError(
-                "no camera's video can be read: " + " ".join(skipped.values())
-                if len(skipped) > 1
-                else next(iter(skipped.values()))
-            )
-        cams = sorted(readable)
-        outputs = [lay.detections(c) for c in cams]
-        kcfg = cfg.keypoints.provenance()
-        frames_csv = {}
-        if src.layout == "roomcap":  # the recorder's per-frame timestamps (t_ns in the detections)
-            src_lay = SessionLayout(src.root)
-            frames_csv = {c: p for c in cams if (p := src_lay.find_frames_csv(c)) is not None}
-
-        def run(warnings: list[str]) -> None:
-            from keypoints.video import run_videos  # lazy: loads onnxruntime
-
-            _, warn = probe_videos({c: src.videos[c] for c in cams})
-            warnings.extend(warn)
-            rig = None
-            if lay.rig_toml.exists():
-                rig = CameraRig.load(lay.rig_toml)
-            from keypoints.presets import preset_config  # lazy: loads onnxruntime
-            from keypoints.runtime import RuntimeConfig  # lazy: loads onnxruntime
-
-            # the executor's share of the cores (set per worker by _limit_threads); 0 = onnxruntime's default
-            threads = int(os.environ.get("ROOMCAP_ORT_THREADS", "0") or 0)
-            preset, settings = cfg.keypoints.settings()
-            kp_cfg = preset_config(preset, **settings, runtime=RuntimeConfig(threads=threads))
-            rep = run_videos(
-                {c: src.videos[c] for c in cams},
-                lay.keypoints_dir,
-                kp_cfg,
-                rig=rig,
-                max_frames=cfg.keypoints.max_frames,
-                timestamps=frames_csv or None,
-                # one camera group per core of this worker, one onnxruntime thread each: 1.3x the frames
-                # per second of one group with two threads on 2 cores (bench_keypoints_throughput.py)
-                camera_groups=threads or os.cpu_count() or 1,
-            )
-            for c, (fi, msg) in sorted(rep.decode_errors.items()):
-                warnings.append(f"camera '{c}': {msg}; kept the {fi} frames before it")
-
-        return StagePlan(
-            "keypoints",
-            [src.videos[c] for c in cams] + sorted(frames_csv.values()),
-            outputs,
-            kcfg,
-            run,
-            model_set_sha256(cfg.keypoints.model_set_name, store),
-            skipped,
-        )
-    if src.openpose_json:
-        cams = sorted(src.openpose_json)
-        outputs = [lay.detections(c) for c in cams]
-
-        def run_json(warnings: list[str]) -> None:
-            try:
-                from keypoints.openpose_json import read_openpose_folder
-            except ImportError:
-                raise StageError(
-                    "reading OpenPose JSON folders needs keypoints.openpose_json, which this "
-                    "build lacks; run the keypoints stage on the videos instead."
-                ) from None
-            fps = _pose2sim_frame_rate(src.root)
-            for c in cams:
-                read_openpose_folder(src.openpose_json[c], camera=c, fps=fps).save(lay.detections(c))
-
-        return StagePlan(
-            "keypoints", [src.openpose_json[c] for c in cams], outputs, {"from": "openpose_json"}, run_json
-        )
-    if src.detections:  # detections made elsewhere: copied into the output session (unless it is the input)
-        cams = sorted(src.detections)
-        if all(src.detections[c].resolve() == lay.detections(c).resolve() for c in cams):
-            return None
-
-        def run_copy(warnings: list[str]) -> None:
-            for c in cams:
-                atomic_write_bytes(lay.detections(c), src.detections[c].read_bytes())
-
-        return StagePlan(
-            "keypoints",
-            [src.detections[c] for c in cams],
-            [lay.detections(c) for c in cams],
-            {"from": "detections"},
-            run_copy,
-        )
-    return None
-
-
-def _pose2sim_frame_rate(trial: Path) -> float | None:
-    """``[project] frame_rate`` of the nearest Pose2Sim ``Config.toml`` (trial, then parents)."""
-
-    for folder in (trial, *trial.parents[:3]):
-        cfg = folder / "Config.toml"
-        if cfg.exists():
-            try:
-                rate = load_toml(cfg).get("project", {}).get("frame_rate")
-            except Exception:  # a Config.toml we cannot read says nothing about the rate
-                continue
-            if isinstance(rate, (int, float)) and rate > 0:
-                return float(rate)
-    return None
-
-
-def _detection_paths(lay: SessionLayout) -> list[Path]:
-    return [lay.detections(c) for c in lay.detection_cameras()]
-
-
-def _sync_table(src: SessionSource) -> dict:
-    """The ``[sync]`` table (``capture-run sync``) of the input session's session.toml, or {}."""
-    toml = SessionLayout(src.root).session_toml
-    if not toml.exists():
-        return {}
-
-    sync = load_toml(toml).get("sync")
-    return sync if isinstance(sync, dict) else {}
-
-
-def _carry_sync(src: SessionSource, lay: SessionLayout) -> None:
-    """Outputs written elsewhere (--out, Pose2Sim layout): copy the input's [sync] into the output's
-    session.toml, where the 3D stages (``triangulate.stage.load_detections``) read it."""
-    sync = _sync_table(src)
-    if not sync or lay.session_toml.resolve() == SessionLayout(src.root).session_toml.resolve():
-        return
-
-    meta = (
-        load_toml(lay.session_toml)
-        if lay.session_toml.exists()
-        else {"schema": f"{SESSION_SCHEMA}/{SESSION_VERSION}", "status": "imported"}
-    )
-    if meta.get("sync") != sync:
-        meta["sync"] = sync
-        save_toml(lay.session_toml, meta)
-
-
-def stage_file(path: Path) -> Path:
-    """A 3D stage's output as it was written: the single file, else its parts folder (a streamed run,
-    ``chunk_s`` > 0: ``poses3d.parts/``, ``tracks.parts/``), else the file's path (missing)."""
-    if path.exists():
-        return path
-    d = parts_dir(path)
-    return d if d.is_dir() else path
-
-
-def _output_file(lay: SessionLayout, cfg: PipelineConfig, stage: str) -> Path:
-    """What a 3D stage writes on this session: its file, or its parts folder where it streams (``chunk_s``
-    > 0, or ``"auto"`` on a long session: the stage decides by the same rule, ``session_chunk_s``)."""
-    if stage == "triangulate":
-        path, chunk_s = (
-            lay.poses3d,
-            session_chunk_s(lay, TriangulateOptions.from_dict(cfg.triangulate.options).chunk_s),
-        )
-    elif cfg.track.tracker == "greedy":
-        path, chunk_s = (
-            lay.tracks,
-            session_chunk_s(lay, GreedyTrackConfig.from_dict(cfg.track.options).chunk_s),
-        )
-    else:
-        path, chunk_s = lay.tracks, stream_chunk_s(lay, ParticleTrackConfig.from_dict(particle_options(cfg)))
-    return parts_dir(path) if chunk_s > 0 else path
 
 
 def _stage_xyz(path: Path, kind: str):
@@ -402,119 +90,6 @@ def _stage_xyz(path: Path, kind: str):
         yield d.get("track_id"), d["xyz_m"]
 
 
-def _plan_triangulate(
-    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
-) -> StagePlan:
-    def run(warnings: list[str]) -> None:
-        _carry_sync(src, lay)
-        triangulate_session(lay.root, cfg.triangulate.options or None)
-
-    return StagePlan(
-        "triangulate",
-        [lay.rig_toml, *_detection_paths(lay)],
-        [_output_file(lay, cfg, "triangulate")],
-        {
-            **_without_run_settings(dataclasses.asdict(cfg.triangulate)),
-            "sync": _sync_table(src),
-        },  # new offsets: rerun
-        run,
-    )
-
-
-def _without_run_settings(d: dict) -> dict:
-    """A stage's config without ``options.workers`` and ``options.executor`` (how many processes or which
-    executor ran it, not what it computed)."""
-    opts = d.get("options") or {}
-    if not any(k in opts for k in RUN_SETTINGS):
-        return d
-    return {**d, "options": {k: v for k, v in opts.items() if k not in RUN_SETTINGS}}
-
-
-def _plan_track(
-    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
-) -> StagePlan:
-    def run(warnings: list[str]) -> None:
-        _carry_sync(src, lay)
-        if cfg.track.tracker == "greedy":
-            track_session_greedy(lay.root, cfg.track.options or None)
-        else:
-            track_particle(lay, particle_options(cfg))
-
-    inputs = [lay.rig_toml, *_detection_paths(lay)]
-    if cfg.track.tracker == "greedy":
-        inputs.append(stage_file(lay.poses3d))  # the file or a streamed run's parts
-    config = dataclasses.asdict(cfg.track)
-    if cfg.track.tracker != "greedy":  # the particle tracker reads the detections (and offsets) itself
-        config["sync"] = _sync_table(src)
-        config["options"] = particle_options(cfg)
-    return StagePlan("track", inputs, [_output_file(lay, cfg, "track")], config, run)
-
-
-def particle_options(cfg: PipelineConfig) -> dict:
-    """The particle tracker's options: ``[track] options``, with the 3D joints of ``[triangulate.options]
-    skeleton`` (whole_body, a skeleton TOML) unless the track options name their own ``skeleton``."""
-    opts = dict(cfg.track.options or {})
-    skel = (cfg.triangulate.options or {}).get("skeleton")
-    if skel and skel != "body19":
-        opts.setdefault("skeleton", skel)
-    return opts
-
-
-def forecast_path(lay: SessionLayout) -> Path:
-    return lay.root / "forecast" / "preview.npz"
-
-
-def _plan_forecast(
-    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
-) -> StagePlan:
-
-    kind, checkpoint = forecast_model(cfg.forecast.model)
-    sha = path_fingerprint(checkpoint, store.stat_cache) if checkpoint else ""
-
-    def run(warnings: list[str]) -> None:
-        write_preview(lay.tracks, forecast_path(lay), cfg.forecast.horizon_s, cfg.forecast.model)
-
-    return StagePlan(
-        "forecast",
-        [stage_file(lay.tracks)],
-        [forecast_path(lay)],
-        {**dataclasses.asdict(cfg.forecast), "kind": kind},
-        run,
-        sha,
-    )
-
-
-def _plan_report(
-    src: SessionSource, lay: SessionLayout, cfg: PipelineConfig, store: ProvenanceStore
-) -> StagePlan:
-    inputs = [
-        p
-        for p in (
-            lay.rig_toml,
-            *_detection_paths(lay),
-            stage_file(lay.poses3d),
-            stage_file(lay.tracks),
-            forecast_path(lay),
-        )
-        if p.exists()
-    ]
-
-    def run(warnings: list[str]) -> None:
-        write_report(lay, title=src.name)
-
-    return StagePlan("report", inputs, [lay.report_html], {"title": src.name}, run)
-
-
-_PLANNERS = {
-    "calibration": _plan_calibration,
-    "keypoints": _plan_keypoints,
-    "triangulate": _plan_triangulate,
-    "track": _plan_track,
-    "forecast": _plan_forecast,
-    "report": _plan_report,
-}
-
-
 # ----------------------------------------------------------------------------- running
 
 
@@ -523,8 +98,6 @@ def _summary_path(root: Path) -> Path:
 
 
 def _summarise(lay: SessionLayout, result: SessionResult) -> None:
-    import numpy as np
-
     cams = lay.detection_cameras()
     result.cameras = len(cams)
     if cams:
@@ -564,14 +137,13 @@ def _blocking_problem(source: SessionSource, config: PipelineConfig) -> str:
     return source.problem
 
 
-def _stage_list(config: PipelineConfig, source: SessionSource | None = None) -> tuple[str, ...]:
+def _stage_list(config: PipelineConfig, source: SessionSource | None = None) -> tuple[Stage, ...]:
     """The stages to run: calibration always (it only imports) when there is one, keypoints also when
     it only copies detections made elsewhere, then the configured ones in graph order."""
     extra = {"calibration"} if source is None or source.calibration is not None else set()
     if source is not None and source.detections and not source.videos and not source.openpose_json:
         extra.add("keypoints")
-
-    return tuple(s for s in STAGES if s in extra or s in config.stages)
+    return tuple(s for s in STAGES if s.name in extra or s.name in config.stages)
 
 
 def _explain(stage: str, e: BaseException, root: Path, done: list[str]) -> str:
@@ -622,29 +194,38 @@ def check_session(source: SessionSource, out: Path | None, config: PipelineConfi
         if holder(root) is not None:  # another run is writing it: process_session refuses or waits
             return None
         saved = json.loads(_summary_path(root).read_text())
-        lay, store = SessionLayout(root), ProvenanceStore(root)
-        for name in _stage_list(config, source):
-            plan = _PLANNERS[name](source, lay, config, store)
-            if plan is None:
+        session = Session(source, SessionLayout(root), ProvenanceStore(root))
+        for stage in _stage_list(config, source):
+            work = stage.plan(session, stage.config(config))
+            if work is None:
                 continue
-            if not all(p.exists() for p in plan.inputs):
+            if not all(p.exists() for p in work.inputs):
                 return None
-            inputs = store.fingerprint_inputs(plan.inputs)
-            version = stage_version(name, store.stat_cache)
-            if not store.is_current(name, inputs, plan.config, plan.model_sha256, plan.outputs, version):
+            if _staleness(session, stage.name, work)[0]:
                 return None
     except Exception:  # anything unusual: let the full run look at it (and report it)
         return None
     res = SessionResult(source.name, str(root))
-    for k in ("cameras", "frames", "people", "tracks", "warnings", "skipped_cameras"):
+    for k in SUMMARY_KEYS:
         if k in saved:
             setattr(res, k, saved[k])
     if res.skipped_cameras:
         res.status = "partial"
     if res.warnings:  # the stages' warnings, as when they ran
         res.message = "warning: " + "; ".join(res.warnings)
-    res.stage_s = {s: 0.0 for s in _stage_list(config)}
+    res.stage_s = {s.name: 0.0 for s in _stage_list(config)}
     return res
+
+
+SUMMARY_KEYS = ("cameras", "frames", "people", "tracks", "warnings", "skipped_cameras")
+
+
+def _staleness(session: Session, name: str, work: StageWork) -> tuple[str, str]:
+    """``(what, why)`` a stage's outputs are stale for ('' when they are current)."""
+    store = session.store
+    inputs = store.fingerprint_inputs(work.inputs)
+    version = stage_version(name, store.stat_cache)
+    return store.why_stale(name, inputs, work.settings, work.model_sha256, work.outputs, version)
 
 
 def process_session(
@@ -654,15 +235,18 @@ def process_session(
     force: bool = False,
     threads: int | None = None,
     wait: bool = False,
+    chunks: Callable[[StreamConfig], ChunkRunner | None] | None = None,
 ) -> SessionResult:
     """Run the configured stages of one session under its lock (``pipeline.lock``); never raises (failures
-    are in the result). Another run holding the session: status ``locked`` (or, with ``wait``, wait)."""
+    are in the result). Another run holding the session: status ``locked`` (or, with ``wait``, wait).
+    ``chunks``: what runs a stage's independent chunks (``pipeline.executors.chunk_runner``); None: the
+    stage's own process."""
     root = output_root(source, out)
     if _blocking_problem(source, config):  # nothing will be written: no lock (nor folder) to make
-        return _process_session(source, out, config, force, threads)
+        return _process_session(source, out, config, force, threads, chunks)
     try:
         with session_lock(root, wait=wait) as lock:
-            result = _process_session(source, out, config, force, threads)
+            result = _process_session(source, out, config, force, threads, chunks)
         if lock.took_over is not None:
             result.warnings.insert(0, lock.took_over_message(root))
             if result.status != "failed":
@@ -684,95 +268,39 @@ def _process_session(
     source: SessionSource,
     out: Path | None,
     config: PipelineConfig,
-    force: bool = False,
-    threads: int | None = None,
+    force: bool,
+    threads: int | None,
+    chunks: Callable[[StreamConfig], ChunkRunner | None] | None,
 ) -> SessionResult:
     root = output_root(source, out)
     result = SessionResult(source.name, str(root))
     if threads:
         _limit_threads(threads)
-    stage = "discovery"
+    stage_name = "discovery"
     done: list[str] = []
     collect = _WarningsTo(result.warnings)
     logging.getLogger().addHandler(collect)
     try:
         if _blocking_problem(source, config):
             raise StageError(source.problem)
-        lay = SessionLayout(root)
         for tmp in (root / ".roomcap").rglob(".*"):  # temporaries of bookkeeping writes a kill interrupted
             if tmp.is_file():
                 tmp.unlink(missing_ok=True)
-        store = ProvenanceStore(root)
-        for name in _stage_list(config, source):
-            stage = name
-            t0 = time.perf_counter()
-            plan = _PLANNERS[name](source, lay, config, store)
-            if plan is None:
-                continue
-            for cam, why in plan.skipped.items():
-                if cam not in result.skipped_cameras:
-                    result.skipped_cameras[cam] = why
-                    result.warnings.append(f"camera '{cam}' skipped ({why}); processed the other cameras")
-            missing = [p for p in plan.inputs if not p.exists()]
-            if missing:
-                raise StageError(
-                    f"needs {[str(p) for p in missing]}; run the stages before it (or drop --stages "
-                    "to run them all)."
-                )
-            inputs = store.fingerprint_inputs(plan.inputs)
-            version = stage_version(name, store.stat_cache)
-            what, why = store.why_stale(name, inputs, plan.config, plan.model_sha256, plan.outputs, version)
-            if not force and not what:
-                result.stage_s[name] = round(time.perf_counter() - t0, 3)
-                done.append(name)
-                _keep_warnings(result.warnings, stored_warnings(root, name))
-                continue
-            if what == "outputs" and not force:  # not what the stage wrote: never trusted, and said
-                log.warning("stage '%s' reruns: its outputs are not what it wrote (%s)", name, why)
-            else:
-                log.info("%s: stage '%s' reruns: %s", source.name, name, why)
-            store.invalidate(name)
-            _remove_stale_temporaries(plan.outputs)
-            log.info("%s: running %s", source.name, name)
-            n_warn = len(result.warnings)
-            plan.run(result.warnings)
-            # what this stage logged, kept with its outputs for the report (replaced when it reruns)
-            atomic_write_text(warnings_path(root, name), json.dumps(result.warnings[n_warn:]))
-            store.record(
-                StageRecord(
-                    name,
-                    inputs,
-                    plan.config,
-                    plan.model_sha256,
-                    version,
-                    store.fingerprint_outputs(plan.outputs),
-                    store.output_files(plan.outputs),
-                )
-            )
-            result.ran.append(name)
-            done.append(name)
-            result.stage_s[name] = round(time.perf_counter() - t0, 3)
-        stage = "summary"
-        _summarise(lay, result)
-        if result.people == 0 and (stage_file(lay.poses3d).exists() or stage_file(lay.tracks).exists()):
-            result.warnings.append(
-                "0 people in the result: nobody was reconstructed. See the warnings above; check that the "
-                "calibration is of these cameras and in metres, and that the videos show people."
-            )
-        atomic_write_text(
-            _summary_path(root),
-            json.dumps(
-                {
-                    k: getattr(result, k)
-                    for k in ("cameras", "frames", "people", "tracks", "warnings", "skipped_cameras")
-                }
-            ),
-        )
+        session = Session(source, SessionLayout(root), ProvenanceStore(root), result.warnings)
+        for stage in _stage_list(config, source):
+            stage_name = stage.name
+            if _run_stage(session, stage, config, force, chunks, result):
+                result.ran.append(stage.name)
+            done.append(stage.name)
+        stage_name = "summary"
+        _write_summary(session.layout, result)
     except Exception as e:  # isolate the session: the others go on, the summary reports it
         result.status = "failed"
-        result.failed_stage = stage
+        result.failed_stage = stage_name
         result.message = (
-            str(e) if isinstance(e, StageError) and stage == "discovery" else _explain(stage, e, root, done)
+            str(e)
+            if isinstance(e, StageError) and stage_name == "discovery"
+            else _explain(stage_name, e, root, done)
         )
         log.debug("session %s failed:\n%s", source.name, traceback.format_exc())
     finally:
@@ -784,8 +312,78 @@ def _process_session(
     return result
 
 
+def _run_stage(
+    session: Session,
+    stage: Stage,
+    config: PipelineConfig,
+    force: bool,
+    chunks: Callable[[StreamConfig], ChunkRunner | None] | None,
+    result: SessionResult,
+) -> bool:
+    """One stage of the session, unless its outputs are current; True when it ran."""
+    t0 = time.perf_counter()
+    stage_config = stage.config(config)
+    work = stage.plan(session, stage_config)
+    if work is None:
+        return False
+    for cam, why in work.skipped.items():
+        if cam not in result.skipped_cameras:
+            result.skipped_cameras[cam] = why
+            result.warnings.append(f"camera '{cam}' skipped ({why}); processed the other cameras")
+    missing = [p for p in work.inputs if not p.exists()]
+    if missing:
+        raise StageError(
+            f"needs {[str(p) for p in missing]}; run the stages before it (or drop --stages to run them all)."
+        )
+    root, store, name = session.layout.root, session.store, stage.name
+    what, why = _staleness(session, name, work)
+    if not force and not what:
+        result.stage_s[name] = round(time.perf_counter() - t0, 3)
+        _keep_warnings(result.warnings, stored_warnings(root, name))
+        return False
+    if what == "outputs" and not force:  # not what the stage wrote: never trusted, and said
+        log.warning("stage '%s' reruns: its outputs are not what it wrote (%s)", name, why)
+    else:
+        log.info("%s: stage '%s' reruns: %s", session.source.name, name, why)
+    store.invalidate(name)
+    _remove_stale_temporaries(work.outputs)
+    log.info("%s: running %s", session.source.name, name)
+    n_warn = len(result.warnings)
+    stream = getattr(stage_config, "stream", None)
+    stage.run(session, stage_config, None, chunks(stream) if chunks and stream else None)
+    # what this stage logged, kept with its outputs for the report (replaced when it reruns)
+    atomic_write_text(warnings_path(root, name), json.dumps(result.warnings[n_warn:]))
+    store.record(
+        StageRecord(
+            name,
+            store.fingerprint_inputs(work.inputs),
+            work.settings,
+            work.model_sha256,
+            stage_version(name, store.stat_cache),
+            store.fingerprint_outputs(work.outputs),
+            store.output_files(work.outputs),
+        )
+    )
+    result.stage_s[name] = round(time.perf_counter() - t0, 3)
+    return True
+
+
+def _write_summary(lay: SessionLayout, result: SessionResult) -> None:
+    _summarise(lay, result)
+    if result.people == 0 and (stage_file(lay.poses3d).exists() or stage_file(lay.tracks).exists()):
+        result.warnings.append(
+            "0 people in the result: nobody was reconstructed. See the warnings above; check that the "
+            "calibration is of these cameras and in metres, and that the videos show people."
+        )
+    summary = {k: getattr(result, k) for k in SUMMARY_KEYS}
+    atomic_write_text(_summary_path(Path(result.out)), json.dumps(summary))
+
+
 def _limit_threads(n: int) -> None:
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "ROOMCAP_ORT_THREADS"):
         os.environ[var] = str(n)
     if "torch" in sys.modules:  # importing torch just to limit it costs seconds
         sys.modules["torch"].set_num_threads(n)
+    numba = sys.modules.get("numba")  # the particle tracker's kernels run their loops on numba's threads
+    if numba is not None:
+        numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))

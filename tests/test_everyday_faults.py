@@ -302,7 +302,7 @@ def test_readme_examples_are_valid_and_complete():
     import yaml
 
     from capture.config import parse_config
-    from pipeline.config import PipelineConfig
+    from pipeline.config import PipelineConfig, tracker_name
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     cams = parse_config(yaml.safe_load(_block(text, "## A `cams.yaml`", "yaml")))
@@ -310,6 +310,6 @@ def test_readme_examples_are_valid_and_complete():
     data = tomllib.loads(_block(text, "## A pipeline TOML", "toml"))
     assert set(data) == {f.name for f in dataclasses.fields(PipelineConfig)}  # every section
     cfg = PipelineConfig.from_dict(data)
-    assert cfg.track.tracker == "particle" and cfg.triangulate.options["match"]["theta_px"] == 40.0
+    assert tracker_name(cfg.track) == "particle" and cfg.triangulate.match.theta_px == 40.0
     assert "`<trial>/roomcap/`" in text
     assert re.search(r"\d+ tests in about \d+ min", text), "README: make test's count and duration"

@@ -417,5 +417,6 @@ def test_train_and_eval_commands_tiny(tmp_path):
     models = json.loads(res.read_text())["models"]
     assert sorted(models) == ["action_only", "full", "pose_only", "train_average", "zero_velocity"]
     assert models["full"]["mpjpe2d_px"] > 0 and 0 <= models["full"]["quality3d"] <= 1
+    assert 0 <= models["full"]["quality3d_per_method"] <= 0.5
     assert models["action_only"]["mpjpe2d_px"] is None and models["pose_only"]["top1"] is None
     assert len(models["full"]["top1_by_step"]) == 5

@@ -70,8 +70,10 @@ def test_keypoint_presets_resolve_and_are_recorded():
     so changing a preset re-runs keypoints; an unknown preset fails when the config loads."""
     from keypoints.presets import preset_config
 
-    name, settings = PipelineConfig().keypoints.settings()
-    assert name == "balanced" and settings["detect_every"] > 1
+    kp = PipelineConfig().keypoints
+    assert kp.preset_name == "balanced" and kp.settings["detect_every"] > 1
+    assert kp.detector.detect_every == kp.settings["detect_every"]
+    assert kp.detector == preset_config("balanced")  # the typed config, built once from the preset
     cfg = PipelineConfig.from_dict({"keypoints": {"preset": "feet"}})
     prov = cfg.keypoints.provenance()
     assert prov["preset"] == "feet" and prov["settings"]["skeleton"] == "model"
@@ -96,9 +98,10 @@ def test_stage_options_are_checked_when_the_config_loads(tmp_path, capsys):
 
 
 def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
-    """The options are parsed when their section is made; replace() of other fields does not parse them
-    again, and a new track section (another tracker) is checked against its own tracker's keys."""
+    """The options are parsed when the config is made, into the stages' own typed configs; replace() of
+    other fields does not parse them again, and another tracker is checked against its own keys."""
     import pipeline.config as pc
+    from track.greedy_stage import GreedyTrackConfig
 
     cfg = PipelineConfig.from_dict(
         {
@@ -106,6 +109,8 @@ def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
             "track": {"tracker": "greedy", "options": {"sigma_s": 0.1}},
         }
     )
+    assert isinstance(cfg.track, GreedyTrackConfig) and cfg.track.greedy.sigma_s == 0.1
+    assert cfg.triangulate.match.theta_px == 30.0
     calls = []
     monkeypatch.setattr(pc.TriangulateOptions, "from_dict", lambda d: calls.append(d))
     monkeypatch.setattr(pc.GreedyTrackConfig, "from_dict", lambda d: calls.append(d))
@@ -113,4 +118,4 @@ def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
     assert calls == []
     monkeypatch.undo()
     with pytest.raises(FormatError, match=r"track.options.*sigma_s"):
-        cfg.replace(track=type(cfg.track)(tracker="particle", options=cfg.track.options))
+        PipelineConfig.from_dict({"track": {"tracker": "particle", "options": {"sigma_s": 0.1}}})

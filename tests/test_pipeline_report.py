@@ -82,7 +82,8 @@ def synthetic_session(root, seconds=3.0, cams=4, people=2, seed=0):
     """A rendered synthetic session (calibration + detections, no videos), triangulated and tracked."""
     from synthetic import render as R
     from synthetic import rigs, world
-    from triangulate.stage import track_session_greedy, triangulate_session
+    from track.greedy_stage import track_session_greedy
+    from triangulate.stage import triangulate_session
 
     rig, room = rigs.ring_rig(cams, 3.0, seed=seed), rigs.ring_room(3.0)
     scene = world.make_scene(room, world.SceneConfig(n_people=people, duration_s=seconds, seed=seed))

@@ -128,27 +128,21 @@ def test_corrupt_session_fails_alone(sessions, tmp_path, capsys):
 
 
 def test_disk_full_keeps_finished_stages(tmp_path, monkeypatch):
-    from pipeline import runner
+    from pipeline.stages import TrackStage
 
     make_sessions(tmp_path / "in", 1, duration_s=1.0)
     out = tmp_path / "out"
-    real = runner._PLANNERS["track"]
 
-    def full_disk(*a):
-        plan = real(*a)
+    def full_disk(self, session, config, progress, executor):
+        raise OSError(errno.ENOSPC, "No space left on device")
 
-        def run(warnings):
-            raise OSError(errno.ENOSPC, "No space left on device")
-
-        return runner.StagePlan(plan.name, plan.inputs, plan.outputs, plan.config, run, plan.model_sha256)
-
-    monkeypatch.setitem(runner._PLANNERS, "track", full_disk)
+    monkeypatch.setattr(TrackStage, "run", full_disk)
     (r,) = run_sessions(discover([tmp_path / "in"]), out, CFG, workers=1)
     assert r.status == "failed" and r.failed_stage == "track"
     assert "disk is full" in r.message and "Free space" in r.message and "triangulate" in r.message
     poses = out / "in" / "syn_00" / "triangulate" / "poses3d.npz"
     assert poses.exists()
-    monkeypatch.setitem(runner._PLANNERS, "track", real)
+    monkeypatch.undo()
     (r2,) = run_sessions(discover([tmp_path / "in"]), out, CFG, workers=1)
     assert r2.status == "ok" and r2.ran == ["track", "forecast", "report"]
 
@@ -258,7 +252,7 @@ def test_changed_stage_code_reruns_that_stage_only(tmp_path, monkeypatch):
 def test_reprocess_with_chunk_s_streams_end_to_end(sessions, tmp_path, tracker):
     """`reprocess` with chunk_s > 0 (issue 17): the 3D stages write their parts folders, the runner caches
     and fingerprints them, forecast and report read them, and the tracks equal the whole-session run's."""
-    from triangulate.trackfile import TrackFile
+    from track.trackfile import TrackFile
 
     src = sessions / "syn_02"  # 3 people
     stages = "triangulate,track,forecast,report" if tracker == "greedy" else "track,forecast,report"
@@ -307,8 +301,8 @@ def test_long_sessions_stream_by_default(sessions, tmp_path, tracker, monkeypatc
     STREAM_CHUNK_FRAMES, a shorter one is not; the runner plans the outputs the stages write (a rerun runs
     nothing) and the tracks equal the whole-session run's bit for bit. The thresholds are lowered here so
     that a small session is "long"."""
+    from track.trackfile import TrackFile
     from triangulate import chunks
-    from triangulate.trackfile import TrackFile
 
     src = sessions / "syn_02"
     n = max(int(np.load(f)["frame_index"].shape[0]) for f in (src / "keypoints").glob("*.npz"))

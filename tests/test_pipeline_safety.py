@@ -26,6 +26,7 @@ from pipeline.discover import discover
 from pipeline.executors import run_sessions
 from pipeline.lock import LockHolder, holder, lock_path, session_lock
 from pipeline.synth import make_session
+from track.greedy_stage import GreedyTrackConfig
 
 REPO = Path(__file__).resolve().parents[1]
 PARTICLE = '[track]\ntracker = "particle"\n[track.options]\nn_samples = 1000\n'
@@ -153,7 +154,7 @@ def test_outputs_that_are_not_what_the_stage_wrote_are_not_trusted(session, tmp_
     out = tmp_path / "out"
     cfg = PipelineConfig(stages=("triangulate", "track"))
     if change == "delete_part":  # a streamed track: a folder of parts
-        cfg = cfg.replace(track=type(cfg.track)(tracker="greedy", options={"chunk_s": 1.0}))
+        cfg = cfg.replace(track=GreedyTrackConfig.from_dict({"chunk_s": 1.0}))
     (first,) = run_sessions(discover([session]), out, cfg, workers=1)
     assert first.status == "ok", first.message
     s = out / "S1"

@@ -16,15 +16,11 @@ from core.fileio import load_toml, save_toml
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
+from track.greedy_stage import track_session_greedy
 from track.trackfile import TrackFile
 from triangulate import evaluate as ev
-from triangulate.stage import (
-    FrameShift,
-    load_detections,
-    sync_shifts,
-    track_session_greedy,
-    triangulate_session,
-)
+from triangulate.multiview import FrameShift, load_detections, sync_shifts
+from triangulate.stage import triangulate_session
 
 OFFSETS = (0.0, 0.0, 6.0, -4.0)  # cam02 started 6 frames late, cam03 4 frames early
 

@@ -132,12 +132,11 @@ def test_attach_joints_checks_shapes_and_bad_skeleton():
 
 def test_pipeline_gives_the_particle_tracker_the_triangulate_skeleton():
     from pipeline.config import PipelineConfig
-    from pipeline.runner import particle_options
 
     wb = {"triangulate": {"options": {"skeleton": "whole_body"}}}
     cfg = PipelineConfig.from_dict({**wb, "track": {"tracker": "particle", "options": {"n_samples": 50}}})
-    assert particle_options(cfg) == {"n_samples": 50, "skeleton": "whole_body"}
+    assert cfg.track.skeleton == "whole_body" and cfg.track.particle.n_samples == 50
     track = {"tracker": "particle", "options": {"skeleton": "body19"}}
     own = PipelineConfig.from_dict({**wb, "track": track})
-    assert particle_options(own) == {"skeleton": "body19"}  # the track options' own choice wins
-    assert particle_options(PipelineConfig.from_dict({"track": {"tracker": "particle"}})) == {}
+    assert own.track.skeleton == "body19"  # the track options' own choice wins
+    assert PipelineConfig.from_dict({"track": {"tracker": "particle"}}).track == ParticleTrackConfig()

@@ -80,7 +80,7 @@ def test_stage_reads_stored_maps_of_distorted_cameras(tmp_path, caplog):
     from track.particle_io import load_maps
     from track.stage import track_session_particle
     from track.trackfile import TrackFile
-    from triangulate.stage import load_detections
+    from triangulate.multiview import load_detections
 
     rig = ring_rig(3, radius_m=4.0, distortion=True, seed=1)
     scene = make_scene(

@@ -44,12 +44,15 @@ def _per_frame_error(xyz, gt) -> np.ndarray:
         return np.nanmax(np.nanmin(np.nanmean(d, -1), 1), 1)
 
 
-@pytest.mark.parametrize("speed_m_s,moved", [(0.02, "little"), (0.1, "far")])
-def test_a_pause_of_the_recorder(speed_m_s, moved):
-    """Frames 0-59 at 25 Hz, a 30 s pause, frames 60-119 with consecutive numbers; people walk on at
-    0.02 m/s (0.6 m further after the pause) or 0.1 m/s (3 m). Nobody is detected in frames 58-61."""
+@pytest.mark.parametrize(
+    "pause_s,speed_m_s,moved", [(30.0, 0.02, "little"), (30.0, 0.1, "far"), (8.0, 0.075, "little")]
+)
+def test_a_pause_of_the_recorder(pause_s, speed_m_s, moved):
+    """Frames 0-59 at 25 Hz, a pause of 30 s (or 8 s), frames 60-119 with consecutive numbers; people walk
+    on at 0.02 m/s (0.6 m further after the 30 s pause; 0.6 m after 8 s at 0.075 m/s) or 0.1 m/s (3 m).
+    Nobody is detected in frames 58-61."""
     t_s = np.arange(120) / 25.0
-    t_s[60:] += 30.0
+    t_s[60:] += pause_s
     gt = _two_walkers(t_s, speed_m_s)
     res, tr = _run(gt, t_s, miss=np.s_[58:62])
     assert tr.pauses == 1 and abs(tr.clock_s - 119 / 25.0) < 1e-6  # the pause counts as one frame
@@ -116,3 +119,20 @@ def test_frame_count_keys_and_bad_times():
         track_sequence(
             ParticleTracker(P, FOCAL, 25.0), np.zeros((10, 3, 0, 19, 2)), np.zeros((10, 3, 0, 19)), t_ns=t_ns
         )
+
+
+def test_max_people_caps_the_tracks_at_once():
+    """A recording of a known number of people: ``max_people`` stops new identities beyond it, set as a user
+    would in ``[track.options]`` and checked when the config loads."""
+    t_s = np.arange(40) / 25.0
+    gt = _two_walkers(t_s, 0.5)
+    both, _ = _run(gt, t_s)
+    one, _ = _run(gt, t_s, max_people=1)
+    assert len(both.track_id) == 2 and len(one.track_id) == 1
+    from core.errors import FormatError
+    from pipeline.config import PipelineConfig
+
+    cfg = PipelineConfig.from_dict({"track": {"tracker": "particle", "options": {"max_people": 2}}})
+    assert cfg.track.particle.max_people == 2
+    with pytest.raises(FormatError, match=r"p.toml: field 'track.options.particle.max_people'.*range"):
+        PipelineConfig.from_dict({"track": {"options": {"max_people": -1}}}, "p.toml")

@@ -36,7 +36,7 @@ def test_pose2sim_two_participants_stable_ids_and_view_dependent_uncertainty(tmp
     from calibrate.camera import CameraRig
     from track.particle import ParticleConfig, ParticleTracker, track_sequence
     from track.particle_io import focal_lengths, track_arrays_to_file
-    from triangulate.stage import load_detections
+    from triangulate.multiview import load_detections
 
     rig = CameraRig.load(lay.rig_toml)
     sub, mv = load_detections(lay, rig)

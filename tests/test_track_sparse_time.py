@@ -14,11 +14,12 @@ from core.fileio import load_npz, load_toml, save_toml
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
+from track.greedy_stage import track_session_greedy
 from track.stage import track_session_particle
+from track.trackfile import TrackFile
 from triangulate import evaluate as ev
 from triangulate.poses3d import Poses3D
-from triangulate.stage import track_session_greedy, triangulate_session
-from triangulate.trackfile import TrackFile
+from triangulate.stage import triangulate_session
 
 SNAPSHOTS = 40
 PARTICLE = {"n_samples": 150}

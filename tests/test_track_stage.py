@@ -26,8 +26,9 @@ def _session(tmp_path, n_cams=3, n_people=2, seconds=3.0):
 
 
 def test_stage_writes_track_file_and_matches_greedy(tmp_path):
+    from track.greedy_stage import track_session_greedy
     from triangulate import evaluate as ev
-    from triangulate.stage import track_session_greedy, triangulate_session
+    from triangulate.stage import triangulate_session
 
     gt = _session(tmp_path)
     path = track_session_particle(tmp_path, {"motion": "constant_velocity", "n_samples": 150})

@@ -19,6 +19,7 @@ from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
 from track import stream
+from track.greedy import frame_times_s, pause_clock
 from track.particle import (
     ParticleConfig,
     ParticleTracker,
@@ -27,10 +28,8 @@ from track.particle import (
     track_sequence,
 )
 from track.stage import track_session_particle
-from track.trackfile import SMOOTHED
+from track.trackfile import SMOOTHED, TrackFile
 from triangulate import chunks as C
-from triangulate.tracker import frame_times_s, pause_clock
-from triangulate.trackfile import TrackFile
 
 PCFG = {"n_samples": 80}  # the GRU prior (its hidden state is part of the resumed state)
 STREAM = {**PCFG, "chunk_s": 2.0}

@@ -15,18 +15,28 @@ from triangulate_helpers import killed_after_commits
 from capture.session import SessionLayout
 from core.errors import InputError
 from keypoints.detections import Detections
-from pipeline.config import PipelineConfig, TrackConfig, TriangulateConfig
+from pipeline.config import PipelineConfig
 from pipeline.discover import discover
 from pipeline.executors import run_sessions
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
+from track.greedy_stage import GreedyTrackConfig
+from track.trackfile import TrackFile
 from triangulate import chunks as C
+from triangulate.reconstruct import TriangulateConfig
 from triangulate.stage import triangulate_session
-from triangulate.trackfile import TrackFile
 
 TRI = {"chunk_s": 2.0}  # 12 s at 25 Hz: 6 chunks
 TRK = {"chunk_s": 3.0}
+
+
+def _triangulate_on(root, options):
+    """``triangulate_session`` with its chunks run as ``options`` say (``workers``, ``executor``)."""
+    from pipeline.executors import chunk_runner
+
+    cfg = TriangulateConfig.from_dict(options)
+    return triangulate_session(root, cfg, executor=chunk_runner(cfg.stream))
 
 
 def _ray():
@@ -75,9 +85,9 @@ def _shas(folder) -> dict:
 def test_without_ray_the_message_says_how_to_install(session, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails as where it is not installed
     with pytest.raises(InputError, match=r"executor = 'ray' needs ray: pip install 'roomcap\[cluster\]'"):
-        triangulate_session(_copy(session[0], tmp_path / "s"), {**TRI, "executor": "ray"})
+        _triangulate_on(_copy(session[0], tmp_path / "s"), {**TRI, "executor": "ray"})
     with pytest.raises(ValueError, match="executor must be one of"):
-        triangulate_session(tmp_path / "s", {**TRI, "executor": "dask"})
+        _triangulate_on(tmp_path / "s", {**TRI, "executor": "dask"})
 
 
 @pytest.mark.slow
@@ -93,7 +103,7 @@ def test_chunks_as_ray_tasks_equal_one_process(session, tmp_path, monkeypatch, c
 
     fresh = _copy(session[0], tmp_path / "fresh")
     caplog.clear()
-    triangulate_session(fresh, {**TRI, "workers": 2, "executor": "ray"})  # every chunk a Ray task
+    _triangulate_on(fresh, {**TRI, "workers": 2, "executor": "ray"})  # every chunk a Ray task
     assert not ray.is_initialized()  # the Ray started for the stage is stopped
     assert _shas(C.parts_dir(SessionLayout(fresh).poses3d)) == want
     said = [r.getMessage() for r in caplog.records if "has no detection" in r.getMessage()]
@@ -101,11 +111,11 @@ def test_chunks_as_ray_tasks_equal_one_process(session, tmp_path, monkeypatch, c
 
     killed = _copy(session[0], tmp_path / "killed")
     with killed_after_commits(monkeypatch, 2), pytest.raises(KeyboardInterrupt):
-        triangulate_session(killed, {**TRI, "workers": 2, "executor": "ray"})
+        _triangulate_on(killed, {**TRI, "workers": 2, "executor": "ray"})
     assert not ray.is_initialized()  # a kill between parts stops the Ray started here too
     idx = json.loads((C.parts_dir(SessionLayout(killed).poses3d) / "index.json").read_text())
     assert not idx["complete"] and len(idx["parts"]) == 2
-    triangulate_session(killed, {**TRI, "workers": 2})  # resumed by processes: the same parts
+    _triangulate_on(killed, {**TRI, "workers": 2})  # resumed by processes: the same parts
     assert _shas(C.parts_dir(SessionLayout(killed).poses3d)) == want
 
 
@@ -119,8 +129,8 @@ def test_reprocess_on_ray_sends_a_sessions_chunks_to_the_cluster(session, tmp_pa
         _copy(session[0], src / name)
     cfg = PipelineConfig(
         stages=("triangulate", "track"),
-        triangulate=TriangulateConfig(options=TRI),
-        track=TrackConfig(tracker="greedy", options=TRK),
+        triangulate=TriangulateConfig.from_dict(TRI),
+        track=GreedyTrackConfig.from_dict(TRK),
     )
     local = run_sessions(discover([src]), tmp_path / "local", cfg, workers=1)
     assert [r.status for r in local] == ["ok", "ok"], [r.message for r in local]
@@ -145,13 +155,13 @@ def test_reprocess_on_ray_sends_a_sessions_chunks_to_the_cluster(session, tmp_pa
 
 
 def test_a_chunked_pipeline_asks_for_ray_chunks_only_on_ray():
-    from pipeline.executors import chunks_on_ray
+    from pipeline.executors import ray_for_chunks
 
-    cfg = PipelineConfig(triangulate=TriangulateConfig(options=TRI))
-    assert chunks_on_ray(cfg).triangulate.options == {**TRI, "executor": "ray"}
-    mine = PipelineConfig(triangulate=TriangulateConfig(options={**TRI, "executor": "processes"}))
-    assert chunks_on_ray(mine).triangulate.options["executor"] == "processes"  # the user's choice kept
+    cfg = PipelineConfig(triangulate=TriangulateConfig.from_dict(TRI))
+    assert ray_for_chunks(cfg).triangulate.stream.executor == "ray"
+    mine = PipelineConfig(triangulate=TriangulateConfig.from_dict({**TRI, "workers": 2}))
+    assert ray_for_chunks(mine).triangulate.stream.executor == "processes"  # the user's choice kept
     # the default chunk_s ("auto") streams a long session: its chunks may go to Ray
-    assert chunks_on_ray(PipelineConfig()).triangulate.options == {"executor": "ray"}
-    whole = PipelineConfig(triangulate=TriangulateConfig(options={"chunk_s": 0}))
-    assert "executor" not in chunks_on_ray(whole).triangulate.options  # whole session: one task
+    assert ray_for_chunks(PipelineConfig()).triangulate.stream.executor == "ray"
+    whole = PipelineConfig(triangulate=TriangulateConfig.from_dict({"chunk_s": 0}))
+    assert ray_for_chunks(whole).triangulate.stream.executor == "processes"  # whole session: one task

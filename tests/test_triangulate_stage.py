@@ -13,11 +13,12 @@ from keypoints.skeletons import CANONICAL
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen, ring_rig
 from synthetic.world import SceneConfig, make_scene, write_session
+from track.greedy_stage import GreedyTrackConfig, track_session_greedy
 from track.trackfile import OBSERVED, SMOOTHED, TrackFile
 from triangulate import evaluate as ev
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import GreedyTrackConfig, track_session_greedy, triangulate_session
+from triangulate.stage import triangulate_session
 
 
 @pytest.fixture(scope="module")

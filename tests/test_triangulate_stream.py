@@ -16,16 +16,26 @@ from keypoints.detections import Detections
 from synthetic.render import RenderConfig, render
 from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
+from track.greedy import TrackerConfig, frame_times_s, track_poses
+from track.greedy_stage import track_session_greedy
+from track.greedy_stream import build_chunks, link_chunks
+from track.trackfile import TrackFile, iter_parts
 from triangulate import chunks as C
 from triangulate import stage
 from triangulate.poses3d import Poses3D
-from triangulate.stage import track_session_greedy, triangulate_session
-from triangulate.stream_track import build_chunks, link_chunks
-from triangulate.tracker import TrackerConfig, frame_times_s, track_poses
-from triangulate.trackfile import TrackFile, iter_parts
+from triangulate.reconstruct import TriangulateConfig
+from triangulate.stage import triangulate_session
 
 TRI = {"chunk_s": 2.0}
 TRK = {"chunk_s": 3.0}
+
+
+def _triangulate_on(root, options):
+    """``triangulate_session`` with its chunks run as ``options`` say (``workers``, ``executor``)."""
+    from pipeline.executors import chunk_runner
+
+    cfg = TriangulateConfig.from_dict(options)
+    return triangulate_session(root, cfg, executor=chunk_runner(cfg.stream))
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +103,7 @@ def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch, caplo
     lay = SessionLayout(root)
     with killed_after_commits(monkeypatch, 2), pytest.raises(KeyboardInterrupt):
         triangulate_session(root, TRI)
-    triangulate_session(root, {**TRI, "workers": 2})
+    _triangulate_on(root, {**TRI, "workers": 2})
     idx = json.loads((C.parts_dir(lay.poses3d) / "index.json").read_text())
     assert idx["complete"] and len(idx["parts"]) == 6
     _same_poses(Poses3D.load(lay.poses3d), session[1])
@@ -102,7 +112,7 @@ def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch, caplo
     fresh = tmp_path / "fresh"
     shutil.copytree(session[0], fresh)
     caplog.clear()
-    triangulate_session(fresh, {**TRI, "workers": 2})  # every chunk in the workers
+    _triangulate_on(fresh, {**TRI, "workers": 2})  # every chunk in the workers
     assert "has no detection" not in caplog.text  # the workers say which cameras they saw
     _same_poses(Poses3D.load(SessionLayout(fresh).poses3d), session[1])
 
@@ -184,8 +194,8 @@ def test_stream_tracker_equals_batch_on_a_paused_irregular_recording(session):
     cfg = TrackerConfig().at_fps(p.fps)
     whole = track_poses(xyz, fi, t_ns, p.fps, p.joint_names, parents, conf, std, cfg)
     t_s = frame_times_s(fi, t_ns, p.fps)
+    from track.greedy import facing_joints
     from triangulate.reconstruct import flip_index
-    from triangulate.tracker import facing_joints
 
     flip = flip_index(p.joint_names)
     for step in (7, 40, 1000):

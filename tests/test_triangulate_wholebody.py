@@ -12,10 +12,11 @@ from keypoints.detections import Detections
 from keypoints.skeletons import CANONICAL, SKELETONS, convert, load_skeleton_toml, whole_body
 from synthetic.rigs import ring_rig
 from track.export import marker_table
+from track.greedy_stage import track_session_greedy
 from track.trackfile import TrackFile
 from triangulate.poses3d import Poses3D
 from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import track_session_greedy, triangulate_session
+from triangulate.stage import triangulate_session
 
 
 def _body25b_people(rng, n=2):

@@ -30,7 +30,7 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
 ``ExportOptions(lowpass_hz=6)`` (``tracks export --lowpass 6``) low-pass filters the positions first, as
 Pose2Sim filters its 3D before OpenSim (:func:`lowpass`: Butterworth, order 4, zero phase). Off by
 default: both trackers already smooth their output (on Pose2Sim's balancing trial it changed OpenSim's
-marker errors by under 0.5 mm; BENCHMARKS.md, issue 18).
+marker errors by under 0.5 mm; BENCHMARKS.md).
 """
 
 from __future__ import annotations

@@ -28,9 +28,10 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.config import config_from_dict
+from track.trackfile import OBSERVED, SMOOTHED, TrackFile
 from triangulate.dlt import DLTConfig, Triangulator
 from triangulate.geometry import project
-from triangulate.trackfile import OBSERVED, SMOOTHED, TrackFile
+from triangulate.multiview import load_detections
 
 log = logging.getLogger(__name__)
 
@@ -159,36 +160,9 @@ def attach_joints(
     std[:, :, shared] = tf.std_m[:, :, src]
     flags[:, :, shared] = tf.flags[:, :, src]
     if extra and K:
-        tri = Triangulator(P, cfg.dlt)
-        E = len(extra)
-        for t in range(T):
-            slot = assign_views(
-                P, tf.xyz_m[t][:, src], xy_px[:, t][:, :, shared], score[:, t][:, :, shared], cfg
-            )
-            have = slot >= 0  # (C,K)
-            if not have.any():
-                continue
-            sl = np.where(have, slot, 0)
-            cams = np.arange(C)[:, None]
-            pts = xy_px[cams, t, sl][:, :, extra]  # (C,K,E,2)
-            w = score[cams, t, sl][:, :, extra]  # (C,K,E)
-            pts = np.where(have[:, :, None, None], pts, np.nan)
-            w = np.where(have[:, :, None] & (w >= cfg.min_score), w, 0.0)
-            r = tri(pts.reshape(C, K * E, 2), w.reshape(C, K * E))
-            X = r.xyz_m.reshape(K, E, 3)
-            ok = np.isfinite(X).all(-1)
-            xyz[t][:, extra] = np.where(ok[..., None], X, np.nan)
-            conf[t][:, extra] = np.where(ok, r.score.reshape(K, E), 0.0)
-            std[t][:, extra] = np.where(ok, r.std_m.reshape(K, E), np.nan)
-            flags[t][:, extra] = np.where(ok, OBSERVED, 0)
-        # a point far from its parent belongs to someone else (or to nobody)
-        for j in extra:
-            p = int(parents[j])
-            if p < 0:
-                continue
-            far = np.linalg.norm(xyz[:, :, j] - xyz[:, :, p], axis=-1) > cfg.max_bone_m
-            xyz[:, :, j][far] = np.nan
-            conf[:, :, j][far], std[:, :, j][far], flags[:, :, j][far] = 0.0, np.nan, 0
+        out = (xyz, conf, std, flags)
+        _triangulate_extra(tf, P, xy_px, score, shared, extra, src, cfg, out)
+        _drop_far_from_parent(parents, extra, cfg.max_bone_m, out)
         sigma = cfg.smooth_sigma_s * tf.fps
         if sigma > 0:
             for k in range(K):
@@ -198,10 +172,10 @@ def attach_joints(
         n_obs = int((flags[:, :, extra] > 0).sum())
         log.info(
             "particle tracker: %d joints beyond body19 (%s) attached, %d of %d track-frame-joints known",
-            E,
-            ", ".join(joint_names[j] for j in extra[:8]) + (" ..." if E > 8 else ""),
+            len(extra),
+            ", ".join(joint_names[j] for j in extra[:8]) + (" ..." if len(extra) > 8 else ""),
             n_obs,
-            int(tf.mask.any(-1).sum()) * E,
+            int(tf.mask.any(-1).sum()) * len(extra),
         )
     return replace(
         tf,
@@ -215,14 +189,51 @@ def attach_joints(
     )
 
 
+def _triangulate_extra(tf, P, xy_px, score, shared, extra, src, cfg: ExtraJointsConfig, out) -> None:
+    """Per frame, each track's views (:func:`assign_views` by its shared joints) and the joints ``extra``
+    triangulated from them into ``out = (xyz, conf, std, flags)``."""
+    xyz, conf, std, flags = out
+    C, T = score.shape[:2]
+    K, E = tf.n_tracks, len(extra)
+    tri = Triangulator(P, cfg.dlt)
+    for t in range(T):
+        slot = assign_views(P, tf.xyz_m[t][:, src], xy_px[:, t][:, :, shared], score[:, t][:, :, shared], cfg)
+        have = slot >= 0  # (C,K)
+        if not have.any():
+            continue
+        sl = np.where(have, slot, 0)
+        cams = np.arange(C)[:, None]
+        pts = xy_px[cams, t, sl][:, :, extra]  # (C,K,E,2)
+        w = score[cams, t, sl][:, :, extra]  # (C,K,E)
+        pts = np.where(have[:, :, None, None], pts, np.nan)
+        w = np.where(have[:, :, None] & (w >= cfg.min_score), w, 0.0)
+        r = tri(pts.reshape(C, K * E, 2), w.reshape(C, K * E))
+        X = r.xyz_m.reshape(K, E, 3)
+        ok = np.isfinite(X).all(-1)
+        xyz[t][:, extra] = np.where(ok[..., None], X, np.nan)
+        conf[t][:, extra] = np.where(ok, r.score.reshape(K, E), 0.0)
+        std[t][:, extra] = np.where(ok, r.std_m.reshape(K, E), np.nan)
+        flags[t][:, extra] = np.where(ok, OBSERVED, 0)
+
+
+def _drop_far_from_parent(parents: np.ndarray, extra: list[int], max_bone_m: float, out) -> None:
+    """A point farther than ``max_bone_m`` from its parent belongs to someone else (or to nobody)."""
+    xyz, conf, std, flags = out
+    for j in extra:
+        p = int(parents[j])
+        if p < 0:
+            continue
+        far = np.linalg.norm(xyz[:, :, j] - xyz[:, :, p], axis=-1) > max_bone_m
+        xyz[:, :, j][far] = np.nan
+        conf[:, :, j][far], std[:, :, j][far], flags[:, :, j][far] = 0.0, np.nan, 0
+
+
 def attach_session_joints(
     lay, rig, sub, tf: TrackFile, skeleton: str, config: ExtraJointsConfig
 ) -> TrackFile:
     """:func:`attach_joints` for a session: the detections read again in the layout of ``skeleton``
     (``whole_body`` or a skeleton TOML, as the triangulate option) on the particle tracker's frame axis;
     ``sub`` is the rig the tracker ran on (the cameras with detections)."""
-    from triangulate.stage import load_detections
-
     sub2, mv = load_detections(lay, rig, skeleton=skeleton)
     if tuple(sub2.names) != tuple(sub.names) or not np.array_equal(mv.frame_index, tf.frame_index):
         raise ValueError(

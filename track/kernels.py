@@ -21,6 +21,11 @@ C cameras, V camera pairs, D detections, B = K·N.
   5.2–5.4), the GRU cell's gates after its two matrix products, the displacement turned back (eq. 5.5);
   :func:`gather_state` the resampling's gather of the motion state.
 
+The kernels that loop over tracks or batch rows (``pair_weights``, ``refine_resampled``, the GRU's
+three) run those loops on numba's threads (``parallel=True``, ``prange``; ``NUMBA_NUM_THREADS``, by
+default the machine's cores): each iteration writes only its own rows with its own buffers, so the
+results are the same bits for any number of threads.
+
 Arithmetic is float32 where the numpy path's is, with float64 products and sums where a range or an
 accumulation needs it; the results agree with numpy to float32 rounding, not bit for bit (fused
 expressions, other summation orders). ``fastmath`` is off (IEEE arithmetic, no reassociation);
@@ -106,23 +111,44 @@ def _ray_rows(basis, centers, k, j, c, C):
 
 
 @njit(cache=True, error_model="numpy")
+def _pair_rows(pairs, active, C):
+    """For each camera pair (V,2) the first pair whose Phi row equals its own, and each camera's slot in
+    the squared limb scores: a camera without evidence for the track (``active`` False: every score 0)
+    scores 0 everywhere, exactly as the zero row C a camera alone is paired with, so a pair with such a
+    camera gives the same bits as the other camera alone, and a pair of two such cameras eps^L."""
+    V = pairs.shape[0]
+    first = np.empty((C + 1, C + 1), np.int64)
+    for a in range(C + 1):
+        for b in range(C + 1):
+            first[a, b] = -1
+    rep = np.empty(V, np.int64)
+    slot = np.empty((V, 2), np.int64)
+    for v in range(V):
+        a, b = pairs[v, 0], pairs[v, 1]
+        a = a if active[a] else C
+        b = b if active[b] and b != pairs[v, 0] else C
+        lo, hi = min(a, b), max(a, b)  # sqrt(p2[a] + p2[b]): the sum is the same bits either way round
+        if first[lo, hi] < 0:
+            first[lo, hi] = v
+        rep[v] = first[lo, hi]
+        slot[v, 0], slot[v, 1] = lo, hi
+    return rep, slot
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
 def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs, pairs):
     """Phi(v, s) of eq. 5.7 for every track, camera pair and sample. X: (K,N,J,3) float32; centers: (C,3);
     basis: (K,J,3C,3) (:func:`track.observation.ray_basis`); sc: (K,C,J) associated keypoint scores (0 =
     none); focal: (C,); limbs: (L,2); pairs: (V,2) (a pair (c, c) = camera c alone). Returns (K,V,N)
     float64: prod_l (sqrt(sum_{c in v} phi(c,l,s)^2) + eps), phi = conf_a conf_b (keypoint evidence) and
-    conf = sc k(d^2 / s^2) (:func:`track.observation.joint_scores`)."""
+    conf = sc k(d^2 / s^2) (:func:`track.observation.joint_scores`). Rows that equal another pair's bit for
+    bit (a camera without any associated joint of the track, :func:`_pair_rows`) are computed once."""
     K, N, J = X.shape[0], X.shape[1], X.shape[2]
     C, L, V = centers.shape[0], limbs.shape[0], pairs.shape[0]
     _check_scores(basis, sc, focal, K, J, C)
     if not (_in_range(limbs, J) and _in_range(pairs, C)):
         raise ValueError("pair_weights: limbs must index joints and pairs cameras")
     out = np.empty((K, V, N), np.float64)
-    xt = np.empty((J, 3, _NB), np.float32)
-    conf = np.empty((C, J, _NB), np.float32)
-    p2 = np.zeros((C + 1, L, _NB), np.float32)  # row C stays 0: the partner of a camera alone
-    prod = np.empty(_NB, np.float64)
-    pf = np.empty(_NB, np.float32)
     # limbs per float32 product: each factor lies in [eps, sqrt(2) + eps] (conf <= 1), so eps^g32 stays
     # above float32's smallest normal (1e-38) and (sqrt(2) + eps)^g32 far below its largest
     g32 = max(1, min(8, int(30.0 / max(1.0, -math.log10(min(eps, 1.0))))))
@@ -130,7 +156,19 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
     spx = _F(sigma_px)
     epsf = _F(eps)
     near = _F(0.05)
-    for k in range(K):
+    for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
+        xt = np.empty((J, 3, _NB), np.float32)
+        conf = np.empty((C, J, _NB), np.float32)
+        p2 = np.zeros((C + 1, L, _NB), np.float32)  # row C stays 0: the partner of a camera alone
+        prod = np.empty(_NB, np.float64)
+        pf = np.empty(_NB, np.float32)
+        active = np.empty(C, np.bool_)
+        for c in range(C):
+            active[c] = False
+            for j in range(J):
+                if sc[k, c, j] != 0:
+                    active[c] = True
+        rep, slot = _pair_rows(pairs, active, C)
         for n0 in range(0, N, _NB):
             nb = min(_NB, N - n0)
             for i in range(nb):  # samples innermost from here on
@@ -139,11 +177,14 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
                     xt[j, 1, i] = X[k, n0 + i, j, 1]
                     xt[j, 2, i] = X[k, n0 + i, j, 2]
             for c in range(C):
+                if not active[c]:
+                    continue
                 g = spx / _F(focal[c])
                 for j in range(J):
                     s = sc[k, c, j]
                     if s == 0:
-                        conf[c, j, :nb] = 0
+                        for i in range(nb):
+                            conf[c, j, i] = 0
                         continue
                     u0, u1, u2, w0, w1, w2, r0, r1, r2, ou, ow, orr = _ray_rows(basis, centers, k, j, c, C)
                     for i in range(nb):
@@ -155,24 +196,29 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
                         v2 = _F(2.0) * (sm2 + gd * gd)  # 2 s^2
                         kv = v2 / (v2 + (yu * yu + yw * yw))  # 1 / (1 + d^2 / 2 s^2): observation._kernel
                         conf[c, j, i] = kv * s if d > near else _F(0.0)
-            for c in range(C):
                 for li in range(L):
                     a, b = limbs[li, 0], limbs[li, 1]
                     for i in range(nb):
                         t = conf[c, a, i] * conf[c, b, i]  # phi(c,l,s) (eq. 5.8, keypoint evidence)
                         p2[c, li, i] = t * t
             for v in range(V):
-                ca, cb = pairs[v, 0], pairs[v, 1]
-                cb = C if cb == ca else cb
-                prod[:nb] = 1.0
+                if rep[v] != v:  # the same bits as an earlier row
+                    for i in range(nb):
+                        out[k, v, n0 + i] = out[k, rep[v], n0 + i]
+                    continue
+                ca, cb = slot[v, 0], slot[v, 1]
+                for i in range(nb):
+                    prod[i] = 1.0
                 for l0 in range(0, L, g32):  # float32 products of g32 limbs, then one float64 product
-                    pf[:nb] = 1.0
+                    for i in range(nb):
+                        pf[i] = 1.0
                     for li in range(l0, min(L, l0 + g32)):
                         for i in range(nb):
                             pf[i] *= np.sqrt(p2[ca, li, i] + p2[cb, li, i]) + epsf
                     for i in range(nb):
                         prod[i] *= np.float64(pf[i])
-                out[k, v, n0 : n0 + nb] = prod[:nb]
+                for i in range(nb):
+                    out[k, v, n0 + i] = prod[i]
     return out
 
 
@@ -207,14 +253,22 @@ def sus_indices(phi, counts, u):
                 for i in range(N):
                     cdf[v, i] = (i + 1.0) / N
                 tot = 1.0
-            row = cdf[v]
+            lo = 0
             for q in range(m):  # binary search: first i with cdf_i >= pos (side='left'), at most N - 1
-                idx[k, o + q] = min(np.searchsorted(row, (u[k * V + v] + q) / m * tot), N - 1)
+                pos = (u[k * V + v] + q) / m * tot  # increasing in q: the search starts at the last answer
+                hi = N
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if cdf[v, mid] < pos:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                idx[k, o + q] = min(lo, N - 1)
             o += m
     return idx
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def refine_resampled(
     X, idx, centers, basis, sc, focal, *, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
 ):
@@ -239,18 +293,21 @@ def refine_resampled(
     G = min(n_guided, R)
     out = np.empty((K, N, J, 3), np.float32)
     score = np.zeros((K, J, N), np.float32)
-    if not refine:
+    if not refine:  # element by element: an array-to-array slice assignment costs seconds of compile
         for k in range(K):
             for n in range(N):
-                out[k, n] = X[k, idx[k, n]]
+                m = idx[k, n]
+                for j in range(J):
+                    for a in range(3):
+                        out[k, n, j, a] = X[k, m, j, a]
         return out, score
-    x = np.empty((3, N), np.float32)
-    e = np.empty((R, 3, N), np.float32)  # candidate offsets
-    tot = np.empty((R + 1, N), np.float32)  # summed confidence of candidate 0 (current) and the others
-    ys = np.empty((2, N), np.float32)
     sm2, spx, half, one, near = _F(sigma_m) * _F(sigma_m), _F(sigma_px), _F(0.5), _F(1.0), _F(0.05)
-    tg = np.empty((3, N), np.float32)  # guided target - current position
-    for k in range(K):
+    for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
+        x = np.empty((3, N), np.float32)
+        e = np.empty((R, 3, N), np.float32)  # candidate offsets
+        tot = np.empty((R + 1, N), np.float32)  # summed confidence of candidate 0 (current) and the others
+        ys = np.empty((2, N), np.float32)
+        tg = np.empty((3, N), np.float32)  # guided target - current position
         for j in range(J):
             for n in range(N):
                 m = idx[k, n]
@@ -375,7 +432,10 @@ def output_stats(X, score, has, eps):
                         p[n] *= np.float64(score[k, j, n] + _F(eps))
                 for n in range(N):
                     lp[n] += math.log(p[n])
-            mx = lp.max()
+            mx = lp[0]
+            for n in range(1, N):  # the maximum as a loop (np.max costs a second of compile); NaN wins
+                if (lp[n] > mx or lp[n] != lp[n]) and mx == mx:
+                    mx = lp[n]
             tot = 0.0
             for n in range(N):
                 w[n] = math.exp(lp[n] - mx)
@@ -524,7 +584,7 @@ def gather_state(state: dict, idx: np.ndarray) -> dict:
 # --- the GRU motion prior (eq. 5.1-5.5) ----------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def gru_inputs(x, prev, ip, il, ir, vscale):
     """Eq. 5.2–5.4 for a batch: x, prev (B,J,3) float32 (the samples and their previous positions) ->
     inp (B,2·J·3) = [R(x - origin), R(x - prev)·vscale] flattened, and (cos, sin) of each sample's facing
@@ -537,7 +597,7 @@ def gru_inputs(x, prev, ip, il, ir, vscale):
         raise ValueError("gru_inputs: prev must be shaped as x and the hip joints index it")
     cs = np.empty((B, 2), np.float32)
     vs = _F(vscale)
-    for b in range(B):
+    for b in numba.prange(B):  # rows in parallel: the same bits as in order
         o0, o1, o2 = x[b, ip, 0], x[b, ip, 1], x[b, ip, 2]
         h = _F(0.5)
         if not np.isfinite(o0):
@@ -613,7 +673,7 @@ def _tanh(x):
     return big if a >= _F(0.625) else small
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     """The GRU cell after its two products gi = x W_ih, gh = h W_hh (B,3H), gates r, z, n (torch.nn.GRUCell):
     r = sigma(gi_r + b_ir + gh_r + b_hr), z likewise, n = tanh(gi_n + b_in + r (gh_n + b_hn)),
@@ -627,7 +687,7 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     out = np.empty((B, H), np.float32)
     dropped = np.empty((B, H), np.float32) if mask.shape[0] else out
     one = _F(1.0)
-    for b in range(B):
+    for b in numba.prange(B):  # rows in parallel: the same bits as in order
         for i in range(H):
             r = one / (one + _exp(-((gi[b, i] + b_ih[i]) + (gh[b, i] + b_hh[i]))))
             z = one / (one + _exp(-((gi[b, H + i] + b_ih[H + i]) + (gh[b, H + i] + b_hh[H + i]))))
@@ -639,7 +699,7 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     return out, dropped
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     """Eq. 5.5 for the displacement: x + R^T (delta + b_out)·dscale + sigma·noise. delta (B,3J) = the output
     layer's product, b_out (3J,) its bias, cs (B,2) from :func:`gru_inputs`, x (B,J,3), noise (B,J,3)
@@ -651,7 +711,7 @@ def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     if sigma != 0 and noise.shape != x.shape:
         raise ValueError("gru_outputs: noise must be shaped as x")
     ds, sg = _F(dscale), _F(sigma)
-    for b in range(B):
+    for b in numba.prange(B):  # rows in parallel: the same bits as in order
         c, s = cs[b, 0], cs[b, 1]
         for j in range(J):
             d0, d1, d2 = (

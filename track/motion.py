@@ -14,8 +14,11 @@ is B, so resampling is a gather along that axis):
   Besides the normalised pose the network also sees the sample's last
   displacement in the same frame (our addition: the normalisation removes the
   global motion, and the hidden state alone forgets it when the frame turns).
+  It runs in numpy (:class:`track.priors.GRUCellPrior`); the tracker loads it from the numpy copy of the
+  checkpoint that :func:`save_checkpoint` writes beside it, without torch
+  (:func:`track.priors.load_gru_numpy`).
 
-This is the only module of ``track`` that imports torch.
+This module (training, checkpoints) imports torch; tracking with a checkpoint's numpy copy does not.
 """
 
 from __future__ import annotations
@@ -30,10 +33,12 @@ from torch import nn
 from core.errors import RoomcapError
 from core.fileio import atomic_path
 from keypoints.skeletons import CANONICAL, Skeleton
-from track import kernels
-from track.normalize import hip_frame, hip_indices, normalize, rotate_vectors
+from track.normalize import hip_frame, normalize, rotate_vectors
 from track.priors import (  # noqa: F401 - re-exported
+    DEFAULT_MOTION_CHECKPOINT,
+    GRU_WEIGHT_NAMES,
     ConstantVelocityPrior,
+    GRUCellPrior,
     MotionPrior,
     State,
     ZeroVelocityPrior,
@@ -42,12 +47,13 @@ from track.priors import (  # noqa: F401 - re-exported
     gather_state,
     normal_noise,
     standard_normals,
+    write_numpy_copy,
 )
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_SCHEMA = "motion_gru/1"
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "motion_gru.pt"
+DEFAULT_CHECKPOINT = DEFAULT_MOTION_CHECKPOINT
 
 
 class CheckpointMismatch(RoomcapError, ValueError):
@@ -97,11 +103,9 @@ def step_inputs(
     return (x_hat.reshape(*lead, -1), v_hat.reshape(*lead, -1), origin, theta)
 
 
-class GRUPrior:
-    """The learned prior of eq. 5.1. Load with :meth:`load`; ``dropout`` overrides the trained rate at
-    inference."""
-
-    name = "gru"
+class GRUPrior(GRUCellPrior):
+    """The learned prior of eq. 5.1 built from the torch model (:class:`track.priors.GRUCellPrior` runs it
+    in numpy). Load with :meth:`load`; ``dropout`` overrides the trained rate at inference."""
 
     def __init__(
         self,
@@ -114,9 +118,12 @@ class GRUPrior:
         seed: int = 0,
     ):
         self.model = model.eval()
-        self.model_fps, self.fps, self.skeleton = float(model_fps), float(fps), skeleton
-        self.dropout = model.dropout if dropout is None else float(dropout)
-        self.sigma_m = float(sigma_m)
+        cell, out = model.cell, model.out
+        weights = tuple(
+            t.detach().numpy()
+            for t in (cell.weight_ih.T, cell.bias_ih, cell.weight_hh.T, cell.bias_hh, out.weight.T, out.bias)
+        )
+        super().__init__(weights, model.dropout, model_fps, fps, skeleton, dropout, sigma_m)
 
     @classmethod
     def load(
@@ -124,61 +131,6 @@ class GRUPrior:
     ) -> GRUPrior:
         model, meta = load_checkpoint(path, skeleton)
         return cls(model, meta["fps"], fps, skeleton, **kw)
-
-    def init_state(self, x: np.ndarray) -> State:
-        x = check_batch(x, self.skeleton.n_joints)
-        return {"prev": x.copy(), "h": np.zeros((len(x), self.model.hidden), np.float32)}
-
-    def _mask(self, rng: np.random.Generator, B: int, H: int) -> np.ndarray:
-        """MC-dropout mask (B,H), entries 0 or 1/(1-p) (keep with probability 1-p): a contiguous slice at a
-        random offset of a fixed Bernoulli block (no per-step draws or conversions, as ``normal_noise``)."""
-        n = B * H
-        bank = getattr(self, "_mask_bank", None)
-        if bank is None or len(bank) < n:
-            size = max(1 << 21, 2 * n)
-            keep = np.random.default_rng(54321).random(size) >= self.dropout
-            bank = self._mask_bank = keep.astype(np.float32) * np.float32(1.0 / (1.0 - self.dropout))
-        start = int(rng.integers(0, len(bank) - n + 1))
-        return bank[start : start + n].reshape(B, H)
-
-    def _weights(self) -> tuple[np.ndarray, ...]:
-        """The cell's and the output layer's weights as float32 numpy arrays, transposed for ``x @ W`` (read
-        once: the prior wraps a trained model in eval mode)."""
-        w = getattr(self, "_np_weights", None)
-        if w is None:
-            cell, out = self.model.cell, self.model.out
-            w = self._np_weights = tuple(
-                np.ascontiguousarray(t.detach().numpy(), np.float32)
-                for t in (
-                    cell.weight_ih.T,
-                    cell.bias_ih,
-                    cell.weight_hh.T,
-                    cell.bias_hh,
-                    out.weight.T,
-                    out.bias,
-                )
-            )
-        return w
-
-    def predict(self, x, state, rng):
-        x = check_batch(x, self.skeleton.n_joints)
-        B, H = len(x), self.model.hidden
-        ip, il, ir = hip_indices(self.skeleton)
-        # [pose - origin, last displacement] rotated into the hip frame in one pass: the normalised pose
-        # (eq. 5.2-5.4) and the normalised displacement
-        inp, cs = kernels.gru_inputs(
-            x, np.ascontiguousarray(state["prev"], np.float32), ip, il, ir, self.fps / self.model_fps
-        )
-        w_ih, b_ih, w_hh, b_hh, w_out, b_out = self._weights()
-        h_prev = np.ascontiguousarray(state["h"], np.float32)
-        # the GRU cell's two products (B,3H) (gates r, z, n), then its gates and the dropout compiled
-        mask = self._mask(rng, B, H) if 0 < self.dropout < 1 else np.zeros((0, 0), np.float32)
-        h, hd = kernels.gru_gates(inp @ w_ih, b_ih, h_prev @ w_hh, b_hh, h_prev, mask)
-        noise = standard_normals(rng, x.shape) if self.sigma_m > 0 else np.zeros((0, 0, 3), np.float32)
-        new = kernels.gru_outputs(
-            hd @ w_out, b_out, cs, x, self.model_fps / self.fps, noise, self.sigma_m
-        )  # eq. 5.5 for the displacement, plus the noise
-        return new, {"prev": x, "h": h}
 
 
 def write_checkpoint(
@@ -204,7 +156,26 @@ def write_checkpoint(
 def save_checkpoint(
     path: str | Path, model: PoseGRU, fps: float, skeleton: Skeleton, train_info: dict
 ) -> None:
+    """Write a motion checkpoint and, beside it, the numpy copy of its weights that tracking loads without
+    torch (:func:`track.priors.load_gru_numpy`)."""
     write_checkpoint(path, CHECKPOINT_SCHEMA, model, skeleton, train_info, fps=float(fps))
+    write_gru_numpy_copy(path)
+
+
+def write_gru_numpy_copy(path: str | Path) -> Path:
+    """Write the numpy copy (``.npz`` beside it) of the motion checkpoint at ``path``: its stored weights,
+    transposed for ``x @ W``, as the checkpoint holds them (half precision)."""
+    meta = torch.load(path, map_location="cpu", weights_only=True)
+    sd = meta["state_dict"]
+    weights = {
+        name: sd[key].numpy().T.copy() if "weight" in key else sd[key].numpy()
+        for name, key in zip(
+            GRU_WEIGHT_NAMES,
+            ("cell.weight_ih", "cell.bias_ih", "cell.weight_hh", "cell.bias_hh", "out.weight", "out.bias"),
+            strict=True,
+        )
+    }
+    return write_numpy_copy(path, weights, meta)
 
 
 def read_checkpoint(

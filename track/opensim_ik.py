@@ -251,8 +251,43 @@ def run_opensim_trc(
     osim.Logger.setLevelString("error")
     osim.Logger.removeFileSink()
     osim.Logger.addFileSink(str(out_dir / "opensim.log"))
+    generic = _generic_model(osim, setup, out_dir / f"{stem}_generic.osim")
+    scaled = out_dir / f"{stem}_scaled.osim"
+    t0, t1 = float(time_s[0]), float(time_s[-1])
+    _scale(
+        osim,
+        setup,
+        trc,
+        generic,
+        scaled,
+        use,
+        (t0, t1),
+        _slowest_window(np.nan_to_num(xyz), time_s),
+        mass_kg,
+        notes,
+    )
+    mot = out_dir / f"{stem}.mot"
+    _inverse_kinematics(osim, setup, trc, scaled, mot, stem, use, (t0, t1))
+    t_err, rms, mx, per = _marker_errors(out_dir, stem, use, names, xyz, time_s)
+    errors_csv = out_dir / f"{stem}_marker_errors.csv"
+    head = "time_s,rms_m,max_m," + ",".join(f"{n}_m" for n in use)
+    body = [
+        f"{t:.6f},{r:.6f},{x:.6f}," + ",".join(f"{v:.6f}" for v in pm)
+        for t, r, x, pm in zip(t_err, rms, mx, per, strict=True)
+    ]
+    atomic_write_text(errors_csv, "\n".join([head, *body]) + "\n")
+    return OpenSimResult(track_id, trc, scaled, mot, errors_csv, use, missing, t_err, rms, mx, per, notes)
 
-    # generic model + marker set
+
+def _time_range(osim, a: float, b: float):
+    tr = osim.ArrayDouble()
+    tr.append(a)
+    tr.append(b)
+    return tr
+
+
+def _generic_model(osim, setup, path: Path) -> Path:
+    """The setup's model with its marker set added, written to ``path``."""
     model = osim.Model(str(setup.model))
     mset = osim.MarkerSet(str(setup.markers))
     have = {model.getMarkerSet().get(i).getName() for i in range(model.getMarkerSet().getSize())}
@@ -261,11 +296,13 @@ def run_opensim_trc(
             model.addMarker(mset.get(i).clone())
     model.finalizeConnections()
     model.initSystem()
-    generic = out_dir / f"{stem}_generic.osim"
-    model.printToXML(str(generic))
+    model.printToXML(str(path))
+    return path
 
-    scaled = out_dir / f"{stem}_scaled.osim"
-    t0, t1 = float(time_s[0]), float(time_s[-1])
+
+def _scale(osim, setup, trc, generic, scaled, use, span, window, mass_kg, notes: list[str]) -> None:
+    """OpenSim's ScaleTool on ``trc`` (markers ``use``): measurements needing other markers are not
+    applied (said in ``notes``); the markers are placed in the slowest ``window``."""
     st = osim.ScaleTool(str(setup.scaling))
     if mass_kg:
         st.setSubjectMass(float(mass_kg))
@@ -281,46 +318,48 @@ def run_opensim_trc(
             notes.append(
                 f"scaling measurement '{meas.getName()}' not applied (needs {sorted(need - set(use))})"
             )
-    tr = osim.ArrayDouble()
-    tr.append(t0)
-    tr.append(t1)
+    tr = _time_range(osim, *span)
     ms_.setMarkerFileName(str(trc))
     ms_.setTimeRange(tr)
     ms_.setOutputModelFileName(str(scaled))
     mp = st.getMarkerPlacer()
     _restrict_tasks(mp.getIKTaskSet(), use)
-    a, b = _slowest_window(np.nan_to_num(xyz), time_s)
-    tr2 = osim.ArrayDouble()
-    tr2.append(a)
-    tr2.append(b)
+    tr2 = _time_range(osim, *window)
     mp.setMarkerFileName(str(trc))
     mp.setTimeRange(tr2)
     mp.setOutputModelFileName(str(scaled))
     mp.setApply(True)
     st.setPathToSubject("")
     if not st.run():
-        raise OpenSimError(f"OpenSim scaling failed on {trc}; see {out_dir / 'opensim.log'}.")
+        raise OpenSimError(f"OpenSim scaling failed on {trc}; see {scaled.parent / 'opensim.log'}.")
 
-    mot = out_dir / f"{stem}.mot"
+
+def _inverse_kinematics(osim, setup, trc, scaled, mot, stem: str, use, span) -> None:
+    """OpenSim's InverseKinematicsTool on ``trc`` with the scaled model; writes ``mot`` and the marker
+    locations and errors beside it."""
     ik = osim.InverseKinematicsTool(str(setup.ik))
     scaled_model = osim.Model(str(scaled))  # kept referenced: the tool does not own it
     ik.setModel(scaled_model)
     _restrict_tasks(ik.getIKTaskSet(), use)
     ik.setMarkerDataFileName(str(trc))
-    ik.setStartTime(t0)
-    ik.setEndTime(t1)
+    ik.setStartTime(span[0])
+    ik.setEndTime(span[1])
     ik.setOutputMotionFileName(str(mot))
-    ik.setResultsDir(str(out_dir))
+    ik.setResultsDir(str(mot.parent))
     ik.set_report_marker_locations(True)
     ik.set_report_errors(True)
     ik.setName(stem)
     ok = ik.run()
     del ik, scaled_model
     if not ok:
-        raise OpenSimError(f"OpenSim inverse kinematics failed on {trc}; see {out_dir / 'opensim.log'}.")
+        raise OpenSimError(f"OpenSim inverse kinematics failed on {trc}; see {mot.parent / 'opensim.log'}.")
+
+
+def _marker_errors(out_dir: Path, stem: str, use, names, xyz, time_s):
+    """IK's RMS and largest marker error per frame, and each marker's: the model's marker locations
+    against the TRC's."""
     cols, err = _read_sto(out_dir / f"{stem}_ik_marker_errors.sto")
     t_err, rms, mx = err[:, 0], err[:, cols.index("marker_error_RMS")], err[:, cols.index("marker_error_max")]
-    # per-marker error: model marker locations against the TRC
     lcols, loc = _read_sto(out_dir / f"{stem}_ik_model_marker_locations.sto")
     rows = np.searchsorted(time_s, t_err - 1e-6)
     per = np.full((len(t_err), len(use)), np.nan)
@@ -331,14 +370,7 @@ def run_opensim_trc(
             continue
         model_xyz = loc[:, c : c + 3]
         per[:, m] = np.linalg.norm(model_xyz - xyz[rows, names.index(name)], axis=-1)
-    errors_csv = out_dir / f"{stem}_marker_errors.csv"
-    head = "time_s,rms_m,max_m," + ",".join(f"{n}_m" for n in use)
-    body = [
-        f"{t:.6f},{r:.6f},{x:.6f}," + ",".join(f"{v:.6f}" for v in pm)
-        for t, r, x, pm in zip(t_err, rms, mx, per, strict=True)
-    ]
-    atomic_write_text(errors_csv, "\n".join([head, *body]) + "\n")
-    return OpenSimResult(track_id, trc, scaled, mot, errors_csv, use, missing, t_err, rms, mx, per, notes)
+    return t_err, rms, mx, per
 
 
 def _restrict_tasks(task_set, use: list[str]) -> None:

@@ -48,24 +48,12 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from core.config import config_from_dict
+from core.config import bounded, config_from_dict
 from core.progress import Progress
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import kernels
 from track import observation as obs
-from track.normalize import denormalize, hip_frame
-from track.priors import (
-    TEMPLATE_BODY19_M,
-    ConstantVelocityPrior,
-    MotionPrior,
-    ZeroVelocityPrior,
-    concat_states,
-    standard_normals,
-)
-from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
-from triangulate.matching import MatchConfig
-from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
-from triangulate.tracker import (
+from track.greedy import (
     SEED_SIGMA_FRAMES,
     frame_times_s,
     long_enough,
@@ -75,6 +63,20 @@ from triangulate.tracker import (
     smooth_segments,
     sparse_time_warning,
 )
+from track.normalize import denormalize, hip_frame
+from track.priors import (
+    DEFAULT_MOTION_CHECKPOINT,
+    TEMPLATE_BODY19_M,
+    ConstantVelocityPrior,
+    MotionPrior,
+    ZeroVelocityPrior,
+    concat_states,
+    load_gru_numpy,
+    standard_normals,
+)
+from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
+from triangulate.matching import MatchConfig
+from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +115,8 @@ class ParticleConfig:
       cameras; no live track's pelvis within init_exclusion_m); samples spread init_sigma_m around
       the candidate and init_fill_sigma_m around template-filled joints.
     end_after_s: a track without any associated detection for this long ends.
+    max_people: at most this many tracks at once (0 = no limit), for a recording whose number of people
+      is known: with as many tracks, no new identity is born (a coasting track is still re-anchored).
     reid_*: a new candidate takes an ended identity when its pelvis lies within
       reid_dist_m + reid_speed_mps * gap of the predicted one and the mean bone-length difference is
       below reid_bone_tol_m, for gaps up to reid_max_gap_s.
@@ -162,6 +166,7 @@ class ParticleConfig:
     init_fill_sigma_m: float = 0.1
     init_theta_px: float = 40.0
     end_after_s: float = 1.0
+    max_people: int = bounded(0, 0, 10_000)
     reid_max_gap_s: float = 10.0
     reid_dist_m: float = 0.5
     reid_speed_mps: float = 1.0
@@ -193,7 +198,7 @@ class ParticleConfig:
 
     def at_fps(self, fps: float) -> ParticleConfig:
         """The config with the smoothing width given in frames converted to seconds at ``fps`` (as
-        :meth:`triangulate.tracker.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
+        :meth:`track.greedy.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
         if self.smooth_sigma_frames is not None:
             return replace(self, smooth_sigma_s=self.smooth_sigma_frames / fps, smooth_sigma_frames=None)
         if self.smooth_sigma_s is None:
@@ -206,23 +211,24 @@ class ParticleConfig:
 
 
 def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICAL) -> MotionPrior:
-    """The motion prior named by ``config.motion`` (imports torch only for 'gru')."""
+    """The motion prior named by ``config.motion``; 'gru' from the checkpoint's numpy copy when it has an
+    up-to-date one (:func:`track.priors.load_gru_numpy`), else from the checkpoint itself (imports torch)."""
     sigma = config.motion_sigma_m * float(np.sqrt(25.0 / fps))
     if config.motion == "zero_velocity":
         return ZeroVelocityPrior(sigma, skeleton.n_joints)
     if config.motion == "constant_velocity":
         return ConstantVelocityPrior(sigma, n_joints=skeleton.n_joints)
-    from track.motion import DEFAULT_CHECKPOINT, GRUPrior  # lazy: loads torch
+    path = config.motion_checkpoint or DEFAULT_MOTION_CHECKPOINT
+    kw = {
+        "dropout": None if config.motion_dropout < 0 else config.motion_dropout,
+        "sigma_m": config.gru_sigma_m * float(np.sqrt(25.0 / fps)),
+    }
+    prior = load_gru_numpy(path, fps, skeleton, **kw)  # the checkpoint's numpy copy: no torch
+    if prior is not None:
+        return prior
+    from track.motion import GRUPrior  # lazy: loads torch
 
-    path = config.motion_checkpoint or DEFAULT_CHECKPOINT
-    return GRUPrior.load(
-        path,
-        fps=fps,
-        skeleton=skeleton,
-        dropout=None if config.motion_dropout < 0 else config.motion_dropout,
-        sigma_m=config.gru_sigma_m * float(np.sqrt(25.0 / fps)),
-        seed=config.seed,
-    )
+    return GRUPrior.load(path, fps=fps, skeleton=skeleton, seed=config.seed, **kw)
 
 
 @dataclass
@@ -300,6 +306,7 @@ class ParticleTracker:
         self.prior = prior if prior is not None else make_prior(cfg, fps, skeleton)
         self.tracks: list[_Track] = []
         self.n_map_scores = 0  # update steps whose weights came from confidence maps + PAFs
+        self._batch: tuple | None = None  # the last step's (X, state, the tracks' views of them)
         self.lost: list[_Lost] = []
         self.ended: list[tuple[int, int, int]] = []  # (id, born, last_seen) of ended track segments
         self.next_id = 0
@@ -400,6 +407,7 @@ class ParticleTracker:
             self.n_map_scores = int(meta["n_map_scores"])
             self.ended = [tuple(e) for e in meta["ended"]]
             self.tracks = []
+            self._batch = None
             for i, m in enumerate(meta["tracks"]):
                 self.tracks.append(
                     _Track(
@@ -452,6 +460,18 @@ class ParticleTracker:
     def _pelvis(self, x: np.ndarray) -> np.ndarray:
         origin, _ = hip_frame(x[None], self.skeleton)
         return origin[0]
+
+    def _batch_of_tracks(self) -> tuple[np.ndarray, dict]:
+        """The live tracks' samples (K,N,J,3) and motion state as one batch: the last step's batch itself
+        when the tracks still hold its views (no track born, ended or re-anchored since), else stacked."""
+        if self._batch is not None:
+            X, state, views = self._batch
+            self._batch = None
+            if len(views) == len(self.tracks) and all(
+                t.x is x and t.state is st for t, (x, st) in zip(self.tracks, views, strict=True)
+            ):
+                return X, state
+        return np.stack([t.x for t in self.tracks]), concat_states([t.state for t in self.tracks])
 
     # ------------------------------------------------------------------ the step
 
@@ -509,8 +529,7 @@ class ParticleTracker:
         out = None
         assigned = np.full((C, 0), -1, np.int64)
         if K:
-            X = np.stack([t.x for t in self.tracks])  # (K,N,J,3)
-            state = concat_states([t.state for t in self.tracks])
+            X, state = self._batch_of_tracks()  # (K,N,J,3), the motion state of the K*N samples
             # 1. prediction (eq. 5.1), all tracks and samples in one batch; one step per frame interval
             Xf = X.reshape(K * N, J, 3)
             for _ in range(n_pred):  # > 1 only over dropped frames
@@ -544,11 +563,7 @@ class ParticleTracker:
             # 3. update for the tracks with evidence
             if ev_k.any():
                 u = np.flatnonzero(ev_k)
-                Xu, idx, score_u = self._update(X[u], rays[u], asc[u], maps)
-                X[u] = Xu
-                flat = np.arange(K * N).reshape(K, N)
-                flat[u] = u[:, None] * N + idx
-                state = kernels.gather_state(state, flat.ravel())
+                X, state, score_u = self._update_seen(X, state, u, rays, asc, maps)
                 resume = np.flatnonzero(ev_k & (paused > 0))
                 if len(resume):  # the motion before a pause says nothing about the motion after it
                     rows = (resume[:, None] * N + np.arange(N)).ravel()
@@ -580,6 +595,8 @@ class ParticleTracker:
             bones_now = np.where(n_views[:, self.limbs].min(2) > 0, self._bones(mean), np.nan)  # (K,L)
             for k, t in enumerate(self.tracks):
                 t.x, t.state = X[k], states[k]
+            self._batch = (X, state, [(t.x, t.state) for t in self.tracks])
+            for k, t in enumerate(self.tracks):
                 if had[k] and paused[k] == 0:
                     v = (pel_now[k] - pel_before[k]) / self.dt_s
                     t.velocity = (0.8 * t.velocity + 0.2 * v).astype(np.float32)
@@ -668,6 +685,21 @@ class ParticleTracker:
                     phi[:, c] = obs.map_limb_scores(X, self.P[c], m)
         return phi
 
+    def _update_seen(
+        self, X: np.ndarray, state: dict, u: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps
+    ):
+        """:meth:`_update` for the tracks ``u`` with evidence (all of them without a copy): X (K,N,J,3) and
+        the motion state with their samples resampled and refined (X in place), the refined joints' scores."""
+        K, N = X.shape[:2]
+        if len(u) == K:
+            X, idx, score_u = self._update(X, rays, asc, maps)
+            flat = idx + (np.arange(K) * N)[:, None]
+        else:
+            X[u], idx, score_u = self._update(X[u], rays[u], asc[u], maps)
+            flat = np.arange(K * N).reshape(K, N)
+            flat[u] = u[:, None] * N + idx
+        return X, kernels.gather_state(state, flat.ravel()), score_u
+
     def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps=None):
         """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N) and
         the refined joints' summed confidence (K,J,N) (None without refinement).
@@ -735,9 +767,15 @@ class ParticleTracker:
         free &= (sc > 0).sum(-1) >= cfg.assoc_min_joints
         if (free.sum(1) > 0).sum() < cfg.init_min_views:
             return []
-        kpf = np.where(free[..., None, None], kp, np.nan)
         scf = np.where(free[..., None], sc, 0.0)
-        poses = self.reconstructor(kpf.astype(np.float64), scf)
+        if not self._enough_views(scf):
+            return []
+        # the matching sees only the free detections: each camera's first, in their order (the others after
+        # them are all NaN), and no more rows per camera than the most free detections of one camera
+        rows = np.argsort(~free, axis=1, kind="stable")[:, : free.sum(1).max()]  # (C,P')
+        kpf = np.where(free[..., None, None], kp, np.nan)
+        kpf = np.take_along_axis(kpf, rows[..., None, None], 1)
+        poses = self.reconstructor(kpf.astype(np.float64), np.take_along_axis(scf, rows[..., None], 1))
         if len(poses.xyz_m) == 0:
             return []
         good = (poses.n_views >= cfg.init_min_views) & np.isfinite(poses.xyz_m).all(-1)
@@ -750,6 +788,7 @@ class ParticleTracker:
         # people as the reconstructor separated them (its merge_dist_m joins one person seen twice): none
         # excludes another, so people closer than init_exclusion_m are not lost to each other
         near_born = bool(self.tracks)
+        n_new = 0
         for m in order:
             if n_good[m] < cfg.init_min_joints:
                 continue
@@ -784,6 +823,9 @@ class ParticleTracker:
                 t.mean = filled
                 born.append(t)
                 continue
+            if cfg.max_people and len(self.tracks) + n_new >= cfg.max_people:
+                continue
+            n_new += 1
             tid = self._reidentify(pel, bones, frame)
             t = _Track(
                 tid,
@@ -799,6 +841,18 @@ class ParticleTracker:
             self.tracks.append(t)
             born.append(t)
         return born
+
+    def _enough_views(self, scf: np.ndarray) -> bool:
+        """Whether the free detections' scores ``scf`` (C,D,J) could give any candidate: it needs
+        ``init_min_joints`` joints seen by ``init_min_views`` cameras, and a joint's views are at most the
+        cameras with a free detection of it (or of its left/right twin, which a mirrored pose reads), so
+        with fewer such joints the matching would find none (skipped: the same result)."""
+        cfg = self.config
+        cams = (scf > 0).any(1)  # (C,J)
+        flip = self.reconstructor.flip if self.reconstructor is not None else None
+        if flip is not None:
+            cams = cams | cams[:, flip]
+        return int((cams.sum(0) >= cfg.init_min_views).sum()) >= cfg.init_min_joints
 
     def _fill(self, cand: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
         """Fill joints the candidate lacks from the template aligned at the hips. cand: (J,3), NaN =
@@ -961,7 +1015,7 @@ def track_sequence(
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
     ``maps_at(t)``: optional, the C :class:`track.observation.CameraMaps` (or None) of frame t. Frame
     times come from ``t_ns`` (T,), else from the frame numbers ``frames`` at the tracker's rate
-    (:func:`triangulate.tracker.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
+    (:func:`track.greedy.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
 
     Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
     (``trim_coast``) and tracks with less evidence than ``min_track_s`` are removed.
@@ -1049,7 +1103,7 @@ def finish_tracks(
     """The offline clean-up of :func:`track_sequence` on the raw estimates of T frames at times ``t_s``
     (T,) (seconds, the session's clock): frames coasted across a pause are removed, then trailing coasting
     frames (``trim_coast``), then the smoothing (``smooth_sigma_s``), then tracks with less evidence than
-    ``min_track_s`` (:func:`triangulate.tracker.long_enough`: not where the recorder paused sooner).
+    ``min_track_s`` (:func:`track.greedy.long_enough`: not where the recorder paused sooner).
     ``evidence_frames`` (K,) and ``room_frames`` (K,): each track's evidence frames over the whole session
     and the longest stretch without a pause among them, when ``raw`` is a window of it (default: from
     ``raw``). Each value depends only on the frames within

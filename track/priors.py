@@ -1,20 +1,27 @@
-"""Motion priors without learning (numpy only): zero- and constant-velocity, and the prior protocol.
+"""Motion priors in numpy: zero- and constant-velocity, the GRU of eq. 5.1 from its weights, the protocol.
 
 Every prior works on a flat batch of pose samples ``x (B,J,3)`` (world metres,
 B = tracks x samples) with a per-sample state: a dict of arrays whose first axis
 is B, so resampling is a gather along that axis (:func:`gather_state`). The
-learned GRU prior of eq. 5.1 lives in :mod:`track.motion` (torch).
+learned GRU prior of eq. 5.1 is trained and saved by :mod:`track.motion` (torch); it runs here in numpy
+(:class:`GRUCellPrior`), and :func:`load_gru_numpy` reads the numpy copy of its weights that
+:func:`track.motion.save_checkpoint` writes beside the checkpoint, so tracking needs no torch.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
-from keypoints.skeletons import CANONICAL
+from core.fileio import save_npz, sha256_file
+from keypoints.skeletons import CANONICAL, Skeleton
+from track import kernels
+from track.normalize import hip_indices
 
 State = dict[str, np.ndarray]
 
@@ -127,3 +134,127 @@ class ConstantVelocityPrior:
         v = x - state["prev"]
         new = x + self.damping * v + normal_noise(rng, x.shape, self.sigma_m)
         return new, {"prev": x}
+
+
+DEFAULT_MOTION_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "motion_gru.pt"
+GRU_WEIGHT_NAMES = ("w_ih", "b_ih", "w_hh", "b_hh", "w_out", "b_out")
+NUMPY_COPY_SCHEMA = "motion_gru_numpy/1"
+
+
+class GRUCellPrior:
+    """The learned prior of eq. 5.1 in numpy: ``z_t, h_t = GRU(z_{t-1}, h_{t-1})`` with one hidden state per
+    sample and MC dropout on the final linear layer's input (the samples diverge). ``weights``: the cell's
+    and the output layer's weights as float32 arrays transposed for ``x @ W`` (``GRU_WEIGHT_NAMES``: w_ih
+    (2·J·3, 3H), b_ih (3H,), w_hh (H, 3H), b_hh (3H,), w_out (H, J·3), b_out (J·3,)); ``trained_dropout``:
+    the rate it was trained with, used unless ``dropout`` overrides it. :class:`track.motion.GRUPrior` is
+    this prior built from the torch model."""
+
+    name = "gru"
+
+    def __init__(
+        self,
+        weights: tuple[np.ndarray, ...],
+        trained_dropout: float,
+        model_fps: float,
+        fps: float,
+        skeleton: Skeleton = CANONICAL,
+        dropout: float | None = None,
+        sigma_m: float = 0.0,
+    ):
+        self._np_weights = tuple(np.ascontiguousarray(w, np.float32) for w in weights)
+        w_ih, b_ih, w_hh, b_hh, w_out, b_out = self._np_weights
+        self.hidden = H = w_hh.shape[0]
+        J3 = 3 * skeleton.n_joints
+        if w_ih.shape != (2 * J3, 3 * H) or w_hh.shape != (H, 3 * H) or w_out.shape != (H, J3):
+            raise ValueError(
+                f"GRU weights do not fit {skeleton.n_joints} joints: w_ih {w_ih.shape}, w_hh {w_hh.shape}, "
+                f"w_out {w_out.shape}"
+            )
+        self.model_fps, self.fps, self.skeleton = float(model_fps), float(fps), skeleton
+        self.dropout = float(trained_dropout) if dropout is None else float(dropout)
+        self.sigma_m = float(sigma_m)
+
+    def init_state(self, x: np.ndarray) -> State:
+        x = check_batch(x, self.skeleton.n_joints)
+        return {"prev": x.copy(), "h": np.zeros((len(x), self.hidden), np.float32)}
+
+    def _mask(self, rng: np.random.Generator, B: int, H: int) -> np.ndarray:
+        """MC-dropout mask (B,H), entries 0 or 1/(1-p) (keep with probability 1-p): a contiguous slice at a
+        random offset of a fixed Bernoulli block (no per-step draws or conversions, as ``normal_noise``)."""
+        n = B * H
+        bank = getattr(self, "_mask_bank", None)
+        if bank is None or len(bank) < n:
+            size = max(1 << 21, 2 * n)
+            keep = np.random.default_rng(54321).random(size) >= self.dropout
+            bank = self._mask_bank = keep.astype(np.float32) * np.float32(1.0 / (1.0 - self.dropout))
+        start = int(rng.integers(0, len(bank) - n + 1))
+        return bank[start : start + n].reshape(B, H)
+
+    def _weights(self) -> tuple[np.ndarray, ...]:
+        return self._np_weights
+
+    def predict(self, x, state, rng):
+        x = check_batch(x, self.skeleton.n_joints)
+        B, H = len(x), self.hidden
+        ip, il, ir = hip_indices(self.skeleton)
+        # [pose - origin, last displacement] rotated into the hip frame in one pass: the normalised pose
+        # (eq. 5.2-5.4) and the normalised displacement
+        inp, cs = kernels.gru_inputs(
+            x, np.ascontiguousarray(state["prev"], np.float32), ip, il, ir, self.fps / self.model_fps
+        )
+        w_ih, b_ih, w_hh, b_hh, w_out, b_out = self._weights()
+        h_prev = np.ascontiguousarray(state["h"], np.float32)
+        # the GRU cell's two products (B,3H) (gates r, z, n), then its gates and the dropout compiled
+        mask = self._mask(rng, B, H) if 0 < self.dropout < 1 else np.zeros((0, 0), np.float32)
+        h, hd = kernels.gru_gates(inp @ w_ih, b_ih, h_prev @ w_hh, b_hh, h_prev, mask)
+        noise = standard_normals(rng, x.shape) if self.sigma_m > 0 else np.zeros((0, 0, 3), np.float32)
+        new = kernels.gru_outputs(
+            hd @ w_out, b_out, cs, x, self.model_fps / self.fps, noise, self.sigma_m
+        )  # eq. 5.5 for the displacement, plus the noise
+        return new, {"prev": x, "h": h}
+
+
+def numpy_copy_path(checkpoint: str | Path) -> Path:
+    """Where the numpy copy of a GRU checkpoint's weights lies: beside it, suffix ``.npz``."""
+    return Path(checkpoint).with_suffix(".npz")
+
+
+def write_numpy_copy(checkpoint: str | Path, weights: dict[str, np.ndarray], meta: dict) -> Path:
+    """Write the numpy copy of the GRU checkpoint ``checkpoint`` (already written): ``weights`` by
+    ``GRU_WEIGHT_NAMES`` (as stored, e.g. float16), ``meta`` (joint_names, dropout, fps) and the sha256
+    of the checkpoint's bytes, so that a changed checkpoint never pairs with a stale copy."""
+
+    info = {
+        "schema": NUMPY_COPY_SCHEMA,
+        "source_sha256": sha256_file(checkpoint),
+        "joint_names": list(meta["joint_names"]),
+        "dropout": float(meta["dropout"]),
+        "fps": float(meta["fps"]),
+    }
+    path = numpy_copy_path(checkpoint)
+    save_npz(path, {"meta": np.asarray(json.dumps(info)), **{k: weights[k] for k in GRU_WEIGHT_NAMES}})
+    return path
+
+
+def load_gru_numpy(
+    checkpoint: str | Path, fps: float, skeleton: Skeleton = CANONICAL, **kw
+) -> GRUCellPrior | None:
+    """The GRU prior of ``checkpoint`` from its numpy copy (:func:`write_numpy_copy`), without torch; None
+    when there is no copy, or it was made from other bytes or for another skeleton (the caller then loads
+    the checkpoint itself with :meth:`track.motion.GRUPrior.load`, which says what is wrong with it)."""
+    path = numpy_copy_path(checkpoint)
+    if not (path.is_file() and Path(checkpoint).is_file()):
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            info = json.loads(str(z["meta"]))
+            weights = tuple(np.asarray(z[k]).astype(np.float32) for k in GRU_WEIGHT_NAMES)
+    except (OSError, KeyError, ValueError):
+        return None
+    if (
+        info.get("schema") != NUMPY_COPY_SCHEMA
+        or info.get("source_sha256") != sha256_file(checkpoint)
+        or tuple(info.get("joint_names", ())) != tuple(skeleton.joint_names)
+    ):
+        return None
+    return GRUCellPrior(weights, info["dropout"], info["fps"], fps, skeleton, **kw)

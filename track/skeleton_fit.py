@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from core.errors import FormatError, RoomcapError
@@ -368,11 +369,45 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
     """Fit one person; returns arrays over the whole track file and the fit skeleton (module docstring)."""
     opt = options
     k = track_index(tf, track)
-    T, J = tf.n_frames, len(tf.joint_names)
+    T = tf.n_frames
     names, parents, jidx = fit_skeleton(tf.joint_names, tf.parents)
     F = len(names)
     real = np.zeros(F, bool)
     real[jidx] = True
+    rows, Xt, St, full = _complete_rows(tf, k, track, opt)
+    Lt = _bone_lengths(tf, k, Xt, rows, opt)
+    bad = [
+        tf.joint_names[j] for j in range(len(tf.joint_names)) if tf.parents[j] >= 0 and not np.isfinite(Lt[j])
+    ]
+    if bad:
+        raise FitError(f"track {track}: no length for the bones to {bad}.")
+    X = np.full((len(rows), F, 3), np.nan)
+    X[:, jidx] = Xt
+    L = np.zeros(F)
+    L[jidx] = np.nan_to_num(Lt)
+    # rest pose: the most confident complete frame; virtual joints sit on their parent
+    conf = np.where(full, tf.confidence[rows, k].sum(-1), -np.inf)
+    rest = _rest_offsets(X[int(np.argmax(conf))], L, parents, real)
+    skel = _Skeleton(names, parents, real, rest, L, opt)
+    sig_rows = np.full((len(rows), F), np.inf)
+    sig_rows[:, jidx] = np.maximum(np.nan_to_num(St, nan=opt.min_std_m), opt.min_std_m)
+    rot, root_xyz, held = _fit_frames(skel, X, sig_rows)
+    out_rot = np.full((T, F, 4), np.nan)
+    out_root = np.full((T, 3), np.nan)
+    out_held = np.zeros((T, F), bool)
+    out_rot[rows], out_root[rows], out_held[rows] = rot, root_xyz, held
+    return {
+        "bone_length_m": L,
+        "rest_offset_m": rest,
+        "root_xyz_m": out_root,
+        "rotation_xyzw": out_rot,
+        "held": out_held,
+    }
+
+
+def _complete_rows(tf: TrackFile, k: int, track: int, opt: FitOptions):
+    """The track's frames from its first to its last known joint, gaps filled: ``(rows, X, std, full)``;
+    an error when no frame has every joint (the rest pose needs one)."""
     span = np.flatnonzero(person_span(tf, k))
     if not len(span):
         raise FitError(f"track {track} has no known joint in any frame; there is nothing to fit.")
@@ -386,44 +421,53 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
         miss = (~known_t).mean(0)
         worst = np.argsort(-miss)[:4]
         raise FitError(
-            f"track {track} has no frame in which all {J} joints are known, even after filling gaps of up to "
-            f"{opt.max_gap} frames (missing most often: "
+            f"track {track} has no frame in which all {len(tf.joint_names)} joints are known, even after "
+            f"filling gaps of up to {opt.max_gap} frames (missing most often: "
             + ", ".join(f"{tf.joint_names[j]} {miss[j]:.0%}" for j in worst)
             + "); the skeleton fit needs one for the rest pose. Export TRC/CSV/JSON instead, or track with "
             "a skeleton of the joints the cameras see."
         )
-    Lt = _bone_lengths(tf, k, Xt, rows, opt)
-    bad = [tf.joint_names[j] for j in range(J) if tf.parents[j] >= 0 and not np.isfinite(Lt[j])]
-    if bad:
-        raise FitError(f"track {track}: no length for the bones to {bad}.")
-    X = np.full((len(rows), F, 3), np.nan)
-    X[:, jidx] = Xt
-    known = np.isfinite(X).all(-1)
-    L = np.zeros(F)
-    L[jidx] = np.nan_to_num(Lt)
-    root = int(np.flatnonzero(parents < 0)[0])
-    # rest pose: the most confident complete frame; virtual joints sit on their parent
-    conf = np.where(full, tf.confidence[rows, k].sum(-1), -np.inf)
-    t_rest = int(np.argmax(conf))
-    Xr = X[t_rest].copy()
+    return rows, Xt, St, full
+
+
+def _rest_offsets(Xr: np.ndarray, L: np.ndarray, parents: np.ndarray, real: np.ndarray) -> np.ndarray:
+    """Each joint's offset from its parent in the rest pose ``Xr`` at its bone length (virtual joints,
+    which sit on their parent, and the root: zero)."""
+    Xr = Xr.copy()
     for j in _topological(parents):
         if not real[j]:
             Xr[j] = Xr[parents[j]]
-    rest = np.zeros((F, 3))
-    for j in range(F):
+    root = int(np.flatnonzero(parents < 0)[0])
+    rest = np.zeros((len(parents), 3))
+    for j in range(len(parents)):
         if j != root and real[j]:
             rest[j] = L[j] * _unit(Xr[j] - Xr[parents[j]])
-    children = _children(parents)
-    order = _topological(parents)
-    hinge_axis = {}
-    for j in range(F):
-        if names[j] in HINGES and len(children[j]) == 1:
-            ax = np.cross(rest[j], rest[children[j][0]])
-            if np.linalg.norm(ax) > 1e-3 * L[j] * L[children[j][0]]:
-                hinge_axis[j] = ax / np.linalg.norm(ax)
-    lo, hi = np.deg2rad(opt.hinge_limits_deg)
+    return rest
 
-    Tn = len(rows)
+
+class _Skeleton:
+    """The fit skeleton: its joints, rest offsets, bone lengths, joint order and hinge axes."""
+
+    def __init__(self, names, parents, real, rest, L, opt: FitOptions) -> None:
+        self.parents, self.real, self.rest, self.opt = parents, real, rest, opt
+        self.root = int(np.flatnonzero(parents < 0)[0])
+        self.children = _children(parents)
+        self.order = _topological(parents)
+        self.hinge_axis = {}
+        for j in range(len(names)):
+            if names[j] in HINGES and len(self.children[j]) == 1:
+                ax = np.cross(rest[j], rest[self.children[j][0]])
+                if np.linalg.norm(ax) > 1e-3 * L[j] * L[self.children[j][0]]:
+                    self.hinge_axis[j] = ax / np.linalg.norm(ax)
+        self.limits = tuple(np.deg2rad(opt.hinge_limits_deg))
+
+
+def _fit_frames(skel: _Skeleton, X: np.ndarray, sig_rows: np.ndarray):
+    """Every frame's root position and joint rotations, each frame starting from the previous one's:
+    ``(rotation_xyzw (T,F,4), root_xyz (T,3), held (T,F))``."""
+    opt, root, F = skel.opt, skel.root, len(skel.parents)
+    known = np.isfinite(X).all(-1)
+    Tn = len(X)
     rot = np.full((Tn, F, 4), np.nan)
     root_xyz = np.full((Tn, 3), np.nan)
     held = np.zeros((Tn, F), bool)
@@ -431,53 +475,14 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
     root_prev = None
     for t in range(Tn):
         x, kn = X[t], known[t]
-        Lcur = Lprev.copy()
-        G = np.empty((F, 3, 3))
         P = np.empty((F, 3))
         P[root] = x[root] if kn[root] else (root_prev if root_prev is not None else np.nan)
-        for j in order:
-            p = parents[j]
-            Gp = np.eye(3) if p < 0 else G[p]
-            if p >= 0:
-                P[j] = P[p] + Gp @ rest[j]
-            ch = children[j]
-            a, b, w = [], [], []
-            for c in ch:
-                if kn[c]:
-                    a.append(rest[c])
-                    b.append(Gp.T @ (x[c] - P[j]))
-                    w.append(1.0)
-                if len(ch) == 1 or not real[c]:  # grandchildren fix the twist / the tilt
-                    for g in children[c]:
-                        if kn[g]:
-                            a.append(rest[c] + rest[g])
-                            b.append(Gp.T @ (x[g] - P[j]))
-                            w.append(opt.twist_weight)
-            R = None
-            if j in hinge_axis and kn[ch[0]]:
-                ax, o, u = hinge_axis[j], rest[ch[0]], b[0]
-                u_p, o_p = u - ax * (ax @ u), o - ax * (ax @ o)
-                if np.linalg.norm(u_p) > 1e-9:
-                    phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
-                    theta = np.arctan2(ax @ np.cross(o_p, u_p), o_p @ u_p)
-                    theta = np.clip(phi0 + theta, lo, hi) - phi0
-                    R = Rotation.from_rotvec(ax * theta).as_matrix()
-            elif len(a) >= 2:
-                R = wahba(_unit(np.asarray(a)), _unit(np.asarray(b)), np.asarray(w))
-            if R is None and len(a) >= 1:  # one direction: swing from the previous frame's rotation
-                R = min_rotation(Lprev[j] @ a[0], b[0]) @ Lprev[j]
-            if R is None:
-                held[t, j] = bool(ch)
-                R = Lprev[j]
-            Lcur[j] = R
-            G[j] = Gp @ R
+        Lcur = _frame_rotations(skel, x, kn, P, Lprev, held[t])
         if not np.isfinite(P[root]).all():
             continue
         if opt.refine and kn.sum() >= 3:
-            sig = np.full(F, np.inf)
-            sig[jidx] = np.maximum(np.nan_to_num(St[t], nan=opt.min_std_m), opt.min_std_m)
-            P[root], Lcur = _refine(x, kn, sig, P[root], Lcur, rest, parents, order, children, hinge_axis,
-                                    (lo, hi), opt.prior_rad)  # fmt: skip
+            P[root], Lcur = _refine(x, kn, sig_rows[t], P[root], Lcur, skel.rest, skel.parents, skel.order,
+                                    skel.children, skel.hinge_axis, skel.limits, opt.prior_rad)  # fmt: skip
         root_prev = P[root].copy()
         Lprev = Lcur
         root_xyz[t] = P[root]
@@ -487,17 +492,56 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
         root_xyz[: first[0]] = root_xyz[first[0]]
         rot[: first[0]] = rot[first[0]]
         held[: first[0]] = True
-    out_rot = np.full((T, F, 4), np.nan)
-    out_root = np.full((T, 3), np.nan)
-    out_held = np.zeros((T, F), bool)
-    out_rot[rows], out_root[rows], out_held[rows] = rot, root_xyz, held
-    return {
-        "bone_length_m": L,
-        "rest_offset_m": rest,
-        "root_xyz_m": out_root,
-        "rotation_xyzw": out_rot,
-        "held": out_held,
-    }
+    return rot, root_xyz, held
+
+
+def _frame_rotations(
+    skel: _Skeleton, x: np.ndarray, kn: np.ndarray, P: np.ndarray, Lprev: np.ndarray, held: np.ndarray
+) -> np.ndarray:
+    """One frame's local rotations, root to leaves: each joint turned so its children point at the
+    observed ones (a hinge about its axis within its limits); ``P`` gets the joints' positions, ``held``
+    the joints kept at the previous frame's rotation."""
+    parents, rest, children, real = skel.parents, skel.rest, skel.children, skel.real
+    lo, hi = skel.limits
+    Lcur = Lprev.copy()
+    G = np.empty((len(parents), 3, 3))
+    for j in skel.order:
+        p = parents[j]
+        Gp = np.eye(3) if p < 0 else G[p]
+        if p >= 0:
+            P[j] = P[p] + Gp @ rest[j]
+        ch = children[j]
+        a, b, w = [], [], []
+        for c in ch:
+            if kn[c]:
+                a.append(rest[c])
+                b.append(Gp.T @ (x[c] - P[j]))
+                w.append(1.0)
+            if len(ch) == 1 or not real[c]:  # grandchildren fix the twist / the tilt
+                for g in children[c]:
+                    if kn[g]:
+                        a.append(rest[c] + rest[g])
+                        b.append(Gp.T @ (x[g] - P[j]))
+                        w.append(skel.opt.twist_weight)
+        R = None
+        if j in skel.hinge_axis and kn[ch[0]]:
+            ax, o, u = skel.hinge_axis[j], rest[ch[0]], b[0]
+            u_p, o_p = u - ax * (ax @ u), o - ax * (ax @ o)
+            if np.linalg.norm(u_p) > 1e-9:
+                phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
+                theta = np.arctan2(ax @ np.cross(o_p, u_p), o_p @ u_p)
+                theta = np.clip(phi0 + theta, lo, hi) - phi0
+                R = Rotation.from_rotvec(ax * theta).as_matrix()
+        elif len(a) >= 2:
+            R = wahba(_unit(np.asarray(a)), _unit(np.asarray(b)), np.asarray(w))
+        if R is None and len(a) >= 1:  # one direction: swing from the previous frame's rotation
+            R = min_rotation(Lprev[j] @ a[0], b[0]) @ Lprev[j]
+        if R is None:
+            held[j] = bool(ch)
+            R = Lprev[j]
+        Lcur[j] = R
+        G[j] = Gp @ R
+    return Lcur
 
 
 def _rodrigues(v: np.ndarray) -> np.ndarray:
@@ -517,35 +561,12 @@ def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, 
     """Weighted least squares (positions / sigma, plus a prior on the change of each rotation) over
     the root position and every rotating joint, from the top-down solution; hinges keep one angle
     inside ``limits`` (flexion). Returns (root position, local rotations (F,3,3))."""
-    from scipy.optimize import least_squares
-
     F = len(parents)
-    free = [j for j in order if children[j]]
-    hinge = {j: hinge_axis[j] for j in free if j in hinge_axis}
-    lo, hi = limits
-    layout, n = [], 3
-    x0, lb, ub = list(root_p), [-np.inf] * 3, [np.inf] * 3
-    for j in free:
-        if j in hinge:
-            c = children[j][0]
-            ax, o = hinge[j], rest[c]
-            phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
-            th0 = Rotation.from_matrix(L0[j]).as_rotvec() @ ax
-            layout.append((j, n, 1, phi0))
-            x0.append(th0)
-            lb.append(lo - phi0 - 1e-9)
-            ub.append(hi - phi0 + 1e-9)
-            n += 1
-        else:
-            layout.append((j, n, 3, 0.0))
-            x0 += [0.0, 0.0, 0.0]
-            lb += [-np.inf] * 3
-            ub += [np.inf] * 3
-            n += 3
-    x0 = np.clip(np.asarray(x0), np.asarray(lb) + 1e-12, np.asarray(ub) - 1e-12)
+    layout, x0, lb, ub = _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits)
+    n = len(x0)
+    hinge = {j: hinge_axis[j] for j, _, m, _ in layout if m == 1}
     obs = np.flatnonzero(kn & np.isfinite(sig))
     w = 1.0 / sig[obs]
-    root = order[0]
 
     j3 = [j for j, _, m, _ in layout if m == 3]
     c3 = np.asarray([[a, a + 1, a + 2] for _, a, m, _ in layout if m == 3], np.int64).reshape(-1, 3)
@@ -597,8 +618,35 @@ def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, 
 
     sol = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", max_nfev=8, x_scale=1.0)
     L = locals_(sol.x[None])[0]
-    _ = root
     return sol.x[:3].copy(), L
+
+
+def _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits):
+    """The parameters of :func:`_refine`: the root position, then per rotating joint a hinge angle
+    (bounded by ``limits`` about its rest angle) or a rotation vector; ``(layout, x0, lower, upper)``
+    with ``layout`` rows ``(joint, first parameter, count, rest angle)``."""
+    lo, hi = limits
+    layout, n = [], 3
+    x0, lb, ub = list(root_p), [-np.inf] * 3, [np.inf] * 3
+    for j in (j for j in order if children[j]):
+        if j in hinge_axis:
+            c = children[j][0]
+            ax, o = hinge_axis[j], rest[c]
+            phi0 = np.arctan2(ax @ np.cross(rest[j], o), rest[j] @ o)
+            th0 = Rotation.from_matrix(L0[j]).as_rotvec() @ ax
+            layout.append((j, n, 1, phi0))
+            x0.append(th0)
+            lb.append(lo - phi0 - 1e-9)
+            ub.append(hi - phi0 + 1e-9)
+            n += 1
+        else:
+            layout.append((j, n, 3, 0.0))
+            x0 += [0.0, 0.0, 0.0]
+            lb += [-np.inf] * 3
+            ub += [np.inf] * 3
+            n += 3
+    x0 = np.clip(np.asarray(x0), np.asarray(lb) + 1e-12, np.asarray(ub) - 1e-12)
+    return layout, x0, lb, ub
 
 
 def fit_skeletons(

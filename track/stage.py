@@ -12,44 +12,41 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from calibrate.camera import CameraRig
 from capture.session import SessionLayout, require
-from core.config import config_from_dict
+from core.config import as_config, config_from_dict
 from core.errors import FormatError
 from core.progress import Progress
 from track.extra_joints import ExtraJointsConfig, attach_session_joints
 from track.particle import ParticleConfig, ParticleTracker, track_sequence
 from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from track.stream import track_session_particle_chunked
-from triangulate.chunks import AUTO, parse_chunk_s, remove_output
-from triangulate.stage import load_detections, session_chunk_s, session_fps
+from triangulate.chunks import AUTO, StreamConfig, remove_output, split_stream_keys
+from triangulate.multiview import load_detections, session_chunk_s, session_fps
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class ParticleTrackConfig:
-    """The particle track stage: the filter's settings (see :class:`ParticleConfig`).
-
-    chunk_s: stream the session in time chunks of this many seconds (:mod:`track.stream`): bounded
-    memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an index with
-    sizes and hashes; the filter's raw output and state per chunk in ``track/particle_raw.parts/``), a
-    killed run resumes at the last complete chunk; the result equals the whole session's bit for bit.
-    0 = at once into ``tracks.npz``; ``"auto"`` (the default) = streamed when the session is long
-    (:func:`triangulate.stage.session_chunk_s`; whole with ``skeleton`` other than body19, which the
-    streamed tracker does not carry)."""
+    """The particle track stage: the filter's settings (:class:`ParticleConfig`), the 3D joints and how
+    it walks the session (:class:`triangulate.chunks.StreamConfig`; streamed by :mod:`track.stream`, one
+    tracks/1 part per chunk with global track ids and the filter's state per chunk in
+    ``track/particle_raw.parts/``, equal to the whole session's result bit for bit; its chunks carry the
+    filter's state, so they run in order in one process). ``"auto"`` runs whole with ``skeleton`` other
+    than body19, which the streamed tracker does not carry."""
 
     particle: ParticleConfig = field(default_factory=ParticleConfig)
     # the 3D joints, as the triangulate option: body19 (the filter's state), "whole_body" or a skeleton
     # TOML; the joints beyond body19 are attached to the tracks afterwards (track.extra_joints)
     skeleton: str = "body19"
     extra_joints: ExtraJointsConfig = field(default_factory=ExtraJointsConfig)
-    chunk_s: float | str = AUTO
+    stream: StreamConfig = field(default_factory=StreamConfig)
 
     def __post_init__(self) -> None:
         if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
@@ -58,8 +55,8 @@ class ParticleTrackConfig:
                 "skeleton",
                 f"must be 'body19', 'whole_body' or a skeleton TOML file (.toml), got {self.skeleton!r}.",
             )
-        object.__setattr__(self, "chunk_s", parse_chunk_s(self.chunk_s, "ParticleTrackConfig.chunk_s"))
-        if self.chunk_s != AUTO and float(self.chunk_s) > 0 and self.skeleton != "body19":
+        self.stream.check_in_order()
+        if self.stream.chunk_s != AUTO and float(self.stream.chunk_s) > 0 and self.skeleton != "body19":
             raise FormatError(
                 None,
                 "skeleton",
@@ -69,44 +66,30 @@ class ParticleTrackConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ParticleTrackConfig:
-        if "particle" in d:
-            return config_from_dict(cls, d)
-        stage = {k: d[k] for k in ("skeleton", "extra_joints", "chunk_s") if k in d}
-        flat = {k: v for k, v in d.items() if k not in stage}  # flat dict of particle keys
-        return replace(config_from_dict(cls, stage), particle=ParticleConfig.from_dict(flat))
-
-
-def _as_stage_config(config) -> ParticleTrackConfig:
-    if config is None:
-        return ParticleTrackConfig()
-    if isinstance(config, ParticleConfig):
-        return ParticleTrackConfig(particle=config)
-    if isinstance(config, ParticleTrackConfig):
-        return config
-    if isinstance(config, dict):
-        return ParticleTrackConfig.from_dict(config)
-    raise TypeError(
-        f"expected ParticleConfig, ParticleTrackConfig, a dict or None, got {type(config).__name__}"
-    )
+        """From ``[track.options]``: the filter's keys flat (or under ``particle``), the stage's beside."""
+        own, stream = split_stream_keys(d)
+        stage = {k: own.pop(k) for k in ("skeleton", "extra_joints") if k in own}
+        particle = own.pop("particle") if "particle" in own else own
+        if "particle" in d and own:
+            config_from_dict(cls, own)  # names the unknown keys
+        return config_from_dict(cls, {**stage, "particle": particle, "stream": stream})
 
 
 def stream_chunk_s(lay: SessionLayout, stage: ParticleTrackConfig) -> float:
-    """Seconds per chunk of the stage on this session (0 = whole): ``chunk_s`` as
-    :func:`triangulate.stage.session_chunk_s` resolves it; ``"auto"`` with joints beyond body19 runs
-    whole (the streamed tracker carries body19 only)."""
-    if stage.chunk_s == AUTO and stage.skeleton != "body19":
+    """Seconds per chunk of the stage on this session (0 = whole), as
+    :func:`triangulate.stage.session_chunk_s` decides; ``"auto"`` with joints beyond body19 runs whole."""
+    if stage.stream.chunk_s == AUTO and stage.skeleton != "body19":
         return 0.0
-    return session_chunk_s(lay, stage.chunk_s)
+    return session_chunk_s(lay, stage.stream)
 
 
 def track_session_particle(
     session_dir: str | os.PathLike,
-    config: ParticleConfig | ParticleTrackConfig | dict | None = None,
+    config: ParticleTrackConfig | dict | None = None,
     progress: Progress | None = None,
 ) -> Path:
     """Run the particle filter on a session's detections; writes and returns ``track/tracks.npz``."""
-
-    stage = _as_stage_config(config)
+    stage = as_config(ParticleTrackConfig, config)
     cfg = stage.particle
     lay = SessionLayout(session_dir)
     rig_path = require(

@@ -12,7 +12,7 @@ changed is rebuilt, never trusted):
    lost identities, the clock, the random generator). A killed run resumes at the first part that is not
    valid, from the state in the part before it, and continues bit for bit.
 2. **Clean-up** (``track/tracks.parts/``, one ``tracks/1`` file per chunk, read by
-   :meth:`triangulate.trackfile.TrackFile.load` as one file): :func:`track.particle.finish_tracks` on each
+   :meth:`track.trackfile.TrackFile.load` as one file): :func:`track.particle.finish_tracks` on each
    chunk plus a margin on either side (:func:`finish_margin_s`: ``end_after_s`` + the smoothing radius on
    the tracks' clock), with each track's evidence counted over the whole session for ``min_track_s``; only
    the chunk's own frames are kept.
@@ -39,6 +39,7 @@ from capture.session import SessionLayout
 from core.fileio import save_npz
 from core.memory import TRIM_EVERY, release_free_memory
 from core.progress import Progress
+from track.greedy import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
 from track.particle import (
     ParticleConfig,
     ParticleTracker,
@@ -51,8 +52,7 @@ from track.particle import (
 )
 from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
-from triangulate.stage import plan_detections, session_fps
-from triangulate.tracker import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
+from triangulate.multiview import plan_detections, session_fps
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ class RawReader:
 
     def evidence(self, run: np.ndarray) -> tuple[dict[int, int], dict[int, int]]:
         """Evidence frames of every id over the whole session, and the longest stretch without a pause
-        among them (``run`` (T,): :func:`triangulate.tracker.segment_frames` of the session); reads only
+        among them (``run`` (T,): :func:`track.greedy.segment_frames` of the session); reads only
         ids and evidence."""
         out: dict[int, int] = {}
         room: dict[int, int] = {}
@@ -213,7 +213,8 @@ def track_session_particle_chunked(
                     release_free_memory()
             raw = gather_estimates(per_frame, J)
             arrays = {"schema": np.asarray(RAW_SCHEMA), **{k: getattr(raw, k) for k in _RAW_KEYS}}
-            save_npz(raw_store.part_path(i), {**arrays, **tracker.state_arrays()})
+            # stored, not deflated: the filter's float noise compresses to 0.6 of its size at 5x the time
+            save_npz(raw_store.part_path(i), {**arrays, **tracker.state_arrays()}, compress=False)
             raw_store.commit(i)
             held = i
             del kp, sc, per_frame, raw

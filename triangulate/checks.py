@@ -1,4 +1,4 @@
-"""Plausibility of the detections that enter the 3D stages (issue 15): what is probably wrong is said.
+"""Plausibility of the detections that enter the 3D stages what is probably wrong is said.
 
 Errors (the 3D would be wrong by metres): frame numbers that are not strictly increasing in a camera's
 file, timestamps that go backwards. Warnings (the run goes on, the summary and report show them): a

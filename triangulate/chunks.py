@@ -1,4 +1,4 @@
-"""Chunked files of the 3D stages (issue 17): read an npz's arrays by rows, write outputs part by part.
+"""Chunked files of the 3D stages: read an npz's arrays by rows, write outputs part by part.
 
 Hours of 12 cameras x 16 people do not fit in memory as whole arrays, so the streaming stages read
 their inputs in time chunks (:class:`NpzRows`: rows of one array of an ``.npz``, compressed or not,
@@ -32,8 +32,10 @@ import logging
 import os
 import shutil
 import zipfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -61,8 +63,89 @@ STREAM_ABOVE_FRAMES = 1500
 STREAM_CHUNK_FRAMES = 1500
 
 
-def parse_chunk_s(value: object, where: str) -> float | str:
-    """A stage's ``chunk_s`` setting: ``"auto"`` or seconds >= 0 (0 = the whole session at once)."""
+# Runs ``fn(*jobs[i])`` for every chunk ``i``, ``workers`` at a time, and yields ``(i, result)`` as each
+# finishes; closing the generator stops the chunks not yet run (``pipeline.executors.chunk_runner``).
+ChunkRunner = Callable[[Callable[..., Any], dict[int, tuple], int], Iterator[tuple[int, Any]]]
+
+CHUNK_EXECUTORS = ("processes", "ray")  # where StreamConfig.executor runs the chunks of one session
+STREAM_KEYS = ("chunk_s", "workers", "executor")
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """How a 3D stage walks a session in time chunks; the one place these settings are parsed.
+
+    chunk_s: stream the session in chunks of this many seconds: the inputs are read chunk by chunk and
+      the output is written as a parts folder (``<file>.parts/``, :class:`PartStore`), so memory does not
+      grow with the session and a killed run resumes at the last complete chunk; 0 = the whole session
+      at once into the single file; ``"auto"`` (the default) = streamed in chunks of
+      ``STREAM_CHUNK_FRAMES`` frames when the session has more than ``STREAM_ABOVE_FRAMES``
+      (:meth:`seconds`). The parts hold the same results as the single file.
+    workers: how many processes run independent chunks at once (the triangulation's frames are
+      independent; a tracker carries its state from chunk to chunk and runs them in order).
+    executor: where those chunks run: ``processes`` (spawned processes of this machine) or ``ray`` (one
+      Ray task of one CPU per chunk; ``reprocess --executor ray`` sets it for the sessions it streams).
+    ``workers`` and ``executor`` say how the chunks ran, not what they hold (:meth:`result_settings`).
+
+    >>> StreamConfig(chunk_s=30).seconds(n_frames=100, fps=25.0)
+    30.0
+    >>> StreamConfig().seconds(n_frames=9000, fps=25.0), StreamConfig().seconds(n_frames=100, fps=25.0)
+    (60.0, 0.0)
+    >>> StreamConfig(chunk_s=-1)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ValueError: chunk_s must be "auto" (stream sessions longer than 1500 frames) or seconds >= 0 ...
+    """
+
+    chunk_s: float | str = AUTO
+    workers: int = 1
+    executor: str = "processes"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "chunk_s", _parse_chunk_s(self.chunk_s))
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
+            raise ValueError(f"workers must be an integer >= 1, got {self.workers!r}.")
+        if self.executor not in CHUNK_EXECUTORS:
+            raise ValueError(f"executor must be one of {list(CHUNK_EXECUTORS)}, got {self.executor!r}.")
+
+    @property
+    def streams(self) -> bool:
+        """False when the stage runs whole whatever the session's length (``chunk_s = 0``)."""
+        return self.chunk_s != 0
+
+    def seconds(self, n_frames: int, fps: float) -> float:
+        """Seconds per chunk for a session of ``n_frames`` at ``fps`` (0 = whole)."""
+        if self.chunk_s != AUTO:
+            return float(self.chunk_s)
+        return STREAM_CHUNK_FRAMES / fps if n_frames > STREAM_ABOVE_FRAMES and fps > 0 else 0.0
+
+    def check_in_order(self) -> None:
+        """For a stage whose chunks depend on the one before (a tracker): one process, in order."""
+        if self.workers != 1 or self.executor != "processes":
+            raise ValueError(
+                "workers and executor: a tracker carries its tracks from one chunk to the next, so its "
+                "chunks run in order in one process; set them on [triangulate.options] only."
+            )
+
+    def result_settings(self) -> dict[str, Any]:
+        """What the parts depend on (``chunk_s``), without how they were run (``workers``, ``executor``)."""
+        return {"chunk_s": self.chunk_s}
+
+
+def split_stream_keys(data: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A stage's flat options (``[track.options] chunk_s = 30``) split into its own and its ``stream``'s.
+
+    >>> split_stream_keys({"chunk_s": 30, "min_joints_3d": 4})
+    ({'min_joints_3d': 4}, {'chunk_s': 30})
+    """
+    own = {k: v for k, v in data.items() if k not in STREAM_KEYS}
+    stream = {k: v for k, v in data.items() if k in STREAM_KEYS}
+    if "stream" in own:
+        stream = {**dict(own.pop("stream")), **stream}
+    return own, stream
+
+
+def _parse_chunk_s(value: object) -> float | str:
+    """``"auto"`` or seconds >= 0 (0 = the whole session at once)."""
     if value == AUTO:
         return AUTO
     try:
@@ -71,18 +154,10 @@ def parse_chunk_s(value: object, where: str) -> float | str:
         seconds = float("nan")
     if isinstance(value, bool) or not seconds >= 0:
         raise ValueError(
-            f'{where} must be "auto" (stream sessions longer than {STREAM_ABOVE_FRAMES} frames) or '
+            f'chunk_s must be "auto" (stream sessions longer than {STREAM_ABOVE_FRAMES} frames) or '
             f"seconds >= 0 (0 = the whole session at once), got {value!r}."
         )
     return seconds
-
-
-def resolve_chunk_s(chunk_s: float | str, n_frames: int, fps: float) -> float:
-    """Seconds per chunk for a session of ``n_frames`` at ``fps`` (0 = whole): ``"auto"`` streams in
-    chunks of STREAM_CHUNK_FRAMES when the session has more than STREAM_ABOVE_FRAMES frames."""
-    if chunk_s != AUTO:
-        return float(chunk_s)
-    return STREAM_CHUNK_FRAMES / fps if n_frames > STREAM_ABOVE_FRAMES and fps > 0 else 0.0
 
 
 def hash_key(items: Iterable[object]) -> str:

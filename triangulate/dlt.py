@@ -267,6 +267,17 @@ class Triangulator:
             idx = drop.nonzero()[0]
             used[err_m[:, idx].argmax(0), idx] = False
             mx = None
+        ok = self._point_statistics(V, A, used, err2, w0, mx)
+        return V, ok, used
+
+    def _point_statistics(
+        self, V: np.ndarray, A: np.ndarray, used: np.ndarray, err2: np.ndarray, w0: np.ndarray, mx
+    ) -> np.ndarray:
+        """Fill V's score, error, spread and view-count rows from the views ``used`` of the last solve
+        (normal matrices ``A``, squared errors ``err2``); returns which points pass the checks."""
+        cfg = self.config
+        C, N = w0.shape
+        thr2 = cfg.max_reproj_px**2
         tr = _inv_trace(A)
         # per-point sums over the views used: count, confidence, error, squared confidence,
         # squared error, squared focal scale
@@ -292,8 +303,7 @@ class Triangulator:
         np.multiply(sigma, np.sqrt(np.maximum(tr, 0) * mean[2] / np.maximum(mean[4], 1e-12) / 3.0), out=std)
         # (a non-finite point fails here too: its depth or error is NaN, so no view stays used / max is NaN)
         max_ok = (E[4].max(0) if mx is None else mx) <= thr2
-        ok = (n_views >= cfg.min_views) & max_ok & (std <= cfg.max_std_m)
-        return V, ok, used
+        return (n_views >= cfg.min_views) & max_ok & (std <= cfg.max_std_m)
 
 
 def triangulate_dlt(

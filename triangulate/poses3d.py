@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import FormatError
-from core.fileio import check_schema, load_npz, npz_str, require_keys, save_npz, schema_tag
+from core.fileio import errors_in, load_container, npz_str, save_npz, schema_tag
 from triangulate.chunks import PartStore, parts_dir
 
 SCHEMA = "poses3d"
@@ -161,10 +161,8 @@ class Poses3D:
         path = Path(path)
         if not path.exists() and parts_dir(path).is_dir():
             return cls.concat([cls.load(p) for _, _, p in PartStore(parts_dir(path), SCHEMA).checked_parts()])
-        data = load_npz(path, required=("schema",))
-        check_schema(data["schema"], SCHEMA, (VERSION,), path)
-        require_keys(path, data, _KEYS)  # after the schema check, on the arrays already read
-        try:
+        data = load_container(path, SCHEMA, (VERSION,), _KEYS)
+        with errors_in(path):
             return cls(
                 fps=float(data["fps"]),
                 frame_index=data["frame_index"],
@@ -180,5 +178,3 @@ class Poses3D:
                 cameras=tuple(data["cameras"].tolist()) if "cameras" in data else None,
                 reproj_err_cam_px=data.get("reproj_err_cam_px") if "cameras" in data else None,
             )
-        except FormatError as e:
-            raise FormatError(path, e.field, str(e).split(": ", 2)[-1]) from e

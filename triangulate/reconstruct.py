@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.config import config_from_dict
-from triangulate.chunks import AUTO, parse_chunk_s
+from triangulate.chunks import StreamConfig, split_stream_keys
 from triangulate.dlt import (
     _NVIEWS,
     _PER_VIEW,
@@ -48,10 +48,6 @@ def flip_index(joint_names: tuple[str, ...]) -> np.ndarray:
     return np.asarray(out)
 
 
-CHUNK_EXECUTORS = ("processes", "ray")  # where TriangulateConfig.executor runs the chunks of one session
-RUN_SETTINGS = ("workers", "executor")  # TriangulateConfig fields: how the chunks ran, not what they are
-
-
 @dataclass(frozen=True)
 class TriangulateConfig:
     """Settings of the triangulate stage.
@@ -68,21 +64,9 @@ class TriangulateConfig:
       hand points; :func:`keypoints.skeletons.whole_body`), or the path of a skeleton TOML (a lab's
       own joints, animals included: :func:`keypoints.skeletons.load_skeleton_toml`). The greedy
       tracker carries any of them; the particle tracker and forecasting work on body19.
-    chunk_s: stream the session in time chunks of this many seconds: detections are read chunk by
-      chunk and the output is written as ``poses3d.parts/`` (one poses3d file per chunk with an index,
-      :mod:`triangulate.chunks`), so memory does not grow with the session and a killed run resumes at
-      the last complete chunk; 0 = the whole session at once into ``poses3d.npz``; ``"auto"`` (the
-      default) = streamed in chunks of 1,500 frames when the session has more than 1,500 frames
-      (:func:`triangulate.stage.session_chunk_s`). The parts equal the single file byte for byte.
-    workers: with ``chunk_s`` > 0, the chunks are triangulated by this many processes in parallel (frames
-      are independent here, so the parts are those of one process); a run-time setting, not part of the
-      result: the parts of a run with another ``workers`` are reused.
-    executor: where those chunks run: ``processes`` (spawned processes of this machine) or ``ray`` (one
-      Ray task of one CPU per chunk: the free CPUs of the running Ray, e.g. the cluster of ``reprocess
-      --executor ray``, which sets this for sessions streamed in chunks; where no Ray runs in this process,
-      a local one of ``workers`` CPUs, stopped after the stage). The workers read the session folder and
-      write the parts into it, so on a cluster of several machines it must be on a shared file system.
-      A run-time setting like ``workers``: the parts are the same.
+    stream: the session in time chunks (:class:`triangulate.chunks.StreamConfig`; the TOML's flat
+      ``chunk_s``, ``workers`` and ``executor`` keys go there): frames are independent here, so ``workers``
+      processes (or Ray tasks) triangulate chunks at once and the parts are those of one process.
     """
 
     match: MatchConfig = field(default_factory=MatchConfig)
@@ -92,18 +76,9 @@ class TriangulateConfig:
     fix_flips: bool = True
     merge_dist_m: float = 0.25
     skeleton: str = "body19"
-    chunk_s: float | str = AUTO
-    workers: int = 1
-    executor: str = "processes"
+    stream: StreamConfig = field(default_factory=StreamConfig)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "chunk_s", parse_chunk_s(self.chunk_s, "TriangulateConfig.chunk_s"))
-        if self.workers < 1:
-            raise ValueError(f"TriangulateConfig.workers must be >= 1, got {self.workers}.")
-        if self.executor not in CHUNK_EXECUTORS:
-            raise ValueError(
-                f"TriangulateConfig.executor must be one of {list(CHUNK_EXECUTORS)}, got {self.executor!r}."
-            )
         if self.skeleton not in ("body19", "whole_body") and not str(self.skeleton).endswith(".toml"):
             raise ValueError(
                 f"TriangulateConfig.skeleton must be 'body19', 'whole_body' or a skeleton TOML file "
@@ -112,7 +87,8 @@ class TriangulateConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TriangulateConfig:
-        return config_from_dict(cls, d)  # the match and dlt sections are parsed by their dataclasses
+        own, stream = split_stream_keys(d)  # the match, dlt and stream sections by their dataclasses
+        return config_from_dict(cls, {**own, "stream": stream} if stream else own)
 
 
 @dataclass(frozen=True)

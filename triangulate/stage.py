@@ -11,12 +11,10 @@ the list of valid ones) or None for the defaults.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import os
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import closing
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,522 +22,30 @@ import numpy as np
 from calibrate.camera import CameraRig
 from calibrate.checks import rig_warnings
 from capture.session import SessionLayout, require
-from core.config import config_from_dict
-from core.errors import FormatError, InputError
+from core.config import as_config
+from core.errors import FormatError
 from core.progress import Progress
-from keypoints.detections import Detections
-from keypoints.skeletons import (
-    CANONICAL,
-    Skeleton,
-    convert,
-    get_skeleton,
-    load_skeleton_toml,
-    skeleton_from_names,
-    whole_body,
-)
-from triangulate.checks import check_frame_order, detection_warnings, no_detection_warning, span_warnings
+from triangulate.checks import no_detection_warning
 from triangulate.chunks import (
-    AUTO,
-    NpzRows,
+    ChunkRunner,
     PartStore,
+    StreamConfig,
     file_stamp,
     hash_key,
-    parse_chunk_s,
     parts_dir,
     remove_output,
-    resolve_chunk_s,
+)
+from triangulate.multiview import (
+    MultiViewDetections,
+    load_detections,
+    plan_detections,
+    session_chunk_s,
+    session_fps,
 )
 from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import RUN_SETTINGS, FrameReconstructor, TriangulateConfig
-from triangulate.tracker import TrackerConfig, track_poses
+from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class GreedyTrackConfig:
-    """The greedy track stage: the tracker's settings (see :class:`TrackerConfig`).
-
-    chunk_s: stream the session in time chunks of this many seconds (:mod:`triangulate.stream_track`):
-    bounded memory, output ``track/tracks.parts/`` (one tracks/1 file per chunk, global track ids, an
-    index with sizes and hashes), a killed run resumes at the last complete chunk; the result equals the
-    whole session's bit for bit. 0 = at once into ``tracks.npz``; ``"auto"`` (the default) = streamed
-    when the session is long (:func:`session_chunk_s`)."""
-
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    chunk_s: float | str = AUTO
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "chunk_s", parse_chunk_s(self.chunk_s, "GreedyTrackConfig.chunk_s"))
-
-    @classmethod
-    def from_dict(cls, d: dict) -> GreedyTrackConfig:
-        if "tracker" in d:
-            return config_from_dict(cls, d)
-        d = dict(d)
-        stage = {"chunk_s": d.pop("chunk_s")} if "chunk_s" in d else {}
-        return cls(tracker=TrackerConfig.from_dict(d), **stage)  # flat dict of tracker keys
-
-
-def _as_config(cls, config):
-    if config is None:
-        return cls()
-    if isinstance(config, cls):
-        return config
-    if isinstance(config, dict):
-        return cls.from_dict(config)
-    raise TypeError(f"expected {cls.__name__}, a dict or None, got {type(config).__name__}")
-
-
-@dataclass(frozen=True)
-class MultiViewDetections:
-    """Detections of C cameras on a common frame axis, converted to body19 and undistorted."""
-
-    cameras: tuple[str, ...]
-    frame_index: np.ndarray  # (T,)
-    t_ns: np.ndarray  # (T,)
-    xy_px: np.ndarray  # (C,T,P,J,2) undistorted pixels, NaN = missing
-    score: np.ndarray  # (C,T,P,J)
-    offsets_frames: dict[str, float] = field(default_factory=dict)  # sync offsets applied (session.toml)
-    joint_names: tuple[str, ...] = CANONICAL.joint_names  # the 3D skeleton's joints (J,)
-    parents: tuple[int, ...] = CANONICAL.parents  # (J,)
-
-
-@dataclass(frozen=True)
-class FrameShift:
-    """A camera's frame axis against the reference camera's (``capture-run sync``, session.toml [sync]).
-
-    Camera frame ``f`` shows the instant of reference frame ``f + offset_frames + drift * (f - f0)``
-    (the convention of ``capture.offline_sync``; ``drift`` in frames per frame = drift_ppm * 1e-6).
-    """
-
-    offset_frames: float = 0.0
-    drift: float = 0.0
-
-    def map(self, frame_index: np.ndarray) -> np.ndarray:
-        f = np.asarray(frame_index, np.float64)
-        f0 = f[0] if len(f) else 0.0
-        return f + self.offset_frames + self.drift * (f - f0)
-
-
-def sync_shifts(layout: SessionLayout, cams: list[str], fps: float | None) -> dict[str, FrameShift]:
-    """The per-camera frame shifts that ``capture-run sync`` wrote into session.toml (none: {}).
-
-    Keypoint sync stores ``offset_frames`` (+ ``drift_ppm``); audio sync ``offset_s``, turned into
-    frames with the session's frame rate. A reference camera other than the session's cameras, or an
-    entry that cannot be read, is a clear error rather than silently unsynchronised 3D.
-    """
-    if not layout.session_toml.exists():
-        return {}
-    meta = layout.read_meta()
-    sync = meta.get("sync")
-    if not sync:
-        return {}
-    entries = sync.get("cameras", {}) if isinstance(sync, dict) else {}
-    where = f"{layout.session_toml} [sync]"
-    out: dict[str, FrameShift] = {}
-    for cam in cams:
-        e = entries.get(cam)
-        if e is None:
-            continue
-        try:
-            if "offset_frames" in e:
-                off = float(e["offset_frames"])
-            else:
-                rate = float(sync.get("fps") or fps or 0.0)
-                if rate <= 0:
-                    raise ValueError("offset_s without a frame rate")
-                off = float(e["offset_s"]) * rate
-            drift = float(e.get("drift_ppm", 0.0)) * 1e-6
-        except (TypeError, ValueError, KeyError) as err:
-            raise FormatError(
-                layout.session_toml,
-                f"sync.cameras.{cam}",
-                f"cannot read the sync offset ({err}).",
-                "Rerun `capture-run sync` or remove the [sync] table.",
-            ) from None
-        if not (np.isfinite(off) and np.isfinite(drift)):
-            raise FormatError(
-                layout.session_toml,
-                f"sync.cameras.{cam}",
-                "the offset is not finite.",
-                "Rerun capture-run sync.",
-            )
-        if off or drift:
-            out[cam] = FrameShift(off, drift)
-    missing = [c for c in cams if c not in entries]
-    if entries and missing:
-        log.warning(
-            "%s has no offset for cameras %s; they are taken as in sync with the reference", where, missing
-        )
-    return out
-
-
-@dataclass
-class _CameraMeta:
-    """What the 3D stages need of one camera's detections file before reading its rows."""
-
-    camera: str
-    path: Path
-    skeleton: str
-    frame_index: np.ndarray  # (n,)
-    t_ns: np.ndarray  # (n,)
-    n_people: int
-    n_joints: int
-    reader: NpzRows | None = None
-    det: Detections | None = None  # the whole file, where it was loaded whole
-    seen: bool = False  # any detection read so far
-    n_frames: int = -1  # rows of the file (frame_index and t_ns are released once a streamed plan is made)
-
-    def __post_init__(self) -> None:
-        if self.n_frames < 0:
-            self.n_frames = len(self.frame_index)
-
-    def rows(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-        """xy_px (b-a,P,J,2) and score (b-a,P,J) of rows [a, b) as float32."""
-        if self.det is not None:
-            return self.det.xy_px[a:b], self.det.score[a:b]
-        assert self.reader is not None
-        xy = self.reader.rows("xy_px", a, b).astype(np.float32, copy=False)
-        return xy, self.reader.rows("score", a, b).astype(np.float32, copy=False)
-
-
-def _camera_meta(path: Path, cam: str, stream: bool) -> _CameraMeta:
-    """Read one detections file's header arrays (streamed) or the whole file; check names and shapes."""
-    if not stream:
-        d = Detections.load(path)
-        meta = _CameraMeta(
-            d.camera, path, d.skeleton, d.frame_index, d.t_ns, d.max_people, d.xy_px.shape[2], det=d
-        )
-    else:
-        from core.fileio import check_schema, npz_str
-
-        r = NpzRows(path)
-        need = ("schema", "camera", "skeleton", "frame_index", "t_ns", "xy_px", "score")
-        missing = [k for k in need if k not in r.names]
-        if missing:
-            r.close()
-            raise FormatError(
-                path,
-                missing[0],
-                f"required keys {missing} are missing.",
-                "See keypoints/detections.py for the detections file layout.",
-            )
-        check_schema(r.full("schema"), "detections", (1,), path)
-        small = {k: r.full(k) for k in ("camera", "skeleton")}
-        fi = np.asarray(r.full("frame_index"), np.int64)
-        t = np.asarray(r.full("t_ns"), np.int64)
-        xy_shape, _ = r.header("xy_px")
-        sc_shape, _ = r.header("score")
-        try:
-            J = get_skeleton(npz_str(small, "skeleton")).n_joints
-        except KeyError as e:
-            r.close()
-            raise FormatError(path, "skeleton", str(e)) from None
-        T = len(fi)
-        cam_name = npz_str(small, "camera")
-        for name, shape, want in (
-            ("t_ns", t.shape, (T,)),
-            ("xy_px", xy_shape, (T, None, J, 2)),
-            ("score", sc_shape, (T, None, J)),
-        ):
-            ok = len(shape) == len(want) and all(
-                w is None or w == s for w, s in zip(want, shape, strict=True)
-            )
-            if not ok or (len(shape) > 1 and shape[1] != xy_shape[1]):
-                r.close()
-                wants = tuple("P" if w is None else w for w in want)
-                raise FormatError(
-                    path,
-                    name,
-                    f"camera '{cam_name}': expected shape {wants} (T={T} frames), got {tuple(shape)}.",
-                    "Every array of a detections file has one row per frame; rewrite the file.",
-                )
-        meta = _CameraMeta(cam_name, path, npz_str(small, "skeleton"), fi, t, int(xy_shape[1]), J, reader=r)
-    if meta.camera != cam:
-        raise FormatError(
-            path,
-            "camera",
-            f"the file says camera '{meta.camera}' but is named after '{cam}'.",
-            "Rename the file or fix its 'camera' field.",
-        )
-    check_frame_order(meta, path)  # type: ignore[arg-type]  # frame_index, t_ns, camera
-    return meta
-
-
-@dataclass
-class DetectionPlan:
-    """How the cameras' detection rows land on the common frame axis (:func:`plan_detections`).
-
-    ``frames (T,)`` the reference frame numbers, ``t_ns (T,)`` their times; per camera ``rows[c]``
-    the file rows used and ``pos[c]`` their positions on the axis (both increasing)."""
-
-    cameras: tuple[str, ...]
-    rig: CameraRig
-    metas: list[_CameraMeta]
-    skel: Skeleton
-    frames: np.ndarray
-    t_ns: np.ndarray
-    rows: list[np.ndarray]
-    pos: list[np.ndarray]
-    offsets_frames: dict[str, float]
-    n_people: int
-
-    @property
-    def n_frames(self) -> int:
-        return len(self.frames)
-
-    def close(self) -> None:
-        for m in self.metas:
-            if m.reader is not None:
-                m.reader.close()
-
-    def chunk(self, a: int, b: int) -> MultiViewDetections:
-        """The detections of axis positions [a, b): converted, undistorted, (C,b-a,P,J,...)."""
-        C, J = len(self.cameras), self.skel.n_joints
-        xy = np.full((C, b - a, self.n_people, J, 2), np.nan)
-        sc = np.zeros((C, b - a, self.n_people, J))
-        for ci, m in enumerate(self.metas):
-            lo, hi = np.searchsorted(self.pos[ci], [a, b])
-            if hi <= lo:
-                continue
-            rows = self.rows[ci][lo:hi]
-            r0, r1 = int(rows[0]), int(rows[-1]) + 1
-            bxy, bsc = m.rows(r0, r1)
-            bxy, bsc = bxy[rows - r0], bsc[rows - r0]
-            b19, s19 = convert(bxy, bsc, m.skeleton, self.skel)
-            s19 = np.where(np.isfinite(s19), s19, 0.0)
-            p = self.pos[ci][lo:hi] - a
-            xy[ci, p, : m.n_people] = self.rig[ci].undistort_px(b19)
-            sc[ci, p, : m.n_people] = s19
-            if not m.seen:
-                m.seen = bool((np.isfinite(bxy[..., 0]) & (np.nan_to_num(bsc) > 0)).any())
-        return MultiViewDetections(
-            self.cameras,
-            self.frames[a:b],
-            self.t_ns[a:b],
-            xy,
-            sc,
-            self.offsets_frames,
-            self.skel.joint_names,
-            self.skel.parents,
-        )
-
-
-def _check_rates(metas: list[_CameraMeta]) -> None:
-    """Cameras with timestamps at different frame rates cannot be matched by frame number."""
-    rates = {}
-    for m in metas:
-        t = m.t_ns[m.t_ns != 0]
-        if len(t) > 2 and (np.diff(m.frame_index[m.t_ns != 0]) > 0).all():
-            per_frame = np.diff(t) / np.diff(m.frame_index[m.t_ns != 0])
-            rates[m.camera] = 1e9 / float(np.median(per_frame))
-    if len(rates) > 1:
-        lo, hi = min(rates.values()), max(rates.values())
-        if hi > 1.05 * lo:
-            raise FormatError(
-                metas[0].path.parent,
-                None,
-                "the cameras run at different frame rates ("
-                + ", ".join(f"{c} {r:.2f} fps" for c, r in rates.items())
-                + "): frames are matched by frame number, which would pair different instants.",
-                "Resample the detections to one frame rate (or record at one rate) before the 3D stages.",
-            )
-
-
-def plan_detections(
-    layout: SessionLayout,
-    rig: CameraRig,
-    apply_sync: bool = True,
-    skeleton: str = "body19",
-    stream: bool = True,
-) -> DetectionPlan:
-    """Check every ``keypoints/<cam>.npz`` against the rig and put the cameras' frames on one axis.
-
-    With ``stream`` only the frame numbers and timestamps are read now; :meth:`DetectionPlan.chunk`
-    reads the rows of a time chunk (memory bounded by the chunk, not the session). See
-    :func:`load_detections` for the alignment."""
-    kp_cams = layout.detection_cameras()
-    if not kp_cams:
-        raise FormatError(
-            layout.keypoints_dir,
-            None,
-            "no detection files (keypoints/<cam>.npz) found.",
-            "Run the keypoints stage or write one Detections file per camera.",
-        )
-    unknown = [c for c in kp_cams if c not in rig.names]
-    if unknown:
-        raise FormatError(
-            layout.keypoints_dir,
-            None,
-            f"detections for cameras {unknown} have no calibration: the rig has {rig.names}.",
-            "Name each keypoints/<cam>.npz after a camera of calib/rig.toml (or recalibrate).",
-        )
-    cams = [c for c in rig.names if c in kp_cams]
-    missing = [c for c in rig.names if c not in kp_cams]
-    if missing:
-        log.warning("cameras %s of the rig have no detections; using %s", missing, cams)
-    if len(cams) < 2:
-        raise FormatError(
-            layout.keypoints_dir,
-            None,
-            f"triangulation needs detections from at least 2 calibrated cameras, got {cams}.",
-            "Add detections of another camera of the rig.",
-        )
-    # a skeleton TOML registers its 2D layouts before any detections file loads
-    custom = load_skeleton_toml(skeleton) if str(skeleton).endswith(".toml") else None
-    metas = [_camera_meta(layout.detections(c), c, stream) for c in cams]
-    if stream:  # a camera with no detection at all is said once its rows were read (empty_camera_warnings)
-        warns = span_warnings(metas)  # type: ignore[arg-type]
-    else:
-        warns = detection_warnings([m.det for m in metas if m.det is not None])
-    for w in warns:
-        log.warning("%s", w)
-    _check_rates(metas)
-    shifts = {}
-    if apply_sync:
-        fps_hint = None
-        dt = np.diff(metas[0].t_ns)
-        dt = dt[dt > 0]
-        if len(dt):
-            fps_hint = float(1e9 / np.median(dt))
-        shifts = sync_shifts(layout, cams, fps_hint)
-    keep, mapped = [], []
-    for c, d in zip(cams, metas, strict=True):
-        if c not in shifts:
-            keep.append(np.ones(d.n_frames, bool))
-            mapped.append(d.frame_index)
-            continue
-        target_f = shifts[c].map(d.frame_index)
-        target = np.rint(target_f).astype(np.int64)
-        ok = target >= 0
-        # drift can send two frames to one reference frame: keep the nearer one
-        order = np.argsort(np.abs(target_f - target), kind="stable")
-        order = order[ok[order]]
-        _, first = np.unique(target[order], return_index=True)
-        k = np.zeros(d.n_frames, bool)
-        k[order[first]] = True
-        keep.append(k)
-        mapped.append(target)
-        log.info(
-            "camera %s: sync offset %+.2f frames (drift %+.0f ppm) applied; %d of %d frames on the "
-            "reference axis",
-            c,
-            shifts[c].offset_frames,
-            shifts[c].drift * 1e6,
-            int(k.sum()),
-            d.n_frames,
-        )
-    frames = np.unique(np.concatenate([m[k] for m, k in zip(mapped, keep, strict=True)]))
-    T = len(frames)
-    P = max(d.n_people for d in metas)
-    if custom is not None:
-        skel = custom
-    elif skeleton == "whole_body":
-        skel = whole_body([d.skeleton for d in metas])
-    else:
-        skel = get_skeleton(skeleton)
-    t_ns = np.zeros(T, np.int64)
-    have_t = np.zeros(T, bool)
-    rows_l, pos_l = [], []
-    small = np.int32 if max(T, *(m.n_frames for m in metas)) < 2**31 else np.int64  # an hour: 4 MB per camera
-    for ci in range(len(cams)):
-        r = np.flatnonzero(keep[ci])
-        rows_l.append(r.astype(small))
-        pos_l.append(np.searchsorted(frames, mapped[ci][r]).astype(small))
-    # timestamps: unshifted cameras first (the reference's clock), then shifted ones moved onto it
-    for ci in sorted(range(len(cams)), key=lambda i: cams[i] in shifts):
-        d, k, pos = metas[ci], keep[ci], pos_l[ci]
-        t_c = d.t_ns[k]
-        if cams[ci] in shifts and len(t_c) > 1:
-            period_ns = float(np.median(np.diff(d.t_ns))) if d.n_frames > 1 else 0.0
-            t_c = np.where(t_c != 0, t_c + np.rint((mapped[ci][k] - d.frame_index[k]) * period_ns), 0)
-        new = ~have_t[pos] & (t_c != 0)
-        t_ns[pos[new]] = t_c[new]
-        have_t[pos[new]] = True
-    offsets = {c: shifts[c].offset_frames for c in shifts}
-    if stream:  # the rows and positions above replace the files' frame numbers and times (an hour: 17 MB)
-        for m in metas:
-            m.frame_index = m.t_ns = np.zeros(0, np.int64)
-    return DetectionPlan(tuple(cams), rig.subset(cams), metas, skel, frames, t_ns, rows_l, pos_l, offsets, P)
-
-
-def load_detections(
-    layout: SessionLayout, rig: CameraRig, apply_sync: bool = True, skeleton: str = "body19"
-) -> tuple[CameraRig, MultiViewDetections]:
-    """Read every ``keypoints/<cam>.npz``, check it against the rig, align frames, convert and undistort.
-
-    Frames are matched across cameras by frame index after the sync offsets of session.toml
-    (``capture-run sync``, :func:`sync_shifts`) are applied (``apply_sync``): each camera's frames are
-    moved onto the reference camera's frame axis, to the nearest frame (the residual is under half a
-    frame; detections are not interpolated, their person slots are not identities). Frames that land
-    before reference frame 0 are dropped. ``skeleton``: the 3D joints, ``body19``, ``whole_body``
-    (body19 plus the joints the cameras' layouts add) or a skeleton TOML. Returns the rig restricted
-    to the cameras with detections (in rig order) and the detections.
-
-    The whole session in memory; :func:`plan_detections` + :meth:`DetectionPlan.chunk` read it in
-    time chunks (:func:`iter_detection_chunks`).
-    """
-    plan = plan_detections(layout, rig, apply_sync, skeleton, stream=False)
-    return plan.rig, plan.chunk(0, plan.n_frames)
-
-
-def iter_detection_chunks(
-    layout: SessionLayout,
-    rig: CameraRig,
-    chunk_frames: int,
-    apply_sync: bool = True,
-    skeleton: str = "body19",
-):
-    """Yield ``(rig, MultiViewDetections)`` of consecutive time chunks of ``chunk_frames`` frames, each
-    read from the files as it is needed (the streaming form of :func:`load_detections`, for trackers
-    that step frame by frame)."""
-    plan = plan_detections(layout, rig, apply_sync, skeleton, stream=True)
-    try:
-        for a in range(0, plan.n_frames, max(int(chunk_frames), 1)):
-            yield plan.rig, plan.chunk(a, min(a + chunk_frames, plan.n_frames))
-    finally:
-        plan.close()
-
-
-def session_fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
-    if layout.session_toml.exists():
-        try:
-            fps = layout.read_meta().get("fps")
-            if fps:
-                return float(fps)
-        except FormatError as e:
-            log.warning("session.toml unreadable (%s); estimating fps from timestamps", e)
-    dt = np.diff(t_ns[t_ns > 0])
-    dt = dt[dt > 0]
-    return float(1e9 / np.median(dt)) if len(dt) else 25.0
-
-
-def session_chunk_s(layout: SessionLayout, chunk_s: float | str) -> float:
-    """Seconds per chunk a 3D stage with setting ``chunk_s`` uses on this session (0 = the whole session
-    into the single file). ``"auto"`` streams a session of more than ``STREAM_ABOVE_FRAMES`` frames
-    (:func:`triangulate.chunks.resolve_chunk_s`), counted in the detections files (the camera with the
-    most frames; ``triangulate/poses3d`` where there are none), so every stage and the runner, which
-    must know the output's path before the stage runs, decide the same for one session."""
-    if chunk_s != AUTO:
-        return float(chunk_s)
-    n, t_ns = 0, np.zeros(0, np.int64)
-    files = [layout.detections(c) for c in layout.detection_cameras()]
-    if not files and layout.poses3d.exists():
-        files = [layout.poses3d]
-    for f in files:
-        try:
-            with NpzRows(f) as r:
-                rows = r.header("frame_index")[0][0]
-                if rows > n:
-                    n, t_ns = rows, r.full("t_ns")
-        except (FormatError, KeyError):  # the stage itself reports an unreadable file
-            continue
-    if not files and parts_dir(layout.poses3d).is_dir():
-        index = PartStore(parts_dir(layout.poses3d), "poses3d").load_index()
-        meta = index.get("meta", {})
-        return resolve_chunk_s(chunk_s, int(meta.get("n_frames", 0)), float(meta.get("fps", 0.0)))
-    return resolve_chunk_s(chunk_s, n, session_fps(layout, t_ns))
 
 
 def _reconstructor(rig: CameraRig, cameras: tuple[str, ...], joint_names, config: TriangulateConfig):
@@ -613,11 +119,13 @@ def triangulate_session(
     session_dir: str | os.PathLike,
     config: TriangulateConfig | dict | None = None,
     progress: Progress | None = None,
+    executor: ChunkRunner | None = None,
 ) -> Path:
     """Association (Alg. 1) + robust DLT for every frame of a session; writes ``triangulate/poses3d.npz``
-    (with ``chunk_s`` > 0: ``triangulate/poses3d.parts/``, streamed and resumable; ``Poses3D.load`` of
-    ``poses3d.npz`` reads either)."""
-    cfg = _as_config(TriangulateConfig, config)
+    (streamed: ``triangulate/poses3d.parts/``, resumable; ``Poses3D.load`` of ``poses3d.npz`` reads
+    either). ``executor`` runs the chunks ``config.stream.workers`` at a time
+    (``pipeline.executors.chunk_runner``: processes or Ray); without one they run in this process."""
+    cfg = as_config(TriangulateConfig, config)
     lay = SessionLayout(session_dir)
     rig_path = require(
         lay.rig_toml, "the calibration calib/rig.toml", "Calibrate the rig or import a calibration."
@@ -632,9 +140,9 @@ def triangulate_session(
         )
     for w in rig_warnings(rig, str(rig_path)):
         log.warning("%s", w)
-    cfg = replace(cfg, chunk_s=session_chunk_s(lay, cfg.chunk_s))
-    if cfg.chunk_s > 0:
-        return _triangulate_chunked(lay, rig, cfg, progress)
+    cfg = replace(cfg, stream=replace(cfg.stream, chunk_s=session_chunk_s(lay, cfg.stream)))
+    if cfg.stream.chunk_s > 0:
+        return _triangulate_chunked(lay, rig, cfg, progress, executor)
     sub, mv = load_detections(lay, rig, skeleton=cfg.skeleton)
     res = reconstruct_all(sub, mv, cfg, progress)
     poses = _poses3d(
@@ -679,15 +187,17 @@ def _poses3d(
 
 
 def _triangulate_chunked(
-    lay: SessionLayout, rig: CameraRig, cfg: TriangulateConfig, progress: Progress | None
+    lay: SessionLayout,
+    rig: CameraRig,
+    cfg: TriangulateConfig,
+    progress: Progress | None,
+    executor: ChunkRunner | None,
 ) -> Path:
-    """The streaming form: one poses3d part per ``cfg.chunk_s`` of frames, resumable (issue 17)."""
-    if cfg.executor == "ray":
-        _import_ray()  # before any work: a clear message where ray is not installed
+    """The streaming form: one poses3d part per ``cfg.stream.chunk_s`` of frames, resumable."""
     plan = plan_detections(lay, rig, skeleton=cfg.skeleton, stream=True)
     try:
         fps = session_fps(lay, plan.t_ns)
-        step = max(int(round(cfg.chunk_s * fps)), 1)
+        step = max(int(round(cfg.stream.chunk_s * fps)), 1)
         T = plan.n_frames
         chunks = [(a, min(a + step, T)) for a in range(0, T, step)] or [(0, 0)]
         key = hash_key(
@@ -710,7 +220,7 @@ def _triangulate_chunked(
         n_sum, n_max, n_frames = 0, 0, 0
         # closing: a kill (Ctrl-C) between parts stops the workers now (queued chunks cancelled, a Ray
         # started here shut down), not when the generator is collected
-        parts = _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress)
+        parts = _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress, executor)
         with closing(parts):
             for i, n in parts:
                 store.commit(i)
@@ -740,39 +250,26 @@ def _triangulate_chunked(
 
 
 def _without_run_settings(cfg: TriangulateConfig) -> TriangulateConfig:
-    """``cfg`` with its ``RUN_SETTINGS`` at their defaults: how the chunks ran, not what they are."""
-    return replace(cfg, **{k: TriangulateConfig.__dataclass_fields__[k].default for k in RUN_SETTINGS})
+    """``cfg`` with ``workers`` and ``executor`` at their defaults: how the chunks ran, not what they are."""
+    return replace(cfg, stream=StreamConfig(chunk_s=cfg.stream.chunk_s))
 
 
-def _import_ray():
-    try:
-        import ray
-    except ImportError:
-        raise InputError(
-            "triangulate: executor = 'ray' needs ray: pip install 'roomcap[cluster]' (or set "
-            "[triangulate.options] executor = 'processes' to use this machine's processes)."
-        ) from None
-    return ray
-
-
-def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress):
+def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, progress, executor):
     """Triangulate the chunks ``todo`` into their part files; yields (chunk, people per frame) as each is
-    written. ``cfg.workers`` > 1 or ``cfg.executor`` "ray": in worker processes (spawned: onnxruntime and
-    torch thread pools do not survive a fork) or Ray tasks, each worker planning the session once
-    (``_chunk_worker``)."""
+    written: in this process, or with ``executor`` (worker processes or Ray tasks, each worker planning
+    the session once, ``_chunk_worker``)."""
     T = plan.n_frames
     for i, (_, b) in enumerate(chunks):
         if i not in todo and progress is not None:
             progress("triangulate", b, T)
-    if len(todo) <= 1 or (cfg.workers <= 1 and cfg.executor == "processes"):
+    if len(todo) <= 1 or executor is None:
         rec = _reconstructor(plan.rig, plan.cameras, plan.skel.joint_names, cfg)
         for i in sorted(todo):
             yield i, _triangulate_chunk(plan, rig, cfg, rec, chunks[i], fps, store.part_path(i), progress)
         return
     jobs = {i: (str(lay.root), cfg, chunks[i], fps, str(store.part_path(i)), key) for i in sorted(todo)}
-    run = _chunks_on_ray if cfg.executor == "ray" else _chunks_in_processes
     done = sum(b - a for i, (a, b) in enumerate(chunks) if i not in todo)
-    with closing(run(jobs, cfg.workers)) as results:
+    with closing(executor(_chunk_worker, jobs, cfg.stream.workers)) as results:
         for i, (n, seen) in results:
             for m, s in zip(plan.metas, seen, strict=True):  # for the "camera without detections" check
                 m.seen = m.seen or s
@@ -780,66 +277,6 @@ def _triangulate_chunks(lay, plan, rig, cfg, chunks, todo, store, fps, key, prog
             if progress is not None:
                 progress("triangulate", done, T)
             yield i, n
-
-
-_BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def _chunks_in_processes(jobs: dict, workers: int):
-    """``_chunk_worker(*jobs[i])`` in ``workers`` spawned processes; yields (i, result) as each finishes.
-
-    Each process gets its share of the cores' BLAS threads (read when numpy loads, so set in the
-    environment the processes are spawned with): with the default of one per core, 2 processes on 2 cores
-    ran at 1.16x one process, with one each at 1.93x (bench_triangulate_workers.py)."""
-    ctx = mp.get_context("spawn")
-    share = str(max(1, (os.cpu_count() or 1) // max(1, min(workers, len(jobs)))))
-    saved = {v: os.environ.get(v) for v in _BLAS_THREADS}
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx) as pool:
-        try:  # the processes start at the submits (spawn: on demand), with this environment
-            os.environ.update({v: share for v in _BLAS_THREADS if saved[v] is None})
-            futures = {pool.submit(_chunk_worker, *args): i for i, args in jobs.items()}
-        finally:
-            for v, old in saved.items():
-                if old is None:
-                    os.environ.pop(v, None)
-        try:
-            for f in as_completed(futures):
-                yield futures[f], f.result()
-        except BaseException:  # killed, or the caller stopped: the queued chunks are not started
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
-
-
-def _chunks_on_ray(jobs: dict, workers: int):
-    """``_chunk_worker(*jobs[i])`` as Ray tasks of one CPU each; yields (i, result) as each finishes.
-
-    In a running Ray (a cluster, or inside a session's task of ``reprocess --executor ray``) the tasks
-    go to its free CPUs; a task blocked in ``ray.wait`` lends its CPU back, so nesting does not deadlock.
-    Where no Ray runs in this process, a local one of ``workers`` CPUs is started and stopped after."""
-    ray = _import_ray()
-    started_here = not ray.is_initialized()
-    if started_here:
-        # a new local instance of our own ("local"), never someone else's running cluster
-        ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
-    pending: dict = {}
-    try:
-        task = ray.remote(num_cpus=1)(_chunk_worker)
-        pending = {task.remote(*args): i for i, args in jobs.items()}
-        while pending:
-            (ref,), _ = ray.wait(list(pending), num_returns=1)
-            i = pending.pop(ref)
-            try:
-                result = ray.get(ref)
-            except ray.exceptions.RayTaskError as e:  # the worker's own error (a bad file), not Ray's wrapper
-                if isinstance(e.cause, Exception):
-                    raise e.cause from None
-                raise
-            yield i, result
-    finally:
-        for ref in pending:  # killed, failed or stopped: the chunks not yet written are not run
-            ray.cancel(ref)
-        if started_here:
-            ray.shutdown()
 
 
 BLOCK_FRAMES = 250  # frames of detections read at a time within a chunk
@@ -891,161 +328,3 @@ def _chunk_worker(
     plan = _WORKER_PLAN["plan"]
     n = _triangulate_chunk(plan, _WORKER_PLAN["rig"], cfg, _WORKER_PLAN["rec"], chunk, fps, Path(part))
     return n, [m.seen for m in plan.metas]
-
-
-def track_session_greedy(
-    session_dir: str | os.PathLike, config: GreedyTrackConfig | TrackerConfig | dict | None = None
-) -> Path:
-    """The chapter-4 tracker on ``triangulate/poses3d.npz`` (or its parts); writes ``track/tracks.npz``
-    (with ``chunk_s`` > 0: ``track/tracks.parts/``, streamed, resumable; ``TrackFile.load`` reads either)."""
-    if isinstance(config, TrackerConfig):
-        config = GreedyTrackConfig(tracker=config)
-    cfg = _as_config(GreedyTrackConfig, config)
-    lay = SessionLayout(session_dir)
-    if not lay.poses3d.exists() and not parts_dir(lay.poses3d).is_dir():
-        require(lay.poses3d, "triangulate/poses3d.npz", "Run the triangulate stage first.")
-    cfg = replace(cfg, chunk_s=session_chunk_s(lay, cfg.chunk_s))
-    if cfg.chunk_s > 0:
-        return _track_chunked(lay, cfg)
-    p = Poses3D.load(lay.poses3d)
-    tf = track_poses(
-        p.xyz_m.astype(np.float64),
-        p.frame_index,
-        p.t_ns,
-        p.fps,
-        p.joint_names,
-        np.asarray(skeleton_from_names(p.joint_names).parents if p.parents is None else p.parents),
-        confidence=p.score,
-        std_m=p.std_m,
-        config=cfg.tracker,
-        calibration_sha256=p.calibration_sha256,
-    )
-    remove_output(lay.tracks)
-    tf.save(lay.tracks)
-    log.info("greedy tracker: %d tracks over %d frames", tf.n_tracks, tf.n_frames)
-    return lay.tracks
-
-
-class PosesReader:
-    """Frames [a, b) of ``poses3d.npz`` or of its parts, reading only the parts a range touches."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._cache: dict[int, Poses3D] = {}
-        if path.exists():
-            self.whole: Poses3D | None = Poses3D.load(path)
-            self.spans = [(0, self.whole.n_frames, path)]
-            self.stamp: object = file_stamp(path)
-            head = self.whole
-        else:
-            self.whole = None
-            store = PartStore(parts_dir(path), "poses3d")
-            self.spans = store.checked_parts()
-            self.stamp = (
-                store.index["key"],
-                [store.index["parts"][k]["sha256"] for k in sorted(store.index["parts"])],
-            )
-            head = Poses3D.load(self.spans[0][2])
-        self.fps, self.joint_names = head.fps, head.joint_names
-        self.parents = head.parents
-        self.calibration_sha256 = head.calibration_sha256
-        if self.whole is not None:
-            self.frame_index, self.t_ns = self.whole.frame_index, self.whole.t_ns
-        else:  # the frame axis of every part (small)
-            fi, tn = [], []
-            for _, _, p in self.spans:
-                with NpzRows(p) as r:
-                    fi.append(r.full("frame_index"))
-                    tn.append(r.full("t_ns"))
-            self.frame_index, self.t_ns = np.concatenate(fi), np.concatenate(tn)
-
-    def _part(self, i: int) -> Poses3D:
-        if self.whole is not None:
-            return self.whole
-        if i not in self._cache:
-            if len(self._cache) >= 3:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[i] = Poses3D.load(self.spans[i][2])
-        return self._cache[i]
-
-    def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        xs, cs, ss = [], [], []
-        for i, (f0, f1, _) in enumerate(self.spans):
-            if f1 <= a or f0 >= b:
-                continue
-            p = self._part(i)
-            sl = slice(max(a - f0, 0), min(b, f1) - f0)
-            xs.append(p.xyz_m[sl])
-            cs.append(p.score[sl])
-            ss.append(p.std_m[sl])
-        P = max(x.shape[1] for x in xs)
-
-        def cat(arrs, fill):
-            return np.concatenate(
-                [
-                    np.pad(x, [(0, 0), (0, P - x.shape[1])] + [(0, 0)] * (x.ndim - 2), constant_values=fill)
-                    for x in arrs
-                ]
-            )
-
-        return cat(xs, np.nan), cat(cs, 0.0), cat(ss, np.nan)
-
-
-def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
-    """The streaming greedy tracker (:mod:`triangulate.stream_track`), one track part per chunk."""
-    from triangulate.reconstruct import flip_index
-    from triangulate.stream_track import build_chunks, link_chunks
-    from triangulate.tracker import facing_joints, frame_times_s, pause_clock, sparse_time_warning
-    from triangulate.trackfile import TrackFile
-
-    read = PosesReader(lay.poses3d)
-    fps = read.fps
-    tcfg = cfg.tracker.at_fps(fps)
-    parents = np.asarray(
-        skeleton_from_names(read.joint_names).parents if read.parents is None else read.parents
-    )
-    flip = flip_index(read.joint_names) if tcfg.fix_mirrored else None
-    t_s = frame_times_s(read.frame_index, read.t_ns, fps)
-    T = len(t_s)
-    warn = sparse_time_warning(
-        pause_clock(t_s, tcfg.max_gap_s, fps)[1], tcfg.max_gap_s, tcfg.min_track_frames
-    )
-    if warn:
-        log.warning("greedy tracker: %s", warn)
-    step = max(int(round(cfg.chunk_s * fps)), 1)
-    chunks = [(a, min(a + step, T)) for a in range(0, T, step)]
-    key = hash_key(["tracks", repr(cfg), read.stamp])
-    if lay.tracks.exists():
-        lay.tracks.unlink()
-    store = PartStore(parts_dir(lay.tracks), "tracks")
-    todo = set(store.open(key, chunks, {"fps": fps, "n_frames": T}))
-    if todo and len(todo) < len(chunks):
-        log.info(
-            "greedy tracker: resuming, %d of %d chunks already done", len(chunks) - len(todo), len(chunks)
-        )
-    if todo:
-        labels, mirrored, final = link_chunks(
-            read, chunks, tcfg, fps, flip, t_s, facing_joints(read.joint_names)
-        )
-        for i, ch in build_chunks(read, chunks, labels, mirrored, final, tcfg, parents, flip, fps, t_s, todo):
-            TrackFile(
-                fps=fps,
-                frame_index=read.frame_index[ch.a : ch.b],
-                t_ns=read.t_ns[ch.a : ch.b],
-                track_id=ch.track_id,
-                joint_names=read.joint_names,
-                parents=parents,
-                xyz_m=ch.xyz_m,
-                confidence=np.clip(ch.confidence, 0, 1),
-                std_m=ch.std_m,
-                flags=ch.flags,
-                calibration_sha256=read.calibration_sha256,
-                source="triangulate.tracker (greedy, ch. 4; streamed)",
-            ).save(store.part_path(i))
-            store.commit(i)
-        n_tracks = int(final.max(initial=-1)) + 1
-    else:
-        n_tracks = -1
-    store.finish({"n_tracks": n_tracks} if n_tracks >= 0 else None)
-    log.info("greedy tracker (streamed): %d chunks, %s tracks over %d frames", len(chunks), n_tracks, T)
-    return lay.tracks

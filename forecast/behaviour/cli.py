@@ -12,12 +12,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from core.cli import guarded, parse_sets
 from core.errors import FormatError, InputError
 from core.fileio import atomic_write_text
 from core.progress import Bars
+from forecast.behaviour import quality as Q
 from forecast.behaviour.model import (
     SHIPPED,
     VARIANTS,
@@ -33,6 +35,7 @@ from forecast.behaviour.training import (
     evaluate_all,
     load_splits,
     results_table,
+    share_real,
     train,
     train_average,
 )
@@ -82,6 +85,11 @@ def _main(argv: list[str] | None = None) -> int:
     e.add_argument("--split-seed", type=int, default=0)
     e.add_argument("--out", default="results.json", help="results JSON (default results.json)")
     e.add_argument(
+        "--quality-classifier",
+        default=str(Q.QUALITY_SHIPPED),
+        help="the 3D quality classifier (`forecast behaviour quality`; default the shipped one)",
+    )
+    e.add_argument(
         "--sessions",
         nargs="*",
         default=[],
@@ -99,6 +107,19 @@ def _main(argv: list[str] | None = None) -> int:
         "--camera", default=None, help="observing camera (default: the one seeing each person best)"
     )
     s.add_argument("--model", default="full", help="variant of the checkpoint to use (default full)")
+    q = sub.add_parser(
+        "quality",
+        help="train the 3D quality classifier once (sec. 4.7.7): database vs training-time poses",
+    )
+    q.add_argument("--out", required=True, help="classifier path (.pt)")
+    q.add_argument(
+        "--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides of the snapshot runs"
+    )
+    q.add_argument("--variants", default="full,pose_only", help="pose-predicting variants to collect from")
+    q.add_argument("--every", type=int, default=200, help="collect a snapshot every this many steps")
+    q.add_argument("--per-snapshot", type=int, default=625, help="training sequences predicted per snapshot")
+    q.add_argument("--clf-steps", type=int, default=4000, help="classifier training steps (batches 2x256)")
+    q.add_argument("--split-seed", type=int, default=0)
     argv = sys.argv[1:] if argv is None else list(argv)
     mg = sub.add_parser("merge", help="join checkpoints of variants trained apart (in parallel) into one")
     mg.add_argument("checkpoints", nargs="+")
@@ -112,6 +133,8 @@ def _main(argv: list[str] | None = None) -> int:
         return _eval(args)
     if args.cmd == "merge":
         return _merge(args)
+    if args.cmd == "quality":
+        return _quality(args)
     out = run_sample(
         args.session, args.labels, args.out, checkpoint=args.checkpoint, camera=args.camera, model=args.model
     )
@@ -160,7 +183,9 @@ def _train(args) -> int:
     )
     if args.eval_split == "none" or "full" not in gens:
         return 0
-    res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split), sp.db)
+    qm = _quality_model(str(Q.QUALITY_SHIPPED), missing_ok=True)
+    qc = (qm.clf, qm.joints) if qm is not None else None
+    res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split), sp.db, quality_clf=qc)
     res["split"] = args.eval_split
     print(f"{args.eval_split} split:")
     print(results_table(res))
@@ -193,6 +218,68 @@ def _merge(args) -> int:
     return 0
 
 
+def _quality_model(path: str, missing_ok: bool = False) -> Q.QualityModel | None:
+    if missing_ok and not Path(path).exists():
+        return None
+    try:
+        return Q.load(path)
+    except FileNotFoundError:
+        raise InputError(
+            f"{path}: no 3D quality classifier; build one with `forecast behaviour quality --out FILE`"
+        ) from None
+    except FormatError as err:
+        raise InputError(str(err)) from None
+
+
+def _quality(args) -> int:
+    base = _cfg(args.set)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    bad = [v for v in variants if v not in ("full", "pose_only")]
+    if bad or not variants:
+        raise InputError(f"--variants: {bad or variants} - give a comma list of full, pose_only")
+    if args.every < 1 or args.per_snapshot < 1 or args.clf_steps < 1:
+        raise InputError("--every, --per-snapshot and --clf-steps must be positive")
+    t0 = time.perf_counter()
+    sp = load_splits(base, args.split_seed, base.joint_names)
+    print(f"training sequences {len(sp.train)}; 3D database {len(sp.db)} poses")
+    with Bars(unit="step") as bars:
+        snaps, secs = Q.build_pool(base, variants, sp.train, sp.db, args.every, args.per_snapshot, bars)
+    names = base.joint_names
+    fake = np.concatenate([p for s in snaps.values() for _, p in s]).astype(np.float32)
+    real, held = Q.real_split(sp.db, names)
+    q = Q.fit(real, fake, names, seed=base.seed, steps=args.clf_steps)
+    avg = np.broadcast_to(np.asarray(train_average(sp.train), np.float32), (1, len(names), 3))
+    checks = {
+        "database_held_out": share_real(q.clf, held, names),
+        "train_average_pose": share_real(q.clf, avg, names),
+        **{
+            f"{v}_step{st}": share_real(q.clf, p, names)
+            for v, s in snaps.items()
+            for st, p in (s[0], s[len(s) // 2], s[-1])
+        },
+    }
+    q.meta.update(
+        variants=variants,
+        snapshot_steps={v: [st for st, _ in s] for v, s in snaps.items()},
+        poses_per_snapshot={v: len(s[0][1]) for v, s in snaps.items()},
+        n_database_held_out=len(held),
+        config=dataclasses.asdict(base),
+        snapshot_cpu_s=secs,
+        share_judged_real=checks,
+        command="forecast behaviour " + " ".join(args.argv),
+    )
+    Q.save(args.out, q)
+    print(
+        f"fake pool {len(fake)} poses ({', '.join(f'{v} {len(s)} snapshots' for v, s in snaps.items())}), "
+        f"real pool {len(real)} (database even frames; class-balanced batches); "
+        f"{time.perf_counter() - t0:.0f} s"
+    )
+    for k, v in checks.items():
+        print(f"share judged real: {k:<28} {v:.3f}")
+    print(f"wrote {args.out}")
+    return 0
+
+
 def _session_windows(pairs: list[str], cfg: BehaviourConfig):
     out = []
     for pair in pairs:
@@ -216,7 +303,13 @@ def _eval(args) -> int:
     sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
-    res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db)
+    qm = _quality_model(args.quality_classifier)
+    assert qm is not None
+    res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db, quality_clf=(qm.clf, qm.joints))
+    res["quality3d_classifier"] = {
+        "path": str(args.quality_classifier),
+        **{k: qm.meta.get(k) for k in ("n_real", "n_fake", "variants", "snapshot_steps", "seed")},
+    }
     res.update(
         split="sessions" if args.sessions else args.split,
         checkpoint=str(args.checkpoint),

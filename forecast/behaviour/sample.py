@@ -236,9 +236,8 @@ def stand_on_floor(W: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     return out
 
 
-def run_sample(
-    session, labels, out=None, *, checkpoint=SHIPPED, camera: str | None = None, model: str = "full"
-) -> Path:
+def _model(checkpoint, model: str):
+    """The variant ``model`` of the checkpoint and its config, or a clear error."""
     try:
         gens, cfgs, _ = load_checkpoint(checkpoint)
     except FileNotFoundError:
@@ -249,58 +248,75 @@ def run_sample(
         raise InputError(str(e)) from None
     if model not in gens:
         raise InputError(f"--model {model!r}: the checkpoint holds {sorted(gens)}")
-    gen, cfg = gens[model], cfgs[model]
-    lay, rig, tracks, dets = _session(session)
-    if camera is not None and camera not in dets:
-        raise InputError(f"--camera {camera!r}: the session has detections of {sorted(dets)}")
-    rows = read_labels(labels)
-    _check_labels(rows, tracks, ACTIONS, labels)
-    tj = list(tracks.joint_names)
-    missing = [n for n in JOINTS if n not in tj]
-    if missing:
-        raise InputError(f"{lay.tracks}: the tracks lack the joints {missing}; the forecaster needs body19")
+    return gens[model], cfgs[model]
+
+
+@dataclass
+class Observed:
+    """The model's inputs for K tracks (``ids``): the last N labelled steps, right-aligned (a track with
+    fewer keeps "unknown" actions and unseen poses before its first), and each track's view and camera."""
+
+    ids: list[int]
+    feats: np.ndarray  # (K,N,J,2) plane features, 0 unseen
+    seen: np.ndarray  # (K,N,J) bool
+    acts: np.ndarray  # (K,N) action indices, len(ACTIONS) = unknown
+    observed: np.ndarray  # (K,N) label strings, "" before a track's first
+    step_t: np.ndarray  # (K,N) characteristic times (s), NaN before a track's first
+    views: list
+    cams: list[str]
+
+
+def _observe_tracks(tracks, dets, rig, rows, camera, n_obs: int, names: tuple[str, ...]) -> Observed:
+    """The observed steps of every labelled track: characteristic frames, matched detections in the best
+    camera (or ``camera``) as plane features of the viewer frame anchored under the last step's pelvis."""
     t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9
-    N, names = cfg.n_obs, cfg.joint_names
+    N = n_obs
     jidx = [JOINTS.index(n) for n in names]
     pel = JOINTS.index("pelvis")
     ids = sorted({r.track_id for r in rows})
     K = len(ids)
-    feats = np.zeros((K, N, len(names), 2), np.float32)
-    seen = np.zeros((K, N, len(names)), bool)
-    acts = np.full((K, N), len(ACTIONS), np.int64)  # "unknown" where a track has fewer than N labels
-    observed = np.full((K, N), "", dtype=object)
-    step_t = np.full((K, N), np.nan)
-    views, cams = [], []
+    ob = Observed(
+        ids,
+        np.zeros((K, N, len(names), 2), np.float32),
+        np.zeros((K, N, len(names)), bool),
+        np.full((K, N), len(ACTIONS), np.int64),  # "unknown" where a track has fewer than N labels
+        np.full((K, N), "", dtype=object),
+        np.full((K, N), np.nan),
+        [],
+        [],
+    )
     for i, tid in enumerate(ids):
         st = track_steps(tracks, dets, rig, [r for r in rows if r.track_id == tid], camera, last=N)
-        mine, frames, found, best, xyz = st.rows, st.frames, st.xy_px, st.camera, st.xyz_m
-        cam = rig[best]
-        last = xyz[frames[-1]]
-        g = np.array([last[pel, 0], last[pel, 1], 0.0])
-        view = make_view(cam.K[None], cam.R[None], cam.t[None], g[None])
-        off = N - len(mine)
-        for s, (r, f, p) in enumerate(zip(mine, frames, found, strict=True)):
-            acts[i, off + s] = ACTIONS.index(r.label)
-            observed[i, off + s] = r.label
-            step_t[i, off + s] = t_s[f]
+        cam = rig[st.camera]
+        last = st.xyz_m[st.frames[-1]]
+        view = make_view(cam.K[None], cam.R[None], cam.t[None], np.array([[last[pel, 0], last[pel, 1], 0.0]]))
+        off = N - len(st.rows)
+        for s, (r, f, p) in enumerate(zip(st.rows, st.frames, st.xy_px, strict=True)):
+            ob.acts[i, off + s] = ACTIONS.index(r.label)
+            ob.observed[i, off + s] = r.label
+            ob.step_t[i, off + s] = t_s[f]
             if p is None:
                 continue
-            und = cam.undistort_px(p)[None, None]
-            pf = plane_features(view, und)[0, 0][jidx]
+            pf = plane_features(view, cam.undistort_px(p)[None, None])[0, 0][jidx]
             ok = np.isfinite(pf).all(1)
-            feats[i, off + s][ok] = pf[ok]
-            seen[i, off + s] = ok
-        views.append(view)
-        cams.append(best)
-    V = np.concatenate([v.V for v in views])
-    G = np.concatenate([v.g for v in views])
-    C = np.concatenate([v.c for v in views])
+            ob.feats[i, off + s][ok] = pf[ok]
+            ob.seen[i, off + s] = ok
+        ob.views.append(view)
+        ob.cams.append(st.camera)
+    return ob
+
+
+def _forecast(gen, cfg, ob: Observed) -> tuple[np.ndarray, np.ndarray]:
+    """The rollout of M steps -> action probabilities (K,M,A), poses (K,M,J,3) in the room, on the floor."""
+    V = np.concatenate([v.V for v in ob.views])
+    G = np.concatenate([v.g for v in ob.views])
+    C = np.concatenate([v.c for v in ob.views])
     with torch.no_grad():
         lg, P = rollout(
             gen,
-            torch.from_numpy(feats),
-            torch.from_numpy(acts),
-            torch.from_numpy(seen),
+            torch.from_numpy(ob.feats),
+            torch.from_numpy(ob.acts),
+            torch.from_numpy(ob.seen),
             torch.as_tensor(C, dtype=torch.float32),
             cfg.m,
             feed_pose=cfg.use_pose,
@@ -310,22 +326,39 @@ def run_sample(
         W = to_world(
             P, torch.as_tensor(V, dtype=torch.float32), torch.as_tensor(G, dtype=torch.float32)
         ).numpy()
-    W = stand_on_floor(W, names)
+    return probs, stand_on_floor(W, cfg.joint_names)
+
+
+def run_sample(
+    session, labels, out=None, *, checkpoint=SHIPPED, camera: str | None = None, model: str = "full"
+) -> Path:
+    """Forecast every labelled track of ``session`` and write ``behaviour.npz`` (the module's schema)."""
+    gen, cfg = _model(checkpoint, model)
+    lay, rig, tracks, dets = _session(session)
+    if camera is not None and camera not in dets:
+        raise InputError(f"--camera {camera!r}: the session has detections of {sorted(dets)}")
+    rows = read_labels(labels)
+    _check_labels(rows, tracks, ACTIONS, labels)
+    missing = [n for n in JOINTS if n not in list(tracks.joint_names)]
+    if missing:
+        raise InputError(f"{lay.tracks}: the tracks lack the joints {missing}; the forecaster needs body19")
+    ob = _observe_tracks(tracks, dets, rig, rows, camera, cfg.n_obs, cfg.joint_names)
+    probs, W = _forecast(gen, cfg, ob)
     out = Path(out) if out else lay.root / "forecast" / "behaviour.npz"
     out.parent.mkdir(parents=True, exist_ok=True)
     save_npz(
         out,
         {
             "schema": schema_tag(SCHEMA, VERSION),
-            "track_id": np.asarray(ids, np.int64),
+            "track_id": np.asarray(ob.ids, np.int64),
             "labels": np.asarray(ACTIONS),
             "actions": np.asarray([[ACTIONS[j] for j in row] for row in probs.argmax(-1)]),
             "probs": probs.astype(np.float32),
             "poses_m": W.astype(np.float32),
-            "joint_names": np.asarray(names),
-            "camera": np.asarray(cams),
-            "observed": observed.astype(str),
-            "step_time_s": step_t,
+            "joint_names": np.asarray(cfg.joint_names),
+            "camera": np.asarray(ob.cams),
+            "observed": ob.observed.astype(str),
+            "step_time_s": ob.step_t,
             "model": np.asarray(f"{Path(checkpoint).name}:{model}"),
         },
     )

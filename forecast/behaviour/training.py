@@ -3,9 +3,9 @@
 ``prepare`` turns a :class:`~forecast.behaviour.data.Composite` into the model's arrays (plane features of
 the observed steps, the targets' undistorted 2D, the viewer frames, and the 3D truth that only the
 evaluation reads). ``train`` fits one variant; ``evaluate`` scores the baselines of Table 4.1 (zero velocity,
-train average) and the trained variants of Table 4.2 by 2D MPJPE (px), 3D quality (1 - accuracy of a
-real-vs-predicted pose classifier, sec. 4.7.7), action top-1/top-3 per step and overall (Fig. 4.3), and the
-3D MPJPE (mm, pelvis-centred) that the composite sequences' known 3D allows.
+train average) and the trained variants of Table 4.2 by 2D MPJPE (px), 3D quality (the share of a method's
+poses that a once-trained real-vs-predicted pose classifier judges real, sec. 4.7.7), action top-1/top-3 per
+step and overall (Fig. 4.3), and the 3D MPJPE (mm, pelvis-centred) that the sequences' known 3D allows.
 """
 
 from __future__ import annotations
@@ -200,6 +200,100 @@ def hide_history(tb: dict, cfg: BehaviourConfig, g: torch.Generator) -> None:
     tb["obs_acts"] = torch.where(drop, torch.full_like(tb["obs_acts"], len(ACTIONS)), tb["obs_acts"])
 
 
+@dataclass
+class _Fit:
+    """One variant's training state: the two networks, their optimisers, the random stream, the real 3D
+    poses of the critic and the eq. 4.1 weights of the variant (0 for the heads it lacks)."""
+
+    cfg: BehaviourConfig
+    gen: Generator
+    critic: nn.Module
+    og: torch.optim.Optimizer
+    oc: torch.optim.Optimizer
+    g: torch.Generator
+    real: torch.Tensor  # (N,J,3) the 3D database, the variant's joints
+    neck: int
+    pelvis: int
+    la: float
+    l2: float
+    lv: float
+
+
+def _fit_state(cfg: BehaviourConfig, db: np.ndarray) -> _Fit:
+    gen, critic = build(cfg)
+    names = cfg.joint_names
+    jidx = [JOINTS.index(n) for n in names]
+    if gen.skeleton is not None:
+        gen.skeleton.set_lengths(db[:, jidx])
+    return _Fit(
+        cfg,
+        gen,
+        critic,
+        torch.optim.Adam(gen.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
+        torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=(0.5, 0.9)),
+        torch.Generator().manual_seed(cfg.seed),
+        torch.from_numpy(np.ascontiguousarray(db[:, jidx])),
+        names.index("neck"),
+        names.index("pelvis"),
+        cfg.lambda_action if cfg.use_action else 0.0,
+        cfg.lambda_pose2d if cfg.use_pose else 0.0,
+        cfg.lambda_adv3d if cfg.use_pose else 0.0,
+    )
+
+
+def _critic_step(f: _Fit, fake: torch.Tensor) -> None:
+    """One critic update: Wasserstein loss with gradient penalty, real database poses at a random heading
+    against the generator's poses ``fake`` (B,J,3) (detached here)."""
+    g = f.g
+    r = _random_yaw(f.real[torch.randint(len(f.real), (len(fake),), generator=g)], g)
+    fk = fake.detach()
+    eps = torch.rand(len(fk), 1, 1, generator=g)
+    mix = (eps * r + (1 - eps) * fk).requires_grad_(True)
+    grad = torch.autograd.grad(f.critic(mix).sum(), mix, create_graph=True)[0]
+    gp = ((grad.reshape(len(fk), -1).norm(dim=1) - 1) ** 2).mean()
+    l_c = f.critic(fk).mean() - f.critic(r).mean() + f.cfg.gp * gp
+    f.oc.zero_grad()
+    l_c.backward()
+    f.oc.step()
+
+
+def _generator_step(f: _Fit, tr: Prepared) -> list[float]:
+    """One eq. 4.1 step on a random batch (after the critic's step when the variant has the 3D term)
+    -> [action CE, 2D term, adversarial term]."""
+    cfg, g = f.cfg, f.g
+    idx = torch.randint(len(tr), (cfg.batch,), generator=g).numpy()
+    tb = to_torch(tr, idx, cfg.n_obs)
+    hide_history(tb, cfg, g)
+    f.gen.train()
+    _, P, l_act, l_2d = _losses(f.gen, cfg, tb, f.neck)
+    fake = critic_input(P.reshape(-1, len(cfg.joint_names), 3), f.pelvis)
+    fake = fake[torch.randperm(len(fake), generator=g)[: cfg.batch]]  # one batch of the B*m poses
+    l_adv = torch.zeros(())
+    if f.lv > 0:
+        for _ in range(cfg.n_critic):
+            _critic_step(f, fake)
+        l_adv = -f.critic(fake).mean()
+    loss = f.la * l_act + f.l2 * l_2d + f.lv * l_adv
+    f.og.zero_grad()
+    loss.backward()
+    f.og.step()
+    return [l_act.item(), l_2d.item(), l_adv.item()]
+
+
+def _validate(f: _Fit, vb: dict, step: int, wall_s: float) -> dict:
+    """The validation objective of the variant (its weighted action and 2D terms) at ``step``."""
+    f.gen.eval()
+    with torch.no_grad():
+        _, _, va_act, va_2d = _losses(f.gen, f.cfg, vb, f.neck)
+    return {
+        "step": step,
+        "action_ce": float(va_act),
+        "pose2d": float(va_2d),
+        "objective": f.la * float(va_act) + f.l2 * float(va_2d),
+        "wall_s": wall_s,
+    }
+
+
 def train(
     cfg: BehaviourConfig,
     tr: Prepared,
@@ -209,79 +303,33 @@ def train(
 ) -> tuple[Generator, dict]:
     """Fit one variant (eq. 4.1) with Adam, the critic alternating with the generator; keeps the state
     with the lowest validation objective (the variant's weighted action and 2D terms)."""
-    gen, critic = build(cfg)
-    names = cfg.joint_names
-    neck, pelvis = names.index("neck"), names.index("pelvis")
-    jidx = [JOINTS.index(n) for n in names]
-    real = torch.from_numpy(np.ascontiguousarray(db[:, jidx]))
-    og = torch.optim.Adam(gen.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    oc = torch.optim.Adam(critic.parameters(), lr=cfg.lr, betas=(0.5, 0.9))
-    g = torch.Generator().manual_seed(cfg.seed)
-    la = cfg.lambda_action if cfg.use_action else 0.0
-    l2 = cfg.lambda_pose2d if cfg.use_pose else 0.0
-    lv = cfg.lambda_adv3d if cfg.use_pose else 0.0
+    f = _fit_state(cfg, db)
     vb = to_torch(va, np.arange(len(va)), cfg.n_obs)
     hist: dict = {"val": [], "loss": []}
-    best, best_state = np.inf, copy.deepcopy(gen.state_dict())
+    best, best_state = np.inf, copy.deepcopy(f.gen.state_dict())
     t0 = time.perf_counter()
     for step in range(1, cfg.steps + 1):
-        idx = torch.randint(len(tr), (cfg.batch,), generator=g).numpy()
-        tb = to_torch(tr, idx, cfg.n_obs)
-        hide_history(tb, cfg, g)
-        gen.train()
-        logits, P, l_act, l_2d = _losses(gen, cfg, tb, neck)
-        fake = critic_input(P.reshape(-1, len(names), 3), pelvis)
-        fake = fake[torch.randperm(len(fake), generator=g)[: cfg.batch]]  # one batch of the B*m poses
-        l_adv = torch.zeros(())
-        if lv > 0:
-            # critic step (Wasserstein with gradient penalty)
-            r = _random_yaw(real[torch.randint(len(real), (len(fake),), generator=g)], g)
-            f = fake.detach()
-            eps = torch.rand(len(f), 1, 1, generator=g)
-            mix = (eps * r + (1 - eps) * f).requires_grad_(True)
-            grad = torch.autograd.grad(critic(mix).sum(), mix, create_graph=True)[0]
-            gp = ((grad.reshape(len(f), -1).norm(dim=1) - 1) ** 2).mean()
-            l_c = critic(f).mean() - critic(r).mean() + cfg.gp * gp
-            oc.zero_grad()
-            l_c.backward()
-            oc.step()
-            l_adv = -critic(fake).mean()
-        loss = la * l_act + l2 * l_2d + lv * l_adv
-        og.zero_grad()
-        loss.backward()
-        og.step()
-        hist["loss"].append([l_act.item(), l_2d.item(), l_adv.item()])
+        hist["loss"].append(_generator_step(f, tr))
         if step % cfg.eval_every == 0 or step == cfg.steps:
-            gen.eval()
-            with torch.no_grad():
-                _, _, va_act, va_2d = _losses(gen, cfg, vb, neck)
-            obj = la * float(va_act) + l2 * float(va_2d)
-            hist["val"].append(
-                {
-                    "step": step,
-                    "action_ce": float(va_act),
-                    "pose2d": float(va_2d),
-                    "objective": obj,
-                    "wall_s": time.perf_counter() - t0,
-                }
-            )
+            v = _validate(f, vb, step, time.perf_counter() - t0)
+            hist["val"].append(v)
             log.info(
                 "%s step %d: train ce %.3f 2d %.3f adv %.3f | val ce %.3f 2d %.3f",
                 cfg.variant,
                 step,
                 *hist["loss"][-1],
-                float(va_act),
-                float(va_2d),
+                v["action_ce"],
+                v["pose2d"],
             )
-            if obj < best:
-                best, best_state = obj, copy.deepcopy(gen.state_dict())
+            if v["objective"] < best:
+                best, best_state = v["objective"], copy.deepcopy(f.gen.state_dict())
                 hist["best_step"] = step
         if progress:
             progress(f"train {cfg.variant}", step, cfg.steps)
-    gen.load_state_dict(best_state)
-    gen.eval()
+    f.gen.load_state_dict(best_state)
+    f.gen.eval()
     hist["train_wall_s"] = time.perf_counter() - t0
-    return gen, hist
+    return f.gen, hist
 
 
 # ----------------------------------------------------------------------------- evaluation (sec. 4.5.1)
@@ -331,15 +379,30 @@ def _canonical(P: np.ndarray, names) -> np.ndarray:
     return np.einsum("nij,nkj->nki", R, X).astype(np.float32)
 
 
+def quality_mlp(J: int) -> nn.Module:
+    """Sec. 4.7.7's 3-layer MLP over a canonical pose's J*3 coordinates -> one logit (> 0: real)."""
+    return nn.Sequential(
+        nn.Linear(J * 3, 128), nn.LeakyReLU(0.2), nn.Linear(128, 128), nn.LeakyReLU(0.2), nn.Linear(128, 1)
+    )
+
+
+def share_real(clf: nn.Module, pred: np.ndarray, names, batch: int = 65536) -> float:
+    """Sec. 4.5.1 as the seed defines it: 1 - a, a the accuracy of the once-trained classifier ``clf`` on the
+    method's poses (N,J,3) alone, i.e. the share it judges real (1: indistinguishable from real poses)."""
+    n = 0
+    with torch.no_grad():
+        for i in range(0, len(pred), batch):
+            x = torch.from_numpy(_canonical(pred[i : i + batch], names)).reshape(-1, len(names) * 3)
+            n += int((clf(x)[:, 0] > 0).sum())
+    return n / max(len(pred), 1)
+
+
 def quality_classifier(
     real: np.ndarray, fakes: np.ndarray, names, seed: int = 0, steps: int = 1500
 ) -> nn.Module:
     """Sec. 4.7.7: a 3-layer MLP that tells real poses (N,J,3) from predicted ones (canonical frame)."""
     torch.manual_seed(seed)
-    J = len(names)
-    clf = nn.Sequential(
-        nn.Linear(J * 3, 128), nn.LeakyReLU(0.2), nn.Linear(128, 128), nn.LeakyReLU(0.2), nn.Linear(128, 1)
-    )
+    clf = quality_mlp(len(names))
     Xr = torch.from_numpy(_canonical(real, names)).reshape(len(real), -1)
     Xf = torch.from_numpy(_canonical(fakes, names)).reshape(len(fakes), -1)
     opt = torch.optim.Adam(clf.parameters(), lr=1e-3)
@@ -358,7 +421,8 @@ def quality_classifier(
 
 
 def quality(clf: nn.Module, real: np.ndarray, pred: np.ndarray, names, seed: int = 0) -> float:
-    """1 - accuracy of ``clf`` on a balanced set of predicted and real poses (sec. 4.5.1)."""
+    """1 - balanced accuracy of ``clf`` on as many predicted as real poses: the per-method variant
+    (``quality3d_per_method``, at most 0.5), its classifier with the method's own val predictions as fakes."""
     rng = np.random.default_rng(seed)
     n = min(len(real), len(pred))
     r = real[rng.choice(len(real), n, replace=False)]
@@ -492,11 +556,17 @@ def evaluate_all(
     test: Prepared,
     db: np.ndarray,
     seed: int = 0,
+    quality_clf: tuple[nn.Module, tuple[str, ...]] | None = None,
 ) -> dict:
     """Table 4.1/4.2 on ``test``: zero velocity and train average (poses and, as in sec. 4.7.4, actions:
-    repeat the last one / the most common), then every trained variant. The quality classifier (sec. 4.7.7)
-    is trained once: real, half of the 3D database ``db`` (N,19,3); fake, every method's predictions on
-    ``val`` plus perturbed real poses; it is scored on the other half against each method's test poses."""
+    repeat the last one / the most common), then every trained variant.
+
+    ``quality3d`` is the seed's metric (sec. 4.5.1, 4.7.7): the share of the method's test poses that the
+    once-trained classifier ``quality_clf`` (module, its joints; see ``forecast.behaviour.quality``) judges
+    real; None without a classifier for these joints. ``quality3d_per_method`` is the earlier variant: a
+    classifier trained here, real = half of the 3D database ``db`` (N,19,3), fake = every method's
+    predictions on ``val`` plus perturbed real poses, scored as 1 - balanced accuracy against the other
+    half."""
     n_obs, m = cfgs["full"].n_obs, cfgs["full"].m
     freq = np.asarray(extra["action_freq"])
     avg = np.asarray(extra["avg_pose"], np.float32)
@@ -534,26 +604,31 @@ def evaluate_all(
         "joints": list(names),
         "models": {},
     }
+    seed_clf = quality_clf[0] if quality_clf is not None and tuple(quality_clf[1]) == names else None
+    if seed_clf is not None:
+        out["quality3d_true_3d"] = share_real(seed_clf, test.tgt_3d.reshape(-1, len(names), 3), names)
     for n, (pr, ps, px) in preds["test"].items():
         r = metrics(pr, ps, test, n_obs, px2d=px)
-        r["quality3d"] = (
-            quality(clf, real_t, ps.reshape(-1, len(names), 3), names, seed) if ps is not None else None
-        )
+        P = ps.reshape(-1, len(names), 3) if ps is not None else None
+        r["quality3d"] = share_real(seed_clf, P, names) if P is not None and seed_clf is not None else None
+        r["quality3d_per_method"] = quality(clf, real_t, P, names, seed) if P is not None else None
         out["models"][n] = r
     return out
 
 
 def results_table(res: dict) -> str:
     lines = [
-        f"{'method':<16} {'2D MPJPE px':>12} {'3D quality':>11} {'top-1':>7} {'top-3':>7} {'3D MPJPE mm':>12}"
+        f"{'method':<16} {'2D MPJPE px':>12} {'3D quality':>11} {'per-method':>11} {'top-1':>7} {'top-3':>7} "
+        f"{'3D MPJPE mm':>12}"
     ]
 
     def f(v, fmt):
-        return "-" if v is None else format(v, fmt)
+        return format("-", ">" + fmt.split(".")[0]) if v is None else format(v, fmt)
 
     for n, r in res["models"].items():
         lines.append(
             f"{n:<16} {f(r['mpjpe2d_px'], '12.1f')} {f(r['quality3d'], '11.2f')} "
+            f"{f(r.get('quality3d_per_method'), '11.2f')} "
             f"{f(r['top1'], '7.1%')} {f(r['top3'], '7.1%')} {f(r['mpjpe3d_mm'], '12.0f')}"
         )
     lines.append(
@@ -564,4 +639,6 @@ def results_table(res: dict) -> str:
             if r.get("top1_by_step")
         )
     )
+    if res.get("quality3d_true_3d") is not None:
+        lines.append(f"3D quality of the true 3D poses (same classifier): {res['quality3d_true_3d']:.2f}")
     return "\n".join(lines)

@@ -7,9 +7,12 @@ from typing import Any
 
 import numpy as np
 
+from calibrate.camera import CameraRig
 from capture.session import SessionLayout
 from keypoints.detections import Detections
+from track.trackfile import TrackFile
 from triangulate.chunks import parts_dir
+from triangulate.poses3d import Poses3D
 
 _MAX_FRAMES = 2000  # frames embedded in the viewer (subsampled beyond); ReportConfig.max_viewer_frames
 
@@ -76,8 +79,6 @@ def _load(lay: SessionLayout) -> _Inputs:
     inp = _Inputs(lay, detections={}, detections_error={})
     if lay.rig_toml.exists():
         try:
-            from calibrate.camera import CameraRig
-
             inp.rig = CameraRig.load(lay.rig_toml)
         except Exception as e:  # the report shows what it can
             inp.rig_error = str(e)
@@ -88,16 +89,12 @@ def _load(lay: SessionLayout) -> _Inputs:
             continue
         inp.tracks_name = path.name
         try:
-            from track.trackfile import TrackFile
-
             inp.tracks = TrackFile.load(path)
         except Exception as e:
             inp.tracks_error = str(e)
         break
     if lay.poses3d.exists() or parts_dir(lay.poses3d).is_dir():
         try:
-            from triangulate.poses3d import Poses3D
-
             inp.poses = Poses3D.load(lay.poses3d)
         except Exception as e:
             inp.poses_error = str(e)

@@ -10,12 +10,12 @@ track are filled by linear interpolation in time (gaps up to ``max_gap_s``) and 
 trajectory is smoothed by a Gaussian kernel of ``sigma_s`` seconds (default: sec. 4.3.4's sigma =
 2 frames at the frame rate), NaN-aware (normalised convolution).
 
-Every duration is on the clock (issue 17): the frames' times come from ``t_ns`` (from
+Every duration is on the clock: the frames' times come from ``t_ns`` (from
 ``frame_index / fps`` where the timestamps are missing or not increasing), so dropped frames,
 jittered timestamps and pauses of the recorder count as the time they last. Nothing is interpolated
 or smoothed across a gap between two frames longer than ``max_gap_s``, and the allowed distance
-never grows past the one of a ``max_gap_s`` gap. On frames at a regular rate the results equal the
-frame-count computation of earlier versions at 25 Hz.
+never grows past the one of a ``max_gap_s`` gap. On frames at a regular rate the results equal a
+frame-count computation at that rate.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.config import config_from_dict
+from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 from triangulate.reconstruct import flip_index
-from triangulate.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +231,7 @@ class FrameLinker:
     ``clock (T,)``, ``pauses (T,)``: :func:`pause_clock` of the session's frame times. ``flip`` (J,)
     (left/right joint permutation): a pose may also join a track mirrored, when its left/right-swapped
     version is closer; ``facing``: see :func:`join_mirrored`. The hooks :meth:`_joined` and
-    :meth:`_retired` let :class:`triangulate.stream_track.StreamLinker` keep what stitching needs."""
+    :meth:`_retired` let :class:`track.greedy_stream.StreamLinker` keep what stitching needs."""
 
     def __init__(
         self,
@@ -491,7 +491,7 @@ def _kinematic_fill(
     after the last observation, and inside a longer gap) it is held from the nearest observation up to
     half of ``max_fill_s`` away, and the middle of a longer gap stays NaN. Each filled value depends
     only on the observations within ``max_fill_s`` (the rule is local in time, so a chunked run
-    equals the whole session's, issue 17). Returns the (T,J) mask of filled entries.
+    equals the whole session's). Returns the (T,J) mask of filled entries.
     """
     T, J = X.shape[:2]
     filled = np.zeros((T, J), bool)
@@ -609,7 +609,7 @@ def build_tracks(
             if kin.any():
                 # std of a predicted joint: its parent's std plus 5 cm (the offset is a guess)
                 # (a parent of unknown std counts as 5 cm: a constant, so a chunk needs no whole-track
-                # statistic, issue 17)
+                # statistic)
                 known = np.isfinite(S[:, n])
                 s_par = np.where(known, S[:, n], 0.05)
                 pj = np.maximum(np.asarray(parents), 0)
@@ -636,7 +636,7 @@ def track_poses(
     std_m: np.ndarray | None = None,
     config: TrackerConfig | None = None,
     calibration_sha256: str = "",
-    source: str = "triangulate.tracker (greedy, ch. 4)",
+    source: str = "track.greedy (greedy, ch. 4)",
 ) -> TrackFile:
     """Per-frame poses (T,P,J,3) -> :class:`TrackFile` (track ids 0..K-1 by first appearance)."""
     cfg = (config or TrackerConfig()).at_fps(fps)

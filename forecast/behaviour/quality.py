@@ -1,0 +1,139 @@
+"""The 3D pose quality metric of sec. 4.5.1 / appendix 4.7.7, as the seed defines it.
+
+One binary classifier (a 3-layer MLP) is trained ONCE on real 3D poses (the uncorrelated 3D database) and fake
+poses "collected during the training process of our method and all baselines": the poses the pose-predicting
+models output at several training steps, from the random initial network (random joint placements) to
+nearly converged ones (minor bone-length inconsistencies). The classifier is saved and then used to score
+every method alike: quality = 1 - a, with a the share of the method's poses the classifier calls fake
+(``training.share_real``), so 1 means indistinguishable from real poses.
+
+Here the snapshots come from separate training runs (their own model seed) on the training sequences only;
+their predictions on training sequences (never validation or test) form the fake pool. The real pool is the
+3D database's even frames (subjects disjoint from every sequence); its odd frames stay out as a check.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from core.errors import FormatError
+from core.fileio import atomic_path
+from core.progress import Progress
+from forecast.behaviour import training as T
+from forecast.behaviour.data import JOINTS
+from forecast.behaviour.model import BehaviourConfig
+
+QUALITY_SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_quality_cmu.pt"
+SCHEMA = "behaviour_quality/1"
+
+
+def snapshot_poses(
+    cfg: BehaviourConfig,
+    tr: T.Prepared,
+    db: np.ndarray,
+    every: int,
+    per_snapshot: int,
+    progress: Progress | None = None,
+) -> list[tuple[int, np.ndarray]]:
+    """Train ``cfg`` (eq. 4.1, no model selection) for ``cfg.steps`` steps and collect its predicted poses on
+    ``per_snapshot`` random training sequences at step 0 (the untrained network) and every ``every`` steps
+    -> [(step, poses (n,J,3) viewer frame)]."""
+    f = T._fit_state(cfg, db)
+    rng = np.random.default_rng(cfg.seed)
+    J = len(cfg.joint_names)
+
+    def snap(step: int) -> tuple[int, np.ndarray]:
+        f.gen.eval()
+        idx = rng.choice(len(tr), min(per_snapshot, len(tr)), replace=False)
+        return step, T.predict(f.gen, cfg, tr.take(idx))[1].reshape(-1, J, 3)
+
+    out = [snap(0)]
+    for step in range(1, cfg.steps + 1):
+        T._generator_step(f, tr)
+        if step % every == 0:
+            out.append(snap(step))
+        if progress:
+            progress(f"snapshots {cfg.variant}", step, cfg.steps)
+    return out
+
+
+@dataclasses.dataclass
+class QualityModel:
+    """The trained classifier, its joints and how it was made (pool sizes, sources, seed)."""
+
+    clf: nn.Module
+    joints: tuple[str, ...]
+    meta: dict
+
+
+def fit(real: np.ndarray, fake: np.ndarray, names, seed: int = 0, steps: int = 4000) -> QualityModel:
+    """The classifier on every pose of both pools, class-balanced: each batch draws as many real as fake
+    poses (the two classes weigh the same whatever the pools' sizes); fixed seed."""
+    clf = T.quality_classifier(real, fake, names, seed, steps)
+    return QualityModel(
+        clf, tuple(names), {"n_real": len(real), "n_fake": len(fake), "seed": seed, "clf_steps": steps}
+    )
+
+
+def save(path, q: QualityModel) -> None:
+    blob = {
+        "schema": SCHEMA,
+        "joints": list(q.joints),
+        "state": {k: v.detach().clone() for k, v in q.clf.state_dict().items()},
+        "meta": q.meta,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
+
+
+def load(path) -> QualityModel:
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # torch raises several kinds for a file that is not a checkpoint
+        blob = {"schema": f"unreadable ({e})"}
+    if not isinstance(blob, dict) or blob.get("schema") != SCHEMA:
+        got = blob.get("schema") if isinstance(blob, dict) else None
+        raise FormatError(
+            path,
+            "schema",
+            f"{got!r}, expected {SCHEMA!r}; not a pose quality classifier.",
+            "Build one with `forecast behaviour quality --out FILE`.",
+        )
+    names = tuple(blob["joints"])
+    clf = T.quality_mlp(len(names))
+    clf.load_state_dict(blob["state"])
+    clf.eval()
+    return QualityModel(clf, names, dict(blob["meta"]))
+
+
+def build_pool(
+    base: BehaviourConfig,
+    variants: list[str],
+    tr: T.Prepared,
+    db: np.ndarray,
+    every: int,
+    per_snapshot: int,
+    progress: Progress | None = None,
+) -> tuple[dict[str, list[tuple[int, np.ndarray]]], dict]:
+    """The fake pool: the snapshots of each pose-predicting variant -> ({variant: snapshots}, timings)."""
+    snaps, secs = {}, {}
+    for v in variants:
+        cfg = dataclasses.replace(base, variant=v)
+        t0 = time.process_time()
+        snaps[v] = snapshot_poses(cfg, tr, db, every, per_snapshot, progress)
+        secs[v] = time.process_time() - t0
+    return snaps, secs
+
+
+def real_split(db: np.ndarray, names) -> tuple[np.ndarray, np.ndarray]:
+    """The 3D database's even frames (the classifier's real pool) and odd frames (held out)."""
+    jidx = [JOINTS.index(n) for n in names]
+    return db[0::2][:, jidx], db[1::2][:, jidx]

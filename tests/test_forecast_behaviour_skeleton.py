@@ -1,0 +1,134 @@
+"""The behaviour forecaster's skeleton layer (the 3D database's bone proportions) and its checkpoints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from forecast.behaviour.data import JOINTS, UPPER9
+from forecast.behaviour.model import BehaviourConfig, Skeleton, bones, build, load_checkpoint, save_checkpoint
+
+torch.set_num_threads(1)
+
+
+def _lengths(P: torch.Tensor, b: np.ndarray) -> torch.Tensor:
+    return (P[:, b[:, 0]] - P[:, b[:, 1]]).norm(dim=-1)
+
+
+@pytest.mark.parametrize("names", [JOINTS, UPPER9])
+def test_skeleton_takes_database_proportions(names):
+    rng = np.random.default_rng(0)
+    b = bones(names)
+    sk = Skeleton(b)
+    db = rng.normal(size=(50, len(names), 3)).astype(np.float32)
+    sk.set_lengths(db)
+    L = np.linalg.norm(db[:, b[:, 0]] - db[:, b[:, 1]], axis=-1).mean(0)
+    raw = torch.as_tensor(rng.normal(size=(7, len(names), 3)), dtype=torch.float32)
+    P = sk(raw, torch.as_tensor(rng.normal(size=7) * 3, dtype=torch.float32))
+    got = _lengths(P, b).numpy()
+    ratio = got / L[None]
+    # every bone of one pose is scaled alike (the database's proportions), within the scale's bounds
+    assert np.allclose(ratio, ratio[:, :1], atol=1e-4)
+    assert (np.abs(ratio[:, 0] - 1) <= sk.max_scale + 1e-6).all()
+    # the pelvis stays, and each bone keeps its direction
+    pel = names.index("pelvis")
+    assert torch.allclose(P[:, pel], raw[:, pel])
+    u_raw = raw[:, b[:, 0]] - raw[:, b[:, 1]]
+    u_out = P[:, b[:, 0]] - P[:, b[:, 1]]
+    cos = torch.nn.functional.cosine_similarity(u_raw, u_out, dim=-1)
+    assert (cos > 1 - 1e-5).all()
+
+
+def test_skeleton_size_from_its_input():
+    sk = Skeleton(bones(JOINTS))
+    b = sk.bone_idx.numpy()  # the layer's order (parents first)
+    base = torch.as_tensor(np.random.default_rng(1).normal(size=(1, 19, 3)), dtype=torch.float32)
+    sk.bone_len.copy_(_lengths(base, b)[0])
+    # a = 0: the database's size, whatever the raw pose's size; a -> +-inf: the bounds
+    pel = JOINTS.index("pelvis")
+    big, same = sk(base * 3, torch.zeros(1)), sk(base, torch.zeros(1))
+    assert torch.allclose(big - big[:, pel : pel + 1], same - same[:, pel : pel + 1], atol=1e-5)
+    assert torch.allclose(sk(base, torch.zeros(1)), base, atol=1e-5)
+    for a, want in ((50.0, 1 + sk.max_scale), (-50.0, 1 - sk.max_scale)):
+        r = _lengths(sk(base, torch.tensor([a])), b) / sk.bone_len
+        assert torch.allclose(r, torch.full_like(r, want), atol=1e-5)
+
+
+def test_skeleton_checkpoint_and_older_configs(tmp_path):
+    cfg = BehaviourConfig(hidden=32, bone_lengths="database")
+    gen, _ = build(cfg)
+    assert gen.skeleton is not None
+    P = gen(torch.randn(2, cfg.n_obs, 19, 3), torch.zeros(2, cfg.n_obs, 8), torch.zeros(2, 9))[1]
+    assert P.shape == (2, 19, 3)
+    gen.skeleton.bone_len.fill_(0.3)
+    path = tmp_path / "b.pt"
+    save_checkpoint(path, {"full": gen}, {"full": cfg}, {})
+    gens, cfgs, _ = load_checkpoint(path)
+    assert cfgs["full"].bone_lengths == "database"
+    assert torch.equal(gens["full"].skeleton.bone_len, gen.skeleton.bone_len)
+    # a checkpoint written before the option existed holds free joints
+    old = BehaviourConfig(hidden=32)
+    g0, _ = build(old)
+    save_checkpoint(path, {"full": g0}, {"full": old}, {})
+    blob = torch.load(path, weights_only=True)
+    del blob["models"]["full"]["config"]["bone_lengths"]
+    torch.save(blob, path)
+    gens, cfgs, _ = load_checkpoint(path)
+    assert cfgs["full"].bone_lengths == "free" and gens["full"].skeleton is None
+    with pytest.raises(ValueError, match="bone_lengths"):
+        BehaviourConfig(bone_lengths="rigid")
+    with pytest.raises(ValueError, match="n_critic"):
+        BehaviourConfig(n_critic=0)
+
+
+def _tiny_prepared(S: int = 16):
+    from forecast.behaviour import geometry
+    from forecast.behaviour.data import ACTIONS
+    from forecast.behaviour.training import Prepared
+    from synthetic.rigs import ring_rig
+
+    rng = np.random.default_rng(2)
+    rig = ring_rig(6, 4.0, height_m=2.2)
+    cams = [rig[int(i)] for i in rng.integers(6, size=S)]
+    view = geometry.make_view(
+        np.stack([c.K for c in cams]),
+        np.stack([c.R for c in cams]),
+        np.stack([c.t for c in cams]),
+        np.c_[rng.uniform(-1, 1, (S, 2)), np.zeros(S)],
+    )
+    f32 = np.float32
+    return Prepared(
+        JOINTS,
+        view,
+        rng.normal(0, 0.3, (S, 3, 19, 2)).astype(f32),
+        np.ones((S, 3, 19), bool),
+        rng.uniform(500, 700, (S, 3, 19, 2)).astype(f32),
+        rng.integers(len(ACTIONS), size=(S, 8)),
+        rng.uniform(500, 700, (S, 5, 19, 2)).astype(f32),
+        rng.normal(0, 0.3, (S, 5, 19, 3)).astype(f32),
+    )
+
+
+def test_training_steps_with_skeleton_and_n_critic():
+    """n_critic critic updates per generator update, and a trained skeleton model's poses keep the
+    database's proportions."""
+    from forecast.behaviour import training as T
+
+    tr = _tiny_prepared()
+    db = np.random.default_rng(3).normal(0, 0.4, (40, 19, 3)).astype(np.float32)
+    cfg = BehaviourConfig(hidden=16, batch=8, n_critic=3, bone_lengths="database", short_history=0.0)
+    f = T._fit_state(cfg, db)
+    for _ in range(2):
+        losses = T._generator_step(f, tr)
+        assert len(losses) == 3 and all(np.isfinite(losses))
+    steps = {int(s["step"]) for s in f.oc.state.values()}
+    assert steps == {6}  # 2 generator steps x 3 critic steps
+    assert {int(s["step"]) for s in f.og.state.values()} == {2}
+    _, P = T.predict(f.gen, cfg, tr)
+    b = f.gen.skeleton.bone_idx.numpy()
+    L = np.linalg.norm(P[..., b[:, 0], :] - P[..., b[:, 1], :], axis=-1)
+    ratio = L / f.gen.skeleton.bone_len.numpy()
+    assert np.allclose(ratio, ratio[..., :1], atol=1e-4)
+    want = np.linalg.norm(db[:, b[:, 0]] - db[:, b[:, 1]], axis=-1).mean(0)
+    assert np.allclose(f.gen.skeleton.bone_len.numpy(), want, atol=1e-5)
