@@ -12,7 +12,7 @@ from typing import Any
 
 from core.config import check_keys, config_from_dict
 from core.errors import UnknownNameError
-from keypoints.pipeline import PipelineConfig
+from keypoints.pipeline_config import PipelineConfig
 from keypoints.registry import presets
 
 

@@ -55,6 +55,7 @@ from capture.live import LiveStep, Stage
 from capture.session import SessionLayout
 from core.errors import FormatError
 from core.memory import TRIM_EVERY, release_free_memory
+from keypoints.detections import Detections
 from keypoints.pipeline import KeypointPipeline
 from keypoints.skeletons import CANONICAL, convert
 from pipeline.config import KeypointsConfig
@@ -327,7 +328,7 @@ def build_stages(cfg: CaptureConfig, layout: SessionLayout) -> tuple[dict[str, S
     return out, errors
 
 
-main = make_main(build_stages, Outputs())
+main = make_main(build_stages, Outputs(), Detections.load)
 
 if __name__ == "__main__":
     sys.exit(main())

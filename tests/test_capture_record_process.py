@@ -280,7 +280,7 @@ def test_sync_audio_on_the_session_videos_asks_to_join_segments_first(tmp_path, 
 
 
 def test_segment_writer_never_appends_or_overwrites(tmp_path):
-    from capture.recorder import RecorderError, SegmentWriter
+    from capture.segments import RecorderError, SegmentWriter
     from capture.sources import Frame
 
     csv = tmp_path / "cam.frames.csv"

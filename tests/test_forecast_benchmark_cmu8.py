@@ -145,6 +145,7 @@ def test_shared_test_windows():
 
 def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, monkeypatch):
     from forecast import cli
+    from forecast.preview import shipped_checkpoints
 
     seen = {}
     real_evaluate = B.evaluate
@@ -155,7 +156,7 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
 
     monkeypatch.setattr(B, "evaluate", fake_evaluate)
     assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
-    shipped = cli.shipped_checkpoints()
+    shipped = shipped_checkpoints()
     assert any(p.endswith("gru_cmu.pt") for p in shipped)
     assert not any(n in p for p in shipped for n in ("characteristic", "behaviour", "cmu8_"))
     assert seen["b19"] == shipped

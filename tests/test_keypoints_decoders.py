@@ -8,7 +8,8 @@ import pytest
 from keypoints_tiny import make_dets_model, make_rtmo_model, make_simcc_model
 
 from keypoints import decoders as D
-from keypoints.pipeline import KeypointPipeline, PipelineConfig, crop_transform
+from keypoints.crops import crop_transform
+from keypoints.pipeline import KeypointPipeline, PipelineConfig
 from keypoints.registry import ModelError
 from keypoints.runtime import OnnxModel, RuntimeConfig
 

@@ -7,15 +7,8 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from keypoints.pipeline import (
-    PYRAMIDS,
-    KeypointPipeline,
-    PipelineConfig,
-    apply_inverse,
-    crop_transform,
-    level_offset,
-    upright_boxes,
-)
+from keypoints.crops import PYRAMIDS, apply_inverse, crop_transform, level_offset, upright_boxes
+from keypoints.pipeline import KeypointPipeline, PipelineConfig
 from keypoints.skeletons import CANONICAL, get_skeleton
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
@@ -178,7 +171,7 @@ def test_vtest_pedestrian_count(frame, people):
 
 
 def test_duplicate_pairs_and_body_paint(rng):
-    from keypoints.pipeline import _duplicate_pairs, _paint_body
+    from keypoints.hypotheses import _duplicate_pairs, _paint_body
 
     xy = rng.uniform(100, 500, (1, 17, 2))
     sc = np.full((1, 17), 0.9)
@@ -196,7 +189,7 @@ def test_duplicate_pairs_and_body_paint(rng):
 
 
 def test_erase_body_fills_with_the_background(rng):
-    from keypoints.pipeline import _erase_body
+    from keypoints.hypotheses import _erase_body
 
     xy = rng.uniform(200, 400, (17, 2))
     sc = np.full(17, 0.9)
@@ -213,7 +206,7 @@ def test_erase_body_fills_with_the_background(rng):
 def test_occluded_person_kept_beside_the_one_in_front(frame):
     """Demo_MultiPerson cam03: the crop of the person behind (75) or in front (85) returns a pose mixing both;
     resolving the duplicate keeps two people, each with >= 8 confident joints, apart (before: one dropped)."""
-    from keypoints.pipeline import _duplicate_pairs
+    from keypoints.hypotheses import _duplicate_pairs
 
     need_shared("models")
     img = frames("Demo_MultiPerson", frame)[2]
@@ -299,7 +292,7 @@ def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_face_points_hidden_only_for_people_seen_from_behind():
-    from keypoints.pipeline import facing, hide_face_from_behind
+    from keypoints.hypotheses import facing, hide_face_from_behind
 
     names = CANONICAL.joint_names
     face = [names.index(n) for n in ("nose", "left_eye", "right_eye")]
@@ -335,7 +328,7 @@ def test_default_set_drops_the_face_of_the_back_views(single):
 
 
 def test_flip_hypotheses_averaged_where_they_agree_else_one_taken_whole():
-    from keypoints.pipeline import merge_hypotheses
+    from keypoints.hypotheses import merge_hypotheses
 
     xy0 = np.array([[[10.0, 10.0], [20.0, 50.0], [40.0, 50.0]]])
     sc0 = np.array([[0.8, 0.6, 0.6]])
@@ -352,7 +345,7 @@ def test_flip_hypotheses_averaged_where_they_agree_else_one_taken_whole():
 
 
 def test_weak_boxes_kept_only_apart_from_stronger_ones():
-    from keypoints.pipeline import _strong_or_apart
+    from keypoints.hypotheses import _strong_or_apart
 
     boxes = np.array(
         [
@@ -366,7 +359,7 @@ def test_weak_boxes_kept_only_apart_from_stronger_ones():
 
 
 def test_scale_consensus_leaves_out_the_odd_estimate():
-    from keypoints.pipeline import consensus
+    from keypoints.hypotheses import consensus
 
     xy = np.array([[[[100.0, 100.0]]], [[[102.0, 100.0]]], [[[160.0, 100.0]]]])  # (K=3,M=1,J=1,2)
     sc = np.array([[[0.5]], [[0.5]], [[0.9]]])
