@@ -44,7 +44,7 @@ def main() -> None:
     from core.fileio import save_toml
     from keypoints.pipeline import PipelineConfig
     from keypoints.video import run_videos
-    from track.particle import ParticleConfig
+    from track.particle_config import ParticleConfig
     from track.stage import track_session_particle
     from track.trackfile import TrackFile
     from triangulate.multiview import load_detections

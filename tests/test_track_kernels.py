@@ -18,7 +18,9 @@ from track import kernels as kn
 from track import observation as obs
 from track.motion import GRUPrior, step_inputs
 from track.normalize import unrotate_vectors
-from track.particle import ParticleConfig, ParticleTracker, track_sequence
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
+from track.particle_offline import track_sequence
 
 LIMBS = np.asarray(CANONICAL.limbs)
 SM, SPX, EPS = 0.05, 3.0, 0.01
