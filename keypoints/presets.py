@@ -12,17 +12,19 @@ from typing import Any
 
 from core.config import check_keys, config_from_dict
 from core.errors import UnknownNameError
-from keypoints.pipeline_config import PipelineConfig
+from keypoints.pipeline_config import KeypointPipelineConfig
 from keypoints.registry import presets
 
 
-def preset_config(name: str = "", **overrides: Any) -> PipelineConfig:
-    """The 2D stage's settings for a preset ("" = the default preset), with ``PipelineConfig`` fields
+def preset_config(name: str = "", **overrides: Any) -> KeypointPipelineConfig:
+    """The 2D stage's settings for a preset ("" = the default preset), with ``KeypointPipelineConfig`` fields
     overridden by ``overrides``."""
     default, table = presets()
     name = name or default
     if name not in table:
         raise UnknownNameError(f"unknown keypoint preset {name!r}; known: {sorted(table)}.")
-    check_keys(overrides, [f.name for f in dataclasses.fields(PipelineConfig)], "keypoint settings", None)
-    cfg = config_from_dict(PipelineConfig, table[name], f"presets.{name}")
+    check_keys(
+        overrides, [f.name for f in dataclasses.fields(KeypointPipelineConfig)], "keypoint settings", None
+    )
+    cfg = config_from_dict(KeypointPipelineConfig, table[name], f"presets.{name}")
     return dataclasses.replace(cfg, **overrides)

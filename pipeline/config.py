@@ -22,7 +22,7 @@ from typing import Any
 from core.config import check_keys, config_from_dict
 from core.errors import FormatError
 from core.fileio import load_toml
-from keypoints.pipeline import PipelineConfig as KeypointSettings
+from keypoints.pipeline_config import KeypointPipelineConfig
 from keypoints.presets import preset_config
 from keypoints.registry import presets
 from track.greedy_stage import GreedyTrackConfig
@@ -35,7 +35,8 @@ STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "repor
 @dataclass(frozen=True)
 class KeypointsConfig:
     """The ``[keypoints]`` section, resolved once: the preset's name, its settings and the 2D stage's
-    typed config (:class:`keypoints.pipeline.PipelineConfig`) are computed when the section is made."""
+    typed config (:class:`keypoints.pipeline_config.KeypointPipelineConfig`) are computed when the section
+    is made."""
 
     # speed/accuracy preset of the 2D stage (keypoints/models/sets.toml [presets]). "" = the default preset,
     # or, when ``model_set`` is given, "legacy" (the chain of configurations written before presets existed)
@@ -47,7 +48,7 @@ class KeypointsConfig:
     skeleton: str = ""
     preset_name: str = field(init=False, repr=False, compare=False)
     settings: dict[str, Any] = field(init=False, repr=False, compare=False)  # the preset's, with overrides
-    detector: KeypointSettings = field(init=False, repr=False, compare=False)
+    detector: KeypointPipelineConfig = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         default, table = presets()
