@@ -45,8 +45,7 @@ from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.pipeline import KeypointPipeline
 from keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
-from keypoints.presets import preset_config
-from keypoints.registry import presets
+from keypoints.presets import settings_for
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -478,7 +477,7 @@ def run_videos(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if isinstance(config, str):
-        config = preset_config(config) if config in presets()[1] else KeypointPipelineConfig(model_set=config)
+        config = settings_for(config)
     cams = list(videos)
     n_groups = 1 if pipeline is not None else max(1, min(camera_groups, len(cams)))
     if n_groups > 1:  # each group's share of the onnxruntime threads

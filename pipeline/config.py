@@ -20,10 +20,10 @@ from pathlib import Path
 from typing import Any
 
 from core.config import check_keys, config_from_dict
-from core.errors import FormatError
+from core.errors import FormatError, UnknownNameError
 from core.fileio import load_toml
 from keypoints.pipeline_config import KeypointPipelineConfig
-from keypoints.presets import preset_config
+from keypoints.presets import resolve_preset
 from keypoints.registry import presets
 from track.greedy_stage import GreedyTrackConfig
 from track.stage import ParticleTrackConfig
@@ -51,16 +51,17 @@ class KeypointsConfig:
     detector: KeypointPipelineConfig = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        default, table = presets()
-        if self.preset and self.preset not in table:
+        overrides = {"skeleton": self.skeleton} if self.skeleton else {}
+        try:
+            resolved = resolve_preset(self.preset, self.model_set, **overrides)
+        except UnknownNameError:
+            valid = sorted(presets()[1])
             raise FormatError(
-                None, "keypoints.preset", f"'{self.preset}' is not a preset; valid: {sorted(table)}."
-            )
-        name = self.preset or ("legacy" if self.model_set else default)
-        overrides = {k: v for k, v in (("model_set", self.model_set), ("skeleton", self.skeleton)) if v}
-        object.__setattr__(self, "preset_name", name)
-        object.__setattr__(self, "settings", {**table[name], **overrides})
-        object.__setattr__(self, "detector", preset_config(name, **overrides))
+                None, "keypoints.preset", f"'{self.preset}' is not a preset; valid: {valid}."
+            ) from None
+        object.__setattr__(self, "preset_name", resolved.name)
+        object.__setattr__(self, "settings", resolved.settings)
+        object.__setattr__(self, "detector", resolved.config)
 
     @property
     def model_set_name(self) -> str:
