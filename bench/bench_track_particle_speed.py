@@ -60,7 +60,8 @@ def _setup(session: Path):
     torch.set_num_threads(1)
     from calibrate.camera import CameraRig
     from capture.session import SessionLayout
-    from track.particle import ParticleConfig, ParticleTracker
+    from track.particle import ParticleTracker
+    from track.particle_config import ParticleConfig
     from track.particle_io import focal_lengths
     from triangulate.multiview import load_detections, session_fps
 

@@ -187,7 +187,7 @@ def _main(argv: list[str] | None = None) -> int:
         type=nonnegative_int,
         default=None,
         help="top-down: extra pose passes on upright crops from the previous pass (0 = faster; default: "
-        "PipelineConfig's, 2)",
+        "KeypointPipelineConfig's, 2)",
     )
     args = ap.parse_args(argv)
     logging.basicConfig(

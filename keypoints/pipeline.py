@@ -50,7 +50,7 @@ from keypoints.hypotheses import (
     hide_face_from_behind,
     merge_hypotheses,
 )
-from keypoints.pipeline_config import FrameResult, PipelineConfig
+from keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
 from keypoints.registry import ModelSpec, get_model_set, get_spec
 from keypoints.runtime import OnnxModel
 from keypoints.skeletons import convert, get_skeleton
@@ -74,9 +74,9 @@ class _Seed:
 
 
 class KeypointPipeline:
-    def __init__(self, config: PipelineConfig | str = "default"):
+    def __init__(self, config: KeypointPipelineConfig | str = "default"):
         if isinstance(config, str):
-            config = PipelineConfig(model_set=config)
+            config = KeypointPipelineConfig(model_set=config)
         self.config = config
         self.model_set = get_model_set(config.model_set)
         md = config.runtime.model_dir or None

@@ -1,4 +1,4 @@
-"""The 2D stage's settings (``PipelineConfig``) and its per-image result (``FrameResult``), read by
+"""The 2D stage's settings (``KeypointPipelineConfig``) and its per-image result (``FrameResult``), read by
 :class:`keypoints.pipeline.KeypointPipeline`."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from keypoints.runtime import RuntimeConfig
 
 
 @dataclass(frozen=True)
-class PipelineConfig:
+class KeypointPipelineConfig:
     """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own).
 
     What each setting gave on the Pose2Sim demos when it was chosen is in BENCHMARKS.md ("2D keypoints",
@@ -69,7 +69,9 @@ class PipelineConfig:
 
     def __post_init__(self) -> None:
         if self.pyramid not in PYRAMIDS:
-            raise ValueError(f"PipelineConfig.pyramid must be one of {PYRAMIDS}, got {self.pyramid!r}")
+            raise ValueError(
+                f"KeypointPipelineConfig.pyramid must be one of {PYRAMIDS}, got {self.pyramid!r}"
+            )
 
 
 @dataclass

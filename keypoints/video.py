@@ -15,9 +15,9 @@ does the same for explicit videos, e.g. the Pose2Sim demo layout ``<trial>/video
   failed is logged, returned in ``RunReport.decode_errors`` and saved as ``decode_error_frame``;
 - a video whose size differs from the calibration's: a difference of at most 16 px (codec padding,
   e.g. 1080 vs 1088) is logged, anything else (or width and height swapped: a rotated video) raises;
-- bottom-up models run with ``PipelineConfig(keep_maps=True)`` also store their confidence maps and PAFs
-  for the tracker's observation model: ``maps_f16 (T,h,w,C)`` float16 and ``maps_to_img (T,2,3)`` (map px ->
-  image px) as extra keys of the detections file.
+- bottom-up models run with ``KeypointPipelineConfig(keep_maps=True)`` also store their confidence maps and
+  PAFs for the tracker's observation model: ``maps_f16 (T,h,w,C)`` float16 and ``maps_to_img (T,2,3)``
+  (map px -> image px) as extra keys of the detections file.
 """
 
 from __future__ import annotations
@@ -44,9 +44,8 @@ from core.fileio import load_npz, save_npz
 from core.progress import Progress
 from keypoints.detections import Detections
 from keypoints.pipeline import KeypointPipeline
-from keypoints.pipeline_config import FrameResult, PipelineConfig
-from keypoints.presets import preset_config
-from keypoints.registry import presets
+from keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
+from keypoints.presets import settings_for
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -457,7 +456,7 @@ def _calib_sizes(rig) -> dict[str, tuple[int, int]]:
 def run_videos(
     videos: dict[str, str | os.PathLike],
     out_dir: str | os.PathLike,
-    config: PipelineConfig | str = "default",
+    config: KeypointPipelineConfig | str = "default",
     *,
     rig=None,
     chunk_frames: int = 50,
@@ -478,7 +477,7 @@ def run_videos(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if isinstance(config, str):
-        config = preset_config(config) if config in presets()[1] else PipelineConfig(model_set=config)
+        config = settings_for(config)
     cams = list(videos)
     n_groups = 1 if pipeline is not None else max(1, min(camera_groups, len(cams)))
     if n_groups > 1:  # each group's share of the onnxruntime threads
@@ -661,7 +660,7 @@ def run_session(
     model_set: str = "default",
     cameras: list[str] | None = None,
     progress: Progress | None = None,
-    config: PipelineConfig | None = None,
+    config: KeypointPipelineConfig | None = None,
     rig=None,
     **kw,
 ) -> dict[str, Path]:
@@ -687,6 +686,6 @@ def run_session(
                 "Name videos raw/<rig camera name>.mp4.",
             )
     ts = {c: lay.find_frames_csv(c) for c in cams if lay.find_frames_csv(c) is not None}
-    cfg = config or PipelineConfig(model_set=model_set)
+    cfg = config or KeypointPipelineConfig(model_set=model_set)
     rep = run_videos(videos, lay.keypoints_dir, cfg, rig=rig, progress=progress, timestamps=ts, **kw)
     return rep.paths

@@ -60,8 +60,10 @@ from keypoints.pipeline import KeypointPipeline
 from keypoints.skeletons import CANONICAL, convert
 from pipeline.config import KeypointsConfig
 from pipeline.live_outputs import Outputs, load_rig
-from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
 from track.particle_io import focal_lengths
+from track.particle_types import FrameEstimate
 from track.trackfile import SCHEMA, TrackFile
 from triangulate.chunks import PartStore, hash_key, parts_dir
 from triangulate.reconstruct import FrameReconstructor

