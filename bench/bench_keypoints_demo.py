@@ -1,4 +1,4 @@
-"""Keypoints on the real recordings ("Show it" of issue 5).
+"""Keypoints on the real recordings.
 
 1. Demo_SinglePerson (4 portrait cameras, Qualisys calibration ``Calib.qca.txt``): run a model set,
    triangulate with a plain DLT (per frame: the cross-view choice of detections with the least reprojection

@@ -1,4 +1,4 @@
-"""Particle tracker cost per person-frame at 12 cameras, one thread (issue 17, item 5).
+"""Particle tracker cost per person-frame at 12 cameras, one thread.
 
 The issue's setting: ``python -m synthetic OUT --rig kitchen --cams 12 --people 16 --enter-leave
 --seconds S`` written to a temporary folder, its detections loaded as the track stage loads them,

@@ -31,7 +31,7 @@ recording ends (:meth:`LiveTrackWriter.close`). The common loaders read it like 
 ``TrackFile.load("track/live.npz")``, ``iter_parts`` part by part, a part that does not match the index
 is an error naming it (a live part cannot be rebuilt). It is kept apart from ``track/tracks.npz`` /
 ``track/tracks.parts/``, which the batch track stage owns and replaces: a later ``reprocess`` of the
-session leaves the live result as it was. Sessions recorded by earlier versions hold
+session leaves the live result as it was. Sessions recorded in the older layout hold
 ``track/live/index.json`` (schema ``live_tracks/1``) and ``part_NNNNNN.npz``; :func:`load_live_tracks`
 still reads them.
 """
@@ -93,7 +93,7 @@ def live_dir(layout: SessionLayout) -> Path:
 
 
 def legacy_live_dir(layout: SessionLayout) -> Path:
-    """``track/live/``: where sessions recorded by earlier versions hold their live track."""
+    """``track/live/``: where sessions recorded in the older layout hold their live track."""
     return layout.tracks.parent / LEGACY_LIVE_DIR
 
 

@@ -1,4 +1,4 @@
-"""Issue 17, item 2, for the particle filter: durations on the clock (t_ns), dropped frames, jittered
+"""The particle filter on the clock: durations on the clock (t_ns), dropped frames, jittered
 timestamps and a 30 s pause of the recorder while the frame numbers stay consecutive."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 17, item 1, for the particle tracker: the streamed stage (track/stream.py) equals the whole-session
+"""The particle tracker streamed: the streamed stage (track/stream.py) equals the whole-session
 run bit for bit, resumes after a kill from the last complete chunk, and rebuilds damaged parts."""
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ class ParticleConfig:
       evidence are dropped when it ends (offline output); smooth_sigma_s: offline NaN-aware Gaussian
       smoothing of the output in time, in seconds (0 = off; None = the seed's 2 frames at the session's
       rate, as its evaluation does, sec. 5.3.1 from ch. 4), never across two frames more than max_gap_s
-      apart; smooth_sigma_frames: the same width in frames, as earlier versions took it (converted at the
+      apart; smooth_sigma_frames: the same width in frames (converted at the
       frame rate by :meth:`at_fps`).
     max_gap_s: two consecutive frames further apart than this (+ one frame) are a pause of the recorder:
       the tracks' clock counts it as one frame (termination, re-identification), the motion prior moves

@@ -1,4 +1,4 @@
-"""The particle tracker (:mod:`track.particle`) in time chunks with bounded memory (issue 17, item 1).
+"""The particle tracker (:mod:`track.particle`) in time chunks with bounded memory.
 
 Two passes, each writing a folder of parts (:class:`triangulate.chunks.PartStore`: every part written
 atomically and entered in an index with its size and sha256; a part that is missing, truncated or
