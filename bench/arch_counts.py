@@ -1,4 +1,4 @@
-"""Architecture counts on a source tree (issue 16's "Show it"): run on this checkout or an old one.
+"""Architecture counts on a source tree: run on this checkout or an old one.
 
     python bench/arch_counts.py [ROOT]     # ROOT: a checkout of the repository (default: this one)
 

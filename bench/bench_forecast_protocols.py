@@ -1,4 +1,4 @@
-"""Forecast protocol controls on the CMU test split (issue 19): the baselines real / zero / const / slide
+"""Forecast protocol controls on the CMU test split: the baselines real / zero / const / slide
 scored by the seed's protocol (NDMS database by activity incl. the query's own clip, and leave-clip-out), and
 the same evaluation with every clip moved by 5 m: the largest change of any metric. Also the wall time of the
 evaluation against the old single-pool database (all held-out clips as one group, the baseline of the

@@ -1,7 +1,7 @@
 """Checkpoints scored on the VALIDATION split (never the test split) with the trainer's own selection probe
 (``forecast.selection.Validator``: observe 2 s, forecast 4 s at 25 Hz; NDMS with D = the validation clips of
 the window's activity, own clip included, as the evaluation's ``ndms``): the figure checkpoints are chosen
-by (issue 19). Social Diffusion is rolled out as the model allows (``predict.diffusion_rollout``: one pass,
+by. Social Diffusion is rolled out as the model allows (``predict.diffusion_rollout``: one pass,
 or chained windows for models bound to their window); the rollout and the sampling time are printed, and
 the GRU's time is the baseline of the timing ratio when a GRU checkpoint is given.
 

@@ -1,4 +1,4 @@
-"""Keypoints on the real recordings ("Show it" of issue 5).
+"""Keypoints on the real recordings.
 
 1. Demo_SinglePerson (4 portrait cameras, Qualisys calibration ``Calib.qca.txt``): run a model set,
    triangulate with a plain DLT (per frame: the cross-view choice of detections with the least reprojection
@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from _kp_demo import read_qca, reprojection_errors  # noqa: E402
 
-from keypoints.pipeline import KeypointPipeline, PipelineConfig  # noqa: E402
+from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig  # noqa: E402
 from keypoints.runtime import RuntimeConfig  # noqa: E402
 from keypoints.skeletons import convert  # noqa: E402
 
@@ -198,7 +198,9 @@ def main() -> None:
     args = ap.parse_args()
 
     def pipeline(s: str) -> KeypointPipeline:
-        return KeypointPipeline(PipelineConfig(model_set=s, runtime=RuntimeConfig(threads=args.threads)))
+        return KeypointPipeline(
+            KeypointPipelineConfig(model_set=s, runtime=RuntimeConfig(threads=args.threads))
+        )
 
     skip = set(args.skip.split(","))
     res: dict = {"step": args.step}

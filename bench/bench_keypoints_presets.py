@@ -1,4 +1,4 @@
-"""Keypoint presets on both Pose2Sim demos: accuracy, people matched and speed in one table (issue 20).
+"""Keypoint presets on both Pose2Sim demos: accuracy, people matched and speed in one table.
 
 For each candidate (today's default chain ``legacy`` is the baseline, measured in the same run):
 

@@ -22,7 +22,8 @@ The machine may be shared: the load average is printed beside the figures.
         [--demo single|multi] [--threads 1] [--gpu]
 
 ``--sets`` takes presets (``keypoints list``) and model sets, ``--extra 'name={"base": "balanced", "pyramid":
-"gaussian"}'`` a preset with PipelineConfig fields overridden; ratios ``x_first`` are against the first,
+"gaussian"}'`` a preset with KeypointPipelineConfig fields overridden; ratios ``x_first`` are against the
+first,
 measured in the same run. ``--gpu``: every set on the CUDA execution provider (crops batched: the graphs are
 made dynamic there) against the CPU; where onnxruntime has no CUDA provider it says so and measures nothing.
 
@@ -44,11 +45,12 @@ sys.path.insert(0, str(REPO))
 
 import onnxruntime as ort  # noqa: E402
 
-from keypoints.pipeline import PipelineConfig  # noqa: E402
+from capture.session import videos_in  # noqa: E402
+from keypoints.pipeline import KeypointPipelineConfig  # noqa: E402
 from keypoints.presets import preset_config  # noqa: E402
 from keypoints.registry import presets  # noqa: E402
 from keypoints.runtime import RuntimeConfig  # noqa: E402
-from keypoints.video import run_videos, videos_in  # noqa: E402
+from keypoints.video import run_videos  # noqa: E402
 
 SHARED = Path(os.environ.get("ROOMCAP_SHARED", REPO.parent / "shared"))
 DEMOS = {
@@ -58,7 +60,7 @@ DEMOS = {
 DEMO = DEMOS["single"]
 
 
-def measure(name: str, cfg: PipelineConfig, frames: int, camera_groups: int = 1) -> dict:
+def measure(name: str, cfg: KeypointPipelineConfig, frames: int, camera_groups: int = 1) -> dict:
     vids = videos_in(DEMO)
     with tempfile.TemporaryDirectory() as tmp:
         rep = run_videos(vids, tmp, cfg, max_frames=frames, chunk_frames=25, camera_groups=camera_groups)
@@ -110,14 +112,14 @@ def main() -> None:
     label = lambda s: s.partition("=")[0]  # noqa: E731
     known_presets = presets()[1]
 
-    def config(s: str, runtime: RuntimeConfig) -> PipelineConfig:
+    def config(s: str, runtime: RuntimeConfig) -> KeypointPipelineConfig:
         name, _, js = s.partition("=")
         if js:  # name={"base": preset, ...PipelineConfig fields}
             over = json.loads(js)
             return preset_config(over.pop("base", ""), runtime=runtime, **over)
         if s in known_presets:
             return preset_config(s, runtime=runtime)
-        return PipelineConfig(model_set=s, runtime=runtime)
+        return KeypointPipelineConfig(model_set=s, runtime=runtime)
 
     if args.gpu:
         available = ort.get_available_providers()
@@ -141,7 +143,11 @@ def main() -> None:
     if "blazepose" in sets:  # the batching comparison needs the one-crop-per-run BlazePose row
         batched = RuntimeConfig(dynamic_batch=True, threads=args.threads)
         rows.append(
-            measure("blazepose-batched", PipelineConfig(model_set="blazepose", runtime=batched), args.frames)
+            measure(
+                "blazepose-batched",
+                KeypointPipelineConfig(model_set="blazepose", runtime=batched),
+                args.frames,
+            )
         )
     load = os.getloadavg()[0]
     cols = ["decode_ms", "detect_ms", "crop_ms", "pose_ms", "decode_outputs_ms", "write_ms", "model_ms"]

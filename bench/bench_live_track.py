@@ -1,4 +1,4 @@
-"""Live 3D stages as a batch of one frame (issue 17, item 4): latency early and late in a long session.
+"""Live 3D stages as a batch of one frame: latency early and late in a long session.
 
 Input: the Pose2Sim multi-person trial (``session-2024/S00_P01_MultiParticipants/
   S00_P01_T02_Participants1-2``:

@@ -1,4 +1,4 @@
-"""Issue 17, item 1: the streamed 3D stages on a long synthetic kitchen session, in bounded memory.
+"""The streamed 3D stages on a long synthetic kitchen session, in bounded memory.
 
     python bench/bench_stream_hour.py [--minutes 60] [--base-minutes 5] [--metric-minutes 2]
         [--cams 12] [--people 16] [--chunk-s 60] [--work DIR] [--tracker greedy|particle]

@@ -39,7 +39,7 @@ def main() -> None:
     from keypoints.skeletons import CANONICAL
     from track.birth import BirthGenerator
     from track.normalize import denormalize, hip_frame
-    from track.particle import ParticleConfig
+    from track.particle_config import ParticleConfig
     from track.priors import TEMPLATE_BODY19_M
     from track.train_motion import load_motion
 

@@ -42,9 +42,9 @@ def main() -> None:
     from calibrate.formats import import_rig
     from capture.session import SessionLayout
     from core.fileio import save_toml
-    from keypoints.pipeline import PipelineConfig
+    from keypoints.pipeline import KeypointPipelineConfig
     from keypoints.video import run_videos
-    from track.particle import ParticleConfig
+    from track.particle_config import ParticleConfig
     from track.stage import track_session_particle
     from track.trackfile import TrackFile
     from triangulate.multiview import load_detections
@@ -63,7 +63,7 @@ def main() -> None:
     run_videos(
         videos,
         lay.keypoints_dir,
-        PipelineConfig(model_set="openpose_mobilenetv2", keep_maps=True),
+        KeypointPipelineConfig(model_set="openpose_mobilenetv2", keep_maps=True),
         rig=rig,
         max_frames=a.frames,
     )

@@ -78,7 +78,7 @@ def per_marker(r) -> dict:
 def track_from_videos(shared: Path, out: Path) -> Path:
     """Demo_SinglePerson videos -> BlazePose heavy (33 landmarks kept) -> whole_body triangulate + track."""
     from capture.session import SessionLayout
-    from keypoints.pipeline import PipelineConfig as KeypointsConfig
+    from keypoints.pipeline import KeypointPipelineConfig as KeypointsConfig
     from keypoints.video import run_videos
 
     demo = shared / "data/pose2sim/demo-wheel-0.10.49/Demo_SinglePerson"

@@ -1,4 +1,4 @@
-"""Particle tracker cost per person-frame at 12 cameras, one thread (issue 17, item 5).
+"""Particle tracker cost per person-frame at 12 cameras, one thread.
 
 The issue's setting: ``python -m synthetic OUT --rig kitchen --cams 12 --people 16 --enter-leave
 --seconds S`` written to a temporary folder, its detections loaded as the track stage loads them,
@@ -60,7 +60,8 @@ def _setup(session: Path):
     torch.set_num_threads(1)
     from calibrate.camera import CameraRig
     from capture.session import SessionLayout
-    from track.particle import ParticleConfig, ParticleTracker
+    from track.particle import ParticleTracker
+    from track.particle_config import ParticleConfig
     from track.particle_io import focal_lengths
     from triangulate.multiview import load_detections, session_fps
 

@@ -36,8 +36,10 @@ from test_track_realdata import make_pose2sim_session  # noqa: E402
 
 from calibrate.camera import CameraRig  # noqa: E402
 from keypoints.skeletons import CANONICAL  # noqa: E402
-from track.particle import ParticleConfig, ParticleTracker, track_sequence  # noqa: E402
+from track.particle import ParticleTracker  # noqa: E402
+from track.particle_config import ParticleConfig  # noqa: E402
 from track.particle_io import focal_lengths  # noqa: E402
+from track.particle_offline import track_sequence  # noqa: E402
 from triangulate.multiview import load_detections  # noqa: E402
 
 

@@ -32,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from track_helpers import render_kp, ring_P  # noqa: E402
 
-from track.particle import ParticleConfig, ParticleTracker  # noqa: E402
+from track.particle import ParticleTracker  # noqa: E402
+from track.particle_config import ParticleConfig  # noqa: E402
 
 H32 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h32.pt"
 

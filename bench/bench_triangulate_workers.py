@@ -1,4 +1,4 @@
-"""Issue 17, item 3: one long session's triangulation split over worker processes by time chunks.
+"""One long session's triangulation split over worker processes by time chunks.
 
     python bench/bench_triangulate_workers.py [--minutes 10] [--workers 2] [--cams 12] [--people 16]
         [--chunk-s 30] [--work DIR] [--reuse] [--ray]

@@ -88,12 +88,7 @@ def calibrate_recording(
     out_rig = Path(out_rig)
     out_dir = out_rig.parent
     timings: dict[str, float] = {}
-    sources = [s for s in discover_recording(recording) if s.name not in cfg.exclude]
-    unknown = sorted(set(cfg.exclude) - {s.name for s in discover_recording(recording)})
-    if unknown:
-        raise CalibrationError(f"--exclude {unknown}: no such camera in {recording}.")
-    if not sources:
-        raise CalibrationError(f"No camera left to calibrate in {recording}.")
+    sources = _sources(recording, cfg)
     log.info("calibrating %d camera(s) %s with %s", len(sources), [s.name for s in sources], board.describe())
 
     t0 = time.perf_counter()
@@ -106,6 +101,62 @@ def calibrate_recording(
         progress=_stage(progress, "detect"),
     )
     timings["detect_s"] = time.perf_counter() - t0
+    _check_board_seen(board, board_path, recording, sources, dets, cfg, out_dir, progress)
+
+    t0 = time.perf_counter()
+    intr, cams = _intrinsics(board, dets, cfg, progress)
+    timings["intrinsics_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ext, rig = _extrinsics(board, cams, dets, cfg, progress)
+    timings["extrinsics_s"] = time.perf_counter() - t0
+
+    src = (
+        f"calibrate-run calibrate {Path(recording).name} ({board.describe()}; model {cfg.model}, "
+        f"refine_intrinsics {cfg.refine_intrinsics}, world {ext.world if ext else '-'})"
+    )
+    rig.save(out_rig, source=src)
+    report = write_report(
+        out_dir / "report",
+        board,
+        rig,
+        dets,
+        intr,
+        ext,
+        extra={
+            "timings_s": timings,
+            "recording": str(Path(recording).resolve()),
+            "rig": str(out_rig.resolve()),
+        },
+    )
+
+    text = summary_text(report_dict(board, rig, dets, intr, ext))
+    return CalibrationOutcome(rig, dets, intr, ext, report, timings, text)
+
+
+def _sources(recording: str | os.PathLike, cfg: CalibrationConfig) -> list:
+    """The recording's cameras less ``cfg.exclude`` (each excluded name must be one of them)."""
+    sources = [s for s in discover_recording(recording) if s.name not in cfg.exclude]
+    unknown = sorted(set(cfg.exclude) - {s.name for s in discover_recording(recording)})
+    if unknown:
+        raise CalibrationError(f"--exclude {unknown}: no such camera in {recording}.")
+    if not sources:
+        raise CalibrationError(f"No camera left to calibrate in {recording}.")
+    return sources
+
+
+def _check_board_seen(
+    board: Board,
+    board_path: Path | None,
+    recording: str | os.PathLike,
+    sources: list,
+    dets: dict,
+    cfg: CalibrationConfig,
+    out_dir: Path,
+    progress: Progress | None,
+) -> None:
+    """Stop with a diagnosis when the board was seen in too few frames (a wrong grid or board file, or no
+    board at all)."""
     seen = {k: len(v.seen_frames()) for k, v in dets.items()}
     if not cfg.intrinsics_from and all(n < cfg.min_frames for n in seen.values()):
         wrong_grid = diagnose_grid(board, sources)  # few views: a board file whose grid is not the print's?
@@ -146,8 +197,12 @@ def calibrate_recording(
             "board is in focus and large enough in the images."
         )
 
-    # intrinsics
-    t0 = time.perf_counter()
+
+def _intrinsics(
+    board: Board, dets: dict, cfg: CalibrationConfig, progress: Progress | None
+) -> tuple[dict[str, IntrinsicsResult | None], list[Camera]]:
+    """Each camera's intrinsics, calibrated or taken from ``cfg.intrinsics_from`` (result None), at R = I,
+    t = 0; every camera's problem in one error."""
     given: dict[str, Camera] = {}
     if cfg.intrinsics_from:
         known = CameraRig.load(cfg.intrinsics_from)
@@ -187,11 +242,14 @@ def calibrate_recording(
                 else ""
             )
         )
-    timings["intrinsics_s"] = time.perf_counter() - t0
+    return intr, cams
 
-    # extrinsics
+
+def _extrinsics(
+    board: Board, cams: list[Camera], dets: dict, cfg: CalibrationConfig, progress: Progress | None
+) -> tuple[ExtrinsicsResult | None, CameraRig]:
+    """The bundle-adjusted rig of two or more cameras (and the extrinsics result), or the one camera."""
     ext = None
-    t0 = time.perf_counter()
     if len(cams) >= 2:
         ecfg = ExtrinsicsConfig(
             loss=cfg.loss,
@@ -203,26 +261,4 @@ def calibrate_recording(
         rig = ext.rig
     else:
         rig = CameraRig(tuple(cams))
-    timings["extrinsics_s"] = time.perf_counter() - t0
-
-    src = (
-        f"calibrate-run calibrate {Path(recording).name} ({board.describe()}; model {cfg.model}, "
-        f"refine_intrinsics {cfg.refine_intrinsics}, world {ext.world if ext else '-'})"
-    )
-    rig.save(out_rig, source=src)
-    report = write_report(
-        out_dir / "report",
-        board,
-        rig,
-        dets,
-        intr,
-        ext,
-        extra={
-            "timings_s": timings,
-            "recording": str(Path(recording).resolve()),
-            "rig": str(out_rig.resolve()),
-        },
-    )
-
-    text = summary_text(report_dict(board, rig, dets, intr, ext))
-    return CalibrationOutcome(rig, dets, intr, ext, report, timings, text)
+    return ext, rig

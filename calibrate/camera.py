@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from calibrate.camera_fields import PINHOLE_DIST_SIZES, validated_fields
 from core.config import check_keys
 from core.errors import FormatError, UnknownNameError
 from core.fileio import check_schema, load_toml, save_toml, schema_tag
@@ -47,10 +48,6 @@ CONVENTION = (
     "cam_from_world: x_cam = R @ x_world + t; metres; "
     "pixels with origin at the centre of the top-left pixel as in OpenCV"
 )
-PINHOLE_DIST_SIZES = (0, 4, 5, 8, 12, 14)
-FISHEYE_DIST_SIZES = (4,)
-MODELS = ("pinhole", "fisheye")
-ROTATION_TOL = 1e-6
 CAMERA_KEYS = ("name", "size_wh", "model", "K", "dist", "R", "t")
 
 # Iterative undistortion: OpenCV's default is 5 iterations, which leaves pixel-level errors on
@@ -87,131 +84,6 @@ def rvec_from_rotation(R: np.ndarray) -> np.ndarray:
     return rvec.reshape(3)
 
 
-# ----------------------------------------------------------------------------- validation
-
-
-def _as_matrix(value: Any, shape: tuple[int, ...], path: Any, fld: str, fix: str) -> np.ndarray:
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise FormatError(path, fld, f"is not a numeric array of shape {shape} ({e}).", fix) from None
-    if arr.shape != shape:
-        raise FormatError(path, fld, f"has shape {arr.shape}, expected {shape}.", fix)
-    if not np.all(np.isfinite(arr)):
-        raise FormatError(path, fld, "contains NaN or infinite values.", fix)
-    return arr
-
-
-def _validated(
-    name: Any,
-    size_wh: Any,
-    K: Any,
-    dist: Any,
-    model: Any,
-    R: Any,
-    t: Any,
-    path: str | os.PathLike[str] | None = None,
-    where: str | None = None,
-    names: Mapping[str, str] | None = None,
-) -> dict[str, Any]:
-    """Check and normalise camera fields; errors name ``path`` and ``where.<field>``.
-
-    ``names`` maps this module's field names (K, dist, R, t, size_wh, model) to the names a
-    source file uses (e.g. ``{"K": "matrix"}``), so importer errors name the file's own field."""
-    if not isinstance(name, str) or not name:
-        raise FormatError(
-            path,
-            f"{where}.name" if where else "name",
-            f"camera name must be a non-empty string, got {name!r}.",
-            "Give every camera a name.",
-        )
-    nm = dict(names or {})
-    w0 = where or f"camera '{name}'"
-
-    def fld(key: str) -> str:
-        return f"{w0}.{nm.get(key, key)}"
-
-    if model not in MODELS:
-        raise FormatError(
-            path,
-            fld("model"),
-            f"unknown camera model {model!r}; valid: {list(MODELS)}.",
-            "Use 'pinhole' (OpenCV 0/4/5/8/12/14 coefficients) or 'fisheye' (cv2.fisheye, 4).",
-        )
-    try:
-        wh = tuple(int(v) for v in size_wh)
-        ok = (
-            len(wh) == 2
-            and all(v > 0 for v in wh)
-            and all(float(a) == b for a, b in zip(size_wh, wh, strict=True))
-        )
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise FormatError(
-            path,
-            fld("size_wh"),
-            f"must be two positive integers [width, height], got {size_wh!r}.",
-            "Write the image size in pixels as [width, height].",
-        )
-    K_ = _as_matrix(
-        K, (3, 3), path, fld("K"), "Write K as the 3x3 OpenCV camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]."
-    )
-    if not (K_[0, 0] > 0 and K_[1, 1] > 0):
-        raise FormatError(
-            path,
-            fld("K"),
-            f"focal lengths must be positive, got fx={K_[0, 0]}, fy={K_[1, 1]}.",
-            "Check the camera matrix.",
-        )
-    if K_[1, 0] != 0 or K_[2, 0] != 0 or K_[2, 1] != 0 or K_[2, 2] != 1:
-        raise FormatError(
-            path,
-            fld("K"),
-            f"last two rows must be [0, fy, cy] and [0, 0, 1], got {K_[1:].tolist()}.",
-            "Normalise K so that K[2,2] = 1.",
-        )
-    if abs(K_[0, 1]) > 1e-9 * K_[0, 0]:
-        raise FormatError(
-            path,
-            fld("K"),
-            f"has skew K[0,1]={K_[0, 1]}, which OpenCV's distortion model ignores.",
-            "Recalibrate without skew (OpenCV does) or set K[0,1] = 0.",
-        )
-    K_[0, 1] = 0.0
-    try:
-        dist_ = np.array([] if dist is None else dist, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as e:
-        raise FormatError(path, fld("dist"), f"is not a numeric vector ({e}).", "") from None
-    sizes = PINHOLE_DIST_SIZES if model == "pinhole" else FISHEYE_DIST_SIZES
-    if dist_.size not in sizes:
-        raise FormatError(
-            path,
-            fld("dist"),
-            f"has {dist_.size} coefficients; a {model} camera takes {list(sizes)}.",
-            "Give the OpenCV distortion coefficients in OpenCV order (pad with zeros to a valid length)."
-            if model == "pinhole"
-            else "Give the 4 cv2.fisheye coefficients k1..k4.",
-        )
-    if not np.all(np.isfinite(dist_)):
-        raise FormatError(path, fld("dist"), "contains NaN or infinite values.", "")
-    R_ = _as_matrix(R, (3, 3), path, fld("R"), "Write R as a 3x3 rotation matrix (cam_from_world).")
-    err = float(np.abs(R_ @ R_.T - np.eye(3)).max())
-    det = float(np.linalg.det(R_))
-    if err > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
-        raise FormatError(
-            path,
-            fld("R"),
-            f"is not a rotation (max |R R^T - I| = {err:.3g}, det = {det:.9g}; tolerance {ROTATION_TOL}).",
-            "Write the full-precision cam_from_world rotation; if it is a Rodrigues vector "
-            "or the transpose (world_from_cam) or has a reflection, convert it first.",
-        )
-    t_ = _as_matrix(t, (3,), path, fld("t"), "Write t as 3 numbers in metres (cam_from_world translation).")
-    for a in (K_, dist_, R_, t_):
-        a.setflags(write=False)
-    return {"name": name, "size_wh": wh, "K": K_, "dist": dist_, "model": model, "R": R_, "t": t_}
-
-
 # ----------------------------------------------------------------------------- Camera
 
 
@@ -235,7 +107,7 @@ class Camera:
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
-        v = _validated(self.name, self.size_wh, self.K, self.dist, self.model, self.R, self.t)
+        v = validated_fields(self.name, self.size_wh, self.K, self.dist, self.model, self.R, self.t)
         for k, val in v.items():
             object.__setattr__(self, k, val)
 
@@ -418,7 +290,7 @@ class Camera:
                 f"camera fields {missing} are missing.",
                 f"Every camera needs {list(CAMERA_KEYS)} ('dist' and 'model' may be left out).",
             )
-        v = _validated(
+        v = validated_fields(
             d["name"],
             d["size_wh"],
             d["K"],

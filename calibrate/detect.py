@@ -528,37 +528,56 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
     Tries every predefined ArUco dictionary in normal and inverted colours (one candidate search,
     ``detectMarkersMultiDict``), then for ChArUco the legacy-pattern switch; for checkerboards the
     inner-corner count off by one (squares given instead of corners) and inverted colours."""
-    import cv2
-
     imgs = [im for s in sources for im in _sample_images(s, n_frames)]
     if not imgs:
         return Diagnosis(None, "no frame could be read for the diagnosis", {})
     if board.kind == "checkerboard":
-        cands = []
-        for dx in (0, -1, 1):
-            for dy in (0, -1, 1):
-                for inv in (False, True):
-                    g = (board.grid[0] + dx, board.grid[1] + dy)
-                    if min(g) >= 2:
-                        cands.append(board.replace(grid=g, inverted=inv))
-        best, best_n = None, 0
-        for b in cands:
-            n = sum(np.isfinite(detect_frame(b, im)[:, 0]).any() for im in imgs[:: max(1, len(imgs) // 6)])
-            if n > best_n:
-                best, best_n = b, n
-        if best is None:
-            return Diagnosis(
-                None,
-                f"no checkerboard with about {board.grid} inner corners found in {len(imgs)} sample frames",
-                {},
-            )
+        return _diagnose_checkerboard(board, imgs)
+    found = _diagnose_switches(board, imgs)
+    if found is not None:
+        return found
+    counts = _marker_counts(imgs)
+    if not counts:
         return Diagnosis(
-            best,
-            f"the images show a checkerboard with inner_corners = {list(best.grid)}, "
-            f"inverted = {str(best.inverted).lower()}",
+            None,
+            f"no ArUco marker of any predefined dictionary was found in {len(imgs)} sample frames "
+            "(in normal or inverted colours): the board is not visible, out of focus or too small",
+            counts,
+        )
+    return _diagnose_dictionary(board, imgs, counts)
+
+
+def _diagnose_checkerboard(board: Board, imgs: list[np.ndarray]) -> Diagnosis:
+    """The checkerboard (inner corners off by one either way, normal or inverted) found in most frames."""
+    cands = []
+    for dx in (0, -1, 1):
+        for dy in (0, -1, 1):
+            for inv in (False, True):
+                g = (board.grid[0] + dx, board.grid[1] + dy)
+                if min(g) >= 2:
+                    cands.append(board.replace(grid=g, inverted=inv))
+    best, best_n = None, 0
+    for b in cands:
+        n = sum(np.isfinite(detect_frame(b, im)[:, 0]).any() for im in imgs[:: max(1, len(imgs) // 6)])
+        if n > best_n:
+            best, best_n = b, n
+    if best is None:
+        return Diagnosis(
+            None,
+            f"no checkerboard with about {board.grid} inner corners found in {len(imgs)} sample frames",
             {},
         )
-    # 1) cheap: the declared dictionary with the colour / legacy switches toggled
+    return Diagnosis(
+        best,
+        f"the images show a checkerboard with inner_corners = {list(best.grid)}, "
+        f"inverted = {str(best.inverted).lower()}",
+        {},
+    )
+
+
+def _diagnose_switches(board: Board, imgs: list[np.ndarray]) -> Diagnosis | None:
+    """Cheap first: the declared dictionary with the colour (and ChArUco legacy-pattern) switches toggled;
+    None when no switch makes the board appear."""
     if board.kind == "charuco":
         quick = [
             board.replace(inverted=i, legacy_pattern=lg)
@@ -583,7 +602,15 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
                 + ")",
                 {},
             )
-    # 2) the other dictionaries, on downscaled frames. Within a family (DICT_5X5_50/100/250/1000) the
+    return None
+
+
+def _marker_counts(imgs: list[np.ndarray]) -> dict[str, int]:
+    """Markers found per ``"<dictionary>|<inverted>"``, trying the dictionaries tier by tier (see
+    ``_DICT_TIERS``) on frames downscaled to at most 960 px, and stopping at the first tier that finds any."""
+    import cv2
+
+    # Within a family (DICT_5X5_50/100/250/1000) the
     # smaller dictionaries are the first markers of the larger ones, and boards number their markers
     # from 0: trying the smallest of each family finds the family cheaply; the expensive families
     # (36-bit AprilTag, ARUCO_ORIGINAL) only when the cheap ones find nothing.
@@ -609,13 +636,12 @@ def diagnose_board(board: Board, sources: Sequence[Source], n_frames: int = 6) -
                 break
         if counts:
             break
-    if not counts:
-        return Diagnosis(
-            None,
-            f"no ArUco marker of any predefined dictionary was found in {len(imgs)} sample frames "
-            "(in normal or inverted colours): the board is not visible, out of focus or too small",
-            counts,
-        )
+    return counts
+
+
+def _diagnose_dictionary(board: Board, imgs: list[np.ndarray], counts: dict[str, int]) -> Diagnosis:
+    """The board settings of the dictionary family with the most markers, the ChArUco pattern checked on the
+    full frames."""
     best = max(counts, key=lambda k: counts[k])
     fam, inv_s = best.split("|")
     inv = inv_s == "True"

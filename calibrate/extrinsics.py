@@ -1,5 +1,6 @@
-"""Extrinsics: board poses per camera, pairwise relative poses, a robust pose graph, then a global
-bundle adjustment over all cameras and board poses with pycolmap's Ceres bundle adjuster.
+"""Extrinsics: from the first guess of :mod:`calibrate.pose_graph` (board poses per camera, pairwise
+relative poses, a robust pose graph), a global bundle adjustment over all cameras and board poses with
+pycolmap's Ceres bundle adjuster, outliers dropped, then the world frame.
 
 The bundle adjustment is set up as a COLMAP *rig*: every camera is a sensor with ``cam_from_rig``
 (the rig frame is the reference camera's), every time instant is a frame whose ``rig_from_world``
@@ -22,6 +23,16 @@ import numpy as np
 from calibrate.boards import Board, CalibrationError
 from calibrate.camera import Camera, CameraRig
 from calibrate.detect import CameraDetections
+from calibrate.pose_graph import (
+    board_poses,
+    board_symmetry,
+    initial_poses,
+    inverse,
+    nearest_rotation,
+    pairwise_links,
+    rotation_angle_deg,
+    transform,
+)
 from core.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -30,11 +41,7 @@ __all__ = [
     "ExtrinsicsConfig",
     "ExtrinsicsResult",
     "calibrate_extrinsics",
-    "board_poses",
-    "pairwise_links",
-    "board_symmetry",
     "board_fit_rms",
-    "initial_poses",
     "bundle_adjust",
     "LOSSES",
     "FLIP_BOARD_Z_UP",
@@ -90,192 +97,6 @@ class ExtrinsicsResult:
     n_outliers: int
     world: str
     residuals_px: dict = field(default_factory=dict, repr=False)  # camera -> (M,) final errors
-
-
-# ----------------------------------------------------------------------------- small geometry
-
-
-def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.ravel(t)
-    return T
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    R, t = T[:3, :3], T[:3, 3]
-    return _T(R.T, -R.T @ t)
-
-
-def _rot_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
-
-
-def _project_rot(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    return R
-
-
-# ----------------------------------------------------------------------------- per-camera board poses
-
-
-def board_poses(
-    board: Board, cam: Camera, det: CameraDetections, min_points: int = 6
-) -> dict[int, tuple[np.ndarray, float, int]]:
-    """cam_from_board (4,4) of every frame with >= min_points points (PnP on undistorted points,
-    IPPE then Levenberg-Marquardt). Returns frame -> (T, rms_px, n_points)."""
-    import cv2
-
-    obj = board.object_points()
-    out = {}
-    for k, f in enumerate(det.frames):
-        seen = np.isfinite(det.xy_px[k, :, 0])
-        if seen.sum() < min_points:
-            continue
-        und = cam.undistort_px(det.xy_px[k, seen])
-        o = obj[seen].astype(np.float64)
-        ok, rv, tv = cv2.solvePnP(o, und, cam.K, None, flags=cv2.SOLVEPNP_IPPE)
-        if not ok:
-            continue
-        rv, tv = cv2.solvePnPRefineLM(o, und, cam.K, None, rv, tv)
-        R = cv2.Rodrigues(rv)[0]
-        if tv[2, 0] <= 0:
-            continue
-        T = _T(R, tv.ravel())
-        proj = cam.replace(R=R, t=tv.ravel()).project(o)
-        rms = float(np.sqrt(np.mean(np.sum((proj - det.xy_px[k, seen]) ** 2, 1))))
-        out[int(f)] = (T, rms, int(seen.sum()))
-    return out
-
-
-# ----------------------------------------------------------------------------- pose graph
-
-
-def _robust_mean(
-    Ts: list[np.ndarray], rot_tol_deg: float = 5.0, rel_t_tol: float = 0.1
-) -> tuple[np.ndarray, np.ndarray]:
-    """Robust average of rigid transforms: the medoid (least summed rotation + translation distance),
-    then the mean of those within tolerance of it. Returns (T, inlier mask)."""
-    n = len(Ts)
-    R = np.stack([T[:3, :3] for T in Ts])
-    t = np.stack([T[:3, 3] for T in Ts])
-    scale = max(float(np.median(np.linalg.norm(t, axis=1))), 1e-3)
-    # pairwise chordal rotation distance and relative translation distance
-    dR = np.linalg.norm((R[:, None] - R[None]).reshape(n, n, 9), axis=2)
-    dt = np.linalg.norm(t[:, None] - t[None], axis=2) / scale
-    med = int(np.argmin((dR + dt).sum(1)))
-    ang = np.array([_rot_angle_deg(R[med].T @ R[i]) for i in range(n)])
-    inl = (ang < rot_tol_deg) & (np.linalg.norm(t - t[med], axis=1) < rel_t_tol * scale + 0.01)
-    Rm = _project_rot(R[inl].sum(0))
-    tm = t[inl].mean(0)
-    return _T(Rm, tm), inl
-
-
-def board_symmetry(board: Board) -> np.ndarray | None:
-    """For a checkerboard, the 180-degree turn about the board normal that maps point k to point N-1-k
-    (4,4): its corner order is ambiguous, so two cameras may number the same corners in opposite orders.
-    None for boards with unique ids (ChArUco, ArUco grid)."""
-    if board.kind != "checkerboard":
-        return None
-    W = (board.grid[0] - 1) * board.square_size_m
-    H = (board.grid[1] - 1) * board.square_size_m
-    return np.array([[-1.0, 0, 0, W], [0, -1.0, 0, H], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
-
-
-def pairwise_links(
-    poses: Sequence[Mapping[int, tuple]], max_per_pair: int = 200, sym: np.ndarray | None = None
-) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
-    """Relative poses from frames where two cameras see the board at once.
-    Returns links (C,C): consistent frames per pair, and (i,j) -> cam_i_from_cam_j (4,4) for i<j.
-    With a board symmetry ``sym`` each frame gives two candidates (camera j's numbering as is or turned);
-    the consistent one of each frame joins the robust mean, the other is an outlier."""
-    C = len(poses)
-    links = np.zeros((C, C), np.int64)
-    rel = {}
-    for i in range(C):
-        for j in range(i + 1, C):
-            common = sorted(set(poses[i]) & set(poses[j]))
-            if not common:
-                continue
-            if len(common) > max_per_pair:
-                common = [common[k] for k in np.linspace(0, len(common) - 1, max_per_pair).astype(int)]
-            Ts = [poses[i][f][0] @ _inv(poses[j][f][0]) for f in common]
-            if sym is not None:
-                Ts += [poses[i][f][0] @ _inv(poses[j][f][0] @ sym) for f in common]
-            T, inl = _robust_mean(Ts)
-            if sym is not None:
-                inl = inl[: len(common)] | inl[len(common) :]
-            links[i, j] = links[j, i] = int(inl.sum())
-            rel[(i, j)] = T
-    return links, rel
-
-
-def _components(C: int, links: np.ndarray) -> list[list[int]]:
-    parent = list(range(C))
-
-    def find(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    for i in range(C):
-        for j in range(i + 1, C):
-            if links[i, j] > 0:
-                parent[find(i)] = find(j)
-    groups: dict[int, list[int]] = {}
-    for i in range(C):
-        groups.setdefault(find(i), []).append(i)
-    return sorted(groups.values(), key=lambda g: (-len(g), g))
-
-
-def initial_poses(
-    names: Sequence[str], links: np.ndarray, rel: Mapping[tuple[int, int], np.ndarray], n_seen: Sequence[int]
-) -> tuple[int, list[np.ndarray]]:
-    """cam_from_ref (4,4) per camera by composing relative poses along the maximum spanning tree of the
-    link graph (weights = consistent shared frames), rooted at the best-linked camera. Unlinked cameras
-    raise CalibrationError naming the groups and what to record."""
-    C = len(names)
-    groups = _components(C, links)
-    if len(groups) > 1:
-        never = [names[i] for i in range(C) if n_seen[i] == 0]
-        gtxt = "; ".join("[" + ", ".join(names[i] for i in g) + "]" for g in groups)
-        main = groups[0]
-        others = [names[i] for g in groups[1:] for i in g]
-        msg = (
-            f"The cameras form {len(groups)} groups that never saw the board at the same time: {gtxt}. "
-            f"The extrinsics of {others} relative to {[names[i] for i in main]} cannot be found. "
-        )
-        if never:
-            msg += (
-                f"Cameras {never} never saw the board at all: check they point at the capture area and the "
-                "board is large enough in their image (or pass --exclude to leave them out). "
-            )
-        msg += (
-            "Record a clip where the board is visible to a camera of each group at once (hold it where their "
-            "views overlap, turned towards both), then calibrate again with both recordings."
-        )
-        raise CalibrationError(msg)
-    root = int(np.argmax(links.sum(1)))
-    cam_from_ref: list[np.ndarray | None] = [None] * C
-    cam_from_ref[root] = np.eye(4)
-    in_tree = {root}
-    while len(in_tree) < C:
-        best = None
-        for i in in_tree:
-            for j in range(C):
-                if j not in in_tree and links[i, j] > 0 and (best is None or links[i, j] > best[2]):
-                    best = (i, j, links[i, j])
-        assert best is not None
-        i, j, _ = best
-        i_from_j = rel[(i, j)] if i < j else _inv(rel[(j, i)])
-        cam_from_ref[j] = _inv(i_from_j) @ cam_from_ref[i]
-        in_tree.add(j)
-    return root, [T for T in cam_from_ref]  # type: ignore[misc]
 
 
 # ----------------------------------------------------------------------------- bundle adjustment
@@ -341,6 +162,50 @@ def bundle_adjust(
     import pycolmap
 
     rec = pycolmap.Reconstruction()
+    sensor = _add_rig(rec, cams, cam_from_ref, ref_index)
+    pids, frame_ids = _add_frames(rec, board, frames, ref_from_board, obs)
+    opts = _ba_options(cfg, refine_cameras)
+    ba_cfg = pycolmap.BundleAdjustmentConfig()
+    for iid in rec.reg_image_ids():
+        ba_cfg.add_image(iid)
+    for pid in pids:
+        if rec.point3D(pid).track.length() > 0:
+            ba_cfg.add_constant_point(pid)
+    t0 = time.perf_counter()
+    adj = pycolmap.create_default_bundle_adjuster(opts, ba_cfg, rec)
+    summary = adj.solve()
+    dt = time.perf_counter() - t0
+    cs = summary.ceres_summary if hasattr(summary, "ceres_summary") else summary
+    C = len(cams)
+    r = rec.rig(1)
+    new_cams = [_camera_from_colmap(cams[c], rec.camera(c + 1)) for c in range(C)]
+    new_cfr = []
+    for c in range(C):
+        if c == ref_index:
+            new_cfr.append(np.eye(4))
+        else:
+            s = r.sensor_from_rig(sensor[c])
+            new_cfr.append(transform(s.rotation.matrix(), s.translation))
+    new_rfb = {
+        f: transform(
+            rec.frame(fid).rig_from_world.rotation.matrix(), rec.frame(fid).rig_from_world.translation
+        )
+        for f, fid in frame_ids.items()
+    }
+    info = {
+        "time_s": dt,
+        "iterations": int(cs.num_successful_steps + cs.num_unsuccessful_steps),
+        "termination": str(cs.termination_type),
+        "n_residuals": int(cs.num_residuals),
+    }
+    return new_cams, new_cfr, new_rfb, info
+
+
+def _add_rig(rec, cams: Sequence[Camera], cam_from_ref: Sequence[np.ndarray], ref_index: int) -> list:
+    """Add the cameras and the rig (the reference camera and each other's pose in it) to ``rec``; the
+    sensors, one per camera."""
+    import pycolmap
+
     rig = pycolmap.Rig()
     rig.rig_id = 1
     C = len(cams)
@@ -353,6 +218,16 @@ def bundle_adjust(
             T = cam_from_ref[c]
             rig.add_sensor(sensor[c], pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3]))
     rec.add_rig(rig)
+    return sensor
+
+
+def _add_frames(
+    rec, board: Board, frames: Sequence[int], ref_from_board: Mapping[int, np.ndarray], obs: Sequence[_Obs]
+) -> tuple[list, dict[int, int]]:
+    """Add the board points and, per frame with observations, the rig pose and one image per camera that saw
+    the board; the point ids and ``{frame: COLMAP frame id}``."""
+    import pycolmap
+
     obj = board.object_points()
     pids = [rec.add_point3D(o, pycolmap.Track()) for o in obj]
     by_frame: dict[int, list[_Obs]] = {}
@@ -384,6 +259,13 @@ def bundle_adjust(
                 rec.add_observation(pids[int(pid)], pycolmap.TrackElement(im.image_id, k))
         rec.register_frame(fi + 1)
         frame_ids[f] = fi + 1
+    return pids, frame_ids
+
+
+def _ba_options(cfg: ExtrinsicsConfig, refine_cameras: bool):
+    """pycolmap's bundle adjustment options from the config: what is refined, the loss, the solver."""
+    import pycolmap
+
     opts = pycolmap.BundleAdjustmentOptions()
     opts.refine_focal_length = cfg.refine_intrinsics != "none"
     opts.refine_principal_point = cfg.refine_intrinsics != "none"
@@ -402,37 +284,7 @@ def bundle_adjust(
         opts.ceres.auto_select_solver_type = False
         so.linear_solver_type = getattr(type(so.linear_solver_type), cfg.linear_solver.upper())
     opts.ceres.solver_options = so
-    ba_cfg = pycolmap.BundleAdjustmentConfig()
-    for iid in rec.reg_image_ids():
-        ba_cfg.add_image(iid)
-    for pid in pids:
-        if rec.point3D(pid).track.length() > 0:
-            ba_cfg.add_constant_point(pid)
-    t0 = time.perf_counter()
-    adj = pycolmap.create_default_bundle_adjuster(opts, ba_cfg, rec)
-    summary = adj.solve()
-    dt = time.perf_counter() - t0
-    cs = summary.ceres_summary if hasattr(summary, "ceres_summary") else summary
-    r = rec.rig(1)
-    new_cams = [_camera_from_colmap(cams[c], rec.camera(c + 1)) for c in range(C)]
-    new_cfr = []
-    for c in range(C):
-        if c == ref_index:
-            new_cfr.append(np.eye(4))
-        else:
-            s = r.sensor_from_rig(sensor[c])
-            new_cfr.append(_T(s.rotation.matrix(), s.translation))
-    new_rfb = {
-        f: _T(rec.frame(fid).rig_from_world.rotation.matrix(), rec.frame(fid).rig_from_world.translation)
-        for f, fid in frame_ids.items()
-    }
-    info = {
-        "time_s": dt,
-        "iterations": int(cs.num_successful_steps + cs.num_unsuccessful_steps),
-        "termination": str(cs.termination_type),
-        "n_residuals": int(cs.num_residuals),
-    }
-    return new_cams, new_cfr, new_rfb, info
+    return opts
 
 
 def _residuals(board: Board, cams, cam_from_ref, ref_from_board, obs: Sequence[_Obs]) -> list[np.ndarray]:
@@ -504,38 +356,8 @@ def calibrate_extrinsics(
     tick("pose graph")
     frames = _choose_frames(poses, cfg.max_frames)
     if cfg.refine_intrinsics != "none":
-        # refining intrinsics: the views each camera has alone (its intrinsic views) constrain its lens too;
-        # without them a weakly linked camera's lens would rest on its few shared frames only
-        count: dict[int, int] = {}
-        for p in poses:
-            for f in p:
-                count[f] = count.get(f, 0) + 1
-        extra = []
-        for p in poses:
-            solo = sorted(f for f in p if count[f] == 1)
-            k = np.unique(np.linspace(0, len(solo) - 1, min(cfg.single_view_frames, len(solo))).astype(int))
-            extra += [solo[i] for i in k] if solo else []
-        frames = sorted(set(frames) | set(extra))
-    ref_from_board = {}
-    obs: list[_Obs] = []
-    for f in frames:
-        # initial board pose from the camera that sees it best (most points, then lowest PnP error)
-        best = min((c for c in range(C) if f in poses[c]), key=lambda c: (-poses[c][f][2], poses[c][f][1]))
-        ref_from_board[f] = _inv(cam_from_ref[best]) @ poses[best][f][0]
-        for c in range(C):
-            if f in poses[c]:
-                k = int(np.flatnonzero(dets[names[c]].frames == f)[0])
-                xy = dets[names[c]].xy_px[k]
-                ids = np.flatnonzero(np.isfinite(xy[:, 0]))
-                if sym is not None and c != best:
-                    # number this camera's corners like the best camera's: turned if that agrees better
-                    A = _inv(cam_from_ref[c]) @ poses[c][f][0]
-                    B = ref_from_board[f]
-                    if _rot_angle_deg((A @ sym)[:3, :3].T @ B[:3, :3]) < _rot_angle_deg(
-                        A[:3, :3].T @ B[:3, :3]
-                    ):
-                        ids = board.n_points - 1 - ids
-                obs.append(_Obs(c, f, ids, xy[np.flatnonzero(np.isfinite(xy[:, 0]))]))
+        frames = _with_single_views(poses, frames, cfg.single_view_frames)
+    ref_from_board, obs = _observations(board, names, dets, poses, cam_from_ref, frames, sym)
     cams = list(cameras)
     r0 = np.concatenate(_residuals(board, cams, cam_from_ref, ref_from_board, obs))
     initial_rms = float(np.sqrt(np.mean(r0**2)))
@@ -543,24 +365,9 @@ def calibrate_extrinsics(
         board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
     )
     tick("bundle adjustment")
-    res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
-    allr = np.concatenate(res)
-    thr = max(cfg.outlier_px, 5 * float(np.median(allr)))
-    n_out = int((allr > thr).sum())
-    if n_out:
-        log.info("extrinsics: dropping %d observation(s) above %.2f px and adjusting again", n_out, thr)
-        kept = []
-        for o, r in zip(obs, res, strict=False):
-            m = r <= thr
-            if m.sum() >= 4:
-                kept.append(_Obs(o.cam, o.frame, o.ids[m], o.xy[m]))
-        obs = kept
-        cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(
-            board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
-        )
-        info["time_s"] += info2["time_s"]
-        info["iterations"] += info2["iterations"]
-        res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    cams, cam_from_ref, ref_from_board, obs, res, n_out = _drop_outliers(
+        board, cams, cam_from_ref, ref, frames, ref_from_board, obs, cfg, info
+    )
     tick("outlier rejection")
     per_cam = [
         np.concatenate([r for o, r in zip(obs, res, strict=False) if o.cam == c] or [np.zeros(0)])
@@ -569,36 +376,12 @@ def calibrate_extrinsics(
     final_rms = float(np.sqrt(np.mean(np.concatenate(res) ** 2)))
     # world frame
     world = cfg.world or f"camera:{names[0]}"
-    if world.startswith("camera:"):
-        wname = world.split(":", 1)[1]
-        if wname not in names:
-            raise CalibrationError(f"--world {world}: no camera named {wname!r}; cameras: {names}.")
-        ref_from_world = _inv(cam_from_ref[names.index(wname)])
-    else:
-        try:
-            wf = int(world.split(":", 1)[1])
-        except ValueError:
-            raise CalibrationError(
-                f"--world {world}: give the frame number of a frame where the board lies on the "
-                "floor, e.g. board:0."
-            ) from None
-        if wf in ref_from_board:
-            rfb = ref_from_board[wf]
-        else:
-            seen = [c for c in range(C) if wf in poses[c]]
-            if not seen:
-                raise CalibrationError(
-                    f"--world {world}: no camera saw the board in frame {wf}. Pick a frame where "
-                    "the board lies on the floor and at least one camera sees it."
-                )
-            c = max(seen, key=lambda c: poses[c][wf][2])
-            rfb = _inv(cam_from_ref[c]) @ poses[c][wf][0]
-        ref_from_world = rfb @ FLIP_BOARD_Z_UP
+    ref_from_world = _ref_from_world(world, names, cam_from_ref, ref_from_board, poses)
     out_cams = []
     for c in range(C):
         T = cam_from_ref[c] @ ref_from_world
-        out_cams.append(cams[c].replace(R=_project_rot(T[:3, :3]), t=T[:3, 3]))
-    world_from_ref = _inv(ref_from_world)
+        out_cams.append(cams[c].replace(R=nearest_rotation(T[:3, :3]), t=T[:3, 3]))
+    world_from_ref = inverse(ref_from_world)
     bf = np.array(sorted(ref_from_board))
     wfb = np.stack([world_from_ref @ ref_from_board[f] for f in bf]) if len(bf) else np.zeros((0, 4, 4))
     frames_per_cam = np.array([len({o.frame for o in obs if o.cam == c}) for c in range(C)])
@@ -621,6 +404,129 @@ def calibrate_extrinsics(
     )
 
 
+def _with_single_views(poses: list[dict], frames: list[int], per_camera: int) -> list[int]:
+    """``frames`` plus up to ``per_camera`` frames each camera saw the board in alone, spread over its
+    recording: when intrinsics are refined they constrain each lens too (without them a weakly linked
+    camera's lens would rest on its few shared frames only)."""
+    count: dict[int, int] = {}
+    for p in poses:
+        for f in p:
+            count[f] = count.get(f, 0) + 1
+    extra = []
+    for p in poses:
+        solo = sorted(f for f in p if count[f] == 1)
+        k = np.unique(np.linspace(0, len(solo) - 1, min(per_camera, len(solo))).astype(int))
+        extra += [solo[i] for i in k] if solo else []
+    return sorted(set(frames) | set(extra))
+
+
+def _observations(
+    board: Board,
+    names: list[str],
+    dets: Mapping[str, CameraDetections],
+    poses: list[dict],
+    cam_from_ref: list[np.ndarray],
+    frames: list[int],
+    sym: np.ndarray | None,
+) -> tuple[dict[int, np.ndarray], list[_Obs]]:
+    """Each frame's initial board pose in the reference camera, and every camera's corner observations in
+    it (numbered like the best camera's on a symmetric board)."""
+    C = len(names)
+    ref_from_board = {}
+    obs: list[_Obs] = []
+    for f in frames:
+        # initial board pose from the camera that sees it best (most points, then lowest PnP error)
+        best = min((c for c in range(C) if f in poses[c]), key=lambda c: (-poses[c][f][2], poses[c][f][1]))
+        ref_from_board[f] = inverse(cam_from_ref[best]) @ poses[best][f][0]
+        for c in range(C):
+            if f in poses[c]:
+                k = int(np.flatnonzero(dets[names[c]].frames == f)[0])
+                xy = dets[names[c]].xy_px[k]
+                ids = np.flatnonzero(np.isfinite(xy[:, 0]))
+                if sym is not None and c != best:
+                    # number this camera's corners like the best camera's: turned if that agrees better
+                    A = inverse(cam_from_ref[c]) @ poses[c][f][0]
+                    B = ref_from_board[f]
+                    if rotation_angle_deg((A @ sym)[:3, :3].T @ B[:3, :3]) < rotation_angle_deg(
+                        A[:3, :3].T @ B[:3, :3]
+                    ):
+                        ids = board.n_points - 1 - ids
+                obs.append(_Obs(c, f, ids, xy[np.flatnonzero(np.isfinite(xy[:, 0]))]))
+    return ref_from_board, obs
+
+
+def _drop_outliers(
+    board: Board,
+    cams: list[Camera],
+    cam_from_ref: list[np.ndarray],
+    ref: int,
+    frames: list[int],
+    ref_from_board: dict[int, np.ndarray],
+    obs: list[_Obs],
+    cfg: ExtrinsicsConfig,
+    info: dict,
+) -> tuple[list[Camera], list[np.ndarray], dict[int, np.ndarray], list[_Obs], list[np.ndarray], int]:
+    """Drop the corners whose residual exceeds ``max(cfg.outlier_px, 5 x the median)`` and adjust again
+    (adding to ``info``'s time and iterations); the results, the residuals and the number dropped."""
+    res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    allr = np.concatenate(res)
+    thr = max(cfg.outlier_px, 5 * float(np.median(allr)))
+    n_out = int((allr > thr).sum())
+    if n_out:
+        log.info("extrinsics: dropping %d observation(s) above %.2f px and adjusting again", n_out, thr)
+        kept = []
+        for o, r in zip(obs, res, strict=False):
+            m = r <= thr
+            if m.sum() >= 4:
+                kept.append(_Obs(o.cam, o.frame, o.ids[m], o.xy[m]))
+        obs = kept
+        cams, cam_from_ref, ref_from_board, info2 = bundle_adjust(
+            board, cams, cam_from_ref, ref, frames=frames, ref_from_board=ref_from_board, obs=obs, cfg=cfg
+        )
+        info["time_s"] += info2["time_s"]
+        info["iterations"] += info2["iterations"]
+        res = _residuals(board, cams, cam_from_ref, ref_from_board, obs)
+    return cams, cam_from_ref, ref_from_board, obs, res, n_out
+
+
+def _ref_from_world(
+    world: str,
+    names: list[str],
+    cam_from_ref: list[np.ndarray],
+    ref_from_board: dict[int, np.ndarray],
+    poses: list[dict],
+) -> np.ndarray:
+    """The world frame in the reference camera: a camera's (``camera:<name>``) or the board's in a frame
+    where it lies on the floor (``board:<frame>``, z up)."""
+    C = len(names)
+    if world.startswith("camera:"):
+        wname = world.split(":", 1)[1]
+        if wname not in names:
+            raise CalibrationError(f"--world {world}: no camera named {wname!r}; cameras: {names}.")
+        ref_from_world = inverse(cam_from_ref[names.index(wname)])
+    else:
+        try:
+            wf = int(world.split(":", 1)[1])
+        except ValueError:
+            raise CalibrationError(
+                f"--world {world}: give the frame number of a frame where the board lies on the "
+                "floor, e.g. board:0."
+            ) from None
+        if wf in ref_from_board:
+            rfb = ref_from_board[wf]
+        else:
+            seen = [c for c in range(C) if wf in poses[c]]
+            if not seen:
+                raise CalibrationError(
+                    f"--world {world}: no camera saw the board in frame {wf}. Pick a frame where "
+                    "the board lies on the floor and at least one camera sees it."
+                )
+            c = max(seen, key=lambda c: poses[c][wf][2])
+            rfb = inverse(cam_from_ref[c]) @ poses[c][wf][0]
+        ref_from_world = rfb @ FLIP_BOARD_Z_UP
+    return ref_from_world
+
+
 def board_fit_rms(
     board: Board,
     rig: CameraRig,
@@ -634,13 +540,13 @@ def board_fit_rms(
     cams = list(rig.cameras)
     names = rig.names
     poses = [board_poses(board, c, dets[c.name], min_points) for c in cams]
-    T0 = _T(cams[0].R, cams[0].t)
-    cam_from_ref = [_T(c.R, c.t) @ _inv(T0) for c in cams]
+    T0 = transform(cams[0].R, cams[0].t)
+    cam_from_ref = [transform(c.R, c.t) @ inverse(T0) for c in cams]
     frames = _choose_frames(poses, 10**9)
     ref_from_board, obs = {}, []
     for f in frames:
         best = min((c for c in range(len(cams)) if f in poses[c]), key=lambda c: -poses[c][f][2])
-        ref_from_board[f] = _inv(cam_from_ref[best]) @ poses[best][f][0]
+        ref_from_board[f] = inverse(cam_from_ref[best]) @ poses[best][f][0]
         for c in range(len(cams)):
             if f in poses[c]:
                 k = int(np.flatnonzero(dets[names[c]].frames == f)[0])

@@ -182,18 +182,7 @@ def calibrate_intrinsics(
     above the median and calibrates again."""
     cfg = config or IntrinsicsConfig()
     obj_all = board.object_points()
-    n_seen = det.n_points_seen
-    ok = np.flatnonzero(n_seen >= cfg.min_points)
-    if len(ok) < cfg.min_frames:
-        raise CalibrationError(
-            f"Camera '{det.name}': the board was seen (>= {cfg.min_points} points) in only {len(ok)} of "
-            f"{det.n_frames_read} frames read; intrinsics need at least {cfg.min_frames}. Record the board "
-            "again "
-            "in front of this camera, moving it over the whole image and tilting it (about 20-40 views), "
-            "or give known intrinsics (--intrinsics rig.toml)."
-        )
-    import cv2
-
+    ok = _usable_frames(det, cfg)
     sel = ok[select_frames(det.xy_px[ok], det.size_wh, cfg.max_frames)]
     rejected: list[int] = []
     # per-point mask: single corners far off (a mis-refined corner) are dropped, not their whole frame
@@ -203,28 +192,12 @@ def calibrate_intrinsics(
         sel = np.array([i for i in sel if keep[int(i)].sum() >= cfg.min_points], dtype=np.int64)
         obj = [obj_all[keep[int(i)]] for i in sel]
         img = [det.xy_px[i][keep[int(i)]] for i in sel]
-        try:
-            K, D, rv, tv = _calibrate(obj, img, det.size_wh, cfg.model, len(sel), cfg.k3_min_frames)
-        except cv2.error as e:  # ill-conditioned input
-            raise CalibrationError(
-                f"Camera '{det.name}': OpenCV could not calibrate from {len(sel)} frames ({e}). "
-                "Record more views of the board with more tilt, or use a simpler model "
-                "(--model pinhole)."
-            ) from e
-        perr = [
-            np.linalg.norm(_project(cfg.model, o, r, t, K, D) - p, axis=1)
-            for o, p, r, t in zip(obj, img, rv, tv, strict=True)
-        ]
+        K, D, rv, tv, perr = _fit(det, cfg, obj, img)
         errs = np.array([np.sqrt(np.mean(e**2)) for e in perr])
         thr = max(cfg.reject_factor * float(np.median(errs)), cfg.reject_floor_px)
         bad = errs > thr
         pthr = max(cfg.point_reject_factor * float(np.median(np.concatenate(perr))), cfg.reject_floor_px)
-        n_bad_pts = 0
-        for i, e, b in zip(sel, perr, bad, strict=True):
-            if not b and (e > pthr).any():
-                idx = np.flatnonzero(keep[int(i)])
-                keep[int(i)][idx[e > pthr]] = False
-                n_bad_pts += int((e > pthr).sum())
+        n_bad_pts = _drop_corners(sel, perr, bad, keep, pthr)
         if (not bad.any() and not n_bad_pts) or len(sel) - bad.sum() < cfg.min_frames:
             break
         n_dropped += n_bad_pts
@@ -264,3 +237,48 @@ def calibrate_intrinsics(
         cov,
         int(len(ok)),
     )
+
+
+def _usable_frames(det: CameraDetections, cfg: IntrinsicsConfig) -> np.ndarray:
+    """The frames with at least ``cfg.min_points`` corners; an error when fewer than ``cfg.min_frames``."""
+    ok = np.flatnonzero(det.n_points_seen >= cfg.min_points)
+    if len(ok) < cfg.min_frames:
+        raise CalibrationError(
+            f"Camera '{det.name}': the board was seen (>= {cfg.min_points} points) in only {len(ok)} of "
+            f"{det.n_frames_read} frames read; intrinsics need at least {cfg.min_frames}. Record the board "
+            "again "
+            "in front of this camera, moving it over the whole image and tilting it (about 20-40 views), "
+            "or give known intrinsics (--intrinsics rig.toml)."
+        )
+    return ok
+
+
+def _fit(det: CameraDetections, cfg: IntrinsicsConfig, obj: list, img: list) -> tuple:
+    """One OpenCV calibration of the kept corners: K, dist, the board poses and each frame's per-corner
+    reprojection errors (px)."""
+    import cv2
+
+    try:
+        K, D, rv, tv = _calibrate(obj, img, det.size_wh, cfg.model, len(obj), cfg.k3_min_frames)
+    except cv2.error as e:  # ill-conditioned input
+        raise CalibrationError(
+            f"Camera '{det.name}': OpenCV could not calibrate from {len(obj)} frames ({e}). "
+            "Record more views of the board with more tilt, or use a simpler model "
+            "(--model pinhole)."
+        ) from e
+    perr = [
+        np.linalg.norm(_project(cfg.model, o, r, t, K, D) - p, axis=1)
+        for o, p, r, t in zip(obj, img, rv, tv, strict=True)
+    ]
+    return K, D, rv, tv, perr
+
+
+def _drop_corners(sel: np.ndarray, perr: list, bad: np.ndarray, keep: dict, pthr: float) -> int:
+    """Unmark in ``keep`` the corners above ``pthr`` px in the frames that are kept; how many."""
+    n_bad_pts = 0
+    for i, e, b in zip(sel, perr, bad, strict=True):
+        if not b and (e > pthr).any():
+            idx = np.flatnonzero(keep[int(i)])
+            keep[int(i)][idx[e > pthr]] = False
+            n_bad_pts += int((e > pthr).sum())
+    return n_bad_pts

@@ -20,12 +20,13 @@ from pathlib import Path
 
 from capture.config import ConfigError, load_config, shared_sources
 from capture.live import BuildStages, LiveOutputs, LiveRunner
-from capture.offline_sync import sync_audio, sync_session
-from capture.recorder import Recorder, RecorderError, redact_text, repair
+from capture.offline_sync import LoadKeypoints, sync_audio, sync_session
+from capture.recorder import Recorder, RecorderError, repair
 from capture.session import SessionLayout
 from capture.sources import SourceError
 from core.cli import Parser, guarded, positive_float
 from core.errors import FormatError
+from core.redact import redact
 
 log = logging.getLogger("capture")
 
@@ -82,7 +83,7 @@ def _record(
     text = Path(args.cameras).read_text(encoding="utf-8")
     shared = shared_sources(cfg)
     for w in shared:
-        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
+        print(f"capture-run: warning: {redact(w)}", file=sys.stderr)
     live_on = args.live or cfg.live.enabled
     live = None
     if live_on:
@@ -108,33 +109,45 @@ def _record(
     close_outputs = outputs.open(args, live, rec) if outputs is not None else None
     if live:
         live.start()
-    bar = None
-    stop_bar = None
-    if not args.quiet and args.duration:
-        import threading
-
-        from tqdm import tqdm
-
-        bar = tqdm(total=round(args.duration), unit="s", desc=f"recording {len(cfg.cameras)} cameras")
-        stop_bar = threading.Event()
-
-        def tick():
-            t0 = time.monotonic()
-            while not stop_bar.wait(1.0):
-                bar.n = min(round(time.monotonic() - t0), bar.total)
-                bar.refresh()
-
-        threading.Thread(target=tick, daemon=True).start()
+    stop_bar = _start_bar(args.duration, len(cfg.cameras)) if not args.quiet and args.duration else None
     try:
         summary = rec.run()
     finally:
         if stop_bar:
-            stop_bar.set()
-            bar.close()
+            stop_bar()
         if live:
             live.stop()
         if close_outputs is not None:
             close_outputs()
+    return _print_summary(out, rec, summary, shared, live)
+
+
+def _start_bar(duration_s: float, n_cameras: int) -> Callable[[], None]:
+    """Show a bar of the seconds recorded, ticked once a second by a thread; returns what closes it."""
+    import threading
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=round(duration_s), unit="s", desc=f"recording {n_cameras} cameras")
+    stop_bar = threading.Event()
+
+    def tick():
+        t0 = time.monotonic()
+        while not stop_bar.wait(1.0):
+            bar.n = min(round(time.monotonic() - t0), bar.total)
+            bar.refresh()
+
+    threading.Thread(target=tick, daemon=True).start()
+
+    def close() -> None:
+        stop_bar.set()
+        bar.close()
+
+    return close
+
+
+def _print_summary(out, rec: Recorder, summary: dict, shared: list[str], live: LiveRunner | None) -> int:
+    """Print what was recorded per camera, the skew and the warnings; the exit code (1: stopped early)."""
     print(f"session: {out} ({summary['status']}; {rec.stop_reason})")
     for name, c in summary["cameras"].items():
         if c.get("recorded") is False:
@@ -158,9 +171,9 @@ def _record(
             f"{t['complete_sets']}/{t['sets']} complete frame sets"
         )
     for w in shared:  # again beside the skew it makes meaningless
-        print(f"capture-run: warning: {redact_text(w)}", file=sys.stderr)
+        print(f"capture-run: warning: {redact(w)}", file=sys.stderr)
     if live:
-        print("  live: " + redact_text(live.summary_line()))
+        print("  live: " + redact(live.summary_line()))
     if summary.get("failed_cameras"):
         print(
             f"capture-run: warning: {len(summary['failed_cameras'])} camera(s) not recorded: "
@@ -188,12 +201,12 @@ def _check(argv: list[str]) -> int:
         print(f"{c.name}: {c.kind} {c.source_redacted} resolution={c.resolution} fps={c.fps} codec={c.codec}")
     problems = shared_sources(cfg)
     for w in problems:
-        print(f"capture-run check: warning: {redact_text(w)}", file=sys.stderr)
+        print(f"capture-run check: warning: {redact(w)}", file=sys.stderr)
     return 1 if problems else 0
 
 
-def _sync(argv: list[str]) -> int:
-
+def _sync_parser() -> argparse.ArgumentParser:
+    """The arguments of ``capture-run sync``."""
     p = Parser(
         prog="capture-run sync",
         description="Estimate per-camera time offsets (and "
@@ -225,36 +238,14 @@ def _sync(argv: list[str]) -> int:
         help="frame rate when the session has none (default: from the detections' timestamps)",
     )
     p.add_argument("--dry-run", action="store_true", help="print, do not write session.toml")
-    args = p.parse_args(argv)
+    return p
+
+
+def _sync(argv: list[str], load_keypoints: LoadKeypoints | None = None) -> int:
+    """``capture-run sync``: offsets from the audio tracks (``--audio``) or from 2D keypoint speeds."""
+    args = _sync_parser().parse_args(argv)
     if args.audio is not None:
-        videos = dict(item.partition("=")[::2] for item in args.audio)
-        if not videos:  # the session's own recordings
-            lay = SessionLayout(args.session)
-            videos = {c: str(lay.video(c)) for c in lay.raw_cameras()}
-            unjoined = [c for c, v in videos.items() if Path(v).is_dir()]
-            if unjoined:
-                print(
-                    f"capture-run sync: cameras {unjoined} are still segment folders; join them first "
-                    f"(capture-run repair {args.session}) or pass --audio CAM=VIDEO",
-                    file=sys.stderr,
-                )
-                return 2
-            if len(videos) < 2:
-                print(
-                    f"capture-run sync: {lay.raw_dir} holds {len(videos)} videos; --audio needs two",
-                    file=sys.stderr,
-                )
-                return 2
-        if any(not v for v in videos.values()):
-            print("capture-run sync: --audio expects CAM=VIDEO pairs", file=sys.stderr)
-            return 2
-        res = sync_audio(
-            args.session, videos, reference=args.reference, max_lag_s=args.max_lag_s, write=not args.dry_run
-        )
-        for cam, r in res["cameras"].items():
-            print(f"  {cam}: offset {r['offset_s'] * 1e3:+.1f} ms (audio), {_trust_text(r)}")
-        print(TRUST_LEGEND)
-        return 0
+        return _sync_by_audio(args)
     openpose = None
     if args.openpose is not None:
         openpose = {}
@@ -272,12 +263,45 @@ def _sync(argv: list[str]) -> int:
         openpose_dirs=openpose,
         fps=args.fps,
         write=not args.dry_run,
+        load_keypoints=load_keypoints,
     )
     for cam, r in res["cameras"].items():
         print(
             f"  {cam}: offset {r['offset_frames']:+.2f} frames ({r['offset_s'] * 1e3:+.1f} ms), "
             f"drift {r.get('drift_ppm', 0.0):+.0f} ppm, {_trust_text(r)}"
         )
+    print(TRUST_LEGEND)
+    return 0
+
+
+def _sync_by_audio(args: argparse.Namespace) -> int:
+    """``capture-run sync --audio``: offsets from the videos' audio tracks (default: the session's own)."""
+    videos = dict(item.partition("=")[::2] for item in args.audio)
+    if not videos:  # the session's own recordings
+        lay = SessionLayout(args.session)
+        videos = {c: str(lay.video(c)) for c in lay.raw_cameras()}
+        unjoined = [c for c, v in videos.items() if Path(v).is_dir()]
+        if unjoined:
+            print(
+                f"capture-run sync: cameras {unjoined} are still segment folders; join them first "
+                f"(capture-run repair {args.session}) or pass --audio CAM=VIDEO",
+                file=sys.stderr,
+            )
+            return 2
+        if len(videos) < 2:
+            print(
+                f"capture-run sync: {lay.raw_dir} holds {len(videos)} videos; --audio needs two",
+                file=sys.stderr,
+            )
+            return 2
+    if any(not v for v in videos.values()):
+        print("capture-run sync: --audio expects CAM=VIDEO pairs", file=sys.stderr)
+        return 2
+    res = sync_audio(
+        args.session, videos, reference=args.reference, max_lag_s=args.max_lag_s, write=not args.dry_run
+    )
+    for cam, r in res["cameras"].items():
+        print(f"  {cam}: offset {r['offset_s'] * 1e3:+.1f} ms (audio), {_trust_text(r)}")
     print(TRUST_LEGEND)
     return 0
 
@@ -326,7 +350,10 @@ def _repair(argv: list[str]) -> int:
 
 
 def _main(
-    argv: list[str] | None = None, build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+    argv: list[str] | None = None,
+    build_live: BuildStages | None = None,
+    outputs: LiveOutputs | None = None,
+    load_keypoints: LoadKeypoints | None = None,
 ) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -340,9 +367,11 @@ def _main(
     try:
         if cmd == "record":
             return _record(rest, build_live, outputs)
-        return {"check": _check, "sync": _sync, "repair": _repair}[cmd](rest)
+        if cmd == "sync":
+            return _sync(rest, load_keypoints)
+        return {"check": _check, "repair": _repair}[cmd](rest)
     except (ConfigError, FormatError, SourceError, RecorderError, ValueError) as e:
-        print(f"capture-run: error: {redact_text(str(e))}", file=sys.stderr)
+        print(f"capture-run: error: {redact(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("capture-run: interrupted", file=sys.stderr)
@@ -350,12 +379,19 @@ def _main(
 
 
 def make_main(
-    build_live: BuildStages | None = None, outputs: LiveOutputs | None = None
+    build_live: BuildStages | None = None,
+    outputs: LiveOutputs | None = None,
+    load_keypoints: LoadKeypoints | None = None,
 ) -> Callable[..., int]:
     """``capture-run``'s entry with the live stages ``build_live`` (:func:`pipeline.live.build_stages`:
-    the installed ``capture-run`` is ``pipeline.live:main``) and what the live run sends out
-    (``outputs``: :class:`pipeline.live_outputs.Outputs`); without them ``--live`` says where to go."""
-    return guarded("capture-run", functools.partial(_main, build_live=build_live, outputs=outputs))
+    the installed ``capture-run`` is ``pipeline.live:main``), what the live run sends out
+    (``outputs``: :class:`pipeline.live_outputs.Outputs`) and the reader of ``keypoints/<cam>.npz`` for
+    ``sync`` (``load_keypoints``: ``keypoints.detections.Detections.load``); without them ``--live`` and
+    ``sync`` from keypoints say where to go."""
+    return guarded(
+        "capture-run",
+        functools.partial(_main, build_live=build_live, outputs=outputs, load_keypoints=load_keypoints),
+    )
 
 
 main = make_main()

@@ -222,22 +222,8 @@ def _bool(v: Any, where: str, path) -> bool:
     return bool(coerce(v, bool, where, path, ConfigError))
 
 
-def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
-    where = f"cameras[{i}]"
-    if not isinstance(raw, dict):
-        raise ConfigError(path, where, f"expected a mapping with name and source, got {type(raw).__name__}.")
-    _reject_unknown(raw, _CAM_KEYS, where, path)
-    d = {**defaults, **raw}
-    name = d.get("name")
-    if not isinstance(name, str) or not _NAME_RE.match(name):
-        raise ConfigError(
-            path,
-            f"{where}.name",
-            f"{name!r} is not a valid camera name.",
-            "Use 1-64 characters from A-Z a-z 0-9 _ - (it names the files), e.g. cam01.",
-        )
-    where = f"cameras[{i}] ({name})"
-    source = d.get("source")
+def _camera_source(source: Any, where: str, path) -> tuple[str, str]:
+    """A camera's source checked (a file made absolute beside cams.yaml) and its kind."""
     if isinstance(source, int) and not isinstance(source, bool):
         source = f"usb:{source}"
     if not isinstance(source, str) or not source.strip():
@@ -258,7 +244,11 @@ def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
         if not p.is_absolute() and path is not None:
             p = Path(path).resolve().parent / p
         source = str(p)
-    res = d.get("resolution")
+    return source, kind
+
+
+def _camera_resolution(res: Any, where: str, path) -> tuple[int, int] | None:
+    """A camera's ``[width, height]`` (or ``"WxH"``) checked, or None when not set."""
     if res is not None:
         if isinstance(res, str) and re.fullmatch(r"\d+x\d+", res):
             res = [int(x) for x in res.split("x")]
@@ -268,16 +258,11 @@ def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
             _num(res[0], f"{where}.resolution[0]", path, 16, 16384, True),
             _num(res[1], f"{where}.resolution[1]", path, 16, 16384, True),
         )
-    fps = _num(d.get("fps"), f"{where}.fps", path, 0.1, 1000.0, allow_none=True)
-    exposure = _num(d.get("exposure_us"), f"{where}.exposure_us", path, 1, 10_000_000, True, allow_none=True)
-    if exposure is not None and fps is not None and exposure > 1e6 / fps:
-        raise ConfigError(
-            path,
-            f"{where}.exposure_us",
-            f"{exposure} us is longer than one frame at {fps} fps ({1e6 / fps:.0f} us).",
-            "Shorten the exposure or lower the fps.",
-        )
-    codec = d.get("codec", "mp4v")
+    return res
+
+
+def _camera_codec(codec: Any, kind: str, where: str, path) -> str:
+    """A camera's codec checked against the codecs its kind of source can write, lower case."""
     if not isinstance(codec, str) or codec.lower() not in CODECS:
         raise ConfigError(
             path, f"{where}.codec", f"unknown codec {codec!r}.", f"Valid codecs: {list(CODECS)}."
@@ -290,6 +275,37 @@ def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
             f"{codec} is encoded on the device and only OAK cameras have an encoder.",
             f"Use one of {list(HOST_CODECS)} for {kind} sources.",
         )
+    return codec
+
+
+def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
+    """The ``cameras[i]`` entry of cams.yaml (with the file's camera defaults) checked."""
+    where = f"cameras[{i}]"
+    if not isinstance(raw, dict):
+        raise ConfigError(path, where, f"expected a mapping with name and source, got {type(raw).__name__}.")
+    _reject_unknown(raw, _CAM_KEYS, where, path)
+    d = {**defaults, **raw}
+    name = d.get("name")
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise ConfigError(
+            path,
+            f"{where}.name",
+            f"{name!r} is not a valid camera name.",
+            "Use 1-64 characters from A-Z a-z 0-9 _ - (it names the files), e.g. cam01.",
+        )
+    where = f"cameras[{i}] ({name})"
+    source, kind = _camera_source(d.get("source"), where, path)
+    res = _camera_resolution(d.get("resolution"), where, path)
+    fps = _num(d.get("fps"), f"{where}.fps", path, 0.1, 1000.0, allow_none=True)
+    exposure = _num(d.get("exposure_us"), f"{where}.exposure_us", path, 1, 10_000_000, True, allow_none=True)
+    if exposure is not None and fps is not None and exposure > 1e6 / fps:
+        raise ConfigError(
+            path,
+            f"{where}.exposure_us",
+            f"{exposure} us is longer than one frame at {fps} fps ({1e6 / fps:.0f} us).",
+            "Shorten the exposure or lower the fps.",
+        )
+    codec = _camera_codec(d.get("codec", "mp4v"), kind, where, path)
     quality = _num(d.get("quality", 80), f"{where}.quality", path, 1, 100, True)
     return CameraConfig(
         name=name,

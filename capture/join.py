@@ -25,7 +25,7 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 FFCONCAT = "index.ffconcat"
-# segment extension -> joined container extension (the recorder's codecs, capture.recorder._FOURCC)
+# segment extension -> joined container extension (the recorder's codecs, capture.segments._FOURCC)
 JOINED_EXT = {".mp4": ".mp4", ".avi": ".avi", ".mkv": ".mkv", ".h264": ".mp4", ".h265": ".mp4"}
 
 

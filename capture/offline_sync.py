@@ -18,18 +18,32 @@ import json
 import logging
 import os
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
-from core.errors import FormatError
+from core.errors import FormatError, InputError
 from core.fileio import load_toml, save_toml
 from core.timebase import frame_rate_hz
-from keypoints.detections import Detections
 
 log = logging.getLogger(__name__)
+
+
+class CameraKeypoints(Protocol):
+    """What the sync reads from a camera's ``keypoints/<cam>.npz``: a ``keypoints.detections.Detections``."""
+
+    xy_px: np.ndarray  # (T,P,J,2)
+    t_ns: np.ndarray  # (T,)
+    frame_index: np.ndarray  # (T,)
+
+
+# Reads ``keypoints/<cam>.npz``: ``keypoints.detections.Detections.load``, handed in from above (the keypoints
+# stage sits above capture in the stage order).
+LoadKeypoints = Callable[[Path], CameraKeypoints]
 
 
 # ----------------------------------------------------------------------------- keypoint input
@@ -495,8 +509,13 @@ def sync_session(
     openpose_dirs: dict[str, str] | None = None,
     fps: float | None = None,
     write: bool = True,
+    *,
+    load_keypoints: LoadKeypoints | None = None,
 ) -> dict:
-    """Estimate offsets for a session folder and write them into ``session.toml`` ``[sync]``."""
+    """Estimate offsets for a session folder and write them into ``session.toml`` ``[sync]``.
+
+    The speeds come from ``openpose_dirs`` (``{cam: folder of OpenPose JSON}``) when given, else from the
+    session's ``keypoints/<cam>.npz``, read with ``load_keypoints``."""
     layout = SessionLayout(root)
     meta = load_toml(layout.session_toml) if layout.session_toml.exists() else None
     found = detections_layout(root)  # a Pose2Sim trial's detections are in <trial>/roomcap/keypoints
@@ -506,6 +525,11 @@ def sync_session(
             xy, _ = read_openpose_folder(d)
             signals[cam] = keypoint_speed(xy)
     else:
+        if load_keypoints is None:
+            raise InputError(
+                "reading keypoints/<cam>.npz needs the keypoints package: run the installed `capture-run` "
+                "(entry point pipeline.live:main), or pass --openpose CAM=DIR ... or --audio."
+            )
         cams = found.detection_cameras()
         if len(cams) < 2:
             raise FormatError(
@@ -519,7 +543,7 @@ def sync_session(
             )
 
         for cam in cams:
-            det = Detections.load(found.detections(cam))
+            det = load_keypoints(found.detections(cam))
             signals[cam] = keypoint_speed(det.xy_px)
             if fps is None and len(det.t_ns) > 2:
                 fps = frame_rate_hz(det.t_ns, det.frame_index)

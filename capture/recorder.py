@@ -45,12 +45,19 @@ import numpy as np
 
 from capture.config import CaptureConfig, redact_url
 from capture.factory import make_source
-from capture.grabber import END, Gap, Grabber
+from capture.grabber import Gap, Grabber
 from capture.join import JoinResult, count_video_packets, join_camera, remove_segments
 from capture.oak import depthai_version
+from capture.segments import (
+    CSV_HEADER,
+    PART_PREFIX,
+    RecorderError,
+    SegmentWriter,
+    WriterThread,
+    write_ffconcat,
+)
 from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
 from capture.sources import (
-    Frame,
     FrameSource,
     SourceError,
     SourceInfo,
@@ -58,199 +65,12 @@ from capture.sources import (
     read_frames_csv,
 )
 from capture.sync import timing_report
-from core.errors import RoomcapError
 from core.fileio import atomic_write_text, load_toml, save_toml
 from core.redact import redact
 
 log = logging.getLogger(__name__)
 
-CSV_HEADER = "frame_index,t_ns,t_host_ns,sequence\n"
-_FOURCC = {"mp4v": ("mp4v", ".mp4"), "mjpg": ("MJPG", ".avi"), "xvid": ("XVID", ".avi")}
-_PART_PREFIX = ".part_"
 _DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
-
-
-class RecorderError(RoomcapError, RuntimeError):
-    """The session cannot start (bad source, no disk space); nothing was written."""
-
-
-# ----------------------------------------------------------------------------- segment writer
-
-
-class SegmentWriter:
-    """Writes one camera as closed, playable segments plus the per-frame timestamp file."""
-
-    def __init__(
-        self, cam_dir: Path, frames_csv: Path, codec: str, fps: float, segment_s: float, quality: int = 80
-    ):
-        self.dir = Path(cam_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.frames_csv = Path(frames_csv)
-        self.codec = codec
-        self.fps = float(fps) if fps and fps > 0 else 30.0
-        self.segment_ns = int(segment_s * 1e9)
-        self.quality = quality
-        self.frames_written = 0
-        self.segments = 0
-        self._writer = None
-        self._raw = None  # file object for on-device encoded streams
-        self._part: Path | None = None
-        self._final: Path | None = None
-        self._rows: list[str] = []
-        self._seg_t0 = 0
-        self._shape = None
-        self._closed: list[str] = []
-        if self.frames_csv.exists():  # the recorder only writes into folders it created
-            raise RecorderError(f"{self.frames_csv} already exists; refusing to append to an old recording.")
-        atomic_write_text(self.frames_csv, CSV_HEADER)
-
-    def _open_segment(self, frame: Frame) -> None:
-        import cv2
-
-        k = self.segments
-        if any(self.dir.glob(f"seg_{k:06d}.*")):
-            raise RecorderError(f"{self.dir}: seg_{k:06d} already exists; refusing to overwrite a recording.")
-        if frame.encoded is not None:
-            ext = ".h265" if self.codec == "h265" else ".h264"  # Annex B elementary stream from the device
-            self._final = self.dir / f"seg_{k:06d}{ext}"
-            self._part = self.dir / f"{_PART_PREFIX}seg_{k:06d}{ext}"
-            self._raw = open(self._part, "wb")
-        else:
-            fourcc, ext = _FOURCC[self.codec]
-            h, w = frame.image.shape[:2]
-            self._final = self.dir / f"seg_{k:06d}{ext}"
-            self._part = self.dir / f"{_PART_PREFIX}seg_{k:06d}{ext}"
-            if self.codec == "mjpg":  # OpenCV's own MJPEG writer honours the quality setting
-                api, params = cv2.CAP_OPENCV_MJPEG, [cv2.VIDEOWRITER_PROP_QUALITY, self.quality]
-            else:
-                api, params = cv2.CAP_FFMPEG, []
-            self._writer = cv2.VideoWriter(
-                str(self._part), api, cv2.VideoWriter_fourcc(*fourcc), self.fps, (w, h), params
-            )
-            if not self._writer.isOpened():
-                raise SourceError(
-                    f"cannot open a {self.codec} video writer for {w}x{h} at {self.fps:g} fps "
-                    f"({self._part}); pick another codec in cams.yaml ({list(_FOURCC)})."
-                )
-            self._shape = frame.image.shape
-        self._seg_t0 = frame.t_ns
-        self._rows = []
-
-    def write(self, frame: Frame) -> None:
-        need_new = self._part is None
-        if not need_new and frame.t_ns - self._seg_t0 >= self.segment_ns:
-            # on-device streams can only be cut at a keyframe
-            need_new = frame.encoded is None or _is_keyframe(frame)
-        if not need_new and frame.image is not None and frame.image.shape != self._shape:
-            need_new = True
-        if need_new:
-            self.close_segment()
-            self._open_segment(frame)
-        if frame.encoded is not None:
-            self._raw.write(frame.encoded)
-        else:
-            self._writer.write(frame.image)
-        self._rows.append(
-            f"{self.frames_written + len(self._rows)},{frame.t_ns},{frame.t_host_ns},{frame.sequence}\n"
-        )
-
-    def close_segment(self) -> None:
-        if self._part is None:
-            return
-        if self._writer is not None:
-            self._writer.release()
-            self._writer = None
-        if self._raw is not None:
-            self._raw.close()
-            self._raw = None
-        with open(self._part, "rb+") as f:
-            os.fsync(f.fileno())
-        rows = "".join(self._rows)
-        atomic_write_text(self._final.with_suffix(".frames.csv"), CSV_HEADER + rows)
-        os.replace(self._part, self._final)
-        self._closed.append(self._final.name)
-        write_ffconcat(self.dir, self._closed)
-        fd = os.open(self.frames_csv, os.O_WRONLY | os.O_APPEND)
-        try:
-            os.write(fd, rows.encode())  # one write: a kill leaves whole rows or none
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        self.frames_written += len(self._rows)
-        self.segments += 1
-        self._rows = []
-        self._part = self._final = None
-
-    def close(self) -> None:
-        self.close_segment()
-
-    def abort(self) -> None:
-        """After a write error: keep the open segment if it still closes cleanly, else remove it."""
-        try:
-            self.close_segment()
-        except Exception as e:  # e.g. the disk is full: a half-written segment is not kept
-            log.error("%s: could not finalise %s (%s); removing it", self.dir.name, self._part, e)
-            for obj in (self._writer, self._raw):
-                try:
-                    if obj is not None:
-                        obj.release() if hasattr(obj, "release") else obj.close()
-                except Exception:
-                    pass
-            self._writer = self._raw = None
-            if self._part is not None:
-                self._part.unlink(missing_ok=True)
-            self._part = self._final = None
-            self._rows = []
-
-
-FFCONCAT = "index.ffconcat"
-
-
-def write_ffconcat(cam_dir: Path, segments: list[str]) -> None:
-    """``raw/<cam>/index.ffconcat``: the closed segments as one video for FFmpeg/OpenCV.
-
-    ``cv2.VideoCapture(str(cam_dir / "index.ffconcat"))`` decodes every segment in order.
-    """
-    atomic_write_text(
-        Path(cam_dir) / FFCONCAT, "ffconcat version 1.0\n" + "".join(f"file {n}\n" for n in segments)
-    )
-
-
-def _is_keyframe(frame: Frame) -> bool:
-    return frame.keyframe
-
-
-class WriterThread(threading.Thread):
-    def __init__(self, cam: str, q: queue.Queue, writer: SegmentWriter):
-        super().__init__(name=f"write-{cam}", daemon=True)
-        self.cam, self.q, self.writer = cam, q, writer
-        self.error: str = ""
-        self.errno: int | None = None
-        self.failed = threading.Event()
-
-    def run(self) -> None:
-        try:
-            while True:
-                frame = self.q.get()
-                if frame is END:
-                    break
-                self.writer.write(frame)
-        except Exception as e:
-            log.error("%s: writer failed: %s", self.cam, e)
-            self.error = f"{type(e).__name__}: {e}"
-            self.errno = getattr(e, "errno", None)
-            self.failed.set()
-            self.writer.abort()
-            while self.q.get() is not END:  # keep draining so the grabber never blocks
-                pass
-        else:
-            try:
-                self.writer.close()
-            except Exception as e:  # the last segment could not be finalised (disk full at the end)
-                self.error = f"{type(e).__name__}: {e}"
-                self.errno = getattr(e, "errno", None)
-                self.failed.set()
-                self.writer.abort()
 
 
 # ----------------------------------------------------------------------------- recorder
@@ -355,7 +175,7 @@ class Recorder:
                 if w.error:
                     d["writer_error"] = w.error
             if c.name in self.failed_cameras:
-                d.update(recorded=False, failed=redact_text(self.failed_cameras[c.name]))
+                d.update(recorded=False, failed=redact(self.failed_cameras[c.name]))
             if c.name in self.joins:
                 d.update(self.joins[c.name].to_dict())
             cams[c.name] = d
@@ -374,7 +194,7 @@ class Recorder:
         if self.failed_cameras:
             meta["failed_cameras"] = sorted(self.failed_cameras)
         if self.cams_yaml_text is not None:
-            meta["cams_yaml"] = redact_text(self.cams_yaml_text)
+            meta["cams_yaml"] = redact(self.cams_yaml_text)
         if timing is not None:
             meta["timing"] = timing
         return meta
@@ -416,7 +236,7 @@ class Recorder:
                             "other cameras without it, pass --skip-failed-cameras."
                         ) from None
                     self.failed_cameras[c.name] = str(e)
-                    log.error("%s: skipped, cannot be opened: %s", c.name, redact_text(str(e)))
+                    log.error("%s: skipped, cannot be opened: %s", c.name, redact(str(e)))
                     continue
                 opened[c.name] = src
                 log.info("%s: opened %s", c.name, redact_url(self.infos[c.name].description))
@@ -427,12 +247,43 @@ class Recorder:
         if not opened:
             raise RecorderError(
                 "no camera could be opened ("
-                + "; ".join(redact_text(m) for m in self.failed_cameras.values())
+                + "; ".join(redact(m) for m in self.failed_cameras.values())
                 + "). Nothing was recorded."
             )
         return opened
 
     def run(self) -> dict:
+        """Record until the duration, the sources' end, a stop or a failure; join; the session summary."""
+        self._check_out_folder()
+        sources = self.open_sources()
+        self.started_utc = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        self._make_threads(sources)
+        self._record()
+        names = [c.name for c in self.active]
+        tables = {c: read_frames_csv(self.layout.frames_csv(c)) for c in names}
+
+        timing = timing_report(
+            tables,
+            {c: self.infos[c].fps for c in names},
+            self.cfg.sync.tolerance_ns(max(i.fps or 30.0 for i in self.infos.values()))
+            if self.cfg.sync.tolerance_ms is not None
+            else None,
+        )
+        status = self._status()
+        if self.join:
+            self._join_all(tables)
+        try:
+            self.write_meta(status, _finite(timing))
+        except OSError as e:
+            raise RecorderError(
+                f"the recording stopped ({self.stop_reason}) but session.toml could not be updated ({e}). "
+                f"Free some space, then run `capture-run repair {self.layout.root}`; the closed segments are "
+                "kept."
+            ) from None
+        return self._meta(status, timing)
+
+    def _check_out_folder(self) -> None:
+        """Refuse a folder that is a file or holds anything, and a disk below ``recorder.min_free_mb``."""
         root = self.layout.root
         if root.exists() and not root.is_dir():
             raise RecorderError(f"--out {root} is a file, not a folder. Choose a new --out folder.")
@@ -455,8 +306,10 @@ class Recorder:
                 f"{self._disk_probe()}, below recorder.min_free_mb = {self.cfg.recorder.min_free_mb:g}."
                 " Free some space or record elsewhere."
             )
-        sources = self.open_sources()
-        self.started_utc = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+    def _make_threads(self, sources: dict[str, FrameSource]) -> None:
+        """Write the first session.toml and make each camera's writer and grabber (closing the sources on
+        an error)."""
         rc = self.cfg.recorder
         try:
             self.layout.raw_dir.mkdir(parents=True, exist_ok=True)
@@ -490,6 +343,9 @@ class Recorder:
             for s in sources.values():
                 s.close()
             raise
+
+    def _record(self) -> None:
+        """Run the threads until :meth:`_wait` ends the recording, then join them."""
         old_handlers = self._install_signals()
         try:
             for w in self.writers.values():
@@ -504,33 +360,16 @@ class Recorder:
             for w in self.writers.values():
                 w.join()
             self._restore_signals(old_handlers)
-        names = [c.name for c in self.active]
-        tables = {c: read_frames_csv(self.layout.frames_csv(c)) for c in names}
 
-        timing = timing_report(
-            tables,
-            {c: self.infos[c].fps for c in names},
-            self.cfg.sync.tolerance_ns(max(i.fps or 30.0 for i in self.infos.values()))
-            if self.cfg.sync.tolerance_ms is not None
-            else None,
-        )
+    def _status(self) -> str:
+        """``"complete"``, or ``"stopped"`` after a full disk or a writer failure (which becomes the
+        stop reason)."""
         failure = self._writer_failure()
         if failure and not self.stop_reason.startswith(failure.split(":")[0]):
             # a writer failed while the recording was ending anyway: that is the reason that matters
             log.error("recording incomplete: %s (was: %s)", failure, self.stop_reason)
             self.stop_reason = failure
-        failed_writer = bool(failure)
-        status = "stopped" if self.stop_reason.startswith("disk") or failed_writer else "complete"
-        if self.join:
-            self._join_all(tables)
-        try:
-            self.write_meta(status, _finite(timing))
-        except OSError as e:
-            raise RecorderError(
-                f"the recording stopped ({self.stop_reason}) but session.toml could not be updated ({e}). "
-                f"Free some space, then run `capture-run repair {root}`; the closed segments are kept."
-            ) from None
-        return self._meta(status, timing)
+        return "stopped" if self.stop_reason.startswith("disk") or failure else "complete"
 
     def _join_all(self, tables: dict) -> None:
         """Join each camera's segments into raw/<cam>.mp4 (capture.join), unless the disk is full."""
@@ -633,9 +472,6 @@ def _finite(d):
     return d
 
 
-redact_text = redact  # the one redaction (core.redact), kept under this name for callers
-
-
 # ----------------------------------------------------------------------------- repair
 
 
@@ -662,7 +498,7 @@ def repair(root: str | os.PathLike, join: bool = True) -> tuple[dict[str, int], 
     meta = load_toml(layout.session_toml) if layout.session_toml.exists() else {}
     for cam_dir in sorted(p for p in layout.raw_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
         cam = cam_dir.name
-        for part in cam_dir.glob(f"{_PART_PREFIX}*"):
+        for part in cam_dir.glob(f"{PART_PREFIX}*"):
             part.unlink()
         rows, names = [], []
         for seg_csv in sorted(cam_dir.glob("seg_*.frames.csv")):

@@ -153,6 +153,15 @@ class SessionLayout:
         return sorted(p.stem for p in self.keypoints_dir.glob("*.npz") if not p.name.startswith("."))
 
 
+def videos_in(folder: str | os.PathLike) -> dict[str, Path]:
+    """``{stem: path}`` for the videos in a folder (the Pose2Sim layout ``<trial>/videos/camNN.mp4``)."""
+    folder = Path(folder)
+    out = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES}
+    if not out:
+        raise FileNotFoundError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {folder}.")
+    return out
+
+
 def require(path: Path, what: str, fix: str) -> Path:
     if not path.exists():
         raise FormatError(path, None, f"{what} is missing.", fix)

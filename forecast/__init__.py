@@ -4,6 +4,7 @@ Diffusion), metrics (MPJPE, NDMS, APD, ADE, FDE, NPSS, SSCP) and ``forecast trai
 
 Modules: ``data`` (clips, windows, normalisation, adapters; numpy only), ``metrics`` (numpy only),
 ``models`` (torch), ``predict`` (world-space forecasting and long rollouts), ``train`` (configs, loops,
-checkpoints), ``evaluate`` (protocols and the report), ``preview`` (the pipeline's forecast preview),
-``cli``. Importing ``forecast`` itself does not import torch.
+checkpoints), ``evaluate`` (protocols and the report), ``preview`` (the pipeline's forecast preview;
+``track_forecast`` its model part), ``cli`` (the command line) and ``commands`` (what it runs). Importing
+``forecast`` itself does not import torch.
 """

@@ -39,7 +39,11 @@ from torch import nn
 
 from core.errors import FormatError, InputError
 from core.fileio import atomic_path, atomic_write_text
+from forecast import benchmark_cmu8_published as P
 from forecast import cmu_more as C
+from forecast.checkpoint import load_checkpoint
+from forecast.predict import forecast_world
+from synthetic.bvh import BODY19
 
 log = logging.getLogger(__name__)
 
@@ -243,36 +247,6 @@ class DctMlp(nn.Module):
         return y.reshape(B, self.n_pred, P, 3) + last
 
 
-def mirror_index() -> np.ndarray:
-    """For the 25 used points: the index of each one's left/right partner (legs 1-6 <-> 7-12, arms 20-28 <->
-    29-37 of the reference's 38; the spine is its own partner)."""
-    perm = list(range(38))
-    for a, b in [(i, i + 6) for i in range(1, 7)] + [(20 + k, 29 + k) for k in range(9)]:
-        perm[a], perm[b] = b, a
-    used = list(JOINTS_USED)
-    return np.array([used.index(perm[j]) for j in used])
-
-
-def _mirror(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """Windows ``b (B,T,25,3)``: those with ``flip`` mirrored (x -> -x in the body frame, left <-> right)."""
-    m = b[:, :, idx].clone()
-    m[..., 0] = -m[..., 0]
-    return torch.where(flip[:, None, None, None], m, b)
-
-
-def _reverse(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
-    """Windows ``b (B,T,25,3)``: those with ``flip`` played backwards (the whole window, observed and future,
-    so the model observes the last frames and forecasts the first ones)."""
-    return torch.where(flip[:, None, None, None], b.flip(1), b)
-
-
-def _loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
-    """Mean point error plus the mean error of the frame-to-frame velocities (siMLPe's two terms)."""
-    pos = torch.linalg.norm(pred - fut, dim=-1).mean()
-    vel = torch.linalg.norm(torch.diff(pred, dim=1) - torch.diff(fut, dim=1), dim=-1).mean()
-    return pos + vel
-
-
 @torch.no_grad()
 def mlp_forecast(model: DctMlp | DctMlpEnsemble, obs: np.ndarray, batch: int = 512) -> np.ndarray:
     """obs (W, >= n_obs, 38, 3) units -> forecasts of all 38 points (W, n_pred, 38, 3) (used points from the
@@ -286,81 +260,6 @@ def mlp_forecast(model: DctMlp | DctMlpEnsemble, obs: np.ndarray, batch: int = 5
     pred_used = np.concatenate(out)
     fill = np.repeat(obs[:, -1:], model.n_pred, 1)
     return complete(pred_used, fill)
-
-
-def split_train_val(bf: C.BenchmarkFiles) -> tuple[list[Path], list[Path]]:
-    """Train / validation split of the train files: the highest-numbered file of each action with at least
-    two files is validation (model selection only); the test files are never touched."""
-    tr, va = [], []
-    for a in C.BENCHMARK_ACTIONS:
-        fs = bf.files["train"].get(a, [])
-        if len(fs) >= 2:
-            tr += fs[:-1]
-            va.append(fs[-1])
-        else:
-            tr += fs
-    return tr, va
-
-
-def train_mlp(
-    train_files: list[Path], val_files: list[Path], config: MlpConfig, progress=None
-) -> tuple[DctMlp, dict]:
-    """Train the DCT + MLP on all windows of ``train_files``; keep the state with the lowest validation MPJPE
-    (protocol units, mean over the six horizons, windows every 5 frames of ``val_files``)."""
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
-    t_load = time.perf_counter()
-    win = train_windows(train_files)
-    val = train_windows(val_files, stride=5) if val_files else win[:: max(1, len(win) // 256)]
-    t_load = time.perf_counter() - t_load
-    used = list(JOINTS_USED)
-    x = torch.from_numpy(win[:, :, used])
-    model = DctMlp(len(used), config)
-    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps, eta_min=config.lr * 0.05)
-    best = {"val_mm": float("inf"), "step": 0}
-    best_state = {k: v.clone() for k, v in model.state_dict().items()}
-    curve = []
-    midx = torch.from_numpy(mirror_index())
-    t0 = time.perf_counter()
-    losses = []
-    for step in range(1, config.steps + 1):
-        model.train()
-        idx = torch.from_numpy(rng.integers(0, len(x), config.batch))
-        b = x[idx]
-        if config.mirror:
-            b = _mirror(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
-        if config.reverse:
-            b = _reverse(b, torch.from_numpy(rng.random(len(b)) < 0.5))
-        loss = _loss(model(b[:, : config.n_obs]), b[:, config.n_obs : config.n_obs + config.n_pred])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        losses.append(float(loss.detach()))
-        if step % config.val_every == 0 or step == config.steps:
-            v = validation_mm(model, val)
-            curve.append({"step": step, "val_mm": v, "loss": float(np.mean(losses[-config.val_every :]))})
-            log.info("step %d loss %.4f val %.2f mm", step, curve[-1]["loss"], v)
-            if v < best["val_mm"]:
-                best = {"val_mm": v, "step": step}
-                best_state = {k: v_.clone() for k, v_ in model.state_dict().items()}
-        if progress is not None:
-            progress(step, config.steps)
-    wall = time.perf_counter() - t0
-    model.load_state_dict(best_state)
-    hist = {
-        "best": best,
-        "curve": curve,
-        "n_train_windows": len(win),
-        "n_val_windows": len(val),
-        "train_s": wall,
-        "load_s": t_load,
-        "steps_per_s": config.steps / wall,
-        "samples_per_s": config.steps * config.batch / wall,
-        "n_params": sum(p.numel() for p in model.parameters()),
-    }
-    return model, hist
 
 
 def save_mlp(path: str | os.PathLike, model: DctMlp, config: MlpConfig, extra: dict) -> None:
@@ -452,12 +351,6 @@ def load_mlp(path: str | os.PathLike) -> tuple[Forecaster, dict]:
     return m, blob
 
 
-def validation_mm(model: Forecaster, val: np.ndarray) -> float:
-    """Validation MPJPE: protocol units, mean over the six horizons of windows ``val (W, 75, 38, 3)``."""
-    pred = mlp_forecast(model, val[:, : model.n_obs])
-    return float(np.mean(at_horizons(mpjpe_mm(pred, val[:, model.n_obs : model.n_obs + model.n_pred]))))
-
-
 SHIPPED_MLP = Path(__file__).resolve().parent / "checkpoints" / "cmu8_dct_mlp_ens.pt"  # picked on validation
 
 
@@ -466,7 +359,6 @@ SHIPPED_MLP = Path(__file__).resolve().parent / "checkpoints" / "cmu8_dct_mlp_en
 
 def _body19_predictor(model, n_hist: int = 50, fps_model: float = 25.0):
     """A body19 forecast checkpoint as a protocol predictor over the whole file (see the module docstring)."""
-    from forecast.predict import forecast_world  # lazy: models
 
     def run(seq120_b19: np.ndarray, t_last_s: np.ndarray, n_samples: int) -> np.ndarray:
         """seq120_b19 (F,19,3) metres at 120 Hz; t_last_s (W,) time of each window's last observed frame ->
@@ -556,8 +448,6 @@ def _score_exact(ts: TestSet, mlps: list[tuple[str, nn.Module, dict]], sc: _Scor
 
 def _score_body19(ts: TestSet, checkpoints: list, n_samples: int, sc: _Scores, progress=None) -> None:
     """The project's body19 checkpoints on the body19 variant (see the module docstring)."""
-    from forecast.checkpoint import load_checkpoint  # lazy: models
-    from synthetic.bvh import BODY19
 
     limb19 = [BODY19.index(n) for n in BODY19_LIMBS]
     for i, p in enumerate(checkpoints):
@@ -586,7 +476,6 @@ def _score_body19(ts: TestSet, checkpoints: list, n_samples: int, sc: _Scores, p
 def _results(bf: C.BenchmarkFiles, ts: TestSet, models: dict[str, dict]) -> dict:
     """The ``results.json`` dict around the scored models: protocol, units, what was missing, the published
     rows (with their average over the same actions)."""
-    from forecast import benchmark_cmu8_published as P
 
     acts = list(ts.windows)
     return {
@@ -737,106 +626,3 @@ def write_report(res: dict, out_dir: str | os.PathLike) -> Path:
     path = d / "report.md"
     atomic_write_text(path, report_markdown(res))
     return path
-
-
-# ----------------------------------------------------------------------------- `forecast cmu8 train`
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``forecast cmu8 train --out PATH``: train the DCT + MLP on the benchmark's train files (validation =
-    the last train file of each action), keep the best validation state, write the checkpoint."""
-    import argparse
-
-    from core.cli import positive_float, positive_int
-    from core.progress import Bars
-
-    p = argparse.ArgumentParser(prog="forecast cmu8", description=main.__doc__)
-    sub = p.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("train", help="train the DCT + MLP on the benchmark's train files")
-    t.add_argument("path", nargs="?", help="the benchmark-cmu8 folder (default: the shared one)")
-    t.add_argument("--out", required=True)
-    d = MlpConfig()
-    t.add_argument("--steps", type=positive_int, default=d.steps)
-    t.add_argument("--batch", type=positive_int, default=d.batch)
-    t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
-    t.add_argument("--lr", type=positive_float, default=d.lr)
-    t.add_argument("--seed", type=int, default=d.seed)
-    t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
-    t.add_argument("--reverse", action="store_true", help="augment with windows played backwards")
-    t.add_argument("--threads", type=positive_int, default=1)
-    e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
-    e.add_argument("members", nargs="+", help="checkpoints written by `forecast cmu8 train`")
-    e.add_argument("--data", help="the benchmark-cmu8 folder (default: the shared one)")
-    e.add_argument("--out", required=True)
-    e.add_argument("--threads", type=positive_int, default=1)
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    if args.cmd == "ensemble":
-        return _main_ensemble(args)
-    logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    logging.getLogger(__name__).setLevel(logging.INFO)  # the validation curve, one line per check
-    cfg = MlpConfig(
-        n_blocks=args.blocks,
-        lr=args.lr,
-        steps=args.steps,
-        batch=args.batch,
-        seed=args.seed,
-        mirror=args.mirror,
-        reverse=args.reverse,
-    )
-    bf = C.benchmark_files(args.path)
-    tr, va = split_train_val(bf)
-    if not tr:
-        raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
-    print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
-          f"missing: {bf.missing_text()}")  # fmt: skip
-    with Bars(unit="step") as bars:
-        model, hist = train_mlp(tr, va, cfg, progress=lambda i, n: bars("train", i, n))
-    extra = {
-        "train_files": [f.name for f in tr],
-        "val_files": [f.name for f in va],
-        "files_missing": bf.missing,
-        **{k: v for k, v in hist.items()},
-    }
-    save_mlp(args.out, model, cfg, extra)
-    b = hist["best"]
-    print(
-        f"kept step {b['step']} (validation MPJPE {b['val_mm']:.1f} mm, mean of the six horizons); "
-        f"{hist['n_train_windows']} train windows, {hist['train_s']:.0f} s, "
-        f"{hist['steps_per_s']:.2f} steps/s, {hist['samples_per_s']:.0f} samples/s; wrote {args.out}"
-    )
-    return 0
-
-
-def _main_ensemble(args) -> int:
-    """``forecast cmu8 ensemble --out PATH A.pt B.pt ...``: every member and their mean scored on the
-    validation windows (as in training), the ensemble written."""
-    members, names = [], []
-    for p in args.members:
-        m, blob = load_mlp(p)
-        if not isinstance(m, DctMlp):
-            raise InputError(f"{p} is already an ensemble; give the single models it was made of")
-        members.append((m, MlpConfig(**blob["config"])))
-        names.append(Path(p).name)
-    bf = C.benchmark_files(args.data)
-    _, va = split_train_val(bf)
-    if not va:
-        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
-    val = train_windows(va, stride=5)
-    scores = {n: validation_mm(m, val) for n, (m, _) in zip(names, members, strict=True)}
-    ens = DctMlpEnsemble([m for m, _ in members])
-    v = validation_mm(ens, val)
-    for n, s in scores.items():
-        print(f"{n}: validation MPJPE {s:.2f} mm")
-    print(f"ensemble of {len(members)}: validation MPJPE {v:.2f} mm (mean of the six horizons)")
-    extra = {
-        "members": names,
-        "member_val_mm": scores,
-        "best": {"val_mm": v},
-        "val_files": [f.name for f in va],
-        "files_missing": bf.missing,
-        "member_train": [load_mlp(p)[1].get("extra", {}) for p in args.members],
-    }
-    save_ensemble(args.out, members, extra)
-    print(f"wrote {args.out}")
-    return 0

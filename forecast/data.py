@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -315,34 +316,14 @@ def make_windows(
         if c.n_frames < T:
             skipped["clip_shorter_than_window"] += 1
             continue
-        mask_all = np.isfinite(c.xyz_m).all(-1)
-        for s in range(0, c.n_frames - T + 1, stride):
-            x, m = c.xyz_m[s : s + T], mask_all[s : s + T]
-            present = m[n_obs - 1, :, lh] & m[n_obs - 1, :, rh]
-            if present.sum() < min_persons:
-                skipped["no_person_at_last_observed_frame"] += 1
-                continue
-            if persons == "each":
-                for p in np.flatnonzero(present):
-                    xs.append(_fill(x[:, p : p + 1], m[:, p : p + 1]))
-                    ms.append(m[:, p : p + 1])
-                    pms.append(np.ones(1, bool))
-                    cs.append(ci)
-                    ss.append(s)
-            else:
-                P = max_persons or x.shape[1]
-                keep = np.flatnonzero(present)[:P]
-                xf = np.zeros((T, P, x.shape[2], 3), np.float32)
-                mf = np.zeros((T, P, x.shape[2]), bool)
-                xf[:, : len(keep)] = _fill(x[:, keep], m[:, keep])
-                mf[:, : len(keep)] = m[:, keep]
-                pm = np.zeros(P, bool)
-                pm[: len(keep)] = True
-                xs.append(xf)
-                ms.append(mf)
-                pms.append(pm)
-                cs.append(ci)
-                ss.append(s)
+        for x, m, pm, s in _clip_windows(
+            c, n_obs, T, stride, (lh, rh), persons, min_persons, max_persons, skipped
+        ):
+            xs.append(x)
+            ms.append(m)
+            pms.append(pm)
+            cs.append(ci)
+            ss.append(s)
     if skipped:
         log.info("make_windows skipped %s", dict(skipped))
     J = get_skeleton(sk).n_joints
@@ -376,6 +357,43 @@ def make_windows(
         tuple(c.name for c in clips),
         dict(skipped),
     )
+
+
+def _clip_windows(
+    c: Clip,
+    n_obs: int,
+    T: int,
+    stride: int,
+    hips: tuple[int, int],
+    persons: str,
+    min_persons: int,
+    max_persons: int | None,
+    skipped: Counter[str],
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
+    """The windows of one clip (at the windows' rate) as (x (T,P,J,3) gaps filled, mask (T,P,J), person
+    mask (P,), start frame): one per present person (``persons="each"``) or the scene (``"all"``); windows
+    with too few people present are counted in ``skipped``."""
+    lh, rh = hips
+    mask_all = np.isfinite(c.xyz_m).all(-1)
+    for s in range(0, c.n_frames - T + 1, stride):
+        x, m = c.xyz_m[s : s + T], mask_all[s : s + T]
+        present = m[n_obs - 1, :, lh] & m[n_obs - 1, :, rh]
+        if present.sum() < min_persons:
+            skipped["no_person_at_last_observed_frame"] += 1
+            continue
+        if persons == "each":
+            for p in np.flatnonzero(present):
+                yield _fill(x[:, p : p + 1], m[:, p : p + 1]), m[:, p : p + 1], np.ones(1, bool), s
+        else:
+            P = max_persons or x.shape[1]
+            keep = np.flatnonzero(present)[:P]
+            xf = np.zeros((T, P, x.shape[2], 3), np.float32)
+            mf = np.zeros((T, P, x.shape[2]), bool)
+            xf[:, : len(keep)] = _fill(x[:, keep], m[:, keep])
+            mf[:, : len(keep)] = m[:, keep]
+            pm = np.zeros(P, bool)
+            pm[: len(keep)] = True
+            yield xf, mf, pm, s
 
 
 # ------------------------------------------------------------------------- activities (NDMS database groups)

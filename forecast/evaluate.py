@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from core.errors import InputError
-from core.fileio import atomic_write_text
+from core.fileio import atomic_path, atomic_write_text
 from core.progress import Progress
 from forecast import data as fdata
 from forecast import metrics as M
@@ -160,17 +160,13 @@ def evaluate_single(
         raise InputError(f"no test windows of {n_obs + n_pred} frames (skipped {ws.skipped})")
     db_clips = ndms_database or test_clips
     acts = clip_activities(list(test_clips) + list(db_clips)) if activities is None else activities
-    rng = np.random.default_rng(seed)
-    sel = np.sort(rng.choice(len(ws), min(max_windows, len(ws)), replace=False))
+    sel = np.sort(np.random.default_rng(seed).choice(len(ws), min(max_windows, len(ws)), replace=False))
     x, mask = ws.x[sel, :, 0], ws.mask[sel, :, 0]
     names_sel = [test_clips[c].name for c in ws.clip[sel]]
     groups = np.array([clip_group(n) for n in names_sel])
     wact = [acts.get(n, fdata.UNLABELLED) for n in names_sel]
     obs, gt = x[:, :n_obs], x[:, n_obs:]
-    queried = set(wact)  # D holds the activities queried (a short clip of another activity is not needed)
-    db_clips = [c for c in db_clips if acts.get(c.name, fdata.UNLABELLED) in queried]
-    scorer = ndms_scorer_for(db_clips, activities=acts)
-    scorer_ff = ndms_scorer_for(db_clips, activities=acts, word_form="word_first_frame")
+    scorer, scorer_ff = _ndms_scorers(db_clips, acts, set(wact))
     names = get_skeleton(test_clips[0].skeleton).joint_names
     lh, rh = fdata.hip_indices(names)
     gt_rc = M.root_centred(gt, lh, rh)
@@ -193,53 +189,89 @@ def evaluate_single(
     for i, (name, model) in enumerate(models.items()):
         _report(progress, "eval models", i, len(models), name)
         tm = time.perf_counter()
-        if isinstance(model, Real):
-            y = gt[:, None]
-        else:
-            S = n_samples if getattr(model, "stochastic", False) else 1
-            torch.manual_seed(seed)  # the same sampling noise on every run
-            y = forecast_world(model, obs[:, :, None], None, n_pred, S)[:, :, :, 0]  # (B,S,H,J,3)
+        y = _forecast(model, obs, gt, n_pred, n_samples, seed)
         if samples_dir is not None:
             write_samples(samples_dir, name, y, obs, gt, ws.fps, names, wact)
         r, per_window[name], per_window_loo[name] = _single_metrics(
             y, gt, obs, mask[:, n_obs:], groups, wact, scorer, (lh, rh), mm_gt
         )
-        per_window_ff[name] = np.stack(
-            [scorer_ff.score_forecast(obs[b], y[b], None, wact[b]) for b in range(len(y))]
-        )
+        per_window_ff[name] = _ndms_per_window(scorer_ff, obs, y, wact)
         r["ndms_word_first_frame"] = per_window_ff[name].mean(0).tolist()
         r["wall_s"] = time.perf_counter() - tm
         if getattr(model, "kind", "") == "social_diffusion":
             r["rollout"] = diffusion_rollout(model, n_pred)
         out["models"][name] = r
     _report(progress, "eval models", len(models), len(models))
+    _add_ndms_intervals(
+        out, per_window, per_window_loo, per_window_ff, groups, ws.fps, n_pred, n_boot, seed, reference
+    )
+    out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
+def _ndms_scorers(db_clips: list[fdata.Clip], acts: dict[str, str], queried: set[str]) -> tuple:
+    """The NDMS scorers (per frame, and with the word of the first frame) over the database clips of the
+    activities queried (a short clip of another activity is not needed)."""
+    db_clips = [c for c in db_clips if acts.get(c.name, fdata.UNLABELLED) in queried]
+    scorer = ndms_scorer_for(db_clips, activities=acts)
+    scorer_ff = ndms_scorer_for(db_clips, activities=acts, word_form="word_first_frame")
+    return scorer, scorer_ff
+
+
+def _ndms_per_window(scorer, obs: np.ndarray, y: np.ndarray, wact: list[str]) -> np.ndarray:
+    """NDMS (B,H) of each window's forecasts ``y`` (B,S,H,J,3) against the windows' activities."""
+    return np.stack([scorer.score_forecast(obs[b], y[b], None, wact[b]) for b in range(len(y))])
+
+
+def _forecast(model, obs: np.ndarray, gt: np.ndarray, n_pred: int, n_samples: int, seed: int) -> np.ndarray:
+    """A model's forecasts (B,S,H,J,3) of the windows ``obs`` (B,T,J,3) (``Real``: the ground truth ``gt``),
+    with the same sampling noise on every run."""
+    if isinstance(model, Real):
+        return gt[:, None]
+    S = n_samples if getattr(model, "stochastic", False) else 1
+    torch.manual_seed(seed)  # the same sampling noise on every run
+    return forecast_world(model, obs[:, :, None], None, n_pred, S)[:, :, :, 0]  # (B,S,H,J,3)
+
+
+def _add_ndms_intervals(
+    out: dict,
+    per_window: dict[str, np.ndarray],
+    per_window_loo: dict[str, np.ndarray],
+    per_window_ff: dict[str, np.ndarray],
+    groups: np.ndarray,
+    fps: float,
+    n_pred: int,
+    n_boot: int,
+    seed: int,
+    reference: str | None,
+) -> None:
+    """Add to each model's results the NDMS at ``NDMS_CI_S`` with cluster-bootstrap intervals (by clip),
+    leave-one-out and word-first-frame too, and the paired differences to ``reference``."""
     loo_ok = np.isfinite(next(iter(per_window_loo.values()))).all(1) if per_window_loo else np.zeros(0, bool)
     out["n_windows_loo"] = int(loo_ok.sum())
     boot = _cluster_bootstrap_index(groups, n_boot, seed)
     boot_loo = _cluster_bootstrap_index(groups[loo_ok], n_boot, seed) if loo_ok.any() else None
     ref = reference if reference in per_window else None
     out["reference"] = ref
-    ts = [t for t in NDMS_CI_S if t * ws.fps <= n_pred]
+    ts = [t for t in NDMS_CI_S if t * fps <= n_pred]
     for name in per_window:
         r = out["models"][name]
         w, wl = per_window[name], per_window_loo[name][loo_ok]
-        r["ndms_at"] = {f"{t:g}": _ci(ndms_at(w, ws.fps, t), boot) for t in ts}
+        r["ndms_at"] = {f"{t:g}": _ci(ndms_at(w, fps, t), boot) for t in ts}
         r["ndms_word_first_frame_at"] = {
-            f"{t:g}": _ci(ndms_at(per_window_ff[name], ws.fps, t), boot) for t in ts
+            f"{t:g}": _ci(ndms_at(per_window_ff[name], fps, t), boot) for t in ts
         }
         if boot_loo is not None:
-            r["ndms_loo_at"] = {f"{t:g}": _ci(ndms_at(wl, ws.fps, t), boot_loo) for t in ts}
+            r["ndms_loo_at"] = {f"{t:g}": _ci(ndms_at(wl, fps, t), boot_loo) for t in ts}
         if ref is not None and name != ref:
             r["ndms_diff_at"] = {
-                f"{t:g}": _ci(ndms_at(w, ws.fps, t) - ndms_at(per_window[ref], ws.fps, t), boot) for t in ts
+                f"{t:g}": _ci(ndms_at(w, fps, t) - ndms_at(per_window[ref], fps, t), boot) for t in ts
             }
             if boot_loo is not None:
                 wr = per_window_loo[ref][loo_ok]
                 r["ndms_loo_diff_at"] = {
-                    f"{t:g}": _ci(ndms_at(wl, ws.fps, t) - ndms_at(wr, ws.fps, t), boot_loo) for t in ts
+                    f"{t:g}": _ci(ndms_at(wl, fps, t) - ndms_at(wr, fps, t), boot_loo) for t in ts
                 }
-    out["wall_s"] = time.perf_counter() - t0
-    return out
 
 
 NDMS_CI_S = (0.4, 1.0, 2.0, 3.0, 4.0)
@@ -249,8 +281,6 @@ def write_samples(out_dir, model: str, pred, obs, gt, fps: float, joint_names, a
     """``samples_<model>.npz`` for rescoring a run with any metric: ``pred (N,S,T,J,3)``,
     ``obs (N,T_obs,J,3)``, ``gt (N,T,J,3)`` in metres, ``fps``, ``joint_names``, ``activity (N,)``,
     ``model``."""
-    from core.fileio import atomic_path
-
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"samples_{model.replace('/', '_')}.npz"

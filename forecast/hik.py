@@ -95,23 +95,7 @@ def evaluate_hik(
     lh, rh = fdata.hip_indices(names)
     train_names = {p.name for p in people if p.kitchen in fdata.HIK_TRAIN_KITCHENS}
     test_names = {p.name for p in people if p.kitchen == fdata.HIK_TEST_KITCHEN}
-    models: dict = {}
-    for b in baselines:
-        if b == "real":
-            models["real"] = E.Real()
-        elif b == "fool":
-            continue  # the fool's clusters are body19 (train.fool_model); not part of the ch. 8.3 tables
-        else:
-            models[b] = T.baseline(b, lh, rh)
-    for ck in checkpoints:
-        try:
-            m, meta = T.load_checkpoint(ck, skeleton="smpl29")
-        except Exception as e:  # the checkpoint reader's message says what is wrong
-            raise InputError(f"{ck}: {e}") from None
-        leak = sorted(set(meta["extra"].get("train_clips", [])) & test_names)
-        if leak:
-            raise InputError(f"{ck} was trained on test-kitchen files {leak[:5]}; train on kitchens A-C only")
-        models[Path(ck).stem] = m
+    models = _hik_models(baselines, checkpoints, (lh, rh), test_names)
     cases, skipped = kitchen_cases(people)
     out: dict = {
         "fps": fdata.KITCHEN_FPS,
@@ -149,35 +133,73 @@ def evaluate_hik(
             mp = M.mpjpe(y_s, np.broadcast_to(gt_s[:, None], y_s.shape))
             r = {"mpjpe": mp.tolist(), "mpjpe_at": {str(f): float(mp[f - 1]) for f in MPJPE_FRAMES}}
             if scorer is not None:
-                lo = np.stack([o for _, o, _ in long_cases])
-                if isinstance(model, E.Real):
-                    y_l = np.stack([f for _, _, f in long_cases])[:, None]
-                else:
-                    torch.manual_seed(seed)
-                    y_l = forecast_world(model, lo[:, :, None], None, N_LONG, S, hips=(lh, rh))[:, :, :, 0]
-                nd = np.stack([scorer.score_forecast(lo[i], y_l[i], None, act) for i in range(len(lo))])
-                loo = np.stack(
-                    [
-                        scorer.score_forecast(lo[i], y_l[i], E.clip_group(long_cases[i][0]), act)
-                        for i in range(len(lo))
-                    ]
-                )
-                with np.errstate(invalid="ignore"):
-                    loo_c = np.nanmean(loo, 0) if np.isfinite(loo).any() else np.full(N_LONG, np.nan)
-                r["ndms"] = nd.mean(0).tolist()
-                r["ndms_loo"] = loo_c.tolist()
-                r["ndms_at"] = {str(f): float(nd.mean(0)[f - 1]) for f in NDMS_FRAMES}
-                r["ndms_loo_at"] = {str(f): float(loo_c[f - 1]) for f in NDMS_FRAMES}
+                r.update(_long_ndms(model, scorer, long_cases, act, S, seed, (lh, rh)))
             entry["models"][mname] = r
         out["activities"][act] = entry
+    _write_kept_samples(kept, samples_dir, names)
+    out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
+def _hik_models(
+    baselines: list[str], checkpoints, hips: tuple[int, int], test_names: set[str]
+) -> dict[str, object]:
+    """The baselines (but the body19 fool) and the smpl29 checkpoints, none trained on a test-kitchen file."""
+    lh, rh = hips
+    models: dict = {}
+    for b in baselines:
+        if b == "real":
+            models["real"] = E.Real()
+        elif b == "fool":
+            continue  # the fool's clusters are body19 (train.fool_model); not part of the ch. 8.3 tables
+        else:
+            models[b] = T.baseline(b, lh, rh)
+    for ck in checkpoints:
+        try:
+            m, meta = T.load_checkpoint(ck, skeleton="smpl29")
+        except Exception as e:  # the checkpoint reader's message says what is wrong
+            raise InputError(f"{ck}: {e}") from None
+        leak = sorted(set(meta["extra"].get("train_clips", [])) & test_names)
+        if leak:
+            raise InputError(f"{ck} was trained on test-kitchen files {leak[:5]}; train on kitchens A-C only")
+        models[Path(ck).stem] = m
+    return models
+
+
+def _long_ndms(
+    model, scorer: M.NDMSScorer, long_cases: list, act: str, S: int, seed: int, hips: tuple[int, int]
+) -> dict:
+    """NDMS over the long horizon of the long cases (with the query's own clip and leave-one-out), per
+    frame and at ``NDMS_FRAMES``."""
+    lh, rh = hips
+    r: dict = {}
+    lo = np.stack([o for _, o, _ in long_cases])
+    if isinstance(model, E.Real):
+        y_l = np.stack([f for _, _, f in long_cases])[:, None]
+    else:
+        torch.manual_seed(seed)
+        y_l = forecast_world(model, lo[:, :, None], None, N_LONG, S, hips=(lh, rh))[:, :, :, 0]
+    nd = np.stack([scorer.score_forecast(lo[i], y_l[i], None, act) for i in range(len(lo))])
+    loo = np.stack(
+        [scorer.score_forecast(lo[i], y_l[i], E.clip_group(long_cases[i][0]), act) for i in range(len(lo))]
+    )
+    with np.errstate(invalid="ignore"):
+        loo_c = np.nanmean(loo, 0) if np.isfinite(loo).any() else np.full(N_LONG, np.nan)
+    r["ndms"] = nd.mean(0).tolist()
+    r["ndms_loo"] = loo_c.tolist()
+    r["ndms_at"] = {str(f): float(nd.mean(0)[f - 1]) for f in NDMS_FRAMES}
+    r["ndms_loo_at"] = {str(f): float(loo_c[f - 1]) for f in NDMS_FRAMES}
+    return r
+
+
+def _write_kept_samples(kept: dict[str, list], samples_dir, names) -> None:
+    """Write each model's short-horizon forecasts of every activity as ``samples_<model>.npz``."""
     for mname, parts in kept.items():
         pred = np.concatenate([p[0] for p in parts])
         obs_k = np.concatenate([p[1] for p in parts])
         gt_k = np.concatenate([p[2] for p in parts])
         acts = [a for p in parts for a in p[3]]
         E.write_samples(samples_dir, mname, pred, obs_k, gt_k, fdata.KITCHEN_FPS, names, acts)
-    out["wall_s"] = time.perf_counter() - t0
-    return out
 
 
 def report_markdown(res: dict) -> str:

@@ -87,10 +87,7 @@ def evaluate_pairs(
     x = ws.x  # (B,T,2,J,3)
     obs, gt = x[:, :n_obs], x[:, n_obs:]
     wact = [acts.get(takes[c].name, fdata.UNLABELLED) for c in ws.clip]
-    every = np.concatenate([c.xyz_m for c in takes], 0)  # every real frame of the held-out takes
-    dist_real, face_real = partner_distance(every, lh, rh), facing_angle(every, lh, rh)
-    rng_d = (float(np.percentile(dist_real, 5)), float(np.percentile(dist_real, 95)))
-    rng_f = (float(np.percentile(face_real, 5)), float(np.percentile(face_real, 95)))
+    rng_d, rng_f = _real_ranges(takes, lh, rh)
     real_scenes = list(x)
     fps = ws.fps
     out: dict = {
@@ -104,22 +101,8 @@ def evaluate_pairs(
     }
     for name, model in models.items():
         tm = time.perf_counter()
-        if isinstance(model, Real):
-            y = gt
-        else:
-            torch.manual_seed(seed)
-            y = forecast_world(model, obs, None, n_pred, 1)[:, 0]  # (B,H,2,J,3)
-        per = np.stack(
-            [
-                np.stack(
-                    [
-                        scorer.score_forecast(obs[b, :, p], y[b, None, :, p], None, wact[b])
-                        for b in range(len(y))
-                    ]
-                )
-                for p in range(2)
-            ]
-        )  # (2,B,H)
+        y = gt if isinstance(model, Real) else _forecast_pairs(model, obs, n_pred, seed)
+        per = _ndms_per_person(scorer, obs, y, wact)  # (2,B,H)
         nd = per.mean((0, 1))
         d, f = partner_distance(y, lh, rh), facing_angle(y, lh, rh)  # (B,H)
         d_in, d_all = _range_share(d, *rng_d)
@@ -146,6 +129,36 @@ def evaluate_pairs(
         }
     out["wall_s"] = time.perf_counter() - t0
     return out
+
+
+def _real_ranges(
+    takes: list[fdata.Clip], lh: int, rh: int
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The 5th-95th percentile range of the partners' distance (m) and facing angle (deg) over every real
+    frame of the takes."""
+    every = np.concatenate([c.xyz_m for c in takes], 0)  # every real frame of the held-out takes
+    dist_real, face_real = partner_distance(every, lh, rh), facing_angle(every, lh, rh)
+    rng_d = (float(np.percentile(dist_real, 5)), float(np.percentile(dist_real, 95)))
+    rng_f = (float(np.percentile(face_real, 5)), float(np.percentile(face_real, 95)))
+    return rng_d, rng_f
+
+
+def _forecast_pairs(model, obs: np.ndarray, n_pred: int, seed: int) -> np.ndarray:
+    """One forecast (B,H,2,J,3) of each two-person window, with the same sampling noise on every run."""
+    torch.manual_seed(seed)
+    return forecast_world(model, obs, None, n_pred, 1)[:, 0]  # (B,H,2,J,3)
+
+
+def _ndms_per_person(scorer, obs: np.ndarray, y: np.ndarray, wact: list[str]) -> np.ndarray:
+    """NDMS (2,B,H) of each person's forecast in each window, against the windows' activities."""
+    return np.stack(
+        [
+            np.stack(
+                [scorer.score_forecast(obs[b, :, p], y[b, None, :, p], None, wact[b]) for b in range(len(y))]
+            )
+            for p in range(2)
+        ]
+    )
 
 
 def pairs_markdown(res: dict) -> str:

@@ -62,7 +62,7 @@ class Validator:
             torch.manual_seed(self.seed)
             y = forecast_world(model, obs[:, :, None], None, VAL_N_PRED, S)[:, :, :, 0]  # (B,S,H,J,3)
         model.train(was_training)
-        # the seed's NDMS (issue 19): D = validation clips of the window's activity, its own clip included
+        # the seed's NDMS: D = validation clips of the window's activity, its own clip included
         nd_w = np.stack(
             [self.scorer.score_forecast(obs[b], y[b], None, self.activities[b]) for b in range(len(y))]
         )

@@ -139,26 +139,9 @@ def train(
             f"no training windows of {config.n_obs + config.n_pred} frames (skipped: {ws.skipped})"
         )
     xn, mk = single_person_arrays(ws)
-    flip = get_skeleton(sk).flip_index
-    xm, mm = mirror(xn, mk, flip)
+    xm, mm = mirror(xn, mk, get_skeleton(sk).flip_index)
     xn, mk = np.concatenate([xn, xm]), np.concatenate([mk, mm])
-    model = None
-    if kind == "gru":
-        model = build_model(kind, config, J, init).to(device)
-    elif kind == "intention":
-        loc = local_poses(torch.from_numpy(xn)).numpy()
-        model = build_model(kind, config, J, init).to(device)
-        if init is None:
-            centres, merge = fit_intention_labels(
-                loc[::3].reshape(-1, 3 * J),
-                [s for s in loc[:, ::1]][:2000],
-                config.n_clusters,
-                config.n_intentions,
-                config.seed,
-            )
-            model.centres.copy_(torch.from_numpy(centres))
-            model.merge.copy_(torch.from_numpy(merge))
-        labels_all = model.labels(torch.from_numpy(loc)).numpy()  # (N,T)
+    model, labels_all = _single_person_model(kind, config, J, init, xn, device)
     X, M = torch.from_numpy(xn), torch.from_numpy(mk)
     opt = torch.optim.Adam(
         model.parameters() if kind == "gru" else model.generator_parameters(), lr=config.lr
@@ -205,6 +188,30 @@ def train(
     sel.finish(hist)
     model.eval()
     return model, hist
+
+
+def _single_person_model(kind: str, config, J: int, init: dict | None, xn: np.ndarray, device: str):
+    """The GRU or intention model to train, and for the intention model each window's intention labels
+    (N,T) (its clusters fitted on the windows ``xn`` unless ``init`` brings them); labels None for the
+    GRU."""
+    model, labels_all = None, None
+    if kind == "gru":
+        model = build_model(kind, config, J, init).to(device)
+    elif kind == "intention":
+        loc = local_poses(torch.from_numpy(xn)).numpy()
+        model = build_model(kind, config, J, init).to(device)
+        if init is None:
+            centres, merge = fit_intention_labels(
+                loc[::3].reshape(-1, 3 * J),
+                [s for s in loc[:, ::1]][:2000],
+                config.n_clusters,
+                config.n_intentions,
+                config.seed,
+            )
+            model.centres.copy_(torch.from_numpy(centres))
+            model.merge.copy_(torch.from_numpy(merge))
+        labels_all = model.labels(torch.from_numpy(loc)).numpy()  # (N,T)
+    return model, labels_all
 
 
 def _feature_stats(model, f: np.ndarray, stat) -> np.ndarray:

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from calibrate.formats import import_rig
+from capture.session import videos_in
 from core.cli import Parser, guarded, nonnegative_int, output_folder, positive_int
 from core.errors import InputError
 from core.fileio import sha256_file
@@ -60,8 +61,6 @@ def _fetch(args) -> int:
 
 
 def _parse_videos(items: list[str]) -> dict[str, Path]:
-    from keypoints.video import videos_in  # lazy: loads onnxruntime
-
     out: dict[str, Path] = {}
     for it in items:
         if "=" in it and not Path(it).exists():
@@ -75,20 +74,18 @@ def _parse_videos(items: list[str]) -> dict[str, Path]:
 
 
 def _run(args) -> int:
-    from keypoints.presets import preset_config  # lazy: loads onnxruntime
-    from keypoints.runtime import RuntimeConfig  # lazy: loads onnxruntime
-    from keypoints.video import run_session, run_videos  # lazy: loads onnxruntime
+    from keypoints import presets, runtime, video  # lazy: loads onnxruntime
 
-    over: dict = {"runtime": RuntimeConfig(threads=args.threads, model_dir=args.model_dir or "")}
+    over: dict = {"runtime": runtime.RuntimeConfig(threads=args.threads, model_dir=args.model_dir or "")}
     if args.models:
         over["model_set"] = args.models
     if args.refine_passes is not None:
         over["refine_passes"] = args.refine_passes
-    cfg = preset_config(args.preset, **over)
+    cfg = presets.preset_config(args.preset, **over)
     first = Path(args.inputs[0])
     if len(args.inputs) == 1 and first.is_dir() and (first / "raw").is_dir():
         with Bars(unit="fr") as bars:
-            paths = run_session(
+            paths = video.run_session(
                 first,
                 cameras=args.cameras,
                 config=cfg,
@@ -118,7 +115,7 @@ def _run(args) -> int:
                 )
                 return 1
         with Bars(unit="fr") as bars:
-            rep = run_videos(
+            rep = video.run_videos(
                 videos,
                 args.out,
                 cfg,
@@ -190,7 +187,7 @@ def _main(argv: list[str] | None = None) -> int:
         type=nonnegative_int,
         default=None,
         help="top-down: extra pose passes on upright crops from the previous pass (0 = faster; default: "
-        "PipelineConfig's, 2)",
+        "KeypointPipelineConfig's, 2)",
     )
     args = ap.parse_args(argv)
     logging.basicConfig(

@@ -1,5 +1,6 @@
 """Crops for top-down models: model input tensors, letterboxing, affine person crops (rotated upright) and
-their inverse, and the boxes the next pass or frame crops from."""
+their inverse, the boxes the next pass or frame crops from, and the image regions and pyramid levels the
+crops are cut from."""
 
 from __future__ import annotations
 
@@ -141,3 +142,41 @@ def keypoint_boxes(
         m = margin * float(max(hi - lo))
         out[i, :4] = (lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m)
     return out
+
+
+PYRAMIDS = ("gaussian", "box", "mixed")
+
+
+def level_offset(levels: int, pyramid: str) -> float:
+    """Image px of a level's pixel 0 (x = 2^L x_L + c): 0 for pyrDown (its kernel is centred on pixel 2i),
+    (2^L - 1) / 2 for 2x2 means (a level-L pixel is the mean of image pixels 2^L x_L .. 2^L x_L + 2^L - 1),
+    and for "mixed" the box levels' offset (2^(L-1) - 1) / 2, which the last level's pyrDown keeps."""
+    if pyramid == "box":
+        return (2**levels - 1) / 2
+    if pyramid == "mixed" and levels > 1:
+        return (2 ** (levels - 1) - 1) / 2
+    return 0.0
+
+
+def crop_region(M: np.ndarray, size_wh: tuple[int, int], shape, f: int) -> tuple[int, int, int, int]:
+    """Image px region x0,y0,x1,y1 that a crop of affine M (image -> crop px) samples, with a margin of 4f
+    px (the reach of L = log2 f pyrDown kernels, 2(f - 1), and of the bilinear sample at level L), clipped
+    to the image, its corner on multiples of f."""
+    W, H = size_wh
+    corners = np.array([[0.0, 0.0], [W, 0.0], [0.0, H], [W, H]])
+    A, t = M[:, :2], M[:, 2]
+    xy = (corners - t) @ np.linalg.inv(A).T
+    h, w = shape[:2]
+    m = 4 * f
+    x0 = int(np.clip(np.floor(xy[:, 0].min()) - m, 0, w - 1)) // f * f
+    y0 = int(np.clip(np.floor(xy[:, 1].min()) - m, 0, h - 1)) // f * f
+    x1 = int(np.clip(np.ceil(xy[:, 0].max()) + m + 1, x0 + 1, w))
+    y1 = int(np.clip(np.ceil(xy[:, 1].max()) + m + 1, y0 + 1, h))
+    return x0, y0, x1, y1
+
+
+def containing_region(regions, box):
+    """The first region (x0, y0, x1, y1, level) that contains box x0,y0,x1,y1, else None."""
+    return next(
+        (r for r in regions if r[0] <= box[0] and r[1] <= box[1] and r[2] >= box[2] and r[3] >= box[3]), None
+    )

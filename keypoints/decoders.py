@@ -298,56 +298,8 @@ def group_paf(
         if not len(pa) or not len(pb):
             continue
         field = pafs[..., 2 * k : 2 * k + 2]
-        cands = []
-        for i in range(len(pa)):
-            d = pb[:, :2] - pa[i, :2]  # (Kb,2)
-            norm = np.linalg.norm(d, axis=1) + 1e-6
-            u = d / norm[:, None]
-            xs = pa[i, 0] + t[None, :] * d[:, 0:1]
-            ys = pa[i, 1] + t[None, :] * d[:, 1:2]
-            v = _bilinear(field, xs, ys)  # (Kb,S,2)
-            dots = (v * u[:, None, :]).sum(-1)
-            score = dots.mean(1) + np.minimum(0.5 * H / norm - 1, 0)
-            ok = ((dots > paf_threshold).mean(1) > 0.8) & (score > 0)
-            for j in np.flatnonzero(ok):
-                cands.append((score[j], i, j))
-        cands.sort(key=lambda c: -c[0])
-        used_a, used_b = set(), set()
-        for s, i, j in cands:
-            if i in used_a or j in used_b:
-                continue
-            used_a.add(i)
-            used_b.add(j)
-            ga, gb = offsets[a] + i, offsets[b] + j
-            found = [r for r in people if r[a] == ga or r[b] == gb]
-            if len(found) == 1:
-                r = found[0]
-                if r[b] != gb and r[b] < 0:
-                    r[b] = gb
-                    r[-1] += 1
-                    r[-2] += all_peaks[gb, 2] + s
-                elif r[a] < 0:
-                    r[a] = ga
-                    r[-1] += 1
-                    r[-2] += all_peaks[ga, 2] + s
-            elif len(found) == 2:
-                r1, r2 = found
-                if not ((r1[:n_parts] >= 0) & (r2[:n_parts] >= 0)).any():  # disjoint: merge
-                    r1[:n_parts] += r2[:n_parts] + 1
-                    r1[-2:] += r2[-2:]
-                    r1[-2] += s
-                    people = [r for r in people if r is not r2]
-                else:
-                    if r1[b] < 0:
-                        r1[b] = gb
-                        r1[-1] += 1
-                        r1[-2] += all_peaks[gb, 2] + s
-            else:
-                row = -np.ones(n_parts + 2)
-                row[a], row[b] = ga, gb
-                row[-1] = 2
-                row[-2] = all_peaks[ga, 2] + all_peaks[gb, 2] + s
-                people.append(row)
+        cands = _limb_candidates(pa, pb, field, t, H, paf_threshold)
+        people = _join_limb(people, cands, a, b, offsets, all_peaks, n_parts)
     people = [r for r in people if r[-1] >= min_parts and r[-2] / r[-1] >= min_mean_score]
     people.sort(key=lambda r: -r[-2])
     xy = np.full((len(people), n_parts, 2), np.nan, np.float32)
@@ -359,3 +311,99 @@ def group_paf(
         sc[p, ok] = all_peaks[ids[ok], 2]
     # single peaks not used by any person are dropped (a lone part is not a person)
     return xy, np.clip(sc, 0, 1)
+
+
+def _limb_candidates(
+    pa: np.ndarray, pb: np.ndarray, field: np.ndarray, t: np.ndarray, H: int, paf_threshold: float
+) -> list[tuple[float, int, int]]:
+    """The (score, i, j) connections of peak i of part a to peak j of part b that the limb's field
+    supports (the field along the segment sampled at ``t``, with a distance prior), best first."""
+    cands = []
+    for i in range(len(pa)):
+        d = pb[:, :2] - pa[i, :2]  # (Kb,2)
+        norm = np.linalg.norm(d, axis=1) + 1e-6
+        u = d / norm[:, None]
+        xs = pa[i, 0] + t[None, :] * d[:, 0:1]
+        ys = pa[i, 1] + t[None, :] * d[:, 1:2]
+        v = _bilinear(field, xs, ys)  # (Kb,S,2)
+        dots = (v * u[:, None, :]).sum(-1)
+        score = dots.mean(1) + np.minimum(0.5 * H / norm - 1, 0)
+        ok = ((dots > paf_threshold).mean(1) > 0.8) & (score > 0)
+        for j in np.flatnonzero(ok):
+            cands.append((score[j], i, j))
+    cands.sort(key=lambda c: -c[0])
+    return cands
+
+
+def _join_limb(
+    people: list[np.ndarray],
+    cands: list[tuple[float, int, int]],
+    a: int,
+    b: int,
+    offsets: np.ndarray,
+    all_peaks: np.ndarray,
+    n_parts: int,
+) -> list[np.ndarray]:
+    """Add one limb's connections to the people (each peak used once, greedily by score): extend the
+    person holding one end, merge two disjoint people, or start a new one; the updated people."""
+    used_a, used_b = set(), set()
+    for s, i, j in cands:
+        if i in used_a or j in used_b:
+            continue
+        used_a.add(i)
+        used_b.add(j)
+        ga, gb = offsets[a] + i, offsets[b] + j
+        found = [r for r in people if r[a] == ga or r[b] == gb]
+        if len(found) == 1:
+            r = found[0]
+            if r[b] != gb and r[b] < 0:
+                r[b] = gb
+                r[-1] += 1
+                r[-2] += all_peaks[gb, 2] + s
+            elif r[a] < 0:
+                r[a] = ga
+                r[-1] += 1
+                r[-2] += all_peaks[ga, 2] + s
+        elif len(found) == 2:
+            r1, r2 = found
+            if not ((r1[:n_parts] >= 0) & (r2[:n_parts] >= 0)).any():  # disjoint: merge
+                r1[:n_parts] += r2[:n_parts] + 1
+                r1[-2:] += r2[-2:]
+                r1[-2] += s
+                people = [r for r in people if r is not r2]
+            else:
+                if r1[b] < 0:
+                    r1[b] = gb
+                    r1[-1] += 1
+                    r1[-2] += all_peaks[gb, 2] + s
+        else:
+            row = -np.ones(n_parts + 2)
+            row[a], row[b] = ga, gb
+            row[-1] = 2
+            row[-2] = all_peaks[ga, 2] + all_peaks[gb, 2] + s
+            people.append(row)
+    return people
+
+
+def people_from_maps(
+    maps: np.ndarray, ratio: float, d
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Bottom-up: the people of one image from its confidence maps and PAFs ``maps`` (h,w,C) (the model's
+    input was the image letterboxed by ``ratio``; ``d`` the description's decoder settings). Returns boxes
+    (P,5) x0,y0,x1,y1,mean score, xy (P,J,2) image px, score (P,J) and the (2,3) map -> image affine."""
+    heat, paf = maps[..., : d.n_parts], maps[..., d.n_parts + 1 :]
+    if d.paf_channels:
+        paf = paf[..., [c for pair in d.paf_channels for c in pair]]
+    peaks = find_peaks(heat, d.peak_threshold)
+    xy, sc = group_paf(peaks, paf, OPENPOSE_LIMBS, d.paf_threshold)
+    # map px -> input px (pixel centres: (x + 0.5) * stride - 0.5) -> image px
+    s, r = d.stride, ratio
+    to_img = np.array([[s / r, 0, (0.5 * s - 0.5) / r], [0, s / r, (0.5 * s - 0.5) / r]])
+    xy = xy * (s / r) + (0.5 * s - 0.5) / r
+    boxes = np.full((len(xy), 5), np.nan, np.float32)
+    for p in range(len(xy)):
+        ok = ~np.isnan(xy[p, :, 0])
+        if ok.any():
+            boxes[p, :2], boxes[p, 2:4] = xy[p, ok].min(0), xy[p, ok].max(0)
+            boxes[p, 4] = sc[p, ok].mean()
+    return boxes, xy, sc, to_img

@@ -68,6 +68,34 @@ def read_openpose_folder(
     ``fps`` sets ``t_ns = frame / fps`` (else 0); ``max_people`` keeps the most confident people.
     """
     folder = Path(folder)
+    files = _json_files(folder)
+    camera = camera or re.sub(r"_json$", "", folder.name)
+    frames = _frame_numbers(files, folder)
+    people, n_kp = _read_people(files, folder)
+    raw = _frames_array(frames, people, n_kp, max_people)
+    T = raw.shape[0]
+    score = raw[..., 2]
+    xy = np.where((score > 0)[..., None], raw[..., :2], np.nan)
+    skeleton = _skeleton(folder, skeleton, xy, score, n_kp)
+    frame_index = np.arange(frames.min(), frames.max() + 1, dtype=np.int64)
+    t_ns = np.round(frame_index * 1e9 / fps).astype(np.int64) if fps else np.zeros(T, np.int64)
+    present, boxes = _boxes(xy, score)
+    return Detections(
+        camera=camera,
+        skeleton=skeleton,
+        frame_index=frame_index,
+        t_ns=t_ns,
+        xy_px=xy,
+        score=np.where(present, score, 0.0),
+        boxes=boxes,
+        model="openpose-json",
+        model_sha256="",
+        image_size_wh=image_size_wh,
+    )
+
+
+def _json_files(folder: Path) -> list[Path]:
+    """The folder's ``*.json`` files in frame order."""
     if not folder.is_dir():
         raise FormatError(
             folder, None, "is not a folder of OpenPose JSON files.", "Pass the camera's json folder."
@@ -77,10 +105,19 @@ def read_openpose_folder(
         raise FormatError(
             folder, None, "holds no .json files.", "Run OpenPose with --write_json on this camera."
         )
-    camera = camera or re.sub(r"_json$", "", folder.name)
+    return files
+
+
+def _frame_numbers(files: list[Path], folder: Path) -> np.ndarray:
+    """The frame number of each file (unique)."""
     frames = np.array([_frame_number(f) for f in files], dtype=np.int64)
     if len(np.unique(frames)) != len(frames):
         raise FormatError(folder, None, "two files have the same frame number.", "Keep one JSON per frame.")
+    return frames
+
+
+def _read_people(files: list[Path], folder: Path) -> tuple[list[np.ndarray], int]:
+    """Per file the people's keypoints (P,J,3) x, y, confidence, and J (the same in every file)."""
     people: list[np.ndarray] = []
     n_kp = None
     for f in files:
@@ -106,6 +143,14 @@ def read_openpose_folder(
         people.append(np.stack(rows) if rows else np.zeros((0, n_kp or 0, 3)))
     if n_kp is None:
         raise FormatError(folder, None, "no person was detected in any file.", "Check the OpenPose run.")
+    return people, n_kp
+
+
+def _frames_array(
+    frames: np.ndarray, people: list[np.ndarray], n_kp: int, max_people: int | None
+) -> np.ndarray:
+    """(T,P,J,3) over every frame from the first to the last (missing frames zero), keeping the
+    ``max_people`` most confident people of a frame."""
     T = int(frames.max() - frames.min() + 1)
     P = max(len(p) for p in people)
     if max_people is not None:
@@ -116,8 +161,12 @@ def read_openpose_folder(
         if max_people is not None and len(p) > max_people:
             p = p[np.argsort(-p[..., 2].mean(-1))[:max_people]]
         raw[f_no - frames.min(), : len(p)] = p
-    score = raw[..., 2]
-    xy = np.where((score > 0)[..., None], raw[..., :2], np.nan)
+    return raw
+
+
+def _skeleton(folder: Path, skeleton: str | None, xy: np.ndarray, score: np.ndarray, n_kp: int) -> str:
+    """The skeleton given (checked against J), else the one the keypoint count (and, for 25, their
+    positions) points to."""
     if skeleton is None:
         skeleton = _guess_25(xy, score) if n_kp == 25 else _BY_COUNT.get(n_kp)
         if skeleton is None:
@@ -135,8 +184,13 @@ def read_openpose_folder(
             f"'{skeleton}' has {get_skeleton(skeleton).n_joints} joints, the files have {n_kp}.",
             "Pass the skeleton the files were written with.",
         )
-    frame_index = np.arange(frames.min(), frames.max() + 1, dtype=np.int64)
-    t_ns = np.round(frame_index * 1e9 / fps).astype(np.int64) if fps else np.zeros(T, np.int64)
+    return skeleton
+
+
+def _boxes(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which joints are present (T,P), and each person's box (T,P,5): the present joints' extent and their
+    mean score (NaN for nobody)."""
+    T, P = xy.shape[:2]
     present = np.isfinite(xy).all(-1)
     boxes = np.full((T, P, 5), np.nan)
     any_p = present.any(-1)
@@ -145,15 +199,4 @@ def read_openpose_folder(
         hi = np.nanmax(np.where(present[..., None], xy, np.nan)[any_p], axis=1)
         mean_sc = np.where(present, score, 0).sum(-1)[any_p] / np.maximum(present.sum(-1)[any_p], 1)
         boxes[any_p] = np.concatenate([lo, hi, mean_sc[:, None]], 1)
-    return Detections(
-        camera=camera,
-        skeleton=skeleton,
-        frame_index=frame_index,
-        t_ns=t_ns,
-        xy_px=xy,
-        score=np.where(present, score, 0.0),
-        boxes=boxes,
-        model="openpose-json",
-        model_sha256="",
-        image_size_wh=image_size_wh,
-    )
+    return present, boxes

@@ -14,6 +14,9 @@ hypotheses), and the refine passes turn each crop so that the body (hips -> shou
 Where two poses of one image coincide (an occluded person's crop returning the person in front), each is
 estimated again with the other person erased and the better reading kept, or one of them is dropped.
 ``stage_s`` accumulates seconds per stage for the benchmark.
+
+The settings and the per-image result are in :mod:`keypoints.pipeline_config`, the crop geometry in
+:mod:`keypoints.crops`, the pose hypotheses (flip, rotation, duplicates) in :mod:`keypoints.hypotheses`.
 """
 
 from __future__ import annotations
@@ -21,151 +24,38 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from keypoints import decoders as D
-from keypoints.crops import (  # noqa: F401 (re-exported: the module's names before the split)
+from keypoints.crops import (
     apply_inverse,
+    containing_region,
+    crop_region,
     crop_transform,
     keypoint_boxes,
     letterbox,
+    level_offset,
     to_tensor,
     upright_boxes,
 )
-from keypoints.hypotheses import (  # noqa: F401 (re-exported: the module's names before the split)
-    FACE_POINTS,
+from keypoints.hypotheses import (
     _duplicate_pairs,
     _erase_body,
     _keypoint_box_iou,
-    _paint_body,
     _strong_or_apart,
     consensus,
-    facing,
     hide_face_from_behind,
     merge_hypotheses,
 )
+from keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
 from keypoints.registry import ModelSpec, get_model_set, get_spec
-from keypoints.runtime import OnnxModel, RuntimeConfig
+from keypoints.runtime import OnnxModel
 from keypoints.skeletons import convert, get_skeleton
 
 log = logging.getLogger(__name__)
-
-
-def _crop_region(M: np.ndarray, size_wh: tuple[int, int], shape, f: int) -> tuple[int, int, int, int]:
-    """Image px region x0,y0,x1,y1 that a crop of affine M (image -> crop px) samples, with a margin of 4f
-    px (the reach of L = log2 f pyrDown kernels, 2(f - 1), and of the bilinear sample at level L), clipped
-    to the image, its corner on multiples of f."""
-    W, H = size_wh
-    corners = np.array([[0.0, 0.0], [W, 0.0], [0.0, H], [W, H]])
-    A, t = M[:, :2], M[:, 2]
-    xy = (corners - t) @ np.linalg.inv(A).T
-    h, w = shape[:2]
-    m = 4 * f
-    x0 = int(np.clip(np.floor(xy[:, 0].min()) - m, 0, w - 1)) // f * f
-    y0 = int(np.clip(np.floor(xy[:, 1].min()) - m, 0, h - 1)) // f * f
-    x1 = int(np.clip(np.ceil(xy[:, 0].max()) + m + 1, x0 + 1, w))
-    y1 = int(np.clip(np.ceil(xy[:, 1].max()) + m + 1, y0 + 1, h))
-    return x0, y0, x1, y1
-
-
-def _containing(regions, box):
-    """The first region (x0, y0, x1, y1, level) that contains box x0,y0,x1,y1, else None."""
-    return next(
-        (r for r in regions if r[0] <= box[0] and r[1] <= box[1] and r[2] >= box[2] and r[3] >= box[3]), None
-    )
-
-
-PYRAMIDS = ("gaussian", "box", "mixed")
-
-
-def level_offset(levels: int, pyramid: str) -> float:
-    """Image px of a level's pixel 0 (x = 2^L x_L + c): 0 for pyrDown (its kernel is centred on pixel 2i),
-    (2^L - 1) / 2 for 2x2 means (a level-L pixel is the mean of image pixels 2^L x_L .. 2^L x_L + 2^L - 1),
-    and for "mixed" the box levels' offset (2^(L-1) - 1) / 2, which the last level's pyrDown keeps."""
-    if pyramid == "box":
-        return (2**levels - 1) / 2
-    if pyramid == "mixed" and levels > 1:
-        return (2 ** (levels - 1) - 1) / 2
-    return 0.0
-
-
-@dataclass(frozen=True)
-class PipelineConfig:
-    """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own).
-
-    What each setting gave on the Pose2Sim demos when it was chosen is in BENCHMARKS.md ("2D keypoints",
-    "2D presets"); the presets in ``keypoints/models/sets.toml`` combine them."""
-
-    model_set: str = "default"
-    skeleton: str = "body19"
-    max_people: int = 20
-    det_score: float = 0.0  # 0 = the detector description's threshold
-    # boxes scoring between this and det_score are kept only where less than half of each lies inside a
-    # stronger box (people at the image border or small in a letterboxed frame score there). 0 = off
-    det_score_weak: float = 0.2
-    min_box_px: float = 24.0  # ignore boxes smaller than this (height, image px)
-    box_padding: float = 0.0  # 0 = the pose description's value
-    pose_presence: float = 0.25  # drop people whose pose score (BlazePose: person present; else mean) below
-    refine_passes: int = 2  # top-down: pose passes on the box the previous pass's keypoints span
-    min_box_iou: float = 0.3  # refine passes: keep the previous pose where the new one left its box (IoU)
-    rotate: bool = True  # refine passes: rotate crops so the body is upright (hips -> shoulders vertical)
-    antialias: bool = True  # top-down: crops that shrink > 2x are cut from a pyramid level
-    # the pyramid's filter: "gaussian" (cv2.pyrDown, 5x5), "box" (2x2 means, cv2.resize INTER_AREA: about
-    # 6x cheaper per level) or "mixed" (box levels, then one pyrDown for the level the crop is cut from: the
-    # Gaussian's anti-aliasing at the crop, at a third of its cost for L = 2); BENCHMARKS.md "2D presets"
-    pyramid: str = "gaussian"
-    flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
-    # flip test: joints the two crops place more than this x the crop width apart are not averaged; each
-    # person takes them from the crop with the higher score (merge_hypotheses); 0 = always average
-    flip_agree: float = 0.05
-    flip_all_passes: bool = False  # flip test in every pose pass, not only the first and the last
-    # top-down: no face points for people seen from behind (hide_face_from_behind); None: the description's
-    hide_face_from_behind: bool | None = None
-    back_view_facing: float = -0.15  # facing() below this = seen from behind (cos(yaw) < -0.3, yaw > 107 deg)
-    model_roi: bool = False  # refine passes: the model's own ROI where it has one (BlazePose)
-    # two poses of one image closer than this x the person's size (median over joints both see) are one
-    # person found twice (an occluded person's crop returning the pose of the person in front); 0 = off
-    duplicate_frac: float = 0.08
-    # last pose pass: crop sizes (x padding) whose poses are merged (consensus: score-weighted mean of the
-    # estimates near the median); (1.0,) = off
-    tta_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
-    # duplicates: the body of one person is erased before the other is estimated again, filled with these
-    # grey values (-1 = the median colour around the body); every fill is one more crop (_resolve_duplicates)
-    erase_fills: tuple[float, ...] = (-1.0, 0.0)
-    # top-down: people whose first-pass score is under this are estimated again on their detector box rotated
-    # by 90, 180 and 270 degrees, the most confident reading placing the refine crops (_rotation_hypotheses:
-    # bodies sideways or upside down). 0 = off
-    rotation_weak: float = 0.5
-    # tracked crops (videos: ``KeypointPipeline(images, streams)``): the detector runs every this many frames
-    # of a camera (and when someone was lost, or nobody is tracked); in between, each person's crop is placed
-    # by the previous frame's pose and only ``track_passes`` pose passes run (the last with tta_scales and
-    # the flip test). 1 = the detector and the whole chain on every frame
-    detect_every: int = 1
-    track_passes: int = 1
-    keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
-    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
-
-    def __post_init__(self) -> None:
-        if self.pyramid not in PYRAMIDS:
-            raise ValueError(f"PipelineConfig.pyramid must be one of {PYRAMIDS}, got {self.pyramid!r}")
-
-
-@dataclass
-class FrameResult:
-    """One image: boxes (P,5) x0,y0,x1,y1,score; xy_px (P,J,2) NaN = missing; score (P,J).
-
-    For bottom-up models with ``keep_maps``: ``maps`` (H,W,C) float16 (confidence maps then PAF x/y pairs) and
-    ``maps_to_img`` (2,3) affine from map pixels to image pixels.
-    """
-
-    boxes: np.ndarray
-    xy_px: np.ndarray
-    score: np.ndarray
-    maps: np.ndarray | None = None
-    maps_to_img: np.ndarray | None = None
 
 
 @dataclass
@@ -184,9 +74,9 @@ class _Seed:
 
 
 class KeypointPipeline:
-    def __init__(self, config: PipelineConfig | str = "default"):
+    def __init__(self, config: KeypointPipelineConfig | str = "default"):
         if isinstance(config, str):
-            config = PipelineConfig(model_set=config)
+            config = KeypointPipelineConfig(model_set=config)
         self.config = config
         self.model_set = get_model_set(config.model_set)
         md = config.runtime.model_dir or None
@@ -408,7 +298,7 @@ class KeypointPipeline:
         default ``_level``) and the affine for that level.
 
         pyrDown centres its kernel on source pixel 2i, so level-L pixels relate to image pixels by
-        x = 2^L x_L. Only the region a crop samples is reduced (``_crop_region``: with the kernels' reach as
+        x = 2^L x_L. Only the region a crop samples is reduced (``crop_region``: with the kernels' reach as
         margin and its corner on the level-L grid, so the pixels equal those of the whole image's pyramid);
         per image and level, overlapping regions are merged into one (people close together, the crop
         sizes of the test-time augmentation) so that each pixel is reduced once, and the regions are kept
@@ -416,7 +306,7 @@ class KeypointPipeline:
         """
         levels = [self._level(M) for M in Ms] if levels is None else [int(L) for L in levels]
         need = [
-            _crop_region(M, size_wh, images[i].shape, 2**L) if L else None
+            crop_region(M, size_wh, images[i].shape, 2**L) if L else None
             for i, M, L in zip(owner, Ms, levels, strict=True)
         ]
         want: dict[tuple[int, int], list] = {}
@@ -426,7 +316,7 @@ class KeypointPipeline:
         for (i, L), boxes in want.items():
             have = self._pyr.setdefault((i, L), [])
             merged: list[list[int]] = []
-            for box in sorted(b for b in boxes if _containing(have, b) is None):
+            for box in sorted(b for b in boxes if containing_region(have, b) is None):
                 for m in merged:
                     if box[0] < m[2] and m[0] < box[2] and box[1] < m[3] and m[1] < box[3]:
                         m[:] = [min(m[0], box[0]), min(m[1], box[1]), max(m[2], box[2]), max(m[3], box[3])]
@@ -443,7 +333,7 @@ class KeypointPipeline:
             if not L:
                 out.append((images[i], M))
                 continue
-            x0, y0, _, _, level = _containing(self._pyr[(int(i), L)], box)
+            x0, y0, _, _, level = containing_region(self._pyr[(int(i), L)], box)
             # crop px = A x + t with x = (region x0, y0) + 2^L x_L + c (level_offset)
             c = level_offset(L, self.config.pyramid)
             A = M[:, :2]
@@ -791,21 +681,7 @@ class KeypointPipeline:
         t = self._tick("pose", t)
         res = []
         for m, r in zip(maps, ratios, strict=True):
-            heat, paf = m[..., : d.n_parts], m[..., d.n_parts + 1 :]
-            if d.paf_channels:
-                paf = paf[..., [c for pair in d.paf_channels for c in pair]]
-            peaks = D.find_peaks(heat, d.peak_threshold)
-            xy, sc = D.group_paf(peaks, paf, D.OPENPOSE_LIMBS, d.paf_threshold)
-            # map px -> input px (pixel centres: (x + 0.5) * stride - 0.5) -> image px
-            s = d.stride
-            to_img = np.array([[s / r, 0, (0.5 * s - 0.5) / r], [0, s / r, (0.5 * s - 0.5) / r]])
-            xy = xy * (s / r) + (0.5 * s - 0.5) / r
-            boxes = np.full((len(xy), 5), np.nan, np.float32)
-            for p in range(len(xy)):
-                ok = ~np.isnan(xy[p, :, 0])
-                if ok.any():
-                    boxes[p, :2], boxes[p, 2:4] = xy[p, ok].min(0), xy[p, ok].max(0)
-                    boxes[p, 4] = sc[p, ok].mean()
+            boxes, xy, sc, to_img = D.people_from_maps(m, r, d)
             fr = self._finish(
                 boxes[: self.config.max_people], xy[: self.config.max_people], sc[: self.config.max_people]
             )

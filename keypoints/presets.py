@@ -12,17 +12,38 @@ from typing import Any
 
 from core.config import check_keys, config_from_dict
 from core.errors import UnknownNameError
-from keypoints.pipeline import PipelineConfig
+from keypoints.pipeline_config import KeypointPipelineConfig
 from keypoints.registry import presets
 
 
-def preset_config(name: str = "", **overrides: Any) -> PipelineConfig:
-    """The 2D stage's settings for a preset ("" = the default preset), with ``PipelineConfig`` fields
-    overridden by ``overrides``."""
+@dataclasses.dataclass(frozen=True)
+class ResolvedPreset:
+    """A preset looked up once: its name, its table with the overrides, and the typed settings."""
+
+    name: str
+    settings: dict[str, Any]
+    config: KeypointPipelineConfig
+
+
+def resolve_preset(name: str = "", model_set: str = "", **overrides: Any) -> ResolvedPreset:
+    """The preset ``name`` ("" = the default preset, or "legacy" when only ``model_set`` is given) with
+    ``model_set`` and the other ``KeypointPipelineConfig`` fields in ``overrides`` laid over it."""
     default, table = presets()
-    name = name or default
+    name = name or ("legacy" if model_set else default)
     if name not in table:
         raise UnknownNameError(f"unknown keypoint preset {name!r}; known: {sorted(table)}.")
-    check_keys(overrides, [f.name for f in dataclasses.fields(PipelineConfig)], "keypoint settings", None)
-    cfg = config_from_dict(PipelineConfig, table[name], f"presets.{name}")
-    return dataclasses.replace(cfg, **overrides)
+    over = {**({"model_set": model_set} if model_set else {}), **overrides}
+    check_keys(over, [f.name for f in dataclasses.fields(KeypointPipelineConfig)], "keypoint settings", None)
+    cfg = config_from_dict(KeypointPipelineConfig, table[name], f"presets.{name}")
+    return ResolvedPreset(name, {**table[name], **over}, dataclasses.replace(cfg, **over))
+
+
+def preset_config(name: str = "", **overrides: Any) -> KeypointPipelineConfig:
+    """The 2D stage's settings for a preset ("" = the default preset), with ``KeypointPipelineConfig`` fields
+    overridden by ``overrides``."""
+    return resolve_preset(name, **overrides).config
+
+
+def settings_for(name: str) -> KeypointPipelineConfig:
+    """The settings a name stands for: a preset's, else a model set's with every other default."""
+    return preset_config(name) if name in presets()[1] else KeypointPipelineConfig(model_set=name)

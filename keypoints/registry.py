@@ -129,7 +129,7 @@ class DecoderSpec:
     paf_threshold: float = 0.05  # openpose PAF line integral
     flip_test: bool = False  # top-down: also run the mirrored crop and average (measured per model)
     # top-down: drop the face points (nose, eyes, mouth) of people seen from behind (the model places them
-    # with full confidence where no face is visible; keypoints.pipeline.hide_face_from_behind)
+    # with full confidence where no face is visible; keypoints.hypotheses.hide_face_from_behind)
     hide_face_from_behind: bool = False
     # top-down: how the pose model's output coordinates meet the crop's pixels. "corner": continuous
     # coordinates, pixel i spans [i, i+1) (normalised [0, 1] x size: MoveNet, BlazePose); "center": pixel i's

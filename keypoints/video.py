@@ -15,9 +15,9 @@ does the same for explicit videos, e.g. the Pose2Sim demo layout ``<trial>/video
   failed is logged, returned in ``RunReport.decode_errors`` and saved as ``decode_error_frame``;
 - a video whose size differs from the calibration's: a difference of at most 16 px (codec padding,
   e.g. 1080 vs 1088) is logged, anything else (or width and height swapped: a rotated video) raises;
-- bottom-up models run with ``PipelineConfig(keep_maps=True)`` also store their confidence maps and PAFs
-  for the tracker's observation model: ``maps_f16 (T,h,w,C)`` float16 and ``maps_to_img (T,2,3)`` (map px ->
-  image px) as extra keys of the detections file.
+- bottom-up models run with ``KeypointPipelineConfig(keep_maps=True)`` also store their confidence maps and
+  PAFs for the tracker's observation model: ``maps_f16 (T,h,w,C)`` float16 and ``maps_to_img (T,2,3)``
+  (map px -> image px) as extra keys of the detections file.
 """
 
 from __future__ import annotations
@@ -37,14 +37,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from calibrate.camera import CameraRig
 from capture.session import VIDEO_SUFFIXES, SessionLayout
 from core.errors import FormatError, RoomcapError
 from core.fileio import load_npz, save_npz
 from core.progress import Progress
 from keypoints.detections import Detections
-from keypoints.pipeline import FrameResult, KeypointPipeline, PipelineConfig
-from keypoints.presets import preset_config
-from keypoints.registry import presets
+from keypoints.pipeline import KeypointPipeline
+from keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
+from keypoints.presets import settings_for
 from keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -455,7 +456,7 @@ def _calib_sizes(rig) -> dict[str, tuple[int, int]]:
 def run_videos(
     videos: dict[str, str | os.PathLike],
     out_dir: str | os.PathLike,
-    config: PipelineConfig | str = "default",
+    config: KeypointPipelineConfig | str = "default",
     *,
     rig=None,
     chunk_frames: int = 50,
@@ -476,7 +477,7 @@ def run_videos(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if isinstance(config, str):
-        config = preset_config(config) if config in presets()[1] else PipelineConfig(model_set=config)
+        config = settings_for(config)
     cams = list(videos)
     n_groups = 1 if pipeline is not None else max(1, min(camera_groups, len(cams)))
     if n_groups > 1:  # each group's share of the onnxruntime threads
@@ -487,14 +488,43 @@ def run_videos(
     for c in cams:
         if not Path(videos[c]).exists():
             raise FileNotFoundError(f"camera '{c}': video {videos[c]} does not exist.")
-    sizes = _calib_sizes(rig)
     writers = {
         c: ChunkWriter(out_dir, c, pipe.skeleton, pipe.model_id, pipe.model_sha256, chunk_frames)
         for c in cams
     }
     report = RunReport()
+    readers = _open_readers(videos, writers, rig, timestamps, max_frames, report)
+    totals = {
+        c: readers[c].n_frames if max_frames is None else min(max_frames, readers[c].n_frames or max_frames)
+        for c in cams
+    }
+    run = _GroupRun(
+        videos, readers, writers, report, totals, {c: readers[c].start_index for c in cams}, progress
+    )
+    # the cameras spread over the cores: groups of cameras, each stepped by its own thread and pipeline
+    # (onnxruntime, OpenCV and numpy release the GIL while they compute)
+    groups = [cams[g::n_groups] for g in range(n_groups)]
+    pipes = [pipe] + [KeypointPipeline(config) for _ in groups[1:]]
+    run.run_all(groups, pipes)
+    _merge_chunks(videos, readers, writers, report, out_dir, config.model_set)
+    _stage_times(report, pipes, readers, writers)
+    report.wall_s = time.perf_counter() - t_wall
+    return report
+
+
+def _open_readers(
+    videos: dict[str, str | os.PathLike],
+    writers: dict[str, ChunkWriter],
+    rig,
+    timestamps: dict[str, Path] | None,
+    max_frames: int | None,
+    report: RunReport,
+) -> dict[str, FrameReader]:
+    """A reader per camera, from the frame its written chunks end at (a resumed run), its size checked
+    against the rig."""
+    sizes = _calib_sizes(rig)
     readers: dict[str, FrameReader] = {}
-    for c in cams:
+    for c in videos:
         start = writers[c].next_frame()
         ts = read_frames_csv(Path(timestamps[c])) if timestamps and c in timestamps else None
         r = FrameReader(Path(videos[c]), start=start, stop=max_frames, timestamps=ts)
@@ -503,29 +533,40 @@ def run_videos(
             log.info("camera %s: resuming at frame %d", c, start)
             report.resumed_from[c] = start
         readers[c] = r
-    totals = {
-        c: readers[c].n_frames if max_frames is None else min(max_frames, readers[c].n_frames or max_frames)
-        for c in cams
-    }
-    done = {c: readers[c].start_index for c in cams}
-    lock = threading.Lock()  # the progress callback and the report are shared by the camera groups
+    return readers
 
-    stop = threading.Event()  # set when the caller is interrupted: the groups end after their batch
 
-    def run_group(group: list[str], gpipe: KeypointPipeline) -> None:
+@dataclass
+class _GroupRun:
+    """What the camera groups share while they run: the readers and writers, the report, the progress."""
+
+    videos: dict[str, str | os.PathLike]
+    readers: dict[str, FrameReader]
+    writers: dict[str, ChunkWriter]
+    report: RunReport
+    totals: dict[str, int | None]
+    done: dict[str, int]
+    progress: Progress | None
+    lock: threading.Lock = field(default_factory=threading.Lock)  # the progress callback and the report
+    stop: threading.Event = field(default_factory=threading.Event)  # set on an interruption: groups end
+
+    def run_group(self, group: list[str], gpipe: KeypointPipeline) -> None:
+        """Step one group's cameras a frame each per batch through its pipeline until their videos end."""
         live = list(group)
-        while live and not stop.is_set():
+        while live and not self.stop.is_set():
             batch_cams, imgs, meta = [], [], []
             for c in list(live):
-                item = readers[c].q.get()
+                item = self.readers[c].q.get()
                 if item is _END:
                     live.remove(c)
                     continue
                 if item[0] == "error":
                     _, fi, msg = item
-                    with lock:
-                        report.decode_errors[c] = (fi, msg)
-                    log.warning("camera %s: %s (%s); keeping the %d frames before it", c, msg, videos[c], fi)
+                    with self.lock:
+                        self.report.decode_errors[c] = (fi, msg)
+                    log.warning(
+                        "camera %s: %s (%s); keeping the %d frames before it", c, msg, self.videos[c], fi
+                    )
                     continue
                 batch_cams.append(c)
                 imgs.append(item[2])
@@ -534,52 +575,74 @@ def run_videos(
                 continue
             results = gpipe(imgs, streams=batch_cams)
             for c, (fi, t_ns), res in zip(batch_cams, meta, results, strict=True):
-                writers[c].add(fi, t_ns, res)
-                done[c] += 1
-                if progress is not None:
-                    with lock:
-                        progress(c, done[c], totals[c])
+                self.writers[c].add(fi, t_ns, res)
+                self.done[c] += 1
+                if self.progress is not None:
+                    with self.lock:
+                        self.progress(c, self.done[c], self.totals[c])
 
-    # the cameras spread over the cores: groups of cameras, each stepped by its own thread and pipeline
-    # (onnxruntime, OpenCV and numpy release the GIL while they compute)
-    groups = [cams[g::n_groups] for g in range(n_groups)]
-    pipes = [pipe] + [KeypointPipeline(config) for _ in groups[1:]]
-    # OpenCV's own thread pool, on top of the groups' threads, made its small calls (pyrDown, warpAffine)
-    # up to 4x slower on this 2-core machine: one OpenCV thread per group while they run
-    cv_threads = cv2.getNumThreads()
-    if n_groups > 1:
-        cv2.setNumThreads(1)
-    for r in readers.values():
-        r.start()
-    try:
-        with ThreadPoolExecutor(n_groups) as pool:
-            try:
-                for f in [pool.submit(run_group, g, gp) for g, gp in zip(groups, pipes, strict=True)]:
-                    f.result()
-            except (
-                BaseException
-            ):  # Ctrl-C or a failed group: the other groups stop too (finished chunks stay)
-                stop.set()
-                for r in readers.values():
-                    r.halt()
-                raise
-    finally:
-        for r in readers.values():
-            r.halt()
-        cv2.setNumThreads(cv_threads)
-    for c in cams:
+    def run_all(self, groups: list[list[str]], pipes: list[KeypointPipeline]) -> None:
+        """Run every group in its own thread; Ctrl-C or a failed group stops the others (finished chunks
+        stay)."""
+        # OpenCV's own thread pool, on top of the groups' threads, made its small calls (pyrDown, warpAffine)
+        # up to 4x slower on this 2-core machine: one OpenCV thread per group while they run
+        n_groups = len(groups)
+        cv_threads = cv2.getNumThreads()
+        if n_groups > 1:
+            cv2.setNumThreads(1)
+        for r in self.readers.values():
+            r.start()
+        try:
+            with ThreadPoolExecutor(n_groups) as pool:
+                try:
+                    for f in [
+                        pool.submit(self.run_group, g, gp) for g, gp in zip(groups, pipes, strict=True)
+                    ]:
+                        f.result()
+                except BaseException:  # Ctrl-C or a failed group: the other groups stop too
+                    self.stop.set()
+                    for r in self.readers.values():
+                        r.halt()
+                    raise
+        finally:
+            for r in self.readers.values():
+                r.halt()
+            cv2.setNumThreads(cv_threads)
+
+
+def _merge_chunks(
+    videos: dict[str, str | os.PathLike],
+    readers: dict[str, FrameReader],
+    writers: dict[str, ChunkWriter],
+    report: RunReport,
+    out_dir: Path,
+    model_set: str,
+) -> None:
+    """Merge each camera's chunks into ``out_dir/<cam>.npz`` with the video's facts; the paths and frame
+    counts into the report."""
+    for c in videos:
         err = report.decode_errors.get(c, (-1, ""))
         extra = {
             "decode_error_frame": np.int64(err[0]),
             "video": str(videos[c]),
             "fps": np.float64(readers[c].fps),
-            "model_set": config.model_set,
+            "model_set": model_set,
             "variable_frame_rate": np.bool_(readers[c].variable_rate),
             "rotation_deg": np.int64(readers[c].rotation_deg),
         }
         det = writers[c].merge(out_dir / f"{c}.npz", readers[c].size_wh, extra)
         report.paths[c] = out_dir / f"{c}.npz"
         report.frames[c] = det.n_frames
+
+
+def _stage_times(
+    report: RunReport,
+    pipes: list[KeypointPipeline],
+    readers: dict[str, FrameReader],
+    writers: dict[str, ChunkWriter],
+) -> None:
+    """The report's times: seconds per stage (summed over the groups' pipelines), in decoding, writing and
+    the models."""
     st: defaultdict[str, float] = defaultdict(float)
     for gp in pipes:
         for k, v in gp.stage_s.items():
@@ -590,17 +653,6 @@ def run_videos(
     report.model_s = sum(gp.model_run_s() for gp in pipes)
     report.model_cpu_s = sum(gp.model_run_cpu_s() for gp in pipes)
     report.pipeline_cpu_s = sum(gp.call_cpu_s for gp in pipes)
-    report.wall_s = time.perf_counter() - t_wall
-    return report
-
-
-def videos_in(folder: str | os.PathLike) -> dict[str, Path]:
-    """``{stem: path}`` for the videos in a folder (the Pose2Sim layout ``<trial>/videos/camNN.mp4``)."""
-    folder = Path(folder)
-    out = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES}
-    if not out:
-        raise FileNotFoundError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {folder}.")
-    return out
 
 
 def run_session(
@@ -608,7 +660,7 @@ def run_session(
     model_set: str = "default",
     cameras: list[str] | None = None,
     progress: Progress | None = None,
-    config: PipelineConfig | None = None,
+    config: KeypointPipelineConfig | None = None,
     rig=None,
     **kw,
 ) -> dict[str, Path]:
@@ -623,12 +675,7 @@ def run_session(
         raise FileNotFoundError(f"no camera videos under {lay.raw_dir}; expected raw/<cam>.mp4.")
     videos = {c: lay.video(c) for c in cams}
     if rig is None and lay.rig_toml.exists():
-        try:
-            from calibrate.camera import CameraRig
-
-            rig = CameraRig.load(lay.rig_toml)
-        except ImportError:  # calibrate not available in this build
-            rig = None
+        rig = CameraRig.load(lay.rig_toml)
     if rig is not None and not isinstance(rig, dict):
         missing = [c for c in cams if c not in rig.names]
         if missing:
@@ -639,6 +686,6 @@ def run_session(
                 "Name videos raw/<rig camera name>.mp4.",
             )
     ts = {c: lay.find_frames_csv(c) for c in cams if lay.find_frames_csv(c) is not None}
-    cfg = config or PipelineConfig(model_set=model_set)
+    cfg = config or KeypointPipelineConfig(model_set=model_set)
     rep = run_videos(videos, lay.keypoints_dir, cfg, rig=rig, progress=progress, timestamps=ts, **kw)
     return rep.paths

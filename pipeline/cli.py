@@ -37,7 +37,7 @@ from pipeline.executors import EXECUTORS, run_sessions
 from pipeline.report import write_overlay_videos
 from pipeline.runner import SessionResult
 from track.export import ExportError, ExportOptions, export_tracks, parse_formats
-from track.skeleton_fit import FitError
+from track.skeleton_fit_file import FitError
 from track.trackfile import TrackFile
 
 

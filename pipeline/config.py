@@ -20,10 +20,10 @@ from pathlib import Path
 from typing import Any
 
 from core.config import check_keys, config_from_dict
-from core.errors import FormatError
+from core.errors import FormatError, UnknownNameError
 from core.fileio import load_toml
-from keypoints.pipeline import PipelineConfig as KeypointSettings
-from keypoints.presets import preset_config
+from keypoints.pipeline_config import KeypointPipelineConfig
+from keypoints.presets import resolve_preset
 from keypoints.registry import presets
 from track.greedy_stage import GreedyTrackConfig
 from track.stage import ParticleTrackConfig
@@ -35,7 +35,8 @@ STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "repor
 @dataclass(frozen=True)
 class KeypointsConfig:
     """The ``[keypoints]`` section, resolved once: the preset's name, its settings and the 2D stage's
-    typed config (:class:`keypoints.pipeline.PipelineConfig`) are computed when the section is made."""
+    typed config (:class:`keypoints.pipeline_config.KeypointPipelineConfig`) are computed when the section
+    is made."""
 
     # speed/accuracy preset of the 2D stage (keypoints/models/sets.toml [presets]). "" = the default preset,
     # or, when ``model_set`` is given, "legacy" (the chain of configurations written before presets existed)
@@ -47,19 +48,20 @@ class KeypointsConfig:
     skeleton: str = ""
     preset_name: str = field(init=False, repr=False, compare=False)
     settings: dict[str, Any] = field(init=False, repr=False, compare=False)  # the preset's, with overrides
-    detector: KeypointSettings = field(init=False, repr=False, compare=False)
+    detector: KeypointPipelineConfig = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        default, table = presets()
-        if self.preset and self.preset not in table:
+        overrides = {"skeleton": self.skeleton} if self.skeleton else {}
+        try:
+            resolved = resolve_preset(self.preset, self.model_set, **overrides)
+        except UnknownNameError:
+            valid = sorted(presets()[1])
             raise FormatError(
-                None, "keypoints.preset", f"'{self.preset}' is not a preset; valid: {sorted(table)}."
-            )
-        name = self.preset or ("legacy" if self.model_set else default)
-        overrides = {k: v for k, v in (("model_set", self.model_set), ("skeleton", self.skeleton)) if v}
-        object.__setattr__(self, "preset_name", name)
-        object.__setattr__(self, "settings", {**table[name], **overrides})
-        object.__setattr__(self, "detector", preset_config(name, **overrides))
+                None, "keypoints.preset", f"'{self.preset}' is not a preset; valid: {valid}."
+            ) from None
+        object.__setattr__(self, "preset_name", resolved.name)
+        object.__setattr__(self, "settings", resolved.settings)
+        object.__setattr__(self, "detector", resolved.config)
 
     @property
     def model_set_name(self) -> str:

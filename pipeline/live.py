@@ -31,7 +31,7 @@ recording ends (:meth:`LiveTrackWriter.close`). The common loaders read it like 
 ``TrackFile.load("track/live.npz")``, ``iter_parts`` part by part, a part that does not match the index
 is an error naming it (a live part cannot be rebuilt). It is kept apart from ``track/tracks.npz`` /
 ``track/tracks.parts/``, which the batch track stage owns and replaces: a later ``reprocess`` of the
-session leaves the live result as it was. Sessions recorded by earlier versions hold
+session leaves the live result as it was. Sessions recorded in the older layout hold
 ``track/live/index.json`` (schema ``live_tracks/1``) and ``part_NNNNNN.npz``; :func:`load_live_tracks`
 still reads them.
 """
@@ -55,12 +55,15 @@ from capture.live import LiveStep, Stage
 from capture.session import SessionLayout
 from core.errors import FormatError
 from core.memory import TRIM_EVERY, release_free_memory
+from keypoints.detections import Detections
 from keypoints.pipeline import KeypointPipeline
 from keypoints.skeletons import CANONICAL, convert
 from pipeline.config import KeypointsConfig
 from pipeline.live_outputs import Outputs, load_rig
-from track.particle import FrameEstimate, ParticleConfig, ParticleTracker
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
 from track.particle_io import focal_lengths
+from track.particle_types import FrameEstimate
 from track.trackfile import SCHEMA, TrackFile
 from triangulate.chunks import PartStore, hash_key, parts_dir
 from triangulate.reconstruct import FrameReconstructor
@@ -90,7 +93,7 @@ def live_dir(layout: SessionLayout) -> Path:
 
 
 def legacy_live_dir(layout: SessionLayout) -> Path:
-    """``track/live/``: where sessions recorded by earlier versions hold their live track."""
+    """``track/live/``: where sessions recorded in the older layout hold their live track."""
     return layout.tracks.parent / LEGACY_LIVE_DIR
 
 
@@ -327,7 +330,7 @@ def build_stages(cfg: CaptureConfig, layout: SessionLayout) -> tuple[dict[str, S
     return out, errors
 
 
-main = make_main(build_stages, Outputs())
+main = make_main(build_stages, Outputs(), Detections.load)
 
 if __name__ == "__main__":
     sys.exit(main())

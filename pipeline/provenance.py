@@ -48,10 +48,17 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
     "triangulate": (
         "triangulate",
         "calibrate/camera.py",
+        "calibrate/camera_fields.py",
         "keypoints/skeletons.py",
         "keypoints/detections.py",
     ),
-    "track": ("track", "triangulate", "calibrate/camera.py", "keypoints/skeletons.py"),
+    "track": (
+        "track",
+        "triangulate",
+        "calibrate/camera.py",
+        "calibrate/camera_fields.py",
+        "keypoints/skeletons.py",
+    ),
     "forecast": ("forecast", "track/trackfile.py"),
     "report": (
         "pipeline/report",

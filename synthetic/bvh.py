@@ -220,6 +220,26 @@ def read_bvh(path: str | os.PathLike) -> Bvh:
     tok = head.split()
     if not tok or tok[0] != "HIERARCHY":
         raise BvhError(path, "HIERARCHY", "the file does not start with HIERARCHY.", "Is this a BVH file?")
+    names, parents, offsets, channels = _hierarchy(tok, path)
+    motion, frame_time_s = _motion(motion_text, sum(len(c) for c in channels), path)
+    starts = np.cumsum([0] + [len(c) for c in channels[:-1]])
+    return Bvh(
+        str(path),
+        tuple(names),
+        np.asarray(parents, dtype=np.int64),
+        np.asarray(offsets, dtype=np.float64),
+        tuple(channels),
+        np.asarray(starts, dtype=np.int64),
+        motion,
+        frame_time_s,
+    )
+
+
+def _hierarchy(
+    tok: list[str], path: Path
+) -> tuple[list[str], list[int], list[list[float]], list[tuple[str, ...]]]:
+    """The header's tokens (``tok[0]`` is HIERARCHY) -> joint names (End Sites as ``<parent>_end``), parent
+    indices (-1: the root), offsets and channels, in file order."""
     names: list[str] = []
     parents: list[int] = []
     offsets: list[list[float]] = []
@@ -275,14 +295,17 @@ def read_bvh(path: str | os.PathLike) -> Bvh:
             f"cannot parse near token {i}: {e}",
             "The hierarchy is malformed; re-export the file.",
         ) from e
-    # MOTION header
+    return names, parents, offsets, channels
+
+
+def _motion(motion_text: str, n_ch: int, path: Path) -> tuple[np.ndarray, float]:
+    """The MOTION section -> the complete frames (T, n_ch) (at most the header's count) and the frame time."""
     lines = motion_text.lstrip().split("\n", 2)
     try:
         n_frames = int(lines[0].split(":")[1])
         frame_time_s = float(lines[1].split(":")[1])
     except (IndexError, ValueError) as e:
         raise BvhError(path, "MOTION", "cannot read 'Frames:' / 'Frame Time:'.", "Re-export the file.") from e
-    n_ch = sum(len(c) for c in channels)
     values = np.array(lines[2].split(), dtype=np.float64) if len(lines) > 2 else np.zeros(0)
     n_full = len(values) // n_ch if n_ch else 0
     if n_full < n_frames:
@@ -295,17 +318,7 @@ def read_bvh(path: str | os.PathLike) -> Bvh:
     motion = values[: n_use * n_ch].reshape(n_use, n_ch)
     if not (frame_time_s > 0):
         raise BvhError(path, "Frame Time", f"must be > 0, got {frame_time_s}.", "Fix the MOTION header.")
-    starts = np.cumsum([0] + [len(c) for c in channels[:-1]])
-    return Bvh(
-        str(path),
-        tuple(names),
-        np.asarray(parents, dtype=np.int64),
-        np.asarray(offsets, dtype=np.float64),
-        tuple(channels),
-        np.asarray(starts, dtype=np.int64),
-        motion,
-        frame_time_s,
-    )
+    return motion, frame_time_s
 
 
 # ---------------------------------------------------------------------------------------------
@@ -406,6 +419,68 @@ def bvh_to_body19(
 
     See the module docstring for the mapping, unit/axis detection and face approximation.
     """
+    body, neck_joint, foot_pts, R_head = _joint_tracks(bvh)
+
+    cg = cgspeed_unit(bvh)
+    if cg is not None and drop_tpose is None:
+        drop_tpose = bvh.n_frames > 1  # frame 0 of every cgspeed Daz-friendly clip is a T-pose
+    if cg is not None and unit_m is None:
+        unit_m = cg[1]
+    # Drop a prepended T-pose: frame 0 far from frame 1 compared with the clip's typical step.
+    if drop_tpose is None and bvh.n_frames > 3:
+        stack = np.stack(list(body.values()), 1)
+        rel = stack - stack[:, :1]
+        step = np.linalg.norm(np.diff(rel, axis=0), axis=-1).mean(-1)
+        drop_tpose = bool(step[0] > 10.0 * max(np.median(step[1:]), 1e-9))
+    if drop_tpose:
+        body = {k: v[1:] for k, v in body.items()}
+        neck_joint, foot_pts, R_head = neck_joint[1:], foot_pts[1:], R_head[1:]
+
+    # Up axis: the head-above-ankles direction.
+    mid_ankle = 0.5 * (body["left_ankle"] + body["right_ankle"])
+    vert = np.median(body["head"] - mid_ankle, axis=0)
+    up_axis = int(np.argmax(np.abs(vert)))
+    M = _up_rotation(up_axis, float(np.sign(vert[up_axis])))
+
+    # Units from height (head joint above the ankles, ~1.45-1.6 m for adults).
+    h = float(np.percentile(np.abs((body["head"] - mid_ankle)[:, up_axis]), 90))
+    unit, scale = _unit(unit_m, h, cg)
+
+    def to_world(x: np.ndarray) -> np.ndarray:
+        return scale * (x @ M.T)
+
+    out = np.full((len(next(iter(body.values()))), len(BODY19), 3), np.nan)
+    J = {n: i for i, n in enumerate(BODY19)}
+    for n in (
+        "left_hip",
+        "right_hip",
+        "left_knee",
+        "right_knee",
+        "left_ankle",
+        "right_ankle",
+        "left_shoulder",
+        "right_shoulder",
+        "left_elbow",
+        "right_elbow",
+        "left_wrist",
+        "right_wrist",
+    ):
+        out[:, J[n]] = to_world(body[n])
+    out[:, J["pelvis"]] = 0.5 * (out[:, J["left_hip"]] + out[:, J["right_hip"]])
+    out[:, J["neck"]] = 0.5 * (out[:, J["left_shoulder"]] + out[:, J["right_shoulder"]])
+
+    # the face points from the head joint's frame
+    _add_face(out, J, to_world(body["head"]), to_world(neck_joint), R_head, M)
+
+    # Floor at z = 0: 5th percentile of the lowest foot point per frame.
+    feet_z = to_world(foot_pts)[..., 2].min(1)
+    out[..., 2] -= np.percentile(feet_z, 5)
+    return out, unit
+
+
+def _joint_tracks(bvh: Bvh) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+    """In the file's units and axes: each named body joint's positions (F,3), the head's parent joint's,
+    the foot points (F,K,3) and the head joint's rotation (F,3,3)."""
     idx = {}
     for name, cands in _NAME_CANDIDATES.items():
         j = _pick(bvh, cands)
@@ -433,30 +508,12 @@ def bvh_to_body19(
         1,
     )
     R_head = R[:, list(_NAME_CANDIDATES).index("head")]
+    return body, neck_joint, foot_pts, R_head
 
-    cg = cgspeed_unit(bvh)
-    if cg is not None and drop_tpose is None:
-        drop_tpose = bvh.n_frames > 1  # frame 0 of every cgspeed Daz-friendly clip is a T-pose
-    if cg is not None and unit_m is None:
-        unit_m = cg[1]
-    # Drop a prepended T-pose: frame 0 far from frame 1 compared with the clip's typical step.
-    if drop_tpose is None and bvh.n_frames > 3:
-        stack = np.stack(list(body.values()), 1)
-        rel = stack - stack[:, :1]
-        step = np.linalg.norm(np.diff(rel, axis=0), axis=-1).mean(-1)
-        drop_tpose = bool(step[0] > 10.0 * max(np.median(step[1:]), 1e-9))
-    if drop_tpose:
-        body = {k: v[1:] for k, v in body.items()}
-        neck_joint, foot_pts, R_head = neck_joint[1:], foot_pts[1:], R_head[1:]
 
-    # Up axis: the head-above-ankles direction.
-    mid_ankle = 0.5 * (body["left_ankle"] + body["right_ankle"])
-    vert = np.median(body["head"] - mid_ankle, axis=0)
-    up_axis = int(np.argmax(np.abs(vert)))
-    M = _up_rotation(up_axis, float(np.sign(vert[up_axis])))
-
-    # Units from height (head joint above the ankles, ~1.45-1.6 m for adults).
-    h = float(np.percentile(np.abs((body["head"] - mid_ankle)[:, up_axis]), 90))
+def _unit(unit_m: float | str | None, h: float, cg: tuple[str, float] | None) -> tuple[str, float]:
+    """The unit's name and metres per unit: given, cgspeed's, or the one that makes ``h`` (the head's height
+    above the ankles in file units) about 1.5 m."""
     if unit_m is None:
         unit = min(UNITS_M, key=lambda u: abs(np.log(max(h, 1e-9) * UNITS_M[u] / 1.5)))
         scale = UNITS_M[unit]
@@ -466,32 +523,19 @@ def bvh_to_body19(
         unit, scale = cg
     else:
         unit, scale = f"{unit_m:g} m", float(unit_m)
+    return unit, scale
 
-    def to_world(x: np.ndarray) -> np.ndarray:
-        return scale * (x @ M.T)
 
-    out = np.full((len(next(iter(body.values()))), len(BODY19), 3), np.nan)
-    J = {n: i for i, n in enumerate(BODY19)}
-    for n in (
-        "left_hip",
-        "right_hip",
-        "left_knee",
-        "right_knee",
-        "left_ankle",
-        "right_ankle",
-        "left_shoulder",
-        "right_shoulder",
-        "left_elbow",
-        "right_elbow",
-        "left_wrist",
-        "right_wrist",
-    ):
-        out[:, J[n]] = to_world(body[n])
-    out[:, J["pelvis"]] = 0.5 * (out[:, J["left_hip"]] + out[:, J["right_hip"]])
-    out[:, J["neck"]] = 0.5 * (out[:, J["left_shoulder"]] + out[:, J["right_shoulder"]])
-
-    # Head frame in head-joint-local coordinates, averaged over the clip.
-    head_w = to_world(body["head"])
+def _add_face(
+    out: np.ndarray,
+    J: dict[str, int],
+    head_w: np.ndarray,
+    neck_w: np.ndarray,
+    R_head: np.ndarray,
+    M: np.ndarray,
+) -> None:
+    """Write the face points (``FACE_OFFSETS_M``) into ``out``: the head frame in head-joint-local axes,
+    averaged over the clip, placed at each frame's head joint."""
     Rh = np.einsum("ab,fbc->fac", M, R_head)  # head joint rotation, world axes
     left_w = _normalize(
         out[:, J["left_shoulder"]]
@@ -499,7 +543,7 @@ def bvh_to_body19(
         + out[:, J["left_hip"]]
         - out[:, J["right_hip"]]
     )
-    up_w = _normalize(head_w - to_world(neck_joint))
+    up_w = _normalize(head_w - neck_w)
     fwd_w = _normalize(np.cross(left_w, up_w))  # facing direction (z up: forward = left x up)
     up_l = _normalize(np.einsum("fba,fb->fa", Rh, up_w).mean(0))
     fwd_l = np.einsum("fba,fb->fa", Rh, fwd_w).mean(0)
@@ -509,11 +553,6 @@ def bvh_to_body19(
     for n, off in FACE_OFFSETS_M.items():
         d_l = basis_l @ np.asarray(off)
         out[:, J[n]] = head_w + np.einsum("fab,b->fa", Rh, d_l)
-
-    # Floor at z = 0: 5th percentile of the lowest foot point per frame.
-    feet_z = to_world(foot_pts)[..., 2].min(1)
-    out[..., 2] -= np.percentile(feet_z, 5)
-    return out, unit
 
 
 # ---------------------------------------------------------------------------------------------

@@ -309,8 +309,37 @@ def render_camera(
         hidden |= people_hidden(xy_all, depth, float(cam.K[0, 0]), _capsule_radii(cfg))
     visible = seen & ~hidden
     gt_xy = xy
+    det_xy, score, row_ok = _detected_people(xy, seen, hidden, visible, cfg, rng)
+    fp_xy, fp_score, fp_ok = _false_positives(scene, cam, cfg, rng)
+    out_xy, out_score, out_ok, gt_index = _rows(det_xy, score, row_ok, fp_xy, fp_score, fp_ok, cfg, rng)
+    if cfg.skeleton != "body19":
+        out_xy, out_score = convert(out_xy, out_score, "body19", cfg.skeleton)
+    boxes = _boxes(out_xy, out_score, out_ok, cam.size_wh)
+    det = Detections(
+        camera=cam.name,
+        skeleton=cfg.skeleton,
+        frame_index=np.arange(T),
+        t_ns=np.round(np.arange(T) / scene.fps * 1e9).astype(np.int64),
+        xy_px=out_xy,
+        score=out_score,
+        boxes=boxes,
+        model=cfg.model,
+        image_size_wh=cam.size_wh,
+    )
+    return det, gt_index, visible, gt_xy
 
-    # faults on the ground-truth people
+
+def _detected_people(
+    xy: np.ndarray,
+    seen: np.ndarray,
+    hidden: np.ndarray,
+    visible: np.ndarray,
+    cfg: RenderConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ground-truth people with the detector's faults: missed joints, guessed occluded joints, pixel
+    noise, left/right flips, missed detections. Returns xy (T,P,19,2), score (T,P,19), row_ok (T,P)."""
+    T, P = xy.shape[:2]
     report = visible & (rng.random((T, P, 19)) >= cfg.missed_joint_rate)
     guess = seen & hidden & (rng.random((T, P, 19)) < cfg.occluded_guess_rate)
     sig = cfg.noise_px * np.exp(rng.normal(0, 0.3, (T, P, 19)))
@@ -326,8 +355,16 @@ def render_camera(
     det_xy = np.where(flip[..., None, None], det_xy[:, :, FLIP19], det_xy)
     score = np.where(flip[..., None], score[:, :, FLIP19], score)
     row_ok = (keep_j.sum(-1) >= cfg.min_visible_joints) & (rng.random((T, P)) >= cfg.missed_detection_rate)
+    return det_xy, score, row_ok
 
-    # false positives: a scene pose placed elsewhere in the room, seen by this camera only
+
+def _false_positives(
+    scene: Scene, cam, cfg: RenderConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """False positives: a scene pose placed elsewhere in the room, seen by this camera only (a Poisson
+    number per frame). Returns xy (T,K,19,2), score (T,K,19), ok (T,K)."""
+    gt = scene.gt_xyz_m
+    T = gt.shape[0]
     n_fp = rng.poisson(cfg.false_positive_rate, T) if cfg.false_positive_rate > 0 else np.zeros(T, np.int64)
     K = int(n_fp.max()) if T else 0
     fp_xy = np.full((T, K, 19, 2), np.nan)
@@ -352,7 +389,24 @@ def render_camera(
         fs[np.isnan(fxy[..., 0])] = 0.0
         fp_xy[tt, kk], fp_score[tt, kk] = fxy, fs
         fp_ok[tt, kk] = np.isfinite(fxy[..., 0]).sum(-1) >= max(cfg.min_visible_joints, 5)
+    return fp_xy, fp_score, fp_ok
 
+
+def _rows(
+    det_xy: np.ndarray,
+    score: np.ndarray,
+    row_ok: np.ndarray,
+    fp_xy: np.ndarray,
+    fp_score: np.ndarray,
+    fp_ok: np.ndarray,
+    cfg: RenderConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The kept people and false positives of each frame as the file's rows (shuffled with
+    ``cfg.shuffle``). Returns xy, score, ok and the ground-truth index of each row (-1: a false positive,
+    -2: padding)."""
+    T, P = row_ok.shape
+    K = fp_ok.shape[1]
     all_xy = np.concatenate([det_xy, fp_xy], 1)
     all_score = np.concatenate([score, fp_score], 1)
     all_ok = np.concatenate([row_ok, fp_ok], 1)
@@ -368,33 +422,24 @@ def render_camera(
     gt_index = np.where(out_ok, take(all_id, order, 1), -2)
     out_xy[~out_ok] = np.nan
     out_score[~out_ok] = 0.0
+    return out_xy, out_score, out_ok, gt_index
 
-    if cfg.skeleton != "body19":
-        out_xy, out_score = convert(out_xy, out_score, "body19", cfg.skeleton)
+
+def _boxes(out_xy: np.ndarray, out_score: np.ndarray, out_ok: np.ndarray, size_wh) -> np.ndarray:
+    """Each row's box: the joints' extent padded by 10 % and clipped to the image, and their mean score."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows (padding)
         lo = np.nanmin(out_xy, axis=2)
         hi = np.nanmax(out_xy, axis=2)
     pad = 0.1 * (hi - lo)
-    w, h = cam.size_wh
+    w, h = size_wh
     lo = np.clip(lo - pad, 0, [w - 1, h - 1])
     hi = np.clip(hi + pad, 0, [w - 1, h - 1])
     n_j = np.maximum((out_score > 0).sum(-1), 1)
     box_score = out_score.sum(-1) / n_j
     boxes = np.concatenate([lo, hi, box_score[..., None]], -1)
     boxes[~out_ok] = np.nan
-    det = Detections(
-        camera=cam.name,
-        skeleton=cfg.skeleton,
-        frame_index=np.arange(T),
-        t_ns=np.round(np.arange(T) / scene.fps * 1e9).astype(np.int64),
-        xy_px=out_xy,
-        score=out_score,
-        boxes=boxes,
-        model=cfg.model,
-        image_size_wh=cam.size_wh,
-    )
-    return det, gt_index, visible, gt_xy
+    return boxes
 
 
 def render(scene: Scene, rig: CameraRig, config: RenderConfig | None = None, **overrides) -> Rendering:

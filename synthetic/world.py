@@ -199,10 +199,11 @@ def _place(
     return best
 
 
-def procedural_walk(
-    n_frames: int, fps: float, room: Room, rng: np.random.Generator, margin_m: float = 0.4
-) -> np.ndarray:
-    """A person walking between random waypoints with swinging limbs: ``(T,19,3)`` metres, z up."""
+def _walk_path(
+    n_frames: int, dt: float, room: Room, rng: np.random.Generator, margin_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The walker's path between random free waypoints (pausing at each): position (T,2), heading (T,)
+    and speed (T,) per frame."""
     x0, x1, y0, y1 = room.bounds_m
 
     def free_point() -> np.ndarray:
@@ -214,7 +215,6 @@ def procedural_walk(
                 return p
         return p
 
-    dt = 1.0 / fps
     speed = rng.uniform(0.8, 1.3)
     pos = free_point()
     goal = free_point()
@@ -239,6 +239,15 @@ def procedural_walk(
             heading += np.clip(dh, -3.0 * dt, 3.0 * dt)  # turn at most 3 rad/s
             pos = pos + v * dt * np.array([np.cos(heading), np.sin(heading)]) * max(np.cos(dh), 0.2)
         P[k], H[k], V[k] = pos, heading, v
+    return P, H, V
+
+
+def procedural_walk(
+    n_frames: int, fps: float, room: Room, rng: np.random.Generator, margin_m: float = 0.4
+) -> np.ndarray:
+    """A person walking between random waypoints with swinging limbs: ``(T,19,3)`` metres, z up."""
+    dt = 1.0 / fps
+    P, H, V = _walk_path(n_frames, dt, room, rng, margin_m)
     V = np.convolve(np.pad(V, 2, mode="edge"), np.ones(5) / 5, mode="valid")  # smooth, same length
     amp = np.clip(V / 1.0, 0, 1)
     phase = np.cumsum(2 * np.pi * 0.9 * amp * dt * np.maximum(V, 0.3) / 1.0)

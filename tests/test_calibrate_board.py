@@ -183,7 +183,7 @@ def test_unopenable_video_keeps_the_other_cameras(tmp_path, rng):
 
 
 def test_wrong_grid_points_at_the_board_file(tmp_path):
-    """Issue 15: a board file declaring fewer squares than the print said 'record the board again'."""
+    """A board file declaring fewer squares than the print said 'record the board again'."""
     printed = Board("charuco", (5, 7), 0.08, 0.06, "DICT_5X5_100")
     _recording(tmp_path, printed, n_cams=2, n_frames=8)
     wrong = tmp_path / "board.toml"

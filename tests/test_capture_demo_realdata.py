@@ -1,4 +1,4 @@
-"""Record -> calibrate -> process on real videos: the Pose2Sim multi-person demo (issue 15, "Show it").
+"""Record -> calibrate -> process on real videos: the Pose2Sim multi-person demo.
 
 ``capture-run`` replays the demo's 4 videos as file cameras, ``calibrate-run import`` reads its Qualisys
 calibration into the session, ``reprocess`` runs every stage. Checks: each raw/<cam>.mp4 decodes in

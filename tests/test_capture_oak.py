@@ -11,7 +11,7 @@ import pytest
 from capture.config import parse_config
 from capture.factory import make_source
 from capture.oak import OakSource, check_sensor_mode, frame_from_message, oak_config, select_device
-from capture.recorder import SegmentWriter
+from capture.segments import SegmentWriter
 from capture.sources import SourceError, host_now_ns, mono_to_host_ns, read_frames_csv
 
 

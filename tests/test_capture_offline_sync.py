@@ -91,7 +91,7 @@ def test_sync_session_writes_session_toml(tmp_path):
             score=np.ones((T, 1, J), np.float32),
             boxes=np.full((T, 1, 5), np.nan, np.float32),
         ).save(tmp_path / "keypoints" / f"{cam}.npz")
-    res = sync_session(tmp_path)
+    res = sync_session(tmp_path, load_keypoints=Detections.load)
     assert round(res["cameras"]["b"]["offset_frames"]) == 5
     meta = load_toml(tmp_path / "session.toml")
     assert meta["schema"] == "session/1" and meta["sync"]["reference"] == "a"

@@ -1,6 +1,6 @@
 """Record -> process: the recorder's layout is read everywhere, joined into raw/<cam>.mp4, nothing is lost.
 
-Bad input cases of issue 15 (items 2 and 4), one test each: an --out folder holding other files, a
+Bad input cases, one test each: an --out folder holding other files, a
 disk that fills up with the free-space guard off, a camera that cannot be opened (with and without
 --skip-failed-cameras), a join whose frame count does not match, ``capture-run repair``.
 """
@@ -280,7 +280,7 @@ def test_sync_audio_on_the_session_videos_asks_to_join_segments_first(tmp_path, 
 
 
 def test_segment_writer_never_appends_or_overwrites(tmp_path):
-    from capture.recorder import RecorderError, SegmentWriter
+    from capture.segments import RecorderError, SegmentWriter
     from capture.sources import Frame
 
     csv = tmp_path / "cam.frames.csv"

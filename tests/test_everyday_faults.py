@@ -155,8 +155,8 @@ def test_calibration_recording_without_any_board_says_so_first(tmp_path, capsys)
 
 
 def test_sync_reads_a_pose2sim_trials_detections_where_reprocess_wrote_them(session, tmp_path, capsys):
-    from capture.cli import main as capture_run
     from core.fileio import load_toml
+    from pipeline.live import main as capture_run
 
     trial = tmp_path / "Trial"  # a Pose2Sim trial after `reprocess Trial`: <trial>/roomcap/keypoints
     (trial / "videos").mkdir(parents=True)

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from forecast import benchmark_cmu8 as B
+from forecast import benchmark_cmu8_train as BT
 from forecast import cmu_more as C
 from forecast import evaluate as E
 from forecast import train as T
@@ -64,9 +65,9 @@ def test_windows_joints_and_scoring_follow_the_reference():
 
 def test_protocol_on_a_tiny_benchmark(tiny_root, tmp_path):
     cfg = B.MlpConfig(steps=2, batch=8, val_every=1, n_blocks=2)
-    tr, va = B.split_train_val(C.benchmark_files(tiny_root))
+    tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
     assert [f.name for f in va] == ["soccer_2.txt", "walking_2.txt"]  # the last file of each 2-file action
-    model, hist = B.train_mlp(tr, va, cfg)
+    model, hist = BT.train_mlp(tr, va, cfg)
     ck = tmp_path / "mlp.pt"
     B.save_mlp(ck, model, cfg, {"train_files": [f.name for f in tr]})
     assert B.is_cmu8_checkpoint(ck)
@@ -144,6 +145,7 @@ def test_shared_test_windows():
 
 def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, monkeypatch):
     from forecast import cli
+    from forecast.preview import shipped_checkpoints
 
     seen = {}
     real_evaluate = B.evaluate
@@ -154,7 +156,7 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
 
     monkeypatch.setattr(B, "evaluate", fake_evaluate)
     assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
-    shipped = cli.shipped_checkpoints()
+    shipped = shipped_checkpoints()
     assert any(p.endswith("gru_cmu.pt") for p in shipped)
     assert not any(n in p for p in shipped for n in ("characteristic", "behaviour", "cmu8_"))
     assert seen["b19"] == shipped
@@ -162,15 +164,15 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
 
 
 def test_mirror_swaps_sides_and_is_an_involution():
-    idx = B.mirror_index()
+    idx = BT.mirror_index()
     used = list(B.JOINTS_USED)
     assert sorted(idx.tolist()) == list(range(25)) and (idx[idx] == np.arange(25)).all()
     assert idx[used.index(3)] == used.index(9)  # left knee <-> right knee
     assert idx[used.index(14)] == used.index(14)  # the spine stays
     b = torch.randn(2, 5, 25, 3)
-    m = B._mirror(b, torch.tensor([True, False]), torch.from_numpy(idx))
+    m = BT._mirror(b, torch.tensor([True, False]), torch.from_numpy(idx))
     assert torch.equal(m[1], b[1]) and torch.allclose(m[0, :, used.index(3), 0], -b[0, :, used.index(9), 0])
-    assert torch.allclose(B._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
+    assert torch.allclose(BT._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
 
 
 @pytest.mark.parametrize(
@@ -194,10 +196,10 @@ def test_shipped_dct_mlp_checkpoints(ck):
 
 def test_reverse_plays_chosen_windows_backwards():
     b = torch.randn(3, 75, 25, 3)
-    r = B._reverse(b, torch.tensor([True, False, True]))
+    r = BT._reverse(b, torch.tensor([True, False, True]))
     assert torch.equal(r[1], b[1])
     assert torch.equal(r[0, 0], b[0, -1]) and torch.equal(r[2, 50], b[2, 24])
-    assert torch.equal(B._reverse(r, torch.tensor([True, False, True])), b)
+    assert torch.equal(BT._reverse(r, torch.tensor([True, False, True])), b)
 
 
 def _random_mlp(seed: int) -> tuple[B.DctMlp, B.MlpConfig]:

@@ -240,7 +240,7 @@ def test_root_velocity_coding_round_trips_and_keeps_the_observation():
 
 def test_shared_statistics_free_an_anchored_model_from_its_window_length():
     """lag_stats = false: motion still coded relative to the last observed frame, standardised with one
-    mean/std per channel shared over time (the seed's), so any length is generated in one pass (issue 19)."""
+    mean/std per channel shared over time (the seed's), so any length is generated in one pass."""
     base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 3, "batch": 4, "sample_steps": 3}
     model, _ = T.train("social_diffusion", _clips(3, 100), T.config_from_dict("social_diffusion", base))
     shared, _ = T.train(
@@ -449,7 +449,7 @@ def test_shipped_configs_and_checkpoint_load():
         assert model.feat_std.dim() == 2  # motion coded relative to the last observed frame
         assert meta["config"].mirror and meta["extra"]["val_best"]["select"] == "ndms_2_3"  # the recipe
     ck = root / "checkpoints" / "social_diffusion_1pass_cmu.pt"
-    if ck.exists():  # issue 19: shared statistics, one pass over any horizon
+    if ck.exists():  # shared statistics, one pass over any horizon
         assert ck.stat().st_size < 2_000_000
         model, meta = T.load_checkpoint(ck, skeleton="body19")
         assert model.feat_std.dim() == 1 and model.anchor == model.n_obs - 1

@@ -62,7 +62,7 @@ def test_project_errors_share_one_base_and_keep_their_builtin_parents():
     from track.export import ExportError
     from track.motion import CheckpointMismatch
     from track.opensim_ik import OpenSimError
-    from track.skeleton_fit import FitError
+    from track.skeleton_fit_file import FitError
 
     parents = {
         CalibrationError: RuntimeError, FormatError: ValueError, RecorderError: RuntimeError,

@@ -1,7 +1,7 @@
 """The environment the project runs in: exactly one OpenCV build.
 
 The OpenCV wheels (``opencv-python``, ``opencv-contrib-python``, their ``-headless`` twins) all install
-into the same ``cv2`` folder, so a second one silently replaces the project's build (issue 15: aniposelib
+into the same ``cv2`` folder, so a second one silently replaces the project's build (aniposelib
 pulled ``opencv-contrib-python`` 5.1 over the headless 5.0 and a keypoint test changed its result).
 """
 

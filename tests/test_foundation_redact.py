@@ -1,4 +1,4 @@
-"""One redaction for every place a camera source is written or shown (issue 15)."""
+"""One redaction for every place a camera source is written or shown."""
 
 from __future__ import annotations
 

@@ -8,7 +8,8 @@ import pytest
 from keypoints_tiny import make_dets_model, make_rtmo_model, make_simcc_model
 
 from keypoints import decoders as D
-from keypoints.pipeline import KeypointPipeline, PipelineConfig, crop_transform
+from keypoints.crops import crop_transform
+from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
 from keypoints.registry import ModelError
 from keypoints.runtime import OnnxModel, RuntimeConfig
 
@@ -89,7 +90,7 @@ def test_simcc_top_down_through_tiny_onnx_graphs(models, rng):
     box_in = np.array([[100, 50, 300, 450, 0.9], [0, 0, 10, 10, 0.1]], np.float32)  # 640x640 input px
     make_dets_model(models, box_in, np.array([0, 0]))
     pipe = KeypointPipeline(
-        PipelineConfig(
+        KeypointPipelineConfig(
             model_set="tiny_det+tiny_simcc",
             skeleton="model",
             refine_passes=0,
@@ -108,7 +109,9 @@ def test_simcc_top_down_through_tiny_onnx_graphs(models, rng):
     np.testing.assert_allclose(res[0].xy_px[0], expect, atol=1e-3)
     assert np.allclose(res[0].score, 0.9)
     # in body19 the derived neck is the mid-shoulder
-    pipe19 = KeypointPipeline(PipelineConfig(model_set="tiny_det+tiny_simcc", refine_passes=0, min_box_px=1))
+    pipe19 = KeypointPipeline(
+        KeypointPipelineConfig(model_set="tiny_det+tiny_simcc", refine_passes=0, min_box_px=1)
+    )
     r19 = pipe19([img])[0]
     np.testing.assert_allclose(r19.xy_px[0, 18], 0.5 * (expect[5] + expect[6]), atol=1e-3)
 
@@ -118,7 +121,7 @@ def test_rtmo_one_stage_through_tiny_onnx_graph(models):
     kpts = np.zeros((3, 17, 3), np.float32)
     kpts[..., 0], kpts[..., 1], kpts[..., 2] = 50, 100, 0.8
     make_rtmo_model(models, dets, kpts)
-    pipe = KeypointPipeline(PipelineConfig(model_set="tiny_rtmo", skeleton="model"))
+    pipe = KeypointPipeline(KeypointPipelineConfig(model_set="tiny_rtmo", skeleton="model"))
     res = pipe([np.zeros((1280, 640, 3), np.uint8)])[0]  # portrait: r = 0.5
     assert len(res.boxes) == 1  # NMS merges the duplicate, the threshold drops the weak one
     np.testing.assert_allclose(res.boxes[0, :4], dets[0, :4] * 2)

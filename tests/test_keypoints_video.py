@@ -12,7 +12,7 @@ from keypoints_tiny import make_dets_model, make_simcc_model
 
 from core.errors import FormatError
 from keypoints.detections import Detections
-from keypoints.pipeline import KeypointPipeline, PipelineConfig
+from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
 from keypoints.video import check_size, run_session, run_videos
 
 W, H = 160, 120
@@ -27,7 +27,7 @@ def tiny_set(tmp_path, monkeypatch):
     kp = np.stack([np.arange(17) * 8 + 20, np.arange(17) * 10 + 30], 1).astype(np.float32)
     make_simcc_model(d, kp)
     make_dets_model(d, np.array([[40, 40, 200, 400, 0.9]], np.float32), np.array([0]))
-    return PipelineConfig(model_set="tiny_det+tiny_simcc", refine_passes=0, min_box_px=1)
+    return KeypointPipelineConfig(model_set="tiny_det+tiny_simcc", refine_passes=0, min_box_px=1)
 
 
 def write_video(path, n, size=(W, H), seed=0):
@@ -84,7 +84,9 @@ def test_chunks_of_another_model_are_not_reused(tmp_path, tiny_set):
     pipe = KeypointPipeline(tiny_set)
     with pytest.raises(Killed):
         run_videos(vids, tmp_path / "out", tiny_set, chunk_frames=2, pipeline=DiesAfter(pipe, 3))
-    other = PipelineConfig(model_set=tiny_set.model_set, skeleton="model", refine_passes=0, min_box_px=1)
+    other = KeypointPipelineConfig(
+        model_set=tiny_set.model_set, skeleton="model", refine_passes=0, min_box_px=1
+    )
     rep = run_videos(vids, tmp_path / "out", other, chunk_frames=2)
     assert rep.resumed_from == {} and Detections.load(rep.paths["cam01"]).skeleton == "coco17"
 
@@ -138,7 +140,7 @@ def test_bottom_up_maps_are_kept_for_the_tracker(tmp_path, monkeypatch):
     need_shared("models", "openpose_mobilenetv2_368x432.onnx")
     monkeypatch.setenv("ROOMCAP_CACHE", str(tmp_path / "cache"))
     vids = {"cam01": write_video(tmp_path / "cam01.avi", 3, size=(320, 240))}
-    cfg = PipelineConfig(model_set="openpose", keep_maps=True)
+    cfg = KeypointPipelineConfig(model_set="openpose", keep_maps=True)
     d = Detections.load(run_videos(vids, tmp_path / "out", cfg, chunk_frames=2).paths["cam01"])
     assert d.extra["maps_f16"].shape == (3, 46, 54, 57) and d.extra["maps_f16"].dtype == np.float16
     assert d.extra["maps_to_img"].shape == (3, 2, 3)

@@ -83,7 +83,7 @@ def test_keypoint_presets_resolve_and_are_recorded():
 
 
 def test_stage_options_are_checked_when_the_config_loads(tmp_path, capsys):
-    """A typo in a stage's options is found before any session runs (issue 16), not when it is reached."""
+    """A typo in a stage's options is found before any session runs, not when it is reached."""
     with pytest.raises(FormatError, match=r"triangulate.options.*thetta_px.*valid keys"):
         PipelineConfig.from_dict({"triangulate": {"options": {"match": {"thetta_px": 3}}}})
     with pytest.raises(FormatError, match=r"track.options.*'tau'"):

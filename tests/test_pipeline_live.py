@@ -1,4 +1,4 @@
-"""pipeline.live (issue 17 item 4, issue 16): the live track stage steps the particle filter once per frame
+"""pipeline.live: the live track stage steps the particle filter once per frame
 set, never renumbers an identity, appends whole parts to track/live.parts/ (the parts/1 layout of the
 streamed batch stages, read by TrackFile.load("track/live.npz") and iter_parts), and costs the same late
 as early. Sessions of earlier versions (track/live/, live_tracks/1) still load."""
@@ -23,7 +23,7 @@ from keypoints.skeletons import CANONICAL
 from pipeline.live import STAGES, LiveContext, _track, legacy_live_dir, live_dir, load_live_tracks
 from synthetic.rigs import ring_rig
 from track.cli import resolve_tracks
-from track.particle import ParticleConfig
+from track.particle_config import ParticleConfig
 from track.trackfile import TrackFile, iter_parts
 from triangulate.chunks import PartStore, parts_dir, remove_output
 

@@ -250,7 +250,7 @@ def test_changed_stage_code_reruns_that_stage_only(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("tracker", ["greedy", "particle"])
 def test_reprocess_with_chunk_s_streams_end_to_end(sessions, tmp_path, tracker):
-    """`reprocess` with chunk_s > 0 (issue 17): the 3D stages write their parts folders, the runner caches
+    """`reprocess` with chunk_s > 0: the 3D stages write their parts folders, the runner caches
     and fingerprints them, forecast and report read them, and the tracks equal the whole-session run's."""
     from track.trackfile import TrackFile
 

@@ -1,4 +1,4 @@
-"""Results that are probably wrong are said (issue 15): rig units, frame order, empty cameras, 0 people."""
+"""Results that are probably wrong are said: rig units, frame order, empty cameras, 0 people."""
 
 from __future__ import annotations
 

@@ -68,7 +68,9 @@ def test_checkpoint_mismatch_is_refused(tmp_path):
 
 
 def test_filter_starts_tracks_with_the_generator():
-    from track.particle import ParticleConfig, ParticleTracker, track_sequence
+    from track.particle import ParticleTracker
+    from track.particle_config import ParticleConfig
+    from track.particle_offline import track_sequence
 
     P = ring_P(3)
     X = walkers(2, 40, seed=3)

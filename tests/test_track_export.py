@@ -103,7 +103,7 @@ def test_person_without_a_complete_frame_is_a_clear_error():
     tf = _trackfile(xyz)
     with pytest.raises(ExportError, match=r"track 3 has no frame in which all its markers are known"):
         marker_table(tf, 3, max_gap=5)
-    from track.skeleton_fit import FitError
+    from track.skeleton_fit_file import FitError
 
     with pytest.raises(FitError, match=r"track 3 has no frame in which all 19 joints are known"):
         fit_skeletons(tf)

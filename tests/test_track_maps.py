@@ -7,7 +7,9 @@ import pytest
 from track_helpers import render_kp, render_maps, ring_P, walkers
 
 from track import observation as obs
-from track.particle import ParticleConfig, ParticleTracker, track_sequence
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
+from track.particle_offline import track_sequence
 
 FOCAL = np.full(3, 1000.0)
 FAST = dict(motion="constant_velocity", n_samples=150, smooth_sigma_frames=0.0)

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from track_helpers import render_kp, ring_P, walkers
 
-from track.particle import ParticleConfig, ParticleTracker, track_sequence
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
+from track.particle_offline import track_sequence
 from track.trackfile import OBSERVED, PREDICTED
 
 FOCAL = np.full(3, 1000.0)

@@ -1,4 +1,4 @@
-"""Issue 17, item 2, for the particle filter: durations on the clock (t_ns), dropped frames, jittered
+"""The particle filter on the clock: durations on the clock (t_ns), dropped frames, jittered
 timestamps and a 30 s pause of the recorder while the frame numbers stay consecutive."""
 
 from __future__ import annotations
@@ -10,7 +10,9 @@ import pytest
 from track_helpers import render_kp, ring_P
 from triangulate_helpers import TEMPLATE
 
-from track.particle import ParticleConfig, ParticleTracker, track_sequence
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
+from track.particle_offline import track_sequence
 from track.trackfile import PREDICTED, SMOOTHED
 from triangulate import evaluate as ev
 

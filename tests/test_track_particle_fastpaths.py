@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 from track_helpers import render_kp, ring_P, walkers
 
-from track.particle import ParticleConfig, ParticleTracker
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
 
 CFG = ParticleConfig(motion="constant_velocity", n_samples=120, smooth_sigma_frames=0.0)
 

@@ -34,8 +34,10 @@ def test_pose2sim_two_participants_stable_ids_and_view_dependent_uncertainty(tmp
     trial = base / "S00_P01_MultiParticipants" / "S00_P01_T02_Participants1-2"
     lay = make_pose2sim_session(trial, base / "S00_Calibration" / "Calib_qualisys.toml", tmp_path / "s")
     from calibrate.camera import CameraRig
-    from track.particle import ParticleConfig, ParticleTracker, track_sequence
+    from track.particle import ParticleTracker
+    from track.particle_config import ParticleConfig
     from track.particle_io import focal_lengths, track_arrays_to_file
+    from track.particle_offline import track_sequence
     from triangulate.multiview import load_detections
 
     rig = CameraRig.load(lay.rig_toml)

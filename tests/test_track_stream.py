@@ -1,4 +1,4 @@
-"""Issue 17, item 1, for the particle tracker: the streamed stage (track/stream.py) equals the whole-session
+"""The particle tracker streamed: the streamed stage (track/stream.py) equals the whole-session
 run bit for bit, resumes after a kill from the last complete chunk, and rebuilds damaged parts."""
 
 from __future__ import annotations
@@ -20,13 +20,9 @@ from synthetic.rigs import kitchen
 from synthetic.world import SceneConfig, make_scene, write_session
 from track import stream
 from track.greedy import frame_times_s, pause_clock
-from track.particle import (
-    ParticleConfig,
-    ParticleTracker,
-    finish_tracks,
-    gather_estimates,
-    track_sequence,
-)
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
+from track.particle_offline import finish_tracks, gather_estimates, track_sequence
 from track.stage import track_session_particle
 from track.trackfile import SMOOTHED, TrackFile
 from triangulate import chunks as C

@@ -26,7 +26,7 @@ from keypoints.skeletons import CANONICAL
 from pipeline.live import LiveContext, _track
 from pipeline.live_outputs import StepFeed
 from synthetic.rigs import ring_rig
-from track.particle import ParticleConfig
+from track.particle_config import ParticleConfig
 from track.streams import (
     OSC_BIRTH,
     OSC_DEATH,

@@ -1,4 +1,4 @@
-"""Issue 17, item 3, on Ray: the time chunks of one session as Ray tasks (``[triangulate.options] executor =
+"""On Ray, the time chunks of one session as Ray tasks (``[triangulate.options] executor =
 "ray"``) give the one-process parts byte for byte, and ``reprocess --executor ray`` sends a chunked
 session's chunks to the cluster, nested in the session's task, with the local executor's tracks."""
 

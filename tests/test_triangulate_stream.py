@@ -1,4 +1,4 @@
-"""Issue 17, item 1: the 3D stages streamed in time chunks equal the whole session's, resume after a
+"""The 3D stages streamed in time chunks equal the whole session's, resume after a
 kill, and rebuild damaged parts; bad input (timestamps back, lengths, rates, nobody) is said."""
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def test_chunked_equals_whole_session(session, tmp_path):
 
 
 def test_chunks_in_two_processes_equal_one(session, tmp_path, monkeypatch, caplog):
-    """Issue 17, item 3: the chunks of one session triangulated by 2 worker processes give the one-process
+    """The chunks of one session triangulated by 2 worker processes give the one-process
     parts bit for bit, so the (sequential, streamed) tracker's identities are the single worker's; a run
     killed with one worker resumes with two."""
     root = _copy(session, tmp_path)

@@ -13,7 +13,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from core.fileio import atomic_write_text
-from track.skeleton_fit import YUP, FitError, SkeletonFit, _children
+from track.skeleton_fit import YUP, _children
+from track.skeleton_fit_file import FitError, SkeletonFit
 
 
 def write_bvh(fit: SkeletonFit, path: str | os.PathLike, track_ids: list[int] | None = None) -> None:

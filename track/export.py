@@ -48,7 +48,8 @@ import numpy as np
 from core.errors import FormatError, RoomcapError
 from core.fileio import atomic_path, atomic_write_text
 from track.bvh import write_bvh
-from track.skeleton_fit import FitError, fill_gaps, fit_skeletons, person_span
+from track.skeleton_fit import fill_gaps, fit_skeletons, person_span
+from track.skeleton_fit_file import FitError
 from track.trackfile import (
     SMOOTHED,
     TrackFile,

@@ -4,7 +4,7 @@ Every prior works on a flat batch of pose samples ``x (B,J,3)`` (world metres,
 B = tracks x samples) with a per-sample state (a dict of arrays whose first axis
 is B, so resampling is a gather along that axis):
 
-- :class:`ZeroVelocityPrior` (in :mod:`track.priors`, re-exported): x_t = x_{t-1} + N(0, sigma^2)
+- :class:`ZeroVelocityPrior` (:mod:`track.priors`): x_t = x_{t-1} + N(0, sigma^2)
   (the seed's "w/o pose prediction" ablation).
 - :class:`ConstantVelocityPrior`: x_t = x_{t-1} + a (x_{t-1} - x_{t-2}) + N(0, sigma^2).
 - :class:`GRUPrior`: eq. 5.1, ``z_t, h_t = GRU(z_{t-1}, h_{t-1})`` with one hidden state
@@ -34,19 +34,10 @@ from core.errors import RoomcapError
 from core.fileio import atomic_path
 from keypoints.skeletons import CANONICAL, Skeleton
 from track.normalize import hip_frame, normalize, rotate_vectors
-from track.priors import (  # noqa: F401 - re-exported
+from track.priors import (
     DEFAULT_MOTION_CHECKPOINT,
     GRU_WEIGHT_NAMES,
-    ConstantVelocityPrior,
     GRUCellPrior,
-    MotionPrior,
-    State,
-    ZeroVelocityPrior,
-    check_batch,
-    concat_states,
-    gather_state,
-    normal_noise,
-    standard_normals,
     write_numpy_copy,
 )
 

@@ -44,37 +44,26 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from core.config import bounded, config_from_dict
-from core.progress import Progress
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import kernels
 from track import observation as obs
 from track.greedy import (
-    SEED_SIGMA_FRAMES,
-    frame_times_s,
-    long_enough,
     nominal_dt,
-    pause_clock,
-    segment_frames,
-    smooth_segments,
-    sparse_time_warning,
 )
-from track.normalize import denormalize, hip_frame
+from track.normalize import hip_frame
+from track.particle_births import Births
+from track.particle_config import ParticleConfig, make_prior
+from track.particle_types import FrameEstimate, LostTrack, Track, concat_estimates, empty_estimate
 from track.priors import (
-    DEFAULT_MOTION_CHECKPOINT,
     TEMPLATE_BODY19_M,
-    ConstantVelocityPrior,
     MotionPrior,
-    ZeroVelocityPrior,
     concat_states,
-    load_gru_numpy,
     standard_normals,
 )
-from track.trackfile import OBSERVED, PREDICTED, SMOOTHED
+from track.trackfile import OBSERVED, PREDICTED
 from triangulate.matching import MatchConfig
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
@@ -84,193 +73,9 @@ _GUIDED_LAM = 0.01  # the guided targets' pull towards the sample's own joint (o
 
 
 STATE_SCHEMA = "particle_state/1"
-MOTIONS = ("gru", "constant_velocity", "zero_velocity")
-BIRTHS = ("gaussian", "learned")
 
 
-@dataclass(frozen=True)
-class ParticleConfig:
-    """Settings of the particle tracker (the only copy of each default).
-
-    n_samples: pose samples per person (seed: 300).
-    motion: 'gru' (eq. 5.1, the shipped checkpoint), 'constant_velocity' or 'zero_velocity'.
-    motion_checkpoint: path of a GRU checkpoint ('' = the shipped one).
-    motion_dropout: dropout at inference for the GRU (negative = the trained rate; 0 = the
-      "prior without dropout" ablation).
-    motion_sigma_m: per-frame Gaussian noise at 25 fps of the velocity priors (scaled by sqrt(25/fps)),
-      and added to the GRU's output (``gru_sigma_m``).
-    resample: per-camera-pair stochastic universal resampling (off = the "w/o resampling" ablation).
-    refine: joint refinement (off = the "w/o joint refinement" ablation); refine_candidates = M
-      positions per joint including the current one; refine_sigma_m their spread; refine_guided of them
-      are drawn around the point the track's detections put the joint at (0 = the seed's purely random
-      candidates).
-    exact_output_weights: the output weights (sec. 5.2.4) by eq. 5.7 over all cameras in an extra pass;
-      by default the refinement's per-joint scores summed over all cameras are reused (product over joints).
-    obs_sigma_m / obs_sigma_px: keypoint likelihood tolerance (metres at the joint's depth, and pixels).
-    eps: epsilon of eq. 5.7 (per limb).
-    min_score: 2D joints below this score are ignored.
-    assoc_tol_m / assoc_gate / assoc_min_joints: track-detection association (median joint distance in
-      units of assoc_tol_m must stay below assoc_gate, on at least assoc_min_joints joints).
-    init_*: birth of tracks (at least init_min_joints triangulated joints seen by init_min_views
-      cameras; no live track's pelvis within init_exclusion_m); samples spread init_sigma_m around
-      the candidate and init_fill_sigma_m around template-filled joints.
-    end_after_s: a track without any associated detection for this long ends.
-    max_people: at most this many tracks at once (0 = no limit), for a recording whose number of people
-      is known: with as many tracks, no new identity is born (a coasting track is still re-anchored).
-    reid_*: a new candidate takes an ended identity when its pelvis lies within
-      reid_dist_m + reid_speed_mps * gap of the predicted one and the mean bone-length difference is
-      below reid_bone_tol_m, for gaps up to reid_max_gap_s.
-    min_track_s: shorter tracks are dropped from the output; trim_coast: frames after a track's last
-      evidence are dropped when it ends (offline output); smooth_sigma_s: offline NaN-aware Gaussian
-      smoothing of the output in time, in seconds (0 = off; None = the seed's 2 frames at the session's
-      rate, as its evaluation does, sec. 5.3.1 from ch. 4), never across two frames more than max_gap_s
-      apart; smooth_sigma_frames: the same width in frames, as earlier versions took it (converted at the
-      frame rate by :meth:`at_fps`).
-    max_gap_s: two consecutive frames further apart than this (+ one frame) are a pause of the recorder:
-      the tracks' clock counts it as one frame (termination, re-identification), the motion prior moves
-      once across it, and association, re-anchoring and re-identification allow pause_gate_m more distance
-      for each pause since the track's last evidence (how far a person may have moved while nothing was
-      recorded); shorter gaps (dropped frames) are predicted one motion step per missed frame.
-    use_maps: the stage weighs samples with the confidence maps + PAFs (eq. 5.8) stored in the
-      detection files by a bottom-up model (keypoints ``keep_maps``); off or absent = keypoints + scores.
-    birth: how a new track's samples are drawn (sec. 5.2.3): 'gaussian' = Gaussian noise around the
-      candidate, missing joints from the median mocap pose; 'learned' = the generator g of
-      :mod:`track.birth` (dropout network that fills missing joints, run N times with dropout on);
-      birth_checkpoint: its checkpoint ('' = the shipped one).
-    seed: random seed.
-    """
-
-    n_samples: int = 300
-    motion: str = "gru"
-    motion_checkpoint: str = ""
-    motion_dropout: float = -1.0
-    motion_sigma_m: float = 0.01
-    gru_sigma_m: float = 0.003
-    resample: bool = True
-    refine: bool = True
-    refine_candidates: int = 3
-    refine_sigma_m: float = 0.03
-    refine_guided: int = 1
-    exact_output_weights: bool = False
-    obs_sigma_m: float = 0.05
-    obs_sigma_px: float = 3.0
-    eps: float = 0.01
-    min_score: float = 0.1
-    assoc_tol_m: float = 0.1
-    assoc_gate: float = 3.0
-    assoc_min_joints: int = 3
-    init_min_joints: int = 8
-    init_min_views: int = 2
-    init_exclusion_m: float = 0.5
-    init_sigma_m: float = 0.03
-    init_fill_sigma_m: float = 0.1
-    init_theta_px: float = 40.0
-    end_after_s: float = 1.0
-    max_people: int = bounded(0, 0, 10_000)
-    reid_max_gap_s: float = 10.0
-    reid_dist_m: float = 0.5
-    reid_speed_mps: float = 1.0
-    reid_bone_tol_m: float = 0.05
-    min_track_s: float = 0.2
-    trim_coast: bool = True
-    smooth_sigma_s: float | None = None  # None: the seed's 2 frames at the session's frame rate
-    max_gap_s: float = 0.4
-    pause_gate_m: float = 0.5
-    smooth_sigma_frames: float | None = None  # the old key (frames)
-    use_maps: bool = True
-    birth: str = "gaussian"
-    birth_checkpoint: str = ""
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.motion not in MOTIONS:
-            raise ValueError(f"ParticleConfig.motion must be one of {MOTIONS}, got {self.motion!r}.")
-        if self.birth not in BIRTHS:
-            raise ValueError(f"ParticleConfig.birth must be one of {BIRTHS}, got {self.birth!r}.")
-        if self.n_samples < 1:
-            raise ValueError(f"ParticleConfig.n_samples must be >= 1, got {self.n_samples}.")
-        if self.refine_candidates < 1:
-            raise ValueError(f"ParticleConfig.refine_candidates must be >= 1, got {self.refine_candidates}.")
-        if self.max_gap_s < 0 or self.pause_gate_m < 0 or self.end_after_s <= 0:
-            raise ValueError("ParticleConfig: end_after_s must be positive, max_gap_s and pause_gate_m >= 0.")
-        if any(v is not None and v < 0 for v in (self.smooth_sigma_s, self.smooth_sigma_frames)):
-            raise ValueError("ParticleConfig: smooth_sigma_s and smooth_sigma_frames must be >= 0.")
-
-    def at_fps(self, fps: float) -> ParticleConfig:
-        """The config with the smoothing width given in frames converted to seconds at ``fps`` (as
-        :meth:`track.greedy.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
-        if self.smooth_sigma_frames is not None:
-            return replace(self, smooth_sigma_s=self.smooth_sigma_frames / fps, smooth_sigma_frames=None)
-        if self.smooth_sigma_s is None:
-            return replace(self, smooth_sigma_s=SEED_SIGMA_FRAMES / fps)
-        return self
-
-    @classmethod
-    def from_dict(cls, d: dict) -> ParticleConfig:
-        return config_from_dict(cls, d)
-
-
-def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICAL) -> MotionPrior:
-    """The motion prior named by ``config.motion``; 'gru' from the checkpoint's numpy copy when it has an
-    up-to-date one (:func:`track.priors.load_gru_numpy`), else from the checkpoint itself (imports torch)."""
-    sigma = config.motion_sigma_m * float(np.sqrt(25.0 / fps))
-    if config.motion == "zero_velocity":
-        return ZeroVelocityPrior(sigma, skeleton.n_joints)
-    if config.motion == "constant_velocity":
-        return ConstantVelocityPrior(sigma, n_joints=skeleton.n_joints)
-    path = config.motion_checkpoint or DEFAULT_MOTION_CHECKPOINT
-    kw = {
-        "dropout": None if config.motion_dropout < 0 else config.motion_dropout,
-        "sigma_m": config.gru_sigma_m * float(np.sqrt(25.0 / fps)),
-    }
-    prior = load_gru_numpy(path, fps, skeleton, **kw)  # the checkpoint's numpy copy: no torch
-    if prior is not None:
-        return prior
-    from track.motion import GRUPrior  # lazy: loads torch
-
-    return GRUPrior.load(path, fps=fps, skeleton=skeleton, seed=config.seed, **kw)
-
-
-@dataclass
-class FrameEstimate:
-    """Output of one frame for the K live tracks (sec. 5.2.4)."""
-
-    track_id: np.ndarray  # (K,)
-    xyz_m: np.ndarray  # (K,J,3)
-    std_m: np.ndarray  # (K,J)
-    confidence: np.ndarray  # (K,J)
-    n_views: np.ndarray  # (K,J)
-    flags: np.ndarray  # (K,J) uint8
-    evidence: np.ndarray  # (K,) bool: the track had an associated detection this frame
-
-
-@dataclass
-class _Track:
-    id: int
-    x: np.ndarray  # (N,J,3)
-    state: dict
-    born: int
-    last_seen: int
-    last_seen_s: float = 0.0  # the tracks' clock (pauses of the recorder shortened to one frame)
-    pauses_seen: int = 0  # pauses of the recorder before the last evidence
-    n_seen: int = 1
-    mean: np.ndarray | None = None  # (J,3) last estimate
-    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))  # pelvis m/s
-    bones: np.ndarray | None = None  # (L,) running mean bone lengths
-
-
-@dataclass
-class _Lost:
-    id: int
-    end: int
-    pelvis: np.ndarray
-    velocity: np.ndarray
-    bones: np.ndarray | None
-    end_s: float = 0.0  # the tracks' clock at the last evidence
-    pauses: int = 0  # pauses of the recorder before it
-
-
-class ParticleTracker:
+class ParticleTracker(Births):
     """The filter over a rig. P: (C,3,4) projection matrices (undistorted px); focal_px: (C,).
 
     ``step(kp, sc, frame, t_s=)`` takes one frame of undistorted detections ``kp (C,D,J,2)`` (NaN =
@@ -304,10 +109,10 @@ class ParticleTracker:
         self.centers, self.Minv = obs.camera_rays(self.P)
         self.rng = np.random.default_rng(cfg.seed)
         self.prior = prior if prior is not None else make_prior(cfg, fps, skeleton)
-        self.tracks: list[_Track] = []
+        self.tracks: list[Track] = []
         self.n_map_scores = 0  # update steps whose weights came from confidence maps + PAFs
         self._batch: tuple | None = None  # the last step's (X, state, the tracks' views of them)
-        self.lost: list[_Lost] = []
+        self.lost: list[LostTrack] = []
         self.ended: list[tuple[int, int, int]] = []  # (id, born, last_seen) of ended track segments
         self.next_id = 0
         self.end_after = max(1, int(round(cfg.end_after_s * fps)))
@@ -410,7 +215,7 @@ class ParticleTracker:
             self._batch = None
             for i, m in enumerate(meta["tracks"]):
                 self.tracks.append(
-                    _Track(
+                    Track(
                         int(m["id"]),
                         np.asarray(d[f"track{i}_x"]),
                         {k: np.asarray(d[f"track{i}_state_{k}"]) for k in m["state"]},
@@ -425,7 +230,7 @@ class ParticleTracker:
                     )
                 )
             self.lost = [
-                _Lost(
+                LostTrack(
                     int(m["id"]),
                     int(m["end"]),
                     np.asarray(d[f"lost{i}_pelvis"]),
@@ -559,9 +364,9 @@ class ParticleTracker:
         born = self._initialise(kp, sc, assigned, frame)
         if born:
             est = self._estimate_new(born)
-            out = est if out is None else _concat_estimates(out, est)
+            out = est if out is None else concat_estimates(out, est)
         if out is None:
-            out = _empty_estimate(J)
+            out = empty_estimate(J)
         return out
 
     def _checked_maps(self, maps):
@@ -658,7 +463,7 @@ class ParticleTracker:
             if now - t.last_seen_s >= (self.end_after - 0.5) / self.fps:
                 self.ended.append((t.id, t.born, t.last_seen))
                 self.lost.append(
-                    _Lost(
+                    LostTrack(
                         t.id,
                         t.last_seen,
                         self._pelvis(t.mean),
@@ -683,7 +488,7 @@ class ParticleTracker:
                 continue
             self.ended.append((t.id, t.born, t.last_seen))
             self.lost.append(
-                _Lost(t.id, t.last_seen, self._pelvis(t.mean), t.velocity.copy(), t.bones, t.last_seen_s,
+                LostTrack(t.id, t.last_seen, self._pelvis(t.mean), t.velocity.copy(), t.bones, t.last_seen_s,
                       t.pauses_seen)
             )  # fmt: skip
         self.tracks = []
@@ -778,407 +583,3 @@ class ParticleTracker:
         return X, idx, score if refine else None
 
     # ------------------------------------------------------------------ birth
-
-    def _free_poses(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray):
-        """The 3D poses triangulated from the detections no track explains (None when they cannot give
-        a candidate: too few cameras with free detections)."""
-        cfg = self.config
-        if self.reconstructor is None:
-            return None
-        C, D = kp.shape[:2]
-        free = np.ones((C, D), bool)
-        for c in range(C):
-            a = assigned[c][assigned[c] >= 0] if assigned.size else []
-            free[c, a] = False
-        free &= (sc > 0).sum(-1) >= cfg.assoc_min_joints
-        if (free.sum(1) > 0).sum() < cfg.init_min_views:
-            return None
-        scf = np.where(free[..., None], sc, 0.0)
-        if not self._enough_views(scf):
-            return None
-        # the matching sees only the free detections: each camera's first, in their order (the others after
-        # them are all NaN), and no more rows per camera than the most free detections of one camera
-        rows = np.argsort(~free, axis=1, kind="stable")[:, : free.sum(1).max()]  # (C,P')
-        kpf = np.where(free[..., None, None], kp, np.nan)
-        kpf = np.take_along_axis(kpf, rows[..., None, None], 1)
-        poses = self.reconstructor(kpf.astype(np.float64), np.take_along_axis(scf, rows[..., None], 1))
-        return poses if len(poses.xyz_m) else None
-
-    def _initialise(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray, frame: int) -> list[_Track]:
-        cfg = self.config
-        poses = self._free_poses(kp, sc, assigned)
-        if poses is None:
-            return []
-        good = (poses.n_views >= cfg.init_min_views) & np.isfinite(poses.xyz_m).all(-1)
-        n_good = good.sum(1)
-        order = np.argsort(-(n_good + poses.score.sum(1) * 1e-3))  # best candidate first
-        born: list[_Track] = []
-        live = [t for t in self.tracks if frame - t.last_seen == 0]
-        coasting = [t for t in self.tracks if frame - t.last_seen > 0]
-        # with no track at all (the first frame, the frame after a pause) the candidates are the frame's
-        # people as the reconstructor separated them (its merge_dist_m joins one person seen twice): none
-        # excludes another, so people closer than init_exclusion_m are not lost to each other
-        near_born = bool(self.tracks)
-        n_new = 0
-        for m in order:
-            if n_good[m] < cfg.init_min_joints:
-                continue
-            cand = np.where(good[m][:, None], poses.xyz_m[m], np.nan).astype(np.float32)
-            if (
-                self.birth is not None
-            ):  # the learned generator g (sec. 5.2.3): sample 0 = its dropout-free fill
-                samples = self.birth.sample(cand, cfg.n_samples, self.rng)
-                if samples is None:
-                    continue
-                filled, missing = samples[0], ~np.isfinite(cand).all(-1)
-            else:
-                filled, missing = self._fill(cand)
-                if filled is None:
-                    continue
-            pel = self._pelvis(filled)
-            if any(
-                np.linalg.norm(pel[:2] - self._pelvis(t.mean)[:2]) < cfg.init_exclusion_m
-                for t in live + (born if near_born else [])
-            ):
-                continue
-            if self.birth is None:
-                samples = self._samples(filled, missing)
-            bones = np.where(np.isfinite(self._bones(cand)), self._bones(filled), np.nan)
-            # a coasting track of this person? re-anchor it (keeps the identity)
-            t = self._match_coasting(coasting, pel, bones)
-            if t is not None:
-                coasting.remove(t)
-                t.x, t.state, t.last_seen = samples, self.prior.init_state(samples), frame
-                t.last_seen_s, t.pauses_seen = self.clock_s, self.pauses
-                t.n_seen += 1
-                t.mean = filled
-                born.append(t)
-                continue
-            if cfg.max_people and len(self.tracks) + n_new >= cfg.max_people:
-                continue
-            n_new += 1
-            tid = self._reidentify(pel, bones, frame)
-            t = _Track(
-                tid,
-                samples,
-                self.prior.init_state(samples),
-                frame,
-                frame,
-                self.clock_s,
-                self.pauses,
-                mean=filled,
-                bones=bones,
-            )
-            self.tracks.append(t)
-            born.append(t)
-        return born
-
-    def _enough_views(self, scf: np.ndarray) -> bool:
-        """Whether the free detections' scores ``scf`` (C,D,J) could give any candidate: it needs
-        ``init_min_joints`` joints seen by ``init_min_views`` cameras, and a joint's views are at most the
-        cameras with a free detection of it (or of its left/right twin, which a mirrored pose reads), so
-        with fewer such joints the matching would find none (skipped: the same result)."""
-        cfg = self.config
-        cams = (scf > 0).any(1)  # (C,J)
-        flip = self.reconstructor.flip if self.reconstructor is not None else None
-        if flip is not None:
-            cams = cams | cams[:, flip]
-        return int((cams.sum(0) >= cfg.init_min_views).sum()) >= cfg.init_min_joints
-
-    def _fill(self, cand: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
-        """Fill joints the candidate lacks from the template aligned at the hips. cand: (J,3), NaN =
-        missing."""
-        missing = ~np.isfinite(cand).all(-1)
-        if not missing.any():
-            return cand, missing
-        if self._tmpl is None:
-            return None, missing
-        ip, il, ir = (self.skeleton.index(n) for n in ("pelvis", "left_hip", "right_hip"))
-        if missing[[il, ir]].any() and missing[ip]:
-            return None, missing
-        origin, theta = hip_frame(cand[None], self.skeleton)
-        if missing[[il, ir]].any():  # no facing: use the shoulders, else the template's default
-            sh = [self.skeleton.index("left_shoulder"), self.skeleton.index("right_shoulder")]
-            d = cand[sh[1]] - cand[sh[0]]
-            theta = np.array([np.arctan2(d[1], d[0]) if np.isfinite(d).all() else 0.0])
-        tmpl = denormalize(self._tmpl[None], origin, theta)[0]
-        return np.where(missing[:, None], tmpl, cand).astype(np.float32), missing
-
-    def _samples(self, pose: np.ndarray, missing: np.ndarray) -> np.ndarray:
-        cfg = self.config
-        sig = np.where(missing, cfg.init_fill_sigma_m, cfg.init_sigma_m).astype(np.float32)
-        noise = self.rng.normal(0.0, 1.0, (cfg.n_samples, len(pose), 3)).astype(np.float32) * sig[:, None]
-        noise[0] = 0.0
-        return pose[None] + noise
-
-    def _bone_diff(self, a: np.ndarray | None, b: np.ndarray | None) -> float:
-        if a is None or b is None:
-            return 0.0
-        ok = np.isfinite(a) & np.isfinite(b)
-        return float(np.abs(a[ok] - b[ok]).mean()) if ok.sum() >= 3 else 0.0
-
-    def _match_coasting(self, coasting: list[_Track], pel: np.ndarray, bones) -> _Track | None:
-        cfg = self.config
-        best, best_d = None, np.inf
-        for t in coasting:
-            gap = self.clock_s - t.last_seen_s
-            pred = self._pelvis(t.mean)
-            d = float(np.linalg.norm(pel[:2] - pred[:2]))
-            if (
-                d
-                < cfg.reid_dist_m
-                + cfg.reid_speed_mps * gap
-                + cfg.pause_gate_m * (self.pauses - t.pauses_seen)
-                and self._bone_diff(bones, t.bones) < cfg.reid_bone_tol_m
-                and d < best_d
-            ):
-                best, best_d = t, d
-        return best
-
-    def _reidentify(self, pel: np.ndarray, bones, frame: int) -> int:
-        """An ended identity whose predicted position and body proportions agree, else a new id."""
-        cfg = self.config
-        self.lost = [lt for lt in self.lost if self.clock_s - lt.end_s <= cfg.reid_max_gap_s + 1e-9]
-        best, best_cost = None, np.inf
-        for lt in self.lost:
-            gap = self.clock_s - lt.end_s
-            v = lt.velocity[:2]
-            speed = float(np.linalg.norm(v))
-            if speed > 2.0:
-                v = v * (2.0 / speed)
-            pred = lt.pelvis[:2] + v * min(gap, 1.0)
-            d = float(np.linalg.norm(pel[:2] - pred))
-            bd = self._bone_diff(bones, lt.bones)
-            reach = cfg.reid_dist_m + cfg.reid_speed_mps * gap + cfg.pause_gate_m * (self.pauses - lt.pauses)
-            if d < reach and bd < cfg.reid_bone_tol_m:
-                cost = d + 10.0 * bd
-                if cost < best_cost:
-                    best, best_cost = lt, cost
-        if best is not None:
-            self.lost.remove(best)
-            log.debug("re-identified track %d after %d frames", best.id, frame - best.end)
-            return best.id
-        tid = self.next_id
-        self.next_id += 1
-        return tid
-
-    def _estimate_new(self, born: list[_Track]) -> FrameEstimate:
-        J = self.skeleton.n_joints
-        X = np.stack([t.x for t in born])
-        mean, std = X.mean(1), np.sqrt(((X - X.mean(1, keepdims=True)) ** 2).sum(-1).mean(1) / 3.0)
-        for t, m in zip(born, mean, strict=True):
-            t.mean = m
-        K = len(born)
-        return FrameEstimate(
-            np.array([t.id for t in born], np.int64),
-            mean,
-            std,
-            np.full((K, J), 0.5, np.float32),
-            np.full((K, J), 2, np.int64),
-            np.full((K, J), OBSERVED, np.uint8),
-            np.ones(K, bool),
-        )
-
-
-def _empty_estimate(J: int) -> FrameEstimate:
-    return FrameEstimate(
-        np.zeros(0, np.int64),
-        np.zeros((0, J, 3), np.float32),
-        np.zeros((0, J), np.float32),
-        np.zeros((0, J), np.float32),
-        np.zeros((0, J), np.int64),
-        np.zeros((0, J), np.uint8),
-        np.zeros(0, bool),
-    )
-
-
-def _concat_estimates(a: FrameEstimate, b: FrameEstimate) -> FrameEstimate:
-    """Concatenate, a re-anchored track in b replacing its entry in a."""
-    keep = ~np.isin(a.track_id, b.track_id)
-    return FrameEstimate(
-        *(np.concatenate([getattr(a, f.name)[keep], getattr(b, f.name)]) for f in fields(FrameEstimate))
-    )
-
-
-@dataclass
-class TrackArrays:
-    """Dense output of a sequence: T frames, K tracks (columns sorted by id)."""
-
-    track_id: np.ndarray  # (K,)
-    xyz_m: np.ndarray  # (T,K,J,3) NaN where unknown
-    std_m: np.ndarray  # (T,K,J)
-    confidence: np.ndarray  # (T,K,J)
-    flags: np.ndarray  # (T,K,J) uint8
-    n_views: np.ndarray  # (T,K,J)
-    time_s: np.ndarray  # (T,) seconds spent in step() per frame
-
-
-def check_times(frames: np.ndarray, t_ns: np.ndarray | None) -> None:
-    """Timestamps ``t_ns`` (T,) must increase (all zeros = none: times from the frame numbers); the error
-    names the first frame whose time does not follow the previous frame's."""
-    T = len(frames)
-    if t_ns is not None and T > 1 and np.any(t_ns) and not (np.diff(np.asarray(t_ns, np.int64)) > 0).all():
-        bad = int(np.flatnonzero(np.diff(np.asarray(t_ns, np.int64)) <= 0)[0]) + 1
-        raise ValueError(
-            f"frame {int(frames[bad])}: its timestamp does not follow the previous frame's; "
-            "t_ns must increase (all zeros = no timestamps: times from the frame numbers)"
-        )
-
-
-def warn_sparse_time(t_s: np.ndarray, cfg: ParticleConfig, fps: float) -> None:
-    """Say so when the frames are snapshots too far apart to link (``sparse_time_warning``)."""
-    warn = sparse_time_warning(
-        pause_clock(t_s, cfg.max_gap_s, fps)[1], cfg.max_gap_s, min_evidence_frames(cfg, fps)
-    )
-    if warn:
-        log.warning("particle tracker: %s", warn)
-
-
-def track_sequence(
-    tracker: ParticleTracker,
-    kp: np.ndarray,
-    sc: np.ndarray,
-    frames: np.ndarray | None = None,
-    progress: Progress | None = None,
-    maps_at=None,
-    t_ns: np.ndarray | None = None,
-) -> TrackArrays:
-    """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
-    ``maps_at(t)``: optional, the C :class:`track.observation.CameraMaps` (or None) of frame t. Frame
-    times come from ``t_ns`` (T,), else from the frame numbers ``frames`` at the tracker's rate
-    (:func:`track.greedy.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
-
-    Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
-    (``trim_coast``) and tracks with less evidence than ``min_track_s`` are removed.
-    """
-    import time
-
-    cfg = tracker.config
-    T = len(kp)
-    frames = np.arange(T) if frames is None else np.asarray(frames)
-    if len(frames) != T or (t_ns is not None and len(t_ns) != T):
-        raise ValueError(f"frames and t_ns must have one entry per frame ({T})")
-    check_times(frames, t_ns)
-    t_s = frame_times_s(frames, t_ns, tracker.fps)
-    warn_sparse_time(t_s, cfg, tracker.fps)
-    J = tracker.skeleton.n_joints
-    per_frame: list[FrameEstimate] = []
-    times = np.zeros(T)
-    for t in range(T):
-        t0 = time.perf_counter()
-        per_frame.append(
-            tracker.step(kp[t], sc[t], t, None if maps_at is None else maps_at(t), float(t_s[t]))
-        )
-        times[t] = time.perf_counter() - t0
-        if progress is not None:
-            progress("track", t + 1, T)
-    raw = gather_estimates(per_frame, J)
-    return finish_tracks(raw, t_s, cfg, tracker.fps, times=times)
-
-
-@dataclass
-class RawEstimates:
-    """The filter's per-frame output on a dense (T,K) grid before the offline clean-up (``seen`` (T,K):
-    the track had evidence; columns sorted by id)."""
-
-    track_id: np.ndarray  # (K,)
-    xyz_m: np.ndarray  # (T,K,J,3)
-    std_m: np.ndarray  # (T,K,J)
-    confidence: np.ndarray  # (T,K,J)
-    flags: np.ndarray  # (T,K,J) uint8
-    n_views: np.ndarray  # (T,K,J)
-    seen: np.ndarray  # (T,K) bool
-
-
-def gather_estimates(per_frame: list[FrameEstimate], J: int) -> RawEstimates:
-    """The per-frame estimates of T frames on one grid of the ids they contain."""
-    T = len(per_frame)
-    ids = sorted({int(i) for e in per_frame for i in e.track_id})
-    col = {tid: k for k, tid in enumerate(ids)}
-    K = len(ids)
-    xyz = np.full((T, K, J, 3), np.nan, np.float32)
-    std = np.full((T, K, J), np.nan, np.float32)
-    conf = np.zeros((T, K, J), np.float32)
-    flags = np.zeros((T, K, J), np.uint8)
-    nv = np.zeros((T, K, J), np.int16)
-    seen = np.zeros((T, K), bool)
-    for t, e in enumerate(per_frame):
-        if len(e.track_id) == 0:
-            continue
-        ks = np.array([col[int(i)] for i in e.track_id])
-        xyz[t, ks], std[t, ks], conf[t, ks], flags[t, ks], nv[t, ks] = (
-            e.xyz_m,
-            e.std_m,
-            e.confidence,
-            e.flags,
-            e.n_views,
-        )
-        seen[t, ks] = e.evidence
-    return RawEstimates(np.asarray(ids, np.int64), xyz, std, conf, flags, nv, seen)
-
-
-def min_evidence_frames(cfg: ParticleConfig, fps: float) -> int:
-    """``min_track_s`` in frames at ``fps``: a track with less evidence is dropped (:func:`finish_tracks`)."""
-    return max(1, int(round(cfg.min_track_s * fps)))
-
-
-def finish_tracks(
-    raw: RawEstimates,
-    t_s: np.ndarray,
-    cfg: ParticleConfig,
-    fps: float,
-    times: np.ndarray | None = None,
-    evidence_frames: np.ndarray | None = None,
-    room_frames: np.ndarray | None = None,
-) -> TrackArrays:
-    """The offline clean-up of :func:`track_sequence` on the raw estimates of T frames at times ``t_s``
-    (T,) (seconds, the session's clock): frames coasted across a pause are removed, then trailing coasting
-    frames (``trim_coast``), then the smoothing (``smooth_sigma_s``), then tracks with less evidence than
-    ``min_track_s`` (:func:`track.greedy.long_enough`: not where the recorder paused sooner).
-    ``evidence_frames`` (K,) and ``room_frames`` (K,): each track's evidence frames over the whole session
-    and the longest stretch without a pause among them, when ``raw`` is a window of it (default: from
-    ``raw``). Each value depends only on the frames within
-    ``end_after_s`` (on the tracks' clock) plus the smoothing radius of it, so a window with that margin
-    gives its middle frames exactly as the whole session does (:mod:`track.stream`). Changes ``raw``'s
-    arrays in place."""
-    xyz, std, conf, flags = raw.xyz_m, raw.std_m, raw.confidence, raw.flags  # changed in place
-    nv, seen, ids = raw.n_views, raw.seen, raw.track_id
-    T, K = seen.shape
-    # frames coasted after a pause of the recorder (no evidence since before it): the filter's guess across
-    # an unknown stretch of time, never output (as the greedy tracker never fills across a pause)
-    _, pauses = pause_clock(t_s, cfg.max_gap_s, fps)
-    last_ev = np.maximum.accumulate(np.where(seen, np.arange(T)[:, None], -1), axis=0)  # (T,K)
-    across = ~seen & (last_ev >= 0) & (pauses[:, None] != pauses[np.maximum(last_ev, 0)])
-    xyz[across], std[across], conf[across], flags[across] = np.nan, np.nan, 0, 0
-    if cfg.trim_coast:
-        for k in range(K):  # drop every frame after the last evidence of each contiguous segment
-            alive = np.isfinite(xyz[:, k]).all(-1).any(-1)
-            t = 0
-            while t < T:
-                if not alive[t]:
-                    t += 1
-                    continue
-                s = t
-                while t < T and alive[t]:
-                    t += 1
-                ev = np.flatnonzero(seen[s:t, k])
-                cut = s + (ev[-1] + 1 if len(ev) else 0)
-                xyz[cut:t, k], std[cut:t, k], conf[cut:t, k], flags[cut:t, k] = np.nan, np.nan, 0, 0
-    sigma_s = cfg.smooth_sigma_s or 0.0
-    if sigma_s > 0:
-        known = np.isfinite(xyz).all(-1)
-        xyz = smooth_segments(xyz, t_s, sigma_s, cfg.max_gap_s, fps).astype(np.float32)
-        flags = np.where(known, flags | SMOOTHED, flags).astype(np.uint8)
-    n_ev = seen.sum(0) if evidence_frames is None else np.asarray(evidence_frames)
-    if room_frames is None:
-        room_frames = np.where(seen, segment_frames(pauses)[:, None], 0).max(0, initial=0)
-    keep = long_enough(n_ev, room_frames, min_evidence_frames(cfg, fps))
-    return TrackArrays(
-        ids[keep],
-        xyz[:, keep],
-        std[:, keep],
-        conf[:, keep],
-        flags[:, keep],
-        nv[:, keep],
-        np.zeros(T) if times is None else times,
-    )

@@ -13,7 +13,8 @@ from keypoints.detections import Detections
 from keypoints.registry import get_spec
 from keypoints.skeletons import CANONICAL, get_skeleton
 from track import observation as obs
-from track.particle import ParticleConfig, TrackArrays
+from track.particle_config import ParticleConfig
+from track.particle_offline import TrackArrays
 from track.trackfile import TrackFile
 from triangulate.chunks import NpzRows
 

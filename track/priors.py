@@ -20,7 +20,7 @@ import numpy as np
 
 from core.fileio import save_npz, sha256_file
 from keypoints.skeletons import CANONICAL, Skeleton
-from track import kernels
+from track import kernels_gru
 from track.normalize import hip_indices
 
 State = dict[str, np.ndarray]
@@ -199,16 +199,16 @@ class GRUCellPrior:
         ip, il, ir = hip_indices(self.skeleton)
         # [pose - origin, last displacement] rotated into the hip frame in one pass: the normalised pose
         # (eq. 5.2-5.4) and the normalised displacement
-        inp, cs = kernels.gru_inputs(
+        inp, cs = kernels_gru.gru_inputs(
             x, np.ascontiguousarray(state["prev"], np.float32), ip, il, ir, self.fps / self.model_fps
         )
         w_ih, b_ih, w_hh, b_hh, w_out, b_out = self._weights()
         h_prev = np.ascontiguousarray(state["h"], np.float32)
         # the GRU cell's two products (B,3H) (gates r, z, n), then its gates and the dropout compiled
         mask = self._mask(rng, B, H) if 0 < self.dropout < 1 else np.zeros((0, 0), np.float32)
-        h, hd = kernels.gru_gates(inp @ w_ih, b_ih, h_prev @ w_hh, b_hh, h_prev, mask)
+        h, hd = kernels_gru.gru_gates(inp @ w_ih, b_ih, h_prev @ w_hh, b_hh, h_prev, mask)
         noise = standard_normals(rng, x.shape) if self.sigma_m > 0 else np.zeros((0, 0, 3), np.float32)
-        new = kernels.gru_outputs(
+        new = kernels_gru.gru_outputs(
             hd @ w_out, b_out, cs, x, self.model_fps / self.fps, noise, self.sigma_m
         )  # eq. 5.5 for the displacement, plus the noise
         return new, {"prev": x, "h": h}

@@ -23,8 +23,10 @@ from core.config import as_config, config_from_dict
 from core.errors import FormatError
 from core.progress import Progress
 from track.extra_joints import ExtraJointsConfig, attach_session_joints
-from track.particle import ParticleConfig, ParticleTracker, track_sequence
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
 from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
+from track.particle_offline import track_sequence
 from track.stream import track_session_particle_chunked
 from triangulate.chunks import AUTO, StreamConfig, remove_output, split_stream_keys
 from triangulate.multiview import load_detections, session_chunk_s, session_fps

@@ -1,4 +1,4 @@
-"""The particle tracker (:mod:`track.particle`) in time chunks with bounded memory (issue 17, item 1).
+"""The particle tracker (:mod:`track.particle`) in time chunks with bounded memory.
 
 Two passes, each writing a folder of parts (:class:`triangulate.chunks.PartStore`: every part written
 atomically and entered in an index with its size and sha256; a part that is missing, truncated or
@@ -40,9 +40,10 @@ from core.fileio import save_npz
 from core.memory import TRIM_EVERY, release_free_memory
 from core.progress import Progress
 from track.greedy import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
-from track.particle import (
-    ParticleConfig,
-    ParticleTracker,
+from track.particle import ParticleTracker
+from track.particle_config import ParticleConfig
+from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
+from track.particle_offline import (
     RawEstimates,
     check_times,
     finish_tracks,
@@ -50,7 +51,6 @@ from track.particle import (
     min_evidence_frames,
     warn_sparse_time,
 )
-from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
 from triangulate.multiview import plan_detections, session_fps
 

@@ -13,12 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from calibrate.camera import (
-    PINHOLE_DIST_SIZES,
-    Camera,
-    CameraRig,
-    _validated,
-)
+from calibrate.camera import Camera, CameraRig
+from calibrate.camera_fields import PINHOLE_DIST_SIZES, validated_fields
 from core.config import check_keys
 from core.errors import FormatError, InputError
 
@@ -126,7 +122,7 @@ def _size(value: Any, path: Any, fld: str) -> tuple[int, int]:
 
 
 def _camera(path: Any, where: str, names: Mapping[str, str], **kw: Any) -> Camera:
-    return Camera(**_validated(path=path, where=where, names=names, **kw))
+    return Camera(**validated_fields(path=path, where=where, names=names, **kw))
 
 
 def _load_toml(path: Path) -> dict[str, Any]:

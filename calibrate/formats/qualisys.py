@@ -78,88 +78,97 @@ def read_qualisys(path: Path, opts: ImportOptions | None = None) -> CameraRig:
         if not opts.include_marker_cameras and not ("video" in model or model == "none"):
             log.info("%s: skipping marker camera %s (model %r)", path, name, model)
             continue
-        fov, intr, tr = el.find("fov_video"), el.find("intrinsic"), el.find("transform")
-        for tag, node in (("fov_video", fov), ("intrinsic", intr), ("transform", tr)):
-            if node is None:
-                raise FormatError(
-                    path, f"{where}.{tag}", "element is missing.", "Export the calibration again from QTM."
-                )
-        left, top = (
-            _attr(fov, "left", path, f"{where}.fov_video"),
-            _attr(fov, "top", path, f"{where}.fov_video"),
-        )
-        w = int(_attr(fov, "right", path, f"{where}.fov_video") - left + 1)
-        h = int(_attr(fov, "bottom", path, f"{where}.fov_video") - top + 1)
-        a = functools.partial(_attr, intr, path=path, where=f"{where}.intrinsic")
-        if abs(float(intr.get("skew", 0) or 0)) > 0:
-            raise FormatError(
-                path,
-                f"{where}.intrinsic.skew",
-                f"is {intr.get('skew')}; skew is not supported.",
-                "Recalibrate without skew.",
-            )
-        # focal length and principal point in 1/64 pixel of the full sensor; shift by the video window
-        K = np.array(
-            [
-                [a("focalLengthU") / 64.0, 0.0, a("centerPointU") / 64.0 - left],
-                [0.0, a("focalLengthV") / 64.0, a("centerPointV") / 64.0 - top],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        dist = np.array(
-            [
-                a("radialDistortion1"),
-                a("radialDistortion2"),
-                a("tangentalDistortion1"),
-                a("tangentalDistortion2"),
-                float(intr.get("radialDistortion3", 0) or 0),
-            ]
-        )
-        dist *= opts.distortion_scale
-        M = np.array(
-            [[_attr(tr, f"r{r}{c}", path, f"{where}.transform") for c in (1, 2, 3)] for r in (1, 2, 3)]
-        )
-        pos_m = np.array([_attr(tr, k, path, f"{where}.transform") for k in "xyz"]) / 1000.0
-        # rows of M = camera axes in world (Qualisys camera: x right, y up, looking along -z)
-        R = np.diag([1.0, -1.0, -1.0]) @ M
-        cam = _camera(
-            path,
-            where,
-            {"R": "transform.r11..r33", "K": "intrinsic", "dist": "intrinsic"},
-            name=name,
-            size_wh=(w, h),
-            K=K,
-            dist=dist,
-            model="pinhole",
-            R=R,
-            t=-R @ pos_m,
-        )
-        vr = int(float(el.get("viewrotation", 0) or 0))
-        if vr % 90:
-            raise FormatError(
-                path, f"{where}.viewrotation", f"is {vr}; only multiples of 90 exist in QTM.", ""
-            )
-        if vr % 360 and opts.view_rotation == "apply":
-            cam = _rotate_image_cw(cam, (vr // 90) % 4)
-        elif vr % 360:
-            log.warning(
-                "%s: camera %s has viewrotation=%d; kept in the sensor's orientation "
-                "(use view_rotation='apply' if your videos are rotated for display)",
-                path,
-                name,
-                vr,
-            )
-        video_wh = opts.size_for(name)
-        if video_wh is not None and video_wh != cam.size_wh:
-            log.warning(
-                "%s: camera %s is calibrated for %dx%d, videos are %dx%d: taking the image as "
-                "cropped/padded at the right/bottom (principal point unchanged)",
-                path,
-                name,
-                *cam.size_wh,
-                *video_wh,
-            )
-            cam = cam.replace(size_wh=video_wh)
-        cams.append(cam)
+        cam = _qualisys_camera(el, name, where, path, opts)
+        cams.append(_oriented(cam, el, name, where, path, opts))
     _check_size_names(opts, cams, path)
     return _nonempty(cams, path, "no <cameras>/<camera> elements for video cameras")
+
+
+def _qualisys_camera(el: ET.Element, name: str, where: str, path: Path, opts: ImportOptions) -> Camera:
+    """One ``<camera>`` element as a camera in the sensor's orientation: the video window's size, K and
+    dist from ``<intrinsic>``, the pose from ``<transform>``."""
+    fov, intr, tr = el.find("fov_video"), el.find("intrinsic"), el.find("transform")
+    for tag, node in (("fov_video", fov), ("intrinsic", intr), ("transform", tr)):
+        if node is None:
+            raise FormatError(
+                path, f"{where}.{tag}", "element is missing.", "Export the calibration again from QTM."
+            )
+    left, top = (
+        _attr(fov, "left", path, f"{where}.fov_video"),
+        _attr(fov, "top", path, f"{where}.fov_video"),
+    )
+    w = int(_attr(fov, "right", path, f"{where}.fov_video") - left + 1)
+    h = int(_attr(fov, "bottom", path, f"{where}.fov_video") - top + 1)
+    a = functools.partial(_attr, intr, path=path, where=f"{where}.intrinsic")
+    if abs(float(intr.get("skew", 0) or 0)) > 0:
+        raise FormatError(
+            path,
+            f"{where}.intrinsic.skew",
+            f"is {intr.get('skew')}; skew is not supported.",
+            "Recalibrate without skew.",
+        )
+    # focal length and principal point in 1/64 pixel of the full sensor; shift by the video window
+    K = np.array(
+        [
+            [a("focalLengthU") / 64.0, 0.0, a("centerPointU") / 64.0 - left],
+            [0.0, a("focalLengthV") / 64.0, a("centerPointV") / 64.0 - top],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    dist = np.array(
+        [
+            a("radialDistortion1"),
+            a("radialDistortion2"),
+            a("tangentalDistortion1"),
+            a("tangentalDistortion2"),
+            float(intr.get("radialDistortion3", 0) or 0),
+        ]
+    )
+    dist *= opts.distortion_scale
+    M = np.array([[_attr(tr, f"r{r}{c}", path, f"{where}.transform") for c in (1, 2, 3)] for r in (1, 2, 3)])
+    pos_m = np.array([_attr(tr, k, path, f"{where}.transform") for k in "xyz"]) / 1000.0
+    # rows of M = camera axes in world (Qualisys camera: x right, y up, looking along -z)
+    R = np.diag([1.0, -1.0, -1.0]) @ M
+    cam = _camera(
+        path,
+        where,
+        {"R": "transform.r11..r33", "K": "intrinsic", "dist": "intrinsic"},
+        name=name,
+        size_wh=(w, h),
+        K=K,
+        dist=dist,
+        model="pinhole",
+        R=R,
+        t=-R @ pos_m,
+    )
+    return cam
+
+
+def _oriented(cam: Camera, el: ET.Element, name: str, where: str, path: Path, opts: ImportOptions) -> Camera:
+    """The camera turned by its ``viewrotation`` (with ``view_rotation='apply'``) and given the videos' size
+    when the options name one."""
+    vr = int(float(el.get("viewrotation", 0) or 0))
+    if vr % 90:
+        raise FormatError(path, f"{where}.viewrotation", f"is {vr}; only multiples of 90 exist in QTM.", "")
+    if vr % 360 and opts.view_rotation == "apply":
+        cam = _rotate_image_cw(cam, (vr // 90) % 4)
+    elif vr % 360:
+        log.warning(
+            "%s: camera %s has viewrotation=%d; kept in the sensor's orientation "
+            "(use view_rotation='apply' if your videos are rotated for display)",
+            path,
+            name,
+            vr,
+        )
+    video_wh = opts.size_for(name)
+    if video_wh is not None and video_wh != cam.size_wh:
+        log.warning(
+            "%s: camera %s is calibrated for %dx%d, videos are %dx%d: taking the image as "
+            "cropped/padded at the right/bottom (principal point unchanged)",
+            path,
+            name,
+            *cam.size_wh,
+            *video_wh,
+        )
+        cam = cam.replace(size_wh=video_wh)
+    return cam

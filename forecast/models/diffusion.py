@@ -34,7 +34,7 @@ millimetres next to the observation and grows with the lag, as the spread of rea
 global std per channel the same error was ~8 cm at the first forecast frame (the measured jump). Per-lag
 statistics bind the model to its window (longer horizons only by chaining windows); ``lag_stats = false``
 keeps the anchored coding with one mean/std per channel shared over time (the seed's standardisation), so
-the fully convolutional network generates any length in one pass (issue 19: trained with a 144-frame
+the fully convolutional network generates any length in one pass (trained with a 144-frame
 window, it samples 4 s and 10 s in one pass; CMU validation NDMS 2-4 s .247 against .250 for the chained
 64-frame model).
 
@@ -45,7 +45,7 @@ appear as frame-to-frame jitter of the root (samples' root 0.83 vs 0.36 m/s real
 coding displacements scores the root speed directly. Trained from scratch it brought the root speed to
 0.42 m/s (real 0.35) but validation NDMS 2-4 s to 0.290 vs 0.309 for the shipped model: not shipped.
 
-What holds NDMS at 2-3 s down (issue 8; CMU validation, all 125 windows at stride 5, 10 samples, seeds 0/1):
+What holds NDMS at 2-3 s down (CMU validation, all 125 windows at stride 5, 10 samples, seeds 0/1):
 not the root speed. NDMS (eq. 6.9-6.12) rewards coherent whole-body translation: scaling the samples' root
 displacement to 0.5x / 0.3x / 0x lowers NDMS at 2 s from 0.320 to 0.275 / 0.253 / 0.215, and the real future
 with its root frozen drops from 0.287 to 0.249; the GRU's root moves 2.1 m/s (real 0.28) and it scores above

@@ -1,0 +1,202 @@
+"""One camera's video on disk while it records: closed, playable segments and the timestamp rows.
+
+``SegmentWriter`` writes ``raw/<cam>/seg_NNNNNN.<ext>`` under a hidden name (``PART_PREFIX``), closes,
+fsyncs and renames it, then appends its rows to ``raw/<cam>.frames.csv`` (the kill safety described in
+:mod:`capture.recorder`); ``WriterThread`` feeds it from the camera's queue.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+from pathlib import Path
+
+from capture.grabber import END
+from capture.join import FFCONCAT
+from capture.sources import Frame, SourceError
+from core.errors import RoomcapError
+from core.fileio import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+
+class RecorderError(RoomcapError, RuntimeError):
+    """The session cannot start (bad source, no disk space); nothing was written."""
+
+
+CSV_HEADER = "frame_index,t_ns,t_host_ns,sequence\n"
+_FOURCC = {"mp4v": ("mp4v", ".mp4"), "mjpg": ("MJPG", ".avi"), "xvid": ("XVID", ".avi")}
+PART_PREFIX = ".part_"
+
+
+class SegmentWriter:
+    """Writes one camera as closed, playable segments plus the per-frame timestamp file."""
+
+    def __init__(
+        self, cam_dir: Path, frames_csv: Path, codec: str, fps: float, segment_s: float, quality: int = 80
+    ):
+        self.dir = Path(cam_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.frames_csv = Path(frames_csv)
+        self.codec = codec
+        self.fps = float(fps) if fps and fps > 0 else 30.0
+        self.segment_ns = int(segment_s * 1e9)
+        self.quality = quality
+        self.frames_written = 0
+        self.segments = 0
+        self._writer = None
+        self._raw = None  # file object for on-device encoded streams
+        self._part: Path | None = None
+        self._final: Path | None = None
+        self._rows: list[str] = []
+        self._seg_t0 = 0
+        self._shape = None
+        self._closed: list[str] = []
+        if self.frames_csv.exists():  # the recorder only writes into folders it created
+            raise RecorderError(f"{self.frames_csv} already exists; refusing to append to an old recording.")
+        atomic_write_text(self.frames_csv, CSV_HEADER)
+
+    def _open_segment(self, frame: Frame) -> None:
+        import cv2
+
+        k = self.segments
+        if any(self.dir.glob(f"seg_{k:06d}.*")):
+            raise RecorderError(f"{self.dir}: seg_{k:06d} already exists; refusing to overwrite a recording.")
+        if frame.encoded is not None:
+            ext = ".h265" if self.codec == "h265" else ".h264"  # Annex B elementary stream from the device
+            self._final = self.dir / f"seg_{k:06d}{ext}"
+            self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}{ext}"
+            self._raw = open(self._part, "wb")
+        else:
+            fourcc, ext = _FOURCC[self.codec]
+            h, w = frame.image.shape[:2]
+            self._final = self.dir / f"seg_{k:06d}{ext}"
+            self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}{ext}"
+            if self.codec == "mjpg":  # OpenCV's own MJPEG writer honours the quality setting
+                api, params = cv2.CAP_OPENCV_MJPEG, [cv2.VIDEOWRITER_PROP_QUALITY, self.quality]
+            else:
+                api, params = cv2.CAP_FFMPEG, []
+            self._writer = cv2.VideoWriter(
+                str(self._part), api, cv2.VideoWriter_fourcc(*fourcc), self.fps, (w, h), params
+            )
+            if not self._writer.isOpened():
+                raise SourceError(
+                    f"cannot open a {self.codec} video writer for {w}x{h} at {self.fps:g} fps "
+                    f"({self._part}); pick another codec in cams.yaml ({list(_FOURCC)})."
+                )
+            self._shape = frame.image.shape
+        self._seg_t0 = frame.t_ns
+        self._rows = []
+
+    def write(self, frame: Frame) -> None:
+        need_new = self._part is None
+        if not need_new and frame.t_ns - self._seg_t0 >= self.segment_ns:
+            # on-device streams can only be cut at a keyframe
+            need_new = frame.encoded is None or frame.keyframe
+        if not need_new and frame.image is not None and frame.image.shape != self._shape:
+            need_new = True
+        if need_new:
+            self.close_segment()
+            self._open_segment(frame)
+        if frame.encoded is not None:
+            self._raw.write(frame.encoded)
+        else:
+            self._writer.write(frame.image)
+        self._rows.append(
+            f"{self.frames_written + len(self._rows)},{frame.t_ns},{frame.t_host_ns},{frame.sequence}\n"
+        )
+
+    def close_segment(self) -> None:
+        if self._part is None:
+            return
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        if self._raw is not None:
+            self._raw.close()
+            self._raw = None
+        with open(self._part, "rb+") as f:
+            os.fsync(f.fileno())
+        rows = "".join(self._rows)
+        atomic_write_text(self._final.with_suffix(".frames.csv"), CSV_HEADER + rows)
+        os.replace(self._part, self._final)
+        self._closed.append(self._final.name)
+        write_ffconcat(self.dir, self._closed)
+        fd = os.open(self.frames_csv, os.O_WRONLY | os.O_APPEND)
+        try:
+            os.write(fd, rows.encode())  # one write: a kill leaves whole rows or none
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        self.frames_written += len(self._rows)
+        self.segments += 1
+        self._rows = []
+        self._part = self._final = None
+
+    def close(self) -> None:
+        self.close_segment()
+
+    def abort(self) -> None:
+        """After a write error: keep the open segment if it still closes cleanly, else remove it."""
+        try:
+            self.close_segment()
+        except Exception as e:  # e.g. the disk is full: a half-written segment is not kept
+            log.error("%s: could not finalise %s (%s); removing it", self.dir.name, self._part, e)
+            for obj in (self._writer, self._raw):
+                try:
+                    if obj is not None:
+                        obj.release() if hasattr(obj, "release") else obj.close()
+                except Exception:
+                    pass
+            self._writer = self._raw = None
+            if self._part is not None:
+                self._part.unlink(missing_ok=True)
+            self._part = self._final = None
+            self._rows = []
+
+
+def write_ffconcat(cam_dir: Path, segments: list[str]) -> None:
+    """``raw/<cam>/index.ffconcat``: the closed segments as one video for FFmpeg/OpenCV.
+
+    ``cv2.VideoCapture(str(cam_dir / "index.ffconcat"))`` decodes every segment in order.
+    """
+    atomic_write_text(
+        Path(cam_dir) / FFCONCAT, "ffconcat version 1.0\n" + "".join(f"file {n}\n" for n in segments)
+    )
+
+
+class WriterThread(threading.Thread):
+    """Writes one camera's queued frames until ``END``; on an error, records it and keeps draining."""
+
+    def __init__(self, cam: str, q: queue.Queue, writer: SegmentWriter):
+        super().__init__(name=f"write-{cam}", daemon=True)
+        self.cam, self.q, self.writer = cam, q, writer
+        self.error: str = ""
+        self.errno: int | None = None
+        self.failed = threading.Event()
+
+    def run(self) -> None:
+        try:
+            while True:
+                frame = self.q.get()
+                if frame is END:
+                    break
+                self.writer.write(frame)
+        except Exception as e:
+            log.error("%s: writer failed: %s", self.cam, e)
+            self.error = f"{type(e).__name__}: {e}"
+            self.errno = getattr(e, "errno", None)
+            self.failed.set()
+            self.writer.abort()
+            while self.q.get() is not END:  # keep draining so the grabber never blocks
+                pass
+        else:
+            try:
+                self.writer.close()
+            except Exception as e:  # the last segment could not be finalised (disk full at the end)
+                self.error = f"{type(e).__name__}: {e}"
+                self.errno = getattr(e, "errno", None)
+                self.failed.set()
+                self.writer.abort()
