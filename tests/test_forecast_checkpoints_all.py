@@ -58,3 +58,30 @@ def test_checkpoint_small_clean_split_and_selected_on_validation(name):
     else:
         y = forecast_world(model, walker(50)[None, :, None], None, 50, 2)
     assert np.isfinite(y).all()
+
+
+def test_characteristic_checkpoint_on_all_one_person_data():
+    """``characteristic_cmuall.pt`` (``forecast characteristic train --data cmu-all``): small, weights only,
+    trained on the cmu-all train split (the benchmark's test files never in it), selected on validation."""
+    from forecast import characteristic as C
+
+    ck = ROOT / "characteristic_cmuall.pt"
+    if not ck.exists():
+        pytest.skip("characteristic_cmuall.pt is not shipped")
+    assert ck.stat().st_size < 2_000_000
+    blob = torch.load(ck, map_location="cpu", weights_only=True)  # plain tensors and builtins only
+    assert blob["kind"] == "characteristic"
+    net, _, meta = C.load_checkpoint(ck, skeleton="body19")
+    extra = meta["extra"]
+    assert extra["data"] == "cmu-all" and "--data cmu-all" in extra["command"]
+    assert extra["history"]["heatmap"]["val_best"]["mpjpe_best_of_k"] > 0  # picked on the validation split
+    obs = torch.from_numpy(walker(10)[None].astype(np.float32))
+    obs = obs - obs[:, -1:, 11:13].mean(2, keepdim=True)
+    y = net.sample(obs, 3, refine=False, generator=torch.Generator().manual_seed(0))
+    assert y.shape == (1, 3, 19, 3) and torch.isfinite(y).all()
+    from conftest import need_shared
+
+    need_shared("data", "motion")
+    full = C.load_labelled("cmu-all", meta["fps"])
+    assert extra["history"]["n_train_labels"] == len(C.segments(full.train, meta["config"].n_obs))
+    assert not any(it.name.startswith("cmu8_test_") for it in full.train + full.val)

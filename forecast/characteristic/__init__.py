@@ -34,7 +34,11 @@ importable from the package. The shipped
   of Tab. 3.3 (same backbone, an MLP head). The Inception Score is not computed: it needs an action
   classifier trained on action labels that the CMU clips here do not have.
 * Split: the repository's train / val / test split by clip (``forecast.train.split_clips``); checkpoint
-  selection on the validation split, figures on the test split.
+  selection on the validation split, figures on the test split. ``--data cmu-all`` (train and eval) reads
+  every one-person CMU clip with the split of ``forecast train --data cmu-all``
+  (``forecast.clips.load_one_person_all``: the ``cmu`` split unchanged, the 8-action benchmark's test files in
+  test only); its labels come from the same annotator. ``characteristic_cmuall.pt`` was trained with the
+  recipe above plus ``--data cmu-all`` (seed in ``--set seed=...``; BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -61,11 +65,19 @@ from forecast.characteristic.model import (
     load_checkpoint,
     save_checkpoint,
 )
-from forecast.characteristic.protocol import CharData, best_of_k, evaluate, load_cmu_labelled
+from forecast.characteristic.protocol import (
+    DATA_SOURCES,
+    CharData,
+    best_of_k,
+    evaluate,
+    load_cmu_labelled,
+    load_labelled,
+)
 from forecast.characteristic.training import train
 
 __all__ = [
     "CKPT_SCHEMA",
+    "DATA_SOURCES",
     "END_EFFECTORS",
     "NORMALISATION",
     "SHIPPED",
@@ -83,6 +95,7 @@ __all__ = [
     "label_clips",
     "load_checkpoint",
     "load_cmu_labelled",
+    "load_labelled",
     "make_pairs",
     "mirror_pairs",
     "save_checkpoint",

@@ -27,7 +27,7 @@ from forecast.characteristic.model import (
     load_checkpoint,
     save_checkpoint,
 )
-from forecast.characteristic.protocol import evaluate, load_cmu_labelled
+from forecast.characteristic.protocol import DATA_SOURCES, evaluate, load_labelled
 from forecast.characteristic.training import train
 
 
@@ -49,6 +49,12 @@ DESCRIPTION = (
 )
 
 
+DATA_HELP = (
+    "clips: 'cmu' (the CMU BVH, default) or 'cmu-all' (every one-person CMU clip: cmu + cmu-more + the "
+    "8-action benchmark, split as `forecast train --data cmu-all`; the benchmark's test files are test only)"
+)
+
+
 def _main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     ap = Parser(prog="forecast characteristic", description=DESCRIPTION)
@@ -62,10 +68,12 @@ def _main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help=f"config overrides; keys: {', '.join(f.name for f in dataclasses.fields(CharConfig))}",
     )
+    t.add_argument("--data", choices=DATA_SOURCES, default="cmu", help=DATA_HELP)
     t.add_argument("--split-seed", type=int, default=0, help="seed of the split by clip")
     t.add_argument("--no-eval", action="store_true", help="skip the test-split evaluation after training")
     e = sub.add_parser("eval", help="sec. 3.6 evaluation on the CMU test (or val) split")
     e.add_argument("--checkpoint", default=str(SHIPPED), help="checkpoint (default: the shipped one)")
+    e.add_argument("--data", choices=DATA_SOURCES, default="cmu", help=DATA_HELP)
     e.add_argument("--split", choices=("test", "val", "train"), default="test", help="split to evaluate")
     e.add_argument("--split-seed", type=int, default=0, help="seed of the split by clip")
     e.add_argument(
@@ -85,7 +93,7 @@ def _main(argv: list[str] | None = None) -> int:
             cfg = config_from_dict(parse_sets(args.set))
         except ValueError as err:
             raise InputError(str(err)) from None
-        data = load_cmu_labelled(seed=args.split_seed)
+        data = load_labelled(args.data, seed=args.split_seed)
         print(
             "labels: "
             + ", ".join(f"{p} {len(segments(getattr(data, p), cfg.n_obs))}" for p in ("train", "val", "test"))
@@ -98,6 +106,7 @@ def _main(argv: list[str] | None = None) -> int:
             net, det, avg, hist = train(data, cfg, bars)
         hist["train_wall_s"], hist["train_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
         extra = {
+            "data": args.data,
             "history": {k: v for k, v in hist.items()},
             "command": "python -m forecast.characteristic train "
             + " ".join(sys.argv[2:] if argv is None else argv[1:]),
@@ -115,6 +124,7 @@ def _main(argv: list[str] | None = None) -> int:
         if not args.no_eval:
             args = argparse.Namespace(
                 checkpoint=args.out,
+                data=args.data,
                 split="test",
                 split_seed=args.split_seed,
                 k=None,
@@ -134,7 +144,7 @@ def _eval(args) -> int:
     except (FormatError, FileNotFoundError) as err:
         raise InputError(str(err)) from None
     cfg = meta["config"]
-    data = load_cmu_labelled(meta["fps"], seed=args.split_seed)
+    data = load_labelled(args.data, meta["fps"], seed=args.split_seed)
     items = getattr(data, args.split)
     c0 = time.process_time()
     with Bars(unit="window") as bars:
@@ -151,13 +161,15 @@ def _eval(args) -> int:
             progress=bars,
             skeleton=meta["skeleton"],
         )
-    res["split"], res["checkpoint"], res["eval_cpu_s"] = (
+    res["data"], res["split"], res["checkpoint"], res["eval_cpu_s"] = (
+        args.data,
         args.split,
         str(args.checkpoint),
         time.process_time() - c0,
     )
+    source = "CMU" if args.data == "cmu" else "CMU (cmu-all)"
     print(
-        f"CMU {args.split} split: {res['n_labels']} characteristic poses x 5 starts = "
+        f"{source} {args.split} split: {res['n_labels']} characteristic poses x 5 starts = "
         f"{res['n_windows']} windows, "
         f"k = {res['k']}"
     )

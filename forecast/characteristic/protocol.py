@@ -13,7 +13,7 @@ from core.progress import Progress
 from forecast import data as fdata
 from forecast.characteristic.labels import Labelled, eval_starts, label_clips, make_pairs, segments
 from forecast.characteristic.model import CharConfig
-from forecast.clips import load_cmu, split_clips
+from forecast.clips import load_cmu, load_one_person_all, split_clips
 from forecast.metrics import mpjpe  # L2 per joint, mean over joints (metres)
 from keypoints.skeletons import get_skeleton
 
@@ -27,18 +27,36 @@ class CharData:
     skipped: dict
 
 
-def load_cmu_labelled(fps: float = fdata.TARGET_FPS, seed: int = 0) -> CharData:
-    """The CMU clips (``forecast.clips.load_cmu``), split by clip (``forecast.clips.split_clips``),
-    annotated."""
-    clips = load_cmu(fps)
-    tr, va, te = split_clips(clips, seed)
+DATA_SOURCES = ("cmu", "cmu-all")  # the clip sources of ``load_labelled``, as ``forecast train --data``
+
+
+def load_labelled(data: str = "cmu", fps: float = fdata.TARGET_FPS, seed: int = 0) -> CharData:
+    """The clips of ``data``, split by clip, annotated. ``cmu``: the CMU BVH (``forecast.clips.load_cmu``)
+    split by ``forecast.clips.split_clips``; ``cmu-all``: every one-person CMU clip with the split of
+    ``forecast train --data cmu-all`` (``forecast.clips.load_one_person_all``: the ``cmu`` split unchanged,
+    ``cmu-more`` split on its own, the 8-action benchmark's train files in train and its test files in test
+    only, never trained on)."""
+    if data == "cmu":
+        clips = load_cmu(fps)
+        parts = split_clips(clips, seed)
+    elif data == "cmu-all":
+        d = load_one_person_all(seed, fps)
+        clips, parts = d.clips, (d.train, d.val, d.test)
+    else:
+        raise InputError(f"unknown data source {data!r}; use one of {', '.join(DATA_SOURCES)}")
     out, skipped = [], {}
-    for part in (tr, va, te):
+    for part in parts:
         items, sk = label_clips(part)
         out.append(items)
         for k, v in sk.items():
             skipped[k] = skipped.get(k, 0) + v
     return CharData(*out, skeleton=clips[0].skeleton, skipped=skipped)
+
+
+def load_cmu_labelled(fps: float = fdata.TARGET_FPS, seed: int = 0) -> CharData:
+    """The CMU clips (``forecast.clips.load_cmu``), split by clip (``forecast.clips.split_clips``),
+    annotated (``load_labelled("cmu", ...)``)."""
+    return load_labelled("cmu", fps, seed)
 
 
 # ----------------------------------------------------------------------------- evaluation (sec. 3.6)
