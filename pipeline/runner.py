@@ -384,6 +384,3 @@ def _limit_threads(n: int) -> None:
         os.environ[var] = str(n)
     if "torch" in sys.modules:  # importing torch just to limit it costs seconds
         sys.modules["torch"].set_num_threads(n)
-    numba = sys.modules.get("numba")  # the particle tracker's kernels run their loops on numba's threads
-    if numba is not None:
-        numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))

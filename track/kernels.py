@@ -20,11 +20,6 @@ C cameras, V camera pairs, D detections, B = K·N.
 - :func:`gather_state`: the resampling's gather of the motion state; the GRU prior's own kernels are
   :mod:`track.kernels_gru`.
 
-The kernels that loop over tracks or batch rows (``pair_weights``, ``refine_resampled``, the GRU's in
-:mod:`track.kernels_gru`) run those loops on numba's threads (``parallel=True``, ``prange``;
-``NUMBA_NUM_THREADS``, by default the machine's cores): each iteration writes only its own rows with its
-own buffers, so the results are the same bits for any number of threads.
-
 Arithmetic is float32 where the numpy path's is, with float64 products and sums where a range or an
 accumulation needs it; the results agree with numpy to float32 rounding, not bit for bit (fused
 expressions, other summation orders). ``fastmath`` is off (IEEE arithmetic, no reassociation);
@@ -157,7 +152,7 @@ def _camera_conf(basis, centers, sc, focal, k, c, C, xt, nb, sm2, spx, conf):
             conf[c, j, i] = kv * s if d > near else _F(0.0)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy")
 def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs, pairs):
     """Phi(v, s) of eq. 5.7 for every track, camera pair and sample. X: (K,N,J,3) float32; centers: (C,3);
     basis: (K,J,3C,3) (:func:`track.observation.ray_basis`); sc: (K,C,J) associated keypoint scores (0 =
@@ -177,7 +172,7 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
     sm2 = _F(sigma_m) * _F(sigma_m)
     spx = _F(sigma_px)
     epsf = _F(eps)
-    for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
+    for k in range(K):
         xt = np.empty((J, 3, _NB), np.float32)
         conf = np.empty((C, J, _NB), np.float32)
         p2 = np.zeros((C + 1, L, _NB), np.float32)  # row C stays 0: the partner of a camera alone
@@ -363,7 +358,7 @@ def _gather_resampled(X, idx, out):
                     out[k, n, j, a] = X[k, m, j, a]
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy")
 def refine_resampled(
     X, idx, centers, basis, sc, focal, *, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
 ):
@@ -392,7 +387,7 @@ def refine_resampled(
         _gather_resampled(X, idx, out)
         return out, score
     sm2, spx, one = _F(sigma_m) * _F(sigma_m), _F(sigma_px), _F(1.0)
-    for k in numba.prange(K):  # tracks in parallel, each with its own buffers: the same bits as in order
+    for k in range(K):
         x = np.empty((3, N), np.float32)
         e = np.empty((R, 3, N), np.float32)  # candidate offsets
         tot = np.empty((R + 1, N), np.float32)  # summed confidence of candidate 0 (current) and the others

@@ -5,7 +5,6 @@ rows on numba's threads, the same bits for any number of threads)."""
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
@@ -14,7 +13,7 @@ from numba.extending import intrinsic
 from track.kernels import _F
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy")
 def gru_inputs(x, prev, ip, il, ir, vscale):
     """Eq. 5.2–5.4 for a batch: x, prev (B,J,3) float32 (the samples and their previous positions) ->
     inp (B,2·J·3) = [R(x - origin), R(x - prev)·vscale] flattened, and (cos, sin) of each sample's facing
@@ -27,7 +26,7 @@ def gru_inputs(x, prev, ip, il, ir, vscale):
         raise ValueError("gru_inputs: prev must be shaped as x and the hip joints index it")
     cs = np.empty((B, 2), np.float32)
     vs = _F(vscale)
-    for b in numba.prange(B):  # rows in parallel: the same bits as in order
+    for b in range(B):
         o0, o1, o2 = x[b, ip, 0], x[b, ip, 1], x[b, ip, 2]
         h = _F(0.5)
         if not np.isfinite(o0):
@@ -103,7 +102,7 @@ def _tanh(x):
     return big if a >= _F(0.625) else small
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy")
 def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     """The GRU cell after its two products gi = x W_ih, gh = h W_hh (B,3H), gates r, z, n (torch.nn.GRUCell):
     r = sigma(gi_r + b_ir + gh_r + b_hr), z likewise, n = tanh(gi_n + b_in + r (gh_n + b_hn)),
@@ -117,7 +116,7 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     out = np.empty((B, H), np.float32)
     dropped = np.empty((B, H), np.float32) if mask.shape[0] else out
     one = _F(1.0)
-    for b in numba.prange(B):  # rows in parallel: the same bits as in order
+    for b in range(B):
         for i in range(H):
             r = one / (one + _exp(-((gi[b, i] + b_ih[i]) + (gh[b, i] + b_hh[i]))))
             z = one / (one + _exp(-((gi[b, H + i] + b_ih[H + i]) + (gh[b, H + i] + b_hh[H + i]))))
@@ -129,7 +128,7 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     return out, dropped
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy")
 def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     """Eq. 5.5 for the displacement: x + R^T (delta + b_out)·dscale + sigma·noise. delta (B,3J) = the output
     layer's product, b_out (3J,) its bias, cs (B,2) from :func:`gru_inputs`, x (B,J,3), noise (B,J,3)
@@ -141,7 +140,7 @@ def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     if sigma != 0 and noise.shape != x.shape:
         raise ValueError("gru_outputs: noise must be shaped as x")
     ds, sg = _F(dscale), _F(sigma)
-    for b in numba.prange(B):  # rows in parallel: the same bits as in order
+    for b in range(B):
         c, s = cs[b, 0], cs[b, 1]
         for j in range(J):
             d0, d1, d2 = (
