@@ -129,19 +129,24 @@ def chunk_runner(stream: StreamConfig) -> ChunkRunner | None:
     """What runs a stage's independent chunks as ``stream`` says: None (in the stage's process, one
     worker), spawned processes, or Ray tasks (ray is imported now: a clear message where it is missing)."""
     if stream.executor == "ray":
-        import_ray()
+        import_ray(*_CHUNKS_NEED_RAY)
         return chunks_on_ray
     return chunks_in_processes if stream.workers > 1 else None
 
 
-def import_ray():
+_CHUNKS_NEED_RAY = (
+    "executor = 'ray'",
+    " (or set [triangulate.options] executor = 'processes' to use this machine's processes).",
+)
+
+
+def import_ray(needed_by: str, alternative: str = ""):
+    """The ray module, or an InputError saying that ``needed_by`` needs it, how to install it, and the
+    ``alternative``."""
     try:
         import ray
     except ImportError:
-        raise InputError(
-            "executor = 'ray' needs ray: pip install 'roomcap[cluster]' (or set "
-            "[triangulate.options] executor = 'processes' to use this machine's processes)."
-        ) from None
+        raise InputError(f"{needed_by} needs ray: pip install 'roomcap[cluster]'{alternative}") from None
     return ray
 
 
@@ -179,7 +184,7 @@ def chunks_on_ray(fn: Callable[..., Any], jobs: dict[int, tuple], workers: int) 
     In a running Ray (a cluster, or inside a session's task of ``reprocess --executor ray``) the tasks
     go to its free CPUs; a task blocked in ``ray.wait`` lends its CPU back, so nesting does not deadlock.
     Where no Ray runs in this process, a local one of ``workers`` CPUs is started and stopped after."""
-    ray = import_ray()
+    ray = import_ray(*_CHUNKS_NEED_RAY)
     started_here = not ray.is_initialized()
     if started_here:
         # a new local instance of our own ("local"), never someone else's running cluster
@@ -214,10 +219,7 @@ def run_ray(
     address: str | None,
     wait: bool = False,
 ) -> Iterator[SessionResult]:
-    try:
-        import ray
-    except ImportError:
-        raise InputError("the Ray executor needs ray: pip install 'roomcap[cluster]'") from None
+    ray = import_ray("the Ray executor")
     config = ray_for_chunks(config)
     started_here = not ray.is_initialized()
     if started_here:

@@ -39,11 +39,9 @@ from pipeline.discover import SessionSource
 from pipeline.lock import SessionLocked, holder, lock_path, session_lock
 from pipeline.provenance import ProvenanceStore, StageRecord, stage_version
 from pipeline.report import warnings_path
-from pipeline.session_inputs import StageError, probe_videos, stage_file
+from pipeline.session_inputs import StageError, stage_file
 from pipeline.stages import STAGES, Session, Stage, StageWork
 from triangulate.chunks import ChunkRunner, PartStore, StreamConfig
-
-__all__ = ["SessionResult", "StageError", "check_session", "output_root", "probe_videos", "process_session"]
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +183,16 @@ def _keep_warnings(sink: list[str], msgs: list[str]) -> None:
     sink.extend(m for m in msgs if m not in sink)
 
 
+SUMMARY_KEYS = (
+    "cameras",
+    "frames",
+    "people",
+    "tracks",
+    "warnings",
+    "skipped_cameras",
+)  # kept in summary.json
+
+
 def check_session(source: SessionSource, out: Path | None, config: PipelineConfig) -> SessionResult | None:
     """The result of a session whose every stage is up to date (without running anything), else None."""
     if _blocking_problem(source, config):
@@ -215,9 +223,6 @@ def check_session(source: SessionSource, out: Path | None, config: PipelineConfi
         res.message = "warning: " + "; ".join(res.warnings)
     res.stage_s = {s.name: 0.0 for s in _stage_list(config)}
     return res
-
-
-SUMMARY_KEYS = ("cameras", "frames", "people", "tracks", "warnings", "skipped_cameras")
 
 
 def _staleness(session: Session, name: str, work: StageWork) -> tuple[str, str]:

@@ -57,35 +57,43 @@ def probe_videos(videos: dict[str, Path]) -> tuple[dict[str, tuple[int, float]],
     Returns ``({cam: (n_frames, fps)}, warnings)``; videos of different lengths are a warning (the frames
     are aligned by index, the tail of the longer videos is seen by fewer cameras).
     """
+    info = {cam: _probe_video(cam, path) for cam, path in sorted(videos.items())}
+    return info, video_checks(info)
+
+
+def _probe_video(cam: str, path: Path) -> tuple[int, float]:
+    """Frame count and rate of one camera's video (a file, or a folder of segments); raises when a file
+    cannot be read."""
     import cv2
 
-    info: dict[str, tuple[int, float]] = {}
-    for cam, path in sorted(videos.items()):
-        files = (
-            sorted(p for p in path.glob("seg_*") if p.suffix.lower() in SEGMENT_SUFFIXES)
-            or sorted(
-                p
-                for p in path.iterdir()
-                if not p.name.startswith(".") and p.suffix.lower() in SEGMENT_SUFFIXES
-            )
-            if path.is_dir()
-            else [path]
+    files = (
+        sorted(p for p in path.glob("seg_*") if p.suffix.lower() in SEGMENT_SUFFIXES)
+        or sorted(
+            p for p in path.iterdir() if not p.name.startswith(".") and p.suffix.lower() in SEGMENT_SUFFIXES
         )
-        n, fps = 0, 0.0
-        for f in files:
-            cap = cv2.VideoCapture(str(f))
-            ok = cap.isOpened()
-            ok = ok and cap.read()[0]
-            count, rate = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), float(cap.get(cv2.CAP_PROP_FPS))
-            cap.release()
-            if not ok:
-                raise StageError(
-                    f"camera '{cam}': video {f} cannot be read (not a video, truncated or an "
-                    "unsupported codec). Replace it, or move it out of the session to run without "
-                    "this camera."
-                )
-            n, fps = n + max(count, 0), fps or rate
-        info[cam] = (n, fps)
+        if path.is_dir()
+        else [path]
+    )
+    n, fps = 0, 0.0
+    for f in files:
+        cap = cv2.VideoCapture(str(f))
+        ok = cap.isOpened()
+        ok = ok and cap.read()[0]
+        count, rate = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), float(cap.get(cv2.CAP_PROP_FPS))
+        cap.release()
+        if not ok:
+            raise StageError(
+                f"camera '{cam}': video {f} cannot be read (not a video, truncated or an "
+                "unsupported codec). Replace it, or move it out of the session to run without "
+                "this camera."
+            )
+        n, fps = n + max(count, 0), fps or rate
+    return n, fps
+
+
+def video_checks(info: dict[str, tuple[int, float]]) -> list[str]:
+    """The checks across the cameras of :func:`probe_videos`' ``info``: mixed frame rates raise, videos
+    of different lengths are a warning (returned)."""
     rates = {c: r for c, (_, r) in info.items() if r > 0}
     if rates and (max(rates.values()) - min(rates.values())) > FPS_TOLERANCE * max(rates.values()):
         raise StageError(
@@ -102,19 +110,22 @@ def probe_videos(videos: dict[str, Path]) -> tuple[dict[str, tuple[int, float]],
             + ", ".join(f"{c} {n}" for c, n in counts.items())
             + " frames); frames are matched by index from the start, later frames have fewer views"
         )
-    return info, warnings
+    return warnings
 
 
-def readable_videos(videos: dict[str, Path]) -> tuple[dict[str, Path], dict[str, str]]:
-    """Split ``{cam: video}`` into the readable ones and ``{cam: why not}`` (probe_videos per camera)."""
-    ok, bad = {}, {}
+def readable_videos(
+    videos: dict[str, Path],
+) -> tuple[dict[str, Path], dict[str, str], dict[str, tuple[int, float]]]:
+    """Split ``{cam: video}`` into the readable ones and ``{cam: why not}``, each video probed once;
+    also the readable ones' ``{cam: (n_frames, fps)}`` for :func:`video_checks`."""
+    ok, bad, info = {}, {}, {}
     for cam, path in sorted(videos.items()):
         try:
-            probe_videos({cam: path})
+            info[cam] = _probe_video(cam, path)
             ok[cam] = path
         except StageError as e:
             bad[cam] = str(e)
-    return ok, bad
+    return ok, bad, info
 
 
 def pose2sim_frame_rate(trial: Path) -> float | None:

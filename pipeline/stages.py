@@ -38,10 +38,10 @@ from pipeline.session_inputs import (
     detection_paths,
     match_camera_names,
     pose2sim_frame_rate,
-    probe_videos,
     readable_videos,
     stage_file,
     sync_table,
+    video_checks,
 )
 from track.greedy_stage import GreedyTrackConfig, track_session_greedy
 from track.stage import ParticleTrackConfig, stream_chunk_s, track_session_particle
@@ -142,7 +142,7 @@ class KeypointsStage:
     def plan(self, session: Session, config: KeypointsConfig) -> StageWork | None:
         src, lay = session.source, session.layout
         if src.videos:
-            readable, skipped = readable_videos(src.videos)
+            readable, skipped, _ = readable_videos(src.videos)
             if not readable:
                 raise StageError(
                     "no camera's video can be read: " + " ".join(skipped.values())
@@ -203,9 +203,8 @@ class KeypointsStage:
 
     def _run_videos(self, session: Session, config: KeypointsConfig) -> None:
         src, lay = session.source, session.layout
-        readable, _ = readable_videos(src.videos)
-        _, warn = probe_videos(readable)
-        session.warnings.extend(warn)
+        readable, _, info = readable_videos(src.videos)
+        session.warnings.extend(video_checks(info))
         rig = CameraRig.load(lay.rig_toml) if lay.rig_toml.exists() else None
         # the executor's share of the cores (set per worker by the runner); 0 = onnxruntime's default
         threads = int(os.environ.get("ROOMCAP_ORT_THREADS", "0") or 0)

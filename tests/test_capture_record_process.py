@@ -88,7 +88,7 @@ def test_segmented_layout_is_read_by_the_keypoint_reader_and_discovery(tmp_path)
     )
     assert [t for _, t, _ in items] == [ts[i] for i in range(40)]
     from pipeline.discover import discover
-    from pipeline.runner import probe_videos
+    from pipeline.session_inputs import probe_videos
 
     (src,) = discover([out])
     assert src.videos == {"cam0": out / "raw" / "cam0", "cam1": out / "raw" / "cam1"}

@@ -57,7 +57,7 @@ def test_project_errors_share_one_base_and_keep_their_builtin_parents():
     from keypoints.registry import ModelError
     from keypoints.video import VideoDecodeError
     from pipeline.discover import SessionError
-    from pipeline.runner import StageError
+    from pipeline.session_inputs import StageError
     from track.cli import UsageError
     from track.export import ExportError
     from track.motion import CheckpointMismatch

@@ -10,7 +10,7 @@ from conftest import need_shared
 from pipeline.config import PipelineConfig
 from pipeline.discover import discover
 from pipeline.executors import run_sessions
-from pipeline.runner import probe_videos
+from pipeline.session_inputs import probe_videos
 
 SIZE = (64, 48)
 
