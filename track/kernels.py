@@ -71,7 +71,7 @@ _F = np.float32
 _NB = 128  # samples per block of pair_weights: (C,J,NB) + (C,L,NB) float32 scratch stay in L2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _in_range(a, n):
     """Every entry of the integer array ``a`` lies in [0, n) (the kernels index without bounds checks)."""
     f = a.ravel()
@@ -81,7 +81,7 @@ def _in_range(a, n):
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _check_scores(basis, sc, focal, K, J, C):
     """The shapes the scoring kernels index without bounds checks: basis (K,J,3C,3), sc (K,C,J),
     focal (C,)."""
@@ -89,7 +89,7 @@ def _check_scores(basis, sc, focal, K, J, C):
         raise ValueError("basis must be (K,J,3C,3), sc (K,C,J) and focal (C,)")
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _ray_rows(basis, centers, k, j, c, C):
     """Rows u, w, r of camera c's ray frame for track k, joint j, and their offsets (rows · centre)."""
     u0, u1, u2 = basis[k, j, c, 0], basis[k, j, c, 1], basis[k, j, c, 2]
@@ -102,7 +102,7 @@ def _ray_rows(basis, centers, k, j, c, C):
     return u0, u1, u2, w0, w1, w2, r0, r1, r2, ou, ow, orr
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _pair_rows(pairs, active, C):
     """For each camera pair (V,2) the first pair whose Phi row equals its own, and each camera's slot in
     the squared limb scores: a camera without evidence for the track (``active`` False: every score 0)
@@ -152,7 +152,7 @@ def _camera_conf(basis, centers, sc, focal, k, c, C, xt, nb, sm2, spx, conf):
             conf[c, j, i] = kv * s if d > near else _F(0.0)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs, pairs):
     """Phi(v, s) of eq. 5.7 for every track, camera pair and sample. X: (K,N,J,3) float32; centers: (C,3);
     basis: (K,J,3C,3) (:func:`track.observation.ray_basis`); sc: (K,C,J) associated keypoint scores (0 =
@@ -222,7 +222,7 @@ def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs,
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def sus_indices(phi, counts, u):
     """Eq. 5.6 + stochastic universal resampling per row. phi: (K,V,N) unnormalised weights (>= 0);
     counts: (V,) samples each pair draws (summing to N); u: (K*V,) uniform offsets in [0, 1). Returns
@@ -345,7 +345,7 @@ def _score_candidates(basis, centers, sc, focal, k, j, c, C, x, e, xm, tot, ys, 
             tot[r + 1, n] += s / (one + du * du + dw * dw)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _gather_resampled(X, idx, out):
     """out[k, n] = X[k, idx[k, n]], element by element (an array-to-array slice assignment costs seconds
     of compile)."""
@@ -358,7 +358,7 @@ def _gather_resampled(X, idx, out):
                     out[k, n, j, a] = X[k, m, j, a]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def refine_resampled(
     X, idx, centers, basis, sc, focal, *, sigma_m, sigma_px, noise, scales, n_guided, lam, refine
 ):
@@ -434,7 +434,7 @@ def refine_resampled(
     return out, score
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def output_stats(X, score, has, eps):
     """Sec. 5.2.4: the weighted mean pose (K,J,3) and per-joint spread std_m (K,J) (per-axis RMS), with
     weights prod_j (score + eps) for the tracks with ``has`` (K,) (the refinement's summed confidences
@@ -494,7 +494,7 @@ def output_stats(X, score, has, eps):
     return mean, std
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def ray_basis(Minv, kp):
     """Orthonormal frames of the keypoints' viewing rays, as :func:`track.observation.ray_basis`.
     Minv: (C,3,3) float32; kp: (K,C,J,2) undistorted px (NaN = 0) -> B (K,J,3C,3) float32, rows
@@ -528,7 +528,7 @@ def ray_basis(Minv, kp):
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def association_costs(mean_uv, mean_depth, det_kp, det_sc, *, focal, tol_m, min_joints, min_score, gate):
     """The cost of every track-detection pair per camera, as :func:`track.observation.association_costs`:
     the median over joints of the image distance in units of ``tol_m`` seen at the joint's depth, on the
@@ -583,7 +583,7 @@ def association_costs(mean_uv, mean_depth, det_kp, det_sc, *, focal, tol_m, min_
     return cost
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def gather_rows(a, idx):
     """a[idx] for a (B,F) float32 array: the resampling's gather of the motion state."""
     F = a.shape[1]

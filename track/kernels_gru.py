@@ -13,7 +13,7 @@ from numba.extending import intrinsic
 from track.kernels import _F
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def gru_inputs(x, prev, ip, il, ir, vscale):
     """Eq. 5.2–5.4 for a batch: x, prev (B,J,3) float32 (the samples and their previous positions) ->
     inp (B,2·J·3) = [R(x - origin), R(x - prev)·vscale] flattened, and (cos, sin) of each sample's facing
@@ -102,7 +102,7 @@ def _tanh(x):
     return big if a >= _F(0.625) else small
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     """The GRU cell after its two products gi = x W_ih, gh = h W_hh (B,3H), gates r, z, n (torch.nn.GRUCell):
     r = sigma(gi_r + b_ir + gh_r + b_hr), z likewise, n = tanh(gi_n + b_in + r (gh_n + b_hn)),
@@ -128,7 +128,7 @@ def gru_gates(gi, b_ih, gh, b_hh, h, mask):
     return out, dropped
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def gru_outputs(delta, b_out, cs, x, dscale, noise, sigma):
     """Eq. 5.5 for the displacement: x + R^T (delta + b_out)·dscale + sigma·noise. delta (B,3J) = the output
     layer's product, b_out (3J,) its bias, cs (B,2) from :func:`gru_inputs`, x (B,J,3), noise (B,J,3)

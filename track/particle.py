@@ -63,6 +63,7 @@ from track.priors import (
     concat_states,
     standard_normals,
 )
+from track.split import Split
 from track.trackfile import OBSERVED, PREDICTED
 from triangulate.matching import MatchConfig
 from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
@@ -108,6 +109,7 @@ class ParticleTracker(Births):
         self._phi_in_range = len(self.limbs) * -np.log10(min(cfg.eps, 1.0)) < 290
         self.centers, self.Minv = obs.camera_rays(self.P)
         self.rng = np.random.default_rng(cfg.seed)
+        self.split = Split(cfg.threads)  # parts of the batch computed at once
         self.prior = prior if prior is not None else make_prior(cfg, fps, skeleton)
         self.tracks: list[Track] = []
         self.n_map_scores = 0  # update steps whose weights came from confidence maps + PAFs
@@ -312,6 +314,10 @@ class ParticleTracker(Births):
         sequence of C :class:`track.observation.CameraMaps` or None per camera (a bottom-up model's
         confidence maps + PAFs); with any, the update weights use eq. 5.8 on the maps for those cameras
         (keypoints for the others)."""
+        with self.split.blas_single():
+            return self._step(kp, sc, frame, maps, t_s)
+
+    def _step(self, kp, sc, frame: int, maps, t_s: float | None) -> FrameEstimate:
         cfg = self.config
         kp, sc = self._check_frame(kp, sc)
         pauses_before = self.pauses
@@ -329,7 +335,7 @@ class ParticleTracker(Births):
             # 1. prediction (eq. 5.1), all tracks and samples in one batch; one step per frame interval
             Xf = X.reshape(K * N, J, 3)
             for _ in range(n_pred):  # > 1 only over dropped frames
-                Xf, state = self.prior.predict(Xf, state, self.rng)
+                Xf, state = self.prior.predict(Xf, state, self.rng, split=self.split)
             X = Xf.reshape(K, N, J, 3)
             # tracks whose last evidence precedes a pause of the recorder: wider gates, fresh motion state
             paused = np.asarray([self.pauses - t.pauses_seen for t in self.tracks], np.float64)
@@ -418,7 +424,10 @@ class ParticleTracker(Births):
             return obs.weighted_stats(X, lp)
         score = np.zeros((K, J, N), np.float32)
         score[u] = score_u
-        return kernels.output_stats(X, score, ev_k, cfg.eps)
+        parts = self.split.map(
+            lambda lo, hi: kernels.output_stats(X[lo:hi], score[lo:hi], ev_k[lo:hi], cfg.eps), K
+        )
+        return _joined(parts)
 
     def _remember(self, X, state, mean, n_views, paused, ev_k, frame: int, now: float) -> None:
         """The tracks keep their samples, motion state and estimate; their pelvis velocity, and, where seen,
@@ -535,51 +544,72 @@ class ParticleTracker(Births):
 
         Keypoint evidence: compiled kernels (:mod:`track.kernels`) fuse the weights' numpy chain (ray
         coordinates, joint and limb scores, eq. 5.7 per pair), the resampling, the gather and the
-        refinement; with confidence maps the weights come from :meth:`_phi` (numpy)."""
+        refinement, over parts of the tracks at once (:attr:`split`); with confidence maps the weights come
+        from :meth:`_phi` (numpy)."""
         cfg = self.config
         K, N, J = X.shape[:3]
-        if cfg.resample:
-            if maps is None and self._phi_in_range:
-                phi = kernels.pair_weights(
-                    X,
-                    self.centers,
-                    rays,
-                    asc,
-                    focal=self.focal,
-                    sigma_m=cfg.obs_sigma_m,
-                    sigma_px=cfg.obs_sigma_px,
-                    eps=cfg.eps,
-                    limbs=self.limbs,
-                    pairs=self.pairs,
-                )  # (K,V,N): Phi(v,s) of eq. 5.7
-            else:
-                Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
-                lpv = obs.log_phi_pairs(self._phi(X, rays, asc, Y, maps), self.pairs, cfg.eps)
-                phi = np.exp(lpv - lpv.max(-1, keepdims=True), dtype=np.float64)
-            V = len(self.pairs)
-            idx = kernels.sus_indices(phi, obs.pair_sizes(N, V), self.rng.random(K * V))
-        else:
-            idx = np.broadcast_to(np.arange(N), (K, N))
+        V = len(self.pairs)
+        kernel_weights = cfg.resample and maps is None and self._phi_in_range
+        phi = None
+        if cfg.resample and not kernel_weights:
+            Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
+            lpv = obs.log_phi_pairs(self._phi(X, rays, asc, Y, maps), self.pairs, cfg.eps)
+            phi = np.exp(lpv - lpv.max(-1, keepdims=True), dtype=np.float64)
+        # the random draws for all tracks first (as one pass would draw them), then the parts
+        u = self.rng.random(K * V) if cfg.resample else np.zeros(0)
         refine = cfg.refine and cfg.refine_candidates > 1
         R = cfg.refine_candidates - 1 if refine else 0
         noise = (
             standard_normals(self.rng, (K, J, 3, R, N)) if refine else np.zeros((K, J, 3, 0, N), np.float32)
         )
-        X, score = kernels.refine_resampled(
-            X,
-            np.ascontiguousarray(idx),
-            self.centers,
-            rays,
-            asc,
-            self.focal,
-            sigma_m=cfg.obs_sigma_m,
-            sigma_px=cfg.obs_sigma_px,
-            noise=noise,
-            scales=obs.refine_scales(cfg.refine_candidates, cfg.refine_sigma_m)[1:],
-            n_guided=cfg.refine_guided,
-            lam=_GUIDED_LAM,
-            refine=refine,
-        )
+        counts = obs.pair_sizes(N, V)
+
+        def tracks(lo: int, hi: int):
+            if not cfg.resample:
+                idx = np.broadcast_to(np.arange(N), (hi - lo, N))
+            else:
+                phi_p = (
+                    kernels.pair_weights(
+                        X[lo:hi],
+                        self.centers,
+                        rays[lo:hi],
+                        asc[lo:hi],
+                        focal=self.focal,
+                        sigma_m=cfg.obs_sigma_m,
+                        sigma_px=cfg.obs_sigma_px,
+                        eps=cfg.eps,
+                        limbs=self.limbs,
+                        pairs=self.pairs,
+                    )  # (k,V,N): Phi(v,s) of eq. 5.7
+                    if phi is None
+                    else phi[lo:hi]
+                )
+                idx = kernels.sus_indices(phi_p, counts, u[lo * V : hi * V])
+            Xp, score = kernels.refine_resampled(
+                X[lo:hi],
+                np.ascontiguousarray(idx),
+                self.centers,
+                rays[lo:hi],
+                asc[lo:hi],
+                self.focal,
+                sigma_m=cfg.obs_sigma_m,
+                sigma_px=cfg.obs_sigma_px,
+                noise=noise[lo:hi],
+                scales=obs.refine_scales(cfg.refine_candidates, cfg.refine_sigma_m)[1:],
+                n_guided=cfg.refine_guided,
+                lam=_GUIDED_LAM,
+                refine=refine,
+            )
+            return Xp, idx, score
+
+        X, idx, score = _joined(self.split.map(tracks, K))
         return X, idx, score if refine else None
 
     # ------------------------------------------------------------------ birth
+
+
+def _joined(parts: list[tuple]) -> tuple:
+    """The parts' results (tuples of arrays over tracks) joined along the tracks."""
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(np.concatenate(a) for a in zip(*parts, strict=True))

@@ -73,6 +73,8 @@ class ParticleConfig:
       candidate, missing joints from the median mocap pose; 'learned' = the generator g of
       :mod:`track.birth` (dropout network that fills missing joints, run N times with dropout on);
       birth_checkpoint: its checkpoint ('' = the shipped one).
+    threads: parts of a frame's batch computed at once (:class:`track.split.Split`; the same tracks bit for
+      bit whatever the number): 0 = one per available core, up to 4; 1 = one thread, BLAS left alone.
     seed: random seed.
     """
 
@@ -116,6 +118,7 @@ class ParticleConfig:
     use_maps: bool = True
     birth: str = "gaussian"
     birth_checkpoint: str = ""
+    threads: int = bounded(0, 0, 64)
     seed: int = 0
 
     def __post_init__(self) -> None:

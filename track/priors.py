@@ -22,6 +22,7 @@ from core.fileio import save_npz, sha256_file
 from keypoints.skeletons import CANONICAL, Skeleton
 from track import kernels_gru
 from track.normalize import hip_indices
+from track.split import Split
 
 State = dict[str, np.ndarray]
 
@@ -58,7 +59,12 @@ class MotionPrior(Protocol):
 
     def init_state(self, x: np.ndarray) -> State: ...
 
-    def predict(self, x: np.ndarray, state: State, rng: np.random.Generator) -> tuple[np.ndarray, State]: ...
+    def predict(
+        self, x: np.ndarray, state: State, rng: np.random.Generator, split: Split | None = None
+    ) -> tuple[np.ndarray, State]:
+        """The next samples and state; ``split`` may cut the batch into parts computed at once (the same
+        bits as the whole batch)."""
+        ...
 
 
 def gather_state(state: State, idx: np.ndarray) -> State:
@@ -112,7 +118,7 @@ class ZeroVelocityPrior:
     def init_state(self, x: np.ndarray) -> State:
         return {}
 
-    def predict(self, x, state, rng):
+    def predict(self, x, state, rng, split=None):
         x = check_batch(x, self.n_joints)
         return x + normal_noise(rng, x.shape, self.sigma_m), state
 
@@ -129,7 +135,7 @@ class ConstantVelocityPrior:
     def init_state(self, x: np.ndarray) -> State:
         return {"prev": check_batch(x, self.n_joints).copy()}
 
-    def predict(self, x, state, rng):
+    def predict(self, x, state, rng, split=None):
         x = check_batch(x, self.n_joints)
         v = x - state["prev"]
         new = x + self.damping * v + normal_noise(rng, x.shape, self.sigma_m)
@@ -193,25 +199,38 @@ class GRUCellPrior:
     def _weights(self) -> tuple[np.ndarray, ...]:
         return self._np_weights
 
-    def predict(self, x, state, rng):
+    def predict(self, x, state, rng, split: Split | None = None):
         x = check_batch(x, self.skeleton.n_joints)
         B, H = len(x), self.hidden
+        prev = np.ascontiguousarray(state["prev"], np.float32)
+        h_prev = np.ascontiguousarray(state["h"], np.float32)
+        # the random draws for the whole batch first, so that any cut of it gives the same bits
+        mask = self._mask(rng, B, H) if 0 < self.dropout < 1 else np.zeros((0, 0), np.float32)
+        noise = standard_normals(rng, x.shape) if self.sigma_m > 0 else np.zeros((0, 0, 3), np.float32)
+
+        def rows(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+            return self._predict_rows(
+                x[lo:hi], prev[lo:hi], h_prev[lo:hi], mask[lo:hi], noise[lo:hi] if len(noise) else noise
+            )
+
+        parts = split.map(rows, B) if split is not None else [rows(0, B)]
+        new = parts[0][0] if len(parts) == 1 else np.concatenate([p[0] for p in parts])
+        h = parts[0][1] if len(parts) == 1 else np.concatenate([p[1] for p in parts])
+        return new, {"prev": x, "h": h}
+
+    def _predict_rows(self, x, prev, h_prev, mask, noise) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of :meth:`predict` with their random draws given: the new poses and hidden states."""
         ip, il, ir = hip_indices(self.skeleton)
         # [pose - origin, last displacement] rotated into the hip frame in one pass: the normalised pose
         # (eq. 5.2-5.4) and the normalised displacement
-        inp, cs = kernels_gru.gru_inputs(
-            x, np.ascontiguousarray(state["prev"], np.float32), ip, il, ir, self.fps / self.model_fps
-        )
+        inp, cs = kernels_gru.gru_inputs(x, prev, ip, il, ir, self.fps / self.model_fps)
         w_ih, b_ih, w_hh, b_hh, w_out, b_out = self._weights()
-        h_prev = np.ascontiguousarray(state["h"], np.float32)
         # the GRU cell's two products (B,3H) (gates r, z, n), then its gates and the dropout compiled
-        mask = self._mask(rng, B, H) if 0 < self.dropout < 1 else np.zeros((0, 0), np.float32)
         h, hd = kernels_gru.gru_gates(inp @ w_ih, b_ih, h_prev @ w_hh, b_hh, h_prev, mask)
-        noise = standard_normals(rng, x.shape) if self.sigma_m > 0 else np.zeros((0, 0, 3), np.float32)
         new = kernels_gru.gru_outputs(
             hd @ w_out, b_out, cs, x, self.model_fps / self.fps, noise, self.sigma_m
         )  # eq. 5.5 for the displacement, plus the noise
-        return new, {"prev": x, "h": h}
+        return new, h
 
 
 def numpy_copy_path(checkpoint: str | Path) -> Path:
