@@ -1,5 +1,6 @@
 """The particle filter's shortcuts give the bits of the long way: the last step's batch reused (no stacking
-of the tracks' samples), births matched on the free detections only (compacted per camera)."""
+of the tracks' samples), births matched on the free detections only (compacted per camera), the batch
+computed in parts by threads."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from track_helpers import render_kp, ring_P, walkers
 
 from track.particle import ParticleTracker
 from track.particle_config import ParticleConfig
+from track.split import Split
 
 CFG = ParticleConfig(motion="constant_velocity", n_samples=120, smooth_sigma_frames=0.0)
 
@@ -61,3 +63,37 @@ def test_births_on_compacted_free_detections_equal_the_full_frame():
         ids |= set(tr.step(kp[t], sc[t], t).track_id.tolist())
     assert len(ids) == 3 and calls  # every person born
     assert min(calls) < kp.shape[2]  # with tracks alive, fewer slots than detections per camera
+
+
+def test_batch_in_parts_by_threads_gives_the_same_bits(monkeypatch):
+    P = ring_P(4)
+    X = walkers(4, 30, seed=11)
+    kp, sc = render_kp(P, X, noise_px=1.5, seed=4, drop=0.05)
+    cuts = []
+    whole_map = Split.map
+
+    def counted(self, fn, n):
+        cuts.append(len(self.parts(n)))
+        return whole_map(self, fn, n)
+
+    monkeypatch.setattr(Split, "map", counted)
+    runs = {}
+    for threads in (1, 3):
+        cfg = ParticleConfig(n_samples=120, smooth_sigma_frames=0.0, threads=threads)  # the GRU prior
+        tr = ParticleTracker(P, np.full(len(P), 1000.0), 25.0, cfg)
+        cuts.clear()
+        runs[threads] = [tr.step(kp[t], sc[t], t) for t in range(len(kp))]
+        assert max(cuts) == threads  # the GRU's rows and the tracks were cut into `threads` parts
+    for ea, eb in zip(runs[1], runs[3], strict=True):
+        assert np.array_equal(ea.track_id, eb.track_id) and len(ea.track_id) == 4
+        assert np.array_equal(ea.xyz_m, eb.xyz_m) and np.array_equal(ea.std_m, eb.std_m)
+        assert np.array_equal(ea.confidence, eb.confidence)
+
+
+def test_split_parts_cover_the_batch_in_order():
+    for threads, n in [(2, 7), (3, 10), (4, 2), (2, 0), (8, 600)]:
+        parts = Split(threads).parts(n)
+        assert parts[0][0] == 0 and parts[-1][1] == n and len(parts) == max(1, min(threads, n))
+        assert all(hi == lo2 for (_, hi), (lo2, _) in zip(parts, parts[1:], strict=False))
+        assert max(hi - lo for lo, hi in parts) - min(hi - lo for lo, hi in parts) <= 1
+    assert Split(0).threads >= 1

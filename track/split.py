@@ -38,7 +38,7 @@ def auto_threads(threads: int) -> int:
 
 class Split:
     """Cuts ``n`` items (tracks, or rows of samples) into at most ``threads`` contiguous parts and runs a
-    function on each part at once, the first part in the calling thread.
+    function on each part at once, the first part in the calling thread, the others in a pool's.
 
     >>> s = Split(2)
     >>> s.parts(5)
@@ -54,16 +54,16 @@ class Split:
         self._pool = ThreadPoolExecutor(self.threads - 1, "roomcap-split") if self.threads > 1 else None
         self._blas = None  # threadpoolctl's controller, found on first use
 
-    def parts(self, n: int, unit: int = 1) -> list[tuple[int, int]]:
-        """Contiguous (lo, hi) ranges covering ``range(n)``, cut only at multiples of ``unit``."""
-        blocks = -(-n // unit) if n else 0
-        k = max(1, min(self.threads, blocks))
-        cuts = [min(n, (blocks * i // k) * unit) for i in range(k + 1)]
+    def parts(self, n: int) -> list[tuple[int, int]]:
+        """Contiguous (lo, hi) ranges of nearly equal size covering ``range(n)``, in order; the first (the
+        calling thread's, which starts first) the larger where they cannot be equal."""
+        k = max(1, min(self.threads, n))
+        cuts = [-(-n * i // k) for i in range(k + 1)]
         return [(cuts[i], cuts[i + 1]) for i in range(k)]
 
-    def map(self, fn: Callable[[int, int], T], n: int, unit: int = 1) -> list[T]:
-        """``[fn(lo, hi) for (lo, hi) in parts(n, unit)]``, the parts computed at once."""
-        parts = self.parts(n, unit)
+    def map(self, fn: Callable[[int, int], T], n: int) -> list[T]:
+        """``[fn(lo, hi) for (lo, hi) in parts(n)]``, the parts computed at once."""
+        parts = self.parts(n)
         if self._pool is None or len(parts) == 1:
             return [fn(lo, hi) for lo, hi in parts]
         futures = [self._pool.submit(fn, lo, hi) for lo, hi in parts[1:]]
