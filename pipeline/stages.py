@@ -94,7 +94,10 @@ def model_set_sha256(model_set: str, store: ProvenanceStore | None = None) -> st
 
 
 def _result_settings(config: TriangulateConfig | TrackerChoice) -> dict[str, Any]:
-    """A 3D stage's settings without how its chunks ran (``stream.workers``, ``stream.executor``)."""
+    """A 3D stage's settings without how its chunks ran (``stream.workers``, ``stream.executor``) or how
+    the particle filter computed its batch (``particle.threads``)."""
+    if isinstance(config, ParticleTrackConfig):
+        config = dataclasses.replace(config, particle=config.particle.result_settings())
     return {**dataclasses.asdict(config), "stream": config.stream.result_settings()}
 
 

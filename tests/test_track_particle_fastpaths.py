@@ -97,3 +97,14 @@ def test_split_parts_cover_the_batch_in_order():
         assert all(hi == lo2 for (_, hi), (lo2, _) in zip(parts, parts[1:], strict=False))
         assert max(hi - lo for lo, hi in parts) - min(hi - lo for lo, hi in parts) <= 1
     assert Split(0).threads >= 1
+
+
+def test_threads_are_not_a_setting_the_outputs_depend_on():
+    from pipeline.config import PipelineConfig
+    from pipeline.stages import _result_settings
+
+    def settings(options: dict) -> dict:
+        config = PipelineConfig.from_dict({"track": {"tracker": "particle", "options": options}})
+        return _result_settings(config.track)
+
+    assert settings({"threads": 3}) == settings({}) != settings({"n_samples": 200})

@@ -144,6 +144,11 @@ class ParticleConfig:
             return replace(self, smooth_sigma_s=SEED_SIGMA_FRAMES / fps)
         return self
 
+    def result_settings(self) -> ParticleConfig:
+        """The settings the tracks depend on: this config without ``threads`` (how a batch was computed,
+        which gives the same bits)."""
+        return replace(self, threads=0)
+
     @classmethod
     def from_dict(cls, d: dict) -> ParticleConfig:
         return config_from_dict(cls, d)

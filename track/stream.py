@@ -160,7 +160,7 @@ def track_session_particle_chunked(
         key = hash_key(
             [
                 "particle",
-                repr(tracker.config),
+                repr(tracker.config.result_settings()),
                 rig.sha256(),
                 [file_stamp(m.path) for m in plan.metas],
                 lay.session_toml.read_bytes() if lay.session_toml.exists() else b"",
