@@ -12,7 +12,8 @@ Frames are timed after the first ``--warm`` (births of the first people excluded
 the stepping process per frame divided by the live tracks (ms per person-frame), the ratio
 baseline / current, and the wall time per person-frame (the filter computes its batch in parts by
 threads, ``ParticleConfig.threads``, so its wall time can be below its CPU time). Runs alternate
-(current, baseline, current, ...) ``--repeats`` times and the best of each is reported (the machine is shared). The 1-minute load average is printed.
+(current, baseline, current, ...) ``--repeats`` times and the best of each is reported (the machine is
+shared). The 1-minute load average is printed.
 
 The first baseline run also writes the filter's state before every 10th frame (from frame 5; a
 revision without ``ParticleTracker.state_arrays`` writes none), and this tree's filter steps once from
