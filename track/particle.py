@@ -529,18 +529,18 @@ class ParticleTracker(Births):
         """:meth:`_update` for the tracks ``u`` with evidence (all of them without a copy): X (K,N,J,3) and
         the motion state with their samples resampled and refined (X in place), the refined joints' scores."""
         K, N = X.shape[:2]
-        if len(u) == K:
-            X, idx, score_u = self._update(X, rays, asc, maps)
-            flat = idx + (np.arange(K) * N)[:, None]
-        else:
-            X[u], idx, score_u = self._update(X[u], rays[u], asc[u], maps)
-            flat = np.arange(K * N).reshape(K, N)
-            flat[u] = u[:, None] * N + idx
+        if len(u) == K:  # each part of the tracks gathers its own rows of the state
+            X, _, score_u, state = self._update(X, rays, asc, maps, state)
+            return X, state, score_u
+        X[u], idx, score_u, _ = self._update(X[u], rays[u], asc[u], maps)
+        flat = np.arange(K * N).reshape(K, N)
+        flat[u] = u[:, None] * N + idx
         return X, kernels.gather_state(state, flat.ravel()), score_u
 
-    def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps=None):
-        """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N) and
-        the refined joints' summed confidence (K,J,N) (None without refinement).
+    def _update(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, maps=None, state=None):
+        """Eq. 5.6–5.7, resampling per camera pair, joint refinement. X: (K,N,J,3) -> X', indices (K,N),
+        the refined joints' summed confidence (K,J,N) (None without refinement) and, given the K tracks'
+        motion ``state``, its resampled rows (else None).
 
         Keypoint evidence: compiled kernels (:mod:`track.kernels`) fuse the weights' numpy chain (ray
         coordinates, joint and limb scores, eq. 5.7 per pair), the resampling, the gather and the
@@ -600,10 +600,14 @@ class ParticleTracker(Births):
                 lam=_GUIDED_LAM,
                 refine=refine,
             )
-            return Xp, idx, score
+            if state is None:
+                return Xp, idx, score
+            rows = (idx + (np.arange(lo, hi) * N)[:, None]).ravel()
+            return Xp, idx, score, *kernels.gather_state(state, rows).values()
 
-        X, idx, score = _joined(self.split.map(tracks, K))
-        return X, idx, score if refine else None
+        X, idx, score, *columns = _joined(self.split.map(tracks, K))
+        resampled = dict(zip(state, columns, strict=True)) if state is not None else None
+        return X, idx, score if refine else None, resampled
 
     # ------------------------------------------------------------------ birth
 
