@@ -73,11 +73,12 @@ def _setup(session: Path):
     fps = session_fps(lay, mv.t_ns)
     kp = np.moveaxis(mv.xy_px, 0, 1).astype(np.float32)
     sc = np.moveaxis(mv.score, 0, 1).astype(np.float32)
-    return (
-        kp,
-        sc,
-        lambda: ParticleTracker(sub.projection_matrices(), focal_lengths(sub), fps, ParticleConfig()),
-    )
+    cfg = ParticleConfig()
+    if hasattr(cfg, "threads"):  # the parts a user's run computes at once (this bench's OMP_NUM_THREADS=1
+        from track.split import MAX_AUTO_THREADS, available_cores  # is for BLAS, not for them)
+
+        cfg = ParticleConfig(threads=min(available_cores(), MAX_AUTO_THREADS))
+    return kp, sc, lambda: ParticleTracker(sub.projection_matrices(), focal_lengths(sub), fps, cfg)
 
 
 def run_tracker(session: Path, warm: int, record: Path | None = None, every: int = 10) -> dict:

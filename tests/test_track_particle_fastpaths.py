@@ -9,7 +9,7 @@ from track_helpers import render_kp, ring_P, walkers
 
 from track.particle import ParticleTracker
 from track.particle_config import ParticleConfig
-from track.split import Split
+from track.split import Split, auto_threads
 
 CFG = ParticleConfig(motion="constant_velocity", n_samples=120, smooth_sigma_frames=0.0)
 
@@ -97,6 +97,16 @@ def test_split_parts_cover_the_batch_in_order():
         assert all(hi == lo2 for (_, hi), (lo2, _) in zip(parts, parts[1:], strict=False))
         assert max(hi - lo for lo, hi in parts) - min(hi - lo for lo, hi in parts) <= 1
     assert Split(0).threads >= 1
+
+
+def test_auto_threads_follow_the_cores_and_omp_num_threads(monkeypatch):
+    monkeypatch.setattr("track.split.available_cores", lambda: 16)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert auto_threads(0) == 4 and auto_threads(6) == 6  # auto up to 4; an explicit number as given
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")  # a worker's share when sessions run at once
+    assert auto_threads(0) == 2 and auto_threads(3) == 3
+    monkeypatch.setattr("track.split.available_cores", lambda: 1)
+    assert auto_threads(0) == 1
 
 
 def test_threads_are_not_a_setting_the_outputs_depend_on():

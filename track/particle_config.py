@@ -74,7 +74,8 @@ class ParticleConfig:
       :mod:`track.birth` (dropout network that fills missing joints, run N times with dropout on);
       birth_checkpoint: its checkpoint ('' = the shipped one).
     threads: parts of a frame's batch computed at once (:class:`track.split.Split`; the same tracks bit for
-      bit whatever the number): 0 = one per available core, up to 4; 1 = one thread, BLAS left alone.
+      bit whatever the number): 0 = one per available core, up to 4 and up to ``OMP_NUM_THREADS`` when
+      set; 1 = one thread, BLAS left alone.
     seed: random seed.
     """
 

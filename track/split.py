@@ -30,10 +30,18 @@ def available_cores() -> int:
 
 
 def auto_threads(threads: int) -> int:
-    """``threads`` itself, or for 0 the available cores up to :data:`MAX_AUTO_THREADS`."""
+    """``threads`` itself, or for 0 the available cores up to :data:`MAX_AUTO_THREADS` and up to
+    ``OMP_NUM_THREADS`` when that is set (``reprocess`` sets it to each worker's share of the cores when
+    it runs sessions at once)."""
     if threads < 0:
         raise ValueError(f"threads must be >= 0 (0 = one per core), got {threads}")
-    return threads or min(available_cores(), MAX_AUTO_THREADS)
+    if threads:
+        return threads
+    cap = MAX_AUTO_THREADS
+    omp = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if omp.isdigit() and int(omp) > 0:
+        cap = min(cap, int(omp))
+    return min(available_cores(), cap)
 
 
 class Split:
