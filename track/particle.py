@@ -549,9 +549,8 @@ class ParticleTracker(Births):
         cfg = self.config
         K, N, J = X.shape[:3]
         V = len(self.pairs)
-        kernel_weights = cfg.resample and maps is None and self._phi_in_range
-        phi = None
-        if cfg.resample and not kernel_weights:
+        phi = None  # the weights' numpy path (confidence maps, or eq. 5.7 out of float64's range)
+        if cfg.resample and not (maps is None and self._phi_in_range):
             Y = obs.ray_coords(X, self.centers, rays)  # (K,J,3C,N)
             lpv = obs.log_phi_pairs(self._phi(X, rays, asc, Y, maps), self.pairs, cfg.eps)
             phi = np.exp(lpv - lpv.max(-1, keepdims=True), dtype=np.float64)
