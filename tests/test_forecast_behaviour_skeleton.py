@@ -132,3 +132,35 @@ def test_training_steps_with_skeleton_and_n_critic():
     assert np.allclose(ratio, ratio[..., :1], atol=1e-4)
     want = np.linalg.norm(db[:, b[:, 0]] - db[:, b[:, 1]], axis=-1).mean(0)
     assert np.allclose(f.gen.skeleton.bone_len.numpy(), want, atol=1e-5)
+
+
+def test_learned_proportions_train_and_round_trip(tmp_path):
+    """bone_lengths=learned: the proportions start at the database's, move with the loss, stay one set for
+    every pose, and come back from a checkpoint."""
+    cfg = BehaviourConfig(hidden=32, bone_lengths="learned")
+    gen, _ = build(cfg)
+    sk = gen.skeleton
+    assert sk is not None and sk.log_ratio is not None
+    assert "skeleton.log_ratio" in dict(gen.named_parameters())
+    b = sk.bone_idx.numpy()
+    sk.bone_len.fill_(0.2)
+    assert torch.allclose(sk.lengths(), sk.bone_len)  # the database's proportions at the start
+    # a loss on one bone's length moves that bone's learned ratio (and no pose-independent ratio is frozen)
+    opt = torch.optim.SGD([sk.log_ratio], lr=1.0)
+    raw = torch.randn(4, 19, 3)
+    for _ in range(3):
+        loss = _lengths(sk(raw, torch.zeros(4)), b)[:, 0].sub(0.3).pow(2).sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    L = sk.lengths().detach()
+    assert L[0] > 0.2 + 1e-3 and torch.allclose(L[1:], sk.bone_len[1:])
+    got = _lengths(sk(raw, torch.zeros(4)), b).detach()
+    assert torch.allclose(got, L.expand_as(got), atol=1e-5)  # one skeleton for every pose
+    path = tmp_path / "l.pt"
+    save_checkpoint(path, {"full": gen}, {"full": cfg}, {})
+    gens, cfgs, _ = load_checkpoint(path)
+    assert cfgs["full"].bone_lengths == "learned"
+    assert torch.allclose(gens["full"].skeleton.lengths(), L)
+    # the fixed skeleton has no learned ratios
+    assert build(BehaviourConfig(hidden=32, bone_lengths="database"))[0].skeleton.log_ratio is None

@@ -58,7 +58,9 @@ class BehaviourConfig:
     lambda_adv3d: float = 0.1
     gp: float = 10.0
     n_critic: int = 1  # critic updates per generator update
-    bone_lengths: str = "free"  # free | database: the skeleton layer (``Skeleton``) fixes the proportions
+    # free | database: the skeleton layer (``Skeleton``) fixes the database's proportions | learned: the
+    # skeleton's proportions start at the database's and are trained (one set for every pose)
+    bone_lengths: str = "free"
     short_history: float = 0.25  # fraction of training sequences that hide their first 1..n_obs-1 steps
     n_train: int = 20000  # composite training sequences
     n_eval: int = 1000  # validation / test sequences
@@ -70,8 +72,10 @@ class BehaviourConfig:
             raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
         if self.joints not in ("body19", "upper9"):
             raise ValueError(f"joints must be 'body19' or 'upper9', got {self.joints!r}")
-        if self.bone_lengths not in ("free", "database"):
-            raise ValueError(f"bone_lengths must be 'free' or 'database', got {self.bone_lengths!r}")
+        if self.bone_lengths not in ("free", "database", "learned"):
+            raise ValueError(
+                f"bone_lengths must be 'free', 'database' or 'learned', got {self.bone_lengths!r}"
+            )
         if self.n_critic < 1:
             raise ValueError(f"n_critic must be >= 1, got {self.n_critic}")
 
@@ -137,9 +141,14 @@ class Skeleton(nn.Module):
     ``scale * bone_len``, one ``scale = 1 + max_scale * tanh(a)`` per pose from the decoder's extra output
     ``a`` (within +-``max_scale`` of the database's mean size, about 3 s.d. of its subjects). Not in the
     seed, whose critic alone holds the bone lengths (sec. 4.4.2): our small critic left them 15 % short and
-    scattered (Psi's diagonal), which the quality classifier sees at once."""
+    scattered (Psi's diagonal), which the quality classifier sees at once.
 
-    def __init__(self, bone_idx: np.ndarray, max_scale: float = 0.15) -> None:
+    With ``learn`` the proportions are trained too: each bone's length is ``bone_len * exp(r)``, one learned
+    ``r`` per bone (0 at the start), the same for every pose. The 2D loss can then fit the proportions of the
+    training sequences' people, which differ from the database's subjects (shoulders, thighs), while each
+    pose keeps one consistent skeleton."""
+
+    def __init__(self, bone_idx: np.ndarray, max_scale: float = 0.15, learn: bool = False) -> None:
         super().__init__()
         root = set(bone_idx[:, 1].tolist()) - set(bone_idx[:, 0].tolist())
         order, done = [], set(root)
@@ -150,7 +159,12 @@ class Skeleton(nn.Module):
                     done.add(c)
         self.register_buffer("bone_idx", torch.as_tensor(bone_idx[order]))
         self.register_buffer("bone_len", torch.ones(len(bone_idx)))
+        self.log_ratio = nn.Parameter(torch.zeros(len(bone_idx))) if learn else None
         self.max_scale = max_scale
+
+    def lengths(self) -> torch.Tensor:
+        """The bone lengths at size 1 (this layer's bone order)."""
+        return self.bone_len if self.log_ratio is None else self.bone_len * self.log_ratio.exp()
 
     def set_lengths(self, db: np.ndarray) -> None:
         """The mean bone lengths of database poses (N,J,3) (this layer's bone order)."""
@@ -163,9 +177,10 @@ class Skeleton(nn.Module):
         vec = raw[:, c] - raw[:, p]
         u = vec / vec.norm(dim=-1).clamp(min=1e-6)[..., None]
         scale = 1.0 + self.max_scale * torch.tanh(a)
+        L = self.lengths()
         out = [raw[:, j] for j in range(raw.shape[1])]
         for i, (ci, pi) in enumerate(zip(c.tolist(), p.tolist(), strict=True)):
-            out[ci] = out[pi] + (scale * self.bone_len[i])[:, None] * u[:, i]
+            out[ci] = out[pi] + (scale * L[i])[:, None] * u[:, i]
         return torch.stack(out, 1)
 
 
@@ -266,7 +281,7 @@ def rollout(
 def build(cfg: BehaviourConfig) -> tuple[Generator, Critic]:
     names = cfg.joint_names
     torch.manual_seed(cfg.seed)
-    skel = Skeleton(bones(names)) if cfg.bone_lengths == "database" else None
+    skel = Skeleton(bones(names), learn=cfg.bone_lengths == "learned") if cfg.bone_lengths != "free" else None
     return Generator(cfg.n_obs, len(names), len(ACTIONS), cfg.hidden, skel), Critic(
         len(names), bones(names), cfg.hidden
     )
