@@ -315,7 +315,9 @@ def script_chain(script: str) -> Chain:
     return Chain(states, action, T / T.sum(1, keepdims=True), np.full(len(states), 1.0 / len(states)))
 
 
-def chain_forecast(chain: Chain, acts: np.ndarray, m: int, last_state: np.ndarray | None = None) -> np.ndarray:
+def chain_forecast(
+    chain: Chain, acts: np.ndarray, m: int, last_state: np.ndarray | None = None
+) -> np.ndarray:
     """The best possible forecast of a script: the probabilities (S,m,A) of the next m actions after the
     observed actions ``acts (S,N)`` (forward filtering over the hidden states: from the labels alone), or,
     with ``last_state (S,)``, after that known hidden state (labels and place)."""
