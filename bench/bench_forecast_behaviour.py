@@ -34,9 +34,9 @@ import torch
 from core.cli import parse_sets
 from forecast.behaviour import data as bdata
 from forecast.behaviour import training as T
+from forecast.behaviour.cli import QUALITY_OF_SCRIPT
 from forecast.behaviour.data import ACTIONS, JOINTS
 from forecast.behaviour.model import BehaviourConfig, build, config_from_dict, rollout
-from forecast.behaviour.quality import QUALITY_SHIPPED
 from forecast.behaviour.quality import load as load_quality
 from forecast.behaviour.training import critic_input
 
@@ -47,7 +47,7 @@ def _tops(probs: np.ndarray, gt: np.ndarray) -> tuple[list[float], list[float]]:
     return (order[..., 0] == gt).mean(0).tolist(), (order[..., :3] == gt[..., None]).any(-1).mean(0).tolist()
 
 
-def ceilings(cfg: BehaviourConfig, quality_classifier=QUALITY_SHIPPED) -> dict:
+def ceilings(cfg: BehaviourConfig, quality_classifier=None) -> dict:
     """The best possible top-1/top-3 per step of the config's script on the test split, from the labels alone
     and from labels and place, and the two qualities of the truth."""
     sp = T.load_splits(cfg, 0, JOINTS, with_train=False)
@@ -67,7 +67,7 @@ def ceilings(cfg: BehaviourConfig, quality_classifier=QUALITY_SHIPPED) -> dict:
     fakes = np.concatenate([T.perturbed(real_v, JOINTS, 0), sp.val.tgt_3d.reshape(-1, J, 3)])
     clf = T.quality_classifier(real_v, fakes.astype(np.float32), JOINTS, 0)
     q = T.quality(clf, real_t, sp.test.tgt_3d.reshape(-1, J, 3), JOINTS, 0)
-    seed_clf = load_quality(quality_classifier)
+    seed_clf = load_quality(quality_classifier or QUALITY_OF_SCRIPT[cfg.script])
     qs = T.share_real(seed_clf.clf, sp.test.tgt_3d.reshape(-1, J, 3), JOINTS)
     return {
         "bayes_top1_by_step": top1,
@@ -90,7 +90,7 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
     ap.add_argument("--ceilings", action="store_true", help="the data's Bayes top-1 and the truth's quality")
     ap.add_argument(
-        "--quality-classifier", default=str(QUALITY_SHIPPED), help="the classifier the truth's quality uses"
+        "--quality-classifier", default=None, help="the truth's quality's classifier (default: the script's)"
     )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

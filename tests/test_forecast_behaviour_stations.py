@@ -205,4 +205,7 @@ def test_train_and_eval_stations_tiny(tmp_path):
     assert main(["eval", "--checkpoint", str(ck), "--split", "val", "--out", str(res)]) == 0
     r = json.loads(res.read_text())
     assert r["n_sequences"] == 40 and 0 <= r["models"]["full"]["top1"] <= 1
+    # the quality classifier of the stations data by default
+    assert r["quality3d_classifier"]["path"].endswith("behaviour_quality_stations_cmu.pt")
+    assert 0 <= r["models"]["full"]["quality3d"] <= 1
     assert main(["train", "--out", str(ck), "--set", "script=kitchen"]) == 2
