@@ -209,3 +209,38 @@ def test_train_and_eval_stations_tiny(tmp_path):
     assert r["quality3d_classifier"]["path"].endswith("behaviour_quality_stations_cmu.pt")
     assert 0 <= r["models"]["full"]["quality3d"] <= 1
     assert main(["train", "--out", str(ck), "--set", "script=kitchen"]) == 2
+
+
+def test_sample_gives_the_room_context(rng):
+    """`sample`'s forecast reads the person's place from the view anchored under the track (the room
+    context): the same observation at another floor point, as far from the camera, forecasts otherwise with
+    context=room, alike with context=camera."""
+    from forecast.behaviour.geometry import make_view
+    from forecast.behaviour.sample import Observed, _forecast
+    from synthetic.rigs import ring_rig
+
+    cam = ring_rig(6, 4.0, height_m=2.2)[0]  # at (4, 0, 2.2)
+    N, J = 3, 19
+    feats = rng.normal(0, 0.3, (1, N, J, 2)).astype(np.float32)
+
+    def observed(g):
+        v = make_view(cam.K[None], cam.R[None], cam.t[None], np.array([g]))
+        return Observed(
+            [0],
+            feats,
+            np.ones((1, N, J), bool),
+            np.array([[0, 1, 2]]),
+            np.array([["climb", "drink", "laugh"]], dtype=object),
+            np.zeros((1, N)),
+            [v],
+            [cam.name],
+        )
+
+    here, there = observed([1.0, 1.0, 0.0]), observed([1.0, -1.0, 0.0])  # as far from the camera
+    for context, differs in (("room", True), ("camera", False)):
+        cfg = BehaviourConfig(hidden=32, context=context)
+        gen, _ = build(cfg)
+        p1, _ = _forecast(gen, cfg, here)
+        p2, _ = _forecast(gen, cfg, there)
+        assert p1.shape == (1, cfg.m, len(ACTIONS))
+        assert (not np.allclose(p1, p2)) == differs, context
