@@ -8,13 +8,16 @@ Process CPU time (``time.process_time``), torch on one thread by default, random
 
     .venv/bin/python bench/bench_forecast_behaviour.py [--steps 10] [--threads 1] [--results results.json]
         [--set KEY=VALUE ...]   (config overrides as in ``forecast behaviour train --set``)
+        [--ceilings [--quality-classifier FILE]]
 
-With ``--ceilings`` (needs the CMU mocap; about a minute) also what the composite data allow: the top-1
-accuracy of the best possible forecaster of the script (the Markov chain's k-step most likely action after
-the last observed one, Fig. 4.3's ceiling), and the 3D quality of the test sequences' true 3D poses: under the
-seed's metric (the share the shipped once-trained classifier judges real, ``forecast behaviour quality``) and
-under the per-method variant (a "method" whose val predictions, the classifier's fakes, are the val sequences'
-true 3D).
+With ``--ceilings`` (needs the CMU mocap; about a minute) also what the composite data of the config's
+``script`` allow: the top-1/top-3 accuracy of the best possible forecaster (Fig. 4.3's ceiling) from the
+labels alone (forward filtering over the script's hidden states, ``data.chain_forecast``) and from labels and
+place (the hidden state of the last observed step known; for ``script=markov`` the two are one, the state
+being the label), and the 3D quality of the test sequences' true 3D poses: under the seed's metric (the
+share the once-trained classifier ``--quality-classifier`` judges real, ``forecast behaviour quality``) and
+under the per-method variant (a "method" whose val predictions, the classifier's fakes, are the val
+sequences' true 3D).
 
 Ends with one line ``BENCH {json}``.
 """
@@ -29,41 +32,51 @@ import numpy as np
 import torch
 
 from core.cli import parse_sets
+from forecast.behaviour import data as bdata
 from forecast.behaviour import training as T
-from forecast.behaviour.data import ACTIONS, JOINTS, SCRIPT
+from forecast.behaviour.cli import QUALITY_OF_SCRIPT
+from forecast.behaviour.data import ACTIONS, JOINTS
 from forecast.behaviour.model import BehaviourConfig, build, config_from_dict, rollout
-from forecast.behaviour.quality import QUALITY_SHIPPED
 from forecast.behaviour.quality import load as load_quality
 from forecast.behaviour.training import critic_input
 
 
-def ceilings(cfg: BehaviourConfig) -> dict:
-    """Bayes top-1/top-3 of the script per step on the test split, and the two qualities of the truth."""
+def _tops(probs: np.ndarray, gt: np.ndarray) -> tuple[list[float], list[float]]:
+    """Top-1 / top-3 by step of forecasts probs (S,m,A) against gt (S,m)."""
+    order = np.argsort(-probs, -1)
+    return (order[..., 0] == gt).mean(0).tolist(), (order[..., :3] == gt[..., None]).any(-1).mean(0).tolist()
+
+
+def ceilings(cfg: BehaviourConfig, quality_classifier=None) -> dict:
+    """The best possible top-1/top-3 per step of the config's script on the test split, from the labels alone
+    and from labels and place, and the two qualities of the truth."""
     sp = T.load_splits(cfg, 0, JOINTS, with_train=False)
-    A = len(ACTIONS)
-    P = np.zeros((A, A))
-    for a, nxt in SCRIPT.items():
-        for b, p in nxt.items():
-            P[ACTIONS.index(a), ACTIONS.index(b)] = p
-    P /= P.sum(1, keepdims=True)
-    d, n_obs = sp.test, cfg.n_obs
-    Pk, top1, top3 = np.eye(A), [], []
-    for k in range(cfg.m):
-        Pk = Pk @ P
-        order = np.argsort(-Pk[d.acts[:, n_obs - 1]], 1)
-        top1.append(float((order[:, 0] == d.acts[:, n_obs + k]).mean()))
-        top3.append(float((order[:, :3] == d.acts[:, n_obs + k, None]).any(1).mean()))
+    d, n_obs, L = sp.test, cfg.n_obs, cfg.n_obs + cfg.m
+    ch = bdata.script_chain(cfg.script)
+    pool = bdata.split_pool(bdata.load_pool())
+    if cfg.script == "stations":  # the test split's hidden states (its seed as in load_splits)
+        acts, _, _, states = bdata.compose_stations(pool["test"], cfg.n_eval, L, seed=2)
+    else:
+        acts = states = bdata.compose(pool["test"], cfg.n_eval, L, seed=2)[0]
+    assert np.array_equal(acts, d.acts), "the ceilings' sequences are not the test split's"
+    gt = d.acts[:, n_obs:]
+    top1, top3 = _tops(bdata.chain_forecast(ch, d.acts[:, :n_obs], cfg.m), gt)
+    p1, p3 = _tops(bdata.chain_forecast(ch, d.acts[:, :n_obs], cfg.m, last_state=states[:, n_obs - 1]), gt)
     real_v, real_t = sp.db[0::2], sp.db[1::2]
     J = len(JOINTS)
     fakes = np.concatenate([T.perturbed(real_v, JOINTS, 0), sp.val.tgt_3d.reshape(-1, J, 3)])
     clf = T.quality_classifier(real_v, fakes.astype(np.float32), JOINTS, 0)
     q = T.quality(clf, real_t, sp.test.tgt_3d.reshape(-1, J, 3), JOINTS, 0)
-    seed_clf = load_quality(QUALITY_SHIPPED)
+    seed_clf = load_quality(quality_classifier or QUALITY_OF_SCRIPT[cfg.script])
     qs = T.share_real(seed_clf.clf, sp.test.tgt_3d.reshape(-1, J, 3), JOINTS)
     return {
         "bayes_top1_by_step": top1,
         "bayes_top1": float(np.mean(top1)),
         "bayes_top3": float(np.mean(top3)),
+        "script": cfg.script,
+        "bayes_place_top1_by_step": p1,
+        "bayes_place_top1": float(np.mean(p1)),
+        "bayes_place_top3": float(np.mean(p3)),
         "quality3d_of_true_3d": qs,
         "quality3d_per_method_of_true_3d": q,
     }
@@ -76,6 +89,9 @@ def main() -> None:
     ap.add_argument("--results", default=None, help="an eval results.json to report ratios from")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
     ap.add_argument("--ceilings", action="store_true", help="the data's Bayes top-1 and the truth's quality")
+    ap.add_argument(
+        "--quality-classifier", default=None, help="the truth's quality's classifier (default: the script's)"
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cfg = config_from_dict(parse_sets(args.set))
@@ -86,12 +102,13 @@ def main() -> None:
     seen = torch.ones(B, N, J, dtype=torch.bool)
     acts = torch.randint(A, (B, N), generator=g)
     c = torch.tensor([[0.0, -4.0, 2.2]]).repeat(B, 1)
+    room = torch.randn(B, 4, generator=g)  # read only with context=room
     og = torch.optim.Adam(gen.parameters(), lr=cfg.lr)
     oc = torch.optim.Adam(critic.parameters(), lr=cfg.lr)
     for i in range(args.steps + 1):
         if i == 1:  # first step is warm-up
             c0 = time.process_time()
-        lg, P = rollout(gen, feats, acts, seen, c, cfg.m)
+        lg, P = rollout(gen, feats, acts, seen, c, cfg.m, room=room)
         fake = critic_input(P.reshape(-1, J, 3), cfg.joint_names.index("pelvis"))[:B]
         for _ in range(cfg.n_critic):
             mix = fake.detach().clone().requires_grad_(True)
@@ -110,7 +127,7 @@ def main() -> None:
     with torch.no_grad():
         c0 = time.process_time()
         for _ in range(20):
-            rollout(gen, feats[:1], acts[:1], seen[:1], c[:1], cfg.m)
+            rollout(gen, feats[:1], acts[:1], seen[:1], c[:1], cfg.m, room=room[:1])
         one_ms = (time.process_time() - c0) / 20 * 1000
     out = {
         "train_step_cpu_s": step_s,
@@ -119,6 +136,7 @@ def main() -> None:
         "m": cfg.m,
         "n_critic": cfg.n_critic,
         "bone_lengths": cfg.bone_lengths,
+        "context": cfg.context,
     }
     print(f"training step (batch {B}, M = {cfg.m}, {cfg.n_critic} critic step(s) + GP): {step_s:.3f} s CPU")
     print(f"one person's forecast (M = {cfg.m} steps): {one_ms:.2f} ms CPU")
@@ -138,12 +156,13 @@ def main() -> None:
             print(f"{k}: " + ("-" if v is None else f"{v:.3f}"))
         out.update(ratios)
     if args.ceilings:
-        ce = ceilings(cfg)
-        print(
-            "best possible top-1 by step (the script's Markov chain, test split): "
-            + " / ".join(f"{v:.1%}" for v in ce["bayes_top1_by_step"])
-            + f"; overall {ce['bayes_top1']:.1%} (top-3 {ce['bayes_top3']:.1%})"
-        )
+        ce = ceilings(cfg, args.quality_classifier)
+        for what, k in (("labels alone", "bayes"), ("labels and place", "bayes_place")):
+            print(
+                f"best possible top-1 by step from {what} (script {cfg.script}, test split): "
+                + " / ".join(f"{v:.1%}" for v in ce[f"{k}_top1_by_step"])
+                + f"; overall {ce[f'{k}_top1']:.1%} (top-3 {ce[f'{k}_top3']:.1%})"
+            )
         print(
             f"3D quality of the true 3D poses: {ce['quality3d_of_true_3d']:.2f} (seed's metric), "
             f"{ce['quality3d_per_method_of_true_3d']:.2f} (per-method variant)"

@@ -40,6 +40,12 @@ from forecast.behaviour.training import (
     train_average,
 )
 
+# the shipped 3D quality classifier of each script's data (built by `forecast behaviour quality`)
+QUALITY_OF_SCRIPT = {
+    "markov": Q.QUALITY_SHIPPED,
+    "stations": Q.QUALITY_SHIPPED.with_name("behaviour_quality_stations_cmu.pt"),
+}
+
 DESCRIPTION = (
     "Long-horizon behaviour forecasting (Diller 2024, ch. 4, FutureHuman3D): the next M actions and their "
     "characteristic 3D poses from observed 2D poses and action labels."
@@ -86,8 +92,9 @@ def _main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", default="results.json", help="results JSON (default results.json)")
     e.add_argument(
         "--quality-classifier",
-        default=str(Q.QUALITY_SHIPPED),
-        help="the 3D quality classifier (`forecast behaviour quality`; default the shipped one)",
+        default=None,
+        help="the 3D quality classifier (`forecast behaviour quality`; default the shipped one of the "
+        "checkpoint's data, its `script`)",
     )
     e.add_argument(
         "--sessions",
@@ -183,7 +190,7 @@ def _train(args) -> int:
     )
     if args.eval_split == "none" or "full" not in gens:
         return 0
-    qm = _quality_model(str(Q.QUALITY_SHIPPED), missing_ok=True)
+    qm = _quality_model(str(QUALITY_OF_SCRIPT[base.script]), missing_ok=True)
     qc = (qm.clf, qm.joints) if qm is not None else None
     res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split), sp.db, quality_clf=qc)
     res["split"] = args.eval_split
@@ -303,6 +310,8 @@ def _eval(args) -> int:
     sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
+    if args.quality_classifier is None:
+        args.quality_classifier = str(QUALITY_OF_SCRIPT[cfg.script])
     qm = _quality_model(args.quality_classifier)
     assert qm is not None
     res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db, quality_clf=(qm.clf, qm.joints))

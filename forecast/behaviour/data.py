@@ -12,7 +12,14 @@ is built from data that ships with the project:
 - **Composite activities.** A sequence of ``n_obs + M`` steps follows a fixed script of likely next actions
   (``SCRIPT``, a Markov chain without self-transitions: walk -> sit -> drink -> ...); each step draws a clip
   of its action and one of that clip's characteristic poses, placed where the person walked to (a random
-  walk over the room's floor, a continuous heading).
+  walk over the room's floor, a continuous heading). That script ("markov") gives the poses no information
+  about what follows beyond the labels. The "stations" script (``compose_stations``) gives them the
+  structure of a real room: its actions have fixed places, each with its routine (``STATIONS``: sit, drink,
+  laugh at the table; drink, laugh, reach at the counter; wash, reach, drink at the sink; climb and reach at
+  the shelf), and a person walks from place to place facing where they go, so the place of the observed
+  steps (and the heading of a walk) tells what comes next where the labels alone ("walk", "drink",
+  "reach") do not. Both are Markov chains over hidden states
+  (``script_chain``), which gives the best possible forecast from labels alone and from labels and place.
 - **2D observation.** Every step pose is rendered into one camera of a ring rig by
   ``synthetic.render.render_camera`` (pixel noise, missed joints, missed detections, lens distortion), the
   camera fixed per sequence, so training sees the kind of 2D the ``keypoints`` stage writes.
@@ -84,6 +91,47 @@ SCRIPT = {
     "reach": {"walk": 0.5, "climb": 0.3, "wash": 0.2},
     "wash": {"walk": 0.6, "drink": 0.4},
 }
+
+SCRIPTS = ("markov", "stations")
+
+# the "stations" script: a room with fixed places for its actions (room frame = the rig's world, z up,
+# metres). Each place has a floor point and the heading (rad) a person there faces; a person walks from one
+# place to the next, so where they are and where they head tells what they do next.
+STATIONS = {
+    "table": ((-1.2, 0.9), -0.6),  # sit at the kitchen table, drink, laugh
+    "counter": ((-1.0, -1.2), 0.5),  # drink at the counter, laugh, reach for a glass
+    "sink": ((1.3, 1.1), 0.7),  # wash, reach into the cupboard above, drink a glass of water
+    "shelf": ((1.1, -1.2), -0.9),  # climb the ladder, reach onto the shelf
+}
+# next state from a state at a place ("leave": walk to another place, by ``LEAVE``)
+STATION_SCRIPT = {
+    "table:sit": {"table:drink": 0.7, "table:laugh": 0.3},
+    "table:drink": {"table:laugh": 0.3, "leave": 0.7},
+    "table:laugh": {"table:drink": 0.2, "leave": 0.8},
+    "counter:drink": {"counter:laugh": 0.7, "counter:reach": 0.3},
+    "counter:laugh": {"counter:drink": 0.3, "leave": 0.7},
+    "counter:reach": {"counter:drink": 0.2, "leave": 0.8},
+    "sink:wash": {"sink:reach": 0.6, "sink:drink": 0.4},
+    "sink:reach": {"sink:wash": 0.3, "leave": 0.7},
+    "sink:drink": {"sink:wash": 0.2, "leave": 0.8},
+    "shelf:climb": {"shelf:reach": 0.8, "leave": 0.2},
+    "shelf:reach": {"shelf:climb": 0.2, "leave": 0.8},
+}
+# where a person walks on leaving a place: any other, alike (the labels do not tell which; the walk's
+# place and heading do)
+LEAVE = {p: {q: 1.0 / (len(STATIONS) - 1) for q in STATIONS if q != p} for p in STATIONS}
+# the first action on arriving at a place (after the walk there)
+ARRIVE = {
+    "table": {"table:sit": 1.0},
+    "counter": {"counter:drink": 1.0},
+    "sink": {"sink:wash": 0.9, "sink:drink": 0.1},
+    "shelf": {"shelf:climb": 0.9, "shelf:reach": 0.1},
+}
+STATION_NOISE_M = 0.2  # s.d. of where a person stands at a place
+STATION_TURN_RAD = 0.35  # s.d. of their heading there
+WALK_PART = (0.3, 0.7)  # a walk step is this part of the way from the last place to the next
+WALK_NOISE_M = 0.2
+WALK_TURN_RAD = 0.25  # s.d. of the walking heading about the direction to the next place
 
 TRAIN_SUBJECTS = (3, 7, 8, 14)
 TEST_SUBJECTS = (2, 12, 13)
@@ -222,9 +270,74 @@ def _facing(x: np.ndarray) -> float:
     return float(np.arctan2(fwd[1], fwd[0]))
 
 
-def compose(pool: list[StepClip], n: int, length: int, seed: int = 0, room_half_m: float = 1.8) -> tuple:
-    """n scripted sequences of ``length`` steps -> (actions (n,L), xyz_m (n,L,19,3), clip names (n,L))."""
-    rng = np.random.default_rng(seed)
+@dataclass(frozen=True)
+class Chain:
+    """A script as a Markov chain over hidden states: ``states (S,)`` names, ``action (S,)`` the action index
+    each state shows (its label), ``T (S,S)`` transition probabilities (rows sum to 1), ``pi (S,)`` the
+    first step's distribution. For "markov" the states are the actions themselves; for "stations" a state is
+    an action at a place ("sink:drink") or a walk to a place ("walk:sink"), so a label can stand for several
+    states that place tells apart."""
+
+    states: tuple[str, ...]
+    action: np.ndarray
+    T: np.ndarray
+    pi: np.ndarray
+
+
+def script_chain(script: str) -> Chain:
+    """The chain of a script (``SCRIPTS``)."""
+    if script == "markov":
+        A = len(ACTIONS)
+        T = np.zeros((A, A))
+        for a, nxt in SCRIPT.items():
+            for b, p in nxt.items():
+                T[ACTIONS.index(a), ACTIONS.index(b)] = p
+        return Chain(ACTIONS, np.arange(A), T / T.sum(1, keepdims=True), np.full(A, 1.0 / A))
+    if script != "stations":
+        raise ValueError(f"script must be one of {SCRIPTS}, got {script!r}")
+    states = tuple(STATION_SCRIPT) + tuple(f"walk:{p}" for p in STATIONS)
+    ix = {s: i for i, s in enumerate(states)}
+    T = np.zeros((len(states), len(states)))
+    for s, nxt in STATION_SCRIPT.items():
+        here = s.split(":")[0]
+        for t, p in nxt.items():
+            if t == "leave":
+                for q, pq in LEAVE[here].items():
+                    T[ix[s], ix[f"walk:{q}"]] += p * pq
+            else:
+                T[ix[s], ix[t]] += p
+    for q, nxt in ARRIVE.items():
+        for t, p in nxt.items():
+            T[ix[f"walk:{q}"], ix[t]] = p
+    action = np.array(
+        [ACTIONS.index(s.split(":")[1] if not s.startswith("walk:") else "walk") for s in states]
+    )
+    return Chain(states, action, T / T.sum(1, keepdims=True), np.full(len(states), 1.0 / len(states)))
+
+
+def chain_forecast(
+    chain: Chain, acts: np.ndarray, m: int, last_state: np.ndarray | None = None
+) -> np.ndarray:
+    """The best possible forecast of a script: the probabilities (S,m,A) of the next m actions after the
+    observed actions ``acts (S,N)`` (forward filtering over the hidden states: from the labels alone), or,
+    with ``last_state (S,)``, after that known hidden state (labels and place)."""
+    A = len(ACTIONS)
+    emit = np.eye(A)[chain.action]  # (states, A)
+    if last_state is None:
+        b = chain.pi[None] * emit[:, acts[:, 0]].T
+        for k in range(1, acts.shape[1]):
+            b = (b / b.sum(1, keepdims=True)) @ chain.T * emit[:, acts[:, k]].T
+        b = b / b.sum(1, keepdims=True)
+    else:
+        b = np.eye(len(chain.states))[last_state]
+    out = []
+    for _ in range(m):
+        b = b @ chain.T
+        out.append(b @ emit)
+    return np.stack(out, 1)
+
+
+def _by_action(pool: list[StepClip]) -> dict[str, list[StepClip]]:
     by_action = {a: [c for c in pool if c.action == a] for a in ACTIONS}
     missing = [a for a in ACTIONS if not by_action[a]]
     if missing:
@@ -232,6 +345,73 @@ def compose(pool: list[StepClip], n: int, length: int, seed: int = 0, room_half_
             f"compose: no clip of the actions {missing} in this pool; the CMU mocap of "
             "cmu-more (single/13, single/14) and cmu-bvh-subjects01-07 is needed"
         )
+    return by_action
+
+
+def _place(c: StepClip, rng: np.random.Generator, pos, heading: float) -> np.ndarray:
+    """One of the clip's characteristic poses, its pelvis over ``pos`` (x, y), facing ``heading``."""
+    pel = JOINTS.index("pelvis")
+    x = c.xyz_m[int(c.frames[rng.integers(len(c.frames))])].astype(np.float64)
+    x = x - np.array([x[pel, 0], x[pel, 1], 0.0])
+    x = x @ _yaw(heading - _facing(x)).T
+    return x + np.array([pos[0], pos[1], 0.0])
+
+
+def compose_stations(pool: list[StepClip], n: int, length: int, seed: int = 0) -> tuple:
+    """n sequences of the "stations" script -> (actions (n,L), xyz_m (n,L,19,3), clip names (n,L), states
+    (n,L) indices into ``script_chain("stations").states``).
+
+    The states follow the chain; a step at a place stands at its floor point (s.d. ``STATION_NOISE_M``) facing
+    its heading (s.d. ``STATION_TURN_RAD``); a walk to a place stands ``WALK_PART`` of the way from the last
+    place there (a first step that walks comes from another place drawn alike), facing the place it walks
+    to (s.d. ``WALK_TURN_RAD``)."""
+    rng = np.random.default_rng(seed)
+    by_action = _by_action(pool)
+    ch = script_chain("stations")
+    acts = np.zeros((n, length), np.int64)
+    states = np.zeros((n, length), np.int64)
+    X = np.zeros((n, length, len(JOINTS), 3), np.float32)
+    names = np.empty((n, length), dtype=object)
+    for s in range(n):
+        st = int(rng.choice(len(ch.states), p=ch.pi))
+        last = None
+        for k in range(length):
+            if k:
+                st = int(rng.choice(len(ch.states), p=ch.T[st]))
+            place, what = ch.states[st].split(":")
+            if place == "walk":
+                to = np.asarray(STATIONS[what][0])
+                if last is None:
+                    last = str(rng.choice([q for q in STATIONS if q != what]))
+                frm = np.asarray(STATIONS[last][0])
+                pos = frm + rng.uniform(*WALK_PART) * (to - frm) + rng.normal(0, WALK_NOISE_M, 2)
+                d = to - pos
+                heading = float(np.arctan2(d[1], d[0])) + rng.normal(0, WALK_TURN_RAD)
+            else:
+                xy, h = STATIONS[place]
+                pos = np.asarray(xy) + rng.normal(0, STATION_NOISE_M, 2)
+                heading = h + rng.normal(0, STATION_TURN_RAD)
+                last = place
+            a = ACTIONS[int(ch.action[st])]
+            c = by_action[a][rng.integers(len(by_action[a]))]
+            X[s, k] = _place(c, rng, pos, heading)
+            acts[s, k], states[s, k], names[s, k] = ch.action[st], st, c.name
+    return acts, X, names, states
+
+
+def compose(
+    pool: list[StepClip], n: int, length: int, seed: int = 0, room_half_m: float = 1.8, script: str = "markov"
+) -> tuple:
+    """n scripted sequences of ``length`` steps -> (actions (n,L), xyz_m (n,L,19,3), clip names (n,L)).
+
+    ``script`` "markov": the actions follow ``SCRIPT``, each step placed by a random walk over the floor
+    (``room_half_m``) with a random heading, independent of what follows; "stations": ``compose_stations``."""
+    if script == "stations":
+        return compose_stations(pool, n, length, seed)[:3]
+    if script != "markov":
+        raise ValueError(f"script must be one of {SCRIPTS}, got {script!r}")
+    rng = np.random.default_rng(seed)
+    by_action = _by_action(pool)
     pel = JOINTS.index("pelvis")
     acts = np.zeros((n, length), np.int64)
     X = np.zeros((n, length, len(JOINTS), 3), np.float32)
@@ -296,9 +476,11 @@ def observe(xyz_m: np.ndarray, rig=None, seed: int = 0, render: RenderConfig = D
     return out, cam
 
 
-def make_composite(pool: list[StepClip], n: int, length: int, seed: int = 0, rig=None) -> Composite:
+def make_composite(
+    pool: list[StepClip], n: int, length: int, seed: int = 0, rig=None, script: str = "markov"
+) -> Composite:
     rig = rig or default_rig()
-    acts, X, names = compose(pool, n, length, seed)
+    acts, X, names = compose(pool, n, length, seed, script=script)
     xy, cam = observe(X, rig, seed)
     return Composite(acts, X, xy, cam, rig, names)
 

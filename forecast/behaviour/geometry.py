@@ -94,6 +94,17 @@ def make_view(K, R, t, g) -> View:
     return View(K, R, t, g, V, c)
 
 
+ROOM_SCALE_M = 2.0  # room coordinates are given to the model divided by this
+
+
+def room_context(V: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The person's place in the room for the context encoder (B,4): the anchor's floor position x, y (room
+    frame, / ``ROOM_SCALE_M``) and the viewer frame's forward direction in the room (so a heading seen in
+    the plane features can be turned into the room's). Both come from the 2D and the rig's calibration (the
+    anchor) or from the track's 3D at sample time."""
+    return torch.cat([g[:, :2] / ROOM_SCALE_M, V[:, 1, :2]], 1)
+
+
 def plane_features(view: View, xy_px: np.ndarray) -> np.ndarray:
     """Undistorted 2D poses xy_px (S,L,J,2) (NaN = unseen) -> plane features (S,L,J,2) metres (x right,
     z up, relative to the anchor); NaN where unseen."""

@@ -7,7 +7,8 @@ Generator (sec. 4.4, Fig. 4.7): three encoders in parallel, a joint latent, two 
 - action encoder: the last ``n_obs`` action labels as one-hot vectors (an extra "unknown" class), an MLP;
 - context encoder: the seed's initially-observed objects have no counterpart here, so the third encoder
   takes the context a room gives: every action seen so far (multi-hot) and the camera's distance and
-  height in the viewer frame, an MLP;
+  height in the viewer frame (with ``context="room"`` also the person's floor position and the viewer
+  frame's direction in the room, ``geometry.room_context``), an MLP;
 - an MLP over the concatenation gives the latent z; an MLP decodes the next action's logits, another the
   next characteristic 3D pose (J,3) in the viewer frame, metres from the anchor.
 
@@ -34,7 +35,7 @@ from torch import nn
 from core.config import config_from_dict as _config_from_dict
 from core.errors import FormatError
 from core.fileio import atomic_path
-from forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, UPPER9
+from forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPTS, UPPER9
 from forecast.behaviour.geometry import plane_of_3d
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_cmu.pt"
@@ -66,6 +67,8 @@ class BehaviourConfig:
     n_eval: int = 1000  # validation / test sequences
     eval_every: int = 500
     seed: int = 0
+    script: str = "markov"  # the composite activities (data.SCRIPTS): markov | stations
+    context: str = "camera"  # camera | room: the context encoder also takes the person's place in the room
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -76,6 +79,10 @@ class BehaviourConfig:
             raise ValueError(
                 f"bone_lengths must be 'free', 'database' or 'learned', got {self.bone_lengths!r}"
             )
+        if self.script not in SCRIPTS:
+            raise ValueError(f"script must be one of {SCRIPTS}, got {self.script!r}")
+        if self.context not in ("camera", "room"):
+            raise ValueError(f"context must be 'camera' or 'room', got {self.context!r}")
         if self.n_critic < 1:
             raise ValueError(f"n_critic must be >= 1, got {self.n_critic}")
 
@@ -185,18 +192,21 @@ class Skeleton(nn.Module):
 
 
 class Generator(nn.Module):
-    """One step: (pose feats (B,N,J,3) = plane xz + seen, action one-hots (B,N,A+1), context (B,A+2)) ->
-    (action logits (B,A), 3D pose (B,J,3) viewer frame). With a ``skeleton`` the pose takes its bone
-    lengths."""
+    """One step: (pose feats (B,N,J,3) = plane xz + seen, action one-hots (B,N,A+1), context (B,A+2, with
+    ``room`` B,A+6)) -> (action logits (B,A), 3D pose (B,J,3) viewer frame). With a ``skeleton`` the pose
+    takes its bone lengths."""
 
-    def __init__(self, n_obs: int, J: int, A: int, h: int, skeleton: Skeleton | None = None) -> None:
+    def __init__(
+        self, n_obs: int, J: int, A: int, h: int, skeleton: Skeleton | None = None, room: bool = False
+    ) -> None:
         super().__init__()
         self.skeleton = skeleton
+        self.room = room
         self.J, self.A = J, A
         self.pose_in = nn.Linear(n_obs * J * 3, h)
         self.pose_res = nn.Sequential(_Res(h), _Res(h), _Res(h))
         self.act_enc = _mlp(n_obs * (A + 1), h // 2, h // 2)
-        self.ctx_enc = _mlp(A + 2, h // 4, h // 4)
+        self.ctx_enc = _mlp(A + 2 + 4 * room, h // 4, h // 4)
         self.joint = nn.Sequential(_mlp(h + h // 2 + h // 4, h, h), nn.LeakyReLU(0.2))
         self.dec_action = _mlp(h, h, A)
         self.dec_pose = _mlp(h, h, J * 3 + (skeleton is not None))  # + the skeleton's size
@@ -242,13 +252,17 @@ def rollout(
     *,
     feed_pose: bool = True,
     feed_action: bool = True,
+    room: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Sec. 4.4.3: predict m steps autoregressively, each from the n_obs most recent (observed or
     predicted) steps. feats (B,N,J,2) plane features of the observed steps (0 where unseen), seen
     (B,N,J) bool, acts (B,N) observed action indices, c (B,3) camera centre in the viewer frame.
     A predicted step re-enters as the plane features of its 3D pose and its action probabilities
     (``feed_pose``/``feed_action`` False: as unseen / unknown, the ablations without that head).
-    -> logits (B,m,A), poses (B,m,J,3)."""
+    ``room`` (B,4) ``geometry.room_context``, the same for every step; read only by a generator built with
+    ``context="room"``. -> logits (B,m,A), poses (B,m,J,3)."""
+    if gen.room and room is None:
+        raise ValueError("rollout: this generator takes the room context; give room=room_context(V, g)")
     B, N, J, _ = feats.shape
     A = gen.A
     pose_hist = torch.cat([feats, seen[..., None].float()], -1)  # (B,N,J,3)
@@ -258,7 +272,7 @@ def rollout(
     cam = torch.stack([c[:, 1].abs(), c[:, 2]], 1) / 5.0
     logits_l, poses_l = [], []
     for _ in range(m):
-        ctx = torch.cat([seen_mh, cam], 1)
+        ctx = torch.cat([seen_mh, cam, room] if gen.room else [seen_mh, cam], 1)
         lg, P = gen(pose_hist[:, -N:], oh[:, -N:], ctx)
         logits_l.append(lg)
         poses_l.append(P)
@@ -282,7 +296,7 @@ def build(cfg: BehaviourConfig) -> tuple[Generator, Critic]:
     names = cfg.joint_names
     torch.manual_seed(cfg.seed)
     skel = Skeleton(bones(names), learn=cfg.bone_lengths == "learned") if cfg.bone_lengths != "free" else None
-    return Generator(cfg.n_obs, len(names), len(ACTIONS), cfg.hidden, skel), Critic(
+    return Generator(cfg.n_obs, len(names), len(ACTIONS), cfg.hidden, skel, cfg.context == "room"), Critic(
         len(names), bones(names), cfg.hidden
     )
 
@@ -335,7 +349,10 @@ def load_checkpoint(path) -> tuple[dict[str, Generator], dict[str, BehaviourConf
         )
     gens, cfgs = {}, {}
     for n, m in blob["models"].items():
-        cfg = BehaviourConfig(**{"bone_lengths": "free", **m["config"]})  # older checkpoints: free
+        # older checkpoints: free bones, the markov script, the camera context
+        cfg = BehaviourConfig(
+            **{"bone_lengths": "free", "script": "markov", "context": "camera", **m["config"]}
+        )
         g, _ = build(cfg)
         g.load_state_dict(m["state"])
         g.eval()

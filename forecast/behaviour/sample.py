@@ -30,7 +30,7 @@ from capture.session import SessionLayout
 from core.errors import FormatError, InputError
 from core.fileio import save_npz, schema_tag
 from forecast.behaviour.data import ACTIONS, JOINTS
-from forecast.behaviour.geometry import ANKLE_HEIGHT_M, make_view, plane_features, to_world
+from forecast.behaviour.geometry import ANKLE_HEIGHT_M, make_view, plane_features, room_context, to_world
 from forecast.behaviour.labels import LabelRow, read_labels
 from forecast.behaviour.model import SHIPPED, load_checkpoint, rollout
 from forecast.behaviour.training import Prepared
@@ -311,6 +311,7 @@ def _forecast(gen, cfg, ob: Observed) -> tuple[np.ndarray, np.ndarray]:
     V = np.concatenate([v.V for v in ob.views])
     G = np.concatenate([v.g for v in ob.views])
     C = np.concatenate([v.c for v in ob.views])
+    Vt, Gt = torch.as_tensor(V, dtype=torch.float32), torch.as_tensor(G, dtype=torch.float32)
     with torch.no_grad():
         lg, P = rollout(
             gen,
@@ -321,11 +322,10 @@ def _forecast(gen, cfg, ob: Observed) -> tuple[np.ndarray, np.ndarray]:
             cfg.m,
             feed_pose=cfg.use_pose,
             feed_action=cfg.use_action,
+            room=room_context(Vt, Gt),  # the floor under the track's pelvis, in the rig's frame
         )
         probs = torch.softmax(lg, -1).numpy()
-        W = to_world(
-            P, torch.as_tensor(V, dtype=torch.float32), torch.as_tensor(G, dtype=torch.float32)
-        ).numpy()
+        W = to_world(P, Vt, Gt).numpy()
     return probs, stand_on_floor(W, cfg.joint_names)
 
 

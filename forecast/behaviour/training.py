@@ -29,6 +29,7 @@ from forecast.behaviour.geometry import (
     plane_features,
     project,
     rays,
+    room_context,
     to_world,
 )
 from forecast.behaviour.model import BehaviourConfig, Generator, build, rollout
@@ -167,7 +168,9 @@ def _random_yaw(X: torch.Tensor, g: torch.Generator) -> torch.Tensor:
 
 def _losses(gen, cfg, tb, neck):
     feed = {"feed_pose": cfg.use_pose, "feed_action": cfg.use_action}
-    logits, P = rollout(gen, tb["feats"], tb["obs_acts"], tb["seen"], tb["view"]["c"], cfg.m, **feed)
+    logits, P = rollout(
+        gen, tb["feats"], tb["obs_acts"], tb["seen"], tb["view"]["c"], cfg.m, room=tb["room"], **feed
+    )
     l_act = nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), tb["tgt_acts"].reshape(-1))
     err, ok = pose2d_error(P, tb["view"], tb["tgt_px"], neck)
     l_2d = ((err / PX) ** 2 * ok).sum() / ok.sum().clamp(min=1)  # eq. 4.3 on the seen joints
@@ -183,6 +186,7 @@ def to_torch(d: Prepared, idx, n_obs: int) -> dict:
         "tgt_acts": torch.from_numpy(d.acts[idx, n_obs:]),
         "tgt_px": torch.from_numpy(d.tgt_px[idx]),
         "view": v,
+        "room": room_context(v["V"], v["g"]),
     }
 
 
@@ -360,6 +364,7 @@ def predict(
                 cfg.m,
                 feed_pose=cfg.use_pose,
                 feed_action=cfg.use_action,
+                room=tb["room"],
             )
             pr.append(torch.softmax(lg, -1).numpy())
             ps.append(P.numpy())
@@ -530,14 +535,16 @@ class Splits:
 def load_splits(
     cfg: BehaviourConfig, seed: int = 0, names: tuple[str, ...] = JOINTS, with_train: bool = True
 ) -> Splits:
-    """The composite train / val / test sequences (``n_train`` / ``n_eval`` / ``n_eval``, each its own seed)
-    and the 3D database; without ``with_train``, the train split holds its first 100 sequences only (the
-    evaluation needs none)."""
+    """The composite train / val / test sequences of ``cfg.script`` (``n_train`` / ``n_eval`` / ``n_eval``,
+    each its own seed) and the 3D database; without ``with_train``, the train split holds its first 100
+    sequences only (the evaluation needs none)."""
     pool = bdata.split_pool(bdata.load_pool())
     L = cfg.n_obs + cfg.m
     sizes = (("train", cfg.n_train if with_train else 100), ("val", cfg.n_eval), ("test", cfg.n_eval))
     parts = [
-        prepare(bdata.make_composite(pool[p], n, L, seed * 10 + i), cfg.n_obs, cfg.m, names)
+        prepare(
+            bdata.make_composite(pool[p], n, L, seed * 10 + i, script=cfg.script), cfg.n_obs, cfg.m, names
+        )
         for i, (p, n) in enumerate(sizes)
     ]
     return Splits(*parts, db=bdata.load_db_poses())
