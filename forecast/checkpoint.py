@@ -68,13 +68,22 @@ def write_checkpoint(
 
 
 def read_checkpoint(
-    path: Path, schema: str, skeleton: str | None, what: str, train_cmd: str, map_location: str = "cpu"
+    path: Path,
+    schema: str,
+    skeleton: str | None,
+    what: str,
+    train_cmd: str,
+    map_location: str = "cpu",
+    missing_as_is: bool = False,
 ) -> dict:
     """Load a checkpoint written by :func:`write_checkpoint` (weights_only=True) and check that it is one
-    (``schema``) and fits the caller's data ``skeleton`` (None: any); errors say how to get a good one."""
+    (``schema``) and fits the caller's data ``skeleton`` (None: any); errors say how to get a good one.
+    ``missing_as_is``: a missing file raises FileNotFoundError, for a caller that words that case itself."""
     try:
         blob = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # noqa: BLE001 - re-raised with what to do
+        if missing_as_is and isinstance(e, FileNotFoundError):
+            raise
         raise FormatError(
             path, None, f"not a readable {what} ({type(e).__name__}: {e}).", f"Train one with `{train_cmd}`."
         ) from e

@@ -37,6 +37,7 @@ from core.errors import FormatError
 from core.fileio import atomic_path
 from forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPTS, UPPER9
 from forecast.behaviour.geometry import plane_of_3d
+from forecast.checkpoint import read_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_cmu.pt"
 SCHEMA = "behaviour_checkpoint/1"
@@ -321,25 +322,14 @@ def save_checkpoint(path, gens: dict[str, Generator], cfgs: dict[str, BehaviourC
 
 
 def load_checkpoint(path) -> tuple[dict[str, Generator], dict[str, BehaviourConfig], dict]:
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise
-    except Exception as e:  # torch raises several kinds for a file that is not a checkpoint
-        raise FormatError(
-            path,
-            None,
-            f"not a behaviour checkpoint ({e})",
-            "Train one with `forecast behaviour train --out FILE`.",
-        ) from None
-    if not isinstance(blob, dict) or blob.get("schema") != SCHEMA:
-        got = blob.get("schema") if isinstance(blob, dict) else None
-        raise FormatError(
-            path,
-            "schema",
-            f"{got!r}, expected {SCHEMA!r}; not a behaviour checkpoint.",
-            "Train one with `forecast behaviour train --out FILE`.",
-        )
+    blob = read_checkpoint(
+        Path(path),
+        SCHEMA,
+        None,
+        "behaviour checkpoint",
+        "forecast behaviour train --out FILE",
+        missing_as_is=True,
+    )
     if list(blob["actions"]) != list(ACTIONS):
         raise FormatError(
             path,

@@ -22,12 +22,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.errors import FormatError
 from core.fileio import atomic_path
 from core.progress import Progress
 from forecast.behaviour import training as T
 from forecast.behaviour.data import JOINTS
 from forecast.behaviour.model import BehaviourConfig
+from forecast.checkpoint import read_checkpoint
 
 QUALITY_SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_quality_cmu.pt"
 SCHEMA = "behaviour_quality/1"
@@ -93,20 +93,14 @@ def save(path, q: QualityModel) -> None:
 
 
 def load(path) -> QualityModel:
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise
-    except Exception as e:  # torch raises several kinds for a file that is not a checkpoint
-        blob = {"schema": f"unreadable ({e})"}
-    if not isinstance(blob, dict) or blob.get("schema") != SCHEMA:
-        got = blob.get("schema") if isinstance(blob, dict) else None
-        raise FormatError(
-            path,
-            "schema",
-            f"{got!r}, expected {SCHEMA!r}; not a pose quality classifier.",
-            "Build one with `forecast behaviour quality --out FILE`.",
-        )
+    blob = read_checkpoint(
+        Path(path),
+        SCHEMA,
+        None,
+        "pose quality classifier",
+        "forecast behaviour quality --out FILE",
+        missing_as_is=True,
+    )
     names = tuple(blob["joints"])
     clf = T.quality_mlp(len(names))
     clf.load_state_dict(blob["state"])
