@@ -59,6 +59,7 @@ class Split:
 
     def __init__(self, threads: int = 1):
         self.threads = auto_threads(threads)
+        # the pool's threads end when the split (its tracker) is dropped
         self._pool = ThreadPoolExecutor(self.threads - 1, "roomcap-split") if self.threads > 1 else None
         self._blas = None  # threadpoolctl's controller, found on first use
 
@@ -88,7 +89,3 @@ class Split:
 
             self._blas = ThreadpoolController()
         return self._blas.limit(limits=1, user_api="blas")
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown()
