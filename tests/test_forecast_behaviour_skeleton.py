@@ -164,3 +164,75 @@ def test_learned_proportions_train_and_round_trip(tmp_path):
     assert torch.allclose(gens["full"].skeleton.lengths(), L)
     # the fixed skeleton has no learned ratios
     assert build(BehaviourConfig(hidden=32, bone_lengths="database"))[0].skeleton.log_ratio is None
+
+
+def _canonical_db(n: int = 64) -> np.ndarray:
+    """Two poses (19 joints), half the set each, with 1 cm joint noise, in the canonical frame."""
+    from forecast.behaviour.training import _canonical
+
+    rng = np.random.default_rng(4)
+    two = rng.normal(0, 0.4, (2, 19, 3))
+    return _canonical((two[np.arange(n) % 2] + rng.normal(0, 0.01, (n, 19, 3))).astype(np.float32), JOINTS)
+
+
+def test_pose_prior_decodes_heading_place_and_size():
+    """pose_decoder=prior: the pose is the prior's decoded pose turned by the heading, scaled within the
+    size bounds and moved to the pelvis output; the trained prior reconstructs its database."""
+    from forecast.behaviour.model import PosePrior, fit_pose_prior
+
+    canon = _canonical_db()
+    prior = fit_pose_prior(canon, dim=4, beta=1e-4, steps=300)
+    assert not any(p.requires_grad for p in prior.parameters())
+    with torch.no_grad():
+        x = torch.from_numpy(canon).reshape(len(canon), -1)
+        rec = prior.dec(prior.enc(x).chunk(2, 1)[0]).reshape(-1, 19, 3)
+    apart = np.linalg.norm(canon[0] - canon[1], axis=-1).mean()
+    assert float((rec - torch.from_numpy(canon)).norm(dim=-1).mean()) < 0.2 * apart  # it tells the two apart
+    out = torch.zeros(3, prior.n_inputs)
+    out[:, prior.dim] = 1.0  # heading 0
+    out[1, prior.dim : prior.dim + 2] = torch.tensor([0.0, 1.0])  # 90 degrees
+    out[2, prior.dim + 2 : prior.dim + 5] = torch.tensor([1.0, 2.0, 0.5])
+    out[2, -1] = 100.0  # the largest size
+    with torch.no_grad():
+        P = prior(out)
+        X = prior.dec(torch.zeros(1, prior.dim)).reshape(19, 3)
+    assert torch.allclose(P[0], X, atol=1e-5)
+    assert torch.allclose(P[1, :, 0], -X[:, 1], atol=1e-5) and torch.allclose(P[1, :, 1], X[:, 0], atol=1e-5)
+    assert torch.allclose(P[2], X * (1 + prior.max_scale) + torch.tensor([1.0, 2.0, 0.5]), atol=1e-5)
+    assert isinstance(PosePrior(19, 4), torch.nn.Module)
+
+
+def test_pose_prior_trains_frozen_and_round_trips(tmp_path):
+    from forecast.behaviour import training as T
+
+    tr = _tiny_prepared()
+    db = np.random.default_rng(3).normal(0, 0.4, (40, 19, 3)).astype(np.float32)
+    cfg = BehaviourConfig(
+        hidden=16, batch=8, pose_decoder="prior", prior_dim=4, prior_steps=50, short_history=0.0
+    )
+    f = T._fit_state(cfg, db)
+    prior0 = {k: v.clone() for k, v in f.gen.prior.state_dict().items()}
+    gen0 = {k: v.clone() for k, v in f.gen.state_dict().items() if not k.startswith("prior.")}
+    for _ in range(2):
+        assert all(np.isfinite(T._generator_step(f, tr)))
+    # the forecaster learns, the prior stays as trained on the database
+    assert all(torch.equal(v, prior0[k]) for k, v in f.gen.prior.state_dict().items())
+    assert any(not torch.equal(v, gen0[k]) for k, v in f.gen.state_dict().items() if k in gen0)
+    path = tmp_path / "p.pt"
+    save_checkpoint(path, {"full": f.gen}, {"full": cfg}, {})
+    gens, cfgs, _ = load_checkpoint(path)
+    assert cfgs["full"].pose_decoder == "prior"
+    _, P0 = T.predict(f.gen, cfg, tr)
+    _, P1 = T.predict(gens["full"], cfgs["full"], tr)
+    assert np.array_equal(P0, P1)
+    # an older checkpoint's config has no pose_decoder: the free decoder
+    blob = torch.load(path, weights_only=True)
+    g0, _ = build(BehaviourConfig(hidden=16))
+    blob["models"]["full"] = {"state": g0.state_dict(), "config": {"hidden": 16}}
+    torch.save(blob, path)
+    gens, cfgs, _ = load_checkpoint(path)
+    assert cfgs["full"].pose_decoder == "free" and gens["full"].prior is None
+    with pytest.raises(ValueError, match="pose_decoder"):
+        BehaviourConfig(pose_decoder="vae")
+    with pytest.raises(ValueError, match="bone_lengths=free"):
+        BehaviourConfig(pose_decoder="prior", bone_lengths="database")

@@ -70,6 +70,12 @@ class BehaviourConfig:
     seed: int = 0
     script: str = "markov"  # the composite activities (data.SCRIPTS): markov | stations
     context: str = "camera"  # camera | room: the context encoder also takes the person's place in the room
+    # free: the pose decoder outputs the joints | prior: it outputs a code of a pose prior learned from the
+    # 3D database (``PosePrior``, frozen), a heading, the pelvis and a size
+    pose_decoder: str = "free"
+    prior_dim: int = 32  # the prior's code size
+    prior_beta: float = 1e-4  # the weight of its KL term
+    prior_steps: int = 8000  # its training steps (on the database, before the forecaster's)
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -84,6 +90,12 @@ class BehaviourConfig:
             raise ValueError(f"script must be one of {SCRIPTS}, got {self.script!r}")
         if self.context not in ("camera", "room"):
             raise ValueError(f"context must be 'camera' or 'room', got {self.context!r}")
+        if self.pose_decoder not in ("free", "prior"):
+            raise ValueError(f"pose_decoder must be 'free' or 'prior', got {self.pose_decoder!r}")
+        if self.pose_decoder == "prior" and self.bone_lengths != "free":
+            raise ValueError(
+                "pose_decoder=prior keeps the prior's proportions: use it with bone_lengths=free"
+            )
         if self.n_critic < 1:
             raise ValueError(f"n_critic must be >= 1, got {self.n_critic}")
 
@@ -192,16 +204,82 @@ class Skeleton(nn.Module):
         return torch.stack(out, 1)
 
 
+class PosePrior(nn.Module):
+    """A pose prior learned from the uncorrelated 3D database: a VAE of its canonical poses (pelvis at the
+    origin, shoulders along x; ``training._canonical``). Not in the seed, whose critic alone keeps the poses
+    valid (sec. 4.4.2): with ``pose_decoder="prior"`` the generator's pose decoder gives a code for this
+    frozen decoder, a heading about the vertical, the pelvis and a size within +-``max_scale``, so every
+    forecast pose is one the database's poses span (the critic still trains alongside)."""
+
+    def __init__(self, J: int, dim: int, max_scale: float = 0.15, code_bound: float = 2.5) -> None:
+        super().__init__()
+        self.J, self.dim, self.max_scale, self.code_bound = J, dim, max_scale, code_bound
+        self.enc = _mlp(J * 3, 256, 256, 2 * dim)
+        self.dec = _mlp(dim, 256, 256, J * 3)
+
+    @property
+    def n_inputs(self) -> int:
+        """What the generator's pose decoder gives it: code, heading (2), pelvis (3), size (1)."""
+        return self.dim + 6
+
+    def forward(self, out: torch.Tensor) -> torch.Tensor:
+        """The pose decoder's output (B, n_inputs) -> poses (B,J,3) in the viewer frame."""
+        B, d = out.shape[0], self.dim
+        X = self.dec(self.code_bound * torch.tanh(out[:, :d] / self.code_bound)).reshape(B, self.J, 3)
+        cs = out[:, d : d + 2]  # (cos, sin) of the heading, up to scale; heading 0 when both are 0
+        n = cs.norm(dim=1, keepdim=True)
+        cs = torch.where(n > 1e-6, cs / n.clamp(min=1e-6), torch.tensor([1.0, 0.0]))
+        R = torch.zeros(B, 3, 3)
+        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = (
+            cs[:, 0],
+            -cs[:, 1],
+            cs[:, 1],
+            cs[:, 0],
+            1,
+        )
+        size = 1.0 + self.max_scale * torch.tanh(out[:, -1])
+        return torch.einsum("bij,bnj->bni", R, X) * size[:, None, None] + out[:, None, d + 2 : d + 5]
+
+
+def fit_pose_prior(canon: np.ndarray, dim: int, beta: float, steps: int, seed: int = 0) -> PosePrior:
+    """Train the prior's VAE on canonical database poses (N,J,3): squared joint error plus ``beta`` times
+    the KL term, Adam, batches of 512; returned frozen."""
+    torch.manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)
+    J = canon.shape[1]
+    X = torch.as_tensor(canon, dtype=torch.float32).reshape(len(canon), -1)
+    vae = PosePrior(J, dim)
+    opt = torch.optim.Adam(vae.parameters(), lr=1e-3)
+    for _ in range(steps):
+        x = X[torch.randint(len(X), (512,), generator=g)]
+        mu, log_var = vae.enc(x).chunk(2, 1)
+        r = vae.dec(mu + torch.randn(mu.shape, generator=g) * (0.5 * log_var).exp())
+        kl = (-0.5 * (1 + log_var - mu**2 - log_var.exp())).sum(1).mean()
+        loss = ((r - x) ** 2).reshape(-1, J, 3).sum(-1).mean() + beta * kl
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return vae.eval().requires_grad_(False)
+
+
 class Generator(nn.Module):
     """One step: (pose feats (B,N,J,3) = plane xz + seen, action one-hots (B,N,A+1), context (B,A+2, with
     ``room`` B,A+6)) -> (action logits (B,A), 3D pose (B,J,3) viewer frame). With a ``skeleton`` the pose
-    takes its bone lengths."""
+    takes its bone lengths; with a ``prior`` it is decoded by the pose prior."""
 
     def __init__(
-        self, n_obs: int, J: int, A: int, h: int, skeleton: Skeleton | None = None, room: bool = False
+        self,
+        n_obs: int,
+        J: int,
+        A: int,
+        h: int,
+        skeleton: Skeleton | None = None,
+        room: bool = False,
+        prior: PosePrior | None = None,
     ) -> None:
         super().__init__()
         self.skeleton = skeleton
+        self.prior = prior
         self.room = room
         self.J, self.A = J, A
         self.pose_in = nn.Linear(n_obs * J * 3, h)
@@ -210,7 +288,8 @@ class Generator(nn.Module):
         self.ctx_enc = _mlp(A + 2 + 4 * room, h // 4, h // 4)
         self.joint = nn.Sequential(_mlp(h + h // 2 + h // 4, h, h), nn.LeakyReLU(0.2))
         self.dec_action = _mlp(h, h, A)
-        self.dec_pose = _mlp(h, h, J * 3 + (skeleton is not None))  # + the skeleton's size
+        n_out = J * 3 + (skeleton is not None) if prior is None else prior.n_inputs  # + the skeleton's size
+        self.dec_pose = _mlp(h, h, n_out)
 
     def forward(self, pose, acts, ctx):
         B = pose.shape[0]
@@ -219,6 +298,8 @@ class Generator(nn.Module):
         zc = self.ctx_enc(ctx)
         z = self.joint(torch.cat([zp, za, zc], 1))
         out = self.dec_pose(z)
+        if self.prior is not None:
+            return self.dec_action(z), self.prior(out)
         P = out[:, : self.J * 3].reshape(B, self.J, 3)
         return self.dec_action(z), P if self.skeleton is None else self.skeleton(P, out[:, -1])
 
@@ -297,9 +378,11 @@ def build(cfg: BehaviourConfig) -> tuple[Generator, Critic]:
     names = cfg.joint_names
     torch.manual_seed(cfg.seed)
     skel = Skeleton(bones(names), learn=cfg.bone_lengths == "learned") if cfg.bone_lengths != "free" else None
-    return Generator(cfg.n_obs, len(names), len(ACTIONS), cfg.hidden, skel, cfg.context == "room"), Critic(
-        len(names), bones(names), cfg.hidden
+    prior = (
+        PosePrior(len(names), cfg.prior_dim).requires_grad_(False) if cfg.pose_decoder == "prior" else None
     )
+    gen = Generator(cfg.n_obs, len(names), len(ACTIONS), cfg.hidden, skel, cfg.context == "room", prior)
+    return gen, Critic(len(names), bones(names), cfg.hidden)
 
 
 def save_checkpoint(path, gens: dict[str, Generator], cfgs: dict[str, BehaviourConfig], extra: dict) -> None:
@@ -339,10 +422,9 @@ def load_checkpoint(path) -> tuple[dict[str, Generator], dict[str, BehaviourConf
         )
     gens, cfgs = {}, {}
     for n, m in blob["models"].items():
-        # older checkpoints: free bones, the markov script, the camera context
-        cfg = BehaviourConfig(
-            **{"bone_lengths": "free", "script": "markov", "context": "camera", **m["config"]}
-        )
+        # older checkpoints: free bones, the markov script, the camera context, the free pose decoder
+        old = {"bone_lengths": "free", "script": "markov", "context": "camera", "pose_decoder": "free"}
+        cfg = BehaviourConfig(**{**old, **m["config"]})
         g, _ = build(cfg)
         g.load_state_dict(m["state"])
         g.eval()

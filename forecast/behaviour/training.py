@@ -32,7 +32,7 @@ from forecast.behaviour.geometry import (
     room_context,
     to_world,
 )
-from forecast.behaviour.model import BehaviourConfig, Generator, build, rollout
+from forecast.behaviour.model import BehaviourConfig, Generator, build, fit_pose_prior, rollout
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +229,11 @@ def _fit_state(cfg: BehaviourConfig, db: np.ndarray) -> _Fit:
     jidx = [JOINTS.index(n) for n in names]
     if gen.skeleton is not None:
         gen.skeleton.set_lengths(db[:, jidx])
+    if gen.prior is not None:
+        vae = fit_pose_prior(
+            _canonical(db[:, jidx], names), cfg.prior_dim, cfg.prior_beta, cfg.prior_steps, cfg.seed
+        )
+        gen.prior.load_state_dict(vae.state_dict())
     return _Fit(
         cfg,
         gen,
