@@ -6,16 +6,18 @@
    Applied to a checkpoint's forecasts, every joint moves along its camera ray to the lifted depth, so the
    projected 2D (and the 2D MPJPE) stays exactly as it was. Also: the truth itself lifted (the lifter's own
    error) and the forecasts scaled along the rays to the person's true size (an oracle).
-2. **Pose prior decoder**: the pose decoder outputs a code for a frozen VAE decoder trained on the database's
-   canonical poses (pelvis-centred, shoulders on x), plus a heading, the pelvis and a size within +-15 %;
-   ``--learned-proportions`` also trains one length ratio per bone (as ``bone_lengths=learned``). Trained as
-   ``full`` with the shipped settings; with ``--own-classifier`` the quality classifier is rebuilt from the
-   prior model's own snapshot runs (sec. 4.7.7, as ``forecast behaviour quality``).
+2. **Pose prior decoder** (``pose_decoder=prior``, ``model.PosePrior``): the pose decoder outputs a code for a
+   frozen VAE decoder trained on the database's canonical poses, a heading, the pelvis and a size. Trained as
+   ``full`` with the checkpoint's other settings (``--set`` changes them); with ``--own-classifier`` the
+   quality classifier is rebuilt from the prior model's own snapshot runs (sec. 4.7.7, as ``forecast
+   behaviour quality`` does), since a classifier that never saw a setting's snapshots overrates it.
+3. With ``--supervised-3d``, a diagnostic the method may not use: the same generator trained on the
+   sequences' true 3D, i.e. what the architecture reaches in 3D when it sees 3D.
 
 The 3D error is split by axis of the viewer frame (x right, y away from the camera, z up).
 
     .venv/bin/python bench/bench_forecast_behaviour_priors.py [--checkpoint FILE] [--prior-steps 3000]
-        [--learned-proportions] [--own-classifier] [--skip-prior]
+        [--set KEY=VALUE ...] [--own-classifier] [--skip-prior] [--supervised-3d]
 
 Needs the CMU mocap (ROOMCAP_SHARED). Torch on one thread. Ends with one line ``BENCH {json}``.
 """
@@ -35,7 +37,7 @@ from core.cli import parse_sets
 from forecast.behaviour import model as M
 from forecast.behaviour import quality as Q
 from forecast.behaviour import training as T
-from forecast.behaviour.data import ACTIONS, JOINTS
+from forecast.behaviour.data import JOINTS
 from forecast.behaviour.geometry import plane_of_3d
 
 J = len(JOINTS)
@@ -129,80 +131,17 @@ def train_3d_supervised(
     return f.gen.eval()
 
 
-class _VAE(nn.Module):
-    def __init__(self, zd: int) -> None:
-        super().__init__()
-        self.zd = zd
-        self.enc = M._mlp(J * 3, 256, 256, 2 * zd)
-        self.dec = M._mlp(zd, 256, 256, J * 3)
-
-
-def train_vae(db: np.ndarray, zd: int = 32, beta: float = 1e-4, steps: int = 8000, seed: int = 0) -> _VAE:
-    """A VAE of the database's canonical poses (pelvis-centred, shoulders on x)."""
-    torch.manual_seed(seed)
-    X = torch.from_numpy(T._canonical(db, JOINTS)).reshape(len(db), -1)
-    v = _VAE(zd)
-    opt = torch.optim.Adam(v.parameters(), lr=1e-3)
-    for _ in range(steps):
-        x = X[torch.randint(len(X), (512,))]
-        mu, lv = v.enc(x).chunk(2, 1)
-        r = v.dec(mu + torch.randn_like(mu) * (0.5 * lv).exp())
-        kl = (-0.5 * (1 + lv - mu**2 - lv.exp())).sum(1).mean()
-        loss = ((r - x) ** 2).reshape(-1, J, 3).sum(-1).mean() + beta * kl
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return v.eval()
-
-
-class PriorGenerator(M.Generator):
-    """The generator with its pose decoder through the frozen VAE decoder: code (squashed to +-2.5),
-    heading, pelvis, size; with ``learn`` one trained length ratio per bone."""
-
-    def __init__(self, vae: _VAE, n_obs: int, A: int, h: int, room: bool, learn: bool) -> None:
-        super().__init__(n_obs, J, A, h, None, room)
-        self.zd = vae.zd
-        self.dec_pose = M._mlp(h, h, self.zd + 6)
-        self.prior = M._mlp(self.zd, 256, 256, J * 3)
-        self.prior.load_state_dict(vae.dec.state_dict())
-        self.prior.requires_grad_(False)
-        self.register_buffer("bone_idx", M.Skeleton(M.bones(JOINTS)).bone_idx.clone())
-        self.log_ratio = nn.Parameter(torch.zeros(len(self.bone_idx))) if learn else None
-
-    def forward(self, pose, acts, ctx):
-        B = pose.shape[0]
-        zp = self.pose_res(self.pose_in(pose.reshape(B, -1)))
-        z = self.joint(torch.cat([zp, self.act_enc(acts.reshape(B, -1)), self.ctx_enc(ctx)], 1))
-        out = self.dec_pose(z)
-        X = self.prior(2.5 * torch.tanh(out[:, : self.zd] / 2.5)).reshape(B, J, 3)
-        if self.log_ratio is not None:
-            js = [X[:, j] for j in range(J)]
-            for r, (ci, pi) in zip(self.log_ratio.exp(), self.bone_idx.tolist(), strict=True):
-                js[ci] = js[pi] + r * (X[:, ci] - X[:, pi])
-            X = torch.stack(js, 1)
-        cs = out[:, self.zd : self.zd + 2] + torch.tensor([0.0, 1e-3])
-        cs = cs / cs.norm(dim=1, keepdim=True).clamp(min=1e-6)
-        R = torch.zeros(B, 3, 3)
-        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = (
-            cs[:, 0],
-            -cs[:, 1],
-            cs[:, 1],
-            cs[:, 0],
-            1,
-        )
-        size = 1 + 0.15 * torch.tanh(out[:, -1])
-        P = torch.einsum("bij,bnj->bni", R, X) * size[:, None, None] + out[:, None, self.zd + 2 : self.zd + 5]
-        return self.dec_action(z), P
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--checkpoint", default=str(M.SHIPPED))
     ap.add_argument("--prior-steps", type=int, default=3000)
-    ap.add_argument("--learned-proportions", action="store_true")
-    ap.add_argument("--prior-zdim", type=int, default=32)
-    ap.add_argument("--prior-beta", type=float, default=1e-4)
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="other config overrides")
+    ap.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="the prior model's other settings (prior_dim=48)",
+    )
     ap.add_argument("--own-classifier", action="store_true")
     ap.add_argument("--skip-prior", action="store_true")
     ap.add_argument("--supervised-3d", action="store_true", help="also the 3D-supervised diagnostic")
@@ -257,16 +196,9 @@ def main() -> None:
         out["supervised_3d"] = r
 
     if not a.skip_prior:
-        vae = train_vae(sp.db, a.prior_zdim, a.prior_beta)
-        learn = a.learned_proportions
-
-        def build(cfg: M.BehaviourConfig):
-            torch.manual_seed(cfg.seed)
-            gen = PriorGenerator(vae, cfg.n_obs, len(ACTIONS), cfg.hidden, cfg.context == "room", learn)
-            return gen, M.Critic(J, M.bones(JOINTS), cfg.hidden)
-
-        T.build = build  # the training and snapshot code build this generator from here on
-        cfg = M.config_from_dict({**dataclasses.asdict(base), "steps": a.prior_steps, **parse_sets(a.set)})
+        cfg = M.config_from_dict(
+            {**dataclasses.asdict(base), "pose_decoder": "prior", "steps": a.prior_steps, **parse_sets(a.set)}
+        )
         w0 = time.perf_counter()
         gen, hist = T.train(cfg, sp.train, va, sp.db)
         pr, ps = T.predict(gen, cfg, va)
@@ -276,7 +208,7 @@ def main() -> None:
             "quality_shipped_classifier": T.share_real(shipped, ps.reshape(-1, J, 3), JOINTS),
             "best_step": hist.get("best_step"),
             "train_wall_s": time.perf_counter() - w0,
-            "learned_proportions": learn,
+            "settings": parse_sets(a.set),
         }
         if a.own_classifier:
             w0 = time.perf_counter()

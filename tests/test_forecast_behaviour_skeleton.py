@@ -181,7 +181,7 @@ def test_pose_prior_decodes_heading_place_and_size():
     from forecast.behaviour.model import PosePrior, fit_pose_prior
 
     canon = _canonical_db()
-    prior = fit_pose_prior(canon, dim=4, beta=1e-4, steps=300)
+    prior = fit_pose_prior(canon, BehaviourConfig(prior_dim=4, prior_steps=300))
     assert not any(p.requires_grad for p in prior.parameters())
     with torch.no_grad():
         x = torch.from_numpy(canon).reshape(len(canon), -1)
@@ -236,3 +236,23 @@ def test_pose_prior_trains_frozen_and_round_trips(tmp_path):
         BehaviourConfig(pose_decoder="vae")
     with pytest.raises(ValueError, match="bone_lengths=free"):
         BehaviourConfig(pose_decoder="prior", bone_lengths="database")
+
+
+def test_prior_proportions_vary_bones_within_bounds_left_and_right_alike():
+    from forecast.behaviour.model import _with_proportions
+
+    X = torch.from_numpy(_canonical_db(8))
+    Y = _with_proportions(X, JOINTS, 0.15, torch.Generator().manual_seed(0))
+    b = bones(JOINTS)
+    r = (_lengths(Y, b) / _lengths(X, b)).numpy()
+    assert (np.abs(r - 1) <= 0.15 + 1e-5).all() and r.std() > 0.02
+    kids = [JOINTS[c] for c, _ in b]
+    for i, k in enumerate(kids):
+        if k.startswith("left_"):
+            assert np.allclose(r[:, i], r[:, kids.index("right_" + k[5:])], atol=1e-5)
+    pel = JOINTS.index("pelvis")
+    assert torch.equal(Y[:, pel], X[:, pel])
+    cos = torch.nn.functional.cosine_similarity(
+        Y[:, b[:, 0]] - Y[:, b[:, 1]], X[:, b[:, 0]] - X[:, b[:, 1]], dim=-1
+    )
+    assert (cos > 1 - 1e-5).all()

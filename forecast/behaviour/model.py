@@ -76,6 +76,7 @@ class BehaviourConfig:
     prior_dim: int = 32  # the prior's code size
     prior_beta: float = 1e-4  # the weight of its KL term
     prior_steps: int = 8000  # its training steps (on the database, before the forecaster's)
+    prior_proportions: float = 0.0  # the prior also learns bone lengths within 1 +- this of the database's
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -241,17 +242,40 @@ class PosePrior(nn.Module):
         return torch.einsum("bij,bnj->bni", R, X) * size[:, None, None] + out[:, None, d + 2 : d + 5]
 
 
-def fit_pose_prior(canon: np.ndarray, dim: int, beta: float, steps: int, seed: int = 0) -> PosePrior:
-    """Train the prior's VAE on canonical database poses (N,J,3): squared joint error plus ``beta`` times
-    the KL term, Adam, batches of 512; returned frozen."""
+def _with_proportions(
+    X: torch.Tensor, names: tuple[str, ...], spread: float, g: torch.Generator
+) -> torch.Tensor:
+    """Poses X (B,J,3) with each bone's length times a factor drawn uniformly in 1 +- ``spread`` (one per
+    pose and bone, the left and right bone alike), rebuilt from the pelvis down the tree."""
+    order = Skeleton(bones(names)).bone_idx.tolist()  # parents first
+    side = [names[c].replace("left_", "").replace("right_", "") for c, _ in order]
+    kinds = sorted(set(side))
+    f = 1.0 + spread * (2 * torch.rand(len(X), len(kinds), generator=g) - 1)
+    js = [X[:, j] for j in range(X.shape[1])]
+    for (c, p), k in zip(order, side, strict=True):
+        js[c] = js[p] + f[:, kinds.index(k), None] * (X[:, c] - X[:, p])
+    return torch.stack(js, 1)
+
+
+def fit_pose_prior(
+    canon: np.ndarray, cfg: BehaviourConfig, names: tuple[str, ...] | None = None
+) -> PosePrior:
+    """Train the prior's VAE on canonical database poses (N,J,3) (``cfg``'s prior settings): squared joint
+    error plus ``prior_beta`` times the KL term, Adam, batches of 512; with ``prior_proportions`` each batch's
+    bone lengths varied (people's proportions differ from the database subjects'); returned frozen."""
+    seed = cfg.seed
     torch.manual_seed(seed)
     g = torch.Generator().manual_seed(seed)
     J = canon.shape[1]
-    X = torch.as_tensor(canon, dtype=torch.float32).reshape(len(canon), -1)
-    vae = PosePrior(J, dim)
+    X = torch.as_tensor(canon, dtype=torch.float32)
+    vae = PosePrior(J, cfg.prior_dim)
     opt = torch.optim.Adam(vae.parameters(), lr=1e-3)
-    for _ in range(steps):
+    beta = cfg.prior_beta
+    for _ in range(cfg.prior_steps):
         x = X[torch.randint(len(X), (512,), generator=g)]
+        if cfg.prior_proportions > 0:
+            x = _with_proportions(x, names or cfg.joint_names, cfg.prior_proportions, g)
+        x = x.reshape(len(x), -1)
         mu, log_var = vae.enc(x).chunk(2, 1)
         r = vae.dec(mu + torch.randn(mu.shape, generator=g) * (0.5 * log_var).exp())
         kl = (-0.5 * (1 + log_var - mu**2 - log_var.exp())).sum(1).mean()

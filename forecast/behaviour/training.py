@@ -229,10 +229,8 @@ def _fit_state(cfg: BehaviourConfig, db: np.ndarray) -> _Fit:
     jidx = [JOINTS.index(n) for n in names]
     if gen.skeleton is not None:
         gen.skeleton.set_lengths(db[:, jidx])
-    if gen.prior is not None:
-        vae = fit_pose_prior(
-            _canonical(db[:, jidx], names), cfg.prior_dim, cfg.prior_beta, cfg.prior_steps, cfg.seed
-        )
+    if gen.prior is not None and cfg.use_pose:  # action_only never decodes a pose
+        vae = fit_pose_prior(_canonical(db[:, jidx], names), cfg, names)
         gen.prior.load_state_dict(vae.state_dict())
     return _Fit(
         cfg,
