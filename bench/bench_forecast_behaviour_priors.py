@@ -89,12 +89,14 @@ def _bone_sum(P: torch.Tensor) -> torch.Tensor:
 
 
 def errors(P: np.ndarray, d: T.Prepared) -> dict:
-    """3D MPJPE (mm, pelvis-centred), by step and mean absolute error by viewer axis."""
+    """3D MPJPE (mm, pelvis-centred), by step, mean absolute error by viewer axis, and where the poses put
+    the pelvis in depth (mean, s.d., metres behind the anchor)."""
     e = P - P[:, :, PELVIS : PELVIS + 1] - (d.tgt_3d - d.tgt_3d[:, :, PELVIS : PELVIS + 1])
     return {
         "mpjpe3d_mm": float(np.linalg.norm(e, axis=-1).mean() * 1000),
         "by_step": (np.linalg.norm(e, axis=-1).mean((0, 2)) * 1000).round(1).tolist(),
         "abs_by_axis_mm": (np.abs(e).mean((0, 1, 2)) * 1000).round(1).tolist(),
+        "pelvis_depth_m": [float(P[..., PELVIS, 1].mean()), float(P[..., PELVIS, 1].std())],
     }
 
 
@@ -164,6 +166,10 @@ def main() -> None:
     truth = torch.from_numpy(va.tgt_3d).reshape(-1, J, 3)
     out["truth_lifted"] = errors(lifted(lifter, truth, c).reshape(S, m, J, 3).numpy(), va)
     out["truth_quality_shipped"] = T.share_real(shipped, truth.numpy(), JOINTS)
+    out["truth_pelvis_depth_m"] = [
+        float(va.tgt_3d[..., PELVIS, 1].mean()),
+        float(va.tgt_3d[..., PELVIS, 1].std()),
+    ]
     print(f"the truth's depth lifted (the lifter's own error): {out['truth_lifted']}")
     for n in ("full", "pose_only"):
         _, ps = T.predict(gens[n], cfgs[n], va)
