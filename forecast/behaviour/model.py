@@ -230,16 +230,10 @@ class PosePrior(nn.Module):
         cs = out[:, d : d + 2]  # (cos, sin) of the heading, up to scale; heading 0 when both are 0
         n = cs.norm(dim=1, keepdim=True)
         cs = torch.where(n > 1e-6, cs / n.clamp(min=1e-6), torch.tensor([1.0, 0.0]))
-        R = torch.zeros(B, 3, 3)
-        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = (
-            cs[:, 0],
-            -cs[:, 1],
-            cs[:, 1],
-            cs[:, 0],
-            1,
-        )
+        c, s = cs[:, 0, None], cs[:, 1, None]
+        X = torch.stack([c * X[..., 0] - s * X[..., 1], s * X[..., 0] + c * X[..., 1], X[..., 2]], -1)
         size = 1.0 + self.max_scale * torch.tanh(out[:, -1])
-        return torch.einsum("bij,bnj->bni", R, X) * size[:, None, None] + out[:, None, d + 2 : d + 5]
+        return X * size[:, None, None] + out[:, None, d + 2 : d + 5]
 
 
 def _with_proportions(
@@ -257,29 +251,26 @@ def _with_proportions(
     return torch.stack(js, 1)
 
 
-def fit_pose_prior(
-    canon: np.ndarray, cfg: BehaviourConfig, names: tuple[str, ...] | None = None
-) -> PosePrior:
-    """Train the prior's VAE on canonical database poses (N,J,3) (``cfg``'s prior settings): squared joint
-    error plus ``prior_beta`` times the KL term, Adam, batches of 512; with ``prior_proportions`` each batch's
-    bone lengths varied (people's proportions differ from the database subjects'); returned frozen."""
-    seed = cfg.seed
-    torch.manual_seed(seed)
-    g = torch.Generator().manual_seed(seed)
+def fit_pose_prior(canon: np.ndarray, cfg: BehaviourConfig) -> PosePrior:
+    """Train the prior's VAE on canonical database poses (N,J,3) of ``cfg``'s joints (its prior settings):
+    squared joint error plus ``prior_beta`` times the KL term, Adam, batches of 512; with
+    ``prior_proportions`` each batch's bone lengths varied (people are built otherwise than the database's
+    subjects); returned frozen."""
+    torch.manual_seed(cfg.seed)
+    g = torch.Generator().manual_seed(cfg.seed)
     J = canon.shape[1]
     X = torch.as_tensor(canon, dtype=torch.float32)
     vae = PosePrior(J, cfg.prior_dim)
     opt = torch.optim.Adam(vae.parameters(), lr=1e-3)
-    beta = cfg.prior_beta
     for _ in range(cfg.prior_steps):
         x = X[torch.randint(len(X), (512,), generator=g)]
         if cfg.prior_proportions > 0:
-            x = _with_proportions(x, names or cfg.joint_names, cfg.prior_proportions, g)
+            x = _with_proportions(x, cfg.joint_names, cfg.prior_proportions, g)
         x = x.reshape(len(x), -1)
         mu, log_var = vae.enc(x).chunk(2, 1)
         r = vae.dec(mu + torch.randn(mu.shape, generator=g) * (0.5 * log_var).exp())
         kl = (-0.5 * (1 + log_var - mu**2 - log_var.exp())).sum(1).mean()
-        loss = ((r - x) ** 2).reshape(-1, J, 3).sum(-1).mean() + beta * kl
+        loss = ((r - x) ** 2).reshape(-1, J, 3).sum(-1).mean() + cfg.prior_beta * kl
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -230,7 +230,7 @@ def _fit_state(cfg: BehaviourConfig, db: np.ndarray) -> _Fit:
     if gen.skeleton is not None:
         gen.skeleton.set_lengths(db[:, jidx])
     if gen.prior is not None and cfg.use_pose:  # action_only never decodes a pose
-        vae = fit_pose_prior(_canonical(db[:, jidx], names), cfg, names)
+        vae = fit_pose_prior(_canonical(db[:, jidx], names), cfg)
         gen.prior.load_state_dict(vae.state_dict())
     return _Fit(
         cfg,
