@@ -55,6 +55,18 @@ def test_skeleton_size_from_its_input():
         assert torch.allclose(r, torch.full_like(r, want), atol=1e-5)
 
 
+def _written_before(path, option: str):
+    """A checkpoint of the default model written before ``option`` existed (its config lacks the key),
+    loaded back -> (generators, configs)."""
+    cfg = BehaviourConfig(hidden=32)
+    save_checkpoint(path, {"full": build(cfg)[0]}, {"full": cfg}, {})
+    blob = torch.load(path, weights_only=True)
+    del blob["models"]["full"]["config"][option]
+    torch.save(blob, path)
+    gens, cfgs, _ = load_checkpoint(path)
+    return gens, cfgs
+
+
 def test_skeleton_checkpoint_and_older_configs(tmp_path):
     cfg = BehaviourConfig(hidden=32, bone_lengths="database")
     gen, _ = build(cfg)
@@ -68,13 +80,7 @@ def test_skeleton_checkpoint_and_older_configs(tmp_path):
     assert cfgs["full"].bone_lengths == "database"
     assert torch.equal(gens["full"].skeleton.bone_len, gen.skeleton.bone_len)
     # a checkpoint written before the option existed holds free joints
-    old = BehaviourConfig(hidden=32)
-    g0, _ = build(old)
-    save_checkpoint(path, {"full": g0}, {"full": old}, {})
-    blob = torch.load(path, weights_only=True)
-    del blob["models"]["full"]["config"]["bone_lengths"]
-    torch.save(blob, path)
-    gens, cfgs, _ = load_checkpoint(path)
+    gens, cfgs = _written_before(path, "bone_lengths")
     assert cfgs["full"].bone_lengths == "free" and gens["full"].skeleton is None
     with pytest.raises(ValueError, match="bone_lengths"):
         BehaviourConfig(bone_lengths="rigid")
@@ -226,11 +232,7 @@ def test_pose_prior_trains_frozen_and_round_trips(tmp_path):
     _, P1 = T.predict(gens["full"], cfgs["full"], tr)
     assert np.array_equal(P0, P1)
     # an older checkpoint's config has no pose_decoder: the free decoder
-    blob = torch.load(path, weights_only=True)
-    g0, _ = build(BehaviourConfig(hidden=16))
-    blob["models"]["full"] = {"state": g0.state_dict(), "config": {"hidden": 16}}
-    torch.save(blob, path)
-    gens, cfgs, _ = load_checkpoint(path)
+    gens, cfgs = _written_before(path, "pose_decoder")
     assert cfgs["full"].pose_decoder == "free" and gens["full"].prior is None
     with pytest.raises(ValueError, match="pose_decoder"):
         BehaviourConfig(pose_decoder="vae")
