@@ -158,7 +158,12 @@ def test_a_page_that_reads_nothing_or_dies_loses_view_updates_never_the_live_loo
     t0 = time.monotonic()
     view.stop()
     assert time.monotonic() - t0 < 6.0
-    assert max(offer_s) < 0.005, max(offer_s)  # the live loop's cost: an assignment (measured ~5 us)
+    # the live loop's cost: an assignment (measured ~5 us); a call the scheduler preempts on a busy machine
+    # may take a few ms (CI saw one of 1,000 at 17 ms), one that waited on the stuck page would take seconds
+    assert np.percentile(offer_s, 99) < 0.005 and max(offer_s) < 0.1, (
+        np.percentile(offer_s, 99),
+        max(offer_s),
+    )
     assert dropped > 0 and view.states_sent > 10  # the producer went on; the slow page's slot was overwritten
 
 

@@ -126,12 +126,16 @@ def render_in_browser(html_path, out_dir, height=1100, name="shot"):
     ]
     url = html_path.resolve().as_uri()
     png = out_dir / f"{name}.png"
-    subprocess.run(
-        [CHROMIUM, *flags, f"--screenshot={png}", url], check=True, capture_output=True, timeout=180
-    )
-    dom = subprocess.run(
-        [CHROMIUM, *flags, "--dump-dom", url], check=True, capture_output=True, timeout=180, text=True
-    ).stdout
+    for _ in range(3):  # the page marks data-films once its images decoded; on a busy machine that can come
+        # after the virtual-time budget, so a page caught before it is rendered again (CI saw one such)
+        subprocess.run(
+            [CHROMIUM, *flags, f"--screenshot={png}", url], check=True, capture_output=True, timeout=180
+        )
+        dom = subprocess.run(
+            [CHROMIUM, *flags, "--dump-dom", url], check=True, capture_output=True, timeout=180, text=True
+        ).stdout
+        if 'data-films="' in dom:
+            break
     return cv2.imread(str(png)), dom
 
 
