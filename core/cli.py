@@ -74,6 +74,27 @@ def _stop_on_sigint(prog: str, hits: list[int]) -> Any:
     return signal.signal(signal.SIGINT, handler)
 
 
+def interrupted(e: BaseException) -> bool:
+    """Whether ``e`` stands for a Ctrl-C: a KeyboardInterrupt itself or in its causes. The SIGINT handler's
+    KeyboardInterrupt raised while native code runs (a numba kernel's dispatch) can come back as
+    ``SystemError: ... returned a result with an exception set``, its cause the KeyboardInterrupt.
+
+    >>> try:
+    ...     raise SystemError("returned a result with an exception set") from KeyboardInterrupt()
+    ... except SystemError as err:
+    ...     interrupted(err), interrupted(ValueError())
+    (True, False)
+    """
+    seen: set[int] = set()
+    cur: BaseException | None = e
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return True
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return False
+
+
 def describe_os_error(e: OSError) -> str:
     """An OSError as a sentence: which file, what went wrong, what to do.
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from capture.offline_sync import POSE2SIM_OUTPUT
 from capture.session import SessionLayout
-from core.cli import describe_os_error
+from core.cli import describe_os_error, interrupted
 from core.fileio import atomic_write_text, load_npz
 from pipeline.config import PipelineConfig
 from pipeline.discover import SessionSource
@@ -300,6 +300,8 @@ def _process_session(
         stage_name = "summary"
         _write_summary(session.layout, result)
     except Exception as e:  # isolate the session: the others go on, the summary reports it
+        if interrupted(e):  # a Ctrl-C that native code handed back as another error: stop, not "failed"
+            raise KeyboardInterrupt from e
         result.status = "failed"
         result.failed_stage = stage_name
         result.message = (

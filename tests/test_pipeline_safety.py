@@ -304,3 +304,24 @@ def test_ray_tasks_take_the_same_lock(session, tmp_path, monkeypatch):
     assert r.status == "locked" and f"pid {lock.holder.pid}" in r.message
     (r,) = executors.run_ray(discover([session]), out, cfg, False, 1, None)
     assert r.status == "ok" and r.ran == ["calibration", "keypoints", "triangulate"], (r.ran, r.message)
+
+
+def test_a_ctrl_c_that_native_code_hands_back_as_another_error_still_stops(session, tmp_path, monkeypatch):
+    """The SIGINT handler's KeyboardInterrupt, raised while a numba kernel dispatched, came back as
+    SystemError ("returned a result with an exception set"): the run must stop as interrupted (130), not
+    report the stage failed (CI saw it once)."""
+    from pipeline import runner
+
+    def stage_hit_by_ctrl_c(*a, **k):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as ki:
+            raise SystemError("CPUDispatcher(gru_gates) returned a result with an exception set") from ki
+
+    monkeypatch.setattr(runner, "_run_stage", stage_hit_by_ctrl_c)
+    (src,) = discover([session])
+    with pytest.raises(KeyboardInterrupt):
+        runner.process_session(src, tmp_path / "out", PipelineConfig())
+    monkeypatch.setattr(runner, "_run_stage", lambda *a, **k: (_ for _ in ()).throw(SystemError("a bug")))
+    res = runner.process_session(src, tmp_path / "out", PipelineConfig())
+    assert res.status == "failed" and "SystemError: a bug" in res.message  # a real error still reads as one
