@@ -412,7 +412,6 @@ def compose(
         raise ValueError(f"script must be one of {SCRIPTS}, got {script!r}")
     rng = np.random.default_rng(seed)
     by_action = _by_action(pool)
-    pel = JOINTS.index("pelvis")
     acts = np.zeros((n, length), np.int64)
     X = np.zeros((n, length, len(JOINTS), 3), np.float32)
     names = np.empty((n, length), dtype=object)
@@ -427,10 +426,7 @@ def compose(
                 heading += rng.normal(0, 0.6)
                 pos = np.clip(pos + rng.normal(0, 0.6, 2), -room_half_m, room_half_m)
             c = by_action[a][rng.integers(len(by_action[a]))]
-            x = c.xyz_m[int(c.frames[rng.integers(len(c.frames))])].astype(np.float64)
-            x = x - np.array([x[pel, 0], x[pel, 1], 0.0])
-            x = x @ _yaw(heading - _facing(x)).T
-            X[s, k] = x + np.array([pos[0], pos[1], 0.0])
+            X[s, k] = _place(c, rng, pos, heading)
             acts[s, k] = ACTIONS.index(a)
             names[s, k] = c.name
     return acts, X, names
