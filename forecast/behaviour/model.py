@@ -156,6 +156,19 @@ def _mlp(*dims: int) -> nn.Sequential:
     return nn.Sequential(*layers[:-1])
 
 
+def parents_first(bone_idx: np.ndarray) -> np.ndarray:
+    """The (b,2) child, parent pairs ordered so that every bone comes after its parent's bone (a pose can be
+    rebuilt from the root down in this order)."""
+    root = set(bone_idx[:, 1].tolist()) - set(bone_idx[:, 0].tolist())
+    order, done = [], set(root)
+    while len(order) < len(bone_idx):
+        for i, (c, p) in enumerate(bone_idx.tolist()):
+            if p in done and c not in done:
+                order.append(i)
+                done.add(c)
+    return bone_idx[order]
+
+
 class Skeleton(nn.Module):
     """A pose (B,J,3) rebuilt with the 3D database's bone proportions: from the pelvis (kept where the
     decoder put it) down the tree, each bone keeps the direction the decoder gave it and takes the length
@@ -171,14 +184,7 @@ class Skeleton(nn.Module):
 
     def __init__(self, bone_idx: np.ndarray, max_scale: float = 0.15, learn: bool = False) -> None:
         super().__init__()
-        root = set(bone_idx[:, 1].tolist()) - set(bone_idx[:, 0].tolist())
-        order, done = [], set(root)
-        while len(order) < len(bone_idx):  # parents before children
-            for i, (c, p) in enumerate(bone_idx.tolist()):
-                if p in done and c not in done:
-                    order.append(i)
-                    done.add(c)
-        self.register_buffer("bone_idx", torch.as_tensor(bone_idx[order]))
+        self.register_buffer("bone_idx", torch.as_tensor(parents_first(bone_idx)))
         self.register_buffer("bone_len", torch.ones(len(bone_idx)))
         self.log_ratio = nn.Parameter(torch.zeros(len(bone_idx))) if learn else None
         self.max_scale = max_scale
@@ -241,7 +247,7 @@ def _with_proportions(
 ) -> torch.Tensor:
     """Poses X (B,J,3) with each bone's length times a factor drawn uniformly in 1 +- ``spread`` (one per
     pose and bone, the left and right bone alike), rebuilt from the pelvis down the tree."""
-    order = Skeleton(bones(names)).bone_idx.tolist()  # parents first
+    order = parents_first(bones(names)).tolist()
     side = [names[c].replace("left_", "").replace("right_", "") for c, _ in order]
     kinds = sorted(set(side))
     f = 1.0 + spread * (2 * torch.rand(len(X), len(kinds), generator=g) - 1)
