@@ -41,12 +41,6 @@ from forecast.behaviour.quality import load as load_quality
 from forecast.behaviour.training import critic_input
 
 
-def _tops(probs: np.ndarray, gt: np.ndarray) -> tuple[list[float], list[float]]:
-    """Top-1 / top-3 by step of forecasts probs (S,m,A) against gt (S,m)."""
-    order = np.argsort(-probs, -1)
-    return (order[..., 0] == gt).mean(0).tolist(), (order[..., :3] == gt[..., None]).any(-1).mean(0).tolist()
-
-
 def ceilings(cfg: BehaviourConfig, quality_classifier=None) -> dict:
     """The best possible top-1/top-3 per step of the config's script on the test split, from the labels alone
     and from labels and place, and the two qualities of the truth."""
@@ -59,9 +53,12 @@ def ceilings(cfg: BehaviourConfig, quality_classifier=None) -> dict:
     else:
         acts = states = bdata.compose(pool["test"], cfg.n_eval, L, seed=2)[0]
     assert np.array_equal(acts, d.acts), "the ceilings' sequences are not the test split's"
-    gt = d.acts[:, n_obs:]
-    top1, top3 = _tops(bdata.chain_forecast(ch, d.acts[:, :n_obs], cfg.m), gt)
-    p1, p3 = _tops(bdata.chain_forecast(ch, d.acts[:, :n_obs], cfg.m, last_state=states[:, n_obs - 1]), gt)
+    labels = T.metrics(bdata.chain_forecast(ch, d.acts[:, :n_obs], cfg.m), None, d, n_obs)
+    place = T.metrics(
+        bdata.chain_forecast(ch, d.acts[:, :n_obs], cfg.m, last_state=states[:, n_obs - 1]), None, d, n_obs
+    )
+    top1, top3 = labels["top1_by_step"], labels["top3_by_step"]
+    p1, p3 = place["top1_by_step"], place["top3_by_step"]
     real_v, real_t = sp.db[0::2], sp.db[1::2]
     J = len(JOINTS)
     fakes = np.concatenate([T.perturbed(real_v, JOINTS, 0), sp.val.tgt_3d.reshape(-1, J, 3)])
