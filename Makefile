@@ -30,7 +30,7 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadgroup -q -m "not slow"
 
 demo: $(STAMP)
-	$(PY) -m pipeline.demo --recording $(DEMO) --out $(DEMO_OUT)
+	$(PY) -m roomcap.pipeline.demo --recording $(DEMO) --out $(DEMO_OUT)
 
 calibrate: $(STAMP)
 	$(VENV)/bin/calibrate-run calibrate $(RECORDING) --board $(BOARD) --out $(OUT)
@@ -42,7 +42,9 @@ bench: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	$(VENV)/bin/mypy
+	@# mypy does not follow setuptools' editable finder: it sees the checkout as `roomcap` through a link
+	mkdir -p $(VENV)/typecheck && ln -sfn $(CURDIR) $(VENV)/typecheck/roomcap
+	MYPYPATH=$(VENV)/typecheck $(VENV)/bin/mypy
 	$(VENV)/bin/lint-imports
 
 clean:

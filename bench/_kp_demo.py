@@ -17,7 +17,7 @@ import numpy as np
 def read_qca(path: str | Path) -> dict[str, dict]:
     """-> {serial: dict(size_wh, K, dist (k1,k2,p1,p2,k3), R cam_from_world, t metres)}."""
     try:  # the project's importer once it exists
-        from calibrate import formats  # noqa: F401
+        from roomcap.calibrate import formats  # noqa: F401
 
         rig = formats.read_qualisys(path)  # type: ignore[attr-defined]
         return {c.name: dict(size_wh=c.size_wh, K=c.K, dist=c.dist, R=c.R, t=c.t) for c in rig.cameras}

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from keypoints.skeletons import CANONICAL
+from roomcap.keypoints.skeletons import CANONICAL
 
 TRC_TO_BODY19 = {
     "RHip": "right_hip",

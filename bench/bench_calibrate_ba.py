@@ -28,13 +28,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibrate.boards import Board, load_board  # noqa: E402
-from calibrate.camera import Camera, CameraRig  # noqa: E402
-from calibrate.detect import detect_all, discover_recording  # noqa: E402
-from calibrate.extrinsics import ExtrinsicsConfig, board_fit_rms, calibrate_extrinsics  # noqa: E402
-from calibrate.intrinsics import calibrate_intrinsics  # noqa: E402
-from calibrate.pose_graph import board_poses, initial_poses, pairwise_links  # noqa: E402
-from calibrate.synthetic_boards import board_trajectory, project_detections, ring_rig, views_near_camera  # noqa: E402
+from roomcap.calibrate.boards import Board, load_board  # noqa: E402
+from roomcap.calibrate.camera import Camera, CameraRig  # noqa: E402
+from roomcap.calibrate.detect import detect_all, discover_recording  # noqa: E402
+from roomcap.calibrate.extrinsics import ExtrinsicsConfig, board_fit_rms, calibrate_extrinsics  # noqa: E402
+from roomcap.calibrate.intrinsics import calibrate_intrinsics  # noqa: E402
+from roomcap.calibrate.pose_graph import board_poses, initial_poses, pairwise_links  # noqa: E402
+from roomcap.calibrate.synthetic_boards import (  # noqa: E402
+    board_trajectory,
+    project_detections,
+    ring_rig,
+    views_near_camera,
+)
 
 
 def initial_rig(board, cams, dets) -> tuple[list[Camera], list[int]]:

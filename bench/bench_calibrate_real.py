@@ -32,12 +32,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibrate.boards import Board  # noqa: E402
-from calibrate.calibration import CalibrationConfig, calibrate_recording  # noqa: E402
-from calibrate.camera import CameraRig  # noqa: E402
-from calibrate.detect import detect_all, discover_recording  # noqa: E402
-from calibrate.extrinsics import ExtrinsicsConfig, calibrate_extrinsics  # noqa: E402
-from calibrate.intrinsics import IntrinsicsConfig, calibrate_intrinsics  # noqa: E402
+from roomcap.calibrate.boards import Board  # noqa: E402
+from roomcap.calibrate.calibration import CalibrationConfig, calibrate_recording  # noqa: E402
+from roomcap.calibrate.camera import CameraRig  # noqa: E402
+from roomcap.calibrate.detect import detect_all, discover_recording  # noqa: E402
+from roomcap.calibrate.extrinsics import ExtrinsicsConfig, calibrate_extrinsics  # noqa: E402
+from roomcap.calibrate.intrinsics import IntrinsicsConfig, calibrate_intrinsics  # noqa: E402
 
 
 def umeyama(X: np.ndarray, Y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -75,7 +75,7 @@ def rig_errors(est: CameraRig, truth: CameraRig) -> dict:
 
 
 def caliscope(shared: Path, out: dict) -> None:
-    from calibrate.formats import import_rig
+    from roomcap.calibrate.formats import import_rig
 
     rec = shared / "data" / "caliscope" / "charuco_calibration"
     if not rec.exists():
@@ -148,7 +148,7 @@ def caliscope(shared: Path, out: dict) -> None:
 
 
 def pose2sim(shared: Path, out: dict) -> None:
-    from calibrate.formats import import_rig
+    from roomcap.calibrate.formats import import_rig
 
     d = shared / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_SinglePerson" / "calibration"
     if not d.exists():
@@ -328,7 +328,7 @@ def stereo(shared: Path, out: dict) -> None:
 
 def _rendered(out: dict, key: str, title: str, board: Board, rig: CameraRig, T: np.ndarray, rng) -> None:
     """Render the board poses T into the rig, calibrate from the images, compare with the truth."""
-    from calibrate.synthetic_boards import write_recording
+    from roomcap.calibrate.synthetic_boards import write_recording
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -364,7 +364,7 @@ def _rendered(out: dict, key: str, title: str, board: Board, rig: CameraRig, T: 
 
 
 def synthetic_ring(out: dict, n_frames: int) -> None:
-    from calibrate.synthetic_boards import board_trajectory, ring_rig, views_near_camera
+    from roomcap.calibrate.synthetic_boards import board_trajectory, ring_rig, views_near_camera
 
     rng = np.random.default_rng(0)
     board = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
@@ -378,8 +378,8 @@ def synthetic_ring(out: dict, n_frames: int) -> None:
 
 def synthetic_weak_link(out: dict) -> None:
     """4 cameras; c3 sees the board together with the others in 3 frames only (plus its own close-ups)."""
-    from calibrate.camera import Camera
-    from calibrate.synthetic_boards import board_trajectory, look_at, views_near_camera
+    from roomcap.calibrate.camera import Camera
+    from roomcap.calibrate.synthetic_boards import board_trajectory, look_at, views_near_camera
 
     rng = np.random.default_rng(1)
     board = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")

@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from capture.config import parse_config  # noqa: E402
-from capture.recorder import Recorder  # noqa: E402
-from capture.sources import SyntheticSource, read_code, read_frames_csv  # noqa: E402
+from roomcap.capture.config import parse_config  # noqa: E402
+from roomcap.capture.recorder import Recorder  # noqa: E402
+from roomcap.capture.sources import SyntheticSource, read_code, read_frames_csv  # noqa: E402
 
 
 def _cpu_s() -> float:

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from capture.offline_sync import estimate_offsets, keypoint_speed, read_openpose_folder  # noqa: E402
+from roomcap.capture.offline_sync import estimate_offsets, keypoint_speed, read_openpose_folder  # noqa: E402
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
 TRIALS = (
@@ -67,7 +67,7 @@ def pose2sim(shared: Path, per_joint: bool) -> dict:
 
 
 def synthetic_world(seeds: int, per_joint: bool) -> dict:
-    from synthetic import RenderConfig, SceneConfig, make_scene, render_scene, ring_rig, ring_room
+    from roomcap.synthetic import RenderConfig, SceneConfig, make_scene, render_scene, ring_rig, ring_room
 
     errs = []
     off = (0.0, 3.4, -7.2, 11.6)

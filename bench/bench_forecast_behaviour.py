@@ -31,14 +31,14 @@ import time
 import numpy as np
 import torch
 
-from core.cli import parse_sets
-from forecast.behaviour import data as bdata
-from forecast.behaviour import training as T
-from forecast.behaviour.cli import QUALITY_OF_SCRIPT
-from forecast.behaviour.data import ACTIONS, JOINTS
-from forecast.behaviour.model import BehaviourConfig, build, config_from_dict, rollout
-from forecast.behaviour.quality import load as load_quality
-from forecast.behaviour.training import critic_input
+from roomcap.core.cli import parse_sets
+from roomcap.forecast.behaviour import data as bdata
+from roomcap.forecast.behaviour import training as T
+from roomcap.forecast.behaviour.cli import QUALITY_OF_SCRIPT
+from roomcap.forecast.behaviour.data import ACTIONS, JOINTS
+from roomcap.forecast.behaviour.model import BehaviourConfig, build, config_from_dict, rollout
+from roomcap.forecast.behaviour.quality import load as load_quality
+from roomcap.forecast.behaviour.training import critic_input
 
 
 def ceilings(cfg: BehaviourConfig, quality_classifier=None) -> dict:

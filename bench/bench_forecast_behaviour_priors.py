@@ -33,12 +33,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.cli import parse_sets
-from forecast.behaviour import model as M
-from forecast.behaviour import quality as Q
-from forecast.behaviour import training as T
-from forecast.behaviour.data import JOINTS
-from forecast.behaviour.geometry import plane_of_3d
+from roomcap.core.cli import parse_sets
+from roomcap.forecast.behaviour import model as M
+from roomcap.forecast.behaviour import quality as Q
+from roomcap.forecast.behaviour import training as T
+from roomcap.forecast.behaviour.data import JOINTS
+from roomcap.forecast.behaviour.geometry import plane_of_3d
 
 J = len(JOINTS)
 PELVIS = JOINTS.index("pelvis")

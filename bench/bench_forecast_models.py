@@ -19,10 +19,10 @@ import time
 import numpy as np
 import torch
 
-from forecast import data as D
-from forecast import train as T
-from forecast.predict import forecast_world
-from forecast.toy import walker
+from roomcap.forecast import data as D
+from roomcap.forecast import train as T
+from roomcap.forecast.predict import forecast_world
+from roomcap.forecast.toy import walker
 
 
 def _clips():

@@ -35,9 +35,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from _kp_demo import read_qca, reprojection_errors  # noqa: E402
 
-from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig  # noqa: E402
-from keypoints.runtime import RuntimeConfig  # noqa: E402
-from keypoints.skeletons import convert  # noqa: E402
+from roomcap.keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig  # noqa: E402
+from roomcap.keypoints.runtime import RuntimeConfig  # noqa: E402
+from roomcap.keypoints.skeletons import convert  # noqa: E402
 
 SHARED = Path(os.environ.get("ROOMCAP_SHARED", REPO.parent / "shared"))
 P2S = SHARED / "data/pose2sim"

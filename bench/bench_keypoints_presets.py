@@ -35,9 +35,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _kp_demo import read_qca  # noqa: E402
 from bench_keypoints_demo import CAMS, DEMO, multi_person, read_frames, single_person_errors  # noqa: E402
 
-from keypoints.pipeline import KeypointPipeline  # noqa: E402
-from keypoints.presets import preset_config  # noqa: E402
-from keypoints.runtime import RuntimeConfig  # noqa: E402
+from roomcap.keypoints.pipeline import KeypointPipeline  # noqa: E402
+from roomcap.keypoints.presets import preset_config  # noqa: E402
+from roomcap.keypoints.runtime import RuntimeConfig  # noqa: E402
 
 
 def run(pipe: KeypointPipeline, frames: dict[str, list[np.ndarray]]):

@@ -45,12 +45,12 @@ sys.path.insert(0, str(REPO))
 
 import onnxruntime as ort  # noqa: E402
 
-from capture.session import videos_in  # noqa: E402
-from keypoints.pipeline import KeypointPipelineConfig  # noqa: E402
-from keypoints.presets import preset_config  # noqa: E402
-from keypoints.registry import presets  # noqa: E402
-from keypoints.runtime import RuntimeConfig  # noqa: E402
-from keypoints.video import run_videos  # noqa: E402
+from roomcap.capture.session import videos_in  # noqa: E402
+from roomcap.keypoints.pipeline import KeypointPipelineConfig  # noqa: E402
+from roomcap.keypoints.presets import preset_config  # noqa: E402
+from roomcap.keypoints.registry import presets  # noqa: E402
+from roomcap.keypoints.runtime import RuntimeConfig  # noqa: E402
+from roomcap.keypoints.video import run_videos  # noqa: E402
 
 SHARED = Path(os.environ.get("ROOMCAP_SHARED", REPO.parent / "shared"))
 DEMOS = {

@@ -7,7 +7,7 @@ Input: the Pose2Sim multi-person trial (``session-2024/S00_P01_MultiParticipants
 98..1, 0..99, ...: the motion stays continuous at the seams) for ``--minutes`` (default 5) at 60 Hz
 timestamps. Running the keypoint model live for 5 minutes is too slow on this shared 2-core machine, so
 the detections are fed to the live 3D stages of ``capture-run --live`` (``pipeline.live``'s
-``triangulate`` and ``track`` stage callables, one :class:`capture.live.LiveStep` per frame set), not
+``triangulate`` and ``track`` stage callables, one :class:`roomcap.capture.live.LiveStep` per frame set), not
 through the recorder. Each step of both stages is timed as CPU time of this process (``time.process_time``,
 robust to the other processes sharing the machine) and wall time (``time.perf_counter``); figures: p50 /
 p95 in the first and in the last minute and their ratio (the baseline of this run: the first minute).
@@ -47,16 +47,16 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
-    from calibrate.camera import CameraRig
-    from calibrate.formats import import_rig
-    from capture.config import parse_config
-    from capture.live import LiveStep
-    from capture.session import SessionLayout
-    from capture.sources import Frame
-    from capture.sync import FrameSet
-    from keypoints.openpose_json import read_openpose_folder
-    from pipeline.live import LiveContext, _track, _triangulate, live_dir
-    from track.trackfile import TrackFile
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.calibrate.formats import import_rig
+    from roomcap.capture.config import parse_config
+    from roomcap.capture.live import LiveStep
+    from roomcap.capture.session import SessionLayout
+    from roomcap.capture.sources import Frame
+    from roomcap.capture.sync import FrameSet
+    from roomcap.keypoints.openpose_json import read_openpose_folder
+    from roomcap.pipeline.live import LiveContext, _track, _triangulate, live_dir
+    from roomcap.track.trackfile import TrackFile
 
     base = Path(args.shared) / "data" / "pose2sim" / "session-2024"
     trial = base / "S00_P01_MultiParticipants" / "S00_P01_T02_Participants1-2"

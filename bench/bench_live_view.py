@@ -101,15 +101,15 @@ def main() -> None:
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    from calibrate.formats import import_rig
-    from capture.config import load_config
-    from capture.live import LiveRunner
-    from capture.recorder import Recorder
-    from capture.session import SessionLayout
-    from keypoints.openpose_json import read_openpose_folder
-    from pipeline.live import LiveContext, _track, _triangulate
-    from pipeline.live_outputs import Outputs
-    from pipeline.liveview.browser import HeadlessBrowser, find_chromium
+    from roomcap.calibrate.formats import import_rig
+    from roomcap.capture.config import load_config
+    from roomcap.capture.live import LiveRunner
+    from roomcap.capture.recorder import Recorder
+    from roomcap.capture.session import SessionLayout
+    from roomcap.keypoints.openpose_json import read_openpose_folder
+    from roomcap.pipeline.live import LiveContext, _track, _triangulate
+    from roomcap.pipeline.live_outputs import Outputs
+    from roomcap.pipeline.liveview.browser import HeadlessBrowser, find_chromium
 
     demo = Path(args.shared) / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_MultiPerson"
     trial = (
@@ -342,9 +342,9 @@ def _rerun_check(session: Path, rig_toml: Path, rrd: Path) -> dict:
         from rerun.chunk import RrdReader
     except ImportError:
         return {"skipped": "rerun-sdk not installed (pip install 'roomcap[rerun]')"}
-    from capture.session import SessionLayout
-    from track.rerun_export import write_session_rrd
-    from track.trackfile import TrackFile
+    from roomcap.capture.session import SessionLayout
+    from roomcap.track.rerun_export import write_session_rrd
+    from roomcap.track.trackfile import TrackFile
 
     lay = SessionLayout(session)
     lay.calib_dir.mkdir(exist_ok=True)
@@ -384,9 +384,9 @@ def _compare_lsl(session: Path, rows: list, ts: list, slots: int) -> dict:
     slot's track id channel names the column), timestamps against t_ns on LSL's clock."""
     import pylsl
 
-    from capture.session import SessionLayout
-    from capture.sources import host_now_ns
-    from track.trackfile import TrackFile
+    from roomcap.capture.session import SessionLayout
+    from roomcap.capture.sources import host_now_ns
+    from roomcap.track.trackfile import TrackFile
 
     tf = TrackFile.load(SessionLayout(session).live_tracks)
     J = len(tf.joint_names)

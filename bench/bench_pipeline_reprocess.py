@@ -41,7 +41,7 @@ def outputs(root: Path) -> dict[str, bytes]:
 
 
 def reprocess(args: list[str], kill_after_s: float | None = None) -> tuple[int, float, str]:
-    cmd = [sys.executable, "-m", "pipeline.cli", *args]
+    cmd = [sys.executable, "-m", "roomcap.pipeline.cli", *args]
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
@@ -74,7 +74,7 @@ def main() -> int:
         return 2
     work = a.keep or Path(tempfile.mkdtemp(prefix="bench_reprocess_"))
     work.mkdir(parents=True, exist_ok=True)
-    from pipeline.synth import make_sessions
+    from roomcap.pipeline.synth import make_sessions
 
     syn = work / "synthetic"
     if not syn.exists():

@@ -36,7 +36,7 @@ def measure(paths: list[Path], out: Path, workers: int, extra: list[str]) -> dic
     cmd = [
         sys.executable,
         "-m",
-        "pipeline.cli",
+        "roomcap.pipeline.cli",
         *map(str, paths),
         "--out",
         str(out),
@@ -74,7 +74,7 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="bench_throughput_"))
     try:
         if a.synthetic:
-            from pipeline.synth import make_sessions
+            from roomcap.pipeline.synth import make_sessions
 
             make_sessions(work / "syn", a.synthetic, duration_s=a.seconds)
             paths, extra, kind = (

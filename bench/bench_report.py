@@ -55,11 +55,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep", type=Path, help="write the session here (kept) instead of a temporary folder")
     a = ap.parse_args(argv)
 
-    from pipeline.report import write_report
-    from synthetic import render as R
-    from synthetic import rigs, world
-    from track.greedy_stage import track_session_greedy
-    from triangulate.stage import triangulate_session
+    from roomcap.pipeline.report import write_report
+    from roomcap.synthetic import render as R
+    from roomcap.synthetic import rigs, world
+    from roomcap.track.greedy_stage import track_session_greedy
+    from roomcap.triangulate.stage import triangulate_session
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_report_")) if a.keep is None else a.keep
     try:

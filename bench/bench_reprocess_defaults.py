@@ -3,7 +3,8 @@
     python bench/bench_reprocess_defaults.py SESSION... [--trackers greedy,particle] [--work DIR]
         [--whole] [--cold] [--stages S] [--tree CHECKOUT]
 
-Each SESSION is a folder with ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (e.g. ``python -m synthetic
+Each SESSION is a folder with ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (e.g. ``python -m
+roomcap.synthetic
 OUT --rig kitchen --cams 12 --people 16 --enter-leave --seconds 300``). For each session and tracker the
 bench links the session's inputs into a fresh folder under ``--work`` and runs
 
@@ -47,7 +48,7 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from track.trackfile import TrackFile, iter_parts  # noqa: E402
+from roomcap.track.trackfile import TrackFile, iter_parts  # noqa: E402
 
 REPROCESS = [sys.executable, "-c", "import sys; from pipeline.cli import main; sys.exit(main())"]
 

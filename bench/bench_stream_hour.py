@@ -3,12 +3,12 @@
     python bench/bench_stream_hour.py [--minutes 60] [--base-minutes 5] [--metric-minutes 2]
         [--cams 12] [--people 16] [--chunk-s 60] [--work DIR] [--tracker greedy|particle]
 
-Three sessions of the same setup (``python -m synthetic OUT --rig kitchen --cams 12 --people 16
+Three sessions of the same setup (``python -m roomcap.synthetic OUT --rig kitchen --cams 12 --people 16
 --enter-leave --seconds N``): the long one, the memory baseline (``--base-minutes``) and the metric
 baseline (``--metric-minutes``). Each runs triangulation and the greedy tracker streamed
 (``chunk_s``), every stage in its own process, whose peak resident memory (ru_maxrss) and wall time
 are reported. With ``--tracker particle`` the particle tracker (default config, streamed by
-:mod:`track.stream`) replaces triangulation + the greedy tracker (it reads the detections itself).
+:mod:`roomcap.track.stream`) replaces triangulation + the greedy tracker (it reads the detections itself).
 Against the ground truth: MOTA, IDF1 (threshold 0.3 m), PCP (actor average) and MPJPE
 on consecutive 60-second windows (the windowed IDF1 counts identity per minute), frame-weighted.
 Then the memory-baseline session is run again killed (SIGKILL) at a random moment of each stage
@@ -50,22 +50,22 @@ def _stage(name: str, folder: str, chunk_s: float, extra: list[str], tracker: st
     t0 = time.perf_counter()
     rep: dict = {}
     if name == "synthetic":
-        from synthetic.__main__ import _main
+        from roomcap.synthetic.__main__ import _main
 
         _main([folder, *extra])
     elif name == "triangulate":
-        from triangulate.stage import triangulate_session
+        from roomcap.triangulate.stage import triangulate_session
 
         triangulate_session(folder, {"chunk_s": chunk_s})
     elif name == "track" and tracker == "particle":
         import torch
 
         torch.set_num_threads(1)
-        from track.stage import track_session_particle
+        from roomcap.track.stage import track_session_particle
 
         track_session_particle(folder, {"chunk_s": chunk_s})
     elif name == "track":
-        from track.greedy_stage import track_session_greedy
+        from roomcap.track.greedy_stage import track_session_greedy
 
         track_session_greedy(folder, {"chunk_s": chunk_s})
     elif name == "evaluate":
@@ -81,9 +81,9 @@ def _evaluate(folder: str, np) -> dict:
     """Metrics on 60 s windows of the track parts against gt.npz (both read window by window); ``windows``
     has one row per window (people present per frame, tracks seen, tracks born, identity switches, IDF1,
     MPJPE): where a longer session's metrics differ, it shows when, and with how many people in view."""
-    from core.fileio import load_npz
-    from track.trackfile import iter_parts
-    from triangulate import evaluate as ev
+    from roomcap.core.fileio import load_npz
+    from roomcap.track.trackfile import iter_parts
+    from roomcap.triangulate import evaluate as ev
 
     gt_all = load_npz(Path(folder) / "gt.npz", required=("gt_xyz_m",))["gt_xyz_m"]
     sums = {"mota": 0.0, "idf1": 0.0, "pcp": 0.0, "mpjpe_mm": 0.0}

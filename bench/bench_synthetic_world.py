@@ -23,8 +23,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from synthetic import bvh, rigs, world  # noqa: E402
-from synthetic import render as R  # noqa: E402
+from roomcap.synthetic import bvh, rigs, world  # noqa: E402
+from roomcap.synthetic import render as R  # noqa: E402
 
 FAULTS = R.RenderConfig(
     noise_px=3.0,

@@ -36,12 +36,12 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
-    from keypoints.skeletons import CANONICAL
-    from track.birth import BirthGenerator
-    from track.normalize import denormalize, hip_frame
-    from track.particle_config import ParticleConfig
-    from track.priors import TEMPLATE_BODY19_M
-    from track.train_motion import load_motion
+    from roomcap.keypoints.skeletons import CANONICAL
+    from roomcap.track.birth import BirthGenerator
+    from roomcap.track.normalize import denormalize, hip_frame
+    from roomcap.track.particle_config import ParticleConfig
+    from roomcap.track.priors import TEMPLATE_BODY19_M
+    from roomcap.track.train_motion import load_motion
 
     clips, names = load_motion(25.0)
     val = np.concatenate([c[:: a.every] for c, n in zip(clips, names, strict=True) if n[-1] == "1"])

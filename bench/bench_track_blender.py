@@ -5,7 +5,7 @@ bvh``), imports them with Blender's own BVH importer (``blender -b``, see tests/
 and checks: one armature per person, frame count and rate, bone heads within 1 cm of the fitted
 joints, bone lengths (parent head to child head) constant to < 1 mm.
 
-    python -m pipeline.demo --out /tmp/demo  # the multi-person demo by default
+    python -m roomcap.pipeline.demo --out /tmp/demo  # the multi-person demo by default
     .venv/bin/python bench/bench_track_blender.py /tmp/demo/Demo_MultiPerson
 """
 
@@ -24,9 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from test_track_blender import blender_import, check_armatures  # noqa: E402
 
-from track.cli import main as tracks  # noqa: E402
-from track.cli import resolve_tracks  # noqa: E402
-from track.skeleton_fit import SkeletonFit, file_sha256  # noqa: E402
+from roomcap.track.cli import main as tracks  # noqa: E402
+from roomcap.track.cli import resolve_tracks  # noqa: E402
+from roomcap.track.skeleton_fit import SkeletonFit, file_sha256  # noqa: E402
 
 
 def main() -> None:

@@ -38,16 +38,16 @@ def main() -> None:
     ap.add_argument("--motion", default="constant_velocity")
     a = ap.parse_args()
     os.environ["ROOMCAP_SHARED"] = a.shared
-    from calibrate.camera import CameraRig
-    from calibrate.formats import import_rig
-    from capture.session import SessionLayout
-    from core.fileio import save_toml
-    from keypoints.pipeline import KeypointPipelineConfig
-    from keypoints.video import run_videos
-    from track.particle_config import ParticleConfig
-    from track.stage import track_session_particle
-    from track.trackfile import TrackFile
-    from triangulate.multiview import load_detections
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.calibrate.formats import import_rig
+    from roomcap.capture.session import SessionLayout
+    from roomcap.core.fileio import save_toml
+    from roomcap.keypoints.pipeline import KeypointPipelineConfig
+    from roomcap.keypoints.video import run_videos
+    from roomcap.track.particle_config import ParticleConfig
+    from roomcap.track.stage import track_session_particle
+    from roomcap.track.trackfile import TrackFile
+    from roomcap.triangulate.multiview import load_detections
 
     demo = Path(a.shared) / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_MultiPerson"
     videos = {p.stem: p for p in sorted((demo / "videos").glob("cam*.mp4"))}

@@ -4,7 +4,7 @@ Pose2Sim's single-participant balancing trial (``session-2024/S00_P00_SinglePart
 S00_P00_T01_BalancingTrial``, 4 cameras, 100 frames at 60 fps; the videos are the demo's
 ``Demo_SinglePerson``). Ours: the chain's track file — by default ``reprocess`` on the trial's own
 OpenPose BODY_25B JSON (the 2D input Pose2Sim triangulated), or ``--tracks`` a track file made from
-the videos (``python -m pipeline.demo --recording .../Demo_SinglePerson``). The participant is the
+the videos (``python -m roomcap.pipeline.demo --recording .../Demo_SinglePerson``). The participant is the
 longest track. Both TRCs go through the same scaling + IK with Pose2Sim's model and BODY_25B setups,
 restricted to the markers both have (by name), and once more without ``Neck`` (same name, another
 point: ours is the mid-shoulder point, BODY_25B's a detected upper-neck keypoint); reported:
@@ -29,10 +29,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.cli import main as reprocess  # noqa: E402
-from track.export import marker_table, write_trc  # noqa: E402
-from track.opensim_ik import find_setup, run_opensim_trc, setup_marker_names  # noqa: E402
-from track.trackfile import TrackFile, read_trc  # noqa: E402
+from roomcap.pipeline.cli import main as reprocess  # noqa: E402
+from roomcap.track.export import marker_table, write_trc  # noqa: E402
+from roomcap.track.opensim_ik import find_setup, run_opensim_trc, setup_marker_names  # noqa: E402
+from roomcap.track.trackfile import TrackFile, read_trc  # noqa: E402
 
 TRIAL = "data/pose2sim/session-2024/S00_P00_SingleParticipant/S00_P00_T01_BalancingTrial"
 
@@ -77,9 +77,9 @@ def per_marker(r) -> dict:
 
 def track_from_videos(shared: Path, out: Path) -> Path:
     """Demo_SinglePerson videos -> BlazePose heavy (33 landmarks kept) -> whole_body triangulate + track."""
-    from capture.session import SessionLayout
-    from keypoints.pipeline import KeypointPipelineConfig as KeypointsConfig
-    from keypoints.video import run_videos
+    from roomcap.capture.session import SessionLayout
+    from roomcap.keypoints.pipeline import KeypointPipelineConfig as KeypointsConfig
+    from roomcap.keypoints.video import run_videos
 
     demo = shared / "data/pose2sim/demo-wheel-0.10.49/Demo_SinglePerson"
     chain = out / "videos"
@@ -87,7 +87,7 @@ def track_from_videos(shared: Path, out: Path) -> Path:
     lay = SessionLayout(chain / demo.name)
     videos = {p.stem: p for p in sorted((demo / "videos").glob("*.mp4"))}
     kp = KeypointsConfig(model_set="blazepose_heavy", skeleton="model", refine_passes=0)
-    from calibrate.camera import CameraRig
+    from roomcap.calibrate.camera import CameraRig
 
     run_videos(videos, lay.keypoints_dir, kp, rig=CameraRig.load(lay.rig_toml), progress=None)
     (out / "wb.toml").write_text('[triangulate.options]\nskeleton = "whole_body"\n')

@@ -1,8 +1,8 @@
 """Particle tracker cost per person-frame at 12 cameras, BLAS at one thread.
 
-The issue's setting: ``python -m synthetic OUT --rig kitchen --cams 12 --people 16 --enter-leave
+The issue's setting: ``python -m roomcap.synthetic OUT --rig kitchen --cams 12 --people 16 --enter-leave
 --seconds S`` written to a temporary folder, its detections loaded as the track stage loads them,
-and :class:`track.particle.ParticleTracker` (default config: GRU prior, 300 samples) stepped over
+and :class:`roomcap.track.particle.ParticleTracker` (default config: GRU prior, 300 samples) stepped over
 the frames with this tree's code and, in the same run, with the code of ``--baseline REV`` (a git
 revision of this repository, extracted with ``git archive`` into a temporary folder and run there in a
 subprocess on the same detections). Both use the same seed; the bench reports whether the tracks are
@@ -60,12 +60,12 @@ def _setup(session: Path):
     import torch
 
     torch.set_num_threads(1)
-    from calibrate.camera import CameraRig
-    from capture.session import SessionLayout
-    from track.particle import ParticleTracker
-    from track.particle_config import ParticleConfig
-    from track.particle_io import focal_lengths
-    from triangulate.multiview import load_detections, session_fps
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.capture.session import SessionLayout
+    from roomcap.track.particle import ParticleTracker
+    from roomcap.track.particle_config import ParticleConfig
+    from roomcap.track.particle_io import focal_lengths
+    from roomcap.triangulate.multiview import load_detections, session_fps
 
     lay = SessionLayout(session)
     rig = CameraRig.load(lay.rig_toml)
@@ -75,7 +75,7 @@ def _setup(session: Path):
     sc = np.moveaxis(mv.score, 0, 1).astype(np.float32)
     cfg = ParticleConfig()
     if hasattr(cfg, "threads"):  # the parts a user's run computes at once (this bench's OMP_NUM_THREADS=1
-        from track.split import MAX_AUTO_THREADS, available_cores  # is for BLAS, not for them)
+        from roomcap.track.split import MAX_AUTO_THREADS, available_cores  # is for BLAS, not for them)
 
         cfg = ParticleConfig(threads=min(available_cores(), MAX_AUTO_THREADS))
     return kp, sc, lambda: ParticleTracker(sub.projection_matrices(), focal_lengths(sub), fps, cfg)
@@ -214,7 +214,7 @@ def compare(a: dict, b: dict, atol_m: float) -> dict:
 
 def gt_metrics(run: dict, gt: np.ndarray) -> dict:
     """The run's raw per-frame estimates (no clean-up) against the ground truth gt (T,G,J,3)."""
-    from triangulate import evaluate as ev
+    from roomcap.triangulate import evaluate as ev
 
     ids = sorted({int(i) for e in run["ids"] for i in e})
     col = {tid: k for k, tid in enumerate(ids)}
@@ -253,7 +253,16 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp_s:
         tmp = Path(tmp_s)
         session = tmp / "kitchen"
-        cmd = [sys.executable, "-m", "synthetic", str(session), "--rig", "kitchen", "--cams", str(args.cams)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "roomcap.synthetic",
+            str(session),
+            "--rig",
+            "kitchen",
+            "--cams",
+            str(args.cams),
+        ]
         cmd += ["--people", str(args.people), "--enter-leave", "--seconds", str(args.seconds)]
         subprocess.run(cmd, check=True, cwd=ROOT, capture_output=True)
         tree = None

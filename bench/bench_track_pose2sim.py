@@ -34,13 +34,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _pose2sim_trc import read_trc_body19  # noqa: E402
 from test_track_realdata import make_pose2sim_session  # noqa: E402
 
-from calibrate.camera import CameraRig  # noqa: E402
-from keypoints.skeletons import CANONICAL  # noqa: E402
-from track.particle import ParticleTracker  # noqa: E402
-from track.particle_config import ParticleConfig  # noqa: E402
-from track.particle_io import focal_lengths  # noqa: E402
-from track.particle_offline import track_sequence  # noqa: E402
-from triangulate.multiview import load_detections  # noqa: E402
+from roomcap.calibrate.camera import CameraRig  # noqa: E402
+from roomcap.keypoints.skeletons import CANONICAL  # noqa: E402
+from roomcap.track.particle import ParticleTracker  # noqa: E402
+from roomcap.track.particle_config import ParticleConfig  # noqa: E402
+from roomcap.track.particle_io import focal_lengths  # noqa: E402
+from roomcap.track.particle_offline import track_sequence  # noqa: E402
+from roomcap.triangulate.multiview import load_detections  # noqa: E402
 
 
 def main() -> None:

@@ -32,15 +32,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from track_helpers import render_kp, ring_P  # noqa: E402
 
-from track.particle import ParticleTracker  # noqa: E402
-from track.particle_config import ParticleConfig  # noqa: E402
+from roomcap.track.particle import ParticleTracker  # noqa: E402
+from roomcap.track.particle_config import ParticleConfig  # noqa: E402
 
 H32 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h32.pt"
 
 
 def people(n: int, T: int, seed: int = 0) -> np.ndarray:
-    from synthetic.rigs import ring_room
-    from synthetic.world import SceneConfig, make_scene
+    from roomcap.synthetic.rigs import ring_room
+    from roomcap.synthetic.world import SceneConfig, make_scene
 
     sc = make_scene(
         ring_room(6.5),
@@ -73,7 +73,7 @@ def time_tracker(P, kp, sc, cfg: ParticleConfig, n_people: int, warm: int) -> di
 
 
 def time_triangulation(P, kp, sc, warm: int) -> float:
-    from triangulate.reconstruct import FrameReconstructor
+    from roomcap.triangulate.reconstruct import FrameReconstructor
 
     rec = FrameReconstructor(P.astype(np.float64))
     cpu = []

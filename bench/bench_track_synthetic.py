@@ -37,14 +37,14 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from synthetic.render import RenderConfig, render  # noqa: E402
-from synthetic.rigs import kitchen  # noqa: E402
-from synthetic.world import SceneConfig, make_scene, write_session  # noqa: E402
-from track.greedy_stage import track_session_greedy  # noqa: E402
-from track.stage import track_session_particle  # noqa: E402
-from track.trackfile import TrackFile  # noqa: E402
-from triangulate import evaluate as ev  # noqa: E402
-from triangulate.stage import triangulate_session  # noqa: E402
+from roomcap.synthetic.render import RenderConfig, render  # noqa: E402
+from roomcap.synthetic.rigs import kitchen  # noqa: E402
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session  # noqa: E402
+from roomcap.track.greedy_stage import track_session_greedy  # noqa: E402
+from roomcap.track.stage import track_session_particle  # noqa: E402
+from roomcap.track.trackfile import TrackFile  # noqa: E402
+from roomcap.triangulate import evaluate as ev  # noqa: E402
+from roomcap.triangulate.stage import triangulate_session  # noqa: E402
 
 FAULTS = dict(noise_px=3.0, missed_joint_rate=0.10, flip_rate=0.02, false_positive_rate=0.05)
 H128 = Path(__file__).resolve().parents[1] / "track" / "checkpoints" / "motion_gru_h128.pt"

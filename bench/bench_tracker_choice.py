@@ -48,13 +48,13 @@ def _child(tracker: str, folder: str) -> None:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     if tracker == "greedy":
-        from track.greedy_stage import track_session_greedy
-        from triangulate.stage import triangulate_session
+        from roomcap.track.greedy_stage import track_session_greedy
+        from roomcap.triangulate.stage import triangulate_session
 
         triangulate_session(folder)
         track_session_greedy(folder)
     else:
-        from track.stage import track_session_particle
+        from roomcap.track.stage import track_session_particle
 
         track_session_particle(folder)
     wall = time.perf_counter() - t0
@@ -72,7 +72,7 @@ def _run(tracker: str, folder: Path) -> dict:
 
 def _score(xyz: np.ndarray, ref: np.ndarray) -> dict:
     """xyz (T,K,J,3) tracks, ref (T,G,J,3) the reference participants (NaN = marker absent)."""
-    from triangulate import evaluate as ev
+    from roomcap.triangulate import evaluate as ev
 
     T = min(len(xyz), len(ref))
     x, g = xyz[:T].astype(np.float64), ref[:T]
@@ -121,7 +121,7 @@ def main() -> None:
     from _pose2sim_trc import read_trc_body19
     from test_track_realdata import make_pose2sim_session
 
-    from track.trackfile import TrackFile
+    from roomcap.track.trackfile import TrackFile
 
     trial = base.joinpath(*TRIAL)
     ref = np.stack(

@@ -28,16 +28,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _pose2sim_trc import TRC_TO_BODY19, read_trc, trc_to_world  # noqa: E402
 
-from calibrate.camera import CameraRig  # noqa: E402
-from calibrate.formats import import_rig  # noqa: E402
-from capture.session import SessionLayout  # noqa: E402
-from core.fileio import save_toml  # noqa: E402
-from keypoints.openpose_json import read_openpose_folder  # noqa: E402
-from keypoints.skeletons import CANONICAL, convert  # noqa: E402
-from track.greedy_stage import track_session_greedy  # noqa: E402
-from track.trackfile import TrackFile  # noqa: E402
-from triangulate.poses3d import Poses3D  # noqa: E402
-from triangulate.stage import triangulate_session  # noqa: E402
+from roomcap.calibrate.camera import CameraRig  # noqa: E402
+from roomcap.calibrate.formats import import_rig  # noqa: E402
+from roomcap.capture.session import SessionLayout  # noqa: E402
+from roomcap.core.fileio import save_toml  # noqa: E402
+from roomcap.keypoints.openpose_json import read_openpose_folder  # noqa: E402
+from roomcap.keypoints.skeletons import CANONICAL, convert  # noqa: E402
+from roomcap.track.greedy_stage import track_session_greedy  # noqa: E402
+from roomcap.track.trackfile import TrackFile  # noqa: E402
+from roomcap.triangulate.poses3d import Poses3D  # noqa: E402
+from roomcap.triangulate.stage import triangulate_session  # noqa: E402
 
 
 def best_axis_map(ours: np.ndarray, trc: np.ndarray) -> tuple[str, float]:
@@ -69,7 +69,7 @@ def reprojection(rig: CameraRig, lay: SessionLayout, X: np.ndarray) -> np.ndarra
     """X (T,J,3) body19 world -> per camera/frame/joint error to the nearest 2D detection (score >= .3)."""
     errs = []
     for ci, cam in enumerate(rig.names):
-        from keypoints.detections import Detections
+        from roomcap.keypoints.detections import Detections
 
         d = Detections.load(lay.detections(cam))
         xy, sc = convert(d.xy_px, d.score, d.skeleton, "body19")
@@ -188,7 +188,7 @@ def main() -> None:
             w[:, js] = trc_to_world(trc2)[:, c2]
             gts.append(w)
         G = np.stack(gts, 1)[: tf.n_frames]  # (T,2,19,3)
-        from triangulate.evaluate import mean_joint_distance, mot_metrics
+        from roomcap.triangulate.evaluate import mean_joint_distance, mot_metrics
 
         mot = mot_metrics(G, tf.xyz_m[: len(G)].astype(np.float64), threshold_m=0.3)
         per_gt = []

@@ -37,12 +37,12 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibrate.camera import CameraRig  # noqa: E402
-from keypoints.skeletons import CANONICAL, convert  # noqa: E402
-from synthetic.render import RenderConfig, render  # noqa: E402
-from synthetic.rigs import kitchen, ring_rig, ring_room  # noqa: E402
-from synthetic.world import SceneConfig, make_scene  # noqa: E402
-from triangulate.reconstruct import FrameReconstructor  # noqa: E402
+from roomcap.calibrate.camera import CameraRig  # noqa: E402
+from roomcap.keypoints.skeletons import CANONICAL, convert  # noqa: E402
+from roomcap.synthetic.render import RenderConfig, render  # noqa: E402
+from roomcap.synthetic.rigs import kitchen, ring_rig, ring_room  # noqa: E402
+from roomcap.synthetic.world import SceneConfig, make_scene  # noqa: E402
+from roomcap.triangulate.reconstruct import FrameReconstructor  # noqa: E402
 
 FAULTS = dict(noise_px=3.0, missed_joint_rate=0.10, flip_rate=0.02, false_positive_rate=0.05)
 
@@ -107,7 +107,7 @@ def time_pose2sim(site: str, rig: CameraRig, xy: np.ndarray, sc: np.ndarray) -> 
     except Exception as e:  # noqa: BLE001 - report why the comparison is missing
         print(f"Pose2Sim not importable ({type(e).__name__}: {e}); skipping the comparison")
         return None
-    from calibrate.formats import export_rig
+    from roomcap.calibrate.formats import export_rig
 
     und = rig  # our frames are undistorted already: give Pose2Sim the same cameras without distortion
     und = CameraRig(tuple(c.replace(dist=np.zeros(4)) for c in rig))

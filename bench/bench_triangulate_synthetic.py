@@ -27,16 +27,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from synthetic.render import RenderConfig, render  # noqa: E402
-from synthetic.rigs import kitchen  # noqa: E402
-from synthetic.world import SceneConfig, make_scene, write_session  # noqa: E402
-from track.greedy_stage import track_session_greedy  # noqa: E402
-from track.trackfile import TrackFile  # noqa: E402
-from triangulate import evaluate as ev  # noqa: E402
-from triangulate.matching import MatchConfig  # noqa: E402
-from triangulate.poses3d import Poses3D  # noqa: E402
-from triangulate.reconstruct import TriangulateConfig  # noqa: E402
-from triangulate.stage import triangulate_session  # noqa: E402
+from roomcap.synthetic.render import RenderConfig, render  # noqa: E402
+from roomcap.synthetic.rigs import kitchen  # noqa: E402
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session  # noqa: E402
+from roomcap.track.greedy_stage import track_session_greedy  # noqa: E402
+from roomcap.track.trackfile import TrackFile  # noqa: E402
+from roomcap.triangulate import evaluate as ev  # noqa: E402
+from roomcap.triangulate.matching import MatchConfig  # noqa: E402
+from roomcap.triangulate.poses3d import Poses3D  # noqa: E402
+from roomcap.triangulate.reconstruct import TriangulateConfig  # noqa: E402
+from roomcap.triangulate.stage import triangulate_session  # noqa: E402
 
 DEFAULT_FAULTS = dict(noise_px=3.0, missed_joint_rate=0.10, flip_rate=0.02, false_positive_rate=0.05)
 

@@ -3,7 +3,8 @@
     python bench/bench_triangulate_workers.py [--minutes 10] [--workers 2] [--cams 12] [--people 16]
         [--chunk-s 30] [--work DIR] [--reuse] [--ray]
 
-A synthetic kitchen session (``python -m synthetic OUT --rig kitchen --cams 12 --people 16 --enter-leave
+A synthetic kitchen session (``python -m roomcap.synthetic OUT --rig kitchen --cams 12 --people 16
+--enter-leave
 --seconds N --chunk-s C``) is triangulated streamed (``chunk_s``) by 1 process, then by ``--workers``
 processes (``[triangulate.options] workers``), and tracked by the streamed greedy tracker after each.
 Association and triangulation are per frame, so the chunks are independent and the parts of the
@@ -27,9 +28,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from synthetic.__main__ import _main as synthetic_main  # noqa: E402
-from track.greedy_stage import track_session_greedy  # noqa: E402
-from triangulate.stage import triangulate_session  # noqa: E402
+from roomcap.synthetic.__main__ import _main as synthetic_main  # noqa: E402
+from roomcap.track.greedy_stage import track_session_greedy  # noqa: E402
+from roomcap.triangulate.stage import triangulate_session  # noqa: E402
 
 
 def _digest(parts: Path) -> dict:
@@ -58,7 +59,7 @@ def _ray_run(folder: Path, chunk_s: float, workers: int) -> dict:
     """The Ray run: a local Ray of ``workers`` CPUs started here (timed), the chunks as its tasks."""
     import ray
 
-    import triangulate
+    from roomcap import triangulate
 
     t0 = time.perf_counter()
     ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)

@@ -6,10 +6,10 @@
 
 ``record`` runs each scenario as a user would, with the commands of the README, in ``DIR``:
 
-* ``demo``: ``python -m pipeline.demo`` on the Pose2Sim multi-person demo (keypoints to report);
+* ``demo``: ``python -m roomcap.pipeline.demo`` on the Pose2Sim multi-person demo (keypoints to report);
 * ``greedy`` / ``particle``: ``reprocess SESSION --stages triangulate,track --tracker T`` on a synthetic
   12-camera, 16-person kitchen session of ``--seconds`` (people entering and leaving), made once by
-  ``python -m synthetic`` and copied for each run;
+  ``python -m roomcap.synthetic`` and copied for each run;
 * ``streamed``: the same session and the greedy tracker, with both 3D stages in 30 s chunks (a pipeline
   TOML setting ``chunk_s``).
 
@@ -91,7 +91,18 @@ def record(work: Path, scenarios: list[str], seconds: float) -> dict:
     result: dict = {"seconds": seconds, "scenarios": {}}
     source = work / "kitchen_source"
     if set(scenarios) - {"demo"} and not source.exists():
-        gen = [py, "-m", "synthetic", str(source), "--rig", "kitchen", "--cams", "12", "--people", "16"]
+        gen = [
+            py,
+            "-m",
+            "roomcap.synthetic",
+            str(source),
+            "--rig",
+            "kitchen",
+            "--cams",
+            "12",
+            "--people",
+            "16",
+        ]
         _run([*gen, "--enter-leave", "--seconds", f"{seconds:g}"], work / "synthetic.log")
     for name in scenarios:
         folder = work / name
@@ -101,11 +112,12 @@ def record(work: Path, scenarios: list[str], seconds: float) -> dict:
             if not DEMO.exists():
                 raise SystemExit(f"the Pose2Sim demo is not at {DEMO}; set ROOMCAP_SHARED")
             wall = _run(
-                [py, "-m", "pipeline.demo", "--recording", str(DEMO), "--out", str(folder)], work / "demo.log"
+                [py, "-m", "roomcap.pipeline.demo", "--recording", str(DEMO), "--out", str(folder)],
+                work / "demo.log",
             )
         else:
             shutil.copytree(source, folder)
-            cmd = [py, "-m", "pipeline.cli", str(folder), "--stages", "triangulate,track"]
+            cmd = [py, "-m", "roomcap.pipeline.cli", str(folder), "--stages", "triangulate,track"]
             cmd += ["--tracker", "particle" if name == "particle" else "greedy"]
             if name == "streamed":
                 toml = work / "streamed.toml"

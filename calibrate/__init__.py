@@ -4,7 +4,7 @@ importers/exporters, and board calibration.
 Never imports torch or depthai (tests/test_import_boundaries.py checks this).
 """
 
-from calibrate.camera import CONVENTION, Camera, CameraRig
-from calibrate.formats import ImportOptions, detect_format, export_rig, import_rig
+from roomcap.calibrate.camera import CONVENTION, Camera, CameraRig
+from roomcap.calibrate.formats import ImportOptions, detect_format, export_rig, import_rig
 
 __all__ = ["CONVENTION", "Camera", "CameraRig", "ImportOptions", "detect_format", "export_rig", "import_rig"]

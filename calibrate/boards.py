@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from core.config import check_keys
-from core.errors import FormatError, InputError, RoomcapError
-from core.fileio import check_schema, load_toml, save_toml, schema_tag
+from roomcap.core.config import check_keys
+from roomcap.core.errors import FormatError, InputError, RoomcapError
+from roomcap.core.fileio import check_schema, load_toml, save_toml, schema_tag
 
 __all__ = ["Board", "CalibrationError", "load_board", "save_board", "DICTIONARIES", "BOARD_KINDS"]
 

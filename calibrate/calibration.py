@@ -20,13 +20,19 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.boards import Board, CalibrationError, load_board
-from calibrate.camera import Camera, CameraRig
-from calibrate.detect import CameraDetections, detect_all, diagnose_board, diagnose_grid, discover_recording
-from calibrate.extrinsics import LOSSES, ExtrinsicsConfig, ExtrinsicsResult, calibrate_extrinsics
-from calibrate.intrinsics import MODELS, IntrinsicsConfig, IntrinsicsResult, calibrate_intrinsics
-from calibrate.report import report_dict, summary_text, write_report
-from core.progress import Progress
+from roomcap.calibrate.boards import Board, CalibrationError, load_board
+from roomcap.calibrate.camera import Camera, CameraRig
+from roomcap.calibrate.detect import (
+    CameraDetections,
+    detect_all,
+    diagnose_board,
+    diagnose_grid,
+    discover_recording,
+)
+from roomcap.calibrate.extrinsics import LOSSES, ExtrinsicsConfig, ExtrinsicsResult, calibrate_extrinsics
+from roomcap.calibrate.intrinsics import MODELS, IntrinsicsConfig, IntrinsicsResult, calibrate_intrinsics
+from roomcap.calibrate.report import report_dict, summary_text, write_report
+from roomcap.core.progress import Progress
 
 log = logging.getLogger(__name__)
 

@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from calibrate.camera_fields import PINHOLE_DIST_SIZES, validated_fields
-from core.config import check_keys
-from core.errors import FormatError, UnknownNameError
-from core.fileio import check_schema, load_toml, save_toml, schema_tag
+from roomcap.calibrate.camera_fields import PINHOLE_DIST_SIZES, validated_fields
+from roomcap.core.config import check_keys
+from roomcap.core.errors import FormatError, UnknownNameError
+from roomcap.core.fileio import check_schema, load_toml, save_toml, schema_tag
 
 __all__ = [
     "CONVENTION",
@@ -95,7 +95,7 @@ class Camera:
     Camera(name='c0', size_wh=(640, 480), model='pinhole', ..., center=[0.0, 0.0, -2.0])
     >>> Camera("c0", (640, 480), [[500, 0, 320], [0, 500, 240]])  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.FormatError: <input>: field 'camera 'c0'.K': has shape (2, 3), expected (3, 3). ...
+    roomcap.core.errors.FormatError: <input>: field 'camera 'c0'.K': has shape (2, 3), expected (3, 3). ...
     """
 
     name: str
@@ -278,7 +278,7 @@ class Camera:
         >>> Camera.from_dict({"name": "c0", "size_wh": [640, 480], "K": cam.K.tolist()}, "rig.toml")
         ... # doctest: +ELLIPSIS
         Traceback (most recent call last):
-        core.errors.FormatError: rig.toml: field 'camera 'c0'.R': camera fields ['R', 't'] are missing. ...
+        roomcap.core.errors.FormatError: rig.toml: field 'camera 'c0'.R': camera fields ['R', 't'] are ...
         """
         w = where or f"camera '{d.get('name', '?')}'"
         check_keys(d, CAMERA_KEYS, w, path, name_key=True)
@@ -356,7 +356,7 @@ class CameraRig:
     CameraRig(2 cameras: ['c0', 'c1'])
     >>> CameraRig.of([cam, cam])  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.FormatError: <input>: field 'cameras.name': camera names must be unique; repeated: ['c0']. ...
+    roomcap.core.errors.FormatError: <input>: field 'cameras.name': camera names must be unique; ...
     """
 
     cameras: tuple[Camera, ...]
@@ -407,7 +407,7 @@ class CameraRig:
         (1, 'c1')
         >>> rig.index("left")
         Traceback (most recent call last):
-        core.errors.UnknownNameError: no camera named 'left'; cameras: ['c0', 'c1']
+        roomcap.core.errors.UnknownNameError: no camera named 'left'; cameras: ['c0', 'c1']
         """
         for i, c in enumerate(self.cameras):
             if c.name == name:

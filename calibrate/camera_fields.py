@@ -1,5 +1,6 @@
 """The checks of a camera's fields (name, image size, model, K, dist, R, t), shared by
-:class:`calibrate.camera.Camera` and the calibration importers: each error names the file and the field."""
+:class:`roomcap.calibrate.camera.Camera` and the calibration importers: each error names the file and the
+field."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import FormatError
+from roomcap.core.errors import FormatError
 
 PINHOLE_DIST_SIZES = (0, 4, 5, 8, 12, 14)
 FISHEYE_DIST_SIZES = (4,)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibrate.camera import CameraRig
+from roomcap.calibrate.camera import CameraRig
 
 MAX_RIG_SPAN_M = 100.0  # wider than any room or hall: probably another unit
 MIN_BASELINE_M = 0.02  # cameras closer than this cannot triangulate a room

@@ -18,12 +18,12 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from calibrate.boards import CalibrationError
-from calibrate.calibration import CalibrationConfig, calibrate_recording
-from calibrate.camera import CameraRig
-from calibrate.checks import rig_warnings
-from calibrate.extrinsics import LOSSES
-from calibrate.formats import (
+from roomcap.calibrate.boards import CalibrationError
+from roomcap.calibrate.calibration import CalibrationConfig, calibrate_recording
+from roomcap.calibrate.camera import CameraRig
+from roomcap.calibrate.checks import rig_warnings
+from roomcap.calibrate.extrinsics import LOSSES
+from roomcap.calibrate.formats import (
     EXPORT_FORMATS,
     IMPORT_FORMATS,
     ImportOptions,
@@ -31,12 +31,12 @@ from calibrate.formats import (
     export_rig,
     import_rig,
 )
-from calibrate.intrinsics import MODELS
-from core.cli import Parser, RawDescriptionHelpFormatter, guarded, positive_float
-from core.errors import FormatError, InputError
-from core.progress import Bars
+from roomcap.calibrate.intrinsics import MODELS
+from roomcap.core.cli import Parser, RawDescriptionHelpFormatter, guarded, positive_float
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.progress import Bars
 
-log = logging.getLogger("calibrate")
+log = logging.getLogger("roomcap.calibrate")
 
 
 def _size_arg(text: str) -> tuple[str, tuple[int, int]]:

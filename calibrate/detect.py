@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.boards import DICTIONARIES, Board, CalibrationError
-from core.errors import FormatError
-from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
-from core.progress import Progress
+from roomcap.calibrate.boards import DICTIONARIES, Board, CalibrationError
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag
+from roomcap.core.progress import Progress
 
 log = logging.getLogger(__name__)
 

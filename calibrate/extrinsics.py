@@ -1,4 +1,4 @@
-"""Extrinsics: from the first guess of :mod:`calibrate.pose_graph` (board poses per camera, pairwise
+"""Extrinsics: from the first guess of :mod:`roomcap.calibrate.pose_graph` (board poses per camera, pairwise
 relative poses, a robust pose graph), a global bundle adjustment over all cameras and board poses with
 pycolmap's Ceres bundle adjuster, outliers dropped, then the world frame.
 
@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibrate.boards import Board, CalibrationError
-from calibrate.camera import Camera, CameraRig
-from calibrate.detect import CameraDetections
-from calibrate.pose_graph import (
+from roomcap.calibrate.boards import Board, CalibrationError
+from roomcap.calibrate.camera import Camera, CameraRig
+from roomcap.calibrate.detect import CameraDetections
+from roomcap.calibrate.pose_graph import (
     board_poses,
     board_symmetry,
     initial_poses,
@@ -33,7 +33,7 @@ from calibrate.pose_graph import (
     rotation_angle_deg,
     transform,
 )
-from core.progress import Progress
+from roomcap.core.progress import Progress
 
 log = logging.getLogger(__name__)
 

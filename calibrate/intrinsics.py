@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrate.boards import Board, CalibrationError
-from calibrate.camera import Camera
-from calibrate.detect import CameraDetections
+from roomcap.calibrate.boards import Board, CalibrationError
+from roomcap.calibrate.camera import Camera
+from roomcap.calibrate.detect import CameraDetections
 
 log = logging.getLogger(__name__)
 

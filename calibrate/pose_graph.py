@@ -1,6 +1,6 @@
 """The first guess of a rig's extrinsics: each camera's board pose per frame (PnP), the relative pose of
 every pair of cameras that saw the board together (a robust mean), and the pose graph's spanning tree from
-the best-linked camera (the reference). :mod:`calibrate.extrinsics` refines it by bundle adjustment.
+the best-linked camera (the reference). :mod:`roomcap.calibrate.extrinsics` refines it by bundle adjustment.
 
 Transforms are 4x4 matrices named ``a_from_b`` (``x_a = T @ x_b``); metres.
 """
@@ -11,9 +11,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from calibrate.boards import Board, CalibrationError
-from calibrate.camera import Camera
-from calibrate.detect import CameraDetections
+from roomcap.calibrate.boards import Board, CalibrationError
+from roomcap.calibrate.camera import Camera
+from roomcap.calibrate.detect import CameraDetections
 
 # ----------------------------------------------------------------------------- small geometry
 

@@ -11,12 +11,12 @@ from typing import Any
 
 import numpy as np
 
-from calibrate.boards import Board
-from calibrate.camera import CameraRig
-from calibrate.detect import CameraDetections
-from calibrate.extrinsics import ExtrinsicsResult
-from calibrate.intrinsics import IntrinsicsResult, coverage_grid
-from core.fileio import atomic_path, save_toml, schema_tag
+from roomcap.calibrate.boards import Board
+from roomcap.calibrate.camera import CameraRig
+from roomcap.calibrate.detect import CameraDetections
+from roomcap.calibrate.extrinsics import ExtrinsicsResult
+from roomcap.calibrate.intrinsics import IntrinsicsResult, coverage_grid
+from roomcap.core.fileio import atomic_path, save_toml, schema_tag
 
 log = logging.getLogger(__name__)
 

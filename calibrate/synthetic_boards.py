@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.boards import Board
-from calibrate.camera import Camera, CameraRig
-from calibrate.detect import CameraDetections
+from roomcap.calibrate.boards import Board
+from roomcap.calibrate.camera import Camera, CameraRig
+from roomcap.calibrate.detect import CameraDetections
 
 __all__ = [
     "BoardRenderer",

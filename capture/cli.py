@@ -18,17 +18,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from capture.config import ConfigError, load_config, shared_sources
-from capture.live import BuildStages, LiveOutputs, LiveRunner
-from capture.offline_sync import LoadKeypoints, sync_audio, sync_session
-from capture.recorder import Recorder, RecorderError, repair
-from capture.session import SessionLayout
-from capture.sources import SourceError
-from core.cli import Parser, guarded, positive_float
-from core.errors import FormatError
-from core.redact import redact
+from roomcap.capture.config import ConfigError, load_config, shared_sources
+from roomcap.capture.live import BuildStages, LiveOutputs, LiveRunner
+from roomcap.capture.offline_sync import LoadKeypoints, sync_audio, sync_session
+from roomcap.capture.recorder import Recorder, RecorderError, repair
+from roomcap.capture.session import SessionLayout
+from roomcap.capture.sources import SourceError
+from roomcap.core.cli import Parser, guarded, positive_float
+from roomcap.core.errors import FormatError
+from roomcap.core.redact import redact
 
-log = logging.getLogger("capture")
+log = logging.getLogger("roomcap.capture")
 
 _SUBCOMMANDS = ("record", "check", "sync", "repair")
 
@@ -92,7 +92,7 @@ def _record(
                 "capture-run: live processing (--live, or live.enabled in cams.yaml) needs the pipeline's "
                 "live "
                 "stages: run `capture-run` (entry point pipeline.live:main; after an update reinstall with "
-                "`pip install -e .`) or `python -m pipeline.live`.",
+                "`pip install -e .`) or `python -m roomcap.pipeline.live`.",
                 file=sys.stderr,
             )
             return 2
@@ -383,10 +383,11 @@ def make_main(
     outputs: LiveOutputs | None = None,
     load_keypoints: LoadKeypoints | None = None,
 ) -> Callable[..., int]:
-    """``capture-run``'s entry with the live stages ``build_live`` (:func:`pipeline.live.build_stages`:
+    """``capture-run``'s entry with the live stages ``build_live``
+    (:func:`roomcap.pipeline.live.build_stages`:
     the installed ``capture-run`` is ``pipeline.live:main``), what the live run sends out
-    (``outputs``: :class:`pipeline.live_outputs.Outputs`) and the reader of ``keypoints/<cam>.npz`` for
-    ``sync`` (``load_keypoints``: ``keypoints.detections.Detections.load``); without them ``--live`` and
+    (``outputs``: :class:`roomcap.pipeline.live_outputs.Outputs`) and the reader of ``keypoints/<cam>.npz``
+    for ``sync`` (``load_keypoints``: ``keypoints.detections.Detections.load``); without them ``--live`` and
     ``sync`` from keypoints say where to go."""
     return guarded(
         "capture-run",

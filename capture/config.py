@@ -58,10 +58,10 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from core.config import bounded, check_keys, check_range, coerce, config_from_dict
-from core.errors import FormatError, UnknownNameError
-from core.fileio import check_schema
-from core.redact import redact as redact_url  # one redaction for every source string
+from roomcap.core.config import bounded, check_keys, check_range, coerce, config_from_dict
+from roomcap.core.errors import FormatError, UnknownNameError
+from roomcap.core.fileio import check_schema
+from roomcap.core.redact import redact as redact_url  # one redaction for every source string
 
 CAMS_SCHEMA = "cams"
 CAMS_VERSION = 1

@@ -6,9 +6,9 @@ Apart from ``capture.sources`` (the base types, OpenCV, file replay, synthetic) 
 
 from __future__ import annotations
 
-from capture.config import CameraConfig, redact_url
-from capture.oak import OakSource
-from capture.sources import FileReplaySource, FrameSource, OpenCVSource, SourceError, SyntheticSource
+from roomcap.capture.config import CameraConfig, redact_url
+from roomcap.capture.oak import OakSource
+from roomcap.capture.sources import FileReplaySource, FrameSource, OpenCVSource, SourceError, SyntheticSource
 
 
 def make_source(

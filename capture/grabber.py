@@ -13,7 +13,14 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from capture.sources import Frame, FrameSource, SourceDisconnected, SourceError, SourceInfo, host_now_ns
+from roomcap.capture.sources import (
+    Frame,
+    FrameSource,
+    SourceDisconnected,
+    SourceError,
+    SourceInfo,
+    host_now_ns,
+)
 
 log = logging.getLogger(__name__)
 

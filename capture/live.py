@@ -3,7 +3,7 @@
 A live step is a batch of one frame set (DESIGN.md, "one code path for live and batch"). The
 stages are plain callables ``stage(step) -> None`` that read and write ``step.outputs``; a stage may
 have a ``close()`` that the runner calls when the recording ends. The stages that use the later
-packages (keypoints, triangulation, tracking) are built in :mod:`pipeline.live` (the stage order:
+packages (keypoints, triangulation, tracking) are built in :mod:`roomcap.pipeline.live` (the stage order:
 capture sits below them) and handed in as ``stages`` or ``build_stages``.
 
 The runner keeps up rather than falling behind: when several sets are ready it processes the
@@ -24,10 +24,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from capture.config import CaptureConfig
-from capture.session import SessionLayout
-from capture.sources import host_now_ns
-from capture.sync import FrameSet, Synchroniser
+from roomcap.capture.config import CaptureConfig
+from roomcap.capture.session import SessionLayout
+from roomcap.capture.sources import host_now_ns
+from roomcap.capture.sync import FrameSet, Synchroniser
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ BuildStages = Callable[[CaptureConfig, SessionLayout], "tuple[dict[str, Stage], 
 
 class LiveOutputs(Protocol):
     """What ``capture-run --live`` sends out while it records (the live view, network streams, a Rerun
-    recording), built above capture (:mod:`pipeline.live_outputs`) and handed to ``capture.cli``."""
+    recording), built above capture (:mod:`roomcap.pipeline.live_outputs`) and handed to ``capture.cli``."""
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
         """Add the command-line options (``--view``, ``--stream``, ...)."""

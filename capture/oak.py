@@ -24,8 +24,8 @@ import logging
 import urllib.parse
 from dataclasses import dataclass
 
-from capture.config import CameraConfig
-from capture.sources import (
+from roomcap.capture.config import CameraConfig
+from roomcap.capture.sources import (
     Frame,
     FrameSource,
     SourceDisconnected,

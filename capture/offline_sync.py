@@ -25,10 +25,10 @@ from typing import Protocol
 
 import numpy as np
 
-from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
-from core.errors import FormatError, InputError
-from core.fileio import load_toml, save_toml
-from core.timebase import frame_rate_hz
+from roomcap.capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import load_toml, save_toml
+from roomcap.core.timebase import frame_rate_hz
 
 log = logging.getLogger(__name__)
 

@@ -43,12 +43,12 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.config import CaptureConfig, redact_url
-from capture.factory import make_source
-from capture.grabber import Gap, Grabber
-from capture.join import JoinResult, count_video_packets, join_camera, remove_segments
-from capture.oak import depthai_version
-from capture.segments import (
+from roomcap.capture.config import CaptureConfig, redact_url
+from roomcap.capture.factory import make_source
+from roomcap.capture.grabber import Gap, Grabber
+from roomcap.capture.join import JoinResult, count_video_packets, join_camera, remove_segments
+from roomcap.capture.oak import depthai_version
+from roomcap.capture.segments import (
     CSV_HEADER,
     PART_PREFIX,
     RecorderError,
@@ -56,17 +56,17 @@ from capture.segments import (
     WriterThread,
     write_ffconcat,
 )
-from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
-from capture.sources import (
+from roomcap.capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from roomcap.capture.sources import (
     FrameSource,
     SourceError,
     SourceInfo,
     host_now_ns,
     read_frames_csv,
 )
-from capture.sync import timing_report
-from core.fileio import atomic_write_text, load_toml, save_toml
-from core.redact import redact
+from roomcap.capture.sync import timing_report
+from roomcap.core.fileio import atomic_write_text, load_toml, save_toml
+from roomcap.core.redact import redact
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 ``SegmentWriter`` writes ``raw/<cam>/seg_NNNNNN.<ext>`` under a hidden name (``PART_PREFIX``), closes,
 fsyncs and renames it, then appends its rows to ``raw/<cam>.frames.csv`` (the kill safety described in
-:mod:`capture.recorder`); ``WriterThread`` feeds it from the camera's queue.
+:mod:`roomcap.capture.recorder`); ``WriterThread`` feeds it from the camera's queue.
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ import queue
 import threading
 from pathlib import Path
 
-from capture.grabber import END
-from capture.join import FFCONCAT
-from capture.sources import Frame, SourceError
-from core.errors import RoomcapError
-from core.fileio import atomic_write_text
+from roomcap.capture.grabber import END
+from roomcap.capture.join import FFCONCAT
+from roomcap.capture.sources import Frame, SourceError
+from roomcap.core.errors import RoomcapError
+from roomcap.core.fileio import atomic_write_text
 
 log = logging.getLogger(__name__)
 

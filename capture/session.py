@@ -24,8 +24,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from core.errors import FormatError
-from core.fileio import check_schema, load_toml
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import check_schema, load_toml
 
 SESSION_SCHEMA = "session"
 SESSION_VERSION = 1

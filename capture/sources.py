@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.config import CameraConfig
-from capture.session import VIDEO_SUFFIXES
-from core.errors import FormatError, RoomcapError
+from roomcap.capture.config import CameraConfig
+from roomcap.capture.session import VIDEO_SUFFIXES
+from roomcap.core.errors import FormatError, RoomcapError
 
 log = logging.getLogger(__name__)
 

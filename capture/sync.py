@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from capture.sources import Frame
+from roomcap.capture.sources import Frame
 
 log = logging.getLogger(__name__)
 

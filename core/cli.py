@@ -30,8 +30,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError, RoomcapError
-from core.redact import redact, redact_log_records
+from roomcap.core.errors import InputError, RoomcapError
+from roomcap.core.redact import redact, redact_log_records
 
 EXIT_OK, EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 STOP_GRACE_S = 1.5  # after the first Ctrl-C, how long a command may take to stop before it is ended
@@ -248,7 +248,7 @@ def parse_sets(items: Sequence[str] | None) -> dict[str, str]:
     {'epochs': '20', 'lr': '1e-3'}
     >>> parse_sets(["epochs"])
     Traceback (most recent call last):
-    core.errors.InputError: --set expects key=value, got 'epochs'
+    roomcap.core.errors.InputError: --set expects key=value, got 'epochs'
     """
     out = {}
     for it in items or []:

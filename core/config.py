@@ -4,7 +4,7 @@
 (fields whose type is itself a config dataclass), and coerces values to the field's type where the
 meaning is unambiguous (an int for a float, a list for a tuple, the text of a number, a boolean or a
 list from the command line's ``--set key=value``, a boolean also as 0/1, yes/no or on/off). A value
-of the wrong kind is a :class:`~core.errors.FormatError` naming the key. A field declared with
+of the wrong kind is a :class:`~roomcap.core.errors.FormatError` naming the key. A field declared with
 :func:`bounded` also has its range checked (:func:`check_range`). DESIGN.md: each default lives in its
 dataclass only; no ``.get(key, default)`` in the algorithms.
 """
@@ -18,7 +18,7 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar
 
-from core.errors import FormatError
+from roomcap.core.errors import FormatError
 
 T = TypeVar("T")
 
@@ -80,7 +80,7 @@ def coerce(
     (2.5, (1, 2), True)
     >>> coerce("fast", int, "workers")
     Traceback (most recent call last):
-    core.errors.FormatError: <input>: field 'workers': expected int, got 'fast'. Fix the value.
+    roomcap.core.errors.FormatError: <input>: field 'workers': expected int, got 'fast'. Fix the value.
     """
     return _coerce(value, hint, where, path, error)
 
@@ -95,7 +95,8 @@ def bounded(default: Any, lo: float, hi: float) -> Any:
     Chunks(chunk_s=60.0)
     >>> config_from_dict(Chunks, {"chunk_s": -1}, "track")
     Traceback (most recent call last):
-    core.errors.FormatError: <input>: field 'track.chunk_s': -1.0 is outside the valid range [0.0, 3600.0].
+    roomcap.core.errors.FormatError: <input>: field 'track.chunk_s': -1.0 is outside the valid range [0.0,
+    3600.0].
     """
     return dataclasses.field(default=default, metadata={"range": (lo, hi)})
 
@@ -117,7 +118,7 @@ def check_range(
     3
     >>> check_range(0.5, "workers", "run.toml", 1, 64, integer=True)
     Traceback (most recent call last):
-    core.errors.FormatError: run.toml: field 'workers': expected an integer in [1, 64], got 0.5.
+    roomcap.core.errors.FormatError: run.toml: field 'workers': expected an integer in [1, 64], got 0.5.
     """
     if value is None and allow_none:
         return None
@@ -156,7 +157,7 @@ def check_keys(
     >>> check_keys({"fps": 25}, ["fps", "chunk_s"], "track", None)
     >>> check_keys({"fsp": 25}, ["fps", "chunk_s"], "track", "run.toml")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.FormatError: run.toml: field 'track': unknown keys ['fsp']; valid keys: ['chunk_s', 'fps']...
+    roomcap.core.errors.FormatError: run.toml: field 'track': unknown keys ['fsp']; valid keys: ...
     """
     names = sorted(valid)
     unknown = sorted(set(data) - set(names))
@@ -175,7 +176,8 @@ def config_from_dict(
     error: type[FormatError] = FormatError,
 ) -> T:
     """Build the frozen config dataclass ``cls`` from ``data`` (see the module docstring); problems raise
-    ``error`` (a :class:`~core.errors.FormatError`, or a subclass such as cams.yaml's ``ConfigError``).
+    ``error`` (a :class:`~roomcap.core.errors.FormatError`, or a subclass such as cams.yaml's
+    ``ConfigError``).
 
     >>> @dataclasses.dataclass(frozen=True)
     ... class Stage:

@@ -3,7 +3,7 @@
 Every exception the project raises on purpose derives from :class:`RoomcapError` and keeps its builtin
 parent (``FormatError`` is still a ``ValueError``, ``ModelError`` a ``FileNotFoundError``), so callers
 that catch the builtin keep working and a command-line tool catches the whole family once
-(:func:`core.cli.guarded`).
+(:func:`roomcap.core.cli.guarded`).
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from core.errors import FormatError, SchemaError
+from roomcap.core.errors import FormatError, SchemaError
 
 T = TypeVar("T")
 
@@ -112,10 +112,10 @@ def check_schema(tag: Any, name: str, supported: tuple[int, ...], path: str | os
     2
     >>> check_schema("tracks/3", "tracks", (1, 2), "t.npz")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.SchemaError: t.npz: field 'schema': version 3 is not supported (...). Upgrade roomcap ...
+    roomcap.core.errors.SchemaError: t.npz: field 'schema': version 3 is not supported (...). Upgrade ...
     >>> check_schema("detections/1", "tracks", (1,), "t.npz")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.SchemaError: t.npz: field 'schema': this is a 'detections' file, expected 'tracks'. ...
+    roomcap.core.errors.SchemaError: t.npz: field 'schema': this is a 'detections' file, expected ...
     """
     if isinstance(tag, np.ndarray):
         tag = tag.item() if tag.shape == () else None
@@ -201,7 +201,7 @@ def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> di
     >>> _ = path.write_bytes(b"not a zip")
     >>> load_npz(path)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.FormatError: ...poses.npz: is not an npz archive (numpy's zip of arrays); it may be ...
+    roomcap.core.errors.FormatError: ...poses.npz: is not an npz archive (numpy's zip of arrays); it may ...
     """
     path = Path(path)
     if not path.exists():
@@ -237,7 +237,7 @@ def require_keys(
 
     >>> require_keys("t.npz", {"fps": np.float64(25)}, ("fps", "xyz_m"))  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.FormatError: t.npz: field 'xyz_m': required keys ['xyz_m'] are missing (present: ['fps']). ...
+    roomcap.core.errors.FormatError: t.npz: field 'xyz_m': required keys ['xyz_m'] are missing (present: ...
     """
     missing = [k for k in required if k not in data]
     if missing:
@@ -262,7 +262,7 @@ def load_container(
     25.0
     >>> load_container(path, "tracks", (1,), ("fps", "xyz_m"))  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.FormatError: ...tracks.npz: field 'xyz_m': required keys ['xyz_m'] are missing ...
+    roomcap.core.errors.FormatError: ...tracks.npz: field 'xyz_m': required keys ['xyz_m'] are missing ...
     """
     data = load_npz(path, required=("schema",))
     check_schema(data["schema"], schema, versions, path)
@@ -277,7 +277,7 @@ def errors_in(path: str | os.PathLike[str]) -> Iterator[None]:
     >>> with errors_in("t.npz"):  # doctest: +ELLIPSIS
     ...     raise FormatError(None, "fps", "must be a positive number, got 0.")
     Traceback (most recent call last):
-    core.errors.FormatError: t.npz: field 'fps': must be a positive number, got 0.
+    roomcap.core.errors.FormatError: t.npz: field 'fps': must be a positive number, got 0.
     """
     try:
         yield
@@ -308,7 +308,7 @@ def load_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     >>> _ = path.write_text("[track")
     >>> load_toml(path)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
-    core.errors.FormatError: ...run.toml: is not valid TOML (...).
+    roomcap.core.errors.FormatError: ...run.toml: is not valid TOML (...).
     """
     path = Path(path)
     if not path.exists():

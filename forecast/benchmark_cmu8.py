@@ -4,7 +4,8 @@ compact DCT + MLP forecaster trained on its train files.
 Protocol (read from LTD, Mao et al. 2019: ``utils/data_utils.py`` ``load_data_cmu_3d`` and ``main_cmu_3d.py``
 ``test``; the data of Tanke Table 6.7, which reports mean angle errors on it):
 
-- every file goes through the reference's forward kinematics (:func:`forecast.cmu_more.expmap_to_xyz`: the
+- every file goes through the reference's forward kinematics
+(:func:`roomcap.forecast.cmu_more.expmap_to_xyz`: the
   root's position and rotation never enter) and keeps every 2nd frame (``even_list = range(0, n, 2)``);
 - test windows: per test file, ``np.random.RandomState(1234567890)`` (re-seeded for each file) draws 8 starts
   ``idx = rng.randint(0, num_frames - 75)``; the window is frames ``idx .. idx + 74``: 50 observed
@@ -19,7 +20,7 @@ Protocol (read from LTD, Mao et al. 2019: ``utils/data_utils.py`` ``load_data_cm
 
 Variant ``body19`` (named so everywhere): the project's body19 checkpoints forecast at 25 Hz from 2 s of
 history; they get the 2 s before each test window's last observed frame from the same file (body19 of the
-benchmark points, :func:`forecast.cmu_more.cmu38_to_body19`), their forecast is interpolated to the
+benchmark points, :func:`roomcap.forecast.cmu_more.cmu38_to_body19`), their forecast is interpolated to the
 protocol's frame times, and the 12 limb points (hips, knees, ankles, shoulders, elbows, wrists) are scored in
 the protocol's units, with zero velocity and the DCT + MLP scored on the same 12 points beside them.
 """
@@ -37,13 +38,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.errors import FormatError, InputError
-from core.fileio import atomic_path, atomic_write_text
-from forecast import benchmark_cmu8_published as P
-from forecast import cmu_more as C
-from forecast.checkpoint import load_checkpoint
-from forecast.predict import forecast_world
-from synthetic.bvh import BODY19
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import atomic_path, atomic_write_text
+from roomcap.forecast import benchmark_cmu8_published as P
+from roomcap.forecast import cmu_more as C
+from roomcap.forecast.checkpoint import load_checkpoint
+from roomcap.forecast.predict import forecast_world
+from roomcap.synthetic.bvh import BODY19
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,7 @@
 """Training of the CMU 8-action benchmark's DCT + MLP forecaster: ``forecast cmu8 train | ensemble``.
 
-The train files of the benchmark (:mod:`forecast.benchmark_cmu8`) less the last file of each action, which
+The train files of the benchmark (:mod:`roomcap.forecast.benchmark_cmu8`) less the last file of each action,
+which
 is the validation split (model selection only); the test files are never read. siMLPe's recipe (Guo et al.
 2023): AdamW with a cosine schedule, the point error plus the velocity error, and the augmentations
 ``--mirror`` (left/right) and ``--reverse`` (windows played backwards); the state with the lowest validation
@@ -17,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import positive_float, positive_int
-from core.errors import InputError
-from core.progress import Bars
-from forecast import cmu_more as C
-from forecast.benchmark_cmu8 import (
+from roomcap.core.cli import positive_float, positive_int
+from roomcap.core.errors import InputError
+from roomcap.core.progress import Bars
+from roomcap.forecast import cmu_more as C
+from roomcap.forecast.benchmark_cmu8 import (
     JOINTS_USED,
     DctMlp,
     DctMlpEnsemble,

@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from scipy.cluster.vq import kmeans2
 
-from core.errors import FormatError, InputError
-from core.fileio import atomic_path
-from forecast import data as fdata
-from forecast.config import BASELINES, config_from_dict
-from forecast.models import (
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import atomic_path
+from roomcap.forecast import data as fdata
+from roomcap.forecast.config import BASELINES, config_from_dict
+from roomcap.forecast.models import (
     ConstantVelocity,
     FoolClusters,
     IntentionModel,
@@ -30,8 +30,8 @@ from forecast.models import (
     SocialDiffusion,
     ZeroVelocity,
 )
-from forecast.predict import LHIP, N_GLOBAL, RHIP
-from keypoints.skeletons import get_skeleton
+from roomcap.forecast.predict import LHIP, N_GLOBAL, RHIP
+from roomcap.keypoints.skeletons import get_skeleton
 
 CKPT_SCHEMA = "forecast-checkpoint/1"
 DISCRIMINATOR_PREFIXES = ("D_pose.", "D_label.")

@@ -26,7 +26,7 @@ import os
 import sys
 from typing import Any
 
-from core.cli import Parser, guarded, positive_float, positive_int
+from roomcap.core.cli import Parser, guarded, positive_float, positive_int
 
 # sub-commands with parsers of their own, dispatched before parsing (each loads torch when it runs)
 OWN_PARSERS = {
@@ -165,8 +165,9 @@ def _main(argv: list[str] | None = None) -> int:
 
 
 def _commands():
-    """:mod:`forecast.commands`, imported when a command runs (after the BLAS thread variables are set)."""
-    from forecast import commands  # lazy: loads torch
+    """:mod:`roomcap.forecast.commands`, imported when a command runs (after the BLAS thread variables are
+    set)."""
+    from roomcap.forecast import commands  # lazy: loads torch
 
     return commands
 

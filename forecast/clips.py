@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from forecast import cmu_more
-from forecast import data as fdata
-from forecast.cmu_more import CMU_MORE_DIR
-from forecast.predict import LHIP, RHIP, scene_features, scene_frame
+from roomcap.forecast import cmu_more
+from roomcap.forecast import data as fdata
+from roomcap.forecast.cmu_more import CMU_MORE_DIR
+from roomcap.forecast.predict import LHIP, RHIP, scene_features, scene_frame
 
 
 def clip_key(name: str) -> str:

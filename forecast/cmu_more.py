@@ -1,8 +1,9 @@
 """Readers for ``cmu-more`` (``$ROOMCAP_SHARED/data/motion/cmu-more``, see its README) into forecasting clips.
 
-- **one-person cgspeed BVH** (``single/``, 30 fps): through :mod:`synthetic.bvh`, which knows the cgspeed
+- **one-person cgspeed BVH** (``single/``, 30 fps): through :mod:`roomcap.synthetic.bvh`, which knows the
+cgspeed
   "Daz-friendly" skeleton's scale (centimetres, one fixed skeleton for every subject) and always drops its
-  T-pose frame 0 -> body19 :class:`forecast.data.Clip` (:func:`load_single`).
+  T-pose frame 0 -> body19 :class:`roomcap.forecast.data.Clip` (:func:`load_single`).
 - **two-person salsa** (``two-person/salsa_NN/60_NN.bvh`` + ``61_NN.bvh``, one world frame, 30 fps, the same
   skeleton written at 1/128): one two-person clip per take, P = 2 (person 0 = subject 60, person 1 = subject
   61) (:func:`salsa_clip`). The two files must have the same frame count (they share the clock).
@@ -22,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError, InputError
-from forecast import data as fdata
-from synthetic import bvh
+from roomcap.core.errors import FormatError, InputError
+from roomcap.forecast import data as fdata
+from roomcap.synthetic import bvh
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
-"""What the ``forecast`` sub-commands do, once :mod:`forecast.cli` has parsed the command line and set the
-BLAS thread variables: importing this module loads torch.
+"""What the ``forecast`` sub-commands do, once :mod:`roomcap.forecast.cli` has parsed the command line and
+set the BLAS thread variables: importing this module loads torch.
 
 ``train``, ``sample`` and ``eval`` (``run``), and the sub-commands with parsers of their own
 (``run_own_parser``: ``characteristic``, ``cmu8``, ``behaviour``).
@@ -14,21 +14,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import parse_sets
-from core.errors import FormatError, InputError
-from core.fileio import load_toml
-from core.progress import Bars
-from forecast import benchmark_cmu8 as B
-from forecast import benchmark_cmu8_train as BT
-from forecast import evaluate as E
-from forecast import hik
-from forecast import train as T
-from forecast.behaviour import cli as behaviour_cli
-from forecast.characteristic import cli as characteristic_cli
-from forecast.clips import load_one_person_all, load_two_person_real
-from forecast.config import config_from_dict
-from forecast.preview import DEFAULT_CHECKPOINT, preview, save_forecast, shipped_checkpoints
-from forecast.track_forecast import no_forecast_reason
+from roomcap.core.cli import parse_sets
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import load_toml
+from roomcap.core.progress import Bars
+from roomcap.forecast import benchmark_cmu8 as B
+from roomcap.forecast import benchmark_cmu8_train as BT
+from roomcap.forecast import evaluate as E
+from roomcap.forecast import hik
+from roomcap.forecast import train as T
+from roomcap.forecast.behaviour import cli as behaviour_cli
+from roomcap.forecast.characteristic import cli as characteristic_cli
+from roomcap.forecast.clips import load_one_person_all, load_two_person_real
+from roomcap.forecast.config import config_from_dict
+from roomcap.forecast.preview import DEFAULT_CHECKPOINT, preview, save_forecast, shipped_checkpoints
+from roomcap.forecast.track_forecast import no_forecast_reason
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ def cmd_train(args) -> int:
         if blob.get("kind") != args.model:
             raise InputError(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
         init = blob["state_dict"]
-    logging.getLogger("forecast.train").setLevel(logging.INFO)  # the loss terms, above the bar
+    logging.getLogger("roomcap.forecast.train").setLevel(logging.INFO)  # the loss terms, above the bar
     with Bars(unit="step") as bars:
         model, hist = T.train(args.model, tr, cfg, progress=bars, device=args.device, init=init, val_clips=va)
     T.save_checkpoint(
@@ -189,7 +189,9 @@ def cmd_eval(args) -> int:
     models = _baseline_models(names, tr)
     models.update(ck_models)
     print(f"evaluating on {len(te)} test clips: {', '.join(c.name for c in te)}")
-    logging.getLogger("forecast.evaluate").setLevel(logging.INFO)  # the model being scored, above the bar
+    logging.getLogger("roomcap.forecast.evaluate").setLevel(
+        logging.INFO
+    )  # the model being scored, above the bar
     with Bars(unit="model") as progress:
         res = _eval_cmu(args, models, clips, te, progress)
     res["wall_s_total"] = time.perf_counter() - t0

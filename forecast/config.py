@@ -9,8 +9,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from core import config as core_config
-from core.errors import InputError
+from roomcap.core import config as core_config
+from roomcap.core.errors import InputError
 
 
 @dataclass(frozen=True)

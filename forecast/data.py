@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError, InputError
-from core.fileio import load_npz
-from keypoints.skeletons import get_skeleton
-from synthetic import bvh
-from track.trackfile import TrackFile  # the contract with the tracker
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import load_npz
+from roomcap.keypoints.skeletons import get_skeleton
+from roomcap.synthetic import bvh
+from roomcap.track.trackfile import TrackFile  # the contract with the tracker
 
 log = logging.getLogger(__name__)
 

@@ -35,14 +35,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.errors import InputError
-from core.fileio import atomic_path, atomic_write_text
-from core.progress import Progress
-from forecast import data as fdata
-from forecast import metrics as M
-from forecast.clips import clip_activities, composed_batch
-from forecast.predict import diffusion_rollout, forecast_world
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import InputError
+from roomcap.core.fileio import atomic_path, atomic_write_text
+from roomcap.core.progress import Progress
+from roomcap.forecast import data as fdata
+from roomcap.forecast import metrics as M
+from roomcap.forecast.clips import clip_activities, composed_batch
+from roomcap.forecast.predict import diffusion_rollout, forecast_world
+from roomcap.keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
 

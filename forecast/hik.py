@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.errors import InputError
-from core.fileio import atomic_write_text
-from forecast import data as fdata
-from forecast import evaluate as E
-from forecast import metrics as M
-from forecast import train as T
-from forecast.predict import forecast_world
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import InputError
+from roomcap.core.fileio import atomic_write_text
+from roomcap.forecast import data as fdata
+from roomcap.forecast import evaluate as E
+from roomcap.forecast import metrics as M
+from roomcap.forecast import train as T
+from roomcap.forecast.predict import forecast_world
+from roomcap.keypoints.skeletons import get_skeleton
 
 N_OBS, N_SHORT, N_LONG, MOTION_LEAD = 50, 25, 250, 10
 MPJPE_FRAMES = (5, 15, 25)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from forecast.data import hip_indices, norm_frame, normalize
+from roomcap.forecast.data import hip_indices, norm_frame, normalize
 
 # Joints used for the nearest-neighbour search and the score (Tanke sec. 6.3.2).
 NDMS_JOINTS = (

@@ -22,13 +22,13 @@ import time
 import numpy as np
 import torch
 
-from core.errors import InputError
-from forecast import data as fdata
-from forecast import metrics as M
-from forecast.clips import clip_activities
-from forecast.evaluate import Real, ndms_scorer_for
-from forecast.predict import forecast_world
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import InputError
+from roomcap.forecast import data as fdata
+from roomcap.forecast import metrics as M
+from roomcap.forecast.clips import clip_activities
+from roomcap.forecast.evaluate import Real, ndms_scorer_for
+from roomcap.forecast.predict import forecast_world
+from roomcap.keypoints.skeletons import get_skeleton
 
 PAIR_TIMES_S = (2.0, 4.0, 6.0, 8.0, 10.0)
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from core.errors import InputError
-from forecast.data import denormalize, norm_frame, normalize
+from roomcap.core.errors import InputError
+from roomcap.forecast.data import denormalize, norm_frame, normalize
 
 LHIP, RHIP = 11, 12  # body19
 

@@ -8,7 +8,7 @@ index of the last observed frame), ``fps`` of the forecast, ``t_s (H,)`` seconds
 ``preview(track_file, horizon_s)`` -> dict with ``xyz_m (S,H,K,J,3)`` world metres (NaN for tracks not
 present at the last frame), ``t_s (H,)`` seconds after the last frame, ``track_id (K,)``, ``fps`` (25),
 ``joint_names``, ``model``. Uses the shipped GRU checkpoint unless ``checkpoint`` is given. Importing this
-module does not import torch: a model's forecast loads it (:mod:`forecast.track_forecast`).
+module does not import torch: a model's forecast loads it (:mod:`roomcap.forecast.track_forecast`).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.fileio import save_npz, schema_tag
-from track.trackfile import TrackFile
+from roomcap.core.fileio import save_npz, schema_tag
+from roomcap.track.trackfile import TrackFile
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "gru_cmuall.pt"  # picked over gru_cmu.pt on validation (BENCHMARKS)
@@ -47,7 +47,7 @@ def preview(
 ) -> dict:
     """The forecast of every track of ``track_file`` by ``checkpoint`` (default: the shipped GRU); see the
     module docstring for what it holds."""
-    from forecast.track_forecast import forecast_tracks  # lazy: loads torch
+    from roomcap.forecast.track_forecast import forecast_tracks  # lazy: loads torch
 
     return forecast_tracks(track_file, horizon_s, checkpoint or DEFAULT_CHECKPOINT, n_samples, obs_s)
 

@@ -8,11 +8,11 @@ import logging
 import numpy as np
 import torch
 
-from core.errors import InputError
-from forecast import data as fdata
-from forecast import evaluate as E
-from forecast.clips import clip_activities
-from forecast.predict import forecast_world
+from roomcap.core.errors import InputError
+from roomcap.forecast import data as fdata
+from roomcap.forecast import evaluate as E
+from roomcap.forecast.clips import clip_activities
+from roomcap.forecast.predict import forecast_world
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from keypoints.skeletons import get_skeleton
+from roomcap.keypoints.skeletons import get_skeleton
 
 # rest pose, person facing +y (right hip towards +x), metres
 _REST = {

@@ -1,5 +1,5 @@
 """A model's forecast of a track file: every track's next seconds by a forecasting checkpoint, and why none
-could be forecast. :func:`forecast.preview.preview` (the pipeline's entry, torch-free to import) and
+could be forecast. :func:`roomcap.forecast.preview.preview` (the pipeline's entry, torch-free to import) and
 ``forecast sample`` call it; importing this module loads torch.
 """
 
@@ -10,10 +10,10 @@ import os
 import numpy as np
 import torch
 
-from forecast import data as fdata
-from forecast.checkpoint import load_checkpoint
-from forecast.predict import forecast_world
-from track.trackfile import TrackFile
+from roomcap.forecast import data as fdata
+from roomcap.forecast.checkpoint import load_checkpoint
+from roomcap.forecast.predict import forecast_world
+from roomcap.track.trackfile import TrackFile
 
 
 def forecast_tracks(
@@ -24,7 +24,8 @@ def forecast_tracks(
     obs_s: float | None = None,
 ) -> dict:
     """The next ``horizon_s`` of every track of ``track_file`` by the model of ``checkpoint``, from its last
-    ``obs_s`` (default: the frames the model was trained on); the dict of :func:`forecast.preview.preview`."""
+    ``obs_s`` (default: the frames the model was trained on); the dict of
+    :func:`roomcap.forecast.preview.preview`."""
     clip = fdata.clip_from_trackfile(track_file)
     model, meta = load_checkpoint(checkpoint, skeleton=clip.skeleton)
     fps = float(meta["fps"])

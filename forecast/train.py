@@ -1,8 +1,10 @@
 """Training loops for every forecasting model (the GRU, the intention model and Social Diffusion).
 
-The configs live in :mod:`forecast.config`, checkpoints and baselines in :mod:`forecast.checkpoint`, the
-clip loading and scene composition in :mod:`forecast.clips`, model selection in
-:mod:`forecast.selection`; their public names stay importable from here (``forecast.train.load_checkpoint``
+The configs live in :mod:`roomcap.forecast.config`, checkpoints and baselines in
+:mod:`roomcap.forecast.checkpoint`, the
+clip loading and scene composition in :mod:`roomcap.forecast.clips`, model selection in
+:mod:`roomcap.forecast.selection`; their public names stay importable from here
+(``forecast.train.load_checkpoint``
 and so on). A training loop reports through the project's progress protocol (``core.progress``):
 ``progress("train <kind>", step, steps)``; the loss terms go to the log every ``LOG_EVERY`` steps.
 """
@@ -15,10 +17,10 @@ import time
 import numpy as np
 import torch
 
-from core.errors import InputError
-from core.progress import Progress
-from forecast import data as fdata
-from forecast.checkpoint import (
+from roomcap.core.errors import InputError
+from roomcap.core.progress import Progress
+from roomcap.forecast import data as fdata
+from roomcap.forecast.checkpoint import (
     CKPT_SCHEMA,
     DISCRIMINATOR_PREFIXES,
     NORMALISATION,
@@ -30,7 +32,7 @@ from forecast.checkpoint import (
     save_checkpoint,
     write_checkpoint,
 )
-from forecast.clips import (
+from roomcap.forecast.clips import (
     clip_key,
     composed_batch,
     diffusion_batch_features,
@@ -40,7 +42,7 @@ from forecast.clips import (
     single_person_arrays,
     split_clips,
 )
-from forecast.config import (
+from roomcap.forecast.config import (
     BASELINES,
     CONFIGS,
     DiffusionConfig,
@@ -48,10 +50,10 @@ from forecast.config import (
     IntentionConfig,
     config_from_dict,
 )
-from forecast.models.diffusion import N_CONST
-from forecast.models.intention import fit_intention_labels, local_poses
-from forecast.selection import SELECT, VAL_FROM, VAL_N_OBS, VAL_N_PRED, Selector, Validator
-from keypoints.skeletons import get_skeleton
+from roomcap.forecast.models.diffusion import N_CONST
+from roomcap.forecast.models.intention import fit_intention_labels, local_poses
+from roomcap.forecast.selection import SELECT, VAL_FROM, VAL_N_OBS, VAL_N_PRED, Selector, Validator
+from roomcap.keypoints.skeletons import get_skeleton
 
 __all__ = [
     "BASELINES",

@@ -14,14 +14,14 @@ import os
 import sys
 from pathlib import Path
 
-from calibrate.formats import import_rig
-from capture.session import videos_in
-from core.cli import Parser, guarded, nonnegative_int, output_folder, positive_int
-from core.errors import InputError
-from core.fileio import sha256_file
-from core.progress import Bars
-from keypoints import registry
-from keypoints.registry import ModelError
+from roomcap.calibrate.formats import import_rig
+from roomcap.capture.session import videos_in
+from roomcap.core.cli import Parser, guarded, nonnegative_int, output_folder, positive_int
+from roomcap.core.errors import InputError
+from roomcap.core.fileio import sha256_file
+from roomcap.core.progress import Bars
+from roomcap.keypoints import registry
+from roomcap.keypoints.registry import ModelError
 
 
 def _list(args) -> int:
@@ -74,7 +74,7 @@ def _parse_videos(items: list[str]) -> dict[str, Path]:
 
 
 def _run(args) -> int:
-    from keypoints import presets, runtime, video  # lazy: loads onnxruntime
+    from roomcap.keypoints import presets, runtime, video  # lazy: loads onnxruntime
 
     over: dict = {"runtime": runtime.RuntimeConfig(threads=args.threads, model_dir=args.model_dir or "")}
     if args.models:

@@ -7,8 +7,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from keypoints.registry import ModelSpec
-from keypoints.skeletons import get_skeleton
+from roomcap.keypoints.registry import ModelSpec
+from roomcap.keypoints.skeletons import get_skeleton
 
 
 def to_tensor(batch: np.ndarray, spec: ModelSpec) -> np.ndarray:

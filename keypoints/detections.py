@@ -4,7 +4,7 @@ Keys (shapes in letters: T frames, P detections per frame padded with NaN, J joi
 
 - ``schema`` = ``"detections/1"``
 - ``camera`` the camera name used in rig.toml
-- ``skeleton`` a skeleton id from :mod:`keypoints.skeletons`
+- ``skeleton`` a skeleton id from :mod:`roomcap.keypoints.skeletons`
 - ``frame_index (T,)`` int64, ``t_ns (T,)`` int64 timestamps (ns)
 - ``xy_px (T,P,J,2)`` float32 full-image pixels, NaN = no detection
 - ``score (T,P,J)`` float32 in [0, 1]
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError
-from core.fileio import errors_in, load_container, npz_str, save_npz, schema_tag
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import errors_in, load_container, npz_str, save_npz, schema_tag
+from roomcap.keypoints.skeletons import get_skeleton
 
 SCHEMA = "detections"
 VERSION = 1

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from keypoints.skeletons import get_skeleton
+from roomcap.keypoints.skeletons import get_skeleton
 
 FACE_POINTS = ("nose", "left_eye", "right_eye", "mouth")  # name prefixes (eye_inner/outer, mouth_left, ...)
 

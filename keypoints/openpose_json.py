@@ -1,5 +1,5 @@
 """Read an OpenPose JSON folder (one ``<name>.<frame>.json`` or ``<name>_<frame>_keypoints.json`` per
-frame, as OpenPose, Pose2Sim and RTMlib write them) into :class:`~keypoints.detections.Detections`.
+frame, as OpenPose, Pose2Sim and RTMlib write them) into :class:`~roomcap.keypoints.detections.Detections`.
 
 Each file holds ``{"people": [{"pose_keypoints_2d": [x0, y0, c0, x1, y1, c1, ...]}, ...]}``. A
 keypoint with confidence 0 (OpenPose's "not detected", written as 0, 0, 0) becomes NaN. The frame
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError
-from keypoints.detections import Detections
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import FormatError
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
 

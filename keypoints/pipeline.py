@@ -15,8 +15,9 @@ Where two poses of one image coincide (an occluded person's crop returning the p
 estimated again with the other person erased and the better reading kept, or one of them is dropped.
 ``stage_s`` accumulates seconds per stage for the benchmark.
 
-The settings and the per-image result are in :mod:`keypoints.pipeline_config`, the crop geometry in
-:mod:`keypoints.crops`, the pose hypotheses (flip, rotation, duplicates) in :mod:`keypoints.hypotheses`.
+The settings and the per-image result are in :mod:`roomcap.keypoints.pipeline_config`, the crop geometry in
+:mod:`roomcap.keypoints.crops`, the pose hypotheses (flip, rotation, duplicates) in
+:mod:`roomcap.keypoints.hypotheses`.
 """
 
 from __future__ import annotations
@@ -29,8 +30,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from keypoints import decoders as D
-from keypoints.crops import (
+from roomcap.keypoints import decoders as D
+from roomcap.keypoints.crops import (
     apply_inverse,
     containing_region,
     crop_region,
@@ -41,7 +42,7 @@ from keypoints.crops import (
     to_tensor,
     upright_boxes,
 )
-from keypoints.hypotheses import (
+from roomcap.keypoints.hypotheses import (
     _duplicate_pairs,
     _erase_body,
     _keypoint_box_iou,
@@ -50,10 +51,10 @@ from keypoints.hypotheses import (
     hide_face_from_behind,
     merge_hypotheses,
 )
-from keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
-from keypoints.registry import ModelSpec, get_model_set, get_spec
-from keypoints.runtime import OnnxModel
-from keypoints.skeletons import convert, get_skeleton
+from roomcap.keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
+from roomcap.keypoints.registry import ModelSpec, get_model_set, get_spec
+from roomcap.keypoints.runtime import OnnxModel
+from roomcap.keypoints.skeletons import convert, get_skeleton
 
 log = logging.getLogger(__name__)
 

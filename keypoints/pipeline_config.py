@@ -1,5 +1,5 @@
 """The 2D stage's settings (``KeypointPipelineConfig``) and its per-image result (``FrameResult``), read by
-:class:`keypoints.pipeline.KeypointPipeline`."""
+:class:`roomcap.keypoints.pipeline.KeypointPipeline`."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from keypoints.crops import PYRAMIDS
-from keypoints.runtime import RuntimeConfig
+from roomcap.keypoints.crops import PYRAMIDS
+from roomcap.keypoints.runtime import RuntimeConfig
 
 
 @dataclass(frozen=True)

@@ -10,10 +10,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from core.config import check_keys, config_from_dict
-from core.errors import UnknownNameError
-from keypoints.pipeline_config import KeypointPipelineConfig
-from keypoints.registry import presets
+from roomcap.core.config import check_keys, config_from_dict
+from roomcap.core.errors import UnknownNameError
+from roomcap.keypoints.pipeline_config import KeypointPipelineConfig
+from roomcap.keypoints.registry import presets
 
 
 @dataclasses.dataclass(frozen=True)

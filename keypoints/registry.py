@@ -30,11 +30,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from core.config import config_from_dict
-from core.errors import FormatError, RoomcapError, UnknownNameError
-from core.fileio import atomic_path, check_schema, load_toml, save_toml, sha256_file
-from core.progress import Progress
-from keypoints.skeletons import get_skeleton
+from roomcap.core.config import config_from_dict
+from roomcap.core.errors import FormatError, RoomcapError, UnknownNameError
+from roomcap.core.fileio import atomic_path, check_schema, load_toml, save_toml, sha256_file
+from roomcap.core.progress import Progress
+from roomcap.keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
 
@@ -271,7 +271,7 @@ def model_dirs(model_dir: str | os.PathLike | None = None) -> list[Path]:
 
 def builtin_specs() -> dict[str, ModelSpec]:
     out = {}
-    for entry in resources.files("keypoints.models").iterdir():
+    for entry in resources.files("roomcap.keypoints.models").iterdir():
         if entry.name.endswith(".toml") and entry.name != "sets.toml":
             spec = ModelSpec.load(Path(str(entry)))
             out[spec.name] = spec
@@ -316,7 +316,7 @@ def get_spec(name: str | ModelSpec, model_dir: str | os.PathLike | None = None) 
 
 @cache  # read once: the configs ask for the presets on every construction (callers copy what they keep)
 def _sets_toml() -> tuple[Path, dict[str, Any]]:
-    path = Path(str(resources.files("keypoints.models").joinpath("sets.toml")))
+    path = Path(str(resources.files("roomcap.keypoints.models").joinpath("sets.toml")))
     data = load_toml(path)
     check_schema(data.get("schema"), SETS_SCHEMA, (1,), path)
     return path, data

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from core.fileio import atomic_path
-from keypoints.registry import ModelError, ModelSpec, cache_dir, file_sha256, get_spec, resolve
+from roomcap.core.fileio import atomic_path
+from roomcap.keypoints.registry import ModelError, ModelSpec, cache_dir, file_sha256, get_spec, resolve
 
 log = logging.getLogger(__name__)
 

@@ -22,8 +22,8 @@ from functools import cache
 
 import numpy as np
 
-from core.errors import FormatError, UnknownNameError
-from core.fileio import load_toml
+from roomcap.core.errors import FormatError, UnknownNameError
+from roomcap.core.fileio import load_toml
 
 _COCO17 = (
     "nose",

@@ -37,16 +37,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.session import VIDEO_SUFFIXES, SessionLayout
-from core.errors import FormatError, RoomcapError
-from core.fileio import load_npz, save_npz
-from core.progress import Progress
-from keypoints.detections import Detections
-from keypoints.pipeline import KeypointPipeline
-from keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
-from keypoints.presets import settings_for
-from keypoints.skeletons import get_skeleton
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import VIDEO_SUFFIXES, SessionLayout
+from roomcap.core.errors import FormatError, RoomcapError
+from roomcap.core.fileio import load_npz, save_npz
+from roomcap.core.progress import Progress
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.pipeline import KeypointPipeline
+from roomcap.keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
+from roomcap.keypoints.presets import settings_for
+from roomcap.keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
 

@@ -27,18 +27,18 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from capture.session import SessionLayout
-from core.cli import Parser, guarded, output_folder, positive_int
-from core.errors import FormatError
-from core.fileio import atomic_write_text
-from pipeline.config import DEFAULT_TRACKER, STAGES, TRACKERS, PipelineConfig
-from pipeline.discover import SessionError, discover
-from pipeline.executors import EXECUTORS, run_sessions
-from pipeline.report import write_overlay_videos
-from pipeline.runner import SessionResult
-from track.export import ExportError, ExportOptions, export_tracks, parse_formats
-from track.skeleton_fit_file import FitError
-from track.trackfile import TrackFile
+from roomcap.capture.session import SessionLayout
+from roomcap.core.cli import Parser, guarded, output_folder, positive_int
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import atomic_write_text
+from roomcap.pipeline.config import DEFAULT_TRACKER, STAGES, TRACKERS, PipelineConfig
+from roomcap.pipeline.discover import SessionError, discover
+from roomcap.pipeline.executors import EXECUTORS, run_sessions
+from roomcap.pipeline.report import write_overlay_videos
+from roomcap.pipeline.runner import SessionResult
+from roomcap.track.export import ExportError, ExportOptions, export_tracks, parse_formats
+from roomcap.track.skeleton_fit_file import FitError
+from roomcap.track.trackfile import TrackFile
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,15 +19,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from core.config import check_keys, config_from_dict
-from core.errors import FormatError, UnknownNameError
-from core.fileio import load_toml
-from keypoints.pipeline_config import KeypointPipelineConfig
-from keypoints.presets import resolve_preset
-from keypoints.registry import presets
-from track.greedy_stage import GreedyTrackConfig
-from track.stage import ParticleTrackConfig
-from triangulate.reconstruct import TriangulateConfig as TriangulateOptions
+from roomcap.core.config import check_keys, config_from_dict
+from roomcap.core.errors import FormatError, UnknownNameError
+from roomcap.core.fileio import load_toml
+from roomcap.keypoints.pipeline_config import KeypointPipelineConfig
+from roomcap.keypoints.presets import resolve_preset
+from roomcap.keypoints.registry import presets
+from roomcap.track.greedy_stage import GreedyTrackConfig
+from roomcap.track.stage import ParticleTrackConfig
+from roomcap.triangulate.reconstruct import TriangulateConfig as TriangulateOptions
 
 STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "report")
 
@@ -35,8 +35,8 @@ STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "repor
 @dataclass(frozen=True)
 class KeypointsConfig:
     """The ``[keypoints]`` section, resolved once: the preset's name, its settings and the 2D stage's
-    typed config (:class:`keypoints.pipeline_config.KeypointPipelineConfig`) are computed when the section
-    is made."""
+    typed config (:class:`roomcap.keypoints.pipeline_config.KeypointPipelineConfig`) are computed when the
+    section is made."""
 
     # speed/accuracy preset of the 2D stage (keypoints/models/sets.toml [presets]). "" = the default preset,
     # or, when ``model_set`` is given, "legacy" (the chain of configurations written before presets existed)
@@ -132,7 +132,8 @@ class ForecastConfig:
 @dataclass(frozen=True)
 class PipelineConfig:
     """Every section of ``pipeline.toml``, each parsed once into its stage's own typed config:
-    ``[triangulate.options]`` -> :class:`triangulate.reconstruct.TriangulateConfig`; ``[track] tracker``
+    ``[triangulate.options]`` -> :class:`roomcap.triangulate.reconstruct.TriangulateConfig`; ``[track]
+    tracker``
     with ``[track.options]`` -> the tracker's config (:data:`TrackerChoice`: the type is the choice)."""
 
     stages: tuple[str, ...] = STAGES

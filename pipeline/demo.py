@@ -4,7 +4,7 @@ Imports the recording's calibration, extracts 2D keypoints, triangulates,
 tracks (with ``reprocess``'s default tracker, the particle filter; ``--tracker greedy`` for the
 chapter-4 tracker), previews forecasts and writes the HTML report::
 
-    python -m pipeline.demo --out out/demo \
+    python -m roomcap.pipeline.demo --out out/demo \
         --recording ../shared/data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson
 """
 
@@ -15,9 +15,9 @@ import os
 import sys
 from pathlib import Path
 
-from core.cli import Parser, guarded
-from pipeline.cli import main as reprocess_main
-from pipeline.config import DEFAULT_TRACKER, TRACKERS
+from roomcap.core.cli import Parser, guarded
+from roomcap.pipeline.cli import main as reprocess_main
+from roomcap.pipeline.config import DEFAULT_TRACKER, TRACKERS
 
 
 def default_recording() -> Path:
@@ -27,7 +27,7 @@ def default_recording() -> Path:
 
 def _main(argv: list[str] | None = None) -> int:
     p = Parser(
-        prog="python -m pipeline.demo",
+        prog="python -m roomcap.pipeline.demo",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

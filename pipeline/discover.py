@@ -20,8 +20,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from capture.session import VIDEO_SUFFIXES, SessionLayout
-from core.errors import RoomcapError
+from roomcap.capture.session import VIDEO_SUFFIXES, SessionLayout
+from roomcap.core.errors import RoomcapError
 
 SEGMENT_SUFFIXES = (*VIDEO_SUFFIXES, ".h264", ".h265")  # the recorder's raw/<cam>/seg_* files
 CALIBRATION_PATTERNS = (

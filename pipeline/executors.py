@@ -1,9 +1,9 @@
 """Executors: where work runs, on this machine's cores or on a Ray cluster.
 
 A session is the unit of work (its stages depend on each other); sessions are independent, so both
-executors map :func:`pipeline.runner.process_session` over them. Within a session, a stage's
+executors map :func:`roomcap.pipeline.runner.process_session` over them. Within a session, a stage's
 independent time chunks (``[triangulate.options] workers``, ``executor``:
-:class:`triangulate.chunks.StreamConfig`) run by :func:`chunk_runner`: in spawned processes or as Ray
+:class:`roomcap.triangulate.chunks.StreamConfig`) run by :func:`chunk_runner`: in spawned processes or as Ray
 tasks. Ray tasks ask for a GPU when onnxruntime on this machine offers CUDA and the keypoints stage is
 part of the run. With Ray, a session triangulated in time chunks also sends its chunks to the cluster
 as tasks of their own (:func:`ray_for_chunks`), so one long session spreads over the workers.
@@ -22,11 +22,11 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError
-from pipeline.config import PipelineConfig
-from pipeline.discover import SessionSource
-from pipeline.runner import SessionResult, check_session, output_root, process_session
-from triangulate.chunks import ChunkRunner, StreamConfig
+from roomcap.core.errors import InputError
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import SessionSource
+from roomcap.pipeline.runner import SessionResult, check_session, output_root, process_session
+from roomcap.triangulate.chunks import ChunkRunner, StreamConfig
 
 log = logging.getLogger(__name__)
 EXECUTORS = ("local", "ray")

@@ -3,22 +3,22 @@
 ``capture`` records and synchronises (``capture.live.LiveRunner`` runs stages on each frame set); the
 stages themselves use the later stages' functions, so they live here, on top of the stage order:
 ``capture-run`` is :func:`main` of this module (``capture.cli`` with these stages injected),
-``python -m pipeline.live`` the same.
+``python -m roomcap.pipeline.live`` the same.
 
 Stages (``STAGES``, one line each, built by the same functions the batch stages call):
 
-- ``keypoints``: :class:`keypoints.pipeline.KeypointPipeline` on the frame set's images;
+- ``keypoints``: :class:`roomcap.keypoints.pipeline.KeypointPipeline` on the frame set's images;
 - ``triangulate``: the detections converted to ``body19`` and undistorted (``step.outputs["kp_px"]``,
-  ``["kp_score"]``, shared with the tracker) and :class:`triangulate.reconstruct.FrameReconstructor`
+  ``["kp_score"]``, shared with the tracker) and :class:`roomcap.triangulate.reconstruct.FrameReconstructor`
   (``poses3d``);
 - ``track``: one step of the recursive particle filter (seed ch. 5,
-  :class:`track.particle.ParticleTracker`) per frame set, at the set's time ``t_ns``: a track's
+  :class:`roomcap.track.particle.ParticleTracker`) per frame set, at the set's time ``t_ns``: a track's
   identity is given once and never changed; its state is what the next step needs, so the cost of a
   step does not grow with the session's length. Estimates are appended to the live track file in
   chunks of ``CHUNK_FRAMES`` frames.
 
 The live track file is ``track/live.npz`` (``SessionLayout.live_tracks``), written in the chunked layout
-of the streamed batch stages (:mod:`triangulate.chunks`, schema ``parts/1``) as an appendable store::
+of the streamed batch stages (:mod:`roomcap.triangulate.chunks`, schema ``parts/1``) as an appendable store::
 
     track/live.parts/index.json      {"schema": "parts/1", "kind": "tracks", "key", "appendable": true,
                                       "chunks": [[0, 50], [50, 100], ...],
@@ -48,25 +48,25 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.cli import make_main
-from capture.config import CaptureConfig
-from capture.live import LiveStep, Stage
-from capture.session import SessionLayout
-from core.errors import FormatError
-from core.memory import TRIM_EVERY, release_free_memory
-from keypoints.detections import Detections
-from keypoints.pipeline import KeypointPipeline
-from keypoints.skeletons import CANONICAL, convert
-from pipeline.config import KeypointsConfig
-from pipeline.live_outputs import Outputs, load_rig
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_io import focal_lengths
-from track.particle_types import FrameEstimate
-from track.trackfile import SCHEMA, TrackFile
-from triangulate.chunks import PartStore, hash_key, parts_dir
-from triangulate.reconstruct import FrameReconstructor
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.cli import make_main
+from roomcap.capture.config import CaptureConfig
+from roomcap.capture.live import LiveStep, Stage
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.core.memory import TRIM_EVERY, release_free_memory
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.pipeline import KeypointPipeline
+from roomcap.keypoints.skeletons import CANONICAL, convert
+from roomcap.pipeline.config import KeypointsConfig
+from roomcap.pipeline.live_outputs import Outputs, load_rig
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_io import focal_lengths
+from roomcap.track.particle_types import FrameEstimate
+from roomcap.track.trackfile import SCHEMA, TrackFile
+from roomcap.triangulate.chunks import PartStore, hash_key, parts_dir
+from roomcap.triangulate.reconstruct import FrameReconstructor
 
 log = logging.getLogger(__name__)
 
@@ -163,8 +163,8 @@ def _triangulate(ctx: LiveContext) -> Stage:
 
 class LiveTrackWriter:
     """Appends per-frame estimates to the live track ``path`` (``track/live.npz``) as the parts of an
-    appendable :class:`triangulate.chunks.PartStore` in ``track/live.parts/`` (see the module doc). Only
-    the open part's frames are held in memory; the folder is started at the first part."""
+    appendable :class:`roomcap.triangulate.chunks.PartStore` in ``track/live.parts/`` (see the module doc).
+    Only the open part's frames are held in memory; the folder is started at the first part."""
 
     def __init__(
         self, path: Path, fps: float, calibration_sha256: str = "", chunk_frames: int = CHUNK_FRAMES
@@ -316,7 +316,8 @@ STAGES: dict[str, Callable[[LiveContext], Stage]] = {
 
 
 def build_stages(cfg: CaptureConfig, layout: SessionLayout) -> tuple[dict[str, Stage], dict[str, str]]:
-    """The stages ``cfg.live.stages`` names, for :class:`capture.live.LiveRunner`; a stage that cannot be
+    """The stages ``cfg.live.stages`` names, for :class:`roomcap.capture.live.LiveRunner`; a stage that
+    cannot be
     built (no calibration, a package missing) is left out with a warning. Returns (stages, errors)."""
     ctx = LiveContext(cfg, layout, load_rig(cfg))
     out: dict[str, Stage] = {}

@@ -5,14 +5,14 @@
     capture-run --cameras cams.yaml --out DIR --live [--view [--view-port 8765] [--view-host HOST]]
                 [--stream lsl,osc [--osc-to HOST:PORT] [--slots 16]] [--rerun FILE.rrd]
 
-Each output is fed from the live loop's ``on_step`` (:class:`capture.live.LiveRunner`) after the stages
-ran on a frame set, and never makes it wait:
+Each output is fed from the live loop's ``on_step`` (:class:`roomcap.capture.live.LiveRunner`) after the
+stages ran on a frame set, and never makes it wait:
 
-- the view (:mod:`pipeline.liveview`) takes the step into a latest-value slot; its own thread encodes
+- the view (:mod:`roomcap.pipeline.liveview`) takes the step into a latest-value slot; its own thread encodes
   and pushes, dropping updates a slow page cannot take;
-- the streams (:class:`track.streams.TrackStreamer`) send UDP datagrams and LSL samples, which do not
+- the streams (:class:`roomcap.track.streams.TrackStreamer`) send UDP datagrams and LSL samples, which do not
   wait for a reader;
-- the Rerun recording (:class:`track.rerun_export.LiveRerun`) is written by its own thread from a
+- the Rerun recording (:class:`roomcap.track.rerun_export.LiveRerun`) is written by its own thread from a
   bounded queue (a full queue drops the frame set for the file, counted).
 
 An output that fails while recording is logged once and left out; the recording goes on. Bad options
@@ -29,14 +29,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from calibrate.camera import CameraRig
-from capture.config import CaptureConfig
-from capture.live import LiveRunner, LiveStep
-from core.cli import positive_int
-from core.errors import InputError
-from pipeline.liveview.server import DEFAULT_PORT, LiveView, ViewConfig
-from track.rerun_export import LiveRerun
-from track.streams import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.config import CaptureConfig
+from roomcap.capture.live import LiveRunner, LiveStep
+from roomcap.core.cli import positive_int
+from roomcap.core.errors import InputError
+from roomcap.pipeline.liveview.server import DEFAULT_PORT, LiveView, ViewConfig
+from roomcap.track.rerun_export import LiveRerun
+from roomcap.track.streams import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def load_rig(cfg: CaptureConfig) -> CameraRig | None:
 
 
 class Outputs:
-    """:class:`capture.live.LiveOutputs` of ``capture-run``: the options and the outputs they open
+    """:class:`roomcap.capture.live.LiveOutputs` of ``capture-run``: the options and the outputs they open
     (``feed``: the :class:`StepFeed` of the last :meth:`open`, None when nothing was asked for)."""
 
     feed: StepFeed | None = None

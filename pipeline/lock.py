@@ -8,7 +8,7 @@ session refuses with :class:`SessionLocked` (naming the holder's pid, host, star
 with ``wait=True`` waits until the holder is done.
 
 Ray tasks and local worker processes take the same lock (it is taken in
-:func:`pipeline.runner.process_session`). On network file systems ``flock`` is as good as the file
+:func:`roomcap.pipeline.runner.process_session`). On network file systems ``flock`` is as good as the file
 system's locking (NFSv4 locks across hosts).
 
 >>> import tempfile
@@ -36,8 +36,8 @@ from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from core.errors import RoomcapError
-from core.redact import redact
+from roomcap.core.errors import RoomcapError
+from roomcap.core.redact import redact
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from core.fileio import atomic_write_text, sha256_file
+from roomcap.core.fileio import atomic_write_text, sha256_file
 
 _FULL_HASH_LIMIT = 64 << 20
 _EDGE = 4 << 20

@@ -30,18 +30,18 @@ from typing import Any
 
 import numpy as np
 
-from capture.offline_sync import POSE2SIM_OUTPUT
-from capture.session import SessionLayout
-from core.cli import describe_os_error, interrupted
-from core.fileio import atomic_write_text, load_npz
-from pipeline.config import PipelineConfig
-from pipeline.discover import SessionSource
-from pipeline.lock import SessionLocked, holder, lock_path, session_lock
-from pipeline.provenance import ProvenanceStore, StageRecord, stage_version
-from pipeline.report import warnings_path
-from pipeline.session_inputs import StageError, stage_file
-from pipeline.stages import STAGES, Session, Stage, StageWork
-from triangulate.chunks import ChunkRunner, PartStore, StreamConfig
+from roomcap.capture.offline_sync import POSE2SIM_OUTPUT
+from roomcap.capture.session import SessionLayout
+from roomcap.core.cli import describe_os_error, interrupted
+from roomcap.core.fileio import atomic_write_text, load_npz
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import SessionSource
+from roomcap.pipeline.lock import SessionLocked, holder, lock_path, session_lock
+from roomcap.pipeline.provenance import ProvenanceStore, StageRecord, stage_version
+from roomcap.pipeline.report import warnings_path
+from roomcap.pipeline.session_inputs import StageError, stage_file
+from roomcap.pipeline.stages import STAGES, Session, Stage, StageWork
+from roomcap.triangulate.chunks import ChunkRunner, PartStore, StreamConfig
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """What the stages read from a session's inputs: video probes, calibration names, frame rates, sync.
 
-Helpers of the stage objects (:mod:`pipeline.stages`), one job each: probing the videos before the 2D
+Helpers of the stage objects (:mod:`roomcap.pipeline.stages`), one job each: probing the videos before the 2D
 stage (:func:`probe_videos`), matching a calibration's camera names to the recording's
 (:func:`match_camera_names`), reading a Pose2Sim trial's frame rate (:func:`pose2sim_frame_rate`) and
 carrying ``capture-run sync``'s offsets into the output session (:func:`carry_sync`).
@@ -13,12 +13,12 @@ import logging
 import re
 from pathlib import Path
 
-from calibrate.camera import CameraRig
-from capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
-from core.errors import RoomcapError
-from core.fileio import load_toml, save_toml
-from pipeline.discover import SEGMENT_SUFFIXES, SessionSource
-from triangulate.chunks import parts_dir
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SESSION_SCHEMA, SESSION_VERSION, SessionLayout
+from roomcap.core.errors import RoomcapError
+from roomcap.core.fileio import load_toml, save_toml
+from roomcap.pipeline.discover import SEGMENT_SUFFIXES, SessionSource
+from roomcap.triangulate.chunks import parts_dir
 
 log = logging.getLogger(__name__)
 

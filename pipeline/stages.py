@@ -2,11 +2,11 @@
 
 calibration ─► keypoints ─► triangulate ─► track ─► forecast ─► report
 
-A stage object knows its section of the :class:`~pipeline.config.PipelineConfig` (:meth:`config`,
+A stage object knows its section of the :class:`~roomcap.pipeline.config.PipelineConfig` (:meth:`config`,
 a typed config), what it reads and writes on one session and the settings its outputs depend on
 (:meth:`plan`, a :class:`StageWork`, or None when the session needs nothing of it), and does its job
-with :meth:`run` ``(session, config, progress, executor)``. The runner (:mod:`pipeline.runner`) walks the
-tuple, decides from the provenance records which stages are stale, and runs those; the algorithms live in
+with :meth:`run` ``(session, config, progress, executor)``. The runner (:mod:`roomcap.pipeline.runner`) walks
+the tuple, decides from the provenance records which stages are stale, and runs those; the algorithms live in
 the stage packages.
 """
 
@@ -18,21 +18,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from calibrate.camera import CameraRig
-from calibrate.formats import import_calibration
-from capture.session import SessionLayout
-from core.fileio import atomic_write_bytes
-from core.progress import Progress
-from forecast.preview import forecast_model, write_preview
-from keypoints.openpose_json import read_openpose_folder
-from keypoints.registry import get_model_set, resolve
-from keypoints.runtime import RuntimeConfig
-from keypoints.video import run_videos
-from pipeline.config import ForecastConfig, KeypointsConfig, PipelineConfig, TrackerChoice, tracker_name
-from pipeline.discover import SessionSource
-from pipeline.provenance import ProvenanceStore, path_fingerprint
-from pipeline.report import write_report
-from pipeline.session_inputs import (
+from roomcap.calibrate.camera import CameraRig
+from roomcap.calibrate.formats import import_calibration
+from roomcap.capture.session import SessionLayout
+from roomcap.core.fileio import atomic_write_bytes
+from roomcap.core.progress import Progress
+from roomcap.forecast.preview import forecast_model, write_preview
+from roomcap.keypoints.openpose_json import read_openpose_folder
+from roomcap.keypoints.registry import get_model_set, resolve
+from roomcap.keypoints.runtime import RuntimeConfig
+from roomcap.keypoints.video import run_videos
+from roomcap.pipeline.config import (
+    ForecastConfig,
+    KeypointsConfig,
+    PipelineConfig,
+    TrackerChoice,
+    tracker_name,
+)
+from roomcap.pipeline.discover import SessionSource
+from roomcap.pipeline.provenance import ProvenanceStore, path_fingerprint
+from roomcap.pipeline.report import write_report
+from roomcap.pipeline.session_inputs import (
     StageError,
     carry_sync,
     detection_paths,
@@ -43,12 +49,12 @@ from pipeline.session_inputs import (
     sync_table,
     video_checks,
 )
-from track.greedy_stage import GreedyTrackConfig, track_session_greedy
-from track.stage import ParticleTrackConfig, stream_chunk_s, track_session_particle
-from triangulate.chunks import ChunkRunner, parts_dir
-from triangulate.multiview import session_chunk_s
-from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import triangulate_session
+from roomcap.track.greedy_stage import GreedyTrackConfig, track_session_greedy
+from roomcap.track.stage import ParticleTrackConfig, stream_chunk_s, track_session_particle
+from roomcap.triangulate.chunks import ChunkRunner, parts_dir
+from roomcap.triangulate.multiview import session_chunk_s
+from roomcap.triangulate.reconstruct import TriangulateConfig
+from roomcap.triangulate.stage import triangulate_session
 
 
 @dataclass
@@ -102,7 +108,7 @@ def _result_settings(config: TriangulateConfig | TrackerChoice) -> dict[str, Any
 
 
 class CalibrationStage:
-    """Imports the session's calibration (any format :func:`calibrate.formats.import_calibration`
+    """Imports the session's calibration (any format :func:`roomcap.calibrate.formats.import_calibration`
     reads) into ``calib/rig.toml``, with the recording's camera names."""
 
     name = "calibration"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from synthetic import render, rigs, world
+from roomcap.synthetic import render, rigs, world
 
 
 def make_session(

@@ -2,7 +2,7 @@
 
 Quick start::
 
-    from synthetic import kitchen, make_scene, render_scene, SceneConfig, RenderConfig
+    from roomcap.synthetic import kitchen, make_scene, render_scene, SceneConfig, RenderConfig
     rig, room = kitchen(12)
     scene = make_scene(room, SceneConfig(n_people=8, duration_s=10, fps=25, seed=0))
     r = render_scene(scene, rig, RenderConfig(noise_px=3, missed_joint_rate=0.1, flip_rate=0.02))
@@ -11,10 +11,10 @@ Quick start::
     scene.gt_xyz_m    # (T,P,19,3) metres, NaN while absent
 """
 
-from synthetic.bvh import list_clips, load_bvh_body19, load_clip, mocap_root, read_bvh
-from synthetic.render import RenderConfig, Rendering, render_scene
-from synthetic.rigs import Box, Room, kitchen, kitchen_rig, kitchen_room, ring_rig, ring_room
-from synthetic.world import Scene, SceneConfig, load_gt, make_scene, write_session
+from roomcap.synthetic.bvh import list_clips, load_bvh_body19, load_clip, mocap_root, read_bvh
+from roomcap.synthetic.render import RenderConfig, Rendering, render_scene
+from roomcap.synthetic.rigs import Box, Room, kitchen, kitchen_rig, kitchen_room, ring_rig, ring_room
+from roomcap.synthetic.world import Scene, SceneConfig, load_gt, make_scene, write_session
 
 __all__ = [
     "Box",

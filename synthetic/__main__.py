@@ -1,4 +1,4 @@
-"""Write a synthetic session folder: ``python -m synthetic OUT [--rig kitchen|ring] [--cams 12] ...``.
+"""Write a synthetic session folder: ``python -m roomcap.synthetic OUT [--rig kitchen|ring] [--cams 12] ...``.
 
 The folder holds ``calib/rig.toml``, ``keypoints/<cam>.npz``, ``session.toml`` and ``gt.npz`` (ground
 truth), ready for ``reprocess OUT --stages triangulate,track``.
@@ -9,14 +9,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from core.cli import guarded, nonnegative_int, positive_float, positive_int
-from synthetic import render as R
-from synthetic import rigs, world
-from synthetic.chunked import write_session_chunked
+from roomcap.core.cli import guarded, nonnegative_int, positive_float, positive_int
+from roomcap.synthetic import render as R
+from roomcap.synthetic import rigs, world
+from roomcap.synthetic.chunked import write_session_chunked
 
 
 def _main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m synthetic", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m roomcap.synthetic", description=__doc__.splitlines()[0])
     ap.add_argument("out", help="session folder to write")
     ap.add_argument("--rig", choices=("kitchen", "ring"), default="kitchen")
     ap.add_argument("--cams", type=positive_int, default=12)
@@ -83,7 +83,7 @@ def _main(argv: list[str] | None = None) -> int:
     return 0
 
 
-main = guarded("python -m synthetic", _main)
+main = guarded("python -m roomcap.synthetic", _main)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ everywhere in roomcap (z up, floor at z = 0):
 - **joint mapping**: hips/knees/ankles/shoulders/elbows/wrists come from the named BVH
   joints (CMU ASF names ``LeftUpLeg``/``LeftHip``…, and the iClone ``CC_Base_L_Thigh``…
   rig of ``cmu-bvh-subjects01-07``); ``pelvis`` = mid-hips and ``neck`` = mid-shoulders,
-  the same definition :mod:`keypoints.skeletons` uses to derive them from COCO detectors.
+  the same definition :mod:`roomcap.keypoints.skeletons` uses to derive them from COCO detectors.
 - **face points are approximations**: nose, eyes and ears are fixed offsets (see
   ``FACE_OFFSETS_M``) in a head frame rigidly attached to the BVH head joint. The head
   frame's forward/up axes are estimated once per clip as the average over frames of the
@@ -46,8 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError, UnknownNameError
-from keypoints.skeletons import CANONICAL
+from roomcap.core.errors import FormatError, UnknownNameError
+from roomcap.keypoints.skeletons import CANONICAL
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,8 @@
 """Long synthetic sessions in bounded memory: rendered in time chunks, written as stream.
 
 :func:`write_session_chunked` renders the scene chunk by chunk (each chunk and camera seeded by its
-own generator, so a chunked session is a different random draw from :func:`synthetic.world.write_session`'s
+own generator, so a chunked session is a different random draw from
+:func:`roomcap.synthetic.world.write_session`'s
 but the same files: ``keypoints/<cam>.npz`` detections/1, ``gt.npz`` synthetic_gt/1). Each chunk's
 arrays go to a scratch folder, then every output npz is assembled member by member with the rows
 streamed from the scratch files (people slots padded to the widest chunk), so memory is one chunk's.
@@ -17,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.session import SessionLayout
-from core.fileio import atomic_path, schema_tag
-from synthetic import render as R
-from synthetic.world import GT_SCHEMA, GT_VERSION, Scene, write_session_toml
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SessionLayout
+from roomcap.core.fileio import atomic_path, schema_tag
+from roomcap.synthetic import render as R
+from roomcap.synthetic.world import GT_SCHEMA, GT_VERSION, Scene, write_session_toml
 
 
 class _Member:

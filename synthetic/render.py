@@ -1,7 +1,7 @@
-"""Render a :class:`~synthetic.world.Scene` to per-camera 2D detections with realistic faults.
+"""Render a :class:`~roomcap.synthetic.world.Scene` to per-camera 2D detections with realistic faults.
 
 ``render(scene, rig, RenderConfig(...))`` → :class:`Rendering`: one
-:class:`keypoints.detections.Detections` per camera plus the ground truth needed to score them
+:class:`roomcap.keypoints.detections.Detections` per camera plus the ground truth needed to score them
 (which scene person each detection row is, which joints were visible, the true time offsets).
 
 Per camera, in this order:
@@ -35,10 +35,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrate.camera import Camera, CameraRig
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, convert, get_skeleton
-from synthetic.world import J19, Scene, config_from_dict, procedural_walk
+from roomcap.calibrate.camera import Camera, CameraRig
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL, convert, get_skeleton
+from roomcap.synthetic.world import J19, Scene, config_from_dict, procedural_walk
 
 FLIP19 = CANONICAL.flip_index
 # Capsules (joint a, joint b, radius key) approximating a body's silhouette.

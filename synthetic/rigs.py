@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibrate.camera import Camera, CameraRig
+from roomcap.calibrate.camera import Camera, CameraRig
 
 __all__ = [
     "Box",

@@ -3,7 +3,7 @@
 ``make_scene(room, SceneConfig(...))`` returns a :class:`Scene` with ground truth
 ``gt_xyz_m (T,P,19,3)`` (canonical ``body19``, metres, z up; NaN while a person is absent) and
 stable identities ``person_ids (P,)``. Rendering to per-camera detections is in
-:mod:`synthetic.render`; :func:`write_session` writes a session folder the 3D stages can run on.
+:mod:`roomcap.synthetic.render`; :func:`write_session` writes a session folder the 3D stages can run on.
 
 Choices (the issue was silent):
 
@@ -33,14 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.session import SessionLayout
-from core.config import config_from_dict
-from core.errors import FormatError
-from core.fileio import check_schema, load_npz, npz_str, save_npz, save_toml, schema_tag
-from keypoints.skeletons import CANONICAL
-from synthetic import bvh
-from synthetic.rigs import Room
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SessionLayout
+from roomcap.core.config import config_from_dict
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import check_schema, load_npz, npz_str, save_npz, save_toml, schema_tag
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.synthetic import bvh
+from roomcap.synthetic.rigs import Room
 
 log = logging.getLogger(__name__)
 
@@ -385,7 +385,7 @@ def write_session_toml(lay: SessionLayout, scene: Scene, rig: CameraRig, writer:
 def write_session(scene: Scene, rendering, rig: CameraRig, root: str | os.PathLike) -> SessionLayout:
     """Write a session folder the 3D stages can run on.
 
-    ``calib/rig.toml``, ``keypoints/<cam>.npz`` (one :class:`~keypoints.detections.Detections` per
+    ``calib/rig.toml``, ``keypoints/<cam>.npz`` (one :class:`~roomcap.keypoints.detections.Detections` per
     camera), ``session.toml`` and ``gt.npz`` (schema ``synthetic_gt/1``: ``gt_xyz_m (T,P,19,3)``,
     ``person_ids (P,)``, ``fps``, ``clip_names (P,)``, ``cameras (C,)``, ``time_offsets_frames (C,)``,
     ``time_drifts_ppm (C,)``, ``visible (C,T,P,19)`` and ``gt_index_<cam> (T,P_c)`` = the scene person

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from calibrate import detect as detect_mod
-from calibrate.boards import Board, CalibrationError, load_board, save_board
-from calibrate.calibration import CalibrationConfig, calibrate_recording
-from calibrate.detect import detect_all, detect_frame, diagnose_board, discover_recording
-from calibrate.synthetic_boards import BoardRenderer, board_trajectory, ring_rig, write_recording
-from core.errors import FormatError
+from roomcap.calibrate import detect as detect_mod
+from roomcap.calibrate.boards import Board, CalibrationError, load_board, save_board
+from roomcap.calibrate.calibration import CalibrationConfig, calibrate_recording
+from roomcap.calibrate.detect import detect_all, detect_frame, diagnose_board, discover_recording
+from roomcap.calibrate.synthetic_boards import BoardRenderer, board_trajectory, ring_rig, write_recording
+from roomcap.core.errors import FormatError
 
 CHARUCO = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
 

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calibrate.camera import CONVENTION, Camera, CameraRig, rotation_from_rvec
-from core.errors import FormatError, SchemaError
+from roomcap.calibrate.camera import CONVENTION, Camera, CameraRig, rotation_from_rvec
+from roomcap.core.errors import FormatError, SchemaError
 
 DIST_SIZES = [0, 4, 5, 8, 12, 14]
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrate.boards import Board, CalibrationError
-from calibrate.camera import CameraRig
-from calibrate.extrinsics import ExtrinsicsConfig, calibrate_extrinsics
-from calibrate.intrinsics import IntrinsicsConfig, calibrate_intrinsics
-from calibrate.synthetic_boards import (
+from roomcap.calibrate.boards import Board, CalibrationError
+from roomcap.calibrate.camera import CameraRig
+from roomcap.calibrate.extrinsics import ExtrinsicsConfig, calibrate_extrinsics
+from roomcap.calibrate.intrinsics import IntrinsicsConfig, calibrate_intrinsics
+from roomcap.calibrate.synthetic_boards import (
     board_trajectory,
     look_at,
     project_detections,
@@ -63,7 +63,7 @@ def test_ring_of_12_cameras(rng):
 
 
 def four_camera_rig(rng) -> CameraRig:
-    from calibrate.camera import Camera
+    from roomcap.calibrate.camera import Camera
 
     cams = []
     for i, (pos, tgt) in enumerate(
@@ -140,7 +140,7 @@ def test_opencv_stereo_pairs_match_stereo_calibrate(tmp_path):
     import cv2
     from conftest import need_shared
 
-    from calibrate.detect import detect_all, discover_recording
+    from roomcap.calibrate.detect import detect_all, discover_recording
 
     d = need_shared("data", "opencv", "stereo_chessboard")
     board = Board("checkerboard", (9, 6), 1.0)  # in squares, as OpenCV's sample

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import tomli_w
 
-from calibrate.camera import Camera, CameraRig, rotation_from_rvec
-from calibrate.cli import main
-from calibrate.formats import (
+from roomcap.calibrate.camera import Camera, CameraRig, rotation_from_rvec
+from roomcap.calibrate.cli import main
+from roomcap.calibrate.formats import (
     ImportOptions,
     _rotate_image_cw,
     detect_format,
@@ -16,7 +16,7 @@ from calibrate.formats import (
     import_rig,
     pad_dist,
 )
-from core.errors import FormatError
+from roomcap.core.errors import FormatError
 
 
 def random_rig(rng, n: int = 4, dists=(5, 8, 4, 14, 0, 12), fisheye: bool = False) -> CameraRig:
@@ -409,7 +409,7 @@ def test_cli_bad_input_writes_nothing(tmp_path, rng, capsys):
 
 
 def test_cli_subcommands_are_pluggable():
-    from calibrate import cli
+    from roomcap.calibrate import cli
 
     names = [f.__name__ for f in cli.SUBCOMMANDS]
     assert names[:2] == ["_add_import", "_add_export"]

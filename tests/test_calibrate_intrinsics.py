@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from calibrate.boards import Board, CalibrationError, load_board
-from calibrate.camera import Camera, CameraRig
-from calibrate.detect import detect_all, discover_recording
-from calibrate.intrinsics import IntrinsicsConfig, calibrate_intrinsics, select_frames
-from calibrate.synthetic_boards import look_at, project_detections, views_near_camera
+from roomcap.calibrate.boards import Board, CalibrationError, load_board
+from roomcap.calibrate.camera import Camera, CameraRig
+from roomcap.calibrate.detect import detect_all, discover_recording
+from roomcap.calibrate.intrinsics import IntrinsicsConfig, calibrate_intrinsics, select_frames
+from roomcap.calibrate.synthetic_boards import look_at, project_detections, views_near_camera
 
 BOARD = Board("charuco", (7, 5), 0.1, 0.075, "DICT_4X4_50")
 
@@ -74,7 +74,7 @@ def test_caliscope_recording_rms_no_worse_than_caliscope(tmp_path):
 
 @pytest.mark.slow
 def test_pose2sim_checkerboard_against_qualisys(tmp_path):
-    from calibrate.formats import import_rig
+    from roomcap.calibrate.formats import import_rig
 
     d = need_shared("data", "pose2sim", "demo-wheel-0.10.49", "Demo_SinglePerson", "calibration")
     q = import_rig(d / "Calib.qca.txt", "qualisys")
@@ -89,9 +89,9 @@ def test_pose2sim_checkerboard_against_qualisys(tmp_path):
 
 @pytest.mark.slow
 def test_cli_calibrates_a_rendered_recording(tmp_path, capsys):
-    from calibrate.boards import save_board
-    from calibrate.cli import main
-    from calibrate.synthetic_boards import board_trajectory, write_recording
+    from roomcap.calibrate.boards import save_board
+    from roomcap.calibrate.cli import main
+    from roomcap.calibrate.synthetic_boards import board_trajectory, write_recording
 
     rng = np.random.default_rng(3)
     cams = []

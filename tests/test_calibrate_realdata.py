@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from calibrate.camera import Camera, CameraRig
-from calibrate.formats import ImportOptions, detect_format, import_rig
+from roomcap.calibrate.camera import Camera, CameraRig
+from roomcap.calibrate.formats import ImportOptions, detect_format, import_rig
 
 SESSION = ("data", "pose2sim", "session-2024")
 TRIAL = "S00_P00_SingleParticipant/S00_P00_T01_BalancingTrial"

@@ -6,9 +6,9 @@ import numpy as np
 from conftest import need_shared
 from test_capture_sources import write_video
 
-from capture.cli import main
-from capture.sources import read_frames_csv
-from core.fileio import load_toml
+from roomcap.capture.cli import main
+from roomcap.capture.sources import read_frames_csv
+from roomcap.core.fileio import load_toml
 
 
 def test_minimal_cams_yaml_records_a_session(tmp_path, capsys):

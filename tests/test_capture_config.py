@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from capture.config import ConfigError, load_config, parse_config, redact_url, source_kind
+from roomcap.capture.config import ConfigError, load_config, parse_config, redact_url, source_kind
 
 
 def _write(tmp_path, text):
@@ -106,5 +106,5 @@ def test_credentials_never_in_repr_dict_or_logs(tmp_path, caplog):
     assert "s3cr3t" not in text and "hunter2" not in text and "admin" not in text
     assert redact_url(url) == "rtsp://***@10.0.0.5:554/stream?password=***"
     with caplog.at_level(logging.DEBUG):
-        logging.getLogger("capture").info("cam %s", cam)
+        logging.getLogger("roomcap.capture").info("cam %s", cam)
     assert "s3cr3t" not in caplog.text

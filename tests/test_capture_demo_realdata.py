@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from calibrate.cli import main as calibrate_run
-from capture.cli import main as capture_run
-from capture.sources import read_frames_csv
-from core.fileio import load_toml
-from track.trackfile import TrackFile
+from roomcap.calibrate.cli import main as calibrate_run
+from roomcap.capture.cli import main as capture_run
+from roomcap.capture.sources import read_frames_csv
+from roomcap.core.fileio import load_toml
+from roomcap.track.trackfile import TrackFile
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
 
@@ -32,7 +32,7 @@ CAMS = ("cam01", "cam02", "cam03", "cam04")
 def test_capture_run_calibrate_import_reprocess_on_the_pose2sim_demo(tmp_path, monkeypatch):
     demo = need_shared("data", "pose2sim", "demo-wheel-0.10.49", "Demo_MultiPerson")
     monkeypatch.setenv("ROOMCAP_SHARED", str(need_shared("models").parent))
-    from pipeline.cli import main as reprocess
+    from roomcap.pipeline.cli import main as reprocess
 
     yaml = tmp_path / "cams.yaml"
     yaml.write_text(

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from capture.config import parse_config
-from capture.live import LiveRunner
-from capture.recorder import Recorder
-from capture.sources import read_code
+from roomcap.capture.config import parse_config
+from roomcap.capture.live import LiveRunner
+from roomcap.capture.recorder import Recorder
+from roomcap.capture.sources import read_code
 
 
 def test_live_path_with_synthetic_sources_runs_every_stage(tmp_path):
@@ -58,7 +58,7 @@ def test_live_path_with_synthetic_sources_runs_every_stage(tmp_path):
 def test_live_without_the_pipeline_stages_says_where_to_go(tmp_path, capsys):
     """capture.cli alone has no 3D stages (they sit above capture in the stage order): --live is refused with
     a message naming the entry that has them (pipeline.live)."""
-    from capture.cli import main
+    from roomcap.capture.cli import main
 
     (tmp_path / "cams.yaml").write_text("cameras:\n  - {name: a, source: 'synthetic:', fps: 10}\n")
     rc = main(["--cameras", str(tmp_path / "cams.yaml"), "--out", str(tmp_path / "s"), "--live", "--quiet"])
@@ -68,7 +68,7 @@ def test_live_without_the_pipeline_stages_says_where_to_go(tmp_path, capsys):
 def test_cli_live_runs_the_real_keypoint_stage_on_synthetic_cameras(tmp_path, capsys):
     from conftest import need_shared
 
-    from pipeline.live import main
+    from roomcap.pipeline.live import main
 
     need_shared("models")
     (tmp_path / "cams.yaml").write_text(

@@ -8,11 +8,11 @@ import types
 import numpy as np
 import pytest
 
-from capture.config import parse_config
-from capture.factory import make_source
-from capture.oak import OakSource, check_sensor_mode, frame_from_message, oak_config, select_device
-from capture.segments import SegmentWriter
-from capture.sources import SourceError, host_now_ns, mono_to_host_ns, read_frames_csv
+from roomcap.capture.config import parse_config
+from roomcap.capture.factory import make_source
+from roomcap.capture.oak import OakSource, check_sensor_mode, frame_from_message, oak_config, select_device
+from roomcap.capture.segments import SegmentWriter
+from roomcap.capture.sources import SourceError, host_now_ns, mono_to_host_ns, read_frames_csv
 
 
 def _cam(source="oak:", **kw):

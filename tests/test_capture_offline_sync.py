@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from capture.offline_sync import (
+from roomcap.capture.offline_sync import (
     estimate_lag,
     estimate_offsets,
     keypoint_speed,
     read_openpose_folder,
     sync_session,
 )
-from core.fileio import load_toml
+from roomcap.core.fileio import load_toml
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
 
@@ -54,7 +54,7 @@ def test_pose2sim_known_shifts_are_recovered_exactly(trial):
 
 
 def test_synthetic_world_offsets_and_drift_within_one_frame():
-    from synthetic import RenderConfig, SceneConfig, make_scene, render_scene, ring_rig, ring_room
+    from roomcap.synthetic import RenderConfig, SceneConfig, make_scene, render_scene, ring_rig, ring_room
 
     rig = ring_rig(4, 3.0)
     scene = make_scene(ring_room(3.0), SceneConfig(n_people=3, duration_s=24, fps=25, seed=3))
@@ -75,7 +75,7 @@ def test_synthetic_world_offsets_and_drift_within_one_frame():
 
 
 def test_sync_session_writes_session_toml(tmp_path):
-    from keypoints.detections import Detections
+    from roomcap.keypoints.detections import Detections
 
     rng = np.random.default_rng(1)
     T, J = 300, 19
@@ -120,7 +120,7 @@ def _write_av(path, audio, sr=16000, fps=25, seconds=4.0):
 
 
 def test_audio_sync_recovers_a_known_offset(tmp_path):
-    from capture.cli import main
+    from roomcap.capture.cli import main
 
     rng = np.random.default_rng(2)
     sr = 16000

@@ -15,15 +15,15 @@ import pytest
 from conftest import need_shared
 from test_capture_sources import write_video
 
-from capture import recorder as recorder_mod
-from capture.cli import main as capture_run
-from capture.config import parse_config
-from capture.join import count_video_packets, join_camera
-from capture.recorder import Recorder
-from capture.session import SessionLayout
-from capture.sources import read_code, read_frames_csv
-from core.fileio import load_toml
-from keypoints.video import _END, FrameReader
+from roomcap.capture import recorder as recorder_mod
+from roomcap.capture.cli import main as capture_run
+from roomcap.capture.config import parse_config
+from roomcap.capture.join import count_video_packets, join_camera
+from roomcap.capture.recorder import Recorder
+from roomcap.capture.session import SessionLayout
+from roomcap.capture.sources import read_code, read_frames_csv
+from roomcap.core.fileio import load_toml
+from roomcap.keypoints.video import _END, FrameReader
 
 
 def _yaml(tmp_path, cams: dict[str, str], extra: str = "") -> str:
@@ -87,8 +87,8 @@ def test_segmented_layout_is_read_by_the_keypoint_reader_and_discovery(tmp_path)
         range(40)
     )
     assert [t for _, t, _ in items] == [ts[i] for i in range(40)]
-    from pipeline.discover import discover
-    from pipeline.session_inputs import probe_videos
+    from roomcap.pipeline.discover import discover
+    from roomcap.pipeline.session_inputs import probe_videos
 
     (src,) = discover([out])
     assert src.videos == {"cam0": out / "raw" / "cam0", "cam1": out / "raw" / "cam1"}
@@ -236,12 +236,12 @@ def test_a_camera_that_cannot_be_opened(tmp_path, capsys):
 
 def test_reprocess_keypoints_of_a_recording_needs_no_calibration(tmp_path, monkeypatch):
     monkeypatch.setenv("ROOMCAP_SHARED", str(need_shared("models").parent))
-    from pipeline.cli import main as reprocess
+    from roomcap.pipeline.cli import main as reprocess
 
     rc, out = _record(tmp_path, n=(6, 6), extra_args=["--no-join"])
     assert rc == 0
     assert reprocess([str(out), "--stages", "keypoints", "--workers", "1"]) == 0
-    from keypoints.detections import Detections
+    from roomcap.keypoints.detections import Detections
 
     tab = read_frames_csv(out / "raw" / "cam0.frames.csv")
     d = Detections.load(out / "keypoints" / "cam0.npz")
@@ -280,8 +280,8 @@ def test_sync_audio_on_the_session_videos_asks_to_join_segments_first(tmp_path, 
 
 
 def test_segment_writer_never_appends_or_overwrites(tmp_path):
-    from capture.segments import RecorderError, SegmentWriter
-    from capture.sources import Frame
+    from roomcap.capture.segments import RecorderError, SegmentWriter
+    from roomcap.capture.sources import Frame
 
     csv = tmp_path / "cam.frames.csv"
     csv.write_text("frame_index,t_ns,t_host_ns,sequence\n0,1,2,0\n")

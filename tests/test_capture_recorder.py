@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from test_capture_sources import write_video
 
-from capture.config import parse_config
-from capture.recorder import Recorder, RecorderError, repair_session
-from capture.session import SessionLayout
-from capture.sources import open_recording, read_code, read_frames_csv
-from core.fileio import load_toml
+from roomcap.capture.config import parse_config
+from roomcap.capture.recorder import Recorder, RecorderError, repair_session
+from roomcap.capture.session import SessionLayout
+from roomcap.capture.sources import open_recording, read_code, read_frames_csv
+from roomcap.core.fileio import load_toml
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -158,7 +158,7 @@ def _start_capture(tmp_path, cams_yaml: str, duration: float):
         [
             sys.executable,
             "-m",
-            "capture.cli",
+            "roomcap.capture.cli",
             "--cameras",
             str(tmp_path / "cams.yaml"),
             "--out",

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from capture.config import parse_config
-from capture.factory import make_source
-from capture.sources import (
+from roomcap.capture.config import parse_config
+from roomcap.capture.factory import make_source
+from roomcap.capture.sources import (
     FileReplaySource,
     SourceError,
     SyntheticSource,
@@ -115,7 +115,7 @@ def test_synthetic_options_are_validated():
 
 
 def test_frames_csv_ignores_an_unterminated_last_row(tmp_path):
-    from capture.sources import read_frames_csv
+    from roomcap.capture.sources import read_frames_csv
 
     p = tmp_path / "c.frames.csv"
     p.write_text("frame_index,t_ns,t_host_ns,sequence\n0,10,11,0\n1,20,21,1\n2,30,3")
@@ -123,7 +123,7 @@ def test_frames_csv_ignores_an_unterminated_last_row(tmp_path):
 
 
 def test_device_that_cannot_deliver_the_requested_mode():
-    from capture.sources import check_delivery
+    from roomcap.capture.sources import check_delivery
 
     cam = _cam("usb:0", fps=60, resolution=[1920, 1080])
     check_delivery("c", cam, 1920, 1080, 60.0)
@@ -152,7 +152,7 @@ def test_grabber_waits_for_the_writer_when_a_file_must_be_recorded_whole(tmp_pat
     import queue
     import threading
 
-    from capture.grabber import Grabber
+    from roomcap.capture.grabber import Grabber
 
     p = write_video(tmp_path / "v.mp4", n=30, fps=30)
     src = FileReplaySource("f", p, realtime=False, epoch_ns=0)

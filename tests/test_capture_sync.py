@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from capture.sources import Frame
-from capture.sync import Synchroniser, group_timestamps, timing_report
+from roomcap.capture.sources import Frame
+from roomcap.capture.sync import Synchroniser, group_timestamps, timing_report
 
 
 def _ts(n, fps, offset_ns=0, drift_ppm=0.0, drop=()):

@@ -23,7 +23,7 @@ WITH_EXAMPLES = [f for f in FILES if ">>>" in f.read_text()]
 
 
 def _module_name(path: Path) -> str:
-    return ".".join(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(("roomcap", *path.relative_to(ROOT).with_suffix("").parts))
 
 
 def test_examples_exist():

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from pipeline.cli import main as reprocess
-from pipeline.synth import make_session
+from roomcap.pipeline.cli import main as reprocess
+from roomcap.pipeline.synth import make_session
 
 
 @pytest.fixture(scope="module")
@@ -52,8 +52,8 @@ def test_tilde_in_out_is_the_home_folder(session, tmp_path, monkeypatch, capsys,
 
 
 def test_tilde_in_other_commands(tracked, tmp_path, monkeypatch):
-    from calibrate.cli import main as calibrate_run
-    from track.cli import main as tracks
+    from roomcap.calibrate.cli import main as calibrate_run
+    from roomcap.track.cli import main as tracks
 
     monkeypatch.setenv("HOME", str(tmp_path))
     monkeypatch.chdir(tmp_path)
@@ -70,7 +70,7 @@ def test_tilde_in_other_commands(tracked, tmp_path, monkeypatch):
 def test_two_cameras_on_one_source_are_warned(tmp_path, capsys):
     from test_capture_sources import write_video
 
-    from capture.cli import main as capture_run
+    from roomcap.capture.cli import main as capture_run
 
     v = write_video(tmp_path / "cam.mp4", n=10, fps=25)
     cams = tmp_path / "cams.yaml"
@@ -97,8 +97,8 @@ def test_two_cameras_on_one_source_are_warned(tmp_path, capsys):
 def test_forecast_of_a_too_short_track_says_how_long_it_must_be(tracked, tmp_path, capsys):
     import dataclasses
 
-    from forecast.cli import main as forecast
-    from track.trackfile import TrackFile
+    from roomcap.forecast.cli import main as forecast
+    from roomcap.track.trackfile import TrackFile
 
     tf = TrackFile.load(tracked / "track" / "tracks.npz")
     keys = ("frame_index", "t_ns", "xyz_m", "confidence", "std_m", "flags")
@@ -124,8 +124,8 @@ def test_forecast_of_a_too_short_track_says_how_long_it_must_be(tracked, tmp_pat
 def test_calibration_recording_without_any_board_says_so_first(tmp_path, capsys):
     import cv2
 
-    from calibrate.boards import Board, save_board
-    from calibrate.cli import main as calibrate_run
+    from roomcap.calibrate.boards import Board, save_board
+    from roomcap.calibrate.cli import main as calibrate_run
 
     rng = np.random.default_rng(0)
     for cam in ("cam_a", "cam_b"):
@@ -155,8 +155,8 @@ def test_calibration_recording_without_any_board_says_so_first(tmp_path, capsys)
 
 
 def test_sync_reads_a_pose2sim_trials_detections_where_reprocess_wrote_them(session, tmp_path, capsys):
-    from core.fileio import load_toml
-    from pipeline.live import main as capture_run
+    from roomcap.core.fileio import load_toml
+    from roomcap.pipeline.live import main as capture_run
 
     trial = tmp_path / "Trial"  # a Pose2Sim trial after `reprocess Trial`: <trial>/roomcap/keypoints
     (trial / "videos").mkdir(parents=True)
@@ -193,7 +193,7 @@ def test_partial_session_exits_1(tmp_path, monkeypatch, capsys):
 
 
 def test_export_of_an_unknown_person_makes_no_folder(tracked, tmp_path, capsys):
-    from track.cli import main as tracks
+    from roomcap.track.cli import main as tracks
 
     out = tmp_path / "x" / "exports"
     assert tracks(["export", str(tracked), "--person", "99", "--out", str(out)]) == 2
@@ -205,7 +205,7 @@ def test_export_of_an_unknown_person_makes_no_folder(tracked, tmp_path, capsys):
 
 
 def test_calibration_export_or_import_onto_its_own_input_is_refused(tracked, tmp_path, capsys):
-    from calibrate.cli import main as calibrate_run
+    from roomcap.calibrate.cli import main as calibrate_run
 
     rig = tmp_path / "rig.toml"
     shutil.copy(tracked / "calib" / "rig.toml", rig)
@@ -231,12 +231,12 @@ class _Parsed(BaseException):
 
 def _parsers(monkeypatch) -> list[argparse.ArgumentParser]:
     """Every command's parser and its subcommands' (captured when the command parses its arguments)."""
-    from calibrate.cli import main as calibrate_run
-    from forecast.cli import main as forecast
-    from keypoints.cli import main as keypoints
-    from pipeline.demo import main as demo
-    from pipeline.live import main as capture_run
-    from track.cli import main as tracks
+    from roomcap.calibrate.cli import main as calibrate_run
+    from roomcap.forecast.cli import main as forecast
+    from roomcap.keypoints.cli import main as keypoints
+    from roomcap.pipeline.demo import main as demo
+    from roomcap.pipeline.live import main as capture_run
+    from roomcap.track.cli import main as tracks
 
     def grab(self, *a, **k):
         raise _Parsed(self)
@@ -301,8 +301,8 @@ def test_readme_examples_are_valid_and_complete():
 
     import yaml
 
-    from capture.config import parse_config
-    from pipeline.config import PipelineConfig, tracker_name
+    from roomcap.capture.config import parse_config
+    from roomcap.pipeline.config import PipelineConfig, tracker_name
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     cams = parse_config(yaml.safe_load(_block(text, "## A `cams.yaml`", "yaml")))

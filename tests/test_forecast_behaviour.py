@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import FormatError, InputError
-from forecast.behaviour import geometry, labels
-from forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPT, action_of_description
-from forecast.behaviour.model import (
+from roomcap.core.errors import FormatError, InputError
+from roomcap.forecast.behaviour import geometry, labels
+from roomcap.forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPT, action_of_description
+from roomcap.forecast.behaviour.model import (
     BehaviourConfig,
     bones,
     build,
@@ -21,7 +21,7 @@ from forecast.behaviour.model import (
     rollout,
     save_checkpoint,
 )
-from synthetic.rigs import ring_rig
+from roomcap.synthetic.rigs import ring_rig
 from tests.conftest import need_shared
 
 torch.set_num_threads(1)
@@ -160,8 +160,8 @@ def test_checkpoint_round_trip(tmp_path):
 
 def test_composite_sequences_from_cmu():
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from forecast.behaviour import data
-    from forecast.behaviour.training import prepare
+    from roomcap.forecast.behaviour import data
+    from roomcap.forecast.behaviour.training import prepare
 
     pool = data.split_pool(data.load_pool())
     subj = {p: {c.subject for c in v} for p, v in pool.items()}
@@ -196,10 +196,10 @@ def test_composite_sequences_from_cmu():
 def session(tmp_path_factory):
     """A synthetic two-person session (procedural walkers, a ring rig) with its ground truth as the
     track file, and an untrained checkpoint."""
-    from synthetic.render import render
-    from synthetic.rigs import ring_room
-    from synthetic.world import make_scene, write_session
-    from track.trackfile import TrackFile
+    from roomcap.synthetic.render import render
+    from roomcap.synthetic.rigs import ring_room
+    from roomcap.synthetic.world import make_scene, write_session
+    from roomcap.track.trackfile import TrackFile
 
     root = tmp_path_factory.mktemp("sess")
     rig = ring_rig(4, 4.0, height_m=2.2)
@@ -230,7 +230,7 @@ def session(tmp_path_factory):
 
 
 def test_sample_writes_forecast(session):
-    from forecast.behaviour.sample import run_sample
+    from roomcap.forecast.behaviour.sample import run_sample
 
     root, scene = session
     lab = root / "labels.csv"
@@ -265,7 +265,7 @@ def test_sample_writes_forecast(session):
     ],
 )
 def test_sample_bad_labels(session, text, match):
-    from forecast.behaviour.sample import run_sample
+    from roomcap.forecast.behaviour.sample import run_sample
 
     root, _ = session
     lab = root / "bad.csv"
@@ -277,7 +277,7 @@ def test_sample_bad_labels(session, text, match):
 def test_sample_needs_a_rig(session, tmp_path):
     import shutil
 
-    from forecast.behaviour.cli import main
+    from roomcap.forecast.behaviour.cli import main
 
     root, _ = session
     s = tmp_path / "norig"
@@ -289,7 +289,7 @@ def test_sample_needs_a_rig(session, tmp_path):
 
 
 def test_hide_history_hides_only_the_first_steps():
-    from forecast.behaviour.training import hide_history
+    from roomcap.forecast.behaviour.training import hide_history
 
     cfg = BehaviourConfig(short_history=1.0)
     B, N = 64, cfg.n_obs
@@ -310,9 +310,9 @@ def test_report_shows_the_behaviour_forecast(session, tmp_path):
     """The session report lists each person's observed and forecast actions when behaviour.npz is there."""
     import re
 
-    from capture.session import SessionLayout
-    from forecast.behaviour.sample import run_sample
-    from pipeline.report import collect, write_report
+    from roomcap.capture.session import SessionLayout
+    from roomcap.forecast.behaviour.sample import run_sample
+    from roomcap.pipeline.report import collect, write_report
     from tests.test_pipeline_report import CHROMIUM, page_errors, render_in_browser
 
     root, _ = session
@@ -337,8 +337,8 @@ def test_report_shows_the_behaviour_forecast(session, tmp_path):
 def test_session_windows_from_a_label_file(session):
     """A user's session with labels gives training windows: n_obs + M consecutive labelled steps per track,
     with the detections as 2D targets and the track's 3D."""
-    from forecast.behaviour.sample import session_windows
-    from forecast.behaviour.training import concat
+    from roomcap.forecast.behaviour.sample import session_windows
+    from roomcap.forecast.behaviour.training import concat
 
     root, scene = session
     acts = ["walk", "sit", "drink", "laugh", "walk", "climb", "reach", "wash", "walk"]
@@ -368,8 +368,8 @@ def test_continuous_activity_session(tmp_path):
     """Continuous composite activities (blended transitions) make a session with a label file that the
     user-data path reads: labels tile the motion, each step's characteristic frame lies in its range."""
     need_shared("data", "motion", "cmu-more", "single", "13")
-    from forecast.behaviour import data
-    from forecast.behaviour.sample import session_windows
+    from roomcap.forecast.behaviour import data
+    from roomcap.forecast.behaviour.sample import session_windows
 
     pool = data.split_pool(data.load_pool())["test"]
     a = data.compose_continuous(pool, 8, seed=3)
@@ -385,7 +385,7 @@ def test_continuous_activity_session(tmp_path):
 
 
 def test_merge_joins_variants(tmp_path, capsys):
-    from forecast.behaviour.cli import main
+    from roomcap.forecast.behaviour.cli import main
 
     extra = {"action_freq": [1 / len(ACTIONS)] * len(ACTIONS), "avg_pose": [[0.0, 0.0, 1.0]] * 19}
     for v in ("full", "action_only"):
@@ -408,7 +408,7 @@ def test_train_and_eval_commands_tiny(tmp_path):
     import json
 
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from forecast.behaviour.cli import main
+    from roomcap.forecast.behaviour.cli import main
 
     ck, res = tmp_path / "t.pt", tmp_path / "r.json"
     sets = ["steps=4", "eval_every=2", "n_train=120", "n_eval=60", "hidden=16"]

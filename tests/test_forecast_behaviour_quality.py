@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import FormatError
-from forecast.behaviour import quality as Q
-from forecast.behaviour import training as T
-from forecast.behaviour.data import JOINTS
-from forecast.behaviour.model import BehaviourConfig
+from roomcap.core.errors import FormatError
+from roomcap.forecast.behaviour import quality as Q
+from roomcap.forecast.behaviour import training as T
+from roomcap.forecast.behaviour.data import JOINTS
+from roomcap.forecast.behaviour.model import BehaviourConfig
 from tests.conftest import need_shared
 from tests.test_forecast_behaviour_skeleton import _tiny_prepared
 
@@ -66,7 +66,7 @@ def test_snapshots_from_step_zero_every_n_steps():
 def test_quality_then_eval_commands_tiny(tmp_path, capsys):
     """`quality` builds the classifier once; `eval` scores every pose-predicting method with it."""
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from forecast.behaviour.cli import main
+    from roomcap.forecast.behaviour.cli import main
 
     sets = ["steps=4", "eval_every=2", "n_train=120", "n_eval=60", "hidden=16"]
     qp, ck, res = tmp_path / "q.pt", tmp_path / "t.pt", tmp_path / "r.json"

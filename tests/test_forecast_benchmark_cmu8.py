@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from forecast import benchmark_cmu8 as B
-from forecast import benchmark_cmu8_train as BT
-from forecast import cmu_more as C
-from forecast import evaluate as E
-from forecast import train as T
-from forecast.toy import walker
+from roomcap.forecast import benchmark_cmu8 as B
+from roomcap.forecast import benchmark_cmu8_train as BT
+from roomcap.forecast import cmu_more as C
+from roomcap.forecast import evaluate as E
+from roomcap.forecast import train as T
+from roomcap.forecast.toy import walker
 from tests.conftest import need_shared
 
 
@@ -96,7 +96,7 @@ def test_protocol_on_a_tiny_benchmark(tiny_root, tmp_path):
 
 
 def test_cli_cmu8_bad_input(tiny_root, tmp_path, capsys):
-    from forecast.cli import main
+    from roomcap.forecast.cli import main
 
     out = tmp_path / "o"
     assert main(["eval", "--protocol", "cmu9", "--out", str(out)]) == 2
@@ -115,7 +115,7 @@ def test_cli_cmu8_bad_input(tiny_root, tmp_path, capsys):
 
 
 def test_eval_single_writes_samples(tmp_path):
-    from forecast.data import Clip
+    from roomcap.forecast.data import Clip
 
     clips = [Clip(f"walk{i}", walker(150, phase=i, heading_rad=i), 25.0) for i in range(3)]
     models = {"zero": T.baseline("zero"), "real": E.Real()}
@@ -144,8 +144,8 @@ def test_shared_test_windows():
 
 
 def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, monkeypatch):
-    from forecast import cli
-    from forecast.preview import shipped_checkpoints
+    from roomcap.forecast import cli
+    from roomcap.forecast.preview import shipped_checkpoints
 
     seen = {}
     real_evaluate = B.evaluate
@@ -213,7 +213,7 @@ def _random_mlp(seed: int) -> tuple[B.DctMlp, B.MlpConfig]:
 
 
 def test_ensemble_forecasts_the_members_mean_and_round_trips(tiny_root, tmp_path, capsys):
-    from forecast.cli import main
+    from roomcap.forecast.cli import main
 
     (m1, c1), (m2, c2) = _random_mlp(1), _random_mlp(2)
     obs = np.cumsum(np.random.default_rng(0).normal(0, 0.05, (4, 50, 38, 3)), 1)

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import FormatError
-from forecast import characteristic as C
-from forecast.models.characteristic import refine_pose, target_heatmap
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import FormatError
+from roomcap.forecast import characteristic as C
+from roomcap.forecast.models.characteristic import refine_pose, target_heatmap
+from roomcap.keypoints.skeletons import get_skeleton
 
 torch.set_num_threads(1)
 SK = get_skeleton("body19")

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.errors import FormatError, InputError
-from forecast import cmu_more as C
-from synthetic import bvh
+from roomcap.core.errors import FormatError, InputError
+from roomcap.forecast import cmu_more as C
+from roomcap.synthetic import bvh
 from tests.conftest import need_shared
 
 J = {n: i for i, n in enumerate(bvh.BODY19)}

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.errors import FormatError, SchemaError
-from core.fileio import save_npz
-from forecast import data as D
-from forecast.toy import walker
-from keypoints.skeletons import get_skeleton
-from track.trackfile import TrackFile
+from roomcap.core.errors import FormatError, SchemaError
+from roomcap.core.fileio import save_npz
+from roomcap.forecast import data as D
+from roomcap.forecast.toy import walker
+from roomcap.keypoints.skeletons import get_skeleton
+from roomcap.track.trackfile import TrackFile
 
 
 def test_normalisation_puts_hips_on_x_and_inverts(rng):

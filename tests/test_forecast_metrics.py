@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forecast import metrics as M
-from forecast.toy import walker
-from keypoints.skeletons import get_skeleton
+from roomcap.forecast import metrics as M
+from roomcap.forecast.toy import walker
+from roomcap.keypoints.skeletons import get_skeleton
 
 NAMES = get_skeleton("body19").joint_names
 
@@ -106,9 +106,9 @@ def test_sscp_states_and_js_distance():
 
 
 def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
-    from forecast import data as D
-    from forecast import evaluate as E
-    from forecast.models import ConstantVelocity, ZeroVelocity
+    from roomcap.forecast import data as D
+    from roomcap.forecast import evaluate as E
+    from roomcap.forecast.models import ConstantVelocity, ZeroVelocity
 
     clips = [
         D.Clip(f"w{i}", walker(150, phase=i, speed_mps=1.0 + 0.1 * i, heading_rad=i, sway_rad=SWAY), 25.0)
@@ -128,9 +128,9 @@ def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
 def test_evaluation_intervals_paired_differences_and_repeatability():
     import torch
 
-    from forecast import data as D
-    from forecast import evaluate as E
-    from forecast.models import ConstantVelocity, ZeroVelocity
+    from roomcap.forecast import data as D
+    from roomcap.forecast import evaluate as E
+    from roomcap.forecast.models import ConstantVelocity, ZeroVelocity
 
     class Noisy(torch.nn.Module):  # a stochastic stand-in: constant velocity plus sampled noise
         stochastic = True

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import FormatError
-from forecast import data as D
-from forecast import train as T
-from forecast.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
-from forecast.predict import diffusion_rollout, features_to_poses, forecast_world, scene_features
-from forecast.toy import walker
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import FormatError
+from roomcap.forecast import data as D
+from roomcap.forecast import train as T
+from roomcap.forecast.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
+from roomcap.forecast.predict import diffusion_rollout, features_to_poses, forecast_world, scene_features
+from roomcap.forecast.toy import walker
+from roomcap.keypoints.skeletons import get_skeleton
 
 torch.set_num_threads(1)
 
@@ -37,7 +37,7 @@ def test_baselines_in_world_space():
 
 def test_training_and_evaluation_report_through_the_progress_protocol():
     """progress(task, done, total) from the library (core.progress), done reaching total; nothing printed."""
-    from forecast import evaluate as E
+    from roomcap.forecast import evaluate as E
 
     calls = []
     cfg = T.config_from_dict("gru", {"hidden": 8, "steps": 4, "batch": 4, "n_obs": 10, "n_pred": 5})
@@ -283,7 +283,7 @@ def test_diffusion_ema_weights_are_validated_and_returned():
 
 
 def test_dct_lowpass_is_a_projection_that_keeps_slow_motion():
-    from forecast.models.diffusion import dct_lowpass_matrix
+    from roomcap.forecast.models.diffusion import dct_lowpass_matrix
 
     P = dct_lowpass_matrix(32, 6)
     assert torch.allclose(P @ P, P, atol=1e-5) and torch.allclose(P, P.T, atol=1e-6)
@@ -310,9 +310,9 @@ def test_training_keeps_the_state_with_the_best_validation_score():
 
 
 def test_preview_and_cli_on_track_files(tmp_path):
-    from forecast.cli import main
-    from forecast.preview import preview
-    from track.trackfile import TrackFile
+    from roomcap.forecast.cli import main
+    from roomcap.forecast.preview import preview
+    from roomcap.track.trackfile import TrackFile
 
     sk = get_skeleton("body19")
     paths = []
@@ -426,7 +426,7 @@ def test_preview_and_cli_on_track_files(tmp_path):
 def test_shipped_configs_and_checkpoint_load():
     from pathlib import Path
 
-    from core.fileio import load_toml
+    from roomcap.core.fileio import load_toml
 
     root = Path(T.__file__).parent
     for kind in T.CONFIGS:

@@ -15,8 +15,8 @@ import math
 import numpy as np
 import pytest
 
-from forecast import data as D
-from forecast import metrics as M
+from roomcap.forecast import data as D
+from roomcap.forecast import metrics as M
 
 EPS = 1e-7
 
@@ -162,8 +162,8 @@ N_FUT = 12  # forecast frames per window: 12 words each, 1,200 words in all
 
 
 def _cmu_clips_or_skip():
-    from forecast.clips import load_cmu
-    from synthetic import bvh
+    from roomcap.forecast.clips import load_cmu
+    from roomcap.synthetic import bvh
 
     root = bvh.mocap_root()
     folder = None if root is None else root / "cmu-bvh-subjects01-07"
@@ -176,7 +176,7 @@ def _cmu_clips_or_skip():
 def test_real_windows_agree_with_the_reference_after_the_search():
     """100 windows of real CMU motion (0.3 s observed, 0.5 s of constant-velocity forecast) scored against a
     database of the same clips: every word's score from the project's scorer equals the restatement's."""
-    from keypoints.skeletons import get_skeleton
+    from roomcap.keypoints.skeletons import get_skeleton
 
     clips = _cmu_clips_or_skip()
     names = get_skeleton("body19").joint_names

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forecast import data as D
-from forecast import evaluate as E
-from forecast import pairs
-from forecast import train as T
-from forecast.toy import walker
-from keypoints.skeletons import get_skeleton
+from roomcap.forecast import data as D
+from roomcap.forecast import evaluate as E
+from roomcap.forecast import pairs
+from roomcap.forecast import train as T
+from roomcap.forecast.toy import walker
+from roomcap.keypoints.skeletons import get_skeleton
 
 LH, RH = D.hip_indices(get_skeleton("body19").joint_names)
 

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import FormatError
-from core.fileio import save_npz
-from forecast import data as D
-from forecast import evaluate as E
-from forecast import metrics as M
-from forecast import train as T
-from forecast.clips import clip_activities
-from forecast.toy import walker
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import save_npz
+from roomcap.forecast import data as D
+from roomcap.forecast import evaluate as E
+from roomcap.forecast import metrics as M
+from roomcap.forecast import train as T
+from roomcap.forecast.clips import clip_activities
+from roomcap.forecast.toy import walker
+from roomcap.keypoints.skeletons import get_skeleton
 
 NAMES = get_skeleton("body19").joint_names
 SHIFT = np.array([5.0, -5.0, 0.0], np.float32)  # "moving all data by 5 m" (in the floor plane)
@@ -149,7 +149,7 @@ def test_baseline_names_and_slide():
     assert E.check_baselines(["zero_velocity", "const", "fool", "zero"]) == ["zero", "const", "fool"]
     with pytest.raises(ValueError, match="unknown baseline 'warp'"):
         E.check_baselines(["warp"])
-    from forecast.predict import forecast_world
+    from roomcap.forecast.predict import forecast_world
 
     obs = walker(20, speed_mps=1.5, heading_rad=0.4)
     y = forecast_world(T.baseline("slide"), obs[None, :, None], None, 25)[0, 0, :, 0]
@@ -160,7 +160,7 @@ def test_baseline_names_and_slide():
 
 
 def test_cli_bad_protocol_and_baseline(tmp_path, capsys):
-    from forecast.cli import main
+    from roomcap.forecast.cli import main
 
     for argv, text in (
         (["eval", "--baselines", "warp", "--out", str(tmp_path)], "unknown baseline 'warp'"),
@@ -224,8 +224,8 @@ def _person(path, frames, poses, onsets: dict[int, int]):
 
 
 def test_hik_protocol_on_a_fixture(tmp_path, capsys):
-    from forecast import hik
-    from forecast.cli import main
+    from roomcap.forecast import hik
+    from roomcap.forecast.cli import main
 
     walk, sink = D.KITCHEN_ACTIVITIES.index("walking"), D.KITCHEN_ACTIVITIES.index("take water from sink")
     for k, kitchen in enumerate("ABD"):
@@ -268,8 +268,8 @@ def test_hik_protocol_on_a_fixture(tmp_path, capsys):
 
 
 def test_social_diffusion_generates_the_whole_horizon_in_one_pass():
-    from forecast.models import SocialDiffusion
-    from forecast.predict import diffusion_rollout, forecast_world
+    from roomcap.forecast.models import SocialDiffusion
+    from roomcap.forecast.predict import diffusion_rollout, forecast_world
 
     m = SocialDiffusion(67, n_frames=32, channels=8, T=20)  # global statistics: not bound to its window
     m.n_obs, m.sample_steps, m.sample_eta = 16, 2, 1.0

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.cli import EXIT_INPUT, EXIT_INTERRUPTED, guarded
-from core.errors import InputError, RoomcapError, UnknownNameError
+from roomcap.core.cli import EXIT_INPUT, EXIT_INTERRUPTED, guarded
+from roomcap.core.errors import InputError, RoomcapError, UnknownNameError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -50,19 +50,19 @@ def test_interrupt_exits_130_and_bugs_keep_their_traceback(capsys):
 
 
 def test_project_errors_share_one_base_and_keep_their_builtin_parents():
-    from calibrate.boards import CalibrationError
-    from capture.recorder import RecorderError
-    from capture.sources import SourceError
-    from core.errors import FormatError
-    from keypoints.registry import ModelError
-    from keypoints.video import VideoDecodeError
-    from pipeline.discover import SessionError
-    from pipeline.session_inputs import StageError
-    from track.cli import UsageError
-    from track.export import ExportError
-    from track.motion import CheckpointMismatch
-    from track.opensim_ik import OpenSimError
-    from track.skeleton_fit_file import FitError
+    from roomcap.calibrate.boards import CalibrationError
+    from roomcap.capture.recorder import RecorderError
+    from roomcap.capture.sources import SourceError
+    from roomcap.core.errors import FormatError
+    from roomcap.keypoints.registry import ModelError
+    from roomcap.keypoints.video import VideoDecodeError
+    from roomcap.pipeline.discover import SessionError
+    from roomcap.pipeline.session_inputs import StageError
+    from roomcap.track.cli import UsageError
+    from roomcap.track.export import ExportError
+    from roomcap.track.motion import CheckpointMismatch
+    from roomcap.track.opensim_ik import OpenSimError
+    from roomcap.track.skeleton_fit_file import FitError
 
     parents = {
         CalibrationError: RuntimeError, FormatError: ValueError, RecorderError: RuntimeError,
@@ -91,10 +91,10 @@ def _bad_inputs(tmp: Path) -> list[tuple[str, list[str], str]]:
 
 
 def test_every_command_answers_bad_input_with_a_message(tmp_path, capsys):
-    from calibrate.cli import main as calibrate_main
-    from forecast.cli import main as forecast_main
-    from keypoints.cli import main as keypoints_main
-    from pipeline.cli import main as reprocess_main
+    from roomcap.calibrate.cli import main as calibrate_main
+    from roomcap.forecast.cli import main as forecast_main
+    from roomcap.keypoints.cli import main as keypoints_main
+    from roomcap.pipeline.cli import main as reprocess_main
 
     mains = {"reprocess": reprocess_main, "forecast": forecast_main, "keypoints": keypoints_main,
              "calibrate-run": calibrate_main}  # fmt: skip
@@ -110,7 +110,7 @@ def test_every_command_answers_bad_input_with_a_message(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_ctrl_c_during_reprocess_is_one_line_and_a_rerun_resumes(tmp_path):
-    from pipeline.synth import make_session
+    from roomcap.pipeline.synth import make_session
 
     root = make_session(tmp_path / "s", n_people=4, duration_s=40.0, n_cams=6)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}

@@ -6,9 +6,9 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from core.config import bounded, config_from_dict
-from core.errors import FormatError
-from triangulate.reconstruct import TriangulateConfig
+from roomcap.core.config import bounded, config_from_dict
+from roomcap.core.errors import FormatError
+from roomcap.triangulate.reconstruct import TriangulateConfig
 
 
 @dataclass(frozen=True)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.errors import FormatError, SchemaError
-from core.fileio import atomic_write_text, load_npz, save_npz
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, SKELETONS, convert, get_skeleton
-from track.trackfile import OBSERVED, PREDICTED, TrackFile, export_json, export_trc, load_dense
-from triangulate.poses3d import Poses3D
+from roomcap.core.errors import FormatError, SchemaError
+from roomcap.core.fileio import atomic_write_text, load_npz, save_npz
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL, SKELETONS, convert, get_skeleton
+from roomcap.track.trackfile import OBSERVED, PREDICTED, TrackFile, export_json, export_trc, load_dense
+from roomcap.triangulate.poses3d import Poses3D
 
 
 def _tracks(rng, T=5, K=2, J=19):
@@ -136,7 +136,7 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path):
     class Boom(Exception):
         pass
 
-    from core.fileio import atomic_path
+    from roomcap.core.fileio import atomic_path
 
     with pytest.raises(Boom):
         with atomic_path(p) as tmp:

@@ -6,9 +6,9 @@ import logging
 
 import pytest
 
-from capture.cli import main as capture_main
-from core.fileio import load_toml
-from core.redact import redact, redact_log_records, redact_url
+from roomcap.capture.cli import main as capture_main
+from roomcap.core.fileio import load_toml
+from roomcap.core.redact import redact, redact_log_records, redact_url
 
 SECRET_URL = "rtsp://host/stream?user=admin&password=hunter2&channel=1"
 
@@ -42,7 +42,7 @@ def test_redact_finds_every_url_in_free_text():
 def test_log_records_are_redacted(caplog):
     redact_log_records()
     with caplog.at_level(logging.INFO):
-        logging.getLogger("capture.sources").info("opening %s", SECRET_URL)
+        logging.getLogger("roomcap.capture.sources").info("opening %s", SECRET_URL)
     assert "hunter2" not in caplog.text and "password=***" in caplog.text
 
 
@@ -60,8 +60,8 @@ def test_session_toml_and_report_hold_no_secret(tmp_path):
     text = (out / "session.toml").read_text()
     assert "hunter2" not in text and "user=admin" not in text and "password=***" in text
     # a session.toml written by an older version, with the secret in it: the report redacts it again
-    from capture.session import SessionLayout
-    from pipeline.report import collect
+    from roomcap.capture.session import SessionLayout
+    from roomcap.pipeline.report import collect
 
     raw = load_toml(out / "session.toml")
     raw["cams_yaml"] = yaml

@@ -15,7 +15,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("calibrate", "triangulate")
-REQUIRED = ("calibrate", "calibrate.camera", "calibrate.formats", "calibrate.cli", "triangulate")
+REQUIRED = tuple(
+    f"roomcap.{m}"
+    for m in ("calibrate", "calibrate.camera", "calibrate.formats", "calibrate.cli", "triangulate")
+)
 BLOCKED = ("torch", "depthai")
 
 CHILD = r"""
@@ -47,17 +50,17 @@ print(json.dumps(result))
 
 
 def package_modules(package: str) -> list[str]:
-    """``package`` and every ``package.*`` module found on disk (sub-packages included)."""
+    """``roomcap.<package>`` and every module below it found on disk (sub-packages included)."""
     root = REPO / package
-    mods = [package]
+    mods = [f"roomcap.{package}"]
     for f in sorted(root.rglob("*.py")):
         rel = f.relative_to(REPO).with_suffix("")
         if rel.name == "__init__":
             rel = rel.parent
         if any(part.startswith(".") or part == "__pycache__" for part in rel.parts):
             continue
-        name = ".".join(rel.parts)
-        if name not in mods and name != f"{package}.__main__":
+        name = ".".join(("roomcap", *rel.parts))
+        if name not in mods and name != f"roomcap.{package}.__main__":
             mods.append(name)
     return mods
 
@@ -65,7 +68,7 @@ def package_modules(package: str) -> list[str]:
 def import_blocked(modules: list[str], extra_path: Path | None = None) -> dict:
     """Import ``modules`` in a fresh interpreter with torch and depthai blocked; report per module."""
     code = CHILD.format(blocked=BLOCKED, modules=modules)
-    paths = [str(REPO)] + ([str(extra_path)] if extra_path else []) + [os.environ.get("PYTHONPATH", "")]
+    paths = ([str(extra_path)] if extra_path else []) + [os.environ.get("PYTHONPATH", "")]
     env = os.environ | {"PYTHONPATH": os.pathsep.join(p for p in paths if p)}
     proc = subprocess.run(
         [sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=120
@@ -88,21 +91,21 @@ def test_calibrate_and_triangulate_import_without_torch_and_depthai():
 
 def test_module_discovery_finds_this_stage():
     mods = package_modules("calibrate")
-    assert {"calibrate", "calibrate.camera", "calibrate.formats", "calibrate.cli"} <= set(mods)
-    assert package_modules("triangulate")[0] == "triangulate"
+    assert {"roomcap.calibrate", "roomcap.calibrate.camera", "roomcap.calibrate.formats"} <= set(mods)
+    assert package_modules("triangulate")[0] == "roomcap.triangulate"
 
 
 def test_the_check_catches_a_torch_import(tmp_path):
     """A module that imports torch (directly or through a dependency) is reported."""
     (tmp_path / "uses_torch.py").write_text("import numpy\nfrom torch import nn\n")
     (tmp_path / "uses_dai.py").write_text("import depthai.node\n")
-    result = import_blocked(["uses_torch", "uses_dai", "calibrate.camera"], extra_path=tmp_path)
+    result = import_blocked(["uses_torch", "uses_dai", "roomcap.calibrate.camera"], extra_path=tmp_path)
     assert sorted(result["failed"]) == ["uses_dai", "uses_torch"]
     assert "blocked by test_import_boundaries" in result["failed"]["uses_torch"]
-    assert result["imported"] == ["calibrate.camera"]
+    assert result["imported"] == ["roomcap.calibrate.camera"]
 
 
-LEARNED = {"track.motion", "track.birth", "track.train_motion", "track.train_birth"}
+LEARNED = {f"roomcap.track.{m}" for m in ("motion", "birth", "train_motion", "train_birth")}
 
 
 def test_other_stages_import_without_torch_and_depthai():
@@ -112,7 +115,7 @@ def test_other_stages_import_without_torch_and_depthai():
         m
         for pkg in ("track", "keypoints", "capture", "pipeline", "synthetic")
         for m in package_modules(pkg)
-        if m not in LEARNED and m != "capture.oak"
+        if m not in LEARNED and m != "roomcap.capture.oak"
     ]
     result = import_blocked(modules)
     assert not result["failed"], "\n\n".join(f"{m}:\n{tb}" for m, tb in result["failed"].items())

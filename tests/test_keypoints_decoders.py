@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from keypoints_tiny import make_dets_model, make_rtmo_model, make_simcc_model
 
-from keypoints import decoders as D
-from keypoints.crops import crop_transform
-from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
-from keypoints.registry import ModelError
-from keypoints.runtime import OnnxModel, RuntimeConfig
+from roomcap.keypoints import decoders as D
+from roomcap.keypoints.crops import crop_transform
+from roomcap.keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
+from roomcap.keypoints.registry import ModelError
+from roomcap.keypoints.runtime import OnnxModel, RuntimeConfig
 
 
 @pytest.fixture
@@ -135,7 +135,7 @@ def test_input_shape_not_matching_the_description_is_refused(models):
 
 
 def test_movenet_multipose_decoder_reads_keypoints_then_box():
-    from keypoints.decoders import decode_movenet_multipose
+    from roomcap.keypoints.decoders import decode_movenet_multipose
 
     out = np.zeros((1, 6, 56), np.float32)
     k = np.zeros((17, 3), np.float32)

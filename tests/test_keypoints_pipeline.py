@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from keypoints.crops import PYRAMIDS, apply_inverse, crop_transform, level_offset, upright_boxes
-from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
-from keypoints.skeletons import CANONICAL, get_skeleton
+from roomcap.keypoints.crops import PYRAMIDS, apply_inverse, crop_transform, level_offset, upright_boxes
+from roomcap.keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
+from roomcap.keypoints.skeletons import CANONICAL, get_skeleton
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
 
@@ -86,7 +86,7 @@ def test_model_sets_find_the_participant_in_every_view(single, model_set):
 
 
 def test_fixed_batch_made_dynamic_when_asked(single):
-    from keypoints.runtime import OnnxModel, RuntimeConfig
+    from roomcap.keypoints.runtime import OnnxModel, RuntimeConfig
 
     assert OnnxModel("blazepose_full", RuntimeConfig(dynamic_batch=True)).max_batch is None
     # MoveNet's graph cannot be rewritten (a Concat pins the batch): it runs one crop at a time
@@ -171,7 +171,7 @@ def test_vtest_pedestrian_count(frame, people):
 
 
 def test_duplicate_pairs_and_body_paint(rng):
-    from keypoints.hypotheses import _duplicate_pairs, _paint_body
+    from roomcap.keypoints.hypotheses import _duplicate_pairs, _paint_body
 
     xy = rng.uniform(100, 500, (1, 17, 2))
     sc = np.full((1, 17), 0.9)
@@ -189,7 +189,7 @@ def test_duplicate_pairs_and_body_paint(rng):
 
 
 def test_erase_body_fills_with_the_background(rng):
-    from keypoints.hypotheses import _erase_body
+    from roomcap.keypoints.hypotheses import _erase_body
 
     xy = rng.uniform(200, 400, (17, 2))
     sc = np.full(17, 0.9)
@@ -206,7 +206,7 @@ def test_erase_body_fills_with_the_background(rng):
 def test_occluded_person_kept_beside_the_one_in_front(frame):
     """Demo_MultiPerson cam03: the crop of the person behind (75) or in front (85) returns a pose mixing both;
     resolving the duplicate keeps two people, each with >= 8 confident joints, apart (before: one dropped)."""
-    from keypoints.hypotheses import _duplicate_pairs
+    from roomcap.keypoints.hypotheses import _duplicate_pairs
 
     need_shared("models")
     img = frames("Demo_MultiPerson", frame)[2]
@@ -296,7 +296,7 @@ def _standing(facing_camera: bool) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_face_points_hidden_only_for_people_seen_from_behind():
-    from keypoints.hypotheses import facing, hide_face_from_behind
+    from roomcap.keypoints.hypotheses import facing, hide_face_from_behind
 
     names = CANONICAL.joint_names
     face = [names.index(n) for n in ("nose", "left_eye", "right_eye")]
@@ -332,7 +332,7 @@ def test_default_set_drops_the_face_of_the_back_views(single):
 
 
 def test_flip_hypotheses_averaged_where_they_agree_else_one_taken_whole():
-    from keypoints.hypotheses import merge_hypotheses
+    from roomcap.keypoints.hypotheses import merge_hypotheses
 
     xy0 = np.array([[[10.0, 10.0], [20.0, 50.0], [40.0, 50.0]]])
     sc0 = np.array([[0.8, 0.6, 0.6]])
@@ -349,7 +349,7 @@ def test_flip_hypotheses_averaged_where_they_agree_else_one_taken_whole():
 
 
 def test_weak_boxes_kept_only_apart_from_stronger_ones():
-    from keypoints.hypotheses import _strong_or_apart
+    from roomcap.keypoints.hypotheses import _strong_or_apart
 
     boxes = np.array(
         [
@@ -363,7 +363,7 @@ def test_weak_boxes_kept_only_apart_from_stronger_ones():
 
 
 def test_scale_consensus_leaves_out_the_odd_estimate():
-    from keypoints.hypotheses import consensus
+    from roomcap.keypoints.hypotheses import consensus
 
     xy = np.array([[[[100.0, 100.0]]], [[[102.0, 100.0]]], [[[160.0, 100.0]]]])  # (K=3,M=1,J=1,2)
     sc = np.array([[[0.5]], [[0.5]], [[0.9]]])
@@ -392,7 +392,7 @@ def test_tracked_crops_run_the_detector_every_n_frames_and_agree_with_the_whole_
     """balanced: the previous frame's poses place the crops; the detector runs on frames 0 and 8 of each
     camera only, and the joints stay within a few pixels of the detector-every-frame chain's."""
     need_shared("models")
-    from keypoints.presets import preset_config
+    from roomcap.keypoints.presets import preset_config
 
     video = clip("Demo_SinglePerson", 10)
     tracked = KeypointPipeline(preset_config("balanced", detect_every=8))
@@ -416,7 +416,7 @@ def test_tracked_crops_run_the_detector_every_n_frames_and_agree_with_the_whole_
 def test_a_stream_that_loses_its_people_runs_the_detector_again(single):
     """A camera whose tracked person vanishes (an empty frame) runs the detector on its next frame; the other
     cameras keep their tracked crops."""
-    from keypoints.presets import preset_config
+    from roomcap.keypoints.presets import preset_config
 
     pipe = KeypointPipeline(preset_config("balanced", detect_every=100))
     pipe(single, streams=CAMS)
@@ -447,8 +447,8 @@ def test_multipose_finds_both_participants_without_a_detector():
 def test_to_tensor_swaps_channels_and_normalises_as_the_description_says():
     """RGB models get the crops' channels reversed (cv2's swap equals numpy's reversed copy), float models
     the description's scale, mean and std, in its layout."""
-    from keypoints.crops import to_tensor
-    from keypoints.registry import get_spec
+    from roomcap.keypoints.crops import to_tensor
+    from roomcap.keypoints.registry import get_spec
 
     rng = np.random.default_rng(3)
     rgb, bgr = get_spec("movenet_lightning_fp16"), get_spec("yolox_nano")

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from core.errors import FormatError
-from keypoints import registry
-from keypoints.registry import ModelError, ModelSpec
+from roomcap.core.errors import FormatError
+from roomcap.keypoints import registry
+from roomcap.keypoints.registry import ModelError, ModelSpec
 
 SHIPPED = [
     "yolox_nano",
@@ -187,7 +187,7 @@ def test_fetch_unpacks_openmmlab_zip_and_records_sha(isolated, server):
 
 
 def test_cli_list_and_fetch(isolated, server, capsys):
-    from keypoints.cli import main
+    from roomcap.keypoints.cli import main
 
     root, base = server
     assert main(["list"]) == 0

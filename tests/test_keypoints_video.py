@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from keypoints_tiny import make_dets_model, make_simcc_model
 
-from core.errors import FormatError
-from keypoints.detections import Detections
-from keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
-from keypoints.video import check_size, run_session, run_videos
+from roomcap.core.errors import FormatError
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig
+from roomcap.keypoints.video import check_size, run_session, run_videos
 
 W, H = 160, 120
 
@@ -149,7 +149,7 @@ def test_bottom_up_maps_are_kept_for_the_tracker(tmp_path, monkeypatch):
 
 
 def test_cli_run_on_explicit_videos(tmp_path, tiny_set, capsys):
-    from keypoints.cli import main
+    from roomcap.keypoints.cli import main
 
     v = write_video(tmp_path / "camA.avi", 2)
     args = ["run", f"cam07={v}", "--out", str(tmp_path / "kp"), "--models", tiny_set.model_set]

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from pipeline.config import PipelineConfig
-from pipeline.discover import discover
-from pipeline.executors import run_sessions
-from pipeline.session_inputs import probe_videos
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import discover
+from roomcap.pipeline.executors import run_sessions
+from roomcap.pipeline.session_inputs import probe_videos
 
 SIZE = (64, 48)
 
@@ -25,7 +25,7 @@ def _video(path, n_frames: int, fps: float) -> None:
 
 
 def _session(root, frames=(5, 5), rates=(25.0, 25.0)):
-    from synthetic.rigs import ring_rig
+    from roomcap.synthetic.rigs import ring_rig
 
     ring_rig(2, size_wh=SIZE).save(root / "calib" / "rig.toml")
     for i, (n, fps) in enumerate(zip(frames, rates, strict=True)):

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from core.errors import FormatError
-from pipeline.config import PipelineConfig
-from pipeline.discover import discover
+from roomcap.core.errors import FormatError
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import discover
 
 
 def test_discovers_both_layouts_and_reports_missing_calibration(tmp_path):
@@ -53,7 +53,7 @@ def test_config_rejects_unknown_keys_and_stages():
 def test_keypoints_skeleton_option_reaches_the_2d_stage_without_rerunning_old_sessions():
     """[keypoints] skeleton = "model" keeps the model's own layout (BlazePose's feet for whole-body 3D);
     the default is left out of the stage's recorded settings, so sessions made before it stay current."""
-    from pipeline.config import KeypointsConfig
+    from roomcap.pipeline.config import KeypointsConfig
 
     default = PipelineConfig.from_dict({"keypoints": {"model_set": "default"}})
     assert default.keypoints.provenance() == {"model_set": "default", "max_frames": None}
@@ -68,7 +68,7 @@ def test_keypoints_skeleton_option_reaches_the_2d_stage_without_rerunning_old_se
 def test_keypoint_presets_resolve_and_are_recorded():
     """The default preset is "balanced" (tracked crops); a named preset's settings are what the stage records,
     so changing a preset re-runs keypoints; an unknown preset fails when the config loads."""
-    from keypoints.presets import preset_config
+    from roomcap.keypoints.presets import preset_config
 
     kp = PipelineConfig().keypoints
     assert kp.preset_name == "balanced" and kp.settings["detect_every"] > 1
@@ -90,7 +90,7 @@ def test_stage_options_are_checked_when_the_config_loads(tmp_path, capsys):
         PipelineConfig.from_dict({"track": {"tracker": "greedy", "options": {"tau": 0.2}}})
     with pytest.raises(FormatError, match=r"track.options.*n_particle"):
         PipelineConfig.from_dict({"track": {"tracker": "particle", "options": {"n_particle": 3}}})
-    from pipeline.cli import main
+    from roomcap.pipeline.cli import main
 
     (tmp_path / "p.toml").write_text('[track]\ntracker = "greedy"\n[track.options]\nsigmaa = 2\n')
     assert main([str(tmp_path), "--config", str(tmp_path / "p.toml")]) == 2
@@ -100,8 +100,8 @@ def test_stage_options_are_checked_when_the_config_loads(tmp_path, capsys):
 def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
     """The options are parsed when the config is made, into the stages' own typed configs; replace() of
     other fields does not parse them again, and another tracker is checked against its own keys."""
-    import pipeline.config as pc
-    from track.greedy_stage import GreedyTrackConfig
+    import roomcap.pipeline.config as pc
+    from roomcap.track.greedy_stage import GreedyTrackConfig
 
     cfg = PipelineConfig.from_dict(
         {

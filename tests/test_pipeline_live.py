@@ -13,19 +13,19 @@ import numpy as np
 import pytest
 from track_helpers import walkers
 
-from capture.config import parse_config
-from capture.live import LiveStep
-from capture.session import SessionLayout
-from capture.sources import Frame
-from capture.sync import FrameSet
-from core.errors import FormatError
-from keypoints.skeletons import CANONICAL
-from pipeline.live import STAGES, LiveContext, _track, legacy_live_dir, live_dir, load_live_tracks
-from synthetic.rigs import ring_rig
-from track.cli import resolve_tracks
-from track.particle_config import ParticleConfig
-from track.trackfile import TrackFile, iter_parts
-from triangulate.chunks import PartStore, parts_dir, remove_output
+from roomcap.capture.config import parse_config
+from roomcap.capture.live import LiveStep
+from roomcap.capture.session import SessionLayout
+from roomcap.capture.sources import Frame
+from roomcap.capture.sync import FrameSet
+from roomcap.core.errors import FormatError
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.pipeline.live import STAGES, LiveContext, _track, legacy_live_dir, live_dir, load_live_tracks
+from roomcap.synthetic.rigs import ring_rig
+from roomcap.track.cli import resolve_tracks
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.trackfile import TrackFile, iter_parts
+from roomcap.triangulate.chunks import PartStore, parts_dir, remove_output
 
 FAST = ParticleConfig(motion="constant_velocity", n_samples=100)
 
@@ -211,7 +211,7 @@ def test_an_older_live_tracks_1_folder_still_loads(tmp_path):
 def test_the_runner_closes_the_track_stage_so_the_last_part_is_written(tmp_path):
     """A recording that ends on a non-final set (the runner skips sets when it falls behind) still gets its
     last frames: LiveRunner calls the stage's close() at the end."""
-    from capture.live import LiveRunner
+    from roomcap.capture.live import LiveRunner
 
     rig = ring_rig(3, radius_m=4.0)
     names = [c.name for c in rig.cameras]
@@ -232,8 +232,8 @@ def test_the_runner_closes_the_track_stage_so_the_last_part_is_written(tmp_path)
 def test_downstream_reads_a_live_session_like_a_batch_one(tmp_path, capsys):
     """The tracks CLI and the report read a session that only has the live track, through the common
     loader; the skeleton fit of the live track does not take the batch track's companion name."""
-    from pipeline.report.inputs import _load
-    from track.cli import main as tracks_main
+    from roomcap.pipeline.report.inputs import _load
+    from roomcap.track.cli import main as tracks_main
 
     sess = tmp_path / "S07"
     lay, *_ = _record(sess, n_frames=30, chunk=10)

@@ -18,15 +18,15 @@ import cv2
 import numpy as np
 import pytest
 
-from capture.config import parse_config
-from capture.live import LiveStep
-from capture.sources import Frame, host_now_ns
-from capture.sync import FrameSet
-from core.errors import InputError
-from keypoints.skeletons import CANONICAL
-from pipeline.liveview.browser import find_chromium
-from pipeline.liveview.server import LiveView, ViewConfig
-from synthetic.rigs import ring_rig
+from roomcap.capture.config import parse_config
+from roomcap.capture.live import LiveStep
+from roomcap.capture.sources import Frame, host_now_ns
+from roomcap.capture.sync import FrameSet
+from roomcap.core.errors import InputError
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.pipeline.liveview.browser import find_chromium
+from roomcap.pipeline.liveview.server import LiveView, ViewConfig
+from roomcap.synthetic.rigs import ring_rig
 
 aiohttp = pytest.importorskip("aiohttp", reason="aiohttp not installed: pip install 'roomcap[view]'")
 J = CANONICAL.n_joints
@@ -210,7 +210,7 @@ def test_a_token_guards_every_request():
 
 
 def test_capture_run_refuses_bad_live_output_options_before_recording(tmp_path, capsys):
-    from pipeline.live import main
+    from roomcap.pipeline.live import main
 
     (tmp_path / "cams.yaml").write_text("cameras:\n  - {name: a, source: 'synthetic:', fps: 10}\n")
     base = ["--cameras", str(tmp_path / "cams.yaml"), "--duration", "0.5", "--quiet"]
@@ -228,8 +228,8 @@ def test_live_without_view_or_streams_is_unchanged():
     """No output asked for: nothing opens, the live loop's hook stays as it was (None in capture-run)."""
     import argparse
 
-    from capture.live import LiveRunner
-    from pipeline.live_outputs import Outputs
+    from roomcap.capture.live import LiveRunner
+    from roomcap.pipeline.live_outputs import Outputs
 
     cfg = parse_config({"cameras": [{"name": "a", "source": "synthetic:"}]})
     live = LiveRunner(cfg, "unused", stages={})
@@ -254,11 +254,11 @@ def test_recording_with_the_page_in_chromium_killed_mid_run_drops_no_frame(tmp_p
     import argparse
     import threading
 
-    from capture.config import load_config
-    from capture.live import LiveRunner
-    from capture.recorder import Recorder
-    from pipeline.live_outputs import Outputs
-    from pipeline.liveview.browser import HeadlessBrowser
+    from roomcap.capture.config import load_config
+    from roomcap.capture.live import LiveRunner
+    from roomcap.capture.recorder import Recorder
+    from roomcap.pipeline.live_outputs import Outputs
+    from roomcap.pipeline.liveview.browser import HeadlessBrowser
 
     rig = ring_rig(4, radius_m=4.0)
     names = [c.name for c in rig.cameras]

@@ -7,7 +7,7 @@ import json
 import pytest
 from conftest import need_shared
 
-from pipeline.cli import main as reprocess
+from roomcap.pipeline.cli import main as reprocess
 
 
 def test_pose2sim_openpose_trial_end_to_end(tmp_path):

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from capture.session import SessionLayout
-from keypoints.skeletons import CANONICAL
-from pipeline.report import ReportConfig, track_events, write_overlay_videos, write_report
-from synthetic.rigs import ring_rig
-from track.trackfile import OBSERVED, PREDICTED, TrackFile
+from roomcap.capture.session import SessionLayout
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.pipeline.report import ReportConfig, track_events, write_overlay_videos, write_report
+from roomcap.synthetic.rigs import ring_rig
+from roomcap.track.trackfile import OBSERVED, PREDICTED, TrackFile
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 need_chromium = pytest.mark.skipif(
@@ -80,10 +80,10 @@ def make_session(root, n_people=3, T=60):
 
 def synthetic_session(root, seconds=3.0, cams=4, people=2, seed=0):
     """A rendered synthetic session (calibration + detections, no videos), triangulated and tracked."""
-    from synthetic import render as R
-    from synthetic import rigs, world
-    from track.greedy_stage import track_session_greedy
-    from triangulate.stage import triangulate_session
+    from roomcap.synthetic import render as R
+    from roomcap.synthetic import rigs, world
+    from roomcap.track.greedy_stage import track_session_greedy
+    from roomcap.triangulate.stage import triangulate_session
 
     rig, room = rigs.ring_rig(cams, 3.0, seed=seed), rigs.ring_room(3.0)
     scene = world.make_scene(room, world.SceneConfig(n_people=people, duration_s=seconds, seed=seed))
@@ -181,7 +181,7 @@ def independent_camera_figures(poses3d_path):
 
 
 def test_triangulate_writes_the_per_camera_errors_its_mean_is_made_of(tmp_path):
-    from triangulate.poses3d import Poses3D
+    from roomcap.triangulate.poses3d import Poses3D
 
     lay = synthetic_session(tmp_path / "s")
     p = Poses3D.load(lay.poses3d)
@@ -196,7 +196,7 @@ def test_triangulate_writes_the_per_camera_errors_its_mean_is_made_of(tmp_path):
 
 
 def test_poses3d_without_per_camera_errors_still_loads(tmp_path):
-    from triangulate.poses3d import Poses3D
+    from roomcap.triangulate.poses3d import Poses3D
 
     lay = synthetic_session(tmp_path / "s", seconds=1.0)
     d = dict(np.load(lay.poses3d))
@@ -248,7 +248,7 @@ def test_track_events_find_unobserved_frames_and_a_swap(tmp_path):
 
 
 def test_warnings_logged_by_a_stage_reach_the_report(tmp_path):
-    from pipeline.cli import main as reprocess
+    from roomcap.pipeline.cli import main as reprocess
 
     lay = synthetic_session(tmp_path / "s", seconds=1.0)
     lay.detections("cam01").unlink()  # the rig has a camera without detections: triangulate warns
@@ -361,7 +361,7 @@ def test_multi_person_demo_report(tmp_path):
     bystander was drawn outside all of them: the old sectors were cut at 2.5 m)."""
     from matplotlib.path import Path as PolyPath
 
-    from pipeline.cli import main as reprocess
+    from roomcap.pipeline.cli import main as reprocess
 
     trial = need_shared("data", "pose2sim", "demo-wheel-0.10.49", "Demo_MultiPerson")
     out = tmp_path / "out"
@@ -397,8 +397,8 @@ def test_multi_person_demo_report(tmp_path):
 def test_merge_whose_merged_hypothesis_is_dropped_later():
     """A merged into by B (disjoint cameras), then A dropped for C (shared cameras, more views): nothing
     is left to re-triangulate, which must work with the per-camera rows of V (it once raised)."""
-    from synthetic.rigs import ring_rig as rr
-    from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
+    from roomcap.synthetic.rigs import ring_rig as rr
+    from roomcap.triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
     rig = rr(4, radius_m=4.0)
     X = np.zeros((19, 3))

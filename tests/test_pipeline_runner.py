@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 from pipeline_helpers import stage_outputs
 
-from pipeline.cli import main as reprocess
-from pipeline.config import PipelineConfig
-from pipeline.discover import SessionSource, discover
-from pipeline.executors import run_sessions
-from pipeline.synth import make_sessions
+from roomcap.pipeline.cli import main as reprocess
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import SessionSource, discover
+from roomcap.pipeline.executors import run_sessions
+from roomcap.pipeline.synth import make_sessions
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = "triangulate,track,forecast,report"
@@ -62,7 +62,7 @@ def test_new_calibration_reruns_triangulation_not_keypoints(tmp_path):
     (first,) = run_sessions(discover([tmp_path / "in"]), out, cfg, workers=1)
     assert first.ran == ["calibration", "keypoints", "triangulate", "track"]
     rig_path = tmp_path / "in" / "syn_00" / "calib" / "rig.toml"
-    from calibrate.camera import CameraRig
+    from roomcap.calibrate.camera import CameraRig
 
     rig = CameraRig.load(rig_path)  # a recalibration: every camera 1 cm off
     cams = [
@@ -81,7 +81,7 @@ def test_killed_run_resumes_to_identical_outputs(sessions, reference, tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "pipeline.cli",
+        "roomcap.pipeline.cli",
         str(sessions),
         "--out",
         str(out),
@@ -128,7 +128,7 @@ def test_corrupt_session_fails_alone(sessions, tmp_path, capsys):
 
 
 def test_disk_full_keeps_finished_stages(tmp_path, monkeypatch):
-    from pipeline.stages import TrackStage
+    from roomcap.pipeline.stages import TrackStage
 
     make_sessions(tmp_path / "in", 1, duration_s=1.0)
     out = tmp_path / "out"
@@ -183,7 +183,7 @@ def test_ray_tasks_ask_for_a_gpu_when_onnxruntime_has_cuda(monkeypatch, sessions
     """Without a GPU here: a stand-in for ray records what the tasks ask for."""
     import types
 
-    from pipeline import executors
+    from roomcap.pipeline import executors
 
     asked = []
     fake = types.SimpleNamespace(
@@ -234,7 +234,7 @@ def test_in_place_session_with_only_rig_and_detections(sessions, tmp_path):
 
 
 def test_changed_stage_code_reruns_that_stage_only(tmp_path, monkeypatch):
-    from pipeline import runner
+    from roomcap.pipeline import runner
 
     make_sessions(tmp_path / "in", 1, duration_s=1.0)
     (first,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
@@ -252,7 +252,7 @@ def test_changed_stage_code_reruns_that_stage_only(tmp_path, monkeypatch):
 def test_reprocess_with_chunk_s_streams_end_to_end(sessions, tmp_path, tracker):
     """`reprocess` with chunk_s > 0: the 3D stages write their parts folders, the runner caches
     and fingerprints them, forecast and report read them, and the tracks equal the whole-session run's."""
-    from track.trackfile import TrackFile
+    from roomcap.track.trackfile import TrackFile
 
     src = sessions / "syn_02"  # 3 people
     stages = "triangulate,track,forecast,report" if tracker == "greedy" else "track,forecast,report"
@@ -275,8 +275,8 @@ def test_reprocess_with_chunk_s_streams_end_to_end(sessions, tmp_path, tracker):
     if tracker == "greedy":
         assert (s / "triangulate" / "poses3d.parts" / "index.json").exists()
     assert (s / "forecast" / "preview.npz").exists() and (s / "report" / "report.html").exists()
-    from capture.session import SessionLayout
-    from pipeline.report.inputs import _load
+    from roomcap.capture.session import SessionLayout
+    from roomcap.pipeline.report.inputs import _load
 
     inp = _load(SessionLayout(s))  # what the report reads: the parts joined
     assert inp.tracks is not None and not inp.tracks_error and inp.tracks.n_tracks == 3
@@ -301,8 +301,8 @@ def test_long_sessions_stream_by_default(sessions, tmp_path, tracker, monkeypatc
     STREAM_CHUNK_FRAMES, a shorter one is not; the runner plans the outputs the stages write (a rerun runs
     nothing) and the tracks equal the whole-session run's bit for bit. The thresholds are lowered here so
     that a small session is "long"."""
-    from track.trackfile import TrackFile
-    from triangulate import chunks
+    from roomcap.track.trackfile import TrackFile
+    from roomcap.triangulate import chunks
 
     src = sessions / "syn_02"
     n = max(int(np.load(f)["frame_index"].shape[0]) for f in (src / "keypoints").glob("*.npz"))

@@ -20,13 +20,13 @@ from pathlib import Path
 import pytest
 from pipeline_helpers import stage_outputs
 
-from pipeline.cli import main as reprocess
-from pipeline.config import PipelineConfig
-from pipeline.discover import discover
-from pipeline.executors import run_sessions
-from pipeline.lock import LockHolder, holder, lock_path, session_lock
-from pipeline.synth import make_session
-from track.greedy_stage import GreedyTrackConfig
+from roomcap.pipeline.cli import main as reprocess
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import discover
+from roomcap.pipeline.executors import run_sessions
+from roomcap.pipeline.lock import LockHolder, holder, lock_path, session_lock
+from roomcap.pipeline.synth import make_session
+from roomcap.track.greedy_stage import GreedyTrackConfig
 
 REPO = Path(__file__).resolve().parents[1]
 PARTICLE = '[track]\ntracker = "particle"\n[track.options]\nn_samples = 1000\n'
@@ -53,7 +53,7 @@ def reference(session, config_toml, tmp_path_factory) -> Path:
 
 def _start(session: Path, out: Path, cfg: Path, *extra: str) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "pipeline.cli", str(session), "--out", str(out), "--workers", "1"]
+    cmd = [sys.executable, "-m", "roomcap.pipeline.cli", str(session), "--out", str(out), "--workers", "1"]
     return subprocess.Popen(
         [*cmd, "--config", str(cfg), *extra],
         cwd=REPO,
@@ -122,7 +122,7 @@ def test_lock_in_one_process_and_wait(tmp_path):
     """Two holders in one process conflict as well (flock is per open file); wait=True waits."""
     import threading
 
-    from pipeline.lock import SessionLocked
+    from roomcap.pipeline.lock import SessionLocked
 
     with session_lock(tmp_path) as lock:
         assert holder(tmp_path) == lock.holder
@@ -210,9 +210,9 @@ def test_warnings_survive_cached_reruns(session, tmp_path):
 
     import numpy as np
 
-    from calibrate.camera import CameraRig
-    from capture.session import SessionLayout
-    from pipeline.report.problems import _warnings
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.capture.session import SessionLayout
+    from roomcap.pipeline.report.problems import _warnings
 
     src = tmp_path / "in" / "wide"
     shutil.copytree(session, src)
@@ -288,7 +288,7 @@ def test_ray_tasks_take_the_same_lock(session, tmp_path, monkeypatch):
     """A session run as a Ray task (a stand-in for ray runs the task here) meets the lock like a local run."""
     import types
 
-    from pipeline import executors
+    from roomcap.pipeline import executors
 
     fake = types.SimpleNamespace(
         is_initialized=lambda: True,
@@ -310,7 +310,7 @@ def test_a_ctrl_c_that_native_code_hands_back_as_another_error_still_stops(sessi
     """The SIGINT handler's KeyboardInterrupt, raised while a numba kernel dispatched, came back as
     SystemError ("returned a result with an exception set"): the run must stop as interrupted (130), not
     report the stage failed (CI saw it once)."""
-    from pipeline import runner
+    from roomcap.pipeline import runner
 
     def stage_hit_by_ctrl_c(*a, **k):
         try:

@@ -10,17 +10,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.session import SessionLayout
-from core.errors import FormatError
-from core.fileio import load_toml, save_toml
-from synthetic.render import RenderConfig, render
-from synthetic.rigs import kitchen
-from synthetic.world import SceneConfig, make_scene, write_session
-from track.greedy_stage import track_session_greedy
-from track.trackfile import TrackFile
-from triangulate import evaluate as ev
-from triangulate.multiview import FrameShift, load_detections, sync_shifts
-from triangulate.stage import triangulate_session
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import load_toml, save_toml
+from roomcap.synthetic.render import RenderConfig, render
+from roomcap.synthetic.rigs import kitchen
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session
+from roomcap.track.greedy_stage import track_session_greedy
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate import evaluate as ev
+from roomcap.triangulate.multiview import FrameShift, load_detections, sync_shifts
+from roomcap.triangulate.stage import triangulate_session
 
 OFFSETS = (0.0, 0.0, 6.0, -4.0)  # cam02 started 6 frames late, cam03 4 frames early
 
@@ -102,9 +102,9 @@ def test_frame_shift_mapping_and_bad_sync_tables(tmp_path, world):
 
 
 def test_reprocess_carries_the_offsets_to_out_and_reruns_when_they_change(tmp_path, world):
-    from pipeline.config import PipelineConfig
-    from pipeline.discover import discover
-    from pipeline.executors import run_sessions
+    from roomcap.pipeline.config import PipelineConfig
+    from roomcap.pipeline.discover import discover
+    from roomcap.pipeline.executors import run_sessions
 
     rig, scene = world
     sync = {c: {"offset_frames": o} for c, o in zip(rig.names, OFFSETS, strict=True)}

@@ -7,17 +7,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calibrate.camera import CameraRig
-from calibrate.checks import rig_warnings
-from capture.session import SessionLayout
-from core.errors import FormatError
-from keypoints.detections import Detections
-from pipeline.config import PipelineConfig
-from pipeline.discover import discover
-from pipeline.runner import process_session
-from pipeline.synth import make_session
-from synthetic.rigs import ring_rig
-from triangulate.stage import triangulate_session
+from roomcap.calibrate.camera import CameraRig
+from roomcap.calibrate.checks import rig_warnings
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.keypoints.detections import Detections
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import discover
+from roomcap.pipeline.runner import process_session
+from roomcap.pipeline.synth import make_session
+from roomcap.synthetic.rigs import ring_rig
+from roomcap.triangulate.stage import triangulate_session
 
 
 def _scaled(rig: CameraRig, factor: float) -> CameraRig:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from keypoints.skeletons import CANONICAL
-from synthetic import bvh
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.synthetic import bvh
 
 J = {n: i for i, n in enumerate(CANONICAL.joint_names)}
 

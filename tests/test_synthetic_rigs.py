@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrate.camera import CameraRig
-from synthetic import rigs
+from roomcap.calibrate.camera import CameraRig
+from roomcap.synthetic import rigs
 
 
 def test_look_at_convention():

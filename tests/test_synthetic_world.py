@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from calibrate.camera import CameraRig
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL
-from synthetic import render as R
-from synthetic import rigs, world
+from roomcap.calibrate.camera import CameraRig
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.synthetic import render as R
+from roomcap.synthetic import rigs, world
 
 J = {n: i for i, n in enumerate(CANONICAL.joint_names)}
 CLEAN = R.RenderConfig(occlusion_people=False, occlusion_furniture=False, shuffle=True)
@@ -255,7 +255,7 @@ def test_kitchen_12x8x10s_renders_in_seconds():
 
 
 def test_cli_writes_a_session(tmp_path):
-    from synthetic.__main__ import main
+    from roomcap.synthetic.__main__ import main
 
     assert main([str(tmp_path / "s"), "--rig", "ring", "--cams", "3", "--people", "2", "--seconds", "1"]) == 0
     names = sorted(p.name for p in (tmp_path / "s" / "keypoints").iterdir())

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from track_helpers import render_kp, ring_P, walkers
 
-from keypoints.skeletons import CANONICAL, get_skeleton
-from track.priors import TEMPLATE_BODY19_M
+from roomcap.keypoints.skeletons import CANONICAL, get_skeleton
+from roomcap.track.priors import TEMPLATE_BODY19_M
 
 torch = pytest.importorskip("torch")
 
@@ -17,7 +17,7 @@ DROP = [CANONICAL.index(n) for n in ("left_wrist", "right_elbow", "right_wrist",
 
 @pytest.fixture(scope="module")
 def gen():
-    from track.birth import DEFAULT_CHECKPOINT, BirthGenerator
+    from roomcap.track.birth import DEFAULT_CHECKPOINT, BirthGenerator
 
     torch.set_num_threads(1)
     assert DEFAULT_CHECKPOINT.exists() and DEFAULT_CHECKPOINT.stat().st_size < 500_000
@@ -25,7 +25,7 @@ def gen():
 
 
 def test_fills_missing_joints_and_samples_diverge(gen):
-    from track.normalize import denormalize, hip_frame
+    from roomcap.track.normalize import denormalize, hip_frame
 
     X = walkers(1, 40, seed=7)[::8, 0]  # (5,J,3) poses of the procedural walker (not mocap)
     rng = np.random.default_rng(0)
@@ -52,9 +52,9 @@ def test_fills_missing_joints_and_samples_diverge(gen):
 
 
 def test_checkpoint_mismatch_is_refused(tmp_path):
-    from track.birth import BirthGenerator, BirthNet, save_checkpoint
-    from track.motion import DEFAULT_CHECKPOINT as MOTION
-    from track.motion import CheckpointMismatch
+    from roomcap.track.birth import BirthGenerator, BirthNet, save_checkpoint
+    from roomcap.track.motion import DEFAULT_CHECKPOINT as MOTION
+    from roomcap.track.motion import CheckpointMismatch
 
     coco = get_skeleton("coco17")
     bad = tmp_path / "coco.pt"
@@ -68,9 +68,9 @@ def test_checkpoint_mismatch_is_refused(tmp_path):
 
 
 def test_filter_starts_tracks_with_the_generator():
-    from track.particle import ParticleTracker
-    from track.particle_config import ParticleConfig
-    from track.particle_offline import track_sequence
+    from roomcap.track.particle import ParticleTracker
+    from roomcap.track.particle_config import ParticleConfig
+    from roomcap.track.particle_offline import track_sequence
 
     P = ring_P(3)
     X = walkers(2, 40, seed=3)

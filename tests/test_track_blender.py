@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from track.bvh import write_bvh
-from track.skeleton_fit import fit_skeletons
-from track.skeleton_fit_file import SkeletonFit
+from roomcap.track.bvh import write_bvh
+from roomcap.track.skeleton_fit import fit_skeletons
+from roomcap.track.skeleton_fit_file import SkeletonFit
 
 PROBE = Path(__file__).with_name("blender_bvh_probe.py")
 

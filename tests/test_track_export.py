@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from keypoints.skeletons import CANONICAL
-from track.bvh import write_bvh
-from track.cli import main as tracks_main
-from track.export import (
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.track.bvh import write_bvh
+from roomcap.track.cli import main as tracks_main
+from roomcap.track.export import (
     ExportError,
     ExportOptions,
     export_tracks,
@@ -19,8 +19,8 @@ from track.export import (
     write_c3d,
     write_trc,
 )
-from track.skeleton_fit import SkeletonFit, file_sha256, fit_skeleton, fit_skeletons
-from track.trackfile import OBSERVED, TrackFile, read_json, read_trc, world_to_yup, yup_to_world
+from roomcap.track.skeleton_fit import SkeletonFit, file_sha256, fit_skeleton, fit_skeletons
+from roomcap.track.trackfile import OBSERVED, TrackFile, read_json, read_trc, world_to_yup, yup_to_world
 
 
 def _walkers(n_people=2, T=60, seed=0):
@@ -103,7 +103,7 @@ def test_person_without_a_complete_frame_is_a_clear_error():
     tf = _trackfile(xyz)
     with pytest.raises(ExportError, match=r"track 3 has no frame in which all its markers are known"):
         marker_table(tf, 3, max_gap=5)
-    from track.skeleton_fit_file import FitError
+    from roomcap.track.skeleton_fit_file import FitError
 
     with pytest.raises(FitError, match=r"track 3 has no frame in which all 19 joints are known"):
         fit_skeletons(tf)
@@ -113,7 +113,7 @@ def test_unknown_format_and_person():
     with pytest.raises(ExportError, match=r"unknown export format \['fbx'\].*trc,c3d,bvh,csv,json"):
         parse_formats("trc,fbx")
     tf = _trackfile(_walkers(1, 10))
-    from core.errors import FormatError
+    from roomcap.core.errors import FormatError
 
     with pytest.raises(FormatError, match=r"no track 9; the file has tracks \[3\]"):
         marker_table(tf, 9)
@@ -216,14 +216,14 @@ def test_fit_save_load_and_stale(tmp_path, rng):
     fit.save(tmp_path / "skeleton_fit.npz")
     back = SkeletonFit.load(tmp_path / "skeleton_fit.npz", tracks_sha256=sha)
     np.testing.assert_allclose(back.positions(), fit.positions(), atol=1e-9)
-    from core.errors import FormatError
+    from roomcap.core.errors import FormatError
 
     with pytest.raises(FormatError, match="another version of the track file"):
         SkeletonFit.load(tmp_path / "skeleton_fit.npz", tracks_sha256="0" * 64)
 
 
 def test_bvh_forward_kinematics_equals_fit(tmp_path, rng):
-    from synthetic.bvh import read_bvh
+    from roomcap.synthetic.bvh import read_bvh
 
     xyz = _walkers(2, 40) + rng.normal(0, 0.005, (40, 2, 19, 3))
     xyz[:10, 1] = np.nan  # second person enters later
@@ -318,15 +318,15 @@ def test_cli_bvh_of_unfittable_person_says_why(tmp_path, capsys):
 
 
 def test_reprocess_export_rejects_unknown_format(tmp_path, capsys):
-    from pipeline.cli import main as reprocess_main
+    from roomcap.pipeline.cli import main as reprocess_main
 
     assert reprocess_main([str(tmp_path), "--export", "trc,obj"]) == 2
     assert "unknown export format ['obj']" in capsys.readouterr().err
 
 
 def test_reprocess_export_writes_files_per_person(tmp_path, capsys):
-    from pipeline.cli import main as reprocess_main
-    from pipeline.synth import make_sessions
+    from roomcap.pipeline.cli import main as reprocess_main
+    from roomcap.pipeline.synth import make_sessions
 
     make_sessions(tmp_path / "syn", 1, duration_s=1.0)
     sess = next(p for p in (tmp_path / "syn").iterdir() if p.is_dir())
@@ -355,8 +355,8 @@ def test_reprocess_export_writes_files_per_person(tmp_path, capsys):
 
 
 def test_lowpass_as_pose2sim_filters(tmp_path, capsys):
-    from track.export import lowpass
-    from track.trackfile import SMOOTHED
+    from roomcap.track.export import lowpass
+    from roomcap.track.trackfile import SMOOTHED
 
     T, fps = 120, 25.0
     t = np.arange(T) / fps

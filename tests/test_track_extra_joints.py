@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from triangulate_helpers import FOOT_HEAD_OFFSETS
 
-from capture.session import SessionLayout
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, SKELETONS, whole_body
-from track.extra_joints import ExtraJointsConfig, assign_views, attach_joints
-from track.stage import ParticleTrackConfig, track_session_particle
-from track.trackfile import OBSERVED, TrackFile
+from roomcap.capture.session import SessionLayout
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL, SKELETONS, whole_body
+from roomcap.track.extra_joints import ExtraJointsConfig, assign_views, attach_joints
+from roomcap.track.stage import ParticleTrackConfig, track_session_particle
+from roomcap.track.trackfile import OBSERVED, TrackFile
 
 
 def _body25b(gt19: np.ndarray) -> np.ndarray:
@@ -29,8 +29,8 @@ def _body25b(gt19: np.ndarray) -> np.ndarray:
 
 
 def _session(tmp_path, seconds=2.0, noise_px=1.0):
-    from synthetic.rigs import ring_rig, ring_room
-    from synthetic.world import SceneConfig, make_scene
+    from roomcap.synthetic.rigs import ring_rig, ring_room
+    from roomcap.synthetic.world import SceneConfig, make_scene
 
     fps = 25.0
     rig = ring_rig(4, radius_m=4.0)
@@ -91,7 +91,7 @@ def test_assign_views_gates_and_swaps():
     P = np.array([[[1000.0, 0, 500, 0], [0, 1000, 500, 0], [0, 0, 1, 4]]])  # one camera, 4 m away
     rng = np.random.default_rng(1)
     X = np.stack([rng.normal(0, 0.3, (19, 3)), rng.normal(0, 0.3, (19, 3)) + (1.5, 0, 0)])  # two tracks
-    from triangulate.geometry import project
+    from roomcap.triangulate.geometry import project
 
     uv = project(P, X.reshape(-1, 3))[0].reshape(2, 19, 2)
     xy = np.stack([uv[1], uv[0], uv[0] + 400])[None]  # slot 0 = track 1, slot 1 = track 0, slot 2 = nobody
@@ -131,7 +131,7 @@ def test_attach_joints_checks_shapes_and_bad_skeleton():
 
 
 def test_pipeline_gives_the_particle_tracker_the_triangulate_skeleton():
-    from pipeline.config import PipelineConfig
+    from roomcap.pipeline.config import PipelineConfig
 
     wb = {"triangulate": {"options": {"skeleton": "whole_body"}}}
     cfg = PipelineConfig.from_dict({**wb, "track": {"tracker": "particle", "options": {"n_samples": 50}}})

@@ -9,15 +9,15 @@ import sys
 import numpy as np
 import pytest
 
-from keypoints.skeletons import get_skeleton
-from track.priors import DEFAULT_MOTION_CHECKPOINT, load_gru_numpy, numpy_copy_path
+from roomcap.keypoints.skeletons import get_skeleton
+from roomcap.track.priors import DEFAULT_MOTION_CHECKPOINT, load_gru_numpy, numpy_copy_path
 
 
 def test_shipped_checkpoint_has_an_up_to_date_numpy_copy(rng):
     prior = load_gru_numpy(DEFAULT_MOTION_CHECKPOINT, fps=30.0, sigma_m=0.003)
     assert prior is not None, "run track.motion.write_gru_numpy_copy on the shipped checkpoint"
     torch = pytest.importorskip("torch")
-    from track.motion import GRUPrior
+    from roomcap.track.motion import GRUPrior
 
     torch.set_num_threads(1)
     ref = GRUPrior.load(fps=30.0, sigma_m=0.003)
@@ -31,7 +31,7 @@ def test_shipped_checkpoint_has_an_up_to_date_numpy_copy(rng):
 
 def test_stale_or_foreign_numpy_copy_is_ignored(tmp_path):
     pytest.importorskip("torch")
-    from track.motion import PoseGRU, save_checkpoint
+    from roomcap.track.motion import PoseGRU, save_checkpoint
 
     body = get_skeleton("body19")
     path = tmp_path / "m.pt"

@@ -13,15 +13,15 @@ import pytest
 import torch
 from track_helpers import render_kp, ring_P, walkers
 
-from keypoints.skeletons import CANONICAL
-from track import kernels as kn
-from track import kernels_gru as kg
-from track import observation as obs
-from track.motion import GRUPrior, step_inputs
-from track.normalize import unrotate_vectors
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_offline import track_sequence
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.track import kernels as kn
+from roomcap.track import kernels_gru as kg
+from roomcap.track import observation as obs
+from roomcap.track.motion import GRUPrior, step_inputs
+from roomcap.track.normalize import unrotate_vectors
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_offline import track_sequence
 
 LIMBS = np.asarray(CANONICAL.limbs)
 SM, SPX, EPS = 0.05, 3.0, 0.01

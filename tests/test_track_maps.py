@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from track_helpers import render_kp, render_maps, ring_P, walkers
 
-from track import observation as obs
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_offline import track_sequence
+from roomcap.track import observation as obs
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_offline import track_sequence
 
 FOCAL = np.full(3, 1000.0)
 FAST = dict(motion="constant_velocity", n_samples=150, smooth_sigma_frames=0.0)
@@ -72,17 +72,17 @@ def test_stage_reads_stored_maps_of_distorted_cameras(tmp_path, caplog):
     ``maps_to_img``) are read back in the tracker's layout and weigh the samples; lens distortion applied."""
     import logging
 
-    from keypoints.decoders import OPENPOSE_LIMBS
-    from keypoints.detections import Detections
-    from keypoints.registry import get_spec
-    from keypoints.skeletons import CANONICAL, get_skeleton
-    from synthetic.render import RenderConfig, render
-    from synthetic.rigs import ring_rig, ring_room
-    from synthetic.world import SceneConfig, make_scene, write_session
-    from track.particle_io import load_maps
-    from track.stage import track_session_particle
-    from track.trackfile import TrackFile
-    from triangulate.multiview import load_detections
+    from roomcap.keypoints.decoders import OPENPOSE_LIMBS
+    from roomcap.keypoints.detections import Detections
+    from roomcap.keypoints.registry import get_spec
+    from roomcap.keypoints.skeletons import CANONICAL, get_skeleton
+    from roomcap.synthetic.render import RenderConfig, render
+    from roomcap.synthetic.rigs import ring_rig, ring_room
+    from roomcap.synthetic.world import SceneConfig, make_scene, write_session
+    from roomcap.track.particle_io import load_maps
+    from roomcap.track.stage import track_session_particle
+    from roomcap.track.trackfile import TrackFile
+    from roomcap.triangulate.multiview import load_detections
 
     rig = ring_rig(3, radius_m=4.0, distortion=True, seed=1)
     scene = make_scene(
@@ -126,7 +126,7 @@ def test_stage_reads_stored_maps_of_distorted_cameras(tmp_path, caplog):
                 "maps_to_img": np.tile(np.float64([[stride, 0, 0], [0, stride, 0]]), (T, 1, 1)),
             },
         ).save(p)
-    from capture.session import SessionLayout
+    from roomcap.capture.session import SessionLayout
 
     sub, mv = load_detections(SessionLayout(tmp_path), rig)
     got = load_maps(SessionLayout(tmp_path), sub, mv.frame_index)(3)
@@ -136,7 +136,7 @@ def test_stage_reads_stored_maps_of_distorted_cameras(tmp_path, caplog):
     # the distortion maps the undistorted projection onto the image point
     uv_u = sub[0].undistort_px(sub[0].project(gt[3, 0]))
     assert np.abs(got[0].distort(uv_u.astype(np.float32)) - sub[0].project(gt[3, 0])).max() < 0.05
-    with caplog.at_level(logging.INFO, logger="track.stage"):
+    with caplog.at_level(logging.INFO, logger="roomcap.track.stage"):
         tf = TrackFile.load(
             track_session_particle(tmp_path, {"motion": "constant_velocity", "n_samples": 150})
         )

@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from keypoints.skeletons import CANONICAL, get_skeleton
-from track.normalize import denormalize, hip_frame, normalize
-from track.priors import ConstantVelocityPrior, ZeroVelocityPrior, gather_state
+from roomcap.keypoints.skeletons import CANONICAL, get_skeleton
+from roomcap.track.normalize import denormalize, hip_frame, normalize
+from roomcap.track.priors import ConstantVelocityPrior, ZeroVelocityPrior, gather_state
 
 PEL, LH, RH = CANONICAL.index("pelvis"), CANONICAL.index("left_hip"), CANONICAL.index("right_hip")
 
@@ -55,7 +55,13 @@ def test_non_learned_track_imports_without_torch():
 
 def test_gru_prior_dropout_diversity_and_checkpoint_mismatch(tmp_path, rng):
     torch = pytest.importorskip("torch")
-    from track.motion import DEFAULT_CHECKPOINT, CheckpointMismatch, GRUPrior, PoseGRU, save_checkpoint
+    from roomcap.track.motion import (
+        DEFAULT_CHECKPOINT,
+        CheckpointMismatch,
+        GRUPrior,
+        PoseGRU,
+        save_checkpoint,
+    )
 
     torch.set_num_threads(1)
     assert DEFAULT_CHECKPOINT.exists() and DEFAULT_CHECKPOINT.stat().st_size < 2_000_000
@@ -85,9 +91,9 @@ def test_trainers_write_loadable_checkpoints(tmp_path):
     pytest.importorskip("torch")
     from conftest import need_shared
 
-    from track import train_birth, train_motion
-    from track.birth import BirthGenerator
-    from track.motion import GRUPrior
+    from roomcap.track import train_birth, train_motion
+    from roomcap.track.birth import BirthGenerator
+    from roomcap.track.motion import GRUPrior
 
     mocap = need_shared("data", "motion")
     clips = [np.zeros((10, 19, 3), np.float32) + i for i in range(3)]

@@ -7,8 +7,8 @@ import warnings
 import numpy as np
 from track_helpers import ring_P
 
-from keypoints.skeletons import CANONICAL
-from track import observation as obs
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.track import observation as obs
 
 LIMBS = np.asarray(CANONICAL.limbs)
 

@@ -8,10 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
-from tests.conftest import need_shared
-from tests.test_track_export import _trackfile, _walkers
-from track.cli import main as tracks_main
-from track.opensim_ik import (
+from roomcap.track.cli import main as tracks_main
+from roomcap.track.opensim_ik import (
     OpenSimError,
     find_setup,
     foot_index_note,
@@ -19,6 +17,8 @@ from track.opensim_ik import (
     run_opensim,
     setup_marker_names,
 )
+from tests.conftest import need_shared
+from tests.test_track_export import _trackfile, _walkers
 
 pytest.importorskip("opensim", reason="OpenSim is an optional extra: pip install 'roomcap[opensim]'")
 

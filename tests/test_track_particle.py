@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from track_helpers import render_kp, ring_P, walkers
 
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_offline import track_sequence
-from track.trackfile import OBSERVED, PREDICTED
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_offline import track_sequence
+from roomcap.track.trackfile import OBSERVED, PREDICTED
 
 FOCAL = np.full(3, 1000.0)
 FAST = dict(motion="constant_velocity", n_samples=150, smooth_sigma_frames=0.0)

@@ -10,11 +10,11 @@ import pytest
 from track_helpers import render_kp, ring_P
 from triangulate_helpers import TEMPLATE
 
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_offline import track_sequence
-from track.trackfile import PREDICTED, SMOOTHED
-from triangulate import evaluate as ev
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_offline import track_sequence
+from roomcap.track.trackfile import PREDICTED, SMOOTHED
+from roomcap.triangulate import evaluate as ev
 
 FOCAL = np.full(3, 1000.0)
 FAST = dict(motion="constant_velocity", n_samples=150)
@@ -131,8 +131,8 @@ def test_max_people_caps_the_tracks_at_once():
     both, _ = _run(gt, t_s)
     one, _ = _run(gt, t_s, max_people=1)
     assert len(both.track_id) == 2 and len(one.track_id) == 1
-    from core.errors import FormatError
-    from pipeline.config import PipelineConfig
+    from roomcap.core.errors import FormatError
+    from roomcap.pipeline.config import PipelineConfig
 
     cfg = PipelineConfig.from_dict({"track": {"tracker": "particle", "options": {"max_people": 2}}})
     assert cfg.track.particle.max_people == 2

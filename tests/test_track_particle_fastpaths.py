@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 from track_helpers import render_kp, ring_P, walkers
 
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.split import Split, auto_threads
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.split import Split, auto_threads
 
 CFG = ParticleConfig(motion="constant_velocity", n_samples=120, smooth_sigma_frames=0.0)
 
@@ -100,18 +100,18 @@ def test_split_parts_cover_the_batch_in_order():
 
 
 def test_auto_threads_follow_the_cores_and_omp_num_threads(monkeypatch):
-    monkeypatch.setattr("track.split.available_cores", lambda: 16)
+    monkeypatch.setattr("roomcap.track.split.available_cores", lambda: 16)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert auto_threads(0) == 4 and auto_threads(6) == 6  # auto up to 4; an explicit number as given
     monkeypatch.setenv("OMP_NUM_THREADS", "2")  # a worker's share when sessions run at once
     assert auto_threads(0) == 2 and auto_threads(3) == 3
-    monkeypatch.setattr("track.split.available_cores", lambda: 1)
+    monkeypatch.setattr("roomcap.track.split.available_cores", lambda: 1)
     assert auto_threads(0) == 1
 
 
 def test_threads_are_not_a_setting_the_outputs_depend_on():
-    from pipeline.config import PipelineConfig
-    from pipeline.stages import _result_settings
+    from roomcap.pipeline.config import PipelineConfig
+    from roomcap.pipeline.stages import _result_settings
 
     def settings(options: dict) -> dict:
         config = PipelineConfig.from_dict({"track": {"tracker": "particle", "options": options}})

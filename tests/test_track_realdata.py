@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 from conftest import need_shared
 
-from capture.session import SessionLayout
-from core.fileio import save_toml
+from roomcap.capture.session import SessionLayout
+from roomcap.core.fileio import save_toml
 
 
 def make_pose2sim_session(trial, calib, root) -> SessionLayout:
-    from calibrate.camera import CameraRig
-    from calibrate.formats import import_rig
-    from keypoints.openpose_json import read_openpose_folder
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.calibrate.formats import import_rig
+    from roomcap.keypoints.openpose_json import read_openpose_folder
 
     rig = import_rig(calib)
     lay = SessionLayout(root)
@@ -33,12 +33,12 @@ def test_pose2sim_two_participants_stable_ids_and_view_dependent_uncertainty(tmp
     base = need_shared("data", "pose2sim", "session-2024")
     trial = base / "S00_P01_MultiParticipants" / "S00_P01_T02_Participants1-2"
     lay = make_pose2sim_session(trial, base / "S00_Calibration" / "Calib_qualisys.toml", tmp_path / "s")
-    from calibrate.camera import CameraRig
-    from track.particle import ParticleTracker
-    from track.particle_config import ParticleConfig
-    from track.particle_io import focal_lengths, track_arrays_to_file
-    from track.particle_offline import track_sequence
-    from triangulate.multiview import load_detections
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.track.particle import ParticleTracker
+    from roomcap.track.particle_config import ParticleConfig
+    from roomcap.track.particle_io import focal_lengths, track_arrays_to_file
+    from roomcap.track.particle_offline import track_sequence
+    from roomcap.triangulate.multiview import load_detections
 
     rig = CameraRig.load(lay.rig_toml)
     sub, mv = load_detections(lay, rig)

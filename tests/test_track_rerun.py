@@ -12,11 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
-from capture.session import SessionLayout
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL
-from synthetic.rigs import ring_rig
-from track.trackfile import TrackFile
+from roomcap.capture.session import SessionLayout
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.synthetic.rigs import ring_rig
+from roomcap.track.trackfile import TrackFile
 
 J = CANONICAL.n_joints
 
@@ -82,7 +82,7 @@ def _read(path):
 
 def test_tracks_view_writes_a_recording_rerun_reads_back_equal(tmp_path, capsys):
     pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
-    from track.cli import main as tracks
+    from roomcap.track.cli import main as tracks
 
     lay, rig, tf = _session(tmp_path / "S")
     rrd = tmp_path / "S.rrd"
@@ -112,10 +112,10 @@ def test_tracks_view_writes_a_recording_rerun_reads_back_equal(tmp_path, capsys)
 
 def test_live_steps_are_logged_by_their_own_thread(tmp_path):
     pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
-    from capture.live import LiveStep
-    from capture.sources import Frame
-    from capture.sync import FrameSet
-    from track.rerun_export import LiveRerun
+    from roomcap.capture.live import LiveStep
+    from roomcap.capture.sources import Frame
+    from roomcap.capture.sync import FrameSet
+    from roomcap.track.rerun_export import LiveRerun
 
     rig = ring_rig(2, radius_m=4.0)
     lr = LiveRerun(tmp_path / "live.rrd", SessionLayout(tmp_path / "S"), rig, image_hz=1000)
@@ -136,7 +136,7 @@ def test_live_steps_are_logged_by_their_own_thread(tmp_path):
 
 
 def test_without_rerun_the_command_names_the_extra(monkeypatch, tmp_path, capsys):
-    from track.cli import main as tracks
+    from roomcap.track.cli import main as tracks
 
     lay, _, _ = _session(tmp_path / "S", T=3)
     monkeypatch.setitem(sys.modules, "rerun", None)
@@ -150,10 +150,10 @@ def test_capture_run_live_rerun_writes_the_file_as_it_records(tmp_path):
     pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
     import argparse
 
-    from capture.config import load_config
-    from capture.live import LiveRunner
-    from capture.recorder import Recorder
-    from pipeline.live_outputs import Outputs
+    from roomcap.capture.config import load_config
+    from roomcap.capture.live import LiveRunner
+    from roomcap.capture.recorder import Recorder
+    from roomcap.pipeline.live_outputs import Outputs
 
     rig = ring_rig(2, radius_m=4.0)
     rig.save(tmp_path / "rig.toml")
@@ -191,8 +191,8 @@ def test_a_live_tracks_rows_find_their_video_frames_by_time(tmp_path):
     """A live track's rows are frame sets (their own numbering): with the camera's frames.csv the frames are
     matched by timestamp."""
     pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
-    from capture.recorder import CSV_HEADER
-    from track.rerun_export import write_session_rrd
+    from roomcap.capture.recorder import CSV_HEADER
+    from roomcap.track.rerun_export import write_session_rrd
 
     lay, rig, tf = _session(tmp_path / "S")
     for cam in rig.names:  # the recorder's timestamps: frame k at the track's k-th t_ns

@@ -9,17 +9,17 @@ import logging
 import numpy as np
 import pytest
 
-from capture.session import SessionLayout
-from core.fileio import load_npz, load_toml, save_toml
-from synthetic.render import RenderConfig, render
-from synthetic.rigs import kitchen
-from synthetic.world import SceneConfig, make_scene, write_session
-from track.greedy_stage import track_session_greedy
-from track.stage import track_session_particle
-from track.trackfile import TrackFile
-from triangulate import evaluate as ev
-from triangulate.poses3d import Poses3D
-from triangulate.stage import triangulate_session
+from roomcap.capture.session import SessionLayout
+from roomcap.core.fileio import load_npz, load_toml, save_toml
+from roomcap.synthetic.render import RenderConfig, render
+from roomcap.synthetic.rigs import kitchen
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session
+from roomcap.track.greedy_stage import track_session_greedy
+from roomcap.track.stage import track_session_particle
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate import evaluate as ev
+from roomcap.triangulate.poses3d import Poses3D
+from roomcap.triangulate.stage import triangulate_session
 
 SNAPSHOTS = 40
 PARTICLE = {"n_samples": 150}

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from keypoints.detections import Detections
-from track.stage import ParticleTrackConfig, track_session_particle
-from track.trackfile import OBSERVED, SMOOTHED, TrackFile
+from roomcap.keypoints.detections import Detections
+from roomcap.track.stage import ParticleTrackConfig, track_session_particle
+from roomcap.track.trackfile import OBSERVED, SMOOTHED, TrackFile
 
 
 def _session(tmp_path, n_cams=3, n_people=2, seconds=3.0):
-    from synthetic.render import RenderConfig, render
-    from synthetic.rigs import ring_rig, ring_room
-    from synthetic.world import SceneConfig, make_scene, write_session
+    from roomcap.synthetic.render import RenderConfig, render
+    from roomcap.synthetic.rigs import ring_rig, ring_room
+    from roomcap.synthetic.world import SceneConfig, make_scene, write_session
 
     rig = ring_rig(n_cams, radius_m=4.0, distortion=True, seed=1)
     scene = make_scene(
@@ -26,9 +26,9 @@ def _session(tmp_path, n_cams=3, n_people=2, seconds=3.0):
 
 
 def test_stage_writes_track_file_and_matches_greedy(tmp_path):
-    from track.greedy_stage import track_session_greedy
-    from triangulate import evaluate as ev
-    from triangulate.stage import triangulate_session
+    from roomcap.track.greedy_stage import track_session_greedy
+    from roomcap.triangulate import evaluate as ev
+    from roomcap.triangulate.stage import triangulate_session
 
     gt = _session(tmp_path)
     path = track_session_particle(tmp_path, {"motion": "constant_velocity", "n_samples": 150})

@@ -13,19 +13,19 @@ import pytest
 from track_helpers import render_kp, ring_P
 from triangulate_helpers import TEMPLATE, killed_after_commits
 
-from capture.session import SessionLayout
-from core.errors import FormatError
-from synthetic.render import RenderConfig, render
-from synthetic.rigs import kitchen
-from synthetic.world import SceneConfig, make_scene, write_session
-from track import stream
-from track.greedy import frame_times_s, pause_clock
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_offline import finish_tracks, gather_estimates, track_sequence
-from track.stage import track_session_particle
-from track.trackfile import SMOOTHED, TrackFile
-from triangulate import chunks as C
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.synthetic.render import RenderConfig, render
+from roomcap.synthetic.rigs import kitchen
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session
+from roomcap.track import stream
+from roomcap.track.greedy import frame_times_s, pause_clock
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_offline import finish_tracks, gather_estimates, track_sequence
+from roomcap.track.stage import track_session_particle
+from roomcap.track.trackfile import SMOOTHED, TrackFile
+from roomcap.triangulate import chunks as C
 
 PCFG = {"n_samples": 80}  # the GRU prior (its hidden state is part of the resumed state)
 STREAM = {**PCFG, "chunk_s": 2.0}
@@ -209,7 +209,7 @@ def _rss_mb() -> float:
 def test_release_free_memory_returns_the_fragmented_heap():
     """The pattern of the filter's temporaries: once a large mmapped block is freed, glibc serves blocks of
     that size from the heap and keeps them when freed; release_free_memory gives the pages back."""
-    from core.memory import release_free_memory
+    from roomcap.core.memory import release_free_memory
 
     if not release_free_memory():
         pytest.skip("no malloc_trim (not glibc)")

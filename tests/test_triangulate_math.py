@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from triangulate_helpers import observe, people, project, ring_P
 
-from keypoints.skeletons import CANONICAL
-from triangulate.dlt import DLTConfig, Triangulator, limb_check, normalise_P, triangulate_dlt
-from triangulate.evaluate import mean_joint_distance
-from triangulate.geometry import camera_centers, fundamental_from_P
-from triangulate.matching import MatchConfig, Matcher, _usable, finite_xy, match_frame
-from triangulate.reconstruct import FrameReconstructor, _mean_joint_distance
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.triangulate.dlt import DLTConfig, Triangulator, limb_check, normalise_P, triangulate_dlt
+from roomcap.triangulate.evaluate import mean_joint_distance
+from roomcap.triangulate.geometry import camera_centers, fundamental_from_P
+from roomcap.triangulate.matching import MatchConfig, Matcher, _usable, finite_xy, match_frame
+from roomcap.triangulate.reconstruct import FrameReconstructor, _mean_joint_distance
 
 
 def test_dlt_recovers_ring_rig(rng):

@@ -12,20 +12,20 @@ import numpy as np
 import pytest
 from triangulate_helpers import killed_after_commits
 
-from capture.session import SessionLayout
-from core.errors import InputError
-from keypoints.detections import Detections
-from pipeline.config import PipelineConfig
-from pipeline.discover import discover
-from pipeline.executors import run_sessions
-from synthetic.render import RenderConfig, render
-from synthetic.rigs import kitchen
-from synthetic.world import SceneConfig, make_scene, write_session
-from track.greedy_stage import GreedyTrackConfig
-from track.trackfile import TrackFile
-from triangulate import chunks as C
-from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import triangulate_session
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import InputError
+from roomcap.keypoints.detections import Detections
+from roomcap.pipeline.config import PipelineConfig
+from roomcap.pipeline.discover import discover
+from roomcap.pipeline.executors import run_sessions
+from roomcap.synthetic.render import RenderConfig, render
+from roomcap.synthetic.rigs import kitchen
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session
+from roomcap.track.greedy_stage import GreedyTrackConfig
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate import chunks as C
+from roomcap.triangulate.reconstruct import TriangulateConfig
+from roomcap.triangulate.stage import triangulate_session
 
 TRI = {"chunk_s": 2.0}  # 12 s at 25 Hz: 6 chunks
 TRK = {"chunk_s": 3.0}
@@ -33,7 +33,7 @@ TRK = {"chunk_s": 3.0}
 
 def _triangulate_on(root, options):
     """``triangulate_session`` with its chunks run as ``options`` say (``workers``, ``executor``)."""
-    from pipeline.executors import chunk_runner
+    from roomcap.pipeline.executors import chunk_runner
 
     cfg = TriangulateConfig.from_dict(options)
     return triangulate_session(root, cfg, executor=chunk_runner(cfg.stream))
@@ -155,7 +155,7 @@ def test_reprocess_on_ray_sends_a_sessions_chunks_to_the_cluster(session, tmp_pa
 
 
 def test_a_chunked_pipeline_asks_for_ray_chunks_only_on_ray():
-    from pipeline.executors import ray_for_chunks
+    from roomcap.pipeline.executors import ray_for_chunks
 
     cfg = PipelineConfig(triangulate=TriangulateConfig.from_dict(TRI))
     assert ray_for_chunks(cfg).triangulate.stream.executor == "ray"

@@ -6,19 +6,19 @@ import numpy as np
 import pytest
 from triangulate_helpers import people, project, ring_P  # noqa: F401
 
-from capture.session import SessionLayout
-from core.errors import FormatError
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL
-from synthetic.render import RenderConfig, render
-from synthetic.rigs import kitchen, ring_rig
-from synthetic.world import SceneConfig, make_scene, write_session
-from track.greedy_stage import GreedyTrackConfig, track_session_greedy
-from track.trackfile import OBSERVED, SMOOTHED, TrackFile
-from triangulate import evaluate as ev
-from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import triangulate_session
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.synthetic.render import RenderConfig, render
+from roomcap.synthetic.rigs import kitchen, ring_rig
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session
+from roomcap.track.greedy_stage import GreedyTrackConfig, track_session_greedy
+from roomcap.track.trackfile import OBSERVED, SMOOTHED, TrackFile
+from roomcap.triangulate import evaluate as ev
+from roomcap.triangulate.poses3d import Poses3D
+from roomcap.triangulate.reconstruct import TriangulateConfig
+from roomcap.triangulate.stage import triangulate_session
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +146,7 @@ def test_detections_in_other_skeleton_are_converted(tmp_path, rng):
     X = people(rng, 1, spread=0.5)
     dets = []
     for d in _dets(rig, X, T=2):
-        from keypoints.skeletons import get_skeleton
+        from roomcap.keypoints.skeletons import get_skeleton
 
         coco = get_skeleton("coco17")
         idx = [CANONICAL.index(n) for n in coco.joint_names]

@@ -10,21 +10,21 @@ import numpy as np
 import pytest
 from triangulate_helpers import killed_after_commits
 
-from capture.session import SessionLayout
-from core.errors import FormatError
-from keypoints.detections import Detections
-from synthetic.render import RenderConfig, render
-from synthetic.rigs import kitchen
-from synthetic.world import SceneConfig, make_scene, write_session
-from track.greedy import TrackerConfig, frame_times_s, track_poses
-from track.greedy_stage import track_session_greedy
-from track.greedy_stream import build_chunks, link_chunks
-from track.trackfile import TrackFile, iter_parts
-from triangulate import chunks as C
-from triangulate import stage
-from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import triangulate_session
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.keypoints.detections import Detections
+from roomcap.synthetic.render import RenderConfig, render
+from roomcap.synthetic.rigs import kitchen
+from roomcap.synthetic.world import SceneConfig, make_scene, write_session
+from roomcap.track.greedy import TrackerConfig, frame_times_s, track_poses
+from roomcap.track.greedy_stage import track_session_greedy
+from roomcap.track.greedy_stream import build_chunks, link_chunks
+from roomcap.track.trackfile import TrackFile, iter_parts
+from roomcap.triangulate import chunks as C
+from roomcap.triangulate import stage
+from roomcap.triangulate.poses3d import Poses3D
+from roomcap.triangulate.reconstruct import TriangulateConfig
+from roomcap.triangulate.stage import triangulate_session
 
 TRI = {"chunk_s": 2.0}
 TRK = {"chunk_s": 3.0}
@@ -32,7 +32,7 @@ TRK = {"chunk_s": 3.0}
 
 def _triangulate_on(root, options):
     """``triangulate_session`` with its chunks run as ``options`` say (``workers``, ``executor``)."""
-    from pipeline.executors import chunk_runner
+    from roomcap.pipeline.executors import chunk_runner
 
     cfg = TriangulateConfig.from_dict(options)
     return triangulate_session(root, cfg, executor=chunk_runner(cfg.stream))
@@ -194,8 +194,8 @@ def test_stream_tracker_equals_batch_on_a_paused_irregular_recording(session):
     cfg = TrackerConfig().at_fps(p.fps)
     whole = track_poses(xyz, fi, t_ns, p.fps, p.joint_names, parents, conf, std, cfg)
     t_s = frame_times_s(fi, t_ns, p.fps)
-    from track.greedy import facing_joints
-    from triangulate.reconstruct import flip_index
+    from roomcap.track.greedy import facing_joints
+    from roomcap.triangulate.reconstruct import flip_index
 
     flip = flip_index(p.joint_names)
     for step in (7, 40, 1000):
@@ -248,7 +248,7 @@ def test_bad_input_streamed(session, tmp_path):
     _rewrite(root, cams[2], t_ns=d.t_ns)
     # arrays of different lengths within a file (written by another tool)
     dd = Detections.load(lay.detections(cams[3]))
-    from core.fileio import save_npz
+    from roomcap.core.fileio import save_npz
 
     save_npz(
         lay.detections(cams[3]),

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from triangulate_helpers import TEMPLATE
 
-from keypoints.openpose_json import read_openpose_folder
-from keypoints.skeletons import CANONICAL
-from track.greedy import TrackerConfig, associate, pose_distance, stitch_tracks, track_poses
-from track.trackfile import INTERPOLATED, OBSERVED, SMOOTHED
-from triangulate import evaluate as ev
+from roomcap.keypoints.openpose_json import read_openpose_folder
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.track.greedy import TrackerConfig, associate, pose_distance, stitch_tracks, track_poses
+from roomcap.track.trackfile import INTERPOLATED, OBSERVED, SMOOTHED
+from roomcap.triangulate import evaluate as ev
 
 
 def walkers(T=60):
@@ -197,12 +197,12 @@ def test_real_pose2sim_trial_matches_pose2sim_trc(tmp_path):
     """Pose2Sim's single-participant trial: our 3D agrees with Pose2Sim's own TRC of the same input."""
     from conftest import need_shared
 
-    from calibrate.camera import CameraRig
-    from calibrate.formats import import_rig
-    from capture.session import SessionLayout
-    from track.greedy_stage import track_session_greedy
-    from track.trackfile import TrackFile
-    from triangulate.stage import triangulate_session
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.calibrate.formats import import_rig
+    from roomcap.capture.session import SessionLayout
+    from roomcap.track.greedy_stage import track_session_greedy
+    from roomcap.track.trackfile import TrackFile
+    from roomcap.triangulate.stage import triangulate_session
 
     base = need_shared("data", "pose2sim", "session-2024")
     trial = base / "S00_P00_SingleParticipant" / "S00_P00_T01_BalancingTrial"

@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 from triangulate_helpers import FOOT_HEAD_OFFSETS, people  # noqa: F401
 
-from capture.session import SessionLayout
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, SKELETONS, convert, load_skeleton_toml, whole_body
-from synthetic.rigs import ring_rig
-from track.export import marker_table
-from track.greedy_stage import track_session_greedy
-from track.trackfile import TrackFile
-from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import TriangulateConfig
-from triangulate.stage import triangulate_session
+from roomcap.capture.session import SessionLayout
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL, SKELETONS, convert, load_skeleton_toml, whole_body
+from roomcap.synthetic.rigs import ring_rig
+from roomcap.track.export import marker_table
+from roomcap.track.greedy_stage import track_session_greedy
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate.poses3d import Poses3D
+from roomcap.triangulate.reconstruct import TriangulateConfig
+from roomcap.triangulate.stage import triangulate_session
 
 
 def _body25b_people(rng, n=2):
@@ -133,7 +133,7 @@ def test_custom_skeleton_from_toml(tmp_path, rng):
     assert (d < 0.005).all()
     tf = TrackFile.load(track_session_greedy(lay.root, {"min_joints": 4}))
     assert tf.n_tracks == 2 and tf.parents.tolist() == [3, 0, 0, -1, 3, 4]
-    from core.errors import FormatError
+    from roomcap.core.errors import FormatError
 
     (tmp_path / "bad.toml").write_text(MOUSE_TOML.replace('"neck", "spine_mid"]', '"neck", "hip"]'))
     with pytest.raises(FormatError, match=r"bad\.toml.*parent 'hip' of 'tail_base' is not a joint"):

@@ -24,8 +24,8 @@ def ring_P(n_cams: int, radius_m: float = 4.0, height_m: float = 2.5) -> np.ndar
 
 def walkers(n_people: int, n_frames: int, fps: float = 25.0, seed: int = 0) -> np.ndarray:
     """(T,P,19,3) people from the synthetic procedural walker, kept inside a 3 m square."""
-    from synthetic.rigs import ring_room
-    from synthetic.world import SceneConfig, make_scene
+    from roomcap.synthetic.rigs import ring_room
+    from roomcap.synthetic.world import SceneConfig, make_scene
 
     scene = make_scene(
         ring_room(2.4),
@@ -59,9 +59,9 @@ def render_maps(
     """OpenPose-style maps of people X (P,J,3) body19 in cameras P (C,3,4): per camera a CameraMaps with
     Gaussian blobs at the projected coco18 joints and unit vectors along the projected PAF limbs.
     ``uv_px`` (C,P,J,2): the image points to draw instead of the pinhole projections (lens distortion)."""
-    from keypoints.decoders import OPENPOSE_LIMBS
-    from keypoints.skeletons import CANONICAL, get_skeleton
-    from track import observation as obs
+    from roomcap.keypoints.decoders import OPENPOSE_LIMBS
+    from roomcap.keypoints.skeletons import CANONICAL, get_skeleton
+    from roomcap.track import observation as obs
 
     coco18 = get_skeleton("coco18")
     limbs = obs.paf_limbs_in(CANONICAL, coco18.joint_names, OPENPOSE_LIMBS)  # (L,2) body19 indices

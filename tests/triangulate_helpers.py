@@ -7,7 +7,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from triangulate import chunks as C
+from roomcap.triangulate import chunks as C
 
 
 @contextmanager

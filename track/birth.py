@@ -1,14 +1,14 @@
 """The learned birth generator g of seed sec. 5.2.3: a small network with dropout that fills missing joints.
 
 A new track starts from a triangulated candidate pose with some joints missing. The generator takes the
-candidate in its hip frame (eq. 5.2–5.5, :mod:`track.normalize`) with a mask of the joints it has and
+candidate in its hip frame (eq. 5.2–5.5, :mod:`roomcap.track.normalize`) with a mask of the joints it has and
 outputs a full pose; run N times with dropout kept on (plus Gaussian noise) it gives the N initial samples
 of the track (instead of Gaussian noise around the candidate with template-filled joints). Joints the
 candidate has keep their triangulated position plus ``sigma_obs_m`` noise; the generator's spread
 fills the others.
 
-This module imports torch (a learned module, like :mod:`track.motion`). Train with
-``python -m track.train_birth --out track/checkpoints/birth_mlp.pt``.
+This module imports torch (a learned module, like :mod:`roomcap.track.motion`). Train with
+``python -m roomcap.track.train_birth --out track/checkpoints/birth_mlp.pt``.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from keypoints.skeletons import CANONICAL, Skeleton
-from track.motion import read_checkpoint, write_checkpoint
-from track.normalize import denormalize, hip_frame, normalize
+from roomcap.keypoints.skeletons import CANONICAL, Skeleton
+from roomcap.track.motion import read_checkpoint, write_checkpoint
+from roomcap.track.normalize import denormalize, hip_frame, normalize
 
 CHECKPOINT_SCHEMA = "birth_mlp/1"
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "birth_mlp.pt"
@@ -61,7 +61,7 @@ def load_checkpoint(
         CHECKPOINT_SCHEMA,
         skeleton,
         "birth",
-        "python -m track.train_birth --out track/checkpoints/birth_mlp.pt",
+        "python -m roomcap.track.train_birth --out track/checkpoints/birth_mlp.pt",
         "use birth = 'gaussian'",
         BirthNet,
     )

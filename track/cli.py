@@ -15,7 +15,7 @@ tracks stream SESSION|tracks.npz --stream lsl,osc [--osc-to HOST:PORT] [--speed 
 tracks view SESSION --rrd FILE.rrd
     the session as a Rerun recording: cameras, frames, 2D detections, 3D tracks (track/rerun_export.py)
 
-Also runnable as ``python -m track.cli``.
+Also runnable as ``python -m roomcap.track.cli``.
 """
 
 from __future__ import annotations
@@ -25,14 +25,14 @@ import logging
 import sys
 from pathlib import Path
 
-from core.cli import Parser, guarded
-from core.errors import RoomcapError
-from track import rerun_export, streams
-from track.export import ExportOptions, export_tracks, parse_formats
-from track.opensim_ik import default_setup_dir, run_opensim
-from track.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
-from track.trackfile import TrackFile
-from triangulate.chunks import parts_dir
+from roomcap.core.cli import Parser, guarded
+from roomcap.core.errors import RoomcapError
+from roomcap.track import rerun_export, streams
+from roomcap.track.export import ExportOptions, export_tracks, parse_formats
+from roomcap.track.opensim_ik import default_setup_dir, run_opensim
+from roomcap.track.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate.chunks import parts_dir
 
 log = logging.getLogger(__name__)
 

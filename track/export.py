@@ -24,8 +24,9 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
   interpolated / predicted / smoothed).
 - **CSV** tidy, one row per known joint and frame: ``frame, time_s, person, joint, x, y, z,
   confidence, std_m, flags`` (world metres, z up, as the track file); :func:`read_csv` reads it back.
-- **JSON**: :func:`track.trackfile.export_json` for one track (confidence, std_m, flags).
-- **BVH**: the fitted skeleton (:mod:`track.skeleton_fit`), written by :func:`track.bvh.write_bvh`.
+- **JSON**: :func:`roomcap.track.trackfile.export_json` for one track (confidence, std_m, flags).
+- **BVH**: the fitted skeleton (:mod:`roomcap.track.skeleton_fit`), written by
+:func:`roomcap.track.bvh.write_bvh`.
 
 ``ExportOptions(lowpass_hz=6)`` (``tracks export --lowpass 6``) low-pass filters the positions first, as
 Pose2Sim filters its 3D before OpenSim (:func:`lowpass`: Butterworth, order 4, zero phase). Off by
@@ -45,12 +46,12 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError, RoomcapError
-from core.fileio import atomic_path, atomic_write_text
-from track.bvh import write_bvh
-from track.skeleton_fit import fill_gaps, fit_skeletons, person_span
-from track.skeleton_fit_file import FitError
-from track.trackfile import (
+from roomcap.core.errors import FormatError, RoomcapError
+from roomcap.core.fileio import atomic_path, atomic_write_text
+from roomcap.track.bvh import write_bvh
+from roomcap.track.skeleton_fit import fill_gaps, fit_skeletons, person_span
+from roomcap.track.skeleton_fit_file import FitError
+from roomcap.track.trackfile import (
     SMOOTHED,
     TrackFile,
     export_json,
@@ -387,7 +388,8 @@ def export_tracks(
 ) -> ExportReport:
     """Write ``<out_dir>/<session>_<track id>.<ext>`` for every person and format.
 
-    ``fit`` is a :class:`track.skeleton_fit.SkeletonFit` of ``tf`` (BVH); fitted on the fly when None."""
+    ``fit`` is a :class:`roomcap.track.skeleton_fit.SkeletonFit` of ``tf`` (BVH); fitted on the fly when
+    None."""
     options = options or ExportOptions()
     out_dir = Path(out_dir)
     ids = tf.track_id.tolist() if persons is None else [int(p) for p in persons]

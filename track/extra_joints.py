@@ -1,6 +1,7 @@
 """Whole-body joints for the particle tracker: the joints its body19 state lacks, attached after tracking.
 
-The particle filter (:mod:`track.particle`) samples body19 poses. The greedy tracker carries every joint
+The particle filter (:mod:`roomcap.track.particle`) samples body19 poses. The greedy tracker carries every
+joint
 the triangulate stage's skeleton has (``[triangulate.options] skeleton = "whole_body"``: feet, BODY_25B's
 upper neck and head top, BlazePose's hand points; or a skeleton TOML). :func:`attach_joints` gives the
 particle tracker's track file the same skeleton, once identities are assigned:
@@ -9,7 +10,7 @@ particle tracker's track file the same skeleton, once identities are assigned:
    assigned to the tracks (Hungarian, cost = median pixel distance over the body19 joints both know,
    gated at ``gate_frac`` of the projected person's size, at least ``gate_min_px``);
 2. each joint the body19 state lacks is triangulated from the views assigned to its track (the robust
-   DLT of :mod:`triangulate.dlt`, the triangulate stage's settings: score threshold, reprojection
+   DLT of :mod:`roomcap.triangulate.dlt`, the triangulate stage's settings: score threshold, reprojection
    rejection), with its positional uncertainty ``std_m`` and the mean 2D score as ``confidence``;
    a point farther than ``max_bone_m`` from its parent joint is dropped;
 3. a Gaussian smoothing over time (``smooth_sigma_s``, within runs of observed frames, weighted by
@@ -27,11 +28,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from core.config import config_from_dict
-from track.trackfile import OBSERVED, SMOOTHED, TrackFile
-from triangulate.dlt import DLTConfig, Triangulator
-from triangulate.geometry import project
-from triangulate.multiview import load_detections
+from roomcap.core.config import config_from_dict
+from roomcap.track.trackfile import OBSERVED, SMOOTHED, TrackFile
+from roomcap.triangulate.dlt import DLTConfig, Triangulator
+from roomcap.triangulate.geometry import project
+from roomcap.triangulate.multiview import load_detections
 
 log = logging.getLogger(__name__)
 

@@ -26,9 +26,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from core.config import config_from_dict
-from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
-from triangulate.reconstruct import flip_index
+from roomcap.core.config import config_from_dict
+from roomcap.track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
+from roomcap.triangulate.reconstruct import flip_index
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +231,7 @@ class FrameLinker:
     ``clock (T,)``, ``pauses (T,)``: :func:`pause_clock` of the session's frame times. ``flip`` (J,)
     (left/right joint permutation): a pose may also join a track mirrored, when its left/right-swapped
     version is closer; ``facing``: see :func:`join_mirrored`. The hooks :meth:`_joined` and
-    :meth:`_retired` let :class:`track.greedy_stream.StreamLinker` keep what stitching needs."""
+    :meth:`_retired` let :class:`roomcap.track.greedy_stream.StreamLinker` keep what stitching needs."""
 
     def __init__(
         self,

@@ -1,8 +1,8 @@
 """The greedy track stage (seed ch. 4) on a session folder: ``triangulate/poses3d`` -> ``track/tracks``.
 
 ``track_session_greedy(session)`` reads ``triangulate/poses3d.npz`` (or its parts) and writes
-``track/tracks.npz`` (or, streamed, ``track/tracks.parts/``) with :func:`track.greedy.track_poses` or
-its streamed form :mod:`track.greedy_stream`.
+``track/tracks.npz`` (or, streamed, ``track/tracks.parts/``) with :func:`roomcap.track.greedy.track_poses` or
+its streamed form :mod:`roomcap.track.greedy_stream`.
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.session import SessionLayout, require
-from core.config import as_config, config_from_dict
-from keypoints.skeletons import skeleton_from_names
-from track.greedy import (
+from roomcap.capture.session import SessionLayout, require
+from roomcap.core.config import as_config, config_from_dict
+from roomcap.keypoints.skeletons import skeleton_from_names
+from roomcap.track.greedy import (
     TrackerConfig,
     facing_joints,
     frame_times_s,
@@ -25,9 +25,9 @@ from track.greedy import (
     sparse_time_warning,
     track_poses,
 )
-from track.greedy_stream import build_chunks, link_chunks
-from track.trackfile import TrackFile
-from triangulate.chunks import (
+from roomcap.track.greedy_stream import build_chunks, link_chunks
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate.chunks import (
     NpzRows,
     PartStore,
     StreamConfig,
@@ -37,17 +37,18 @@ from triangulate.chunks import (
     remove_output,
     split_stream_keys,
 )
-from triangulate.multiview import session_chunk_s
-from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import flip_index
+from roomcap.triangulate.multiview import session_chunk_s
+from roomcap.triangulate.poses3d import Poses3D
+from roomcap.triangulate.reconstruct import flip_index
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class GreedyTrackConfig:
-    """The greedy track stage: the tracker's settings (:class:`track.greedy.TrackerConfig`) and how it walks
-    the session (:class:`triangulate.chunks.StreamConfig`; streamed by :mod:`track.greedy_stream`, one
+    """The greedy track stage: the tracker's settings (:class:`roomcap.track.greedy.TrackerConfig`) and how
+    it walks the session (:class:`roomcap.triangulate.chunks.StreamConfig`; streamed by
+    :mod:`roomcap.track.greedy_stream`, one
     tracks/1 part per chunk with global track ids, equal to the whole session's result bit for bit).
     Its chunks carry the tracks from one to the next, so they run in order in one process."""
 
@@ -166,7 +167,7 @@ class PosesReader:
 
 
 def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
-    """The streaming greedy tracker (:mod:`track.greedy_stream`), one track part per chunk."""
+    """The streaming greedy tracker (:mod:`roomcap.track.greedy_stream`), one track part per chunk."""
     read = PosesReader(lay.poses3d)
     fps = read.fps
     tcfg = cfg.greedy.at_fps(fps)

@@ -1,21 +1,21 @@
-"""The greedy tracker (:mod:`track.greedy`) in bounded memory, chunk by chunk.
+"""The greedy tracker (:mod:`roomcap.track.greedy`) in bounded memory, chunk by chunk.
 
 Two passes over the per-frame poses, each reading them in time chunks:
 
 1. **Linking** (:class:`StreamLinker`): the frame-by-frame Hungarian pass of
-   :func:`~track.greedy.associate_mirrored` (:class:`~track.greedy.FrameLinker`), keeping
+   :func:`~roomcap.track.greedy.associate_mirrored` (:class:`~roomcap.track.greedy.FrameLinker`), keeping
    only the tracks still alive (seen within ``max_gap_s`` on the tracks' clock), plus, for the seam
    stitching of
-   :func:`~track.greedy.stitch_tracks`, each track's held last pose and its first ``max_gap_s``
+   :func:`~roomcap.track.greedy.stitch_tracks`, each track's held last pose and its first ``max_gap_s``
    of poses; a track's stitch candidates are computed the moment it can no longer continue, and the
    data are dropped once no later track can need them. What grows with the session is one small int
    per pose slot and frame (the labels) and a few numbers per track.
 2. **Building** (:func:`build_window`): gap filling, kinematic fill and smoothing of
-   :func:`~track.greedy.build_tracks` on each chunk plus a margin on either side
+   :func:`~roomcap.track.greedy.build_tracks` on each chunk plus a margin on either side
    (:func:`build_margin_s`: every filled or smoothed value depends on the poses within that many
    seconds); only the chunk's own frames are kept.
 
-The result equals :func:`~track.greedy.track_poses` on the whole session (bit for bit: the same
+The result equals :func:`~roomcap.track.greedy.track_poses` on the whole session (bit for bit: the same
 operations in the same order on the same samples; the smoothing adds zero-weight terms where a window
 is shorter, which changes no value), whatever the chunk length.
 """
@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from track.greedy import (
+from roomcap.track.greedy import (
     FrameLinker,
     TrackerConfig,
     build_tracks,
@@ -40,11 +40,11 @@ from track.greedy import (
 
 
 class StreamLinker(FrameLinker):
-    """The linking pass of the greedy tracker (:class:`~track.greedy.FrameLinker`), fed frame by
+    """The linking pass of the greedy tracker (:class:`~roomcap.track.greedy.FrameLinker`), fed frame by
     frame (:meth:`step`) or by chunks (:meth:`run`), keeping what the seam stitching of
-    :func:`~track.greedy.stitch_tracks` needs.
+    :func:`~roomcap.track.greedy.stitch_tracks` needs.
 
-    ``clock (T,)`` and ``pauses (T,)`` of the whole session (:func:`~track.greedy.pause_clock`;
+    ``clock (T,)`` and ``pauses (T,)`` of the whole session (:func:`~roomcap.track.greedy.pause_clock`;
     small). Labels are the raw track numbers of the pass (by first appearance); :meth:`finish` returns
     the label -> final track id map after stitching and the ``min_track_frames`` filter (-1 = dropped).
     """
@@ -73,7 +73,7 @@ class StreamLinker(FrameLinker):
                 del self.head[b]
 
     def _candidates(self, a: int) -> None:
-        """:func:`~track.greedy.stitch_tracks`'s candidate links of track ``a``."""
+        """:func:`~roomcap.track.greedy.stitch_tracks`'s candidate links of track ``a``."""
         cfg, la = self.cfg, self.last[a]
         end = self.end[a]
         for b in sorted(self.head):
@@ -201,7 +201,7 @@ def build_window(
     t_s: np.ndarray,
     core: tuple[int, int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`~track.greedy.build_tracks` on a window (n frames: the chunk and its margins) with
+    """:func:`~roomcap.track.greedy.build_tracks` on a window (n frames: the chunk and its margins) with
     the final track ids; returns the arrays of the ``core`` frames (window positions) and only the tracks
     with anything there: ids (K,), xyz (m,K,J,3), confidence, std, flags."""
     assign = np.where(labels >= 0, final[np.maximum(labels, 0)], -1)
@@ -250,7 +250,7 @@ def link_chunks(
     facing: tuple[int, int, int] | None,
 ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
     """Pass 1 over the chunks: per chunk labels (n,P) int32 and mirrored (n,P), and the final id map
-    (``facing``: :func:`~track.greedy.associate_mirrored`'s)."""
+    (``facing``: :func:`~roomcap.track.greedy.associate_mirrored`'s)."""
     clock, pauses = pause_clock(t_s, cfg.max_gap_s, fps)
     linker = StreamLinker(cfg, fps, flip, clock, pauses, facing)
     labels, mirrored = [], []

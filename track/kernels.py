@@ -1,7 +1,7 @@
 """Compiled kernels of the particle filter's hot loops (numba; seed ch. 5.2.1–5.2.4).
 
-Each kernel fuses a chain of numpy passes over (K,J,C,N) arrays that :mod:`track.observation` and
-:mod:`track.motion` write as whole-array expressions; the numpy functions stay the reference
+Each kernel fuses a chain of numpy passes over (K,J,C,N) arrays that :mod:`roomcap.track.observation` and
+:mod:`roomcap.track.motion` write as whole-array expressions; the numpy functions stay the reference
 (``tests/test_track_kernels.py`` checks that both agree). Shapes: K tracks, N samples, J joints, L limbs,
 C cameras, V camera pairs, D detections, B = K·N.
 
@@ -18,7 +18,7 @@ C cameras, V camera pairs, D detections, B = K·N.
 - :func:`ray_basis`, :func:`association_costs`: the keypoints' ray frames and the association's cost
   table (the same bits as observation's).
 - :func:`gather_state`: the resampling's gather of the motion state; the GRU prior's own kernels are
-  :mod:`track.kernels_gru`.
+  :mod:`roomcap.track.kernels_gru`.
 
 Arithmetic is float32 where the numpy path's is, with float64 products and sums where a range or an
 accumulation needs it; the results agree with numpy to float32 rounding, not bit for bit (fused
@@ -130,7 +130,8 @@ def _pair_rows(pairs, active, C):
 @njit(cache=True, error_model="numpy", inline="always")
 def _camera_conf(basis, centers, sc, focal, k, c, C, xt, nb, sm2, spx, conf):
     """Into ``conf[c]`` (J,nb): camera ``c``'s keypoint evidence of track ``k``'s samples ``xt`` (J,3,nb):
-    conf = sc k(d^2 / s^2) (:func:`track.observation.joint_scores`), 0 where the camera has no keypoint."""
+    conf = sc k(d^2 / s^2) (:func:`roomcap.track.observation.joint_scores`), 0 where the camera has no
+    keypoint."""
     J = xt.shape[0]
     near = _F(0.05)
     g = spx / _F(focal[c])
@@ -155,11 +156,11 @@ def _camera_conf(basis, centers, sc, focal, k, c, C, xt, nb, sm2, spx, conf):
 @njit(cache=True, nogil=True, error_model="numpy")
 def pair_weights(X, centers, basis, sc, *, focal, sigma_m, sigma_px, eps, limbs, pairs):
     """Phi(v, s) of eq. 5.7 for every track, camera pair and sample. X: (K,N,J,3) float32; centers: (C,3);
-    basis: (K,J,3C,3) (:func:`track.observation.ray_basis`); sc: (K,C,J) associated keypoint scores (0 =
-    none); focal: (C,); limbs: (L,2); pairs: (V,2) (a pair (c, c) = camera c alone). Returns (K,V,N)
+    basis: (K,J,3C,3) (:func:`roomcap.track.observation.ray_basis`); sc: (K,C,J) associated keypoint scores
+    (0 = none); focal: (C,); limbs: (L,2); pairs: (V,2) (a pair (c, c) = camera c alone). Returns (K,V,N)
     float64: prod_l (sqrt(sum_{c in v} phi(c,l,s)^2) + eps), phi = conf_a conf_b (keypoint evidence) and
-    conf = sc k(d^2 / s^2) (:func:`track.observation.joint_scores`). Rows that equal another pair's bit for
-    bit (a camera without any associated joint of the track, :func:`_pair_rows`) are computed once."""
+    conf = sc k(d^2 / s^2) (:func:`roomcap.track.observation.joint_scores`). Rows that equal another pair's
+    bit for bit (a camera without any associated joint of the track, :func:`_pair_rows`) are computed once."""
     K, N, J = X.shape[0], X.shape[1], X.shape[2]
     C, L, V = centers.shape[0], limbs.shape[0], pairs.shape[0]
     _check_scores(basis, sc, focal, K, J, C)
@@ -227,7 +228,7 @@ def sus_indices(phi, counts, u):
     """Eq. 5.6 + stochastic universal resampling per row. phi: (K,V,N) unnormalised weights (>= 0);
     counts: (V,) samples each pair draws (summing to N); u: (K*V,) uniform offsets in [0, 1). Returns
     (K,N) indices into each track's samples, the V rows' draws in order (as
-    :func:`track.observation.resample_pairs`: index = first i with cdf_i >= (u + m) / count)."""
+    :func:`roomcap.track.observation.resample_pairs`: index = first i with cdf_i >= (u + m) / count)."""
     K, V, N = phi.shape
     total = 0
     for v in range(counts.shape[0]):
@@ -366,10 +367,10 @@ def refine_resampled(
 
     X: (K,N,J,3) float32; idx: (K,N); noise: (K,J,3,R,N) standard normals (R = M - 1 candidates besides
     the current position); scales: (R,) their spreads; the last ``n_guided`` candidates are drawn around
-    the point the track's detections put the joint at (:func:`track.observation.guided_targets`, spread
-    scales / 4). A candidate replaces the joint when its confidence summed over cameras is higher (ties
+    the point the track's detections put the joint at (:func:`roomcap.track.observation.guided_targets`,
+    spread scales / 4). A candidate replaces the joint when its confidence summed over cameras is higher (ties
     keep the current position); the tolerance uses the mean depth of the samples per track, joint and
-    camera, as :func:`track.observation.refine_joints`. With ``refine`` False only the gather is done.
+    camera, as :func:`roomcap.track.observation.refine_joints`. With ``refine`` False only the gather is done.
     Returns X' (K,N,J,3) float32 and the kept joints' summed confidence (K,J,N) float32.
     """
     K, N, J = X.shape[0], X.shape[1], X.shape[2]
@@ -438,7 +439,7 @@ def refine_resampled(
 def output_stats(X, score, has, eps):
     """Sec. 5.2.4: the weighted mean pose (K,J,3) and per-joint spread std_m (K,J) (per-axis RMS), with
     weights prod_j (score + eps) for the tracks with ``has`` (K,) (the refinement's summed confidences
-    (K,J,N)) and uniform weights for the others. As :func:`track.observation.weighted_stats` with
+    (K,J,N)) and uniform weights for the others. As :func:`roomcap.track.observation.weighted_stats` with
     ``log_phi = sum_j log(score + eps)``; the product runs in float64 over groups of 8 joints."""
     K, N, J = X.shape[0], X.shape[1], X.shape[2]
     mean = np.empty((K, J, 3), np.float32)
@@ -496,7 +497,7 @@ def output_stats(X, score, has, eps):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def ray_basis(Minv, kp):
-    """Orthonormal frames of the keypoints' viewing rays, as :func:`track.observation.ray_basis`.
+    """Orthonormal frames of the keypoints' viewing rays, as :func:`roomcap.track.observation.ray_basis`.
     Minv: (C,3,3) float32; kp: (K,C,J,2) undistorted px (NaN = 0) -> B (K,J,3C,3) float32, rows
     [u_0..u_{C-1}, w_0..w_{C-1}, r_0..r_{C-1}] with r_c the unit ray and u_c, w_c perpendicular to it."""
     K, C, J = kp.shape[0], kp.shape[1], kp.shape[2]
@@ -530,7 +531,8 @@ def ray_basis(Minv, kp):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def association_costs(mean_uv, mean_depth, det_kp, det_sc, *, focal, tol_m, min_joints, min_score, gate):
-    """The cost of every track-detection pair per camera, as :func:`track.observation.association_costs`:
+    """The cost of every track-detection pair per camera, as
+    :func:`roomcap.track.observation.association_costs`:
     the median over joints of the image distance in units of ``tol_m`` seen at the joint's depth, on the
     joints both have (at least ``min_joints``, else inf). mean_uv: (C,K,J,2), mean_depth: (C,K,J), det_kp:
     (C,D,J,2), det_sc: (C,D,J), focal: (C,); gate: (K,) -> (C,K,D) float64. Where fewer than half the joints
@@ -598,7 +600,7 @@ def gather_rows(a, idx):
 
 
 def gather_state(state: dict, idx: np.ndarray) -> dict:
-    """:func:`track.priors.gather_state` with float32 states gathered by :func:`gather_rows`."""
+    """:func:`roomcap.track.priors.gather_state` with float32 states gathered by :func:`gather_rows`."""
     out = {}
     idx = np.ascontiguousarray(idx, np.int64)
     for k, v in state.items():

@@ -1,7 +1,7 @@
-"""The GRU prior's compiled kernels (eq. 5.1–5.5, :class:`track.priors.GRUCellPrior`): the inputs in the
-hip frame (eq. 5.2–5.4), the cell's gates after its two matrix products, and the displacement turned back
-into the world (eq. 5.5). Arithmetic and caching as :mod:`track.kernels` (float32 as the numpy path, the
-rows on numba's threads, the same bits for any number of threads)."""
+"""The GRU prior's compiled kernels (eq. 5.1–5.5, :class:`roomcap.track.priors.GRUCellPrior`): the inputs in
+the hip frame (eq. 5.2–5.4), the cell's gates after its two matrix products, and the displacement turned back
+into the world (eq. 5.5). Arithmetic and caching as :mod:`roomcap.track.kernels` (float32 as the numpy path,
+the rows on numba's threads, the same bits for any number of threads)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from track.kernels import _F
+from roomcap.track.kernels import _F
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -18,8 +18,8 @@ def gru_inputs(x, prev, ip, il, ir, vscale):
     """Eq. 5.2–5.4 for a batch: x, prev (B,J,3) float32 (the samples and their previous positions) ->
     inp (B,2·J·3) = [R(x - origin), R(x - prev)·vscale] flattened, and (cos, sin) of each sample's facing
     angle (B,2). The origin is the pelvis (mid-hips where it is NaN); theta = atan2 of right - left hip
-    (0 where unknown), as :func:`track.normalize.hip_frame`; its cosine and sine are the hip direction's
-    components over its length."""
+    (0 where unknown), as :func:`roomcap.track.normalize.hip_frame`; its cosine and sine are the hip
+    direction's components over its length."""
     B, J = x.shape[0], x.shape[1]
     inp = np.empty((B, 2 * J * 3), np.float32)
     if prev.shape != x.shape or max(ip, il, ir) >= J or min(ip, il, ir) < 0:

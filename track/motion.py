@@ -4,19 +4,19 @@ Every prior works on a flat batch of pose samples ``x (B,J,3)`` (world metres,
 B = tracks x samples) with a per-sample state (a dict of arrays whose first axis
 is B, so resampling is a gather along that axis):
 
-- :class:`ZeroVelocityPrior` (:mod:`track.priors`): x_t = x_{t-1} + N(0, sigma^2)
+- :class:`ZeroVelocityPrior` (:mod:`roomcap.track.priors`): x_t = x_{t-1} + N(0, sigma^2)
   (the seed's "w/o pose prediction" ablation).
 - :class:`ConstantVelocityPrior`: x_t = x_{t-1} + a (x_{t-1} - x_{t-2}) + N(0, sigma^2).
 - :class:`GRUPrior`: eq. 5.1, ``z_t, h_t = GRU(z_{t-1}, h_{t-1})`` with one hidden state
   per sample and dropout kept on at inference on the input of the final linear
   layer (Bayesian approximation, the samples diverge). Poses are normalised
-  (eq. 5.2–5.5, :mod:`track.normalize`) before the network and restored after.
+  (eq. 5.2–5.5, :mod:`roomcap.track.normalize`) before the network and restored after.
   Besides the normalised pose the network also sees the sample's last
   displacement in the same frame (our addition: the normalisation removes the
   global motion, and the hidden state alone forgets it when the frame turns).
-  It runs in numpy (:class:`track.priors.GRUCellPrior`); the tracker loads it from the numpy copy of the
-  checkpoint that :func:`save_checkpoint` writes beside it, without torch
-  (:func:`track.priors.load_gru_numpy`).
+  It runs in numpy (:class:`roomcap.track.priors.GRUCellPrior`); the tracker loads it from the numpy copy of
+  the checkpoint that :func:`save_checkpoint` writes beside it, without torch
+  (:func:`roomcap.track.priors.load_gru_numpy`).
 
 This module (training, checkpoints) imports torch; tracking with a checkpoint's numpy copy does not.
 """
@@ -30,11 +30,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.errors import RoomcapError
-from core.fileio import atomic_path
-from keypoints.skeletons import CANONICAL, Skeleton
-from track.normalize import hip_frame, normalize, rotate_vectors
-from track.priors import (
+from roomcap.core.errors import RoomcapError
+from roomcap.core.fileio import atomic_path
+from roomcap.keypoints.skeletons import CANONICAL, Skeleton
+from roomcap.track.normalize import hip_frame, normalize, rotate_vectors
+from roomcap.track.priors import (
     DEFAULT_MOTION_CHECKPOINT,
     GRU_WEIGHT_NAMES,
     GRUCellPrior,
@@ -95,8 +95,8 @@ def step_inputs(
 
 
 class GRUPrior(GRUCellPrior):
-    """The learned prior of eq. 5.1 built from the torch model (:class:`track.priors.GRUCellPrior` runs it
-    in numpy). Load with :meth:`load`; ``dropout`` overrides the trained rate at inference."""
+    """The learned prior of eq. 5.1 built from the torch model (:class:`roomcap.track.priors.GRUCellPrior`
+    runs it in numpy). Load with :meth:`load`; ``dropout`` overrides the trained rate at inference."""
 
     def __init__(
         self,
@@ -148,7 +148,7 @@ def save_checkpoint(
     path: str | Path, model: PoseGRU, fps: float, skeleton: Skeleton, train_info: dict
 ) -> None:
     """Write a motion checkpoint and, beside it, the numpy copy of its weights that tracking loads without
-    torch (:func:`track.priors.load_gru_numpy`)."""
+    torch (:func:`roomcap.track.priors.load_gru_numpy`)."""
     write_checkpoint(path, CHECKPOINT_SCHEMA, model, skeleton, train_info, fps=float(fps))
     write_gru_numpy_copy(path)
 
@@ -213,7 +213,7 @@ def load_checkpoint(path: str | Path, skeleton: Skeleton = CANONICAL) -> tuple[P
         CHECKPOINT_SCHEMA,
         skeleton,
         "motion",
-        "python -m track.train_motion --out track/checkpoints/motion_gru.pt",
+        "python -m roomcap.track.train_motion --out track/checkpoints/motion_gru.pt",
         "use the constant-velocity prior (motion = 'constant_velocity')",
         PoseGRU,
     )

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from keypoints.skeletons import CANONICAL, Skeleton
+from roomcap.keypoints.skeletons import CANONICAL, Skeleton
 
 
 def hip_indices(skeleton: Skeleton = CANONICAL) -> tuple[int, int, int]:

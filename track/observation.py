@@ -1,6 +1,6 @@
 """Observation model p(o_t | z_t) and the update step's sampling (seed ch. 5.2.2, eq. 5.6–5.8) in numpy.
 
-The filter runs the hot chains of this module as compiled kernels (:mod:`track.kernels`); these numpy
+The filter runs the hot chains of this module as compiled kernels (:mod:`roomcap.track.kernels`); these numpy
 functions are their reference, and the maps path (eq. 5.8 on confidence maps) and the exact output
 weights use them directly. :func:`associate` computes its cost table with the compiled kernel.
 
@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from track import kernels
-from track.priors import normal_noise
+from roomcap.track import kernels
+from roomcap.track.priors import normal_noise
 
 
 def camera_pairs(n_cams: int) -> np.ndarray:
@@ -411,8 +411,8 @@ def association_costs(
 ) -> np.ndarray:
     """The cost of :func:`associate` for every track-detection pair (C,K,D): the median joint distance in
     units of ``tol_m`` seen at the joint's depth, on the joints both have; inf with fewer than
-    ``min_joints``. :func:`associate` computes it with :func:`track.kernels.association_costs` (inf where
-    it reaches the gate); this is the numpy reference."""
+    ``min_joints``. :func:`associate` computes it with :func:`roomcap.track.kernels.association_costs` (inf
+    where it reaches the gate); this is the numpy reference."""
     ok_det = np.isfinite(det_kp).all(-1) & (det_sc >= min_score)  # (C,D,J)
     d = np.linalg.norm(mean_uv[:, :, None] - det_kp[:, None], axis=-1)  # (C,K,D,J)
     scale = (

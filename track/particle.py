@@ -22,19 +22,20 @@ frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
 5. **termination**: a track with no associated detection for ``end_after_s`` ends; its
    identity is kept for re-identification for ``reid_max_gap_s``;
 6. **initialisation** (sec. 5.2.3): the detections no track explains are matched and
-   triangulated with the chapter-4 engine (:class:`triangulate.reconstruct.FrameReconstructor`);
+   triangulated with the chapter-4 engine (:class:`roomcap.triangulate.reconstruct.FrameReconstructor`);
    each candidate (best first) either re-anchors a coasting track, revives a lost identity
    (position, velocity, body proportions agree) or starts a new track. Samples are drawn
    around the candidate; joints it lacks are filled from a mocap template with a larger spread
    (``birth='gaussian'``, the default) or all N samples come from the seed's dropout network g
-   (``birth='learned'``, :mod:`track.birth`: run N times with dropout on, it fills the missing joints).
+   (``birth='learned'``, :mod:`roomcap.track.birth`: run N times with dropout on, it fills the missing
+   joints).
 
 No Python loop runs over samples; loops run over tracks (gathers, refinement blocks of joints),
 cameras (association) and new candidates (initialisation) only.
 
 With a bottom-up model's confidence maps + part affinity fields for a frame (``step(..., maps=)``, the
 stage reads them from the detection files), the resampling weights of eq. 5.6–5.7 use eq. 5.8 on the maps
-of those cameras (:func:`track.observation.map_limb_scores`, all samples at once); association, joint
+of those cameras (:func:`roomcap.track.observation.map_limb_scores`, all samples at once); association, joint
 refinement and the output weights still use the associated keypoints.
 
 Not implemented from the seed: the confidence-subtraction network of sec. 5.2.3.
@@ -47,26 +48,26 @@ import logging
 
 import numpy as np
 
-from keypoints.skeletons import CANONICAL, Skeleton
-from track import kernels
-from track import observation as obs
-from track.greedy import (
+from roomcap.keypoints.skeletons import CANONICAL, Skeleton
+from roomcap.track import kernels
+from roomcap.track import observation as obs
+from roomcap.track.greedy import (
     nominal_dt,
 )
-from track.normalize import hip_frame
-from track.particle_births import Births
-from track.particle_config import ParticleConfig, make_prior
-from track.particle_types import FrameEstimate, LostTrack, Track, concat_estimates, empty_estimate
-from track.priors import (
+from roomcap.track.normalize import hip_frame
+from roomcap.track.particle_births import Births
+from roomcap.track.particle_config import ParticleConfig, make_prior
+from roomcap.track.particle_types import FrameEstimate, LostTrack, Track, concat_estimates, empty_estimate
+from roomcap.track.priors import (
     TEMPLATE_BODY19_M,
     MotionPrior,
     concat_states,
     standard_normals,
 )
-from track.split import Split
-from track.trackfile import OBSERVED, PREDICTED
-from triangulate.matching import MatchConfig
-from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
+from roomcap.track.split import Split
+from roomcap.track.trackfile import OBSERVED, PREDICTED
+from roomcap.triangulate.matching import MatchConfig
+from roomcap.triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +139,7 @@ class ParticleTracker(Births):
         self._tmpl = TEMPLATE_BODY19_M if skeleton.id == "body19" else None
         self.birth = None
         if cfg.birth == "learned":  # imports torch (a learned module)
-            from track.birth import BirthGenerator  # lazy: loads torch
+            from roomcap.track.birth import BirthGenerator  # lazy: loads torch
 
             self.birth = BirthGenerator.load(
                 cfg.birth_checkpoint, skeleton, sigma_obs_m=cfg.init_sigma_m, sigma_fill_m=cfg.init_sigma_m
@@ -150,7 +151,7 @@ class ParticleTracker(Births):
         """Everything the next :meth:`step` needs, as plain arrays (npz, no pickle): the tracks (samples,
         motion state, bookkeeping), the lost identities, the clock and the random generator's state.
         :meth:`load_state_arrays` on a tracker built with the same rig and config continues bit for bit
-        (a streamed run resumes from it, :mod:`track.stream`)."""
+        (a streamed run resumes from it, :mod:`roomcap.track.stream`)."""
         meta = {
             "schema": STATE_SCHEMA,
             "rng": self.rng.bit_generator.state,
@@ -311,7 +312,7 @@ class ParticleTracker(Births):
         self, kp: np.ndarray, sc: np.ndarray, frame: int, maps=None, t_s: float | None = None
     ) -> FrameEstimate:
         """One frame at time ``t_s`` (seconds, increasing; default ``frame / fps``). ``maps``: optional
-        sequence of C :class:`track.observation.CameraMaps` or None per camera (a bottom-up model's
+        sequence of C :class:`roomcap.track.observation.CameraMaps` or None per camera (a bottom-up model's
         confidence maps + PAFs); with any, the update weights use eq. 5.8 on the maps for those cameras
         (keypoints for the others)."""
         with self.split.blas_single():
@@ -504,8 +505,8 @@ class ParticleTracker(Births):
 
     def _phi(self, X: np.ndarray, rays: np.ndarray, asc: np.ndarray, Y: np.ndarray, maps) -> np.ndarray:
         """phi(c,l,s) (K,C,L,N) of eq. 5.8: from the confidence maps + PAFs of the cameras that have them
-        (:func:`track.observation.map_limb_scores`, the limbs are then the maps' PAF limbs for every camera),
-        else from the associated keypoints."""
+        (:func:`roomcap.track.observation.map_limb_scores`, the limbs are then the maps' PAF limbs for every
+        camera), else from the associated keypoints."""
         cfg = self.config
         limbs = self.limbs
         if maps is not None:
@@ -542,7 +543,7 @@ class ParticleTracker(Births):
         the refined joints' summed confidence (K,J,N) (None without refinement) and, given the K tracks'
         motion ``state``, its resampled rows (else None).
 
-        Keypoint evidence: compiled kernels (:mod:`track.kernels`) fuse the weights' numpy chain (ray
+        Keypoint evidence: compiled kernels (:mod:`roomcap.track.kernels`) fuse the weights' numpy chain (ray
         coordinates, joint and limb scores, eq. 5.7 per pair), the resampling, the gather and the
         refinement, over parts of the tracks at once (:attr:`split`); with confidence maps the weights come
         from :meth:`_phi` (numpy)."""

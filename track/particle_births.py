@@ -1,6 +1,6 @@
 """The particle tracker's initialisation step (sec. 5.2.3): the detections no track explains are matched
 and triangulated; each candidate re-anchors a coasting track, revives a lost identity or starts a track.
-:class:`Births` is the part of :class:`track.particle.ParticleTracker` that does it."""
+:class:`Births` is the part of :class:`roomcap.track.particle.ParticleTracker` that does it."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ import logging
 
 import numpy as np
 
-from track.normalize import denormalize, hip_frame
-from track.particle_types import FrameEstimate, Track
-from track.trackfile import OBSERVED
+from roomcap.track.normalize import denormalize, hip_frame
+from roomcap.track.particle_types import FrameEstimate, Track
+from roomcap.track.trackfile import OBSERVED
 
 log = logging.getLogger(__name__)
 
 
 class Births:
-    """The births of :class:`track.particle.ParticleTracker` (its ``config``, ``tracks``, ``lost``,
+    """The births of :class:`roomcap.track.particle.ParticleTracker` (its ``config``, ``tracks``, ``lost``,
     ``reconstructor``, ``prior`` and random state)."""
 
     def _free_poses(self, kp: np.ndarray, sc: np.ndarray, assigned: np.ndarray):

@@ -7,12 +7,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from core.config import bounded, config_from_dict
-from keypoints.skeletons import CANONICAL, Skeleton
-from track.greedy import (
+from roomcap.core.config import bounded, config_from_dict
+from roomcap.keypoints.skeletons import CANONICAL, Skeleton
+from roomcap.track.greedy import (
     SEED_SIGMA_FRAMES,
 )
-from track.priors import (
+from roomcap.track.priors import (
     DEFAULT_MOTION_CHECKPOINT,
     ConstantVelocityPrior,
     MotionPrior,
@@ -71,9 +71,10 @@ class ParticleConfig:
       detection files by a bottom-up model (keypoints ``keep_maps``); off or absent = keypoints + scores.
     birth: how a new track's samples are drawn (sec. 5.2.3): 'gaussian' = Gaussian noise around the
       candidate, missing joints from the median mocap pose; 'learned' = the generator g of
-      :mod:`track.birth` (dropout network that fills missing joints, run N times with dropout on);
+      :mod:`roomcap.track.birth` (dropout network that fills missing joints, run N times with dropout on);
       birth_checkpoint: its checkpoint ('' = the shipped one).
-    threads: parts of a frame's batch computed at once (:class:`track.split.Split`; the same tracks bit for
+    threads: parts of a frame's batch computed at once (:class:`roomcap.track.split.Split`; the same tracks
+    bit for
       bit whatever the number): 0 = one per available core, up to 4 and up to ``OMP_NUM_THREADS`` when
       set; 1 = one thread, BLAS left alone.
     seed: random seed.
@@ -138,7 +139,7 @@ class ParticleConfig:
 
     def at_fps(self, fps: float) -> ParticleConfig:
         """The config with the smoothing width given in frames converted to seconds at ``fps`` (as
-        :meth:`track.greedy.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
+        :meth:`roomcap.track.greedy.TrackerConfig.at_fps`), the seed's 2 frames when none is set."""
         if self.smooth_sigma_frames is not None:
             return replace(self, smooth_sigma_s=self.smooth_sigma_frames / fps, smooth_sigma_frames=None)
         if self.smooth_sigma_s is None:
@@ -157,7 +158,8 @@ class ParticleConfig:
 
 def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICAL) -> MotionPrior:
     """The motion prior named by ``config.motion``; 'gru' from the checkpoint's numpy copy when it has an
-    up-to-date one (:func:`track.priors.load_gru_numpy`), else from the checkpoint itself (imports torch)."""
+    up-to-date one (:func:`roomcap.track.priors.load_gru_numpy`), else from the checkpoint itself (imports
+    torch)."""
     sigma = config.motion_sigma_m * float(np.sqrt(25.0 / fps))
     if config.motion == "zero_velocity":
         return ZeroVelocityPrior(sigma, skeleton.n_joints)
@@ -171,6 +173,6 @@ def make_prior(config: ParticleConfig, fps: float, skeleton: Skeleton = CANONICA
     prior = load_gru_numpy(path, fps, skeleton, **kw)  # the checkpoint's numpy copy: no torch
     if prior is not None:
         return prior
-    from track.motion import GRUPrior  # lazy: loads torch
+    from roomcap.track.motion import GRUPrior  # lazy: loads torch
 
     return GRUPrior.load(path, fps=fps, skeleton=skeleton, seed=config.seed, **kw)

@@ -7,16 +7,16 @@ import logging
 
 import numpy as np
 
-from capture.session import SessionLayout
-from keypoints.decoders import OPENPOSE_LIMBS
-from keypoints.detections import Detections
-from keypoints.registry import get_spec
-from keypoints.skeletons import CANONICAL, get_skeleton
-from track import observation as obs
-from track.particle_config import ParticleConfig
-from track.particle_offline import TrackArrays
-from track.trackfile import TrackFile
-from triangulate.chunks import NpzRows
+from roomcap.capture.session import SessionLayout
+from roomcap.keypoints.decoders import OPENPOSE_LIMBS
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.registry import get_spec
+from roomcap.keypoints.skeletons import CANONICAL, get_skeleton
+from roomcap.track import observation as obs
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_offline import TrackArrays
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate.chunks import NpzRows
 
 log = logging.getLogger(__name__)
 

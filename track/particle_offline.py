@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.progress import Progress
-from track.greedy import (
+from roomcap.core.progress import Progress
+from roomcap.track.greedy import (
     frame_times_s,
     long_enough,
     pause_clock,
@@ -18,10 +18,10 @@ from track.greedy import (
     smooth_segments,
     sparse_time_warning,
 )
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_types import FrameEstimate
-from track.trackfile import SMOOTHED
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_types import FrameEstimate
+from roomcap.track.trackfile import SMOOTHED
 
 log = logging.getLogger(__name__)
 
@@ -70,9 +70,9 @@ def track_sequence(
     t_ns: np.ndarray | None = None,
 ) -> TrackArrays:
     """Run the filter over a sequence. kp: (T,C,D,J,2) undistorted px (NaN = missing), sc: (T,C,D,J).
-    ``maps_at(t)``: optional, the C :class:`track.observation.CameraMaps` (or None) of frame t. Frame
+    ``maps_at(t)``: optional, the C :class:`roomcap.track.observation.CameraMaps` (or None) of frame t. Frame
     times come from ``t_ns`` (T,), else from the frame numbers ``frames`` at the tracker's rate
-    (:func:`track.greedy.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
+    (:func:`roomcap.track.greedy.frame_times_s`); smoothing never bridges a pause (``max_gap_s``).
 
     Applies the offline clean-up of the config: coasting frames after a track's last evidence are dropped
     (``trim_coast``) and tracks with less evidence than ``min_track_s`` are removed.
@@ -160,12 +160,12 @@ def finish_tracks(
     """The offline clean-up of :func:`track_sequence` on the raw estimates of T frames at times ``t_s``
     (T,) (seconds, the session's clock): frames coasted across a pause are removed, then trailing coasting
     frames (``trim_coast``), then the smoothing (``smooth_sigma_s``), then tracks with less evidence than
-    ``min_track_s`` (:func:`track.greedy.long_enough`: not where the recorder paused sooner).
+    ``min_track_s`` (:func:`roomcap.track.greedy.long_enough`: not where the recorder paused sooner).
     ``evidence_frames`` (K,) and ``room_frames`` (K,): each track's evidence frames over the whole session
     and the longest stretch without a pause among them, when ``raw`` is a window of it (default: from
     ``raw``). Each value depends only on the frames within
     ``end_after_s`` (on the tracks' clock) plus the smoothing radius of it, so a window with that margin
-    gives its middle frames exactly as the whole session does (:mod:`track.stream`). Changes ``raw``'s
+    gives its middle frames exactly as the whole session does (:mod:`roomcap.track.stream`). Changes ``raw``'s
     arrays in place."""
     xyz, std, conf, flags = raw.xyz_m, raw.std_m, raw.confidence, raw.flags  # changed in place
     nv, seen, ids = raw.n_views, raw.seen, raw.track_id

@@ -3,9 +3,9 @@
 Every prior works on a flat batch of pose samples ``x (B,J,3)`` (world metres,
 B = tracks x samples) with a per-sample state: a dict of arrays whose first axis
 is B, so resampling is a gather along that axis (:func:`gather_state`). The
-learned GRU prior of eq. 5.1 is trained and saved by :mod:`track.motion` (torch); it runs here in numpy
-(:class:`GRUCellPrior`), and :func:`load_gru_numpy` reads the numpy copy of its weights that
-:func:`track.motion.save_checkpoint` writes beside the checkpoint, so tracking needs no torch.
+learned GRU prior of eq. 5.1 is trained and saved by :mod:`roomcap.track.motion` (torch); it runs here in
+numpy (:class:`GRUCellPrior`), and :func:`load_gru_numpy` reads the numpy copy of its weights that
+:func:`roomcap.track.motion.save_checkpoint` writes beside the checkpoint, so tracking needs no torch.
 """
 
 from __future__ import annotations
@@ -18,11 +18,11 @@ from typing import Protocol
 
 import numpy as np
 
-from core.fileio import save_npz, sha256_file
-from keypoints.skeletons import CANONICAL, Skeleton
-from track import kernels_gru
-from track.normalize import hip_indices
-from track.split import Split
+from roomcap.core.fileio import save_npz, sha256_file
+from roomcap.keypoints.skeletons import CANONICAL, Skeleton
+from roomcap.track import kernels_gru
+from roomcap.track.normalize import hip_indices
+from roomcap.track.split import Split
 
 State = dict[str, np.ndarray]
 
@@ -152,8 +152,8 @@ class GRUCellPrior:
     sample and MC dropout on the final linear layer's input (the samples diverge). ``weights``: the cell's
     and the output layer's weights as float32 arrays transposed for ``x @ W`` (``GRU_WEIGHT_NAMES``: w_ih
     (2·J·3, 3H), b_ih (3H,), w_hh (H, 3H), b_hh (3H,), w_out (H, J·3), b_out (J·3,)); ``trained_dropout``:
-    the rate it was trained with, used unless ``dropout`` overrides it. :class:`track.motion.GRUPrior` is
-    this prior built from the torch model."""
+    the rate it was trained with, used unless ``dropout`` overrides it.
+    :class:`roomcap.track.motion.GRUPrior` is this prior built from the torch model."""
 
     name = "gru"
 
@@ -260,7 +260,8 @@ def load_gru_numpy(
 ) -> GRUCellPrior | None:
     """The GRU prior of ``checkpoint`` from its numpy copy (:func:`write_numpy_copy`), without torch; None
     when there is no copy, or it was made from other bytes or for another skeleton (the caller then loads
-    the checkpoint itself with :meth:`track.motion.GRUPrior.load`, which says what is wrong with it)."""
+    the checkpoint itself with :meth:`roomcap.track.motion.GRUPrior.load`, which says what is wrong with
+    it)."""
     path = numpy_copy_path(checkpoint)
     if not (path.is_file() and Path(checkpoint).is_file()):
         return None

@@ -29,13 +29,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.session import SessionLayout
-from capture.sources import Recording
-from core.errors import RoomcapError
-from keypoints.detections import Detections
-from keypoints.skeletons import CANONICAL, convert
-from track.trackfile import TrackFile
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SessionLayout
+from roomcap.capture.sources import Recording
+from roomcap.core.errors import RoomcapError
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import CANONICAL, convert
+from roomcap.track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 

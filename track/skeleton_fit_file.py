@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.errors import FormatError, RoomcapError
-from core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag, sha256_file
-from triangulate.chunks import PartStore, parts_dir
+from roomcap.core.errors import FormatError, RoomcapError
+from roomcap.core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag, sha256_file
+from roomcap.triangulate.chunks import PartStore, parts_dir
 
 # ----------------------------------------------------------------------------- gap filling
 

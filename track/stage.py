@@ -2,10 +2,10 @@
 
 ``track_session_particle(session_dir, config)`` reads ``calib/rig.toml`` and every
 ``keypoints/<cam>.npz`` (aligned on a common frame axis, converted to ``body19`` and undistorted by
-:func:`triangulate.stage.load_detections`), runs :class:`track.particle.ParticleTracker` over the
-frames and writes the track file. The videos are never needed. With ``skeleton = "whole_body"`` (or a
+:func:`roomcap.triangulate.stage.load_detections`), runs :class:`roomcap.track.particle.ParticleTracker` over
+the frames and writes the track file. The videos are never needed. With ``skeleton = "whole_body"`` (or a
 skeleton TOML; ``reprocess`` passes ``[triangulate.options] skeleton``) the joints beyond body19 (feet,
-head top, ...) are triangulated per track after tracking (:mod:`track.extra_joints`).
+head top, ...) are triangulated per track after tracking (:mod:`roomcap.track.extra_joints`).
 """
 
 from __future__ import annotations
@@ -17,19 +17,19 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.session import SessionLayout, require
-from core.config import as_config, config_from_dict
-from core.errors import FormatError
-from core.progress import Progress
-from track.extra_joints import ExtraJointsConfig, attach_session_joints
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
-from track.particle_offline import track_sequence
-from track.stream import track_session_particle_chunked
-from triangulate.chunks import AUTO, StreamConfig, remove_output, split_stream_keys
-from triangulate.multiview import load_detections, session_chunk_s, session_fps
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SessionLayout, require
+from roomcap.core.config import as_config, config_from_dict
+from roomcap.core.errors import FormatError
+from roomcap.core.progress import Progress
+from roomcap.track.extra_joints import ExtraJointsConfig, attach_session_joints
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
+from roomcap.track.particle_offline import track_sequence
+from roomcap.track.stream import track_session_particle_chunked
+from roomcap.triangulate.chunks import AUTO, StreamConfig, remove_output, split_stream_keys
+from roomcap.triangulate.multiview import load_detections, session_chunk_s, session_fps
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class ParticleTrackConfig:
     """The particle track stage: the filter's settings (:class:`ParticleConfig`), the 3D joints and how
-    it walks the session (:class:`triangulate.chunks.StreamConfig`; streamed by :mod:`track.stream`, one
+    it walks the session (:class:`roomcap.triangulate.chunks.StreamConfig`; streamed by
+    :mod:`roomcap.track.stream`, one
     tracks/1 part per chunk with global track ids and the filter's state per chunk in
     ``track/particle_raw.parts/``, equal to the whole session's result bit for bit; its chunks carry the
     filter's state, so they run in order in one process). ``"auto"`` runs whole with ``skeleton`` other
@@ -79,7 +80,8 @@ class ParticleTrackConfig:
 
 def stream_chunk_s(lay: SessionLayout, stage: ParticleTrackConfig) -> float:
     """Seconds per chunk of the stage on this session (0 = whole), as
-    :func:`triangulate.stage.session_chunk_s` decides; ``"auto"`` with joints beyond body19 runs whole."""
+    :func:`roomcap.triangulate.stage.session_chunk_s` decides; ``"auto"`` with joints beyond body19 runs
+    whole."""
     if stage.stream.chunk_s == AUTO and stage.skeleton != "body19":
         return 0.0
     return session_chunk_s(lay, stage.stream)

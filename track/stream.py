@@ -1,31 +1,32 @@
-"""The particle tracker (:mod:`track.particle`) in time chunks with bounded memory.
+"""The particle tracker (:mod:`roomcap.track.particle`) in time chunks with bounded memory.
 
-Two passes, each writing a folder of parts (:class:`triangulate.chunks.PartStore`: every part written
+Two passes, each writing a folder of parts (:class:`roomcap.triangulate.chunks.PartStore`: every part written
 atomically and entered in an index with its size and sha256; a part that is missing, truncated or
 changed is rebuilt, never trusted):
 
 1. **Filtering** (``track/particle_raw.parts/``): the detections are read chunk by chunk
-   (:meth:`triangulate.stage.DetectionPlan.chunk`) and the recursive filter steps over them. Each part
-   holds the chunk's raw per-frame estimates (:class:`track.particle.RawEstimates`: the tracks present,
-   their positions, spread, confidence, flags, views and evidence) and the filter's state after the
-   chunk's last frame (:meth:`~track.particle.ParticleTracker.state_arrays`: samples, motion state,
+   (:meth:`roomcap.triangulate.stage.DetectionPlan.chunk`) and the recursive filter steps over them. Each part
+   holds the chunk's raw per-frame estimates (:class:`roomcap.track.particle.RawEstimates`: the tracks
+   present, their positions, spread, confidence, flags, views and evidence) and the filter's state after the
+   chunk's last frame (:meth:`~roomcap.track.particle.ParticleTracker.state_arrays`: samples, motion state,
    lost identities, the clock, the random generator). A killed run resumes at the first part that is not
    valid, from the state in the part before it, and continues bit for bit.
 2. **Clean-up** (``track/tracks.parts/``, one ``tracks/1`` file per chunk, read by
-   :meth:`track.trackfile.TrackFile.load` as one file): :func:`track.particle.finish_tracks` on each
+   :meth:`roomcap.track.trackfile.TrackFile.load` as one file): :func:`roomcap.track.particle.finish_tracks`
+   on each
    chunk plus a margin on either side (:func:`finish_margin_s`: ``end_after_s`` + the smoothing radius on
    the tracks' clock), with each track's evidence counted over the whole session for ``min_track_s``; only
    the chunk's own frames are kept.
 
-The result equals :func:`track.particle.track_sequence` on the whole session bit for bit: the filter
+The result equals :func:`roomcap.track.particle.track_sequence` on the whole session bit for bit: the filter
 runs the same steps on the same detections (the state is restored exactly), and each cleaned frame
 depends only on the raw estimates within the margin (the smoothing adds zero-weight terms where a window
 is shorter, which changes no value). Memory: one chunk of detections and raw estimates, the filter's
 state (one (N,J,3) sample set and motion state per live track), and per frame of the session a few
 numbers (times); the heap's free pages are returned to the OS every second of frames
-(:func:`core.memory.release_free_memory`: without it glibc's fragmented heap grew a 1-minute
+(:func:`roomcap.core.memory.release_free_memory`: without it glibc's fragmented heap grew a 1-minute
 12-camera session's process to 1.6 GB for 0.5 GB of live data). Confidence maps (``use_maps``) are
-read whole by :func:`track.stage.load_maps`, so a session with maps is not bounded by the chunk.
+read whole by :func:`roomcap.track.stage.load_maps`, so a session with maps is not bounded by the chunk.
 """
 
 from __future__ import annotations
@@ -35,15 +36,15 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.session import SessionLayout
-from core.fileio import save_npz
-from core.memory import TRIM_EVERY, release_free_memory
-from core.progress import Progress
-from track.greedy import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
-from track.particle import ParticleTracker
-from track.particle_config import ParticleConfig
-from track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
-from track.particle_offline import (
+from roomcap.capture.session import SessionLayout
+from roomcap.core.fileio import save_npz
+from roomcap.core.memory import TRIM_EVERY, release_free_memory
+from roomcap.core.progress import Progress
+from roomcap.track.greedy import frame_times_s, long_enough, nominal_dt, pause_clock, segment_frames
+from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_config import ParticleConfig
+from roomcap.track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
+from roomcap.track.particle_offline import (
     RawEstimates,
     check_times,
     finish_tracks,
@@ -51,8 +52,8 @@ from track.particle_offline import (
     min_evidence_frames,
     warn_sparse_time,
 )
-from triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
-from triangulate.multiview import plan_detections, session_fps
+from roomcap.triangulate.chunks import NpzRows, PartStore, file_stamp, hash_key, parts_dir
+from roomcap.triangulate.multiview import plan_detections, session_fps
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +102,7 @@ class RawReader:
 
     def evidence(self, run: np.ndarray) -> tuple[dict[int, int], dict[int, int]]:
         """Evidence frames of every id over the whole session, and the longest stretch without a pause
-        among them (``run`` (T,): :func:`track.greedy.segment_frames` of the session); reads only
+        among them (``run`` (T,): :func:`roomcap.track.greedy.segment_frames` of the session); reads only
         ids and evidence."""
         out: dict[int, int] = {}
         room: dict[int, int] = {}

@@ -49,10 +49,10 @@ from typing import Any
 
 import numpy as np
 
-from capture.sources import host_now_ns
-from core.errors import InputError, RoomcapError
-from keypoints.skeletons import CANONICAL
-from track.trackfile import TrackFile
+from roomcap.capture.sources import host_now_ns
+from roomcap.core.errors import InputError, RoomcapError
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 
@@ -456,7 +456,8 @@ def replay(
     stop: Callable[[], bool] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> int:
-    """Send the track file ``tf`` (a :class:`track.trackfile.TrackFile`) frame by frame at its own clock
+    """Send the track file ``tf`` (a :class:`roomcap.track.trackfile.TrackFile`) frame by frame at its own
+    clock
     (``t_ns`` differences / ``speed``; ``speed`` 0 = as fast as possible). LSL timestamps: the first frame at
     the time the replay starts, then the file's spacing. Returns the frames sent."""
     T = tf.n_frames
@@ -494,7 +495,7 @@ def check_installed(kinds: Iterable[str]) -> None:
 
 def add_parser(sub: Any, resolve: Callable[[str], tuple[Any, str]]) -> None:
     """``tracks stream``: the subcommand, on the ``tracks`` parser's subparsers ``sub``; ``resolve``
-    turns SESSION into (track file path, session name) (:func:`track.cli.resolve_tracks`)."""
+    turns SESSION into (track file path, session name) (:func:`roomcap.track.cli.resolve_tracks`)."""
     s = sub.add_parser(
         "stream",
         help="replay a track file to LSL and/or OSC at its own clock",

@@ -1,11 +1,13 @@
-"""Train the birth generator g of sec. 5.2.3 (:mod:`track.birth`) on the CMU mocap (``shared/data/motion``).
+"""Train the birth generator g of sec. 5.2.3 (:mod:`roomcap.track.birth`) on the CMU mocap
+(``shared/data/motion``).
 
-    python -m track.train_birth --out track/checkpoints/birth_mlp.pt    # ~5 min on one core
+    python -m roomcap.track.train_birth --out track/checkpoints/birth_mlp.pt    # ~5 min on one core
 
 The shipped checkpoint (256 units, dropout 0.2, 15000 steps): held-out error on the missing joints
 6.6 cm vs 10.7 cm for the median-template fill.
 
-Poses of every clip (body19, metres, z up; :func:`track.train_motion.load_motion` at ``--fps``, mirrored
+Poses of every clip (body19, metres, z up; :func:`roomcap.track.train_motion.load_motion` at ``--fps``,
+mirrored
 left/right) are normalised (eq. 5.2–5.5); each training pose loses a random subset of joints (each with
 a probability drawn uniformly from [0, ``--max-drop``]), the observed ones get ``--noise-m`` Gaussian
 noise, and the network regresses the full clean pose (Huber loss, Adam, dropout on). Clips whose name ends
@@ -23,13 +25,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import guarded
-from core.progress import Bars, Progress
-from keypoints.skeletons import CANONICAL
-from track.birth import BirthNet, save_checkpoint
-from track.normalize import hip_frame, normalize
-from track.priors import TEMPLATE_BODY19_M
-from track.train_motion import common_arguments, fit, load_motion, mirror, report_written, split_clips
+from roomcap.core.cli import guarded
+from roomcap.core.progress import Bars, Progress
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.track.birth import BirthNet, save_checkpoint
+from roomcap.track.normalize import hip_frame, normalize
+from roomcap.track.priors import TEMPLATE_BODY19_M
+from roomcap.track.train_motion import common_arguments, fit, load_motion, mirror, report_written, split_clips
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +137,7 @@ def _main(argv: list[str] | None = None) -> None:
     report_written(a.out, info)
 
 
-main = guarded("python -m track.train_birth", _main)
+main = guarded("python -m roomcap.track.train_birth", _main)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """Train the GRU motion prior of eq. 5.1 on the CMU mocap in ``../shared/data/motion``.
 
-    python -m track.train_motion --out track/checkpoints/motion_gru.pt
+    python -m roomcap.track.train_motion --out track/checkpoints/motion_gru.pt
 
-Clips are read with :mod:`synthetic.bvh` (body19, metres, z up) and resampled to the
+Clips are read with :mod:`roomcap.synthetic.bvh` (body19, metres, z up) and resampled to the
 tracking frame rate (``--fps``, default 25 as in the seed). Each step normalises the
 pose at t-1 (eq. 5.2–5.5), feeds it and its last displacement to the GRU and regresses
 the displacement to t (Huber loss, Adam, weight decay 1e-8 as in sec. 5.2.1). Inputs
@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import guarded
-from core.progress import Bars, Progress
-from keypoints.skeletons import CANONICAL
-from synthetic.bvh import load_clips
-from track.motion import PoseGRU, save_checkpoint, step_inputs
-from track.normalize import rotate_vectors
+from roomcap.core.cli import guarded
+from roomcap.core.progress import Bars, Progress
+from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.synthetic.bvh import load_clips
+from roomcap.track.motion import PoseGRU, save_checkpoint, step_inputs
+from roomcap.track.normalize import rotate_vectors
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +225,7 @@ def _main(argv: list[str] | None = None) -> None:
     report_written(a.out, info)
 
 
-main = guarded("python -m track.train_motion", _main)
+main = guarded("python -m roomcap.track.train_motion", _main)
 
 
 if __name__ == "__main__":

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError
-from keypoints.detections import Detections
+from roomcap.core.errors import FormatError
+from roomcap.keypoints.detections import Detections
 
 
 def check_frame_order(det: Detections, path: Path) -> None:

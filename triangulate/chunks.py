@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import FormatError
-from core.fileio import atomic_write_text, sha256_file
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import atomic_write_text, sha256_file
 
 PARTS_SCHEMA = "parts/1"
 

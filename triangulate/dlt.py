@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.config import config_from_dict
-from triangulate.geometry import check_shape
+from roomcap.core.config import config_from_dict
+from roomcap.triangulate.geometry import check_shape
 
 _SCORE, _REPROJ, _STD, _NVIEWS = 4, 5, 6, 7  # rows of ``Triangulator.solve_raw``'s V
 _PER_VIEW = 8  # V[_PER_VIEW + c]: the reprojection error in camera c (NaN where that view was not used)

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from keypoints.skeletons import CANONICAL, Skeleton, get_skeleton
+from roomcap.keypoints.skeletons import CANONICAL, Skeleton, get_skeleton
 
 
 def _present(X: np.ndarray) -> np.ndarray:

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from core.config import config_from_dict
-from triangulate.geometry import check_shape
+from roomcap.core.config import config_from_dict
+from roomcap.triangulate.geometry import check_shape
 
 _BIG = 1e9
 _O01 = np.array([0, 1])[:, None, None]  # S ^ 0 = S, S ^ 1 = 1 - S for S in {0, 1}

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.session import SessionLayout
-from core.errors import FormatError
-from core.fileio import check_schema, npz_str
-from core.timebase import frame_rate_hz
-from keypoints.detections import Detections
-from keypoints.skeletons import (
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import check_schema, npz_str
+from roomcap.core.timebase import frame_rate_hz
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import (
     CANONICAL,
     Skeleton,
     convert,
@@ -29,8 +29,8 @@ from keypoints.skeletons import (
     load_skeleton_toml,
     whole_body,
 )
-from triangulate.checks import check_frame_order, detection_warnings, span_warnings
-from triangulate.chunks import (
+from roomcap.triangulate.checks import check_frame_order, detection_warnings, span_warnings
+from roomcap.triangulate.chunks import (
     AUTO,
     NpzRows,
     PartStore,

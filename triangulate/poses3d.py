@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError
-from core.fileio import errors_in, load_container, npz_str, save_npz, schema_tag
-from triangulate.chunks import PartStore, parts_dir
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import errors_in, load_container, npz_str, save_npz, schema_tag
+from roomcap.triangulate.chunks import PartStore, parts_dir
 
 SCHEMA = "poses3d"
 VERSION = 1

@@ -6,9 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.config import config_from_dict
-from triangulate.chunks import StreamConfig, split_stream_keys
-from triangulate.dlt import (
+from roomcap.core.config import config_from_dict
+from roomcap.triangulate.chunks import StreamConfig, split_stream_keys
+from roomcap.triangulate.dlt import (
     _NVIEWS,
     _PER_VIEW,
     _REPROJ,
@@ -19,8 +19,8 @@ from triangulate.dlt import (
     _limb_pairs,
     limb_outliers,
 )
-from triangulate.geometry import check_shape, fundamental_from_P
-from triangulate.matching import MatchConfig, Matcher, finite_xy
+from roomcap.triangulate.geometry import check_shape, fundamental_from_P
+from roomcap.triangulate.matching import MatchConfig, Matcher, finite_xy
 
 
 def _mean_joint_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -61,10 +61,10 @@ class TriangulateConfig:
       fewer views is dropped (0 = off).
     skeleton: the 3D joints: ``body19`` (the default), or ``whole_body``: body19 plus every joint the
       detections' 2D layouts provide beyond it (feet, BODY_25B's upper neck and head top, BlazePose's
-      hand points; :func:`keypoints.skeletons.whole_body`), or the path of a skeleton TOML (a lab's
-      own joints, animals included: :func:`keypoints.skeletons.load_skeleton_toml`). The greedy
+      hand points; :func:`roomcap.keypoints.skeletons.whole_body`), or the path of a skeleton TOML (a lab's
+      own joints, animals included: :func:`roomcap.keypoints.skeletons.load_skeleton_toml`). The greedy
       tracker carries any of them; the particle tracker and forecasting work on body19.
-    stream: the session in time chunks (:class:`triangulate.chunks.StreamConfig`; the TOML's flat
+    stream: the session in time chunks (:class:`roomcap.triangulate.chunks.StreamConfig`; the TOML's flat
       ``chunk_s``, ``workers`` and ``executor`` keys go there): frames are independent here, so ``workers``
       processes (or Ray tasks) triangulate chunks at once and the parts are those of one process.
     """

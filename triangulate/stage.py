@@ -1,7 +1,7 @@
 """The triangulate stage and the greedy (chapter-4) track stage on a session folder.
 
 ``triangulate_session(session)`` reads ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (any
-detector, any skeleton :mod:`keypoints.skeletons` can convert to ``body19``, or ``whole_body``
+detector, any skeleton :mod:`roomcap.keypoints.skeletons` can convert to ``body19``, or ``whole_body``
 or a skeleton TOML with the option ``skeleton``) and writes
 ``triangulate/poses3d.npz``. ``track_session_greedy(session)`` reads that file and writes
 ``track/tracks.npz``. Both accept a typed config, a plain dict (unknown keys are rejected with
@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from calibrate.checks import rig_warnings
-from capture.session import SessionLayout, require
-from core.config import as_config
-from core.errors import FormatError
-from core.progress import Progress
-from triangulate.checks import no_detection_warning
-from triangulate.chunks import (
+from roomcap.calibrate.camera import CameraRig
+from roomcap.calibrate.checks import rig_warnings
+from roomcap.capture.session import SessionLayout, require
+from roomcap.core.config import as_config
+from roomcap.core.errors import FormatError
+from roomcap.core.progress import Progress
+from roomcap.triangulate.checks import no_detection_warning
+from roomcap.triangulate.chunks import (
     ChunkRunner,
     PartStore,
     StreamConfig,
@@ -35,15 +35,15 @@ from triangulate.chunks import (
     parts_dir,
     remove_output,
 )
-from triangulate.multiview import (
+from roomcap.triangulate.multiview import (
     MultiViewDetections,
     load_detections,
     plan_detections,
     session_chunk_s,
     session_fps,
 )
-from triangulate.poses3d import Poses3D
-from triangulate.reconstruct import FrameReconstructor, TriangulateConfig
+from roomcap.triangulate.poses3d import Poses3D
+from roomcap.triangulate.reconstruct import FrameReconstructor, TriangulateConfig
 
 log = logging.getLogger(__name__)
 

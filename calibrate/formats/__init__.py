@@ -56,20 +56,20 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from calibrate.formats._common import (
+from roomcap.calibrate.camera import CameraRig
+from roomcap.calibrate.formats._common import (
     EXPORT_FORMATS,
     IMPORT_FORMATS,
     ImportOptions,
     _load_toml,
     pad_dist,
 )
-from calibrate.formats.aniposelib import read_aniposelib, write_aniposelib
-from calibrate.formats.caliscope import read_caliscope
-from calibrate.formats.easymocap import read_easymocap, write_easymocap
-from calibrate.formats.qualisys import _rotate_image_cw as _rotate_image_cw  # the tests use it
-from calibrate.formats.qualisys import read_qualisys
-from core.errors import FormatError, InputError
+from roomcap.calibrate.formats.aniposelib import read_aniposelib, write_aniposelib
+from roomcap.calibrate.formats.caliscope import read_caliscope
+from roomcap.calibrate.formats.easymocap import read_easymocap, write_easymocap
+from roomcap.calibrate.formats.qualisys import _rotate_image_cw as _rotate_image_cw  # the tests use it
+from roomcap.calibrate.formats.qualisys import read_qualisys
+from roomcap.core.errors import FormatError, InputError
 
 __all__ = [
     "EXPORT_FORMATS",

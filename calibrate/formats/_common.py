@@ -1,5 +1,5 @@
 """What the calibration readers and writers share: the import options and the checks of a file's values
-(package-internal; the public names are re-exported by :mod:`calibrate.formats`)."""
+(package-internal; the public names are re-exported by :mod:`roomcap.calibrate.formats`)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from calibrate.camera import Camera, CameraRig
-from calibrate.camera_fields import PINHOLE_DIST_SIZES, validated_fields
-from core.config import check_keys
-from core.errors import FormatError, InputError
+from roomcap.calibrate.camera import Camera, CameraRig
+from roomcap.calibrate.camera_fields import PINHOLE_DIST_SIZES, validated_fields
+from roomcap.core.config import check_keys
+from roomcap.core.errors import FormatError, InputError
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,5 @@
-"""aniposelib / Pose2Sim ``Calib*.toml``: reader and writer (the conventions: :mod:`calibrate.formats`)."""
+"""aniposelib / Pose2Sim ``Calib*.toml``: reader and writer (the conventions:
+:mod:`roomcap.calibrate.formats`)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from calibrate.camera import (
+from roomcap.calibrate.camera import (
     CameraRig,
     rotation_from_rvec,
 )
-from calibrate.formats._common import (
+from roomcap.calibrate.formats._common import (
     ImportOptions,
     _array,
     _camera,
@@ -24,8 +25,8 @@ from calibrate.formats._common import (
     _size,
     pad_dist,
 )
-from core.errors import FormatError
-from core.fileio import save_toml
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import save_toml
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,5 @@
-"""caliscope ``camera_array.toml`` / ``config.toml``: reader (the conventions: :mod:`calibrate.formats`)."""
+"""caliscope ``camera_array.toml`` / ``config.toml``: reader (the conventions:
+:mod:`roomcap.calibrate.formats`)."""
 
 from __future__ import annotations
 
@@ -7,10 +8,10 @@ import re
 from collections.abc import Mapping
 from pathlib import Path
 
-from calibrate.camera import (
+from roomcap.calibrate.camera import (
     CameraRig,
 )
-from calibrate.formats._common import (
+from roomcap.calibrate.formats._common import (
     ImportOptions,
     _array,
     _camera,

@@ -1,5 +1,5 @@
 """EasyMocap / OpenCV FileStorage ``intri.yml`` + ``extri.yml``: reader and writer (the conventions:
-:mod:`calibrate.formats`)."""
+:mod:`roomcap.calibrate.formats`)."""
 
 from __future__ import annotations
 
@@ -9,19 +9,19 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrate.camera import (
+from roomcap.calibrate.camera import (
     CameraRig,
     rotation_from_rvec,
 )
-from calibrate.formats._common import (
+from roomcap.calibrate.formats._common import (
     ImportOptions,
     _camera,
     _check_size_names,
     _nonempty,
     pad_dist,
 )
-from core.errors import FormatError
-from core.fileio import atomic_path
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import atomic_path
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Qualisys QTM ``.qca.txt``: reader (the conventions: :mod:`calibrate.formats`)."""
+"""Qualisys QTM ``.qca.txt``: reader (the conventions: :mod:`roomcap.calibrate.formats`)."""
 
 from __future__ import annotations
 
@@ -10,17 +10,17 @@ from typing import Any
 
 import numpy as np
 
-from calibrate.camera import (
+from roomcap.calibrate.camera import (
     Camera,
     CameraRig,
 )
-from calibrate.formats._common import (
+from roomcap.calibrate.formats._common import (
     ImportOptions,
     _camera,
     _check_size_names,
     _nonempty,
 )
-from core.errors import FormatError
+from roomcap.core.errors import FormatError
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-from forecast.behaviour.cli import main
+from roomcap.forecast.behaviour.cli import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

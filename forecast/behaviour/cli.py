@@ -1,5 +1,5 @@
-"""``forecast behaviour train | eval | sample`` (``python -m forecast.behaviour``): the command line of the
-action and characteristic-3D-pose forecaster (Diller ch. 4); the library never prints."""
+"""``forecast behaviour train | eval | sample`` (``python -m roomcap.forecast.behaviour``): the command line
+of the action and characteristic-3D-pose forecaster (Diller ch. 4); the library never prints."""
 
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import guarded, parse_sets
-from core.errors import FormatError, InputError
-from core.fileio import atomic_write_text
-from core.progress import Bars
-from forecast.behaviour import quality as Q
-from forecast.behaviour.model import (
+from roomcap.core.cli import guarded, parse_sets
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import atomic_write_text
+from roomcap.core.progress import Bars
+from roomcap.forecast.behaviour import quality as Q
+from roomcap.forecast.behaviour.model import (
     SHIPPED,
     VARIANTS,
     BehaviourConfig,
@@ -28,8 +28,8 @@ from forecast.behaviour.model import (
     load_checkpoint,
     save_checkpoint,
 )
-from forecast.behaviour.sample import run_sample, session_windows
-from forecast.behaviour.training import (
+from roomcap.forecast.behaviour.sample import run_sample, session_windows
+from roomcap.forecast.behaviour.training import (
     action_frequencies,
     concat,
     evaluate_all,
@@ -165,7 +165,7 @@ def _train(args) -> int:
         own = _session_windows(args.sessions, base)
         sp.train = concat([sp.train, own])
         print(f"added {len(own)} windows of {len(args.sessions)} sessions to the training sequences")
-    logging.getLogger("forecast.behaviour.training").setLevel(logging.INFO)
+    logging.getLogger("roomcap.forecast.behaviour.training").setLevel(logging.INFO)
     gens, cfgs, hists = {}, {}, {}
     with Bars(unit="step") as bars:
         for v in variants:

@@ -42,15 +42,15 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import InputError
-from forecast import data as fdata
-from forecast.characteristic.labels import annotate, articulation
-from keypoints.skeletons import get_skeleton
-from synthetic import bvh
-from synthetic.render import RenderConfig, render, render_camera
-from synthetic.rigs import ring_rig, ring_room
-from synthetic.world import Scene, SceneConfig, write_session
-from track.trackfile import TrackFile
+from roomcap.core.errors import InputError
+from roomcap.forecast import data as fdata
+from roomcap.forecast.characteristic.labels import annotate, articulation
+from roomcap.keypoints.skeletons import get_skeleton
+from roomcap.synthetic import bvh
+from roomcap.synthetic.render import RenderConfig, render, render_camera
+from roomcap.synthetic.rigs import ring_rig, ring_room
+from roomcap.synthetic.world import Scene, SceneConfig, write_session
+from roomcap.track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.errors import InputError
+from roomcap.core.errors import InputError
 
 ANKLE_HEIGHT_M = 0.08  # the ankle joint's height above the floor when standing
 

@@ -14,7 +14,7 @@ import io
 import os
 from dataclasses import dataclass
 
-from core.errors import FormatError
+from roomcap.core.errors import FormatError
 
 HEADER = ("track_id", "start_s", "end_s", "label")
 

@@ -32,12 +32,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.config import config_from_dict as _config_from_dict
-from core.errors import FormatError
-from core.fileio import atomic_path
-from forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPTS, UPPER9
-from forecast.behaviour.geometry import plane_of_3d
-from forecast.checkpoint import read_checkpoint
+from roomcap.core.config import config_from_dict as _config_from_dict
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import atomic_path
+from roomcap.forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPTS, UPPER9
+from roomcap.forecast.behaviour.geometry import plane_of_3d
+from roomcap.forecast.checkpoint import read_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_cmu.pt"
 SCHEMA = "behaviour_checkpoint/1"

@@ -22,12 +22,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.fileio import atomic_path
-from core.progress import Progress
-from forecast.behaviour import training as T
-from forecast.behaviour.data import JOINTS
-from forecast.behaviour.model import BehaviourConfig
-from forecast.checkpoint import read_checkpoint
+from roomcap.core.fileio import atomic_path
+from roomcap.core.progress import Progress
+from roomcap.forecast.behaviour import training as T
+from roomcap.forecast.behaviour.data import JOINTS
+from roomcap.forecast.behaviour.model import BehaviourConfig
+from roomcap.forecast.checkpoint import read_checkpoint
 
 QUALITY_SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_quality_cmu.pt"
 SCHEMA = "behaviour_quality/1"

@@ -25,19 +25,25 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from calibrate.camera import CameraRig
-from capture.session import SessionLayout
-from core.errors import FormatError, InputError
-from core.fileio import save_npz, schema_tag
-from forecast.behaviour.data import ACTIONS, JOINTS
-from forecast.behaviour.geometry import ANKLE_HEIGHT_M, make_view, plane_features, room_context, to_world
-from forecast.behaviour.labels import LabelRow, read_labels
-from forecast.behaviour.model import SHIPPED, load_checkpoint, rollout
-from forecast.behaviour.training import Prepared
-from forecast.characteristic.labels import articulation
-from keypoints.detections import Detections
-from keypoints.skeletons import convert
-from track.trackfile import TrackFile
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import save_npz, schema_tag
+from roomcap.forecast.behaviour.data import ACTIONS, JOINTS
+from roomcap.forecast.behaviour.geometry import (
+    ANKLE_HEIGHT_M,
+    make_view,
+    plane_features,
+    room_context,
+    to_world,
+)
+from roomcap.forecast.behaviour.labels import LabelRow, read_labels
+from roomcap.forecast.behaviour.model import SHIPPED, load_checkpoint, rollout
+from roomcap.forecast.behaviour.training import Prepared
+from roomcap.forecast.characteristic.labels import articulation
+from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.skeletons import convert
+from roomcap.track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Training (eq. 4.1) and the evaluation of sec. 4.5.1 on composite activities.
 
-``prepare`` turns a :class:`~forecast.behaviour.data.Composite` into the model's arrays (plane features of
-the observed steps, the targets' undistorted 2D, the viewer frames, and the 3D truth that only the
+``prepare`` turns a :class:`~roomcap.forecast.behaviour.data.Composite` into the model's arrays (plane
+features of the observed steps, the targets' undistorted 2D, the viewer frames, and the 3D truth that only the
 evaluation reads). ``train`` fits one variant; ``evaluate`` scores the baselines of Table 4.1 (zero velocity,
 train average) and the trained variants of Table 4.2 by 2D MPJPE (px), 3D quality (the share of a method's
 poses that a once-trained real-vs-predicted pose classifier judges real, sec. 4.7.7), action top-1/top-3 per
@@ -19,10 +19,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.progress import Progress
-from forecast.behaviour import data as bdata
-from forecast.behaviour.data import ACTIONS, JOINTS, Composite
-from forecast.behaviour.geometry import (
+from roomcap.core.progress import Progress
+from roomcap.forecast.behaviour import data as bdata
+from roomcap.forecast.behaviour.data import ACTIONS, JOINTS, Composite
+from roomcap.forecast.behaviour.geometry import (
     View,
     anchor_from_2d,
     make_view,
@@ -32,7 +32,7 @@ from forecast.behaviour.geometry import (
     room_context,
     to_world,
 )
-from forecast.behaviour.model import BehaviourConfig, Generator, build, fit_pose_prior, rollout
+from roomcap.forecast.behaviour.model import BehaviourConfig, Generator, build, fit_pose_prior, rollout
 
 log = logging.getLogger(__name__)
 

@@ -1,12 +1,12 @@
 """Characteristic 3D pose forecasting (Diller 2024, ch. 3) on CMU mocap: labels, data, training, evaluation.
 
-``python -m forecast.characteristic train --out PATH`` / ``eval --checkpoint PATH`` (``forecast
+``python -m roomcap.forecast.characteristic train --out PATH`` / ``eval --checkpoint PATH`` (``forecast
 characteristic ...``). Modules: ``labels`` (annotation and samples), ``model`` (config, networks,
 checkpoint), ``protocol`` (data split and evaluation), ``training`` and ``cli``; the names below are
 importable from the package. The shipped
 ``forecast/checkpoints/characteristic_cmu.pt`` (1.8 MB, ~8.5 min of CPU on one thread) was trained with::
 
-    OMP_NUM_THREADS=1 python -m forecast.characteristic train
+    OMP_NUM_THREADS=1 python -m roomcap.forecast.characteristic train
         --out forecast/checkpoints/characteristic_cmu.pt
         --set steps=1100 det_steps=1000 val_every=100 n_rest_train=3 time_limit_s=560 --no-eval
 
@@ -43,7 +43,7 @@ importable from the package. The shipped
 
 from __future__ import annotations
 
-from forecast.characteristic.labels import (
+from roomcap.forecast.characteristic.labels import (
     END_EFFECTORS,
     AnnotatorConfig,
     Labelled,
@@ -55,7 +55,7 @@ from forecast.characteristic.labels import (
     mirror_pairs,
     segments,
 )
-from forecast.characteristic.model import (
+from roomcap.forecast.characteristic.model import (
     CKPT_SCHEMA,
     NORMALISATION,
     SHIPPED,
@@ -65,7 +65,7 @@ from forecast.characteristic.model import (
     load_checkpoint,
     save_checkpoint,
 )
-from forecast.characteristic.protocol import (
+from roomcap.forecast.characteristic.protocol import (
     DATA_SOURCES,
     CharData,
     best_of_k,
@@ -73,7 +73,7 @@ from forecast.characteristic.protocol import (
     load_cmu_labelled,
     load_labelled,
 )
-from forecast.characteristic.training import train
+from roomcap.forecast.characteristic.training import train
 
 __all__ = [
     "CKPT_SCHEMA",

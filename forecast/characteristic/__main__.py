@@ -1,5 +1,6 @@
-"""``python -m forecast.characteristic train | eval`` (the same as ``forecast characteristic ...``)."""
+"""``python -m roomcap.forecast.characteristic train | eval`` (the same as ``forecast characteristic
+...``)."""
 
-from forecast.characteristic.cli import main
+from roomcap.forecast.characteristic.cli import main
 
 raise SystemExit(main())

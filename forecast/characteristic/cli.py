@@ -1,5 +1,5 @@
-"""``forecast characteristic train | eval`` (``python -m forecast.characteristic``): the command line of the
-characteristic-pose forecaster; the library (labels, model, protocol, training) never prints."""
+"""``forecast characteristic train | eval`` (``python -m roomcap.forecast.characteristic``): the command line
+of the characteristic-pose forecaster; the library (labels, model, protocol, training) never prints."""
 
 from __future__ import annotations
 
@@ -15,20 +15,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.cli import Parser, guarded, parse_sets, positive_int
-from core.errors import FormatError, InputError
-from core.fileio import atomic_write_text
-from core.progress import Bars
-from forecast.characteristic.labels import segments
-from forecast.characteristic.model import (
+from roomcap.core.cli import Parser, guarded, parse_sets, positive_int
+from roomcap.core.errors import FormatError, InputError
+from roomcap.core.fileio import atomic_write_text
+from roomcap.core.progress import Bars
+from roomcap.forecast.characteristic.labels import segments
+from roomcap.forecast.characteristic.model import (
     SHIPPED,
     CharConfig,
     config_from_dict,
     load_checkpoint,
     save_checkpoint,
 )
-from forecast.characteristic.protocol import DATA_SOURCES, evaluate, load_labelled
-from forecast.characteristic.training import train
+from roomcap.forecast.characteristic.protocol import DATA_SOURCES, evaluate, load_labelled
+from roomcap.forecast.characteristic.training import train
 
 
 def results_table(res: dict) -> str:
@@ -100,7 +100,7 @@ def _main(argv: list[str] | None = None) -> int:
             + f" (clips {len(data.train)}/{len(data.val)}/{len(data.test)})"
         )
         # the loss terms, as log lines above the bars
-        logging.getLogger("forecast.characteristic.training").setLevel(logging.INFO)
+        logging.getLogger("roomcap.forecast.characteristic.training").setLevel(logging.INFO)
         t0, c0 = time.perf_counter(), time.process_time()
         with Bars(unit="step") as bars:
             net, det, avg, hist = train(data, cfg, bars)
@@ -108,7 +108,7 @@ def _main(argv: list[str] | None = None) -> int:
         extra = {
             "data": args.data,
             "history": {k: v for k, v in hist.items()},
-            "command": "python -m forecast.characteristic train "
+            "command": "python -m roomcap.forecast.characteristic train "
             + " ".join(sys.argv[2:] if argv is None else argv[1:]),
         }
         for part in ("heatmap", "deterministic"):

@@ -1,5 +1,5 @@
 """Characteristic-pose labels (sec. 3.6, Fig. 3.2) and the samples built from them (sec. 3.6); the rules are
-in the package docstring (:mod:`forecast.characteristic`)."""
+in the package docstring (:mod:`roomcap.forecast.characteristic`)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
-from core.errors import InputError
-from forecast import data as fdata
-from forecast.clips import mirror
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import InputError
+from roomcap.forecast import data as fdata
+from roomcap.forecast.clips import mirror
+from roomcap.keypoints.skeletons import get_skeleton
 
 END_EFFECTORS = ("left_wrist", "right_wrist", "left_ankle", "right_ankle")
 

@@ -12,13 +12,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from core import config as core_config
-from core.errors import FormatError, InputError
-from forecast import data as fdata
-from forecast.characteristic.labels import AnnotatorConfig
-from forecast.checkpoint import read_checkpoint, write_checkpoint
-from forecast.models.characteristic import CharacteristicPoseNet, DeterministicCharacteristic
-from keypoints.skeletons import get_skeleton
+from roomcap.core import config as core_config
+from roomcap.core.errors import FormatError, InputError
+from roomcap.forecast import data as fdata
+from roomcap.forecast.characteristic.labels import AnnotatorConfig
+from roomcap.forecast.checkpoint import read_checkpoint, write_checkpoint
+from roomcap.forecast.models.characteristic import CharacteristicPoseNet, DeterministicCharacteristic
+from roomcap.keypoints.skeletons import get_skeleton
 
 CKPT_SCHEMA = "forecast-characteristic/1"
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "characteristic_cmu.pt"

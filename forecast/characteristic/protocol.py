@@ -8,14 +8,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.errors import InputError
-from core.progress import Progress
-from forecast import data as fdata
-from forecast.characteristic.labels import Labelled, eval_starts, label_clips, make_pairs, segments
-from forecast.characteristic.model import CharConfig
-from forecast.clips import load_cmu, load_one_person_all, split_clips
-from forecast.metrics import mpjpe  # L2 per joint, mean over joints (metres)
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import InputError
+from roomcap.core.progress import Progress
+from roomcap.forecast import data as fdata
+from roomcap.forecast.characteristic.labels import Labelled, eval_starts, label_clips, make_pairs, segments
+from roomcap.forecast.characteristic.model import CharConfig
+from roomcap.forecast.clips import load_cmu, load_one_person_all, split_clips
+from roomcap.forecast.metrics import mpjpe  # L2 per joint, mean over joints (metres)
+from roomcap.keypoints.skeletons import get_skeleton
 
 
 @dataclass

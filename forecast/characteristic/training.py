@@ -13,12 +13,12 @@ import time
 import numpy as np
 import torch
 
-from core.errors import InputError
-from core.progress import Progress
-from forecast.characteristic.labels import eval_starts, make_pairs, mirror_pairs, segments
-from forecast.characteristic.model import CharConfig, build_models
-from forecast.characteristic.protocol import CharData, best_of_k
-from keypoints.skeletons import get_skeleton
+from roomcap.core.errors import InputError
+from roomcap.core.progress import Progress
+from roomcap.forecast.characteristic.labels import eval_starts, make_pairs, mirror_pairs, segments
+from roomcap.forecast.characteristic.model import CharConfig, build_models
+from roomcap.forecast.characteristic.protocol import CharData, best_of_k
+from roomcap.keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
 

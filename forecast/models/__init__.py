@@ -5,10 +5,10 @@ Single-person models take ``obs (B,T,D)`` normalised at the last observed frame 
 D = 3J; Social Diffusion takes scenes (see ``diffusion.py``).
 """
 
-from forecast.models.baselines import ConstantVelocity, FoolClusters, SlideLastPose, ZeroVelocity
-from forecast.models.diffusion import SocialDiffusion
-from forecast.models.gru import Seq2SeqGRU
-from forecast.models.intention import IntentionModel
+from roomcap.forecast.models.baselines import ConstantVelocity, FoolClusters, SlideLastPose, ZeroVelocity
+from roomcap.forecast.models.diffusion import SocialDiffusion
+from roomcap.forecast.models.gru import Seq2SeqGRU
+from roomcap.forecast.models.intention import IntentionModel
 
 __all__ = [
     "ConstantVelocity",

@@ -1,1 +1,2 @@
-"""The live view of ``capture-run --live --view``: the server (:mod:`pipeline.liveview.server`), the page."""
+"""The live view of ``capture-run --live --view``: the server (:mod:`roomcap.pipeline.liveview.server`), the
+page."""

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError
+from roomcap.core.errors import InputError
 
 
 def find_chromium() -> str | None:

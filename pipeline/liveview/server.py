@@ -49,13 +49,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.config import CaptureConfig
-from capture.live import LiveRunner, LiveStep
-from capture.sources import host_now_ns
-from core.errors import InputError
-from keypoints.skeletons import CANONICAL, convert
-from pipeline.report import rig_cameras_data
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.config import CaptureConfig
+from roomcap.capture.live import LiveRunner, LiveStep
+from roomcap.capture.sources import host_now_ns
+from roomcap.core.errors import InputError
+from roomcap.keypoints.skeletons import CANONICAL, convert
+from roomcap.pipeline.report import rig_cameras_data
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +94,7 @@ def _asset(name: str) -> str:
 
 
 def _report_asset(name: str) -> str:
-    return resources.files("pipeline.report_assets").joinpath(name).read_text(encoding="utf-8")
+    return resources.files("roomcap.pipeline.report_assets").joinpath(name).read_text(encoding="utf-8")
 
 
 def page_html() -> str:

@@ -15,15 +15,15 @@ frames evenly). The page is plain canvas JavaScript (``report_assets/``); script
 collected into ``#errors`` so tests (and people) see them.
 
 ``write_overlay_videos`` draws the same overlays on every frame of every camera's video (MP4);
-``python -m pipeline.report SESSION [--overlay]`` writes the report (and those videos) for a
+``python -m roomcap.pipeline.report SESSION [--overlay]`` writes the report (and those videos) for a
 session folder without running the pipeline.
 """
 
-from pipeline.report.figures import reprojection_figures, rig_cameras_data, track_events
-from pipeline.report.inputs import ReportConfig
-from pipeline.report.overlay_video import draw_overlay, write_overlay_videos
-from pipeline.report.page import collect, render, write_report
-from pipeline.report.problems import warnings_path
+from roomcap.pipeline.report.figures import reprojection_figures, rig_cameras_data, track_events
+from roomcap.pipeline.report.inputs import ReportConfig
+from roomcap.pipeline.report.overlay_video import draw_overlay, write_overlay_videos
+from roomcap.pipeline.report.page import collect, render, write_report
+from roomcap.pipeline.report.problems import warnings_path
 
 __all__ = [
     "ReportConfig",

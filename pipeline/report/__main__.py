@@ -1,8 +1,8 @@
-"""``python -m pipeline.report SESSION [--overlay]``: the report of a session folder."""
+"""``python -m roomcap.pipeline.report SESSION [--overlay]``: the report of a session folder."""
 
 import sys
 
-from pipeline.report.page import main
+from roomcap.pipeline.report.page import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from capture.session import SessionLayout
-from core.fileio import load_toml
-from pipeline.report.inputs import ReportConfig, _f, _Inputs, _r
-from pipeline.report.views import _shown_path
-from track.trackfile import INTERPOLATED, OBSERVED, PREDICTED
+from roomcap.capture.session import SessionLayout
+from roomcap.core.fileio import load_toml
+from roomcap.pipeline.report.inputs import ReportConfig, _f, _Inputs, _r
+from roomcap.pipeline.report.views import _shown_path
+from roomcap.track.trackfile import INTERPOLATED, OBSERVED, PREDICTED
 
 
 def _footprint(cam, height_m: float = 0.9, range_m: float = 12.0, n: int = 24) -> list[list[float]]:

@@ -7,12 +7,12 @@ from typing import Any
 
 import numpy as np
 
-from calibrate.camera import CameraRig
-from capture.session import SessionLayout
-from keypoints.detections import Detections
-from track.trackfile import TrackFile
-from triangulate.chunks import parts_dir
-from triangulate.poses3d import Poses3D
+from roomcap.calibrate.camera import CameraRig
+from roomcap.capture.session import SessionLayout
+from roomcap.keypoints.detections import Detections
+from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate.chunks import parts_dir
+from roomcap.triangulate.poses3d import Poses3D
 
 _MAX_FRAMES = 2000  # frames embedded in the viewer (subsampled beyond); ReportConfig.max_viewer_frames
 

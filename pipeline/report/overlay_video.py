@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.session import SessionLayout
-from core.errors import FormatError
-from core.fileio import atomic_path
-from core.progress import Progress
-from pipeline.report.inputs import ReportConfig, _load
-from pipeline.report.views import _Overlay, _video_paths
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import atomic_path
+from roomcap.core.progress import Progress
+from roomcap.pipeline.report.inputs import ReportConfig, _load
+from roomcap.pipeline.report.views import _Overlay, _video_paths
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,5 @@
-"""The page: everything collected into one self-contained HTML file, and ``python -m pipeline.report``."""
+"""The page: everything collected into one self-contained HTML file, and ``python -m
+roomcap.pipeline.report``."""
 
 from __future__ import annotations
 
@@ -11,16 +12,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-from capture.session import SessionLayout
-from core.errors import FormatError
-from core.fileio import atomic_write_text, load_npz, load_toml
-from core.redact import redact
-from pipeline.config import STAGES
-from pipeline.report.figures import _detection_rates, _quality, _rig_data, _tracks_data
-from pipeline.report.inputs import ReportConfig, _load, _r
-from pipeline.report.overlay_video import write_overlay_videos
-from pipeline.report.problems import _problems, _warnings
-from pipeline.report.views import _views_data
+from roomcap.capture.session import SessionLayout
+from roomcap.core.errors import FormatError
+from roomcap.core.fileio import atomic_write_text, load_npz, load_toml
+from roomcap.core.redact import redact
+from roomcap.pipeline.config import STAGES
+from roomcap.pipeline.report.figures import _detection_rates, _quality, _rig_data, _tracks_data
+from roomcap.pipeline.report.inputs import ReportConfig, _load, _r
+from roomcap.pipeline.report.overlay_video import write_overlay_videos
+from roomcap.pipeline.report.problems import _problems, _warnings
+from roomcap.pipeline.report.views import _views_data
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +160,7 @@ def write_report(lay: SessionLayout, title: str = "", config: ReportConfig | Non
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m pipeline.report",
+        prog="python -m roomcap.pipeline.report",
         description="Write report/report.html for a session folder (and, with --overlay, an overlay video "
         "per camera in report/overlay/) from the outputs already there.",
     )

@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from capture.session import SessionLayout
-from pipeline.config import STAGES
-from pipeline.report.inputs import _Inputs
+from roomcap.capture.session import SessionLayout
+from roomcap.pipeline.config import STAGES
+from roomcap.pipeline.report.inputs import _Inputs
 
 
 def warnings_path(root: Path, stage: str) -> Path:

@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from capture.session import VIDEO_SUFFIXES, SessionLayout
-from keypoints.skeletons import CANONICAL, convert
-from pipeline.report.inputs import ReportConfig, _f, _Inputs
-from triangulate.dlt import DLTConfig
+from roomcap.capture.session import VIDEO_SUFFIXES, SessionLayout
+from roomcap.keypoints.skeletons import CANONICAL, convert
+from roomcap.pipeline.report.inputs import ReportConfig, _f, _Inputs
+from roomcap.triangulate.dlt import DLTConfig
 
 
 def _video_paths(lay: SessionLayout, cams: list[str]) -> dict[str, Path]:
