@@ -343,7 +343,7 @@ def _rerun_check(session: Path, rig_toml: Path, rrd: Path) -> dict:
     except ImportError:
         return {"skipped": "rerun-sdk not installed (pip install 'roomcap[rerun]')"}
     from roomcap.capture.session import SessionLayout
-    from roomcap.track.rerun_export import write_session_rrd
+    from roomcap.outputs.rerun_recording import write_session_rrd
     from roomcap.track.trackfile import TrackFile
 
     lay = SessionLayout(session)

@@ -3,7 +3,7 @@
 People play CMU BVH clips (4 s windows at 30 fps, every 2nd or 4th frame of the 60 / 120 fps mocap,
 so the mocap's own rotations are known at every frame) placed by a known yaw and offset in a ring room seen
 by 6 cameras (detections with 1 px noise, occlusions by the renderer); the greedy tracker's track
-file is fitted (:mod:`roomcap.track.skeleton_fit`). Reported against the mocap:
+file is fitted (:mod:`roomcap.outputs.skeleton_fit`). Reported against the mocap:
 
 - bone-length error: |fitted length - mocap length| (mocap: median over frames of the body19 joints'
   distances), per bone and the mean;
@@ -37,10 +37,10 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from roomcap.keypoints.skeletons import CANONICAL  # noqa: E402
+from roomcap.outputs.skeleton_fit import fit_skeletons  # noqa: E402
 from roomcap.synthetic import bvh as sbvh  # noqa: E402
 from roomcap.synthetic import render, rigs, world  # noqa: E402
 from roomcap.track.greedy_stage import track_session_greedy  # noqa: E402
-from roomcap.track.skeleton_fit import fit_skeletons  # noqa: E402
 from roomcap.track.trackfile import TrackFile  # noqa: E402
 from roomcap.triangulate.stage import triangulate_session  # noqa: E402
 

@@ -8,8 +8,8 @@ Three sessions of the same setup (``python -m roomcap.synthetic OUT --rig kitche
 baseline (``--metric-minutes``). Each runs triangulation and the greedy tracker streamed
 (``chunk_s``), every stage in its own process, whose peak resident memory (ru_maxrss) and wall time
 are reported. With ``--tracker particle`` the particle tracker (default config, streamed by
-:mod:`roomcap.track.stream`) replaces triangulation + the greedy tracker (it reads the detections itself).
-Against the ground truth: MOTA, IDF1 (threshold 0.3 m), PCP (actor average) and MPJPE
+:mod:`roomcap.track.particle_chunked`) replaces triangulation + the greedy tracker (it reads the detections
+itself). Against the ground truth: MOTA, IDF1 (threshold 0.3 m), PCP (actor average) and MPJPE
 on consecutive 60-second windows (the windowed IDF1 counts identity per minute), frame-weighted.
 Then the memory-baseline session is run again killed (SIGKILL) at a random moment of each stage
 and rerun: the parts must equal the uninterrupted run's byte for byte. Ends with ``BENCH {json}``:

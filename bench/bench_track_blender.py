@@ -22,11 +22,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from test_track_blender import blender_import, check_armatures  # noqa: E402
+from test_outputs_blender import blender_import, check_armatures  # noqa: E402
 
-from roomcap.track.cli import main as tracks  # noqa: E402
-from roomcap.track.cli import resolve_tracks  # noqa: E402
-from roomcap.track.skeleton_fit import SkeletonFit, file_sha256  # noqa: E402
+from roomcap.outputs.cli import main as tracks  # noqa: E402
+from roomcap.outputs.cli import resolve_tracks  # noqa: E402
+from roomcap.outputs.skeleton_fit import SkeletonFit, file_sha256  # noqa: E402
 
 
 def main() -> None:

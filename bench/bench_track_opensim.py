@@ -29,9 +29,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from roomcap.outputs.export import marker_table, write_trc  # noqa: E402
+from roomcap.outputs.opensim_ik import find_setup, run_opensim_trc, setup_marker_names  # noqa: E402
 from roomcap.pipeline.cli import main as reprocess  # noqa: E402
-from roomcap.track.export import marker_table, write_trc  # noqa: E402
-from roomcap.track.opensim_ik import find_setup, run_opensim_trc, setup_marker_names  # noqa: E402
 from roomcap.track.trackfile import TrackFile, read_trc  # noqa: E402
 
 TRIAL = "data/pose2sim/session-2024/S00_P00_SingleParticipant/S00_P00_T01_BalancingTrial"

@@ -31,13 +31,13 @@ from roomcap.capture.session import SessionLayout
 from roomcap.core.cli import Parser, guarded, output_folder, positive_int
 from roomcap.core.errors import FormatError
 from roomcap.core.fileio import atomic_write_text
+from roomcap.outputs.export import ExportError, ExportOptions, export_tracks, parse_formats
+from roomcap.outputs.skeleton_fit_file import FitError
 from roomcap.pipeline.config import DEFAULT_TRACKER, STAGES, TRACKERS, PipelineConfig
 from roomcap.pipeline.discover import SessionError, discover
 from roomcap.pipeline.executors import EXECUTORS, run_sessions
 from roomcap.pipeline.report import write_overlay_videos
 from roomcap.pipeline.runner import SessionResult
-from roomcap.track.export import ExportError, ExportOptions, export_tracks, parse_formats
-from roomcap.track.skeleton_fit_file import FitError
 from roomcap.track.trackfile import TrackFile
 
 

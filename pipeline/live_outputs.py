@@ -10,9 +10,10 @@ stages ran on a frame set, and never makes it wait:
 
 - the view (:mod:`roomcap.pipeline.liveview`) takes the step into a latest-value slot; its own thread encodes
   and pushes, dropping updates a slow page cannot take;
-- the streams (:class:`roomcap.track.streams.TrackStreamer`) send UDP datagrams and LSL samples, which do not
+- the streams (:class:`roomcap.outputs.lsl_osc.TrackStreamer`) send UDP datagrams and LSL samples, which do
+not
   wait for a reader;
-- the Rerun recording (:class:`roomcap.track.rerun_export.LiveRerun`) is written by its own thread from a
+- the Rerun recording (:class:`roomcap.outputs.rerun_recording.LiveRerun`) is written by its own thread from a
   bounded queue (a full queue drops the frame set for the file, counted).
 
 An output that fails while recording is logged once and left out; the recording goes on. Bad options
@@ -34,9 +35,9 @@ from roomcap.capture.config import CaptureConfig
 from roomcap.capture.live import LiveRunner, LiveStep
 from roomcap.core.cli import positive_int
 from roomcap.core.errors import InputError
+from roomcap.outputs.lsl_osc import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
+from roomcap.outputs.rerun_recording import LiveRerun
 from roomcap.pipeline.liveview.server import DEFAULT_PORT, LiveView, ViewConfig
-from roomcap.track.rerun_export import LiveRerun
-from roomcap.track.streams import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
 
 log = logging.getLogger(__name__)
 

@@ -53,7 +53,7 @@ def test_tilde_in_out_is_the_home_folder(session, tmp_path, monkeypatch, capsys,
 
 def test_tilde_in_other_commands(tracked, tmp_path, monkeypatch):
     from roomcap.calibrate.cli import main as calibrate_run
-    from roomcap.track.cli import main as tracks
+    from roomcap.outputs.cli import main as tracks
 
     monkeypatch.setenv("HOME", str(tmp_path))
     monkeypatch.chdir(tmp_path)
@@ -193,7 +193,7 @@ def test_partial_session_exits_1(tmp_path, monkeypatch, capsys):
 
 
 def test_export_of_an_unknown_person_makes_no_folder(tracked, tmp_path, capsys):
-    from roomcap.track.cli import main as tracks
+    from roomcap.outputs.cli import main as tracks
 
     out = tmp_path / "x" / "exports"
     assert tracks(["export", str(tracked), "--person", "99", "--out", str(out)]) == 2
@@ -234,9 +234,9 @@ def _parsers(monkeypatch) -> list[argparse.ArgumentParser]:
     from roomcap.calibrate.cli import main as calibrate_run
     from roomcap.forecast.cli import main as forecast
     from roomcap.keypoints.cli import main as keypoints
+    from roomcap.outputs.cli import main as tracks
     from roomcap.pipeline.demo import main as demo
     from roomcap.pipeline.live import main as capture_run
-    from roomcap.track.cli import main as tracks
 
     def grab(self, *a, **k):
         raise _Parsed(self)

@@ -56,13 +56,13 @@ def test_project_errors_share_one_base_and_keep_their_builtin_parents():
     from roomcap.core.errors import FormatError
     from roomcap.keypoints.registry import ModelError
     from roomcap.keypoints.video import VideoDecodeError
+    from roomcap.outputs.cli import UsageError
+    from roomcap.outputs.export import ExportError
+    from roomcap.outputs.opensim_ik import OpenSimError
+    from roomcap.outputs.skeleton_fit_file import FitError
     from roomcap.pipeline.discover import SessionError
     from roomcap.pipeline.session_inputs import StageError
-    from roomcap.track.cli import UsageError
-    from roomcap.track.export import ExportError
     from roomcap.track.motion import CheckpointMismatch
-    from roomcap.track.opensim_ik import OpenSimError
-    from roomcap.track.skeleton_fit_file import FitError
 
     parents = {
         CalibrationError: RuntimeError, FormatError: ValueError, RecorderError: RuntimeError,

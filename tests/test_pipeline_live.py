@@ -20,9 +20,9 @@ from roomcap.capture.sources import Frame
 from roomcap.capture.sync import FrameSet
 from roomcap.core.errors import FormatError
 from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.outputs.cli import resolve_tracks
 from roomcap.pipeline.live import STAGES, LiveContext, _track, legacy_live_dir, live_dir, load_live_tracks
 from roomcap.synthetic.rigs import ring_rig
-from roomcap.track.cli import resolve_tracks
 from roomcap.track.particle_config import ParticleConfig
 from roomcap.track.trackfile import TrackFile, iter_parts
 from roomcap.triangulate.chunks import PartStore, parts_dir, remove_output
@@ -232,8 +232,8 @@ def test_the_runner_closes_the_track_stage_so_the_last_part_is_written(tmp_path)
 def test_downstream_reads_a_live_session_like_a_batch_one(tmp_path, capsys):
     """The tracks CLI and the report read a session that only has the live track, through the common
     loader; the skeleton fit of the live track does not take the batch track's companion name."""
+    from roomcap.outputs.cli import main as tracks_main
     from roomcap.pipeline.report.inputs import _load
-    from roomcap.track.cli import main as tracks_main
 
     sess = tmp_path / "S07"
     lay, *_ = _record(sess, n_frames=30, chunk=10)

@@ -52,7 +52,7 @@ def reference(session, config_toml, tmp_path_factory) -> Path:
 
 
 def _start(session: Path, out: Path, cfg: Path, *extra: str) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "roomcap.pipeline.cli", str(session), "--out", str(out), "--workers", "1"]
     return subprocess.Popen(
         [*cmd, "--config", str(cfg), *extra],

@@ -17,8 +17,8 @@ from roomcap.synthetic.render import RenderConfig, render
 from roomcap.synthetic.rigs import kitchen
 from roomcap.synthetic.world import SceneConfig, make_scene, write_session
 from roomcap.track.greedy import TrackerConfig, frame_times_s, track_poses
+from roomcap.track.greedy_chunked import build_chunks, link_chunks
 from roomcap.track.greedy_stage import track_session_greedy
-from roomcap.track.greedy_stream import build_chunks, link_chunks
 from roomcap.track.trackfile import TrackFile, iter_parts
 from roomcap.triangulate import chunks as C
 from roomcap.triangulate import stage

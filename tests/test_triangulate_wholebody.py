@@ -10,8 +10,8 @@ from triangulate_helpers import FOOT_HEAD_OFFSETS, people  # noqa: F401
 from roomcap.capture.session import SessionLayout
 from roomcap.keypoints.detections import Detections
 from roomcap.keypoints.skeletons import CANONICAL, SKELETONS, convert, load_skeleton_toml, whole_body
+from roomcap.outputs.export import marker_table
 from roomcap.synthetic.rigs import ring_rig
-from roomcap.track.export import marker_table
 from roomcap.track.greedy_stage import track_session_greedy
 from roomcap.track.trackfile import TrackFile
 from roomcap.triangulate.poses3d import Poses3D

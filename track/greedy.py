@@ -231,7 +231,7 @@ class FrameLinker:
     ``clock (T,)``, ``pauses (T,)``: :func:`pause_clock` of the session's frame times. ``flip`` (J,)
     (left/right joint permutation): a pose may also join a track mirrored, when its left/right-swapped
     version is closer; ``facing``: see :func:`join_mirrored`. The hooks :meth:`_joined` and
-    :meth:`_retired` let :class:`roomcap.track.greedy_stream.StreamLinker` keep what stitching needs."""
+    :meth:`_retired` let :class:`roomcap.track.greedy_chunked.StreamLinker` keep what stitching needs."""
 
     def __init__(
         self,

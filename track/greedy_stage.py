@@ -2,7 +2,7 @@
 
 ``track_session_greedy(session)`` reads ``triangulate/poses3d.npz`` (or its parts) and writes
 ``track/tracks.npz`` (or, streamed, ``track/tracks.parts/``) with :func:`roomcap.track.greedy.track_poses` or
-its streamed form :mod:`roomcap.track.greedy_stream`.
+its streamed form :mod:`roomcap.track.greedy_chunked`.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from roomcap.track.greedy import (
     sparse_time_warning,
     track_poses,
 )
-from roomcap.track.greedy_stream import build_chunks, link_chunks
+from roomcap.track.greedy_chunked import build_chunks, link_chunks
 from roomcap.track.trackfile import TrackFile
 from roomcap.triangulate.chunks import (
     NpzRows,
@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 class GreedyTrackConfig:
     """The greedy track stage: the tracker's settings (:class:`roomcap.track.greedy.TrackerConfig`) and how
     it walks the session (:class:`roomcap.triangulate.chunks.StreamConfig`; streamed by
-    :mod:`roomcap.track.greedy_stream`, one
+    :mod:`roomcap.track.greedy_chunked`, one
     tracks/1 part per chunk with global track ids, equal to the whole session's result bit for bit).
     Its chunks carry the tracks from one to the next, so they run in order in one process."""
 
@@ -167,7 +167,7 @@ class PosesReader:
 
 
 def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
-    """The streaming greedy tracker (:mod:`roomcap.track.greedy_stream`), one track part per chunk."""
+    """The streaming greedy tracker (:mod:`roomcap.track.greedy_chunked`), one track part per chunk."""
     read = PosesReader(lay.poses3d)
     fps = read.fps
     tcfg = cfg.greedy.at_fps(fps)

@@ -151,7 +151,7 @@ class ParticleTracker(Births):
         """Everything the next :meth:`step` needs, as plain arrays (npz, no pickle): the tracks (samples,
         motion state, bookkeeping), the lost identities, the clock and the random generator's state.
         :meth:`load_state_arrays` on a tracker built with the same rig and config continues bit for bit
-        (a streamed run resumes from it, :mod:`roomcap.track.stream`)."""
+        (a streamed run resumes from it, :mod:`roomcap.track.particle_chunked`)."""
         meta = {
             "schema": STATE_SCHEMA,
             "rng": self.rng.bit_generator.state,

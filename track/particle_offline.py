@@ -165,8 +165,8 @@ def finish_tracks(
     and the longest stretch without a pause among them, when ``raw`` is a window of it (default: from
     ``raw``). Each value depends only on the frames within
     ``end_after_s`` (on the tracks' clock) plus the smoothing radius of it, so a window with that margin
-    gives its middle frames exactly as the whole session does (:mod:`roomcap.track.stream`). Changes ``raw``'s
-    arrays in place."""
+    gives its middle frames exactly as the whole session does (:mod:`roomcap.track.particle_chunked`).
+    Changes ``raw``'s arrays in place."""
     xyz, std, conf, flags = raw.xyz_m, raw.std_m, raw.confidence, raw.flags  # changed in place
     nv, seen, ids = raw.n_views, raw.seen, raw.track_id
     T, K = seen.shape

@@ -24,10 +24,10 @@ from roomcap.core.errors import FormatError
 from roomcap.core.progress import Progress
 from roomcap.track.extra_joints import ExtraJointsConfig, attach_session_joints
 from roomcap.track.particle import ParticleTracker
+from roomcap.track.particle_chunked import track_session_particle_chunked
 from roomcap.track.particle_config import ParticleConfig
 from roomcap.track.particle_io import focal_lengths, load_maps, source_of, track_arrays_to_file
 from roomcap.track.particle_offline import track_sequence
-from roomcap.track.stream import track_session_particle_chunked
 from roomcap.triangulate.chunks import AUTO, StreamConfig, remove_output, split_stream_keys
 from roomcap.triangulate.multiview import load_detections, session_chunk_s, session_fps
 
@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 class ParticleTrackConfig:
     """The particle track stage: the filter's settings (:class:`ParticleConfig`), the 3D joints and how
     it walks the session (:class:`roomcap.triangulate.chunks.StreamConfig`; streamed by
-    :mod:`roomcap.track.stream`, one
+    :mod:`roomcap.track.particle_chunked`, one
     tracks/1 part per chunk with global track ids and the filter's state per chunk in
     ``track/particle_raw.parts/``, equal to the whole session's result bit for bit; its chunks carry the
     filter's state, so they run in order in one process). ``"auto"`` runs whole with ``skeleton`` other

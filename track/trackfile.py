@@ -16,9 +16,9 @@ The skeleton is ``body19`` by default; with the triangulate option ``skeleton = 
 skeleton TOML) ``joint_names``/``parents`` carry the longer list (feet, ...), same keys.
 
 Beside it, ``skeleton_fit.npz`` (schema ``skeleton_fit/1``, written by ``tracks fit``; see
-:mod:`roomcap.track.skeleton_fit`) holds one skeleton per track: constant bone lengths, per-frame joint
+:mod:`roomcap.outputs.skeleton_fit`) holds one skeleton per track: constant bone lengths, per-frame joint
 rotations, fit error per joint, and the sha256 of the tracks.npz it was fitted on. Exporters: TRC,
-C3D, CSV, JSON, BVH (:mod:`roomcap.track.export`, ``tracks export``).
+C3D, CSV, JSON, BVH (:mod:`roomcap.outputs.export`, ``tracks export``).
 """
 
 from __future__ import annotations
@@ -264,7 +264,7 @@ def export_trc(tf: TrackFile, path: str | os.PathLike, track: int | None = None,
     TRC is written in metres with ``Units m``. OpenSim's axes are y up; with
     ``y_up`` the world (x, y, z) with z up becomes (x, z, -y) in the file, the
     inverse of what the Pose2Sim importer in this project applies. For a file OpenSim accepts
-    (Pose2Sim marker names, gaps filled, no blank cells) use :func:`roomcap.track.export.write_trc`.
+    (Pose2Sim marker names, gaps filled, no blank cells) use :func:`roomcap.outputs.export.write_trc`.
     """
     ks = range(tf.n_tracks) if track is None else [track_index(tf, track)]
     names, cols = [], []

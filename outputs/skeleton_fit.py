@@ -34,7 +34,7 @@ Method (the seeds are silent here; the choices are the usual ones of marker-base
    prior of 0.5 rad on the change from step 4; hinge angles bounded), a few trust-region steps per
    frame; about 50-70 ms per person-frame on this machine.
 
-:func:`roomcap.track.bvh.write_bvh` writes the fit as BVH.
+:func:`roomcap.outputs.bvh.write_bvh` writes the fit as BVH.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from roomcap.core.errors import FormatError
-from roomcap.track.skeleton_fit_file import FitError, SkeletonFit, file_sha256, fit_path, topological_order
+from roomcap.outputs.skeleton_fit_file import FitError, SkeletonFit, file_sha256, fit_path, topological_order
 from roomcap.track.trackfile import OBSERVED, TrackFile, track_index
 
 # ----------------------------------------------------------------------------- gap filling

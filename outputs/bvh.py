@@ -1,4 +1,4 @@
-"""The BVH file of a skeleton fit (:mod:`roomcap.track.skeleton_fit`).
+"""The BVH file of a skeleton fit (:mod:`roomcap.outputs.skeleton_fit`).
 
 Metres, y up like the TRC: world (x, y, z) -> (x, z, -y); joint names as in the track file; every joint
 is a BVH JOINT with ``Zrotation Xrotation Yrotation`` channels, and leaves end in a short End Site so
@@ -13,8 +13,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from roomcap.core.fileio import atomic_write_text
-from roomcap.track.skeleton_fit import YUP, _children
-from roomcap.track.skeleton_fit_file import FitError, SkeletonFit
+from roomcap.outputs.skeleton_fit import YUP, _children
+from roomcap.outputs.skeleton_fit_file import FitError, SkeletonFit
 
 
 def write_bvh(fit: SkeletonFit, path: str | os.PathLike, track_ids: list[int] | None = None) -> None:

@@ -5,7 +5,7 @@ an OpenSim model (``*.osim``), a marker set ``Markers_<set>.xml`` and the setups
 ``Scaling_Setup_Pose2Sim_<set>.xml`` and ``IK_Setup_Pose2Sim_<set>.xml`` (Pose2Sim's, BSD-3, in
 ``<shared>/data/opensim-pose2sim`` by default; ``--setup DIR`` for a lab's own).
 
-Per person: the TRC (:func:`roomcap.track.export.write_trc`), the marker set added to the generic model,
+Per person: the TRC (:func:`roomcap.outputs.export.write_trc`), the marker set added to the generic model,
 scaling (the setup's measurements averaged over the whole trial; the markers placed on the
 slowest quarter second), then inverse kinematics over the whole TRC, writing
 
@@ -33,7 +33,7 @@ import numpy as np
 
 from roomcap.core.errors import RoomcapError
 from roomcap.core.fileio import atomic_write_text
-from roomcap.track.export import marker_table, write_trc
+from roomcap.outputs.export import marker_table, write_trc
 from roomcap.track.trackfile import TrackFile, read_trc
 
 log = logging.getLogger(__name__)

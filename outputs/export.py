@@ -25,8 +25,8 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
 - **CSV** tidy, one row per known joint and frame: ``frame, time_s, person, joint, x, y, z,
   confidence, std_m, flags`` (world metres, z up, as the track file); :func:`read_csv` reads it back.
 - **JSON**: :func:`roomcap.track.trackfile.export_json` for one track (confidence, std_m, flags).
-- **BVH**: the fitted skeleton (:mod:`roomcap.track.skeleton_fit`), written by
-:func:`roomcap.track.bvh.write_bvh`.
+- **BVH**: the fitted skeleton (:mod:`roomcap.outputs.skeleton_fit`), written by
+:func:`roomcap.outputs.bvh.write_bvh`.
 
 ``ExportOptions(lowpass_hz=6)`` (``tracks export --lowpass 6``) low-pass filters the positions first, as
 Pose2Sim filters its 3D before OpenSim (:func:`lowpass`: Butterworth, order 4, zero phase). Off by
@@ -41,6 +41,7 @@ import io
 import logging
 import os
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -48,9 +49,9 @@ import numpy as np
 
 from roomcap.core.errors import FormatError, RoomcapError
 from roomcap.core.fileio import atomic_path, atomic_write_text
-from roomcap.track.bvh import write_bvh
-from roomcap.track.skeleton_fit import fill_gaps, fit_skeletons, person_span
-from roomcap.track.skeleton_fit_file import FitError
+from roomcap.outputs.bvh import write_bvh
+from roomcap.outputs.skeleton_fit import fill_gaps, fit_skeletons, person_span
+from roomcap.outputs.skeleton_fit_file import FitError
 from roomcap.track.trackfile import (
     SMOOTHED,
     TrackFile,
@@ -62,7 +63,6 @@ from roomcap.track.trackfile import (
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("trc", "c3d", "bvh", "csv", "json")
 
 # Track file joint name -> Pose2Sim marker name (Pose2Sim's skeletons.py / Markers_*.xml).
 POSE2SIM_NAMES = {
@@ -121,10 +121,10 @@ def marker_name(joint: str) -> str:
 
 def parse_formats(text: str) -> tuple[str, ...]:
     fmts = tuple(f.strip().lower().lstrip(".") for f in text.split(",") if f.strip())
-    bad = [f for f in fmts if f not in FORMATS]
+    bad = [f for f in fmts if f not in EXPORTERS]
     if bad or not fmts:
         raise ExportError(
-            f"unknown export format {bad or repr(text)}; choose from {','.join(FORMATS)} "
+            f"unknown export format {bad or repr(text)}; choose from {','.join(EXPORTERS)} "
             "(comma-separated, e.g. --format trc,bvh)."
         )
     return tuple(dict.fromkeys(fmts))
@@ -388,7 +388,7 @@ def export_tracks(
 ) -> ExportReport:
     """Write ``<out_dir>/<session>_<track id>.<ext>`` for every person and format.
 
-    ``fit`` is a :class:`roomcap.track.skeleton_fit.SkeletonFit` of ``tf`` (BVH); fitted on the fly when
+    ``fit`` is a :class:`roomcap.outputs.skeleton_fit.SkeletonFit` of ``tf`` (BVH); fitted on the fly when
     None."""
     options = options or ExportOptions()
     out_dir = Path(out_dir)
@@ -439,13 +439,44 @@ def export_tracks(
     return rep
 
 
+@dataclass(frozen=True)
+class PersonExport:
+    """What the exporters of one person share: the track file, the person's track id, the gap-filled marker
+    table (when a format uses it) and the skeleton fit (when a format uses it)."""
+
+    tf: TrackFile
+    person: int
+    table: MarkerTable | None
+    fit: object | None
+
+
+@dataclass(frozen=True)
+class Exporter:
+    """One output format: ``write(job, path)`` writes one person's file; ``uses_markers``: the format takes
+    the gap-filled marker table (:func:`marker_table`); ``uses_fit``: the skeleton fit, and a person the fit
+    left out (named in its notes) gets no file of this format."""
+
+    write: Callable[[PersonExport, Path], object]
+    uses_markers: bool = False
+    uses_fit: bool = False
+
+
+# The formats in the order ``tracks export --format`` lists them; a new format is one entry here.
+EXPORTERS: dict[str, Exporter] = {
+    "trc": Exporter(lambda job, path: write_trc(job.tf, job.person, path, job.table), uses_markers=True),
+    "c3d": Exporter(lambda job, path: write_c3d(job.tf, job.person, path, job.table), uses_markers=True),
+    "bvh": Exporter(lambda job, path: write_bvh(job.fit, path, track_ids=[job.person]), uses_fit=True),
+    "csv": Exporter(lambda job, path: write_csv(job.tf, job.person, path)),
+    "json": Exporter(lambda job, path: export_json(job.tf, path, track=job.person)),
+}
+
+
 def _export_person(
     tf: TrackFile, p: int, stem: Path, options: ExportOptions, fit, rep: ExportReport
 ) -> list[Path]:
     fmts = options.formats
-    files = []
     table = None
-    if "trc" in fmts or "c3d" in fmts:
+    if any(EXPORTERS[f].uses_markers for f in fmts):
         table = marker_table(tf, p, options.max_gap, options.min_coverage)
         if table.dropped_markers:
             rep.notes.append(
@@ -458,19 +489,13 @@ def _export_person(
                 f"track {p}: {n_out} of {len(table.rows)} frames left out of the TRC (a marker unknown "
                 f"after filling gaps of up to {options.max_gap} frames)"
             )
+    job = PersonExport(tf, p, table, fit)
+    files = []
     for fmt in fmts:
+        exporter = EXPORTERS[fmt]
+        if exporter.uses_fit and p not in fit.track_id.tolist():
+            continue  # named in the fit's notes
         path = stem.with_suffix(f".{fmt}")
-        if fmt == "trc":
-            write_trc(tf, p, path, table)
-        elif fmt == "c3d":
-            write_c3d(tf, p, path, table)
-        elif fmt == "csv":
-            write_csv(tf, p, path)
-        elif fmt == "json":
-            export_json(tf, path, track=p)
-        elif fmt == "bvh":
-            if p not in fit.track_id.tolist():
-                continue  # named in the notes
-            write_bvh(fit, path, track_ids=[p])
+        exporter.write(job, path)
         files.append(path)
     return files

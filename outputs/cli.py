@@ -4,18 +4,18 @@ SESSION is a session folder (its ``track/tracks.npz``, else the live track ``tra
 track file, or a chunked track's parts folder (``tracks.parts/``, ``live.parts/``).
 
 tracks export SESSION|tracks.npz --format trc,c3d,bvh,csv,json [--person ID] --out DIR
-    one file per person and format, ``<session>_<track id>.<ext>`` (see track/export.py)
+    one file per person and format, ``<session>_<track id>.<ext>`` (see outputs/export.py)
 tracks fit SESSION|tracks.npz
     one skeleton per person: writes track/skeleton_fit.npz beside the track file (beside the live track
     track/live.npz: live_skeleton_fit.npz)
 tracks opensim SESSION|tracks.npz [--setup DIR] [--person ID] --out DIR
     Pose2Sim's OpenSim model scaled and inverse kinematics on the TRC (needs the opensim extra)
 tracks stream SESSION|tracks.npz --stream lsl,osc [--osc-to HOST:PORT] [--speed 1]
-    replay the track at its own clock to the Lab Streaming Layer and/or OSC (track/streams.py)
+    replay the track at its own clock to the Lab Streaming Layer and/or OSC (outputs/lsl_osc.py)
 tracks view SESSION --rrd FILE.rrd
-    the session as a Rerun recording: cameras, frames, 2D detections, 3D tracks (track/rerun_export.py)
+    the session as a Rerun recording: cameras, frames, 2D detections, 3D tracks (outputs/rerun_recording.py)
 
-Also runnable as ``python -m roomcap.track.cli``.
+Also runnable as ``python -m roomcap.outputs.cli``.
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ from pathlib import Path
 
 from roomcap.core.cli import Parser, guarded
 from roomcap.core.errors import RoomcapError
-from roomcap.track import rerun_export, streams
-from roomcap.track.export import ExportOptions, export_tracks, parse_formats
-from roomcap.track.opensim_ik import default_setup_dir, run_opensim
-from roomcap.track.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
+from roomcap.outputs import lsl_osc, rerun_recording
+from roomcap.outputs.export import ExportOptions, export_tracks, parse_formats
+from roomcap.outputs.opensim_ik import default_setup_dir, run_opensim
+from roomcap.outputs.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
 from roomcap.track.trackfile import TrackFile
 from roomcap.triangulate.chunks import parts_dir
 
@@ -208,8 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--session", help="name used in the file names (default: the session folder's name)")
     o.add_argument("--max-gap", type=int, default=10, help="fill gaps up to N frames before IK")
     o.set_defaults(func=_opensim)
-    streams.add_parser(sub, resolve_tracks)
-    rerun_export.add_parser(sub, resolve_tracks)
+    lsl_osc.add_parser(sub, resolve_tracks)
+    rerun_recording.add_parser(sub, resolve_tracks)
     return p
 
 

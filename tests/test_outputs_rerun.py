@@ -82,7 +82,7 @@ def _read(path):
 
 def test_tracks_view_writes_a_recording_rerun_reads_back_equal(tmp_path, capsys):
     pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
-    from roomcap.track.cli import main as tracks
+    from roomcap.outputs.cli import main as tracks
 
     lay, rig, tf = _session(tmp_path / "S")
     rrd = tmp_path / "S.rrd"
@@ -115,7 +115,7 @@ def test_live_steps_are_logged_by_their_own_thread(tmp_path):
     from roomcap.capture.live import LiveStep
     from roomcap.capture.sources import Frame
     from roomcap.capture.sync import FrameSet
-    from roomcap.track.rerun_export import LiveRerun
+    from roomcap.outputs.rerun_recording import LiveRerun
 
     rig = ring_rig(2, radius_m=4.0)
     lr = LiveRerun(tmp_path / "live.rrd", SessionLayout(tmp_path / "S"), rig, image_hz=1000)
@@ -136,7 +136,7 @@ def test_live_steps_are_logged_by_their_own_thread(tmp_path):
 
 
 def test_without_rerun_the_command_names_the_extra(monkeypatch, tmp_path, capsys):
-    from roomcap.track.cli import main as tracks
+    from roomcap.outputs.cli import main as tracks
 
     lay, _, _ = _session(tmp_path / "S", T=3)
     monkeypatch.setitem(sys.modules, "rerun", None)
@@ -192,7 +192,7 @@ def test_a_live_tracks_rows_find_their_video_frames_by_time(tmp_path):
     matched by timestamp."""
     pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
     from roomcap.capture.recorder import CSV_HEADER
-    from roomcap.track.rerun_export import write_session_rrd
+    from roomcap.outputs.rerun_recording import write_session_rrd
 
     lay, rig, tf = _session(tmp_path / "S")
     for cam in rig.names:  # the recorder's timestamps: frame k at the track's k-th t_ns

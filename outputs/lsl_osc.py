@@ -495,14 +495,14 @@ def check_installed(kinds: Iterable[str]) -> None:
 
 def add_parser(sub: Any, resolve: Callable[[str], tuple[Any, str]]) -> None:
     """``tracks stream``: the subcommand, on the ``tracks`` parser's subparsers ``sub``; ``resolve``
-    turns SESSION into (track file path, session name) (:func:`roomcap.track.cli.resolve_tracks`)."""
+    turns SESSION into (track file path, session name) (:func:`roomcap.outputs.cli.resolve_tracks`)."""
     s = sub.add_parser(
         "stream",
         help="replay a track file to LSL and/or OSC at its own clock",
         description="Replay a recorded track (SESSION's track/tracks.npz, else track/live.npz) frame by "
         "frame at its own timestamps to the Lab Streaming Layer and/or OSC, in the layout of "
         "capture-run --live "
-        "--stream (see track/streams.py).",
+        "--stream (see outputs/lsl_osc.py).",
     )
     s.add_argument("tracks", help="session folder or tracks.npz")
     s.add_argument(

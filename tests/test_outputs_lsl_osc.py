@@ -23,11 +23,7 @@ from roomcap.capture.session import SessionLayout
 from roomcap.capture.sources import Frame, host_now_ns
 from roomcap.capture.sync import FrameSet
 from roomcap.keypoints.skeletons import CANONICAL
-from roomcap.pipeline.live import LiveContext, _track
-from roomcap.pipeline.live_outputs import StepFeed
-from roomcap.synthetic.rigs import ring_rig
-from roomcap.track.particle_config import ParticleConfig
-from roomcap.track.streams import (
+from roomcap.outputs.lsl_osc import (
     OSC_BIRTH,
     OSC_DEATH,
     OSC_FRAME,
@@ -38,6 +34,10 @@ from roomcap.track.streams import (
     TrackStreamer,
     track_events,
 )
+from roomcap.pipeline.live import LiveContext, _track
+from roomcap.pipeline.live_outputs import StepFeed
+from roomcap.synthetic.rigs import ring_rig
+from roomcap.track.particle_config import ParticleConfig
 from roomcap.track.trackfile import TrackFile
 
 try:
@@ -228,7 +228,7 @@ def _file(T=12, fps=25.0):
 
 @need_osc
 def test_tracks_stream_replays_a_file_at_its_own_clock(tmp_path, capsys):
-    from roomcap.track.cli import main as tracks
+    from roomcap.outputs.cli import main as tracks
 
     tf = _file()
     path = tmp_path / "tracks.npz"
@@ -249,7 +249,7 @@ def test_tracks_stream_replays_a_file_at_its_own_clock(tmp_path, capsys):
 
 @need_lsl
 def test_replay_to_lsl_lists_every_slot_and_keeps_the_file_spacing(tmp_path):
-    from roomcap.track.streams import replay
+    from roomcap.outputs.lsl_osc import replay
 
     tf = _file()
     slot_ids = {5: 0, 9: 1}
@@ -295,8 +295,8 @@ def test_slots_are_kept_while_a_track_lives_and_freed_at_its_death():
 
 
 def test_missing_packages_and_bad_options_say_what_to_do(monkeypatch, tmp_path, capsys):
-    from roomcap.track.cli import main as tracks
-    from roomcap.track.streams import parse_host_port, parse_kinds
+    from roomcap.outputs.cli import main as tracks
+    from roomcap.outputs.lsl_osc import parse_host_port, parse_kinds
 
     monkeypatch.setitem(sys.modules, "pylsl", None)  # import pylsl raises ImportError
     with pytest.raises(StreamError, match=r"pip install 'roomcap\[stream\]'"):
@@ -315,7 +315,7 @@ def test_missing_packages_and_bad_options_say_what_to_do(monkeypatch, tmp_path, 
 @need_lsl
 def test_a_file_with_many_tracks_gets_as_many_slots_as_are_present_at_once(tmp_path):
     """70 short tracks, at most 2 at once: 2 slots given at each birth (the layout stays small)."""
-    from roomcap.track.cli import main as tracks
+    from roomcap.outputs.cli import main as tracks
 
     T, K = 70, 70
     xyz = np.full((T, K, J, 3), np.nan, np.float32)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from roomcap.keypoints.skeletons import CANONICAL
-from roomcap.track.bvh import write_bvh
-from roomcap.track.cli import main as tracks_main
-from roomcap.track.export import (
+from roomcap.outputs.bvh import write_bvh
+from roomcap.outputs.cli import main as tracks_main
+from roomcap.outputs.export import (
     ExportError,
     ExportOptions,
     export_tracks,
@@ -19,7 +19,7 @@ from roomcap.track.export import (
     write_c3d,
     write_trc,
 )
-from roomcap.track.skeleton_fit import SkeletonFit, file_sha256, fit_skeleton, fit_skeletons
+from roomcap.outputs.skeleton_fit import SkeletonFit, file_sha256, fit_skeleton, fit_skeletons
 from roomcap.track.trackfile import OBSERVED, TrackFile, read_json, read_trc, world_to_yup, yup_to_world
 
 
@@ -103,7 +103,7 @@ def test_person_without_a_complete_frame_is_a_clear_error():
     tf = _trackfile(xyz)
     with pytest.raises(ExportError, match=r"track 3 has no frame in which all its markers are known"):
         marker_table(tf, 3, max_gap=5)
-    from roomcap.track.skeleton_fit_file import FitError
+    from roomcap.outputs.skeleton_fit_file import FitError
 
     with pytest.raises(FitError, match=r"track 3 has no frame in which all 19 joints are known"):
         fit_skeletons(tf)
@@ -355,7 +355,7 @@ def test_reprocess_export_writes_files_per_person(tmp_path, capsys):
 
 
 def test_lowpass_as_pose2sim_filters(tmp_path, capsys):
-    from roomcap.track.export import lowpass
+    from roomcap.outputs.export import lowpass
     from roomcap.track.trackfile import SMOOTHED
 
     T, fps = 120, 25.0

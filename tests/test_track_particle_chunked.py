@@ -1,4 +1,4 @@
-"""The particle tracker streamed: the streamed stage (track/stream.py) equals the whole-session
+"""The particle tracker streamed: the streamed stage (track/particle_chunked.py) equals the whole-session
 run bit for bit, resumes after a kill from the last complete chunk, and rebuilds damaged parts."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from roomcap.core.errors import FormatError
 from roomcap.synthetic.render import RenderConfig, render
 from roomcap.synthetic.rigs import kitchen
 from roomcap.synthetic.world import SceneConfig, make_scene, write_session
-from roomcap.track import stream
+from roomcap.track import particle_chunked as stream
 from roomcap.track.greedy import frame_times_s, pause_clock
 from roomcap.track.particle import ParticleTracker
 from roomcap.track.particle_config import ParticleConfig

@@ -8,8 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
-from roomcap.track.cli import main as tracks_main
-from roomcap.track.opensim_ik import (
+from roomcap.outputs.cli import main as tracks_main
+from roomcap.outputs.opensim_ik import (
     OpenSimError,
     find_setup,
     foot_index_note,
@@ -18,7 +18,7 @@ from roomcap.track.opensim_ik import (
     setup_marker_names,
 )
 from tests.conftest import need_shared
-from tests.test_track_export import _trackfile, _walkers
+from tests.test_outputs_export import _trackfile, _walkers
 
 pytest.importorskip("opensim", reason="OpenSim is an optional extra: pip install 'roomcap[opensim]'")
 

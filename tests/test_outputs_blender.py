@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roomcap.track.bvh import write_bvh
-from roomcap.track.skeleton_fit import fit_skeletons
-from roomcap.track.skeleton_fit_file import SkeletonFit
+from roomcap.outputs.bvh import write_bvh
+from roomcap.outputs.skeleton_fit import fit_skeletons
+from roomcap.outputs.skeleton_fit_file import SkeletonFit
 
 PROBE = Path(__file__).with_name("blender_bvh_probe.py")
 
@@ -56,7 +56,7 @@ def check_armatures(fit: SkeletonFit, files: dict[int, Path], got: dict) -> dict
 
 
 def test_blender_imports_one_armature_per_person(tmp_path):
-    from tests.test_track_export import _trackfile, _walkers
+    from tests.test_outputs_export import _trackfile, _walkers
 
     xyz = _walkers(2, 40) + np.random.default_rng(1).normal(0, 0.005, (40, 2, 19, 3))
     xyz[:8, 1] = np.nan  # the second person enters later: its file starts there
