@@ -25,11 +25,10 @@ from roomcap.core.fileio import load_toml
 from roomcap.keypoints.pipeline_config import KeypointPipelineConfig
 from roomcap.keypoints.presets import resolve_preset
 from roomcap.keypoints.registry import presets
+from roomcap.pipeline.provenance import STAGES
 from roomcap.track.greedy_stage import GreedyTrackConfig
 from roomcap.track.stage import ParticleTrackConfig
 from roomcap.triangulate.reconstruct import TriangulateConfig as TriangulateOptions
-
-STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "report")
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ set back), so a changed file is always hashed again.
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import os
@@ -40,49 +41,99 @@ def package_version() -> str:
         return "0+unknown"
 
 
-# the code each stage's output depends on (packages or files of this project): a change there reruns the stage
-# even while the package version stays the same (development checkouts, patched installs)
+# The stages in graph order (each reads only what the ones before it wrote).
+STAGES = ("calibration", "keypoints", "triangulate", "track", "forecast", "report")
+
+# What each stage's output depends on: the modules that run it (their import closure within the project is
+# fingerprinted, :func:`code_files`) and the data files its code reads (globs relative to the repository). A
+# change there reruns the stage even while the package version stays the same (development checkouts, patched
+# installs); a change anywhere else reruns nothing.
 STAGE_CODE: dict[str, tuple[str, ...]] = {
-    "calibration": ("calibrate", "core/fileio.py"),
-    "keypoints": ("keypoints", "core/fileio.py", "capture/session.py"),
-    "triangulate": (
-        "triangulate",
-        "calibrate/camera.py",
-        "calibrate/camera_fields.py",
-        "keypoints/skeletons.py",
-        "keypoints/detections.py",
+    "calibration": ("roomcap.calibrate.formats", "roomcap.pipeline.session_inputs"),
+    "keypoints": (
+        "roomcap.keypoints.video",
+        "roomcap.keypoints.registry",
+        "roomcap.keypoints.runtime",
+        "roomcap.keypoints.openpose_json",
+        "roomcap.pipeline.session_inputs",
     ),
-    "track": (
-        "track",
-        "triangulate",
-        "calibrate/camera.py",
-        "calibrate/camera_fields.py",
-        "keypoints/skeletons.py",
-    ),
-    "forecast": ("forecast", "track/trackfile.py"),
+    "triangulate": ("roomcap.triangulate.stage", "roomcap.pipeline.session_inputs"),
+    "track": ("roomcap.track.stage", "roomcap.track.greedy_stage", "roomcap.pipeline.session_inputs"),
+    "forecast": ("roomcap.forecast.preview",),
+    "report": ("roomcap.pipeline.report",),
+}
+STAGE_DATA: dict[str, tuple[str, ...]] = {
+    "keypoints": ("keypoints/models/*.toml",),
+    "track": ("track/checkpoints/*",),
+    "forecast": ("forecast/configs/*.toml",),
     "report": (
-        "pipeline/report",
-        "pipeline/report_assets/report.html",
-        "pipeline/report_assets/report.css",
-        "pipeline/report_assets/report.js",
-        "pipeline/report_assets/viewer3d.js",
+        "pipeline/report_assets/*.html",
+        "pipeline/report_assets/*.css",
+        "pipeline/report_assets/*.js",
     ),
 }
 _ROOT = Path(__file__).resolve().parents[1]
 _code_cache: dict[str, str] = {}
 
 
+def _module_file(name: str, root: Path) -> Path | None:
+    """The source file of project module ``name`` (``roomcap.a.b`` -> ``a/b.py`` or ``a/b/__init__.py``)."""
+    rel = Path(*name.split(".")[1:])
+    for f in (
+        (root / rel / "__init__.py", (root / rel).with_suffix(".py")) if rel.parts else [root / "__init__.py"]
+    ):
+        if f.is_file():
+            return f
+    return None
+
+
+def _imported(tree: ast.AST) -> set[str]:
+    """The ``roomcap`` modules a module's source imports anywhere (inside functions too), with the packages
+    above them (importing ``roomcap.a.b`` runs ``roomcap/a/__init__.py``); ``from roomcap.a import b`` names
+    ``roomcap.a.b`` as a candidate, kept by the caller when it is a module."""
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names if a.name.split(".")[0] == "roomcap")
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "roomcap":
+            names.add(node.module)
+            names.update(f"{node.module}.{a.name}" for a in node.names)
+    with_parents = set()
+    for n in names:
+        parts = n.split(".")
+        with_parents.update(".".join(parts[:i]) for i in range(1, len(parts) + 1))
+    return with_parents
+
+
+def code_files(stage: str, root: Path | None = None) -> list[Path]:
+    """The source files a stage runs (the import closure of its modules in :data:`STAGE_CODE`) and the data
+    files of :data:`STAGE_DATA` under ``root`` (the installed package's folder by default), sorted; [] for
+    unknown stages."""
+    root = root or _ROOT
+    todo = list(STAGE_CODE.get(stage, ()))
+    seen: dict[str, Path] = {}
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        f = _module_file(name, root)
+        if f is None:  # a name imported from a module, not a module
+            continue
+        seen[name] = f
+        todo.extend(_imported(ast.parse(f.read_bytes(), str(f))) - set(seen))
+    data = [f for pattern in STAGE_DATA.get(stage, ()) for f in root.glob(pattern) if f.is_file()]
+    return sorted(set(seen.values()) | set(data))
+
+
 def code_fingerprint(stage: str, stat_cache: dict[str, Any] | None = None) -> str:
-    """sha256 (12 hex digits) of the Python sources a stage's output depends on; "" for unknown stages."""
+    """sha256 (12 hex digits) of the files a stage's output depends on (:func:`code_files`); "" for unknown
+    stages."""
     if stage in _code_cache:
         return _code_cache[stage]
     h = hashlib.sha256()
-    for part in STAGE_CODE.get(stage, ()):
-        p = _ROOT / part
-        files = sorted(p.rglob("*.py")) if p.is_dir() else [p] if p.exists() else []
-        for f in files:
-            h.update(f.relative_to(_ROOT).as_posix().encode())
-            h.update(path_fingerprint(f, stat_cache).encode())
+    for f in code_files(stage, _ROOT):
+        h.update(f.relative_to(_ROOT).as_posix().encode())
+        h.update(path_fingerprint(f, stat_cache).encode())
     fp = h.hexdigest()[:12] if stage in STAGE_CODE else ""
     _code_cache[stage] = fp
     return fp

@@ -37,7 +37,7 @@ from roomcap.pipeline.config import (
 )
 from roomcap.pipeline.discover import SessionSource
 from roomcap.pipeline.provenance import ProvenanceStore, path_fingerprint
-from roomcap.pipeline.report import write_report
+from roomcap.pipeline.report import report_inputs, write_report
 from roomcap.pipeline.session_inputs import (
     StageError,
     carry_sync,
@@ -334,7 +334,7 @@ class ForecastStage:
 
 
 class ReportStage:
-    """The session's HTML report: ``report/index.html``."""
+    """The session's HTML report: ``report/report.html``."""
 
     name = "report"
 
@@ -343,14 +343,7 @@ class ReportStage:
 
     def plan(self, session: Session, config: None) -> StageWork:
         lay = session.layout
-        files = (
-            lay.rig_toml,
-            *detection_paths(lay),
-            stage_file(lay.poses3d),
-            stage_file(lay.tracks),
-            forecast_path(lay),
-        )
-        return StageWork([p for p in files if p.exists()], [lay.report_html], {"title": session.source.name})
+        return StageWork(report_inputs(lay), [lay.report_html], {"title": session.source.name})
 
     def run(
         self, session: Session, config: None, progress: Progress | None, executor: ChunkRunner | None

@@ -341,3 +341,84 @@ def test_long_sessions_stream_by_default(sessions, tmp_path, tracker, monkeypatc
     assert reprocess([*args, "--out", str(short), "--config", str(tmp_path / "auto.toml")]) == 0
     assert (short / "syn_02" / "track" / "tracks.npz").is_file()
     assert (short / "syn_02" / "triangulate" / "poses3d.npz").is_file()
+
+
+def test_a_stage_fingerprints_the_code_it_imports_not_whole_folders():
+    from roomcap.pipeline.provenance import _ROOT, code_files
+
+    def rel(stage):
+        return {f.relative_to(_ROOT).as_posix() for f in code_files(stage)}
+
+    forecast, track, report = rel("forecast"), rel("track"), rel("report")
+    assert "forecast/preview.py" in forecast and "track/trackfile.py" in forecast
+    assert not {f for f in forecast if f.startswith(("forecast/behaviour/", "forecast/benchmark"))}
+    assert (
+        "track/particle.py" in track
+        and "track/kernels.py" in track
+        and "track/checkpoints/motion_gru.pt" in track
+    )
+    assert not {f for f in track if f.startswith(("outputs/", "forecast/", "pipeline/report/"))}
+    assert {"pipeline/report/page.py", "pipeline/report_assets/report.js"} <= report
+    assert "__init__.py" in track and "track/__init__.py" in track  # packages run on import count too
+
+
+def _copy_sources(dst: Path) -> Path:
+    """The project's sources and the data files the stages read, copied to ``dst`` (a tree to edit)."""
+    from roomcap.pipeline.provenance import _ROOT, STAGE_DATA
+
+    for f in _ROOT.rglob("*.py"):
+        rel = f.relative_to(_ROOT)
+        if rel.parts[0] in {".venv", ".git", "tests", "bench", "build", "out", ".pp"}:
+            continue
+        (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+        (dst / rel).write_bytes(f.read_bytes())
+    for pattern in (p for globs in STAGE_DATA.values() for p in globs):
+        for f in _ROOT.glob(pattern):
+            (dst / f.relative_to(_ROOT)).parent.mkdir(parents=True, exist_ok=True)
+            (dst / f.relative_to(_ROOT)).write_bytes(f.read_bytes())
+    return dst
+
+
+def test_editing_code_outside_a_stage_reruns_nothing_and_inside_reruns_it(tmp_path, monkeypatch):
+    from roomcap.pipeline import provenance
+
+    src = _copy_sources(tmp_path / "src")
+    monkeypatch.setattr(provenance, "_ROOT", src)
+    monkeypatch.setattr(provenance, "_code_cache", {})
+    make_sessions(tmp_path / "in", 1, duration_s=1.0)
+    (first,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
+    assert first.status == "ok" and {"triangulate", "track", "report"} <= set(first.ran)
+    # the behaviour trainer, the LSL/OSC streams and a benchmark are outside every stage's imports
+    for f in ("forecast/behaviour/training.py", "outputs/lsl_osc.py", "forecast/benchmark_cmu8.py"):
+        (src / f).write_text((src / f).read_text() + "\n# edited\n")
+    monkeypatch.setattr(provenance, "_code_cache", {})
+    (second,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
+    assert second.status == "ok" and second.ran == []
+    # the particle filter's observation model is inside the track stage's: it reruns, and as its tracks come
+    # out the same, the forecast and the report stay up to date
+    f = src / "track" / "observation.py"
+    f.write_text(f.read_text() + "\n# edited\n")
+    monkeypatch.setattr(provenance, "_code_cache", {})
+    (third,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
+    assert third.ran == ["track"]
+
+
+def test_a_behaviour_forecast_marks_the_report_stale_and_the_rerun_shows_it(tmp_path):
+    from roomcap.capture.session import SessionLayout
+    from roomcap.forecast.behaviour.sample import run_sample
+    from roomcap.pipeline.report import collect
+    from roomcap.track.trackfile import TrackFile
+
+    make_sessions(tmp_path / "in", 1, duration_s=2.0)
+    (first,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
+    assert first.status == "ok"
+    lay = SessionLayout(next((tmp_path / "out").rglob("report.html")).parents[1])
+    before = lay.report_html.read_bytes()
+    ids = TrackFile.load(lay.tracks).track_id.tolist()
+    labels = tmp_path / "labels.csv"
+    labels.write_text("track_id,start_s,end_s,label\n" + "".join(f"{i},0,1.9,walk\n" for i in ids))
+    run_sample(lay.root, labels)  # writes SESSION/forecast/behaviour.npz with the shipped checkpoint
+    (second,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
+    assert second.ran == ["report"]
+    assert lay.report_html.read_bytes() != before
+    assert collect(lay, "t")["behaviour"]["track_id"] == ids

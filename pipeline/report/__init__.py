@@ -22,7 +22,7 @@ session folder without running the pipeline.
 from roomcap.pipeline.report.figures import reprojection_figures, rig_cameras_data, track_events
 from roomcap.pipeline.report.inputs import ReportConfig
 from roomcap.pipeline.report.overlay_video import draw_overlay, write_overlay_videos
-from roomcap.pipeline.report.page import collect, render, write_report
+from roomcap.pipeline.report.page import collect, render, report_inputs, write_report
 from roomcap.pipeline.report.problems import warnings_path
 
 __all__ = [
@@ -30,6 +30,7 @@ __all__ = [
     "collect",
     "draw_overlay",
     "render",
+    "report_inputs",
     "reprojection_figures",
     "rig_cameras_data",
     "track_events",

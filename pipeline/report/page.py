@@ -16,12 +16,13 @@ from roomcap.capture.session import SessionLayout
 from roomcap.core.errors import FormatError
 from roomcap.core.fileio import atomic_write_text, load_npz, load_toml
 from roomcap.core.redact import redact
-from roomcap.pipeline.config import STAGES
+from roomcap.pipeline.provenance import STAGES
 from roomcap.pipeline.report.figures import _detection_rates, _quality, _rig_data, _tracks_data
 from roomcap.pipeline.report.inputs import ReportConfig, _load, _r
 from roomcap.pipeline.report.overlay_video import write_overlay_videos
 from roomcap.pipeline.report.problems import _problems, _warnings
-from roomcap.pipeline.report.views import _views_data
+from roomcap.pipeline.report.views import _video_paths, _views_data
+from roomcap.triangulate.chunks import parts_dir
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +95,25 @@ def _behaviour_data(lay: SessionLayout) -> dict[str, Any] | None:
         "prob": _r(p),
         "model": str(d["model"]) if "model" in d else "",
     }
+
+
+def report_inputs(lay: SessionLayout) -> list[Path]:
+    """Every file the report reads, of those that exist now (the report stage's plan: a change of any of them
+    reruns it): session.toml, the rig and its calibration report, the detections, the 3D poses, the tracks
+    (the live track's parts too), the forecast preview and ``forecast/behaviour.npz`` (``forecast behaviour
+    sample``), and the videos of the filmstrips and overlays."""
+    cams = sorted(set(lay.detection_cameras()) | set(lay.raw_cameras()))
+    files = [
+        lay.session_toml,
+        lay.rig_toml,
+        lay.rig_toml.parent / "report" / "report.toml",
+        *(lay.detections(c) for c in cams),
+    ]
+    for path in (lay.poses3d, lay.tracks, lay.live_tracks):  # a single file, or a streamed run's parts
+        files += [path, parts_dir(path)]
+    files += [lay.root / "forecast" / "preview.npz", lay.root / "forecast" / "behaviour.npz"]
+    files += _video_paths(lay, cams).values()
+    return [p for p in dict.fromkeys(files) if p.exists()]
 
 
 def collect(lay: SessionLayout, title: str, config: ReportConfig | None = None) -> dict[str, Any]:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from roomcap.capture.session import SessionLayout
-from roomcap.pipeline.config import STAGES
+from roomcap.pipeline.provenance import STAGES
 from roomcap.pipeline.report.inputs import _Inputs
 
 
