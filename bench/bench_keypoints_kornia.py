@@ -84,9 +84,8 @@ def main() -> None:
     diff = float(np.abs(out["cv2"].pop("tensor") - out["kornia"].pop("tensor")).max())
     ratio = out["kornia"]["ms_per_frame"] / out["cv2"]["ms_per_frame"]
     print(f"cv2.warpAffine + to_tensor: {out['cv2']['ms_per_frame']:.2f} ms per frame (4 crops {W}x{H})")
-    print(
-        f"kornia warp_affine + normalize: {out['kornia']['ms_per_frame']:.2f} ms ({ratio:.1f}x), max diff {diff:.3f}"
-    )
+    k = out["kornia"]["ms_per_frame"]
+    print(f"kornia warp_affine + normalize: {k:.2f} ms ({ratio:.1f}x), max diff {diff:.3f}")
     res = {"bench": "keypoints_kornia", "frame": list(img.shape[:2]), "crops": 4, **out}
     print("BENCH " + json.dumps({**res, "kornia_over_cv2": round(ratio, 2), "max_abs_diff": round(diff, 3)}))
 
