@@ -334,7 +334,7 @@ class ForecastStage:
 
 
 class ReportStage:
-    """The session's HTML report: ``report/index.html``."""
+    """The session's HTML report: ``report/report.html``."""
 
     name = "report"
 
