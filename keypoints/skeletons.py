@@ -134,7 +134,7 @@ _BLAZEPOSE33 = (
     "left_foot_index",
     "right_foot_index",
 )
-# Humans-in-Kitchens / SMPL order (forecast issue): 22 body joints, then 7 head points.
+# Humans-in-Kitchens / SMPL order (Tanke ch. 8): 22 body joints, then 7 head points.
 _SMPL29 = (
     "pelvis",
     "left_hip",
