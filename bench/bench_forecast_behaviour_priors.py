@@ -1,5 +1,5 @@
 """Behaviour forecaster (Diller ch. 4): what two priors built from the uncorrelated 3D database do to the
-3D targets of issue 30 (3D MPJPE below the train average, 3D quality), on the VALIDATION split only.
+two 3D targets (3D MPJPE below the train average, 3D quality), on the VALIDATION split only.
 
 1. **Lifted depth** (post hoc): an MLP trained on the database alone (random heading, the training views'
    cameras) maps a pose's plane features (``geometry.plane_of_3d``) to each joint's depth behind the pelvis.

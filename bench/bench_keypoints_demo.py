@@ -10,7 +10,7 @@
    cam02 only) is a separate third detection.
 3. ``opencv/vtest.avi``: people per frame (writes PNGs of a few frames with boxes for a manual count).
 
-    .venv/bin/python bench/bench_keypoints_demo.py [--sets default,movenet] [--step 1] [--out /tmp/kpdemo] \
+    .venv/bin/python bench/bench_keypoints_demo.py [--sets default,movenet] [--step 1] [--out DIR] \
         [--threads 1]
 
 About 2 min per model set on 2 idle cores at --step 1 (100 frames x 4 cameras); --step 4: a quick look.
@@ -117,7 +117,7 @@ def multi_person(cams, per_frame, match_px: float, min_joints: int = 8) -> dict:
 
     ``both_in_4_views``: the greedy reading (best combination first, then the best disjoint from it): a
     wrong combination that happens to score best (one view's pose of the other participant, outvoted by three
-    good views) can block the right pair. ``both_in_4_views_pair``: the issue's wording, "both participants
+    good views) can block the right pair. ``both_in_4_views_pair``: the target's wording, "both participants
     found in all four views": some two disjoint combinations both under ``match_px`` (the pair with the least
     summed error). ``bystander_separate`` / ``_pair``: in those frames, one more pose in cam01 and cam02.
     """

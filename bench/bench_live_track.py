@@ -16,7 +16,7 @@ track file (``TrackFile.load("track/live.npz")``: the parts of ``track/live.part
 against its size and sha256 in the ``parts/1`` index, never rewritten), and counted; the time to
 append a part (write, hash, index) is reported too.
 
-    python bench/bench_live_track.py [--minutes 5] [--shared /work/shared]
+    python bench/bench_live_track.py [--minutes 5] [--shared SHARED]
 """
 
 from __future__ import annotations

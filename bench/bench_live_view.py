@@ -26,7 +26,7 @@ Figures:
   phase (liblsl's native threads included). Chromium is another process and is not counted;
 - frames: every camera's written / grabbed / dropped, per phase; LSL samples and OSC frames received.
 
-    python bench/bench_live_view.py [--seconds 20] [--shared /work/shared] [--out DIR]
+    python bench/bench_live_view.py [--seconds 20] [--shared SHARED] [--out DIR]
 """
 
 from __future__ import annotations

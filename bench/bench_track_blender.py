@@ -5,8 +5,8 @@ bvh``), imports them with Blender's own BVH importer (``blender -b``, see tests/
 and checks: one armature per person, frame count and rate, bone heads within 1 cm of the fitted
 joints, bone lengths (parent head to child head) constant to < 1 mm.
 
-    python -m roomcap.pipeline.demo --out /tmp/demo  # the multi-person demo by default
-    .venv/bin/python bench/bench_track_blender.py /tmp/demo/Demo_MultiPerson
+    python -m roomcap.pipeline.demo --out OUT  # the multi-person demo by default
+    .venv/bin/python bench/bench_track_blender.py OUT/Demo_MultiPerson
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Particle tracker cost per person-frame at 12 cameras, BLAS at one thread.
 
-The issue's setting: ``python -m roomcap.synthetic OUT --rig kitchen --cams 12 --people 16 --enter-leave
+The setting: ``python -m roomcap.synthetic OUT --rig kitchen --cams 12 --people 16 --enter-leave
 --seconds S`` written to a temporary folder, its detections loaded as the track stage loads them,
 and :class:`roomcap.track.particle.ParticleTracker` (default config: GRU prior, 300 samples) stepped over
 the frames with this tree's code and, in the same run, with the code of ``--baseline REV`` (a git

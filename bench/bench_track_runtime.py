@@ -4,8 +4,8 @@ Procedural walkers in a 7 m ring of 5 cameras (Shelf has 5), 1 px keypoint noise
 runs single-threaded (torch.set_num_threads(1), BLAS threads 1). Frames are timed after all
 people are tracked (births excluded), with ``time.process_time`` (CPU time of this process, robust
 to other processes sharing the machine) and wall time. A line t = a + b K is fitted over K people:
-the seed's claim is linearity (R^2) and its cost per extra person (26 ms with a GPU); the issue
-asks for b <= 3 ms with 300 samples. Baselines measured in the same run: the constant-velocity
+the seed's claim is linearity (R^2) and its cost per extra person (26 ms with a GPU); the target
+is b <= 3 ms with 300 samples. Baselines measured in the same run: the constant-velocity
 prior and the ch. 4 per-frame triangulation (quadratic in people).
 
     .venv/bin/python bench/bench_track_runtime.py                 # ~2 min

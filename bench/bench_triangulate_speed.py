@@ -7,7 +7,7 @@ pinned to one (OMP/OpenBLAS/MKL) before numpy loads. Figures, median over frames
 this process (``time.process_time``), wall time, and the best of 5 wall times per frame (timeit's
 convention; on a shared machine the least disturbed figure). The 1-minute load average is printed.
 
-(1) the issue's two operating points on the kitchen with CMU motion: 4 people x 5 cameras and
+(1) two operating points on the kitchen with CMU motion: 4 people x 5 cameras and
 16 x 12. (2) a table over people 1..32 x cameras 2..32 (ring rig in a round room, procedural
 walkers so 32 people fit). (3) Pose2Sim 0.10.49's multi-person association (Plucker-line affinity
 + matchSVT + proposals) plus its triangulation (``triangulation_from_best_cameras`` per
@@ -15,7 +15,7 @@ keypoint) on the same frames, if Pose2Sim is importable (``--pose2sim-site DIR``
 ``pip install --target DIR --no-deps pose2sim anytree rtoml c3d``; its full dependency list pulls
 opensim, PySide6, openvino, rtmlib and caliscope, so it is not a project extra).
 
-    .venv/bin/python bench/bench_triangulate_speed.py [--frames 40] [--pose2sim-site /tmp/p2s_site]
+    .venv/bin/python bench/bench_triangulate_speed.py [--frames 40] [--pose2sim-site DIR]
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ positive people). Each run goes through the session files exactly as ``reprocess
 (``write_session`` -> ``triangulate_session`` -> ``track_session_greedy``) and is scored with
 ``triangulate.evaluate``: PCP (actor average and frame-weighted), MPJPE, MOTA, IDF1.
 
-Tables: (1) people x cameras at the issue's default faults, (2) degradation as noise, flips,
+Tables: (1) people x cameras at the default faults, (2) degradation as noise, flips,
 missed joints and occlusion grow, (3) PCP spread over camera orders (sec. 4.3.6).
 
     .venv/bin/python bench/bench_triangulate_synthetic.py            # ~3 min on 2 cores

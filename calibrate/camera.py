@@ -1,4 +1,4 @@
-"""The camera model: a typed ``Camera`` and a ``CameraRig``, and the ``rig.toml`` file.
+"""The camera model: a typed ``Camera`` and a ``CameraRig``, and the ``rig.toml`` file (CONTRACTS.md).
 
 Conventions (written into every rig file, see ``CONVENTION``):
 

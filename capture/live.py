@@ -1,6 +1,6 @@
 """``capture-run --live``: the runner that passes every synchronised frame set through stages.
 
-A live step is a batch of one frame set (DESIGN.md, "one code path for live and batch"). The
+A live step is a batch of one frame set (ARCHITECTURE.md: live and batch run the same stage code). The
 stages are plain callables ``stage(step) -> None`` that read and write ``step.outputs``; a stage may
 have a ``close()`` that the runner calls when the recording ends. The stages that use the later
 packages (keypoints, triangulation, tracking) are built in :mod:`roomcap.pipeline.live` (the stage order:

@@ -1,4 +1,4 @@
-"""The session folder layout (DESIGN.md), one place that knows where each file lives.
+"""The session folder layout (CONTRACTS.md), one place that knows where each file lives.
 
 ::
 

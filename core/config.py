@@ -5,7 +5,7 @@
 meaning is unambiguous (an int for a float, a list for a tuple, the text of a number, a boolean or a
 list from the command line's ``--set key=value``, a boolean also as 0/1, yes/no or on/off). A value
 of the wrong kind is a :class:`~roomcap.core.errors.FormatError` naming the key. A field declared with
-:func:`bounded` also has its range checked (:func:`check_range`). DESIGN.md: each default lives in its
+:func:`bounded` also has its range checked (:func:`check_range`). ARCHITECTURE.md: each default lives in its
 dataclass only; no ``.get(key, default)`` in the algorithms.
 """
 

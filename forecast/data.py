@@ -9,7 +9,7 @@ missing joints are filled (last known value) and reported in ``mask`` so losses 
 can ignore them. Windows whose normalisation frame lacks both hips are skipped, clips
 shorter than a window are skipped, and both are counted in ``WindowSet.skipped``.
 
-Normalisation follows the code's version (DESIGN.md errata): root = mid-hips, the hip vector
+Normalisation follows the code's version (CONTRACTS.md): root = mid-hips, the hip vector
 (left_hip -> right_hip) is rotated onto +x about z (z up).
 """
 

@@ -1,6 +1,6 @@
 """Forecasting metrics (numpy): MPJPE, NDMS, APD, ADE, FDE, NPSS, SSCP.
 
-Conventions follow the code behind the seed's numbers (DESIGN.md errata):
+Conventions follow the code behind the seed's numbers (CONTRACTS.md, where text and code differ):
 MPJPE averages over joints (Tanke eq. 3.25 prints a sum); NPSS compares *cumulative* normalised
 power spectra of the real part of the DFT (eq. 3.26-3.29 as Gopalakrishnan et al.'s reference code computes
 it) and is applied to root-centred poses by the evaluation (the reference code works on joint angles, which

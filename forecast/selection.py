@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 # ``val_every`` steps the model forecasts validation windows (observe 2 s, forecast 4 s at 25 Hz, the rate
 # make_windows resamples every clip to, as for training; fixed windows and seed) and is scored by NDMS
 # (eq. 6.9-6.12, mean over samples; D = the validation clips of the window's activity, its own clip
-# included, as the evaluation's `ndms`) over the 2-4 s horizon, the horizon the issue compares models at; the
+# included, as the evaluation's `ndms`) over the 2-4 s horizon, where the evaluation compares models; the
 # best state is kept. Every model is selected the same way.
 VAL_N_OBS, VAL_N_PRED, VAL_FROM = 50, 100, 50
 

@@ -1,4 +1,4 @@
-"""The per-camera detections file ``<session>/keypoints/<cam>.npz`` (DESIGN.md).
+"""The per-camera detections file ``<session>/keypoints/<cam>.npz`` (CONTRACTS.md).
 
 Keys (shapes in letters: T frames, P detections per frame padded with NaN, J joints):
 

@@ -15,8 +15,8 @@ from roomcap.keypoints.runtime import RuntimeConfig
 class KeypointPipelineConfig:
     """Settings of the 2D stage. ``skeleton``: layout of the output (``"model"`` keeps the model's own).
 
-    What each setting gave on the Pose2Sim demos when it was chosen is in BENCHMARKS.md ("2D keypoints",
-    "2D presets"); the presets in ``keypoints/models/sets.toml`` combine them."""
+    What each setting gave on the Pose2Sim demos when it was chosen is in BENCHMARKS.md ("2D keypoints");
+    the presets in ``keypoints/models/sets.toml`` combine them."""
 
     model_set: str = "default"
     skeleton: str = "body19"
@@ -34,7 +34,7 @@ class KeypointPipelineConfig:
     antialias: bool = True  # top-down: crops that shrink > 2x are cut from a pyramid level
     # the pyramid's filter: "gaussian" (cv2.pyrDown, 5x5), "box" (2x2 means, cv2.resize INTER_AREA: about
     # 6x cheaper per level) or "mixed" (box levels, then one pyrDown for the level the crop is cut from: the
-    # Gaussian's anti-aliasing at the crop, at a third of its cost for L = 2); BENCHMARKS.md "2D presets"
+    # Gaussian's anti-aliasing at the crop, at a third of its cost for L = 2); BENCHMARKS.md "2D keypoints"
     pyramid: str = "gaussian"
     flip_test: bool | None = None  # average with the mirrored crop (2x pose cost); None: the description's
     # flip test: joints the two crops place more than this x the crop width apart are not averaged; each

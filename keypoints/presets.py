@@ -2,7 +2,7 @@
 
 The presets are data, in the ``[presets]`` table of ``keypoints/models/sets.toml`` (read by
 ``keypoints.registry.presets``), each chosen by measurement on both Pose2Sim demos
-(``bench/bench_keypoints_presets.py``; figures in BENCHMARKS.md, "2D presets").
+(``bench/bench_keypoints_presets.py``; figures in BENCHMARKS.md, "2D keypoints").
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Skeletons as data: joint names, parents, limbs, and mappings between layouts.
 
-Skeleton ids (DESIGN.md): ``coco17``, ``coco18`` (OpenPose COCO), ``body25``,
+Skeleton ids (CONTRACTS.md): ``coco17``, ``coco18`` (OpenPose COCO), ``body25``,
 ``body25b`` (OpenPose BODY_25B, used by Pose2Sim's demo), ``blazepose33``,
 ``halpe26``, ``smpl29`` (Humans-in-Kitchens: SMPL's 22 body joints + 7 head
 points) and the canonical ``body19`` (COCO-17 plus pelvis and neck) used for
@@ -134,7 +134,7 @@ _BLAZEPOSE33 = (
     "left_foot_index",
     "right_foot_index",
 )
-# Humans-in-Kitchens / SMPL order (forecast issue): 22 body joints, then 7 head points.
+# Humans-in-Kitchens / SMPL order (Tanke ch. 8): 22 body joints, then 7 head points.
 _SMPL29 = (
     "pelvis",
     "left_hip",

@@ -5,7 +5,7 @@
 stable identities ``person_ids (P,)``. Rendering to per-camera detections is in
 :mod:`roomcap.synthetic.render`; :func:`write_session` writes a session folder the 3D stages can run on.
 
-Choices (the issue was silent):
+Choices made here:
 
 - each person plays a distinct clip when the pool allows (clips of climbing, where the head goes
   above 2.0 m, are left out). Clips at least as long as the scene are tried first (their

@@ -1,4 +1,4 @@
-"""Import boundaries (DESIGN.md): ``calibrate`` and ``triangulate`` import with torch and depthai blocked.
+"""Import boundaries (ARCHITECTURE.md): ``calibrate`` and ``triangulate`` import with torch, depthai blocked.
 
 A fresh interpreter installs a meta-path finder that refuses ``torch`` and ``depthai`` (and their
 submodules), then imports every module of those packages found on disk, so modules added later
@@ -109,7 +109,7 @@ LEARNED = {f"roomcap.track.{m}" for m in ("motion", "birth", "train_motion", "tr
 
 
 def test_other_stages_import_without_torch_and_depthai():
-    """DESIGN.md: the non-learned parts of track, the keypoints inference path, the pipeline and
+    """ARCHITECTURE.md: the non-learned parts of track, the keypoints inference path, the pipeline and
     capture (but its OAK source) need neither torch nor depthai."""
     modules = [
         m

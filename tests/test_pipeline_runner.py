@@ -222,7 +222,7 @@ def test_a_crashing_worker_takes_down_only_its_session(sessions, tmp_path):
 
 
 def test_in_place_session_with_only_rig_and_detections(sessions, tmp_path):
-    """DESIGN.md: `reprocess S --stages triangulate,track` on calib/rig.toml + keypoints/*.npz only."""
+    """CONTRACTS.md: `reprocess S --stages triangulate,track` on calib/rig.toml + keypoints/*.npz only."""
     import shutil
 
     s = tmp_path / "S1"

@@ -2,7 +2,7 @@
 
 Before forecasting, every pose sample is moved so that its hip centre (pelvis)
 sits at the origin and rotated about z (z up) so that the vector from the left
-to the right hip points along +x (the code's convention, DESIGN.md errata; the
+to the right hip points along +x (the code's convention, CONTRACTS.md; the
 thesis text says "y"). After forecasting the inverse transform restores world
 coordinates.
 

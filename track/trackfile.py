@@ -1,4 +1,4 @@
-"""THE track file ``<session>/track/tracks.npz`` (DESIGN.md): the contract with forecasting and users.
+"""THE track file ``<session>/track/tracks.npz`` (CONTRACTS.md): the contract with forecasting and users.
 
 Keys (T frames, K tracks, J joints):
 

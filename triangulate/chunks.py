@@ -1,4 +1,4 @@
-"""Chunked files of the 3D stages: read an npz's arrays by rows, write outputs part by part.
+"""Chunked files of the 3D stages: read an npz's arrays by rows, write outputs part by part (CONTRACTS.md).
 
 Hours of 12 cameras x 16 people do not fit in memory as whole arrays, so the streaming stages read
 their inputs in time chunks (:class:`NpzRows`: rows of one array of an ``.npz``, compressed or not,
@@ -56,7 +56,7 @@ def parts_dir(path: str | os.PathLike) -> Path:
 # The 3D stages' default ``chunk_s = "auto"``: a session of more than STREAM_ABOVE_FRAMES frames is
 # streamed in chunks of STREAM_CHUNK_FRAMES frames (60 s at 25 Hz), a shorter one runs whole into the
 # single file. Frames, not seconds: a stage's memory grows with the frames it holds (cameras x people per
-# frame), whatever their rate. Measured in BENCHMARKS.md "Streamed by default": the whole run of 1,500
+# frame), whatever their rate. Measured in BENCHMARKS.md "Long sessions": the whole run of 1,500
 # frames of 12 cameras x 16 people peaks as high as the streamed run of any length.
 AUTO = "auto"
 STREAM_ABOVE_FRAMES = 1500

@@ -1,4 +1,4 @@
-"""The per-frame 3D poses file ``<session>/triangulate/poses3d.npz`` (no identity over time).
+"""The per-frame 3D poses file ``<session>/triangulate/poses3d.npz`` (no identity over time; CONTRACTS.md).
 
 Keys (T frames, P people per frame padded with NaN, J joints of ``body19``):
 ``schema`` = ``"poses3d/1"``, ``fps``, ``frame_index (T,)``, ``t_ns (T,)``, ``joint_names (J,)``,

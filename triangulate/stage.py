@@ -1,11 +1,11 @@
-"""The triangulate stage and the greedy (chapter-4) track stage on a session folder.
+"""The triangulate stage on a session folder.
 
 ``triangulate_session(session)`` reads ``calib/rig.toml`` and ``keypoints/<cam>.npz`` (any
 detector, any skeleton :mod:`roomcap.keypoints.skeletons` can convert to ``body19``, or ``whole_body``
 or a skeleton TOML with the option ``skeleton``) and writes
-``triangulate/poses3d.npz``. ``track_session_greedy(session)`` reads that file and writes
-``track/tracks.npz``. Both accept a typed config, a plain dict (unknown keys are rejected with
-the list of valid ones) or None for the defaults.
+``triangulate/poses3d.npz`` (or its parts, CONTRACTS.md); the greedy track stage that reads it is
+:func:`roomcap.track.greedy_stage.track_session_greedy`. It accepts a typed config, a plain dict (unknown
+keys are rejected with the list of valid ones) or None for the defaults.
 """
 
 from __future__ import annotations

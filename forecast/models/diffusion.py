@@ -62,7 +62,7 @@ state (clip-weighted 2/3 s 0.265/0.245 vs 0.281/0.249): not shipped. Continuing 
 (lr 2.5e-4, ``select = "ndms_2_3"``, sample_dct 0) picked step 3000, clip-weighted 2/3 s 0.275/0.287 and
 0.275/0.281 (seeds 0/1) vs the shipped state's 0.272/0.274 and 0.280/0.267 with sample_dct 0: gains under
 0.01, within the 0.23-0.28 spread of neighbouring states, so not shipped. The GRU: 0.334/0.295.
-(The "shipped state" above is the checkpoint before 2026-11-22's third session.)
+(The "shipped state" above is the checkpoint shipped before the mirrored-window training below.)
 
 Then (same probe, clip-weighted 2 / 3 s): training on the left/right mirror of every window too (``mirror``,
 trainer option, as the GRU and intention trainers do), from scratch, 12k steps, gave 0.297/0.281 and
