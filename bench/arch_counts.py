@@ -52,6 +52,7 @@ PACKAGES = [
     "synthetic",
     "triangulate",
     "track",
+    "outputs",
     "forecast",
     "pipeline",
 ]
@@ -63,6 +64,7 @@ ORDER = [
     "synthetic",
     "triangulate",
     "track",
+    "outputs",
     "forecast",
     "pipeline",
 ]
@@ -83,6 +85,11 @@ def modules(root: Path):
             if parts[-1] == "__init__":
                 parts = parts[:-1]
             yield ".".join(parts), f
+
+
+def _local(name: str) -> str:
+    """A module name as this script names it, without the installed namespace (``roomcap.core.x``: ``core.x``)."""
+    return name.removeprefix("roomcap.")
 
 
 def _name(node) -> str | None:
@@ -213,6 +220,7 @@ def count(root: Path) -> dict:
                     res["systemexit_str"] += 1
             if isinstance(node, (ast.Import, ast.ImportFrom)) and in_function(node):
                 names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+                names = [_local(n) for n in names]
                 top = {n.split(".")[0] for n in names}
                 if isinstance(node, ast.ImportFrom) and node.level:
                     top = {mod.split(".")[0]}
@@ -233,7 +241,7 @@ def count(root: Path) -> dict:
                 if length > 80:
                     res["long_functions"].append(f"{mod}.{node.name} ({length})")
             if isinstance(node, ast.ImportFrom) and not node.level and node.module:
-                other = node.module.split(".")[0]
+                other = _local(node.module).split(".")[0]
                 if other in PACKAGES and other != mod.split(".")[0]:
                     for a in node.names:
                         if a.name.startswith("_") and not a.name.startswith("__"):
@@ -294,6 +302,7 @@ def count(root: Path) -> dict:
     unguarded = []
     for name, target in scripts.items():
         m, attr = target.split(":")
+        m = _local(m)
         src = texts.get(m, "")
         if not re.search(rf"^{attr}\s*=\s*guarded\(", src, re.M):
             unguarded.append(name)
@@ -301,8 +310,17 @@ def count(root: Path) -> dict:
 
     import grimp
 
-    sys.path.insert(0, str(root))
-    g = grimp.build_graph(*[p for p in PACKAGES if (root / p).is_dir()], include_external_packages=False)
+    graph = grimp.build_graph("roomcap", include_external_packages=False)
+
+    class _Local:  # the graph with this script's module names
+        modules = {_local(m) for m in graph.modules if m != "roomcap"}
+
+        @staticmethod
+        def find_modules_directly_imported_by(v):
+            imported = graph.find_modules_directly_imported_by("roomcap." + v)
+            return {_local(w) for w in imported if w != "roomcap"}
+
+    g = _Local
     mods = sorted(g.modules)
     # Tarjan's strongly connected components
     index, low, stack, on, sccs, counter = {}, {}, [], set(), [], [0]
