@@ -88,7 +88,7 @@ def modules(root: Path):
 
 
 def _local(name: str) -> str:
-    """A module name as this script names it, without the installed namespace (``roomcap.core.x``: ``core.x``)."""
+    """A module name as this script names it: without the namespace (``roomcap.core.x`` is ``core.x``)."""
     return name.removeprefix("roomcap.")
 
 
