@@ -109,6 +109,14 @@ def _add_eval(sub: Any) -> None:
         "path", nargs="?", help="--protocol hik: the folder of HiK person files; cmu8: the benchmark folder"
     )
     e.add_argument(
+        "--metric",
+        choices=["mpjpe", "angle"],
+        default="mpjpe",
+        help="--protocol cmu8: mpjpe (3D, as LTD's main_cmu_3d.py) or angle (the mean angle error of Tanke "
+        "Table 6.7, as LTD's main_cmu.py; scores zero velocity and the checkpoints of `forecast cmu8 train "
+        "--angles`)",
+    )
+    e.add_argument(
         "--save-samples",
         metavar="DIR",
         help="write samples_<model>.npz per model and baseline (pred, obs, gt in metres, fps, joint_names, "

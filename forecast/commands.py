@@ -19,6 +19,7 @@ from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import load_toml
 from roomcap.core.progress import Bars
 from roomcap.forecast import benchmark_cmu8 as B
+from roomcap.forecast import benchmark_cmu8_angle as A
 from roomcap.forecast import benchmark_cmu8_train as BT
 from roomcap.forecast import evaluate as E
 from roomcap.forecast import hik
@@ -160,7 +161,9 @@ def cmd_eval(args) -> int:
     if args.protocol == "hik":
         return _eval_hik(args, names)
     if args.protocol == "cmu8":
-        return _eval_cmu8(args)
+        return _eval_cmu8_angle(args) if args.metric == "angle" else _eval_cmu8(args)
+    if args.metric != "mpjpe":
+        raise InputError(f"--metric {args.metric} is a metric of --protocol cmu8 only")
     t0 = time.perf_counter()
     clips, tr, va, te = _load_split(args)
     ck_models: dict = {}
@@ -237,6 +240,23 @@ def _eval_cmu(args, models: dict, clips, te, progress) -> dict:
     return res
 
 
+def _eval_cmu8_angle(args) -> int:
+    """The CMU 8-action benchmark in the mean angle error of Tanke Table 6.7
+    (``forecast.benchmark_cmu8_angle``): zero velocity and the exponential-map checkpoints (default: the
+    shipped one)."""
+    if args.checkpoints is None:
+        cks = [str(A.SHIPPED)] if A.SHIPPED.is_file() else []
+    else:
+        cks = list(args.checkpoints)
+    for ck in cks:
+        if not Path(ck).is_file():
+            raise InputError(f"no checkpoint {ck}")
+    res = A.evaluate(args.path, cks)
+    path = A.write_report(res, args.out)
+    print(path.read_text())
+    return 0
+
+
 def _eval_cmu8(args) -> int:
     """The CMU 8-action benchmark (``forecast.benchmark_cmu8``): zero velocity, the DCT + MLP checkpoints on
     the exact protocol, the body19 checkpoints on its body19 variant."""
@@ -247,6 +267,12 @@ def _eval_cmu8(args) -> int:
     for ck in cks:
         if not Path(ck).is_file():
             raise InputError(f"no checkpoint {ck}")
+    angle = [c for c in cks if A.is_angle_checkpoint(c)]
+    if angle and args.checkpoints is not None:
+        raise InputError(
+            f"{', '.join(angle)}: forecast exponential maps; score them with `--metric angle`, not in 3D"
+        )
+    cks = [c for c in cks if c not in angle]
     mlp = [c for c in cks if B.is_cmu8_checkpoint(c)]
     b19 = [c for c in cks if c not in mlp]
     with Bars(unit="model") as progress:

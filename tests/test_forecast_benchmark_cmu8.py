@@ -244,3 +244,68 @@ def test_ensemble_forecasts_the_members_mean_and_round_trips(tiny_root, tmp_path
     bad = ["cmu8", "ensemble", str(out), "--data", str(tiny_root), "--out", str(tmp_path / "x.pt")]
     assert main(bad) == 2
     assert "already an ensemble" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- the angle metric (Table 6.7)
+
+
+def test_euler_follows_the_reference_convention():
+    """rotmat2euler of Martinez et al. (LTD, convSeq2Seq) is scipy's 'xyz' of the transpose; at R02 = -+1
+    exactly it takes the reference's special case (E3 = 0, E2 = +-pi/2, E1 = atan2(R01, R02))."""
+    from scipy.spatial.transform import Rotation
+
+    from roomcap.forecast import benchmark_cmu8_angle as A
+
+    rng = np.random.default_rng(0)
+    R = Rotation.from_rotvec(rng.normal(size=(50, 3)) * 0.8).as_matrix()
+    assert np.allclose(A.rotmat_euler(R), Rotation.from_matrix(np.swapaxes(R, -1, -2)).as_euler("xyz"))
+    for sign in (1.0, -1.0):
+        s, c = np.sin(0.3), np.cos(0.3)
+        G = np.array([[0.0, 0.0, -sign], [s, c, 0.0], [sign * c, -sign * s, 0.0]])  # a rotation, R02 = -sign
+        assert np.isclose(np.linalg.det(G), 1.0)
+        assert np.allclose(A.rotmat_euler(G), [np.arctan2(0.0, -sign), sign * np.pi / 2, 0.0])
+    # the root's position and rotation never count; identical maps score 0
+    x = rng.normal(size=(2, 25, 117))
+    y = x.copy()
+    y[..., :6] += 1.0
+    assert np.allclose(A.angle_error(x, y), 0.0)
+
+
+def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
+    from roomcap.forecast import benchmark_cmu8_angle as A
+    from roomcap.forecast.cli import main
+
+    cfg = B.MlpConfig(steps=3, batch=8, val_every=1, n_blocks=2)
+    tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
+    f, hist = A.train(tr, va, cfg)
+    assert f.joints == [1 + j for j in (2, 3, 4, 9, 10, 14, 15, 21, 22, 30, 31)]  # 3-vectors after the root's
+    assert set(f.dims) == {3 + 3 * j for j in (2, 3, 4, 9, 10, 14, 15, 21, 22, 30, 31)}  # the moving values
+    ck = tmp_path / "angles.pt"
+    A.save(ck, f, cfg, hist)
+    assert A.is_angle_checkpoint(ck) and not A.is_angle_checkpoint(tmp_path / "none.pt")
+    out = tmp_path / "o"
+    args = ["eval", "--protocol", "cmu8", "--metric", "angle", str(tiny_root), "--checkpoints", str(ck)]
+    assert main([*args, "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["actions"] == ["soccer", "walking"] and res["actions_averaged"] == ["soccer", "walking"]
+    for name in ("zero_velocity", "angles"):
+        r = res["models"][name]
+        assert len(r["angle_error"]) == 5 and all(v > 0 for v in r["angle_error"])
+        pa = [r["per_action"][a]["angle_error"] for a in ("soccer", "walking")]
+        assert np.allclose(r["angle_error"], np.mean(pa, 0))
+    # zero velocity by hand: the last observed frame against the truth at the horizon frames
+    ws = A.test_windows(C.benchmark_files(tiny_root))["walking"]
+    hand = [
+        np.mean([A.angle_error(w[None, 49:50], w[None, 50 + k : 51 + k])[0, 0] for w in ws])
+        for k in A.HORIZON_FRAMES
+    ]
+    assert np.allclose(res["models"]["zero_velocity"]["per_action"]["walking"]["angle_error"], hand)
+    ltd = res["published"]["Trajectory = LTD (Mao et al. 2019)"]
+    assert ltd["average_same_actions"] == [0.255, 0.37, 0.55, 0.62, 1.005]  # soccer and walking's mean
+    # a 3D evaluation refuses an angle checkpoint, and --metric angle is cmu8's
+    assert (
+        main(["eval", "--protocol", "cmu8", str(tiny_root), "--checkpoints", str(ck), "--out", str(out)]) == 2
+    )
+    assert "score them with `--metric angle`" in capsys.readouterr().err
+    assert main(["eval", "--metric", "angle", "--out", str(out)]) == 2
+    assert "--metric angle is a metric of --protocol cmu8 only" in capsys.readouterr().err
