@@ -140,7 +140,13 @@ def _import(args) -> int:
         raise InputError(f"{args.path} does not exist.")
     output_folder(args.out)
     paths = import_2d(
-        args.path, args.out, fmt=args.format, skeleton=args.skeleton, fps=args.fps, cameras=args.cameras
+        args.path,
+        args.out,
+        fmt=args.format,
+        skeleton=args.skeleton,
+        fps=args.fps,
+        cameras=args.cameras,
+        hand_sides="model" if args.model_hand_sides else "body",
     )
     for c, p in paths.items():
         print(f"{c}: {p}")
@@ -220,6 +226,12 @@ def _main(argv: list[str] | None = None) -> int:
     )
     im.add_argument("--fps", type=float, default=None, help="OpenPose: frame rate for timestamps")
     im.add_argument("--cameras", nargs="*", default=None, help="only these cameras (default: every one)")
+    im.add_argument(
+        "--model-hand-sides",
+        action="store_true",
+        help="caliscope: keep the hand model's left/right labels (default: each hand on the side of the "
+        "body's nearer wrist, a hand found twice kept once)",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"

@@ -14,6 +14,9 @@ Read here:
   foot tips to the feet), 100 + k the **right** hand's landmark k, 200 + k the **left** hand's (MediaPipe
   hand order, :data:`~roomcap.keypoints.skeletons.HAND_RIGHT`), 500 and up face mesh points (not kept).
   The layout is ``blazepose33_hands``; caliscope writes no confidence, so a point it wrote has score 1.
+  With ``hand_sides="body"`` (the default) each view's hands are put on the side of the body's nearer wrist
+  and a hand that both of Holistic's hand models found is kept once (:func:`~roomcap.keypoints.hands.
+  hands_by_body_side`); ``"model"`` keeps the ids' sides as written.
 - OpenPose JSON folders (:func:`~roomcap.keypoints.openpose_json.read_openpose_folder`): one folder of
   ``*.json`` (one camera) or a folder of ``<camera>_json`` folders (Pose2Sim's ``pose/`` layout), frame
   numbers from the file names.
@@ -30,6 +33,7 @@ import numpy as np
 
 from roomcap.core.errors import FormatError, InputError
 from roomcap.keypoints.detections import Detections
+from roomcap.keypoints.hands import hands_by_body_side
 from roomcap.keypoints.openpose_json import read_openpose_folder
 from roomcap.keypoints.skeletons import get_skeleton
 
@@ -100,9 +104,11 @@ def _read_csv_columns(path: Path) -> dict[str, np.ndarray]:
     return cols
 
 
-def read_caliscope_xy(path: str | os.PathLike) -> dict[str, Detections]:
+def read_caliscope_xy(path: str | os.PathLike, hand_sides: str = "body") -> dict[str, Detections]:
     """caliscope ``xy_<tracker>.csv`` -> one :class:`Detections` per camera ``cam_<port>`` (module doc)."""
     path = Path(path)
+    if hand_sides not in ("body", "model"):
+        raise InputError(f"hand_sides must be 'body' or 'model', got {hand_sides!r}.")
     if not path.is_file():
         raise FormatError(
             path, None, "does not exist.", "Pass caliscope's recordings/<rec>/<TRACKER>/xy_*.csv."
@@ -144,6 +150,18 @@ def read_caliscope_xy(path: str | os.PathLike) -> dict[str, Detections]:
         xy_px[row, 0, j[m]] = xy[m]
         score = np.where(np.isfinite(xy_px).all(-1), 1.0, 0.0).astype(np.float32)
         xy_px[score == 0] = np.nan
+        if hand_sides == "body":
+            xy_px, score, n = hands_by_body_side(xy_px, score, CALISCOPE_SKELETON)
+            if any(n.values()):
+                log.info(
+                    "%s port %d: hands put on the body's side: %d swapped, %d moved, %d found twice "
+                    "(kept once)",
+                    path.name,
+                    p,
+                    n["swapped"],
+                    n["moved"],
+                    n["duplicates"],
+                )
         t_ns = np.zeros(T, np.int64)
         if t0 is not None:
             ft = np.full(T, np.nan)
@@ -199,12 +217,13 @@ def import_2d(
     skeleton: str | None = None,
     fps: float | None = None,
     cameras: list[str] | None = None,
+    hand_sides: str = "body",
 ) -> dict[str, Path]:
     """Write ``<out_dir>/<camera>.npz`` from another tool's 2D at ``path``; returns the files by camera.
 
     ``fmt``: ``caliscope`` (an ``xy_*.csv``, or a folder holding one), ``openpose`` (a json folder or a
     folder of them), or ``auto`` (decided by what ``path`` is). ``skeleton`` and ``fps`` are passed to the
-    OpenPose reader; ``cameras`` keeps only these."""
+    OpenPose reader; ``cameras`` keeps only these; ``hand_sides`` to the caliscope reader."""
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path} does not exist.")
@@ -219,7 +238,7 @@ def import_2d(
                 f"{path}: expected one caliscope xy_<tracker>.csv, found {[c.name for c in csvs]}; "
                 "pass the file."
             )
-        dets = read_caliscope_xy(csvs[0])
+        dets = read_caliscope_xy(csvs[0], hand_sides=hand_sides)
     else:
         if not path.is_dir():
             raise InputError(
