@@ -183,6 +183,48 @@ def run(out: Path, fix_sides: bool) -> dict:
     return res
 
 
+def table(r: dict) -> str:
+    """The figures as a markdown table (ours against caliscope's own 3D on the same 2D)."""
+    rows = [
+        (
+            "hand joints in 3D (of those seen by >= 2 views)",
+            r["hand_joints_3d_ours"],
+            r["hand_joints_3d_caliscope"],
+        ),
+        ("hand joints seen by one view given a 3D point", r["one_view_hand_joints_with_3d"], "-"),
+        (
+            "hand reprojection, median px (views used)",
+            r["reproj_hands_ours_used_px"],
+            r["reproj_hands_caliscope_px"],
+        ),
+        (
+            "hand reprojection on the same 2D observations, median px",
+            r["reproj_hands_same_obs_ours_px"],
+            r["reproj_hands_same_obs_caliscope_px"],
+        ),
+        (
+            "finger bone length std over time, median over bones, mm",
+            r["bone_std_ours_mm"],
+            r["bone_std_caliscope_mm"],
+        ),
+        ("finger bone length, median, mm", r["bone_len_ours_mm"], r["bone_len_caliscope_mm"]),
+    ]
+    rows += [
+        (f"  {cam} hand reprojection, median px", v["ours_used_px"], v["caliscope_px"])
+        for cam, v in r["reproj_per_camera"].items()
+    ]
+    out = ["| figure | ours | caliscope |", "|---|---|---|"]
+    out += [
+        f"| {a} | {b:.2f} | {c if isinstance(c, str) else f'{c:.2f}'} |"
+        if isinstance(b, float)
+        else f"| {a} | {b} | {c} |"
+        for a, b, c in rows
+    ]
+    out += ["", "| finger | distance ours - caliscope, median mm |", "|---|---|"]
+    out += [f"| {f} | {d:.1f} |" for f, d in r["dist_to_caliscope_mm_per_finger"].items()]
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default=None, help="work folder (default: a temporary one)")
@@ -194,7 +236,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         res = run(Path(args.out or tmp), not args.raw_sides)
-    print(json.dumps(res, indent=1))
+    print(table(res))
     print("BENCH " + json.dumps(res))
     return 0
 
