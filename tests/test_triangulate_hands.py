@@ -178,3 +178,60 @@ def test_import_missing_path(tmp_path, bad):
 
     with pytest.raises(InputError, match="does not exist"):
         import_2d(tmp_path / bad, tmp_path / "k")
+
+
+def test_exports_carry_hand_markers(tmp_path):
+    """A track with hands: TRC (and C3D where ezc3d is installed), CSV and JSON name the hand markers as
+    COCO-WholeBody does; BVH is not asked (the fit needs every joint known in a frame)."""
+    from track_helpers import walkers
+
+    from roomcap.outputs.export import ExportOptions, export_tracks, read_csv
+    from roomcap.track.trackfile import OBSERVED, read_json, read_trc, yup_to_world
+
+    sk = get_skeleton("body19_hands")
+    body = walkers(1, 30).astype(np.float64)  # (T,1,19,3)
+    T = body.shape[0]
+    xyz = np.full((T, 1, sk.n_joints, 3), np.nan)
+    xyz[:, :, :19] = body
+    for k, n in enumerate(HANDS):
+        side = n.split("_", 1)[0]
+        w = body[:, :, CANONICAL.index(f"{side}_wrist")]
+        xyz[:, :, sk.index(n)] = w + [0.004 * (k % 21), 0.002 * (k % 21), -0.003 * (k % 21)]
+    xyz[5:8, 0, sk.index("right_ring_finger3")] = np.nan  # a short gap: filled in the TRC
+    known = np.isfinite(xyz).all(-1)
+    tf = TrackFile(
+        fps=25.0,
+        frame_index=np.arange(T),
+        t_ns=np.arange(T) * 40_000_000,
+        track_id=np.array([1]),
+        joint_names=sk.joint_names,
+        parents=np.asarray(sk.parents),
+        xyz_m=xyz,
+        confidence=np.where(known, 0.9, 0.0),
+        std_m=np.where(known, 0.01, np.nan),
+        flags=np.where(known, OBSERVED, 0).astype(np.uint8),
+        source="test",
+    )
+    formats = ("trc", "csv", "json")
+    try:
+        import ezc3d  # noqa: F401
+
+        formats += ("c3d",)
+    except ImportError:
+        pass
+    rep = export_tracks(tf, tmp_path, "s", ExportOptions(formats=formats))
+    got = sorted(p.suffix for p in rep.files if p.name.startswith("s_1."))
+    assert got == sorted(f".{f}" for f in formats)
+    names, pts, _, frame_no = read_trc(tmp_path / "s_1.trc")
+    assert names[-42:] == list(HANDS) and "LWrist" in names and len(frame_no) == T
+    assert np.isfinite(pts).all()
+    j = names.index("left_middle_finger2")
+    np.testing.assert_allclose(yup_to_world(pts[:, j]), xyz[:, 0, sk.index("left_middle_finger2")], atol=2e-6)
+    back = read_csv(tmp_path / "s_1.csv", sk.joint_names)
+    np.testing.assert_allclose(back["xyz_m"][:, 0], xyz[:, 0], atol=1e-6)
+    assert read_json(tmp_path / "s_1.json").joint_names == sk.joint_names
+    if "c3d" in formats:
+        import ezc3d
+
+        c = ezc3d.c3d(str(tmp_path / "s_1.c3d"))
+        assert c["parameters"]["POINT"]["LABELS"]["value"][-1] == "right_pinky_finger4"
