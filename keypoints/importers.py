@@ -19,7 +19,8 @@ Read here:
   hands_by_body_side`); ``"model"`` keeps the ids' sides as written.
 - OpenPose JSON folders (:func:`~roomcap.keypoints.openpose_json.read_openpose_folder`): one folder of
   ``*.json`` (one camera) or a folder of ``<camera>_json`` folders (Pose2Sim's ``pose/`` layout), frame
-  numbers from the file names.
+  numbers from the file names; with OpenPose's hand keypoints (``--hand``) when the files have them
+  (layout ``<body layout>_hands``).
 """
 
 from __future__ import annotations
@@ -249,7 +250,10 @@ def import_2d(
             raise FormatError(
                 path, None, "holds no .json files nor folders of them.", "Pass OpenPose's output."
             )
-        dets = {c: read_openpose_folder(f, camera=c, skeleton=skeleton, fps=fps) for c, f in folders.items()}
+        dets = {
+            c: read_openpose_folder(f, camera=c, skeleton=skeleton, fps=fps, hands=None)
+            for c, f in folders.items()
+        }
     if cameras:
         unknown = [c for c in cameras if c not in dets]
         if unknown:

@@ -171,3 +171,31 @@ def test_caliscope_holistic_recording_imports(tmp_path):
         rh = xy[:, s.index("right_hand_root")]
         near = np.linalg.norm(rh - xy[:, s.index("right_wrist")], axis=-1)
         assert np.nanmedian(near) < 60  # pixels, 1280x720 images
+
+
+def test_openpose_json_with_hands(tmp_path):
+    f = tmp_path / "c0_json"
+    f.mkdir()
+    kp = np.zeros((25, 3))
+    kp[:, 0], kp[:, 1], kp[:, 2] = np.arange(25), np.arange(25), 0.9
+    kp[1] = [50, 50, 0.9]
+    hl = np.zeros((21, 3))
+    hl[:, 0], hl[:, 1], hl[:, 2] = 100 + np.arange(21), 5, 0.7
+    person = {"pose_keypoints_2d": kp.ravel().tolist(), "hand_left_keypoints_2d": hl.ravel().tolist(),
+              "hand_right_keypoints_2d": []}  # fmt: skip
+    for fr in (0, 1):
+        (f / f"c0_{fr:012d}_keypoints.json").write_text(json.dumps({"people": [person]}))
+    paths = import_2d(f, tmp_path / "k", skeleton="body25b")
+    d = Detections.load(paths["c0"])
+    s = get_skeleton(d.skeleton)
+    assert d.skeleton == "body25b_hands" and s.n_joints == 25 + 42
+    assert d.xy_px[1, 0, s.index("left_thumb2")].tolist() == [102, 5]
+    assert np.isnan(d.xy_px[:, 0, s.index("right_hand_root")]).all()
+    # the reader's default (the other stages' callers) leaves hands out
+    from roomcap.keypoints.openpose_json import read_openpose_folder
+
+    assert read_openpose_folder(f, skeleton="body25b").skeleton == "body25b"
+    bad = dict(person, hand_right_keypoints_2d=[1.0, 2.0])
+    (f / "c0_000000000002_keypoints.json").write_text(json.dumps({"people": [bad]}))
+    with pytest.raises(FormatError, match="hand_right_keypoints_2d"):
+        import_2d(f, tmp_path / "k2")
