@@ -16,7 +16,7 @@ bones) and compares, on the hand joints (``left_hand_root`` ... ``right_pinky_fi
 
 Ends with one line ``BENCH {json}``. A few seconds on one core.
 
-    PYTHONPATH=.pp python bench/bench_hands_caliscope.py [--out DIR] [--raw-sides]
+    PYTHONPATH=.pp python bench/bench_hands_caliscope.py [--shared DIR] [--out DIR] [--raw-sides]
 """
 
 from __future__ import annotations
@@ -42,10 +42,6 @@ from roomcap.triangulate.poses3d import Poses3D
 from roomcap.triangulate.stage import triangulate_session
 
 REC = Path("data", "caliscope", "4_cam_recording_holistic_2d3d")
-
-
-def _shared() -> Path:
-    return Path(os.environ.get("ROOMCAP_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 
 
 def caliscope_xyz(path: Path, frames: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
@@ -100,10 +96,7 @@ def bone_std_mm(X: np.ndarray, names) -> tuple[float, float, int]:
     return float(np.median(stds) * 1e3), float(np.median(lens) * 1e3), len(stds)
 
 
-def run(out: Path, fix_sides: bool) -> dict:
-    root = _shared() / REC
-    if not root.is_dir():
-        sys.exit(f"caliscope recording not found at {root}; set ROOMCAP_SHARED")
+def run(root: Path, out: Path, fix_sides: bool) -> dict:
     xy_csv = root / "recordings" / "recording_1" / "HOLISTIC" / "xy_HOLISTIC.csv"
     lay = SessionLayout(out / "session")
     import_2d(xy_csv, lay.keypoints_dir, hand_sides="body" if fix_sides else "model")
@@ -243,9 +236,19 @@ def main(argv=None) -> int:
         action="store_true",
         help="keep MediaPipe's left/right hand labels as caliscope wrote them (default: the body's side)",
     )
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+        help="the shared data folder (default: $ROOMCAP_SHARED, else ../shared)",
+    )
     args = ap.parse_args(argv)
+    root = Path(args.shared) / REC
+    if not root.is_dir():
+        print(f"caliscope recording not found at {root}; pass --shared or set ROOMCAP_SHARED")
+        print("BENCH " + json.dumps({"skipped": True}))
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
-        res = run(Path(args.out or tmp), not args.raw_sides)
+        res = run(root, Path(args.out or tmp), not args.raw_sides)
     print(table(res))
     print("BENCH " + json.dumps(res))
     return 0
