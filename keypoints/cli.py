@@ -5,6 +5,7 @@ keypoints fetch NAME [--model-dir DIR]      download a model into the cache and 
 keypoints run SESSION                       raw/<cam>.* -> keypoints/<cam>.npz
 keypoints run VIDEO... --out DIR            explicit videos (camera name = file stem, or cam=path)
 keypoints run TRIAL/videos --out DIR        every video in a folder (Pose2Sim demo layout)
+keypoints import PATH --out SESSION/keypoints   other tools' 2D (caliscope xy_*.csv, OpenPose JSON)
 """
 
 from __future__ import annotations
@@ -132,6 +133,26 @@ def _run(args) -> int:
     return 0
 
 
+def _import(args) -> int:
+    from roomcap.keypoints.importers import import_2d
+
+    if not Path(args.path).exists():
+        raise InputError(f"{args.path} does not exist.")
+    output_folder(args.out)
+    paths = import_2d(
+        args.path,
+        args.out,
+        fmt=args.format,
+        skeleton=args.skeleton,
+        fps=args.fps,
+        cameras=args.cameras,
+        hand_sides="model" if args.model_hand_sides else "body",
+    )
+    for c, p in paths.items():
+        print(f"{c}: {p}")
+    return 0
+
+
 def _main(argv: list[str] | None = None) -> int:
     ap = Parser(prog="keypoints", description="2D multi-person keypoints through ONNX models")
     ap.add_argument(
@@ -189,11 +210,33 @@ def _main(argv: list[str] | None = None) -> int:
         help="top-down: extra pose passes on upright crops from the previous pass (0 = faster; default: "
         "KeypointPipelineConfig's, 2)",
     )
+    im = sub.add_parser(
+        "import", help="other tools' 2D keypoints into detections files (caliscope xy_*.csv, OpenPose JSON)"
+    )
+    im.add_argument(
+        "path",
+        help="caliscope xy_<tracker>.csv (or its folder), an OpenPose json folder or a folder of them",
+    )
+    im.add_argument("--out", required=True, help="output folder, usually SESSION/keypoints")
+    im.add_argument(
+        "--format", default="auto", choices=("auto", "caliscope", "openpose"), help="input format"
+    )
+    im.add_argument(
+        "--skeleton", default=None, help="OpenPose layout (body25b, body25, coco18, ...; default: guessed)"
+    )
+    im.add_argument("--fps", type=float, default=None, help="OpenPose: frame rate for timestamps")
+    im.add_argument("--cameras", nargs="*", default=None, help="only these cameras (default: every one)")
+    im.add_argument(
+        "--model-hand-sides",
+        action="store_true",
+        help="caliscope: keep the hand model's left/right labels (default: each hand on the side of the "
+        "body's nearer wrist, a hand found twice kept once)",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
     )
-    return {"list": _list, "fetch": _fetch, "run": _run}[args.cmd](args)
+    return {"list": _list, "fetch": _fetch, "run": _run, "import": _import}[args.cmd](args)
 
 
 main = guarded("keypoints", _main)

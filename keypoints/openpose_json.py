@@ -6,6 +6,11 @@ keypoint with confidence 0 (OpenPose's "not detected", written as 0, 0, 0) becom
 number is the last group of digits in the file name; frames are sorted by it (never by file order),
 and missing numbers become empty frames.
 
+With ``hands`` (``None``: when a file has them) OpenPose's ``hand_left_keypoints_2d`` and
+``hand_right_keypoints_2d`` (21 points each, in MediaPipe's order) are appended: the layout is then
+``<body layout>_hands`` (:data:`~roomcap.keypoints.skeletons.HANDS`); a person without hand arrays has them
+missing.
+
 The layout has to be known: ``skeleton`` names it (``body25b`` for Pose2Sim's demo, ``body25``,
 ``coco18``, ``coco17``, ``halpe26``). With ``skeleton=None`` it is decided from the number of
 keypoints and, for 25 keypoints, from the geometry: in BODY_25 keypoint 1 is the neck, the midpoint
@@ -62,6 +67,7 @@ def read_openpose_folder(
     fps: float | None = None,
     max_people: int | None = None,
     image_size_wh: tuple[int, int] | None = None,
+    hands: bool | None = False,
 ) -> Detections:
     """OpenPose JSON folder -> Detections for ``camera`` (default: the folder name without ``_json``).
 
@@ -71,12 +77,18 @@ def read_openpose_folder(
     files = _json_files(folder)
     camera = camera or re.sub(r"_json$", "", folder.name)
     frames = _frame_numbers(files, folder)
-    people, n_kp = _read_people(files, folder)
-    raw = _frames_array(frames, people, n_kp, max_people)
+    people, n_kp, any_hand = _read_people(files, folder)
+    with_hands = bool(hands) or (hands is None and any_hand)
+    if not with_hands:
+        people = [p[:, :n_kp] for p in people]
+    raw = _frames_array(frames, people, n_kp + 42 * with_hands, max_people)
     T = raw.shape[0]
     score = raw[..., 2]
     xy = np.where((score > 0)[..., None], raw[..., :2], np.nan)
-    skeleton = _skeleton(folder, skeleton, xy, score, n_kp)
+    base = skeleton.removesuffix("_hands") if skeleton else None
+    skeleton = _skeleton(folder, base, xy[..., :n_kp, :], score[..., :n_kp], n_kp)
+    if with_hands:
+        skeleton = f"{skeleton}_hands"
     frame_index = np.arange(frames.min(), frames.max() + 1, dtype=np.int64)
     t_ns = np.round(frame_index * 1e9 / fps).astype(np.int64) if fps else np.zeros(T, np.int64)
     present, boxes = _boxes(xy, score)
@@ -116,10 +128,12 @@ def _frame_numbers(files: list[Path], folder: Path) -> np.ndarray:
     return frames
 
 
-def _read_people(files: list[Path], folder: Path) -> tuple[list[np.ndarray], int]:
-    """Per file the people's keypoints (P,J,3) x, y, confidence, and J (the same in every file)."""
+def _read_people(files: list[Path], folder: Path) -> tuple[list[np.ndarray], int, bool]:
+    """Per file the people's keypoints (P,J+42,3) x, y, confidence (the body's J, then the left and right
+    hands' 21, zero where absent), J (the same in every file) and whether any hand point was detected."""
     people: list[np.ndarray] = []
     n_kp = None
+    any_hand = False
     for f in files:
         try:
             data = json.loads(f.read_text())
@@ -139,11 +153,19 @@ def _read_people(files: list[Path], folder: Path) -> tuple[list[np.ndarray], int
                 n_kp = n
             elif n != n_kp:
                 raise FormatError(f, "pose_keypoints_2d", f"has {n} keypoints, earlier files {n_kp}.")
-            rows.append(kp.reshape(n, 3))
-        people.append(np.stack(rows) if rows else np.zeros((0, n_kp or 0, 3)))
+            hand = np.zeros((42, 3))
+            for h, key in enumerate(("hand_left_keypoints_2d", "hand_right_keypoints_2d")):
+                v = np.asarray(p.get(key) or [], dtype=np.float64)
+                if v.size not in (0, 63):
+                    raise FormatError(f, key, f"has {v.size} values, not 21 keypoints x 3.")
+                if v.size:
+                    hand[21 * h : 21 * h + 21] = v.reshape(21, 3)
+            any_hand |= bool((hand[:, 2] > 0).any())
+            rows.append(np.concatenate([kp.reshape(n, 3), hand]))
+        people.append(np.stack(rows) if rows else np.zeros((0, (n_kp or 0) + 42, 3)))
     if n_kp is None:
         raise FormatError(folder, None, "no person was detected in any file.", "Check the OpenPose run.")
-    return people, n_kp
+    return people, n_kp, any_hand
 
 
 def _frames_array(

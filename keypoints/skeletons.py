@@ -6,6 +6,14 @@ Skeleton ids (CONTRACTS.md): ``coco17``, ``coco18`` (OpenPose COCO), ``body25``,
 points) and the canonical ``body19`` (COCO-17 plus pelvis and neck) used for
 every 3D file. Joint names are lower snake case.
 
+Hands: 21 joints per hand in MediaPipe's (and OpenPose's) landmark order, named as COCO-WholeBody names
+them (mmpose's ``coco_wholebody`` metainfo): ``left_hand_root`` (the hand's wrist point), then
+``left_thumb1``..``left_thumb4``, ``left_forefinger1``..4, ``left_middle_finger1``..4,
+``left_ring_finger1``..4, ``left_pinky_finger1``..4, and ``right_`` likewise (:data:`HAND_LEFT`,
+:data:`HAND_RIGHT`). Every layout above has a ``<id>_hands`` variant with both hands appended
+(``blazepose33_hands`` is MediaPipe Holistic's body and hands, ``body19_hands`` the whole-body 3D
+layout with hands); :data:`HAND_BONES` are the bones drawn and measured.
+
 The 3D stages can also use ``whole_body`` (:func:`whole_body`: body19 plus the feet, hand
 points, upper neck and head top a 2D layout provides) or a skeleton declared in a TOML
 (:func:`load_skeleton_toml`).
@@ -167,6 +175,29 @@ _SMPL29 = (
     "head_point_6",
 )
 
+# Hands (COCO-WholeBody names, MediaPipe landmark order: 0 wrist, 1-4 thumb CMC..tip, 5-8 index MCP..tip,
+# 9-12 middle, 13-16 ring, 17-20 little finger).
+FINGERS = ("thumb", "forefinger", "middle_finger", "ring_finger", "pinky_finger")
+
+
+def hand_joints(side: str) -> tuple[str, ...]:
+    """The 21 joint names of the ``side`` ("left" or "right") hand, in MediaPipe's landmark order."""
+    return (f"{side}_hand_root",) + tuple(f"{side}_{f}{k}" for f in FINGERS for k in range(1, 5))
+
+
+HAND_LEFT = hand_joints("left")
+HAND_RIGHT = hand_joints("right")
+HANDS = HAND_LEFT + HAND_RIGHT
+_HAND_PARENT = {
+    f"{side}_{f}{k}": f"{side}_hand_root" if k == 1 else f"{side}_{f}{k - 1}"
+    for side in ("left", "right")
+    for f in FINGERS
+    for k in range(1, 5)
+}
+# (parent, child) joint names of every hand bone: per finger root->1, 1->2, 2->3, 3->4 (the first is a
+# palm bone, the metacarpal; the thumb's is the CMC-MCP segment), 20 per hand.
+HAND_BONES = tuple((p, c) for c, p in _HAND_PARENT.items())
+
 # Kinematic parent of every joint, by name (a joint absent from a layout is skipped
 # when walking up to the nearest present ancestor).
 _PARENT = {
@@ -220,6 +251,9 @@ _PARENT = {
     "left_collar": "spine3",
     "right_collar": "spine3",
     **{f"head_point_{i}": "head" for i in range(7)},
+    "left_hand_root": "left_wrist",
+    "right_hand_root": "right_wrist",
+    **_HAND_PARENT,
 }
 # SMPL's tree differs from the COCO-style one above in the upper body.
 _PARENT_SMPL = {
@@ -307,6 +341,11 @@ SKELETONS: dict[str, Skeleton] = {
     )
 }
 CANONICAL = SKELETONS["body19"]
+# every layout with both hands appended: ``<id>_hands`` (MediaPipe Holistic = ``blazepose33_hands``;
+# OpenPose with ``--hand``: ``body25_hands``, ...; the 3D whole body with hands: ``body19_hands``)
+SKELETONS.update(
+    {f"{k}_hands": Skeleton(f"{k}_hands", v.joint_names + HANDS) for k, v in list(SKELETONS.items())}
+)
 
 # Joints a 3D skeleton carries beyond body19 when a 2D layout provides them (``whole_body``).
 WHOLE_BODY_EXTRAS = (
@@ -327,19 +366,36 @@ WHOLE_BODY_EXTRAS = (
     "right_index",
     "left_thumb",
     "right_thumb",
-)
+) + HANDS
 
 
 def whole_body(sources) -> Skeleton:
     """The 3D skeleton for detections in the 2D layouts ``sources``: ``body19`` plus every joint of
     :data:`WHOLE_BODY_EXTRAS` that one of them provides (feet of BODY_25/BODY_25B/HALPE-26/BlazePose,
-    BlazePose's hand points, BODY_25B's upper neck and head top), in that order. Id ``whole_body``
+    BlazePose's hand points, BODY_25B's upper neck and head top, the 42 hand joints of a ``*_hands``
+    layout), in that order. Id ``whole_body``
     (``body19`` itself when no layout adds a joint)."""
     have = set()
     for src in sources:
         have |= set(get_skeleton(src).joint_names)
     extra = tuple(n for n in WHOLE_BODY_EXTRAS if n in have)
     return CANONICAL if not extra else Skeleton("whole_body", _BODY19 + extra)
+
+
+def finger_bones(joint_names) -> dict[str, tuple[tuple[int, int], ...]]:
+    """Index pairs (parent, child) of the :data:`HAND_BONES` a layout has, by ``<side>_<finger>``
+    (e.g. ``left_thumb``: 4 bones from the hand root to the tip); fingers it lacks are left out."""
+    idx = {n: i for i, n in enumerate(joint_names)}
+    out: dict[str, tuple[tuple[int, int], ...]] = {}
+    for side in ("left", "right"):
+        for f in FINGERS:
+            key = f"{side}_{f}"
+            bones = tuple(
+                (idx[p], idx[c]) for p, c in HAND_BONES if c.startswith(key) and p in idx and c in idx
+            )
+            if bones:
+                out[key] = bones
+    return out
 
 
 def custom_skeleton(id: str, joint_names, parents) -> Skeleton:

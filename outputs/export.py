@@ -5,7 +5,8 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
 - **TRC** (OpenSim / Pose2Sim): metres, OpenSim's axes (y up: world (x, y, z) -> file (x, z, -y)),
   Pose2Sim's marker names (``Nose``, ``Neck``, ``LShoulder`` ... ``LBigToe``, ``LSmallToe``, ``LHeel``;
   :data:`POSE2SIM_NAMES`; with a ``whole_body`` track from BODY_25B, ``Neck`` and ``Head`` are its
-  detected upper neck and head top, as in Pose2Sim, not body19's mid-shoulder point). OpenSim refuses
+  detected upper neck and head top, as in Pose2Sim, not body19's mid-shoulder point; hand joints keep their
+  COCO-WholeBody names, ``left_hand_root``, ``left_thumb1`` ... ``right_pinky_finger4``). OpenSim refuses
   blank cells, so: interior gaps of a joint up to
   ``max_gap`` frames (Pose2Sim's ``interp_if_gap_smaller_than``, 10) are filled by linear
   interpolation and **flagged** (a ``<name>.filled.csv`` list of frame, time and marker beside the
@@ -49,6 +50,7 @@ import numpy as np
 
 from roomcap.core.errors import FormatError, RoomcapError
 from roomcap.core.fileio import atomic_path, atomic_write_text
+from roomcap.keypoints.skeletons import HANDS
 from roomcap.outputs.bvh import write_bvh
 from roomcap.outputs.skeleton_fit import fill_gaps, fit_skeletons, person_span
 from roomcap.outputs.skeleton_fit_file import FitError
@@ -109,9 +111,13 @@ class ExportError(RoomcapError, ValueError):
 
 
 def marker_name(joint: str) -> str:
-    """Pose2Sim's name of a joint; others in CamelCase with L/R prefixes (``left_pinky`` -> ``LPinky``)."""
+    """Pose2Sim's name of a joint; hand joints as COCO-WholeBody names them (``left_thumb1``,
+    ``right_pinky_finger4``: :data:`roomcap.keypoints.skeletons.HANDS`, as RTMW / Pose2Sim's whole-body
+    layouts write them); others in CamelCase with L/R prefixes (``left_pinky`` -> ``LPinky``)."""
     if joint in POSE2SIM_NAMES:
         return POSE2SIM_NAMES[joint]
+    if joint in HANDS:
+        return joint
     side = ""
     for pre, s in (("left_", "L"), ("right_", "R")):
         if joint.startswith(pre):

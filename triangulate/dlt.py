@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from roomcap.core.config import config_from_dict
+from roomcap.keypoints.skeletons import HAND_BONES
 from roomcap.triangulate.geometry import check_shape
 
 _SCORE, _REPROJ, _STD, _NVIEWS = 4, 5, 6, 7  # rows of ``Triangulator.solve_raw``'s V
@@ -346,6 +347,14 @@ LIMB_BOUNDS_M = {
     ("neck", "pelvis"): (0.25, 0.90),
     ("nose", "neck"): (0.03, 0.45),
 }
+# Hands (the 42 joints of keypoints.skeletons.HANDS): the body's wrist and the hand's own root are one
+# point seen by two models (within 10 cm); a palm bone (root to a finger's first joint) 1.5-13 cm, a
+# phalanx 0.8-7 cm (adult hands: metacarpals 4-8 cm, phalanges 1.5-5 cm).
+for _side in ("left", "right"):
+    LIMB_BOUNDS_M[(f"{_side}_wrist", f"{_side}_hand_root")] = (0.0, 0.10)
+    for _p, _c in HAND_BONES:
+        if _c.startswith(_side):
+            LIMB_BOUNDS_M[(_p, _c)] = (0.015, 0.13) if _p.endswith("hand_root") else (0.008, 0.07)
 
 
 def _pairs(joint_names: tuple[str, ...], bounds: dict):
