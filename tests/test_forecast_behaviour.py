@@ -415,7 +415,15 @@ def test_train_and_eval_commands_tiny(tmp_path):
     assert main(["train", "--out", str(ck), "--eval-split", "none", "--set", *sets]) == 0
     assert main(["eval", "--checkpoint", str(ck), "--split", "val", "--out", str(res)]) == 0
     models = json.loads(res.read_text())["models"]
-    assert sorted(models) == ["action_only", "full", "pose_only", "train_average", "zero_velocity"]
+    assert sorted(models) == [
+        "action_2d",
+        "action_only",
+        "full",
+        "pose_only",
+        "train_average",
+        "true_3d",
+        "zero_velocity",
+    ]
     assert models["full"]["mpjpe2d_px"] > 0 and 0 <= models["full"]["quality3d"] <= 1
     assert 0 <= models["full"]["quality3d_per_method"] <= 0.5
     assert models["action_only"]["mpjpe2d_px"] is None and models["pose_only"]["top1"] is None

@@ -81,7 +81,7 @@ def test_quality_then_eval_commands_tiny(tmp_path, capsys):
     r = json.loads(res.read_text())
     for n in ("full", "pose_only", "train_average"):
         assert 0 <= r["models"][n]["quality3d"] <= 1 and 0 <= r["models"][n]["quality3d_per_method"] <= 0.5
-    assert r["models"]["action_only"]["quality3d"] is None and 0 <= r["quality3d_true_3d"] <= 1
+    assert r["models"]["action_only"]["quality3d"] is None and 0 <= r["models"]["true_3d"]["quality3d"] <= 1
     capsys.readouterr()
     assert main([*argv, "--quality-classifier", str(tmp_path / "none.pt")]) == 2
     assert "forecast behaviour quality" in capsys.readouterr().err

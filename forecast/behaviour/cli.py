@@ -188,7 +188,7 @@ def _train(args) -> int:
             f"{v} {h['train_wall_s']:.0f} s wall (best step {h.get('best_step')})" for v, h in hists.items()
         )
     )
-    if args.eval_split == "none" or "full" not in gens:
+    if args.eval_split == "none":
         return 0
     qm = _quality_model(str(QUALITY_OF_SCRIPT[base.script]), missing_ok=True)
     qc = (qm.clf, qm.joints) if qm is not None else None
@@ -304,9 +304,15 @@ def _eval(args) -> int:
         gens, cfgs, extra = load_checkpoint(args.checkpoint)
     except (FormatError, FileNotFoundError) as err:
         raise InputError(str(err)) from None
-    if "full" not in gens:
-        raise InputError(f"{args.checkpoint}: holds {sorted(gens)}, no 'full' model")
-    cfg = cfgs["full"]
+    if not gens:
+        raise InputError(f"{args.checkpoint}: holds no model; train one with `forecast behaviour train`")
+    cfg = cfgs["full"] if "full" in gens else next(iter(cfgs.values()))
+    other = sorted(n for n, c in cfgs.items() if (c.script, c.n_obs, c.m) != (cfg.script, cfg.n_obs, cfg.m))
+    if other:
+        raise InputError(
+            f"{args.checkpoint}: {other} were trained on another script or n_obs / M than the rest; "
+            "evaluate them apart"
+        )
     sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
