@@ -166,6 +166,8 @@ def test_eval_results_schema_tiny(tmp_path, script):
     # the true 3D are real people: their limbs differ left to right by millimetres, not centimetres
     assert models["true_3d"]["symmetry_mm"] < 20
     assert 0 < r["ceiling_top1"] <= 1 and r["script"] == script
+    # the classifier's pool had the full model and the train average only: the others are named
+    assert r["quality3d_classifier"]["not_in_pool"] == ["action_2d", "pose_only"]
     # the ceiling bounds the baselines that forecast from the labels (a little slack: 60 sequences)
     assert r["ceiling_top1"] >= models["zero_velocity"]["top1"] - 0.05
     # a checkpoint with some variants: the others are absent, not faked
