@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import doctest
 import io
 
@@ -255,13 +256,16 @@ def test_sample_writes_forecast(session):
 @pytest.mark.parametrize(
     ("text", "match"),
     [
-        ("track_id,start_s,end_s,label\n9,0,1,walk\n", r"track ids \[9\] match no track"),
         (
-            "track_id,start_s,end_s,label\n3,0,1,dance\n3,1,2,juggle\n",
-            r"labels \['dance', 'juggle'\] are unknown",
+            "track_id,start_s,end_s,label\n3,0,1,walk\n9,0,1,walk\n",
+            r"bad.csv, line 3: track id 9 matches no track of the session \(its tracks: \[3, 7\]\)",
         ),
-        ("track_id,start_s,end_s,label\n3,30,40,walk\n", "has no 3D between 30.0 and 40.0 s"),
-        ("track_id,start_s,end_s,label\n3,0,2,walk\n3,1,3,sit\n", "overlap"),
+        (
+            "track_id,start_s,end_s,label\n3,0,1,walk\n3,1,2,dance\n7,1,2,sit\n7,2,3,juggle\n",
+            r"bad.csv, lines 3, 5: label 'dance' is unknown to the model",
+        ),
+        ("track_id,start_s,end_s,label\n3,30,40,walk\n", "line 2: track 3 has no 3D between 30.0 and 40.0 s"),
+        ("track_id,start_s,end_s,label\n7,0,1,sit\n3,0,2,walk\n3,1,3,sit\n", "overlap: line 3 .* line 4"),
     ],
 )
 def test_sample_bad_labels(session, text, match):
@@ -272,6 +276,37 @@ def test_sample_bad_labels(session, text, match):
     lab.write_text(text)
     with pytest.raises((InputError, FormatError), match=match):
         run_sample(root / "s", lab, root / "x.npz", checkpoint=root / "b.pt")
+
+
+def test_sample_needs_tracks(session, tmp_path, capsys):
+    """A session without a track file, or with one that holds no track, says to run the track stage first."""
+    import shutil
+
+    from roomcap.forecast.behaviour.cli import main
+    from roomcap.track.trackfile import TrackFile
+
+    root, _ = session
+    s = tmp_path / "notracks"
+    shutil.copytree(root / "s", s)
+    (s / "track" / "tracks.npz").unlink()
+    lab = tmp_path / "l.csv"
+    lab.write_text("track_id,start_s,end_s,label\n3,0,1,walk\n")
+    argv = ["sample", str(s), "--labels", str(lab), "--checkpoint", str(root / "b.pt")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "run the track stage first" in err and "forecast behaviour sample SESSION --labels FILE" in err
+    tf = TrackFile.load(root / "s" / "track" / "tracks.npz")
+    empty = dataclasses.replace(
+        tf,
+        track_id=tf.track_id[:0],
+        xyz_m=tf.xyz_m[:, :0],
+        confidence=tf.confidence[:, :0],
+        std_m=tf.std_m[:, :0],
+        flags=tf.flags[:, :0],
+    )
+    empty.save(s / "track" / "tracks.npz")
+    assert main(argv) == 2
+    assert "holds no tracks; run the track stage first" in capsys.readouterr().err
 
 
 def test_sample_needs_a_rig(session, tmp_path):
@@ -415,7 +450,15 @@ def test_train_and_eval_commands_tiny(tmp_path):
     assert main(["train", "--out", str(ck), "--eval-split", "none", "--set", *sets]) == 0
     assert main(["eval", "--checkpoint", str(ck), "--split", "val", "--out", str(res)]) == 0
     models = json.loads(res.read_text())["models"]
-    assert sorted(models) == ["action_only", "full", "pose_only", "train_average", "zero_velocity"]
+    assert sorted(models) == [
+        "action_2d",
+        "action_only",
+        "full",
+        "pose_only",
+        "train_average",
+        "true_3d",
+        "zero_velocity",
+    ]
     assert models["full"]["mpjpe2d_px"] > 0 and 0 <= models["full"]["quality3d"] <= 1
     assert 0 <= models["full"]["quality3d_per_method"] <= 0.5
     assert models["action_only"]["mpjpe2d_px"] is None and models["pose_only"]["top1"] is None

@@ -122,7 +122,16 @@ def _main(argv: list[str] | None = None) -> int:
     q.add_argument(
         "--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides of the snapshot runs"
     )
-    q.add_argument("--variants", default="full,pose_only", help="pose-predicting variants to collect from")
+    q.add_argument(
+        "--variants",
+        default=",".join(Q.POOL_VARIANTS),
+        help=f"pose-predicting variants whose training snapshots join the fake pool ({Q.POOL_VARIANTS})",
+    )
+    q.add_argument(
+        "--baselines",
+        default=",".join(Q.POOL_BASELINES),
+        help=f"baselines whose poses join the fake pool ({Q.POOL_BASELINES}; '' for none)",
+    )
     q.add_argument("--every", type=int, default=200, help="collect a snapshot every this many steps")
     q.add_argument("--per-snapshot", type=int, default=625, help="training sequences predicted per snapshot")
     q.add_argument("--clf-steps", type=int, default=4000, help="classifier training steps (batches 2x256)")
@@ -188,7 +197,7 @@ def _train(args) -> int:
             f"{v} {h['train_wall_s']:.0f} s wall (best step {h.get('best_step')})" for v, h in hists.items()
         )
     )
-    if args.eval_split == "none" or "full" not in gens:
+    if args.eval_split == "none":
         return 0
     qm = _quality_model(str(QUALITY_OF_SCRIPT[base.script]), missing_ok=True)
     qc = (qm.clf, qm.joints) if qm is not None else None
@@ -241,9 +250,13 @@ def _quality_model(path: str, missing_ok: bool = False) -> Q.QualityModel | None
 def _quality(args) -> int:
     base = _cfg(args.set)
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    bad = [v for v in variants if v not in ("full", "pose_only")]
+    bad = [v for v in variants if v not in Q.POOL_VARIANTS]
     if bad or not variants:
-        raise InputError(f"--variants: {bad or variants} - give a comma list of full, pose_only")
+        raise InputError(f"--variants: {bad or variants} - give a comma list of {', '.join(Q.POOL_VARIANTS)}")
+    baselines = [v.strip() for v in args.baselines.split(",") if v.strip()]
+    bad = [v for v in baselines if v not in Q.POOL_BASELINES]
+    if bad:
+        raise InputError(f"--baselines: {bad} - give a comma list of {', '.join(Q.POOL_BASELINES)} or ''")
     if args.every < 1 or args.per_snapshot < 1 or args.clf_steps < 1:
         raise InputError("--every, --per-snapshot and --clf-steps must be positive")
     t0 = time.perf_counter()
@@ -252,7 +265,10 @@ def _quality(args) -> int:
     with Bars(unit="step") as bars:
         snaps, secs = Q.build_pool(base, variants, sp.train, sp.db, args.every, args.per_snapshot, bars)
     names = base.joint_names
-    fake = np.concatenate([p for s in snaps.values() for _, p in s]).astype(np.float32)
+    sources = dict(snaps)
+    if "train_average" in baselines:
+        sources["train_average"] = Q.train_average_snapshots(base, sp.train, args.every)
+    fake, pooled = Q.pool_fakes(sources, seed=base.seed)
     real, held = Q.real_split(sp.db, names)
     q = Q.fit(real, fake, names, seed=base.seed, steps=args.clf_steps)
     avg = np.broadcast_to(np.asarray(train_average(sp.train), np.float32), (1, len(names), 3))
@@ -267,6 +283,8 @@ def _quality(args) -> int:
     }
     q.meta.update(
         variants=variants,
+        baselines=baselines,
+        sources=pooled,
         snapshot_steps={v: [st for st, _ in s] for v, s in snaps.items()},
         poses_per_snapshot={v: len(s[0][1]) for v, s in snaps.items()},
         n_database_held_out=len(held),
@@ -277,7 +295,9 @@ def _quality(args) -> int:
     )
     Q.save(args.out, q)
     print(
-        f"fake pool {len(fake)} poses ({', '.join(f'{v} {len(s)} snapshots' for v, s in snaps.items())}), "
+        f"fake pool {len(fake)} poses ("
+        + ", ".join(f"{v} {len(s)} snapshots, {pooled[v]['n_poses']} poses" for v, s in sources.items())
+        + f"; each source weighs {len(fake) // len(sources)} poses), "
         f"real pool {len(real)} (database even frames; class-balanced batches); "
         f"{time.perf_counter() - t0:.0f} s"
     )
@@ -304,9 +324,15 @@ def _eval(args) -> int:
         gens, cfgs, extra = load_checkpoint(args.checkpoint)
     except (FormatError, FileNotFoundError) as err:
         raise InputError(str(err)) from None
-    if "full" not in gens:
-        raise InputError(f"{args.checkpoint}: holds {sorted(gens)}, no 'full' model")
-    cfg = cfgs["full"]
+    if not gens:
+        raise InputError(f"{args.checkpoint}: holds no model; train one with `forecast behaviour train`")
+    cfg = cfgs["full"] if "full" in gens else next(iter(cfgs.values()))
+    other = sorted(n for n, c in cfgs.items() if (c.script, c.n_obs, c.m) != (cfg.script, cfg.n_obs, cfg.m))
+    if other:
+        raise InputError(
+            f"{args.checkpoint}: {other} were trained on another script or n_obs / M than the rest; "
+            "evaluate them apart"
+        )
     sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
@@ -317,7 +343,16 @@ def _eval(args) -> int:
     res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db, quality_clf=(qm.clf, qm.joints))
     res["quality3d_classifier"] = {
         "path": str(args.quality_classifier),
-        **{k: qm.meta.get(k) for k in ("n_real", "n_fake", "variants", "snapshot_steps", "seed")},
+        **{k: qm.meta.get(k) for k in ("n_real", "n_fake", "variants", "baselines", "sources", "seed")},
+        # the compared pose models whose training did not feed the classifier's fake pool (sec. 4.7.7 pools
+        # every compared model's)
+        "not_in_pool": sorted(
+            n
+            for n, r in res["models"].items()
+            if n != "true_3d"
+            and r.get("symmetry_mm") is not None
+            and n not in (qm.meta.get("sources") or qm.meta.get("variants") or ())
+        ),
     }
     res.update(
         split="sessions" if args.sessions else args.split,

@@ -247,7 +247,8 @@ def load_db_poses(fps: float = 25.0) -> np.ndarray:
 class Composite:
     """S sequences of L steps: ``actions (S,L)`` indices into ``ACTIONS``, ``xyz_m (S,L,19,3)`` the step
     poses in the room, ``xy_px (S,L,19,2)`` their 2D detections in camera ``cam (S,)`` of ``rig`` (NaN =
-    missed), ``clips (S,L)`` the clip of each step."""
+    missed), ``clips (S,L)`` the clip of each step, ``states (S,L)`` the hidden state of each step in
+    ``script_chain(script).states`` (None where unknown)."""
 
     actions: np.ndarray
     xyz_m: np.ndarray
@@ -255,6 +256,7 @@ class Composite:
     cam: np.ndarray
     rig: object
     clips: np.ndarray
+    states: np.ndarray | None = None
 
 
 def _yaw(a: float) -> np.ndarray:
@@ -476,9 +478,13 @@ def make_composite(
     pool: list[StepClip], n: int, length: int, seed: int = 0, rig=None, script: str = "markov"
 ) -> Composite:
     rig = rig or default_rig()
-    acts, X, names = compose(pool, n, length, seed, script=script)
+    if script == "stations":
+        acts, X, names, states = compose_stations(pool, n, length, seed)
+    else:  # markov: the state is the action
+        acts, X, names = compose(pool, n, length, seed, script=script)
+        states = acts
     xy, cam = observe(X, rig, seed)
-    return Composite(acts, X, xy, cam, rig, names)
+    return Composite(acts, X, xy, cam, rig, names, states)
 
 
 # ----------------------------------------------------------------------------- continuous activities

@@ -41,12 +41,14 @@ from roomcap.forecast.checkpoint import read_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "behaviour_cmu.pt"
 SCHEMA = "behaviour_checkpoint/1"
-VARIANTS = ("full", "action_only", "pose_only")
+VARIANTS = ("full", "action_only", "pose_only", "action_2d")
 
 
 @dataclass(frozen=True)
 class BehaviourConfig:
-    variant: str = "full"  # full | action_only (no pose losses) | pose_only (no action loss), Table 4.2
+    # Table 4.2's loss ablations: full | action_only (no pose losses) | pose_only (no action loss) |
+    # action_2d (action and 2D losses, no 3D adversarial loss)
+    variant: str = "full"
     joints: str = "body19"  # body19 | upper9 (the seed's 9 upper-body joints, the ablation)
     n_obs: int = 3  # observed steps
     m: int = 5  # forecast steps M (the seed: 5 on IKEA-ASM, 10 on MPII Cooking II)
@@ -111,6 +113,11 @@ class BehaviourConfig:
     @property
     def use_action(self) -> bool:
         return self.variant != "pose_only"
+
+    @property
+    def use_adv3d(self) -> bool:
+        """Whether eq. 4.1's 3D adversarial term trains the poses (Table 4.2: not in action_2d)."""
+        return self.variant in ("full", "pose_only")
 
 
 def config_from_dict(d: dict) -> BehaviourConfig:

@@ -44,6 +44,7 @@ from roomcap.forecast.characteristic.labels import articulation
 from roomcap.keypoints.detections import Detections
 from roomcap.keypoints.skeletons import convert
 from roomcap.track.trackfile import TrackFile
+from roomcap.triangulate.chunks import parts_dir
 
 log = logging.getLogger(__name__)
 
@@ -61,13 +62,13 @@ def _session(session) -> tuple[SessionLayout, CameraRig, TrackFile, dict[str, De
             "cameras' calibration: calibrate (`calibrate-run`) or import one (`calibrate-run import`) first"
         )
     rig = CameraRig.load(lay.rig_toml)
-    try:
-        tracks = TrackFile.load(lay.tracks)
-    except FileNotFoundError:
+    if not lay.tracks.exists() and not parts_dir(lay.tracks).is_dir():
         raise InputError(
             f"{lay.root}: no track file ({lay.tracks}); run the track stage first "
-            "(`reprocess SESSION --stages triangulate,track`)"
-        ) from None
+            "(`reprocess SESSION --stages triangulate,track`), then "
+            "`forecast behaviour sample SESSION --labels FILE`"
+        )
+    tracks = TrackFile.load(lay.tracks)
     dets = {}
     for cam in lay.detection_cameras():
         if cam in rig.names:
@@ -77,19 +78,35 @@ def _session(session) -> tuple[SessionLayout, CameraRig, TrackFile, dict[str, De
     return lay, rig, tracks, dets
 
 
+def _lines(rows: list[LabelRow]) -> str:
+    """'line 3' or 'lines 3, 5' (the first few, then how many more)."""
+    ls = [str(r.line) for r in rows]
+    more = f" and {len(ls) - 4} more" if len(ls) > 4 else ""
+    return ("line " if len(ls) == 1 else "lines ") + ", ".join(ls[:4]) + more
+
+
 def _check_labels(rows: list[LabelRow], tracks: TrackFile, known: tuple[str, ...], path) -> None:
+    """Every row names a track of the session, a label the model knows, and times where its track has 3D;
+    a row that does not gets an InputError naming its line (the file's own checks, ``read_labels``, have
+    already named overlapping rows)."""
     ids = set(tracks.track_id.tolist())
-    bad = sorted({r.track_id for r in rows} - ids)
+    if not ids:
+        raise InputError(
+            f"{path}: the session's track file holds no tracks; run the track stage first "
+            "(`reprocess SESSION --stages triangulate,track`), then "
+            "`forecast behaviour sample SESSION --labels FILE`"
+        )
+    bad = [r for r in rows if r.track_id not in ids]
     if bad:
         raise InputError(
-            f"{path}: track ids {bad} match no track of the session (its tracks: "
-            f"{sorted(ids)}); use the ids of track/tracks.npz"
+            f"{path}, {_lines(bad)}: track id {bad[0].track_id} matches no track of the session (its "
+            f"tracks: {sorted(ids)}); use the ids of track/tracks.npz"
         )
-    unknown = sorted({r.label for r in rows} - set(known))
+    unknown = [r for r in rows if r.label not in known]
     if unknown:
         raise InputError(
-            f"{path}: labels {unknown} are unknown to the model, which knows {list(known)}; "
-            "rename them to the nearest of these (the action set is the training data's, "
+            f"{path}, {_lines(unknown)}: label {unknown[0].label!r} is unknown to the model, which knows "
+            f"{list(known)}; rename it to the nearest of these (the action set is the training data's, "
             "forecast.behaviour.data.ACTIONS)"
         )
     t_s = (tracks.t_ns - tracks.t_ns[0]) / 1e9

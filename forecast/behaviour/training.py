@@ -52,12 +52,16 @@ class Prepared:
     acts: np.ndarray  # (S,N+m) action indices
     tgt_px: np.ndarray  # (S,m,J,2) undistorted px of the forecast steps, NaN unseen
     tgt_3d: np.ndarray  # (S,m,J,3) viewer frame, metres from the anchor (evaluation only)
+    # (S,N+m) the script's hidden states (``data.script_chain``; evaluation only: the top-1 ceiling), None
+    # where unknown (a user's sessions)
+    states: np.ndarray | None = None
 
     def take(self, idx) -> Prepared:
         return Prepared(
             self.names,
             self.view.take(idx),
             *(getattr(self, f)[idx] for f in ("feats", "seen", "obs_px", "acts", "tgt_px", "tgt_3d")),
+            None if self.states is None else self.states[idx],
         )
 
     def __len__(self) -> int:
@@ -74,6 +78,7 @@ def concat(parts: list[Prepared]) -> Prepared:
             np.concatenate([getattr(p, f) for p in parts])
             for f in ("feats", "seen", "obs_px", "acts", "tgt_px", "tgt_3d")
         ),
+        None if any(p.states is None for p in parts) else np.concatenate([p.states for p in parts]),
     )
 
 
@@ -130,6 +135,7 @@ def prepare(comp: Composite, n_obs: int, m: int, names: tuple[str, ...] = JOINTS
         comp.actions[:, : n_obs + m],
         und[:, n_obs : n_obs + m][:, :, jidx].astype(np.float32),
         tgt3.astype(np.float32),
+        None if comp.states is None else comp.states[:, : n_obs + m],
     )
 
 
@@ -244,7 +250,7 @@ def _fit_state(cfg: BehaviourConfig, db: np.ndarray) -> _Fit:
         names.index("pelvis"),
         cfg.lambda_action if cfg.use_action else 0.0,
         cfg.lambda_pose2d if cfg.use_pose else 0.0,
-        cfg.lambda_adv3d if cfg.use_pose else 0.0,
+        cfg.lambda_adv3d if cfg.use_adv3d else 0.0,
     )
 
 
@@ -453,6 +459,40 @@ def perturbed(real: np.ndarray, names, seed: int = 0) -> np.ndarray:
     return (X[:, p : p + 1] + (X - X[:, p : p + 1]) * s).astype(np.float32)
 
 
+# Table 4.10's limbs: (name, joint, joint) of the left side; the right side swaps left_ for right_
+SYMMETRY_BONES = (
+    ("upper_arm", "left_shoulder", "left_elbow"),
+    ("forearm", "left_elbow", "left_wrist"),
+    ("thigh", "left_hip", "left_knee"),
+    ("shin", "left_knee", "left_ankle"),
+)
+
+
+def symmetry(poses: np.ndarray | None, names) -> dict | None:
+    """Table 4.10's classifier-free check (sec. 4.7.7): the left/right difference of the upper-arm, forearm,
+    thigh and shin lengths of poses (...,J,3) in metres -> ``symmetry_mm``, the median over poses of each
+    pose's mean absolute difference over the limbs its joints hold (mm), and ``symmetry_mm_by_bone``, the
+    median per limb. The seed prints a mean over poses; the median is ours (a few broken poses do not rule
+    it). None without poses or without a left/right limb pair among ``names``."""
+    if poses is None:
+        return None
+    names = list(names)
+    X = np.asarray(poses, np.float64).reshape(-1, len(names), 3)
+    diffs, by_bone = [], {}
+    for bone, a, b in SYMMETRY_BONES:
+        ra, rb = a.replace("left_", "right_"), b.replace("left_", "right_")
+        if not {a, b, ra, rb} <= set(names):
+            continue
+        ln = np.linalg.norm(X[:, names.index(a)] - X[:, names.index(b)], axis=-1)
+        rn = np.linalg.norm(X[:, names.index(ra)] - X[:, names.index(rb)], axis=-1)
+        d = np.abs(ln - rn) * 1000.0
+        diffs.append(d)
+        by_bone[bone] = float(np.median(d)) if len(d) else None
+    if not diffs or len(X) == 0:
+        return None
+    return {"symmetry_mm": float(np.median(np.mean(diffs, 0))), "symmetry_mm_by_bone": by_bone}
+
+
 def metrics(
     probs: np.ndarray | None,
     poses: np.ndarray | None,
@@ -558,6 +598,19 @@ def action_frequencies(tr: Prepared, n_obs: int) -> np.ndarray:
     return f / f.sum()
 
 
+def ceiling_top1(d: Prepared, script: str, n_obs: int, m: int) -> dict | None:
+    """The best top-1 any forecaster can reach on ``d`` (Fig. 4.3's ceiling): the script's chain forecast
+    from the hidden state of the last observed step (labels and place; for ``markov`` the label is the
+    state), ``data.chain_forecast``. None where the states are unknown (a user's sessions)."""
+    if d.states is None:
+        return None
+    ch = bdata.script_chain(script)
+    r = metrics(
+        bdata.chain_forecast(ch, d.acts[:, :n_obs], m, last_state=d.states[:, n_obs - 1]), None, d, n_obs
+    )
+    return {"ceiling_top1": r["top1"], "ceiling_top1_by_step": r["top1_by_step"], "ceiling_top3": r["top3"]}
+
+
 def evaluate_all(
     gens: dict[str, Generator],
     cfgs: dict[str, BehaviourConfig],
@@ -568,16 +621,22 @@ def evaluate_all(
     seed: int = 0,
     quality_clf: tuple[nn.Module, tuple[str, ...]] | None = None,
 ) -> dict:
-    """Table 4.1/4.2 on ``test``: zero velocity and train average (poses and, as in sec. 4.7.4, actions:
-    repeat the last one / the most common), then every trained variant.
+    """Table 4.1/4.2/4.10 on ``test``: zero velocity and train average (poses and, as in sec. 4.7.4, actions:
+    repeat the last one / the most common), then every trained variant of ``gens`` (a variant the
+    checkpoint lacks is absent from ``models``), then ``true_3d``: the test sequences' true 3D poses.
 
+    Each model: ``mpjpe2d_px``, ``top1``/``top3`` (None where it has no such output), ``quality3d``,
+    ``symmetry_mm`` (Table 4.10, ``symmetry``) and the diagnostics ``mpjpe3d_mm``, ``quality3d_per_method``.
     ``quality3d`` is the seed's metric (sec. 4.5.1, 4.7.7): the share of the method's test poses that the
     once-trained classifier ``quality_clf`` (module, its joints; see ``forecast.behaviour.quality``) judges
     real; None without a classifier for these joints. ``quality3d_per_method`` is the earlier variant: a
     classifier trained here, real = half of the 3D database ``db`` (N,19,3), fake = every method's
     predictions on ``val`` plus perturbed real poses, scored as 1 - balanced accuracy against the other
-    half."""
-    n_obs, m = cfgs["full"].n_obs, cfgs["full"].m
+    half. ``ceiling_top1``: ``ceiling_top1`` of the split (None on a user's sessions)."""
+    if not gens:
+        raise ValueError("evaluate_all: no trained model")
+    c0 = next(iter(cfgs.values()))
+    n_obs, m = c0.n_obs, c0.m
     freq = np.asarray(extra["action_freq"])
     avg = np.asarray(extra["avg_pose"], np.float32)
     names = val.names
@@ -610,26 +669,32 @@ def evaluate_all(
         "n_sequences": len(test),
         "n_obs": n_obs,
         "m": m,
+        "script": c0.script,
         "actions": list(ACTIONS),
         "joints": list(names),
         "models": {},
     }
     seed_clf = quality_clf[0] if quality_clf is not None and tuple(quality_clf[1]) == names else None
-    if seed_clf is not None:
-        out["quality3d_true_3d"] = share_real(seed_clf, test.tgt_3d.reshape(-1, len(names), 3), names)
     for n, (pr, ps, px) in preds["test"].items():
         r = metrics(pr, ps, test, n_obs, px2d=px)
         P = ps.reshape(-1, len(names), 3) if ps is not None else None
         r["quality3d"] = share_real(seed_clf, P, names) if P is not None and seed_clf is not None else None
         r["quality3d_per_method"] = quality(clf, real_t, P, names, seed) if P is not None else None
+        r.update(symmetry(P, names) or {"symmetry_mm": None})
         out["models"][n] = r
+    true3 = test.tgt_3d.reshape(-1, len(names), 3)
+    out["models"]["true_3d"] = {
+        "quality3d": share_real(seed_clf, true3, names) if seed_clf is not None else None,
+        **(symmetry(true3, names) or {"symmetry_mm": None}),
+    }
+    out.update(ceiling_top1(test, c0.script, n_obs, m) or {"ceiling_top1": None})
     return out
 
 
 def results_table(res: dict) -> str:
     lines = [
-        f"{'method':<16} {'2D MPJPE px':>12} {'3D quality':>11} {'per-method':>11} {'top-1':>7} {'top-3':>7} "
-        f"{'3D MPJPE mm':>12}"
+        f"{'method':<16} {'2D MPJPE px':>12} {'3D quality':>11} {'per-method':>11} {'symm. mm':>9} "
+        f"{'top-1':>7} {'top-3':>7} {'3D MPJPE mm':>12}"
     ]
 
     def f(v, fmt):
@@ -637,9 +702,9 @@ def results_table(res: dict) -> str:
 
     for n, r in res["models"].items():
         lines.append(
-            f"{n:<16} {f(r['mpjpe2d_px'], '12.1f')} {f(r['quality3d'], '11.2f')} "
-            f"{f(r.get('quality3d_per_method'), '11.2f')} "
-            f"{f(r['top1'], '7.1%')} {f(r['top3'], '7.1%')} {f(r['mpjpe3d_mm'], '12.0f')}"
+            f"{n:<16} {f(r.get('mpjpe2d_px'), '12.1f')} {f(r.get('quality3d'), '11.2f')} "
+            f"{f(r.get('quality3d_per_method'), '11.2f')} {f(r.get('symmetry_mm'), '9.1f')} "
+            f"{f(r.get('top1'), '7.1%')} {f(r.get('top3'), '7.1%')} {f(r.get('mpjpe3d_mm'), '12.0f')}"
         )
     lines.append(
         "action top-1 by step (Fig. 4.3): "
@@ -649,6 +714,8 @@ def results_table(res: dict) -> str:
             if r.get("top1_by_step")
         )
     )
-    if res.get("quality3d_true_3d") is not None:
-        lines.append(f"3D quality of the true 3D poses (same classifier): {res['quality3d_true_3d']:.2f}")
+    if res.get("ceiling_top1") is not None:
+        lines.append(
+            f"best top-1 any forecaster can reach on this split (labels and place): {res['ceiling_top1']:.1%}"
+        )
     return "\n".join(lines)
