@@ -28,3 +28,33 @@ def frame_rate_hz(t_ns: np.ndarray, frame_index: np.ndarray | None = None) -> fl
     else:
         per_frame = dt[dt > 0]
     return float(1e9 / np.median(per_frame)) if len(per_frame) else None
+
+
+def timestamps_backwards(frame_index: np.ndarray, t_ns: np.ndarray) -> str | None:
+    """Where stamped frames (``t_ns`` != 0) go back in time, in words naming the frames, or None when they
+    never do. ``frame_index`` numbers the rows.
+
+    >>> timestamps_backwards(np.array([0, 1, 2, 3]), np.array([10, 20, 15, 30])) is None
+    False
+    >>> timestamps_backwards(np.array([0, 1, 2, 3]), np.array([10, 20, 15, 30]))
+    'timestamps go backwards at frame 2 (15 ns, after frame 1 at 20 ns)'
+    >>> timestamps_backwards(np.array([4, 5, 6, 7, 8]), np.array([10, 5, 0, 3, 2]))
+    'timestamps go backwards at frame 5 (5 ns, after frame 4 at 10 ns) and at 2 more frames (7, 8)'
+    >>> timestamps_backwards(np.array([0, 1]), np.array([0, 0])) is None
+    True
+    """
+    fi, t = np.asarray(frame_index), np.asarray(t_ns, np.int64)
+    have = np.flatnonzero(t != 0)
+    back = np.flatnonzero(np.diff(t[have]) < 0)
+    if not len(back):
+        return None
+    k, p = have[back[0] + 1], have[back[0]]
+    out = (
+        f"timestamps go backwards at frame {int(fi[k])} ({int(t[k])} ns, after frame {int(fi[p])} "
+        f"at {int(t[p])} ns)"
+    )
+    if len(back) > 1:
+        more = [int(fi[have[b + 1]]) for b in back[1:]]
+        shown = ", ".join(map(str, more[:5])) + (", ..." if len(more) > 5 else "")
+        out += f" and at {len(more)} more frame{'s' if len(more) > 1 else ''} ({shown})"
+    return out
