@@ -58,3 +58,48 @@ def timestamps_backwards(frame_index: np.ndarray, t_ns: np.ndarray) -> str | Non
         shown = ", ".join(map(str, more[:5])) + (", ..." if len(more) > 5 else "")
         out += f" and at {len(more)} more frame{'s' if len(more) > 1 else ''} ({shown})"
     return out
+
+
+# A rate below this many frames a second is a sparse clock: snapshots (a time-lapse, a motion-triggered
+# recording), not a slow camera. The stages then run their clock at SNAPSHOT_CLOCK_FPS, so that frames a
+# fraction of a second apart (a trigger's burst) are linked as video and every gap longer than a tracker's
+# ``max_gap_s`` is a pause of the recorder, across which nothing is predicted, filled or smoothed.
+SPARSE_BELOW_HZ = 1.0
+SNAPSHOT_CLOCK_FPS = 25.0
+
+
+def is_sparse(rate_hz: float) -> bool:
+    """Whether frames at ``rate_hz`` (stated or estimated) are snapshots rather than a video."""
+    return 0 < rate_hz < SPARSE_BELOW_HZ
+
+
+def clock_fps(rate_hz: float) -> float:
+    """The rate of the stages' clock for frames at ``rate_hz``: the rate itself, or for a sparse clock
+    :data:`SNAPSHOT_CLOCK_FPS` (its gaps in seconds, not the median gap, say what can be linked).
+
+    >>> clock_fps(25.0), clock_fps(1 / 75)
+    (25.0, 25.0)
+    """
+    return SNAPSHOT_CLOCK_FPS if is_sparse(rate_hz) else float(rate_hz)
+
+
+def _duration(s: float) -> str:
+    for unit, n in (("d", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if s >= n:
+            return f"{s / n:.3g} {unit}"
+    return f"{s:.3g} s"
+
+
+def gap_statistics(t_s: np.ndarray) -> str:
+    """The gaps between consecutive frames at times ``t_s`` (seconds) in words: median, shortest, longest.
+
+    >>> gap_statistics(np.array([0.0, 1.0, 2.0, 90_002.0]))
+    '4 frames a median 1 s apart (from 1 s to 1.04 d)'
+    """
+    d = np.diff(np.asarray(t_s, np.float64))
+    if not len(d):
+        return f"{len(t_s)} frames"
+    return (
+        f"{len(t_s)} frames a median {_duration(float(np.median(d)))} apart "
+        f"(from {_duration(float(d.min()))} to {_duration(float(d.max()))})"
+    )
