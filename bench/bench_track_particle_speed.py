@@ -49,7 +49,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-if "--worker" in sys.argv:  # run the tracker of the tree named after --worker (a baseline extracted by git)
+if "--worker" in sys.argv:  # the tracker of the tree linked as roomcap in the folder after --worker (git's)
     sys.path.insert(0, sys.argv[sys.argv.index("--worker") + 1])
 else:
     sys.path.insert(0, str(ROOT))
@@ -137,6 +137,9 @@ def replay(session: Path, record: Path, base: dict) -> dict:
 
 
 def _worker(tree: str, session: str, out: str, warm: int, record: str) -> None:
+    import roomcap
+
+    assert Path(roomcap.__file__).resolve().parent == (Path(tree) / "roomcap").resolve(), roomcap.__file__
     r = run_tracker(Path(session), warm, Path(record) if record else None)
     arrays = {f"ids_{t}": a for t, a in enumerate(r.pop("ids"))}
     arrays.update({f"xyz_{t}": a for t, a in enumerate(r.pop("xyz"))})
@@ -146,9 +149,16 @@ def _worker(tree: str, session: str, out: str, warm: int, record: str) -> None:
 
 def run_baseline(tree: Path, session: Path, warm: int, tmp: Path, record: Path | None = None) -> dict:
     out = tmp / "baseline.npz"
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(tree), str(session), str(out)]
+    # the tree is the package roomcap (its root maps to it): a folder with a link of that name imports it,
+    # ahead of the installed checkout and of any PYTHONPATH (which would run this tree's code twice)
+    link = tmp / "baseline_pp"
+    if not (link / "roomcap").exists():
+        link.mkdir(exist_ok=True)
+        (link / "roomcap").symlink_to(tree, target_is_directory=True)
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(link), str(session), str(out)]
     cmd += ["--warm", str(warm)] + (["--record", str(record)] if record is not None else [])
-    subprocess.run(cmd, check=True, cwd=tree)
+    env = {**os.environ, "PYTHONPATH": str(link)}
+    subprocess.run(cmd, check=True, cwd=tree, env=env)
     with np.load(out) as z:
         r = json.loads(str(z["meta"]))
         T = r["frames"]

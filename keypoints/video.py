@@ -42,6 +42,7 @@ from roomcap.capture.session import VIDEO_SUFFIXES, SessionLayout
 from roomcap.core.errors import FormatError, RoomcapError
 from roomcap.core.fileio import load_npz, save_npz
 from roomcap.core.progress import Progress
+from roomcap.core.timebase import timestamps_backwards
 from roomcap.keypoints.detections import Detections
 from roomcap.keypoints.pipeline import KeypointPipeline
 from roomcap.keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
@@ -77,11 +78,37 @@ class VideoDecodeError(RoomcapError, RuntimeError):
 
 
 def read_frames_csv(path: Path) -> dict[int, int]:
-    """``raw/<cam>.frames.csv`` -> {frame_index: t_ns}."""
-    out = {}
+    """``raw/<cam>.frames.csv`` -> {frame_index: t_ns}. A frame listed twice, or frames out of order or
+    stamped back in time, are a :class:`FormatError` naming the camera and the frames (before any frame
+    is decoded), never a row silently dropped or a clock that runs backwards into the detections."""
+    path = Path(path)
+    cam = path.name.removesuffix(".frames.csv")
+    out: dict[int, int] = {}
+    prev = None
     with open(path, newline="") as f:
         for row in csv.DictReader(f):
-            out[int(row["frame_index"])] = int(row["t_ns"])
+            i = int(row["frame_index"])
+            if prev is not None and i <= prev:
+                what = "is listed twice" if i in out else f"comes after frame {prev}"
+                raise FormatError(
+                    path,
+                    "frame_index",
+                    f"camera '{cam}': frame {i} {what}; the rows must number the video's frames in order.",
+                    "Run `capture-run repair` on the session, or sort the file by frame_index.",
+                )
+            out[i] = int(row["t_ns"])
+            prev = i
+    back = timestamps_backwards(
+        np.fromiter(out, np.int64, len(out)), np.fromiter(out.values(), np.int64, len(out))
+    )
+    if back is not None:
+        raise FormatError(
+            path,
+            "t_ns",
+            f"camera '{cam}': {back}.",
+            "Fix the camera's clock in this file (a clock reset or a restarted camera?), or set its t_ns "
+            "to 0 to align the cameras by frame number.",
+        )
     return out
 
 

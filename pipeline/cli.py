@@ -167,6 +167,12 @@ def _inputs(args: argparse.Namespace) -> tuple[PipelineConfig, list, tuple[str, 
             export_formats = parse_formats(args.export)
         except ExportError as e:
             return f"--export: {e}"
+    missing = [str(p) for p in args.paths if not Path(p).exists()]
+    if missing:  # a typo is bad input, not a failed session (exit 2 before anything runs)
+        return (
+            f"{', '.join(missing)} {'does' if len(missing) == 1 else 'do'} not exist; pass session folders "
+            "or folders of sessions."
+        )
     if args.out is not None:
         output_folder(args.out)
     try:

@@ -133,6 +133,31 @@ def test_run_session_reads_raw_and_writes_keypoints(tmp_path, tiny_set):
     assert Detections.load(paths["cam01"]).t_ns.tolist() == [1000, 2000, 3000]
 
 
+@pytest.mark.parametrize(
+    "rows,match",
+    [
+        (
+            "0,1000\n1,3000\n2,2000\n3,4000\n4,1500",
+            r"camera 'cam01': timestamps go backwards at frame 2 "
+            r"\(2000 ns, after frame 1 at 3000 ns\) and at 1 more frame \(4\)",
+        ),
+        ("0,1000\n1,2000\n1,2500\n2,3000", r"camera 'cam01': frame 1 is listed twice"),
+        ("0,1000\n2,2000\n1,3000", r"camera 'cam01': frame 1 comes after frame 2"),
+    ],
+)
+def test_frames_csv_going_back_in_time_is_refused_naming_camera_and_frames(tmp_path, tiny_set, rows, match):
+    """A camera's frames.csv that goes back in time (or lists a frame twice, or out of order) stops the
+    keypoints stage before any frame is decoded, naming the camera and the frames; no row is dropped."""
+    root = tmp_path / "session"
+    (root / "raw").mkdir(parents=True)
+    write_video(root / "raw" / "cam01.avi", 5)
+    body = "".join(f"{r},0,{k}\n" for k, r in enumerate(rows.split("\n")))
+    (root / "raw" / "cam01.frames.csv").write_text("frame_index,t_ns,t_host_ns,sequence\n" + body)
+    with pytest.raises(FormatError, match=match):
+        run_session(root, config=tiny_set, progress=None)
+    assert not (root / "keypoints" / "cam01.npz").exists()
+
+
 @pytest.mark.slow
 def test_bottom_up_maps_are_kept_for_the_tracker(tmp_path, monkeypatch):
     from conftest import need_shared

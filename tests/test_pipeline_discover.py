@@ -119,3 +119,17 @@ def test_stage_options_are_parsed_once_not_on_every_replace(monkeypatch):
     monkeypatch.undo()
     with pytest.raises(FormatError, match=r"track.options.*sigma_s"):
         PipelineConfig.from_dict({"track": {"tracker": "particle", "options": {"sigma_s": 0.1}}})
+
+
+def test_reprocess_on_a_path_that_does_not_exist_exits_2_with_one_line(tmp_path, capsys):
+    """A typo is bad input (exit 2, one line naming the path), not a failed session (exit 1), and nothing
+    runs: the folder that does exist is not processed either."""
+    from roomcap.pipeline.cli import main
+
+    (tmp_path / "real").mkdir()
+    out = tmp_path / "out"
+    assert main([str(tmp_path / "real"), str(tmp_path / "nope"), "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and "nope does not exist" in err[0] and "real" not in err[0]
+    assert "Traceback" not in captured.err and not out.exists()

@@ -86,8 +86,12 @@ def test_timestamps_that_go_backwards_are_an_error(tmp_path):
     t = d.t_ns.copy()
     t[5] = t[1]
     dataclasses.replace(d, t_ns=t).save(lay.detections("cam02"))
-    with pytest.raises(FormatError, match=r"camera 'cam02': timestamps go backwards at frame 5"):
+    with pytest.raises(
+        FormatError, match=r"camera 'cam02': timestamps go backwards at frame 5 .*after frame 4"
+    ):
         triangulate_session(root)
+    res = _run(root)  # the session fails saying so: no frame is dropped silently
+    assert res.status == "failed" and "cam02" in res.message and "backwards at frame 5" in res.message
 
 
 def test_empty_camera_and_unalignable_lengths_are_warned(tmp_path):

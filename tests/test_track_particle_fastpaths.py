@@ -4,12 +4,18 @@ computed in parts by threads."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
+import pytest
 from track_helpers import render_kp, ring_P, walkers
 
 from roomcap.track.particle import ParticleTracker
 from roomcap.track.particle_config import ParticleConfig
-from roomcap.track.split import Split, auto_threads
+from roomcap.track.split import Split, auto_threads, blas_single, blocked_matmul
 
 CFG = ParticleConfig(motion="constant_velocity", n_samples=120, smooth_sigma_frames=0.0)
 
@@ -65,29 +71,71 @@ def test_births_on_compacted_free_detections_equal_the_full_frame():
     assert min(calls) < kp.shape[2]  # with tracks alive, fewer slots than detections per camera
 
 
-def test_batch_in_parts_by_threads_gives_the_same_bits(monkeypatch):
+def _runs_by_threads(threads_list, frames: int = 30, block_rows: int = 50) -> dict:
+    """The GRU prior's filter over ``frames`` frames of 4 walkers, for each number of threads; its products'
+    fixed blocks of ``block_rows`` rows (480 rows: 9 blocks and a ragged 10th, so every count cuts)."""
     P = ring_P(4)
-    X = walkers(4, 30, seed=11)
+    X = walkers(4, frames, seed=11)
     kp, sc = render_kp(P, X, noise_px=1.5, seed=4, drop=0.05)
+    runs = {}
+    for threads in threads_list:
+        cfg = ParticleConfig(n_samples=120, smooth_sigma_frames=0.0, threads=threads)  # the GRU prior
+        tr = ParticleTracker(P, np.full(len(P), 1000.0), 25.0, cfg)
+        tr.prior.block_rows = block_rows
+        runs[threads] = [tr.step(kp[t], sc[t], t) for t in range(len(kp))]
+    return runs
+
+
+def _same_bits(a, b) -> bool:
+    return all(
+        np.array_equal(ea.track_id, eb.track_id)
+        and len(ea.track_id) == 4
+        and np.array_equal(ea.xyz_m, eb.xyz_m)
+        and np.array_equal(ea.std_m, eb.std_m)
+        and np.array_equal(ea.confidence, eb.confidence)
+        for ea, eb in zip(a, b, strict=True)
+    )
+
+
+def test_batch_in_parts_by_threads_gives_the_same_bits(monkeypatch):
     cuts = []
     whole_map = Split.map
 
-    def counted(self, fn, n):
-        cuts.append(len(self.parts(n)))
-        return whole_map(self, fn, n)
+    def counted(self, fn, n, block=1):
+        cuts.append(len(self.parts(n, block)))
+        return whole_map(self, fn, n, block)
 
     monkeypatch.setattr(Split, "map", counted)
-    runs = {}
-    for threads in (1, 3):
-        cfg = ParticleConfig(n_samples=120, smooth_sigma_frames=0.0, threads=threads)  # the GRU prior
-        tr = ParticleTracker(P, np.full(len(P), 1000.0), 25.0, cfg)
-        cuts.clear()
-        runs[threads] = [tr.step(kp[t], sc[t], t) for t in range(len(kp))]
-        assert max(cuts) == threads  # the GRU's rows and the tracks were cut into `threads` parts
-    for ea, eb in zip(runs[1], runs[3], strict=True):
-        assert np.array_equal(ea.track_id, eb.track_id) and len(ea.track_id) == 4
-        assert np.array_equal(ea.xyz_m, eb.xyz_m) and np.array_equal(ea.std_m, eb.std_m)
-        assert np.array_equal(ea.confidence, eb.confidence)
+    runs = _runs_by_threads((1, 2, 3, 4))
+    assert max(cuts) == 4  # the GRU's rows and the tracks were cut into parts
+    for threads in (2, 3, 4):
+        assert _same_bits(runs[1], runs[threads]), f"{threads} threads differ from 1"
+
+
+def _has_avx2() -> bool:
+    try:
+        return "avx2" in Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("coretype", ["Haswell", "Zen", "Sandybridge"])
+def test_same_bits_by_threads_under_each_openblas_kernel(coretype):
+    """OpenBLAS's Haswell and Zen kernels sum a row of a product in an order that depends on the product's
+    shape: the filter's bits for 1-4 threads must not depend on it (a fixed partition of the products)."""
+    if coretype != "Sandybridge" and not _has_avx2():
+        pytest.skip(f"OpenBLAS's {coretype} kernels need AVX2, which this CPU lacks")
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import test_track_particle_fastpaths as t; "
+        "r = t._runs_by_threads((1, 2, 3, 4), frames=12); "
+        "print([t._same_bits(r[1], r[k]) for k in (2, 3, 4)])"
+    )
+    env = {**os.environ, "OPENBLAS_CORETYPE": coretype}
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(Path(__file__).parent)], capture_output=True, text=True, env=env
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split("\n")[-2] == "[True, True, True]", out.stdout
 
 
 def test_split_parts_cover_the_batch_in_order():
@@ -96,7 +144,21 @@ def test_split_parts_cover_the_batch_in_order():
         assert parts[0][0] == 0 and parts[-1][1] == n and len(parts) == max(1, min(threads, n))
         assert all(hi == lo2 for (_, hi), (lo2, _) in zip(parts, parts[1:], strict=False))
         assert max(hi - lo for lo, hi in parts) - min(hi - lo for lo, hi in parts) <= 1
+    for threads, n, block in [(3, 10, 4), (2, 7, 3), (4, 1200, 256), (4, 0, 8), (2, 5, 8)]:
+        parts = Split(threads).parts(n, block)  # whole blocks of a fixed partition, whatever the threads
+        assert parts[0][0] == 0 and parts[-1][1] == n and len(parts) == max(1, min(threads, -(-n // block)))
+        assert all(lo % block == 0 for lo, _ in parts)
     assert Split(0).threads >= 1
+
+
+def test_blocked_products_give_the_bits_of_any_cut_at_a_block():
+    a = np.random.default_rng(1).standard_normal((700, 114)).astype(np.float32)
+    w = np.random.default_rng(2).standard_normal((114, 192)).astype(np.float32)
+    with blas_single():
+        whole = blocked_matmul(a, w, 256)
+        for lo, hi in Split(3).parts(700, 256):
+            assert np.array_equal(blocked_matmul(a[lo:hi], w, 256), whole[lo:hi])
+        assert np.allclose(whole, a @ w, atol=1e-3)
 
 
 def test_auto_threads_follow_the_cores_and_omp_num_threads(monkeypatch):

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from roomcap.core.config import config_from_dict
+from roomcap.core.timebase import gap_statistics
 from roomcap.track.trackfile import INTERPOLATED, OBSERVED, PREDICTED, SMOOTHED, TrackFile
 from roomcap.triangulate.reconstruct import flip_index
 
@@ -164,16 +165,20 @@ def long_enough(frames: np.ndarray, room: np.ndarray, min_frames: int) -> np.nda
     return np.asarray(frames) >= np.minimum(min_frames, np.maximum(np.asarray(room), 1))
 
 
-def sparse_time_warning(pauses: np.ndarray, max_gap_s: float, min_frames: int) -> str | None:
+def sparse_time_warning(
+    pauses: np.ndarray, max_gap_s: float, min_frames: int, t_s: np.ndarray | None = None
+) -> str | None:
     """A warning when most frames lie in stretches between pauses of the recorder too short to link
     (fewer than ``min_frames`` frames): snapshots far apart in time (a time-lapse, a motion-triggered
-    recording), whose per-frame poses are kept as short tracks."""
+    recording), whose per-frame poses are kept as short tracks. With the frames' times ``t_s``, it
+    begins with their gaps' statistics."""
     if not len(pauses) or pauses[-1] == 0:
         return None
     short = int((segment_frames(pauses) < min_frames).sum())
     if short * 2 < len(pauses):
         return None
-    return (
+    head = f"snapshots, not a video: {gap_statistics(t_s)}; " if t_s is not None else ""
+    return head + (
         f"{short} of {len(pauses)} frames lie between pauses of the recorder (consecutive frames more than "
         f"{max_gap_s:g} s apart, {int(pauses[-1])} pauses): snapshots this far apart cannot be linked in "
         "time, so they are kept as short tracks of their per-frame poses; identities across a pause are "
@@ -287,14 +292,16 @@ class FrameLinker:
             since = now - np.asarray([self.last_clock[k] for k in alive])  # (A,) seconds since last seen
             pred = np.stack([self.pose[k] + since[n] * self.vel[k] for n, k in enumerate(alive)])
             cost = pose_distance(pred, poses[ok])
+            # a track last seen before a pause of the recorder: its pose is from another moment, so it can
+            # neither say the new pose is mirrored nor give it a velocity (a time-lapse's snapshots)
+            paused = self.pauses[t] > np.asarray([self.last_pause[k] for k in alive])
             mir = np.zeros(cost.shape, bool)
             if flip is not None:
                 cost_m = pose_distance(pred, poses[ok][:, flip])
-                mir = cost_m < cost
-                cost = np.minimum(cost, cost_m)
+                mir = (cost_m < cost) & ~paused[:, None]
+                cost = np.where(mir, cost_m, cost)
             # unseen time beyond one frame; bounded, as alive tracks were seen within max_gap_s
             gap_s = np.clip(since - 1.0 / self.fps, 0.0, cfg.max_gap_s)
-            paused = self.pauses[t] > np.asarray([self.last_pause[k] for k in alive])
             limit = cfg.tau_m + cfg.max_speed_m_s * gap_s + cfg.pause_gate_m * paused
             # gate before the assignment: a pair above the limit must not pull a valid pair apart
             rows, cols = linear_sum_assignment(np.where(cost < limit[:, None], cost, 1e9))
@@ -310,7 +317,9 @@ class FrameLinker:
                         )
                     self._joined(k, t, pose, born=False)
                     miss = ~np.isfinite(pose).all(-1)
-                    if cfg.constant_velocity:
+                    if paused[r]:
+                        self.vel[k] = np.zeros(3)
+                    elif cfg.constant_velocity:
                         both = ~miss & np.isfinite(self.pose[k]).all(-1)
                         if both.any():
                             v = (pose[both] - self.pose[k][both]).mean(0) / max(since[r], 1e-9)
@@ -642,7 +651,9 @@ def track_poses(
     cfg = (config or TrackerConfig()).at_fps(fps)
     flip = flip_index(joint_names) if cfg.fix_mirrored else None
     t_s = frame_times_s(frame_index, t_ns, fps)
-    warn = sparse_time_warning(pause_clock(t_s, cfg.max_gap_s, fps)[1], cfg.max_gap_s, cfg.min_track_frames)
+    warn = sparse_time_warning(
+        pause_clock(t_s, cfg.max_gap_s, fps)[1], cfg.max_gap_s, cfg.min_track_frames, t_s
+    )
     if warn:
         log.warning("greedy tracker: %s", warn)
     assign, mirrored = associate_mirrored(xyz_m, cfg, fps, flip, t_s=t_s, facing=facing_joints(joint_names))

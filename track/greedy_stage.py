@@ -178,7 +178,7 @@ def _track_chunked(lay: SessionLayout, cfg: GreedyTrackConfig) -> Path:
     t_s = frame_times_s(read.frame_index, read.t_ns, fps)
     T = len(t_s)
     warn = sparse_time_warning(
-        pause_clock(t_s, tcfg.max_gap_s, fps)[1], tcfg.max_gap_s, tcfg.min_track_frames
+        pause_clock(t_s, tcfg.max_gap_s, fps)[1], tcfg.max_gap_s, tcfg.min_track_frames, t_s
     )
     if warn:
         log.warning("greedy tracker: %s", warn)

@@ -55,7 +55,7 @@ from roomcap.track.greedy import (
     nominal_dt,
 )
 from roomcap.track.normalize import hip_frame
-from roomcap.track.particle_births import Births
+from roomcap.track.particle_births import SNAPSHOT_MIN_JOINTS, Births
 from roomcap.track.particle_config import ParticleConfig, make_prior
 from roomcap.track.particle_types import FrameEstimate, LostTrack, Track, concat_estimates, empty_estimate
 from roomcap.track.priors import (
@@ -122,12 +122,13 @@ class ParticleTracker(Births):
         self.t_s: float | None = None  # time of the last frame stepped (s)
         self.clock_s = 0.0  # the tracks' clock: time with every pause shortened to one frame
         self.pauses = 0  # pauses of the recorder so far
+        self.after_pause = False  # whether the frame being stepped follows a pause
         self.dt_s = 1.0 / self.fps  # the last step on the tracks' clock
         self.reconstructor = None
         if C >= 2:
             tcfg = TriangulateConfig(
                 match=MatchConfig(theta_px=cfg.init_theta_px, min_score=cfg.min_score),
-                min_joints_3d=cfg.init_min_joints,
+                min_joints_3d=min(cfg.init_min_joints, SNAPSHOT_MIN_JOINTS),  # more after no pause
             )
             self.reconstructor = FrameReconstructor(
                 self.P.astype(np.float64), config=tcfg, joint_names=skeleton.joint_names
@@ -324,7 +325,10 @@ class ParticleTracker(Births):
         pauses_before = self.pauses
         n_pred = self._advance_clock(frame, t_s)
         now = self.clock_s
-        if self.pauses > pauses_before:
+        # the frame after a pause of the recorder (a time-lapse's every snapshot): births need no more
+        # joints than the per-frame triangulation (particle_births.SNAPSHOT_MIN_JOINTS)
+        self.after_pause = self.pauses > pauses_before
+        if self.after_pause:
             self._end_at_pause()
         maps = self._checked_maps(maps)
         C, D, J = kp.shape[:3]

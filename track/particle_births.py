@@ -14,6 +14,12 @@ from roomcap.track.trackfile import OBSERVED
 
 log = logging.getLogger(__name__)
 
+# Births in the frame after a pause of the recorder need no more triangulated joints than the per-frame
+# triangulation keeps (TriangulateConfig.min_joints_3d): in a video a person seen partly is born a few
+# frames later, when better seen, but a snapshot has no later frame (a time-lapse, a motion-triggered
+# recording), and a well-supported per-frame pose must not be lost for it.
+SNAPSHOT_MIN_JOINTS = 5
+
 
 class Births:
     """The births of :class:`roomcap.track.particle.ParticleTracker` (its ``config``, ``tracks``, ``lost``,
@@ -60,8 +66,9 @@ class Births:
         # excludes another, so people closer than init_exclusion_m are not lost to each other
         near_born = bool(self.tracks)
         n_new = 0
+        min_joints = self._birth_min_joints()
         for m in order:
-            if n_good[m] < cfg.init_min_joints:
+            if n_good[m] < min_joints:
                 continue
             cand = np.where(good[m][:, None], poses.xyz_m[m], np.nan).astype(np.float32)
             if (
@@ -123,7 +130,13 @@ class Births:
         flip = self.reconstructor.flip if self.reconstructor is not None else None
         if flip is not None:
             cams = cams | cams[:, flip]
-        return int((cams.sum(0) >= cfg.init_min_views).sum()) >= cfg.init_min_joints
+        return int((cams.sum(0) >= cfg.init_min_views).sum()) >= self._birth_min_joints()
+
+    def _birth_min_joints(self) -> int:
+        """``init_min_joints``, or in the frame after a pause of the recorder at most
+        :data:`SNAPSHOT_MIN_JOINTS`."""
+        n = self.config.init_min_joints
+        return min(n, SNAPSHOT_MIN_JOINTS) if getattr(self, "after_pause", False) else n
 
     def _fill(self, cand: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
         """Fill joints the candidate lacks from the template aligned at the hips. cand: (J,3), NaN =
@@ -135,13 +148,38 @@ class Births:
             return None, missing
         ip, il, ir = (self.skeleton.index(n) for n in ("pelvis", "left_hip", "right_hip"))
         if missing[[il, ir]].any() and missing[ip]:
-            return None, missing
+            # a video starts the person when the hips show; a snapshot (after a pause) has no later frame
+            return (
+                self._fill_by_fit(cand, missing) if getattr(self, "after_pause", False) else (None, missing)
+            )
         origin, theta = hip_frame(cand[None], self.skeleton)
         if missing[[il, ir]].any():  # no facing: use the shoulders, else the template's default
             sh = [self.skeleton.index("left_shoulder"), self.skeleton.index("right_shoulder")]
             d = cand[sh[1]] - cand[sh[0]]
             theta = np.array([np.arctan2(d[1], d[0]) if np.isfinite(d).all() else 0.0])
         tmpl = denormalize(self._tmpl[None], origin, theta)[0]
+        return np.where(missing[:, None], tmpl, cand).astype(np.float32), missing
+
+    def _fill_by_fit(self, cand: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """:meth:`_fill` for a candidate without hips (seen from the waist up, or one side of it): the
+        template turned to the facing of the first left/right pair it has (shoulders, hips, ears, eyes)
+        and moved onto its joints (the least-squares shift); None without such a pair."""
+        theta = None
+        for a, b in (
+            ("left_shoulder", "right_shoulder"),
+            ("left_hip", "right_hip"),
+            ("left_ear", "right_ear"),
+            ("left_eye", "right_eye"),
+        ):
+            ia, ib = self.skeleton.index(a), self.skeleton.index(b)
+            if not (missing[ia] or missing[ib]):
+                d = cand[ib] - cand[ia]
+                theta = np.array([np.arctan2(d[1], d[0])])
+                break
+        if theta is None:
+            return None, missing
+        tmpl = denormalize(self._tmpl[None], np.zeros((1, 3), np.float32), theta)[0]
+        tmpl = tmpl + (cand[~missing] - tmpl[~missing]).mean(0)
         return np.where(missing[:, None], tmpl, cand).astype(np.float32), missing
 
     def _samples(self, pose: np.ndarray, missing: np.ndarray) -> np.ndarray:

@@ -74,9 +74,9 @@ class ParticleConfig:
       :mod:`roomcap.track.birth` (dropout network that fills missing joints, run N times with dropout on);
       birth_checkpoint: its checkpoint ('' = the shipped one).
     threads: parts of a frame's batch computed at once (:class:`roomcap.track.split.Split`; the same tracks
-    bit for
-      bit whatever the number): 0 = one per available core, up to 4 and up to ``OMP_NUM_THREADS`` when
-      set; 1 = one thread, BLAS left alone.
+      bit for bit whatever the number and whatever BLAS's kernels: the matrix products run over a fixed
+      partition of the batch, BLAS at one thread): 0 = one per available core, up to 4 and up to
+      ``OMP_NUM_THREADS`` when set; 1 = one thread.
     seed: random seed.
     """
 

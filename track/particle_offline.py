@@ -54,7 +54,7 @@ def check_times(frames: np.ndarray, t_ns: np.ndarray | None) -> None:
 def warn_sparse_time(t_s: np.ndarray, cfg: ParticleConfig, fps: float) -> None:
     """Say so when the frames are snapshots too far apart to link (``sparse_time_warning``)."""
     warn = sparse_time_warning(
-        pause_clock(t_s, cfg.max_gap_s, fps)[1], cfg.max_gap_s, min_evidence_frames(cfg, fps)
+        pause_clock(t_s, cfg.max_gap_s, fps)[1], cfg.max_gap_s, min_evidence_frames(cfg, fps), t_s
     )
     if warn:
         log.warning("particle tracker: %s", warn)

@@ -22,7 +22,7 @@ from roomcap.core.fileio import save_npz, sha256_file
 from roomcap.keypoints.skeletons import CANONICAL, Skeleton
 from roomcap.track import kernels_gru
 from roomcap.track.normalize import hip_indices
-from roomcap.track.split import Split
+from roomcap.track.split import BLAS_BLOCK_ROWS, Split, blas_single, blocked_matmul
 
 State = dict[str, np.ndarray]
 
@@ -179,6 +179,7 @@ class GRUCellPrior:
         self.model_fps, self.fps, self.skeleton = float(model_fps), float(fps), skeleton
         self.dropout = float(trained_dropout) if dropout is None else float(dropout)
         self.sigma_m = float(sigma_m)
+        self.block_rows = BLAS_BLOCK_ROWS  # the products' fixed partition of a batch (track/split.py)
 
     def init_state(self, x: np.ndarray) -> State:
         x = check_batch(x, self.skeleton.n_joints)
@@ -213,7 +214,9 @@ class GRUCellPrior:
                 x[lo:hi], prev[lo:hi], h_prev[lo:hi], mask[lo:hi], noise[lo:hi] if len(noise) else noise
             )
 
-        parts = split.map(rows, B) if split is not None else [rows(0, B)]
+        # threads take whole blocks of the products' fixed partition, BLAS at one thread (track/split.py)
+        with blas_single():
+            parts = split.map(rows, B, block=self.block_rows) if split is not None else [rows(0, B)]
         new = parts[0][0] if len(parts) == 1 else np.concatenate([p[0] for p in parts])
         h = parts[0][1] if len(parts) == 1 else np.concatenate([p[1] for p in parts])
         return new, {"prev": x, "h": h}
@@ -225,10 +228,14 @@ class GRUCellPrior:
         # (eq. 5.2-5.4) and the normalised displacement
         inp, cs = kernels_gru.gru_inputs(x, prev, ip, il, ir, self.fps / self.model_fps)
         w_ih, b_ih, w_hh, b_hh, w_out, b_out = self._weights()
+        blk = self.block_rows
         # the GRU cell's two products (B,3H) (gates r, z, n), then its gates and the dropout compiled
-        h, hd = kernels_gru.gru_gates(inp @ w_ih, b_ih, h_prev @ w_hh, b_hh, h_prev, mask)
+        # (in blocks of the batch's fixed partition: the same bits for any cut of the batch)
+        h, hd = kernels_gru.gru_gates(
+            blocked_matmul(inp, w_ih, blk), b_ih, blocked_matmul(h_prev, w_hh, blk), b_hh, h_prev, mask
+        )
         new = kernels_gru.gru_outputs(
-            hd @ w_out, b_out, cs, x, self.model_fps / self.fps, noise, self.sigma_m
+            blocked_matmul(hd, w_out, blk), b_out, cs, x, self.model_fps / self.fps, noise, self.sigma_m
         )  # eq. 5.5 for the displacement, plus the noise
         return new, h
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from roomcap.core.errors import FormatError
+from roomcap.core.timebase import timestamps_backwards
 from roomcap.keypoints.detections import Detections
 
 
@@ -31,16 +32,12 @@ def check_frame_order(det: Detections, path: Path) -> None:
             f"{int(fi[k])} after frame {int(fi[k - 1])}.",
             "Sort the file's rows by frame_index and drop duplicates, or rerun the keypoints stage.",
         )
-    t = np.asarray(det.t_ns)
-    have = np.flatnonzero(t != 0)
-    back = np.flatnonzero(np.diff(t[have]) < 0)
-    if len(back):
-        k = have[back[0] + 1]
+    back = timestamps_backwards(fi, det.t_ns)
+    if back is not None:
         raise FormatError(
             path,
             "t_ns",
-            f"camera '{det.camera}': timestamps go backwards at frame {int(fi[k])} "
-            f"({int(t[k])} ns after {int(t[have[back[0]]])} ns).",
+            f"camera '{det.camera}': {back}.",
             "Fix the camera's frames.csv (the recorder's clock jumped?) or drop the timestamps (t_ns = 0) "
             "to align the cameras by frame number.",
         )

@@ -19,7 +19,7 @@ from roomcap.calibrate.camera import CameraRig
 from roomcap.capture.session import SessionLayout
 from roomcap.core.errors import FormatError
 from roomcap.core.fileio import check_schema, npz_str
-from roomcap.core.timebase import frame_rate_hz
+from roomcap.core.timebase import clock_fps, frame_rate_hz
 from roomcap.keypoints.detections import Detections
 from roomcap.keypoints.skeletons import (
     CANONICAL,
@@ -466,7 +466,9 @@ def iter_detection_chunks(
         plan.close()
 
 
-def session_fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
+def session_rate(layout: SessionLayout, t_ns: np.ndarray) -> float:
+    """The session's frame rate: stated in ``session.toml``, else estimated from the timestamps (the
+    median interval), else 25."""
     if layout.session_toml.exists():
         try:
             fps = layout.read_meta().get("fps")
@@ -475,6 +477,13 @@ def session_fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
         except FormatError as e:
             log.warning("session.toml unreadable (%s); estimating fps from timestamps", e)
     return frame_rate_hz(t_ns[t_ns > 0]) or 25.0
+
+
+def session_fps(layout: SessionLayout, t_ns: np.ndarray) -> float:
+    """The rate of the 3D stages' clock (:func:`session_rate`; for snapshots, a rate below
+    ``SPARSE_BELOW_HZ``, ``SNAPSHOT_CLOCK_FPS``: a time-lapse is a sparse clock, not a slow camera, and
+    its gaps in seconds say what can be linked, :func:`roomcap.core.timebase.clock_fps`)."""
+    return clock_fps(session_rate(layout, t_ns))
 
 
 def session_chunk_s(layout: SessionLayout, stream: StreamConfig) -> float:
