@@ -487,8 +487,9 @@ class LiveView:
         shown: list[tuple[int, np.ndarray]] = []  # (track id, xyz (J,3)) of the tracks present
         if est is not None:
             ids = np.asarray(est.track_id).reshape(-1)
-            xyz = np.asarray(est.xyz_m, np.float64).reshape(len(ids), -1, 3)
-            std = np.asarray(est.std_m, np.float64).reshape(len(ids), -1)
+            J = CANONICAL.n_joints if not len(ids) else -1  # an empty room: (0, J, 3), not (0, -1, 3)
+            xyz = np.asarray(est.xyz_m, np.float64).reshape(len(ids), J, 3)
+            std = np.asarray(est.std_m, np.float64).reshape(len(ids), J)
             for k, tid in enumerate(ids):
                 if not np.isfinite(xyz[k]).all(-1).any():
                     continue
