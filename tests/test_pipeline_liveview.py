@@ -380,3 +380,53 @@ def test_the_page_of_an_empty_room_shows_the_cameras_and_nobody_in_view(tmp_path
     assert (tmp_path / "empty.png").stat().st_size > 5_000
     assert live.stats.processed > 0 and not live.stats.errors
     assert "could not build" not in caplog.text and "Traceback" not in caplog.text
+
+
+def _reset_pages(port: int, n: int) -> None:
+    """``n`` pages that ask for the WebSocket and reset the connection at once (a closed tab, a reload)."""
+    import struct
+
+    for _ in range(n):
+        sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+        sock.sendall(
+            b"GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        )
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # RST, not FIN
+        sock.close()
+
+
+def test_a_page_that_disconnects_is_one_line_never_a_traceback(caplog, monkeypatch):
+    rig, names, view = _setup()
+    view.start()
+    try:
+        with caplog.at_level("INFO"):
+            # deterministic: the handshake's write finds the transport closing (what a reset page gives)
+            real = aiohttp.web.WebSocketResponse.prepare
+
+            async def closing(self, request):
+                raise aiohttp.ClientConnectionResetError("Cannot write to closing transport")
+
+            monkeypatch.setattr(aiohttp.web.WebSocketResponse, "prepare", closing)
+            _reset_pages(view.port, 3)
+            for _ in range(100):
+                if view.client_errors >= 3:
+                    break
+                time.sleep(0.02)
+            monkeypatch.setattr(aiohttp.web.WebSocketResponse, "prepare", real)
+            # the real thing: pages that reset at once, wherever the server is in the handshake
+            _reset_pages(view.port, 10)
+            time.sleep(0.5)
+
+            async def hello():  # a later page is served
+                async with aiohttp.ClientSession() as s, s.ws_connect(f"ws://127.0.0.1:{view.port}/ws") as ws:
+                    return json.loads((await ws.receive(timeout=10)).data)
+
+            first = asyncio.run(hello())
+    finally:
+        view.stop()
+    lines = [r for r in caplog.records if "a page disconnected" in r.getMessage()]
+    assert len(lines) >= 3 and len(lines) <= 13 and view.client_errors == len(lines)
+    assert "Cannot write to closing transport" in lines[0].getMessage()
+    assert not [r for r in caplog.records if r.exc_info or r.levelname in ("ERROR", "CRITICAL")], caplog.text
+    assert first["type"] == "hello" and first["cameras"] == names

@@ -318,7 +318,11 @@ class LiveView:
             return web.Response(status=403)
         # no permessage-deflate: JPEGs do not compress, and zlib on every update costs the server its CPU
         ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 16, compress=False)
-        await ws.prepare(request)
+        try:
+            await ws.prepare(request)
+        except ConnectionError as e:  # the page went away before the handshake was written
+            self._page_gone(e)
+            return web.Response(status=410)  # written to nobody: aiohttp drops the reset connection quietly
         client = _Client()
         client.pending["hello"] = json.dumps(self.hello())
         client.ready.set()
@@ -352,8 +356,12 @@ class LiveView:
                     else:
                         await ws.send_str(m)
         except (ConnectionError, RuntimeError) as e:  # the page went away: log once per page, go on
-            self.client_errors += 1
-            log.info("live view: a page disconnected (%s)", type(e).__name__)
+            self._page_gone(e)
+
+    def _page_gone(self, e: BaseException) -> None:
+        """A page closed its connection while we wrote to it: one line, no traceback."""
+        self.client_errors += 1
+        log.info("live view: a page disconnected (%s: %s)", type(e).__name__, e)
 
     def _on_page_message(self, text: str) -> None:
         try:
