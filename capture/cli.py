@@ -109,6 +109,7 @@ def _record(
     )
     close_outputs = outputs.open(args, live, rec) if outputs is not None else None
     if live:
+        live.watch(rec.stop_event)  # --duration, Ctrl-C or the sources' end stop the live loop at once
         live.start()
     stop_bar = _start_bar(args.duration, len(cfg.cameras)) if not args.quiet and args.duration else None
     try:

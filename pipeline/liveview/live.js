@@ -105,6 +105,7 @@ function render(){
   for (const id of ids) { const s = document.createElement('span'); s.innerHTML = `<i class="swatch" style="background:${color(id)}"></i>`;
     s.appendChild(document.createTextNode('id ' + id)); who.appendChild(s); }
   $('frame').textContent = String(state.frame);
+  $('sets').textContent = state.live && state.live.processed !== undefined ? `${state.live.processed} · ${state.live.skipped} stale dropped` : '–';
   $('loopLatency').textContent = state.live && state.live.latency_ms !== null && state.live.latency_ms !== undefined ? state.live.latency_ms.toFixed(0) + ' ms' : '–';
   $('viewNote').textContent = `${state.view.clients} page(s) · ${state.view.dropped_updates} view updates dropped`;
   const tbl = $('camStats'); tbl.innerHTML = '<tr><th>camera</th><th>fps</th><th>frames</th><th>dropped</th><th>skipped by live</th></tr>';
