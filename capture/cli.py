@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from roomcap.capture.config import ConfigError, load_config, shared_sources
+from roomcap.capture.factory import check_source
 from roomcap.capture.live import BuildStages, LiveOutputs, LiveRunner
 from roomcap.capture.offline_sync import LoadKeypoints, sync_audio, sync_session
 from roomcap.capture.recorder import Recorder, RecorderError, repair
@@ -108,6 +109,7 @@ def _record(
     )
     close_outputs = outputs.open(args, live, rec) if outputs is not None else None
     if live:
+        live.watch(rec.stop_event)  # --duration, Ctrl-C or the sources' end stop the live loop at once
         live.start()
     stop_bar = _start_bar(args.duration, len(cfg.cameras)) if not args.quiet and args.duration else None
     try:
@@ -196,8 +198,9 @@ def _check(argv: list[str]) -> int:
     )
     p.add_argument("--cameras", required=True, help="cams.yaml to check")
     args = p.parse_args(argv)
-    cfg = load_config(args.cameras)
+    cfg = load_config(args.cameras)  # the parser recording uses: a source it refuses fails here
     for c in cfg.cameras:
+        check_source(c)  # the source recording would build, checked without opening it
         print(f"{c.name}: {c.kind} {c.source_redacted} resolution={c.resolution} fps={c.fps} codec={c.codec}")
     problems = shared_sources(cfg)
     for w in problems:

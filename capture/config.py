@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import os
 import re
+import urllib.parse
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -96,6 +97,90 @@ def source_kind(source: str) -> str:
     if low == "synthetic" or low.startswith("synthetic:"):
         return "synthetic"
     return "file"
+
+
+# ----------------------------------------------------------------------------- source options
+
+OAK_SYNC_ROLES = ("off", "auto", "master", "slave")
+OAK_SOCKETS = ("CAM_A", "CAM_B", "CAM_C", "CAM_D")
+
+
+def _real(v: str) -> float:
+    x = float(v)
+    if x != x or x in (float("inf"), float("-inf")):
+        raise ValueError(v)
+    return x
+
+
+def _count(v: str) -> int:
+    x = int(v)
+    if x < 0:
+        raise ValueError(v)
+    return x
+
+
+def _choice(choices: tuple[str, ...], case) -> Any:
+    def parse(v: str) -> str:
+        v = case(v)
+        if v not in choices:
+            raise ValueError(v)
+        return v
+
+    parse.what = f"one of {list(choices)}"  # type: ignore[attr-defined]
+    return parse
+
+
+_real.what = "a finite number"  # type: ignore[attr-defined]
+_count.what = "a whole number >= 0"  # type: ignore[attr-defined]
+
+# the ``?key=value&...`` options each kind of source takes (the only parser of them: cams.yaml's check,
+# parse_config, and the sources when recording)
+SOURCE_OPTIONS: dict[str, dict[str, Any]] = {
+    "synthetic": {
+        "offset_ms": _real,
+        "drift_ppm": _real,
+        "disconnect_at_s": _real,
+        "disconnect_for_s": _real,
+        "frames": _count,
+        "drop_every": _count,
+    },
+    "oak": {"socket": _choice(OAK_SOCKETS, str.upper), "sync": _choice(OAK_SYNC_ROLES, str.lower)},
+}
+
+
+class SourceOptionError(ValueError):
+    """A ``?key=value`` option of a source that no recording would accept (the message says which)."""
+
+
+def source_options(source: str, kind: str | None = None) -> dict[str, Any]:
+    """The ``?key=value&...`` options of a ``synthetic:`` or ``oak:`` source, parsed and checked (other
+    kinds: ``{}``; a URL's query belongs to the stream). Raises :class:`SourceOptionError` naming the
+    option and the valid ones.
+
+    >>> source_options("synthetic:?frames=5&offset_ms=2.5")
+    {'frames': 5, 'offset_ms': 2.5}
+    """
+    kind = kind or source_kind(source)
+    spec = SOURCE_OPTIONS.get(kind)
+    if spec is None:
+        return {}
+    query = source.partition("?")[2]
+    try:
+        pairs = urllib.parse.parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query))
+    except ValueError:
+        raise SourceOptionError(f"{kind} options {query!r} are not key=value pairs joined by '&'.") from None
+    out: dict[str, Any] = {}
+    bad = sorted({k for k, _ in pairs} - set(spec))
+    if bad:
+        raise SourceOptionError(f"unknown {kind} option(s) {bad}; valid: {list(spec)}.")
+    for k, v in pairs:
+        if k in out:
+            raise SourceOptionError(f"{kind} option {k!r} is given twice.")
+        try:
+            out[k] = spec[k](v)
+        except ValueError:
+            raise SourceOptionError(f"{kind} option {k}={v!r} must be {spec[k].what}.") from None
+    return out
 
 
 # ----------------------------------------------------------------------------- dataclasses
@@ -239,6 +324,10 @@ def _camera_source(source: Any, where: str, path) -> tuple[str, str]:
         raise ConfigError(
             path, f"{where}.source", f"{source!r}: usb:<index> needs a non-negative integer index."
         )
+    try:
+        source_options(source, kind)  # the options recording will take, checked the same way
+    except SourceOptionError as e:
+        raise ConfigError(path, f"{where}.source", str(e)) from None
     if kind == "file":
         p = Path(os.path.expanduser(source))
         if not p.is_absolute() and path is not None:

@@ -33,3 +33,12 @@ def make_source(
     if kind in ("usb", "device", "rtsp"):
         return OpenCVSource(cam, open_timeout_s=timeout_s, read_timeout_s=timeout_s)
     raise SourceError(f"{cam.name}: unknown source kind {kind!r} for {redact_url(cam.source)}")
+
+
+def check_source(cam: CameraConfig) -> FrameSource:
+    """What ``capture-run check`` asks of a camera: the source recording would build (its options parsed by
+    the same code) and what it refuses before opening (a missing file); nothing is opened. Raises
+    :class:`SourceError`."""
+    src = make_source(cam)
+    src.check()
+    return src

@@ -6,9 +6,10 @@ have a ``close()`` that the runner calls when the recording ends. The stages tha
 packages (keypoints, triangulation, tracking) are built in :mod:`roomcap.pipeline.live` (the stage order:
 capture sits below them) and handed in as ``stages`` or ``build_stages``.
 
-The runner keeps up rather than falling behind: when several sets are ready it processes the
-newest and counts the others as skipped (the recording itself never waits for live processing).
-Latency = end of processing - host arrival of the newest frame in the set.
+The runner keeps up rather than falling behind: it processes the newest ready frame set and drops (and
+counts as skipped) the ones a newer set replaced before they were taken; its queue holds a few frames per
+camera, never seconds of them, and a stop ends it after the set in hand (the recording itself never waits
+for live processing). Latency = end of processing - host arrival of the newest frame in the set.
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ from roomcap.capture.sources import host_now_ns
 from roomcap.capture.sync import FrameSet, Synchroniser
 
 log = logging.getLogger(__name__)
+
+QUEUE_FRAMES_PER_CAMERA = 8  # the live queue's bound: a few frames per camera, never seconds of them
+SYNC_POLL_S = 0.01  # the sync thread's longest wait for a frame (and the live thread's for a stop)
 
 
 @dataclass
@@ -71,24 +75,44 @@ class LiveStats:
 
 
 class LiveRunner:
-    """Consumes (cam, frame) from ``queue``, synchronises, runs the stages on each frame set."""
+    """Consumes (cam, frame) from ``queue``, synchronises, runs the stages on the newest frame set.
+
+    Two threads, so that nothing piles up while a stage runs: ``live-sync`` drains the bounded ``queue``
+    into the :class:`Synchroniser` every few ms and keeps only the newest ready frame set in a one-set
+    slot (a complete set is preferred: an incomplete one never replaces a complete one not yet taken); a
+    set replaced before it was taken is stale, dropped and counted (``stats.skipped``). ``live`` takes
+    the set in the slot and runs the stages on it. The queue holds a few frames per camera
+    (``queue_size``, default 8 per camera; a full queue drops the frame, counted by the grabber as
+    ``dropped_live``), so the live loop never falls further behind than one frame set plus the set being
+    processed.
+
+    Stopping (:meth:`stop`, or the ``stop_event`` handed to :meth:`watch`: the recorder's, set by
+    ``--duration``, Ctrl-C or the sources' end): the set being processed is finished, the rest is
+    dropped (counted), the stages are closed. Nothing queued is processed after the stop.
+    """
 
     def __init__(
         self,
         cfg: CaptureConfig,
         out,
         stages: dict[str, Stage] | None = None,
-        queue_size: int = 256,
+        queue_size: int | None = None,
         build_stages: BuildStages | None = None,
     ):
         self.cfg = cfg
         self.layout = SessionLayout(out)
-        self.queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        size = queue_size if queue_size is not None else QUEUE_FRAMES_PER_CAMERA * len(cfg.cameras)
+        self.queue: queue.Queue = queue.Queue(maxsize=size)
         fps = max(c.fps or 30.0 for c in cfg.cameras)
         self.sync = Synchroniser(cfg.names, cfg.sync.tolerance_ns(fps), int(cfg.sync.max_wait_ms * 1e6))
         self.stats = LiveStats()
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._watched: threading.Event | None = None
+        self._slot: FrameSet | None = None  # the newest ready frame set, not yet taken
+        self._cond = threading.Condition()
+        self._threads: list[threading.Thread] = []
+        self.stopped_ns: int | None = None  # host_now_ns when the stop was seen
+        self.ended_ns: int | None = None  # host_now_ns when the live loop ended (stages closed)
         if stages is None:
             stages, errors = build_stages(cfg, self.layout) if build_stages is not None else ({}, {})
             self.stats.errors.update(errors)
@@ -96,42 +120,88 @@ class LiveRunner:
         self.stats.stage_ms = {k: 0.0 for k in self.stages}
         self.on_step: Callable[[LiveStep], None] | None = None  # e.g. a viewer
 
+    def watch(self, stop_event: threading.Event) -> None:
+        """End the live loop as soon as ``stop_event`` is set (the recorder's: the duration reached, a
+        signal, the sources' end), not only when :meth:`stop` is called after the recording's join."""
+        self._watched = stop_event
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set() or (self._watched is not None and self._watched.is_set())
+
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="live", daemon=True)
-        self._thread.start()
+        self._threads = [
+            threading.Thread(target=self._sync_loop, name="live-sync", daemon=True),
+            threading.Thread(target=self._run, name="live", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
 
     def stop(self, timeout_s: float = 30.0) -> None:
-        """Call after the recorder returned: processes what is left, then ends the thread."""
+        """End the live loop: the set being processed is finished, nothing else is; the stages are closed.
+        Waits at most ``timeout_s`` (the one set being processed, then the stages' close)."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout_s)
+        with self._cond:
+            self._cond.notify_all()
+        for t in self._threads:
+            t.join(timeout_s)
 
-    def _drain(self) -> bool:
-        got = False
-        while True:
-            try:
-                cam, frame = self.queue.get(timeout=0.02 if not got else 0)
-            except queue.Empty:
-                return got
-            self.sync.push(cam, frame)
-            got = True
-
-    def _run(self) -> None:
+    # ------------------------------------------------------------------ sync thread
+    def _sync_loop(self) -> None:
         every = self.cfg.live.every_n
-        while True:
-            stopping = self._stop.is_set()
-            self._drain()
-            ready = self.sync.pop_ready(host_now_ns(), flush=stopping)
+        while not self.stopping:
+            try:
+                cam, frame = self.queue.get(timeout=SYNC_POLL_S)
+            except queue.Empty:
+                pass
+            else:
+                self.sync.push(cam, frame)
+                while True:  # everything queued now, then the ready sets
+                    try:
+                        cam, frame = self.queue.get_nowait()
+                    except queue.Empty:
+                        break
+                    self.sync.push(cam, frame)
+            ready = self.sync.pop_ready(host_now_ns())
             self.stats.sets += len(ready)
-            if len(ready) > 1 and not stopping:
-                self.stats.skipped += len(ready) - 1
-                ready = ready[-1:]
             for fs in ready:
-                if fs.index % every:
-                    continue
-                self.process(fs, final=stopping and fs is ready[-1])
-            if stopping and self.queue.empty():
+                if fs.index % every == 0:
+                    self._offer(fs)
+        with self._cond:
+            self._cond.notify_all()
+
+    def _offer(self, fs: FrameSet) -> None:
+        with self._cond:
+            held = self._slot
+            if held is not None and held.complete and not fs.complete:
+                self.stats.skipped += 1  # the newest complete set is kept; this incomplete one is dropped
+                return
+            if held is not None:
+                self.stats.skipped += 1  # stale: a newer set is ready before it was taken
+            self._slot = fs
+            self._cond.notify_all()
+
+    def _take(self) -> FrameSet | None:
+        with self._cond:
+            while self._slot is None and not self.stopping:
+                self._cond.wait(SYNC_POLL_S)
+            if self.stopping:
+                return None
+            fs, self._slot = self._slot, None
+            return fs
+
+    # ------------------------------------------------------------------ live thread
+    def _run(self) -> None:
+        while True:
+            fs = self._take()
+            if fs is None:
                 break
+            self.process(fs)
+        self.stopped_ns = host_now_ns()
+        with self._cond:  # a set ready at the stop is not processed: dropped, counted
+            if self._slot is not None:
+                self.stats.skipped += 1
+                self._slot = None
         for name, stage in self.stages.items():  # e.g. the track stage writes its last part
             close = getattr(stage, "close", None)
             if close is not None:
@@ -142,6 +212,7 @@ class LiveRunner:
                     self.stats.errors[name] = f"{type(e).__name__}: {e}"
         if "track" in self.stages and self.stats.processed:
             log.info("live: track parts in %s", self.layout.live_tracks.with_suffix(".parts"))
+        self.ended_ns = host_now_ns()
 
     def process(self, fs: FrameSet, final: bool = False) -> LiveStep:
         step = LiveStep(fs, self.cfg.names, {"final": final})
@@ -180,6 +251,7 @@ class LiveRunner:
         s = self.summary()
         stages = ", ".join(f"{k} {v:.1f} ms" for k, v in s["stage_ms_mean"].items()) or "no stages"
         return (
-            f"{s['processed']} frame sets processed ({s['skipped']} skipped, {s['complete']} complete), "
+            f"{s['processed']} frame sets processed ({s['skipped']} stale ones dropped, {s['complete']} "
+            "complete), "
             f"latency median {s['latency_ms_median']:.1f} ms, p95 {s['latency_ms_p95']:.1f} ms; {stages}"
         )

@@ -21,10 +21,15 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
-import urllib.parse
 from dataclasses import dataclass
 
-from roomcap.capture.config import CameraConfig
+from roomcap.capture.config import (
+    OAK_SOCKETS,
+    OAK_SYNC_ROLES,
+    CameraConfig,
+    SourceOptionError,
+    source_options,
+)
 from roomcap.capture.sources import (
     Frame,
     FrameSource,
@@ -37,8 +42,8 @@ from roomcap.capture.sources import (
 
 log = logging.getLogger(__name__)
 
-SYNC_ROLES = ("off", "auto", "master", "slave")
-SOCKETS = ("CAM_A", "CAM_B", "CAM_C", "CAM_D")
+SYNC_ROLES = OAK_SYNC_ROLES
+SOCKETS = OAK_SOCKETS
 
 
 def _dai():
@@ -74,17 +79,13 @@ class OakConfig:
 def oak_config(cam: CameraConfig, segment_s: float = 0.5) -> OakConfig:
     """cams.yaml entry -> OakConfig (validates the ``oak:...?socket=&sync=`` options)."""
     rest = cam.source.split(":", 1)[1] if ":" in cam.source else ""
-    dev, _, query = rest.partition("?")
-    opts = dict(urllib.parse.parse_qsl(query))
-    bad = sorted(set(opts) - {"socket", "sync"})
-    if bad:
-        raise SourceError(f"{cam.name}: unknown OAK option(s) {bad}; valid: ['socket', 'sync'].")
-    socket = opts.get("socket", "CAM_A").upper()
-    if socket not in SOCKETS:
-        raise SourceError(f"{cam.name}: socket {socket!r} is not one of {list(SOCKETS)}.")
-    sync = opts.get("sync", "off").lower()
-    if sync not in SYNC_ROLES:
-        raise SourceError(f"{cam.name}: sync {sync!r} is not one of {list(SYNC_ROLES)}.")
+    dev = rest.partition("?")[0]
+    try:  # cams.yaml's parser of the options (capture-run check uses the same)
+        opts = source_options(cam.source, "oak")
+    except SourceOptionError as e:
+        raise SourceError(f"{cam.name}: {e}") from None
+    socket = opts.get("socket", "CAM_A")
+    sync = opts.get("sync", "off")
     fps = cam.fps or 30.0
     return OakConfig(
         name=cam.name,

@@ -23,7 +23,6 @@ import logging
 import os
 import threading
 import time
-import urllib.parse
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from roomcap.capture.config import CameraConfig
+from roomcap.capture.config import CameraConfig, SourceOptionError, source_options
 from roomcap.capture.session import VIDEO_SUFFIXES
 from roomcap.core.errors import FormatError, RoomcapError
 
@@ -97,6 +96,10 @@ class FrameSource(ABC):
     def live(self) -> bool:
         """A live source is retried after a disconnect; a file just ends."""
         return True
+
+    def check(self) -> None:  # noqa: B027 - most sources have nothing to check before opening
+        """Raise the :class:`SourceError` that ``open`` would raise for what can be known without opening
+        the device (``capture-run check``); the default: nothing."""
 
     @property
     def waits_for_consumers(self) -> bool:
@@ -206,13 +209,10 @@ class SyntheticSource(FrameSource):
 
     @classmethod
     def from_config(cls, cam: CameraConfig, epoch_ns: int | None = None) -> SyntheticSource:
-        query = cam.source.partition("?")[2]
-        opts = dict(urllib.parse.parse_qsl(query))
-        valid = ("offset_ms", "drift_ppm", "disconnect_at_s", "disconnect_for_s", "frames", "drop_every")
-        bad = sorted(set(opts) - set(valid))  # a URL query, not a config table: its own error
-        if bad:
-            raise SourceError(f"{cam.name}: unknown synthetic option(s) {bad}; valid: {list(valid)}.")
-        kw = {k: (int(v) if k in ("frames", "drop_every") else float(v)) for k, v in opts.items()}
+        try:  # cams.yaml's parser of the options (capture-run check uses the same)
+            kw = source_options(cam.source, "synthetic")
+        except SourceOptionError as e:
+            raise SourceError(f"{cam.name}: {e}") from None
         w, h = cam.resolution or (640, 480)
         return cls(cam.name, w, h, cam.fps or 30.0, realtime=cam.realtime, epoch_ns=epoch_ns, **kw)
 
@@ -563,13 +563,17 @@ class FileReplaySource(FrameSource):
     def waits_for_consumers(self) -> bool:
         return not self.drop_late
 
-    def open(self) -> SourceInfo:
+    def check(self) -> None:
+        """What ``open`` refuses before reading anything: a path that is missing or an empty file."""
         if not self.path.exists():
             raise SourceError(
                 f"{self.name}: video file {self.path} does not exist. Fix the source path in cams.yaml."
             )
         if self.path.is_file() and self.path.stat().st_size == 0:
             raise SourceError(f"{self.name}: {self.path} is empty, not a video.")
+
+    def open(self) -> SourceInfo:
+        self.check()
         rec = Recording(self.path)
         it = rec.iter_frames(self._late)
         try:

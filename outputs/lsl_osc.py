@@ -336,6 +336,7 @@ class TrackStreamer:
         slot_ids: dict[int, int] | None = None,
     ):
         self.cfg = cfg
+        self.n_joints = len(joint_names)
         self.slots = SlotMap(cfg.slots)
         if slot_ids:
             self.slots.last.update(slot_ids)
@@ -373,11 +374,13 @@ class TrackStreamer:
         self, frame_index: int, t_ns: int, track_id: np.ndarray, xyz_m: np.ndarray, std_m: np.ndarray
     ) -> None:
         """One frame: track_id (K,), xyz_m (K,J,3), std_m (K,J) (the live tracker's estimate or a track
-        file's row); tracks without any known joint count as absent."""
+        file's row); tracks without any known joint count as absent. An empty room (K = 0) is a frame too:
+        the LSL sample with every slot NaN, the OSC frame message with 0 people."""
         t0 = time.perf_counter()
         ids = np.asarray(track_id, np.int64).reshape(-1)
-        xyz = np.asarray(xyz_m, np.float32).reshape(len(ids), -1, 3)
-        std = np.asarray(std_m, np.float32).reshape(len(ids), -1)
+        J = self.n_joints if not len(ids) else -1  # an empty room: (0, J, 3); numpy cannot infer (0, -1, 3)
+        xyz = np.asarray(xyz_m, np.float32).reshape(len(ids), J, 3)
+        std = np.asarray(std_m, np.float32).reshape(len(ids), J)
         if xyz.shape[1] != std.shape[1]:
             raise InputError(f"xyz_m (K,J,3) and std_m (K,J) disagree: {xyz.shape} vs {std.shape}")
         keep = _present(xyz)

@@ -30,16 +30,20 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from roomcap.calibrate.camera import CameraRig
 from roomcap.capture.config import CaptureConfig
 from roomcap.capture.live import LiveRunner, LiveStep
 from roomcap.core.cli import positive_int
 from roomcap.core.errors import InputError
+from roomcap.keypoints.skeletons import CANONICAL
 from roomcap.outputs.lsl_osc import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
 from roomcap.outputs.rerun_recording import LiveRerun
 from roomcap.pipeline.liveview.server import DEFAULT_PORT, LiveView, ViewConfig
 
 log = logging.getLogger(__name__)
+J = CANONICAL.n_joints
 
 
 def load_rig(cfg: CaptureConfig) -> CameraRig | None:
@@ -185,11 +189,14 @@ class StepFeed:
         if self.view is not None:
             self.view.offer(step)
         est = step.outputs.get("tracks")
-        if self.streamer is not None and est is not None:
+        if self.streamer is not None:
+            # every processed frame set is a sample, an empty room (or a set the track stage missed) too
+            if est is None:
+                ids, xyz, std = np.zeros(0, np.int64), np.zeros((0, J, 3)), np.zeros((0, J))
+            else:
+                ids, xyz, std = est.track_id, est.xyz_m, est.std_m
             try:
-                self.streamer.push(
-                    step.frameset.index, step.frameset.t_ns, est.track_id, est.xyz_m, est.std_m
-                )
+                self.streamer.push(step.frameset.index, step.frameset.t_ns, ids, xyz, std)
             except Exception as e:  # noqa: BLE001 - never stops the capture
                 if "stream" not in self.failed:
                     log.warning("stream: %s (logged once; the recording goes on)", e)

@@ -64,3 +64,38 @@ def test_sync_command_on_openpose_folders(tmp_path, capsys):
     meta = load_toml(tmp_path / "session.toml")
     assert set(meta["sync"]["cameras"]) == {"cam01", "cam02", "cam03"}
     assert "offset" in capsys.readouterr().out
+
+
+def test_check_refuses_exactly_the_sources_recording_refuses(tmp_path, capsys):
+    """`capture-run check` and recording parse a source's options with one parser (config.source_options):
+    what recording refuses, check refuses (exit 2, one line naming the option), and the other way round."""
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    sources = {
+        "seed": ("synthetic:?seed=2", "seed"),
+        "frames_text": ("synthetic:?frames=abc", "frames"),
+        "frames_neg": ("synthetic:?frames=-1", "frames"),
+        "twice": ("synthetic:?frames=2&frames=3", "twice"),
+        "not_pairs": ("synthetic:?frames", "key=value"),
+        "oak_socket": ("oak:x?socket=CAM_Z", "socket"),
+        "missing_file": (str(tmp_path / "nope.mp4"), "does not exist"),
+        "empty_file": (str(empty), "empty"),
+        "ok": ("synthetic:?frames=3&offset_ms=1.5&drop_every=0", None),
+    }
+    for name, (src, needle) in sources.items():
+        y = tmp_path / f"{name}.yaml"
+        y.write_text(f"cameras:\n  - {{name: a, source: '{src}', resolution: [64, 48], fps: 30}}\n")
+        rc_check = main(["check", "--cameras", str(y)])
+        err_check = capsys.readouterr().err
+        want = 0 if needle is None else 2
+        assert rc_check == want and "Traceback" not in err_check, (name, err_check)
+        if needle is not None:
+            assert needle in err_check and len(err_check.strip().splitlines()) == 1, (name, err_check)
+        if name.startswith("oak") or name == "ok":
+            continue  # no OAK here; "ok" is recorded below
+        rc_rec = main(["--cameras", str(y), "--out", str(tmp_path / f"s_{name}"), "--quiet"])
+        err_rec = capsys.readouterr().err
+        assert rc_rec == 2 and needle in err_rec, (name, err_rec)
+    y = tmp_path / "ok.yaml"
+    assert main(["--cameras", str(y), "--out", str(tmp_path / "s_ok"), "--duration", "5", "--quiet"]) == 0
+    assert len(read_frames_csv(tmp_path / "s_ok" / "raw" / "a.frames.csv")) == 3

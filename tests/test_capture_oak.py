@@ -36,10 +36,13 @@ def test_oak_config_from_cams_yaml():
     assert (
         d.device is None and d.codec == "h264" and d.resolution == (1920, 1080)
     )  # default: encode on device
-    with pytest.raises(SourceError, match="valid"):
-        oak_config(_cam("oak:x?speed=1"))
-    with pytest.raises(SourceError, match="CAM_A"):
-        oak_config(_cam("oak:x?socket=CAM_Z"))
+    from roomcap.capture.config import CameraConfig, ConfigError
+
+    for src, needle in (("oak:x?speed=1", "valid"), ("oak:x?socket=CAM_Z", "CAM_A")):
+        with pytest.raises(ConfigError, match=needle):  # cams.yaml (and capture-run check) refuse it
+            _cam(src)
+        with pytest.raises(SourceError, match=needle):  # the source too, by the same parser
+            oak_config(CameraConfig("oak1", src))
 
 
 def test_device_selection_messages():

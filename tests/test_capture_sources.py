@@ -110,8 +110,12 @@ def test_missing_usb_camera():
 
 
 def test_synthetic_options_are_validated():
-    with pytest.raises(SourceError, match="valid"):
-        make_source(_cam("synthetic:?speed=3"))
+    from roomcap.capture.config import CameraConfig, ConfigError
+
+    with pytest.raises(ConfigError, match="valid"):  # cams.yaml refuses them (capture-run check too)
+        _cam("synthetic:?speed=3")
+    with pytest.raises(SourceError, match="valid"):  # and so does the source, by the same parser
+        make_source(CameraConfig("c", "synthetic:?speed=3"))
 
 
 def test_frames_csv_ignores_an_unterminated_last_row(tmp_path):

@@ -206,6 +206,37 @@ def test_live_frames_reach_an_lsl_inlet_and_an_osc_server_equal_to_the_live_trac
             np.testing.assert_array_equal(np.asarray(flat, np.float32).reshape(J, 3), tf.xyz_m[t, k])
 
 
+@need_lsl
+@need_osc
+def test_an_empty_room_is_a_sample_for_every_frame_set(tmp_path, caplog):
+    """Nobody in view: the live track stage gives 0 people; every frame set still reaches LSL (every slot
+    NaN) and OSC (a frame message with 0 people), and so does a set without a track estimate at all."""
+    rig = ring_rig(2, radius_m=4.0)
+    names = [c.name for c in rig.cameras]
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:", "fps": 25} for n in names]})
+    stage = _track(LiveContext(cfg, SessionLayout(tmp_path / "S2"), rig, FAST, chunk_frames=20))
+    osc = OscSink()
+    streamer = TrackStreamer(StreamConfig(("lsl", "osc"), ("127.0.0.1", osc.port), slots=2, session="S2"), 25)
+    feed = StepFeed(None, streamer)
+    data_in = _inlet("roomcap-S2")
+    X = np.full((12, 1, J, 3), np.nan)  # nobody: no detection in any view
+    with caplog.at_level("WARNING"):
+        for i, step in enumerate(_live_steps(rig, X)):
+            if i < 10:  # the track stage ran: 0 people
+                stage(step)
+                assert len(step.outputs["tracks"].track_id) == 0
+            feed(step)  # the last two: no track estimate (the stage failed or is off)
+        data, _ = _pull_all(data_in, 12)
+        osc.wait(12)
+    streamer.close()
+    osc.close()
+    assert len(data) == 12 and np.isnan(np.asarray(data, np.float32)).all()
+    frames = [a for addr, a in osc.msgs if addr == OSC_FRAME]
+    assert [f[0] for f in frames] == list(range(12)) and all(f[2] == 0 for f in frames)
+    assert not [m for addr, m in osc.msgs if addr == OSC_PERSON]
+    assert "stream" not in caplog.text and not feed.failed
+
+
 def _file(T=12, fps=25.0):
     """Two tracks, the second born at frame 3 and gone after frame 8."""
     xyz = np.full((T, 2, J, 3), np.nan, np.float32)

@@ -251,3 +251,48 @@ def test_downstream_reads_a_live_session_like_a_batch_one(tmp_path, capsys):
     inp = _load(lay)
     assert inp.tracks is not None and not inp.tracks_error and inp.tracks.n_frames == 30
     assert inp.tracks_name == "live.npz"
+
+
+def test_live_keypoints_run_the_cameras_in_groups_each_warmed_before_the_first_set(tmp_path, monkeypatch):
+    """The live 2D stage as the batch stage runs it: the cameras split into groups (cams[g::groups]), each
+    with its own pipeline (its own crop-following streams) on its own thread; every pipeline run once on a
+    blank image of the cameras' size before the first set; a camera without a frame is left out."""
+    import cv2
+    from conftest import need_shared
+
+    import roomcap.pipeline.live as live_mod
+
+    need_shared("models")
+    videos = need_shared("data", "pose2sim", "demo-wheel-0.10.49", "Demo_MultiPerson", "videos")
+    cams = ["cam01", "cam02", "cam03"]
+    images = {}
+    for c in cams:
+        cap = cv2.VideoCapture(str(videos / f"{c}.mp4"))
+        ok, images[c] = cap.read()
+        cap.release()
+        assert ok
+    h, w = images["cam01"].shape[:2]
+    cfg = parse_config(
+        {"cameras": [{"name": c, "source": str(videos / f"{c}.mp4"), "resolution": [w, h]} for c in cams]}
+    )
+    warmed = []
+    real_warm = live_mod.warm_keypoints
+    monkeypatch.setattr(
+        live_mod, "warm_keypoints", lambda pipe, size: warmed.append(size) or real_warm(pipe, size)
+    )
+    stage = live_mod._keypoints(LiveContext(cfg, SessionLayout(tmp_path), None, keypoint_groups=2))
+    try:
+        assert len(stage.pipes) == 2 and warmed == [(w, h), (w, h)]
+        assert all(p.n_detected == 0 and not p._seeds for p in stage.pipes)  # the warm-up left nothing
+        for t, missing in enumerate((None, "cam02")):
+            frames = {c: None if c == missing else Frame(images[c], t, t, t) for c in cams}
+            step = LiveStep(FrameSet(t, t, frames), tuple(cams))
+            stage(step)
+            dets = step.outputs["detections"]
+            assert sorted(dets) == sorted(c for c in cams if c != missing)
+            assert all(len(d.xy_px) >= 2 for d in dets.values())  # two participants in every view
+        # each group's pipeline follows its own cameras' people: cam01 and cam03 in one, cam02 in the other
+        assert set(stage.pipes[0]._seeds) == {"cam01", "cam03"} and set(stage.pipes[1]._seeds) == {"cam02"}
+        assert stage.pipes[0].n_tracked == 2 and stage.pipes[1].n_tracked == 0  # the second set: followed
+    finally:
+        stage.close()

@@ -312,3 +312,121 @@ def test_recording_with_the_page_in_chromium_killed_mid_run_drops_no_frame(tmp_p
         # itself: dropped_source, not the recorder's doing)
         assert c["dropped_queue"] == 0 and c["frames_written"] == c["frames_grabbed"] >= 60, c  # measured 150
     assert status["acks"] >= 3 and status["clients"] == 0
+
+
+def test_an_empty_room_gives_a_state_with_nobody_and_the_camera_images():
+    """Nobody in view: the track estimate holds 0 people; the update is built (no traceback), with no
+    track, no detection, and every camera's image."""
+    rig, names, view = _setup()
+    step = _step(rig, names, 0, np.zeros((0, J, 3)))
+    msgs = view.messages(step, now=100.0)
+    st = json.loads(msgs["state"])
+    assert st["tracks"] == [] and st["proj"] == {} and all(not v for v in st["det"].values())
+    assert sorted(k for k in msgs if k.startswith("img:")) == sorted(f"img:{n}" for n in names)
+
+
+@need_chromium
+def test_the_page_of_an_empty_room_shows_the_cameras_and_nobody_in_view(tmp_path, caplog):
+    """capture-run's path with the real 3D stages and 2 synthetic cameras (a moving texture, nobody in
+    it): the page draws both camera images and says "nobody in view"; no update fails."""
+    import argparse
+    import threading
+
+    from roomcap.capture.config import load_config
+    from roomcap.capture.live import LiveRunner
+    from roomcap.capture.recorder import Recorder
+    from roomcap.pipeline.live import build_stages
+    from roomcap.pipeline.live_outputs import Outputs
+    from roomcap.pipeline.liveview.browser import HeadlessBrowser
+
+    rig = ring_rig(2, radius_m=4.0, size_wh=(320, 240))
+    rig.save(tmp_path / "rig.toml")
+    cams = "".join(
+        f"  - {{name: {c.name}, source: 'synthetic:?offset_ms={i}', resolution: [320, 240], fps: 10}}\n"
+        for i, c in enumerate(rig.cameras)
+    )
+    (tmp_path / "cams.yaml").write_text(
+        "calibration: rig.toml\nlive: {stages: [triangulate, track]}\ncameras:\n" + cams
+    )
+    cfg = load_config(tmp_path / "cams.yaml")
+    live = LiveRunner(cfg, tmp_path / "S", build_stages=build_stages)
+    assert set(live.stages) == {"triangulate", "track"}
+    rec = Recorder(cfg, tmp_path / "S", duration_s=4.0, frameset_sink=live.queue, handle_signals=False)
+    outputs = Outputs()
+    p = argparse.ArgumentParser()
+    outputs.add_arguments(p)
+    close = outputs.open(p.parse_args(["--view", "--view-port", "0"]), live, rec)
+    view = outputs.feed.view
+    seen = {}
+
+    def drive():
+        with HeadlessBrowser(tmp_path / "chrome") as b:
+            b.open(view.url)
+            seen["drawn"] = b.wait_for(
+                "document.body.dataset.panesDrawn === '2' && document.body.dataset.nobody", 15
+            )
+            seen["people"] = b.evaluate("document.body.dataset.people")
+            b.screenshot(tmp_path / "empty.png")
+
+    t = threading.Thread(target=drive)
+    with caplog.at_level("INFO"):
+        live.start()
+        t.start()
+        rec.run()
+        live.stop()
+        t.join(30)
+        close()
+    assert seen["drawn"] == "nobody in view" and seen["people"] == "0"
+    assert (tmp_path / "empty.png").stat().st_size > 5_000
+    assert live.stats.processed > 0 and not live.stats.errors
+    assert "could not build" not in caplog.text and "Traceback" not in caplog.text
+
+
+def _reset_pages(port: int, n: int) -> None:
+    """``n`` pages that ask for the WebSocket and reset the connection at once (a closed tab, a reload)."""
+    import struct
+
+    for _ in range(n):
+        sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+        sock.sendall(
+            b"GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        )
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # RST, not FIN
+        sock.close()
+
+
+def test_a_page_that_disconnects_is_one_line_never_a_traceback(caplog, monkeypatch):
+    rig, names, view = _setup()
+    view.start()
+    try:
+        with caplog.at_level("INFO"):
+            # deterministic: the handshake's write finds the transport closing (what a reset page gives)
+            real = aiohttp.web.WebSocketResponse.prepare
+
+            async def closing(self, request):
+                raise aiohttp.ClientConnectionResetError("Cannot write to closing transport")
+
+            monkeypatch.setattr(aiohttp.web.WebSocketResponse, "prepare", closing)
+            _reset_pages(view.port, 3)
+            for _ in range(100):
+                if view.client_errors >= 3:
+                    break
+                time.sleep(0.02)
+            monkeypatch.setattr(aiohttp.web.WebSocketResponse, "prepare", real)
+            # the real thing: pages that reset at once, wherever the server is in the handshake
+            _reset_pages(view.port, 10)
+            time.sleep(0.5)
+
+            async def hello():  # a later page is served
+                async with aiohttp.ClientSession() as s, s.ws_connect(f"ws://127.0.0.1:{view.port}/ws") as ws:
+                    return json.loads((await ws.receive(timeout=10)).data)
+
+            first = asyncio.run(hello())
+    finally:
+        view.stop()
+    lines = [r for r in caplog.records if "a page disconnected" in r.getMessage()]
+    assert len(lines) >= 3 and len(lines) <= 13 and view.client_errors == len(lines)
+    assert "Cannot write to closing transport" in lines[0].getMessage()
+    assert not [r for r in caplog.records if r.exc_info or r.levelname in ("ERROR", "CRITICAL")], caplog.text
+    assert first["type"] == "hello" and first["cameras"] == names

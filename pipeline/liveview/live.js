@@ -89,7 +89,7 @@ function draw3d(){
       c.fillStyle = color(t.id); c.fillRect(q[0] - w / 2, q[1] - 16, w, 18); c.fillStyle = '#fff'; c.fillText(label, q[0] - w / 2 + 5, q[1] - 3); } }
   }
   c.fillStyle = '#aab3c5'; c.font = '13px system-ui,sans-serif';
-  c.fillText(`frame ${state.frame} · ${state.tracks.length} people`, 16, 26);
+  c.fillText(`frame ${state.frame} · ${state.tracks.length ? state.tracks.length + ' people' : 'nobody in view'}`, 16, 26);
 }
 
 function median(a){ if (!a.length) return null; const s = a.slice().sort((x, y) => x - y); return s[s.length >> 1]; }
@@ -101,10 +101,11 @@ function render(){
   if (!state) return;
   const ids = state.tracks.map(t => t.id);
   $('people').textContent = String(ids.length);
-  const who = $('who'); who.innerHTML = '';
+  const who = $('who'); who.innerHTML = ''; if (!ids.length) who.textContent = '· nobody in view';
   for (const id of ids) { const s = document.createElement('span'); s.innerHTML = `<i class="swatch" style="background:${color(id)}"></i>`;
     s.appendChild(document.createTextNode('id ' + id)); who.appendChild(s); }
   $('frame').textContent = String(state.frame);
+  $('sets').textContent = state.live && state.live.processed !== undefined ? `${state.live.processed} · ${state.live.skipped} stale dropped` : '–';
   $('loopLatency').textContent = state.live && state.live.latency_ms !== null && state.live.latency_ms !== undefined ? state.live.latency_ms.toFixed(0) + ' ms' : '–';
   $('viewNote').textContent = `${state.view.clients} page(s) · ${state.view.dropped_updates} view updates dropped`;
   const tbl = $('camStats'); tbl.innerHTML = '<tr><th>camera</th><th>fps</th><th>frames</th><th>dropped</th><th>skipped by live</th></tr>';
@@ -121,6 +122,7 @@ function render(){
     if (ws && ws.readyState === 1) ws.send(JSON.stringify({ack: state.seq, t_capture_ms: state.t_capture_ms, t_sent_ms: state.t_sent_ms}));
   }
   document.body.dataset.people = String(ids.length);
+  document.body.dataset.nobody = ids.length ? '' : 'nobody in view';
   document.body.dataset.panesDrawn = String(hello.cameras.filter(c => panes[c].bitmap).length);
   document.body.dataset.frame = String(state.frame);
 }

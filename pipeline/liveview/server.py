@@ -318,7 +318,11 @@ class LiveView:
             return web.Response(status=403)
         # no permessage-deflate: JPEGs do not compress, and zlib on every update costs the server its CPU
         ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 16, compress=False)
-        await ws.prepare(request)
+        try:
+            await ws.prepare(request)
+        except ConnectionError as e:  # the page went away before the handshake was written
+            self._page_gone(e)
+            return web.Response(status=410)  # written to nobody: aiohttp drops the reset connection quietly
         client = _Client()
         client.pending["hello"] = json.dumps(self.hello())
         client.ready.set()
@@ -352,8 +356,12 @@ class LiveView:
                     else:
                         await ws.send_str(m)
         except (ConnectionError, RuntimeError) as e:  # the page went away: log once per page, go on
-            self.client_errors += 1
-            log.info("live view: a page disconnected (%s)", type(e).__name__)
+            self._page_gone(e)
+
+    def _page_gone(self, e: BaseException) -> None:
+        """A page closed its connection while we wrote to it: one line, no traceback."""
+        self.client_errors += 1
+        log.info("live view: a page disconnected (%s: %s)", type(e).__name__, e)
 
     def _on_page_message(self, text: str) -> None:
         try:
@@ -487,8 +495,9 @@ class LiveView:
         shown: list[tuple[int, np.ndarray]] = []  # (track id, xyz (J,3)) of the tracks present
         if est is not None:
             ids = np.asarray(est.track_id).reshape(-1)
-            xyz = np.asarray(est.xyz_m, np.float64).reshape(len(ids), -1, 3)
-            std = np.asarray(est.std_m, np.float64).reshape(len(ids), -1)
+            J = CANONICAL.n_joints if not len(ids) else -1  # an empty room: (0, J, 3), not (0, -1, 3)
+            xyz = np.asarray(est.xyz_m, np.float64).reshape(len(ids), J, 3)
+            std = np.asarray(est.std_m, np.float64).reshape(len(ids), J)
             for k, tid in enumerate(ids):
                 if not np.isfinite(xyz[k]).all(-1).any():
                     continue

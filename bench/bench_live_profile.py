@@ -1,0 +1,113 @@
+"""Where ``capture-run --live``'s CPU goes, by thread: the recorder's decoding (``grab-*``) and encoding
+(``write-*``), the live loop (``live``: the stages; ``live-keypoints*``: the 2D camera groups; ``live-sync``),
+the rest. The Pose2Sim multi-person demo's 4 videos (1088x1920, 60 Hz) as looping file cameras with its
+calibration, the real default 2D model, ``capture-run``'s own code path (``pipeline.live.main``).
+
+Prints the live summary line (frame sets processed, stale ones dropped, latency, ms per stage), the frame
+sets processed per second of recording, the wall time from the recording's start to the exit, and each
+thread group's CPU seconds per second of recording (2.0 = both cores of this machine).
+
+    PYTHONPATH=... python bench/bench_live_profile.py [--seconds 20] [--shared /work/shared]
+
+The script imports only ``roomcap`` (whichever PYTHONPATH names): run it on two checkouts to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+CAMS = ("cam01", "cam02", "cam03", "cam04")
+GROUPS = (("decode (grab-*)", r"^grab-"), ("encode (write-*)", r"^write-"), ("2D groups", r"^live-keypoints"))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    args = ap.parse_args()
+    os.environ.setdefault("ROOMCAP_SHARED", args.shared)
+    import roomcap.capture.recorder as recorder_mod
+    from roomcap.calibrate.formats import import_rig
+    from roomcap.pipeline.live import main as capture_run
+
+    demo = Path(args.shared) / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
+    if not demo.exists():
+        sys.exit(f"bench_live_profile: {demo} not found; set --shared")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_live_profile_"))
+    import_rig(demo / "calibration" / "Calib.qca.txt").save(tmp / "rig.toml")
+    (tmp / "cams.yaml").write_text(
+        "calibration: rig.toml\ncameras:\n"
+        + "".join(
+            f"  - {{name: {c}, source: '{demo / 'videos' / (c + '.mp4')}', loop: true, realtime: true}}\n"
+            for c in CAMS
+        )
+    )
+    cpu: dict[str, float] = {}
+    first: dict[str, float] = {}
+    stop = threading.Event()
+
+    def sample() -> None:
+        for t in threading.enumerate():
+            if t.ident is None or not t.is_alive():
+                continue
+            try:
+                v = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
+            except (OSError, ProcessLookupError):
+                continue
+            first.setdefault(t.name, v)
+            cpu[t.name] = v
+
+    def sampler() -> None:
+        while not stop.wait(0.1):
+            sample()
+
+    started = {}
+    make_threads = recorder_mod.Recorder._make_threads
+
+    def timed_make_threads(self, sources):  # the recording's start: the cameras are open
+        started["t"] = time.monotonic()
+        sample()
+        return make_threads(self, sources)
+
+    recorder_mod.Recorder._make_threads = timed_make_threads
+    threading.Thread(target=sampler, daemon=True).start()
+    argv = ["--cameras", str(tmp / "cams.yaml"), "--out", str(tmp / "S"), "--duration", str(args.seconds)]
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        rc = capture_run([*argv, "--live", "--quiet", "--no-join"])
+    end = time.monotonic()
+    stop.set()
+    text = out.getvalue()
+    line = next((x.strip() for x in text.splitlines() if x.strip().startswith("live:")), "live: (none)")
+    n = int(re.search(r"live: (\d+)", line).group(1)) if re.search(r"live: (\d+)", line) else 0
+    used = {k: cpu[k] - first.get(k, cpu[k]) for k in cpu}
+    rec_s = args.seconds
+    print(f"exit code {rc}; {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f} at the end")
+    print(line)
+    print(f"frame sets processed per second of recording: {n / rec_s:.2f}")
+    print(f"recording start -> exit: {end - started.get('t', end):.1f} s (--duration {rec_s:g})")
+    rows = {g: 0.0 for g, _ in GROUPS} | {"live loop (live)": 0.0, "other Python threads": 0.0}
+    for name, v in used.items():
+        for g, pat in GROUPS:
+            if re.match(pat, name):
+                rows[g] += v
+                break
+        else:
+            rows["live loop (live)" if name == "live" else "other Python threads"] += v
+    for g, v in rows.items():
+        print(f"  {g:24s} {v / rec_s:5.2f} CPU s per s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
