@@ -42,7 +42,7 @@ from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import atomic_path, atomic_write_text
 from roomcap.forecast import benchmark_cmu8_published as P
 from roomcap.forecast import cmu_more as C
-from roomcap.forecast.checkpoint import load_checkpoint
+from roomcap.forecast.checkpoint import describe_checkpoint, load_checkpoint
 from roomcap.forecast.predict import forecast_world
 from roomcap.synthetic.bvh import BODY19
 
@@ -341,7 +341,10 @@ def load_mlp(path: str | os.PathLike) -> tuple[Forecaster, dict]:
         raise FormatError(path, None, f"not a readable checkpoint ({type(e).__name__}).", "") from e
     if not isinstance(blob, dict) or blob.get("schema") != CKPT_SCHEMA:
         raise FormatError(
-            path, "schema", f"expected '{CKPT_SCHEMA}'.", "Train one with `forecast cmu8 train`."
+            path,
+            "schema",
+            f"expected '{CKPT_SCHEMA}': this is {describe_checkpoint(blob)}.",
+            "A benchmark DCT + MLP comes from `forecast cmu8 train`.",
         )
     n = len(blob["points"])
     if blob.get("kind") == DctMlpEnsemble.kind:

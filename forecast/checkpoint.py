@@ -20,7 +20,7 @@ from scipy.cluster.vq import kmeans2
 from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import atomic_path
 from roomcap.forecast import data as fdata
-from roomcap.forecast.config import BASELINES, config_from_dict
+from roomcap.forecast.config import BASELINES, CONFIGS, config_from_dict
 from roomcap.forecast.models import (
     ConstantVelocity,
     FoolClusters,
@@ -67,6 +67,62 @@ def write_checkpoint(
         torch.save(blob, tmp)
 
 
+# Every checkpoint schema of the project (forecast/checkpoints), for a message that names what a file is
+# when a reader gets one it does not read: schema -> (what it is, what reads it). The behaviour and
+# characteristic modules own their constants; tests/test_forecast_models.py checks that these match them.
+KNOWN_SCHEMAS = {
+    CKPT_SCHEMA: (
+        "a forecast checkpoint (GRU, intention or Social Diffusion)",
+        "`forecast sample --checkpoint PATH` and `forecast eval --checkpoints PATH` read it",
+    ),
+    "forecast-characteristic/1": (
+        "a characteristic-3D-pose checkpoint (Diller ch. 3)",
+        "`forecast characteristic eval --checkpoint PATH` reads it",
+    ),
+    "forecast-cmu8-checkpoint/1": (
+        "a DCT + MLP of the CMU 8-action benchmark (its own 3D points at 60 Hz, not tracks)",
+        "`forecast eval --protocol cmu8 --checkpoints PATH` scores it",
+    ),
+    "behaviour_checkpoint/1": (
+        "a behaviour model (next actions and their poses, Diller ch. 4)",
+        "`forecast behaviour sample|eval --checkpoint PATH` reads it",
+    ),
+    "behaviour_quality/1": (
+        "a behaviour pose-quality model (Diller ch. 4)",
+        "`forecast behaviour` reads it beside its behaviour model",
+    ),
+}
+
+
+def describe_checkpoint(blob) -> str:
+    """What a loaded checkpoint ``blob`` is, in words: one of :data:`KNOWN_SCHEMAS`, another version of one
+    (``name/N``), a bare state dict, or whatever else it holds."""
+    if not isinstance(blob, dict):
+        return f"a {type(blob).__name__}, not a checkpoint dict"
+    schema = blob.get("schema")
+    if schema in KNOWN_SCHEMAS:
+        what, how = KNOWN_SCHEMAS[schema]
+        kind = f" ('{blob['kind']}')" if isinstance(blob.get("kind"), str) else ""
+        return f"{what}{kind}: {how}"
+    if isinstance(schema, str):
+        name, _, version = schema.rpartition("/")
+        ours = [k for k in KNOWN_SCHEMAS if k.rpartition("/")[0] == name]
+        if ours:
+            what, _ = KNOWN_SCHEMAS[ours[0]]
+            return (
+                f"{what} of schema '{schema}', written by another roomcap version (this one reads "
+                f"'{ours[0]}'): forecast with the version that wrote it, or retrain it with this one"
+            )
+        return f"a checkpoint of schema '{schema}', which roomcap does not know"
+    if blob and all(isinstance(v, torch.Tensor) for v in blob.values()):
+        return (
+            f"a bare PyTorch state dict ({len(blob)} tensors, no schema, config or skeleton), so the model "
+            "cannot be rebuilt from it: save the model with roomcap.forecast.checkpoint.save_checkpoint "
+            "(model, kind, config), or retrain it"
+        )
+    return f"a dict without a schema (keys {sorted(map(str, blob))[:6]})"
+
+
 def read_checkpoint(
     path: Path,
     schema: str,
@@ -92,8 +148,8 @@ def read_checkpoint(
         raise FormatError(
             path,
             "schema",
-            f"expected '{schema}', got {got!r}.",
-            f"This is not a {what} of this version; train one with `{train_cmd}`.",
+            f"expected '{schema}', got {got!r}: this is {describe_checkpoint(blob)}.",
+            f"A {what} of this version comes from `{train_cmd}`.",
         )
     if skeleton is not None and blob["skeleton"] != skeleton:
         raise FormatError(
@@ -196,8 +252,27 @@ def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_lo
     blob = read_checkpoint(
         Path(path), CKPT_SCHEMA, skeleton, "forecast checkpoint", "forecast train", map_location
     )
-    config = config_from_dict(blob["kind"], blob["config"])
-    model = build_model(blob["kind"], config, len(blob["joint_names"]), blob["state_dict"])
+    kind = blob.get("kind")
+    if kind not in CONFIGS:
+        raise FormatError(
+            path,
+            "kind",
+            f"a '{kind}' model, which this roomcap version does not build (it builds {', '.join(CONFIGS)}).",
+            "Forecast with the roomcap version that wrote it, or train one of these: "
+            f"`forecast train --model {'|'.join(CONFIGS)}`.",
+        )
+    try:
+        config = config_from_dict(kind, blob["config"])
+    except (InputError, FormatError) as e:
+        why = str(e).removeprefix(f"<input>: field '{kind} config': ").removesuffix(" Remove or rename them.")
+        raise FormatError(
+            path,
+            "config",
+            f"its {kind} config does not fit this roomcap version ({why.rstrip('.')}).",
+            f"It was written by another version: forecast with that one, or retrain with `forecast train "
+            f"--model {kind}` (--set the keys above that this version knows).",
+        ) from None
+    model = build_model(kind, config, len(blob["joint_names"]), blob["state_dict"])
     meta = {k: v for k, v in blob.items() if k != "state_dict"}
     meta["config"] = config
     return model.to(map_location), meta

@@ -74,10 +74,31 @@ def _add_sample(sub: Any) -> None:
     s.add_argument(
         "--checkpoint", help="model checkpoint (default: the shipped GRU, forecast/checkpoints/gru_cmuall.pt)"
     )
-    s.add_argument("--tracks", required=True, help="track file (track/tracks.npz) or session folder")
+    s.add_argument(
+        "--tracks",
+        required=True,
+        help="session folder (its track/tracks.npz, else the live track/live.npz) or track file",
+    )
     s.add_argument("--horizon-s", type=positive_float, default=1.0, help="seconds to forecast")
     s.add_argument("--samples", type=positive_int, default=1, help="samples per track (stochastic models)")
-    s.add_argument("--out", required=True, help="forecast file to write (.npz)")
+    s.add_argument(
+        "--obs-s",
+        type=positive_float,
+        help="seconds the model observes before the forecast (default: what it was trained on; shorter lets "
+        "a shorter track be forecast, outside what the model was trained for)",
+    )
+    s.add_argument(
+        "--start-s",
+        type=float,
+        help="forecast from this time (seconds after the track's first frame; default: its last frame); "
+        "the track after it is the truth the pictures show",
+    )
+    s.add_argument(
+        "--out",
+        required=True,
+        help="forecast file to write (.npz); beside it one picture per person, <out stem>_track<ID>.png",
+    )
+    s.add_argument("--no-pictures", action="store_true", help="write the arrays only")
 
 
 def _add_eval(sub: Any) -> None:
