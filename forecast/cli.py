@@ -133,7 +133,7 @@ def _add_eval(sub: Any) -> None:
         "--save-samples",
         metavar="DIR",
         help="write samples_<model>.npz per model and baseline (pred, obs, gt in metres, fps, joint_names, "
-        "activity, model) for rescoring (protocols cmu, cmu8 and hik; not --social)",
+        "activity, clip: the window's clip, model) for rescoring (protocols cmu, cmu8 and hik; not --social)",
     )
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
     e.add_argument("--horizon-s", type=positive_float, default=4.0, help="seconds forecast per window")
