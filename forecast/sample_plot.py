@@ -199,7 +199,8 @@ def _floor(ax, k, roots, fps, zoom: bool, track_ids=None):
         alpha = 1.0 if S == 1 else max(0.12, 2.0 / S)
         for s in range(S):
             p = np.r_[o[-1:], fc[s, :, kk]]
-            ax.plot(p[:, 0], p[:, 1], color=FC, lw=1.2, alpha=alpha, label="forecast" if s == 0 else None)
+            lw = 2.0 if S == 1 else 1.2
+            ax.plot(p[:, 0], p[:, 1], color=FC, lw=lw, alpha=alpha, label="forecast" if s == 0 else None)
         if S > 1:
             m = np.r_[o[-1:], np.nanmean(fc[:, :, kk], 0)]
             ax.plot(m[:, 0], m[:, 1], color=FC, lw=2.5, label="mean of the samples")
@@ -231,6 +232,7 @@ def _floor(ax, k, roots, fps, zoom: bool, track_ids=None):
             fontsize=9,
         )
     else:
+        ax.margins(0.15)
         ax.set_title(
             "the scene, top view: this person (black), the others' observed paths (grey) and forecasts",
             fontsize=9,
