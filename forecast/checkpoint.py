@@ -20,21 +20,18 @@ from scipy.cluster.vq import kmeans2
 from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import atomic_path
 from roomcap.forecast import data as fdata
-from roomcap.forecast.config import BASELINES, CONFIGS, config_from_dict
+from roomcap.forecast.config import BASELINES
 from roomcap.forecast.models import (
     ConstantVelocity,
     FoolClusters,
-    IntentionModel,
-    Seq2SeqGRU,
     SlideLastPose,
-    SocialDiffusion,
     ZeroVelocity,
 )
-from roomcap.forecast.predict import LHIP, N_GLOBAL, RHIP
+from roomcap.forecast.predict import LHIP, RHIP
+from roomcap.forecast.registry import DISCRIMINATOR_PREFIXES, MODELS, build_model, config_from_dict
 from roomcap.keypoints.skeletons import get_skeleton
 
 CKPT_SCHEMA = "forecast-checkpoint/1"
-DISCRIMINATOR_PREFIXES = ("D_pose.", "D_label.")
 NORMALISATION = "eq. 3.8 at the last observed frame: root = mid-hips, hip vector (left->right) on +x, z up"
 
 
@@ -189,77 +186,19 @@ def save_checkpoint(
     )
 
 
-def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> torch.nn.Module:
-    D = 3 * n_joints
-    if kind == "gru":
-        m = Seq2SeqGRU(D, config.hidden, config.dropout)
-    elif kind == "intention":
-        centres = np.zeros((config.n_clusters, D), np.float32) if state is None else state["centres"].numpy()
-        merge = np.zeros(config.n_clusters, np.int64) if state is None else state["merge"].numpy()
-        m = IntentionModel(
-            D,
-            centres,
-            merge,
-            config.n_intentions,
-            config.hidden,
-            config.layers,
-            config.z_dim,
-            gamma=config.gamma,
-            f_dim=config.f_dim,
-        )
-    elif kind == "social_diffusion":
-        m = SocialDiffusion(
-            D + N_GLOBAL,
-            config.n_frames,
-            config.channels,
-            config.T,
-            anchored=config.anchor,
-            lag_stats=config.lag_stats,
-        )
-        m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
-        m.sample_dct = config.sample_dct
-        m.n_obs_clean = config.n_obs if config.clean_obs else 0
-        m.anchor = config.n_obs - 1 if config.anchor else None
-        if config.root_vel and not config.anchor:
-            raise InputError(
-                "root_vel = true needs anchor = true (displacements are summed from the anchor frame)"
-            )
-        m.root_vel = config.root_vel
-    else:
-        raise InputError(f"unknown model '{kind}'")
-    if state is not None:
-        try:
-            missing, unexpected = m.load_state_dict(state, strict=False)
-        except RuntimeError as e:  # shape mismatches: torch lists every tensor, the first says enough
-            lines = [ln.strip() for ln in str(e).splitlines() if "mismatch" in ln]
-            first = lines[0] if lines else str(e).splitlines()[0]
-            raise InputError(
-                f"the {kind} state does not fit the checkpoint's config ({len(lines)} tensors differ; first: "
-                f"{first}). The config or the weights were changed after training: retrain with "
-                "`forecast train`, or use the original file."
-            ) from None
-        missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
-        if missing or unexpected:
-            raise InputError(
-                f"{kind} state does not fit the config: missing {missing}, unexpected {unexpected}"
-            )
-    m.n_obs = config.n_obs
-    return m
-
-
 def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_location: str = "cpu"):
     """-> (model, meta). ``skeleton``: the skeleton the caller's data uses; a mismatch is a clear error."""
     blob = read_checkpoint(
         Path(path), CKPT_SCHEMA, skeleton, "forecast checkpoint", "forecast train", map_location
     )
     kind = blob.get("kind")
-    if kind not in CONFIGS:
+    if kind not in MODELS:
         raise FormatError(
             path,
             "kind",
-            f"a '{kind}' model, which this roomcap version does not build (it builds {', '.join(CONFIGS)}).",
+            f"a '{kind}' model, which this roomcap version does not build (it builds {', '.join(MODELS)}).",
             "Forecast with the roomcap version that wrote it, or train one of these: "
-            f"`forecast train --model {'|'.join(CONFIGS)}`.",
+            f"`forecast train --model {'|'.join(MODELS)}`.",
         )
     try:
         config = config_from_dict(kind, blob["config"])

@@ -27,6 +27,7 @@ import sys
 from typing import Any
 
 from roomcap.core.cli import Parser, guarded, positive_float, positive_int
+from roomcap.forecast.registry import NAMES
 
 # sub-commands with parsers of their own, dispatched before parsing (each loads torch when it runs)
 OWN_PARSERS = {
@@ -52,9 +53,7 @@ def _data_args(sp: argparse.ArgumentParser) -> None:
 def _add_train(sub: Any) -> None:
     """``forecast train``."""
     t = sub.add_parser("train", help="train a model")
-    t.add_argument(
-        "--model", required=True, choices=["gru", "intention", "social_diffusion"], help="model to train"
-    )
+    t.add_argument("--model", required=True, choices=NAMES, help="model to train")
     t.add_argument("--config", help="TOML with the config (a [model] table or top-level keys)")
     t.add_argument(
         "--set", action="append", help="override one config key: key=value (repeatable; default: none)"

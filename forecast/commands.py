@@ -26,8 +26,8 @@ from roomcap.forecast import train as T
 from roomcap.forecast.behaviour import cli as behaviour_cli
 from roomcap.forecast.characteristic import cli as characteristic_cli
 from roomcap.forecast.clips import load_one_person_all, load_two_person_real
-from roomcap.forecast.config import config_from_dict
 from roomcap.forecast.preview import DEFAULT_CHECKPOINT, save_forecast, shipped_checkpoints
+from roomcap.forecast.registry import config_from_dict
 from roomcap.forecast.track_forecast import forecast_tracks
 from roomcap.track.trackfile import resolve_track_file
 

@@ -42,6 +42,7 @@ from roomcap.forecast import data as fdata
 from roomcap.forecast import metrics as M
 from roomcap.forecast.clips import clip_activities, composed_batch
 from roomcap.forecast.predict import diffusion_rollout, forecast_world
+from roomcap.forecast.registry import forecasts_the_scene
 from roomcap.forecast.samples import write_samples
 from roomcap.keypoints.skeletons import get_skeleton
 
@@ -199,7 +200,7 @@ def evaluate_single(
         per_window_ff[name] = _ndms_per_window(scorer_ff, obs, y, wact)
         r["ndms_word_first_frame"] = per_window_ff[name].mean(0).tolist()
         r["wall_s"] = time.perf_counter() - tm
-        if getattr(model, "kind", "") == "social_diffusion":
+        if forecasts_the_scene(model):
             r["rollout"] = diffusion_rollout(model, n_pred)
         out["models"][name] = r
     _report(progress, "eval models", len(models), len(models))
@@ -429,7 +430,7 @@ def _social_models(models, obs, act, scorer, sscp, real, n_pred, L, seed, progre
             ]
         ).mean(0)
         entry = {"ndms": nd.tolist(), "ndms_mean": float(nd.mean())}
-        if getattr(model, "kind", "") == "social_diffusion":
+        if forecasts_the_scene(model):
             entry["rollout"] = diffusion_rollout(model, n_pred)
         if real is not None:
             gen = [np.concatenate([obs[b], y[b]], 0)[:L] for b in range(B)]

@@ -25,7 +25,6 @@ from roomcap.forecast.checkpoint import (
     DISCRIMINATOR_PREFIXES,
     NORMALISATION,
     baseline,
-    build_model,
     fool_model,
     load_checkpoint,
     read_checkpoint,
@@ -42,23 +41,16 @@ from roomcap.forecast.clips import (
     single_person_arrays,
     split_clips,
 )
-from roomcap.forecast.config import (
-    BASELINES,
-    CONFIGS,
-    DiffusionConfig,
-    GRUConfig,
-    IntentionConfig,
-    config_from_dict,
-)
+from roomcap.forecast.config import BASELINES, DiffusionConfig, GRUConfig, IntentionConfig
 from roomcap.forecast.models.diffusion import N_CONST
 from roomcap.forecast.models.intention import fit_intention_labels, local_poses
+from roomcap.forecast.registry import build_model, config_from_dict
 from roomcap.forecast.selection import SELECT, VAL_FROM, VAL_N_OBS, VAL_N_PRED, Selector, Validator
 from roomcap.keypoints.skeletons import get_skeleton
 
 __all__ = [
     "BASELINES",
     "CKPT_SCHEMA",
-    "CONFIGS",
     "DISCRIMINATOR_PREFIXES",
     "NORMALISATION",
     "SELECT",

@@ -11,7 +11,7 @@ from roomcap.core.errors import FormatError
 from roomcap.forecast import checkpoint as C
 from roomcap.forecast import data as D
 from roomcap.forecast.cli import main
-from roomcap.forecast.config import config_from_dict
+from roomcap.forecast.registry import build_model, config_from_dict
 from roomcap.forecast.toy import walker
 from roomcap.keypoints.skeletons import get_skeleton
 from roomcap.track.trackfile import TrackFile
@@ -48,7 +48,7 @@ def gru(tmp_path_factory):
     torch.manual_seed(0)
     cfg = config_from_dict("gru", {"hidden": 8, "n_obs": 20, "n_pred": 10})
     path = tmp_path_factory.mktemp("ck") / "gru.pt"
-    C.save_checkpoint(path, C.build_model("gru", cfg, 19), "gru", cfg)
+    C.save_checkpoint(path, build_model("gru", cfg, 19), "gru", cfg)
     return path
 
 
