@@ -38,12 +38,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from roomcap.core.errors import FormatError, InputError
+from roomcap.core.errors import InputError
 from roomcap.core.fileio import atomic_path, atomic_write_text
 from roomcap.forecast import benchmark_cmu8_published as P
 from roomcap.forecast import cmu_more as C
 from roomcap.forecast import samples as fsamples
-from roomcap.forecast.checkpoint import describe_checkpoint, load_checkpoint
+from roomcap.forecast.checkpoint import load_checkpoint, read_checkpoint
 from roomcap.forecast.predict import forecast_world
 from roomcap.synthetic.bvh import BODY19
 
@@ -336,17 +336,9 @@ def _build(n_points: int, config: dict, state: dict) -> DctMlp:
 
 def load_mlp(path: str | os.PathLike) -> tuple[Forecaster, dict]:
     """A ``forecast cmu8`` checkpoint: one DCT + MLP, or an ensemble of them (``kind``)."""
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - re-raised with what to do
-        raise FormatError(path, None, f"not a readable checkpoint ({type(e).__name__}).", "") from e
-    if not isinstance(blob, dict) or blob.get("schema") != CKPT_SCHEMA:
-        raise FormatError(
-            path,
-            "schema",
-            f"expected '{CKPT_SCHEMA}': this is {describe_checkpoint(blob)}.",
-            "A benchmark DCT + MLP comes from `forecast cmu8 train`.",
-        )
+    blob = read_checkpoint(
+        Path(path), CKPT_SCHEMA, None, "CMU 8-action DCT + MLP checkpoint", "forecast cmu8 train"
+    )
     n = len(blob["points"])
     if blob.get("kind") == DctMlpEnsemble.kind:
         m: Forecaster = DctMlpEnsemble([_build(n, k["config"], k["state_dict"]) for k in blob["members"]])

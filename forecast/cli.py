@@ -8,6 +8,7 @@ Examples::
     forecast eval --checkpoints runs/gru.pt runs/intention.pt --data cmu --out runs/eval
     forecast eval --social --checkpoints runs/gru.pt runs/sd.pt --data cmu --out runs/eval_social
     forecast characteristic eval --checkpoint forecast/checkpoints/characteristic_cmu.pt   # Diller ch. 3
+    forecast models        # the shipped checkpoints with their model cards
 
 Data: ``cmu`` = the CMU BVH under ``$ROOMCAP_MOCAP`` / ``$ROOMCAP_SHARED/data/motion``; otherwise track files
 or folders containing ``tracks.npz``. Train / validation / test split by clip (``data.split_train_val_test``,
@@ -158,6 +159,13 @@ def _add_eval(sub: Any) -> None:
     _data_args(e)
 
 
+def _add_models(sub: Any) -> None:
+    """``forecast models``."""
+    m = sub.add_parser("models", help="list the shipped checkpoints with their model cards")
+    m.add_argument("--folder", help="list the checkpoints of this folder instead (default: the shipped ones)")
+    m.add_argument("--json", action="store_true", help="print the cards as JSON")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument(
@@ -170,6 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_sample(sub)
     _add_eval(sub)
+    _add_models(sub)
     return p
 
 

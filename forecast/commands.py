@@ -7,6 +7,7 @@ set the BLAS thread variables: importing this module loads torch.
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -298,10 +299,23 @@ def _eval_hik(args, names: list[str]) -> int:
     return 0
 
 
+def cmd_models(args) -> int:
+    from roomcap.forecast import cards
+
+    folder = Path(args.folder) if args.folder else cards.CHECKPOINT_DIR
+    if not folder.is_dir():
+        raise InputError(f"--folder {folder} is not a folder of checkpoints")
+    cs = cards.cards(folder)
+    if not cs:
+        raise InputError(f"no checkpoints (*.pt) in {folder}")
+    print(json.dumps(cs, indent=1, default=str) if args.json else cards.render(cs))
+    return 0
+
+
 def run(args) -> int:
-    """Run the parsed ``train``, ``sample`` or ``eval`` command."""
+    """Run the parsed ``train``, ``sample``, ``eval`` or ``models`` command."""
     torch.set_num_threads(args.threads)
-    return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval}[args.cmd](args)
+    return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval, "models": cmd_models}[args.cmd](args)
 
 
 def run_own_parser(name: str, argv: list[str]) -> int:

@@ -183,3 +183,35 @@ def test_pictures_of_a_stochastic_forecast_draw_the_spread(tmp_path):
     }
     paths = plot_forecasts(fc, tmp_path / "fc.npz", title="toy")
     assert [p.name for p in paths] == ["fc_track0.png", "fc_track5.png"] and all(p.exists() for p in paths)
+
+
+def test_the_cmu8_reader_names_a_checkpoint_of_another_kind(gru):
+    from roomcap.forecast.benchmark_cmu8 import load_mlp
+
+    with pytest.raises(FormatError, match=r"a forecast checkpoint \(GRU, intention or Social Diffusion\)"):
+        load_mlp(gru)
+
+
+def test_forecast_models_lists_the_cards(gru, tmp_path, capsys):
+    import json
+
+    from roomcap.forecast.preview import CHECKPOINT_DIR, DEFAULT_CHECKPOINT
+
+    assert main(["models"]) == 0
+    out = capsys.readouterr().out
+    shipped = sorted(p.name for p in CHECKPOINT_DIR.glob("*.pt"))
+    assert [ln.split()[0] for ln in out.splitlines() if ln and not ln.startswith(" ")] == shipped
+    default = next(ln for ln in out.splitlines() if ln.startswith(DEFAULT_CHECKPOINT.name))
+    assert "the default of forecast sample" in default
+    folder = tmp_path / "cks"
+    folder.mkdir()
+    (folder / "a.pt").write_bytes((gru).read_bytes())
+    torch.save({"w": torch.zeros(3)}, folder / "b.pt")
+    (folder / "c.pt").write_bytes(b"junk")
+    assert main(["models", "--folder", str(folder), "--json"]) == 0
+    cs = json.loads(capsys.readouterr().out)
+    assert [c["file"] for c in cs] == ["a.pt", "b.pt", "c.pt"]
+    assert cs[0]["model"].startswith("gru: ") and cs[0]["observes"] == "20 frames (0.8 s)"
+    assert "bare PyTorch state dict" in cs[1]["what"] and cs[2]["what"].startswith("not readable")
+    assert main(["models", "--folder", str(tmp_path / "none")]) == 2
+    assert "is not a folder of checkpoints" in capsys.readouterr().err
