@@ -7,8 +7,9 @@ model, as lerobot's policy configs do. Importing this module does not load torch
 
 A :class:`ModelSpec` holds the model's ``config`` class (``forecast.config``, the only copy of its defaults),
 ``build(config, n_joints, state)`` (the module, with the buffers a state may fill: k-means centres, feature
-statistics), and how it forecasts (``scene``: the whole scene at once, Social Diffusion, ch. 7; otherwise each
-person alone, normalised at its last observed frame, eq. 3.8).
+statistics), how it forecasts and trains (``scene``: the whole scene at once, Social Diffusion, ch. 7;
+otherwise each person alone, normalised at its last observed frame, eq. 3.8) and whether it learns intentions
+against discriminators (``intentions``, ch. 6); ``forecast.train`` reads these instead of the model's name.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ class ModelSpec:
     name: str
     config: type
     build: Callable[[Any, int, Mapping | None], Any]  # (config, n_joints, state) -> torch module
-    scene: bool  # True: forecasts the scene at once; False: each person alone (eq. 3.8)
+    scene: bool  # True: forecasts (and trains on) the scene at once; False: each person alone (eq. 3.8)
+    intentions: bool  # trained on k-means intention labels, against discriminators (Tanke ch. 6)
     summary: str
 
 
@@ -88,20 +90,29 @@ def _build_diffusion(config: DiffusionConfig, n_joints: int, state: Mapping | No
 MODELS: dict[str, ModelSpec] = {
     s.name: s
     for s in (
-        ModelSpec("gru", GRUConfig, _build_gru, False, "seq2seq GRU, deterministic (Martinez et al. 2017)"),
+        ModelSpec(
+            "gru",
+            GRUConfig,
+            _build_gru,
+            scene=False,
+            intentions=False,
+            summary="seq2seq GRU, deterministic (Martinez et al. 2017)",
+        ),
         ModelSpec(
             "intention",
             IntentionConfig,
             _build_intention,
-            False,
-            "the intention model, stochastic (Tanke ch. 6)",
+            scene=False,
+            intentions=True,
+            summary="the intention model, stochastic (Tanke ch. 6)",
         ),
         ModelSpec(
             "social_diffusion",
             DiffusionConfig,
             _build_diffusion,
-            True,
-            "Social Diffusion, the scene at once, stochastic (Tanke ch. 7)",
+            scene=True,
+            intentions=False,
+            summary="Social Diffusion, the scene at once, stochastic (Tanke ch. 7)",
         ),
     )
 }

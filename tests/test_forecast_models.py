@@ -486,6 +486,7 @@ def test_the_registry_names_builds_and_routes_every_trainable_model():
         m = build_model(name, s.config(), 19)
         assert spec_of(m) is s and m.n_obs == s.config().n_obs
         assert forecasts_the_scene(m) == (name == "social_diffusion")
+        assert s.intentions == (name == "intention")
     assert spec_of(ZeroVelocity()) is None and not forecasts_the_scene(ConstantVelocity())
     with pytest.raises(InputError, match="unknown model 'lstm'; trainable models"):
         spec("lstm")
