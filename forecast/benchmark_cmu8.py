@@ -38,11 +38,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from roomcap.core.errors import FormatError, InputError
+from roomcap.core.errors import InputError
 from roomcap.core.fileio import atomic_path, atomic_write_text
 from roomcap.forecast import benchmark_cmu8_published as P
 from roomcap.forecast import cmu_more as C
-from roomcap.forecast.checkpoint import load_checkpoint
+from roomcap.forecast import samples as fsamples
+from roomcap.forecast.checkpoint import load_checkpoint, read_checkpoint
 from roomcap.forecast.predict import forecast_world
 from roomcap.synthetic.bvh import BODY19
 
@@ -335,14 +336,9 @@ def _build(n_points: int, config: dict, state: dict) -> DctMlp:
 
 def load_mlp(path: str | os.PathLike) -> tuple[Forecaster, dict]:
     """A ``forecast cmu8`` checkpoint: one DCT + MLP, or an ensemble of them (``kind``)."""
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - re-raised with what to do
-        raise FormatError(path, None, f"not a readable checkpoint ({type(e).__name__}).", "") from e
-    if not isinstance(blob, dict) or blob.get("schema") != CKPT_SCHEMA:
-        raise FormatError(
-            path, "schema", f"expected '{CKPT_SCHEMA}'.", "Train one with `forecast cmu8 train`."
-        )
+    blob = read_checkpoint(
+        Path(path), CKPT_SCHEMA, None, "CMU 8-action DCT + MLP checkpoint", "forecast cmu8 train"
+    )
     n = len(blob["points"])
     if blob.get("kind") == DctMlpEnsemble.kind:
         m: Forecaster = DctMlpEnsemble([_build(n, k["config"], k["state_dict"]) for k in blob["members"]])
@@ -404,15 +400,17 @@ class _Scores:
         self.per.setdefault(name, {})[a] = err
         self.meta.setdefault(name, (variant, joints, extra or {}))
 
-    def keep(self, name: str, a: str, pred_m, obs_m, gt_m, joint_names, fps) -> None:
-        """Forecasts ``pred_m (W,S,T,J,3)``, ``obs_m``, ``gt_m`` in metres, for ``samples_<name>.npz``."""
+    def keep(self, name: str, a: str, pred_m, obs_m, gt_m, joint_names, fps, clips: list[str]) -> None:
+        """Forecasts ``pred_m (W,S,T,J,3)``, ``obs_m``, ``gt_m`` in metres of the windows of the test
+        files ``clips (W,)``, for ``samples_<name>.npz``."""
         if self.samples_dir is None:
             return
-        s = self.samples.setdefault(name, {"pred": [], "obs": [], "gt": [], "activity": []})
+        s = self.samples.setdefault(name, {"pred": [], "obs": [], "gt": [], "activity": [], "clip": []})
         s["pred"].append(pred_m.astype(np.float32))
         s["obs"].append(obs_m.astype(np.float32))
         s["gt"].append(gt_m.astype(np.float32))
         s["activity"] += [a] * len(gt_m)
+        s["clip"] += list(clips)
         s["joint_names"], s["fps"] = list(joint_names), fps
 
     def models(self) -> dict[str, dict]:
@@ -444,7 +442,8 @@ def _score_exact(ts: TestSet, mlps: list[tuple[str, nn.Module, dict]], sc: _Scor
         for name, p, extra in preds:
             sc.put(name, a, mpjpe_mm(p, gt), *_EXACT, extra)
             sc.put(f"{name}@body19", a, mpjpe_mm(p, gt, BODY19_LIMB_POINTS), *_BODY19)
-            sc.keep(name, a, p[:, None] * u, obs * u, gt * u, C.CMU38_NAMES, FPS)
+            clips = [Path(ts.files[a][fi]).stem for fi, _ in ts.starts[a]]
+            sc.keep(name, a, p[:, None] * u, obs * u, gt * u, C.CMU38_NAMES, FPS, clips)
 
 
 def _score_body19(ts: TestSet, checkpoints: list, n_samples: int, sc: _Scores, progress=None) -> None:
@@ -470,7 +469,7 @@ def _score_body19(ts: TestSet, checkpoints: list, n_samples: int, sc: _Scores, p
                 obs_m = C.cmu38_to_body19(ts.windows[a][sel, :N_OBS])
                 # a rotation keeps distances: metres / ASF unit = the protocol's units
                 errs.append(mpjpe_mm(y[..., limb19, :] / C.ASF_UNIT_M, gt_m[..., limb19, :] / C.ASF_UNIT_M))
-                sc.keep(name, a, y, obs_m, gt_m, BODY19, FPS)
+                sc.keep(name, a, y, obs_m, gt_m, BODY19, FPS, [Path(f).stem] * len(sel))
             sc.put(name, a, np.concatenate(errs), *_BODY19)
 
 
@@ -539,28 +538,26 @@ LAYOUT = {
 
 
 def write_samples(out_dir: str | os.PathLike, samples: dict[str, dict]) -> dict[str, str]:
-    """``samples_<name>.npz`` per model: pred (N,S,T,J,3), obs (N,T_obs,J,3), gt (N,T,J,3) metres, fps,
-    joint_names, activity (N,), model."""
-    out = {}
-    d = Path(out_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    for name, s in samples.items():
-        path = d / f"samples_{name.replace('@', '_at_').replace('/', '_')}.npz"
-        with atomic_path(path) as tmp:
-            np.savez_compressed(
-                tmp,
-                pred=np.concatenate(s["pred"]),
-                obs=np.concatenate(s["obs"]),
-                gt=np.concatenate(s["gt"]),
-                fps=np.float64(s["fps"]),
-                joint_names=np.array(s["joint_names"]),
-                activity=np.array(s["activity"]),
-                model=np.array(name),
+    """``samples_<name>.npz`` per model (:mod:`roomcap.forecast.samples`), with the protocol's name and
+    its millimetres per metre."""
+    return {
+        name: str(
+            fsamples.write_samples(
+                out_dir,
+                name,
+                np.concatenate(s["pred"]),
+                np.concatenate(s["obs"]),
+                np.concatenate(s["gt"]),
+                s["fps"],
+                s["joint_names"],
+                s["activity"],
+                s["clip"],
                 protocol=np.array(PROTOCOL),
                 protocol_mm_per_m=np.float64(MM_PER_UNIT / C.ASF_UNIT_M),
             )
-        out[name] = str(path)
-    return out
+        )
+        for name, s in samples.items()
+    }
 
 
 def report_markdown(res: dict) -> str:

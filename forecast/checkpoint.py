@@ -20,21 +20,18 @@ from scipy.cluster.vq import kmeans2
 from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import atomic_path
 from roomcap.forecast import data as fdata
-from roomcap.forecast.config import BASELINES, config_from_dict
+from roomcap.forecast.config import BASELINES
 from roomcap.forecast.models import (
     ConstantVelocity,
     FoolClusters,
-    IntentionModel,
-    Seq2SeqGRU,
     SlideLastPose,
-    SocialDiffusion,
     ZeroVelocity,
 )
-from roomcap.forecast.predict import LHIP, N_GLOBAL, RHIP
+from roomcap.forecast.predict import LHIP, RHIP
+from roomcap.forecast.registry import DISCRIMINATOR_PREFIXES, MODELS, build_model, config_from_dict
 from roomcap.keypoints.skeletons import get_skeleton
 
 CKPT_SCHEMA = "forecast-checkpoint/1"
-DISCRIMINATOR_PREFIXES = ("D_pose.", "D_label.")
 NORMALISATION = "eq. 3.8 at the last observed frame: root = mid-hips, hip vector (left->right) on +x, z up"
 
 
@@ -67,6 +64,62 @@ def write_checkpoint(
         torch.save(blob, tmp)
 
 
+# Every checkpoint schema of the project (forecast/checkpoints), for a message that names what a file is
+# when a reader gets one it does not read: schema -> (what it is, what reads it). The behaviour and
+# characteristic modules own their constants; tests/test_forecast_models.py checks that these match them.
+KNOWN_SCHEMAS = {
+    CKPT_SCHEMA: (
+        "a forecast checkpoint (GRU, intention or Social Diffusion)",
+        "`forecast sample --checkpoint PATH` and `forecast eval --checkpoints PATH` read it",
+    ),
+    "forecast-characteristic/1": (
+        "a characteristic-3D-pose checkpoint (Diller ch. 3)",
+        "`forecast characteristic eval --checkpoint PATH` reads it",
+    ),
+    "forecast-cmu8-checkpoint/1": (
+        "a DCT + MLP of the CMU 8-action benchmark (its own 3D points at 60 Hz, not tracks)",
+        "`forecast eval --protocol cmu8 --checkpoints PATH` scores it",
+    ),
+    "behaviour_checkpoint/1": (
+        "a behaviour model (next actions and their poses, Diller ch. 4)",
+        "`forecast behaviour sample|eval --checkpoint PATH` reads it",
+    ),
+    "behaviour_quality/1": (
+        "a behaviour pose-quality model (Diller ch. 4)",
+        "`forecast behaviour` reads it beside its behaviour model",
+    ),
+}
+
+
+def describe_checkpoint(blob) -> str:
+    """What a loaded checkpoint ``blob`` is, in words: one of :data:`KNOWN_SCHEMAS`, another version of one
+    (``name/N``), a bare state dict, or whatever else it holds."""
+    if not isinstance(blob, dict):
+        return f"a {type(blob).__name__}, not a checkpoint dict"
+    schema = blob.get("schema")
+    if schema in KNOWN_SCHEMAS:
+        what, how = KNOWN_SCHEMAS[schema]
+        kind = f" ('{blob['kind']}')" if isinstance(blob.get("kind"), str) else ""
+        return f"{what}{kind}: {how}"
+    if isinstance(schema, str):
+        name, _, version = schema.rpartition("/")
+        ours = [k for k in KNOWN_SCHEMAS if k.rpartition("/")[0] == name]
+        if ours:
+            what, _ = KNOWN_SCHEMAS[ours[0]]
+            return (
+                f"{what} of schema '{schema}', written by another roomcap version (this one reads "
+                f"'{ours[0]}'): forecast with the version that wrote it, or retrain it with this one"
+            )
+        return f"a checkpoint of schema '{schema}', which roomcap does not know"
+    if blob and all(isinstance(v, torch.Tensor) for v in blob.values()):
+        return (
+            f"a bare PyTorch state dict ({len(blob)} tensors, no schema, config or skeleton), so the model "
+            "cannot be rebuilt from it: save the model with roomcap.forecast.checkpoint.save_checkpoint "
+            "(model, kind, config), or retrain it"
+        )
+    return f"a dict without a schema (keys {sorted(map(str, blob))[:6]})"
+
+
 def read_checkpoint(
     path: Path,
     schema: str,
@@ -92,8 +145,8 @@ def read_checkpoint(
         raise FormatError(
             path,
             "schema",
-            f"expected '{schema}', got {got!r}.",
-            f"This is not a {what} of this version; train one with `{train_cmd}`.",
+            f"expected '{schema}', got {got!r}: this is {describe_checkpoint(blob)}.",
+            f"A {what} of this version comes from `{train_cmd}`.",
         )
     if skeleton is not None and blob["skeleton"] != skeleton:
         raise FormatError(
@@ -133,71 +186,32 @@ def save_checkpoint(
     )
 
 
-def build_model(kind: str, config, n_joints: int, state: dict | None = None) -> torch.nn.Module:
-    D = 3 * n_joints
-    if kind == "gru":
-        m = Seq2SeqGRU(D, config.hidden, config.dropout)
-    elif kind == "intention":
-        centres = np.zeros((config.n_clusters, D), np.float32) if state is None else state["centres"].numpy()
-        merge = np.zeros(config.n_clusters, np.int64) if state is None else state["merge"].numpy()
-        m = IntentionModel(
-            D,
-            centres,
-            merge,
-            config.n_intentions,
-            config.hidden,
-            config.layers,
-            config.z_dim,
-            gamma=config.gamma,
-            f_dim=config.f_dim,
-        )
-    elif kind == "social_diffusion":
-        m = SocialDiffusion(
-            D + N_GLOBAL,
-            config.n_frames,
-            config.channels,
-            config.T,
-            anchored=config.anchor,
-            lag_stats=config.lag_stats,
-        )
-        m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
-        m.sample_dct = config.sample_dct
-        m.n_obs_clean = config.n_obs if config.clean_obs else 0
-        m.anchor = config.n_obs - 1 if config.anchor else None
-        if config.root_vel and not config.anchor:
-            raise InputError(
-                "root_vel = true needs anchor = true (displacements are summed from the anchor frame)"
-            )
-        m.root_vel = config.root_vel
-    else:
-        raise InputError(f"unknown model '{kind}'")
-    if state is not None:
-        try:
-            missing, unexpected = m.load_state_dict(state, strict=False)
-        except RuntimeError as e:  # shape mismatches: torch lists every tensor, the first says enough
-            lines = [ln.strip() for ln in str(e).splitlines() if "mismatch" in ln]
-            first = lines[0] if lines else str(e).splitlines()[0]
-            raise InputError(
-                f"the {kind} state does not fit the checkpoint's config ({len(lines)} tensors differ; first: "
-                f"{first}). The config or the weights were changed after training: retrain with "
-                "`forecast train`, or use the original file."
-            ) from None
-        missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
-        if missing or unexpected:
-            raise InputError(
-                f"{kind} state does not fit the config: missing {missing}, unexpected {unexpected}"
-            )
-    m.n_obs = config.n_obs
-    return m
-
-
 def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_location: str = "cpu"):
     """-> (model, meta). ``skeleton``: the skeleton the caller's data uses; a mismatch is a clear error."""
     blob = read_checkpoint(
         Path(path), CKPT_SCHEMA, skeleton, "forecast checkpoint", "forecast train", map_location
     )
-    config = config_from_dict(blob["kind"], blob["config"])
-    model = build_model(blob["kind"], config, len(blob["joint_names"]), blob["state_dict"])
+    kind = blob.get("kind")
+    if kind not in MODELS:
+        raise FormatError(
+            path,
+            "kind",
+            f"a '{kind}' model, which this roomcap version does not build (it builds {', '.join(MODELS)}).",
+            "Forecast with the roomcap version that wrote it, or train one of these: "
+            f"`forecast train --model {'|'.join(MODELS)}`.",
+        )
+    try:
+        config = config_from_dict(kind, blob["config"])
+    except (InputError, FormatError) as e:
+        why = str(e).removeprefix(f"<input>: field '{kind} config': ").removesuffix(" Remove or rename them.")
+        raise FormatError(
+            path,
+            "config",
+            f"its {kind} config does not fit this roomcap version ({why.rstrip('.')}).",
+            f"It was written by another version: forecast with that one, or retrain with `forecast train "
+            f"--model {kind}` (--set the keys above that this version knows).",
+        ) from None
+    model = build_model(kind, config, len(blob["joint_names"]), blob["state_dict"])
     meta = {k: v for k, v in blob.items() if k != "state_dict"}
     meta["config"] = config
     return model.to(map_location), meta

@@ -8,6 +8,7 @@ Examples::
     forecast eval --checkpoints runs/gru.pt runs/intention.pt --data cmu --out runs/eval
     forecast eval --social --checkpoints runs/gru.pt runs/sd.pt --data cmu --out runs/eval_social
     forecast characteristic eval --checkpoint forecast/checkpoints/characteristic_cmu.pt   # Diller ch. 3
+    forecast models        # the shipped checkpoints with their model cards
 
 Data: ``cmu`` = the CMU BVH under ``$ROOMCAP_MOCAP`` / ``$ROOMCAP_SHARED/data/motion``; otherwise track files
 or folders containing ``tracks.npz``. Train / validation / test split by clip (``data.split_train_val_test``,
@@ -27,6 +28,7 @@ import sys
 from typing import Any
 
 from roomcap.core.cli import Parser, guarded, positive_float, positive_int
+from roomcap.forecast.registry import NAMES
 
 # sub-commands with parsers of their own, dispatched before parsing (each loads torch when it runs)
 OWN_PARSERS = {
@@ -52,9 +54,7 @@ def _data_args(sp: argparse.ArgumentParser) -> None:
 def _add_train(sub: Any) -> None:
     """``forecast train``."""
     t = sub.add_parser("train", help="train a model")
-    t.add_argument(
-        "--model", required=True, choices=["gru", "intention", "social_diffusion"], help="model to train"
-    )
+    t.add_argument("--model", required=True, choices=NAMES, help="model to train")
     t.add_argument("--config", help="TOML with the config (a [model] table or top-level keys)")
     t.add_argument(
         "--set", action="append", help="override one config key: key=value (repeatable; default: none)"
@@ -74,10 +74,31 @@ def _add_sample(sub: Any) -> None:
     s.add_argument(
         "--checkpoint", help="model checkpoint (default: the shipped GRU, forecast/checkpoints/gru_cmuall.pt)"
     )
-    s.add_argument("--tracks", required=True, help="track file (track/tracks.npz) or session folder")
+    s.add_argument(
+        "--tracks",
+        required=True,
+        help="session folder (its track/tracks.npz, else the live track/live.npz) or track file",
+    )
     s.add_argument("--horizon-s", type=positive_float, default=1.0, help="seconds to forecast")
     s.add_argument("--samples", type=positive_int, default=1, help="samples per track (stochastic models)")
-    s.add_argument("--out", required=True, help="forecast file to write (.npz)")
+    s.add_argument(
+        "--obs-s",
+        type=positive_float,
+        help="seconds the model observes before the forecast (default: what it was trained on; shorter lets "
+        "a shorter track be forecast, outside what the model was trained for)",
+    )
+    s.add_argument(
+        "--start-s",
+        type=float,
+        help="forecast from this time (seconds after the track's first frame; default: its last frame); "
+        "the track after it is the truth the pictures show",
+    )
+    s.add_argument(
+        "--out",
+        required=True,
+        help="forecast file to write (.npz); beside it one picture per person, <out stem>_track<ID>.png",
+    )
+    s.add_argument("--no-pictures", action="store_true", help="write the arrays only")
 
 
 def _add_eval(sub: Any) -> None:
@@ -120,7 +141,7 @@ def _add_eval(sub: Any) -> None:
         "--save-samples",
         metavar="DIR",
         help="write samples_<model>.npz per model and baseline (pred, obs, gt in metres, fps, joint_names, "
-        "activity, model) for rescoring (protocols cmu, cmu8 and hik; not --social)",
+        "activity, clip: the window's clip, model) for rescoring (protocols cmu, cmu8 and hik; not --social)",
     )
     e.add_argument("--social", action="store_true", help="composed two-person scenes, long horizon, SSCP")
     e.add_argument("--horizon-s", type=positive_float, default=4.0, help="seconds forecast per window")
@@ -146,6 +167,13 @@ def _add_eval(sub: Any) -> None:
     _data_args(e)
 
 
+def _add_models(sub: Any) -> None:
+    """``forecast models``."""
+    m = sub.add_parser("models", help="list the shipped checkpoints with their model cards")
+    m.add_argument("--folder", help="list the checkpoints of this folder instead (default: the shipped ones)")
+    m.add_argument("--json", action="store_true", help="print the cards as JSON")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="forecast", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument(
@@ -158,6 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_sample(sub)
     _add_eval(sub)
+    _add_models(sub)
     return p
 
 

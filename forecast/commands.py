@@ -7,6 +7,7 @@ set the BLAS thread variables: importing this module loads torch.
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -27,9 +28,10 @@ from roomcap.forecast import train as T
 from roomcap.forecast.behaviour import cli as behaviour_cli
 from roomcap.forecast.characteristic import cli as characteristic_cli
 from roomcap.forecast.clips import load_one_person_all, load_two_person_real
-from roomcap.forecast.config import config_from_dict
-from roomcap.forecast.preview import DEFAULT_CHECKPOINT, preview, save_forecast, shipped_checkpoints
-from roomcap.forecast.track_forecast import no_forecast_reason
+from roomcap.forecast.preview import DEFAULT_CHECKPOINT, save_forecast, shipped_checkpoints
+from roomcap.forecast.registry import config_from_dict
+from roomcap.forecast.track_forecast import forecast_tracks
+from roomcap.track.trackfile import resolve_track_file
 
 log = logging.getLogger(__name__)
 
@@ -115,13 +117,25 @@ def cmd_train(args) -> int:
 
 
 def cmd_sample(args) -> int:
-    fc = preview(args.tracks, args.horizon_s, args.checkpoint, args.samples)
+    path, _ = resolve_track_file(args.tracks)
+    fc = forecast_tracks(
+        path,
+        args.horizon_s,
+        args.checkpoint or DEFAULT_CHECKPOINT,
+        args.samples,
+        args.obs_s,
+        start_s=args.start_s,
+        strict=True,
+    )
+    fps, track_fps = float(fc["fps"]), float(fc["track_fps"])
+    if abs(track_fps - fps) > 1e-6:
+        print(
+            f"note: {path} is at {track_fps:g} Hz and the model ({fc['model']}) at {fps:g} Hz: the track was "
+            f"resampled to {fps:g} Hz (linear) and the forecast is at {fps:g} Hz."
+        )
     if not np.isfinite(fc["xyz_m"]).any():
-        why = no_forecast_reason(args.tracks, args.checkpoint or DEFAULT_CHECKPOINT)
-        if why:
-            raise InputError(f"{why} Nothing was written.")
         raise InputError(
-            f"the forecast of {args.tracks} is NaN everywhere: none of its {fc['xyz_m'].shape[2]} tracks has "
+            f"the forecast of {path} is NaN everywhere: none of its {fc['xyz_m'].shape[2]} tracks has "
             "observed joints in the frames the model looks at. Check the track file (forecast the tracks of "
             "a session where people were found) and the checkpoint; nothing was written."
         )
@@ -130,6 +144,11 @@ def cmd_sample(args) -> int:
         f"{fc['model']}: {fc['xyz_m'].shape[2]} tracks, {fc['xyz_m'].shape[1]} frames "
         f"x {fc['xyz_m'].shape[0]} samples -> {args.out}"
     )
+    if not args.no_pictures:
+        from roomcap.forecast.sample_plot import plot_forecasts  # lazy: loads matplotlib
+
+        for png in plot_forecasts(fc, args.out, title=f"{path}"):
+            print(f"picture: {png}")
     return 0
 
 
@@ -306,10 +325,23 @@ def _eval_hik(args, names: list[str]) -> int:
     return 0
 
 
+def cmd_models(args) -> int:
+    from roomcap.forecast import cards
+
+    folder = Path(args.folder) if args.folder else cards.CHECKPOINT_DIR
+    if not folder.is_dir():
+        raise InputError(f"--folder {folder} is not a folder of checkpoints")
+    cs = cards.cards(folder)
+    if not cs:
+        raise InputError(f"no checkpoints (*.pt) in {folder}")
+    print(json.dumps(cs, indent=1, default=str) if args.json else cards.render(cs))
+    return 0
+
+
 def run(args) -> int:
-    """Run the parsed ``train``, ``sample`` or ``eval`` command."""
+    """Run the parsed ``train``, ``sample``, ``eval`` or ``models`` command."""
     torch.set_num_threads(args.threads)
-    return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval}[args.cmd](args)
+    return {"train": cmd_train, "sample": cmd_sample, "eval": cmd_eval, "models": cmd_models}[args.cmd](args)
 
 
 def run_own_parser(name: str, argv: list[str]) -> int:

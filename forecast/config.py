@@ -1,16 +1,12 @@
 """Training configurations of the forecasting models: frozen dataclasses holding the only copy of each
-default, built by :func:`config_from_dict` (``core.config``: unknown keys are an error listing the valid
-ones, values are coerced, a wrong kind names the key). The small defaults train on 2 CPU cores in minutes.
+default, built by :func:`roomcap.forecast.registry.config_from_dict` (``core.config``: unknown keys are an
+error listing the valid ones, values are coerced, a wrong kind names the key), which maps each model's name
+to its class. The small defaults train on 2 CPU cores in minutes.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
-
-from roomcap.core import config as core_config
-from roomcap.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -79,12 +75,4 @@ class DiffusionConfig:
     ema: float = 0.0  # >0: validate and keep an exponential moving average of the weights (decay per step)
 
 
-CONFIGS = {"gru": GRUConfig, "intention": IntentionConfig, "social_diffusion": DiffusionConfig}
 BASELINES = ("zero_velocity", "constant_velocity", "slide")  # the evaluation's names: evaluate.BASELINES
-
-
-def config_from_dict(kind: str, d: Mapping[str, Any] | None = None) -> Any:
-    """Typed config for ``kind`` from a dict (e.g. a TOML table); unknown keys are an error."""
-    if kind not in CONFIGS:
-        raise InputError(f"unknown model '{kind}'; trainable models: {sorted(CONFIGS)}")
-    return core_config.config_from_dict(CONFIGS[kind], dict(d or {}), where=f"{kind} config")

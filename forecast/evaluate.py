@@ -36,12 +36,14 @@ import numpy as np
 import torch
 
 from roomcap.core.errors import InputError
-from roomcap.core.fileio import atomic_path, atomic_write_text
+from roomcap.core.fileio import atomic_write_text
 from roomcap.core.progress import Progress
 from roomcap.forecast import data as fdata
 from roomcap.forecast import metrics as M
 from roomcap.forecast.clips import clip_activities, composed_batch
 from roomcap.forecast.predict import diffusion_rollout, forecast_world
+from roomcap.forecast.registry import forecasts_the_scene
+from roomcap.forecast.samples import write_samples
 from roomcap.keypoints.skeletons import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -145,7 +147,7 @@ def evaluate_single(
     mm_threshold_m: float = 0.5,
     samples_dir: str | os.PathLike | None = None,
 ) -> dict:
-    """``samples_dir``: write ``samples_<model>.npz`` there per model (``write_samples``).
+    """``samples_dir``: write ``samples_<model>.npz`` there per model (:mod:`roomcap.forecast.samples`).
     ``ndms_database``: clips for the NDMS database (default: the held-out clips); ``activities``: clip
     name -> activity (default ``clips.clip_activities``: CMU by ``index.csv``, others one group). The query's
     own clip is in D for ``ndms`` and left out for ``ndms_loo``. ``mm_threshold_m``: DLow's multi-modal
@@ -191,14 +193,14 @@ def evaluate_single(
         tm = time.perf_counter()
         y = _forecast(model, obs, gt, n_pred, n_samples, seed)
         if samples_dir is not None:
-            write_samples(samples_dir, name, y, obs, gt, ws.fps, names, wact)
+            write_samples(samples_dir, name, y, obs, gt, ws.fps, names, wact, names_sel)
         r, per_window[name], per_window_loo[name] = _single_metrics(
             y, gt, obs, mask[:, n_obs:], groups, wact, scorer, (lh, rh), mm_gt
         )
         per_window_ff[name] = _ndms_per_window(scorer_ff, obs, y, wact)
         r["ndms_word_first_frame"] = per_window_ff[name].mean(0).tolist()
         r["wall_s"] = time.perf_counter() - tm
-        if getattr(model, "kind", "") == "social_diffusion":
+        if forecasts_the_scene(model):
             r["rollout"] = diffusion_rollout(model, n_pred)
         out["models"][name] = r
     _report(progress, "eval models", len(models), len(models))
@@ -275,27 +277,6 @@ def _add_ndms_intervals(
 
 
 NDMS_CI_S = (0.4, 1.0, 2.0, 3.0, 4.0)
-
-
-def write_samples(out_dir, model: str, pred, obs, gt, fps: float, joint_names, activity) -> Path:
-    """``samples_<model>.npz`` for rescoring a run with any metric: ``pred (N,S,T,J,3)``,
-    ``obs (N,T_obs,J,3)``, ``gt (N,T,J,3)`` in metres, ``fps``, ``joint_names``, ``activity (N,)``,
-    ``model``."""
-    d = Path(out_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    path = d / f"samples_{model.replace('/', '_')}.npz"
-    with atomic_path(path) as tmp:
-        np.savez_compressed(
-            tmp,
-            pred=np.asarray(pred, np.float32),
-            obs=np.asarray(obs, np.float32),
-            gt=np.asarray(gt, np.float32),
-            fps=np.float64(fps),
-            joint_names=np.array(list(joint_names)),
-            activity=np.array(list(activity)),
-            model=np.array(model),
-        )
-    return path
 
 
 def ndms_at(per_window: np.ndarray, fps: float, t_s: float) -> np.ndarray:
@@ -449,7 +430,7 @@ def _social_models(models, obs, act, scorer, sscp, real, n_pred, L, seed, progre
             ]
         ).mean(0)
         entry = {"ndms": nd.tolist(), "ndms_mean": float(nd.mean())}
-        if getattr(model, "kind", "") == "social_diffusion":
+        if forecasts_the_scene(model):
             entry["rollout"] = diffusion_rollout(model, n_pred)
         if real is not None:
             gen = [np.concatenate([obs[b], y[b]], 0)[:L] for b in range(B)]

@@ -32,6 +32,7 @@ from roomcap.forecast import evaluate as E
 from roomcap.forecast import metrics as M
 from roomcap.forecast import train as T
 from roomcap.forecast.predict import forecast_world
+from roomcap.forecast.samples import write_samples
 from roomcap.keypoints.skeletons import get_skeleton
 
 N_OBS, N_SHORT, N_LONG, MOTION_LEAD = 50, 25, 250, 10
@@ -85,7 +86,7 @@ def evaluate_hik(
 ) -> dict:
     """Run the ch. 8.3 protocol on the HiK person files under folder -> results (``write_hik_report``).
     ``samples_dir``: write the short-horizon forecasts there, ``samples_<model>.npz``
-    (``evaluate.write_samples``; activity = the case's activity)."""
+    (:mod:`roomcap.forecast.samples`; activity = the case's activity, clip = its person file)."""
     t0 = time.perf_counter()
     people = fdata.load_kitchen_people(folder)
     kitchens = sorted({p.kitchen for p in people})
@@ -129,7 +130,7 @@ def evaluate_hik(
                 torch.manual_seed(seed)
                 y_s = forecast_world(model, obs[:, :, None], None, N_SHORT, S, hips=(lh, rh))[:, :, :, 0]
             if samples_dir is not None:
-                kept.setdefault(mname, []).append((y_s, obs, gt_s, [act] * len(obs)))
+                kept.setdefault(mname, []).append((y_s, obs, gt_s, [act] * len(obs), [n for n, _, _ in cs]))
             mp = M.mpjpe(y_s, np.broadcast_to(gt_s[:, None], y_s.shape))
             r = {"mpjpe": mp.tolist(), "mpjpe_at": {str(f): float(mp[f - 1]) for f in MPJPE_FRAMES}}
             if scorer is not None:
@@ -199,7 +200,8 @@ def _write_kept_samples(kept: dict[str, list], samples_dir, names) -> None:
         obs_k = np.concatenate([p[1] for p in parts])
         gt_k = np.concatenate([p[2] for p in parts])
         acts = [a for p in parts for a in p[3]]
-        E.write_samples(samples_dir, mname, pred, obs_k, gt_k, fdata.KITCHEN_FPS, names, acts)
+        clips = [c for p in parts for c in p[4]]
+        write_samples(samples_dir, mname, pred, obs_k, gt_k, fdata.KITCHEN_FPS, names, acts, clips)
 
 
 def report_markdown(res: dict) -> str:

@@ -14,6 +14,7 @@ import torch
 
 from roomcap.core.errors import InputError
 from roomcap.forecast.data import denormalize, norm_frame, normalize
+from roomcap.forecast.registry import forecasts_the_scene
 
 LHIP, RHIP = 11, 12  # body19
 
@@ -106,7 +107,7 @@ def forecast_world(
     pm = np.ones((B, P), bool) if person_mask is None else np.asarray(person_mask, bool)
     model.eval()
     dev = _device(model)
-    if getattr(model, "kind", "") == "social_diffusion":
+    if forecasts_the_scene(model):
         return _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, **sample_kw)
     flat = obs.transpose(0, 2, 1, 3, 4).reshape(B * P, T, J, 3)
     R, root = norm_frame(flat[:, -1], *hips)

@@ -25,7 +25,6 @@ from roomcap.forecast.checkpoint import (
     DISCRIMINATOR_PREFIXES,
     NORMALISATION,
     baseline,
-    build_model,
     fool_model,
     load_checkpoint,
     read_checkpoint,
@@ -42,23 +41,16 @@ from roomcap.forecast.clips import (
     single_person_arrays,
     split_clips,
 )
-from roomcap.forecast.config import (
-    BASELINES,
-    CONFIGS,
-    DiffusionConfig,
-    GRUConfig,
-    IntentionConfig,
-    config_from_dict,
-)
+from roomcap.forecast.config import BASELINES, DiffusionConfig, GRUConfig, IntentionConfig
 from roomcap.forecast.models.diffusion import N_CONST
 from roomcap.forecast.models.intention import fit_intention_labels, local_poses
+from roomcap.forecast.registry import build_model, config_from_dict, spec
 from roomcap.forecast.selection import SELECT, VAL_FROM, VAL_N_OBS, VAL_N_PRED, Selector, Validator
 from roomcap.keypoints.skeletons import get_skeleton
 
 __all__ = [
     "BASELINES",
     "CKPT_SCHEMA",
-    "CONFIGS",
     "DISCRIMINATOR_PREFIXES",
     "NORMALISATION",
     "SELECT",
@@ -133,7 +125,8 @@ def train(
     rng = np.random.default_rng(config.seed)
     sk = clips[0].skeleton if clips else "body19"
     J = get_skeleton(sk).n_joints
-    if kind == "social_diffusion":
+    ms = spec(kind)
+    if ms.scene:
         return _train_diffusion(clips, config, J, rng, progress, device, init, val_clips)
     ws = fdata.make_windows(clips, config.n_obs, config.n_pred, stride=5, persons="each")
     if len(ws) == 0:
@@ -146,10 +139,10 @@ def train(
     model, labels_all = _single_person_model(kind, config, J, init, xn, device)
     X, M = torch.from_numpy(xn), torch.from_numpy(mk)
     opt = torch.optim.Adam(
-        model.parameters() if kind == "gru" else model.generator_parameters(), lr=config.lr
+        model.generator_parameters() if ms.intentions else model.parameters(), lr=config.lr
     )
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps)
-    if kind == "intention":
+    if ms.intentions:
         opt_d = torch.optim.Adam(model.discriminator_parameters(), lr=config.lr)
     hist: dict = {"loss": [], "n_windows": len(xn), "skipped": ws.skipped}
     sel = Selector(model, config, val_clips)
@@ -161,21 +154,21 @@ def train(
         idx = torch.from_numpy(rng.integers(0, len(X), config.batch))
         xb, mb = X[idx].to(device), M[idx].to(device)
         obs, fut, mfut = xb[:, :n_obs], xb[:, n_obs:], mb[:, n_obs:]
-        if kind == "gru":
-            loss = _masked_joint_l2(model(obs, H), fut, mfut)
-            terms = {"loss": loss.item()}
-        else:
+        if ms.intentions:
             g = config.gamma
             lab = torch.from_numpy(labels_all)[idx].to(device)
             c_all = torch.cat([lab[:, n_obs - 1 :], lab[:, -1:].expand(-1, g - 1)], 1)  # pad the look-ahead
             loss, terms, d_loss, _ = model.losses(obs, fut, c_all, mfut, config.tau_rec, config.w_adv)
             terms["loss"] = loss.item()
+        else:
+            loss = _masked_joint_l2(model(obs, H), fut, mfut)
+            terms = {"loss": loss.item()}
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        if kind == "intention":
+        if ms.intentions:
             opt_d.zero_grad()
             dl = d_loss()
             dl.backward()
@@ -193,27 +186,23 @@ def train(
 
 
 def _single_person_model(kind: str, config, J: int, init: dict | None, xn: np.ndarray, device: str):
-    """The GRU or intention model to train, and for the intention model each window's intention labels
-    (N,T) (its clusters fitted on the windows ``xn`` unless ``init`` brings them); labels None for the
-    GRU."""
-    model, labels_all = None, None
-    if kind == "gru":
-        model = build_model(kind, config, J, init).to(device)
-    elif kind == "intention":
-        loc = local_poses(torch.from_numpy(xn)).numpy()
-        model = build_model(kind, config, J, init).to(device)
-        if init is None:
-            centres, merge = fit_intention_labels(
-                loc[::3].reshape(-1, 3 * J),
-                [s for s in loc[:, ::1]][:2000],
-                config.n_clusters,
-                config.n_intentions,
-                config.seed,
-            )
-            model.centres.copy_(torch.from_numpy(centres))
-            model.merge.copy_(torch.from_numpy(merge))
-        labels_all = model.labels(torch.from_numpy(loc)).numpy()  # (N,T)
-    return model, labels_all
+    """The single-person model to train, and for a model that learns intentions each window's intention
+    labels (N,T) (its clusters fitted on the windows ``xn`` unless ``init`` brings them); else labels None."""
+    if not spec(kind).intentions:
+        return build_model(kind, config, J, init).to(device), None
+    loc = local_poses(torch.from_numpy(xn)).numpy()
+    model = build_model(kind, config, J, init).to(device)
+    if init is None:
+        centres, merge = fit_intention_labels(
+            loc[::3].reshape(-1, 3 * J),
+            [s for s in loc[:, ::1]][:2000],
+            config.n_clusters,
+            config.n_intentions,
+            config.seed,
+        )
+        model.centres.copy_(torch.from_numpy(centres))
+        model.merge.copy_(torch.from_numpy(merge))
+    return model, model.labels(torch.from_numpy(loc)).numpy()  # (N,T)
 
 
 def _feature_stats(model, f: np.ndarray, stat) -> np.ndarray:

@@ -31,8 +31,7 @@ from roomcap.outputs import lsl_osc, rerun_recording
 from roomcap.outputs.export import ExportOptions, export_tracks, parse_formats
 from roomcap.outputs.opensim_ik import default_setup_dir, run_opensim
 from roomcap.outputs.skeleton_fit import FitError, file_sha256, fit_path, fit_skeletons, load_or_fit
-from roomcap.track.trackfile import TrackFile
-from roomcap.triangulate.chunks import parts_dir
+from roomcap.track.trackfile import TrackFile, resolve_track_file
 
 log = logging.getLogger(__name__)
 
@@ -41,34 +40,10 @@ class UsageError(RoomcapError, ValueError):
     pass
 
 
-def _has_track(p: Path) -> bool:
-    """The track file or its parts folder (a streamed run's ``tracks.parts/``, the live ``live.parts/``)."""
-    return p.is_file() or (parts_dir(p) / "index.json").is_file()
-
-
 def resolve_tracks(path: str | Path) -> tuple[Path, str]:
-    """A session folder, a track file (``tracks.npz``, ``live.npz``) or its parts folder -> (track file
-    path, session name). In a session the batch track ``track/tracks.npz`` comes first, else the live
-    one ``track/live.npz`` (``capture-run --live``)."""
-    p = Path(path)
-    if p.suffix == ".parts" and (p / "index.json").is_file():
-        p = p.with_suffix(".npz")
-    if p.is_dir():
-        cands = (p / "track" / "tracks.npz", p / "tracks.npz", p / "roomcap" / "track" / "tracks.npz")
-        for cand in (*cands, p / "track" / "live.npz"):
-            if _has_track(cand):
-                root = cand.parent.parent if cand.parent.name == "track" else cand.parent
-                if root.name == "roomcap":
-                    root = root.parent
-                return cand, root.name
-        raise UsageError(
-            f"{p} has no track file (looked for track/tracks.npz, its parts and track/live.npz). Run the "
-            f"track stage first: reprocess {p} --stages triangulate,track"
-        )
-    if not _has_track(p):
-        raise UsageError(f"{p} does not exist; pass a session folder or a tracks.npz.")
-    session = p.parent.parent.name if p.parent.name == "track" else p.stem
-    return p, session
+    """A session folder, a track file or its parts folder -> (track file path, session name)
+    (:func:`roomcap.track.trackfile.resolve_track_file`)."""
+    return resolve_track_file(path)
 
 
 def _persons(text: str | None) -> list[int] | None:

@@ -109,12 +109,13 @@ def test_forecast_of_a_too_short_track_says_how_long_it_must_be(tracked, tmp_pat
     )
     err = capsys.readouterr().err
     assert "is too short to forecast: it holds 1 frame (0.04 s at 25 Hz)" in err, err
-    assert "looks at the last 50 frames (2.0 s" in err and "at least its last 2 frames" in err
+    assert "looks at the last 50 frames (2.0 s" in err and "must be at least 2.0 s long (50 frames" in err
     assert not (tmp_path / "f.npz").exists()
     gone = dataclasses.replace(tf, **{k: getattr(tf, k)[:10].copy() for k in keys})
     gone.xyz_m[-1] = np.nan  # nobody at the last frame
     gone.save(tmp_path / "gone.npz")
-    assert forecast(["sample", "--tracks", str(tmp_path / "gone.npz"), "--out", str(tmp_path / "f.npz")]) == 2
+    args = ["sample", "--tracks", str(tmp_path / "gone.npz"), "--obs-s", "0.4", "--out", str(tmp_path / "f")]
+    assert forecast(args) == 2
     assert "is seen (both hips) in its last frame" in capsys.readouterr().err
 
 

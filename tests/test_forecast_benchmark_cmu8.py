@@ -89,6 +89,7 @@ def test_protocol_on_a_tiny_benchmark(tiny_root, tmp_path):
     assert z["pred"].shape == (4, 1, 25, 38, 3) and z["obs"].shape == (4, 50, 38, 3)
     assert z["gt"].shape == (4, 25, 38, 3) and z["fps"] == 60.0 and len(z["joint_names"]) == 38
     assert list(z["activity"]) == ["soccer"] * 2 + ["walking"] * 2 and str(z["model"]) == "mlp"
+    assert list(z["clip"]) == ["soccer_1"] * 2 + ["walking_1"] * 2  # the test file of each window
     e = np.linalg.norm(z["pred"][:, 0] - z["gt"], axis=-1).mean(-1) * z["protocol_mm_per_m"]
     assert np.allclose(e[:, list(B.HORIZON_FRAMES)].mean(0), res["models"]["mlp"]["mpjpe_mm"], rtol=1e-4)
     md = B.report_markdown(res)
@@ -129,6 +130,12 @@ def test_eval_single_writes_samples(tmp_path):
     assert N > 0 and z["pred"].shape == (N, 1, 50, 19, 3) and z["obs"].shape == (N, 25, 19, 3)
     assert z["gt"].shape == (N, 50, 19, 3) and float(z["fps"]) == 25.0 and str(z["model"]) == "zero"
     assert np.allclose(z["pred"][:, 0, -1], z["obs"][:, -1], atol=1e-5)  # zero velocity: the last pose
+    # the clip of every window: its observed frames are that clip's frames (and no other clip's)
+    by_name = {c.name: c.xyz_m[:, 0] for c in clips}
+    assert set(z["clip"]) == set(by_name)
+    for o, c in zip(z["obs"], z["clip"], strict=True):
+        hits = {n for n, x in by_name.items() if (np.abs(x - o[0]).max((1, 2)) < 1e-5).any()}
+        assert hits == {str(c)}
     r = np.load(tmp_path / "samples_real.npz")
     assert np.allclose(r["pred"][:, 0], r["gt"])
 

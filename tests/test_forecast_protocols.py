@@ -259,6 +259,7 @@ def test_hik_protocol_on_a_fixture(tmp_path, capsys):
     z = np.load(out / "samples" / "samples_zero.npz")  # the 5 short-horizon cases: 3 walking, 2 sink
     assert z["pred"].shape == (5, 1, 25, 29, 3) and z["obs"].shape[0] == 5 and z["gt"].shape == (5, 25, 29, 3)
     assert sorted(set(z["activity"])) == ["sink", "walking"] and float(z["fps"]) == D.KITCHEN_FPS
+    assert len(z["clip"]) == 5 and set(z["clip"]) <= {p.stem for p in tmp_path.glob("D_*.npz")}
     # HiK files without activity flags: a clear message naming the file
     save_npz(tmp_path / "D_9_0.npz", {"poses3d": np.zeros((5, 29, 3), np.float32), "frames": np.arange(5)})
     with pytest.raises(FormatError, match="no activity flags"):

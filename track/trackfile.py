@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from roomcap.core.errors import FormatError
+from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import (
     atomic_write_text,
     check_schema,
@@ -223,6 +223,36 @@ class TrackFile:
                 calibration_sha256=npz_str(data, "calibration_sha256"),
                 source=npz_str(data, "source"),
             )
+
+
+def _has_track(p: Path) -> bool:
+    """The track file or its parts folder (a streamed run's ``tracks.parts/``, the live ``live.parts/``)."""
+    return p.is_file() or (parts_dir(p) / "index.json").is_file()
+
+
+def resolve_track_file(path: str | os.PathLike) -> tuple[Path, str]:
+    """A session folder, a track file (``tracks.npz``, ``live.npz``) or its parts folder -> (track file
+    path, session name). In a session the batch track ``track/tracks.npz`` comes first, else the live
+    one ``track/live.npz`` (``capture-run --live``); a one-line :class:`InputError` when there is none."""
+    p = Path(path)
+    if p.suffix == ".parts" and (p / "index.json").is_file():
+        p = p.with_suffix(".npz")
+    if p.is_dir():
+        cands = (p / "track" / "tracks.npz", p / "tracks.npz", p / "roomcap" / "track" / "tracks.npz")
+        for cand in (*cands, p / "track" / "live.npz"):
+            if _has_track(cand):
+                root = cand.parent.parent if cand.parent.name == "track" else cand.parent
+                if root.name == "roomcap":
+                    root = root.parent
+                return cand, root.name
+        raise InputError(
+            f"{p} has no track file (looked for track/tracks.npz, its parts and track/live.npz). Run the "
+            f"track stage first: reprocess {p} --stages triangulate,track"
+        )
+    if not _has_track(p):
+        raise InputError(f"{p} does not exist; pass a session folder or a tracks.npz.")
+    session = p.parent.parent.name if p.parent.name == "track" else p.stem
+    return p, session
 
 
 def iter_parts(path: str | os.PathLike):
