@@ -30,6 +30,9 @@ def card(path: str | os.PathLike) -> dict:
     if c["schema"] not in KNOWN_SCHEMAS:
         return {**c, "what": describe_checkpoint(blob)}
     c["what"], c["reads_it"] = KNOWN_SCHEMAS[c["schema"]]
+    if blob.get("representation") == "expmap":  # the benchmark's exponential maps (Tanke Table 6.7's metric)
+        c["what"] = "a DCT + MLP of the CMU 8-action benchmark's exponential maps at 60 Hz (not tracks)"
+        c["reads_it"] = "`forecast eval --protocol cmu8 --metric angle --checkpoints PATH` scores it"
     kind = blob.get("kind")
     if kind in MODELS:
         c["model"] = f"{kind}: {MODELS[kind].summary}"
@@ -62,6 +65,9 @@ def _data(extra: dict) -> dict:
         )
     elif isinstance(extra.get("best"), dict) and "val_mm" in extra["best"]:
         out["selection"] = f"validation MPJPE {extra['best']['val_mm']:.1f} mm (the benchmark's units)"
+    elif isinstance(extra.get("best"), dict) and "val_rad" in extra["best"]:
+        b = extra["best"]
+        out["selection"] = f"step {b['step']} by validation mean angle error {b['val_rad']:.3f} rad"
     if extra.get("members"):
         out["members"] = ", ".join(extra["members"])
     if extra.get("init"):

@@ -316,3 +316,17 @@ def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
     assert "score them with `--metric angle`" in capsys.readouterr().err
     assert main(["eval", "--metric", "angle", "--out", str(out)]) == 2
     assert "--metric angle is a metric of --protocol cmu8 only" in capsys.readouterr().err
+
+
+def test_shipped_angle_checkpoint_forecasts_below_zero_velocity():
+    """The shipped exponential-map forecaster (picked on validation) loads and, on the walking test file's
+    protocol windows, beats zero velocity at every horizon."""
+    from roomcap.forecast import benchmark_cmu8_angle as A
+
+    need_shared("data", "motion", "cmu-more", "benchmark-cmu8", "test", "walking", "walking_1.txt")
+    f, blob = A.load(A.SHIPPED)
+    assert blob["kind"] == A.KIND and blob["extra"]["best"]["step"] > 0
+    w = A.test_windows(C.benchmark_files())["walking"]
+    ours = A.at_horizons(A.score(f(w[:, : B.N_OBS]), w[:, B.N_OBS :], f.dims))
+    zero = A.at_horizons(A.score(A.zero_velocity(w[:, : B.N_OBS]), w[:, B.N_OBS :], None))
+    assert all(o < z for o, z in zip(ours, zero, strict=True)), (ours, zero)
