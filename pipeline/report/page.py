@@ -9,8 +9,11 @@ import json
 import logging
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from roomcap.capture.session import SessionLayout
 from roomcap.core.errors import FormatError
@@ -52,7 +55,27 @@ def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
     return rows
 
 
+def _floor_roots(xyz: np.ndarray, names: list[str]) -> np.ndarray:
+    """The floor point (x, y) under each pose's root of ``xyz (...,J,3)``: the pelvis, else the mean of the
+    hips, else of the seen joints (report.js ``rootOf`` alike); NaN where none is seen."""
+    for pick in (["pelvis"], ["left_hip", "right_hip"]):
+        if all(n in names for n in pick):
+            r = xyz[..., [names.index(n) for n in pick], :2].mean(-2)
+            break
+    else:
+        r = np.full(xyz.shape[:-2] + (2,), np.nan)
+    ok = np.isfinite(xyz).all(-1, keepdims=True)
+    n = ok.sum(-2)
+    mean = np.where(n > 0, np.where(ok, xyz, 0).sum(-2) / np.maximum(n, 1), np.nan)[..., :2]
+    return np.where(np.isfinite(r), r, mean)
+
+
 def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
+    """``forecast/preview.npz``: the forecast poses (the ghosts), and for the floor map each track's path
+    (``path (K,H,2)``, the floor point under its root), and where the model is stochastic (``stochastic``;
+    None for a file of an older version that does not say) the paths of its S samples
+    (``sample_paths (K,S,H,2)``) and their spread ``spread_m (K,H)``: the RMS distance of the samples'
+    floor points from their mean."""
     path = lay.root / "forecast" / "preview.npz"
     if not path.exists():
         return None
@@ -66,13 +89,28 @@ def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
     xyz = d["xyz_m"]
     if xyz.ndim != 4:  # (K,H,J,3) expected
         return None
-    return {
+    names = [str(n) for n in d["joint_names"]] if "joint_names" in d else []
+    out = {
         "xyz": _r(xyz),
         "track_id": d["track_id"].tolist(),
         "start_index": int(d["start_index"]),
         "model": str(d.get("model", "")),
         "fps": float(d["fps"]) if "fps" in d else None,
+        "stochastic": bool(d["stochastic"]) if "stochastic" in d else None,
+        "path": _r(_floor_roots(xyz, names), 3) if names else None,
+        "sample_paths": None,
+        "spread_m": None,
     }
+    S = d.get("samples_xyz_m")
+    if S is not None and names and S.ndim == 5 and S.shape[1:] == xyz.shape:
+        roots = np.moveaxis(_floor_roots(S.astype(np.float64), names), 0, 1)  # (K,S,H,2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a track not forecast: all NaN
+            dev = roots - np.nanmean(roots, axis=1, keepdims=True)
+            spread = np.sqrt(np.nanmean((dev**2).sum(-1), axis=1))
+        out["sample_paths"] = _r(roots, 3)
+        out["spread_m"] = _r(spread, 3)
+    return out
 
 
 def _behaviour_data(lay: SessionLayout) -> dict[str, Any] | None:

@@ -34,6 +34,9 @@ const peopleAt = roots.map(fr => fr.filter(r => r).length);
 const maxPeople = peopleAt.length ? Math.max(...peopleAt) : 0;
 const fcRoots = F ? F.xyz.map(traj => traj.map(rootOf)) : [];
 const fcFps = F ? (F.fps || fps) : fps;
+const fxy = p => p && p[0] !== null && p[1] !== null;
+// floor paths of the forecast: the file's own (under each track's root), else from the ghosts' roots
+const fcPaths = F ? (F.path || fcRoots.map(traj => traj.map(r => r ? [r[0], r[1]] : null))) : [];
 const fcTrack = F ? F.track_id.map(id => T ? T.track_id.indexOf(id) : -1) : [];
 const rowOfFrame = new Map(); if (T) T.frame_index.forEach((f, t) => rowOfFrame.set(f, t));
 function viewerRowOf(fi){ if (!T || !nFrames) return 0; if (rowOfFrame.has(fi)) return rowOfFrame.get(fi);
@@ -198,11 +201,36 @@ function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W 
 })();
 
 // ---------------------------------------------------------------- room from above
+// the forecast on a floor map (canvas context c, world -> px P, px per metre s): each track's path (dashed,
+// dots every second), a stochastic model's samples (thin) and their spread (discs every 0.5 s, radius: the
+// samples' RMS distance from their mean)
+function drawForecastPaths(c, P, s, only){
+  const pathLine = (pts, from) => { c.beginPath(); let pen = false;
+    if (from) { const q = P(from); c.moveTo(q[0], q[1]); pen = true; }
+    for (const r of pts) { if (!fxy(r)) continue; const q = P(r); if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; }
+    c.stroke(); };
+  fcPaths.forEach((traj, i) => { const k = fcTrack[i]; if (k < 0 || !traj.some(fxy) || (only !== undefined && i !== only)) return;
+    const lastObs = roots.length ? roots[nFrames - 1][k] : null, sp = F.sample_paths ? F.sample_paths[i] : null;
+    if (sp) { c.strokeStyle = color(k); c.globalAlpha = 0.28; c.lineWidth = 1; for (const s1 of sp) pathLine(s1, lastObs);
+      const spr = F.spread_m[i], step = Math.max(1, Math.round(fcFps * 0.5));
+      c.fillStyle = color(k); for (let h = step - 1; h < spr.length; h += step) { if (spr[h] === null) continue;
+        const pts = sp.map(s1 => s1[h]).filter(fxy); if (!pts.length) continue;
+        const m = [0, 1].map(a => pts.reduce((t, p) => t + p[a], 0) / pts.length), q = P(m);
+        c.globalAlpha = 0.13; c.beginPath(); c.arc(q[0], q[1], Math.max(2, spr[h] * s), 0, 7); c.fill(); }
+      c.globalAlpha = 1; }
+    c.strokeStyle = color(k); c.lineWidth = 2.2; c.setLineDash([6, 4]); pathLine(traj, lastObs); c.setLineDash([]);
+    c.fillStyle = color(k); for (let h = Math.round(fcFps) - 1; h < traj.length; h += Math.round(fcFps)) { if (!fxy(traj[h])) continue;
+      const q = P(traj[h]); c.beginPath(); c.arc(q[0], q[1], 2.6, 0, 7); c.fill(); }
+    const end = traj.filter(fxy).pop(); if (end) { const q = P(end); c.font = '10px system-ui,sans-serif'; c.fillStyle = '#1d2330';
+      c.fillText(`+${(traj.length / fcFps).toFixed(1)} s`, q[0] + 6, q[1] + 3); } });
+}
 (function layout(){ const cv = $('layout'), c = cv.getContext('2d'), W = cv.width, H = cv.height;
   c.fillStyle = '#fbfbfd'; c.fillRect(0, 0, W, H);
   const pts = [];
   if (D.rig) for (const k of D.rig.cameras) pts.push(k.center_m);
   for (const fr of roots) for (const r of fr) if (r) pts.push(r);
+  for (const traj of fcPaths) for (const r of traj) if (fxy(r)) pts.push(r);
+  if (F && F.sample_paths) for (const sp of F.sample_paths) for (const s1 of sp) for (const r of s1) if (fxy(r)) pts.push(r);
   if (!pts.length) { c.fillStyle = '#999'; c.fillText('nothing to draw', 10, 20); return; }
   let minX = Math.min(...pts.map(p => p[0])) - 0.6, maxX = Math.max(...pts.map(p => p[0])) + 0.6;
   let minY = Math.min(...pts.map(p => p[1])) - 0.6, maxY = Math.max(...pts.map(p => p[1])) + 0.6;
@@ -225,11 +253,47 @@ function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W 
       if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; last = q; first = first || q; }
     c.stroke(); if (first) { c.fillStyle = color(k); c.beginPath(); c.arc(first[0], first[1], 3, 0, 7); c.fill(); }
     if (last) { c.beginPath(); c.arc(last[0], last[1], 5, 0, 7); c.fill(); } }
-  fcRoots.forEach((traj, i) => { const k = fcTrack[i]; const r0 = traj.find(r => r); if (!r0 || k < 0) return;
-    c.strokeStyle = color(k); c.lineWidth = 2; c.setLineDash([5, 4]); c.beginPath(); let pen = false;
-    const lastObs = roots.length ? roots[nFrames - 1][k] : null; if (lastObs) { const q = P(lastObs); c.moveTo(q[0], q[1]); pen = true; }
-    for (const r of traj) { if (!r) continue; const q = P(r); if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; }
-    c.stroke(); c.setLineDash([]); });
+  drawForecastPaths(c, P, s);
+  if (F) { const H = F.xyz[0] ? F.xyz[0].length : 0, sec = (H / fcFps).toFixed(1);
+    $('layoutNote').textContent = `Dashed: each person's forecast path for the next ${sec} s by ${F.model || 'the forecast'} (dots every second). ` +
+      (F.sample_paths ? `Thin lines: its ${F.sample_paths[0] ? F.sample_paths[0].length : 0} samples; shaded discs: their spread every 0.5 s (RMS distance from their mean).`
+        : F.stochastic === false ? `This model is deterministic: it gives one path, so there is no spread to draw (a stochastic model, e.g. [forecast] model = "forecast/checkpoints/intention_cmuall.pt", draws samples).`
+        : 'The forecast file holds one path per person (no samples).'); }
+})();
+
+// the forecast paths from above, one panel per person centred on them (one scale for all): the last 2 s
+// walked (solid), then the forecast
+(function forecastMap(){ const cv = $('fcmap'); if (!F || !T || !nFrames) return;
+  const back = Math.round(2 * fps), who = [];
+  fcTrack.forEach((k, i) => { if (k < 0 || !roots[nFrames - 1][k] || !fcPaths[i].some(fxy)) return;
+    const pts = [];
+    for (let t = Math.max(0, nFrames - back); t < nFrames; t++) if (roots[t][k]) pts.push(roots[t][k]);
+    for (const r of fcPaths[i]) if (fxy(r)) pts.push(r);
+    if (F.sample_paths) for (const s1 of F.sample_paths[i]) for (const r of s1) if (fxy(r)) pts.push(r);
+    who.push([i, k, pts]); });
+  if (!who.length) return;
+  $('fcsec').style.display = 'block';
+  const cols = Math.min(3, who.length), rows = Math.ceil(who.length / cols), side = Math.floor(cv.width / cols);
+  cv.height = rows * side; const c = cv.getContext('2d'), W = cv.width, H = cv.height;
+  c.fillStyle = '#fff'; c.fillRect(0, 0, W, H);
+  const box = pts => { const lo = [0, 1].map(a => Math.min(...pts.map(p => p[a]))), hi = [0, 1].map(a => Math.max(...pts.map(p => p[a])));
+    return [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, Math.max(hi[0] - lo[0], hi[1] - lo[1]) / 2]; };
+  const half = Math.max(0.75, ...who.map(w => box(w[2])[2] * 1.15 + 0.25)), s = side / (2 * half), g = half > 2.5 ? 1 : 0.5;
+  who.forEach(([i, k, pts], n) => { const x0 = (n % cols) * side, y0 = Math.floor(n / cols) * side, [cx, cy] = box(pts);
+    const P = p => [x0 + side / 2 + (p[0] - cx) * s, y0 + side / 2 - (p[1] - cy) * s];
+    c.save(); c.beginPath(); c.rect(x0 + 3, y0 + 3, side - 6, side - 6); c.clip();
+    c.fillStyle = '#fbfbfd'; c.fillRect(x0, y0, side, side); c.strokeStyle = '#e6e8ee'; c.lineWidth = 1;
+    for (let x = Math.floor((cx - half) / g) * g; x <= cx + half; x += g) { const q = P([x, 0]); c.beginPath(); c.moveTo(q[0], y0); c.lineTo(q[0], y0 + side); c.stroke(); }
+    for (let y = Math.floor((cy - half) / g) * g; y <= cy + half; y += g) { const q = P([0, y]); c.beginPath(); c.moveTo(x0, q[1]); c.lineTo(x0 + side, q[1]); c.stroke(); }
+    c.strokeStyle = color(k); c.lineWidth = 2.5; c.beginPath(); let pen = false;
+    for (let t = Math.max(0, nFrames - back); t < nFrames; t++) { const r = roots[t][k]; if (!r) { pen = false; continue; } const q = P(r);
+      if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; } c.stroke();
+    const q = P(roots[nFrames - 1][k]); c.fillStyle = color(k); c.beginPath(); c.arc(q[0], q[1], 5, 0, 7); c.fill();
+    drawForecastPaths(c, P, s, i);
+    c.restore(); c.fillStyle = color(k); c.font = 'bold 12px system-ui,sans-serif'; c.fillText('id ' + T.track_id[k], x0 + 10, y0 + 20);
+    if (F.spread_m && F.spread_m[i]) { const sp = F.spread_m[i].filter(v => v !== null); if (sp.length) { c.fillStyle = '#555'; c.font = '11px system-ui,sans-serif';
+      c.fillText(`spread at +${(F.spread_m[i].length / fcFps).toFixed(1)} s: ${(100 * sp[sp.length - 1]).toFixed(0)} cm`, x0 + 10, y0 + 36); } } });
+  $('fcNote').textContent = `grid: ${g} m, the same scale in every panel · solid: the last 2 s walked · dashed: the forecast` + (F.sample_paths ? ' · thin: its samples · discs: their spread every 0.5 s' : '');
 })();
 
 // ---------------------------------------------------------------- 3D viewer (viewer3d.js)
@@ -270,6 +334,9 @@ function draw(){
   fcRoots.forEach((traj, i) => { const k = fcTrack[i]; if (k < 0) return; let prev = roots[nFrames - 1][k];
     ctx.globalAlpha = nearEnd ? 0.95 : 0.45;
     for (const r of traj) { if (!r) continue; if (prev) line(floorOf(prev), floorOf(r), color(k), 2, [6, 5]); prev = r; }
+    if (nearEnd && F.sample_paths && F.sample_paths[i]) { ctx.globalAlpha = 0.3; // the samples, on the floor
+      for (const s1 of F.sample_paths[i]) { let q0 = roots[nFrames - 1][k];
+        for (const r of s1) { if (!fxy(r)) continue; const q = [r[0], r[1], 0]; if (q0) line(floorOf(q0), q, color(k), 1); q0 = q; } } }
     ctx.globalAlpha = 1;
     if (nearEnd) { const H = traj.length, step = Math.max(1, Math.round(fcFps * 0.5));
       for (let h = step - 1; h < H; h += step) skeleton(F.xyz[i][h], color(k), 1.6, 0, 0.16 + 0.3 * (1 - h / H)); } });
