@@ -248,6 +248,8 @@ def test_sample_writes_forecast(session):
     ank = d["poses_m"][..., [JOINTS.index("left_ankle"), JOINTS.index("right_ankle")], 2].min(-1)
     assert np.allclose(ank, 0.08, atol=1e-5)  # standing on the floor
     assert d["observed"].tolist()[0] == ["walk", "sit", "drink"] and d["observed"].tolist()[1][-1] == "walk"
+    assert d["step_start_s"][0].tolist() == [0, 1.5, 3.5] and d["step_end_s"][0].tolist() == [1.5, 3.5, 5.9]
+    assert d["step_end_s"][1, -1] == 4 and np.isnan(d["step_start_s"][1, :-1]).all()
     # the forecast poses stand in the room near where each person was last seen (untrained: within 3 m)
     last = scene.gt_xyz_m[int(round(5.9 * 25)) - 1, 0, JOINTS.index("pelvis"), :2]
     assert np.linalg.norm(d["poses_m"][0, :, JOINTS.index("pelvis"), :2].mean(0) - last) < 3.0
@@ -357,11 +359,32 @@ def test_report_shows_the_behaviour_forecast(session, tmp_path):
     lay = SessionLayout(root / "s")
     b = collect(lay, "t")["behaviour"]
     assert b["track_id"] == [3, 7] and b["observed"][0][-2:] == ["walk", "sit"] and len(b["actions"][0]) == 5
+    # the timeline's data: the labelled ranges of the observed steps, every label's probability per step
+    K, M, A, N = 2, 5, len(ACTIONS), len(b["observed"][0])
+    assert b["labels"] == list(ACTIONS)
+    probs = np.asarray(b["probs"], float)
+    assert probs.shape == (K, M, A) and np.allclose(probs.sum(-1), 1, atol=5e-3)
+    assert (
+        np.allclose(probs.max(-1), b["prob"]) and [ACTIONS[j] for j in probs[0].argmax(-1)] == b["actions"][0]
+    )
+    start, end = (np.asarray(b[k], float) for k in ("step_start_s", "step_end_s"))
+    assert start.shape == end.shape == (K, N)
+    assert start[0, -2:].tolist() == [0, 2] and end[0, -2:].tolist() == [2, 4] and end[1, -1] == 3
+    assert np.isnan(start[1, :-1]).all()  # track 7 has one labelled step
+    # the forecast characteristic poses, in the room, with a skeleton to draw them
+    poses = np.asarray(b["poses"], float)
+    assert poses.shape == (K, M, 19, 3) and np.isfinite(poses).all()
+    assert b["joint_names"] == list(JOINTS) and len(b["parents"]) == 19
+    assert sorted(p for p in b["parents"] if p < 0) == [-1] and b["parents"][JOINTS.index("left_knee")] == (
+        JOINTS.index("left_hip")
+    )
     if CHROMIUM is None:
         pytest.skip("headless Chromium not installed")
     path = write_report(lay, title="behaviour")
     _, dom = render_in_browser(path, tmp_path, height=3000)
     assert page_errors(dom) == "", page_errors(dom)
+    assert 'data-behaviour="2"' in dom and 'id="behavsec" style="display: block;"' in dom
+    assert dom.count('class="step') == M  # one button per forecast step (the pose drawn in 3D)
     body = dom.split('id="behaviour"', 1)[1].split("</table>", 1)[0]
     rows = [re.findall(r"<td[^>]*>(.*?)</td>", tr) for tr in re.findall(r"<tr[^>]*>(.*?)</tr>", body, re.S)]
     rows = [r for r in rows if r]

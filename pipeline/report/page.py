@@ -19,6 +19,7 @@ from roomcap.capture.session import SessionLayout
 from roomcap.core.errors import FormatError
 from roomcap.core.fileio import atomic_write_text, load_npz, load_toml
 from roomcap.core.redact import redact
+from roomcap.keypoints.skeletons import CANONICAL
 from roomcap.pipeline.provenance import STAGES
 from roomcap.pipeline.report.figures import _detection_rates, _quality, _rig_data, _tracks_data
 from roomcap.pipeline.report.inputs import ReportConfig, _load, _r
@@ -113,9 +114,26 @@ def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
     return out
 
 
+def _parents_by_name(names: list[str]) -> list[int]:
+    """The parent of each of ``names`` in the body19 skeleton, as an index into ``names`` (the nearest
+    ancestor that is among them; -1 for none)."""
+    ref = list(CANONICAL.joint_names)
+    out = []
+    for n in names:
+        j = ref.index(n) if n in ref else -1
+        p = CANONICAL.parents[j] if j >= 0 else -1
+        while p >= 0 and ref[p] not in names:
+            p = CANONICAL.parents[p]
+        out.append(names.index(ref[p]) if p >= 0 else -1)
+    return out
+
+
 def _behaviour_data(lay: SessionLayout) -> dict[str, Any] | None:
-    """``forecast/behaviour.npz`` (``forecast behaviour sample``): per person the next actions, their
-    probabilities and the height of each forecast pose's head, or None."""
+    """``forecast/behaviour.npz`` (``forecast behaviour sample``): per person the observed steps (labels,
+    characteristic times and, where the file has them, the label ranges ``step_start_s``/``step_end_s``
+    (K,N)), the next M actions with the probability of every label (``probs (K,M,A)``, ``labels (A,)``) and
+    the forecast characteristic poses ``poses (K,M,J,3)`` in the room with their ``joint_names`` and
+    ``parents``, or None."""
     path = lay.root / "forecast" / "behaviour.npz"
     if not path.exists():
         return None
@@ -124,14 +142,32 @@ def _behaviour_data(lay: SessionLayout) -> dict[str, Any] | None:
     except FormatError as e:
         log.warning("behaviour forecast not shown: %s", e)
         return None
+    K = len(d["track_id"])
     p = d["probs"].max(-1)
     obs = d["observed"].tolist() if "observed" in d else [[] for _ in d["track_id"]]
+    names = [str(n) for n in d["joint_names"]] if "joint_names" in d else []
+    poses = d["poses_m"]
+    ok_poses = bool(names) and poses.ndim == 4 and poses.shape[2] == len(names) and poses.shape[-1] == 3
+    A = d["probs"].shape[-1]
+    labels = [str(x) for x in d["labels"]] if "labels" in d and len(d["labels"]) == A else []
+
+    def steps(key: str) -> Any:
+        return _r(d[key]) if key in d and d[key].shape[:1] == (K,) else None
+
     return {
         "track_id": d["track_id"].tolist(),
         "observed": obs,
         "actions": d["actions"].tolist(),
         "prob": _r(p),
         "model": str(d["model"]) if "model" in d else "",
+        "labels": labels,
+        "probs": _r(d["probs"]) if labels else None,
+        "step_time_s": steps("step_time_s"),
+        "step_start_s": steps("step_start_s"),
+        "step_end_s": steps("step_end_s"),
+        "poses": _r(poses) if ok_poses else None,
+        "joint_names": names if ok_poses else [],
+        "parents": _parents_by_name(names) if ok_poses else [],
     }
 
 

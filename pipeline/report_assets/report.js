@@ -17,6 +17,7 @@ function row(tbl, cells, head){ const tr = document.createElement('tr');
 const num = (v, d) => ({v: v === null || v === undefined ? null : v, t: fmt(v, d)});
 
 // ---------------------------------------------------------------- data prepared once
+const BH = D.behaviour && D.behaviour.track_id.length ? D.behaviour : null; let behavStep = 0;
 const T = D.tracks, F = D.forecast, Q = D.quality && !D.quality.error ? D.quality : null, V = D.views;
 const nFrames = T ? T.xyz.length : 0, nTracks = T ? T.track_id.length : 0;
 const fps = T ? (T.fps || 25) : 25;
@@ -340,6 +341,12 @@ function draw(){
     ctx.globalAlpha = 1;
     if (nearEnd) { const H = traj.length, step = Math.max(1, Math.round(fcFps * 0.5));
       for (let h = step - 1; h < H; h += step) skeleton(F.xyz[i][h], color(k), 1.6, 0, 0.16 + 0.3 * (1 - h / H)); } });
+  const behavLabels = [];
+  if (BH && BH.poses && nearEnd) BH.track_id.forEach((id, i) => { const k = T.track_id.indexOf(id), pose = BH.poses[i][behavStep];
+    if (!pose) return; const col = k >= 0 ? color(k) : '#ffffff';
+    V3.skeleton(pose, BH.parents, '#ffffff', 3.4, 0, 0.35); V3.skeleton(pose, BH.parents, col, 2, 0, 0.8);
+    const top = pose.filter(fin).reduce((a, b) => (b[2] > a[2] ? b : a), [0, 0, -1e9]), q = top[2] > -1e9 ? project([top[0], top[1], top[2] + 0.7]) : null;
+    if (q) behavLabels.push([q, `+${behavStep + 1}: ${BH.actions[i][behavStep]} ${Math.round(100 * BH.prob[i][behavStep])}%`, col]); });
   const fr = T.xyz[frame], boxes = [];
   fr.forEach((pose, k) => { const box = [1e9, 1e9, -1e9, -1e9];
     skeleton(pose, color(k), 3.2, T.mean_std_m.length ? T.mean_std_m[k][frame] : 0, 1, box);
@@ -350,11 +357,19 @@ function draw(){
       ctx.globalAlpha = 1; ctx.fillStyle = '#fff'; ctx.fillText(label, q[0] - w / 2 + 5, q[1] - 3);
       box[1] = Math.min(box[1], q[1] - 16); box[0] = Math.min(box[0], q[0] - w / 2); box[2] = Math.max(box[2], q[0] + w / 2); } }
     if (box[2] > box[0]) boxes.push([box[0] - 4, box[1] - 4, box[2] + 4, box[3] + 4]); });
+  for (const [q, txt, col] of behavLabels) { // the behaviour step's label: above the pose, clear of the people's tags
+    ctx.font = '12px system-ui,sans-serif'; const w = ctx.measureText(txt).width + 10;
+    let b = null; for (const dy of [0, -22, -44, 22, -66]) { const c0 = [q[0] - w / 2, q[1] - 15 + dy, q[0] + w / 2, q[1] + 3 + dy];
+      if (!boxes.some(t => overlaps(t, c0))) { b = c0; break; } }
+    b = b || [q[0] - w / 2, q[1] - 15, q[0] + w / 2, q[1] + 3]; boxes.push(b);
+    ctx.fillStyle = '#10141cdd'; ctx.strokeStyle = col; ctx.lineWidth = 1.5; ctx.beginPath(); ctx.rect(b[0], b[1], w, 18); ctx.fill(); ctx.stroke();
+    ctx.fillStyle = '#fff'; ctx.fillText(txt, b[0] + 5, b[1] + 13); }
   cameraLabels(boxes);
   ctx.fillStyle = '#aab3c5'; ctx.font = '13px system-ui,sans-serif';
   const tSec = (T.frame_index[frame] - T.frame_index[0]) / (fps * T.step);
   ctx.fillText(`${tSec.toFixed(2)} s · frame ${T.frame_index[frame]} · ${peopleAt[frame]} people`, 16, 26);
   if (F && nearEnd) ctx.fillText(`forecast: ${F.model}, ghosts every 0.5 s`, 16, 46);
+  if (BH && BH.poses && nearEnd) ctx.fillText(`behaviour forecast: step +${behavStep + 1}'s characteristic pose (${BH.model})`, 16, F ? 66 : 46);
   $('frameLabel').textContent = `frame ${T.frame_index[frame]} / ${T.frame_index[nFrames - 1]}`;
 }
 
@@ -440,16 +455,68 @@ let last = 0;
 function tick(ts){ if (playing && T && nFrames > 1 && ts - last > 1000 / Math.min(30, fps)) {
   frame = (frame + 1) % nFrames; slider.value = frame; if (V) filmIdx = filmIndexOf(T.frame_index[frame]); redraw(); last = ts; } requestAnimationFrame(tick); }
 requestAnimationFrame(tick);
-// behaviour forecast (forecast/behaviour.npz): observed actions, then the next M with their probabilities
-{
-  const B = D.behaviour; if (B && B.track_id.length) {
-  $('behavsec').style.display = 'block'; $('behavNote').textContent = B.model;
-  const t = $('behaviour'); const M = B.actions[0].length;
+// behaviour forecast (forecast/behaviour.npz): a timeline per person (the labelled steps over time, then
+// the next M actions with their probabilities), the table, and the step whose pose the 3D view draws
+const ACTCOL = ['#8dd3c7', '#fdb462', '#bebada', '#fb8072', '#80b1d3', '#b3de69', '#fccde5', '#ffed6f', '#bc80bd', '#d9d9d9'];
+function behaviourTimeline(){ const B = BH, cv = $('behavTimeline'), c = cv.getContext('2d');
+  const K = B.track_id.length, M = B.actions[0].length, rowH = 50, top = 24, L = 64, W = cv.width;
+  cv.height = top + K * rowH + 24; const H = cv.height; c.clearRect(0, 0, W, H); const font = (px, b) => { c.font = (b ? 'bold ' : '') + px + 'px system-ui,sans-serif'; }; font(14);
+  const labels = B.labels.length ? B.labels : [...new Set([].concat(...B.actions, ...B.observed).filter(x => x))];
+  const acol = a => ACTCOL[Math.max(0, labels.indexOf(a)) % ACTCOL.length];
+  const S = B.step_start_s, E = B.step_end_s, Tc = B.step_time_s;
+  const ts = [].concat(...(S || []), ...(E || []), ...(Tc || [])).filter(v => v !== null);
+  const t0 = ts.length ? Math.min(0, ...ts) : 0, t1 = ts.length ? Math.max(...ts, t0 + 0.1) : 1;
+  const obsR = L + Math.round((W - L) * 0.4), fx = obsR + 26, sw = (W - 4 - fx) / M;
+  const tx = t => L + (obsR - L) * (t - t0) / (t1 - t0);
+  c.fillStyle = '#6b7385'; c.fillText('observed (labels)', L, 15); for (let m = 0; m < M; m++) c.fillText(`+${m + 1}`, fx + m * sw + 2, 15);
+  c.strokeStyle = '#1d2330'; c.lineWidth = 1.5; c.setLineDash([3, 3]); c.beginPath(); c.moveTo(obsR + 12, top - 6); c.lineTo(obsR + 12, H - 18); c.stroke(); c.setLineDash([]);
+  c.fillStyle = '#1d2330'; font(13); c.fillText('now', obsR, H - 6);
+  const fit = (txt, w) => { if (c.measureText(txt).width <= w) return txt; while (txt.length > 1 && c.measureText(txt + '…').width > w) txt = txt.slice(0, -1); return txt.length > 1 ? txt + '…' : ''; };
+  B.track_id.forEach((id, i) => { const y = top + i * rowH, k = T ? T.track_id.indexOf(id) : -1;
+    c.fillStyle = k >= 0 ? color(k) : '#333'; c.fillRect(0, y + 4, 4, rowH - 12); c.fillStyle = '#1d2330'; font(15, true); c.fillText('id ' + id, 10, y + rowH / 2 + 2);
+    font(14); c.fillStyle = '#f3f4f7'; c.fillRect(L, y + 4, obsR - L, rowH - 12);
+    (B.observed[i] || []).forEach((a, n) => { if (!a) return;
+      const s0 = S && S[i][n] !== null ? S[i][n] : null, s1 = E && E[i][n] !== null ? E[i][n] : null;
+      if (s0 !== null && s1 !== null) { const x0 = tx(s0), x1 = tx(s1); c.fillStyle = acol(a); c.fillRect(x0, y + 4, Math.max(2, x1 - x0 - 1), rowH - 12);
+        c.fillStyle = '#1d2330'; c.fillText(fit(a, x1 - x0 - 8), x0 + 5, y + rowH / 2 + 2); }
+      else if (Tc && Tc[i][n] !== null) { const x = tx(Tc[i][n]); c.fillStyle = acol(a); c.beginPath(); c.arc(x, y + rowH / 2 - 2, 6, 0, 7); c.fill();
+        c.fillStyle = '#1d2330'; c.fillText(a, x + 8, y + rowH / 2 + 2); }
+      if (Tc && Tc[i][n] !== null) { const x = tx(Tc[i][n]); c.fillStyle = '#1d2330'; c.beginPath(); c.moveTo(x - 3, y + rowH - 8); c.lineTo(x + 3, y + rowH - 8); c.lineTo(x, y + rowH - 13); c.fill(); } });
+    for (let m = 0; m < M; m++) { const x = fx + m * sw, p = B.probs ? B.probs[i][m] : null, a = B.actions[i][m];
+      c.fillStyle = '#f3f4f7'; c.fillRect(x, y + 4, sw - 6, rowH - 12);
+      if (p) { const order = p.map((v, j) => [v, j]).sort((u, v) => v[0] - u[0]); let xx = x; const bw = sw - 6;
+        for (const [v, j] of order) { const w = bw * v; c.fillStyle = ACTCOL[j % ACTCOL.length]; c.globalAlpha = j === labels.indexOf(a) ? 1 : 0.55; c.fillRect(xx, y + rowH - 20, w, 11); xx += w; }
+        c.globalAlpha = 1; }
+      else { c.fillStyle = acol(a); c.fillRect(x, y + rowH - 20, (sw - 6) * B.prob[i][m], 11); }
+      c.fillStyle = acol(a); c.fillRect(x, y + 4, 5, rowH - 25);
+      const pct = `${Math.round(100 * B.prob[i][m])}%`; font(13); const pw = c.measureText(pct).width;
+      c.fillStyle = '#6b7385'; c.fillText(pct, x + sw - 10 - pw, y + 20);
+      c.fillStyle = '#1d2330'; font(14, m === behavStep); c.fillText(fit(a, sw - 22 - pw), x + 10, y + 20);
+      if (m === behavStep && B.poses) { c.strokeStyle = '#1d2330'; c.lineWidth = 1.5; c.strokeRect(x - 1, y + 3, sw - 4, rowH - 10); } } });
+  font(12); c.fillStyle = '#777'; const step = (t1 - t0) > 20 ? 5 : (t1 - t0) > 5 ? 1 : (t1 - t0) > 2 ? 0.5 : 0.25;
+  for (let t = Math.ceil(t0 / step) * step; t <= t1 + 1e-9; t += step) c.fillText(t.toFixed(step < 1 ? 2 : 0) + ' s', tx(t) - 10, H - 6);
+  return {fx, sw, top, rowH, M}; }
+if (BH) {
+  $('behavsec').style.display = 'block'; $('behavNote').textContent = BH.model;
+  const t = $('behaviour'); const M = BH.actions[0].length;
   const h = t.insertRow(); ['track', 'observed'].concat(Array.from({length: M}, (_, k) => `+${k + 1}`)).forEach(x => {
     const c = document.createElement('th'); c.textContent = x; h.appendChild(c); });
-  B.track_id.forEach((id, i) => { const r = t.insertRow(); r.insertCell().textContent = id;
-    r.insertCell().textContent = (B.observed[i] || []).filter(x => x).join(' → ');
-    B.actions[i].forEach((a, k) => { r.insertCell().textContent = `${a} (${Math.round(100 * B.prob[i][k])}%)`; }); });
-} }
+  BH.track_id.forEach((id, i) => { const r = t.insertRow(); r.insertCell().textContent = id;
+    r.insertCell().textContent = (BH.observed[i] || []).filter(x => x).join(' → ');
+    BH.actions[i].forEach((a, k) => { r.insertCell().textContent = `${a} (${Math.round(100 * BH.prob[i][k])}%)`; }); });
+  const labels = BH.labels.length ? BH.labels : [];
+  labels.forEach((a, j) => { const sp = document.createElement('span'); sp.innerHTML = `<i class="swatch" style="background:${ACTCOL[j % ACTCOL.length]}"></i>`;
+    sp.appendChild(document.createTextNode(a)); $('behavLegend').appendChild(sp); });
+  let geo = behaviourTimeline();
+  const pick = m => { behavStep = m; geo = behaviourTimeline();
+    [...$('behavSteps').children].forEach((b, j) => b.classList.toggle('on', j === m));
+    if (T && nFrames) setFrame(nFrames - 1); };
+  if (BH.poses) for (let m = 0; m < M; m++) { const b = document.createElement('button'); b.textContent = `+${m + 1}`; b.className = 'step' + (m ? '' : ' on');
+    b.addEventListener('click', () => pick(m)); $('behavSteps').appendChild(b); }
+  else $('behavSteps').textContent = 'none: the forecast file holds no poses';
+  $('behavTimeline').addEventListener('click', e => { if (!BH.poses) return; const cv = $('behavTimeline'), r = cv.getBoundingClientRect();
+    const x = (e.clientX - r.left) * cv.width / r.width, m = Math.floor((x - geo.fx) / geo.sw); if (x >= geo.fx && m >= 0 && m < geo.M) pick(m); });
+  document.body.setAttribute('data-behaviour', String(BH.track_id.length));
+}
 if (!navigator.webdriver && !/HeadlessChrome/.test(navigator.userAgent)) { playing = true; $('play').innerHTML = '&#10074;&#10074; Pause'; }
 })();
