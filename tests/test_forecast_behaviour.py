@@ -442,6 +442,40 @@ def test_continuous_activity_session(tmp_path):
     assert len(d) == 2 and d.seen.mean() > 0.6
 
 
+def test_continuous_activity_session_follows_the_stations_script(tmp_path):
+    """Continuous activities of the "stations" script: the steps follow its chain, a step at a place has its
+    characteristic pose there, the glides between places keep a walking pace, and the session it makes is
+    read by the user-data path."""
+    need_shared("data", "motion", "cmu-more", "single", "13")
+    from roomcap.forecast.behaviour import data
+    from roomcap.forecast.behaviour.sample import session_windows
+
+    pool = data.split_pool(data.load_pool())["test"]
+    a = data.compose_continuous(pool, 8, seed=3, script="stations")
+    ch = data.script_chain("stations")
+    ix = [ch.states.index(s) for s in a.states]
+    assert len(ix) == 8 and all(ch.T[i, j] > 0 for i, j in zip(ix[:-1], ix[1:], strict=True))
+    assert list(a.labels) == [ACTIONS[ch.action[i]] for i in ix]
+    assert np.allclose(a.start_s[1:], a.end_s[:-1]) and a.start_s[0] == 0
+    t = a.char_frame / a.fps
+    assert ((t >= a.start_s) & (t < a.end_s)).all()
+    pel = a.xyz_m[a.char_frame, JOINTS.index("pelvis"), :2]
+    for s, xy in zip(a.states, pel, strict=True):
+        place = s.split(":")[0]
+        if place != "walk":  # at its place (s.d. 0.2 m)
+            assert np.linalg.norm(xy - data.STATIONS[place][0]) < 0.9, (s, xy)
+    speed = np.linalg.norm(np.diff(a.xyz_m[:, JOINTS.index("pelvis")], axis=0), axis=-1) * a.fps
+    assert np.median(speed) < 2.0 and speed.max() < 8.0
+    with pytest.raises(ValueError, match="script must be one of"):
+        data.compose_continuous(pool, 3, script="nope")
+    rig = ring_rig(3, 4.0, height_m=2.2)
+    lay, lab = data.activity_session(
+        pool, tmp_path / "s", n_people=2, length=8, seed=1, rig=rig, script="stations"
+    )
+    d = session_windows(lay.root, lab, 3, 5)
+    assert len(d) == 2 and d.seen.mean() > 0.5
+
+
 def test_merge_joins_variants(tmp_path, capsys):
     from roomcap.forecast.behaviour.cli import main
 
