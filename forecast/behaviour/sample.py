@@ -286,10 +286,10 @@ class Observed:
     acts: np.ndarray  # (K,N) action indices, len(ACTIONS) = unknown
     observed: np.ndarray  # (K,N) label strings, "" before a track's first
     step_t: np.ndarray  # (K,N) characteristic times (s), NaN before a track's first
-    step_start: np.ndarray  # (K,N) the label ranges (s), NaN before a track's first
-    step_end: np.ndarray
     views: list
     cams: list[str]
+    step_start: np.ndarray | None = None  # (K,N) the label ranges (s), NaN before a track's first
+    step_end: np.ndarray | None = None
 
 
 def _observe_tracks(tracks, dets, rig, rows, camera, n_obs: int, names: tuple[str, ...]) -> Observed:
@@ -308,10 +308,10 @@ def _observe_tracks(tracks, dets, rig, rows, camera, n_obs: int, names: tuple[st
         np.full((K, N), len(ACTIONS), np.int64),  # "unknown" where a track has fewer than N labels
         np.full((K, N), "", dtype=object),
         np.full((K, N), np.nan),
-        np.full((K, N), np.nan),
-        np.full((K, N), np.nan),
         [],
         [],
+        np.full((K, N), np.nan),
+        np.full((K, N), np.nan),
     )
     for i, tid in enumerate(ids):
         st = track_steps(tracks, dets, rig, [r for r in rows if r.track_id == tid], camera, last=N)
