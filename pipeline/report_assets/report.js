@@ -205,7 +205,7 @@ function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W 
 // the forecast on a floor map (canvas context c, world -> px P, px per metre s): each track's path (dashed,
 // dots every second), a stochastic model's samples (thin) and their spread (discs every 0.5 s, radius: the
 // samples' RMS distance from their mean)
-function drawForecastPaths(c, P, s, only){
+function drawForecastPaths(c, P, s, only, xmax){
   const pathLine = (pts, from) => { c.beginPath(); let pen = false;
     if (from) { const q = P(from); c.moveTo(q[0], q[1]); pen = true; }
     for (const r of pts) { if (!fxy(r)) continue; const q = P(r); if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; }
@@ -222,8 +222,9 @@ function drawForecastPaths(c, P, s, only){
     c.strokeStyle = color(k); c.lineWidth = 2.2; c.setLineDash([6, 4]); pathLine(traj, lastObs); c.setLineDash([]);
     c.fillStyle = color(k); for (let h = Math.round(fcFps) - 1; h < traj.length; h += Math.round(fcFps)) { if (!fxy(traj[h])) continue;
       const q = P(traj[h]); c.beginPath(); c.arc(q[0], q[1], 2.6, 0, 7); c.fill(); }
-    const end = traj.filter(fxy).pop(); if (end) { const q = P(end); c.font = '10px system-ui,sans-serif'; c.fillStyle = '#1d2330';
-      c.fillText(`+${(traj.length / fcFps).toFixed(1)} s`, q[0] + 6, q[1] + 3); } });
+    const end = traj.filter(fxy).pop(); if (end) { const q = P(end), txt = `+${(traj.length / fcFps).toFixed(1)} s`;
+      c.font = '10px system-ui,sans-serif'; c.fillStyle = '#1d2330'; const w = c.measureText(txt).width;
+      c.fillText(txt, q[0] + 6 + w > (xmax === undefined ? c.canvas.width : xmax) ? q[0] - 6 - w : q[0] + 6, q[1] + 3); } });
 }
 (function layout(){ const cv = $('layout'), c = cv.getContext('2d'), W = cv.width, H = cv.height;
   c.fillStyle = '#fbfbfd'; c.fillRect(0, 0, W, H);
@@ -290,11 +291,11 @@ function drawForecastPaths(c, P, s, only){
     for (let t = Math.max(0, nFrames - back); t < nFrames; t++) { const r = roots[t][k]; if (!r) { pen = false; continue; } const q = P(r);
       if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; } c.stroke();
     const q = P(roots[nFrames - 1][k]); c.fillStyle = color(k); c.beginPath(); c.arc(q[0], q[1], 5, 0, 7); c.fill();
-    drawForecastPaths(c, P, s, i);
+    drawForecastPaths(c, P, s, i, x0 + side - 4);
     c.restore(); c.fillStyle = color(k); c.font = 'bold 12px system-ui,sans-serif'; c.fillText('id ' + T.track_id[k], x0 + 10, y0 + 20);
     if (F.spread_m && F.spread_m[i]) { const sp = F.spread_m[i].filter(v => v !== null); if (sp.length) { c.fillStyle = '#555'; c.font = '11px system-ui,sans-serif';
       c.fillText(`spread at +${(F.spread_m[i].length / fcFps).toFixed(1)} s: ${(100 * sp[sp.length - 1]).toFixed(0)} cm`, x0 + 10, y0 + 36); } } });
-  $('fcNote').textContent = `grid: ${g} m, the same scale in every panel · solid: the last 2 s walked · dashed: the forecast` + (F.sample_paths ? ' · thin: its samples · discs: their spread every 0.5 s' : '');
+  $('fcNote').textContent = `grid: ${g} m, the same scale in every panel · solid: the last 2 s walked · dashed: the forecast` + (F.sample_paths ? ' · thin: its samples · discs: their spread every 0.5 s' : F.stochastic === false ? ` · ${F.model || 'the model'} is deterministic: one path, no spread` : '');
 })();
 
 // ---------------------------------------------------------------- 3D viewer (viewer3d.js)
