@@ -3,7 +3,9 @@
 ``write_preview`` is the pipeline's forecast stage: ``forecast/preview.npz`` (schema
 ``forecast_preview/1``): ``xyz_m (K,H,J,3)`` world metres, ``track_id (K,)``, ``start_index`` (frame
 index of the last observed frame), ``fps`` of the forecast, ``t_s (H,)`` seconds after the last frame,
-``model``; without a trained checkpoint the torch-free ``baseline_preview``.
+``model``, ``joint_names (J,)``, ``stochastic`` (bool: the model draws samples); a stochastic model also
+writes ``samples_xyz_m (S,K,H,J,3)``, its S draws (``xyz_m`` is the first). Without a trained checkpoint
+the torch-free ``baseline_preview`` (deterministic).
 
 ``preview(track_file, horizon_s)`` -> dict with ``xyz_m (S,H,K,J,3)`` world metres (NaN for tracks not
 present at the last frame), ``t_s (H,)`` seconds after the last frame, ``track_id (K,)``, ``fps`` (25),
@@ -90,6 +92,7 @@ def save_forecast(path: str | os.PathLike, fc: dict) -> None:
 # ----------------------------------------------------------------------------- the pipeline's forecast stage
 
 PREVIEW_SCHEMA, PREVIEW_VERSION = "forecast_preview", 1
+PREVIEW_SAMPLES = 16  # draws of a stochastic model (pipeline.config.ForecastConfig.samples)
 
 
 def forecast_model(model: str) -> tuple[str, Path | None]:
@@ -111,24 +114,35 @@ def forecast_model(model: str) -> tuple[str, Path | None]:
     return "checkpoint", path
 
 
-def write_preview(tracks_path: Path, out_path: Path, horizon_s: float, model: str) -> Path:
-    """Forecast every track present at the last frame ``horizon_s`` ahead and write ``out_path``."""
+def write_preview(
+    tracks_path: Path, out_path: Path, horizon_s: float, model: str, n_samples: int = PREVIEW_SAMPLES
+) -> Path:
+    """Forecast every track present at the last frame ``horizon_s`` ahead and write ``out_path``; a
+    stochastic model draws ``n_samples`` forecasts (seeded: the same track gives the same file)."""
 
     kind, checkpoint = forecast_model(model)
     tf = TrackFile.load(tracks_path)
     start = int(tf.frame_index[-1]) if tf.n_frames else 0
+    extra: dict = {}
     if kind == "checkpoint":
         import torch  # lazy: loads torch
 
         torch.set_num_threads(1)  # the same bytes on every machine and executor
-        fc = preview(tracks_path, horizon_s, checkpoint=checkpoint)
-        xyz = np.moveaxis(np.asarray(fc["xyz_m"][0], np.float32), 1, 0)  # (H,K,J,3) -> (K,H,J,3)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            fc = preview(tracks_path, horizon_s, checkpoint=checkpoint, n_samples=max(1, int(n_samples)))
+        samples = np.moveaxis(np.asarray(fc["xyz_m"], np.float32), 2, 1)  # (S,H,K,J,3) -> (S,K,H,J,3)
+        xyz = samples[0]
         fps, t_s, name = float(fc["fps"]), np.asarray(fc["t_s"], np.float64), str(fc["model"])
+        stochastic = bool(fc.get("stochastic", False))
+        names = np.asarray(fc["joint_names"])
+        if stochastic:
+            extra["samples_xyz_m"] = samples
     else:
         fps = float(tf.fps)
         H = max(1, int(round(horizon_s * fps)))
         xyz, _ = baseline_preview(np.asarray(tf.xyz_m, np.float64), fps, H, kind)
-        t_s, name = np.arange(1, H + 1) / fps, kind
+        t_s, name, stochastic, names = np.arange(1, H + 1) / fps, kind, False, np.asarray(tf.joint_names)
     save_npz(
         out_path,
         {
@@ -139,6 +153,9 @@ def write_preview(tracks_path: Path, out_path: Path, horizon_s: float, model: st
             "fps": np.float64(fps),
             "t_s": t_s,
             "model": name,
+            "joint_names": names,
+            "stochastic": np.bool_(stochastic),
+            **extra,
         },
     )
     return out_path

@@ -29,9 +29,11 @@ def forecast_tracks(
 ) -> dict:
     """The next ``horizon_s`` of every track of ``track_file`` by the model of ``checkpoint``, from its last
     ``obs_s`` (default: the frames the model was trained on); the dict of
-    :func:`roomcap.forecast.preview.preview`, plus ``obs_xyz_m (n_obs,K,J,3)`` (the frames the model saw,
-    NaN where unknown), ``truth_xyz_m (H,K,J,3)`` (the track after the forecast's start: NaN beyond its
-    end), ``track_fps`` (the track file's own rate; the track is resampled to the model's ``fps``).
+    :func:`roomcap.forecast.preview.preview`, plus ``stochastic`` (whether the samples differ: a
+    deterministic model's one forecast is repeated ``n_samples`` times), ``obs_xyz_m (n_obs,K,J,3)``
+    (the frames the model saw, NaN where unknown), ``truth_xyz_m (H,K,J,3)`` (the track after the
+    forecast's start: NaN beyond its end), ``track_fps`` (the track file's own rate; the track is
+    resampled to the model's ``fps``).
 
     ``start_s``: forecast from this time (seconds after the track's first frame; default its last frame), so
     that the rest of the track is the truth. ``strict`` (``forecast sample``): a track file the model cannot
@@ -80,6 +82,7 @@ def forecast_tracks(
         "fps": fps,
         "joint_names": np.asarray(fdata.get_skeleton(clip.skeleton).joint_names),
         "model": meta["kind"],
+        "stochastic": bool(getattr(model, "stochastic", False)),
         "obs_xyz_m": ws.astype(np.float32),
         "truth_xyz_m": truth,
         "track_fps": float(clip.fps),

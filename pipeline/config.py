@@ -124,8 +124,17 @@ def _track_section(data: Any, triangulate: TriangulateOptions) -> TrackerChoice:
 
 @dataclass(frozen=True)
 class ForecastConfig:
+    """``[forecast]``: ``horizon_s`` ahead, by ``model`` (see ``forecast.preview.forecast_model``);
+    ``samples``: how many forecasts a stochastic model draws (the report draws their spread; a
+    deterministic model writes its one forecast)."""
+
     horizon_s: float = 2.0
     model: str = "default"
+    samples: int = 16
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.samples, int) or self.samples < 1:
+            raise FormatError(None, "forecast.samples", f"must be a whole number >= 1, got {self.samples!r}.")
 
 
 @dataclass(frozen=True)

@@ -330,7 +330,7 @@ class ForecastStage:
         executor: ChunkRunner | None,
     ) -> None:
         lay = session.layout
-        write_preview(lay.tracks, forecast_path(lay), config.horizon_s, config.model)
+        write_preview(lay.tracks, forecast_path(lay), config.horizon_s, config.model, config.samples)
 
 
 class ReportStage:

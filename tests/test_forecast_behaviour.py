@@ -248,6 +248,8 @@ def test_sample_writes_forecast(session):
     ank = d["poses_m"][..., [JOINTS.index("left_ankle"), JOINTS.index("right_ankle")], 2].min(-1)
     assert np.allclose(ank, 0.08, atol=1e-5)  # standing on the floor
     assert d["observed"].tolist()[0] == ["walk", "sit", "drink"] and d["observed"].tolist()[1][-1] == "walk"
+    assert d["step_start_s"][0].tolist() == [0, 1.5, 3.5] and d["step_end_s"][0].tolist() == [1.5, 3.5, 5.9]
+    assert d["step_end_s"][1, -1] == 4 and np.isnan(d["step_start_s"][1, :-1]).all()
     # the forecast poses stand in the room near where each person was last seen (untrained: within 3 m)
     last = scene.gt_xyz_m[int(round(5.9 * 25)) - 1, 0, JOINTS.index("pelvis"), :2]
     assert np.linalg.norm(d["poses_m"][0, :, JOINTS.index("pelvis"), :2].mean(0) - last) < 3.0
@@ -357,11 +359,32 @@ def test_report_shows_the_behaviour_forecast(session, tmp_path):
     lay = SessionLayout(root / "s")
     b = collect(lay, "t")["behaviour"]
     assert b["track_id"] == [3, 7] and b["observed"][0][-2:] == ["walk", "sit"] and len(b["actions"][0]) == 5
+    # the timeline's data: the labelled ranges of the observed steps, every label's probability per step
+    K, M, A, N = 2, 5, len(ACTIONS), len(b["observed"][0])
+    assert b["labels"] == list(ACTIONS)
+    probs = np.asarray(b["probs"], float)
+    assert probs.shape == (K, M, A) and np.allclose(probs.sum(-1), 1, atol=5e-3)
+    assert (
+        np.allclose(probs.max(-1), b["prob"]) and [ACTIONS[j] for j in probs[0].argmax(-1)] == b["actions"][0]
+    )
+    start, end = (np.asarray(b[k], float) for k in ("step_start_s", "step_end_s"))
+    assert start.shape == end.shape == (K, N)
+    assert start[0, -2:].tolist() == [0, 2] and end[0, -2:].tolist() == [2, 4] and end[1, -1] == 3
+    assert np.isnan(start[1, :-1]).all()  # track 7 has one labelled step
+    # the forecast characteristic poses, in the room, with a skeleton to draw them
+    poses = np.asarray(b["poses"], float)
+    assert poses.shape == (K, M, 19, 3) and np.isfinite(poses).all()
+    assert b["joint_names"] == list(JOINTS) and len(b["parents"]) == 19
+    assert sorted(p for p in b["parents"] if p < 0) == [-1] and b["parents"][JOINTS.index("left_knee")] == (
+        JOINTS.index("left_hip")
+    )
     if CHROMIUM is None:
         pytest.skip("headless Chromium not installed")
     path = write_report(lay, title="behaviour")
     _, dom = render_in_browser(path, tmp_path, height=3000)
     assert page_errors(dom) == "", page_errors(dom)
+    assert 'data-behaviour="2"' in dom and 'id="behavsec" style="display: block;"' in dom
+    assert dom.count('class="step') == M  # one button per forecast step (the pose drawn in 3D)
     body = dom.split('id="behaviour"', 1)[1].split("</table>", 1)[0]
     rows = [re.findall(r"<td[^>]*>(.*?)</td>", tr) for tr in re.findall(r"<tr[^>]*>(.*?)</tr>", body, re.S)]
     rows = [r for r in rows if r]
@@ -417,6 +440,40 @@ def test_continuous_activity_session(tmp_path):
     lay, lab = data.activity_session(pool, tmp_path / "s", n_people=2, length=8, seed=1, rig=rig)
     d = session_windows(lay.root, lab, 3, 5)
     assert len(d) == 2 and d.seen.mean() > 0.6
+
+
+def test_continuous_activity_session_follows_the_stations_script(tmp_path):
+    """Continuous activities of the "stations" script: the steps follow its chain, a step at a place has its
+    characteristic pose there, the glides between places keep a walking pace, and the session it makes is
+    read by the user-data path."""
+    need_shared("data", "motion", "cmu-more", "single", "13")
+    from roomcap.forecast.behaviour import data
+    from roomcap.forecast.behaviour.sample import session_windows
+
+    pool = data.split_pool(data.load_pool())["test"]
+    a = data.compose_continuous(pool, 8, seed=3, script="stations")
+    ch = data.script_chain("stations")
+    ix = [ch.states.index(s) for s in a.states]
+    assert len(ix) == 8 and all(ch.T[i, j] > 0 for i, j in zip(ix[:-1], ix[1:], strict=True))
+    assert list(a.labels) == [ACTIONS[ch.action[i]] for i in ix]
+    assert np.allclose(a.start_s[1:], a.end_s[:-1]) and a.start_s[0] == 0
+    t = a.char_frame / a.fps
+    assert ((t >= a.start_s) & (t < a.end_s)).all()
+    pel = a.xyz_m[a.char_frame, JOINTS.index("pelvis"), :2]
+    for s, xy in zip(a.states, pel, strict=True):
+        place = s.split(":")[0]
+        if place != "walk":  # at its place (s.d. 0.2 m)
+            assert np.linalg.norm(xy - data.STATIONS[place][0]) < 0.9, (s, xy)
+    speed = np.linalg.norm(np.diff(a.xyz_m[:, JOINTS.index("pelvis")], axis=0), axis=-1) * a.fps
+    assert np.median(speed) < 2.0 and speed.max() < 8.0
+    with pytest.raises(ValueError, match="script must be one of"):
+        data.compose_continuous(pool, 3, script="nope")
+    rig = ring_rig(3, 4.0, height_m=2.2)
+    lay, lab = data.activity_session(
+        pool, tmp_path / "s", n_people=2, length=8, seed=1, rig=rig, script="stations"
+    )
+    d = session_windows(lay.root, lab, 3, 5)
+    assert len(d) == 2 and d.seen.mean() > 0.5
 
 
 def test_merge_joins_variants(tmp_path, capsys):

@@ -419,3 +419,53 @@ def test_merge_whose_merged_hypothesis_is_dropped_later():
     H2, _, V2, _ = rec._merge_duplicates(Z, H.copy(), S.copy(), V.copy(), keep.copy())
     np.testing.assert_array_equal(H2, H[2:])
     assert V2.shape == (12, 1, 19)
+
+
+# ----------------------------------------------------------------------------- the forecast's paths
+
+
+def test_report_forecast_paths_with_the_samples_spread(tmp_path):
+    """A stochastic model's preview carries its samples; the report gives each person's floor path, the
+    samples' paths and their spread; a deterministic one says so (no spread drawn) and the page renders
+    both without errors."""
+    from roomcap.forecast.preview import CHECKPOINT_DIR, write_preview
+
+    ckpt = CHECKPOINT_DIR / "intention_cmuall.pt"
+    if not ckpt.exists():
+        pytest.skip(f"{ckpt} not shipped in this checkout")
+    lay = make_session(tmp_path / "sto", n_people=3, T=60)
+    out = lay.root / "forecast" / "preview.npz"
+    out.parent.mkdir(parents=True)
+    write_preview(lay.tracks, out, 1.0, str(ckpt), n_samples=4)
+    d = np.load(out)
+    K, H = 3, len(d["t_s"])
+    assert bool(d["stochastic"]) and d["samples_xyz_m"].shape == (4, K, H, 19, 3)
+    assert np.array_equal(d["samples_xyz_m"][0], d["xyz_m"], equal_nan=True)
+    f = report_data(write_report(lay))["forecast"]
+    assert f["stochastic"] is True
+    assert np.asarray(f["path"], float).shape == (K, H, 2)
+    paths = np.asarray(f["sample_paths"], float)
+    spread = np.asarray(f["spread_m"], float)
+    assert paths.shape == (K, 4, H, 2) and spread.shape == (K, H)
+    assert np.isfinite(paths).all() and np.isfinite(spread).all()
+    # the spread is the samples' RMS distance from their mean, and the samples differ
+    want = np.sqrt(((paths - paths.mean(1, keepdims=True)) ** 2).sum(-1).mean(1))
+    assert np.allclose(spread, want, atol=2e-3) and spread[:, -1].max() > 1e-3
+    # the path is the floor point under the pelvis of the forecast poses
+    pel = CANONICAL.joint_names.index("pelvis")
+    assert np.allclose(f["path"], d["xyz_m"][:, :, pel, :2], atol=1e-3)
+
+    det = make_session(tmp_path / "det", n_people=3, T=60)
+    (det.root / "forecast").mkdir()
+    write_preview(det.tracks, det.root / "forecast" / "preview.npz", 1.0, "constant_velocity")
+    g = report_data(write_report(det))["forecast"]
+    assert g["stochastic"] is False and g["sample_paths"] is None and g["spread_m"] is None
+    assert np.asarray(g["path"], float).shape == (K, 25, 2)
+    if CHROMIUM is None:
+        pytest.skip("headless Chromium not installed")
+    for name, session in (("sto", lay), ("det", det)):
+        _, dom = render_in_browser(session.report_html, tmp_path, height=1600, name=name)
+        assert page_errors(dom) == "", f"{name}: page errors: {page_errors(dom)}"
+        assert 'id="fcsec" style="display: block;"' in dom, f"{name}: no forecast paths panel"
+        note = dom.split('id="layoutNote"', 1)[1].split("</div>", 1)[0]
+        assert ("4 samples" in note) if name == "sto" else ("deterministic" in note), note

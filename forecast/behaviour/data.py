@@ -502,6 +502,7 @@ class Activity:
     start_s: np.ndarray
     end_s: np.ndarray
     char_frame: np.ndarray
+    states: tuple[str, ...] = ()  # "stations": each step's hidden state (script_chain("stations").states)
 
 
 def compose_continuous(
@@ -512,11 +513,20 @@ def compose_continuous(
     around_s: float = 1.0,
     blend_s: float = 0.4,
     start_xy: tuple[float, float] = (0.0, 0.0),
+    script: str = "markov",
 ) -> Activity:
     """A scripted sequence of ``length`` steps as one motion: each step is its clip's frames within
-    ``around_s`` of a characteristic frame, turned and moved so that it starts where and facing how the
-    previous one ended, the two cross-faded over ``blend_s`` (linear blend of the aligned poses). A label
-    covers its step from the middle of the blend before it to the middle of the blend after it."""
+    ``around_s`` of a characteristic frame. ``script`` "markov" (``SCRIPT``): each step turned and moved so
+    that it starts where and facing how the previous one ended, the two cross-faded over ``blend_s``
+    (linear blend of the aligned poses). "stations" (the states of ``script_chain("stations")``, placed as
+    ``compose_stations`` places them): each step turned and moved so that its characteristic pose stands at
+    its state's place facing its heading, and the person glides from one step's last pose to the next's
+    first (``_glide``: at most ``GLIDE_SPEED_M_S``, at least ``blend_s``). A label covers its step from the
+    middle of the blend (or glide) before it to the middle of the one after it."""
+    if script == "stations":
+        return _continuous_stations(pool, length, seed, fps, around_s, blend_s)
+    if script != "markov":
+        raise ValueError(f"script must be one of {SCRIPTS}, got {script!r}")
     rng = np.random.default_rng(seed)
     by_action = {a: [c for c in pool if c.action == a] for a in ACTIONS}
     pel = JOINTS.index("pelvis")
@@ -559,22 +569,113 @@ def compose_continuous(
     return Activity(out.astype(np.float32), fps, tuple(labels), st, en, np.asarray(chars, np.int64))
 
 
+GLIDE_SPEED_M_S = 1.2  # the glide between two steps of the "stations" script (a walking pace)
+
+
+def _station_target(state: str, last: str | None, rng: np.random.Generator) -> tuple:
+    """Where a step of the "stations" script stands and faces, as ``compose_stations`` places it ->
+    (pos (2,), heading, the last place visited)."""
+    place, what = state.split(":")
+    if place == "walk":
+        to = np.asarray(STATIONS[what][0])
+        if last is None:
+            last = str(rng.choice([q for q in STATIONS if q != what]))
+        frm = np.asarray(STATIONS[last][0])
+        pos = frm + rng.uniform(*WALK_PART) * (to - frm) + rng.normal(0, WALK_NOISE_M, 2)
+        d = to - pos
+        return pos, float(np.arctan2(d[1], d[0])) + rng.normal(0, WALK_TURN_RAD), last
+    xy, h = STATIONS[place]
+    return np.asarray(xy) + rng.normal(0, STATION_NOISE_M, 2), h + rng.normal(0, STATION_TURN_RAD), place
+
+
+def _glide(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """n frames (n,J,3) from pose a to pose b: the pelvis along the straight line on the floor, the heading
+    by the shorter turn, the body cross-faded in its own facing frame."""
+    pel = JOINTS.index("pelvis")
+    ha, hb = _facing(a), _facing(b)
+    pa, pb = a[pel, :2], b[pel, :2]
+    la = (a - np.array([pa[0], pa[1], 0.0])) @ _yaw(-ha).T
+    lb = (b - np.array([pb[0], pb[1], 0.0])) @ _yaw(-hb).T
+    turn = (hb - ha + np.pi) % (2 * np.pi) - np.pi
+    out = []
+    for w in np.linspace(0, 1, n + 2)[1:-1]:
+        p = (1 - w) * pa + w * pb
+        out.append(((1 - w) * la + w * lb) @ _yaw(ha + w * turn).T + np.array([p[0], p[1], 0.0]))
+    return np.asarray(out).reshape(n, len(JOINTS), 3)
+
+
+def _continuous_stations(
+    pool, length: int, seed: int, fps: float, around_s: float, blend_s: float
+) -> Activity:
+    """``compose_continuous`` for the "stations" script (see there)."""
+    rng = np.random.default_rng(seed)
+    by_action = _by_action(pool)
+    ch = script_chain("stations")
+    pel = JOINTS.index("pelvis")
+    nb = max(1, int(round(blend_s * fps)))
+    st = int(rng.choice(len(ch.states), p=ch.pi))
+    last = None
+    out = np.zeros((0, len(JOINTS), 3))
+    labels, states, starts, chars = [], [], [], []
+    for k in range(length):
+        if k:
+            st = int(rng.choice(len(ch.states), p=ch.T[st]))
+        pos, heading, last = _station_target(ch.states[st], last, rng)
+        a = ACTIONS[int(ch.action[st])]
+        c = by_action[a][rng.integers(len(by_action[a]))]
+        f = int(c.frames[rng.integers(len(c.frames))])
+        w = int(round(around_s * fps))
+        lo, hi = max(0, f - w), min(len(c.xyz_m), f + w + 1)
+        seg = c.xyz_m[lo:hi].astype(np.float64)
+        x = seg[f - lo]
+        seg = (seg - np.array([x[pel, 0], x[pel, 1], 0.0])) @ _yaw(heading - _facing(x)).T
+        seg = seg + np.array([pos[0], pos[1], 0.0])
+        if len(out):
+            dist = float(np.linalg.norm(seg[0, pel, :2] - out[-1, pel, :2]))
+            n = max(nb, int(np.ceil(dist / GLIDE_SPEED_M_S * fps)))
+            gl = _glide(out[-1], seg[0], n)
+            start = len(out) + n // 2
+            chars.append(len(out) + n + (f - lo))
+            out = np.concatenate([out, gl, seg])
+        else:
+            start = 0
+            chars.append(f - lo)
+            out = seg
+        labels.append(a)
+        states.append(ch.states[st])
+        starts.append(start)
+    st_s = np.asarray(starts, np.float64) / fps
+    en = np.append(st_s[1:], len(out) / fps)
+    return Activity(
+        out.astype(np.float32), fps, tuple(labels), st_s, en, np.asarray(chars, np.int64), tuple(states)
+    )
+
+
 def activity_session(
-    pool: list[StepClip], root, n_people: int = 2, length: int = 8, seed: int = 0, rig=None
+    pool: list[StepClip],
+    root,
+    n_people: int = 2,
+    length: int = 8,
+    seed: int = 0,
+    rig=None,
+    script: str = "markov",
 ) -> tuple[object, Path]:
     """A session folder in the layout the pipeline writes, for people doing continuous composite
-    activities: ``calib/rig.toml``, ``keypoints/<cam>.npz`` (rendered with ``DEFAULT_RENDER``'s faults),
-    ``track/tracks.npz`` (the ground truth as the track file, ids 0..P-1) and ``labels.csv`` (the label file
-    of ``forecast behaviour``). -> (SessionLayout, label file path)."""
+    activities (``compose_continuous`` of ``script``): ``calib/rig.toml``, ``keypoints/<cam>.npz``
+    (rendered with ``DEFAULT_RENDER``'s faults), ``track/tracks.npz`` (the ground truth as the track file,
+    ids 0..P-1) and ``labels.csv`` (the label file of ``forecast behaviour``). "markov": each person's
+    activity is centred on a ring of 1.2 m; "stations": the people move between the room's places
+    (``STATIONS``, the rig's frame). -> (SessionLayout, label file path)."""
     rig = rig or default_rig()
     acts = []
     for p in range(n_people):
-        a = compose_continuous(pool, length, seed * 100 + p)
+        a = compose_continuous(pool, length, seed * 100 + p, script=script)
         x = a.xyz_m.copy()
-        ang = 2 * np.pi * p / max(n_people, 1)
-        x[..., :2] += np.array([1.2 * np.cos(ang), 1.2 * np.sin(ang)]) - x[
-            :, JOINTS.index("pelvis"), :2
-        ].mean(0)
+        if script == "markov":
+            ang = 2 * np.pi * p / max(n_people, 1)
+            x[..., :2] += np.array([1.2 * np.cos(ang), 1.2 * np.sin(ang)]) - x[
+                :, JOINTS.index("pelvis"), :2
+            ].mean(0)
         acts.append((a, x))
     T = max(len(x) for _, x in acts)
     gt = np.full((T, n_people, len(JOINTS), 3), np.nan)

@@ -13,7 +13,8 @@ frame (metres) by the viewer frame of that anchor, each moved up or down to stan
 Output ``behaviour.npz`` (schema ``behaviour/1``): ``track_id (K,)``, ``labels (A,)``, ``actions (K,M)``
 label strings, ``probs (K,M,A)``, ``poses_m (K,M,J,3)``, ``joint_names (J,)``, ``camera (K,)``,
 ``observed (K,N)`` the labels of the observed steps (``""`` where a track has fewer than N),
-``step_time_s (K,N)`` their characteristic times, ``model``.
+``step_time_s (K,N)`` their characteristic times, ``step_start_s``/``step_end_s (K,N)`` their label
+ranges (NaN where a track has fewer than N; the report's timeline draws them), ``model``.
 """
 
 from __future__ import annotations
@@ -287,6 +288,8 @@ class Observed:
     step_t: np.ndarray  # (K,N) characteristic times (s), NaN before a track's first
     views: list
     cams: list[str]
+    step_start: np.ndarray | None = None  # (K,N) the label ranges (s), NaN before a track's first
+    step_end: np.ndarray | None = None
 
 
 def _observe_tracks(tracks, dets, rig, rows, camera, n_obs: int, names: tuple[str, ...]) -> Observed:
@@ -307,6 +310,8 @@ def _observe_tracks(tracks, dets, rig, rows, camera, n_obs: int, names: tuple[st
         np.full((K, N), np.nan),
         [],
         [],
+        np.full((K, N), np.nan),
+        np.full((K, N), np.nan),
     )
     for i, tid in enumerate(ids):
         st = track_steps(tracks, dets, rig, [r for r in rows if r.track_id == tid], camera, last=N)
@@ -318,6 +323,7 @@ def _observe_tracks(tracks, dets, rig, rows, camera, n_obs: int, names: tuple[st
             ob.acts[i, off + s] = ACTIONS.index(r.label)
             ob.observed[i, off + s] = r.label
             ob.step_t[i, off + s] = t_s[f]
+            ob.step_start[i, off + s], ob.step_end[i, off + s] = r.start_s, r.end_s
             if p is None:
                 continue
             pf = plane_features(view, cam.undistort_px(p)[None, None])[0, 0][jidx]
@@ -382,6 +388,8 @@ def run_sample(
             "camera": np.asarray(ob.cams),
             "observed": ob.observed.astype(str),
             "step_time_s": ob.step_t,
+            "step_start_s": ob.step_start,
+            "step_end_s": ob.step_end,
             "model": np.asarray(f"{Path(checkpoint).name}:{model}"),
         },
     )

@@ -9,13 +9,17 @@ import json
 import logging
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from roomcap.capture.session import SessionLayout
 from roomcap.core.errors import FormatError
 from roomcap.core.fileio import atomic_write_text, load_npz, load_toml
 from roomcap.core.redact import redact
+from roomcap.keypoints.skeletons import CANONICAL
 from roomcap.pipeline.provenance import STAGES
 from roomcap.pipeline.report.figures import _detection_rates, _quality, _rig_data, _tracks_data
 from roomcap.pipeline.report.inputs import ReportConfig, _load, _r
@@ -52,7 +56,27 @@ def _provenance(lay: SessionLayout) -> list[dict[str, Any]]:
     return rows
 
 
+def _floor_roots(xyz: np.ndarray, names: list[str]) -> np.ndarray:
+    """The floor point (x, y) under each pose's root of ``xyz (...,J,3)``: the pelvis, else the mean of the
+    hips, else of the seen joints (report.js ``rootOf`` alike); NaN where none is seen."""
+    for pick in (["pelvis"], ["left_hip", "right_hip"]):
+        if all(n in names for n in pick):
+            r = xyz[..., [names.index(n) for n in pick], :2].mean(-2)
+            break
+    else:
+        r = np.full(xyz.shape[:-2] + (2,), np.nan)
+    ok = np.isfinite(xyz).all(-1, keepdims=True)
+    n = ok.sum(-2)
+    mean = np.where(n > 0, np.where(ok, xyz, 0).sum(-2) / np.maximum(n, 1), np.nan)[..., :2]
+    return np.where(np.isfinite(r), r, mean)
+
+
 def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
+    """``forecast/preview.npz``: the forecast poses (the ghosts), and for the floor map each track's path
+    (``path (K,H,2)``, the floor point under its root), and where the model is stochastic (``stochastic``;
+    None for a file of an older version that does not say) the paths of its S samples
+    (``sample_paths (K,S,H,2)``) and their spread ``spread_m (K,H)``: the RMS distance of the samples'
+    floor points from their mean."""
     path = lay.root / "forecast" / "preview.npz"
     if not path.exists():
         return None
@@ -66,18 +90,50 @@ def _forecast_data(lay: SessionLayout) -> dict[str, Any] | None:
     xyz = d["xyz_m"]
     if xyz.ndim != 4:  # (K,H,J,3) expected
         return None
-    return {
+    names = [str(n) for n in d["joint_names"]] if "joint_names" in d else []
+    out = {
         "xyz": _r(xyz),
         "track_id": d["track_id"].tolist(),
         "start_index": int(d["start_index"]),
         "model": str(d.get("model", "")),
         "fps": float(d["fps"]) if "fps" in d else None,
+        "stochastic": bool(d["stochastic"]) if "stochastic" in d else None,
+        "path": _r(_floor_roots(xyz, names), 3) if names else None,
+        "sample_paths": None,
+        "spread_m": None,
     }
+    S = d.get("samples_xyz_m")
+    if S is not None and names and S.ndim == 5 and S.shape[1:] == xyz.shape:
+        roots = np.moveaxis(_floor_roots(S.astype(np.float64), names), 0, 1)  # (K,S,H,2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a track not forecast: all NaN
+            dev = roots - np.nanmean(roots, axis=1, keepdims=True)
+            spread = np.sqrt(np.nanmean((dev**2).sum(-1), axis=1))
+        out["sample_paths"] = _r(roots, 3)
+        out["spread_m"] = _r(spread, 3)
+    return out
+
+
+def _parents_by_name(names: list[str]) -> list[int]:
+    """The parent of each of ``names`` in the body19 skeleton, as an index into ``names`` (the nearest
+    ancestor that is among them; -1 for none)."""
+    ref = list(CANONICAL.joint_names)
+    out = []
+    for n in names:
+        j = ref.index(n) if n in ref else -1
+        p = CANONICAL.parents[j] if j >= 0 else -1
+        while p >= 0 and ref[p] not in names:
+            p = CANONICAL.parents[p]
+        out.append(names.index(ref[p]) if p >= 0 else -1)
+    return out
 
 
 def _behaviour_data(lay: SessionLayout) -> dict[str, Any] | None:
-    """``forecast/behaviour.npz`` (``forecast behaviour sample``): per person the next actions, their
-    probabilities and the height of each forecast pose's head, or None."""
+    """``forecast/behaviour.npz`` (``forecast behaviour sample``): per person the observed steps (labels,
+    characteristic times and, where the file has them, the label ranges ``step_start_s``/``step_end_s``
+    (K,N)), the next M actions with the probability of every label (``probs (K,M,A)``, ``labels (A,)``) and
+    the forecast characteristic poses ``poses (K,M,J,3)`` in the room with their ``joint_names`` and
+    ``parents``, or None."""
     path = lay.root / "forecast" / "behaviour.npz"
     if not path.exists():
         return None
@@ -86,14 +142,32 @@ def _behaviour_data(lay: SessionLayout) -> dict[str, Any] | None:
     except FormatError as e:
         log.warning("behaviour forecast not shown: %s", e)
         return None
+    K = len(d["track_id"])
     p = d["probs"].max(-1)
     obs = d["observed"].tolist() if "observed" in d else [[] for _ in d["track_id"]]
+    names = [str(n) for n in d["joint_names"]] if "joint_names" in d else []
+    poses = d["poses_m"]
+    ok_poses = bool(names) and poses.ndim == 4 and poses.shape[2] == len(names) and poses.shape[-1] == 3
+    A = d["probs"].shape[-1]
+    labels = [str(x) for x in d["labels"]] if "labels" in d and len(d["labels"]) == A else []
+
+    def steps(key: str) -> Any:
+        return _r(d[key]) if key in d and d[key].shape[:1] == (K,) else None
+
     return {
         "track_id": d["track_id"].tolist(),
         "observed": obs,
         "actions": d["actions"].tolist(),
         "prob": _r(p),
         "model": str(d["model"]) if "model" in d else "",
+        "labels": labels,
+        "probs": _r(d["probs"]) if labels else None,
+        "step_time_s": steps("step_time_s"),
+        "step_start_s": steps("step_start_s"),
+        "step_end_s": steps("step_end_s"),
+        "poses": _r(poses) if ok_poses else None,
+        "joint_names": names if ok_poses else [],
+        "parents": _parents_by_name(names) if ok_poses else [],
     }
 
 

@@ -17,6 +17,7 @@ function row(tbl, cells, head){ const tr = document.createElement('tr');
 const num = (v, d) => ({v: v === null || v === undefined ? null : v, t: fmt(v, d)});
 
 // ---------------------------------------------------------------- data prepared once
+const BH = D.behaviour && D.behaviour.track_id.length ? D.behaviour : null; let behavStep = 0;
 const T = D.tracks, F = D.forecast, Q = D.quality && !D.quality.error ? D.quality : null, V = D.views;
 const nFrames = T ? T.xyz.length : 0, nTracks = T ? T.track_id.length : 0;
 const fps = T ? (T.fps || 25) : 25;
@@ -34,6 +35,9 @@ const peopleAt = roots.map(fr => fr.filter(r => r).length);
 const maxPeople = peopleAt.length ? Math.max(...peopleAt) : 0;
 const fcRoots = F ? F.xyz.map(traj => traj.map(rootOf)) : [];
 const fcFps = F ? (F.fps || fps) : fps;
+const fxy = p => p && p[0] !== null && p[1] !== null;
+// floor paths of the forecast: the file's own (under each track's root), else from the ghosts' roots
+const fcPaths = F ? (F.path || fcRoots.map(traj => traj.map(r => r ? [r[0], r[1]] : null))) : [];
 const fcTrack = F ? F.track_id.map(id => T ? T.track_id.indexOf(id) : -1) : [];
 const rowOfFrame = new Map(); if (T) T.frame_index.forEach((f, t) => rowOfFrame.set(f, t));
 function viewerRowOf(fi){ if (!T || !nFrames) return 0; if (rowOfFrame.has(fi)) return rowOfFrame.get(fi);
@@ -198,11 +202,37 @@ function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W 
 })();
 
 // ---------------------------------------------------------------- room from above
+// the forecast on a floor map (canvas context c, world -> px P, px per metre s): each track's path (dashed,
+// dots every second), a stochastic model's samples (thin) and their spread (discs every 0.5 s, radius: the
+// samples' RMS distance from their mean)
+function drawForecastPaths(c, P, s, only, xmax){
+  const pathLine = (pts, from) => { c.beginPath(); let pen = false;
+    if (from) { const q = P(from); c.moveTo(q[0], q[1]); pen = true; }
+    for (const r of pts) { if (!fxy(r)) continue; const q = P(r); if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; }
+    c.stroke(); };
+  fcPaths.forEach((traj, i) => { const k = fcTrack[i]; if (k < 0 || !traj.some(fxy) || (only !== undefined && i !== only)) return;
+    const lastObs = roots.length ? roots[nFrames - 1][k] : null, sp = F.sample_paths ? F.sample_paths[i] : null;
+    if (sp) { c.strokeStyle = color(k); c.globalAlpha = 0.28; c.lineWidth = 1; for (const s1 of sp) pathLine(s1, lastObs);
+      const spr = F.spread_m[i], step = Math.max(1, Math.round(fcFps * 0.5));
+      c.fillStyle = color(k); for (let h = step - 1; h < spr.length; h += step) { if (spr[h] === null) continue;
+        const pts = sp.map(s1 => s1[h]).filter(fxy); if (!pts.length) continue;
+        const m = [0, 1].map(a => pts.reduce((t, p) => t + p[a], 0) / pts.length), q = P(m);
+        c.globalAlpha = 0.13; c.beginPath(); c.arc(q[0], q[1], Math.max(2, spr[h] * s), 0, 7); c.fill(); }
+      c.globalAlpha = 1; }
+    c.strokeStyle = color(k); c.lineWidth = 2.2; c.setLineDash([6, 4]); pathLine(traj, lastObs); c.setLineDash([]);
+    c.fillStyle = color(k); for (let h = Math.round(fcFps) - 1; h < traj.length; h += Math.round(fcFps)) { if (!fxy(traj[h])) continue;
+      const q = P(traj[h]); c.beginPath(); c.arc(q[0], q[1], 2.6, 0, 7); c.fill(); }
+    const end = traj.filter(fxy).pop(); if (end) { const q = P(end), txt = `+${(traj.length / fcFps).toFixed(1)} s`;
+      c.font = '10px system-ui,sans-serif'; c.fillStyle = '#1d2330'; const w = c.measureText(txt).width;
+      c.fillText(txt, q[0] + 6 + w > (xmax === undefined ? c.canvas.width : xmax) ? q[0] - 6 - w : q[0] + 6, q[1] + 3); } });
+}
 (function layout(){ const cv = $('layout'), c = cv.getContext('2d'), W = cv.width, H = cv.height;
   c.fillStyle = '#fbfbfd'; c.fillRect(0, 0, W, H);
   const pts = [];
   if (D.rig) for (const k of D.rig.cameras) pts.push(k.center_m);
   for (const fr of roots) for (const r of fr) if (r) pts.push(r);
+  for (const traj of fcPaths) for (const r of traj) if (fxy(r)) pts.push(r);
+  if (F && F.sample_paths) for (const sp of F.sample_paths) for (const s1 of sp) for (const r of s1) if (fxy(r)) pts.push(r);
   if (!pts.length) { c.fillStyle = '#999'; c.fillText('nothing to draw', 10, 20); return; }
   let minX = Math.min(...pts.map(p => p[0])) - 0.6, maxX = Math.max(...pts.map(p => p[0])) + 0.6;
   let minY = Math.min(...pts.map(p => p[1])) - 0.6, maxY = Math.max(...pts.map(p => p[1])) + 0.6;
@@ -225,11 +255,47 @@ function uncertainty(){ const cv = $('uncertainty'), c = cv.getContext('2d'), W 
       if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; last = q; first = first || q; }
     c.stroke(); if (first) { c.fillStyle = color(k); c.beginPath(); c.arc(first[0], first[1], 3, 0, 7); c.fill(); }
     if (last) { c.beginPath(); c.arc(last[0], last[1], 5, 0, 7); c.fill(); } }
-  fcRoots.forEach((traj, i) => { const k = fcTrack[i]; const r0 = traj.find(r => r); if (!r0 || k < 0) return;
-    c.strokeStyle = color(k); c.lineWidth = 2; c.setLineDash([5, 4]); c.beginPath(); let pen = false;
-    const lastObs = roots.length ? roots[nFrames - 1][k] : null; if (lastObs) { const q = P(lastObs); c.moveTo(q[0], q[1]); pen = true; }
-    for (const r of traj) { if (!r) continue; const q = P(r); if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; }
-    c.stroke(); c.setLineDash([]); });
+  drawForecastPaths(c, P, s);
+  if (F) { const H = F.xyz[0] ? F.xyz[0].length : 0, sec = (H / fcFps).toFixed(1);
+    $('layoutNote').textContent = `Dashed: each person's forecast path for the next ${sec} s by ${F.model || 'the forecast'} (dots every second). ` +
+      (F.sample_paths ? `Thin lines: its ${F.sample_paths[0] ? F.sample_paths[0].length : 0} samples; shaded discs: their spread every 0.5 s (RMS distance from their mean).`
+        : F.stochastic === false ? `This model is deterministic: it gives one path, so there is no spread to draw (a stochastic model, e.g. [forecast] model = "forecast/checkpoints/intention_cmuall.pt", draws samples).`
+        : 'The forecast file holds one path per person (no samples).'); }
+})();
+
+// the forecast paths from above, one panel per person centred on them (one scale for all): the last 2 s
+// walked (solid), then the forecast
+(function forecastMap(){ const cv = $('fcmap'); if (!F || !T || !nFrames) return;
+  const back = Math.round(2 * fps), who = [];
+  fcTrack.forEach((k, i) => { if (k < 0 || !roots[nFrames - 1][k] || !fcPaths[i].some(fxy)) return;
+    const pts = [];
+    for (let t = Math.max(0, nFrames - back); t < nFrames; t++) if (roots[t][k]) pts.push(roots[t][k]);
+    for (const r of fcPaths[i]) if (fxy(r)) pts.push(r);
+    if (F.sample_paths) for (const s1 of F.sample_paths[i]) for (const r of s1) if (fxy(r)) pts.push(r);
+    who.push([i, k, pts]); });
+  if (!who.length) return;
+  $('fcsec').style.display = 'block';
+  const cols = Math.min(3, who.length), rows = Math.ceil(who.length / cols), side = Math.floor(cv.width / cols);
+  cv.height = rows * side; const c = cv.getContext('2d'), W = cv.width, H = cv.height;
+  c.fillStyle = '#fff'; c.fillRect(0, 0, W, H);
+  const box = pts => { const lo = [0, 1].map(a => Math.min(...pts.map(p => p[a]))), hi = [0, 1].map(a => Math.max(...pts.map(p => p[a])));
+    return [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, Math.max(hi[0] - lo[0], hi[1] - lo[1]) / 2]; };
+  const half = Math.max(0.75, ...who.map(w => box(w[2])[2] * 1.15 + 0.25)), s = side / (2 * half), g = half > 2.5 ? 1 : 0.5;
+  who.forEach(([i, k, pts], n) => { const x0 = (n % cols) * side, y0 = Math.floor(n / cols) * side, [cx, cy] = box(pts);
+    const P = p => [x0 + side / 2 + (p[0] - cx) * s, y0 + side / 2 - (p[1] - cy) * s];
+    c.save(); c.beginPath(); c.rect(x0 + 3, y0 + 3, side - 6, side - 6); c.clip();
+    c.fillStyle = '#fbfbfd'; c.fillRect(x0, y0, side, side); c.strokeStyle = '#e6e8ee'; c.lineWidth = 1;
+    for (let x = Math.floor((cx - half) / g) * g; x <= cx + half; x += g) { const q = P([x, 0]); c.beginPath(); c.moveTo(q[0], y0); c.lineTo(q[0], y0 + side); c.stroke(); }
+    for (let y = Math.floor((cy - half) / g) * g; y <= cy + half; y += g) { const q = P([0, y]); c.beginPath(); c.moveTo(x0, q[1]); c.lineTo(x0 + side, q[1]); c.stroke(); }
+    c.strokeStyle = color(k); c.lineWidth = 2.5; c.beginPath(); let pen = false;
+    for (let t = Math.max(0, nFrames - back); t < nFrames; t++) { const r = roots[t][k]; if (!r) { pen = false; continue; } const q = P(r);
+      if (pen) c.lineTo(q[0], q[1]); else c.moveTo(q[0], q[1]); pen = true; } c.stroke();
+    const q = P(roots[nFrames - 1][k]); c.fillStyle = color(k); c.beginPath(); c.arc(q[0], q[1], 5, 0, 7); c.fill();
+    drawForecastPaths(c, P, s, i, x0 + side - 4);
+    c.restore(); c.fillStyle = color(k); c.font = 'bold 12px system-ui,sans-serif'; c.fillText('id ' + T.track_id[k], x0 + 10, y0 + 20);
+    if (F.spread_m && F.spread_m[i]) { const sp = F.spread_m[i].filter(v => v !== null); if (sp.length) { c.fillStyle = '#555'; c.font = '11px system-ui,sans-serif';
+      c.fillText(`spread at +${(F.spread_m[i].length / fcFps).toFixed(1)} s: ${(100 * sp[sp.length - 1]).toFixed(0)} cm`, x0 + 10, y0 + 36); } } });
+  $('fcNote').textContent = `grid: ${g} m, the same scale in every panel · solid: the last 2 s walked · dashed: the forecast` + (F.sample_paths ? ' · thin: its samples · discs: their spread every 0.5 s' : F.stochastic === false ? ` · ${F.model || 'the model'} is deterministic: one path, no spread` : '');
 })();
 
 // ---------------------------------------------------------------- 3D viewer (viewer3d.js)
@@ -270,9 +336,18 @@ function draw(){
   fcRoots.forEach((traj, i) => { const k = fcTrack[i]; if (k < 0) return; let prev = roots[nFrames - 1][k];
     ctx.globalAlpha = nearEnd ? 0.95 : 0.45;
     for (const r of traj) { if (!r) continue; if (prev) line(floorOf(prev), floorOf(r), color(k), 2, [6, 5]); prev = r; }
+    if (nearEnd && F.sample_paths && F.sample_paths[i]) { ctx.globalAlpha = 0.3; // the samples, on the floor
+      for (const s1 of F.sample_paths[i]) { let q0 = roots[nFrames - 1][k];
+        for (const r of s1) { if (!fxy(r)) continue; const q = [r[0], r[1], 0]; if (q0) line(floorOf(q0), q, color(k), 1); q0 = q; } } }
     ctx.globalAlpha = 1;
     if (nearEnd) { const H = traj.length, step = Math.max(1, Math.round(fcFps * 0.5));
       for (let h = step - 1; h < H; h += step) skeleton(F.xyz[i][h], color(k), 1.6, 0, 0.16 + 0.3 * (1 - h / H)); } });
+  const behavLabels = [];
+  if (BH && BH.poses && nearEnd) BH.track_id.forEach((id, i) => { const k = T.track_id.indexOf(id), pose = BH.poses[i][behavStep];
+    if (!pose) return; const col = k >= 0 ? color(k) : '#ffffff';
+    V3.skeleton(pose, BH.parents, '#ffffff', 3.4, 0, 0.35); V3.skeleton(pose, BH.parents, col, 2, 0, 0.8);
+    const top = pose.filter(fin).reduce((a, b) => (b[2] > a[2] ? b : a), [0, 0, -1e9]), q = top[2] > -1e9 ? project([top[0], top[1], top[2] + 0.7]) : null;
+    if (q) behavLabels.push([q, `+${behavStep + 1}: ${BH.actions[i][behavStep]} ${Math.round(100 * BH.prob[i][behavStep])}%`, col]); });
   const fr = T.xyz[frame], boxes = [];
   fr.forEach((pose, k) => { const box = [1e9, 1e9, -1e9, -1e9];
     skeleton(pose, color(k), 3.2, T.mean_std_m.length ? T.mean_std_m[k][frame] : 0, 1, box);
@@ -283,11 +358,19 @@ function draw(){
       ctx.globalAlpha = 1; ctx.fillStyle = '#fff'; ctx.fillText(label, q[0] - w / 2 + 5, q[1] - 3);
       box[1] = Math.min(box[1], q[1] - 16); box[0] = Math.min(box[0], q[0] - w / 2); box[2] = Math.max(box[2], q[0] + w / 2); } }
     if (box[2] > box[0]) boxes.push([box[0] - 4, box[1] - 4, box[2] + 4, box[3] + 4]); });
+  for (const [q, txt, col] of behavLabels) { // the behaviour step's label: above the pose, clear of the people's tags
+    ctx.font = '12px system-ui,sans-serif'; const w = ctx.measureText(txt).width + 10;
+    let b = null; for (const dy of [0, -22, -44, 22, -66]) { const c0 = [q[0] - w / 2, q[1] - 15 + dy, q[0] + w / 2, q[1] + 3 + dy];
+      if (!boxes.some(t => overlaps(t, c0))) { b = c0; break; } }
+    b = b || [q[0] - w / 2, q[1] - 15, q[0] + w / 2, q[1] + 3]; boxes.push(b);
+    ctx.fillStyle = '#10141cdd'; ctx.strokeStyle = col; ctx.lineWidth = 1.5; ctx.beginPath(); ctx.rect(b[0], b[1], w, 18); ctx.fill(); ctx.stroke();
+    ctx.fillStyle = '#fff'; ctx.fillText(txt, b[0] + 5, b[1] + 13); }
   cameraLabels(boxes);
   ctx.fillStyle = '#aab3c5'; ctx.font = '13px system-ui,sans-serif';
   const tSec = (T.frame_index[frame] - T.frame_index[0]) / (fps * T.step);
   ctx.fillText(`${tSec.toFixed(2)} s · frame ${T.frame_index[frame]} · ${peopleAt[frame]} people`, 16, 26);
   if (F && nearEnd) ctx.fillText(`forecast: ${F.model}, ghosts every 0.5 s`, 16, 46);
+  if (BH && BH.poses && nearEnd) ctx.fillText(`behaviour forecast: step +${behavStep + 1}'s characteristic pose (${BH.model})`, 16, F ? 66 : 46);
   $('frameLabel').textContent = `frame ${T.frame_index[frame]} / ${T.frame_index[nFrames - 1]}`;
 }
 
@@ -373,16 +456,68 @@ let last = 0;
 function tick(ts){ if (playing && T && nFrames > 1 && ts - last > 1000 / Math.min(30, fps)) {
   frame = (frame + 1) % nFrames; slider.value = frame; if (V) filmIdx = filmIndexOf(T.frame_index[frame]); redraw(); last = ts; } requestAnimationFrame(tick); }
 requestAnimationFrame(tick);
-// behaviour forecast (forecast/behaviour.npz): observed actions, then the next M with their probabilities
-{
-  const B = D.behaviour; if (B && B.track_id.length) {
-  $('behavsec').style.display = 'block'; $('behavNote').textContent = B.model;
-  const t = $('behaviour'); const M = B.actions[0].length;
+// behaviour forecast (forecast/behaviour.npz): a timeline per person (the labelled steps over time, then
+// the next M actions with their probabilities), the table, and the step whose pose the 3D view draws
+const ACTCOL = ['#8dd3c7', '#fdb462', '#bebada', '#fb8072', '#80b1d3', '#b3de69', '#fccde5', '#ffed6f', '#bc80bd', '#d9d9d9'];
+function behaviourTimeline(){ const B = BH, cv = $('behavTimeline'), c = cv.getContext('2d');
+  const K = B.track_id.length, M = B.actions[0].length, rowH = 50, top = 24, L = 64, W = cv.width;
+  cv.height = top + K * rowH + 24; const H = cv.height; c.clearRect(0, 0, W, H); const font = (px, b) => { c.font = (b ? 'bold ' : '') + px + 'px system-ui,sans-serif'; }; font(14);
+  const labels = B.labels.length ? B.labels : [...new Set([].concat(...B.actions, ...B.observed).filter(x => x))];
+  const acol = a => ACTCOL[Math.max(0, labels.indexOf(a)) % ACTCOL.length];
+  const S = B.step_start_s, E = B.step_end_s, Tc = B.step_time_s;
+  const ts = [].concat(...(S || []), ...(E || []), ...(Tc || [])).filter(v => v !== null);
+  const t0 = ts.length ? Math.min(0, ...ts) : 0, t1 = ts.length ? Math.max(...ts, t0 + 0.1) : 1;
+  const obsR = L + Math.round((W - L) * 0.4), fx = obsR + 26, sw = (W - 4 - fx) / M;
+  const tx = t => L + (obsR - L) * (t - t0) / (t1 - t0);
+  c.fillStyle = '#6b7385'; c.fillText('observed (labels)', L, 15); for (let m = 0; m < M; m++) c.fillText(`+${m + 1}`, fx + m * sw + 2, 15);
+  c.strokeStyle = '#1d2330'; c.lineWidth = 1.5; c.setLineDash([3, 3]); c.beginPath(); c.moveTo(obsR + 12, top - 6); c.lineTo(obsR + 12, H - 18); c.stroke(); c.setLineDash([]);
+  c.fillStyle = '#1d2330'; font(13); c.fillText('now', obsR, H - 6);
+  const fit = (txt, w) => { if (c.measureText(txt).width <= w) return txt; while (txt.length > 1 && c.measureText(txt + '…').width > w) txt = txt.slice(0, -1); return txt.length > 1 ? txt + '…' : ''; };
+  B.track_id.forEach((id, i) => { const y = top + i * rowH, k = T ? T.track_id.indexOf(id) : -1;
+    c.fillStyle = k >= 0 ? color(k) : '#333'; c.fillRect(0, y + 4, 4, rowH - 12); c.fillStyle = '#1d2330'; font(15, true); c.fillText('id ' + id, 10, y + rowH / 2 + 2);
+    font(14); c.fillStyle = '#f3f4f7'; c.fillRect(L, y + 4, obsR - L, rowH - 12);
+    (B.observed[i] || []).forEach((a, n) => { if (!a) return;
+      const s0 = S && S[i][n] !== null ? S[i][n] : null, s1 = E && E[i][n] !== null ? E[i][n] : null;
+      if (s0 !== null && s1 !== null) { const x0 = tx(s0), x1 = tx(s1); c.fillStyle = acol(a); c.fillRect(x0, y + 4, Math.max(2, x1 - x0 - 1), rowH - 12);
+        c.fillStyle = '#1d2330'; c.fillText(fit(a, x1 - x0 - 8), x0 + 5, y + rowH / 2 + 2); }
+      else if (Tc && Tc[i][n] !== null) { const x = tx(Tc[i][n]); c.fillStyle = acol(a); c.beginPath(); c.arc(x, y + rowH / 2 - 2, 6, 0, 7); c.fill();
+        c.fillStyle = '#1d2330'; c.fillText(a, x + 8, y + rowH / 2 + 2); }
+      if (Tc && Tc[i][n] !== null) { const x = tx(Tc[i][n]); c.fillStyle = '#1d2330'; c.beginPath(); c.moveTo(x - 3, y + rowH - 8); c.lineTo(x + 3, y + rowH - 8); c.lineTo(x, y + rowH - 13); c.fill(); } });
+    for (let m = 0; m < M; m++) { const x = fx + m * sw, p = B.probs ? B.probs[i][m] : null, a = B.actions[i][m];
+      c.fillStyle = '#f3f4f7'; c.fillRect(x, y + 4, sw - 6, rowH - 12);
+      if (p) { const order = p.map((v, j) => [v, j]).sort((u, v) => v[0] - u[0]); let xx = x; const bw = sw - 6;
+        for (const [v, j] of order) { const w = bw * v; c.fillStyle = ACTCOL[j % ACTCOL.length]; c.globalAlpha = j === labels.indexOf(a) ? 1 : 0.55; c.fillRect(xx, y + rowH - 20, w, 11); xx += w; }
+        c.globalAlpha = 1; }
+      else { c.fillStyle = acol(a); c.fillRect(x, y + rowH - 20, (sw - 6) * B.prob[i][m], 11); }
+      c.fillStyle = acol(a); c.fillRect(x, y + 4, 5, rowH - 25);
+      const pct = `${Math.round(100 * B.prob[i][m])}%`; font(13); const pw = c.measureText(pct).width;
+      c.fillStyle = '#6b7385'; c.fillText(pct, x + sw - 10 - pw, y + 20);
+      c.fillStyle = '#1d2330'; font(14, m === behavStep); c.fillText(fit(a, sw - 22 - pw), x + 10, y + 20);
+      if (m === behavStep && B.poses) { c.strokeStyle = '#1d2330'; c.lineWidth = 1.5; c.strokeRect(x - 1, y + 3, sw - 4, rowH - 10); } } });
+  font(12); c.fillStyle = '#777'; const step = (t1 - t0) > 20 ? 5 : (t1 - t0) > 5 ? 1 : (t1 - t0) > 2 ? 0.5 : 0.25;
+  for (let t = Math.ceil(t0 / step) * step; t <= t1 + 1e-9; t += step) c.fillText(t.toFixed(step < 1 ? 2 : 0) + ' s', tx(t) - 10, H - 6);
+  return {fx, sw, top, rowH, M}; }
+if (BH) {
+  $('behavsec').style.display = 'block'; $('behavNote').textContent = BH.model;
+  const t = $('behaviour'); const M = BH.actions[0].length;
   const h = t.insertRow(); ['track', 'observed'].concat(Array.from({length: M}, (_, k) => `+${k + 1}`)).forEach(x => {
     const c = document.createElement('th'); c.textContent = x; h.appendChild(c); });
-  B.track_id.forEach((id, i) => { const r = t.insertRow(); r.insertCell().textContent = id;
-    r.insertCell().textContent = (B.observed[i] || []).filter(x => x).join(' → ');
-    B.actions[i].forEach((a, k) => { r.insertCell().textContent = `${a} (${Math.round(100 * B.prob[i][k])}%)`; }); });
-} }
+  BH.track_id.forEach((id, i) => { const r = t.insertRow(); r.insertCell().textContent = id;
+    r.insertCell().textContent = (BH.observed[i] || []).filter(x => x).join(' → ');
+    BH.actions[i].forEach((a, k) => { r.insertCell().textContent = `${a} (${Math.round(100 * BH.prob[i][k])}%)`; }); });
+  const labels = BH.labels.length ? BH.labels : [];
+  labels.forEach((a, j) => { const sp = document.createElement('span'); sp.innerHTML = `<i class="swatch" style="background:${ACTCOL[j % ACTCOL.length]}"></i>`;
+    sp.appendChild(document.createTextNode(a)); $('behavLegend').appendChild(sp); });
+  let geo = behaviourTimeline();
+  const pick = m => { behavStep = m; geo = behaviourTimeline();
+    [...$('behavSteps').children].forEach((b, j) => b.classList.toggle('on', j === m));
+    if (T && nFrames) setFrame(nFrames - 1); };
+  if (BH.poses) for (let m = 0; m < M; m++) { const b = document.createElement('button'); b.textContent = `+${m + 1}`; b.className = 'step' + (m ? '' : ' on');
+    b.addEventListener('click', () => pick(m)); $('behavSteps').appendChild(b); }
+  else $('behavSteps').textContent = 'none: the forecast file holds no poses';
+  $('behavTimeline').addEventListener('click', e => { if (!BH.poses) return; const cv = $('behavTimeline'), r = cv.getBoundingClientRect();
+    const x = (e.clientX - r.left) * cv.width / r.width, m = Math.floor((x - geo.fx) / geo.sw); if (x >= geo.fx && m >= 0 && m < geo.M) pick(m); });
+  document.body.setAttribute('data-behaviour', String(BH.track_id.length));
+}
 if (!navigator.webdriver && !/HeadlessChrome/.test(navigator.userAgent)) { playing = true; $('play').innerHTML = '&#10074;&#10074; Pause'; }
 })();
