@@ -169,6 +169,26 @@ def palm_hand_roi(box: np.ndarray, kp: np.ndarray, scale: float = 2.6, shift: fl
     return centre, scale * float(max(box[2], box[3])), angle
 
 
+# MediaPipe's hand landmarks -> ROI (hand_landmark_landmarks_to_roi.pbtxt): the wrist, the thumb's first two
+# joints and the first two of every finger span the box
+ROI_POINTS = (0, 1, 2, 3, 5, 6, 9, 10, 13, 14, 17, 18)
+
+
+def landmarks_roi(xy: np.ndarray, scale: float = 2.0, shift: float = 0.1):
+    """A hand's 21 landmarks (image px) -> the next frame's crop centre, side and angle, as MediaPipe tracks a
+    hand (hand_landmark_landmarks_to_roi.pbtxt): turned so that the wrist -> middle finger base (landmarks 0
+    -> 9) points up, the box of the ``ROI_POINTS`` in that frame moved by ``shift`` x its height towards the
+    fingers, its long side x ``scale``."""
+    a = up_angle(xy[9] - xy[0])
+    c, n = np.cos(a), np.sin(a)
+    R = np.array([[c, n], [-n, c]])  # image -> the upright hand's frame (crops.crop_transform)
+    q = xy[list(ROI_POINTS)] @ R.T
+    lo, hi = q.min(0), q.max(0)
+    w, h = hi - lo
+    centre = R.T @ (0.5 * (lo + hi)) + shift * h * np.array([n, -c])
+    return centre, scale * float(max(w, h)), a
+
+
 # ----------------------------------------------------------------------------- the stage
 
 
@@ -195,6 +215,8 @@ class HandStage:
             pd = self.palm.spec.decoder
             self.anchors = palm_anchors(self.palm.spec.input.size_wh[0], pd.strides)
         self.n_crops = self.n_palm_regions = self.n_palm_hands = 0
+        self._prev: dict = {}  # stream -> [(side index, (21,2) image px)] of its previous frame's hands
+        self._palm_age: dict = {}  # stream -> frames since the palm detector last ran on it
 
     @property
     def models(self) -> list[OnnxModel]:
@@ -257,11 +279,18 @@ class HandStage:
         self._tick("palm", t)
         return res
 
-    def __call__(self, images, results: list[FrameResult], skeleton: str) -> list[FrameResult]:
+    def __call__(self, images, results: list[FrameResult], skeleton: str, streams=None) -> list[FrameResult]:
+        """Both hands of every person of ``results`` (layout ``skeleton``) -> results in ``<skeleton>_hands``.
+
+        ``streams``: one key per image (the camera) for consecutive frames: a hand found in a stream's
+        previous frame places this frame's crop from its landmarks (:func:`landmarks_roi`, MediaPipe's
+        tracking), the forearm crop then being the fallback; and the palm detector runs on a stream at most
+        every ``palm_every`` frames."""
         cfg = self.config
         sk = get_skeleton(skeleton)
         idx = {s: [sk.index(n) if n in sk.joint_names else -1 for n in ARM[s]] for s in SIDES}
         hand_size = self.hand.spec.input.size_wh[0]
+        keys = list(streams) if streams is not None else [None] * len(images)
         # every (image, person, side): its arm joints, reference length, crop or palm region
         jobs = []  # (image, person, side index, shoulder, elbow, wrist, length)
         for i, r in enumerate(results):
@@ -278,28 +307,87 @@ class HandStage:
         xy = np.full((n, N_HAND, 2), np.nan)
         pres = np.zeros(n)
         t = time.perf_counter()
-        crop_k = [k for k, j in enumerate(jobs) if np.isfinite(j[4]).all() and np.isfinite(j[5]).all()]
-        Ms = np.array(
-            [
-                forearm_crop(jobs[k][4], jobs[k][5], jobs[k][6], hand_size, cfg.hand_extend, cfg.hand_scale)
-                for k in crop_k
-            ]
-        ).reshape(-1, 2, 3)
+        tracked = self._tracked_rois(jobs, keys, hand_size)
+        forearm = {
+            k: forearm_crop(j[4], j[5], j[6], hand_size, cfg.hand_extend, cfg.hand_scale)
+            for k, j in enumerate(jobs)
+            if np.isfinite(j[4]).all() and np.isfinite(j[5]).all()
+        }
+        first = {k: tracked.get(k, forearm.get(k)) for k in range(n) if k in tracked or k in forearm}
         self._tick("hand_crop", t)
-        if crop_k:
-            xy[crop_k], pres[crop_k] = self._landmarks(images, [jobs[k][0] for k in crop_k], Ms)
+        self._run_crops(images, jobs, first, xy, pres)
+        # a tracked crop that lost the hand: the forearm's
+        lost = {k: forearm[k] for k in tracked if k in forearm and pres[k] < self.presence}
+        self._run_crops(images, jobs, lost, xy, pres)
         if self.palm is not None:
-            self._palm_fallback(images, jobs, xy, pres, hand_size)
-        return self._attach(results, jobs, xy, pres, skeleton)
+            age = self._palm_age
+            due = [streams is None or age.get(key, cfg.palm_every) >= cfg.palm_every for key in keys]
+            ran = self._palm_fallback(images, [j if due[j[0]] else None for j in jobs], xy, pres, hand_size)
+            if streams is not None:
+                for i, key in enumerate(keys):
+                    age[key] = 1 if i in ran else age.get(key, cfg.palm_every) + 1
+        out = self._attach(results, jobs, xy, pres, skeleton)
+        if streams is not None:
+            for key, r in zip(keys, out, strict=True):
+                J = r.xy_px.shape[1] - 2 * N_HAND
+                self._prev[key] = [
+                    (si, r.xy_px[p, J + si * N_HAND : J + (si + 1) * N_HAND].astype(np.float64))
+                    for p in range(len(r.xy_px))
+                    for si in range(2)
+                    if r.score[p, J + si * N_HAND] > 0
+                ]
+        return out
 
-    def _palm_fallback(self, images, jobs, xy, pres, hand_size) -> None:
-        """The palm detector where the forearm crop was not possible or found no hand (module doc)."""
+    def reset_streams(self) -> None:
+        """Forget the hands of every stream's previous frame and when the palm detector last ran."""
+        self._prev.clear()
+        self._palm_age.clear()
+
+    def _run_crops(self, images, jobs, crops: dict, xy, pres) -> None:
+        """The landmark model on ``crops`` {job: affine}; a job takes the result where more present."""
+        if not crops:
+            return
+        ks = list(crops)
+        hxy, hp = self._landmarks(images, [jobs[k][0] for k in ks], np.array([crops[k] for k in ks]))
+        for k, h, p in zip(ks, hxy, hp, strict=True):
+            if p > pres[k]:
+                xy[k], pres[k] = h, p
+
+    def _tracked_rois(self, jobs, keys, hand_size) -> dict:
+        """{job: affine} of the crops placed by the stream's previous-frame hands: each hand of that side
+        whose root lies within ``track_reach`` x the arm's length of this person's wrist (of the elbow, at
+        twice the reach, when the wrist is missing), nearest first, each previous hand used once."""
+        cands = []
+        for k, (i, _, si, _, el, wr, length) in enumerate(jobs):
+            anchor, reach = (wr, 1.0) if np.isfinite(wr).all() else (el, 2.0)
+            if not np.isfinite(anchor).all():
+                continue
+            for h, (psi, pxy) in enumerate(self._prev.get(keys[i], [])):
+                if psi != si or not np.isfinite(pxy[0]).all():
+                    continue
+                d = float(np.linalg.norm(pxy[0] - anchor))
+                if d < reach * self.config.track_reach * length:
+                    cands.append((d, k, (keys[i], h), pxy))
+        out: dict = {}
+        used = set()
+        for _, k, h, pxy in sorted(cands, key=lambda c: c[0]):
+            if k in out or h in used:
+                continue
+            used.add(h)
+            c, side, a = landmarks_roi(pxy)
+            out[k] = square_transform(c, side, hand_size, a)
+        return out
+
+    def _palm_fallback(self, images, jobs, xy, pres, hand_size) -> set[int]:
+        """The palm detector where the forearm crop was not possible or found no hand (module doc), for the
+        jobs that are not None. Returns the images it ran on."""
         cfg = self.config
         t = time.perf_counter()
         region_k, regions = [], []
-        for k, (_, _, _, _, el, wr, length) in enumerate(jobs):
-            if pres[k] >= self.presence:
+        for k, job in enumerate(jobs):
+            if job is None or pres[k] >= self.presence:
                 continue
+            _, _, _, _, el, wr, length = job
             if np.isfinite(wr).all():
                 d = wr - el if np.isfinite(el).all() else np.zeros(2)
                 centre = wr + cfg.hand_extend * d
@@ -312,20 +400,22 @@ class HandStage:
             regions.append(square_transform(centre, side, self.palm.spec.input.size_wh[0]))
         self._tick("palm", t)
         if not region_k:
-            return
+            return set()
         palms = self._palms(images, [jobs[k][0] for k in region_k], np.array(regions))
         t = time.perf_counter()
         found = [(k, p) for k, p in zip(region_k, palms, strict=True) if p is not None]
         rois = [palm_hand_roi(*p) for _, p in found]  # (centre, side, angle)
         Ms = np.array([square_transform(c, side, hand_size, a) for c, side, a in rois]).reshape(-1, 2, 3)
         self._tick("palm", t)
+        ran = {jobs[k][0] for k in region_k}
         if not found:
-            return
+            return ran
         pxy, ppres = self._landmarks(images, [jobs[k][0] for k, _ in found], Ms)
         for (k, _), h, s in zip(found, pxy, ppres, strict=True):
             if s > pres[k]:
                 xy[k], pres[k] = h, s
                 self.n_palm_hands += int(s >= self.presence)
+        return ran
 
     def _attach(self, results, jobs, xy, pres, skeleton) -> list[FrameResult]:
         t = time.perf_counter()

@@ -182,7 +182,7 @@ class KeypointPipeline:
         else:
             res = self._bottom_up(images)
         if self.hands is not None:  # both hands of every person, from its wrists (keypoints.hand_model)
-            res = self.hands(images, res, self.body_skeleton)
+            res = self.hands(images, res, self.body_skeleton, streams)
         return res
 
     # ---- whole-image models: letterbox all images into one batch
@@ -568,6 +568,8 @@ class KeypointPipeline:
     def reset_streams(self) -> None:
         """Forget the tracked people of every stream (the next call runs the detector everywhere)."""
         self._seeds.clear()
+        if self.hands is not None:
+            self.hands.reset_streams()
 
     def _rotation_hypotheses(self, images, boxes, res):
         """People whose first-pass score is under ``config.rotation_weak`` (a body sideways or upside down:

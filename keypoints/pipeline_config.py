@@ -75,6 +75,11 @@ class KeypointPipelineConfig:
     hand_extend: float = 0.4  # the hand crop's centre: this x the forearm beyond the wrist
     hand_scale: float = 1.5  # the hand crop's side: this x the forearm (hand_model.arm_length)
     palm_region: float = 3.0  # the palm detector's region: this x the forearm, around the expected hand
+    # tracked streams: the palm detector runs on a camera at most every this many frames (1 = every frame)
+    palm_every: int = 1
+    # tracked streams: a previous frame's hand places the crop of the hand of its side whose wrist is within
+    # this x the arm's length of its root
+    track_reach: float = 0.5
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
     def __post_init__(self) -> None:

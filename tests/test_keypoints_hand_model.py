@@ -17,6 +17,7 @@ from roomcap.keypoints.hand_model import (
     decode_hand_landmarks,
     decode_palms,
     forearm_crop,
+    landmarks_roi,
     palm_anchors,
     palm_hand_roi,
     square_transform,
@@ -126,7 +127,7 @@ def test_hands_presets_resolve():
     default = preset_config()
     assert default.hands == "" and default.palm == ""  # hands off by default
     h = resolve_preset("hands")
-    assert h.config.hands == "hand_landmark_full" and h.config.palm == "palm_detection_full"
+    assert h.config.hands.startswith("hand_landmark_") and h.config.palm == "palm_detection_full"
     assert h.config.model_set == preset_config("balanced").model_set
     fh = preset_config("feet_hands")
     assert fh.model_set == preset_config("feet").model_set and fh.skeleton == "model" and fh.hands
@@ -154,7 +155,7 @@ def test_missing_hand_model_is_named_with_where_it_is_looked_for(tmp_path, monke
     with pytest.raises(ModelError) as e:
         KeypointPipeline(preset_config("hands", runtime=RuntimeConfig(model_dir=str(body))))
     msg = str(e.value)
-    assert "hand_landmark_full.onnx not found in" in msg and str(body) in msg and "\n" not in msg
+    assert "hand_landmark_lite.onnx not found in" in msg and str(body) in msg and "\n" not in msg
     video = tmp_path / "v.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 64))
     for _ in range(2):
@@ -164,7 +165,7 @@ def test_missing_hand_model_is_named_with_where_it_is_looked_for(tmp_path, monke
     capsys.readouterr()
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "hand_landmark_full.onnx not found in" in err[0], err
+    assert len(err) == 1 and "hand_landmark_lite.onnx not found in" in err[0], err
 
 
 @pytest.fixture(scope="module")
@@ -186,7 +187,7 @@ def test_hands_preset_finds_the_persons_hands_on_a_real_frame(demo_frames):
     from roomcap.keypoints.runtime import RuntimeConfig
 
     pipe = KeypointPipeline(preset_config("hands", runtime=RuntimeConfig(threads=1)))
-    assert pipe.skeleton == "body19_hands" and "hand_landmark_full" in pipe.model_id
+    assert pipe.skeleton == "body19_hands" and "hand_landmark_" in pipe.model_id
     res = pipe(demo_frames)
     sk = get_skeleton(pipe.skeleton)
     found = 0
@@ -221,3 +222,21 @@ def test_palm_detector_finds_a_real_hand(demo_frames):
     kp_img = apply_inverse(M[None], kp[None])[0]
     assert np.linalg.norm(kp_img[0] - wrist) < 40  # the palm's wrist keypoint on the body's wrist
     assert kp_img[2][1] > kp_img[0][1]  # fingers down: the middle finger's base below the wrist
+
+
+def test_landmarks_roi_tracks_the_hand():
+    # a hand pointing right: wrist at (100, 200), finger bases 40 px to its right, spread over 30 px
+    xy = np.zeros((21, 2))
+    xy[0] = (100, 200)
+    for f, k in enumerate((1, 5, 9, 13, 17)):
+        xy[k] = (140, 185 + 7.5 * f)
+        xy[k + 1] = (155, 185 + 7.5 * f)
+    xy[3] = xy[2]  # the thumb's third joint (an ROI point) on its second
+    c, side, a = landmarks_roi(xy)
+    assert a == pytest.approx(np.pi / 2)  # wrist -> middle finger base points up in the crop
+    # the box of the ROI points in the hand's frame: 55 px along the hand, 30 across; moved 0.1 x 55 towards
+    # the fingers (image +x), the long side x 2
+    np.testing.assert_allclose(c, [127.5 + 5.5, 200.0], atol=1e-9)
+    assert side == pytest.approx(110.0)
+    M = square_transform(c, side, 224, a)
+    assert to_crop(M, xy[9])[1] < to_crop(M, xy[0])[1]
