@@ -17,7 +17,12 @@ For each person and side of a 2D body result (``KeypointPipelineConfig.hands`` n
   is expected (``palm_region`` x the arm's reference length, centred beyond the wrist, or on the elbow when
   the wrist is missing) goes through the palm detector (:func:`decode_palms`: MediaPipe's SSD anchors,
   :func:`palm_anchors`); the best palm gives the hand crop as MediaPipe's palm -> hand ROI
-  (:func:`palm_hand_roi`), and that crop's landmarks replace the forearm crop's when more present.
+  (:func:`palm_hand_roi`), and that crop's landmarks replace the forearm crop's when more present. On
+  consecutive frames of a camera it runs there at most every ``palm_every`` frames (the presets: 8, as the
+  body detector; it costs about 4 hand crops);
+- **tracking** (consecutive frames of a camera, ``streams``): a hand found in the previous frame places the
+  crop of the same side's hand near it from its landmarks (:func:`landmarks_roi`, MediaPipe's
+  landmarks -> ROI), the forearm crop being the fallback where that crop loses the hand.
 
 Left and right come from the body's side of the wrist used, never from the model's handedness guess (which a
 mirrored view flips); the same hand found from both wrists is kept once, on the side of the nearer wrist
