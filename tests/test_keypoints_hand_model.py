@@ -240,3 +240,28 @@ def test_landmarks_roi_tracks_the_hand():
     assert side == pytest.approx(110.0)
     M = square_transform(c, side, 224, a)
     assert to_crop(M, xy[9])[1] < to_crop(M, xy[0])[1]
+
+
+def test_hands_tracked_on_consecutive_frames(demo_frames, monkeypatch):
+    from roomcap.keypoints import hand_model
+    from roomcap.keypoints.pipeline import KeypointPipeline
+    from roomcap.keypoints.runtime import RuntimeConfig
+
+    d = need_shared("data", "pose2sim", "demo-wheel-0.10.49", "Demo_SinglePerson", "videos")
+    nxt = []
+    for c in ("cam01", "cam02", "cam03", "cam04"):
+        cap = cv2.VideoCapture(str(d / f"{c}.mp4"))
+        cap.set(cv2.CAP_PROP_POS_FRAMES, 31)
+        nxt.append(cap.read()[1])
+    pipe = KeypointPipeline(preset_config("hands", runtime=RuntimeConfig(threads=1)))
+    first = pipe(demo_frames, streams=[0, 1, 2, 3])
+    n_first = sum(int((r.score[:, -42] > 0).sum() + (r.score[:, -21] > 0).sum()) for r in first)
+    assert n_first and sum(len(v) for v in pipe.hands._prev.values()) == n_first
+    rois = []
+    monkeypatch.setattr(hand_model, "landmarks_roi", lambda xy: rois.append(xy) or landmarks_roi(xy))
+    palm_regions = pipe.hands.n_palm_regions
+    second = pipe(nxt, streams=[0, 1, 2, 3])
+    assert len(rois) >= n_first - 1  # the previous frame's hands placed this frame's crops
+    assert pipe.hands.n_palm_regions == palm_regions  # palm_every = 8: not again on the next frame
+    n_second = sum(int((r.score[:, -42] > 0).sum() + (r.score[:, -21] > 0).sum()) for r in second)
+    assert n_second >= n_first - 2
