@@ -433,8 +433,9 @@ class HandStage:
                 hands_sc[i][p, si * N_HAND : (si + 1) * N_HAND] = s
         out_sk = f"{skeleton}_hands"
         for r, hx, hs in zip(results, hands_xy, hands_sc, strict=True):
-            bxy = np.concatenate([np.asarray(r.xy_px, np.float32).reshape(len(hx), -1, 2), hx], 1)
-            bsc = np.concatenate([np.asarray(r.score, np.float32).reshape(len(hx), -1), hs], 1)
+            J = get_skeleton(skeleton).n_joints  # (an image without people has (0, 0, 2) arrays)
+            bxy = np.concatenate([np.asarray(r.xy_px, np.float32).reshape(len(hx), J, 2), hx], 1)
+            bsc = np.concatenate([np.asarray(r.score, np.float32).reshape(len(hx), J), hs], 1)
             if len(bxy):  # one hand found from both wrists: kept once, on the nearer wrist's side
                 bxy, bsc, _ = hands_by_body_side(bxy, bsc, out_sk)
                 bxy[bsc <= 0] = np.nan

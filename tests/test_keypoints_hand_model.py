@@ -205,6 +205,9 @@ def test_hands_preset_finds_the_persons_hands_on_a_real_frame(demo_frames):
             found += 1
     assert found >= 4  # of 8 hand views (4 cameras x 2 hands); 5 found when this was written
     assert pipe.hands.n_crops >= 8
+    # an image without anyone: the hands layout, no people
+    empty = pipe([np.zeros((240, 320, 3), np.uint8)])[0]
+    assert empty.xy_px.shape == (0, sk.n_joints, 2) and empty.score.shape == (0, sk.n_joints)
 
 
 def test_palm_detector_finds_a_real_hand(demo_frames):
