@@ -27,6 +27,10 @@ first,
 measured in the same run. ``--gpu``: every set on the CUDA execution provider (crops batched: the graphs are
 made dynamic there) against the CPU; where onnxruntime has no CUDA provider it says so and measures nothing.
 
+``hands_ms``: the hand stage of the ``hands`` presets (forearm crops, hand landmark model, palm detector);
+with ``balanced`` in ``--sets`` it is also given as a share of the balanced preset's pipeline time
+(``--sets balanced,hands``).
+
 ``--demo multi``: the three people of Demo_MultiPerson (duplicate poses of overlapping people are
 re-estimated there, ``KeypointPipeline._resolve_duplicates``; Demo_SinglePerson has none).
 """
@@ -78,6 +82,11 @@ def measure(name: str, cfg: KeypointPipelineConfig, frames: int, camera_groups: 
         "pose_ms": ms("pose"),
         "decode_outputs_ms": ms("pose_post") + ms("detect_post"),
         "write_ms": ms("write"),
+        # the hand stage (keypoints.hand_model: forearm crops, landmark model, palm detector), inside the rest
+        "hands_ms": ms("hand_crop") + ms("hand") + ms("hand_post") + ms("palm"),
+        "pipeline_ms": 1e3 * inside / n,
+        # CPU time of the pipelines' threads (time.thread_time): less sensitive to a loaded machine
+        "pipeline_cpu_ms": 1e3 * rep.pipeline_cpu_s / n,
         "model_ms": 1e3 * rep.model_s / n,
         "fps_per_camera": (n / len(vids)) / rep.wall_s,
         "overhead_pipeline": (inside - rep.model_s) / rep.model_s,
@@ -150,7 +159,17 @@ def main() -> None:
             )
         )
     load = os.getloadavg()[0]
-    cols = ["decode_ms", "detect_ms", "crop_ms", "pose_ms", "decode_outputs_ms", "write_ms", "model_ms"]
+    cols = [
+        "decode_ms",
+        "detect_ms",
+        "crop_ms",
+        "pose_ms",
+        "decode_outputs_ms",
+        "hands_ms",
+        "write_ms",
+        "model_ms",
+        "pipeline_ms",
+    ]
     print(
         f"{DEMO.parent.name}, 4 cameras 1080x1920, {args.frames} frames each; load average {load:.1f} "
         f"on {os.cpu_count()} cores. ms per camera-frame:"
@@ -168,6 +187,19 @@ def main() -> None:
             + f"  {r['overhead_end_to_end']:7.1%}  {r['overhead_pipeline_cpu']:7.1%}"
         )
     by_set = {r["set"]: r for r in rows}
+    if "balanced" in by_set:  # the hand stage's cost against the balanced body preset's, same run
+        body = by_set["balanced"]["pipeline_ms"]
+        for r in rows:
+            if r["hands_ms"] > 0:
+                r["hands_vs_balanced"] = r["hands_ms"] / body
+                cpu = by_set["balanced"]["pipeline_cpu_ms"]
+                r["hands_vs_balanced_cpu"] = (r["pipeline_cpu_ms"] - cpu) / cpu
+                print(
+                    f"{r['set']}: hand stage {r['hands_ms']:.1f} ms per camera-frame = "
+                    f"{r['hands_vs_balanced']:.0%} of the balanced preset's pipeline ({body:.1f} ms); in CPU "
+                    f"time (--threads 1) {r['pipeline_cpu_ms'] - cpu:.1f} ms = "
+                    f"{r['hands_vs_balanced_cpu']:.0%} of balanced's {cpu:.1f} ms"
+                )
     d = rows[0]
     speedup = float("nan")
     if "blazepose-batched" in by_set:

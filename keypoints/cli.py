@@ -182,7 +182,8 @@ def _main(argv: list[str] | None = None) -> int:
     r.add_argument(
         "--preset",
         default="",
-        help="speed/accuracy preset: fast, balanced (the default), accurate, feet, legacy (`keypoints list`)",
+        help="speed/accuracy preset: fast, balanced (the default), accurate, feet, hands, feet_hands, legacy "
+        "(`keypoints list`)",
     )
     r.add_argument(
         "--models", default=None, help="model set (keypoints list) or 'detector+pose'; default: the preset's"

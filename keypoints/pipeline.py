@@ -42,6 +42,7 @@ from roomcap.keypoints.crops import (
     to_tensor,
     upright_boxes,
 )
+from roomcap.keypoints.hand_model import HandStage
 from roomcap.keypoints.hypotheses import (
     _duplicate_pairs,
     _erase_body,
@@ -52,7 +53,7 @@ from roomcap.keypoints.hypotheses import (
     merge_hypotheses,
 )
 from roomcap.keypoints.pipeline_config import FrameResult, KeypointPipelineConfig
-from roomcap.keypoints.registry import ModelSpec, get_model_set, get_spec
+from roomcap.keypoints.registry import BODY_ROLES, ModelSpec, get_model_set, get_spec
 from roomcap.keypoints.runtime import OnnxModel
 from roomcap.keypoints.skeletons import convert, get_skeleton
 
@@ -90,12 +91,23 @@ class KeypointPipeline:
             )
         if self.det_spec is not None and self.det_spec.role != "detector":
             raise ValueError(f"model '{self.det_spec.name}' is a {self.det_spec.role}, not a detector.")
+        if self.pose_spec.role not in BODY_ROLES:
+            spec = self.pose_spec
+            raise ValueError(f"model '{spec.name}' is a {spec.role} model, not a body model.")
+        hand_spec, palm_spec = self._hand_specs(md)
         self.pose = OnnxModel(self.pose_spec, config.runtime)
         self.detector = OnnxModel(self.det_spec, config.runtime) if self.det_spec else None
         self.src_skeleton = self.pose_spec.skeleton
-        self.skeleton = self.src_skeleton if config.skeleton == "model" else config.skeleton
+        # the body's layout (the hands, when on, are appended to it: ``<layout>_hands``)
+        self.body_skeleton = self.src_skeleton if config.skeleton == "model" else config.skeleton
+        if hand_spec is not None and self.body_skeleton.endswith("_hands"):
+            self.body_skeleton = self.body_skeleton[: -len("_hands")]
+        self.skeleton = self.body_skeleton + ("_hands" if hand_spec is not None else "")
         get_skeleton(self.skeleton)
         self.stage_s: dict[str, float] = defaultdict(float)
+        self.hands = None if hand_spec is None else HandStage(config, hand_spec, palm_spec, config.runtime)
+        if self.hands is not None:
+            self.hands.stage_s = self.stage_s
         self.call_cpu_s = 0.0  # CPU time of the calling thread in __call__ (the models': model_run_cpu_s)
         # pyramid regions per (image, level) for the current call: (x0, y0, x1, y1, level image)
         self._pyr: dict[tuple[int, int], list[tuple[int, int, int, int, np.ndarray]]] = {}
@@ -104,18 +116,34 @@ class KeypointPipeline:
             0  # images that ran the detector / were cropped from the last poses
         )
 
+    def _hand_specs(self, model_dir):
+        """The hand landmark and palm detector descriptions ``config.hands`` and ``config.palm`` (None: off);
+        their files are resolved when the models open (a missing one is named with the folders searched)."""
+        cfg = self.config
+        if not cfg.hands:
+            if cfg.palm:
+                raise ValueError("KeypointPipelineConfig.palm needs hands (the hand landmark model) on.")
+            return None, None
+        hand = get_spec(cfg.hands, model_dir)
+        palm = get_spec(cfg.palm, model_dir) if cfg.palm else None
+        for spec, role in ((hand, "hand"), (palm, "palm")):
+            if spec is not None and spec.role != role:
+                raise ValueError(f"model '{spec.name}' is a {spec.role} model, not a {role} model.")
+        return hand, palm
+
     # identity of what produced the keypoints (goes into the detections file)
     @property
     def model_id(self) -> str:
-        return "+".join(m.spec.name for m in (self.detector, self.pose) if m is not None)
+        return "+".join(m.spec.name for m in self.models)
 
     @property
     def model_sha256(self) -> str:
-        return "+".join(m.sha256 for m in (self.detector, self.pose) if m is not None)
+        return "+".join(m.sha256 for m in self.models)
 
     @property
     def models(self) -> list[OnnxModel]:
-        return [m for m in (self.detector, self.pose) if m is not None]
+        body = [m for m in (self.detector, self.pose) if m is not None]
+        return body + (self.hands.models if self.hands is not None else [])
 
     def model_run_s(self) -> float:
         return sum(m.run_s for m in self.models)
@@ -148,10 +176,14 @@ class KeypointPipeline:
     def _call(self, images, streams):
         role = self.pose_spec.role
         if role == "pose":
-            return self._top_down(images, streams)
-        if role == "onestage":
-            return self._one_stage(images)
-        return self._bottom_up(images)
+            res = self._top_down(images, streams)
+        elif role == "onestage":
+            res = self._one_stage(images)
+        else:
+            res = self._bottom_up(images)
+        if self.hands is not None:  # both hands of every person, from its wrists (keypoints.hand_model)
+            res = self.hands(images, res, self.body_skeleton, streams)
+        return res
 
     # ---- whole-image models: letterbox all images into one batch
     def _letterbox_batch(self, images, spec: ModelSpec):
@@ -536,6 +568,8 @@ class KeypointPipeline:
     def reset_streams(self) -> None:
         """Forget the tracked people of every stream (the next call runs the detector everywhere)."""
         self._seeds.clear()
+        if self.hands is not None:
+            self.hands.reset_streams()
 
     def _rotation_hypotheses(self, images, boxes, res):
         """People whose first-pass score is under ``config.rotation_weak`` (a body sideways or upside down:
@@ -640,8 +674,8 @@ class KeypointPipeline:
         return (*out, new[3])
 
     def _finish(self, boxes, xy, sc) -> FrameResult:
-        if self.skeleton != self.src_skeleton:
-            xy, sc = convert(xy, sc, self.src_skeleton, self.skeleton)
+        if self.body_skeleton != self.src_skeleton:
+            xy, sc = convert(xy, sc, self.src_skeleton, self.body_skeleton)
         xy = np.asarray(xy, np.float32)
         sc = np.asarray(sc, np.float32)
         xy[sc <= 0] = np.nan

@@ -65,6 +65,21 @@ class KeypointPipelineConfig:
     detect_every: int = 1
     track_passes: int = 1
     keep_maps: bool = False  # bottom-up: keep confidence maps + PAFs in the results
+    # hands (keypoints.hand_model): the hand landmark model ("" = no hands) on a crop along each forearm, the
+    # palm detector ("" = none) where the wrist is missing or the crop finds no hand; the output layout is
+    # then ``<skeleton>_hands``
+    hands: str = ""
+    palm: str = ""
+    hand_presence: float = 0.0  # the landmark model's hand presence under this = no hand; 0 = description's
+    hand_joint_score: float = 0.2  # body joints (wrist, elbow, shoulder) under this score are not used
+    hand_extend: float = 0.4  # the hand crop's centre: this x the forearm beyond the wrist
+    hand_scale: float = 1.5  # the hand crop's side: this x the forearm (hand_model.arm_length)
+    palm_region: float = 3.0  # the palm detector's region: this x the forearm, around the expected hand
+    # tracked streams: the palm detector runs on a camera at most every this many frames (1 = every frame)
+    palm_every: int = 1
+    # tracked streams: a previous frame's hand places the crop of the hand of its side whose wrist is within
+    # this x the arm's length of its root
+    track_reach: float = 0.5
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
     def __post_init__(self) -> None:

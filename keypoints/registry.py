@@ -40,7 +40,9 @@ log = logging.getLogger(__name__)
 
 SPEC_SCHEMA = "keypoint-model"
 SETS_SCHEMA = "keypoint-model-sets"
-ROLES = ("detector", "pose", "bottomup", "onestage")
+# "hand": a hand landmark model on hand crops; "palm": a palm detector (keypoints.hand_model)
+ROLES = ("detector", "pose", "bottomup", "onestage", "hand", "palm")
+BODY_ROLES = ("pose", "bottomup", "onestage")
 DECODERS = {
     "yolox": "detector",
     "dets": "detector",
@@ -50,6 +52,8 @@ DECODERS = {
     "rtmo": "onestage",
     "movenet_multipose": "onestage",
     "openpose": "bottomup",
+    "hand_landmarks": "hand",
+    "palm_ssd": "palm",
 }
 CROPS = ("letterbox", "affine")
 REPO = Path(__file__).resolve().parents[1]
@@ -115,12 +119,12 @@ class DecoderSpec:
 
     kind: str
     outputs: tuple[str, ...]
-    strides: tuple[int, ...] = (8, 16, 32)  # yolox
+    strides: tuple[int, ...] = (8, 16, 32)  # yolox; palm_ssd: the anchor layers' strides
     class_id: int = 0  # yolox / dets: the person class
-    score_threshold: float = 0.3  # detector / one-stage box score
+    score_threshold: float = 0.3  # detector / one-stage / palm box score
     nms_iou: float = 0.45
-    n_landmarks: int = 33  # blazepose
-    presence_threshold: float = 0.5  # blazepose person-present probability
+    n_landmarks: int = 33  # blazepose; hand_landmarks (21)
+    presence_threshold: float = 0.5  # blazepose person-present probability; hand_landmarks: hand present
     split_ratio: float = 2.0  # simcc bins per input pixel
     n_joints: int = 0  # simcc (0: from the output shape)
     stride: int = 8  # openpose maps
@@ -184,7 +188,7 @@ class ModelSpec:
                 f"decoder {self.decoder.kind!r} is for a {DECODERS[self.decoder.kind]}, "
                 f"but the model's role is {self.role!r}.",
             )
-        if self.role != "detector":
+        if self.role in BODY_ROLES:
             get_skeleton(self.skeleton)  # raises KeyError listing the known ids
         if self.sha256 and (len(self.sha256) != 64 or any(c not in "0123456789abcdef" for c in self.sha256)):
             raise FormatError(self.source, "sha256", "must be 64 lower-case hex digits or empty.")

@@ -5,7 +5,7 @@ with the list of valid ones. Example ``pipeline.toml``::
 
     stages = ["keypoints", "triangulate", "track", "forecast", "report"]
     [keypoints]
-    preset = "balanced"     # fast | balanced | accurate | feet | legacy
+    preset = "balanced"     # fast | balanced | accurate | feet | hands | feet_hands | legacy
     [track]
     tracker = "particle"    # the default: the ch. 5 particle filter; or "greedy" (ch. 4)
     [forecast]

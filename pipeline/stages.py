@@ -91,10 +91,13 @@ class Stage(Protocol):
     ) -> None: ...
 
 
-def model_set_sha256(model_set: str, store: ProvenanceStore | None = None) -> str:
-    """sha256 of the model files of a keypoints model set (detector+pose), via the stat cache."""
+def model_set_sha256(
+    model_set: str, store: ProvenanceStore | None = None, extra: tuple[str, ...] = ()
+) -> str:
+    """sha256 of the model files of a keypoints model set (detector+pose) and the ``extra`` models (the hand
+    landmark model and palm detector of a hands preset), via the stat cache."""
     ms = get_model_set(model_set)
-    names = [n for n in (ms.detector, ms.pose) if n]
+    names = [n for n in (ms.detector, ms.pose, *extra) if n]
     cache = store.stat_cache if store is not None else None
     return "+".join(path_fingerprint(resolve(n, verify=False), cache) for n in names)
 
@@ -163,7 +166,9 @@ class KeypointsStage:
                 [readable[c] for c in sorted(readable)] + sorted(frames_csv.values()),
                 [lay.detections(c) for c in sorted(readable)],
                 config.provenance(),
-                model_set_sha256(config.model_set_name, session.store),
+                model_set_sha256(
+                    config.model_set_name, session.store, (config.detector.hands, config.detector.palm)
+                ),
                 skipped,
             )
         if src.openpose_json:

@@ -30,6 +30,9 @@ SHIPPED = [
     "movenet_thunder",
     "movenet_multipose",
     "openpose_mobilenetv2",
+    "hand_landmark_full",
+    "hand_landmark_lite",
+    "palm_detection_full",
 ]
 
 
