@@ -57,6 +57,7 @@ from roomcap.track.greedy import (
 from roomcap.track.normalize import hip_frame
 from roomcap.track.particle_births import SNAPSHOT_MIN_JOINTS, Births
 from roomcap.track.particle_config import ParticleConfig, make_prior
+from roomcap.track.particle_jumps import Jumps
 from roomcap.track.particle_types import FrameEstimate, LostTrack, Track, concat_estimates, empty_estimate
 from roomcap.track.priors import (
     TEMPLATE_BODY19_M,
@@ -77,7 +78,7 @@ _GUIDED_LAM = 0.01  # the guided targets' pull towards the sample's own joint (o
 STATE_SCHEMA = "particle_state/1"
 
 
-class ParticleTracker(Births):
+class ParticleTracker(Births, Jumps):
     """The filter over a rig. P: (C,3,4) projection matrices (undistorted px); focal_px: (C,).
 
     ``step(kp, sc, frame, t_s=)`` takes one frame of undistorted detections ``kp (C,D,J,2)`` (NaN =
@@ -124,6 +125,7 @@ class ParticleTracker(Births):
         self.pauses = 0  # pauses of the recorder so far
         self.after_pause = False  # whether the frame being stepped follows a pause
         self.dt_s = 1.0 / self.fps  # the last step on the tracks' clock
+        self._init_jumps()  # a live source that jumps back in time: new segments (particle_jumps)
         self.reconstructor = None
         if C >= 2:
             tcfg = TriangulateConfig(
@@ -330,6 +332,8 @@ class ParticleTracker(Births):
         self.after_pause = self.pauses > pauses_before
         if self.after_pause:
             self._end_at_pause()
+        if self.jump_refs:
+            self._expire_refs()
         maps = self._checked_maps(maps)
         C, D, J = kp.shape[:3]
         K, N = len(self.tracks), cfg.n_samples
@@ -378,6 +382,7 @@ class ParticleTracker(Births):
             out = est if out is None else concat_estimates(out, est)
         if out is None:
             out = empty_estimate(J)
+        self._note_places(out)  # where each track begins its segment: a loop of the source returns there
         return out
 
     def _checked_maps(self, maps):
