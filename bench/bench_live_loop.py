@@ -1,0 +1,102 @@
+"""Identities across the loops of a looping live source: ``capture-run --live`` on the Pose2Sim multi-person
+demo's 4 videos (1088x1920, 60 Hz, 100 frames = 1.67 s: 2 participants + a bystander) as looping file
+cameras (``loop: true, realtime: true``) with its calibration and the real default 2D model, through
+``capture-run``'s own code path (``pipeline.live.main``).
+
+Prints the live summary line (frame sets processed, the clock's jumps), the live track's distinct track ids
+and the frames each holds, and the jumps recorded in ``track/live.parts/index.json``
+(``pipeline.live.load_live_jumps``). The target: 3 identities (the bystander a fourth at most).
+
+    PYTHONPATH=... python bench/bench_live_loop.py [--seconds 60] [--shared /work/shared]
+
+The script imports only ``roomcap`` (whichever PYTHONPATH names): run it on two checkouts to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import os
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+CAMS = ("cam01", "cam02", "cam03", "cam04")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    args = ap.parse_args()
+    os.environ.setdefault("ROOMCAP_SHARED", args.shared)
+    from roomcap.calibrate.formats import import_rig
+    from roomcap.pipeline.live import main as capture_run
+    from roomcap.track.trackfile import TrackFile
+
+    demo = Path(args.shared) / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
+    if not demo.exists():
+        sys.exit(f"bench_live_loop: {demo} not found; set --shared")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_live_loop_"))
+    import_rig(demo / "calibration" / "Calib.qca.txt").save(tmp / "rig.toml")
+    (tmp / "cams.yaml").write_text(
+        "calibration: rig.toml\ncameras:\n"
+        + "".join(
+            f"  - {{name: {c}, source: '{demo / 'videos' / (c + '.mp4')}', loop: true, realtime: true}}\n"
+            for c in CAMS
+        )
+    )
+    sess = tmp / "S"
+    argv = ["--cameras", str(tmp / "cams.yaml"), "--out", str(sess), "--duration", str(args.seconds)]
+    out = io.StringIO()
+    t0 = time.monotonic()
+    with contextlib.redirect_stdout(out):
+        rc = capture_run([*argv, "--live", "--quiet", "--no-join"])
+    wall = time.monotonic() - t0
+    text = out.getvalue()
+    line = next((x.strip() for x in text.splitlines() if x.strip().startswith("live:")), "live: (none)")
+    load = os.getloadavg()[0]
+    print(
+        f"exit code {rc}; --duration {args.seconds:g} s, start -> exit {wall:.0f} s; load average {load:.1f}"
+    )
+    print(line)
+    try:
+        tf = TrackFile.load(sess / "track" / "live.npz")
+    except (OSError, ValueError) as e:
+        print(f"no live track: {e}")
+        return 1
+    seen = np.isfinite(tf.xyz_m).all(-1).any(-1)  # (T,K)
+    people = seen.sum(1)
+    print(
+        f"live track: {tf.n_frames} frame sets, {len(tf.track_id)} distinct track ids "
+        f"{tf.track_id.tolist()}; frames per id {seen.sum(0).tolist()}; people per frame set: median "
+        f"{np.median(people):.0f}, max {people.max() if len(people) else 0}"
+    )
+    try:
+        from roomcap.pipeline.live import load_live_jumps
+    except ImportError:  # a checkout before the jumps were recorded
+        print("jumps recorded: (this checkout does not record them)")
+        return 0
+    jumps = load_live_jumps(sess)
+    why: dict[str, int] = {}
+    for j in jumps:
+        why[j["why"]] = why.get(j["why"], 0) + 1
+    print(f"jumps recorded in the track file: {len(jumps)} {why}")
+    for j in jumps[:3]:
+        print(
+            "  ",
+            {k: j[k] for k in ("frame_set", "row", "why")},
+            f"{(j['t_ns_after'] - j['t_ns_before']) / 1e9:+.3f} s",
+        )
+    m = re.search(r"the clock jumped (\d+)", line)
+    print(f"summary line states {m.group(1) if m else 0} jumps")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
