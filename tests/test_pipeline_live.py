@@ -298,10 +298,11 @@ def test_live_keypoints_run_the_cameras_in_groups_each_warmed_before_the_first_s
         stage.close()
 
 
-def _looped_steps(rig, X, kinds, fps=25.0):
+def _looped_steps(rig, X, kinds, fps=25.0, late_at=None):
     """The scene ``X`` (T,P,J,3) replayed once, then once more after each jump in ``kinds``: "back" (its
     time starts again at 0), "loop" (a looping file camera: the time goes on, the frames say the source
-    looped), "restart" (the frame set index starts again at 0, the time goes on)."""
+    looped), "restart" (the frame set index starts again at 0, the time goes on). ``late_at``: after this
+    frame of the first replay, a set 0.1 s behind it (a late set out of order)."""
     names = tuple(c.name for c in rig.cameras)
     T = len(X)
     index, t0, loops = 0, 0, 0
@@ -323,6 +324,10 @@ def _looped_steps(rig, X, kinds, fps=25.0):
             final = seg == len(kinds) and t == T - 1
             yield LiveStep(fs, names, {"detections": dets, "final": final})
             index += 1
+            if seg == 0 and t == late_at:
+                late = FrameSet(index, t_ns - 100_000_000, fs.frames)
+                yield LiveStep(late, names, {"detections": dets, "final": False})
+                index += 1
         t0 += int(round(T / fps * 1e9))
 
 
@@ -342,7 +347,7 @@ def test_a_source_that_jumps_back_starts_a_segment_and_keeps_each_persons_id(tmp
     X = walkers(3, 40, seed=5)  # 1.6 s: the people end the scene far from where it starts
     assert np.linalg.norm(X[-1, :, 0, :2] - X[0, :, 0, :2], axis=-1).max() > 0.5
     kinds = ["back", "loop", "restart"]
-    steps = list(_looped_steps(rig, X, kinds))
+    steps = list(_looped_steps(rig, X, kinds, late_at=20))
     dets = {id(s.frameset): s.outputs["detections"] for s in steps}
     runner = LiveRunner(
         cfg,
@@ -352,7 +357,8 @@ def test_a_source_that_jumps_back_starts_a_segment_and_keeps_each_persons_id(tmp
     for step in steps:
         runner.process(step.frameset, final=step.outputs["final"])
     tf = TrackFile.load(lay.live_tracks)
-    assert tf.n_frames == len(steps) == 4 * 40  # no frame set skipped
+    assert tf.n_frames == len(steps) - 1 == 4 * 40  # no frame set skipped but the late one
+    assert stage.clock["late"] == 1 and not steps[21].outputs.get("jump")  # late, out of order: not a jump
     assert len(tf.track_id) == 3, tf.track_id  # one identity per person across the 3 jumps
     for k in range(3):  # each id follows one person in every segment
         d = np.linalg.norm(tf.xyz_m[:, k, None].astype(np.float64) - np.tile(X, (4, 1, 1, 1)), axis=-1)
@@ -362,7 +368,7 @@ def test_a_source_that_jumps_back_starts_a_segment_and_keeps_each_persons_id(tmp
     jumps = load_live_jumps(tmp_path)
     assert [j["why"] for j in jumps] == ["time went back", "a source looped", "frame index restarted"]
     assert [j["row"] for j in jumps] == [40, 80, 120]
-    assert [j["frame_set"] for j in jumps] == [40, 80, 0]
+    assert [j["frame_set"] for j in jumps] == [41, 81, 0]
     assert jumps[0]["t_ns_after"] == 0 and jumps[0]["t_ns_before"] == int(round(39 / 25 * 1e9))
     assert [len(r.carried) for r in stage.tracker.jumps] == [3, 3, 3]
     assert "the clock jumped 3 times" in runner.summary_line()
