@@ -6,11 +6,12 @@ particle tracker starts a new segment of its clock and carries identities over b
 :mod:`roomcap.pipeline.live`) before the first frame after it: every track ends there (no motion model bridges
 a jump of the clock) and is kept as a *reference* of the person: where they stood just before the jump and
 where their segment began (a loop returns there), their bone lengths and the appearance of their pose
-(the pose in its own hip frame, eq. 5.2). The people born after the jump are matched to the references in
+(the pose in its own hip frame, eq. 5.2); so is each identity lost shortly before it (its last place and
+where its segment began). The people born after the jump are matched to the references in
 one assignment per frame (Hungarian, :func:`scipy.optimize.linear_sum_assignment`, on a cost of place, bone
 lengths and pose, gated on place and bone lengths), so the same person keeps the same id across the jump;
 a person matched to no reference takes an ended identity (the usual re-identification) or a new id.
-References are kept for ``reid_max_gap_s`` on the tracks' clock.
+References are kept for ``JUMP_KEEP_S`` (60 s, at least ``reid_max_gap_s``) on the tracks' clock.
 
 The batch tracker never jumps: its frame times must increase (:meth:`ParticleTracker.step` says so).
 """
@@ -36,6 +37,10 @@ JUMP_PLACE_GATE_M = 1.5
 JUMP_BONE_GATE_M = 0.08
 JUMP_POSE_SCALE_M = 0.3  # mean joint distance of two poses in their hip frames at which its cost is 1
 JUMP_POSE_WEIGHT = 0.5
+# how long (on the tracks' clock) a person is kept for the assignment after their last evidence: across a jump
+# time says little (a looping source shows the same people again each loop, one may be missed for a few
+# loops), so longer than the usual reid_max_gap_s; the gates keep a newcomer from taking an old id
+JUMP_KEEP_S = 60.0
 
 
 @dataclass
@@ -89,6 +94,12 @@ class Jumps:
             pose = normalize(t.mean[None], origin, theta)[0]
             refs.append(JumpRef(t.id, np.asarray(places, np.float32), t.bones, pose, self.clock_s))
             self.ended.append((t.id, t.born, t.last_seen))
+        # the identities lost shortly before the jump too (a person missed in the last frames): their last
+        # place and where their segment began; they leave the usual re-identification for the assignment
+        for lt in self.lost:
+            places = [lt.pelvis[:2]] + ([self._seg_first[lt.id]] if lt.id in self._seg_first else [])
+            refs.append(JumpRef(lt.id, np.asarray(places, np.float32), lt.bones, None, lt.end_s))
+        self.lost = []
         self.tracks = []
         self._batch = None
         self.jump_refs = [r for r in self.jump_refs if r.id not in {x.id for x in refs}] + refs
@@ -100,7 +111,7 @@ class Jumps:
         self.t_s = None
         self.clock_s += 1.0 / self.fps
         self.pauses += 1
-        log.info("tracks: the clock jumped before frame %d; %d people kept for re-identification", frame,
+        log.info("tracks: the clock jumped before frame %d; %d identities kept for re-identification", frame,
                  len(refs))  # fmt: skip
         return rec
 
@@ -113,7 +124,7 @@ class Jumps:
                     self._seg_first[tid] = pel[:2].astype(np.float32)
 
     def _expire_refs(self) -> None:
-        gap = self.config.reid_max_gap_s
+        gap = max(self.config.reid_max_gap_s, JUMP_KEEP_S)
         self.jump_refs = [r for r in self.jump_refs if self.clock_s - r.clock_s <= gap + 1e-9]
 
     def _carry_over(self, new: list[Track], frame: int) -> None:
