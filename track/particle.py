@@ -30,6 +30,10 @@ frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
    (``birth='learned'``, :mod:`roomcap.track.birth`: run N times with dropout on, it fills the missing
    joints).
 
+A live source that jumps in time (a looping file camera, a restarted camera, a clock reset) is not a frame
+time that goes back: the caller starts a new segment (:meth:`ParticleTracker.new_segment`,
+:mod:`roomcap.track.particle_jumps`) and the people found after it keep their ids where they are the same.
+
 No Python loop runs over samples; loops run over tracks (gathers, refinement blocks of joints),
 cameras (association) and new candidates (initialisation) only.
 
