@@ -156,7 +156,7 @@ def replay_2d(args) -> int:
         try:
             fr = {c: Frame(None, t_ns, host_now_ns(), loop * n_src + i, loops=loop) for c in CAMS}
         except TypeError:  # a checkout before Frame.loops
-            fr = {c: Frame(None, t_ns, t_ns, loop * n_src + i) for c in CAMS}
+            fr = {c: Frame(None, t_ns, host_now_ns(), loop * n_src + i) for c in CAMS}
         by_set[k] = {
             c: SimpleNamespace(xy_px=dets[c].xy_px[i], score=dets[c].score[i], skeleton=dets[c].skeleton)
             for c in CAMS
