@@ -72,6 +72,8 @@ class LiveStats:
     latency_ms: list[float] = field(default_factory=list)
     stage_ms: dict[str, float] = field(default_factory=dict)
     errors: dict[str, str] = field(default_factory=dict)
+    # jumps of the sources' clock a stage met (``step.outputs["jump"]``: the track stage starts a new segment)
+    jumps: list[dict] = field(default_factory=list)
 
 
 class LiveRunner:
@@ -229,6 +231,8 @@ class LiveRunner:
         self.stats.latency_ms.append((host_now_ns() - newest) / 1e6)
         self.stats.processed += 1
         self.stats.complete += fs.complete
+        if step.outputs.get("jump"):
+            self.stats.jumps.append(step.outputs["jump"])
         if self.on_step:
             self.on_step(step)
         return step
@@ -245,6 +249,7 @@ class LiveRunner:
             "latency_ms_p95": float(np.percentile(lat, 95)),
             "stage_ms_mean": {k: v / n for k, v in self.stats.stage_ms.items()},
             "errors": dict(self.stats.errors),
+            "jumps": list(self.stats.jumps),
         }
 
     def summary_line(self) -> str:
@@ -254,4 +259,23 @@ class LiveRunner:
             f"{s['processed']} frame sets processed ({s['skipped']} stale ones dropped, {s['complete']} "
             "complete), "
             f"latency median {s['latency_ms_median']:.1f} ms, p95 {s['latency_ms_p95']:.1f} ms; {stages}"
+            + jump_line(s["jumps"])
         )
+
+
+def jump_line(jumps: list[dict]) -> str:
+    """``"; the clock jumped N times (...)"`` for the live summary and page, ``""`` without jumps.
+
+    >>> jump_line([{"frame_set": 7, "t_ns_before": 2_500_000_000, "t_ns_after": 0, "why": "time went back"}])
+    '; the clock jumped 1 time (before frame set 7: time went back, -2.500 s): a new track segment'
+    """
+    if not jumps:
+        return ""
+    j = jumps[-1]
+    n = len(jumps)
+    last = "" if n == 1 else "last "
+    return (
+        f"; the clock jumped {n} time{'s' if n > 1 else ''} ({last}before frame set {j['frame_set']}: "
+        f"{j['why']}, {(j['t_ns_after'] - j['t_ns_before']) / 1e9:+.3f} s): a new track segment"
+        + (" each" if n > 1 else "")
+    )

@@ -67,6 +67,7 @@ class Frame:
     sequence: int
     encoded: bytes | None = None  # on-device encoded packet (H.264/H.265 Annex B)
     keyframe: bool = True  # for encoded packets: a segment may start here
+    loops: int = 0  # times the source started again from its beginning (a looping file's wraps)
 
 
 @dataclass(frozen=True)
@@ -524,8 +525,10 @@ class FileReplaySource(FrameSource):
     """A video (file or recorded segment folder) replayed as a camera at its own timestamps.
 
     ``t_ns = epoch_ns + (file timestamp - first file timestamp)``; with ``loop`` the timestamps keep
-    increasing by one frame period across the wrap. ``realtime=False`` delivers frames as fast as
-    the reader takes them (tests, benchmarks) with the same timestamps.
+    increasing by one frame period across the wrap, and each frame says how many wraps precede it
+    (``Frame.loops``: the scene starts again there, which the live tracker treats as a jump).
+    ``realtime=False`` delivers frames as fast as the reader takes them (tests, benchmarks) with the same
+    timestamps.
     """
 
     def __init__(
@@ -549,6 +552,7 @@ class FileReplaySource(FrameSource):
         self._seq = 0
         self._t0_file: int | None = None
         self._wrap_ns = 0
+        self._loops = 0
         self._last_rel = 0
         self._start_mono: int | None = None
         self._skipped_in_row = 0
@@ -612,6 +616,7 @@ class FileReplaySource(FrameSource):
                         return None
                     period = int(round(1e9 / self._rec.fps)) if self._rec.fps else 0
                     self._wrap_ns = self._last_rel + period
+                    self._loops += 1
                     self._it = self._rec.iter_frames(self._late)
                     item = next(self._it, None)
                     if item is None:
@@ -636,7 +641,7 @@ class FileReplaySource(FrameSource):
                 wait = self._start_mono + rel - time.monotonic_ns()
                 if wait > 0:
                     time.sleep(wait / 1e9)
-            return Frame(img, self.epoch_ns + rel, host_now_ns(), seq)
+            return Frame(img, self.epoch_ns + rel, host_now_ns(), seq, loops=self._loops)
 
     def _late(self, t_file_ns: int) -> bool:
         """Whether the frame at file time ``t_file_ns`` is already more than 2 frame periods late."""

@@ -125,6 +125,11 @@ class FrameSet:
         return all(f is not None for f in self.frames.values())
 
     @property
+    def loops(self) -> int:
+        """The most times a member's source started again from its beginning (``Frame.loops``)."""
+        return max((f.loops for f in self.frames.values() if f is not None), default=0)
+
+    @property
     def skew_ns(self) -> int:
         t = [f.t_ns for f in self.frames.values() if f is not None]
         return max(t) - min(t) if t else 0

@@ -15,7 +15,12 @@ Stages (``STAGES``, one line each, built by the same functions the batch stages 
   :class:`roomcap.track.particle.ParticleTracker`) per frame set, at the set's time ``t_ns``: a track's
   identity is given once and never changed; its state is what the next step needs, so the cost of a
   step does not grow with the session's length. Estimates are appended to the live track file in
-  chunks of ``CHUNK_FRAMES`` frames.
+  chunks of ``CHUNK_FRAMES`` frames. A source that jumps in time (:func:`jump_reason`: a looping file
+  camera starts again, the time goes back, the frame set index restarts) starts a new segment: the
+  tracker's clock starts again at the set's time and the people found after it keep their ids where they
+  are the same (:mod:`roomcap.track.particle_jumps`); the jump is recorded in the track file's index
+  (``meta["clock_jumps"]``, :func:`load_live_jumps`), the runner's summary line and the live page. A set
+  less than ``LATE_SET_S`` behind the last one came late, out of order: skipped.
 
 The live track file is ``track/live.npz`` (``SessionLayout.live_tracks``), written in the chunked layout
 of the streamed batch stages (:mod:`roomcap.triangulate.chunks`, schema ``parts/1``) as an appendable store::
@@ -23,6 +28,8 @@ of the streamed batch stages (:mod:`roomcap.triangulate.chunks`, schema ``parts/
     track/live.parts/index.json      {"schema": "parts/1", "kind": "tracks", "key", "appendable": true,
                                       "chunks": [[0, 50], [50, 100], ...],
                                       "parts": {"<i>": {"file", "size", "sha256"}}, "meta", "complete"}
+                                     meta["clock_jumps"]: [{"frame_set", "row", "t_ns_before",
+                                      "t_ns_after", "why", "loops"}, ...] (absent: no jump, older files)
     track/live.parts/part_00000.npz  a whole ``tracks/1`` file of the chunk's frame sets
 
 Each part is written atomically and never rewritten, then entered (its chunk, size and sha256) in one
@@ -78,6 +85,10 @@ LIVE_DIR = "live.parts"  # under the session's track folder: the parts of Sessio
 LEGACY_LIVE_DIR = "live"  # the live track folder of sessions recorded before the parts/1 layout
 LEGACY_SCHEMA = "live_tracks/1"
 SOURCE = "pipeline.live (track.particle, one step per frame set)"
+# a set whose time lies behind the last one's by less than this, from no restarted source, came late (out of
+# order under load); a clock that goes back further jumped (a camera restarted, its clock reset)
+LATE_SET_S = 1.0
+JUMPS_KEY = "clock_jumps"  # the index meta's list of the clock's jumps (absent in older files: none)
 
 
 @dataclass
@@ -226,6 +237,12 @@ class LiveTrackWriter:
         self.started = False
         self.n_frames = 0
         self._rows: list[tuple[int, int, FrameEstimate]] = []
+        self.jumps: list[dict] = []  # the clock's jumps (JUMPS_KEY of the index's meta)
+
+    def add_jump(self, jump: dict) -> None:
+        """Record a jump of the clock before the next frame added (its ``row`` in the track file is set
+        here); entered in the index with the part that holds that row."""
+        self.jumps.append({**jump, "row": self.n_frames + len(self._rows)})
 
     def add(self, frame_index: int, t_ns: int, est: FrameEstimate) -> None:
         self._rows.append((int(frame_index), int(t_ns), est))
@@ -271,7 +288,7 @@ class LiveTrackWriter:
         if not self.started:
             self._start()
         tf.save(self.store.next_part_path)  # atomic; listed in the index only once whole
-        self.store.append(T)
+        self.store.append(T, {JUMPS_KEY: list(self.jumps)} if self.jumps else None)
         self.n_frames += T
 
     def close(self) -> None:
@@ -322,37 +339,97 @@ def load_live_tracks(path: str | Path) -> TrackFile:
     return TrackFile.load(path)
 
 
+def jump_reason(clock: dict, fs) -> str:
+    """Why the frame set ``fs`` does not continue the live track's clock (``clock``: the last set's
+    ``last`` time, ``index`` and ``loops``), or ``""``: its index restarted (the synchroniser started
+    again), a source started again from its beginning (a looping file camera: its timestamps go on, its
+    scene does not), or its time went back; ``"late"`` when its time lies behind the last set's by less
+    than :data:`LATE_SET_S` with none of these: a late set out of order (an incomplete set a slow camera's
+    frame made after the newer set), skipped."""
+    if clock["last"] is None:
+        return ""
+    if clock["index"] is not None and fs.index < clock["index"]:
+        return "frame index restarted"
+    if fs.loops > clock["loops"]:
+        return "a source looped"
+    if fs.t_ns <= clock["last"]:
+        return "late" if clock["last"] - fs.t_ns < LATE_SET_S * 1e9 else "time went back"
+    return ""
+
+
+def load_live_jumps(path: str | Path) -> list[dict]:
+    """The jumps of the clock the live track recorded (a session folder, ``track/live.npz`` or its
+    ``track/live.parts/``): one dict per jump, ``frame_set`` (the first set after it), ``row`` (its row in
+    the live track file), ``t_ns_before``, ``t_ns_after`` and ``why``; ``[]`` for a track without jumps or
+    written before they were recorded (older files, the ``track/live/`` layout)."""
+    path = Path(path)
+    if (path / "track").is_dir():
+        path = SessionLayout(path).live_tracks
+    folder = path if path.suffix == ".parts" else parts_dir(path)
+    try:
+        index = json.loads((folder / "index.json").read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return []
+    except (OSError, ValueError) as e:
+        raise FormatError(folder / "index.json", None, f"cannot read the live track index ({e}).") from None
+    jumps = (index.get("meta") or {}).get(JUMPS_KEY, [])
+    return [dict(j) for j in jumps] if isinstance(jumps, list) else []
+
+
 def _track(ctx: LiveContext) -> Stage:
     rig = _rig(ctx, "tracking")
     fps = max(c.fps or 30.0 for c in ctx.cfg.cameras)
     tracker = ParticleTracker(rig.projection_matrices(), focal_lengths(rig), fps, ctx.particle)
     writer = LiveTrackWriter(ctx.layout.live_tracks, fps, rig.sha256(), ctx.chunk_frames)
-    clock = {"t0": None, "last": None, "n": 0}
+    clock = {"t0": None, "last": None, "index": None, "loops": 0, "n": 0, "late": 0}
 
     def stage(step: LiveStep) -> None:
-        t_ns = int(step.frameset.t_ns)
+        fs = step.frameset
+        t_ns = int(fs.t_ns)
         if clock["t0"] is None:
             clock["t0"] = t_ns
-        if clock["last"] is not None and t_ns <= clock["last"]:
-            log.warning(
-                "live track: frame set %d at %d ns does not follow the last one; skipped",
-                step.frameset.index,
-                t_ns,
+        why = jump_reason(clock, fs)
+        if why == "late":
+            clock["late"] += 1
+            log.info(
+                "live track: frame set %d lies %.3f s behind the last one (late, out of order); skipped",
+                fs.index,
+                (clock["last"] - t_ns) / 1e9,
             )
             return
-        clock["last"] = t_ns
+        if why:  # a new segment: the tracker's clock starts again here, identities carried over
+            jump = {
+                "frame_set": int(fs.index),
+                "t_ns_before": clock["last"],
+                "t_ns_after": t_ns,
+                "why": why,
+                "loops": int(fs.loops),
+            }
+            log.warning(
+                "live track: the clock jumped before frame set %d (%s, %+.3f s); a new track segment",
+                fs.index,
+                why,
+                (t_ns - clock["last"]) / 1e9,
+            )
+            tracker.new_segment(clock["n"])
+            writer.add_jump(jump)
+            step.outputs["jump"] = jump
+            clock["t0"] = t_ns
+        clock["last"], clock["index"] = t_ns, int(fs.index)
+        clock["loops"] = max(clock["loops"], fs.loops)
         xy, sc = frame_arrays(step, rig)
         est = tracker.step(xy, sc, clock["n"], t_s=(t_ns - clock["t0"]) / 1e9)
         clock["n"] += 1
         if clock["n"] % TRIM_EVERY == 0:  # hours of steps: the fragmented heap's free pages back
             release_free_memory()
-        writer.add(step.frameset.index, t_ns, est)
+        writer.add(fs.index, t_ns, est)
         step.outputs["tracks"] = est
         if step.outputs.get("final"):
             writer.close()
 
     stage.writer = writer  # type: ignore[attr-defined]  # the bench and tests read the parts it wrote
     stage.tracker = tracker  # type: ignore[attr-defined]
+    stage.clock = clock  # type: ignore[attr-defined]  # "late": late sets out of order, skipped
     stage.close = writer.close  # type: ignore[attr-defined]  # the runner calls it when the recording ends
     return stage
 

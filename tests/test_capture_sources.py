@@ -71,8 +71,10 @@ def test_file_replay_loops_with_increasing_timestamps(tmp_path):
     p = write_video(tmp_path / "v.mp4", n=4, fps=25)
     src = FileReplaySource("f", p, realtime=False, loop=True, epoch_ns=0)
     src.open()
-    ts = [src.read().t_ns for _ in range(10)]
-    assert ts == [i * 40_000_000 for i in range(10)]
+    frames = [src.read() for _ in range(10)]
+    assert [f.t_ns for f in frames] == [i * 40_000_000 for i in range(10)]
+    # each frame says how often the file started again before it (the live tracker's new segment)
+    assert [f.loops for f in frames] == [0] * 4 + [1] * 4 + [2] * 2
 
 
 def test_not_a_video_file(tmp_path):

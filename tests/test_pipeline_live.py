@@ -296,3 +296,80 @@ def test_live_keypoints_run_the_cameras_in_groups_each_warmed_before_the_first_s
         assert stage.pipes[0].n_tracked == 2 and stage.pipes[1].n_tracked == 0  # the second set: followed
     finally:
         stage.close()
+
+
+def _looped_steps(rig, X, kinds, fps=25.0, late_at=None):
+    """The scene ``X`` (T,P,J,3) replayed once, then once more after each jump in ``kinds``: "back" (its
+    time starts again at 0), "loop" (a looping file camera: the time goes on, the frames say the source
+    looped), "restart" (the frame set index starts again at 0, the time goes on). ``late_at``: after this
+    frame of the first replay, a set 0.1 s behind it (a late set out of order)."""
+    names = tuple(c.name for c in rig.cameras)
+    T = len(X)
+    index, t0, loops = 0, 0, 0
+    for seg, kind in enumerate([None, *kinds]):
+        if kind == "back":
+            t0 = 0
+        elif kind == "loop":
+            loops += 1
+        elif kind == "restart":
+            index = 0
+        for t in range(T):
+            t_ns = t0 + int(round(t / fps * 1e9))
+            uv = rig.project(X[t].reshape(-1, 3)).reshape(len(names), *X.shape[1:3], 2)
+            dets = {
+                n: SimpleNamespace(xy_px=uv[c], score=np.full(uv.shape[1:3], 0.9), skeleton="body19")
+                for c, n in enumerate(names)
+            }
+            fs = FrameSet(index, t_ns, {n: Frame(None, t_ns, 0, index, loops=loops) for n in names})
+            final = seg == len(kinds) and t == T - 1
+            yield LiveStep(fs, names, {"detections": dets, "final": final})
+            index += 1
+            if seg == 0 and t == late_at:
+                late = FrameSet(index, t_ns - 100_000_000, fs.frames)
+                yield LiveStep(late, names, {"detections": dets, "final": False})
+                index += 1
+        t0 += int(round(T / fps * 1e9))
+
+
+def test_a_source_that_jumps_back_starts_a_segment_and_keeps_each_persons_id(tmp_path):
+    """A looping or restarting source: the scene starts again 3 times (time back to 0, a file camera's
+    loop, the frame index restarting). Each jump starts a new segment of the live track (nothing skipped),
+    is recorded in the track file and the runner's summary, and the people found after it take back the
+    ids they had (matched by place, bone lengths and pose): as many identities as people."""
+    from roomcap.capture.live import LiveRunner
+    from roomcap.pipeline.live import load_live_jumps
+
+    rig = ring_rig(4, radius_m=4.0)
+    names = [c.name for c in rig.cameras]
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:", "fps": 25} for n in names]})
+    lay = SessionLayout(tmp_path)
+    stage = _track(LiveContext(cfg, lay, rig, FAST, chunk_frames=16))
+    X = walkers(3, 40, seed=5)  # 1.6 s: the people end the scene far from where it starts
+    assert np.linalg.norm(X[-1, :, 0, :2] - X[0, :, 0, :2], axis=-1).max() > 0.5
+    kinds = ["back", "loop", "restart"]
+    steps = list(_looped_steps(rig, X, kinds, late_at=20))
+    dets = {id(s.frameset): s.outputs["detections"] for s in steps}
+    runner = LiveRunner(
+        cfg,
+        tmp_path,
+        stages={"keypoints": lambda s: s.outputs.update(detections=dets[id(s.frameset)]), "track": stage},
+    )
+    for step in steps:
+        runner.process(step.frameset, final=step.outputs["final"])
+    tf = TrackFile.load(lay.live_tracks)
+    assert tf.n_frames == len(steps) - 1 == 4 * 40  # no frame set skipped but the late one
+    assert stage.clock["late"] == 1 and not steps[21].outputs.get("jump")  # late, out of order: not a jump
+    assert len(tf.track_id) == 3, tf.track_id  # one identity per person across the 3 jumps
+    for k in range(3):  # each id follows one person in every segment
+        d = np.linalg.norm(tf.xyz_m[:, k, None].astype(np.float64) - np.tile(X, (4, 1, 1, 1)), axis=-1)
+        d = d.mean(-1)  # (T,P)
+        seen = np.isfinite(d).all(1)
+        assert seen.sum() > 0.9 * tf.n_frames and len(set(d[seen].argmin(1))) == 1
+    jumps = load_live_jumps(tmp_path)
+    assert [j["why"] for j in jumps] == ["time went back", "a source looped", "frame index restarted"]
+    assert [j["row"] for j in jumps] == [40, 80, 120]
+    assert [j["frame_set"] for j in jumps] == [41, 81, 0]
+    assert jumps[0]["t_ns_after"] == 0 and jumps[0]["t_ns_before"] == int(round(39 / 25 * 1e9))
+    assert [len(r.carried) for r in stage.tracker.jumps] == [3, 3, 3]
+    assert "the clock jumped 3 times" in runner.summary_line()
+    assert load_live_jumps(tmp_path / "nowhere") == []  # a track without the record: no jumps

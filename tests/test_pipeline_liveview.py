@@ -25,7 +25,7 @@ from roomcap.capture.sync import FrameSet
 from roomcap.core.errors import InputError
 from roomcap.keypoints.skeletons import CANONICAL
 from roomcap.pipeline.liveview.browser import find_chromium
-from roomcap.pipeline.liveview.server import LiveView, ViewConfig
+from roomcap.pipeline.liveview.server import LiveView, ViewConfig, to_json
 from roomcap.synthetic.rigs import ring_rig
 
 aiohttp = pytest.importorskip("aiohttp", reason="aiohttp not installed: pip install 'roomcap[view]'")
@@ -323,6 +323,28 @@ def test_an_empty_room_gives_a_state_with_nobody_and_the_camera_images():
     st = json.loads(msgs["state"])
     assert st["tracks"] == [] and st["proj"] == {} and all(not v for v in st["det"].values())
     assert sorted(k for k in msgs if k.startswith("img:")) == sorted(f"img:{n}" for n in names)
+
+
+def test_the_state_says_when_the_clock_jumped(tmp_path):
+    """A source that jumped in time (the track stage's new segment, collected by the runner): the page's
+    state carries the line it shows; none before the first jump."""
+    from roomcap.capture.live import LiveRunner
+
+    rig, names, _ = _setup()
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:", "fps": 30} for n in names]})
+    runner = LiveRunner(cfg, tmp_path, stages={})
+    view = LiveView(ViewConfig(port=0), cfg, runner, None, rig)
+    step = _step(rig, names, 0, np.stack([_person()]))
+    assert json.loads(to_json(view.state(step, 0.0)))["live"]["jumps_line"] is None
+    runner.stats.jumps.append(
+        {"frame_set": 9, "t_ns_before": 5_000_000_000, "t_ns_after": 0, "why": "time went back", "row": 9}
+    )
+    live = json.loads(to_json(view.state(step, 0.0)))["live"]  # what the page receives
+    assert live["jumps"] == 1
+    assert live["jumps_line"] == (
+        "the clock jumped 1 time (before frame set 9: time went back, -5.000 s): a new track segment"
+    )
+    assert runner.summary_line().endswith("; " + live["jumps_line"])
 
 
 @need_chromium

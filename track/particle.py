@@ -30,6 +30,10 @@ frame (:meth:`ParticleTracker.step`), for all tracks at once (arrays (K,N,J,3)):
    (``birth='learned'``, :mod:`roomcap.track.birth`: run N times with dropout on, it fills the missing
    joints).
 
+A live source that jumps in time (a looping file camera, a restarted camera, a clock reset) is not a frame
+time that goes back: the caller starts a new segment (:meth:`ParticleTracker.new_segment`,
+:mod:`roomcap.track.particle_jumps`) and the people found after it keep their ids where they are the same.
+
 No Python loop runs over samples; loops run over tracks (gathers, refinement blocks of joints),
 cameras (association) and new candidates (initialisation) only.
 
@@ -57,6 +61,7 @@ from roomcap.track.greedy import (
 from roomcap.track.normalize import hip_frame
 from roomcap.track.particle_births import SNAPSHOT_MIN_JOINTS, Births
 from roomcap.track.particle_config import ParticleConfig, make_prior
+from roomcap.track.particle_jumps import Jumps
 from roomcap.track.particle_types import FrameEstimate, LostTrack, Track, concat_estimates, empty_estimate
 from roomcap.track.priors import (
     TEMPLATE_BODY19_M,
@@ -77,7 +82,7 @@ _GUIDED_LAM = 0.01  # the guided targets' pull towards the sample's own joint (o
 STATE_SCHEMA = "particle_state/1"
 
 
-class ParticleTracker(Births):
+class ParticleTracker(Births, Jumps):
     """The filter over a rig. P: (C,3,4) projection matrices (undistorted px); focal_px: (C,).
 
     ``step(kp, sc, frame, t_s=)`` takes one frame of undistorted detections ``kp (C,D,J,2)`` (NaN =
@@ -124,6 +129,7 @@ class ParticleTracker(Births):
         self.pauses = 0  # pauses of the recorder so far
         self.after_pause = False  # whether the frame being stepped follows a pause
         self.dt_s = 1.0 / self.fps  # the last step on the tracks' clock
+        self._init_jumps()  # a live source that jumps back in time: new segments (particle_jumps)
         self.reconstructor = None
         if C >= 2:
             tcfg = TriangulateConfig(
@@ -330,6 +336,8 @@ class ParticleTracker(Births):
         self.after_pause = self.pauses > pauses_before
         if self.after_pause:
             self._end_at_pause()
+        if self.jump_refs:
+            self._expire_refs()
         maps = self._checked_maps(maps)
         C, D, J = kp.shape[:3]
         K, N = len(self.tracks), cfg.n_samples
@@ -378,6 +386,7 @@ class ParticleTracker(Births):
             out = est if out is None else concat_estimates(out, est)
         if out is None:
             out = empty_estimate(J)
+        self._note_places(out)  # where each track begins its segment: a loop of the source returns there
         return out
 
     def _checked_maps(self, maps):

@@ -67,6 +67,10 @@ class Births:
         near_born = bool(self.tracks)
         n_new = 0
         min_joints = self._birth_min_joints()
+        # after a jump of the clock the people born are matched to those alive before it all at once
+        # (particle_jumps): their ids are given after the loop
+        carry = bool(getattr(self, "jump_refs", None))
+        fresh: list[Track] = []
         for m in order:
             if n_good[m] < min_joints:
                 continue
@@ -104,7 +108,7 @@ class Births:
             if cfg.max_people and len(self.tracks) + n_new >= cfg.max_people:
                 continue
             n_new += 1
-            tid = self._reidentify(pel, bones, frame)
+            tid = -1 if carry else self._reidentify(pel, bones, frame)
             t = Track(
                 tid,
                 samples,
@@ -118,6 +122,9 @@ class Births:
             )
             self.tracks.append(t)
             born.append(t)
+            fresh.append(t)
+        if carry:
+            self._carry_over(fresh, frame)
         return born
 
     def _enough_views(self, scf: np.ndarray) -> bool:

@@ -244,15 +244,18 @@ class PartStore:
         """Where the part that :meth:`append` enters next is written (atomically, by the caller)."""
         return self.part_path(len(self.index["chunks"]))
 
-    def append(self, n_rows: int) -> int:
+    def append(self, n_rows: int, meta: dict | None = None) -> int:
         """Enter the part written at :attr:`next_part_path`, of ``n_rows`` rows following the last chunk:
-        its chunk and its size and sha256 in one atomic rewrite of the index. Returns its number."""
+        its chunk and its size and sha256 (and ``meta``'s keys, updated) in one atomic rewrite of the index.
+        Returns its number."""
         if not self.index.get("appendable"):
             raise RuntimeError(f"{self.folder} was not started with start_appending()")
         chunks = self.index["chunks"]
         i, p = len(chunks), self.next_part_path
         a = chunks[-1][1] if chunks else 0
         chunks.append([a, a + int(n_rows)])
+        if meta:
+            self.index.setdefault("meta", {}).update(meta)
         self.index["parts"][str(i)] = {"file": p.name, "size": p.stat().st_size, "sha256": sha256_file(p)}
         self.index["complete"] = False
         self._write_index()

@@ -106,6 +106,8 @@ function render(){
     s.appendChild(document.createTextNode('id ' + id)); who.appendChild(s); }
   $('frame').textContent = String(state.frame);
   $('sets').textContent = state.live && state.live.processed !== undefined ? `${state.live.processed} · ${state.live.skipped} stale dropped` : '–';
+  const jp = $('jumps'), jl = state.live && state.live.jumps_line;  // the clock jumped back: a new track segment
+  jp.hidden = !jl; jp.textContent = jl || '';
   $('loopLatency').textContent = state.live && state.live.latency_ms !== null && state.live.latency_ms !== undefined ? state.live.latency_ms.toFixed(0) + ' ms' : '–';
   $('viewNote').textContent = `${state.view.clients} page(s) · ${state.view.dropped_updates} view updates dropped`;
   const tbl = $('camStats'); tbl.innerHTML = '<tr><th>camera</th><th>fps</th><th>frames</th><th>dropped</th><th>skipped by live</th></tr>';

@@ -51,7 +51,7 @@ import numpy as np
 
 from roomcap.calibrate.camera import CameraRig
 from roomcap.capture.config import CaptureConfig
-from roomcap.capture.live import LiveRunner, LiveStep
+from roomcap.capture.live import LiveRunner, LiveStep, jump_line
 from roomcap.capture.sources import host_now_ns
 from roomcap.core.errors import InputError
 from roomcap.keypoints.skeletons import CANONICAL, convert
@@ -526,6 +526,9 @@ class LiveView:
                 "skipped": s.skipped,
                 "latency_ms": round(float(np.median(lat)), 1) if lat else None,
                 "errors": dict(s.errors),
+                "jumps": len(s.jumps),
+                # "the clock jumped N times (...): a new track segment", or None
+                "jumps_line": jump_line(s.jumps)[2:] or None,
             }
         return {
             "type": "state",
