@@ -42,6 +42,7 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
       stages: [keypoints, triangulate, track]
       every_n: 1                   # process every n-th frame set
       preset: ""                   # the 2D preset (as [keypoints] preset; "" = the default)
+      forecast: true               # with --view: the forecast on the page (false = --no-forecast)
 
 Sources: ``usb:<index>``, ``/dev/videoN``, ``rtsp://``/``rtsps://``/``http(s)://`` streams,
 ``oak:`` (first OAK device) or ``oak:<mxid-or-serial>[?socket=CAM_A&sync=master|slave|auto]``,
@@ -250,6 +251,7 @@ class LiveConfig:
     stages: tuple[str, ...] = LIVE_STAGES
     every_n: int = bounded(1, 1, 10_000)
     preset: str = ""  # the 2D stage's preset, as [keypoints] preset of a pipeline TOML ("" = the default)
+    forecast: bool = True  # with --view: each tracked person's next seconds on the page (--no-forecast)
 
 
 @dataclass(frozen=True)
