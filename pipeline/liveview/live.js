@@ -43,11 +43,11 @@ function drawForecast(fc, ids){ // per person: the hips' path on the floor (dash
     const col = color(t.id), path = [];
     for (let k = 0; k + 2 < t.path.length; k += 3) path.push([t.path[k], t.path[k + 1], 0]);
     const pts = path.filter(V3.fin); if (pts.length < 2) continue;
-    for (let k = 1; k < pts.length; k++) V3.line(pts[k - 1], pts[k], col, 2.5, [7, 5]);
+    for (let k = 1; k < pts.length; k++) V3.line(pts[k - 1], pts[k], col, 3, [7, 5]);
     const end = V3.project(pts[pts.length - 1]);
-    if (end) { V3.ctx.fillStyle = col; V3.ctx.beginPath(); V3.ctx.arc(end[0], end[1], 4, 0, 7); V3.ctx.fill(); }
+    if (end) { V3.ctx.strokeStyle = col; V3.ctx.lineWidth = 2; V3.ctx.beginPath(); V3.ctx.arc(end[0], end[1], 6, 0, 7); V3.ctx.stroke(); }
     const ghost = []; for (let j = 0; j < J; j++) ghost.push([t.ghost[3 * j], t.ghost[3 * j + 1], t.ghost[3 * j + 2]]);
-    V3.skeleton(ghost, hello.parents, col, 1.6, 0, 0.4, null);
+    V3.skeleton(ghost, hello.parents, col, 1.8, 0, 0.5, null);
     n++;
   }
   return n;
