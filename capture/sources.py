@@ -541,9 +541,11 @@ class FileReplaySource(FrameSource):
         epoch_ns: int | None = None,
         fps: float | None = None,
         drop_late: bool = False,
+        stream_copy: bool = True,
     ):
         self.name = name
         self.path = Path(path)
+        self.stream_copy = stream_copy
         self.realtime = realtime
         self.loop = loop
         self.epoch_ns = epoch_ns
@@ -599,13 +601,10 @@ class FileReplaySource(FrameSource):
         self.check()
         from roomcap.capture.streamcopy import copy_plan
 
-        self._copy_ext, self.copy = copy_plan(self.path)
+        self._copy_ext, self.copy = copy_plan(self.path, self.drop_late, self.stream_copy)
         if self._copy_ext is None and not self.path.is_dir():
             log.info("%s: recording %s: %s", self.name, self.path.name, self.copy)
         rec = Recording(self.path)
-        if self._copy_ext is not None and self.drop_late:
-            log.info("%s: drop_late is off while stream-copying (every packet is written)", self.name)
-            self.drop_late = False
         it = self._frames(None if self._copy_ext is not None else rec)
         try:
             first = next(it)

@@ -31,10 +31,16 @@ log = logging.getLogger(__name__)
 COPY_CODECS = {"h264": ".mp4", "hevc": ".mp4", "mpeg4": ".mp4", "mjpeg": ".avi"}
 
 
-def copy_plan(path: str | Path) -> tuple[str | None, str]:
+def copy_plan(path: str | Path, drop_late: bool = False, wanted: bool = True) -> tuple[str | None, str]:
     """How a video file replayed as a camera is recorded: ``(segment extension, description)`` for a stream
-    copy, ``(None, why it is re-encoded)`` otherwise. Reads the container's header, decodes nothing."""
+    copy, ``(None, why it is re-encoded)`` otherwise. Reads the container's header, decodes nothing.
+    ``drop_late`` (the camera's option): late frames are left out, as a camera's would be, which a copy of
+    the packets cannot do. ``wanted`` False (the camera's ``stream_copy: false``): re-encoded."""
     path = Path(path)
+    if not wanted:
+        return None, "re-encoded: stream_copy is false in cams.yaml"
+    if drop_late:
+        return None, "re-encoded: drop_late leaves late frames out, which a stream copy cannot"
     if path.is_dir():
         return None, "re-encoded: a recorded segment folder is replayed frame by frame"
     try:
@@ -55,6 +61,24 @@ def copy_plan(path: str | Path) -> tuple[str | None, str]:
             f"(copied: {', '.join(sorted(COPY_CODECS))})"
         )
     return ext, f"stream copy of its {name} packets into {ext} segments (no re-encoding)"
+
+
+def recording_mode(cam: Any, source: Any = None) -> str:
+    """How camera ``cam`` (a ``CameraConfig``) is recorded, in words, for ``capture-run check`` and the
+    session summary: a file replayed by stream copy or re-encoded (and why), an OAK's on-device stream as it
+    comes, or the host encoder for a source that gives decoded frames. ``source``: the opened source (a
+    file replay says what it chose at open)."""
+    from roomcap.capture.config import DEVICE_CODECS
+
+    chosen = getattr(source, "copy", None)
+    if chosen:
+        return chosen if chosen.startswith("stream copy") else f"{chosen} as {cam.codec}"
+    if cam.kind == "file":
+        ext, why = copy_plan(cam.source, cam.drop_late, cam.stream_copy)
+        return why if ext is not None else f"{why} as {cam.codec}"
+    if cam.kind == "oak" and cam.codec in DEVICE_CODECS:
+        return f"the device's {cam.codec} stream written as it comes (no re-encoding)"
+    return f"re-encoded as {cam.codec}: this source gives decoded frames"
 
 
 class PacketReader:
