@@ -578,6 +578,7 @@ def test_the_page_draws_the_forecast_without_errors_and_its_switch_turns_it_off(
     outputs.add_arguments(p)
     close = outputs.open(p.parse_args(["--view", "--view-port", "0"]), live, rec)
     view, forecast = outputs.feed.view, outputs.feed.forecast
+    assert forecast.ready.wait(120)  # the model loads on its own thread (torch; seconds on a loaded host)
     seen = {}
 
     def drive():
