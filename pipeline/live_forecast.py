@@ -230,9 +230,10 @@ class LiveForecast:
         )
         return line + (f"; failed: {s['error']}" if s["error"] else "")
 
-    def view_data(self) -> dict[str, Any]:
+    def view_data(self, now_ns: int | None = None) -> dict[str, Any]:
         """What the page draws: per person the path of the hips' midpoint (H,3) and the ghost pose at the
-        horizon (J,3), with the cost."""
+        horizon (J,3), with the cost. ``now_ns``: the drawn frame set's time; a forecast that started more
+        than its horizon before it is not drawn (its whole path is in the past)."""
         s = self.summary()
         out: dict[str, Any] = {
             "on": self.enabled,
@@ -244,6 +245,8 @@ class LiveForecast:
         }
         fc = self.latest
         if not self.enabled or fc is None:
+            return out
+        if now_ns is not None and now_ns - fc["t_ns"] > self.horizon_s * 1e9:
             return out
         out["frame"] = fc["frame"]
         for tid, x in zip(fc["ids"], fc["xyz"], strict=True):

@@ -608,3 +608,48 @@ def test_the_page_draws_the_forecast_without_errors_and_its_switch_turns_it_off(
     assert (tmp_path / "forecast.png").stat().st_size > 10_000
     assert forecast.n_forecast > 0 and forecast.error is None
     assert "forecast (gru_cmuall, 1.5 s, switched off)" in live.summary_line()
+
+
+def test_a_slow_forecast_never_holds_up_the_live_loop(monkeypatch):
+    """The forecast runs on its own thread from the newest history: while one takes long, the live loop's
+    offers return at once and the sets that came meanwhile are superseded (counted), not queued; a forecast
+    older than its horizon is not drawn."""
+    import threading
+
+    from roomcap.pipeline.live_forecast import LiveForecast
+
+    rig, names, _ = _setup()
+    steps = _walker_steps(rig, names, n=60, fps=30.0)
+    fc = LiveForecast("constant_velocity")
+    gate = threading.Event()
+    real = fc.forecast
+
+    def slow(t_s, xyz):
+        gate.wait(10)  # a forecast that takes as long as the test wants
+        return real(t_s, xyz)
+
+    monkeypatch.setattr(fc, "forecast", slow)
+    fc.start()
+    assert fc.ready.wait(30)
+    gate.set()
+    fc.offer(steps[0])
+    for _ in range(200):
+        if fc.n_forecast:
+            break
+        time.sleep(0.01)
+    gate.clear()  # from now on a forecast waits for the gate
+    took = []
+    for s in steps[1:]:
+        t0 = time.perf_counter()
+        fc.offer(s)
+        took.append(time.perf_counter() - t0)
+    gate.set()  # the forecast in flight ends, then one from the newest history
+    for _ in range(500):
+        if fc.latest is not None and fc.latest["frame"] == steps[-1].frameset.index:
+            break
+        time.sleep(0.01)
+    fc.stop()
+    assert max(took) < 0.1  # an append under a lock, never the forecast (that waits 10 s here)
+    assert fc.n_superseded >= len(steps) - 4 and fc.n_forecast <= 4
+    later = steps[-1].frameset.t_ns + int(2e9)
+    assert fc.view_data(steps[-1].frameset.t_ns)["tracks"] and not fc.view_data(later)["tracks"]

@@ -553,15 +553,15 @@ class LiveView:
             "cameras": self._camera_stats(),
             "live": live,
             "view": {"clients": len(self._clients), "dropped_updates": self.dropped_updates},
-            "forecast": self._forecast_state(),
+            "forecast": self._forecast_state(int(fs.t_ns)),
         }
 
-    def _forecast_state(self) -> dict[str, Any] | None:
+    def _forecast_state(self, now_ns: int) -> dict[str, Any] | None:
         """The forecast to draw (None: the view has no forecaster): per track its path on the floor and
         its ghost pose at the horizon, and what it costs."""
         if self.forecast is None:
             return None
-        d = self.forecast.view_data()
+        d = self.forecast.view_data(now_ns)
         d["tracks"] = [
             {"id": t["id"], "path": _flat(t["path"], 3), "ghost": _flat(t["ghost"], 3)} for t in d["tracks"]
         ]
