@@ -25,6 +25,7 @@ from roomcap.capture.offline_sync import LoadKeypoints, sync_audio, sync_session
 from roomcap.capture.recorder import Recorder, RecorderError, repair
 from roomcap.capture.session import SessionLayout
 from roomcap.capture.sources import SourceError
+from roomcap.capture.streamcopy import recording_mode
 from roomcap.core.cli import Parser, guarded, positive_float
 from roomcap.core.errors import FormatError
 from roomcap.core.redact import redact
@@ -166,6 +167,10 @@ def _print_summary(out, rec: Recorder, summary: dict, shared: list[str], live: L
                 if c["joined"]
                 else f"    -> segments kept in raw/{name}/: {c.get('join_message', '')}"
             )
+        if c.get("recording"):
+            tail = c.get("copy_tail_dropped", 0)
+            more = f"; the last {tail} frame(s), an unfinished group of pictures, not written" if tail else ""
+            print(f"    recording: {redact(c['recording'])}{more}")
     t = summary.get("timing", {})
     if "skew_ms_median" in t:
         print(
@@ -202,6 +207,7 @@ def _check(argv: list[str]) -> int:
     for c in cfg.cameras:
         check_source(c)  # the source recording would build, checked without opening it
         print(f"{c.name}: {c.kind} {c.source_redacted} resolution={c.resolution} fps={c.fps} codec={c.codec}")
+        print(f"  recording: {redact(recording_mode(c))}")
     problems = shared_sources(cfg)
     for w in problems:
         print(f"capture-run check: warning: {redact(w)}", file=sys.stderr)

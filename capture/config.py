@@ -27,6 +27,8 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
         realtime: true             # file replay: pace frames by their timestamps
         drop_late: false           # file replay: behave like a camera on a slow host (drop late frames
                                    # and never wait for the writer); false = every frame is recorded
+        stream_copy: true          # file replay: record the file's packets as they are (no re-encoding,
+                                   # h264/hevc/mpeg4/mjpeg); false = decode and encode with `codec`
     sync:
       tolerance_ms: null           # frame-set tolerance (null = half a frame period)
       max_wait_ms: 200             # emit an incomplete set after this long
@@ -42,6 +44,7 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
       stages: [keypoints, triangulate, track]
       every_n: 1                   # process every n-th frame set
       preset: ""                   # the 2D preset (as [keypoints] preset; "" = the default)
+      forecast: true               # with --view: the forecast on the page (false = --no-forecast)
 
 Sources: ``usb:<index>``, ``/dev/videoN``, ``rtsp://``/``rtsps://``/``http(s)://`` streams,
 ``oak:`` (first OAK device) or ``oak:<mxid-or-serial>[?socket=CAM_A&sync=master|slave|auto]``,
@@ -198,6 +201,7 @@ class CameraConfig:
     loop: bool = False
     realtime: bool = True
     drop_late: bool = False
+    stream_copy: bool = True  # file replay: write the file's packets as they are (capture.streamcopy)
 
     @property
     def kind(self) -> str:
@@ -250,6 +254,7 @@ class LiveConfig:
     stages: tuple[str, ...] = LIVE_STAGES
     every_n: int = bounded(1, 1, 10_000)
     preset: str = ""  # the 2D stage's preset, as [keypoints] preset of a pipeline TOML ("" = the default)
+    forecast: bool = True  # with --view: each tracked person's next seconds on the page (--no-forecast)
 
 
 @dataclass(frozen=True)
@@ -407,6 +412,7 @@ def _camera(raw: Any, i: int, defaults: dict, path) -> CameraConfig:
         loop=_bool(d.get("loop", False), f"{where}.loop", path),
         realtime=_bool(d.get("realtime", True), f"{where}.realtime", path),
         drop_late=_bool(d.get("drop_late", False), f"{where}.drop_late", path),
+        stream_copy=_bool(d.get("stream_copy", True), f"{where}.stream_copy", path),
     )
 
 

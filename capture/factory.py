@@ -27,6 +27,7 @@ def make_source(
             epoch_ns=epoch_ns,
             fps=cam.fps,
             drop_late=cam.drop_late,
+            stream_copy=cam.stream_copy,
         )
     if kind == "oak":
         return OakSource(cam, segment_s=segment_s, timeout_s=timeout_s)

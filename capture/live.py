@@ -121,6 +121,7 @@ class LiveRunner:
         self.stages = stages
         self.stats.stage_ms = {k: 0.0 for k in self.stages}
         self.on_step: Callable[[LiveStep], None] | None = None  # e.g. a viewer
+        self.reports: list[Callable[[], str]] = []  # more of the summary line (e.g. the forecast's cost)
 
     def watch(self, stop_event: threading.Event) -> None:
         """End the live loop as soon as ``stop_event`` is set (the recorder's: the duration reached, a
@@ -260,7 +261,7 @@ class LiveRunner:
             "complete), "
             f"latency median {s['latency_ms_median']:.1f} ms, p95 {s['latency_ms_p95']:.1f} ms; {stages}"
             + jump_line(s["jumps"])
-        )
+        ) + "".join(f"; {r()}" for r in self.reports)
 
 
 def jump_line(jumps: list[dict]) -> str:

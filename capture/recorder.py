@@ -64,6 +64,7 @@ from roomcap.capture.sources import (
     host_now_ns,
     read_frames_csv,
 )
+from roomcap.capture.streamcopy import recording_mode
 from roomcap.capture.sync import timing_report
 from roomcap.core.fileio import atomic_write_text, load_toml, save_toml
 from roomcap.core.redact import redact
@@ -170,8 +171,12 @@ class Recorder:
                     ended=g.stats.ended,
                     gaps=[gap.to_dict() for gap in g.stats.gaps],
                 )
+            if c.name not in self.failed_cameras:
+                d["recording"] = recording_mode(c, g.source if g is not None else None)
             if w is not None:
                 d.update(frames_written=w.writer.frames_written, segments=w.writer.segments)
+                if w.writer.copy_tail_dropped:
+                    d["copy_tail_dropped"] = w.writer.copy_tail_dropped
                 if w.error:
                     d["writer_error"] = w.error
             if c.name in self.failed_cameras:

@@ -48,6 +48,12 @@ class SegmentWriter:
         self.segments = 0
         self._writer = None
         self._raw = None  # file object for on-device encoded streams
+        self._mux = None  # capture.streamcopy.CopyMuxer: a compressed source's packets as they are
+        self._copy_ext: dict[str, str | None] = {}
+        # stream copy: the open group of pictures (its packets, its frames' rows), written only once every
+        # frame of it came, so that a segment holds exactly the packets of its rows
+        self._gop: tuple[list, list[tuple[int, int, int]]] | None = None
+        self.copy_tail_dropped = 0  # frames of a group of pictures the recording ended within (not written)
         self._part: Path | None = None
         self._final: Path | None = None
         self._rows: list[str] = []
@@ -64,7 +70,18 @@ class SegmentWriter:
         k = self.segments
         if any(self.dir.glob(f"seg_{k:06d}.*")):
             raise RecorderError(f"{self.dir}: seg_{k:06d} already exists; refusing to overwrite a recording.")
-        if frame.encoded is not None:
+        if frame.copy_from is not None:  # stream copy (capture.streamcopy): starts at a GOP's first frame
+            from roomcap.capture.streamcopy import CopyMuxer, copy_plan
+
+            if frame.packets is None:
+                raise SourceError(f"{self.dir.name}: a stream-copied segment must start at a keyframe")
+            if frame.copy_from not in self._copy_ext:
+                self._copy_ext[frame.copy_from] = copy_plan(frame.copy_from)[0]
+            ext = self._copy_ext[frame.copy_from] or ".mkv"
+            self._final = self.dir / f"seg_{k:06d}{ext}"
+            self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}{ext}"
+            self._mux = CopyMuxer(self._part, frame.copy_from)
+        elif frame.encoded is not None:
             ext = ".h265" if self.codec == "h265" else ".h264"  # Annex B elementary stream from the device
             self._final = self.dir / f"seg_{k:06d}{ext}"
             self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}{ext}"
@@ -90,7 +107,44 @@ class SegmentWriter:
         self._seg_t0 = frame.t_ns
         self._rows = []
 
+    def _write_copy(self, frame: Frame) -> None:
+        """Stream copy (capture.streamcopy): a group of pictures starts with the frame that carries its
+        packets; they are muxed, and its rows kept, when its last frame came. A segment is cut only there."""
+        if frame.packets is not None:
+            self._drop_open_gop()
+            need_new = self._part is None or (
+                frame.t_ns - self._seg_t0 >= self.segment_ns or not self._mux.follows(frame.packets)
+            )
+            if need_new:
+                self.close_segment()
+                self._open_segment(frame)
+            self._gop = (list(frame.packets), [])
+        elif self._gop is None:
+            raise SourceError(f"{self.dir.name}: a stream-copied frame without its group of pictures")
+        packets, rows = self._gop
+        rows.append((frame.t_ns, frame.t_host_ns, frame.sequence))
+        if len(rows) == len(packets):  # the group is whole: its packets and rows into the segment
+            self._mux.write(packets)
+            for t_ns, t_host, seq in rows:
+                self._rows.append(f"{self.frames_written + len(self._rows)},{t_ns},{t_host},{seq}\n")
+            self._gop = None
+
+    def _drop_open_gop(self) -> None:
+        if self._gop is not None:
+            n = len(self._gop[1])
+            self.copy_tail_dropped += n
+            log.warning(
+                "%s: %d frame(s) of a group of pictures not written: its other frames never came (stream "
+                "copy writes whole groups)",
+                self.dir.name,
+                n,
+            )
+            self._gop = None
+
     def write(self, frame: Frame) -> None:
+        if frame.copy_from is not None:
+            self._write_copy(frame)
+            return
         need_new = self._part is None
         if not need_new and frame.t_ns - self._seg_t0 >= self.segment_ns:
             # on-device streams can only be cut at a keyframe
@@ -117,6 +171,13 @@ class SegmentWriter:
         if self._raw is not None:
             self._raw.close()
             self._raw = None
+        if self._mux is not None:
+            mux, self._mux = self._mux, None
+            mux.close()
+            if not self._rows:  # a stream-copied segment whose only group never completed: nothing to keep
+                self._part.unlink(missing_ok=True)
+                self._part = self._final = None
+                return
         with open(self._part, "rb+") as f:
             os.fsync(f.fileno())
         rows = "".join(self._rows)
@@ -136,6 +197,7 @@ class SegmentWriter:
         self._part = self._final = None
 
     def close(self) -> None:
+        self._drop_open_gop()
         self.close_segment()
 
     def abort(self) -> None:
@@ -144,13 +206,13 @@ class SegmentWriter:
             self.close_segment()
         except Exception as e:  # e.g. the disk is full: a half-written segment is not kept
             log.error("%s: could not finalise %s (%s); removing it", self.dir.name, self._part, e)
-            for obj in (self._writer, self._raw):
+            for obj in (self._writer, self._raw, self._mux):
                 try:
                     if obj is not None:
                         obj.release() if hasattr(obj, "release") else obj.close()
                 except Exception:
                     pass
-            self._writer = self._raw = None
+            self._writer = self._raw = self._mux = None
             if self._part is not None:
                 self._part.unlink(missing_ok=True)
             self._part = self._final = None

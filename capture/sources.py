@@ -67,6 +67,10 @@ class Frame:
     sequence: int
     encoded: bytes | None = None  # on-device encoded packet (H.264/H.265 Annex B)
     keyframe: bool = True  # for encoded packets: a segment may start here
+    # stream copy (capture.streamcopy): the file whose packets are copied, and on the first frame of each
+    # group of pictures that group's packets (decode order; the other frames None)
+    copy_from: str | None = None
+    packets: list | None = None
     loops: int = 0  # times the source started again from its beginning (a looping file's wraps)
 
 
@@ -540,9 +544,11 @@ class FileReplaySource(FrameSource):
         epoch_ns: int | None = None,
         fps: float | None = None,
         drop_late: bool = False,
+        stream_copy: bool = True,
     ):
         self.name = name
         self.path = Path(path)
+        self.stream_copy = stream_copy
         self.realtime = realtime
         self.loop = loop
         self.epoch_ns = epoch_ns
@@ -558,6 +564,9 @@ class FileReplaySource(FrameSource):
         self._skipped_in_row = 0
         self._max_skip = 60
         self.drop_late = drop_late
+        self.copy: str | None = None  # set by open(): how the recording is written (capture.streamcopy)
+        self._copy_ext: str | None = None
+        self._fps = 0.0
 
     @property
     def live(self) -> bool:
@@ -576,10 +585,31 @@ class FileReplaySource(FrameSource):
         if self.path.is_file() and self.path.stat().st_size == 0:
             raise SourceError(f"{self.name}: {self.path} is empty, not a video.")
 
+    def _frames(self, rec: Recording | None) -> Iterator[tuple[int, int, np.ndarray | None, list | None]]:
+        """(index, file time ns, image, packets to copy or None) per frame: by stream copy (PyAV, every frame
+        decoded: an inter-coded stream needs every packet) or by OpenCV (late frames not converted)."""
+        if rec is None:
+            from roomcap.capture.streamcopy import PacketReader
+
+            reader = PacketReader(self.path)
+            try:
+                for i, (t_ns, img, packets) in enumerate(reader):
+                    yield i, t_ns, img, packets
+            finally:
+                reader.close()
+        else:
+            for i, t_ns, img in rec.iter_frames(self._late):
+                yield i, t_ns, img, None
+
     def open(self) -> SourceInfo:
         self.check()
+        from roomcap.capture.streamcopy import copy_plan
+
+        self._copy_ext, self.copy = copy_plan(self.path, self.drop_late, self.stream_copy)
+        if self._copy_ext is None and not self.path.is_dir():
+            log.info("%s: recording %s: %s", self.name, self.path.name, self.copy)
         rec = Recording(self.path)
-        it = rec.iter_frames(self._late)
+        it = self._frames(None if self._copy_ext is not None else rec)
         try:
             first = next(it)
         except StopIteration:
@@ -598,6 +628,7 @@ class FileReplaySource(FrameSource):
                 f"{self.want_fps:g} fps. A file replays at its own rate: set fps: {rec.fps:g} or null."
             )
         self._rec, self._it, self._pending = rec, it, first
+        self._fps = rec.fps
         if self.epoch_ns is None:
             self.epoch_ns = host_now_ns()
         self._start_mono = None  # pacing starts at the first read, so a slow start drops nothing
@@ -617,12 +648,12 @@ class FileReplaySource(FrameSource):
                     period = int(round(1e9 / self._rec.fps)) if self._rec.fps else 0
                     self._wrap_ns = self._last_rel + period
                     self._loops += 1
-                    self._it = self._rec.iter_frames(self._late)
+                    self._it = self._frames(None if self._copy_ext is not None else self._rec)
                     item = next(self._it, None)
                     if item is None:
                         return None
                     self._t0_file = item[1]
-            _, t_file, img = item
+            _, t_file, img, packets = item
             rel = self._wrap_ns + (t_file - self._t0_file)
             self._last_rel = rel
             seq = self._seq
@@ -641,6 +672,17 @@ class FileReplaySource(FrameSource):
                 wait = self._start_mono + rel - time.monotonic_ns()
                 if wait > 0:
                     time.sleep(wait / 1e9)
+            if self._copy_ext is not None:
+                return Frame(
+                    img,
+                    self.epoch_ns + rel,
+                    host_now_ns(),
+                    seq,
+                    keyframe=packets is not None,
+                    copy_from=str(self.path),
+                    packets=packets,
+                    loops=self._loops,
+                )
             return Frame(img, self.epoch_ns + rel, host_now_ns(), seq, loops=self._loops)
 
     def _late(self, t_file_ns: int) -> bool:

@@ -59,18 +59,8 @@ def forecast_tracks(
         why = _not_forecastable(c.xyz_m[:T], (lh, rh), n_obs, fps, str(meta["kind"]), track_file, clip.fps)
         if why:
             raise InputError(why)
-    out = np.full((n_samples, H, K, J, 3), np.nan, np.float32)
     ws = c.xyz_m[max(0, T - n_obs) : T]
-    if T:
-        m = np.isfinite(ws).all(-1)
-        present = m[-1, :, lh] & m[-1, :, rh]
-        if present.any() and len(ws) >= 2:
-            x = fdata._fill(ws[:, present], m[:, present])
-            with torch.no_grad():
-                y = forecast_world(
-                    model, x[None], None, H, n_samples if getattr(model, "stochastic", False) else 1
-                )
-            out[:, :, present] = y[0] if y.shape[1] == n_samples else np.repeat(y[0], n_samples, 0)
+    out, _ = _forecast_window(model, ws, (lh, rh), H, n_samples)
     truth = np.full((H, K, J, 3), np.nan, np.float32)
     after = c.xyz_m[T : T + H]
     truth[: len(after)] = after
@@ -87,6 +77,71 @@ def forecast_tracks(
         "truth_xyz_m": truth,
         "track_fps": float(clip.fps),
     }
+
+
+def _forecast_window(
+    model, ws: np.ndarray, hips: tuple[int, int], H: int, n_samples: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """The model's next ``H`` frames after the window ``ws (T,K,J,3)`` (world metres at the model's rate, NaN
+    = unknown): ``(S,H,K,J,3)`` (NaN for the tracks not seen, both hips, in the window's last frame: the
+    normalisation frame, eq. 3.8) and that mask ``(K,)``. Unknown frames are filled with the last known value
+    (``data._fill``); a window of fewer than 2 frames is not forecast."""
+    K, J = ws.shape[1:3]
+    out = np.full((n_samples, H, K, J, 3), np.nan, np.float32)
+    present = np.zeros(K, bool)
+    if not len(ws):
+        return out, present
+    m = np.isfinite(ws).all(-1)
+    present = m[-1, :, hips[0]] & m[-1, :, hips[1]]
+    if present.any() and len(ws) >= 2:
+        x = fdata._fill(ws[:, present], m[:, present])
+        with torch.no_grad():
+            S = n_samples if getattr(model, "stochastic", False) else 1
+            y = forecast_world(model, x[None], None, H, S)
+        out[:, :, present] = y[0] if y.shape[1] == n_samples else np.repeat(y[0], n_samples, 0)
+    return out, present
+
+
+def resample_recent(t_s: np.ndarray, xyz_m: np.ndarray, fps: float, n: int) -> np.ndarray:
+    """The last ``n`` frames at ``fps`` of a track sampled at the irregular times ``t_s (T,)`` (increasing,
+    seconds; a live track skips the frame sets its loop could not take): ``xyz_m (T,K,J,3)`` linearly
+    interpolated in time onto ``t_s[-1] - k / fps`` (k < n, not before ``t_s[0]``), oldest first. NaN where
+    either neighbour is NaN, as :meth:`roomcap.forecast.data.Clip.resampled`."""
+    t = np.asarray(t_s, np.float64)
+    x = np.asarray(xyz_m, np.float32)
+    if not len(t):
+        return x[:0]
+    span = t[-1] - t[0]
+    k = min(int(n), int(np.floor(span * fps + 1e-6)) + 1)
+    grid = t[-1] - np.arange(k)[::-1] / fps
+    i1 = np.clip(np.searchsorted(t, grid, side="left"), 0, len(t) - 1)
+    i0 = np.clip(i1 - 1, 0, len(t) - 1)
+    gap = t[i1] - t[i0]
+    w = np.where(gap > 0, (grid - t[i0]) / np.where(gap > 0, gap, 1.0), 1.0)
+    w = np.clip(w, 0.0, 1.0)[:, None, None, None].astype(np.float32)
+    return (1 - w) * x[i0] + w * x[i1]
+
+
+def forecast_recent(
+    model, meta: dict, t_s: np.ndarray, xyz_m: np.ndarray, horizon_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A live track's next ``horizon_s`` from its recent frames ``xyz_m (T,K,J,3)`` (body19, world metres, NaN
+    = unknown) at the times ``t_s (T,)``: resampled to the model's rate (:func:`resample_recent`, its
+    ``n_obs`` frames at most), forecast as :func:`forecast_tracks` does (:func:`_forecast_window`). Returns
+    ``(xyz (H,K,J,3), t_s (H,) seconds after the last frame, present (K,))``. ``model`` None: the
+    constant-velocity baseline (:func:`roomcap.forecast.preview.baseline_preview`) at ``meta["fps"]``."""
+    from roomcap.forecast.preview import baseline_preview
+
+    fps = float(meta["fps"])
+    H = max(1, int(round(horizon_s * fps)))
+    n_obs = int(meta["config"].n_obs) if "config" in meta else int(round(2.0 * fps))
+    ws = resample_recent(t_s, xyz_m, fps, n_obs)
+    if model is None:
+        out, present = baseline_preview(ws.astype(np.float64), fps, H, "constant_velocity")
+        return np.moveaxis(out, 1, 0), np.arange(1, H + 1) / fps, present
+    lh, rh = fdata.hip_indices(fdata.get_skeleton("body19").joint_names)
+    out, present = _forecast_window(model, ws, (lh, rh), H, 1)
+    return out[0], np.arange(1, H + 1) / fps, present
 
 
 def _not_forecastable(

@@ -2,7 +2,8 @@
 
 ::
 
-    capture-run --cameras cams.yaml --out DIR --live [--view [--view-port 8765] [--view-host HOST]]
+    capture-run --cameras cams.yaml --out DIR --live [--view [--view-port 8765] [--view-host HOST]
+                [--no-forecast]]
                 [--stream lsl,osc [--osc-to HOST:PORT] [--slots 16]] [--rerun FILE.rrd]
 
 Each output is fed from the live loop's ``on_step`` (:class:`roomcap.capture.live.LiveRunner`) after the
@@ -10,6 +11,9 @@ stages ran on a frame set, and never makes it wait:
 
 - the view (:mod:`roomcap.pipeline.liveview`) takes the step into a latest-value slot; its own thread encodes
   and pushes, dropping updates a slow page cannot take;
+- the forecast drawn on the view (:mod:`roomcap.pipeline.live_forecast`, on with ``--view`` and a track
+  stage unless ``--no-forecast`` or ``live: {forecast: false}``) takes the step's tracks into a short
+  history; its own thread forecasts from the newest;
 - the streams (:class:`roomcap.outputs.lsl_osc.TrackStreamer`) send UDP datagrams and LSL samples, which do
 not
   wait for a reader;
@@ -40,6 +44,7 @@ from roomcap.core.errors import InputError
 from roomcap.keypoints.skeletons import CANONICAL
 from roomcap.outputs.lsl_osc import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
 from roomcap.outputs.rerun_recording import LiveRerun
+from roomcap.pipeline.live_forecast import LiveForecast
 from roomcap.pipeline.liveview.server import DEFAULT_PORT, LiveView, ViewConfig
 
 log = logging.getLogger(__name__)
@@ -89,6 +94,13 @@ class Outputs:
             "a random one, printed once; default: none)",
         )
         g.add_argument(
+            "--no-forecast",
+            action="store_true",
+            help="do not forecast on the live view (default: each tracked person's next 1.5 s from the "
+            "shipped forecaster, drawn on the page, which can switch it off; also live: {forecast: false} "
+            "in cams.yaml)",
+        )
+        g.add_argument(
             "--stream",
             action="append",
             default=None,
@@ -127,14 +139,19 @@ class Outputs:
         fps = max(c.fps or 30.0 for c in cfg.cameras)
         osc_to = parse_host_port(args.osc_to) if args.osc_to else None
         scfg = StreamConfig(kinds, osc_to, args.slots, session=runner.layout.root.name) if kinds else None
-        view = rerun = streamer = None
+        view = rerun = streamer = forecast = None
         rig = load_rig(cfg) if args.view or args.rerun else None
         rig = rig.subset(list(cfg.names)) if rig is not None else None
         closers: list[Callable[[], None]] = []
         try:
             if args.view:
+                if cfg.live.forecast and not getattr(args, "no_forecast", False) and "track" in runner.stages:
+                    forecast = LiveForecast()
+                    forecast.start()  # loads the model on its own thread
+                    closers.append(forecast.stop)
+                    runner.reports.append(forecast.summary_line)
                 vcfg = ViewConfig(host=args.view_host, port=args.view_port, token=args.view_token)
-                view = LiveView(vcfg, cfg, runner, recorder, rig)
+                view = LiveView(vcfg, cfg, runner, recorder, rig, forecast)
                 view.start()  # binds now: a port in use or a refused host fails here
                 closers.append(view.stop)
                 print(f"live view: {view.url}", flush=True)
@@ -152,7 +169,7 @@ class Outputs:
             for c in reversed(closers):
                 c()
             raise
-        feed = self.feed = StepFeed(view, streamer, rerun)
+        feed = self.feed = StepFeed(view, streamer, rerun, forecast)
         previous = runner.on_step
 
         def on_step(step: LiveStep) -> None:
@@ -177,8 +194,14 @@ class Outputs:
 class StepFeed:
     """Hands one live step to each open output; times what that costs the live loop."""
 
-    def __init__(self, view: LiveView | None, streamer: TrackStreamer | None, rerun: Any = None):
-        self.view, self.streamer, self.rerun = view, streamer, rerun
+    def __init__(
+        self,
+        view: LiveView | None,
+        streamer: TrackStreamer | None,
+        rerun: Any = None,
+        forecast: LiveForecast | None = None,
+    ):
+        self.view, self.streamer, self.rerun, self.forecast = view, streamer, rerun, forecast
         self.n = 0
         self.cpu_s = 0.0
         self.failed: set[str] = set()
@@ -186,6 +209,8 @@ class StepFeed:
     def __call__(self, step: LiveStep) -> None:
         t0 = time.thread_time()
         self.n += 1
+        if self.forecast is not None:
+            self.forecast.offer(step)
         if self.view is not None:
             self.view.offer(step)
         est = step.outputs.get("tracks")

@@ -26,8 +26,12 @@ from roomcap.core.fileio import load_toml
 from roomcap.keypoints.video import _END, FrameReader
 
 
-def _yaml(tmp_path, cams: dict[str, str], extra: str = "") -> str:
-    lines = ["cameras:"] + [f"  - {{name: {n}, source: '{s}', realtime: false}}" for n, s in cams.items()]
+def _yaml(tmp_path, cams: dict[str, str], extra: str = "", copy: bool = False) -> str:
+    """cams.yaml of file cameras, re-encoded unless ``copy`` (stream copy: test_capture_streamcopy.py)."""
+    lines = ["cameras:"] + [
+        f"  - {{name: {n}, source: '{s}', realtime: false, stream_copy: {str(copy).lower()}}}"
+        for n, s in cams.items()
+    ]
     p = tmp_path / "cams.yaml"
     p.write_text("\n".join(lines) + "\n" + extra)
     return str(p)
@@ -44,7 +48,7 @@ def _record(tmp_path, n=(40, 40), extra_args=(), codec=""):
     extra = "recorder: {segment_s: 0.3}\n"
     cams = _yaml(tmp_path, {c: str(v) for c, v in vids.items()}, extra)
     if codec:
-        text = open(cams).read().replace("realtime: false}", f"realtime: false, codec: {codec}}}")
+        text = open(cams).read().replace("stream_copy: false}", f"stream_copy: false, codec: {codec}}}")
         open(cams, "w").write(text)
     out = tmp_path / "session"
     rc = capture_run(["--cameras", cams, "--out", str(out), "--quiet", *extra_args])

@@ -452,3 +452,226 @@ def test_a_page_that_disconnects_is_one_line_never_a_traceback(caplog, monkeypat
     assert "Cannot write to closing transport" in lines[0].getMessage()
     assert not [r for r in caplog.records if r.exc_info or r.levelname in ("ERROR", "CRITICAL")], caplog.text
     assert first["type"] == "hello" and first["cameras"] == names
+
+
+# ----------------------------------------------------------------------------- the forecast on the page
+
+
+def _walker_steps(rig, names, n=40, fps=10.0, v=(0.8, 0.0)):
+    """``n`` frame sets at ``fps`` (a live loop that takes every 3rd set of a 30 Hz rig) of two people
+    walking at ``v`` m/s (id 3) and standing (id 4); the t_ns are the sets' capture times."""
+    steps = []
+    t0 = host_now_ns()
+    for i in range(n):
+        t = i / fps
+        X = np.stack([_person(-1.0 + v[0] * t), _person(1.0)])
+        X[0, :, 1] += v[1] * t
+        step = _step(rig, names, i, X, img_wh=(64, 48))
+        step.frameset.t_ns = t0 + int(t * 1e9)
+        steps.append(step)
+    return steps
+
+
+def test_the_forecast_of_a_walking_person_is_in_the_view_update():
+    """The update builder: a tracked person's forecast (the shipped default model) is in the state, as a
+    path of the next 1.5 s starting at the hips and a ghost pose; the constant-velocity baseline's path ends
+    where the walk goes (0.8 m/s x 1.5 s ahead)."""
+    from roomcap.pipeline.live_forecast import LH, RH, LiveForecast
+
+    rig, names, _ = _setup()
+    steps = _walker_steps(rig, names)
+    for model in ("default", "constant_velocity"):
+        fc = LiveForecast(model)
+        cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:"} for n in names]})
+        view = LiveView(ViewConfig(port=0), cfg, None, None, rig, fc)
+        fc.load()
+        for s in steps:
+            fc.offer(s)
+        assert fc.step_once() and not fc.step_once()  # one forecast, from the newest set; nothing new after
+        st = json.loads(view.messages(steps[-1], now=100.0)["state"])["forecast"]
+        assert st["on"] and st["frame"] == steps[-1].frameset.index
+        assert [t["id"] for t in st["tracks"]] == [3, 4]
+        now = np.asarray(steps[-1].outputs["tracks"].xyz_m)
+        for k, t in enumerate(st["tracks"]):
+            path = np.asarray(t["path"], float).reshape(-1, 3)
+            ghost = np.asarray(t["ghost"], float).reshape(J, 3)
+            assert path.shape == (38, 3) and np.isfinite(path).all() and np.isfinite(ghost).all()
+            hips = 0.5 * (now[k, LH] + now[k, RH])
+            assert np.linalg.norm(path[0, :2] - hips[:2]) < 0.3  # the path starts where the person is
+        walk, stand = (np.asarray(t["path"], float).reshape(-1, 3) for t in st["tracks"])
+        if model == "constant_velocity":
+            went = 0.5 * (now[0, LH] + now[0, RH])[:2] + [0.8 * 1.5, 0.0]
+            np.testing.assert_allclose(walk[-1, :2], went, atol=0.02)
+            np.testing.assert_allclose(stand[-1, :2], 0.5 * (now[1, LH] + now[1, RH])[:2], atol=0.02)
+        assert walk[-1, 0] - walk[0, 0] > stand[-1, 0] - stand[0, 0]  # the walker goes further along x
+        s = fc.summary()
+        assert s["forecasts"] == 1 and s["offered"] == len(steps) and s["ms_per_forecast"] > 0
+        assert "1 forecasts for 40 frame sets" in fc.summary_line()
+
+
+def test_the_forecast_switches_off_from_the_page_and_the_option():
+    """The page's toggle ({"forecast": false}) stops the forecaster (no forecast computed, none drawn) and
+    starts it again; --no-forecast and live: {forecast: false} open the view without one."""
+    import argparse
+
+    from roomcap.capture.live import LiveRunner
+    from roomcap.pipeline.live_forecast import LiveForecast
+    from roomcap.pipeline.live_outputs import Outputs
+
+    rig, names, _ = _setup()
+    steps = _walker_steps(rig, names, n=10)
+    fc = LiveForecast("constant_velocity")
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:"} for n in names]})
+    view = LiveView(ViewConfig(port=0), cfg, None, None, rig, fc)
+    fc.load()
+    for s in steps[:5]:
+        fc.offer(s)
+    assert fc.step_once() and fc.latest is not None
+    view._on_page_message(json.dumps({"forecast": False}))
+    assert not fc.enabled and fc.latest is None
+    for s in steps[5:]:
+        fc.offer(s)
+    assert not fc.step_once() and fc.n_forecast == 1  # off: nothing computed
+    st = json.loads(view.messages(steps[-1], now=100.0)["state"])["forecast"]
+    assert st["on"] is False and st["tracks"] == []
+    view._on_page_message(json.dumps({"forecast": True}))
+    fc.offer(steps[-1])
+    assert fc.step_once() and json.loads(view.messages(steps[-1], now=200.0)["state"])["forecast"]["tracks"]
+
+    def opened(argv, live_cfg=None):
+        c = parse_config(
+            {"cameras": [{"name": "a", "source": "synthetic:"}], **({"live": live_cfg} if live_cfg else {})}
+        )
+        live = LiveRunner(c, "unused", stages={"track": lambda step: None})
+        outputs = Outputs()
+        p = argparse.ArgumentParser()
+        outputs.add_arguments(p)
+        close = outputs.open(p.parse_args(["--view", "--view-port", "0", *argv]), live, None)
+        try:
+            return outputs.feed.forecast, outputs.feed.view.forecast, live.summary_line()
+        finally:
+            close()
+
+    on, on_view, line = opened([])
+    assert isinstance(on, LiveForecast) and on_view is on and "forecast (gru_cmuall, 1.5 s)" in line
+    assert opened(["--no-forecast"])[:2] == (None, None)
+    assert opened([], {"forecast": False})[:2] == (None, None)
+
+
+@need_chromium
+def test_the_page_draws_the_forecast_without_errors_and_its_switch_turns_it_off(tmp_path):
+    """capture-run's path (Recorder -> LiveRunner -> Outputs.open with the forecast on): two people
+    walking, the page draws both forecasts (path and ghost) with no page error; its switch turns the
+    forecaster off and the page draws none."""
+    import argparse
+    import threading
+
+    from roomcap.capture.config import load_config
+    from roomcap.capture.live import LiveRunner
+    from roomcap.capture.recorder import Recorder
+    from roomcap.pipeline.live_outputs import Outputs
+    from roomcap.pipeline.liveview.browser import HeadlessBrowser
+
+    rig = ring_rig(3, radius_m=4.0, size_wh=(320, 240))
+    rig.save(tmp_path / "rig.toml")
+    cams = "".join(
+        f"  - {{name: {c.name}, source: 'synthetic:', resolution: [320, 240], fps: 15}}\n"
+        for c in rig.cameras
+    )
+    (tmp_path / "cams.yaml").write_text("calibration: rig.toml\ncameras:\n" + cams)
+    cfg = load_config(tmp_path / "cams.yaml")
+    t0: list[int] = []
+
+    def walking(step):  # stands in for the 3D stages: one walks along x, one around a circle
+        t0.append(step.frameset.t_ns)
+        t = (step.frameset.t_ns - t0[0]) / 1e9
+        a = 0.5 * t
+        X = np.stack([_person(-1.5 + 0.6 * t), _person(0.0)])
+        X[1, :, 0] += 1.2 * np.cos(a)
+        X[1, :, 1] += 1.2 * np.sin(a)
+        step.outputs["tracks"] = SimpleNamespace(
+            track_id=np.array([1, 2]), xyz_m=X, std_m=np.full((2, J), 0.03)
+        )
+
+    live = LiveRunner(cfg, tmp_path / "S", stages={"track": walking})
+    rec = Recorder(cfg, tmp_path / "S", duration_s=9.0, frameset_sink=live.queue, handle_signals=False)
+    outputs = Outputs()
+    p = argparse.ArgumentParser()
+    outputs.add_arguments(p)
+    close = outputs.open(p.parse_args(["--view", "--view-port", "0"]), live, rec)
+    view, forecast = outputs.feed.view, outputs.feed.forecast
+    assert forecast.ready.wait(120)  # the model loads on its own thread (torch; seconds on a loaded host)
+    seen = {}
+
+    def drive():
+        with HeadlessBrowser(tmp_path / "chrome") as b:
+            b.open(view.url)
+            seen["drawn"] = b.wait_for("document.body.dataset.forecastDrawn === '2' && 'drawn'", 20)
+            seen["cost"] = b.evaluate("document.getElementById('fcCost').textContent")
+            b.screenshot(tmp_path / "forecast.png")
+            b.evaluate("document.getElementById('fcToggle').click()")
+            seen["off"] = b.wait_for(
+                "document.body.dataset.forecastOn === 'off' && document.body.dataset.forecastDrawn === '0'"
+                " && 'off'",
+                10,
+            )
+            seen["errors"] = list(b.page_errors)
+
+    t = threading.Thread(target=drive)
+    live.start()
+    t.start()
+    rec.run()
+    live.stop()
+    t.join(40)
+    close()
+    assert seen["drawn"] == "drawn" and " ms" in seen["cost"], seen
+    assert seen["off"] == "off" and not forecast.enabled
+    assert seen["errors"] == []
+    assert (tmp_path / "forecast.png").stat().st_size > 10_000
+    assert forecast.n_forecast > 0 and forecast.error is None
+    assert "forecast (gru_cmuall, 1.5 s, switched off)" in live.summary_line()
+
+
+def test_a_slow_forecast_never_holds_up_the_live_loop(monkeypatch):
+    """The forecast runs on its own thread from the newest history: while one takes long, the live loop's
+    offers return at once and the sets that came meanwhile are superseded (counted), not queued; a forecast
+    older than its horizon is not drawn."""
+    import threading
+
+    from roomcap.pipeline.live_forecast import LiveForecast
+
+    rig, names, _ = _setup()
+    steps = _walker_steps(rig, names, n=60, fps=30.0)
+    fc = LiveForecast("constant_velocity")
+    gate = threading.Event()
+    real = fc.forecast
+
+    def slow(t_s, xyz):
+        gate.wait(10)  # a forecast that takes as long as the test wants
+        return real(t_s, xyz)
+
+    monkeypatch.setattr(fc, "forecast", slow)
+    fc.start()
+    assert fc.ready.wait(30)
+    gate.set()
+    fc.offer(steps[0])
+    for _ in range(200):
+        if fc.n_forecast:
+            break
+        time.sleep(0.01)
+    gate.clear()  # from now on a forecast waits for the gate
+    took = []
+    for s in steps[1:]:
+        t0 = time.perf_counter()
+        fc.offer(s)
+        took.append(time.perf_counter() - t0)
+    gate.set()  # the forecast in flight ends, then one from the newest history
+    for _ in range(500):
+        if fc.latest is not None and fc.latest["frame"] == steps[-1].frameset.index:
+            break
+        time.sleep(0.01)
+    fc.stop()
+    assert max(took) < 0.1  # an append under a lock, never the forecast (that waits 10 s here)
+    assert fc.n_superseded >= len(steps) - 4 and fc.n_forecast <= 4
+    later = steps[-1].frameset.t_ns + int(2e9)
+    assert fc.view_data(steps[-1].frameset.t_ns)["tracks"] and not fc.view_data(later)["tracks"]

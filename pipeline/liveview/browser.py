@@ -49,6 +49,7 @@ class HeadlessBrowser:
         self._waiting: dict[int, asyncio.Future[Any]] = {}
         self._ws: Any = None
         self._session: Any = None
+        self.page_errors: list[str] = []  # uncaught exceptions and console.error calls of the page
 
     def __enter__(self) -> HeadlessBrowser:
         self.start()
@@ -104,10 +105,16 @@ class HeadlessBrowser:
             await asyncio.sleep(0.05)
         self._ws = await self._session.ws_connect(pages[0]["webSocketDebuggerUrl"], max_msg_size=0)
         self._loop.create_task(self._read())
+        await self._call("Runtime.enable", {})  # the page's exceptions and console errors: page_errors
 
     async def _read(self) -> None:
         async for msg in self._ws:
             m = json.loads(msg.data)
+            if m.get("method") == "Runtime.exceptionThrown":
+                d = m["params"]["exceptionDetails"]
+                self.page_errors.append(str(d.get("exception", {}).get("description") or d.get("text")))
+            elif m.get("method") == "Runtime.consoleAPICalled" and m["params"].get("type") == "error":
+                self.page_errors.append(" ".join(str(a.get("value", "")) for a in m["params"]["args"]))
             fut = self._waiting.pop(m.get("id", -1), None)
             if fut is not None and not fut.done():
                 fut.set_result(m)

@@ -26,7 +26,31 @@ function onHello(m){
   }
   if (m.rig && m.rig.cameras.length) { V3.fit(m.rig.cameras.map(k => k.center_m)); V3.view.zoom = 1.5; }  // the cameras' ring, closer
   document.body.dataset.panes = String(m.cameras.length);
+  $('fcPill').hidden = !m.forecast;
+  if (m.forecast) $('fcToggle').checked = m.forecast.on;
   dirty = true;
+}
+
+// the page's forecast switch: the server's forecaster stops (no CPU spent) or starts again
+$('fcToggle').addEventListener('change', e => {
+  if (ws && ws.readyState === 1) ws.send(JSON.stringify({forecast: e.target.checked}));
+});
+
+function drawForecast(fc, ids){ // per person: the hips' path on the floor (dashed) and the ghost pose at the horizon
+  const J = hello.joint_names.length; let n = 0;
+  for (const t of fc.tracks) {
+    if (!ids.has(t.id)) continue;  // a forecast of a track no longer in view
+    const col = color(t.id), path = [];
+    for (let k = 0; k + 2 < t.path.length; k += 3) path.push([t.path[k], t.path[k + 1], 0]);
+    const pts = path.filter(V3.fin); if (pts.length < 2) continue;
+    for (let k = 1; k < pts.length; k++) V3.line(pts[k - 1], pts[k], col, 3, [7, 5]);
+    const end = V3.project(pts[pts.length - 1]);
+    if (end) { V3.ctx.strokeStyle = col; V3.ctx.lineWidth = 2; V3.ctx.beginPath(); V3.ctx.arc(end[0], end[1], 6, 0, 7); V3.ctx.stroke(); }
+    const ghost = []; for (let j = 0; j < J; j++) ghost.push([t.ghost[3 * j], t.ghost[3 * j + 1], t.ghost[3 * j + 2]]);
+    V3.skeleton(ghost, hello.parents, col, 1.8, 0, 0.5, null);
+    n++;
+  }
+  return n;
 }
 
 function onImage(buf){
@@ -77,7 +101,9 @@ function draw3d(){
   V3.background();
   if (hello && hello.rig) for (const k of hello.rig.cameras) V3.drawCamera(k);
   if (!state || !hello) return;
-  const c = V3.ctx, J = hello.joint_names.length;
+  const c = V3.ctx, J = hello.joint_names.length, fc = state.forecast;
+  const nFc = fc && fc.on ? drawForecast(fc, new Set(state.tracks.map(t => t.id))) : 0;
+  document.body.dataset.forecastDrawn = String(nFc);
   for (const t of state.tracks) {
     const pose = []; for (let j = 0; j < J; j++) pose.push([t.xyz[3 * j], t.xyz[3 * j + 1], t.xyz[3 * j + 2]]);
     const sd = t.std.filter(v => v !== null), std = sd.length ? sd.reduce((a, b) => a + b, 0) / sd.length : 0;
@@ -109,6 +135,13 @@ function render(){
   const jp = $('jumps'), jl = state.live && state.live.jumps_line;  // the clock jumped back: a new track segment
   jp.hidden = !jl; jp.textContent = jl || '';
   $('loopLatency').textContent = state.live && state.live.latency_ms !== null && state.live.latency_ms !== undefined ? state.live.latency_ms.toFixed(0) + ' ms' : '–';
+  const fc = state.forecast;
+  if (fc) {
+    if (document.activeElement !== $('fcToggle')) $('fcToggle').checked = fc.on;
+    $('fcCost').textContent = fc.on ? `${fc.horizon_s} s · ${fc.ms.toFixed(1)} ms (${fc.ms_per_set.toFixed(1)} ms/set)` : 'off';
+    $('fcCost').title = `model ${fc.model}; CPU of the last forecast, and per processed frame set`;
+    document.body.dataset.forecastOn = fc.on ? 'on' : 'off';
+  }
   $('viewNote').textContent = `${state.view.clients} page(s) · ${state.view.dropped_updates} view updates dropped`;
   const tbl = $('camStats'); tbl.innerHTML = '<tr><th>camera</th><th>fps</th><th>frames</th><th>dropped</th><th>skipped by live</th></tr>';
   for (const cam of hello.cameras) { const s = state.cameras[cam] || {}, tr = document.createElement('tr');

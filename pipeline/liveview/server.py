@@ -21,7 +21,10 @@ Messages (server -> page): ``hello`` (text, JSON: cameras, rig, skeleton) on con
 JSON) per update; a camera image (binary: 2-byte big-endian header length, the header as JSON
 ``{"cam", "seq", "t_capture_ms", "w", "h", "src_wh"}``, then the JPEG). The page answers each drawn
 state with ``{"ack": seq, "t_capture_ms": ...}``: the server's own latency measure
-(:meth:`LiveView.latency_ms`, from outside the page).
+(:meth:`LiveView.latency_ms`, from outside the page). The state's ``forecast`` (with a forecaster,
+:mod:`roomcap.pipeline.live_forecast`): each tracked person's next seconds as ``{"id", "path" (H,3) the
+hips' midpoint, "ghost" (J,3) the pose at the horizon}`` and its cost; the page's toggle sends
+``{"forecast": false|true}``, which switches the forecaster off or on.
 
 Access: the server listens on 127.0.0.1 by default. Another address (``--view-host``) needs a token
 (``--view-token TOKEN``, or ``auto`` for a random one printed once in the page's URL); every request
@@ -170,6 +173,7 @@ class LiveView:
         runner: LiveRunner | None,
         recorder: Any = None,
         rig: CameraRig | None = None,
+        forecast: Any = None,
     ):
         if cfg.token == "auto":
             cfg = ViewConfig(**{**cfg.__dict__, "token": secrets.token_urlsafe(16)})
@@ -179,6 +183,7 @@ class LiveView:
         self.recorder = recorder
         self.cameras = tuple(capture.names)
         self.rig = rig
+        self.forecast = forecast  # a pipeline.live_forecast.LiveForecast, or None (no forecast on the page)
         self._latest: LiveStep | None = None
         self._new = threading.Event()
         self._stop = threading.Event()
@@ -366,6 +371,13 @@ class LiveView:
     def _on_page_message(self, text: str) -> None:
         try:
             m = json.loads(text)
+        except ValueError:
+            return
+        if isinstance(m, dict) and isinstance(m.get("forecast"), bool) and self.forecast is not None:
+            self.forecast.set_enabled(m["forecast"])  # the page's toggle
+            log.info("live view: forecast switched %s from the page", "on" if m["forecast"] else "off")
+            return
+        try:
             t = float(m["t_capture_ms"])
         except (ValueError, KeyError, TypeError):
             return
@@ -461,6 +473,7 @@ class LiveView:
             "parents": list(CANONICAL.parents),
             "fps": max(c.fps or 30.0 for c in self.capture.cameras),
             "image_hz": self.cfg.image_hz,
+            "forecast": None if self.forecast is None else {"on": self.forecast.enabled},
         }
 
     def _camera_stats(self) -> dict[str, dict[str, Any]]:
@@ -543,7 +556,19 @@ class LiveView:
             "cameras": self._camera_stats(),
             "live": live,
             "view": {"clients": len(self._clients), "dropped_updates": self.dropped_updates},
+            "forecast": self._forecast_state(int(fs.t_ns)),
         }
+
+    def _forecast_state(self, now_ns: int) -> dict[str, Any] | None:
+        """The forecast to draw (None: the view has no forecaster): per track its path on the floor and
+        its ghost pose at the horizon, and what it costs."""
+        if self.forecast is None:
+            return None
+        d = self.forecast.view_data(now_ns)
+        d["tracks"] = [
+            {"id": t["id"], "path": _flat(t["path"], 3), "ghost": _flat(t["ghost"], 3)} for t in d["tracks"]
+        ]
+        return d
 
     def status(self) -> dict[str, Any]:
         lat = self.latency_ms()
