@@ -63,7 +63,7 @@ from pathlib import Path
 from typing import Any
 
 from roomcap.core.config import bounded, check_keys, check_range, coerce, config_from_dict
-from roomcap.core.errors import FormatError, UnknownNameError
+from roomcap.core.errors import FormatError, InputError, UnknownNameError
 from roomcap.core.fileio import check_schema
 from roomcap.core.redact import redact as redact_url  # one redaction for every source string
 
@@ -151,7 +151,7 @@ SOURCE_OPTIONS: dict[str, dict[str, Any]] = {
 }
 
 
-class SourceOptionError(ValueError):
+class SourceOptionError(InputError, ValueError):
     """A ``?key=value`` option of a source that no recording would accept (the message says which)."""
 
 

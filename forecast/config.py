@@ -8,6 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+# scene features beyond the 3J pose (forecast.predict.scene_features): root offset (3), relative heading (2),
+# anchor root (3), heading (2)
+N_GLOBAL = 10
+
 
 @dataclass(frozen=True)
 class GRUConfig:

@@ -35,11 +35,6 @@ def scene_frame(last: np.ndarray, person_mask: np.ndarray, lhip: int = LHIP, rhi
     return R.astype(np.float32), root.astype(np.float32)
 
 
-N_GLOBAL = (
-    10  # features beyond the 3J pose: root offset (3), relative heading (2), anchor root (3), heading (2)
-)
-
-
 def scene_features(x: np.ndarray, anchor: int, lhip: int = LHIP, rhip: int = RHIP) -> np.ndarray:
     """x (...,T,J,3) in the scene frame -> (...,T,3J+10).
 

@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from roomcap.core.fileio import save_npz, schema_tag
+from roomcap.forecast.baselines import baseline_preview
 from roomcap.track.trackfile import TrackFile
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "gru_cmuall.pt"  # picked over gru_cmu.pt on validation (BENCHMARKS)
 FORECAST_SCHEMA, FORECAST_VERSION = "forecast", 1
 BASELINES = ("constant_velocity", "zero_velocity")  # the checkpoint-free previews (baseline_preview)
-PREVIEW_VEL_WINDOW_S = 0.2  # root velocity = mean over the last 0.2 s
 
 
 def shipped_checkpoints() -> list[str]:
@@ -52,36 +52,6 @@ def preview(
     from roomcap.forecast.track_forecast import forecast_tracks  # lazy: loads torch
 
     return forecast_tracks(track_file, horizon_s, checkpoint or DEFAULT_CHECKPOINT, n_samples, obs_s)
-
-
-def baseline_preview(xyz: np.ndarray, fps: float, H: int, kind: str) -> tuple[np.ndarray, np.ndarray]:
-    """The preview without a checkpoint, in numpy at the track file's own rate: xyz (T,K,J,3) world metres ->
-    future (K,H,J,3) for the tracks present in the last frame, and that mask (K,). ``constant_velocity``:
-    the last pose moved along the root velocity on the floor (root = mean of the seen joints, velocity over
-    the last ``PREVIEW_VEL_WINDOW_S``; Tanke 2024, sec. 6.4.4 baselines); ``zero_velocity``: the last
-    pose.
-    Unlike ``forecast.models.ConstantVelocity`` (per-joint velocities, torch, 25 Hz windows) it takes
-    tracks with missing joints as they are."""
-    T, K, J, _ = xyz.shape
-    out = np.full((K, H, J, 3), np.nan, np.float32)
-    if T == 0:
-        return out, np.zeros(K, bool)
-    last = xyz[-1]
-    present = np.isfinite(last).all(-1).any(-1)
-    seen = np.isfinite(xyz).all(-1, keepdims=True)
-    n_seen = seen.sum(2)
-    root = np.where(n_seen > 0, np.where(seen, xyz, 0).sum(2) / np.maximum(n_seen, 1), np.nan)  # (T,K,3)
-    n = max(1, min(T - 1, int(round(PREVIEW_VEL_WINDOW_S * fps))))
-    if kind == "constant_velocity" and T >= 2:
-        v = (root[-1] - root[-1 - n]) / n  # metres per frame
-        v = np.where(np.isfinite(v), v, 0.0)
-        v[:, 2] = 0.0  # people walk on the floor
-    else:
-        v = np.zeros((K, 3))
-    steps = np.arange(1, H + 1)[None, :, None, None]
-    out[:] = last[:, None] + steps * v[:, None, None, :]
-    out[~present] = np.nan
-    return out.astype(np.float32), present
 
 
 def save_forecast(path: str | os.PathLike, fc: dict) -> None:

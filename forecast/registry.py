@@ -20,7 +20,7 @@ from typing import Any
 
 from roomcap.core import config as core_config
 from roomcap.core.errors import InputError
-from roomcap.forecast.config import DiffusionConfig, GRUConfig, IntentionConfig
+from roomcap.forecast.config import N_GLOBAL, DiffusionConfig, GRUConfig, IntentionConfig
 
 # the training-only weights left out of checkpoints (the intention model's discriminators)
 DISCRIMINATOR_PREFIXES = ("D_pose.", "D_label.")
@@ -65,7 +65,6 @@ def _build_intention(config: IntentionConfig, n_joints: int, state: Mapping | No
 
 def _build_diffusion(config: DiffusionConfig, n_joints: int, state: Mapping | None):
     from roomcap.forecast.models import SocialDiffusion  # lazy: loads torch
-    from roomcap.forecast.predict import N_GLOBAL
 
     if config.root_vel and not config.anchor:
         raise InputError(

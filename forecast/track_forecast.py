@@ -12,6 +12,7 @@ import torch
 
 from roomcap.core.errors import InputError
 from roomcap.forecast import data as fdata
+from roomcap.forecast.baselines import baseline_preview
 from roomcap.forecast.checkpoint import load_checkpoint
 from roomcap.forecast.predict import forecast_world
 from roomcap.track.trackfile import TrackFile
@@ -129,9 +130,7 @@ def forecast_recent(
     = unknown) at the times ``t_s (T,)``: resampled to the model's rate (:func:`resample_recent`, its
     ``n_obs`` frames at most), forecast as :func:`forecast_tracks` does (:func:`_forecast_window`). Returns
     ``(xyz (H,K,J,3), t_s (H,) seconds after the last frame, present (K,))``. ``model`` None: the
-    constant-velocity baseline (:func:`roomcap.forecast.preview.baseline_preview`) at ``meta["fps"]``."""
-    from roomcap.forecast.preview import baseline_preview
-
+    constant-velocity baseline (:func:`roomcap.forecast.baselines.baseline_preview`) at ``meta["fps"]``."""
     fps = float(meta["fps"])
     H = max(1, int(round(horizon_s * fps)))
     n_obs = int(meta["config"].n_obs) if "config" in meta else int(round(2.0 * fps))
