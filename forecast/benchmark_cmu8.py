@@ -249,6 +249,61 @@ class DctMlp(nn.Module):
         return y.reshape(B, self.n_pred, P, 3) + last
 
 
+def window_loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
+    """Mean point error plus the mean error of the frame-to-frame changes (siMLPe's two terms); a 'point' is
+    the last axis (3D points, or the exponential maps of :mod:`roomcap.forecast.benchmark_cmu8_angle`)."""
+    pos = torch.linalg.norm(pred - fut, dim=-1).mean()
+    vel = torch.linalg.norm(torch.diff(pred, dim=1) - torch.diff(fut, dim=1), dim=-1).mean()
+    return pos + vel
+
+
+def fit_mlp(
+    model: DctMlp, x: torch.Tensor, config: MlpConfig, validate, score: str, augment=None, progress=None
+):
+    """Train ``model`` on windows ``x (N, T, P, 3)`` as siMLPe does (AdamW, a cosine schedule,
+    :func:`window_loss`); ``augment(batch, rng)`` changes a batch (the random draws after the batch's own);
+    every ``config.val_every`` steps ``validate(model)`` scores it, and the state with the lowest score is
+    loaded at the end. Returns the history: ``best`` {``score``, step}, ``curve``, ``train_s``,
+    ``steps_per_s``, ``samples_per_s``, ``n_params``."""
+    rng = np.random.default_rng(config.seed)
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps, eta_min=config.lr * 0.05)
+    best = {score: float("inf"), "step": 0}
+    best_state = {k: v.clone() for k, v in model.state_dict().items()}
+    curve, losses = [], []
+    t0 = time.perf_counter()
+    for step in range(1, config.steps + 1):
+        model.train()
+        b = x[torch.from_numpy(rng.integers(0, len(x), config.batch))]
+        if augment is not None:
+            b = augment(b, rng)
+        loss = window_loss(model(b[:, : config.n_obs]), b[:, config.n_obs : config.n_obs + config.n_pred])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        losses.append(float(loss.detach()))
+        if step % config.val_every == 0 or step == config.steps:
+            v = validate(model)
+            curve.append({"step": step, score: v, "loss": float(np.mean(losses[-config.val_every :]))})
+            log.info("step %d loss %.4f %s %.4f", step, curve[-1]["loss"], score, v)
+            if v < best[score]:
+                best = {score: v, "step": step}
+                best_state = {k: t.clone() for k, t in model.state_dict().items()}
+        if progress is not None:
+            progress(step, config.steps)
+    wall = time.perf_counter() - t0
+    model.load_state_dict(best_state)
+    return {
+        "best": best,
+        "curve": curve,
+        "train_s": wall,
+        "steps_per_s": config.steps / wall,
+        "samples_per_s": config.steps * config.batch / wall,
+        "n_params": sum(p.numel() for p in model.parameters()),
+    }
+
+
 @torch.no_grad()
 def mlp_forecast(model: DctMlp | DctMlpEnsemble, obs: np.ndarray, batch: int = 512) -> np.ndarray:
     """obs (W, >= n_obs, 38, 3) units -> forecasts of all 38 points (W, n_pred, 38, 3) (used points from the

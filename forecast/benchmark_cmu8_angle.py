@@ -46,6 +46,7 @@ from roomcap.forecast.benchmark_cmu8 import (
     N_WINDOWS,
     DctMlp,
     MlpConfig,
+    fit_mlp,
     window_starts,
 )
 
@@ -290,13 +291,6 @@ def load(path: str | Path) -> tuple[AngleForecaster, dict]:
 # ----------------------------------------------------------------------------- training
 
 
-def _loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
-    """Mean error of the exponential maps plus the mean error of their frame-to-frame changes."""
-    pos = torch.linalg.norm(pred - fut, dim=-1).mean()
-    vel = torch.linalg.norm(torch.diff(pred, dim=1) - torch.diff(fut, dim=1), dim=-1).mean()
-    return pos + vel
-
-
 def validation_error(f: AngleForecaster, val: np.ndarray) -> float:
     """The protocol's error on validation windows ``(W, 75, 117)``, mean over the five horizons."""
     pred = f(val[:, :N_OBS])
@@ -310,52 +304,24 @@ def train(
     when ``config.reverse``; no mirroring: mirrored rotations are not a relabelling of the maps); keep the
     state with the lowest validation angle error (windows every 5 frames of ``val_files``)."""
     torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
     dims = used_dims(train_files)
     joints = joints_of(dims)
     win = train_windows(train_files)
     val = train_windows(val_files, stride=5) if val_files else win[:: max(1, len(win) // 256)]
     x = torch.from_numpy(win.reshape(len(win), -1, 39, 3)[:, :, joints].astype(np.float32))
     f = AngleForecaster(DctMlp(len(joints), config), joints, dims)
-    opt = torch.optim.AdamW(f.model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps, eta_min=config.lr * 0.05)
-    best = {"val_rad": float("inf"), "step": 0}
-    best_state = {k: v.clone() for k, v in f.model.state_dict().items()}
-    curve, losses = [], []
-    t0 = time.perf_counter()
-    for step in range(1, config.steps + 1):
-        f.model.train()
-        b = x[torch.from_numpy(rng.integers(0, len(x), config.batch))]
-        if config.reverse:
-            flip = torch.from_numpy(rng.random(len(b)) < 0.5)
-            b = torch.where(flip[:, None, None, None], b.flip(1), b)
-        loss = _loss(f.model(b[:, : config.n_obs]), b[:, config.n_obs : config.n_obs + config.n_pred])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        losses.append(float(loss.detach()))
-        if step % config.val_every == 0 or step == config.steps:
-            v = validation_error(f, val)
-            curve.append({"step": step, "val_rad": v, "loss": float(np.mean(losses[-config.val_every :]))})
-            log.info("step %d loss %.4f val %.3f rad", step, curve[-1]["loss"], v)
-            if v < best["val_rad"]:
-                best = {"val_rad": v, "step": step}
-                best_state = {k: t.clone() for k, t in f.model.state_dict().items()}
-        if progress is not None:
-            progress(step, config.steps)
-    f.model.load_state_dict(best_state)
-    wall = time.perf_counter() - t0
-    hist = {
-        "best": best,
-        "curve": curve,
-        "n_train_windows": len(win),
-        "n_val_windows": len(val),
-        "train_s": wall,
-        "steps_per_s": config.steps / wall,
-        "n_dims": len(dims),
-        "n_vectors": len(joints),
-    }
+
+    def augment(b: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+        if not config.reverse:
+            return b
+        flip = torch.from_numpy(rng.random(len(b)) < 0.5)
+        return torch.where(flip[:, None, None, None], b.flip(1), b)
+
+    def validate(model: DctMlp) -> float:
+        return validation_error(AngleForecaster(model, joints, dims), val)
+
+    hist = fit_mlp(f.model, x, config, validate, "val_rad", augment, progress)
+    hist.update(n_train_windows=len(win), n_val_windows=len(val), n_dims=len(dims), n_vectors=len(joints))
     return f, hist
 
 

@@ -30,6 +30,7 @@ from roomcap.forecast.benchmark_cmu8 import (
     Forecaster,
     MlpConfig,
     at_horizons,
+    fit_mlp,
     load_mlp,
     mlp_forecast,
     mpjpe_mm,
@@ -64,13 +65,6 @@ def _reverse(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
     return torch.where(flip[:, None, None, None], b.flip(1), b)
 
 
-def _loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
-    """Mean point error plus the mean error of the frame-to-frame velocities (siMLPe's two terms)."""
-    pos = torch.linalg.norm(pred - fut, dim=-1).mean()
-    vel = torch.linalg.norm(torch.diff(pred, dim=1) - torch.diff(fut, dim=1), dim=-1).mean()
-    return pos + vel
-
-
 def split_train_val(bf: C.BenchmarkFiles) -> tuple[list[Path], list[Path]]:
     """Train / validation split of the train files: the highest-numbered file of each action with at least
     two files is validation (model selection only); the test files are never touched."""
@@ -91,58 +85,31 @@ def train_mlp(
     """Train the DCT + MLP on all windows of ``train_files``; keep the state with the lowest validation MPJPE
     (protocol units, mean over the six horizons, windows every 5 frames of ``val_files``)."""
     torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
     t_load = time.perf_counter()
     win = train_windows(train_files)
     val = train_windows(val_files, stride=5) if val_files else win[:: max(1, len(win) // 256)]
     t_load = time.perf_counter() - t_load
     used = list(JOINTS_USED)
-    x = torch.from_numpy(win[:, :, used])
     model = DctMlp(len(used), config)
-    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, config.steps, eta_min=config.lr * 0.05)
-    best = {"val_mm": float("inf"), "step": 0}
-    best_state = {k: v.clone() for k, v in model.state_dict().items()}
-    curve = []
     midx = torch.from_numpy(mirror_index())
-    t0 = time.perf_counter()
-    losses = []
-    for step in range(1, config.steps + 1):
-        model.train()
-        idx = torch.from_numpy(rng.integers(0, len(x), config.batch))
-        b = x[idx]
+
+    def augment(b: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
         if config.mirror:
             b = _mirror(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
         if config.reverse:
             b = _reverse(b, torch.from_numpy(rng.random(len(b)) < 0.5))
-        loss = _loss(model(b[:, : config.n_obs]), b[:, config.n_obs : config.n_obs + config.n_pred])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        losses.append(float(loss.detach()))
-        if step % config.val_every == 0 or step == config.steps:
-            v = validation_mm(model, val)
-            curve.append({"step": step, "val_mm": v, "loss": float(np.mean(losses[-config.val_every :]))})
-            log.info("step %d loss %.4f val %.2f mm", step, curve[-1]["loss"], v)
-            if v < best["val_mm"]:
-                best = {"val_mm": v, "step": step}
-                best_state = {k: v_.clone() for k, v_ in model.state_dict().items()}
-        if progress is not None:
-            progress(step, config.steps)
-    wall = time.perf_counter() - t0
-    model.load_state_dict(best_state)
-    hist = {
-        "best": best,
-        "curve": curve,
-        "n_train_windows": len(win),
-        "n_val_windows": len(val),
-        "train_s": wall,
-        "load_s": t_load,
-        "steps_per_s": config.steps / wall,
-        "samples_per_s": config.steps * config.batch / wall,
-        "n_params": sum(p.numel() for p in model.parameters()),
-    }
+        return b
+
+    hist = fit_mlp(
+        model,
+        torch.from_numpy(win[:, :, used]),
+        config,
+        lambda m: validation_mm(m, val),
+        "val_mm",
+        augment,
+        progress,
+    )
+    hist.update(n_train_windows=len(win), n_val_windows=len(val), load_s=t_load)
     return model, hist
 
 
