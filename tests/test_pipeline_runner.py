@@ -366,10 +366,11 @@ def _copy_sources(dst: Path) -> Path:
     """The project's sources and the data files the stages read, copied to ``dst`` (a tree to edit)."""
     from roomcap.pipeline.provenance import _ROOT, STAGE_DATA
 
-    for f in _ROOT.rglob("*.py"):
+    packages = [
+        d for d in _ROOT.iterdir() if (d / "__init__.py").is_file() and d.name not in {"build", "tests"}
+    ]
+    for f in [_ROOT / "__init__.py", *(f for d in packages for f in d.rglob("*.py"))]:
         rel = f.relative_to(_ROOT)
-        if rel.parts[0] in {".venv", ".git", "tests", "bench", "build", "out", ".pp"}:
-            continue
         (dst / rel).parent.mkdir(parents=True, exist_ok=True)
         (dst / rel).write_bytes(f.read_bytes())
     for pattern in (p for globs in STAGE_DATA.values() for p in globs):
