@@ -14,7 +14,7 @@ recorder's cost, measured apart), then:
 Per frame set: the wall time of the stage, its split (detector, pose, pre/post processing: the pipeline's
 ``stage_s``), the detector's share of images. Ratio live / batch per frame set: the issue's target is 1.3.
 
-    python bench/bench_live_keypoints.py [--frames 60] [--step 6] [--shared /work/shared]
+    python bench/bench_live_keypoints.py [--frames 60] [--step 6] [--shared DIR]
 """
 
 from __future__ import annotations
@@ -62,7 +62,10 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=60, help="frames per camera decoded (default 60)")
     ap.add_argument("--step", type=int, default=6, help="live: frames between processed sets (default 6)")
     ap.add_argument("--preset", default="", help="cams.yaml's live.preset (default: the default preset)")
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+    )
     args = ap.parse_args()
     os.environ.setdefault("ROOMCAP_SHARED", args.shared)
 

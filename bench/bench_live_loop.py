@@ -7,7 +7,7 @@ Prints the live summary line (frame sets processed, the clock's jumps), the live
 and the frames each holds, and the jumps recorded in ``track/live.parts/index.json``
 (``pipeline.live.load_live_jumps``). The target: 3 identities (the bystander a fourth at most).
 
-    PYTHONPATH=... python bench/bench_live_loop.py [--seconds 60] [--shared /work/shared]
+    PYTHONPATH=... python bench/bench_live_loop.py [--seconds 60] [--shared DIR]
 
 ``--replay-2d N``: instead, N loops of the demo's own 2D detections (OpenPose BODY_25B,
 ``session-2024/.../S00_P01_T02_Participants1-2``, the same 100 frames) handed to the live ``triangulate`` and
@@ -38,7 +38,10 @@ CAMS = ("cam01", "cam02", "cam03", "cam04")
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+    )
     ap.add_argument("--replay-2d", type=int, default=0, metavar="N", help="N loops of the demo's 2D instead")
     ap.add_argument("--stride", type=int, default=6, help="with --replay-2d: every this many frames")
     args = ap.parse_args()

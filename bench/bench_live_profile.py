@@ -7,7 +7,7 @@ Prints the live summary line (frame sets processed, stale ones dropped, latency,
 sets processed per second of recording, the wall time from the recording's start to the exit, and each
 thread group's CPU seconds per second of recording (2.0 = both cores of this machine).
 
-    PYTHONPATH=... python bench/bench_live_profile.py [--seconds 20] [--shared /work/shared]
+    PYTHONPATH=... python bench/bench_live_profile.py [--seconds 20] [--shared DIR]
 
 The script imports only ``roomcap`` (whichever PYTHONPATH names): run it on two checkouts to compare.
 """
@@ -30,7 +30,10 @@ GROUPS = (("decode (grab-*)", r"^grab-"), ("encode (write-*)", r"^write-"), ("2D
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0)
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+    )
     args = ap.parse_args()
     os.environ.setdefault("ROOMCAP_SHARED", args.shared)
     import roomcap.capture.recorder as recorder_mod
