@@ -32,7 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-CAMS = ("cam01", "cam02", "cam03", "cam04")
+sys.path.insert(0, str(Path(__file__).parent))
+
+from _live_demo import CAMS, write_looping_cams  # noqa: E402
 
 
 def main() -> int:
@@ -48,21 +50,13 @@ def main() -> int:
     os.environ.setdefault("ROOMCAP_SHARED", args.shared)
     if args.replay_2d:
         return replay_2d(args)
-    from roomcap.calibrate.formats import import_rig
     from roomcap.pipeline.live import main as capture_run
 
     demo = Path(args.shared) / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
     if not demo.exists():
         sys.exit(f"bench_live_loop: {demo} not found; set --shared")
     tmp = Path(tempfile.mkdtemp(prefix="bench_live_loop_"))
-    import_rig(demo / "calibration" / "Calib.qca.txt").save(tmp / "rig.toml")
-    (tmp / "cams.yaml").write_text(
-        "calibration: rig.toml\ncameras:\n"
-        + "".join(
-            f"  - {{name: {c}, source: '{demo / 'videos' / (c + '.mp4')}', loop: true, realtime: true}}\n"
-            for c in CAMS
-        )
-    )
+    write_looping_cams(demo, tmp)
     sess = tmp / "S"
     argv = ["--cameras", str(tmp / "cams.yaml"), "--out", str(sess), "--duration", str(args.seconds)]
     out = io.StringIO()

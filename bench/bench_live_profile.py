@@ -23,7 +23,10 @@ import threading
 import time
 from pathlib import Path
 
-CAMS = ("cam01", "cam02", "cam03", "cam04")
+sys.path.insert(0, str(Path(__file__).parent))
+
+from _live_demo import write_looping_cams  # noqa: E402
+
 GROUPS = (("decode (grab-*)", r"^grab-"), ("encode (write-*)", r"^write-"), ("2D groups", r"^live-keypoints"))
 
 
@@ -37,21 +40,13 @@ def main() -> int:
     args = ap.parse_args()
     os.environ.setdefault("ROOMCAP_SHARED", args.shared)
     import roomcap.capture.recorder as recorder_mod
-    from roomcap.calibrate.formats import import_rig
     from roomcap.pipeline.live import main as capture_run
 
     demo = Path(args.shared) / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
     if not demo.exists():
         sys.exit(f"bench_live_profile: {demo} not found; set --shared")
     tmp = Path(tempfile.mkdtemp(prefix="bench_live_profile_"))
-    import_rig(demo / "calibration" / "Calib.qca.txt").save(tmp / "rig.toml")
-    (tmp / "cams.yaml").write_text(
-        "calibration: rig.toml\ncameras:\n"
-        + "".join(
-            f"  - {{name: {c}, source: '{demo / 'videos' / (c + '.mp4')}', loop: true, realtime: true}}\n"
-            for c in CAMS
-        )
-    )
+    write_looping_cams(demo, tmp)
     cpu: dict[str, float] = {}
     first: dict[str, float] = {}
     stop = threading.Event()

@@ -48,8 +48,9 @@ from types import SimpleNamespace  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).parent))
 
-CAMS = ("cam01", "cam02", "cam03", "cam04")
+from _live_demo import CAMS, write_looping_cams  # noqa: E402
 
 
 class ThreadCpu:
@@ -101,7 +102,7 @@ def main() -> None:
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    from roomcap.calibrate.formats import import_rig
+    from roomcap.calibrate.camera import CameraRig
     from roomcap.capture.config import load_config
     from roomcap.capture.live import LiveRunner
     from roomcap.capture.recorder import Recorder
@@ -127,15 +128,8 @@ def main() -> None:
     os.environ["LSLAPICFG"] = os.environ["LSL_API_CFG"] = str(tmp / "lsl_api.cfg")
     out_dir = Path(args.out) if args.out else tmp
     out_dir.mkdir(parents=True, exist_ok=True)
-    rig = import_rig(demo / "calibration" / "Calib.qca.txt")
-    rig.save(tmp / "rig.toml")
-    (tmp / "cams.yaml").write_text(
-        "calibration: rig.toml\ncameras:\n"
-        + "".join(
-            f"  - {{name: {c}, source: '{demo / 'videos' / (c + '.mp4')}', loop: true, realtime: true}}\n"
-            for c in CAMS
-        )
-    )
+    write_looping_cams(demo, tmp)
+    rig = CameraRig.load(tmp / "rig.toml")
     cfg = load_config(tmp / "cams.yaml")
     dets = {
         c: read_openpose_folder(trial / "pose" / f"{c}_json", camera=c, skeleton="body25b", fps=60.0)
