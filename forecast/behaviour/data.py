@@ -380,20 +380,7 @@ def compose_stations(pool: list[StepClip], n: int, length: int, seed: int = 0) -
         for k in range(length):
             if k:
                 st = int(rng.choice(len(ch.states), p=ch.T[st]))
-            place, what = ch.states[st].split(":")
-            if place == "walk":
-                to = np.asarray(STATIONS[what][0])
-                if last is None:
-                    last = str(rng.choice([q for q in STATIONS if q != what]))
-                frm = np.asarray(STATIONS[last][0])
-                pos = frm + rng.uniform(*WALK_PART) * (to - frm) + rng.normal(0, WALK_NOISE_M, 2)
-                d = to - pos
-                heading = float(np.arctan2(d[1], d[0])) + rng.normal(0, WALK_TURN_RAD)
-            else:
-                xy, h = STATIONS[place]
-                pos = np.asarray(xy) + rng.normal(0, STATION_NOISE_M, 2)
-                heading = h + rng.normal(0, STATION_TURN_RAD)
-                last = place
+            pos, heading, last = _station_target(ch.states[st], last, rng)
             a = ACTIONS[int(ch.action[st])]
             c = by_action[a][rng.integers(len(by_action[a]))]
             X[s, k] = _place(c, rng, pos, heading)
@@ -573,8 +560,8 @@ GLIDE_SPEED_M_S = 1.2  # the glide between two steps of the "stations" script (a
 
 
 def _station_target(state: str, last: str | None, rng: np.random.Generator) -> tuple:
-    """Where a step of the "stations" script stands and faces, as ``compose_stations`` places it ->
-    (pos (2,), heading, the last place visited)."""
+    """Where a step of the "stations" script stands and faces (see :func:`compose_stations`) -> (pos (2,),
+    heading, the last place visited)."""
     place, what = state.split(":")
     if place == "walk":
         to = np.asarray(STATIONS[what][0])
