@@ -1,5 +1,5 @@
 """Hands on the Pose2Sim single-person demo: how often each hand of the participant is found per view, and in
-how many frames at least one hand is in 3D with 15 or more of its 21 joints (issue 43's target: 30 %).
+how many frames at least one hand is in 3D with 15 or more of its 21 joints (the target: 30 % or more).
 
 Runs ``reprocess`` (calibration, keypoints, triangulate) with ``[keypoints] preset`` = the given preset and
 ``[triangulate.options] skeleton = "whole_body"`` into OUT, then reads the detections and ``poses3d.npz``.

@@ -2,7 +2,7 @@
 
 A video file replayed as a camera (``FileReplaySource``) already holds compressed packets; decoding every
 frame and encoding it again (mp4v) cost more than this machine's two cores on the Pose2Sim demo's 4 x
-1088x1920 at 60 Hz (issue 42). Where the file's codec fits a segment container (:data:`COPY_CODECS`),
+1088x1920 at 60 Hz. Where the file's codec fits a segment container (:data:`COPY_CODECS`),
 the source reads it with PyAV (:class:`PacketReader`) and hands each frame to the recorder with the
 packets to write: the writer (:class:`roomcap.capture.segments.SegmentWriter`) muxes them as they are
 (stream copy), and only the live loop's frames are decoded images.
