@@ -34,6 +34,15 @@ Method (the seeds are silent here; the choices are the usual ones of marker-base
    prior of 0.5 rad on the change from step 4; hinge angles bounded), a few trust-region steps per
    frame; about 50-70 ms per person-frame on this machine.
 
+Hands (the 42 joints of a whole-body track, :data:`roomcap.keypoints.skeletons.HANDS`) hang off the wrists,
+4 bones per finger from the hand root. They are often unseen, so they are fitted beside the body, not as
+part of it: the rest pose needs every BODY joint in one frame, and each hand's rest shape comes from that
+hand's own best frame (most joints known), turned with the forearm onto the body's rest pose (a finger
+joint unseen there continues its parent bone); a hand never seen keeps zero-length bones (NaN in
+``bone_length_m``) and the identity. Per frame the refinement (5) runs on the body only, then the hand
+joints (and a wrist whose only children are hand joints) are solved top down (4) from the refined wrist.
+A track without hand joints fits exactly as before.
+
 :func:`roomcap.outputs.bvh.write_bvh` writes the fit as BVH.
 """
 
@@ -49,6 +58,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from roomcap.core.errors import FormatError
+from roomcap.keypoints.skeletons import HANDS
 from roomcap.outputs.skeleton_fit_file import FitError, SkeletonFit, file_sha256, fit_path, topological_order
 from roomcap.track.trackfile import OBSERVED, TrackFile, track_index
 
@@ -228,21 +238,37 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
     F = len(names)
     real = np.zeros(F, bool)
     real[jidx] = True
-    rows, Xt, St, full = _complete_rows(tf, k, track, opt)
+    hand_t = np.isin(np.asarray(tf.joint_names), HANDS)  # (J,) hand joints of the track file
+    rows, Xt, St, full = _complete_rows(tf, k, track, opt, need=~hand_t)
     Lt = _bone_lengths(tf, k, Xt, rows, opt)
     bad = [
-        tf.joint_names[j] for j in range(len(tf.joint_names)) if tf.parents[j] >= 0 and not np.isfinite(Lt[j])
+        tf.joint_names[j]
+        for j in range(len(tf.joint_names))
+        if tf.parents[j] >= 0 and not np.isfinite(Lt[j]) and not hand_t[j]
     ]
     if bad:
         raise FitError(f"track {track}: no length for the bones to {bad}.")
+    for side in ("left_", "right_"):  # a hand never seen gets no length from the other hand
+        hs = hand_t & np.char.startswith(np.asarray(tf.joint_names), side)
+        if hs.any() and not np.isfinite(Xt[:, hs]).any():
+            Lt[hs] = np.nan
     X = np.full((len(rows), F, 3), np.nan)
     X[:, jidx] = Xt
     L = np.zeros(F)
     L[jidx] = np.nan_to_num(Lt)
-    # rest pose: the most confident complete frame; virtual joints sit on their parent
+    # rest pose: the most confident frame with every body joint known; virtual joints sit on their parent;
+    # each hand from its own best frame, turned with the forearm
     conf = np.where(full, tf.confidence[rows, k].sum(-1), -np.inf)
-    rest = _rest_offsets(X[int(np.argmax(conf))], L, parents, real)
-    skel = _Skeleton(names, parents, real, rest, L, opt)
+    r0 = int(np.argmax(conf))
+    Xr = X[r0].copy()
+    hand = np.zeros(F, bool)
+    hand[jidx[hand_t]] = True
+    if hand.any():
+        C = np.zeros((len(rows), F))
+        C[:, jidx] = np.nan_to_num(tf.confidence[rows, k].astype(np.float64))
+        Xr = _hand_rest(X, C, r0, Xr, names, parents)
+    rest = _rest_offsets(Xr, L, parents, real)
+    skel = _Skeleton(names, parents, real, rest, L, opt, hand)
     sig_rows = np.full((len(rows), F), np.inf)
     sig_rows[:, jidx] = np.maximum(np.nan_to_num(St, nan=opt.min_std_m), opt.min_std_m)
     rot, root_xyz, held = _fit_frames(skel, X, sig_rows)
@@ -250,8 +276,10 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
     out_root = np.full((T, 3), np.nan)
     out_held = np.zeros((T, F), bool)
     out_rot[rows], out_root[rows], out_held[rows] = rot, root_xyz, held
+    L_out = L.copy()
+    L_out[jidx[hand_t & ~np.isfinite(Lt)]] = np.nan  # a finger never seen: no length
     return {
-        "bone_length_m": L,
+        "bone_length_m": L_out,
         "rest_offset_m": rest,
         "root_xyz_m": out_root,
         "rotation_xyzw": out_rot,
@@ -259,9 +287,10 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
     }
 
 
-def _complete_rows(tf: TrackFile, k: int, track: int, opt: FitOptions):
+def _complete_rows(tf: TrackFile, k: int, track: int, opt: FitOptions, need: np.ndarray | None = None):
     """The track's frames from its first to its last known joint, gaps filled: ``(rows, X, std, full)``;
-    an error when no frame has every joint (the rest pose needs one)."""
+    ``full``: the frames with every joint of ``need`` (default all) known; an error when there is none
+    (the rest pose needs one)."""
     span = np.flatnonzero(person_span(tf, k))
     if not len(span):
         raise FitError(f"track {track} has no known joint in any frame; there is nothing to fit.")
@@ -269,19 +298,62 @@ def _complete_rows(tf: TrackFile, k: int, track: int, opt: FitOptions):
     Xt, St, _ = fill_gaps(
         tf.xyz_m[rows, k].astype(np.float64), tf.std_m[rows, k].astype(np.float64), opt.max_gap
     )
+    need = np.ones(len(tf.joint_names), bool) if need is None else np.asarray(need, bool)
     known_t = np.isfinite(Xt).all(-1)
-    full = known_t.all(-1)
+    full = known_t[:, need].all(-1)
     if not full.any():
-        miss = (~known_t).mean(0)
+        miss = np.where(need, (~known_t).mean(0), -1.0)
         worst = np.argsort(-miss)[:4]
         raise FitError(
-            f"track {track} has no frame in which all {len(tf.joint_names)} joints are known, even after "
+            f"track {track} has no frame in which all {int(need.sum())} body joints are known, even after "
             f"filling gaps of up to {opt.max_gap} frames (missing most often: "
-            + ", ".join(f"{tf.joint_names[j]} {miss[j]:.0%}" for j in worst)
+            + ", ".join(f"{tf.joint_names[j]} {miss[j]:.0%}" for j in worst if miss[j] > 0)
             + "); the skeleton fit needs one for the rest pose. Export TRC/CSV/JSON instead, or track with "
             "a skeleton of the joints the cameras see."
         )
     return rows, Xt, St, full
+
+
+def _hand_rest(X: np.ndarray, C: np.ndarray, r0: int, Xr: np.ndarray, names, parents) -> np.ndarray:
+    """``Xr`` (the body's rest frame ``X[r0]``) with each hand's joints replaced by the hand's shape in its
+    best frame (most joints known, then most confident: ``X (T,F,3)``, ``C (T,F)``), turned by the
+    smallest rotation taking that frame's forearm (elbow -> wrist) to the rest frame's and moved onto
+    the rest frame's wrist; a joint unknown there continues its parent bone (a palm bone: the forearm),
+    a hand never seen collapses onto the wrist (zero-length bones)."""
+    idx = {n: i for i, n in enumerate(names)}
+    Xr = Xr.copy()
+    known = np.isfinite(X).all(-1)
+    for side in ("left", "right"):
+        hj = [idx[n] for n in HANDS if n.startswith(f"{side}_") and n in idx]
+        if not hj:
+            continue
+        w, e, root = idx.get(f"{side}_wrist"), idx.get(f"{side}_elbow"), idx.get(f"{side}_hand_root")
+        if known[r0, hj].all():
+            continue  # the body's rest frame sees this hand whole
+        score = known[:, hj].sum(1) + 1e-3 * C[:, hj].sum(1)
+        th = int(np.argmax(score))
+        anchor = w if w is not None else parents[hj[0]]
+        if not known[th, hj].any() or not known[th, anchor]:
+            Xr[hj] = Xr[anchor]  # never seen: zero-length bones at the wrist
+            continue
+        R = np.eye(3)
+        fore_r = Xr[w] - Xr[e] if w is not None and e is not None else np.zeros(3)
+        if w is not None and e is not None and known[th, e] and np.linalg.norm(fore_r) > 1e-9:
+            R = min_rotation(X[th, w] - X[th, e], fore_r)
+        fore_dir = _unit(fore_r) if np.linalg.norm(fore_r) > 1e-9 else np.array([0.0, 0.0, -1.0])
+        for j in topological_order(parents):
+            if j not in hj:
+                continue
+            p = parents[j]
+            if known[th, j] and known[th, p]:
+                Xr[j] = Xr[p] + R @ (X[th, j] - X[th, p])
+            elif j == root:
+                Xr[j] = Xr[p]
+            else:  # unseen in that frame: straight on from the parent bone (a palm bone: the forearm)
+                gp = parents[p]
+                d = Xr[p] - Xr[gp] if names[p] != f"{side}_hand_root" else fore_dir
+                Xr[j] = Xr[p] + 0.03 * _unit(d if np.linalg.norm(d) > 1e-9 else fore_dir)
+    return Xr
 
 
 def _rest_offsets(Xr: np.ndarray, L: np.ndarray, parents: np.ndarray, real: np.ndarray) -> np.ndarray:
@@ -302,11 +374,16 @@ def _rest_offsets(Xr: np.ndarray, L: np.ndarray, parents: np.ndarray, real: np.n
 class _Skeleton:
     """The fit skeleton: its joints, rest offsets, bone lengths, joint order and hinge axes."""
 
-    def __init__(self, names, parents, real, rest, L, opt: FitOptions) -> None:
+    def __init__(self, names, parents, real, rest, L, opt: FitOptions, hand=None) -> None:
         self.parents, self.real, self.rest, self.opt = parents, real, rest, opt
         self.root = int(np.flatnonzero(parents < 0)[0])
         self.children = _children(parents)
         self.order = topological_order(parents)
+        # hand joints, and the joints solved with them after the body's refinement (a wrist whose only
+        # children are hand joints)
+        self.hand = np.zeros(len(parents), bool) if hand is None else np.asarray(hand, bool)
+        self.after = self.hand | np.array([bool(c) and bool(self.hand[c].all()) for c in self.children])
+        self.body_order = [j for j in self.order if not self.hand[j]]
         self.hinge_axis = {}
         for j in range(len(names)):
             if names[j] in HINGES and len(self.children[j]) == 1:
@@ -334,9 +411,14 @@ def _fit_frames(skel: _Skeleton, X: np.ndarray, sig_rows: np.ndarray):
         Lcur = _frame_rotations(skel, x, kn, P, Lprev, held[t])
         if not np.isfinite(P[root]).all():
             continue
-        if opt.refine and kn.sum() >= 3:
-            P[root], Lcur = _refine(x, kn, sig_rows[t], P[root], Lcur, skel.rest, skel.parents, skel.order,
-                                    skel.children, skel.hinge_axis, skel.limits, opt.prior_rad)  # fmt: skip
+        kb = kn & ~skel.hand
+        if opt.refine and kb.sum() >= 3:
+            P[root], Lcur = _refine(x, kb, sig_rows[t], P[root], Lcur, skel.rest, skel.parents,
+                                    skel.body_order, skel.children, skel.hinge_axis, skel.limits,
+                                    opt.prior_rad, frozen=skel.after)  # fmt: skip
+            if skel.after.any():  # the hands, top down from the refined wrists
+                held[t, skel.after] = False
+                Lcur = _frame_rotations(skel, x, kn, P, Lprev, held[t], start=Lcur, only=skel.after)
         root_prev = P[root].copy()
         Lprev = Lcur
         root_xyz[t] = P[root]
@@ -350,20 +432,31 @@ def _fit_frames(skel: _Skeleton, X: np.ndarray, sig_rows: np.ndarray):
 
 
 def _frame_rotations(
-    skel: _Skeleton, x: np.ndarray, kn: np.ndarray, P: np.ndarray, Lprev: np.ndarray, held: np.ndarray
+    skel: _Skeleton,
+    x: np.ndarray,
+    kn: np.ndarray,
+    P: np.ndarray,
+    Lprev: np.ndarray,
+    held: np.ndarray,
+    start: np.ndarray | None = None,
+    only: np.ndarray | None = None,
 ) -> np.ndarray:
     """One frame's local rotations, root to leaves: each joint turned so its children point at the
     observed ones (a hinge about its axis within its limits); ``P`` gets the joints' positions, ``held``
-    the joints kept at the previous frame's rotation."""
+    the joints kept at the previous frame's rotation. With ``only`` (F,) bool, the other joints keep
+    their rotation in ``start``."""
     parents, rest, children, real = skel.parents, skel.rest, skel.children, skel.real
     lo, hi = skel.limits
-    Lcur = Lprev.copy()
+    Lcur = (Lprev if start is None else start).copy()
     G = np.empty((len(parents), 3, 3))
     for j in skel.order:
         p = parents[j]
         Gp = np.eye(3) if p < 0 else G[p]
         if p >= 0:
             P[j] = P[p] + Gp @ rest[j]
+        if only is not None and not only[j]:
+            G[j] = Gp @ Lcur[j]
+            continue
         ch = children[j]
         a, b, w = [], [], []
         for c in ch:
@@ -411,12 +504,16 @@ def _rodrigues(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + A * K + B * (K @ K)
 
 
-def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, limits, prior_rad):
+def _refine(
+    x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, limits, prior_rad, frozen=None
+):
     """Weighted least squares (positions / sigma, plus a prior on the change of each rotation) over
-    the root position and every rotating joint, from the top-down solution; hinges keep one angle
-    inside ``limits`` (flexion). Returns (root position, local rotations (F,3,3))."""
+    the root position and every rotating joint (but ``frozen``), from the top-down solution; hinges keep
+    one angle inside ``limits`` (flexion). ``order``: the joints the positions are computed for (their
+    parents first), those observed in ``kn`` the residuals. Returns (root position, local rotations
+    (F,3,3))."""
     F = len(parents)
-    layout, x0, lb, ub = _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits)
+    layout, x0, lb, ub = _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits, frozen)
     n = len(x0)
     hinge = {j: hinge_axis[j] for j, _, m, _ in layout if m == 1}
     obs = np.flatnonzero(kn & np.isfinite(sig))
@@ -475,14 +572,14 @@ def _refine(x, kn, sig, root_p, L0, rest, parents, order, children, hinge_axis, 
     return sol.x[:3].copy(), L
 
 
-def _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits):
-    """The parameters of :func:`_refine`: the root position, then per rotating joint a hinge angle
-    (bounded by ``limits`` about its rest angle) or a rotation vector; ``(layout, x0, lower, upper)``
-    with ``layout`` rows ``(joint, first parameter, count, rest angle)``."""
+def _refine_parameters(root_p, L0, rest, order, children, hinge_axis, limits, frozen=None):
+    """The parameters of :func:`_refine`: the root position, then per rotating joint (of ``order``, not
+    ``frozen``) a hinge angle (bounded by ``limits`` about its rest angle) or a rotation vector;
+    ``(layout, x0, lower, upper)`` with ``layout`` rows ``(joint, first parameter, count, rest angle)``."""
     lo, hi = limits
     layout, n = [], 3
     x0, lb, ub = list(root_p), [-np.inf] * 3, [np.inf] * 3
-    for j in (j for j in order if children[j]):
+    for j in (j for j in order if children[j] and (frozen is None or not frozen[j])):
         if j in hinge_axis:
             c = children[j][0]
             ax, o = hinge_axis[j], rest[c]
