@@ -67,3 +67,49 @@ def test_blender_imports_one_armature_per_person(tmp_path):
         write_bvh(fit, files[tid], track_ids=[tid])
     got = blender_import(list(files.values()), tmp_path / "probe.json")
     check_armatures(fit, files, got)
+
+
+def test_blender_imports_finger_bones(tmp_path):
+    """A whole-body track (body19 and both hands, fingers curling): the BVH's finger bones hang off the
+    wrists, 4 per finger from the hand root, and Blender's armature has them at the fitted positions and
+    lengths; the right hand is unseen for a stretch (held, not dropped)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from hands_helpers import SK, wholebody_trackfile, wholebody_xyz
+
+    from roomcap.keypoints.skeletons import FINGERS, HANDS
+
+    xyz = wholebody_xyz(1, 30) + np.random.default_rng(2).normal(0, 0.002, (30, 1, SK.n_joints, 3))
+    right = [SK.index(n) for n in HANDS[21:]]
+    xyz[12:26, 0, right] = np.nan  # longer than the fit's gap filling
+    fit = fit_skeletons(wholebody_trackfile(xyz))
+    path = tmp_path / "S_3.bvh"
+    write_bvh(fit, path)
+    got = blender_import([path], tmp_path / "probe.json")
+    stats = check_armatures(fit, {3: path}, got)
+    a = got["armatures"][0]
+    par = a["parents"]
+    for side in ("left", "right"):
+        assert par[f"{side}_hand_root"] == f"{side}_wrist"
+        for f in FINGERS:
+            chain = [f"{side}_{f}{i}" for i in range(1, 5)]
+            assert par[chain[0]] == f"{side}_hand_root"
+            assert [par[c] for c in chain[1:]] == chain[:-1], chain
+    # a finger bone in Blender spans its joint to the next one: its length is the fit's next bone
+    names = list(fit.joint_names)
+    for side in ("left", "right"):
+        for f in FINGERS:
+            for i in range(1, 4):
+                L = fit.bone_length_m[0, names.index(f"{side}_{f}{i + 1}")]
+                assert 0.01 < L < 0.05
+                got_len = np.array([fr[f"{side}_{f}{i}"] for fr in a["lengths"]])
+                np.testing.assert_allclose(got_len, L, atol=2e-4, err_msg=f"{side}_{f}{i}")
+    # the fingertips follow the curl: head error on the hands small where the hand was seen
+    P = np.array([[fr[n] for n in HANDS] for fr in a["heads"]])
+    seen = np.isfinite(xyz[:, 0, [SK.index(n) for n in HANDS]]).all(-1)
+    err = np.linalg.norm(P - xyz[:, 0, [SK.index(n) for n in HANDS]], axis=-1)[seen]
+    print(f"finger heads: median {1e3 * np.median(err):.1f} mm, max {1e3 * err.max():.1f} mm from the track; "
+          f"heads {1e3 * stats['head_err_max_m']:.2f} mm from the fit")  # fmt: skip
+    assert np.median(err) < 0.006 and err.max() < 0.03, (np.median(err), err.max())
+    assert np.isfinite(P[:, 21:]).all()  # the unseen right hand is held, not dropped
