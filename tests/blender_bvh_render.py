@@ -8,6 +8,7 @@ Debian's Blender 3.4 importer opens with mode 'rU'; ``open`` is wrapped as in bl
 """
 
 import builtins
+import math
 import sys
 
 import bpy
@@ -43,7 +44,6 @@ for pb in arm.pose.bones:
     verts += [h, t]
     edges.append((len(verts) - 2, len(verts) - 1))
     radius += [0.004 if finger else 0.015] * 2
-import math  # noqa: E402
 
 V, Fc = [], []
 for (i, k), r in zip(edges, radius[::2], strict=True):  # one 8-sided tube per bone
