@@ -7,7 +7,7 @@ tracks export SESSION|tracks.npz --format trc,c3d,bvh,csv,json [--person ID] --o
     one file per person and format, ``<session>_<track id>.<ext>`` (see outputs/export.py)
 tracks fit SESSION|tracks.npz
     one skeleton per person: writes track/skeleton_fit.npz beside the track file (beside the live track
-    track/live.npz: live_skeleton_fit.npz)
+    track/live.npz: live_skeleton_fit.npz); a whole-body track's finger bone lengths are listed per person
 tracks opensim SESSION|tracks.npz [--setup DIR] [--person ID] --out DIR
     Pose2Sim's OpenSim model scaled and inverse kinematics on the TRC (needs the opensim extra)
 tracks stream SESSION|tracks.npz --stream lsl,osc [--osc-to HOST:PORT] [--speed 1]
@@ -108,8 +108,49 @@ def _fit(args) -> int:
             f"track {tid}: {int(fit.span[:, k].sum())} frames, fit error median "
             f"{1000 * np.nanmedian(e):.1f} mm, p95 {1000 * np.nanpercentile(e, 95):.1f} mm"
         )
+        for line in finger_lines(fit, k, tf):
+            print(f"track {tid}: {line}")
     print(out)
     return 0
+
+
+def finger_lines(fit, k: int, tf: TrackFile) -> list[str]:
+    """The fit's finger bone lengths of track index ``k``, one line per hand (mm, hand root to tip, per
+    finger), and how steady the track's own finger bones are (median over the bones seen in 5 frames or
+    more of the std over time of their length, frames where both ends are observed); none without hands."""
+    import numpy as np
+
+    from roomcap.keypoints.skeletons import FINGERS, finger_bones
+    from roomcap.track.trackfile import OBSERVED, track_index
+
+    fl = fit.finger_lengths_m(k)
+    if not fl:
+        return []
+    lines = []
+    for side in ("left", "right"):
+        parts = [
+            f"{f.replace('_finger', '')} " + "/".join(f"{1000 * v:.0f}" for v in fl[f"{side}_{f}"])
+            for f in FINGERS
+            if f"{side}_{f}" in fl and np.isfinite(fl[f"{side}_{f}"]).all()
+        ]
+        lines.append(f"{side} hand bones (mm, root to tip): " + (", ".join(parts) if parts else "not seen"))
+    kt = track_index(tf, int(fit.track_id[k]))
+    X = tf.xyz_m[:, kt].astype(np.float64)
+    obs = (tf.flags[:, kt] & OBSERVED) > 0
+    lengths, stds = [], []
+    for bones in finger_bones(tf.joint_names).values():
+        for p, c in bones:
+            both = obs[:, p] & obs[:, c] & np.isfinite(X[:, p]).all(-1) & np.isfinite(X[:, c]).all(-1)
+            if both.sum() >= 5:
+                d = np.linalg.norm(X[both, c] - X[both, p], axis=-1)
+                lengths.append(np.median(d))
+                stds.append(np.std(d))
+    if stds:
+        lines.append(
+            f"finger bones in the track: {len(stds)} seen in 5 frames or more, length median "
+            f"{1000 * np.median(lengths):.1f} mm, std over time median {1000 * np.median(stds):.1f} mm"
+        )
+    return lines
 
 
 def _opensim(args) -> int:

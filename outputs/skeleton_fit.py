@@ -305,8 +305,8 @@ def _complete_rows(tf: TrackFile, k: int, track: int, opt: FitOptions, need: np.
         miss = np.where(need, (~known_t).mean(0), -1.0)
         worst = np.argsort(-miss)[:4]
         raise FitError(
-            f"track {track} has no frame in which all {int(need.sum())} body joints are known, even after "
-            f"filling gaps of up to {opt.max_gap} frames (missing most often: "
+            f"track {track} has no frame in which all {int(need.sum())} {'' if need.all() else 'body '}"
+            f"joints are known, even after filling gaps of up to {opt.max_gap} frames (missing most often: "
             + ", ".join(f"{tf.joint_names[j]} {miss[j]:.0%}" for j in worst if miss[j] > 0)
             + "); the skeleton fit needs one for the rest pose. Export TRC/CSV/JSON instead, or track with "
             "a skeleton of the joints the cameras see."

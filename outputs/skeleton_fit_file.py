@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from roomcap.core.errors import FormatError, RoomcapError
 from roomcap.core.fileio import check_schema, load_npz, npz_str, save_npz, schema_tag, sha256_file
+from roomcap.keypoints.skeletons import finger_bones
 from roomcap.triangulate.chunks import PartStore, parts_dir
 
 # ----------------------------------------------------------------------------- gap filling
@@ -77,6 +78,15 @@ class SkeletonFit:
     def joint_positions(self) -> np.ndarray:
         """(T,K,J,3) fitted positions of the track file's joints."""
         return self.positions()[:, :, self.track_joints]
+
+    def finger_lengths_m(self, k: int) -> dict[str, np.ndarray]:
+        """Track index ``k``'s finger bone lengths, by ``<side>_<finger>`` (``left_thumb``, ...): (4,) from
+        the hand root to the tip (the first is the palm bone), NaN for a hand never seen; empty for a
+        skeleton without hands."""
+        return {
+            key: np.asarray([self.bone_length_m[k, c] for _, c in bones])
+            for key, bones in finger_bones(self.joint_names).items()
+        }
 
     def save(self, path: str | os.PathLike) -> None:
         save_npz(

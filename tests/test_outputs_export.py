@@ -387,3 +387,36 @@ def test_lowpass_as_pose2sim_filters(tmp_path, capsys):
     names, trc, _, _ = read_trc(tmp_path / "o" / "S_3.trc")
     np.testing.assert_allclose(yup_to_world(trc)[:, names.index("Nose"), 0], x[:T], atol=1e-5)
     assert tracks_main([*args, "--lowpass", "-1"]) == 2
+
+
+def test_cli_fit_lists_finger_bones(tmp_path, capsys):
+    """``tracks fit`` of a whole-body track: per person the finger bone lengths (held constant, near the
+    synthetic hand's) and the track's own steadiness; a person whose right hand is never seen still fits
+    (its right fingers NaN, "not seen"); a body-only track prints no finger line."""
+    from hands_helpers import _ALONG, _PHALANX, SK, wholebody_trackfile, wholebody_xyz
+
+    from roomcap.keypoints.skeletons import FINGERS, HANDS
+
+    xyz = wholebody_xyz(2, 30) + np.random.default_rng(3).normal(0, 0.002, (30, 2, SK.n_joints, 3))
+    xyz[:, 1, [SK.index(n) for n in HANDS[21:]]] = np.nan  # person 4: right hand never seen
+    sess = tmp_path / "S02"
+    (sess / "track").mkdir(parents=True)
+    wholebody_trackfile(xyz).save(sess / "track" / "tracks.npz")
+    assert tracks_main(["fit", str(sess)]) == 0
+    out = capsys.readouterr().out
+    assert "track 3: left hand bones (mm, root to tip): thumb" in out
+    assert "track 4: right hand bones (mm, root to tip): not seen" in out
+    assert "track 3: finger bones in the track: 40 seen" in out
+    assert "track 4: finger bones in the track: 20 seen" in out
+    fit = SkeletonFit.load(sess / "track" / "skeleton_fit.npz")
+    for k in (0, 1):
+        fl = fit.finger_lengths_m(k)
+        assert sorted(fl) == sorted(f"{s}_{f}" for s in ("left", "right") for f in FINGERS)
+        np.testing.assert_allclose(fl["left_middle_finger"][1:], _PHALANX, atol=2e-3)
+        assert abs(fl["left_forefinger"][0] - np.hypot(_ALONG[1], 0.01)) < 3e-3  # the palm bone
+    assert np.isfinite(fit.finger_lengths_m(0)["right_pinky_finger"]).all()
+    assert np.isnan(fit.finger_lengths_m(1)["right_pinky_finger"]).all()
+    # body-only: as before, no finger lines
+    sess1 = _session(tmp_path / "b", _walkers(1, 20))
+    assert tracks_main(["fit", str(sess1)]) == 0
+    assert "hand bones" not in capsys.readouterr().out
