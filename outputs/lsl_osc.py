@@ -8,7 +8,8 @@
 
 - name ``<name>`` (default ``roomcap``), type ``MoCap``, ``float32``, nominal rate = the capture rate,
   ``source_id`` = ``roomcap-<session>`` (an inlet that reconnects finds the same stream);
-- a fixed channel layout of ``S`` slots (``--slots``, default 16) × ``J`` joints (19, ``body19``) ×
+- a fixed channel layout of ``S`` slots (``--slots``, default 16) × ``J`` joints (19, ``body19``; a
+  whole-body track's own joints, hands included: 61 for ``body19_hands``) ×
   (x_m, y_m, z_m, std_m), slot-major (channel ``(s*J + j)*4 + c``), then ``S`` channels holding each
   slot's track id (NaN = the slot is empty); an absent joint or slot is NaN. World frame: metres, z up
   (the track file's). ``std_m``: the per-joint positional standard deviation (the particle spread);
@@ -32,7 +33,11 @@ tracks than slots are sent over OSC only (warned once).
 - ``/roomcap/frame``  ``frame_index:int32, t_s:double, n_people:int32`` (``t_s``: ``t_ns`` / 1e9, UNIX
   seconds of the host clock; a 64-bit double, OSC type ``d``, as a float32 would be 128 s coarse);
 - ``/roomcap/person`` ``track_id:int, x0, y0, z0, x1, ... x18, y18, z18`` (float32, metres, z up,
-  ``body19`` joint order; NaN = joint unknown), one message per person present;
+  ``body19`` joint order, or the track's joints without the hands; NaN = joint unknown), one message per
+  person present;
+- ``/roomcap/hand`` ``track_id:int, side:str ("left" | "right"), x0, y0, z0, ... x20, y20, z20`` (the 21
+  hand joints in MediaPipe's landmark order, COCO-WholeBody's ``<side>_hand_root``, ``<side>_thumb1`` ...
+  ``<side>_pinky_finger4``), one message per hand with a known joint, only for a track with hands;
 - ``/roomcap/birth`` and ``/roomcap/death`` ``track_id:int`` when a track appears or disappears.
 
 A consumer that disappears (an OSC port with no listener, an LSL inlet closed) is logged once and the
@@ -51,18 +56,19 @@ import numpy as np
 
 from roomcap.capture.sources import host_now_ns
 from roomcap.core.errors import InputError, RoomcapError
-from roomcap.keypoints.skeletons import CANONICAL
+from roomcap.keypoints.skeletons import CANONICAL, HAND_LEFT, HAND_RIGHT, HANDS, SKELETONS
 from roomcap.track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 
 STREAM_KINDS = ("lsl", "osc")
 FIELDS = ("x_m", "y_m", "z_m", "std_m")
-OSC_FRAME, OSC_PERSON, OSC_BIRTH, OSC_DEATH = (
+OSC_FRAME, OSC_PERSON, OSC_BIRTH, OSC_DEATH, OSC_HAND = (
     "/roomcap/frame",
     "/roomcap/person",
     "/roomcap/birth",
     "/roomcap/death",
+    "/roomcap/hand",
 )
 CLOSE_GRACE_S = 0.5  # on close, time for connected LSL inlets to receive the last samples
 EXTRA = {"lsl": "stream", "osc": "stream", "rerun": "rerun"}  # pip extra that installs each consumer
@@ -258,7 +264,11 @@ class _LslOutlets:
         ):
             lay.append_child_value(k, str(v))
         sk = d.append_child("skeleton")
-        sk.append_child_value("id", CANONICAL.id if tuple(joint_names) == CANONICAL.joint_names else "custom")
+        known = [k for k in (CANONICAL.id, "body19_hands") if tuple(joint_names) == SKELETONS[k].joint_names]
+        sk.append_child_value("id", known[0] if known else "custom")
+        hands = [n for n in joint_names if n in HANDS]
+        if hands:  # the hand joints' names, as COCO-WholeBody names them, in MediaPipe's order per hand
+            sk.append_child_value("hands", ",".join(hands))
         for jn, p in zip(joint_names, parents, strict=True):
             jj = sk.append_child("joint")
             jj.append_child_value("name", jn)
@@ -337,6 +347,15 @@ class TrackStreamer:
     ):
         self.cfg = cfg
         self.n_joints = len(joint_names)
+        names = list(joint_names)
+        # OSC: the hands in messages of their own (a side whose 21 joints the skeleton has), the rest per
+        # person
+        self.hand_idx = {
+            side: np.asarray([names.index(n) for n in H])
+            for side, H in (("left", HAND_LEFT), ("right", HAND_RIGHT))
+            if all(n in names for n in H)
+        }
+        self.person_idx = np.asarray([j for j, n in enumerate(names) if n not in HANDS], np.int64)
         self.slots = SlotMap(cfg.slots)
         if slot_ids:
             self.slots.last.update(slot_ids)
@@ -409,7 +428,11 @@ class TrackStreamer:
                     send(OSC_BIRTH, int(i))
                 self.osc.send(_frame_message(int(frame_index), int(t_ns), len(ids)))
                 for k, tid in enumerate(ids):
-                    send(OSC_PERSON, [int(tid), *xyz[k].reshape(-1).tolist()])
+                    send(OSC_PERSON, [int(tid), *xyz[k, self.person_idx].reshape(-1).tolist()])
+                    for side, idx in self.hand_idx.items():
+                        h = xyz[k, idx]
+                        if np.isfinite(h).all(-1).any():
+                            send(OSC_HAND, [int(tid), side, *h.reshape(-1).tolist()])
             except OSError as e:  # e.g. ECONNREFUSED after a listener went away: go on sending
                 self._fail("osc", e)
         self.frames += 1

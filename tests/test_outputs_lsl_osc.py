@@ -384,3 +384,51 @@ def test_a_file_with_many_tracks_gets_as_many_slots_as_are_present_at_once(tmp_p
         set(r[np.isfinite(r)].astype(int)) == {100 + t} | ({99 + t} if t else set())
         for t, r in enumerate(ids)
     )
+
+
+@need_lsl
+@need_osc
+def test_a_track_with_hands_streams_its_hand_joints():
+    """A whole-body track (body19 and both hands): the LSL sample grows to 61 joints per slot (the hand
+    channels labelled with their COCO-WholeBody names, the hands listed in the description), OSC sends
+    the body as before and each seen hand as ``/roomcap/hand``; a frame with the right hand unseen sends
+    the left one only."""
+    from hands_helpers import SK, wholebody_trackfile, wholebody_xyz
+
+    from roomcap.keypoints.skeletons import HANDS
+    from roomcap.outputs.lsl_osc import OSC_HAND, replay
+
+    xyz = wholebody_xyz(1, 6).astype(np.float32)
+    right = [SK.index(n) for n in HANDS[21:]]
+    xyz[3:, 0, right] = np.nan
+    tf = wholebody_trackfile(xyz)
+    osc = OscSink()
+    cfg = StreamConfig(("lsl", "osc"), ("127.0.0.1", osc.port), slots=1, session="H")
+    st = TrackStreamer(cfg, 25.0, tf.joint_names, tuple(int(p) for p in tf.parents), {3: 0})
+    inlet = _inlet("roomcap-H")
+    info = inlet.info()
+    Jw = SK.n_joints
+    assert Jw == 61 and info.channel_count() == Jw * 4 + 1
+    desc = info.desc()
+    assert desc.child("skeleton").child_value("id") == "body19_hands"
+    assert desc.child("skeleton").child_value("hands").split(",") == list(HANDS)
+    ch, labels = desc.child("channels").child("channel"), []
+    while not ch.empty():
+        labels.append(ch.child_value("label"))
+        ch = ch.next_sibling("channel")
+    k = SK.index("left_middle_finger3")
+    assert labels[k * 4 : k * 4 + 4] == [f"s00_left_middle_finger3_{c}" for c in ("x", "y", "z", "std")]
+    assert replay(tf, st, speed=0) == 6
+    data, _ = _pull_all(inlet, 6)
+    st.close()
+    osc.wait(6 * 2 + 3 * 2 + 3 + 1)  # frames, persons, hands (2 + 2 + 2 + 1 + 1 + 1), the birth
+    osc.close()
+    arr = np.asarray(data, np.float32)[:, : Jw * 4].reshape(6, Jw, 4)
+    np.testing.assert_allclose(arr[..., :3], xyz[:, 0], atol=1e-6)
+    persons = [m for a, m in osc.msgs if a == OSC_PERSON]
+    assert len(persons) == 6 and all(len(m) == 1 + 19 * 3 for m in persons)
+    np.testing.assert_allclose(np.asarray(persons[2][1:]).reshape(19, 3), xyz[2, 0, :19], atol=1e-6)
+    hands = [m for a, m in osc.msgs if a == OSC_HAND]
+    assert [m[1] for m in hands] == ["left", "right"] * 3 + ["left"] * 3
+    assert all(m[0] == 3 and len(m) == 2 + 21 * 3 for m in hands)
+    np.testing.assert_allclose(np.asarray(hands[1][2:]).reshape(21, 3), xyz[0, 0, right], atol=1e-6)
