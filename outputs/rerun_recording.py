@@ -9,9 +9,16 @@ Entities (world frame: the calibration's, metres, z up; ``rr.ViewCoordinates.RIG
 - ``world/cameras/<cam>/image``: the camera's frames (JPEG, width at most ``max_width_px``);
 - ``world/cameras/<cam>/image/detections``: the 2D detections (``Points2D``, ``body19`` joints of every
   person, in the logged image's pixels) and their bones (``.../detections/bones``, ``LineStrips2D``);
-- ``world/tracks/<track id>``: the track's joints (``Points3D``, ``body19`` order, NaN = unknown) with
-  radii = the per-joint positional std (m) and keypoint ids = joint index; ``.../bones``
-  (``LineStrips3D``); cleared at frames where the track is absent.
+- ``world/cameras/<cam>/image/detections/hands``: where the 2D layout has hands (``*_hands``), every
+  person's 42 hand joints (``Points2D``) and ``.../hands/bones`` (the wrist to the hand root, then 4 bones
+  per finger);
+- ``world/tracks/<track id>``: the track's joints (``Points3D``, the track file's order without the hand
+  joints: ``body19`` order for a body track, NaN = unknown) with radii = the per-joint positional std (m)
+  and keypoint ids = joint index in the track file; ``.../bones`` (``LineStrips3D``, the track file's
+  tree); cleared at frames where the track is absent;
+- ``world/tracks/<track id>/hands``: for a track with hands, its hand joints (``Points3D``, COCO-WholeBody
+  names, keypoint ids = joint index in the track file, radii the std at least 4 mm) and
+  ``.../hands/bones``, at frames where a hand joint is known.
 
 Timelines: ``frame`` (the track file's ``frame_index``) and ``time`` (seconds since the first frame's
 ``t_ns``). Read a file back with Rerun's own reader (``rerun.chunk.RrdReader``), as the tests do.
@@ -34,7 +41,7 @@ from roomcap.capture.session import SessionLayout
 from roomcap.capture.sources import Recording
 from roomcap.core.errors import RoomcapError
 from roomcap.keypoints.detections import Detections
-from roomcap.keypoints.skeletons import CANONICAL, convert
+from roomcap.keypoints.skeletons import CANONICAL, HANDS, convert, get_skeleton
 from roomcap.track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
@@ -65,13 +72,29 @@ def _rgb(track_id: int) -> tuple[int, int, int]:
     return int(h[1:3], 16), int(h[3:5], 16), int(h[5:7], 16)
 
 
-def _bones(xyz: np.ndarray, parents: tuple[int, ...]) -> list[np.ndarray]:
-    """(J,D) -> one 2-point strip per bone whose two ends are known."""
+def _bones(xyz: np.ndarray, parents: tuple[int, ...], only=None) -> list[np.ndarray]:
+    """(J,D) -> one 2-point strip per bone whose two ends are known (with ``only`` (J,) bool: the bones
+    to the joints it marks)."""
     return [
         np.stack([xyz[j], xyz[p]])
         for j, p in enumerate(parents)
-        if p >= 0 and np.isfinite(xyz[j]).all() and np.isfinite(xyz[p]).all()
+        if p >= 0 and (only is None or only[j]) and np.isfinite(xyz[j]).all() and np.isfinite(xyz[p]).all()
     ]
+
+
+def hand_detections(xy: np.ndarray, skeleton: str) -> tuple[np.ndarray, tuple[int, ...]] | None:
+    """``xy (P,J,2)`` of a 2D layout with hands -> (P,44,2) the two wrists and the 42 hand joints, and
+    their parents in that array (the hand roots hang from the wrists); None for a layout without hands."""
+    sk = get_skeleton(skeleton)
+    if not all(n in sk.joint_names for n in HANDS):
+        return None
+    names = ("left_wrist", "right_wrist") + HANDS
+    idx = [sk.joint_names.index(n) if n in sk.joint_names else -1 for n in names]
+    out = np.asarray(xy, np.float64)[:, [max(i, 0) for i in idx]]
+    out[:, [k for k, i in enumerate(idx) if i < 0]] = np.nan
+    parent_names = {n: sk.joint_names[p] for n, p in zip(sk.joint_names, sk.parents, strict=True) if p >= 0}
+    par = tuple(names.index(parent_names[n]) if n in HANDS else -1 for n in names)
+    return out, par
 
 
 class RerunWriter:
@@ -137,8 +160,9 @@ class RerunWriter:
                 self.rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"),
             )
 
-    def detections(self, cam: str, xy_px: np.ndarray) -> None:
-        """xy_px (P,J,2) body19, full-size image pixels (NaN = missing)."""
+    def detections(self, cam: str, xy_px: np.ndarray, hands=None) -> None:
+        """xy_px (P,J,2) body19, full-size image pixels (NaN = missing); ``hands``: :func:`hand_detections`
+        of the same people, or None."""
         rr = self.rr
         s = self.scale.get(cam, 1.0)
         xy = np.asarray(xy_px, np.float64).reshape(-1, CANONICAL.n_joints, 2) * s
@@ -148,14 +172,28 @@ class RerunWriter:
         self.rec.log(ent, rr.Points2D(pts[ok], radii=2.0, colors=(255, 210, 63)))
         strips = [b for p in xy for b in _bones(p, self.parents)]
         self.rec.log(f"{ent}/bones", rr.LineStrips2D(strips, colors=(255, 210, 63), radii=1.0))
+        if hands is not None:
+            hxy, hpar = hands
+            hxy = np.asarray(hxy, np.float64) * s
+            hp = hxy[:, 2:].reshape(-1, 2)
+            ok = np.isfinite(hp).all(-1)
+            self.rec.log(f"{ent}/hands", rr.Points2D(hp[ok], radii=1.0, colors=(63, 210, 255)))
+            hs = [b for p in hxy for b in _bones(p, hpar)]
+            self.rec.log(f"{ent}/hands/bones", rr.LineStrips2D(hs, colors=(63, 210, 255), radii=0.5))
 
-    def tracks(self, track_id: np.ndarray, xyz_m: np.ndarray, std_m: np.ndarray) -> None:
-        """One frame of tracks: track_id (K,), xyz_m (K,J,3), std_m (K,J); a track with no known joint is
-        absent (cleared)."""
+    def tracks(
+        self, track_id: np.ndarray, xyz_m: np.ndarray, std_m: np.ndarray, joint_names=None, parents=None
+    ) -> None:
+        """One frame of tracks: track_id (K,), xyz_m (K,J,3), std_m (K,J) in the skeleton ``joint_names`` /
+        ``parents`` (default body19); a track with no known joint is absent (cleared); hand joints go to
+        ``.../hands``."""
         rr = self.rr
         ids = np.asarray(track_id).reshape(-1)
         xyz = np.asarray(xyz_m, np.float32).reshape(len(ids), -1, 3)
         std = np.asarray(std_m, np.float32).reshape(len(ids), -1)
+        par = self.parents if parents is None else tuple(int(p) for p in parents)
+        hand = np.isin(np.asarray(joint_names if joint_names is not None else CANONICAL.joint_names), HANDS)
+        body = np.flatnonzero(~hand)
         now = set()
         for k, tid in enumerate(ids):
             if not np.isfinite(xyz[k]).all(-1).any():
@@ -164,12 +202,23 @@ class RerunWriter:
             ent = f"world/tracks/{int(tid)}"
             radii = np.where(np.isfinite(std[k]), np.maximum(std[k], 0.01), 0.01)
             self.rec.log(
-                ent,
-                rr.Points3D(xyz[k], radii=radii, colors=_rgb(tid), keypoint_ids=np.arange(len(xyz[k]))),
+                ent, rr.Points3D(xyz[k, body], radii=radii[body], colors=_rgb(tid), keypoint_ids=body)
             )
             self.rec.log(
-                f"{ent}/bones", rr.LineStrips3D(_bones(xyz[k], self.parents), colors=_rgb(tid), radii=0.012)
+                f"{ent}/bones", rr.LineStrips3D(_bones(xyz[k], par, ~hand), colors=_rgb(tid), radii=0.012)
             )
+            if hand.any():
+                hj = np.flatnonzero(hand)
+                seen = np.isfinite(xyz[k, hj]).all(-1)
+                if seen.any():
+                    hj = hj[seen]
+                    hr = np.where(np.isfinite(std[k, hj]), np.maximum(std[k, hj], 0.004), 0.004)
+                    pts = rr.Points3D(xyz[k, hj], radii=hr, colors=_rgb(tid), keypoint_ids=hj)
+                    self.rec.log(f"{ent}/hands", pts)
+                    hb = _bones(xyz[k], par, hand)
+                    self.rec.log(f"{ent}/hands/bones", rr.LineStrips3D(hb, colors=_rgb(tid), radii=0.003))
+                else:
+                    self.rec.log(f"{ent}/hands", rr.Clear(recursive=True))
         for tid in self.present - now:
             self.rec.log(f"world/tracks/{tid}", rr.Clear(recursive=True))
         self.present = now
@@ -194,15 +243,18 @@ def write_session_rrd(
     tf = TrackFile.load(track_path)
     rig = CameraRig.load(lay.rig_toml) if lay.rig_toml.exists() else None
     cams = rig.names if rig is not None else lay.detection_cameras()
-    dets: dict[str, tuple[dict[int, int], np.ndarray]] = {}
+    dets: dict[str, tuple[dict[int, int], np.ndarray, Any]] = {}
     for cam in cams:
         p = lay.detections(cam)
         if p.exists():
             d = Detections.load(p)
             xy = np.asarray(d.xy_px)
+            hands = hand_detections(xy.reshape(-1, *xy.shape[-2:]), d.skeleton)
+            if hands is not None:
+                hands = (hands[0].reshape(*xy.shape[:-2], *hands[0].shape[-2:]), hands[1])
             if d.skeleton != CANONICAL.id:
                 xy, _ = convert(xy, np.asarray(d.score), d.skeleton, CANONICAL)
-            dets[cam] = ({int(f): t for t, f in enumerate(d.frame_index)}, xy)
+            dets[cam] = ({int(f): t for t, f in enumerate(d.frame_index)}, xy, hands)
     videos: dict[str, tuple[Any, bool]] = {}
     if images:
         for cam in cams:
@@ -231,12 +283,12 @@ def write_session_rrd(
                 if item is not None and abs(item[key] - want) <= tol_ns * timed and item[2] is not None:
                     w.image(cam, item[2])
                     counts["images"] += 1
-            for cam, (rows, xy) in dets.items():
+            for cam, (rows, xy, hands) in dets.items():
                 r = rows.get(fi)
                 if r is not None:
-                    w.detections(cam, xy[r])
+                    w.detections(cam, xy[r], None if hands is None else (hands[0][r], hands[1]))
                     counts["detections"] += 1
-            w.tracks(tf.track_id, tf.xyz_m[t], tf.std_m[t])
+            w.tracks(tf.track_id, tf.xyz_m[t], tf.std_m[t], tf.joint_names, tf.parents)
             counts["frames"] += 1
             if progress is not None:
                 progress("rerun", t + 1, tf.n_frames)
@@ -300,13 +352,16 @@ class LiveRerun:
         for cam, d in (step.outputs.get("detections") or {}).items():
             xy = np.asarray(d.xy_px)
             skel = getattr(d, "skeleton", CANONICAL.id)
+            hands = hand_detections(xy, skel) if len(xy) else None
             if len(xy) and skel != CANONICAL.id:
                 xy, _ = convert(xy, np.asarray(d.score), skel, CANONICAL)
             if len(xy):
-                w.detections(cam, xy)
+                w.detections(cam, xy, hands)
         est = step.outputs.get("tracks")
         if est is not None:
-            w.tracks(est.track_id, est.xyz_m, est.std_m)
+            names = getattr(est, "joint_names", None)
+            par = getattr(est, "parents", None) if names else None
+            w.tracks(est.track_id, est.xyz_m, est.std_m, names, par)
         self.logged += 1
 
     def close(self) -> None:

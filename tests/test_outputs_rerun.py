@@ -205,3 +205,53 @@ def test_a_live_tracks_rows_find_their_video_frames_by_time(tmp_path):
     got = _read(tmp_path / "x.rrd")
     frames = [r["frame"] for r in got["/world/cameras/cam00/image"] if r.get("EncodedImage:blob")]
     assert frames == list(range(100, 110))
+
+
+def test_a_track_with_hands_logs_them(tmp_path):
+    """A whole-body session (body19 and both hands, 2D in ``body19_hands``): the track's body entity keeps
+    the body joints, ``.../hands`` holds the hand joints equal to the file (a frame without the right
+    hand: the left hand's 21 joints), the hand bones hang off the wrists; the 2D hands are logged too."""
+    pytest.importorskip("rerun", reason="rerun-sdk not installed: pip install 'roomcap[rerun]'")
+    from hands_helpers import SK, wholebody_trackfile, wholebody_xyz
+
+    from roomcap.keypoints.skeletons import HANDS
+    from roomcap.outputs.rerun_recording import write_session_rrd
+
+    T = 5
+    xyz = wholebody_xyz(1, T).astype(np.float32)
+    right = [SK.index(n) for n in HANDS[21:]]
+    xyz[3:, 0, right] = np.nan
+    tf = wholebody_trackfile(xyz)
+    lay = SessionLayout(tmp_path / "W")
+    rig = ring_rig(2, radius_m=4.0)
+    lay.calib_dir.mkdir(parents=True)
+    rig.save(lay.rig_toml)
+    lay.tracks.parent.mkdir(parents=True)
+    tf.save(lay.tracks)
+    lay.keypoints_dir.mkdir(parents=True)
+    for cam in rig.cameras:
+        uv = cam.project(np.nan_to_num(xyz).reshape(-1, 3)).reshape(T, 1, SK.n_joints, 2)
+        uv[~np.isfinite(xyz).all(-1)] = np.nan
+        sc = np.where(np.isfinite(uv[..., 0]), 0.9, 0.0)
+        Detections(cam.name, "body19_hands", tf.frame_index, tf.t_ns, uv, sc, np.zeros((T, 1, 5))).save(
+            lay.detections(cam.name)
+        )
+    rrd = tmp_path / "W.rrd"
+    counts = write_session_rrd(lay.root, lay.tracks, rrd, images=False)
+    assert counts["frames"] == T and counts["detections"] == 2 * T
+    got = _read(rrd)
+    H = [SK.index(n) for n in HANDS]
+    body = [r for r in got["/world/tracks/3"] if r.get("Points3D:positions") is not None]
+    assert len(body) == T and all(len(r["Points3D:positions"]) == 19 for r in body)
+    hands = [r for r in got["/world/tracks/3/hands"] if r.get("Points3D:positions") is not None]
+    assert [len(r["Points3D:positions"]) for r in hands] == [42, 42, 42, 21, 21]
+    for r in hands:
+        ids = np.asarray(r["Points3D:keypoint_ids"])
+        assert set(ids.tolist()) <= set(H)
+        want = xyz[r["frame"] - 100, 0, ids]  # the track file's frames start at 100
+        np.testing.assert_array_equal(np.asarray(r["Points3D:positions"], np.float32), want)
+    bones = [r for r in got["/world/tracks/3/hands/bones"] if r.get("LineStrips3D:strips") is not None]
+    assert [len(r["LineStrips3D:strips"]) for r in bones] == [42, 42, 42, 21, 21]  # 2 x (wrist + 20)
+    for cam in rig.names:
+        h2 = [r for r in got[f"/world/cameras/{cam}/image/detections/hands"] if r.get("Points2D:positions")]
+        assert [len(r["Points2D:positions"]) for r in h2] == [42, 42, 42, 21, 21]
