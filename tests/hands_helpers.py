@@ -72,3 +72,37 @@ def wholebody_trackfile(xyz: np.ndarray, seed: int = 0) -> TrackFile:
         flags=np.where(known, OBSERVED, 0).astype(np.uint8),
         source="test",
     )
+
+
+def wholebody_session(
+    root, T: int = 20, n_people: int = 1, cams: int = 4, noise_px: float = 0.5, seed: int = 0
+):
+    """A small whole-body session: a ring rig, every camera's 2D in ``body19_hands`` (the walkers with their
+    hands projected, a little noise), triangulated with the ``whole_body`` skeleton and tracked (greedy).
+    Returns (layout, ground truth xyz (T,P,61,3))."""
+    from roomcap.capture.session import SessionLayout
+    from roomcap.keypoints.detections import Detections
+    from roomcap.synthetic.rigs import ring_rig
+    from roomcap.track.greedy_stage import track_session_greedy
+    from roomcap.triangulate.stage import triangulate_session
+
+    rng = np.random.default_rng(seed)
+    X = wholebody_xyz(n_people, T, seed=seed)
+    lay = SessionLayout(root)
+    rig = ring_rig(cams, radius_m=3.0)
+    rig.save(lay.calib_dir / "rig.toml")
+    for cam in rig:
+        xy = cam.project(X.reshape(-1, 3)).reshape(T, n_people, SK.n_joints, 2)
+        xy = (xy + rng.normal(0, noise_px, xy.shape)).astype(np.float32)
+        Detections(
+            camera=cam.name,
+            skeleton=SK.id,
+            frame_index=np.arange(T),
+            t_ns=np.arange(T) * 40_000_000,
+            xy_px=xy,
+            score=np.full(xy.shape[:3], 0.9, np.float32),
+            boxes=np.full((T, n_people, 5), np.nan),
+        ).save(lay.detections(cam.name))
+    triangulate_session(lay.root, {"skeleton": "whole_body"})
+    track_session_greedy(lay.root)
+    return lay, X

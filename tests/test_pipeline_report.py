@@ -469,3 +469,53 @@ def test_report_forecast_paths_with_the_samples_spread(tmp_path):
         assert 'id="fcsec" style="display: block;"' in dom, f"{name}: no forecast paths panel"
         note = dom.split('id="layoutNote"', 1)[1].split("</div>", 1)[0]
         assert ("4 samples" in note) if name == "sto" else ("deterministic" in note), note
+
+
+def test_whole_body_report_draws_the_hands(tmp_path):
+    """A whole-body session (2D in body19_hands, triangulated with the whole_body skeleton, tracked): the
+    report's 3D data has the 42 hand joints, every camera's overlay has the detected hands (matched to
+    the track) and the track's hands reprojected, within a few pixels of each other; the hand bones hang
+    off the wrists. A body-only session's overlays have no hand keys (its report unchanged); the page
+    draws without errors."""
+    from hands_helpers import SK, wholebody_session
+
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.keypoints.detections import Detections
+    from roomcap.keypoints.skeletons import HANDS
+    from roomcap.pipeline.report.views import HAND2D
+
+    lay, X = wholebody_session(tmp_path / "wb", T=12)
+    path = write_report(lay, title="whole body")
+    d = report_data(path)
+    T3 = d["tracks"]
+    assert T3["joint_names"][-42:] == list(HANDS)
+    xyz = np.asarray(T3["xyz"], np.float64)
+    assert np.isfinite(xyz[:, 0, -42:]).all()
+    par = {T3["joint_names"][c]: T3["joint_names"][p] for c, p in enumerate(T3["parents"]) if p >= 0}
+    assert par["left_hand_root"] == "left_wrist" and par["right_thumb1"] == "right_hand_root"
+    V = d["views"]
+    assert V["hand_names"] == list(HAND2D) and len(V["hand_parents"]) == 44
+    assert V["hand_names"][V["hand_parents"][HAND2D.index("right_hand_root")]] == "right_wrist"
+    assert V["hand_names"][V["hand_parents"][HAND2D.index("left_pinky_finger4")]] == "left_pinky_finger3"
+    # the overlays' hands: the detections' own 2D and the track's hands projected by the rig (rounded px)
+    rig, tf = CameraRig.load(lay.rig_toml), TrackFile.load(lay.tracks)
+    hj = [tf.joint_names.index(n) for n in HAND2D]
+    dj = [SK.index(n) for n in HAND2D]
+    for cam in V["cameras"]:
+        assert len(cam["overlays"]) == 12
+        det2d = Detections.load(lay.detections(cam["name"]))
+        for t, ov in enumerate(cam["overlays"]):
+            (k, det), (kp, proj) = ov["hdet"][0], ov["hproj"][0]
+            assert k == kp == 0 and len(det) == len(proj) == 88
+            a = np.asarray(det, float).reshape(44, 2)
+            b = np.asarray(proj, float).reshape(44, 2)
+            want = rig[cam["name"]].project(tf.xyz_m[t, 0, hj].astype(np.float64))
+            assert np.abs(b - want).max() <= 0.51
+            src = det2d.xy_px[t, 0, dj]
+            assert np.abs(a - src).max() <= 0.51
+            assert np.median(np.linalg.norm(a[2:] - b[2:], axis=-1)) < 40  # the same hands
+    body = report_data(write_report(make_session(tmp_path / "b", n_people=1, T=10)))
+    assert "hand_parents" not in (body["views"] or {})
+    if CHROMIUM is not None:
+        img, dom = render_in_browser(path, tmp_path, height=1800)
+        assert page_errors(dom) == "", f"page errors: {page_errors(dom)}"

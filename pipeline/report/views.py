@@ -1,4 +1,9 @@
-"""Per camera filmstrips for the page: video frames (JPEG) with the detections and the reprojected tracks."""
+"""Per camera filmstrips for the page: video frames (JPEG) with the detections and the reprojected tracks.
+
+Hands (a 2D layout ``*_hands``, a whole-body track with the 42 hand joints): each overlay frame also has
+``hdet`` / ``hproj``, per person the 44 points of :data:`HAND2D` (the two wrists, then the hands'
+joints), drawn with ``hand_parents`` (the hand roots hang from the wrists); absent without hands.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from roomcap.capture.session import VIDEO_SUFFIXES, SessionLayout
-from roomcap.keypoints.skeletons import CANONICAL, convert
+from roomcap.keypoints.skeletons import CANONICAL, HAND_BONES, HANDS, convert, get_skeleton
 from roomcap.pipeline.report.inputs import ReportConfig, _f, _Inputs
 from roomcap.triangulate.dlt import DLTConfig
 
@@ -39,6 +44,23 @@ def _video_paths(lay: SessionLayout, cams: list[str]) -> dict[str, Path]:
     return out
 
 
+HAND2D = ("left_wrist", "right_wrist") + HANDS
+_HP = {c: p for p, c in HAND_BONES} | {"left_hand_root": "left_wrist", "right_hand_root": "right_wrist"}
+HAND2D_PARENTS = [HAND2D.index(_HP[n]) if n in _HP else -1 for n in HAND2D]
+
+
+def _pick(a: np.ndarray, names, wanted) -> np.ndarray:
+    """``a (..., J, D)`` in the layout ``names`` -> ``(..., len(wanted), D)``, NaN for a name it lacks."""
+    idx = [list(names).index(n) if n in names else -1 for n in wanted]
+    out = np.asarray(a, np.float64)[..., [max(i, 0) for i in idx], :]
+    out[..., [k for k, i in enumerate(idx) if i < 0], :] = np.nan
+    return out
+
+
+def _has_hands(names) -> bool:
+    return all(n in names for n in HANDS)
+
+
 class _Overlay:
     """2D detections (body19, as detected: distorted pixels) and the tracks reprojected into each camera
     (with the lens model), per session frame; detections take the colour of the track they match."""
@@ -50,23 +72,39 @@ class _Overlay:
         self.cams = [c for c in (inp.rig.names if inp.rig is not None else []) if c in inp.detections]
         self.cams += [c for c in inp.detections if c not in self.cams]
         self.det = {}
+        self.hdet: dict[str, np.ndarray] = {}  # cam -> (F,P,44,2) wrists and hands (HAND2D)
         min_score = DLTConfig().min_score  # the joints the triangulation would use
         for cam in self.cams:
             d = inp.detections[cam]
             xy, sc = convert(d.xy_px, d.score, d.skeleton, "body19")
             xy = np.where((sc >= min_score)[..., None], xy, np.nan)
             self.det[cam] = ({int(f): i for i, f in enumerate(d.frame_index)}, xy)
+            names2d = get_skeleton(d.skeleton).joint_names
+            if _has_hands(names2d):  # the hands of the same people, with their wrists
+                hxy = np.where((np.asarray(d.score) >= min_score)[..., None], np.asarray(d.xy_px), np.nan)
+                self.hdet[cam] = _pick(hxy, names2d, HAND2D)
         self.parents = list(CANONICAL.parents)
         tf = inp.tracks
         self.untracked = tf is None
-        if tf is not None and list(tf.joint_names) == list(CANONICAL.joint_names):
-            self.xyz, self.fi, self.ids = np.asarray(tf.xyz_m, np.float64), np.asarray(tf.frame_index), None
+        body = CANONICAL.joint_names
+        self.hxyz = None
+        if tf is not None and all(n in tf.joint_names for n in body):  # body19, or a whole body by name
+            X = np.asarray(tf.xyz_m, np.float64)
+            self.xyz, self.fi, self.ids = _pick(X, tf.joint_names, body), np.asarray(tf.frame_index), None
+            if _has_hands(tf.joint_names):
+                self.hxyz = _pick(X, tf.joint_names, HAND2D)
         elif inp.poses is not None:  # no track file: the per-frame 3D poses, colour by slot
             p = inp.poses
-            self.xyz, self.fi = np.asarray(p.xyz_m, np.float64), np.asarray(p.frame_index)
+            X = np.asarray(p.xyz_m, np.float64)
+            names = tuple(p.joint_names)
+            self.xyz = X if names == body else _pick(X, names, body)
+            self.fi = np.asarray(p.frame_index)
+            if _has_hands(names):
+                self.hxyz = _pick(X, names, HAND2D)
             self.untracked = True
         else:
             self.xyz, self.fi = np.zeros((0, 0, len(CANONICAL.joint_names), 3)), np.zeros(0, np.int64)
+        self.hands = bool(self.hdet) or self.hxyz is not None
         self.row = {int(f): i for i, f in enumerate(self.fi)}
         self.err = {}
         if inp.poses is not None and inp.poses.cameras is not None:
@@ -86,26 +124,36 @@ class _Overlay:
         allf = [np.asarray(list(self.det[c][0])) for c in self.cams]
         return np.unique(np.concatenate(allf)) if allf else np.zeros(0, np.int64)
 
-    def project(self, cam: str, frames: np.ndarray) -> np.ndarray:
-        """(n,K,J,2) pixels of the 3D at ``frames`` in ``cam``; NaN where unknown or behind the camera."""
-        K, J = self.xyz.shape[1:3]
+    def project(self, cam: str, frames: np.ndarray, hands: bool = False) -> np.ndarray:
+        """(n,K,J,2) pixels of the 3D at ``frames`` in ``cam`` (``hands``: of the 44 :data:`HAND2D` points);
+        NaN where unknown or behind the camera."""
+        src = self.hxyz if hands else self.xyz
+        if src is None:
+            src = np.zeros(self.xyz.shape[:2] + (len(HAND2D), 3))
+        K, J = src.shape[1:3]
         out = np.full((len(frames), K, J, 2), np.nan)
         if self.rig is None or cam not in self.rig.names or K == 0:
             return out
         rows = np.asarray([self.row.get(int(f), -1) for f in frames])
         have = rows >= 0
         if have.any():
-            X = self.xyz[rows[have]].reshape(-1, 3)
+            X = src[rows[have]].reshape(-1, 3)
             out[have] = self.rig[cam].project(X).reshape(int(have.sum()), K, J, 2)
         return out
 
-    def detections(self, cam: str, frame: int) -> np.ndarray:
+    def detections(self, cam: str, frame: int, hands: bool = False) -> np.ndarray:
+        """(P,19,2) the people detected in ``cam`` at ``frame`` (those with a body joint); ``hands``: their
+        (P,44,2) :data:`HAND2D` points instead (NaN for a layout without hands)."""
         idx, xy = self.det[cam]
         i = idx.get(int(frame))
         if i is None:
-            return np.zeros((0, xy.shape[2], 2))
+            return np.zeros((0, len(HAND2D) if hands else xy.shape[2], 2))
         d = xy[i]
-        return d[np.isfinite(d[..., 0]).any(-1)]
+        keep = np.isfinite(d[..., 0]).any(-1)
+        if not hands:
+            return d[keep]
+        h = self.hdet.get(cam)
+        return h[i][keep] if h is not None else np.full((int(keep.sum()), len(HAND2D), 2), np.nan)
 
     def match(self, det: np.ndarray, proj: np.ndarray) -> np.ndarray:
         """(P,) the track index each detection (P,J,2) belongs to among the reprojections (K,J,2), or -1:
@@ -159,12 +207,21 @@ def _flat(xy: np.ndarray) -> list[int | None]:
     return [int(a) if np.isfinite(a) else None for a in v]
 
 
-def _frame_overlay(ov: _Overlay, cam: str, frame: int, proj: np.ndarray) -> dict[str, Any]:
+def _frame_overlay(
+    ov: _Overlay, cam: str, frame: int, proj: np.ndarray, hproj: np.ndarray | None = None
+) -> dict[str, Any]:
     det = ov.detections(cam, frame)
     who = ov.match(det, proj)
     P = [[int(k), _flat(d)] for k, d in zip(who, det, strict=True)]
     R = [[k, _flat(p)] for k, p in enumerate(proj) if np.isfinite(p[..., 0]).any()]
-    return {"det": P, "proj": R, "err": ov.frame_error(cam, frame)}
+    out = {"det": P, "proj": R, "err": ov.frame_error(cam, frame)}
+    if ov.hands:  # a hand shows where one of its joints is known (the wrists alone are the body's)
+        hd = ov.detections(cam, frame, hands=True)
+        seen = [np.isfinite(h[2:, 0]).any() for h in hd]
+        out["hdet"] = [[int(k), _flat(h)] for k, h, s in zip(who, hd, seen, strict=True) if s]
+        hp = ov.project(cam, np.asarray([frame]), hands=True)[0] if hproj is None else hproj
+        out["hproj"] = [[k, _flat(h)] for k, h in enumerate(hp) if np.isfinite(h[2:, 0]).any()]
+    return out
 
 
 def _read_frames(path: Path, wanted: list[int]) -> dict[int, np.ndarray]:
@@ -225,8 +282,9 @@ def _views_data(inp: _Inputs, cfg: ReportConfig) -> dict[str, Any] | None:
     coord_bytes = 0
     for cam in ov.cams:
         pr = ov.project(cam, probe)
+        hp = ov.project(cam, probe, hands=True) if ov.hands else [None] * len(probe)
         coord_bytes += sum(
-            len(json.dumps(_frame_overlay(ov, cam, int(f), pr[i]))) for i, f in enumerate(probe)
+            len(json.dumps(_frame_overlay(ov, cam, int(f), pr[i], hp[i]))) for i, f in enumerate(probe)
         )
     coord_bytes = max(1.0, coord_bytes / len(probe))
     img_bytes = 0.0
@@ -244,6 +302,9 @@ def _views_data(inp: _Inputs, cfg: ReportConfig) -> dict[str, Any] | None:
     sample = cand[np.unique(np.linspace(0, len(cand) - 1, n).round().astype(int))]
     out: dict[str, Any] = {"parents": ov.parents, "frames": sample.astype(int).tolist(), "cameras": []}
     out["untracked"] = ov.untracked
+    if ov.hands:
+        out["hand_names"] = list(HAND2D)
+        out["hand_parents"] = HAND2D_PARENTS
     out["sampled_every"] = round(len(cand) / max(1, len(sample)), 2)
     for cam in ov.cams:
         size = inp.rig[cam].size_wh if inp.rig is not None and cam in inp.rig.names else None
@@ -265,7 +326,8 @@ def _views_data(inp: _Inputs, cfg: ReportConfig) -> dict[str, Any] | None:
             "image_wh": None,
         }
         pr = ov.project(cam, sample)
-        view["overlays"] = [_frame_overlay(ov, cam, int(f), pr[i]) for i, f in enumerate(sample)]
+        hp = ov.project(cam, sample, hands=True) if ov.hands else [None] * len(sample)
+        view["overlays"] = [_frame_overlay(ov, cam, int(f), pr[i], hp[i]) for i, f in enumerate(sample)]
         if cam in videos:
             imgs = _read_frames(videos[cam], sample.astype(int).tolist())
             enc = []

@@ -306,7 +306,15 @@ let playing = false;
   if (!pts.length && D.rig) for (const k of D.rig.cameras) pts.push(k.center_m);
   V3.fit(pts);
 })();
-function skeleton(pose, col, w, std_m, alpha, box){ V3.skeleton(pose, T.parents, col, w, std_m, alpha, box); }
+// hand joints (COCO-WholeBody names: <side>_hand_root, <side>_thumb1..4, <side>_<finger>_finger1..4): drawn
+// thin after the body, from the wrists; a body track has none and draws as before
+const handJoint = T ? T.joint_names.map(n => /_(hand_root|thumb[1-4]|finger[1-4])$/.test(n)) : [];
+const hasHands = handJoint.some(h => h);
+const wristJoint = T ? T.joint_names.map(n => n === 'left_wrist' || n === 'right_wrist') : [];
+function skeleton(pose, col, w, std_m, alpha, box){
+  if (!hasHands || !pose) { V3.skeleton(pose, T.parents, col, w, std_m, alpha, box); return; }
+  V3.skeleton(pose.map((p, j) => handJoint[j] ? null : p), T.parents, col, w, std_m, alpha, box);
+  V3.skeleton(pose.map((p, j) => handJoint[j] || wristJoint[j] ? p : null), T.parents, col, Math.max(1, w * 0.4), 0, alpha); }
 const overlaps = (a, b) => a[0] < b[2] && b[0] < a[2] && a[1] < b[3] && b[1] < a[3];
 function cameraLabels(boxes){ // after the people: a label goes where it covers no one (and no other label), else it fades
   if (!D.rig) return; ctx.font = '12px system-ui,sans-serif'; const taken = boxes.slice();
@@ -395,6 +403,13 @@ function drawFilm(f){ const c = f.ctx, W = f.cv.width, H = f.cv.height, v = f.vi
     par.forEach((p, j) => { if (p < 0) return; const u = P(a, j), w = P(a, p); if (!u || !w) return; c.beginPath(); c.moveTo(u[0], u[1]); c.lineTo(w[0], w[1]); c.stroke(); });
     c.fillStyle = V.untracked ? '#ffffff' : color(k);
     par.forEach((p, j) => { const u = P(a, j); if (!u) return; c.beginPath(); c.arc(u[0], u[1], 2.6, 0, 7); c.fill(); c.strokeStyle = '#fff'; c.lineWidth = 0.8; c.stroke(); }); }
+  if (V.hand_parents) { const hp = V.hand_parents; // hands: thin, the detection's in its track's colour, the reprojection white
+    const bones = (a, col, w) => { c.strokeStyle = col; c.lineWidth = w; hp.forEach((p, j) => { if (p < 0) return; const u = P(a, j), q = P(a, p); if (!u || !q) return;
+      c.beginPath(); c.moveTo(u[0], u[1]); c.lineTo(q[0], q[1]); c.stroke(); }); };
+    if (showDet.checked) for (const [k, a] of ov.hdet || []) { c.globalAlpha = 0.85; bones(a, k >= 0 ? color(k) : '#aaaaaa', 1.6); }
+    c.globalAlpha = 1;
+    if (showProj.checked) for (const [k, a] of ov.hproj || []) { bones(a, '#ffffff', 0.8); c.fillStyle = V.untracked ? '#ffffff' : color(k);
+      hp.forEach((p, j) => { if (j < 2) return; const u = P(a, j); if (!u) return; c.beginPath(); c.arc(u[0], u[1], 1.3, 0, 7); c.fill(); }); } }
   f.label.textContent = `frame ${V.frames[i]}` + (ov.err !== null && ov.err !== undefined ? ` · ${ov.err.toFixed(1)} px` : '');
   if (f.strip) { if (f.on) f.on.classList.remove('on'); const t = f.strip.children[i]; if (t) { t.classList.add('on'); f.on = t;
     const s = f.strip, left = t.offsetLeft - s.offsetLeft; if (left < s.scrollLeft || left + t.offsetWidth > s.scrollLeft + s.clientWidth) s.scrollLeft = left - s.clientWidth / 2; } } }
