@@ -519,3 +519,39 @@ def test_whole_body_report_draws_the_hands(tmp_path):
     if CHROMIUM is not None:
         img, dom = render_in_browser(path, tmp_path, height=1800)
         assert page_errors(dom) == "", f"page errors: {page_errors(dom)}"
+
+
+def test_whole_body_overlay_video_draws_the_hands(tmp_path):
+    """The overlay video of a whole-body session draws the finger bones: pixels around the projected
+    hands differ from the same frame drawn without the hands."""
+    from hands_helpers import wholebody_session
+
+    from roomcap.pipeline.report.inputs import _load
+    from roomcap.pipeline.report.overlay_video import draw_overlay
+    from roomcap.pipeline.report.views import HAND2D_PARENTS, _Overlay
+
+    lay, _ = wholebody_session(tmp_path / "wb", T=4)
+    (path, *_) = write_overlay_videos(lay)
+    cap = cv2.VideoCapture(str(path))
+    ok, img = cap.read()
+    cap.release()
+    assert ok
+    ov = _Overlay(_load(lay), ReportConfig())
+    cam = ov.cams[0]
+    det, proj = ov.detections(cam, 0), ov.project(cam, np.asarray([0]))[0]
+    hp = ov.project(cam, np.asarray([0]), hands=True)[0]
+    blank = np.full_like(img, 24)
+    plain = draw_overlay(blank.copy(), det, ov.match(det, proj), proj, ov.parents)
+    with_hands = draw_overlay(
+        blank.copy(),
+        det,
+        ov.match(det, proj),
+        proj,
+        ov.parents,
+        (ov.detections(cam, 0, hands=True), hp, HAND2D_PARENTS),
+    )
+    changed = np.abs(with_hands.astype(int) - plain.astype(int)).sum(-1) > 30
+    assert changed.sum() > 100  # finger bones drawn
+    # the video's frame (MP4V-compressed) shows them where they were drawn
+    on = np.abs(img.astype(int) - 24).sum(-1) > 60
+    assert (on & changed).sum() > 0.5 * changed.sum()

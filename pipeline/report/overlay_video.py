@@ -12,7 +12,7 @@ from roomcap.core.errors import FormatError
 from roomcap.core.fileio import atomic_path
 from roomcap.core.progress import Progress
 from roomcap.pipeline.report.inputs import ReportConfig, _load
-from roomcap.pipeline.report.views import _Overlay, _video_paths
+from roomcap.pipeline.report.views import HAND2D_PARENTS, _Overlay, _video_paths
 
 log = logging.getLogger(__name__)
 
@@ -30,15 +30,29 @@ _COLORS = (
 ).split()
 
 
-def draw_overlay(img: np.ndarray, det: np.ndarray, who: np.ndarray, proj: np.ndarray, parents) -> np.ndarray:
+def draw_overlay(
+    img: np.ndarray, det: np.ndarray, who: np.ndarray, proj: np.ndarray, parents, hands=None
+) -> np.ndarray:
     """Draw detections (P,J,2) as thick skeletons in their track's colour (grey: no track) and the
-    reprojected tracks (K,J,2) as thin white-edged skeletons with dots, on a BGR image (in place)."""
+    reprojected tracks (K,J,2) as thin white-edged skeletons with dots, on a BGR image (in place).
+    ``hands``: ``(det (P,44,2), proj (K,44,2), parents (44,))`` of :data:`HAND2D`, drawn thinner."""
     import cv2
 
     def pt(p):
         return (int(round(p[0])), int(round(p[1])))
 
     s = max(1, round(max(img.shape[:2]) / 700))
+    if hands is not None:
+        hdet, hproj, hpar = hands
+        for d, k in zip(hdet, who, strict=True):
+            col = _bgr(int(k)) if k >= 0 else (170, 170, 170)
+            for j, p in enumerate(hpar):
+                if p >= 0 and np.isfinite(d[j]).all() and np.isfinite(d[p]).all():
+                    cv2.line(img, pt(d[j]), pt(d[p]), col, s + 1, cv2.LINE_AA)
+        for q in hproj:
+            for j, p in enumerate(hpar):
+                if p >= 0 and np.isfinite(q[j]).all() and np.isfinite(q[p]).all():
+                    cv2.line(img, pt(q[j]), pt(q[p]), (255, 255, 255), 1, cv2.LINE_AA)
     for d, k in zip(det, who, strict=True):
         col = _bgr(int(k)) if k >= 0 else (170, 170, 170)
         for j, p in enumerate(parents):
@@ -102,6 +116,7 @@ def write_overlay_videos(
                 for start in range(0, len(frames), 256):
                     chunk = frames[start : start + 256]
                     proj = ov.project(cam, chunk)
+                    hproj = ov.project(cam, chunk, hands=True) if ov.hands else None
                     for n, f in enumerate(chunk):
                         f = int(f)
                         img = None
@@ -115,7 +130,10 @@ def write_overlay_videos(
                         if img is None:
                             img = np.full((size[1], size[0], 3), 24, np.uint8)
                         det = ov.detections(cam, f)
-                        draw_overlay(img, det, ov.match(det, proj[n]), proj[n], ov.parents)
+                        hands = None
+                        if hproj is not None:
+                            hands = (ov.detections(cam, f, hands=True), hproj[n], HAND2D_PARENTS)
+                        draw_overlay(img, det, ov.match(det, proj[n]), proj[n], ov.parents, hands)
                         cv2.putText(
                             img,
                             f"{cam}  frame {f}",
