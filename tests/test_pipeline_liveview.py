@@ -675,3 +675,78 @@ def test_a_slow_forecast_never_holds_up_the_live_loop(monkeypatch):
     assert fc.n_superseded >= len(steps) - 4 and fc.n_forecast <= 4
     later = steps[-1].frameset.t_ns + int(2e9)
     assert fc.view_data(steps[-1].frameset.t_ns)["tracks"] and not fc.view_data(later)["tracks"]
+
+
+def _wholebody_step(rig, names, t=0):
+    """A step whose track estimate has a whole body (body19 and both hands, the right hand unseen) and
+    whose detections are in ``body19_hands``."""
+    from hands_helpers import SK, wholebody_xyz
+
+    from roomcap.keypoints.skeletons import HANDS
+
+    X = wholebody_xyz(1, 4)[t]  # (1,61,3)
+    X[0, [SK.index(n) for n in HANDS[21:]]] = np.nan
+    step = _step(rig, names, t, X[:, :J].copy())
+    uv = rig.project(np.nan_to_num(X).reshape(-1, 3)).reshape(len(names), 1, SK.n_joints, 2)
+    uv[:, ~np.isfinite(X).all(-1)] = np.nan
+    for c, n in enumerate(names):
+        sc = np.full(uv.shape[1:3], 0.9)
+        step.outputs["detections"][n] = SimpleNamespace(xy_px=uv[c], score=sc, skeleton=SK.id)
+    step.outputs["tracks"] = SimpleNamespace(
+        track_id=np.array([3]), xyz_m=X, std_m=np.full(X.shape[:2], 0.02), joint_names=SK.joint_names
+    )
+    return step, X, uv
+
+
+def test_a_track_with_hands_sends_them_to_the_page():
+    """The state of a whole-body estimate: the body as before (19 joints, by name), the track's hands
+    (the wrists and 42 joints, the unseen right hand null), the hands detected and reprojected per
+    camera; a body-only step's state has no hand key."""
+    from hands_helpers import SK
+
+    from roomcap.pipeline.report.views import HAND2D
+
+    rig, names, view = _setup()
+    h = view.hello()
+    assert h["hand_names"] == list(HAND2D) and len(h["hand_parents"]) == 44
+    step, X, uv = _wholebody_step(rig, names)
+    st = json.loads(to_json(view.state(step, 0.0)))
+    (tr,) = st["tracks"]
+    np.testing.assert_allclose(np.asarray(tr["xyz"], float).reshape(J, 3), X[0, :J], atol=1e-3)
+    hands = np.asarray([np.nan if v is None else v for v in tr["hands"]], float).reshape(44, 3)
+    want = X[0, [SK.index(n) for n in HAND2D]]
+    np.testing.assert_allclose(hands, want, atol=1e-3)
+    assert np.isnan(hands[23:]).all() and np.isfinite(hands[:23]).all()  # right hand unseen
+    for c, cam in enumerate(names):
+        (d,) = st["hdet"][cam]
+        d = np.asarray([np.nan if v is None else v for v in d], float).reshape(44, 2)
+        np.testing.assert_allclose(d[2:23], uv[c, 0, [SK.index(n) for n in HAND2D[2:23]]], atol=0.06)
+        ((tid, p),) = st["hproj"][cam]
+        p = np.asarray([np.nan if v is None else v for v in p], float).reshape(44, 2)
+        assert tid == 3
+        np.testing.assert_allclose(p[2:23], d[2:23], atol=0.1)
+    body = json.loads(to_json(view.state(_step(rig, names, 0, np.stack([_person()])), 0.0)))
+    assert "hdet" not in body and "hproj" not in body and "hands" not in body["tracks"][0]
+
+
+@need_chromium
+def test_the_page_draws_a_track_with_hands_without_errors(tmp_path):
+    from roomcap.pipeline.liveview.browser import HeadlessBrowser
+
+    rig, names, view = _setup()
+    view.start()
+    try:
+        with HeadlessBrowser(tmp_path / "chrome") as b:
+            b.open(view.url)
+            drawn = None
+            for t in range(60):
+                view.offer(_wholebody_step(rig, names, t % 4)[0])
+                time.sleep(0.1)
+                drawn = b.evaluate("document.body.dataset.panesDrawn === '2' && document.body.dataset.people")
+                if drawn == "1":
+                    break
+            b.screenshot(tmp_path / "hands.png")
+            errors = list(b.page_errors)
+    finally:
+        view.stop()
+    assert drawn == "1" and errors == []

@@ -91,6 +91,9 @@ function drawPane(cam, p){
   if (st) {
     c.globalAlpha = 0.8; for (const d of (st.det[cam] || [])) drawPose(c, d, par, sx, sy, '#ffd23f', 3, null); c.globalAlpha = 1;
     for (const [id, a] of (st.proj[cam] || [])) drawPose(c, a, par, sx, sy, '#ffffff', 1.1, color(id));
+    if (hello.hand_parents) { const hp = hello.hand_parents; // hands: thinner, the same colours
+      c.globalAlpha = 0.8; for (const d of ((st.hdet || {})[cam] || [])) drawPose(c, d, hp, sx, sy, '#ffd23f', 1.4, null); c.globalAlpha = 1;
+      for (const [, a] of ((st.hproj || {})[cam] || [])) drawPose(c, a, hp, sx, sy, '#ffffff', 0.7, null); }
     const s = st.cameras[cam] || {};
     p.info.textContent = `${s.fps === null || s.fps === undefined ? '–' : s.fps} fps · dropped ${s.dropped || 0}`;
   }
@@ -108,6 +111,8 @@ function draw3d(){
     const pose = []; for (let j = 0; j < J; j++) pose.push([t.xyz[3 * j], t.xyz[3 * j + 1], t.xyz[3 * j + 2]]);
     const sd = t.std.filter(v => v !== null), std = sd.length ? sd.reduce((a, b) => a + b, 0) / sd.length : 0;
     V3.skeleton(pose, hello.parents, color(t.id), 3.2, std, 1, null);
+    if (t.hands && hello.hand_parents) { const hp = []; for (let j = 0; j < hello.hand_parents.length; j++) hp.push([t.hands[3 * j], t.hands[3 * j + 1], t.hands[3 * j + 2]]);
+      V3.skeleton(hp, hello.hand_parents, color(t.id), 1.3, 0, 1, null); }
     const top = pose[hello.joint_names.indexOf('nose')] || pose[0];
     const anchor = V3.fin(top) ? top : pose.find(V3.fin);
     if (anchor) { const q = V3.project([anchor[0], anchor[1], anchor[2] + 0.25]); if (q) {

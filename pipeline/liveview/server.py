@@ -26,6 +26,12 @@ state with ``{"ack": seq, "t_capture_ms": ...}``: the server's own latency measu
 hips' midpoint, "ghost" (J,3) the pose at the horizon}`` and its cost; the page's toggle sends
 ``{"forecast": false|true}``, which switches the forecaster off or on.
 
+Hands: ``hello`` names the 44 hand points (``hand_names``: the two wrists, then the 42 hand joints) and
+their tree (``hand_parents``). A track estimate with hands (its ``joint_names`` has them) gives its track
+``"hands"`` (44×3) beside the body's ``xyz`` (body19, by name), and ``hproj`` the hands reprojected per
+camera; 2D detections in a ``*_hands`` layout give ``hdet`` per camera. Without hands the state is as
+before.
+
 Access: the server listens on 127.0.0.1 by default. Another address (``--view-host``) needs a token
 (``--view-token TOKEN``, or ``auto`` for a random one printed once in the page's URL); every request
 without it is answered 403. Timestamps: ``t_capture_ms`` is the newest frame of the set's host arrival
@@ -57,8 +63,9 @@ from roomcap.capture.config import CaptureConfig
 from roomcap.capture.live import LiveRunner, LiveStep, jump_line
 from roomcap.capture.sources import host_now_ns
 from roomcap.core.errors import InputError
-from roomcap.keypoints.skeletons import CANONICAL, convert
+from roomcap.keypoints.skeletons import CANONICAL, HANDS, convert, get_skeleton
 from roomcap.pipeline.report import rig_cameras_data
+from roomcap.pipeline.report.views import HAND2D, HAND2D_PARENTS
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +150,14 @@ def _flat(a: np.ndarray, nd: int = 1) -> list[float]:
 
 
 _NAN = re.compile(r"(?<=[\[,:\s])(?:NaN|-?Infinity)(?=[\],}\s])")
+
+
+def _by_name(a: np.ndarray, names, wanted) -> np.ndarray:
+    """``a (..., J, D)`` in the layout ``names`` -> ``(..., len(wanted), D)``, NaN for a name it lacks."""
+    idx = [names.index(n) if n in names else -1 for n in wanted]
+    out = np.asarray(a, np.float64)[..., [max(i, 0) for i in idx], :]
+    out[..., [k for k, i in enumerate(idx) if i < 0], :] = np.nan
+    return out
 
 
 def to_json(obj: Any) -> str:
@@ -471,6 +486,8 @@ class LiveView:
             "rig": rig,
             "joint_names": list(CANONICAL.joint_names),
             "parents": list(CANONICAL.parents),
+            "hand_names": list(HAND2D),
+            "hand_parents": list(HAND2D_PARENTS),
             "fps": max(c.fps or 30.0 for c in self.capture.cameras),
             "image_hz": self.cfg.image_hz,
             "forecast": None if self.forecast is None else {"on": self.forecast.enabled},
@@ -506,30 +523,51 @@ class LiveView:
         est = step.outputs.get("tracks")
         tracks = []
         shown: list[tuple[int, np.ndarray]] = []  # (track id, xyz (J,3)) of the tracks present
+        hshown: list[tuple[int, np.ndarray]] = []  # (track id, (44,3) wrists and hands) where a hand is known
         if est is not None:
             ids = np.asarray(est.track_id).reshape(-1)
-            J = CANONICAL.n_joints if not len(ids) else -1  # an empty room: (0, J, 3), not (0, -1, 3)
+            names = getattr(est, "joint_names", None)
+            names = CANONICAL.joint_names if names is None else tuple(names)
+            J = len(names) if not len(ids) else -1  # an empty room: (0, J, 3), not (0, -1, 3)
             xyz = np.asarray(est.xyz_m, np.float64).reshape(len(ids), J, 3)
             std = np.asarray(est.std_m, np.float64).reshape(len(ids), J)
+            hx = None
+            if names != CANONICAL.joint_names:  # a whole body: the body19 joints by name, the hands apart
+                hx = _by_name(xyz, names, HAND2D) if all(n in names for n in HANDS) else None
+                xyz = _by_name(xyz, names, CANONICAL.joint_names)
+                std = _by_name(std[..., None], names, CANONICAL.joint_names)[..., 0]
             for k, tid in enumerate(ids):
                 if not np.isfinite(xyz[k]).all(-1).any():
                     continue
                 shown.append((int(tid), xyz[k]))
-                tracks.append({"id": int(tid), "xyz": _flat(xyz[k], 3), "std": _flat(std[k], 3)})
+                tr = {"id": int(tid), "xyz": _flat(xyz[k], 3), "std": _flat(std[k], 3)}
+                if hx is not None and np.isfinite(hx[k, 2:]).all(-1).any():
+                    tr["hands"] = _flat(hx[k], 3)
+                    hshown.append((int(tid), hx[k]))
+                tracks.append(tr)
         det: dict[str, list[list[float | None]]] = {}
         proj: dict[str, list[Any]] = {}
+        hdet: dict[str, list[list[float | None]]] = {}
+        hproj: dict[str, list[Any]] = {}
         dets = step.outputs.get("detections") or {}
         for cam in self.cameras:
             d = dets.get(cam)
             if d is not None and len(getattr(d, "xy_px", ())):
                 xy = np.asarray(d.xy_px, np.float64)
                 skel = getattr(d, "skeleton", CANONICAL.id)
+                names2d = get_skeleton(skel).joint_names
+                if all(n in names2d for n in HANDS):
+                    hxy = _by_name(xy, names2d, HAND2D)
+                    hdet[cam] = [_flat(h) for h in hxy if np.isfinite(h[2:]).all(-1).any()]
                 if skel != CANONICAL.id:
                     xy, _ = convert(xy, np.asarray(d.score), skel, CANONICAL)
                 det[cam] = [_flat(p) for p in xy]
             if self.rig is not None and shown and cam in self.rig.names:
                 uv = self.rig[cam].project(np.concatenate([x for _, x in shown])).reshape(len(shown), -1, 2)
                 proj[cam] = [[tid, _flat(uv[k])] for k, (tid, _) in enumerate(shown)]
+            if self.rig is not None and hshown and cam in self.rig.names:
+                uv = self.rig[cam].project(np.concatenate([x for _, x in hshown])).reshape(len(hshown), -1, 2)
+                hproj[cam] = [[tid, _flat(uv[k])] for k, (tid, _) in enumerate(hshown)]
         live: dict[str, Any] = {}
         if self.runner is not None:
             s = self.runner.stats
@@ -557,6 +595,8 @@ class LiveView:
             "live": live,
             "view": {"clients": len(self._clients), "dropped_updates": self.dropped_updates},
             "forecast": self._forecast_state(int(fs.t_ns)),
+            **({"hdet": hdet} if hdet else {}),
+            **({"hproj": hproj} if hproj else {}),
         }
 
     def _forecast_state(self, now_ns: int) -> dict[str, Any] | None:
