@@ -235,3 +235,49 @@ def test_exports_carry_hand_markers(tmp_path):
 
         c = ezc3d.c3d(str(tmp_path / "s_1.c3d"))
         assert c["parameters"]["POINT"]["LABELS"]["value"][-1] == "right_pinky_finger4"
+
+
+def test_a_hand_seen_by_one_view_is_never_a_3d_point_downstream(tmp_path, rng):
+    """Hand joints one camera sees (the others do not) keep their 2D and get no 3D anywhere: the poses
+    (NaN, 0 views), the greedy and the particle track files (NaN, flags 0: neither observed, nor filled,
+    nor predicted), while the joints every camera sees are there in both."""
+    from roomcap.track.stage import track_session_particle
+    from roomcap.track.trackfile import OBSERVED
+
+    X = _person_with_hands(rng)
+    rig = ring_rig(4, radius_m=3.0)
+    lay = SessionLayout(tmp_path)
+    rig.save(lay.calib_dir / "rig.toml")
+    T = 12
+    right = [SK.index(n) for n in HANDS[21:]]  # the whole right hand: camera 0 only
+    for c, cam in enumerate(rig):
+        xy = np.stack([cam.project(np.nan_to_num(X + [0.01 * t, 0, 0])) for t in range(T)])[:, None]
+        xy = xy.astype(np.float32)
+        xy[:, :, np.isnan(X[:, 0])] = np.nan
+        if c > 0:
+            xy[:, :, right] = np.nan
+        Detections(
+            camera=cam.name,
+            skeleton=SK.id,
+            frame_index=np.arange(T),
+            t_ns=np.arange(T) * 40_000_000,
+            xy_px=xy,
+            score=np.where(np.isfinite(xy[..., 0]), 0.9, 0.0),
+            boxes=np.full((T, 1, 5), np.nan),
+        ).save(lay.detections(cam.name))
+    assert np.isfinite(Detections.load(lay.detections("cam00")).xy_px[:, 0, right]).all()  # the 2D stays
+    p = Poses3D.load(triangulate_session(lay.root, {"skeleton": "whole_body"}))
+    wb = whole_body([SK.id])
+    R3 = [wb.index(n) for n in HANDS[21:]]
+    L3 = [wb.index(n) for n in HANDS[:21]]
+    assert np.isnan(p.xyz_m[:, 0, R3]).all() and (p.n_views[:, 0, R3] == 0).all()
+    greedy = TrackFile.load(track_session_greedy(lay.root))
+    particle = TrackFile.load(
+        track_session_particle(lay.root, {"skeleton": "whole_body", "n_samples": 200, "chunk_s": 0})
+    )
+    for tf in (greedy, particle):
+        assert tf.joint_names == wb.joint_names
+        k = 0
+        assert np.isnan(tf.xyz_m[:, k, R3]).all() and (tf.flags[:, k, R3] == 0).all(), tf.source
+        seen = (tf.flags[:, k, L3] & OBSERVED) > 0
+        assert seen.mean() > 0.8, tf.source  # the left hand, seen by every camera, is tracked
