@@ -471,7 +471,8 @@ def _frame_rotations(
                         b.append(Gp.T @ (x[g] - P[j]))
                         w.append(skel.opt.twist_weight)
         R = None
-        if j in skel.hinge_axis and kn[ch[0]]:
+        hinge = j in skel.hinge_axis and kn[ch[0]]
+        if hinge:
             ax, o, u = skel.hinge_axis[j], rest[ch[0]], b[0]
             u_p, o_p = u - ax * (ax @ u), o - ax * (ax @ o)
             if np.linalg.norm(u_p) > 1e-9:
@@ -479,7 +480,10 @@ def _frame_rotations(
                 theta = np.arctan2(ax @ np.cross(o_p, u_p), o_p @ u_p)
                 theta = np.clip(phi0 + theta, lo, hi) - phi0
                 R = Rotation.from_rotvec(ax * theta).as_matrix()
-        elif len(a) >= 2:
+        else:  # a zero-length bone (a hand root on its wrist) or a child on the joint gives no direction
+            keep = [k for k in range(len(a)) if np.linalg.norm(a[k]) > 1e-9 and np.linalg.norm(b[k]) > 1e-9]
+            a, b, w = [a[k] for k in keep], [b[k] for k in keep], [w[k] for k in keep]
+        if not hinge and len(a) >= 2:
             R = wahba(_unit(np.asarray(a)), _unit(np.asarray(b)), np.asarray(w))
         if R is None and len(a) >= 1:  # one direction: swing from the previous frame's rotation
             R = min_rotation(Lprev[j] @ a[0], b[0]) @ Lprev[j]

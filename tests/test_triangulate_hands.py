@@ -182,7 +182,7 @@ def test_import_missing_path(tmp_path, bad):
 
 def test_exports_carry_hand_markers(tmp_path):
     """A track with hands: TRC (and C3D where ezc3d is installed), CSV and JSON name the hand markers as
-    COCO-WholeBody does; BVH is not asked (the fit needs every joint known in a frame)."""
+    COCO-WholeBody does; the BVH has a JOINT per hand joint, the fingers hanging off the wrists."""
     from track_helpers import walkers
 
     from roomcap.outputs.export import ExportOptions, export_tracks, read_csv
@@ -212,7 +212,7 @@ def test_exports_carry_hand_markers(tmp_path):
         flags=np.where(known, OBSERVED, 0).astype(np.uint8),
         source="test",
     )
-    formats = ("trc", "csv", "json")
+    formats = ("trc", "csv", "json", "bvh")
     try:
         import ezc3d  # noqa: F401
 
@@ -230,6 +230,9 @@ def test_exports_carry_hand_markers(tmp_path):
     back = read_csv(tmp_path / "s_1.csv", sk.joint_names)
     np.testing.assert_allclose(back["xyz_m"][:, 0], xyz[:, 0], atol=1e-6)
     assert read_json(tmp_path / "s_1.json").joint_names == sk.joint_names
+    bvh = (tmp_path / "s_1.bvh").read_text()
+    assert "JOINT right_pinky_finger4" in bvh and bvh.count("JOINT left_") > 21
+    assert bvh.index("JOINT left_wrist") < bvh.index("JOINT left_hand_root") < bvh.index("JOINT left_thumb1")
     if "c3d" in formats:
         import ezc3d
 
