@@ -72,23 +72,25 @@ def test_blender_imports_one_armature_per_person(tmp_path):
 def test_blender_imports_finger_bones(tmp_path):
     """A whole-body track (body19 and both hands, fingers curling): the BVH's finger bones hang off the
     wrists, 4 per finger from the hand root, and Blender's armature has them at the fitted positions and
-    lengths; the right hand is unseen for a stretch (held, not dropped)."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
+    lengths; the right hand is unseen for a stretch (held, not dropped). A second person whose right hand
+    is never seen imports too (that hand's bones collapsed on the wrist)."""
     from hands_helpers import SK, wholebody_trackfile, wholebody_xyz
 
     from roomcap.keypoints.skeletons import FINGERS, HANDS
 
-    xyz = wholebody_xyz(1, 30) + np.random.default_rng(2).normal(0, 0.002, (30, 1, SK.n_joints, 3))
+    xyz = wholebody_xyz(2, 30) + np.random.default_rng(2).normal(0, 0.002, (30, 2, SK.n_joints, 3))
     right = [SK.index(n) for n in HANDS[21:]]
     xyz[12:26, 0, right] = np.nan  # longer than the fit's gap filling
+    xyz[:, 1, right] = np.nan  # never seen
     fit = fit_skeletons(wholebody_trackfile(xyz))
-    path = tmp_path / "S_3.bvh"
-    write_bvh(fit, path)
-    got = blender_import([path], tmp_path / "probe.json")
-    stats = check_armatures(fit, {3: path}, got)
-    a = got["armatures"][0]
+    files = {tid: tmp_path / f"S_{tid}.bvh" for tid in (3, 4)}
+    for tid, path in files.items():
+        write_bvh(fit, path, track_ids=[tid])
+    got = blender_import(list(files.values()), tmp_path / "probe.json")
+    stats = check_armatures(fit, files, got)
+    assert np.isnan(fit.finger_lengths_m(1)["right_thumb"]).all()
+    path = files[3]
+    a = next(x for x in got["armatures"] if x["file"] == str(path))
     par = a["parents"]
     for side in ("left", "right"):
         assert par[f"{side}_hand_root"] == f"{side}_wrist"
