@@ -258,7 +258,7 @@ def fit_track(tf: TrackFile, track: int, options: FitOptions = FitOptions()) -> 
     L[jidx] = np.nan_to_num(Lt)
     # rest pose: the most confident frame with every body joint known; virtual joints sit on their parent;
     # each hand from its own best frame, turned with the forearm
-    conf = np.where(full, tf.confidence[rows, k].sum(-1), -np.inf)
+    conf = np.where(full, tf.confidence[rows, k][:, ~hand_t].sum(-1), -np.inf)  # the body's own confidence
     r0 = int(np.argmax(conf))
     Xr = X[r0].copy()
     hand = np.zeros(F, bool)

@@ -420,3 +420,24 @@ def test_cli_fit_lists_finger_bones(tmp_path, capsys):
     sess1 = _session(tmp_path / "b", _walkers(1, 20))
     assert tracks_main(["fit", str(sess1)]) == 0
     assert "hand bones" not in capsys.readouterr().out
+
+
+def test_fit_with_hands_leaves_the_body_as_the_body_only_fit():
+    """The hands are fitted beside the body: the body joints of a whole-body fit are the body-only fit's
+    (same rest pose, same per-frame solution), and the fingers follow the track within a few mm."""
+    from hands_helpers import SK, wholebody_trackfile, wholebody_xyz
+
+    from roomcap.keypoints.skeletons import HANDS
+
+    xyz = wholebody_xyz(1, 20) + np.random.default_rng(4).normal(0, 0.002, (20, 1, SK.n_joints, 3))
+    tf = wholebody_trackfile(xyz)
+    body = TrackFile(
+        fps=tf.fps, frame_index=tf.frame_index, t_ns=tf.t_ns, track_id=tf.track_id,
+        joint_names=CANONICAL.joint_names, parents=np.asarray(CANONICAL.parents), xyz_m=tf.xyz_m[:, :, :19],
+        confidence=tf.confidence[:, :, :19], std_m=tf.std_m[:, :, :19], flags=tf.flags[:, :, :19], source="t",
+    )  # fmt: skip
+    fb, fh = fit_skeletons(body), fit_skeletons(tf)
+    np.testing.assert_allclose(fh.joint_positions()[:, :, :19], fb.joint_positions(), atol=1e-9)
+    H = [SK.index(n) for n in HANDS]
+    e = fh.fit_error_m[:, 0, H]
+    assert np.median(e) < 0.005 and e.max() < 0.02, (np.median(e), e.max())
