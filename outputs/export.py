@@ -27,7 +27,8 @@ One file per person and format, named ``<session>_<track id>.<ext>`` (:func:`exp
   confidence, std_m, flags`` (world metres, z up, as the track file); :func:`read_csv` reads it back.
 - **JSON**: :func:`roomcap.track.trackfile.export_json` for one track (confidence, std_m, flags).
 - **BVH**: the fitted skeleton (:mod:`roomcap.outputs.skeleton_fit`), written by
-:func:`roomcap.outputs.bvh.write_bvh`.
+:func:`roomcap.outputs.bvh.write_bvh`; a whole-body track's fingers are bones hanging off the wrists
+(4 per finger from the hand root, COCO-WholeBody names).
 
 ``ExportOptions(lowpass_hz=6)`` (``tracks export --lowpass 6``) low-pass filters the positions first, as
 Pose2Sim filters its 3D before OpenSim (:func:`lowpass`: Butterworth, order 4, zero phase). Off by
