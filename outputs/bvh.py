@@ -2,8 +2,9 @@
 
 Metres, y up like the TRC: world (x, y, z) -> (x, z, -y); joint names as in the track file; every joint
 is a BVH JOINT with ``Zrotation Xrotation Yrotation`` channels, and leaves end in a short End Site so
-every joint is a bone head in Blender. A whole-body fit's hands are joints like any other: ``<side>_hand_root``
-under the wrist, then ``<side>_thumb1``..4, ``<side>_forefinger1``..4, ... each finger a chain of 4.
+every joint is a bone head in Blender. A whole-body fit's hands are joints like any other:
+``<side>_hand_root`` under the wrist, then ``<side>_thumb1``..4, ``<side>_forefinger1``..4, ... each finger
+a chain of 4.
 """
 
 from __future__ import annotations
