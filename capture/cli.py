@@ -98,7 +98,9 @@ def _record(
                 file=sys.stderr,
             )
             return 2
-        live = LiveRunner(cfg, out, build_stages=build_live)
+        # the stages are built on the live thread while the cameras start (their imports and the 2D
+        # models' warm-up took about 1.5 s before a recording could start)
+        live = LiveRunner(cfg, out, build_stages=build_live, build_in_background=True)
     rec = Recorder(
         cfg,
         out,

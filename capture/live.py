@@ -100,6 +100,7 @@ class LiveRunner:
         stages: dict[str, Stage] | None = None,
         queue_size: int | None = None,
         build_stages: BuildStages | None = None,
+        build_in_background: bool = False,
     ):
         self.cfg = cfg
         self.layout = SessionLayout(out)
@@ -115,10 +116,16 @@ class LiveRunner:
         self._threads: list[threading.Thread] = []
         self.stopped_ns: int | None = None  # host_now_ns when the stop was seen
         self.ended_ns: int | None = None  # host_now_ns when the live loop ended (stages closed)
-        if stages is None:
+        # build_in_background: the stages (the 2D models' load and warm-up, the tracker's imports) are built
+        # on the live thread while the recording starts, not before it; the sets that come meanwhile are
+        # dropped as stale (counted); ``stages_ready_ns`` says when they were ready
+        self._build = build_stages if stages is None and build_in_background else None
+        self.stages_ready_ns: int | None = None
+        if stages is None and self._build is None:
             stages, errors = build_stages(cfg, self.layout) if build_stages is not None else ({}, {})
             self.stats.errors.update(errors)
-        self.stages = stages
+        self.stages = stages or {}
+        self.planned = tuple(self.stages) if self._build is None else tuple(cfg.live.stages)
         self.stats.stage_ms = {k: 0.0 for k in self.stages}
         self.on_step: Callable[[LiveStep], None] | None = None  # e.g. a viewer
         self.reports: list[Callable[[], str]] = []  # more of the summary line (e.g. the forecast's cost)
@@ -194,7 +201,22 @@ class LiveRunner:
             return fs
 
     # ------------------------------------------------------------------ live thread
+    def _build_stages(self) -> None:
+        t0 = time.perf_counter()
+        stages, errors = self._build(self.cfg, self.layout)
+        self.stats.errors.update(errors)
+        self.stats.stage_ms = {k: 0.0 for k in stages}
+        self.stages = stages
+        self.stages_ready_ns = host_now_ns()
+        log.info("live: stages %s ready in %.2f s", ", ".join(stages) or "(none)", time.perf_counter() - t0)
+
     def _run(self) -> None:
+        if self._build is not None:
+            try:
+                self._build_stages()
+            except Exception as e:  # noqa: BLE001 - said like a stage that cannot be built
+                log.exception("live: building the stages failed")
+                self.stats.errors["build"] = f"{type(e).__name__}: {e}"
         while True:
             fs = self._take()
             if fs is None:

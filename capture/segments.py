@@ -59,6 +59,7 @@ class SegmentWriter:
         self._rows: list[str] = []
         self._seg_t0 = 0
         self._shape = None
+        self._mode = ""  # what the open segment takes: "image", "jpeg", "encoded" or "copy" (_mode)
         self._closed: list[str] = []
         if self.frames_csv.exists():  # the recorder only writes into folders it created
             raise RecorderError(f"{self.frames_csv} already exists; refusing to append to an old recording.")
@@ -81,6 +82,15 @@ class SegmentWriter:
             self._final = self.dir / f"seg_{k:06d}{ext}"
             self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}{ext}"
             self._mux = CopyMuxer(self._part, frame.copy_from)
+        elif frame.jpeg is not None:  # a USB camera's MJPEG: each JPEG written as it came
+            from roomcap.capture.sources import jpeg_size
+            from roomcap.capture.streamcopy import JpegMuxer
+
+            self._final = self.dir / f"seg_{k:06d}.avi"
+            self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}.avi"
+            w, h = jpeg_size(frame.jpeg)
+            self._mux = JpegMuxer(self._part, w, h, self.fps)
+            self._shape = (h, w)
         elif frame.encoded is not None:
             ext = ".h265" if self.codec == "h265" else ".h264"  # Annex B elementary stream from the device
             self._final = self.dir / f"seg_{k:06d}{ext}"
@@ -106,6 +116,7 @@ class SegmentWriter:
             self._shape = frame.image.shape
         self._seg_t0 = frame.t_ns
         self._rows = []
+        self._mode = _mode(frame)
 
     def _write_copy(self, frame: Frame) -> None:
         """Stream copy (capture.streamcopy): a group of pictures starts with the frame that carries its
@@ -151,10 +162,18 @@ class SegmentWriter:
             need_new = frame.encoded is None or frame.keyframe
         if not need_new and frame.image is not None and frame.image.shape != self._shape:
             need_new = True
+        if not need_new and _mode(frame) != self._mode:
+            need_new = True  # a camera that switched between decoded frames and JPEGs (after a reconnect)
+        if not need_new and frame.jpeg is not None:
+            from roomcap.capture.sources import jpeg_size
+
+            need_new = jpeg_size(frame.jpeg)[::-1] != self._shape
         if need_new:
             self.close_segment()
             self._open_segment(frame)
-        if frame.encoded is not None:
+        if frame.jpeg is not None and self._mux is not None:
+            self._mux.write_jpeg(frame.jpeg)
+        elif frame.encoded is not None:
             self._raw.write(frame.encoded)
         else:
             self._writer.write(frame.image)
@@ -217,6 +236,16 @@ class SegmentWriter:
                 self._part.unlink(missing_ok=True)
             self._part = self._final = None
             self._rows = []
+
+
+def _mode(frame: Frame) -> str:
+    """How a frame is written: its file's packets copied, its JPEG as it came, a device's encoded packet
+    as it came, or its decoded image encoded."""
+    if frame.copy_from is not None:
+        return "copy"
+    if frame.jpeg is not None:
+        return "jpeg"
+    return "encoded" if frame.encoded is not None else "image"
 
 
 def write_ffconcat(cam_dir: Path, segments: list[str]) -> None:

@@ -145,7 +145,11 @@ class Outputs:
         closers: list[Callable[[], None]] = []
         try:
             if args.view:
-                if cfg.live.forecast and not getattr(args, "no_forecast", False) and "track" in runner.stages:
+                if (
+                    cfg.live.forecast
+                    and not getattr(args, "no_forecast", False)
+                    and "track" in runner.planned
+                ):
                     forecast = LiveForecast()
                     forecast.start()  # loads the model on its own thread
                     closers.append(forecast.stop)
