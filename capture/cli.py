@@ -172,6 +172,8 @@ def _print_summary(out, rec: Recorder, summary: dict, shared: list[str], live: L
         if c.get("recording"):
             tail = c.get("copy_tail_dropped", 0)
             more = f"; the last {tail} frame(s), an unfinished group of pictures, not written" if tail else ""
+            head = c.get("copy_head_dropped", 0)
+            more += f"; {head} frame(s) before the stream's first keyframe not written" if head else ""
             print(f"    recording: {redact(c['recording'])}{more}")
     t = summary.get("timing", {})
     if "skew_ms_median" in t:

@@ -177,6 +177,8 @@ class Recorder:
                 d.update(frames_written=w.writer.frames_written, segments=w.writer.segments)
                 if w.writer.copy_tail_dropped:
                     d["copy_tail_dropped"] = w.writer.copy_tail_dropped
+                if w.writer.copy_head_dropped:
+                    d["copy_head_dropped"] = w.writer.copy_head_dropped
                 if w.error:
                     d["writer_error"] = w.error
             if c.name in self.failed_cameras:

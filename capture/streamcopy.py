@@ -31,6 +31,22 @@ log = logging.getLogger(__name__)
 COPY_CODECS = {"h264": ".mp4", "hevc": ".mp4", "mpeg4": ".mp4", "mjpeg": ".avi"}
 
 
+# a live stream's open input (capture.avstream): copy_from key -> (its video stream, the segment extension,
+# the container); the writer's segments take the stream as their template and release it when done
+STREAM_TEMPLATES: dict[str, tuple[Any, str, Any]] = {}
+
+
+def release_templates(keys: Any) -> None:
+    """Close the live streams' containers ``keys`` names (the writer of their segments is done)."""
+    for k in keys:
+        entry = STREAM_TEMPLATES.pop(k, None)
+        if entry is not None:
+            try:
+                entry[2].close()
+            except Exception:  # noqa: BLE001 - a broken stream: nothing left to write from it
+                pass
+
+
 def copy_plan(path: str | Path, drop_late: bool = False, wanted: bool = True) -> tuple[str | None, str]:
     """How a video file replayed as a camera is recorded: ``(segment extension, description)`` for a stream
     copy, ``(None, why it is re-encoded)`` otherwise. Reads the container's header, decodes nothing.
@@ -213,9 +229,13 @@ class CopyMuxer:
     def __init__(self, path: Path, template: str):
         import av  # lazy: PyAV
 
-        self._tmpl = av.open(template)
+        if template in STREAM_TEMPLATES:  # a live stream's (capture.avstream): its open input stream
+            self._tmpl, stream = None, STREAM_TEMPLATES[template][0]
+        else:
+            self._tmpl = av.open(template)
+            stream = self._tmpl.streams.video[0]
         self.out = av.open(str(path), "w")
-        self.ost = self.out.add_stream_from_template(self._tmpl.streams.video[0])
+        self.ost = self.out.add_stream_from_template(stream)
         self._shift: int | None = None
         self.last_dts: int | None = None  # in the source's ticks, before the shift
 
@@ -242,7 +262,8 @@ class CopyMuxer:
         try:
             self.out.close()
         finally:
-            self._tmpl.close()
+            if self._tmpl is not None:
+                self._tmpl.close()
 
 
 class JpegMuxer:
