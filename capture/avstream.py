@@ -84,7 +84,7 @@ class AVStreamSource(FrameSource):
             self._c = av.open(self.url, options=opts, timeout=(self.open_timeout_s, self.read_timeout_s))
         except Exception as e:  # noqa: BLE001 - unreachable, refused, not a stream: retried by the grabber
             raise SourceDisconnected(
-                f"{self.name}: cannot open {self._describe()} within {self.open_timeout_s:g} s "
+                f"{self.name}: cannot reach {self._describe()} within {self.open_timeout_s:g} s "
                 f"({type(e).__name__}). Check the address, port, credentials and network."
             ) from None
         if not self._c.streams.video:

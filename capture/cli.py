@@ -163,6 +163,9 @@ def _print_summary(out, rec: Recorder, summary: dict, shared: list[str], live: L
             f"  {name}: {c.get('frames_written', 0)} frames, dropped {c.get('dropped_queue', 0)} (queue) + "
             f"{c.get('dropped_source', 0)} (source), {len(gaps)} gap(s), ended: {c.get('ended', '')}"
         )
+        if c.get("stalls"):
+            st = c["stalls"]
+            print(f"    stalled {len(st)} time(s): no frame for up to {max(x['seconds'] for x in st):.1f} s")
         if "joined" in c:
             print(
                 f"    -> {c['video']} ({c['frames_in_video']} frames)"

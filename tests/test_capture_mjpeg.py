@@ -295,3 +295,35 @@ def test_the_live_2d_on_half_size_jpegs_finds_the_full_size_keypoints(tmp_path):
             ok = (a.score[i] > 0.3) & (b.score[j] > 0.3)
             d.extend(np.linalg.norm(a.xy_px[i][ok] - b.xy_px[j][ok], axis=1))
     assert len(d) > 20 and np.median(d) < 4.0, np.median(d)
+
+
+class StallingCamera(JpegCamera):
+    """Paced at ``fps``; after frame ``at`` its read blocks ``for_s`` (a camera that stops sending, no
+    error), then it goes on."""
+
+    def __init__(self, n, fps, at=None, for_s=0.0):
+        super().__init__(n, fps)
+        self.at, self.for_s = at, for_s
+
+    def read(self):
+        if self.i == self.at:
+            time.sleep(self.for_s)
+        time.sleep(1.0 / self.fps)
+        return super().read()
+
+
+def test_a_stalling_camera_is_reported_and_the_others_go_on(tmp_path, capsys):
+    from roomcap.capture.cli import _print_summary
+
+    cfg = parse_config({"cameras": [{"name": "a", "source": "usb:0"}, {"name": "b", "source": "usb:1"}]})
+    a, b = StallingCamera(40, 20.0, at=10, for_s=1.6), StallingCamera(40, 20.0)
+    rec = Recorder(cfg, tmp_path / "S", duration_s=30, sources={"a": a, "b": b}, handle_signals=False)
+    summary = rec.run()
+    cams = summary["cameras"]
+    assert len(cams["a"]["stalls"]) == 1 and 1.0 <= cams["a"]["stalls"][0]["seconds"] < 5.0
+    assert "stalls" not in cams["b"]
+    assert cams["a"]["frames_written"] == cams["b"]["frames_written"] == 40  # b went on meanwhile
+    _print_summary(tmp_path / "S", rec, summary, [], None)
+    out = capsys.readouterr().out
+    part_a, part_b = out.split("  a: ")[1].split("  b: ")
+    assert "stalled 1 time(s): no frame for up to" in part_a and "stalled" not in part_b
