@@ -108,17 +108,45 @@ def jpegs(video: Path) -> list[bytes]:
         return [bytes(p) for p in c.demux(c.streams.video[0]) if p.size]
 
 
+def _checkout_has_jpeg_frames() -> bool:
+    """Whether the roomcap on PYTHONPATH hands MJPEG frames on as JPEGs (this bench also runs on an older
+    checkout, for the before/after: there the recorder decodes every frame and the stages are built first)."""
+    from roomcap.capture.sources import Frame
+
+    return "jpeg" in Frame.__dataclass_fields__
+
+
+NEW = _checkout_has_jpeg_frames()
+
+
+def decode_jpeg(data: bytes, reduce: int = 1):
+    import cv2
+
+    flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4}[reduce]
+    return cv2.imdecode(np.frombuffer(data, np.uint8), flag)
+
+
+def auto_reduce(w: int, h: int, setting: int) -> int:
+    from roomcap.capture.config import auto_reduce as auto
+
+    return auto(w, h, setting)
+
+
+def jpeg_size(data: bytes) -> tuple[int, int]:
+    img = decode_jpeg(data)
+    return img.shape[1], img.shape[0]
+
+
 def floor(videos: list[Path], cfg, folder: Path, n_sets: int = 24) -> dict:
     """Decoding cost (one thread) and the live 2D stage alone on the same frames, as the live loop runs it."""
-    from roomcap.capture.config import auto_reduce
     from roomcap.capture.live import LiveStep
     from roomcap.capture.session import SessionLayout
-    from roomcap.capture.sources import Frame, decode_jpeg, jpeg_size
+    from roomcap.capture.sources import Frame
     from roomcap.capture.sync import FrameSet
     from roomcap.pipeline.live import LiveContext, _keypoints
 
     frames = {v.stem: jpegs(v) for v in videos}
-    r = auto_reduce(*jpeg_size(frames[CAMS[0]][0]), cfg.live.decode_reduce)
+    r = auto_reduce(*jpeg_size(frames[CAMS[0]][0]), cfg.live.decode_reduce) if NEW else 1
     out: dict = {"reduce": r}
     for k in (1, r):
         t0 = time.perf_counter()
@@ -132,7 +160,10 @@ def floor(videos: list[Path], cfg, folder: Path, n_sets: int = 24) -> dict:
     try:
         times = []
         for t in range(n_sets):
-            fs = {c: Frame(None, t, t, t, jpeg=frames[c][(2 * t) % len(frames[c])]) for c in CAMS}
+            if NEW:  # the JPEGs, decoded by the stage (at 1/r)
+                fs = {c: Frame(None, t, t, t, jpeg=frames[c][(2 * t) % len(frames[c])]) for c in CAMS}
+            else:  # a checkout without JPEG frames: the recorder decoded them (full size), here timed too
+                fs = {c: Frame(decode_jpeg(frames[c][(2 * t) % len(frames[c])]), t, t, t) for c in CAMS}
             step = LiveStep(FrameSet(t, t, fs), tuple(CAMS))
             t0 = time.perf_counter()
             stage(step)
@@ -200,7 +231,10 @@ def phase(name: str, cams_yaml: Path, folder: Path, seconds: float, browser: boo
 
     cfg = load_config(cams_yaml)
     sess = folder / f"S_{name}"
-    live = LiveRunner(cfg, sess, build_stages=build_stages, build_in_background=True)
+    if NEW:
+        live = LiveRunner(cfg, sess, build_stages=build_stages, build_in_background=True)
+    else:
+        live = LiveRunner(cfg, sess, build_stages=build_stages)
     rec = Recorder(cfg, sess, duration_s=seconds, frameset_sink=live.queue, handle_signals=False, join=True)
     outputs = Outputs()
     p = argparse.ArgumentParser()
@@ -234,7 +268,8 @@ def phase(name: str, cams_yaml: Path, folder: Path, seconds: float, browser: boo
     close()
     s = live.summary()
     rec_s = seconds
-    ready_s = (live.stages_ready_ns - rec.t0_ns) / 1e9 if live.stages_ready_ns else None
+    ready_ns = getattr(live, "stages_ready_ns", None)
+    ready_s = (ready_ns - rec.t0_ns) / 1e9 if ready_ns else None
     kp = live.stages.get("keypoints")
     dec = getattr(kp, "decode_ms", [0.0, 0])
     cams = summary["cameras"]
@@ -369,6 +404,8 @@ def main() -> int:
     presets = [p.strip() for p in args.presets.split(",") if p.strip()]
     yamls = {p: write_cams(folder, videos, p) for p in presets}
     res: dict = {"cores": os.cpu_count(), "load_start": load_start, "seconds": args.seconds}
+    res["checkout"] = str(Path(__import__("roomcap").__path__[0]).resolve())
+    res["jpeg_frames"] = NEW
     res["floor"] = {p: floor(videos, load_config(yamls[p]), folder) for p in presets}
     res["phases"] = {p: phase(p, yamls[p], folder, args.seconds, browser) for p in presets}
     res["duration3"] = duration3(yamls[presets[0]], folder)
