@@ -327,3 +327,12 @@ def test_a_stalling_camera_is_reported_and_the_others_go_on(tmp_path, capsys):
     out = capsys.readouterr().out
     part_a, part_b = out.split("  a: ")[1].split("  b: ")
     assert "stalled 1 time(s): no frame for up to" in part_a and "stalled" not in part_b
+
+
+def test_the_live_outputs_default_port_is_the_servers():
+    """live_outputs keeps its own copy of the page's port so that capture-run does not import the server
+    (aiohttp) unless --view asks for it."""
+    from roomcap.pipeline.live_outputs import DEFAULT_PORT
+    from roomcap.pipeline.liveview.server import DEFAULT_PORT as SERVER_PORT
+
+    assert DEFAULT_PORT == SERVER_PORT
