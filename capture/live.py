@@ -239,9 +239,15 @@ class LiveRunner:
             log.info("live: track parts in %s", self.layout.live_tracks.with_suffix(".parts"))
         self.ended_ns = host_now_ns()
 
-    def process(self, fs: FrameSet, final: bool = False) -> LiveStep:
+    def process(self, fs: FrameSet, final: bool = False) -> LiveStep | None:
+        """Run the stages on ``fs``; None when a stop came while it ran: its remaining stages are skipped
+        (the set is dropped, counted), so that ``--duration`` and Ctrl-C end the loop within the stage in
+        hand."""
         step = LiveStep(fs, self.cfg.names, {"final": final})
-        for name, stage in self.stages.items():
+        for k, (name, stage) in enumerate(self.stages.items()):
+            if k and self._watched is not None and self.stopping:
+                self.stats.skipped += 1
+                return None
             t0 = time.perf_counter()
             try:
                 stage(step)
