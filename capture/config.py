@@ -21,7 +21,8 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
         resolution: [1920, 1080]   # width, height in px (null = what the source gives)
         fps: 30                    # requested frame rate (null = what the source gives)
         exposure_us: null          # manual exposure in microseconds (null = auto)
-        codec: mp4v                # mp4v | mjpg | xvid (host encoders); h264 | h265 (on-device, OAK)
+        codec: mp4v                # mp4v | mjpg | xvid (host encoders); h264 | h265 | mjpeg (on-device, OAK;
+                                   # mjpeg: JPEGs the live loop decodes where it takes a frame)
         quality: 80                # encoder quality 1..100 (mjpg)
         loop: false                # file replay: start again at the end
         realtime: true             # file replay: pace frames by their timestamps
@@ -74,7 +75,7 @@ CAMS_SCHEMA = "cams"
 CAMS_VERSION = 1
 
 HOST_CODECS = ("mp4v", "mjpg", "xvid")
-DEVICE_CODECS = ("h264", "h265")
+DEVICE_CODECS = ("h264", "h265", "mjpeg")  # an OAK's on-device encoders (mjpeg: each frame a JPEG)
 CODECS = HOST_CODECS + DEVICE_CODECS
 SOURCE_KINDS = ("file", "usb", "device", "rtsp", "oak", "synthetic")
 LIVE_STAGES = ("keypoints", "triangulate", "track")

@@ -92,8 +92,16 @@ def recording_mode(cam: Any, source: Any = None) -> str:
     if cam.kind == "file":
         ext, why = copy_plan(cam.source, cam.drop_late, cam.stream_copy)
         return why if ext is not None else f"{why} as {cam.codec}"
+    if cam.kind == "oak" and cam.codec == "mjpeg":
+        return (
+            "the device's JPEGs written as they come (no re-encoding), decoded on the host only for the "
+            "frames the live loop takes"
+        )
     if cam.kind == "oak" and cam.codec in DEVICE_CODECS:
-        return f"the device's {cam.codec} stream written as it comes (no re-encoding)"
+        return (
+            f"the device's {cam.codec} stream written as it comes (no re-encoding); the live loop gets no "
+            "images from it (codec: mjpeg gives them)"
+        )
     if cam.kind in ("usb", "device") and cam.stream_copy:
         return (
             "MJPEG asked of the camera: its JPEGs written as they come (stream copy, no re-encoding); "
