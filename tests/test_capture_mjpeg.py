@@ -355,3 +355,18 @@ def test_a_stop_during_a_set_skips_its_remaining_stages(tmp_path):
     live.watch(stop)
     assert live.process(FrameSet(0, 0, {"a": Frame(None, 0, 0, 0)})) is None
     assert ran == ["2d"] and live.stats.processed == 0 and live.stats.skipped == 1
+
+
+def test_capture_run_as_a_command_flushes_its_output_and_keeps_its_exit_code(tmp_path):
+    """``python -m roomcap.pipeline.live`` leaves without the interpreter's teardown (os._exit): what it
+    printed is flushed first, the exit code is the command's."""
+    import subprocess
+    import sys
+
+    (tmp_path / "cams.yaml").write_text("cameras:\n  - {name: a, source: 'synthetic:'}\n")
+    (tmp_path / "bad.yaml").write_text("cameras: 3\n")
+    cmd = [sys.executable, "-m", "roomcap.pipeline.live", "check", "--cameras"]
+    ok = subprocess.run([*cmd, str(tmp_path / "cams.yaml")], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and "a: synthetic" in ok.stdout and "recording: re-encoded as mp4v" in ok.stdout
+    bad = subprocess.run([*cmd, str(tmp_path / "bad.yaml")], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "capture-run: error:" in bad.stderr
