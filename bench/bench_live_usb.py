@@ -216,7 +216,7 @@ class ThreadCpu:
             self.cpu[t.name] = v
 
     def groups(self) -> dict[str, float]:
-        rows = {g: 0.0 for g, _ in GROUPS} | {"live loop (live)": 0.0, "other threads": 0.0}
+        rows = {g: 0.0 for g, _ in GROUPS} | {"live loop (live, live-3d)": 0.0, "other threads": 0.0}
         for name, v in self.cpu.items():
             used = v - self.first.get(name, v)
             for g, pre in GROUPS:
@@ -224,7 +224,7 @@ class ThreadCpu:
                     rows[g] += used
                     break
             else:
-                rows["live loop (live)" if name == "live" else "other threads"] += used
+                rows["live loop (live, live-3d)" if name in ("live", "live-3d") else "other threads"] += used
         return rows
 
     def __enter__(self) -> ThreadCpu:

@@ -128,6 +128,8 @@ class LiveRunner:
         self.planned = tuple(self.stages) if self._build is None else tuple(cfg.live.stages)
         self.stats.stage_ms = {k: 0.0 for k in self.stages}
         self.on_step: Callable[[LiveStep], None] | None = None  # e.g. a viewer
+        # the first stage (the 2D) of a set overlaps the others of the previous set (_run_pipelined)
+        self.pipelined = True
         self.reports: list[Callable[[], str]] = []  # more of the summary line (e.g. the forecast's cost)
 
     def watch(self, stop_event: threading.Event) -> None:
@@ -217,11 +219,14 @@ class LiveRunner:
             except Exception as e:  # noqa: BLE001 - said like a stage that cannot be built
                 log.exception("live: building the stages failed")
                 self.stats.errors["build"] = f"{type(e).__name__}: {e}"
-        while True:
-            fs = self._take()
-            if fs is None:
-                break
-            self.process(fs)
+        if self.pipelined and len(self.stages) > 1:
+            self._run_pipelined()
+        else:
+            while True:
+                fs = self._take()
+                if fs is None:
+                    break
+                self.process(fs)
         self.stopped_ns = host_now_ns()
         with self._cond:  # a set ready at the stop is not processed: dropped, counted
             if self._slot is not None:
@@ -239,23 +244,66 @@ class LiveRunner:
             log.info("live: track parts in %s", self.layout.live_tracks.with_suffix(".parts"))
         self.ended_ns = host_now_ns()
 
+    def _run_pipelined(self) -> None:
+        """The first stage (the 2D) of the next set on this thread while the others (triangulation,
+        tracking, the outputs) finish the last one on ``live-3d``: the sets stay in order for the tracker,
+        one set is handed over at a time (the 2D waits when the 3D is behind), and the cores do not idle
+        while the 3D runs."""
+        handoff: queue.Queue = queue.Queue(maxsize=1)
+
+        def back() -> None:
+            while (step := handoff.get()) is not None:
+                self._back(step)
+
+        t = threading.Thread(target=back, name="live-3d", daemon=True)
+        t.start()
+        try:
+            while (fs := self._take()) is not None:
+                step = self._front(fs)
+                while not self.stopping:
+                    try:
+                        handoff.put(step, timeout=SYNC_POLL_S)
+                        break
+                    except queue.Full:
+                        continue
+                else:  # stopped during its 2D or while the 3D was behind: dropped, counted
+                    self.stats.skipped += 1
+                    break
+        finally:
+            handoff.put(None)
+            t.join()
+
     def process(self, fs: FrameSet, final: bool = False) -> LiveStep | None:
         """Run the stages on ``fs``; None when a stop came while it ran: its remaining stages are skipped
         (the set is dropped, counted), so that ``--duration`` and Ctrl-C end the loop within the stage in
         hand."""
+        return self._back(self._front(fs, final))
+
+    def _stage(self, name: str, stage: Stage, step: LiveStep) -> None:
+        t0 = time.perf_counter()
+        try:
+            stage(step)
+        except Exception as e:
+            if name not in self.stats.errors:
+                log.exception("live: stage %r failed", name)
+            self.stats.errors[name] = f"{type(e).__name__}: {e}"
+        self.stats.stage_ms[name] = self.stats.stage_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+    def _front(self, fs: FrameSet, final: bool = False) -> LiveStep:
+        """A step for ``fs`` through the first stage."""
         step = LiveStep(fs, self.cfg.names, {"final": final})
-        for k, (name, stage) in enumerate(self.stages.items()):
-            if k and self._watched is not None and self.stopping:
+        for name, stage in list(self.stages.items())[:1]:
+            self._stage(name, stage, step)
+        return step
+
+    def _back(self, step: LiveStep) -> LiveStep | None:
+        """The other stages, then the step counted and handed to ``on_step``; None when a stop came first."""
+        for name, stage in list(self.stages.items())[1:]:
+            if self._watched is not None and self.stopping:
                 self.stats.skipped += 1
                 return None
-            t0 = time.perf_counter()
-            try:
-                stage(step)
-            except Exception as e:
-                if name not in self.stats.errors:
-                    log.exception("live: stage %r failed", name)
-                self.stats.errors[name] = f"{type(e).__name__}: {e}"
-            self.stats.stage_ms[name] = self.stats.stage_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+            self._stage(name, stage, step)
+        fs = step.frameset
         newest = max(f.t_host_ns for f in fs.frames.values() if f is not None)
         self.stats.latency_ms.append((host_now_ns() - newest) / 1e6)
         self.stats.processed += 1

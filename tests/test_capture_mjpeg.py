@@ -370,3 +370,38 @@ def test_capture_run_as_a_command_flushes_its_output_and_keeps_its_exit_code(tmp
     assert ok.returncode == 0 and "a: synthetic" in ok.stdout and "recording: re-encoded as mp4v" in ok.stdout
     bad = subprocess.run([*cmd, str(tmp_path / "bad.yaml")], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "capture-run: error:" in bad.stderr
+
+
+def test_the_2d_of_the_next_set_overlaps_the_3d_of_the_last_in_order(tmp_path):
+    """Pipelined live loop: the first stage runs on ``live``, the others on ``live-3d``, every set through
+    both in the order taken, the second stage never sees a set the first has not finished."""
+    from roomcap.capture.live import LiveRunner
+    from roomcap.capture.sync import FrameSet
+
+    cfg = parse_config({"cameras": [{"name": "a", "source": "synthetic:"}]})
+    log = []
+
+    def first(step):
+        time.sleep(0.02)
+        log.append(("2d", step.frameset.index, threading.current_thread().name))
+        step.outputs["seen"] = True
+
+    def second(step):
+        assert step.outputs.get("seen")
+        time.sleep(0.03)
+        log.append(("3d", step.frameset.index, threading.current_thread().name))
+
+    live = LiveRunner(cfg, tmp_path / "S", stages={"keypoints": first, "track": second})
+    live.start()
+    for i in range(12):
+        live._offer(FrameSet(i, i, {"a": Frame(None, i, i, i)}))
+        time.sleep(0.025)
+    time.sleep(0.2)
+    live.stop()
+    d2 = [i for k, i, _ in log if k == "2d"]
+    d3 = [i for k, i, _ in log if k == "3d"]
+    assert d2 == sorted(d2) and d3 == sorted(d3) and set(d3) <= set(d2) and len(d3) >= 2
+    assert {t for k, _, t in log if k == "2d"} == {"live"} and {t for k, _, t in log if k == "3d"} == {
+        "live-3d"
+    }
+    assert live.stats.processed == len(d3)
