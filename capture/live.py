@@ -259,24 +259,15 @@ class LiveRunner:
         t.start()
         try:
             while (fs := self._take()) is not None:
-                step = self._front(fs)
-                while not self.stopping:
-                    try:
-                        handoff.put(step, timeout=SYNC_POLL_S)
-                        break
-                    except queue.Full:
-                        continue
-                else:  # stopped during its 2D or while the 3D was behind: dropped, counted
-                    self.stats.skipped += 1
-                    break
+                # a set whose 2D is done goes through the 3D even after a stop: the 3D costs a few ms and
+                # the 3D thread is at most one set behind
+                handoff.put(self._front(fs))
         finally:
             handoff.put(None)
             t.join()
 
-    def process(self, fs: FrameSet, final: bool = False) -> LiveStep | None:
-        """Run the stages on ``fs``; None when a stop came while it ran: its remaining stages are skipped
-        (the set is dropped, counted), so that ``--duration`` and Ctrl-C end the loop within the stage in
-        hand."""
+    def process(self, fs: FrameSet, final: bool = False) -> LiveStep:
+        """Run the stages on ``fs``, count it, hand it to ``on_step``."""
         return self._back(self._front(fs, final))
 
     def _stage(self, name: str, stage: Stage, step: LiveStep) -> None:
@@ -296,12 +287,9 @@ class LiveRunner:
             self._stage(name, stage, step)
         return step
 
-    def _back(self, step: LiveStep) -> LiveStep | None:
-        """The other stages, then the step counted and handed to ``on_step``; None when a stop came first."""
+    def _back(self, step: LiveStep) -> LiveStep:
+        """The other stages, then the step counted and handed to ``on_step``."""
         for name, stage in list(self.stages.items())[1:]:
-            if self._watched is not None and self.stopping:
-                self.stats.skipped += 1
-                return None
             self._stage(name, stage, step)
         fs = step.frameset
         newest = max(f.t_host_ns for f in fs.frames.values() if f is not None)

@@ -338,25 +338,6 @@ def test_the_live_outputs_default_port_is_the_servers():
     assert DEFAULT_PORT == SERVER_PORT
 
 
-def test_a_stop_during_a_set_skips_its_remaining_stages(tmp_path):
-    """--duration or Ctrl-C while the 2D runs: the set's later stages (triangulation, tracking) are not run,
-    the set is counted as dropped, so the loop ends within the stage in hand."""
-    from roomcap.capture.live import LiveRunner
-    from roomcap.capture.sync import FrameSet
-
-    cfg = parse_config({"cameras": [{"name": "a", "source": "synthetic:"}]})
-    stop = threading.Event()
-    ran = []
-    stages = {
-        "keypoints": lambda step: ran.append("2d") or stop.set(),
-        "track": lambda step: ran.append("3d"),
-    }
-    live = LiveRunner(cfg, tmp_path / "S", stages=stages)
-    live.watch(stop)
-    assert live.process(FrameSet(0, 0, {"a": Frame(None, 0, 0, 0)})) is None
-    assert ran == ["2d"] and live.stats.processed == 0 and live.stats.skipped == 1
-
-
 def test_capture_run_as_a_command_flushes_its_output_and_keeps_its_exit_code(tmp_path):
     """``python -m roomcap.pipeline.live`` leaves without the interpreter's teardown (os._exit): what it
     printed is flushed first, the exit code is the command's."""
