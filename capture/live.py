@@ -83,13 +83,14 @@ class LiveRunner:
     into the :class:`Synchroniser` every few ms and keeps only the newest ready frame set in a one-set
     slot (a complete set is preferred: an incomplete one never replaces a complete one not yet taken); a
     set replaced before it was taken is stale, dropped and counted (``stats.skipped``). ``live`` takes
-    the set in the slot and runs the stages on it. The queue holds a few frames per camera
-    (``queue_size``, default 8 per camera; a full queue drops the frame, counted by the grabber as
-    ``dropped_live``), so the live loop never falls further behind than one frame set plus the set being
-    processed.
+    the set in the slot and runs the first stage (the 2D) on it, then hands it to ``live-3d`` for the
+    others (triangulation, tracking, the outputs) and takes the next set meanwhile (``pipelined``; in
+    order, one set handed over at a time). The queue holds a few frames per camera (``queue_size``,
+    default 8 per camera; a full queue drops the frame, counted by the grabber as ``dropped_live``), so
+    the live loop never falls further behind than one frame set plus the two being processed.
 
     Stopping (:meth:`stop`, or the ``stop_event`` handed to :meth:`watch`: the recorder's, set by
-    ``--duration``, Ctrl-C or the sources' end): the set being processed is finished, the rest is
+    ``--duration``, Ctrl-C or the sources' end): the sets being processed are finished, the rest is
     dropped (counted), the stages are closed. Nothing queued is processed after the stop.
     """
 
@@ -150,8 +151,8 @@ class LiveRunner:
             t.start()
 
     def stop(self, timeout_s: float = 30.0) -> None:
-        """End the live loop: the set being processed is finished, nothing else is; the stages are closed.
-        Waits at most ``timeout_s`` (the one set being processed, then the stages' close)."""
+        """End the live loop: the sets being processed are finished, nothing else is; the stages are
+        closed. Waits at most ``timeout_s`` (the sets being processed, then the stages' close)."""
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
