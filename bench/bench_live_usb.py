@@ -191,6 +191,51 @@ def floor(videos: list[Path], cfg, folder: Path, n_sets: int = 24) -> dict:
     return out
 
 
+def reduced_accuracy(videos: list[Path], cfg, folder: Path, n_sets: int = 12) -> dict:
+    """The live 2D stage on the same JPEG sets decoded at full size and at 1/2 and 1/4 (keypoints mapped
+    back): the distance between the two results' keypoints (each person matched by the nearest mean
+    keypoint, joints scored > 0.3 in both), px of the full-size image."""
+    from dataclasses import replace
+
+    from roomcap.capture.live import LiveStep
+    from roomcap.capture.session import SessionLayout
+    from roomcap.capture.sources import Frame
+    from roomcap.capture.sync import FrameSet
+    from roomcap.pipeline.live import LiveContext, _keypoints
+
+    frames = {v.stem: jpegs(v) for v in videos}
+    found = {}
+    for r in (1, 2, 4):
+        c = replace(cfg, live=replace(cfg.live, decode_reduce=r))
+        stage = _keypoints(LiveContext(c, SessionLayout(folder / "accuracy"), None))
+        try:
+            found[r] = []
+            for t in range(n_sets):
+                step = LiveStep(
+                    FrameSet(t, t, {k: Frame(None, t, t, t, jpeg=frames[k][t]) for k in CAMS}), CAMS
+                )
+                stage(step)
+                found[r].append(step.outputs["detections"])
+        finally:
+            stage.close()
+    out = {}
+    for r in (2, 4):
+        d = []
+        for a_set, b_set in zip(found[1], found[r], strict=True):
+            for cam in CAMS:
+                a, b = a_set[cam], b_set[cam]
+                for i in range(len(a.xy_px)):
+                    if not len(b.xy_px):
+                        continue
+                    ca = np.nanmean(a.xy_px[i], 0)
+                    j = int(np.argmin([np.linalg.norm(np.nanmean(p, 0) - ca) for p in b.xy_px]))
+                    ok = (a.score[i] > 0.3) & (b.score[j] > 0.3)
+                    d.extend(np.linalg.norm(a.xy_px[i][ok] - b.xy_px[j][ok], axis=1))
+        d = np.asarray(d)
+        out[f"1/{r}"] = {"median_px": float(np.median(d)), "p90_px": float(np.percentile(d, 90)), "n": len(d)}
+    return out
+
+
 class ThreadCpu:
     """CPU seconds per thread name (sampled every 0.2 s; the last value stays when a thread ends)."""
 
@@ -393,6 +438,9 @@ def main() -> int:
         default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
     )
     ap.add_argument("--presets", default="default,fast")
+    ap.add_argument(
+        "--accuracy", action="store_true", help="also: the 2D on JPEGs decoded at 1/2, 1/4 against full size"
+    )
     ap.add_argument("--no-browser", action="store_true", help="no headless Chromium: no capture -> page")
     ap.add_argument(
         "--work", default=None, help="folder for the MJPEG files and sessions (default: temporary)"
@@ -425,6 +473,8 @@ def main() -> int:
     res["checkout"] = str(Path(__import__("roomcap").__path__[0]).resolve())
     res["jpeg_frames"] = NEW
     res["floor"] = {p: floor(videos, load_config(yamls[p]), folder) for p in presets}
+    if args.accuracy and NEW:
+        res["reduced_accuracy"] = reduced_accuracy(videos, load_config(yamls[presets[0]]), folder)
     res["phases"] = {p: phase(p, yamls[p], folder, args.seconds, browser) for p in presets}
     res["duration3"] = duration3(yamls[presets[0]], folder)
     res["load_end"] = os.getloadavg()
@@ -433,6 +483,11 @@ def main() -> int:
     print(f"{os.cpu_count()} cores; {lo}; 4 MJPEG cameras 1088x1920 at 30 fps, {args.seconds:g} s per preset")
     for p in presets:
         print("\n".join(report(p, res["floor"][p], res["phases"][p])))
+    for k, v in res.get("reduced_accuracy", {}).items():
+        print(
+            f"[{presets[0]}] 2D on JPEGs decoded at {k} against full size: keypoints {v['median_px']:.2f} px "
+            f"apart (median; p90 {v['p90_px']:.2f} px; {v['n']} joints), full-size pixels"
+        )
     d3 = res["duration3"]
     print(
         f"--duration 3 (python -m roomcap.pipeline.live ... --live --quiet): {d3['wall_s']:.2f} s launch -> "
