@@ -24,7 +24,9 @@ keypoints stage on 24 frame sets of the 4 cameras, ms per set), giving the most 
 allows on this machine now. Then ``python -m roomcap.pipeline.live ... --duration 3`` as a command, its wall
 time from launch to exit.
 
-    PYTHONPATH=... python bench/bench_live_usb.py [--seconds 20] [--shared DIR] [--no-browser]
+And the 2D on the same JPEG sets decoded at 1/2 and 1/4 against full size (keypoints px apart).
+
+    PYTHONPATH=... python bench/bench_live_usb.py [--seconds 20] [--shared DIR] [--no-browser] [--no-accuracy]
 
 Ends with one ``BENCH {json}`` line.
 """
@@ -439,7 +441,7 @@ def main() -> int:
     )
     ap.add_argument("--presets", default="default,fast")
     ap.add_argument(
-        "--accuracy", action="store_true", help="also: the 2D on JPEGs decoded at 1/2, 1/4 against full size"
+        "--no-accuracy", action="store_true", help="skip the 2D on JPEGs at 1/2, 1/4 against full size"
     )
     ap.add_argument("--no-browser", action="store_true", help="no headless Chromium: no capture -> page")
     ap.add_argument(
@@ -473,7 +475,7 @@ def main() -> int:
     res["checkout"] = str(Path(__import__("roomcap").__path__[0]).resolve())
     res["jpeg_frames"] = NEW
     res["floor"] = {p: floor(videos, load_config(yamls[p]), folder) for p in presets}
-    if args.accuracy and NEW:
+    if not args.no_accuracy and NEW:
         res["reduced_accuracy"] = reduced_accuracy(videos, load_config(yamls[presets[0]]), folder)
     res["phases"] = {p: phase(p, yamls[p], folder, args.seconds, browser) for p in presets}
     res["duration3"] = duration3(yamls[presets[0]], folder)
