@@ -94,14 +94,14 @@ def main() -> int:
     print(line)
     print(f"frame sets processed per second of recording: {n / rec_s:.2f}")
     print(f"recording start -> exit: {end - started.get('t', end):.1f} s (--duration {rec_s:g})")
-    rows = {g: 0.0 for g, _ in GROUPS} | {"live loop (live)": 0.0, "other Python threads": 0.0}
+    rows = {g: 0.0 for g, _ in GROUPS} | {"live loop (live, live-3d)": 0.0, "other Python threads": 0.0}
     for name, v in used.items():
         for g, pat in GROUPS:
             if re.match(pat, name):
                 rows[g] += v
                 break
         else:
-            rows["live loop (live)" if name == "live" else "other Python threads"] += v
+            rows["live loop (live, live-3d)" if name in ("live", "live-3d") else "other Python threads"] += v
     for g, v in rows.items():
         print(f"  {g:24s} {v / rec_s:5.2f} CPU s per s")
     return 0

@@ -255,13 +255,13 @@ def main() -> None:
             for c in CAMS
         }
         feed_s = outputs.feed.cpu_s if outputs.feed is not None else 0.0
-        stage_cpu = tc.used("live") - feed_s
+        stage_cpu = tc.used("live") + tc.used("live-3d") - feed_s  # the 2D thread, then the 3D and outputs
         out_cpu = feed_s + tc.used("liveview-producer") + tc.used("liveview-server")
         res = {
             "seconds": w1 - w0,
             "process_cpu_per_s": (c1 - c0) / (w1 - w0),
             "outputs_cpu_per_s": out_cpu / (w1 - w0),
-            "live_thread_cpu_s": tc.used("live"),
+            "live_thread_cpu_s": tc.used("live") + tc.used("live-3d"),
             "live_stages_cpu_s": stage_cpu,
             "outputs_feed_cpu_s": feed_s,
             "view_producer_cpu_s": tc.used("liveview-producer"),

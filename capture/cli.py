@@ -98,7 +98,9 @@ def _record(
                 file=sys.stderr,
             )
             return 2
-        live = LiveRunner(cfg, out, build_stages=build_live)
+        # the stages are built on the live thread while the cameras start (their imports and the 2D
+        # models' warm-up took about 1.5 s before a recording could start)
+        live = LiveRunner(cfg, out, build_stages=build_live, build_in_background=True)
     rec = Recorder(
         cfg,
         out,
@@ -161,6 +163,9 @@ def _print_summary(out, rec: Recorder, summary: dict, shared: list[str], live: L
             f"  {name}: {c.get('frames_written', 0)} frames, dropped {c.get('dropped_queue', 0)} (queue) + "
             f"{c.get('dropped_source', 0)} (source), {len(gaps)} gap(s), ended: {c.get('ended', '')}"
         )
+        if c.get("stalls"):
+            st = c["stalls"]
+            print(f"    stalled {len(st)} time(s): no frame for up to {max(x['seconds'] for x in st):.1f} s")
         if "joined" in c:
             print(
                 f"    -> {c['video']} ({c['frames_in_video']} frames)"
@@ -170,6 +175,8 @@ def _print_summary(out, rec: Recorder, summary: dict, shared: list[str], live: L
         if c.get("recording"):
             tail = c.get("copy_tail_dropped", 0)
             more = f"; the last {tail} frame(s), an unfinished group of pictures, not written" if tail else ""
+            head = c.get("copy_head_dropped", 0)
+            more += f"; {head} frame(s) before the stream's first keyframe not written" if head else ""
             print(f"    recording: {redact(c['recording'])}{more}")
     t = summary.get("timing", {})
     if "skew_ms_median" in t:

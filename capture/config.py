@@ -21,14 +21,16 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
         resolution: [1920, 1080]   # width, height in px (null = what the source gives)
         fps: 30                    # requested frame rate (null = what the source gives)
         exposure_us: null          # manual exposure in microseconds (null = auto)
-        codec: mp4v                # mp4v | mjpg | xvid (host encoders); h264 | h265 (on-device, OAK)
+        codec: mp4v                # mp4v | mjpg | xvid (host encoders); h264 | h265 | mjpeg (on-device, OAK;
+                                   # mjpeg: JPEGs the live loop decodes where it takes a frame)
         quality: 80                # encoder quality 1..100 (mjpg)
         loop: false                # file replay: start again at the end
         realtime: true             # file replay: pace frames by their timestamps
         drop_late: false           # file replay: behave like a camera on a slow host (drop late frames
                                    # and never wait for the writer); false = every frame is recorded
-        stream_copy: true          # file replay: record the file's packets as they are (no re-encoding,
-                                   # h264/hevc/mpeg4/mjpeg); false = decode and encode with `codec`
+        stream_copy: true          # record compressed frames as they come (no re-encoding): a file's
+                                   # h264/hevc/mpeg4/mjpeg packets, a USB camera's MJPEG (asked for);
+                                   # false = decode and encode with `codec`
     sync:
       tolerance_ms: null           # frame-set tolerance (null = half a frame period)
       max_wait_ms: 200             # emit an incomplete set after this long
@@ -44,6 +46,8 @@ The full schema (every key optional except ``cameras[].name`` and ``cameras[].so
       stages: [keypoints, triangulate, track]
       every_n: 1                   # process every n-th frame set
       preset: ""                   # the 2D preset (as [keypoints] preset; "" = the default)
+      decode_reduce: 0             # JPEG frames (MJPEG cameras/files) decoded for the 2D at 1/n size: 1, 2,
+                                   # 4, 8; 0 = auto (the largest keeping the long side >= 720 px)
       forecast: true               # with --view: the forecast on the page (false = --no-forecast)
 
 Sources: ``usb:<index>``, ``/dev/videoN``, ``rtsp://``/``rtsps://``/``http(s)://`` streams,
@@ -71,7 +75,7 @@ CAMS_SCHEMA = "cams"
 CAMS_VERSION = 1
 
 HOST_CODECS = ("mp4v", "mjpg", "xvid")
-DEVICE_CODECS = ("h264", "h265")
+DEVICE_CODECS = ("h264", "h265", "mjpeg")  # an OAK's on-device encoders (mjpeg: each frame a JPEG)
 CODECS = HOST_CODECS + DEVICE_CODECS
 SOURCE_KINDS = ("file", "usb", "device", "rtsp", "oak", "synthetic")
 LIVE_STAGES = ("keypoints", "triangulate", "track")
@@ -248,12 +252,37 @@ class RecorderConfig:
     reconnect_give_up_s: float = bounded(60.0, 0, 1e7)
 
 
+DECODE_REDUCE = (0, 1, 2, 4, 8)  # live.decode_reduce: auto, or libjpeg's scale factors
+DECODE_REDUCE_MIN_SIDE = 720  # auto: the largest factor that keeps a frame's long side at least this (px)
+
+
+def auto_reduce(width: int, height: int, setting: int = 0) -> int:
+    """The factor a JPEG frame of ``width`` x ``height`` is decoded at for the 2D stage: ``setting`` when
+    given (1, 2, 4, 8), else the largest that keeps the long side >= ``DECODE_REDUCE_MIN_SIDE`` px
+    (1088x1920: 2; 1280x720: 1). The detector sees 416 px and the pose model 192 px crops, cut from a
+    pyramid when they shrink more than 2x (keypoints.pipeline), so a 960 px frame loses them nothing
+    a full one gives.
+
+    >>> auto_reduce(1088, 1920), auto_reduce(1280, 720), auto_reduce(3840, 2160), auto_reduce(1088, 1920, 4)
+    (2, 1, 4, 4)
+    """
+    if setting:
+        return setting
+    r = 1
+    while r < 8 and max(width, height) / (2 * r) >= DECODE_REDUCE_MIN_SIDE:
+        r *= 2
+    return r
+
+
 @dataclass(frozen=True)
 class LiveConfig:
     enabled: bool = False
     stages: tuple[str, ...] = LIVE_STAGES
     every_n: int = bounded(1, 1, 10_000)
     preset: str = ""  # the 2D stage's preset, as [keypoints] preset of a pipeline TOML ("" = the default)
+    # JPEG frames decoded for the 2D stage at 1/decode_reduce of their size (1, 2, 4, 8; 0 = auto:
+    # DECODE_REDUCE_MIN_SIDE); keypoints are mapped back to full-size pixels
+    decode_reduce: int = bounded(0, 0, 8)
     forecast: bool = True  # with --view: each tracked person's next seconds on the page (--no-forecast)
 
 
@@ -502,6 +531,13 @@ def parse_config(data: Any, path: str | os.PathLike | None = None) -> CaptureCon
             )
         live_raw = {**live_raw, "stages": tuple(stages)}
     live = _section(live_raw, LiveConfig, "live", path)
+    if live.decode_reduce not in DECODE_REDUCE:
+        raise ConfigError(
+            path,
+            "live.decode_reduce",
+            f"{live.decode_reduce!r} is not one of {list(DECODE_REDUCE)}.",
+            "0 = auto; 1, 2, 4, 8 = decode JPEG frames at 1/n of their size for the 2D stage.",
+        )
     for key in ("out", "calibration"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise ConfigError(path, key, f"expected a path string, got {data[key]!r}.")

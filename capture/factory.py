@@ -31,9 +31,19 @@ def make_source(
         )
     if kind == "oak":
         return OakSource(cam, segment_s=segment_s, timeout_s=timeout_s)
+    if kind == "rtsp" and cam.stream_copy and _has_pyav():  # its packets recorded as they come
+        from roomcap.capture.avstream import AVStreamSource
+
+        return AVStreamSource(cam, open_timeout_s=timeout_s, read_timeout_s=timeout_s)
     if kind in ("usb", "device", "rtsp"):
         return OpenCVSource(cam, open_timeout_s=timeout_s, read_timeout_s=timeout_s)
     raise SourceError(f"{cam.name}: unknown source kind {kind!r} for {redact_url(cam.source)}")
+
+
+def _has_pyav() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("av") is not None
 
 
 def check_source(cam: CameraConfig) -> FrameSource:

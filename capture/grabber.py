@@ -62,6 +62,9 @@ class GrabStats:
     dropped_source: int = 0  # gaps in the source's own sequence numbers (outside disconnects)
     gaps: list[Gap] = field(default_factory=list)
     ended: str = ""  # why the thread ended: "eof", "stopped", "gave up", "error: ..."
+    # stretches with no frame from a source that neither ended nor failed (capture.recorder's watchdog):
+    # {"after_t_ns": the last frame's time, "seconds": how long (so far, while it lasts)}
+    stalls: list[dict] = field(default_factory=list)
 
 
 class Grabber(threading.Thread):
@@ -91,6 +94,8 @@ class Grabber(threading.Thread):
         self.on_gap = on_gap
         self.stats = GrabStats(dropped_queue={k: 0 for k in sinks})
         self.last: Frame | None = None
+        self.last_mono = time.monotonic()  # when the last frame came (or the thread started)
+        self.stalled: dict | None = None  # the open stall (an entry of stats.stalls), set by check_stall
 
     def _push(self, frame: Frame | None) -> None:
         wait = self.source.waits_for_consumers
@@ -142,6 +147,21 @@ class Grabber(threading.Thread):
             delay = min(delay * 2, self.reconnect_max_s)
         return False
 
+    def check_stall(self, after_s: float) -> None:
+        """Called by the recorder's watchdog: a source that gave no frame for ``after_s`` and neither ended
+        nor failed (a read that blocks: a camera that stopped sending) is reported, once per stall, and its
+        length kept up to date; the other cameras go on (each has its own thread, the synchroniser emits
+        incomplete frame sets)."""
+        quiet = time.monotonic() - self.last_mono
+        if self.stalled is not None:
+            self.stalled["seconds"] = round(quiet, 3)
+        elif quiet >= after_s and self.is_alive() and not self.stop_event.is_set():
+            self.stalled = {"after_t_ns": self.last.t_ns if self.last else None, "seconds": round(quiet, 3)}
+            self.stats.stalls.append(self.stalled)
+            log.warning(
+                "%s: no frame for %.1f s (the source stalls); the other cameras go on", self.cam, quiet
+            )
+
     def run(self) -> None:
         pending_gap: Gap | None = None
         try:
@@ -169,6 +189,12 @@ class Grabber(threading.Thread):
                 elif self.last is not None and frame.sequence > self.last.sequence + 1:
                     self.stats.dropped_source += frame.sequence - self.last.sequence - 1
                 self.last = frame
+                self.last_mono = time.monotonic()
+                if self.stalled is not None:
+                    log.warning(
+                        "%s: frames again after %.1f s without one", self.cam, self.stalled["seconds"]
+                    )
+                    self.stalled = None
                 self.stats.frames += 1
                 self._push(frame)
             else:

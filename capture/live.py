@@ -83,13 +83,14 @@ class LiveRunner:
     into the :class:`Synchroniser` every few ms and keeps only the newest ready frame set in a one-set
     slot (a complete set is preferred: an incomplete one never replaces a complete one not yet taken); a
     set replaced before it was taken is stale, dropped and counted (``stats.skipped``). ``live`` takes
-    the set in the slot and runs the stages on it. The queue holds a few frames per camera
-    (``queue_size``, default 8 per camera; a full queue drops the frame, counted by the grabber as
-    ``dropped_live``), so the live loop never falls further behind than one frame set plus the set being
-    processed.
+    the set in the slot and runs the first stage (the 2D) on it, then hands it to ``live-3d`` for the
+    others (triangulation, tracking, the outputs) and takes the next set meanwhile (``pipelined``; in
+    order, one set handed over at a time). The queue holds a few frames per camera (``queue_size``,
+    default 8 per camera; a full queue drops the frame, counted by the grabber as ``dropped_live``), so
+    the live loop never falls further behind than one frame set plus the two being processed.
 
     Stopping (:meth:`stop`, or the ``stop_event`` handed to :meth:`watch`: the recorder's, set by
-    ``--duration``, Ctrl-C or the sources' end): the set being processed is finished, the rest is
+    ``--duration``, Ctrl-C or the sources' end): the sets being processed are finished, the rest is
     dropped (counted), the stages are closed. Nothing queued is processed after the stop.
     """
 
@@ -100,6 +101,7 @@ class LiveRunner:
         stages: dict[str, Stage] | None = None,
         queue_size: int | None = None,
         build_stages: BuildStages | None = None,
+        build_in_background: bool = False,
     ):
         self.cfg = cfg
         self.layout = SessionLayout(out)
@@ -115,12 +117,20 @@ class LiveRunner:
         self._threads: list[threading.Thread] = []
         self.stopped_ns: int | None = None  # host_now_ns when the stop was seen
         self.ended_ns: int | None = None  # host_now_ns when the live loop ended (stages closed)
-        if stages is None:
+        # build_in_background: the stages (the 2D models' load and warm-up, the tracker's imports) are built
+        # on the live thread while the recording starts, not before it; the sets that come meanwhile are
+        # dropped as stale (counted); ``stages_ready_ns`` says when they were ready
+        self._build = build_stages if stages is None and build_in_background else None
+        self.stages_ready_ns: int | None = None
+        if stages is None and self._build is None:
             stages, errors = build_stages(cfg, self.layout) if build_stages is not None else ({}, {})
             self.stats.errors.update(errors)
-        self.stages = stages
+        self.stages = stages or {}
+        self.planned = tuple(self.stages) if self._build is None else tuple(cfg.live.stages)
         self.stats.stage_ms = {k: 0.0 for k in self.stages}
         self.on_step: Callable[[LiveStep], None] | None = None  # e.g. a viewer
+        # the first stage (the 2D) of a set overlaps the others of the previous set (_run_pipelined)
+        self.pipelined = True
         self.reports: list[Callable[[], str]] = []  # more of the summary line (e.g. the forecast's cost)
 
     def watch(self, stop_event: threading.Event) -> None:
@@ -141,8 +151,8 @@ class LiveRunner:
             t.start()
 
     def stop(self, timeout_s: float = 30.0) -> None:
-        """End the live loop: the set being processed is finished, nothing else is; the stages are closed.
-        Waits at most ``timeout_s`` (the one set being processed, then the stages' close)."""
+        """End the live loop: the sets being processed are finished, nothing else is; the stages are
+        closed. Waits at most ``timeout_s`` (the sets being processed, then the stages' close)."""
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
@@ -194,12 +204,30 @@ class LiveRunner:
             return fs
 
     # ------------------------------------------------------------------ live thread
+    def _build_stages(self) -> None:
+        t0 = time.perf_counter()
+        stages, errors = self._build(self.cfg, self.layout)
+        self.stats.errors.update(errors)
+        self.stats.stage_ms = {k: 0.0 for k in stages}
+        self.stages = stages
+        self.stages_ready_ns = host_now_ns()
+        log.info("live: stages %s ready in %.2f s", ", ".join(stages) or "(none)", time.perf_counter() - t0)
+
     def _run(self) -> None:
-        while True:
-            fs = self._take()
-            if fs is None:
-                break
-            self.process(fs)
+        if self._build is not None:
+            try:
+                self._build_stages()
+            except Exception as e:  # noqa: BLE001 - said like a stage that cannot be built
+                log.exception("live: building the stages failed")
+                self.stats.errors["build"] = f"{type(e).__name__}: {e}"
+        if self.pipelined and len(self.stages) > 1:
+            self._run_pipelined()
+        else:
+            while True:
+                fs = self._take()
+                if fs is None:
+                    break
+                self.process(fs)
         self.stopped_ns = host_now_ns()
         with self._cond:  # a set ready at the stop is not processed: dropped, counted
             if self._slot is not None:
@@ -217,17 +245,54 @@ class LiveRunner:
             log.info("live: track parts in %s", self.layout.live_tracks.with_suffix(".parts"))
         self.ended_ns = host_now_ns()
 
+    def _run_pipelined(self) -> None:
+        """The first stage (the 2D) of the next set on this thread while the others (triangulation,
+        tracking, the outputs) finish the last one on ``live-3d``: the sets stay in order for the tracker,
+        one set is handed over at a time (the 2D waits when the 3D is behind), and the cores do not idle
+        while the 3D runs."""
+        handoff: queue.Queue = queue.Queue(maxsize=1)
+
+        def back() -> None:
+            while (step := handoff.get()) is not None:
+                self._back(step)
+
+        t = threading.Thread(target=back, name="live-3d", daemon=True)
+        t.start()
+        try:
+            while (fs := self._take()) is not None:
+                # a set whose 2D is done goes through the 3D even after a stop: the 3D costs a few ms and
+                # the 3D thread is at most one set behind
+                handoff.put(self._front(fs))
+        finally:
+            handoff.put(None)
+            t.join()
+
     def process(self, fs: FrameSet, final: bool = False) -> LiveStep:
+        """Run the stages on ``fs``, count it, hand it to ``on_step``."""
+        return self._back(self._front(fs, final))
+
+    def _stage(self, name: str, stage: Stage, step: LiveStep) -> None:
+        t0 = time.perf_counter()
+        try:
+            stage(step)
+        except Exception as e:
+            if name not in self.stats.errors:
+                log.exception("live: stage %r failed", name)
+            self.stats.errors[name] = f"{type(e).__name__}: {e}"
+        self.stats.stage_ms[name] = self.stats.stage_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+    def _front(self, fs: FrameSet, final: bool = False) -> LiveStep:
+        """A step for ``fs`` through the first stage."""
         step = LiveStep(fs, self.cfg.names, {"final": final})
-        for name, stage in self.stages.items():
-            t0 = time.perf_counter()
-            try:
-                stage(step)
-            except Exception as e:
-                if name not in self.stats.errors:
-                    log.exception("live: stage %r failed", name)
-                self.stats.errors[name] = f"{type(e).__name__}: {e}"
-            self.stats.stage_ms[name] = self.stats.stage_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+        for name, stage in list(self.stages.items())[:1]:
+            self._stage(name, stage, step)
+        return step
+
+    def _back(self, step: LiveStep) -> LiveStep:
+        """The other stages, then the step counted and handed to ``on_step``."""
+        for name, stage in list(self.stages.items())[1:]:
+            self._stage(name, stage, step)
+        fs = step.frameset
         newest = max(f.t_host_ns for f in fs.frames.values() if f is not None)
         self.stats.latency_ms.append((host_now_ns() - newest) / 1e6)
         self.stats.processed += 1

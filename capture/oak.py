@@ -65,7 +65,7 @@ class OakConfig:
     socket: str = "CAM_A"
     resolution: tuple[int, int] = (1920, 1080)
     fps: float = 30.0
-    codec: str = "h264"  # h264 | h265 on the device, or a host codec (frames to the host)
+    codec: str = "h264"  # h264 | h265 | mjpeg on the device, or a host codec (frames to the host)
     keyframe_every: int = 15
     quality: int = 80
     exposure_us: int | None = None
@@ -73,7 +73,7 @@ class OakConfig:
 
     @property
     def on_device_encoding(self) -> bool:
-        return self.codec in ("h264", "h265")
+        return self.codec in ("h264", "h265", "mjpeg")
 
 
 def oak_config(cam: CameraConfig, segment_s: float = 0.5) -> OakConfig:
@@ -143,10 +143,14 @@ def _td_ns(td: _dt.timedelta) -> int:
     return (td.days * 86_400 + td.seconds) * 1_000_000_000 + td.microseconds * 1_000
 
 
-def frame_from_message(msg, encoded: bool) -> Frame:
-    """A depthai ImgFrame/EncodedFrame -> Frame (t_ns on the host clock, sequence = the device's counter)."""
+def frame_from_message(msg, encoded: bool, jpeg: bool = False) -> Frame:
+    """A depthai ImgFrame/EncodedFrame -> Frame (t_ns on the host clock, sequence = the device's counter).
+    ``jpeg``: the device's MJPEG encoder: each frame one JPEG (``Frame.jpeg``), written as it came and
+    decoded on the host only where the live loop takes it, like a USB camera's MJPEG."""
     t_ns = mono_to_host_ns(_td_ns(msg.getTimestamp()))
     seq = int(msg.getSequenceNum())
+    if encoded and jpeg:
+        return Frame(None, t_ns, host_now_ns(), seq, jpeg=bytes(msg.getData()))
     if encoded:
         dai = _dai()
         data = bytes(msg.getData())
@@ -194,11 +198,10 @@ class OakSource(FrameSource):
             node.initialControl.setManualExposure(int(c.exposure_us), 100)
         if c.on_device_encoding:
             out = node.requestOutput(c.resolution, dai.ImgFrame.Type.NV12, fps=c.fps)
-            profile = (
-                dai.VideoEncoderProperties.Profile.H265_MAIN
-                if c.codec == "h265"
-                else dai.VideoEncoderProperties.Profile.H264_MAIN
-            )
+            profile = {
+                "h265": dai.VideoEncoderProperties.Profile.H265_MAIN,
+                "mjpeg": dai.VideoEncoderProperties.Profile.MJPEG,
+            }.get(c.codec, dai.VideoEncoderProperties.Profile.H264_MAIN)
             enc = p.create(dai.node.VideoEncoder).build(
                 out, frameRate=c.fps, profile=profile, keyframeFrequency=c.keyframe_every, quality=c.quality
             )
@@ -221,7 +224,7 @@ class OakSource(FrameSource):
         if msg is None:
             self.close()
             raise SourceDisconnected(f"{self.name}: no frame from the OAK within {self.timeout_s:g} s")
-        return frame_from_message(msg, self.cfg.on_device_encoding)
+        return frame_from_message(msg, self.cfg.on_device_encoding, jpeg=self.cfg.codec == "mjpeg")
 
     def close(self) -> None:
         if self._pipeline is not None:

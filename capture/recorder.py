@@ -72,6 +72,7 @@ from roomcap.core.redact import redact
 log = logging.getLogger(__name__)
 
 _DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
+STALL_MIN_S = 1.0  # a camera without a frame this long (and 10 frame periods) is reported as stalling
 
 
 # ----------------------------------------------------------------------------- recorder
@@ -171,12 +172,16 @@ class Recorder:
                     ended=g.stats.ended,
                     gaps=[gap.to_dict() for gap in g.stats.gaps],
                 )
+                if g.stats.stalls:
+                    d["stalls"] = [{k: v for k, v in st.items() if v is not None} for st in g.stats.stalls]
             if c.name not in self.failed_cameras:
                 d["recording"] = recording_mode(c, g.source if g is not None else None)
             if w is not None:
                 d.update(frames_written=w.writer.frames_written, segments=w.writer.segments)
                 if w.writer.copy_tail_dropped:
                     d["copy_tail_dropped"] = w.writer.copy_tail_dropped
+                if w.writer.copy_head_dropped:
+                    d["copy_head_dropped"] = w.writer.copy_head_dropped
                 if w.error:
                     d["writer_error"] = w.error
             if c.name in self.failed_cameras:
@@ -423,7 +428,14 @@ class Recorder:
                 self.stop_reason = self.stop_reason or failure
                 log.error("stopping: %s", self.stop_reason)
                 break
+            for g in self.grabbers.values():  # a camera that stopped sending without an error: said
+                g.check_stall(self._stall_s(g))
             self.stop_event.wait(0.1)
+
+    def _stall_s(self, g: Grabber) -> float:
+        """How long without a frame a camera stalls: 10 frame periods, at least ``STALL_MIN_S``."""
+        fps = g.info.fps or 30.0
+        return max(STALL_MIN_S, 10.0 / fps)
 
     def _writer_failure(self) -> str:
         """'disk full: camera X: ...' (or 'writer failed: ...') once a writer thread failed, else ''."""

@@ -54,11 +54,16 @@ class SegmentWriter:
         # frame of it came, so that a segment holds exactly the packets of its rows
         self._gop: tuple[list, list[tuple[int, int, int]]] | None = None
         self.copy_tail_dropped = 0  # frames of a group of pictures the recording ended within (not written)
+        self.copy_head_dropped = 0  # a live stream's frames before its first keyframe (not decodable alone)
+        self._streams: set[str] = set()  # the live streams whose packets were copied (their inputs released)
+        self._key: str | None = None  # the live stream the open segment copies
+        self._last_seq = -1
         self._part: Path | None = None
         self._final: Path | None = None
         self._rows: list[str] = []
         self._seg_t0 = 0
         self._shape = None
+        self._mode = ""  # what the open segment takes: "image", "jpeg", "encoded" or "copy" (_mode)
         self._closed: list[str] = []
         if self.frames_csv.exists():  # the recorder only writes into folders it created
             raise RecorderError(f"{self.frames_csv} already exists; refusing to append to an old recording.")
@@ -71,16 +76,26 @@ class SegmentWriter:
         if any(self.dir.glob(f"seg_{k:06d}.*")):
             raise RecorderError(f"{self.dir}: seg_{k:06d} already exists; refusing to overwrite a recording.")
         if frame.copy_from is not None:  # stream copy (capture.streamcopy): starts at a GOP's first frame
-            from roomcap.capture.streamcopy import CopyMuxer, copy_plan
+            from roomcap.capture.streamcopy import STREAM_TEMPLATES, CopyMuxer, copy_plan
 
             if frame.packets is None:
                 raise SourceError(f"{self.dir.name}: a stream-copied segment must start at a keyframe")
             if frame.copy_from not in self._copy_ext:
-                self._copy_ext[frame.copy_from] = copy_plan(frame.copy_from)[0]
+                live = STREAM_TEMPLATES.get(frame.copy_from)
+                self._copy_ext[frame.copy_from] = live[1] if live else copy_plan(frame.copy_from)[0]
             ext = self._copy_ext[frame.copy_from] or ".mkv"
             self._final = self.dir / f"seg_{k:06d}{ext}"
             self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}{ext}"
             self._mux = CopyMuxer(self._part, frame.copy_from)
+        elif frame.jpeg is not None:  # a USB camera's MJPEG: each JPEG written as it came
+            from roomcap.capture.sources import jpeg_size
+            from roomcap.capture.streamcopy import JpegMuxer
+
+            self._final = self.dir / f"seg_{k:06d}.avi"
+            self._part = self.dir / f"{PART_PREFIX}seg_{k:06d}.avi"
+            w, h = jpeg_size(frame.jpeg)
+            self._mux = JpegMuxer(self._part, w, h, self.fps)
+            self._shape = (h, w)
         elif frame.encoded is not None:
             ext = ".h265" if self.codec == "h265" else ".h264"  # Annex B elementary stream from the device
             self._final = self.dir / f"seg_{k:06d}{ext}"
@@ -106,6 +121,7 @@ class SegmentWriter:
             self._shape = frame.image.shape
         self._seg_t0 = frame.t_ns
         self._rows = []
+        self._mode = _mode(frame)
 
     def _write_copy(self, frame: Frame) -> None:
         """Stream copy (capture.streamcopy): a group of pictures starts with the frame that carries its
@@ -129,6 +145,41 @@ class SegmentWriter:
                 self._rows.append(f"{self.frames_written + len(self._rows)},{t_ns},{t_host},{seq}\n")
             self._gop = None
 
+    def _write_stream_copy(self, frame: Frame) -> None:
+        """A live stream's frames (capture.avstream), each with its own packet: a group of pictures is kept
+        until the next keyframe, then its packets muxed in decode order and its rows (in the order the
+        frames came) kept; a segment is cut only there. Frames before the first keyframe cannot be
+        decoded from the segment: left out; a group with a frame missing (a gap in the sequence numbers: the
+        writer's queue dropped it) is left out whole."""
+        if self._gop is not None and frame.sequence != self._last_seq + 1:
+            self._drop_open_gop()
+        self._last_seq = frame.sequence
+        if frame.keyframe:
+            self._flush_stream_gop()
+            if (
+                self._part is None
+                or frame.t_ns - self._seg_t0 >= self.segment_ns
+                or frame.copy_from != self._key
+            ):
+                self.close_segment()
+                self._open_segment(frame)
+                self._key = frame.copy_from
+            self._gop = ([], [])
+        if self._gop is None:
+            self.copy_head_dropped += 1
+            return
+        self._gop[0].extend(frame.packets)
+        self._gop[1].append((frame.t_ns, frame.t_host_ns, frame.sequence))
+
+    def _flush_stream_gop(self) -> None:
+        if self._gop is None:
+            return
+        packets, rows = self._gop
+        self._gop = None
+        self._mux.write(sorted(packets, key=lambda p: p.dts if p.dts is not None else p.pts))
+        for t_ns, t_host, seq in rows:
+            self._rows.append(f"{self.frames_written + len(self._rows)},{t_ns},{t_host},{seq}\n")
+
     def _drop_open_gop(self) -> None:
         if self._gop is not None:
             n = len(self._gop[1])
@@ -143,7 +194,13 @@ class SegmentWriter:
 
     def write(self, frame: Frame) -> None:
         if frame.copy_from is not None:
-            self._write_copy(frame)
+            from roomcap.capture.streamcopy import STREAM_TEMPLATES
+
+            if frame.copy_from in STREAM_TEMPLATES:
+                self._streams.add(frame.copy_from)
+                self._write_stream_copy(frame)
+            else:
+                self._write_copy(frame)
             return
         need_new = self._part is None
         if not need_new and frame.t_ns - self._seg_t0 >= self.segment_ns:
@@ -151,10 +208,18 @@ class SegmentWriter:
             need_new = frame.encoded is None or frame.keyframe
         if not need_new and frame.image is not None and frame.image.shape != self._shape:
             need_new = True
+        if not need_new and _mode(frame) != self._mode:
+            need_new = True  # a camera that switched between decoded frames and JPEGs (after a reconnect)
+        if not need_new and frame.jpeg is not None:
+            from roomcap.capture.sources import jpeg_size
+
+            need_new = jpeg_size(frame.jpeg)[::-1] != self._shape
         if need_new:
             self.close_segment()
             self._open_segment(frame)
-        if frame.encoded is not None:
+        if frame.jpeg is not None and self._mux is not None:
+            self._mux.write_jpeg(frame.jpeg)
+        elif frame.encoded is not None:
             self._raw.write(frame.encoded)
         else:
             self._writer.write(frame.image)
@@ -198,7 +263,13 @@ class SegmentWriter:
 
     def close(self) -> None:
         self._drop_open_gop()
-        self.close_segment()
+        try:
+            self.close_segment()
+        finally:
+            if self._streams:
+                from roomcap.capture.streamcopy import release_templates
+
+                release_templates(self._streams)
 
     def abort(self) -> None:
         """After a write error: keep the open segment if it still closes cleanly, else remove it."""
@@ -217,6 +288,16 @@ class SegmentWriter:
                 self._part.unlink(missing_ok=True)
             self._part = self._final = None
             self._rows = []
+
+
+def _mode(frame: Frame) -> str:
+    """How a frame is written: its file's packets copied, its JPEG as it came, a device's encoded packet
+    as it came, or its decoded image encoded."""
+    if frame.copy_from is not None:
+        return "copy"
+    if frame.jpeg is not None:
+        return "jpeg"
+    return "encoded" if frame.encoded is not None else "image"
 
 
 def write_ffconcat(cam_dir: Path, segments: list[str]) -> None:

@@ -72,6 +72,92 @@ class Frame:
     copy_from: str | None = None
     packets: list | None = None
     loops: int = 0  # times the source started again from its beginning (a looping file's wraps)
+    # an intra-coded source (MJPEG: a USB camera's, an MJPEG file's): the frame's JPEG, written as it is and
+    # decoded only where a consumer asks for the image (:meth:`decoded`); ``image`` is None then
+    jpeg: bytes | None = None
+
+    @property
+    def has_image(self) -> bool:
+        """Whether an image can be had: a decoded one or a JPEG to decode."""
+        return self.image is not None or self.jpeg is not None
+
+    def decoded(self, reduce: int = 1) -> np.ndarray | None:
+        """The frame's (H,W,3) BGR image at 1/``reduce`` of its size (``reduce`` 1, 2, 4 or 8): a JPEG is
+        decoded here (libjpeg's DCT scaling for ``reduce`` > 1: it decodes fewer coefficients, so a
+        smaller image costs less, :func:`decode_jpeg`), a decoded image is shrunk by area averaging.
+        Stateless, so several threads may ask. Pixel ``x`` of the result covers full-size pixels
+        ``reduce*x .. reduce*x + reduce - 1`` (:func:`full_res_px` maps its coordinates back)."""
+        if self.jpeg is not None and self.image is None:
+            return decode_jpeg(self.jpeg, reduce)
+        if self.image is None or reduce == 1:
+            return self.image
+        import cv2
+
+        h, w = self.image.shape[:2]
+        size = (-(-w // reduce), -(-h // reduce))  # libjpeg's size: rounded up
+        return cv2.resize(self.image, size, interpolation=cv2.INTER_AREA)
+
+
+REDUCED_FLAGS = {
+    1: "IMREAD_COLOR",
+    2: "IMREAD_REDUCED_COLOR_2",
+    4: "IMREAD_REDUCED_COLOR_4",
+    8: "IMREAD_REDUCED_COLOR_8",
+}
+
+
+def decode_jpeg(data: bytes, reduce: int = 1) -> np.ndarray:
+    """A JPEG's (H,W,3) BGR image at 1/``reduce`` of its size (1, 2, 4, 8). libjpeg scales in the DCT
+    domain (``scale_denom``, through OpenCV's IMREAD_REDUCED_COLOR_*): each 8x8 block is inverse-transformed
+    at 8/reduce points, so the decode costs less (1088x1920 here: 4.0 ms full, 1.8 ms at 1/2, 1.2 ms at
+    1/4) and the image is already low-passed (no aliasing). Raises :class:`SourceError` for bytes that are
+    not a decodable JPEG."""
+    import cv2
+
+    if reduce not in REDUCED_FLAGS:
+        raise ValueError(f"reduce must be one of {sorted(REDUCED_FLAGS)}, got {reduce!r}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), getattr(cv2, REDUCED_FLAGS[reduce]))
+    if img is None:
+        raise SourceError(f"a frame's {len(data)} bytes are not a decodable JPEG")
+    return img
+
+
+def full_res_px(xy: np.ndarray, reduce: int) -> np.ndarray:
+    """Pixel coordinates in an image reduced by ``reduce`` (:meth:`Frame.decoded`) -> the full-size image's.
+    Pixel centres at integers (OpenCV's convention): reduced pixel ``x`` averages full-size pixels
+    ``reduce*x .. reduce*x + reduce-1``, whose centre is ``reduce*x + (reduce-1)/2``. NaN stays NaN."""
+    if reduce == 1:
+        return xy
+    return np.asarray(xy) * reduce + (reduce - 1) / 2.0
+
+
+def jpeg_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a JPEG's start-of-frame marker (no decoding); raises :class:`SourceError` when
+    there is none."""
+    i, n = 2, len(data)
+    if data[:2] != b"\xff\xd8":
+        raise SourceError("not a JPEG (no start-of-image marker)")
+    while i + 9 < n:
+        if data[i] != 0xFF:
+            i += 1
+            continue
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7 or marker == 0xFF:
+            i += 1 if marker == 0xFF else 2
+            continue
+        seg = int.from_bytes(data[i + 2 : i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            h = int.from_bytes(data[i + 5 : i + 7], "big")
+            w = int.from_bytes(data[i + 7 : i + 9], "big")
+            return w, h
+        i += 2 + seg
+    raise SourceError("a JPEG without a start-of-frame marker (no size)")
+
+
+def is_jpeg(buf) -> bool:
+    """Whether ``buf`` (bytes or a uint8 array) starts like a JPEG (SOI marker, then another marker)."""
+    b = bytes(np.asarray(buf, np.uint8).ravel()[:3]) if not isinstance(buf, bytes) else buf[:3]
+    return b[:2] == b"\xff\xd8" and len(b) == 3 and b[2] == 0xFF
 
 
 @dataclass(frozen=True)
@@ -297,6 +383,38 @@ class OpenCVSource(FrameSource):
         self._cap = None
         self._seq = 0
         self._fps = 0.0
+        # a USB camera or V4L2 device: its MJPEG written by stream copy (stream_copy: true, the default)
+        self._wants_jpeg = cam.stream_copy and cam.kind in ("usb", "device")
+        self.jpeg = False  # set by open(): the camera hands out JPEGs (Frame.jpeg), not decoded images
+        self.copy: str | None = None  # set by open(): how the recording is written (capture.streamcopy)
+
+    @staticmethod
+    def _capture(target, backend, params):
+        """cv2.VideoCapture (a seam for tests: a fake capture stands in for a device)."""
+        import cv2
+
+        return cv2.VideoCapture(target, backend, params)
+
+    def _first_jpeg_or_decoded(self, cap, buf):
+        """The first read with conversion off: a JPEG (the camera streams MJPEG: kept as bytes, stream copy)
+        or anything else (YUYV, a decoded image): conversion on again and the frame read again, re-encoded
+        as ``codec`` (said in ``self.copy``)."""
+        import cv2
+
+        if is_jpeg(buf):
+            self.jpeg = True
+            self.copy = "stream copy of the camera's MJPEG frames into .avi segments (no re-encoding)"
+            return bytes(np.asarray(buf, np.uint8).ravel())
+        fourcc = int(cap.get(cv2.CAP_PROP_FOURCC))
+        name = "".join(chr((fourcc >> 8 * i) & 0xFF) for i in range(4)).strip("\x00 ") or "raw"
+        self.copy = (
+            f"re-encoded: the camera delivers {name} frames, not MJPEG, which a stream copy needs "
+            f"(set its format to MJPEG, or stream_copy: false to silence this)"
+        )
+        log.warning("%s: recording %s", self.name, self.copy)
+        cap.set(cv2.CAP_PROP_CONVERT_RGB, 1)
+        ok, img = cap.read()
+        return img if ok else None
 
     def _describe(self) -> str:
         return f"{self.cam.kind} {self.cam.source_redacted}"
@@ -322,7 +440,7 @@ class OpenCVSource(FrameSource):
                 "with `v4l2-ctl --list-devices`."
             )
         backend = cv2.CAP_FFMPEG if kind == "rtsp" else cv2.CAP_ANY
-        cap = cv2.VideoCapture(target, backend, params)
+        cap = self._capture(target, backend, params)
         if not cap.isOpened():
             cap.release()
             if kind == "rtsp":
@@ -343,13 +461,22 @@ class OpenCVSource(FrameSource):
         if cam.exposure_us is not None:
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2: 1 = manual
             cap.set(cv2.CAP_PROP_EXPOSURE, cam.exposure_us / 100.0)  # V4L2 units of 100 us
+        if self._wants_jpeg:
+            # ask a USB camera for MJPEG and for its buffers as they come (V4L2: CONVERT_RGB off hands out
+            # the driver's bytes): the JPEGs are written as they are, decoded only for the live loop
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*"MJPG"))
+            cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         ok, img = cap.read()
+        if ok and img is not None and self._wants_jpeg:
+            img = self._first_jpeg_or_decoded(cap, img)
         if not ok or img is None:
             cap.release()
             raise SourceError(
                 f"{self.name}: {self._describe()} opened but delivers no frames (busy or not a video source)."
             )
         w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if isinstance(img, bytes):
+            w, h = jpeg_size(img)
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         check_delivery(self.name, cam, w, h, fps)
         self._cap = cap
@@ -366,11 +493,15 @@ class OpenCVSource(FrameSource):
             if not ok or img is None:
                 self.close()
                 raise SourceDisconnected(f"{self.name}: {self._describe()} stopped delivering frames")
+            if self.jpeg:
+                img = bytes(np.asarray(img, np.uint8).ravel())
         now = host_now_ns()
         # OpenCV exposes no device clock for V4L2/RTSP that is comparable across cameras: the host stamp
         # at grab is the best estimate (latency is constant per camera and removed by offline sync).
         seq = self._seq
         self._seq += 1
+        if isinstance(img, bytes):
+            return Frame(None, now, now, seq, jpeg=img)
         return Frame(img, now, now, seq)
 
     def close(self) -> None:
@@ -585,21 +716,29 @@ class FileReplaySource(FrameSource):
         if self.path.is_file() and self.path.stat().st_size == 0:
             raise SourceError(f"{self.name}: {self.path} is empty, not a video.")
 
-    def _frames(self, rec: Recording | None) -> Iterator[tuple[int, int, np.ndarray | None, list | None]]:
-        """(index, file time ns, image, packets to copy or None) per frame: by stream copy (PyAV, every frame
-        decoded: an inter-coded stream needs every packet) or by OpenCV (late frames not converted)."""
+    def _frames(
+        self, rec: Recording | None
+    ) -> Iterator[tuple[int, int, np.ndarray | None, list | None, bytes | None]]:
+        """(index, file time ns, image, packets to copy or None, JPEG or None) per frame: by stream copy
+        (PyAV; an inter-coded stream has every frame decoded, as it needs every packet; an MJPEG file none:
+        each frame's JPEG is handed on, decoded only where the live loop takes it) or by OpenCV (late frames
+        not converted)."""
         if rec is None:
             from roomcap.capture.streamcopy import PacketReader
 
             reader = PacketReader(self.path)
             try:
-                for i, (t_ns, img, packets) in enumerate(reader):
-                    yield i, t_ns, img, packets
+                if reader.intra_jpeg:
+                    for i, (t_ns, p) in enumerate(reader.jpegs()):
+                        yield i, t_ns, None, [p], bytes(p)
+                else:
+                    for i, (t_ns, img, packets) in enumerate(reader):
+                        yield i, t_ns, img, packets, None
             finally:
                 reader.close()
         else:
             for i, t_ns, img in rec.iter_frames(self._late):
-                yield i, t_ns, img, None
+                yield i, t_ns, img, None, None
 
     def open(self) -> SourceInfo:
         self.check()
@@ -653,17 +792,17 @@ class FileReplaySource(FrameSource):
                     if item is None:
                         return None
                     self._t0_file = item[1]
-            _, t_file, img, packets = item
+            _, t_file, img, packets, jpeg = item
             rel = self._wrap_ns + (t_file - self._t0_file)
             self._last_rel = rel
             seq = self._seq
             self._seq += 1
-            if img is None and self._skipped_in_row < self._max_skip:
+            if img is None and jpeg is None and self._skipped_in_row < self._max_skip:
                 # like a camera, a replay does not wait for a slow host: late frames are dropped
                 # (a gap in the sequence numbers); bounded so a very slow host still gets frames
                 self._skipped_in_row += 1
                 continue
-            if img is None:  # skipped too many in a row: deliver this one
+            if img is None and jpeg is None:  # skipped too many in a row: deliver this one
                 img = self._decode_again(item)
             self._skipped_in_row = 0
             if self.realtime:
@@ -682,6 +821,7 @@ class FileReplaySource(FrameSource):
                     copy_from=str(self.path),
                     packets=packets,
                     loops=self._loops,
+                    jpeg=jpeg,
                 )
             return Frame(img, self.epoch_ns + rel, host_now_ns(), seq, loops=self._loops)
 

@@ -31,6 +31,22 @@ log = logging.getLogger(__name__)
 COPY_CODECS = {"h264": ".mp4", "hevc": ".mp4", "mpeg4": ".mp4", "mjpeg": ".avi"}
 
 
+# a live stream's open input (capture.avstream): copy_from key -> (its video stream, the segment extension,
+# the container); the writer's segments take the stream as their template and release it when done
+STREAM_TEMPLATES: dict[str, tuple[Any, str, Any]] = {}
+
+
+def release_templates(keys: Any) -> None:
+    """Close the live streams' containers ``keys`` names (the writer of their segments is done)."""
+    for k in keys:
+        entry = STREAM_TEMPLATES.pop(k, None)
+        if entry is not None:
+            try:
+                entry[2].close()
+            except Exception:  # noqa: BLE001 - a broken stream: nothing left to write from it
+                pass
+
+
 def copy_plan(path: str | Path, drop_late: bool = False, wanted: bool = True) -> tuple[str | None, str]:
     """How a video file replayed as a camera is recorded: ``(segment extension, description)`` for a stream
     copy, ``(None, why it is re-encoded)`` otherwise. Reads the container's header, decodes nothing.
@@ -76,9 +92,47 @@ def recording_mode(cam: Any, source: Any = None) -> str:
     if cam.kind == "file":
         ext, why = copy_plan(cam.source, cam.drop_late, cam.stream_copy)
         return why if ext is not None else f"{why} as {cam.codec}"
+    if cam.kind == "oak" and cam.codec == "mjpeg":
+        return (
+            "the device's JPEGs written as they come (no re-encoding), decoded on the host only for the "
+            "frames the live loop takes"
+        )
     if cam.kind == "oak" and cam.codec in DEVICE_CODECS:
-        return f"the device's {cam.codec} stream written as it comes (no re-encoding)"
+        return (
+            f"the device's {cam.codec} stream written as it comes (no re-encoding); the live loop gets no "
+            "images from it (codec: mjpeg gives them)"
+        )
+    if cam.kind in ("usb", "device") and cam.stream_copy:
+        return (
+            "MJPEG asked of the camera: its JPEGs written as they come (stream copy, no re-encoding); "
+            f"a camera that delivers another format is re-encoded as {cam.codec} (said when it opens)"
+        )
+    if cam.kind == "rtsp" and cam.stream_copy:
+        return (
+            "the stream's packets written as they come (stream copy, PyAV) when its codec is one of "
+            f"{', '.join(sorted(COPY_CODECS))}; another codec is re-encoded as {cam.codec} "
+            "(said when it opens)"
+        )
     return f"re-encoded as {cam.codec}: this source gives decoded frames"
+
+
+def delivers_jpeg(cam: Any) -> bool:
+    """Whether camera ``cam`` (a ``CameraConfig``) is expected to hand out JPEGs (``Frame.jpeg``), decoded
+    only where the live loop takes them: an MJPEG file replayed by stream copy, a USB camera or V4L2 device
+    asked for MJPEG (whether it gives it is known when it opens). Reads a file's header only."""
+    if not cam.stream_copy:
+        return False
+    if cam.kind in ("usb", "device"):
+        return True
+    if cam.kind != "file" or cam.drop_late:
+        return False
+    try:
+        import av
+
+        with av.open(str(cam.source)) as c:
+            return bool(c.streams.video) and c.streams.video[0].codec_context.name == "mjpeg"
+    except Exception:  # noqa: BLE001 - unreadable here: the source says why when it opens
+        return False
 
 
 class PacketReader:
@@ -158,6 +212,19 @@ class PacketReader:
         t_ns = int(round(float(frame.pts * self.tb) * 1e9)) if frame.pts is not None else 0
         return t_ns, frame.to_ndarray(format="bgr24"), packets
 
+    @property
+    def intra_jpeg(self) -> bool:
+        """Whether every packet is a whole JPEG picture (MJPEG): then :meth:`jpegs` decodes nothing."""
+        return self.codec.name == "mjpeg"
+
+    def jpegs(self) -> Any:
+        """``(t_file_ns, packet)`` per frame of an MJPEG file, nothing decoded: each packet is one frame's
+        JPEG (a keyframe), copied into the segments as it is and decoded only where the live loop takes the
+        frame (``Frame.decoded``)."""
+        for p in self.container.demux(self.stream):
+            if p.size:
+                yield (int(round(float(p.pts * self.tb) * 1e9)) if p.pts is not None else 0), p
+
     def close(self) -> None:
         self.container.close()
 
@@ -170,9 +237,13 @@ class CopyMuxer:
     def __init__(self, path: Path, template: str):
         import av  # lazy: PyAV
 
-        self._tmpl = av.open(template)
+        if template in STREAM_TEMPLATES:  # a live stream's (capture.avstream): its open input stream
+            self._tmpl, stream = None, STREAM_TEMPLATES[template][0]
+        else:
+            self._tmpl = av.open(template)
+            stream = self._tmpl.streams.video[0]
         self.out = av.open(str(path), "w")
-        self.ost = self.out.add_stream_from_template(self._tmpl.streams.video[0])
+        self.ost = self.out.add_stream_from_template(stream)
         self._shift: int | None = None
         self.last_dts: int | None = None  # in the source's ticks, before the shift
 
@@ -199,7 +270,46 @@ class CopyMuxer:
         try:
             self.out.close()
         finally:
-            self._tmpl.close()
+            if self._tmpl is not None:
+                self._tmpl.close()
+
+
+class JpegMuxer:
+    """One segment of a source whose frames come as JPEGs without a file behind them (a USB camera
+    streaming MJPEG, :class:`roomcap.capture.sources.OpenCVSource`): each JPEG muxed as one packet of an
+    MJPEG stream in an AVI (the recorder's MJPEG container), byte for byte; the frames' times are in the
+    timestamp rows, the packets numbered at the camera's nominal rate. Same interface as
+    :class:`CopyMuxer`."""
+
+    def __init__(self, path: Path, width: int, height: int, fps: float):
+        from fractions import Fraction
+
+        import av  # lazy: PyAV
+
+        self.out = av.open(str(path), "w", format="avi")
+        rate = Fraction(fps).limit_denominator(1001) if fps and fps > 0 else Fraction(30)
+        self.ost = self.out.add_stream("mjpeg", rate=rate)
+        self.ost.width, self.ost.height, self.ost.pix_fmt = int(width), int(height), "yuvj420p"
+        self.ost.time_base = 1 / rate
+        self._n = 0
+        self.last_dts: int | None = None
+
+    def follows(self, packets: list[Any]) -> bool:
+        return True
+
+    def write_jpeg(self, data: bytes) -> None:
+        import av
+
+        q = av.Packet(data)
+        q.pts = q.dts = self._n
+        q.is_keyframe = True
+        q.time_base = self.ost.time_base
+        q.stream = self.ost
+        self.out.mux(q)
+        self._n += 1
+
+    def close(self) -> None:
+        self.out.close()
 
 
 def _copy_packet(p: Any) -> Any:

@@ -344,11 +344,11 @@ class LiveRerun:
         fs = step.frameset
         w.set_time(fs.index, fs.t_ns)
         for cam, f in fs.frames.items():
-            if f is None or f.image is None:
+            if f is None or not f.has_image:
                 continue
             if f.t_ns - self._last_img.get(cam, -(1 << 62)) >= self.image_period_ns:
                 self._last_img[cam] = f.t_ns
-                w.image(cam, np.asarray(f.image))
+                w.image(cam, np.asarray(f.decoded()))  # a camera's JPEG decoded here (full size)
         for cam, d in (step.outputs.get("detections") or {}).items():
             xy = np.asarray(d.xy_px)
             skel = getattr(d, "skeleton", CANONICAL.id)

@@ -54,29 +54,29 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
-from roomcap.calibrate.camera import CameraRig
 from roomcap.capture.cli import make_main
-from roomcap.capture.config import CaptureConfig
+from roomcap.capture.config import CaptureConfig, auto_reduce
 from roomcap.capture.live import LiveStep, Stage
 from roomcap.capture.session import SessionLayout
+from roomcap.capture.sources import full_res_px, jpeg_size
+from roomcap.capture.streamcopy import delivers_jpeg
 from roomcap.core.errors import FormatError
 from roomcap.core.memory import TRIM_EVERY, release_free_memory
-from roomcap.keypoints.detections import Detections
-from roomcap.keypoints.pipeline import KeypointPipeline
-from roomcap.keypoints.skeletons import CANONICAL, convert
-from roomcap.pipeline.config import KeypointsConfig
 from roomcap.pipeline.live_outputs import Outputs, load_rig
-from roomcap.track.particle import ParticleTracker
-from roomcap.track.particle_config import ParticleConfig
-from roomcap.track.particle_io import focal_lengths
-from roomcap.track.particle_types import FrameEstimate
-from roomcap.track.trackfile import SCHEMA, TrackFile
 from roomcap.triangulate.chunks import PartStore, hash_key, parts_dir
-from roomcap.triangulate.reconstruct import FrameReconstructor
+
+# the stages' packages (the 2D models, scipy and numba under the tracker: about 1 s of imports here) are
+# imported where a stage is built, which capture-run does on the live thread while the cameras already
+# record (capture.live.LiveRunner), so that a short recording is not held up by them
+if TYPE_CHECKING:
+    from roomcap.calibrate.camera import CameraRig
+    from roomcap.keypoints.pipeline import KeypointPipeline
+    from roomcap.track.particle_config import ParticleConfig
+    from roomcap.track.trackfile import TrackFile
 
 log = logging.getLogger(__name__)
 
@@ -131,11 +131,30 @@ def warm_keypoints(pipe: KeypointPipeline, size_wh: tuple[int, int]) -> None:
         m.run_s, m.run_cpu_s, m.n_runs = 0.0, 0.0, 0
 
 
+def scale_result(res, reduce: int):
+    """A 2D result (``FrameResult``: boxes (P,5), xy_px (P,J,2)) found on an image decoded at 1/``reduce``
+    size, in the full-size image's pixels (:func:`roomcap.capture.sources.full_res_px`)."""
+    if reduce == 1:
+        return res
+    boxes = np.array(res.boxes, np.float32, copy=True)
+    if boxes.size:
+        boxes[:, :4] = full_res_px(boxes[:, :4], reduce)
+    return replace(res, boxes=boxes, xy_px=full_res_px(np.asarray(res.xy_px), reduce).astype(np.float32))
+
+
 def _keypoints(ctx: LiveContext) -> Stage:
     """The batch keypoints stage's loop (keypoints.video) on one frame set: cams.yaml's live preset, the
     cameras as streams (each person's crop follows from the last processed set, the detector every
     ``detect_every`` sets and when someone is lost), the cameras spread over the cores in groups, each with
-    its own pipeline and share of the onnxruntime threads; every pipeline warmed before the first set."""
+    its own pipeline and share of the onnxruntime threads; every pipeline warmed before the first set.
+    A camera that hands out JPEGs (MJPEG) has only the frames taken here decoded, each group decoding its
+    own, at 1/``live.decode_reduce`` size (:func:`roomcap.capture.config.auto_reduce`); the keypoints are
+    mapped back to full-size pixels (:func:`scale_result`)."""
+    import cv2
+
+    from roomcap.keypoints.pipeline import KeypointPipeline
+    from roomcap.pipeline.config import KeypointsConfig
+
     try:
         settings = KeypointsConfig(preset=ctx.cfg.live.preset, skeleton="body19")
     except FormatError as e:
@@ -151,15 +170,34 @@ def _keypoints(ctx: LiveContext) -> Stage:
     groups = [cams[g::n_groups] for g in range(n_groups)]
     pipes = [KeypointPipeline(conf) for _ in groups]
     sizes = [c.resolution for c in ctx.cfg.cameras if c.resolution]
+    w, h = sizes[0] if sizes else (1920, 1080)
+    setting = ctx.cfg.live.decode_reduce
+    # warmed at the size the 2D will see: JPEG cameras' frames are decoded reduced, decoded ones taken as
+    # they are (or shrunk when decode_reduce is set)
+    r = auto_reduce(w, h, setting) if any(delivers_jpeg(c) for c in ctx.cfg.cameras) else setting or 1
     for pipe in pipes:
-        warm_keypoints(pipe, sizes[0] if sizes else (1920, 1080))
+        warm_keypoints(pipe, (-(-w // r), -(-h // r)))
     pool = ThreadPoolExecutor(n_groups, thread_name_prefix="live-keypoints") if n_groups > 1 else None
+    reduce_of: dict[str, int] = {}  # camera -> the factor its JPEGs are decoded at (from its first frame)
+    decode_ms = [0.0, 0]  # decoding the taken frames: ms in all, frames
+
+    def reduce_for(cam: str, f) -> int:
+        if f.jpeg is None or f.image is not None:  # already decoded (a file's H.264): taken as it is
+            return setting or 1
+        if cam not in reduce_of:
+            reduce_of[cam] = auto_reduce(*jpeg_size(f.jpeg), setting)
+        return reduce_of[cam]
 
     def run_group(g: int, step: LiveStep) -> dict:
         frames = step.frameset.frames
-        present = [c for c in groups[g] if frames.get(c) is not None and frames[c].image is not None]
-        results = pipes[g]([frames[c].image for c in present], streams=present)
-        return dict(zip(present, results, strict=True))
+        present = [c for c in groups[g] if frames.get(c) is not None and frames[c].has_image]
+        t0 = time.perf_counter()
+        factors = [reduce_for(c, frames[c]) for c in present]
+        images = [frames[c].decoded(k) for c, k in zip(present, factors, strict=True)]
+        decode_ms[0] += (time.perf_counter() - t0) * 1e3
+        decode_ms[1] += len(present)
+        results = pipes[g](images, streams=present)
+        return {c: scale_result(r_, k) for c, r_, k in zip(present, results, factors, strict=True)}
 
     def stage(step: LiveStep) -> None:
         if pool is None:
@@ -175,6 +213,8 @@ def _keypoints(ctx: LiveContext) -> Stage:
 
     stage.pipes = pipes  # type: ignore[attr-defined]  # the bench reads their timings
     stage.close = close  # type: ignore[attr-defined]
+    stage.decode_ms = decode_ms  # type: ignore[attr-defined]  # [ms decoding taken frames, frames]
+    stage.reduce_of = reduce_of  # type: ignore[attr-defined]
     return stage
 
 
@@ -189,6 +229,8 @@ def frame_arrays(step: LiveStep, rig: CameraRig) -> tuple[np.ndarray, np.ndarray
     Computed once per step (``step.outputs["kp_px"]``, ``["kp_score"]``)."""
     if "kp_px" in step.outputs:
         return step.outputs["kp_px"], step.outputs["kp_score"]
+    from roomcap.keypoints.skeletons import CANONICAL, convert
+
     dets = step.outputs.get("detections", {})
     J = CANONICAL.n_joints
     P = max([len(d.xy_px) for d in dets.values()], default=0)
@@ -210,6 +252,9 @@ def frame_arrays(step: LiveStep, rig: CameraRig) -> tuple[np.ndarray, np.ndarray
 
 
 def _triangulate(ctx: LiveContext) -> Stage:
+    from roomcap.keypoints.skeletons import CANONICAL
+    from roomcap.triangulate.reconstruct import FrameReconstructor
+
     rig = _rig(ctx, "triangulation")
     rec = FrameReconstructor(
         rig.projection_matrices(), rig.fundamental_matrices(), None, None, CANONICAL.joint_names
@@ -230,13 +275,15 @@ class LiveTrackWriter:
     def __init__(
         self, path: Path, fps: float, calibration_sha256: str = "", chunk_frames: int = CHUNK_FRAMES
     ):
+        from roomcap.track.trackfile import SCHEMA
+
         self.path, self.fps, self.sha = Path(path), float(fps), calibration_sha256
         self.folder = parts_dir(self.path)
         self.chunk = max(1, int(chunk_frames))
         self.store = PartStore(self.folder, SCHEMA)
         self.started = False
         self.n_frames = 0
-        self._rows: list[tuple[int, int, FrameEstimate]] = []
+        self._rows: list[tuple] = []  # (frame index, t_ns, track.particle_types.FrameEstimate)
         self.jumps: list[dict] = []  # the clock's jumps (JUMPS_KEY of the index's meta)
 
     def add_jump(self, jump: dict) -> None:
@@ -244,7 +291,7 @@ class LiveTrackWriter:
         here); entered in the index with the part that holds that row."""
         self.jumps.append({**jump, "row": self.n_frames + len(self._rows)})
 
-    def add(self, frame_index: int, t_ns: int, est: FrameEstimate) -> None:
+    def add(self, frame_index: int, t_ns: int, est) -> None:
         self._rows.append((int(frame_index), int(t_ns), est))
         if len(self._rows) >= self.chunk:
             self.flush()
@@ -259,6 +306,9 @@ class LiveTrackWriter:
         """Write the open part (if any), then enter it in the index."""
         if not self._rows:
             return
+        from roomcap.keypoints.skeletons import CANONICAL
+        from roomcap.track.trackfile import TrackFile
+
         rows, self._rows = self._rows, []
         ids = sorted({int(i) for _, _, e in rows for i in e.track_id})
         col = {tid: k for k, tid in enumerate(ids)}
@@ -304,6 +354,8 @@ def load_live_tracks(path: str | Path) -> TrackFile:
     of a session recorded by an earlier version (``index.json`` schema ``live_tracks/1``: its parts
     joined in time, columns = every track id, sorted). A part missing or unreadable raises a clear error
     (a reader never sees a partial part)."""
+    from roomcap.track.trackfile import TrackFile
+
     path = Path(path)
     if (path / "track").is_dir():  # a session folder: its live track, else an older session's folder
         lay = SessionLayout(path)
@@ -377,6 +429,9 @@ def load_live_jumps(path: str | Path) -> list[dict]:
 
 
 def _track(ctx: LiveContext) -> Stage:
+    from roomcap.track.particle import ParticleTracker
+    from roomcap.track.particle_io import focal_lengths
+
     rig = _rig(ctx, "tracking")
     fps = max(c.fps or 30.0 for c in ctx.cfg.cameras)
     tracker = ParticleTracker(rig.projection_matrices(), focal_lengths(rig), fps, ctx.particle)
@@ -458,7 +513,33 @@ def build_stages(cfg: CaptureConfig, layout: SessionLayout) -> tuple[dict[str, S
     return out, errors
 
 
-main = make_main(build_stages, Outputs(), Detections.load)
+def _load_detections(path):
+    """``keypoints/<cam>.npz`` for ``capture-run sync`` (keypoints.detections.Detections.load, imported
+    when asked)."""
+    from roomcap.keypoints.detections import Detections
+
+    return Detections.load(path)
+
+
+_main = make_main(build_stages, Outputs(), _load_detections)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``capture-run``. Run as the command (``argv`` None: the console script, ``python -m``), it leaves
+    without the interpreter's teardown once everything is written and closed (the recorder's segments and
+    session.toml, the live track, the outputs): unloading the 2D models' sessions and the tracker's
+    compiled kernels took 0.6-0.9 s of a 3 s recording's exit, measured."""
+    code = _main(argv)
+    if argv is None:
+        logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    return code
+
 
 if __name__ == "__main__":
     sys.exit(main())

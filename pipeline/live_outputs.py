@@ -32,7 +32,7 @@ import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,9 +43,14 @@ from roomcap.core.cli import positive_int
 from roomcap.core.errors import InputError
 from roomcap.keypoints.skeletons import CANONICAL
 from roomcap.outputs.lsl_osc import StreamConfig, TrackStreamer, parse_host_port, parse_kinds
-from roomcap.outputs.rerun_recording import LiveRerun
-from roomcap.pipeline.live_forecast import LiveForecast
-from roomcap.pipeline.liveview.server import DEFAULT_PORT, LiveView, ViewConfig
+
+# the page's server (aiohttp), the Rerun writer and the forecaster are imported when asked for (--view,
+# --rerun): capture-run starts the cameras sooner without them
+if TYPE_CHECKING:
+    from roomcap.pipeline.live_forecast import LiveForecast
+    from roomcap.pipeline.liveview.server import LiveView
+
+DEFAULT_PORT = 8765  # the live view's port (roomcap.pipeline.liveview.server.DEFAULT_PORT, checked by a test)
 
 log = logging.getLogger(__name__)
 J = CANONICAL.n_joints
@@ -145,11 +150,19 @@ class Outputs:
         closers: list[Callable[[], None]] = []
         try:
             if args.view:
-                if cfg.live.forecast and not getattr(args, "no_forecast", False) and "track" in runner.stages:
+                if (
+                    cfg.live.forecast
+                    and not getattr(args, "no_forecast", False)
+                    and "track" in runner.planned
+                ):
+                    from roomcap.pipeline.live_forecast import LiveForecast
+
                     forecast = LiveForecast()
                     forecast.start()  # loads the model on its own thread
                     closers.append(forecast.stop)
                     runner.reports.append(forecast.summary_line)
+                from roomcap.pipeline.liveview.server import LiveView, ViewConfig
+
                 vcfg = ViewConfig(host=args.view_host, port=args.view_port, token=args.view_token)
                 view = LiveView(vcfg, cfg, runner, recorder, rig, forecast)
                 view.start()  # binds now: a port in use or a refused host fails here
@@ -163,6 +176,8 @@ class Outputs:
                 ]
                 log.info("streaming tracks: %s", ", ".join(where))
             if args.rerun is not None:
+                from roomcap.outputs.rerun_recording import LiveRerun
+
                 rerun = LiveRerun(args.rerun, runner.layout, rig)
                 closers.append(rerun.close)
         except BaseException:

@@ -143,3 +143,33 @@ def test_oak_device_records_with_device_timestamps():
     assert abs(np.median(dt_ms) - 33.3) < 2
     assert all(0 <= (f.t_host_ns - f.t_ns) / 1e6 < 200 for f in frames)  # device clock synced to host
     assert any(f.keyframe for f in frames)
+
+
+def test_the_devices_mjpeg_frames_are_jpegs_written_as_they_came(tmp_path):
+    """codec: mjpeg on an OAK: its encoder's frames become ``Frame.jpeg`` (decoded on the host only where the
+    live loop takes one), recorded as they came into .avi segments."""
+    import cv2
+
+    dai = pytest.importorskip("depthai")
+    from roomcap.capture.streamcopy import recording_mode
+
+    cam = parse_config({"cameras": [{"name": "o", "source": "oak:", "codec": "mjpeg"}]}).cameras[0]
+    assert oak_config(cam).on_device_encoding and "JPEGs written as they come" in recording_mode(cam)
+    frames = []
+    for i in range(4):
+        img = np.full((48, 64, 3), 40 * i, np.uint8)
+        m = dai.EncodedFrame()
+        m.setTimestamp(dt.timedelta(microseconds=5_000_000 + i * 33_333))
+        m.setSequenceNum(i)
+        m.setData(np.frombuffer(cv2.imencode(".jpg", img)[1].tobytes(), np.uint8))
+        frames.append(frame_from_message(m, encoded=True, jpeg=True))
+    assert all(f.image is None and f.jpeg[:2] == b"\xff\xd8" for f in frames)
+    assert frames[2].decoded().shape == (48, 64, 3)
+    w = SegmentWriter(tmp_path / "o", tmp_path / "o.frames.csv", "mjpeg", 30, segment_s=10)
+    for f in frames:
+        w.write(f)
+    w.close()
+    (seg,) = sorted((tmp_path / "o").glob("seg_*.avi"))
+    av = pytest.importorskip("av")
+    with av.open(str(seg)) as c:
+        assert [bytes(p) for p in c.demux(c.streams.video[0]) if p.size] == [f.jpeg for f in frames]
