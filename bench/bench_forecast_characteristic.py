@@ -19,8 +19,8 @@ import time
 
 import torch
 
-from roomcap.forecast import characteristic as C
-from roomcap.forecast.characteristic.cli import results_table
+from roomcap.forecast.lab import characteristic as C
+from roomcap.forecast.lab.characteristic.cli import results_table
 
 
 def main() -> None:

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import pairs
-from roomcap.forecast import train as T
-from roomcap.forecast.clips import load_two_person_real
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import pairs
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.clips import load_two_person_real
 
 
 def main() -> None:

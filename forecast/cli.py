@@ -28,7 +28,7 @@ import sys
 from typing import Any
 
 from roomcap.core.cli import Parser, guarded, positive_float, positive_int
-from roomcap.forecast.registry import NAMES
+from roomcap.forecast.runtime.registry import NAMES
 
 # sub-commands with parsers of their own, dispatched before parsing (each loads torch when it runs)
 OWN_PARSERS = {

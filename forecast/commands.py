@@ -19,18 +19,18 @@ from roomcap.core.cli import parse_sets
 from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import load_toml
 from roomcap.core.progress import Bars
-from roomcap.forecast import benchmark_cmu8 as B
-from roomcap.forecast import benchmark_cmu8_angle as A
-from roomcap.forecast import benchmark_cmu8_train as BT
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import hik
-from roomcap.forecast import train as T
-from roomcap.forecast.behaviour import cli as behaviour_cli
-from roomcap.forecast.characteristic import cli as characteristic_cli
-from roomcap.forecast.clips import load_one_person_all, load_two_person_real
-from roomcap.forecast.preview import DEFAULT_CHECKPOINT, save_forecast, shipped_checkpoints
-from roomcap.forecast.registry import config_from_dict
-from roomcap.forecast.track_forecast import forecast_tracks
+from roomcap.forecast.lab import benchmark_cmu8 as B
+from roomcap.forecast.lab import benchmark_cmu8_angle as A
+from roomcap.forecast.lab import benchmark_cmu8_train as BT
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import hik
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.behaviour import cli as behaviour_cli
+from roomcap.forecast.lab.characteristic import cli as characteristic_cli
+from roomcap.forecast.lab.clips import load_one_person_all, load_two_person_real
+from roomcap.forecast.runtime.preview import DEFAULT_CHECKPOINT, save_forecast, shipped_checkpoints
+from roomcap.forecast.runtime.registry import config_from_dict
+from roomcap.forecast.runtime.track_forecast import forecast_tracks
 from roomcap.track.trackfile import resolve_track_file
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ def cmd_train(args) -> int:
         if blob.get("kind") != args.model:
             raise InputError(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
         init = blob["state_dict"]
-    logging.getLogger("roomcap.forecast.train").setLevel(logging.INFO)  # the loss terms, above the bar
+    logging.getLogger("roomcap.forecast.lab.train").setLevel(logging.INFO)  # the loss terms, above the bar
     with Bars(unit="step") as bars:
         model, hist = T.train(args.model, tr, cfg, progress=bars, device=args.device, init=init, val_clips=va)
     T.save_checkpoint(
@@ -145,7 +145,7 @@ def cmd_sample(args) -> int:
         f"x {fc['xyz_m'].shape[0]} samples -> {args.out}"
     )
     if not args.no_pictures:
-        from roomcap.forecast.sample_plot import plot_forecasts  # lazy: loads matplotlib
+        from roomcap.forecast.runtime.sample_plot import plot_forecasts  # lazy: loads matplotlib
 
         for png in plot_forecasts(fc, args.out, title=f"{path}"):
             print(f"picture: {png}")
@@ -211,7 +211,7 @@ def cmd_eval(args) -> int:
     models = _baseline_models(names, tr)
     models.update(ck_models)
     print(f"evaluating on {len(te)} test clips: {', '.join(c.name for c in te)}")
-    logging.getLogger("roomcap.forecast.evaluate").setLevel(
+    logging.getLogger("roomcap.forecast.lab.evaluate").setLevel(
         logging.INFO
     )  # the model being scored, above the bar
     with Bars(unit="model") as progress:
@@ -326,7 +326,7 @@ def _eval_hik(args, names: list[str]) -> int:
 
 
 def cmd_models(args) -> int:
-    from roomcap.forecast import cards
+    from roomcap.forecast.runtime import cards
 
     folder = Path(args.folder) if args.folder else cards.CHECKPOINT_DIR
     if not folder.is_dir():

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.forecast import benchmark_cmu8 as B
-from roomcap.forecast import benchmark_cmu8_train as BT
-from roomcap.forecast import cmu_more as C
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import train as T
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import benchmark_cmu8 as B
+from roomcap.forecast.lab import benchmark_cmu8_train as BT
+from roomcap.forecast.lab import cmu_more as C
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.toy import walker
 from tests.conftest import need_shared
 
 
@@ -116,7 +116,7 @@ def test_cli_cmu8_bad_input(tiny_root, tmp_path, capsys):
 
 
 def test_eval_single_writes_samples(tmp_path):
-    from roomcap.forecast.data import Clip
+    from roomcap.forecast.lab.data import Clip
 
     clips = [Clip(f"walk{i}", walker(150, phase=i, heading_rad=i), 25.0) for i in range(3)]
     models = {"zero": T.baseline("zero"), "real": E.Real()}
@@ -152,7 +152,7 @@ def test_shared_test_windows():
 
 def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, monkeypatch):
     from roomcap.forecast import cli
-    from roomcap.forecast.preview import shipped_checkpoints
+    from roomcap.forecast.runtime.preview import shipped_checkpoints
 
     seen = {}
     real_evaluate = B.evaluate
@@ -261,7 +261,7 @@ def test_euler_follows_the_reference_convention():
     exactly it takes the reference's special case (E3 = 0, E2 = +-pi/2, E1 = atan2(R01, R02))."""
     from scipy.spatial.transform import Rotation
 
-    from roomcap.forecast import benchmark_cmu8_angle as A
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
 
     rng = np.random.default_rng(0)
     R = Rotation.from_rotvec(rng.normal(size=(50, 3)) * 0.8).as_matrix()
@@ -279,8 +279,8 @@ def test_euler_follows_the_reference_convention():
 
 
 def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
-    from roomcap.forecast import benchmark_cmu8_angle as A
     from roomcap.forecast.cli import main
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
 
     cfg = B.MlpConfig(steps=3, batch=8, val_every=1, n_blocks=2)
     tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
@@ -321,7 +321,7 @@ def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
 def test_shipped_angle_checkpoint_forecasts_below_zero_velocity():
     """The shipped exponential-map forecaster (picked on validation) loads and, on the walking test file's
     protocol windows, beats zero velocity at every horizon."""
-    from roomcap.forecast import benchmark_cmu8_angle as A
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
 
     need_shared("data", "motion", "cmu-more", "benchmark-cmu8", "test", "walking", "walking_1.txt")
     f, blob = A.load(A.SHIPPED)

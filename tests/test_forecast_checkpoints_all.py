@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.forecast import train as T
-from roomcap.forecast.predict import forecast_world
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime.predict import forecast_world
 
 ROOT = Path(T.__file__).parent / "checkpoints"
 SHIPPED = {
@@ -63,7 +63,7 @@ def test_checkpoint_small_clean_split_and_selected_on_validation(name):
 def test_characteristic_checkpoint_on_all_one_person_data():
     """``characteristic_cmuall.pt`` (``forecast characteristic train --data cmu-all``): small, weights only,
     trained on the cmu-all train split (the benchmark's test files never in it), selected on validation."""
-    from roomcap.forecast import characteristic as C
+    from roomcap.forecast.lab import characteristic as C
 
     ck = ROOT / "characteristic_cmuall.pt"
     if not ck.exists():

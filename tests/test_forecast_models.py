@@ -9,12 +9,17 @@ import pytest
 import torch
 
 from roomcap.core.errors import FormatError
-from roomcap.forecast import data as D
-from roomcap.forecast import train as T
-from roomcap.forecast.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
-from roomcap.forecast.predict import diffusion_rollout, features_to_poses, forecast_world, scene_features
-from roomcap.forecast.registry import MODELS
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
+from roomcap.forecast.runtime.predict import (
+    diffusion_rollout,
+    features_to_poses,
+    forecast_world,
+    scene_features,
+)
+from roomcap.forecast.runtime.registry import MODELS
 from roomcap.keypoints.skeletons import get_skeleton
 
 torch.set_num_threads(1)
@@ -38,7 +43,7 @@ def test_baselines_in_world_space():
 
 def test_training_and_evaluation_report_through_the_progress_protocol():
     """progress(task, done, total) from the library (core.progress), done reaching total; nothing printed."""
-    from roomcap.forecast import evaluate as E
+    from roomcap.forecast.lab import evaluate as E
 
     calls = []
     cfg = T.config_from_dict("gru", {"hidden": 8, "steps": 4, "batch": 4, "n_obs": 10, "n_pred": 5})
@@ -284,7 +289,7 @@ def test_diffusion_ema_weights_are_validated_and_returned():
 
 
 def test_dct_lowpass_is_a_projection_that_keeps_slow_motion():
-    from roomcap.forecast.models.diffusion import dct_lowpass_matrix
+    from roomcap.forecast.runtime.models.diffusion import dct_lowpass_matrix
 
     P = dct_lowpass_matrix(32, 6)
     assert torch.allclose(P @ P, P, atol=1e-5) and torch.allclose(P, P.T, atol=1e-6)
@@ -312,7 +317,7 @@ def test_training_keeps_the_state_with_the_best_validation_score():
 
 def test_preview_and_cli_on_track_files(tmp_path):
     from roomcap.forecast.cli import main
-    from roomcap.forecast.preview import preview
+    from roomcap.forecast.runtime.preview import preview
     from roomcap.track.trackfile import TrackFile
 
     sk = get_skeleton("body19")
@@ -429,7 +434,7 @@ def test_shipped_configs_and_checkpoint_load():
 
     from roomcap.core.fileio import load_toml
 
-    root = Path(T.__file__).parent
+    root = Path(T.__file__).parents[1]
     for kind, spec in MODELS.items():
         cfg = T.config_from_dict(kind, load_toml(root / "configs" / f"{kind}.toml")[kind])
         assert cfg == spec.config()  # the TOML mirrors the dataclass defaults
@@ -479,7 +484,7 @@ def test_shipped_configs_and_checkpoint_load():
 def test_the_registry_names_builds_and_routes_every_trainable_model():
     from roomcap.core.errors import InputError
     from roomcap.forecast.cli import build_parser
-    from roomcap.forecast.registry import build_model, forecasts_the_scene, spec, spec_of
+    from roomcap.forecast.runtime.registry import build_model, forecasts_the_scene, spec, spec_of
 
     assert tuple(MODELS) == ("gru", "intention", "social_diffusion")
     for name, s in MODELS.items():

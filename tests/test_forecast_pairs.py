@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from roomcap.forecast import data as D
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import pairs
-from roomcap.forecast import train as T
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import pairs
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.toy import walker
 from roomcap.keypoints.skeletons import get_skeleton
 
 LH, RH = D.hip_indices(get_skeleton("body19").joint_names)

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from roomcap.core.errors import FormatError
-from roomcap.forecast import checkpoint as C
-from roomcap.forecast import data as D
 from roomcap.forecast.cli import main
-from roomcap.forecast.registry import build_model, config_from_dict
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime import checkpoint as C
+from roomcap.forecast.runtime.registry import build_model, config_from_dict
 from roomcap.keypoints.skeletons import get_skeleton
 from roomcap.track.trackfile import TrackFile
 
@@ -119,10 +119,10 @@ def test_pictures_one_per_person_with_the_truth_after_start(gru, tmp_path, capsy
 
 
 def test_known_schemas_are_the_modules_own():
-    from roomcap.forecast import benchmark_cmu8
-    from roomcap.forecast.behaviour import model as behaviour_model
-    from roomcap.forecast.behaviour import quality
-    from roomcap.forecast.characteristic import model as characteristic_model
+    from roomcap.forecast.lab import benchmark_cmu8
+    from roomcap.forecast.lab.behaviour import model as behaviour_model
+    from roomcap.forecast.lab.behaviour import quality
+    from roomcap.forecast.lab.characteristic import model as characteristic_model
 
     owners = {C.CKPT_SCHEMA, characteristic_model.CKPT_SCHEMA, benchmark_cmu8.CKPT_SCHEMA}
     owners |= {behaviour_model.SCHEMA, quality.SCHEMA}
@@ -164,7 +164,7 @@ def test_an_unknown_model_or_config_says_what_to_do(gru, tmp_path, capsys):
 
 
 def test_pictures_of_a_stochastic_forecast_draw_the_spread(tmp_path):
-    from roomcap.forecast.sample_plot import plot_forecasts
+    from roomcap.forecast.runtime.sample_plot import plot_forecasts
 
     S, H, K, J = 8, 25, 2, 19
     rng = np.random.default_rng(0)
@@ -186,7 +186,7 @@ def test_pictures_of_a_stochastic_forecast_draw_the_spread(tmp_path):
 
 
 def test_the_cmu8_reader_names_a_checkpoint_of_another_kind(gru):
-    from roomcap.forecast.benchmark_cmu8 import load_mlp
+    from roomcap.forecast.lab.benchmark_cmu8 import load_mlp
 
     with pytest.raises(FormatError, match=r"a forecast checkpoint \(GRU, intention or Social Diffusion\)"):
         load_mlp(gru)
@@ -195,7 +195,7 @@ def test_the_cmu8_reader_names_a_checkpoint_of_another_kind(gru):
 def test_forecast_models_lists_the_cards(gru, tmp_path, capsys):
     import json
 
-    from roomcap.forecast.preview import CHECKPOINT_DIR, DEFAULT_CHECKPOINT
+    from roomcap.forecast.runtime.preview import CHECKPOINT_DIR, DEFAULT_CHECKPOINT
 
     assert main(["models"]) == 0
     out = capsys.readouterr().out
