@@ -28,6 +28,7 @@ from roomcap.forecast.lab import train as T
 from roomcap.forecast.lab.behaviour import cli as behaviour_cli
 from roomcap.forecast.lab.characteristic import cli as characteristic_cli
 from roomcap.forecast.lab.clips import load_one_person_all, load_two_person_real
+from roomcap.forecast.runtime import checkpoint as ckpt
 from roomcap.forecast.runtime.preview import DEFAULT_CHECKPOINT, save_forecast, shipped_checkpoints
 from roomcap.forecast.runtime.registry import config_from_dict
 from roomcap.forecast.runtime.track_forecast import forecast_tracks
@@ -71,15 +72,21 @@ def _load_split(args):
     return clips, tr, va, te
 
 
+def _train_command(args) -> str:
+    """The ``forecast train`` command line that ``args`` stand for (the model card records it)."""
+    parts = ["forecast train", f"--model {args.model}", "--data " + " ".join(args.data)]
+    parts += [f"--config {args.config}"] if args.config else []
+    parts += [f"--set {s}" for s in args.set or []]
+    parts += [f"--init {Path(args.init).name}"] if args.init else []
+    return " ".join(parts)
+
+
 def cmd_train(args) -> int:
     cfg = _config(args)
     clips, tr, va, te = _load_split(args)
     init = None
     if args.init:
-        blob = torch.load(args.init, map_location="cpu", weights_only=True)
-        if blob.get("kind") != args.model:
-            raise InputError(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
-        init = blob["state_dict"]
+        init = ckpt.read_checkpoint(args.init, args.model)["weights"]["model"]
     logging.getLogger("roomcap.forecast.lab.train").setLevel(logging.INFO)  # the loss terms, above the bar
     with Bars(unit="step") as bars:
         model, hist = T.train(args.model, tr, cfg, progress=bars, device=args.device, init=init, val_clips=va)
@@ -97,6 +104,8 @@ def cmd_train(args) -> int:
             "val": hist.get("val", []),
             "val_best": hist.get("val_best", {}),
             "init": Path(args.init).name if args.init else "",
+            "data": ",".join(args.data),
+            "command": _train_command(args),  # the model card's
         },
     )
     n = len(hist["loss"])
@@ -328,6 +337,10 @@ def _eval_hik(args, names: list[str]) -> int:
 def cmd_models(args) -> int:
     from roomcap.forecast.runtime import cards
 
+    if args.convert:
+        old, new = args.convert
+        print(f"{old} -> {new}: {ckpt.convert(old, new)}")
+        return 0
     folder = Path(args.folder) if args.folder else cards.CHECKPOINT_DIR
     if not folder.is_dir():
         raise InputError(f"--folder {folder} is not a folder of checkpoints")

@@ -149,7 +149,7 @@ def test_checkpoint_round_trip(tmp_path):
     path = tmp_path / "b.pt"
     save_checkpoint(path, {"full": gen}, {"full": cfg}, {"action_freq": [1 / len(ACTIONS)] * len(ACTIONS)})
     blob = torch.load(path, weights_only=True)
-    assert blob["schema"] == "behaviour_checkpoint/1"
+    assert blob["schema"] == "forecast-checkpoint/2" and blob["model"] == "behaviour"
     gens, cfgs, extra = load_checkpoint(path)
     assert cfgs["full"] == cfg
     for a, b in zip(gens["full"].parameters(), gen.parameters(), strict=True):

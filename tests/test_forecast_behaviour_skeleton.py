@@ -68,7 +68,7 @@ def _written_before(path, option: str):
     cfg = BehaviourConfig(hidden=32)
     save_checkpoint(path, {"full": build(cfg)[0]}, {"full": cfg}, {})
     blob = torch.load(path, weights_only=True)
-    del blob["models"]["full"]["config"][option]
+    del blob["config"]["full"][option]
     torch.save(blob, path)
     gens, cfgs, _ = load_checkpoint(path)
     return gens, cfgs

@@ -181,7 +181,7 @@ def test_shipped_checkpoint_reads_as_markov_camera():
     blob = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     gens, cfgs, _ = load_checkpoint(SHIPPED)
     for n, cfg in cfgs.items():
-        assert "script" not in blob["models"][n]["config"]
+        assert "script" not in blob["config"][n]
         assert cfg.script == "markov" and cfg.context == "camera"
         assert not gens[n].room and gens[n].ctx_enc[0].in_features == len(ACTIONS) + 2
 

@@ -164,7 +164,7 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
     monkeypatch.setattr(B, "evaluate", fake_evaluate)
     assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
     shipped = shipped_checkpoints()
-    assert any(p.endswith("gru_cmu.pt") for p in shipped)
+    assert any(p.endswith("gru_cmuall.pt") for p in shipped)
     assert not any(n in p for p in shipped for n in ("characteristic", "behaviour", "cmu8_"))
     assert seen["b19"] == shipped
     assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
@@ -182,10 +182,8 @@ def test_mirror_swaps_sides_and_is_an_involution():
     assert torch.allclose(BT._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
 
 
-@pytest.mark.parametrize(
-    "ck", [B.SHIPPED_MLP, B.SHIPPED_MLP.with_name("cmu8_dct_mlp.pt")], ids=["best", "first"]
-)
-def test_shipped_dct_mlp_checkpoints(ck):
+def test_shipped_dct_mlp_checkpoints():
+    ck = B.SHIPPED_MLP
     if not ck.exists():
         pytest.skip(f"no shipped cmu8 checkpoint {ck.name}")
     assert ck.stat().st_size < 3_000_000  # measured 216 KB for one model
@@ -325,7 +323,7 @@ def test_shipped_angle_checkpoint_forecasts_below_zero_velocity():
 
     need_shared("data", "motion", "cmu-more", "benchmark-cmu8", "test", "walking", "walking_1.txt")
     f, blob = A.load(A.SHIPPED)
-    assert blob["kind"] == A.KIND and blob["extra"]["best"]["step"] > 0
+    assert blob["model"] == A.FAMILY and blob["extra"]["best"]["step"] > 0
     w = A.test_windows(C.benchmark_files())["walking"]
     ours = A.at_horizons(A.score(f(w[:, : B.N_OBS]), w[:, B.N_OBS :], f.dims))
     zero = A.at_horizons(A.score(A.zero_velocity(w[:, : B.N_OBS]), w[:, B.N_OBS :], None))

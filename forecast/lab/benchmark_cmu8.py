@@ -31,7 +31,7 @@ import json
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -39,11 +39,11 @@ import torch
 from torch import nn
 
 from roomcap.core.errors import InputError
-from roomcap.core.fileio import atomic_path, atomic_write_text
+from roomcap.core.fileio import atomic_write_text
 from roomcap.forecast.lab import benchmark_cmu8_published as P
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.runtime import samples as fsamples
-from roomcap.forecast.runtime.checkpoint import load_checkpoint, read_checkpoint
+from roomcap.forecast.runtime.checkpoint import family_of, load_checkpoint, read_checkpoint, write_checkpoint
 from roomcap.forecast.runtime.predict import forecast_world
 from roomcap.synthetic.bvh import BODY19
 
@@ -71,7 +71,7 @@ BODY19_LIMBS = (
     "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
 )  # fmt: skip
 BODY19_LIMB_POINTS = tuple(C.BODY19_FROM_CMU38[n] for n in BODY19_LIMBS)
-CKPT_SCHEMA = "forecast-cmu8-checkpoint/1"
+FAMILY = "cmu8_dct_mlp"  # the registry's family of these checkpoints
 MISSING_NOTE = (
     "test/basketball_signal and test/directing_traffic are missing from the shared copy (files over 4 MiB "
     "could not be brought), so 6 of the 8 actions are scored and the average is over those 6; also missing: "
@@ -320,26 +320,12 @@ def mlp_forecast(model: DctMlp | DctMlpEnsemble, obs: np.ndarray, batch: int = 5
 
 
 def save_mlp(path: str | os.PathLike, model: DctMlp, config: MlpConfig, extra: dict) -> None:
-    blob = {
-        "schema": CKPT_SCHEMA,
-        "kind": DctMlp.kind,
-        "config": asdict(config),
-        "points": [C.CMU38_NAMES[j] for j in JOINTS_USED],
-        "fps": FPS,
-        "units": "CMU ASF units (0.0254/0.45 m), the benchmark's body frame, y up",
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "extra": extra,
-    }
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    """One DCT + MLP: an ensemble of one member (:func:`save_ensemble`)."""
+    save_ensemble(path, [(model, config)], extra)
 
 
 def is_cmu8_checkpoint(path: str | os.PathLike) -> bool:
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:  # noqa: BLE001 - not ours; the caller tries the other kind
-        return False
-    return isinstance(blob, dict) and blob.get("schema") == CKPT_SCHEMA
+    return family_of(path) == FAMILY
 
 
 class DctMlpEnsemble(nn.Module):
@@ -366,21 +352,17 @@ Forecaster = DctMlp | DctMlpEnsemble
 
 
 def save_ensemble(path: str | os.PathLike, members: list[tuple[DctMlp, MlpConfig]], extra: dict) -> None:
-    """One checkpoint holding every member's config and weights (same schema as :func:`save_mlp`)."""
-    blob = {
-        "schema": CKPT_SCHEMA,
-        "kind": DctMlpEnsemble.kind,
-        "members": [
-            {"config": asdict(c), "state_dict": {k: v.detach().cpu() for k, v in m.state_dict().items()}}
-            for m, c in members
-        ],
-        "points": [C.CMU38_NAMES[j] for j in JOINTS_USED],
-        "fps": FPS,
-        "units": "CMU ASF units (0.0254/0.45 m), the benchmark's body frame, y up",
-        "extra": extra,
-    }
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    """One checkpoint holding every member's config and weights (``member<i>``), in the one format."""
+    write_checkpoint(
+        path,
+        FAMILY,
+        config={"members": [c for _, c in members]},
+        weights={f"member{i}": m.state_dict() for i, (m, _) in enumerate(members)},
+        extra=extra,
+        points=[C.CMU38_NAMES[j] for j in JOINTS_USED],
+        fps=FPS,
+        units="CMU ASF units (0.0254/0.45 m), the benchmark's body frame, y up",
+    )
 
 
 def _build(n_points: int, config: dict, state: dict) -> DctMlp:
@@ -390,15 +372,11 @@ def _build(n_points: int, config: dict, state: dict) -> DctMlp:
 
 
 def load_mlp(path: str | os.PathLike) -> tuple[Forecaster, dict]:
-    """A ``forecast cmu8`` checkpoint: one DCT + MLP, or an ensemble of them (``kind``)."""
-    blob = read_checkpoint(
-        Path(path), CKPT_SCHEMA, None, "CMU 8-action DCT + MLP checkpoint", "forecast cmu8 train"
-    )
+    """A ``forecast cmu8`` checkpoint: one DCT + MLP, or the mean of several."""
+    blob = read_checkpoint(Path(path), FAMILY)
     n = len(blob["points"])
-    if blob.get("kind") == DctMlpEnsemble.kind:
-        m: Forecaster = DctMlpEnsemble([_build(n, k["config"], k["state_dict"]) for k in blob["members"]])
-    else:
-        m = _build(n, blob["config"], blob["state_dict"])
+    members = [_build(n, c, blob["weights"][f"member{i}"]) for i, c in enumerate(blob["config"]["members"])]
+    m: Forecaster = members[0] if len(members) == 1 else DctMlpEnsemble(members)
     m.eval()
     return m, blob
 

@@ -28,17 +28,15 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from roomcap.core.errors import FormatError, InputError
-from roomcap.core.fileio import atomic_path, atomic_write_text
+from roomcap.core.errors import InputError
+from roomcap.core.fileio import atomic_write_text
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
-    CKPT_SCHEMA,
     DOWNSAMPLE,
     FPS,
     N_OBS,
@@ -49,6 +47,7 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     fit_mlp,
     window_starts,
 )
+from roomcap.forecast.runtime.checkpoint import family_of, read_checkpoint, write_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +64,7 @@ REPRESENTATION = "expmap"
 SHIPPED = (
     Path(__file__).resolve().parents[1] / "checkpoints" / "cmu8_angle_dct_mlp.pt"
 )  # picked on validation
-KIND = "dct_mlp_expmap"
+FAMILY = "cmu8_angle_dct_mlp"  # the registry's family of these checkpoints
 
 # Tanke 2024 (the seed), Table 6.7 "Mean Angular Error on CMU Mocap", the rows of the actions whose test files
 # the shared copy holds, at 80 / 160 / 320 / 400 / 1000 ms, as printed; "average_printed" is the table's own
@@ -247,46 +246,28 @@ def score(pred: np.ndarray, gt: np.ndarray, dims: np.ndarray | None) -> np.ndarr
 
 
 def save(path: str | Path, f: AngleForecaster, config: MlpConfig, extra: dict) -> None:
-    blob = {
-        "schema": CKPT_SCHEMA,
-        "kind": KIND,
-        "representation": REPRESENTATION,
-        "config": asdict(config),
-        "points": [f"{'root_position' if j == 0 else C.CMU38_NAMES[j - 1]}" for j in f.joints],
-        "vectors": f.joints,
-        "dims": [int(d) for d in f.dims],
-        "fps": FPS,
-        "units": "exponential maps (radians), the benchmark's 117-vectors",
-        "state_dict": {k: v.detach().cpu() for k, v in f.model.state_dict().items()},
-        "extra": extra,
-    }
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    write_checkpoint(
+        path,
+        FAMILY,
+        config=config,
+        weights={"model": f.model.state_dict()},
+        extra=extra,
+        points=[f"{'root_position' if j == 0 else C.CMU38_NAMES[j - 1]}" for j in f.joints],
+        vectors=f.joints,
+        dims=[int(d) for d in f.dims],
+        fps=FPS,
+        units="exponential maps (radians), the benchmark's 117-vectors",
+    )
 
 
 def is_angle_checkpoint(path: str | Path) -> bool:
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:  # noqa: BLE001 - not ours
-        return False
-    return isinstance(blob, dict) and blob.get("representation") == REPRESENTATION
+    return family_of(path) == FAMILY
 
 
 def load(path: str | Path) -> tuple[AngleForecaster, dict]:
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - re-raised with what to do
-        raise FormatError(path, None, f"not a readable checkpoint ({type(e).__name__}).", "") from e
-    if not isinstance(blob, dict) or blob.get("representation") != REPRESENTATION:
-        raise FormatError(
-            path,
-            "representation",
-            f"is a {blob.get('kind', 'unknown') if isinstance(blob, dict) else 'foreign'} checkpoint, not a "
-            "forecaster of exponential maps.",
-            "Train one with `forecast cmu8 train --angles`.",
-        )
+    blob = read_checkpoint(path, FAMILY)
     m = DctMlp(len(blob["vectors"]), MlpConfig(**blob["config"]))
-    m.load_state_dict(blob["state_dict"])
+    m.load_state_dict(blob["weights"]["model"])
     return AngleForecaster(m.eval(), blob["vectors"], np.asarray(blob["dims"])), blob
 
 

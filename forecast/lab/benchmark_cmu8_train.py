@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -151,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", required=True)
     e.add_argument("--threads", type=positive_int, default=1)
     args = p.parse_args(argv)
+    args.command = "forecast cmu8 " + " ".join(sys.argv[1:] if argv is None else argv)  # the model card's
     torch.set_num_threads(args.threads)
     if args.cmd == "ensemble":
         return _main_ensemble(args)
@@ -177,7 +179,15 @@ def main(argv: list[str] | None = None) -> int:
         with Bars(unit="step") as bars:
             f, hist = A.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n))
         A.save(
-            args.out, f, cfg, {"train_files": [p.name for p in tr], "val_files": [p.name for p in va], **hist}
+            args.out,
+            f,
+            cfg,
+            {
+                "train_files": [p.name for p in tr],
+                "val_files": [p.name for p in va],
+                **hist,
+                "command": args.command,
+            },
         )
         b = hist["best"]
         print(
@@ -192,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         "val_files": [f.name for f in va],
         "files_missing": bf.missing,
         **{k: v for k, v in hist.items()},
+        "command": args.command,
     }
     save_mlp(args.out, model, cfg, extra)
     b = hist["best"]
@@ -211,7 +222,7 @@ def _main_ensemble(args) -> int:
         m, blob = load_mlp(p)
         if not isinstance(m, DctMlp):
             raise InputError(f"{p} is already an ensemble; give the single models it was made of")
-        members.append((m, MlpConfig(**blob["config"])))
+        members.append((m, MlpConfig(**blob["config"]["members"][0])))
         names.append(Path(p).name)
     bf = C.benchmark_files(args.data)
     _, va = split_train_val(bf)
@@ -231,6 +242,7 @@ def _main_ensemble(args) -> int:
         "val_files": [f.name for f in va],
         "files_missing": bf.missing,
         "member_train": [load_mlp(p)[1].get("extra", {}) for p in args.members],
+        "command": args.command,
     }
     save_ensemble(args.out, members, extra)
     print(f"wrote {args.out}")

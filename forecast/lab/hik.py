@@ -62,11 +62,11 @@ def kitchen_cases(people: list[fdata.KitchenPerson]) -> tuple[dict, Counter]:
             continue
         _, x, act = _dense(p)
         ok = np.isfinite(x).all((1, 2))
-        for name, (kind, cols) in fdata.HIK_ACTIVITIES.items():
+        for name, (cue, cols) in fdata.HIK_ACTIVITIES.items():
             flag = act[:, list(cols)].any(1)
             onsets = np.flatnonzero(flag & ~np.r_[False, flag[:-1]])
             for o in onsets:
-                t = int(o) + (MOTION_LEAD if kind == "motion" else 0)
+                t = int(o) + (MOTION_LEAD if cue == "motion" else 0)
                 a, b = t - N_OBS + 1, t + 1
                 if a < 0 or b + N_SHORT > len(x) or not ok[a : b + N_SHORT].all():
                     skipped[f"{name}: person not tracked on the observed and first 25 frames"] += 1

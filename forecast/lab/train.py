@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 
 import numpy as np
 import torch
+from scipy.cluster.vq import kmeans2
 
 from roomcap.core.errors import InputError
 from roomcap.core.progress import Progress
@@ -32,27 +34,27 @@ from roomcap.forecast.lab.clips import (
 )
 from roomcap.forecast.lab.selection import SELECT, VAL_FROM, VAL_N_OBS, VAL_N_PRED, Selector, Validator
 from roomcap.forecast.runtime.checkpoint import (
-    CKPT_SCHEMA,
-    DISCRIMINATOR_PREFIXES,
     NORMALISATION,
+    SCHEMA,
     baseline,
-    fool_model,
     load_checkpoint,
     read_checkpoint,
     save_checkpoint,
     write_checkpoint,
 )
 from roomcap.forecast.runtime.config import BASELINES, DiffusionConfig, GRUConfig, IntentionConfig
+from roomcap.forecast.runtime.models import FoolClusters
 from roomcap.forecast.runtime.models.diffusion import N_CONST
 from roomcap.forecast.runtime.models.intention import fit_intention_labels, local_poses
-from roomcap.forecast.runtime.registry import build_model, config_from_dict, spec
+from roomcap.forecast.runtime.normalise import LHIP, RHIP
+from roomcap.forecast.runtime.registry import DISCRIMINATOR_PREFIXES, build_model, config_from_dict, spec
 from roomcap.keypoints.skeletons import get_skeleton
 
 __all__ = [
     "BASELINES",
-    "CKPT_SCHEMA",
     "DISCRIMINATOR_PREFIXES",
     "NORMALISATION",
+    "SCHEMA",
     "SELECT",
     "VAL_FROM",
     "VAL_N_OBS",
@@ -95,6 +97,20 @@ def _report(progress: Progress | None, task: str, step: int, steps: int, terms: 
         log.info(
             "%s step %d/%d: %s", task, step + 1, steps, ", ".join(f"{k} {v:.4f}" for k, v in terms.items())
         )
+
+
+def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> FoolClusters:
+    """Sec. 6.4.4's fool: 48 cluster means of the training poses (hip-centric, per-frame normalised)."""
+    x = train_windows.x[:, :, 0].reshape(-1, train_windows.x.shape[3], 3)
+    R, root = fdata.norm_frame(x, LHIP, RHIP)
+    loc = np.einsum("nij,nkj->nki", R, x - root[:, None]).reshape(len(x), -1)
+    rng = np.random.default_rng(seed)
+    sub = loc[rng.choice(len(loc), min(len(loc), 20000), replace=False)].astype(np.float64)
+    with warnings.catch_warnings():  # tiny data sets leave clusters empty; the centres are still poses
+        warnings.simplefilter("ignore")
+        centres, _ = kmeans2(sub, k, minit="++", seed=seed)
+    centres = centres[np.isfinite(centres).all(1)]
+    return FoolClusters(torch.from_numpy(centres.astype(np.float32)))
 
 
 def _masked_joint_l2(pred, fut, mask):

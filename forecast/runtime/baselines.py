@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from roomcap.forecast.runtime.registry import baseline
+
 PREVIEW_VEL_WINDOW_S = 0.2  # root velocity = mean over the last 0.2 s
 
 
@@ -27,7 +29,7 @@ def baseline_preview(xyz: np.ndarray, fps: float, H: int, kind: str) -> tuple[np
     n_seen = seen.sum(2)
     root = np.where(n_seen > 0, np.where(seen, xyz, 0).sum(2) / np.maximum(n_seen, 1), np.nan)  # (T,K,3)
     n = max(1, min(T - 1, int(round(PREVIEW_VEL_WINDOW_S * fps))))
-    if kind == "constant_velocity" and T >= 2:
+    if baseline(kind).moves and T >= 2:
         v = (root[-1] - root[-1 - n]) / n  # metres per frame
         v = np.where(np.isfinite(v), v, 0.0)
         v[:, 2] = 0.0  # people walk on the floor

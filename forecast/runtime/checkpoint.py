@@ -1,116 +1,135 @@
-"""Forecast checkpoints: writing, reading and building models from them, and the baselines.
+"""The one checkpoint format of every forecasting family, its one writer and one reader, and the converter of
+the older formats.
 
-Checkpoints (``torch.save`` of plain containers, loaded with ``weights_only=True``) carry
-``schema = "forecast-checkpoint/1"``, the model kind, its config, the skeleton id and joint names, the
-frame rate and the normalisation convention, plus the state dict (k-means centres, feature statistics
-and the diffusion schedule are buffers inside it).
+A checkpoint (``torch.save`` of plain containers, read with ``weights_only=True``) is a dict:
+
+* ``schema = "forecast-checkpoint/2"``, ``model``: a family of :data:`registry.FAMILIES` (the track models
+  ``gru``, ``intention``, ``social_diffusion``; ``characteristic``, ``cmu8_dct_mlp``, ``cmu8_angle_dct_mlp``,
+  ``behaviour``, ``behaviour_quality``);
+* ``config``: the model's config as a dict (a family of several networks keeps one per network);
+* ``weights``: named state dicts (``model``; ``det`` beside it for the characteristic model; ``member<i>`` of
+  an ensemble; one per variant of the behaviour model);
+* ``card``: the model card: ``data`` and ``split`` it was trained and selected on, the ``selection`` rule,
+  the validation ``scores`` and the ``command`` that trained it and measured them;
+* ``extra``: the training's own record (the clips of each split, history);
+* what else the family needs to use it: ``skeleton``, ``joint_names``, ``fps``, ``normalisation`` (Tanke eq.
+  3.8) for the track models; the benchmark's ``points`` and ``units`` for the CMU 8-action models, ...
+
+The five schemas before it (``forecast-checkpoint/1``, ``forecast-characteristic/1``,
+``forecast-cmu8-checkpoint/1``, ``behaviour_checkpoint/1``, ``behaviour_quality/1``) are upgraded on read,
+with a note; ``forecast models --convert OLD NEW`` rewrites such a file. Importing this module does not load
+torch: reading or writing a file does.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
-import warnings
 from pathlib import Path
-
-import numpy as np
-import torch
-from scipy.cluster.vq import kmeans2
+from typing import Any
 
 from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import atomic_path
-from roomcap.forecast.lab import data as fdata
-from roomcap.forecast.runtime.config import BASELINES
-from roomcap.forecast.runtime.models import (
-    ConstantVelocity,
-    FoolClusters,
-    SlideLastPose,
-    ZeroVelocity,
+from roomcap.forecast.runtime.normalise import LHIP, RHIP, TARGET_FPS
+from roomcap.forecast.runtime.registry import (
+    DISCRIMINATOR_PREFIXES,
+    FAMILIES,
+    MODELS,
+    build_model,
+    config_from_dict,
 )
-from roomcap.forecast.runtime.predict import LHIP, RHIP
-from roomcap.forecast.runtime.registry import DISCRIMINATOR_PREFIXES, MODELS, build_model, config_from_dict
-from roomcap.keypoints.skeletons import get_skeleton
+from roomcap.forecast.runtime.registry import (
+    baseline as baseline_spec,
+)
 
-CKPT_SCHEMA = "forecast-checkpoint/1"
+log = logging.getLogger(__name__)
+
+SCHEMA = "forecast-checkpoint/2"
 NORMALISATION = "eq. 3.8 at the last observed frame: root = mid-hips, hip vector (left->right) on +x, z up"
+CARD_FIELDS = ("data", "split", "selection", "scores", "command")
+
+# the schemas before the one format: schema -> what it was (the converter reads them)
+LEGACY = {
+    "forecast-checkpoint/1": "a forecast checkpoint (GRU, intention or Social Diffusion) of the first format",
+    "forecast-characteristic/1": "a characteristic-3D-pose checkpoint of the first format",
+    "forecast-cmu8-checkpoint/1": "a CMU 8-action DCT + MLP checkpoint of the first format",
+    "behaviour_checkpoint/1": "a behaviour checkpoint of the first format",
+    "behaviour_quality/1": "a behaviour pose-quality checkpoint of the first format",
+}
+
+
+def _plain(config) -> Any:
+    """A config as builtins: a dataclass as its dict, a dict or list of them (one per network) likewise."""
+    if dataclasses.is_dataclass(config):
+        return dataclasses.asdict(config)
+    if isinstance(config, dict):
+        return {k: _plain(v) for k, v in config.items()}
+    if isinstance(config, (list, tuple)):
+        return [_plain(v) for v in config]
+    return config
 
 
 def write_checkpoint(
     path: str | os.PathLike,
-    schema: str,
-    kind: str,
+    model: str,
     *,
     config,
-    skeleton: str,
-    fps: float,
-    normalisation: str,
-    extra: dict | None,
-    **payload,
+    weights: dict,
+    card: dict | None = None,
+    extra: dict | None = None,
+    **fields,
 ) -> None:
-    """Write a forecast checkpoint atomically: its config, skeleton, joints, fps and normalisation, then the
-    caller's ``payload`` (weights and whatever else the model needs)."""
+    """Write a checkpoint of family ``model`` atomically: ``config`` (a dataclass, or a dict of them),
+    ``weights`` (name -> state dict; tensors are detached to the CPU), the model ``card`` (default: read from
+    ``extra``, see :func:`card_from_extra`), ``extra`` and the family's ``fields``."""
+    import torch  # lazy: loads torch
+
+    if model not in FAMILIES:
+        raise InputError(f"unknown model family '{model}'; the families: {sorted(FAMILIES)}")
+    extra = dict(extra or {})
     blob = {
-        "schema": schema,
-        "kind": kind,
-        "config": dataclasses.asdict(config),
-        "skeleton": skeleton,
-        "joint_names": list(get_skeleton(skeleton).joint_names),
-        "fps": float(fps),
-        "normalisation": normalisation,
-        **payload,
-        "extra": extra or {},
+        "schema": SCHEMA,
+        "model": model,
+        "config": _plain(config),
+        "weights": {
+            n: {k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in sd.items()}
+            for n, sd in weights.items()
+        },
+        "card": card if card is not None else card_from_extra(extra),
+        "extra": extra,
+        **fields,
     }
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         torch.save(blob, tmp)
 
 
-# Every checkpoint schema of the project (forecast/checkpoints), for a message that names what a file is
-# when a reader gets one it does not read: schema -> (what it is, what reads it). The behaviour and
-# characteristic modules own their constants; tests/test_forecast_models.py checks that these match them.
-KNOWN_SCHEMAS = {
-    CKPT_SCHEMA: (
-        "a forecast checkpoint (GRU, intention or Social Diffusion)",
-        "`forecast sample --checkpoint PATH` and `forecast eval --checkpoints PATH` read it",
-    ),
-    "forecast-characteristic/1": (
-        "a characteristic-3D-pose checkpoint (Diller ch. 3)",
-        "`forecast characteristic eval --checkpoint PATH` reads it",
-    ),
-    "forecast-cmu8-checkpoint/1": (
-        "a DCT + MLP of the CMU 8-action benchmark (its own 3D points at 60 Hz, not tracks)",
-        "`forecast eval --protocol cmu8 --checkpoints PATH` scores it",
-    ),
-    "behaviour_checkpoint/1": (
-        "a behaviour model (next actions and their poses, Diller ch. 4)",
-        "`forecast behaviour sample|eval --checkpoint PATH` reads it",
-    ),
-    "behaviour_quality/1": (
-        "a behaviour pose-quality model (Diller ch. 4)",
-        "`forecast behaviour` reads it beside its behaviour model",
-    ),
-}
-
-
 def describe_checkpoint(blob) -> str:
-    """What a loaded checkpoint ``blob`` is, in words: one of :data:`KNOWN_SCHEMAS`, another version of one
-    (``name/N``), a bare state dict, or whatever else it holds."""
+    """What a loaded file ``blob`` is, in words: a checkpoint of a known family (and what reads it), one of an
+    older schema (and how to convert it), one of a model this version does not know, or something else."""
+    import torch  # lazy: loads torch
+
     if not isinstance(blob, dict):
         return f"a {type(blob).__name__}, not a checkpoint dict"
     schema = blob.get("schema")
-    if schema in KNOWN_SCHEMAS:
-        what, how = KNOWN_SCHEMAS[schema]
-        kind = f" ('{blob['kind']}')" if isinstance(blob.get("kind"), str) else ""
-        return f"{what}{kind}: {how}"
-    if isinstance(schema, str):
-        name, _, version = schema.rpartition("/")
-        ours = [k for k in KNOWN_SCHEMAS if k.rpartition("/")[0] == name]
-        if ours:
-            what, _ = KNOWN_SCHEMAS[ours[0]]
+    if schema == SCHEMA:
+        fam = FAMILIES.get(blob.get("model"))
+        if fam is None:
             return (
-                f"{what} of schema '{schema}', written by another roomcap version (this one reads "
-                f"'{ours[0]}'): forecast with the version that wrote it, or retrain it with this one"
+                f"a checkpoint of model '{blob.get('model')}', which this roomcap version does not know (it "
+                f"knows {', '.join(FAMILIES)}): use the version that wrote it, or retrain"
             )
-        return f"a checkpoint of schema '{schema}', which roomcap does not know"
+        return f"{fam.what} ('{fam.name}'): {fam.reads_it}"
+    if schema in LEGACY:
+        return (
+            f"{LEGACY[schema]} (schema '{schema}'): it is read with an upgrade on the fly; "
+            "`forecast models --convert OLD NEW` rewrites it in the current format"
+        )
+    if isinstance(schema, str):
+        return (
+            f"a checkpoint of schema '{schema}', which roomcap does not know (this version writes '{SCHEMA}')"
+        )
     if blob and all(isinstance(v, torch.Tensor) for v in blob.values()):
         return (
             f"a bare PyTorch state dict ({len(blob)} tensors, no schema, config or skeleton), so the model "
@@ -121,34 +140,63 @@ def describe_checkpoint(blob) -> str:
 
 
 def read_checkpoint(
-    path: Path,
-    schema: str,
-    skeleton: str | None,
-    what: str,
-    train_cmd: str,
+    path: str | os.PathLike,
+    model: str | tuple[str, ...] | None = None,
+    skeleton: str | None = None,
     map_location: str = "cpu",
     missing_as_is: bool = False,
 ) -> dict:
-    """Load a checkpoint written by :func:`write_checkpoint` (weights_only=True) and check that it is one
-    (``schema``) and fits the caller's data ``skeleton`` (None: any); errors say how to get a good one.
-    ``missing_as_is``: a missing file raises FileNotFoundError, for a caller that words that case itself."""
+    """The checkpoint at ``path`` in the current format (an older schema is upgraded, with a note), checked to
+    be of family ``model`` (a name or several; None: any) and to fit the caller's data ``skeleton`` (None:
+    any); every error names what the file is and how to get a good one. ``missing_as_is``: a missing file
+    raises FileNotFoundError, for a caller that words that case itself."""
+    import torch  # lazy: loads torch
+
+    path = Path(path)
+    wanted = (model,) if isinstance(model, str) else tuple(model or ())
+    train = (
+        " or ".join(f"`{FAMILIES[m].train}`" for m in wanted if m in FAMILIES) or "the family's train command"
+    )
     try:
         blob = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # noqa: BLE001 - re-raised with what to do
         if missing_as_is and isinstance(e, FileNotFoundError):
             raise
-        raise FormatError(
-            path, None, f"not a readable {what} ({type(e).__name__}: {e}).", f"Train one with `{train_cmd}`."
-        ) from e
-    if not isinstance(blob, dict) or blob.get("schema") != schema:
-        got = blob.get("schema") if isinstance(blob, dict) else type(blob).__name__
+        what = "; ".join(FAMILIES[m].what for m in wanted if m in FAMILIES) or "a forecasting model"
+        why = (str(e).strip().splitlines() or [""])[0]
+        kind = " or ".join(wanted) + " " if wanted else ""
         raise FormatError(
             path,
-            "schema",
-            f"expected '{schema}', got {got!r}: this is {describe_checkpoint(blob)}.",
-            f"A {what} of this version comes from `{train_cmd}`.",
+            None,
+            f"not a readable {kind}checkpoint ({what}; {type(e).__name__}: {why}).",
+            f"Train one with {train}.",
+        ) from e
+    if isinstance(blob, dict) and blob.get("schema") in LEGACY:
+        old = blob["schema"]
+        try:
+            blob = upgrade(blob)
+        except (KeyError, TypeError, AttributeError) as e:
+            raise FormatError(
+                path, "schema", f"{LEGACY[old]}, damaged: it lacks {e}.", f"Retrain: {train}."
+            ) from None
+        log.warning(
+            "%s: schema '%s' upgraded on read to '%s'; `forecast models --convert %s NEW` rewrites it",
+            path,
+            old,
+            SCHEMA,
+            path,
         )
-    if skeleton is not None and blob["skeleton"] != skeleton:
+    if not isinstance(blob, dict) or blob.get("schema") != SCHEMA or blob.get("model") not in FAMILIES:
+        raise FormatError(path, "schema", f"this is {describe_checkpoint(blob)}.", f"Train one with {train}.")
+    if wanted and blob["model"] not in wanted:
+        raise FormatError(
+            path,
+            "model",
+            f"a '{blob['model']}' checkpoint, not {' or '.join(repr(m) for m in wanted)}: "
+            f"{describe_checkpoint(blob)}.",
+            f"Train one with {train}.",
+        )
+    if skeleton is not None and blob.get("skeleton", skeleton) != skeleton:
         raise FormatError(
             path,
             "skeleton",
@@ -159,83 +207,186 @@ def read_checkpoint(
     return blob
 
 
+def family_of(path: str | os.PathLike) -> str | None:
+    """The family (``model``) of the checkpoint at ``path``, an older schema's included; None for a file that
+    is not a checkpoint of a known family (unreadable, another format)."""
+    import torch  # lazy: loads torch
+
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # noqa: BLE001 - not a checkpoint: the caller tries the other readers
+        return None
+    if isinstance(blob, dict) and blob.get("schema") in LEGACY:
+        blob = upgrade(blob)
+    ok = isinstance(blob, dict) and blob.get("schema") == SCHEMA and blob.get("model") in FAMILIES
+    return blob["model"] if ok else None
+
+
+# ----------------------------------------------------------------------------- the model card
+
+
+def card_from_extra(extra: dict) -> dict:
+    """The model card a training's ``extra`` records: data and split, the selection rule, the validation
+    scores and the command (empty fields left out)."""
+    out: dict = {}
+    n = {k: len(extra[f"{k}_clips"]) for k in ("train", "val", "test") if f"{k}_clips" in extra}
+    if n:
+        out["data"] = str(extra.get("data", "clips"))
+        out["split"] = ", ".join(f"{v} {k} clips" for k, v in n.items()) + " (by clip; test held out)"
+    if extra.get("val_files"):
+        out["data"] = "the CMU 8-action benchmark's train files"
+        out["split"] = f"validation: the last train file of each action ({len(extra['val_files'])} files)"
+    hist = extra.get("history") if isinstance(extra.get("history"), dict) else {}
+    vb = extra.get("val_best") or (hist.get("heatmap") or {}).get("val_best") or {}
+    best = extra.get("best") if isinstance(extra.get("best"), dict) else {}
+    if "ndms_2_4" in vb:
+        out["selection"] = (
+            f"the step of the best validation {vb.get('select', 'ndms_2_4')} (step {vb['step']})"
+        )
+        out["scores"] = {"split": "validation", "ndms_2_4": vb["ndms_2_4"], "mpjpe_0_1_m": vb["mpjpe_0_1"]}
+    elif "mpjpe_best_of_k" in vb:
+        out["data"] = str(extra.get("data", "cmu"))
+        out["selection"] = f"the step of the best validation best-of-k MPJPE (step {vb['step']})"
+        out["scores"] = {"split": "validation", "mpjpe_best_of_k_m": vb["mpjpe_best_of_k"]}
+    elif "val_mm" in best:
+        out["selection"] = "the lowest validation MPJPE (the benchmark's units)"
+        out["scores"] = {"split": "validation", "mpjpe_units": best["val_mm"]}
+    elif "val_rad" in best:
+        out["selection"] = f"the step of the lowest validation mean angle error (step {best['step']})"
+        out["scores"] = {"split": "validation", "angle_error_rad": best["val_rad"]}
+    full = (hist.get("full") or {}) if "action_freq" in extra else {}
+    if full:  # the behaviour model: its variants, the full one's validation objective
+        out["data"] = "composite activities of labelled CMU clips (the train subjects)"
+        out["selection"] = f"the step of the best validation objective (full: step {full['best_step']})"
+        best = next((v for v in full.get("val", []) if v.get("step") == full["best_step"]), {})
+        keys = ("action_ce", "pose2d", "objective")
+        out["scores"] = {"split": "validation", **{k: best[k] for k in keys if k in best}}
+    if "share_judged_real" in extra:  # the behaviour pose-quality classifier
+        out["data"] = f"{extra['n_real']} database poses against {extra['n_fake']} generated ones"
+        out["selection"] = f"the last of {extra.get('clf_steps', '?')} steps (no selection)"
+        share = extra["share_judged_real"]
+        out["scores"] = {"split": "held-out database", "share_judged_real": share.get("database_held_out")}
+    if extra.get("members"):
+        out["selection"] = out.get("selection", "") + f"; mean of {len(extra['members'])} members"
+    if extra.get("command"):
+        out["command"] = extra["command"]
+    return out
+
+
+# ----------------------------------------------------------------------------- the older schemas
+
+
+def upgrade(blob: dict) -> dict:
+    """An older checkpoint (:data:`LEGACY`) in the current format: the same weights, configs and record,
+    rearranged (nothing is retrained or rescaled)."""
+    schema = blob["schema"]
+    extra = dict(blob.get("extra") or blob.get("meta") or {})
+    keep = ("skeleton", "joint_names", "fps", "normalisation", "annotator", "avg_pose", "points", "units")
+    fields = {k: blob[k] for k in keep if k in blob}
+    if schema in ("forecast-checkpoint/1", "forecast-characteristic/1"):
+        model = blob.get("kind", "characteristic")
+        weights = {"model": blob["state_dict"]}
+        if "det_state_dict" in blob:
+            weights["det"] = blob["det_state_dict"]
+        config = blob["config"]
+    elif schema == "forecast-cmu8-checkpoint/1" and blob.get("representation") == "expmap":
+        model, config, weights = "cmu8_angle_dct_mlp", blob["config"], {"model": blob["state_dict"]}
+        fields |= {"vectors": blob["vectors"], "dims": blob["dims"]}
+    elif schema == "forecast-cmu8-checkpoint/1":
+        members = blob.get("members") or [{"config": blob["config"], "state_dict": blob["state_dict"]}]
+        model = "cmu8_dct_mlp"
+        config = {"members": [m["config"] for m in members]}
+        weights = {f"member{i}": m["state_dict"] for i, m in enumerate(members)}
+    elif schema == "behaviour_checkpoint/1":
+        model = "behaviour"
+        config = {n: m["config"] for n, m in blob["models"].items()}
+        weights = {n: m["state"] for n, m in blob["models"].items()}
+        fields["actions"] = blob["actions"]
+    else:  # behaviour_quality/1
+        model, config, weights = "behaviour_quality", {}, {"model": blob["state"]}
+        fields["joints"] = blob["joints"]
+    return {
+        "schema": SCHEMA,
+        "model": model,
+        "config": config,
+        "weights": weights,
+        "card": card_from_extra(extra),
+        "extra": extra,
+        **fields,
+    }
+
+
+def convert(old: str | os.PathLike, new: str | os.PathLike) -> str:
+    """Rewrite the checkpoint ``old`` in the current format at ``new`` (the same weights); -> what it was."""
+    import torch  # lazy: loads torch
+
+    try:
+        blob = torch.load(old, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - re-raised with what to do
+        raise FormatError(old, None, f"not a readable checkpoint ({type(e).__name__}: {e}).", "") from e
+    if isinstance(blob, dict) and blob.get("schema") == SCHEMA:
+        was = f"already '{SCHEMA}' ('{blob.get('model')}')"
+    elif isinstance(blob, dict) and blob.get("schema") in LEGACY:
+        was = f"'{blob['schema']}' -> '{SCHEMA}'"
+        blob = upgrade(blob)
+    else:
+        raise FormatError(old, "schema", f"this is {describe_checkpoint(blob)}.", "Nothing to convert.")
+    with atomic_path(new) as tmp:
+        torch.save(blob, tmp)
+    return was
+
+
+# ----------------------------------------------------------------------------- the track models
+
+
 def save_checkpoint(
     path: str | os.PathLike,
-    model: torch.nn.Module,
+    model,
     kind: str,
     config,
     skeleton: str = "body19",
-    fps: float = fdata.TARGET_FPS,
+    fps: float = TARGET_FPS,
     extra: dict | None = None,
 ) -> None:
-    state = {
-        k: v.detach().cpu()
-        for k, v in model.state_dict().items()
-        if not k.startswith(DISCRIMINATOR_PREFIXES)  # only needed for training; keeps files < 2 MB
-    }
+    """A track model (:data:`registry.MODELS`) without its training-only weights (the discriminators)."""
+    from roomcap.keypoints.skeletons import get_skeleton
+
+    state = {k: v for k, v in model.state_dict().items() if not k.startswith(DISCRIMINATOR_PREFIXES)}
     write_checkpoint(
         path,
-        CKPT_SCHEMA,
         kind,
         config=config,
-        skeleton=skeleton,
-        fps=fps,
-        normalisation=NORMALISATION,
+        weights={"model": state},
         extra=extra,
-        state_dict=state,
+        skeleton=skeleton,
+        joint_names=list(get_skeleton(skeleton).joint_names),
+        fps=float(fps),
+        normalisation=NORMALISATION,
     )
 
 
 def load_checkpoint(path: str | os.PathLike, skeleton: str | None = None, map_location: str = "cpu"):
-    """-> (model, meta). ``skeleton``: the skeleton the caller's data uses; a mismatch is a clear error."""
-    blob = read_checkpoint(
-        Path(path), CKPT_SCHEMA, skeleton, "forecast checkpoint", "forecast train", map_location
-    )
-    kind = blob.get("kind")
-    if kind not in MODELS:
-        raise FormatError(
-            path,
-            "kind",
-            f"a '{kind}' model, which this roomcap version does not build (it builds {', '.join(MODELS)}).",
-            "Forecast with the roomcap version that wrote it, or train one of these: "
-            f"`forecast train --model {'|'.join(MODELS)}`.",
-        )
+    """-> (model, meta) of a track model. ``skeleton``: the skeleton the caller's data uses; a mismatch is a
+    clear error. ``meta`` is the file less its weights, with ``config`` typed."""
+    blob = read_checkpoint(Path(path), tuple(MODELS), skeleton, map_location)
+    name = blob["model"]
     try:
-        config = config_from_dict(kind, blob["config"])
+        config = config_from_dict(name, blob["config"])
     except (InputError, FormatError) as e:
-        why = str(e).removeprefix(f"<input>: field '{kind} config': ").removesuffix(" Remove or rename them.")
+        why = str(e).removeprefix(f"<input>: field '{name} config': ").removesuffix(" Remove or rename them.")
         raise FormatError(
             path,
             "config",
-            f"its {kind} config does not fit this roomcap version ({why.rstrip('.')}).",
+            f"its {name} config does not fit this roomcap version ({why.rstrip('.')}).",
             f"It was written by another version: forecast with that one, or retrain with `forecast train "
-            f"--model {kind}` (--set the keys above that this version knows).",
+            f"--model {name}` (--set the keys above that this version knows).",
         ) from None
-    model = build_model(kind, config, len(blob["joint_names"]), blob["state_dict"])
-    meta = {k: v for k, v in blob.items() if k != "state_dict"}
+    model = build_model(name, config, len(blob["joint_names"]), blob["weights"]["model"])
+    meta = {k: v for k, v in blob.items() if k != "weights"}
     meta["config"] = config
     return model.to(map_location), meta
 
 
-def baseline(kind: str, lhip: int = LHIP, rhip: int = RHIP) -> torch.nn.Module:
-    if kind in ("zero_velocity", "zero"):
-        return ZeroVelocity()
-    if kind in ("constant_velocity", "const"):
-        return ConstantVelocity()
-    if kind == "slide":
-        return SlideLastPose(lhip, rhip)
-    raise InputError(f"unknown baseline '{kind}'; baselines: {BASELINES}")
-
-
-def fool_model(train_windows: fdata.WindowSet, k: int = 48, seed: int = 0) -> FoolClusters:
-    """Sec. 6.4.4's fool: 48 cluster means of the training poses (hip-centric, per-frame normalised)."""
-    x = train_windows.x[:, :, 0].reshape(-1, train_windows.x.shape[3], 3)
-    R, root = fdata.norm_frame(x, LHIP, RHIP)
-    loc = np.einsum("nij,nkj->nki", R, x - root[:, None]).reshape(len(x), -1)
-    rng = np.random.default_rng(seed)
-    sub = loc[rng.choice(len(loc), min(len(loc), 20000), replace=False)].astype(np.float64)
-    with warnings.catch_warnings():  # tiny data sets leave clusters empty; the centres are still poses
-        warnings.simplefilter("ignore")
-        centres, _ = kmeans2(sub, k, minit="++", seed=seed)
-    centres = centres[np.isfinite(centres).all(1)]
-    return FoolClusters(torch.from_numpy(centres.astype(np.float32)))
+def baseline(kind: str, lhip: int = LHIP, rhip: int = RHIP):
+    """The torch module of baseline ``kind`` (:data:`registry.BASELINES`)."""
+    return baseline_spec(kind).module(lhip, rhip)

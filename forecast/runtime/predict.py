@@ -13,11 +13,8 @@ import numpy as np
 import torch
 
 from roomcap.core.errors import InputError
-from roomcap.forecast.lab.data import denormalize, norm_frame, normalize
+from roomcap.forecast.runtime.normalise import LHIP, RHIP, denormalize, norm_frame, normalize
 from roomcap.forecast.runtime.registry import forecasts_the_scene
-
-LHIP, RHIP = 11, 12  # body19
-
 
 # ----------------------------------------------------------------------------- scene features (ch. 7.2.3)
 

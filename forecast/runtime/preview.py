@@ -94,7 +94,7 @@ def write_preview(
     tf = TrackFile.load(tracks_path)
     start = int(tf.frame_index[-1]) if tf.n_frames else 0
     extra: dict = {}
-    if kind == "checkpoint":
+    if checkpoint is not None:
         import torch  # lazy: loads torch
 
         torch.set_num_threads(1)  # the same bytes on every machine and executor

@@ -118,6 +118,106 @@ MODELS: dict[str, ModelSpec] = {
 NAMES = tuple(MODELS)
 
 
+@dataclass(frozen=True)
+class Family:
+    """A family of checkpoints in the one format (``forecast-checkpoint/2``): its ``model`` name, what it is
+    and which command reads and trains it. The track models (:data:`MODELS`) are built here; the lab's
+    families (the CMU 8-action DCT + MLP, the characteristic-pose and behaviour models) build themselves from
+    what the one reader returns."""
+
+    name: str
+    what: str
+    reads_it: str
+    train: str
+
+
+_TRACK_USE = "`forecast sample --checkpoint PATH` and `forecast eval --checkpoints PATH` read it"
+FAMILIES: dict[str, Family] = {
+    f.name: f
+    for f in (
+        *(Family(m.name, m.summary, _TRACK_USE, f"forecast train --model {m.name}") for m in MODELS.values()),
+        Family(
+            "characteristic",
+            "a characteristic-3D-pose model (Diller ch. 3)",
+            "`forecast characteristic eval --checkpoint PATH` reads it",
+            "forecast characteristic train --out PATH",
+        ),
+        Family(
+            "cmu8_dct_mlp",
+            "a DCT + MLP (or the mean of several) of the CMU 8-action benchmark (its own 3D points at 60 Hz)",
+            "`forecast eval --protocol cmu8 --checkpoints PATH` scores it",
+            "forecast cmu8 train | ensemble",
+        ),
+        Family(
+            "cmu8_angle_dct_mlp",
+            "a DCT + MLP of the CMU 8-action benchmark's exponential maps at 60 Hz (Tanke Table 6.7)",
+            "`forecast eval --protocol cmu8 --metric angle --checkpoints PATH` scores it",
+            "forecast cmu8 train --angles",
+        ),
+        Family(
+            "behaviour",
+            "a behaviour model (next actions and their poses, Diller ch. 4)",
+            "`forecast behaviour sample|eval --checkpoint PATH` reads it",
+            "forecast behaviour train --out PATH",
+        ),
+        Family(
+            "behaviour_quality",
+            "a behaviour pose-quality classifier (Diller ch. 4)",
+            "`forecast behaviour eval --quality-classifier PATH` reads it",
+            "forecast behaviour quality --out PATH",
+        ),
+    )
+}
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """A checkpoint-free forecaster: ``moves`` the last pose along the root's velocity (constant velocity) or
+    not; ``module(lhip, rhip)`` its torch module (lazy: loads torch)."""
+
+    name: str
+    aliases: tuple[str, ...]
+    moves: bool
+    module: Callable[[int, int], Any]
+
+
+def _zero(lhip: int, rhip: int):
+    from roomcap.forecast.runtime.models import ZeroVelocity  # lazy: loads torch
+
+    return ZeroVelocity()
+
+
+def _const(lhip: int, rhip: int):
+    from roomcap.forecast.runtime.models import ConstantVelocity  # lazy: loads torch
+
+    return ConstantVelocity()
+
+
+def _slide(lhip: int, rhip: int):
+    from roomcap.forecast.runtime.models import SlideLastPose  # lazy: loads torch
+
+    return SlideLastPose(lhip, rhip)
+
+
+# Tanke 2024 sec. 6.4.4's controls
+BASELINES: dict[str, Baseline] = {
+    b.name: b
+    for b in (
+        Baseline("zero_velocity", ("zero",), False, _zero),
+        Baseline("constant_velocity", ("const",), True, _const),
+        Baseline("slide", (), False, _slide),
+    )
+}
+
+
+def baseline(name: str) -> Baseline:
+    """The baseline called ``name`` (or one of its aliases); an unknown name is an InputError listing them."""
+    for b in BASELINES.values():
+        if name == b.name or name in b.aliases:
+            return b
+    raise InputError(f"unknown baseline '{name}'; baselines: {tuple(BASELINES)}")
+
+
 def spec(name: str) -> ModelSpec:
     """The model called ``name``; an unknown name is an :class:`InputError` listing the known ones."""
     if name not in MODELS:

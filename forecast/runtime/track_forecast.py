@@ -11,10 +11,11 @@ import numpy as np
 import torch
 
 from roomcap.core.errors import InputError
-from roomcap.forecast.lab import data as fdata
+from roomcap.forecast.runtime import normalise as fdata
 from roomcap.forecast.runtime.baselines import baseline_preview
 from roomcap.forecast.runtime.checkpoint import load_checkpoint
 from roomcap.forecast.runtime.predict import forecast_world
+from roomcap.keypoints.skeletons import get_skeleton
 from roomcap.track.trackfile import TrackFile
 
 
@@ -55,9 +56,9 @@ def forecast_tracks(
                 f"--start-s {start_s:g} is outside {track_file}, which spans 0 to {(T_all - 1) / fps:.2f} s "
                 f"at {fps:g} Hz; give a time within it (or none: its last frame)."
             )
-    lh, rh = fdata.hip_indices(fdata.get_skeleton(clip.skeleton).joint_names)
+    lh, rh = fdata.hip_indices(get_skeleton(clip.skeleton).joint_names)
     if strict:
-        why = _not_forecastable(c.xyz_m[:T], (lh, rh), n_obs, fps, str(meta["kind"]), track_file, clip.fps)
+        why = _not_forecastable(c.xyz_m[:T], (lh, rh), n_obs, fps, str(meta["model"]), track_file, clip.fps)
         if why:
             raise InputError(why)
     ws = c.xyz_m[max(0, T - n_obs) : T]
@@ -71,8 +72,8 @@ def forecast_tracks(
         "t_s": np.arange(1, H + 1) / fps,
         "track_id": tid,
         "fps": fps,
-        "joint_names": np.asarray(fdata.get_skeleton(clip.skeleton).joint_names),
-        "model": meta["kind"],
+        "joint_names": np.asarray(get_skeleton(clip.skeleton).joint_names),
+        "model": meta["model"],
         "stochastic": bool(getattr(model, "stochastic", False)),
         "obs_xyz_m": ws.astype(np.float32),
         "truth_xyz_m": truth,
@@ -86,7 +87,7 @@ def _forecast_window(
     """The model's next ``H`` frames after the window ``ws (T,K,J,3)`` (world metres at the model's rate, NaN
     = unknown): ``(S,H,K,J,3)`` (NaN for the tracks not seen, both hips, in the window's last frame: the
     normalisation frame, eq. 3.8) and that mask ``(K,)``. Unknown frames are filled with the last known value
-    (``data._fill``); a window of fewer than 2 frames is not forecast."""
+    (``normalise.fill``); a window of fewer than 2 frames is not forecast."""
     K, J = ws.shape[1:3]
     out = np.full((n_samples, H, K, J, 3), np.nan, np.float32)
     present = np.zeros(K, bool)
@@ -95,7 +96,7 @@ def _forecast_window(
     m = np.isfinite(ws).all(-1)
     present = m[-1, :, hips[0]] & m[-1, :, hips[1]]
     if present.any() and len(ws) >= 2:
-        x = fdata._fill(ws[:, present], m[:, present])
+        x = fdata.fill(ws[:, present], m[:, present])
         with torch.no_grad():
             S = n_samples if getattr(model, "stochastic", False) else 1
             y = forecast_world(model, x[None], None, H, S)
@@ -107,7 +108,7 @@ def resample_recent(t_s: np.ndarray, xyz_m: np.ndarray, fps: float, n: int) -> n
     """The last ``n`` frames at ``fps`` of a track sampled at the irregular times ``t_s (T,)`` (increasing,
     seconds; a live track skips the frame sets its loop could not take): ``xyz_m (T,K,J,3)`` linearly
     interpolated in time onto ``t_s[-1] - k / fps`` (k < n, not before ``t_s[0]``), oldest first. NaN where
-    either neighbour is NaN, as :meth:`roomcap.forecast.lab.data.Clip.resampled`."""
+    either neighbour is NaN, as :meth:`roomcap.forecast.runtime.normalise.Clip.resampled`."""
     t = np.asarray(t_s, np.float64)
     x = np.asarray(xyz_m, np.float32)
     if not len(t):
@@ -138,7 +139,7 @@ def forecast_recent(
     if model is None:
         out, present = baseline_preview(ws.astype(np.float64), fps, H, "constant_velocity")
         return np.moveaxis(out, 1, 0), np.arange(1, H + 1) / fps, present
-    lh, rh = fdata.hip_indices(fdata.get_skeleton("body19").joint_names)
+    lh, rh = fdata.hip_indices(get_skeleton("body19").joint_names)
     out, present = _forecast_window(model, ws, (lh, rh), H, 1)
     return out[0], np.arange(1, H + 1) / fps, present
 

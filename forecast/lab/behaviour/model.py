@@ -24,7 +24,6 @@ seed: 0.001) over 3,000 steps, the settings chosen on validation.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,13 +33,12 @@ from torch import nn
 
 from roomcap.core.config import config_from_dict as _config_from_dict
 from roomcap.core.errors import FormatError
-from roomcap.core.fileio import atomic_path
 from roomcap.forecast.lab.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPTS, UPPER9
 from roomcap.forecast.lab.behaviour.geometry import plane_of_3d
-from roomcap.forecast.runtime.checkpoint import read_checkpoint
+from roomcap.forecast.runtime.checkpoint import read_checkpoint, write_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "behaviour_cmu.pt"
-SCHEMA = "behaviour_checkpoint/1"
+FAMILY = "behaviour"  # the registry's family of these checkpoints
 VARIANTS = ("full", "action_only", "pose_only", "action_2d")
 
 
@@ -416,31 +414,18 @@ def build(cfg: BehaviourConfig) -> tuple[Generator, Critic]:
 def save_checkpoint(path, gens: dict[str, Generator], cfgs: dict[str, BehaviourConfig], extra: dict) -> None:
     """One file with every trained variant: {name: (state_dict, config)} plus ``extra`` (the train-average
     pose, the action frequencies, history). Plain tensors and builtins (loads with weights_only=True)."""
-    blob = {
-        "schema": SCHEMA,
-        "actions": list(ACTIONS),
-        "models": {
-            n: {
-                "state": {k: v.detach().clone() for k, v in g.state_dict().items()},
-                "config": dataclasses.asdict(cfgs[n]),
-            }
-            for n, g in gens.items()
-        },
-        "extra": extra,
-    }
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    write_checkpoint(
+        path,
+        FAMILY,
+        config={n: cfgs[n] for n in gens},
+        weights={n: g.state_dict() for n, g in gens.items()},
+        extra=extra,
+        actions=list(ACTIONS),
+    )
 
 
 def load_checkpoint(path) -> tuple[dict[str, Generator], dict[str, BehaviourConfig], dict]:
-    blob = read_checkpoint(
-        Path(path),
-        SCHEMA,
-        None,
-        "behaviour checkpoint",
-        "forecast behaviour train --out FILE",
-        missing_as_is=True,
-    )
+    blob = read_checkpoint(Path(path), FAMILY, missing_as_is=True)
     if list(blob["actions"]) != list(ACTIONS):
         raise FormatError(
             path,
@@ -449,12 +434,12 @@ def load_checkpoint(path) -> tuple[dict[str, Generator], dict[str, BehaviourConf
             "Train a new checkpoint with `forecast behaviour train`.",
         )
     gens, cfgs = {}, {}
-    for n, m in blob["models"].items():
+    for n, c in blob["config"].items():
         # older checkpoints: free bones, the markov script, the camera context, the free pose decoder
         old = {"bone_lengths": "free", "script": "markov", "context": "camera", "pose_decoder": "free"}
-        cfg = BehaviourConfig(**{**old, **m["config"]})
+        cfg = BehaviourConfig(**{**old, **c})
         g, _ = build(cfg)
-        g.load_state_dict(m["state"])
+        g.load_state_dict(blob["weights"][n])
         g.eval()
         gens[n], cfgs[n] = g, cfg
     return gens, cfgs, blob["extra"]

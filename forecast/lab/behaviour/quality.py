@@ -26,18 +26,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 from torch import nn
 
-from roomcap.core.fileio import atomic_path
 from roomcap.core.progress import Progress
 from roomcap.forecast.lab.behaviour import training as T
 from roomcap.forecast.lab.behaviour.data import JOINTS
 from roomcap.forecast.lab.behaviour.model import BehaviourConfig
-from roomcap.forecast.runtime.checkpoint import read_checkpoint
+from roomcap.forecast.runtime.checkpoint import read_checkpoint, write_checkpoint
 
 QUALITY_SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "behaviour_quality_cmu.pt"
-SCHEMA = "behaviour_quality/1"
+FAMILY = "behaviour_quality"  # the registry's family of these checkpoints
 POOL_VARIANTS = ("full", "pose_only", "action_2d")  # the variants that output 3D poses (Table 4.2)
 POOL_BASELINES = ("train_average",)  # the baselines that output 3D poses (Table 4.1)
 
@@ -91,30 +89,18 @@ def fit(real: np.ndarray, fake: np.ndarray, names, seed: int = 0, steps: int = 4
 
 
 def save(path, q: QualityModel) -> None:
-    blob = {
-        "schema": SCHEMA,
-        "joints": list(q.joints),
-        "state": {k: v.detach().clone() for k, v in q.clf.state_dict().items()},
-        "meta": q.meta,
-    }
-    with atomic_path(path) as tmp:
-        torch.save(blob, tmp)
+    write_checkpoint(
+        path, FAMILY, config={}, weights={"model": q.clf.state_dict()}, extra=q.meta, joints=list(q.joints)
+    )
 
 
 def load(path) -> QualityModel:
-    blob = read_checkpoint(
-        Path(path),
-        SCHEMA,
-        None,
-        "pose quality classifier",
-        "forecast behaviour quality --out FILE",
-        missing_as_is=True,
-    )
+    blob = read_checkpoint(Path(path), FAMILY, missing_as_is=True)
     names = tuple(blob["joints"])
     clf = T.quality_mlp(len(names))
-    clf.load_state_dict(blob["state"])
+    clf.load_state_dict(blob["weights"]["model"])
     clf.eval()
-    return QualityModel(clf, names, dict(blob["meta"]))
+    return QualityModel(clf, names, dict(blob["extra"]))
 
 
 def build_pool(

@@ -4,11 +4,11 @@
 characteristic ...``). Modules: ``labels`` (annotation and samples), ``model`` (config, networks,
 checkpoint), ``protocol`` (data split and evaluation), ``training`` and ``cli``; the names below are
 importable from the package. The shipped
-``forecast/checkpoints/characteristic_cmu.pt`` (1.8 MB, ~8.5 min of CPU on one thread) was trained with::
+``forecast/checkpoints/characteristic_cmuall.pt`` (1.8 MB, ~8.5 min of CPU on one thread) was trained with::
 
-    OMP_NUM_THREADS=1 python -m roomcap.forecast.characteristic train
-        --out forecast/checkpoints/characteristic_cmu.pt
-        --set steps=1100 det_steps=1000 val_every=100 n_rest_train=3 time_limit_s=560 --no-eval
+    OMP_NUM_THREADS=1 python -m roomcap.forecast.characteristic train --data cmu-all
+        --out forecast/checkpoints/characteristic_cmuall.pt
+        --set steps=1100 det_steps=1000 val_every=100 n_rest_train=3 time_limit_s=560 seed=0 --no-eval
 
 (one command line).
 
@@ -56,7 +56,7 @@ from roomcap.forecast.lab.characteristic.labels import (
     segments,
 )
 from roomcap.forecast.lab.characteristic.model import (
-    CKPT_SCHEMA,
+    FAMILY,
     NORMALISATION,
     SHIPPED,
     CharConfig,
@@ -76,7 +76,7 @@ from roomcap.forecast.lab.characteristic.protocol import (
 from roomcap.forecast.lab.characteristic.training import train
 
 __all__ = [
-    "CKPT_SCHEMA",
+    "FAMILY",
     "DATA_SOURCES",
     "END_EFFECTORS",
     "NORMALISATION",

@@ -1,5 +1,5 @@
 """The characteristic-pose model's config, the two networks (the heatmap model and the Deterministic
-ablation) and their checkpoint (``schema = "forecast-characteristic/1"``)."""
+ablation) and their checkpoint (family ``characteristic`` of the one format, ``runtime.checkpoint``)."""
 
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from roomcap.forecast.lab.characteristic.network import CharacteristicPoseNet, D
 from roomcap.forecast.runtime.checkpoint import read_checkpoint, write_checkpoint
 from roomcap.keypoints.skeletons import get_skeleton
 
-CKPT_SCHEMA = "forecast-characteristic/1"
-SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "characteristic_cmu.pt"
+FAMILY = "characteristic"  # the registry's family of these checkpoints
+SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "characteristic_cmuall.pt"
 
 
 @dataclass(frozen=True)
@@ -106,16 +106,15 @@ def save_checkpoint(
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_checkpoint(
         path,
-        CKPT_SCHEMA,
-        "characteristic",
+        FAMILY,
         config=cfg,
+        weights={"model": net.state_dict(), "det": det.state_dict()},
+        extra=extra,
         skeleton=skeleton,
+        joint_names=list(get_skeleton(skeleton).joint_names),
         fps=fps,
         normalisation=NORMALISATION,
-        extra=extra,
         annotator=dataclasses.asdict(AnnotatorConfig()),
-        state_dict={k: v.detach().cpu() for k, v in net.state_dict().items()},
-        det_state_dict={k: v.detach().cpu() for k, v in det.state_dict().items()},
         avg_pose=torch.as_tensor(np.asarray(avg_pose, np.float32)),
     )
 
@@ -124,8 +123,7 @@ def load_checkpoint(path, skeleton: str | None = None):
     """-> (heatmap model, deterministic model, meta). ``skeleton``: the caller's data skeleton; a mismatch is
     a clear error (``FormatError``)."""
     path = Path(path)
-    train_cmd = "forecast characteristic train --out PATH"
-    blob = read_checkpoint(path, CKPT_SCHEMA, skeleton, "characteristic-pose checkpoint", train_cmd)
+    blob = read_checkpoint(path, FAMILY, skeleton)
     if list(get_skeleton(blob["skeleton"]).joint_names) != list(blob["joint_names"]):
         raise FormatError(
             path,
@@ -136,15 +134,15 @@ def load_checkpoint(path, skeleton: str | None = None):
     cfg = config_from_dict(blob["config"])
     net, det = build_models(cfg, blob["skeleton"])
     try:
-        net.load_state_dict(blob["state_dict"])
-        det.load_state_dict(blob["det_state_dict"])
+        net.load_state_dict(blob["weights"]["model"])
+        det.load_state_dict(blob["weights"]["det"])
     except RuntimeError as e:
         raise FormatError(
-            path, "state_dict", f"the weights do not fit the stored config: {e}", "Retrain."
+            path, "weights", f"the weights do not fit the stored config: {e}", "Retrain."
         ) from None
     net.eval()
     det.eval()
-    meta = {k: v for k, v in blob.items() if k not in ("state_dict", "det_state_dict")}
+    meta = {k: v for k, v in blob.items() if k != "weights"}
     meta["config"] = cfg
     meta["avg_pose"] = blob["avg_pose"].numpy()
     return net, det, meta
