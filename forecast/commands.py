@@ -23,7 +23,7 @@ from roomcap.forecast.lab import benchmark_cmu8 as B
 from roomcap.forecast.lab import benchmark_cmu8_angle as A
 from roomcap.forecast.lab import benchmark_cmu8_train as BT
 from roomcap.forecast.lab import evaluate as E
-from roomcap.forecast.lab import hik
+from roomcap.forecast.lab import hik, protocol
 from roomcap.forecast.lab import train as T
 from roomcap.forecast.lab.behaviour import cli as behaviour_cli
 from roomcap.forecast.lab.characteristic import cli as characteristic_cli
@@ -280,7 +280,7 @@ def _eval_cmu8_angle(args) -> int:
         if not Path(ck).is_file():
             raise InputError(f"no checkpoint {ck}")
     res = A.evaluate(args.path, cks)
-    path = A.write_report(res, args.out)
+    path = protocol.write(res, args.out)
     print(path.read_text())
     return 0
 
@@ -312,7 +312,7 @@ def _eval_cmu8(args) -> int:
             samples_dir=args.save_samples,
             progress=lambda i, n, name=None: progress("body19 models", i, n),
         )
-    path = B.write_report(res, args.out)
+    path = protocol.write(res, args.out)
     print(path.read_text())
     print(f"evaluation wall time {res['wall_s']:.1f} s; results in {Path(args.out) / 'results.json'}")
     return 0
@@ -329,7 +329,7 @@ def _eval_hik(args, names: list[str]) -> int:
         )
     except (FileNotFoundError, FormatError, ValueError) as e:
         raise InputError(str(e)) from None
-    path = hik.write_hik_report(res, args.out)
+    path = protocol.write(res, args.out)
     print(path.read_text())
     return 0
 

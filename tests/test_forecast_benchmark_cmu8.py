@@ -14,6 +14,7 @@ from roomcap.forecast.lab import benchmark_cmu8_train as BT
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab import evaluate as E
 from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.protocol import RESULTS_SCHEMA, render
 from roomcap.forecast.lab.toy import walker
 from tests.conftest import need_shared
 
@@ -92,7 +93,8 @@ def test_protocol_on_a_tiny_benchmark(tiny_root, tmp_path):
     assert list(z["clip"]) == ["soccer_1"] * 2 + ["walking_1"] * 2  # the test file of each window
     e = np.linalg.norm(z["pred"][:, 0] - z["gt"], axis=-1).mean(-1) * z["protocol_mm_per_m"]
     assert np.allclose(e[:, list(B.HORIZON_FRAMES)].mean(0), res["models"]["mlp"]["mpjpe_mm"], rtol=1e-4)
-    md = B.report_markdown(res)
+    md = render(res)
+    assert res["schema"] == RESULTS_SCHEMA and res["tables"][0]["columns"][0] == "model"
     assert "Exact protocol" in md and "missing" in md and "MSR-GCN" in md
 
 

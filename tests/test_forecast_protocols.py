@@ -289,3 +289,29 @@ def test_social_diffusion_generates_the_whole_horizon_in_one_pass():
     assert diffusion_rollout(anchored, 16) == "one_pass" and diffusion_rollout(anchored, 40) == "chained"
     with pytest.raises(ValueError, match="per-frame statistics"):
         anchored.sample_window(torch.zeros(1, 1, 16, 67), torch.ones(1, 1, dtype=torch.bool), n_frames=64)
+
+
+def test_one_results_schema_and_one_renderer(tmp_path):
+    """lab.protocol: a protocol's figures and its tables in one results.json schema, one Markdown renderer."""
+    import json
+
+    from roomcap.core.errors import FormatError
+    from roomcap.forecast.lab import protocol as P
+
+    t = P.Table("Average", ["model", "80 ms"], [["zero", *P.cells([25.94])], ["ours", *P.cells([None])]])
+    res = P.results(
+        "toy", "A toy protocol", ["Reference: none."], [t], ["- source"], models={"zero": [25.94]}
+    )
+    assert (
+        res["schema"] == P.RESULTS_SCHEMA and res["protocol"] == "toy" and res["models"] == {"zero": [25.94]}
+    )
+    md = P.render(res)
+    assert md.startswith(
+        "# A toy protocol\n\nReference: none.\n\n## Average\n\n| model | 80 ms |\n|---|---|\n"
+    )
+    assert "| zero | 25.9 |\n| ours | - |\n" in md and md.endswith("- source\n")
+    path = P.write(res, tmp_path / "o")
+    assert path.read_text() == md and json.loads((tmp_path / "o" / "results.json").read_text()) == res
+    with pytest.raises(FormatError, match="forecast-results/1"):
+        P.render({"models": {}})
+    assert {"cmu8", "cmu8-angle", "hik"} == {k for k, v in P.PROTOCOLS.items() if v[2]}

@@ -27,7 +27,6 @@ the protocol's units, with zero velocity and the DCT + MLP scored on the same 12
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -39,9 +38,9 @@ import torch
 from torch import nn
 
 from roomcap.core.errors import InputError
-from roomcap.core.fileio import atomic_write_text
 from roomcap.forecast.lab import benchmark_cmu8_published as P
 from roomcap.forecast.lab import cmu_more as C
+from roomcap.forecast.lab.protocol import Table, cells, results
 from roomcap.forecast.runtime import samples as fsamples
 from roomcap.forecast.runtime.checkpoint import family_of, load_checkpoint, read_checkpoint, write_checkpoint
 from roomcap.forecast.runtime.predict import forecast_world
@@ -50,6 +49,7 @@ from roomcap.synthetic.bvh import BODY19
 log = logging.getLogger(__name__)
 
 PROTOCOL = "cmu8"
+TITLE = "CMU 8-action benchmark (protocol cmu8)"
 REFERENCE = (
     "LTD (Mao et al. 2019), github.com/wei-mao-2019/LearnTrajDep: utils/data_utils.py load_data_cmu_3d "
     "(windows), utils/forward_kinematics.py _some_variables_cmu + fkl_torch (skeleton), main_cmu_3d.py test "
@@ -560,7 +560,7 @@ def evaluate(
     if samples_dir is not None:
         res["samples"] = write_samples(samples_dir, sc.samples)
     res["wall_s"] = time.perf_counter() - t0
-    return res
+    return results(res.pop("protocol"), TITLE, *_report(res), **res)
 
 
 LAYOUT = {
@@ -595,67 +595,52 @@ def write_samples(out_dir: str | os.PathLike, samples: dict[str, dict]) -> dict[
     }
 
 
-def report_markdown(res: dict) -> str:
-    """The per-action and average tables, the published rows beside ours."""
+def _report(res: dict) -> tuple[list[str], list[Table], list[str]]:
+    """The report's notes, tables (per variant: the average with the published rows beside ours, then per
+    action) and sources."""
     H = res["horizons_ms"]
-    lines = [
-        "# CMU 8-action benchmark (protocol cmu8)",
-        "",
+    notes = [
         f"Reference: {res['reference']}.",
-        "",
         f"**Missing data**: {res['note']}. Actions scored: {', '.join(res['actions'])}; not scored: "
         f"{', '.join(res['actions_missing']) or 'none'}.",
-        "",
         f"MPJPE in {res['units']}; horizons as the protocol labels them (real time: "
         f"{', '.join(f'{t:g}' for t in res['horizons_real_ms'])} ms, the files being 120 Hz).",
-        "",
     ]
+    tables = []
     for variant, title in (("exact", "Exact protocol (38 points)"), ("body19", "body19 variant (12 limbs)")):
         names = [n for n, r in res["models"].items() if r["variant"] == variant]
         if not names:
             continue
-        lines += [f"## {title}: average over {len(res['actions'])} actions", ""]
-        lines += ["| model | " + " | ".join(f"{h} ms" for h in H) + " |", "|---" * (len(H) + 1) + "|"]
-        for n in names:
-            lines.append(f"| {n} | " + " | ".join(f"{v:.1f}" for v in res["models"][n]["mpjpe_mm"]) + " |")
-        if variant == "exact":
-            for p, r in res["published"].items():
-                vals = r.get("mpjpe_mm")
-                if vals:
-                    cells = " | ".join("-" if v is None else f"{v:.1f}" for v in vals)
-                    lines.append(f"| {p} (published, 8 actions) | {cells} |")
-                    sub = r.get("average_same_actions")
-                    if sub:
-                        cells = " | ".join("-" if v is None else f"{v:.1f}" for v in sub)
-                        lines.append(f"| {p} (published, same {len(res['actions'])} actions) | {cells} |")
-        lines.append("")
-        lines += [f"### {title}: per action", ""]
-        lines += ["| action | model | " + " | ".join(f"{h}" for h in H) + " |", "|---" * (len(H) + 2) + "|"]
+        rows = [[n, *cells(res["models"][n]["mpjpe_mm"])] for n in names]
+        per = []
         for a in res["actions"]:
-            for n in names:
-                v = res["models"][n]["per_action"][a]["mpjpe_mm"]
-                lines.append(f"| {a} | {n} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
+            per += [[a, n, *cells(res["models"][n]["per_action"][a]["mpjpe_mm"])] for n in names]
             if variant == "exact":
                 for p, r in res["published"].items():
                     v = r.get("per_action", {}).get(a)
-                    if v:
-                        lines.append(f"| {a} | {p} (published) | " + " | ".join(f"{x:.1f}" for x in v) + " |")
-        lines.append("")
-    lines += ["## Published rows", ""]
+                    per += [[a, f"{p} (published)", *cells(v)]] if v else []
+        if variant == "exact":
+            for p, r in res["published"].items():
+                if r.get("mpjpe_mm"):
+                    rows.append([f"{p} (published, 8 actions)", *cells(r["mpjpe_mm"])])
+                    if r.get("average_same_actions"):
+                        n_act = len(res["actions"])
+                        rows.append(
+                            [f"{p} (published, same {n_act} actions)", *cells(r["average_same_actions"])]
+                        )
+        tables.append(
+            Table(
+                f"{title}: average over {len(res['actions'])} actions",
+                ["model", *(f"{h} ms" for h in H)],
+                rows,
+            )
+        )
+        tables.append(Table(f"{title}: per action", ["action", "model", *(str(h) for h in H)], per))
+    footer = ["## Published rows", ""]
     for p, r in res["published"].items():
-        win = r.get("windows", "the protocol's 8")
-        lines.append(f"- {p}: {r.get('source', '')}; windows: {win}")
+        footer.append(f"- {p}: {r.get('source', '')}; windows: {r.get('windows', 'the protocol’s 8')}")
     for p, r in res.get("published_other_metric", {}).items():
         avg = ", ".join(f"{h} ms {v}" for h, v in zip(r["horizons_ms"], r["average"], strict=True))
-        lines.append(f"- {p}, {r['metric']} (another metric, context only): average {avg}; {r['source']}")
-    lines.append(f"- not found: {res.get('published_not_found', '')}")
-    return "\n".join(lines) + "\n"
-
-
-def write_report(res: dict, out_dir: str | os.PathLike) -> Path:
-    d = Path(out_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(d / "results.json", json.dumps(res, indent=1))
-    path = d / "report.md"
-    atomic_write_text(path, report_markdown(res))
-    return path
+        footer.append(f"- {p}, {r['metric']} (another metric, context only): average {avg}; {r['source']}")
+    footer.append(f"- not found: {res.get('published_not_found', '')}")
+    return notes, tables, footer

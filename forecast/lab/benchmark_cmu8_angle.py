@@ -25,7 +25,6 @@ Protocol (read from LTD, Mao et al. 2019: ``main_cmu.py`` ``test`` and ``utils/d
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -34,7 +33,6 @@ import numpy as np
 import torch
 
 from roomcap.core.errors import InputError
-from roomcap.core.fileio import atomic_write_text
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     DOWNSAMPLE,
@@ -47,11 +45,13 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     fit_mlp,
     window_starts,
 )
+from roomcap.forecast.lab.protocol import Table, cells, results
 from roomcap.forecast.runtime.checkpoint import family_of, read_checkpoint, write_checkpoint
 
 log = logging.getLogger(__name__)
 
 PROTOCOL = "cmu8-angle"
+TITLE = "CMU 8-action benchmark, mean angle error (protocol cmu8, metric angle)"
 REFERENCE = (
     "LTD (Mao et al. 2019), github.com/wei-mao-2019/LearnTrajDep: main_cmu.py test (Euler error at the "
     "horizon frames), utils/data_utils.py load_data_cmu (windows, dimensions used), expmap2rotmat_torch, "
@@ -339,8 +339,7 @@ def evaluate(root=None, checkpoints: list | None = None, n_windows: int = N_WIND
         }
         for row, vals in TABLE_6_7.items()
     }
-    return {
-        "protocol": PROTOCOL,
+    res = {
         "metric": "mean angle error (radians): the Euclidean norm over the 117 Euler values",
         "reference": REFERENCE,
         "horizons_ms": list(HORIZONS_MS),
@@ -354,49 +353,32 @@ def evaluate(root=None, checkpoints: list | None = None, n_windows: int = N_WIND
         "published": published,
         "wall_s": time.perf_counter() - t0,
     }
+    return results(PROTOCOL, TITLE, *_report(res), **res)
 
 
-def report_markdown(res: dict) -> str:
-    H = res["horizons_ms"]
-    head = ["| model | " + " | ".join(f"{h} ms" for h in H) + " |", "|---" * (len(H) + 1) + "|"]
-    acts = res["actions_averaged"]
-    lines = [
-        "# CMU 8-action benchmark, mean angle error (protocol cmu8, metric angle)",
-        "",
+def _report(res: dict) -> tuple[list[str], list[Table]]:
+    """The report's notes and tables: the average over the table's actions here, then per action, the
+    published rows of Table 6.7 beside ours."""
+    H, acts = res["horizons_ms"], res["actions_averaged"]
+    notes = [
         f"Reference: {res['reference']}.",
-        "",
         f"Average over the {len(acts)} actions of Tanke Table 6.7 with test files here ({', '.join(acts)}); "
         f"not here: {', '.join(res['table_actions_missing']) or 'none'}. Radians.",
-        "",
-        *head,
     ]
-    for n, r in res["models"].items():
-        lines.append(f"| {n} | " + " | ".join(f"{v:.3f}" for v in r["angle_error"]) + " |")
-    for n, r in res["published"].items():
-        lines.append(
-            f"| {n} (published, same actions) | "
-            + " | ".join(f"{v:.2f}" for v in r["average_same_actions"])
-            + " |"
-        )
-    lines += ["", "## Per action", "", "| action | model | " + " | ".join(f"{h}" for h in H) + " |"]
-    lines.append("|---" * (len(H) + 2) + "|")
+    rows = [[n, *cells(r["angle_error"], ".3f")] for n, r in res["models"].items()]
+    rows += [
+        [f"{n} (published, same actions)", *cells(r["average_same_actions"], ".2f")]
+        for n, r in res["published"].items()
+    ]
+    per = []
     for a in res["actions"]:
-        for n, r in res["models"].items():
-            lines.append(
-                f"| {a} | {n} | " + " | ".join(f"{v:.3f}" for v in r["per_action"][a]["angle_error"]) + " |"
-            )
-        for n, r in res["published"].items():
-            if a in r["per_action"]:
-                lines.append(
-                    f"| {a} | {n} (published) | " + " | ".join(f"{v:.2f}" for v in r["per_action"][a]) + " |"
-                )
-    return "\n".join(lines) + "\n"
-
-
-def write_report(res: dict, out_dir: str | Path) -> Path:
-    d = Path(out_dir)
-    d.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(d / "results.json", json.dumps(res, indent=1))
-    path = d / "report.md"
-    atomic_write_text(path, report_markdown(res))
-    return path
+        per += [[a, n, *cells(r["per_action"][a]["angle_error"], ".3f")] for n, r in res["models"].items()]
+        per += [
+            [a, f"{n} (published)", *cells(r["per_action"][a], ".2f")]
+            for n, r in res["published"].items()
+            if a in r["per_action"]
+        ]
+    return notes, [
+        Table("", ["model", *(f"{h} ms" for h in H)], rows),
+        Table("Per action", ["action", "model", *(str(h) for h in H)], per),
+    ]

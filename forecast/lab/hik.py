@@ -17,7 +17,6 @@ leaves out the query person's own file. Poses stay in the HiK ``smpl29`` skeleto
 
 from __future__ import annotations
 
-import json
 import time
 from collections import Counter
 from pathlib import Path
@@ -26,11 +25,11 @@ import numpy as np
 import torch
 
 from roomcap.core.errors import InputError
-from roomcap.core.fileio import atomic_write_text
 from roomcap.forecast.lab import data as fdata
 from roomcap.forecast.lab import evaluate as E
 from roomcap.forecast.lab import metrics as M
 from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.protocol import Table, results
 from roomcap.forecast.runtime.predict import forecast_world
 from roomcap.forecast.runtime.samples import write_samples
 from roomcap.keypoints.skeletons import get_skeleton
@@ -84,7 +83,7 @@ def evaluate_hik(
     seed: int = 0,
     samples_dir=None,
 ) -> dict:
-    """Run the ch. 8.3 protocol on the HiK person files under folder -> results (``write_hik_report``).
+    """Run the ch. 8.3 protocol on the HiK person files under folder -> results (``lab.protocol``).
     ``samples_dir``: write the short-horizon forecasts there, ``samples_<model>.npz``
     (:mod:`roomcap.forecast.runtime.samples`; activity = the case's activity, clip = its person file)."""
     t0 = time.perf_counter()
@@ -100,7 +99,7 @@ def evaluate_hik(
     cases, skipped = kitchen_cases(people)
     out: dict = {
         "fps": fdata.KITCHEN_FPS,
-        "protocol": "Tanke ch. 8.3: train A-C, test D, 50 in, 25 out (MPJPE), 250 out (NDMS)",
+        "design": "Tanke ch. 8.3: train A-C, test D, 50 in, 25 out (MPJPE), 250 out (NDMS)",
         "n_train_files": len(train_names),
         "n_test_files": len(test_names),
         "n_samples": n_samples,
@@ -139,7 +138,7 @@ def evaluate_hik(
         out["activities"][act] = entry
     _write_kept_samples(kept, samples_dir, names)
     out["wall_s"] = time.perf_counter() - t0
-    return out
+    return results("hik", "Humans in Kitchens (Tanke ch. 8.3)", *_report(out), **out)
 
 
 def _hik_models(
@@ -204,43 +203,27 @@ def _write_kept_samples(kept: dict[str, list], samples_dir, names) -> None:
         write_samples(samples_dir, mname, pred, obs_k, gt_k, fdata.KITCHEN_FPS, names, acts, clips)
 
 
-def report_markdown(res: dict) -> str:
-    lines = [
-        "# Humans in Kitchens (Tanke ch. 8.3)",
-        "",
-        f"{res['protocol']}; {res['n_train_files']} training files (A-C), "
-        f"{res['n_test_files']} test files (D); "
-        f"skipped: {res['skipped']}; {res['wall_s']:.1f} s",
-        "",
-        "| activity | cases (long) | model | "
-        + " | ".join(f"MPJPE {f} (cm)" for f in MPJPE_FRAMES)
-        + " | "
-        + " | ".join(f"NDMS {f}" for f in NDMS_FRAMES)
-        + " | "
-        + " | ".join(f"ndms_loo {f}" for f in NDMS_FRAMES)
-        + " |",
-        "|" + "---|" * (3 + len(MPJPE_FRAMES) + 2 * len(NDMS_FRAMES)),
+def _report(res: dict) -> tuple[list[str], list[Table]]:
+    """The report's note (design, files, skips) and its one table: per activity and model, MPJPE at the short
+    horizons and NDMS (own clip in and left out) at the long ones."""
+    notes = [
+        f"{res['design']}; {res['n_train_files']} training files (A-C), {res['n_test_files']} test files "
+        f"(D); skipped: {res['skipped']}; {res['wall_s']:.1f} s"
     ]
+    columns = ["activity", "cases (long)", "model", *(f"MPJPE {f} (cm)" for f in MPJPE_FRAMES)]
+    columns += [f"NDMS {f}" for f in NDMS_FRAMES] + [f"ndms_loo {f}" for f in NDMS_FRAMES]
+    rows = []
     for act, e in res["activities"].items():
         for m, r in e["models"].items():
-            cells = [f"{100 * r['mpjpe_at'][str(f)]:.1f}" for f in MPJPE_FRAMES]
+            row = [act, f"{e['n_cases']} ({e.get('n_cases_long', 0)})", m]
+            row += [f"{100 * r['mpjpe_at'][str(f)]:.1f}" for f in MPJPE_FRAMES]
             for key in ("ndms_at", "ndms_loo_at"):
                 d = r.get(key, {})
-                cells += [
+                row += [
                     "-" if str(f) not in d or not np.isfinite(d[str(f)]) else f"{d[str(f)]:.3f}"
                     for f in NDMS_FRAMES
                 ]
-            lines.append(
-                f"| {act} | {e['n_cases']} ({e.get('n_cases_long', 0)}) | {m} | " + " | ".join(cells) + " |"
-            )
+            rows.append(row)
         if not e["models"]:
-            lines.append(f"| {act} | 0 | - |" + " - |" * (len(MPJPE_FRAMES) + 2 * len(NDMS_FRAMES)))
-    return "\n".join(lines) + "\n"
-
-
-def write_hik_report(res: dict, out_dir) -> Path:
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "results.json", json.dumps(res, indent=1))
-    atomic_write_text(out / "report.md", report_markdown(res))
-    return out / "report.md"
+            rows.append([act, "0", "-", *["-"] * (len(MPJPE_FRAMES) + 2 * len(NDMS_FRAMES))])
+    return notes, [Table("", columns, rows)]
