@@ -491,3 +491,19 @@ def test_the_registry_names_builds_and_routes_every_trainable_model():
         spec("lstm")
     train = build_parser()._subparsers._group_actions[0].choices["train"]
     assert next(a for a in train._actions if a.dest == "model").choices == tuple(MODELS)
+
+
+def test_the_runtime_imports_without_torch_and_without_the_lab():
+    """What the pipeline and users' code import to load a checkpoint and forecast a track: no torch until a
+    model is built or a file read, and nothing of the lab (training, datasets, benchmarks)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; import roomcap.forecast.runtime, roomcap.forecast.runtime.preview, "
+        "roomcap.forecast.runtime.registry, roomcap.forecast.runtime.checkpoint, "
+        "roomcap.forecast.runtime.cards, roomcap.forecast.runtime.baselines, roomcap.forecast.runtime.normalise, roomcap.pipeline.stages; "
+        "print('torch' in sys.modules, any(m.startswith('roomcap.forecast.lab') for m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False False"
