@@ -502,7 +502,8 @@ def test_the_runtime_imports_without_torch_and_without_the_lab():
     code = (
         "import sys; import roomcap.forecast.runtime, roomcap.forecast.runtime.preview, "
         "roomcap.forecast.runtime.registry, roomcap.forecast.runtime.checkpoint, "
-        "roomcap.forecast.runtime.cards, roomcap.forecast.runtime.baselines, roomcap.forecast.runtime.normalise, roomcap.pipeline.stages; "
+        "roomcap.forecast.runtime.cards, roomcap.forecast.runtime.baselines, "
+        "roomcap.forecast.runtime.normalise, roomcap.pipeline.stages; "
         "print('torch' in sys.modules, any(m.startswith('roomcap.forecast.lab') for m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
