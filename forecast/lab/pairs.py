@@ -27,6 +27,7 @@ from roomcap.forecast.lab import data as fdata
 from roomcap.forecast.lab import metrics as M
 from roomcap.forecast.lab.clips import clip_activities
 from roomcap.forecast.lab.evaluate import Real, ndms_scorer_for
+from roomcap.forecast.lab.protocol import Table, results
 from roomcap.forecast.runtime.predict import forecast_world
 from roomcap.keypoints.skeletons import get_skeleton
 
@@ -128,7 +129,7 @@ def evaluate_pairs(
             "wall_s": time.perf_counter() - tm,
         }
     out["wall_s"] = time.perf_counter() - t0
-    return out
+    return results("pairs", "Two people over a long horizon: the held-out salsa pairs", *_report(out), **out)
 
 
 def _real_ranges(
@@ -161,28 +162,27 @@ def _ndms_per_person(scorer, obs: np.ndarray, y: np.ndarray, wact: list[str]) ->
     )
 
 
-def pairs_markdown(res: dict) -> str:
-    """The report's tables: NDMS at 2-10 s per model, the range shares and SSCP."""
+def _report(res: dict) -> tuple[list[str], list[Table]]:
+    """The report's note and its table: NDMS at 2-10 s per model, the range shares and SSCP."""
     rr = res["real_range"]
     ts = list(next(iter(res["models"].values()))["ndms_at"])
-    lines = [
+    notes = [
         f"{res['n_windows']} windows of held-out takes ({', '.join(res['takes'])}), observe {res['n_obs']} / "
         f"forecast {res['n_pred']} frames at {res['fps']:g} Hz, one sample each; real 5-95 %: distance "
         f"{rr['distance_m_5_95'][0]:.2f}-{rr['distance_m_5_95'][1]:.2f} m, facing "
-        f"{rr['facing_deg_5_95'][0]:.0f}-{rr['facing_deg_5_95'][1]:.0f}°",
-        "",
-        "| model | "
-        + " | ".join(f"NDMS {t} s" for t in ts)
-        + " | NDMS p0 / p1 (mean) | distance in range (median / all) | facing in range (median / all)"
-        + " | SSCP |",
-        "|" + "---|" * (len(ts) + 5),
+        f"{rr['facing_deg_5_95'][0]:.0f}-{rr['facing_deg_5_95'][1]:.0f}°"
     ]
-    for name, r in res["models"].items():
-        lines.append(
-            f"| {name} | "
-            + " | ".join(f"{r['ndms_at'][t]:.3f}" for t in ts)
-            + f" | {np.mean(r['ndms_p0']):.3f} / {np.mean(r['ndms_p1']):.3f}"
-            + f" | {r['distance_in_range']:.2f} / {r['distance_in_range_all']:.2f}"
-            + f" | {r['facing_in_range']:.2f} / {r['facing_in_range_all']:.2f} | {r['sscp_jsd']:.3f} |"
-        )
-    return "\n".join(lines) + "\n"
+    columns = ["model", *(f"NDMS {t} s" for t in ts), "NDMS p0 / p1 (mean)"]
+    columns += ["distance in range (median / all)", "facing in range (median / all)", "SSCP"]
+    rows = [
+        [
+            name,
+            *(f"{r['ndms_at'][t]:.3f}" for t in ts),
+            f"{np.mean(r['ndms_p0']):.3f} / {np.mean(r['ndms_p1']):.3f}",
+            f"{r['distance_in_range']:.2f} / {r['distance_in_range_all']:.2f}",
+            f"{r['facing_in_range']:.2f} / {r['facing_in_range_all']:.2f}",
+            f"{r['sscp_jsd']:.3f}",
+        ]
+        for name, r in res["models"].items()
+    ]
+    return notes, [Table("", columns, rows)]

@@ -10,8 +10,8 @@ one schema (:data:`RESULTS_SCHEMA`), filled by :func:`results`:
 * ``footer``: lines below the tables (sources).
 
 :func:`render` is the one Markdown renderer and :func:`write` writes ``results.json`` and ``report.md``. The
-CMU 8-action protocols (3D and angles) and Humans-in-Kitchens use it; :data:`PROTOCOLS` lists every protocol
-and which module evaluates it.
+CMU 8-action protocols (3D and angles), Humans-in-Kitchens and the salsa pairs use it; :data:`PROTOCOLS`
+lists every protocol and which module evaluates it.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ PROTOCOLS = {
     ),
     "hik": ("Humans in Kitchens (Tanke ch. 8.3)", "hik", True),
     "cmu": ("CMU test split: NDMS, MPJPE, diversity (Tanke ch. 6)", "evaluate", False),
-    "pairs": ("the held-out salsa pairs (two people)", "pairs", False),
+    "pairs": ("the held-out salsa pairs (two people)", "pairs", True),
     "characteristic": ("characteristic 3D poses, best-of-k (Diller ch. 3)", "characteristic.protocol", False),
     "behaviour": ("behaviour: actions and poses (Diller ch. 4)", "behaviour.training", False),
 }
