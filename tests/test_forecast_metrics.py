@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from roomcap.forecast.lab import metrics as M
+from roomcap.forecast.lab.protocol import render
 from roomcap.forecast.lab.toy import walker
 from roomcap.keypoints.skeletons import get_skeleton
 
@@ -156,4 +157,4 @@ def test_evaluation_intervals_paired_differences_and_repeatability():
     # sampling is seeded: evaluating again gives the same figures
     again = E.evaluate_single(models, clips, **kw)
     assert again["models"]["noisy"]["ndms"] == res["models"]["noisy"]["ndms"]
-    assert "Δ 2 s" in E.report_markdown(res, "t")
+    assert "Δ 2 s" in render(E.as_results(res, "t"))

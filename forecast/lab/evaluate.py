@@ -25,7 +25,6 @@ scalars for the rest, and ``ndms_at`` / ``ndms_loo_at`` / ``ndms_diff_at`` = {t_
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -36,11 +35,12 @@ import numpy as np
 import torch
 
 from roomcap.core.errors import InputError
-from roomcap.core.fileio import atomic_write_text
 from roomcap.core.progress import Progress
 from roomcap.forecast.lab import data as fdata
 from roomcap.forecast.lab import metrics as M
+from roomcap.forecast.lab import protocol
 from roomcap.forecast.lab.clips import clip_activities, composed_batch
+from roomcap.forecast.lab.protocol import Table, results
 from roomcap.forecast.runtime.predict import diffusion_rollout, forecast_world
 from roomcap.forecast.runtime.registry import forecasts_the_scene
 from roomcap.forecast.runtime.samples import write_samples
@@ -468,121 +468,103 @@ def _f(v, fmt=".3f") -> str:
     return "-" if v is None or not np.isfinite(v) else format(v, fmt)
 
 
-def _ndms_table(models: dict, fps: float, n_pred: int, key: str = "ndms") -> list[str]:
+def _ndms_table(title: str, models: dict, fps: float, n_pred: int, key: str = "ndms") -> Table:
+    """NDMS (or its variant ``key``) at each whole second, its mean, and SSCP where scored."""
     horizon = n_pred / fps
     ts = [t for t in _NDMS_S if t <= horizon + 1e-9]
     has_sscp = any("sscp_jsd" in r for r in models.values())
     label = {"ndms": "NDMS", "ndms_loo": "NDMS loo", "ndms_word_first_frame": "NDMS ff"}.get(key, key)
-    lines = [
-        "| model | "
-        + " | ".join(f"{label} {t:g} s" for t in ts)
-        + " | mean |"
-        + (" SSCP JSD |" if has_sscp else ""),
-        "|" + "---|" * (len(ts) + 2 + has_sscp),
-    ]
+    columns = ["model", *(f"{label} {t:g} s" for t in ts), "mean", *(["SSCP JSD"] if has_sscp else [])]
     win = max(1, int(0.2 * fps))
+    rows = []
     for name, r in models.items():
         if key not in r:
             continue
         c = np.asarray(r[key], float)
         vals = [_nanmean(c[max(0, int(round(t * fps)) - win) : int(round(t * fps))]) for t in ts]
-        row = f"| {name} | " + " | ".join(_f(v) for v in vals) + f" | {_f(_nanmean(c))} |"
-        if has_sscp:
-            row += f" {_f(r.get('sscp_jsd'))} |"
-        lines.append(row)
-    return lines
-
-
-def report_markdown(res: dict, title: str) -> str:
-    fps = res["fps"]
-    lines = [f"# {title}", ""]
-    if "n_windows" in res:
-        lines.append(
-            f"{res['n_windows']} windows ({res.get('n_clips', '?')} clips), observe {res['n_obs']} / "
-            f"forecast "
-            f"{res['n_pred']} frames at {fps:g} Hz, {res['n_samples']} samples per stochastic model; "
-            f"leave-clip-out NDMS on {res.get('n_windows_loo', '?')} windows; skipped: {res['skipped']}; "
-            f"evaluation {res.get('wall_s', float('nan')):.0f} s"
+        rows.append(
+            [name, *(_f(v) for v in vals), _f(_nanmean(c))] + ([_f(r.get("sscp_jsd"))] if has_sscp else [])
         )
-        lines += [
-            "",
-            "| model | "
-            + " | ".join(f"MPJPE {ms} ms (mm)" for ms in _MPJPE_MS)
-            + " | APD (m) | ADE (m) | FDE (m) | MMADE (m) | MMFDE (m) | root ADE (m) | root FDE (m) | NPSS |",
-            "|" + "---|" * (len(_MPJPE_MS) + 9),
-        ]
+    return Table(title, columns, rows)
+
+
+NDMS_NOTE = (
+    "NDMS at t = mean over the 0.2 s before t (motion words of κ = 8 frames); ndms: D = held-out clips of "
+    "the query's activity incl. its own clip, words of root-centred poses with the heading kept; ndms_loo: "
+    "the query's own clip left out; NDMS ff (ndms_word_first_frame): words normalised at their first frame."
+)
+
+
+def _report_parts(res: dict) -> tuple[list[str], list[Table], list[str]]:
+    """The report's notes, tables (MPJPE and the distribution metrics, NDMS and its variants, the real
+    multi-person clips, the intervals and paired differences) and footnotes."""
+    fps, notes, tables = res["fps"], [], []
+    footer = [NDMS_NOTE]
+    if "n_windows" in res:
+        notes.append(
+            f"{res['n_windows']} windows ({res.get('n_clips', '?')} clips), observe {res['n_obs']} / "
+            f"forecast {res['n_pred']} frames at {fps:g} Hz, {res['n_samples']} samples per stochastic "
+            f"model; leave-clip-out NDMS on {res.get('n_windows_loo', '?')} windows; "
+            f"skipped: {res['skipped']}; evaluation {res.get('wall_s', float('nan')):.0f} s"
+        )
+        keys = ("apd", "ade", "fde", "mmade", "mmfde", "root_ade", "root_fde", "npss")
+        columns = ["model", *(f"MPJPE {ms} ms (mm)" for ms in _MPJPE_MS)]
+        columns += ["APD (m)", "ADE (m)", "FDE (m)", "MMADE (m)", "MMFDE (m)", "root ADE (m)", "root FDE (m)"]
+        rows = []
         for name, r in res["models"].items():
             mp = [_at(r["mpjpe"], fps, ms / 1000) for ms in _MPJPE_MS]
-            lines.append(
-                f"| {name} | "
-                + " | ".join("-" if v is None else f"{1000 * v:.1f}" for v in mp)
-                + "".join(
-                    f" | {_f(r.get(k))}"
-                    for k in ("apd", "ade", "fde", "mmade", "mmfde", "root_ade", "root_fde", "npss")
-                )
-                + " |"
+            rows.append(
+                [name, *("-" if v is None else f"{1000 * v:.1f}" for v in mp), *(_f(r.get(k)) for k in keys)]
             )
-        lines += ["", "APD/ADE/FDE/MMADE/MMFDE/NPSS on root-centred poses; MPJPE in world coordinates.", ""]
-    lines += _ndms_table(res["models"], fps, res["n_pred"], "ndms")
+        tables.append(Table("MPJPE and the distribution metrics", [*columns, "NPSS"], rows))
+        footer.insert(0, "APD/ADE/FDE/MMADE/MMFDE/NPSS on root-centred poses; MPJPE in world coordinates.")
+    tables.append(_ndms_table("NDMS", res["models"], fps, res["n_pred"], "ndms"))
     for extra in ("ndms_loo", "ndms_word_first_frame"):
         if any(extra in r for r in res["models"].values()):
-            lines += [""] + _ndms_table(res["models"], fps, res["n_pred"], extra)
-    lines += [
-        "",
-        "NDMS at t = mean over the 0.2 s before t (motion words of κ = 8 frames); ndms: D = held-out clips "
-        "of the query's activity incl. its own clip, words of root-centred poses with the heading kept; "
-        "ndms_loo: the query's own clip left out; NDMS ff (ndms_word_first_frame): words normalised at their "
-        "first frame.",
-    ]
+            tables.append(_ndms_table(extra, res["models"], fps, res["n_pred"], extra))
     if "real" in res:
         rr = res["real"]
-        lines += [
-            "",
+        title = (
             f"Real multi-person clips ({', '.join(rr['clips'])}; {rr['n_scenes']} scenes; SSCP against their "
-            f"{rr['sscp_real_frames']} real frames):",
-            "",
-        ]
-        lines += _ndms_table(rr["models"], fps, res["n_pred"], "ndms")
+            f"{rr['sscp_real_frames']} real frames)"
+        )
+        tables.append(_ndms_table(title, rr["models"], fps, res["n_pred"], "ndms"))
+    ref = res.get("reference")
     for key in ("ndms", "ndms_loo", "ndms_word_first_frame"):
         if not any(f"{key}_at" in r for r in res["models"].values()):
             continue
         ts = sorted({t for r in res["models"].values() for t in r.get(f"{key}_at", {})}, key=float)
-        ref = res.get("reference")
-        lines += [
-            "",
-            f"{key} with 95 % intervals (bootstrap over the test clips)"
-            + (f"; Δ = paired difference to {ref} (same windows, same resampled clips)" if ref else ""),
-            "",
-            "| model | "
-            + " | ".join(f"{key} {t} s" for t in ts)
-            + (" | " + " | ".join(f"Δ {t} s" for t in ts) if ref else "")
-            + " |",
-            "|" + "---|" * (1 + len(ts) * (2 if ref else 1)),
-        ]
+        title = f"{key} with 95 % intervals (bootstrap over the test clips)"
+        title += f"; Δ = paired difference to {ref} (same windows, same resampled clips)" if ref else ""
+        columns = ["model", *(f"{key} {t} s" for t in ts), *((f"Δ {t} s" for t in ts) if ref else ())]
+        rows = []
         for name, r in res["models"].items():
             if f"{key}_at" not in r:
                 continue
-            cells = [f"{m:.3f} [{lo:.3f}, {hi:.3f}]" for m, lo, hi in (r[f"{key}_at"][t] for t in ts)]
+            row = [name, *(f"{m:.3f} [{lo:.3f}, {hi:.3f}]" for m, lo, hi in (r[f"{key}_at"][t] for t in ts))]
             if ref:
                 d = r.get(f"{key}_diff_at", {})
-                cells += [
-                    "-" if t not in d else f"{d[t][0]:+.3f} [{d[t][1]:+.3f}, {d[t][2]:+.3f}]" for t in ts
-                ]
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+                row += ["-" if t not in d else f"{d[t][0]:+.3f} [{d[t][1]:+.3f}, {d[t][2]:+.3f}]" for t in ts]
+            rows.append(row)
+        tables.append(Table(title, columns, rows))
+    return notes, tables, footer
+
+
+def as_results(res: dict, title: str = "Forecast evaluation") -> dict:
+    """An evaluation's dict (:func:`evaluate_single`, :func:`evaluate_social`) in the one results schema."""
+    return results("cmu", title, *_report_parts(res), **res)
 
 
 def write_report(res: dict, out_dir: str | os.PathLike, title: str = "Forecast evaluation") -> Path:
-    """Write ``results.json``, ``report.md`` and ``<metric>.png`` (metric over the horizon) to out_dir."""
+    """Write ``results.json`` and ``report.md`` (the one schema and renderer, :mod:`lab.protocol`) and
+    ``<metric>.png`` (metric over the horizon) to out_dir."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "results.json", json.dumps(res, indent=1))
-    atomic_write_text(out / "report.md", report_markdown(res, title))
+    protocol.write(as_results(res, title), out)
     fps = res["fps"]
     plots = [
         ("mpjpe", "MPJPE (m)"),

@@ -9,9 +9,9 @@ one schema (:data:`RESULTS_SCHEMA`), filled by :func:`results`:
 * ``tables``: each ``{"title", "columns", "rows"}``, rows of cells already written as text;
 * ``footer``: lines below the tables (sources).
 
-:func:`render` is the one Markdown renderer and :func:`write` writes ``results.json`` and ``report.md``. The
-CMU 8-action protocols (3D and angles), Humans-in-Kitchens and the salsa pairs use it; :data:`PROTOCOLS`
-lists every protocol and which module evaluates it.
+:func:`render` is the one Markdown renderer and :func:`write` writes ``results.json`` and ``report.md``.
+The CMU splits (``forecast eval --data``), the CMU 8-action protocols (3D and angles), Humans-in-Kitchens
+and the salsa pairs use it; :data:`PROTOCOLS` lists every protocol and which module evaluates it.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ PROTOCOLS = {
         True,
     ),
     "hik": ("Humans in Kitchens (Tanke ch. 8.3)", "hik", True),
-    "cmu": ("CMU test split: NDMS, MPJPE, diversity (Tanke ch. 6)", "evaluate", False),
+    "cmu": ("CMU test split: NDMS, MPJPE, diversity (Tanke ch. 6)", "evaluate", True),
     "pairs": ("the held-out salsa pairs (two people)", "pairs", True),
     "characteristic": ("characteristic 3D poses, best-of-k (Diller ch. 3)", "characteristic.protocol", False),
     "behaviour": ("behaviour: actions and poses (Diller ch. 4)", "behaviour.training", False),
