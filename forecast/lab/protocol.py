@@ -10,8 +10,9 @@ one schema (:data:`RESULTS_SCHEMA`), filled by :func:`results`:
 * ``footer``: lines below the tables (sources).
 
 :func:`render` is the one Markdown renderer and :func:`write` writes ``results.json`` and ``report.md``.
-The CMU splits (``forecast eval --data``), the CMU 8-action protocols (3D and angles), Humans-in-Kitchens
-and the salsa pairs use it; :data:`PROTOCOLS` lists every protocol and which module evaluates it.
+Every protocol uses it: the CMU splits (``forecast eval --data``), the CMU 8-action benchmark (3D and
+angles), Humans-in-Kitchens, the salsa pairs, characteristic poses and behaviour; :data:`PROTOCOLS` lists
+them and the module whose ``as_results`` or ``evaluate`` fills the schema.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from roomcap.core.fileio import atomic_write_text
 
 RESULTS_SCHEMA = "forecast-results/1"
 
-# every benchmark protocol: name -> (what it is, the module whose ``evaluate`` runs it, on the interface)
+# every benchmark protocol: name -> (what it is, the module that fills the schema, on the interface)
 PROTOCOLS = {
     "cmu8": ("the CMU 8-action benchmark, MPJPE (LTD's protocol)", "benchmark_cmu8", True),
     "cmu8-angle": (
@@ -39,8 +40,8 @@ PROTOCOLS = {
     "hik": ("Humans in Kitchens (Tanke ch. 8.3)", "hik", True),
     "cmu": ("CMU test split: NDMS, MPJPE, diversity (Tanke ch. 6)", "evaluate", True),
     "pairs": ("the held-out salsa pairs (two people)", "pairs", True),
-    "characteristic": ("characteristic 3D poses, best-of-k (Diller ch. 3)", "characteristic.protocol", False),
-    "behaviour": ("behaviour: actions and poses (Diller ch. 4)", "behaviour.training", False),
+    "characteristic": ("characteristic 3D poses, best-of-k (Diller ch. 3)", "characteristic.cli", True),
+    "behaviour": ("behaviour: actions and poses (Diller ch. 4)", "behaviour.training", True),
 }
 
 

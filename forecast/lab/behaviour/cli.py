@@ -31,14 +31,15 @@ from roomcap.forecast.lab.behaviour.model import (
 from roomcap.forecast.lab.behaviour.sample import run_sample, session_windows
 from roomcap.forecast.lab.behaviour.training import (
     action_frequencies,
+    as_results,
     concat,
     evaluate_all,
     load_splits,
-    results_table,
     share_real,
     train,
     train_average,
 )
+from roomcap.forecast.lab.protocol import render
 
 # the shipped 3D quality classifier of each script's data (built by `forecast behaviour quality`)
 QUALITY_OF_SCRIPT = {
@@ -203,8 +204,8 @@ def _train(args) -> int:
     qc = (qm.clf, qm.joints) if qm is not None else None
     res = evaluate_all(gens, cfgs, extra, sp.val, getattr(sp, args.eval_split), sp.db, quality_clf=qc)
     res["split"] = args.eval_split
-    print(f"{args.eval_split} split:")
-    print(results_table(res))
+    res = as_results(res)
+    print(render(res))
     if args.json:
         atomic_write_text(args.json, json.dumps(res, indent=1))
     return 0
@@ -369,7 +370,8 @@ def _eval(args) -> int:
         + f", {res['n_obs']} observed + "
         f"M = {res['m']} forecast steps, {len(res['joints'])} joints"
     )
-    print(results_table(res))
+    res = as_results(res)
+    print(render(res))
     atomic_write_text(args.out, json.dumps(res, indent=1))
     return 0
 

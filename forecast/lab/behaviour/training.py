@@ -33,6 +33,7 @@ from roomcap.forecast.lab.behaviour.geometry import (
     to_world,
 )
 from roomcap.forecast.lab.behaviour.model import BehaviourConfig, Generator, build, fit_pose_prior, rollout
+from roomcap.forecast.lab.protocol import Table, results
 
 log = logging.getLogger(__name__)
 
@@ -691,31 +692,47 @@ def evaluate_all(
     return out
 
 
-def results_table(res: dict) -> str:
-    lines = [
-        f"{'method':<16} {'2D MPJPE px':>12} {'3D quality':>11} {'per-method':>11} {'symm. mm':>9} "
-        f"{'top-1':>7} {'top-3':>7} {'3D MPJPE mm':>12}"
-    ]
+def as_results(res: dict, title: str = "Behaviour forecasting (Diller ch. 4)") -> dict:
+    """An evaluation (:func:`evaluate_all`) in the one results schema (:mod:`forecast.lab.protocol`): one row
+    per model, the action top-1 by step (Fig. 4.3) and the best top-1 any forecaster reaches below."""
 
     def f(v, fmt):
-        return format("-", ">" + fmt.split(".")[0]) if v is None else format(v, fmt)
+        return "-" if v is None else format(v, fmt)
 
-    for n, r in res["models"].items():
-        lines.append(
-            f"{n:<16} {f(r.get('mpjpe2d_px'), '12.1f')} {f(r.get('quality3d'), '11.2f')} "
-            f"{f(r.get('quality3d_per_method'), '11.2f')} {f(r.get('symmetry_mm'), '9.1f')} "
-            f"{f(r.get('top1'), '7.1%')} {f(r.get('top3'), '7.1%')} {f(r.get('mpjpe3d_mm'), '12.0f')}"
-        )
-    lines.append(
+    columns = [
+        "method",
+        "2D MPJPE px",
+        "3D quality",
+        "per-method",
+        "symm. mm",
+        "top-1",
+        "top-3",
+        "3D MPJPE mm",
+    ]
+    rows = [
+        [
+            n,
+            f(r.get("mpjpe2d_px"), ".1f"),
+            f(r.get("quality3d"), ".2f"),
+            f(r.get("quality3d_per_method"), ".2f"),
+            f(r.get("symmetry_mm"), ".1f"),
+            f(r.get("top1"), ".1%"),
+            f(r.get("top3"), ".1%"),
+            f(r.get("mpjpe3d_mm"), ".0f"),
+        ]
+        for n, r in res["models"].items()
+    ]
+    footer = [
         "action top-1 by step (Fig. 4.3): "
         + "; ".join(
             f"{n} " + " ".join(f"{v:.0%}" for v in r["top1_by_step"])
             for n, r in res["models"].items()
             if r.get("top1_by_step")
         )
-    )
+    ]
     if res.get("ceiling_top1") is not None:
-        lines.append(
+        footer.append(
             f"best top-1 any forecaster can reach on this split (labels and place): {res['ceiling_top1']:.1%}"
         )
-    return "\n".join(lines)
+    notes = [f"split: {res['split']}"] if res.get("split") else []
+    return results("behaviour", title, notes, [Table("", columns, rows)], footer, **res)

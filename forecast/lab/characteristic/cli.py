@@ -29,18 +29,30 @@ from roomcap.forecast.lab.characteristic.model import (
 )
 from roomcap.forecast.lab.characteristic.protocol import DATA_SOURCES, evaluate, load_labelled
 from roomcap.forecast.lab.characteristic.training import train
+from roomcap.forecast.lab.protocol import Table, render, results
 
 
-def results_table(res: dict) -> str:
-    lines = [
-        f"{'method':<20} {'MPJPE best-of-k (m)':>20} {'Diversity (m)':>14}   "
-        "MPJPE by start (0 = segment start ... 4 = N frames before)"
+def as_results(res: dict) -> dict:
+    """An evaluation (:func:`protocol.evaluate`) in the one results schema (:mod:`forecast.lab.protocol`)."""
+    source = "CMU" if res.get("data", "cmu") == "cmu" else f"CMU ({res['data']})"
+    notes = [
+        f"{source} {res.get('split', '')} split: {res['n_labels']} characteristic poses x 5 starts = "
+        f"{res['n_windows']} windows, k = {res['k']}"
     ]
-    for name, r in res["methods"].items():
-        div = "-" if r["diversity"] is None else f"{r['diversity']:.3f}"
-        by = " ".join(f"{v:.3f}" for v in r["mpjpe_by_start"])
-        lines.append(f"{name:<20} {r['mpjpe']:>20.3f} {div:>14}   {by}")
-    return "\n".join(lines)
+    columns = ["method", "MPJPE best-of-k (m)", "diversity (m)"]
+    columns.append("MPJPE by start (0 = segment start ... 4 = N frames before)")
+    rows = [
+        [
+            name,
+            f"{r['mpjpe']:.3f}",
+            "-" if r["diversity"] is None else f"{r['diversity']:.3f}",
+            " ".join(f"{v:.3f}" for v in r["mpjpe_by_start"]),
+        ]
+        for name, r in res["methods"].items()
+    ]
+    return results(
+        "characteristic", "Characteristic 3D poses (Diller ch. 3)", notes, [Table("", columns, rows)], **res
+    )
 
 
 DESCRIPTION = (
@@ -167,13 +179,8 @@ def _eval(args) -> int:
         str(args.checkpoint),
         time.process_time() - c0,
     )
-    source = "CMU" if args.data == "cmu" else "CMU (cmu-all)"
-    print(
-        f"{source} {args.split} split: {res['n_labels']} characteristic poses x 5 starts = "
-        f"{res['n_windows']} windows, "
-        f"k = {res['k']}"
-    )
-    print(results_table(res))
+    res = as_results(res)
+    print(render(res))
     if args.json:
         atomic_write_text(args.json, json.dumps(res, indent=1))
     return 0
