@@ -155,6 +155,7 @@ def test_an_older_schema_is_upgraded_on_read_and_converted(gru, tmp_path, caplog
         old, meta = C.load_checkpoint(tmp_path / "old.pt")
     assert "upgraded on read" in caplog.text and "forecast models --convert" in caplog.text
     assert meta["model"] == "gru" and meta["card"]["command"] == "forecast train"
+    assert meta["upgraded_from"] == "forecast-checkpoint/1"
     assert all(
         torch.equal(a, b) for a, b in zip(old.state_dict().values(), model.state_dict().values(), strict=True)
     )

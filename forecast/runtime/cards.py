@@ -25,7 +25,8 @@ def card(path: str | os.PathLike) -> dict:
     except FormatError as e:  # a card says what is wrong with the file
         return {**c, "what": str(e)}
     fam = FAMILIES[blob["model"]]
-    c |= {"schema": blob["schema"], "model": fam.name, "what": fam.what, "reads_it": fam.reads_it}
+    schema = blob["schema"] + (f", upgraded from {blob['upgraded_from']}" if "upgraded_from" in blob else "")
+    c |= {"schema": schema, "model": fam.name, "what": fam.what, "reads_it": fam.reads_it}
     for key in ("skeleton", "fps"):
         if key in blob:
             c[key] = blob[key]

@@ -174,7 +174,7 @@ def read_checkpoint(
     if isinstance(blob, dict) and blob.get("schema") in LEGACY:
         old = blob["schema"]
         try:
-            blob = upgrade(blob)
+            blob = upgrade(blob) | {"upgraded_from": old}
         except (KeyError, TypeError, AttributeError) as e:
             raise FormatError(
                 path, "schema", f"{LEGACY[old]}, damaged: it lacks {e}.", f"Retrain: {train}."
