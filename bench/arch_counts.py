@@ -31,6 +31,10 @@ Counts, over the project packages (tests and bench left out):
   ``option_compares``: comparisons of an attribute of that name with a string (``cfg.tracker == "greedy"``:
   string dispatch, or a check of the value); ``preset_lookups``: calls
   that resolve a keypoint preset's name (``presets()``, ``preset_config(...)``);
+* ``kind_dispatch``: lines of ``forecast/`` outside the model registry (``forecast/registry.py``, now
+  ``forecast/runtime/registry.py``) that compare a model's ``kind`` (a name ``kind``, an attribute ``.kind``,
+  ``x["kind"]`` or ``x.get("kind")``) with a string or another model's ``.kind``;
+  ``forecast_lines``: the lines of ``forecast/``'s modules in all and in its ``runtime`` and ``lab`` parts;
 * ``doctested``: public functions and methods of ``core/``, ``calibrate/camera.py``, ``triangulate/`` and
   ``track/`` whose docstring holds a ``>>>`` example.
 """
@@ -363,9 +367,58 @@ def count(root: Path) -> dict:
     return res
 
 
+def _mentions_kind(node) -> bool:
+    if isinstance(node, ast.Name):
+        return node.id == "kind"
+    if isinstance(node, ast.Attribute):
+        return node.attr == "kind"
+    if isinstance(node, ast.Subscript):
+        return isinstance(node.slice, ast.Constant) and node.slice.value == "kind"
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get":
+        return bool(node.args) and isinstance(node.args[0], ast.Constant) and node.args[0].value == "kind"
+    return False
+
+
+def _is_name_text(node) -> bool:
+    """A string, a tuple/list/set of strings, or another model's ``.kind``."""
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, str)
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return bool(node.elts) and all(
+            isinstance(e, ast.Constant) and isinstance(e.value, str) for e in node.elts
+        )
+    return isinstance(node, ast.Attribute) and node.attr == "kind"
+
+
+def forecast_counts(root: Path) -> dict:
+    """``kind_dispatch`` places and ``forecast_lines`` (see the module docstring)."""
+    places, lines = [], {"total": 0, "runtime": 0, "lab": 0, "modules": 0}
+    for f in sorted((root / "forecast").rglob("*.py")):
+        rel = f.relative_to(root).as_posix()
+        src = f.read_text()
+        n = len(src.splitlines())
+        lines["total"] += n
+        lines["modules"] += 1
+        for part in ("runtime", "lab"):
+            if rel.startswith(f"forecast/{part}/"):
+                lines[part] += n
+        if rel in ("forecast/registry.py", "forecast/runtime/registry.py"):
+            continue
+        seen = set()
+        for node in ast.walk(ast.parse(src)):
+            if isinstance(node, ast.Compare):
+                sides = [node.left, *node.comparators]
+                if any(_mentions_kind(a) for a in sides) and any(_is_name_text(b) for b in sides):
+                    if node.lineno not in seen:
+                        seen.add(node.lineno)
+                        places.append(f"{rel}:{node.lineno}")
+    return {"kind_dispatch": places, "forecast_lines": lines}
+
+
 def main() -> None:
     root = Path(sys.argv[1] if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]).resolve()
     r = count(root)
+    r.update(forecast_counts(root))
     summary = {
         k: (len(v) if isinstance(v, list) else v)
         for k, v in r.items()

@@ -32,13 +32,13 @@ import numpy as np
 import torch
 
 from roomcap.core.cli import parse_sets
-from roomcap.forecast.behaviour import data as bdata
-from roomcap.forecast.behaviour import training as T
-from roomcap.forecast.behaviour.cli import QUALITY_OF_SCRIPT
-from roomcap.forecast.behaviour.data import ACTIONS, JOINTS
-from roomcap.forecast.behaviour.model import BehaviourConfig, build, config_from_dict, rollout
-from roomcap.forecast.behaviour.quality import load as load_quality
-from roomcap.forecast.behaviour.training import critic_input
+from roomcap.forecast.lab.behaviour import data as bdata
+from roomcap.forecast.lab.behaviour import training as T
+from roomcap.forecast.lab.behaviour.cli import QUALITY_OF_SCRIPT
+from roomcap.forecast.lab.behaviour.data import ACTIONS, JOINTS
+from roomcap.forecast.lab.behaviour.model import BehaviourConfig, build, config_from_dict, rollout
+from roomcap.forecast.lab.behaviour.quality import load as load_quality
+from roomcap.forecast.lab.behaviour.training import critic_input
 
 
 def ceilings(cfg: BehaviourConfig, quality_classifier=None) -> dict:

@@ -34,11 +34,11 @@ import torch
 from torch import nn
 
 from roomcap.core.cli import parse_sets
-from roomcap.forecast.behaviour import model as M
-from roomcap.forecast.behaviour import quality as Q
-from roomcap.forecast.behaviour import training as T
-from roomcap.forecast.behaviour.data import JOINTS
-from roomcap.forecast.behaviour.geometry import plane_of_3d
+from roomcap.forecast.lab.behaviour import model as M
+from roomcap.forecast.lab.behaviour import quality as Q
+from roomcap.forecast.lab.behaviour import training as T
+from roomcap.forecast.lab.behaviour.data import JOINTS
+from roomcap.forecast.lab.behaviour.geometry import plane_of_3d
 
 J = len(JOINTS)
 PELVIS = JOINTS.index("pelvis")

@@ -19,8 +19,9 @@ import time
 
 import torch
 
-from roomcap.forecast import characteristic as C
-from roomcap.forecast.characteristic.cli import results_table
+from roomcap.forecast.lab import characteristic as C
+from roomcap.forecast.lab.characteristic.cli import as_results
+from roomcap.forecast.lab.protocol import render
 
 
 def main() -> None:
@@ -72,7 +73,7 @@ def main() -> None:
         net, det, meta = C.load_checkpoint(C.SHIPPED, skeleton="body19")
         data = C.load_cmu_labelled(meta["fps"])
         ev = C.evaluate(net, det, meta["avg_pose"], data.test, meta["config"])
-        print(results_table(ev))
+        print(render(as_results(ev)))
         res["test"] = {k: round(v["mpjpe"], 4) for k, v in ev["methods"].items()}
         res["test_diversity"] = round(ev["methods"]["ours"]["diversity"], 4)
         res["test_windows"] = ev["n_windows"]

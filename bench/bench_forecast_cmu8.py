@@ -18,9 +18,9 @@ import time
 import numpy as np
 import torch
 
-from roomcap.forecast import benchmark_cmu8 as B
-from roomcap.forecast import benchmark_cmu8_published as P
-from roomcap.forecast import cmu_more as C
+from roomcap.forecast.lab import benchmark_cmu8 as B
+from roomcap.forecast.lab import benchmark_cmu8_published as P
+from roomcap.forecast.lab import cmu_more as C
 
 
 def main() -> None:

@@ -19,10 +19,10 @@ import time
 import numpy as np
 import torch
 
-from roomcap.forecast import data as D
-from roomcap.forecast import train as T
-from roomcap.forecast.predict import forecast_world
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime.predict import forecast_world
 
 
 def _clips():

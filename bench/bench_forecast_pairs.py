@@ -15,10 +15,11 @@ from pathlib import Path
 
 import torch
 
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import pairs
-from roomcap.forecast import train as T
-from roomcap.forecast.clips import load_two_person_real
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import pairs
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.clips import load_two_person_real
+from roomcap.forecast.lab.protocol import render
 
 
 def main() -> None:
@@ -45,7 +46,7 @@ def main() -> None:
         stride=args.stride,
         activities=data.activities,
     )
-    print(pairs.pairs_markdown(res))
+    print(render(res))
     for name, r in res["models"].items():
         print(f"{name}: wall {r['wall_s']:.1f} s")
     if args.out:

@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
-from roomcap.forecast import data as D
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import train as T
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import train as T
 
 SHIFT_M = np.array([5.0, 0.0, 0.0], np.float32)
 

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import torch
 
-from roomcap.forecast import train as T
-from roomcap.forecast.predict import diffusion_rollout
-from roomcap.forecast.selection import VAL_N_PRED, Validator
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.selection import VAL_N_PRED, Validator
+from roomcap.forecast.runtime.predict import diffusion_rollout
 
 
 def main() -> None:
@@ -40,7 +40,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(1)
     if args.data == "cmu-all":
-        from roomcap.forecast.clips import load_one_person_all
+        from roomcap.forecast.lab.clips import load_one_person_all
 
         va = load_one_person_all().val
     else:

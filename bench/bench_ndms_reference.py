@@ -18,10 +18,10 @@ import time
 
 import numpy as np
 
-from roomcap.forecast import data as D
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import metrics as M
-from roomcap.forecast.clips import clip_activities, load_cmu, split_clips
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import metrics as M
+from roomcap.forecast.lab.clips import clip_activities, load_cmu, split_clips
 
 N_WINDOWS, N_OBS, N_FUT, KAPPA = 100, 8, 25, 8
 

@@ -1,10 +1,6 @@
-"""Forecasting: datasets over track files (and CMU BVH / Humans-in-Kitchens adapters), normalisation
-(Tanke eq. 3.8), models (zero/constant velocity, seq2seq GRU, the ch. 6 intention model, ch. 7 Social
-Diffusion), metrics (MPJPE, NDMS, APD, ADE, FDE, NPSS, SSCP) and ``forecast train|sample|eval``.
-
-Modules: ``data`` (clips, windows, normalisation, adapters; numpy only), ``metrics`` (numpy only),
-``models`` (torch), ``predict`` (world-space forecasting and long rollouts), ``train`` (configs, loops,
-checkpoints), ``evaluate`` (protocols and the report), ``preview`` (the pipeline's forecast preview;
-``track_forecast`` its model part), ``cli`` (the command line) and ``commands`` (what it runs). Importing
-``forecast`` itself does not import torch.
+"""Forecasting, in two parts: :mod:`roomcap.forecast.runtime` (loading a checkpoint and forecasting a track:
+the registry, the one checkpoint reader and writer, the models, normalisation (Tanke eq. 3.8), the preview)
+and :mod:`roomcap.forecast.lab` (training, datasets and their adapters, metrics, selection and the benchmark
+protocols). The runtime imports nothing of the lab. ``cli`` (the command line) and ``commands`` (what it runs)
+sit above both. Importing ``forecast`` itself does not import torch.
 """

@@ -7,8 +7,9 @@ Examples::
     forecast sample --checkpoint runs/gru.pt --tracks session/track/tracks.npz --horizon-s 2 --out fc.npz
     forecast eval --checkpoints runs/gru.pt runs/intention.pt --data cmu --out runs/eval
     forecast eval --social --checkpoints runs/gru.pt runs/sd.pt --data cmu --out runs/eval_social
-    forecast characteristic eval --checkpoint forecast/checkpoints/characteristic_cmu.pt   # Diller ch. 3
+    forecast characteristic eval --checkpoint forecast/checkpoints/characteristic_cmuall.pt   # Diller ch. 3
     forecast models        # the shipped checkpoints with their model cards
+    forecast models --convert OLD.pt NEW.pt   # an older checkpoint in the current format
 
 Data: ``cmu`` = the CMU BVH under ``$ROOMCAP_MOCAP`` / ``$ROOMCAP_SHARED/data/motion``; otherwise track files
 or folders containing ``tracks.npz``. Train / validation / test split by clip (``data.split_train_val_test``,
@@ -28,7 +29,7 @@ import sys
 from typing import Any
 
 from roomcap.core.cli import Parser, guarded, positive_float, positive_int
-from roomcap.forecast.registry import NAMES
+from roomcap.forecast.runtime.registry import NAMES
 
 # sub-commands with parsers of their own, dispatched before parsing (each loads torch when it runs)
 OWN_PARSERS = {
@@ -153,7 +154,7 @@ def _add_eval(sub: Any) -> None:
     e.add_argument("--stride", type=positive_int, default=5, help="frames between test windows")
     e.add_argument(
         "--reference",
-        default="gru_cmu",
+        default="gru_cmuall",
         help="model whose NDMS the others are compared with (paired differences with bootstrap CIs)",
     )
     e.add_argument(
@@ -172,6 +173,12 @@ def _add_models(sub: Any) -> None:
     m = sub.add_parser("models", help="list the shipped checkpoints with their model cards")
     m.add_argument("--folder", help="list the checkpoints of this folder instead (default: the shipped ones)")
     m.add_argument("--json", action="store_true", help="print the cards as JSON")
+    m.add_argument(
+        "--convert",
+        nargs=2,
+        metavar=("OLD", "NEW"),
+        help="rewrite the checkpoint OLD (an older schema) in the current format at NEW, the same weights",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

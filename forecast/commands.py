@@ -19,18 +19,19 @@ from roomcap.core.cli import parse_sets
 from roomcap.core.errors import FormatError, InputError
 from roomcap.core.fileio import load_toml
 from roomcap.core.progress import Bars
-from roomcap.forecast import benchmark_cmu8 as B
-from roomcap.forecast import benchmark_cmu8_angle as A
-from roomcap.forecast import benchmark_cmu8_train as BT
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import hik
-from roomcap.forecast import train as T
-from roomcap.forecast.behaviour import cli as behaviour_cli
-from roomcap.forecast.characteristic import cli as characteristic_cli
-from roomcap.forecast.clips import load_one_person_all, load_two_person_real
-from roomcap.forecast.preview import DEFAULT_CHECKPOINT, save_forecast, shipped_checkpoints
-from roomcap.forecast.registry import config_from_dict
-from roomcap.forecast.track_forecast import forecast_tracks
+from roomcap.forecast.lab import benchmark_cmu8 as B
+from roomcap.forecast.lab import benchmark_cmu8_angle as A
+from roomcap.forecast.lab import benchmark_cmu8_train as BT
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import hik, protocol
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.behaviour import cli as behaviour_cli
+from roomcap.forecast.lab.characteristic import cli as characteristic_cli
+from roomcap.forecast.lab.clips import load_one_person_all, load_two_person_real
+from roomcap.forecast.runtime import checkpoint as ckpt
+from roomcap.forecast.runtime.preview import DEFAULT_CHECKPOINT, save_forecast, shipped_checkpoints
+from roomcap.forecast.runtime.registry import config_from_dict
+from roomcap.forecast.runtime.track_forecast import forecast_tracks
 from roomcap.track.trackfile import resolve_track_file
 
 log = logging.getLogger(__name__)
@@ -71,16 +72,22 @@ def _load_split(args):
     return clips, tr, va, te
 
 
+def _train_command(args) -> str:
+    """The ``forecast train`` command line that ``args`` stand for (the model card records it)."""
+    parts = ["forecast train", f"--model {args.model}", "--data " + " ".join(args.data)]
+    parts += [f"--config {args.config}"] if args.config else []
+    parts += [f"--set {s}" for s in args.set or []]
+    parts += [f"--init {Path(args.init).name}"] if args.init else []
+    return " ".join(parts)
+
+
 def cmd_train(args) -> int:
     cfg = _config(args)
     clips, tr, va, te = _load_split(args)
     init = None
     if args.init:
-        blob = torch.load(args.init, map_location="cpu", weights_only=True)
-        if blob.get("kind") != args.model:
-            raise InputError(f"--init {args.init} is a '{blob.get('kind')}' checkpoint, not '{args.model}'")
-        init = blob["state_dict"]
-    logging.getLogger("roomcap.forecast.train").setLevel(logging.INFO)  # the loss terms, above the bar
+        init = ckpt.read_checkpoint(args.init, args.model)["weights"]["model"]
+    logging.getLogger("roomcap.forecast.lab.train").setLevel(logging.INFO)  # the loss terms, above the bar
     with Bars(unit="step") as bars:
         model, hist = T.train(args.model, tr, cfg, progress=bars, device=args.device, init=init, val_clips=va)
     T.save_checkpoint(
@@ -97,6 +104,8 @@ def cmd_train(args) -> int:
             "val": hist.get("val", []),
             "val_best": hist.get("val_best", {}),
             "init": Path(args.init).name if args.init else "",
+            "data": ",".join(args.data),
+            "command": _train_command(args),  # the model card's
         },
     )
     n = len(hist["loss"])
@@ -145,7 +154,7 @@ def cmd_sample(args) -> int:
         f"x {fc['xyz_m'].shape[0]} samples -> {args.out}"
     )
     if not args.no_pictures:
-        from roomcap.forecast.sample_plot import plot_forecasts  # lazy: loads matplotlib
+        from roomcap.forecast.runtime.sample_plot import plot_forecasts  # lazy: loads matplotlib
 
         for png in plot_forecasts(fc, args.out, title=f"{path}"):
             print(f"picture: {png}")
@@ -211,7 +220,7 @@ def cmd_eval(args) -> int:
     models = _baseline_models(names, tr)
     models.update(ck_models)
     print(f"evaluating on {len(te)} test clips: {', '.join(c.name for c in te)}")
-    logging.getLogger("roomcap.forecast.evaluate").setLevel(
+    logging.getLogger("roomcap.forecast.lab.evaluate").setLevel(
         logging.INFO
     )  # the model being scored, above the bar
     with Bars(unit="model") as progress:
@@ -271,7 +280,7 @@ def _eval_cmu8_angle(args) -> int:
         if not Path(ck).is_file():
             raise InputError(f"no checkpoint {ck}")
     res = A.evaluate(args.path, cks)
-    path = A.write_report(res, args.out)
+    path = protocol.write(res, args.out)
     print(path.read_text())
     return 0
 
@@ -303,7 +312,7 @@ def _eval_cmu8(args) -> int:
             samples_dir=args.save_samples,
             progress=lambda i, n, name=None: progress("body19 models", i, n),
         )
-    path = B.write_report(res, args.out)
+    path = protocol.write(res, args.out)
     print(path.read_text())
     print(f"evaluation wall time {res['wall_s']:.1f} s; results in {Path(args.out) / 'results.json'}")
     return 0
@@ -320,14 +329,18 @@ def _eval_hik(args, names: list[str]) -> int:
         )
     except (FileNotFoundError, FormatError, ValueError) as e:
         raise InputError(str(e)) from None
-    path = hik.write_hik_report(res, args.out)
+    path = protocol.write(res, args.out)
     print(path.read_text())
     return 0
 
 
 def cmd_models(args) -> int:
-    from roomcap.forecast import cards
+    from roomcap.forecast.runtime import cards
 
+    if args.convert:
+        old, new = args.convert
+        print(f"{old} -> {new}: {ckpt.convert(old, new)}")
+        return 0
     folder = Path(args.folder) if args.folder else cards.CHECKPOINT_DIR
     if not folder.is_dir():
         raise InputError(f"--folder {folder} is not a folder of checkpoints")

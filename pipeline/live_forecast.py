@@ -2,9 +2,9 @@
 
 ``capture-run --live --view`` forecasts by default (``--no-forecast``, or ``live: {forecast: false}`` in
 cams.yaml, leaves it off; the page's "forecast" toggle switches it off and on while recording). The model
-is the shipped default forecaster (:func:`roomcap.forecast.preview.forecast_model` ``"default"``: the GRU
+is the shipped default forecaster (:func:`forecast.runtime.preview.forecast_model` ``"default"``: the GRU
 checkpoint ``DEFAULT_CHECKPOINT``, else the constant-velocity baseline), fed the live track's recent frames
-(:func:`roomcap.forecast.track_forecast.forecast_recent`: resampled to the model's rate, its ``n_obs``
+(:func:`roomcap.forecast.runtime.track_forecast.forecast_recent`: resampled to the model's rate, its ``n_obs``
 frames at most, each person normalised at its last frame, eq. 3.8).
 
 It never makes the live loop wait: the loop's :meth:`LiveForecast.offer` appends the step's track
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from roomcap.core.errors import InputError
-from roomcap.forecast.preview import forecast_model
+from roomcap.forecast.runtime.preview import forecast_model
 from roomcap.keypoints.skeletons import CANONICAL
 
 log = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ class LiveForecast:
         if self.checkpoint is not None:
             import torch  # lazy: loads torch
 
-            from roomcap.forecast.checkpoint import load_checkpoint
+            from roomcap.forecast.runtime.checkpoint import load_checkpoint
 
             # one thread: the 2D stage's groups hold the cores; the GRU on 3 people takes ~5 ms on one
             torch.set_num_threads(1)
@@ -137,7 +137,7 @@ class LiveForecast:
 
     def forecast(self, t_s: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(H,K,J,3), t (H,), present (K,) from the frames ``xyz (T,K,J,3)`` at ``t_s (T,)``."""
-        from roomcap.forecast.track_forecast import forecast_recent  # lazy: loads torch
+        from roomcap.forecast.runtime.track_forecast import forecast_recent  # lazy: loads torch
 
         return forecast_recent(self._model, self._meta, t_s, xyz, self.horizon_s)
 

@@ -59,7 +59,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
     ),
     "triangulate": ("roomcap.triangulate.stage", "roomcap.pipeline.session_inputs"),
     "track": ("roomcap.track.stage", "roomcap.track.greedy_stage", "roomcap.pipeline.session_inputs"),
-    "forecast": ("roomcap.forecast.preview",),
+    "forecast": ("roomcap.forecast.runtime.preview",),
     "report": ("roomcap.pipeline.report",),
 }
 STAGE_DATA: dict[str, tuple[str, ...]] = {

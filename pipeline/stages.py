@@ -23,7 +23,7 @@ from roomcap.calibrate.formats import import_calibration
 from roomcap.capture.session import SessionLayout
 from roomcap.core.fileio import atomic_write_bytes
 from roomcap.core.progress import Progress
-from roomcap.forecast.preview import forecast_model, write_preview
+from roomcap.forecast.runtime.preview import forecast_model, write_preview
 from roomcap.keypoints.openpose_json import read_openpose_folder
 from roomcap.keypoints.registry import get_model_set, resolve
 from roomcap.keypoints.runtime import RuntimeConfig

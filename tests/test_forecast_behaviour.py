@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from roomcap.core.errors import FormatError, InputError
-from roomcap.forecast.behaviour import geometry, labels
-from roomcap.forecast.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPT, action_of_description
-from roomcap.forecast.behaviour.model import (
+from roomcap.forecast.lab.behaviour import geometry, labels
+from roomcap.forecast.lab.behaviour.data import ACTIONS, JOINTS, PARENTS, SCRIPT, action_of_description
+from roomcap.forecast.lab.behaviour.model import (
     BehaviourConfig,
     bones,
     build,
@@ -149,7 +149,7 @@ def test_checkpoint_round_trip(tmp_path):
     path = tmp_path / "b.pt"
     save_checkpoint(path, {"full": gen}, {"full": cfg}, {"action_freq": [1 / len(ACTIONS)] * len(ACTIONS)})
     blob = torch.load(path, weights_only=True)
-    assert blob["schema"] == "behaviour_checkpoint/1"
+    assert blob["schema"] == "forecast-checkpoint/2" and blob["model"] == "behaviour"
     gens, cfgs, extra = load_checkpoint(path)
     assert cfgs["full"] == cfg
     for a, b in zip(gens["full"].parameters(), gen.parameters(), strict=True):
@@ -161,8 +161,8 @@ def test_checkpoint_round_trip(tmp_path):
 
 def test_composite_sequences_from_cmu():
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from roomcap.forecast.behaviour import data
-    from roomcap.forecast.behaviour.training import prepare
+    from roomcap.forecast.lab.behaviour import data
+    from roomcap.forecast.lab.behaviour.training import prepare
 
     pool = data.split_pool(data.load_pool())
     subj = {p: {c.subject for c in v} for p, v in pool.items()}
@@ -231,7 +231,7 @@ def session(tmp_path_factory):
 
 
 def test_sample_writes_forecast(session):
-    from roomcap.forecast.behaviour.sample import run_sample
+    from roomcap.forecast.lab.behaviour.sample import run_sample
 
     root, scene = session
     lab = root / "labels.csv"
@@ -271,7 +271,7 @@ def test_sample_writes_forecast(session):
     ],
 )
 def test_sample_bad_labels(session, text, match):
-    from roomcap.forecast.behaviour.sample import run_sample
+    from roomcap.forecast.lab.behaviour.sample import run_sample
 
     root, _ = session
     lab = root / "bad.csv"
@@ -284,7 +284,7 @@ def test_sample_needs_tracks(session, tmp_path, capsys):
     """A session without a track file, or with one that holds no track, says to run the track stage first."""
     import shutil
 
-    from roomcap.forecast.behaviour.cli import main
+    from roomcap.forecast.lab.behaviour.cli import main
     from roomcap.track.trackfile import TrackFile
 
     root, _ = session
@@ -314,7 +314,7 @@ def test_sample_needs_tracks(session, tmp_path, capsys):
 def test_sample_needs_a_rig(session, tmp_path):
     import shutil
 
-    from roomcap.forecast.behaviour.cli import main
+    from roomcap.forecast.lab.behaviour.cli import main
 
     root, _ = session
     s = tmp_path / "norig"
@@ -326,7 +326,7 @@ def test_sample_needs_a_rig(session, tmp_path):
 
 
 def test_hide_history_hides_only_the_first_steps():
-    from roomcap.forecast.behaviour.training import hide_history
+    from roomcap.forecast.lab.behaviour.training import hide_history
 
     cfg = BehaviourConfig(short_history=1.0)
     B, N = 64, cfg.n_obs
@@ -348,7 +348,7 @@ def test_report_shows_the_behaviour_forecast(session, tmp_path):
     import re
 
     from roomcap.capture.session import SessionLayout
-    from roomcap.forecast.behaviour.sample import run_sample
+    from roomcap.forecast.lab.behaviour.sample import run_sample
     from roomcap.pipeline.report import collect, write_report
     from tests.test_pipeline_report import CHROMIUM, page_errors, render_in_browser
 
@@ -395,8 +395,8 @@ def test_report_shows_the_behaviour_forecast(session, tmp_path):
 def test_session_windows_from_a_label_file(session):
     """A user's session with labels gives training windows: n_obs + M consecutive labelled steps per track,
     with the detections as 2D targets and the track's 3D."""
-    from roomcap.forecast.behaviour.sample import session_windows
-    from roomcap.forecast.behaviour.training import concat
+    from roomcap.forecast.lab.behaviour.sample import session_windows
+    from roomcap.forecast.lab.behaviour.training import concat
 
     root, scene = session
     acts = ["walk", "sit", "drink", "laugh", "walk", "climb", "reach", "wash", "walk"]
@@ -426,8 +426,8 @@ def test_continuous_activity_session(tmp_path):
     """Continuous composite activities (blended transitions) make a session with a label file that the
     user-data path reads: labels tile the motion, each step's characteristic frame lies in its range."""
     need_shared("data", "motion", "cmu-more", "single", "13")
-    from roomcap.forecast.behaviour import data
-    from roomcap.forecast.behaviour.sample import session_windows
+    from roomcap.forecast.lab.behaviour import data
+    from roomcap.forecast.lab.behaviour.sample import session_windows
 
     pool = data.split_pool(data.load_pool())["test"]
     a = data.compose_continuous(pool, 8, seed=3)
@@ -447,8 +447,8 @@ def test_continuous_activity_session_follows_the_stations_script(tmp_path):
     characteristic pose there, the glides between places keep a walking pace, and the session it makes is
     read by the user-data path."""
     need_shared("data", "motion", "cmu-more", "single", "13")
-    from roomcap.forecast.behaviour import data
-    from roomcap.forecast.behaviour.sample import session_windows
+    from roomcap.forecast.lab.behaviour import data
+    from roomcap.forecast.lab.behaviour.sample import session_windows
 
     pool = data.split_pool(data.load_pool())["test"]
     a = data.compose_continuous(pool, 8, seed=3, script="stations")
@@ -477,7 +477,7 @@ def test_continuous_activity_session_follows_the_stations_script(tmp_path):
 
 
 def test_merge_joins_variants(tmp_path, capsys):
-    from roomcap.forecast.behaviour.cli import main
+    from roomcap.forecast.lab.behaviour.cli import main
 
     extra = {"action_freq": [1 / len(ACTIONS)] * len(ACTIONS), "avg_pose": [[0.0, 0.0, 1.0]] * 19}
     for v in ("full", "action_only"):
@@ -500,7 +500,7 @@ def test_train_and_eval_commands_tiny(tmp_path):
     import json
 
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from roomcap.forecast.behaviour.cli import main
+    from roomcap.forecast.lab.behaviour.cli import main
 
     ck, res = tmp_path / "t.pt", tmp_path / "r.json"
     sets = ["steps=4", "eval_every=2", "n_train=120", "n_eval=60", "hidden=16"]

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.forecast.behaviour import data as bdata
-from roomcap.forecast.behaviour import training as T
-from roomcap.forecast.behaviour.data import JOINTS, UPPER9
-from roomcap.forecast.behaviour.model import BehaviourConfig
+from roomcap.forecast.lab.behaviour import data as bdata
+from roomcap.forecast.lab.behaviour import training as T
+from roomcap.forecast.lab.behaviour.data import JOINTS, UPPER9
+from roomcap.forecast.lab.behaviour.model import BehaviourConfig
 from tests.conftest import need_shared
 from tests.test_forecast_behaviour_skeleton import _tiny_prepared
 
@@ -127,8 +127,8 @@ def test_eval_results_schema_tiny(tmp_path, script):
     """results.json: models.<name>.{mpjpe2d_px, top1, quality3d, symmetry_mm} for every trained variant and
     baseline, true_3d (quality, symmetry), ceiling_top1; a variant the checkpoint lacks is absent."""
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from roomcap.forecast.behaviour import quality as Q
-    from roomcap.forecast.behaviour.cli import main
+    from roomcap.forecast.lab.behaviour import quality as Q
+    from roomcap.forecast.lab.behaviour.cli import main
 
     ck, res, qp = tmp_path / "t.pt", tmp_path / "r.json", tmp_path / "q.pt"
     sets = [*SETS, f"script={script}"]

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from roomcap.core.errors import FormatError
-from roomcap.forecast.behaviour import quality as Q
-from roomcap.forecast.behaviour import training as T
-from roomcap.forecast.behaviour.data import JOINTS
-from roomcap.forecast.behaviour.model import BehaviourConfig
+from roomcap.forecast.lab.behaviour import quality as Q
+from roomcap.forecast.lab.behaviour import training as T
+from roomcap.forecast.lab.behaviour.data import JOINTS
+from roomcap.forecast.lab.behaviour.model import BehaviourConfig
 from tests.conftest import need_shared
 from tests.test_forecast_behaviour_skeleton import _tiny_prepared
 
@@ -99,7 +99,7 @@ def test_train_average_snapshots_are_its_running_mean():
 def test_quality_then_eval_commands_tiny(tmp_path, capsys):
     """`quality` builds the classifier once; `eval` scores every pose-predicting method with it."""
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from roomcap.forecast.behaviour.cli import main
+    from roomcap.forecast.lab.behaviour.cli import main
 
     sets = ["steps=4", "eval_every=2", "n_train=120", "n_eval=60", "hidden=16"]
     qp, ck, res = tmp_path / "q.pt", tmp_path / "t.pt", tmp_path / "r.json"

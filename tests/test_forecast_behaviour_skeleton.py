@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.forecast.behaviour.data import JOINTS, UPPER9
-from roomcap.forecast.behaviour.model import (
+from roomcap.forecast.lab.behaviour.data import JOINTS, UPPER9
+from roomcap.forecast.lab.behaviour.model import (
     BehaviourConfig,
     Skeleton,
     bones,
@@ -68,7 +68,7 @@ def _written_before(path, option: str):
     cfg = BehaviourConfig(hidden=32)
     save_checkpoint(path, {"full": build(cfg)[0]}, {"full": cfg}, {})
     blob = torch.load(path, weights_only=True)
-    del blob["models"]["full"]["config"][option]
+    del blob["config"]["full"][option]
     torch.save(blob, path)
     gens, cfgs, _ = load_checkpoint(path)
     return gens, cfgs
@@ -96,9 +96,9 @@ def test_skeleton_checkpoint_and_older_configs(tmp_path):
 
 
 def _tiny_prepared(S: int = 16):
-    from roomcap.forecast.behaviour import geometry
-    from roomcap.forecast.behaviour.data import ACTIONS
-    from roomcap.forecast.behaviour.training import Prepared
+    from roomcap.forecast.lab.behaviour import geometry
+    from roomcap.forecast.lab.behaviour.data import ACTIONS
+    from roomcap.forecast.lab.behaviour.training import Prepared
     from roomcap.synthetic.rigs import ring_rig
 
     rng = np.random.default_rng(2)
@@ -126,7 +126,7 @@ def _tiny_prepared(S: int = 16):
 def test_training_steps_with_skeleton_and_n_critic():
     """n_critic critic updates per generator update, and a trained skeleton model's poses keep the
     database's proportions."""
-    from roomcap.forecast.behaviour import training as T
+    from roomcap.forecast.lab.behaviour import training as T
 
     tr = _tiny_prepared()
     db = np.random.default_rng(3).normal(0, 0.4, (40, 19, 3)).astype(np.float32)
@@ -181,7 +181,7 @@ def test_learned_proportions_train_and_round_trip(tmp_path):
 
 def _canonical_db(n: int = 64) -> np.ndarray:
     """Two poses (19 joints), half the set each, with 1 cm joint noise, in the canonical frame."""
-    from roomcap.forecast.behaviour.training import _canonical
+    from roomcap.forecast.lab.behaviour.training import _canonical
 
     rng = np.random.default_rng(4)
     two = rng.normal(0, 0.4, (2, 19, 3))
@@ -191,7 +191,7 @@ def _canonical_db(n: int = 64) -> np.ndarray:
 def test_pose_prior_decodes_heading_place_and_size():
     """pose_decoder=prior: the pose is the prior's decoded pose turned by the heading, scaled within the
     size bounds and moved to the pelvis output; the trained prior reconstructs its database."""
-    from roomcap.forecast.behaviour.model import PosePrior, fit_pose_prior
+    from roomcap.forecast.lab.behaviour.model import PosePrior, fit_pose_prior
 
     canon = _canonical_db()
     prior = fit_pose_prior(canon, BehaviourConfig(prior_dim=4, prior_steps=300))
@@ -216,7 +216,7 @@ def test_pose_prior_decodes_heading_place_and_size():
 
 
 def test_pose_prior_trains_frozen_and_round_trips(tmp_path):
-    from roomcap.forecast.behaviour import training as T
+    from roomcap.forecast.lab.behaviour import training as T
 
     tr = _tiny_prepared()
     db = np.random.default_rng(3).normal(0, 0.4, (40, 19, 3)).astype(np.float32)
@@ -248,7 +248,7 @@ def test_pose_prior_trains_frozen_and_round_trips(tmp_path):
 
 
 def test_prior_proportions_vary_bones_within_bounds_left_and_right_alike():
-    from roomcap.forecast.behaviour.model import _with_proportions
+    from roomcap.forecast.lab.behaviour.model import _with_proportions
 
     X = torch.from_numpy(_canonical_db(8))
     Y = _with_proportions(X, JOINTS, 0.15, torch.Generator().manual_seed(0))

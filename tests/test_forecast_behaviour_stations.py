@@ -7,10 +7,17 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.forecast.behaviour import data
-from roomcap.forecast.behaviour.data import ACTIONS, JOINTS, SCRIPT, STATIONS, chain_forecast, script_chain
-from roomcap.forecast.behaviour.geometry import room_context
-from roomcap.forecast.behaviour.model import (
+from roomcap.forecast.lab.behaviour import data
+from roomcap.forecast.lab.behaviour.data import (
+    ACTIONS,
+    JOINTS,
+    SCRIPT,
+    STATIONS,
+    chain_forecast,
+    script_chain,
+)
+from roomcap.forecast.lab.behaviour.geometry import room_context
+from roomcap.forecast.lab.behaviour.model import (
     SHIPPED,
     BehaviourConfig,
     build,
@@ -86,7 +93,7 @@ def test_stations_composite_from_cmu():
     anchor found from the 2D (the room context) tells the place: decoding the last observed state from it
     forecasts the next action better than the labels alone."""
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from roomcap.forecast.behaviour.training import prepare
+    from roomcap.forecast.lab.behaviour.training import prepare
 
     pool = data.split_pool(data.load_pool())
     ch = script_chain("stations")
@@ -174,7 +181,7 @@ def test_shipped_checkpoint_reads_as_markov_camera():
     blob = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     gens, cfgs, _ = load_checkpoint(SHIPPED)
     for n, cfg in cfgs.items():
-        assert "script" not in blob["models"][n]["config"]
+        assert "script" not in blob["config"][n]
         assert cfg.script == "markov" and cfg.context == "camera"
         assert not gens[n].room and gens[n].ctx_enc[0].in_features == len(ACTIONS) + 2
 
@@ -185,7 +192,7 @@ def test_train_and_eval_stations_tiny(tmp_path):
     import json
 
     need_shared("data", "motion", "cmu-more", "single", "14")
-    from roomcap.forecast.behaviour.cli import main
+    from roomcap.forecast.lab.behaviour.cli import main
 
     ck, res = tmp_path / "t.pt", tmp_path / "r.json"
     sets = [
@@ -215,8 +222,8 @@ def test_sample_gives_the_room_context(rng):
     """`sample`'s forecast reads the person's place from the view anchored under the track (the room
     context): the same observation at another floor point, as far from the camera, forecasts otherwise with
     context=room, alike with context=camera."""
-    from roomcap.forecast.behaviour.geometry import make_view
-    from roomcap.forecast.behaviour.sample import Observed, _forecast
+    from roomcap.forecast.lab.behaviour.geometry import make_view
+    from roomcap.forecast.lab.behaviour.sample import Observed, _forecast
     from roomcap.synthetic.rigs import ring_rig
 
     cam = ring_rig(6, 4.0, height_m=2.2)[0]  # at (4, 0, 2.2)

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.forecast import benchmark_cmu8 as B
-from roomcap.forecast import benchmark_cmu8_train as BT
-from roomcap.forecast import cmu_more as C
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import train as T
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import benchmark_cmu8 as B
+from roomcap.forecast.lab import benchmark_cmu8_train as BT
+from roomcap.forecast.lab import cmu_more as C
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.protocol import RESULTS_SCHEMA, render
+from roomcap.forecast.lab.toy import walker
 from tests.conftest import need_shared
 
 
@@ -92,7 +93,8 @@ def test_protocol_on_a_tiny_benchmark(tiny_root, tmp_path):
     assert list(z["clip"]) == ["soccer_1"] * 2 + ["walking_1"] * 2  # the test file of each window
     e = np.linalg.norm(z["pred"][:, 0] - z["gt"], axis=-1).mean(-1) * z["protocol_mm_per_m"]
     assert np.allclose(e[:, list(B.HORIZON_FRAMES)].mean(0), res["models"]["mlp"]["mpjpe_mm"], rtol=1e-4)
-    md = B.report_markdown(res)
+    md = render(res)
+    assert res["schema"] == RESULTS_SCHEMA and res["tables"][0]["columns"][0] == "model"
     assert "Exact protocol" in md and "missing" in md and "MSR-GCN" in md
 
 
@@ -116,7 +118,7 @@ def test_cli_cmu8_bad_input(tiny_root, tmp_path, capsys):
 
 
 def test_eval_single_writes_samples(tmp_path):
-    from roomcap.forecast.data import Clip
+    from roomcap.forecast.lab.data import Clip
 
     clips = [Clip(f"walk{i}", walker(150, phase=i, heading_rad=i), 25.0) for i in range(3)]
     models = {"zero": T.baseline("zero"), "real": E.Real()}
@@ -152,7 +154,7 @@ def test_shared_test_windows():
 
 def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, monkeypatch):
     from roomcap.forecast import cli
-    from roomcap.forecast.preview import shipped_checkpoints
+    from roomcap.forecast.runtime.preview import shipped_checkpoints
 
     seen = {}
     real_evaluate = B.evaluate
@@ -164,7 +166,7 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
     monkeypatch.setattr(B, "evaluate", fake_evaluate)
     assert cli.main(["eval", "--protocol", "cmu8", str(tiny_root), "--out", str(tmp_path / "o")]) == 0
     shipped = shipped_checkpoints()
-    assert any(p.endswith("gru_cmu.pt") for p in shipped)
+    assert any(p.endswith("gru_cmuall.pt") for p in shipped)
     assert not any(n in p for p in shipped for n in ("characteristic", "behaviour", "cmu8_"))
     assert seen["b19"] == shipped
     assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
@@ -182,10 +184,8 @@ def test_mirror_swaps_sides_and_is_an_involution():
     assert torch.allclose(BT._mirror(m, torch.tensor([True, True]), torch.from_numpy(idx))[0], b[0])
 
 
-@pytest.mark.parametrize(
-    "ck", [B.SHIPPED_MLP, B.SHIPPED_MLP.with_name("cmu8_dct_mlp.pt")], ids=["best", "first"]
-)
-def test_shipped_dct_mlp_checkpoints(ck):
+def test_shipped_dct_mlp_checkpoints():
+    ck = B.SHIPPED_MLP
     if not ck.exists():
         pytest.skip(f"no shipped cmu8 checkpoint {ck.name}")
     assert ck.stat().st_size < 3_000_000  # measured 216 KB for one model
@@ -261,7 +261,7 @@ def test_euler_follows_the_reference_convention():
     exactly it takes the reference's special case (E3 = 0, E2 = +-pi/2, E1 = atan2(R01, R02))."""
     from scipy.spatial.transform import Rotation
 
-    from roomcap.forecast import benchmark_cmu8_angle as A
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
 
     rng = np.random.default_rng(0)
     R = Rotation.from_rotvec(rng.normal(size=(50, 3)) * 0.8).as_matrix()
@@ -279,8 +279,8 @@ def test_euler_follows_the_reference_convention():
 
 
 def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
-    from roomcap.forecast import benchmark_cmu8_angle as A
     from roomcap.forecast.cli import main
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
 
     cfg = B.MlpConfig(steps=3, batch=8, val_every=1, n_blocks=2)
     tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
@@ -321,11 +321,11 @@ def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
 def test_shipped_angle_checkpoint_forecasts_below_zero_velocity():
     """The shipped exponential-map forecaster (picked on validation) loads and, on the walking test file's
     protocol windows, beats zero velocity at every horizon."""
-    from roomcap.forecast import benchmark_cmu8_angle as A
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
 
     need_shared("data", "motion", "cmu-more", "benchmark-cmu8", "test", "walking", "walking_1.txt")
     f, blob = A.load(A.SHIPPED)
-    assert blob["kind"] == A.KIND and blob["extra"]["best"]["step"] > 0
+    assert blob["model"] == A.FAMILY and blob["extra"]["best"]["step"] > 0
     w = A.test_windows(C.benchmark_files())["walking"]
     ours = A.at_horizons(A.score(f(w[:, : B.N_OBS]), w[:, B.N_OBS :], f.dims))
     zero = A.at_horizons(A.score(A.zero_velocity(w[:, : B.N_OBS]), w[:, B.N_OBS :], None))

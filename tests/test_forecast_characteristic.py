@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from roomcap.core.errors import FormatError
-from roomcap.forecast import characteristic as C
-from roomcap.forecast.models.characteristic import refine_pose, target_heatmap
+from roomcap.forecast.lab import characteristic as C
+from roomcap.forecast.lab.characteristic.network import refine_pose, target_heatmap
 from roomcap.keypoints.skeletons import get_skeleton
 
 torch.set_num_threads(1)

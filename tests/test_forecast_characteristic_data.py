@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from roomcap.core.errors import InputError
-from roomcap.forecast import characteristic as C
-from roomcap.forecast.characteristic.cli import main
-from roomcap.forecast.characteristic.protocol import load_labelled
-from roomcap.forecast.clips import load_one_person_all
+from roomcap.forecast.lab import characteristic as C
+from roomcap.forecast.lab.characteristic.cli import main
+from roomcap.forecast.lab.characteristic.protocol import load_labelled
+from roomcap.forecast.lab.clips import load_one_person_all
 
 torch.set_num_threads(1)
 TINY = ["hidden=16", "dim=16", "heads=2", "grid=8", "channels=4", "batch=4", "val_every=0"]

@@ -4,32 +4,39 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 
-from roomcap.forecast import train as T
-from roomcap.forecast.predict import forecast_world
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime.predict import forecast_world
+from roomcap.forecast.runtime.preview import CHECKPOINT_DIR as ROOT
 
-ROOT = Path(T.__file__).parent / "checkpoints"
 SHIPPED = {
-    "gru_4s_cmuall.pt": "gru",
     "gru_cmuall.pt": "gru",
-    "gru_4s_mpjpe_cmuall.pt": "gru",
     "intention_cmuall.pt": "intention",
     "social_diffusion_salsa.pt": "social_diffusion",
     "social_diffusion_1pass_cmuall.pt": "social_diffusion",
-    "social_diffusion_cmuall.pt": "social_diffusion",
 }
 # picked by the recipe's own criterion; the others by NDMS 2-4 s
-SELECTED_BY = {
-    "gru_cmuall.pt": "mpjpe_0_1",
-    "gru_4s_mpjpe_cmuall.pt": "mpjpe_0_1",
-    "social_diffusion_cmuall.pt": "ndms_2_3",
+SELECTED_BY = {"gru_cmuall.pt": "mpjpe_0_1"}
+# the shipped files: the best of each family on validation, and those that reproduce a published table
+KEPT = {
+    *SHIPPED,
+    "characteristic_cmuall.pt",
+    "cmu8_dct_mlp_ens.pt",
+    "cmu8_angle_dct_mlp.pt",
+    "behaviour_cmu.pt",
+    "behaviour_quality_cmu.pt",
+    "behaviour_stations_cmu.pt",
+    "behaviour_quality_stations_cmu.pt",
 }
+
+
+def test_the_shipped_checkpoints_are_the_kept_ones():
+    """Retired files stay retired (and a new file comes with its test): the folder holds exactly these."""
+    assert {p.name for p in ROOT.glob("*.pt")} == KEPT
 
 
 @pytest.mark.parametrize("name", sorted(SHIPPED))
@@ -39,7 +46,7 @@ def test_checkpoint_small_clean_split_and_selected_on_validation(name):
         pytest.skip(f"{name} is not shipped")
     assert ck.stat().st_size < 2_000_000
     blob = torch.load(ck, map_location="cpu", weights_only=True)  # plain tensors and builtins only
-    assert blob["kind"] == SHIPPED[name]
+    assert blob["model"] == SHIPPED[name]
     model, meta = T.load_checkpoint(ck, skeleton="body19")
     extra = meta["extra"]
     used = set(extra["train_clips"]) | set(extra["val_clips"])
@@ -63,14 +70,14 @@ def test_checkpoint_small_clean_split_and_selected_on_validation(name):
 def test_characteristic_checkpoint_on_all_one_person_data():
     """``characteristic_cmuall.pt`` (``forecast characteristic train --data cmu-all``): small, weights only,
     trained on the cmu-all train split (the benchmark's test files never in it), selected on validation."""
-    from roomcap.forecast import characteristic as C
+    from roomcap.forecast.lab import characteristic as C
 
     ck = ROOT / "characteristic_cmuall.pt"
     if not ck.exists():
         pytest.skip("characteristic_cmuall.pt is not shipped")
     assert ck.stat().st_size < 2_000_000
     blob = torch.load(ck, map_location="cpu", weights_only=True)  # plain tensors and builtins only
-    assert blob["kind"] == "characteristic"
+    assert blob["model"] == "characteristic"
     net, _, meta = C.load_checkpoint(ck, skeleton="body19")
     extra = meta["extra"]
     assert extra["data"] == "cmu-all" and "--data cmu-all" in extra["command"]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from roomcap.core.errors import FormatError, InputError
-from roomcap.forecast import cmu_more as C
+from roomcap.forecast.lab import cmu_more as C
 from roomcap.synthetic import bvh
 from tests.conftest import need_shared
 

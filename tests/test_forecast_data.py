@@ -7,8 +7,8 @@ import pytest
 
 from roomcap.core.errors import FormatError, SchemaError
 from roomcap.core.fileio import save_npz
-from roomcap.forecast import data as D
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab.toy import walker
 from roomcap.keypoints.skeletons import get_skeleton
 from roomcap.track.trackfile import TrackFile
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from roomcap.forecast import clips as C
-from roomcap.forecast import data as D
+from roomcap.forecast.lab import clips as C
+from roomcap.forecast.lab import data as D
 
 
 def _or_skip(fn):

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from roomcap.forecast import metrics as M
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import metrics as M
+from roomcap.forecast.lab.protocol import render
+from roomcap.forecast.lab.toy import walker
 from roomcap.keypoints.skeletons import get_skeleton
 
 NAMES = get_skeleton("body19").joint_names
@@ -106,9 +107,9 @@ def test_sscp_states_and_js_distance():
 
 
 def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
-    from roomcap.forecast import data as D
-    from roomcap.forecast import evaluate as E
-    from roomcap.forecast.models import ConstantVelocity, ZeroVelocity
+    from roomcap.forecast.lab import data as D
+    from roomcap.forecast.lab import evaluate as E
+    from roomcap.forecast.runtime.models import ConstantVelocity, ZeroVelocity
 
     clips = [
         D.Clip(f"w{i}", walker(150, phase=i, speed_mps=1.0 + 0.1 * i, heading_rad=i, sway_rad=SWAY), 25.0)
@@ -128,9 +129,9 @@ def test_evaluation_report_ranks_real_above_zero_velocity(tmp_path):
 def test_evaluation_intervals_paired_differences_and_repeatability():
     import torch
 
-    from roomcap.forecast import data as D
-    from roomcap.forecast import evaluate as E
-    from roomcap.forecast.models import ConstantVelocity, ZeroVelocity
+    from roomcap.forecast.lab import data as D
+    from roomcap.forecast.lab import evaluate as E
+    from roomcap.forecast.runtime.models import ConstantVelocity, ZeroVelocity
 
     class Noisy(torch.nn.Module):  # a stochastic stand-in: constant velocity plus sampled noise
         stochastic = True
@@ -156,4 +157,4 @@ def test_evaluation_intervals_paired_differences_and_repeatability():
     # sampling is seeded: evaluating again gives the same figures
     again = E.evaluate_single(models, clips, **kw)
     assert again["models"]["noisy"]["ndms"] == res["models"]["noisy"]["ndms"]
-    assert "Δ 2 s" in E.report_markdown(res, "t")
+    assert "Δ 2 s" in render(E.as_results(res, "t"))

@@ -9,12 +9,17 @@ import pytest
 import torch
 
 from roomcap.core.errors import FormatError
-from roomcap.forecast import data as D
-from roomcap.forecast import train as T
-from roomcap.forecast.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
-from roomcap.forecast.predict import diffusion_rollout, features_to_poses, forecast_world, scene_features
-from roomcap.forecast.registry import MODELS
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime.models import ConstantVelocity, SocialDiffusion, ZeroVelocity
+from roomcap.forecast.runtime.predict import (
+    diffusion_rollout,
+    features_to_poses,
+    forecast_world,
+    scene_features,
+)
+from roomcap.forecast.runtime.registry import MODELS
 from roomcap.keypoints.skeletons import get_skeleton
 
 torch.set_num_threads(1)
@@ -38,7 +43,7 @@ def test_baselines_in_world_space():
 
 def test_training_and_evaluation_report_through_the_progress_protocol():
     """progress(task, done, total) from the library (core.progress), done reaching total; nothing printed."""
-    from roomcap.forecast import evaluate as E
+    from roomcap.forecast.lab import evaluate as E
 
     calls = []
     cfg = T.config_from_dict("gru", {"hidden": 8, "steps": 4, "batch": 4, "n_obs": 10, "n_pred": 5})
@@ -115,15 +120,19 @@ def test_intention_checkpoint_is_small_and_training_continues_from_it(tmp_path):
     model, _ = T.train("intention", clips, cfg)
     T.save_checkpoint(tmp_path / "i.pt", model, "intention", cfg)
     blob = torch.load(tmp_path / "i.pt", weights_only=True)
-    assert not any(k.startswith(T.DISCRIMINATOR_PREFIXES) for k in blob["state_dict"])  # training-only parts
+    assert not any(
+        k.startswith(T.DISCRIMINATOR_PREFIXES) for k in blob["weights"]["model"]
+    )  # training-only parts
     m2, _ = T.load_checkpoint(tmp_path / "i.pt", skeleton="body19")
     assert torch.equal(m2.centres, model.centres) and torch.equal(m2.merge, model.merge)
     # continue with a longer horizon: labels are kept, discriminators start fresh
     cfg2 = T.config_from_dict("intention", {**dataclasses.asdict(cfg), "n_pred": 60})
-    m3, hist = T.train("intention", clips, cfg2, init=blob["state_dict"])
+    m3, hist = T.train("intention", clips, cfg2, init=blob["weights"]["model"])
     assert torch.equal(m3.centres, model.centres) and np.isfinite(hist["loss"]).all()
     with pytest.raises(ValueError, match="does not fit"):
-        T.build_model("intention", T.config_from_dict("intention", {"hidden": 8}), 19, blob["state_dict"])
+        T.build_model(
+            "intention", T.config_from_dict("intention", {"hidden": 8}), 19, blob["weights"]["model"]
+        )
 
 
 @pytest.mark.slow
@@ -284,7 +293,7 @@ def test_diffusion_ema_weights_are_validated_and_returned():
 
 
 def test_dct_lowpass_is_a_projection_that_keeps_slow_motion():
-    from roomcap.forecast.models.diffusion import dct_lowpass_matrix
+    from roomcap.forecast.runtime.models.diffusion import dct_lowpass_matrix
 
     P = dct_lowpass_matrix(32, 6)
     assert torch.allclose(P @ P, P, atol=1e-5) and torch.allclose(P, P.T, atol=1e-6)
@@ -312,7 +321,7 @@ def test_training_keeps_the_state_with_the_best_validation_score():
 
 def test_preview_and_cli_on_track_files(tmp_path):
     from roomcap.forecast.cli import main
-    from roomcap.forecast.preview import preview
+    from roomcap.forecast.runtime.preview import preview
     from roomcap.track.trackfile import TrackFile
 
     sk = get_skeleton("body19")
@@ -425,61 +434,51 @@ def test_preview_and_cli_on_track_files(tmp_path):
 
 
 def test_shipped_configs_and_checkpoint_load():
-    from pathlib import Path
+    """Each config TOML holds only what differs from the defaults, and those are the shipped model's."""
+    import dataclasses
 
     from roomcap.core.fileio import load_toml
+    from roomcap.forecast.runtime.preview import CHECKPOINT_DIR
 
-    root = Path(T.__file__).parent
+    shipped = {
+        "gru": "gru_cmuall",
+        "intention": "intention_cmuall",
+        "social_diffusion": "social_diffusion_1pass_cmuall",
+    }
     for kind, spec in MODELS.items():
-        cfg = T.config_from_dict(kind, load_toml(root / "configs" / f"{kind}.toml")[kind])
-        assert cfg == spec.config()  # the TOML mirrors the dataclass defaults
-    ck = root / "checkpoints" / "gru_cmu.pt"
-    if ck.exists():
-        assert ck.stat().st_size < 2_000_000
-        model, meta = T.load_checkpoint(ck, skeleton="body19")
-        assert meta["kind"] == "gru" and meta["fps"] == 25.0
-    ck = root / "checkpoints" / "social_diffusion_cmu.pt"
-    if ck.exists():
-        assert ck.stat().st_size < 2_000_000
-        model, meta = T.load_checkpoint(ck, skeleton="body19")
-        scene = np.stack([walker(32), walker(32, start=(2, 0), heading_rad=2.0)], 1)[None]
-        y = forecast_world(model, scene, None, 40, 2)  # two windows, few-step sampler
-        assert y.shape == (1, 2, 40, 2, 19, 3) and np.isfinite(y).all()
-        jump = np.linalg.norm(y[0, :, 0] - scene[0, -1], axis=-1).mean()
-        assert jump < 0.06  # continues from the observation; measured 0.018 m (a walking step is 0.05 m)
-        assert model.feat_std.dim() == 2  # motion coded relative to the last observed frame
-        assert meta["config"].mirror and meta["extra"]["val_best"]["select"] == "ndms_2_3"  # the recipe
-    ck = root / "checkpoints" / "social_diffusion_1pass_cmu.pt"
-    if ck.exists():  # shared statistics, one pass over any horizon
-        assert ck.stat().st_size < 2_000_000
-        model, meta = T.load_checkpoint(ck, skeleton="body19")
-        assert model.feat_std.dim() == 1 and model.anchor == model.n_obs - 1
-        assert diffusion_rollout(model, 250) == "one_pass"
-        calls = []
-        orig = model.sample_window
-        model.sample_window = lambda *a, **k: calls.append(k.get("n_frames")) or orig(*a, **k)
-        scene = np.stack([walker(32), walker(32, start=(2, 0), heading_rad=2.0)], 1)[None]
-        y = forecast_world(model, scene, None, 100, 2)
-        assert calls == [144] and y.shape == (1, 2, 100, 2, 19, 3) and np.isfinite(y).all()
-        jump = np.linalg.norm(y[0, :, 0] - scene[0, -1], axis=-1).mean()
-        assert jump < 0.06  # continues from the observation (a walking step is 0.05 m)
-        assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
-    ck = root / "checkpoints" / "intention_cmu.pt"
-    if ck.exists():
-        assert ck.stat().st_size < 2_000_000  # measured 1.24 MB (discriminators are not shipped)
-        model, meta = T.load_checkpoint(ck, skeleton="body19")
-        assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
-        assert meta["kind"] == "intention" and meta["config"].n_pred == 100
-        torch.manual_seed(0)
-        y = forecast_world(model, walker(50)[None, :, None], None, 50, n_samples=3)
-        assert y.shape == (1, 3, 50, 1, 19, 3) and np.isfinite(y).all()
-        assert np.std(y[0, :, -1], axis=0).mean() > 0.002  # samples differ at 2 s; measured 0.008 m
+        table = load_toml(CHECKPOINT_DIR.parent / "configs" / f"{kind}.toml")[kind]
+        default = dataclasses.asdict(spec.config())
+        assert all(default[k] != v for k, v in table.items()), kind  # only what differs from the defaults
+        model, meta = T.load_checkpoint(CHECKPOINT_DIR / f"{shipped[kind]}.pt", skeleton="body19")
+        assert CHECKPOINT_DIR.joinpath(f"{shipped[kind]}.pt").stat().st_size < 2_000_000
+        assert meta["model"] == kind and meta["fps"] == 25.0
+        assert all(getattr(meta["config"], k) == v for k, v in table.items()), kind
+    model, meta = T.load_checkpoint(CHECKPOINT_DIR / "social_diffusion_1pass_cmuall.pt", skeleton="body19")
+    # shared statistics, one pass over any horizon
+    assert model.feat_std.dim() == 1 and model.anchor == model.n_obs - 1
+    assert diffusion_rollout(model, 250) == "one_pass"
+    calls = []
+    orig = model.sample_window
+    model.sample_window = lambda *a, **k: calls.append(k.get("n_frames")) or orig(*a, **k)
+    scene = np.stack([walker(32), walker(32, start=(2, 0), heading_rad=2.0)], 1)[None]
+    y = forecast_world(model, scene, None, 100, 2)
+    assert calls == [144] and y.shape == (1, 2, 100, 2, 19, 3) and np.isfinite(y).all()
+    jump = np.linalg.norm(y[0, :, 0] - scene[0, -1], axis=-1).mean()
+    assert jump < 0.06  # continues from the observation (a walking step is 0.05 m)
+    assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
+    model, meta = T.load_checkpoint(CHECKPOINT_DIR / "intention_cmuall.pt", skeleton="body19")
+    assert meta["extra"]["val_best"]["select"] == "ndms_2_4"  # picked on the validation split
+    assert meta["config"].n_pred == 100
+    torch.manual_seed(0)
+    y = forecast_world(model, walker(50)[None, :, None], None, 50, n_samples=3)
+    assert y.shape == (1, 3, 50, 1, 19, 3) and np.isfinite(y).all()
+    assert np.std(y[0, :, -1], axis=0).mean() > 0.002  # samples differ at 2 s
 
 
 def test_the_registry_names_builds_and_routes_every_trainable_model():
     from roomcap.core.errors import InputError
     from roomcap.forecast.cli import build_parser
-    from roomcap.forecast.registry import build_model, forecasts_the_scene, spec, spec_of
+    from roomcap.forecast.runtime.registry import build_model, forecasts_the_scene, spec, spec_of
 
     assert tuple(MODELS) == ("gru", "intention", "social_diffusion")
     for name, s in MODELS.items():
@@ -492,3 +491,20 @@ def test_the_registry_names_builds_and_routes_every_trainable_model():
         spec("lstm")
     train = build_parser()._subparsers._group_actions[0].choices["train"]
     assert next(a for a in train._actions if a.dest == "model").choices == tuple(MODELS)
+
+
+def test_the_runtime_imports_without_torch_and_without_the_lab():
+    """What the pipeline and users' code import to load a checkpoint and forecast a track: no torch until a
+    model is built or a file read, and nothing of the lab (training, datasets, benchmarks)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; import roomcap.forecast.runtime, roomcap.forecast.runtime.preview, "
+        "roomcap.forecast.runtime.registry, roomcap.forecast.runtime.checkpoint, "
+        "roomcap.forecast.runtime.cards, roomcap.forecast.runtime.baselines, "
+        "roomcap.forecast.runtime.normalise, roomcap.pipeline.stages; "
+        "print('torch' in sys.modules, any(m.startswith('roomcap.forecast.lab') for m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False False"

@@ -15,8 +15,8 @@ import math
 import numpy as np
 import pytest
 
-from roomcap.forecast import data as D
-from roomcap.forecast import metrics as M
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import metrics as M
 
 EPS = 1e-7
 
@@ -162,7 +162,7 @@ N_FUT = 12  # forecast frames per window: 12 words each, 1,200 words in all
 
 
 def _cmu_clips_or_skip():
-    from roomcap.forecast.clips import load_cmu
+    from roomcap.forecast.lab.clips import load_cmu
     from roomcap.synthetic import bvh
 
     root = bvh.mocap_root()

@@ -6,11 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from roomcap.forecast import data as D
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import pairs
-from roomcap.forecast import train as T
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import pairs
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.protocol import render
+from roomcap.forecast.lab.toy import walker
 from roomcap.keypoints.skeletons import get_skeleton
 
 LH, RH = D.hip_indices(get_skeleton("body19").joint_names)
@@ -47,4 +48,4 @@ def test_pairs_real_in_range_and_const_drifts_out():
     )  # still: in place, no motion
     assert r["real"]["ndms_p0"] == pytest.approx(r["real"]["ndms_p1"])
     assert set(r["real"]["ndms_at"]) == {"2", "4"} and len(r["const"]["distance"]) == 100
-    assert "distance in range" in pairs.pairs_markdown(res)
+    assert "distance in range" in render(res) and res["protocol"] == "pairs"

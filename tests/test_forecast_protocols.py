@@ -10,12 +10,12 @@ import torch
 
 from roomcap.core.errors import FormatError
 from roomcap.core.fileio import save_npz
-from roomcap.forecast import data as D
-from roomcap.forecast import evaluate as E
-from roomcap.forecast import metrics as M
-from roomcap.forecast import train as T
-from roomcap.forecast.clips import clip_activities
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab import evaluate as E
+from roomcap.forecast.lab import metrics as M
+from roomcap.forecast.lab import train as T
+from roomcap.forecast.lab.clips import clip_activities
+from roomcap.forecast.lab.toy import walker
 from roomcap.keypoints.skeletons import get_skeleton
 
 NAMES = get_skeleton("body19").joint_names
@@ -149,7 +149,7 @@ def test_baseline_names_and_slide():
     assert E.check_baselines(["zero_velocity", "const", "fool", "zero"]) == ["zero", "const", "fool"]
     with pytest.raises(ValueError, match="unknown baseline 'warp'"):
         E.check_baselines(["warp"])
-    from roomcap.forecast.predict import forecast_world
+    from roomcap.forecast.runtime.predict import forecast_world
 
     obs = walker(20, speed_mps=1.5, heading_rad=0.4)
     y = forecast_world(T.baseline("slide"), obs[None, :, None], None, 25)[0, 0, :, 0]
@@ -224,8 +224,8 @@ def _person(path, frames, poses, onsets: dict[int, int]):
 
 
 def test_hik_protocol_on_a_fixture(tmp_path, capsys):
-    from roomcap.forecast import hik
     from roomcap.forecast.cli import main
+    from roomcap.forecast.lab import hik
 
     walk, sink = D.KITCHEN_ACTIVITIES.index("walking"), D.KITCHEN_ACTIVITIES.index("take water from sink")
     for k, kitchen in enumerate("ABD"):
@@ -269,8 +269,8 @@ def test_hik_protocol_on_a_fixture(tmp_path, capsys):
 
 
 def test_social_diffusion_generates_the_whole_horizon_in_one_pass():
-    from roomcap.forecast.models import SocialDiffusion
-    from roomcap.forecast.predict import diffusion_rollout, forecast_world
+    from roomcap.forecast.runtime.models import SocialDiffusion
+    from roomcap.forecast.runtime.predict import diffusion_rollout, forecast_world
 
     m = SocialDiffusion(67, n_frames=32, channels=8, T=20)  # global statistics: not bound to its window
     m.n_obs, m.sample_steps, m.sample_eta = 16, 2, 1.0
@@ -289,3 +289,29 @@ def test_social_diffusion_generates_the_whole_horizon_in_one_pass():
     assert diffusion_rollout(anchored, 16) == "one_pass" and diffusion_rollout(anchored, 40) == "chained"
     with pytest.raises(ValueError, match="per-frame statistics"):
         anchored.sample_window(torch.zeros(1, 1, 16, 67), torch.ones(1, 1, dtype=torch.bool), n_frames=64)
+
+
+def test_one_results_schema_and_one_renderer(tmp_path):
+    """lab.protocol: a protocol's figures and its tables in one results.json schema, one Markdown renderer."""
+    import json
+
+    from roomcap.core.errors import FormatError
+    from roomcap.forecast.lab import protocol as P
+
+    t = P.Table("Average", ["model", "80 ms"], [["zero", *P.cells([25.94])], ["ours", *P.cells([None])]])
+    res = P.results(
+        "toy", "A toy protocol", ["Reference: none."], [t], ["- source"], models={"zero": [25.94]}
+    )
+    assert (
+        res["schema"] == P.RESULTS_SCHEMA and res["protocol"] == "toy" and res["models"] == {"zero": [25.94]}
+    )
+    md = P.render(res)
+    assert md.startswith(
+        "# A toy protocol\n\nReference: none.\n\n## Average\n\n| model | 80 ms |\n|---|---|\n"
+    )
+    assert "| zero | 25.9 |\n| ours | - |\n" in md and md.endswith("- source\n")
+    path = P.write(res, tmp_path / "o")
+    assert path.read_text() == md and json.loads((tmp_path / "o" / "results.json").read_text()) == res
+    with pytest.raises(FormatError, match="forecast-results/1"):
+        P.render({"models": {}})
+    assert all(v[2] for v in P.PROTOCOLS.values()) and len(P.PROTOCOLS) == 7

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from roomcap.core.errors import FormatError
-from roomcap.forecast import checkpoint as C
-from roomcap.forecast import data as D
 from roomcap.forecast.cli import main
-from roomcap.forecast.registry import build_model, config_from_dict
-from roomcap.forecast.toy import walker
+from roomcap.forecast.lab import data as D
+from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime import checkpoint as C
+from roomcap.forecast.runtime.registry import build_model, config_from_dict
 from roomcap.keypoints.skeletons import get_skeleton
 from roomcap.track.trackfile import TrackFile
 
@@ -118,40 +118,81 @@ def test_pictures_one_per_person_with_the_truth_after_start(gru, tmp_path, capsy
 # ----------------------------------------------------------------------------- checkpoints of other kinds
 
 
-def test_known_schemas_are_the_modules_own():
-    from roomcap.forecast import benchmark_cmu8
-    from roomcap.forecast.behaviour import model as behaviour_model
-    from roomcap.forecast.behaviour import quality
-    from roomcap.forecast.characteristic import model as characteristic_model
+def test_every_family_is_written_and_read_by_the_one_format():
+    """The lab's families name their registry family; the one reader refuses a file of another family with
+    what it is."""
+    from roomcap.forecast.lab import benchmark_cmu8, benchmark_cmu8_angle
+    from roomcap.forecast.lab.behaviour import model as behaviour_model
+    from roomcap.forecast.lab.behaviour import quality
+    from roomcap.forecast.lab.characteristic import model as characteristic_model
+    from roomcap.forecast.runtime.registry import FAMILIES, MODELS
 
-    owners = {C.CKPT_SCHEMA, characteristic_model.CKPT_SCHEMA, benchmark_cmu8.CKPT_SCHEMA}
-    owners |= {behaviour_model.SCHEMA, quality.SCHEMA}
-    assert set(C.KNOWN_SCHEMAS) == owners
+    owners = {benchmark_cmu8.FAMILY, benchmark_cmu8_angle.FAMILY, characteristic_model.FAMILY}
+    owners |= {behaviour_model.FAMILY, quality.FAMILY, *MODELS}
+    assert set(FAMILIES) == owners
+
+
+def _v1(state: dict) -> dict:
+    """A GRU checkpoint of the first format (forecast-checkpoint/1), as roomcap wrote it before the one."""
+    cfg = config_from_dict("gru", {"hidden": 8, "n_obs": 20, "n_pred": 10})
+    return {
+        "schema": "forecast-checkpoint/1",
+        "kind": "gru",
+        "config": __import__("dataclasses").asdict(cfg),
+        "skeleton": "body19",
+        "joint_names": list(get_skeleton("body19").joint_names),
+        "fps": 25.0,
+        "normalisation": C.NORMALISATION,
+        "state_dict": state,
+        "extra": {"train_clips": ["a"], "val_clips": ["b"], "test_clips": ["c"], "command": "forecast train"},
+    }
+
+
+def test_an_older_schema_is_upgraded_on_read_and_converted(gru, tmp_path, caplog, capsys):
+    model, _ = C.load_checkpoint(gru)
+    torch.save(_v1(model.state_dict()), tmp_path / "old.pt")
+    with caplog.at_level("WARNING"):
+        old, meta = C.load_checkpoint(tmp_path / "old.pt")
+    assert "upgraded on read" in caplog.text and "forecast models --convert" in caplog.text
+    assert meta["model"] == "gru" and meta["card"]["command"] == "forecast train"
+    assert meta["upgraded_from"] == "forecast-checkpoint/1"
+    assert all(
+        torch.equal(a, b) for a, b in zip(old.state_dict().values(), model.state_dict().values(), strict=True)
+    )
+    assert main(["models", "--convert", str(tmp_path / "old.pt"), str(tmp_path / "new.pt")]) == 0
+    assert "'forecast-checkpoint/1' -> 'forecast-checkpoint/2'" in capsys.readouterr().out
+    blob = torch.load(tmp_path / "new.pt", weights_only=True)
+    assert blob["schema"] == C.SCHEMA and set(blob["weights"]) == {"model"} and blob["card"]["split"]
+    assert main(["models", "--convert", str(tmp_path / "missing.pt"), str(tmp_path / "x.pt")]) == 2
 
 
 @pytest.mark.parametrize(
     ("blob", "words"),
     [
-        ({"schema": "forecast-characteristic/1", "kind": "characteristic"}, "characteristic-3D-pose"),
-        ({"schema": "forecast-cmu8-checkpoint/1", "kind": "dct_mlp"}, "--protocol cmu8"),
-        ({"schema": "behaviour_checkpoint/1"}, "forecast behaviour sample"),
-        ({"schema": "forecast-checkpoint/0", "kind": "gru"}, "written by another roomcap version"),
+        ({"schema": "forecast-checkpoint/2", "model": "characteristic"}, "characteristic-3D-pose"),
+        ({"schema": "forecast-checkpoint/2", "model": "cmu8_dct_mlp"}, "--protocol cmu8"),
+        ({"schema": "forecast-checkpoint/2", "model": "behaviour"}, "forecast behaviour sample"),
+        (
+            {"schema": "forecast-checkpoint/2", "model": "transformer"},
+            "model 'transformer', which this roomcap",
+        ),
+        ({"schema": "forecast-checkpoint/0", "kind": "gru"}, "which roomcap does not know (this version"),
         ({"w": torch.zeros(2), "b": torch.zeros(1)}, "bare PyTorch state dict (2 tensors"),
         ({"schema": "someone-else/3"}, "which roomcap does not know"),
     ],
 )
 def test_a_checkpoint_of_another_kind_is_named(tmp_path, blob, words):
     torch.save(blob, tmp_path / "x.pt")
-    with pytest.raises(FormatError, match="schema") as e:
+    with pytest.raises(FormatError) as e:
         C.load_checkpoint(tmp_path / "x.pt")
-    assert words in str(e.value) and "forecast train" in str(e.value)
+    assert words in str(e.value) and "forecast train --model gru" in str(e.value)
     assert "\n" not in str(e.value)
 
 
 def test_an_unknown_model_or_config_says_what_to_do(gru, tmp_path, capsys):
     blob = torch.load(gru, weights_only=True)
-    torch.save({**blob, "kind": "transformer"}, tmp_path / "t.pt")
-    with pytest.raises(FormatError, match="a 'transformer' model, which this roomcap version does not build"):
+    torch.save({**blob, "model": "transformer"}, tmp_path / "t.pt")
+    with pytest.raises(FormatError, match="model 'transformer', which this roomcap version does not know"):
         C.load_checkpoint(tmp_path / "t.pt")
     torch.save({**blob, "config": {**blob["config"], "heads": 4}}, tmp_path / "c.pt")
     with pytest.raises(FormatError, match="gru config does not fit this roomcap version") as e:
@@ -160,11 +201,11 @@ def test_an_unknown_model_or_config_says_what_to_do(gru, tmp_path, capsys):
     _track(tmp_path / "t.npz")
     assert main(["sample", "--checkpoint", str(tmp_path / "t.pt"), "--tracks", str(tmp_path / "t.npz"),
                  "--out", str(tmp_path / "f.npz")]) == 2  # fmt: skip
-    assert "does not build" in capsys.readouterr().err
+    assert "does not know" in capsys.readouterr().err
 
 
 def test_pictures_of_a_stochastic_forecast_draw_the_spread(tmp_path):
-    from roomcap.forecast.sample_plot import plot_forecasts
+    from roomcap.forecast.runtime.sample_plot import plot_forecasts
 
     S, H, K, J = 8, 25, 2, 19
     rng = np.random.default_rng(0)
@@ -186,16 +227,17 @@ def test_pictures_of_a_stochastic_forecast_draw_the_spread(tmp_path):
 
 
 def test_the_cmu8_reader_names_a_checkpoint_of_another_kind(gru):
-    from roomcap.forecast.benchmark_cmu8 import load_mlp
+    from roomcap.forecast.lab.benchmark_cmu8 import load_mlp
 
-    with pytest.raises(FormatError, match=r"a forecast checkpoint \(GRU, intention or Social Diffusion\)"):
+    with pytest.raises(FormatError, match=r"a 'gru' checkpoint, not 'cmu8_dct_mlp': seq2seq GRU"):
         load_mlp(gru)
 
 
 def test_forecast_models_lists_the_cards(gru, tmp_path, capsys):
     import json
 
-    from roomcap.forecast.preview import CHECKPOINT_DIR, DEFAULT_CHECKPOINT
+    from roomcap.forecast.runtime.cards import cards
+    from roomcap.forecast.runtime.preview import CHECKPOINT_DIR, DEFAULT_CHECKPOINT
 
     assert main(["models"]) == 0
     out = capsys.readouterr().out
@@ -211,7 +253,9 @@ def test_forecast_models_lists_the_cards(gru, tmp_path, capsys):
     assert main(["models", "--folder", str(folder), "--json"]) == 0
     cs = json.loads(capsys.readouterr().out)
     assert [c["file"] for c in cs] == ["a.pt", "b.pt", "c.pt"]
-    assert cs[0]["model"].startswith("gru: ") and cs[0]["observes"] == "20 frames (0.8 s)"
-    assert "bare PyTorch state dict" in cs[1]["what"] and cs[2]["what"].startswith("not readable")
+    assert cs[0]["model"] == "gru" and cs[0]["observes"] == "20 frames (0.8 s)"
+    assert "bare PyTorch state dict" in cs[1]["what"] and "not a readable checkpoint" in cs[2]["what"]
+    for c in cards(CHECKPOINT_DIR):  # every shipped file is of the one format, its card says how it was made
+        assert c["schema"] == C.SCHEMA and {"data", "selection", "scores", "command"} <= set(c), c["file"]
     assert main(["models", "--folder", str(tmp_path / "none")]) == 2
     assert "is not a folder of checkpoints" in capsys.readouterr().err

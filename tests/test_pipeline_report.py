@@ -428,7 +428,7 @@ def test_report_forecast_paths_with_the_samples_spread(tmp_path):
     """A stochastic model's preview carries its samples; the report gives each person's floor path, the
     samples' paths and their spread; a deterministic one says so (no spread drawn) and the page renders
     both without errors."""
-    from roomcap.forecast.preview import CHECKPOINT_DIR, write_preview
+    from roomcap.forecast.runtime.preview import CHECKPOINT_DIR, write_preview
 
     ckpt = CHECKPOINT_DIR / "intention_cmuall.pt"
     if not ckpt.exists():

@@ -350,8 +350,10 @@ def test_a_stage_fingerprints_the_code_it_imports_not_whole_folders():
         return {f.relative_to(_ROOT).as_posix() for f in code_files(stage)}
 
     forecast, track, report = rel("forecast"), rel("track"), rel("report")
-    assert "forecast/preview.py" in forecast and "track/trackfile.py" in forecast
-    assert not {f for f in forecast if f.startswith(("forecast/behaviour/", "forecast/benchmark"))}
+    assert "forecast/runtime/preview.py" in forecast and "track/trackfile.py" in forecast
+    assert not {
+        f for f in forecast if f.startswith("forecast/lab/")
+    }  # the runtime imports nothing of the lab
     assert (
         "track/particle.py" in track
         and "track/kernels.py" in track
@@ -390,7 +392,7 @@ def test_editing_code_outside_a_stage_reruns_nothing_and_inside_reruns_it(tmp_pa
     (first,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
     assert first.status == "ok" and {"triangulate", "track", "report"} <= set(first.ran)
     # the behaviour trainer, the LSL/OSC streams and a benchmark are outside every stage's imports
-    for f in ("forecast/behaviour/training.py", "outputs/lsl_osc.py", "forecast/benchmark_cmu8.py"):
+    for f in ("forecast/lab/behaviour/training.py", "outputs/lsl_osc.py", "forecast/lab/benchmark_cmu8.py"):
         (src / f).write_text((src / f).read_text() + "\n# edited\n")
     monkeypatch.setattr(provenance, "_code_cache", {})
     (second,) = run_sessions(discover([tmp_path / "in"]), tmp_path / "out", CFG, workers=1)
@@ -406,7 +408,7 @@ def test_editing_code_outside_a_stage_reruns_nothing_and_inside_reruns_it(tmp_pa
 
 def test_a_behaviour_forecast_marks_the_report_stale_and_the_rerun_shows_it(tmp_path):
     from roomcap.capture.session import SessionLayout
-    from roomcap.forecast.behaviour.sample import run_sample
+    from roomcap.forecast.lab.behaviour.sample import run_sample
     from roomcap.pipeline.report import collect
     from roomcap.track.trackfile import TrackFile
 

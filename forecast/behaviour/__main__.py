@@ -1,4 +1,4 @@
-from roomcap.forecast.behaviour.cli import main
+from roomcap.forecast.lab.behaviour.cli import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

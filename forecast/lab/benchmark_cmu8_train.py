@@ -1,0 +1,249 @@
+"""Training of the CMU 8-action benchmark's DCT + MLP forecaster: ``forecast cmu8 train | ensemble``.
+
+The train files of the benchmark (:mod:`forecast.lab.benchmark_cmu8`) less the last file of each action,
+which
+is the validation split (model selection only); the test files are never read. siMLPe's recipe (Guo et al.
+2023): AdamW with a cosine schedule, the point error plus the velocity error, and the augmentations
+``--mirror`` (left/right) and ``--reverse`` (windows played backwards); the state with the lowest validation
+MPJPE is kept. ``forecast cmu8 ensemble`` writes one checkpoint averaging several trained models.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from roomcap.core.cli import positive_float, positive_int
+from roomcap.core.errors import InputError
+from roomcap.core.progress import Bars
+from roomcap.forecast.lab import benchmark_cmu8_angle as A
+from roomcap.forecast.lab import cmu_more as C
+from roomcap.forecast.lab.benchmark_cmu8 import (
+    JOINTS_USED,
+    DctMlp,
+    DctMlpEnsemble,
+    Forecaster,
+    MlpConfig,
+    at_horizons,
+    fit_mlp,
+    load_mlp,
+    mlp_forecast,
+    mpjpe_mm,
+    save_ensemble,
+    save_mlp,
+    train_windows,
+)
+
+log = logging.getLogger(__name__)
+
+
+def mirror_index() -> np.ndarray:
+    """For the 25 used points: the index of each one's left/right partner (legs 1-6 <-> 7-12, arms 20-28 <->
+    29-37 of the reference's 38; the spine is its own partner)."""
+    perm = list(range(38))
+    for a, b in [(i, i + 6) for i in range(1, 7)] + [(20 + k, 29 + k) for k in range(9)]:
+        perm[a], perm[b] = b, a
+    used = list(JOINTS_USED)
+    return np.array([used.index(perm[j]) for j in used])
+
+
+def _mirror(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Windows ``b (B,T,25,3)``: those with ``flip`` mirrored (x -> -x in the body frame, left <-> right)."""
+    m = b[:, :, idx].clone()
+    m[..., 0] = -m[..., 0]
+    return torch.where(flip[:, None, None, None], m, b)
+
+
+def _reverse(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
+    """Windows ``b (B,T,25,3)``: those with ``flip`` played backwards (the whole window, observed and future,
+    so the model observes the last frames and forecasts the first ones)."""
+    return torch.where(flip[:, None, None, None], b.flip(1), b)
+
+
+def split_train_val(bf: C.BenchmarkFiles) -> tuple[list[Path], list[Path]]:
+    """Train / validation split of the train files: the highest-numbered file of each action with at least
+    two files is validation (model selection only); the test files are never touched."""
+    tr, va = [], []
+    for a in C.BENCHMARK_ACTIONS:
+        fs = bf.files["train"].get(a, [])
+        if len(fs) >= 2:
+            tr += fs[:-1]
+            va.append(fs[-1])
+        else:
+            tr += fs
+    return tr, va
+
+
+def train_mlp(
+    train_files: list[Path], val_files: list[Path], config: MlpConfig, progress=None
+) -> tuple[DctMlp, dict]:
+    """Train the DCT + MLP on all windows of ``train_files``; keep the state with the lowest validation MPJPE
+    (protocol units, mean over the six horizons, windows every 5 frames of ``val_files``)."""
+    torch.manual_seed(config.seed)
+    t_load = time.perf_counter()
+    win = train_windows(train_files)
+    val = train_windows(val_files, stride=5) if val_files else win[:: max(1, len(win) // 256)]
+    t_load = time.perf_counter() - t_load
+    used = list(JOINTS_USED)
+    model = DctMlp(len(used), config)
+    midx = torch.from_numpy(mirror_index())
+
+    def augment(b: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+        if config.mirror:
+            b = _mirror(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
+        if config.reverse:
+            b = _reverse(b, torch.from_numpy(rng.random(len(b)) < 0.5))
+        return b
+
+    hist = fit_mlp(
+        model,
+        torch.from_numpy(win[:, :, used]),
+        config,
+        lambda m: validation_mm(m, val),
+        "val_mm",
+        augment,
+        progress,
+    )
+    hist.update(n_train_windows=len(win), n_val_windows=len(val), load_s=t_load)
+    return model, hist
+
+
+def validation_mm(model: Forecaster, val: np.ndarray) -> float:
+    """Validation MPJPE: protocol units, mean over the six horizons of windows ``val (W, 75, 38, 3)``."""
+    pred = mlp_forecast(model, val[:, : model.n_obs])
+    return float(np.mean(at_horizons(mpjpe_mm(pred, val[:, model.n_obs : model.n_obs + model.n_pred]))))
+
+
+# ----------------------------------------------------------------------------- `forecast cmu8 train`
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``forecast cmu8 train --out PATH``: train the DCT + MLP on the benchmark's train files (validation =
+    the last train file of each action), keep the best validation state, write the checkpoint."""
+    p = argparse.ArgumentParser(prog="forecast cmu8", description=main.__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train", help="train the DCT + MLP on the benchmark's train files")
+    t.add_argument("path", nargs="?", help="the benchmark-cmu8 folder (default: the shared one)")
+    t.add_argument("--out", required=True)
+    d = MlpConfig()
+    t.add_argument("--steps", type=positive_int, default=d.steps)
+    t.add_argument("--batch", type=positive_int, default=d.batch)
+    t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
+    t.add_argument("--lr", type=positive_float, default=d.lr)
+    t.add_argument("--seed", type=int, default=d.seed)
+    t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
+    t.add_argument("--reverse", action="store_true", help="augment with windows played backwards")
+    t.add_argument(
+        "--angles",
+        action="store_true",
+        help="forecast the exponential maps (scored by `forecast eval --protocol cmu8 --metric angle`) "
+        "instead of the 3D points; --mirror does not apply",
+    )
+    t.add_argument("--threads", type=positive_int, default=1)
+    e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
+    e.add_argument("members", nargs="+", help="checkpoints written by `forecast cmu8 train`")
+    e.add_argument("--data", help="the benchmark-cmu8 folder (default: the shared one)")
+    e.add_argument("--out", required=True)
+    e.add_argument("--threads", type=positive_int, default=1)
+    args = p.parse_args(argv)
+    args.command = "forecast cmu8 " + " ".join(sys.argv[1:] if argv is None else argv)  # the model card's
+    torch.set_num_threads(args.threads)
+    if args.cmd == "ensemble":
+        return _main_ensemble(args)
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logging.getLogger(__name__).setLevel(logging.INFO)  # the validation curve, one line per check
+    cfg = MlpConfig(
+        n_blocks=args.blocks,
+        lr=args.lr,
+        steps=args.steps,
+        batch=args.batch,
+        seed=args.seed,
+        mirror=args.mirror,
+        reverse=args.reverse,
+    )
+    bf = C.benchmark_files(args.path)
+    tr, va = split_train_val(bf)
+    if not tr:
+        raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
+    print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
+          f"missing: {bf.missing_text()}")  # fmt: skip
+    if args.angles:
+        if args.mirror:
+            raise InputError("--mirror does not apply to --angles (a mirrored rotation is not a relabelling)")
+        with Bars(unit="step") as bars:
+            f, hist = A.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n))
+        A.save(
+            args.out,
+            f,
+            cfg,
+            {
+                "train_files": [p.name for p in tr],
+                "val_files": [p.name for p in va],
+                **hist,
+                "command": args.command,
+            },
+        )
+        b = hist["best"]
+        print(
+            f"kept step {b['step']} (validation angle error {b['val_rad']:.3f} rad, mean of the 5 horizons); "
+            f"{hist['n_train_windows']} train windows, {hist['train_s']:.0f} s; wrote {args.out}"
+        )
+        return 0
+    with Bars(unit="step") as bars:
+        model, hist = train_mlp(tr, va, cfg, progress=lambda i, n: bars("train", i, n))
+    extra = {
+        "train_files": [f.name for f in tr],
+        "val_files": [f.name for f in va],
+        "files_missing": bf.missing,
+        **{k: v for k, v in hist.items()},
+        "command": args.command,
+    }
+    save_mlp(args.out, model, cfg, extra)
+    b = hist["best"]
+    print(
+        f"kept step {b['step']} (validation MPJPE {b['val_mm']:.1f} mm, mean of the six horizons); "
+        f"{hist['n_train_windows']} train windows, {hist['train_s']:.0f} s, "
+        f"{hist['steps_per_s']:.2f} steps/s, {hist['samples_per_s']:.0f} samples/s; wrote {args.out}"
+    )
+    return 0
+
+
+def _main_ensemble(args) -> int:
+    """``forecast cmu8 ensemble --out PATH A.pt B.pt ...``: every member and their mean scored on the
+    validation windows (as in training), the ensemble written."""
+    members, names = [], []
+    for p in args.members:
+        m, blob = load_mlp(p)
+        if not isinstance(m, DctMlp):
+            raise InputError(f"{p} is already an ensemble; give the single models it was made of")
+        members.append((m, MlpConfig(**blob["config"]["members"][0])))
+        names.append(Path(p).name)
+    bf = C.benchmark_files(args.data)
+    _, va = split_train_val(bf)
+    if not va:
+        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    val = train_windows(va, stride=5)
+    scores = {n: validation_mm(m, val) for n, (m, _) in zip(names, members, strict=True)}
+    ens = DctMlpEnsemble([m for m, _ in members])
+    v = validation_mm(ens, val)
+    for n, s in scores.items():
+        print(f"{n}: validation MPJPE {s:.2f} mm")
+    print(f"ensemble of {len(members)}: validation MPJPE {v:.2f} mm (mean of the six horizons)")
+    extra = {
+        "members": names,
+        "member_val_mm": scores,
+        "best": {"val_mm": v},
+        "val_files": [f.name for f in va],
+        "files_missing": bf.missing,
+        "member_train": [load_mlp(p)[1].get("extra", {}) for p in args.members],
+        "command": args.command,
+    }
+    save_ensemble(args.out, members, extra)
+    print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,188 @@
+"""Two people together over a long horizon, on real two-person takes (the CMU salsa pairs).
+
+Per model, from windows of held-out takes (observe ``n_obs`` frames of both partners, forecast ``n_pred``):
+
+- NDMS(t) per person (eq. 6.9-6.12, the seed's root-centred words): D = the held-out takes' motion of the
+  partner's activity, the window's own take included (as ``evaluate.evaluate_single``'s ``ndms``);
+- the partners' distance (mid-hip to mid-hip, floor plane) and facing angle (the angle between one partner's
+  forward direction and the direction to the other, averaged over the two; 0° = both face each other) against
+  the real takes' distribution: its 5-95 % range over every frame of the held-out takes, and the share of the
+  forecast frames whose median over windows lies inside it (``*_in_range``), beside the share of all
+  (window, frame) values inside it (``*_in_range_all``);
+- the SSCP distance (sec. 7.3, eq. 7.14, ``metrics.default_social_state``) between the state transitions of
+  the real windows (observed + real future) and the forecast ones (observed + forecast).
+
+``real`` (the real future) is the reference row. Shapes: B windows, H forecast frames, P = 2, J joints.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from roomcap.core.errors import InputError
+from roomcap.forecast.lab import data as fdata
+from roomcap.forecast.lab import metrics as M
+from roomcap.forecast.lab.clips import clip_activities
+from roomcap.forecast.lab.evaluate import Real, ndms_scorer_for
+from roomcap.forecast.lab.protocol import Table, results
+from roomcap.forecast.runtime.predict import forecast_world
+from roomcap.keypoints.skeletons import get_skeleton
+
+PAIR_TIMES_S = (2.0, 4.0, 6.0, 8.0, 10.0)
+
+
+def partner_distance(X: np.ndarray, lhip: int, rhip: int) -> np.ndarray:
+    """Floor-plane distance of the two partners' roots: X (...,2,J,3) -> (...,) metres."""
+    root = M.root_trajectory(X, lhip, rhip)[..., 0, :2]  # (...,2,2)
+    return np.linalg.norm(root[..., 1, :] - root[..., 0, :], axis=-1)
+
+
+def facing_angle(X: np.ndarray, lhip: int, rhip: int) -> np.ndarray:
+    """Mean over the two partners of the angle (degrees) between one's forward direction
+    (``metrics.facing_direction``) and the floor-plane direction to the other: X (...,2,J,3) -> (...,)."""
+    root = M.root_trajectory(X, lhip, rhip)[..., 0, :2]
+    fwd = M.facing_direction(X, lhip, rhip)  # (...,2,2)
+    d = root[..., 1, :] - root[..., 0, :]
+    d = d / (np.linalg.norm(d, axis=-1, keepdims=True) + 1e-9)
+    c0 = np.clip((fwd[..., 0, :] * d).sum(-1), -1, 1)
+    c1 = np.clip((fwd[..., 1, :] * -d).sum(-1), -1, 1)
+    return 0.5 * (np.degrees(np.arccos(c0)) + np.degrees(np.arccos(c1)))
+
+
+def _range_share(values: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """values (B,H): share of frames whose median over windows lies in [lo, hi]; share of all values in it."""
+    med = np.median(values, 0)
+    return float(((med >= lo) & (med <= hi)).mean()), float(((values >= lo) & (values <= hi)).mean())
+
+
+def evaluate_pairs(
+    models: dict[str, object],
+    takes: list[fdata.Clip],
+    *,
+    n_obs: int = 32,
+    n_pred: int = 250,
+    stride: int = 50,
+    seed: int = 0,
+    activities: dict[str, str] | None = None,
+) -> dict:
+    """Models on windows of the held-out two-person ``takes`` (P = 2 each, complete). One sample per window
+    (as ``evaluate.evaluate_social``). -> {"fps", "n_windows", "takes", "real_range": {...}, "models": {name:
+    {"ndms": [H], "ndms_p0": [H], "ndms_p1": [H], "ndms_at": {t: v}, "distance": [H] (median over windows),
+    "facing_deg": [H], "distance_in_range", "distance_in_range_all", "facing_in_range",
+    "facing_in_range_all", "sscp_jsd", "wall_s"}}}."""
+    t0 = time.perf_counter()
+    takes = [c for c in takes if c.xyz_m.shape[1] == 2 and np.isfinite(c.xyz_m).all()]
+    if not takes:
+        raise InputError("no complete two-person takes to evaluate on")
+    ws = fdata.make_windows(takes, n_obs, n_pred, stride, persons="all", min_persons=2, max_persons=2)
+    if len(ws) == 0:
+        raise InputError(f"no two-person windows of {n_obs + n_pred} frames in {len(takes)} takes")
+    acts = clip_activities(takes) if activities is None else activities
+    names = get_skeleton(takes[0].skeleton).joint_names
+    lh, rh = fdata.hip_indices(names)
+    scorer = ndms_scorer_for(takes, activities=acts)
+    sscp = M.SSCP(lambda X: M.default_social_state(X, names), M.N_DEFAULT_STATES)
+    x = ws.x  # (B,T,2,J,3)
+    obs, gt = x[:, :n_obs], x[:, n_obs:]
+    wact = [acts.get(takes[c].name, fdata.UNLABELLED) for c in ws.clip]
+    rng_d, rng_f = _real_ranges(takes, lh, rh)
+    real_scenes = list(x)
+    fps = ws.fps
+    out: dict = {
+        "fps": fps,
+        "n_obs": n_obs,
+        "n_pred": n_pred,
+        "n_windows": len(x),
+        "takes": [c.name for c in takes],
+        "real_range": {"distance_m_5_95": list(rng_d), "facing_deg_5_95": list(rng_f)},
+        "models": {},
+    }
+    for name, model in models.items():
+        tm = time.perf_counter()
+        y = gt if isinstance(model, Real) else _forecast_pairs(model, obs, n_pred, seed)
+        per = _ndms_per_person(scorer, obs, y, wact)  # (2,B,H)
+        nd = per.mean((0, 1))
+        d, f = partner_distance(y, lh, rh), facing_angle(y, lh, rh)  # (B,H)
+        d_in, d_all = _range_share(d, *rng_d)
+        f_in, f_all = _range_share(f, *rng_f)
+        gen = [np.concatenate([obs[b], y[b]], 0) for b in range(len(y))]
+        win = max(1, int(0.2 * fps))
+        out["models"][name] = {
+            "ndms": nd.tolist(),
+            "ndms_p0": per[0].mean(0).tolist(),
+            "ndms_p1": per[1].mean(0).tolist(),
+            "ndms_at": {
+                f"{t:g}": float(nd[max(0, int(round(t * fps)) - win) : int(round(t * fps))].mean())
+                for t in PAIR_TIMES_S
+                if t * fps <= n_pred
+            },
+            "distance": np.median(d, 0).tolist(),
+            "facing_deg": np.median(f, 0).tolist(),
+            "distance_in_range": d_in,
+            "distance_in_range_all": d_all,
+            "facing_in_range": f_in,
+            "facing_in_range_all": f_all,
+            "sscp_jsd": sscp.distance(real_scenes, gen),
+            "wall_s": time.perf_counter() - tm,
+        }
+    out["wall_s"] = time.perf_counter() - t0
+    return results("pairs", "Two people over a long horizon: the held-out salsa pairs", *_report(out), **out)
+
+
+def _real_ranges(
+    takes: list[fdata.Clip], lh: int, rh: int
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The 5th-95th percentile range of the partners' distance (m) and facing angle (deg) over every real
+    frame of the takes."""
+    every = np.concatenate([c.xyz_m for c in takes], 0)  # every real frame of the held-out takes
+    dist_real, face_real = partner_distance(every, lh, rh), facing_angle(every, lh, rh)
+    rng_d = (float(np.percentile(dist_real, 5)), float(np.percentile(dist_real, 95)))
+    rng_f = (float(np.percentile(face_real, 5)), float(np.percentile(face_real, 95)))
+    return rng_d, rng_f
+
+
+def _forecast_pairs(model, obs: np.ndarray, n_pred: int, seed: int) -> np.ndarray:
+    """One forecast (B,H,2,J,3) of each two-person window, with the same sampling noise on every run."""
+    torch.manual_seed(seed)
+    return forecast_world(model, obs, None, n_pred, 1)[:, 0]  # (B,H,2,J,3)
+
+
+def _ndms_per_person(scorer, obs: np.ndarray, y: np.ndarray, wact: list[str]) -> np.ndarray:
+    """NDMS (2,B,H) of each person's forecast in each window, against the windows' activities."""
+    return np.stack(
+        [
+            np.stack(
+                [scorer.score_forecast(obs[b, :, p], y[b, None, :, p], None, wact[b]) for b in range(len(y))]
+            )
+            for p in range(2)
+        ]
+    )
+
+
+def _report(res: dict) -> tuple[list[str], list[Table]]:
+    """The report's note and its table: NDMS at 2-10 s per model, the range shares and SSCP."""
+    rr = res["real_range"]
+    ts = list(next(iter(res["models"].values()))["ndms_at"])
+    notes = [
+        f"{res['n_windows']} windows of held-out takes ({', '.join(res['takes'])}), observe {res['n_obs']} / "
+        f"forecast {res['n_pred']} frames at {res['fps']:g} Hz, one sample each; real 5-95 %: distance "
+        f"{rr['distance_m_5_95'][0]:.2f}-{rr['distance_m_5_95'][1]:.2f} m, facing "
+        f"{rr['facing_deg_5_95'][0]:.0f}-{rr['facing_deg_5_95'][1]:.0f}°"
+    ]
+    columns = ["model", *(f"NDMS {t} s" for t in ts), "NDMS p0 / p1 (mean)"]
+    columns += ["distance in range (median / all)", "facing in range (median / all)", "SSCP"]
+    rows = [
+        [
+            name,
+            *(f"{r['ndms_at'][t]:.3f}" for t in ts),
+            f"{np.mean(r['ndms_p0']):.3f} / {np.mean(r['ndms_p1']):.3f}",
+            f"{r['distance_in_range']:.2f} / {r['distance_in_range_all']:.2f}",
+            f"{r['facing_in_range']:.2f} / {r['facing_in_range_all']:.2f}",
+            f"{r['sscp_jsd']:.3f}",
+        ]
+        for name, r in res["models"].items()
+    ]
+    return notes, [Table("", columns, rows)]
