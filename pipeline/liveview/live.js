@@ -154,7 +154,7 @@ function render(){
     tbl.appendChild(tr); }
   const errs = Object.entries((state.live && state.live.errors) || {});
   $('errors').textContent = errs.length ? 'stage errors: ' + errs.map(([k, v]) => `${k}: ${v}`).join('; ') : '';
-  if (state.seq !== acked) {
+  if (state.seq !== acked && !state.refresh) {  // a refresh (a new forecast of a drawn set): not a new frame
     acked = state.seq;
     const ms = Date.now() - state.t_capture_ms; lat.push(ms); if (lat.length > 60) lat.shift();
     const m = median(lat); $('latency').textContent = m.toFixed(0) + ' ms';
