@@ -118,8 +118,8 @@ def _page(b) -> dict:
 
 def drive_page(cmd: LiveCommand, profile: Path, png: Path, ready: str, latest_s: float) -> dict:
     """Open the command's page in a headless Chromium; a screenshot when the JavaScript ``ready`` is true
-    (checked twice a second), else at ``latest_s`` after the page opened. The page's readouts at that
-    moment, when, and the page's own errors."""
+    (checked 4 times a second; kept if the page still shows the same frame set after it), else at
+    ``latest_s`` after the page opened. The page's readouts at that moment, when, and its own errors."""
     from roomcap.pipeline.liveview.browser import HeadlessBrowser
 
     cmd.got_url.wait(120)
@@ -128,28 +128,35 @@ def drive_page(cmd: LiveCommand, profile: Path, png: Path, ready: str, latest_s:
     with HeadlessBrowser(profile, size_wh=(1500, 1150)) as b:
         b.open(cmd.url)
         t0 = time.monotonic()
-        met = False
-        while cmd.alive():
-            el = time.monotonic() - t0
+        res: dict = {"error": "the command ended before the screenshot"}
+
+        def check() -> bool:
             try:
-                met = bool(b.evaluate(ready))
+                return bool(b.evaluate(ready))
             except Exception:  # noqa: BLE001 - the page may be between loads: try again
-                met = False
-            if met or el > latest_s:
-                if met:
-                    time.sleep(0.6)  # a few more updates: the forecast's ghosts drawn beside the paths
+                return False
+
+        while cmd.alive():
+            met = check()
+            if met or time.monotonic() - t0 > latest_s:
+                frame = b.evaluate("document.body.dataset.frame")
                 b.screenshot(png)
                 page = _page(b)
-                return {
+                # the page may have drawn a newer update while the screenshot was taken: keep the shot
+                # only if the page still shows the same frame set (else try again, this one kept meanwhile)
+                met = met and page.get("frame") == frame and check()
+                res = {
                     "screenshot": str(png),
                     "condition_met": met,
                     "at_s_after_page_open": round(time.monotonic() - t0, 1),
                     "at_s_after_start": round(time.monotonic() - cmd.t0, 1),
                     "page": page,
-                    "page_errors": b.page_errors[:5],
                 }
-            time.sleep(0.5)
-        return {"error": "the command ended before the screenshot", "page_errors": b.page_errors[:5]}
+                if met or time.monotonic() - t0 > latest_s:
+                    break
+            time.sleep(0.25)
+        res["page_errors"] = b.page_errors[:5]
+        return res
 
 
 def empty_room(out: Path, tmp: Path, seconds: float) -> dict:
