@@ -15,7 +15,9 @@ Two runs, each a separate ``capture-run`` process (its output, stderr included, 
    to a frame's ``t_ns``), and a screenshot once the page draws tracked people with their forecast (path
    and ghost skeleton), or at 90 % of the run when it never did (said in the summary).
 
-Writes ``empty_room.png``, ``demo_forecast.png``, the two logs and ``summary.json`` under ``--out``.
+Writes ``empty_room.png``, ``demo_forecast.png`` (the page), ``demo_forecast_room.png`` (its 3D view of the
+room zoomed in 2.1x, when people with a forecast are in view), the two logs and ``summary.json`` under
+``--out``.
 
     python bench/bench_live_show.py [--out /tmp/live_show] [--seconds 20] [--empty-seconds 10]
 """
@@ -23,6 +25,7 @@ Writes ``empty_room.png``, ``demo_forecast.png``, the two logs and ``summary.jso
 from __future__ import annotations
 
 import argparse
+import base64
 import json
 import os
 import re
@@ -116,10 +119,13 @@ def _page(b) -> dict:
     return d
 
 
-def drive_page(cmd: LiveCommand, profile: Path, png: Path, ready: str, latest_s: float) -> dict:
+def drive_page(
+    cmd: LiveCommand, profile: Path, png: Path, ready: str, latest_s: float, room_png: Path | None = None
+) -> dict:
     """Open the command's page in a headless Chromium; a screenshot when the JavaScript ``ready`` is true
     (checked 4 times a second; kept if the page still shows the same frame set after it), else at
-    ``latest_s`` after the page opened. The page's readouts at that moment, when, and its own errors."""
+    ``latest_s`` after the page opened. The page's readouts at that moment, when, and its own errors.
+    ``room_png``: then also the room's 3D view zoomed in, when ``ready`` holds again."""
     from roomcap.pipeline.liveview.browser import HeadlessBrowser
 
     cmd.got_url.wait(120)
@@ -155,8 +161,33 @@ def drive_page(cmd: LiveCommand, profile: Path, png: Path, ready: str, latest_s:
                 if met or time.monotonic() - t0 > latest_s:
                     break
             time.sleep(0.25)
+        if room_png is not None and res.get("condition_met"):
+            res["room"] = _room_closeup(b, cmd, room_png, check)
         res["page_errors"] = b.page_errors[:5]
         return res
+
+
+ZOOM_STEPS = 8  # wheel steps on the room's 3D view (1.1x each: 2.1x)
+
+
+def _room_closeup(b, cmd: LiveCommand, png: Path, check) -> dict:
+    """The room's 3D view alone, zoomed in (the page's own wheel zoom), when ``check`` holds for the frame
+    set it shows: the forecast paths and ghost skeletons at a size one can see."""
+    b.evaluate(
+        f"for (let i = 0; i < {ZOOM_STEPS}; i++) document.getElementById('room').dispatchEvent("
+        "new WheelEvent('wheel', {deltaY: -100, cancelable: true}))"
+    )
+    r = json.loads(b.evaluate("JSON.stringify(document.getElementById('room').getBoundingClientRect())"))
+    clip = {"x": r["x"], "y": r["y"], "width": r["width"], "height": r["height"], "scale": 1}
+    while cmd.alive():
+        frame = b.evaluate("document.body.dataset.frame")
+        if check():
+            shot = b.call("Page.captureScreenshot", {"format": "png", "clip": clip})
+            if b.evaluate("document.body.dataset.frame") == frame and check():
+                png.write_bytes(base64.b64decode(shot["data"]))
+                return {"screenshot": str(png), "zoom": 1.1**ZOOM_STEPS, "page": _page(b)}
+        time.sleep(0.25)
+    return {"error": "the command ended before the room's close-up"}
 
 
 def empty_room(out: Path, tmp: Path, seconds: float) -> dict:
@@ -207,6 +238,7 @@ def demo(out: Path, tmp: Path, shared: Path, seconds: float) -> dict:
         "Number(document.body.dataset.people) > 0 && Number(document.body.dataset.forecastDrawn) > 0 "
         "&& document.body.dataset.panesDrawn === '4'",
         0.9 * seconds + 10.0,  # the page opens while the 2D model loads: a few seconds before the first set
+        room_png=out / "demo_forecast_room.png",
     )
     rc = cmd.wait(seconds + 180)
     lsl.stop()

@@ -819,3 +819,44 @@ def test_a_forecast_that_comes_after_its_state_is_sent_at_once():
         assert first["forecast"]["tracks"] == []  # the previous step's forecast is older than its horizon
         assert again["forecast"]["frame"] == s.frameset.index
         assert [t["id"] for t in again["forecast"]["tracks"]] == [3, 4]
+
+
+@need_chromium
+def test_the_page_acknowledges_a_frame_set_once_when_its_forecast_comes_later(tmp_path):
+    """The page's latency acknowledgements: a state sent again with its forecast (refresh) is not a new
+    frame set and is not acknowledged again; the next frame set is."""
+    from roomcap.pipeline.liveview.browser import HeadlessBrowser
+
+    rig = ring_rig(2, radius_m=4.0)
+    names = [c.name for c in rig.cameras]
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:"} for n in names]})
+    view = LiveView(ViewConfig(port=0, state_hz=1e6), cfg, None, None, rig)
+    steps = [_step(rig, names, i, np.stack([_person()]), img_wh=(64, 48)) for i in range(2)]
+    view.start()
+    try:
+        with HeadlessBrowser(tmp_path / "chrome") as b:
+            b.open(view.url)
+            assert b.wait_for("document.body.dataset.panes === '2'", 30)
+            t0 = time.monotonic()
+            while not view.n_clients and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            view.offer(steps[0])
+            assert b.wait_for("document.body.dataset.frame === '0'", 30)
+            t0 = time.monotonic()
+            while len(view.latency_ms()) < 1 and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            view._forecast_ready()  # the same step's state again
+            t0 = time.monotonic()
+            while view.states_sent < 2 and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            time.sleep(1.0)  # the page draws it (and would answer within a frame)
+            assert view.states_sent == 2 and len(view.latency_ms()) == 1
+            view.offer(steps[1])
+            assert b.wait_for("document.body.dataset.frame === '1'", 30)
+            t0 = time.monotonic()
+            while len(view.latency_ms()) < 2 and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            assert len(view.latency_ms()) == 2
+            assert not b.page_errors
+    finally:
+        view.stop()

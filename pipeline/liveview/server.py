@@ -25,8 +25,9 @@ state with ``{"ack": seq, "t_capture_ms": ...}``: the server's own latency measu
 :mod:`roomcap.pipeline.live_forecast`): each tracked person's next seconds as ``{"id", "path" (H,3) the
 hips' midpoint, "ghost" (J,3) the pose at the horizon}`` and its cost; the page's toggle sends
 ``{"forecast": false|true}``, which switches the forecaster off or on. A forecast that comes after its
-step's state was sent sends that state again with it (``"refresh": true``, no image, not acknowledged):
-under load the next step can come after the forecast's whole horizon.
+step's state was sent sends that state again with it (``"refresh": true``, no image; the page acknowledges
+it only when it is the first drawing of that frame set): under load the next step can come after the
+forecast's whole horizon.
 
 Hands: ``hello`` names the 44 hand points (``hand_names``: the two wrists, then the 42 hand joints) and
 their tree (``hand_parents``). A track estimate with hands (its ``joint_names`` has them) gives its track
@@ -450,8 +451,8 @@ class LiveView:
 
     def messages(self, step: LiveStep, now: float | None = None, refresh: bool = False) -> dict[str, Any]:
         """The messages for this step: ``state`` (rate-limited) and ``img:<cam>`` (rate-limited).
-        ``refresh``: the step's state was sent and its forecast came since: the state again (not
-        rate-limited, marked ``"refresh": true``: the page does not count it in the latency), no image."""
+        ``refresh``: the step's state was sent and its forecast came since: the state again, no image (not
+        rate-limited; marked ``"refresh": true``: the page acknowledges only a set's first drawing)."""
         now = time.monotonic() if now is None else now
         out: dict[str, Any] = {}
         fs = step.frameset
