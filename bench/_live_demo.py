@@ -94,3 +94,29 @@ class LslReader:
         time.sleep(drain_s)
         self._stop.set()
         self._t.join(2.0)
+
+
+def match_lsl_to_frames(lsl_ts, frame_t_ns, tol_ms: float = 2.0):
+    """Each LSL sample's frame in a track file: its timestamp (LSL's ``local_clock`` seconds) mapped back to
+    the host clock of ``capture.sources.host_now_ns`` (both CLOCK_MONOTONIC based; the offset measured here
+    equals the recording process's to a few µs) and matched to the nearest ``frame_t_ns``, each frame to
+    the first sample only (a set the track stage skipped as late can carry the time of the set before it).
+    Returns ``(frame row per sample, -1 where none is left within tol_ms; the error in ms per sample)``."""
+    import numpy as np
+    import pylsl
+
+    from roomcap.outputs.lsl_osc import lsl_clock_offset_ns
+
+    t_ns = np.asarray(lsl_ts, np.float64) * 1e9 + lsl_clock_offset_ns(pylsl.local_clock)
+    f = np.asarray(frame_t_ns, np.float64)
+    if not len(t_ns) or not len(f):
+        return np.full(len(t_ns), -1), np.full(len(t_ns), np.inf)
+    d = np.abs(t_ns[:, None] - f[None, :])
+    row, err = d.argmin(1), d.min(1) / 1e6
+    row = np.where(err <= tol_ms, row, -1)
+    seen: set[int] = set()
+    for i, r in enumerate(row.tolist()):
+        if r in seen:
+            row[i] = -1
+        seen.add(r)
+    return row, err

@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import LslReader, loopback_lsl, write_looping_cams  # noqa: E402
+from _live_demo import LslReader, loopback_lsl, match_lsl_to_frames, write_looping_cams  # noqa: E402
 
 URL = re.compile(r"live view: (http\S+)")
 SUMMARY = re.compile(r"live: (\d+) frame sets processed \((\d+) stale ones dropped, (\d+) complete\)")
@@ -265,39 +265,33 @@ def demo(out: Path, tmp: Path, shared: Path, seconds: float) -> dict:
 
 
 def _lsl_against(lsl: LslReader, tf, processed: int | None) -> dict:
-    """The samples the inlet got against the processed sets and the track file's frames: each sample's
-    timestamp is mapped back to the host clock (``t_ns``; LSL's clock and the host clock are both
-    CLOCK_MONOTONIC based, the command's offset to UNIX time is the same as this process's to a few µs) and
-    matched to the nearest frame (within 2 ms)."""
-    import pylsl
-
-    from roomcap.outputs.lsl_osc import lsl_clock_offset_ns
-
+    """The samples the inlet got against the processed sets and the track file's frames, each sample
+    matched to a frame by its timestamp (:func:`_live_demo.match_lsl_to_frames`); a sample with no frame
+    is a set the track stage skipped (late, out of order), sent with nobody."""
     res: dict = {"samples": lsl.n, "processed": processed, "inlet_open": lsl.connected_at is not None}
     if processed is not None:
         res["samples_equal_processed"] = lsl.n == processed
     if tf is None or not lsl.ts:
         return res
-    off_ns = lsl_clock_offset_ns(pylsl.local_clock)
-    t_ns = np.asarray(lsl.ts) * 1e9 + off_ns
-    d = np.abs(t_ns[:, None] - tf.t_ns[None, :].astype(np.float64))
-    nearest, err = d.argmin(1), d.min(1) / 1e6
-    ok = err <= 2.0
-    got = set(nearest[ok].tolist())
-    first = int(nearest[0]) if ok[0] else None
+    row, err = match_lsl_to_frames(lsl.ts, tf.t_ns)
+    ok = row >= 0
+    first = int(row[0]) if ok[0] else None
+    got = set(row[ok].tolist())
     missing = [int(tf.frame_index[i]) for i in range(first or 0, tf.n_frames) if i not in got]
     arr = np.asarray(lsl.rows, np.float32)
     # S slots x 19 joints x 4 values, then S track id channels (body19): a sample with no id is nobody
     per_slot = 19 * 4 + 1
     ids = arr[:, -(arr.shape[1] // per_slot) :] if arr.shape[1] % per_slot == 0 else None
+    nobody = (~np.isfinite(ids)).all(1) if ids is not None else None
     res.update(
         matched_to_track_frames=int(ok.sum()),
         track_frames=int(tf.n_frames),
         track_frames_before_inlet=first,
         track_frames_since_inlet_without_sample=missing[:20],
         n_without_sample=len(missing),
-        match_error_ms_max=float(err.max()),
-        samples_with_nobody=int((~np.isfinite(ids)).all(1).sum()) if ids is not None else None,
+        match_error_ms_max=float(err[ok].max()) if ok.any() else None,
+        samples_with_nobody=int(nobody.sum()) if nobody is not None else None,
+        unmatched_samples_with_nobody=int(nobody[~ok].sum()) if nobody is not None else None,
     )
     return res
 

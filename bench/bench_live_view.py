@@ -50,7 +50,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import CAMS, LslReader, loopback_lsl, write_looping_cams  # noqa: E402
+from _live_demo import CAMS, LslReader, loopback_lsl, match_lsl_to_frames, write_looping_cams  # noqa: E402
 
 
 class ThreadCpu:
@@ -360,33 +360,36 @@ def _rerun_check(session: Path, rig_toml: Path, rrd: Path) -> dict:
 
 
 def _compare_lsl(session: Path, rows: list, ts: list, slots: int) -> dict:
-    """The LSL samples an inlet received against the session's live track file: frames, positions (each
-    slot's track id channel names the column), timestamps against t_ns on LSL's clock."""
-    import pylsl
-
+    """The LSL samples an inlet received against the session's live track file: each sample matched to a
+    frame by its timestamp (:func:`_live_demo.match_lsl_to_frames`), positions compared (each slot's track
+    id channel names the column); a sample with no frame (a set the track stage skipped: late, out of
+    order) must hold nobody."""
     from roomcap.capture.session import SessionLayout
-    from roomcap.capture.sources import host_now_ns
     from roomcap.track.trackfile import TrackFile
 
     tf = TrackFile.load(SessionLayout(session).live_tracks)
     J = len(tf.joint_names)
     arr = np.asarray(rows, np.float32)
-    offset_s = float(np.median([host_now_ns() / 1e9 - pylsl.local_clock() for _ in range(5)]))
     ids = arr[:, slots * J * 4 :]
     xyz = arr[:, : slots * J * 4].reshape(len(arr), slots, J, 4)[..., :3]
-    n = min(len(arr), tf.n_frames)
+    row, err = match_lsl_to_frames(ts, tf.t_ns)
     equal = True
-    for t in range(n):
-        for s, tid in enumerate(ids[t]):
+    for i, t in enumerate(row):
+        if t < 0:
+            continue
+        for s, tid in enumerate(ids[i]):
             if np.isfinite(tid):
                 k = int(np.flatnonzero(tf.track_id == int(tid))[0])
-                equal &= bool(np.array_equal(xyz[t, s], tf.xyz_m[t, k], equal_nan=True))
-    err_ms = np.abs(np.asarray(ts[:n]) - (tf.t_ns[:n] / 1e9 - offset_s)) * 1e3
+                equal &= bool(np.array_equal(xyz[i, s], tf.xyz_m[t, k], equal_nan=True))
+    unmatched = row < 0
     return {
         "samples": len(arr),
         "track_file_frames": tf.n_frames,
+        "samples_matched": int((~unmatched).sum()),
+        "track_frames_without_sample": int(tf.n_frames - len(set(row[~unmatched].tolist()))),
+        "unmatched_samples_with_nobody": int((~np.isfinite(ids[unmatched])).all(1).sum()),
         "positions_equal": equal,
-        "timestamp_error_ms_max": float(err_ms.max()) if n else None,
+        "timestamp_error_ms_max": float(err[~unmatched].max()) if (~unmatched).any() else None,
     }
 
 
