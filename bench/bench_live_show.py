@@ -120,12 +120,19 @@ def _page(b) -> dict:
 
 
 def drive_page(
-    cmd: LiveCommand, profile: Path, png: Path, ready: str, latest_s: float, room_png: Path | None = None
+    cmd: LiveCommand,
+    profile: Path,
+    png: Path,
+    ready: str,
+    latest_s: float,
+    room_png: Path | None = None,
+    earliest_s: float = 0.0,
 ) -> dict:
     """Open the command's page in a headless Chromium; a screenshot when the JavaScript ``ready`` is true
     (checked 4 times a second; kept if the page still shows the same frame set after it), else at
     ``latest_s`` after the page opened. The page's readouts at that moment, when, and its own errors.
-    ``room_png``: then also the room's 3D view zoomed in, when ``ready`` holds again."""
+    ``room_png``: then also the room's 3D view zoomed in, when ``ready`` holds again. ``earliest_s``: not
+    before (the page's per-camera rates need a second of frames)."""
     from roomcap.pipeline.liveview.browser import HeadlessBrowser
 
     cmd.got_url.wait(120)
@@ -143,7 +150,7 @@ def drive_page(
                 return False
 
         while cmd.alive():
-            met = check()
+            met = time.monotonic() - t0 >= earliest_s and check()
             if met or time.monotonic() - t0 > latest_s:
                 frame = b.evaluate("document.body.dataset.frame")
                 b.screenshot(png)
@@ -213,6 +220,7 @@ def empty_room(out: Path, tmp: Path, seconds: float) -> dict:
         "document.body.dataset.panesDrawn === '2' && document.body.dataset.nobody === 'nobody in view' "
         "&& Number(document.body.dataset.frame) > 0",
         0.8 * seconds,
+        earliest_s=0.4 * seconds,
     )
     rc = cmd.wait(seconds + 120)
     return {"command": "python -m roomcap.pipeline.live " + " ".join(argv), "rc": rc, **cmd.figures(), **shot}
