@@ -23,3 +23,100 @@ def write_looping_cams(demo: Path, folder: Path) -> Path:
         )
     )
     return cams
+
+
+def loopback_lsl(folder: Path) -> Path:
+    """Keep LSL on this machine: ``folder/lsl_api.cfg`` (``ResolveScope = machine``, IPv4 loopback as the
+    only known peer), named in ``LSLAPICFG`` / ``LSL_API_CFG`` for this process and the ones it starts.
+    liblsl reads the file when it is first loaded: call this before ``import pylsl``."""
+    import os
+
+    cfg = folder / "lsl_api.cfg"
+    cfg.write_text(
+        "[ports]\nIPv6 = disable\n[multicast]\nResolveScope = machine\n[lab]\nKnownPeers = {127.0.0.1}\n"
+    )
+    os.environ["LSLAPICFG"] = os.environ["LSL_API_CFG"] = str(cfg)
+    return cfg
+
+
+class LslReader:
+    """An LSL inlet on the stream with ``source_id`` (``roomcap-<session>``) pulling every sample in a thread
+    of its own: ``rows`` (the samples), ``ts`` (their LSL timestamps), ``connected_at`` (``time.monotonic()``
+    when the inlet was open; None until then or when no stream was found in ``resolve_s``)."""
+
+    def __init__(self, source_id: str, resolve_s: float = 10.0):
+        import threading
+
+        self.source_id, self.resolve_s = source_id, resolve_s
+        self.rows: list = []
+        self.ts: list = []
+        self.connected_at: float | None = None
+        self._open = threading.Event()
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, name="lsl-reader", daemon=True)
+
+    def start(self) -> LslReader:
+        self._t.start()
+        return self
+
+    def wait_open(self, timeout_s: float | None = None) -> bool:
+        """Wait until the inlet is open (or the stream was not found); whether it is open."""
+        self._open.wait(timeout_s)
+        return self.connected_at is not None
+
+    def _run(self) -> None:
+        import time
+
+        import pylsl
+
+        try:
+            found = pylsl.resolve_byprop("source_id", self.source_id, 1, self.resolve_s)
+            if not found:
+                return
+            inlet = pylsl.StreamInlet(found[0])
+            inlet.open_stream(10.0)
+            self.connected_at = time.monotonic()
+        finally:
+            self._open.set()
+        while not self._stop.is_set():
+            d, ts = inlet.pull_chunk(timeout=0.2)
+            self.rows.extend(d)
+            self.ts.extend(ts)
+
+    @property
+    def n(self) -> int:
+        return len(self.rows)
+
+    def stop(self, drain_s: float = 0.5) -> None:
+        """Stop pulling (after ``drain_s`` more seconds of it: samples still on their way)."""
+        import time
+
+        time.sleep(drain_s)
+        self._stop.set()
+        self._t.join(2.0)
+
+
+def match_lsl_to_frames(lsl_ts, frame_t_ns, tol_ms: float = 2.0):
+    """Each LSL sample's frame in a track file: its timestamp (LSL's ``local_clock`` seconds) mapped back to
+    the host clock of ``capture.sources.host_now_ns`` (both CLOCK_MONOTONIC based; the offset measured here
+    equals the recording process's to a few µs) and matched to the nearest ``frame_t_ns``, each frame to
+    the first sample only (a set the track stage skipped as late can carry the time of the set before it).
+    Returns ``(frame row per sample, -1 where none is left within tol_ms; the error in ms per sample)``."""
+    import numpy as np
+    import pylsl
+
+    from roomcap.outputs.lsl_osc import lsl_clock_offset_ns
+
+    t_ns = np.asarray(lsl_ts, np.float64) * 1e9 + lsl_clock_offset_ns(pylsl.local_clock)
+    f = np.asarray(frame_t_ns, np.float64)
+    if not len(t_ns) or not len(f):
+        return np.full(len(t_ns), -1), np.full(len(t_ns), np.inf)
+    d = np.abs(t_ns[:, None] - f[None, :])
+    row, err = d.argmin(1), d.min(1) / 1e6
+    row = np.where(err <= tol_ms, row, -1)
+    seen: set[int] = set()
+    for i, r in enumerate(row.tolist()):
+        if r in seen:
+            row[i] = -1
+        seen.add(r)
+    return row, err

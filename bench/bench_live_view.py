@@ -50,7 +50,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import CAMS, write_looping_cams  # noqa: E402
+from _live_demo import CAMS, LslReader, loopback_lsl, match_lsl_to_frames, write_looping_cams  # noqa: E402
 
 
 class ThreadCpu:
@@ -121,11 +121,7 @@ def main() -> None:
     if find_chromium() is None:
         sys.exit("bench_live_view: no headless Chromium (apt-get install chromium)")
     tmp = Path(tempfile.mkdtemp(prefix="bench_live_view_"))
-    # LSL on loopback only: liblsl reads LSLAPICFG when it starts
-    (tmp / "lsl_api.cfg").write_text(
-        "[ports]\nIPv6 = disable\n[multicast]\nResolveScope = machine\n[lab]\nKnownPeers = {127.0.0.1}\n"
-    )
-    os.environ["LSLAPICFG"] = os.environ["LSL_API_CFG"] = str(tmp / "lsl_api.cfg")
+    loopback_lsl(tmp)  # LSL on loopback only: liblsl reads LSLAPICFG when it starts
     out_dir = Path(args.out) if args.out else tmp
     out_dir.mkdir(parents=True, exist_ok=True)
     write_looping_cams(demo, tmp)
@@ -173,25 +169,11 @@ def main() -> None:
             threading.Thread(target=osc.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True).start()
             oargs.osc_to = f"127.0.0.1:{osc.server_address[1]}"
         close = outputs.open(oargs, live, rec)
-        lsl_n = [0]
-        lsl_rows: list = []
-        lsl_ts: list = []
-        lsl_stop = threading.Event()
+        lsl = None
         if oargs.stream and "lsl" in ",".join(oargs.stream):
-            import pylsl
-
-            (info,) = pylsl.resolve_byprop("source_id", f"roomcap-{name}", 1, 10.0)
-            inlet = pylsl.StreamInlet(info)
-            inlet.open_stream(10.0)
-
-            def pull():
-                while not lsl_stop.is_set():
-                    d_, ts_ = inlet.pull_chunk(timeout=0.2)
-                    lsl_n[0] += len(d_)
-                    lsl_rows.extend(d_)
-                    lsl_ts.extend(ts_)
-
-            threading.Thread(target=pull, daemon=True).start()
+            lsl = LslReader(f"roomcap-{name}").start()
+            if not lsl.wait_open(15.0):
+                sys.exit(f"bench_live_view: no LSL stream roomcap-{name} on loopback")
         readouts: list[float] = []
         shot = None
         browser_thread = None
@@ -236,7 +218,8 @@ def main() -> None:
             browser_thread.join(30)
         status = view.status() if view is not None else {}
         close()
-        lsl_stop.set()
+        if lsl is not None:
+            lsl.stop(drain_s=0.0)
         if osc is not None:
             osc.shutdown()
             osc.server_close()
@@ -289,9 +272,12 @@ def main() -> None:
                 screenshot_page=shot_meta if browser else None,
             )
         if oargs.stream:
-            res.update(lsl_samples=lsl_n[0], osc_frames=osc_frames[0] if osc is not None else None)
-            if lsl_rows:
-                res["lsl_vs_live_track"] = _compare_lsl(sess, lsl_rows, lsl_ts, oargs.slots)
+            res.update(
+                lsl_samples=lsl.n if lsl is not None else None,
+                osc_frames=osc_frames[0] if osc is not None else None,
+            )
+            if lsl is not None and lsl.rows:
+                res["lsl_vs_live_track"] = _compare_lsl(sess, lsl.rows, lsl.ts, oargs.slots)
         return res
 
     phase("warmup", [], browser=False, seconds=4.0)  # compiles the tracker's kernels (numba) once
@@ -374,33 +360,36 @@ def _rerun_check(session: Path, rig_toml: Path, rrd: Path) -> dict:
 
 
 def _compare_lsl(session: Path, rows: list, ts: list, slots: int) -> dict:
-    """The LSL samples an inlet received against the session's live track file: frames, positions (each
-    slot's track id channel names the column), timestamps against t_ns on LSL's clock."""
-    import pylsl
-
+    """The LSL samples an inlet received against the session's live track file: each sample matched to a
+    frame by its timestamp (:func:`_live_demo.match_lsl_to_frames`), positions compared (each slot's track
+    id channel names the column); a sample with no frame (a set the track stage skipped: late, out of
+    order) must hold nobody."""
     from roomcap.capture.session import SessionLayout
-    from roomcap.capture.sources import host_now_ns
     from roomcap.track.trackfile import TrackFile
 
     tf = TrackFile.load(SessionLayout(session).live_tracks)
     J = len(tf.joint_names)
     arr = np.asarray(rows, np.float32)
-    offset_s = float(np.median([host_now_ns() / 1e9 - pylsl.local_clock() for _ in range(5)]))
     ids = arr[:, slots * J * 4 :]
     xyz = arr[:, : slots * J * 4].reshape(len(arr), slots, J, 4)[..., :3]
-    n = min(len(arr), tf.n_frames)
+    row, err = match_lsl_to_frames(ts, tf.t_ns)
     equal = True
-    for t in range(n):
-        for s, tid in enumerate(ids[t]):
+    for i, t in enumerate(row):
+        if t < 0:
+            continue
+        for s, tid in enumerate(ids[i]):
             if np.isfinite(tid):
                 k = int(np.flatnonzero(tf.track_id == int(tid))[0])
-                equal &= bool(np.array_equal(xyz[t, s], tf.xyz_m[t, k], equal_nan=True))
-    err_ms = np.abs(np.asarray(ts[:n]) - (tf.t_ns[:n] / 1e9 - offset_s)) * 1e3
+                equal &= bool(np.array_equal(xyz[i, s], tf.xyz_m[t, k], equal_nan=True))
+    unmatched = row < 0
     return {
         "samples": len(arr),
         "track_file_frames": tf.n_frames,
+        "samples_matched": int((~unmatched).sum()),
+        "track_frames_without_sample": int(tf.n_frames - len(set(row[~unmatched].tolist()))),
+        "unmatched_samples_with_nobody": int((~np.isfinite(ids[unmatched])).all(1).sum()),
         "positions_equal": equal,
-        "timestamp_error_ms_max": float(err_ms.max()) if n else None,
+        "timestamp_error_ms_max": float(err[~unmatched].max()) if (~unmatched).any() else None,
     }
 
 

@@ -24,6 +24,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -71,6 +72,9 @@ class LiveForecast:
         self.last_ms = 0.0  # the newest forecast's CPU time
         self.error: str | None = None
         self._pending = False
+        # called on the forecasting thread after each new forecast (the view sends it at once: under load
+        # the next frame set can come after the forecast's whole horizon, which would never be drawn)
+        self.listeners: list[Callable[[], None]] = []
 
     # ------------------------------------------------------------------ live loop
     def offer(self, step: Any) -> None:
@@ -177,6 +181,8 @@ class LiveForecast:
         self.n_forecast += 1
         if self.enabled:
             self.latest = fc
+            for f in self.listeners:
+                f()
         return True
 
     def build(self, hist: list[tuple[int, int, np.ndarray, np.ndarray]]) -> dict[str, Any]:

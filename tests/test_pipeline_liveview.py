@@ -750,3 +750,113 @@ def test_the_page_draws_a_track_with_hands_without_errors(tmp_path):
     finally:
         view.stop()
     assert drawn == "1" and errors == []
+
+
+def test_a_camera_rate_is_unknown_until_a_second_of_frames_is_counted(monkeypatch):
+    """The page's per-camera fps: none ('–') before a second has been counted, not 0 fps (a camera that
+    gives nothing); then the frames counted over that second."""
+    rig, names, _ = _setup()
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:", "fps": 30} for n in names]})
+    stats = SimpleNamespace(frames=10, dropped_queue={}, dropped_source=0)
+    rec = SimpleNamespace(grabbers={n: SimpleNamespace(stats=stats) for n in names})
+    view = LiveView(ViewConfig(port=0), cfg, None, rec, rig)
+    clock = [1000.0]
+    monkeypatch.setattr("roomcap.pipeline.liveview.server.time.monotonic", lambda: clock[0])
+    assert {s["fps"] for s in view._camera_stats().values()} == {None}
+    clock[0] += 0.5
+    stats.frames = 25
+    assert {s["fps"] for s in view._camera_stats().values()} == {None}
+    clock[0] += 1.5
+    stats.frames = 70
+    assert {s["fps"] for s in view._camera_stats().values()} == {30.0}
+
+
+def test_a_forecast_that_comes_after_its_state_is_sent_at_once():
+    """The forecaster runs beside the view: the state of a step goes out before that step's forecast is
+    made. The new forecast sends the state again (marked refresh, no camera image), so a live loop slower
+    than the forecast's horizon (the next step 4 s later) still shows each step's forecast."""
+    import threading
+
+    from roomcap.pipeline.live_forecast import LiveForecast
+    from roomcap.pipeline.liveview.server import _Client
+
+    rig, names, _ = _setup()
+    steps = _walker_steps(rig, names, n=3, fps=0.25)  # a step every 4 s: longer than the 1.5 s horizon
+    fc = LiveForecast("constant_velocity")
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:"} for n in names]})
+    # no rate limit: the test's steps come a few ms apart (a live loop under load, 4 s apart)
+    view = LiveView(ViewConfig(port=0, state_hz=1e6, image_hz=1e6), cfg, None, None, rig, fc)
+    fc.load()
+    sent: list[dict] = []
+    got = threading.Event()
+
+    def publish(_f, msgs):
+        sent.append(msgs)
+        got.set()
+
+    view._loop = SimpleNamespace(call_soon_threadsafe=publish)
+    view._clients = {_Client()}  # one page connected
+    producer = threading.Thread(target=view._produce, daemon=True)
+    producer.start()
+    try:
+        for s in steps:
+            got.clear()
+            view.offer(s)
+            fc.offer(s)
+            assert got.wait(10)  # the step's own state (its forecast not made yet: the previous step's)
+            got.clear()
+            assert fc.step_once()  # the forecaster's thread made this step's forecast
+            assert got.wait(10)
+    finally:
+        view._stop.set()
+        view._new.set()
+        producer.join(5)
+    assert len(sent) == 2 * len(steps)
+    for k, s in enumerate(steps):
+        first, again = (json.loads(sent[2 * k + i]["state"]) for i in (0, 1))
+        assert any(m.startswith("img:") for m in sent[2 * k]) and list(sent[2 * k + 1]) == ["state"]
+        assert first["frame"] == again["frame"] == s.frameset.index and again["refresh"]
+        assert first["forecast"]["tracks"] == []  # the previous step's forecast is older than its horizon
+        assert again["forecast"]["frame"] == s.frameset.index
+        assert [t["id"] for t in again["forecast"]["tracks"]] == [3, 4]
+
+
+@need_chromium
+def test_the_page_acknowledges_a_frame_set_once_when_its_forecast_comes_later(tmp_path):
+    """The page's latency acknowledgements: a state sent again with its forecast (refresh) is not a new
+    frame set and is not acknowledged again; the next frame set is."""
+    from roomcap.pipeline.liveview.browser import HeadlessBrowser
+
+    rig = ring_rig(2, radius_m=4.0)
+    names = [c.name for c in rig.cameras]
+    cfg = parse_config({"cameras": [{"name": n, "source": "synthetic:"} for n in names]})
+    view = LiveView(ViewConfig(port=0, state_hz=1e6), cfg, None, None, rig)
+    steps = [_step(rig, names, i, np.stack([_person()]), img_wh=(64, 48)) for i in range(2)]
+    view.start()
+    try:
+        with HeadlessBrowser(tmp_path / "chrome") as b:
+            b.open(view.url)
+            assert b.wait_for("document.body.dataset.panes === '2'", 30)
+            t0 = time.monotonic()
+            while not view.n_clients and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            view.offer(steps[0])
+            assert b.wait_for("document.body.dataset.frame === '0'", 30)
+            t0 = time.monotonic()
+            while len(view.latency_ms()) < 1 and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            view._forecast_ready()  # the same step's state again
+            t0 = time.monotonic()
+            while view.states_sent < 2 and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            time.sleep(1.0)  # the page draws it (and would answer within a frame)
+            assert view.states_sent == 2 and len(view.latency_ms()) == 1
+            view.offer(steps[1])
+            assert b.wait_for("document.body.dataset.frame === '1'", 30)
+            t0 = time.monotonic()
+            while len(view.latency_ms()) < 2 and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            assert len(view.latency_ms()) == 2
+            assert not b.page_errors
+    finally:
+        view.stop()

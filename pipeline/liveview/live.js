@@ -6,7 +6,7 @@ const COLORS = ['#e6194b','#3cb44b','#4363d8','#f58231','#911eb4','#42d4f4','#f0
 const color = id => COLORS[((id % COLORS.length) + COLORS.length) % COLORS.length];
 const $ = id => document.getElementById(id);
 const PANE_W = 300, PANE_H = 440;
-let hello = null, state = null, dirty = false, ws = null, acked = -1;
+let hello = null, state = null, dirty = false, ws = null, acked = -1, ackedFrame = null;
 const recent = new Map();   // seq -> state, to draw an image with the detections of its own frame set
 const panes = {};
 const lat = [];             // the page's own latency readout: capture -> drawn, ms
@@ -154,8 +154,9 @@ function render(){
     tbl.appendChild(tr); }
   const errs = Object.entries((state.live && state.live.errors) || {});
   $('errors').textContent = errs.length ? 'stage errors: ' + errs.map(([k, v]) => `${k}: ${v}`).join('; ') : '';
-  if (state.seq !== acked) {
-    acked = state.seq;
+  // each frame set's first drawing is acknowledged (a refresh, a new forecast of a set already drawn, is not)
+  if (state.seq !== acked && (!state.refresh || state.frame !== ackedFrame)) {
+    acked = state.seq; ackedFrame = state.frame;
     const ms = Date.now() - state.t_capture_ms; lat.push(ms); if (lat.length > 60) lat.shift();
     const m = median(lat); $('latency').textContent = m.toFixed(0) + ' ms';
     document.body.dataset.latencyMs = String(m.toFixed(1));

@@ -24,7 +24,10 @@ state with ``{"ack": seq, "t_capture_ms": ...}``: the server's own latency measu
 (:meth:`LiveView.latency_ms`, from outside the page). The state's ``forecast`` (with a forecaster,
 :mod:`roomcap.pipeline.live_forecast`): each tracked person's next seconds as ``{"id", "path" (H,3) the
 hips' midpoint, "ghost" (J,3) the pose at the horizon}`` and its cost; the page's toggle sends
-``{"forecast": false|true}``, which switches the forecaster off or on.
+``{"forecast": false|true}``, which switches the forecaster off or on. A forecast that comes after its
+step's state was sent sends that state again with it (``"refresh": true``, no image; the page acknowledges
+it only when it is the first drawing of that frame set): under load the next step can come after the
+forecast's whole horizon.
 
 Hands: ``hello`` names the 44 hand points (``hand_names``: the two wrists, then the 42 hand joints) and
 their tree (``hand_parents``). A track estimate with hands (its ``joint_names`` has them) gives its track
@@ -199,6 +202,10 @@ class LiveView:
         self.cameras = tuple(capture.names)
         self.rig = rig
         self.forecast = forecast  # a pipeline.live_forecast.LiveForecast, or None (no forecast on the page)
+        self._refresh = False  # a new forecast of the step last sent: send its state again
+        self._sent: LiveStep | None = None  # the step whose state was last sent
+        if forecast is not None:
+            forecast.listeners.append(self._forecast_ready)
         self._latest: LiveStep | None = None
         self._new = threading.Event()
         self._stop = threading.Event()
@@ -215,7 +222,7 @@ class LiveView:
         self._split: deque[tuple[float, float]] = deque(maxlen=5000)
         self._last_img: dict[str, float] = {}
         self._last_state = 0.0
-        self._fps: dict[str, tuple[float, int, float]] = {}
+        self._fps: dict[str, tuple[float, int, float | None]] = {}
         self.clients_seen = 0
         self._dropped_gone = 0  # updates dropped for pages that have gone
         self._rig_data: dict[str, Any] | None = None
@@ -247,6 +254,12 @@ class LiveView:
         p = threading.Thread(target=self._produce, name="liveview-producer", daemon=True)
         p.start()
         self._threads = [t, p]
+
+    def _forecast_ready(self) -> None:
+        """The forecaster's thread: a new forecast (of the newest step with people, usually the one last
+        sent); the producer sends the state again with it instead of waiting for the next step."""
+        self._refresh = True
+        self._new.set()
 
     def offer(self, step: LiveStep) -> None:
         """Called by the live loop: keep the newest step (the previous one, if not yet taken, is dropped)."""
@@ -418,11 +431,17 @@ class LiveView:
                 continue
             self._new.clear()
             step = self._latest
+            refresh, self._refresh = self._refresh, False
             if step is None or self._stop.is_set() or not self._clients:
+                continue
+            if step is self._sent and not refresh:
                 continue
             t0 = time.thread_time()
             try:
-                msgs = self.messages(step)
+                # a new step: its state and images; the same step again: a new forecast of it, the state only
+                msgs = self.messages(step, refresh=step is self._sent)
+                if "state" in msgs:
+                    self._sent = step
             except Exception:  # noqa: BLE001 - a bad frame never stops the view
                 log.exception("live view: could not build an update")
                 msgs = {}
@@ -430,13 +449,20 @@ class LiveView:
             if msgs and self._loop is not None and not self._stop.is_set():
                 self._loop.call_soon_threadsafe(self._publish, msgs)
 
-    def messages(self, step: LiveStep, now: float | None = None) -> dict[str, Any]:
-        """The messages for this step: ``state`` (rate-limited) and ``img:<cam>`` (rate-limited)."""
+    def messages(self, step: LiveStep, now: float | None = None, refresh: bool = False) -> dict[str, Any]:
+        """The messages for this step: ``state`` (rate-limited) and ``img:<cam>`` (rate-limited).
+        ``refresh``: the step's state was sent and its forecast came since: the state again, no image (not
+        rate-limited; marked ``"refresh": true``: the page acknowledges only a set's first drawing)."""
         now = time.monotonic() if now is None else now
         out: dict[str, Any] = {}
         fs = step.frameset
         frames = [f for f in fs.frames.values() if f is not None]
         t_cap_ms = max(f.t_host_ns for f in frames) / 1e6 if frames else host_now_ns() / 1e6
+        if refresh:
+            self.seq += 1
+            out["state"] = to_json({**self.state(step, t_cap_ms), "refresh": True})
+            self.states_sent += 1
+            return out
         if now - self._last_state >= 1.0 / self.cfg.state_hz:
             self._last_state = now
             self.seq += 1
@@ -511,14 +537,15 @@ class LiveView:
                 continue
             st = g.stats
             n = int(st.frames)
-            t_prev, n_prev, fps = self._fps.get(cam, (now, n, 0.0))
+            # None ("–" on the page) until a second of frames is counted: not a camera that gives 0 fps
+            t_prev, n_prev, fps = self._fps.get(cam, (now, n, None))
             if now - t_prev >= 1.0:
                 fps = (n - n_prev) / (now - t_prev)
                 t_prev, n_prev = now, n
             self._fps[cam] = (t_prev, n_prev, fps)
             dq = dict(st.dropped_queue)
             out[cam] = {
-                "fps": round(fps, 1),
+                "fps": None if fps is None else round(fps, 1),
                 "frames": n,
                 "dropped": int(dq.get("writer", 0)) + int(st.dropped_source),
                 "dropped_live": int(dq.get("live", 0)),
