@@ -361,11 +361,21 @@ class HandStage:
         if self.palm is not None:
             age = self._palm_age
             palm_due = [streams is None or age.get(key, cfg.palm_every) >= cfg.palm_every for key in keys]
-            # ... and so does the palm detector, counting its turns (every ``palm_every`` frames)
+            # ... and so does the palm detector, counting its turns (every ``palm_every`` frames); with the
+            # back-off on, it looks beside a forearm crop only once two crops in a row missed there (a hand
+            # missed on one frame is mostly found by the next crop)
             palm_waits = {k for k, m in missed.items() if m.palm_waited + 1 < backoff(m.palm_tries, every)}
-            palm_jobs = [j if palm_due[j[0]] and k not in palm_waits else None for k, j in enumerate(jobs)]
+            fresh = set()  # (the stream's turn stays open for them)
+            if streams is not None and every > 1:
+                fresh = {k for k in forearm if (missed[k].tries if k in missed else 0) + (k in first) < 2}
+            palm_jobs = [
+                j if palm_due[j[0]] and k not in palm_waits and k not in fresh else None
+                for k, j in enumerate(jobs)
+            ]
             ran, palm_ran = self._palm_fallback(images, palm_jobs, xy, pres, hand_size)
-            ran |= {jobs[k][0] for k in palm_waits if palm_due[jobs[k][0]] and pres[k] < self.presence}
+            # a wrist that waits takes its turn
+            waited = {jobs[k][0] for k in palm_waits - fresh if pres[k] < self.presence}
+            ran |= {i for i in waited if palm_due[i]}
             if streams is not None:
                 for i, key in enumerate(keys):
                     age[key] = 1 if i in ran else age.get(key, cfg.palm_every) + 1
