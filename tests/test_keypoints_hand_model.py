@@ -131,6 +131,7 @@ def test_hands_presets_resolve():
     h = resolve_preset("hands")
     assert h.config.hands.startswith("hand_landmark_") and h.config.palm == "palm_detection_full"
     assert h.config.model_set == preset_config("balanced").model_set
+    assert h.config.hand_retry_every > 1 and preset_config("feet_hands").hand_retry_every > 1  # back-off on
     fh = preset_config("feet_hands")
     assert fh.model_set == preset_config("feet").model_set and fh.skeleton == "model" and fh.hands
     # the 3D stages' whole-body layout takes the hands of a <layout>_hands detections file
