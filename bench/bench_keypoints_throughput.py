@@ -29,7 +29,9 @@ made dynamic there) against the CPU; where onnxruntime has no CUDA provider it s
 
 ``hands_ms``: the hand stage of the ``hands`` presets (forearm crops, hand landmark model, palm detector);
 with ``balanced`` in ``--sets`` it is also given as a share of the balanced preset's pipeline time
-(``--sets balanced,hands``).
+(``--sets balanced,hands``), with the stage's landmark model and palm detector runs per camera-frame (counts,
+which a loaded machine does not change). The hand stage before its back-off, in the same run:
+``--extra 'hands_every_frame={"base": "hands", "hand_retry_every": 1}'``.
 
 ``--demo multi``: the three people of Demo_MultiPerson (duplicate poses of overlapping people are
 re-estimated there, ``KeypointPipeline._resolve_duplicates``; Demo_SinglePerson has none).
@@ -50,7 +52,7 @@ sys.path.insert(0, str(REPO))
 import onnxruntime as ort  # noqa: E402
 
 from roomcap.capture.session import videos_in  # noqa: E402
-from roomcap.keypoints.pipeline import KeypointPipelineConfig  # noqa: E402
+from roomcap.keypoints.pipeline import KeypointPipeline, KeypointPipelineConfig  # noqa: E402
 from roomcap.keypoints.presets import preset_config  # noqa: E402
 from roomcap.keypoints.registry import presets  # noqa: E402
 from roomcap.keypoints.runtime import RuntimeConfig  # noqa: E402
@@ -66,8 +68,12 @@ DEMO = DEMOS["single"]
 
 def measure(name: str, cfg: KeypointPipelineConfig, frames: int, camera_groups: int = 1) -> dict:
     vids = videos_in(DEMO)
+    # one camera group: the pipeline made here, to read the hand stage's counts after the run
+    pipe = KeypointPipeline(cfg) if camera_groups == 1 else None
     with tempfile.TemporaryDirectory() as tmp:
-        rep = run_videos(vids, tmp, cfg, max_frames=frames, chunk_frames=25, camera_groups=camera_groups)
+        rep = run_videos(
+            vids, tmp, cfg, max_frames=frames, chunk_frames=25, camera_groups=camera_groups, pipeline=pipe
+        )
     n = sum(rep.frames.values())  # camera-frames
     st = rep.stage_s
     ms = lambda k: 1e3 * st.get(k, 0.0) / n  # noqa: E731
@@ -93,6 +99,10 @@ def measure(name: str, cfg: KeypointPipelineConfig, frames: int, camera_groups: 
         "overhead_end_to_end": (rep.wall_s - rep.model_s) / rep.model_s,
         "overhead_pipeline_cpu": (rep.pipeline_cpu_s - rep.model_cpu_s) / rep.model_cpu_s,
     }
+    hands = pipe.hands if pipe is not None else None
+    if hands is not None:  # the hand stage's work, which a loaded machine does not change
+        row["hand_crops_per_frame"] = hands.n_crops / n  # landmark model runs
+        row["palm_regions_per_frame"] = hands.n_palm_regions / n  # palm detector runs
     return row
 
 
@@ -194,11 +204,17 @@ def main() -> None:
                 r["hands_vs_balanced"] = r["hands_ms"] / body
                 cpu = by_set["balanced"]["pipeline_cpu_ms"]
                 r["hands_vs_balanced_cpu"] = (r["pipeline_cpu_ms"] - cpu) / cpu
+                counts = ""
+                if "hand_crops_per_frame" in r:
+                    counts = (
+                        f" ({r['hand_crops_per_frame']:.2f} hand crops and "
+                        f"{r['palm_regions_per_frame']:.2f} palm regions per camera-frame)"
+                    )
                 print(
                     f"{r['set']}: hand stage {r['hands_ms']:.1f} ms per camera-frame = "
                     f"{r['hands_vs_balanced']:.0%} of the balanced preset's pipeline ({body:.1f} ms); in CPU "
                     f"time (--threads 1) {r['pipeline_cpu_ms'] - cpu:.1f} ms = "
-                    f"{r['hands_vs_balanced_cpu']:.0%} of balanced's {cpu:.1f} ms"
+                    f"{r['hands_vs_balanced_cpu']:.0%} of balanced's {cpu:.1f} ms" + counts
                 )
     d = rows[0]
     speedup = float("nan")

@@ -22,7 +22,12 @@ For each person and side of a 2D body result (``KeypointPipelineConfig.hands`` n
   body detector; it costs about 4 hand crops);
 - **tracking** (consecutive frames of a camera, ``streams``): a hand found in the previous frame places the
   crop of the same side's hand near it from its landmarks (:func:`landmarks_roi`, MediaPipe's
-  landmarks -> ROI), the forearm crop being the fallback where that crop loses the hand.
+  landmarks -> ROI), the forearm crop being the fallback where that crop loses the hand;
+- **back-off** (consecutive frames of a camera, ``hand_retry_every``): a wrist whose hand its last crops did
+  not find (the hand hidden, blurred, out of the frame, or a skeleton model's) is cropped again after 1, 2, 4,
+  ... frames, at most ``hand_retry_every``, and the palm detector looks there after 1, 2, 4, ... of its turns
+  (:func:`backoff`, :class:`Miss`): MediaPipe runs the landmark model only on the hands it tracks or its palm
+  detector found, whereas the body places a crop on every wrist of every frame.
 
 Left and right come from the body's side of the wrist used, never from the model's handedness guess (which a
 mirrored view flips); the same hand found from both wrists is kept once, on the side of the nearer wrist
@@ -34,6 +39,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import MutableMapping
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -197,6 +203,25 @@ def landmarks_roi(xy: np.ndarray, scale: float = 2.0, shift: float = 0.1):
 # ----------------------------------------------------------------------------- the stage
 
 
+class Miss(NamedTuple):
+    """A wrist of a stream's frame whose hand was not found: its side index, position (image px), the
+    fruitless forearm crops in a row there and the frames since the last, the fruitless palm detector runs in
+    a row and the palm detector's turns (``palm_every``) passed over since the last."""
+
+    side: int
+    wrist: np.ndarray
+    tries: int = 0
+    waited: int = 0
+    palm_tries: int = 0
+    palm_waited: int = 0
+
+
+def backoff(tries: int, cap: int) -> int:
+    """Exponential back-off: after ``tries`` fruitless tries in a row, the next try is this many turns after
+    the last: 1, 1, 2, 4, ... at most ``cap`` (1 = every turn)."""
+    return max(1, min(2 ** max(tries - 1, 0), cap))
+
+
 class HandStage:
     """The hand models of one 2D pipeline: ``__call__(images, results, skeleton)`` appends both hands to each
     person of each image's body result (layout ``skeleton`` -> ``<skeleton>_hands``). ``stage_s`` (the
@@ -222,6 +247,8 @@ class HandStage:
         self.n_crops = self.n_palm_regions = self.n_palm_hands = 0
         self._prev: dict = {}  # stream -> [(side index, (21,2) image px)] of its previous frame's hands
         self._palm_age: dict = {}  # stream -> frames since the palm detector last ran on it
+        self._missed: dict = {}  # stream -> [Miss] of its previous frame's wrists whose hand was not found
+        self.n_waiting = 0  # forearm crops not run: their wrist waits (``hand_retry_every``)
 
     @property
     def models(self) -> list[OnnxModel]:
@@ -318,21 +345,53 @@ class HandStage:
             for k, j in enumerate(jobs)
             if np.isfinite(j[4]).all() and np.isfinite(j[5]).all()
         }
+        # back-off (``Miss``, ``backoff``): a wrist whose hand its last crops did not find waits for the next
+        missed = self._match_missed(jobs, keys, tracked) if streams is not None else {}
+        every = cfg.hand_retry_every
+        waiting = {k for k, m in missed.items() if k in forearm and m.waited + 1 < backoff(m.tries, every)}
         first = {k: tracked.get(k, forearm.get(k)) for k in range(n) if k in tracked or k in forearm}
+        first = {k: M for k, M in first.items() if k not in waiting}
+        self.n_waiting += len(waiting)
         self._tick("hand_crop", t)
         self._run_crops(images, jobs, first, xy, pres)
         # a tracked crop that lost the hand: the forearm's
         lost = {k: forearm[k] for k in tracked if k in forearm and pres[k] < self.presence}
         self._run_crops(images, jobs, lost, xy, pres)
+        palm_due, palm_ran = [False] * len(images), set()
         if self.palm is not None:
             age = self._palm_age
-            due = [streams is None or age.get(key, cfg.palm_every) >= cfg.palm_every for key in keys]
-            ran = self._palm_fallback(images, [j if due[j[0]] else None for j in jobs], xy, pres, hand_size)
+            palm_due = [streams is None or age.get(key, cfg.palm_every) >= cfg.palm_every for key in keys]
+            # ... and so does the palm detector, counting its turns (every ``palm_every`` frames); with the
+            # back-off on, it looks beside a forearm crop only once two crops in a row missed there (a hand
+            # missed on one frame is mostly found by the next crop)
+            palm_waits = {k for k, m in missed.items() if m.palm_waited + 1 < backoff(m.palm_tries, every)}
+            fresh = set()  # (the stream's turn stays open for them)
+            if streams is not None and every > 1:
+                fresh = {k for k in forearm if (missed[k].tries if k in missed else 0) + (k in first) < 2}
+            palm_jobs = [
+                j if palm_due[j[0]] and k not in palm_waits and k not in fresh else None
+                for k, j in enumerate(jobs)
+            ]
+            ran, palm_ran = self._palm_fallback(images, palm_jobs, xy, pres, hand_size)
+            # a wrist that waits takes its turn
+            waited = {jobs[k][0] for k in palm_waits - fresh if pres[k] < self.presence}
+            ran |= {i for i in waited if palm_due[i]}
             if streams is not None:
                 for i, key in enumerate(keys):
                     age[key] = 1 if i in ran else age.get(key, cfg.palm_every) + 1
         out = self._attach(results, jobs, xy, pres, skeleton)
         if streams is not None:
+            self._missed = {key: [] for key in keys}
+            for k, (i, _, si, _, _, wr, _) in enumerate(jobs):
+                if pres[k] < self.presence and np.isfinite(wr).all():
+                    m = missed.get(k, Miss(si, wr))
+                    tries, waited = (m.tries, m.waited + 1) if k in waiting else (m.tries + (k in first), 0)
+                    p_tries, p_waited = m.palm_tries, m.palm_waited
+                    if k in palm_ran:
+                        p_tries, p_waited = p_tries + 1, 0
+                    elif palm_due[i]:
+                        p_waited += 1
+                    self._missed[keys[i]].append(Miss(si, wr, tries, waited, p_tries, p_waited))
             for key, r in zip(keys, out, strict=True):
                 J = r.xy_px.shape[1] - 2 * N_HAND
                 self._prev[key] = [
@@ -344,9 +403,11 @@ class HandStage:
         return out
 
     def reset_streams(self) -> None:
-        """Forget the hands of every stream's previous frame and when the palm detector last ran."""
+        """Forget the hands of every stream's previous frame, its wrists without a hand and when the palm
+        detector last ran."""
         self._prev.clear()
         self._palm_age.clear()
+        self._missed.clear()
 
     def _run_crops(self, images, jobs, crops: dict, xy, pres) -> None:
         """The landmark model on ``crops`` {job: affine}; a job takes the result where more present."""
@@ -357,6 +418,27 @@ class HandStage:
         for k, h, p in zip(ks, hxy, hp, strict=True):
             if p > pres[k]:
                 xy[k], pres[k] = h, p
+
+    def _match_missed(self, jobs, keys, tracked: dict) -> dict:
+        """{job: Miss} of this frame's wrists (not placed by a tracked hand) near a wrist of the stream's
+        previous frame whose hand was not found (``_missed``): same side, within ``track_reach`` x the arm's
+        length, nearest first, each used once."""
+        cands = []
+        for k, (i, _, si, _, _, wr, length) in enumerate(jobs):
+            if k in tracked or not np.isfinite(wr).all():
+                continue
+            for h, miss in enumerate(self._missed.get(keys[i], [])):
+                if miss.side == si:
+                    d = float(np.linalg.norm(miss.wrist - wr))
+                    if d < self.config.track_reach * length:
+                        cands.append((d, k, (keys[i], h), miss))
+        out: dict = {}
+        used = set()
+        for _, k, h, miss in sorted(cands, key=lambda c: c[0]):
+            if k not in out and h not in used:
+                used.add(h)
+                out[k] = miss
+        return out
 
     def _tracked_rois(self, jobs, keys, hand_size) -> dict:
         """{job: affine} of the crops placed by the stream's previous-frame hands: each hand of that side
@@ -383,9 +465,9 @@ class HandStage:
             out[k] = square_transform(c, side, hand_size, a)
         return out
 
-    def _palm_fallback(self, images, jobs, xy, pres, hand_size) -> set[int]:
+    def _palm_fallback(self, images, jobs, xy, pres, hand_size) -> tuple[set[int], set[int]]:
         """The palm detector where the forearm crop was not possible or found no hand (module doc), for the
-        jobs that are not None. Returns the images it ran on."""
+        jobs that are not None. Returns the images it ran on and the jobs it looked for a hand for."""
         cfg = self.config
         t = time.perf_counter()
         region_k, regions = [], []
@@ -405,7 +487,7 @@ class HandStage:
             regions.append(square_transform(centre, side, self.palm.spec.input.size_wh[0]))
         self._tick("palm", t)
         if not region_k:
-            return set()
+            return set(), set()
         palms = self._palms(images, [jobs[k][0] for k in region_k], np.array(regions))
         t = time.perf_counter()
         found = [(k, p) for k, p in zip(region_k, palms, strict=True) if p is not None]
@@ -414,13 +496,13 @@ class HandStage:
         self._tick("palm", t)
         ran = {jobs[k][0] for k in region_k}
         if not found:
-            return ran
+            return ran, set(region_k)
         pxy, ppres = self._landmarks(images, [jobs[k][0] for k, _ in found], Ms)
         for (k, _), h, s in zip(found, pxy, ppres, strict=True):
             if s > pres[k]:
                 xy[k], pres[k] = h, s
                 self.n_palm_hands += int(s >= self.presence)
-        return ran
+        return ran, set(region_k)
 
     def _attach(self, results, jobs, xy, pres, skeleton) -> list[FrameResult]:
         t = time.perf_counter()

@@ -80,6 +80,10 @@ class KeypointPipelineConfig:
     # tracked streams: a previous frame's hand places the crop of the hand of its side whose wrist is within
     # this x the arm's length of its root
     track_reach: float = 0.5
+    # tracked streams: a wrist (within ``track_reach`` of the previous frame's) whose hand the last crops did
+    # not find is cropped again after 1, 2, 4, ... frames, at most this many (exponential back-off), and the
+    # palm detector looks there after 1, 2, 4, ... of its turns, at most this many; 1 = every frame / turn
+    hand_retry_every: int = 1
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
     def __post_init__(self) -> None:

@@ -1,6 +1,7 @@
 """Hand keypoints per view (keypoints.hand_model): the forearm crop's geometry, the landmarks mapped back to
-the image, the palm detector's anchors and decoding, the hands presets, a missing hand model named, and the
-hands preset on a real frame of the Pose2Sim single-person demo."""
+the image, the palm detector's anchors and decoding, the hands presets, a missing hand model named, the
+back-off on wrists without a hand (stand-in models), and the hands preset on a real frame of the Pose2Sim
+single-person demo."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from conftest import need_shared
 from roomcap.keypoints import registry
 from roomcap.keypoints.crops import apply_inverse
 from roomcap.keypoints.hand_model import (
+    backoff,
     decode_hand_landmarks,
     decode_palms,
     forearm_crop,
@@ -129,6 +131,7 @@ def test_hands_presets_resolve():
     h = resolve_preset("hands")
     assert h.config.hands.startswith("hand_landmark_") and h.config.palm == "palm_detection_full"
     assert h.config.model_set == preset_config("balanced").model_set
+    assert h.config.hand_retry_every > 1 and preset_config("feet_hands").hand_retry_every > 1  # back-off on
     fh = preset_config("feet_hands")
     assert fh.model_set == preset_config("feet").model_set and fh.skeleton == "model" and fh.hands
     # the 3D stages' whole-body layout takes the hands of a <layout>_hands detections file
@@ -256,7 +259,8 @@ def test_hands_tracked_on_consecutive_frames(demo_frames, monkeypatch):
         cap = cv2.VideoCapture(str(d / f"{c}.mp4"))
         cap.set(cv2.CAP_PROP_POS_FRAMES, 31)
         nxt.append(cap.read()[1])
-    pipe = KeypointPipeline(preset_config("hands", runtime=RuntimeConfig(threads=1)))
+    # every frame's wrists tried (no back-off): the palm detector's turns alone (palm_every)
+    pipe = KeypointPipeline(preset_config("hands", hand_retry_every=1, runtime=RuntimeConfig(threads=1)))
     first = pipe(demo_frames, streams=[0, 1, 2, 3])
     n_first = sum(int((r.score[:, -42] > 0).sum() + (r.score[:, -21] > 0).sum()) for r in first)
     assert n_first and sum(len(v) for v in pipe.hands._prev.values()) == n_first
@@ -268,3 +272,96 @@ def test_hands_tracked_on_consecutive_frames(demo_frames, monkeypatch):
     assert pipe.hands.n_palm_regions == palm_regions  # palm_every = 8: not again on the next frame
     n_second = sum(int((r.score[:, -42] > 0).sum() + (r.score[:, -21] > 0).sum()) for r in second)
     assert n_second >= n_first - 2
+
+
+def test_backoff_schedule():
+    assert [backoff(m, 8) for m in range(7)] == [1, 1, 2, 4, 8, 8, 8]
+    assert [backoff(m, 1) for m in range(4)] == [1, 1, 1, 1]  # 1: every turn
+    assert backoff(3, 3) == 3
+
+
+class _StandIn:
+    """A stand-in for keypoints.runtime.OnnxModel: the real description, outputs made up. The hand landmark
+    model sees a hand (landmarks spread around the crop's centre, presence ``present``) or none; the palm
+    detector never finds a palm. ``runs`` counts the items run."""
+
+    present = 0.0
+
+    def __init__(self, spec, runtime=None):
+        self.spec = registry.get_spec(spec)
+        self.runs = 0
+
+    def run(self, x):
+        self.runs += len(x)
+        if self.spec.role == "palm":
+            return [np.zeros((len(x), 2016, 18), np.float32), np.full((len(x), 2016, 1), -50.0, np.float32)]
+        lm = np.zeros((21, 3), np.float32)
+        lm[:, 0] = 112 + 40 * np.cos(np.linspace(0, 5, 21))
+        lm[:, 1] = 112 - np.linspace(0, 80, 21)  # the wrist (0) at the centre, the fingers up
+        return [np.tile(lm.reshape(1, 63), (len(x), 1)), np.full((len(x), 1), self.present, np.float32)]
+
+
+def _one_person() -> FrameResult:  # noqa: F821
+    from roomcap.keypoints.pipeline_config import FrameResult
+
+    sk = get_skeleton("body19")
+    xy = np.full((1, sk.n_joints, 2), np.nan, np.float32)
+    sc = np.zeros((1, sk.n_joints), np.float32)
+    for name, p in {
+        "left_shoulder": (260, 100),
+        "left_elbow": (320, 180),
+        "left_wrist": (380, 260),
+        "right_shoulder": (180, 100),
+        "right_elbow": (120, 180),
+        "right_wrist": (60, 260),
+    }.items():
+        xy[0, sk.index(name)], sc[0, sk.index(name)] = p, 0.9
+    return FrameResult(np.array([[150, 60, 300, 460, 0.9]], np.float32), xy, sc)
+
+
+def _hand_runs(monkeypatch, retry_every: int, found_from: int = 99, frames: int = 16):
+    """Per frame of one camera: the hand crops and the palm regions run, and the hands found."""
+    from roomcap.keypoints import hand_model
+    from roomcap.keypoints.pipeline_config import KeypointPipelineConfig
+    from roomcap.keypoints.runtime import RuntimeConfig
+
+    monkeypatch.setattr(hand_model, "OnnxModel", _StandIn)
+    monkeypatch.setattr(_StandIn, "present", 0.0)
+    cfg = KeypointPipelineConfig(
+        hands="hand_landmark_lite", palm="palm_detection_full", palm_every=2, hand_retry_every=retry_every
+    )
+    stage = hand_model.HandStage(
+        cfg, registry.get_spec(cfg.hands), registry.get_spec(cfg.palm), RuntimeConfig()
+    )
+    image = np.zeros((480, 640, 3), np.uint8)
+    crops, palms, found = [], [], []
+    for f in range(frames):
+        if f == found_from:
+            monkeypatch.setattr(_StandIn, "present", 0.9)
+        c, p = stage.hand.runs, stage.palm.runs
+        out = stage([image], [_one_person()], "body19", streams=["cam"])[0]
+        crops.append(stage.hand.runs - c)
+        palms.append(stage.palm.runs - p)
+        found.append(int(out.score[0, -42] > 0) + int(out.score[0, -21] > 0))
+    return crops, palms, found
+
+
+def test_wrists_without_a_hand_back_off(monkeypatch):
+    # no back-off: both wrists cropped on every frame, the palm detector on both every palm_every = 2 frames
+    crops, palms, _ = _hand_runs(monkeypatch, 1)
+    assert crops == [2] * 16
+    assert palms == [2, 0] * 8
+    # back-off (at most every 8): the crops after 1, 2, 4, 8 frames; the palm detector once two crops in a row
+    # missed (frame 1), then after 1, 2, 4 of its turns (every 2 frames)
+    crops, palms, _ = _hand_runs(monkeypatch, 8)
+    assert [f for f, n in enumerate(crops) if n] == [0, 1, 3, 7, 15] and set(crops) == {0, 2}
+    assert [f for f, n in enumerate(palms) if n] == [1, 3, 7, 15] and set(palms) == {0, 2}
+
+
+def test_a_hand_found_again_is_tracked_on_every_frame(monkeypatch):
+    # the hands appear at frame 5, while the wrists wait: found at the next try (frame 7), then tracked, a
+    # crop per hand on every frame
+    crops, _, found = _hand_runs(monkeypatch, 8, found_from=5)
+    assert found[:7] == [0] * 7 and found[7:] == [2] * 9
+    assert crops[7:] == [2] * 9
+    assert sum(crops) < 2 * 16
