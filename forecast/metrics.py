@@ -64,6 +64,22 @@ def mpjpe(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> n
         return err.sum(axes) / m.sum(axes)
 
 
+def mpjpe_best_of_k(samples: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Best-of-k MPJPE per frame (Tanke Table 6.8: of k samples the one closest to the truth is scored):
+    samples (B,S,T,J,3), gt (B,T,J,3), mask (B,T,J) -> (T,) metres, the minimum over samples of each window's
+    per-frame joint-mean error, averaged over windows (NaN where a frame has no valid joint)."""
+    y, g = np.asarray(samples, np.float64), np.asarray(gt, np.float64)
+    if y.ndim != 5 or g.shape != y.shape[:1] + y.shape[2:]:
+        raise ValueError(f"mpjpe_best_of_k: samples {y.shape} must be (B,S,T,J,3) and gt {g.shape} (B,T,J,3)")
+    err = np.linalg.norm(y - g[:, None], axis=-1)  # (B,S,T,J)
+    m = np.isfinite(err) if mask is None else (np.asarray(mask, bool)[:, None] & np.isfinite(err))
+    with np.errstate(invalid="ignore"):
+        per = np.where(m, err, 0.0).sum(-1) / m.sum(-1)  # (B,S,T)
+        best = np.nanmin(np.where(np.isfinite(per), per, np.inf), 1)  # (B,T)
+        best = np.where(np.isinf(best), np.nan, best)
+        return np.nanmean(best, 0) if np.isfinite(best).any() else np.full(best.shape[1], np.nan)
+
+
 # ----------------------------------------------------------------------------- APD / ADE / FDE (DLow)
 
 

@@ -163,4 +163,5 @@ def build_model(name: str, config, n_joints: int, state: dict | None = None):
                 f"{name} state does not fit the config: missing {missing}, unexpected {unexpected}"
             )
     m.n_obs = config.n_obs
+    m.continuity = bool(config.continuity)  # read by predict.forecast_world
     return m
