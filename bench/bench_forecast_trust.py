@@ -17,6 +17,10 @@ Per model (mean over windows; a stochastic model's ``--samples`` samples):
     PYTHONPATH=WT/.pp python bench/bench_forecast_trust.py forecast/checkpoints/intention_cmu.pt ... \
         [--split val|test] [--windows 200] [--samples 10] [--seed 0]
 
+``--table RESULTS.json [RESULTS.json ...]``: the controls-against-models table of ``forecast eval`` runs
+(MPJPE 80 / 400 / 1000 ms, mean over samples and best-of-k; ndms, ndms_loo and the word-first-frame form at
+2 / 4 s), one row per model and run, nothing else computed.
+
 Needs the CMU BVH under $ROOMCAP_SHARED/data/motion. Ends with one line ``BENCH {json}``.
 """
 
@@ -88,14 +92,45 @@ def diagnose(y: np.ndarray, obs: np.ndarray, gt: np.ndarray, fps: float) -> dict
     return out
 
 
+def table(paths: list[str]) -> None:
+    """Print the rows of ``forecast eval`` results (``results.json``) the issue's targets are read from."""
+    print(
+        "| run | model | MPJPE 80 / 400 / 1000 ms | best-of-k 80 / 400 / 1000 ms | ndms 2 / 4 s | "
+        "ndms_loo 2 / 4 s | ndms ff 2 / 4 s |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for path in paths:
+        res = json.loads(Path(path).read_text())
+        fps = res["fps"]
+        for name, r in res["models"].items():
+            cells = []
+            for key in ("mpjpe", "mpjpe_best_of_k"):
+                c = r.get(key)
+                cells.append(
+                    "-"
+                    if c is None
+                    else " / ".join(
+                        f"{1000 * c[int(round(ms / 1000 * fps)) - 1]:.0f}" for ms in (80, 400, 1000)
+                    )
+                )
+            for key in ("ndms_at", "ndms_loo_at", "ndms_word_first_frame_at"):
+                at = r.get(key, {})
+                cells.append(" / ".join(f"{at[t][0]:.3f}" if t in at else "-" for t in ("2", "4")))
+            print(f"| {Path(path).parent.name} | {name} | " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("checkpoints", nargs="*")
+    p.add_argument("--table", nargs="+", metavar="RESULTS_JSON", help="print the table of eval results only")
     p.add_argument("--split", choices=("val", "test"), default="val")
     p.add_argument("--windows", type=int, default=200)
     p.add_argument("--samples", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
+    if args.table:
+        table(args.table)
+        return
     torch.set_num_threads(1)
     obs, gt, names, fps = windows(args.split, 50, 100, args.windows, args.seed)
     print(f"{len(obs)} {args.split} windows of {len(set(names))} clips at {fps:g} Hz, {args.samples} samples")

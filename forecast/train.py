@@ -44,6 +44,7 @@ from roomcap.forecast.clips import (
 from roomcap.forecast.config import BASELINES, DiffusionConfig, GRUConfig, IntentionConfig
 from roomcap.forecast.models.diffusion import N_CONST
 from roomcap.forecast.models.intention import fit_intention_labels, local_poses
+from roomcap.forecast.predict import continue_velocity
 from roomcap.forecast.registry import build_model, config_from_dict, spec
 from roomcap.forecast.selection import SELECT, VAL_FROM, VAL_N_OBS, VAL_N_PRED, Selector, Validator
 from roomcap.keypoints.skeletons import get_skeleton
@@ -158,10 +159,15 @@ def train(
             g = config.gamma
             lab = torch.from_numpy(labels_all)[idx].to(device)
             c_all = torch.cat([lab[:, n_obs - 1 :], lab[:, -1:].expand(-1, g - 1)], 1)  # pad the look-ahead
-            loss, terms, d_loss, _ = model.losses(obs, fut, c_all, mfut, config.tau_rec, config.w_adv)
+            loss, terms, d_loss, _ = model.losses(
+                obs, fut, c_all, mfut, config.tau_rec, config.w_adv, continuity=config.continuity
+            )
             terms["loss"] = loss.item()
         else:
-            loss = _masked_joint_l2(model(obs, H), fut, mfut)
+            pred = model(obs, H)
+            if config.continuity:  # train on what is forecast (predict.continue_velocity)
+                pred = continue_velocity(pred[:, None], obs[:, -1], obs[:, -2])[:, 0]
+            loss = _masked_joint_l2(pred, fut, mfut)
             terms = {"loss": loss.item()}
         opt.zero_grad()
         loss.backward()
