@@ -17,6 +17,10 @@ Per model (mean over windows; a stochastic model's ``--samples`` samples):
     PYTHONPATH=WT/.pp python bench/bench_forecast_trust.py forecast/checkpoints/intention_cmu.pt ... \
         [--split val|test] [--windows 200] [--samples 10] [--seed 0]
 
+``--rescore-cmu8 SAMPLES_DIR``: the body19 variant of the CMU 8-action benchmark (``forecast eval --protocol
+cmu8 --save-samples DIR``) rescored from its ``samples_<model>@body19.npz``: mean over samples (as the
+protocol reports) and best-of-k, at the protocol's horizons, in its units, per action and averaged.
+
 ``--table RESULTS.json [RESULTS.json ...]``: the controls-against-models table of ``forecast eval`` runs
 (MPJPE 80 / 400 / 1000 ms, mean over samples and best-of-k; ndms, ndms_loo and the word-first-frame form at
 2 / 4 s), one row per model and run, nothing else computed.
@@ -119,8 +123,34 @@ def table(paths: list[str]) -> None:
             print(f"| {Path(path).parent.name} | {name} | " + " | ".join(cells) + " |")
 
 
+def rescore_cmu8(folder: str) -> None:
+    """Mean and best-of-k MPJPE of the cmu8 body19 variant from saved samples (the protocol's limb points)."""
+    from roomcap.forecast import benchmark_cmu8 as B
+
+    print("| model | k | " + " | ".join(f"{ms} mean / best" for ms in B.HORIZONS_MS) + " |")
+    print("|---" * (len(B.HORIZONS_MS) + 2) + "|")
+    for f in sorted(Path(folder).glob("samples_*.npz")):
+        z = np.load(f)
+        names = [str(n) for n in z["joint_names"]]
+        if len(names) != 19:
+            continue
+        limbs = [names.index(n) for n in B.BODY19_LIMBS]
+        err = np.linalg.norm(z["pred"] - z["gt"][:, None], axis=-1)[..., limbs].mean(-1)  # (N,S,T)
+        err = err * float(z["protocol_mm_per_m"])
+        acts = np.array([str(a) for a in z["activity"]])
+        mean = [
+            np.mean([err[acts == a].mean(1)[:, k].mean() for a in np.unique(acts)]) for k in B.HORIZON_FRAMES
+        ]
+        best = [
+            np.mean([err[acts == a].min(1)[:, k].mean() for a in np.unique(acts)]) for k in B.HORIZON_FRAMES
+        ]
+        cells = " | ".join(f"{m:.1f} / {b:.1f}" for m, b in zip(mean, best, strict=True))
+        print(f"| {z['model']} | {err.shape[1]} | {cells} |")
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
+    p.add_argument("--rescore-cmu8", metavar="SAMPLES_DIR", help="rescore the cmu8 body19 samples only")
     p.add_argument("checkpoints", nargs="*")
     p.add_argument("--table", nargs="+", metavar="RESULTS_JSON", help="print the table of eval results only")
     p.add_argument("--split", choices=("val", "test"), default="val")
@@ -130,6 +160,9 @@ def main() -> None:
     args = p.parse_args()
     if args.table:
         table(args.table)
+        return
+    if args.rescore_cmu8:
+        rescore_cmu8(args.rescore_cmu8)
         return
     torch.set_num_threads(1)
     obs, gt, names, fps = windows(args.split, 50, 100, args.windows, args.seed)
