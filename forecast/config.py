@@ -60,6 +60,7 @@ class DiffusionConfig:
     sample_steps: int = 20
     sample_eta: float = 0.0
     sample_dct: int = 0  # >0: the sampler keeps X_0 to this many DCT coefficients over the window (0 = off)
+    sample_temp: float = 1.0  # scale of the sampler's noise (models.diffusion.SocialDiffusion.sample_window)
     clean_obs: bool = True
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
     lag_stats: bool = True  # (anchored) mean/std per lag: bound to n_frames; false: per channel, any length
