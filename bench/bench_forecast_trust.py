@@ -15,7 +15,12 @@ Per model (mean over windows; a stochastic model's ``--samples`` samples):
 - damping: the forecast's mean joint speed over the first 0.4 s and 0.4-1 s relative to the real future's.
 
     PYTHONPATH=WT/.pp python bench/bench_forecast_trust.py forecast/checkpoints/intention_cmu.pt ... \
-        [--split val|test] [--windows 200] [--samples 10] [--seed 0]
+        [--split val|test] [--windows 200] [--samples 10] [--seed 0] [--ndms]
+
+A checkpoint may carry sampler settings to try: ``CKPT.pt:sample_temp=1.2,sample_dct=24`` (model attributes
+set after loading). ``--ndms``: NDMS at 2 / 4 s too, own clip in D, left out (windows of activities with
+another clip of the split) and with clips weighted equally (``evaluate.ndms_scorer_for``, the split's clips
+as D).
 
 ``--rescore-cmu8 SAMPLES_DIR``: the body19 variant of the CMU 8-action benchmark (``forecast eval --protocol
 cmu8 --save-samples DIR``) rescored from its ``samples_<model>@body19.npz``: mean over samples (as the
@@ -96,6 +101,33 @@ def diagnose(y: np.ndarray, obs: np.ndarray, gt: np.ndarray, fps: float) -> dict
     return out
 
 
+def _ndms_scorer(split: str, names: list[str]):
+    """(obs, y) -> NDMS at 2 / 4 s of the windows: own clip in D, left out, clips weighted equally."""
+    from roomcap.forecast import evaluate as E
+    from roomcap.forecast.clips import clip_activities
+
+    clips = T.load_sources(["cmu"])
+    cs = dict(zip(("train", "val", "test"), T.split_clips(clips, 0), strict=True))[split]
+    acts = clip_activities(cs)
+    wact = [acts.get(n, fdata.UNLABELLED) for n in names]
+    groups = np.array([E.clip_group(n) for n in names])
+    scorer, _ = E._ndms_scorers(cs, acts, set(wact))
+
+    def score(obs, y) -> dict:
+        w = np.stack([scorer.score_forecast(obs[b], y[b], None, wact[b]) for b in range(len(y))])
+        lo = np.stack([scorer.score_forecast(obs[b], y[b], int(groups[b]), wact[b]) for b in range(len(y))])
+        ok = np.isfinite(lo).all(1)
+        out = {}
+        for t in (2, 4):
+            a = E.ndms_at(w, 25.0, t)
+            out[f"ndms_{t}"] = float(a.mean())
+            out[f"ndms_loo_{t}"] = float(E.ndms_at(lo[ok], 25.0, t).mean()) if ok.any() else float("nan")
+            out[f"ndms_clipw_{t}"] = float(np.mean([a[groups == g].mean() for g in np.unique(groups)]))
+        return out
+
+    return score
+
+
 def table(paths: list[str]) -> None:
     """Print the rows of ``forecast eval`` results (``results.json``) the issue's targets are read from."""
     print(
@@ -157,6 +189,7 @@ def main() -> None:
     p.add_argument("--windows", type=int, default=200)
     p.add_argument("--samples", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ndms", action="store_true", help="score NDMS at 2 / 4 s too (slower)")
     args = p.parse_args()
     if args.table:
         table(args.table)
@@ -169,10 +202,17 @@ def main() -> None:
     print(f"{len(obs)} {args.split} windows of {len(set(names))} clips at {fps:g} Hz, {args.samples} samples")
     models = {n: T.baseline(n) for n in ("zero", "const")}
     rates = {"zero": fps, "const": fps}
-    for ck in args.checkpoints:
+    for spec in args.checkpoints:
+        ck, _, sets = spec.partition(":")
         m, meta = T.load_checkpoint(ck)
-        models[Path(ck).stem] = m
-        rates[Path(ck).stem] = float(meta.get("fps", float("nan")))
+        for kv in filter(None, sets.split(",")):
+            k, v = kv.split("=")
+            cur = getattr(m, k)
+            setattr(m, k, v.lower() in ("1", "true") if isinstance(cur, bool) else type(cur)(v))
+        name = Path(ck).stem + (f" ({sets})" if sets else "")
+        models[name] = m
+        rates[name] = float(meta.get("fps", float("nan")))
+    nd = _ndms_scorer(args.split, names) if args.ndms else None
     res: dict = {}
     cols = (
         ["rate"]
@@ -180,6 +220,11 @@ def main() -> None:
         + [f"best_of_k_{ms}" for ms in (80, 400, 1000)]
         + ["root_err_400", "pose_rc_err_400", "first_step_mm", "first_step_real_mm", "last_obs_step_mm"]
         + ["vel_jump_mm", "vel_jump_real_mm", "speed_ratio_0_400", "speed_ratio_400_1000", "s"]
+        + (
+            ["ndms_2", "ndms_4", "ndms_loo_2", "ndms_loo_4", "ndms_clipw_2", "ndms_clipw_4"]
+            if args.ndms
+            else []
+        )
     )
     print("| model | " + " | ".join(cols) + " |")
     print("|---" * (len(cols) + 1) + "|")
@@ -189,6 +234,8 @@ def main() -> None:
         torch.manual_seed(args.seed)
         y = forecast_world(m, obs[:, :, None], None, 100, S)[:, :, :, 0]
         r = diagnose(y, obs, gt, fps)
+        if nd is not None:
+            r.update(nd(obs, y))
         r["rate"] = rates[name]
         r["s"] = time.perf_counter() - t0
         res[name] = r
