@@ -32,6 +32,43 @@ def _clips(n=6, T_=160):
     ]
 
 
+def test_forecasts_continue_the_last_observed_velocity():
+    from roomcap.forecast.runtime.predict import continue_velocity
+
+    obs = walker(50, speed_mps=1.2)  # (T,J,3)
+    cfg = T.config_from_dict("gru", {"hidden": 16})
+    assert cfg.continuity  # the default
+    gru = T.build_model(
+        "gru", cfg, 19
+    )  # untrained: its output layer starts at zero, it repeats the last pose
+    y = forecast_world(gru, obs[None, :, None], None, 10)[0, 0, :, 0]
+    step = obs[-1] - obs[-2]
+    assert np.linalg.norm(step, axis=-1).mean() > 0.03  # the walker moves ~5 cm per frame
+    assert np.allclose(y[0], obs[-1] + step, atol=1e-4) and np.allclose(y[-1], y[0], atol=1e-4)
+    off = T.build_model("gru", dataclasses.replace(cfg, continuity=False), 19)
+    off.load_state_dict(gru.state_dict())
+    assert np.allclose(forecast_world(off, obs[None, :, None], None, 10)[0, 0, 0, 0], obs[-1], atol=1e-4)
+    # the shift is the same for every frame of a sample: the forecast's own motion is kept
+    y = np.random.default_rng(0).normal(size=(2, 3, 4, 5))
+    out = continue_velocity(y, np.ones((2, 5)), np.zeros((2, 5)))
+    assert np.allclose(out[:, :, 0], 2.0) and np.allclose(np.diff(out, axis=2), np.diff(y, axis=2))
+
+
+def test_diffusion_sampling_temperature_scales_the_spread_of_the_samples():
+    base = {"channels": 16, "n_frames": 32, "n_obs": 16, "sample_steps": 3}
+    obs = walker(16)[None, :, None]
+    spread = {}
+    for temp in (0.0, 1.0, 2.0):
+        m = T.build_model(
+            "social_diffusion", T.config_from_dict("social_diffusion", {**base, "sample_temp": temp}), 19
+        )
+        assert m.sample_temp == temp
+        torch.manual_seed(0)
+        y = forecast_world(m, obs, None, 16, 4)[0, :, :, 0]  # (S,H,J,3)
+        spread[temp] = float(np.std(y, axis=0).mean())
+    assert spread[0.0] < 1e-6 < spread[1.0] < spread[2.0]  # no noise: one deterministic DDIM path
+
+
 def test_baselines_in_world_space():
     x = walker(30, heading_rad=0.4, start=(1, 2))[None, :, None]  # (1,T,1,J,3)
     zv = forecast_world(ZeroVelocity(), x, None, 5)

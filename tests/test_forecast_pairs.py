@@ -48,4 +48,8 @@ def test_pairs_real_in_range_and_const_drifts_out():
     )  # still: in place, no motion
     assert r["real"]["ndms_p0"] == pytest.approx(r["real"]["ndms_p1"])
     assert set(r["real"]["ndms_at"]) == {"2", "4"} and len(r["const"]["distance"]) == 100
-    assert "distance in range" in render(res) and res["protocol"] == "pairs"
+    assert "distance in range" in render(res) and "MPJPE 400 ms" in render(res) and res["protocol"] == "pairs"
+    # the own take left out of D: the real future is no longer a perfect match, but still scores
+    assert r["real"]["n_windows_loo"] == res["n_windows"] and 0.2 < r["real"]["ndms_loo_at"]["2"] < 0.999
+    assert r["real"]["mpjpe"][9] == 0 and r["zero"]["mpjpe_best_of_k"] == pytest.approx(r["zero"]["mpjpe"])
+    assert r["zero"]["mpjpe"][9] > 0.01  # the walkers move

@@ -3,7 +3,10 @@
 Per model, from windows of held-out takes (observe ``n_obs`` frames of both partners, forecast ``n_pred``):
 
 - NDMS(t) per person (eq. 6.9-6.12, the seed's root-centred words): D = the held-out takes' motion of the
-  partner's activity, the window's own take included (as ``evaluate.evaluate_single``'s ``ndms``);
+  partner's activity, the window's own take included (as ``evaluate.evaluate_single``'s ``ndms``), and with
+  it left out (``ndms_loo``, the seed's form);
+- MPJPE(t) in world coordinates over both partners, mean over samples and best-of-k (``mpjpe_best_of_k``,
+  Tanke Table 6.8: the sample closest to the truth per window, frame and person);
 - the partners' distance (mid-hip to mid-hip, floor plane) and facing angle (the angle between one partner's
   forward direction and the direction to the other, averaged over the two; 0° = both face each other) against
   the real takes' distribution: its 5-95 % range over every frame of the held-out takes, and the share of the
@@ -26,7 +29,7 @@ from roomcap.core.errors import InputError
 from roomcap.forecast.lab import data as fdata
 from roomcap.forecast.lab import metrics as M
 from roomcap.forecast.lab.clips import clip_activities
-from roomcap.forecast.lab.evaluate import Real, ndms_scorer_for
+from roomcap.forecast.lab.evaluate import Real, clip_group, ndms_scorer_for
 from roomcap.forecast.lab.protocol import Table, results
 from roomcap.forecast.runtime.predict import forecast_world
 from roomcap.keypoints.skeletons import get_skeleton
@@ -67,9 +70,11 @@ def evaluate_pairs(
     stride: int = 50,
     seed: int = 0,
     activities: dict[str, str] | None = None,
+    n_samples: int = 1,
 ) -> dict:
-    """Models on windows of the held-out two-person ``takes`` (P = 2 each, complete). One sample per window
-    (as ``evaluate.evaluate_social``). -> {"fps", "n_windows", "takes", "real_range": {...}, "models": {name:
+    """Models on windows of the held-out two-person ``takes`` (P = 2 each, complete). ``n_samples`` per window
+    of a stochastic model (NDMS and MPJPE over all of them; distance, facing and SSCP of the first, as
+    ``evaluate.evaluate_social``). -> {"fps", "n_windows", "takes", "real_range": {...}, "models": {name:
     {"ndms": [H], "ndms_p0": [H], "ndms_p1": [H], "ndms_at": {t: v}, "distance": [H] (median over windows),
     "facing_deg": [H], "distance_in_range", "distance_in_range_all", "facing_in_range",
     "facing_in_range_all", "sscp_jsd", "wall_s"}}}."""
@@ -90,35 +95,45 @@ def evaluate_pairs(
     wact = [acts.get(takes[c].name, fdata.UNLABELLED) for c in ws.clip]
     rng_d, rng_f = _real_ranges(takes, lh, rh)
     real_scenes = list(x)
+    groups = [clip_group(takes[c].name) for c in ws.clip]
     fps = ws.fps
     out: dict = {
         "fps": fps,
         "n_obs": n_obs,
         "n_pred": n_pred,
         "n_windows": len(x),
+        "n_samples": n_samples,
         "takes": [c.name for c in takes],
         "real_range": {"distance_m_5_95": list(rng_d), "facing_deg_5_95": list(rng_f)},
         "models": {},
     }
     for name, model in models.items():
         tm = time.perf_counter()
-        y = gt if isinstance(model, Real) else _forecast_pairs(model, obs, n_pred, seed)
-        per = _ndms_per_person(scorer, obs, y, wact)  # (2,B,H)
+        S = n_samples if getattr(model, "stochastic", False) else 1
+        ys = gt[:, None] if isinstance(model, Real) else _forecast_pairs(model, obs, n_pred, seed, S)
+        y = ys[:, 0]
+        per = _ndms_per_person(scorer, obs, ys, wact)  # (2,B,H)
         nd = per.mean((0, 1))
+        loo = _ndms_per_person(scorer, obs, ys, wact, groups)
+        ok = np.isfinite(loo).all((0, 2))  # windows whose activity has another held-out take
+        nd_loo = loo[:, ok].mean((0, 1)) if ok.any() else np.full(n_pred, np.nan)
+        yp, gp = ys.transpose(0, 3, 1, 2, 4, 5), gt.transpose(0, 2, 1, 3, 4)  # (B,P,S,H,J,3), (B,P,H,J,3)
+        mp = M.mpjpe(yp, np.broadcast_to(gp[:, :, None], yp.shape))
+        mp_best = M.mpjpe_best_of_k(yp.reshape(-1, *yp.shape[2:]), gp.reshape(-1, *gp.shape[2:]))
         d, f = partner_distance(y, lh, rh), facing_angle(y, lh, rh)  # (B,H)
         d_in, d_all = _range_share(d, *rng_d)
         f_in, f_all = _range_share(f, *rng_f)
         gen = [np.concatenate([obs[b], y[b]], 0) for b in range(len(y))]
-        win = max(1, int(0.2 * fps))
         out["models"][name] = {
+            "mpjpe": mp.tolist(),
+            "mpjpe_best_of_k": mp_best.tolist(),
+            "ndms_loo": nd_loo.tolist(),
+            "ndms_loo_at": _at_times(nd_loo, fps, n_pred),
+            "n_windows_loo": int(ok.sum()),
             "ndms": nd.tolist(),
             "ndms_p0": per[0].mean(0).tolist(),
             "ndms_p1": per[1].mean(0).tolist(),
-            "ndms_at": {
-                f"{t:g}": float(nd[max(0, int(round(t * fps)) - win) : int(round(t * fps))].mean())
-                for t in PAIR_TIMES_S
-                if t * fps <= n_pred
-            },
+            "ndms_at": _at_times(nd, fps, n_pred),
             "distance": np.median(d, 0).tolist(),
             "facing_deg": np.median(f, 0).tolist(),
             "distance_in_range": d_in,
@@ -130,6 +145,16 @@ def evaluate_pairs(
         }
     out["wall_s"] = time.perf_counter() - t0
     return results("pairs", "Two people over a long horizon: the held-out salsa pairs", *_report(out), **out)
+
+
+def _at_times(curve: np.ndarray, fps: float, n_pred: int) -> dict[str, float]:
+    """{t: the curve's mean over the 0.2 s before t} at ``PAIR_TIMES_S`` within the horizon."""
+    win = max(1, int(0.2 * fps))
+    return {
+        f"{t:g}": float(curve[max(0, int(round(t * fps)) - win) : int(round(t * fps))].mean())
+        for t in PAIR_TIMES_S
+        if t * fps <= n_pred
+    }
 
 
 def _real_ranges(
@@ -144,18 +169,25 @@ def _real_ranges(
     return rng_d, rng_f
 
 
-def _forecast_pairs(model, obs: np.ndarray, n_pred: int, seed: int) -> np.ndarray:
-    """One forecast (B,H,2,J,3) of each two-person window, with the same sampling noise on every run."""
+def _forecast_pairs(model, obs: np.ndarray, n_pred: int, seed: int, n_samples: int = 1) -> np.ndarray:
+    """``n_samples`` forecasts (B,S,H,2,J,3) of each two-person window, the same sampling noise every run."""
     torch.manual_seed(seed)
-    return forecast_world(model, obs, None, n_pred, 1)[:, 0]  # (B,H,2,J,3)
+    return forecast_world(model, obs, None, n_pred, n_samples)  # (B,S,H,2,J,3)
 
 
-def _ndms_per_person(scorer, obs: np.ndarray, y: np.ndarray, wact: list[str]) -> np.ndarray:
-    """NDMS (2,B,H) of each person's forecast in each window, against the windows' activities."""
+def _ndms_per_person(scorer, obs: np.ndarray, y: np.ndarray, wact: list[str], groups=None) -> np.ndarray:
+    """NDMS (2,B,H) of each person's forecasts y (B,S,H,2,J,3) in each window (mean over samples), against
+    the windows' activities; ``groups`` (B,): leave each window's own take out of D (NaN where nothing of
+    its activity is left)."""
     return np.stack(
         [
             np.stack(
-                [scorer.score_forecast(obs[b, :, p], y[b, None, :, p], None, wact[b]) for b in range(len(y))]
+                [
+                    scorer.score_forecast(
+                        obs[b, :, p], y[b, :, :, p], None if groups is None else groups[b], wact[b]
+                    )
+                    for b in range(len(y))
+                ]
             )
             for p in range(2)
         ]
@@ -168,16 +200,30 @@ def _report(res: dict) -> tuple[list[str], list[Table]]:
     ts = list(next(iter(res["models"].values()))["ndms_at"])
     notes = [
         f"{res['n_windows']} windows of held-out takes ({', '.join(res['takes'])}), observe {res['n_obs']} / "
-        f"forecast {res['n_pred']} frames at {res['fps']:g} Hz, one sample each; real 5-95 %: distance "
+        f"forecast {res['n_pred']} frames at {res['fps']:g} Hz, {res.get('n_samples', 1)} sample(s) per "
+        f"stochastic model (distance, facing, SSCP: the first); real 5-95 %: distance "
         f"{rr['distance_m_5_95'][0]:.2f}-{rr['distance_m_5_95'][1]:.2f} m, facing "
         f"{rr['facing_deg_5_95'][0]:.0f}-{rr['facing_deg_5_95'][1]:.0f}°"
     ]
-    columns = ["model", *(f"NDMS {t} s" for t in ts), "NDMS p0 / p1 (mean)"]
-    columns += ["distance in range (median / all)", "facing in range (median / all)", "SSCP"]
+    columns = [
+        "model",
+        *(f"NDMS {t} s" for t in ts),
+        "NDMS loo 2 / 4 s",
+        "MPJPE 400 ms, mean / best-of-k (mm)",
+    ]
+    columns += [
+        "NDMS p0 / p1 (mean)",
+        "distance in range (median / all)",
+        "facing in range (median / all)",
+        "SSCP",
+    ]
+    i400 = int(round(0.4 * res["fps"])) - 1
     rows = [
         [
             name,
             *(f"{r['ndms_at'][t]:.3f}" for t in ts),
+            " / ".join(f"{r['ndms_loo_at'].get(t, float('nan')):.3f}" for t in ("2", "4")),
+            " / ".join(f"{1000 * r[k][i400]:.0f}" for k in ("mpjpe", "mpjpe_best_of_k")),
             f"{np.mean(r['ndms_p0']):.3f} / {np.mean(r['ndms_p1']):.3f}",
             f"{r['distance_in_range']:.2f} / {r['distance_in_range_all']:.2f}",
             f"{r['facing_in_range']:.2f} / {r['facing_in_range_all']:.2f}",

@@ -47,6 +47,7 @@ from roomcap.forecast.runtime.models import FoolClusters
 from roomcap.forecast.runtime.models.diffusion import N_CONST
 from roomcap.forecast.runtime.models.intention import fit_intention_labels, local_poses
 from roomcap.forecast.runtime.normalise import LHIP, RHIP
+from roomcap.forecast.runtime.predict import continue_velocity
 from roomcap.forecast.runtime.registry import DISCRIMINATOR_PREFIXES, build_model, config_from_dict, spec
 from roomcap.keypoints.skeletons import get_skeleton
 
@@ -174,10 +175,15 @@ def train(
             g = config.gamma
             lab = torch.from_numpy(labels_all)[idx].to(device)
             c_all = torch.cat([lab[:, n_obs - 1 :], lab[:, -1:].expand(-1, g - 1)], 1)  # pad the look-ahead
-            loss, terms, d_loss, _ = model.losses(obs, fut, c_all, mfut, config.tau_rec, config.w_adv)
+            loss, terms, d_loss, _ = model.losses(
+                obs, fut, c_all, mfut, config.tau_rec, config.w_adv, continuity=config.continuity
+            )
             terms["loss"] = loss.item()
         else:
-            loss = _masked_joint_l2(model(obs, H), fut, mfut)
+            pred = model(obs, H)
+            if config.continuity:  # train on what is forecast (predict.continue_velocity)
+                pred = continue_velocity(pred[:, None], obs[:, -1], obs[:, -2])[:, 0]
+            loss = _masked_joint_l2(pred, fut, mfut)
             terms = {"loss": loss.item()}
         opt.zero_grad()
         loss.backward()

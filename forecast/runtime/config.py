@@ -25,6 +25,7 @@ class GRUConfig:
     seed: int = 0
     val_every: int = 50  # steps between validation scores (model selection); 0 = keep the last
     select: str = "mpjpe"  # the deterministic model is selected by its own objective (validation MPJPE, 1 s)
+    continuity: bool = True  # forecasts continue the last observed velocity (predict.continue_velocity)
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,7 @@ class IntentionConfig:
     seed: int = 0
     val_every: int = 200  # steps between validation scores (model selection); 0 = keep the last
     select: str = "ndms"  # validation NDMS at 2-4 s
+    continuity: bool = True  # forecasts continue the last observed velocity (predict.continue_velocity)
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,7 @@ class DiffusionConfig:
     sample_steps: int = 20
     sample_eta: float = 0.0
     sample_dct: int = 0  # >0: the sampler keeps X_0 to this many DCT coefficients over the window (0 = off)
+    sample_temp: float = 1.0  # scale of the sampler's noise (models.diffusion.SocialDiffusion.sample_window)
     clean_obs: bool = True
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
     lag_stats: bool = True  # (anchored) mean/std per lag: bound to n_frames; false: per channel, any length
@@ -77,6 +80,7 @@ class DiffusionConfig:
     val_stride: int = 10
     val_samples: int = 4
     ema: float = 0.0  # >0: validate and keep an exponential moving average of the weights (decay per step)
+    continuity: bool = True  # forecasts continue the last observed velocity (predict.continue_velocity)
 
 
 BASELINES = ("zero_velocity", "constant_velocity", "slide")  # the evaluation's names: evaluate.BASELINES

@@ -79,7 +79,7 @@ def _build_diffusion(config: DiffusionConfig, n_joints: int, state: Mapping | No
         lag_stats=config.lag_stats,
     )
     m.n_obs, m.sample_steps, m.sample_eta = config.n_obs, config.sample_steps, config.sample_eta
-    m.sample_dct = config.sample_dct
+    m.sample_dct, m.sample_temp = config.sample_dct, config.sample_temp
     m.n_obs_clean = config.n_obs if config.clean_obs else 0
     m.anchor = config.n_obs - 1 if config.anchor else None
     m.root_vel = config.root_vel
@@ -263,4 +263,5 @@ def build_model(name: str, config, n_joints: int, state: dict | None = None):
                 f"{name} state does not fit the config: missing {missing}, unexpected {unexpected}"
             )
     m.n_obs = config.n_obs
+    m.continuity = bool(config.continuity)  # read by predict.forecast_world
     return m

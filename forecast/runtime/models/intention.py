@@ -187,9 +187,11 @@ class IntentionModel(nn.Module):
         return y.view(B, n_samples, n_pred, D)
 
     # -- losses
-    def losses(self, obs, fut, c_all, mask_fut, tau_rec: int = 15, w_adv: float = 0.05):
+    def losses(self, obs, fut, c_all, mask_fut, tau_rec: int = 15, w_adv: float = 0.05, continuity=False):
         """obs (B,T,D), fut (B,H,D), c_all (B,T+H+γ-1) labels from the last observed frame on (index 0 = t),
-        mask_fut (B,H,J). Returns generator loss terms dict and a closure for the discriminator step."""
+        mask_fut (B,H,J). Returns generator loss terms dict and a closure for the discriminator step.
+        ``continuity``: score (and show the pose discriminator) the forecast shifted to continue the last
+        observed velocity, as it is forecast (``predict.continue_velocity``)."""
         H = fut.shape[1]
         g = self.gamma
         # intention: teacher-forced CE (6.4) on labels t+1..t+H+γ-1
@@ -200,6 +202,8 @@ class IntentionModel(nn.Module):
         c_ref = F.one_hot(c_all[:, 1 : H + g], self.C).float()
         z = torch.randn(obs.shape[0], self.z_dim, device=obs.device)
         pred = self.decode(obs, c_ref, H, z)
+        if continuity:
+            pred = pred - (pred[:, :1] - (2 * obs[:, -1:] - obs[:, -2:-1]))
         J = mask_fut.shape[-1]
         err = (pred - fut).view(*pred.shape[:2], J, 3).norm(dim=-1)  # (B,H,J)
         lam = torch.clamp(1.0 - torch.arange(H, device=obs.device, dtype=obs.dtype) / tau_rec, min=0.0)  # 6.8
