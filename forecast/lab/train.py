@@ -32,6 +32,7 @@ from roomcap.forecast.lab.clips import (
     single_person_arrays,
     split_clips,
 )
+from roomcap.forecast.lab.intention_labels import fit_intention_labels
 from roomcap.forecast.lab.selection import SELECT, VAL_FROM, VAL_N_OBS, VAL_N_PRED, Selector, Validator
 from roomcap.forecast.runtime.checkpoint import (
     NORMALISATION,
@@ -45,7 +46,7 @@ from roomcap.forecast.runtime.checkpoint import (
 from roomcap.forecast.runtime.config import BASELINES, DiffusionConfig, GRUConfig, IntentionConfig
 from roomcap.forecast.runtime.models import FoolClusters
 from roomcap.forecast.runtime.models.diffusion import N_CONST
-from roomcap.forecast.runtime.models.intention import fit_intention_labels, local_poses
+from roomcap.forecast.runtime.models.intention import local_poses
 from roomcap.forecast.runtime.normalise import LHIP, RHIP
 from roomcap.forecast.runtime.predict import continue_velocity
 from roomcap.forecast.runtime.registry import DISCRIMINATOR_PREFIXES, build_model, config_from_dict, spec
