@@ -51,8 +51,9 @@ log = logging.getLogger(__name__)
 RESULTS_LAYOUT = {
     "fps": "frame rate of every per-frame list (Hz); entry i is forecast frame i + 1",
     "models.<name>.mpjpe": "per-frame MPJPE (m), world coordinates, mean over joints, windows and samples",
-    "models.<name>.mpjpe_best_of_k": "per-frame MPJPE (m) of the best of the model's samples in each window "
-    "and frame, mean over windows (Tanke Table 6.8's best-of-k; a deterministic model: its MPJPE)",
+    "models.<name>.mpjpe_best_of_k": "per-frame MPJPE (m) of the model's sample closest to the truth in each "
+    "window up to that frame, as ADE chooses it, mean over windows (Tanke Table 6.8's best-of-k; a "
+    "deterministic model: its MPJPE)",
     "models.<name>.ndms": "per-frame NDMS, D = held-out clips of the query's activity incl. its own clip",
     "models.<name>.ndms_loo": "per-frame NDMS with the query's own clip left out of D",
     "models.<name>.ndms_word_first_frame": "per-frame NDMS, words normalised at their first frame only",

@@ -64,12 +64,25 @@ def mpjpe(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> n
         return err.sum(axes) / m.sum(axes)
 
 
+def closest_sequence_error(per: np.ndarray) -> np.ndarray:
+    """per (B,S,T) error of sample s of window b at frame t (NaN: not known) -> (B,T): at frame t the error of
+    the sample whose mean error over frames 1..t is lowest, the sample ADE would choose for a sequence that
+    ends at t (Tanke Table 6.8, DLow's protocol): one sample for the whole sequence, not the best of each
+    frame."""
+    per = np.asarray(per, np.float64)
+    ok = np.isfinite(per)
+    n = np.cumsum(ok, -1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        prefix = np.where(n > 0, np.cumsum(np.where(ok, per, 0.0), -1) / np.maximum(n, 1), np.inf)
+    pick = np.argmin(prefix, 1)  # (B,T)
+    best = np.take_along_axis(per, pick[:, None], 1)[:, 0]
+    return np.where(np.isfinite(best), best, np.nan)
+
+
 def mpjpe_best_of_k(samples: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """Best-of-k MPJPE per frame, the sample chosen as ADE chooses it (Tanke Table 6.8, DLow's protocol: of
-    k samples the sequence closest to the truth is scored): samples (B,S,T,J,3), gt (B,T,J,3), mask (B,T,J)
-    -> (T,) metres. At frame t each window scores the sample whose mean error over frames 1..t is lowest (one
-    sample for the whole sequence up to t, not the best sample of each frame), averaged over windows (NaN
-    where a frame has no valid joint)."""
+    """Best-of-k MPJPE per frame, the sample chosen as ADE chooses it (:func:`closest_sequence_error`):
+    samples (B,S,T,J,3), gt (B,T,J,3), mask (B,T,J) -> (T,) metres, averaged over windows (NaN where a frame
+    has no valid joint)."""
     y, g = np.asarray(samples, np.float64), np.asarray(gt, np.float64)
     if y.ndim != 5 or g.shape != y.shape[:1] + y.shape[2:]:
         raise ValueError(f"mpjpe_best_of_k: samples {y.shape} must be (B,S,T,J,3) and gt {g.shape} (B,T,J,3)")
@@ -77,12 +90,7 @@ def mpjpe_best_of_k(samples: np.ndarray, gt: np.ndarray, mask: np.ndarray | None
     m = np.isfinite(err) if mask is None else (np.asarray(mask, bool)[:, None] & np.isfinite(err))
     with np.errstate(invalid="ignore", divide="ignore"):
         per = np.where(m, err, 0.0).sum(-1) / m.sum(-1)  # (B,S,T), NaN where a frame has no valid joint
-        ok = np.isfinite(per)
-        prefix = np.cumsum(np.where(ok, per, 0.0), -1) / np.maximum(np.cumsum(ok, -1), 1)  # ADE over 1..t
-        prefix = np.where(np.cumsum(ok, -1) > 0, prefix, np.inf)
-        pick = np.argmin(prefix, 1)  # (B,T): the closest sequence up to t
-        best = np.take_along_axis(per, pick[:, None], 1)[:, 0]  # (B,T)
-        best = np.where(np.isfinite(best), best, np.nan)
+        best = closest_sequence_error(per)
         return np.nanmean(best, 0) if np.isfinite(best).any() else np.full(best.shape[1], np.nan)
 
 
