@@ -1,4 +1,4 @@
-"""Behaviour forecaster (Diller ch. 4): why the full model's 3D poses are judged fake, on the VALIDATION split.
+"""Behaviour forecaster (Diller ch. 4): why the full model's 3D poses are judged fake (VALIDATION split).
 
 Trains one variant with ``--set`` overrides (eq. 4.1, model selection on the validation objective as
 ``forecast behaviour train``) and reports on the validation sequences: 2D MPJPE (px), top-1, 3D MPJPE (mm,
@@ -63,7 +63,8 @@ def main() -> None:
         cfg = next(iter(cfgs.values()))
     else:
         cfg = dataclasses.replace(
-            M.config_from_dict(parse_sets(args.set)) if args.set else M.BehaviourConfig(), variant=args.variant
+            M.config_from_dict(parse_sets(args.set)) if args.set else M.BehaviourConfig(),
+            variant=args.variant,
         )
     sp = T.load_splits(cfg, with_train=args.checkpoint is None)
     names = cfg.joint_names
