@@ -25,10 +25,10 @@ import numpy as np
 import torch
 
 from roomcap.core.cli import parse_sets
-from roomcap.forecast.behaviour import model as M
-from roomcap.forecast.behaviour import quality as Q
-from roomcap.forecast.behaviour import training as T
-from roomcap.forecast.behaviour.cli import QUALITY_OF_SCRIPT
+from roomcap.forecast.lab.behaviour import model as M
+from roomcap.forecast.lab.behaviour import quality as Q
+from roomcap.forecast.lab.behaviour import training as T
+from roomcap.forecast.lab.behaviour.cli import QUALITY_OF_SCRIPT
 
 
 def db_bones(P: np.ndarray, names, db_ref: np.ndarray) -> np.ndarray:

@@ -28,9 +28,9 @@ import numpy as np
 import torch
 
 from roomcap.core.cli import parse_sets
-from roomcap.forecast.behaviour import model as M
-from roomcap.forecast.behaviour import quality as Q
-from roomcap.forecast.behaviour import training as T
+from roomcap.forecast.lab.behaviour import model as M
+from roomcap.forecast.lab.behaviour import quality as Q
+from roomcap.forecast.lab.behaviour import training as T
 
 
 def train_with_snapshots(cfg, sp, every: int, per_snapshot: int):

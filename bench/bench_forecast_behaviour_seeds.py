@@ -23,9 +23,9 @@ import json
 import numpy as np
 import torch
 
-from roomcap.forecast.behaviour import model as M
-from roomcap.forecast.behaviour import quality as Q
-from roomcap.forecast.behaviour import training as T
+from roomcap.forecast.lab.behaviour import model as M
+from roomcap.forecast.lab.behaviour import quality as Q
+from roomcap.forecast.lab.behaviour import training as T
 
 KEYS = ("mpjpe2d_px", "quality3d", "symmetry_mm", "top1", "top3", "mpjpe3d_mm")
 
