@@ -545,7 +545,8 @@ def _report_parts(res: dict) -> tuple[list[str], list[Table], list[str]]:
         footer.insert(
             0,
             "APD/ADE/FDE/MMADE/MMFDE/NPSS on root-centred poses; MPJPE in world coordinates (mean over "
-            "samples; best-of-k: per window the sample closest to the truth up to t, as ADE chooses, Tanke Table 6.8).",
+            "samples; best-of-k: per window the sample closest to the truth up to t, as ADE chooses, Tanke "
+            "Table 6.8).",
         )
     tables.append(_ndms_table("NDMS", res["models"], fps, res["n_pred"], "ndms"))
     for extra in ("ndms_loo", "ndms_word_first_frame"):
