@@ -15,7 +15,7 @@ Per model (mean over windows; a stochastic model's ``--samples`` samples):
   ``|(y_1 - x_0) - (x_0 - x_-1)|``;
 - damping: the forecast's mean joint speed over the first 0.4 s and 0.4-1 s relative to the real future's.
 
-    PYTHONPATH=WT/.pp python bench/bench_forecast_trust.py forecast/checkpoints/intention_cmu.pt ... \
+    PYTHONPATH=WT/.pp python bench/bench_forecast_trust.py forecast/checkpoints/intention_cmuall.pt ... \
         [--split val|test] [--windows 200] [--samples 10] [--seed 0] [--ndms]
 
 A checkpoint may carry sampler settings to try: ``CKPT.pt:sample_temp=1.2,sample_dct=24`` (model attributes
