@@ -180,13 +180,11 @@ def test_import_missing_path(tmp_path, bad):
         import_2d(tmp_path / bad, tmp_path / "k")
 
 
-def test_exports_carry_hand_markers(tmp_path):
-    """A track with hands: TRC (and C3D where ezc3d is installed), CSV and JSON name the hand markers as
-    COCO-WholeBody does; the BVH has a JOINT per hand joint, the fingers hanging off the wrists."""
+def _hand_track():
+    """One walker with both hands (fingers fanned off the wrists) and a short gap in one finger joint."""
     from track_helpers import walkers
 
-    from roomcap.outputs.export import ExportOptions, export_tracks, read_csv
-    from roomcap.track.trackfile import OBSERVED, read_json, read_trc, yup_to_world
+    from roomcap.track.trackfile import OBSERVED
 
     sk = get_skeleton("body19_hands")
     body = walkers(1, 30).astype(np.float64)  # (T,1,19,3)
@@ -212,6 +210,17 @@ def test_exports_carry_hand_markers(tmp_path):
         flags=np.where(known, OBSERVED, 0).astype(np.uint8),
         source="test",
     )
+    return sk, xyz, tf
+
+
+def test_exports_carry_hand_markers(tmp_path):
+    """A track with hands: TRC (and C3D where ezc3d is installed), CSV and JSON name the hand markers as
+    COCO-WholeBody does; the BVH has a JOINT per hand joint, the fingers hanging off the wrists."""
+    from roomcap.outputs.export import ExportOptions, export_tracks, read_csv
+    from roomcap.track.trackfile import read_json, read_trc, yup_to_world
+
+    sk, xyz, tf = _hand_track()
+    T = xyz.shape[0]
     formats = ("trc", "csv", "json", "bvh")
     try:
         import ezc3d  # noqa: F401
@@ -238,6 +247,26 @@ def test_exports_carry_hand_markers(tmp_path):
 
         c = ezc3d.c3d(str(tmp_path / "s_1.c3d"))
         assert c["parameters"]["POINT"]["LABELS"]["value"][-1] == "right_pinky_finger4"
+
+
+def test_opensim_reads_the_trc_with_hand_markers(tmp_path):
+    """OpenSim's own TRC reader takes the whole-body TRC: every hand marker by its COCO-WholeBody name, at
+    the exported position."""
+    opensim = pytest.importorskip(
+        "opensim", reason="OpenSim is an optional extra: pip install 'roomcap[opensim]'"
+    )
+    from roomcap.outputs.export import ExportOptions, export_tracks
+    from roomcap.track.trackfile import read_trc
+
+    sk, xyz, tf = _hand_track()
+    export_tracks(tf, tmp_path, "s", ExportOptions(formats=("trc",)))
+    table = opensim.TimeSeriesTableVec3(str(tmp_path / "s_1.trc"))  # OpenSim's TRCFileAdapter
+    labels = list(table.getColumnLabels())
+    assert labels[-42:] == list(HANDS) and table.getNumRows() == xyz.shape[0]
+    names, pts, _, _ = read_trc(tmp_path / "s_1.trc")  # file axes and units, as OpenSim reads them
+    for name in ("left_middle_finger2", "right_thumb4", "right_hand_root"):
+        v = table.getDependentColumnAtIndex(labels.index(name))[10]
+        np.testing.assert_allclose([v.get(0), v.get(1), v.get(2)], pts[10, names.index(name)], atol=1e-6)
 
 
 def test_a_hand_seen_by_one_view_is_never_a_3d_point_downstream(tmp_path, rng):
