@@ -491,8 +491,8 @@ def test_shipped_configs_and_checkpoint_load():
         assert meta["model"] == kind and meta["fps"] == 25.0
         assert all(getattr(meta["config"], k) == v for k, v in table.items()), kind
     model, meta = T.load_checkpoint(CHECKPOINT_DIR / "social_diffusion_1pass_cmuall.pt", skeleton="body19")
-    # shared statistics, one pass over any horizon
-    assert model.feat_std.dim() == 1 and model.anchor == model.n_obs - 1
+    # per-lag statistics held past the window, one pass over any horizon
+    assert model.feat_std.shape == (144, 67) and model.lag_hold and model.anchor == model.n_obs - 1
     assert diffusion_rollout(model, 250) == "one_pass"
     calls = []
     orig = model.sample_window

@@ -38,6 +38,9 @@ the fully convolutional network generates any length in one pass (trained with a
 window, it samples 4 s and 10 s in one pass; CMU validation NDMS 2-4 s .247 against .250 for the chained
 64-frame model).
 
+``lag_hold`` (shipped CMU one-pass model): per-lag statistics, the last lag's past the window, so one pass
+covers any horizon; why (shared statistics made root jitter): bench/bench_forecast_trust.py.
+
 Root as velocity (``root_vel``, default off, our addition): the 3 root channels are coded as per-frame
 displacements r[n] - r[n-1] (standardised per lag like the rest) instead of offsets from the anchor, and
 decoded by summing from the anchor frame. An offset coding lets per-frame errors of the X_0 estimate
@@ -250,9 +253,8 @@ class SocialDiffusion(nn.Module):
         return self.relative(c, anchor_feat, +1.0)
 
     def _stats(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and std for n frames from the window start: per lag (rows :n) or shared over time. With
-        ``lag_hold`` frames past the training window take the last lag's statistics (the spread of the root's
-        offset keeps growing there, so those frames are coded coarser than the data: a bound, not a fit)."""
+        """Mean and std for n frames from the window start: per lag (rows :n) or shared over time; with
+        ``lag_hold`` frames past the training window take the last lag's (a bound, not a fit)."""
         if self.feat_mean.dim() == 1:
             return self.feat_mean, self.feat_std
         rows = self.feat_mean.shape[0]
