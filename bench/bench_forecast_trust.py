@@ -31,6 +31,22 @@ protocol reports) and best-of-k, at the protocol's horizons, in its units, per a
 (MPJPE 80 / 400 / 1000 ms, mean over samples and best-of-k; ndms, ndms_loo and the word-first-frame form at
 2 / 4 s), one row per model and run, nothing else computed.
 
+Found with it (Social Diffusion's root, ``models.diffusion``'s ``lag_hold``): the seed standardises each
+channel to zero mean and unit std (sec. 7.2.3). Anchored at the last observed frame with one std per channel
+over a 144-frame window, the root offset's std is 0.48 / 0.64 m (x / y), while its real spread 1 / 10 frames
+after the anchor is 1-2 / 7-16 cm (CMU training windows). The network's error floor of ~0.1 standardised units
+was then ~5 cm of root at every forecast frame: the first forecast frame 54 mm from the anchor (real 14 mm),
+frame-to-frame root steps 3.8x the real ones in standardised units, sample root speed 0.67 / 0.90 / 1.20 m/s
+over 0-0.4 / 0.4-1 / 1-4 s against 0.33 / 0.32 / 0.29 real, while the net 1-4 s displacement was below the
+real one (0.12 vs 0.18 m/s): jitter from the coding, not a rate or integration bug (both data and model at 25
+Hz; offsets decode exactly). Per-lag statistics give every lag its own resolution; frames past the training
+window take the last lag's, so one pass still covers any horizon. The shipped one-pass model continued 1600
+steps with them (statistics refitted, step 1200 picked on validation NDMS) moved CMU validation (200 windows,
+10 samples, ``--split val --ndms``) from 245 to 193 mm MPJPE at 400 ms (best-of-10 161 -> 147, zero velocity
+164; root error 201 -> 138 mm, joint speed ratio 0-0.4 / 0.4-1 s 1.21 / 1.90 -> 0.78 / 1.37) with NDMS own
+clip left out 2 / 4 s .200 / .214 -> .224 / .226; then on the cmu8 body19 variant at 400 ms 148.0 / 120.3 ->
+109.9 / 105.4 (mean / best-of-10; zero 115.2).
+
 Needs the CMU BVH under $ROOMCAP_SHARED/data/motion. Ends with one line ``BENCH {json}``.
 """
 

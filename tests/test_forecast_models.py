@@ -491,8 +491,8 @@ def test_shipped_configs_and_checkpoint_load():
         assert meta["model"] == kind and meta["fps"] == 25.0
         assert all(getattr(meta["config"], k) == v for k, v in table.items()), kind
     model, meta = T.load_checkpoint(CHECKPOINT_DIR / "social_diffusion_1pass_cmuall.pt", skeleton="body19")
-    # shared statistics, one pass over any horizon
-    assert model.feat_std.dim() == 1 and model.anchor == model.n_obs - 1
+    # per-lag statistics held past the window, one pass over any horizon
+    assert model.feat_std.shape == (144, 67) and model.lag_hold and model.anchor == model.n_obs - 1
     assert diffusion_rollout(model, 250) == "one_pass"
     calls = []
     orig = model.sample_window
@@ -545,3 +545,30 @@ def test_the_runtime_imports_without_torch_and_without_the_lab():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False False"
+
+
+def test_held_lag_statistics_generate_past_the_window_and_continue_a_shared_stats_model():
+    """lag_hold: per-lag statistics (fine near the observation) held at the last lag past the training window,
+    so one pass covers any horizon; continuing a per-channel-statistics model refits the statistics."""
+    base = {"channels": 16, "T": 50, "n_frames": 32, "n_obs": 16, "steps": 2, "batch": 4, "sample_steps": 3}
+    shared, _ = T.train(
+        "social_diffusion", _clips(3, 100), T.config_from_dict("social_diffusion", {**base, "lag_stats": 0})
+    )
+    cfg = T.config_from_dict("social_diffusion", {**base, "lag_hold": 1})
+    held, _ = T.train("social_diffusion", _clips(3, 100), cfg, init=shared.state_dict())
+    assert held.feat_std.shape == (32, 67) and held.lag_hold
+    assert not torch.equal(held.inp.weight, shared.inp.weight)  # the weights continued and trained on
+    mean, std = held._stats(50)
+    assert (
+        mean.shape == (50, 67)
+        and torch.equal(std[40], held.feat_std[-1])
+        and torch.equal(std[:32], held.feat_std)
+    )
+    i = 19 * 3  # root offsets: the spread grows with the lag, so early frames get a finer code than shared
+    assert held.feat_std[17, i : i + 2].max() < 0.5 * held.feat_std[-1, i : i + 2].min()
+    assert diffusion_rollout(held, 100) == "one_pass"
+    scene = np.stack([walker(16), walker(16, start=(2, 0))], 1)[None]
+    y = forecast_world(held, scene, None, 100, n_samples=2)
+    assert y.shape == (1, 2, 100, 2, 19, 3) and np.isfinite(y).all()
+    with pytest.raises(ValueError, match="per-lag statistics cover 32"):
+        T.build_model("social_diffusion", T.config_from_dict("social_diffusion", base), 19)._stats(40)

@@ -242,6 +242,11 @@ def _feature_stats(model, f: np.ndarray, stat) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def _stats_shape(config: DiffusionConfig, nf: tuple[int, int]) -> tuple[int, ...]:
+    """Shape of Social Diffusion's feature statistics for ``config`` and features of (frames, channels) nf."""
+    return tuple(nf) if config.anchor and config.lag_stats else (nf[1],)
+
+
 def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, init=None, val_clips=None):
     N, P = config.n_frames, config.persons
     single = fdata.make_windows(clips, config.n_obs, N - config.n_obs, stride=4, persons="each")
@@ -263,8 +268,13 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
     # feature statistics from a large composed sample
     sample = composed_batch(xs, P, 2048, rng)
     f = diffusion_batch_features(sample, np.ones((len(sample), P), bool), config.n_obs)
-    model = build_model("social_diffusion", config, J, init).to(device)
-    if init is None:  # a continued model keeps its feature statistics
+    # a continued model keeps its feature statistics, unless the config codes them differently (per lag
+    # ``lag_stats`` against per channel): then the weights continue and the statistics are fitted anew
+    restat = init is None or tuple(init["feat_mean"].shape) != _stats_shape(config, f.shape[-2:])
+    model = build_model("social_diffusion", config, J, None if restat else init).to(device)
+    if init is not None and restat:
+        model.load_state_dict({k: v for k, v in init.items() if not k.startswith("feat_")}, strict=False)
+    if restat:
         model.feat_mean.copy_(torch.from_numpy(_feature_stats(model, f, np.mean)))
         model.feat_std.copy_(torch.from_numpy(_feature_stats(model, f, np.std) + 1e-3))
     # EMA of the weights (Ho et al. 2020, Nichol & Dhariwal 2021 sample from one): validated, kept, returned

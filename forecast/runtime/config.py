@@ -65,6 +65,7 @@ class DiffusionConfig:
     anchor: bool = True  # motion coded relative to the last observed frame, per-lag statistics (continuity)
     lag_stats: bool = True  # (anchored) mean/std per lag: bound to n_frames; false: per channel, any length
     root_vel: bool = False  # (anchored) root coded as per-frame displacements, not offsets from the anchor
+    lag_hold: bool = False  # (lag_stats) past the window the last lag's statistics hold: one pass, any length
     p_single: float = 0.0  # share of composed training scenes with one person
     p_real: float = (
         0.5  # share of batches of real multi-person scenes (when the clips hold any), else composed

@@ -141,7 +141,8 @@ def diffusion_rollout(model, n_pred: int, mode: str = "auto") -> str:
     if mode != "auto":
         return mode
     fits = int(model.n_obs) + n_pred <= int(model.n_frames)
-    return "one_pass" if fits or model.feat_mean.dim() == 1 else "chained"
+    anylen = model.feat_mean.dim() == 1 or getattr(model, "lag_hold", False)
+    return "one_pass" if fits or anylen else "chained"
 
 
 def _rollout_diffusion(model, obs, pm, n_pred, n_samples, dev, steps=None, eta=None, mode="auto"):

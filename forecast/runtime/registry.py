@@ -83,6 +83,7 @@ def _build_diffusion(config: DiffusionConfig, n_joints: int, state: Mapping | No
     m.n_obs_clean = config.n_obs if config.clean_obs else 0
     m.anchor = config.n_obs - 1 if config.anchor else None
     m.root_vel = config.root_vel
+    m.lag_hold = bool(config.lag_hold)
     return m
 
 

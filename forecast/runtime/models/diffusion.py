@@ -38,6 +38,9 @@ the fully convolutional network generates any length in one pass (trained with a
 window, it samples 4 s and 10 s in one pass; CMU validation NDMS 2-4 s .247 against .250 for the chained
 64-frame model).
 
+``lag_hold`` (shipped CMU one-pass model): per-lag statistics, the last lag's past the window, so one pass
+covers any horizon; why (shared statistics made root jitter): bench/bench_forecast_trust.py.
+
 Root as velocity (``root_vel``, default off, our addition): the 3 root channels are coded as per-frame
 displacements r[n] - r[n-1] (standardised per lag like the rest) instead of offsets from the anchor, and
 decoded by summing from the anchor frame. An offset coding lets per-frame errors of the X_0 estimate
@@ -165,6 +168,7 @@ class SocialDiffusion(nn.Module):
         self.sample_dct = 0  # set from the config: low-pass the X_0 estimate to this many DCT coefficients
         self.sample_temp = 1.0  # set from the config: scale of the sampling noise (temperature)
         self.root_vel = False  # set from the config (root_vel): root channels coded as per-frame velocity
+        self.lag_hold = False  # set from the config (lag_hold): per-lag statistics held past the window
         self.register_buffer("alpha_bar", cosine_alpha_bar(T))
         # per-lag statistics (anchored, ``lag_stats``) tie the model to its window length; one mean/std per
         # channel shared over time (the seed's standardisation) lets it generate any length in one pass
@@ -249,10 +253,20 @@ class SocialDiffusion(nn.Module):
         return self.relative(c, anchor_feat, +1.0)
 
     def _stats(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and std for n frames from the window start: per lag (rows :n) or shared over time."""
+        """Mean and std for n frames from the window start: per lag (rows :n) or shared over time; with
+        ``lag_hold`` frames past the training window take the last lag's (a bound, not a fit)."""
         if self.feat_mean.dim() == 1:
             return self.feat_mean, self.feat_std
-        return self.feat_mean[:n], self.feat_std[:n]
+        rows = self.feat_mean.shape[0]
+        if n <= rows:
+            return self.feat_mean[:n], self.feat_std[:n]
+        if not self.lag_hold:
+            raise ValueError(f"per-lag statistics cover {rows} frames, asked for {n}")
+        pad = n - rows
+        return (
+            torch.cat([self.feat_mean, self.feat_mean[-1:].expand(pad, -1)]),
+            torch.cat([self.feat_std, self.feat_std[-1:].expand(pad, -1)]),
+        )
 
     def standardise(self, f: torch.Tensor) -> torch.Tensor:
         """Raw features (...,N',F) from the window start (N' ≤ n_frames for per-lag statistics) ->
@@ -291,7 +305,7 @@ class SocialDiffusion(nn.Module):
         if N != self.n_frames:
             if N % 16:
                 raise ValueError(f"n_frames must be a multiple of 16 (4 stride-2 layers), got {N}")
-            if self.feat_mean.dim() != 1:
+            if self.feat_mean.dim() != 1 and not (self.lag_hold and N > self.n_frames):
                 raise ValueError(
                     f"this Social Diffusion model keeps per-frame statistics for its {self.n_frames}-frame "
                     f"window and cannot generate {N} frames in one pass; train it with n_frames >= the "
@@ -306,8 +320,7 @@ class SocialDiffusion(nn.Module):
         lowpass = None
         if 0 < self.sample_dct < N:  # band-limit X_0 (dct_lowpass_matrix) in metres, not per-lag units
             lowpass = dct_lowpass_matrix(N, self.sample_dct).to(obs.device)
-            mean = self.feat_mean if self.feat_mean.dim() == 2 else self.feat_mean.expand(N, Fd)
-            std = self.feat_std if self.feat_std.dim() == 2 else self.feat_std.expand(N, Fd)
+            mean, std = (a if a.dim() == 2 else a.expand(N, Fd) for a in self._stats(N))
         # temperature (sample_temp): the noise the reverse process starts from (and re-noises with, eta > 0)
         # scaled; > 1 spreads the samples. On CMU validation 0.8 / 1 / 1.2 gave NDMS own-clip-left-out 2 s
         # .150 / .176 / .208 with best-of-10 MPJPE at 400 ms unchanged (187 / 187 / 188 mm)
