@@ -3,11 +3,71 @@ looping, real-time file cameras in a ``cams.yaml``."""
 
 from __future__ import annotations
 
+import re
+import threading
+import time
 from pathlib import Path
 
 from roomcap.calibrate.formats import import_rig
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
+# where a live process's CPU goes: thread-name patterns of the recorder and the 2D camera groups
+THREAD_GROUPS = (
+    ("decode (grab-*)", r"^grab-"),
+    ("encode (write-*)", r"^write-"),
+    ("2D groups", r"^live-keypoints"),
+)
+
+
+class ThreadCpu:
+    """CPU seconds per thread name of this process, sampled every ``every`` s (a thread's last value stays
+    when it ends; its CPU before it was first seen, its start-up, is left out)."""
+
+    def __init__(self, every: float = 0.2) -> None:
+        self.cpu: dict[str, float] = {}
+        self.first: dict[str, float] = {}
+        self._every = every
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._every):
+            self.sample()
+
+    def sample(self) -> None:
+        for t in threading.enumerate():
+            if t.ident is None or not t.is_alive():
+                continue
+            try:
+                v = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
+            except (OSError, ProcessLookupError):
+                continue
+            self.first.setdefault(t.name, v)
+            self.cpu[t.name] = v
+
+    def used(self, name: str) -> float:
+        """CPU seconds of the thread since it was first seen (0.0 if never)."""
+        return self.cpu.get(name, 0.0) - self.first.get(name, 0.0)
+
+    def groups(self, groups=THREAD_GROUPS, other: str = "other threads") -> dict[str, float]:
+        """CPU seconds by ``groups`` ((label, thread-name pattern), ...), the live loop (threads ``live``,
+        ``live-3d``) and the rest."""
+        rows = {g: 0.0 for g, _ in groups} | {"live loop (live, live-3d)": 0.0, other: 0.0}
+        for name in self.cpu:
+            g = next((g for g, pat in groups if re.match(pat, name)), None)
+            if g is None:
+                g = "live loop (live, live-3d)" if name in ("live", "live-3d") else other
+            rows[g] += self.used(name)
+        return rows
+
+    def __enter__(self) -> ThreadCpu:
+        self.sample()
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._t.join(2)
 
 
 def write_looping_cams(demo: Path, folder: Path) -> Path:

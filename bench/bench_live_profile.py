@@ -19,15 +19,12 @@ import os
 import re
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import write_looping_cams  # noqa: E402
-
-GROUPS = (("decode (grab-*)", r"^grab-"), ("encode (write-*)", r"^write-"), ("2D groups", r"^live-keypoints"))
+from _live_demo import ThreadCpu, write_looping_cams  # noqa: E402
 
 
 def main() -> int:
@@ -47,61 +44,34 @@ def main() -> int:
         sys.exit(f"bench_live_profile: {demo} not found; set --shared")
     tmp = Path(tempfile.mkdtemp(prefix="bench_live_profile_"))
     write_looping_cams(demo, tmp)
-    cpu: dict[str, float] = {}
-    first: dict[str, float] = {}
-    stop = threading.Event()
-
-    def sample() -> None:
-        for t in threading.enumerate():
-            if t.ident is None or not t.is_alive():
-                continue
-            try:
-                v = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
-            except (OSError, ProcessLookupError):
-                continue
-            first.setdefault(t.name, v)
-            cpu[t.name] = v
-
-    def sampler() -> None:
-        while not stop.wait(0.1):
-            sample()
+    tc = ThreadCpu(every=0.1)
 
     started = {}
     make_threads = recorder_mod.Recorder._make_threads
 
     def timed_make_threads(self, sources):  # the recording's start: the cameras are open
         started["t"] = time.monotonic()
-        sample()
+        tc.sample()
         return make_threads(self, sources)
 
     recorder_mod.Recorder._make_threads = timed_make_threads
-    threading.Thread(target=sampler, daemon=True).start()
     argv = ["--cameras", str(tmp / "cams.yaml"), "--out", str(tmp / "S"), "--duration", str(args.seconds)]
     import contextlib
     import io
 
     out = io.StringIO()
-    with contextlib.redirect_stdout(out):
+    with tc, contextlib.redirect_stdout(out):
         rc = capture_run([*argv, "--live", "--quiet", "--no-join"])
     end = time.monotonic()
-    stop.set()
     text = out.getvalue()
     line = next((x.strip() for x in text.splitlines() if x.strip().startswith("live:")), "live: (none)")
     n = int(re.search(r"live: (\d+)", line).group(1)) if re.search(r"live: (\d+)", line) else 0
-    used = {k: cpu[k] - first.get(k, cpu[k]) for k in cpu}
     rec_s = args.seconds
     print(f"exit code {rc}; {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f} at the end")
     print(line)
     print(f"frame sets processed per second of recording: {n / rec_s:.2f}")
     print(f"recording start -> exit: {end - started.get('t', end):.1f} s (--duration {rec_s:g})")
-    rows = {g: 0.0 for g, _ in GROUPS} | {"live loop (live, live-3d)": 0.0, "other Python threads": 0.0}
-    for name, v in used.items():
-        for g, pat in GROUPS:
-            if re.match(pat, name):
-                rows[g] += v
-                break
-        else:
-            rows["live loop (live, live-3d)" if name in ("live", "live-3d") else "other Python threads"] += v
+    rows = tc.groups(other="other Python threads")
     for g, v in rows.items():
         print(f"  {g:24s} {v / rec_s:5.2f} CPU s per s")
     return 0

@@ -52,13 +52,13 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import CAMS  # noqa: E402
+from _live_demo import CAMS, ThreadCpu  # noqa: E402
 
 TARGETS = {"default": {"sets_per_s": 5.0, "complete": 0.8, "to_3d_ms": 300.0, "to_page_ms": 400.0}}
 TARGETS["fast"] = {"sets_per_s": 10.0}
 GROUPS = (
-    ("recorder (grab-*, write-*)", ("grab-", "write-")),
-    ("2D groups (live-keypoints*)", ("live-keypoints",)),
+    ("recorder (grab-*, write-*)", r"^(grab|write)-"),
+    ("2D groups (live-keypoints*)", r"^live-keypoints"),
 )
 
 
@@ -238,52 +238,6 @@ def reduced_accuracy(videos: list[Path], cfg, folder: Path, n_sets: int = 12) ->
     return out
 
 
-class ThreadCpu:
-    """CPU seconds per thread name (sampled every 0.2 s; the last value stays when a thread ends)."""
-
-    def __init__(self) -> None:
-        self.cpu: dict[str, float] = {}
-        self.first: dict[str, float] = {}
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.2):
-            self.sample()
-
-    def sample(self) -> None:
-        for t in threading.enumerate():
-            if t.ident is None or not t.is_alive():
-                continue
-            try:
-                v = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
-            except (OSError, ProcessLookupError):
-                continue
-            self.first.setdefault(t.name, v)
-            self.cpu[t.name] = v
-
-    def groups(self) -> dict[str, float]:
-        rows = {g: 0.0 for g, _ in GROUPS} | {"live loop (live, live-3d)": 0.0, "other threads": 0.0}
-        for name, v in self.cpu.items():
-            used = v - self.first.get(name, v)
-            for g, pre in GROUPS:
-                if name.startswith(pre):
-                    rows[g] += used
-                    break
-            else:
-                rows["live loop (live, live-3d)" if name in ("live", "live-3d") else "other threads"] += used
-        return rows
-
-    def __enter__(self) -> ThreadCpu:
-        self.sample()
-        self._t.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._t.join(2)
-
-
 def phase(name: str, cams_yaml: Path, folder: Path, seconds: float, browser: bool) -> dict:
     from roomcap.capture.config import load_config
     from roomcap.capture.live import LiveRunner
@@ -352,7 +306,7 @@ def phase(name: str, cams_yaml: Path, folder: Path, seconds: float, browser: boo
         "decode_ms_per_frame_taken": dec[0] / dec[1] if dec[1] else None,
         "reduce": dict(getattr(kp, "reduce_of", {})),
         "process_cpu_per_s": (c1 - c0) / (w1 - w0),
-        "cpu_s_per_s": {k: v / (w1 - w0) for k, v in tc.groups().items()},
+        "cpu_s_per_s": {k: v / (w1 - w0) for k, v in tc.groups(GROUPS).items()},
         "frames_written": {c: cams[c].get("frames_written") for c in cams},
         "frames_grabbed": {c: cams[c].get("frames_grabbed") for c in cams},
         "recording": {c: cams[c].get("recording") for c in cams},

@@ -50,45 +50,14 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import CAMS, LslReader, loopback_lsl, match_lsl_to_frames, write_looping_cams  # noqa: E402
-
-
-class ThreadCpu:
-    """Samples the CPU time of named threads every 0.2 s (the last value stays when a thread ends)."""
-
-    def __init__(self) -> None:
-        self.cpu: dict[str, float] = {}
-        self.first: dict[str, float] = {}  # each thread's CPU when first seen: its start-up is left out
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.2):
-            self.sample()
-
-    def sample(self) -> None:
-        for t in threading.enumerate():
-            if t.ident is None or not t.is_alive():
-                continue
-            try:
-                v = time.clock_gettime(time.pthread_getcpuclockid(t.ident))
-                self.first.setdefault(t.name, v)
-                self.cpu[t.name] = v
-            except (OSError, ProcessLookupError):
-                pass
-
-    def used(self, name: str) -> float:
-        """CPU seconds of the thread since it was first seen (0.0 if never)."""
-        return self.cpu.get(name, 0.0) - self.first.get(name, 0.0)
-
-    def __enter__(self) -> ThreadCpu:
-        self.sample()
-        self._t.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._t.join(2)
+from _live_demo import (  # noqa: E402
+    CAMS,
+    LslReader,
+    ThreadCpu,
+    loopback_lsl,
+    match_lsl_to_frames,
+    write_looping_cams,
+)
 
 
 def main() -> None:
