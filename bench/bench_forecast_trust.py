@@ -148,7 +148,8 @@ def _ndms_scorer(split: str, names: list[str]):
 
 
 def table(paths: list[str]) -> None:
-    """Print the rows of ``forecast eval`` results (``results.json``) the issue's targets are read from."""
+    """Print the rows of ``forecast eval`` results (``results.json``) the
+    controls-against-models figures are read from: MPJPE, best-of-k and NDMS."""
     print(
         "| run | model | MPJPE 80 / 400 / 1000 ms | best-of-k 80 / 400 / 1000 ms | ndms 2 / 4 s | "
         "ndms_loo 2 / 4 s | ndms ff 2 / 4 s |"

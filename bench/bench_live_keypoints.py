@@ -12,7 +12,7 @@ recorder's cost, measured apart), then:
   previous frame of each camera), every frame of the same span.
 
 Per frame set: the wall time of the stage, its split (detector, pose, pre/post processing: the pipeline's
-``stage_s``), the detector's share of images. Ratio live / batch per frame set: the issue's target is 1.3.
+``stage_s``), the detector's share of images. Ratio live / batch per frame set: the target is 1.3.
 
     python bench/bench_live_keypoints.py [--frames 60] [--step 6] [--shared DIR]
 """

@@ -35,7 +35,7 @@ from roomcap.keypoints.skeletons import CANONICAL
 
 log = logging.getLogger(__name__)
 
-HORIZON_S = 1.5  # the issue asks for the next 1-2 s; the GRU was trained on 1 s and rolls out further
+HORIZON_S = 1.5  # the page shows the next 1.5 s; the GRU was trained on 1 s and rolls out further
 HISTORY_S = 2.5  # kept in the history: the GRU observes 2 s (n_obs 50 at 25 Hz), plus a margin
 MAX_HISTORY = 512  # frame sets in the history at most, whatever the frame rate
 LH, RH = CANONICAL.joint_names.index("left_hip"), CANONICAL.joint_names.index("right_hip")

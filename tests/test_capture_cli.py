@@ -1,4 +1,4 @@
-"""capture-run end to end: the minimal cams.yaml of the issue, clear errors for bad input, sync."""
+"""capture-run end to end: a minimal cams.yaml, clear errors for bad input, sync."""
 
 from __future__ import annotations
 

@@ -32,7 +32,8 @@ def blender_import(bvh_files: list[Path], out_json: Path) -> dict:
 
 
 def check_armatures(fit: SkeletonFit, files: dict[int, Path], got: dict) -> dict[str, float]:
-    """Assert the issue's criteria; returns the worst head error and bone length spread (metres)."""
+    """Assert the import matches the fit (one armature per person, frames, rate, bone heads and lengths);
+    returns the worst head error and bone length spread (metres)."""
     assert got["n_armatures"] == len(files), "one armature per person"
     P = fit.positions()
     worst_head = worst_len = 0.0

@@ -1,2 +1,2 @@
-"""``python -m roomcap.forecast.behaviour``: kept for that command; the code is
+"""``python -m roomcap.forecast.behaviour``: the behaviour command line of
 :mod:`roomcap.forecast.lab.behaviour`."""

@@ -1,2 +1,2 @@
-"""``python -m roomcap.forecast.characteristic``: kept for that command (the shipped checkpoints record it);
-the code is :mod:`roomcap.forecast.lab.characteristic`."""
+"""``python -m roomcap.forecast.characteristic``: the characteristic-pose command line of
+:mod:`roomcap.forecast.lab.characteristic` (the command the shipped checkpoints' cards record)."""
