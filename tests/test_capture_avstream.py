@@ -14,29 +14,7 @@ from roomcap.capture.sources import read_frames_csv
 
 av = pytest.importorskip("av", reason="PyAV not installed")
 
-
-def _video(path, codec, n=40, opts=None, pix="yuv420p"):
-    if codec not in av.codecs_available:
-        pytest.skip(f"no {codec} encoder in this PyAV")
-    with av.open(str(path), "w") as c:
-        s = c.add_stream(codec, rate=30)
-        s.width, s.height, s.pix_fmt = 160, 120, pix
-        if opts:
-            s.options = opts
-        for i in range(n):
-            img = np.zeros((120, 160, 3), np.uint8)
-            img[:, (i * 3) % 160] = 255
-            img[(i * 2) % 120] = 128
-            for p in s.encode(av.VideoFrame.from_ndarray(img, format="bgr24")):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
-    return path
-
-
-def _packets(path):
-    with av.open(str(path)) as c:
-        return [bytes(p) for p in c.demux(c.streams.video[0]) if p.size]
+from tests.test_capture_streamcopy import _packets, _video  # noqa: E402  (after the PyAV check)
 
 
 def _record(tmp_path, src):
