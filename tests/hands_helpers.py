@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from roomcap.keypoints.skeletons import CANONICAL, FINGERS, HANDS, get_skeleton
-from roomcap.track.trackfile import OBSERVED, TrackFile
+from roomcap.track.trackfile import TrackFile
 
 SK = get_skeleton("body19_hands")
 # per finger: palm bone offset along the hand (m) and across it (finger slots), phalanx lengths (m)
@@ -56,22 +56,9 @@ def wholebody_xyz(n_people: int = 1, T: int = 30, seed: int = 0) -> np.ndarray:
 
 def wholebody_trackfile(xyz: np.ndarray, seed: int = 0) -> TrackFile:
     """A track file of ``xyz (T,P,61,3)`` in the ``body19_hands`` layout (NaN: unknown)."""
-    rng = np.random.default_rng(seed)
-    T, K, J = xyz.shape[:3]
-    known = np.isfinite(xyz).all(-1)
-    return TrackFile(
-        fps=25.0,
-        frame_index=np.arange(T) + 100,
-        t_ns=np.arange(T) * 40_000_000 + 5_000_000_000,
-        track_id=np.arange(K) + 3,
-        joint_names=SK.joint_names,
-        parents=np.asarray(SK.parents),
-        xyz_m=xyz,
-        confidence=np.where(known, rng.uniform(0.5, 1.0, (T, K, J)), 0.0),
-        std_m=np.where(known, rng.uniform(0.005, 0.02, (T, K, J)), np.nan),
-        flags=np.where(known, OBSERVED, 0).astype(np.uint8),
-        source="test",
-    )
+    from tests.test_outputs_export import _trackfile
+
+    return _trackfile(xyz, np.random.default_rng(seed), skeleton=SK, std_max_m=0.02)
 
 
 def wholebody_session(

@@ -29,7 +29,9 @@ def _walkers(n_people=2, T=60, seed=0):
     return walkers(n_people, T, seed=seed).astype(np.float64)
 
 
-def _trackfile(xyz, rng=None, std=0.01) -> TrackFile:
+def _trackfile(xyz, rng=None, std=0.01, skeleton=CANONICAL, std_max_m=0.03) -> TrackFile:
+    """A track file of ``xyz (T,K,J,3)`` in ``skeleton``'s layout (NaN: unknown), random confidences and
+    std (0.005 to ``std_max_m``) where known."""
     T, K, J = xyz.shape[:3]
     rng = rng or np.random.default_rng(0)
     known = np.isfinite(xyz).all(-1)
@@ -38,11 +40,11 @@ def _trackfile(xyz, rng=None, std=0.01) -> TrackFile:
         frame_index=np.arange(T) + 100,
         t_ns=np.arange(T) * 40_000_000 + 5_000_000_000,
         track_id=np.arange(K) + 3,
-        joint_names=CANONICAL.joint_names,
-        parents=np.asarray(CANONICAL.parents),
+        joint_names=skeleton.joint_names,
+        parents=np.asarray(skeleton.parents),
         xyz_m=xyz,
         confidence=np.where(known, rng.uniform(0.5, 1.0, (T, K, J)), 0.0),
-        std_m=np.where(known, rng.uniform(0.005, 0.03, (T, K, J)), np.nan),
+        std_m=np.where(known, rng.uniform(0.005, std_max_m, (T, K, J)), np.nan),
         flags=np.where(known, OBSERVED, 0).astype(np.uint8),
         source="test",
     )
