@@ -3,6 +3,7 @@ looping, real-time file cameras in a ``cams.yaml``."""
 
 from __future__ import annotations
 
+import os
 import re
 import threading
 import time
@@ -11,6 +12,9 @@ from pathlib import Path
 from roomcap.calibrate.formats import import_rig
 
 CAMS = ("cam01", "cam02", "cam03", "cam04")
+# --shared's default: $ROOMCAP_SHARED, else the shared folder beside the checkout
+SHARED = os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared"))
+DEMO = Path("data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson")  # the multi-person demo, under --shared
 # where a live process's CPU goes: thread-name patterns of the recorder and the 2D camera groups
 THREAD_GROUPS = (
     ("decode (grab-*)", r"^grab-"),

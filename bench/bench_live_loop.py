@@ -34,16 +34,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import CAMS, write_looping_cams  # noqa: E402
+from _live_demo import CAMS, DEMO, SHARED, write_looping_cams  # noqa: E402
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument(
-        "--shared",
-        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
-    )
+    ap.add_argument("--shared", default=SHARED)
     ap.add_argument("--replay-2d", type=int, default=0, metavar="N", help="N loops of the demo's 2D instead")
     ap.add_argument("--stride", type=int, default=6, help="with --replay-2d: every this many frames")
     args = ap.parse_args()
@@ -52,7 +49,7 @@ def main() -> int:
         return replay_2d(args)
     from roomcap.pipeline.live import main as capture_run
 
-    demo = Path(args.shared) / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
+    demo = Path(args.shared) / DEMO
     if not demo.exists():
         sys.exit(f"bench_live_loop: {demo} not found; set --shared")
     tmp = Path(tempfile.mkdtemp(prefix="bench_live_loop_"))
@@ -124,7 +121,7 @@ def replay_2d(args) -> int:
     from roomcap.pipeline.live import LiveContext, _track, _triangulate
 
     shared = Path(args.shared)
-    demo = shared / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
+    demo = shared / DEMO
     trial = shared / "data/pose2sim/session-2024/S00_P01_MultiParticipants/S00_P01_T02_Participants1-2"
     if not demo.exists() or not trial.exists():
         sys.exit(f"bench_live_loop: {demo} or {trial} not found; set --shared")

@@ -24,22 +24,19 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import ThreadCpu, write_looping_cams  # noqa: E402
+from _live_demo import DEMO, SHARED, ThreadCpu, write_looping_cams  # noqa: E402
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0)
-    ap.add_argument(
-        "--shared",
-        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
-    )
+    ap.add_argument("--shared", default=SHARED)
     args = ap.parse_args()
     os.environ.setdefault("ROOMCAP_SHARED", args.shared)
     import roomcap.capture.recorder as recorder_mod
     from roomcap.pipeline.live import main as capture_run
 
-    demo = Path(args.shared) / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
+    demo = Path(args.shared) / DEMO
     if not demo.exists():
         sys.exit(f"bench_live_profile: {demo} not found; set --shared")
     tmp = Path(tempfile.mkdtemp(prefix="bench_live_profile_"))

@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import LslReader, loopback_lsl, match_lsl_to_frames, write_looping_cams  # noqa: E402
+from _live_demo import DEMO, SHARED, LslReader, loopback_lsl, match_lsl_to_frames, write_looping_cams  # noqa: E402
 
 URL = re.compile(r"live view: (http\S+)")
 SUMMARY = re.compile(r"live: (\d+) frame sets processed \((\d+) stale ones dropped, (\d+) complete\)")
@@ -230,7 +230,7 @@ def demo(out: Path, tmp: Path, shared: Path, seconds: float) -> dict:
     from roomcap.capture.session import SessionLayout
     from roomcap.track.trackfile import TrackFile
 
-    demo_dir = shared / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_MultiPerson"
+    demo_dir = shared / DEMO
     if not demo_dir.exists():
         return {"skipped": f"{demo_dir} not found; set --shared to the shared data folder"}
     cams = write_looping_cams(demo_dir, tmp)
@@ -309,7 +309,7 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/live_show", help="folder for the PNGs, logs and summary.json")
     ap.add_argument("--seconds", type=float, default=20.0, help="the demo run's --duration")
     ap.add_argument("--empty-seconds", type=float, default=10.0, help="the empty room's --duration")
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    ap.add_argument("--shared", default=SHARED)
     ap.add_argument("--skip-empty", action="store_true")
     ap.add_argument("--skip-demo", action="store_true")
     args = ap.parse_args()

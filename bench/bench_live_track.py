@@ -42,7 +42,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=5.0)
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    ap.add_argument(
+        "--shared",
+        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
+    )
     args = ap.parse_args()
     import torch
 

@@ -52,7 +52,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import CAMS, ThreadCpu  # noqa: E402
+from _live_demo import CAMS, DEMO, SHARED, ThreadCpu  # noqa: E402
 
 TARGETS = {"default": {"sets_per_s": 5.0, "complete": 0.8, "to_3d_ms": 300.0, "to_page_ms": 400.0}}
 TARGETS["fast"] = {"sets_per_s": 10.0}
@@ -389,10 +389,7 @@ def report(p: str, f: dict, ph: dict) -> list[str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0)
-    ap.add_argument(
-        "--shared",
-        default=os.environ.get("ROOMCAP_SHARED", str(Path(__file__).resolve().parents[2] / "shared")),
-    )
+    ap.add_argument("--shared", default=SHARED)
     ap.add_argument("--presets", default="default,fast")
     ap.add_argument(
         "--no-accuracy", action="store_true", help="skip the 2D on JPEGs at 1/2, 1/4 against full size"
@@ -406,7 +403,7 @@ def main() -> int:
     from roomcap.calibrate.formats import import_rig
     from roomcap.capture.config import load_config
 
-    demo = Path(args.shared) / "data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson"
+    demo = Path(args.shared) / DEMO
     if not demo.exists():
         sys.exit(f"bench_live_usb: {demo} not found; set --shared")
     browser = not args.no_browser

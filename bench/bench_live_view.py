@@ -52,6 +52,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from _live_demo import (  # noqa: E402
     CAMS,
+    DEMO,
+    SHARED,
     LslReader,
     ThreadCpu,
     loopback_lsl,
@@ -63,7 +65,7 @@ from _live_demo import (  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0)
-    ap.add_argument("--shared", default=os.environ.get("ROOMCAP_SHARED", "/work/shared"))
+    ap.add_argument("--shared", default=SHARED)
     ap.add_argument("--out", default=None, help="folder for the screenshot (default: a temporary folder)")
     args = ap.parse_args()
     import cv2
@@ -81,7 +83,7 @@ def main() -> None:
     from roomcap.pipeline.live_outputs import Outputs
     from roomcap.pipeline.liveview.browser import HeadlessBrowser, find_chromium
 
-    demo = Path(args.shared) / "data" / "pose2sim" / "demo-wheel-0.10.49" / "Demo_MultiPerson"
+    demo = Path(args.shared) / DEMO
     trial = (
         Path(args.shared) / "data/pose2sim/session-2024/S00_P01_MultiParticipants/S00_P01_T02_Participants1-2"
     )
