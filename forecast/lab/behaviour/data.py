@@ -375,14 +375,7 @@ def compose_stations(pool: list[StepClip], n: int, length: int, seed: int = 0) -
     X = np.zeros((n, length, len(JOINTS), 3), np.float32)
     names = np.empty((n, length), dtype=object)
     for s in range(n):
-        st = int(rng.choice(len(ch.states), p=ch.pi))
-        last = None
-        for k in range(length):
-            if k:
-                st = int(rng.choice(len(ch.states), p=ch.T[st]))
-            pos, heading, last = _station_target(ch.states[st], last, rng)
-            a = ACTIONS[int(ch.action[st])]
-            c = by_action[a][rng.integers(len(by_action[a]))]
+        for k, (st, pos, heading, c) in enumerate(_station_walk(ch, by_action, length, rng)):
             X[s, k] = _place(c, rng, pos, heading)
             acts[s, k], states[s, k], names[s, k] = ch.action[st], st, c.name
     return acts, X, names, states
@@ -575,6 +568,20 @@ def _station_target(state: str, last: str | None, rng: np.random.Generator) -> t
     return np.asarray(xy) + rng.normal(0, STATION_NOISE_M, 2), h + rng.normal(0, STATION_TURN_RAD), place
 
 
+def _station_walk(ch: Chain, by_action: dict, length: int, rng: np.random.Generator):
+    """The stations script's steps, a walk of ``length`` states along the chain ``ch``: per step (state,
+    floor point, heading, a clip of the state's action). Lazy, so the caller's own draws for a step come
+    between this step's and the next's."""
+    st = int(rng.choice(len(ch.states), p=ch.pi))
+    last = None
+    for k in range(length):
+        if k:
+            st = int(rng.choice(len(ch.states), p=ch.T[st]))
+        pos, heading, last = _station_target(ch.states[st], last, rng)
+        a = ACTIONS[int(ch.action[st])]
+        yield st, pos, heading, by_action[a][rng.integers(len(by_action[a]))]
+
+
 def _glide(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
     """n frames (n,J,3) from pose a to pose b: the pelvis along the straight line on the floor, the heading
     by the shorter turn, the body cross-faded in its own facing frame."""
@@ -600,16 +607,10 @@ def _continuous_stations(
     ch = script_chain("stations")
     pel = JOINTS.index("pelvis")
     nb = max(1, int(round(blend_s * fps)))
-    st = int(rng.choice(len(ch.states), p=ch.pi))
-    last = None
     out = np.zeros((0, len(JOINTS), 3))
     labels, states, starts, chars = [], [], [], []
-    for k in range(length):
-        if k:
-            st = int(rng.choice(len(ch.states), p=ch.T[st]))
-        pos, heading, last = _station_target(ch.states[st], last, rng)
+    for st, pos, heading, c in _station_walk(ch, by_action, length, rng):
         a = ACTIONS[int(ch.action[st])]
-        c = by_action[a][rng.integers(len(by_action[a]))]
         f = int(c.frames[rng.integers(len(c.frames))])
         w = int(round(around_s * fps))
         lo, hi = max(0, f - w), min(len(c.xyz_m), f + w + 1)
