@@ -16,7 +16,9 @@ drawing it when one is installed):
 - frame sets processed per second of recording, the share of them complete;
 - capture -> 3D: host arrival of a set's newest frame -> the track stage done (median, p95);
 - capture -> page drawn: the page's acknowledgements of drawn states, at the server (median);
-- where the live loop's time goes: ms per set per stage, decoding the taken frames, each thread group's CPU.
+- where the live loop's time goes: ms per set per stage, decoding the taken frames, each thread group's CPU,
+  the other threads by name; the headless Chromium's CPU (all its processes, by process type) and the page's
+  main-thread time by kind (DevTools ``Performance.getMetrics``: script, layout, style, the rest).
 
 The floor, measured in the same run before the phases: decoding the JPEGs (full size and at the factor the
 live loop uses; ms per camera-frame, one thread) and the 2D alone on the same reduced frames (the live
@@ -40,6 +42,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import re  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -137,6 +140,61 @@ def auto_reduce(w: int, h: int, setting: int) -> int:
 def jpeg_size(data: bytes) -> tuple[int, int]:
     img = decode_jpeg(data)
     return img.shape[1], img.shape[0]
+
+
+class TreeCpu:
+    """CPU seconds of a process and its children (the headless Chromium's renderer, GPU and utility
+    processes), sampled every ``every`` s while in use; ``pids`` may get its pid after the start."""
+
+    def __init__(self, pids: list, every: float = 0.5) -> None:
+        self.pids, self._every, self._cpu = pids, every, {}
+        self.kind: dict = {}  # pid -> Chromium's process type (renderer, gpu-process, utility, browser)
+        self._first: dict = {}
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._every):
+            self.sample()
+
+    def sample(self) -> None:
+        import psutil
+
+        for pid in self.pids:
+            try:
+                root = psutil.Process(pid)
+                procs = [root, *root.children(recursive=True)]
+            except psutil.Error:
+                continue
+            for p in procs:
+                try:
+                    t = p.cpu_times()
+                except psutil.Error:
+                    continue
+                self._first.setdefault(p.pid, t.user + t.system)
+                self._cpu[p.pid] = t.user + t.system
+                if p.pid not in self.kind:
+                    try:
+                        types = [a[7:] for a in p.cmdline() if a.startswith("--type=")]
+                        self.kind[p.pid] = types[0] if types else "browser"
+                    except psutil.Error:
+                        self.kind[p.pid] = "?"
+
+    def used(self) -> float:
+        return sum(v - self._first[k] for k, v in self._cpu.items())
+
+    def by_kind(self) -> dict:
+        out: dict = {}
+        for k, v in self._cpu.items():
+            out[self.kind.get(k, "?")] = out.get(self.kind.get(k, "?"), 0.0) + v - self._first[k]
+        return out
+
+    def __enter__(self) -> TreeCpu:
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
 
 
 def floor(videos: list[Path], cfg, folder: Path, n_sets: int = 24) -> dict:
@@ -258,25 +316,34 @@ def phase(name: str, cams_yaml: Path, folder: Path, seconds: float, browser: boo
     close = outputs.open(p.parse_args(["--view", "--view-port", "0"]), live, rec)
     view = outputs.feed.view
     drive = None
+    page_metrics: dict = {}  # the page's main-thread time by kind over the phase (DevTools metrics)
+    chrome: list = []  # the browser's process, for its CPU (all its processes) over the phase
     if browser:
         from roomcap.pipeline.liveview.browser import HeadlessBrowser
 
         def run_browser() -> None:
             with HeadlessBrowser(folder / f"chrome-{name}", size_wh=(1400, 1000)) as b:
+                chrome.append(b.proc.pid)
                 b.open(view.url)
+                b.call("Performance.enable", {})
+                m0 = {m["name"]: m["value"] for m in b.call("Performance.getMetrics")["metrics"]}
                 while not rec.stop_event.wait(0.5):
                     pass
+                m1 = {m["name"]: m["value"] for m in b.call("Performance.getMetrics")["metrics"]}
+                kinds = ("Duration", "Count")
+                page_metrics.update({k: m1[k] - m0.get(k, 0.0) for k in m1 if k.endswith(kinds)})
 
         drive = threading.Thread(target=run_browser, daemon=True)
         drive.start()
     live.watch(rec.stop_event)
     live.start()
     load0 = os.getloadavg()[0]
-    with ThreadCpu() as tc:
+    with ThreadCpu() as tc, TreeCpu(chrome) as browser_cpu:
         c0, w0 = time.process_time(), time.monotonic()
         summary = rec.run()
         live.stop()
         tc.sample()
+        browser_cpu.sample()
         c1, w1 = time.process_time(), time.monotonic()
     if drive is not None:
         drive.join(30)
@@ -307,6 +374,16 @@ def phase(name: str, cams_yaml: Path, folder: Path, seconds: float, browser: boo
         "reduce": dict(getattr(kp, "reduce_of", {})),
         "process_cpu_per_s": (c1 - c0) / (w1 - w0),
         "cpu_s_per_s": {k: v / (w1 - w0) for k, v in tc.groups(GROUPS).items()},
+        "browser_cpu_per_s": browser_cpu.used() / (w1 - w0) if chrome else None,
+        "page_metrics": page_metrics,
+        "browser_cpu_per_s_by_process": {k: v / (w1 - w0) for k, v in browser_cpu.by_kind().items()},
+        "other_threads_cpu_per_s": {
+            n: tc.used(n) / (w1 - w0)
+            for n in sorted(tc.cpu, key=tc.used, reverse=True)
+            if not any(re.match(pat, n) for _, pat in GROUPS)
+            and n not in ("live", "live-3d")
+            and tc.used(n) > 0.005 * (w1 - w0)
+        },
         "frames_written": {c: cams[c].get("frames_written") for c in cams},
         "frames_grabbed": {c: cams[c].get("frames_grabbed") for c in cams},
         "recording": {c: cams[c].get("recording") for c in cams},

@@ -161,23 +161,26 @@ def _keypoints(ctx: LiveContext) -> Stage:
         raise FormatError(ctx.cfg.path, "live.preset", str(e).split(": ", 2)[-1]) from None
     conf = settings.detector
     cams = list(ctx.cfg.names)
-    n_groups = max(1, min(ctx.keypoint_groups or os.cpu_count() or 1, len(cams)))
-    if n_groups > 1:  # each group's share of the onnxruntime threads, as the batch stage
-        threads = max(1, (conf.runtime.threads or os.cpu_count() or 1) // n_groups)
+    n_workers = max(1, min(ctx.keypoint_groups or os.cpu_count() or 1, len(cams)))
+    if n_workers > 1:  # each worker's share of the onnxruntime threads, as the batch stage
+        threads = max(1, (conf.runtime.threads or os.cpu_count() or 1) // n_workers)
         conf = replace(conf, runtime=replace(conf.runtime, threads=threads))
-        # OpenCV's own pool on top of the groups' threads made its small calls slower (keypoints.video)
+        # OpenCV's own pool on top of the workers' threads made its small calls slower (keypoints.video)
         cv2.setNumThreads(1)
-    groups = [cams[g::n_groups] for g in range(n_groups)]
-    pipes = [KeypointPipeline(conf) for _ in groups]
+    # one pipeline per camera (it follows that camera's people), run by n_workers threads: a worker that is
+    # done with a camera takes the next, the cameras that took longest in the last set first, so neither
+    # core waits on the other while a busy camera is still running (fixed groups of cameras did)
+    pipes = {c: KeypointPipeline(conf) for c in cams}
+    last_s = dict.fromkeys(cams, 0.0)
     sizes = [c.resolution for c in ctx.cfg.cameras if c.resolution]
     w, h = sizes[0] if sizes else (1920, 1080)
     setting = ctx.cfg.live.decode_reduce
     # warmed at the size the 2D will see: JPEG cameras' frames are decoded reduced, decoded ones taken as
     # they are (or shrunk when decode_reduce is set)
     r = auto_reduce(w, h, setting) if any(delivers_jpeg(c) for c in ctx.cfg.cameras) else setting or 1
-    for pipe in pipes:
+    for pipe in pipes.values():
         warm_keypoints(pipe, (-(-w // r), -(-h // r)))
-    pool = ThreadPoolExecutor(n_groups, thread_name_prefix="live-keypoints") if n_groups > 1 else None
+    pool = ThreadPoolExecutor(n_workers, thread_name_prefix="live-keypoints") if n_workers > 1 else None
     reduce_of: dict[str, int] = {}  # camera -> the factor its JPEGs are decoded at (from its first frame)
     decode_ms = [0.0, 0]  # decoding the taken frames: ms in all, frames
 
@@ -188,30 +191,35 @@ def _keypoints(ctx: LiveContext) -> Stage:
             reduce_of[cam] = auto_reduce(*jpeg_size(f.jpeg), setting)
         return reduce_of[cam]
 
-    def run_group(g: int, step: LiveStep) -> dict:
-        frames = step.frameset.frames
-        present = [c for c in groups[g] if frames.get(c) is not None and frames[c].has_image]
+    def run_camera(cam: str, step: LiveStep):
+        f = step.frameset.frames[cam]
         t0 = time.perf_counter()
-        factors = [reduce_for(c, frames[c]) for c in present]
-        images = [frames[c].decoded(k) for c, k in zip(present, factors, strict=True)]
-        decode_ms[0] += (time.perf_counter() - t0) * 1e3
-        decode_ms[1] += len(present)
-        results = pipes[g](images, streams=present)
-        return {c: scale_result(r_, k) for c, r_, k in zip(present, results, factors, strict=True)}
+        k = reduce_for(cam, f)
+        img = f.decoded(k)
+        t1 = time.perf_counter()
+        decode_ms[0] += (t1 - t0) * 1e3
+        decode_ms[1] += 1
+        # the decoded image, for the live view's camera preview (no second decoding of the same JPEG)
+        step.outputs.setdefault("decoded", {})[cam] = (k, img)
+        (res,) = pipes[cam]([img], streams=[cam])
+        last_s[cam] = time.perf_counter() - t0
+        return scale_result(res, k)
 
     def stage(step: LiveStep) -> None:
+        frames = step.frameset.frames
+        present = [c for c in cams if frames.get(c) is not None and frames[c].has_image]
+        present.sort(key=last_s.__getitem__, reverse=True)
         if pool is None:
-            parts = [run_group(0, step)]
+            dets = {c: run_camera(c, step) for c in present}
         else:
-            parts = list(pool.map(run_group, range(n_groups), [step] * n_groups))
-        dets = {k: v for part in parts for k, v in part.items()}
+            dets = dict(zip(present, pool.map(run_camera, present, [step] * len(present)), strict=True))
         step.outputs["detections"] = {c: dets[c] for c in step.cameras if c in dets}
 
     def close() -> None:
         if pool is not None:
             pool.shutdown(wait=False)
 
-    stage.pipes = pipes  # type: ignore[attr-defined]  # the bench reads their timings
+    stage.pipes = list(pipes.values())  # type: ignore[attr-defined]  # the bench reads their timings
     stage.close = close  # type: ignore[attr-defined]
     stage.decode_ms = decode_ms  # type: ignore[attr-defined]  # [ms decoding taken frames, frames]
     stage.reduce_of = reduce_of  # type: ignore[attr-defined]

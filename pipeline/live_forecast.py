@@ -36,6 +36,7 @@ from roomcap.keypoints.skeletons import CANONICAL
 log = logging.getLogger(__name__)
 
 HORIZON_S = 1.5  # the page shows the next 1.5 s; the GRU was trained on 1 s and rolls out further
+MAX_HZ = 5.0  # forecasts a second at most: a 1.5 s path needs no more, and each one redraws the page
 HISTORY_S = 2.5  # kept in the history: the GRU observes 2 s (n_obs 50 at 25 Hz), plus a margin
 MAX_HISTORY = 512  # frame sets in the history at most, whatever the frame rate
 LH, RH = CANONICAL.joint_names.index("left_hip"), CANONICAL.joint_names.index("right_hip")
@@ -46,13 +47,20 @@ class LiveForecast:
     loop, ``latest`` the newest forecast (None: none yet, or switched off), ``set_enabled(on)`` the page's
     toggle, ``stop()``."""
 
-    def __init__(self, model: str = "default", horizon_s: float = HORIZON_S, enabled: bool = True):
+    def __init__(
+        self,
+        model: str = "default",
+        horizon_s: float = HORIZON_S,
+        enabled: bool = True,
+        max_hz: float = MAX_HZ,
+    ):
         try:
             self.kind, self.checkpoint = forecast_model(model)
         except FileNotFoundError as e:
             raise InputError(str(e)) from None
         self.horizon_s = float(horizon_s)
         self.enabled = bool(enabled)
+        self.max_hz = float(max_hz)
         self.latest: dict[str, Any] | None = None
         self.model_name = self.kind if self.checkpoint is None else self.checkpoint.stem
         self._hist: deque[tuple[int, int, np.ndarray, np.ndarray]] = deque(maxlen=MAX_HISTORY)
@@ -156,8 +164,9 @@ class LiveForecast:
             if not self._new.wait(0.25):
                 continue
             self._new.clear()
-            if not self._stop.is_set():
-                self.step_once()
+            t0 = time.monotonic()
+            if not self._stop.is_set() and self.step_once():  # then a pause: max_hz forecasts a second
+                self._stop.wait(max(0.0, t0 + 1.0 / self.max_hz - time.monotonic()))
 
     def step_once(self) -> bool:
         """Forecast from the newest history if a frame set with people came since the last forecast (and

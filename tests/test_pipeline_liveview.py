@@ -677,6 +677,31 @@ def test_a_slow_forecast_never_holds_up_the_live_loop(monkeypatch):
     assert fc.view_data(steps[-1].frameset.t_ns)["tracks"] and not fc.view_data(later)["tracks"]
 
 
+def test_the_forecast_runs_at_most_max_hz_and_ends_with_the_newest_set():
+    """Sets offered faster than ``max_hz`` get a forecast at most every 1/max_hz s (each one redraws the
+    page's room); the sets between are superseded, and the newest set offered is forecast in the end."""
+    from roomcap.pipeline.live_forecast import LiveForecast
+
+    rig, names, _ = _setup()
+    steps = _walker_steps(rig, names, n=40, fps=30.0)
+    fc = LiveForecast("constant_velocity", max_hz=4.0)
+    fc.start()
+    assert fc.ready.wait(30)
+    t0 = time.monotonic()
+    for s in steps:  # 40 sets in 1 s
+        fc.offer(s)
+        time.sleep(0.025)
+    offered_s = time.monotonic() - t0
+    for _ in range(300):
+        if fc.latest is not None and fc.latest["frame"] == steps[-1].frameset.index:
+            break
+        time.sleep(0.01)
+    fc.stop()
+    assert fc.latest is not None and fc.latest["frame"] == steps[-1].frameset.index
+    assert 2 <= fc.n_forecast <= 4.0 * offered_s + 2  # not one per set (40)
+    assert fc.n_superseded >= len(steps) - fc.n_forecast - 1
+
+
 def _wholebody_step(rig, names, t=0):
     """A step whose track estimate has a whole body (body19 and both hands, the right hand unseen) and
     whose detections are in ``body19_hands``."""

@@ -6,15 +6,29 @@ const COLORS = ['#e6194b','#3cb44b','#4363d8','#f58231','#911eb4','#42d4f4','#f0
 const color = id => COLORS[((id % COLORS.length) + COLORS.length) % COLORS.length];
 const $ = id => document.getElementById(id);
 const PANE_W = 300, PANE_H = 440;
-let hello = null, state = null, dirty = false, ws = null, acked = -1, ackedFrame = null;
+let hello = null, state = null, ws = null, acked = -1, ackedFrame = null;
+// what the next animation frame redraws (scheduled only when something changed): everything (a new state),
+// the room alone (a new forecast of the set drawn, an orbit), or single camera panes (a new image)
+const need = {all: false, room: false, panes: new Set()}; let scheduled = false;
+function invalidate(what, cam){
+  if (what === 'pane') need.panes.add(cam); else need[what] = true;
+  if (!scheduled) { scheduled = true; requestAnimationFrame(tick); }
+}
 const recent = new Map();   // seq -> state, to draw an image with the detections of its own frame set
-const panes = {};
+const panes = {}, statCells = {};  // per camera: its pane, its row's cells (fps, frames, dropped, skipped)
+let whoIds = null;  // the ids the 'who' list shows
 const lat = [];             // the page's own latency readout: capture -> drawn, ms
 const V3 = RoomView3D($('room'));
-V3.orbit(() => { dirty = true; });
+V3.orbit(() => invalidate('room'));
+
+function setText(el, text){ if (el.textContent !== text) el.textContent = text; }  // an unchanged text is not laid out again
 
 function onHello(m){
-  hello = m; $('panes').innerHTML = '';
+  hello = m; $('panes').innerHTML = ''; whoIds = null;
+  // the cameras' table: built once, its cells updated in place
+  const tbl = $('camStats'); tbl.innerHTML = '<tr><th>camera</th><th>fps</th><th>frames</th><th>dropped</th><th>skipped by live</th></tr>';
+  for (const cam of m.cameras) { const tr = document.createElement('tr'), td = document.createElement('td'); td.textContent = cam; tr.appendChild(td);
+    statCells[cam] = [0, 1, 2, 3].map(() => tr.appendChild(document.createElement('td'))); tbl.appendChild(tr); }
   for (const cam of m.cameras) {
     const box = document.createElement('div'); box.className = 'pane'; box.dataset.camera = cam;
     const head = document.createElement('div'); head.className = 'head';
@@ -28,7 +42,7 @@ function onHello(m){
   document.body.dataset.panes = String(m.cameras.length);
   $('fcPill').hidden = !m.forecast;
   if (m.forecast) $('fcToggle').checked = m.forecast.on;
-  dirty = true;
+  invalidate('all');
 }
 
 // the page's forecast switch: the server's forecaster stops (no CPU spent) or starts again
@@ -58,7 +72,7 @@ function onImage(buf){
   const head = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 2, n)));
   const blob = new Blob([new Uint8Array(buf, 2 + n)], {type: 'image/jpeg'});
   createImageBitmap(blob).then(bm => { const p = panes[head.cam]; if (!p) { bm.close(); return; }
-    if (p.bitmap) p.bitmap.close(); p.bitmap = bm; p.head = head; dirty = true; }).catch(() => null);
+    if (p.bitmap) p.bitmap.close(); p.bitmap = bm; p.head = head; invalidate('pane', head.cam); }).catch(() => null);
 }
 
 function connect(){
@@ -69,7 +83,9 @@ function connect(){
     if (typeof ev.data !== 'string') { onImage(ev.data); return; }
     const m = JSON.parse(ev.data);
     if (m.type === 'hello') onHello(m);
-    else if (m.type === 'state') { state = m; recent.set(m.seq, m); if (recent.size > 40) recent.delete(recent.keys().next().value); dirty = true; }
+    else if (m.type === 'state') {  // a refresh (a new forecast of the set drawn) redraws only the room
+      state = m; recent.set(m.seq, m); if (recent.size > 40) recent.delete(recent.keys().next().value);
+      invalidate(m.refresh ? 'room' : 'all'); }
   };
   ws.onclose = () => { $('conn').textContent = 'disconnected, retrying…'; setTimeout(connect, 1000); };
 }
@@ -127,38 +143,38 @@ function median(a){ if (!a.length) return null; const s = a.slice().sort((x, y) 
 
 function render(){
   if (!hello) return;
-  for (const cam of hello.cameras) drawPane(cam, panes[cam]);
+  // a pane shows its image with the detections of the image's own frame set: redrawn when an image comes
+  for (const cam of hello.cameras) if (!panes[cam].drawn) drawPane(cam, panes[cam]);
   draw3d();
   if (!state) return;
   const ids = state.tracks.map(t => t.id);
-  $('people').textContent = String(ids.length);
-  const who = $('who'); who.innerHTML = ''; if (!ids.length) who.textContent = '· nobody in view';
-  for (const id of ids) { const s = document.createElement('span'); s.innerHTML = `<i class="swatch" style="background:${color(id)}"></i>`;
-    s.appendChild(document.createTextNode('id ' + id)); who.appendChild(s); }
-  $('frame').textContent = String(state.frame);
-  $('sets').textContent = state.live && state.live.processed !== undefined ? `${state.live.processed} · ${state.live.skipped} stale dropped` : '–';
+  setText($('people'), String(ids.length));
+  if (ids.join() !== whoIds) { whoIds = ids.join();
+    const who = $('who'); who.innerHTML = ''; if (!ids.length) who.textContent = '· nobody in view';
+    for (const id of ids) { const s = document.createElement('span'); s.innerHTML = `<i class="swatch" style="background:${color(id)}"></i>`;
+      s.appendChild(document.createTextNode('id ' + id)); who.appendChild(s); } }
+  setText($('frame'), String(state.frame));
+  setText($('sets'), state.live && state.live.processed !== undefined ? `${state.live.processed} · ${state.live.skipped} stale dropped` : '–');
   const jp = $('jumps'), jl = state.live && state.live.jumps_line;  // the clock jumped back: a new track segment
-  jp.hidden = !jl; jp.textContent = jl || '';
-  $('loopLatency').textContent = state.live && state.live.latency_ms !== null && state.live.latency_ms !== undefined ? state.live.latency_ms.toFixed(0) + ' ms' : '–';
+  jp.hidden = !jl; setText(jp, jl || '');
+  setText($('loopLatency'), state.live && state.live.latency_ms !== null && state.live.latency_ms !== undefined ? state.live.latency_ms.toFixed(0) + ' ms' : '–');
   const fc = state.forecast;
   if (fc) {
     if (document.activeElement !== $('fcToggle')) $('fcToggle').checked = fc.on;
-    $('fcCost').textContent = fc.on ? `${fc.horizon_s} s · ${fc.ms.toFixed(1)} ms (${fc.ms_per_set.toFixed(1)} ms/set)` : 'off';
+    setText($('fcCost'), fc.on ? `${fc.horizon_s} s · ${fc.ms.toFixed(1)} ms (${fc.ms_per_set.toFixed(1)} ms/set)` : 'off');
     $('fcCost').title = `model ${fc.model}; CPU of the last forecast, and per processed frame set`;
     document.body.dataset.forecastOn = fc.on ? 'on' : 'off';
   }
-  $('viewNote').textContent = `${state.view.clients} page(s) · ${state.view.dropped_updates} view updates dropped`;
-  const tbl = $('camStats'); tbl.innerHTML = '<tr><th>camera</th><th>fps</th><th>frames</th><th>dropped</th><th>skipped by live</th></tr>';
-  for (const cam of hello.cameras) { const s = state.cameras[cam] || {}, tr = document.createElement('tr');
-    for (const v of [cam, s.fps, s.frames, s.dropped, s.dropped_live]) { const td = document.createElement('td'); td.textContent = v === null || v === undefined ? '–' : String(v); tr.appendChild(td); }
-    tbl.appendChild(tr); }
+  setText($('viewNote'), `${state.view.clients} page(s) · ${state.view.dropped_updates} view updates dropped`);
+  for (const cam of hello.cameras) { const s = state.cameras[cam] || {};
+    [s.fps, s.frames, s.dropped, s.dropped_live].forEach((v, k) => setText(statCells[cam][k], v === null || v === undefined ? '–' : String(v))); }
   const errs = Object.entries((state.live && state.live.errors) || {});
-  $('errors').textContent = errs.length ? 'stage errors: ' + errs.map(([k, v]) => `${k}: ${v}`).join('; ') : '';
+  setText($('errors'), errs.length ? 'stage errors: ' + errs.map(([k, v]) => `${k}: ${v}`).join('; ') : '');
   // each frame set's first drawing is acknowledged (a refresh, a new forecast of a set already drawn, is not)
   if (state.seq !== acked && (!state.refresh || state.frame !== ackedFrame)) {
     acked = state.seq; ackedFrame = state.frame;
     const ms = Date.now() - state.t_capture_ms; lat.push(ms); if (lat.length > 60) lat.shift();
-    const m = median(lat); $('latency').textContent = m.toFixed(0) + ' ms';
+    const m = median(lat); setText($('latency'), m.toFixed(0) + ' ms');
     document.body.dataset.latencyMs = String(m.toFixed(1));
     if (ws && ws.readyState === 1) ws.send(JSON.stringify({ack: state.seq, t_capture_ms: state.t_capture_ms, t_sent_ms: state.t_sent_ms}));
   }
@@ -168,7 +184,11 @@ function render(){
   document.body.dataset.frame = String(state.frame);
 }
 
-function tick(){ if (dirty) { dirty = false; render(); } requestAnimationFrame(tick); }
+function tick(){
+  scheduled = false;
+  if (need.all) render();
+  else { if (hello) for (const cam of need.panes) drawPane(cam, panes[cam]); if (need.room) draw3d(); }
+  need.all = need.room = false; need.panes.clear();
+}
 connect();
-requestAnimationFrame(tick);
 })();

@@ -483,7 +483,9 @@ class LiveView:
                 r = 8
                 while r > 1 and w / r < min(self.cfg.image_width_px, w):
                     r //= 2
-                img = f.decoded(r)
+                # the 2D stage's decoding of the same JPEG where it is large enough (it decodes at 1/k)
+                k, shown = step.outputs.get("decoded", {}).get(cam, (None, None))
+                img = shown if shown is not None and k <= r else f.decoded(r)
             W = min(self.cfg.image_width_px, w)
             H = max(1, round(h * W / w))
             # bilinear: a preview, 10x cheaper than INTER_AREA on a 1088x1920 frame (0.6 vs 7.5 ms)
