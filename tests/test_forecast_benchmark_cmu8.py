@@ -219,6 +219,28 @@ def _random_mlp(seed: int) -> tuple[B.DctMlp, B.MlpConfig]:
     return m.eval(), cfg
 
 
+def test_a_ten_frame_model_is_rolled_out_to_the_protocols_25_frames():
+    """siMLPe's long-term forecast: a model of 10 frames a pass forecasts 25 by feeding its own frames back;
+    the first 10 are its one pass, the next 10 its pass on the observation moved on by those 10."""
+    cfg = B.MlpConfig(n_blocks=2, n_pred=10, seed=3)
+    torch.manual_seed(3)
+    m = B.DctMlp(25, cfg).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    obs = np.cumsum(np.random.default_rng(1).normal(0, 0.05, (3, 50, 38, 3)), 1)
+    y = B.mlp_forecast(m, obs)
+    assert y.shape == (3, 25, 38, 3) and np.isfinite(y).all()
+    used = list(B.JOINTS_USED)
+    o = torch.from_numpy(obs[:, :, used].astype(np.float32))
+    with torch.no_grad():
+        first = m(o)
+        second = m(torch.cat([o, first], 1)[:, -50:])
+    assert np.allclose(y[:, :10][:, :, used], first.numpy(), atol=1e-5)
+    assert np.allclose(y[:, 10:20][:, :, used], second.numpy(), atol=1e-5)
+    assert np.abs(y[:, 10:20][:, :, used] - first.numpy()).max() > 1e-3  # not the first pass repeated
+
+
 def test_ensemble_forecasts_the_members_mean_and_round_trips(tiny_root, tmp_path, capsys):
     from roomcap.forecast.cli import main
 

@@ -191,7 +191,7 @@ def dct_matrix(n: int) -> np.ndarray:
 @dataclass
 class MlpConfig:
     n_obs: int = N_OBS
-    n_pred: int = N_PRED
+    n_pred: int = N_PRED  # frames of one pass; fewer than the protocol's 25 are rolled out (:func:`rollout`)
     n_blocks: int = 12
     lr: float = 5e-4
     steps: int = 10000
@@ -304,18 +304,31 @@ def fit_mlp(
     }
 
 
+def rollout(model: DctMlp | DctMlpEnsemble, obs: torch.Tensor, n: int) -> torch.Tensor:
+    """``n`` frames from a model that forecasts ``model.n_pred`` a pass: each pass's frames appended to the
+    observation and the newest ``n_obs`` frames forecast again, as siMLPe forecasts its long-term horizons
+    with its 10-frame model (Guo et al. 2023, sec. 4.1). obs (B, n_obs, P, 3) -> (B, n, P, 3)."""
+    out: list[torch.Tensor] = []
+    while sum(y.shape[1] for y in out) < n:
+        out.append(model(obs))
+        obs = torch.cat([obs, out[-1]], 1)[:, -model.n_obs :]
+    return torch.cat(out, 1)[:, :n]
+
+
 @torch.no_grad()
-def mlp_forecast(model: DctMlp | DctMlpEnsemble, obs: np.ndarray, batch: int = 512) -> np.ndarray:
-    """obs (W, >= n_obs, 38, 3) units -> forecasts of all 38 points (W, n_pred, 38, 3) (used points from the
-    model; the rest filled by :func:`complete` from the last observed frame: they are fixed in the body
-    frame)."""
+def mlp_forecast(
+    model: DctMlp | DctMlpEnsemble, obs: np.ndarray, batch: int = 512, n: int = N_PRED
+) -> np.ndarray:
+    """obs (W, >= n_obs, 38, 3) units -> forecasts of all 38 points (W, n, 38, 3) (used points from the
+    model, :func:`rollout` where it forecasts fewer than ``n`` frames a pass; the rest filled by
+    :func:`complete` from the last observed frame: they are fixed in the body frame)."""
     model.eval()
     o = obs[:, -model.n_obs :][:, :, list(JOINTS_USED)].astype(np.float32)
     out = []
     for i in range(0, len(o), batch):
-        out.append(model(torch.from_numpy(o[i : i + batch])).numpy())
+        out.append(rollout(model, torch.from_numpy(o[i : i + batch]), n).numpy())
     pred_used = np.concatenate(out)
-    fill = np.repeat(obs[:, -1:], model.n_pred, 1)
+    fill = np.repeat(obs[:, -1:], n, 1)
     return complete(pred_used, fill)
 
 

@@ -26,6 +26,7 @@ from roomcap.forecast.lab import benchmark_cmu8_angle as A
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     JOINTS_USED,
+    N_PRED,
     DctMlp,
     DctMlpEnsemble,
     Forecaster,
@@ -116,8 +117,8 @@ def train_mlp(
 
 def validation_mm(model: Forecaster, val: np.ndarray) -> float:
     """Validation MPJPE: protocol units, mean over the six horizons of windows ``val (W, 75, 38, 3)``."""
-    pred = mlp_forecast(model, val[:, : model.n_obs])
-    return float(np.mean(at_horizons(mpjpe_mm(pred, val[:, model.n_obs : model.n_obs + model.n_pred]))))
+    pred = mlp_forecast(model, val[:, : model.n_obs])  # the protocol's 25 frames, rolled out if need be
+    return float(np.mean(at_horizons(mpjpe_mm(pred, val[:, model.n_obs :]))))
 
 
 # ----------------------------------------------------------------------------- `forecast cmu8 train`
@@ -135,6 +136,12 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--steps", type=positive_int, default=d.steps)
     t.add_argument("--batch", type=positive_int, default=d.batch)
     t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
+    t.add_argument(
+        "--n-pred",
+        type=positive_int,
+        default=d.n_pred,
+        help=f"frames forecast in one pass (default {d.n_pred}, the protocol's; siMLPe: 10, rolled out to 25)",
+    )
     t.add_argument("--lr", type=positive_float, default=d.lr)
     t.add_argument("--seed", type=int, default=d.seed)
     t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
@@ -160,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger(__name__).setLevel(logging.INFO)  # the validation curve, one line per check
     cfg = MlpConfig(
         n_blocks=args.blocks,
+        n_pred=args.n_pred,
         lr=args.lr,
         steps=args.steps,
         batch=args.batch,
@@ -174,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
           f"missing: {bf.missing_text()}")  # fmt: skip
     if args.angles:
+        if args.n_pred != N_PRED:
+            raise InputError(f"--n-pred applies to the 3D points; the angle model forecasts all {N_PRED} frames")
         if args.mirror:
             raise InputError("--mirror does not apply to --angles (a mirrored rotation is not a relabelling)")
         with Bars(unit="step") as bars:
