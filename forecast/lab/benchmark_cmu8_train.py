@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         "--n-pred",
         type=positive_int,
         default=d.n_pred,
-        help=f"frames forecast in one pass (default {d.n_pred}, the protocol's; siMLPe: 10, rolled out to 25)",
+        help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25)",
     )
     t.add_argument("--lr", type=positive_float, default=d.lr)
     t.add_argument("--seed", type=int, default=d.seed)
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
           f"missing: {bf.missing_text()}")  # fmt: skip
     if args.angles:
         if args.n_pred != N_PRED:
-            raise InputError(f"--n-pred applies to the 3D points; the angle model forecasts all {N_PRED} frames")
+            raise InputError(f"--n-pred applies to 3D points; the angle model forecasts all {N_PRED} frames")
         if args.mirror:
             raise InputError("--mirror does not apply to --angles (a mirrored rotation is not a relabelling)")
         with Bars(unit="step") as bars:
