@@ -43,6 +43,7 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     DctMlp,
     MlpConfig,
     fit_mlp,
+    rollout,
     window_starts,
 )
 from roomcap.forecast.lab.protocol import Table, cells, results
@@ -227,9 +228,9 @@ class AngleForecaster:
         last observed frame's (the scorer replaces them with the truth's)."""
         self.model.eval()
         o = obs[:, -self.model.n_obs :].reshape(len(obs), -1, 39, 3)[:, :, self.joints].astype(np.float32)
-        pred = np.concatenate(
-            [self.model(torch.from_numpy(o[i : i + batch])).numpy() for i in range(0, len(o), batch)]
-        )
+        o_t = torch.from_numpy(o)  # a model of fewer frames a pass is rolled out to 25 (siMLPe's long term)
+        parts = [rollout(self.model, o_t[i : i + batch], N_PRED).numpy() for i in range(0, len(o), batch)]
+        pred = np.concatenate(parts)
         out = zero_velocity(obs).reshape(len(obs), N_PRED, 39, 3).copy()
         out[:, :, self.joints] = pred[:, :N_PRED]
         return out.reshape(len(obs), N_PRED, 117)

@@ -26,7 +26,6 @@ from roomcap.forecast.lab import benchmark_cmu8_angle as A
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     JOINTS_USED,
-    N_PRED,
     DctMlp,
     DctMlpEnsemble,
     Forecaster,
@@ -182,8 +181,6 @@ def main(argv: list[str] | None = None) -> int:
     print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
           f"missing: {bf.missing_text()}")  # fmt: skip
     if args.angles:
-        if args.n_pred != N_PRED:
-            raise InputError(f"--n-pred applies to 3D points; the angle model forecasts all {N_PRED} frames")
         if args.mirror:
             raise InputError("--mirror does not apply to --angles (a mirrored rotation is not a relabelling)")
         with Bars(unit="step") as bars:
