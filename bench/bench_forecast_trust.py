@@ -30,6 +30,9 @@ as D).
 cmu8 --save-samples DIR``) rescored from its ``samples_<model>@body19.npz``: mean over samples (as the
 protocol reports) and best-of-k, at the protocol's horizons, in its units, per action and averaged.
 
+``--keep-bones``: each model also with its forecast's bones set to their length in the last observed frame
+(directions kept), to see what NDMS makes of a forecast that keeps its body.
+
 ``--table RESULTS.json [RESULTS.json ...]``: the controls-against-models table of ``forecast eval`` runs
 (MPJPE 80 / 400 / 1000 ms, mean over samples and best-of-k; ndms, ndms_loo and the word-first-frame form at
 2 / 4 s), one row per model and run, nothing else computed.
@@ -49,6 +52,20 @@ steps with them (statistics refitted, step 1200 picked on validation NDMS) moved
 164; root error 201 -> 138 mm, joint speed ratio 0-0.4 / 0.4-1 s 1.21 / 1.90 -> 0.78 / 1.37) with NDMS own
 clip left out 2 / 4 s .200 / .214 -> .224 / .226; then on the cmu8 body19 variant at 400 ms 148.0 / 120.3 ->
 109.9 / 105.4 (mean / best-of-10; zero 115.2).
+
+Found with it on validation (``--split val --data cmu-all --windows 400 --ndms``, 10 samples): NDMS compares
+joint velocities only (eq. 6.11/6.12), and the forecasts that score highest at 2-4 s do not keep a body: the
+limb bones of constant velocity are 619 / 1390 mm off their length over 1-2 / 2-4 s, the intention model's 137
+/ 299 mm (real motion: 0). Forcing the last observed bone lengths onto every forecast frame (``--keep-bones``)
+lowers ndms_loo at 2 / 4 s on the CMU validation windows from .225 / .227 to .156 / .098 (constant velocity)
+and from .238 / .239 to .199 / .192 (intention). The intention model is not below constant velocity there
+(ndms_loo .224 / .222 against .221 / .220; CMU split .238 / .239 against .225 / .227); its joints move at .66
+/ .50 / .58 of the real speed over 0-0.4 / 0.4-1 / 1-2 s. The GRU damps: .54 / .37 / .45 of the real speed,
+the mean of the possible futures that a position loss teaches, and its bones drift past its 1-s training
+horizon (56 / 110 mm over 1-2 / 2-4 s); trained on 4 s it damps more (validation NDMS 2-4 s .102 -> .074). The
+speed term of its training (``w_speed``, ``train.speed_gap``) raises its joint speed at 1-2 s to .93 of the
+real one (``w_speed=10``: ndms_loo .165 / .200 -> .217 / .204, MPJPE at 400 ms 164 -> 167 mm, zero velocity
+216).
 
 Needs the CMU BVH under $ROOMCAP_SHARED/data/motion. Ends with one line ``BENCH {json}``.
 """
@@ -150,6 +167,24 @@ def diagnose(y: np.ndarray, obs: np.ndarray, gt: np.ndarray, fps: float) -> dict
     return out
 
 
+def keep_bones(y: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Forecasts y (B,S,H,J,3) with every bone set to its length in the last observed frame ``last`` (B,J,3),
+    directions kept (root to leaves): ``--keep-bones``."""
+    par = np.array(get_skeleton("body19").parents)
+    order, todo = [], [int(np.flatnonzero(par < 0)[0])]
+    while todo:
+        order.append(todo.pop())
+        todo += [int(c) for c in np.flatnonzero(par == order[-1])]
+    out = y.copy()
+    for j in order[1:]:
+        p = par[j]
+        length = np.linalg.norm(last[:, j] - last[:, p], axis=-1)[:, None, None, None]
+        d = y[..., j, :] - y[..., p, :]
+        unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
+        out[..., j, :] = out[..., p, :] + unit * length
+    return out
+
+
 def _ndms_scorer(split: str, names: list[str], data: str = "cmu"):
     """(obs, y) -> NDMS at 2 / 4 s of the windows: own clip in D, left out, clips weighted equally."""
     from roomcap.forecast.lab import evaluate as E
@@ -239,6 +274,7 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ndms", action="store_true", help="score NDMS at 2 / 4 s too (slower)")
+    p.add_argument("--keep-bones", action="store_true", help="also score each forecast with its bones kept")
     args = p.parse_args()
     if args.table:
         table(args.table)
@@ -283,13 +319,15 @@ def main() -> None:
         S = args.samples if getattr(m, "stochastic", False) else 1
         torch.manual_seed(args.seed)
         y = forecast_world(m, obs[:, :, None], None, 100, S)[:, :, :, 0]
-        r = diagnose(y, obs, gt, fps)
-        if nd is not None:
-            r.update(nd(obs, y))
-        r["rate"] = rates[name]
-        r["s"] = time.perf_counter() - t0
-        res[name] = r
-        print(f"| {name} | " + " | ".join(f"{r[c]:.3g}" if c != "rate" else f"{r[c]:g}" for c in cols) + " |")
+        for tag, yy in [("", y)] + ([(" +bones", keep_bones(y, obs[:, -1]))] if args.keep_bones else []):
+            r = diagnose(yy, obs, gt, fps)
+            if nd is not None:
+                r.update(nd(obs, yy))
+            r["rate"] = rates[name]
+            r["s"] = time.perf_counter() - t0
+            res[name + tag] = r
+            cells = " | ".join(f"{r[c]:.3g}" if c != "rate" else f"{r[c]:g}" for c in cols)
+            print(f"| {name + tag} | {cells} |")
     print("BENCH " + json.dumps({"split": args.split, "n_windows": len(obs), "models": res}))
 
 
