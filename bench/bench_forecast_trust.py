@@ -13,10 +13,13 @@ Per model (mean over windows; a stochastic model's ``--samples`` samples):
 - continuity: the first forecast frame's displacement from the last observed pose (mm per joint) against
   the real one and against the last observed frame-to-frame displacement, and the velocity jump
   ``|(y_1 - x_0) - (x_0 - x_-1)|``;
-- damping: the forecast's mean joint speed over the first 0.4 s and 0.4-1 s relative to the real future's.
+- damping: the forecast's mean joint speed over the first 0.4 s, 0.4-1 s and 1-2 s relative to the real
+  future's;
+- anatomy: how far the limb bones (upper arm, forearm, thigh, shank) are from their length in the last
+  observed frame over 0-1, 1-2 and 2-4 s (mm; real motion: 0).
 
     PYTHONPATH=WT/.pp python bench/bench_forecast_trust.py forecast/checkpoints/intention_cmuall.pt ... \
-        [--split val|test] [--windows 200] [--samples 10] [--seed 0] [--ndms]
+        [--split val|test] [--data cmu|cmu-all] [--windows 200] [--samples 10] [--seed 0] [--ndms]
 
 A checkpoint may carry sampler settings to try: ``CKPT.pt:sample_temp=1.2,sample_dct=24`` (model attributes
 set after loading). ``--ndms``: NDMS at 2 / 4 s too, own clip in D, left out (windows of activities with
@@ -26,6 +29,9 @@ as D).
 ``--rescore-cmu8 SAMPLES_DIR``: the body19 variant of the CMU 8-action benchmark (``forecast eval --protocol
 cmu8 --save-samples DIR``) rescored from its ``samples_<model>@body19.npz``: mean over samples (as the
 protocol reports) and best-of-k, at the protocol's horizons, in its units, per action and averaged.
+
+``--keep-bones``: each model also with its forecast's bones set to their length in the last observed frame
+(directions kept), to see what NDMS makes of a forecast that keeps its body.
 
 ``--table RESULTS.json [RESULTS.json ...]``: the controls-against-models table of ``forecast eval`` runs
 (MPJPE 80 / 400 / 1000 ms, mean over samples and best-of-k; ndms, ndms_loo and the word-first-frame form at
@@ -47,6 +53,20 @@ steps with them (statistics refitted, step 1200 picked on validation NDMS) moved
 clip left out 2 / 4 s .200 / .214 -> .224 / .226; then on the cmu8 body19 variant at 400 ms 148.0 / 120.3 ->
 109.9 / 105.4 (mean / best-of-10; zero 115.2).
 
+Found with it on validation (``--split val --data cmu-all --windows 400 --ndms``, 10 samples): NDMS compares
+joint velocities only (eq. 6.11/6.12), and the forecasts that score highest at 2-4 s do not keep a body: the
+limb bones of constant velocity are 619 / 1390 mm off their length over 1-2 / 2-4 s, the intention model's 137
+/ 299 mm (real motion: 0). Forcing the last observed bone lengths onto every forecast frame (``--keep-bones``)
+lowers ndms_loo at 2 / 4 s on the CMU validation windows from .225 / .227 to .156 / .098 (constant velocity)
+and from .238 / .239 to .199 / .192 (intention). The intention model is not below constant velocity there
+(ndms_loo .224 / .222 against .221 / .220; CMU split .238 / .239 against .225 / .227); its joints move at .66
+/ .50 / .58 of the real speed over 0-0.4 / 0.4-1 / 1-2 s. The GRU damps: .54 / .37 / .45 of the real speed,
+the mean of the possible futures that a position loss teaches, and its bones drift past its 1-s training
+horizon (56 / 110 mm over 1-2 / 2-4 s); trained on 4 s it damps more (validation NDMS 2-4 s .102 -> .074). The
+speed term of its training (``w_speed``, ``train.speed_gap``) raises its joint speed at 1-2 s to .93 of the
+real one (``w_speed=10``: ndms_loo .165 / .200 -> .217 / .204, MPJPE at 400 ms 164 -> 167 mm, zero velocity
+216).
+
 Needs the CMU BVH under $ROOMCAP_SHARED/data/motion. Ends with one line ``BENCH {json}``.
 """
 
@@ -64,15 +84,32 @@ from roomcap.forecast.lab import data as fdata
 from roomcap.forecast.lab import metrics as M
 from roomcap.forecast.lab import train as T
 from roomcap.forecast.runtime.predict import LHIP, RHIP, forecast_world
+from roomcap.keypoints.skeletons import get_skeleton
+from roomcap.synthetic.bvh import BODY19
 
 MS = (40, 80, 160, 400, 1000)
+LIMB_ENDS = (
+    "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_knee", "right_knee", "left_ankle",
+    "right_ankle",
+)  # fmt: skip
 
 
-def windows(split: str, n_obs: int, n_pred: int, max_windows: int, seed: int, stride: int = 5):
+def split_clips(split: str, data: str = "cmu") -> list:
+    """The clips of one split of ``forecast eval --data cmu`` or ``--data cmu-all`` (split seed 0)."""
+    if data == "cmu-all":
+        from roomcap.forecast.lab.clips import load_one_person_all
+
+        d = load_one_person_all(0)
+        return list({"train": d.train, "val": d.val, "test": d.test}[split])
+    tr, va, te = T.split_clips(T.load_sources(["cmu"]), 0)
+    return {"train": tr, "val": va, "test": te}[split]
+
+
+def windows(
+    split: str, n_obs: int, n_pred: int, max_windows: int, seed: int, stride: int = 5, data: str = "cmu"
+):
     """(obs (B,n_obs,J,3), gt (B,n_pred,J,3), clip names (B,)) as ``evaluate.evaluate_single`` draws them."""
-    clips = T.load_sources(["cmu"])
-    tr, va, te = T.split_clips(clips, 0)
-    cs = {"train": tr, "val": va, "test": te}[split]
+    cs = split_clips(split, data)
     ws = fdata.make_windows(cs, n_obs, n_pred, stride, persons="each")
     sel = np.sort(np.random.default_rng(seed).choice(len(ws), min(max_windows, len(ws)), replace=False))
     x = ws.x[sel, :, 0]
@@ -117,16 +154,43 @@ def diagnose(y: np.ndarray, obs: np.ndarray, gt: np.ndarray, fps: float) -> dict
     n4, n10 = int(round(0.4 * fps)), int(round(1.0 * fps))
     out["speed_ratio_0_400"] = float(speed(y, 0, n4) / speed(gt[:, None], 0, n4))
     out["speed_ratio_400_1000"] = float(speed(y, n4, n10) / speed(gt[:, None], n4, n10))
+    n20 = min(int(round(2.0 * fps)), y.shape[2])
+    out["speed_ratio_1_2s"] = float(speed(y, n10, n20) / speed(gt[:, None], n10, n20))
+    # limb bones (upper arm, forearm, thigh, shank) against their length in the last observed frame
+    limbs = np.array([BODY19.index(n) for n in LIMB_ENDS])
+    par = np.array(get_skeleton("body19").parents)[limbs]
+    bone = np.linalg.norm(y[..., limbs, :] - y[..., par, :], axis=-1)  # (B,S,H,8)
+    b0 = np.linalg.norm(last[:, limbs] - last[:, par], axis=-1)[:, None, None]
+    for lo, hi in ((0.0, 1.0), (1.0, 2.0), (2.0, 4.0)):
+        a, b = int(round(lo * fps)), min(int(round(hi * fps)), y.shape[2])
+        out[f"bone_change_{lo:g}_{hi:g}s_mm"] = 1000 * float(np.abs(bone[:, :, a:b] - b0).mean())
     return out
 
 
-def _ndms_scorer(split: str, names: list[str]):
+def keep_bones(y: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Forecasts y (B,S,H,J,3) with every bone set to its length in the last observed frame ``last`` (B,J,3),
+    directions kept (root to leaves): ``--keep-bones``."""
+    par = np.array(get_skeleton("body19").parents)
+    order, todo = [], [int(np.flatnonzero(par < 0)[0])]
+    while todo:
+        order.append(todo.pop())
+        todo += [int(c) for c in np.flatnonzero(par == order[-1])]
+    out = y.copy()
+    for j in order[1:]:
+        p = par[j]
+        length = np.linalg.norm(last[:, j] - last[:, p], axis=-1)[:, None, None, None]
+        d = y[..., j, :] - y[..., p, :]
+        unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
+        out[..., j, :] = out[..., p, :] + unit * length
+    return out
+
+
+def _ndms_scorer(split: str, names: list[str], data: str = "cmu"):
     """(obs, y) -> NDMS at 2 / 4 s of the windows: own clip in D, left out, clips weighted equally."""
     from roomcap.forecast.lab import evaluate as E
     from roomcap.forecast.lab.clips import clip_activities
 
-    clips = T.load_sources(["cmu"])
-    cs = dict(zip(("train", "val", "test"), T.split_clips(clips, 0), strict=True))[split]
+    cs = split_clips(split, data)
     acts = clip_activities(cs)
     wact = [acts.get(n, fdata.UNLABELLED) for n in names]
     groups = np.array([E.clip_group(n) for n in names])
@@ -205,10 +269,12 @@ def main() -> None:
     p.add_argument("checkpoints", nargs="*")
     p.add_argument("--table", nargs="+", metavar="RESULTS_JSON", help="print the table of eval results only")
     p.add_argument("--split", choices=("val", "test"), default="val")
+    p.add_argument("--data", choices=("cmu", "cmu-all"), default="cmu", help="clips of forecast eval --data")
     p.add_argument("--windows", type=int, default=200)
     p.add_argument("--samples", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ndms", action="store_true", help="score NDMS at 2 / 4 s too (slower)")
+    p.add_argument("--keep-bones", action="store_true", help="also score each forecast with its bones kept")
     args = p.parse_args()
     if args.table:
         table(args.table)
@@ -217,7 +283,7 @@ def main() -> None:
         rescore_cmu8(args.rescore_cmu8)
         return
     torch.set_num_threads(1)
-    obs, gt, names, fps = windows(args.split, 50, 100, args.windows, args.seed)
+    obs, gt, names, fps = windows(args.split, 50, 100, args.windows, args.seed, data=args.data)
     print(f"{len(obs)} {args.split} windows of {len(set(names))} clips at {fps:g} Hz, {args.samples} samples")
     models = {n: T.baseline(n) for n in ("zero", "const")}
     rates = {"zero": fps, "const": fps}
@@ -231,14 +297,15 @@ def main() -> None:
         name = Path(ck).stem + (f" ({sets})" if sets else "")
         models[name] = m
         rates[name] = float(meta.get("fps", float("nan")))
-    nd = _ndms_scorer(args.split, names) if args.ndms else None
+    nd = _ndms_scorer(args.split, names, args.data) if args.ndms else None
     res: dict = {}
     cols = (
         ["rate"]
         + [f"mpjpe_{ms}" for ms in MS]
         + [f"best_of_k_{ms}" for ms in (80, 400, 1000)]
         + ["root_err_400", "pose_rc_err_400", "first_step_mm", "first_step_real_mm", "last_obs_step_mm"]
-        + ["vel_jump_mm", "vel_jump_real_mm", "speed_ratio_0_400", "speed_ratio_400_1000", "s"]
+        + ["vel_jump_mm", "vel_jump_real_mm", "speed_ratio_0_400", "speed_ratio_400_1000", "speed_ratio_1_2s"]
+        + ["bone_change_0_1s_mm", "bone_change_1_2s_mm", "bone_change_2_4s_mm", "s"]
         + (
             ["ndms_2", "ndms_4", "ndms_loo_2", "ndms_loo_4", "ndms_clipw_2", "ndms_clipw_4"]
             if args.ndms
@@ -252,13 +319,15 @@ def main() -> None:
         S = args.samples if getattr(m, "stochastic", False) else 1
         torch.manual_seed(args.seed)
         y = forecast_world(m, obs[:, :, None], None, 100, S)[:, :, :, 0]
-        r = diagnose(y, obs, gt, fps)
-        if nd is not None:
-            r.update(nd(obs, y))
-        r["rate"] = rates[name]
-        r["s"] = time.perf_counter() - t0
-        res[name] = r
-        print(f"| {name} | " + " | ".join(f"{r[c]:.3g}" if c != "rate" else f"{r[c]:g}" for c in cols) + " |")
+        for tag, yy in [("", y)] + ([(" +bones", keep_bones(y, obs[:, -1]))] if args.keep_bones else []):
+            r = diagnose(yy, obs, gt, fps)
+            if nd is not None:
+                r.update(nd(obs, yy))
+            r["rate"] = rates[name]
+            r["s"] = time.perf_counter() - t0
+            res[name + tag] = r
+            cells = " | ".join(f"{r[c]:.3g}" if c != "rate" else f"{r[c]:g}" for c in cols)
+            print(f"| {name + tag} | {cells} |")
     print("BENCH " + json.dumps({"split": args.split, "n_windows": len(obs), "models": res}))
 
 

@@ -124,7 +124,8 @@ def _add_eval(sub: Any) -> None:
         "--protocol",
         default="cmu",
         help="cmu (held-out CMU clips, --data), cmu8 (the CMU 8-action benchmark of Li et al. 2018 as LTD "
-        "scores it; PATH: its benchmark-cmu8 folder, default the shared one) or hik (Tanke ch. 8.3 on the "
+        "scores it; PATH: its benchmark-cmu8 folder, default the shared one), cmu8-all (the same on every "
+        "test window, as MSR-GCN and PGBIG score it) or hik (Tanke ch. 8.3 on the "
         "HiK person files in PATH)",
     )
     e.add_argument(

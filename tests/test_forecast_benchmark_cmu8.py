@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from roomcap.core.errors import InputError
 from roomcap.forecast.lab import benchmark_cmu8 as B
 from roomcap.forecast.lab import benchmark_cmu8_train as BT
 from roomcap.forecast.lab import cmu_more as C
@@ -103,7 +104,7 @@ def test_cli_cmu8_bad_input(tiny_root, tmp_path, capsys):
 
     out = tmp_path / "o"
     assert main(["eval", "--protocol", "cmu9", "--out", str(out)]) == 2
-    assert "unknown protocol 'cmu9'; choose one of cmu, cmu8, hik" in capsys.readouterr().err
+    assert "unknown protocol 'cmu9'; choose one of cmu, cmu8, cmu8-all, hik" in capsys.readouterr().err
     assert main(["eval", "--protocol", "cmu8", str(tmp_path / "none"), "--out", str(out)]) == 2
     assert "no train/ or test/ folder" in capsys.readouterr().err
     # a folder with files missing: they are named and the rest is scored
@@ -115,6 +116,48 @@ def test_cli_cmu8_bad_input(tiny_root, tmp_path, capsys):
     res = json.loads((out / "results.json").read_text())
     assert set(res["models"]) == {"zero_velocity", "zero_velocity@body19"}
     assert "test/running/running_1.txt" in res["files_missing"]
+
+
+def test_all_windows_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
+    """cmu8-all (MSR-GCN's / PGBIG's 'all'): every 10 + 25-frame window, stride 1; the model's 50-frame
+    history from the file, padded with its first frame before the file's start."""
+    from roomcap.forecast.cli import main
+
+    seq = np.arange(60.0)[:, None, None] * np.ones((1, 38, 3))
+    starts, w, full = B.all_windows(seq)
+    assert starts.tolist() == list(range(26)) and w.shape == (26, 75, 38, 3)
+    assert np.allclose(w[:, B.N_OBS - B.ALL_OBS :, 0, 0], starts[:, None] + np.arange(35))  # the 35 frames
+    assert np.allclose(w[0, : B.N_OBS - B.ALL_OBS], 0) and not full.any()  # padded with frame 0
+    long = np.arange(100.0)[:, None, None] * np.ones((1, 38, 3))
+    s2, w2, full2 = B.all_windows(long)
+    assert full2.tolist() == [s >= 40 for s in s2] and np.allclose(w2[40, :, 0, 0], np.arange(75))
+    with pytest.raises(InputError, match="at least 35 frames"):
+        B.all_windows(seq[:34])
+    res = B.evaluate(tiny_root, samples_dir=tmp_path / "s", windows="all")
+    assert res["protocol"] == "cmu8-all" and res["title"].endswith("(protocol cmu8-all)")
+    n = len(B.sequence(tiny_root / "test" / "walking" / "walking_1.txt")) - 35 + 1
+    assert res["n_windows"] == {"soccer": n, "walking": n}
+    assert res["n_padded"] == {"soccer": 40, "walking": 40}
+    assert set(res["models"]) == {"zero_velocity"}  # no body19 entries on this protocol
+    z = res["models"]["zero_velocity"]
+    assert len(z["mpjpe_mm_full_history"]) == 6 and z["mpjpe_mm_full_history"] != z["mpjpe_mm"]
+    pub = res["published"]
+    assert pub["PGBIG (Ma et al. 2022)"]["same_windows"] and not pub["LTD (Mao et al. 2019)"]["same_windows"]
+    pg = pub["PGBIG (Ma et al. 2022)"]["average_same_actions"]
+    assert pg[-1] == pytest.approx((99.98 + 33.93) / 2, abs=0.01)
+    # rescoring the saved forecasts gives the reported numbers, over every window
+    zs = np.load(tmp_path / "s" / "samples_zero_velocity.npz")
+    assert str(zs["protocol"]) == "cmu8-all" and len(zs["gt"]) == 2 * n
+    e = np.linalg.norm(zs["pred"][:, 0] - zs["gt"], axis=-1).mean(-1) * zs["protocol_mm_per_m"]
+    per = [e[zs["activity"] == a][:, list(B.HORIZON_FRAMES)].mean(0) for a in ("soccer", "walking")]
+    assert np.allclose(np.mean(per, 0), z["mpjpe_mm"], rtol=1e-4)
+    assert "other windows" in render(res)
+    # the command line: the 38-point models only
+    out = tmp_path / "o"
+    assert main(["eval", "--protocol", "cmu8-all", str(tiny_root), "--checkpoints", "--out", str(out)]) == 0
+    assert "every window of 10 + 25 frames" in capsys.readouterr().out
+    with pytest.raises(InputError, match="38-point models only"):
+        B.evaluate(tiny_root, body19_checkpoints=["gru_cmuall.pt"], windows="all")
 
 
 def test_eval_single_writes_samples(tmp_path):

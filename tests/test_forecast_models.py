@@ -123,6 +123,25 @@ def test_gru_learns_and_checkpoint_round_trip(tmp_path):
         T.config_from_dict("gru", {"hiden": 3})
 
 
+def test_speed_gap_scores_how_much_slower_or_faster_the_forecast_moves():
+    rng = np.random.default_rng(0)
+    last = torch.from_numpy(rng.normal(size=(2, 6)).astype(np.float32))  # 2 joints
+    step = torch.tensor([0.03, 0.0, 0.04, 0.0, 0.0, 0.05])  # joint speeds 0.05, 0.05
+    fut = last[:, None] + step * torch.arange(1, 5)[None, :, None]
+    mask = torch.ones(2, 4, 2, dtype=torch.bool)
+    assert T.speed_gap(fut, fut, last, mask) == 0
+    still = last[:, None].expand(-1, 4, -1)  # a forecast that stops: the whole real speed is missing
+    assert float(T.speed_gap(still, fut, last, mask)) == pytest.approx(0.05, abs=1e-6)
+    half = last[:, None] + 0.5 * step * torch.arange(1, 5)[None, :, None]
+    assert float(T.speed_gap(half, fut, last, mask)) == pytest.approx(0.025, abs=1e-6)
+    mask[:, :, 1] = False  # masked joints do not count
+    assert float(T.speed_gap(still, fut, last, mask)) == pytest.approx(0.05, abs=1e-6)
+    cfg = T.config_from_dict("gru", {"hidden": 16, "steps": 3, "batch": 4, "n_obs": 20, "n_pred": 10})
+    assert cfg.w_speed == 0.0  # off by default: the shipped recipes are unchanged
+    _, hist = T.train("gru", _clips(2), dataclasses.replace(cfg, w_speed=1.0))
+    assert len(hist["loss"]) == 3 and np.isfinite(hist["loss"]).all()
+
+
 @pytest.mark.slow
 def test_intention_model_trains_and_samples_diverse_futures():
     cfg = T.config_from_dict(

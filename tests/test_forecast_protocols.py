@@ -314,4 +314,4 @@ def test_one_results_schema_and_one_renderer(tmp_path):
     assert path.read_text() == md and json.loads((tmp_path / "o" / "results.json").read_text()) == res
     with pytest.raises(FormatError, match="forecast-results/1"):
         P.render({"models": {}})
-    assert all(v[2] for v in P.PROTOCOLS.values()) and len(P.PROTOCOLS) == 7
+    assert all(v[2] for v in P.PROTOCOLS.values()) and len(P.PROTOCOLS) == 8

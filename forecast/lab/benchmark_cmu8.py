@@ -23,6 +23,14 @@ history; they get the 2 s before each test window's last observed frame from the
 benchmark points, :func:`forecast.lab.cmu_more.cmu38_to_body19`), their forecast is interpolated to the
 protocol's frame times, and the 12 limb points (hips, knees, ankles, shoulders, elbows, wrists) are scored in
 the protocol's units, with zero velocity and the DCT + MLP scored on the same 12 points beside them.
+
+Protocol ``cmu8-all`` (``evaluate(windows="all")``): every window of the test files, as MSR-GCN (Dang et al.
+2021, ``datas/cmu/motiondataset.py`` split 2: ``load_data_cmu_3d`` with ``is_test=False`` on the test folder)
+and PGBIG (Ma et al. 2022, ``utils/data_utils.py`` ``load_data_cmu_3d_n`` with ``test_sample_num=-1``) score
+it: windows of 10 observed + 25 forecast frames at every start (stride 1) of each downsampled test file, the
+same 38 points, horizons and per-action then over-actions means (PGBIG ``main_cmu_3d.py`` ``run_model`` /
+``eval``). Where a window has fewer than the model's 50 frames of history in its file, the history is padded
+with the file's first frame (``n_padded`` counts those windows); the 38-point models only.
 """
 
 from __future__ import annotations
@@ -49,7 +57,7 @@ from roomcap.synthetic.bvh import BODY19
 log = logging.getLogger(__name__)
 
 PROTOCOL = "cmu8"
-TITLE = "CMU 8-action benchmark (protocol cmu8)"
+TITLE = "CMU 8-action benchmark (protocol {})"
 REFERENCE = (
     "LTD (Mao et al. 2019), github.com/wei-mao-2019/LearnTrajDep: utils/data_utils.py load_data_cmu_3d "
     "(windows), utils/forward_kinematics.py _some_variables_cmu + fkl_torch (skeleton), main_cmu_3d.py test "
@@ -60,6 +68,8 @@ HORIZON_FRAMES = (1, 3, 7, 9, 13, 24)  # main_cmu_3d.py test(): eval_frame for o
 DOWNSAMPLE = 2
 N_OBS, N_PRED = 50, 25  # source_seq_len, target_seq_len
 N_WINDOWS = 8
+ALL_OBS = 10  # cmu8-all: MSR-GCN's and PGBIG's input_n; windows of ALL_OBS + N_PRED frames at every start
+WINDOWS = {"protocol": "cmu8", "all": "cmu8-all"}  # evaluate(windows=...) -> the protocol's name
 SEED = 1234567890
 FPS = C.BENCHMARK_FPS / DOWNSAMPLE  # the frames' real rate (60 Hz); the protocol labels them as 25 Hz
 MM_PER_UNIT = C.REFERENCE_MM_PER_UNIT
@@ -108,10 +118,34 @@ class TestSet:
     files: dict[str, list[Path]] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
     actions_missing: list[str] = field(default_factory=list)
+    full_history: dict[str, np.ndarray] = field(default_factory=dict)  # cmu8-all: (W,) history not padded
 
 
-def test_set(bf: C.BenchmarkFiles, n_windows: int = N_WINDOWS, actions: list[str] | None = None) -> TestSet:
-    """The protocol's test windows of every action with a test file (the others are listed as missing)."""
+def all_windows(seq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """cmu8-all: every ``ALL_OBS + N_PRED``-frame window of a downsampled file (start = its first observed
+    frame of the reference's 10) -> (starts, windows (W, 75, ...) with the model's ``N_OBS`` frames of
+    history, (W,) True where that history lies in the file; elsewhere it is padded with its first frame)."""
+    n = len(seq) - (ALL_OBS + N_PRED) + 1
+    if n <= 0:
+        raise InputError(
+            f"a test file needs at least {ALL_OBS + N_PRED} frames after downsampling, has {len(seq)}"
+        )
+    pad = N_OBS - ALL_OBS
+    padded = np.concatenate([np.repeat(seq[:1], pad, 0), seq])
+    starts = np.arange(n)
+    return starts, np.stack([padded[s : s + N_OBS + N_PRED] for s in starts]), starts >= pad
+
+
+def test_set(
+    bf: C.BenchmarkFiles,
+    n_windows: int = N_WINDOWS,
+    actions: list[str] | None = None,
+    windows: str = "protocol",
+) -> TestSet:
+    """The test windows of every action with a test file (the others are listed as missing): the protocol's
+    8 per file, or with ``windows="all"`` every window (:func:`all_windows`)."""
+    if windows not in WINDOWS:
+        raise InputError(f"unknown windows '{windows}'; choose one of {', '.join(WINDOWS)}")
     ts = TestSet(missing=list(bf.missing))
     for a in actions or C.BENCHMARK_ACTIONS:
         files = bf.files["test"].get(a, [])
@@ -121,6 +155,12 @@ def test_set(bf: C.BenchmarkFiles, n_windows: int = N_WINDOWS, actions: list[str
         ws, st = [], []
         for fi, f in enumerate(files):
             seq = sequence(f)
+            if windows == "all":
+                starts, w, full = all_windows(seq)
+                ws += list(w)
+                st += [(fi, int(s)) for s in starts]
+                ts.full_history[a] = np.concatenate([ts.full_history.get(a, np.zeros(0, bool)), full])
+                continue
             for s in window_starts(len(seq), n_windows):
                 ws.append(seq[s : s + N_OBS + N_PRED])
                 st.append((fi, int(s)))
@@ -443,6 +483,7 @@ class _Scores:
     per: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # name -> action -> (W, 25)
     meta: dict[str, tuple[str, str, dict]] = field(default_factory=dict)  # name -> (variant, joints, extra)
     samples: dict[str, dict[str, list]] = field(default_factory=dict)
+    full_history: dict[str, np.ndarray] = field(default_factory=dict)  # cmu8-all: action -> (W,) mask
 
     def put(self, name: str, a: str, err: np.ndarray, variant: str, joints: str, extra: dict | None = None):
         self.per.setdefault(name, {})[a] = err
@@ -469,8 +510,12 @@ class _Scores:
         for name in order:
             variant, joints, extra = self.meta[name]
             pa = {a: {"mpjpe_mm": at_horizons(self.per[name][a])} for a in self.acts}
-            avg = [float(np.mean([pa[a]["mpjpe_mm"][k] for a in self.acts])) for k in range(len(HORIZONS_MS))]
-            out[name] = {"variant": variant, "joints": joints, "per_action": pa, "mpjpe_mm": avg, **extra}
+            for a, m in self.full_history.items():  # cmu8-all: also over the windows with their own history
+                pa[a]["mpjpe_mm_full_history"] = at_horizons(self.per[name][a][m]) if m.any() else None
+            out[name] = {"variant": variant, "joints": joints, "per_action": pa, **extra}
+            for key in ("mpjpe_mm", "mpjpe_mm_full_history")[: 1 + bool(self.full_history)]:
+                v = [pa[a][key] for a in self.acts]
+                out[name][key] = None if None in v else [float(x) for x in np.mean(v, 0)]
         return out
 
 
@@ -478,9 +523,11 @@ _EXACT = ("exact", "38 points (reference)")
 _BODY19 = ("body19", "12 body19 limb points (hips, knees, ankles, shoulders, elbows, wrists)")
 
 
-def _score_exact(ts: TestSet, mlps: list[tuple[str, nn.Module, dict]], sc: _Scores) -> None:
+def _score_exact(
+    ts: TestSet, mlps: list[tuple[str, nn.Module, dict]], sc: _Scores, body19: bool = True
+) -> None:
     """Zero velocity and the DCT + MLP checkpoints on the exact protocol (all 38 points) and, for the body19
-    variant's table, on its 12 limb points."""
+    variant's table (``body19``), on its 12 limb points."""
     u = C.ASF_UNIT_M
     for a in sc.acts:
         w = ts.windows[a]
@@ -489,7 +536,8 @@ def _score_exact(ts: TestSet, mlps: list[tuple[str, nn.Module, dict]], sc: _Scor
         preds += [(name, mlp_forecast(m, obs), {"train": blob.get("extra", {})}) for name, m, blob in mlps]
         for name, p, extra in preds:
             sc.put(name, a, mpjpe_mm(p, gt), *_EXACT, extra)
-            sc.put(f"{name}@body19", a, mpjpe_mm(p, gt, BODY19_LIMB_POINTS), *_BODY19)
+            if body19:
+                sc.put(f"{name}@body19", a, mpjpe_mm(p, gt, BODY19_LIMB_POINTS), *_BODY19)
             clips = [Path(ts.files[a][fi]).stem for fi, _ in ts.starts[a]]
             sc.keep(name, a, p[:, None] * u, obs * u, gt * u, C.CMU38_NAMES, FPS, clips)
 
@@ -521,13 +569,17 @@ def _score_body19(ts: TestSet, checkpoints: list, n_samples: int, sc: _Scores, p
             sc.put(name, a, np.concatenate(errs), *_BODY19)
 
 
-def _results(bf: C.BenchmarkFiles, ts: TestSet, models: dict[str, dict]) -> dict:
+def _results(bf: C.BenchmarkFiles, ts: TestSet, models: dict[str, dict], windows: str = "protocol") -> dict:
     """The ``results.json`` dict around the scored models: protocol, units, what was missing, the published
-    rows (with their average over the same actions)."""
+    rows (with their average over the same actions; ``same_windows``: scored on this protocol's windows)."""
 
     acts = list(ts.windows)
     return {
-        "protocol": PROTOCOL,
+        "protocol": WINDOWS[windows],
+        "windows": "every window of 10 + 25 frames, stride 1 (MSR-GCN's and PGBIG's 'all')"
+        if windows == "all"
+        else "8 per test file (RandomState(1234567890), LTD's)",
+        "n_padded": {a: int((~m).sum()) for a, m in ts.full_history.items()},
         "reference": REFERENCE,
         "horizons_ms": list(HORIZONS_MS),
         "horizon_frames": list(HORIZON_FRAMES),
@@ -542,7 +594,11 @@ def _results(bf: C.BenchmarkFiles, ts: TestSet, models: dict[str, dict]) -> dict
         "test_files": {a: [str(Path(f).relative_to(bf.root)) for f in ts.files[a]] for a in acts},
         "models": models,
         "published": {
-            k: {**v, "average_same_actions": P.average_over(v.get("per_action", {}), acts)}
+            k: {
+                **v,
+                "average_same_actions": P.average_over(v.get("per_action", {}), acts),
+                "same_windows": v["all_windows"] == (windows == "all"),
+            }
             for k, v in P.PUBLISHED.items()
         },
         "published_other_metric": P.OTHER_METRIC,
@@ -560,32 +616,45 @@ def evaluate(
     samples_dir: str | os.PathLike | None = None,
     n_windows: int = N_WINDOWS,
     progress=None,
+    windows: str = "protocol",
 ) -> dict:
-    """Score zero velocity and the models on the protocol -> the ``results.json`` dict (see ``LAYOUT``)."""
+    """Score zero velocity and the models on the protocol (``windows="all"``: cmu8-all, the 38-point models
+    only) -> the ``results.json`` dict (see ``LAYOUT``)."""
     t0 = time.perf_counter()
+    if windows == "all" and body19_checkpoints:
+        raise InputError(
+            "the all-windows protocol (cmu8-all) scores the 38-point models only; body19 checkpoints: "
+            f"{', '.join(Path(p).name for p in body19_checkpoints)} (score them with --protocol cmu8)"
+        )
     bf = C.benchmark_files(root)
-    ts = test_set(bf, n_windows)
-    sc = _Scores(list(ts.windows), samples_dir)
+    ts = test_set(bf, n_windows, windows=windows)
+    sc = _Scores(list(ts.windows), samples_dir, full_history=ts.full_history)
     mlps = [(Path(p).stem, *load_mlp(p)) for p in (mlp_checkpoints or [])]
-    _score_exact(ts, mlps, sc)
+    _score_exact(ts, mlps, sc, body19=windows != "all")
     _score_body19(ts, list(body19_checkpoints or []), n_samples, sc, progress)
-    res = _results(bf, ts, sc.models())
+    res = _results(bf, ts, sc.models(), windows)
     if samples_dir is not None:
-        res["samples"] = write_samples(samples_dir, sc.samples)
+        res["samples"] = write_samples(samples_dir, sc.samples, WINDOWS[windows])
     res["wall_s"] = time.perf_counter() - t0
-    return results(res.pop("protocol"), TITLE, *_report(res), **res)
+    name = res.pop("protocol")
+    return results(name, TITLE.format(name), *_report(res), **res)
 
 
 LAYOUT = {
     "horizons_ms": "the protocol's horizon labels; horizons_real_ms: the same frames in real time (60 Hz)",
     "models.<name>.mpjpe_mm": "mean over the scored actions of the per-action values, one per horizon",
-    "models.<name>.per_action.<action>.mpjpe_mm": "mean over the action's 8 test windows, one per horizon",
+    "models.<name>.per_action.<action>.mpjpe_mm": "mean over the action's test windows, one per horizon",
+    "n_padded.<action>": "cmu8-all: windows whose 50-frame history is padded with the file's first frame",
+    "models.<name>.mpjpe_mm_full_history": "cmu8-all: the same over the windows whose history is not padded",
     "models.<name>.variant": "exact (the reference's 38 points) or body19 (12 limb points, see the module)",
     "published.<paper>.mpjpe_mm": "the paper's average over its 8 actions (all 8 test files), with source",
+    "published.<paper>.same_windows": "true where the paper scored this protocol's windows",
 }
 
 
-def write_samples(out_dir: str | os.PathLike, samples: dict[str, dict]) -> dict[str, str]:
+def write_samples(
+    out_dir: str | os.PathLike, samples: dict[str, dict], protocol: str = PROTOCOL
+) -> dict[str, str]:
     """``samples_<name>.npz`` per model (:mod:`forecast.runtime.samples`), with the protocol's name and
     its millimetres per metre."""
     return {
@@ -600,7 +669,7 @@ def write_samples(out_dir: str | os.PathLike, samples: dict[str, dict]) -> dict[
                 s["joint_names"],
                 s["activity"],
                 s["clip"],
-                protocol=np.array(PROTOCOL),
+                protocol=np.array(protocol),
                 protocol_mm_per_m=np.float64(MM_PER_UNIT / C.ASF_UNIT_M),
             )
         )
@@ -618,6 +687,9 @@ def _report(res: dict) -> tuple[list[str], list[Table], list[str]]:
         f"{', '.join(res['actions_missing']) or 'none'}.",
         f"MPJPE in {res['units']}; horizons as the protocol labels them (real time: "
         f"{', '.join(f'{t:g}' for t in res['horizons_real_ms'])} ms, the files being 120 Hz).",
+        f"Windows: {res['windows']}; per action {res['n_windows']}"
+        + (f"; history padded with the file's first frame: {res['n_padded']}" if res["n_padded"] else "")
+        + ". Published rows on other windows are marked so.",
     ]
     tables = []
     for variant, title in (("exact", "Exact protocol (38 points)"), ("body19", "body19 variant (12 limbs)")):
@@ -625,22 +697,28 @@ def _report(res: dict) -> tuple[list[str], list[Table], list[str]]:
         if not names:
             continue
         rows = [[n, *cells(res["models"][n]["mpjpe_mm"])] for n in names]
+        rows += [
+            [f"{n} (windows with their own history)", *cells(res["models"][n]["mpjpe_mm_full_history"])]
+            for n in names
+            if res["models"][n].get("mpjpe_mm_full_history")
+        ]
         per = []
         for a in res["actions"]:
             per += [[a, n, *cells(res["models"][n]["per_action"][a]["mpjpe_mm"])] for n in names]
             if variant == "exact":
                 for p, r in res["published"].items():
                     v = r.get("per_action", {}).get(a)
-                    per += [[a, f"{p} (published)", *cells(v)]] if v else []
+                    other = "" if r["same_windows"] else ", other windows"
+                    per += [[a, f"{p} (published{other})", *cells(v)]] if v else []
         if variant == "exact":
             for p, r in res["published"].items():
+                other = "" if r["same_windows"] else ", other windows"
                 if r.get("mpjpe_mm"):
-                    rows.append([f"{p} (published, 8 actions)", *cells(r["mpjpe_mm"])])
+                    rows.append([f"{p} (published, 8 actions{other})", *cells(r["mpjpe_mm"])])
                     if r.get("average_same_actions"):
                         n_act = len(res["actions"])
-                        rows.append(
-                            [f"{p} (published, same {n_act} actions)", *cells(r["average_same_actions"])]
-                        )
+                        label = f"{p} (published, same {n_act} actions{other})"
+                        rows.append([label, *cells(r["average_same_actions"])])
         tables.append(
             Table(
                 f"{title}: average over {len(res['actions'])} actions",
@@ -651,7 +729,7 @@ def _report(res: dict) -> tuple[list[str], list[Table], list[str]]:
         tables.append(Table(f"{title}: per action", ["action", "model", *(str(h) for h in H)], per))
     footer = ["## Published rows", ""]
     for p, r in res["published"].items():
-        footer.append(f"- {p}: {r.get('source', '')}; windows: {r.get('windows', 'the protocol’s 8')}")
+        footer.append(f"- {p}: {r.get('source', '')}; windows: {r['windows']}")
     for p, r in res.get("published_other_metric", {}).items():
         avg = ", ".join(f"{h} ms {v}" for h, v in zip(r["horizons_ms"], r["average"], strict=True))
         footer.append(f"- {p}, {r['metric']} (another metric, context only): average {avg}; {r['source']}")

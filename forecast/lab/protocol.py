@@ -32,6 +32,11 @@ RESULTS_SCHEMA = "forecast-results/1"
 # every benchmark protocol: name -> (what it is, the module that fills the schema, on the interface)
 PROTOCOLS = {
     "cmu8": ("the CMU 8-action benchmark, MPJPE (LTD's protocol)", "benchmark_cmu8", True),
+    "cmu8-all": (
+        "the CMU 8-action benchmark, MPJPE on every test window (MSR-GCN, PGBIG)",
+        "benchmark_cmu8",
+        True,
+    ),
     "cmu8-angle": (
         "the CMU 8-action benchmark, mean angle error (Tanke Table 6.7)",
         "benchmark_cmu8_angle",

@@ -26,6 +26,7 @@ class GRUConfig:
     val_every: int = 50  # steps between validation scores (model selection); 0 = keep the last
     select: str = "mpjpe"  # the deterministic model is selected by its own objective (validation MPJPE, 1 s)
     continuity: bool = True  # forecasts continue the last observed velocity (predict.continue_velocity)
+    w_speed: float = 0.0  # weight of the joint-speed term (lab.train.speed_gap) beside the position error
 
 
 @dataclass(frozen=True)
@@ -67,9 +68,7 @@ class DiffusionConfig:
     root_vel: bool = False  # (anchored) root coded as per-frame displacements, not offsets from the anchor
     lag_hold: bool = False  # (lag_stats) past the window the last lag's statistics hold: one pass, any length
     p_single: float = 0.0  # share of composed training scenes with one person
-    p_real: float = (
-        0.5  # share of batches of real multi-person scenes (when the clips hold any), else composed
-    )
+    p_real: float = 0.5  # share of batches of real multi-person scenes (if the clips hold any), else composed
     mirror: bool = True  # also train on the left/right mirror of every single-person window (as the others)
     steps: int = 2500
     batch: int = 32
