@@ -64,10 +64,13 @@ def test_symmetric_gives_left_and_right_bones_their_mean():
 def test_angle_pairs_are_bone_and_parent_bone():
     b = bones(JOINTS)
     pairs = R.angle_pairs(b)
-    for i, j in pairs:
-        assert b[i, 1] == b[j, 0]  # bone i starts where bone j ends
+    chain = [(i, j) for i, j in pairs if b[i, 1] == b[j, 0]]  # bone i starts where bone j ends
+    sib = [(i, j) for i, j in pairs if b[i, 1] == b[j, 1]]  # two bones leave one joint
+    assert len(chain) + len(sib) == len(pairs)
     # every bone but those leaving the root (pelvis) has a parent bone
-    assert len(pairs) == len(b) - sum(JOINTS[p] == "pelvis" for _, p in b)
+    assert len(chain) == len(b) - sum(JOINTS[p] == "pelvis" for _, p in b)
+    names = {(JOINTS[b[i, 0]], JOINTS[b[j, 0]]) for i, j in sib}
+    assert ("left_hip", "right_hip") in names and ("left_shoulder", "right_shoulder") in names
 
 
 @pytest.mark.parametrize("source", ["first", "database"])
@@ -149,3 +152,41 @@ def test_repnet_critic_and_old_checkpoints(tmp_path):
     path = tmp_path / "c.pt"
     save_checkpoint(path, {"full": build(cfg)[0]}, {"full": cfg}, {})
     assert load_checkpoint(path)[1]["full"].critic == "repnet"
+
+
+def test_rigid_angles_are_those_the_database_never_varies():
+    """angles="rigid": the hips stay in line through the pelvis (as in every database pose) while the
+    articulated angles (knees, elbows) are free of the angle term."""
+    rng = np.random.default_rng(5)
+    db = np.stack([_pose() for _ in range(30)])
+    # the database's poses bend their elbows and knees, never their hips' line
+    for k in range(30):
+        for s in ("left", "right"):
+            db[k, JOINTS.index(f"{s}_wrist")] += rng.normal(0, 0.1, 3)
+            db[k, JOINTS.index(f"{s}_ankle")] += rng.normal(0, 0.1, 3)
+    pairs, theta = R.reference_angles(_forecast(), JOINTS, R.RefineConfig(angles="rigid"), db)
+    b = bones(JOINTS)
+    held = {(JOINTS[b[i, 0]], JOINTS[b[j, 0]]) for i, j in pairs}
+    assert ("left_hip", "right_hip") in held and ("left_shoulder", "right_shoulder") in held
+    assert not any("wrist" in a + c or "ankle" in a + c for a, c in held)
+    hips = [
+        k for k, (i, j) in enumerate(pairs) if {JOINTS[b[i, 0]], JOINTS[b[j, 0]]} == {"left_hip", "right_hip"}
+    ]
+    assert theta.shape == (1, len(pairs)) and np.degrees(theta[0, hips[0]]) == pytest.approx(180, abs=0.5)
+    # a forecast whose hips fold towards each other gets them back in line
+    P = _forecast(S=3, m=2)
+    pel = JOINTS.index("pelvis")
+    for s in ("left_hip", "right_hip"):
+        P[..., JOINTS.index(s), 1] += 0.08  # both hips 8 cm forward: a V at the pelvis
+    cfg = R.RefineConfig(angles="rigid", bones="database", iters=400)
+    X = R.refine(P, JOINTS, cfg, db)
+
+    def hip_angle(Y):
+        u = Y[..., JOINTS.index("left_hip"), :] - Y[..., pel, :]
+        v = Y[..., JOINTS.index("right_hip"), :] - Y[..., pel, :]
+        c = (u * v).sum(-1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(v, axis=-1)
+        return np.degrees(np.arccos(np.clip(c, -1, 1))).mean()
+
+    assert hip_angle(P) < 130 and hip_angle(X) > 170
+    with pytest.raises(ValueError, match="rigid"):
+        R.reference_angles(P, JOINTS, R.RefineConfig(angles="rigid"), None)

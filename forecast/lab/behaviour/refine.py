@@ -14,7 +14,11 @@ samples and no heatmaps (the ``w_e`` and ``w_h`` terms drop) and observes 2D onl
   grows uncertain) with each left and right bone given their mean (a person's skeleton is symmetric; the
   seed's observed skeletons are mocap skeletons, symmetric to the millimetre) -- ``bones="first"``; or
   the 3D database's mean proportions scaled to the first step's size -- ``bones="database"``;
-- ``theta``: the joint angles (between each bone and its parent bone) of that first step;
+- ``theta``: the joint angles (between each bone and its parent bone, and between two bones leaving one
+  joint) of that first step -- ``angles="first"``; or only the angles that a skeleton holds whatever the pose
+  (the hips in line through the pelvis, the shoulders through the neck, the face), found as those that do not
+  vary over the 3D database's poses, at the database's value -- ``angles="rigid"`` (a forecast five steps out
+  has other joint angles than the first step, but the same skeleton);
 - ``x_0``: the decoder's raw pose itself (keeps the refined pose where the forecast put it).
 
 Each forecast pose of every step is refined alike (Adam on the joints, the L1 terms summed as eq. 3.2 writes
@@ -36,6 +40,7 @@ from roomcap.forecast.lab.behaviour.data import JOINTS
 from roomcap.forecast.lab.behaviour.model import bones
 
 BONE_SOURCES = ("first", "database")
+ANGLE_SOURCES = ("first", "rigid")
 
 
 @dataclass(frozen=True)
@@ -46,12 +51,16 @@ class RefineConfig:
     w_a: float = 0.4  # joint angles
     w_c: float = 0.1  # closeness to the raw pose
     bones: str = "first"  # first | database: where ``b`` comes from (module docstring)
+    angles: str = "first"  # first | rigid: where ``theta`` comes from and which angles it holds (docstring)
+    rigid_deg: float = 1.0  # rigid: the angles whose spread over the database's poses is below this (deg)
     iters: int = 300
     lr: float = 0.005  # metres per Adam step at the start, decaying linearly to 0 (as ch. 3's refinement)
 
     def __post_init__(self) -> None:
         if self.bones not in BONE_SOURCES:
             raise ValueError(f"refine bones must be one of {BONE_SOURCES}, got {self.bones!r}")
+        if self.angles not in ANGLE_SOURCES:
+            raise ValueError(f"refine angles must be one of {ANGLE_SOURCES}, got {self.angles!r}")
         if min(self.w_b, self.w_a, self.w_c) < 0 or self.iters < 1 or self.lr <= 0:
             raise ValueError("refine: weights must be >= 0, iters >= 1 and lr > 0")
 
@@ -61,11 +70,13 @@ def refine_config_from_dict(d: dict) -> RefineConfig:
 
 
 def angle_pairs(bone_idx: np.ndarray) -> np.ndarray:
-    """(a,2) index pairs (bone, its parent bone) into ``bone_idx``'s rows: the joint angles of eq. 3.2."""
+    """(a,2) index pairs into ``bone_idx``'s rows, the joint angles of eq. 3.2: each bone with its parent
+    bone, then each two bones leaving one joint (the hips at the pelvis, the shoulders at the neck)."""
     child_of = {int(c): i for i, (c, _) in enumerate(bone_idx)}
-    return np.asarray(
-        [(i, child_of[int(p)]) for i, (_, p) in enumerate(bone_idx) if int(p) in child_of], np.int64
-    ).reshape(-1, 2)
+    out = [(i, child_of[int(p)]) for i, (_, p) in enumerate(bone_idx) if int(p) in child_of]
+    n = len(bone_idx)
+    out += [(i, j) for i in range(n) for j in range(i + 1, n) if bone_idx[i, 1] == bone_idx[j, 1]]
+    return np.asarray(out, np.int64).reshape(-1, 2)
 
 
 def _lengths(X: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -111,6 +122,27 @@ def reference_bones(P: np.ndarray, names, cfg: RefineConfig, db: np.ndarray | No
     return size * mean_db[None]
 
 
+def reference_angles(
+    P: np.ndarray, names, cfg: RefineConfig, db: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``theta`` of eq. 3.2 and the angles it holds: (pairs (a,2) into ``bones(names)``, theta (S or 1, a)
+    radians). ``first``: every angle at the first forecast step's value; ``rigid``: the angles a skeleton
+    holds in every pose, those whose spread over the database's poses ``db`` is below ``cfg.rigid_deg``
+    (the hips in line through the pelvis, the shoulders through the neck, the face), at their median."""
+    b = torch.as_tensor(bones(tuple(names)))
+    pairs = angle_pairs(b.numpy())
+    if cfg.angles == "first":
+        return pairs, _angles(
+            torch.as_tensor(np.asarray(P[:, 0], np.float32)), b, torch.as_tensor(pairs)
+        ).numpy()
+    if db is None:
+        raise ValueError("refine angles='rigid' needs the database poses")
+    D = torch.as_tensor(np.asarray(db[:, [JOINTS.index(n) for n in names]], np.float32))
+    A = _angles(D, b, torch.as_tensor(pairs)).numpy()
+    keep = np.degrees(A.std(0)) < cfg.rigid_deg
+    return pairs[keep], np.median(A[:, keep], 0)[None]
+
+
 def refine(
     P: np.ndarray, names, cfg: RefineConfig = RefineConfig(), db: np.ndarray | None = None
 ) -> np.ndarray:
@@ -118,16 +150,18 @@ def refine(
     names = tuple(names)
     b_np = bones(names)
     b = torch.as_tensor(b_np)
-    pairs = torch.as_tensor(angle_pairs(b_np))
     X0 = torch.as_tensor(np.asarray(P, np.float32))
     ref_len = torch.as_tensor(reference_bones(np.asarray(P), names, cfg, db), dtype=torch.float32)[:, None]
-    ref_ang = _angles(X0[:, :1], b, pairs)  # (S,1,a) the first step's angles
+    pairs_np, theta = reference_angles(np.asarray(P), names, cfg, db) if cfg.w_a > 0 else (None, None)
+    if pairs_np is not None:
+        pairs = torch.as_tensor(pairs_np)
+        ref_ang = torch.as_tensor(theta, dtype=torch.float32)[:, None]  # (S or 1, 1, a)
     X = X0.clone().requires_grad_(True)
     opt = torch.optim.Adam([X], lr=cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / cfg.iters)
     for _ in range(cfg.iters):
         e = cfg.w_b * (_lengths(X, b) - ref_len).abs().sum(-1) + cfg.w_c * (X - X0).abs().sum((-1, -2))
-        if cfg.w_a > 0:
+        if pairs_np is not None:
             e = e + cfg.w_a * (_angles(X, b, pairs) - ref_ang).abs().sum(-1)
         opt.zero_grad()
         e.sum().backward()
