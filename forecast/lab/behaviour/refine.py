@@ -13,7 +13,8 @@ samples and no heatmaps (the ``w_e`` and ``w_h`` terms drop) and observes 2D onl
   step next to the observation, whose bones are nearly the database's: later steps shrink as the forecast
   grows uncertain) with each left and right bone given their mean (a person's skeleton is symmetric; the
   seed's observed skeletons are mocap skeletons, symmetric to the millimetre) -- ``bones="first"``; or
-  the 3D database's mean proportions scaled to the first step's size -- ``bones="database"``;
+  the 3D database's mean proportions scaled to the first step's size -- ``bones="database"``; or the
+  database's mean skeleton as it is -- ``bones="database_mean"``;
 - ``theta``: the joint angles (between each bone and its parent bone, and between two bones leaving one
   joint) of that first step -- ``angles="first"``; or only the angles that a skeleton holds whatever the pose
   (the hips in line through the pelvis, the shoulders through the neck, the face), found as those that do not
@@ -39,7 +40,7 @@ from roomcap.core.config import config_from_dict as _config_from_dict
 from roomcap.forecast.lab.behaviour.data import JOINTS
 from roomcap.forecast.lab.behaviour.model import bones
 
-BONE_SOURCES = ("first", "database")
+BONE_SOURCES = ("first", "database", "database_mean")
 ANGLE_SOURCES = ("first", "rigid")
 
 
@@ -50,7 +51,7 @@ class RefineConfig:
     w_b: float = 1.0  # bone lengths
     w_a: float = 0.4  # joint angles
     w_c: float = 0.1  # closeness to the raw pose
-    bones: str = "first"  # first | database: where ``b`` comes from (module docstring)
+    bones: str = "first"  # first | database | database_mean: where ``b`` comes from (module docstring)
     angles: str = "first"  # first | rigid: where ``theta`` comes from and which angles it holds (docstring)
     rigid_deg: float = 1.0  # rigid: the angles whose spread over the database's poses is below this (deg)
     iters: int = 300
@@ -118,6 +119,8 @@ def reference_bones(P: np.ndarray, names, cfg: RefineConfig, db: np.ndarray | No
     jidx = [JOINTS.index(n) for n in names]
     D = db[:, jidx]
     mean_db = np.linalg.norm(D[:, b[:, 0]] - D[:, b[:, 1]], axis=-1).mean(0)  # (b,)
+    if cfg.bones == "database_mean":
+        return np.repeat(mean_db[None], len(P), 0)
     size = first.sum(1, keepdims=True) / mean_db.sum()
     return size * mean_db[None]
 
