@@ -73,7 +73,7 @@ def test_angle_pairs_are_bone_and_parent_bone():
     assert ("left_hip", "right_hip") in names and ("left_shoulder", "right_shoulder") in names
 
 
-@pytest.mark.parametrize("source", ["first", "database"])
+@pytest.mark.parametrize("source", ["first", "database", "database_mean"])
 def test_refine_takes_the_reference_bones_and_stays_near(source):
     """Eq. 3.2 without angles: every step's bones reach ``b`` (the first step's, left and right alike; or the
     database's proportions at the first step's size) while the joints move little."""
@@ -91,6 +91,8 @@ def test_refine_takes_the_reference_bones_and_stays_near(source):
         dbl = _blen(db[:1], JOINTS)[0]
         assert np.allclose(ref / ref[:, :1], dbl / dbl[0], atol=1e-5)
         assert np.allclose(ref.sum(1), _blen(P[:, 0], JOINTS).sum(1), rtol=1e-5)
+    if source == "database_mean":  # the database's mean skeleton for everyone
+        assert np.allclose(ref, _blen(db[:1], JOINTS), atol=1e-5)
     # a forecast whose bones already are the reference stays put
     Y = R.refine(X, JOINTS, cfg, db)
     assert np.abs(Y - X).max() < 0.01
@@ -105,8 +107,8 @@ def test_refine_angles_pull_towards_the_first_step():
         A = R._angles(torch.as_tensor(X), b, pairs)
         return float((A[:, 1] - A[:, 0]).abs().mean())
 
-    no = R.refine(P, JOINTS, R.RefineConfig(w_a=0.0))
-    yes = R.refine(P, JOINTS, R.RefineConfig(w_a=0.4))
+    no = R.refine(P, JOINTS, R.RefineConfig(w_a=0.0, bones="first", angles="first"))
+    yes = R.refine(P, JOINTS, R.RefineConfig(w_a=0.4, bones="first", angles="first"))
     assert gap(yes) < 0.5 * gap(no)
 
 
@@ -115,7 +117,10 @@ def test_refine_config_checks():
         R.RefineConfig(bones="mine")
     with pytest.raises(ValueError, match="weights"):
         R.RefineConfig(w_b=-1)
-    assert R.refine_config_from_dict({"w_a": "0", "bones": "first"}) == R.RefineConfig(w_a=0.0)
+    got = R.refine_config_from_dict({"w_a": "0", "bones": "first"})
+    assert got == R.RefineConfig(w_a=0.0, bones="first")
+    with pytest.raises(ValueError, match="angles"):
+        R.RefineConfig(angles="some")
     with pytest.raises(ValueError, match="database"):
         R.reference_bones(_forecast(), JOINTS, R.RefineConfig(bones="database"), None)
 
@@ -127,7 +132,9 @@ def test_refined_scores_keep_the_raw_figures():
     d = _tiny_prepared()
     S, m = d.tgt_3d.shape[:2]
     P = d.tgt_3d + np.random.default_rng(0).normal(0, 0.02, d.tgt_3d.shape).astype(np.float32)
-    r = T._refined_scores(P, d, 3, d.names, None, R.RefineConfig(w_a=0.0, iters=50), None)
+    r = T._refined_scores(
+        P, d, 3, d.names, None, R.RefineConfig(bones="first", angles="first", iters=50), None
+    )
     raw = T.metrics(None, P, d, 3)["mpjpe2d_px"]
     assert r["refine_cost_px"] == pytest.approx(r["mpjpe2d_px_refined"] - raw)
     assert r["quality3d_refined"] is None and r["symmetry_mm_refined"] >= 0

@@ -46,13 +46,16 @@ ANGLE_SOURCES = ("first", "rigid")
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """Eq. 3.2's weights (the seed's values) and the optimiser's settings."""
+    """Eq. 3.2's weights (the seed's values), the sources of ``b`` and ``theta`` and the optimiser's settings.
+    The defaults are the choice on the validation split (``bench_forecast_behaviour_refine``): of the
+    sources that keep the person's size, database proportions and the rigid angles gave the highest quality
+    at the least 2D cost on both scripts."""
 
     w_b: float = 1.0  # bone lengths
     w_a: float = 0.4  # joint angles
     w_c: float = 0.1  # closeness to the raw pose
-    bones: str = "first"  # first | database | database_mean: where ``b`` comes from (module docstring)
-    angles: str = "first"  # first | rigid: where ``theta`` comes from and which angles it holds (docstring)
+    bones: str = "database"  # first | database | database_mean: where ``b`` comes from (module docstring)
+    angles: str = "rigid"  # first | rigid: where ``theta`` comes from and which angles it holds (docstring)
     rigid_deg: float = 1.0  # rigid: the angles whose spread over the database's poses is below this (deg)
     iters: int = 300
     lr: float = 0.005  # metres per Adam step at the start, decaying linearly to 0 (as ch. 3's refinement)
