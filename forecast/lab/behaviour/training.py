@@ -774,7 +774,7 @@ def as_results(res: dict, title: str = "Behaviour forecasting (Diller ch. 4)") -
         tables.append(
             Table(
                 "after ch. 3's pose refinement (eq. 3.2; beyond ch. 4: bones "
-                f"{rc['bones']}, w_b {rc['w_b']}, w_a {rc['w_a']}, w_c {rc['w_c']})",
+                f"{rc['bones']}, angles {rc['angles']}, w_b {rc['w_b']}, w_a {rc['w_a']}, w_c {rc['w_c']})",
                 ["method", "2D MPJPE px", "2D cost px", "3D quality", "symm. mm", "3D MPJPE mm"],
                 [
                     [
