@@ -10,7 +10,7 @@ mean, standard deviation and range over the seeds of 2D MPJPE (px), quality, sym
 with a 95 % interval from a bootstrap that resamples whole sequences (each sequence's M steps together).
 
     .venv/bin/python bench/bench_forecast_behaviour_seeds.py --checkpoint A.pt B.pt ... \
-        --quality-classifier Q.pt [--split val|test]
+        --quality-classifier Q.pt [--split val|test] [--refine]
 
 Needs the CMU mocap (ROOMCAP_SHARED). Torch on one thread. Ends with one line ``BENCH {json}``.
 """
@@ -25,9 +25,12 @@ import torch
 
 from roomcap.forecast.lab.behaviour import model as M
 from roomcap.forecast.lab.behaviour import quality as Q
+from roomcap.forecast.lab.behaviour import refine as R
 from roomcap.forecast.lab.behaviour import training as T
+from roomcap.forecast.lab.protocol import render
 
 KEYS = ("mpjpe2d_px", "quality3d", "symmetry_mm", "top1", "top3", "mpjpe3d_mm")
+REFINED = ("mpjpe2d_px_refined", "refine_cost_px", "quality3d_refined", "symmetry_mm_refined")
 
 
 def paired_top1(a: np.ndarray, b: np.ndarray, gt: np.ndarray, n_boot: int = 2000, seed: int = 0) -> dict:
@@ -45,6 +48,9 @@ def main() -> None:
     ap.add_argument("--checkpoint", nargs="+", required=True)
     ap.add_argument("--quality-classifier", required=True)
     ap.add_argument("--split", choices=("val", "test"), default="val")
+    ap.add_argument(
+        "--refine", action="store_true", help="also the figures after ch. 3's pose refinement (its defaults)"
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     qm = Q.load(args.quality_classifier)
@@ -56,19 +62,28 @@ def main() -> None:
         if sp is None:
             sp = T.load_splits(cfg, with_train=False)
         d = getattr(sp, args.split)
-        res = T.evaluate_all(gens, cfgs, extra, sp.val, d, sp.db, quality_clf=(qm.clf, qm.joints))
+        res = T.evaluate_all(
+            gens,
+            cfgs,
+            extra,
+            sp.val,
+            d,
+            sp.db,
+            quality_clf=(qm.clf, qm.joints),
+            refine=R.RefineConfig() if args.refine else None,
+        )
         runs.append({"checkpoint": path, "seed": cfg.seed, "models": res["models"]})
         if "action_only" in gens:
             pa = T.predict(gens["full"], cfg, d)[0]
             pb = T.predict(gens["action_only"], cfgs["action_only"], d)[0]
             paired.append({"seed": cfg.seed, **paired_top1(pa, pb, d.acts[:, cfg.n_obs :])})
         print(path, "seed", cfg.seed)
-        print(T.results_table(res))
+        print(render(T.as_results(res)))
         ceiling = res.get("ceiling_top1")
     summary: dict = {}
     for n in runs[0]["models"]:
         summary[n] = {}
-        for k in KEYS:
+        for k in KEYS + REFINED:
             v = [r["models"][n].get(k) for r in runs if n in r["models"]]
             v = np.array([x for x in v if x is not None], np.float64)
             if len(v):

@@ -150,6 +150,17 @@ def test_eval_results_schema_tiny(tmp_path, script):
     assert main(argv) == 0
     r = json.loads(res.read_text())
     models = r["models"]
+    # --refine: the refined figures of every pose model beside the raw ones, which stay as they were
+    assert main([*argv, "--refine", "--refine-set", "iters=5"]) == 0
+    rr = json.loads(res.read_text())
+    assert rr["refine"]["iters"] == 5 and rr["refine"]["models"] == ["full", "pose_only", "action_2d"]
+    for n in ("full", "pose_only", "action_2d"):
+        m = rr["models"][n]
+        assert m["mpjpe2d_px"] == pytest.approx(models[n]["mpjpe2d_px"])
+        assert m["refine_cost_px"] == pytest.approx(m["mpjpe2d_px_refined"] - m["mpjpe2d_px"])
+        assert 0 <= m["quality3d_refined"] <= 1 and m["symmetry_mm_refined"] >= 0
+    assert "mpjpe2d_px_refined" not in rr["models"]["train_average"]
+    assert any("refinement" in t["title"] for t in rr["tables"])
     want = {"full", "action_only", "pose_only", "action_2d", "zero_velocity", "train_average", "true_3d"}
     assert set(models) == want
     for n in want - {"true_3d"}:
@@ -196,3 +207,15 @@ def test_eval_results_schema_tiny(tmp_path, script):
         "train_average",
         "true_3d",
     }
+
+
+@pytest.mark.parametrize(
+    "extra, msg",
+    [(["--refine-set", "iters=5"], "give --refine too"), (["--refine", "--refine-set", "w_a=-1"], "weights")],
+)
+def test_eval_refine_bad_settings(tmp_path, capsys, extra, msg):
+    """Bad refinement settings are one line and exit 2 (before any data is read)."""
+    from roomcap.forecast.lab.behaviour.cli import main
+
+    assert main(["eval", "--out", str(tmp_path / "r.json"), *extra]) == 2
+    assert msg in capsys.readouterr().err

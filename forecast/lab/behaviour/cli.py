@@ -28,6 +28,7 @@ from roomcap.forecast.lab.behaviour.model import (
     load_checkpoint,
     save_checkpoint,
 )
+from roomcap.forecast.lab.behaviour.refine import RefineConfig, refine_config_from_dict
 from roomcap.forecast.lab.behaviour.sample import run_sample, session_windows
 from roomcap.forecast.lab.behaviour.training import (
     action_frequencies,
@@ -103,6 +104,16 @@ def _main(argv: list[str] | None = None) -> int:
         default=[],
         metavar="SESSION=LABELS",
         help="evaluate on these sessions and label files instead of the composite test split",
+    )
+    rkeys = ", ".join(f.name for f in dataclasses.fields(RefineConfig))
+    e.add_argument(
+        "--refine",
+        action="store_true",
+        help="also score every pose model after ch. 3's pose refinement (eq. 3.2; beyond ch. 4): the "
+        "*_refined keys beside the raw figures",
+    )
+    e.add_argument(
+        "--refine-set", nargs="*", default=[], metavar="KEY=VALUE", help=f"refinement settings; keys: {rkeys}"
     )
     s = sub.add_parser("sample", help="forecast the next M actions and 3D poses of every person of a session")
     s.add_argument("session", help="session folder with keypoints/, track/tracks.npz and calib/rig.toml")
@@ -334,6 +345,12 @@ def _eval(args) -> int:
             f"{args.checkpoint}: {other} were trained on another script or n_obs / M than the rest; "
             "evaluate them apart"
         )
+    if args.refine_set and not args.refine:
+        raise InputError("--refine-set: give --refine too")
+    try:
+        refine = refine_config_from_dict(parse_sets(args.refine_set)) if args.refine else None
+    except ValueError as err:
+        raise InputError(f"--refine-set: {err}") from None
     sp = load_splits(cfg, args.split_seed, cfg.joint_names, with_train=False)
     c0 = time.process_time()
     test = _session_windows(args.sessions, cfg) if args.sessions else getattr(sp, args.split)
@@ -341,7 +358,7 @@ def _eval(args) -> int:
         args.quality_classifier = str(QUALITY_OF_SCRIPT[cfg.script])
     qm = _quality_model(args.quality_classifier)
     assert qm is not None
-    res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db, quality_clf=(qm.clf, qm.joints))
+    res = evaluate_all(gens, cfgs, extra, sp.val, test, sp.db, quality_clf=(qm.clf, qm.joints), refine=refine)
     res["quality3d_classifier"] = {
         "path": str(args.quality_classifier),
         **{k: qm.meta.get(k) for k in ("n_real", "n_fake", "variants", "baselines", "sources", "seed")},

@@ -59,7 +59,11 @@ class BehaviourConfig:
     lambda_pose2d: float = 1.0  # on pixels / 100 (so the three terms are of one order)
     lambda_adv3d: float = 0.1
     gp: float = 10.0
-    n_critic: int = 1  # critic updates per generator update
+    n_critic: int = 1  # critic updates per generator update (RepNet's training: 5)
+    # plain: our small critic | repnet: RepNet's layout, which the seed's critic follows (sec. 4.7.10, [156]):
+    # residual connections in both paths, the KCS path 4x wider (RepNet: 10x; 4x keeps a step short on one
+    # thread), the paths' linear outputs concatenated
+    critic: str = "plain"
     # free | database: the skeleton layer (``Skeleton``) fixes the database's proportions | learned: the
     # skeleton's proportions start at the database's and are trained (one set for every pose)
     bone_lengths: str = "free"
@@ -97,6 +101,8 @@ class BehaviourConfig:
             raise ValueError(
                 "pose_decoder=prior keeps the prior's proportions: use it with bone_lengths=free"
             )
+        if self.critic not in ("plain", "repnet"):
+            raise ValueError(f"critic must be 'plain' or 'repnet', got {self.critic!r}")
         if self.n_critic < 1:
             raise ValueError(f"n_critic must be >= 1, got {self.n_critic}")
 
@@ -331,7 +337,8 @@ class Generator(nn.Module):
 
 
 class Critic(nn.Module):
-    """Wasserstein critic over joints (pelvis x, y at 0) and the bone Gram matrix (sec. 4.4.2, 4.7.10)."""
+    """Wasserstein critic over joints (pelvis x, y at 0) and the bone Gram matrix (sec. 4.4.2, 4.7.10): four
+    linear layers on the joints and three on Psi in parallel, two combining them."""
 
     def __init__(self, J: int, bone_idx: np.ndarray, h: int) -> None:
         super().__init__()
@@ -348,6 +355,36 @@ class Critic(nn.Module):
         return self.head(torch.cat([nn.functional.leaky_relu(a, 0.2), nn.functional.leaky_relu(b, 0.2)], 1))[
             :, 0
         ]
+
+
+class RepNetCritic(nn.Module):
+    """The critic laid out as RepNet's (Wandt & Rosenhahn 2019, the seed's [156]; sec. 4.7.10 counts its
+    layers): a joint path of four linear layers with a residual connection over the second and third, a KCS
+    path of three linear layers over the flattened Psi = B^T B with a residual connection over its last two
+    and ``kcs_wide`` times the joint path's width (RepNet: 1000 against 100), the two paths' linear outputs
+    concatenated and two linear layers giving the score."""
+
+    def __init__(self, J: int, bone_idx: np.ndarray, h: int, kcs_wide: int = 4) -> None:
+        super().__init__()
+        self.register_buffer("bone_idx", torch.as_tensor(bone_idx))
+        nb, hk = len(bone_idx), h * kcs_wide
+        self.j1, self.j2, self.j3, self.j4 = (
+            nn.Linear(J * 3, h),
+            nn.Linear(h, h),
+            nn.Linear(h, h),
+            nn.Linear(h, h),
+        )
+        self.k1, self.k2, self.k3 = nn.Linear(nb * (nb + 1) // 2, hk), nn.Linear(hk, hk), nn.Linear(hk, hk)
+        self.head = _mlp(h + hk, h, 1)
+        self.act = nn.LeakyReLU(0.2)
+
+    def forward(self, P):
+        B, f = P.shape[0], self.act
+        d1 = f(self.j1(P.reshape(B, -1)))
+        d3 = f(d1 + self.j3(f(self.j2(d1))))
+        k1 = f(self.k1(gram(P, self.bone_idx)))
+        k3 = k1 + self.k3(f(self.k2(k1)))
+        return self.head(torch.cat([self.j4(d3), k3], 1))[:, 0]
 
 
 def rollout(
@@ -400,7 +437,7 @@ def rollout(
     return torch.stack(logits_l, 1), torch.stack(poses_l, 1)
 
 
-def build(cfg: BehaviourConfig) -> tuple[Generator, Critic]:
+def build(cfg: BehaviourConfig) -> tuple[Generator, nn.Module]:
     names = cfg.joint_names
     torch.manual_seed(cfg.seed)
     skel = Skeleton(bones(names), learn=cfg.bone_lengths == "learned") if cfg.bone_lengths != "free" else None
@@ -408,7 +445,8 @@ def build(cfg: BehaviourConfig) -> tuple[Generator, Critic]:
         PosePrior(len(names), cfg.prior_dim).requires_grad_(False) if cfg.pose_decoder == "prior" else None
     )
     gen = Generator(cfg.n_obs, len(names), len(ACTIONS), cfg.hidden, skel, cfg.context == "room", prior)
-    return gen, Critic(len(names), bones(names), cfg.hidden)
+    crit = RepNetCritic if cfg.critic == "repnet" else Critic
+    return gen, crit(len(names), bones(names), cfg.hidden)
 
 
 def save_checkpoint(path, gens: dict[str, Generator], cfgs: dict[str, BehaviourConfig], extra: dict) -> None:
@@ -436,7 +474,13 @@ def load_checkpoint(path) -> tuple[dict[str, Generator], dict[str, BehaviourConf
     gens, cfgs = {}, {}
     for n, c in blob["config"].items():
         # older checkpoints: free bones, the markov script, the camera context, the free pose decoder
-        old = {"bone_lengths": "free", "script": "markov", "context": "camera", "pose_decoder": "free"}
+        old = {
+            "bone_lengths": "free",
+            "script": "markov",
+            "context": "camera",
+            "pose_decoder": "free",
+            "critic": "plain",
+        }
         cfg = BehaviourConfig(**{**old, **c})
         g, _ = build(cfg)
         g.load_state_dict(blob["weights"][n])
