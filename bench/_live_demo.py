@@ -23,13 +23,10 @@ THREAD_GROUPS = (
 )
 
 
-class ThreadCpu:
-    """CPU seconds per thread name of this process, sampled every ``every`` s (a thread's last value stays
-    when it ends; its CPU before it was first seen, its start-up, is left out)."""
+class _Sampler:
+    """Samples CPU seconds every ``every`` s on a thread of its own while in use (``with``)."""
 
-    def __init__(self, every: float = 0.2) -> None:
-        self.cpu: dict[str, float] = {}
-        self.first: dict[str, float] = {}
+    def __init__(self, every: float) -> None:
         self._every = every
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
@@ -37,6 +34,28 @@ class ThreadCpu:
     def _run(self) -> None:
         while not self._stop.wait(self._every):
             self.sample()
+
+    def sample(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        self.sample()
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._t.join(2)
+
+
+class ThreadCpu(_Sampler):
+    """CPU seconds per thread name of this process, sampled every ``every`` s (a thread's last value stays
+    when it ends; its CPU before it was first seen, its start-up, is left out)."""
+
+    def __init__(self, every: float = 0.2) -> None:
+        super().__init__(every)
+        self.cpu: dict[str, float] = {}
+        self.first: dict[str, float] = {}
 
     def sample(self) -> None:
         for t in threading.enumerate():
@@ -64,14 +83,46 @@ class ThreadCpu:
             rows[g] += self.used(name)
         return rows
 
-    def __enter__(self) -> ThreadCpu:
-        self.sample()
-        self._t.start()
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._t.join(2)
+class TreeCpu(_Sampler):
+    """CPU seconds of processes and their children (a headless Chromium's renderer, GPU and utility
+    processes), by process type; ``pids`` may get its pid after the start."""
+
+    def __init__(self, pids: list, every: float = 0.5) -> None:
+        super().__init__(every)
+        self.pids = pids
+        self.kind: dict = {}  # pid -> Chromium's process type (renderer, gpu-process, utility, browser)
+        self._cpu: dict = {}
+        self._first: dict = {}
+
+    def sample(self) -> None:
+        import psutil
+
+        for pid in self.pids:
+            try:
+                root = psutil.Process(pid)
+                procs = [root, *root.children(recursive=True)]
+            except psutil.Error:
+                continue
+            for p in procs:
+                try:
+                    t = p.cpu_times()
+                    if p.pid not in self.kind:
+                        types = [a[7:] for a in p.cmdline() if a.startswith("--type=")]
+                        self.kind[p.pid] = types[0] if types else "browser"
+                except psutil.Error:
+                    continue
+                self._first.setdefault(p.pid, t.user + t.system)
+                self._cpu[p.pid] = t.user + t.system
+
+    def used(self) -> float:
+        return sum(v - self._first[k] for k, v in self._cpu.items())
+
+    def by_kind(self) -> dict:
+        out: dict = {}
+        for k, v in self._cpu.items():
+            out[self.kind[k]] = out.get(self.kind[k], 0.0) + v - self._first[k]
+        return out
 
 
 def write_looping_cams(demo: Path, folder: Path) -> Path:

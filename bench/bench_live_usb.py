@@ -55,7 +55,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from _live_demo import CAMS, DEMO, SHARED, ThreadCpu  # noqa: E402
+from _live_demo import CAMS, DEMO, SHARED, ThreadCpu, TreeCpu  # noqa: E402
 
 TARGETS = {"default": {"sets_per_s": 5.0, "complete": 0.8, "to_3d_ms": 300.0, "to_page_ms": 400.0}}
 TARGETS["fast"] = {"sets_per_s": 10.0}
@@ -140,61 +140,6 @@ def auto_reduce(w: int, h: int, setting: int) -> int:
 def jpeg_size(data: bytes) -> tuple[int, int]:
     img = decode_jpeg(data)
     return img.shape[1], img.shape[0]
-
-
-class TreeCpu:
-    """CPU seconds of a process and its children (the headless Chromium's renderer, GPU and utility
-    processes), sampled every ``every`` s while in use; ``pids`` may get its pid after the start."""
-
-    def __init__(self, pids: list, every: float = 0.5) -> None:
-        self.pids, self._every, self._cpu = pids, every, {}
-        self.kind: dict = {}  # pid -> Chromium's process type (renderer, gpu-process, utility, browser)
-        self._first: dict = {}
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.wait(self._every):
-            self.sample()
-
-    def sample(self) -> None:
-        import psutil
-
-        for pid in self.pids:
-            try:
-                root = psutil.Process(pid)
-                procs = [root, *root.children(recursive=True)]
-            except psutil.Error:
-                continue
-            for p in procs:
-                try:
-                    t = p.cpu_times()
-                except psutil.Error:
-                    continue
-                self._first.setdefault(p.pid, t.user + t.system)
-                self._cpu[p.pid] = t.user + t.system
-                if p.pid not in self.kind:
-                    try:
-                        types = [a[7:] for a in p.cmdline() if a.startswith("--type=")]
-                        self.kind[p.pid] = types[0] if types else "browser"
-                    except psutil.Error:
-                        self.kind[p.pid] = "?"
-
-    def used(self) -> float:
-        return sum(v - self._first[k] for k, v in self._cpu.items())
-
-    def by_kind(self) -> dict:
-        out: dict = {}
-        for k, v in self._cpu.items():
-            out[self.kind.get(k, "?")] = out.get(self.kind.get(k, "?"), 0.0) + v - self._first[k]
-        return out
-
-    def __enter__(self) -> TreeCpu:
-        self._t.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
 
 
 def floor(videos: list[Path], cfg, folder: Path, n_sets: int = 24) -> dict:
