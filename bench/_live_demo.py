@@ -19,7 +19,7 @@ DEMO = Path("data/pose2sim/demo-wheel-0.10.49/Demo_MultiPerson")  # the multi-pe
 THREAD_GROUPS = (
     ("decode (grab-*)", r"^grab-"),
     ("encode (write-*)", r"^write-"),
-    ("2D groups", r"^live-keypoints"),
+    ("2D workers", r"^live-keypoints"),
 )
 
 

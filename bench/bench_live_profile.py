@@ -1,5 +1,5 @@
 """Where ``capture-run --live``'s CPU goes, by thread: the recorder's decoding (``grab-*``) and encoding
-(``write-*``), the live loop (``live``: the stages; ``live-keypoints*``: the 2D camera groups; ``live-sync``),
+(``write-*``), the live loop (``live``: the stages; ``live-keypoints*``: the 2D workers; ``live-sync``),
 the rest. The Pose2Sim multi-person demo's 4 videos (1088x1920, 60 Hz) as looping file cameras with its
 calibration, the real default 2D model, ``capture-run``'s own code path (``pipeline.live.main``).
 

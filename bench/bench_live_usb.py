@@ -61,7 +61,7 @@ TARGETS = {"default": {"sets_per_s": 5.0, "complete": 0.8, "to_3d_ms": 300.0, "t
 TARGETS["fast"] = {"sets_per_s": 10.0}
 GROUPS = (
     ("recorder (grab-*, write-*)", r"^(grab|write)-"),
-    ("2D groups (live-keypoints*)", r"^live-keypoints"),
+    ("2D workers (live-keypoints*)", r"^live-keypoints"),
 )
 
 
@@ -396,7 +396,7 @@ def report(p: str, f: dict, ph: dict) -> list[str]:
     dec = ph["decode_ms_per_frame_taken"]
     lines.append(
         f"[{p}] where a set's time goes: ms per set {st}; decoding a taken frame "
-        f"{'n/a' if dec is None else f'{dec:.1f} ms'} (in the 2D groups, reduce {ph['reduce']}); CPU s per s:"
+        f"{'n/a' if dec is None else f'{dec:.1f} ms'} (in the 2D workers, reduce {ph['reduce']}); CPU s per s:"
         " "
         f"{cpu}; process {ph['process_cpu_per_s']:.2f}"
     )

@@ -98,7 +98,7 @@ class LiveContext:
     rig: CameraRig | None  # when cams.yaml names a calibration
     particle: ParticleConfig | None = None  # the live tracker's settings (default ParticleConfig())
     chunk_frames: int = CHUNK_FRAMES
-    keypoint_groups: int = 0  # camera groups of the 2D stage, each on its own thread (0 = the cores)
+    keypoint_workers: int = 0  # the 2D stage's worker threads, each taking the next camera (0 = the cores)
 
 
 def live_dir(layout: SessionLayout) -> Path:
@@ -161,7 +161,7 @@ def _keypoints(ctx: LiveContext) -> Stage:
         raise FormatError(ctx.cfg.path, "live.preset", str(e).split(": ", 2)[-1]) from None
     conf = settings.detector
     cams = list(ctx.cfg.names)
-    n_workers = max(1, min(ctx.keypoint_groups or os.cpu_count() or 1, len(cams)))
+    n_workers = max(1, min(ctx.keypoint_workers or os.cpu_count() or 1, len(cams)))
     if n_workers > 1:  # each worker's share of the onnxruntime threads, as the batch stage
         threads = max(1, (conf.runtime.threads or os.cpu_count() or 1) // n_workers)
         conf = replace(conf, runtime=replace(conf.runtime, threads=threads))

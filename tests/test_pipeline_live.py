@@ -280,7 +280,7 @@ def test_live_keypoints_run_each_camera_in_its_own_warmed_pipeline(tmp_path, mon
     monkeypatch.setattr(
         live_mod, "warm_keypoints", lambda pipe, size: warmed.append(size) or real_warm(pipe, size)
     )
-    stage = live_mod._keypoints(LiveContext(cfg, SessionLayout(tmp_path), None, keypoint_groups=2))
+    stage = live_mod._keypoints(LiveContext(cfg, SessionLayout(tmp_path), None, keypoint_workers=2))
     try:
         assert len(stage.pipes) == 3 and warmed == [(w, h)] * 3
         assert all(p.n_detected == 0 and not p._seeds for p in stage.pipes)  # the warm-up left nothing
