@@ -396,7 +396,7 @@ def report(p: str, f: dict, ph: dict) -> list[str]:
     dec = ph["decode_ms_per_frame_taken"]
     lines.append(
         f"[{p}] where a set's time goes: ms per set {st}; decoding a taken frame "
-        f"{'n/a' if dec is None else f'{dec:.1f} ms'} (in the 2D workers, reduce {ph['reduce']}); CPU s per s:"
+        f"{'n/a' if dec is None else f'{dec:.1f} ms'} (2D workers, reduce {ph['reduce']}); CPU s per s:"
         " "
         f"{cpu}; process {ph['process_cpu_per_s']:.2f}"
     )
