@@ -276,7 +276,7 @@ def test_recording_with_the_page_in_chromium_killed_mid_run_drops_no_frame(tmp_p
         )
 
     live = LiveRunner(cfg, tmp_path / "S", stages={"track": people})
-    rec = Recorder(cfg, tmp_path / "S", duration_s=5.0, frameset_sink=live.queue, handle_signals=False)
+    rec = Recorder(cfg, tmp_path / "S", duration_s=8.0, frameset_sink=live.queue, handle_signals=False)
     outputs = Outputs()
     p = argparse.ArgumentParser()
     outputs.add_arguments(p)
@@ -292,6 +292,10 @@ def test_recording_with_the_page_in_chromium_killed_mid_run_drops_no_frame(tmp_p
             )
             seen["latency_ms"] = b.evaluate("document.body.dataset.latencyMs")
             b.screenshot(tmp_path / "live.png")
+            # a few drawn states acknowledged before the kill (on a loaded host the page starts late)
+            t_end = time.monotonic() + 10
+            while view.status()["acks"] < 3 and time.monotonic() < t_end:
+                time.sleep(0.05)
             seen["killed_at"] = live.stats.processed
             b.kill()  # mid-run: the page dies, the recording goes on
 
