@@ -186,8 +186,8 @@ function render(){
 
 function tick(){
   scheduled = false;
-  if (need.all) render();
-  else { if (hello) for (const cam of need.panes) drawPane(cam, panes[cam]); if (need.room) draw3d(); }
+  if (hello) for (const cam of need.panes) drawPane(cam, panes[cam]);  // new images (render draws no drawn pane)
+  if (need.all) render(); else if (need.room) draw3d();
   need.all = need.room = false; need.panes.clear();
 }
 connect();

@@ -74,6 +74,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 8765
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+REFRESH_WAIT_S = 0.15  # a new forecast of a set already sent waits this long for the next set to carry it
 
 
 @dataclass(frozen=True)
@@ -436,6 +437,11 @@ class LiveView:
                 continue
             if step is self._sent and not refresh:
                 continue
+            if step is self._sent:  # a new forecast of the set already sent: a set that comes within
+                # REFRESH_WAIT_S carries it (the page draws once, not twice); else this state goes again
+                self._new.wait(REFRESH_WAIT_S)
+                if self._latest is not step:
+                    continue
             t0 = time.thread_time()
             try:
                 # a new step: its state and images; the same step again: a new forecast of it, the state only
