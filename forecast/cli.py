@@ -180,6 +180,12 @@ def _add_models(sub: Any) -> None:
         metavar=("OLD", "NEW"),
         help="rewrite the checkpoint OLD (an older schema) in the current format at NEW, the same weights",
     )
+    m.add_argument(
+        "--rescore",
+        metavar="CK",
+        help="score CK again on its own validation clips as it forecasts today and write the scores into its "
+        "card (the ones before kept; weights unchanged)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -348,6 +348,8 @@ def cmd_models(args) -> int:
         old, new = args.convert
         print(f"{old} -> {new}: {ckpt.convert(old, new)}")
         return 0
+    if args.rescore:
+        return _rescore(Path(args.rescore))
     folder = Path(args.folder) if args.folder else cards.CHECKPOINT_DIR
     if not folder.is_dir():
         raise InputError(f"--folder {folder} is not a folder of checkpoints")
@@ -355,6 +357,55 @@ def cmd_models(args) -> int:
     if not cs:
         raise InputError(f"no checkpoints (*.pt) in {folder}")
     print(json.dumps(cs, indent=1, default=str) if args.json else cards.render(cs))
+    return 0
+
+
+def _rescore(path: Path) -> int:
+    """``forecast models --rescore CK``: the model scored again on its own validation clips by the validator
+    that selected it (``lab.selection.Validator``, the config's settings), as it forecasts today; the card's
+    scores replaced, the ones before kept under ``scores_before``, the weights unchanged."""
+    from argparse import Namespace
+
+    model, meta = T.load_checkpoint(path)
+    card, extra, cfg = dict(meta.get("card") or {}), meta.get("extra") or {}, meta["config"]
+    names = set(extra.get("val_clips") or [])
+    if not names or not card.get("data"):
+        raise InputError(f"{path}: its card names no data or validation clips to score it on")
+    clips, *_ = _load_split(Namespace(data=card["data"].split(","), split_seed=extra.get("split_seed", 0)))
+    val = [c for c in clips if c.name in names]
+    if len(val) != len(names):
+        raise InputError(
+            f"{path}: {len(names) - len(val)} of its validation clips are not in --data {card['data']}"
+        )
+    scores = T.Validator(
+        val,
+        n_samples=getattr(cfg, "val_samples", 4),
+        max_windows=getattr(cfg, "val_windows", 48),
+        stride=getattr(cfg, "val_stride", 10),
+        seed=cfg.seed,
+    )(model)
+    before = card.get("scores", {})
+    card["scores_before"] = before
+    card["scores"] = {
+        "split": "validation",
+        "ndms_2_4": scores["ndms_2_4"],
+        "mpjpe_0_1_m": scores["mpjpe_0_1"],
+    }
+    card["rescored"] = f"forecast models --rescore {path.name} ({time.strftime('%Y-%m-%d')})"
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    fields = {
+        k: v for k, v in blob.items() if k not in ("schema", "model", "config", "weights", "card", "extra")
+    }
+    ckpt.write_checkpoint(
+        path,
+        blob["model"],
+        config=blob["config"],
+        weights=blob["weights"],
+        card=card,
+        extra=blob["extra"],
+        **fields,
+    )
+    print(f"{path.name}: validation {before} -> {card['scores']}")
     return 0
 
 

@@ -92,3 +92,34 @@ def test_characteristic_checkpoint_on_all_one_person_data():
     full = C.load_labelled("cmu-all", meta["fps"])
     assert extra["history"]["n_train_labels"] == len(C.segments(full.train, meta["config"].n_obs))
     assert not any(it.name.startswith("cmu8_test_") for it in full.train + full.val)
+
+
+def test_rescore_writes_todays_validation_scores_into_the_card(tmp_path, capsys):
+    """``forecast models --rescore CK``: the model scored on its own validation clips as it forecasts today;
+    the card's scores replaced, the ones before kept, the weights unchanged; the shipped card is current."""
+    from conftest import need_shared
+
+    from roomcap.forecast.cli import main
+
+    need_shared("data", "motion")
+    src = ROOT / "gru_cmuall.pt"
+    ck = tmp_path / src.name
+    ck.write_bytes(src.read_bytes())
+    before = torch.load(src, map_location="cpu", weights_only=False)
+    before["card"]["scores"] = {"split": "validation", "ndms_2_4": 0.5, "mpjpe_0_1_m": 9.0}  # a stale card
+    torch.save(before, ck)
+    assert main(["models", "--rescore", str(ck)]) == 0
+    after = torch.load(ck, map_location="cpu", weights_only=False)
+    assert after["card"]["scores_before"]["mpjpe_0_1_m"] == 9.0
+    new = after["card"]["scores"]
+    assert 0.05 < new["mpjpe_0_1_m"] < 1.0 and 0.0 < new["ndms_2_4"] < 0.5
+    shipped = torch.load(src, map_location="cpu", weights_only=False)["card"]["scores"]
+    assert new["mpjpe_0_1_m"] == pytest.approx(
+        shipped["mpjpe_0_1_m"], rel=1e-3
+    )  # the shipped card is today's
+    for k, v in before["weights"]["model"].items():
+        assert torch.equal(v, after["weights"]["model"][k])
+    assert "gru_cmuall.pt: validation" in capsys.readouterr().out
+    wrong = tmp_path / "cmu8.pt"
+    wrong.write_bytes((ROOT / "cmu8_dct_mlp_ens.pt").read_bytes())
+    assert main(["models", "--rescore", str(wrong)]) == 2
