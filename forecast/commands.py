@@ -17,7 +17,7 @@ import torch
 
 from roomcap.core.cli import parse_sets
 from roomcap.core.errors import FormatError, InputError
-from roomcap.core.fileio import load_toml
+from roomcap.core.fileio import atomic_path, load_toml
 from roomcap.core.progress import Bars
 from roomcap.forecast.lab import benchmark_cmu8 as B
 from roomcap.forecast.lab import benchmark_cmu8_angle as A
@@ -392,19 +392,11 @@ def _rescore(path: Path) -> int:
         "mpjpe_0_1_m": scores["mpjpe_0_1"],
     }
     card["rescored"] = f"forecast models --rescore {path.name} ({time.strftime('%Y-%m-%d')})"
-    blob = torch.load(path, map_location="cpu", weights_only=False)
-    fields = {
-        k: v for k, v in blob.items() if k not in ("schema", "model", "config", "weights", "card", "extra")
-    }
-    ckpt.write_checkpoint(
-        path,
-        blob["model"],
-        config=blob["config"],
-        weights=blob["weights"],
-        card=card,
-        extra=blob["extra"],
-        **fields,
-    )
+    blob = ckpt.read_checkpoint(path)  # the file in the current format, written back with the new card
+    blob.pop("upgraded_from", None)
+    blob["card"] = card
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
     print(f"{path.name}: validation {before} -> {card['scores']}")
     return 0
 
