@@ -196,11 +196,9 @@ def _keypoints(ctx: LiveContext) -> Stage:
         t0 = time.perf_counter()
         k = reduce_for(cam, f)
         img = f.decoded(k)
-        t1 = time.perf_counter()
-        decode_ms[0] += (t1 - t0) * 1e3
+        decode_ms[0] += (time.perf_counter() - t0) * 1e3
         decode_ms[1] += 1
-        # the decoded image, for the live view's camera preview (no second decoding of the same JPEG)
-        step.outputs.setdefault("decoded", {})[cam] = (k, img)
+        step.outputs["decoded"][cam] = (k, img)
         (res,) = pipes[cam]([img], streams=[cam])
         last_s[cam] = time.perf_counter() - t0
         return scale_result(res, k)
@@ -209,6 +207,8 @@ def _keypoints(ctx: LiveContext) -> Stage:
         frames = step.frameset.frames
         present = [c for c in cams if frames.get(c) is not None and frames[c].has_image]
         present.sort(key=last_s.__getitem__, reverse=True)
+        # the decoded images, for the live view's camera previews (no second decoding of the same JPEG)
+        step.outputs["decoded"] = {}
         if pool is None:
             dets = {c: run_camera(c, step) for c in present}
         else:
