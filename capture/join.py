@@ -171,10 +171,12 @@ def join_camera(
 
 
 def remove_segments(cam_dir: Path) -> None:
-    """Delete what the recorder wrote into ``raw/<cam>/`` (segments, their rows, the ffconcat index)."""
+    """Delete what the recorder wrote into ``raw/<cam>/``: segments, their rows, the ffconcat index, and the
+    temporary files of those writes a kill left behind (``.part_*``, ``.seg_*``, ``.index.ffconcat.*``)."""
     cam_dir = Path(cam_dir)
+    leftovers = (".part_", ".seg_", f".{FFCONCAT}.")
     for p in cam_dir.iterdir():
-        if p.name.startswith("seg_") or p.name == FFCONCAT or p.name.startswith(".part_"):
+        if p.name.startswith("seg_") or p.name == FFCONCAT or p.name.startswith(leftovers):
             p.unlink()
     try:
         cam_dir.rmdir()

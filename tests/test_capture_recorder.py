@@ -15,6 +15,7 @@ import pytest
 from test_capture_sources import write_video
 
 from roomcap.capture.config import parse_config
+from roomcap.capture.join import FFCONCAT, remove_segments
 from roomcap.capture.recorder import Recorder, RecorderError, repair_session
 from roomcap.capture.session import SessionLayout
 from roomcap.capture.sources import open_recording, read_code, read_frames_csv
@@ -248,3 +249,22 @@ def test_sigterm_finalises_every_file(tmp_path):
     for cam in ("a", "b", "c"):
         tab = read_frames_csv(out / "raw" / f"{cam}.frames.csv")
         assert len(_decode_segments(out / "raw" / cam)) == len(tab) == meta["cameras"][cam]["frames_written"]
+
+
+def test_joined_segments_leave_no_temporary_file_a_kill_left_behind(tmp_path):
+    """A kill during an atomic write leaves its temporary file (``.index.ffconcat.*``, ``.seg_*``) in the
+    camera's folder; once the segments are joined those go too, while a file the recorder did not write
+    stays."""
+    cam_dir = tmp_path / "raw" / "a"
+    cam_dir.mkdir(parents=True)
+    names = ["seg_000000.mp4", "seg_000000.frames.csv", FFCONCAT, f".{FFCONCAT}.k2x9.ffconcat"]
+    names += [".seg_000001.frames.csv.q8z.csv", ".part_000001.mp4"]
+    for n in names:
+        (cam_dir / n).write_text("x")
+    remove_segments(cam_dir)
+    assert not cam_dir.exists()
+    cam_dir.mkdir()
+    (cam_dir / "seg_000000.mp4").write_text("x")
+    (cam_dir / "notes.txt").write_text("mine")
+    remove_segments(cam_dir)
+    assert [p.name for p in cam_dir.iterdir()] == ["notes.txt"]
