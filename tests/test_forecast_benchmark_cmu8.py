@@ -353,7 +353,7 @@ def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
     assert f.joints == [1 + j for j in (2, 3, 4, 9, 10, 14, 15, 21, 22, 30, 31)]  # 3-vectors after the root's
     assert set(f.dims) == {3 + 3 * j for j in (2, 3, 4, 9, 10, 14, 15, 21, 22, 30, 31)}  # the moving values
     ck = tmp_path / "angles.pt"
-    A.save(ck, f, cfg, hist)
+    A.save(ck, f, [cfg], hist)
     assert A.is_angle_checkpoint(ck) and not A.is_angle_checkpoint(tmp_path / "none.pt")
     out = tmp_path / "o"
     args = ["eval", "--protocol", "cmu8", "--metric", "angle", str(tiny_root), "--checkpoints", str(ck)]
@@ -381,6 +381,55 @@ def test_angle_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
     assert "score them with `--metric angle`" in capsys.readouterr().err
     assert main(["eval", "--metric", "angle", "--out", str(out)]) == 2
     assert "--metric angle is a metric of --protocol cmu8 only" in capsys.readouterr().err
+
+
+def test_angle_ensemble_forecasts_the_members_mean_and_reads_the_one_model_format(
+    tiny_root, tmp_path, capsys
+):
+    """`forecast cmu8 ensemble` of angle models: the members' mean forecast, scored on validation; a
+    checkpoint written before ensembles (one model's config and ``weights["model"]``) still loads."""
+    from roomcap.forecast.cli import main
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
+    from roomcap.forecast.runtime.checkpoint import write_checkpoint
+
+    tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
+    paths, fs = [], []
+    for seed in (0, 1):
+        cfg = B.MlpConfig(steps=3, batch=8, val_every=1, n_blocks=2, n_pred=10, seed=seed)
+        f, hist = A.train(tr, va, cfg)
+        paths.append(tmp_path / f"a{seed}.pt")
+        A.save(paths[-1], f, [cfg], hist)
+        fs.append(f)
+    obs = A.test_windows(C.benchmark_files(tiny_root))["walking"][:, : B.N_OBS]
+    y0, y1 = fs[0](obs), fs[1](obs)
+    assert np.abs(y0 - y1).max() > 1e-4  # different members
+    out = tmp_path / "ens.pt"
+    assert main(["cmu8", "ensemble", *map(str, paths), "--data", str(tiny_root), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "a0.pt: validation angle error" in text and "ensemble of 2: validation angle error" in text
+    ens, blob = A.load(out)
+    assert isinstance(ens.model, B.DctMlpEnsemble) and blob["extra"]["members"] == ["a0.pt", "a1.pt"]
+    # the mean of the members' passes, rolled out pass by pass: close to, not equal to, the mean of rollouts
+    first = np.mean([f(obs)[:, :10] for f in fs], 0)
+    assert np.allclose(ens(obs)[:, :10], first, atol=1e-5)
+    bad = [
+        "cmu8",
+        "ensemble",
+        str(out),
+        str(paths[0]),
+        "--data",
+        str(tiny_root),
+        "--out",
+        str(tmp_path / "x.pt"),
+    ]
+    assert main(bad) == 2 and "already an ensemble" in capsys.readouterr().err
+    old = tmp_path / "old.pt"  # the format before ensembles
+    f0 = fs[0]
+    write_checkpoint(
+        old, A.FAMILY, config=B.MlpConfig(n_blocks=2, n_pred=10), weights={"model": f0.model.state_dict()},
+        extra={}, vectors=f0.joints, dims=[int(d) for d in f0.dims], fps=B.FPS,
+    )  # fmt: skip
+    assert np.allclose(A.load(old)[0](obs), y0, atol=1e-6)
 
 
 def test_shipped_angle_checkpoint_forecasts_below_zero_velocity():

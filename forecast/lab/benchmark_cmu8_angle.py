@@ -41,6 +41,8 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     N_PRED,
     N_WINDOWS,
     DctMlp,
+    DctMlpEnsemble,
+    Forecaster,
     MlpConfig,
     fit_mlp,
     rollout,
@@ -216,10 +218,11 @@ def zero_velocity(obs: np.ndarray) -> np.ndarray:
 
 
 class AngleForecaster:
-    """A DCT + MLP (:class:`roomcap.forecast.lab.benchmark_cmu8.DctMlp`) over the exponential maps of the used
-    3-vectors, each one a 'point' of three values; the values not used are the truth's at scoring."""
+    """A DCT + MLP (:class:`roomcap.forecast.lab.benchmark_cmu8.DctMlp`), or the mean of several, over the
+    exponential maps of the used 3-vectors, each one a 'point' of three values; the values not used are the
+    truth's at scoring."""
 
-    def __init__(self, model: DctMlp, joints: list[int], dims: np.ndarray):
+    def __init__(self, model: Forecaster, joints: list[int], dims: np.ndarray):
         self.model, self.joints, self.dims = model, list(joints), np.asarray(dims)
 
     @torch.no_grad()
@@ -246,12 +249,15 @@ def score(pred: np.ndarray, gt: np.ndarray, dims: np.ndarray | None) -> np.ndarr
     return angle_error(pred, gt)
 
 
-def save(path: str | Path, f: AngleForecaster, config: MlpConfig, extra: dict) -> None:
+def save(path: str | Path, f: AngleForecaster, configs: list[MlpConfig], extra: dict) -> None:
+    """One checkpoint holding every member's config and weights (``member<i>``; one model is an ensemble of
+    one), as :func:`roomcap.forecast.lab.benchmark_cmu8.save_ensemble` writes the 3D ones."""
+    members = list(f.model.members) if isinstance(f.model, DctMlpEnsemble) else [f.model]
     write_checkpoint(
         path,
         FAMILY,
-        config=config,
-        weights={"model": f.model.state_dict()},
+        config={"members": configs},
+        weights={f"member{i}": m.state_dict() for i, m in enumerate(members)},
         extra=extra,
         points=[f"{'root_position' if j == 0 else C.CMU38_NAMES[j - 1]}" for j in f.joints],
         vectors=f.joints,
@@ -265,11 +271,25 @@ def is_angle_checkpoint(path: str | Path) -> bool:
     return family_of(path) == FAMILY
 
 
+def member_configs_and_weights(blob: dict) -> list[tuple[dict, dict]]:
+    """Each member's config and weights; checkpoints written before ensembles hold one model's ``config``
+    and ``weights["model"]``."""
+    cfg, w = blob["config"], blob["weights"]
+    if "members" not in cfg:
+        return [(cfg, w["model"])]
+    return [(c, w[f"member{i}"]) for i, c in enumerate(cfg["members"])]
+
+
 def load(path: str | Path) -> tuple[AngleForecaster, dict]:
+    """An angle checkpoint: one DCT + MLP, or the mean of several."""
     blob = read_checkpoint(path, FAMILY)
-    m = DctMlp(len(blob["vectors"]), MlpConfig(**blob["config"]))
-    m.load_state_dict(blob["weights"]["model"])
-    return AngleForecaster(m.eval(), blob["vectors"], np.asarray(blob["dims"])), blob
+    members = []
+    for c, state in member_configs_and_weights(blob):
+        m = DctMlp(len(blob["vectors"]), MlpConfig(**c))
+        m.load_state_dict(state)
+        members.append(m.eval())
+    model: Forecaster = members[0] if len(members) == 1 else DctMlpEnsemble(members).eval()
+    return AngleForecaster(model, blob["vectors"], np.asarray(blob["dims"])), blob
 
 
 # ----------------------------------------------------------------------------- training

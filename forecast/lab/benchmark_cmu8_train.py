@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         A.save(
             args.out,
             f,
-            cfg,
+            [cfg],
             {
                 "train_files": [p.name for p in tr],
                 "val_files": [p.name for p in va],
@@ -224,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
 def _main_ensemble(args) -> int:
     """``forecast cmu8 ensemble --out PATH A.pt B.pt ...``: every member and their mean scored on the
     validation windows (as in training), the ensemble written."""
+    if all(A.is_angle_checkpoint(p) for p in args.members):
+        return _main_angle_ensemble(args)
     members, names = [], []
     for p in args.members:
         m, blob = load_mlp(p)
@@ -252,5 +254,42 @@ def _main_ensemble(args) -> int:
         "command": args.command,
     }
     save_ensemble(args.out, members, extra)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _main_angle_ensemble(args) -> int:
+    """The same for exponential-map models (``--angles``): the members and their mean scored by the angle
+    error on the validation windows, the ensemble written."""
+    fs, names = [], []
+    for p in args.members:
+        f, blob = A.load(p)
+        if isinstance(f.model, DctMlpEnsemble):
+            raise InputError(f"{p} is already an ensemble; give the single models it was made of")
+        fs.append((f, MlpConfig(**A.member_configs_and_weights(blob)[0][0])))
+        names.append(Path(p).name)
+    if len({(tuple(f.joints), tuple(f.dims)) for f, _ in fs}) != 1:
+        raise InputError("the members forecast different values (trained on different files?)")
+    bf = C.benchmark_files(args.data)
+    _, va = split_train_val(bf)
+    if not va:
+        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    val = A.train_windows(va, stride=5)
+    scores = {n: A.validation_error(f, val) for n, (f, _) in zip(names, fs, strict=True)}
+    f0 = fs[0][0]
+    ens = A.AngleForecaster(DctMlpEnsemble([f.model for f, _ in fs]), f0.joints, f0.dims)
+    v = A.validation_error(ens, val)
+    for n, s in scores.items():
+        print(f"{n}: validation angle error {s:.4f} rad")
+    print(f"ensemble of {len(fs)}: validation angle error {v:.4f} rad (mean of the five horizons)")
+    extra = {
+        "members": names,
+        "member_val_rad": scores,
+        "best": {"val_rad": v},
+        "val_files": [f.name for f in va],
+        "member_train": [A.load(p)[1].get("extra", {}) for p in args.members],
+        "command": args.command,
+    }
+    A.save(args.out, ens, [c for _, c in fs], extra)
     print(f"wrote {args.out}")
     return 0

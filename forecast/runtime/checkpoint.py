@@ -252,7 +252,8 @@ def card_from_extra(extra: dict) -> dict:
         out["selection"] = "the lowest validation MPJPE (the benchmark's units)"
         out["scores"] = {"split": "validation", "mpjpe_units": best["val_mm"]}
     elif "val_rad" in best:
-        out["selection"] = f"the step of the lowest validation mean angle error (step {best['step']})"
+        step = f" (step {best['step']})" if "step" in best else ""  # an ensemble has no step
+        out["selection"] = "the lowest validation mean angle error" + step
         out["scores"] = {"split": "validation", "angle_error_rad": best["val_rad"]}
     full = (hist.get("full") or {}) if "action_freq" in extra else {}
     if full:  # the behaviour model: its variants, the full one's validation objective
