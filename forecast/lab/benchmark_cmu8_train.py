@@ -26,6 +26,7 @@ from roomcap.forecast.lab import benchmark_cmu8_angle as A
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     JOINTS_USED,
+    N_OBS,
     DctMlp,
     DctMlpEnsemble,
     Forecaster,
@@ -116,8 +117,8 @@ def train_mlp(
 
 def validation_mm(model: Forecaster, val: np.ndarray) -> float:
     """Validation MPJPE: protocol units, mean over the six horizons of windows ``val (W, 75, 38, 3)``."""
-    pred = mlp_forecast(model, val[:, : model.n_obs])  # the protocol's 25 frames, rolled out if need be
-    return float(np.mean(at_horizons(mpjpe_mm(pred, val[:, model.n_obs :]))))
+    pred = mlp_forecast(model, val[:, :N_OBS])  # the newest n_obs frames; 25 frames, rolled out if need be
+    return float(np.mean(at_horizons(mpjpe_mm(pred, val[:, N_OBS:]))))
 
 
 # ----------------------------------------------------------------------------- `forecast cmu8 train`
@@ -140,6 +141,13 @@ def main(argv: list[str] | None = None) -> int:
         type=positive_int,
         default=d.n_pred,
         help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25)",
+    )
+    t.add_argument(
+        "--n-obs",
+        type=positive_int,
+        default=d.n_obs,
+        help=f"frames observed (default {d.n_obs}, the protocol's; MSR-GCN and PGBIG: 10, the all-windows "
+        "protocol's history)",
     )
     t.add_argument("--lr", type=positive_float, default=d.lr)
     t.add_argument("--seed", type=int, default=d.seed)
@@ -165,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger(__name__).setLevel(logging.INFO)  # the validation curve, one line per check
     cfg = MlpConfig(
+        n_obs=args.n_obs,
         n_blocks=args.blocks,
         n_pred=args.n_pred,
         lr=args.lr,
