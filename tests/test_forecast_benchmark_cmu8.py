@@ -284,6 +284,29 @@ def test_a_ten_frame_model_is_rolled_out_to_the_protocols_25_frames():
     assert np.abs(y[:, 10:20][:, :, used] - first.numpy()).max() > 1e-3  # not the first pass repeated
 
 
+def test_validate_scores_a_ten_frame_history_model_on_the_all_windows_layout(tiny_root, tmp_path, capsys):
+    """`forecast cmu8 validate --windows all`: every start of each validation file, the history padded as
+    cmu8-all pads the test files; a model observing 10 frames forecasts from the newest 10 of them."""
+    from roomcap.forecast.cli import main
+
+    tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
+    lengths = [len(B.sequence(f)) for f in va]
+    w = BT.validation_windows(va, "all")
+    assert len(w) == sum(n - (B.ALL_OBS + B.N_PRED) + 1 for n in lengths) and w.shape[1] == B.N_OBS + B.N_PRED
+    assert np.array_equal(w[0, : B.N_OBS - B.ALL_OBS + 1], np.repeat(w[:1, 0], B.N_OBS - B.ALL_OBS + 1, 0))
+    cfg = B.MlpConfig(n_obs=10, n_pred=10, n_blocks=2)
+    m10 = B.DctMlp(25, cfg)
+    obs = w[:3, : B.N_OBS].copy()
+    obs[:, :40] += 5.0  # what lies before the newest 10 frames does not matter to it
+    assert np.allclose(B.mlp_forecast(m10, obs), B.mlp_forecast(m10, w[:3, : B.N_OBS]))
+    ck = tmp_path / "m10.pt"
+    B.save_mlp(ck, m10, cfg, {})
+    assert main(["cmu8", "validate", str(ck), "--data", str(tiny_root), "--windows", "all"]) == 0
+    assert "m10.pt: validation MPJPE" in capsys.readouterr().out
+    assert main(["cmu8", "validate", str(tmp_path / "none.pt"), "--data", str(tiny_root)]) == 2
+    assert "is not a `forecast cmu8 train | ensemble` checkpoint" in capsys.readouterr().err
+
+
 def test_ensemble_forecasts_the_members_mean_and_round_trips(tiny_root, tmp_path, capsys):
     from roomcap.forecast.cli import main
 

@@ -31,13 +31,16 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     DctMlpEnsemble,
     Forecaster,
     MlpConfig,
+    all_windows,
     at_horizons,
     fit_mlp,
+    is_cmu8_checkpoint,
     load_mlp,
     mlp_forecast,
     mpjpe_mm,
     save_ensemble,
     save_mlp,
+    sequence,
     train_windows,
 )
 
@@ -165,13 +168,28 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--data", help="the benchmark-cmu8 folder (default: the shared one)")
     e.add_argument("--out", required=True)
     e.add_argument("--threads", type=positive_int, default=1)
+    v = sub.add_parser(
+        "validate", help="score 3D checkpoints on the validation files, as a protocol lays out windows"
+    )
+    v.add_argument("checkpoints", nargs="+", help="checkpoints written by `forecast cmu8 train | ensemble`")
+    v.add_argument("--data", help="the benchmark-cmu8 folder (default: the shared one)")
+    v.add_argument(
+        "--windows",
+        choices=("train", "all"),
+        default="train",
+        help="train: every 5th window with its full history, as training validates; all: every window, as "
+        "cmu8-all lays out the test files (history padded with the file's first frame)",
+    )
+    v.add_argument("--threads", type=positive_int, default=1)
     args = p.parse_args(argv)
     args.command = "forecast cmu8 " + " ".join(sys.argv[1:] if argv is None else argv)  # the model card's
     torch.set_num_threads(args.threads)
     if args.cmd == "ensemble":
         return _main_ensemble(args)
+    if args.cmd == "validate":
+        return _main_validate(args)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    logging.getLogger(__name__).setLevel(logging.INFO)  # the validation curve, one line per check
+    logging.getLogger(fit_mlp.__module__).setLevel(logging.INFO)  # the validation curve, one line per check
     cfg = MlpConfig(
         n_obs=args.n_obs,
         n_blocks=args.blocks,
@@ -264,6 +282,31 @@ def _main_ensemble(args) -> int:
     }
     save_ensemble(args.out, members, extra)
     print(f"wrote {args.out}")
+    return 0
+
+
+def validation_windows(files: list[Path], windows: str = "train") -> np.ndarray:
+    """The validation windows (W, 75, 38, 3): ``train``, every 5th start with its full history (as training
+    validates); ``all``, every start with the history padded as cmu8-all pads the test files'
+    (:func:`roomcap.forecast.lab.benchmark_cmu8.all_windows`)."""
+    if windows == "train":
+        return train_windows(files, stride=5)
+    return np.concatenate([all_windows(sequence(f))[1] for f in files]).astype(np.float32)
+
+
+def _main_validate(args) -> int:
+    """``forecast cmu8 validate CK...``: each checkpoint's validation MPJPE (mean of the six horizons)."""
+    bf = C.benchmark_files(args.data)
+    _, va = split_train_val(bf)
+    if not va:
+        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    val = validation_windows(va, args.windows)
+    for p in args.checkpoints:
+        if not is_cmu8_checkpoint(p):
+            raise InputError(f"{p} is not a `forecast cmu8 train | ensemble` checkpoint of 3D points")
+        m, _ = load_mlp(p)
+        score = validation_mm(m, val)
+        print(f"{Path(p).name}: validation MPJPE {score:.2f} ({len(val)} windows, {args.windows})")
     return 0
 
 
