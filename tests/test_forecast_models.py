@@ -191,6 +191,66 @@ def test_intention_checkpoint_is_small_and_training_continues_from_it(tmp_path):
         )
 
 
+def _small_intention(label_temp=1.0):
+    cfg = T.config_from_dict(
+        "intention", {"hidden": 16, "z_dim": 4, "n_clusters": 6, "n_intentions": 4, "label_temp": label_temp}
+    )
+    torch.manual_seed(0)
+    m = T.build_model("intention", cfg, 19).eval()
+    torch.nn.init.normal_(m.p_out.weight, std=0.01)  # zero at init: the labels would not show in the poses
+    return m, cfg
+
+
+def test_intention_label_temperature_default_samples_as_before(tmp_path):
+    import torch.nn.functional as F
+
+    from roomcap.forecast.runtime.models.intention import local_poses
+
+    m, cfg = _small_intention()
+    assert cfg.label_temp == 1.0 and m.label_temp == 1.0  # the default: today's samples
+    obs = torch.from_numpy(walker(20).reshape(1, 20, 57)).float()
+
+    def before(n_pred=12, S=3):  # sample() as it was before label_temp (commit 8f41f89)
+        o = obs.repeat_interleave(S, 0)
+        h, c, out = m._label_init(o), F.one_hot(m.labels(local_poses(o)[:, -1]), m.C).float(), []
+        for _ in range(n_pred + m.gamma - 1):
+            h = m.d_l(c, h)
+            c = F.gumbel_softmax(m.l_out(h), tau=1.0, hard=True)
+            out.append(c)
+        z = torch.randn(S, m.z_dim)
+        return m.decode(o, torch.stack(out, 1), n_pred, z).view(1, S, n_pred, -1)
+
+    with torch.no_grad():
+        torch.manual_seed(5)
+        ref = before()
+        torch.manual_seed(5)
+        assert torch.equal(m.sample(obs, 12, 3), ref)
+        m.label_temp = 2.0
+        torch.manual_seed(5)
+        assert not torch.equal(m.sample(obs, 12, 3), ref)
+        # temperature -> 0: the most likely label at every step, whatever the noise; large: uniform labels
+        o, c0 = obs.expand(400, -1, -1), torch.zeros(400, dtype=torch.long)
+        cold = [m.label_rollout(o, c0, 20, 1e-6).argmax(-1) for _ in range(2)]
+        assert torch.equal(cold[0], cold[1]) and (cold[0] == cold[0][:1]).all()
+        freq = torch.bincount(m.label_rollout(o, c0, 20, 1e6).argmax(-1).flatten(), minlength=4) / 8000
+        assert freq.min() > 0.2 and freq.max() < 0.3  # 1/4 each (2,000 draws per label expected)
+    T.save_checkpoint(tmp_path / "t.pt", m, "intention", dataclasses.replace(cfg, label_temp=1.5))
+    assert T.load_checkpoint(tmp_path / "t.pt")[0].label_temp == 1.5  # a config field, kept by checkpoints
+
+
+def test_intention_training_adds_the_joint_speed_term():
+    cfg = T.config_from_dict(
+        "intention",
+        {"hidden": 16, "z_dim": 4, "n_clusters": 6, "n_intentions": 3, "steps": 2, "batch": 4, "n_obs": 20},
+    )
+    assert cfg.w_speed == 0.0  # off by default: the shipped recipe is unchanged
+    clips = _clips(2, 120)
+    _, h0 = T.train("intention", clips, cfg)
+    _, h1 = T.train("intention", clips, dataclasses.replace(cfg, w_speed=1.0))
+    # same seed, same first batch and forecast: the first loss grows by the (positive) speed gap
+    assert np.isfinite(h1["loss"]).all() and h1["loss"][0] > h0["loss"][0] + 1e-4
+
+
 @pytest.mark.slow
 def test_social_diffusion_writes_back_observation_and_learns():
     m = SocialDiffusion(62, n_frames=32, channels=16, T=100)

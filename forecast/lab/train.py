@@ -190,18 +190,18 @@ def train(
             g = config.gamma
             lab = torch.from_numpy(labels_all)[idx].to(device)
             c_all = torch.cat([lab[:, n_obs - 1 :], lab[:, -1:].expand(-1, g - 1)], 1)  # pad the look-ahead
-            loss, terms, d_loss, _ = model.losses(
+            loss, terms, d_loss, pred = model.losses(
                 obs, fut, c_all, mfut, config.tau_rec, config.w_adv, continuity=config.continuity
             )
-            terms["loss"] = loss.item()
         else:
             pred = model(obs, H)
             if config.continuity:  # train on what is forecast (predict.continue_velocity)
                 pred = continue_velocity(pred[:, None], obs[:, -1], obs[:, -2])[:, 0]
-            loss = _masked_joint_l2(pred, fut, mfut)
-            if getattr(config, "w_speed", 0.0):
-                loss = loss + config.w_speed * speed_gap(pred, fut, obs[:, -1], mfut)
-            terms = {"loss": loss.item()}
+            loss, terms = _masked_joint_l2(pred, fut, mfut), {}
+        if getattr(config, "w_speed", 0.0):  # intention: pred = poses of the reference intentions, one z
+            gap = speed_gap(pred, fut, obs[:, -1], mfut)
+            loss, terms["speed"] = loss + config.w_speed * gap, gap.item()
+        terms["loss"] = loss.item()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

@@ -49,6 +49,8 @@ class IntentionConfig:
     val_every: int = 200  # steps between validation scores (model selection); 0 = keep the last
     select: str = "ndms"  # validation NDMS at 2-4 s
     continuity: bool = True  # forecasts continue the last observed velocity (predict.continue_velocity)
+    w_speed: float = 0.0  # weight of the joint-speed term (lab.train.speed_gap) beside L_rec and L_adv
+    label_temp: float = 1.0  # sampling: temperature of the intention labels (models.intention.sample)
 
 
 @dataclass(frozen=True)

@@ -60,6 +60,7 @@ def _build_intention(config: IntentionConfig, n_joints: int, state: Mapping | No
         config.z_dim,
         gamma=config.gamma,
         f_dim=config.f_dim,
+        label_temp=config.label_temp,
     )
 
 

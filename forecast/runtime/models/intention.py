@@ -66,8 +66,10 @@ class IntentionModel(nn.Module):
         gamma: int = 10,
         f_dim: int = 16,
         dropout: float = 0.1,
+        label_temp: float = 1.0,
     ):
         super().__init__()
+        self.label_temp = label_temp  # sampling: temperature of d_l's label distribution (sample)
         self.dim, self.C, self.gamma, self.z_dim, self.layers = dim, n_intentions, gamma, z_dim, layers
         self.register_buffer("centres", torch.as_tensor(np.asarray(centres), dtype=torch.float32))
         self.register_buffer("merge", torch.as_tensor(np.asarray(merge), dtype=torch.long))
@@ -110,15 +112,15 @@ class IntentionModel(nn.Module):
         return torch.stack(out, 1)
 
     def label_rollout(
-        self, obs: torch.Tensor, c_last: torch.Tensor, n: int, tau: float = 1.0
+        self, obs: torch.Tensor, c_last: torch.Tensor, n: int, temp: float = 1.0
     ) -> torch.Tensor:
-        """Free running: sampled one-hot labels (B,n,C) (straight-through Gumbel-softmax)."""
+        """Free running: one-hot labels (B,n,C) of d_l (6.3) at temperature temp (ours; Gumbel-softmax)."""
         h = self._label_init(obs)
         c = F.one_hot(c_last, self.C).float()
         out = []
         for _ in range(n):
             h = self.d_l(c, h)
-            c = F.gumbel_softmax(self.l_out(h), tau=tau, hard=True)
+            c = F.gumbel_softmax(self.l_out(h) / temp, hard=True)
             out.append(c)
         return torch.stack(out, 1)
 
@@ -129,8 +131,7 @@ class IntentionModel(nn.Module):
         zero = torch.zeros_like(hp[0])
         h = [torch.cat([hp[0] if i == 0 else zero, z], -1) for i in range(self.layers)]
         fc = self.f(c_future.transpose(1, 2)).transpose(1, 2)  # (B,n_pred,f): f(c_τ .. c_{τ-1+γ})
-        x = obs[:, -1]
-        outs = []
+        x, outs = obs[:, -1], []
         for tau in range(n_pred):
             inp = torch.cat([x, fc[:, tau]], -1)
             for i, cell in enumerate(self.d_p):
@@ -144,13 +145,11 @@ class IntentionModel(nn.Module):
         self, obs: torch.Tensor, n_pred: int, n_samples: int = 1, obs_local: torch.Tensor | None = None, **_
     ) -> torch.Tensor:
         """obs (B,T,D) normalised at the last frame; obs_local (B,T,D) per-frame hip-normalised poses (for the
-        last observed label; derived from obs when absent) -> (B,S,n_pred,D)."""
+        last observed label; derived from obs when absent) -> (B,S,n_pred,D). Labels at ``label_temp``."""
         B, T, D = obs.shape
-        if obs_local is None:
-            obs_local = local_poses(obs)
-        c_last = self.labels(obs_local[:, -1])
-        o = obs.repeat_interleave(n_samples, 0)
-        c = self.label_rollout(o, c_last.repeat_interleave(n_samples, 0), n_pred + self.gamma - 1)
+        c_last = self.labels((local_poses(obs) if obs_local is None else obs_local)[:, -1])
+        o, c0 = obs.repeat_interleave(n_samples, 0), c_last.repeat_interleave(n_samples, 0)
+        c = self.label_rollout(o, c0, n_pred + self.gamma - 1, self.label_temp)
         z = torch.randn(B * n_samples, self.z_dim, device=obs.device)
         y = self.decode(o, c, n_pred, z)
         return y.view(B, n_samples, n_pred, D)
@@ -161,8 +160,7 @@ class IntentionModel(nn.Module):
         mask_fut (B,H,J). Returns generator loss terms dict and a closure for the discriminator step.
         ``continuity``: score (and show the pose discriminator) the forecast shifted to continue the last
         observed velocity, as it is forecast (``predict.continue_velocity``)."""
-        H = fut.shape[1]
-        g = self.gamma
+        H, g = fut.shape[1], self.gamma
         # intention: teacher-forced CE (6.4) on labels t+1..t+H+γ-1
         logits = self.label_logits_teacher(obs, c_all[:, : H + g - 1])
         l_sym = F.cross_entropy(logits.reshape(-1, self.C), c_all[:, 1 : H + g].reshape(-1))
@@ -190,8 +188,7 @@ class IntentionModel(nn.Module):
         terms = {"rec": l_rec.item(), "sym": l_sym.item(), "adv": l_adv.item(), "sym_adv": l_sym_adv.item()}
 
         def d_loss():
-            zeros = torch.zeros_like(ones)
-            bce = F.binary_cross_entropy_with_logits
+            zeros, bce = torch.zeros_like(ones), F.binary_cross_entropy_with_logits
             return (
                 bce(self.D_pose(real_p), ones)
                 + bce(self.D_pose(fake_p.detach()), zeros)
