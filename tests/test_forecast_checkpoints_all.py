@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -123,3 +125,13 @@ def test_rescore_writes_todays_validation_scores_into_the_card(tmp_path, capsys)
     wrong = tmp_path / "cmu8.pt"
     wrong.write_bytes((ROOT / "cmu8_dct_mlp_ens.pt").read_bytes())
     assert main(["models", "--rescore", str(wrong)]) == 2
+
+
+def test_the_runtime_part_stays_small():
+    """Issue 40's bound: what loading a checkpoint and forecasting a track needs (``forecast/runtime``) is at
+    most 2,500 lines in all (``bench/arch_counts.py`` counts the same)."""
+    import roomcap.forecast.runtime as runtime
+
+    files = sorted(Path(runtime.__file__).parent.rglob("*.py"))
+    n = sum(len(f.read_text(encoding="utf-8").splitlines()) for f in files)
+    assert 1000 < n <= 2500, f"forecast/runtime holds {n} lines in {len(files)} files"
