@@ -151,7 +151,7 @@ def test_all_windows_protocol_on_a_tiny_benchmark(tiny_root, tmp_path, capsys):
     e = np.linalg.norm(zs["pred"][:, 0] - zs["gt"], axis=-1).mean(-1) * zs["protocol_mm_per_m"]
     per = [e[zs["activity"] == a][:, list(B.HORIZON_FRAMES)].mean(0) for a in ("soccer", "walking")]
     assert np.allclose(np.mean(per, 0), z["mpjpe_mm"], rtol=1e-4)
-    assert "other windows" in render(res)
+    assert "other windows" in render(res) and "All windows (38 points)" in render(res)
     # the command line: the 38-point models only
     out = tmp_path / "o"
     assert main(["eval", "--protocol", "cmu8-all", str(tiny_root), "--checkpoints", "--out", str(out)]) == 0
@@ -282,6 +282,33 @@ def test_a_ten_frame_model_is_rolled_out_to_the_protocols_25_frames():
     assert np.allclose(y[:, :10][:, :, used], first.numpy(), atol=1e-5)
     assert np.allclose(y[:, 10:20][:, :, used], second.numpy(), atol=1e-5)
     assert np.abs(y[:, 10:20][:, :, used] - first.numpy()).max() > 1e-3  # not the first pass repeated
+
+
+def test_pad_start_pads_the_oldest_history_as_cmu8_all_does(tiny_root, tmp_path):
+    """`--pad-start`: a training window's oldest frames are replaced by its first kept frame (what cmu8-all
+    gives a model near a file's start); the newest 10 observed frames and the future stay as they were."""
+    b = torch.arange(75.0)[None, :, None, None].expand(3, 75, 25, 3).clone()
+    out = BT._pad_start(b, torch.tensor([0, 1, 40]))
+    assert torch.equal(out[0], b[0]) and torch.equal(out[1, 1:], b[1, 1:]) and (out[1, 0] == 1).all()
+    assert (out[2, :41] == 40).all() and torch.equal(out[2, 41:], b[2, 41:])
+    from roomcap.forecast.cli import main
+
+    ck = tmp_path / "p.pt"
+    args = [
+        "cmu8",
+        "train",
+        str(tiny_root),
+        "--out",
+        str(ck),
+        "--steps",
+        "2",
+        "--blocks",
+        "1",
+        "--n-pred",
+        "10",
+    ]
+    assert main([*args, "--pad-start", "0.5"]) == 0
+    assert B.load_mlp(ck)[1]["config"]["members"][0]["pad_start"] == 0.5
 
 
 def test_validate_scores_a_ten_frame_history_model_on_the_all_windows_layout(tiny_root, tmp_path, capsys):

@@ -241,6 +241,7 @@ class MlpConfig:
     seed: int = 0
     mirror: bool = False  # augment: each training window left/right mirrored with probability 1/2
     reverse: bool = False  # augment: each training window played backwards with probability 1/2 (siMLPe)
+    pad_start: float = 0.0  # augment: share of windows whose oldest history is padded as cmu8-all pads it
 
 
 class _Block(nn.Module):
@@ -636,8 +637,9 @@ def evaluate(
     if samples_dir is not None:
         res["samples"] = write_samples(samples_dir, sc.samples, WINDOWS[windows])
     res["wall_s"] = time.perf_counter() - t0
+    report = _report(res)
     name = res.pop("protocol")
-    return results(name, TITLE.format(name), *_report(res), **res)
+    return results(name, TITLE.format(name), *report, **res)
 
 
 LAYOUT = {
@@ -692,7 +694,9 @@ def _report(res: dict) -> tuple[list[str], list[Table], list[str]]:
         + ". Published rows on other windows are marked so.",
     ]
     tables = []
-    for variant, title in (("exact", "Exact protocol (38 points)"), ("body19", "body19 variant (12 limbs)")):
+    exact = "All windows" if res["protocol"] == WINDOWS["all"] else "Exact protocol"
+    exact += " (38 points)"
+    for variant, title in (("exact", exact), ("body19", "body19 variant (12 limbs)")):
         names = [n for n, r in res["models"].items() if r["variant"] == variant]
         if not names:
             continue

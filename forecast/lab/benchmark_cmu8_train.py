@@ -25,6 +25,7 @@ from roomcap.core.progress import Bars
 from roomcap.forecast.lab import benchmark_cmu8_angle as A
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
+    ALL_OBS,
     JOINTS_USED,
     N_OBS,
     DctMlp,
@@ -70,6 +71,13 @@ def _reverse(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
     return torch.where(flip[:, None, None, None], b.flip(1), b)
 
 
+def _pad_start(b: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
+    """Windows ``b (B,T,25,3)``: those with ``pad`` (B,) > 0 have their first ``pad`` frames replaced by frame
+    ``pad``, as cmu8-all pads the history of a window that starts near its file's first frame."""
+    src = torch.maximum(torch.arange(b.shape[1])[None], pad[:, None])  # (B,T): the frame each one copies
+    return torch.gather(b, 1, src[:, :, None, None].expand_as(b))
+
+
 def split_train_val(bf: C.BenchmarkFiles) -> tuple[list[Path], list[Path]]:
     """Train / validation split of the train files: the highest-numbered file of each action with at least
     two files is validation (model selection only); the test files are never touched."""
@@ -103,6 +111,10 @@ def train_mlp(
             b = _mirror(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
         if config.reverse:
             b = _reverse(b, torch.from_numpy(rng.random(len(b)) < 0.5))
+        if config.pad_start:  # after reversing, so the padded frames are the history's oldest; the newest
+            # ALL_OBS observed frames stay real, as in every cmu8-all window
+            k = rng.integers(1, config.n_obs - ALL_OBS + 1, len(b)) * (rng.random(len(b)) < config.pad_start)
+            b = _pad_start(b, torch.from_numpy(k))
         return b
 
     hist = fit_mlp(
@@ -157,6 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
     t.add_argument("--reverse", action="store_true", help="augment with windows played backwards")
     t.add_argument(
+        "--pad-start",
+        type=float,
+        default=d.pad_start,
+        help="share of training windows whose oldest history frames (all but the newest 10) are padded with "
+        "their first real frame, as cmu8-all pads windows near a file's start (default 0)",
+    )
+    t.add_argument(
         "--angles",
         action="store_true",
         help="forecast the exponential maps (scored by `forecast eval --protocol cmu8 --metric angle`) "
@@ -200,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         seed=args.seed,
         mirror=args.mirror,
         reverse=args.reverse,
+        pad_start=args.pad_start,
     )
     bf = C.benchmark_files(args.path)
     tr, va = split_train_val(bf)
