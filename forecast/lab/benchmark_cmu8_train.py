@@ -268,6 +268,15 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _validation_files(data: str | None) -> tuple[C.BenchmarkFiles, list[Path]]:
+    """The benchmark's files and its validation files (each action's last train file), or a clear error."""
+    bf = C.benchmark_files(data)
+    _, va = split_train_val(bf)
+    if not va:
+        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    return bf, va
+
+
 def _main_ensemble(args) -> int:
     """``forecast cmu8 ensemble --out PATH A.pt B.pt ...``: every member and their mean scored on the
     validation windows (as in training), the ensemble written."""
@@ -280,10 +289,7 @@ def _main_ensemble(args) -> int:
             raise InputError(f"{p} is already an ensemble; give the single models it was made of")
         members.append((m, MlpConfig(**blob["config"]["members"][0])))
         names.append(Path(p).name)
-    bf = C.benchmark_files(args.data)
-    _, va = split_train_val(bf)
-    if not va:
-        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    bf, va = _validation_files(args.data)
     val = train_windows(va, stride=5)
     scores = {n: validation_mm(m, val) for n, (m, _) in zip(names, members, strict=True)}
     ens = DctMlpEnsemble([m for m, _ in members])
@@ -316,10 +322,7 @@ def validation_windows(files: list[Path], windows: str = "train") -> np.ndarray:
 
 def _main_validate(args) -> int:
     """``forecast cmu8 validate CK...``: each checkpoint's validation MPJPE (mean of the six horizons)."""
-    bf = C.benchmark_files(args.data)
-    _, va = split_train_val(bf)
-    if not va:
-        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    _, va = _validation_files(args.data)
     val = validation_windows(va, args.windows)
     for p in args.checkpoints:
         if not is_cmu8_checkpoint(p):
@@ -342,10 +345,7 @@ def _main_angle_ensemble(args) -> int:
         names.append(Path(p).name)
     if len({(tuple(f.joints), tuple(f.dims)) for f, _ in fs}) != 1:
         raise InputError("the members forecast different values (trained on different files?)")
-    bf = C.benchmark_files(args.data)
-    _, va = split_train_val(bf)
-    if not va:
-        raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
+    _, va = _validation_files(args.data)
     val = A.train_windows(va, stride=5)
     scores = {n: A.validation_error(f, val) for n, (f, _) in zip(names, fs, strict=True)}
     f0 = fs[0][0]
