@@ -152,9 +152,9 @@ FAMILIES: dict[str, Family] = {
         ),
         Family(
             "cmu8_angle_dct_mlp",
-            "a DCT + MLP of the CMU 8-action benchmark's exponential maps at 60 Hz (Tanke Table 6.7)",
+            "a DCT + MLP (or the mean of several) of the CMU 8-action benchmark's exponential maps",
             "`forecast eval --protocol cmu8 --metric angle --checkpoints PATH` scores it",
-            "forecast cmu8 train --angles",
+            "forecast cmu8 train --angles | ensemble",
         ),
         Family(
             "behaviour",
