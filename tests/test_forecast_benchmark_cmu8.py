@@ -17,6 +17,7 @@ from roomcap.forecast.lab import evaluate as E
 from roomcap.forecast.lab import train as T
 from roomcap.forecast.lab.protocol import RESULTS_SCHEMA, render
 from roomcap.forecast.lab.toy import walker
+from roomcap.forecast.runtime.checkpoint import read_checkpoint
 from tests.conftest import need_shared
 
 
@@ -294,21 +295,15 @@ def test_pad_start_pads_the_oldest_history_as_cmu8_all_does(tiny_root, tmp_path)
     from roomcap.forecast.cli import main
 
     ck = tmp_path / "p.pt"
-    args = [
-        "cmu8",
-        "train",
-        str(tiny_root),
-        "--out",
-        str(ck),
-        "--steps",
-        "2",
-        "--blocks",
-        "1",
-        "--n-pred",
-        "10",
-    ]
+    args = ["cmu8", "train", str(tiny_root), "--out", str(ck), *"--steps 2 --blocks 1 --n-pred 10".split()]
     assert main([*args, "--pad-start", "0.5"]) == 0
     assert B.load_mlp(ck)[1]["config"]["members"][0]["pad_start"] == 0.5
+    # --all-files: the validation files are trained on too, and the last step is kept
+    tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
+    assert main([*args, "--all-files", "--angles"]) == 0
+    extra = read_checkpoint(ck)["extra"]
+    assert sorted(extra["train_files"]) == sorted(f.name for f in tr + va) and not extra["val_files"]
+    assert extra["best"]["step"] == 2 and [c["step"] for c in extra["curve"]] == [2]
 
 
 def test_validate_scores_a_ten_frame_history_model_on_the_all_windows_layout(tiny_root, tmp_path, capsys):

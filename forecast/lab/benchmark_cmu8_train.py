@@ -181,6 +181,12 @@ def main(argv: list[str] | None = None) -> int:
         help="forecast the exponential maps (scored by `forecast eval --protocol cmu8 --metric angle`) "
         "instead of the 3D points; --mirror does not apply",
     )
+    t.add_argument(
+        "--all-files",
+        action="store_true",
+        help="train on every train file, the validation files too, and keep the last step (a recipe already "
+        "chosen on validation, refit on all the training data)",
+    )
     t.add_argument("--threads", type=positive_int, default=1)
     e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
     e.add_argument("members", nargs="+", help="checkpoints written by `forecast cmu8 train`")
@@ -220,9 +226,12 @@ def main(argv: list[str] | None = None) -> int:
         mirror=args.mirror,
         reverse=args.reverse,
         pad_start=args.pad_start,
+        val_every=args.steps if args.all_files else MlpConfig.val_every,  # all files: the last step only
     )
     bf = C.benchmark_files(args.path)
     tr, va = split_train_val(bf)
+    if args.all_files:
+        tr, va = sorted(tr + va), []
     if not tr:
         raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
     print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
