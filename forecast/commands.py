@@ -294,7 +294,8 @@ def _eval_cmu8(args, windows: str = "protocol") -> int:
     if args.metric != "mpjpe":
         raise InputError(f"--metric {args.metric} is a metric of --protocol cmu8 only")
     if args.checkpoints is None:
-        cks = [str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else []
+        shipped = B.SHIPPED_MLP if windows == "protocol" else B.SHIPPED_MLP_ALL
+        cks = [str(shipped)] if shipped.is_file() else []
         cks += shipped_checkpoints() if windows == "protocol" else []
     else:
         cks = list(args.checkpoints)

@@ -214,6 +214,9 @@ def test_eval_without_checkpoints_scores_the_shipped_ones(tiny_root, tmp_path, m
     assert not any(n in p for p in shipped for n in ("characteristic", "behaviour", "cmu8_"))
     assert seen["b19"] == shipped
     assert seen["mlp"] == ([str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else [])
+    # cmu8-all: its own pick, no body19 model
+    assert cli.main(["eval", "--protocol", "cmu8-all", str(tiny_root), "--out", str(tmp_path / "a")]) == 0
+    assert seen["mlp"] == [str(B.SHIPPED_MLP_ALL)] and seen["b19"] == [] and B.SHIPPED_MLP_ALL.is_file()
 
 
 def test_mirror_swaps_sides_and_is_an_involution():

@@ -438,6 +438,9 @@ def load_mlp(path: str | os.PathLike) -> tuple[Forecaster, dict]:
 SHIPPED_MLP = (
     Path(__file__).resolve().parents[1] / "checkpoints" / "cmu8_dct_mlp_ens.pt"
 )  # picked on validation
+SHIPPED_MLP_ALL = (
+    SHIPPED_MLP.parent / "cmu8_dct_mlp_all.pt"
+)  # cmu8-all's: picked on the validation files laid out as cmu8-all (`forecast cmu8 validate --windows all`)
 
 
 # ----------------------------------------------------------------------------- the body19 variant
