@@ -23,6 +23,7 @@ from roomcap.core.cli import positive_float, positive_int
 from roomcap.core.errors import InputError
 from roomcap.core.progress import Bars
 from roomcap.forecast.lab import benchmark_cmu8_angle as A
+from roomcap.forecast.lab import benchmark_cmu8_angle_intention as AI
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     JOINTS_USED,
@@ -135,24 +136,23 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("train", help="train the DCT + MLP on the benchmark's train files")
     t.add_argument("path", nargs="?", help="the benchmark-cmu8 folder (default: the shared one)")
     t.add_argument("--out", required=True)
-    d = MlpConfig()
-    t.add_argument("--steps", type=positive_int, default=d.steps)
-    t.add_argument("--batch", type=positive_int, default=d.batch)
+    d = MlpConfig()  # the DCT + MLP's defaults; --model intention: benchmark_cmu8_angle_intention.config()'s
+    t.add_argument("--steps", type=positive_int, help=f"default {d.steps} (intention: {AI.config().steps})")
+    t.add_argument("--batch", type=positive_int, help=f"default {d.batch} (intention: {AI.config().batch})")
     t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
     t.add_argument(
         "--n-pred",
         type=positive_int,
-        default=d.n_pred,
-        help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25)",
+        help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25; intention: "
+        "frames forecast in training, at least 25)",
     )
     t.add_argument(
         "--n-obs",
         type=positive_int,
-        default=d.n_obs,
         help=f"frames observed (default {d.n_obs}, the protocol's; MSR-GCN and PGBIG: 10, the all-windows "
         "protocol's history)",
     )
-    t.add_argument("--lr", type=positive_float, default=d.lr)
+    t.add_argument("--lr", type=positive_float, help=f"default {d.lr} (intention: {AI.config().lr})")
     t.add_argument("--seed", type=int, default=d.seed)
     t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
     t.add_argument("--reverse", action="store_true", help="augment with windows played backwards")
@@ -162,6 +162,14 @@ def main(argv: list[str] | None = None) -> int:
         help="forecast the exponential maps (scored by `forecast eval --protocol cmu8 --metric angle`) "
         "instead of the 3D points; --mirror does not apply",
     )
+    t.add_argument(
+        "--model",
+        choices=("dct_mlp", "intention"),
+        default="dct_mlp",
+        help="with --angles: the DCT + MLP (default) or the seed's intention model (Tanke ch. 6, stochastic)",
+    )
+    t.add_argument("--hidden", type=positive_int, help="intention: the pose GRUs' units (default 128)")
+    t.add_argument("--val-every", type=positive_int, help="steps between validation scores (model selection)")
     t.add_argument("--threads", type=positive_int, default=1)
     e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
     e.add_argument("members", nargs="+", help="checkpoints written by `forecast cmu8 train`")
@@ -190,17 +198,14 @@ def main(argv: list[str] | None = None) -> int:
         return _main_validate(args)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger(fit_mlp.__module__).setLevel(logging.INFO)  # the validation curve, one line per check
-    cfg = MlpConfig(
-        n_obs=args.n_obs,
-        n_blocks=args.blocks,
-        n_pred=args.n_pred,
-        lr=args.lr,
-        steps=args.steps,
-        batch=args.batch,
-        seed=args.seed,
-        mirror=args.mirror,
-        reverse=args.reverse,
-    )
+    given = {"n_obs": args.n_obs, "n_pred": args.n_pred, "lr": args.lr, "steps": args.steps}
+    given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
+    if args.model == "intention":
+        return _main_intention(args, given)
+    if args.hidden is not None:
+        raise InputError("--hidden is an option of --model intention")
+    kw = {k: v for k, v in given.items() if v is not None}
+    cfg = MlpConfig(n_blocks=args.blocks, mirror=args.mirror, reverse=args.reverse, **kw)
     bf = C.benchmark_files(args.path)
     tr, va = split_train_val(bf)
     if not tr:
@@ -244,6 +249,37 @@ def main(argv: list[str] | None = None) -> int:
         f"kept step {b['step']} (validation MPJPE {b['val_mm']:.1f} mm, mean of the six horizons); "
         f"{hist['n_train_windows']} train windows, {hist['train_s']:.0f} s, "
         f"{hist['steps_per_s']:.2f} steps/s, {hist['samples_per_s']:.0f} samples/s; wrote {args.out}"
+    )
+    return 0
+
+
+def _main_intention(args, given: dict) -> int:
+    """``forecast cmu8 train --angles --model intention``: the seed's intention model on the exponential maps
+    (:mod:`roomcap.forecast.lab.benchmark_cmu8_angle_intention`), the best validation state written."""
+    if not args.angles:
+        raise InputError("--model intention forecasts the exponential maps: add --angles")
+    if args.mirror or args.reverse:
+        raise InputError(
+            "--mirror and --reverse are augmentations of the DCT + MLP, not of --model intention"
+        )
+    logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
+    cfg = AI.config(hidden=args.hidden, **given)
+    bf = C.benchmark_files(args.path)
+    tr, va = split_train_val(bf)
+    if not tr:
+        raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
+    print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
+          f"missing: {bf.missing_text()}")  # fmt: skip
+    with Bars(unit="step") as bars:
+        f, hist = AI.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n))
+    extra = {"train_files": [p.name for p in tr], "val_files": [p.name for p in va], **hist}
+    AI.save(args.out, f, cfg, {**extra, "files_missing": bf.missing, "command": args.command})
+    b = hist["best"]
+    print(
+        f"kept step {b['step']} (validation angle error {b['val_rad']:.3f} rad, best of {AI.VAL_SAMPLES} "
+        f"samples, mean of the 5 horizons; single samples {b['val_rad_mean']:.3f}); "
+        f"{hist['n_train_windows']} train windows, {hist['train_s']:.0f} s, "
+        f"{hist['steps_per_s']:.2f} steps/s; wrote {args.out}"
     )
     return 0
 
