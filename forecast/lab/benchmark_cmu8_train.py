@@ -169,6 +169,11 @@ def main(argv: list[str] | None = None) -> int:
         help="with --angles: the DCT + MLP (default) or the seed's intention model (Tanke ch. 6, stochastic)",
     )
     t.add_argument("--hidden", type=positive_int, help="intention: the pose GRUs' units (default 128)")
+    t.add_argument(
+        "--tau-rec",
+        type=positive_int,
+        help="intention: frames over which L_rec's weight fades from 1 to 0 (eq. 6.8; default 15, the seed's)",
+    )
     t.add_argument("--val-every", type=positive_int, help="steps between validation scores (model selection)")
     t.add_argument("--threads", type=positive_int, default=1)
     e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
@@ -202,8 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
     if args.model == "intention":
         return _main_intention(args, given)
-    if args.hidden is not None:
-        raise InputError("--hidden is an option of --model intention")
+    if args.hidden is not None or args.tau_rec is not None:
+        raise InputError("--hidden and --tau-rec are options of --model intention")
     kw = {k: v for k, v in given.items() if v is not None}
     cfg = MlpConfig(n_blocks=args.blocks, mirror=args.mirror, reverse=args.reverse, **kw)
     bf = C.benchmark_files(args.path)
@@ -263,7 +268,7 @@ def _main_intention(args, given: dict) -> int:
             "--mirror and --reverse are augmentations of the DCT + MLP, not of --model intention"
         )
     logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
-    cfg = AI.config(hidden=args.hidden, **given)
+    cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, **given)
     bf = C.benchmark_files(args.path)
     tr, va = split_train_val(bf)
     if not tr:
