@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument(
         "--tau-rec",
         type=positive_int,
-        help="intention: frames over which L_rec's weight fades from 1 to 0 (eq. 6.8; default 15, the seed's)",
+        help="intention: frames over which L_rec's weight fades to 0 (eq. 6.8; default 15, the seed's)",
     )
     t.add_argument("--val-every", type=positive_int, help="steps between validation scores (model selection)")
     t.add_argument("--threads", type=positive_int, default=1)
