@@ -123,10 +123,11 @@ def validation_errors(f: IntentionAngleForecaster, val: np.ndarray, k: int = VAL
 
 
 def train(
-    train_files: list[Path], val_files: list[Path], cfg: IntentionConfig, progress=None
+    train_files: list[Path], val_files: list[Path], cfg: IntentionConfig, progress=None, on_best=None
 ) -> tuple[IntentionAngleForecaster, dict]:
     """Train the intention model on every window of ``train_files``; keep the state with the lowest validation
-    angle error (best of :data:`VAL_SAMPLES` samples, every ``cfg.val_every`` steps and at the end)."""
+    angle error (best of :data:`VAL_SAMPLES` samples, every ``cfg.val_every`` steps and at the end).
+    ``on_best(f, hist)``: called with the forecaster at each new best state (a run stopped early keeps it)."""
     if cfg.n_obs != A.N_OBS or cfg.n_pred < A.N_PRED:
         raise InputError(
             f"the protocol observes {A.N_OBS} frames and scores {A.N_PRED}: n_obs must be {A.N_OBS} and "
@@ -184,6 +185,9 @@ def train(
             if best is None or v["val_rad"] < best["val_rad"]:
                 best = v
                 best_state = {k: t.detach().clone() for k, t in model.state_dict().items()}
+                if on_best is not None:
+                    model.eval()
+                    on_best(f, {**hist, "best": best, "train_s": time.perf_counter() - t0 - t_val})
     model.load_state_dict(best_state)
     model.eval()
     hist.update(best=best, train_s=time.perf_counter() - t0 - t_val, val_s=t_val)

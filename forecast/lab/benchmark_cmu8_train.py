@@ -275,10 +275,18 @@ def _main_intention(args, given: dict) -> int:
         raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
     print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
           f"missing: {bf.missing_text()}")  # fmt: skip
+    files = {
+        "train_files": [p.name for p in tr],
+        "val_files": [p.name for p in va],
+        "files_missing": bf.missing,
+    }
+
+    def write(f, hist: dict) -> None:  # at each new best too: a run stopped early leaves its best state
+        AI.save(args.out, f, cfg, {**files, **hist, "command": args.command})
+
     with Bars(unit="step") as bars:
-        f, hist = AI.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n))
-    extra = {"train_files": [p.name for p in tr], "val_files": [p.name for p in va], **hist}
-    AI.save(args.out, f, cfg, {**extra, "files_missing": bf.missing, "command": args.command})
+        f, hist = AI.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n), on_best=write)
+    write(f, hist)
     b = hist["best"]
     print(
         f"kept step {b['step']} (validation angle error {b['val_rad']:.3f} rad, best of {AI.VAL_SAMPLES} "
