@@ -517,7 +517,7 @@ def test_intention_model_on_the_angle_protocol(tiny_root, tmp_path, capsys):
         assert len(r["per_action"][a]["angle_error"]) == 5 and len(r["per_action"][a][A.MEAN_OF_SAMPLES]) == 5
     pa = [r["per_action"][a]["angle_error"] for a in ("soccer", "walking")]
     assert np.allclose(r["angle_error"], np.mean(pa, 0))
-    assert "intent (mean of single samples)" in (out / "results.md").read_text()
+    assert "intent (mean of single samples)" in (out / "report.md").read_text()
     # the 3D evaluation refuses it
     assert (
         main(["eval", "--protocol", "cmu8", str(tiny_root), "--checkpoints", str(ck), "--out", str(out)]) == 2
@@ -534,7 +534,7 @@ def test_intention_angle_bad_input(tiny_root, tmp_path, capsys):
 
     base = ["cmu8", "train", str(tiny_root), "--model", "intention", "--out", str(tmp_path / "x.pt")]
     assert main(base) == 2 and "add --angles" in capsys.readouterr().err
-    assert main([*base, "--angles", "--mirror"]) == 2 and "not --model intention" in capsys.readouterr().err
+    assert main([*base, "--angles", "--mirror"]) == 2 and "not of --model intention" in capsys.readouterr().err
     assert main([*base, "--angles", "--n-obs", "10"]) == 2 and "n_obs must be 50" in capsys.readouterr().err
     assert not (tmp_path / "x.pt").exists()
     cfg = AI.config(steps=1, batch=2, hidden=8, n_clusters=4, n_intentions=2, val_every=0)
