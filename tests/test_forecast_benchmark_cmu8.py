@@ -534,7 +534,8 @@ def test_intention_angle_bad_input(tiny_root, tmp_path, capsys):
 
     base = ["cmu8", "train", str(tiny_root), "--model", "intention", "--out", str(tmp_path / "x.pt")]
     assert main(base) == 2 and "add --angles" in capsys.readouterr().err
-    assert main([*base, "--angles", "--mirror"]) == 2 and "not of --model intention" in capsys.readouterr().err
+    assert main([*base, "--angles", "--mirror"]) == 2
+    assert "not of --model intention" in capsys.readouterr().err
     assert main([*base, "--angles", "--n-obs", "10"]) == 2 and "n_obs must be 50" in capsys.readouterr().err
     assert not (tmp_path / "x.pt").exists()
     cfg = AI.config(steps=1, batch=2, hidden=8, n_clusters=4, n_intentions=2, val_every=0)
