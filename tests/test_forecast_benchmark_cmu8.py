@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.core.errors import InputError
+from roomcap.core.errors import InputError, RoomcapError
 from roomcap.forecast.lab import benchmark_cmu8 as B
 from roomcap.forecast.lab import benchmark_cmu8_train as BT
 from roomcap.forecast.lab import cmu_more as C
@@ -492,3 +492,84 @@ def test_shipped_angle_checkpoint_forecasts_below_zero_velocity():
     ours = A.at_horizons(A.score(f(w[:, : B.N_OBS]), w[:, B.N_OBS :], f.dims))
     zero = A.at_horizons(A.score(A.zero_velocity(w[:, : B.N_OBS]), w[:, B.N_OBS :], None))
     assert all(o < z for o, z in zip(ours, zero, strict=True)), (ours, zero)
+
+
+# ----------------------------------------------------------------------------- the intention model on angles
+
+
+def test_intention_model_on_the_angle_protocol(tiny_root, tmp_path, capsys):
+    """`forecast cmu8 train --angles --model intention`: the seed's intention model on the used
+    exponential-map values, its checkpoint in the one format with a card, samples of the protocol's shape,
+    best-of-k scored as the sample closest to the truth, and `forecast eval --metric angle` beside zero
+    velocity."""
+    from roomcap.forecast.cli import main
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
+    from roomcap.forecast.lab import benchmark_cmu8_angle_intention as AI
+    from roomcap.forecast.lab.metrics import closest_sequence_error
+
+    ck = tmp_path / "intent.pt"
+    args = ["cmu8", "train", str(tiny_root), "--angles", "--model", "intention", "--out", str(ck)]
+    assert main([*args, "--steps", "3", "--batch", "4", "--hidden", "16", "--val-every", "2"]) == 0
+    assert "validation angle error" in capsys.readouterr().out
+    f, blob = AI.load(ck)
+    assert blob["model"] == A.INTENTION_FAMILY and A.is_angle_checkpoint(ck)
+    assert blob["config"]["hidden"] == 16 and blob["config"]["n_obs"] == 50 and blob["config"]["n_pred"] == 25
+    assert [v["step"] for v in blob["extra"]["val"]] == [2, 3] and blob["extra"]["best"]["step"] in (2, 3)
+    assert "best of" in blob["card"]["selection"] and blob["card"]["scores"]["angle_error_rad"] > 0
+    assert not any(k.startswith(("D_pose.", "D_label.")) for k in blob["weights"]["model"])
+    assert set(f.dims) == {3 + 3 * j for j in (2, 3, 4, 9, 10, 14, 15, 21, 22, 30, 31)}  # the used values
+    assert len(np.unique(f.model.merge.numpy())) > 1  # labels merged, not all one
+    # samples: the protocol's shape, seeded, the unused values the last observed frame's
+    w = A.test_windows(C.benchmark_files(tiny_root))["walking"]
+    obs, gt = w[:, : B.N_OBS], w[:, B.N_OBS :]
+    s = f.samples(obs, 4)
+    assert s.shape == (len(w), 4, 25, 117) and f(obs).shape == (len(w), 25, 117)
+    assert np.array_equal(s, f.samples(obs, 4)) and np.abs(s[:, 0] - s[:, 1]).max() > 0
+    unused = np.setdiff1d(np.arange(117), f.dims)
+    assert np.array_equal(s[..., unused], np.broadcast_to(obs[:, None, -1:, unused], s[..., unused].shape))
+    # best of k: per window the sample closest to the truth up to each frame (as ADE chooses), by hand
+    best, mean = f.errors(obs, gt, 4)
+    per = np.stack([A.score(s[:, i], gt, f.dims) for i in range(4)], 1)
+    assert np.allclose(best, closest_sequence_error(per)) and np.allclose(mean, per.mean(1))
+    assert np.all(best[:, 0] <= per[:, :, 0].max(1))
+    # the evaluation: both figures, per action, beside zero velocity
+    out = tmp_path / "o"
+    ev = ["eval", "--protocol", "cmu8", "--metric", "angle", str(tiny_root), "--checkpoints", str(ck)]
+    assert main([*ev, "--out", str(out)]) == 0
+    r = json.loads((out / "results.json").read_text())["models"]["intent"]
+    assert len(r["angle_error"]) == 5 and len(r[A.MEAN_OF_SAMPLES]) == 5 and "best of k" in r["scoring"]
+    for a in ("soccer", "walking"):
+        assert len(r["per_action"][a]["angle_error"]) == 5 and len(r["per_action"][a][A.MEAN_OF_SAMPLES]) == 5
+    pa = [r["per_action"][a]["angle_error"] for a in ("soccer", "walking")]
+    assert np.allclose(r["angle_error"], np.mean(pa, 0))
+    assert "intent (mean of single samples)" in (out / "report.md").read_text()
+    # the 3D evaluation refuses it
+    assert (
+        main(["eval", "--protocol", "cmu8", str(tiny_root), "--checkpoints", str(ck), "--out", str(out)]) == 2
+    )
+    assert "score them with `--metric angle`" in capsys.readouterr().err
+
+
+def test_intention_angle_bad_input(tiny_root, tmp_path, capsys):
+    """Bad input is a one-line message: --model intention without --angles, with --mirror, a short
+    observation, a DCT + MLP checkpoint read as an intention one."""
+    from roomcap.forecast.cli import main
+    from roomcap.forecast.lab import benchmark_cmu8_angle as A
+    from roomcap.forecast.lab import benchmark_cmu8_angle_intention as AI
+
+    base = ["cmu8", "train", str(tiny_root), "--model", "intention", "--out", str(tmp_path / "x.pt")]
+    assert main(base) == 2 and "add --angles" in capsys.readouterr().err
+    assert main([*base, "--angles", "--mirror"]) == 2
+    assert "not of --model intention" in capsys.readouterr().err
+    assert main([*base, "--angles", "--n-obs", "10"]) == 2 and "n_obs must be 50" in capsys.readouterr().err
+    assert not (tmp_path / "x.pt").exists()
+    cfg = AI.config(steps=1, batch=2, hidden=8, n_clusters=4, n_intentions=2, val_every=0)
+    tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
+    f, _ = AI.train(tr, va, cfg)
+    with pytest.raises(InputError, match=r"needs \(W, >= 50, 117\) frames"):
+        f.samples(np.zeros((2, 10, 117)), 2)
+    mlp = tmp_path / "mlp.pt"
+    fm, hist = A.train(tr, va, B.MlpConfig(steps=1, batch=4, val_every=1, n_blocks=1))
+    A.save(mlp, fm, [B.MlpConfig(steps=1, batch=4, val_every=1, n_blocks=1)], hist)
+    with pytest.raises(RoomcapError, match="'cmu8_angle_dct_mlp' checkpoint, not 'cmu8_angle_intention'"):
+        AI.load(mlp)

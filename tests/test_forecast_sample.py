@@ -121,14 +121,14 @@ def test_pictures_one_per_person_with_the_truth_after_start(gru, tmp_path, capsy
 def test_every_family_is_written_and_read_by_the_one_format():
     """The lab's families name their registry family; the one reader refuses a file of another family with
     what it is."""
-    from roomcap.forecast.lab import benchmark_cmu8, benchmark_cmu8_angle
+    from roomcap.forecast.lab import benchmark_cmu8, benchmark_cmu8_angle, benchmark_cmu8_angle_intention
     from roomcap.forecast.lab.behaviour import model as behaviour_model
     from roomcap.forecast.lab.behaviour import quality
     from roomcap.forecast.lab.characteristic import model as characteristic_model
     from roomcap.forecast.runtime.registry import FAMILIES, MODELS
 
     owners = {benchmark_cmu8.FAMILY, benchmark_cmu8_angle.FAMILY, characteristic_model.FAMILY}
-    owners |= {behaviour_model.FAMILY, quality.FAMILY, *MODELS}
+    owners |= {behaviour_model.FAMILY, quality.FAMILY, benchmark_cmu8_angle_intention.FAMILY, *MODELS}
     assert set(FAMILIES) == owners
 
 

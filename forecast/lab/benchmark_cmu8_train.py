@@ -23,6 +23,7 @@ from roomcap.core.cli import positive_float, positive_int
 from roomcap.core.errors import InputError
 from roomcap.core.progress import Bars
 from roomcap.forecast.lab import benchmark_cmu8_angle as A
+from roomcap.forecast.lab import benchmark_cmu8_angle_intention as AI
 from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     ALL_OBS,
@@ -147,24 +148,23 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("train", help="train the DCT + MLP on the benchmark's train files")
     t.add_argument("path", nargs="?", help="the benchmark-cmu8 folder (default: the shared one)")
     t.add_argument("--out", required=True)
-    d = MlpConfig()
-    t.add_argument("--steps", type=positive_int, default=d.steps)
-    t.add_argument("--batch", type=positive_int, default=d.batch)
+    d = MlpConfig()  # the DCT + MLP's defaults; --model intention: benchmark_cmu8_angle_intention.config()'s
+    t.add_argument("--steps", type=positive_int, help=f"default {d.steps} (intention: {AI.config().steps})")
+    t.add_argument("--batch", type=positive_int, help=f"default {d.batch} (intention: {AI.config().batch})")
     t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
     t.add_argument(
         "--n-pred",
         type=positive_int,
-        default=d.n_pred,
-        help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25)",
+        help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25; intention: "
+        "frames forecast in training, at least 25)",
     )
     t.add_argument(
         "--n-obs",
         type=positive_int,
-        default=d.n_obs,
         help=f"frames observed (default {d.n_obs}, the protocol's; MSR-GCN and PGBIG: 10, the all-windows "
         "protocol's history)",
     )
-    t.add_argument("--lr", type=positive_float, default=d.lr)
+    t.add_argument("--lr", type=positive_float, help=f"default {d.lr} (intention: {AI.config().lr})")
     t.add_argument("--seed", type=int, default=d.seed)
     t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
     t.add_argument("--reverse", action="store_true", help="augment with windows played backwards")
@@ -187,6 +187,19 @@ def main(argv: list[str] | None = None) -> int:
         help="train on every train file, the validation files too, and keep the last step (a recipe already "
         "chosen on validation, refit on all the training data)",
     )
+    t.add_argument(
+        "--model",
+        choices=("dct_mlp", "intention"),
+        default="dct_mlp",
+        help="with --angles: the DCT + MLP (default) or the seed's intention model (Tanke ch. 6, stochastic)",
+    )
+    t.add_argument("--hidden", type=positive_int, help="intention: the pose GRUs' units (default 128)")
+    t.add_argument(
+        "--tau-rec",
+        type=positive_int,
+        help="intention: frames over which L_rec's weight fades to 0 (eq. 6.8; default 15, the seed's)",
+    )
+    t.add_argument("--val-every", type=positive_int, help="steps between validation scores (model selection)")
     t.add_argument("--threads", type=positive_int, default=1)
     e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
     e.add_argument("members", nargs="+", help="checkpoints written by `forecast cmu8 train`")
@@ -215,18 +228,17 @@ def main(argv: list[str] | None = None) -> int:
         return _main_validate(args)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger(fit_mlp.__module__).setLevel(logging.INFO)  # the validation curve, one line per check
+    given = {"n_obs": args.n_obs, "n_pred": args.n_pred, "lr": args.lr, "steps": args.steps}
+    given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
+    if args.model == "intention":
+        return _main_intention(args, given)
+    if args.hidden is not None or args.tau_rec is not None:
+        raise InputError("--hidden and --tau-rec are options of --model intention")
+    if args.all_files:  # no validation files left: only the last step is scored, and kept
+        given["val_every"] = args.steps
+    kw = {k: v for k, v in given.items() if v is not None}
     cfg = MlpConfig(
-        n_obs=args.n_obs,
-        n_blocks=args.blocks,
-        n_pred=args.n_pred,
-        lr=args.lr,
-        steps=args.steps,
-        batch=args.batch,
-        seed=args.seed,
-        mirror=args.mirror,
-        reverse=args.reverse,
-        pad_start=args.pad_start,
-        val_every=args.steps if args.all_files else MlpConfig.val_every,  # all files: the last step only
+        n_blocks=args.blocks, mirror=args.mirror, reverse=args.reverse, pad_start=args.pad_start, **kw
     )
     bf = C.benchmark_files(args.path)
     tr, va = split_train_val(bf)
@@ -284,6 +296,46 @@ def _validation_files(data: str | None) -> tuple[C.BenchmarkFiles, list[Path]]:
     if not va:
         raise InputError(f"no validation file under {bf.root}/train (each action's last train file)")
     return bf, va
+
+
+def _main_intention(args, given: dict) -> int:
+    """``forecast cmu8 train --angles --model intention``: the seed's intention model on the exponential maps
+    (:mod:`roomcap.forecast.lab.benchmark_cmu8_angle_intention`), the best validation state written."""
+    if not args.angles:
+        raise InputError("--model intention forecasts the exponential maps: add --angles")
+    if args.mirror or args.reverse or args.pad_start or args.all_files:
+        raise InputError(
+            "--mirror, --reverse, --pad-start and --all-files are options of the DCT + MLP, not of --model "
+            "intention"
+        )
+    logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
+    cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, **given)
+    bf = C.benchmark_files(args.path)
+    tr, va = split_train_val(bf)
+    if not tr:
+        raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
+    print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
+          f"missing: {bf.missing_text()}")  # fmt: skip
+    files = {
+        "train_files": [p.name for p in tr],
+        "val_files": [p.name for p in va],
+        "files_missing": bf.missing,
+    }
+
+    def write(f, hist: dict) -> None:  # at each new best too: a run stopped early leaves its best state
+        AI.save(args.out, f, cfg, {**files, **hist, "command": args.command})
+
+    with Bars(unit="step") as bars:
+        f, hist = AI.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n), on_best=write)
+    write(f, hist)
+    b = hist["best"]
+    print(
+        f"kept step {b['step']} (validation angle error {b['val_rad']:.3f} rad, best of {AI.VAL_SAMPLES} "
+        f"samples, mean of the 5 horizons; single samples {b['val_rad_mean']:.3f}); "
+        f"{hist['n_train_windows']} train windows, {hist['train_s']:.0f} s, "
+        f"{hist['steps_per_s']:.2f} steps/s; wrote {args.out}"
+    )
+    return 0
 
 
 def _main_ensemble(args) -> int:

@@ -136,6 +136,32 @@ def speed_gap(pred, fut, last, mask):
     return ((sp[0] - sp[1]).abs() * m).sum() / m.sum().clamp(min=1)
 
 
+def intention_losses(model, config, obs, fut, mfut, lab):
+    """The intention model's training losses (Tanke eqs. 6.4-6.8, :meth:`IntentionModel.losses`) of a batch:
+    ``lab`` (B,L) the intention labels of the window's frames; the labels of the forecast frames and the
+    gamma - 1 look-ahead frames after them are those from frame n_obs - 1 on, the last label repeated where
+    the window ends sooner. Shared by the body19 loop (:func:`train`) and the exponential-map one
+    (:mod:`roomcap.forecast.lab.benchmark_cmu8_angle_intention`)."""
+    need = fut.shape[1] + config.gamma  # the last observed frame's label, the forecast's, the look-ahead's
+    c_all = lab[:, config.n_obs - 1 : config.n_obs - 1 + need]
+    c_all = torch.cat([c_all, c_all[:, -1:].expand(-1, need - c_all.shape[1])], 1)
+    return model.losses(obs, fut, c_all, mfut, config.tau_rec, config.w_adv, continuity=config.continuity)
+
+
+def optimise(model, loss, opt, sched, opt_d=None, d_loss=None) -> None:
+    """One generator step (gradient norm clipped to 1) and, for a model trained against discriminators, one
+    discriminator step on ``d_loss()``."""
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+    opt.step()
+    sched.step()
+    if opt_d is not None:
+        opt_d.zero_grad()
+        d_loss().backward()
+        opt_d.step()
+
+
 def train(
     kind: str,
     clips: list[fdata.Clip],
@@ -187,12 +213,8 @@ def train(
         xb, mb = X[idx].to(device), M[idx].to(device)
         obs, fut, mfut = xb[:, :n_obs], xb[:, n_obs:], mb[:, n_obs:]
         if ms.intentions:
-            g = config.gamma
             lab = torch.from_numpy(labels_all)[idx].to(device)
-            c_all = torch.cat([lab[:, n_obs - 1 :], lab[:, -1:].expand(-1, g - 1)], 1)  # pad the look-ahead
-            loss, terms, d_loss, pred = model.losses(
-                obs, fut, c_all, mfut, config.tau_rec, config.w_adv, continuity=config.continuity
-            )
+            loss, terms, d_loss, pred = intention_losses(model, config, obs, fut, mfut, lab)
         else:
             pred = model(obs, H)
             if config.continuity:  # train on what is forecast (predict.continue_velocity)
@@ -202,16 +224,7 @@ def train(
             gap = speed_gap(pred, fut, obs[:, -1], mfut)
             loss, terms["speed"] = loss + config.w_speed * gap, gap.item()
         terms["loss"] = loss.item()
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        sched.step()
-        if ms.intentions:
-            opt_d.zero_grad()
-            dl = d_loss()
-            dl.backward()
-            opt_d.step()
+        optimise(model, loss, opt, sched, opt_d if ms.intentions else None, d_loss if ms.intentions else None)
         hist["loss"].append(terms["loss"])
         tv = time.perf_counter()
         sel.step(step, step == config.steps - 1)

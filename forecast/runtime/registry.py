@@ -134,6 +134,7 @@ class Family:
 
 
 _TRACK_USE = "`forecast sample --checkpoint PATH` and `forecast eval --checkpoints PATH` read it"
+_ANGLE_USE = "`forecast eval --protocol cmu8 --metric angle --checkpoints PATH` scores it"
 FAMILIES: dict[str, Family] = {
     f.name: f
     for f in (
@@ -153,8 +154,14 @@ FAMILIES: dict[str, Family] = {
         Family(
             "cmu8_angle_dct_mlp",
             "a DCT + MLP (or the mean of several) of the CMU 8-action benchmark's exponential maps",
-            "`forecast eval --protocol cmu8 --metric angle --checkpoints PATH` scores it",
+            _ANGLE_USE,
             "forecast cmu8 train --angles | ensemble",
+        ),
+        Family(
+            "cmu8_angle_intention",
+            "the intention model (Tanke ch. 6) of the CMU 8-action benchmark's exponential maps (Table 6.7)",
+            _ANGLE_USE,
+            "forecast cmu8 train --angles --model intention",
         ),
         Family(
             "behaviour",

@@ -24,16 +24,7 @@ def samples_path(out_dir: str | os.PathLike, model: str) -> Path:
 
 
 def write_samples(
-    out_dir: str | os.PathLike,
-    model: str,
-    pred,
-    obs,
-    gt,
-    fps: float,
-    joint_names,
-    activity,
-    clip,
-    **extra,
+    out_dir: str | os.PathLike, model: str, pred, obs, gt, fps: float, joint_names, activity, clip, **extra
 ) -> Path:
     """Write one model's forecasts of N windows as :func:`samples_path` (atomically) -> its path.
     ``activity`` and ``clip``: one string per window; ``extra``: further arrays of the protocol."""

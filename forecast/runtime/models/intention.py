@@ -172,7 +172,7 @@ class IntentionModel(nn.Module):
         if continuity:
             pred = pred - (pred[:, :1] - (2 * obs[:, -1:] - obs[:, -2:-1]))
         J = mask_fut.shape[-1]
-        err = (pred - fut).view(*pred.shape[:2], J, 3).norm(dim=-1)  # (B,H,J)
+        err = (pred - fut).view(*pred.shape[:2], J, -1).norm(dim=-1)  # (B,H,J): 3 values a joint, or D/J
         lam = torch.clamp(1.0 - torch.arange(H, device=obs.device, dtype=obs.dtype) / tau_rec, min=0.0)  # 6.8
         m = mask_fut.float()
         l_rec = (err * m * lam[None, :, None]).sum() / (m * lam[None, :, None]).sum().clamp(min=1)
