@@ -340,11 +340,7 @@ def _train_diffusion(clips, config: DiffusionConfig, J, rng, progress, device, i
         loss = model.loss(
             model.standardise(feats), torch.from_numpy(pm).to(device), torch.from_numpy(valid).to(device)
         )
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        sched.step()
+        optimise(model, loss, opt, sched)
         if ema is not None:
             with torch.no_grad():
                 for pe, pm_ in zip(ema.parameters(), model.parameters(), strict=True):
