@@ -288,7 +288,7 @@ def test_a_ten_frame_model_is_rolled_out_to_the_protocols_25_frames():
     assert np.abs(y[:, 10:20][:, :, used] - first.numpy()).max() > 1e-3  # not the first pass repeated
 
 
-def test_pad_start_pads_the_oldest_history_as_cmu8_all_does(tiny_root, tmp_path):
+def test_pad_start_pads_the_oldest_history_as_cmu8_all_does(tiny_root, tmp_path, capsys):
     """`--pad-start`: a training window's oldest frames are replaced by its first kept frame (what cmu8-all
     gives a model near a file's start); the newest 10 observed frames and the future stay as they were."""
     b = torch.arange(75.0)[None, :, None, None].expand(3, 75, 25, 3).clone()
@@ -307,6 +307,8 @@ def test_pad_start_pads_the_oldest_history_as_cmu8_all_does(tiny_root, tmp_path)
     extra = read_checkpoint(ck)["extra"]
     assert sorted(extra["train_files"]) == sorted(f.name for f in tr + va) and not extra["val_files"]
     assert extra["best"]["step"] == 2 and [c["step"] for c in extra["curve"]] == [2]
+    ens = ["cmu8", "ensemble", str(ck), str(ck), "--data", str(tiny_root), "--out", str(tmp_path / "e.pt")]
+    assert main(ens) == 0 and "not held out" in capsys.readouterr().out
 
 
 def test_validate_scores_a_ten_frame_history_model_on_the_all_windows_layout(tiny_root, tmp_path, capsys):

@@ -45,6 +45,7 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     sequence,
     train_windows,
 )
+from roomcap.forecast.runtime.checkpoint import read_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -338,6 +339,14 @@ def _main_intention(args, given: dict) -> int:
     return 0
 
 
+def _warn_trained_on_validation(paths: list[str]) -> None:
+    """Say so when a member was trained with ``--all-files``: its validation score above is not held out."""
+    refit = [Path(p).name for p in paths if read_checkpoint(p)["extra"].get("val_files") == []]
+    if refit:
+        print(f"note: {', '.join(refit)} trained on the validation files too (--all-files): these scores are "
+              "not held out")  # fmt: skip
+
+
 def _main_ensemble(args) -> int:
     """``forecast cmu8 ensemble --out PATH A.pt B.pt ...``: every member and their mean scored on the
     validation windows (as in training), the ensemble written."""
@@ -358,6 +367,7 @@ def _main_ensemble(args) -> int:
     for n, s in scores.items():
         print(f"{n}: validation MPJPE {s:.2f} mm")
     print(f"ensemble of {len(members)}: validation MPJPE {v:.2f} mm (mean of the six horizons)")
+    _warn_trained_on_validation(args.members)
     extra = {
         "members": names,
         "member_val_mm": scores,
@@ -415,6 +425,7 @@ def _main_angle_ensemble(args) -> int:
     for n, s in scores.items():
         print(f"{n}: validation angle error {s:.4f} rad")
     print(f"ensemble of {len(fs)}: validation angle error {v:.4f} rad (mean of the five horizons)")
+    _warn_trained_on_validation(args.members)
     extra = {
         "members": names,
         "member_val_rad": scores,
