@@ -360,7 +360,8 @@ def evaluate(root=None, checkpoints: list | None = None, n_windows: int = N_WIND
 
     models = {}
     for name, fn, dims in forecasters:
-        if getattr(fn, "stochastic", False):  # best of k (the primary figure) and the mean of single samples
+        scoring = getattr(fn, "scoring", None)  # a stochastic model says how it is scored
+        if scoring:  # best of k (the primary figure) and the mean of single samples
             errs = {a: fn.errors(w[:, :N_OBS], w[:, N_OBS:]) for a, w in tests.items()}
             per = {a: at_horizons(e[0]) for a, e in errs.items()}
             mean = {a: at_horizons(e[1]) for a, e in errs.items()}
@@ -370,10 +371,8 @@ def evaluate(root=None, checkpoints: list | None = None, n_windows: int = N_WIND
             "angle_error": average(per),
             "per_action": {a: {"angle_error": v} for a, v in per.items()},
         }
-        if getattr(fn, "stochastic", False):
-            from roomcap.forecast.lab.benchmark_cmu8_angle_intention import SCORING
-
-            models[name]["scoring"] = SCORING
+        if scoring:
+            models[name]["scoring"] = scoring
             models[name][MEAN_OF_SAMPLES] = average(mean)
             for a, v in mean.items():
                 models[name]["per_action"][a][MEAN_OF_SAMPLES] = v

@@ -39,7 +39,7 @@ from roomcap.forecast.lab.train import intention_losses, optimise
 from roomcap.forecast.runtime.checkpoint import read_checkpoint, write_checkpoint
 from roomcap.forecast.runtime.config import IntentionConfig
 from roomcap.forecast.runtime.models.intention import IntentionModel
-from roomcap.forecast.runtime.registry import DISCRIMINATOR_PREFIXES
+from roomcap.forecast.runtime.registry import DISCRIMINATOR_PREFIXES, intention_model
 
 log = logging.getLogger(__name__)
 
@@ -62,29 +62,13 @@ def config(**kw) -> IntentionConfig:
     return IntentionConfig(**{**DEFAULTS, **{k: v for k, v in kw.items() if v is not None}})
 
 
-def build(cfg: IntentionConfig, dim: int) -> IntentionModel:
-    """The intention model over ``dim`` values a frame (zero cluster centres until fitted or loaded)."""
-    return IntentionModel(
-        dim,
-        np.zeros((cfg.n_clusters, dim), np.float32),
-        np.zeros(cfg.n_clusters, np.int64),
-        cfg.n_intentions,
-        cfg.hidden,
-        cfg.layers,
-        cfg.z_dim,
-        gamma=cfg.gamma,
-        f_dim=cfg.f_dim,
-        label_temp=cfg.label_temp,
-    )
-
-
 class IntentionAngleForecaster:
     """The intention model as a forecaster of the protocol: ``samples(obs, k)`` ``(W, k, 25, 117)``;
     ``__call__(obs)`` one sample ``(W, 25, 117)``; the values not used are the last observed frame's (the
     scorer replaces them with the truth's). Sampling is seeded (``seed``): the same input, the same
     samples."""
 
-    stochastic = True
+    scoring = SCORING  # stochastic: how the protocol scores it (benchmark_cmu8_angle.evaluate)
 
     def __init__(self, model: IntentionModel, dims: np.ndarray, n_obs: int, seed: int = 0):
         self.model, self.dims, self.n_obs, self.seed = model.eval(), np.asarray(dims), n_obs, seed
@@ -146,7 +130,7 @@ def train(
     centres, merge = fit_intention_labels(
         np.concatenate(seqs), seqs, cfg.n_clusters, cfg.n_intentions, cfg.seed
     )
-    model = build(cfg, len(dims))
+    model = intention_model(cfg, len(dims))
     model.centres.copy_(torch.from_numpy(centres))
     model.merge.copy_(torch.from_numpy(merge))
     X = torch.from_numpy(win)
@@ -230,7 +214,7 @@ def load(path: str | Path) -> tuple[IntentionAngleForecaster, dict]:
     blob = read_checkpoint(path, FAMILY)
     fields = {f.name for f in dataclasses.fields(IntentionConfig)}
     cfg = IntentionConfig(**{k: v for k, v in blob["config"].items() if k in fields})
-    model = build(cfg, len(blob["dims"]))
+    model = intention_model(cfg, len(blob["dims"]))
     missing, unexpected = model.load_state_dict(blob["weights"]["model"], strict=False)
     missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
     if missing or unexpected:

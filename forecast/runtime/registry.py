@@ -42,16 +42,16 @@ def _build_gru(config: GRUConfig, n_joints: int, state: Mapping | None):
     return Seq2SeqGRU(3 * n_joints, config.hidden, config.dropout)
 
 
-def _build_intention(config: IntentionConfig, n_joints: int, state: Mapping | None):
+def intention_model(config: IntentionConfig, dim: int, state: Mapping | None = None):
+    """The intention model over ``dim`` values a frame (3 a joint; the angle benchmark's used values)."""
     import numpy as np
 
     from roomcap.forecast.runtime.models import IntentionModel  # lazy: loads torch
 
-    D = 3 * n_joints
-    centres = np.zeros((config.n_clusters, D), np.float32) if state is None else state["centres"].numpy()
+    centres = np.zeros((config.n_clusters, dim), np.float32) if state is None else state["centres"].numpy()
     merge = np.zeros(config.n_clusters, np.int64) if state is None else state["merge"].numpy()
     return IntentionModel(
-        D,
+        dim,
         centres,
         merge,
         config.n_intentions,
@@ -102,7 +102,7 @@ MODELS: dict[str, ModelSpec] = {
         ModelSpec(
             "intention",
             IntentionConfig,
-            _build_intention,
+            lambda config, n_joints, state: intention_model(config, 3 * n_joints, state),
             scene=False,
             intentions=True,
             summary="the intention model, stochastic (Tanke ch. 6)",
