@@ -45,7 +45,6 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     sequence,
     train_windows,
 )
-from roomcap.forecast.runtime.checkpoint import read_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -241,14 +240,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = MlpConfig(
         n_blocks=args.blocks, mirror=args.mirror, reverse=args.reverse, pad_start=args.pad_start, **kw
     )
-    bf = C.benchmark_files(args.path)
-    tr, va = split_train_val(bf)
-    if args.all_files:
-        tr, va = sorted(tr + va), []
-    if not tr:
-        raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
-    print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
-          f"missing: {bf.missing_text()}")  # fmt: skip
+    bf, tr, va = _train_files(args.path, args.all_files)
     if args.angles:
         if args.mirror:
             raise InputError("--mirror does not apply to --angles (a mirrored rotation is not a relabelling)")
@@ -290,6 +282,22 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _train_files(
+    path: str | None, all_files: bool = False
+) -> tuple[C.BenchmarkFiles, list[Path], list[Path]]:
+    """The benchmark's files, its train and validation files (``all_files``: every train file trains, none
+    validates), said on the terminal; a clear error without train files."""
+    bf = C.benchmark_files(path)
+    tr, va = split_train_val(bf)
+    if all_files:
+        tr, va = sorted(tr + va), []
+    if not tr:
+        raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
+    print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
+          f"missing: {bf.missing_text()}")  # fmt: skip
+    return bf, tr, va
+
+
 def _validation_files(data: str | None) -> tuple[C.BenchmarkFiles, list[Path]]:
     """The benchmark's files and its validation files (each action's last train file), or a clear error."""
     bf = C.benchmark_files(data)
@@ -311,12 +319,7 @@ def _main_intention(args, given: dict) -> int:
         )
     logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
     cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, **given)
-    bf = C.benchmark_files(args.path)
-    tr, va = split_train_val(bf)
-    if not tr:
-        raise InputError(f"no train files under {bf.root}/train; missing: {bf.missing_text()}")
-    print(f"train files {len(tr)}, validation files {len(va)} ({', '.join(f.name for f in va)}); "
-          f"missing: {bf.missing_text()}")  # fmt: skip
+    bf, tr, va = _train_files(args.path)
     files = {
         "train_files": [p.name for p in tr],
         "val_files": [p.name for p in va],
@@ -339,9 +342,9 @@ def _main_intention(args, given: dict) -> int:
     return 0
 
 
-def _warn_trained_on_validation(paths: list[str]) -> None:
+def _warn_trained_on_validation(names: list[str], extras: list[dict]) -> None:
     """Say so when a member was trained with ``--all-files``: its validation score above is not held out."""
-    refit = [Path(p).name for p in paths if read_checkpoint(p)["extra"].get("val_files") == []]
+    refit = [n for n, e in zip(names, extras, strict=True) if e.get("val_files") == []]
     if refit:
         print(f"note: {', '.join(refit)} trained on the validation files too (--all-files): these scores are "
               "not held out")  # fmt: skip
@@ -352,13 +355,14 @@ def _main_ensemble(args) -> int:
     validation windows (as in training), the ensemble written."""
     if all(A.is_angle_checkpoint(p) for p in args.members):
         return _main_angle_ensemble(args)
-    members, names = [], []
+    members, names, extras = [], [], []
     for p in args.members:
         m, blob = load_mlp(p)
         if not isinstance(m, DctMlp):
             raise InputError(f"{p} is already an ensemble; give the single models it was made of")
         members.append((m, MlpConfig(**blob["config"]["members"][0])))
         names.append(Path(p).name)
+        extras.append(blob.get("extra", {}))
     bf, va = _validation_files(args.data)
     val = train_windows(va, stride=5)
     scores = {n: validation_mm(m, val) for n, (m, _) in zip(names, members, strict=True)}
@@ -367,14 +371,14 @@ def _main_ensemble(args) -> int:
     for n, s in scores.items():
         print(f"{n}: validation MPJPE {s:.2f} mm")
     print(f"ensemble of {len(members)}: validation MPJPE {v:.2f} mm (mean of the six horizons)")
-    _warn_trained_on_validation(args.members)
+    _warn_trained_on_validation(names, extras)
     extra = {
         "members": names,
         "member_val_mm": scores,
         "best": {"val_mm": v},
         "val_files": [f.name for f in va],
         "files_missing": bf.missing,
-        "member_train": [load_mlp(p)[1].get("extra", {}) for p in args.members],
+        "member_train": extras,
         "command": args.command,
     }
     save_ensemble(args.out, members, extra)
@@ -407,13 +411,14 @@ def _main_validate(args) -> int:
 def _main_angle_ensemble(args) -> int:
     """The same for exponential-map models (``--angles``): the members and their mean scored by the angle
     error on the validation windows, the ensemble written."""
-    fs, names = [], []
+    fs, names, extras = [], [], []
     for p in args.members:
         f, blob = A.load(p)
         if isinstance(f.model, DctMlpEnsemble):
             raise InputError(f"{p} is already an ensemble; give the single models it was made of")
         fs.append((f, MlpConfig(**A.member_configs_and_weights(blob)[0][0])))
         names.append(Path(p).name)
+        extras.append(blob.get("extra", {}))
     if len({(tuple(f.joints), tuple(f.dims)) for f, _ in fs}) != 1:
         raise InputError("the members forecast different values (trained on different files?)")
     _, va = _validation_files(args.data)
@@ -425,13 +430,13 @@ def _main_angle_ensemble(args) -> int:
     for n, s in scores.items():
         print(f"{n}: validation angle error {s:.4f} rad")
     print(f"ensemble of {len(fs)}: validation angle error {v:.4f} rad (mean of the five horizons)")
-    _warn_trained_on_validation(args.members)
+    _warn_trained_on_validation(names, extras)
     extra = {
         "members": names,
         "member_val_rad": scores,
         "best": {"val_rad": v},
         "val_files": [f.name for f in va],
-        "member_train": [A.load(p)[1].get("extra", {}) for p in args.members],
+        "member_train": extras,
         "command": args.command,
     }
     A.save(args.out, ens, [c for _, c in fs], extra)
