@@ -190,10 +190,10 @@ def cmd_eval(args) -> int:
         return _eval_hik(args, names)
     if args.protocol == "cmu8":
         return _eval_cmu8_angle(args) if args.metric == "angle" else _eval_cmu8(args)
-    if args.protocol == "cmu8-all":
-        return _eval_cmu8(args, windows="all")
     if args.metric != "mpjpe":
         raise InputError(f"--metric {args.metric} is a metric of --protocol cmu8 only")
+    if args.protocol == "cmu8-all":
+        return _eval_cmu8(args, windows="all")
     t0 = time.perf_counter()
     clips, tr, va, te = _load_split(args)
     ck_models: dict = {}
@@ -291,8 +291,6 @@ def _eval_cmu8(args, windows: str = "protocol") -> int:
     """The CMU 8-action benchmark (``forecast.benchmark_cmu8``): zero velocity, the DCT + MLP checkpoints on
     the exact protocol, the body19 checkpoints on its body19 variant; ``windows="all"``: cmu8-all, every test
     window, the DCT + MLP checkpoints only."""
-    if args.metric != "mpjpe":
-        raise InputError(f"--metric {args.metric} is a metric of --protocol cmu8 only")
     if args.checkpoints is None:
         shipped = B.SHIPPED_MLP if windows == "protocol" else B.SHIPPED_MLP_ALL
         cks = [str(shipped)] if shipped.is_file() else []

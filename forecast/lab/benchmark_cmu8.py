@@ -697,6 +697,7 @@ def _report(res: dict) -> tuple[list[str], list[Table], list[str]]:
         + ". Published rows on other windows are marked so.",
     ]
     tables = []
+    other = {p: "" if r["same_windows"] else ", other windows" for p, r in res["published"].items()}
     exact = "All windows" if res["protocol"] == WINDOWS["all"] else "Exact protocol"
     exact += " (38 points)"
     for variant, title in (("exact", exact), ("body19", "body19 variant (12 limbs)")):
@@ -715,16 +716,14 @@ def _report(res: dict) -> tuple[list[str], list[Table], list[str]]:
             if variant == "exact":
                 for p, r in res["published"].items():
                     v = r.get("per_action", {}).get(a)
-                    other = "" if r["same_windows"] else ", other windows"
-                    per += [[a, f"{p} (published{other})", *cells(v)]] if v else []
+                    per += [[a, f"{p} (published{other[p]})", *cells(v)]] if v else []
         if variant == "exact":
             for p, r in res["published"].items():
-                other = "" if r["same_windows"] else ", other windows"
                 if r.get("mpjpe_mm"):
-                    rows.append([f"{p} (published, 8 actions{other})", *cells(r["mpjpe_mm"])])
+                    rows.append([f"{p} (published, 8 actions{other[p]})", *cells(r["mpjpe_mm"])])
                     if r.get("average_same_actions"):
                         n_act = len(res["actions"])
-                        label = f"{p} (published, same {n_act} actions{other})"
+                        label = f"{p} (published, same {n_act} actions{other[p]})"
                         rows.append([label, *cells(r["average_same_actions"])])
         tables.append(
             Table(
