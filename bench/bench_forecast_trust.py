@@ -85,6 +85,7 @@ from roomcap.forecast.lab import metrics as M
 from roomcap.forecast.lab import train as T
 from roomcap.forecast.runtime.predict import LHIP, RHIP, forecast_world
 from roomcap.keypoints.skeletons import get_skeleton
+from roomcap.outputs.skeleton_fit_file import topological_order
 from roomcap.synthetic.bvh import BODY19
 
 MS = (40, 80, 160, 400, 1000)
@@ -171,13 +172,11 @@ def keep_bones(y: np.ndarray, last: np.ndarray) -> np.ndarray:
     """Forecasts y (B,S,H,J,3) with every bone set to its length in the last observed frame ``last`` (B,J,3),
     directions kept (root to leaves): ``--keep-bones``."""
     par = np.array(get_skeleton("body19").parents)
-    order, todo = [], [int(np.flatnonzero(par < 0)[0])]
-    while todo:
-        order.append(todo.pop())
-        todo += [int(c) for c in np.flatnonzero(par == order[-1])]
     out = y.copy()
-    for j in order[1:]:
+    for j in topological_order(par):  # parents before children
         p = par[j]
+        if p < 0:
+            continue
         length = np.linalg.norm(last[:, j] - last[:, p], axis=-1)[:, None, None, None]
         d = y[..., j, :] - y[..., p, :]
         unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
