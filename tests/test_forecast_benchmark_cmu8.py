@@ -311,6 +311,26 @@ def test_pad_start_pads_the_oldest_history_as_cmu8_all_does(tiny_root, tmp_path,
     assert main(ens) == 0 and "not held out" in capsys.readouterr().out
 
 
+def test_width_and_frame_loss_options(tiny_root, tmp_path):
+    """`--width`: the channels between the spatial layers (0 keeps siMLPe's, one per input value);
+    `--frame-loss`: a frame's error is the norm over all its values (LTD's angle loss), not the mean of its
+    points' norms. Both are kept in the checkpoint and rebuilt from it."""
+    fut = torch.zeros(1, 2, 2, 3)
+    pred = fut.clone()
+    pred[:, :, 0, 0], pred[:, :, 1, 0] = 3.0, 4.0  # every frame: points off by 3 and 4, no change between
+    assert float(B.window_loss(pred, fut)) == pytest.approx(3.5)
+    assert float(B.window_loss(pred, fut, per_frame=True)) == pytest.approx(5.0)
+    assert B.DctMlp(25, B.MlpConfig(n_blocks=1)).fc_in.out_features == 75
+    from roomcap.forecast.cli import main
+
+    ck = tmp_path / "w.pt"
+    args = ["cmu8", "train", str(tiny_root), "--out", str(ck), *"--steps 2 --blocks 1 --n-pred 10".split()]
+    assert main([*args, "--width", "32", "--frame-loss"]) == 0
+    m, blob = B.load_mlp(ck)
+    assert blob["config"]["members"][0]["frame_loss"] and m.fc_in.out_features == 32
+    assert main([*args, "--angles", "--model", "intention", "--width", "32"]) == 2
+
+
 def test_validate_scores_a_ten_frame_history_model_on_the_all_windows_layout(tiny_root, tmp_path, capsys):
     """`forecast cmu8 validate --windows all`: every start of each validation file, the history padded as
     cmu8-all pads the test files; a model observing 10 frames forecasts from the newest 10 of them."""

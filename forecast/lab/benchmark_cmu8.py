@@ -242,6 +242,8 @@ class MlpConfig:
     mirror: bool = False  # augment: each training window left/right mirrored with probability 1/2
     reverse: bool = False  # augment: each training window played backwards with probability 1/2 (siMLPe)
     pad_start: float = 0.0  # augment: share of windows whose oldest history is padded as cmu8-all pads it
+    width: int = 0  # channels between the spatial layers; 0: the input's values (3 per point), as siMLPe
+    frame_loss: bool = False  # the error of a frame is the norm over all its values (LTD's angle loss)
 
 
 class _Block(nn.Module):
@@ -267,15 +269,16 @@ class DctMlp(nn.Module):
     def __init__(self, n_points: int, config: MlpConfig):
         super().__init__()
         D, T = 3 * n_points, config.n_obs
+        H = config.width or D
         self.n_obs, self.n_pred = config.n_obs, config.n_pred
         if self.n_pred > T:
             raise InputError(f"n_pred {self.n_pred} > n_obs {T}: the inverse DCT gives n_obs frames")
         d = torch.from_numpy(dct_matrix(T).astype(np.float32))
         self.register_buffer("dct", d)
         self.register_buffer("idct", d.T.contiguous())
-        self.fc_in = nn.Linear(D, D)
-        self.blocks = nn.Sequential(*[_Block(T, D) for _ in range(config.n_blocks)])
-        self.fc_out = nn.Linear(D, D)
+        self.fc_in = nn.Linear(D, H)
+        self.blocks = nn.Sequential(*[_Block(T, H) for _ in range(config.n_blocks)])
+        self.fc_out = nn.Linear(H, D)
         nn.init.xavier_uniform_(self.fc_out.weight, gain=1e-8)
         nn.init.zeros_(self.fc_out.bias)
 
@@ -290,9 +293,12 @@ class DctMlp(nn.Module):
         return y.reshape(B, self.n_pred, P, 3) + last
 
 
-def window_loss(pred: torch.Tensor, fut: torch.Tensor) -> torch.Tensor:
+def window_loss(pred: torch.Tensor, fut: torch.Tensor, per_frame: bool = False) -> torch.Tensor:
     """Mean point error plus the mean error of the frame-to-frame changes (siMLPe's two terms); a 'point' is
-    the last axis (3D points, or the exponential maps of :mod:`roomcap.forecast.lab.benchmark_cmu8_angle`)."""
+    the last axis (3D points, or the exponential maps of :mod:`roomcap.forecast.lab.benchmark_cmu8_angle`).
+    ``per_frame``: the norm is taken over all values of a frame instead, as LTD's angle loss, ``sen_loss``."""
+    if per_frame:
+        pred, fut = pred.flatten(2), fut.flatten(2)
     pos = torch.linalg.norm(pred - fut, dim=-1).mean()
     vel = torch.linalg.norm(torch.diff(pred, dim=1) - torch.diff(fut, dim=1), dim=-1).mean()
     return pos + vel
@@ -318,7 +324,8 @@ def fit_mlp(
         b = x[torch.from_numpy(rng.integers(0, len(x), config.batch))]
         if augment is not None:
             b = augment(b, rng)
-        loss = window_loss(model(b[:, : config.n_obs]), b[:, config.n_obs : config.n_obs + config.n_pred])
+        fut = b[:, config.n_obs : config.n_obs + config.n_pred]
+        loss = window_loss(model(b[:, : config.n_obs]), fut, config.frame_loss)
         opt.zero_grad()
         loss.backward()
         opt.step()

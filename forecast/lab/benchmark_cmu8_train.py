@@ -153,6 +153,17 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--batch", type=positive_int, help=f"default {d.batch} (intention: {AI.config().batch})")
     t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
     t.add_argument(
+        "--width",
+        type=positive_int,
+        help="channels between the DCT + MLP's spatial layers (default: the input's values, siMLPe's)",
+    )
+    t.add_argument(
+        "--frame-loss",
+        action="store_true",
+        help="the DCT + MLP's error of a frame is the norm over all its values (LTD's angle loss) instead of "
+        "the mean of per-point norms",
+    )
+    t.add_argument(
         "--n-pred",
         type=positive_int,
         help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25; intention: "
@@ -231,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     given = {"n_obs": args.n_obs, "n_pred": args.n_pred, "lr": args.lr, "steps": args.steps}
     given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
     if args.model == "intention":
+        if args.width or args.frame_loss:
+            raise InputError("--width and --frame-loss are options of the DCT + MLP (--model dct_mlp)")
         return _main_intention(args, given)
     if args.hidden is not None or args.tau_rec is not None:
         raise InputError("--hidden and --tau-rec are options of --model intention")
@@ -238,7 +251,13 @@ def main(argv: list[str] | None = None) -> int:
         given["val_every"] = args.steps
     kw = {k: v for k, v in given.items() if v is not None}
     cfg = MlpConfig(
-        n_blocks=args.blocks, mirror=args.mirror, reverse=args.reverse, pad_start=args.pad_start, **kw
+        n_blocks=args.blocks,
+        mirror=args.mirror,
+        reverse=args.reverse,
+        pad_start=args.pad_start,
+        width=args.width or 0,
+        frame_loss=args.frame_loss,
+        **kw,
     )
     bf, tr, va = _train_files(args.path, args.all_files)
     if args.angles:
