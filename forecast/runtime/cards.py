@@ -31,6 +31,7 @@ def card(path: str | os.PathLike) -> dict:
         if key in blob:
             c[key] = blob[key]
     cfg = blob.get("config") if isinstance(blob.get("config"), dict) else {}
+    cfg = (cfg.get("members") or [cfg])[0]  # an ensemble's members observe alike
     if "n_obs" in cfg and "fps" in blob:
         c["observes"] = f"{cfg['n_obs']} frames ({cfg['n_obs'] / float(blob['fps']):.1f} s)"
     return c | {k: v for k, v in blob["card"].items() if v}
