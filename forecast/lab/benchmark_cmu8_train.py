@@ -148,9 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("train", help="train the DCT + MLP on the benchmark's train files")
     t.add_argument("path", nargs="?", help="the benchmark-cmu8 folder (default: the shared one)")
     t.add_argument("--out", required=True)
-    d = MlpConfig()  # the DCT + MLP's defaults; --model intention: benchmark_cmu8_angle_intention.config()'s
-    t.add_argument("--steps", type=positive_int, help=f"default {d.steps} (intention: {AI.config().steps})")
-    t.add_argument("--batch", type=positive_int, help=f"default {d.batch} (intention: {AI.config().batch})")
+    d, di = MlpConfig(), AI.config()  # the DCT + MLP's defaults and those of --model intention
+    t.add_argument("--steps", type=positive_int, help=f"default {d.steps} (intention: {di.steps})")
+    t.add_argument("--batch", type=positive_int, help=f"default {d.batch} (intention: {di.batch})")
     t.add_argument("--blocks", type=positive_int, default=d.n_blocks)
     t.add_argument(
         "--width",
@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"frames observed (default {d.n_obs}, the protocol's; MSR-GCN and PGBIG: 10, the all-windows "
         "protocol's history)",
     )
-    t.add_argument("--lr", type=positive_float, help=f"default {d.lr} (intention: {AI.config().lr})")
+    t.add_argument("--lr", type=positive_float, help=f"default {d.lr} (intention: {di.lr})")
     t.add_argument("--seed", type=int, default=d.seed)
     t.add_argument("--mirror", action="store_true", help="augment with left/right mirrored windows")
     t.add_argument("--reverse", action="store_true", help="augment with windows played backwards")
