@@ -3,6 +3,7 @@ averaging on a tiny synthetic benchmark folder, the DCT + MLP, samples.npz, and 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -574,7 +575,7 @@ def test_intention_model_on_the_angle_protocol(tiny_root, tmp_path, capsys):
 
 def test_intention_angle_bad_input(tiny_root, tmp_path, capsys):
     """Bad input is a one-line message: --model intention without --angles, with --mirror, a short
-    observation, a DCT + MLP checkpoint read as an intention one."""
+    observation, a DCT + MLP checkpoint read as an intention one, weights that do not fit the config."""
     from roomcap.forecast.cli import main
     from roomcap.forecast.lab import benchmark_cmu8_angle as A
     from roomcap.forecast.lab import benchmark_cmu8_angle_intention as AI
@@ -595,3 +596,7 @@ def test_intention_angle_bad_input(tiny_root, tmp_path, capsys):
     A.save(mlp, fm, [B.MlpConfig(steps=1, batch=4, val_every=1, n_blocks=1)], hist)
     with pytest.raises(RoomcapError, match="'cmu8_angle_dct_mlp' checkpoint, not 'cmu8_angle_intention'"):
         AI.load(mlp)
+    ck = tmp_path / "int.pt"  # a config edited after training: the weights no longer fit
+    AI.save(ck, f, dataclasses.replace(cfg, hidden=16), {})
+    with pytest.raises(InputError, match="the weights do not fit its config.*retrain"):
+        AI.load(ck)

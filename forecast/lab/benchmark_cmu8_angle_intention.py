@@ -215,7 +215,14 @@ def load(path: str | Path) -> tuple[IntentionAngleForecaster, dict]:
     fields = {f.name for f in dataclasses.fields(IntentionConfig)}
     cfg = IntentionConfig(**{k: v for k, v in blob["config"].items() if k in fields})
     model = intention_model(cfg, len(blob["dims"]))
-    missing, unexpected = model.load_state_dict(blob["weights"]["model"], strict=False)
+    try:
+        missing, unexpected = model.load_state_dict(blob["weights"]["model"], strict=False)
+    except RuntimeError as e:  # a shape mismatch: torch lists every tensor, the last line says enough
+        last = str(e).splitlines()[-1].strip()
+        raise InputError(
+            f"{path}: the weights do not fit its config ({last}); the config or the weights were changed "
+            "after training: retrain with `forecast cmu8 train --angles --model intention`"
+        ) from None
     missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIXES)]
     if missing or unexpected:
         raise InputError(
