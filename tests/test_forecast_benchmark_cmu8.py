@@ -600,3 +600,29 @@ def test_intention_angle_bad_input(tiny_root, tmp_path, capsys):
     AI.save(ck, f, dataclasses.replace(cfg, hidden=16), {})
     with pytest.raises(InputError, match="the weights do not fit its config.*retrain"):
         AI.load(ck)
+
+
+def test_intention_angle_reverse_plays_windows_backwards_with_their_labels(tiny_root, monkeypatch):
+    """`--reverse` for the intention model: some windows of a batch are the same windows played backwards,
+    their intention labels reversed with them; the others are unchanged."""
+    from roomcap.forecast.lab import benchmark_cmu8_angle_intention as AI
+
+    seen: list[tuple] = []
+    losses = AI.intention_losses
+
+    def spy(model, cfg, obs, fut, ones, lab):
+        seen.append((obs.clone(), fut.clone(), lab.clone()))
+        return losses(model, cfg, obs, fut, ones, lab)
+
+    monkeypatch.setattr(AI, "intention_losses", spy)
+    cfg = AI.config(steps=1, batch=8, hidden=8, n_clusters=4, n_intentions=2, val_every=0)
+    tr, va = BT.split_train_val(C.benchmark_files(tiny_root))
+    AI.train(tr, va, cfg)
+    AI.train(tr, va, cfg, reverse=True)
+    (obs, _, lab), (obs_r, fut_r, lab_r) = seen  # the same windows: the first batch draws the same indices
+    back = [i for i in range(8) if not torch.equal(obs_r[i], obs[i])]
+    assert 0 < len(back) < 8
+    for i in back:  # window w played backwards: its frames 33 .. 9 are the forecast, its labels reversed
+        assert torch.equal(fut_r[i], obs[i, 9:34].flip(0)) and torch.equal(lab_r[i], lab[i].flip(0))
+    for i in set(range(8)) - set(back):
+        assert torch.equal(lab_r[i], lab[i])

@@ -11,8 +11,8 @@ the representation of Table 6.7: ``forecast cmu8 train --angles --model intentio
 - Training: the body19 loop's pieces (:func:`roomcap.forecast.lab.train.intention_losses`, ``optimise``):
   L_sym (6.4) + L_sym^adv (6.5) + L_rec (6.8, here the Euclidean norm over the frame's values, the shape of
   the protocol's error) + L_adv (6.7); the windows hold the gamma - 1 frames after the 25 forecast ones, so
-  the look-ahead labels (6.6) are the data's, not padding. No augmentation (a mirrored rotation is not a
-  relabelling; the seed names none).
+  the look-ahead labels (6.6) are the data's, not padding. No mirroring (a mirrored rotation is not a
+  relabelling); ``--reverse`` plays windows backwards (ours; the seed names no augmentation).
 - Scoring a stochastic model (Table 6.7 follows "the same protocol as described in [10]", Mix&Match,
   Aliakbarian et al. 2020): per window ``N_SAMPLES`` samples, the error of the sample closest to the truth
   (chosen as ADE chooses, over the frames up to the horizon: :func:`roomcap.forecast.lab.metrics.
@@ -107,10 +107,17 @@ def validation_errors(f: IntentionAngleForecaster, val: np.ndarray, k: int = VAL
 
 
 def train(
-    train_files: list[Path], val_files: list[Path], cfg: IntentionConfig, progress=None, on_best=None
+    train_files: list[Path],
+    val_files: list[Path],
+    cfg: IntentionConfig,
+    progress=None,
+    on_best=None,
+    reverse: bool = False,
 ) -> tuple[IntentionAngleForecaster, dict]:
-    """Train the intention model on every window of ``train_files``; keep the state with the lowest validation
-    angle error (best of :data:`VAL_SAMPLES` samples, every ``cfg.val_every`` steps and at the end).
+    """Train the intention model on every window of ``train_files`` (``reverse``: each played backwards, with
+    its labels, with probability 1/2, as the DCT + MLP's ``--reverse``); keep the state with the lowest
+    validation angle error (best of :data:`VAL_SAMPLES` samples, every ``cfg.val_every`` steps and at the
+    end).
     ``on_best(f, hist)``: called with the forecaster at each new best state (a run stopped early keeps it)."""
     if cfg.n_obs != A.N_OBS or cfg.n_pred < A.N_PRED:
         raise InputError(
@@ -149,9 +156,13 @@ def train(
     for step in range(cfg.steps):
         model.train()
         idx = torch.from_numpy(rng.integers(0, len(X), cfg.batch))
-        xb = X[idx]
+        xb, lb = X[idx], labels[idx]
+        if reverse:
+            flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
+            xb = torch.where(flip[:, None, None], xb.flip(1), xb)
+            lb = torch.where(flip[:, None], lb.flip(1), lb)
         obs, fut = xb[:, : cfg.n_obs], xb[:, cfg.n_obs : cfg.n_obs + cfg.n_pred]
-        loss, terms, d_loss, _ = intention_losses(model, cfg, obs, fut, ones, labels[idx])
+        loss, terms, d_loss, _ = intention_losses(model, cfg, obs, fut, ones, lb)
         optimise(model, loss, opt, sched, opt_d, d_loss)
         hist["loss"].append(loss.item())
         if progress is not None:

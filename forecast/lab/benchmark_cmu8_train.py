@@ -331,10 +331,9 @@ def _main_intention(args, given: dict) -> int:
     (:mod:`roomcap.forecast.lab.benchmark_cmu8_angle_intention`), the best validation state written."""
     if not args.angles:
         raise InputError("--model intention forecasts the exponential maps: add --angles")
-    if args.mirror or args.reverse or args.pad_start or args.all_files:
+    if args.mirror or args.pad_start or args.all_files:
         raise InputError(
-            "--mirror, --reverse, --pad-start and --all-files are options of the DCT + MLP, not of --model "
-            "intention"
+            "--mirror, --pad-start and --all-files are options of the DCT + MLP, not of --model intention"
         )
     logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
     cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, **given)
@@ -349,7 +348,9 @@ def _main_intention(args, given: dict) -> int:
         AI.save(args.out, f, cfg, {**files, **hist, "command": args.command})
 
     with Bars(unit="step") as bars:
-        f, hist = AI.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n), on_best=write)
+        f, hist = AI.train(
+            tr, va, cfg, progress=lambda i, n: bars("train", i, n), on_best=write, reverse=args.reverse
+        )
     write(f, hist)
     b = hist["best"]
     print(
