@@ -332,6 +332,23 @@ def test_width_and_frame_loss_options(tiny_root, tmp_path):
     assert main([*args, "--angles", "--model", "intention", "--width", "32"]) == 2
 
 
+def test_spatial_mix_option(tiny_root, tmp_path):
+    """`--spatial-mix`: every block gains a linear layer over the channels (with its LayerNorm), kept in the
+    checkpoint and rebuilt from it; without it the weights' names are those of the checkpoints before."""
+    from roomcap.forecast.cli import main
+
+    plain = set(B.DctMlp(25, B.MlpConfig(n_blocks=2)).state_dict())
+    mixed = set(B.DctMlp(25, B.MlpConfig(n_blocks=2, spatial_mix=True)).state_dict())
+    added = {f"blocks.{i}.{n}.{w}" for i in range(2) for n in ("fc_s", "norm_s") for w in ("weight", "bias")}
+    assert not any(".fc_s." in k or ".norm_s." in k for k in plain) and mixed - plain == added
+    ck = tmp_path / "m.pt"
+    args = ["cmu8", "train", str(tiny_root), "--out", str(ck), *"--steps 2 --blocks 1 --n-pred 10".split()]
+    assert main([*args, "--spatial-mix"]) == 0
+    m, blob = B.load_mlp(ck)
+    assert blob["config"]["members"][0]["spatial_mix"] and m.blocks[0].fc_s.weight.shape == (75, 75)
+    assert main([*args, "--angles", "--model", "intention", "--spatial-mix"]) == 2
+
+
 def test_validate_scores_a_ten_frame_history_model_on_the_all_windows_layout(tiny_root, tmp_path, capsys):
     """`forecast cmu8 validate --windows all`: every start of each validation file, the history padded as
     cmu8-all pads the test files; a model observing 10 frames forecasts from the newest 10 of them."""

@@ -244,19 +244,30 @@ class MlpConfig:
     pad_start: float = 0.0  # augment: share of windows whose oldest history is padded as cmu8-all pads it
     width: int = 0  # channels between the spatial layers; 0: the input's values (3 per point), as siMLPe
     frame_loss: bool = False  # the error of a frame is the norm over all its values (LTD's angle loss)
+    spatial_mix: bool = False  # each block mixes the points too (MLP-Mixer), not only the input/output layers
 
 
 class _Block(nn.Module):
-    def __init__(self, T: int, D: int):
+    """A temporal linear layer over the DCT coefficients with LayerNorm and a residual (siMLPe); ``spatial``:
+    then a linear layer over the channels, with its own LayerNorm and residual (MLP-Mixer's token/channel
+    pair, Tolstikhin et al. 2021)."""
+
+    def __init__(self, T: int, D: int, spatial: bool = False):
         super().__init__()
         self.fc = nn.Linear(T, T)
         self.norm = nn.LayerNorm(D)
-        nn.init.xavier_uniform_(self.fc.weight, gain=1e-4)
-        nn.init.zeros_(self.fc.bias)
+        self.fc_s = nn.Linear(D, D) if spatial else None
+        self.norm_s = nn.LayerNorm(D) if spatial else None
+        for fc in (self.fc, self.fc_s):
+            if fc is not None:
+                nn.init.xavier_uniform_(fc.weight, gain=1e-4)
+                nn.init.zeros_(fc.bias)
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:  # (B, D, T)
-        y = self.norm(self.fc(h).transpose(1, 2)).transpose(1, 2)
-        return h + y
+        h = h + self.norm(self.fc(h).transpose(1, 2)).transpose(1, 2)
+        if self.fc_s is None or self.norm_s is None:
+            return h
+        return h + self.norm_s(self.fc_s(h.transpose(1, 2))).transpose(1, 2)
 
 
 class DctMlp(nn.Module):
@@ -277,7 +288,7 @@ class DctMlp(nn.Module):
         self.register_buffer("dct", d)
         self.register_buffer("idct", d.T.contiguous())
         self.fc_in = nn.Linear(D, H)
-        self.blocks = nn.Sequential(*[_Block(T, H) for _ in range(config.n_blocks)])
+        self.blocks = nn.Sequential(*[_Block(T, H, config.spatial_mix) for _ in range(config.n_blocks)])
         self.fc_out = nn.Linear(H, D)
         nn.init.xavier_uniform_(self.fc_out.weight, gain=1e-8)
         nn.init.zeros_(self.fc_out.bias)

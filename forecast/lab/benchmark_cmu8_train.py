@@ -164,6 +164,12 @@ def main(argv: list[str] | None = None) -> int:
         "the mean of per-point norms",
     )
     t.add_argument(
+        "--spatial-mix",
+        action="store_true",
+        help="each of the DCT + MLP's blocks mixes the points too (MLP-Mixer), not only its input and output "
+        "layers",
+    )
+    t.add_argument(
         "--n-pred",
         type=positive_int,
         help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25; intention: "
@@ -242,8 +248,10 @@ def main(argv: list[str] | None = None) -> int:
     given = {"n_obs": args.n_obs, "n_pred": args.n_pred, "lr": args.lr, "steps": args.steps}
     given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
     if args.model == "intention":
-        if args.width or args.frame_loss:
-            raise InputError("--width and --frame-loss are options of the DCT + MLP (--model dct_mlp)")
+        if args.width or args.frame_loss or args.spatial_mix:
+            raise InputError(
+                "--width, --frame-loss and --spatial-mix are options of the DCT + MLP (--model dct_mlp)"
+            )
         return _main_intention(args, given)
     if args.hidden is not None or args.tau_rec is not None:
         raise InputError("--hidden and --tau-rec are options of --model intention")
@@ -257,6 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         pad_start=args.pad_start,
         width=args.width or 0,
         frame_loss=args.frame_loss,
+        spatial_mix=args.spatial_mix,
         **kw,
     )
     bf, tr, va = _train_files(args.path, args.all_files)
