@@ -127,6 +127,20 @@ def test_the_page_receives_tracks_detections_reprojections_and_reduced_images():
     assert len(lat) == 1 and 0 <= lat[0] < 2000  # capture -> the client acknowledged, measured at the server
 
 
+def test_an_update_built_while_the_view_stops_ends_the_producer_quietly():
+    """The producer checks that the view runs, then hands its update to the server's loop; when stop() closes
+    the loop in between (a loaded machine), the producer ends instead of raising in its thread."""
+    _, _, view = _setup()
+    loop = asyncio.new_event_loop()
+    loop.close()
+    view._loop, view._latest, view._clients = loop, object(), {object()}
+    built = []
+    view.messages = lambda step, refresh=False: built.append(step) or {"state": "{}"}
+    view._new.set()
+    view._produce()  # returns: before, RuntimeError('Event loop is closed') ended the thread with a traceback
+    assert built == [view._latest]
+
+
 def test_a_page_that_reads_nothing_or_dies_loses_view_updates_never_the_live_loop():
     rig, names, view = _setup(n_cams=4, image_hz=1000.0, state_hz=1000.0)
     view.start()

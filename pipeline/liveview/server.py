@@ -453,7 +453,10 @@ class LiveView:
                 msgs = {}
             self.encode_s += time.thread_time() - t0
             if msgs and self._loop is not None and not self._stop.is_set():
-                self._loop.call_soon_threadsafe(self._publish, msgs)
+                try:
+                    self._loop.call_soon_threadsafe(self._publish, msgs)
+                except RuntimeError:  # stop() closed the loop after the check above: nothing left to serve
+                    return
 
     def messages(self, step: LiveStep, now: float | None = None, refresh: bool = False) -> dict[str, Any]:
         """The messages for this step: ``state`` (rate-limited) and ``img:<cam>`` (rate-limited).
