@@ -251,10 +251,10 @@ def test_shipped_dct_mlp_checkpoints():
 
 def test_reverse_plays_chosen_windows_backwards():
     b = torch.randn(3, 75, 25, 3)
-    r = BT._reverse(b, torch.tensor([True, False, True]))
+    r = B.reverse_windows(b, torch.tensor([True, False, True]))
     assert torch.equal(r[1], b[1])
     assert torch.equal(r[0, 0], b[0, -1]) and torch.equal(r[2, 50], b[2, 24])
-    assert torch.equal(BT._reverse(r, torch.tensor([True, False, True])), b)
+    assert torch.equal(B.reverse_windows(r, torch.tensor([True, False, True])), b)
 
 
 def _random_mlp(seed: int) -> tuple[B.DctMlp, B.MlpConfig]:

@@ -304,6 +304,13 @@ class DctMlp(nn.Module):
         return y.reshape(B, self.n_pred, P, 3) + last
 
 
+def reverse_windows(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
+    """Windows ``b (B, T, ...)``: those with ``flip (B,)`` played backwards (the whole window, observed and
+    future, so the model observes the last frames and forecasts the first ones); per-frame labels ``(B, T)``
+    alike."""
+    return torch.where(flip.view(-1, *[1] * (b.dim() - 1)), b.flip(1), b)
+
+
 def window_loss(pred: torch.Tensor, fut: torch.Tensor, per_frame: bool = False) -> torch.Tensor:
     """Mean point error plus the mean error of the frame-to-frame changes (siMLPe's two terms); a 'point' is
     the last axis (3D points, or the exponential maps of :mod:`roomcap.forecast.lab.benchmark_cmu8_angle`).

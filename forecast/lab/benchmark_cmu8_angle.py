@@ -45,6 +45,7 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     Forecaster,
     MlpConfig,
     fit_mlp,
+    reverse_windows,
     rollout,
     window_starts,
 )
@@ -330,8 +331,7 @@ def train(
     def augment(b: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
         if not config.reverse:
             return b
-        flip = torch.from_numpy(rng.random(len(b)) < 0.5)
-        return torch.where(flip[:, None, None, None], b.flip(1), b)
+        return reverse_windows(b, torch.from_numpy(rng.random(len(b)) < 0.5))
 
     def validate(model: DctMlp) -> float:
         return validation_error(AngleForecaster(model, joints, dims), val)

@@ -33,6 +33,7 @@ import torch
 
 from roomcap.core.errors import InputError
 from roomcap.forecast.lab import benchmark_cmu8_angle as A
+from roomcap.forecast.lab.benchmark_cmu8 import reverse_windows
 from roomcap.forecast.lab.intention_labels import fit_intention_labels
 from roomcap.forecast.lab.metrics import closest_sequence_error
 from roomcap.forecast.lab.train import intention_losses, optimise
@@ -159,8 +160,7 @@ def train(
         xb, lb = X[idx], labels[idx]
         if reverse:
             flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
-            xb = torch.where(flip[:, None, None], xb.flip(1), xb)
-            lb = torch.where(flip[:, None], lb.flip(1), lb)
+            xb, lb = reverse_windows(xb, flip), reverse_windows(lb, flip)
         obs, fut = xb[:, : cfg.n_obs], xb[:, cfg.n_obs : cfg.n_obs + cfg.n_pred]
         loss, terms, d_loss, _ = intention_losses(model, cfg, obs, fut, ones, lb)
         optimise(model, loss, opt, sched, opt_d, d_loss)

@@ -40,6 +40,7 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     load_mlp,
     mlp_forecast,
     mpjpe_mm,
+    reverse_windows,
     save_ensemble,
     save_mlp,
     sequence,
@@ -64,12 +65,6 @@ def _mirror(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Ten
     m = b[:, :, idx].clone()
     m[..., 0] = -m[..., 0]
     return torch.where(flip[:, None, None, None], m, b)
-
-
-def _reverse(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
-    """Windows ``b (B,T,25,3)``: those with ``flip`` played backwards (the whole window, observed and future,
-    so the model observes the last frames and forecasts the first ones)."""
-    return torch.where(flip[:, None, None, None], b.flip(1), b)
 
 
 def _pad_start(b: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
@@ -111,7 +106,7 @@ def train_mlp(
         if config.mirror:
             b = _mirror(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
         if config.reverse:
-            b = _reverse(b, torch.from_numpy(rng.random(len(b)) < 0.5))
+            b = reverse_windows(b, torch.from_numpy(rng.random(len(b)) < 0.5))
         if config.pad_start:  # after reversing, so the padded frames are the history's oldest; the newest
             # ALL_OBS observed frames stay real, as in every cmu8-all window
             k = rng.integers(1, config.n_obs - ALL_OBS + 1, len(b)) * (rng.random(len(b)) < config.pad_start)
