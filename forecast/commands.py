@@ -292,8 +292,7 @@ def _eval_cmu8(args, windows: str = "protocol") -> int:
     the exact protocol, the body19 checkpoints on its body19 variant; ``windows="all"``: cmu8-all, every test
     window, the DCT + MLP checkpoints only."""
     if args.checkpoints is None:
-        shipped = B.SHIPPED_MLP if windows == "protocol" else B.SHIPPED_MLP_ALL
-        cks = [str(shipped)] if shipped.is_file() else []
+        cks = [str(B.SHIPPED_MLP)] if B.SHIPPED_MLP.is_file() else []
         cks += shipped_checkpoints() if windows == "protocol" else []
     else:
         cks = list(args.checkpoints)

@@ -28,7 +28,6 @@ KEPT = {
     *SHIPPED,
     "characteristic_cmuall.pt",
     "cmu8_dct_mlp_ens.pt",
-    "cmu8_dct_mlp_all.pt",
     "cmu8_angle_dct_mlp.pt",
     "behaviour_cmu.pt",
     "behaviour_quality_cmu.pt",
