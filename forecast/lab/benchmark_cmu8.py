@@ -245,6 +245,7 @@ class MlpConfig:
     width: int = 0  # channels between the spatial layers; 0: the input's values (3 per point), as siMLPe
     frame_loss: bool = False  # the error of a frame is the norm over all its values (LTD's angle loss)
     spatial_mix: bool = False  # each block mixes the points too (MLP-Mixer), not only the input/output layers
+    pad_last: bool = False  # the observation padded with its last frame to n_obs + n_pred (LTD's, PGBIG's)
 
 
 class _Block(nn.Module):
@@ -273,17 +274,21 @@ class _Block(nn.Module):
 class DctMlp(nn.Module):
     """siMLPe-style forecaster (Guo et al. 2023): the observed points relative to the last observed frame,
     a DCT over time, a spatial linear layer, ``n_blocks`` temporal linear layers with LayerNorm and residuals,
-    a spatial linear layer, the inverse DCT; the first ``n_pred`` frames, added to the last observed pose."""
+    a spatial linear layer, the inverse DCT; the first ``n_pred`` frames, added to the last observed pose.
+    ``pad_last``: the observation is first padded with its last frame to ``n_obs + n_pred`` frames, as LTD and
+    PGBIG pad theirs (Mao et al. 2019), and the last ``n_pred`` frames are the forecast."""
 
     kind = "dct_mlp"
 
     def __init__(self, n_points: int, config: MlpConfig):
         super().__init__()
-        D, T = 3 * n_points, config.n_obs
+        self.n_obs, self.n_pred, self.pad_last = config.n_obs, config.n_pred, config.pad_last
+        D, T = 3 * n_points, self.n_obs + (self.n_pred if self.pad_last else 0)
         H = config.width or D
-        self.n_obs, self.n_pred = config.n_obs, config.n_pred
         if self.n_pred > T:
-            raise InputError(f"n_pred {self.n_pred} > n_obs {T}: the inverse DCT gives n_obs frames")
+            raise InputError(
+                f"n_pred {self.n_pred} > n_obs {T}: the inverse DCT gives n_obs frames (unless --pad-last)"
+            )
         d = torch.from_numpy(dct_matrix(T).astype(np.float32))
         self.register_buffer("dct", d)
         self.register_buffer("idct", d.T.contiguous())
@@ -298,9 +303,12 @@ class DctMlp(nn.Module):
         B, T, P, _ = obs.shape
         last = obs[:, -1:]
         x = (obs - last).reshape(B, T, P * 3)
+        if self.pad_last:  # the last frame held: zero relative to it
+            x = torch.cat([x, x.new_zeros(B, self.n_pred, P * 3)], 1)
         h = self.fc_in(torch.einsum("st,btd->bsd", self.dct, x))
         h = self.blocks(h.transpose(1, 2)).transpose(1, 2)
-        y = torch.einsum("ts,bsd->btd", self.idct, self.fc_out(h))[:, : self.n_pred]
+        y = torch.einsum("ts,bsd->btd", self.idct, self.fc_out(h))
+        y = y[:, -self.n_pred :] if self.pad_last else y[:, : self.n_pred]
         return y.reshape(B, self.n_pred, P, 3) + last
 
 

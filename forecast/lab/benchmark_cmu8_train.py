@@ -165,6 +165,12 @@ def main(argv: list[str] | None = None) -> int:
         "layers",
     )
     t.add_argument(
+        "--pad-last",
+        action="store_true",
+        help="the DCT + MLP pads its observation with the last observed frame to n_obs + n_pred frames and "
+        "forecasts them in one pass (LTD's and PGBIG's input; lets --n-pred exceed --n-obs)",
+    )
+    t.add_argument(
         "--n-pred",
         type=positive_int,
         help=f"frames forecast in one pass (default {d.n_pred}; siMLPe: 10, rolled out to 25; intention: "
@@ -243,9 +249,10 @@ def main(argv: list[str] | None = None) -> int:
     given = {"n_obs": args.n_obs, "n_pred": args.n_pred, "lr": args.lr, "steps": args.steps}
     given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
     if args.model == "intention":
-        if args.width or args.frame_loss or args.spatial_mix:
+        if args.width or args.frame_loss or args.spatial_mix or args.pad_last:
             raise InputError(
-                "--width, --frame-loss and --spatial-mix are options of the DCT + MLP (--model dct_mlp)"
+                "--width, --frame-loss, --spatial-mix and --pad-last are options of the DCT + MLP "
+                "(--model dct_mlp)"
             )
         return _main_intention(args, given)
     if args.hidden is not None or args.tau_rec is not None:
@@ -261,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         width=args.width or 0,
         frame_loss=args.frame_loss,
         spatial_mix=args.spatial_mix,
+        pad_last=args.pad_last,
         **kw,
     )
     bf, tr, va = _train_files(args.path, args.all_files)
