@@ -249,11 +249,6 @@ def main(argv: list[str] | None = None) -> int:
     given = {"n_obs": args.n_obs, "n_pred": args.n_pred, "lr": args.lr, "steps": args.steps}
     given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
     if args.model == "intention":
-        if args.width or args.frame_loss or args.spatial_mix or args.pad_last:
-            raise InputError(
-                "--width, --frame-loss, --spatial-mix and --pad-last are options of the DCT + MLP "
-                "(--model dct_mlp)"
-            )
         return _main_intention(args, given)
     if args.hidden is not None or args.tau_rec is not None:
         raise InputError("--hidden and --tau-rec are options of --model intention")
@@ -341,12 +336,21 @@ def _validation_files(data: str | None) -> tuple[C.BenchmarkFiles, list[Path]]:
 def _main_intention(args, given: dict) -> int:
     """``forecast cmu8 train --angles --model intention``: the seed's intention model on the exponential maps
     (:mod:`roomcap.forecast.lab.benchmark_cmu8_angle_intention`), the best validation state written."""
+    dct_mlp_only = {
+        "--width": args.width,
+        "--frame-loss": args.frame_loss,
+        "--spatial-mix": args.spatial_mix,
+        "--pad-last": args.pad_last,
+        "--mirror": args.mirror,
+        "--pad-start": args.pad_start,
+        "--all-files": args.all_files,
+    }
+    if misplaced := [flag for flag, value in dct_mlp_only.items() if value]:
+        raise InputError(
+            f"{', '.join(misplaced)}: options of the DCT + MLP (--model dct_mlp), not of --model intention"
+        )
     if not args.angles:
         raise InputError("--model intention forecasts the exponential maps: add --angles")
-    if args.mirror or args.pad_start or args.all_files:
-        raise InputError(
-            "--mirror, --pad-start and --all-files are options of the DCT + MLP, not of --model intention"
-        )
     logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
     cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, **given)
     bf, tr, va = _train_files(args.path)
