@@ -251,6 +251,50 @@ def test_intention_training_adds_the_joint_speed_term():
     assert np.isfinite(h1["loss"]).all() and h1["loss"][0] > h0["loss"][0] + 1e-4
 
 
+def test_intention_variety_loss_scores_each_windows_closest_noise_draw():
+    """``variety`` K: L_rec of each window's closest of K decodes (other z); K = 1 is eq. 6.8 as before."""
+    from roomcap.forecast.runtime.registry import intention_model
+
+    cfg = T.config_from_dict(
+        "intention",
+        {"hidden": 16, "z_dim": 4, "n_clusters": 6, "n_intentions": 3, "n_obs": 20, "n_pred": 30},
+    )
+    cfg = dataclasses.replace(cfg, continuity=False)  # the decodes as they are
+    assert cfg.variety == 1  # off by default: the shipped recipes are unchanged
+    torch.manual_seed(0)
+    model = intention_model(cfg, 57)
+    torch.nn.init.normal_(model.p_out.weight, std=0.3)  # a decoder that uses z (it starts at zero)
+    B, K = 6, 4
+    obs, fut = torch.randn(B, 20, 57), torch.randn(B, 30, 57)
+    mask, lab = torch.rand(B, 30, 19) > 0.3, torch.randint(0, 3, (B, 60))
+
+    def rec(k: int, seed: int) -> tuple[float, torch.Tensor]:
+        torch.manual_seed(seed)  # the same label rollout and noise draws
+        np.random.seed(seed)
+        with torch.no_grad():
+            k_cfg = dataclasses.replace(cfg, variety=k)
+            _, terms, _, pred = T.intention_losses(model, k_cfg, obs, fut, mask, lab)
+        return terms["rec"], pred
+
+    # the K draws, one at a time: z are the rows of one (B*K, z) draw after the label rollout
+    torch.manual_seed(1)
+    np.random.seed(1)
+    with torch.no_grad():
+        model.label_rollout(obs, lab[:, 19], 30 + cfg.gamma - 1)
+        z = torch.randn(B * K, cfg.z_dim)
+        c = torch.nn.functional.one_hot(lab[:, 20:59], 3).float().repeat_interleave(K, 0)
+        each = model.decode(obs.repeat_interleave(K, 0), c, 30, z).view(B, K, 30, 19, 3)
+    lam = torch.clamp(1 - torch.arange(30.0) / cfg.tau_rec, min=0)
+    w = mask.float() * lam[None, :, None]
+    per = ((each - fut.view(B, 1, 30, 19, 3)).norm(dim=-1) * w[:, None]).sum((2, 3))  # (B, K)
+    r_k, pred_k = rec(K, 1)
+    assert r_k == pytest.approx(float(per.min(1).values.sum() / w.sum()), rel=1e-5)
+    assert r_k < float(per.mean(1).sum() / w.sum())  # the closest draw, not their mean
+    assert pred_k.shape == (B, 30, 57)  # the first draw, for the adversarial and speed terms
+    r_1, _ = rec(1, 1)
+    assert np.isfinite(r_1) and r_1 > r_k
+
+
 @pytest.mark.slow
 def test_social_diffusion_writes_back_observation_and_learns():
     m = SocialDiffusion(62, n_frames=32, channels=16, T=100)

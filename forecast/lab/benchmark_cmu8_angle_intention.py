@@ -126,7 +126,7 @@ def train(
             f"n_pred at least {A.N_PRED} (got {cfg.n_obs}, {cfg.n_pred})"
         )
     torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)  # the adversarial window offsets (IntentionModel.losses)
+    np.random.seed(cfg.seed)  # the adversarial window offsets (train.intention_losses)
     rng = np.random.default_rng(cfg.seed)
     dims = A.used_dims(train_files)
     L = cfg.n_obs + cfg.n_pred + cfg.gamma - 1  # the look-ahead labels of the last forecast frames (6.6)

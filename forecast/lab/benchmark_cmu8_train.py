@@ -217,6 +217,12 @@ def main(argv: list[str] | None = None) -> int:
         type=positive_int,
         help="intention: frames over which L_rec's weight fades to 0 (eq. 6.8; default 15, the seed's)",
     )
+    t.add_argument(
+        "--variety",
+        type=positive_int,
+        help="intention: noise draws per training window, L_rec scoring the closest (ours, Social GAN's "
+        "variety loss; default 1, the seed's)",
+    )
     t.add_argument("--val-every", type=positive_int, help="steps between validation scores (model selection)")
     t.add_argument("--threads", type=positive_int, default=1)
     e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
@@ -250,8 +256,8 @@ def main(argv: list[str] | None = None) -> int:
     given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
     if args.model == "intention":
         return _main_intention(args, given)
-    if args.hidden is not None or args.tau_rec is not None:
-        raise InputError("--hidden and --tau-rec are options of --model intention")
+    if args.hidden is not None or args.tau_rec is not None or args.variety is not None:
+        raise InputError("--hidden, --tau-rec and --variety are options of --model intention")
     if args.all_files:  # no validation files left: only the last step is scored, and kept
         given["val_every"] = args.steps
     kw = {k: v for k, v in given.items() if v is not None}
@@ -352,7 +358,7 @@ def _main_intention(args, given: dict) -> int:
     if not args.angles:
         raise InputError("--model intention forecasts the exponential maps: add --angles")
     logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
-    cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, **given)
+    cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, variety=args.variety, **given)
     bf, tr, va = _train_files(args.path)
     files = {
         "train_files": [p.name for p in tr],

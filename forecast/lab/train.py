@@ -17,6 +17,7 @@ import warnings
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from scipy.cluster.vq import kmeans2
 
 from roomcap.core.errors import InputError
@@ -46,7 +47,7 @@ from roomcap.forecast.runtime.checkpoint import (
 from roomcap.forecast.runtime.config import BASELINES, DiffusionConfig, GRUConfig, IntentionConfig
 from roomcap.forecast.runtime.models import FoolClusters
 from roomcap.forecast.runtime.models.diffusion import N_CONST
-from roomcap.forecast.runtime.models.intention import local_poses
+from roomcap.forecast.runtime.models.intention import ADV_WINDOW, local_poses
 from roomcap.forecast.runtime.normalise import LHIP, RHIP
 from roomcap.forecast.runtime.predict import continue_velocity
 from roomcap.forecast.runtime.registry import DISCRIMINATOR_PREFIXES, build_model, config_from_dict, spec
@@ -137,15 +138,63 @@ def speed_gap(pred, fut, last, mask):
 
 
 def intention_losses(model, config, obs, fut, mfut, lab):
-    """The intention model's training losses (Tanke eqs. 6.4-6.8, :meth:`IntentionModel.losses`) of a batch:
-    ``lab`` (B,L) the intention labels of the window's frames; the labels of the forecast frames and the
-    gamma - 1 look-ahead frames after them are those from frame n_obs - 1 on, the last label repeated where
-    the window ends sooner. Shared by the body19 loop (:func:`train`) and the exponential-map one
+    """The intention model's training losses (Tanke eqs. 6.4-6.8) of a batch: obs (B,T,D), fut (B,H,D), mfut
+    (B,H,J) the forecast frames' joint masks, ``lab`` (B,L) the intention labels of the window's frames; the
+    labels of the forecast frames and the gamma - 1 look-ahead frames after them are those from frame
+    n_obs - 1 on, the last label repeated where the window ends sooner. Returns the generator loss, its terms,
+    a closure for the discriminators' step and the poses forecast from the reference intentions (B,H,D).
+    ``config.variety`` K > 1 (ours, Social GAN's variety loss, Gupta et al. 2018): each window decodes K
+    noise draws z and L_rec scores the closest one, so the noise learns the futures a best-of-k score needs;
+    the adversarial terms see the first draw. ``config.continuity``: score (and show the pose discriminator)
+    the forecast shifted to continue the last observed velocity, as it is forecast
+    (``predict.continue_velocity``). Shared by the body19 loop (:func:`train`) and the exponential-map one
     (:mod:`roomcap.forecast.lab.benchmark_cmu8_angle_intention`)."""
-    need = fut.shape[1] + config.gamma  # the last observed frame's label, the forecast's, the look-ahead's
+    H, g, B, K = fut.shape[1], config.gamma, obs.shape[0], config.variety
+    need = H + g  # the last observed frame's label, the forecast's, the look-ahead's
     c_all = lab[:, config.n_obs - 1 : config.n_obs - 1 + need]
     c_all = torch.cat([c_all, c_all[:, -1:].expand(-1, need - c_all.shape[1])], 1)
-    return model.losses(obs, fut, c_all, mfut, config.tau_rec, config.w_adv, continuity=config.continuity)
+    # intention: teacher-forced CE (6.4) on labels t+1..t+H+γ-1
+    logits = model.label_logits_teacher(obs, c_all[:, : H + g - 1])
+    l_sym = F.cross_entropy(logits.reshape(-1, model.C), c_all[:, 1 : H + g].reshape(-1))
+    c_free = model.label_rollout(obs, c_all[:, 0], H + g - 1)
+    # poses conditioned on the reference intentions (teacher) with noise z, K draws per window
+    c_ref = F.one_hot(c_all[:, 1 : H + g], model.C).float()
+    obs_k = obs.repeat_interleave(K, 0) if K > 1 else obs
+    z = torch.randn(B * K, model.z_dim, device=obs.device)
+    pred = model.decode(obs_k, c_ref.repeat_interleave(K, 0) if K > 1 else c_ref, H, z)
+    if config.continuity:
+        pred = pred - (pred[:, :1] - (2 * obs_k[:, -1:] - obs_k[:, -2:-1]))
+    J = mfut.shape[-1]
+    m = mfut.float()
+    lam = torch.clamp(1.0 - torch.arange(H, device=obs.device, dtype=obs.dtype) / config.tau_rec, min=0.0)
+    err = (pred.view(B, K, H, J, -1) - fut.view(B, 1, H, J, -1)).norm(dim=-1)  # 3 values a joint, or D/J
+    w = m * lam[None, :, None]  # L_rec's weights (6.8), fading to 0 over tau_rec frames
+    if K == 1:
+        l_rec = (err[:, 0] * m * lam[None, :, None]).sum() / w.sum().clamp(min=1)
+    else:  # the closest draw per window
+        l_rec = (err * w[:, None]).sum((2, 3)).min(1).values.sum() / w.sum().clamp(min=1)
+    pred = pred.view(B, K, H, -1)[:, 0]
+    # adversarial (6.5, 6.7), non-saturating generator losses on random 25-frame windows
+    s = np.random.randint(0, max(H - ADV_WINDOW, 0) + 1)
+    fake_p, real_p = pred[:, s : s + ADV_WINDOW], fut[:, s : s + ADV_WINDOW]
+    fake_c, real_c = c_free[:, s : s + ADV_WINDOW], c_ref[:, s : s + ADV_WINDOW]
+    ones = torch.ones(B, device=obs.device)
+    bce = F.binary_cross_entropy_with_logits
+    l_adv = bce(model.D_pose(fake_p), ones)
+    l_sym_adv = bce(model.D_label(fake_c), ones)
+    total = l_rec + l_sym + config.w_adv * (l_adv + l_sym_adv)
+    terms = {"rec": l_rec.item(), "sym": l_sym.item(), "adv": l_adv.item(), "sym_adv": l_sym_adv.item()}
+
+    def d_loss():
+        zeros = torch.zeros_like(ones)
+        return (
+            bce(model.D_pose(real_p), ones)
+            + bce(model.D_pose(fake_p.detach()), zeros)
+            + bce(model.D_label(real_c), ones)
+            + bce(model.D_label(fake_c.detach()), zeros)
+        )
+
+    return total, terms, d_loss, pred
 
 
 def optimise(model, loss, opt, sched, opt_d=None, d_loss=None) -> None:

@@ -154,50 +154,6 @@ class IntentionModel(nn.Module):
         y = self.decode(o, c, n_pred, z)
         return y.view(B, n_samples, n_pred, D)
 
-    # -- losses
-    def losses(self, obs, fut, c_all, mask_fut, tau_rec: int = 15, w_adv: float = 0.05, continuity=False):
-        """obs (B,T,D), fut (B,H,D), c_all (B,T+H+γ-1) labels from the last observed frame on (index 0 = t),
-        mask_fut (B,H,J). Returns generator loss terms dict and a closure for the discriminator step.
-        ``continuity``: score (and show the pose discriminator) the forecast shifted to continue the last
-        observed velocity, as it is forecast (``predict.continue_velocity``)."""
-        H, g = fut.shape[1], self.gamma
-        # intention: teacher-forced CE (6.4) on labels t+1..t+H+γ-1
-        logits = self.label_logits_teacher(obs, c_all[:, : H + g - 1])
-        l_sym = F.cross_entropy(logits.reshape(-1, self.C), c_all[:, 1 : H + g].reshape(-1))
-        c_free = self.label_rollout(obs, c_all[:, 0], H + g - 1)
-        # poses conditioned on the reference intentions (teacher) with noise z
-        c_ref = F.one_hot(c_all[:, 1 : H + g], self.C).float()
-        z = torch.randn(obs.shape[0], self.z_dim, device=obs.device)
-        pred = self.decode(obs, c_ref, H, z)
-        if continuity:
-            pred = pred - (pred[:, :1] - (2 * obs[:, -1:] - obs[:, -2:-1]))
-        J = mask_fut.shape[-1]
-        err = (pred - fut).view(*pred.shape[:2], J, -1).norm(dim=-1)  # (B,H,J): 3 values a joint, or D/J
-        lam = torch.clamp(1.0 - torch.arange(H, device=obs.device, dtype=obs.dtype) / tau_rec, min=0.0)  # 6.8
-        m = mask_fut.float()
-        l_rec = (err * m * lam[None, :, None]).sum() / (m * lam[None, :, None]).sum().clamp(min=1)
-        # adversarial (6.5, 6.7), non-saturating generator losses on random 25-frame windows
-        s = np.random.randint(0, max(H - ADV_WINDOW, 0) + 1)
-        fake_p = pred[:, s : s + ADV_WINDOW]
-        real_p = fut[:, s : s + ADV_WINDOW]
-        fake_c, real_c = c_free[:, s : s + ADV_WINDOW], c_ref[:, s : s + ADV_WINDOW]
-        ones = torch.ones(obs.shape[0], device=obs.device)
-        l_adv = F.binary_cross_entropy_with_logits(self.D_pose(fake_p), ones)
-        l_sym_adv = F.binary_cross_entropy_with_logits(self.D_label(fake_c), ones)
-        total = l_rec + l_sym + w_adv * (l_adv + l_sym_adv)
-        terms = {"rec": l_rec.item(), "sym": l_sym.item(), "adv": l_adv.item(), "sym_adv": l_sym_adv.item()}
-
-        def d_loss():
-            zeros, bce = torch.zeros_like(ones), F.binary_cross_entropy_with_logits
-            return (
-                bce(self.D_pose(real_p), ones)
-                + bce(self.D_pose(fake_p.detach()), zeros)
-                + bce(self.D_label(real_c), ones)
-                + bce(self.D_label(fake_c.detach()), zeros)
-            )
-
-        return total, terms, d_loss, pred
-
     def generator_parameters(self):
         skip = {id(p) for p in list(self.D_pose.parameters()) + list(self.D_label.parameters())}
         return [p for p in self.parameters() if id(p) not in skip]
