@@ -76,6 +76,11 @@ MM_PER_UNIT = C.REFERENCE_MM_PER_UNIT
 JOINTS_EQUAL = {16: 15, 20: 15, 29: 15, 24: 23, 27: 23, 33: 32, 36: 32}  # point -> the point it sits on
 JOINTS_FIXED = (0, 1, 2, 7, 8, 13)
 JOINTS_USED = tuple(j for j in range(38) if j not in JOINTS_EQUAL and j not in JOINTS_FIXED)  # 25 points
+# each of the 38 points' left/right partner: legs 1-6 <-> 7-12, arms 20-28 <-> 29-37; the spine its own
+MIRROR_PARTNER = tuple(
+    j + 6 if 1 <= j <= 6 else j - 6 if 7 <= j <= 12 else j + 9 if 20 <= j <= 28 else j - 9 if j >= 29 else j
+    for j in range(38)
+)
 BODY19_LIMBS = (
     "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
     "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",

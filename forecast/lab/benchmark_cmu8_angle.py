@@ -37,6 +37,7 @@ from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     DOWNSAMPLE,
     FPS,
+    MIRROR_PARTNER,
     N_OBS,
     N_PRED,
     N_WINDOWS,
@@ -314,12 +315,33 @@ def validation_error(f: AngleForecaster, val: np.ndarray) -> float:
     return float(np.mean(at_horizons(score(pred, val[:, N_OBS:], f.dims))))
 
 
+def mirror_index(joints: list[int]) -> np.ndarray:
+    """For the used 3-vectors ``joints`` (of the 39: root position, then the 38 joints' maps): the index of
+    each one's left/right partner (``MIRROR_PARTNER``); an error names joints whose partner is not used."""
+    alone = [C.CMU38_NAMES[j - 1] for j in joints if MIRROR_PARTNER[j - 1] + 1 not in joints]
+    if alone:
+        raise InputError(
+            f"--mirror needs both sides of each used joint; the train files move {', '.join(alone)} but not "
+            "its partner: train without --mirror"
+        )
+    return np.array([joints.index(MIRROR_PARTNER[j - 1] + 1) for j in joints])
+
+
+def mirror_maps(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Windows of exponential maps ``b (B,T,V,3)``: those with ``flip`` mirrored (x -> -x in the body frame).
+    A rotation R mirrored is M R M with M = diag(-1, 1, 1), whose map is (x, -y, -z): each joint takes its
+    partner's map so changed. The reference's forward kinematics of the mirrored maps is the mirror of its
+    points up to the skeleton's own left/right differences (exactly, on a symmetrised skeleton)."""
+    m = b[:, :, idx] * torch.tensor([1.0, -1.0, -1.0], dtype=b.dtype)
+    return torch.where(flip[:, None, None, None], m, b)
+
+
 def train(
     train_files: list[Path], val_files: list[Path], config: MlpConfig, progress=None
 ) -> tuple[AngleForecaster, dict]:
-    """Train the DCT + MLP on every window of ``train_files`` (each played backwards with probability 1/2
-    when ``config.reverse``; no mirroring: mirrored rotations are not a relabelling of the maps); keep the
-    state with the lowest validation angle error (windows every 5 frames of ``val_files``)."""
+    """Train the DCT + MLP on every window of ``train_files`` (each mirrored when ``config.mirror`` and played
+    backwards when ``config.reverse``, each with probability 1/2); keep the state with the lowest validation
+    angle error (windows every 5 frames of ``val_files``)."""
     torch.manual_seed(config.seed)
     dims = used_dims(train_files)
     joints = joints_of(dims)
@@ -328,10 +350,14 @@ def train(
     x = torch.from_numpy(win.reshape(len(win), -1, 39, 3)[:, :, joints].astype(np.float32))
     f = AngleForecaster(DctMlp(len(joints), config), joints, dims)
 
+    midx = torch.from_numpy(mirror_index(joints)) if config.mirror else None
+
     def augment(b: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
-        if not config.reverse:
-            return b
-        return reverse_windows(b, torch.from_numpy(rng.random(len(b)) < 0.5))
+        if config.mirror:
+            b = mirror_maps(b, torch.from_numpy(rng.random(len(b)) < 0.5), midx)
+        if config.reverse:
+            b = reverse_windows(b, torch.from_numpy(rng.random(len(b)) < 0.5))
+        return b
 
     def validate(model: DctMlp) -> float:
         return validation_error(AngleForecaster(model, joints, dims), val)

@@ -11,8 +11,9 @@ the representation of Table 6.7: ``forecast cmu8 train --angles --model intentio
 - Training: the body19 loop's pieces (:func:`roomcap.forecast.lab.train.intention_losses`, ``optimise``):
   L_sym (6.4) + L_sym^adv (6.5) + L_rec (6.8, here the Euclidean norm over the frame's values, the shape of
   the protocol's error) + L_adv (6.7); the windows hold the gamma - 1 frames after the 25 forecast ones, so
-  the look-ahead labels (6.6) are the data's, not padding. No mirroring (a mirrored rotation is not a
-  relabelling); ``--reverse`` plays windows backwards (ours; the seed names no augmentation).
+  the look-ahead labels (6.6) are the data's, not padding. No mirroring (the DCT + MLP's ``--mirror``
+  would need the intention clusters mirrored too); ``--reverse`` plays windows backwards (ours; the seed
+  names no augmentation). ``--variety K`` (ours): L_rec of each window's closest of K noise draws.
 - Scoring a stochastic model (Table 6.7 follows "the same protocol as described in [10]", Mix&Match,
   Aliakbarian et al. 2020): per window ``N_SAMPLES`` samples, the error of the sample closest to the truth
   (chosen as ADE chooses, over the frames up to the horizon: :func:`roomcap.forecast.lab.metrics.

@@ -28,6 +28,7 @@ from roomcap.forecast.lab import cmu_more as C
 from roomcap.forecast.lab.benchmark_cmu8 import (
     ALL_OBS,
     JOINTS_USED,
+    MIRROR_PARTNER,
     N_OBS,
     DctMlp,
     DctMlpEnsemble,
@@ -51,13 +52,9 @@ log = logging.getLogger(__name__)
 
 
 def mirror_index() -> np.ndarray:
-    """For the 25 used points: the index of each one's left/right partner (legs 1-6 <-> 7-12, arms 20-28 <->
-    29-37 of the reference's 38; the spine is its own partner)."""
-    perm = list(range(38))
-    for a, b in [(i, i + 6) for i in range(1, 7)] + [(20 + k, 29 + k) for k in range(9)]:
-        perm[a], perm[b] = b, a
+    """For the 25 used points: the index of each one's left/right partner (``MIRROR_PARTNER``)."""
     used = list(JOINTS_USED)
-    return np.array([used.index(perm[j]) for j in used])
+    return np.array([used.index(MIRROR_PARTNER[j]) for j in used])
 
 
 def _mirror(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -197,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         "--angles",
         action="store_true",
         help="forecast the exponential maps (scored by `forecast eval --protocol cmu8 --metric angle`) "
-        "instead of the 3D points; --mirror does not apply",
+        "instead of the 3D points",
     )
     t.add_argument(
         "--all-files",
@@ -274,8 +271,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     bf, tr, va = _train_files(args.path, args.all_files)
     if args.angles:
-        if args.mirror:
-            raise InputError("--mirror does not apply to --angles (a mirrored rotation is not a relabelling)")
         with Bars(unit="step") as bars:
             f, hist = A.train(tr, va, cfg, progress=lambda i, n: bars("train", i, n))
         A.save(
