@@ -238,6 +238,30 @@ def test_intention_label_temperature_default_samples_as_before(tmp_path):
     assert T.load_checkpoint(tmp_path / "t.pt")[0].label_temp == 1.5  # a config field, kept by checkpoints
 
 
+def test_intention_noise_scale_scales_the_decoders_noise_only(tmp_path, monkeypatch):
+    """``z_scale`` s: the pose decoder gets s z for the same draws (labels unchanged); 1 samples as before."""
+    m, cfg = _small_intention()
+    assert cfg.z_scale == 1.0 and m.z_scale == 1.0
+    obs = torch.from_numpy(walker(20).reshape(1, 20, 57)).float()
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+    decode = m.decode
+
+    def spy(o, c, n, z):
+        seen.append((c, z))
+        return decode(o, c, n, z)
+
+    monkeypatch.setattr(m, "decode", spy)
+    with torch.no_grad():
+        for s in (1.0, 2.5):
+            m.z_scale = s
+            torch.manual_seed(5)
+            m.sample(obs, 12, 3)
+    (c1, z1), (c2, z2) = seen
+    assert torch.equal(c1, c2) and torch.allclose(z2, 2.5 * z1) and z1.abs().sum() > 0
+    T.save_checkpoint(tmp_path / "t.pt", m, "intention", dataclasses.replace(cfg, z_scale=2.0))
+    assert T.load_checkpoint(tmp_path / "t.pt")[0].z_scale == 2.0  # a config field, kept by checkpoints
+
+
 def test_intention_training_adds_the_joint_speed_term():
     cfg = T.config_from_dict(
         "intention",

@@ -51,6 +51,7 @@ class IntentionConfig:
     continuity: bool = True  # forecasts continue the last observed velocity (predict.continue_velocity)
     w_speed: float = 0.0  # weight of the joint-speed term (lab.train.speed_gap) beside L_rec and L_adv
     label_temp: float = 1.0  # sampling: temperature of the intention labels (models.intention.sample)
+    z_scale: float = 1.0  # sampling: scale of the pose decoder's noise z (models.intention.sample)
     variety: int = 1  # training: noise draws per window, L_rec of the closest (lab.train.intention_losses)
 
 

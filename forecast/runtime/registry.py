@@ -61,6 +61,7 @@ def intention_model(config: IntentionConfig, dim: int, state: Mapping | None = N
         gamma=config.gamma,
         f_dim=config.f_dim,
         label_temp=config.label_temp,
+        z_scale=config.z_scale,
     )
 
 

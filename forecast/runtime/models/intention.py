@@ -67,9 +67,11 @@ class IntentionModel(nn.Module):
         f_dim: int = 16,
         dropout: float = 0.1,
         label_temp: float = 1.0,
+        z_scale: float = 1.0,
     ):
         super().__init__()
         self.label_temp = label_temp  # sampling: temperature of d_l's label distribution (sample)
+        self.z_scale = z_scale  # sampling: the noise z ~ N(0, z_scale^2 I) (ours; training draws N(0, I))
         self.dim, self.C, self.gamma, self.z_dim, self.layers = dim, n_intentions, gamma, z_dim, layers
         self.register_buffer("centres", torch.as_tensor(np.asarray(centres), dtype=torch.float32))
         self.register_buffer("merge", torch.as_tensor(np.asarray(merge), dtype=torch.long))
@@ -145,12 +147,13 @@ class IntentionModel(nn.Module):
         self, obs: torch.Tensor, n_pred: int, n_samples: int = 1, obs_local: torch.Tensor | None = None, **_
     ) -> torch.Tensor:
         """obs (B,T,D) normalised at the last frame; obs_local (B,T,D) per-frame hip-normalised poses (for the
-        last observed label; derived from obs when absent) -> (B,S,n_pred,D). Labels at ``label_temp``."""
+        last observed label; derived from obs when absent) -> (B,S,n_pred,D). Labels at ``label_temp``, z
+        scaled by ``z_scale``."""
         B, T, D = obs.shape
         c_last = self.labels((local_poses(obs) if obs_local is None else obs_local)[:, -1])
         o, c0 = obs.repeat_interleave(n_samples, 0), c_last.repeat_interleave(n_samples, 0)
         c = self.label_rollout(o, c0, n_pred + self.gamma - 1, self.label_temp)
-        z = torch.randn(B * n_samples, self.z_dim, device=obs.device)
+        z = self.z_scale * torch.randn(B * n_samples, self.z_dim, device=obs.device)
         y = self.decode(o, c, n_pred, z)
         return y.view(B, n_samples, n_pred, D)
 
