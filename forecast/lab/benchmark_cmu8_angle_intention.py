@@ -49,6 +49,7 @@ FAMILY = A.INTENTION_FAMILY
 N_SAMPLES = 50  # samples per window scored (Mix&Match's and the seed's 50 samples per input sequence)
 VAL_SAMPLES = 10  # samples per validation window during training (selection; the checkpoint's card says so)
 VAL_STRIDE = 10  # validation windows: every 10th start of the validation files
+LABEL_LR = 1e-3  # the first stage's learning rate (train_labels)
 SCORING = (
     f"stochastic: {N_SAMPLES} samples per window; angle_error: the sample closest to the truth over the "
     "frames up to each horizon (best of k, as Mix&Match [the seed's ref. 10] scores its table); "
@@ -108,6 +109,37 @@ def validation_errors(f: IntentionAngleForecaster, val: np.ndarray, k: int = VAL
     }
 
 
+def train_labels(
+    model: IntentionModel,
+    X: torch.Tensor,
+    labels: torch.Tensor,
+    cfg: IntentionConfig,
+    rng,
+    reverse: bool = False,
+) -> float:
+    """The first stage (``cfg.label_steps`` > 0): the intention forecaster (e_l, d_l and its output layer)
+    trained alone on L_sym (eq. 6.4, teacher forced) at lr 1e-3 for ``cfg.label_steps`` batches of windows
+    ``X (N, L, D)`` with their labels ``(N, L)``, so the pose forecaster then trains beside intentions that
+    are already forecast. Returns the last batch's cross-entropy."""
+    params = [p for m in (model.e_l, model.d_l, model.l_out) for p in m.parameters()]
+    opt = torch.optim.Adam(params, lr=LABEL_LR)
+    H, g = cfg.n_pred, cfg.gamma
+    for _ in range(cfg.label_steps):
+        idx = torch.from_numpy(rng.integers(0, len(X), cfg.batch))
+        xb, lb = X[idx], labels[idx]
+        if reverse:
+            flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
+            xb, lb = reverse_windows(xb, flip), reverse_windows(lb, flip)
+        c = lb[:, cfg.n_obs - 1 : cfg.n_obs - 1 + H + g]  # the last observed frame's label on
+        logits = model.label_logits_teacher(xb[:, : cfg.n_obs], c[:, : H + g - 1])
+        ce = torch.nn.functional.cross_entropy(logits.reshape(-1, model.C), c[:, 1:].reshape(-1))
+        opt.zero_grad()
+        ce.backward()
+        opt.step()
+    log.info("intention forecaster alone, %d steps: L_sym %.4f", cfg.label_steps, ce.item())
+    return ce.item()
+
+
 def train(
     train_files: list[Path],
     val_files: list[Path],
@@ -144,6 +176,8 @@ def train(
     model.merge.copy_(torch.from_numpy(merge))
     X = torch.from_numpy(win)
     labels = model.labels(X)  # (N, L)
+    if cfg.label_steps:
+        train_labels(model, X, labels, cfg, rng, reverse)
     opt = torch.optim.Adam(model.generator_parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.steps)
     opt_d = torch.optim.Adam(model.discriminator_parameters(), lr=cfg.lr)

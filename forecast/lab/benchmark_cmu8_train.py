@@ -220,6 +220,11 @@ def main(argv: list[str] | None = None) -> int:
         help="intention: noise draws per training window, L_rec scoring the closest (ours, Social GAN's "
         "variety loss; default 1, the seed's)",
     )
+    t.add_argument(
+        "--label-steps",
+        type=positive_int,
+        help="intention: steps of a first stage training the intention forecaster alone on L_sym (eq. 6.4)",
+    )
     t.add_argument("--val-every", type=positive_int, help="steps between validation scores (model selection)")
     t.add_argument("--threads", type=positive_int, default=1)
     e = sub.add_parser("ensemble", help="one checkpoint averaging trained DCT + MLPs, scored on validation")
@@ -253,8 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     given.update(batch=args.batch, seed=args.seed, val_every=args.val_every)
     if args.model == "intention":
         return _main_intention(args, given)
-    if args.hidden is not None or args.tau_rec is not None or args.variety is not None:
-        raise InputError("--hidden, --tau-rec and --variety are options of --model intention")
+    if any(v is not None for v in (args.hidden, args.tau_rec, args.variety, args.label_steps)):
+        raise InputError("--hidden, --tau-rec, --variety and --label-steps are options of --model intention")
     if args.all_files:  # no validation files left: only the last step is scored, and kept
         given["val_every"] = args.steps
     kw = {k: v for k, v in given.items() if v is not None}
@@ -353,7 +358,9 @@ def _main_intention(args, given: dict) -> int:
     if not args.angles:
         raise InputError("--model intention forecasts the exponential maps: add --angles")
     logging.getLogger(AI.__name__).setLevel(logging.INFO)  # the validation curve, one line per check
-    cfg = AI.config(hidden=args.hidden, tau_rec=args.tau_rec, variety=args.variety, **given)
+    cfg = AI.config(
+        hidden=args.hidden, tau_rec=args.tau_rec, variety=args.variety, label_steps=args.label_steps, **given
+    )
     bf, tr, va = _train_files(args.path)
     files = {
         "train_files": [p.name for p in tr],

@@ -53,6 +53,7 @@ class IntentionConfig:
     label_temp: float = 1.0  # sampling: temperature of the intention labels (models.intention.sample)
     z_scale: float = 1.0  # sampling: scale of the pose decoder's noise z (models.intention.sample)
     variety: int = 1  # training: noise draws per window, L_rec of the closest (lab.train.intention_losses)
+    label_steps: int = 0  # training (angle benchmark): steps of the intention forecaster alone on L_sym first
 
 
 @dataclass(frozen=True)
