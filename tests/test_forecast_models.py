@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from roomcap.core.errors import FormatError
+from roomcap.core.errors import FormatError, InputError
 from roomcap.forecast.lab import data as D
 from roomcap.forecast.lab import train as T
 from roomcap.forecast.lab.toy import walker
@@ -317,6 +317,9 @@ def test_intention_variety_loss_scores_each_windows_closest_noise_draw():
     assert pred_k.shape == (B, 30, 57)  # the first draw, for the adversarial and speed terms
     r_1, _ = rec(1, 1)
     assert np.isfinite(r_1) and r_1 > r_k
+    # the first stage of the angle benchmark's model is not one of the body19 loop's: said, not ignored
+    with pytest.raises(InputError, match="label_steps .* an option of the angle benchmark"):
+        T.train("intention", _clips(2, 120), dataclasses.replace(cfg, label_steps=5))
 
 
 @pytest.mark.slow

@@ -159,9 +159,9 @@ def intention_losses(model, config, obs, fut, mfut, lab):
     c_free = model.label_rollout(obs, c_all[:, 0], H + g - 1)
     # poses conditioned on the reference intentions (teacher) with noise z, K draws per window
     c_ref = F.one_hot(c_all[:, 1 : H + g], model.C).float()
-    obs_k = obs.repeat_interleave(K, 0) if K > 1 else obs
+    obs_k = obs.repeat_interleave(K, 0)
     z = torch.randn(B * K, model.z_dim, device=obs.device)
-    pred = model.decode(obs_k, c_ref.repeat_interleave(K, 0) if K > 1 else c_ref, H, z)
+    pred = model.decode(obs_k, c_ref.repeat_interleave(K, 0), H, z)
     if config.continuity:
         pred = pred - (pred[:, :1] - (2 * obs_k[:, -1:] - obs_k[:, -2:-1]))
     J = mfut.shape[-1]
@@ -169,7 +169,7 @@ def intention_losses(model, config, obs, fut, mfut, lab):
     lam = torch.clamp(1.0 - torch.arange(H, device=obs.device, dtype=obs.dtype) / config.tau_rec, min=0.0)
     err = (pred.view(B, K, H, J, -1) - fut.view(B, 1, H, J, -1)).norm(dim=-1)  # 3 values a joint, or D/J
     w = m * lam[None, :, None]  # L_rec's weights (6.8), fading to 0 over tau_rec frames
-    if K == 1:
+    if K == 1:  # summed in this order, the seed's recipe trains bit for bit as before the variety loss
         l_rec = (err[:, 0] * m * lam[None, :, None]).sum() / w.sum().clamp(min=1)
     else:  # the closest draw per window
         l_rec = (err * w[:, None]).sum((2, 3)).min(1).values.sum() / w.sum().clamp(min=1)
@@ -227,6 +227,11 @@ def train(
     ``config.val_every`` > 0 the returned model is the state with the best validation NDMS at 2-4 s
     (``Validator``), else the last state."""
     config = config or config_from_dict(kind)
+    if getattr(config, "label_steps", 0):
+        raise InputError(
+            "label_steps (a first stage of the intention forecaster alone) is an option of the angle "
+            "benchmark's intention model: `forecast cmu8 train --angles --model intention --label-steps N`"
+        )
     torch.manual_seed(config.seed)
     np.random.seed(config.seed)  # the intention model's adversarial window offsets
     rng = np.random.default_rng(config.seed)
