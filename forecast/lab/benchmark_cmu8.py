@@ -324,6 +324,14 @@ def reverse_windows(b: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
     return torch.where(flip.view(-1, *[1] * (b.dim() - 1)), b.flip(1), b)
 
 
+def mirror_windows(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor, signs) -> torch.Tensor:
+    """Windows ``b (B, T, V, 3)``: those with ``flip (B,)`` mirrored left/right: each 3-vector takes its
+    partner's (``idx``, from ``MIRROR_PARTNER``) times ``signs`` (a point's (-x, y, z); an exponential map's
+    (x, -y, -z))."""
+    m = b[:, :, idx] * torch.tensor(signs, dtype=b.dtype)
+    return torch.where(flip.view(-1, 1, 1, 1), m, b)
+
+
 def window_loss(pred: torch.Tensor, fut: torch.Tensor, per_frame: bool = False) -> torch.Tensor:
     """Mean point error plus the mean error of the frame-to-frame changes (siMLPe's two terms); a 'point' is
     the last axis (3D points, or the exponential maps of :mod:`roomcap.forecast.lab.benchmark_cmu8_angle`).

@@ -46,6 +46,7 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     Forecaster,
     MlpConfig,
     fit_mlp,
+    mirror_windows,
     reverse_windows,
     rollout,
     window_starts,
@@ -332,8 +333,7 @@ def mirror_maps(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch
     A rotation R mirrored is M R M with M = diag(-1, 1, 1), whose map is (x, -y, -z): each joint takes its
     partner's map so changed. The reference's forward kinematics of the mirrored maps is the mirror of its
     points up to the skeleton's own left/right differences (exactly, on a symmetrised skeleton)."""
-    m = b[:, :, idx] * torch.tensor([1.0, -1.0, -1.0], dtype=b.dtype)
-    return torch.where(flip[:, None, None, None], m, b)
+    return mirror_windows(b, flip, idx, (1.0, -1.0, -1.0))
 
 
 def train(

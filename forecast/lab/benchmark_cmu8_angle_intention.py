@@ -37,7 +37,7 @@ from roomcap.forecast.lab import benchmark_cmu8_angle as A
 from roomcap.forecast.lab.benchmark_cmu8 import reverse_windows
 from roomcap.forecast.lab.intention_labels import fit_intention_labels
 from roomcap.forecast.lab.metrics import closest_sequence_error
-from roomcap.forecast.lab.train import intention_losses, optimise
+from roomcap.forecast.lab.train import intention_losses, intention_sym_loss, optimise
 from roomcap.forecast.runtime.checkpoint import read_checkpoint, write_checkpoint
 from roomcap.forecast.runtime.config import IntentionConfig
 from roomcap.forecast.runtime.models.intention import IntentionModel
@@ -109,6 +109,17 @@ def validation_errors(f: IntentionAngleForecaster, val: np.ndarray, k: int = VAL
     }
 
 
+def _batch(X: torch.Tensor, labels: torch.Tensor, cfg: IntentionConfig, rng, reverse: bool):
+    """A training batch of windows and their labels, drawn with replacement (``reverse``: each played
+    backwards with its labels with probability 1/2)."""
+    idx = torch.from_numpy(rng.integers(0, len(X), cfg.batch))
+    xb, lb = X[idx], labels[idx]
+    if reverse:
+        flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
+        xb, lb = reverse_windows(xb, flip), reverse_windows(lb, flip)
+    return xb, lb
+
+
 def train_labels(
     model: IntentionModel,
     X: torch.Tensor,
@@ -123,16 +134,9 @@ def train_labels(
     are already forecast. Returns the last batch's cross-entropy."""
     params = [p for m in (model.e_l, model.d_l, model.l_out) for p in m.parameters()]
     opt = torch.optim.Adam(params, lr=LABEL_LR)
-    H, g = cfg.n_pred, cfg.gamma
     for _ in range(cfg.label_steps):
-        idx = torch.from_numpy(rng.integers(0, len(X), cfg.batch))
-        xb, lb = X[idx], labels[idx]
-        if reverse:
-            flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
-            xb, lb = reverse_windows(xb, flip), reverse_windows(lb, flip)
-        c = lb[:, cfg.n_obs - 1 : cfg.n_obs - 1 + H + g]  # the last observed frame's label on
-        logits = model.label_logits_teacher(xb[:, : cfg.n_obs], c[:, : H + g - 1])
-        ce = torch.nn.functional.cross_entropy(logits.reshape(-1, model.C), c[:, 1:].reshape(-1))
+        xb, lb = _batch(X, labels, cfg, rng, reverse)
+        ce, _ = intention_sym_loss(model, cfg, xb[:, : cfg.n_obs], lb, cfg.n_pred)
         opt.zero_grad()
         ce.backward()
         opt.step()
@@ -191,11 +195,7 @@ def train(
     best, best_state, t_val, t0 = None, None, 0.0, time.perf_counter()
     for step in range(cfg.steps):
         model.train()
-        idx = torch.from_numpy(rng.integers(0, len(X), cfg.batch))
-        xb, lb = X[idx], labels[idx]
-        if reverse:
-            flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
-            xb, lb = reverse_windows(xb, flip), reverse_windows(lb, flip)
+        xb, lb = _batch(X, labels, cfg, rng, reverse)
         obs, fut = xb[:, : cfg.n_obs], xb[:, cfg.n_obs : cfg.n_obs + cfg.n_pred]
         loss, terms, d_loss, _ = intention_losses(model, cfg, obs, fut, ones, lb)
         optimise(model, loss, opt, sched, opt_d, d_loss)

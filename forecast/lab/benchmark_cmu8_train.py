@@ -39,6 +39,7 @@ from roomcap.forecast.lab.benchmark_cmu8 import (
     fit_mlp,
     is_cmu8_checkpoint,
     load_mlp,
+    mirror_windows,
     mlp_forecast,
     mpjpe_mm,
     reverse_windows,
@@ -59,9 +60,7 @@ def mirror_index() -> np.ndarray:
 
 def _mirror(b: torch.Tensor, flip: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """Windows ``b (B,T,25,3)``: those with ``flip`` mirrored (x -> -x in the body frame, left <-> right)."""
-    m = b[:, :, idx].clone()
-    m[..., 0] = -m[..., 0]
-    return torch.where(flip[:, None, None, None], m, b)
+    return mirror_windows(b, flip, idx, (-1.0, 1.0, 1.0))
 
 
 def _pad_start(b: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:

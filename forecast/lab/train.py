@@ -137,6 +137,19 @@ def speed_gap(pred, fut, last, mask):
     return ((sp[0] - sp[1]).abs() * m).sum() / m.sum().clamp(min=1)
 
 
+def intention_sym_loss(model, config, obs, lab, H: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """L_sym (Tanke eq. 6.4, teacher forced) of a batch forecasting ``H`` frames: ``lab`` (B,L) the window's
+    intention labels. Returns L_sym and the labels from the last observed frame on (B, H + gamma): the
+    forecast frames' and the gamma - 1 look-ahead frames' after them, the last label repeated where the
+    window ends sooner."""
+    need = H + config.gamma  # the last observed frame's label, the forecast's, the look-ahead's
+    c_all = lab[:, config.n_obs - 1 : config.n_obs - 1 + need]
+    c_all = torch.cat([c_all, c_all[:, -1:].expand(-1, need - c_all.shape[1])], 1)
+    # teacher-forced CE on labels t+1..t+H+γ-1
+    logits = model.label_logits_teacher(obs, c_all[:, : need - 1])
+    return F.cross_entropy(logits.reshape(-1, model.C), c_all[:, 1:need].reshape(-1)), c_all
+
+
 def intention_losses(model, config, obs, fut, mfut, lab):
     """The intention model's training losses (Tanke eqs. 6.4-6.8) of a batch: obs (B,T,D), fut (B,H,D), mfut
     (B,H,J) the forecast frames' joint masks, ``lab`` (B,L) the intention labels of the window's frames; the
@@ -150,12 +163,7 @@ def intention_losses(model, config, obs, fut, mfut, lab):
     (``predict.continue_velocity``). Shared by the body19 loop (:func:`train`) and the exponential-map one
     (:mod:`roomcap.forecast.lab.benchmark_cmu8_angle_intention`)."""
     H, g, B, K = fut.shape[1], config.gamma, obs.shape[0], config.variety
-    need = H + g  # the last observed frame's label, the forecast's, the look-ahead's
-    c_all = lab[:, config.n_obs - 1 : config.n_obs - 1 + need]
-    c_all = torch.cat([c_all, c_all[:, -1:].expand(-1, need - c_all.shape[1])], 1)
-    # intention: teacher-forced CE (6.4) on labels t+1..t+H+γ-1
-    logits = model.label_logits_teacher(obs, c_all[:, : H + g - 1])
-    l_sym = F.cross_entropy(logits.reshape(-1, model.C), c_all[:, 1 : H + g].reshape(-1))
+    l_sym, c_all = intention_sym_loss(model, config, obs, lab, H)
     c_free = model.label_rollout(obs, c_all[:, 0], H + g - 1)
     # poses conditioned on the reference intentions (teacher) with noise z, K draws per window
     c_ref = F.one_hot(c_all[:, 1 : H + g], model.C).float()
